@@ -1,0 +1,306 @@
+//! Clip sources mapped onto an existing rig: CSV, JSON and glTF animations.
+//!
+//! Target names are matched exactly first, then loosely, so that face-capture exports work on
+//! rigs that spell the same ARKit shape differently: case and underscores are ignored and a
+//! trailing `Left`/`Right` equals `_L`/`_R` (`EyeBlinkLeft` ≡ `eyeBlink_L`). Names that match
+//! nothing are an [`ImportError::UnknownTargets`] unless the caller asks to ignore them, in
+//! which case they are returned in [`ClipImport::ignored`] — reported, never silently dropped.
+
+use serde::Deserialize;
+
+use super::gltf::{
+    bake, mesh_target_count, mesh_target_names, parse, scene_instances, unique_name, weight_tracks,
+};
+use super::{ImportError, ImportOptions};
+use crate::rig::{Clip, DEFAULT_FPS, MAX_FRAMES, Rig, TargetId};
+
+/// Options for reading a clip source.
+#[derive(Clone, Debug)]
+pub struct ClipOptions {
+    /// Frame rate of CSV rows (JSON carries its own), and the baking rate of glTF animations.
+    pub fps: f32,
+    /// Accept sources that name targets the rig does not have, reporting them instead.
+    pub ignore_unknown: bool,
+}
+
+impl Default for ClipOptions {
+    fn default() -> Self {
+        ClipOptions {
+            fps: DEFAULT_FPS,
+            ignore_unknown: false,
+        }
+    }
+}
+
+/// A clip read from a source, with the source's target names that matched nothing.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ClipImport {
+    /// The clip, over all the rig's targets.
+    pub clip: Clip,
+    /// Source target names not in the rig (only when `ignore_unknown` was set).
+    pub ignored: Vec<String>,
+}
+
+/// Columns of face-capture CSVs that are metadata, not targets.
+const METADATA_COLUMNS: &[&str] = &["timecode", "time", "timestamp", "frame", "blendshapecount"];
+
+/// Canonical spelling for loose matching: lower case, no separators, `left`/`right` → `l`/`r`.
+fn loose(name: &str) -> String {
+    let mut s: String = name
+        .chars()
+        .filter(|c| c.is_alphanumeric())
+        .flat_map(char::to_lowercase)
+        .collect();
+    for (long, short) in [("left", "l"), ("right", "r")] {
+        if s.ends_with(long) {
+            s.truncate(s.len() - long.len());
+            s.push_str(short);
+        }
+    }
+    s
+}
+
+/// The rig target a source name refers to, if any.
+pub fn match_target(rig: &Rig, name: &str) -> Option<TargetId> {
+    if let Some(id) = rig.target_id(name) {
+        return Some(id);
+    }
+    let want = loose(name);
+    let mut hits = rig
+        .targets
+        .iter()
+        .enumerate()
+        .filter(|(_, t)| loose(t) == want);
+    match (hits.next(), hits.next()) {
+        (Some((i, _)), None) => Some(i as TargetId),
+        _ => None,
+    }
+}
+
+/// Maps source column names to rig targets, collecting the unknown ones.
+fn map_names(
+    rig: &Rig,
+    names: &[String],
+    options: &ClipOptions,
+) -> Result<(Vec<Option<TargetId>>, Vec<String>), ImportError> {
+    let mut ids = Vec::with_capacity(names.len());
+    let mut unknown = Vec::new();
+    for n in names {
+        let id = match_target(rig, n);
+        if id.is_none() {
+            unknown.push(n.clone());
+        }
+        ids.push(id);
+    }
+    if !unknown.is_empty() && !options.ignore_unknown {
+        return Err(ImportError::UnknownTargets(unknown));
+    }
+    Ok((ids, unknown))
+}
+
+/// Builds a clip over all rig targets from frame-major source rows.
+fn clip_from_rows(
+    rig: &Rig,
+    name: &str,
+    fps: f32,
+    ids: &[Option<TargetId>],
+    rows: &[Vec<f32>],
+) -> Result<Clip, ImportError> {
+    let n = rig.targets.len();
+    let frames = rows.len();
+    if frames == 0 {
+        return Err(ImportError::ClipSource("no frames".into()));
+    }
+    if frames > MAX_FRAMES {
+        return Err(ImportError::ClipSource(format!(
+            "{frames} frames (at most {MAX_FRAMES})"
+        )));
+    }
+    let mut weights = vec![0.0; n * frames];
+    for (t, row) in weights.chunks_exact_mut(frames).enumerate() {
+        row.fill(rig.default_weights[t]);
+    }
+    for (f, row) in rows.iter().enumerate() {
+        for (c, &w) in row.iter().enumerate() {
+            if let Some(Some(id)) = ids.get(c) {
+                weights[*id as usize * frames + f] = w;
+            }
+        }
+    }
+    Ok(Clip::new(name, fps, n, frames, weights)?)
+}
+
+fn parse_weight(text: &str, row: usize, column: &str) -> Result<f32, ImportError> {
+    let v: f32 = text.trim().parse().map_err(|_| {
+        ImportError::ClipSource(format!(
+            "row {row}, column {column:?}: {text:?} is not a number"
+        ))
+    })?;
+    if !v.is_finite() {
+        return Err(ImportError::ClipSource(format!(
+            "row {row}, column {column:?}: {text:?} is not finite"
+        )));
+    }
+    Ok(v)
+}
+
+/// Reads a CSV clip: a header row of target names, then one row of weights per frame. Metadata
+/// columns such as Live Link Face's `Timecode` and `BlendShapeCount` are skipped.
+pub fn clip_from_csv(
+    rig: &Rig,
+    name: &str,
+    bytes: &[u8],
+    options: &ClipOptions,
+) -> Result<ClipImport, ImportError> {
+    let mut reader = csv::ReaderBuilder::new()
+        .has_headers(true)
+        .flexible(true)
+        .trim(csv::Trim::All)
+        .from_reader(bytes);
+    let header = reader
+        .headers()
+        .map_err(|e| ImportError::ClipSource(format!("CSV header: {e}")))?
+        .clone();
+    let mut keep = Vec::new();
+    let mut names = Vec::new();
+    for (i, h) in header.iter().enumerate() {
+        if !METADATA_COLUMNS.contains(&loose(h).as_str()) {
+            keep.push(i);
+            names.push(h.to_string());
+        }
+    }
+    if names.is_empty() {
+        return Err(ImportError::ClipSource(
+            "CSV header names no targets".into(),
+        ));
+    }
+    let (ids, ignored) = map_names(rig, &names, options)?;
+    let mut rows = Vec::new();
+    for (r, record) in reader.records().enumerate() {
+        let row_no = r + 2; // 1-based, after the header.
+        let record =
+            record.map_err(|e| ImportError::ClipSource(format!("CSV row {row_no}: {e}")))?;
+        if record.len() != header.len() {
+            return Err(ImportError::ClipSource(format!(
+                "CSV row {row_no} has {} fields, the header has {}",
+                record.len(),
+                header.len()
+            )));
+        }
+        if rows.len() >= MAX_FRAMES {
+            return Err(ImportError::ClipSource(format!(
+                "more than {MAX_FRAMES} rows"
+            )));
+        }
+        let mut row = Vec::with_capacity(keep.len());
+        for (&c, n) in keep.iter().zip(&names) {
+            row.push(parse_weight(&record[c], row_no, n)?);
+        }
+        rows.push(row);
+    }
+    let clip = clip_from_rows(rig, name, options.fps, &ids, &rows)?;
+    Ok(ClipImport { clip, ignored })
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct JsonClip {
+    fps: Option<f32>,
+    targets: Vec<String>,
+    frames: Vec<Vec<f32>>,
+}
+
+/// Reads a JSON clip: `{"fps":30,"targets":[names],"frames":[[weights]...]}`.
+pub fn clip_from_json(
+    rig: &Rig,
+    name: &str,
+    bytes: &[u8],
+    options: &ClipOptions,
+) -> Result<ClipImport, ImportError> {
+    let src: JsonClip =
+        serde_json::from_slice(bytes).map_err(|e| ImportError::ClipSource(format!("JSON: {e}")))?;
+    let (ids, ignored) = map_names(rig, &src.targets, options)?;
+    if let Some((f, row)) = src
+        .frames
+        .iter()
+        .enumerate()
+        .find(|(_, r)| r.len() != src.targets.len())
+    {
+        return Err(ImportError::ClipSource(format!(
+            "frame {f} has {} weights, there are {} targets",
+            row.len(),
+            src.targets.len()
+        )));
+    }
+    let fps = src.fps.unwrap_or(options.fps);
+    let clip = clip_from_rows(rig, name, fps, &ids, &src.frames)?;
+    Ok(ClipImport { clip, ignored })
+}
+
+/// Reads every morph-weight animation of a glTF/GLB file as clips of `rig`, matching the file's
+/// mesh target names to the rig's. Clips are named after the animations.
+pub fn clips_from_gltf(
+    rig: &Rig,
+    bytes: &[u8],
+    options: &ClipOptions,
+) -> Result<Vec<ClipImport>, ImportError> {
+    let import = ImportOptions {
+        fps: options.fps,
+        ..ImportOptions::default()
+    };
+    let parsed = parse(bytes, &import)?;
+    let instances = scene_instances(&parsed.doc)?;
+    let mut by_node = std::collections::HashMap::new();
+    let mut ignored = Vec::new();
+    for inst in &instances {
+        let count = mesh_target_count(&inst.mesh)?;
+        let names = mesh_target_names(&inst.mesh, count);
+        let (ids, unknown) = map_names(rig, &names, options)?;
+        ignored.extend(unknown);
+        by_node.insert(inst.node.index(), ids);
+    }
+    let lookup = |node: &gltf::Node<'_>| by_node.get(&node.index()).cloned();
+    let mut out: Vec<ClipImport> = Vec::new();
+    for anim in parsed.doc.animations() {
+        let tracks = weight_tracks(&parsed.source, &anim, &lookup)?;
+        if tracks.is_empty() {
+            continue;
+        }
+        let name = anim
+            .name()
+            .filter(|n| !n.is_empty())
+            .map_or_else(|| format!("anim{}", anim.index()), str::to_string);
+        let taken: Vec<String> = out.iter().map(|c| c.clip.name.clone()).collect();
+        let name = unique_name(name, &taken);
+        let clip = bake(
+            &name,
+            &tracks,
+            rig.targets.len(),
+            &rig.default_weights,
+            options.fps,
+        )?;
+        out.push(ClipImport {
+            clip,
+            ignored: ignored.clone(),
+        });
+    }
+    if out.is_empty() {
+        return Err(ImportError::ClipSource(
+            "the glTF file has no morph-weight animation".into(),
+        ));
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::loose;
+
+    #[test]
+    fn loose_names_match_arkit_spellings() {
+        assert_eq!(loose("EyeBlinkLeft"), loose("eyeBlink_L"));
+        assert_eq!(loose("mouthSmile_R"), loose("MouthSmileRight"));
+        assert_eq!(loose("JawOpen"), loose("jawOpen"));
+        assert_ne!(loose("browInnerUp_L"), loose("BrowInnerUp"));
+    }
+}

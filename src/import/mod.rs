@@ -1,0 +1,142 @@
+//! Readers that turn files into validated rigs and clips.
+//!
+//! - [`gltf`]: `.gltf` (embedded or external buffers) and `.glb` rigs, with every animation that
+//!   drives morph weights baked into a clip;
+//! - [`clips`]: clip sources on their own — CSV (ARKit face-capture style) and JSON tables, and
+//!   the animations of another glTF file — mapped onto an existing rig by target name.
+//!
+//! Everything here treats its input as hostile: sizes are checked against the bytes actually
+//! present before anything is allocated, and every problem is a typed [`ImportError`] that names
+//! what is wrong. Nothing here panics on bad input.
+
+mod accessor;
+pub mod clips;
+pub mod gltf;
+
+use std::path::{Path, PathBuf};
+
+use crate::rig::{ClipError, DEFAULT_DELTA_THRESHOLD, Rig, RigError};
+
+pub use self::clips::{clip_from_csv, clip_from_json, clips_from_gltf};
+
+/// Options of an import.
+#[derive(Clone, Debug)]
+pub struct ImportOptions {
+    /// Vertices whose deltas are all at most this (per component, rig units) are not stored.
+    pub delta_threshold: f32,
+    /// Rate at which keyframed animations are baked into weight tables.
+    pub fps: f32,
+    /// Directory that relative buffer URIs resolve against; `None` accepts only self-contained
+    /// files (GLB, data URIs), as the server does.
+    pub base_dir: Option<PathBuf>,
+    /// Rig name; defaults to the file stem.
+    pub name: Option<String>,
+    /// Most bytes the decoded arrays of one import may occupy. Bounds what a small file that
+    /// declares huge counts (a "glTF bomb") can make us allocate.
+    pub max_decoded_bytes: usize,
+}
+
+impl Default for ImportOptions {
+    fn default() -> Self {
+        ImportOptions {
+            delta_threshold: DEFAULT_DELTA_THRESHOLD,
+            fps: crate::rig::DEFAULT_FPS,
+            base_dir: None,
+            name: None,
+            max_decoded_bytes: 2 << 30,
+        }
+    }
+}
+
+/// Why a file could not be imported.
+#[derive(Debug, thiserror::Error)]
+pub enum ImportError {
+    /// The file could not be read.
+    #[error("cannot read {path}: {source}")]
+    Io {
+        /// File path.
+        path: String,
+        /// Underlying error.
+        source: std::io::Error,
+    },
+    /// The GLB container is malformed (wrong magic, truncated, bad chunk lengths).
+    #[error("invalid GLB: {0}")]
+    Glb(String),
+    /// The glTF JSON is malformed.
+    #[error("invalid glTF JSON: {0}")]
+    Json(String),
+    /// The glTF document breaks the specification (e.g. dangling references).
+    #[error("invalid glTF: {0}")]
+    Invalid(String),
+    /// The file requires a glTF extension crowdmorph does not implement.
+    #[error("glTF requires unsupported extension {0:?}")]
+    UnsupportedExtension(String),
+    /// A buffer is missing, refused or shorter than declared.
+    #[error("buffer {index}: {problem}")]
+    Buffer {
+        /// Buffer index.
+        index: usize,
+        /// What is wrong.
+        problem: String,
+    },
+    /// An accessor cannot be read (out of bounds, bad type, too large).
+    #[error("accessor {index}: {problem}")]
+    Accessor {
+        /// Accessor index.
+        index: usize,
+        /// What is wrong.
+        problem: String,
+    },
+    /// A mesh is unusable (e.g. primitives disagree on their target count).
+    #[error("mesh {mesh:?}: {problem}")]
+    Mesh {
+        /// Mesh name or index.
+        mesh: String,
+        /// What is wrong.
+        problem: String,
+    },
+    /// An animation is unusable.
+    #[error("animation {animation:?}: {problem}")]
+    Animation {
+        /// Animation name or index.
+        animation: String,
+        /// What is wrong.
+        problem: String,
+    },
+    /// Decoding would allocate more than [`ImportOptions::max_decoded_bytes`].
+    #[error("file declares {declared} bytes of data, more than the limit of {limit}")]
+    TooLarge {
+        /// Bytes the file asks for.
+        declared: usize,
+        /// The limit.
+        limit: usize,
+    },
+    /// A clip table is unusable (CSV/JSON shape, ragged rows, bad numbers).
+    #[error("clip: {0}")]
+    ClipSource(String),
+    /// A clip source names targets the rig does not have.
+    #[error("unknown target(s) not in the rig: {}", .0.join(", "))]
+    UnknownTargets(Vec<String>),
+    /// The imported data breaks a rig invariant (NaN, no vertices, ...).
+    #[error(transparent)]
+    Rig(#[from] RigError),
+    /// The baked clip breaks a clip invariant.
+    #[error(transparent)]
+    Clip(#[from] ClipError),
+}
+
+/// Reads a rig from a `.glb` or `.gltf` file; relative buffer URIs resolve next to the file.
+pub fn load_path(path: &Path, options: &ImportOptions) -> Result<Rig, ImportError> {
+    let bytes = std::fs::read(path).map_err(|source| ImportError::Io {
+        path: path.display().to_string(),
+        source,
+    })?;
+    let mut options = options.clone();
+    if options.base_dir.is_none() {
+        options.base_dir = Some(path.parent().map(Path::to_path_buf).unwrap_or_default());
+    }
+    if options.name.is_none() {
+        options.name = path.file_stem().map(|s| s.to_string_lossy().into_owned());
+    }
+    gltf::rig_from_slice(&bytes, &options)
+}

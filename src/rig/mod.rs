@@ -1,0 +1,425 @@
+//! The rig model: pure data, no I/O, no GPU.
+//!
+//! A [`Rig`] is what every engine evaluates: the primitives of a glTF file's default scene in rig
+//! space, their morph targets stored sparse, the rig-wide target names that weights address, the
+//! animation clips (weight tables, targets × frames) and the level-of-detail order. Importers
+//! build it, engines prepare their own layouts from it, and the server persists it. Keeping it free
+//! of I/O and of `wgpu` means every layer above can depend on it without dragging the others in.
+//!
+//! Conventions:
+//! - Targets are addressed rig-wide by [`TargetId`] (an index into [`Rig::targets`]); a
+//!   primitive's [`SparseTarget::target`] says which rig-wide target it belongs to, so one weight
+//!   drives every primitive that has that target.
+//! - The evaluation vertex space is all primitives concatenated in order; [`Rig::vertex_offsets`]
+//!   maps a primitive to its first vertex there. Output buffers use this order.
+
+mod clip;
+mod lod;
+mod sample;
+
+pub use clip::{Clip, ClipError, DEFAULT_FPS, FrameMode, MAX_FRAMES};
+pub use lod::{Lod, LodError, default_lod_levels};
+pub use sample::{Interpolation, KeyTrack, sample_track};
+
+use glam::{Vec3, Vec4};
+use serde::{Deserialize, Serialize};
+
+/// Index of a target in [`Rig::targets`].
+pub type TargetId = u32;
+
+/// Default sparsity threshold: a vertex is stored in a target only if some component of one of
+/// its deltas exceeds this, in rig units. ICT FaceKit's OBJ rounding noise sits below it.
+pub const DEFAULT_DELTA_THRESHOLD: f32 = 1e-6;
+
+/// A weight whose magnitude is at most this is treated as inactive (Lorach 2007: only active
+/// shapes are visited).
+pub const ACTIVE_WEIGHT_EPSILON: f32 = 1e-6;
+
+/// A blendshape rig: neutral primitives, sparse morph targets, clips and LOD order.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct Rig {
+    /// Human-readable name (file stem or the name given on upload).
+    pub name: String,
+    /// Rig-wide target names; a [`TargetId`] indexes this list.
+    pub targets: Vec<String>,
+    /// Weight of each target when a clip does not animate it (glTF `mesh.weights`, else 0).
+    pub default_weights: Vec<f32>,
+    /// The primitives, in file order (default scene traversal order).
+    pub primitives: Vec<Primitive>,
+    /// Animation clips: weight tables over all rig-wide targets.
+    pub clips: Vec<Clip>,
+    /// Importance order of the targets and the LOD table.
+    pub lod: Lod,
+}
+
+/// One primitive of the rig, in rig space.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct Primitive {
+    /// `mesh name/primitive index` as found in the file, for reports.
+    pub name: String,
+    /// Neutral positions.
+    pub positions: Vec<Vec3>,
+    /// Neutral unit normals (from the file, or computed from the triangles when absent).
+    pub normals: Vec<Vec3>,
+    /// Whether [`Primitive::normals`] came from the file rather than being computed.
+    pub normals_from_file: bool,
+    /// Neutral tangents (xyz unit, w handedness) when the file has them.
+    pub tangents: Option<Vec<Vec4>>,
+    /// Triangle list indices into this primitive's vertices.
+    pub indices: Vec<u32>,
+    /// Morph targets of this primitive, each naming its rig-wide target.
+    pub targets: Vec<SparseTarget>,
+}
+
+/// A morph target restricted to the vertices it moves.
+///
+/// `vertices` is strictly ascending; the delta arrays are parallel to it. Normal and tangent
+/// deltas are present only when the file has them for this target.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct SparseTarget {
+    /// Rig-wide target this belongs to.
+    pub target: TargetId,
+    /// Vertex indices (into the primitive) with a delta above the threshold, ascending.
+    pub vertices: Vec<u32>,
+    /// Position deltas, parallel to `vertices`.
+    pub positions: Vec<Vec3>,
+    /// Normal deltas, parallel to `vertices`, when the file has them.
+    pub normals: Option<Vec<Vec3>>,
+    /// Tangent deltas (xyz), parallel to `vertices`, when the file has them.
+    pub tangents: Option<Vec<Vec3>>,
+}
+
+/// Axis-aligned bounding box.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
+pub struct Aabb {
+    /// Minimum corner.
+    pub min: Vec3,
+    /// Maximum corner.
+    pub max: Vec3,
+}
+
+impl Aabb {
+    /// Length of the diagonal; tolerances are stated relative to it.
+    pub fn diagonal(&self) -> f32 {
+        (self.max - self.min).length()
+    }
+}
+
+/// Why a rig is not acceptable.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum RigError {
+    /// The rig has no vertices at all.
+    #[error("rig has no vertices")]
+    NoVertices,
+    /// A primitive's arrays disagree in length or reference vertices that do not exist.
+    #[error("primitive {primitive:?}: {problem}")]
+    Inconsistent {
+        /// Primitive name.
+        primitive: String,
+        /// What is wrong.
+        problem: String,
+    },
+    /// A value is NaN or infinite.
+    #[error("{what} contains a non-finite value (NaN or infinity)")]
+    NonFinite {
+        /// Which array.
+        what: String,
+    },
+    /// A clip is malformed.
+    #[error(transparent)]
+    Clip(#[from] ClipError),
+    /// The LOD table is malformed.
+    #[error(transparent)]
+    Lod(#[from] LodError),
+    /// Too many vertices or targets for the engines' index types.
+    #[error("rig too large: {0}")]
+    TooLarge(String),
+}
+
+/// Most vertices a rig may have (all primitives together); keeps indices in `u32` with room.
+pub const MAX_VERTICES: usize = 1 << 26;
+/// Most rig-wide targets; slots are stored as `u16` in the engines.
+pub const MAX_TARGETS: usize = 4096;
+
+impl Rig {
+    /// Total number of vertices over all primitives.
+    pub fn vertex_count(&self) -> usize {
+        self.primitives.iter().map(|p| p.positions.len()).sum()
+    }
+
+    /// First vertex of each primitive in the concatenated evaluation vertex space, plus the total.
+    pub fn vertex_offsets(&self) -> Vec<usize> {
+        let mut offsets = Vec::with_capacity(self.primitives.len() + 1);
+        let mut acc = 0;
+        for p in &self.primitives {
+            offsets.push(acc);
+            acc += p.positions.len();
+        }
+        offsets.push(acc);
+        offsets
+    }
+
+    /// Total number of triangles.
+    pub fn triangle_count(&self) -> usize {
+        self.primitives.iter().map(|p| p.indices.len() / 3).sum()
+    }
+
+    /// Bounding box of the neutral positions.
+    pub fn bbox(&self) -> Aabb {
+        let mut min = Vec3::splat(f32::INFINITY);
+        let mut max = Vec3::splat(f32::NEG_INFINITY);
+        for p in &self.primitives {
+            for &v in &p.positions {
+                min = min.min(v);
+                max = max.max(v);
+            }
+        }
+        if min.x > max.x {
+            min = Vec3::ZERO;
+            max = Vec3::ZERO;
+        }
+        Aabb { min, max }
+    }
+
+    /// Index of the target with this name.
+    pub fn target_id(&self, name: &str) -> Option<TargetId> {
+        self.targets
+            .iter()
+            .position(|t| t == name)
+            .map(|i| i as TargetId)
+    }
+
+    /// Index of the clip with this name.
+    pub fn clip_index(&self, name: &str) -> Option<usize> {
+        self.clips.iter().position(|c| c.name == name)
+    }
+
+    /// Number of stored (non-zero) vertex deltas of each rig-wide target, over all primitives.
+    pub fn target_nnz(&self) -> Vec<usize> {
+        let mut nnz = vec![0usize; self.targets.len()];
+        for p in &self.primitives {
+            for t in &p.targets {
+                if let Some(n) = nnz.get_mut(t.target as usize) {
+                    *n += t.vertices.len();
+                }
+            }
+        }
+        nnz
+    }
+
+    /// Whether any target of any primitive carries normal deltas.
+    pub fn has_normal_deltas(&self) -> bool {
+        self.primitives.iter().any(Primitive::has_normal_deltas)
+    }
+
+    /// Host memory held by the rig's arrays, in bytes (approximate, for reports).
+    pub fn host_bytes(&self) -> usize {
+        let mut b = 0;
+        for p in &self.primitives {
+            b += p.positions.len() * 12 + p.normals.len() * 12 + p.indices.len() * 4;
+            b += p.tangents.as_ref().map_or(0, |t| t.len() * 16);
+            for t in &p.targets {
+                b += t.vertices.len() * 4 + t.positions.len() * 12;
+                b += t.normals.as_ref().map_or(0, |n| n.len() * 12);
+                b += t.tangents.as_ref().map_or(0, |n| n.len() * 12);
+            }
+        }
+        b + self
+            .clips
+            .iter()
+            .map(|c| c.weights.len() * 4)
+            .sum::<usize>()
+    }
+
+    /// Checks every invariant the engines rely on. Importers call it before handing a rig out,
+    /// and persistence calls it after reading one back, so a rig in memory is always valid.
+    pub fn validate(&self) -> Result<(), RigError> {
+        let n_targets = self.targets.len();
+        if n_targets > MAX_TARGETS {
+            return Err(RigError::TooLarge(format!(
+                "{n_targets} targets (at most {MAX_TARGETS})"
+            )));
+        }
+        let total = self.vertex_count();
+        if total == 0 {
+            return Err(RigError::NoVertices);
+        }
+        if total > MAX_VERTICES {
+            return Err(RigError::TooLarge(format!(
+                "{total} vertices (at most {MAX_VERTICES})"
+            )));
+        }
+        if self.default_weights.len() != n_targets {
+            return Err(RigError::Inconsistent {
+                primitive: String::new(),
+                problem: format!(
+                    "{} default weights for {n_targets} targets",
+                    self.default_weights.len()
+                ),
+            });
+        }
+        check_finite("default weights", self.default_weights.iter().copied())?;
+        for p in &self.primitives {
+            p.validate(n_targets)?;
+        }
+        for c in &self.clips {
+            c.validate(n_targets)?;
+        }
+        self.lod.validate(n_targets)?;
+        Ok(())
+    }
+}
+
+impl Primitive {
+    /// Whether any of this primitive's targets carries normal deltas.
+    pub fn has_normal_deltas(&self) -> bool {
+        self.targets.iter().any(|t| t.normals.is_some())
+    }
+
+    fn validate(&self, n_targets: usize) -> Result<(), RigError> {
+        let bad = |problem: String| RigError::Inconsistent {
+            primitive: self.name.clone(),
+            problem,
+        };
+        let n = self.positions.len();
+        if self.normals.len() != n {
+            return Err(bad(format!(
+                "{} normals for {n} positions",
+                self.normals.len()
+            )));
+        }
+        if let Some(t) = &self.tangents
+            && t.len() != n
+        {
+            return Err(bad(format!("{} tangents for {n} positions", t.len())));
+        }
+        if !self.indices.len().is_multiple_of(3) {
+            return Err(bad(format!(
+                "{} indices is not a triangle list",
+                self.indices.len()
+            )));
+        }
+        if let Some(&i) = self.indices.iter().find(|&&i| i as usize >= n) {
+            return Err(bad(format!("index {i} out of range for {n} vertices")));
+        }
+        let what = |s: &str| format!("primitive {:?} {s}", self.name);
+        check_finite(
+            &what("positions"),
+            self.positions.iter().flat_map(|v| v.to_array()),
+        )?;
+        check_finite(
+            &what("normals"),
+            self.normals.iter().flat_map(|v| v.to_array()),
+        )?;
+        if let Some(t) = &self.tangents {
+            check_finite(&what("tangents"), t.iter().flat_map(|v| v.to_array()))?;
+        }
+        let mut seen = vec![false; n_targets];
+        for t in &self.targets {
+            let id = t.target as usize;
+            if id >= n_targets {
+                return Err(bad(format!(
+                    "target id {id} out of range ({n_targets} targets)"
+                )));
+            }
+            if std::mem::replace(&mut seen[id], true) {
+                return Err(bad(format!("target id {id} appears twice")));
+            }
+            let m = t.vertices.len();
+            if t.positions.len() != m
+                || t.normals.as_ref().is_some_and(|d| d.len() != m)
+                || t.tangents.as_ref().is_some_and(|d| d.len() != m)
+            {
+                return Err(bad(format!("target {id}: delta arrays differ in length")));
+            }
+            if t.vertices.windows(2).any(|w| w[0] >= w[1]) {
+                return Err(bad(format!(
+                    "target {id}: vertex list not strictly ascending"
+                )));
+            }
+            if t.vertices.last().is_some_and(|&v| v as usize >= n) {
+                return Err(bad(format!("target {id}: vertex out of range")));
+            }
+            check_finite(
+                &what("position deltas"),
+                t.positions.iter().flat_map(|v| v.to_array()),
+            )?;
+            if let Some(d) = &t.normals {
+                check_finite(&what("normal deltas"), d.iter().flat_map(|v| v.to_array()))?;
+            }
+            if let Some(d) = &t.tangents {
+                check_finite(&what("tangent deltas"), d.iter().flat_map(|v| v.to_array()))?;
+            }
+        }
+        Ok(())
+    }
+}
+
+pub(crate) fn check_finite(
+    what: &str,
+    mut values: impl Iterator<Item = f32>,
+) -> Result<(), RigError> {
+    if values.all(f32::is_finite) {
+        Ok(())
+    } else {
+        Err(RigError::NonFinite {
+            what: what.to_string(),
+        })
+    }
+}
+
+/// Builds a sparse target from dense per-vertex deltas, keeping vertices where any component of
+/// any delta exceeds `threshold` in magnitude.
+pub fn sparsify(
+    target: TargetId,
+    positions: &[Vec3],
+    normals: Option<&[Vec3]>,
+    tangents: Option<&[Vec3]>,
+    threshold: f32,
+) -> SparseTarget {
+    let exceeds = |v: Vec3| v.abs().max_element() > threshold;
+    let mut out = SparseTarget {
+        target,
+        vertices: Vec::new(),
+        positions: Vec::new(),
+        normals: normals.map(|_| Vec::new()),
+        tangents: tangents.map(|_| Vec::new()),
+    };
+    for (i, &p) in positions.iter().enumerate() {
+        let n = normals.and_then(|n| n.get(i).copied());
+        let t = tangents.and_then(|t| t.get(i).copied());
+        if exceeds(p) || n.is_some_and(exceeds) || t.is_some_and(exceeds) {
+            out.vertices.push(i as u32);
+            out.positions.push(p);
+            if let (Some(v), Some(n)) = (out.normals.as_mut(), n) {
+                v.push(n);
+            }
+            if let (Some(v), Some(t)) = (out.tangents.as_mut(), t) {
+                v.push(t);
+            }
+        }
+    }
+    out
+}
+
+/// Area-weighted vertex normals of a triangle mesh; vertices on no triangle get +Z.
+///
+/// This is also the CPU mirror of the `recompute_normals` pass.
+pub fn vertex_normals(positions: &[Vec3], indices: &[u32]) -> Vec<Vec3> {
+    let mut acc = vec![Vec3::ZERO; positions.len()];
+    for tri in indices.chunks_exact(3) {
+        let [a, b, c] = [tri[0] as usize, tri[1] as usize, tri[2] as usize];
+        let (Some(&pa), Some(&pb), Some(&pc)) =
+            (positions.get(a), positions.get(b), positions.get(c))
+        else {
+            continue;
+        };
+        let n = (pb - pa).cross(pc - pa);
+        acc[a] += n;
+        acc[b] += n;
+        acc[c] += n;
+    }
+    acc.into_iter()
+        .map(|n| n.try_normalize().unwrap_or(Vec3::Z))
+        .collect()
+}

@@ -1,0 +1,275 @@
+//! The command-line tools as library functions: `inspect`, `eval` and `bench`.
+//!
+//! They live in the library so that tests can call them and `main.rs` stays a thin shell that
+//! parses arguments. Being tools rather than request paths, they report errors with `anyhow`.
+
+pub mod bench;
+
+use std::fmt::Write as _;
+use std::io::Write as _;
+use std::path::Path;
+
+use anyhow::{Context, Result, bail};
+use serde::Serialize;
+
+use crate::engine::cpu::CpuRig;
+use crate::engine::{BlendJob, OutputSpec, WeightBatch};
+use crate::import::{ImportOptions, load_path};
+use crate::rig::{FrameMode, Rig};
+
+/// Loads a rig from a file, or the embedded default rig when `path` is `None`.
+pub fn load_rig(path: Option<&Path>) -> Result<Rig> {
+    match path {
+        Some(p) => load_path(p, &ImportOptions::default())
+            .with_context(|| format!("loading {}", p.display())),
+        None => Ok(crate::embedded::default_rig()),
+    }
+}
+
+/// What `inspect` reports about a rig.
+#[derive(Debug, Serialize)]
+pub struct RigSummary {
+    /// Rig name.
+    pub name: String,
+    /// Vertices over all primitives.
+    pub vertices: usize,
+    /// Triangles over all primitives.
+    pub triangles: usize,
+    /// Bounding-box diagonal of the neutral mesh.
+    pub bbox_diagonal: f32,
+    /// Per-primitive facts.
+    pub primitives: Vec<PrimitiveSummary>,
+    /// Per-target facts.
+    pub targets: Vec<TargetSummary>,
+    /// Per-clip facts.
+    pub clips: Vec<ClipSummary>,
+    /// LOD order method and shapes per level.
+    pub lod_method: String,
+    /// Shapes evaluated at each LOD level.
+    pub lod_levels: Vec<u32>,
+    /// Host memory of the rig's arrays.
+    pub host_bytes: usize,
+}
+
+/// One primitive in [`RigSummary`].
+#[derive(Debug, Serialize)]
+pub struct PrimitiveSummary {
+    /// `mesh/index`.
+    pub name: String,
+    /// Vertex count.
+    pub vertices: usize,
+    /// Triangle count.
+    pub triangles: usize,
+    /// Targets that move this primitive.
+    pub targets: usize,
+    /// Whether normals came from the file.
+    pub normals_from_file: bool,
+    /// Whether the file has tangents.
+    pub tangents: bool,
+    /// Whether its targets carry normal deltas.
+    pub normal_deltas: bool,
+}
+
+/// One target in [`RigSummary`].
+#[derive(Debug, Serialize)]
+pub struct TargetSummary {
+    /// Target name.
+    pub name: String,
+    /// Stored (non-zero) vertex deltas over all primitives.
+    pub nnz: usize,
+    /// Position in the LOD order (0 = most important).
+    pub lod_slot: u32,
+}
+
+/// One clip in [`RigSummary`].
+#[derive(Debug, Serialize)]
+pub struct ClipSummary {
+    /// Clip name.
+    pub name: String,
+    /// Frames in the table.
+    pub frames: u32,
+    /// Sampling rate.
+    pub fps: f32,
+    /// Seconds.
+    pub duration: f32,
+}
+
+/// Summarises a rig for `inspect`.
+pub fn summarize(rig: &Rig) -> RigSummary {
+    let nnz = rig.target_nnz();
+    let slots = rig.lod.slots();
+    RigSummary {
+        name: rig.name.clone(),
+        vertices: rig.vertex_count(),
+        triangles: rig.triangle_count(),
+        bbox_diagonal: rig.bbox().diagonal(),
+        primitives: rig
+            .primitives
+            .iter()
+            .map(|p| PrimitiveSummary {
+                name: p.name.clone(),
+                vertices: p.positions.len(),
+                triangles: p.indices.len() / 3,
+                targets: p.targets.len(),
+                normals_from_file: p.normals_from_file,
+                tangents: p.tangents.is_some(),
+                normal_deltas: p.has_normal_deltas(),
+            })
+            .collect(),
+        targets: rig
+            .targets
+            .iter()
+            .enumerate()
+            .map(|(i, n)| TargetSummary {
+                name: n.clone(),
+                nnz: nnz[i],
+                lod_slot: slots[i],
+            })
+            .collect(),
+        clips: rig
+            .clips
+            .iter()
+            .map(|c| ClipSummary {
+                name: c.name.clone(),
+                frames: c.frames,
+                fps: c.fps,
+                duration: c.duration(),
+            })
+            .collect(),
+        lod_method: rig.lod.method.clone(),
+        lod_levels: rig.lod.levels.iter().map(|l| l.shapes).collect(),
+        host_bytes: rig.host_bytes(),
+    }
+}
+
+/// Human-readable `inspect` output.
+pub fn inspect_text(s: &RigSummary) -> String {
+    let mut o = String::new();
+    let _ = writeln!(
+        o,
+        "rig {:?}: {} vertices, {} triangles, {} targets, {} clips, bbox diagonal {:.4}, {:.1} MiB",
+        s.name,
+        s.vertices,
+        s.triangles,
+        s.targets.len(),
+        s.clips.len(),
+        s.bbox_diagonal,
+        s.host_bytes as f64 / (1 << 20) as f64
+    );
+    let _ = writeln!(o, "primitives:");
+    for p in &s.primitives {
+        let _ = writeln!(
+            o,
+            "  {:<24} {:>8} vertices {:>8} triangles {:>4} targets  normals: {}{}",
+            p.name,
+            p.vertices,
+            p.triangles,
+            p.targets,
+            if p.normals_from_file {
+                "file"
+            } else {
+                "computed"
+            },
+            if p.normal_deltas {
+                ", normal deltas"
+            } else {
+                ""
+            }
+        );
+    }
+    let _ = writeln!(
+        o,
+        "targets (nnz = stored vertex deltas; slot = LOD order, {}):",
+        s.lod_method
+    );
+    for t in &s.targets {
+        let _ = writeln!(
+            o,
+            "  {:<24} nnz {:>8}  slot {:>3}",
+            t.name, t.nnz, t.lod_slot
+        );
+    }
+    let _ = writeln!(o, "clips:");
+    if s.clips.is_empty() {
+        let _ = writeln!(o, "  (none)");
+    }
+    for c in &s.clips {
+        let _ = writeln!(
+            o,
+            "  {:<24} {:>6} frames at {} fps ({:.2} s)",
+            c.name, c.frames, c.fps, c.duration
+        );
+    }
+    let _ = writeln!(o, "LOD levels (shapes): {:?}", s.lod_levels);
+    o
+}
+
+/// Evaluates one frame of a clip and writes it to `out` (`.obj` mesh or `.bin` raw f32 xyz).
+pub fn eval_to_file(
+    rig: &Rig,
+    clip: &str,
+    frame: i64,
+    lod: u32,
+    mode: FrameMode,
+    out: &Path,
+) -> Result<()> {
+    let ci = rig.clip_index(clip).with_context(|| {
+        let names: Vec<&str> = rig.clips.iter().map(|c| c.name.as_str()).collect();
+        format!(
+            "rig {:?} has no clip {clip:?} (clips: {})",
+            rig.name,
+            names.join(", ")
+        )
+    })?;
+    let f = rig.clips[ci].resolve_frame(frame, mode)?;
+    let job = BlendJob {
+        clip: ci as u32,
+        frame: f,
+        lod,
+    };
+    let batch = WeightBatch::gather(rig, &[job])?;
+    let obj = out
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("obj"));
+    let spec = OutputSpec {
+        normals: obj,
+        ..OutputSpec::default()
+    };
+    let result = CpuRig::new(rig).evaluate(&batch, spec)?;
+    let positions = result.job_positions(0);
+    let file = std::fs::File::create(out).with_context(|| format!("creating {}", out.display()))?;
+    let mut w = std::io::BufWriter::new(file);
+    match out
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase)
+        .as_deref()
+    {
+        Some("obj") => {
+            let normals = result.job_normals(0).unwrap_or_default();
+            writeln!(
+                w,
+                "# crowdmorph eval: rig {:?}, clip {clip:?}, frame {f}, lod {lod}",
+                rig.name
+            )?;
+            for p in positions.chunks_exact(3) {
+                writeln!(w, "v {} {} {}", p[0], p[1], p[2])?;
+            }
+            for n in normals.chunks_exact(3) {
+                writeln!(w, "vn {} {} {}", n[0], n[1], n[2])?;
+            }
+            let offsets = rig.vertex_offsets();
+            for (pi, prim) in rig.primitives.iter().enumerate() {
+                writeln!(w, "o {}", prim.name.replace(char::is_whitespace, "_"))?;
+                for tri in prim.indices.chunks_exact(3) {
+                    let [a, b, c] = [0, 1, 2].map(|k| offsets[pi] + tri[k] as usize + 1);
+                    writeln!(w, "f {a}//{a} {b}//{b} {c}//{c}")?;
+                }
+            }
+        }
+        Some("bin") => w.write_all(bytemuck::cast_slice(&positions))?,
+        _ => bail!("output must end in .obj or .bin: {}", out.display()),
+    }
+    w.flush()?;
+    Ok(())
+}
