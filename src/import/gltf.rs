@@ -49,8 +49,14 @@ fn split_glb(bytes: &[u8]) -> Result<(&[u8], Option<&[u8]>), ImportError> {
             .get(at..at + 4)
             .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
     };
-    if bytes.len() < 12 || &bytes[0..4] != b"glTF" {
+    if !bytes.starts_with(b"glTF") {
         return Err(bad("wrong magic (expected \"glTF\")"));
+    }
+    if bytes.len() < 12 {
+        return Err(ImportError::Glb(format!(
+            "truncated: {} bytes, a GLB header needs 12",
+            bytes.len()
+        )));
     }
     let version = u32_at(4).unwrap_or(0);
     if version != 2 {
@@ -113,8 +119,9 @@ pub(crate) fn parse<'a>(
         }
         (bytes, None)
     };
-    let root: gltf::json::Root =
+    let mut root: gltf::json::Root =
         gltf::json::deserialize::from_slice(json).map_err(|e| ImportError::Json(e.to_string()))?;
+    drop_unknown_channels(&mut root);
     validate(&root)?;
     let doc = gltf::Document::from_json_without_validation(root);
     let mut buffers = Vec::new();
@@ -148,6 +155,25 @@ pub(crate) fn parse<'a>(
     })
 }
 
+/// Removes animation channels whose target path is not a glTF 2.0 property (extensions such as
+/// KHR_animation_pointer define their own): they cannot drive morph weights, and the `gltf`
+/// crate's accessors would panic on them.
+fn drop_unknown_channels(root: &mut gltf::json::Root) {
+    use gltf::json::validation::Checked;
+    for (a, anim) in root.animations.iter_mut().enumerate() {
+        let before = anim.channels.len();
+        anim.channels
+            .retain(|c| matches!(c.target.path, Checked::Valid(_)));
+        if anim.channels.len() != before {
+            tracing::warn!(
+                animation = a,
+                dropped = before - anim.channels.len(),
+                "ignoring channels with unknown target paths"
+            );
+        }
+    }
+}
+
 /// Runs the `gltf` crate's reference validation, tolerating what we handle ourselves.
 fn validate(root: &gltf::json::Root) -> Result<(), ImportError> {
     use gltf::json::validation::{Error, Validate};
@@ -168,6 +194,25 @@ fn validate(root: &gltf::json::Root) -> Result<(), ImportError> {
                         root.accessors.len()
                     )));
                 }
+            }
+        }
+    }
+    // The crate does not validate channel targets, and its accessors unwrap them.
+    for (a, anim) in root.animations.iter().enumerate() {
+        for (c, ch) in anim.channels.iter().enumerate() {
+            if ch.target.node.value() >= root.nodes.len() {
+                return Err(ImportError::Invalid(format!(
+                    "animations[{a}].channels[{c}] targets node {} of {}",
+                    ch.target.node.value(),
+                    root.nodes.len()
+                )));
+            }
+            if ch.sampler.value() >= anim.samplers.len() {
+                return Err(ImportError::Invalid(format!(
+                    "animations[{a}].channels[{c}] uses sampler {} of {}",
+                    ch.sampler.value(),
+                    anim.samplers.len()
+                )));
             }
         }
     }

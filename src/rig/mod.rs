@@ -377,7 +377,9 @@ pub fn sparsify(
     tangents: Option<&[Vec3]>,
     threshold: f32,
 ) -> SparseTarget {
-    let exceeds = |v: Vec3| v.abs().max_element() > threshold;
+    // A non-finite delta counts as exceeding, so that `Rig::validate` sees and refuses it
+    // rather than the comparison silently dropping it.
+    let exceeds = |v: Vec3| !v.is_finite() || v.abs().cmpgt(Vec3::splat(threshold)).any();
     let mut out = SparseTarget {
         target,
         vertices: Vec::new(),

@@ -385,7 +385,7 @@ impl CpuRig {
                 &self.base_positions,
                 &self.positions,
                 Dst::F16(&mut positions),
-                false,
+                Flags::POSITIONS,
             );
             out.positions = VertexData::F16(positions);
             out.normals = if spec.normals {
@@ -395,7 +395,7 @@ impl CpuRig {
                     &self.base_normals,
                     &self.normals,
                     Dst::F16(&mut n),
-                    true,
+                    Flags::NORMALS,
                 );
                 Some(VertexData::F16(n))
             } else {
@@ -406,22 +406,30 @@ impl CpuRig {
 
         // f32 path (also used for f16 when normals are recomputed from f32 positions).
         let mut positions = take_f32(&mut out.positions, len);
+        // Positions that the normals pass reads next must stay in cache (no streaming).
+        let ctx_flags = Flags {
+            normalize: false,
+            read_next: recompute,
+        };
         self.blend(
             &groups,
             &self.base_positions,
             &self.positions,
             Dst::F32(&mut positions),
-            false,
+            ctx_flags,
         );
         let normals = if spec.normals {
             let mut n = take_f32(out.normals.get_or_insert_with(VertexData::default), len);
-            self.blend(
-                &groups,
-                &self.base_normals,
-                &self.normals,
-                Dst::F32(&mut n),
-                true,
-            );
+            // Vertices whose normals are all recomputed need no blended normals first.
+            if self.topology.vertices.len() < self.vertices {
+                self.blend(
+                    &groups,
+                    &self.base_normals,
+                    &self.normals,
+                    Dst::F32(&mut n),
+                    Flags::NORMALS,
+                );
+            }
             self.recompute_normals(&positions, &mut n, jobs);
             Some(n)
         } else {
@@ -440,7 +448,7 @@ impl CpuRig {
         base: &[Block],
         blocks: &TileBlocks,
         mut out: Dst<'_>,
-        normalize: bool,
+        flags: Flags,
     ) {
         if groups.len() == 0 || self.vertices == 0 {
             return;
@@ -457,8 +465,8 @@ impl CpuRig {
             base,
             blocks,
             out: ptr,
-            normalize,
-            stream: out.len() * 4 > STREAM_BYTES,
+            normalize: flags.normalize,
+            stream: !flags.read_next && out.len() * 4 > STREAM_BYTES,
         };
         (0..tile_chunks * group_chunks)
             .into_par_iter()
@@ -491,28 +499,41 @@ impl CpuRig {
             .par_chunks_mut(stride)
             .zip(positions.par_chunks(stride))
             .take(jobs)
-            .for_each(|(nrm, pos)| {
-                let p = |v: u32| {
-                    let i = v as usize * 3;
-                    Vec3::new(pos[i], pos[i + 1], pos[i + 2])
-                };
-                let face: Vec<Vec3> = topo
-                    .triangles
-                    .iter()
-                    .map(|&[a, b, c]| {
-                        let pa = p(a);
-                        (p(b) - pa).cross(p(c) - pa)
-                    })
-                    .collect();
+            .for_each_init(Vec::new, |face: &mut Vec<Vec3>, (nrm, pos)| {
+                let p: &[Vec3] = bytemuck::cast_slice(pos);
+                let n: &mut [Vec3] = bytemuck::cast_slice_mut(nrm);
+                face.clear();
+                face.extend(topo.triangles.iter().map(|&[a, b, c]| {
+                    let pa = p[a as usize];
+                    (p[b as usize] - pa).cross(p[c as usize] - pa)
+                }));
                 for (i, &v) in topo.vertices.iter().enumerate() {
                     let r = topo.incident_start[i] as usize..topo.incident_start[i + 1] as usize;
                     let sum: Vec3 = topo.incident[r].iter().map(|&f| face[f as usize]).sum();
-                    let n = sum.try_normalize().unwrap_or(Vec3::Z);
-                    let o = v as usize * 3;
-                    nrm[o..o + 3].copy_from_slice(&n.to_array());
+                    n[v as usize] = sum.try_normalize().unwrap_or(Vec3::Z);
                 }
             });
     }
+}
+
+/// How a blend pass treats its output.
+#[derive(Clone, Copy)]
+struct Flags {
+    /// Scale each result to unit length (normal blending).
+    normalize: bool,
+    /// Another pass reads the output right away: keep it in cache.
+    read_next: bool,
+}
+
+impl Flags {
+    const POSITIONS: Flags = Flags {
+        normalize: false,
+        read_next: false,
+    };
+    const NORMALS: Flags = Flags {
+        normalize: true,
+        read_next: false,
+    };
 }
 
 /// Everything a kernel invocation reads.

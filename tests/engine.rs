@@ -1,0 +1,310 @@
+//! The CPU engine against the f64 dense evaluation, for every real rig, the embedded head and
+//! random rigs; every kernel family this CPU has; f32 and f16; positions and normals; mixed
+//! clips, frames and LODs with clones.
+//!
+//! Tolerances: positions within 1e-5 × the rig's bounding-box diagonal (f32). binary16 keeps
+//! 11 significant bits, so f16 positions are allowed an extra `max |coordinate| × 2^-11`, and
+//! f16 normals an extra 2^-11. Normals are unit vectors: within 1e-4 when blended from normal
+//! deltas, 1e-3 when recomputed from blended f32 positions (cross products of short edges).
+
+use crowdmorph::engine::cpu::{CpuRig, Isa};
+use crowdmorph::engine::{BlendJob, BlendOutput, OutputSpec, Precision, WeightBatch};
+use crowdmorph::import::{ImportOptions, load_path};
+use crowdmorph::rig::Rig;
+use glam::DVec3;
+
+use crate::util::{RefDoc, Rng, effective_weights, max_abs_diff, ref_eval, rig_files, rig_oracle};
+
+const F16_REL: f64 = 1.0 / 2048.0;
+
+/// Jobs for a rig: clips, frames and LODs at random, with clones (repeated jobs).
+fn random_jobs(rig: &Rig, rng: &mut Rng, n: usize) -> Vec<BlendJob> {
+    let mut jobs: Vec<BlendJob> = (0..n)
+        .map(|_| {
+            let clip = rng.below(rig.clips.len());
+            BlendJob {
+                clip: clip as u32,
+                frame: rng.below(rig.clips[clip].frames as usize) as u32,
+                lod: rng.below(rig.lod.levels.len()) as u32,
+            }
+        })
+        .collect();
+    // Clones: the engine evaluates what it is given; repeated jobs must come out identical.
+    jobs.extend_from_slice(&jobs.clone()[..n / 3]);
+    jobs
+}
+
+/// Per-job weights by target id (the clip's, or random when the rig has no clips) and the
+/// batch that asks for them.
+fn workload(rig: &Rig, seed: u64, n: usize) -> (Vec<(Vec<f64>, u32)>, WeightBatch) {
+    let mut rng = Rng(seed);
+    if rig.clips.is_empty() {
+        let per_job: Vec<(Vec<f64>, u32)> = (0..n)
+            .map(|_| {
+                let w = (0..rig.targets.len())
+                    .map(|_| {
+                        if rng.below(4) == 0 {
+                            0.0
+                        } else {
+                            rng.f64() * 1.2 - 0.1
+                        }
+                    })
+                    .collect();
+                (w, rng.below(rig.lod.levels.len()) as u32)
+            })
+            .collect();
+        // One single-job batch per job, concatenated: each job keeps its own LOD.
+        let mut batch = WeightBatch {
+            slots: rig.targets.len(),
+            weights: Vec::new(),
+            shapes: Vec::new(),
+        };
+        for (w, lod) in &per_job {
+            let w32: Vec<f32> = w.iter().map(|&x| x as f32).collect();
+            let b = WeightBatch::from_target_weights(rig, &[w32], *lod).expect("batch");
+            batch.weights.extend(b.weights);
+            batch.shapes.extend(b.shapes);
+        }
+        (per_job, batch)
+    } else {
+        let jobs = random_jobs(rig, &mut rng, n);
+        let per_job = jobs
+            .iter()
+            .map(|j| {
+                let clip = &rig.clips[j.clip as usize];
+                let w = (0..rig.targets.len())
+                    .map(|t| clip.weight(t, j.frame) as f64)
+                    .collect();
+                (w, j.lod)
+            })
+            .collect();
+        (per_job, WeightBatch::gather(rig, &jobs).expect("gather"))
+    }
+}
+
+/// Compares one job's output with expected positions and normals.
+fn check_job(
+    ctx: &str,
+    out: &BlendOutput,
+    j: usize,
+    want_p: &[DVec3],
+    want_n: &[DVec3],
+    diag: f64,
+    recomputed: bool,
+) {
+    let f16 = matches!(out.positions, crowdmorph::engine::VertexData::F16(_));
+    let max_coord = want_p
+        .iter()
+        .map(|p| p.abs().max_element())
+        .fold(0.0, f64::max);
+    let pos_tol = 1e-5 * diag + if f16 { max_coord * F16_REL } else { 0.0 };
+    let nrm_tol = if recomputed { 1e-3 } else { 1e-4 } + if f16 { F16_REL } else { 0.0 };
+    let dp = max_abs_diff(&out.job_positions(j), want_p);
+    assert!(
+        dp <= pos_tol,
+        "{ctx} job {j}: positions differ by {dp:e} (tolerance {pos_tol:e})"
+    );
+    let dn = max_abs_diff(&out.job_normals(j).expect("normals"), want_n);
+    assert!(
+        dn <= nrm_tol,
+        "{ctx} job {j}: normals differ by {dn:e} (tolerance {nrm_tol:e})"
+    );
+}
+
+fn specs() -> [OutputSpec; 3] {
+    [
+        OutputSpec {
+            normals: true,
+            precision: Precision::F32,
+        },
+        OutputSpec {
+            normals: true,
+            precision: Precision::F16,
+        },
+        OutputSpec {
+            normals: false,
+            precision: Precision::F32,
+        },
+    ]
+}
+
+#[test]
+fn cpu_engine_matches_f64_dense_evaluation_of_every_file() {
+    let Some(files) = rig_files() else { return };
+    for path in files {
+        let name = path.file_name().unwrap().to_string_lossy().to_string();
+        let rig = load_path(&path, &ImportOptions::default()).expect("load");
+        let doc = RefDoc::load(&path);
+        let prims = doc.scene_primitives();
+        let diag = rig.bbox().diagonal() as f64;
+        let n_jobs = if rig.vertex_count() > 10_000 { 6 } else { 24 };
+        let (per_job, batch) = workload(&rig, 7, n_jobs);
+        // Expected output per job, straight from the file's arrays in f64.
+        let expected: Vec<(Vec<DVec3>, Vec<DVec3>)> = per_job
+            .iter()
+            .map(|(w, lod)| {
+                let eff = effective_weights(&rig, w, *lod);
+                let mut p = Vec::new();
+                let mut n = Vec::new();
+                for prim in &prims {
+                    let pw: Vec<f64> = prim
+                        .target_names
+                        .iter()
+                        .map(|tn| eff[rig.target_id(tn).expect("target") as usize])
+                        .collect();
+                    let (pp, nn) = ref_eval(prim, &pw);
+                    p.extend(pp);
+                    n.extend(nn);
+                }
+                (p, n)
+            })
+            .collect();
+        let recomputed =
+            !rig.has_normal_deltas() && rig.primitives.iter().any(|p| !p.targets.is_empty());
+        for isa in Isa::available() {
+            let cpu = CpuRig::with_isa(&rig, isa);
+            for spec in specs() {
+                let out = cpu.evaluate(&batch, spec).expect("evaluate");
+                assert_eq!(out.jobs, per_job.len());
+                for (j, (p, n)) in expected.iter().enumerate() {
+                    let ctx = format!("{name} {} {spec:?}", isa.name());
+                    if spec.normals {
+                        check_job(&ctx, &out, j, p, n, diag, recomputed);
+                    } else {
+                        let d = max_abs_diff(&out.job_positions(j), p);
+                        assert!(d <= 1e-5 * diag, "{ctx} job {j}: {d:e}");
+                        assert!(out.normals.is_none(), "normals were not asked for");
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// Checks a file-less rig against the oracle computed from its own arrays.
+fn check_rig_against_oracle(rig: &Rig, seed: u64, n_jobs: usize) {
+    let diag = rig.bbox().diagonal() as f64;
+    let (per_job, batch) = workload(rig, seed, n_jobs);
+    let expected: Vec<_> = per_job
+        .iter()
+        .map(|(w, lod)| rig_oracle(rig, &effective_weights(rig, w, *lod)))
+        .collect();
+    let recomputed = !rig.has_normal_deltas();
+    for isa in Isa::available() {
+        let cpu = CpuRig::with_isa(rig, isa);
+        for spec in specs() {
+            let out = cpu.evaluate(&batch, spec).expect("evaluate");
+            for (j, (p, n)) in expected.iter().enumerate() {
+                let ctx = format!("{} {} {spec:?}", rig.name, isa.name());
+                if spec.normals {
+                    check_job(&ctx, &out, j, p, n, diag, recomputed);
+                } else {
+                    let d = max_abs_diff(&out.job_positions(j), p);
+                    assert!(d <= 1e-5 * diag, "{ctx} job {j}: {d:e}");
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn cpu_engine_matches_oracle_on_the_embedded_head() {
+    let rig = crowdmorph::embedded::default_rig();
+    check_rig_against_oracle(&rig, 11, 40);
+}
+
+#[test]
+fn cpu_engine_matches_oracle_on_random_rigs() {
+    // Sizes straddle tile boundaries; one rig has normal deltas on some primitives only.
+    for (seed, sizes, targets) in [
+        (1, vec![1usize, 15, 16, 17], 5),
+        (2, vec![3, 250, 33], 40),
+        (3, vec![1000], 70),
+        (4, vec![47, 64, 9, 200, 31], 12),
+    ] {
+        let rig = crate::util::random_rig(seed, &sizes, targets);
+        check_rig_against_oracle(&rig, seed * 101, 37);
+    }
+}
+
+#[test]
+fn inactive_weights_leave_the_neutral_mesh_bitwise() {
+    let rig = crowdmorph::embedded::default_rig();
+    let tiny = vec![
+        vec![1e-7f32; rig.targets.len()],
+        vec![0.0; rig.targets.len()],
+    ];
+    let batch = WeightBatch::from_target_weights(&rig, &tiny, 0).expect("batch");
+    assert_eq!(
+        batch.active_pairs(),
+        0,
+        "weights at or below 1e-6 are inactive"
+    );
+    let out = CpuRig::new(&rig)
+        .evaluate(&batch, OutputSpec::default())
+        .expect("evaluate");
+    let base: Vec<f32> = rig
+        .primitives
+        .iter()
+        .flat_map(|p| p.positions.iter().flat_map(|v| v.to_array()))
+        .collect();
+    assert_eq!(out.job_positions(0), base);
+    assert_eq!(out.job_positions(1), base);
+}
+
+#[test]
+fn every_kernel_family_agrees_and_clones_are_identical() {
+    let rig = crate::util::random_rig(9, &[301, 77], 30);
+    let mut rng = Rng(5);
+    let jobs = random_jobs(&rig, &mut rng, 30);
+    let batch = WeightBatch::gather(&rig, &jobs).expect("gather");
+    let outs: Vec<BlendOutput> = Isa::available()
+        .into_iter()
+        .map(|isa| {
+            CpuRig::with_isa(&rig, isa)
+                .evaluate(&batch, OutputSpec::default())
+                .expect("evaluate")
+        })
+        .collect();
+    let diag = rig.bbox().diagonal();
+    for (i, j) in jobs.iter().enumerate() {
+        // A clone (same job later in the list) is bitwise the same buffer content.
+        if let Some(first) = jobs.iter().position(|k| k == j) {
+            assert_eq!(outs[0].job_positions(i), outs[0].job_positions(first));
+        }
+        for o in &outs[1..] {
+            let a = outs[0].job_positions(i);
+            let b = o.job_positions(i);
+            let d = a
+                .iter()
+                .zip(&b)
+                .map(|(x, y)| (x - y).abs())
+                .fold(0.0, f32::max);
+            assert!(d <= 1e-6 * diag, "kernel families disagree by {d}");
+        }
+    }
+}
+
+#[test]
+fn output_buffers_are_reused_across_batches() {
+    let rig = crowdmorph::embedded::default_rig();
+    let cpu = CpuRig::new(&rig);
+    let mut out = BlendOutput::default();
+    let job = |frame| BlendJob {
+        clip: 0,
+        frame,
+        lod: 0,
+    };
+    let big = WeightBatch::gather(&rig, &[job(1), job(2), job(3)]).expect("gather");
+    cpu.evaluate_into(&big, OutputSpec::default(), &mut out)
+        .expect("evaluate");
+    let small = WeightBatch::gather(&rig, &[job(2)]).expect("gather");
+    cpu.evaluate_into(&small, OutputSpec::default(), &mut out)
+        .expect("evaluate");
+    assert_eq!(out.jobs, 1);
+    assert_eq!(out.positions.len(), rig.vertex_count() * 3);
+    let fresh = cpu
+        .evaluate(&small, OutputSpec::default())
+        .expect("evaluate");
+    assert_eq!(out, fresh);
+}
