@@ -6,7 +6,10 @@ use crowdmorph::import::{ImportOptions, load_path};
 use crowdmorph::rig::{DEFAULT_DELTA_THRESHOLD, Rig};
 use glam::{DMat3, DVec3};
 
+use crate::util::builder::{Builder, Component};
 use crate::util::{RefDoc, normal_matrix, rig_files};
+use crowdmorph::import::gltf::rig_from_slice;
+use serde_json::json;
 
 fn load(path: &std::path::Path) -> Rig {
     load_path(path, &ImportOptions::default()).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
@@ -201,4 +204,133 @@ fn ict_facekit_has_53_named_targets_and_sparse_deltas() {
         let f = n as f64 / v;
         assert!(f > 0.2 && f < 0.75, "{name}: {f:.3} of the vertices");
     }
+}
+
+const QUAD: [[f32; 3]; 5] = [
+    [0.0, 0.0, 0.0],
+    [1.0, 0.0, 0.0],
+    [1.0, 1.0, 0.0],
+    [0.0, 1.0, 0.0],
+    [0.5, 0.5, 0.0],
+];
+const QUAD_TRIS: [u32; 12] = [0, 1, 4, 1, 2, 4, 2, 3, 4, 3, 0, 4];
+
+#[test]
+fn sparse_target_accessors_import_their_deltas() {
+    let mut b = Builder::new();
+    let pos = b.accessor_vec3(&QUAD);
+    let idx = b.indices_u32(&QUAD_TRIS);
+    let sparse = b.accessor_sparse_vec3(5, &[1, 3], &[[0.0, 0.0, 0.25], [0.5, 0.0, 0.0]]);
+    let mesh = b.mesh(
+        vec![json!({ "attributes": { "POSITION": pos }, "indices": idx, "targets": [{ "POSITION": sparse }] })],
+        Some(&["lift"]),
+    );
+    let node = b.node(Some(mesh));
+    b.scene(&[node]);
+    for bytes in [b.to_glb(), b.to_gltf_data_uri()] {
+        let rig = rig_from_slice(&bytes, &ImportOptions::default()).expect("import");
+        let t = &rig.primitives[0].targets[0];
+        assert_eq!(rig.targets, vec!["lift".to_string()]);
+        assert_eq!(t.vertices, vec![1, 3], "only the sparse elements move");
+        assert_eq!(
+            t.positions,
+            vec![
+                glam::Vec3::new(0.0, 0.0, 0.25),
+                glam::Vec3::new(0.5, 0.0, 0.0)
+            ]
+        );
+    }
+}
+
+#[test]
+fn quantized_positions_and_deltas_decode_and_take_the_node_transform() {
+    // KHR_mesh_quantization style: normalized i16 positions, normalized i8 deltas, and a node
+    // scale + translation that dequantizes them.
+    let q: Vec<i64> = QUAD
+        .iter()
+        .flatten()
+        .map(|&c| (c * 32767.0).round() as i64)
+        .collect();
+    let d: [i64; 15] = [0, 0, 0, 0, 0, 127, 0, 0, 0, -127, 0, 0, 0, 0, 64];
+    let mut b = Builder::new();
+    let pos = b.accessor_ints(Component::I16, &q, "VEC3", true);
+    b.accessor_mut(pos)["min"] = json!([0, 0, 0]);
+    b.accessor_mut(pos)["max"] = json!([1, 1, 0]);
+    let delta = b.accessor_ints(Component::I8, &d, "VEC3", true);
+    let idx = b.indices_u32(&QUAD_TRIS);
+    let mesh = b.mesh(
+        vec![json!({ "attributes": { "POSITION": pos }, "indices": idx, "targets": [{ "POSITION": delta }] })],
+        None,
+    );
+    let node = b.node(Some(mesh));
+    b.json_mut()["nodes"][node]["scale"] = json!([2.0, 2.0, 2.0]);
+    b.json_mut()["nodes"][node]["translation"] = json!([10.0, 0.0, 0.0]);
+    b.json_mut()["extensionsUsed"] = json!(["KHR_mesh_quantization"]);
+    b.json_mut()["extensionsRequired"] = json!(["KHR_mesh_quantization"]);
+    b.scene(&[node]);
+    let rig = rig_from_slice(&b.to_glb(), &ImportOptions::default()).expect("import");
+    let p = &rig.primitives[0];
+    for (got, want) in p.positions.iter().zip(QUAD) {
+        let want = glam::Vec3::from(want) * 2.0 + glam::Vec3::new(10.0, 0.0, 0.0);
+        assert!((*got - want).abs().max_element() < 1e-4, "{got} vs {want}");
+    }
+    let t = &p.targets[0];
+    assert_eq!(
+        rig.targets,
+        vec!["target_0".to_string()],
+        "unnamed targets get target_<i>"
+    );
+    assert_eq!(t.vertices, vec![1, 3, 4]);
+    // Deltas take the node's linear part (scale 2) but not its translation.
+    let want = [
+        [0.0, 0.0, 2.0],
+        [-2.0, 0.0, 0.0],
+        [0.0, 0.0, 2.0 * 64.0 / 127.0],
+    ];
+    for (got, w) in t.positions.iter().zip(want) {
+        assert!(
+            (*got - glam::Vec3::from(w)).abs().max_element() < 1e-6,
+            "{got} vs {w:?}"
+        );
+    }
+}
+
+#[test]
+fn mirrored_node_flips_winding_and_transforms_normals_by_the_inverse_transpose() {
+    let mut b = Builder::new();
+    let mesh = b.mesh_with_targets(
+        &QUAD,
+        Some(&QUAD_TRIS),
+        &[vec![[0.0, 0.0, 1.0]; 5]],
+        Some(&["push"]),
+    );
+    let child = b.node(Some(mesh));
+    b.json_mut()["nodes"][child]["scale"] = json!([-1.0, 3.0, 1.0]);
+    let parent = b.node(None);
+    b.json_mut()["nodes"][parent]["children"] = json!([child]);
+    b.json_mut()["nodes"][parent]["rotation"] = json!([0.0, 0.0, 0.70710677, 0.70710677]);
+    b.scene(&[parent]);
+    let rig = rig_from_slice(&b.to_glb(), &ImportOptions::default()).expect("import");
+    let p = &rig.primitives[0];
+    // det < 0: every triangle's winding is reversed so it still faces outward.
+    for (got, want) in p.indices.chunks_exact(3).zip(QUAD_TRIS.chunks_exact(3)) {
+        assert_eq!(got, [want[0], want[2], want[1]]);
+    }
+    // The quad lies in z = 0 and the transform keeps z, so after the flip normals face +z, and
+    // the +z delta stays +z (the linear part leaves z alone).
+    for n in &p.normals {
+        assert!((*n - glam::Vec3::Z).length() < 1e-5, "normal {n}");
+    }
+    // Rotation by 90° about z after the (-1, 3, 1) scale: (x, y) → (-3y, -x).
+    assert!(
+        (p.positions[1] - glam::Vec3::new(0.0, -1.0, 0.0)).length() < 1e-5,
+        "{}",
+        p.positions[1]
+    );
+    assert!(
+        (p.positions[3] - glam::Vec3::new(-3.0, 0.0, 0.0)).length() < 1e-5,
+        "{}",
+        p.positions[3]
+    );
+    assert!((p.targets[0].positions[0] - glam::Vec3::Z).length() < 1e-6);
 }
