@@ -10,6 +10,11 @@
 //! `[j·V·3, (j+1)·V·3)`: x, y, z per vertex, all primitives concatenated in file order.
 
 pub mod cpu;
+mod facade;
+
+pub use facade::{
+    BackendChoice, BackendInfo, BackendKind, Engine, Evaluation, PreparedRig, RigMemory, Timings,
+};
 
 use half::f16;
 use serde::{Deserialize, Serialize};
@@ -70,6 +75,12 @@ pub enum EngineError {
     /// The output would be larger than the engine allows in one batch.
     #[error("batch output of {0} bytes is too large")]
     TooLarge(usize),
+    /// A GPU was asked for and none could be opened.
+    #[error("no GPU: {0}")]
+    NoGpu(String),
+    /// The rig does not fit in the device's memory or limits.
+    #[error("rig does not fit on the GPU: {0}")]
+    DoesNotFit(String),
 }
 
 /// Weights of a batch of jobs, in LOD slot order, zero where inactive or past the LOD.

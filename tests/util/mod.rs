@@ -15,9 +15,12 @@ use base64::Engine as _;
 use glam::{DMat3, DMat4, DQuat, DVec3};
 use serde_json::Value;
 
-/// `../shared/data` next to the checkout.
+/// The shared test rigs: `$CROWDMORPH_TEST_DATA`, else `../shared/data` next to the checkout.
 pub fn data_dir() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data")
+    match std::env::var_os("CROWDMORPH_TEST_DATA") {
+        Some(dir) => PathBuf::from(dir),
+        None => Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data"),
+    }
 }
 
 /// Every real rig file, or `None` (after printing why) when the data folder is absent.
