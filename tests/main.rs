@@ -10,6 +10,8 @@ mod util;
 
 mod bad_input;
 mod engine;
+mod gpu;
 mod planner;
 mod rigs;
 mod sampling;
+mod shaders;

@@ -12,8 +12,9 @@ use std::time::Instant;
 use serde::Serialize;
 
 use super::cpu::CpuRig;
+use super::gpu::{GpuContext, GpuError, GpuOptions, GpuRig, Pending};
 use super::{BlendJob, BlendOutput, EngineError, OutputSpec, WeightBatch};
-use crate::rig::Rig;
+use crate::rig::{ClipError, Rig};
 
 /// Which engine to use, as asked on the command line.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
@@ -82,6 +83,7 @@ pub struct RigMemory {
 pub struct PreparedRig {
     rig: Arc<Rig>,
     cpu: Arc<CpuRig>,
+    gpu: Option<Arc<GpuRig>>,
     memory: RigMemory,
 }
 
@@ -109,6 +111,11 @@ impl PreparedRig {
     pub fn cpu(&self) -> &CpuRig {
         &self.cpu
     }
+
+    /// The rig's resident GPU data, when it is on a GPU.
+    pub fn gpu(&self) -> Option<&GpuRig> {
+        self.gpu.as_deref()
+    }
 }
 
 /// Times of one evaluation.
@@ -134,6 +141,7 @@ pub struct Evaluation {
 /// The engine: a backend plus the fallback logic.
 pub struct Engine {
     choice: BackendChoice,
+    gpu: Option<GpuContext>,
     degraded: AtomicBool,
     degraded_reason: std::sync::Mutex<Option<String>>,
 }
@@ -146,32 +154,147 @@ impl std::fmt::Debug for Engine {
     }
 }
 
+/// Checks a job against its rig, with the same errors the CPU path reports.
+fn check_job(rig: &Rig, job: &BlendJob) -> Result<(), EngineError> {
+    let clip = rig
+        .clips
+        .get(job.clip as usize)
+        .ok_or(EngineError::NoSuchClip(job.clip))?;
+    if job.frame >= clip.frames {
+        return Err(ClipError::FrameOutOfRange {
+            clip: clip.name.clone(),
+            frame: i64::from(job.frame),
+            frames: clip.frames,
+        }
+        .into());
+    }
+    rig.lod.shapes_at(job.lod)?;
+    Ok(())
+}
+
+fn gpu_to_engine(e: GpuError) -> EngineError {
+    match e {
+        GpuError::DoesNotFit(m) | GpuError::OutOfMemory(m) => EngineError::DoesNotFit(m),
+        other => EngineError::NoGpu(other.to_string()),
+    }
+}
+
+/// A batch submitted with [`Engine::submit`], not yet collected.
+pub struct PendingEvaluation<'a> {
+    engine: &'a Engine,
+    rig: PreparedRig,
+    jobs: Vec<BlendJob>,
+    spec: OutputSpec,
+    start: Instant,
+    state: PendingState<'a>,
+}
+
+enum PendingState<'a> {
+    Gpu(Box<Pending<'a>>),
+    Ready(Result<Evaluation, EngineError>),
+}
+
+impl PendingEvaluation<'_> {
+    /// Waits for the batch. A GPU fault while it ran degrades the engine and the batch is
+    /// computed on the CPU instead, so the caller still gets a correct result.
+    pub fn wait(self) -> Result<Evaluation, EngineError> {
+        match self.state {
+            PendingState::Ready(r) => r,
+            PendingState::Gpu(pending) => match pending.wait() {
+                Ok((output, gpu_ns)) => Ok(Evaluation {
+                    output,
+                    timings: Timings {
+                        wall_ns: self.start.elapsed().as_nanos() as u64,
+                        gpu_ns,
+                    },
+                    kind: Some(BackendKind::Gpu),
+                }),
+                Err(e) => {
+                    self.engine.degrade(&e);
+                    self.engine
+                        .evaluate_cpu(&self.rig, &self.jobs, self.spec, self.start)
+                }
+            },
+        }
+    }
+}
+
 impl Engine {
     /// The CPU engine.
     pub fn cpu() -> Engine {
         Engine {
             choice: BackendChoice::Cpu,
+            gpu: None,
             degraded: AtomicBool::new(false),
             degraded_reason: std::sync::Mutex::new(None),
         }
     }
 
     /// Creates the engine for `choice`. `Gpu` fails when no adapter can be opened; `Auto`
-    /// falls back to the CPU engine (and says so in the log).
+    /// uses a hardware adapter when there is one and the CPU engine otherwise.
     pub fn new(choice: BackendChoice) -> Result<Engine, EngineError> {
         match choice {
-            BackendChoice::Cpu | BackendChoice::Auto => Ok(Engine::cpu()),
-            BackendChoice::Gpu => Err(EngineError::NoGpu("the GPU engine is not built yet".into())),
+            BackendChoice::Cpu => Ok(Engine::cpu()),
+            BackendChoice::Auto => match GpuContext::open(false, GpuOptions::default()) {
+                Ok(ctx) => Ok(Engine::with_gpu(ctx, BackendChoice::Auto)),
+                Err(e) => {
+                    tracing::info!(reason = %e, "no hardware GPU; using the CPU engine");
+                    Ok(Engine::cpu())
+                }
+            },
+            BackendChoice::Gpu => GpuContext::open(true, GpuOptions::default())
+                .map(|ctx| Engine::with_gpu(ctx, BackendChoice::Gpu))
+                .map_err(|e| EngineError::NoGpu(e.to_string())),
+        }
+    }
+
+    /// An engine on a GPU context the caller opened (tests inject their own device).
+    pub fn with_gpu(ctx: GpuContext, choice: BackendChoice) -> Engine {
+        let a = ctx.adapter();
+        tracing::info!(adapter = %a.name, backend = ?a.backend, device_type = ?a.device_type, "GPU engine");
+        Engine {
+            choice,
+            gpu: Some(ctx),
+            degraded: AtomicBool::new(false),
+            degraded_reason: std::sync::Mutex::new(None),
+        }
+    }
+
+    /// The GPU context, when a GPU was chosen (even if it has since failed).
+    pub fn gpu(&self) -> Option<&GpuContext> {
+        self.gpu.as_ref()
+    }
+
+    /// The GPU context while it is healthy.
+    fn gpu_active(&self) -> Option<&GpuContext> {
+        if self.degraded.load(Ordering::SeqCst) {
+            return None;
+        }
+        self.gpu.as_ref()
+    }
+
+    /// Switches to the CPU engine for good after a GPU fault, keeping every rig.
+    fn degrade(&self, e: &GpuError) {
+        if !self.degraded.swap(true, Ordering::SeqCst) {
+            tracing::error!(error = %e, "GPU engine failed; continuing on the CPU engine (degraded)");
+            if let Ok(mut r) = self.degraded_reason.lock() {
+                *r = Some(e.to_string());
+            }
         }
     }
 
     /// What the engine is running on.
     pub fn info(&self) -> BackendInfo {
-        let degraded = self.degraded.load(Ordering::Relaxed);
+        let degraded = self.degraded.load(Ordering::SeqCst);
+        let adapter = self.gpu.as_ref().map(|g| g.adapter());
         BackendInfo {
-            kind: BackendKind::Cpu,
-            adapter: None,
-            device_type: None,
+            kind: if self.gpu.is_some() && !degraded {
+                BackendKind::Gpu
+            } else {
+                BackendKind::Cpu
+            },
+            adapter: adapter.map(|a| format!("{} ({:?})", a.name, a.backend)),
+            device_type: adapter.map(|a| format!("{:?}", a.device_type)),
             cpu_isa: super::cpu::Isa::detect().name().to_string(),
             degraded,
             degraded_reason: self
@@ -187,15 +310,37 @@ impl Engine {
         self.choice
     }
 
+    fn memory(rig: &Rig, cpu: &CpuRig, gpu: Option<&GpuRig>) -> RigMemory {
+        RigMemory {
+            host_bytes: rig.host_bytes() + cpu.bytes(),
+            device_bytes: gpu.map_or(0, |g| g.device_bytes() as usize),
+        }
+    }
+
     /// Prepares a rig: builds the CPU layout and, on a GPU, uploads geometry, deltas, clip
-    /// tables and LOD order.
+    /// tables and LOD order. A rig the GPU cannot hold is refused with `DoesNotFit`.
     pub fn prepare(&self, rig: Arc<Rig>) -> Result<PreparedRig, EngineError> {
         let cpu = Arc::new(CpuRig::new(&rig));
-        let memory = RigMemory {
-            host_bytes: rig.host_bytes() + cpu.bytes(),
-            device_bytes: 0,
+        let gpu = match self.gpu_active() {
+            Some(ctx) => match GpuRig::upload(ctx, &rig) {
+                Ok(g) => Some(Arc::new(g)),
+                Err(e @ (GpuError::DoesNotFit(_) | GpuError::OutOfMemory(_))) => {
+                    return Err(gpu_to_engine(e));
+                }
+                Err(e) => {
+                    self.degrade(&e);
+                    None
+                }
+            },
+            None => None,
         };
-        Ok(PreparedRig { rig, cpu, memory })
+        let memory = Self::memory(&rig, &cpu, gpu.as_deref());
+        Ok(PreparedRig {
+            rig,
+            cpu,
+            gpu,
+            memory,
+        })
     }
 
     /// Re-prepares after the rig's clips changed (the geometry and LOD order are unchanged), so
@@ -205,28 +350,38 @@ impl Engine {
         prepared: &PreparedRig,
         rig: Arc<Rig>,
     ) -> Result<PreparedRig, EngineError> {
-        if rig.lod.order != prepared.rig.lod.order || rig.primitives != prepared.rig.primitives {
+        if rig.lod != prepared.rig.lod || rig.primitives != prepared.rig.primitives {
             return self.prepare(rig);
         }
-        let memory = RigMemory {
-            host_bytes: rig.host_bytes() + prepared.cpu.bytes(),
-            device_bytes: prepared.memory.device_bytes,
+        let gpu = match (self.gpu_active(), &prepared.gpu) {
+            (Some(ctx), Some(g)) => match g.with_clips(ctx, &rig) {
+                Ok(g) => Some(Arc::new(g)),
+                Err(e @ (GpuError::DoesNotFit(_) | GpuError::OutOfMemory(_))) => {
+                    return Err(gpu_to_engine(e));
+                }
+                Err(e) => {
+                    self.degrade(&e);
+                    None
+                }
+            },
+            _ => None,
         };
+        let memory = Self::memory(&rig, &prepared.cpu, gpu.as_deref());
         Ok(PreparedRig {
             rig,
             cpu: prepared.cpu.clone(),
+            gpu,
             memory,
         })
     }
 
-    /// Evaluates unique jobs of one rig.
-    pub fn evaluate(
+    fn evaluate_cpu(
         &self,
         rig: &PreparedRig,
         jobs: &[BlendJob],
         spec: OutputSpec,
+        start: Instant,
     ) -> Result<Evaluation, EngineError> {
-        let start = Instant::now();
         let batch = WeightBatch::gather(&rig.rig, jobs)?;
         let output = rig.cpu.evaluate(&batch, spec)?;
         Ok(Evaluation {
@@ -237,5 +392,55 @@ impl Engine {
             },
             kind: Some(BackendKind::Cpu),
         })
+    }
+
+    /// Starts a batch of unique jobs of one rig. On a GPU the call returns once the batch is
+    /// submitted, so the caller can prepare and submit the next one while this one runs;
+    /// without `readback` the results stay on the device. On the CPU it computes right away.
+    pub fn submit(
+        &self,
+        rig: &PreparedRig,
+        jobs: &[BlendJob],
+        spec: OutputSpec,
+        readback: bool,
+    ) -> Result<PendingEvaluation<'_>, EngineError> {
+        let start = Instant::now();
+        for j in jobs {
+            check_job(&rig.rig, j)?;
+        }
+        let state = match (self.gpu_active(), &rig.gpu) {
+            (Some(ctx), Some(g)) => {
+                let gpu_jobs: Option<Vec<_>> =
+                    jobs.iter().map(|j| g.job(j.clip, j.frame, j.lod)).collect();
+                let gpu_jobs = gpu_jobs.ok_or(EngineError::NoSuchClip(u32::MAX))?;
+                match ctx.submit(g, &gpu_jobs, spec, readback) {
+                    Ok(p) => PendingState::Gpu(Box::new(p)),
+                    Err(e @ GpuError::DoesNotFit(_)) => return Err(gpu_to_engine(e)),
+                    Err(e) => {
+                        self.degrade(&e);
+                        PendingState::Ready(self.evaluate_cpu(rig, jobs, spec, start))
+                    }
+                }
+            }
+            _ => PendingState::Ready(self.evaluate_cpu(rig, jobs, spec, start)),
+        };
+        Ok(PendingEvaluation {
+            engine: self,
+            rig: rig.clone(),
+            jobs: jobs.to_vec(),
+            spec,
+            start,
+            state,
+        })
+    }
+
+    /// Evaluates unique jobs of one rig and returns the buffers.
+    pub fn evaluate(
+        &self,
+        rig: &PreparedRig,
+        jobs: &[BlendJob],
+        spec: OutputSpec,
+    ) -> Result<Evaluation, EngineError> {
+        self.submit(rig, jobs, spec, true)?.wait()
     }
 }

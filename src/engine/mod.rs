@@ -11,9 +11,11 @@
 
 pub mod cpu;
 mod facade;
+pub mod gpu;
 
 pub use facade::{
-    BackendChoice, BackendInfo, BackendKind, Engine, Evaluation, PreparedRig, RigMemory, Timings,
+    BackendChoice, BackendInfo, BackendKind, Engine, Evaluation, PendingEvaluation, PreparedRig,
+    RigMemory, Timings,
 };
 
 use half::f16;

@@ -4,6 +4,7 @@
 //! parses arguments. Being tools rather than request paths, they report errors with `anyhow`.
 
 pub mod bench;
+pub mod synthetic;
 
 use std::fmt::Write as _;
 use std::io::Write as _;

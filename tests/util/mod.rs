@@ -609,3 +609,15 @@ pub fn random_rig(seed: u64, sizes: &[usize], n_targets: usize) -> crowdmorph::r
     rig.validate().expect("random rig is valid");
     rig
 }
+
+/// The paper's rig size (Costigan et al. 2016: 72 blendshapes, 43,788 vertices) with
+/// localized deltas (built by the library, shared with `bench gpu`).
+pub fn paper_scale_rig() -> crowdmorph::rig::Rig {
+    crowdmorph::tools::synthetic::paper_scale_rig()
+}
+
+/// Gives a rig without clips a deterministic random one (the GPU reads weights from resident
+/// clip tables, so every job needs a clip).
+pub fn with_random_clip(rig: crowdmorph::rig::Rig, seed: u64) -> crowdmorph::rig::Rig {
+    crowdmorph::tools::synthetic::with_random_clip(rig, seed)
+}

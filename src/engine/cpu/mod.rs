@@ -115,17 +115,56 @@ impl TileBlocks {
     }
 }
 
-/// Topology for recomputing normals of the primitives whose targets have no normal deltas.
+/// Topology for recomputing normals of the primitives whose targets have no normal deltas;
+/// shared by the CPU pass and the GPU's `normals.wgsl`.
 #[derive(Clone, Debug, Default)]
-struct NormalTopology {
+pub(crate) struct NormalTopology {
     /// Global vertex indices of the triangles of those primitives.
-    triangles: Vec<[u32; 3]>,
+    pub(crate) triangles: Vec<[u32; 3]>,
     /// Vertices whose normal is recomputed, ascending.
-    vertices: Vec<u32>,
+    pub(crate) vertices: Vec<u32>,
     /// `incident_start[i]..incident_start[i + 1]` index `incident` for `vertices[i]`.
-    incident_start: Vec<u32>,
+    pub(crate) incident_start: Vec<u32>,
     /// Triangle indices (into `triangles`) incident to each recomputed vertex.
-    incident: Vec<u32>,
+    pub(crate) incident: Vec<u32>,
+}
+
+impl NormalTopology {
+    /// Collects the primitives that move but carry no normal deltas: their normals come from
+    /// the blended positions (the `recompute_normals` pass).
+    pub(crate) fn of(rig: &Rig) -> NormalTopology {
+        let mut topology = NormalTopology::default();
+        let mut incident: Vec<Vec<u32>> = Vec::new();
+        let offsets = rig.vertex_offsets();
+        for (p, prim) in rig.primitives.iter().enumerate() {
+            if prim.targets.is_empty() || prim.has_normal_deltas() {
+                continue;
+            }
+            let off = offsets[p];
+            let first = topology.vertices.len();
+            topology
+                .vertices
+                .extend((off..off + prim.positions.len()).map(|v| v as u32));
+            incident.resize(topology.vertices.len(), Vec::new());
+            for tri in prim.indices.chunks_exact(3) {
+                let t = topology.triangles.len() as u32;
+                topology.triangles.push([
+                    (off + tri[0] as usize) as u32,
+                    (off + tri[1] as usize) as u32,
+                    (off + tri[2] as usize) as u32,
+                ]);
+                for &v in tri {
+                    incident[first + v as usize].push(t);
+                }
+            }
+        }
+        topology.incident_start.push(0);
+        for list in incident {
+            topology.incident.extend(list);
+            topology.incident_start.push(topology.incident.len() as u32);
+        }
+        topology
+    }
 }
 
 /// A rig prepared for the CPU engine.
@@ -188,7 +227,9 @@ struct Groups {
 }
 
 impl Groups {
-    fn new(batch: &WeightBatch) -> Groups {
+    /// The CPU side of the `build_active` pass: per group, which slots any job uses, with the
+    /// jobs' weights (zero past a job's LOD or where inactive).
+    fn build_active(batch: &WeightBatch) -> Groups {
         let slots = batch.slots;
         let mut order: Vec<u32> = (0..batch.jobs() as u32).collect();
         order.sort_by_key(|&j| (batch.shapes[j as usize], j));
@@ -239,8 +280,6 @@ impl CpuRig {
         let mut pos_entries = Vec::new();
         let mut nrm_entries = Vec::new();
         let mut slot_nnz = vec![0usize; slots];
-        let mut topology = NormalTopology::default();
-        let mut incident: Vec<Vec<u32>> = Vec::new();
 
         for (p, prim) in rig.primitives.iter().enumerate() {
             let off = offsets[p];
@@ -265,32 +304,8 @@ impl CpuRig {
                     }
                 }
             }
-            // Primitives that move but carry no normal deltas get normals from the blended
-            // positions (the `recompute_normals` pass).
-            if !prim.targets.is_empty() && !prim.has_normal_deltas() {
-                let first = topology.vertices.len();
-                topology
-                    .vertices
-                    .extend((off..off + prim.positions.len()).map(|v| v as u32));
-                incident.resize(topology.vertices.len(), Vec::new());
-                for tri in prim.indices.chunks_exact(3) {
-                    let t = topology.triangles.len() as u32;
-                    topology.triangles.push([
-                        (off + tri[0] as usize) as u32,
-                        (off + tri[1] as usize) as u32,
-                        (off + tri[2] as usize) as u32,
-                    ]);
-                    for &v in tri {
-                        incident[first + v as usize].push(t);
-                    }
-                }
-            }
         }
-        topology.incident_start.push(0);
-        for list in incident {
-            topology.incident.extend(list);
-            topology.incident_start.push(topology.incident.len() as u32);
-        }
+        let topology = NormalTopology::of(rig);
 
         CpuRig {
             vertices,
@@ -372,7 +387,7 @@ impl CpuRig {
             .ok_or(EngineError::TooLarge(
                 jobs.saturating_mul(self.vertices * 12),
             ))?;
-        let groups = Groups::new(batch);
+        let groups = Groups::build_active(batch);
         out.vertices = self.vertices;
         out.jobs = jobs;
         let recompute = spec.normals && !self.topology.vertices.is_empty();

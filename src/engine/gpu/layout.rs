@@ -1,0 +1,285 @@
+//! Host-side preparation of the GPU layout, and the `#[repr(C)]` structs the shaders read.
+//!
+//! The GPU layout is the CPU engine's idea at GPU scale: vertices in tiles of [`TILE`] = 64 (one
+//! workgroup), and per (tile, slot) that moves the tile one structure-of-arrays block of
+//! x[64], y[64], z[64]. A per-tile bitmask over slots, with the running block count per 32-slot
+//! word, finds a slot's block in O(1). Rigs whose blocks exceed one storage binding are cut into
+//! chunks of whole tiles, each with its own buffers.
+
+use bytemuck::{Pod, Zeroable};
+use glam::Vec3;
+
+use crate::rig::Rig;
+
+/// Vertices per tile = invocations per workgroup of the blend pass.
+pub const TILE: usize = 64;
+
+/// Jobs per invocation of the blend pass (one vec4 of accumulators per component).
+pub const JOBS_PER_GROUP: usize = 4;
+
+/// Floats per delta block: x, y, z for 64 vertices.
+pub const BLOCK_FLOATS: usize = 3 * TILE;
+
+/// One job as `build_active` reads it.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable, PartialEq, Eq)]
+pub struct GpuJob {
+    /// Offset of the job's clip table in the rig's table buffer.
+    pub table: u32,
+    /// Frames of that clip.
+    pub frames: u32,
+    /// Frame to play.
+    pub frame: u32,
+    /// Length of the job's LOD prefix.
+    pub shapes: u32,
+}
+
+/// Uniforms of `build_active`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct ActiveParams {
+    /// Jobs in the dispatch.
+    pub jobs: u32,
+    /// Groups of four jobs.
+    pub groups: u32,
+    /// Slots of the rig.
+    pub slots: u32,
+    /// Index of the dispatch's first job in the batch's job buffer.
+    pub job_base: u32,
+}
+
+/// Uniforms of `blend`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct BlendParams {
+    /// Vertices of the whole rig.
+    pub vertices: u32,
+    /// First tile of the chunk.
+    pub tile_begin: u32,
+    /// Tiles in the chunk.
+    pub tiles: u32,
+    /// Slots of the rig.
+    pub slots: u32,
+    /// Mask words per tile.
+    pub words: u32,
+    /// Jobs in the dispatch.
+    pub jobs: u32,
+    /// 1 to normalize results (normals).
+    pub normalize: u32,
+    /// Workgroups along x.
+    pub tiles_x: u32,
+}
+
+/// Uniforms of `face_normals` and `vertex_normals`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct NormalParams {
+    /// Vertices of the rig.
+    pub vertices: u32,
+    /// Triangles of the recomputed primitives.
+    pub triangles: u32,
+    /// Recomputed vertices.
+    pub recomputed: u32,
+    /// Jobs in the dispatch.
+    pub jobs: u32,
+}
+
+/// Uniforms of `pack_f16`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct PackParams {
+    /// f32 values to pack.
+    pub count: u32,
+    /// Invocations per dispatch row.
+    pub row: u32,
+    /// Padding.
+    pub _pad0: u32,
+    /// Padding.
+    pub _pad1: u32,
+}
+
+/// One chunk of tiles with everything its blend dispatch reads.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Chunk {
+    /// First tile.
+    pub tile_begin: u32,
+    /// Number of tiles.
+    pub tiles: u32,
+    /// Neutral values of the chunk's vertices, x y z per vertex.
+    pub base: Vec<f32>,
+    /// Delta blocks, [`BLOCK_FLOATS`] each.
+    pub blocks: Vec<f32>,
+    /// Per (tile, word): slot bits and index of the word's first block.
+    pub masks: Vec<[u32; 2]>,
+}
+
+impl Chunk {
+    /// Bytes of the chunk's three buffers.
+    pub fn bytes(&self) -> u64 {
+        ((self.base.len() + self.blocks.len()) * 4 + self.masks.len() * 8) as u64
+    }
+}
+
+/// Which deltas a layout holds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Attribute {
+    /// Positions.
+    Positions,
+    /// Normals (normal deltas; base normals).
+    Normals,
+}
+
+/// Builds the chunked tile layout of one attribute. Each chunk's buffers stay at or below
+/// `max_binding` bytes (a chunk holds at least one tile).
+pub fn build_chunks(rig: &Rig, attribute: Attribute, max_binding: u64) -> Vec<Chunk> {
+    let vertices = rig.vertex_count();
+    let tiles = vertices.div_ceil(TILE);
+    let slots = rig.targets.len();
+    let words = slots.div_ceil(32).max(1);
+    let slot_of = rig.lod.slots();
+    let offsets = rig.vertex_offsets();
+
+    // (tile, slot, lane, delta) for every stored delta of the attribute.
+    let mut base = vec![0f32; vertices * 3];
+    let mut entries: Vec<(u32, u32, u8, Vec3)> = Vec::new();
+    for (p, prim) in rig.primitives.iter().enumerate() {
+        let off = offsets[p];
+        let values = match attribute {
+            Attribute::Positions => &prim.positions,
+            Attribute::Normals => &prim.normals,
+        };
+        for (i, v) in values.iter().enumerate() {
+            base[(off + i) * 3..(off + i) * 3 + 3].copy_from_slice(&v.to_array());
+        }
+        for t in &prim.targets {
+            let deltas = match attribute {
+                Attribute::Positions => Some(&t.positions),
+                Attribute::Normals => t.normals.as_ref(),
+            };
+            let Some(deltas) = deltas else { continue };
+            let slot = slot_of[t.target as usize];
+            for (k, &v) in t.vertices.iter().enumerate() {
+                let g = off + v as usize;
+                entries.push(((g / TILE) as u32, slot, (g % TILE) as u8, deltas[k]));
+            }
+        }
+    }
+    entries.sort_unstable_by_key(|&(tile, slot, lane, _)| (tile, slot, lane));
+
+    let mut chunks = Vec::new();
+    let mut chunk = Chunk::default();
+    let mut e = 0;
+    for tile in 0..tiles as u32 {
+        // Gather this tile's blocks first, then decide whether they fit in the current chunk.
+        let mut masks = vec![[0u32; 2]; words];
+        let mut blocks: Vec<f32> = Vec::new();
+        let mut slots_here: Vec<u32> = Vec::new();
+        while e < entries.len() && entries[e].0 == tile {
+            let slot = entries[e].1;
+            let mut block = [0f32; BLOCK_FLOATS];
+            while e < entries.len() && entries[e].0 == tile && entries[e].1 == slot {
+                let (_, _, lane, d) = entries[e];
+                let l = lane as usize;
+                block[l] = d.x;
+                block[TILE + l] = d.y;
+                block[2 * TILE + l] = d.z;
+                e += 1;
+            }
+            slots_here.push(slot);
+            blocks.extend_from_slice(&block);
+        }
+        let first_v = tile as usize * TILE;
+        let last_v = (first_v + TILE).min(vertices);
+        let tile_bytes = (blocks.len() * 4 + (last_v - first_v) * 12 + words * 8) as u64;
+        if chunk.tiles > 0 && chunk.bytes() + tile_bytes > max_binding {
+            chunks.push(std::mem::take(&mut chunk));
+        }
+        if chunk.tiles == 0 {
+            chunk.tile_begin = tile;
+        }
+        let first_block = (chunk.blocks.len() / BLOCK_FLOATS) as u32;
+        // Running count: blocks of this tile in earlier words.
+        let mut before = 0u32;
+        for (w, m) in masks.iter_mut().enumerate() {
+            let in_word: Vec<u32> = slots_here
+                .iter()
+                .copied()
+                .filter(|&s| s as usize / 32 == w)
+                .collect();
+            for s in &in_word {
+                m[0] |= 1 << (s % 32);
+            }
+            m[1] = first_block + before;
+            before += in_word.len() as u32;
+        }
+        chunk.masks.extend_from_slice(&masks);
+        chunk.blocks.extend_from_slice(&blocks);
+        chunk.base.extend_from_slice(&base[first_v * 3..last_v * 3]);
+        chunk.tiles += 1;
+    }
+    if chunk.tiles > 0 {
+        chunks.push(chunk);
+    }
+    chunks
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn uniform_structs_match_the_wgsl_layouts() {
+        // Sizes and field offsets as the WGSL structs declare them (all u32, 16-byte multiples).
+        assert_eq!(size_of::<GpuJob>(), 16);
+        assert_eq!(std::mem::offset_of!(GpuJob, frame), 8);
+        assert_eq!(size_of::<ActiveParams>(), 16);
+        assert_eq!(size_of::<BlendParams>(), 32);
+        assert_eq!(std::mem::offset_of!(BlendParams, normalize), 24);
+        assert_eq!(std::mem::offset_of!(BlendParams, tiles_x), 28);
+        assert_eq!(size_of::<NormalParams>(), 16);
+        assert_eq!(std::mem::offset_of!(NormalParams, jobs), 12);
+        assert_eq!(size_of::<PackParams>(), 16);
+    }
+
+    #[test]
+    fn masks_find_every_block_and_chunks_respect_the_limit() {
+        let rig = crate::embedded::default_rig();
+        let whole = build_chunks(&rig, Attribute::Positions, u64::MAX);
+        assert_eq!(whole.len(), 1);
+        let limit = whole[0].bytes() / 5;
+        let chunks = build_chunks(&rig, Attribute::Positions, limit);
+        assert!(chunks.len() >= 5, "{} chunks", chunks.len());
+        assert!(chunks.iter().all(|c| c.bytes() <= limit));
+        assert_eq!(
+            chunks.iter().map(|c| c.tiles).sum::<u32>() as usize,
+            rig.vertex_count().div_ceil(TILE)
+        );
+        // Every stored delta is found through the masks of its chunk.
+        let slots = rig.lod.slots();
+        let words = rig.targets.len().div_ceil(32);
+        let offsets = rig.vertex_offsets();
+        for (p, prim) in rig.primitives.iter().enumerate() {
+            for t in &prim.targets {
+                let s = slots[t.target as usize];
+                for (k, &v) in t.vertices.iter().enumerate() {
+                    let g = offsets[p] + v as usize;
+                    let tile = (g / TILE) as u32;
+                    let c = chunks
+                        .iter()
+                        .find(|c| (c.tile_begin..c.tile_begin + c.tiles).contains(&tile))
+                        .expect("chunk of tile");
+                    let m = c.masks[(tile - c.tile_begin) as usize * words + s as usize / 32];
+                    let bit = 1u32 << (s % 32);
+                    assert_ne!(m[0] & bit, 0, "slot {s} missing from tile {tile}");
+                    let b = (m[1] + (m[0] & (bit - 1)).count_ones()) as usize;
+                    let lane = g % TILE;
+                    assert_eq!(c.blocks[b * BLOCK_FLOATS + lane], t.positions[k].x);
+                    assert_eq!(
+                        c.blocks[b * BLOCK_FLOATS + 2 * TILE + lane],
+                        t.positions[k].z
+                    );
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,1170 @@
+//! The GPU engine (wgpu): rigs and their whole animation resident on the device, one compute
+//! dispatch per pass per batch.
+//!
+//! Costigan et al. 2016 keep the blendshapes and the animation texture on the GPU so that a
+//! frame costs only a tiny upload; here a rig's tiles of delta blocks, neutral mesh, LOD order
+//! and every clip's weight table are uploaded once ([`GpuRig::upload`]), and a batch uploads
+//! only its job list (16 bytes per unique job). Passes per batch, each a WGSL file in
+//! `shaders/` mirrored by a CPU function of the same name:
+//!
+//! 1. `build_active` — per group of four jobs, Lorach's list of active slots and weights, read
+//!    from the resident clip tables (built on the GPU: the tables already live there, so
+//!    building it on the CPU would mean keeping a second copy of every clip host-side per batch
+//!    and uploading `slots × jobs` weights instead of one small record per job);
+//! 2. `blend` — per (tile of 64 vertices, group of 4 jobs), Eq. 1 over the active list;
+//! 3. `face_normals` + `vertex_normals` — normals recomputed from blended positions where the
+//!    rig has no normal deltas (or `blend` again on normal deltas where it has them);
+//! 4. `pack_f16` — binary16 output on request.
+//!
+//! Results are copied to a mappable staging buffer only when the caller wants vertex buffers;
+//! staging buffers live in a small pool, so a batch can be recorded and submitted while the
+//! previous one is still being read back ([`GpuContext::submit`] / [`Pending::wait`]).
+//! Timestamp queries around each sub-batch's pass give the GPU time.
+//!
+//! Every function takes the context (which owns `Device` and `Queue`), so tests can open their
+//! own device with [`GpuContext::from_device`].
+
+pub mod layout;
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+
+use half::f16;
+
+use self::layout::{
+    ActiveParams, Attribute, BlendParams, GpuJob, JOBS_PER_GROUP, NormalParams, PackParams,
+    build_chunks,
+};
+use super::cpu::NormalTopology;
+use super::{BlendOutput, OutputSpec, Precision, VertexData};
+use crate::rig::Rig;
+
+/// Why the GPU engine could not do something.
+#[derive(Debug, thiserror::Error, Clone, PartialEq)]
+pub enum GpuError {
+    /// No adapter matched the request.
+    #[error("no suitable GPU adapter: {0}")]
+    NoAdapter(String),
+    /// The device could not be opened.
+    #[error("cannot open the GPU device: {0}")]
+    Device(String),
+    /// The device was lost (driver reset, `destroy`, hang).
+    #[error("GPU device lost: {0}")]
+    Lost(String),
+    /// The device ran out of memory.
+    #[error("GPU out of memory: {0}")]
+    OutOfMemory(String),
+    /// The rig or batch exceeds what the device can hold.
+    #[error("does not fit on the GPU: {0}")]
+    DoesNotFit(String),
+    /// Any other device error (a validation error here is a bug in crowdmorph).
+    #[error("GPU error: {0}")]
+    Internal(String),
+}
+
+/// Options of a GPU context.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct GpuOptions {
+    /// Use at most this many bytes per storage binding (tests lower it to force sub-batches).
+    pub max_binding: Option<u64>,
+    /// Cut rigs into chunks of at most this many bytes (tests lower it to force chunking; by
+    /// default a chunk is as large as a storage binding).
+    pub max_chunk: Option<u64>,
+}
+
+/// Whether the device is still usable, and why not.
+#[derive(Default)]
+struct Health {
+    lost: AtomicBool,
+    reason: Mutex<Option<String>>,
+}
+
+impl Health {
+    fn fail(&self, reason: String) {
+        if let Ok(mut r) = self.reason.lock() {
+            r.get_or_insert(reason);
+        }
+        self.lost.store(true, Ordering::SeqCst);
+    }
+    fn check(&self) -> Result<(), GpuError> {
+        if self.lost.load(Ordering::SeqCst) {
+            let reason = self
+                .reason
+                .lock()
+                .ok()
+                .and_then(|r| r.clone())
+                .unwrap_or_default();
+            Err(GpuError::Lost(reason))
+        } else {
+            Ok(())
+        }
+    }
+}
+
+struct Pipelines {
+    active: wgpu::ComputePipeline,
+    blend: wgpu::ComputePipeline,
+    face: wgpu::ComputePipeline,
+    vertex: wgpu::ComputePipeline,
+    pack: wgpu::ComputePipeline,
+}
+
+/// An open device with the engine's pipelines.
+pub struct GpuContext {
+    device: wgpu::Device,
+    queue: wgpu::Queue,
+    adapter: wgpu::AdapterInfo,
+    pipelines: Pipelines,
+    /// Nanoseconds per timestamp tick, when the device has timestamp queries.
+    timestamp_period: Option<f32>,
+    max_binding: u64,
+    max_chunk: u64,
+    max_buffer: u64,
+    health: Arc<Health>,
+    pool: Mutex<Vec<Slot>>,
+}
+
+impl std::fmt::Debug for GpuContext {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("GpuContext")
+            .field("adapter", &self.adapter.name)
+            .field("backend", &self.adapter.backend)
+            .field("max_binding", &self.max_binding)
+            .finish()
+    }
+}
+
+/// Whether an adapter is real hardware (not a CPU rasterizer like llvmpipe).
+pub fn is_hardware(info: &wgpu::AdapterInfo) -> bool {
+    matches!(
+        info.device_type,
+        wgpu::DeviceType::DiscreteGpu
+            | wgpu::DeviceType::IntegratedGpu
+            | wgpu::DeviceType::VirtualGpu
+    )
+}
+
+fn rank(info: &wgpu::AdapterInfo) -> u8 {
+    match info.device_type {
+        wgpu::DeviceType::DiscreteGpu => 0,
+        wgpu::DeviceType::IntegratedGpu => 1,
+        wgpu::DeviceType::VirtualGpu => 2,
+        wgpu::DeviceType::Cpu => 3,
+        wgpu::DeviceType::Other => 4,
+    }
+}
+
+fn shader(device: &wgpu::Device, label: &str, source: &str) -> wgpu::ShaderModule {
+    device.create_shader_module(wgpu::ShaderModuleDescriptor {
+        label: Some(label),
+        source: wgpu::ShaderSource::Wgsl(source.into()),
+    })
+}
+
+fn pipeline(
+    device: &wgpu::Device,
+    module: &wgpu::ShaderModule,
+    entry: &str,
+) -> wgpu::ComputePipeline {
+    device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+        label: Some(entry),
+        layout: None,
+        module,
+        entry_point: Some(entry),
+        compilation_options: wgpu::PipelineCompilationOptions::default(),
+        cache: None,
+    })
+}
+
+impl GpuContext {
+    /// Opens the best adapter: hardware only when `allow_software` is false (the `auto`
+    /// backend), any adapter otherwise. `WGPU_BACKEND`, `WGPU_ADAPTER_NAME` (a substring of the
+    /// adapter name) narrow the choice.
+    pub fn open(allow_software: bool, options: GpuOptions) -> Result<GpuContext, GpuError> {
+        let instance =
+            wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+        let mut adapters = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::all()));
+        let name_filter = std::env::var("WGPU_ADAPTER_NAME")
+            .ok()
+            .map(|s| s.to_lowercase());
+        adapters.retain(|a| {
+            let info = a.get_info();
+            (allow_software || is_hardware(&info))
+                && name_filter
+                    .as_ref()
+                    .is_none_or(|n| info.name.to_lowercase().contains(n))
+        });
+        adapters.sort_by_key(|a| rank(&a.get_info()));
+        let Some(adapter) = adapters.into_iter().next() else {
+            return Err(GpuError::NoAdapter(if allow_software {
+                "wgpu found no adapter (is a Vulkan driver such as mesa-vulkan-drivers installed?)"
+                    .into()
+            } else {
+                "no hardware adapter (software adapters are used only with --backend gpu)".into()
+            }));
+        };
+        let features = adapter.features() & wgpu::Features::TIMESTAMP_QUERY;
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("crowdmorph"),
+            required_features: features,
+            required_limits: adapter.limits(),
+            experimental_features: wgpu::ExperimentalFeatures::default(),
+            memory_hints: wgpu::MemoryHints::Performance,
+            trace: wgpu::Trace::Off,
+        }))
+        .map_err(|e| GpuError::Device(e.to_string()))?;
+        Ok(Self::from_device(
+            device,
+            queue,
+            adapter.get_info(),
+            options,
+        ))
+    }
+
+    /// Builds the engine on a device the caller opened (tests inject their own).
+    pub fn from_device(
+        device: wgpu::Device,
+        queue: wgpu::Queue,
+        adapter: wgpu::AdapterInfo,
+        options: GpuOptions,
+    ) -> GpuContext {
+        let health = Arc::new(Health::default());
+        let h = health.clone();
+        device.set_device_lost_callback(move |reason, message| {
+            h.fail(format!("{reason:?}: {message}"));
+        });
+        let h = health.clone();
+        device.on_uncaptured_error(Arc::new(move |error: wgpu::Error| {
+            tracing::error!(%error, "uncaptured GPU error; the GPU engine stops and the CPU engine takes over");
+            h.fail(error.to_string());
+        }));
+        let active = shader(
+            &device,
+            "active.wgsl",
+            include_str!("../../../shaders/active.wgsl"),
+        );
+        let blend = shader(
+            &device,
+            "blend.wgsl",
+            include_str!("../../../shaders/blend.wgsl"),
+        );
+        let normals = shader(
+            &device,
+            "normals.wgsl",
+            include_str!("../../../shaders/normals.wgsl"),
+        );
+        let pack = shader(
+            &device,
+            "pack_f16.wgsl",
+            include_str!("../../../shaders/pack_f16.wgsl"),
+        );
+        let pipelines = Pipelines {
+            active: pipeline(&device, &active, "build_active"),
+            blend: pipeline(&device, &blend, "blend"),
+            face: pipeline(&device, &normals, "face_normals"),
+            vertex: pipeline(&device, &normals, "vertex_normals"),
+            pack: pipeline(&device, &pack, "pack_f16"),
+        };
+        let limits = device.limits();
+        let mut max_binding = limits.max_storage_buffer_binding_size;
+        if let Some(m) = options.max_binding {
+            max_binding = max_binding.min(m);
+        }
+        let timestamp_period = device
+            .features()
+            .contains(wgpu::Features::TIMESTAMP_QUERY)
+            .then(|| queue.get_timestamp_period());
+        GpuContext {
+            device,
+            queue,
+            adapter,
+            pipelines,
+            timestamp_period,
+            max_binding,
+            max_chunk: options
+                .max_chunk
+                .map_or(max_binding, |c| c.min(max_binding)),
+            max_buffer: limits.max_buffer_size,
+            health,
+            pool: Mutex::new(Vec::new()),
+        }
+    }
+
+    /// The adapter in use.
+    pub fn adapter(&self) -> &wgpu::AdapterInfo {
+        &self.adapter
+    }
+
+    /// The device (tests use it to simulate a loss with `destroy`).
+    pub fn device(&self) -> &wgpu::Device {
+        &self.device
+    }
+
+    /// Largest storage binding the engine uses.
+    pub fn max_binding(&self) -> u64 {
+        self.max_binding
+    }
+
+    /// Whether GPU times are measured.
+    pub fn has_timestamps(&self) -> bool {
+        self.timestamp_period.is_some()
+    }
+
+    /// Err once the device is lost or has reported an error.
+    pub fn health(&self) -> Result<(), GpuError> {
+        self.health.check()
+    }
+
+    fn buffer(&self, label: &str, size: u64, usage: wgpu::BufferUsages) -> wgpu::Buffer {
+        self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size: size.max(16).next_multiple_of(4),
+            usage,
+            mapped_at_creation: false,
+        })
+    }
+
+    fn init(&self, label: &str, bytes: &[u8], usage: wgpu::BufferUsages) -> wgpu::Buffer {
+        // Bindings may not be empty; pad tiny or empty arrays to 16 bytes.
+        let mut padded;
+        let contents = if bytes.len() < 16 || !bytes.len().is_multiple_of(4) {
+            padded = bytes.to_vec();
+            padded.resize(bytes.len().max(16).next_multiple_of(4), 0);
+            &padded[..]
+        } else {
+            bytes
+        };
+        // Not `create_buffer_init`: it maps the buffer and panics if the device is gone, while
+        // a queued write just reports the loss through the device's error handling.
+        let buffer = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size: contents.len() as u64,
+            usage: usage | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        self.queue.write_buffer(&buffer, 0, contents);
+        buffer
+    }
+
+    fn uniform<T: bytemuck::Pod>(&self, value: &T) -> wgpu::Buffer {
+        self.init(
+            "params",
+            bytemuck::bytes_of(value),
+            wgpu::BufferUsages::UNIFORM,
+        )
+    }
+}
+
+fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
+    wgpu::BindGroupEntry {
+        binding,
+        resource: buffer.as_entire_binding(),
+    }
+}
+
+/// One chunk of a resident rig.
+struct GpuChunk {
+    tile_begin: u32,
+    tiles: u32,
+    base: wgpu::Buffer,
+    blocks: wgpu::Buffer,
+    masks: wgpu::Buffer,
+}
+
+struct GpuTopology {
+    triangles: wgpu::Buffer,
+    recomputed: wgpu::Buffer,
+    incident_start: wgpu::Buffer,
+    incident: wgpu::Buffer,
+    n_triangles: u32,
+    n_recomputed: u32,
+}
+
+/// A rig resident on the GPU.
+pub struct GpuRig {
+    vertices: u32,
+    slots: u32,
+    words: u32,
+    positions: Vec<GpuChunk>,
+    /// Empty when every vertex's normal is recomputed from positions.
+    normals: Vec<GpuChunk>,
+    order: wgpu::Buffer,
+    tables: wgpu::Buffer,
+    /// (offset in `tables`, frames) per clip.
+    clips: Vec<(u32, u32)>,
+    topology: Option<GpuTopology>,
+    /// LOD shape counts per level.
+    lod_shapes: Vec<u32>,
+    geometry_bytes: u64,
+    table_bytes: u64,
+}
+
+impl std::fmt::Debug for GpuRig {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("GpuRig")
+            .field("vertices", &self.vertices)
+            .field("chunks", &self.positions.len())
+            .field("device_bytes", &self.device_bytes())
+            .finish()
+    }
+}
+
+fn clip_tables(rig: &Rig) -> (Vec<f32>, Vec<(u32, u32)>) {
+    let mut tables = Vec::new();
+    let mut clips = Vec::new();
+    for c in &rig.clips {
+        clips.push((tables.len() as u32, c.frames));
+        tables.extend_from_slice(&c.weights);
+    }
+    (tables, clips)
+}
+
+impl GpuRig {
+    /// Uploads everything a batch of this rig reads. Refuses (`DoesNotFit`) rigs the device
+    /// cannot hold, instead of failing later in the middle of a batch.
+    pub fn upload(ctx: &GpuContext, rig: &Rig) -> Result<GpuRig, GpuError> {
+        ctx.health()?;
+        let vertices = rig.vertex_count();
+        let per_job = (vertices * 3 * 4) as u64;
+        if per_job * JOBS_PER_GROUP as u64 > ctx.max_binding {
+            return Err(GpuError::DoesNotFit(format!(
+                "{vertices} vertices: four jobs' output ({} bytes) exceed the {}-byte storage binding",
+                per_job * 4,
+                ctx.max_binding
+            )));
+        }
+        let topology = NormalTopology::of(rig);
+        let tri_bytes = topology.triangles.len() as u64 * 12;
+        if tri_bytes * JOBS_PER_GROUP as u64 > ctx.max_binding
+            || topology.triangles.len() > 65_535 * 64
+            || vertices > 65_535 * 64 * 65_535
+        {
+            return Err(GpuError::DoesNotFit(format!(
+                "{} triangles of recomputed normals exceed the device's dispatch or binding limits",
+                topology.triangles.len()
+            )));
+        }
+        let (tables, clips) = clip_tables(rig);
+        if tables.len() as u64 * 4 > ctx.max_binding {
+            return Err(GpuError::DoesNotFit(format!(
+                "clip tables of {} bytes exceed one storage binding",
+                tables.len() * 4
+            )));
+        }
+        let scope = ctx.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
+        let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST;
+        let upload_chunks = |attribute| -> Vec<GpuChunk> {
+            build_chunks(rig, attribute, ctx.max_chunk)
+                .into_iter()
+                .map(|c| GpuChunk {
+                    tile_begin: c.tile_begin,
+                    tiles: c.tiles,
+                    base: ctx.init("base", bytemuck::cast_slice(&c.base), storage),
+                    blocks: ctx.init("blocks", bytemuck::cast_slice(&c.blocks), storage),
+                    masks: ctx.init("masks", bytemuck::cast_slice(&c.masks), storage),
+                })
+                .collect()
+        };
+        let positions = upload_chunks(Attribute::Positions);
+        let normals = if topology.vertices.len() < vertices {
+            upload_chunks(Attribute::Normals)
+        } else {
+            Vec::new()
+        };
+        let order: Vec<u32> = rig.lod.order.clone();
+        let topo = (!topology.vertices.is_empty()).then(|| GpuTopology {
+            triangles: ctx.init(
+                "triangles",
+                bytemuck::cast_slice(&topology.triangles),
+                storage,
+            ),
+            recomputed: ctx.init(
+                "recomputed",
+                bytemuck::cast_slice(&topology.vertices),
+                storage,
+            ),
+            incident_start: ctx.init(
+                "incident_start",
+                bytemuck::cast_slice(&topology.incident_start),
+                storage,
+            ),
+            incident: ctx.init(
+                "incident",
+                bytemuck::cast_slice(&topology.incident),
+                storage,
+            ),
+            n_triangles: topology.triangles.len() as u32,
+            n_recomputed: topology.vertices.len() as u32,
+        });
+        let chunk_bytes = |cs: &[GpuChunk]| -> u64 {
+            cs.iter()
+                .map(|c| c.base.size() + c.blocks.size() + c.masks.size())
+                .sum()
+        };
+        let topo_bytes = topo.as_ref().map_or(0, |t| {
+            t.triangles.size() + t.recomputed.size() + t.incident_start.size() + t.incident.size()
+        });
+        let gpu = GpuRig {
+            vertices: vertices as u32,
+            slots: rig.targets.len() as u32,
+            words: rig.targets.len().div_ceil(32).max(1) as u32,
+            geometry_bytes: chunk_bytes(&positions)
+                + chunk_bytes(&normals)
+                + topo_bytes
+                + order.len() as u64 * 4,
+            positions,
+            normals,
+            order: ctx.init("order", bytemuck::cast_slice(&order), storage),
+            table_bytes: tables.len() as u64 * 4,
+            tables: ctx.init("tables", bytemuck::cast_slice(&tables), storage),
+            clips,
+            topology: topo,
+            lod_shapes: rig.lod.levels.iter().map(|l| l.shapes).collect(),
+        };
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::OutOfMemory(e.to_string()));
+        }
+        ctx.health()?;
+        Ok(gpu)
+    }
+
+    /// A copy of this resident rig with new clip tables (geometry and LOD order unchanged).
+    pub fn with_clips(&self, ctx: &GpuContext, rig: &Rig) -> Result<GpuRig, GpuError> {
+        ctx.health()?;
+        let (tables, clips) = clip_tables(rig);
+        if tables.len() as u64 * 4 > ctx.max_binding {
+            return Err(GpuError::DoesNotFit(
+                "clip tables exceed one storage binding".into(),
+            ));
+        }
+        let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST;
+        Ok(GpuRig {
+            vertices: self.vertices,
+            slots: self.slots,
+            words: self.words,
+            positions: self.positions.iter().map(GpuChunk::share).collect(),
+            normals: self.normals.iter().map(GpuChunk::share).collect(),
+            order: self.order.clone(),
+            table_bytes: tables.len() as u64 * 4,
+            tables: ctx.init("tables", bytemuck::cast_slice(&tables), storage),
+            clips,
+            topology: self.topology.as_ref().map(|t| GpuTopology {
+                triangles: t.triangles.clone(),
+                recomputed: t.recomputed.clone(),
+                incident_start: t.incident_start.clone(),
+                incident: t.incident.clone(),
+                n_triangles: t.n_triangles,
+                n_recomputed: t.n_recomputed,
+            }),
+            lod_shapes: self.lod_shapes.clone(),
+            geometry_bytes: self.geometry_bytes,
+        })
+    }
+
+    /// Bytes resident on the device.
+    pub fn device_bytes(&self) -> u64 {
+        self.geometry_bytes + self.table_bytes
+    }
+
+    /// Storage-binding chunks the rig was split into.
+    pub fn chunks(&self) -> usize {
+        self.positions.len()
+    }
+
+    /// The job record for (clip, frame, LOD level); `None` if any is out of range.
+    pub fn job(&self, clip: u32, frame: u32, lod: u32) -> Option<GpuJob> {
+        let &(table, frames) = self.clips.get(clip as usize)?;
+        let shapes = *self.lod_shapes.get(lod as usize)?;
+        (frame < frames).then_some(GpuJob {
+            table,
+            frames,
+            frame,
+            shapes,
+        })
+    }
+}
+
+impl GpuChunk {
+    fn share(&self) -> GpuChunk {
+        GpuChunk {
+            tile_begin: self.tile_begin,
+            tiles: self.tiles,
+            base: self.base.clone(),
+            blocks: self.blocks.clone(),
+            masks: self.masks.clone(),
+        }
+    }
+}
+
+/// Per-batch buffers, pooled so consecutive batches reuse them and overlap.
+struct Slot {
+    jobs: wgpu::Buffer,
+    active_weights: wgpu::Buffer,
+    active_slots: wgpu::Buffer,
+    active_count: wgpu::Buffer,
+    positions: wgpu::Buffer,
+    normals: wgpu::Buffer,
+    faces: wgpu::Buffer,
+    packed_positions: wgpu::Buffer,
+    packed_normals: wgpu::Buffer,
+    staging: wgpu::Buffer,
+    queries: Option<(wgpu::QuerySet, wgpu::Buffer, wgpu::Buffer)>,
+}
+
+/// Sizes a batch needs from a slot.
+#[derive(Clone, Copy, PartialEq, Eq)]
+struct SlotNeeds {
+    jobs: u64,
+    active: u64,
+    output: u64,
+    faces: u64,
+    staging: u64,
+    queries: u32,
+}
+
+impl Slot {
+    fn new(ctx: &GpuContext, n: SlotNeeds) -> Slot {
+        use wgpu::BufferUsages as U;
+        let storage = U::STORAGE | U::COPY_SRC | U::COPY_DST;
+        let queries = ctx.timestamp_period.map(|_| {
+            let count = n.queries.max(2);
+            (
+                ctx.device.create_query_set(&wgpu::QuerySetDescriptor {
+                    label: Some("batch timestamps"),
+                    ty: wgpu::QueryType::Timestamp,
+                    count,
+                }),
+                ctx.buffer(
+                    "timestamps",
+                    u64::from(count) * 8,
+                    U::QUERY_RESOLVE | U::COPY_SRC,
+                ),
+                ctx.buffer(
+                    "timestamps readback",
+                    u64::from(count) * 8,
+                    U::MAP_READ | U::COPY_DST,
+                ),
+            )
+        });
+        Slot {
+            jobs: ctx.buffer("jobs", n.jobs, storage),
+            active_weights: ctx.buffer("active weights", n.active * 4, storage),
+            active_slots: ctx.buffer("active slots", n.active, storage),
+            active_count: ctx.buffer("active count", n.active, storage),
+            positions: ctx.buffer("positions", n.output, storage),
+            normals: ctx.buffer("normals", n.output, storage),
+            faces: ctx.buffer("faces", n.faces, storage),
+            packed_positions: ctx.buffer("packed positions", n.output / 2 + 4, storage),
+            packed_normals: ctx.buffer("packed normals", n.output / 2 + 4, storage),
+            staging: ctx.buffer("staging", n.staging, U::MAP_READ | U::COPY_DST),
+            queries,
+        }
+    }
+
+    fn fits(&self, n: SlotNeeds) -> bool {
+        self.jobs.size() >= n.jobs
+            && self.active_slots.size() >= n.active
+            && self.positions.size() >= n.output
+            && self.faces.size() >= n.faces
+            && self.staging.size() >= n.staging
+            && self
+                .queries
+                .as_ref()
+                .is_none_or(|q| q.0.count() >= n.queries)
+    }
+}
+
+/// Where each sub-batch's results sit in the staging buffer.
+#[derive(Clone, Copy)]
+struct Region {
+    /// First job of the sub-batch.
+    job: usize,
+    /// Jobs in it.
+    jobs: usize,
+    positions: u64,
+    normals: u64,
+}
+
+/// A submitted batch whose results are not read yet.
+pub struct Pending<'a> {
+    ctx: &'a GpuContext,
+    slot: Option<Slot>,
+    submission: wgpu::SubmissionIndex,
+    regions: Vec<Region>,
+    jobs: usize,
+    vertices: usize,
+    spec: OutputSpec,
+    readback: bool,
+    /// Bytes of the staging buffer this batch mapped.
+    staged: u64,
+    mapped: Arc<Mutex<Vec<Result<(), String>>>>,
+}
+
+impl GpuContext {
+    /// Records and submits a batch of jobs of one rig. With `readback`, results are copied to
+    /// staging memory for [`Pending::wait`]; without, they stay on the device (for a renderer)
+    /// and `wait` returns only the timing.
+    pub fn submit<'a>(
+        &'a self,
+        rig: &GpuRig,
+        jobs: &[GpuJob],
+        spec: OutputSpec,
+        readback: bool,
+    ) -> Result<Pending<'a>, GpuError> {
+        self.health()?;
+        let v = rig.vertices as u64;
+        let n = jobs.len();
+        let per_job_out = v * 12;
+        let tris = rig
+            .topology
+            .as_ref()
+            .map_or(0, |t| u64::from(t.n_triangles));
+        let recompute = spec.normals && rig.topology.is_some();
+        // Jobs per sub-batch: what one binding holds, in whole groups of four.
+        let mut sub = self.max_binding / per_job_out;
+        if recompute && tris > 0 {
+            sub = sub.min(self.max_binding / (tris * 12));
+        }
+        let sub =
+            ((sub.min(65_535) as usize) / JOBS_PER_GROUP * JOBS_PER_GROUP).max(JOBS_PER_GROUP);
+        let subs = n.div_ceil(sub).max(1);
+        let elem = if spec.precision == Precision::F16 {
+            2
+        } else {
+            4
+        };
+        let mut regions = Vec::with_capacity(subs);
+        let mut staging = 0u64;
+        for k in 0..subs {
+            let job = k * sub;
+            let count = sub.min(n - job);
+            let bytes = (count as u64 * v * 3 * elem).next_multiple_of(4);
+            let positions = staging;
+            staging += bytes;
+            let normals = staging;
+            if spec.normals {
+                staging += bytes;
+            }
+            regions.push(Region {
+                job,
+                jobs: count,
+                positions,
+                normals,
+            });
+        }
+        if staging > self.max_buffer {
+            return Err(GpuError::DoesNotFit(format!(
+                "batch output of {staging} bytes exceeds the device's largest buffer"
+            )));
+        }
+        let needs = SlotNeeds {
+            jobs: (n.max(1) * size_of::<GpuJob>()) as u64,
+            active: (sub / JOBS_PER_GROUP) as u64 * u64::from(rig.slots.max(1)) * 4,
+            output: sub as u64 * per_job_out,
+            faces: sub as u64 * tris * 12,
+            staging: if readback { staging } else { 4 },
+            queries: 2 * subs as u32,
+        };
+        let slot = {
+            let mut pool = self
+                .pool
+                .lock()
+                .map_err(|_| GpuError::Internal("slot pool poisoned".into()))?;
+            match pool.iter().position(|s| s.fits(needs)) {
+                Some(i) => pool.swap_remove(i),
+                None => {
+                    // No pooled slot is big enough: free them (later batches of this size
+                    // would not fit either) and make one sized for this batch.
+                    pool.clear();
+                    Slot::new(self, needs)
+                }
+            }
+        };
+        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        self.queue
+            .write_buffer(&slot.jobs, 0, bytemuck::cast_slice(jobs));
+        let mut encoder = self
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("batch"),
+            });
+        for (k, r) in regions.iter().enumerate() {
+            self.record(&mut encoder, rig, &slot, r, spec, k as u32);
+            if readback {
+                let bytes = (r.jobs as u64 * v * 3 * elem).next_multiple_of(4);
+                let (pos_src, nrm_src) = if spec.precision == Precision::F16 {
+                    (&slot.packed_positions, &slot.packed_normals)
+                } else {
+                    (&slot.positions, &slot.normals)
+                };
+                encoder.copy_buffer_to_buffer(pos_src, 0, &slot.staging, r.positions, bytes);
+                if spec.normals {
+                    encoder.copy_buffer_to_buffer(nrm_src, 0, &slot.staging, r.normals, bytes);
+                }
+            }
+        }
+        if let Some((qs, resolve, read)) = &slot.queries {
+            let count = 2 * subs as u32;
+            encoder.resolve_query_set(qs, 0..count, resolve, 0);
+            encoder.copy_buffer_to_buffer(resolve, 0, read, 0, u64::from(count) * 8);
+        }
+        let submission = self.queue.submit([encoder.finish()]);
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            self.health.fail(e.to_string());
+            return Err(GpuError::Internal(e.to_string()));
+        }
+        let mapped = Arc::new(Mutex::new(Vec::new()));
+        let map = |buffer: &wgpu::Buffer, size: u64| {
+            let m = mapped.clone();
+            buffer.map_async(wgpu::MapMode::Read, 0..size, move |r| {
+                if let Ok(mut v) = m.lock() {
+                    v.push(r.map_err(|e| e.to_string()));
+                }
+            });
+        };
+        if readback {
+            map(&slot.staging, staging.max(4));
+        }
+        if let Some((_, _, read)) = &slot.queries {
+            map(read, 16 * subs as u64);
+        }
+        Ok(Pending {
+            ctx: self,
+            slot: Some(slot),
+            submission,
+            regions,
+            jobs: n,
+            vertices: v as usize,
+            spec,
+            readback,
+            staged: staging.max(4),
+            mapped,
+        })
+    }
+
+    /// Records one sub-batch's passes into `encoder`, inside one timed compute pass.
+    fn record(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        rig: &GpuRig,
+        slot: &Slot,
+        r: &Region,
+        spec: OutputSpec,
+        k: u32,
+    ) {
+        let d = &self.device;
+        let p = &self.pipelines;
+        let jobs = r.jobs as u32;
+        let groups = r.jobs.div_ceil(JOBS_PER_GROUP) as u32;
+        let bind = |pipeline: &wgpu::ComputePipeline, entries: &[wgpu::BindGroupEntry<'_>]| {
+            d.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: None,
+                layout: &pipeline.get_bind_group_layout(0),
+                entries,
+            })
+        };
+        // The sub-batch's jobs start at byte r.job * 16 of the jobs buffer.
+        let job_bytes = wgpu::BufferBinding {
+            buffer: &slot.jobs,
+            offset: 0,
+            size: None,
+        };
+        let active_params = self.uniform(&ActiveParams {
+            jobs,
+            groups,
+            slots: rig.slots,
+            job_base: r.job as u32,
+        });
+        let active_bg = d.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("build_active"),
+            layout: &p.active.get_bind_group_layout(0),
+            entries: &[
+                entry(0, &active_params),
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: wgpu::BindingResource::Buffer(job_bytes),
+                },
+                entry(2, &rig.tables),
+                entry(3, &rig.order),
+                entry(4, &slot.active_weights),
+                entry(5, &slot.active_slots),
+                entry(6, &slot.active_count),
+            ],
+        });
+        let blend_groups = |chunks: &[GpuChunk],
+                            out: &wgpu::Buffer,
+                            normalize: u32|
+         -> Vec<(wgpu::BindGroup, [u32; 3])> {
+            chunks
+                .iter()
+                .map(|c| {
+                    let tiles_x = c.tiles.min(65_535);
+                    let tiles_z = c.tiles.div_ceil(tiles_x.max(1));
+                    let params = self.uniform(&BlendParams {
+                        vertices: rig.vertices,
+                        tile_begin: c.tile_begin,
+                        tiles: c.tiles,
+                        slots: rig.slots,
+                        words: rig.words,
+                        jobs,
+                        normalize,
+                        tiles_x,
+                    });
+                    let bg = bind(
+                        &p.blend,
+                        &[
+                            entry(0, &params),
+                            entry(1, &c.base),
+                            entry(2, &c.blocks),
+                            entry(3, &c.masks),
+                            entry(4, &slot.active_weights),
+                            entry(5, &slot.active_slots),
+                            entry(6, &slot.active_count),
+                            entry(7, out),
+                        ],
+                    );
+                    (bg, [tiles_x, groups, tiles_z])
+                })
+                .collect()
+        };
+        let pos_groups = blend_groups(&rig.positions, &slot.positions, 0);
+        let nrm_groups = if spec.normals {
+            blend_groups(&rig.normals, &slot.normals, 1)
+        } else {
+            Vec::new()
+        };
+        let normal_groups = match (&rig.topology, spec.normals) {
+            (Some(t), true) => {
+                let params = self.uniform(&NormalParams {
+                    vertices: rig.vertices,
+                    triangles: t.n_triangles,
+                    recomputed: t.n_recomputed,
+                    jobs,
+                });
+                let face = bind(
+                    &p.face,
+                    &[
+                        entry(0, &params),
+                        entry(1, &slot.positions),
+                        entry(2, &t.triangles),
+                        entry(3, &slot.faces),
+                    ],
+                );
+                let vertex = bind(
+                    &p.vertex,
+                    &[
+                        entry(0, &params),
+                        entry(4, &slot.faces),
+                        entry(5, &t.recomputed),
+                        entry(6, &t.incident_start),
+                        entry(7, &t.incident),
+                        entry(8, &slot.normals),
+                    ],
+                );
+                Some((
+                    face,
+                    vertex,
+                    t.n_triangles.div_ceil(64),
+                    t.n_recomputed.div_ceil(64),
+                ))
+            }
+            _ => None,
+        };
+        let pack_groups = (spec.precision == Precision::F16).then(|| {
+            let count = jobs * rig.vertices * 3;
+            let pairs = count.div_ceil(2);
+            let x = pairs.div_ceil(64).clamp(1, 65_535);
+            let y = pairs.div_ceil(x * 64).max(1);
+            let params = self.uniform(&PackParams {
+                count,
+                row: x * 64,
+                _pad0: 0,
+                _pad1: 0,
+            });
+            let mut v = vec![(
+                bind(
+                    &p.pack,
+                    &[
+                        entry(0, &params),
+                        entry(1, &slot.positions),
+                        entry(2, &slot.packed_positions),
+                    ],
+                ),
+                [x, y],
+            )];
+            if spec.normals {
+                v.push((
+                    bind(
+                        &p.pack,
+                        &[
+                            entry(0, &params),
+                            entry(1, &slot.normals),
+                            entry(2, &slot.packed_normals),
+                        ],
+                    ),
+                    [x, y],
+                ));
+            }
+            v
+        });
+
+        let timestamp_writes =
+            slot.queries
+                .as_ref()
+                .map(|(qs, _, _)| wgpu::ComputePassTimestampWrites {
+                    query_set: qs,
+                    beginning_of_pass_write_index: Some(2 * k),
+                    end_of_pass_write_index: Some(2 * k + 1),
+                });
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("blend batch"),
+            timestamp_writes,
+        });
+        pass.set_pipeline(&p.active);
+        pass.set_bind_group(0, &active_bg, &[]);
+        pass.dispatch_workgroups(groups.div_ceil(64), 1, 1);
+        pass.set_pipeline(&p.blend);
+        for (bg, [x, y, z]) in pos_groups.iter().chain(&nrm_groups) {
+            pass.set_bind_group(0, bg, &[]);
+            pass.dispatch_workgroups(*x, *y, *z);
+        }
+        if let Some((face, vertex, tx, vx)) = &normal_groups {
+            pass.set_pipeline(&p.face);
+            pass.set_bind_group(0, face, &[]);
+            pass.dispatch_workgroups(*tx, jobs, 1);
+            pass.set_pipeline(&p.vertex);
+            pass.set_bind_group(0, vertex, &[]);
+            pass.dispatch_workgroups(*vx, jobs, 1);
+        }
+        if let Some(packs) = &pack_groups {
+            pass.set_pipeline(&p.pack);
+            for (bg, [x, y]) in packs {
+                pass.set_bind_group(0, bg, &[]);
+                pass.dispatch_workgroups(*x, *y, 1);
+            }
+        }
+    }
+}
+
+impl Pending<'_> {
+    /// Waits for the batch and returns its buffers (empty without readback) and GPU time.
+    pub fn wait(mut self) -> Result<(BlendOutput, Option<u64>), GpuError> {
+        let ctx = self.ctx;
+        let result = self.finish();
+        if let Some(slot) = self.slot.take() {
+            slot.staging.unmap();
+            if let Some((_, _, read)) = &slot.queries {
+                read.unmap();
+            }
+            if result.is_ok()
+                && let Ok(mut pool) = ctx.pool.lock()
+            {
+                pool.push(slot);
+            }
+        }
+        result
+    }
+
+    fn finish(&mut self) -> Result<(BlendOutput, Option<u64>), GpuError> {
+        let ctx = self.ctx;
+        ctx.device
+            .poll(wgpu::PollType::Wait {
+                submission_index: Some(self.submission.clone()),
+                timeout: None,
+            })
+            .map_err(|e| {
+                ctx.health.fail(e.to_string());
+                GpuError::Lost(e.to_string())
+            })?;
+        ctx.health()?;
+        let expected = usize::from(self.readback)
+            + usize::from(self.slot.as_ref().is_some_and(|s| s.queries.is_some()));
+        let results = self.mapped.lock().map(|v| v.clone()).unwrap_or_default();
+        if results.len() < expected || results.iter().any(Result::is_err) {
+            let msg = format!("buffer mapping failed: {results:?}");
+            ctx.health.fail(msg.clone());
+            return Err(GpuError::Lost(msg));
+        }
+        let slot = self
+            .slot
+            .as_ref()
+            .ok_or_else(|| GpuError::Internal("no slot".into()))?;
+        let gpu_ns = match (&slot.queries, ctx.timestamp_period) {
+            (Some((_, _, read)), Some(period)) => {
+                let view = read
+                    .get_mapped_range(0..16 * self.regions.len() as u64)
+                    .map_err(|e| GpuError::Internal(e.to_string()))?;
+                let mut ticks = vec![0u64; 2 * self.regions.len()];
+                bytemuck::cast_slice_mut::<u64, u8>(&mut ticks).copy_from_slice(&view);
+                let total: u64 = ticks
+                    .chunks_exact(2)
+                    .map(|t| t[1].saturating_sub(t[0]))
+                    .sum();
+                Some((total as f64 * f64::from(period)) as u64)
+            }
+            _ => None,
+        };
+        let mut out = BlendOutput {
+            vertices: self.vertices,
+            jobs: self.jobs,
+            ..BlendOutput::default()
+        };
+        if !self.readback {
+            return Ok((out, gpu_ns));
+        }
+        let comps = self.jobs * self.vertices * 3;
+        let per_job = self.vertices * 3;
+        let view = slot
+            .staging
+            .get_mapped_range(0..self.staged)
+            .map_err(|e| GpuError::Internal(e.to_string()))?;
+        let read = |region_of: &dyn Fn(&Region) -> u64| -> VertexData {
+            match self.spec.precision {
+                Precision::F32 => {
+                    let mut v = vec![0f32; comps];
+                    for r in &self.regions {
+                        let dst = &mut v[r.job * per_job..(r.job + r.jobs) * per_job];
+                        let (at, len) = (region_of(r) as usize, dst.len() * 4);
+                        bytemuck::cast_slice_mut::<f32, u8>(dst)
+                            .copy_from_slice(&view[at..at + len]);
+                    }
+                    VertexData::F32(v)
+                }
+                Precision::F16 => {
+                    let mut v = vec![f16::ZERO; comps];
+                    for r in &self.regions {
+                        let dst = &mut v[r.job * per_job..(r.job + r.jobs) * per_job];
+                        let (at, len) = (region_of(r) as usize, dst.len() * 2);
+                        bytemuck::cast_slice_mut::<f16, u8>(dst)
+                            .copy_from_slice(&view[at..at + len]);
+                    }
+                    VertexData::F16(v)
+                }
+            }
+        };
+        out.positions = read(&|r| r.positions);
+        if self.spec.normals {
+            out.normals = Some(read(&|r| r.normals));
+        }
+        Ok((out, gpu_ns))
+    }
+}
+
+impl Drop for Pending<'_> {
+    fn drop(&mut self) {
+        // A pending batch dropped without `wait` must not leave its buffers mapped or the
+        // device with work nobody collects; wait for it and discard the result.
+        if self.slot.is_some() {
+            let _ = self.ctx.device.poll(wgpu::PollType::Wait {
+                submission_index: Some(self.submission.clone()),
+                timeout: None,
+            });
+            if let Some(slot) = self.slot.take() {
+                slot.staging.unmap();
+                if let Some((_, _, read)) = &slot.queries {
+                    read.unmap();
+                }
+            }
+        }
+    }
+}

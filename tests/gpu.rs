@@ -1,0 +1,315 @@
+//! The GPU engine against the CPU engine (the oracle), on a real device: in CI and on machines
+//! without a GPU that is Mesa's lavapipe (software Vulkan), opened explicitly — the `auto`
+//! backend never picks it. Each test opens its own device.
+//!
+//! Tolerances: positions within 1e-5 × the bounding-box diagonal; normals within 1e-4 when
+//! blended from normal deltas and 1e-3 when recomputed from positions (the two engines sum
+//! face normals in different orders); f16 outputs may round the other way on one side, so they
+//! are allowed one binary16 step more: max |coordinate| × 2^-10 for positions, 2^-10 for normals.
+
+use std::sync::Arc;
+
+use crowdmorph::engine::gpu::{GpuContext, GpuOptions};
+use crowdmorph::engine::{BackendChoice, BackendKind, BlendJob, Engine, OutputSpec, Precision};
+use crowdmorph::import::{ImportOptions, load_path};
+use crowdmorph::rig::Rig;
+
+use crate::util::{Rng, paper_scale_rig, rig_files, with_random_clip};
+
+/// Opens a GPU context (any adapter, software included), or says why not.
+fn gpu(options: GpuOptions) -> Option<GpuContext> {
+    match GpuContext::open(true, options) {
+        Ok(ctx) => {
+            eprintln!(
+                "GPU tests run on {} ({:?}, {:?})",
+                ctx.adapter().name,
+                ctx.adapter().backend,
+                ctx.adapter().device_type
+            );
+            Some(ctx)
+        }
+        Err(e) => {
+            eprintln!("skipped: no GPU adapter ({e}); install mesa-vulkan-drivers for lavapipe");
+            None
+        }
+    }
+}
+
+fn random_jobs(rig: &Rig, seed: u64, n: usize) -> Vec<BlendJob> {
+    let mut rng = Rng(seed);
+    let mut jobs: Vec<BlendJob> = (0..n)
+        .map(|_| {
+            let clip = rng.below(rig.clips.len());
+            BlendJob {
+                clip: clip as u32,
+                frame: rng.below(rig.clips[clip].frames as usize) as u32,
+                lod: rng.below(rig.lod.levels.len()) as u32,
+            }
+        })
+        .collect();
+    let clones = jobs[..n / 4].to_vec();
+    jobs.extend(clones);
+    jobs
+}
+
+fn max_diff(a: &[f32], b: &[f32]) -> f32 {
+    assert_eq!(a.len(), b.len());
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
+}
+
+/// Evaluates `jobs` on the GPU engine and on the CPU engine and compares every buffer.
+fn check_parity(gpu_engine: &Engine, rig: Rig, jobs: &[BlendJob]) {
+    let rig = Arc::new(rig);
+    let cpu_engine = Engine::cpu();
+    let g = gpu_engine.prepare(rig.clone()).expect("upload");
+    let c = cpu_engine.prepare(rig.clone()).expect("prepare");
+    assert!(
+        g.gpu().is_some() && g.memory().device_bytes > 0,
+        "{}: rig is resident",
+        rig.name
+    );
+    let diag = rig.bbox().diagonal();
+    let recomputed = !rig.has_normal_deltas();
+    for spec in [
+        OutputSpec {
+            normals: true,
+            precision: Precision::F32,
+        },
+        OutputSpec {
+            normals: true,
+            precision: Precision::F16,
+        },
+        OutputSpec {
+            normals: false,
+            precision: Precision::F32,
+        },
+    ] {
+        let got = gpu_engine.evaluate(&g, jobs, spec).expect("gpu evaluate");
+        let want = cpu_engine.evaluate(&c, jobs, spec).expect("cpu evaluate");
+        assert_eq!(
+            got.kind,
+            Some(BackendKind::Gpu),
+            "{}: computed on the GPU, not the fallback: {:?}",
+            rig.name,
+            gpu_engine.info().degraded_reason
+        );
+        assert!(
+            !gpu_engine.info().degraded,
+            "{}: {:?}",
+            rig.name,
+            gpu_engine.info().degraded_reason
+        );
+        assert_eq!(got.output.jobs, jobs.len());
+        let f16 = spec.precision == Precision::F16;
+        for j in 0..jobs.len() {
+            let (gp, cp) = (got.output.job_positions(j), want.output.job_positions(j));
+            let max_coord = cp.iter().map(|x| x.abs()).fold(0.0, f32::max);
+            let tol = 1e-5 * diag + if f16 { max_coord / 1024.0 } else { 0.0 };
+            let d = max_diff(&gp, &cp);
+            assert!(
+                d <= tol,
+                "{} {spec:?} job {j}: positions differ by {d:e} (tolerance {tol:e})",
+                rig.name
+            );
+            if spec.normals {
+                let (gn, cn) = (
+                    got.output.job_normals(j).expect("normals"),
+                    want.output.job_normals(j).expect("normals"),
+                );
+                let tol =
+                    if recomputed { 1e-3 } else { 1e-4 } + if f16 { 1.0 / 1024.0 } else { 0.0 };
+                let d = max_diff(&gn, &cn);
+                assert!(
+                    d <= tol,
+                    "{} {spec:?} job {j}: normals differ by {d:e} (tolerance {tol:e})",
+                    rig.name
+                );
+            }
+        }
+        if let Some(ctx) = gpu_engine.gpu()
+            && ctx.has_timestamps()
+        {
+            assert!(
+                got.timings.gpu_ns.is_some_and(|t| t > 0),
+                "timestamp queries give a GPU time"
+            );
+        }
+    }
+}
+
+#[test]
+fn gpu_matches_cpu_on_every_rig_and_the_embedded_head() {
+    let Some(ctx) = gpu(GpuOptions::default()) else {
+        return;
+    };
+    let engine = Engine::with_gpu(ctx, BackendChoice::Gpu);
+    let mut rigs = vec![crowdmorph::embedded::default_rig()];
+    if let Some(files) = rig_files() {
+        for f in files {
+            rigs.push(load_path(&f, &ImportOptions::default()).expect("load"));
+        }
+    }
+    for (i, rig) in rigs.into_iter().enumerate() {
+        let rig = with_random_clip(rig, i as u64);
+        let n = if rig.vertex_count() > 10_000 { 10 } else { 33 };
+        let jobs = random_jobs(&rig, 100 + i as u64, n);
+        check_parity(&engine, rig, &jobs);
+    }
+}
+
+#[test]
+fn paper_scale_rig_over_the_binding_limit_is_chunked_and_matches() {
+    // Chunks of at most 256 KiB split the rig's delta blocks several ways, and 4 MiB bindings
+    // split a batch's output into sub-batches of four jobs.
+    let Some(ctx) = gpu(GpuOptions {
+        max_binding: Some(4 << 20),
+        max_chunk: Some(256 << 10),
+    }) else {
+        return;
+    };
+    let engine = Engine::with_gpu(ctx, BackendChoice::Gpu);
+    let rig = paper_scale_rig();
+    let prepared = engine.prepare(Arc::new(rig.clone())).expect("upload");
+    let chunks = prepared.gpu().expect("resident").chunks();
+    assert!(
+        chunks >= 3,
+        "expected the rig split into chunks, got {chunks}"
+    );
+    let jobs = random_jobs(&rig, 7, 12);
+    check_parity(&engine, rig, &jobs);
+}
+
+#[test]
+fn a_rig_the_device_cannot_hold_is_refused_clearly() {
+    // With 64 KiB bindings four jobs' output of the embedded head (7,262 vertices) cannot fit.
+    let Some(ctx) = gpu(GpuOptions {
+        max_binding: Some(64 << 10),
+        ..GpuOptions::default()
+    }) else {
+        return;
+    };
+    let engine = Engine::with_gpu(ctx, BackendChoice::Gpu);
+    let err = engine
+        .prepare(Arc::new(crowdmorph::embedded::default_rig()))
+        .expect_err("refused");
+    let msg = err.to_string();
+    assert!(
+        msg.contains("does not fit") && msg.contains("vertices"),
+        "{msg}"
+    );
+    assert!(
+        !engine.info().degraded,
+        "refusing a rig is not a device fault"
+    );
+}
+
+#[test]
+fn device_loss_falls_back_to_the_cpu_engine_without_losing_rigs() {
+    let Some(ctx) = gpu(GpuOptions::default()) else {
+        return;
+    };
+    let engine = Engine::with_gpu(ctx, BackendChoice::Gpu);
+    let rig = Arc::new(crowdmorph::embedded::default_rig());
+    let prepared = engine.prepare(rig.clone()).expect("upload");
+    let jobs = random_jobs(&rig, 3, 8);
+    let spec = OutputSpec {
+        normals: true,
+        precision: Precision::F32,
+    };
+    let before = engine.evaluate(&prepared, &jobs, spec).expect("gpu");
+    assert_eq!(before.kind, Some(BackendKind::Gpu));
+
+    engine.gpu().expect("gpu").device().destroy();
+
+    let after = engine
+        .evaluate(&prepared, &jobs, spec)
+        .expect("still answers");
+    assert_eq!(
+        after.kind,
+        Some(BackendKind::Cpu),
+        "the CPU engine took over"
+    );
+    let info = engine.info();
+    assert!(info.degraded && info.kind == BackendKind::Cpu, "{info:?}");
+    assert!(info.degraded_reason.is_some());
+    let cpu = Engine::cpu();
+    let want = cpu
+        .evaluate(&cpu.prepare(rig.clone()).expect("prepare"), &jobs, spec)
+        .expect("cpu");
+    assert_eq!(after.output, want.output, "same answer as the CPU engine");
+    // New rigs are still accepted (host-side) after the loss.
+    let again = engine.prepare(rig).expect("prepare after loss");
+    assert!(again.gpu().is_none());
+    assert_eq!(
+        engine.evaluate(&again, &jobs, spec).expect("cpu").output,
+        want.output
+    );
+}
+
+#[test]
+fn consecutive_batches_overlap_and_results_stay_on_the_device_without_readback() {
+    let Some(ctx) = gpu(GpuOptions::default()) else {
+        return;
+    };
+    let engine = Engine::with_gpu(ctx, BackendChoice::Gpu);
+    let rig = Arc::new(crowdmorph::embedded::default_rig());
+    let prepared = engine.prepare(rig.clone()).expect("upload");
+    let spec = OutputSpec::default();
+    let a = random_jobs(&rig, 1, 8);
+    let b = random_jobs(&rig, 2, 8);
+    // Submit both before collecting either: the second is recorded while the first runs.
+    let pa = engine.submit(&prepared, &a, spec, true).expect("submit a");
+    let pb = engine.submit(&prepared, &b, spec, true).expect("submit b");
+    let (rb, ra) = (pb.wait().expect("b"), pa.wait().expect("a"));
+    let cpu = Engine::cpu();
+    let c = cpu.prepare(rig).expect("prepare");
+    let diag = prepared.rig().bbox().diagonal();
+    for (got, jobs) in [(ra, &a), (rb, &b)] {
+        let want = cpu.evaluate(&c, jobs, spec).expect("cpu");
+        for j in 0..jobs.len() {
+            assert!(
+                max_diff(&got.output.job_positions(j), &want.output.job_positions(j))
+                    <= 1e-5 * diag
+            );
+        }
+    }
+    let kept = engine
+        .submit(&prepared, &a, spec, false)
+        .expect("submit")
+        .wait()
+        .expect("wait");
+    assert_eq!(kept.kind, Some(BackendKind::Gpu));
+    assert!(
+        kept.output.positions.is_empty(),
+        "no readback was asked for"
+    );
+}
+
+#[test]
+fn auto_never_picks_a_software_adapter() {
+    let instance =
+        wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+    let adapters = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::all()));
+    let hardware = adapters
+        .iter()
+        .any(|a| crowdmorph::engine::gpu::is_hardware(&a.get_info()));
+    let engine = Engine::new(BackendChoice::Auto).expect("auto always works");
+    let info = engine.info();
+    if hardware {
+        assert_eq!(
+            info.kind,
+            BackendKind::Gpu,
+            "a hardware adapter exists: {info:?}"
+        );
+    } else {
+        eprintln!(
+            "no hardware adapter here ({} software); auto must choose the CPU",
+            adapters.len()
+        );
+        assert_eq!(info.kind, BackendKind::Cpu, "{info:?}");
+        assert!(info.adapter.is_none());
+    }
+}
