@@ -9,14 +9,24 @@
 //! | [`embedded`] | the procedural default rig that needs no files |
 //! | [`plan`] | the batch planner: a crowd of heads → unique jobs + per-head index |
 //! | [`engine`] | blend engines; [`engine::cpu`] is the oracle and the no-GPU production engine |
+//! | [`render`] | a deterministic CPU software rasterizer (front view, z-buffer, Lambert) for image metrics |
+//! | [`lod`] | level of detail: importance metrics and orders, LOD tables and reports, feature-preserving mesh levels |
+//! | [`codec`] | the one module that touches bincode: wire messages and stored records |
+//! | [`store`] | persistence: one checksummed, atomically replaced file per rig under the data dir |
+//! | [`server`] | the HTTP API (axum), the dynamic batcher with cross-request dedupe, metrics |
 //! | [`tools`] | the CLI's commands (`inspect`, `eval`, `bench`) as library functions |
 //!
 //! The binary (`src/main.rs`) only parses the command line, sets up tracing and calls into
 //! [`tools`].
 
+pub mod codec;
 pub mod embedded;
 pub mod engine;
 pub mod import;
+pub mod lod;
 pub mod plan;
+pub mod render;
 pub mod rig;
+pub mod server;
+pub mod store;
 pub mod tools;

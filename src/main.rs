@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand, ValueEnum};
-use crowdmorph::engine::Precision;
+use crowdmorph::engine::{BackendChoice, Engine, Precision};
 use crowdmorph::rig::FrameMode;
 use crowdmorph::tools::{self, bench};
 
@@ -28,6 +28,9 @@ enum Command {
         /// Print JSON instead of text.
         #[arg(long)]
         json: bool,
+        /// Backend to report the rig's memory on (auto: a hardware GPU if any, else the CPU).
+        #[arg(long, default_value = "auto", env = "CROWDMORPH_BACKEND")]
+        backend: BackendChoice,
     },
     /// Blend one frame of a clip and write it as .obj (mesh) or .bin (raw little-endian f32 xyz).
     Eval {
@@ -48,16 +51,130 @@ enum Command {
         /// Output file, .obj or .bin.
         #[arg(long, default_value = "head.obj")]
         out: PathBuf,
+        /// Engine: a hardware GPU if any, else the CPU (auto); or force cpu / gpu.
+        #[arg(long, default_value = "auto", env = "CROWDMORPH_BACKEND")]
+        backend: BackendChoice,
     },
     /// Measure throughput.
     Bench {
         #[command(subcommand)]
         which: BenchCommand,
     },
+    /// Run the HTTP server (the embedded rig is always registered).
+    Serve(Box<ServeArgs>),
+    /// Level of detail: importance orders, their error over a clip, simplified meshes.
+    Lod {
+        #[command(subcommand)]
+        which: LodCommand,
+    },
+}
+
+#[derive(Subcommand)]
+enum LodCommand {
+    /// Per LOD level, the error against the full rig over a clip for every importance order
+    /// (five metrics, combined, file order): a table, --json, and a PNG plot.
+    Report {
+        /// glTF/GLB rig (default: the embedded head).
+        file: Option<PathBuf>,
+        /// Clip name; `random` makes a deterministic synthetic clip (for rigs without clips).
+        #[arg(long)]
+        clip: String,
+        /// Targets to pin to the front of every order (repeatable).
+        #[arg(long = "pin")]
+        pins: Vec<String>,
+        /// Write the plot here (PNG).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Side of the renders the image metrics compare, in pixels.
+        #[arg(long, default_value_t = 384)]
+        size: u32,
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Score every target with the five metrics and print the importance order.
+    Order {
+        /// glTF/GLB rig (default: the embedded head).
+        file: Option<PathBuf>,
+        /// combined, geometric-mse, hausdorff, image-mse, ssim, yee or file-order.
+        #[arg(long, default_value = "combined")]
+        method: String,
+        /// Targets to pin to the front (repeatable).
+        #[arg(long = "pin")]
+        pins: Vec<String>,
+        /// Side of the renders the image metrics compare, in pixels.
+        #[arg(long, default_value_t = 384)]
+        size: u32,
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Detect feature points and build simplified mesh levels.
+    Mesh {
+        /// glTF/GLB rig (default: the embedded head).
+        file: Option<PathBuf>,
+        /// Triangle fractions of the levels.
+        #[arg(long, value_delimiter = ',', default_values_t = [0.5f32, 0.25, 0.1])]
+        fractions: Vec<f32>,
+        /// Write each level's neutral mesh as OBJ into this folder.
+        #[arg(long)]
+        obj_dir: Option<PathBuf>,
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
 }
 
 #[derive(Subcommand)]
 enum BenchCommand {
+    /// The scenes of Costigan et al. 2016 (1 head, 100 unique, 100 sharing 10 animations) at
+    /// 100/50/25 % shapes: GPU time and round-trip time, on the paper-scale synthetic rig and
+    /// any --rig.
+    Gpu {
+        /// More rigs to measure (glTF/GLB), after the paper-scale synthetic rig.
+        #[arg(long)]
+        rig: Vec<PathBuf>,
+        /// Leave out the paper-scale synthetic rig.
+        #[arg(long)]
+        no_paper: bool,
+        /// Engine (gpu includes software adapters such as lavapipe).
+        #[arg(long, default_value = "gpu")]
+        backend: BackendChoice,
+        /// Seconds per measurement.
+        #[arg(long, default_value_t = 1.0)]
+        seconds: f64,
+        /// Write the table as a PNG plot (like the paper's Figures 5 and 6).
+        #[arg(long)]
+        plot: Option<PathBuf>,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Crowd frames over loopback HTTP against the same work in-process; latency at half
+    /// load; bytes per head of each format.
+    Http {
+        /// glTF/GLB rig (default: the embedded head).
+        #[arg(long)]
+        rig: Option<PathBuf>,
+        /// Heads per request.
+        #[arg(long, default_value_t = 100)]
+        heads: usize,
+        /// Unique jobs per request.
+        #[arg(long, default_value_t = 100)]
+        unique: usize,
+        /// Format of the throughput runs.
+        #[arg(long, value_enum, default_value_t = WireFormat::F32)]
+        format: WireFormat,
+        /// Concurrent connections at saturation.
+        #[arg(long, default_value_t = 4)]
+        clients: usize,
+        /// Seconds per measurement.
+        #[arg(long, default_value_t = 3.0)]
+        seconds: f64,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
+    },
     /// The CPU engine against a dense sgemm and the memcpy roofline, measured in the same run.
     Cpu {
         /// glTF/GLB rig (default: the embedded head).
@@ -87,6 +204,100 @@ enum BenchCommand {
     },
 }
 
+/// Arguments of `serve`; every flag is also an environment variable.
+#[derive(clap::Args)]
+struct ServeArgs {
+    /// Address to listen on.
+    #[arg(long, env = "CROWDMORPH_ADDR", default_value = "127.0.0.1:8080")]
+    addr: std::net::SocketAddr,
+    /// Where rigs and clips are stored (default: crowdmorph under the user's data dir).
+    #[arg(long, env = "CROWDMORPH_DATA_DIR")]
+    data_dir: Option<PathBuf>,
+    /// Engine: auto, cpu or gpu.
+    #[arg(long, env = "CROWDMORPH_BACKEND", default_value = "auto")]
+    backend: BackendChoice,
+    /// Bearer token required for uploads and deletes (open when unset).
+    #[arg(long, env = "CROWDMORPH_ADMIN_TOKEN", hide_env_values = true)]
+    admin_token: Option<String>,
+    /// Largest rig or clip upload, bytes.
+    #[arg(long, env = "CROWDMORPH_MAX_UPLOAD_BYTES", default_value_t = 256 << 20)]
+    max_upload_bytes: usize,
+    /// Largest body of other requests, bytes.
+    #[arg(long, env = "CROWDMORPH_MAX_REQUEST_BYTES", default_value_t = 16 << 20)]
+    max_request_bytes: usize,
+    /// Most heads per crowd request.
+    #[arg(long, env = "CROWDMORPH_MAX_HEADS", default_value_t = 100_000)]
+    max_heads: usize,
+    /// Most bytes the decoded arrays of one glTF upload may occupy.
+    #[arg(long, env = "CROWDMORPH_MAX_DECODED_BYTES", default_value_t = 2 << 30)]
+    max_decoded_bytes: usize,
+    /// Crowd requests that may wait for the batcher at once (more get 503).
+    #[arg(long, env = "CROWDMORPH_QUEUE_REQUESTS", default_value_t = 1024)]
+    queue_requests: usize,
+    /// Output bytes admitted crowd requests may hold at once (more get 503).
+    #[arg(long, env = "CROWDMORPH_QUEUE_MEMORY_BYTES", default_value_t = 2 << 30)]
+    queue_memory_bytes: usize,
+    /// A batch closes at this cost (vertices × active shapes over its unique jobs)...
+    #[arg(long, env = "CROWDMORPH_BATCH_COST", default_value_t = 200_000_000)]
+    batch_cost: u64,
+    /// ...or when its oldest job has waited this many microseconds.
+    #[arg(long, env = "CROWDMORPH_BATCH_DELAY_US", default_value_t = 1000)]
+    batch_delay_us: u64,
+    /// Crowd-request deadline, milliseconds (504 past it).
+    #[arg(long, env = "CROWDMORPH_REQUEST_TIMEOUT_MS", default_value_t = 10_000)]
+    request_timeout_ms: u64,
+    /// Deadline of uploads and other requests, seconds.
+    #[arg(long, env = "CROWDMORPH_ADMIN_TIMEOUT_S", default_value_t = 300)]
+    admin_timeout_s: u64,
+    /// Requests handled at once; more are shed with 503.
+    #[arg(long, env = "CROWDMORPH_MAX_CONCURRENCY", default_value_t = 2048)]
+    max_concurrency: usize,
+    /// Origins allowed by CORS, comma-separated (`*` for any; none by default).
+    #[arg(long, env = "CROWDMORPH_CORS_ORIGINS", value_delimiter = ',')]
+    cors_origin: Vec<String>,
+}
+
+fn run_serve(a: ServeArgs) -> Result<()> {
+    use crowdmorph::server::{self, ServerConfig};
+    let config = ServerConfig {
+        data_dir: Some(a.data_dir.unwrap_or_else(server::default_data_dir)),
+        backend: a.backend,
+        admin_token: a.admin_token.filter(|t| !t.is_empty()),
+        max_upload_bytes: a.max_upload_bytes,
+        max_request_bytes: a.max_request_bytes,
+        max_heads: a.max_heads,
+        max_decoded_bytes: a.max_decoded_bytes,
+        queue_requests: a.queue_requests,
+        queue_memory_bytes: a.queue_memory_bytes,
+        batch_cost: a.batch_cost,
+        batch_delay: std::time::Duration::from_micros(a.batch_delay_us),
+        request_timeout: std::time::Duration::from_millis(a.request_timeout_ms),
+        admin_timeout: std::time::Duration::from_secs(a.admin_timeout_s),
+        max_concurrency: a.max_concurrency,
+        cors_origins: a.cors_origin,
+    };
+    if let Some(d) = &config.data_dir {
+        tracing::info!(data_dir = %d.display(), "data directory");
+    }
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()?;
+    runtime.block_on(async move {
+        let listener = tokio::net::TcpListener::bind(a.addr)
+            .await
+            .map_err(|e| anyhow::anyhow!("cannot listen on {}: {e}", a.addr))?;
+        server::run(listener, config, server::shutdown_signal()).await?;
+        anyhow::Ok(())
+    })
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum WireFormat {
+    F32,
+    F16,
+    Q16,
+}
+
 #[derive(Clone, Copy, ValueEnum)]
 enum Format {
     F32,
@@ -103,9 +314,14 @@ fn main() -> Result<()> {
         .init();
     let cli = Cli::parse();
     match cli.command {
-        Command::Inspect { file, json } => {
+        Command::Inspect {
+            file,
+            json,
+            backend,
+        } => {
             let rig = tools::load_rig(file.as_deref())?;
-            let summary = tools::summarize(&rig);
+            let engine = Engine::new(backend)?;
+            let summary = tools::summarize_on(&rig, &engine)?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&summary)?);
             } else {
@@ -119,6 +335,7 @@ fn main() -> Result<()> {
             clamp,
             lod,
             out,
+            backend,
         } => {
             let rig = tools::load_rig(file.as_deref())?;
             let clip = match clip {
@@ -132,7 +349,8 @@ fn main() -> Result<()> {
             } else {
                 FrameMode::Wrap
             };
-            tools::eval_to_file(&rig, &clip, frame, lod, mode, &out)?;
+            let engine = Engine::new(backend)?;
+            tools::eval_with(&engine, &rig, &clip, frame, lod, mode, &out)?;
             eprintln!(
                 "wrote {} ({} vertices, clip {clip:?}, frame {frame}, lod {lod})",
                 out.display(),
@@ -171,6 +389,110 @@ fn main() -> Result<()> {
             } else {
                 print!("{}", bench::report_text(&report));
             }
+        }
+        Command::Lod { which } => run_lod(which)?,
+        Command::Bench {
+            which:
+                BenchCommand::Gpu {
+                    rig,
+                    no_paper,
+                    backend,
+                    seconds,
+                    plot,
+                    json,
+                },
+        } => {
+            use crowdmorph::tools::bench_gpu;
+            let engine = Engine::new(backend)?;
+            let mut rigs = Vec::new();
+            if !no_paper {
+                rigs.push(tools::synthetic::paper_scale_rig());
+            }
+            for p in &rig {
+                rigs.push(tools::load_rig(Some(p))?);
+            }
+            let report = bench_gpu::bench_gpu(&engine, &rigs, seconds)?;
+            if let Some(path) = &plot {
+                bench_gpu::write_plot(std::slice::from_ref(&report), path)?;
+            }
+            if json {
+                println!("{}", serde_json::to_string_pretty(&report)?);
+            } else {
+                print!("{}", bench_gpu::report_text(&report));
+            }
+        }
+        Command::Serve(args) => run_serve(*args)?,
+        Command::Bench {
+            which:
+                BenchCommand::Http {
+                    rig,
+                    heads,
+                    unique,
+                    format,
+                    clients,
+                    seconds,
+                    json,
+                },
+        } => {
+            use crowdmorph::server::bench as http;
+            let bytes = match &rig {
+                Some(p) => Some(http::self_contained_bytes(p)?),
+                None => None,
+            };
+            let opt = http::HttpBenchOptions {
+                heads,
+                unique,
+                format: match format {
+                    WireFormat::F32 => crowdmorph_proto::Format::F32,
+                    WireFormat::F16 => crowdmorph_proto::Format::F16,
+                    WireFormat::Q16 => crowdmorph_proto::Format::Q16,
+                },
+                clients,
+                seconds,
+            };
+            let report = http::bench_http(bytes, &opt)?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&report)?);
+            } else {
+                print!("{}", http::report_text(&report));
+            }
+        }
+    }
+    Ok(())
+}
+
+fn run_lod(which: LodCommand) -> Result<()> {
+    use crowdmorph::lod::cli;
+    match which {
+        LodCommand::Report {
+            file,
+            clip,
+            pins,
+            out,
+            size,
+            json,
+        } => {
+            let mut rig = tools::load_rig(file.as_deref())?;
+            cli::report_command(&mut rig, &clip, &pins, size, out.as_deref(), json)?;
+        }
+        LodCommand::Order {
+            file,
+            method,
+            pins,
+            size,
+            json,
+        } => {
+            let rig = tools::load_rig(file.as_deref())?;
+            cli::order_command(&rig, &method, &pins, size, json)?;
+        }
+        LodCommand::Mesh {
+            file,
+            fractions,
+            obj_dir,
+            json,
+        } => {
+            let rig = tools::load_rig(file.as_deref())?;
+            cli::mesh_command(&rig, &fractions, obj_dir.as_deref(), json)?;
         }
     }
     Ok(())

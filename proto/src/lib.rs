@@ -2,7 +2,508 @@
 //!
 //! This crate is deliberately small and dependency-light so that clients can share it with the
 //! server. The byte-level specification lives in `proto/README.md`; the types here are the Rust
-//! mirror of that document.
+//! mirror of that document, and [`wire`] holds the one bincode configuration both sides use.
+//!
+//! Every message has two encodings, chosen per request by HTTP headers:
+//! - JSON (`application/json`), for humans and curl; vertex payloads ([`Blob`]) are base64
+//!   strings of their little-endian bytes.
+//! - bincode 2 with its standard configuration (`application/x-bincode`): little-endian,
+//!   variable-length integers, fields in declaration order. A [`Blob`] is a padding byte string
+//!   followed by the payload byte string, so that a server can align payloads for zero-copy
+//!   reads (see the README).
+
+#![warn(missing_docs)]
+
+pub mod wire;
+
+use serde::de::{self, SeqAccess, Visitor};
+use serde::ser::SerializeTuple;
+use serde::{Deserialize, Deserializer, Serialize, Serializer};
 
 /// Version of the wire protocol spoken by this crate.
 pub const PROTOCOL_VERSION: u32 = 1;
+
+/// Content type of JSON bodies.
+pub const CONTENT_TYPE_JSON: &str = "application/json";
+
+/// Content type of bincode 2 bodies.
+pub const CONTENT_TYPE_BINCODE: &str = "application/x-bincode";
+
+/// Alignment, in bytes from the start of the body, that the server gives every [`Blob`] payload
+/// in bincode responses, so that clients can view it as a typed array without copying.
+pub const BLOB_ALIGN: usize = 16;
+
+/// Scalar format of vertex buffers on the wire.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Format {
+    /// IEEE binary32, 4 bytes per component (bincode variant index 0).
+    #[default]
+    F32,
+    /// IEEE binary16, 2 bytes per component (variant index 1); relative error ≤ 2^-11.
+    F16,
+    /// int16 quantized inside the rig's quantization box, 2 bytes per component (variant
+    /// index 2); absolute error ≤ half a step per axis, stated in [`Quantization::max_error`].
+    Q16,
+}
+
+impl Format {
+    /// Bytes of one scalar component.
+    pub fn component_bytes(self) -> usize {
+        match self {
+            Format::F32 => 4,
+            Format::F16 | Format::Q16 => 2,
+        }
+    }
+
+    /// The lowercase name used in JSON and query strings.
+    pub fn name(self) -> &'static str {
+        match self {
+            Format::F32 => "f32",
+            Format::F16 => "f16",
+            Format::Q16 => "q16",
+        }
+    }
+}
+
+impl std::str::FromStr for Format {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s.to_ascii_lowercase().as_str() {
+            "f32" => Ok(Format::F32),
+            "f16" => Ok(Format::F16),
+            "q16" => Ok(Format::Q16),
+            other => Err(format!("unknown format {other:?} (f32, f16 or q16)")),
+        }
+    }
+}
+
+/// Bytes that travel as one contiguous little-endian array (vertex positions, normals, indices).
+///
+/// JSON: a base64 string (standard alphabet, padded). bincode: a byte string of zero padding
+/// followed by a byte string of payload, each a varint length then the bytes.
+#[derive(Clone, Default, PartialEq, Eq)]
+pub struct Blob(pub Vec<u8>);
+
+impl std::fmt::Debug for Blob {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "Blob({} bytes)", self.0.len())
+    }
+}
+
+impl Blob {
+    /// The payload read as little-endian f32 values (a trailing partial value is ignored).
+    pub fn to_f32(&self) -> Vec<f32> {
+        self.0
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect()
+    }
+
+    /// The payload read as little-endian u16 values (binary16 bit patterns).
+    pub fn to_u16(&self) -> Vec<u16> {
+        self.0
+            .chunks_exact(2)
+            .map(|b| u16::from_le_bytes([b[0], b[1]]))
+            .collect()
+    }
+
+    /// The payload read as little-endian i16 values (q16 components).
+    pub fn to_i16(&self) -> Vec<i16> {
+        self.0
+            .chunks_exact(2)
+            .map(|b| i16::from_le_bytes([b[0], b[1]]))
+            .collect()
+    }
+
+    /// The payload read as little-endian u32 values (indices).
+    pub fn to_u32(&self) -> Vec<u32> {
+        self.0
+            .chunks_exact(4)
+            .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect()
+    }
+}
+
+/// Serializes a byte slice with `serialize_bytes` (a varint length then the bytes in bincode).
+struct RawBytes<'a>(&'a [u8]);
+
+impl Serialize for RawBytes<'_> {
+    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_bytes(self.0)
+    }
+}
+
+/// Deserializes a byte string into a `Vec<u8>`.
+struct ByteBuf(Vec<u8>);
+
+impl<'de> Deserialize<'de> for ByteBuf {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct V;
+        impl<'de> Visitor<'de> for V {
+            type Value = ByteBuf;
+            fn expecting(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+                f.write_str("a byte string")
+            }
+            fn visit_bytes<E: de::Error>(self, v: &[u8]) -> Result<ByteBuf, E> {
+                Ok(ByteBuf(v.to_vec()))
+            }
+            fn visit_byte_buf<E: de::Error>(self, v: Vec<u8>) -> Result<ByteBuf, E> {
+                Ok(ByteBuf(v))
+            }
+            fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<ByteBuf, A::Error> {
+                let mut out = Vec::new();
+                while let Some(b) = seq.next_element::<u8>()? {
+                    out.push(b);
+                }
+                Ok(ByteBuf(out))
+            }
+        }
+        d.deserialize_byte_buf(V)
+    }
+}
+
+impl Serialize for Blob {
+    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        use base64::Engine as _;
+        if s.is_human_readable() {
+            s.serialize_str(&base64::engine::general_purpose::STANDARD.encode(&self.0))
+        } else {
+            // No padding when encoded through serde; the server's encoder aligns payloads.
+            let mut t = s.serialize_tuple(2)?;
+            t.serialize_element(&RawBytes(&[]))?;
+            t.serialize_element(&RawBytes(&self.0))?;
+            t.end()
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for Blob {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        use base64::Engine as _;
+        if d.is_human_readable() {
+            let s = String::deserialize(d)?;
+            base64::engine::general_purpose::STANDARD
+                .decode(s.as_bytes())
+                .map(Blob)
+                .map_err(|e| de::Error::custom(format!("invalid base64 payload: {e}")))
+        } else {
+            struct V;
+            impl<'de> Visitor<'de> for V {
+                type Value = Blob;
+                fn expecting(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+                    f.write_str("padding bytes then payload bytes")
+                }
+                fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Blob, A::Error> {
+                    let _pad: ByteBuf = seq
+                        .next_element()?
+                        .ok_or_else(|| de::Error::invalid_length(0, &self))?;
+                    let data: ByteBuf = seq
+                        .next_element()?
+                        .ok_or_else(|| de::Error::invalid_length(1, &self))?;
+                    Ok(Blob(data.0))
+                }
+            }
+            d.deserialize_tuple(2, V)
+        }
+    }
+}
+
+/// One head of a crowd: which rig plays which clip at which frame and level of detail.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Head {
+    /// The client's id for this head; echoed in the response, never interpreted.
+    pub head: u64,
+    /// Rig id (as returned by `POST /v1/rigs`; the embedded rig is `default-head`).
+    pub rig: String,
+    /// Clip name within the rig.
+    pub clip: String,
+    /// Frame number; past the end it wraps when the request's `wrap` is true.
+    pub frame: i64,
+    /// Level of detail (0 = all shapes).
+    #[serde(default)]
+    pub lod: u32,
+}
+
+/// What the buffers of a crowd frame contain.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct OutputOptions {
+    /// Also send unit normals.
+    #[serde(default)]
+    pub normals: bool,
+    /// Scalar format of the buffers.
+    #[serde(default)]
+    pub format: Format,
+}
+
+fn yes() -> bool {
+    true
+}
+
+/// `POST /v1/crowd/frame` request.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CrowdFrameRequest {
+    /// The heads, in the order the response lists them.
+    pub heads: Vec<Head>,
+    /// Output format and contents.
+    #[serde(default)]
+    pub output: OutputOptions,
+    /// Frames past the end of a clip loop (true, the default) or are an error (false).
+    #[serde(default = "yes")]
+    pub wrap: bool,
+}
+
+/// How to turn q16 components back into rig-space coordinates:
+/// `x = min[a] + (q + 32768) × step[a]` for axis `a` (0 = x, 1 = y, 2 = z).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Quantization {
+    /// Lower corner of the quantization box.
+    pub min: [f32; 3],
+    /// Size of one quantization step per axis: `(max - min) / 65535`.
+    pub step: [f32; 3],
+    /// Largest absolute error of a dequantized position per axis: half a step, plus a few
+    /// units in the last place of the largest coordinate for rounding to f32.
+    pub max_error: [f32; 3],
+}
+
+impl Quantization {
+    /// Dequantizes interleaved x, y, z components.
+    pub fn dequantize(&self, q: &[i16]) -> Vec<f32> {
+        q.iter()
+            .enumerate()
+            .map(|(i, &c)| {
+                let a = i % 3;
+                self.min[a] + (f32::from(c) + 32768.0) * self.step[a]
+            })
+            .collect()
+    }
+}
+
+/// Largest absolute error of a q16 normal component: normals are `q / 32767`.
+pub const Q16_NORMAL_MAX_ERROR: f32 = 0.5 / 32767.0;
+
+/// One unique blended buffer of a crowd frame.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FrameBuffer {
+    /// Rig id.
+    pub rig: String,
+    /// Clip name.
+    pub clip: String,
+    /// Frame of the clip's table actually played (after wrapping).
+    pub frame: u32,
+    /// Level of detail.
+    pub lod: u32,
+    /// Vertices in the buffer (all primitives of the rig concatenated in file order).
+    pub vertices: u32,
+    /// How to dequantize positions; present exactly when the format is q16.
+    pub quantization: Option<Quantization>,
+    /// x, y, z per vertex in the response's format: `vertices × 3 × component bytes`.
+    pub positions: Blob,
+    /// Unit normals, when asked for, in the same format (q16: `q / 32767`).
+    pub normals: Option<Blob>,
+}
+
+/// Which buffer a head uses.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct HeadBuffer {
+    /// The head id from the request.
+    pub head: u64,
+    /// Index into [`CrowdFrameResponse::buffers`].
+    pub buffer: u32,
+}
+
+/// Where the time of a crowd frame went, in microseconds.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FrameTimings {
+    /// From admission to the start of the last engine batch that computed one of its buffers
+    /// (0 when every buffer joined a batch already running).
+    pub queue_us: u64,
+    /// Engine wall time of the batches that computed its buffers.
+    pub compute_us: u64,
+    /// From the request's arrival to its response being ready to send.
+    pub total_us: u64,
+    /// GPU time of those batches, when the GPU engine computed them.
+    pub gpu_us: Option<u64>,
+}
+
+/// `POST /v1/crowd/frame` response.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CrowdFrameResponse {
+    /// Format of every buffer.
+    pub format: Format,
+    /// Whether buffers carry normals.
+    pub normals: bool,
+    /// Unique buffers, in order of first appearance among the heads; clones share one.
+    pub buffers: Vec<FrameBuffer>,
+    /// One entry per request head, in request order.
+    pub heads: Vec<HeadBuffer>,
+    /// Timings.
+    pub timings: FrameTimings,
+}
+
+/// Memory a rig occupies on the server.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Memory {
+    /// Host bytes (rig arrays plus the CPU engine's layout).
+    pub host_bytes: u64,
+    /// Device bytes (0 without a GPU).
+    pub device_bytes: u64,
+}
+
+/// Axis-aligned box.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Aabb {
+    /// Lower corner.
+    pub min: [f32; 3],
+    /// Upper corner.
+    pub max: [f32; 3],
+}
+
+/// A clip of a rig.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ClipInfo {
+    /// Name (unique within the rig).
+    pub name: String,
+    /// Frames in the table.
+    pub frames: u32,
+    /// Sampling rate.
+    pub fps: f32,
+}
+
+/// A primitive of a rig.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PrimitiveInfo {
+    /// `mesh/index` as found in the file.
+    pub name: String,
+    /// Vertices.
+    pub vertices: u32,
+    /// Triangles.
+    pub triangles: u32,
+}
+
+/// A registered rig, as `POST /v1/rigs` and `GET /v1/rigs[/{id}]` describe it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RigInfo {
+    /// Id used in URLs and crowd requests.
+    pub id: String,
+    /// Name from the file or the upload.
+    pub name: String,
+    /// Whether this is the embedded rig (always present, never deletable).
+    pub builtin: bool,
+    /// Vertices over all primitives.
+    pub vertices: u32,
+    /// Triangles over all primitives.
+    pub triangles: u32,
+    /// Primitives in evaluation order.
+    pub primitives: Vec<PrimitiveInfo>,
+    /// Rig-wide target names.
+    pub targets: Vec<String>,
+    /// Clips.
+    pub clips: Vec<ClipInfo>,
+    /// Shapes evaluated at each LOD level (level 0 = all).
+    pub lod_levels: Vec<u32>,
+    /// Bounding box of the neutral mesh.
+    pub bbox: Aabb,
+    /// Memory resident for the rig.
+    pub memory: Memory,
+}
+
+/// `GET /v1/rigs` response.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RigList {
+    /// Every registered rig, ordered by id.
+    pub rigs: Vec<RigInfo>,
+}
+
+/// A primitive's ranges in a [`MeshResponse`].
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct MeshPrimitive {
+    /// `mesh/index`.
+    pub name: String,
+    /// First vertex of the primitive in the concatenated vertex space.
+    pub first_vertex: u32,
+    /// Vertices of the primitive.
+    pub vertices: u32,
+    /// First index of the primitive in [`MeshResponse::indices`].
+    pub first_index: u32,
+    /// Indices of the primitive (3 per triangle).
+    pub indices: u32,
+}
+
+/// `GET /v1/rigs/{id}/mesh` response: what a client fetches once to draw a rig's heads.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct MeshResponse {
+    /// Rig id.
+    pub rig: String,
+    /// Vertices over all primitives.
+    pub vertices: u32,
+    /// Primitives in evaluation order.
+    pub primitives: Vec<MeshPrimitive>,
+    /// Bounding box of the neutral mesh.
+    pub bbox: Aabb,
+    /// The box q16 positions of this rig are quantized in (covers every clip's motion).
+    pub quantization: Quantization,
+    /// Triangle list, u32 little-endian, indexing the concatenated vertex space.
+    pub indices: Blob,
+    /// Neutral positions, f32 little-endian x, y, z per vertex.
+    pub positions: Blob,
+    /// Neutral unit normals, f32 little-endian x, y, z per vertex.
+    pub normals: Blob,
+}
+
+/// `POST /v1/rigs/{id}/clips` response.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ClipUpload {
+    /// Rig id.
+    pub rig: String,
+    /// The clips added.
+    pub added: Vec<ClipInfo>,
+    /// Source target names that match no rig target and were ignored (only with
+    /// `ignore_unknown=true`; otherwise they are an error).
+    pub ignored: Vec<String>,
+}
+
+/// `GET /v1/rigs/{id}/clips` response.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ClipList {
+    /// Rig id.
+    pub rig: String,
+    /// Its clips.
+    pub clips: Vec<ClipInfo>,
+}
+
+/// The body of every 4xx and 5xx response (always JSON).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ErrorBody {
+    /// What went wrong.
+    pub error: ErrorDetail,
+}
+
+/// Machine-readable code and human-readable message of an error.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ErrorDetail {
+    /// Stable snake_case code, e.g. `unknown_rig`, `queue_full`.
+    pub code: String,
+    /// What is wrong, naming the offending value.
+    pub message: String,
+}
+
+/// `GET /readyz` body.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Readiness {
+    /// `ready`, `loading` or `degraded`.
+    pub status: String,
+    /// Engine kind (`cpu` or `gpu`).
+    pub backend: String,
+    /// CPU kernel family.
+    pub cpu_isa: String,
+    /// Why the engine is degraded, when it is.
+    pub degraded_reason: Option<String>,
+    /// Rigs registered.
+    pub rigs: u32,
+    /// Stored files that could not be loaded at start, with the reason.
+    pub skipped_files: Vec<String>,
+}

@@ -3,6 +3,13 @@
 //! Level `l` evaluates only the first `levels[l].shapes` targets of an importance order and
 //! skips the rest — the paper's early exit after N_Bs shapes. Level 0 is always all shapes. The
 //! order is a permutation of the rig's targets, most important first.
+//!
+//! A level may also name a simplified mesh ([`MeshLevel`]): a subset of each primitive's
+//! vertices with its own triangles, so a far head costs fewer vertices as well as fewer shapes.
+//! The mesh levels are pure data here; `crate::lod` builds them and derives the rig an engine
+//! evaluates for them. Fields added after the first release carry `#[serde(default)]` so that
+//! rigs persisted before them still read back; they are always written (no
+//! `skip_serializing_if`), so non-self-describing encodings such as bincode stay symmetric.
 
 use serde::{Deserialize, Serialize};
 
@@ -16,6 +23,61 @@ pub const DEFAULT_LOD_FRACTIONS: [f32; 5] = [1.0, 0.5, 0.25, 0.1, 0.0];
 pub struct LodLevel {
     /// How many targets of the importance order this level evaluates.
     pub shapes: u32,
+    /// Index into [`Lod::meshes`] of the simplified mesh this level evaluates; `None` is the
+    /// full mesh.
+    #[serde(default)]
+    pub mesh: Option<u32>,
+}
+
+impl LodLevel {
+    /// A level on the full mesh.
+    pub fn shapes(shapes: u32) -> Self {
+        LodLevel { shapes, mesh: None }
+    }
+}
+
+/// A simplified mesh of the whole rig: per primitive, the surviving vertices and new triangles.
+///
+/// Simplification only ever keeps original vertices (half-edge collapses), so the vertex
+/// correspondence to the full mesh is a subset and every surviving vertex keeps its own neutral
+/// position and deltas; nothing is resampled.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct MeshLevel {
+    /// Fraction of the full mesh's triangles this level was asked for (0, 1].
+    pub triangle_fraction: f32,
+    /// One entry per rig primitive, in order.
+    pub primitives: Vec<MeshLevelPrimitive>,
+}
+
+/// One primitive of a [`MeshLevel`].
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct MeshLevelPrimitive {
+    /// For each simplified vertex, its index in the full primitive; strictly ascending.
+    pub vertices: Vec<u32>,
+    /// Triangle list into `vertices` (not into the full primitive).
+    pub indices: Vec<u32>,
+}
+
+impl MeshLevel {
+    /// Vertices over all primitives.
+    pub fn vertex_count(&self) -> usize {
+        self.primitives.iter().map(|p| p.vertices.len()).sum()
+    }
+
+    /// Triangles over all primitives.
+    pub fn triangle_count(&self) -> usize {
+        self.primitives.iter().map(|p| p.indices.len() / 3).sum()
+    }
+
+    /// For each vertex of the level in evaluation order (primitives concatenated), its vertex
+    /// in the full rig's evaluation order. `offsets` is [`super::Rig::vertex_offsets`].
+    pub fn vertex_map(&self, offsets: &[usize]) -> Vec<u32> {
+        self.primitives
+            .iter()
+            .zip(offsets)
+            .flat_map(|(p, &o)| p.vertices.iter().map(move |&v| o as u32 + v))
+            .collect()
+    }
 }
 
 /// The importance order and the LOD table of a rig.
@@ -27,6 +89,13 @@ pub struct Lod {
     pub levels: Vec<LodLevel>,
     /// How the order was obtained (e.g. `"delta-energy"`), for reports.
     pub method: String,
+    /// Targets pinned to the front by hand (Costigan et al. found every metric undervalues
+    /// blinks); `order` starts with exactly these, in this order.
+    #[serde(default)]
+    pub pinned: Vec<TargetId>,
+    /// Simplified meshes that levels may name.
+    #[serde(default)]
+    pub meshes: Vec<MeshLevel>,
 }
 
 /// Why a LOD table is not acceptable.
@@ -38,6 +107,9 @@ pub enum LodError {
     /// The table is empty, level 0 is not all shapes, or a level asks for too many shapes.
     #[error("LOD table: {0}")]
     BadTable(String),
+    /// A simplified mesh level is malformed.
+    #[error("LOD mesh {0}: {1}")]
+    BadMesh(usize, String),
     /// A request named a level the rig does not have.
     #[error("LOD level {level} out of range (rig has {levels} levels)")]
     LevelOutOfRange {
@@ -52,9 +124,7 @@ pub enum LodError {
 pub fn default_lod_levels(n: usize) -> Vec<LodLevel> {
     DEFAULT_LOD_FRACTIONS
         .iter()
-        .map(|f| LodLevel {
-            shapes: (n as f32 * f).round() as u32,
-        })
+        .map(|f| LodLevel::shapes((n as f32 * f).round() as u32))
         .collect()
 }
 
@@ -65,6 +135,8 @@ impl Lod {
             order: (0..n as TargetId).collect(),
             levels: default_lod_levels(n),
             method: "file-order".into(),
+            pinned: Vec::new(),
+            meshes: Vec::new(),
         }
     }
 
@@ -93,6 +165,8 @@ impl Lod {
             order,
             levels: default_lod_levels(n),
             method: "delta-energy".into(),
+            pinned: Vec::new(),
+            meshes: Vec::new(),
         }
     }
 
@@ -148,6 +222,86 @@ impl Lod {
                 l.shapes
             )));
         }
+        if first.mesh.is_some() {
+            return Err(LodError::BadTable(
+                "level 0 must evaluate the full mesh".into(),
+            ));
+        }
+        if let Some(m) = self
+            .levels
+            .iter()
+            .filter_map(|l| l.mesh)
+            .find(|&m| m as usize >= self.meshes.len())
+        {
+            return Err(LodError::BadTable(format!(
+                "a level names mesh {m} of {}",
+                self.meshes.len()
+            )));
+        }
+        if self.pinned.len() > n || self.order.get(..self.pinned.len()) != Some(&self.pinned[..]) {
+            return Err(LodError::BadTable(
+                "the order does not start with the pinned targets".into(),
+            ));
+        }
+        for (i, m) in self.meshes.iter().enumerate() {
+            m.validate().map_err(|e| LodError::BadMesh(i, e))?;
+        }
+        Ok(())
+    }
+
+    /// Checks the mesh levels against the rig's primitives (their vertex counts, in order):
+    /// one entry per primitive and every kept vertex in range. [`Lod::validate`] checks the
+    /// rest; `Rig::validate` calls both.
+    pub fn validate_meshes(&self, vertex_counts: &[usize]) -> Result<(), LodError> {
+        for (i, m) in self.meshes.iter().enumerate() {
+            if m.primitives.len() != vertex_counts.len() {
+                return Err(LodError::BadMesh(
+                    i,
+                    format!(
+                        "{} primitives, rig has {}",
+                        m.primitives.len(),
+                        vertex_counts.len()
+                    ),
+                ));
+            }
+            for (p, &n) in m.primitives.iter().zip(vertex_counts) {
+                if p.vertices.last().is_some_and(|&v| v as usize >= n) {
+                    return Err(LodError::BadMesh(
+                        i,
+                        format!("vertex out of range for a primitive of {n} vertices"),
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+impl MeshLevel {
+    fn validate(&self) -> Result<(), String> {
+        if !(self.triangle_fraction > 0.0 && self.triangle_fraction <= 1.0) {
+            return Err(format!(
+                "triangle fraction {} is not in (0, 1]",
+                self.triangle_fraction
+            ));
+        }
+        for p in &self.primitives {
+            if p.vertices.windows(2).any(|w| w[0] >= w[1]) {
+                return Err("vertex list not strictly ascending".into());
+            }
+            if !p.indices.len().is_multiple_of(3) {
+                return Err(format!(
+                    "{} indices is not a triangle list",
+                    p.indices.len()
+                ));
+            }
+            if let Some(&i) = p.indices.iter().find(|&&i| i as usize >= p.vertices.len()) {
+                return Err(format!(
+                    "index {i} out of range for {} vertices",
+                    p.vertices.len()
+                ));
+            }
+        }
         Ok(())
     }
 }
@@ -168,5 +322,44 @@ mod tests {
         assert!(lod.validate(3).is_ok());
         lod.order = vec![0, 0, 2];
         assert!(lod.validate(3).is_err());
+    }
+
+    #[test]
+    fn validate_checks_pins_and_meshes() {
+        let mut lod = Lod::file_order(3);
+        lod.pinned = vec![2];
+        assert!(lod.validate(3).is_err(), "order must start with the pins");
+        lod.order = vec![2, 0, 1];
+        assert!(lod.validate(3).is_ok());
+        lod.levels[1].mesh = Some(0);
+        assert!(lod.validate(3).is_err(), "mesh 0 does not exist");
+        lod.meshes.push(MeshLevel {
+            triangle_fraction: 0.5,
+            primitives: vec![MeshLevelPrimitive {
+                vertices: vec![0, 2, 5],
+                indices: vec![0, 1, 2],
+            }],
+        });
+        assert!(lod.validate(3).is_ok());
+        assert!(lod.validate_meshes(&[6]).is_ok());
+        assert!(lod.validate_meshes(&[5]).is_err(), "vertex 5 of 5");
+        assert!(
+            lod.validate_meshes(&[6, 6]).is_err(),
+            "one entry per primitive"
+        );
+        lod.meshes[0].primitives[0].indices = vec![0, 1, 3];
+        assert!(lod.validate(3).is_err(), "index past the kept vertices");
+        lod.meshes[0].primitives[0].indices = vec![0, 1, 2];
+        lod.levels[0].mesh = Some(0);
+        assert!(lod.validate(3).is_err(), "level 0 is the full mesh");
+    }
+
+    #[test]
+    fn old_persisted_tables_still_read() {
+        let json = r#"{"order":[1,0],"levels":[{"shapes":2},{"shapes":1}],"method":"x"}"#;
+        let lod: Lod = serde_json::from_str(json).expect("old table parses");
+        assert!(lod.pinned.is_empty() && lod.meshes.is_empty());
+        assert_eq!(lod.levels[1].mesh, None);
+        assert!(lod.validate(2).is_ok());
     }
 }

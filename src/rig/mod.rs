@@ -18,7 +18,7 @@ mod lod;
 mod sample;
 
 pub use clip::{Clip, ClipError, DEFAULT_FPS, FrameMode, MAX_FRAMES};
-pub use lod::{Lod, LodError, default_lod_levels};
+pub use lod::{Lod, LodError, LodLevel, MeshLevel, MeshLevelPrimitive, default_lod_levels};
 pub use sample::{Interpolation, KeyTrack, sample_track};
 
 use glam::{Vec3, Vec4};
@@ -266,6 +266,8 @@ impl Rig {
             c.validate(n_targets)?;
         }
         self.lod.validate(n_targets)?;
+        let counts: Vec<usize> = self.primitives.iter().map(|p| p.positions.len()).collect();
+        self.lod.validate_meshes(&counts)?;
         Ok(())
     }
 }

@@ -4,6 +4,7 @@
 //! parses arguments. Being tools rather than request paths, they report errors with `anyhow`.
 
 pub mod bench;
+pub mod bench_gpu;
 pub mod synthetic;
 
 use std::fmt::Write as _;
@@ -13,8 +14,7 @@ use std::path::Path;
 use anyhow::{Context, Result, bail};
 use serde::Serialize;
 
-use crate::engine::cpu::CpuRig;
-use crate::engine::{BlendJob, OutputSpec, WeightBatch};
+use crate::engine::{BlendJob, Engine, OutputSpec};
 use crate::import::{ImportOptions, load_path};
 use crate::rig::{FrameMode, Rig};
 
@@ -50,6 +50,10 @@ pub struct RigSummary {
     pub lod_levels: Vec<u32>,
     /// Host memory of the rig's arrays.
     pub host_bytes: usize,
+    /// The engine the rig was prepared on, when asked.
+    pub backend: Option<crate::engine::BackendInfo>,
+    /// Memory of the prepared rig on that engine (host layout + device).
+    pub memory: Option<crate::engine::RigMemory>,
 }
 
 /// One primitive in [`RigSummary`].
@@ -140,7 +144,18 @@ pub fn summarize(rig: &Rig) -> RigSummary {
         lod_method: rig.lod.method.clone(),
         lod_levels: rig.lod.levels.iter().map(|l| l.shapes).collect(),
         host_bytes: rig.host_bytes(),
+        backend: None,
+        memory: None,
     }
+}
+
+/// [`summarize`] plus the backend and the memory the rig takes once prepared on `engine`.
+pub fn summarize_on(rig: &Rig, engine: &Engine) -> Result<RigSummary> {
+    let mut s = summarize(rig);
+    let prepared = engine.prepare(std::sync::Arc::new(rig.clone()))?;
+    s.backend = Some(engine.info());
+    s.memory = Some(prepared.memory());
+    Ok(s)
 }
 
 /// Human-readable `inspect` output.
@@ -202,11 +217,36 @@ pub fn inspect_text(s: &RigSummary) -> String {
         );
     }
     let _ = writeln!(o, "LOD levels (shapes): {:?}", s.lod_levels);
+    if let (Some(b), Some(m)) = (&s.backend, &s.memory) {
+        let _ = writeln!(
+            o,
+            "backend: {:?} {} (CPU kernels {}); prepared rig: {:.1} MiB host, {:.1} MiB device",
+            b.kind,
+            b.adapter.as_deref().unwrap_or(""),
+            b.cpu_isa,
+            m.host_bytes as f64 / (1 << 20) as f64,
+            m.device_bytes as f64 / (1 << 20) as f64
+        );
+    }
     o
 }
 
-/// Evaluates one frame of a clip and writes it to `out` (`.obj` mesh or `.bin` raw f32 xyz).
+/// Evaluates one frame of a clip on the CPU engine and writes it to `out` (`.obj` mesh or
+/// `.bin` raw f32 xyz).
 pub fn eval_to_file(
+    rig: &Rig,
+    clip: &str,
+    frame: i64,
+    lod: u32,
+    mode: FrameMode,
+    out: &Path,
+) -> Result<()> {
+    eval_with(&Engine::cpu(), rig, clip, frame, lod, mode, out)
+}
+
+/// [`eval_to_file`] on a given engine (the `--backend` of `crowdmorph eval`).
+pub fn eval_with(
+    engine: &Engine,
     rig: &Rig,
     clip: &str,
     frame: i64,
@@ -228,7 +268,6 @@ pub fn eval_to_file(
         frame: f,
         lod,
     };
-    let batch = WeightBatch::gather(rig, &[job])?;
     let obj = out
         .extension()
         .is_some_and(|e| e.eq_ignore_ascii_case("obj"));
@@ -236,7 +275,10 @@ pub fn eval_to_file(
         normals: obj,
         ..OutputSpec::default()
     };
-    let result = CpuRig::new(rig).evaluate(&batch, spec)?;
+    let prepared = engine.prepare(std::sync::Arc::new(rig.clone()))?;
+    let evaluation = engine.evaluate(&prepared, &[job], spec)?;
+    tracing::info!(backend = ?evaluation.kind, wall_ms = evaluation.timings.wall_ns as f64 / 1e6, "evaluated");
+    let result = evaluation.output;
     let positions = result.job_positions(0);
     let file = std::fs::File::create(out).with_context(|| format!("creating {}", out.display()))?;
     let mut w = std::io::BufWriter::new(file);

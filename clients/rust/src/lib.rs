@@ -1,0 +1,384 @@
+//! A small async client of the crowdmorph server, speaking the v1 protocol of
+//! [`crowdmorph_proto`] in JSON or bincode.
+//!
+//! It is what the server's tests and `crowdmorph bench http` use, and a worked example of the
+//! protocol: every call is one HTTP/1.1 request on a pooled keep-alive connection (hyper), and
+//! every non-2xx answer becomes [`ClientError::Api`] with the server's error code and message.
+
+use bytes::Bytes;
+use crowdmorph_proto::{
+    CONTENT_TYPE_BINCODE, CONTENT_TYPE_JSON, ClipList, ClipUpload, CrowdFrameRequest,
+    CrowdFrameResponse, ErrorBody, MeshResponse, RigInfo, RigList,
+};
+use http_body_util::{BodyExt, Full};
+use hyper::{Request, StatusCode};
+use hyper_util::client::legacy::Client as HyperClient;
+use hyper_util::client::legacy::connect::HttpConnector;
+use hyper_util::rt::TokioExecutor;
+use serde::Serialize;
+use serde::de::DeserializeOwned;
+
+pub use crowdmorph_proto as proto;
+pub use hyper::Method;
+
+/// Encoding of request and response bodies.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Encoding {
+    /// `application/json`.
+    Json,
+    /// `application/x-bincode`.
+    Bincode,
+}
+
+impl Encoding {
+    fn content_type(self) -> &'static str {
+        match self {
+            Encoding::Json => CONTENT_TYPE_JSON,
+            Encoding::Bincode => CONTENT_TYPE_BINCODE,
+        }
+    }
+}
+
+/// Why a call failed.
+#[derive(Debug)]
+pub enum ClientError {
+    /// The request could not be sent or the response not read.
+    Transport(String),
+    /// The server answered with an error.
+    Api {
+        /// HTTP status.
+        status: u16,
+        /// The error code (`unknown_rig`, `queue_full`, ...).
+        code: String,
+        /// The server's message.
+        message: String,
+    },
+    /// The response body could not be decoded.
+    Decode(String),
+}
+
+impl std::fmt::Display for ClientError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            ClientError::Transport(e) => write!(f, "transport: {e}"),
+            ClientError::Api {
+                status,
+                code,
+                message,
+            } => write!(f, "{status} {code}: {message}"),
+            ClientError::Decode(e) => write!(f, "decode: {e}"),
+        }
+    }
+}
+
+impl std::error::Error for ClientError {}
+
+/// A raw response.
+#[derive(Debug, Clone)]
+pub struct Reply {
+    /// Status code.
+    pub status: u16,
+    /// Content-Type header, if any.
+    pub content_type: Option<String>,
+    /// Retry-After header, if any.
+    pub retry_after: Option<String>,
+    /// x-request-id header, if any.
+    pub request_id: Option<String>,
+    /// The body.
+    pub body: Bytes,
+}
+
+impl Reply {
+    /// The error body, when the status is 4xx/5xx and the body is the JSON error.
+    pub fn error(&self) -> Option<ErrorBody> {
+        serde_json::from_slice(&self.body).ok()
+    }
+
+    fn into_error(self) -> ClientError {
+        match self.error() {
+            Some(e) => ClientError::Api {
+                status: self.status,
+                code: e.error.code,
+                message: e.error.message,
+            },
+            None => ClientError::Api {
+                status: self.status,
+                code: String::new(),
+                message: String::from_utf8_lossy(&self.body).into_owned(),
+            },
+        }
+    }
+}
+
+/// A client of one server.
+#[derive(Clone, Debug)]
+pub struct Client {
+    http: HyperClient<HttpConnector, Full<Bytes>>,
+    base: String,
+    token: Option<String>,
+}
+
+impl Client {
+    /// A client of the server at `base` (e.g. `http://127.0.0.1:8080`).
+    pub fn new(base: impl Into<String>) -> Client {
+        let mut connector = HttpConnector::new();
+        connector.set_nodelay(true);
+        Client {
+            http: HyperClient::builder(TokioExecutor::new())
+                .pool_max_idle_per_host(1024)
+                .build(connector),
+            base: base.into().trim_end_matches('/').to_string(),
+            token: None,
+        }
+    }
+
+    /// Sends `Authorization: Bearer <token>` with every request.
+    pub fn with_token(mut self, token: impl Into<String>) -> Client {
+        self.token = Some(token.into());
+        self
+    }
+
+    /// Sends one request and reads the whole response, whatever its status.
+    pub async fn send(
+        &self,
+        method: Method,
+        path: &str,
+        content_type: Option<&str>,
+        accept: Option<&str>,
+        body: Bytes,
+    ) -> Result<Reply, ClientError> {
+        let mut req = Request::builder()
+            .method(method)
+            .uri(format!("{}{path}", self.base));
+        if let Some(ct) = content_type {
+            req = req.header("content-type", ct);
+        }
+        if let Some(a) = accept {
+            req = req.header("accept", a);
+        }
+        if let Some(t) = &self.token {
+            req = req.header("authorization", format!("Bearer {t}"));
+        }
+        let req = req
+            .body(Full::new(body))
+            .map_err(|e| ClientError::Transport(e.to_string()))?;
+        let resp = self
+            .http
+            .request(req)
+            .await
+            .map_err(|e| ClientError::Transport(e.to_string()))?;
+        let status = resp.status().as_u16();
+        let header = |name: &str| {
+            resp.headers()
+                .get(name)
+                .and_then(|v| v.to_str().ok())
+                .map(str::to_string)
+        };
+        let content_type = header("content-type");
+        let retry_after = header("retry-after");
+        let request_id = header("x-request-id");
+        let body = resp
+            .into_body()
+            .collect()
+            .await
+            .map_err(|e| ClientError::Transport(e.to_string()))?
+            .to_bytes();
+        Ok(Reply {
+            status,
+            content_type,
+            retry_after,
+            request_id,
+            body,
+        })
+    }
+
+    fn decode<T: DeserializeOwned>(reply: Reply, enc: Encoding) -> Result<T, ClientError> {
+        if !(200..300).contains(&reply.status) {
+            return Err(reply.into_error());
+        }
+        match enc {
+            Encoding::Json => {
+                serde_json::from_slice(&reply.body).map_err(|e| ClientError::Decode(e.to_string()))
+            }
+            Encoding::Bincode => crowdmorph_proto::wire::response_from_bincode(&reply.body)
+                .map_err(|e| ClientError::Decode(e.to_string())),
+        }
+    }
+
+    async fn get<T: DeserializeOwned>(&self, path: &str, enc: Encoding) -> Result<T, ClientError> {
+        let reply = self
+            .send(
+                Method::GET,
+                path,
+                None,
+                Some(enc.content_type()),
+                Bytes::new(),
+            )
+            .await?;
+        Self::decode(reply, enc)
+    }
+
+    /// `POST /v1/rigs?name=NAME` with GLB or self-contained glTF bytes.
+    pub async fn upload_rig(&self, name: &str, bytes: Bytes) -> Result<RigInfo, ClientError> {
+        let reply = self
+            .send(
+                Method::POST,
+                &format!("/v1/rigs?name={name}"),
+                Some("model/gltf-binary"),
+                Some(CONTENT_TYPE_JSON),
+                bytes,
+            )
+            .await?;
+        Self::decode(reply, Encoding::Json)
+    }
+
+    /// `GET /v1/rigs`.
+    pub async fn rigs(&self) -> Result<RigList, ClientError> {
+        self.get("/v1/rigs", Encoding::Json).await
+    }
+
+    /// `GET /v1/rigs/{id}`.
+    pub async fn rig(&self, id: &str) -> Result<RigInfo, ClientError> {
+        self.get(&format!("/v1/rigs/{id}"), Encoding::Json).await
+    }
+
+    /// `DELETE /v1/rigs/{id}`.
+    pub async fn delete_rig(&self, id: &str) -> Result<(), ClientError> {
+        let reply = self
+            .send(
+                Method::DELETE,
+                &format!("/v1/rigs/{id}"),
+                None,
+                None,
+                Bytes::new(),
+            )
+            .await?;
+        if reply.status == 204 {
+            Ok(())
+        } else {
+            Err(reply.into_error())
+        }
+    }
+
+    /// `GET /v1/rigs/{id}/mesh`.
+    pub async fn mesh(&self, id: &str, enc: Encoding) -> Result<MeshResponse, ClientError> {
+        self.get(&format!("/v1/rigs/{id}/mesh"), enc).await
+    }
+
+    /// `POST /v1/rigs/{id}/clips?name=NAME` with a CSV, JSON or glTF body of `content_type`.
+    pub async fn upload_clip(
+        &self,
+        rig: &str,
+        query: &str,
+        content_type: &str,
+        bytes: Bytes,
+    ) -> Result<ClipUpload, ClientError> {
+        let reply = self
+            .send(
+                Method::POST,
+                &format!("/v1/rigs/{rig}/clips?{query}"),
+                Some(content_type),
+                Some(CONTENT_TYPE_JSON),
+                bytes,
+            )
+            .await?;
+        Self::decode(reply, Encoding::Json)
+    }
+
+    /// `GET /v1/rigs/{id}/clips`.
+    pub async fn clips(&self, rig: &str) -> Result<ClipList, ClientError> {
+        self.get(&format!("/v1/rigs/{rig}/clips"), Encoding::Json)
+            .await
+    }
+
+    /// Encodes a request body.
+    pub fn encode<T: Serialize>(value: &T, enc: Encoding) -> Result<Bytes, ClientError> {
+        match enc {
+            Encoding::Json => serde_json::to_vec(value)
+                .map(Bytes::from)
+                .map_err(|e| ClientError::Decode(e.to_string())),
+            Encoding::Bincode => crowdmorph_proto::wire::to_bincode(value)
+                .map(Bytes::from)
+                .map_err(|e| ClientError::Decode(e.to_string())),
+        }
+    }
+
+    /// `POST /v1/crowd/frame` with a pre-encoded body; returns the raw reply.
+    pub async fn crowd_frame_raw(&self, body: Bytes, enc: Encoding) -> Result<Reply, ClientError> {
+        self.send(
+            Method::POST,
+            "/v1/crowd/frame",
+            Some(enc.content_type()),
+            Some(enc.content_type()),
+            body,
+        )
+        .await
+    }
+
+    /// `POST /v1/crowd/frame` with a pre-encoded body, reading the response without keeping
+    /// it: returns the status and the body length. For load generators, which should spend as
+    /// little CPU as possible.
+    pub async fn crowd_frame_drain(
+        &self,
+        body: Bytes,
+        enc: Encoding,
+    ) -> Result<(u16, usize), ClientError> {
+        let req = Request::builder()
+            .method(Method::POST)
+            .uri(format!("{}/v1/crowd/frame", self.base))
+            .header("content-type", enc.content_type())
+            .header("accept", enc.content_type())
+            .body(Full::new(body))
+            .map_err(|e| ClientError::Transport(e.to_string()))?;
+        let resp = self
+            .http
+            .request(req)
+            .await
+            .map_err(|e| ClientError::Transport(e.to_string()))?;
+        let status = resp.status().as_u16();
+        let mut body = resp.into_body();
+        let mut len = 0;
+        while let Some(frame) = body.frame().await {
+            let frame = frame.map_err(|e| ClientError::Transport(e.to_string()))?;
+            if let Some(d) = frame.data_ref() {
+                len += d.len();
+            }
+        }
+        Ok((status, len))
+    }
+
+    /// `POST /v1/crowd/frame`: the response and its body size in bytes.
+    pub async fn crowd_frame(
+        &self,
+        req: &CrowdFrameRequest,
+        enc: Encoding,
+    ) -> Result<(CrowdFrameResponse, usize), ClientError> {
+        let reply = self.crowd_frame_raw(Self::encode(req, enc)?, enc).await?;
+        let len = reply.body.len();
+        Ok((Self::decode(reply, enc)?, len))
+    }
+
+    /// `GET /metrics` as text.
+    pub async fn metrics(&self) -> Result<String, ClientError> {
+        let reply = self
+            .send(Method::GET, "/metrics", None, None, Bytes::new())
+            .await?;
+        if reply.status != StatusCode::OK.as_u16() {
+            return Err(reply.into_error());
+        }
+        Ok(String::from_utf8_lossy(&reply.body).into_owned())
+    }
+}
+
+/// The value of a sample (first line starting with `name` followed by a space or `{`) in a
+/// Prometheus text page.
+pub fn metric(page: &str, name: &str) -> Option<f64> {
+    page.lines()
+        .filter(|l| !l.starts_with('#'))
+        .find(|l| {
+            l.strip_prefix(name)
+                .is_some_and(|r| r.starts_with(' ') || r.starts_with('{'))
+        })
+        .and_then(|l| l.rsplit(' ').next())
+        .and_then(|v| v.parse().ok())
+}

@@ -1,0 +1,143 @@
+//! Golden files pin the encodings of the v1 messages, byte for byte, in both JSON and bincode:
+//! `tests/golden/<name>.json` and `tests/golden/<name>.bincode`. A change here is a protocol
+//! change. Set `CROWDMORPH_BLESS=1` to rewrite the files after an intended change.
+//!
+//! The same examples are written out field by field in `proto/README.md`.
+
+// A test that meets an unexpected error should fail loudly, which is what unwrap does.
+#![allow(clippy::unwrap_used)]
+
+use std::path::PathBuf;
+
+use crowdmorph_proto::wire::{request_from_bincode, response_from_bincode, to_bincode};
+use crowdmorph_proto::*;
+
+fn golden(name: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/golden")
+        .join(name)
+}
+
+fn check(name: &str, bytes: &[u8]) {
+    let path = golden(name);
+    if std::env::var_os("CROWDMORPH_BLESS").is_some() {
+        std::fs::write(&path, bytes).expect("write golden file");
+    }
+    let want = std::fs::read(&path).expect("golden file (CROWDMORPH_BLESS=1 writes it)");
+    assert_eq!(bytes, &want[..], "{name}: the encoding changed");
+}
+
+fn request() -> CrowdFrameRequest {
+    CrowdFrameRequest {
+        heads: vec![
+            Head {
+                head: 7,
+                rig: "default-head".into(),
+                clip: "talk".into(),
+                frame: 12,
+                lod: 0,
+            },
+            Head {
+                head: 300,
+                rig: "default-head".into(),
+                clip: "talk".into(),
+                frame: -1,
+                lod: 2,
+            },
+        ],
+        output: OutputOptions {
+            normals: false,
+            format: Format::F16,
+        },
+        wrap: true,
+    }
+}
+
+fn response() -> CrowdFrameResponse {
+    let floats = [0.0f32, 1.0, -2.5, 0.5, 0.25, 3.0];
+    CrowdFrameResponse {
+        format: Format::F32,
+        normals: false,
+        buffers: vec![FrameBuffer {
+            rig: "tri".into(),
+            clip: "wave".into(),
+            frame: 1,
+            lod: 0,
+            vertices: 2,
+            quantization: None,
+            positions: Blob(floats.iter().flat_map(|f| f.to_le_bytes()).collect()),
+            normals: None,
+        }],
+        heads: vec![
+            HeadBuffer { head: 1, buffer: 0 },
+            HeadBuffer { head: 2, buffer: 0 },
+        ],
+        timings: FrameTimings {
+            queue_us: 250,
+            compute_us: 70000,
+            total_us: 71000,
+            gpu_us: Some(5),
+        },
+    }
+}
+
+#[test]
+fn crowd_frame_request() {
+    let r = request();
+    let bin = to_bincode(&r).unwrap();
+    check("crowd_frame_request.bincode", &bin);
+    assert_eq!(request_from_bincode::<CrowdFrameRequest>(&bin).unwrap(), r);
+    let json = serde_json::to_vec(&r).unwrap();
+    check("crowd_frame_request.json", &json);
+    assert_eq!(
+        serde_json::from_slice::<CrowdFrameRequest>(&json).unwrap(),
+        r
+    );
+    // Defaults for humans: output and wrap may be left out, lod too.
+    let short: CrowdFrameRequest = serde_json::from_str(
+        r#"{"heads":[{"head":7,"rig":"default-head","clip":"talk","frame":12}]}"#,
+    )
+    .unwrap();
+    assert_eq!(short.output, OutputOptions::default());
+    assert!(short.wrap);
+    assert_eq!(short.heads[0].lod, 0);
+}
+
+#[test]
+fn crowd_frame_response() {
+    let r = response();
+    let bin = to_bincode(&r).unwrap();
+    check("crowd_frame_response.bincode", &bin);
+    assert_eq!(
+        response_from_bincode::<CrowdFrameResponse>(&bin).unwrap(),
+        r
+    );
+    let json = serde_json::to_vec(&r).unwrap();
+    check("crowd_frame_response.json", &json);
+    assert_eq!(
+        serde_json::from_slice::<CrowdFrameResponse>(&json).unwrap(),
+        r
+    );
+}
+
+#[test]
+fn error_body() {
+    let e = ErrorBody {
+        error: ErrorDetail {
+            code: "unknown_rig".into(),
+            message: "no rig \"x\" (rigs: default-head)".into(),
+        },
+    };
+    check("error.json", &serde_json::to_vec(&e).unwrap());
+}
+
+#[test]
+fn trailing_bytes_and_truncation_are_errors() {
+    let mut bin = to_bincode(&request()).unwrap();
+    assert!(request_from_bincode::<CrowdFrameRequest>(&bin[..bin.len() - 1]).is_err());
+    bin.push(0);
+    assert!(matches!(
+        request_from_bincode::<CrowdFrameRequest>(&bin),
+        Err(wire::WireError::Trailing(1))
+    ));
+}

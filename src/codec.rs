@@ -1,0 +1,314 @@
+//! The one module of this crate that touches bincode: wire messages and stored records.
+//!
+//! Keeping bincode behind this module means its pinned version (2.0.1; upstream is frozen)
+//! could be replaced by another encoding of the same bytes without touching the server or the
+//! store. Wire messages use the protocol's configuration from [`crowdmorph_proto::wire`] so that
+//! the server and every Rust client encode identically; stored records use the same standard
+//! configuration with a larger decode limit, since they are checksummed before being decoded.
+//!
+//! [`FrameResponseEncoder`] writes a crowd-frame response piece by piece instead of through
+//! serde: the bytes are exactly the bincode encoding of a
+//! [`CrowdFrameResponse`](crowdmorph_proto::CrowdFrameResponse), but vertex payloads are not
+//! copied (they are [`Bytes`] views of the engine's output) and each payload is preceded by
+//! zero padding that aligns it to [`BLOB_ALIGN`] bytes from the start of the body.
+
+use bytes::Bytes;
+use crowdmorph_proto::wire::{self, WireError, put_varint};
+use crowdmorph_proto::{BLOB_ALIGN, Format, FrameTimings, HeadBuffer, Quantization};
+use serde::Serialize;
+use serde::de::DeserializeOwned;
+
+/// Why a value could not be encoded or decoded.
+#[derive(Debug, thiserror::Error)]
+pub enum CodecError {
+    /// A wire message is malformed.
+    #[error(transparent)]
+    Wire(#[from] WireError),
+    /// A stored record is malformed.
+    #[error("stored record: {0}")]
+    Stored(String),
+}
+
+/// Encodes a wire message (request or response) as bincode.
+pub fn to_wire<T: Serialize>(value: &T) -> Result<Vec<u8>, CodecError> {
+    Ok(wire::to_bincode(value)?)
+}
+
+/// Decodes a request body sent as bincode (untrusted: decoding is byte-limited).
+pub fn request_from_wire<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, CodecError> {
+    Ok(wire::request_from_bincode(bytes)?)
+}
+
+/// Decodes a response body sent as bincode.
+pub fn response_from_wire<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, CodecError> {
+    Ok(wire::response_from_bincode(bytes)?)
+}
+
+/// Most bytes a stored record may claim when decoded.
+const STORED_DECODE_LIMIT: usize = 1 << 36;
+
+/// Encodes a record for the store.
+pub fn to_stored<T: Serialize>(value: &T) -> Result<Vec<u8>, CodecError> {
+    bincode::serde::encode_to_vec(value, bincode::config::standard())
+        .map_err(|e| CodecError::Stored(e.to_string()))
+}
+
+/// Decodes a record read from the store; the whole slice must be one record.
+pub fn from_stored<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, CodecError> {
+    let cfg = bincode::config::standard().with_limit::<STORED_DECODE_LIMIT>();
+    let (value, used) = bincode::serde::decode_from_slice(bytes, cfg)
+        .map_err(|e| CodecError::Stored(e.to_string()))?;
+    if used != bytes.len() {
+        return Err(CodecError::Stored(format!(
+            "{} bytes after the record",
+            bytes.len() - used
+        )));
+    }
+    Ok(value)
+}
+
+/// One unique buffer of a crowd-frame response, with its payloads as shared bytes.
+#[derive(Clone, Debug)]
+pub struct FrameBufferParts<'a> {
+    /// Rig id.
+    pub rig: &'a str,
+    /// Clip name.
+    pub clip: &'a str,
+    /// Frame played.
+    pub frame: u32,
+    /// LOD level.
+    pub lod: u32,
+    /// Vertices.
+    pub vertices: u32,
+    /// Dequantization box (q16 only).
+    pub quantization: Option<Quantization>,
+    /// Position payload.
+    pub positions: Bytes,
+    /// Normal payload, when asked for.
+    pub normals: Option<Bytes>,
+}
+
+/// Writes the bincode encoding of a crowd-frame response as a list of chunks.
+#[derive(Debug, Default)]
+pub struct FrameResponseEncoder {
+    chunks: Vec<Bytes>,
+    head: Vec<u8>,
+    offset: usize,
+}
+
+impl FrameResponseEncoder {
+    /// Encodes a whole response. Concatenating the chunks gives the body.
+    pub fn encode(
+        format: Format,
+        normals: bool,
+        buffers: &[FrameBufferParts<'_>],
+        heads: &[HeadBuffer],
+        timings: &FrameTimings,
+    ) -> Vec<Bytes> {
+        let mut e = FrameResponseEncoder::default();
+        // Unit enum variants are their index as a varint.
+        e.varint(match format {
+            Format::F32 => 0,
+            Format::F16 => 1,
+            Format::Q16 => 2,
+        });
+        e.head.push(u8::from(normals));
+        e.varint(buffers.len() as u64);
+        for b in buffers {
+            e.string(b.rig);
+            e.string(b.clip);
+            e.varint(u64::from(b.frame));
+            e.varint(u64::from(b.lod));
+            e.varint(u64::from(b.vertices));
+            match &b.quantization {
+                None => e.head.push(0),
+                Some(q) => {
+                    e.head.push(1);
+                    for v in q.min.iter().chain(&q.step).chain(&q.max_error) {
+                        e.head.extend_from_slice(&v.to_le_bytes());
+                    }
+                }
+            }
+            e.blob(b.positions.clone());
+            match &b.normals {
+                None => e.head.push(0),
+                Some(n) => {
+                    e.head.push(1);
+                    e.blob(n.clone());
+                }
+            }
+        }
+        e.varint(heads.len() as u64);
+        for h in heads {
+            e.varint(h.head);
+            e.varint(u64::from(h.buffer));
+        }
+        e.varint(timings.queue_us);
+        e.varint(timings.compute_us);
+        e.varint(timings.total_us);
+        match timings.gpu_us {
+            None => e.head.push(0),
+            Some(g) => {
+                e.head.push(1);
+                e.varint(g);
+            }
+        }
+        e.flush();
+        e.chunks
+    }
+
+    fn varint(&mut self, n: u64) {
+        put_varint(&mut self.head, n);
+    }
+
+    fn string(&mut self, s: &str) {
+        self.varint(s.len() as u64);
+        self.head.extend_from_slice(s.as_bytes());
+    }
+
+    /// A blob is `pad: bytes` then `data: bytes`; the pad makes `data` start aligned.
+    fn blob(&mut self, data: Bytes) {
+        let mut len_bytes = Vec::with_capacity(9);
+        put_varint(&mut len_bytes, data.len() as u64);
+        // Position after the pad's own length byte (pads are < 251 bytes, so one byte).
+        let at = self.offset + self.head.len() + 1;
+        let pad = (BLOB_ALIGN - (at + len_bytes.len()) % BLOB_ALIGN) % BLOB_ALIGN;
+        self.head.push(pad as u8);
+        self.head.resize(self.head.len() + pad, 0);
+        self.head.extend_from_slice(&len_bytes);
+        self.flush();
+        self.offset += data.len();
+        if !data.is_empty() {
+            self.chunks.push(data);
+        }
+    }
+
+    fn flush(&mut self) {
+        if !self.head.is_empty() {
+            self.offset += self.head.len();
+            self.chunks
+                .push(Bytes::from(std::mem::take(&mut self.head)));
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crowdmorph_proto::{Blob, CrowdFrameResponse, FrameBuffer};
+
+    fn sample() -> (Vec<FrameBufferParts<'static>>, CrowdFrameResponse) {
+        let p0: Vec<u8> = (0..36u8).collect();
+        let n0: Vec<u8> = (100..136u8).collect();
+        let p1: Vec<u8> = (0..300u32).map(|i| (i * 7) as u8).collect();
+        let q = Quantization {
+            min: [-1.0, -2.0, -3.0],
+            step: [1e-4, 2e-4, 3e-4],
+            max_error: [5e-5, 1e-4, 1.5e-4],
+        };
+        let parts = vec![
+            FrameBufferParts {
+                rig: "default-head",
+                clip: "talk",
+                frame: 12,
+                lod: 0,
+                vertices: 3,
+                quantization: None,
+                positions: Bytes::from(p0.clone()),
+                normals: Some(Bytes::from(n0.clone())),
+            },
+            FrameBufferParts {
+                rig: "r",
+                clip: "a-very-long-clip-name",
+                frame: 300,
+                lod: 2,
+                vertices: 25,
+                quantization: Some(q),
+                positions: Bytes::from(p1.clone()),
+                normals: None,
+            },
+        ];
+        let resp = CrowdFrameResponse {
+            format: Format::Q16,
+            normals: true,
+            buffers: vec![
+                FrameBuffer {
+                    rig: "default-head".into(),
+                    clip: "talk".into(),
+                    frame: 12,
+                    lod: 0,
+                    vertices: 3,
+                    quantization: None,
+                    positions: Blob(p0),
+                    normals: Some(Blob(n0)),
+                },
+                FrameBuffer {
+                    rig: "r".into(),
+                    clip: "a-very-long-clip-name".into(),
+                    frame: 300,
+                    lod: 2,
+                    vertices: 25,
+                    quantization: Some(q),
+                    positions: Blob(p1),
+                    normals: None,
+                },
+            ],
+            heads: vec![
+                HeadBuffer { head: 7, buffer: 0 },
+                HeadBuffer {
+                    head: 1 << 40,
+                    buffer: 1,
+                },
+                HeadBuffer { head: 9, buffer: 0 },
+            ],
+            timings: FrameTimings {
+                queue_us: 5,
+                compute_us: 70_000,
+                total_us: 1 << 33,
+                gpu_us: Some(3),
+            },
+        };
+        (parts, resp)
+    }
+
+    #[test]
+    fn piecewise_encoding_decodes_as_the_message_with_aligned_payloads() {
+        let (parts, resp) = sample();
+        let chunks = FrameResponseEncoder::encode(
+            resp.format,
+            resp.normals,
+            &parts,
+            &resp.heads,
+            &resp.timings,
+        );
+        let body: Vec<u8> = chunks.iter().flat_map(|c| c.iter().copied()).collect();
+        let back: CrowdFrameResponse = response_from_wire(&body).expect("decodes");
+        assert_eq!(back, resp);
+        // Every payload starts aligned: find each payload's bytes in the body.
+        let mut at = 0;
+        for c in &chunks {
+            for p in [&parts[0].positions, &parts[1].positions] {
+                if c.as_ptr() == p.as_ptr() {
+                    assert_eq!(at % BLOB_ALIGN, 0, "payload at {at}");
+                }
+            }
+            at += c.len();
+        }
+        // Without padding it is byte for byte the serde encoding.
+        let plain = to_wire(&resp).expect("encode");
+        let back: CrowdFrameResponse = response_from_wire(&plain).expect("decodes");
+        assert_eq!(back, resp);
+    }
+
+    #[test]
+    fn stored_records_roundtrip_and_refuse_trailing_bytes() {
+        let clips = crate::embedded::default_rig().clips;
+        let bytes = to_stored(&clips).expect("encode");
+        let back: Vec<crate::rig::Clip> = from_stored(&bytes).expect("decode");
+        assert_eq!(back, clips);
+        let mut longer = bytes.clone();
+        longer.push(0);
+        assert!(from_stored::<Vec<crate::rig::Clip>>(&longer).is_err());
+        assert!(from_stored::<Vec<crate::rig::Clip>>(&bytes[..bytes.len() / 2]).is_err());
+    }
+}

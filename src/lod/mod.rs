@@ -1,0 +1,352 @@
+//! Level of detail: importance-ordered blendshapes (Costigan et al. 2016 §4) and
+//! feature-preserving simplified meshes (the multiresolution facial mesh paper).
+//!
+//! - [`metrics`]: the five §4.1 metrics (geometric MSE, Hausdorff, image MSE, SSIM, Yee 2004).
+//! - [`order`]: scoring every target against the neutral face, per-metric and combined
+//!   orders, pinning shapes to the front.
+//! - [`mesh`]: facial feature points, QEM simplification that locks them, and the derived rig
+//!   a mesh level is evaluated as.
+//! - [`report`]: the error of each order's LOD levels against the full rig over a clip, as a
+//!   table, JSON and a PNG plot; synthetic clips for rigs without animation.
+//! - [`build_lod`]: everything above turned into the [`Lod`] a rig persists, from a [`LodSpec`]
+//!   (what `PUT /v1/rigs/{id}/lod` and `crowdmorph lod` ask for).
+//!
+//! Building a LOD is a background job on rig registration: it takes a [`Progress`] that counts
+//! finished steps and can cancel it.
+
+pub mod cli;
+pub mod mesh;
+pub mod metrics;
+pub mod order;
+pub mod plot;
+pub mod report;
+
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+
+use serde::{Deserialize, Serialize};
+
+pub use mesh::{FeaturePoints, MeshLodError, SimplifyOptions, build_mesh_levels, mesh_level_rig};
+pub use order::{Metric, OrderMethod, ScoreOptions, Scores, TargetScore, pin_front, score_targets};
+
+use crate::rig::{Lod, LodError, LodLevel, Rig, TargetId, default_lod_levels};
+
+/// Why a LOD could not be built.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum LodBuildError {
+    /// A name in the request is not a target of the rig.
+    #[error("unknown target {0:?}")]
+    UnknownTarget(String),
+    /// A target appears twice in an explicit order or pin list.
+    #[error("target {0:?} is listed twice")]
+    DuplicateTarget(String),
+    /// An explicit order does not list every target.
+    #[error("explicit order lists {got} of the rig's {want} targets")]
+    IncompleteOrder {
+        /// Targets listed.
+        got: usize,
+        /// Targets in the rig.
+        want: usize,
+    },
+    /// A level asks for something the rig cannot give.
+    #[error("LOD level {level}: {problem}")]
+    BadLevel {
+        /// Level index.
+        level: usize,
+        /// What is wrong.
+        problem: String,
+    },
+    /// Mesh simplification failed.
+    #[error(transparent)]
+    Mesh(#[from] MeshLodError),
+    /// The resulting table is not valid.
+    #[error(transparent)]
+    Lod(#[from] LodError),
+    /// The job was cancelled through its [`Progress`].
+    #[error("cancelled")]
+    Cancelled,
+}
+
+/// Progress of a background LOD computation: finished and total steps, and a cancel flag.
+/// Share it (e.g. in an `Arc`) between the worker and whoever reports progress.
+#[derive(Debug, Default)]
+pub struct Progress {
+    done: AtomicUsize,
+    total: AtomicUsize,
+    cancelled: AtomicBool,
+}
+
+impl Progress {
+    /// A fresh counter.
+    pub fn new() -> Progress {
+        Progress::default()
+    }
+
+    /// Adds `steps` to the total and is called by the worker as it learns its work.
+    pub fn start(&self, steps: usize) {
+        self.total.fetch_add(steps, Ordering::Relaxed);
+    }
+
+    /// One more step done.
+    pub fn advance(&self) {
+        self.done.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// Steps done so far.
+    pub fn done(&self) -> usize {
+        self.done.load(Ordering::Relaxed)
+    }
+
+    /// Steps known so far.
+    pub fn total(&self) -> usize {
+        self.total.load(Ordering::Relaxed)
+    }
+
+    /// Done / total in [0, 1] (0 before the work is known).
+    pub fn fraction(&self) -> f32 {
+        let t = self.total();
+        if t == 0 {
+            0.0
+        } else {
+            (self.done() as f32 / t as f32).min(1.0)
+        }
+    }
+
+    /// Asks the worker to stop at its next check.
+    pub fn cancel(&self) {
+        self.cancelled.store(true, Ordering::Relaxed);
+    }
+
+    /// Whether [`Progress::cancel`] was called.
+    pub fn is_cancelled(&self) -> bool {
+        self.cancelled.load(Ordering::Relaxed)
+    }
+}
+
+/// One level of a requested table: a shape count or a fraction of the targets, and optionally
+/// which simplified mesh (index into [`LodSpec::mesh_fractions`]) it uses.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct LevelSpec {
+    /// Shapes evaluated; takes precedence over `fraction`.
+    #[serde(default)]
+    pub shapes: Option<u32>,
+    /// Fraction of the targets evaluated (rounded to nearest).
+    #[serde(default)]
+    pub fraction: Option<f32>,
+    /// Simplified mesh this level evaluates; `None` = full mesh.
+    #[serde(default)]
+    pub mesh: Option<u32>,
+}
+
+/// A request for a rig's LOD: how to order, what to pin, the levels, the meshes.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct LodSpec {
+    /// How to order the targets (default: combined mean rank).
+    #[serde(default)]
+    pub method: OrderMethod,
+    /// An explicit full order by target name; overrides `method` (pins still apply).
+    #[serde(default)]
+    pub order: Option<Vec<String>>,
+    /// Targets moved to the front, in this order.
+    #[serde(default)]
+    pub pinned: Vec<String>,
+    /// The table; default 100/50/25/10/0 % of the targets.
+    #[serde(default)]
+    pub levels: Option<Vec<LevelSpec>>,
+    /// Simplified meshes to build, as fractions of the triangles (e.g. `[0.5, 0.25, 0.1]`).
+    /// With the default table, level `i ≥ 1` uses mesh `min(i, meshes) − 1`.
+    #[serde(default)]
+    pub mesh_fractions: Vec<f32>,
+    /// Scoring options.
+    #[serde(default)]
+    pub scoring: ScoreOptions,
+}
+
+/// Resolves target names to ids, refusing unknown and repeated names.
+pub fn resolve_targets(rig: &Rig, names: &[String]) -> Result<Vec<TargetId>, LodBuildError> {
+    let mut out = Vec::with_capacity(names.len());
+    for n in names {
+        let id = rig
+            .target_id(n)
+            .ok_or_else(|| LodBuildError::UnknownTarget(n.clone()))?;
+        if out.contains(&id) {
+            return Err(LodBuildError::DuplicateTarget(n.clone()));
+        }
+        out.push(id);
+    }
+    Ok(out)
+}
+
+/// Builds the LOD a rig persists: scores the targets when the method needs them (pass
+/// `scores` to reuse an earlier scoring), orders, pins, lays out the table and simplifies the
+/// meshes. The result passes `Lod::validate` and `Lod::validate_meshes` for this rig.
+pub fn build_lod(
+    rig: &Rig,
+    spec: &LodSpec,
+    scores: Option<&Scores>,
+    progress: Option<&Progress>,
+) -> Result<Lod, LodBuildError> {
+    let n = rig.targets.len();
+    let pinned = resolve_targets(rig, &spec.pinned)?;
+    let (base, method) = match &spec.order {
+        Some(names) => {
+            let order = resolve_targets(rig, names)?;
+            if order.len() != n {
+                return Err(LodBuildError::IncompleteOrder {
+                    got: order.len(),
+                    want: n,
+                });
+            }
+            (order, "explicit".to_string())
+        }
+        None => match spec.method {
+            OrderMethod::FileOrder => ((0..n as TargetId).collect(), "file-order".to_string()),
+            m => {
+                let owned;
+                let s = match scores {
+                    Some(s) if s.targets.len() == n => s,
+                    _ => {
+                        owned = score_targets(rig, &spec.scoring, progress)?;
+                        &owned
+                    }
+                };
+                (s.order(m), m.name().to_string())
+            }
+        },
+    };
+    let order = pin_front(&base, &pinned);
+    let method = if pinned.is_empty() {
+        method
+    } else {
+        format!("{method}+pinned")
+    };
+    let meshes = if spec.mesh_fractions.is_empty() {
+        Vec::new()
+    } else {
+        if progress.is_some_and(Progress::is_cancelled) {
+            return Err(LodBuildError::Cancelled);
+        }
+        let (levels, _) = build_mesh_levels(
+            rig,
+            &spec.mesh_fractions,
+            &SimplifyOptions::default(),
+            progress,
+        )?;
+        levels
+    };
+    let levels = match &spec.levels {
+        Some(specs) => specs
+            .iter()
+            .enumerate()
+            .map(|(i, l)| {
+                let shapes = match (l.shapes, l.fraction) {
+                    (Some(s), _) => s,
+                    (None, Some(f)) if (0.0..=1.0).contains(&f) => (n as f32 * f).round() as u32,
+                    (None, Some(f)) => {
+                        return Err(LodBuildError::BadLevel {
+                            level: i,
+                            problem: format!("fraction {f} is not in [0, 1]"),
+                        });
+                    }
+                    (None, None) => {
+                        return Err(LodBuildError::BadLevel {
+                            level: i,
+                            problem: "neither shapes nor fraction given".into(),
+                        });
+                    }
+                };
+                Ok(LodLevel {
+                    shapes,
+                    mesh: l.mesh,
+                })
+            })
+            .collect::<Result<Vec<_>, _>>()?,
+        None => default_lod_levels(n)
+            .into_iter()
+            .enumerate()
+            .map(|(i, l)| LodLevel {
+                mesh: (i > 0 && !meshes.is_empty()).then(|| (i.min(meshes.len()) - 1) as u32),
+                ..l
+            })
+            .collect(),
+    };
+    let lod = Lod {
+        order,
+        levels,
+        method,
+        pinned,
+        meshes,
+    };
+    lod.validate(n)?;
+    let counts: Vec<usize> = rig.primitives.iter().map(|p| p.positions.len()).collect();
+    lod.validate_meshes(&counts)?;
+    Ok(lod)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn progress_counts_and_cancels() {
+        let p = Progress::new();
+        assert_eq!(p.fraction(), 0.0);
+        p.start(4);
+        p.advance();
+        assert_eq!((p.done(), p.total()), (1, 4));
+        assert!((p.fraction() - 0.25).abs() < 1e-6);
+        assert!(!p.is_cancelled());
+        p.cancel();
+        assert!(p.is_cancelled());
+    }
+
+    #[test]
+    fn explicit_orders_and_pins_are_checked() {
+        let rig = crate::embedded::default_rig();
+        let spec = LodSpec {
+            method: OrderMethod::FileOrder,
+            pinned: vec!["eyeBlink_L".into(), "eyeBlink_R".into()],
+            ..LodSpec::default()
+        };
+        let lod = build_lod(&rig, &spec, None, None).expect("file order with pins");
+        let bl = rig.target_id("eyeBlink_L").expect("blink");
+        let br = rig.target_id("eyeBlink_R").expect("blink");
+        assert_eq!(&lod.order[..2], &[bl, br]);
+        assert_eq!(lod.pinned, vec![bl, br]);
+        assert_eq!(lod.method, "file-order+pinned");
+        assert_eq!(lod.levels.len(), 5);
+        let bad = LodSpec {
+            pinned: vec!["noSuchShape".into()],
+            ..spec.clone()
+        };
+        assert_eq!(
+            build_lod(&rig, &bad, None, None),
+            Err(LodBuildError::UnknownTarget("noSuchShape".into()))
+        );
+        let short = LodSpec {
+            order: Some(vec!["jawOpen".into()]),
+            ..spec.clone()
+        };
+        assert!(matches!(
+            build_lod(&rig, &short, None, None),
+            Err(LodBuildError::IncompleteOrder { got: 1, .. })
+        ));
+        let levels = LodSpec {
+            levels: Some(vec![
+                LevelSpec {
+                    fraction: Some(1.0),
+                    ..LevelSpec::default()
+                },
+                LevelSpec {
+                    shapes: Some(3),
+                    ..LevelSpec::default()
+                },
+            ]),
+            ..spec
+        };
+        let lod = build_lod(&rig, &levels, None, None).expect("custom table");
+        assert_eq!(
+            lod.levels.iter().map(|l| l.shapes).collect::<Vec<_>>(),
+            vec![rig.targets.len() as u32, 3]
+        );
+    }
+}

@@ -1,0 +1,1040 @@
+//! The HTTP handlers: health, metrics, rigs, clips, meshes and crowd frames.
+//!
+//! Every handler returns `Result<Response, ApiError>`, so every failure is a JSON error that
+//! names the problem. Request bodies are read with explicit limits (413 past them); CPU-heavy
+//! work (imports, engine preparation, persistence) runs on the blocking pool, and crowd frames
+//! go through the batcher, so tokio workers only parse, route and encode.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+use std::time::Instant;
+
+use axum::body::Body;
+use axum::extract::{Path, Query, State};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use bytes::Bytes;
+use crowdmorph_proto::{
+    CONTENT_TYPE_BINCODE, CONTENT_TYPE_JSON, ClipList, ClipUpload, CrowdFrameRequest,
+    CrowdFrameResponse, Format, FrameBuffer, FrameTimings, HeadBuffer, Readiness, RigList,
+};
+use http_body_util::BodyExt;
+use serde::Serialize;
+use serde::de::DeserializeOwned;
+use tokio::sync::OwnedSemaphorePermit;
+
+use super::registry::{RigEntry, clip_infos, quantization_box, sanitize_id, valid_id};
+use super::scheduler::{JobRequest, ScheduleError};
+use super::{ApiError, AppState};
+use crate::codec::{self, FrameBufferParts, FrameResponseEncoder};
+use crate::import::clips::{ClipImport, ClipOptions};
+use crate::import::{ImportError, ImportOptions};
+use crate::plan::{JobKey, Plan};
+use crate::rig::{ACTIVE_WEIGHT_EPSILON, FrameMode, Rig};
+use crate::store::RecordRef;
+
+type ApiResult = Result<Response, ApiError>;
+
+// ---------------------------------------------------------------------------------------------
+// Plumbing: bodies, content negotiation, auth.
+
+/// Reads a body of at most `limit` bytes; 413 past it (checked from Content-Length first, so an
+/// oversized upload is refused before it is read).
+async fn read_body(headers: &HeaderMap, body: Body, limit: usize) -> Result<Bytes, ApiError> {
+    let too_large = || {
+        ApiError::new(
+            StatusCode::PAYLOAD_TOO_LARGE,
+            "body_too_large",
+            format!("request body is larger than the limit of {limit} bytes"),
+        )
+    };
+    if let Some(len) = headers
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.parse::<u64>().ok())
+        && len > limit as u64
+    {
+        return Err(too_large());
+    }
+    match http_body_util::Limited::new(body, limit).collect().await {
+        Ok(c) => Ok(c.to_bytes()),
+        Err(e) if e.is::<http_body_util::LengthLimitError>() => Err(too_large()),
+        Err(e) => Err(ApiError::bad_request(
+            "body_unreadable",
+            format!("could not read the request body: {e}"),
+        )),
+    }
+}
+
+fn content_type(headers: &HeaderMap) -> String {
+    headers
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .map(|v| {
+            v.split(';')
+                .next()
+                .unwrap_or_default()
+                .trim()
+                .to_ascii_lowercase()
+        })
+        .unwrap_or_default()
+}
+
+/// Whether the client asked for bincode responses.
+fn wants_bincode(headers: &HeaderMap) -> bool {
+    headers
+        .get_all(header::ACCEPT)
+        .iter()
+        .filter_map(|v| v.to_str().ok())
+        .any(|v| v.to_ascii_lowercase().contains(CONTENT_TYPE_BINCODE))
+}
+
+/// Decodes a request body as JSON or bincode according to its Content-Type.
+fn decode<T: DeserializeOwned>(headers: &HeaderMap, body: &[u8]) -> Result<T, ApiError> {
+    let ct = content_type(headers);
+    match ct.as_str() {
+        CONTENT_TYPE_BINCODE => codec::request_from_wire(body)
+            .map_err(|e| ApiError::bad_request("malformed_bincode", e.to_string())),
+        // curl's -d sends application/x-www-form-urlencoded unless told otherwise; a JSON
+        // body is what anyone sending that here means.
+        ""
+        | CONTENT_TYPE_JSON
+        | "text/json"
+        | "text/plain"
+        | "application/x-www-form-urlencoded" => {
+            // The path (`heads[3].frame`) tells a human which field is wrong.
+            let mut de = serde_json::Deserializer::from_slice(body);
+            let value = serde_path_to_error::deserialize(&mut de).map_err(|e| {
+                let path = e.path().to_string();
+                let inner = e.into_inner();
+                let at = if path == "." {
+                    String::new()
+                } else {
+                    format!(" at {path}")
+                };
+                ApiError::bad_request("malformed_json", format!("malformed JSON{at}: {inner}"))
+            })?;
+            de.end().map_err(|e| {
+                ApiError::bad_request("malformed_json", format!("malformed JSON: {e}"))
+            })?;
+            Ok(value)
+        }
+        other => Err(ApiError::new(
+            StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            "unsupported_media_type",
+            format!("content type {other:?} is not {CONTENT_TYPE_JSON} or {CONTENT_TYPE_BINCODE}"),
+        )),
+    }
+}
+
+/// Encodes a response as bincode when asked for, JSON otherwise.
+fn respond<T: Serialize>(headers: &HeaderMap, status: StatusCode, value: &T) -> ApiResult {
+    let (ct, body) = if wants_bincode(headers) {
+        (
+            CONTENT_TYPE_BINCODE,
+            codec::to_wire(value).map_err(ApiError::internal)?,
+        )
+    } else {
+        (
+            CONTENT_TYPE_JSON,
+            serde_json::to_vec(value).map_err(ApiError::internal)?,
+        )
+    };
+    Ok((
+        status,
+        [(header::CONTENT_TYPE, HeaderValue::from_static(ct))],
+        body,
+    )
+        .into_response())
+}
+
+/// Compares without an early exit, so the time taken does not reveal the token's prefix.
+fn same(a: &[u8], b: &[u8]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+}
+
+impl AppState {
+    /// Uploads and deletes need `Authorization: Bearer <token>` when a token is configured.
+    fn check_admin(&self, headers: &HeaderMap) -> Result<(), ApiError> {
+        let Some(token) = &self.config.admin_token else {
+            return Ok(());
+        };
+        let given = headers
+            .get(header::AUTHORIZATION)
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.strip_prefix("Bearer "))
+            .map(str::trim);
+        match given {
+            Some(g) if same(g.as_bytes(), token.as_bytes()) => Ok(()),
+            Some(_) => Err(ApiError::new(
+                StatusCode::UNAUTHORIZED,
+                "bad_token",
+                "the bearer token is not the admin token",
+            )),
+            None => Err(ApiError::new(
+                StatusCode::UNAUTHORIZED,
+                "token_required",
+                "uploads and deletes need an Authorization: Bearer <admin token> header",
+            )),
+        }
+    }
+
+    fn check_ready(&self) -> Result<(), ApiError> {
+        if self.is_ready() {
+            Ok(())
+        } else {
+            Err(ApiError::unavailable(
+                "loading",
+                "stored rigs are still loading; retry shortly",
+                1,
+            ))
+        }
+    }
+
+    fn rig(&self, id: &str) -> Result<Arc<RigEntry>, ApiError> {
+        self.registry.get(id).ok_or_else(|| unknown_rig(self, id))
+    }
+
+    /// Persists a rig's current state (whole rig, or the built-in rig's uploaded clips).
+    async fn persist(
+        &self,
+        id: &str,
+        rig: Arc<Rig>,
+        builtin_clips: Option<usize>,
+    ) -> Result<(), ApiError> {
+        if self.store.is_none() {
+            return Ok(());
+        }
+        let state = self.clone();
+        let id = id.to_string();
+        tokio::task::spawn_blocking(move || {
+            let Some(store) = &state.store else {
+                return Ok(());
+            };
+            match builtin_clips {
+                Some(n) => store.put(RecordRef::BuiltinClips {
+                    id: &id,
+                    clips: rig.clips.get(n..).unwrap_or_default(),
+                }),
+                None => store.put(RecordRef::Rig { id: &id, rig: &rig }),
+            }
+        })
+        .await
+        .map_err(ApiError::internal)?
+        .map_err(ApiError::internal)
+    }
+}
+
+fn unknown_rig(state: &AppState, id: &str) -> ApiError {
+    let mut ids: Vec<String> = state.registry.all().iter().map(|e| e.id.clone()).collect();
+    ids.truncate(20);
+    ApiError::not_found(
+        "unknown_rig",
+        format!("no rig {id:?} (rigs: {})", ids.join(", ")),
+    )
+}
+
+fn unknown_clip(entry: &RigEntry, clip: &str) -> ApiError {
+    let names: Vec<&str> = entry
+        .rig()
+        .clips
+        .iter()
+        .take(20)
+        .map(|c| c.name.as_str())
+        .collect();
+    ApiError::not_found(
+        "unknown_clip",
+        format!(
+            "rig {:?} has no clip {clip:?} (clips: {})",
+            entry.id,
+            names.join(", ")
+        ),
+    )
+}
+
+fn import_error(e: ImportError) -> ApiError {
+    match e {
+        ImportError::TooLarge { .. } => ApiError::new(
+            StatusCode::PAYLOAD_TOO_LARGE,
+            "rig_too_large",
+            e.to_string(),
+        ),
+        ImportError::UnknownTargets(_) => ApiError::bad_request(
+            "unknown_targets",
+            format!("{e}; add ?ignore_unknown=true to import the rest and report these"),
+        ),
+        ImportError::ClipSource(_) | ImportError::Clip(_) => {
+            ApiError::bad_request("invalid_clip", e.to_string())
+        }
+        _ => ApiError::bad_request("invalid_rig", e.to_string()),
+    }
+}
+
+async fn blocking<T: Send + 'static>(
+    f: impl FnOnce() -> Result<T, ApiError> + Send + 'static,
+) -> Result<T, ApiError> {
+    tokio::task::spawn_blocking(f)
+        .await
+        .map_err(ApiError::internal)?
+}
+
+// ---------------------------------------------------------------------------------------------
+// Health and metrics.
+
+pub(super) async fn healthz() -> Response {
+    (
+        [(header::CONTENT_TYPE, CONTENT_TYPE_JSON)],
+        r#"{"status":"ok"}"#,
+    )
+        .into_response()
+}
+
+pub(super) async fn readyz(State(state): State<AppState>) -> Response {
+    let info = state.engine.info();
+    let status = if !state.is_ready() {
+        "loading"
+    } else if info.degraded {
+        "degraded"
+    } else {
+        "ready"
+    };
+    let body = Readiness {
+        status: status.to_string(),
+        backend: format!("{:?}", info.kind).to_lowercase(),
+        cpu_isa: info.cpu_isa,
+        degraded_reason: info.degraded_reason,
+        rigs: state.registry.len() as u32,
+        skipped_files: state.skipped(),
+    };
+    let code = if state.is_ready() {
+        StatusCode::OK
+    } else {
+        StatusCode::SERVICE_UNAVAILABLE
+    };
+    let json = serde_json::to_vec(&body).unwrap_or_default();
+    (code, [(header::CONTENT_TYPE, CONTENT_TYPE_JSON)], json).into_response()
+}
+
+pub(super) async fn metrics(State(state): State<AppState>) -> Response {
+    (
+        [(header::CONTENT_TYPE, "text/plain; version=0.0.4")],
+        state.metrics.render(state.gauges()),
+    )
+        .into_response()
+}
+
+pub(super) async fn not_found() -> ApiError {
+    ApiError::not_found(
+        "no_route",
+        "no such endpoint; see /v1/rigs and /v1/crowd/frame",
+    )
+}
+
+// ---------------------------------------------------------------------------------------------
+// Rigs.
+
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RigQuery {
+    name: Option<String>,
+}
+
+pub(super) async fn upload_rig(
+    State(state): State<AppState>,
+    query: Result<Query<RigQuery>, axum::extract::rejection::QueryRejection>,
+    headers: HeaderMap,
+    body: Body,
+) -> ApiResult {
+    state.check_admin(&headers)?;
+    state.check_ready()?;
+    let Query(query) = query.map_err(|e| ApiError::bad_request("bad_query", e.body_text()))?;
+    if let Some(n) = &query.name
+        && !valid_id(n)
+    {
+        return Err(ApiError::bad_request(
+            "invalid_name",
+            format!(
+                "rig name {n:?} must be 1-64 characters of A-Z a-z 0-9 . _ - (not starting with a dot)"
+            ),
+        ));
+    }
+    let bytes = read_body(&headers, body, state.config.max_upload_bytes).await?;
+    let _slot = state.uploads.acquire().await.map_err(ApiError::internal)?;
+    let options = ImportOptions {
+        base_dir: None,
+        name: query.name.clone(),
+        max_decoded_bytes: state.config.max_decoded_bytes,
+        ..ImportOptions::default()
+    };
+    let engine = state.engine.clone();
+    let (rig, prepared, qbox) = blocking(move || {
+        let rig = crate::import::gltf::rig_from_slice(&bytes, &options).map_err(import_error)?;
+        let rig = Arc::new(rig);
+        let prepared = engine.prepare(rig.clone()).map_err(|e| {
+            ApiError::new(
+                StatusCode::UNPROCESSABLE_ENTITY,
+                "cannot_prepare",
+                e.to_string(),
+            )
+        })?;
+        let qbox = quantization_box(&rig);
+        Ok((rig, prepared, qbox))
+    })
+    .await?;
+    let id = query.name.unwrap_or_else(|| sanitize_id(&rig.name));
+    let _admin = state.admin.lock().await;
+    if state.registry.get(&id).is_some() {
+        return Err(ApiError::new(
+            StatusCode::CONFLICT,
+            "rig_exists",
+            format!(
+                "a rig {id:?} exists already; DELETE /v1/rigs/{id} first or choose another ?name="
+            ),
+        ));
+    }
+    // On disk before it is visible: a crash after this point loses nothing acknowledged.
+    state.persist(&id, rig.clone(), None).await?;
+    let entry = Arc::new(RigEntry {
+        id: id.clone(),
+        builtin: false,
+        builtin_clips: 0,
+        vertices: rig.vertex_count(),
+        qbox,
+        generation: state.registry.generation(),
+        prepared,
+    });
+    state.registry.insert(entry.clone());
+    tracing::info!(rig = %id, vertices = entry.vertices, targets = rig.targets.len(), "rig registered");
+    respond(&headers, StatusCode::CREATED, &entry.info())
+}
+
+pub(super) async fn list_rigs(State(state): State<AppState>, headers: HeaderMap) -> ApiResult {
+    state.check_ready()?;
+    let rigs = state.registry.all().iter().map(|e| e.info()).collect();
+    respond(&headers, StatusCode::OK, &RigList { rigs })
+}
+
+pub(super) async fn get_rig(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> ApiResult {
+    state.check_ready()?;
+    respond(&headers, StatusCode::OK, &state.rig(&id)?.info())
+}
+
+pub(super) async fn delete_rig(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> ApiResult {
+    state.check_admin(&headers)?;
+    state.check_ready()?;
+    let _admin = state.admin.lock().await;
+    let entry = state.rig(&id)?;
+    if entry.builtin {
+        return Err(ApiError::new(
+            StatusCode::FORBIDDEN,
+            "builtin_rig",
+            format!("rig {id:?} is built in and cannot be deleted"),
+        ));
+    }
+    if state.store.is_some() {
+        let s = state.clone();
+        let rid = id.clone();
+        blocking(move || {
+            s.store
+                .as_ref()
+                .map_or(Ok(()), |st| st.remove(&rid))
+                .map_err(ApiError::internal)
+        })
+        .await?;
+    }
+    state.registry.remove(&id);
+    tracing::info!(rig = %id, "rig deleted");
+    Ok(StatusCode::NO_CONTENT.into_response())
+}
+
+pub(super) async fn get_mesh(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> ApiResult {
+    state.check_ready()?;
+    let entry = state.rig(&id)?;
+    let mesh = blocking(move || Ok(entry.mesh())).await?;
+    respond(&headers, StatusCode::OK, &mesh)
+}
+
+// ---------------------------------------------------------------------------------------------
+// Clips.
+
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct ClipQuery {
+    name: Option<String>,
+    fps: Option<f32>,
+    #[serde(default)]
+    ignore_unknown: bool,
+}
+
+enum ClipSource {
+    Csv,
+    Json,
+    Gltf,
+}
+
+fn clip_source(ct: &str, body: &[u8]) -> ClipSource {
+    match ct {
+        "text/csv" | "application/csv" => ClipSource::Csv,
+        "model/gltf-binary" | "model/gltf+json" => ClipSource::Gltf,
+        CONTENT_TYPE_JSON => {
+            // A glTF document is JSON too; it is the one with an "asset" object.
+            if body.windows(8).take(4096).any(|w| w == b"\"asset\":") {
+                ClipSource::Gltf
+            } else {
+                ClipSource::Json
+            }
+        }
+        _ if body.starts_with(b"glTF") => ClipSource::Gltf,
+        _ if body.iter().find(|b| !b.is_ascii_whitespace()) == Some(&b'{') => ClipSource::Json,
+        _ => ClipSource::Csv,
+    }
+}
+
+pub(super) async fn upload_clips(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    query: Result<Query<ClipQuery>, axum::extract::rejection::QueryRejection>,
+    headers: HeaderMap,
+    body: Body,
+) -> ApiResult {
+    state.check_admin(&headers)?;
+    state.check_ready()?;
+    let Query(query) = query.map_err(|e| ApiError::bad_request("bad_query", e.body_text()))?;
+    if let Some(n) = &query.name
+        && !valid_id(n)
+    {
+        return Err(ApiError::bad_request(
+            "invalid_name",
+            format!("clip name {n:?} must be 1-64 characters of A-Z a-z 0-9 . _ -"),
+        ));
+    }
+    if let Some(fps) = query.fps
+        && !(fps.is_finite() && fps > 0.0 && fps <= 1000.0)
+    {
+        return Err(ApiError::bad_request(
+            "invalid_fps",
+            format!("fps {fps} must be in (0, 1000]"),
+        ));
+    }
+    let bytes = read_body(&headers, body, state.config.max_upload_bytes).await?;
+    state.rig(&id)?;
+    let source = clip_source(&content_type(&headers), &bytes);
+    if !matches!(source, ClipSource::Gltf) && query.name.is_none() {
+        return Err(ApiError::bad_request(
+            "missing_name",
+            "CSV and JSON clips need a name: POST /v1/rigs/{id}/clips?name=NAME",
+        ));
+    }
+    let _admin = state.admin.lock().await;
+    // Re-read under the lock: another change may have landed since.
+    let entry = state.rig(&id)?;
+    let options = ClipOptions {
+        fps: query.fps.unwrap_or(crate::rig::DEFAULT_FPS),
+        ignore_unknown: query.ignore_unknown,
+    };
+    let engine = state.engine.clone();
+    let name = query.name.clone();
+    let base = entry.clone();
+    let (rig, prepared, qbox, added, ignored) = blocking(move || {
+        let rig = base.rig();
+        let imports: Vec<ClipImport> = match source {
+            ClipSource::Csv => vec![
+                crate::import::clip_from_csv(rig, name.as_deref().unwrap_or("clip"), &bytes, &options)
+                    .map_err(import_error)?,
+            ],
+            ClipSource::Json => vec![
+                crate::import::clip_from_json(rig, name.as_deref().unwrap_or("clip"), &bytes, &options)
+                    .map_err(import_error)?,
+            ],
+            ClipSource::Gltf => {
+                let mut v = crate::import::clips_from_gltf(rig, &bytes, &options)
+                    .map_err(import_error)?;
+                let single = v.len() == 1;
+                for c in &mut v {
+                    c.clip.name = match (&name, single) {
+                        (Some(n), true) => n.clone(),
+                        (Some(n), false) => format!("{n}.{}", sanitize_id(&c.clip.name)),
+                        (None, _) => sanitize_id(&c.clip.name),
+                    };
+                }
+                v
+            }
+        };
+        let mut new = rig.clone();
+        let mut ignored: Vec<String> = Vec::new();
+        let mut added = Vec::new();
+        for imp in imports {
+            if new.clip_index(&imp.clip.name).is_some() {
+                return Err(ApiError::new(
+                    StatusCode::CONFLICT,
+                    "clip_exists",
+                    format!(
+                        "rig {:?} has a clip {:?} already; DELETE it first or choose another ?name=",
+                        base.id, imp.clip.name
+                    ),
+                ));
+            }
+            for i in imp.ignored {
+                if !ignored.contains(&i) {
+                    ignored.push(i);
+                }
+            }
+            added.push(crowdmorph_proto::ClipInfo {
+                name: imp.clip.name.clone(),
+                frames: imp.clip.frames,
+                fps: imp.clip.fps,
+            });
+            new.clips.push(imp.clip);
+        }
+        new.validate()
+            .map_err(|e| ApiError::bad_request("invalid_clip", e.to_string()))?;
+        let new = Arc::new(new);
+        let prepared = engine
+            .update_clips(&base.prepared, new.clone())
+            .map_err(|e| ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, "cannot_prepare", e.to_string()))?;
+        let qbox = quantization_box(&new);
+        Ok((new, prepared, qbox, added, ignored))
+    })
+    .await?;
+    state
+        .persist(
+            &id,
+            rig.clone(),
+            entry.builtin.then_some(entry.builtin_clips),
+        )
+        .await?;
+    state.registry.insert(Arc::new(RigEntry {
+        id: id.clone(),
+        builtin: entry.builtin,
+        builtin_clips: entry.builtin_clips,
+        vertices: entry.vertices,
+        qbox,
+        generation: state.registry.generation(),
+        prepared,
+    }));
+    tracing::info!(rig = %id, clips = added.len(), ignored = ignored.len(), "clips added");
+    respond(
+        &headers,
+        StatusCode::CREATED,
+        &ClipUpload {
+            rig: id,
+            added,
+            ignored,
+        },
+    )
+}
+
+pub(super) async fn list_clips(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> ApiResult {
+    state.check_ready()?;
+    let entry = state.rig(&id)?;
+    respond(
+        &headers,
+        StatusCode::OK,
+        &ClipList {
+            rig: id,
+            clips: clip_infos(entry.rig()),
+        },
+    )
+}
+
+pub(super) async fn get_clip(
+    State(state): State<AppState>,
+    Path((id, clip)): Path<(String, String)>,
+    headers: HeaderMap,
+) -> ApiResult {
+    state.check_ready()?;
+    let entry = state.rig(&id)?;
+    let ci = entry
+        .rig()
+        .clip_index(&clip)
+        .ok_or_else(|| unknown_clip(&entry, &clip))?;
+    respond(&headers, StatusCode::OK, &clip_infos(entry.rig())[ci])
+}
+
+pub(super) async fn delete_clip(
+    State(state): State<AppState>,
+    Path((id, clip)): Path<(String, String)>,
+    headers: HeaderMap,
+) -> ApiResult {
+    state.check_admin(&headers)?;
+    state.check_ready()?;
+    let _admin = state.admin.lock().await;
+    let entry = state.rig(&id)?;
+    let ci = entry
+        .rig()
+        .clip_index(&clip)
+        .ok_or_else(|| unknown_clip(&entry, &clip))?;
+    if entry.builtin && ci < entry.builtin_clips {
+        return Err(ApiError::new(
+            StatusCode::FORBIDDEN,
+            "builtin_clip",
+            format!("clip {clip:?} is part of the built-in rig and cannot be deleted"),
+        ));
+    }
+    let engine = state.engine.clone();
+    let base = entry.clone();
+    let (rig, prepared, qbox) = blocking(move || {
+        let mut new = base.rig().clone();
+        new.clips.remove(ci);
+        let new = Arc::new(new);
+        let prepared = engine
+            .update_clips(&base.prepared, new.clone())
+            .map_err(ApiError::internal)?;
+        let qbox = quantization_box(&new);
+        Ok((new, prepared, qbox))
+    })
+    .await?;
+    state
+        .persist(&id, rig, entry.builtin.then_some(entry.builtin_clips))
+        .await?;
+    state.registry.insert(Arc::new(RigEntry {
+        id: id.clone(),
+        builtin: entry.builtin,
+        builtin_clips: entry.builtin_clips,
+        vertices: entry.vertices,
+        qbox,
+        generation: state.registry.generation(),
+        prepared,
+    }));
+    tracing::info!(rig = %id, clip = %clip, "clip deleted");
+    Ok(StatusCode::NO_CONTENT.into_response())
+}
+
+// ---------------------------------------------------------------------------------------------
+// Crowd frames.
+
+/// Keeps the admitted memory permit alive as long as the response body is being sent.
+struct PermitBytes {
+    bytes: Bytes,
+    _permit: Option<OwnedSemaphorePermit>,
+}
+
+impl AsRef<[u8]> for PermitBytes {
+    fn as_ref(&self) -> &[u8] {
+        &self.bytes
+    }
+}
+
+/// A body made of shared chunks with a known total length, so that hyper sends a
+/// Content-Length (no chunked framing) and writes the chunks with vectored writes, uncopied.
+struct ChunkBody {
+    chunks: std::collections::VecDeque<Bytes>,
+    remaining: u64,
+}
+
+impl http_body::Body for ChunkBody {
+    type Data = Bytes;
+    type Error = std::convert::Infallible;
+
+    fn poll_frame(
+        mut self: std::pin::Pin<&mut Self>,
+        _: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<Option<Result<http_body::Frame<Bytes>, Self::Error>>> {
+        let next = self.chunks.pop_front();
+        if let Some(c) = &next {
+            self.remaining -= c.len() as u64;
+        }
+        std::task::Poll::Ready(next.map(|c| Ok(http_body::Frame::data(c))))
+    }
+
+    fn is_end_stream(&self) -> bool {
+        self.chunks.is_empty()
+    }
+
+    fn size_hint(&self) -> http_body::SizeHint {
+        http_body::SizeHint::with_exact(self.remaining)
+    }
+}
+
+fn chunked_body(mut chunks: Vec<Bytes>, permit: OwnedSemaphorePermit) -> Body {
+    // The last chunk carries the permit: it is released when the whole body has been sent
+    // (or the connection dropped).
+    let last = chunks.pop().unwrap_or_default();
+    chunks.push(Bytes::from_owner(PermitBytes {
+        bytes: last,
+        _permit: Some(permit),
+    }));
+    let remaining = chunks.iter().map(|c| c.len() as u64).sum();
+    Body::new(ChunkBody {
+        chunks: chunks.into_iter().filter(|c| !c.is_empty()).collect(),
+        remaining,
+    })
+}
+
+pub(super) async fn crowd_frame(
+    State(state): State<AppState>,
+    headers: HeaderMap,
+    body: Body,
+) -> ApiResult {
+    let arrived = Instant::now();
+    state.check_ready()?;
+    let bytes = read_body(&headers, body, state.config.max_request_bytes).await?;
+    let req: CrowdFrameRequest = decode(&headers, &bytes)?;
+    drop(bytes);
+    let n_heads = req.heads.len();
+    if n_heads > state.config.max_heads {
+        return Err(ApiError::bad_request(
+            "too_many_heads",
+            format!(
+                "{n_heads} heads is more than the limit of {} per request",
+                state.config.max_heads
+            ),
+        ));
+    }
+    let format = req.output.format;
+    let normals = req.output.normals;
+    let mode = if req.wrap {
+        FrameMode::Wrap
+    } else {
+        FrameMode::Strict
+    };
+
+    // Resolve every head against one snapshot of each rig it names.
+    let mut rigs: Vec<Arc<RigEntry>> = Vec::new();
+    let mut rig_at: HashMap<&str, u32> = HashMap::new();
+    let mut clip_at: HashMap<(u32, &str), u32> = HashMap::new();
+    let mut keys = Vec::with_capacity(n_heads);
+    for (h, head) in req.heads.iter().enumerate() {
+        let ri = match rig_at.get(head.rig.as_str()) {
+            Some(&i) => i,
+            None => {
+                let e = state.rig(&head.rig).map_err(|e| ApiError {
+                    message: format!("head {h} (id {}): {}", head.head, e.message),
+                    ..e
+                })?;
+                rigs.push(e);
+                let i = (rigs.len() - 1) as u32;
+                rig_at.insert(head.rig.as_str(), i);
+                i
+            }
+        };
+        let entry = &rigs[ri as usize];
+        let rig = entry.rig();
+        let ci = match clip_at.get(&(ri, head.clip.as_str())) {
+            Some(&c) => c,
+            None => {
+                let c = rig.clip_index(&head.clip).ok_or_else(|| {
+                    let e = unknown_clip(entry, &head.clip);
+                    ApiError {
+                        message: format!("head {h} (id {}): {}", head.head, e.message),
+                        ..e
+                    }
+                })? as u32;
+                clip_at.insert((ri, head.clip.as_str()), c);
+                c
+            }
+        };
+        let clip = &rig.clips[ci as usize];
+        let frame = clip.resolve_frame(head.frame, mode).map_err(|e| {
+            ApiError::bad_request(
+                "frame_out_of_range",
+                format!("head {h} (id {}): {e}", head.head),
+            )
+        })?;
+        if head.lod as usize >= rig.lod.levels.len() {
+            return Err(ApiError::bad_request(
+                "lod_out_of_range",
+                format!(
+                    "head {h} (id {}): LOD {} out of range: rig {:?} has levels 0..{}",
+                    head.head,
+                    head.lod,
+                    entry.id,
+                    rig.lod.levels.len() - 1
+                ),
+            ));
+        }
+        keys.push(JobKey {
+            rig: ri,
+            clip: ci,
+            frame,
+            lod: head.lod,
+        });
+    }
+    let plan = Plan::new(keys);
+
+    // Admission: the output memory this request will hold, then a place in the queue.
+    let per_component = format.component_bytes() as u64 * if normals { 2 } else { 1 };
+    let json_factor = if wants_bincode(&headers) { 1 } else { 3 };
+    let mut out_bytes = 0u64;
+    let mut jobs = Vec::with_capacity(plan.jobs.len());
+    for k in &plan.jobs {
+        let entry = &rigs[k.rig as usize];
+        let rig = entry.rig();
+        let shapes = rig.lod.shapes_at(k.lod).unwrap_or(0) as usize;
+        let clip = &rig.clips[k.clip as usize];
+        let active = rig.lod.order[..shapes.min(rig.lod.order.len())]
+            .iter()
+            .filter(|&&t| clip.weight(t as usize, k.frame).abs() > ACTIVE_WEIGHT_EPSILON)
+            .count() as u64;
+        let v = entry.vertices as u64;
+        out_bytes += v * 3 * per_component * json_factor;
+        jobs.push(JobRequest {
+            entry: entry.clone(),
+            clip: k.clip,
+            frame: k.frame,
+            lod: k.lod,
+            cost: v * (active + 1),
+        });
+    }
+    let units = out_bytes.div_ceil(1024).max(1);
+    if units > u64::from(state.memory_units) {
+        return Err(ApiError::new(
+            StatusCode::PAYLOAD_TOO_LARGE,
+            "response_too_large",
+            format!(
+                "the response would hold {out_bytes} bytes of vertex data, more than the server's \
+                 queue memory of {} bytes; ask for fewer unique heads or a smaller format",
+                u64::from(state.memory_units) * 1024
+            ),
+        ));
+    }
+    let permit = state
+        .memory
+        .clone()
+        .try_acquire_many_owned(units as u32)
+        .map_err(|_| {
+            state.metrics.reject("queue_memory");
+            ApiError::unavailable(
+                "queue_full",
+                "the server is holding as much output as it may; retry shortly",
+                1,
+            )
+        })?;
+    state
+        .metrics
+        .jobs_requested
+        .fetch_add(jobs.len() as u64, std::sync::atomic::Ordering::Relaxed);
+    let ticket = state
+        .scheduler
+        .submit(jobs, format, normals)
+        .map_err(|e| match e {
+            ScheduleError::QueueFull => {
+                state.metrics.reject("queue_full");
+                ApiError::unavailable("queue_full", "the batch queue is full; retry shortly", 1)
+            }
+            ScheduleError::ShuttingDown => {
+                ApiError::unavailable("shutting_down", "the server is shutting down", 5)
+            }
+            ScheduleError::Engine(e) => ApiError::internal(e),
+        })?;
+    let deadline = state
+        .config
+        .request_timeout
+        .saturating_sub(arrived.elapsed());
+    let outcome = match tokio::time::timeout(deadline, ticket).await {
+        Err(_) => {
+            state.metrics.reject("deadline");
+            return Err(ApiError::new(
+                StatusCode::GATEWAY_TIMEOUT,
+                "deadline_exceeded",
+                format!(
+                    "the frame was not ready within the request deadline of {} ms",
+                    state.config.request_timeout.as_millis()
+                ),
+            ));
+        }
+        Ok(Err(_)) => return Err(ApiError::internal("the batcher dropped a request")),
+        Ok(Ok(Err(ScheduleError::ShuttingDown))) => {
+            return Err(ApiError::unavailable(
+                "shutting_down",
+                "the server is shutting down",
+                5,
+            ));
+        }
+        Ok(Ok(Err(e))) => return Err(ApiError::internal(e)),
+        Ok(Ok(Ok(o))) => o,
+    };
+
+    let heads: Vec<HeadBuffer> = req
+        .heads
+        .iter()
+        .zip(&plan.head_job)
+        .map(|(h, &j)| HeadBuffer {
+            head: h.head,
+            buffer: j,
+        })
+        .collect();
+    let timings = FrameTimings {
+        queue_us: outcome.queue.as_micros() as u64,
+        compute_us: outcome.compute_ns / 1000,
+        total_us: arrived.elapsed().as_micros() as u64,
+        gpu_us: outcome.gpu_ns.map(|g| g / 1000),
+    };
+    state.metrics.served(n_heads as u64);
+    state.metrics.request_heads.observe(n_heads as f64);
+    state
+        .metrics
+        .request_seconds
+        .observe(arrived.elapsed().as_secs_f64());
+
+    let parts: Vec<FrameBufferParts<'_>> = plan
+        .jobs
+        .iter()
+        .zip(&outcome.outputs)
+        .map(|(k, out)| {
+            let entry = &rigs[k.rig as usize];
+            FrameBufferParts {
+                rig: &entry.id,
+                clip: &entry.rig().clips[k.clip as usize].name,
+                frame: k.frame,
+                lod: k.lod,
+                vertices: entry.vertices as u32,
+                quantization: (format == Format::Q16).then_some(entry.qbox),
+                positions: out.positions.clone(),
+                normals: if normals { out.normals.clone() } else { None },
+            }
+        })
+        .collect();
+    if wants_bincode(&headers) {
+        let chunks = FrameResponseEncoder::encode(format, normals, &parts, &heads, &timings);
+        return Ok((
+            StatusCode::OK,
+            [(header::CONTENT_TYPE, CONTENT_TYPE_BINCODE)],
+            chunked_body(chunks, permit),
+        )
+            .into_response());
+    }
+    let resp = CrowdFrameResponse {
+        format,
+        normals,
+        buffers: parts
+            .into_iter()
+            .map(|p| FrameBuffer {
+                rig: p.rig.to_string(),
+                clip: p.clip.to_string(),
+                frame: p.frame,
+                lod: p.lod,
+                vertices: p.vertices,
+                quantization: p.quantization,
+                positions: crowdmorph_proto::Blob(p.positions.to_vec()),
+                normals: p.normals.map(|n| crowdmorph_proto::Blob(n.to_vec())),
+            })
+            .collect(),
+        heads,
+        timings,
+    };
+    let json = serde_json::to_vec(&resp).map_err(ApiError::internal)?;
+    drop(resp);
+    Ok((
+        StatusCode::OK,
+        [(header::CONTENT_TYPE, CONTENT_TYPE_JSON)],
+        chunked_body(vec![Bytes::from(json)], permit),
+    )
+        .into_response())
+}

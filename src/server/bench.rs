@@ -1,0 +1,508 @@
+//! `crowdmorph bench http`: crowd frames over loopback HTTP against the same work done
+//! in-process, plus latency at half the saturated load and bytes per head of each format.
+//!
+//! Workload: every request is a crowd of `heads` heads over `unique` distinct frames of one
+//! rig at LOD 0. A deterministic random clip of 1,024 frames (all weights active) is added to
+//! the rig first, and request `i` plays frames `(i × unique + h mod unique) mod 1024`, so that
+//! concurrent requests rarely share jobs: the server gets no help from cross-request
+//! coalescing that the in-process loop would not get.
+//!
+//! - In-process: plan + `Engine::evaluate` in a loop on this thread (the engine itself uses
+//!   every core through rayon), heads per second.
+//! - Saturation: `clients` connections send requests back to back (bincode both ways; the
+//!   client reads each body whole but does not decode it, so that it steals as little CPU as
+//!   possible from the server on the same machine), heads per second.
+//! - Half load: requests arrive at a fixed rate of half the saturated request rate (open
+//!   loop), latency percentiles from an HDR histogram.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+use bytes::Bytes;
+use crowdmorph_client::{Client, Encoding};
+use crowdmorph_proto::{CrowdFrameRequest, Format, Head, OutputOptions};
+use hdrhistogram::Histogram;
+use serde::Serialize;
+
+use super::{AppState, ServerConfig};
+use crate::engine::{BlendJob, Engine, OutputSpec};
+use crate::plan::{JobKey, Plan};
+use crate::rig::Rig;
+
+/// The bytes to upload for a rig file: a `.glb` as it is, a `.gltf` with its external buffers
+/// inlined as base64 data URIs (the server accepts only self-contained files).
+pub fn self_contained_bytes(path: &std::path::Path) -> Result<Vec<u8>> {
+    use base64::Engine as _;
+    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    if bytes.starts_with(b"glTF") {
+        return Ok(bytes);
+    }
+    let mut doc: serde_json::Value =
+        serde_json::from_slice(&bytes).with_context(|| format!("parsing {}", path.display()))?;
+    let dir = path.parent().unwrap_or(std::path::Path::new("."));
+    if let Some(buffers) = doc.get_mut("buffers").and_then(|b| b.as_array_mut()) {
+        for b in buffers {
+            let Some(uri) = b.get("uri").and_then(|u| u.as_str()).map(str::to_string) else {
+                continue;
+            };
+            if uri.starts_with("data:") {
+                continue;
+            }
+            let data = std::fs::read(dir.join(&uri))
+                .with_context(|| format!("reading buffer {uri} of {}", path.display()))?;
+            b["uri"] = serde_json::Value::String(format!(
+                "data:application/octet-stream;base64,{}",
+                base64::engine::general_purpose::STANDARD.encode(data)
+            ));
+        }
+    }
+    Ok(serde_json::to_vec(&doc)?)
+}
+
+/// Frames of the benchmark clip.
+const CLIP_FRAMES: usize = 1024;
+/// Name of the benchmark clip.
+const CLIP: &str = "bench-random";
+
+/// What to measure.
+#[derive(Clone, Debug)]
+pub struct HttpBenchOptions {
+    /// Heads per request.
+    pub heads: usize,
+    /// Unique jobs per request.
+    pub unique: usize,
+    /// Format of the throughput runs.
+    pub format: Format,
+    /// Concurrent connections at saturation.
+    pub clients: usize,
+    /// Seconds per measurement.
+    pub seconds: f64,
+}
+
+impl Default for HttpBenchOptions {
+    fn default() -> Self {
+        HttpBenchOptions {
+            heads: 100,
+            unique: 100,
+            format: Format::F32,
+            clients: 4,
+            seconds: 3.0,
+        }
+    }
+}
+
+/// Bytes on the wire for one format.
+#[derive(Debug, Serialize)]
+pub struct FormatSize {
+    /// Format.
+    pub format: String,
+    /// Normals included.
+    pub normals: bool,
+    /// bincode response bytes per head.
+    pub bincode_bytes_per_head: f64,
+    /// JSON response bytes per head.
+    pub json_bytes_per_head: f64,
+    /// Raw vertex payload bytes per unique head (`vertices × 3 × component bytes`, doubled
+    /// with normals).
+    pub payload_bytes_per_unique_head: usize,
+}
+
+/// The benchmark result.
+#[derive(Debug, Serialize)]
+pub struct HttpBenchReport {
+    /// Rig name.
+    pub rig: String,
+    /// Vertices per head.
+    pub vertices: usize,
+    /// Targets.
+    pub targets: usize,
+    /// Heads per request.
+    pub heads: usize,
+    /// Unique jobs per request.
+    pub unique: usize,
+    /// Format of the throughput runs.
+    pub format: String,
+    /// Connections at saturation.
+    pub clients: usize,
+    /// In-process heads per second (plan + engine evaluate).
+    pub inprocess_heads_per_s: f64,
+    /// In-process milliseconds per crowd.
+    pub inprocess_ms_per_crowd: f64,
+    /// Heads per second over loopback HTTP at saturation.
+    pub http_heads_per_s: f64,
+    /// `http_heads_per_s / inprocess_heads_per_s`.
+    pub http_fraction_of_inprocess: f64,
+    /// Requests that failed during the saturation run.
+    pub saturation_errors: u64,
+    /// Latency percentiles at saturation, ms.
+    pub saturation_p50_ms: f64,
+    /// 99th percentile at saturation, ms.
+    pub saturation_p99_ms: f64,
+    /// Request rate of the half-load run.
+    pub half_load_requests_per_s: f64,
+    /// Median latency at half load, ms.
+    pub half_load_p50_ms: f64,
+    /// 99th percentile at half load, ms.
+    pub half_load_p99_ms: f64,
+    /// `p99 / p50` at half load (goal ≤ 3).
+    pub half_load_p99_over_p50: f64,
+    /// Requests that failed during the half-load run.
+    pub half_load_errors: u64,
+    /// Mean jobs per batch the server formed over the whole run.
+    pub mean_batch_jobs: f64,
+    /// Bytes per head of each format.
+    pub sizes: Vec<FormatSize>,
+}
+
+/// Deterministic all-active weights in [0.05, 1): a JSON clip for the rig.
+fn bench_clip_json(rig: &Rig) -> String {
+    let mut state = 0x5EED_u64;
+    let mut next = || {
+        state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = state;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^= z >> 31;
+        0.05 + 0.95 * ((z >> 40) as f64 / (1u64 << 24) as f64)
+    };
+    let frames: Vec<Vec<f64>> = (0..CLIP_FRAMES)
+        .map(|_| {
+            (0..rig.targets.len())
+                .map(|_| (next() * 1e4).round() / 1e4)
+                .collect()
+        })
+        .collect();
+    serde_json::json!({ "fps": 30, "targets": rig.targets, "frames": frames }).to_string()
+}
+
+fn crowd(
+    opt: &HttpBenchOptions,
+    rig_id: &str,
+    i: u64,
+    format: Format,
+    normals: bool,
+) -> CrowdFrameRequest {
+    let base = i as usize * opt.unique;
+    CrowdFrameRequest {
+        heads: (0..opt.heads)
+            .map(|h| Head {
+                head: h as u64,
+                rig: rig_id.to_string(),
+                clip: CLIP.to_string(),
+                frame: ((base + h % opt.unique) % CLIP_FRAMES) as i64,
+                lod: 0,
+            })
+            .collect(),
+        output: OutputOptions { normals, format },
+        wrap: true,
+    }
+}
+
+fn pct(h: &Histogram<u64>, q: f64) -> f64 {
+    h.value_at_quantile(q) as f64 / 1000.0
+}
+
+/// Runs the benchmark: `rig_bytes` is a GLB/glTF to upload, or `None` for the embedded head.
+pub fn bench_http(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpBenchReport> {
+    if opt.unique == 0 || opt.heads < opt.unique || opt.unique > CLIP_FRAMES {
+        bail!("need heads >= unique >= 1 and unique <= {CLIP_FRAMES}");
+    }
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("starting the tokio runtime")?;
+    runtime.block_on(run(rig_bytes, opt))
+}
+
+async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpBenchReport> {
+    let config = ServerConfig {
+        max_heads: opt.heads.max(1000),
+        request_timeout: Duration::from_secs(60),
+        ..ServerConfig::default()
+    };
+    let state = AppState::new(config)?;
+    state.load_stored().await;
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
+    let addr = listener.local_addr()?;
+    let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+    let server_state = state.clone();
+    let server = tokio::spawn(super::serve(listener, server_state, async {
+        let _ = stop_rx.await;
+    }));
+    let client = Client::new(format!("http://{addr}"));
+
+    let rig_id = match rig_bytes {
+        Some(b) => {
+            client
+                .upload_rig("bench", Bytes::from(b))
+                .await
+                .context("uploading the rig")?
+                .id
+        }
+        None => super::registry::BUILTIN_ID.to_string(),
+    };
+    let entry = state
+        .registry
+        .get(&rig_id)
+        .context("the rig is not registered")?;
+    let clip = bench_clip_json(entry.rig());
+    client
+        .upload_clip(
+            &rig_id,
+            &format!("name={CLIP}"),
+            "application/json",
+            Bytes::from(clip),
+        )
+        .await
+        .context("uploading the benchmark clip")?;
+    let entry = state
+        .registry
+        .get(&rig_id)
+        .context("the rig is not registered")?;
+    let rig = entry.rig().clone();
+    let clip_index = rig.clip_index(CLIP).context("benchmark clip missing")? as u32;
+
+    // Bytes per head of every format, and a check that bincode decodes.
+    let mut sizes = Vec::new();
+    for normals in [false, true] {
+        for format in [Format::F32, Format::F16, Format::Q16] {
+            let req = crowd(opt, &rig_id, 0, format, normals);
+            let (resp, b) = client.crowd_frame(&req, Encoding::Bincode).await?;
+            if resp.heads.len() != opt.heads || resp.buffers.len() != opt.unique {
+                bail!("unexpected response shape");
+            }
+            let (_, j) = client.crowd_frame(&req, Encoding::Json).await?;
+            sizes.push(FormatSize {
+                format: format.name().to_string(),
+                normals,
+                bincode_bytes_per_head: b as f64 / opt.heads as f64,
+                json_bytes_per_head: j as f64 / opt.heads as f64,
+                payload_bytes_per_unique_head: entry.vertices
+                    * 3
+                    * format.component_bytes()
+                    * if normals { 2 } else { 1 },
+            });
+        }
+    }
+
+    // In-process: the same crowds through plan + engine on this thread.
+    let engine = Engine::cpu();
+    let prepared = engine.prepare(Arc::new(rig.clone()))?;
+    let spec = OutputSpec {
+        normals: false,
+        precision: if opt.format == Format::F16 {
+            crate::engine::Precision::F16
+        } else {
+            crate::engine::Precision::F32
+        },
+    };
+    let inproc = tokio::task::spawn_blocking({
+        let opt = opt.clone();
+        move || -> Result<(f64, f64)> {
+            let mut out = crate::engine::BlendOutput::default();
+            let mut one = |i: u64| -> Result<()> {
+                let base = i as usize * opt.unique;
+                let plan = Plan::new((0..opt.heads).map(|h| JobKey {
+                    rig: 0,
+                    clip: clip_index,
+                    frame: ((base + h % opt.unique) % CLIP_FRAMES) as u32,
+                    lod: 0,
+                }));
+                let jobs: Vec<BlendJob> = plan
+                    .jobs
+                    .iter()
+                    .map(|k| BlendJob {
+                        clip: k.clip,
+                        frame: k.frame,
+                        lod: k.lod,
+                    })
+                    .collect();
+                // Warm output buffers, as the server's pool gives it.
+                let batch = crate::engine::WeightBatch::gather(prepared.rig(), &jobs)?;
+                prepared.cpu().evaluate_into(&batch, spec, &mut out)?;
+                std::hint::black_box(&out);
+                Ok(())
+            };
+            for i in 0..3 {
+                one(i)?;
+            }
+            let start = Instant::now();
+            let mut n = 0u64;
+            while start.elapsed().as_secs_f64() < opt.seconds || n < 5 {
+                one(n)?;
+                n += 1;
+            }
+            let s = start.elapsed().as_secs_f64();
+            Ok(((n as usize * opt.heads) as f64 / s, s * 1e3 / n as f64))
+        }
+    })
+    .await??;
+
+    // Pre-encoded request bodies (clients should not spend CPU encoding).
+    let bodies: Arc<Vec<Bytes>> = Arc::new(
+        (0..64)
+            .map(|i| {
+                Client::encode(
+                    &crowd(opt, &rig_id, i, opt.format, false),
+                    Encoding::Bincode,
+                )
+            })
+            .collect::<Result<_, _>>()?,
+    );
+
+    // Saturation: closed loop, `clients` connections.
+    let counter = Arc::new(AtomicU64::new(0));
+    let errors = Arc::new(AtomicU64::new(0));
+    let warm_until = Instant::now() + Duration::from_millis(500);
+    let end = warm_until + Duration::from_secs_f64(opt.seconds);
+    let mut tasks = Vec::new();
+    for c in 0..opt.clients.max(1) {
+        let client = client.clone();
+        let bodies = bodies.clone();
+        let counter = counter.clone();
+        let errors = errors.clone();
+        let heads = opt.heads as u64;
+        tasks.push(tokio::spawn(async move {
+            let mut hist = Histogram::<u64>::new_with_bounds(1, 600_000_000, 3)?;
+            let mut i = c;
+            while Instant::now() < end {
+                let t = Instant::now();
+                let body = bodies[i % bodies.len()].clone();
+                i += 7;
+                match client.crowd_frame_drain(body, Encoding::Bincode).await {
+                    Ok((200, _)) => {
+                        if t >= warm_until && Instant::now() <= end {
+                            counter.fetch_add(heads, Ordering::Relaxed);
+                            hist.record(t.elapsed().as_micros() as u64)?;
+                        }
+                    }
+                    _ => {
+                        errors.fetch_add(1, Ordering::Relaxed);
+                    }
+                }
+            }
+            anyhow::Ok(hist)
+        }));
+    }
+    let mut sat = Histogram::<u64>::new_with_bounds(1, 600_000_000, 3)?;
+    for t in tasks {
+        sat.add(t.await??)?;
+    }
+    let http_heads_per_s = counter.load(Ordering::Relaxed) as f64 / opt.seconds;
+
+    // Half load: open loop at half the saturated request rate.
+    let rate = (http_heads_per_s / opt.heads as f64 / 2.0).max(0.5);
+    let interval = Duration::from_secs_f64(1.0 / rate);
+    let half_errors = Arc::new(AtomicU64::new(0));
+    let (lat_tx, mut lat_rx) = tokio::sync::mpsc::unbounded_channel::<u64>();
+    let start = Instant::now();
+    let mut ticker = tokio::time::interval(interval);
+    ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Burst);
+    let mut i = 0usize;
+    let mut inflight = Vec::new();
+    let warm = Duration::from_millis(300);
+    while start.elapsed().as_secs_f64() < opt.seconds + warm.as_secs_f64() {
+        ticker.tick().await;
+        let client = client.clone();
+        let body = bodies[i % bodies.len()].clone();
+        let tx = lat_tx.clone();
+        let errs = half_errors.clone();
+        let record = start.elapsed() >= warm;
+        i += 1;
+        inflight.push(tokio::spawn(async move {
+            let t = Instant::now();
+            match client.crowd_frame_drain(body, Encoding::Bincode).await {
+                Ok((200, _)) => {
+                    if record {
+                        let _ = tx.send(t.elapsed().as_micros() as u64);
+                    }
+                }
+                _ => {
+                    errs.fetch_add(1, Ordering::Relaxed);
+                }
+            }
+        }));
+    }
+    for t in inflight {
+        let _ = t.await;
+    }
+    drop(lat_tx);
+    let mut half = Histogram::<u64>::new_with_bounds(1, 600_000_000, 3)?;
+    while let Some(us) = lat_rx.recv().await {
+        half.record(us.max(1))?;
+    }
+
+    let batches = state.metrics.batches.load(Ordering::Relaxed).max(1);
+    let computed = state.metrics.jobs_computed.load(Ordering::Relaxed);
+    let _ = stop_tx.send(());
+    server.await??;
+
+    let p50 = pct(&half, 0.5);
+    let p99 = pct(&half, 0.99);
+    Ok(HttpBenchReport {
+        rig: rig.name.clone(),
+        vertices: entry.vertices,
+        targets: rig.targets.len(),
+        heads: opt.heads,
+        unique: opt.unique,
+        format: opt.format.name().to_string(),
+        clients: opt.clients,
+        inprocess_heads_per_s: inproc.0,
+        inprocess_ms_per_crowd: inproc.1,
+        http_heads_per_s,
+        http_fraction_of_inprocess: http_heads_per_s / inproc.0,
+        saturation_errors: errors.load(Ordering::Relaxed),
+        saturation_p50_ms: pct(&sat, 0.5),
+        saturation_p99_ms: pct(&sat, 0.99),
+        half_load_requests_per_s: rate,
+        half_load_p50_ms: p50,
+        half_load_p99_ms: p99,
+        half_load_p99_over_p50: if p50 > 0.0 { p99 / p50 } else { 0.0 },
+        half_load_errors: half_errors.load(Ordering::Relaxed),
+        mean_batch_jobs: computed as f64 / batches as f64,
+        sizes,
+    })
+}
+
+/// Human-readable report.
+pub fn report_text(r: &HttpBenchReport) -> String {
+    let mut s = format!(
+        "rig {:?}: {} vertices × {} targets; {} heads / {} unique per request, {}, {} connections\n",
+        r.rig, r.vertices, r.targets, r.heads, r.unique, r.format, r.clients
+    );
+    s += &format!(
+        "  in-process      {:>10.0} heads/s  ({:.2} ms per crowd)\n",
+        r.inprocess_heads_per_s, r.inprocess_ms_per_crowd
+    );
+    s += &format!(
+        "  HTTP saturated  {:>10.0} heads/s  = {:.0} % of in-process (goal ≥ 70 %); p50 {:.2} ms, p99 {:.2} ms, {} errors\n",
+        r.http_heads_per_s,
+        r.http_fraction_of_inprocess * 100.0,
+        r.saturation_p50_ms,
+        r.saturation_p99_ms,
+        r.saturation_errors
+    );
+    s += &format!(
+        "  HTTP half load  {:>10.1} requests/s: p50 {:.2} ms, p99 {:.2} ms, p99/p50 = {:.2} (goal ≤ 3), {} errors\n",
+        r.half_load_requests_per_s,
+        r.half_load_p50_ms,
+        r.half_load_p99_ms,
+        r.half_load_p99_over_p50,
+        r.half_load_errors
+    );
+    s += &format!("  mean jobs per batch: {:.1}\n", r.mean_batch_jobs);
+    s += "  bytes per head (all heads unique):\n";
+    for f in &r.sizes {
+        s += &format!(
+            "    {:<4}{:<9} bincode {:>10.0}  JSON {:>10.0}  (payload {} per unique head)\n",
+            f.format,
+            if f.normals { "+normals" } else { "" },
+            f.bincode_bytes_per_head,
+            f.json_bytes_per_head,
+            f.payload_bytes_per_unique_head
+        );
+    }
+    s
+}

@@ -1,0 +1,73 @@
+//! Server configuration: every limit and timeout in one place, with the defaults `serve` uses.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use crate::engine::BackendChoice;
+
+/// Everything [`super::run`] needs to know besides the listener.
+#[derive(Clone, Debug)]
+pub struct ServerConfig {
+    /// Where rigs and clips are persisted; `None` keeps them in memory only (tests).
+    pub data_dir: Option<PathBuf>,
+    /// Engine to use.
+    pub backend: BackendChoice,
+    /// Bearer token required for uploads and deletes; `None` leaves them open.
+    pub admin_token: Option<String>,
+    /// Largest rig or clip upload body.
+    pub max_upload_bytes: usize,
+    /// Largest body of any other request.
+    pub max_request_bytes: usize,
+    /// Most heads in one crowd request.
+    pub max_heads: usize,
+    /// Most bytes the decoded arrays of one glTF upload may occupy (bounds glTF bombs).
+    pub max_decoded_bytes: usize,
+    /// Most crowd requests waiting for the batcher at once; more get 503.
+    pub queue_requests: usize,
+    /// Most output bytes that admitted crowd requests may hold at once (queued, computing or
+    /// being sent); a request that would exceed it gets 503, one larger than it gets 413.
+    pub queue_memory_bytes: usize,
+    /// A batch closes when the cost (vertices × active shapes, summed over its unique jobs)
+    /// reaches this.
+    pub batch_cost: u64,
+    /// ... or when its oldest job has waited this long.
+    pub batch_delay: Duration,
+    /// Deadline of a crowd request, from arrival to its response being ready; past it, 504.
+    pub request_timeout: Duration,
+    /// Deadline of any other request (uploads included); past it, 504.
+    pub admin_timeout: Duration,
+    /// Requests handled at once; more are shed with 503.
+    pub max_concurrency: usize,
+    /// Origins allowed by CORS (`*` for any); empty disables CORS headers.
+    pub cors_origins: Vec<String>,
+}
+
+impl Default for ServerConfig {
+    fn default() -> Self {
+        ServerConfig {
+            data_dir: None,
+            backend: BackendChoice::Auto,
+            admin_token: None,
+            max_upload_bytes: 256 << 20,
+            max_request_bytes: 16 << 20,
+            max_heads: 100_000,
+            max_decoded_bytes: 2 << 30,
+            queue_requests: 1024,
+            queue_memory_bytes: 2 << 30,
+            batch_cost: 200_000_000,
+            batch_delay: Duration::from_micros(1000),
+            request_timeout: Duration::from_secs(10),
+            admin_timeout: Duration::from_secs(300),
+            max_concurrency: 2048,
+            cors_origins: Vec::new(),
+        }
+    }
+}
+
+/// The default data directory: `<user data dir>/crowdmorph` (e.g.
+/// `~/.local/share/crowdmorph` on Linux), else `./crowdmorph-data`.
+pub fn default_data_dir() -> PathBuf {
+    dirs::data_dir()
+        .map(|d| d.join("crowdmorph"))
+        .unwrap_or_else(|| PathBuf::from("crowdmorph-data"))
+}

@@ -1,0 +1,378 @@
+//! Server metrics in the Prometheus text format (version 0.0.4), hand-rolled: a few atomic
+//! counters and fixed-bucket histograms are all the server needs, and writing them out is
+//! simpler than adapting a registry crate's global state to per-test servers.
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+/// Bucket bounds in seconds for latencies (50 µs to 10 s).
+const SECONDS: &[f64] = &[
+    5e-5, 1e-4, 2.5e-4, 5e-4, 1e-3, 2.5e-3, 5e-3, 1e-2, 2.5e-2, 5e-2, 0.1, 0.25, 0.5, 1.0, 2.5,
+    10.0,
+];
+
+/// Bucket bounds for counts (jobs per batch, heads per request).
+const COUNTS: &[f64] = &[
+    1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0, 256.0, 512.0, 1024.0, 4096.0, 16384.0,
+];
+
+/// A cumulative histogram with fixed bucket bounds.
+#[derive(Debug)]
+pub struct Histogram {
+    bounds: &'static [f64],
+    counts: Vec<AtomicU64>,
+    /// Sum of observations in millionths of the unit.
+    sum_micro: AtomicU64,
+    count: AtomicU64,
+}
+
+impl Histogram {
+    fn new(bounds: &'static [f64]) -> Histogram {
+        Histogram {
+            bounds,
+            counts: bounds.iter().map(|_| AtomicU64::new(0)).collect(),
+            sum_micro: AtomicU64::new(0),
+            count: AtomicU64::new(0),
+        }
+    }
+
+    /// Records one observation.
+    pub fn observe(&self, v: f64) {
+        if let Some(i) = self.bounds.iter().position(|&b| v <= b) {
+            self.counts[i].fetch_add(1, Ordering::Relaxed);
+        }
+        self.sum_micro
+            .fetch_add((v.max(0.0) * 1e6) as u64, Ordering::Relaxed);
+        self.count.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// Number of observations.
+    pub fn count(&self) -> u64 {
+        self.count.load(Ordering::Relaxed)
+    }
+
+    fn write(&self, out: &mut String, name: &str, help: &str) {
+        let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} histogram");
+        let mut acc = 0;
+        for (b, c) in self.bounds.iter().zip(&self.counts) {
+            acc += c.load(Ordering::Relaxed);
+            let _ = writeln!(out, "{name}_bucket{{le=\"{b}\"}} {acc}");
+        }
+        let count = self.count();
+        let _ = writeln!(out, "{name}_bucket{{le=\"+Inf\"}} {count}");
+        let sum = self.sum_micro.load(Ordering::Relaxed) as f64 / 1e6;
+        let _ = writeln!(out, "{name}_sum {sum}\n{name}_count {count}");
+    }
+}
+
+/// Heads served per second over the last completed one-second window.
+#[derive(Debug)]
+struct RateWindow {
+    start: Instant,
+    count: u64,
+    last_rate: f64,
+}
+
+/// Every metric the server exports.
+#[derive(Debug)]
+pub struct Metrics {
+    requests: Mutex<BTreeMap<(String, u16), u64>>,
+    /// Time crowd requests waited from admission to the start of their last batch.
+    pub queue_seconds: Histogram,
+    /// Engine wall time per batch.
+    pub compute_seconds: Histogram,
+    /// Whole crowd-request latency (arrival to response ready).
+    pub request_seconds: Histogram,
+    /// Unique jobs per batch.
+    pub batch_jobs: Histogram,
+    /// Heads per crowd request.
+    pub request_heads: Histogram,
+    /// Heads served.
+    pub heads: AtomicU64,
+    /// Unique jobs asked for, summed over requests (after in-request dedupe).
+    pub jobs_requested: AtomicU64,
+    /// Jobs the engine computed.
+    pub jobs_computed: AtomicU64,
+    /// Jobs that joined an identical job of another request already queued or computing.
+    pub jobs_coalesced: AtomicU64,
+    /// Jobs dropped before computing because every request waiting for them had gone.
+    pub jobs_cancelled: AtomicU64,
+    /// Batches dispatched.
+    pub batches: AtomicU64,
+    /// Engine dispatches (one per rig and output kind per batch).
+    pub dispatches: AtomicU64,
+    /// GPU time, nanoseconds.
+    pub gpu_ns: AtomicU64,
+    /// Crowd requests refused by reason (`queue_full`, `deadline`, ...).
+    rejected: Mutex<BTreeMap<&'static str, u64>>,
+    /// Crowd requests waiting in or being served by the batcher.
+    pub queue_depth: AtomicU64,
+    rate: Mutex<RateWindow>,
+}
+
+impl Default for Metrics {
+    fn default() -> Self {
+        Metrics {
+            requests: Mutex::new(BTreeMap::new()),
+            queue_seconds: Histogram::new(SECONDS),
+            compute_seconds: Histogram::new(SECONDS),
+            request_seconds: Histogram::new(SECONDS),
+            batch_jobs: Histogram::new(COUNTS),
+            request_heads: Histogram::new(COUNTS),
+            heads: AtomicU64::new(0),
+            jobs_requested: AtomicU64::new(0),
+            jobs_computed: AtomicU64::new(0),
+            jobs_coalesced: AtomicU64::new(0),
+            jobs_cancelled: AtomicU64::new(0),
+            batches: AtomicU64::new(0),
+            dispatches: AtomicU64::new(0),
+            gpu_ns: AtomicU64::new(0),
+            rejected: Mutex::new(BTreeMap::new()),
+            queue_depth: AtomicU64::new(0),
+            rate: Mutex::new(RateWindow {
+                start: Instant::now(),
+                count: 0,
+                last_rate: 0.0,
+            }),
+        }
+    }
+}
+
+/// Gauges read from the rest of the server when metrics are rendered.
+#[derive(Debug, Default, Clone, Copy)]
+pub struct Gauges {
+    /// Rigs registered.
+    pub rigs: u64,
+    /// Host bytes of all rigs.
+    pub host_bytes: u64,
+    /// Device bytes of all rigs.
+    pub device_bytes: u64,
+    /// Output bytes admitted crowd requests hold now.
+    pub queue_memory_bytes: u64,
+    /// The limit on that.
+    pub queue_memory_limit: u64,
+    /// 1 when the engine runs degraded (GPU lost).
+    pub degraded: bool,
+    /// 1 while stored rigs are loading.
+    pub loading: bool,
+}
+
+impl Metrics {
+    /// Counts a finished HTTP request by route and status.
+    pub fn request(&self, route: &str, status: u16) {
+        if let Ok(mut m) = self.requests.lock() {
+            *m.entry((route.to_string(), status)).or_insert(0) += 1;
+        }
+    }
+
+    /// Counts a refused crowd request.
+    pub fn reject(&self, reason: &'static str) {
+        if let Ok(mut m) = self.rejected.lock() {
+            *m.entry(reason).or_insert(0) += 1;
+        }
+    }
+
+    /// Counts heads served (for heads/s).
+    pub fn served(&self, heads: u64) {
+        self.heads.fetch_add(heads, Ordering::Relaxed);
+        if let Ok(mut w) = self.rate.lock() {
+            roll(&mut w);
+            w.count += heads;
+        }
+    }
+
+    /// Requests counted so far with this route and status (for tests and the benchmark).
+    pub fn requests_with(&self, route: &str, status: u16) -> u64 {
+        self.requests
+            .lock()
+            .map(|m| m.get(&(route.to_string(), status)).copied().unwrap_or(0))
+            .unwrap_or(0)
+    }
+
+    /// Renders every metric in the Prometheus text format.
+    pub fn render(&self, g: Gauges) -> String {
+        let mut o = String::with_capacity(8192);
+        let c = |o: &mut String, name: &str, help: &str, v: u64| {
+            let _ = writeln!(o, "# HELP {name} {help}\n# TYPE {name} counter\n{name} {v}");
+        };
+        let gauge = |o: &mut String, name: &str, help: &str, v: f64| {
+            let _ = writeln!(o, "# HELP {name} {help}\n# TYPE {name} gauge\n{name} {v}");
+        };
+        let _ = writeln!(
+            o,
+            "# HELP crowdmorph_http_requests_total HTTP requests by route and status.\n\
+             # TYPE crowdmorph_http_requests_total counter"
+        );
+        if let Ok(m) = self.requests.lock() {
+            for ((route, status), n) in m.iter() {
+                let _ = writeln!(
+                    o,
+                    "crowdmorph_http_requests_total{{route=\"{route}\",status=\"{status}\"}} {n}"
+                );
+            }
+        }
+        let _ = writeln!(
+            o,
+            "# HELP crowdmorph_rejected_total Crowd requests refused, by reason.\n\
+             # TYPE crowdmorph_rejected_total counter"
+        );
+        if let Ok(m) = self.rejected.lock() {
+            for (reason, n) in m.iter() {
+                let _ = writeln!(o, "crowdmorph_rejected_total{{reason=\"{reason}\"}} {n}");
+            }
+        }
+        self.queue_seconds.write(
+            &mut o,
+            "crowdmorph_queue_seconds",
+            "Time crowd requests waited from admission to the start of their last batch.",
+        );
+        self.compute_seconds.write(
+            &mut o,
+            "crowdmorph_compute_seconds",
+            "Engine wall time per batch.",
+        );
+        self.request_seconds.write(
+            &mut o,
+            "crowdmorph_request_seconds",
+            "Crowd request latency from arrival to response ready.",
+        );
+        self.batch_jobs
+            .write(&mut o, "crowdmorph_batch_jobs", "Unique jobs per batch.");
+        self.request_heads.write(
+            &mut o,
+            "crowdmorph_request_heads",
+            "Heads per crowd request.",
+        );
+        let load = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        let heads = load(&self.heads);
+        let computed = load(&self.jobs_computed);
+        c(&mut o, "crowdmorph_heads_total", "Heads served.", heads);
+        c(
+            &mut o,
+            "crowdmorph_jobs_requested_total",
+            "Unique jobs asked for, summed over requests.",
+            load(&self.jobs_requested),
+        );
+        c(
+            &mut o,
+            "crowdmorph_jobs_computed_total",
+            "Jobs the engine computed.",
+            computed,
+        );
+        c(
+            &mut o,
+            "crowdmorph_jobs_coalesced_total",
+            "Jobs that joined an identical in-flight job of another request.",
+            load(&self.jobs_coalesced),
+        );
+        c(
+            &mut o,
+            "crowdmorph_jobs_cancelled_total",
+            "Jobs dropped before computing because no request waited for them any more.",
+            load(&self.jobs_cancelled),
+        );
+        c(
+            &mut o,
+            "crowdmorph_batches_total",
+            "Batches dispatched.",
+            load(&self.batches),
+        );
+        c(
+            &mut o,
+            "crowdmorph_engine_dispatches_total",
+            "Engine evaluations (one per rig and output kind per batch).",
+            load(&self.dispatches),
+        );
+        let _ = writeln!(
+            o,
+            "# HELP crowdmorph_gpu_seconds_total GPU time of evaluations.\n\
+             # TYPE crowdmorph_gpu_seconds_total counter\ncrowdmorph_gpu_seconds_total {}",
+            load(&self.gpu_ns) as f64 / 1e9
+        );
+        gauge(
+            &mut o,
+            "crowdmorph_unique_job_ratio",
+            "Jobs computed per head served (1 = no sharing; lower = more clones and coalescing).",
+            if heads == 0 {
+                1.0
+            } else {
+                computed as f64 / heads as f64
+            },
+        );
+        let rate = self
+            .rate
+            .lock()
+            .map(|mut w| {
+                roll(&mut w);
+                w.last_rate
+            })
+            .unwrap_or(0.0);
+        gauge(
+            &mut o,
+            "crowdmorph_heads_per_second",
+            "Heads served during the last complete second.",
+            rate,
+        );
+        gauge(
+            &mut o,
+            "crowdmorph_queue_depth",
+            "Crowd requests in the batcher.",
+            load(&self.queue_depth) as f64,
+        );
+        gauge(
+            &mut o,
+            "crowdmorph_queue_memory_bytes",
+            "Output bytes admitted crowd requests hold.",
+            g.queue_memory_bytes as f64,
+        );
+        gauge(
+            &mut o,
+            "crowdmorph_queue_memory_limit_bytes",
+            "Limit on the output bytes admitted requests may hold.",
+            g.queue_memory_limit as f64,
+        );
+        gauge(&mut o, "crowdmorph_rigs", "Rigs registered.", g.rigs as f64);
+        gauge(
+            &mut o,
+            "crowdmorph_rig_host_bytes",
+            "Host bytes resident for rigs.",
+            g.host_bytes as f64,
+        );
+        gauge(
+            &mut o,
+            "crowdmorph_rig_device_bytes",
+            "Device bytes resident for rigs.",
+            g.device_bytes as f64,
+        );
+        gauge(
+            &mut o,
+            "crowdmorph_backend_degraded",
+            "1 when the GPU was lost and the CPU engine answers.",
+            f64::from(u8::from(g.degraded)),
+        );
+        gauge(
+            &mut o,
+            "crowdmorph_loading",
+            "1 while stored rigs are loading.",
+            f64::from(u8::from(g.loading)),
+        );
+        o
+    }
+}
+
+fn roll(w: &mut RateWindow) {
+    let elapsed = w.start.elapsed();
+    if elapsed >= Duration::from_secs(1) {
+        // A window that ended more than a second ago with nothing after it reads as idle.
+        w.last_rate = if elapsed < Duration::from_secs(2) {
+            w.count as f64 / elapsed.as_secs_f64()
+        } else {
+            0.0
+        };
+        w.count = 0;
+        w.start = Instant::now();
+    }
+}

@@ -1,0 +1,489 @@
+//! The HTTP server: rigs and clips over a REST API, crowd frames through the dynamic batcher.
+//!
+//! Shape (after the axum examples): [`AppState`] holds everything a handler needs, [`app`]
+//! builds the [`Router`] (usable in tests with `tower::ServiceExt::oneshot`), and [`run`] serves
+//! it on a listener until a shutdown future resolves, then drains the batcher. `main.rs` only
+//! parses the command line, sets up tracing and calls [`run`].
+//!
+//! | module | what it is |
+//! |---|---|
+//! | [`config`] | every limit, timeout and default |
+//! | [`error`] | [`ApiError`]: the JSON error body of every 4xx/5xx |
+//! | [`registry`] | rigs prepared for the engine, q16 boxes, API descriptions |
+//! | [`scheduler`] | the dynamic batcher with cross-request dedupe |
+//! | [`metrics`] | Prometheus text metrics |
+//! | `api` | the handlers |
+//! | [`bench`] | `crowdmorph bench http`: loopback load against in-process work |
+
+mod api;
+pub mod bench;
+pub mod config;
+pub mod error;
+pub mod metrics;
+pub mod registry;
+pub mod scheduler;
+
+use std::future::Future;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use axum::Router;
+use axum::error_handling::HandleErrorLayer;
+use axum::extract::{DefaultBodyLimit, MatchedPath, Request, State};
+use axum::http::{HeaderName, HeaderValue, Method, StatusCode, header};
+use axum::middleware::{self, Next};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use tokio::net::TcpListener;
+use tokio::sync::Semaphore;
+use tower::ServiceBuilder;
+use tower_http::cors::{AllowOrigin, CorsLayer};
+use tower_http::request_id::{
+    MakeRequestId, PropagateRequestIdLayer, RequestId, SetRequestIdLayer,
+};
+use tower_http::trace::TraceLayer;
+
+pub use config::{ServerConfig, default_data_dir};
+pub use error::ApiError;
+
+use crate::engine::{Engine, EngineError};
+use crate::store::{Record, Store, StoreError};
+use metrics::{Gauges, Metrics};
+use registry::{BUILTIN_ID, Registry, RigEntry, quantization_box};
+use scheduler::{BatchConfig, Scheduler};
+
+/// Why the server could not start or stopped abnormally.
+#[derive(Debug, thiserror::Error)]
+pub enum ServerError {
+    /// The engine could not be created (e.g. `--backend gpu` without a GPU).
+    #[error("engine: {0}")]
+    Engine(#[from] EngineError),
+    /// The data directory is unusable.
+    #[error("data directory: {0}")]
+    Store(#[from] StoreError),
+    /// Serving failed.
+    #[error("serving: {0}")]
+    Io(#[from] std::io::Error),
+}
+
+/// Shared state of every handler.
+#[derive(Clone, Debug)]
+pub struct AppState(Arc<Inner>);
+
+/// What [`AppState`] holds.
+#[derive(Debug)]
+pub struct Inner {
+    /// Configuration.
+    pub config: ServerConfig,
+    /// The engine.
+    pub engine: Arc<Engine>,
+    /// Registered rigs.
+    pub registry: Registry,
+    /// The batcher.
+    pub scheduler: Scheduler,
+    /// Metrics.
+    pub metrics: Arc<Metrics>,
+    /// Persistence, when a data dir is configured.
+    pub store: Option<Store>,
+    ready: AtomicBool,
+    load_started: AtomicBool,
+    skipped: Mutex<Vec<String>>,
+    /// Serializes rig and clip changes (and their writes to disk).
+    admin: tokio::sync::Mutex<()>,
+    /// Output memory admitted crowd requests hold, in KiB permits.
+    memory: Arc<Semaphore>,
+    memory_units: u32,
+    /// Imports run at most two at a time: each may use up to `max_decoded_bytes`.
+    uploads: Semaphore,
+    /// Requests being handled; past `max_concurrency` new ones are shed.
+    inflight: Arc<Semaphore>,
+}
+
+impl std::ops::Deref for AppState {
+    type Target = Inner;
+    fn deref(&self) -> &Inner {
+        &self.0
+    }
+}
+
+impl AppState {
+    /// Creates the engine, the batcher and the registry with the embedded rig. Stored rigs are
+    /// loaded by [`AppState::load_stored`]; until then the server is not ready. Must be called
+    /// inside a tokio runtime.
+    pub fn new(config: ServerConfig) -> Result<AppState, ServerError> {
+        let config_concurrency = config.max_concurrency;
+        let engine = Arc::new(Engine::new(config.backend)?);
+        let info = engine.info();
+        tracing::info!(
+            backend = ?info.kind,
+            adapter = ?info.adapter,
+            cpu_isa = %info.cpu_isa,
+            "engine ready"
+        );
+        let store = match &config.data_dir {
+            Some(dir) => Some(Store::open(dir)?),
+            None => None,
+        };
+        let metrics = Arc::new(Metrics::default());
+        let scheduler = Scheduler::start(
+            engine.clone(),
+            metrics.clone(),
+            BatchConfig {
+                queue_requests: config.queue_requests,
+                batch_cost: config.batch_cost.max(1),
+                batch_delay: config.batch_delay,
+            },
+        );
+        let memory_units = u32::try_from((config.queue_memory_bytes / 1024).max(1))
+            .unwrap_or(u32::MAX)
+            .min(Semaphore::MAX_PERMITS as u32);
+        let registry = Registry::default();
+        let builtin = Arc::new(crate::embedded::default_rig());
+        let prepared = engine.prepare(builtin.clone())?;
+        registry.insert(Arc::new(RigEntry {
+            id: BUILTIN_ID.to_string(),
+            builtin: true,
+            builtin_clips: builtin.clips.len(),
+            vertices: builtin.vertex_count(),
+            qbox: quantization_box(&builtin),
+            generation: registry.generation(),
+            prepared,
+        }));
+        Ok(AppState(Arc::new(Inner {
+            config,
+            engine,
+            registry,
+            scheduler,
+            metrics,
+            store,
+            ready: AtomicBool::new(false),
+            load_started: AtomicBool::new(false),
+            skipped: Mutex::new(Vec::new()),
+            admin: tokio::sync::Mutex::new(()),
+            memory: Arc::new(Semaphore::new(memory_units as usize)),
+            memory_units,
+            uploads: Semaphore::new(2),
+            inflight: Arc::new(Semaphore::new(
+                config_concurrency.clamp(1, Semaphore::MAX_PERMITS),
+            )),
+        })))
+    }
+
+    /// Loads the rigs and clips stored under the data dir (skipping, with a logged reason,
+    /// anything corrupt), then marks the server ready.
+    /// Only the first call loads; later calls return at once.
+    pub async fn load_stored(&self) {
+        if self.load_started.swap(true, Ordering::AcqRel) {
+            return;
+        }
+        if let Some(store_dir) = self.store.as_ref().map(|s| s.dir().to_path_buf()) {
+            let state = self.clone();
+            let loaded = tokio::task::spawn_blocking(move || state.load_blocking()).await;
+            match loaded {
+                Ok(Ok(n)) => {
+                    tracing::info!(rigs = n, dir = %store_dir.display(), "stored rigs loaded")
+                }
+                Ok(Err(e)) => {
+                    tracing::error!(error = %e, "cannot read the data directory");
+                    self.skip(e.to_string());
+                }
+                Err(e) => {
+                    tracing::error!(error = %e, "loading stored rigs failed");
+                    self.skip(format!("loading failed: {e}"));
+                }
+            }
+        }
+        self.ready.store(true, Ordering::Release);
+    }
+
+    fn skip(&self, why: String) {
+        if let Ok(mut s) = self.skipped.lock() {
+            s.push(why);
+        }
+    }
+
+    fn load_blocking(&self) -> Result<usize, StoreError> {
+        let Some(store) = &self.store else {
+            return Ok(0);
+        };
+        let loaded = store.load_all()?;
+        for s in loaded.skipped {
+            self.skip(s);
+        }
+        let mut n = 0;
+        for record in loaded.records {
+            match record {
+                Record::Rig(r) => {
+                    let r = *r;
+                    if self.registry.get(&r.id).is_some() {
+                        self.skip(format!("stored rig {:?} clashes with a built-in id", r.id));
+                        continue;
+                    }
+                    let rig = Arc::new(r.rig);
+                    match self.engine.prepare(rig.clone()) {
+                        Ok(prepared) => {
+                            self.registry.insert(Arc::new(RigEntry {
+                                id: r.id,
+                                builtin: false,
+                                builtin_clips: 0,
+                                vertices: rig.vertex_count(),
+                                qbox: quantization_box(&rig),
+                                generation: self.registry.generation(),
+                                prepared,
+                            }));
+                            n += 1;
+                        }
+                        Err(e) => self.skip(format!("stored rig {:?}: {e}", r.id)),
+                    }
+                }
+                Record::BuiltinClips(c) => {
+                    let Some(entry) = self.registry.get(&c.id).filter(|e| e.builtin) else {
+                        self.skip(format!("stored clips for unknown built-in rig {:?}", c.id));
+                        continue;
+                    };
+                    let mut rig = entry.rig().clone();
+                    rig.clips.extend(c.clips);
+                    if let Err(e) = rig.validate() {
+                        self.skip(format!("stored clips of {:?}: {e}", c.id));
+                        continue;
+                    }
+                    let rig = Arc::new(rig);
+                    match self.engine.update_clips(&entry.prepared, rig.clone()) {
+                        Ok(prepared) => self.registry.insert(Arc::new(RigEntry {
+                            id: entry.id.clone(),
+                            builtin: true,
+                            builtin_clips: entry.builtin_clips,
+                            vertices: entry.vertices,
+                            qbox: quantization_box(&rig),
+                            generation: self.registry.generation(),
+                            prepared,
+                        })),
+                        Err(e) => self.skip(format!("stored clips of {:?}: {e}", c.id)),
+                    }
+                }
+            }
+        }
+        Ok(n)
+    }
+
+    /// Whether stored rigs have been loaded.
+    pub fn is_ready(&self) -> bool {
+        self.ready.load(Ordering::Acquire)
+    }
+
+    /// Files skipped at load, with reasons.
+    pub fn skipped(&self) -> Vec<String> {
+        self.skipped.lock().map(|s| s.clone()).unwrap_or_default()
+    }
+
+    /// Current values of the gauges.
+    pub fn gauges(&self) -> Gauges {
+        let rigs = self.registry.all();
+        let (host, device) = rigs.iter().fold((0u64, 0u64), |(h, d), e| {
+            let m = e.prepared.memory();
+            (h + m.host_bytes as u64, d + m.device_bytes as u64)
+        });
+        let free = self.memory.available_permits() as u64;
+        Gauges {
+            rigs: rigs.len() as u64,
+            host_bytes: host,
+            device_bytes: device,
+            queue_memory_bytes: (u64::from(self.memory_units).saturating_sub(free)) * 1024,
+            queue_memory_limit: u64::from(self.memory_units) * 1024,
+            degraded: self.engine.info().degraded,
+            loading: !self.is_ready(),
+        }
+    }
+}
+
+/// Request ids: a process-wide counter, in hex, unless the client sent `x-request-id`.
+#[derive(Clone, Debug, Default)]
+struct Counter(Arc<AtomicU64>);
+
+impl MakeRequestId for Counter {
+    fn make_request_id<B>(&mut self, _: &axum::http::Request<B>) -> Option<RequestId> {
+        let n = self.0.fetch_add(1, Ordering::Relaxed);
+        HeaderValue::from_str(&format!("{n:08x}"))
+            .ok()
+            .map(RequestId::new)
+    }
+}
+
+/// Counts every response by route and status.
+async fn count_requests(State(state): State<AppState>, req: Request, next: Next) -> Response {
+    let route = req
+        .extensions()
+        .get::<MatchedPath>()
+        .map_or_else(|| "unmatched".to_string(), |p| p.as_str().to_string());
+    let resp = next.run(req).await;
+    state.metrics.request(&route, resp.status().as_u16());
+    resp
+}
+
+/// Sheds load: past `max_concurrency` requests in progress, new ones get 503 at once rather
+/// than queueing without bound (one semaphore for the whole router, unlike a tower layer,
+/// which axum would instantiate per route).
+async fn shed_load(State(state): State<AppState>, req: Request, next: Next) -> Response {
+    match state.inflight.clone().try_acquire_owned() {
+        Ok(permit) => {
+            let resp = next.run(req).await;
+            drop(permit);
+            resp
+        }
+        Err(_) => {
+            state.metrics.reject("overloaded");
+            ApiError::unavailable(
+                "overloaded",
+                "too many requests in progress; retry shortly",
+                1,
+            )
+            .into_response()
+        }
+    }
+}
+
+/// Maps errors of the tower layers (the timeout) to JSON errors.
+async fn layer_error(err: tower::BoxError) -> Response {
+    if err.is::<tower::timeout::error::Elapsed>() {
+        ApiError::new(
+            StatusCode::GATEWAY_TIMEOUT,
+            "deadline_exceeded",
+            "the request took longer than the server's timeout",
+        )
+        .into_response()
+    } else {
+        ApiError::internal(err).into_response()
+    }
+}
+
+/// The router with every route and layer; `state` should have loaded its stored rigs (or be
+/// loading them in the background).
+pub fn app(state: AppState) -> Router {
+    let request_id = HeaderName::from_static("x-request-id");
+    let cfg = &state.config;
+    let routes = Router::new()
+        .route("/healthz", get(api::healthz))
+        .route("/readyz", get(api::readyz))
+        .route("/metrics", get(api::metrics))
+        .route("/v1/rigs", post(api::upload_rig).get(api::list_rigs))
+        .route("/v1/rigs/{id}", get(api::get_rig).delete(api::delete_rig))
+        .route("/v1/rigs/{id}/mesh", get(api::get_mesh))
+        .route(
+            "/v1/rigs/{id}/clips",
+            post(api::upload_clips).get(api::list_clips),
+        )
+        .route(
+            "/v1/rigs/{id}/clips/{clip}",
+            get(api::get_clip).delete(api::delete_clip),
+        )
+        .route("/v1/crowd/frame", post(api::crowd_frame))
+        .fallback(api::not_found)
+        // Bodies are read with explicit per-route limits (see api::read_body).
+        .layer(DefaultBodyLimit::disable())
+        .layer(middleware::from_fn_with_state(state.clone(), shed_load))
+        .layer(middleware::from_fn_with_state(
+            state.clone(),
+            count_requests,
+        ));
+    let cors = (!cfg.cors_origins.is_empty()).then(|| {
+        let origins = if cfg.cors_origins.iter().any(|o| o == "*") {
+            AllowOrigin::any()
+        } else {
+            AllowOrigin::list(
+                cfg.cors_origins
+                    .iter()
+                    .filter_map(|o| HeaderValue::from_str(o).ok()),
+            )
+        };
+        CorsLayer::new()
+            .allow_origin(origins)
+            .allow_methods([Method::GET, Method::POST, Method::DELETE])
+            .allow_headers([header::CONTENT_TYPE, header::ACCEPT, header::AUTHORIZATION])
+            .expose_headers([request_id.clone(), header::RETRY_AFTER])
+    });
+    let timeout = cfg.admin_timeout.max(cfg.request_timeout) + Duration::from_secs(1);
+    let routes = routes.layer(
+        ServiceBuilder::new()
+            .layer(HandleErrorLayer::new(layer_error))
+            .timeout(timeout),
+    );
+    let routes = match cors {
+        Some(c) => routes.layer(c),
+        None => routes,
+    };
+    routes
+        .layer(PropagateRequestIdLayer::new(request_id.clone()))
+        .layer(
+            TraceLayer::new_for_http().make_span_with(|req: &axum::http::Request<_>| {
+                let id = req
+                    .headers()
+                    .get("x-request-id")
+                    .and_then(|v| v.to_str().ok())
+                    .unwrap_or("-");
+                tracing::info_span!("request", id = %id, method = %req.method(), uri = %req.uri())
+            }),
+        )
+        .layer(SetRequestIdLayer::new(request_id, Counter::default()))
+        .with_state(state)
+}
+
+/// A future that resolves on SIGINT (Ctrl-C) or SIGTERM.
+pub async fn shutdown_signal() {
+    let ctrl_c = async {
+        if let Err(e) = tokio::signal::ctrl_c().await {
+            tracing::error!(error = %e, "cannot listen for Ctrl-C");
+            std::future::pending::<()>().await;
+        }
+    };
+    #[cfg(unix)]
+    let term = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(e) => {
+                tracing::error!(error = %e, "cannot listen for SIGTERM");
+                std::future::pending::<()>().await;
+            }
+        }
+    };
+    #[cfg(not(unix))]
+    let term = std::future::pending::<()>();
+    tokio::select! {
+        () = ctrl_c => {},
+        () = term => {},
+    }
+    tracing::info!("shutdown requested: finishing requests in flight");
+}
+
+/// Serves until `shutdown` resolves: loads stored rigs in the background (not ready until
+/// done), then on shutdown stops accepting, lets requests in flight complete, drains the
+/// batcher and returns.
+pub async fn run(
+    listener: TcpListener,
+    config: ServerConfig,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> Result<(), ServerError> {
+    let state = AppState::new(config)?;
+    serve(listener, state, shutdown).await
+}
+
+/// Like [`run`] with a state built by the caller (tests inspect it afterwards).
+pub async fn serve(
+    listener: TcpListener,
+    state: AppState,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> Result<(), ServerError> {
+    if let Ok(addr) = listener.local_addr() {
+        tracing::info!(%addr, "listening");
+    }
+    let loader = state.clone();
+    tokio::spawn(async move { loader.load_stored().await });
+    let result = axum::serve(listener, app(state.clone()))
+        .with_graceful_shutdown(shutdown)
+        .await;
+    state.scheduler.shutdown().await;
+    tracing::info!("stopped");
+    Ok(result?)
+}

@@ -1,0 +1,360 @@
+//! The registry of rigs the server holds: each one prepared for the engine, with what the API
+//! reports about it and the box its q16 output is quantized in.
+//!
+//! Entries are immutable snapshots behind `Arc`s: adding or deleting a clip builds a new entry
+//! (a new *generation*) and swaps it in, so a crowd request that resolved its heads against one
+//! entry is computed against exactly that entry even if the rig changes meanwhile. Generations
+//! are part of the batcher's job keys, so jobs of different versions of a rig never coalesce.
+
+use std::collections::BTreeMap;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, RwLock};
+
+use crowdmorph_proto::{
+    Aabb, Blob, ClipInfo, Memory, MeshPrimitive, MeshResponse, PrimitiveInfo, Quantization, RigInfo,
+};
+use glam::DVec3;
+
+use crate::engine::PreparedRig;
+use crate::rig::{ACTIVE_WEIGHT_EPSILON, Rig};
+
+/// Id of the embedded rig.
+pub const BUILTIN_ID: &str = "default-head";
+
+/// One registered rig at one generation.
+#[derive(Debug)]
+pub struct RigEntry {
+    /// Registry id.
+    pub id: String,
+    /// Whether it is the embedded rig.
+    pub builtin: bool,
+    /// Number of the embedded rig's clips that came with it (the rest were uploaded).
+    pub builtin_clips: usize,
+    /// The rig, prepared for the engine.
+    pub prepared: PreparedRig,
+    /// Unique number of this version of the rig.
+    pub generation: u64,
+    /// The box q16 positions are quantized in.
+    pub qbox: Quantization,
+    /// Vertices over all primitives.
+    pub vertices: usize,
+}
+
+impl RigEntry {
+    /// The rig.
+    pub fn rig(&self) -> &Rig {
+        self.prepared.rig()
+    }
+
+    /// What the API reports about this rig.
+    pub fn info(&self) -> RigInfo {
+        let rig = self.rig();
+        let bbox = rig.bbox();
+        let mem = self.prepared.memory();
+        RigInfo {
+            id: self.id.clone(),
+            name: rig.name.clone(),
+            builtin: self.builtin,
+            vertices: self.vertices as u32,
+            triangles: rig.triangle_count() as u32,
+            primitives: rig
+                .primitives
+                .iter()
+                .map(|p| PrimitiveInfo {
+                    name: p.name.clone(),
+                    vertices: p.positions.len() as u32,
+                    triangles: (p.indices.len() / 3) as u32,
+                })
+                .collect(),
+            targets: rig.targets.clone(),
+            clips: clip_infos(rig),
+            lod_levels: rig.lod.levels.iter().map(|l| l.shapes).collect(),
+            bbox: Aabb {
+                min: bbox.min.to_array(),
+                max: bbox.max.to_array(),
+            },
+            memory: Memory {
+                host_bytes: mem.host_bytes as u64,
+                device_bytes: mem.device_bytes as u64,
+            },
+        }
+    }
+
+    /// Topology and neutral geometry, fetched once by clients.
+    pub fn mesh(&self) -> MeshResponse {
+        let rig = self.rig();
+        let bbox = rig.bbox();
+        let mut indices = Vec::with_capacity(rig.triangle_count() * 12);
+        let mut positions = Vec::with_capacity(self.vertices * 12);
+        let mut normals = Vec::with_capacity(self.vertices * 12);
+        let mut prims = Vec::with_capacity(rig.primitives.len());
+        let mut first_vertex = 0u32;
+        let mut first_index = 0u32;
+        for p in &rig.primitives {
+            for &i in &p.indices {
+                indices.extend_from_slice(&(i + first_vertex).to_le_bytes());
+            }
+            for v in &p.positions {
+                for c in v.to_array() {
+                    positions.extend_from_slice(&c.to_le_bytes());
+                }
+            }
+            for v in &p.normals {
+                for c in v.to_array() {
+                    normals.extend_from_slice(&c.to_le_bytes());
+                }
+            }
+            prims.push(MeshPrimitive {
+                name: p.name.clone(),
+                first_vertex,
+                vertices: p.positions.len() as u32,
+                first_index,
+                indices: p.indices.len() as u32,
+            });
+            first_vertex += p.positions.len() as u32;
+            first_index += p.indices.len() as u32;
+        }
+        MeshResponse {
+            rig: self.id.clone(),
+            vertices: self.vertices as u32,
+            primitives: prims,
+            bbox: Aabb {
+                min: bbox.min.to_array(),
+                max: bbox.max.to_array(),
+            },
+            quantization: self.qbox,
+            indices: Blob(indices),
+            positions: Blob(positions),
+            normals: Blob(normals),
+        }
+    }
+}
+
+/// The clips of a rig as the API lists them.
+pub fn clip_infos(rig: &Rig) -> Vec<ClipInfo> {
+    rig.clips
+        .iter()
+        .map(|c| ClipInfo {
+            name: c.name.clone(),
+            frames: c.frames,
+            fps: c.fps,
+        })
+        .collect()
+}
+
+/// The box that contains every position any clip of `rig` can produce at any LOD.
+///
+/// Per target, the weights a job can apply lie in `[min(0, w_min), max(0, w_max)]` over all
+/// clip frames (0 because a LOD or the activity threshold can switch the target off); a
+/// vertex then moves at most by the sum over targets of the extreme weight times its delta, per
+/// component. The union of those per-vertex intervals is the box, so quantizing in it never
+/// clamps. Computed in f64 and widened by a relative 1e-6 to absorb f32 rounding.
+pub fn quantization_box(rig: &Rig) -> Quantization {
+    let n = rig.targets.len();
+    let mut lo = vec![0f64; n];
+    let mut hi = vec![0f64; n];
+    for c in &rig.clips {
+        for t in 0..n {
+            for f in 0..c.frames {
+                let w = f64::from(c.weight(t, f));
+                if w.abs() > f64::from(ACTIVE_WEIGHT_EPSILON) {
+                    lo[t] = lo[t].min(w);
+                    hi[t] = hi[t].max(w);
+                }
+            }
+        }
+    }
+    let mut bmin = DVec3::splat(f64::INFINITY);
+    let mut bmax = DVec3::splat(f64::NEG_INFINITY);
+    for p in &rig.primitives {
+        let mut vmin: Vec<DVec3> = p.positions.iter().map(|v| v.as_dvec3()).collect();
+        let mut vmax = vmin.clone();
+        for t in &p.targets {
+            let (wl, wh) = (lo[t.target as usize], hi[t.target as usize]);
+            for (&v, d) in t.vertices.iter().zip(&t.positions) {
+                let d = d.as_dvec3();
+                let (a, b) = (d * wl, d * wh);
+                vmin[v as usize] += a.min(b);
+                vmax[v as usize] += a.max(b);
+            }
+        }
+        for v in vmin {
+            bmin = bmin.min(v);
+        }
+        for v in vmax {
+            bmax = bmax.max(v);
+        }
+    }
+    if bmin.x > bmax.x {
+        bmin = DVec3::ZERO;
+        bmax = DVec3::ZERO;
+    }
+    let margin = (bmax - bmin).length().max(1e-30) * 1e-6;
+    let bmin = bmin - DVec3::splat(margin);
+    let bmax = bmax + DVec3::splat(margin);
+    let step = (bmax - bmin) / 65535.0;
+    let min = bmin.as_vec3().to_array();
+    let step = step.as_vec3().to_array();
+    // Half a step, plus what rounding to f32 (the output, and a reader's f32 dequantization)
+    // can add: a few units in the last place of the largest coordinate.
+    let ulp = (bmin.abs().max(bmax.abs())) * f64::from(f32::EPSILON) * 4.0;
+    Quantization {
+        min,
+        step,
+        max_error: [0, 1, 2].map(|a| (f64::from(step[a]) * 0.5 + ulp[a]) as f32),
+    }
+}
+
+/// Quantizes interleaved x, y, z positions to little-endian int16 inside `q`'s box.
+pub fn quantize_positions(q: &Quantization, xyz: &[f32], out: &mut Vec<u8>) {
+    out.reserve(xyz.len() * 2);
+    let inv = q
+        .step
+        .map(|s| if s > 0.0 { 1.0 / f64::from(s) } else { 0.0 });
+    for (i, &x) in xyz.iter().enumerate() {
+        let a = i % 3;
+        let u = ((f64::from(x) - f64::from(q.min[a])) * inv[a]).round();
+        let v = (u.clamp(0.0, 65535.0) - 32768.0) as i16;
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+}
+
+/// Quantizes unit-normal components to little-endian int16 as `round(n × 32767)`.
+pub fn quantize_normals(xyz: &[f32], out: &mut Vec<u8>) {
+    out.reserve(xyz.len() * 2);
+    for &n in xyz {
+        let v = (n.clamp(-1.0, 1.0) * 32767.0).round() as i16;
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+}
+
+/// The rigs, by id.
+#[derive(Debug, Default)]
+pub struct Registry {
+    rigs: RwLock<BTreeMap<String, Arc<RigEntry>>>,
+    next_generation: AtomicU64,
+}
+
+impl Registry {
+    /// A fresh generation number.
+    pub fn generation(&self) -> u64 {
+        self.next_generation.fetch_add(1, Ordering::Relaxed)
+    }
+
+    /// The entry of rig `id`.
+    pub fn get(&self, id: &str) -> Option<Arc<RigEntry>> {
+        self.rigs.read().ok()?.get(id).cloned()
+    }
+
+    /// Every entry, ordered by id.
+    pub fn all(&self) -> Vec<Arc<RigEntry>> {
+        self.rigs
+            .read()
+            .map(|m| m.values().cloned().collect())
+            .unwrap_or_default()
+    }
+
+    /// Number of rigs.
+    pub fn len(&self) -> usize {
+        self.rigs.read().map(|m| m.len()).unwrap_or(0)
+    }
+
+    /// Whether no rig is registered.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Inserts or replaces an entry.
+    pub fn insert(&self, entry: Arc<RigEntry>) {
+        if let Ok(mut m) = self.rigs.write() {
+            m.insert(entry.id.clone(), entry);
+        }
+    }
+
+    /// Removes an entry, returning it.
+    pub fn remove(&self, id: &str) -> Option<Arc<RigEntry>> {
+        self.rigs.write().ok()?.remove(id)
+    }
+}
+
+/// Whether `id` is acceptable as a rig id or clip name in URLs and file names:
+/// 1–64 characters of `A-Z a-z 0-9 . _ -`, not starting with a dot.
+pub fn valid_id(id: &str) -> bool {
+    !id.is_empty()
+        && id.len() <= 64
+        && !id.starts_with('.')
+        && id
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-'))
+}
+
+/// Turns a free-form name into a valid id (invalid characters become `-`).
+pub fn sanitize_id(name: &str) -> String {
+    let s: String = name
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-') {
+                c
+            } else {
+                '-'
+            }
+        })
+        .take(64)
+        .collect();
+    let s = s.trim_start_matches('.').to_string();
+    if s.is_empty() { "rig".to_string() } else { s }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn quantization_box_covers_every_clip_frame() {
+        let rig = crate::embedded::default_rig();
+        let q = quantization_box(&rig);
+        let cpu = crate::engine::cpu::CpuRig::new(&rig);
+        for (ci, c) in rig.clips.iter().enumerate() {
+            let jobs: Vec<_> = (0..c.frames)
+                .step_by(7)
+                .map(|f| crate::engine::BlendJob {
+                    clip: ci as u32,
+                    frame: f,
+                    lod: 0,
+                })
+                .collect();
+            let batch = crate::engine::WeightBatch::gather(&rig, &jobs).expect("batch");
+            let out = cpu
+                .evaluate(&batch, crate::engine::OutputSpec::default())
+                .expect("eval");
+            let xyz = out.positions.to_f32();
+            let mut bytes = Vec::new();
+            quantize_positions(&q, &xyz, &mut bytes);
+            let qs: Vec<i16> = bytes
+                .chunks_exact(2)
+                .map(|b| i16::from_le_bytes([b[0], b[1]]))
+                .collect();
+            let back = q.dequantize(&qs);
+            for (i, (a, b)) in xyz.iter().zip(&back).enumerate() {
+                let axis = i % 3;
+                assert!(*a >= q.min[axis], "inside the box");
+                let err = (a - b).abs();
+                assert!(
+                    err <= q.max_error[axis],
+                    "error {err} > {}",
+                    q.max_error[axis]
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn ids() {
+        assert!(valid_id("ict_facekit-53.v2"));
+        assert!(!valid_id("../etc"));
+        assert!(!valid_id(".hidden"));
+        assert!(!valid_id(""));
+        assert_eq!(sanitize_id("My Rig/1"), "My-Rig-1");
+        assert_eq!(sanitize_id("..."), "rig");
+    }
+}

@@ -1,0 +1,469 @@
+//! Persistence of registered rigs and clips: one checksummed file per rig under the data dir.
+//!
+//! Nothing is ever half-written where a reader looks: a record is written to a temporary file in
+//! the same directory, flushed to disk (`fsync`), renamed over its final name (atomic on POSIX
+//! file systems), and the directory is flushed so that the rename itself survives a power cut.
+//! A process killed at any point leaves either the old file, the new file, or a stray temporary
+//! file that the next start deletes — never a partial rig.
+//!
+//! File layout (all integers little-endian):
+//!
+//! | bytes | what |
+//! |---|---|
+//! | 8 | magic `CMSTORE1` |
+//! | 4 | record kind: 1 = a whole rig, 2 = extra clips of the built-in rig |
+//! | 8 | payload length `n` |
+//! | 4 | CRC-32 (IEEE) of the payload |
+//! | n | payload: the record encoded by [`crate::codec`] |
+//!
+//! A file whose magic, length, checksum or payload is wrong is reported and skipped by
+//! [`Store::load_all`]; nothing of it is loaded. Loaded rigs are re-validated with
+//! [`Rig::validate`] so that a record from an older build that no longer satisfies the
+//! invariants is skipped too.
+
+use std::fs::{self, File};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use serde::{Deserialize, Serialize};
+
+use crate::codec;
+use crate::rig::{Clip, Rig};
+
+const MAGIC: &[u8; 8] = b"CMSTORE1";
+const HEADER: usize = 8 + 4 + 8 + 4;
+const KIND_RIG: u32 = 1;
+const KIND_BUILTIN_CLIPS: u32 = 2;
+/// Extension of record files.
+const EXT: &str = "cmrig";
+/// Marker in the names of temporary files.
+const TMP: &str = ".tmp-";
+
+/// A rig as loaded: its registry id and the rig with all its clips.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StoredRig {
+    /// Registry id (also the file name).
+    pub id: String,
+    /// The rig.
+    pub rig: Rig,
+}
+
+/// Clips added to the built-in rig (whose geometry is never stored).
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct StoredClips {
+    /// Id of the built-in rig.
+    pub id: String,
+    /// The clips, in the order they were added.
+    pub clips: Vec<Clip>,
+}
+
+/// A record to write, borrowed so that a big rig is not cloned to be stored.
+#[derive(Clone, Copy, Debug)]
+pub enum RecordRef<'a> {
+    /// A whole uploaded rig.
+    Rig {
+        /// Registry id.
+        id: &'a str,
+        /// The rig.
+        rig: &'a Rig,
+    },
+    /// Extra clips of the built-in rig.
+    BuiltinClips {
+        /// Id of the built-in rig.
+        id: &'a str,
+        /// The clips.
+        clips: &'a [Clip],
+    },
+}
+
+/// Borrowed mirrors of the stored records: same fields in the same order, so the same bytes.
+#[derive(Serialize)]
+struct StoredRigRef<'a> {
+    id: &'a str,
+    rig: RigRecordRef<'a>,
+}
+
+/// How a rig is stored. bincode is not self-describing, so a serde attribute that skips a
+/// field when it is empty (as [`crate::rig::Lod`]'s newer fields do, for human-readable
+/// formats) would make the bytes unreadable. The big arrays therefore go through bincode
+/// field by field, and the LOD table, small and still growing, as JSON, which honours those
+/// attributes and reads records written before a field existed.
+#[derive(Deserialize)]
+struct RigRecord {
+    name: String,
+    targets: Vec<String>,
+    default_weights: Vec<f32>,
+    primitives: Vec<crate::rig::Primitive>,
+    clips: Vec<Clip>,
+    lod_json: String,
+}
+
+/// The borrowed mirror of [`RigRecord`] used for writing.
+#[derive(Serialize)]
+struct RigRecordRef<'a> {
+    name: &'a str,
+    targets: &'a [String],
+    default_weights: &'a [f32],
+    primitives: &'a [crate::rig::Primitive],
+    clips: &'a [Clip],
+    lod_json: String,
+}
+
+impl<'a> RigRecordRef<'a> {
+    fn new(rig: &'a Rig) -> Result<Self, StoreError> {
+        // Exhaustive on purpose: a new Rig field must be added to the stored record.
+        let Rig {
+            name,
+            targets,
+            default_weights,
+            primitives,
+            clips,
+            lod,
+        } = rig;
+        Ok(RigRecordRef {
+            name,
+            targets,
+            default_weights,
+            primitives,
+            clips,
+            lod_json: serde_json::to_string(lod).map_err(|e| StoreError::Encode(e.to_string()))?,
+        })
+    }
+}
+
+impl RigRecord {
+    fn into_rig(self) -> Result<Rig, String> {
+        Ok(Rig {
+            name: self.name,
+            targets: self.targets,
+            default_weights: self.default_weights,
+            primitives: self.primitives,
+            clips: self.clips,
+            lod: serde_json::from_str(&self.lod_json).map_err(|e| format!("LOD table: {e}"))?,
+        })
+    }
+}
+
+#[derive(Deserialize)]
+struct StoredRigOwned {
+    id: String,
+    rig: RigRecord,
+}
+
+#[derive(Serialize)]
+struct StoredClipsRef<'a> {
+    id: &'a str,
+    clips: &'a [Clip],
+}
+
+/// What a store file holds.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Record {
+    /// A whole uploaded rig (boxed: it is much bigger than the other variant).
+    Rig(Box<StoredRig>),
+    /// Extra clips of the built-in rig.
+    BuiltinClips(StoredClips),
+}
+
+/// Why the store failed.
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    /// The file system refused an operation.
+    #[error("{op} {path}: {source}")]
+    Io {
+        /// What was being done.
+        op: &'static str,
+        /// On which path.
+        path: String,
+        /// Why it failed.
+        source: std::io::Error,
+    },
+    /// A record could not be encoded.
+    #[error("cannot encode record: {0}")]
+    Encode(String),
+    /// A file is not a valid record.
+    #[error("{path}: {problem}")]
+    Corrupt {
+        /// The file.
+        path: String,
+        /// What is wrong with it.
+        problem: String,
+    },
+}
+
+fn io<'a>(op: &'static str, path: &'a Path) -> impl FnOnce(std::io::Error) -> StoreError + 'a {
+    move |source| StoreError::Io {
+        op,
+        path: path.display().to_string(),
+        source,
+    }
+}
+
+/// The rigs directory of a data dir.
+#[derive(Debug)]
+pub struct Store {
+    dir: PathBuf,
+    tmp_counter: AtomicU64,
+}
+
+/// Result of loading every record at start.
+#[derive(Debug, Default)]
+pub struct Loaded {
+    /// Records that loaded and validated.
+    pub records: Vec<Record>,
+    /// Files that did not, with the reason (already logged).
+    pub skipped: Vec<String>,
+}
+
+impl Store {
+    /// Opens (creating when needed) `data_dir/rigs`.
+    pub fn open(data_dir: &Path) -> Result<Store, StoreError> {
+        let dir = data_dir.join("rigs");
+        fs::create_dir_all(&dir).map_err(io("create directory", &dir))?;
+        Ok(Store {
+            dir,
+            tmp_counter: AtomicU64::new(0),
+        })
+    }
+
+    /// Directory holding the record files.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// Path of the record for rig `id` (ids are restricted to `[A-Za-z0-9._-]`).
+    pub fn path_of(&self, id: &str) -> PathBuf {
+        self.dir.join(format!("{id}.{EXT}"))
+    }
+
+    /// Writes a record atomically (temp file, fsync, rename, fsync of the directory).
+    pub fn put(&self, record: RecordRef<'_>) -> Result<(), StoreError> {
+        let (id, kind, payload) = match record {
+            RecordRef::Rig { id, rig } => (
+                id,
+                KIND_RIG,
+                codec::to_stored(&StoredRigRef {
+                    id,
+                    rig: RigRecordRef::new(rig)?,
+                }),
+            ),
+            RecordRef::BuiltinClips { id, clips } => (
+                id,
+                KIND_BUILTIN_CLIPS,
+                codec::to_stored(&StoredClipsRef { id, clips }),
+            ),
+        };
+        let payload = payload.map_err(|e| StoreError::Encode(e.to_string()))?;
+        let mut bytes = Vec::with_capacity(HEADER + payload.len());
+        bytes.extend_from_slice(MAGIC);
+        bytes.extend_from_slice(&kind.to_le_bytes());
+        bytes.extend_from_slice(&(payload.len() as u64).to_le_bytes());
+        bytes.extend_from_slice(&crc32fast::hash(&payload).to_le_bytes());
+        bytes.extend_from_slice(&payload);
+        drop(payload);
+
+        let n = self.tmp_counter.fetch_add(1, Ordering::Relaxed);
+        let tmp = self
+            .dir
+            .join(format!("{id}.{EXT}{TMP}{}-{n}", std::process::id()));
+        let result = (|| {
+            let mut f = File::create(&tmp).map_err(io("create", &tmp))?;
+            f.write_all(&bytes).map_err(io("write", &tmp))?;
+            f.sync_all().map_err(io("fsync", &tmp))?;
+            drop(f);
+            let path = self.path_of(id);
+            fs::rename(&tmp, &path).map_err(io("rename", &path))?;
+            self.sync_dir()
+        })();
+        if result.is_err() {
+            let _ = fs::remove_file(&tmp);
+        }
+        result
+    }
+
+    /// Deletes the record of rig `id` (no error when there is none).
+    pub fn remove(&self, id: &str) -> Result<(), StoreError> {
+        let path = self.path_of(id);
+        match fs::remove_file(&path) {
+            Ok(()) => self.sync_dir(),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
+            Err(e) => Err(io("remove", &path)(e)),
+        }
+    }
+
+    fn sync_dir(&self) -> Result<(), StoreError> {
+        // Flushing a directory makes renames and deletions in it durable (POSIX).
+        File::open(&self.dir)
+            .and_then(|d| d.sync_all())
+            .map_err(io("fsync directory", &self.dir))
+    }
+
+    /// Reads one record file, checking magic, length, checksum, payload and rig invariants.
+    pub fn read(path: &Path) -> Result<Record, StoreError> {
+        let corrupt = |problem: String| StoreError::Corrupt {
+            path: path.display().to_string(),
+            problem,
+        };
+        let bytes = fs::read(path).map_err(io("read", path))?;
+        if bytes.len() < HEADER || &bytes[..8] != MAGIC {
+            return Err(corrupt("not a crowdmorph store file (bad magic)".into()));
+        }
+        let u32_at = |at: usize| {
+            u32::from_le_bytes([bytes[at], bytes[at + 1], bytes[at + 2], bytes[at + 3]])
+        };
+        let kind = u32_at(8);
+        let mut len = [0u8; 8];
+        len.copy_from_slice(&bytes[12..20]);
+        let len = u64::from_le_bytes(len);
+        let crc = u32_at(20);
+        let payload = &bytes[HEADER..];
+        if payload.len() as u64 != len {
+            return Err(corrupt(format!(
+                "truncated or padded: header says {len} payload bytes, file has {}",
+                payload.len()
+            )));
+        }
+        if crc32fast::hash(payload) != crc {
+            return Err(corrupt("checksum mismatch".into()));
+        }
+        let stem = path
+            .file_name()
+            .and_then(|n| n.to_str())
+            .and_then(|n| n.strip_suffix(&format!(".{EXT}")))
+            .unwrap_or_default()
+            .to_string();
+        match kind {
+            KIND_RIG => {
+                let r: StoredRigOwned =
+                    codec::from_stored(payload).map_err(|e| corrupt(e.to_string()))?;
+                let r = StoredRig {
+                    id: r.id,
+                    rig: r.rig.into_rig().map_err(corrupt)?,
+                };
+                if r.id != stem {
+                    return Err(corrupt(format!(
+                        "record is for rig {:?}, file name says {stem:?}",
+                        r.id
+                    )));
+                }
+                r.rig
+                    .validate()
+                    .map_err(|e| corrupt(format!("invalid rig: {e}")))?;
+                Ok(Record::Rig(Box::new(r)))
+            }
+            KIND_BUILTIN_CLIPS => {
+                let c: StoredClips =
+                    codec::from_stored(payload).map_err(|e| corrupt(e.to_string()))?;
+                if c.id != stem {
+                    return Err(corrupt(format!(
+                        "record is for rig {:?}, file name says {stem:?}",
+                        c.id
+                    )));
+                }
+                Ok(Record::BuiltinClips(c))
+            }
+            other => Err(corrupt(format!("unknown record kind {other}"))),
+        }
+    }
+
+    /// Loads every record, deleting stray temporary files (uploads interrupted before their
+    /// rename) and skipping, with a logged reason, every file that is not a valid record.
+    pub fn load_all(&self) -> Result<Loaded, StoreError> {
+        let mut loaded = Loaded::default();
+        let mut paths: Vec<PathBuf> = fs::read_dir(&self.dir)
+            .map_err(io("list", &self.dir))?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .collect();
+        paths.sort();
+        for path in paths {
+            let name = path
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            if name.contains(TMP) {
+                tracing::warn!(file = %path.display(), "removing an interrupted write");
+                let _ = fs::remove_file(&path);
+                continue;
+            }
+            if !name.ends_with(&format!(".{EXT}")) {
+                continue;
+            }
+            match Store::read(&path) {
+                Ok(r) => loaded.records.push(r),
+                Err(e) => {
+                    tracing::error!(error = %e, "skipping a stored rig that cannot be loaded");
+                    loaded.skipped.push(e.to_string());
+                }
+            }
+        }
+        Ok(loaded)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tmpdir(tag: &str) -> PathBuf {
+        let d = std::env::temp_dir().join(format!(
+            "crowdmorph-store-{tag}-{}-{}",
+            std::process::id(),
+            std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map(|d| d.as_nanos())
+                .unwrap_or(0)
+        ));
+        let _ = fs::remove_dir_all(&d);
+        d
+    }
+
+    #[test]
+    fn roundtrip_and_corruption_is_skipped() {
+        let dir = tmpdir("rt");
+        let store = Store::open(&dir).expect("open");
+        let mut rig = crate::embedded::default_rig();
+        rig.name = "copy".into();
+        store
+            .put(RecordRef::Rig {
+                id: "copy",
+                rig: &rig,
+            })
+            .expect("put");
+        store
+            .put(RecordRef::Rig {
+                id: "other",
+                rig: &rig,
+            })
+            .expect("put");
+        // Flip one payload byte of "other", truncate a third, leave a stray temp file.
+        let other = store.path_of("other");
+        let mut b = fs::read(&other).expect("read");
+        let last = b.len() - 1;
+        b[last] ^= 0xFF;
+        fs::write(&other, &b).expect("write");
+        let short = store.path_of("short");
+        fs::write(&short, &b[..b.len() / 2]).expect("write");
+        let stray = store.dir().join(format!("x.{EXT}{TMP}1-1"));
+        fs::write(&stray, b"partial").expect("write");
+
+        let loaded = store.load_all().expect("load");
+        assert_eq!(loaded.records.len(), 1);
+        match &loaded.records[0] {
+            Record::Rig(r) => {
+                assert_eq!(r.id, "copy");
+                assert_eq!(r.rig, rig);
+            }
+            other => panic!("unexpected record {other:?}"),
+        }
+        assert_eq!(loaded.skipped.len(), 2, "{:?}", loaded.skipped);
+        assert!(loaded.skipped.iter().any(|s| s.contains("checksum")));
+        assert!(loaded.skipped.iter().any(|s| s.contains("truncated")));
+        assert!(!stray.exists(), "stray temp file removed");
+
+        store.remove("copy").expect("remove");
+        store.remove("copy").expect("remove twice is fine");
+        assert!(store.load_all().expect("load").records.is_empty());
+        let _ = fs::remove_dir_all(&dir);
+    }
+}

@@ -1,0 +1,272 @@
+//! Bad input over HTTP: every case is a 4xx whose JSON body names the problem, and the server
+//! keeps serving correct frames afterwards.
+
+use bytes::Bytes;
+use crowdmorph::server::ServerConfig;
+use crowdmorph_client::{Encoding, Method, Reply};
+use crowdmorph_proto::{CONTENT_TYPE_BINCODE, CrowdFrameRequest, Head, OutputOptions};
+use serde_json::json;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+use super::TestServer;
+
+fn head(rig: &str, clip: &str, frame: i64, lod: u32) -> Head {
+    Head {
+        head: 1,
+        rig: rig.into(),
+        clip: clip.into(),
+        frame,
+        lod,
+    }
+}
+
+fn frame_req(heads: Vec<Head>, wrap: bool) -> CrowdFrameRequest {
+    CrowdFrameRequest {
+        heads,
+        output: OutputOptions::default(),
+        wrap,
+    }
+}
+
+/// Asserts the reply is `status` with error `code` and a message containing `needle`, then
+/// that the server still answers a good frame.
+async fn expect(server: &TestServer, reply: Reply, status: u16, code: &str, needle: &str) {
+    assert_eq!(
+        reply.status,
+        status,
+        "{code}: {}",
+        String::from_utf8_lossy(&reply.body)
+    );
+    assert_eq!(reply.content_type.as_deref(), Some("application/json"));
+    let e = reply.error().expect("a JSON error body");
+    assert_eq!(e.error.code, code, "{}", e.error.message);
+    assert!(
+        e.error.message.contains(needle),
+        "message {:?} should name {needle:?}",
+        e.error.message
+    );
+    still_serving(server).await;
+}
+
+async fn still_serving(server: &TestServer) {
+    let req = frame_req(vec![head("default-head", "talk", 3, 0)], true);
+    let (resp, _) = server
+        .client
+        .crowd_frame(&req, Encoding::Bincode)
+        .await
+        .expect("the server still serves frames");
+    assert_eq!(resp.buffers.len(), 1);
+    assert_eq!(resp.buffers[0].positions.0.len(), 7262 * 12);
+}
+
+async fn post(server: &TestServer, path: &str, ct: &str, body: impl Into<Bytes>) -> Reply {
+    server
+        .client
+        .send(Method::POST, path, Some(ct), None, body.into())
+        .await
+        .expect("transport")
+}
+
+async fn post_json(server: &TestServer, v: serde_json::Value) -> Reply {
+    post(server, "/v1/crowd/frame", "application/json", v.to_string()).await
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn malformed_unknown_and_out_of_range_requests_are_named_4xx() {
+    let server = TestServer::start(ServerConfig {
+        max_heads: 1000,
+        ..ServerConfig::default()
+    })
+    .await;
+    let s = &server;
+    let r = post(s, "/v1/crowd/frame", "application/json", "{\"heads\": [").await;
+    expect(s, r, 400, "malformed_json", "JSON").await;
+    let r = post(s, "/v1/crowd/frame", CONTENT_TYPE_BINCODE, vec![0xFFu8; 37]).await;
+    expect(s, r, 400, "malformed_bincode", "bincode").await;
+    // A bincode message that declares 10^7 heads but carries one: refused, not allocated.
+    let one = crowdmorph_proto::wire::to_bincode(&frame_req(
+        vec![head("default-head", "talk", 0, 0)],
+        true,
+    ))
+    .unwrap();
+    let mut lying = Vec::new();
+    crowdmorph_proto::wire::put_varint(&mut lying, 10_000_000);
+    lying.extend_from_slice(&one[1..]);
+    let r = post(s, "/v1/crowd/frame", CONTENT_TYPE_BINCODE, lying).await;
+    expect(s, r, 400, "malformed_bincode", "bincode").await;
+    // A string that declares a terabyte.
+    let mut huge = vec![1u8, 7];
+    crowdmorph_proto::wire::put_varint(&mut huge, 1 << 40);
+    let r = post(s, "/v1/crowd/frame", CONTENT_TYPE_BINCODE, huge).await;
+    expect(s, r, 400, "malformed_bincode", "bincode").await;
+    let r = post(s, "/v1/crowd/frame", "application/xml", "<heads/>").await;
+    expect(s, r, 415, "unsupported_media_type", "application/xml").await;
+
+    let frame = |rig: &str, clip: &str, frame: serde_json::Value, lod: u32, wrap: bool| json!({"heads":[{"head":5,"rig":rig,"clip":clip,"frame":frame,"lod":lod}],"wrap":wrap});
+    let r = post_json(s, frame("nobody", "talk", json!(1), 0, true)).await;
+    expect(s, r, 404, "unknown_rig", "nobody").await;
+    let r = post_json(s, frame("default-head", "moonwalk", json!(1), 0, true)).await;
+    expect(s, r, 404, "unknown_clip", "moonwalk").await;
+    let frames = crowdmorph::embedded::default_rig().clips[1].frames;
+    let r = post_json(s, frame("default-head", "talk", json!(frames), 0, false)).await;
+    expect(s, r, 400, "frame_out_of_range", "past the end").await;
+    let r = post_json(s, frame("default-head", "talk", json!(-1), 0, false)).await;
+    expect(s, r, 400, "frame_out_of_range", "talk").await;
+    let r = post_json(s, frame("default-head", "talk", json!(1), 99, true)).await;
+    expect(s, r, 400, "lod_out_of_range", "99").await;
+    // NaN is not JSON, and a fractional frame is not a frame.
+    let r = post(
+        s,
+        "/v1/crowd/frame",
+        "application/json",
+        r#"{"heads":[{"head":1,"rig":"default-head","clip":"talk","frame":NaN}]}"#,
+    )
+    .await;
+    expect(s, r, 400, "malformed_json", "JSON").await;
+    let r = post_json(s, frame("default-head", "talk", json!(1.5), 0, true)).await;
+    expect(s, r, 400, "malformed_json", "frame").await;
+    let r = post_json(s, json!({"heads":[], "extra": 1})).await;
+    expect(s, r, 400, "malformed_json", "extra").await;
+    let r = post_json(
+        s,
+        json!({"heads":[{"head":1,"rig":"default-head","clip":"talk","frame":1}],"output":{"format":"f64"}}),
+    )
+    .await;
+    expect(s, r, 400, "malformed_json", "f64").await;
+    // More heads than the limit.
+    let many: Vec<Head> = (0..1001)
+        .map(|_| head("default-head", "talk", 0, 0))
+        .collect();
+    let r = post(
+        s,
+        "/v1/crowd/frame",
+        "application/json",
+        serde_json::to_vec(&frame_req(many, true)).unwrap(),
+    )
+    .await;
+    expect(s, r, 400, "too_many_heads", "1001").await;
+    // NaN weights in a clip.
+    let r = post(
+        s,
+        "/v1/rigs/default-head/clips?name=bad",
+        "text/csv",
+        "jawOpen,eyeBlink_L\n0.1,NaN\n",
+    )
+    .await;
+    expect(s, r, 400, "invalid_clip", "not finite").await;
+    let r = post(s, "/v1/nothing", "application/json", "{}").await;
+    expect(s, r, 404, "no_route", "endpoint").await;
+    let r = post(s, "/v1/rigs?name=../../etc", "model/gltf-binary", "glTF").await;
+    expect(s, r, 400, "invalid_name", "../../etc").await;
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn ten_million_heads_and_oversized_bodies_are_413() {
+    let server = TestServer::start(ServerConfig {
+        max_upload_bytes: 4096,
+        ..ServerConfig::default()
+    })
+    .await;
+    let s = &server;
+    // Declared: a 10^7-head JSON body is about 700 MB; refused from its Content-Length.
+    let mut sock = tokio::net::TcpStream::connect(s.addr).await.unwrap();
+    sock.write_all(
+        b"POST /v1/crowd/frame HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n\
+          Content-Length: 700000000\r\nConnection: close\r\n\r\n{\"heads\":[",
+    )
+    .await
+    .unwrap();
+    let mut out = String::new();
+    let _ = sock.read_to_string(&mut out).await;
+    assert!(out.starts_with("HTTP/1.1 413"), "{out}");
+    assert!(out.contains("body_too_large"), "{out}");
+    // Streamed without a length: cut at the limit (16 MiB) while it arrives.
+    let mut sock = tokio::net::TcpStream::connect(s.addr).await.unwrap();
+    let (mut rd, mut wr) = sock.split();
+    let writer = async {
+        wr.write_all(
+            b"POST /v1/crowd/frame HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n\
+              Transfer-Encoding: chunked\r\nConnection: close\r\n\r\n",
+        )
+        .await?;
+        let head = r#"{"head":1,"rig":"default-head","clip":"talk","frame":1},"#.repeat(10_000);
+        let chunk = format!("{:x}\r\n{head}\r\n", head.len());
+        wr.write_all(b"b\r\n{\"heads\":[ \r\n").await?;
+        for _ in 0..(10_000_000 / 10_000) {
+            wr.write_all(chunk.as_bytes()).await?;
+        }
+        std::io::Result::Ok(())
+    };
+    let reader = async {
+        let mut out = Vec::new();
+        let _ = rd.read_to_end(&mut out).await;
+        String::from_utf8_lossy(&out).into_owned()
+    };
+    let (_, out) = tokio::join!(writer, reader);
+    assert!(out.starts_with("HTTP/1.1 413"), "{out}");
+    drop(sock);
+    still_serving(s).await;
+    // An upload over the upload limit.
+    let glb = crate::util::builder::triangle_rig().to_glb();
+    let mut big = glb.clone();
+    big.resize(8192, 0);
+    let r = post(s, "/v1/rigs?name=big", "model/gltf-binary", big).await;
+    expect(s, r, 413, "body_too_large", "4096").await;
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn gltf_bombs_and_garbage_rigs_are_refused() {
+    let server = TestServer::start(ServerConfig {
+        max_decoded_bytes: 8 << 20,
+        ..ServerConfig::default()
+    })
+    .await;
+    let s = &server;
+    // Huge declared counts in a tiny file.
+    let mut b = crate::util::builder::triangle_rig();
+    b.accessor_mut(0)["count"] = json!(2_000_000_000u64);
+    let r = post(s, "/v1/rigs?name=bomb", "model/gltf-binary", b.to_glb()).await;
+    assert!(r.status == 400 || r.status == 413, "{}", r.status);
+    let e = r.error().unwrap();
+    assert!(
+        e.error.message.contains("accessor") || e.error.message.contains("limit"),
+        "{}",
+        e.error.message
+    );
+    still_serving(s).await;
+    // Counts that fit the bytes present but exceed the decode budget.
+    let n = 1 << 18; // 256 Ki vertices × 12 bytes × (positions + 2 targets) > 8 MiB
+    let positions: Vec<[f32; 3]> = (0..n).map(|i| [i as f32, 0.0, 0.0]).collect();
+    let targets = vec![positions.clone(); 2];
+    let mut big = crate::util::builder::Builder::new();
+    let mesh = big.mesh_with_targets(&positions, None, &targets, None);
+    let node = big.node(Some(mesh));
+    big.scene(&[node]);
+    let r = post(s, "/v1/rigs?name=big", "model/gltf-binary", big.to_glb()).await;
+    expect(s, r, 413, "rig_too_large", "limit").await;
+    // A GLB whose chunk claims more bytes than the file has.
+    let mut glb = crate::util::builder::triangle_rig().to_glb();
+    glb[12..16].copy_from_slice(&u32::MAX.to_le_bytes());
+    let r = post(s, "/v1/rigs?name=trunc", "model/gltf-binary", glb).await;
+    expect(s, r, 400, "invalid_rig", "GLB").await;
+    let r = post(s, "/v1/rigs?name=junk", "application/octet-stream", "hello").await;
+    expect(s, r, 400, "invalid_rig", "glTF").await;
+    // NaN positions.
+    let mut nan = crate::util::builder::Builder::new();
+    let mesh = nan.mesh_with_targets(
+        &[[0.0, 0.0, 0.0], [f32::NAN, 0.0, 0.0], [0.0, 1.0, 0.0]],
+        Some(&[0, 1, 2]),
+        &crate::util::builder::triangle_targets(),
+        None,
+    );
+    let node = nan.node(Some(mesh));
+    nan.scene(&[node]);
+    let r = post(s, "/v1/rigs?name=nan", "model/gltf-binary", nan.to_glb()).await;
+    expect(s, r, 400, "invalid_rig", "finite").await;
+    // Nothing half-registered.
+    let rigs = s.client.rigs().await.unwrap();
+    assert_eq!(rigs.rigs.len(), 1);
+    server.stop().await;
+}

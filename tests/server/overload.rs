@@ -1,0 +1,250 @@
+//! Overload and shutdown: a full queue answers 503 with Retry-After, memory held by admitted
+//! requests stays under its limit, late requests get 504, the server recovers, and a graceful
+//! shutdown lets requests in flight complete.
+//!
+//! Long batch delays make requests wait in the queue deterministically enough: the assertions
+//! are about what happens when the queue is full, never about how long anything took.
+
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+use std::time::Duration;
+
+use crowdmorph::server::ServerConfig;
+use crowdmorph_client::{Client, ClientError, Encoding, metric};
+use crowdmorph_proto::{CrowdFrameRequest, Format, Head, OutputOptions};
+
+use super::TestServer;
+
+fn req(frames: &[i64]) -> CrowdFrameRequest {
+    CrowdFrameRequest {
+        heads: frames
+            .iter()
+            .enumerate()
+            .map(|(h, &f)| Head {
+                head: h as u64,
+                rig: "default-head".into(),
+                clip: "talk".into(),
+                frame: f,
+                lod: 0,
+            })
+            .collect(),
+        output: OutputOptions {
+            normals: false,
+            format: Format::F32,
+        },
+        wrap: true,
+    }
+}
+
+/// Polls `f` every 20 ms for up to 20 s.
+async fn eventually(mut f: impl FnMut() -> bool) -> bool {
+    for _ in 0..1000 {
+        if f() {
+            return true;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    false
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_full_queue_answers_503_then_recovers() {
+    let server = TestServer::start(ServerConfig {
+        queue_requests: 4,
+        batch_delay: Duration::from_secs(2),
+        batch_cost: u64::MAX,
+        ..ServerConfig::default()
+    })
+    .await;
+    let mut tasks = Vec::new();
+    for i in 0..40 {
+        let c = server.client.clone();
+        tasks.push(tokio::spawn(async move {
+            c.crowd_frame_raw(
+                Client::encode(&req(&[i]), Encoding::Bincode).unwrap(),
+                Encoding::Bincode,
+            )
+            .await
+            .unwrap()
+        }));
+    }
+    // While they wait: never more than 4 requests in the batcher.
+    let depth = &server.state.metrics.queue_depth;
+    assert!(eventually(|| depth.load(Ordering::Relaxed) == 4).await);
+    let page = server.client.metrics().await.unwrap();
+    assert!(metric(&page, "crowdmorph_queue_depth").unwrap() <= 4.0);
+    let (mut ok, mut full) = (0, 0);
+    for t in tasks {
+        let r = t.await.unwrap();
+        match r.status {
+            200 => ok += 1,
+            503 => {
+                full += 1;
+                assert_eq!(r.retry_after.as_deref(), Some("1"));
+                assert_eq!(r.error().unwrap().error.code, "queue_full");
+            }
+            s => panic!("unexpected status {s}"),
+        }
+    }
+    assert!(ok >= 4 && full > 0, "{ok} ok, {full} refused");
+    assert_eq!(ok + full, 40);
+    // Recovery: the queue is empty again and requests succeed.
+    assert!(eventually(|| depth.load(Ordering::Relaxed) == 0).await);
+    let (resp, _) = server
+        .client
+        .crowd_frame(&req(&[1, 2]), Encoding::Bincode)
+        .await
+        .unwrap();
+    assert_eq!(resp.buffers.len(), 2);
+    let page = server.client.metrics().await.unwrap();
+    assert!(metric(&page, "crowdmorph_rejected_total{reason=\"queue_full\"}").unwrap() > 0.0);
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn output_memory_is_bounded_and_oversized_responses_are_413() {
+    // One default-head f32 job is 7262 × 12 = 87,144 bytes: two fit in 200 KiB, three do not.
+    let server = TestServer::start(ServerConfig {
+        queue_memory_bytes: 200 << 10,
+        batch_delay: Duration::from_secs(1),
+        batch_cost: u64::MAX,
+        ..ServerConfig::default()
+    })
+    .await;
+    let e = server
+        .client
+        .crowd_frame(&req(&[1, 2, 3]), Encoding::Bincode)
+        .await
+        .unwrap_err();
+    match e {
+        ClientError::Api { status, code, .. } => {
+            assert_eq!((status, code.as_str()), (413, "response_too_large"));
+        }
+        other => panic!("{other}"),
+    }
+    let mut tasks = Vec::new();
+    for i in 0..6 {
+        let c = server.client.clone();
+        tasks.push(tokio::spawn(async move {
+            c.crowd_frame(&req(&[i]), Encoding::Bincode).await
+        }));
+    }
+    let limit = 200u64 << 10;
+    let state = server.state.clone();
+    assert!(eventually(|| state.gauges().queue_memory_bytes > 0).await);
+    assert!(state.gauges().queue_memory_bytes <= limit);
+    let mut refused = 0;
+    for t in tasks {
+        match t.await.unwrap() {
+            Ok((r, _)) => assert_eq!(r.buffers.len(), 1),
+            Err(ClientError::Api {
+                status: 503, code, ..
+            }) => {
+                assert_eq!(code, "queue_full");
+                refused += 1;
+            }
+            Err(e) => panic!("{e}"),
+        }
+    }
+    assert!(refused > 0);
+    // Everything sent: the memory is released.
+    assert!(eventually(|| state.gauges().queue_memory_bytes == 0).await);
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn past_the_deadline_is_504_and_abandoned_jobs_are_not_computed() {
+    let server = TestServer::start(ServerConfig {
+        request_timeout: Duration::from_millis(100),
+        batch_delay: Duration::from_millis(600),
+        batch_cost: u64::MAX,
+        ..ServerConfig::default()
+    })
+    .await;
+    let e = server
+        .client
+        .crowd_frame(&req(&[5]), Encoding::Json)
+        .await
+        .unwrap_err();
+    match e {
+        ClientError::Api { status, code, .. } => {
+            assert_eq!((status, code.as_str()), (504, "deadline_exceeded"));
+        }
+        other => panic!("{other}"),
+    }
+    let m = server.state.metrics.clone();
+    assert!(eventually(|| m.jobs_cancelled.load(Ordering::Relaxed) == 1).await);
+    assert_eq!(m.jobs_computed.load(Ordering::Relaxed), 0);
+    assert!(eventually(|| m.queue_depth.load(Ordering::Relaxed) == 0).await);
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn too_many_requests_at_once_are_shed_with_503() {
+    let server = TestServer::start(ServerConfig {
+        max_concurrency: 2,
+        batch_delay: Duration::from_millis(800),
+        batch_cost: u64::MAX,
+        ..ServerConfig::default()
+    })
+    .await;
+    let mut tasks = Vec::new();
+    for i in 0..8 {
+        let c = server.client.clone();
+        tasks.push(tokio::spawn(async move {
+            c.crowd_frame_raw(
+                Client::encode(&req(&[i]), Encoding::Json).unwrap(),
+                Encoding::Json,
+            )
+            .await
+            .unwrap()
+        }));
+    }
+    let mut shed = 0;
+    for t in tasks {
+        let r = t.await.unwrap();
+        if r.status == 503 {
+            assert_eq!(r.error().unwrap().error.code, "overloaded");
+            assert!(r.retry_after.is_some());
+            shed += 1;
+        } else {
+            assert_eq!(r.status, 200);
+        }
+    }
+    assert!(shed > 0);
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn shutdown_lets_requests_in_flight_complete() {
+    let mut server = TestServer::start(ServerConfig {
+        batch_delay: Duration::from_millis(500),
+        batch_cost: u64::MAX,
+        ..ServerConfig::default()
+    })
+    .await;
+    let rig = crowdmorph::embedded::default_rig();
+    let expected = Arc::new(rig);
+    let mut tasks = Vec::new();
+    for i in 0..10 {
+        let c = server.client.clone();
+        tasks.push(tokio::spawn(async move {
+            c.crowd_frame(&req(&[i, i + 1]), Encoding::Bincode).await
+        }));
+    }
+    let m = server.state.metrics.clone();
+    assert!(eventually(|| m.queue_depth.load(Ordering::Relaxed) == 10).await);
+    server.signal_stop();
+    for t in tasks {
+        let (resp, _) = t.await.unwrap().expect("in-flight request completes");
+        assert_eq!(resp.buffers.len(), 2);
+        assert_eq!(
+            resp.buffers[0].positions.0.len(),
+            expected.vertex_count() * 12
+        );
+    }
+    let addr = server.addr;
+    server.join().await;
+    // Stopped: new connections are refused.
+    assert!(tokio::net::TcpStream::connect(addr).await.is_err());
+}

@@ -1,0 +1,279 @@
+//! Persistence: rigs and clips survive restarts, deletes stick, corrupt files are reported and
+//! skipped, and a process killed with SIGKILL during an upload never leaves a partial rig.
+
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::time::Duration;
+
+use bytes::Bytes;
+use crowdmorph::server::ServerConfig;
+use crowdmorph_client::{Client, Encoding, Method};
+use crowdmorph_proto::{CrowdFrameRequest, CrowdFrameResponse, Format, Head, OutputOptions};
+use tokio::io::AsyncWriteExt;
+
+use super::{TestServer, temp_dir, upload_bytes};
+
+fn config(dir: &Path) -> ServerConfig {
+    ServerConfig {
+        data_dir: Some(dir.to_path_buf()),
+        ..ServerConfig::default()
+    }
+}
+
+fn frames(heads: &[(&str, &str, i64)]) -> CrowdFrameRequest {
+    CrowdFrameRequest {
+        heads: heads
+            .iter()
+            .enumerate()
+            .map(|(i, &(rig, clip, frame))| Head {
+                head: i as u64,
+                rig: rig.into(),
+                clip: clip.into(),
+                frame,
+                lod: 0,
+            })
+            .collect(),
+        output: OutputOptions {
+            normals: true,
+            format: Format::F32,
+        },
+        wrap: true,
+    }
+}
+
+async fn frame(c: &Client, req: &CrowdFrameRequest) -> CrowdFrameResponse {
+    c.crowd_frame(req, Encoding::Bincode).await.unwrap().0
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn rigs_and_clips_survive_restarts_and_corrupt_files_are_skipped() {
+    let dir = temp_dir("restart");
+    let tri = Bytes::from(crate::util::builder::triangle_rig().to_glb());
+    let clip = r#"{"fps":24,"targets":["a","b"],"frames":[[0,0],[0.5,1],[1,0.25]]}"#;
+    let csv = "jawOpen,eyeBlink_L\n0.2,0.1\n0.7,0.9\n";
+    let req = frames(&[
+        ("tri", "wave", 1),
+        ("tri", "wave", 2),
+        ("default-head", "nod", 1),
+    ]);
+
+    let s1 = TestServer::start(config(&dir)).await;
+    s1.client.upload_rig("tri", tri.clone()).await.unwrap();
+    s1.client
+        .upload_clip("tri", "name=wave", "application/json", Bytes::from(clip))
+        .await
+        .unwrap();
+    s1.client
+        .upload_clip("default-head", "name=nod", "text/csv", Bytes::from(csv))
+        .await
+        .unwrap();
+    s1.client.upload_rig("gone", tri.clone()).await.unwrap();
+    s1.client.delete_rig("gone").await.unwrap();
+    let before = frame(&s1.client, &req).await;
+    s1.stop().await;
+
+    // A garbage file and a truncated copy of a real one sit beside the good records.
+    let rigs_dir = dir.join("rigs");
+    let good = std::fs::read(rigs_dir.join("tri.cmrig")).unwrap();
+    std::fs::write(rigs_dir.join("junk.cmrig"), b"not a record at all").unwrap();
+    std::fs::write(rigs_dir.join("torn.cmrig"), &good[..good.len() * 2 / 3]).unwrap();
+
+    let s2 = TestServer::start(config(&dir)).await;
+    let list = s2.client.rigs().await.unwrap();
+    let ids: Vec<&str> = list.rigs.iter().map(|r| r.id.as_str()).collect();
+    assert_eq!(ids, vec!["default-head", "tri"]);
+    let tri_info = s2.client.rig("tri").await.unwrap();
+    assert_eq!(tri_info.clips.len(), 1);
+    assert_eq!(tri_info.clips[0].fps, 24.0);
+    let head = s2.client.clips("default-head").await.unwrap();
+    assert_eq!(head.clips.last().unwrap().name, "nod");
+    let after = frame(&s2.client, &req).await;
+    assert_eq!(
+        before.buffers, after.buffers,
+        "the same frames after a restart"
+    );
+    let ready = s2
+        .client
+        .send(Method::GET, "/readyz", None, None, Bytes::new())
+        .await
+        .unwrap();
+    let ready: crowdmorph_proto::Readiness = serde_json::from_slice(&ready.body).unwrap();
+    assert_eq!(ready.status, "ready");
+    assert_eq!(ready.skipped_files.len(), 2, "{:?}", ready.skipped_files);
+    assert!(ready.skipped_files.iter().any(|s| s.contains("junk.cmrig")));
+    assert!(ready.skipped_files.iter().any(|s| s.contains("torn.cmrig")));
+    // Deleting the clip and the rig sticks too.
+    let r = s2
+        .client
+        .send(
+            Method::DELETE,
+            "/v1/rigs/default-head/clips/nod",
+            None,
+            None,
+            Bytes::new(),
+        )
+        .await
+        .unwrap();
+    assert_eq!(r.status, 204);
+    s2.client.delete_rig("tri").await.unwrap();
+    s2.stop().await;
+
+    let s3 = TestServer::start(config(&dir)).await;
+    let list = s3.client.rigs().await.unwrap();
+    assert_eq!(list.rigs.len(), 1);
+    assert!(
+        s3.client
+            .clips("default-head")
+            .await
+            .unwrap()
+            .clips
+            .iter()
+            .all(|c| c.name != "nod")
+    );
+    s3.stop().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The real binary, serving on a port it chose.
+struct Proc {
+    child: Child,
+    base: String,
+}
+
+fn spawn(dir: &Path) -> Proc {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_crowdmorph"))
+        .args(["serve", "--addr", "127.0.0.1:0", "--data-dir"])
+        .arg(dir)
+        .env("RUST_LOG", "info")
+        .env("NO_COLOR", "1")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn crowdmorph serve");
+    let stderr = child.stderr.take().expect("stderr");
+    let mut lines = BufReader::new(stderr).lines();
+    let mut base = None;
+    for line in lines.by_ref() {
+        let line = line.expect("log line");
+        if line.contains("listening")
+            && let Some(at) = line.rfind("127.0.0.1:")
+        {
+            let port: String = line[at + 10..]
+                .chars()
+                .take_while(char::is_ascii_digit)
+                .collect();
+            base = Some(format!("http://127.0.0.1:{port}"));
+            break;
+        }
+    }
+    // Keep draining the log so the child never blocks on a full pipe.
+    std::thread::spawn(move || for _ in lines {});
+    Proc {
+        child,
+        base: base.expect("the server logged its address"),
+    }
+}
+
+async fn ready(c: &Client) {
+    for _ in 0..500 {
+        if let Ok(r) = c
+            .send(Method::GET, "/readyz", None, None, Bytes::new())
+            .await
+            && r.status == 200
+        {
+            return;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    panic!("server never became ready");
+}
+
+fn no_temp_files(dir: &Path) {
+    for e in std::fs::read_dir(dir.join("rigs")).unwrap() {
+        let name = e.unwrap().file_name().to_string_lossy().into_owned();
+        assert!(!name.contains(".tmp-"), "stray temporary file {name}");
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sigkill_during_uploads_never_leaves_a_partial_rig() {
+    let dir = temp_dir("sigkill");
+    let tri = Bytes::from(crate::util::builder::triangle_rig().to_glb());
+
+    // 1. Killed while the body is still arriving.
+    let mut p = spawn(&dir);
+    let c = Client::new(p.base.clone());
+    ready(&c).await;
+    c.upload_rig("keep", tri.clone()).await.unwrap();
+    let mut sock = tokio::net::TcpStream::connect(p.base.trim_start_matches("http://"))
+        .await
+        .unwrap();
+    sock.write_all(
+        b"POST /v1/rigs?name=partial HTTP/1.1\r\nHost: x\r\nContent-Type: model/gltf-binary\r\n\
+          Content-Length: 2000000\r\n\r\n",
+    )
+    .await
+    .unwrap();
+    sock.write_all(&tri).await.unwrap();
+    sock.write_all(&vec![0u8; 1_000_000]).await.unwrap();
+    p.child.kill().unwrap(); // SIGKILL
+    p.child.wait().unwrap();
+
+    // 2. Killed at several moments after a whole big upload was sent (while importing,
+    //    preparing or writing it): afterwards the rig is either complete or absent.
+    let big = crate::util::rig_files()
+        .map(|f| upload_bytes(&f[0]))
+        .unwrap_or_else(|| tri.clone());
+    for (round, delay_ms) in [0u64, 40, 150, 400].into_iter().enumerate() {
+        let mut p = spawn(&dir);
+        let c = Client::new(p.base.clone());
+        ready(&c).await;
+        let name = format!("big{round}");
+        let upload = {
+            let c = c.clone();
+            let big = big.clone();
+            tokio::spawn(async move { c.upload_rig(&name, big).await })
+        };
+        tokio::time::sleep(Duration::from_millis(delay_ms)).await;
+        p.child.kill().unwrap();
+        p.child.wait().unwrap();
+        let _ = upload.await;
+    }
+
+    // After all that: a fresh start sees whole rigs only, and nothing corrupt.
+    let mut p = spawn(&dir);
+    let c = Client::new(p.base.clone());
+    ready(&c).await;
+    no_temp_files(&dir);
+    let r = c
+        .send(Method::GET, "/readyz", None, None, Bytes::new())
+        .await
+        .unwrap();
+    let readiness: crowdmorph_proto::Readiness = serde_json::from_slice(&r.body).unwrap();
+    assert!(
+        readiness.skipped_files.is_empty(),
+        "{:?}",
+        readiness.skipped_files
+    );
+    let list = c.rigs().await.unwrap();
+    assert!(list.rigs.iter().any(|r| r.id == "keep"));
+    assert!(list.rigs.iter().all(|r| r.id != "partial"));
+    for r in &list.rigs {
+        // Every rig that came back is whole: it frames.
+        let info = c.rig(&r.id).await.unwrap();
+        assert!(info.vertices > 0);
+        let mesh = c.mesh(&r.id, Encoding::Bincode).await.unwrap();
+        assert_eq!(mesh.positions.0.len(), info.vertices as usize * 12);
+    }
+
+    // SIGTERM: a graceful exit with status 0.
+    let status = Command::new("kill")
+        .args(["-TERM", &p.child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let exit = p.child.wait().unwrap();
+    assert!(exit.success(), "exit status {exit:?}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
