@@ -255,6 +255,10 @@ struct ServeArgs {
     /// Origins allowed by CORS, comma-separated (`*` for any; none by default).
     #[arg(long, env = "CROWDMORPH_CORS_ORIGINS", value_delimiter = ',')]
     cors_origin: Vec<String>,
+    /// Do not order new rigs' blendshapes by the importance metrics (nor build mesh levels)
+    /// in the background; they keep the import's quick order until PUT /v1/rigs/{id}/lod.
+    #[arg(long, env = "CROWDMORPH_NO_AUTO_LOD")]
+    no_auto_lod: bool,
 }
 
 fn run_serve(a: ServeArgs) -> Result<()> {
@@ -275,6 +279,7 @@ fn run_serve(a: ServeArgs) -> Result<()> {
         admin_timeout: std::time::Duration::from_secs(a.admin_timeout_s),
         max_concurrency: a.max_concurrency,
         cors_origins: a.cors_origin,
+        auto_lod: !a.no_auto_lod,
     };
     if let Some(d) = &config.data_dir {
         tracing::info!(data_dir = %d.display(), "data directory");

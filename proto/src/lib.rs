@@ -403,12 +403,79 @@ pub struct RigInfo {
     pub targets: Vec<String>,
     /// Clips.
     pub clips: Vec<ClipInfo>,
-    /// Shapes evaluated at each LOD level (level 0 = all).
-    pub lod_levels: Vec<u32>,
+    /// Level of detail: importance order, table and status.
+    pub lod: LodInfo,
     /// Bounding box of the neutral mesh.
     pub bbox: Aabb,
     /// Memory resident for the rig.
     pub memory: Memory,
+}
+
+/// A rig's level of detail (`GET /v1/rigs/{id}/lod`, and inside [`RigInfo`]).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LodInfo {
+    /// How the order was made: `delta-energy` (the import's quick order), `combined`,
+    /// `file-order`, a metric name, or `explicit`.
+    pub method: String,
+    /// `imported` (quick order, no metric scoring yet), `computing`, `ready` or `failed`.
+    pub status: String,
+    /// Fraction done while `computing` (0–1).
+    pub progress: f32,
+    /// Why the last computation failed, when it did.
+    pub error: Option<String>,
+    /// Target names, most important first.
+    pub order: Vec<String>,
+    /// Targets pinned to the front of the order.
+    pub pinned: Vec<String>,
+    /// The table, level 0 first.
+    pub levels: Vec<LodLevelInfo>,
+}
+
+/// One LOD level.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct LodLevelInfo {
+    /// Shapes evaluated (the first `shapes` of the order).
+    pub shapes: u32,
+    /// Simplified mesh used (index into the rig's mesh levels), `None` for the full mesh.
+    pub mesh: Option<u32>,
+    /// Vertices of a buffer at this level.
+    pub vertices: u32,
+    /// Triangles of the mesh at this level (`GET /v1/rigs/{id}/mesh?lod=L` has them).
+    pub triangles: u32,
+}
+
+/// `PUT /v1/rigs/{id}/lod` request: how to (re)build the rig's level of detail. Every field is
+/// optional; `{}` means the combined metric order and the default table.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LodRequest {
+    /// `combined` (default), `file-order`, `geometric-mse`, `hausdorff`, `image-mse`, `ssim`
+    /// or `yee`.
+    #[serde(default)]
+    pub method: Option<String>,
+    /// An explicit full order by target name (overrides `method`).
+    #[serde(default)]
+    pub order: Option<Vec<String>>,
+    /// Targets moved to the front, in this order (the paper: metrics undervalue blinks).
+    #[serde(default)]
+    pub pinned: Vec<String>,
+    /// The table; default 100/50/25/10/0 % of the targets.
+    #[serde(default)]
+    pub levels: Option<Vec<LodLevelRequest>>,
+    /// Simplified meshes to build, as fractions of the triangles (e.g. `[0.5, 0.25, 0.1]`).
+    #[serde(default)]
+    pub mesh_fractions: Vec<f32>,
+}
+
+/// One level of a [`LodRequest`] table.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LodLevelRequest {
+    /// Shapes evaluated.
+    pub shapes: u32,
+    /// Index into `mesh_fractions` of the simplified mesh this level uses.
+    #[serde(default)]
+    pub mesh: Option<u32>,
 }
 
 /// `GET /v1/rigs` response.
@@ -438,6 +505,8 @@ pub struct MeshPrimitive {
 pub struct MeshResponse {
     /// Rig id.
     pub rig: String,
+    /// The LOD level whose mesh this is (`?lod=L`; 0 = the full mesh).
+    pub lod: u32,
     /// Vertices over all primitives.
     pub vertices: u32,
     /// Primitives in evaluation order.

@@ -85,6 +85,9 @@ pub struct PreparedRig {
     cpu: Arc<CpuRig>,
     gpu: Option<Arc<GpuRig>>,
     memory: RigMemory,
+    /// The rig's mesh levels (`rig.lod.meshes`), each prepared as the derived rig the engines
+    /// evaluate: a job whose LOD level names mesh `m` runs on `meshes[m]`.
+    meshes: Vec<PreparedRig>,
 }
 
 impl std::fmt::Debug for PreparedRig {
@@ -115,6 +118,49 @@ impl PreparedRig {
     /// The rig's resident GPU data, when it is on a GPU.
     pub fn gpu(&self) -> Option<&GpuRig> {
         self.gpu.as_deref()
+    }
+
+    /// The mesh level LOD level `lod` evaluates (`None`: the full mesh or no such level).
+    pub fn mesh_of(&self, lod: u32) -> Option<usize> {
+        self.rig
+            .lod
+            .levels
+            .get(lod as usize)
+            .and_then(|l| l.mesh)
+            .map(|m| m as usize)
+    }
+
+    /// What jobs at LOD level `lod` are evaluated on: this rig, or one of its mesh levels.
+    pub fn at_level(&self, lod: u32) -> &PreparedRig {
+        self.mesh_of(lod)
+            .and_then(|m| self.meshes.get(m))
+            .unwrap_or(self)
+    }
+
+    /// The prepared mesh levels, in `rig.lod.meshes` order.
+    pub fn mesh_levels(&self) -> &[PreparedRig] {
+        &self.meshes
+    }
+
+    /// Checks every job and picks the rig they run on; all must share one mesh level.
+    fn route(&self, jobs: &[BlendJob]) -> Result<&PreparedRig, EngineError> {
+        for j in jobs {
+            check_job(&self.rig, j)?;
+        }
+        let mut mesh = None;
+        for (i, j) in jobs.iter().enumerate() {
+            let m = self.mesh_of(j.lod);
+            if i > 0 && m != mesh {
+                return Err(EngineError::MixedMeshLevels);
+            }
+            mesh = m;
+        }
+        Ok(match mesh {
+            Some(m) => self.meshes.get(m).ok_or_else(|| {
+                EngineError::Mesh(format!("LOD names mesh level {m}, which is not prepared"))
+            })?,
+            None => self,
+        })
     }
 }
 
@@ -310,16 +356,24 @@ impl Engine {
         self.choice
     }
 
-    fn memory(rig: &Rig, cpu: &CpuRig, gpu: Option<&GpuRig>) -> RigMemory {
+    fn memory(rig: &Rig, cpu: &CpuRig, gpu: Option<&GpuRig>, meshes: &[PreparedRig]) -> RigMemory {
         RigMemory {
-            host_bytes: rig.host_bytes() + cpu.bytes(),
-            device_bytes: gpu.map_or(0, |g| g.device_bytes() as usize),
+            host_bytes: rig.host_bytes()
+                + cpu.bytes()
+                + meshes.iter().map(|m| m.memory.host_bytes).sum::<usize>(),
+            device_bytes: gpu.map_or(0, |g| g.device_bytes() as usize)
+                + meshes.iter().map(|m| m.memory.device_bytes).sum::<usize>(),
         }
     }
 
     /// Prepares a rig: builds the CPU layout and, on a GPU, uploads geometry, deltas, clip
     /// tables and LOD order. A rig the GPU cannot hold is refused with `DoesNotFit`.
     pub fn prepare(&self, rig: Arc<Rig>) -> Result<PreparedRig, EngineError> {
+        let meshes = crate::lod::mesh_level_rigs(&rig)
+            .map_err(|e| EngineError::Mesh(e.to_string()))?
+            .into_iter()
+            .map(|derived| self.prepare(Arc::new(derived)))
+            .collect::<Result<Vec<_>, _>>()?;
         let cpu = Arc::new(CpuRig::new(&rig));
         let gpu = match self.gpu_active() {
             Some(ctx) => match GpuRig::upload(ctx, &rig) {
@@ -334,12 +388,13 @@ impl Engine {
             },
             None => None,
         };
-        let memory = Self::memory(&rig, &cpu, gpu.as_deref());
+        let memory = Self::memory(&rig, &cpu, gpu.as_deref(), &meshes);
         Ok(PreparedRig {
             rig,
             cpu,
             gpu,
             memory,
+            meshes,
         })
     }
 
@@ -366,12 +421,21 @@ impl Engine {
             },
             _ => None,
         };
-        let memory = Self::memory(&rig, &prepared.cpu, gpu.as_deref());
+        // Mesh levels share the clips; give each its new tables too.
+        let derived =
+            crate::lod::mesh_level_rigs(&rig).map_err(|e| EngineError::Mesh(e.to_string()))?;
+        let meshes = derived
+            .into_iter()
+            .zip(&prepared.meshes)
+            .map(|(d, old)| self.update_clips(old, Arc::new(d)))
+            .collect::<Result<Vec<_>, _>>()?;
+        let memory = Self::memory(&rig, &prepared.cpu, gpu.as_deref(), &meshes);
         Ok(PreparedRig {
             rig,
             cpu: prepared.cpu.clone(),
             gpu,
             memory,
+            meshes,
         })
     }
 
@@ -405,9 +469,7 @@ impl Engine {
         readback: bool,
     ) -> Result<PendingEvaluation<'_>, EngineError> {
         let start = Instant::now();
-        for j in jobs {
-            check_job(&rig.rig, j)?;
-        }
+        let rig = rig.route(jobs)?;
         let state = match (self.gpu_active(), &rig.gpu) {
             (Some(ctx), Some(g)) => {
                 let gpu_jobs: Option<Vec<_>> =
@@ -432,6 +494,35 @@ impl Engine {
             start,
             state,
         })
+    }
+
+    /// Evaluates unique jobs of one rig into `out`, reusing its buffers on the CPU engine (a
+    /// warm buffer saves the page faults of a fresh one, which cost as much as the blend for
+    /// large batches). All jobs must share one mesh level; the output has that level's
+    /// vertices.
+    pub fn evaluate_into(
+        &self,
+        rig: &PreparedRig,
+        jobs: &[BlendJob],
+        spec: OutputSpec,
+        out: &mut BlendOutput,
+    ) -> Result<(Timings, BackendKind), EngineError> {
+        let start = Instant::now();
+        let target = rig.route(jobs)?;
+        if self.gpu_active().is_some() && target.gpu.is_some() {
+            let e = self.submit(rig, jobs, spec, true)?.wait()?;
+            *out = e.output;
+            return Ok((e.timings, e.kind.unwrap_or(BackendKind::Gpu)));
+        }
+        let batch = WeightBatch::gather(&target.rig, jobs)?;
+        target.cpu.evaluate_into(&batch, spec, out)?;
+        Ok((
+            Timings {
+                wall_ns: start.elapsed().as_nanos() as u64,
+                gpu_ns: None,
+            },
+            BackendKind::Cpu,
+        ))
     }
 
     /// Evaluates unique jobs of one rig and returns the buffers.

@@ -80,6 +80,12 @@ pub enum EngineError {
     /// A GPU was asked for and none could be opened.
     #[error("no GPU: {0}")]
     NoGpu(String),
+    /// One batch mixes jobs of different mesh levels (their outputs differ in size).
+    #[error("a batch must not mix LOD levels that use different meshes")]
+    MixedMeshLevels,
+    /// A mesh level cannot be derived from the rig.
+    #[error("mesh level: {0}")]
+    Mesh(String),
     /// The rig does not fit in the device's memory or limits.
     #[error("rig does not fit on the GPU: {0}")]
     DoesNotFit(String),

@@ -25,7 +25,10 @@ use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 use serde::{Deserialize, Serialize};
 
-pub use mesh::{FeaturePoints, MeshLodError, SimplifyOptions, build_mesh_levels, mesh_level_rig};
+pub use mesh::{
+    FeaturePoints, MeshLodError, SimplifyOptions, build_mesh_levels, mesh_level_rig,
+    mesh_level_rigs,
+};
 pub use order::{Metric, OrderMethod, ScoreOptions, Scores, TargetScore, pin_front, score_targets};
 
 use crate::rig::{Lod, LodError, LodLevel, Rig, TargetId, default_lod_levels};

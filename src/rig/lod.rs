@@ -15,6 +15,10 @@ use serde::{Deserialize, Serialize};
 
 use super::{Primitive, TargetId};
 
+/// `Lod::method` of the quick order every import gets ([`Lod::by_delta_energy`]), before a
+/// metric-based order (the `lod` module) replaces it.
+pub const IMPORT_LOD_METHOD: &str = "delta-energy";
+
 /// Default LOD table as fractions of the target count: 100 / 50 / 25 / 10 / 0 %.
 pub const DEFAULT_LOD_FRACTIONS: [f32; 5] = [1.0, 0.5, 0.25, 0.1, 0.0];
 
@@ -164,7 +168,7 @@ impl Lod {
         Lod {
             order,
             levels: default_lod_levels(n),
-            method: "delta-energy".into(),
+            method: IMPORT_LOD_METHOD.into(),
             pinned: Vec::new(),
             meshes: Vec::new(),
         }

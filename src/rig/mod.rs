@@ -18,7 +18,9 @@ mod lod;
 mod sample;
 
 pub use clip::{Clip, ClipError, DEFAULT_FPS, FrameMode, MAX_FRAMES};
-pub use lod::{Lod, LodError, LodLevel, MeshLevel, MeshLevelPrimitive, default_lod_levels};
+pub use lod::{
+    IMPORT_LOD_METHOD, Lod, LodError, LodLevel, MeshLevel, MeshLevelPrimitive, default_lod_levels,
+};
 pub use sample::{Interpolation, KeyTrack, sample_track};
 
 use glam::{Vec3, Vec4};

@@ -33,14 +33,18 @@ use crate::plan::{JobKey, Plan};
 use crate::rig::{ACTIVE_WEIGHT_EPSILON, FrameMode, Rig};
 use crate::store::RecordRef;
 
-type ApiResult = Result<Response, ApiError>;
+pub(super) type ApiResult = Result<Response, ApiError>;
 
 // ---------------------------------------------------------------------------------------------
 // Plumbing: bodies, content negotiation, auth.
 
 /// Reads a body of at most `limit` bytes; 413 past it (checked from Content-Length first, so an
 /// oversized upload is refused before it is read).
-async fn read_body(headers: &HeaderMap, body: Body, limit: usize) -> Result<Bytes, ApiError> {
+pub(super) async fn read_body(
+    headers: &HeaderMap,
+    body: Body,
+    limit: usize,
+) -> Result<Bytes, ApiError> {
     let too_large = || {
         ApiError::new(
             StatusCode::PAYLOAD_TOO_LARGE,
@@ -90,7 +94,7 @@ fn wants_bincode(headers: &HeaderMap) -> bool {
 }
 
 /// Decodes a request body as JSON or bincode according to its Content-Type.
-fn decode<T: DeserializeOwned>(headers: &HeaderMap, body: &[u8]) -> Result<T, ApiError> {
+pub(super) fn decode<T: DeserializeOwned>(headers: &HeaderMap, body: &[u8]) -> Result<T, ApiError> {
     let ct = content_type(headers);
     match ct.as_str() {
         CONTENT_TYPE_BINCODE => codec::request_from_wire(body)
@@ -128,7 +132,11 @@ fn decode<T: DeserializeOwned>(headers: &HeaderMap, body: &[u8]) -> Result<T, Ap
 }
 
 /// Encodes a response as bincode when asked for, JSON otherwise.
-fn respond<T: Serialize>(headers: &HeaderMap, status: StatusCode, value: &T) -> ApiResult {
+pub(super) fn respond<T: Serialize>(
+    headers: &HeaderMap,
+    status: StatusCode,
+    value: &T,
+) -> ApiResult {
     let (ct, body) = if wants_bincode(headers) {
         (
             CONTENT_TYPE_BINCODE,
@@ -155,7 +163,7 @@ fn same(a: &[u8], b: &[u8]) -> bool {
 
 impl AppState {
     /// Uploads and deletes need `Authorization: Bearer <token>` when a token is configured.
-    fn check_admin(&self, headers: &HeaderMap) -> Result<(), ApiError> {
+    pub(super) fn check_admin(&self, headers: &HeaderMap) -> Result<(), ApiError> {
         let Some(token) = &self.config.admin_token else {
             return Ok(());
         };
@@ -179,7 +187,7 @@ impl AppState {
         }
     }
 
-    fn check_ready(&self) -> Result<(), ApiError> {
+    pub(super) fn check_ready(&self) -> Result<(), ApiError> {
         if self.is_ready() {
             Ok(())
         } else {
@@ -191,12 +199,12 @@ impl AppState {
         }
     }
 
-    fn rig(&self, id: &str) -> Result<Arc<RigEntry>, ApiError> {
+    pub(super) fn rig(&self, id: &str) -> Result<Arc<RigEntry>, ApiError> {
         self.registry.get(id).ok_or_else(|| unknown_rig(self, id))
     }
 
     /// Persists a rig's current state (whole rig, or the built-in rig's uploaded clips).
-    async fn persist(
+    pub(super) async fn persist(
         &self,
         id: &str,
         rig: Arc<Rig>,
@@ -270,7 +278,7 @@ fn import_error(e: ImportError) -> ApiError {
     }
 }
 
-async fn blocking<T: Send + 'static>(
+pub(super) async fn blocking<T: Send + 'static>(
     f: impl FnOnce() -> Result<T, ApiError> + Send + 'static,
 ) -> Result<T, ApiError> {
     tokio::task::spawn_blocking(f)
@@ -405,12 +413,18 @@ pub(super) async fn upload_rig(
     });
     state.registry.insert(entry.clone());
     tracing::info!(rig = %id, vertices = entry.vertices, targets = rig.targets.len(), "rig registered");
-    respond(&headers, StatusCode::CREATED, &entry.info())
+    state.start_auto_lod(&entry);
+    respond(&headers, StatusCode::CREATED, &state.rig_info(&entry))
 }
 
 pub(super) async fn list_rigs(State(state): State<AppState>, headers: HeaderMap) -> ApiResult {
     state.check_ready()?;
-    let rigs = state.registry.all().iter().map(|e| e.info()).collect();
+    let rigs = state
+        .registry
+        .all()
+        .iter()
+        .map(|e| state.rig_info(e))
+        .collect();
     respond(&headers, StatusCode::OK, &RigList { rigs })
 }
 
@@ -420,7 +434,7 @@ pub(super) async fn get_rig(
     headers: HeaderMap,
 ) -> ApiResult {
     state.check_ready()?;
-    respond(&headers, StatusCode::OK, &state.rig(&id)?.info())
+    respond(&headers, StatusCode::OK, &state.rig_info(&*state.rig(&id)?))
 }
 
 pub(super) async fn delete_rig(
@@ -450,19 +464,37 @@ pub(super) async fn delete_rig(
         })
         .await?;
     }
+    state.lod_jobs.cancel(&id);
     state.registry.remove(&id);
     tracing::info!(rig = %id, "rig deleted");
     Ok(StatusCode::NO_CONTENT.into_response())
 }
 
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct MeshQuery {
+    /// LOD level whose (possibly simplified) mesh to return; default 0, the full mesh.
+    lod: Option<u32>,
+}
+
 pub(super) async fn get_mesh(
     State(state): State<AppState>,
     Path(id): Path<String>,
+    query: Result<Query<MeshQuery>, axum::extract::rejection::QueryRejection>,
     headers: HeaderMap,
 ) -> ApiResult {
     state.check_ready()?;
+    let Query(query) = query.map_err(|e| ApiError::bad_request("bad_query", e.body_text()))?;
     let entry = state.rig(&id)?;
-    let mesh = blocking(move || Ok(entry.mesh())).await?;
+    let lod = query.lod.unwrap_or(0);
+    let levels = entry.rig().lod.levels.len();
+    if lod as usize >= levels {
+        return Err(ApiError::bad_request(
+            "lod_out_of_range",
+            format!("LOD level {lod} out of range (rig {id:?} has {levels} levels)"),
+        ));
+    }
+    let mesh = blocking(move || Ok(entry.mesh(lod))).await?;
     respond(&headers, StatusCode::OK, &mesh)
 }
 
@@ -882,7 +914,8 @@ pub(super) async fn crowd_frame(
             .iter()
             .filter(|&&t| clip.weight(t as usize, k.frame).abs() > ACTIVE_WEIGHT_EPSILON)
             .count() as u64;
-        let v = entry.vertices as u64;
+        // A LOD level on a simplified mesh has fewer vertices.
+        let v = entry.prepared.at_level(k.lod).rig().vertex_count() as u64;
         out_bytes += v * 3 * per_component * json_factor;
         jobs.push(JobRequest {
             entry: entry.clone(),
@@ -994,7 +1027,7 @@ pub(super) async fn crowd_frame(
                 clip: &entry.rig().clips[k.clip as usize].name,
                 frame: k.frame,
                 lod: k.lod,
-                vertices: entry.vertices as u32,
+                vertices: entry.prepared.at_level(k.lod).rig().vertex_count() as u32,
                 quantization: (format == Format::Q16).then_some(entry.qbox),
                 positions: out.positions.clone(),
                 normals: if normals { out.normals.clone() } else { None },

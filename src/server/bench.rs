@@ -134,6 +134,15 @@ pub struct HttpBenchReport {
     pub http_heads_per_s: f64,
     /// `http_heads_per_s / inprocess_heads_per_s`.
     pub http_fraction_of_inprocess: f64,
+    /// Raw loopback TCP throughput measured in the same run (large writes, no HTTP): the most
+    /// bytes per second any server on this machine can hand to a client here.
+    pub loopback_bytes_per_s: f64,
+    /// Bincode response bytes per head of the throughput runs.
+    pub response_bytes_per_head: f64,
+    /// `loopback_bytes_per_s / response_bytes_per_head`: the loopback roofline in heads/s.
+    pub loopback_roofline_heads_per_s: f64,
+    /// `http_heads_per_s / loopback_roofline_heads_per_s`.
+    pub http_fraction_of_loopback: f64,
     /// Requests that failed during the saturation run.
     pub saturation_errors: u64,
     /// Latency percentiles at saturation, ms.
@@ -198,6 +207,38 @@ fn crowd(
         output: OutputOptions { normals, format },
         wrap: true,
     }
+}
+
+/// Bytes per second one loopback TCP connection carries with large writes and reads: the
+/// roofline for moving response bytes from a server to a client on this machine.
+async fn loopback_throughput(seconds: f64) -> Result<f64> {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
+    let addr = listener.local_addr()?;
+    let deadline = Instant::now() + Duration::from_secs_f64(seconds);
+    let writer = tokio::spawn(async move {
+        let (mut tcp, _) = listener.accept().await?;
+        tcp.set_nodelay(true)?;
+        let chunk = vec![7u8; 4 << 20];
+        while Instant::now() < deadline {
+            tcp.write_all(&chunk).await?;
+        }
+        anyhow::Ok(())
+    });
+    let mut tcp = tokio::net::TcpStream::connect(addr).await?;
+    let mut buf = vec![0u8; 4 << 20];
+    let start = Instant::now();
+    let mut total = 0usize;
+    loop {
+        let n = tcp.read(&mut buf).await?;
+        if n == 0 {
+            break;
+        }
+        total += n;
+    }
+    let elapsed = start.elapsed().as_secs_f64();
+    writer.await??;
+    Ok(total as f64 / elapsed)
 }
 
 fn pct(h: &Histogram<u64>, q: f64) -> f64 {
@@ -391,6 +432,13 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
         sat.add(t.await??)?;
     }
     let http_heads_per_s = counter.load(Ordering::Relaxed) as f64 / opt.seconds;
+    let loopback_bytes_per_s = loopback_throughput(opt.seconds.min(2.0)).await?;
+    let response_bytes_per_head = {
+        let req = crowd(opt, &rig_id, 1, opt.format, false);
+        let (_, b) = client.crowd_frame(&req, Encoding::Bincode).await?;
+        b as f64 / opt.heads as f64
+    };
+    let loopback_roofline_heads_per_s = loopback_bytes_per_s / response_bytes_per_head;
 
     // Half load: open loop at half the saturated request rate.
     let rate = (http_heads_per_s / opt.heads as f64 / 2.0).max(0.5);
@@ -453,6 +501,10 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
         inprocess_ms_per_crowd: inproc.1,
         http_heads_per_s,
         http_fraction_of_inprocess: http_heads_per_s / inproc.0,
+        loopback_bytes_per_s,
+        response_bytes_per_head,
+        loopback_roofline_heads_per_s,
+        http_fraction_of_loopback: http_heads_per_s / loopback_roofline_heads_per_s,
         saturation_errors: errors.load(Ordering::Relaxed),
         saturation_p50_ms: pct(&sat, 0.5),
         saturation_p99_ms: pct(&sat, 0.99),
@@ -483,6 +535,13 @@ pub fn report_text(r: &HttpBenchReport) -> String {
         r.saturation_p50_ms,
         r.saturation_p99_ms,
         r.saturation_errors
+    );
+    s += &format!(
+        "  loopback TCP    {:>10.0} heads/s  = {:.2} GB/s ÷ {:.0} bytes per head; HTTP reaches {:.0} % of it\n",
+        r.loopback_roofline_heads_per_s,
+        r.loopback_bytes_per_s / 1e9,
+        r.response_bytes_per_head,
+        r.http_fraction_of_loopback * 100.0
     );
     s += &format!(
         "  HTTP half load  {:>10.1} requests/s: p50 {:.2} ms, p99 {:.2} ms, p99/p50 = {:.2} (goal ≤ 3), {} errors\n",

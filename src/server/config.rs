@@ -40,6 +40,10 @@ pub struct ServerConfig {
     pub max_concurrency: usize,
     /// Origins allowed by CORS (`*` for any); empty disables CORS headers.
     pub cors_origins: Vec<String>,
+    /// Order each new rig's blendshapes by the five importance metrics and build its 50/25/10 %
+    /// mesh levels in the background after registration (and at start for stored rigs that
+    /// still have the import's quick order).
+    pub auto_lod: bool,
 }
 
 impl Default for ServerConfig {
@@ -60,6 +64,7 @@ impl Default for ServerConfig {
             admin_timeout: Duration::from_secs(300),
             max_concurrency: 2048,
             cors_origins: Vec::new(),
+            auto_lod: true,
         }
     }
 }

@@ -19,6 +19,7 @@ mod api;
 pub mod bench;
 pub mod config;
 pub mod error;
+mod lod;
 pub mod metrics;
 pub mod registry;
 pub mod scheduler;
@@ -98,6 +99,8 @@ pub struct Inner {
     uploads: Semaphore,
     /// Requests being handled; past `max_concurrency` new ones are shed.
     inflight: Arc<Semaphore>,
+    /// Background LOD computations by rig id.
+    lod_jobs: lod::LodJobs,
 }
 
 impl std::ops::Deref for AppState {
@@ -167,6 +170,7 @@ impl AppState {
             inflight: Arc::new(Semaphore::new(
                 config_concurrency.clamp(1, Semaphore::MAX_PERMITS),
             )),
+            lod_jobs: lod::LodJobs::default(),
         })))
     }
 
@@ -195,6 +199,10 @@ impl AppState {
             }
         }
         self.ready.store(true, Ordering::Release);
+        // Rigs that still have the import's quick order get the metric-based one.
+        for entry in self.registry.all() {
+            self.start_auto_lod(&entry);
+        }
     }
 
     fn skip(&self, why: String) {
@@ -369,6 +377,7 @@ pub fn app(state: AppState) -> Router {
         .route("/v1/rigs", post(api::upload_rig).get(api::list_rigs))
         .route("/v1/rigs/{id}", get(api::get_rig).delete(api::delete_rig))
         .route("/v1/rigs/{id}/mesh", get(api::get_mesh))
+        .route("/v1/rigs/{id}/lod", get(lod::get_lod).put(lod::put_lod))
         .route(
             "/v1/rigs/{id}/clips",
             post(api::upload_clips).get(api::list_clips),
@@ -480,6 +489,14 @@ pub async fn serve(
     }
     let loader = state.clone();
     tokio::spawn(async move { loader.load_stored().await });
+    // Responses go out as a header write then body writes; without TCP_NODELAY, Nagle's
+    // algorithm holds the tail back until the client's delayed ACK (≈40 ms) at moderate load.
+    use axum::serve::ListenerExt;
+    let listener = listener.tap_io(|tcp| {
+        if let Err(error) = tcp.set_nodelay(true) {
+            tracing::warn!(%error, "cannot set TCP_NODELAY");
+        }
+    });
     let result = axum::serve(listener, app(state.clone()))
         .with_graceful_shutdown(shutdown)
         .await;

@@ -11,7 +11,8 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, RwLock};
 
 use crowdmorph_proto::{
-    Aabb, Blob, ClipInfo, Memory, MeshPrimitive, MeshResponse, PrimitiveInfo, Quantization, RigInfo,
+    Aabb, Blob, ClipInfo, LodInfo, LodLevelInfo, Memory, MeshPrimitive, MeshResponse,
+    PrimitiveInfo, Quantization, RigInfo,
 };
 use glam::DVec3;
 
@@ -68,7 +69,7 @@ impl RigEntry {
                 .collect(),
             targets: rig.targets.clone(),
             clips: clip_infos(rig),
-            lod_levels: rig.lod.levels.iter().map(|l| l.shapes).collect(),
+            lod: self.lod_info(),
             bbox: Aabb {
                 min: bbox.min.to_array(),
                 max: bbox.max.to_array(),
@@ -80,13 +81,48 @@ impl RigEntry {
         }
     }
 
-    /// Topology and neutral geometry, fetched once by clients.
-    pub fn mesh(&self) -> MeshResponse {
+    /// The rig's LOD as the API reports it; `status` is `imported` until the metric-based
+    /// order has been computed, then `ready` (the API overlays `computing`/`failed` from the
+    /// background job).
+    pub fn lod_info(&self) -> LodInfo {
         let rig = self.rig();
-        let bbox = rig.bbox();
+        let lod = &rig.lod;
+        let name = |t: &u32| rig.targets.get(*t as usize).cloned().unwrap_or_default();
+        LodInfo {
+            method: lod.method.clone(),
+            status: if lod.method == crate::rig::IMPORT_LOD_METHOD {
+                "imported".into()
+            } else {
+                "ready".into()
+            },
+            progress: 1.0,
+            error: None,
+            order: lod.order.iter().map(name).collect(),
+            pinned: lod.pinned.iter().map(name).collect(),
+            levels: (0..lod.levels.len() as u32)
+                .map(|l| {
+                    let at = self.prepared.at_level(l).rig();
+                    LodLevelInfo {
+                        shapes: lod.levels[l as usize].shapes,
+                        mesh: lod.levels[l as usize].mesh,
+                        vertices: at.vertex_count() as u32,
+                        triangles: at.triangle_count() as u32,
+                    }
+                })
+                .collect(),
+        }
+    }
+
+    /// Topology and neutral geometry of the mesh LOD level `lod` uses (level 0: the full
+    /// mesh), fetched once by clients.
+    pub fn mesh(&self, lod: u32) -> MeshResponse {
+        let full_bbox = self.rig().bbox();
+        let rig = self.prepared.at_level(lod).rig();
+        let vertices = rig.vertex_count();
+        let bbox = full_bbox;
         let mut indices = Vec::with_capacity(rig.triangle_count() * 12);
-        let mut positions = Vec::with_capacity(self.vertices * 12);
-        let mut normals = Vec::with_capacity(self.vertices * 12);
+        let mut positions = Vec::with_capacity(vertices * 12);
+        let mut normals = Vec::with_capacity(vertices * 12);
         let mut prims = Vec::with_capacity(rig.primitives.len());
         let mut first_vertex = 0u32;
         let mut first_index = 0u32;
@@ -116,7 +152,8 @@ impl RigEntry {
         }
         MeshResponse {
             rig: self.id.clone(),
-            vertices: self.vertices as u32,
+            lod,
+            vertices: vertices as u32,
             primitives: prims,
             bbox: Aabb {
                 min: bbox.min.to_array(),

@@ -29,9 +29,7 @@ use tokio::sync::{mpsc, oneshot};
 
 use super::metrics::Metrics;
 use super::registry::{RigEntry, quantize_normals, quantize_positions};
-use crate::engine::{
-    BackendKind, BlendJob, BlendOutput, Engine, OutputSpec, Precision, VertexData, WeightBatch,
-};
+use crate::engine::{BlendJob, BlendOutput, Engine, OutputSpec, Precision, VertexData};
 
 /// One unique job of a crowd request, resolved against a rig entry.
 #[derive(Clone, Debug)]
@@ -408,7 +406,9 @@ impl State {
         self.next_batch += 1;
         let mut cost = 0u64;
         let mut groups: Vec<WorkGroup> = Vec::new();
-        let mut at: HashMap<(u64, bool, bool), usize> = HashMap::new();
+        // One engine call per rig version, output kind and mesh level (LOD levels on a
+        // simplified mesh produce buffers of a different size).
+        let mut at: HashMap<(u64, bool, bool, Option<usize>), usize> = HashMap::new();
         let mut jobs = 0usize;
         while cost < self.cfg.batch_cost {
             let Some(id) = self.pending.pop_front() else {
@@ -448,6 +448,7 @@ impl State {
                 slot.key.generation,
                 precision == Precision::F16,
                 slot.key.normals,
+                slot.entry.prepared.mesh_of(slot.key.lod),
             );
             let g = *at.entry(gkey).or_insert_with(|| {
                 groups.push(WorkGroup {
@@ -705,27 +706,18 @@ fn compute_thread(
 type GroupResult = Result<(Vec<JobOutput>, Option<u64>), String>;
 
 fn evaluate_group(engine: &Engine, pool: &Arc<BufferPool>, group: &WorkGroup) -> GroupResult {
-    let (out, gpu_ns) = if engine.info().kind == BackendKind::Cpu {
-        // The CPU engine can write into warm pooled buffers; this is exactly what
-        // `Engine::evaluate` does on the CPU, minus the fresh allocation.
-        let f16 = group.spec.precision == Precision::F16;
-        let mut out = BlendOutput {
-            positions: pool.take(f16),
-            normals: group.spec.normals.then(|| pool.take(f16)),
-            ..BlendOutput::default()
-        };
-        let rig = &group.entry.prepared;
-        let batch = WeightBatch::gather(rig.rig(), &group.jobs).map_err(|e| e.to_string())?;
-        rig.cpu()
-            .evaluate_into(&batch, group.spec, &mut out)
-            .map_err(|e| e.to_string())?;
-        (out, None)
-    } else {
-        let eval = engine
-            .evaluate(&group.entry.prepared, &group.jobs, group.spec)
-            .map_err(|e| e.to_string())?;
-        (eval.output, eval.timings.gpu_ns)
+    // Warm pooled buffers: the CPU engine writes into them (no page faults); the GPU engine
+    // replaces them with its readback.
+    let f16 = group.spec.precision == Precision::F16;
+    let mut out = BlendOutput {
+        positions: pool.take(f16),
+        normals: group.spec.normals.then(|| pool.take(f16)),
+        ..BlendOutput::default()
     };
+    let (timings, _) = engine
+        .evaluate_into(&group.entry.prepared, &group.jobs, group.spec, &mut out)
+        .map_err(|e| e.to_string())?;
+    let gpu_ns = timings.gpu_ns;
     let v3 = out.vertices * 3;
     let n = group.jobs.len();
     let comp = match group.spec.precision {

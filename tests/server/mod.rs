@@ -6,6 +6,7 @@ mod api;
 mod bad_input;
 mod concurrency;
 mod golden;
+mod lod;
 mod overload;
 mod persistence;
 
@@ -28,8 +29,19 @@ pub struct TestServer {
 }
 
 impl TestServer {
-    /// Starts a server and waits until it is ready.
+    /// Starts a server and waits until it is ready. The background LOD job is off, so that
+    /// frames compare against the rig exactly as uploaded; `tests/server/lod.rs` turns it on
+    /// with [`TestServer::start_with_auto_lod`].
     pub async fn start(config: ServerConfig) -> TestServer {
+        Self::start_with_auto_lod(ServerConfig {
+            auto_lod: false,
+            ..config
+        })
+        .await
+    }
+
+    /// Starts a server with `config` as given (the background LOD job as configured).
+    pub async fn start_with_auto_lod(config: ServerConfig) -> TestServer {
         let state = AppState::new(config).expect("server state");
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
             .await

@@ -8,7 +8,7 @@
 use bytes::Bytes;
 use crowdmorph_proto::{
     CONTENT_TYPE_BINCODE, CONTENT_TYPE_JSON, ClipList, ClipUpload, CrowdFrameRequest,
-    CrowdFrameResponse, ErrorBody, MeshResponse, RigInfo, RigList,
+    CrowdFrameResponse, ErrorBody, LodInfo, LodRequest, MeshResponse, RigInfo, RigList,
 };
 use http_body_util::{BodyExt, Full};
 use hyper::{Request, StatusCode};
@@ -263,6 +263,38 @@ impl Client {
     /// `GET /v1/rigs/{id}/mesh`.
     pub async fn mesh(&self, id: &str, enc: Encoding) -> Result<MeshResponse, ClientError> {
         self.get(&format!("/v1/rigs/{id}/mesh"), enc).await
+    }
+
+    /// `GET /v1/rigs/{id}/mesh?lod=L`: the (possibly simplified) mesh LOD level `lod` uses.
+    pub async fn mesh_at(
+        &self,
+        id: &str,
+        lod: u32,
+        enc: Encoding,
+    ) -> Result<MeshResponse, ClientError> {
+        self.get(&format!("/v1/rigs/{id}/mesh?lod={lod}"), enc)
+            .await
+    }
+
+    /// `GET /v1/rigs/{id}/lod`.
+    pub async fn lod(&self, id: &str) -> Result<LodInfo, ClientError> {
+        self.get(&format!("/v1/rigs/{id}/lod"), Encoding::Json)
+            .await
+    }
+
+    /// `PUT /v1/rigs/{id}/lod`: rebuilds the rig's order, table and mesh levels.
+    pub async fn set_lod(&self, id: &str, request: &LodRequest) -> Result<RigInfo, ClientError> {
+        let body = Self::encode(request, Encoding::Json)?;
+        let reply = self
+            .send(
+                Method::PUT,
+                &format!("/v1/rigs/{id}/lod"),
+                Some(CONTENT_TYPE_JSON),
+                Some(CONTENT_TYPE_JSON),
+                body,
+            )
+            .await?;
+        Self::decode(reply, Encoding::Json)
     }
 
     /// `POST /v1/rigs/{id}/clips?name=NAME` with a CSV, JSON or glTF body of `content_type`.

@@ -1,0 +1,274 @@
+//! Level of detail on the server: `GET`/`PUT /v1/rigs/{id}/lod`, and the background job that
+//! orders every newly registered rig's blendshapes by the five metrics of Costigan et al. 2016
+//! and builds its simplified mesh levels.
+//!
+//! A rig is usable the moment it is registered, with the import's quick delta-energy order
+//! (`status: imported`); the job then scores the targets, simplifies the meshes and swaps in a
+//! new generation of the rig (`status: ready`), persisted like any other change. The job works
+//! on a snapshot and applies its result to whatever version of the rig is current, as long as
+//! the geometry is the one it scored — LOD depends on geometry and targets, not on clips, so
+//! clips uploaded meanwhile are kept. A `PUT` or a delete cancels a running job.
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+
+use axum::body::Body;
+use axum::extract::{Path, State};
+use axum::http::{HeaderMap, StatusCode};
+use crowdmorph_proto::{LodInfo, LodRequest, RigInfo};
+
+use super::api::{ApiResult, blocking, decode, read_body, respond};
+use super::registry::RigEntry;
+use super::{ApiError, AppState};
+use crate::lod::{LevelSpec, LodBuildError, LodSpec, OrderMethod, Progress, build_lod};
+use crate::rig::{Lod, Rig};
+
+/// Mesh levels the background job builds, as fractions of the triangles (the 50, 25
+/// and 10 %); with the default table, LOD levels 1, 2 and 3 use them.
+pub const AUTO_MESH_FRACTIONS: [f32; 3] = [0.5, 0.25, 0.1];
+
+/// A running or failed LOD computation.
+#[derive(Debug, Default)]
+pub struct LodJob {
+    progress: Arc<Progress>,
+    failed: Mutex<Option<String>>,
+}
+
+/// The jobs by rig id.
+#[derive(Debug, Default)]
+pub struct LodJobs(Mutex<HashMap<String, Arc<LodJob>>>);
+
+impl LodJobs {
+    fn get(&self, id: &str) -> Option<Arc<LodJob>> {
+        self.0.lock().ok().and_then(|m| m.get(id).cloned())
+    }
+
+    /// Cancels and forgets the job of a rig (on delete, or before a `PUT` replaces it).
+    pub fn cancel(&self, id: &str) {
+        if let Some(job) = self.0.lock().ok().and_then(|mut m| m.remove(id)) {
+            job.progress.cancel();
+        }
+    }
+
+    fn start(&self, id: &str) -> Arc<LodJob> {
+        self.cancel(id);
+        let job = Arc::new(LodJob::default());
+        if let Ok(mut m) = self.0.lock() {
+            m.insert(id.to_string(), job.clone());
+        }
+        job
+    }
+
+    fn finish(&self, id: &str, job: &Arc<LodJob>) {
+        if let Ok(mut m) = self.0.lock()
+            && m.get(id).is_some_and(|j| Arc::ptr_eq(j, job))
+        {
+            m.remove(id);
+        }
+    }
+}
+
+impl AppState {
+    /// What the API reports about a rig, with the LOD job's status overlaid.
+    pub(super) fn rig_info(&self, entry: &RigEntry) -> RigInfo {
+        let mut info = entry.info();
+        info.lod = self.lod_info(entry);
+        info
+    }
+
+    fn lod_info(&self, entry: &RigEntry) -> LodInfo {
+        let mut lod = entry.lod_info();
+        if let Some(job) = self.lod_jobs.get(&entry.id) {
+            match job.failed.lock().ok().and_then(|f| f.clone()) {
+                Some(e) => {
+                    lod.status = "failed".into();
+                    lod.error = Some(e);
+                }
+                None => {
+                    lod.status = "computing".into();
+                    lod.progress = job.progress.fraction();
+                }
+            }
+        }
+        lod
+    }
+
+    /// Starts the background LOD job for a rig that still has the import's quick order.
+    pub(super) fn start_auto_lod(&self, entry: &RigEntry) {
+        if !self.config.auto_lod || entry.rig().lod.method != crate::rig::IMPORT_LOD_METHOD {
+            return;
+        }
+        let spec = LodSpec {
+            mesh_fractions: AUTO_MESH_FRACTIONS.to_vec(),
+            ..LodSpec::default()
+        };
+        let job = self.lod_jobs.start(&entry.id);
+        let state = self.clone();
+        let id = entry.id.clone();
+        let rig = entry.prepared.rig().clone();
+        tokio::spawn(async move {
+            let progress = job.progress.clone();
+            let snapshot = rig.clone();
+            let built = tokio::task::spawn_blocking(move || {
+                build_lod(&snapshot, &spec, None, Some(&progress))
+            })
+            .await;
+            let outcome = match built {
+                Ok(Ok(lod)) => apply(&state, &id, &rig, lod).await.map(|_| ()),
+                Ok(Err(LodBuildError::Cancelled)) => return,
+                Ok(Err(e)) => Err(ApiError::bad_request("invalid_lod", e.to_string())),
+                Err(e) => Err(ApiError::internal(e)),
+            };
+            match outcome {
+                Ok(()) => {
+                    tracing::info!(rig = %id, "metric-ordered LOD and mesh levels ready");
+                    state.lod_jobs.finish(&id, &job);
+                }
+                Err(e) => {
+                    tracing::warn!(rig = %id, error = %e.message, "background LOD failed; the rig keeps its import order");
+                    if let Ok(mut f) = job.failed.lock() {
+                        *f = Some(e.message.to_string());
+                    }
+                }
+            }
+        });
+    }
+}
+
+/// Swaps in a new generation of rig `id` with `lod`, if its geometry is still the one `scored`
+/// had; persists it first, like every change.
+async fn apply(
+    state: &AppState,
+    id: &str,
+    scored: &Rig,
+    lod: Lod,
+) -> Result<Arc<RigEntry>, ApiError> {
+    let _admin = state.admin.lock().await;
+    let entry = state.registry.get(id).ok_or_else(|| {
+        ApiError::not_found(
+            "unknown_rig",
+            format!("rig {id:?} was deleted while its LOD was computed"),
+        )
+    })?;
+    if entry.rig().primitives != scored.primitives || entry.rig().targets != scored.targets {
+        return Err(ApiError::new(
+            StatusCode::CONFLICT,
+            "rig_changed",
+            format!("rig {id:?} changed while its LOD was computed"),
+        ));
+    }
+    let mut rig = entry.rig().clone();
+    rig.lod = lod;
+    rig.validate()
+        .map_err(|e| ApiError::bad_request("invalid_lod", e.to_string()))?;
+    let rig = Arc::new(rig);
+    state
+        .persist(
+            id,
+            rig.clone(),
+            entry.builtin.then_some(entry.builtin_clips),
+        )
+        .await?;
+    let engine = state.engine.clone();
+    let for_engine = rig.clone();
+    let prepared = blocking(move || {
+        engine.prepare(for_engine).map_err(|e| {
+            ApiError::new(
+                StatusCode::UNPROCESSABLE_ENTITY,
+                "cannot_prepare",
+                e.to_string(),
+            )
+        })
+    })
+    .await?;
+    let next = Arc::new(RigEntry {
+        id: entry.id.clone(),
+        builtin: entry.builtin,
+        builtin_clips: entry.builtin_clips,
+        vertices: entry.vertices,
+        qbox: entry.qbox,
+        generation: state.registry.generation(),
+        prepared,
+    });
+    state.registry.insert(next.clone());
+    Ok(next)
+}
+
+/// The build spec a `PUT` asks for.
+fn spec_of(req: &LodRequest) -> Result<LodSpec, ApiError> {
+    let method = match &req.method {
+        None => OrderMethod::Combined,
+        Some(m) => OrderMethod::from_name(m).ok_or_else(|| {
+            let names: Vec<&str> = OrderMethod::all().iter().map(|m| m.name()).collect();
+            ApiError::bad_request(
+                "invalid_lod",
+                format!("unknown method {m:?} (methods: {})", names.join(", ")),
+            )
+        })?,
+    };
+    if let Some(f) = req
+        .mesh_fractions
+        .iter()
+        .find(|f| !(f.is_finite() && **f > 0.0 && **f <= 1.0))
+    {
+        return Err(ApiError::bad_request(
+            "invalid_lod",
+            format!("mesh fraction {f} is not in (0, 1]"),
+        ));
+    }
+    Ok(LodSpec {
+        method,
+        order: req.order.clone(),
+        pinned: req.pinned.clone(),
+        levels: req.levels.as_ref().map(|levels| {
+            levels
+                .iter()
+                .map(|l| LevelSpec {
+                    shapes: Some(l.shapes),
+                    fraction: None,
+                    mesh: l.mesh,
+                })
+                .collect()
+        }),
+        mesh_fractions: req.mesh_fractions.clone(),
+        ..LodSpec::default()
+    })
+}
+
+/// `GET /v1/rigs/{id}/lod`.
+pub(super) async fn get_lod(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> ApiResult {
+    state.check_ready()?;
+    let entry = state.rig(&id)?;
+    respond(&headers, StatusCode::OK, &state.lod_info(&entry))
+}
+
+/// `PUT /v1/rigs/{id}/lod`: rebuilds the order, table and mesh levels as asked, then answers
+/// with the rig (its new generation is what later frames use).
+pub(super) async fn put_lod(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+    body: Body,
+) -> ApiResult {
+    state.check_admin(&headers)?;
+    state.check_ready()?;
+    let bytes = read_body(&headers, body, state.config.max_request_bytes).await?;
+    let req: LodRequest = decode(&headers, &bytes)?;
+    let spec = spec_of(&req)?;
+    let entry = state.rig(&id)?;
+    state.lod_jobs.cancel(&id);
+    let rig = entry.prepared.rig().clone();
+    let snapshot = rig.clone();
+    let lod = blocking(move || {
+        build_lod(&snapshot, &spec, None, None)
+            .map_err(|e| ApiError::bad_request("invalid_lod", e.to_string()))
+    })
+    .await?;
+    let entry = apply(&state, &id, &rig, lod).await?;
+    tracing::info!(rig = %id, method = %entry.rig().lod.method, "LOD set");
+    respond(&headers, StatusCode::OK, &state.rig_info(&entry))
+}

@@ -1,0 +1,377 @@
+//! Level of detail over HTTP: the background job that gives every rig a metric-based order and
+//! mesh levels, `PUT /v1/rigs/{id}/lod`, frames and meshes at simplified levels (checked
+//! against the CPU engine on the server's own rig), persistence of a computed LOD, and bad
+//! LOD requests.
+//!
+//! Tolerance: positions within 1e-5 × the bounding-box diagonal of the CPU engine's output
+//! for the same rig version (bitwise equal on a CPU backend).
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use crowdmorph::engine::{BlendJob, Engine, OutputSpec};
+use crowdmorph::server::ServerConfig;
+use crowdmorph_client::{ClientError, Encoding};
+use crowdmorph_proto::{
+    CrowdFrameRequest, Format, Head, LodInfo, LodLevelRequest, LodRequest, OutputOptions,
+};
+
+use super::{TestServer, positions_f32, temp_dir, upload_bytes};
+use crate::util::rig_files;
+
+/// Polls a rig's LOD until the background job has finished.
+async fn wait_ready(server: &TestServer, id: &str) -> LodInfo {
+    let start = Instant::now();
+    loop {
+        let lod = server.client.lod(id).await.expect("GET lod");
+        match lod.status.as_str() {
+            "ready" => return lod,
+            "failed" => panic!("LOD of {id} failed: {:?}", lod.error),
+            s => assert!(s == "computing" || s == "imported", "unexpected status {s}"),
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(300),
+            "LOD of {id} not ready: {lod:?}"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+/// Frames one head per LOD level and checks each buffer against the CPU engine evaluating
+/// the server's current version of the rig, and against that level's mesh.
+async fn check_levels(server: &TestServer, id: &str, clip: &str, frame: u32) {
+    let entry = server.state.registry.get(id).expect("registered");
+    let rig = entry.rig().clone();
+    let info = server.client.rig(id).await.expect("rig info");
+    let levels = info.lod.levels.len() as u32;
+    let req = CrowdFrameRequest {
+        heads: (0..levels)
+            .map(|lod| Head {
+                head: u64::from(lod),
+                rig: id.to_string(),
+                clip: clip.to_string(),
+                frame: i64::from(frame),
+                lod,
+            })
+            .collect(),
+        output: OutputOptions {
+            normals: false,
+            format: Format::F32,
+        },
+        wrap: true,
+    };
+    let (resp, _) = server
+        .client
+        .crowd_frame(&req, Encoding::Bincode)
+        .await
+        .expect("frame");
+    let engine = Engine::cpu();
+    let prepared = engine.prepare(Arc::new(rig.clone())).expect("prepare");
+    let ci = rig.clip_index(clip).expect("clip") as u32;
+    let diag = rig.bbox().diagonal();
+    for (lod, h) in resp.heads.iter().enumerate() {
+        let buffer = &resp.buffers[h.buffer as usize];
+        let level = &info.lod.levels[lod];
+        assert_eq!(
+            buffer.vertices, level.vertices,
+            "level {lod}: buffer size is the level's mesh"
+        );
+        let want = engine
+            .evaluate(
+                &prepared,
+                &[BlendJob {
+                    clip: ci,
+                    frame,
+                    lod: lod as u32,
+                }],
+                OutputSpec::default(),
+            )
+            .expect("evaluate");
+        let got = positions_f32(Format::F32, buffer);
+        let expected = want.output.job_positions(0);
+        assert_eq!(got.len(), expected.len());
+        let d = got
+            .iter()
+            .zip(&expected)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f32::max);
+        assert!(d <= 1e-5 * diag, "level {lod}: differs by {d}");
+        let mesh = server
+            .client
+            .mesh_at(id, lod as u32, Encoding::Bincode)
+            .await
+            .expect("mesh");
+        assert_eq!(mesh.vertices, level.vertices, "level {lod}: mesh vertices");
+        assert_eq!(
+            mesh.indices.0.len() / 4,
+            level.triangles as usize * 3,
+            "level {lod}: mesh triangles"
+        );
+        assert!(
+            mesh.indices
+                .0
+                .chunks_exact(4)
+                .all(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) < level.vertices),
+            "level {lod}: indices within the level's vertices"
+        );
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn rigs_get_a_metric_order_and_mesh_levels_in_the_background() {
+    let server = TestServer::start_with_auto_lod(ServerConfig::default()).await;
+    // The embedded rig starts with the import's quick order and gets the combined one.
+    let lod = wait_ready(&server, "default-head").await;
+    assert_eq!(lod.method, "combined");
+    assert_eq!(lod.levels.len(), 5);
+    assert_eq!(lod.levels[0].mesh, None, "level 0 is the full mesh");
+    let full = lod.levels[0].vertices;
+    for l in 1..4 {
+        assert_eq!(
+            lod.levels[l].mesh,
+            Some(l as u32 - 1),
+            "levels 1-3 use the 50/25/10 % meshes"
+        );
+        assert!(
+            lod.levels[l].vertices < lod.levels[l - 1].vertices
+                || l == 1 && lod.levels[1].vertices < full
+        );
+    }
+    assert!(
+        lod.levels[3].triangles * 8 < lod.levels[0].triangles,
+        "10 % mesh: {lod:?}"
+    );
+    check_levels(&server, "default-head", "talk", 17).await;
+
+    // An uploaded rig too.
+    if let Some(files) = rig_files() {
+        let stress = files
+            .iter()
+            .find(|f| f.ends_with("MorphStressTest.gltf"))
+            .expect("file");
+        server
+            .client
+            .upload_rig("stress", upload_bytes(stress))
+            .await
+            .expect("upload");
+        let lod = wait_ready(&server, "stress").await;
+        assert_eq!(lod.method, "combined");
+        check_levels(&server, "stress", "TheWave", 20).await;
+    }
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn put_lod_sets_order_pins_and_table() {
+    let server = TestServer::start(ServerConfig {
+        admin_token: Some("secret".into()),
+        ..ServerConfig::default()
+    })
+    .await;
+    let admin = server.client.clone().with_token("secret");
+    let before = server.client.lod("default-head").await.expect("lod");
+    assert_eq!(before.status, "imported");
+
+    let request = LodRequest {
+        method: Some("file-order".into()),
+        pinned: vec!["eyeBlink_L".into(), "eyeBlink_R".into()],
+        levels: Some(vec![
+            LodLevelRequest {
+                shapes: 51,
+                mesh: None,
+            },
+            LodLevelRequest {
+                shapes: 10,
+                mesh: None,
+            },
+            LodLevelRequest {
+                shapes: 4,
+                mesh: Some(0),
+            },
+        ]),
+        mesh_fractions: vec![0.3],
+        ..LodRequest::default()
+    };
+    // Uploads and deletes need the token; so does changing the LOD.
+    let denied = server
+        .client
+        .set_lod("default-head", &request)
+        .await
+        .expect_err("no token");
+    assert!(
+        matches!(denied, ClientError::Api { status: 401, .. }),
+        "{denied}"
+    );
+
+    let info = admin
+        .set_lod("default-head", &request)
+        .await
+        .expect("PUT lod");
+    assert_eq!(info.lod.method, "file-order+pinned");
+    assert_eq!(info.lod.status, "ready");
+    assert_eq!(
+        &info.lod.order[..2],
+        ["eyeBlink_L", "eyeBlink_R"],
+        "pins lead the order"
+    );
+    assert_eq!(info.lod.pinned, vec!["eyeBlink_L", "eyeBlink_R"]);
+    let shapes: Vec<u32> = info.lod.levels.iter().map(|l| l.shapes).collect();
+    assert_eq!(shapes, vec![51, 10, 4]);
+    assert_eq!(info.lod.levels[2].mesh, Some(0));
+    assert!(info.lod.levels[2].vertices < info.lod.levels[0].vertices);
+    // The rest of file order follows the pins.
+    let rig = server
+        .state
+        .registry
+        .get("default-head")
+        .expect("rig")
+        .rig()
+        .clone();
+    let rest: Vec<&String> = rig
+        .targets
+        .iter()
+        .filter(|t| !t.starts_with("eyeBlink"))
+        .collect();
+    assert_eq!(info.lod.order[2..].iter().collect::<Vec<_>>(), rest);
+    check_levels(&server, "default-head", "idle", 40).await;
+
+    // Bad requests name the problem and change nothing.
+    for (bad, needle) in [
+        (
+            LodRequest {
+                method: Some("loudness".into()),
+                ..LodRequest::default()
+            },
+            "unknown method",
+        ),
+        (
+            LodRequest {
+                pinned: vec!["noSuchShape".into()],
+                ..LodRequest::default()
+            },
+            "noSuchShape",
+        ),
+        (
+            LodRequest {
+                mesh_fractions: vec![2.0],
+                ..LodRequest::default()
+            },
+            "mesh fraction",
+        ),
+        (
+            LodRequest {
+                levels: Some(vec![LodLevelRequest {
+                    shapes: 10,
+                    mesh: None,
+                }]),
+                ..LodRequest::default()
+            },
+            "level 0",
+        ),
+        (
+            LodRequest {
+                levels: Some(vec![
+                    LodLevelRequest {
+                        shapes: 51,
+                        mesh: None,
+                    },
+                    LodLevelRequest {
+                        shapes: 5,
+                        mesh: Some(3),
+                    },
+                ]),
+                ..LodRequest::default()
+            },
+            "mesh",
+        ),
+    ] {
+        match admin.set_lod("default-head", &bad).await {
+            Err(ClientError::Api {
+                status: 400,
+                code,
+                message,
+            }) => {
+                assert_eq!(code, "invalid_lod");
+                assert!(
+                    message.contains(needle),
+                    "{message:?} should mention {needle:?}"
+                );
+            }
+            other => panic!("{bad:?}: expected a 400, got {other:?}"),
+        }
+    }
+    let after = server.client.lod("default-head").await.expect("lod");
+    assert_eq!(
+        after, info.lod,
+        "a refused request leaves the LOD as it was"
+    );
+    match server
+        .client
+        .mesh_at("default-head", 9, Encoding::Json)
+        .await
+    {
+        Err(ClientError::Api {
+            status: 400, code, ..
+        }) => assert_eq!(code, "lod_out_of_range"),
+        other => panic!("expected lod_out_of_range, got {other:?}"),
+    }
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_computed_lod_survives_a_restart() {
+    let Some(files) = rig_files() else { return };
+    let dir = temp_dir("lod-restart");
+    let config = ServerConfig {
+        data_dir: Some(dir.clone()),
+        ..ServerConfig::default()
+    };
+    let stress = files
+        .iter()
+        .find(|f| f.ends_with("MorphStressTest.gltf"))
+        .expect("file");
+    let s1 = TestServer::start_with_auto_lod(config.clone()).await;
+    s1.client
+        .upload_rig("stress", upload_bytes(stress))
+        .await
+        .expect("upload");
+    let computed = wait_ready(&s1, "stress").await;
+    s1.stop().await;
+
+    // Back with the background job off: the stored rig already has its computed LOD.
+    let s2 = TestServer::start(config).await;
+    let reloaded = s2.client.lod("stress").await.expect("lod");
+    assert_eq!(
+        reloaded, computed,
+        "order, table and mesh levels persisted with the rig"
+    );
+    check_levels(&s2, "stress", "Pulse", 33).await;
+    s2.stop().await;
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn deleting_a_rig_cancels_its_lod_job() {
+    let Some(files) = rig_files() else { return };
+    let server = TestServer::start_with_auto_lod(ServerConfig::default()).await;
+    let ict = files
+        .iter()
+        .find(|f| f.ends_with("ict_facekit_53.glb"))
+        .expect("ICT");
+    server
+        .client
+        .upload_rig("ict", upload_bytes(ict))
+        .await
+        .expect("upload");
+    server.client.delete_rig("ict").await.expect("delete");
+    // The job notices the cancellation or finds the rig gone; either way nothing comes back.
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    assert!(server.state.registry.get("ict").is_none());
+    assert!(matches!(
+        server.client.lod("ict").await,
+        Err(ClientError::Api { status: 404, .. })
+    ));
+    // The server still serves.
+    wait_ready(&server, "default-head").await;
+    server.stop().await;
+}
