@@ -146,6 +146,9 @@ enum BenchCommand {
         /// Write the table as a PNG plot (like the paper's Figures 5 and 6).
         #[arg(long)]
         plot: Option<PathBuf>,
+        /// Also run the same scenes on the CPU engine (a second table, same plot).
+        #[arg(long)]
+        with_cpu: bool,
         /// Print JSON.
         #[arg(long)]
         json: bool,
@@ -404,6 +407,7 @@ fn main() -> Result<()> {
                     backend,
                     seconds,
                     plot,
+                    with_cpu,
                     json,
                 },
         } => {
@@ -416,14 +420,19 @@ fn main() -> Result<()> {
             for p in &rig {
                 rigs.push(tools::load_rig(Some(p))?);
             }
-            let report = bench_gpu::bench_gpu(&engine, &rigs, seconds)?;
+            let mut reports = vec![bench_gpu::bench_gpu(&engine, &rigs, seconds)?];
+            if with_cpu {
+                reports.push(bench_gpu::bench_gpu(&Engine::cpu(), &rigs, seconds)?);
+            }
             if let Some(path) = &plot {
-                bench_gpu::write_plot(std::slice::from_ref(&report), path)?;
+                bench_gpu::write_plot(&reports, path)?;
             }
             if json {
-                println!("{}", serde_json::to_string_pretty(&report)?);
+                println!("{}", serde_json::to_string_pretty(&reports)?);
             } else {
-                print!("{}", bench_gpu::report_text(&report));
+                for r in &reports {
+                    print!("{}", bench_gpu::report_text(r));
+                }
             }
         }
         Command::Serve(args) => run_serve(*args)?,

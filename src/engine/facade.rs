@@ -369,7 +369,7 @@ impl Engine {
     /// Prepares a rig: builds the CPU layout and, on a GPU, uploads geometry, deltas, clip
     /// tables and LOD order. A rig the GPU cannot hold is refused with `DoesNotFit`.
     pub fn prepare(&self, rig: Arc<Rig>) -> Result<PreparedRig, EngineError> {
-        let meshes = crate::lod::mesh_level_rigs(&rig)
+        let meshes = crate::rig::mesh_level_rigs(&rig)
             .map_err(|e| EngineError::Mesh(e.to_string()))?
             .into_iter()
             .map(|derived| self.prepare(Arc::new(derived)))
@@ -423,7 +423,7 @@ impl Engine {
         };
         // Mesh levels share the clips; give each its new tables too.
         let derived =
-            crate::lod::mesh_level_rigs(&rig).map_err(|e| EngineError::Mesh(e.to_string()))?;
+            crate::rig::mesh_level_rigs(&rig).map_err(|e| EngineError::Mesh(e.to_string()))?;
         let meshes = derived
             .into_iter()
             .zip(&prepared.meshes)

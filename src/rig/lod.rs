@@ -6,8 +6,8 @@
 //!
 //! A level may also name a simplified mesh ([`MeshLevel`]): a subset of each primitive's
 //! vertices with its own triangles, so a far head costs fewer vertices as well as fewer shapes.
-//! The mesh levels are pure data here; `crate::lod` builds them and derives the rig an engine
-//! evaluates for them. Fields added after the first release carry `#[serde(default)]` so that
+//! The mesh levels are pure data here; `crate::lod` builds them, and `MeshLevel::derive_rig`
+//! (in `mesh_level.rs`) derives the rig an engine evaluates for them. Fields added after the first release carry `#[serde(default)]` so that
 //! rigs persisted before them still read back; they are always written (no
 //! `skip_serializing_if`), so non-self-describing encodings such as bincode stay symmetric.
 

@@ -15,12 +15,14 @@
 
 mod clip;
 mod lod;
+mod mesh_level;
 mod sample;
 
 pub use clip::{Clip, ClipError, DEFAULT_FPS, FrameMode, MAX_FRAMES};
 pub use lod::{
     IMPORT_LOD_METHOD, Lod, LodError, LodLevel, MeshLevel, MeshLevelPrimitive, default_lod_levels,
 };
+pub use mesh_level::mesh_level_rigs;
 pub use sample::{Interpolation, KeyTrack, sample_track};
 
 use glam::{Vec3, Vec4};

@@ -134,8 +134,9 @@ pub struct HttpBenchReport {
     pub http_heads_per_s: f64,
     /// `http_heads_per_s / inprocess_heads_per_s`.
     pub http_fraction_of_inprocess: f64,
-    /// Raw loopback TCP throughput measured in the same run (large writes, no HTTP): the most
-    /// bytes per second any server on this machine can hand to a client here.
+    /// Raw loopback TCP throughput over as many connections as the saturation run, measured in
+    /// the same run (large writes, no HTTP): the most bytes per second any server on this
+    /// machine can hand to its clients here.
     pub loopback_bytes_per_s: f64,
     /// Bincode response bytes per head of the throughput runs.
     pub response_bytes_per_head: f64,
@@ -209,35 +210,56 @@ fn crowd(
     }
 }
 
-/// Bytes per second one loopback TCP connection carries with large writes and reads: the
-/// roofline for moving response bytes from a server to a client on this machine.
-async fn loopback_throughput(seconds: f64) -> Result<f64> {
+/// Bytes per second `connections` loopback TCP connections carry together with large writes
+/// and reads, in this process's runtime (as the server and client share it): the roofline for
+/// moving response bytes from a server to its clients on this machine.
+async fn loopback_throughput(connections: usize, seconds: f64) -> Result<f64> {
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
     let addr = listener.local_addr()?;
     let deadline = Instant::now() + Duration::from_secs_f64(seconds);
-    let writer = tokio::spawn(async move {
-        let (mut tcp, _) = listener.accept().await?;
-        tcp.set_nodelay(true)?;
-        let chunk = vec![7u8; 4 << 20];
-        while Instant::now() < deadline {
-            tcp.write_all(&chunk).await?;
+    let n = connections.max(1);
+    let writers = tokio::spawn(async move {
+        let mut tasks = Vec::new();
+        for _ in 0..n {
+            let (mut tcp, _) = listener.accept().await?;
+            tcp.set_nodelay(true)?;
+            tasks.push(tokio::spawn(async move {
+                let chunk = vec![7u8; 1 << 20];
+                while Instant::now() < deadline {
+                    tcp.write_all(&chunk).await?;
+                }
+                anyhow::Ok(())
+            }));
+        }
+        for t in tasks {
+            t.await??;
         }
         anyhow::Ok(())
     });
-    let mut tcp = tokio::net::TcpStream::connect(addr).await?;
-    let mut buf = vec![0u8; 4 << 20];
     let start = Instant::now();
+    let mut readers = Vec::new();
+    for _ in 0..n {
+        let mut tcp = tokio::net::TcpStream::connect(addr).await?;
+        readers.push(tokio::spawn(async move {
+            let mut buf = vec![0u8; 1 << 20];
+            let mut total = 0usize;
+            loop {
+                let got = tcp.read(&mut buf).await?;
+                if got == 0 {
+                    break;
+                }
+                total += got;
+            }
+            anyhow::Ok(total)
+        }));
+    }
     let mut total = 0usize;
-    loop {
-        let n = tcp.read(&mut buf).await?;
-        if n == 0 {
-            break;
-        }
-        total += n;
+    for r in readers {
+        total += r.await??;
     }
     let elapsed = start.elapsed().as_secs_f64();
-    writer.await??;
+    writers.await??;
     Ok(total as f64 / elapsed)
 }
 
@@ -432,7 +454,7 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
         sat.add(t.await??)?;
     }
     let http_heads_per_s = counter.load(Ordering::Relaxed) as f64 / opt.seconds;
-    let loopback_bytes_per_s = loopback_throughput(opt.seconds.min(2.0)).await?;
+    let loopback_bytes_per_s = loopback_throughput(opt.clients, opt.seconds.min(2.0)).await?;
     let response_bytes_per_head = {
         let req = crowd(opt, &rig_id, 1, opt.format, false);
         let (_, b) = client.crowd_frame(&req, Encoding::Bincode).await?;

@@ -64,22 +64,16 @@ pub const SCENES: [(&str, usize, usize); 3] = [
 pub fn bench_gpu(engine: &Engine, rigs: &[Rig], seconds: f64) -> Result<GpuBenchReport> {
     let mut scenes = Vec::new();
     for rig in rigs {
-        let rig = crate::tools::synthetic::with_random_clip(rig.clone(), 1);
+        // A clip of its own with more frames than heads, so "100 unique" is 100 unique jobs.
+        let rig = crate::tools::synthetic::with_random_clip_of(rig.clone(), "bench", 128, 1);
+        let clip = (rig.clips.len() - 1) as u32;
         let prepared = engine
             .prepare(std::sync::Arc::new(rig.clone()))
             .with_context(|| format!("preparing {}", rig.name))?;
-        let clip = &rig.clips[0];
         for (name, heads, unique) in SCENES {
             for lod in 0..3u32.min(rig.lod.levels.len() as u32) {
                 scenes.push(measure(
-                    engine,
-                    &prepared,
-                    name,
-                    heads,
-                    unique,
-                    lod,
-                    clip.frames,
-                    seconds,
+                    engine, &prepared, name, heads, unique, clip, lod, seconds,
                 )?);
             }
         }
@@ -97,16 +91,16 @@ fn measure(
     scene: &str,
     heads: usize,
     unique: usize,
+    clip: u32,
     lod: u32,
-    frames: u32,
     seconds: f64,
 ) -> Result<SceneResult> {
     let rig = prepared.rig();
     // Heads play `unique` different frames; clones share them (the planner dedupes).
     let keys = (0..heads).map(|h| JobKey {
         rig: 0,
-        clip: 0,
-        frame: (h % unique) as u32 % frames,
+        clip,
+        frame: (h % unique) as u32,
         lod,
     });
     let plan = Plan::new(keys);

@@ -107,16 +107,25 @@ pub fn paper_scale_rig() -> Rig {
 
 /// Gives a rig without clips a deterministic random one named "random" (24 frames, weights
 /// active about two times in three), so benchmarks and GPU jobs have tables to read.
-pub fn with_random_clip(mut rig: Rig, seed: u64) -> Rig {
+pub fn with_random_clip(rig: Rig, seed: u64) -> Rig {
     if rig.clips.is_empty() {
+        with_random_clip_of(rig, "random", 24, seed)
+    } else {
+        rig
+    }
+}
+
+/// Appends a deterministic random clip `name` of `frames` frames (weights active about two
+/// times in three).
+pub fn with_random_clip_of(mut rig: Rig, name: &str, frames: usize, seed: u64) -> Rig {
+    {
         let mut rng = SplitMix(seed);
         let t = rig.targets.len();
-        let frames = 24;
         let weights = (0..t * frames)
             .map(|_| if rng.below(3) == 0 { 0.0 } else { rng.unit() })
             .collect();
         rig.clips.push(Clip {
-            name: "random".into(),
+            name: name.into(),
             fps: 30.0,
             frames: frames as u32,
             targets: t as u32,

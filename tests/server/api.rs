@@ -438,3 +438,105 @@ async fn reqwest_like_preflight(server: &TestServer) -> HashMap<String, String> 
         .map(|(k, v)| (k.trim().to_ascii_lowercase(), v.trim().to_string()))
         .collect()
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn frames_on_the_gpu_backend_match_the_cpu_engine() {
+    // `--backend gpu` takes software adapters too; in CI that is lavapipe.
+    if crowdmorph::engine::Engine::new(crowdmorph::engine::BackendChoice::Gpu).is_err() {
+        eprintln!("skipped: no GPU adapter (install mesa-vulkan-drivers for lavapipe)");
+        return;
+    }
+    let server = TestServer::start(ServerConfig {
+        backend: crowdmorph::engine::BackendChoice::Gpu,
+        ..ServerConfig::default()
+    })
+    .await;
+    assert_eq!(
+        server.state.engine.info().kind,
+        crowdmorph::engine::BackendKind::Gpu
+    );
+    let rig = server
+        .state
+        .registry
+        .get("default-head")
+        .expect("rig")
+        .rig()
+        .clone();
+    let cpu = crowdmorph::engine::Engine::cpu();
+    let prepared = cpu
+        .prepare(std::sync::Arc::new(rig.clone()))
+        .expect("prepare");
+    let diag = rig.bbox().diagonal();
+    for (format, normals) in [
+        (Format::F32, true),
+        (Format::F16, false),
+        (Format::Q16, true),
+    ] {
+        let req = crowd("default-head", &rig, format, normals);
+        let (resp, _) = server
+            .client
+            .crowd_frame(&req, Encoding::Bincode)
+            .await
+            .expect("frame");
+        assert!(
+            !server.state.engine.info().degraded,
+            "{:?}",
+            server.state.engine.info().degraded_reason
+        );
+        for (h, head) in req.heads.iter().zip(&resp.heads) {
+            let b = &resp.buffers[head.buffer as usize];
+            let ci = rig.clip_index(&h.clip).expect("clip") as u32;
+            let job = crowdmorph::engine::BlendJob {
+                clip: ci,
+                frame: b.frame,
+                lod: h.lod,
+            };
+            let want = cpu
+                .evaluate(
+                    &prepared,
+                    &[job],
+                    crowdmorph::engine::OutputSpec {
+                        normals,
+                        ..Default::default()
+                    },
+                )
+                .expect("cpu");
+            let got = positions_f32(format, b);
+            let exp = want.output.job_positions(0);
+            let max_coord = exp.iter().map(|x| x.abs()).fold(0.0, f32::max);
+            let q = b
+                .quantization
+                .map_or(0.0, |q| q.max_error.iter().copied().fold(0.0, f32::max));
+            let tol = 1e-5 * diag
+                + q
+                + if format == Format::F16 {
+                    max_coord / 1024.0
+                } else {
+                    0.0
+                };
+            let d = got
+                .iter()
+                .zip(&exp)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f32::max);
+            assert!(d <= tol, "{format:?} head {}: {d} > {tol}", h.head);
+            if normals {
+                let n = normals_f32(format, b).expect("normals");
+                let en = want.output.job_normals(0).expect("normals");
+                let d = n
+                    .iter()
+                    .zip(&en)
+                    .map(|(a, b)| (a - b).abs())
+                    .fold(0.0, f32::max);
+                assert!(d <= 2e-3, "{format:?} head {} normals: {d}", h.head);
+            }
+        }
+    }
+    let metrics = server.client.metrics().await.expect("metrics");
+    assert!(
+        crowdmorph_client::metric(&metrics, "crowdmorph_gpu_seconds_total")
+            .is_some_and(|v| v > 0.0),
+        "GPU time is reported in metrics"
+    );
+    server.stop().await;
+}
