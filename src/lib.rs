@@ -4,6 +4,7 @@
 //!
 //! | module | what it is |
 //! |---|---|
+//! | [`rng`] | SplitMix64: deterministic numbers for synthetic rigs, clips and workloads |
 //! | [`rig`] | pure data: primitives, sparse targets, clips (weight tables), LOD order; keyframe sampling math |
 //! | [`import`] | glTF/GLB, CSV and JSON readers that build a validated [`rig::Rig`] |
 //! | [`embedded`] | the procedural default rig that needs no files |
@@ -27,6 +28,7 @@ pub mod lod;
 pub mod plan;
 pub mod render;
 pub mod rig;
+pub mod rng;
 pub mod server;
 pub mod store;
 pub mod tools;

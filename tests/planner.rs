@@ -32,15 +32,7 @@ fn thousand_heads_over_ten_jobs_evaluate_ten_jobs_and_map_every_head() {
         );
     }
 
-    let jobs: Vec<BlendJob> = plan
-        .jobs
-        .iter()
-        .map(|k| BlendJob {
-            clip: k.clip,
-            frame: k.frame,
-            lod: k.lod,
-        })
-        .collect();
+    let jobs: Vec<BlendJob> = plan.jobs.iter().map(BlendJob::from).collect();
     let cpu = CpuRig::new(&rig);
     let batch = WeightBatch::gather(&rig, &jobs).expect("gather");
     let out = cpu

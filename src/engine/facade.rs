@@ -14,7 +14,7 @@ use serde::Serialize;
 use super::cpu::CpuRig;
 use super::gpu::{GpuContext, GpuError, GpuOptions, GpuRig, Pending};
 use super::{BlendJob, BlendOutput, EngineError, OutputSpec, WeightBatch};
-use crate::rig::{ClipError, Rig};
+use crate::rig::Rig;
 
 /// Which engine to use, as asked on the command line.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
@@ -145,7 +145,7 @@ impl PreparedRig {
     /// Checks every job and picks the rig they run on; all must share one mesh level.
     fn route(&self, jobs: &[BlendJob]) -> Result<&PreparedRig, EngineError> {
         for j in jobs {
-            check_job(&self.rig, j)?;
+            j.check(&self.rig)?;
         }
         let mut mesh = None;
         for (i, j) in jobs.iter().enumerate() {
@@ -198,24 +198,6 @@ impl std::fmt::Debug for Engine {
             .field("info", &self.info())
             .finish()
     }
-}
-
-/// Checks a job against its rig, with the same errors the CPU path reports.
-fn check_job(rig: &Rig, job: &BlendJob) -> Result<(), EngineError> {
-    let clip = rig
-        .clips
-        .get(job.clip as usize)
-        .ok_or(EngineError::NoSuchClip(job.clip))?;
-    if job.frame >= clip.frames {
-        return Err(ClipError::FrameOutOfRange {
-            clip: clip.name.clone(),
-            frame: i64::from(job.frame),
-            frames: clip.frames,
-        }
-        .into());
-    }
-    rig.lod.shapes_at(job.lod)?;
-    Ok(())
 }
 
 fn gpu_to_engine(e: GpuError) -> EngineError {
@@ -366,6 +348,20 @@ impl Engine {
         }
     }
 
+    /// The outcome of putting a rig on the GPU: a rig the device cannot hold is refused (the
+    /// caller's error); any other failure is a device fault, which degrades the engine and
+    /// leaves the rig host-side only.
+    fn resident(&self, r: Result<GpuRig, GpuError>) -> Result<Option<Arc<GpuRig>>, EngineError> {
+        match r {
+            Ok(g) => Ok(Some(Arc::new(g))),
+            Err(e @ (GpuError::DoesNotFit(_) | GpuError::OutOfMemory(_))) => Err(gpu_to_engine(e)),
+            Err(e) => {
+                self.degrade(&e);
+                Ok(None)
+            }
+        }
+    }
+
     /// Prepares a rig: builds the CPU layout and, on a GPU, uploads geometry, deltas, clip
     /// tables and LOD order. A rig the GPU cannot hold is refused with `DoesNotFit`.
     pub fn prepare(&self, rig: Arc<Rig>) -> Result<PreparedRig, EngineError> {
@@ -376,16 +372,7 @@ impl Engine {
             .collect::<Result<Vec<_>, _>>()?;
         let cpu = Arc::new(CpuRig::new(&rig));
         let gpu = match self.gpu_active() {
-            Some(ctx) => match GpuRig::upload(ctx, &rig) {
-                Ok(g) => Some(Arc::new(g)),
-                Err(e @ (GpuError::DoesNotFit(_) | GpuError::OutOfMemory(_))) => {
-                    return Err(gpu_to_engine(e));
-                }
-                Err(e) => {
-                    self.degrade(&e);
-                    None
-                }
-            },
+            Some(ctx) => self.resident(GpuRig::upload(ctx, &rig))?,
             None => None,
         };
         let memory = Self::memory(&rig, &cpu, gpu.as_deref(), &meshes);
@@ -409,16 +396,7 @@ impl Engine {
             return self.prepare(rig);
         }
         let gpu = match (self.gpu_active(), &prepared.gpu) {
-            (Some(ctx), Some(g)) => match g.with_clips(ctx, &rig) {
-                Ok(g) => Some(Arc::new(g)),
-                Err(e @ (GpuError::DoesNotFit(_) | GpuError::OutOfMemory(_))) => {
-                    return Err(gpu_to_engine(e));
-                }
-                Err(e) => {
-                    self.degrade(&e);
-                    None
-                }
-            },
+            (Some(ctx), Some(g)) => self.resident(g.with_clips(ctx, &rig))?,
             _ => None,
         };
         // Mesh levels share the clips; give each its new tables too.

@@ -34,6 +34,37 @@ pub struct BlendJob {
     pub lod: u32,
 }
 
+impl BlendJob {
+    /// Checks the job against its rig (clip, frame and LOD level exist) and returns how many
+    /// shapes its LOD level evaluates.
+    pub fn check(&self, rig: &Rig) -> Result<u32, EngineError> {
+        let clip = rig
+            .clips
+            .get(self.clip as usize)
+            .ok_or(EngineError::NoSuchClip(self.clip))?;
+        if self.frame >= clip.frames {
+            return Err(ClipError::FrameOutOfRange {
+                clip: clip.name.clone(),
+                frame: i64::from(self.frame),
+                frames: clip.frames,
+            }
+            .into());
+        }
+        Ok(rig.lod.shapes_at(self.lod)?)
+    }
+}
+
+impl From<&crate::plan::JobKey> for BlendJob {
+    /// The engine's view of a planned job (the rig is chosen by the caller).
+    fn from(k: &crate::plan::JobKey) -> BlendJob {
+        BlendJob {
+            clip: k.clip,
+            frame: k.frame,
+            lod: k.lod,
+        }
+    }
+}
+
 /// Scalar format of output vertex buffers.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -122,19 +153,8 @@ impl WeightBatch {
             shapes: Vec::with_capacity(jobs.len()),
         };
         for (j, job) in jobs.iter().enumerate() {
-            let clip = rig
-                .clips
-                .get(job.clip as usize)
-                .ok_or(EngineError::NoSuchClip(job.clip))?;
-            if job.frame >= clip.frames {
-                return Err(ClipError::FrameOutOfRange {
-                    clip: clip.name.clone(),
-                    frame: i64::from(job.frame),
-                    frames: clip.frames,
-                }
-                .into());
-            }
-            let shapes = rig.lod.shapes_at(job.lod)?;
+            let shapes = job.check(rig)?;
+            let clip = &rig.clips[job.clip as usize];
             let row = &mut batch.weights[j * slots..(j + 1) * slots];
             for (s, &t) in rig.lod.order.iter().enumerate().take(shapes as usize) {
                 row[s] = active(clip.weight(t as usize, job.frame));

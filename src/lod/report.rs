@@ -9,6 +9,7 @@
 //! Rigs without clips (ICT FaceKit) get a synthetic one ([`synthetic_clip`]): smooth,
 //! deterministic activations of every target, a few at a time, like captured facial animation.
 
+use crate::rng::SplitMix64;
 use std::fmt::Write as _;
 
 use serde::{Deserialize, Serialize};
@@ -76,23 +77,6 @@ impl LodReport {
     }
 }
 
-/// SplitMix64: a tiny deterministic generator, so synthetic clips are the same everywhere.
-struct SplitMix(u64);
-
-impl SplitMix {
-    fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-
-    fn unit(&mut self) -> f32 {
-        (self.next() >> 40) as f32 / (1u64 << 24) as f32
-    }
-}
-
 /// A deterministic plausible clip for a rig without animation: `frames` frames at 30 fps in
 /// which every target rises and falls in two smooth raised-cosine bumps (10–40 frames wide,
 /// peaks 0.3–1.0) at random times, so about a third of the targets are active in a frame.
@@ -101,7 +85,7 @@ pub fn synthetic_clip(rig: &Rig, name: &str, frames: usize, seed: u64) -> Result
     let frames = frames.max(1);
     let mut weights = vec![0f32; n * frames];
     for t in 0..n {
-        let mut rng = SplitMix(seed ^ (t as u64).wrapping_mul(0xA076_1D64_78BD_642F));
+        let mut rng = SplitMix64(seed ^ (t as u64).wrapping_mul(0xA076_1D64_78BD_642F));
         for _ in 0..2 {
             let centre = rng.unit() * frames as f32;
             let width = 10.0 + 30.0 * rng.unit();

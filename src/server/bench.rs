@@ -373,18 +373,9 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
                     frame: ((base + h % opt.unique) % CLIP_FRAMES) as u32,
                     lod: 0,
                 }));
-                let jobs: Vec<BlendJob> = plan
-                    .jobs
-                    .iter()
-                    .map(|k| BlendJob {
-                        clip: k.clip,
-                        frame: k.frame,
-                        lod: k.lod,
-                    })
-                    .collect();
+                let jobs: Vec<BlendJob> = plan.jobs.iter().map(BlendJob::from).collect();
                 // Warm output buffers, as the server's pool gives it.
-                let batch = crate::engine::WeightBatch::gather(prepared.rig(), &jobs)?;
-                prepared.cpu().evaluate_into(&batch, spec, &mut out)?;
+                engine.evaluate_into(&prepared, &jobs, spec, &mut out)?;
                 std::hint::black_box(&out);
                 Ok(())
             };

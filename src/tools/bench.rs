@@ -6,6 +6,7 @@
 //! target (all shapes active: the most expensive case), spread over `heads` heads; head `h`
 //! plays job `h mod unique`. Times are medians over repeated runs with warm buffers.
 
+use crate::rng::SplitMix64;
 use std::time::Instant;
 
 use anyhow::Result;
@@ -121,27 +122,13 @@ pub struct BenchReport {
     pub lod_scaling: Vec<LodScaling>,
 }
 
-/// Deterministic uniform [0, 1) numbers (SplitMix64), so runs are comparable.
-struct SplitMix(u64);
-
-impl SplitMix {
-    fn next_f32(&mut self) -> f32 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^= z >> 31;
-        (z >> 40) as f32 / (1u64 << 24) as f32
-    }
-}
-
 /// Random all-active weights for `n` jobs, by target id.
 pub fn random_weights(rig: &Rig, n: usize, seed: u64) -> Vec<Vec<f32>> {
-    let mut rng = SplitMix(seed);
+    let mut rng = SplitMix64(seed);
     (0..n)
         .map(|_| {
             (0..rig.targets.len())
-                .map(|_| 0.05 + 0.95 * rng.next_f32())
+                .map(|_| 0.05 + 0.95 * rng.unit())
                 .collect()
         })
         .collect()

@@ -104,15 +104,7 @@ fn measure(
         lod,
     });
     let plan = Plan::new(keys);
-    let jobs: Vec<BlendJob> = plan
-        .jobs
-        .iter()
-        .map(|k| BlendJob {
-            clip: k.clip,
-            frame: k.frame,
-            lod: k.lod,
-        })
-        .collect();
+    let jobs: Vec<BlendJob> = plan.jobs.iter().map(BlendJob::from).collect();
     let spec = OutputSpec::default();
     engine.evaluate(prepared, &jobs, spec)?; // Warm-up: pipelines, slot buffers.
     let mut round = Vec::new();

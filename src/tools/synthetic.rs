@@ -4,28 +4,10 @@
 //! vertices) with localized deltas: each target moves a contiguous band of at most 1/20 of the
 //! vertices, as facial blendshapes move a region of the face. It is deterministic.
 
+use crate::rng::SplitMix64;
 use glam::Vec3;
 
 use crate::rig::{Clip, Lod, Primitive, Rig, sparsify, vertex_normals};
-
-/// Deterministic uniform numbers (SplitMix64).
-struct SplitMix(u64);
-
-impl SplitMix {
-    fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-    fn unit(&mut self) -> f32 {
-        (self.next() >> 40) as f32 / (1u64 << 24) as f32
-    }
-    fn below(&mut self, n: usize) -> usize {
-        (self.next() % n.max(1) as u64) as usize
-    }
-}
 
 /// Vertices of the paper's head model.
 pub const PAPER_VERTICES: usize = 43_788;
@@ -56,7 +38,7 @@ pub fn paper_scale_rig() -> Rig {
         }
     }
     let normals = vertex_normals(&positions, &indices);
-    let mut rng = SplitMix(72);
+    let mut rng = SplitMix64(72);
     let targets = (0..PAPER_TARGETS as u32)
         .map(|t| {
             let center = rng.below(n);
@@ -119,7 +101,7 @@ pub fn with_random_clip(rig: Rig, seed: u64) -> Rig {
 /// times in three).
 pub fn with_random_clip_of(mut rig: Rig, name: &str, frames: usize, seed: u64) -> Rig {
     {
-        let mut rng = SplitMix(seed);
+        let mut rng = SplitMix64(seed);
         let t = rig.targets.len();
         let weights = (0..t * frames)
             .map(|_| if rng.below(3) == 0 { 0.0 } else { rng.unit() })

@@ -46,24 +46,8 @@ pub fn rig_files() -> Option<Vec<PathBuf>> {
     Some(files)
 }
 
-/// Deterministic uniform numbers in [0, 1) (SplitMix64).
-pub struct Rng(pub u64);
-
-impl Rng {
-    pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-    pub fn f64(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
-    }
-    pub fn below(&mut self, n: usize) -> usize {
-        (self.next_u64() % n.max(1) as u64) as usize
-    }
-}
+/// Deterministic numbers for test workloads (the library's SplitMix64).
+pub use crowdmorph::rng::SplitMix64 as Rng;
 
 /// A glTF document read independently of the library.
 pub struct RefDoc {
