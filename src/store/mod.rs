@@ -11,7 +11,7 @@
 //! | bytes | what |
 //! |---|---|
 //! | 8 | magic `CMSTORE1` |
-//! | 4 | record kind: 1 = a whole rig, 2 = extra clips of the built-in rig |
+//! | 4 | record kind: 1 = a whole rig, 3 = extra clips and the LOD of a built-in rig (2 = its clips only, as older builds wrote them; still read) |
 //! | 8 | payload length `n` |
 //! | 4 | CRC-32 (IEEE) of the payload |
 //! | n | payload: the record encoded by [`crate::codec`] |
@@ -29,15 +29,17 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use serde::{Deserialize, Serialize};
 
 use crate::codec;
-use crate::rig::{Clip, Rig};
+use crate::rig::{Clip, Lod, Rig};
 
 const MAGIC: &[u8; 8] = b"CMSTORE1";
 const HEADER: usize = 8 + 4 + 8 + 4;
 const KIND_RIG: u32 = 1;
 const KIND_BUILTIN_CLIPS: u32 = 2;
+const KIND_BUILTIN: u32 = 3;
 /// Extension of record files.
 const EXT: &str = "cmrig";
-/// Marker in the names of temporary files.
+/// Prefix of temporary files. Rig ids never start with a dot (`registry::valid_id`), so no
+/// record name can ever carry it, whatever the id.
 const TMP: &str = ".tmp-";
 
 /// A rig as loaded: its registry id and the rig with all its clips.
@@ -49,13 +51,38 @@ pub struct StoredRig {
     pub rig: Rig,
 }
 
-/// Clips added to the built-in rig (whose geometry is never stored).
-#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
-pub struct StoredClips {
+/// What is stored of a built-in rig, whose geometry comes with the binary: the clips added to
+/// it and its LOD.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StoredBuiltin {
     /// Id of the built-in rig.
     pub id: String,
     /// The clips, in the order they were added.
     pub clips: Vec<Clip>,
+    /// The LOD it had, with the [`geometry_fingerprint`] of the rig it was built for (a LOD is
+    /// only valid for that geometry, and a new build may change the built-in rig).
+    pub lod: Option<(Lod, u32)>,
+}
+
+/// A checksum of what a LOD depends on: target names, triangles and base positions.
+pub fn geometry_fingerprint(rig: &Rig) -> u32 {
+    let mut h = crc32fast::Hasher::new();
+    for t in &rig.targets {
+        h.update(t.as_bytes());
+        h.update(&[0]);
+    }
+    for p in &rig.primitives {
+        h.update(&(p.positions.len() as u64).to_le_bytes());
+        for v in &p.positions {
+            for c in v.to_array() {
+                h.update(&c.to_le_bytes());
+            }
+        }
+        for i in &p.indices {
+            h.update(&i.to_le_bytes());
+        }
+    }
+    h.finalize()
 }
 
 /// A record to write, borrowed so that a big rig is not cloned to be stored.
@@ -68,12 +95,14 @@ pub enum RecordRef<'a> {
         /// The rig.
         rig: &'a Rig,
     },
-    /// Extra clips of the built-in rig.
-    BuiltinClips {
+    /// Extra clips and the LOD of a built-in rig.
+    Builtin {
         /// Id of the built-in rig.
         id: &'a str,
-        /// The clips.
+        /// The clips added to it.
         clips: &'a [Clip],
+        /// The whole rig as it is now (for its LOD and geometry fingerprint).
+        rig: &'a Rig,
     },
 }
 
@@ -151,10 +180,29 @@ struct StoredRigOwned {
     rig: RigRecord,
 }
 
+/// Kind 2, as older builds wrote it.
+#[derive(Deserialize)]
+struct StoredClipsV2 {
+    id: String,
+    clips: Vec<Clip>,
+}
+
+/// Kind 3. The LOD goes as JSON for the reason given at [`RigRecord`]; empty = none.
 #[derive(Serialize)]
-struct StoredClipsRef<'a> {
+struct StoredBuiltinRef<'a> {
     id: &'a str,
     clips: &'a [Clip],
+    lod_json: String,
+    geometry: u32,
+}
+
+/// Owned mirror of [`StoredBuiltinRef`].
+#[derive(Deserialize)]
+struct StoredBuiltinOwned {
+    id: String,
+    clips: Vec<Clip>,
+    lod_json: String,
+    geometry: u32,
 }
 
 /// What a store file holds.
@@ -162,8 +210,8 @@ struct StoredClipsRef<'a> {
 pub enum Record {
     /// A whole uploaded rig (boxed: it is much bigger than the other variant).
     Rig(Box<StoredRig>),
-    /// Extra clips of the built-in rig.
-    BuiltinClips(StoredClips),
+    /// Extra clips and LOD of a built-in rig.
+    Builtin(StoredBuiltin),
 }
 
 /// Why the store failed.
@@ -248,10 +296,16 @@ impl Store {
                     rig: RigRecordRef::new(rig)?,
                 }),
             ),
-            RecordRef::BuiltinClips { id, clips } => (
+            RecordRef::Builtin { id, clips, rig } => (
                 id,
-                KIND_BUILTIN_CLIPS,
-                codec::to_stored(&StoredClipsRef { id, clips }),
+                KIND_BUILTIN,
+                codec::to_stored(&StoredBuiltinRef {
+                    id,
+                    clips,
+                    lod_json: serde_json::to_string(&rig.lod)
+                        .map_err(|e| StoreError::Encode(e.to_string()))?,
+                    geometry: geometry_fingerprint(rig),
+                }),
             ),
         };
         let payload = payload.map_err(|e| StoreError::Encode(e.to_string()))?;
@@ -266,7 +320,7 @@ impl Store {
         let n = self.tmp_counter.fetch_add(1, Ordering::Relaxed);
         let tmp = self
             .dir
-            .join(format!("{id}.{EXT}{TMP}{}-{n}", std::process::id()));
+            .join(format!("{TMP}{}-{n}-{id}.{EXT}", std::process::id()));
         let result = (|| {
             let mut f = File::create(&tmp).map_err(io("create", &tmp))?;
             f.write_all(&bytes).map_err(io("write", &tmp))?;
@@ -352,16 +406,38 @@ impl Store {
                     .map_err(|e| corrupt(format!("invalid rig: {e}")))?;
                 Ok(Record::Rig(Box::new(r)))
             }
-            KIND_BUILTIN_CLIPS => {
-                let c: StoredClips =
-                    codec::from_stored(payload).map_err(|e| corrupt(e.to_string()))?;
+            KIND_BUILTIN_CLIPS | KIND_BUILTIN => {
+                let c = if kind == KIND_BUILTIN_CLIPS {
+                    let c: StoredClipsV2 =
+                        codec::from_stored(payload).map_err(|e| corrupt(e.to_string()))?;
+                    StoredBuiltin {
+                        id: c.id,
+                        clips: c.clips,
+                        lod: None,
+                    }
+                } else {
+                    let c: StoredBuiltinOwned =
+                        codec::from_stored(payload).map_err(|e| corrupt(e.to_string()))?;
+                    let lod = if c.lod_json.is_empty() {
+                        None
+                    } else {
+                        let lod: Lod = serde_json::from_str(&c.lod_json)
+                            .map_err(|e| corrupt(format!("LOD table: {e}")))?;
+                        Some((lod, c.geometry))
+                    };
+                    StoredBuiltin {
+                        id: c.id,
+                        clips: c.clips,
+                        lod,
+                    }
+                };
                 if c.id != stem {
                     return Err(corrupt(format!(
                         "record is for rig {:?}, file name says {stem:?}",
                         c.id
                     )));
                 }
-                Ok(Record::BuiltinClips(c))
+                Ok(Record::Builtin(c))
             }
             other => Err(corrupt(format!("unknown record kind {other}"))),
         }
@@ -381,7 +457,7 @@ impl Store {
                 .file_name()
                 .map(|n| n.to_string_lossy().into_owned())
                 .unwrap_or_default();
-            if name.contains(TMP) {
+            if name.starts_with(TMP) {
                 tracing::warn!(file = %path.display(), "removing an interrupted write");
                 let _ = fs::remove_file(&path);
                 continue;
@@ -436,6 +512,13 @@ mod tests {
                 rig: &rig,
             })
             .expect("put");
+        // An id that merely contains the temp marker is an ordinary record, never a stray.
+        store
+            .put(RecordRef::Rig {
+                id: "face.tmp-1",
+                rig: &rig,
+            })
+            .expect("put");
         // Flip one payload byte of "other", truncate a third, leave a stray temp file.
         let other = store.path_of("other");
         let mut b = fs::read(&other).expect("read");
@@ -444,18 +527,23 @@ mod tests {
         fs::write(&other, &b).expect("write");
         let short = store.path_of("short");
         fs::write(&short, &b[..b.len() / 2]).expect("write");
-        let stray = store.dir().join(format!("x.{EXT}{TMP}1-1"));
+        let stray = store.dir().join(format!("{TMP}1-1-x.{EXT}"));
         fs::write(&stray, b"partial").expect("write");
 
         let loaded = store.load_all().expect("load");
-        assert_eq!(loaded.records.len(), 1);
-        match &loaded.records[0] {
-            Record::Rig(r) => {
-                assert_eq!(r.id, "copy");
-                assert_eq!(r.rig, rig);
+        assert_eq!(loaded.records.len(), 2);
+        let mut ids = Vec::new();
+        for r in &loaded.records {
+            match r {
+                Record::Rig(r) => {
+                    assert_eq!(r.rig, rig);
+                    ids.push(r.id.clone());
+                }
+                other => panic!("unexpected record {other:?}"),
             }
-            other => panic!("unexpected record {other:?}"),
         }
+        ids.sort();
+        assert_eq!(ids, ["copy", "face.tmp-1"]);
         assert_eq!(loaded.skipped.len(), 2, "{:?}", loaded.skipped);
         assert!(loaded.skipped.iter().any(|s| s.contains("checksum")));
         assert!(loaded.skipped.iter().any(|s| s.contains("truncated")));
@@ -463,6 +551,7 @@ mod tests {
 
         store.remove("copy").expect("remove");
         store.remove("copy").expect("remove twice is fine");
+        store.remove("face.tmp-1").expect("remove");
         assert!(store.load_all().expect("load").records.is_empty());
         let _ = fs::remove_dir_all(&dir);
     }
