@@ -46,6 +46,9 @@ pub enum MeshLodError {
     /// The derived rig is not valid.
     #[error(transparent)]
     Rig(#[from] RigError),
+    /// The job was cancelled through its [`Progress`] between two levels.
+    #[error("cancelled")]
+    Cancelled,
 }
 
 /// How to find feature points and simplify.
@@ -728,6 +731,10 @@ pub fn build_mesh_levels(
     let keep = features.vertices();
     let mut levels = Vec::with_capacity(fractions.len());
     for &f in fractions {
+        // Each level takes seconds on a large rig, so a cancelled job stops between them.
+        if progress.is_some_and(Progress::is_cancelled) {
+            return Err(MeshLodError::Cancelled);
+        }
         levels.push(simplify_level(rig, &keep, f, opts)?);
         if let Some(p) = progress {
             p.advance();

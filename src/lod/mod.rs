@@ -58,9 +58,12 @@ pub enum LodBuildError {
         /// What is wrong.
         problem: String,
     },
+    /// More simplified meshes asked for than [`MAX_MESH_LEVELS`].
+    #[error("{0} mesh levels asked for; at most {MAX_MESH_LEVELS}")]
+    TooManyMeshes(usize),
     /// Mesh simplification failed.
     #[error(transparent)]
-    Mesh(#[from] MeshLodError),
+    Mesh(MeshLodError),
     /// The resulting table is not valid.
     #[error(transparent)]
     Lod(#[from] LodError),
@@ -68,6 +71,19 @@ pub enum LodBuildError {
     #[error("cancelled")]
     Cancelled,
 }
+
+impl From<MeshLodError> for LodBuildError {
+    fn from(e: MeshLodError) -> LodBuildError {
+        match e {
+            MeshLodError::Cancelled => LodBuildError::Cancelled,
+            e => LodBuildError::Mesh(e),
+        }
+    }
+}
+
+/// Most simplified meshes one LOD may carry. Each is a copy of the rig's topology and deltas
+/// at a fraction of the size, so the cap bounds what one request can make the server hold.
+pub const MAX_MESH_LEVELS: usize = 8;
 
 /// Progress of a background LOD computation: finished and total steps, and a cancel flag.
 /// Share it (e.g. in an `Arc`) between the worker and whoever reports progress.
@@ -189,6 +205,17 @@ pub fn build_lod(
     progress: Option<&Progress>,
 ) -> Result<Lod, LodBuildError> {
     let n = rig.targets.len();
+    // Cheap checks first: a bad request is refused before seconds of scoring.
+    if spec.mesh_fractions.len() > MAX_MESH_LEVELS {
+        return Err(LodBuildError::TooManyMeshes(spec.mesh_fractions.len()));
+    }
+    if let Some(&f) = spec
+        .mesh_fractions
+        .iter()
+        .find(|&&f| !(f > 0.0 && f <= 1.0))
+    {
+        return Err(MeshLodError::BadFraction(f).into());
+    }
     let pinned = resolve_targets(rig, &spec.pinned)?;
     let (base, method) = match &spec.order {
         Some(names) => {
@@ -234,6 +261,11 @@ pub fn build_lod(
             &SimplifyOptions::default(),
             progress,
         )?;
+        // Every level must be a rig the engines can evaluate (a rig of points only simplifies
+        // to nothing), or the LOD would be persisted and then fail to load.
+        for level in &levels {
+            level.derive_rig(rig).map_err(MeshLodError::Rig)?;
+        }
         levels
     };
     let levels = match &spec.levels {
@@ -300,6 +332,29 @@ mod tests {
         assert!(!p.is_cancelled());
         p.cancel();
         assert!(p.is_cancelled());
+    }
+
+    #[test]
+    fn mesh_levels_are_capped_and_cancellable() {
+        let rig = crate::embedded::default_rig();
+        let many = LodSpec {
+            method: OrderMethod::FileOrder,
+            mesh_fractions: vec![0.5; MAX_MESH_LEVELS + 1],
+            ..LodSpec::default()
+        };
+        assert_eq!(
+            build_lod(&rig, &many, None, None),
+            Err(LodBuildError::TooManyMeshes(MAX_MESH_LEVELS + 1))
+        );
+        // Cancelled between levels: the simplifier stops before the next one.
+        let p = Progress::new();
+        p.cancel();
+        let r = build_mesh_levels(&rig, &[0.5, 0.25], &SimplifyOptions::default(), Some(&p));
+        assert!(matches!(r, Err(MeshLodError::Cancelled)), "{r:?}");
+        assert_eq!(
+            LodBuildError::from(MeshLodError::Cancelled),
+            LodBuildError::Cancelled
+        );
     }
 
     #[test]

@@ -44,6 +44,7 @@ pub(super) async fn read_body(
     headers: &HeaderMap,
     body: Body,
     limit: usize,
+    timeout: std::time::Duration,
 ) -> Result<Bytes, ApiError> {
     let too_large = || {
         ApiError::new(
@@ -60,7 +61,22 @@ pub(super) async fn read_body(
     {
         return Err(too_large());
     }
-    match http_body_util::Limited::new(body, limit).collect().await {
+    // A client that trickles its body holds a connection and a concurrency slot: it gets as
+    // long as the request would be allowed to take, no more.
+    let collected =
+        tokio::time::timeout(timeout, http_body_util::Limited::new(body, limit).collect())
+            .await
+            .map_err(|_| {
+                ApiError::new(
+                    StatusCode::REQUEST_TIMEOUT,
+                    "body_timeout",
+                    format!(
+                        "the request body did not arrive within {} s",
+                        timeout.as_secs_f32()
+                    ),
+                )
+            })?;
+    match collected {
         Ok(c) => Ok(c.to_bytes()),
         Err(e) if e.is::<http_body_util::LengthLimitError>() => Err(too_large()),
         Err(e) => Err(ApiError::bad_request(
@@ -220,9 +236,10 @@ impl AppState {
                 return Ok(());
             };
             match builtin_clips {
-                Some(n) => store.put(RecordRef::BuiltinClips {
+                Some(n) => store.put(RecordRef::Builtin {
                     id: &id,
                     clips: rig.clips.get(n..).unwrap_or_default(),
+                    rig: &rig,
                 }),
                 None => store.put(RecordRef::Rig { id: &id, rig: &rig }),
             }
@@ -366,7 +383,13 @@ pub(super) async fn upload_rig(
             ),
         ));
     }
-    let bytes = read_body(&headers, body, state.config.max_upload_bytes).await?;
+    let bytes = read_body(
+        &headers,
+        body,
+        state.config.max_upload_bytes,
+        state.config.admin_timeout,
+    )
+    .await?;
     let _slot = state.uploads.acquire().await.map_err(ApiError::internal)?;
     let options = ImportOptions {
         base_dir: None,
@@ -560,7 +583,13 @@ pub(super) async fn upload_clips(
             format!("fps {fps} must be in (0, 1000]"),
         ));
     }
-    let bytes = read_body(&headers, body, state.config.max_upload_bytes).await?;
+    let bytes = read_body(
+        &headers,
+        body,
+        state.config.max_upload_bytes,
+        state.config.admin_timeout,
+    )
+    .await?;
     state.rig(&id)?;
     let source = clip_source(&content_type(&headers), &bytes);
     if !matches!(source, ClipSource::Gltf) && query.name.is_none() {
@@ -816,7 +845,13 @@ pub(super) async fn crowd_frame(
 ) -> ApiResult {
     let arrived = Instant::now();
     state.check_ready()?;
-    let bytes = read_body(&headers, body, state.config.max_request_bytes).await?;
+    let bytes = read_body(
+        &headers,
+        body,
+        state.config.max_request_bytes,
+        state.config.request_timeout,
+    )
+    .await?;
     let req: CrowdFrameRequest = decode(&headers, &bytes)?;
     drop(bytes);
     let n_heads = req.heads.len();

@@ -7,7 +7,8 @@
 //! new generation of the rig (`status: ready`), persisted like any other change. The job works
 //! on a snapshot and applies its result to whatever version of the rig is current, as long as
 //! the geometry is the one it scored — LOD depends on geometry and targets, not on clips, so
-//! clips uploaded meanwhile are kept. A `PUT` or a delete cancels a running job.
+//! clips uploaded meanwhile are kept. A `PUT` or a delete cancels a running job, and so does
+//! shutdown; a `PUT` is itself a job, cancelled when its client goes away.
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
@@ -20,21 +21,27 @@ use crowdmorph_proto::{LodInfo, LodRequest, RigInfo};
 use super::api::{ApiResult, blocking, decode, read_body, respond};
 use super::registry::RigEntry;
 use super::{ApiError, AppState};
-use crate::lod::{LevelSpec, LodBuildError, LodSpec, OrderMethod, Progress, build_lod};
+use crate::lod::{
+    LevelSpec, LodBuildError, LodSpec, MAX_MESH_LEVELS, OrderMethod, Progress, build_lod,
+};
 use crate::rig::{Lod, Rig};
 
 /// Mesh levels the background job builds, as fractions of the triangles (the 50, 25
-/// and 10 %); with the default table, LOD levels 1, 2 and 3 use them.
+/// and 10 %); with the default table, LOD levels 1, 2 and 3 use them, and level 4 (no shapes)
+/// the coarsest.
 pub const AUTO_MESH_FRACTIONS: [f32; 3] = [0.5, 0.25, 0.1];
 
-/// A running or failed LOD computation.
+/// A running or failed LOD computation: the background job of a newly registered rig, or a
+/// `PUT` being served.
 #[derive(Debug, Default)]
 pub struct LodJob {
     progress: Arc<Progress>,
     failed: Mutex<Option<String>>,
+    /// Started by registration rather than by a request.
+    background: bool,
 }
 
-/// The jobs by rig id.
+/// The jobs by rig id. At most one per rig: a new one cancels the old.
 #[derive(Debug, Default)]
 pub struct LodJobs(Mutex<HashMap<String, Arc<LodJob>>>);
 
@@ -50,9 +57,25 @@ impl LodJobs {
         }
     }
 
-    fn start(&self, id: &str) -> Arc<LodJob> {
+    /// Cancels every background job (on shutdown: they are not requests in flight, and a
+    /// half-scored rig keeps its import order until the next start computes it again).
+    pub fn cancel_background(&self) {
+        if let Ok(mut m) = self.0.lock() {
+            m.retain(|_, job| {
+                if job.background {
+                    job.progress.cancel();
+                }
+                !job.background
+            });
+        }
+    }
+
+    fn start(&self, id: &str, background: bool) -> Arc<LodJob> {
         self.cancel(id);
-        let job = Arc::new(LodJob::default());
+        let job = Arc::new(LodJob {
+            background,
+            ..LodJob::default()
+        });
         if let Ok(mut m) = self.0.lock() {
             m.insert(id.to_string(), job.clone());
         }
@@ -65,6 +88,22 @@ impl LodJobs {
         {
             m.remove(id);
         }
+    }
+}
+
+/// A `PUT`'s job for as long as the request is served: dropping it (the handler finished, or
+/// its future was dropped because the client went away or the request timed out) cancels the
+/// build and forgets the job.
+struct PutGuard {
+    state: AppState,
+    id: String,
+    job: Arc<LodJob>,
+}
+
+impl Drop for PutGuard {
+    fn drop(&mut self) {
+        self.job.progress.cancel();
+        self.state.lod_jobs.finish(&self.id, &self.job);
     }
 }
 
@@ -93,36 +132,61 @@ impl AppState {
         lod
     }
 
+    /// Builds a LOD on the blocking pool once a build permit is free (builds are
+    /// CPU-heavy and share the rayon pool with the CPU engine).
+    async fn build(
+        &self,
+        rig: Arc<Rig>,
+        spec: LodSpec,
+        job: &Arc<LodJob>,
+    ) -> Result<Lod, ApiError> {
+        let _permit = self
+            .lod_builds
+            .acquire()
+            .await
+            .map_err(|_| ApiError::unavailable("shutting_down", "the server is stopping", 1))?;
+        let progress = job.progress.clone();
+        let built =
+            tokio::task::spawn_blocking(move || build_lod(&rig, &spec, None, Some(&progress)))
+                .await
+                .map_err(ApiError::internal)?;
+        built.map_err(|e| match e {
+            LodBuildError::Cancelled => cancelled(),
+            e => ApiError::bad_request("invalid_lod", e.to_string()),
+        })
+    }
+
     /// Starts the background LOD job for a rig that still has the import's quick order.
     pub(super) fn start_auto_lod(&self, entry: &RigEntry) {
         if !self.config.auto_lod || entry.rig().lod.method != crate::rig::IMPORT_LOD_METHOD {
             return;
         }
+        let rig = entry.prepared.rig().clone();
+        // A rig without triangles (points only) has no mesh to simplify: order only.
+        let has_triangles = rig.primitives.iter().any(|p| !p.indices.is_empty());
         let spec = LodSpec {
-            mesh_fractions: AUTO_MESH_FRACTIONS.to_vec(),
+            mesh_fractions: if has_triangles {
+                AUTO_MESH_FRACTIONS.to_vec()
+            } else {
+                Vec::new()
+            },
             ..LodSpec::default()
         };
-        let job = self.lod_jobs.start(&entry.id);
+        let job = self.lod_jobs.start(&entry.id, true);
         let state = self.clone();
         let id = entry.id.clone();
-        let rig = entry.prepared.rig().clone();
         tokio::spawn(async move {
-            let progress = job.progress.clone();
-            let snapshot = rig.clone();
-            let built = tokio::task::spawn_blocking(move || {
-                build_lod(&snapshot, &spec, None, Some(&progress))
-            })
-            .await;
-            let outcome = match built {
-                Ok(Ok(lod)) => apply(&state, &id, &rig, lod).await.map(|_| ()),
-                Ok(Err(LodBuildError::Cancelled)) => return,
-                Ok(Err(e)) => Err(ApiError::bad_request("invalid_lod", e.to_string())),
-                Err(e) => Err(ApiError::internal(e)),
+            let outcome = match state.build(rig.clone(), spec, &job).await {
+                Ok(lod) => apply(&state, &id, &rig, lod, &job).await.map(|_| ()),
+                Err(e) => Err(e),
             };
             match outcome {
                 Ok(()) => {
                     tracing::info!(rig = %id, "metric-ordered LOD and mesh levels ready");
                     state.lod_jobs.finish(&id, &job);
+                }
+                Err(_) if job.progress.is_cancelled() => {
+                    tracing::debug!(rig = %id, "background LOD cancelled");
                 }
                 Err(e) => {
                     tracing::warn!(rig = %id, error = %e.message, "background LOD failed; the rig keeps its import order");
@@ -135,52 +199,71 @@ impl AppState {
     }
 }
 
+fn cancelled() -> ApiError {
+    ApiError::new(
+        StatusCode::CONFLICT,
+        "lod_cancelled",
+        "the LOD computation was cancelled by a newer PUT or a delete of the rig",
+    )
+}
+
 /// Swaps in a new generation of rig `id` with `lod`, if its geometry is still the one `scored`
-/// had; persists it first, like every change.
+/// had and `job` was not cancelled meanwhile. The new rig is prepared for the engine first,
+/// then persisted, then made current: what is on disk always loads, and what is served is
+/// always on disk.
 async fn apply(
     state: &AppState,
     id: &str,
-    scored: &Rig,
+    scored: &Arc<Rig>,
     lod: Lod,
+    job: &Arc<LodJob>,
 ) -> Result<Arc<RigEntry>, ApiError> {
     let _admin = state.admin.lock().await;
+    // Checked under the admin lock, which a PUT's apply and a delete also take: a job that
+    // was cancelled before this point never overwrites their result.
+    if job.progress.is_cancelled() {
+        return Err(cancelled());
+    }
     let entry = state.registry.get(id).ok_or_else(|| {
         ApiError::not_found(
             "unknown_rig",
             format!("rig {id:?} was deleted while its LOD was computed"),
         )
     })?;
-    if entry.rig().primitives != scored.primitives || entry.rig().targets != scored.targets {
-        return Err(ApiError::new(
-            StatusCode::CONFLICT,
-            "rig_changed",
-            format!("rig {id:?} changed while its LOD was computed"),
-        ));
-    }
-    let mut rig = entry.rig().clone();
-    rig.lod = lod;
-    rig.validate()
-        .map_err(|e| ApiError::bad_request("invalid_lod", e.to_string()))?;
-    let rig = Arc::new(rig);
-    state
-        .persist(
-            id,
-            rig.clone(),
-            entry.builtin.then_some(entry.builtin_clips),
-        )
-        .await?;
+    let current = entry.prepared.rig().clone();
+    let scored = scored.clone();
     let engine = state.engine.clone();
-    let for_engine = rig.clone();
-    let prepared = blocking(move || {
-        engine.prepare(for_engine).map_err(|e| {
+    let rid = id.to_string();
+    // Comparing and cloning a big rig, validating and preparing it are CPU work: off the
+    // async threads.
+    let (rig, prepared) = blocking(move || {
+        if !Arc::ptr_eq(&current, &scored)
+            && (current.primitives != scored.primitives || current.targets != scored.targets)
+        {
+            return Err(ApiError::new(
+                StatusCode::CONFLICT,
+                "rig_changed",
+                format!("rig {rid:?} changed while its LOD was computed"),
+            ));
+        }
+        let mut rig = (*current).clone();
+        rig.lod = lod;
+        rig.validate()
+            .map_err(|e| ApiError::bad_request("invalid_lod", e.to_string()))?;
+        let rig = Arc::new(rig);
+        let prepared = engine.prepare(rig.clone()).map_err(|e| {
             ApiError::new(
                 StatusCode::UNPROCESSABLE_ENTITY,
                 "cannot_prepare",
                 e.to_string(),
             )
-        })
+        })?;
+        Ok((rig, prepared))
     })
     .await?;
+    state
+        .persist(id, rig, entry.builtin.then_some(entry.builtin_clips))
+        .await?;
     let next = Arc::new(RigEntry {
         id: entry.id.clone(),
         builtin: entry.builtin,
@@ -206,6 +289,15 @@ fn spec_of(req: &LodRequest) -> Result<LodSpec, ApiError> {
             )
         })?,
     };
+    if req.mesh_fractions.len() > MAX_MESH_LEVELS {
+        return Err(ApiError::bad_request(
+            "invalid_lod",
+            format!(
+                "{} mesh fractions asked for; at most {MAX_MESH_LEVELS}",
+                req.mesh_fractions.len()
+            ),
+        ));
+    }
     if let Some(f) = req
         .mesh_fractions
         .iter()
@@ -256,19 +348,29 @@ pub(super) async fn put_lod(
 ) -> ApiResult {
     state.check_admin(&headers)?;
     state.check_ready()?;
-    let bytes = read_body(&headers, body, state.config.max_request_bytes).await?;
+    let bytes = read_body(
+        &headers,
+        body,
+        state.config.max_request_bytes,
+        state.config.request_timeout,
+    )
+    .await?;
     let req: LodRequest = decode(&headers, &bytes)?;
     let spec = spec_of(&req)?;
     let entry = state.rig(&id)?;
-    state.lod_jobs.cancel(&id);
+    // The PUT replaces whatever was computing for this rig, and is itself replaced by a later
+    // PUT or a delete; `guard` cancels it if this handler stops early.
+    let job = state.lod_jobs.start(&id, false);
+    let guard = PutGuard {
+        state: state.clone(),
+        id: id.clone(),
+        job: job.clone(),
+    };
     let rig = entry.prepared.rig().clone();
-    let snapshot = rig.clone();
-    let lod = blocking(move || {
-        build_lod(&snapshot, &spec, None, None)
-            .map_err(|e| ApiError::bad_request("invalid_lod", e.to_string()))
-    })
-    .await?;
-    let entry = apply(&state, &id, &rig, lod).await?;
+    let lod = state.build(rig.clone(), spec, &job).await?;
+    let entry = apply(&state, &id, &rig, lod, &job).await?;
+    // Done: the job is forgotten before the answer reports the rig's LOD status.
+    drop(guard);
     tracing::info!(rig = %id, method = %entry.rig().lod.method, "LOD set");
     respond(&headers, StatusCode::OK, &state.rig_info(&entry))
 }

@@ -49,7 +49,7 @@ pub use config::{ServerConfig, default_data_dir};
 pub use error::ApiError;
 
 use crate::engine::{Engine, EngineError};
-use crate::store::{Record, Store, StoreError};
+use crate::store::{Record, Store, StoreError, geometry_fingerprint};
 use metrics::{Gauges, Metrics};
 use registry::{BUILTIN_ID, Registry, RigEntry, quantization_box};
 use scheduler::{BatchConfig, Scheduler};
@@ -101,6 +101,8 @@ pub struct Inner {
     inflight: Arc<Semaphore>,
     /// Background LOD computations by rig id.
     lod_jobs: lod::LodJobs,
+    /// LOD builds run at most two at a time: each keeps the rayon pool busy for seconds.
+    lod_builds: Semaphore,
 }
 
 impl std::ops::Deref for AppState {
@@ -171,6 +173,7 @@ impl AppState {
                 config_concurrency.clamp(1, Semaphore::MAX_PERMITS),
             )),
             lod_jobs: lod::LodJobs::default(),
+            lod_builds: Semaphore::new(2),
         })))
     }
 
@@ -245,19 +248,35 @@ impl AppState {
                         Err(e) => self.skip(format!("stored rig {:?}: {e}", r.id)),
                     }
                 }
-                Record::BuiltinClips(c) => {
+                Record::Builtin(c) => {
                     let Some(entry) = self.registry.get(&c.id).filter(|e| e.builtin) else {
                         self.skip(format!("stored clips for unknown built-in rig {:?}", c.id));
                         continue;
                     };
                     let mut rig = entry.rig().clone();
                     rig.clips.extend(c.clips);
+                    let mut lod_changed = false;
+                    if let Some((lod, geometry)) = c.lod {
+                        if geometry == geometry_fingerprint(&rig) {
+                            lod_changed = lod != rig.lod;
+                            rig.lod = lod;
+                        } else {
+                            // This build's built-in rig is not the one the LOD was made for;
+                            // the clips still apply, and the background job makes a new LOD.
+                            tracing::warn!(rig = %c.id, "stored LOD is for another version of the built-in rig; recomputing it");
+                        }
+                    }
                     if let Err(e) = rig.validate() {
-                        self.skip(format!("stored clips of {:?}: {e}", c.id));
+                        self.skip(format!("stored clips and LOD of {:?}: {e}", c.id));
                         continue;
                     }
                     let rig = Arc::new(rig);
-                    match self.engine.update_clips(&entry.prepared, rig.clone()) {
+                    let prepared = if lod_changed {
+                        self.engine.prepare(rig.clone())
+                    } else {
+                        self.engine.update_clips(&entry.prepared, rig.clone())
+                    };
+                    match prepared {
                         Ok(prepared) => self.registry.insert(Arc::new(RigEntry {
                             id: entry.id.clone(),
                             builtin: true,
@@ -267,7 +286,7 @@ impl AppState {
                             generation: self.registry.generation(),
                             prepared,
                         })),
-                        Err(e) => self.skip(format!("stored clips of {:?}: {e}", c.id)),
+                        Err(e) => self.skip(format!("stored clips and LOD of {:?}: {e}", c.id)),
                     }
                 }
             }
@@ -365,6 +384,54 @@ async fn layer_error(err: tower::BoxError) -> Response {
     }
 }
 
+/// Gives the errors axum answers by itself (a method a route does not have, a path segment
+/// that is not valid UTF-8, a missing query parameter) the same JSON body as every
+/// [`ApiError`], keeping their status and headers (`Allow` on a 405). Their plain-text
+/// message, which names the problem and nothing internal, becomes the JSON message.
+async fn json_errors(req: Request, next: Next) -> Response {
+    let resp = next.run(req).await;
+    let status = resp.status();
+    let is_json = resp
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.starts_with(crowdmorph_proto::CONTENT_TYPE_JSON));
+    if !(status.is_client_error() || status.is_server_error()) || is_json {
+        return resp;
+    }
+    let (mut parts, body) = resp.into_parts();
+    let text = axum::body::to_bytes(body, 4096).await.unwrap_or_default();
+    let text = String::from_utf8_lossy(&text).trim().to_string();
+    let code = match status {
+        StatusCode::METHOD_NOT_ALLOWED => "method_not_allowed",
+        StatusCode::NOT_FOUND => "not_found",
+        StatusCode::PAYLOAD_TOO_LARGE => "body_too_large",
+        StatusCode::UNSUPPORTED_MEDIA_TYPE => "unsupported_media_type",
+        s if s.is_server_error() => "internal",
+        _ => "bad_request",
+    };
+    let message = if text.is_empty() || status.is_server_error() {
+        status
+            .canonical_reason()
+            .unwrap_or("request failed")
+            .to_string()
+    } else {
+        text
+    };
+    let mut fresh = ApiError::new(status, code, message).into_response();
+    parts.headers.remove(header::CONTENT_LENGTH);
+    parts.headers.insert(
+        header::CONTENT_TYPE,
+        HeaderValue::from_static(crowdmorph_proto::CONTENT_TYPE_JSON),
+    );
+    for (k, v) in fresh.headers_mut().drain() {
+        if let Some(k) = k {
+            parts.headers.insert(k, v);
+        }
+    }
+    Response::from_parts(parts, fresh.into_body())
+}
+
 /// The router with every route and layer; `state` should have loaded its stored rigs (or be
 /// loading them in the background).
 pub fn app(state: AppState) -> Router {
@@ -390,6 +457,7 @@ pub fn app(state: AppState) -> Router {
         .fallback(api::not_found)
         // Bodies are read with explicit per-route limits (see api::read_body).
         .layer(DefaultBodyLimit::disable())
+        .layer(middleware::from_fn(json_errors))
         .layer(middleware::from_fn_with_state(state.clone(), shed_load))
         .layer(middleware::from_fn_with_state(
             state.clone(),
@@ -407,7 +475,7 @@ pub fn app(state: AppState) -> Router {
         };
         CorsLayer::new()
             .allow_origin(origins)
-            .allow_methods([Method::GET, Method::POST, Method::DELETE])
+            .allow_methods([Method::GET, Method::POST, Method::PUT, Method::DELETE])
             .allow_headers([header::CONTENT_TYPE, header::ACCEPT, header::AUTHORIZATION])
             .expose_headers([request_id.clone(), header::RETRY_AFTER])
     });
@@ -497,6 +565,13 @@ pub async fn serve(
             tracing::warn!(%error, "cannot set TCP_NODELAY");
         }
     });
+    // Background LOD jobs are not requests in flight: stop them at once, or the runtime
+    // would wait for their blocking work before the process can exit.
+    let jobs = state.clone();
+    let shutdown = async move {
+        shutdown.await;
+        jobs.lod_jobs.cancel_background();
+    };
     let result = axum::serve(listener, app(state.clone()))
         .with_graceful_shutdown(shutdown)
         .await;

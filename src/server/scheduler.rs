@@ -391,6 +391,9 @@ impl State {
             return;
         }
         let Some(work) = self.work.clone() else {
+            // No compute thread any more: answer at once rather than leave the jobs pending,
+            // which would also keep the batch timer firing in a busy loop.
+            self.fail_all("the compute thread stopped");
             return;
         };
         let now = Instant::now();

@@ -79,6 +79,19 @@ async fn malformed_unknown_and_out_of_range_requests_are_named_4xx() {
     })
     .await;
     let s = &server;
+    // Errors axum answers by itself get the same JSON body as every other error.
+    let r = s
+        .client
+        .send(Method::DELETE, "/v1/crowd/frame", None, None, Bytes::new())
+        .await
+        .expect("transport");
+    expect(s, r, 405, "method_not_allowed", "Method Not Allowed").await;
+    let r = s
+        .client
+        .send(Method::GET, "/v1/rigs/%FF%FE", None, None, Bytes::new())
+        .await
+        .expect("transport");
+    expect(s, r, 400, "bad_request", "UTF-8").await;
     let r = post(s, "/v1/crowd/frame", "application/json", "{\"heads\": [").await;
     expect(s, r, 400, "malformed_json", "JSON").await;
     let r = post(s, "/v1/crowd/frame", CONTENT_TYPE_BINCODE, vec![0xFFu8; 37]).await;

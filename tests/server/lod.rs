@@ -259,6 +259,14 @@ async fn put_lod_sets_order_pins_and_table() {
             "mesh fraction",
         ),
         (
+            // Each mesh level is a copy of the rig at a fraction of its size: capped.
+            LodRequest {
+                mesh_fractions: vec![0.5; 9],
+                ..LodRequest::default()
+            },
+            "at most 8",
+        ),
+        (
             LodRequest {
                 levels: Some(vec![LodLevelRequest {
                     shapes: 10,
@@ -374,4 +382,158 @@ async fn deleting_a_rig_cancels_its_lod_job() {
     // The server still serves.
     wait_ready(&server, "default-head").await;
     server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_put_lod_wins_over_the_background_job() {
+    let Some(files) = rig_files() else { return };
+    let stress = files
+        .iter()
+        .find(|f| f.ends_with("MorphStressTest.gltf"))
+        .expect("file");
+    let server = TestServer::start_with_auto_lod(ServerConfig::default()).await;
+    server
+        .client
+        .upload_rig("stress", upload_bytes(stress))
+        .await
+        .expect("upload");
+    // The background job has only just started scoring; the PUT replaces it.
+    let put = server
+        .client
+        .set_lod(
+            "stress",
+            &LodRequest {
+                method: Some("file-order".into()),
+                ..LodRequest::default()
+            },
+        )
+        .await
+        .expect("PUT lod");
+    assert_eq!(put.lod.method, "file-order");
+    // Give a job that ignored its cancellation ample time to finish and overwrite (the
+    // whole job takes well under this on this rig); the PUT must still be what is served.
+    let t0 = Instant::now();
+    while t0.elapsed() < Duration::from_secs(3) {
+        let lod = server.client.lod("stress").await.expect("lod");
+        assert_eq!(
+            lod.method, "file-order",
+            "the background job overwrote a PUT"
+        );
+        assert_eq!(lod.status, "ready");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    server.stop().await;
+}
+
+/// A rig of points only (no triangles): blends, but has no mesh to simplify.
+fn points_rig() -> Vec<u8> {
+    let mut b = crate::util::builder::Builder::new();
+    let positions: Vec<[f32; 3]> = (0..64)
+        .map(|i| [(i % 8) as f32, (i / 8) as f32, 0.0])
+        .collect();
+    let targets: Vec<Vec<[f32; 3]>> = (0..3)
+        .map(|t| {
+            positions
+                .iter()
+                .enumerate()
+                .map(|(i, _)| {
+                    if i % 3 == t {
+                        [0.0, 0.0, 0.5]
+                    } else {
+                        [0.0; 3]
+                    }
+                })
+                .collect()
+        })
+        .collect();
+    let mut prim = b.primitive(&positions, None, &targets);
+    prim["mode"] = serde_json::json!(0);
+    let mesh = b.mesh(vec![prim], Some(&["a", "b", "c"]));
+    let node = b.node(Some(mesh));
+    b.scene(&[node]);
+    b.to_glb()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_rig_without_triangles_gets_an_order_and_no_unloadable_mesh_levels() {
+    let dir = temp_dir("lod-points");
+    let config = ServerConfig {
+        data_dir: Some(dir.clone()),
+        ..ServerConfig::default()
+    };
+    let s1 = TestServer::start_with_auto_lod(config.clone()).await;
+    s1.client
+        .upload_rig("dots", points_rig().into())
+        .await
+        .expect("upload");
+    let lod = wait_ready(&s1, "dots").await;
+    assert!(
+        lod.levels.iter().all(|l| l.mesh.is_none()),
+        "no mesh levels for a rig without triangles: {lod:?}"
+    );
+    // Asking for mesh levels explicitly is a named 400, and nothing is stored.
+    match s1
+        .client
+        .set_lod(
+            "dots",
+            &LodRequest {
+                mesh_fractions: vec![0.5],
+                ..LodRequest::default()
+            },
+        )
+        .await
+    {
+        Err(ClientError::Api {
+            status: 400,
+            code,
+            message,
+        }) => {
+            assert_eq!(code, "invalid_lod");
+            assert!(message.contains("no vertices"), "{message}");
+        }
+        other => panic!("expected a 400, got {other:?}"),
+    }
+    assert_eq!(s1.client.lod("dots").await.expect("lod"), lod);
+    s1.stop().await;
+    // What was stored loads again.
+    let s2 = TestServer::start(config).await;
+    assert_eq!(s2.client.lod("dots").await.expect("lod"), lod);
+    assert!(
+        s2.state.skipped().is_empty(),
+        "nothing skipped: {:?}",
+        s2.state.skipped()
+    );
+    s2.stop().await;
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_built_in_rigs_lod_survives_a_restart() {
+    let dir = temp_dir("lod-builtin");
+    let config = ServerConfig {
+        data_dir: Some(dir.clone()),
+        ..ServerConfig::default()
+    };
+    let s1 = TestServer::start(config.clone()).await;
+    let set = s1
+        .client
+        .set_lod(
+            "default-head",
+            &LodRequest {
+                method: Some("file-order".into()),
+                pinned: vec!["jawOpen".into()],
+                mesh_fractions: vec![0.4],
+                ..LodRequest::default()
+            },
+        )
+        .await
+        .expect("PUT lod");
+    s1.stop().await;
+    let s2 = TestServer::start(config).await;
+    let reloaded = s2.client.lod("default-head").await.expect("lod");
+    assert_eq!(reloaded, set.lod, "the built-in rig's LOD was stored");
+    assert_eq!(reloaded.method, "file-order+pinned");
+    check_levels(&s2, "default-head", "talk", 17).await;
+    s2.stop().await;
+    let _ = std::fs::remove_dir_all(dir);
 }
