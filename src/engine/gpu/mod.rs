@@ -437,6 +437,7 @@ impl GpuRig {
         let tri_bytes = topology.triangles.len() as u64 * 12;
         if tri_bytes * JOBS_PER_GROUP as u64 > ctx.max_binding
             || topology.triangles.len() > 65_535 * 64
+            || topology.vertices.len() > 65_535 * 64
             || vertices > 65_535 * 64 * 65_535
         {
             return Err(GpuError::DoesNotFit(format!(
@@ -617,9 +618,31 @@ struct SlotNeeds {
     jobs: u64,
     active: u64,
     output: u64,
+    /// Normals output (4 bytes when the batch has none).
+    normals: u64,
+    /// f16 output of positions, and of normals (4 bytes when unused).
+    packed: u64,
+    packed_normals: u64,
     faces: u64,
     staging: u64,
     queries: u32,
+}
+
+impl SlotNeeds {
+    /// Element-wise maximum: a slot that serves both.
+    fn max(self, o: SlotNeeds) -> SlotNeeds {
+        SlotNeeds {
+            jobs: self.jobs.max(o.jobs),
+            active: self.active.max(o.active),
+            output: self.output.max(o.output),
+            normals: self.normals.max(o.normals),
+            packed: self.packed.max(o.packed),
+            packed_normals: self.packed_normals.max(o.packed_normals),
+            faces: self.faces.max(o.faces),
+            staging: self.staging.max(o.staging),
+            queries: self.queries.max(o.queries),
+        }
+    }
 }
 
 impl Slot {
@@ -652,12 +675,27 @@ impl Slot {
             active_slots: ctx.buffer("active slots", n.active, storage),
             active_count: ctx.buffer("active count", n.active, storage),
             positions: ctx.buffer("positions", n.output, storage),
-            normals: ctx.buffer("normals", n.output, storage),
+            normals: ctx.buffer("normals", n.normals, storage),
             faces: ctx.buffer("faces", n.faces, storage),
-            packed_positions: ctx.buffer("packed positions", n.output / 2 + 4, storage),
-            packed_normals: ctx.buffer("packed normals", n.output / 2 + 4, storage),
+            packed_positions: ctx.buffer("packed positions", n.packed, storage),
+            packed_normals: ctx.buffer("packed normals", n.packed_normals, storage),
             staging: ctx.buffer("staging", n.staging, U::MAP_READ | U::COPY_DST),
             queries,
+        }
+    }
+
+    /// What this slot can serve.
+    fn capacity(&self) -> SlotNeeds {
+        SlotNeeds {
+            jobs: self.jobs.size(),
+            active: self.active_slots.size(),
+            output: self.positions.size(),
+            normals: self.normals.size(),
+            packed: self.packed_positions.size(),
+            packed_normals: self.packed_normals.size(),
+            faces: self.faces.size(),
+            staging: self.staging.size(),
+            queries: self.queries.as_ref().map_or(u32::MAX, |q| q.0.count()),
         }
     }
 
@@ -665,6 +703,9 @@ impl Slot {
         self.jobs.size() >= n.jobs
             && self.active_slots.size() >= n.active
             && self.positions.size() >= n.output
+            && self.normals.size() >= n.normals
+            && self.packed_positions.size() >= n.packed
+            && self.packed_normals.size() >= n.packed_normals
             && self.faces.size() >= n.faces
             && self.staging.size() >= n.staging
             && self
@@ -757,14 +798,29 @@ impl GpuContext {
                 "batch output of {staging} bytes exceeds the device's largest buffer"
             )));
         }
+        // Buffers are sized for the largest sub-batch this batch has (not for `sub`, which for
+        // a small rig may be thousands of jobs), and only for the outputs it asks for.
+        let widest = sub.min(n.max(1).next_multiple_of(JOBS_PER_GROUP)) as u64;
+        let output = widest * per_job_out;
+        let f16 = spec.precision == Precision::F16;
         let needs = SlotNeeds {
             jobs: (n.max(1) * size_of::<GpuJob>()) as u64,
-            active: (sub / JOBS_PER_GROUP) as u64 * u64::from(rig.slots.max(1)) * 4,
-            output: sub as u64 * per_job_out,
-            faces: sub as u64 * tris * 12,
+            active: widest / JOBS_PER_GROUP as u64 * u64::from(rig.slots.max(1)) * 4,
+            output,
+            normals: if spec.normals { output } else { 4 },
+            packed: if f16 { output / 2 + 4 } else { 4 },
+            packed_normals: if f16 && spec.normals {
+                output / 2 + 4
+            } else {
+                4
+            },
+            faces: if recompute { widest * tris * 12 } else { 4 },
             staging: if readback { staging } else { 4 },
             queries: 2 * subs as u32,
         };
+        // Slot buffers are the big allocations of a batch: an out-of-memory error here is
+        // reported as such (the engine then falls back to the CPU), not as a bug.
+        let oom = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
         let slot = {
             let mut pool = self
                 .pool
@@ -773,13 +829,21 @@ impl GpuContext {
             match pool.iter().position(|s| s.fits(needs)) {
                 Some(i) => pool.swap_remove(i),
                 None => {
-                    // No pooled slot is big enough: free them (later batches of this size
-                    // would not fit either) and make one sized for this batch.
-                    pool.clear();
-                    Slot::new(self, needs)
+                    // No pooled slot is big enough: replace them all with one that serves
+                    // this batch and everything they served, so that alternating batch
+                    // shapes (with and without normals, f16 and f32) do not reallocate.
+                    let merged = pool.drain(..).fold(needs, |acc, s| acc.max(s.capacity()));
+                    let merged = SlotNeeds {
+                        queries: merged.queries.min(needs.queries.max(64)),
+                        ..merged
+                    };
+                    Slot::new(self, merged)
                 }
             }
         };
+        if let Some(e) = pollster::block_on(oom.pop()) {
+            return Err(GpuError::OutOfMemory(e.to_string()));
+        }
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
         self.queue
             .write_buffer(&slot.jobs, 0, bytemuck::cast_slice(jobs));
