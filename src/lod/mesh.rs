@@ -38,7 +38,7 @@ use crate::rig::{
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum MeshLodError {
     /// A triangle fraction outside (0, 1].
-    #[error("triangle fraction {0} is not in (0, 1]")]
+    #[error("mesh fraction {0} (of the triangles) is not in (0, 1]")]
     BadFraction(f32),
     /// The mesh level does not fit the rig (built for another rig).
     #[error("mesh level does not fit the rig: {0}")]

@@ -180,6 +180,25 @@ pub struct LodSpec {
     pub scoring: ScoreOptions,
 }
 
+impl LodSpec {
+    /// The checks that need no rig: the number and range of mesh fractions. `build_lod` runs
+    /// them first, so that a bad request is refused before seconds of scoring; the server
+    /// runs them before it replaces a running job.
+    pub fn check(&self) -> Result<(), LodBuildError> {
+        if self.mesh_fractions.len() > MAX_MESH_LEVELS {
+            return Err(LodBuildError::TooManyMeshes(self.mesh_fractions.len()));
+        }
+        match self
+            .mesh_fractions
+            .iter()
+            .find(|&&f| !(f > 0.0 && f <= 1.0))
+        {
+            Some(&f) => Err(MeshLodError::BadFraction(f).into()),
+            None => Ok(()),
+        }
+    }
+}
+
 /// Resolves target names to ids, refusing unknown and repeated names.
 pub fn resolve_targets(rig: &Rig, names: &[String]) -> Result<Vec<TargetId>, LodBuildError> {
     let mut out = Vec::with_capacity(names.len());
@@ -205,17 +224,7 @@ pub fn build_lod(
     progress: Option<&Progress>,
 ) -> Result<Lod, LodBuildError> {
     let n = rig.targets.len();
-    // Cheap checks first: a bad request is refused before seconds of scoring.
-    if spec.mesh_fractions.len() > MAX_MESH_LEVELS {
-        return Err(LodBuildError::TooManyMeshes(spec.mesh_fractions.len()));
-    }
-    if let Some(&f) = spec
-        .mesh_fractions
-        .iter()
-        .find(|&&f| !(f > 0.0 && f <= 1.0))
-    {
-        return Err(MeshLodError::BadFraction(f).into());
-    }
+    spec.check()?;
     let pinned = resolve_targets(rig, &spec.pinned)?;
     let (base, method) = match &spec.order {
         Some(names) => {
@@ -261,10 +270,12 @@ pub fn build_lod(
             &SimplifyOptions::default(),
             progress,
         )?;
-        // Every level must be a rig the engines can evaluate (a rig of points only simplifies
-        // to nothing), or the LOD would be persisted and then fail to load.
-        for level in &levels {
-            level.derive_rig(rig).map_err(MeshLodError::Rig)?;
+        // A rig of points only simplifies to nothing, which no engine can evaluate.
+        if levels
+            .iter()
+            .any(|l| l.primitives.iter().all(|p| p.vertices.is_empty()))
+        {
+            return Err(MeshLodError::Rig(crate::rig::RigError::NoVertices).into());
         }
         levels
     };

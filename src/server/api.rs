@@ -40,7 +40,7 @@ pub(super) type ApiResult = Result<Response, ApiError>;
 
 /// Reads a body of at most `limit` bytes; 413 past it (checked from Content-Length first, so an
 /// oversized upload is refused before it is read).
-pub(super) async fn read_body(
+async fn read_body(
     headers: &HeaderMap,
     body: Body,
     limit: usize,
@@ -83,6 +83,38 @@ pub(super) async fn read_body(
             "body_unreadable",
             format!("could not read the request body: {e}"),
         )),
+    }
+}
+
+impl AppState {
+    /// Reads a rig or clip upload: the upload size limit, the admin timeout.
+    pub(super) async fn upload_body(
+        &self,
+        headers: &HeaderMap,
+        body: Body,
+    ) -> Result<Bytes, ApiError> {
+        read_body(
+            headers,
+            body,
+            self.config.max_upload_bytes,
+            self.config.admin_timeout,
+        )
+        .await
+    }
+
+    /// Reads any other request: the request size limit, the request timeout.
+    pub(super) async fn request_body(
+        &self,
+        headers: &HeaderMap,
+        body: Body,
+    ) -> Result<Bytes, ApiError> {
+        read_body(
+            headers,
+            body,
+            self.config.max_request_bytes,
+            self.config.request_timeout,
+        )
+        .await
     }
 }
 
@@ -383,13 +415,7 @@ pub(super) async fn upload_rig(
             ),
         ));
     }
-    let bytes = read_body(
-        &headers,
-        body,
-        state.config.max_upload_bytes,
-        state.config.admin_timeout,
-    )
-    .await?;
+    let bytes = state.upload_body(&headers, body).await?;
     let _slot = state.uploads.acquire().await.map_err(ApiError::internal)?;
     let options = ImportOptions {
         base_dir: None,
@@ -583,13 +609,7 @@ pub(super) async fn upload_clips(
             format!("fps {fps} must be in (0, 1000]"),
         ));
     }
-    let bytes = read_body(
-        &headers,
-        body,
-        state.config.max_upload_bytes,
-        state.config.admin_timeout,
-    )
-    .await?;
+    let bytes = state.upload_body(&headers, body).await?;
     state.rig(&id)?;
     let source = clip_source(&content_type(&headers), &bytes);
     if !matches!(source, ClipSource::Gltf) && query.name.is_none() {
@@ -845,13 +865,7 @@ pub(super) async fn crowd_frame(
 ) -> ApiResult {
     let arrived = Instant::now();
     state.check_ready()?;
-    let bytes = read_body(
-        &headers,
-        body,
-        state.config.max_request_bytes,
-        state.config.request_timeout,
-    )
-    .await?;
+    let bytes = state.request_body(&headers, body).await?;
     let req: CrowdFrameRequest = decode(&headers, &bytes)?;
     drop(bytes);
     let n_heads = req.heads.len();

@@ -18,12 +18,10 @@ use axum::extract::{Path, State};
 use axum::http::{HeaderMap, StatusCode};
 use crowdmorph_proto::{LodInfo, LodRequest, RigInfo};
 
-use super::api::{ApiResult, blocking, decode, read_body, respond};
+use super::api::{ApiResult, blocking, decode, respond};
 use super::registry::RigEntry;
 use super::{ApiError, AppState};
-use crate::lod::{
-    LevelSpec, LodBuildError, LodSpec, MAX_MESH_LEVELS, OrderMethod, Progress, build_lod,
-};
+use crate::lod::{LevelSpec, LodBuildError, LodSpec, OrderMethod, Progress, build_lod};
 use crate::rig::{Lod, Rig};
 
 /// Mesh levels the background job builds, as fractions of the triangles (the 50, 25
@@ -176,12 +174,13 @@ impl AppState {
         let state = self.clone();
         let id = entry.id.clone();
         tokio::spawn(async move {
-            let outcome = match state.build(rig.clone(), spec, &job).await {
-                Ok(lod) => apply(&state, &id, &rig, lod, &job).await.map(|_| ()),
-                Err(e) => Err(e),
-            };
+            let outcome = async {
+                let lod = state.build(rig.clone(), spec, &job).await?;
+                apply(&state, &id, &rig, lod, &job).await
+            }
+            .await;
             match outcome {
-                Ok(()) => {
+                Ok(_) => {
                     tracing::info!(rig = %id, "metric-ordered LOD and mesh levels ready");
                     state.lod_jobs.finish(&id, &job);
                 }
@@ -289,26 +288,7 @@ fn spec_of(req: &LodRequest) -> Result<LodSpec, ApiError> {
             )
         })?,
     };
-    if req.mesh_fractions.len() > MAX_MESH_LEVELS {
-        return Err(ApiError::bad_request(
-            "invalid_lod",
-            format!(
-                "{} mesh fractions asked for; at most {MAX_MESH_LEVELS}",
-                req.mesh_fractions.len()
-            ),
-        ));
-    }
-    if let Some(f) = req
-        .mesh_fractions
-        .iter()
-        .find(|f| !(f.is_finite() && **f > 0.0 && **f <= 1.0))
-    {
-        return Err(ApiError::bad_request(
-            "invalid_lod",
-            format!("mesh fraction {f} is not in (0, 1]"),
-        ));
-    }
-    Ok(LodSpec {
+    let spec = LodSpec {
         method,
         order: req.order.clone(),
         pinned: req.pinned.clone(),
@@ -324,7 +304,10 @@ fn spec_of(req: &LodRequest) -> Result<LodSpec, ApiError> {
         }),
         mesh_fractions: req.mesh_fractions.clone(),
         ..LodSpec::default()
-    })
+    };
+    spec.check()
+        .map_err(|e| ApiError::bad_request("invalid_lod", e.to_string()))?;
+    Ok(spec)
 }
 
 /// `GET /v1/rigs/{id}/lod`.
@@ -348,13 +331,7 @@ pub(super) async fn put_lod(
 ) -> ApiResult {
     state.check_admin(&headers)?;
     state.check_ready()?;
-    let bytes = read_body(
-        &headers,
-        body,
-        state.config.max_request_bytes,
-        state.config.request_timeout,
-    )
-    .await?;
+    let bytes = state.request_body(&headers, body).await?;
     let req: LodRequest = decode(&headers, &bytes)?;
     let spec = spec_of(&req)?;
     let entry = state.rig(&id)?;

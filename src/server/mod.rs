@@ -418,18 +418,13 @@ async fn json_errors(req: Request, next: Next) -> Response {
     } else {
         text
     };
-    let mut fresh = ApiError::new(status, code, message).into_response();
+    let json = ApiError::new(status, code, message).into_response();
     parts.headers.remove(header::CONTENT_LENGTH);
     parts.headers.insert(
         header::CONTENT_TYPE,
         HeaderValue::from_static(crowdmorph_proto::CONTENT_TYPE_JSON),
     );
-    for (k, v) in fresh.headers_mut().drain() {
-        if let Some(k) = k {
-            parts.headers.insert(k, v);
-        }
-    }
-    Response::from_parts(parts, fresh.into_body())
+    Response::from_parts(parts, json.into_body())
 }
 
 /// The router with every route and layer; `state` should have loaded its stored rigs (or be

@@ -156,9 +156,18 @@ impl<'a> RigRecordRef<'a> {
             default_weights,
             primitives,
             clips,
-            lod_json: serde_json::to_string(lod).map_err(|e| StoreError::Encode(e.to_string()))?,
+            lod_json: lod_to_json(lod)?,
         })
     }
+}
+
+/// The LOD table as stored (JSON, see [`RigRecord`]).
+fn lod_to_json(lod: &Lod) -> Result<String, StoreError> {
+    serde_json::to_string(lod).map_err(|e| StoreError::Encode(e.to_string()))
+}
+
+fn lod_from_json(json: &str) -> Result<Lod, String> {
+    serde_json::from_str(json).map_err(|e| format!("LOD table: {e}"))
 }
 
 impl RigRecord {
@@ -169,7 +178,7 @@ impl RigRecord {
             default_weights: self.default_weights,
             primitives: self.primitives,
             clips: self.clips,
-            lod: serde_json::from_str(&self.lod_json).map_err(|e| format!("LOD table: {e}"))?,
+            lod: lod_from_json(&self.lod_json)?,
         })
     }
 }
@@ -187,7 +196,7 @@ struct StoredClipsV2 {
     clips: Vec<Clip>,
 }
 
-/// Kind 3. The LOD goes as JSON for the reason given at [`RigRecord`]; empty = none.
+/// Kind 3. The LOD goes as JSON for the reason given at [`RigRecord`].
 #[derive(Serialize)]
 struct StoredBuiltinRef<'a> {
     id: &'a str,
@@ -302,8 +311,7 @@ impl Store {
                 codec::to_stored(&StoredBuiltinRef {
                     id,
                     clips,
-                    lod_json: serde_json::to_string(&rig.lod)
-                        .map_err(|e| StoreError::Encode(e.to_string()))?,
+                    lod_json: lod_to_json(&rig.lod)?,
                     geometry: geometry_fingerprint(rig),
                 }),
             ),
@@ -418,17 +426,10 @@ impl Store {
                 } else {
                     let c: StoredBuiltinOwned =
                         codec::from_stored(payload).map_err(|e| corrupt(e.to_string()))?;
-                    let lod = if c.lod_json.is_empty() {
-                        None
-                    } else {
-                        let lod: Lod = serde_json::from_str(&c.lod_json)
-                            .map_err(|e| corrupt(format!("LOD table: {e}")))?;
-                        Some((lod, c.geometry))
-                    };
                     StoredBuiltin {
                         id: c.id,
                         clips: c.clips,
-                        lod,
+                        lod: Some((lod_from_json(&c.lod_json).map_err(corrupt)?, c.geometry)),
                     }
                 };
                 if c.id != stem {
