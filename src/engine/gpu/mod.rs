@@ -695,23 +695,13 @@ impl Slot {
             packed_normals: self.packed_normals.size(),
             faces: self.faces.size(),
             staging: self.staging.size(),
-            queries: self.queries.as_ref().map_or(u32::MAX, |q| q.0.count()),
+            queries: self.queries.as_ref().map_or(0, |q| q.0.count()),
         }
     }
 
     fn fits(&self, n: SlotNeeds) -> bool {
-        self.jobs.size() >= n.jobs
-            && self.active_slots.size() >= n.active
-            && self.positions.size() >= n.output
-            && self.normals.size() >= n.normals
-            && self.packed_positions.size() >= n.packed
-            && self.packed_normals.size() >= n.packed_normals
-            && self.faces.size() >= n.faces
-            && self.staging.size() >= n.staging
-            && self
-                .queries
-                .as_ref()
-                .is_none_or(|q| q.0.count() >= n.queries)
+        let c = self.capacity();
+        c.max(n) == c
     }
 }
 
@@ -816,7 +806,12 @@ impl GpuContext {
             },
             faces: if recompute { widest * tris * 12 } else { 4 },
             staging: if readback { staging } else { 4 },
-            queries: 2 * subs as u32,
+            // Timestamp queries only where the device has them.
+            queries: if self.timestamp_period.is_some() {
+                2 * subs as u32
+            } else {
+                0
+            },
         };
         // Slot buffers are the big allocations of a batch: an out-of-memory error here is
         // reported as such (the engine then falls back to the CPU), not as a bug.
@@ -833,10 +828,6 @@ impl GpuContext {
                     // this batch and everything they served, so that alternating batch
                     // shapes (with and without normals, f16 and f32) do not reallocate.
                     let merged = pool.drain(..).fold(needs, |acc, s| acc.max(s.capacity()));
-                    let merged = SlotNeeds {
-                        queries: merged.queries.min(needs.queries.max(64)),
-                        ..merged
-                    };
                     Slot::new(self, merged)
                 }
             }
