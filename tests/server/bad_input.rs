@@ -59,6 +59,15 @@ async fn still_serving(server: &TestServer) {
     assert_eq!(resp.buffers[0].positions.0.len(), 7262 * 12);
 }
 
+/// A request with no body and no content type.
+async fn bare(server: &TestServer, method: Method, path: &str) -> Reply {
+    server
+        .client
+        .send(method, path, None, None, Bytes::new())
+        .await
+        .expect("transport")
+}
+
 async fn post(server: &TestServer, path: &str, ct: &str, body: impl Into<Bytes>) -> Reply {
     server
         .client
@@ -80,17 +89,9 @@ async fn malformed_unknown_and_out_of_range_requests_are_named_4xx() {
     .await;
     let s = &server;
     // Errors axum answers by itself get the same JSON body as every other error.
-    let r = s
-        .client
-        .send(Method::DELETE, "/v1/crowd/frame", None, None, Bytes::new())
-        .await
-        .expect("transport");
+    let r = bare(s, Method::DELETE, "/v1/crowd/frame").await;
     expect(s, r, 405, "method_not_allowed", "Method Not Allowed").await;
-    let r = s
-        .client
-        .send(Method::GET, "/v1/rigs/%FF%FE", None, None, Bytes::new())
-        .await
-        .expect("transport");
+    let r = bare(s, Method::GET, "/v1/rigs/%FF%FE").await;
     expect(s, r, 400, "bad_request", "UTF-8").await;
     let r = post(s, "/v1/crowd/frame", "application/json", "{\"heads\": [").await;
     expect(s, r, 400, "malformed_json", "JSON").await;

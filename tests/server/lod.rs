@@ -16,7 +16,7 @@ use crowdmorph_proto::{
     CrowdFrameRequest, Format, Head, LodInfo, LodLevelRequest, LodRequest, OutputOptions,
 };
 
-use super::{TestServer, positions_f32, temp_dir, upload_bytes};
+use super::{TestServer, positions_f32, stored_config, temp_dir, upload_bytes};
 use crate::util::rig_files;
 
 /// Polls a rig's LOD until the background job has finished.
@@ -330,10 +330,7 @@ async fn put_lod_sets_order_pins_and_table() {
 async fn a_computed_lod_survives_a_restart() {
     let Some(files) = rig_files() else { return };
     let dir = temp_dir("lod-restart");
-    let config = ServerConfig {
-        data_dir: Some(dir.clone()),
-        ..ServerConfig::default()
-    };
+    let config = stored_config(&dir);
     let stress = files
         .iter()
         .find(|f| f.ends_with("MorphStressTest.gltf"))
@@ -457,10 +454,7 @@ fn points_rig() -> Vec<u8> {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_rig_without_triangles_gets_an_order_and_no_unloadable_mesh_levels() {
     let dir = temp_dir("lod-points");
-    let config = ServerConfig {
-        data_dir: Some(dir.clone()),
-        ..ServerConfig::default()
-    };
+    let config = stored_config(&dir);
     let s1 = TestServer::start_with_auto_lod(config.clone()).await;
     s1.client
         .upload_rig("dots", points_rig().into())
@@ -510,10 +504,7 @@ async fn a_rig_without_triangles_gets_an_order_and_no_unloadable_mesh_levels() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_built_in_rigs_lod_survives_a_restart() {
     let dir = temp_dir("lod-builtin");
-    let config = ServerConfig {
-        data_dir: Some(dir.clone()),
-        ..ServerConfig::default()
-    };
+    let config = stored_config(&dir);
     let s1 = TestServer::start(config.clone()).await;
     let set = s1
         .client

@@ -104,6 +104,14 @@ pub fn temp_dir(tag: &str) -> PathBuf {
     d
 }
 
+/// The default configuration with a data directory, so that rigs persist across restarts.
+pub fn stored_config(dir: &Path) -> ServerConfig {
+    ServerConfig {
+        data_dir: Some(dir.to_path_buf()),
+        ..ServerConfig::default()
+    }
+}
+
 /// The upload bytes of a rig file (external glTF buffers inlined).
 pub fn upload_bytes(path: &Path) -> Bytes {
     Bytes::from(crowdmorph::server::bench::self_contained_bytes(path).expect("rig bytes"))

@@ -7,19 +7,11 @@ use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
 use bytes::Bytes;
-use crowdmorph::server::ServerConfig;
 use crowdmorph_client::{Client, Encoding, Method};
 use crowdmorph_proto::{CrowdFrameRequest, CrowdFrameResponse, Format, Head, OutputOptions};
 use tokio::io::AsyncWriteExt;
 
-use super::{TestServer, temp_dir, upload_bytes};
-
-fn config(dir: &Path) -> ServerConfig {
-    ServerConfig {
-        data_dir: Some(dir.to_path_buf()),
-        ..ServerConfig::default()
-    }
-}
+use super::{TestServer, stored_config, temp_dir, upload_bytes};
 
 fn frames(heads: &[(&str, &str, i64)]) -> CrowdFrameRequest {
     CrowdFrameRequest {
@@ -58,7 +50,7 @@ async fn rigs_and_clips_survive_restarts_and_corrupt_files_are_skipped() {
         ("default-head", "nod", 1),
     ]);
 
-    let s1 = TestServer::start(config(&dir)).await;
+    let s1 = TestServer::start(stored_config(&dir)).await;
     s1.client.upload_rig("tri", tri.clone()).await.unwrap();
     s1.client
         .upload_clip("tri", "name=wave", "application/json", Bytes::from(clip))
@@ -79,7 +71,7 @@ async fn rigs_and_clips_survive_restarts_and_corrupt_files_are_skipped() {
     std::fs::write(rigs_dir.join("junk.cmrig"), b"not a record at all").unwrap();
     std::fs::write(rigs_dir.join("torn.cmrig"), &good[..good.len() * 2 / 3]).unwrap();
 
-    let s2 = TestServer::start(config(&dir)).await;
+    let s2 = TestServer::start(stored_config(&dir)).await;
     let list = s2.client.rigs().await.unwrap();
     let ids: Vec<&str> = list.rigs.iter().map(|r| r.id.as_str()).collect();
     assert_eq!(ids, vec!["default-head", "tri"]);
@@ -119,7 +111,7 @@ async fn rigs_and_clips_survive_restarts_and_corrupt_files_are_skipped() {
     s2.client.delete_rig("tri").await.unwrap();
     s2.stop().await;
 
-    let s3 = TestServer::start(config(&dir)).await;
+    let s3 = TestServer::start(stored_config(&dir)).await;
     let list = s3.client.rigs().await.unwrap();
     assert_eq!(list.rigs.len(), 1);
     assert!(
