@@ -412,6 +412,11 @@ fn eval_to_file_wraps_and_clamps_frames() {
     let err = eval_to_file(&rig, "walk", frames, 0, FrameMode::Strict, &path)
         .expect_err("strict refuses a frame past the end");
     assert!(err.to_string().contains("past the end"), "{err}");
+    // An output name that is neither .obj nor .bin is refused before any file is made.
+    let bad = dir.0.join("head.txt");
+    let err = eval_to_file(&rig, "walk", 0, 0, FrameMode::Strict, &bad).expect_err("bad name");
+    assert!(err.to_string().contains(".obj or .bin"), "{err}");
+    assert!(!bad.exists(), "no empty file left behind");
 }
 
 /// The embedded rig with a non-zero default weight on `cheekPuff`, so that "holds the rig

@@ -268,9 +268,16 @@ pub fn eval_with(
         frame: f,
         lod,
     };
-    let obj = out
+    let kind = out
         .extension()
-        .is_some_and(|e| e.eq_ignore_ascii_case("obj"));
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase);
+    // Checked before anything is evaluated or created: a bad name leaves no empty file.
+    let obj = match kind.as_deref() {
+        Some("obj") => true,
+        Some("bin") => false,
+        _ => bail!("output must end in .obj or .bin: {}", out.display()),
+    };
     let spec = OutputSpec {
         normals: obj,
         ..OutputSpec::default()
@@ -282,36 +289,29 @@ pub fn eval_with(
     let positions = result.job_positions(0);
     let file = std::fs::File::create(out).with_context(|| format!("creating {}", out.display()))?;
     let mut w = std::io::BufWriter::new(file);
-    match out
-        .extension()
-        .and_then(|e| e.to_str())
-        .map(str::to_ascii_lowercase)
-        .as_deref()
-    {
-        Some("obj") => {
-            let normals = result.job_normals(0).unwrap_or_default();
-            writeln!(
-                w,
-                "# crowdmorph eval: rig {:?}, clip {clip:?}, frame {f}, lod {lod}",
-                rig.name
-            )?;
-            for p in positions.chunks_exact(3) {
-                writeln!(w, "v {} {} {}", p[0], p[1], p[2])?;
-            }
-            for n in normals.chunks_exact(3) {
-                writeln!(w, "vn {} {} {}", n[0], n[1], n[2])?;
-            }
-            let offsets = rig.vertex_offsets();
-            for (pi, prim) in rig.primitives.iter().enumerate() {
-                writeln!(w, "o {}", prim.name.replace(char::is_whitespace, "_"))?;
-                for tri in prim.indices.chunks_exact(3) {
-                    let [a, b, c] = [0, 1, 2].map(|k| offsets[pi] + tri[k] as usize + 1);
-                    writeln!(w, "f {a}//{a} {b}//{b} {c}//{c}")?;
-                }
+    if obj {
+        let normals = result.job_normals(0).unwrap_or_default();
+        writeln!(
+            w,
+            "# crowdmorph eval: rig {:?}, clip {clip:?}, frame {f}, lod {lod}",
+            rig.name
+        )?;
+        for p in positions.chunks_exact(3) {
+            writeln!(w, "v {} {} {}", p[0], p[1], p[2])?;
+        }
+        for n in normals.chunks_exact(3) {
+            writeln!(w, "vn {} {} {}", n[0], n[1], n[2])?;
+        }
+        let offsets = rig.vertex_offsets();
+        for (pi, prim) in rig.primitives.iter().enumerate() {
+            writeln!(w, "o {}", prim.name.replace(char::is_whitespace, "_"))?;
+            for tri in prim.indices.chunks_exact(3) {
+                let [a, b, c] = [0, 1, 2].map(|k| offsets[pi] + tri[k] as usize + 1);
+                writeln!(w, "f {a}//{a} {b}//{b} {c}//{c}")?;
             }
         }
-        Some("bin") => w.write_all(bytemuck::cast_slice(&positions))?,
-        _ => bail!("output must end in .obj or .bin: {}", out.display()),
+    } else {
+        w.write_all(bytemuck::cast_slice(&positions))?;
     }
     w.flush()?;
     Ok(())
