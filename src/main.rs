@@ -219,7 +219,7 @@ struct ServeArgs {
     /// Engine: auto, cpu or gpu.
     #[arg(long, env = "CROWDMORPH_BACKEND", default_value = "auto")]
     backend: BackendChoice,
-    /// Bearer token required for uploads and deletes (open when unset).
+    /// Bearer token required for uploads, deletes and LOD changes (open when unset).
     #[arg(long, env = "CROWDMORPH_ADMIN_TOKEN", hide_env_values = true)]
     admin_token: Option<String>,
     /// Largest rig or clip upload, bytes.

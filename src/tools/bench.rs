@@ -10,7 +10,7 @@ use crate::rng::SplitMix64;
 use std::time::Instant;
 
 use anyhow::Result;
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::ProgressBar;
 use rayon::prelude::*;
 use serde::Serialize;
 
@@ -169,14 +169,9 @@ pub fn bench_cpu(rig: &Rig, opt: &BenchOptions) -> Result<BenchReport> {
         precision: opt.precision,
     };
     let levels = rig.lod.levels.len() as u32;
-    let bar = opt.progress.then(|| {
-        let b = ProgressBar::new(u64::from(levels) + 4);
-        b.set_style(
-            ProgressStyle::with_template("{spinner} bench {pos}/{len} {msg}")
-                .unwrap_or_else(|_| ProgressStyle::default_spinner()),
-        );
-        b
-    });
+    let bar = opt
+        .progress
+        .then(|| super::progress_bar(u64::from(levels) + 4, "bench"));
     let bar = bar.as_ref();
 
     // The crowd: plan, gather, evaluate.

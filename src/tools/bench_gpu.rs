@@ -11,7 +11,7 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use serde::Serialize;
 
-use crate::engine::{BackendInfo, BlendJob, Engine, OutputSpec, PreparedRig};
+use crate::engine::{BackendInfo, BlendJob, BlendOutput, Engine, OutputSpec, PreparedRig};
 use crate::lod::plot::{Plot, Series};
 use crate::plan::{JobKey, Plan};
 use crate::rig::Rig;
@@ -63,6 +63,7 @@ pub const SCENES: [(&str, usize, usize); 3] = [
 /// default), about `seconds` per measurement (at least 3 runs).
 pub fn bench_gpu(engine: &Engine, rigs: &[Rig], seconds: f64) -> Result<GpuBenchReport> {
     let mut scenes = Vec::new();
+    let bar = super::progress_bar((rigs.len() * SCENES.len() * 3) as u64, "bench gpu");
     for rig in rigs {
         // A clip of its own with more frames than heads, so "100 unique" is 100 unique jobs.
         let rig = crate::tools::synthetic::with_random_clip_of(rig.clone(), "bench", 128, 1);
@@ -72,12 +73,15 @@ pub fn bench_gpu(engine: &Engine, rigs: &[Rig], seconds: f64) -> Result<GpuBench
             .with_context(|| format!("preparing {}", rig.name))?;
         for (name, heads, unique) in SCENES {
             for lod in 0..3u32.min(rig.lod.levels.len() as u32) {
+                bar.set_message(format!("{} {name} LOD {lod}", rig.name));
                 scenes.push(measure(
                     engine, &prepared, name, heads, unique, clip, lod, seconds,
                 )?);
+                bar.inc(1);
             }
         }
     }
+    bar.finish_and_clear();
     Ok(GpuBenchReport {
         backend: engine.info(),
         scenes,
@@ -106,15 +110,19 @@ fn measure(
     let plan = Plan::new(keys);
     let jobs: Vec<BlendJob> = plan.jobs.iter().map(BlendJob::from).collect();
     let spec = OutputSpec::default();
-    engine.evaluate(prepared, &jobs, spec)?; // Warm-up: pipelines, slot buffers.
+    // One output reused across runs, as the server's buffer pool does: a fresh 50 MB buffer
+    // per run would time its page faults, not the engine. The first run warms it, and the
+    // GPU's pipelines and slot buffers.
+    let mut out = BlendOutput::default();
+    engine.evaluate_into(prepared, &jobs, spec, &mut out)?;
     let mut round = Vec::new();
     let mut gpu = Vec::new();
     let start = Instant::now();
     while round.len() < 3 || (start.elapsed().as_secs_f64() < seconds && round.len() < 100) {
         let t = Instant::now();
-        let e = engine.evaluate(prepared, &jobs, spec)?;
+        let (timings, _) = engine.evaluate_into(prepared, &jobs, spec, &mut out)?;
         round.push(t.elapsed().as_secs_f64() * 1e3);
-        if let Some(ns) = e.timings.gpu_ns {
+        if let Some(ns) = timings.gpu_ns {
             gpu.push(ns as f64 / 1e6);
         }
     }

@@ -316,3 +316,16 @@ pub fn eval_with(
     w.flush()?;
     Ok(())
 }
+
+/// A progress bar on standard error for a command that takes seconds (hidden when standard
+/// error is not a terminal, so JSON on standard output stays clean).
+pub fn progress_bar(len: u64, label: &str) -> indicatif::ProgressBar {
+    let b = indicatif::ProgressBar::new(len);
+    b.set_style(
+        indicatif::ProgressStyle::with_template(&format!(
+            "{{spinner}} {label} {{pos}}/{{len}} {{msg}}"
+        ))
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_spinner()),
+    );
+    b
+}
