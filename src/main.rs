@@ -109,6 +109,39 @@ enum LodCommand {
         #[arg(long)]
         json: bool,
     },
+    /// Set a registered rig's LOD on a running server (PUT /v1/rigs/{id}/lod): order, pins,
+    /// table and mesh levels. The server rebuilds it, persists it with the rig and uses it for
+    /// later frames.
+    Set {
+        /// Rig id on the server.
+        id: String,
+        /// Server address.
+        #[arg(
+            long,
+            env = "CROWDMORPH_SERVER",
+            default_value = "http://127.0.0.1:8080"
+        )]
+        server: String,
+        /// Bearer token, when the server has an admin token.
+        #[arg(long, env = "CROWDMORPH_ADMIN_TOKEN", hide_env_values = true)]
+        token: Option<String>,
+        /// combined (default), geometric-mse, hausdorff, image-mse, ssim, yee or file-order.
+        #[arg(long)]
+        method: Option<String>,
+        /// Targets to pin to the front (repeatable).
+        #[arg(long = "pin")]
+        pins: Vec<String>,
+        /// A level of the table, SHAPES or SHAPES:MESH (repeatable, level 0 first; default
+        /// 100/50/25/10/0 % of the targets).
+        #[arg(long = "level", value_parser = tools::parse_lod_level)]
+        levels: Vec<crowdmorph_proto::LodLevelRequest>,
+        /// Simplified meshes to build, as fractions of the triangles.
+        #[arg(long, value_delimiter = ',')]
+        mesh_fractions: Vec<f32>,
+        /// Print the rig as JSON instead of the table.
+        #[arg(long)]
+        json: bool,
+    },
     /// Detect feature points and build simplified mesh levels.
     Mesh {
         /// glTF/GLB rig (default: the embedded head).
@@ -478,6 +511,30 @@ fn main() -> Result<()> {
 fn run_lod(which: LodCommand) -> Result<()> {
     use crowdmorph::lod::cli;
     match which {
+        LodCommand::Set {
+            id,
+            server,
+            token,
+            method,
+            pins,
+            levels,
+            mesh_fractions,
+            json,
+        } => {
+            let request = crowdmorph_proto::LodRequest {
+                method,
+                pinned: pins,
+                levels: (!levels.is_empty()).then_some(levels),
+                mesh_fractions,
+                ..crowdmorph_proto::LodRequest::default()
+            };
+            let info = tools::lod_set(&server, token.as_deref(), &id, &request)?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&info)?);
+            } else {
+                print!("{}", tools::lod_table_text(&info));
+            }
+        }
         LodCommand::Report {
             file,
             clip,

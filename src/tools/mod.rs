@@ -1,4 +1,4 @@
-//! The command-line tools as library functions: `inspect`, `eval` and `bench`.
+//! The command-line tools as library functions: `inspect`, `eval`, `bench` and `lod set`.
 //!
 //! They live in the library so that tests can call them and `main.rs` stays a thin shell that
 //! parses arguments. Being tools rather than request paths, they report errors with `anyhow`.
@@ -328,4 +328,67 @@ pub fn progress_bar(len: u64, label: &str) -> indicatif::ProgressBar {
         .unwrap_or_else(|_| indicatif::ProgressStyle::default_spinner()),
     );
     b
+}
+
+/// Parses a `--level SHAPES[:MESH]` argument of `lod set` (the mesh is an index into the
+/// request's mesh fractions).
+pub fn parse_lod_level(s: &str) -> Result<crowdmorph_proto::LodLevelRequest> {
+    let (shapes, mesh) = match s.split_once(':') {
+        Some((a, b)) => (a, Some(b)),
+        None => (s, None),
+    };
+    Ok(crowdmorph_proto::LodLevelRequest {
+        shapes: shapes
+            .trim()
+            .parse()
+            .with_context(|| format!("level {s:?}: shapes must be a whole number"))?,
+        mesh: mesh
+            .map(|m| m.trim().parse())
+            .transpose()
+            .with_context(|| format!("level {s:?}: the mesh must be a whole number"))?,
+    })
+}
+
+/// `crowdmorph lod set`: sets a registered rig's LOD on a running server (`PUT
+/// /v1/rigs/{id}/lod`), where it is rebuilt, persisted with the rig and used by later frames.
+pub fn lod_set(
+    server: &str,
+    token: Option<&str>,
+    id: &str,
+    request: &crowdmorph_proto::LodRequest,
+) -> Result<crowdmorph_proto::RigInfo> {
+    let mut client = crowdmorph_client::Client::new(server.trim_end_matches('/'));
+    if let Some(t) = token {
+        client = client.with_token(t);
+    }
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .context("starting the tokio runtime")?;
+    runtime
+        .block_on(client.set_lod(id, request))
+        .with_context(|| format!("setting the LOD of rig {id:?} on {server}"))
+}
+
+/// The LOD table of a rig as text, a line per level.
+pub fn lod_table_text(info: &crowdmorph_proto::RigInfo) -> String {
+    let lod = &info.lod;
+    let mut s = format!(
+        "rig {:?}: LOD {} ({}), pinned [{}]\n",
+        info.id,
+        lod.method,
+        lod.status,
+        lod.pinned.join(", ")
+    );
+    for (i, l) in lod.levels.iter().enumerate() {
+        let _ = writeln!(
+            s,
+            "  level {i}: {:>3} shapes, {} vertices, {} triangles{}",
+            l.shapes,
+            l.vertices,
+            l.triangles,
+            l.mesh.map_or(String::new(), |m| format!(" (mesh {m})"))
+        );
+    }
+    s
 }
