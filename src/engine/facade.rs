@@ -207,6 +207,13 @@ fn gpu_to_engine(e: GpuError) -> EngineError {
     }
 }
 
+/// An evaluation started by [`Engine::begin`]: a submitted GPU batch, or nothing yet (the
+/// CPU engine works in [`Engine::finish_into`]).
+pub struct Begun<'a> {
+    start: Instant,
+    gpu: Option<PendingEvaluation<'a>>,
+}
+
 /// A batch submitted with [`Engine::submit`], not yet collected.
 pub struct PendingEvaluation<'a> {
     engine: &'a Engine,
@@ -477,7 +484,7 @@ impl Engine {
     /// Evaluates unique jobs of one rig into `out`, reusing its buffers on the CPU engine (a
     /// warm buffer saves the page faults of a fresh one, which cost as much as the blend for
     /// large batches). All jobs must share one mesh level; the output has that level's
-    /// vertices.
+    /// vertices. [`Engine::begin`] then [`Engine::finish_into`], back to back.
     pub fn evaluate_into(
         &self,
         rig: &PreparedRig,
@@ -485,18 +492,52 @@ impl Engine {
         spec: OutputSpec,
         out: &mut BlendOutput,
     ) -> Result<(Timings, BackendKind), EngineError> {
+        let begun = self.begin(rig, jobs, spec)?;
+        self.finish_into(begun, rig, jobs, spec, out)
+    }
+
+    /// Starts an evaluation for [`Engine::finish_into`]: on the GPU the batch is submitted
+    /// now and computes while the caller does other work (finishes an earlier batch, begins
+    /// another rig's), which is how the server overlaps consecutive batches; the CPU engine
+    /// does all its work in `finish_into`.
+    pub fn begin(
+        &self,
+        rig: &PreparedRig,
+        jobs: &[BlendJob],
+        spec: OutputSpec,
+    ) -> Result<Begun<'_>, EngineError> {
         let start = Instant::now();
         let target = rig.route(jobs)?;
         if self.gpu_active().is_some() && target.gpu.is_some() {
-            let e = self.submit(rig, jobs, spec, true)?.wait()?;
+            return Ok(Begun {
+                start,
+                gpu: Some(self.submit(rig, jobs, spec, true)?),
+            });
+        }
+        Ok(Begun { start, gpu: None })
+    }
+
+    /// Completes what [`Engine::begin`] started (with the same rig, jobs and spec) into
+    /// `out`.
+    pub fn finish_into(
+        &self,
+        begun: Begun<'_>,
+        rig: &PreparedRig,
+        jobs: &[BlendJob],
+        spec: OutputSpec,
+        out: &mut BlendOutput,
+    ) -> Result<(Timings, BackendKind), EngineError> {
+        if let Some(pending) = begun.gpu {
+            let e = pending.wait()?;
             *out = e.output;
             return Ok((e.timings, e.kind.unwrap_or(BackendKind::Gpu)));
         }
+        let target = rig.route(jobs)?;
         let batch = WeightBatch::gather(&target.rig, jobs)?;
         target.cpu.evaluate_into(&batch, spec, out)?;
         Ok((
             Timings {
-                wall_ns: start.elapsed().as_nanos() as u64,
+                wall_ns: begun.start.elapsed().as_nanos() as u64,
                 gpu_ns: None,
             },
             BackendKind::Cpu,

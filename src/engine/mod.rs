@@ -14,8 +14,8 @@ mod facade;
 pub mod gpu;
 
 pub use facade::{
-    BackendChoice, BackendInfo, BackendKind, Engine, Evaluation, PendingEvaluation, PreparedRig,
-    RigMemory, Timings,
+    BackendChoice, BackendInfo, BackendKind, Begun, Engine, Evaluation, PendingEvaluation,
+    PreparedRig, RigMemory, Timings,
 };
 
 use half::f16;

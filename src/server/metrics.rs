@@ -104,6 +104,8 @@ pub struct Metrics {
     pub batches: AtomicU64,
     /// Engine dispatches (one per rig and output kind per batch).
     pub dispatches: AtomicU64,
+    /// Batches begun on the engine while an earlier one was still computing (GPU pipelining).
+    pub batches_pipelined: AtomicU64,
     /// GPU time, nanoseconds.
     pub gpu_ns: AtomicU64,
     /// Crowd requests refused by reason (`queue_full`, `deadline`, ...).
@@ -129,6 +131,7 @@ impl Default for Metrics {
             jobs_cancelled: AtomicU64::new(0),
             batches: AtomicU64::new(0),
             dispatches: AtomicU64::new(0),
+            batches_pipelined: AtomicU64::new(0),
             gpu_ns: AtomicU64::new(0),
             rejected: Mutex::new(BTreeMap::new()),
             queue_depth: AtomicU64::new(0),
@@ -285,6 +288,12 @@ impl Metrics {
             "crowdmorph_engine_dispatches_total",
             "Engine evaluations (one per rig and output kind per batch).",
             load(&self.dispatches),
+        );
+        c(
+            &mut o,
+            "crowdmorph_batches_pipelined_total",
+            "Batches submitted to the GPU while an earlier batch was still computing.",
+            load(&self.batches_pipelined),
         );
         let _ = writeln!(
             o,

@@ -9,10 +9,13 @@
 //! - A request is split into *slots*, one per unique job, keyed by rig generation, clip, frame,
 //!   LOD, wire format and normals. A job whose key is already queued or computing joins that
 //!   slot (it is *coalesced*); otherwise a new slot goes to the back of the pending queue.
-//! - When the compute thread is idle, a batch is closed and dispatched as soon as the pending
+//! - When the compute thread has room, a batch is closed and dispatched as soon as the pending
 //!   cost (vertices × (active shapes + 1) per job) reaches `batch_cost`, or the oldest pending
 //!   job has waited `batch_delay`. While the engine is busy, pending work accumulates, so
 //!   batches grow with load.
+//! - Room is one batch on the CPU engine, two on the GPU: the compute thread submits batch
+//!   N + 1 to the GPU before it waits for batch N, so upload, compute and readback of
+//!   consecutive batches overlap (the GPU engine's pooled slots are the ring of buffers).
 //! - A slot whose waiting requests have all gone (client disconnected, deadline passed) is
 //!   dropped before it is computed; a slot that some live request still needs is computed even
 //!   if others gave up on it, so a client that disconnects never cancels shared work.
@@ -29,7 +32,7 @@ use tokio::sync::{mpsc, oneshot};
 
 use super::metrics::Metrics;
 use super::registry::{RigEntry, quantize_normals, quantize_positions};
-use crate::engine::{BlendJob, BlendOutput, Engine, OutputSpec, Precision, VertexData};
+use crate::engine::{Begun, BlendJob, BlendOutput, Engine, OutputSpec, Precision, VertexData};
 
 /// One unique job of a crowd request, resolved against a rig entry.
 #[derive(Clone, Debug)]
@@ -121,6 +124,11 @@ impl Scheduler {
         let (work_tx, work_rx) = std::sync::mpsc::channel::<WorkBatch>();
         let (done_tx, done_rx) = mpsc::unbounded_channel::<BatchDone>();
         let worker_metrics = metrics.clone();
+        let depth = if engine.info().kind == crate::engine::BackendKind::Gpu {
+            2
+        } else {
+            1
+        };
         let spawned = std::thread::Builder::new()
             .name("crowdmorph-compute".into())
             .spawn(move || compute_thread(&engine, &worker_metrics, &work_rx, &done_tx));
@@ -136,7 +144,8 @@ impl Scheduler {
             pending: VecDeque::new(),
             pending_cost: 0,
             requests: HashMap::new(),
-            busy: false,
+            in_flight: 0,
+            depth,
             next_id: 0,
             next_batch: 0,
         };
@@ -257,7 +266,9 @@ struct State {
     pending: VecDeque<SlotId>,
     pending_cost: u64,
     requests: HashMap<ReqId, ReqState>,
-    busy: bool,
+    /// Batches at the compute thread, and how many it may hold.
+    in_flight: usize,
+    depth: usize,
     next_id: u64,
     next_batch: u64,
 }
@@ -270,7 +281,7 @@ impl State {
     ) {
         let mut closed = false;
         loop {
-            if closed && self.pending.is_empty() && !self.busy {
+            if closed && self.pending.is_empty() && self.in_flight == 0 {
                 break;
             }
             let wake = self
@@ -278,18 +289,18 @@ impl State {
                 .front()
                 .and_then(|id| self.slots.get(id))
                 .map(|s| s.created + self.cfg.batch_delay);
-            let timer_armed = wake.is_some() && !self.busy;
+            let timer_armed = wake.is_some() && self.in_flight < self.depth;
             let sleep_until = wake.unwrap_or_else(Instant::now);
             tokio::select! {
                 biased;
-                done = done_rx.recv(), if self.busy => {
+                done = done_rx.recv(), if self.in_flight > 0 => {
                     match done {
                         Some(done) => self.finish(done),
                         None => {
                             // The compute thread is gone: fail everything still waiting.
                             tracing::error!("the compute thread stopped");
                             self.fail_all("the compute thread stopped");
-                            self.busy = false;
+                            self.in_flight = 0;
                             self.work = None;
                         }
                     }
@@ -387,7 +398,7 @@ impl State {
 
     /// Closes and sends a batch when the engine is idle and the batch is due.
     fn dispatch(&mut self, closing: bool) {
-        if self.busy || self.pending.is_empty() {
+        if self.in_flight >= self.depth || self.pending.is_empty() {
             return;
         }
         let Some(work) = self.work.clone() else {
@@ -492,11 +503,11 @@ impl State {
             self.fail_all("the compute thread stopped");
             return;
         }
-        self.busy = true;
+        self.in_flight += 1;
     }
 
     fn finish(&mut self, done: BatchDone) {
-        self.busy = false;
+        self.in_flight = self.in_flight.saturating_sub(1);
         let m = &self.metrics;
         m.compute_seconds.observe(done.wall_ns as f64 / 1e9);
         if let Some(g) = done.gpu_ns {
@@ -645,6 +656,13 @@ impl Drop for VertexBytes {
     }
 }
 
+/// A batch whose groups have begun on the engine (on the GPU: submitted and computing).
+struct Started<'a> {
+    id: u64,
+    start: Instant,
+    groups: Vec<(WorkGroup, std::thread::Result<Result<Begun<'a>, String>>)>,
+}
+
 fn compute_thread(
     engine: &Engine,
     metrics: &Metrics,
@@ -652,63 +670,121 @@ fn compute_thread(
     done: &mpsc::UnboundedSender<BatchDone>,
 ) {
     let pool = Arc::new(BufferPool::default());
-    while let Ok(batch) = rx.recv() {
-        let start = Instant::now();
-        let mut results = Vec::new();
-        let mut gpu_ns: Option<u64> = None;
-        for group in batch.groups {
-            let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                evaluate_group(engine, &pool, &group)
-            }));
-            match outcome {
-                Ok(Ok((outs, gpu))) => {
-                    if let Some(g) = gpu {
-                        gpu_ns = Some(gpu_ns.unwrap_or(0) + g);
-                    }
-                    metrics
-                        .jobs_computed
-                        .fetch_add(outs.len() as u64, std::sync::atomic::Ordering::Relaxed);
-                    results.extend(
-                        group
-                            .slots
-                            .iter()
-                            .zip(outs)
-                            .map(|(&(id, _), o)| (id, Ok(Arc::new(o)))),
-                    );
-                }
-                Ok(Err(e)) => {
-                    tracing::error!(rig = %group.entry.id, error = %e, "engine evaluation failed");
-                    results.extend(group.slots.iter().map(|&(id, _)| (id, Err(e.clone()))));
-                }
-                Err(_) => {
-                    tracing::error!(rig = %group.entry.id, "engine evaluation panicked");
-                    results.extend(
-                        group
-                            .slots
-                            .iter()
-                            .map(|&(id, _)| (id, Err("engine evaluation panicked".to_string()))),
-                    );
-                }
+    let mut in_flight: Option<Started<'_>> = None;
+    loop {
+        // With a batch computing, take the next one only if it is already here, so that it is
+        // submitted before the first is waited for; with none, wait for one.
+        let next = if in_flight.is_some() {
+            rx.try_recv().ok()
+        } else {
+            match rx.recv() {
+                Ok(batch) => Some(batch),
+                Err(_) => break,
             }
+        };
+        let started = next.map(|batch| begin_batch(engine, batch));
+        if started.is_some() && in_flight.is_some() {
+            metrics
+                .batches_pipelined
+                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         }
-        let wall_ns = start.elapsed().as_nanos() as u64;
-        if done
-            .send(BatchDone {
-                id: batch.id,
-                results,
-                wall_ns,
-                gpu_ns,
-            })
-            .is_err()
+        if let Some(current) = in_flight.take()
+            && done
+                .send(finish_batch(engine, metrics, &pool, current))
+                .is_err()
         {
             break;
         }
+        in_flight = started;
+    }
+}
+
+/// Begins every group of a batch: on the GPU each is submitted before any is waited for.
+fn begin_batch(engine: &Engine, batch: WorkBatch) -> Started<'_> {
+    let start = Instant::now();
+    let groups = batch
+        .groups
+        .into_iter()
+        .map(|group| {
+            let begun = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                engine
+                    .begin(&group.entry.prepared, &group.jobs, group.spec)
+                    .map_err(|e| e.to_string())
+            }));
+            (group, begun)
+        })
+        .collect();
+    Started {
+        id: batch.id,
+        start,
+        groups,
+    }
+}
+
+/// Waits for (or, on the CPU, computes) every group of a begun batch and collects the results.
+fn finish_batch(
+    engine: &Engine,
+    metrics: &Metrics,
+    pool: &Arc<BufferPool>,
+    batch: Started<'_>,
+) -> BatchDone {
+    let mut results = Vec::new();
+    let mut gpu_ns: Option<u64> = None;
+    for (group, begun) in batch.groups {
+        let outcome = match begun {
+            Ok(Ok(begun)) => std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                finish_group(engine, pool, &group, begun)
+            })),
+            Ok(Err(e)) => Ok(Err(e)),
+            Err(panic) => Err(panic),
+        };
+        match outcome {
+            Ok(Ok((outs, gpu))) => {
+                if let Some(g) = gpu {
+                    gpu_ns = Some(gpu_ns.unwrap_or(0) + g);
+                }
+                metrics
+                    .jobs_computed
+                    .fetch_add(outs.len() as u64, std::sync::atomic::Ordering::Relaxed);
+                results.extend(
+                    group
+                        .slots
+                        .iter()
+                        .zip(outs)
+                        .map(|(&(id, _), o)| (id, Ok(Arc::new(o)))),
+                );
+            }
+            Ok(Err(e)) => {
+                tracing::error!(rig = %group.entry.id, error = %e, "engine evaluation failed");
+                results.extend(group.slots.iter().map(|&(id, _)| (id, Err(e.clone()))));
+            }
+            Err(_) => {
+                tracing::error!(rig = %group.entry.id, "engine evaluation panicked");
+                results.extend(
+                    group
+                        .slots
+                        .iter()
+                        .map(|&(id, _)| (id, Err("engine evaluation panicked".to_string()))),
+                );
+            }
+        }
+    }
+    BatchDone {
+        id: batch.id,
+        results,
+        wall_ns: batch.start.elapsed().as_nanos() as u64,
+        gpu_ns,
     }
 }
 
 type GroupResult = Result<(Vec<JobOutput>, Option<u64>), String>;
 
-fn evaluate_group(engine: &Engine, pool: &Arc<BufferPool>, group: &WorkGroup) -> GroupResult {
+fn finish_group(
+    engine: &Engine,
+    pool: &Arc<BufferPool>,
+    group: &WorkGroup,
+    begun: Begun<'_>,
+) -> GroupResult {
     // Warm pooled buffers: the CPU engine writes into them (no page faults); the GPU engine
     // replaces them with its readback.
     let f16 = group.spec.precision == Precision::F16;
@@ -718,7 +794,13 @@ fn evaluate_group(engine: &Engine, pool: &Arc<BufferPool>, group: &WorkGroup) ->
         ..BlendOutput::default()
     };
     let (timings, _) = engine
-        .evaluate_into(&group.entry.prepared, &group.jobs, group.spec, &mut out)
+        .finish_into(
+            begun,
+            &group.entry.prepared,
+            &group.jobs,
+            group.spec,
+            &mut out,
+        )
         .map_err(|e| e.to_string())?;
     let gpu_ns = timings.gpu_ns;
     let v3 = out.vertices * 3;

@@ -540,3 +540,96 @@ async fn frames_on_the_gpu_backend_match_the_cpu_engine() {
     );
     server.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn gpu_batches_overlap_under_load_and_every_response_is_right() {
+    if crowdmorph::engine::Engine::new(crowdmorph::engine::BackendChoice::Gpu).is_err() {
+        eprintln!("skipped: no GPU adapter (install mesa-vulkan-drivers for lavapipe)");
+        return;
+    }
+    // One job per batch, so 32 concurrent requests make a stream of batches: the compute
+    // thread submits each next batch before it waits for the one computing.
+    let server = TestServer::start(ServerConfig {
+        backend: crowdmorph::engine::BackendChoice::Gpu,
+        batch_cost: 1,
+        ..ServerConfig::default()
+    })
+    .await;
+    let rig = server
+        .state
+        .registry
+        .get("default-head")
+        .expect("rig")
+        .rig()
+        .clone();
+    let cpu = crowdmorph::engine::Engine::cpu();
+    let prepared = cpu
+        .prepare(std::sync::Arc::new(rig.clone()))
+        .expect("prepare");
+    let talk = rig.clip_index("talk").expect("talk") as u32;
+    let frames = i64::from(rig.clips[talk as usize].frames);
+    let tasks: Vec<_> = (0..32i64)
+        .map(|r| {
+            let client = server.client.clone();
+            let heads: Vec<Head> = (0..4)
+                .map(|k| Head {
+                    head: (r * 4 + k) as u64,
+                    rig: "default-head".into(),
+                    clip: "talk".into(),
+                    frame: (r * 3 + k) % frames,
+                    lod: (k % 2) as u32,
+                })
+                .collect();
+            tokio::spawn(async move {
+                let req = CrowdFrameRequest {
+                    heads,
+                    output: OutputOptions {
+                        normals: false,
+                        format: Format::F32,
+                    },
+                    wrap: true,
+                };
+                let (resp, _) = client
+                    .crowd_frame(&req, Encoding::Bincode)
+                    .await
+                    .expect("frame");
+                (req, resp)
+            })
+        })
+        .collect();
+    let diag = rig.bbox().diagonal();
+    for t in tasks {
+        let (req, resp) = t.await.expect("join");
+        for (h, head) in req.heads.iter().zip(&resp.heads) {
+            let b = &resp.buffers[head.buffer as usize];
+            let want = cpu
+                .evaluate(
+                    &prepared,
+                    &[crowdmorph::engine::BlendJob {
+                        clip: talk,
+                        frame: b.frame,
+                        lod: h.lod,
+                    }],
+                    crowdmorph::engine::OutputSpec::default(),
+                )
+                .expect("cpu");
+            assert_eq!(b.frame as i64, h.frame, "head {} got another frame", h.head);
+            let d = positions_f32(Format::F32, b)
+                .iter()
+                .zip(want.output.job_positions(0))
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f32::max);
+            assert!(d <= 1e-5 * diag, "head {}: {d}", h.head);
+        }
+    }
+    assert!(!server.state.engine.info().degraded);
+    let metrics = server.client.metrics().await.expect("metrics");
+    let pipelined = crowdmorph_client::metric(&metrics, "crowdmorph_batches_pipelined_total");
+    let batches = crowdmorph_client::metric(&metrics, "crowdmorph_batches_total");
+    eprintln!("{batches:?} batches, {pipelined:?} begun while another computed");
+    assert!(
+        pipelined.is_some_and(|v| v >= 1.0),
+        "consecutive batches overlapped on the GPU: {pipelined:?} of {batches:?}"
+    );
+    server.stop().await;
+}
