@@ -209,6 +209,9 @@ enum BenchCommand {
         seconds: f64,
         /// Print JSON.
         #[arg(long)]
+        /// Engine of the server and of the in-process comparison.
+        #[arg(long, default_value = "auto")]
+        backend: BackendChoice,
         json: bool,
     },
     /// The CPU engine against a dense sgemm and the memcpy roofline, measured in the same run.
@@ -478,6 +481,7 @@ fn main() -> Result<()> {
                     format,
                     clients,
                     seconds,
+                    backend,
                     json,
                 },
         } => {
@@ -496,8 +500,12 @@ fn main() -> Result<()> {
                 },
                 clients,
                 seconds,
+                backend,
             };
-            let report = http::bench_http(bytes, &opt)?;
+            let bar = tools::spinner("bench http: in-process, loopback, saturation, half load");
+            let report = http::bench_http(bytes, &opt);
+            bar.finish_and_clear();
+            let report = report?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&report)?);
             } else {

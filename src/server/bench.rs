@@ -79,6 +79,8 @@ pub struct HttpBenchOptions {
     pub clients: usize,
     /// Seconds per measurement.
     pub seconds: f64,
+    /// Engine of the server and of the in-process comparison (the same one for both).
+    pub backend: crate::engine::BackendChoice,
 }
 
 impl Default for HttpBenchOptions {
@@ -89,6 +91,7 @@ impl Default for HttpBenchOptions {
             format: Format::F32,
             clients: 4,
             seconds: 3.0,
+            backend: crate::engine::BackendChoice::Auto,
         }
     }
 }
@@ -112,6 +115,8 @@ pub struct FormatSize {
 /// The benchmark result.
 #[derive(Debug, Serialize)]
 pub struct HttpBenchReport {
+    /// The engine both sides used.
+    pub backend: crate::engine::BackendInfo,
     /// Rig name.
     pub rig: String,
     /// Vertices per head.
@@ -283,6 +288,7 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
     let config = ServerConfig {
         max_heads: opt.heads.max(1000),
         request_timeout: Duration::from_secs(60),
+        backend: opt.backend,
         ..ServerConfig::default()
     };
     let state = AppState::new(config)?;
@@ -351,7 +357,8 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
     }
 
     // In-process: the same crowds through plan + engine on this thread.
-    let engine = Engine::cpu();
+    let engine = Engine::new(opt.backend)?;
+    let backend = engine.info();
     let prepared = engine.prepare(Arc::new(rig.clone()))?;
     let spec = OutputSpec {
         normals: false,
@@ -503,6 +510,7 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
     let p50 = pct(&half, 0.5);
     let p99 = pct(&half, 0.99);
     Ok(HttpBenchReport {
+        backend,
         rig: rig.name.clone(),
         vertices: entry.vertices,
         targets: rig.targets.len(),
@@ -534,8 +542,16 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
 /// Human-readable report.
 pub fn report_text(r: &HttpBenchReport) -> String {
     let mut s = format!(
-        "rig {:?}: {} vertices × {} targets; {} heads / {} unique per request, {}, {} connections\n",
-        r.rig, r.vertices, r.targets, r.heads, r.unique, r.format, r.clients
+        "rig {:?}: {} vertices × {} targets; {} heads / {} unique per request, {}, {} connections; engine {:?} {}\n",
+        r.rig,
+        r.vertices,
+        r.targets,
+        r.heads,
+        r.unique,
+        r.format,
+        r.clients,
+        r.backend.kind,
+        r.backend.adapter.as_deref().unwrap_or("")
     );
     s += &format!(
         "  in-process      {:>10.0} heads/s  ({:.2} ms per crowd)\n",

@@ -392,3 +392,12 @@ pub fn lod_table_text(info: &crowdmorph_proto::RigInfo) -> String {
     }
     s
 }
+
+/// A spinner on standard error for work whose steps are not counted (hidden when standard
+/// error is not a terminal); finish it with `finish_and_clear` before printing the result.
+pub fn spinner(label: &str) -> indicatif::ProgressBar {
+    let b = indicatif::ProgressBar::new_spinner();
+    b.set_message(label.to_string());
+    b.enable_steady_tick(std::time::Duration::from_millis(120));
+    b
+}
