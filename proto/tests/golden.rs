@@ -141,3 +141,181 @@ fn trailing_bytes_and_truncation_are_errors() {
         Err(wire::WireError::Trailing(1))
     ));
 }
+
+/// Pins `value` as `<name>.bincode` and `<name>.json` and checks both decode back to it.
+fn pin<T>(name: &str, value: &T)
+where
+    T: serde::Serialize + serde::de::DeserializeOwned + PartialEq + std::fmt::Debug,
+{
+    let bin = to_bincode(value).unwrap();
+    check(&format!("{name}.bincode"), &bin);
+    assert_eq!(&response_from_bincode::<T>(&bin).unwrap(), value, "{name}");
+    let json = serde_json::to_vec(value).unwrap();
+    check(&format!("{name}.json"), &json);
+    assert_eq!(
+        &serde_json::from_slice::<T>(&json).unwrap(),
+        value,
+        "{name}"
+    );
+}
+
+fn clip_info(name: &str, frames: u32) -> ClipInfo {
+    ClipInfo {
+        name: name.into(),
+        frames,
+        fps: 30.0,
+    }
+}
+
+fn rig_info() -> RigInfo {
+    RigInfo {
+        id: "tri".into(),
+        name: "triangle".into(),
+        builtin: false,
+        vertices: 3,
+        triangles: 1,
+        primitives: vec![PrimitiveInfo {
+            name: "Mesh/0".into(),
+            vertices: 3,
+            triangles: 1,
+        }],
+        targets: vec!["up".into(), "out".into()],
+        clips: vec![clip_info("wave", 31)],
+        lod: LodInfo {
+            method: "combined+pinned".into(),
+            status: "ready".into(),
+            progress: 1.0,
+            error: None,
+            order: vec!["out".into(), "up".into()],
+            pinned: vec!["out".into()],
+            levels: vec![
+                LodLevelInfo {
+                    shapes: 2,
+                    mesh: None,
+                    vertices: 3,
+                    triangles: 1,
+                },
+                LodLevelInfo {
+                    shapes: 1,
+                    mesh: Some(0),
+                    vertices: 3,
+                    triangles: 1,
+                },
+            ],
+        },
+        bbox: Aabb {
+            min: [0.0, 0.0, 0.0],
+            max: [1.0, 1.0, 0.0],
+        },
+        memory: Memory {
+            host_bytes: 4096,
+            device_bytes: 0,
+        },
+    }
+}
+
+#[test]
+fn rig_messages() {
+    pin("rig_info", &rig_info());
+    pin(
+        "rig_list",
+        &RigList {
+            rigs: vec![rig_info()],
+        },
+    );
+    pin("lod_info", &rig_info().lod);
+    pin(
+        "clip_upload",
+        &ClipUpload {
+            rig: "tri".into(),
+            added: vec![clip_info("chat", 3)],
+            ignored: vec!["tongueOut".into()],
+        },
+    );
+    pin(
+        "clip_list",
+        &ClipList {
+            rig: "tri".into(),
+            clips: vec![clip_info("wave", 31), clip_info("chat", 3)],
+        },
+    );
+}
+
+#[test]
+fn lod_request() {
+    let r = LodRequest {
+        method: Some("file-order".into()),
+        order: None,
+        pinned: vec!["eyeBlink_L".into()],
+        levels: Some(vec![
+            LodLevelRequest {
+                shapes: 51,
+                mesh: None,
+            },
+            LodLevelRequest {
+                shapes: 12,
+                mesh: Some(0),
+            },
+        ]),
+        mesh_fractions: vec![0.25],
+    };
+    let bin = to_bincode(&r).unwrap();
+    check("lod_request.bincode", &bin);
+    assert_eq!(request_from_bincode::<LodRequest>(&bin).unwrap(), r);
+    let json = serde_json::to_vec(&r).unwrap();
+    check("lod_request.json", &json);
+    assert_eq!(serde_json::from_slice::<LodRequest>(&json).unwrap(), r);
+    // Every field may be left out in JSON.
+    assert_eq!(
+        serde_json::from_str::<LodRequest>("{}").unwrap(),
+        LodRequest::default()
+    );
+}
+
+#[test]
+fn mesh_response() {
+    let f32s = |v: &[f32]| Blob(v.iter().flat_map(|f| f.to_le_bytes()).collect());
+    pin(
+        "mesh_response",
+        &MeshResponse {
+            rig: "tri".into(),
+            lod: 0,
+            vertices: 3,
+            primitives: vec![MeshPrimitive {
+                name: "Mesh/0".into(),
+                first_vertex: 0,
+                vertices: 3,
+                first_index: 0,
+                indices: 3,
+            }],
+            bbox: Aabb {
+                min: [0.0, 0.0, 0.0],
+                max: [1.0, 1.0, 0.0],
+            },
+            quantization: Quantization {
+                min: [0.0, 0.0, 0.0],
+                step: [1.0 / 65535.0, 1.0 / 65535.0, 0.0],
+                max_error: [0.5 / 65535.0, 0.5 / 65535.0, 0.0],
+            },
+            indices: Blob([0u32, 1, 2].iter().flat_map(|i| i.to_le_bytes()).collect()),
+            positions: f32s(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]),
+            normals: f32s(&[0.0, 0.0, 1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 1.0]),
+        },
+    );
+}
+
+#[test]
+fn readiness() {
+    // Always JSON.
+    let r = Readiness {
+        status: "degraded".into(),
+        backend: "cpu".into(),
+        cpu_isa: "avx2".into(),
+        degraded_reason: Some("GPU device lost: test".into()),
+        rigs: 2,
+        skipped_files: vec!["rigs/broken.cmrig: checksum mismatch".into()],
+    };
+    let json = serde_json::to_vec(&r).unwrap();
+    check("readiness.json", &json);
+    assert_eq!(serde_json::from_slice::<Readiness>(&json).unwrap(), r);
+}
