@@ -248,3 +248,50 @@ async fn shutdown_lets_requests_in_flight_complete() {
     // Stopped: new connections are refused.
     assert!(tokio::net::TcpStream::connect(addr).await.is_err());
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_client_that_disconnects_does_not_cancel_shared_work() {
+    use tokio::io::AsyncWriteExt;
+    let server = TestServer::start(ServerConfig {
+        batch_delay: Duration::from_millis(600),
+        batch_cost: u64::MAX,
+        ..ServerConfig::default()
+    })
+    .await;
+    let m = server.state.metrics.clone();
+    // A asks for frame 5 over a raw connection, so that the test decides when it goes away.
+    let body = serde_json::to_vec(&req(&[5])).unwrap();
+    let mut a = tokio::net::TcpStream::connect(server.addr).await.unwrap();
+    let head = format!(
+        "POST /v1/crowd/frame HTTP/1.1\r\nhost: test\r\ncontent-type: application/json\r\n\
+         content-length: {}\r\n\r\n",
+        body.len()
+    );
+    a.write_all(head.as_bytes()).await.unwrap();
+    a.write_all(&body).await.unwrap();
+    assert!(eventually(|| m.queue_depth.load(Ordering::Relaxed) == 1).await);
+    // B asks for frames 5 and 6: frame 5 joins A's queued job.
+    let c = server.client.clone();
+    let b = tokio::spawn(async move { c.crowd_frame(&req(&[5, 6]), Encoding::Bincode).await });
+    assert!(eventually(|| m.jobs_coalesced.load(Ordering::Relaxed) == 1).await);
+    // A hangs up before the batch closes.
+    drop(a);
+    let (resp, _) = b.await.unwrap().expect("B is answered");
+    let frames: Vec<u32> = resp.buffers.iter().map(|b| b.frame).collect();
+    assert_eq!(frames, vec![5, 6]);
+    assert_eq!(
+        m.jobs_cancelled.load(Ordering::Relaxed),
+        0,
+        "shared work kept"
+    );
+    assert_eq!(m.jobs_computed.load(Ordering::Relaxed), 2);
+    // A was really gone: only B's request was answered.
+    let text = server.client.metrics().await.unwrap();
+    let answered: f64 = text
+        .lines()
+        .filter(|l| l.starts_with("crowdmorph_http_requests_total{route=\"/v1/crowd/frame\""))
+        .filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
+        .sum();
+    assert_eq!(answered, 1.0, "{text}");
+    server.stop().await;
+}
