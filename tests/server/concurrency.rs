@@ -135,6 +135,11 @@ async fn two_hundred_clients_get_their_own_correct_frames_and_jobs_coalesce() {
     );
     assert!(computed < requested, "computed {computed} of {requested}");
     assert!(metric(&page, "crowdmorph_unique_job_ratio").unwrap() < 1.0);
+    // One rig, one output kind, no simplified meshes: one engine call per batch.
+    let batches = metric(&page, "crowdmorph_batches_total").unwrap();
+    let dispatches = metric(&page, "crowdmorph_engine_dispatches_total").unwrap();
+    assert!(batches >= 1.0);
+    assert_eq!(dispatches, batches, "one dispatch per rig per batch");
     assert!(
         metric(
             &page,
