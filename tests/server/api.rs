@@ -538,6 +538,25 @@ async fn frames_on_the_gpu_backend_match_the_cpu_engine() {
             .is_some_and(|v| v > 0.0),
         "GPU time is reported in metrics"
     );
+    // The device goes away: frames keep coming (from the CPU engine) and /readyz says degraded.
+    server.state.engine.gpu().expect("gpu").device().destroy();
+    let req = crowd("default-head", &rig, Format::F32, false);
+    let (resp, _) = server
+        .client
+        .crowd_frame(&req, Encoding::Bincode)
+        .await
+        .expect("frames after the device loss");
+    assert_eq!(resp.heads.len(), req.heads.len());
+    let ready = server
+        .client
+        .send(Method::GET, "/readyz", None, None, Bytes::new())
+        .await
+        .expect("readyz");
+    assert_eq!(ready.status, 200);
+    let r: crowdmorph_proto::Readiness = serde_json::from_slice(&ready.body).expect("JSON");
+    assert_eq!(r.status, "degraded");
+    assert_eq!(r.backend, "cpu");
+    assert!(r.degraded_reason.is_some());
     server.stop().await;
 }
 
@@ -632,4 +651,42 @@ async fn gpu_batches_overlap_under_load_and_every_response_is_right() {
         "consecutive batches overlapped on the GPU: {pipelined:?} of {batches:?}"
     );
     server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn readyz_says_loading_until_stored_rigs_are_loaded() {
+    use http_body_util::BodyExt;
+    use tower::ServiceExt;
+    // The router alone, through `oneshot`: a state whose stored rigs are not loaded yet.
+    let state = crowdmorph::server::AppState::new(ServerConfig::default()).expect("state");
+    let get = |path: &str| {
+        axum::http::Request::builder()
+            .uri(path)
+            .body(axum::body::Body::empty())
+            .expect("request")
+    };
+    let resp = crowdmorph::server::app(state.clone())
+        .oneshot(get("/readyz"))
+        .await
+        .expect("response");
+    assert_eq!(resp.status(), 503);
+    let body = resp.into_body().collect().await.expect("body").to_bytes();
+    let r: crowdmorph_proto::Readiness = serde_json::from_slice(&body).expect("JSON");
+    assert_eq!(r.status, "loading");
+    // Liveness does not wait for loading.
+    let live = crowdmorph::server::app(state.clone())
+        .oneshot(get("/healthz"))
+        .await
+        .expect("response");
+    assert_eq!(live.status(), 200);
+    state.load_stored().await;
+    let resp = crowdmorph::server::app(state)
+        .oneshot(get("/readyz"))
+        .await
+        .expect("response");
+    assert_eq!(resp.status(), 200);
+    let body = resp.into_body().collect().await.expect("body").to_bytes();
+    let r: crowdmorph_proto::Readiness = serde_json::from_slice(&body).expect("JSON");
+    assert_eq!(r.status, "ready");
+    assert_eq!(r.rigs, 1, "the embedded rig");
 }
