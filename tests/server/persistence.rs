@@ -134,9 +134,15 @@ struct Proc {
 }
 
 fn spawn(dir: &Path) -> Proc {
+    spawn_with(dir, &[])
+}
+
+/// [`spawn`] with extra environment variables (every serve flag has one).
+fn spawn_with(dir: &Path, env: &[(&str, &str)]) -> Proc {
     let mut child = Command::new(env!("CARGO_BIN_EXE_crowdmorph"))
         .args(["serve", "--addr", "127.0.0.1:0", "--data-dir"])
         .arg(dir)
+        .envs(env.iter().copied())
         .env("RUST_LOG", "info")
         .env("NO_COLOR", "1")
         .stdout(Stdio::null())
@@ -265,6 +271,52 @@ async fn sigkill_during_uploads_never_leaves_a_partial_rig() {
         .status()
         .unwrap();
     assert!(status.success());
+    let exit = p.child.wait().unwrap();
+    assert!(exit.success(), "exit status {exit:?}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sigterm_lets_requests_in_flight_complete() {
+    let dir = temp_dir("sigterm");
+    // A long batch delay keeps the request queued when the signal arrives.
+    let mut p = spawn_with(
+        &dir,
+        &[
+            ("CROWDMORPH_BATCH_DELAY_US", "800000"),
+            ("CROWDMORPH_BATCH_COST", "18446744073709551615"),
+        ],
+    );
+    let c = Client::new(p.base.clone());
+    ready(&c).await;
+    let req = frames(&[("default-head", "talk", 3), ("default-head", "smile", 9)]);
+    let inflight = {
+        let c = c.clone();
+        let req = req.clone();
+        tokio::spawn(async move { c.crowd_frame(&req, Encoding::Bincode).await })
+    };
+    let mut queued = false;
+    for _ in 0..250 {
+        let m = c.metrics().await.unwrap();
+        if crowdmorph_client::metric(&m, "crowdmorph_queue_depth") == Some(1.0) {
+            queued = true;
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(4)).await;
+    }
+    assert!(queued, "the request reached the batcher");
+    let status = Command::new("kill")
+        .args(["-TERM", &p.child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let (resp, _) = inflight
+        .await
+        .unwrap()
+        .expect("the request in flight is answered");
+    assert_eq!(resp.heads.len(), 2);
+    let frames: Vec<u32> = resp.buffers.iter().map(|b| b.frame).collect();
+    assert_eq!(frames, vec![3, 9]);
     let exit = p.child.wait().unwrap();
     assert!(exit.success(), "exit status {exit:?}");
     let _ = std::fs::remove_dir_all(&dir);
