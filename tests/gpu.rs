@@ -2,9 +2,10 @@
 //! without a GPU that is Mesa's lavapipe (software Vulkan), opened explicitly — the `auto`
 //! backend never picks it. Each test opens its own device.
 //!
-//! Tolerances: positions within 1e-5 × the bounding-box diagonal; normals within 1e-4 when
-//! blended from normal deltas and 1e-3 when recomputed from positions (the two engines sum
-//! face normals in different orders); f16 outputs may round the other way on one side, so they
+//! Tolerances: positions within 1e-5 × the bounding-box diagonal; unit normals within 1e-5 when
+//! blended from normal deltas, and within 1e-3 when recomputed from positions (the two engines
+//! sum face normals in different orders: 0 on the real rigs, up to 4.3e-4 on the synthetic
+//! paper-scale rig); f16 outputs may round the other way on one side, so they
 //! are allowed one binary16 step more: max |coordinate| × 2^-10 for positions, 2^-10 for normals.
 
 use std::sync::Arc;
@@ -120,7 +121,7 @@ fn check_parity(gpu_engine: &Engine, rig: Rig, jobs: &[BlendJob]) {
                     want.output.job_normals(j).expect("normals"),
                 );
                 let tol =
-                    if recomputed { 1e-3 } else { 1e-4 } + if f16 { 1.0 / 1024.0 } else { 0.0 };
+                    if recomputed { 1e-3 } else { 1e-5 } + if f16 { 1.0 / 1024.0 } else { 0.0 };
                 let d = max_diff(&gn, &cn);
                 assert!(
                     d <= tol,
