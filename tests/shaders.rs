@@ -43,7 +43,8 @@ fn each_pass_has_the_entry_point_its_cpu_mirror_names() {
     for (file, entries) in [
         ("active.wgsl", &["build_active"][..]),
         ("blend.wgsl", &["blend"][..]),
-        ("normals.wgsl", &["face_normals", "vertex_normals"][..]),
+        ("face_normals.wgsl", &["face_normals"][..]),
+        ("vertex_normals.wgsl", &["vertex_normals"][..]),
         ("pack_f16.wgsl", &["pack_f16"][..]),
     ] {
         let src = std::fs::read_to_string(dir.join(file)).expect("read shader");

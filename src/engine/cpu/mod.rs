@@ -4,7 +4,7 @@
 //! Passes, named as their WGSL counterparts in `shaders/`:
 //! - [`CpuRig::blend`] (`blend.wgsl`): positions, and normals where the rig has normal deltas,
 //!   per Eq. 1 over the active slots of each job's LOD;
-//! - [`CpuRig::recompute_normals`] (`normals.wgsl`): area-weighted normals from the blended
+//! - [`CpuRig::recompute_normals`] (`face_normals.wgsl`, `vertex_normals.wgsl`): area-weighted normals from the blended
 //!   positions for primitives whose targets carry no normal deltas;
 //! - [`pack_f16`] (`pack_f16.wgsl`): binary16 output.
 //!
@@ -116,7 +116,7 @@ impl TileBlocks {
 }
 
 /// Topology for recomputing normals of the primitives whose targets have no normal deltas;
-/// shared by the CPU pass and the GPU's `normals.wgsl`.
+/// shared by the CPU pass and the GPU's `face_normals.wgsl` and `vertex_normals.wgsl`.
 #[derive(Clone, Debug, Default)]
 pub(crate) struct NormalTopology {
     /// Global vertex indices of the triangles of those primitives.

@@ -248,10 +248,15 @@ impl GpuContext {
             "blend.wgsl",
             include_str!("../../../shaders/blend.wgsl"),
         );
-        let normals = shader(
+        let face = shader(
             &device,
-            "normals.wgsl",
-            include_str!("../../../shaders/normals.wgsl"),
+            "face_normals.wgsl",
+            include_str!("../../../shaders/face_normals.wgsl"),
+        );
+        let vertex = shader(
+            &device,
+            "vertex_normals.wgsl",
+            include_str!("../../../shaders/vertex_normals.wgsl"),
         );
         let pack = shader(
             &device,
@@ -261,8 +266,8 @@ impl GpuContext {
         let pipelines = Pipelines {
             active: pipeline(&device, &active, "build_active"),
             blend: pipeline(&device, &blend, "blend"),
-            face: pipeline(&device, &normals, "face_normals"),
-            vertex: pipeline(&device, &normals, "vertex_normals"),
+            face: pipeline(&device, &face, "face_normals"),
+            vertex: pipeline(&device, &vertex, "vertex_normals"),
             pack: pipeline(&device, &pack, "pack_f16"),
         };
         let limits = device.limits();
