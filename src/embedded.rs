@@ -105,7 +105,7 @@ pub fn default_rig() -> Rig {
         name: DEFAULT_RIG_NAME.to_string(),
         targets: TARGETS.iter().map(|&(name, _)| name.to_string()).collect(),
         default_weights: vec![0.0; n_targets],
-        primitives,
+        primitives: std::sync::Arc::new(primitives),
         clips: clips(n_targets),
         lod,
     }
@@ -1140,7 +1140,7 @@ mod tests {
         assert!(rig.target_nnz().iter().all(|&n| n > 0));
         let unique: std::collections::BTreeSet<&String> = rig.targets.iter().collect();
         assert_eq!(unique.len(), rig.targets.len());
-        for p in &rig.primitives {
+        for p in rig.primitives.iter() {
             assert!(!p.normals_from_file && p.tangents.is_none());
             assert!(
                 p.targets
@@ -1183,7 +1183,7 @@ mod tests {
     #[test]
     fn triangles_wind_outward_and_are_not_degenerate() {
         let rig = default_rig();
-        for p in &rig.primitives {
+        for p in rig.primitives.iter() {
             let center = p.positions.iter().copied().sum::<Vec3>() / p.positions.len() as f32;
             let mut total = 0.0f64;
             let mut outward = 0usize;

@@ -5,6 +5,7 @@
 //! | module | what it is |
 //! |---|---|
 //! | [`rng`] | SplitMix64: deterministic numbers for synthetic rigs, clips and workloads |
+//! | [`budget`] | memory budgets: every allocation an input sizes is charged before it happens |
 //! | [`rig`] | pure data: primitives, sparse targets, clips (weight tables), LOD order; keyframe sampling math |
 //! | [`import`] | glTF/GLB, CSV and JSON readers that build a validated [`rig::Rig`] |
 //! | [`embedded`] | the procedural default rig that needs no files |
@@ -20,6 +21,7 @@
 //! The binary (`src/main.rs`) only parses the command line, sets up tracing and calls into
 //! [`tools`].
 
+pub mod budget;
 pub mod codec;
 pub mod embedded;
 pub mod engine;

@@ -368,7 +368,7 @@ fn ict_feature_points_survive_at_ten_percent() {
     let map = level.vertex_map(&rig.vertex_offsets());
     let mut used = vec![false; map.len()];
     let mut base = 0;
-    for p in &level.primitives {
+    for p in level.primitives.iter() {
         for &i in &p.indices {
             used[base + i as usize] = true;
         }

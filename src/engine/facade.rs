@@ -12,7 +12,7 @@ use std::time::Instant;
 use serde::Serialize;
 
 use super::cpu::CpuRig;
-use super::gpu::{GpuContext, GpuError, GpuOptions, GpuRig, Pending};
+use super::gpu::{ClipTables, GpuContext, GpuError, GpuOptions, GpuRig, Pending};
 use super::{BlendJob, BlendOutput, EngineError, OutputSpec, WeightBatch};
 use crate::rig::Rig;
 
@@ -345,22 +345,30 @@ impl Engine {
         self.choice
     }
 
+    /// Memory of a prepared rig. Mesh levels share the full rig's clip tables (host and
+    /// device), so only their geometry and layouts count.
     fn memory(rig: &Rig, cpu: &CpuRig, gpu: Option<&GpuRig>, meshes: &[PreparedRig]) -> RigMemory {
-        RigMemory {
-            host_bytes: rig.host_bytes()
-                + cpu.bytes()
-                + meshes.iter().map(|m| m.memory.host_bytes).sum::<usize>(),
-            device_bytes: gpu.map_or(0, |g| g.device_bytes() as usize)
-                + meshes.iter().map(|m| m.memory.device_bytes).sum::<usize>(),
+        let level = |m: &PreparedRig| RigMemory {
+            host_bytes: m.rig.geometry_bytes() + m.cpu.bytes(),
+            device_bytes: m.gpu.as_ref().map_or(0, |g| g.geometry_bytes() as usize),
+        };
+        let mut memory = RigMemory {
+            host_bytes: rig.host_bytes() + cpu.bytes(),
+            device_bytes: gpu.map_or(0, |g| g.device_bytes() as usize),
+        };
+        for m in meshes.iter().map(level) {
+            memory.host_bytes += m.host_bytes;
+            memory.device_bytes += m.device_bytes;
         }
+        memory
     }
 
-    /// The outcome of putting a rig on the GPU: a rig the device cannot hold is refused (the
-    /// caller's error); any other failure is a device fault, which degrades the engine and
-    /// leaves the rig host-side only.
-    fn resident(&self, r: Result<GpuRig, GpuError>) -> Result<Option<Arc<GpuRig>>, EngineError> {
+    /// The outcome of putting something on the GPU: what the device cannot hold is refused
+    /// (the caller's error); any other failure is a device fault, which degrades the engine
+    /// and leaves the rig host-side only.
+    fn resident<T>(&self, r: Result<T, GpuError>) -> Result<Option<T>, EngineError> {
         match r {
-            Ok(g) => Ok(Some(Arc::new(g))),
+            Ok(g) => Ok(Some(g)),
             Err(e @ (GpuError::DoesNotFit(_) | GpuError::OutOfMemory(_))) => Err(gpu_to_engine(e)),
             Err(e) => {
                 self.degrade(&e);
@@ -369,59 +377,99 @@ impl Engine {
         }
     }
 
-    /// Prepares a rig: builds the CPU layout and, on a GPU, uploads geometry, deltas, clip
-    /// tables and LOD order. A rig the GPU cannot hold is refused with `DoesNotFit`.
-    pub fn prepare(&self, rig: Arc<Rig>) -> Result<PreparedRig, EngineError> {
-        let meshes = crate::rig::mesh_level_rigs(&rig)
-            .map_err(|e| EngineError::Mesh(e.to_string()))?
-            .into_iter()
-            .map(|derived| self.prepare(Arc::new(derived)))
-            .collect::<Result<Vec<_>, _>>()?;
+    /// Prepares one rig (a full rig or a mesh level's derived rig) with the given resident
+    /// clip tables, without mesh levels of its own.
+    fn prepare_one(
+        &self,
+        rig: Arc<Rig>,
+        tables: Option<&Arc<ClipTables>>,
+    ) -> Result<PreparedRig, EngineError> {
         let cpu = Arc::new(CpuRig::new(&rig));
-        let gpu = match self.gpu_active() {
-            Some(ctx) => self.resident(GpuRig::upload(ctx, &rig))?,
-            None => None,
+        let gpu = match (self.gpu_active(), tables) {
+            (Some(ctx), Some(t)) => self
+                .resident(GpuRig::upload(ctx, &rig, t.clone()))?
+                .map(Arc::new),
+            _ => None,
         };
-        let memory = Self::memory(&rig, &cpu, gpu.as_deref(), &meshes);
+        let memory = Self::memory(&rig, &cpu, gpu.as_deref(), &[]);
         Ok(PreparedRig {
             rig,
             cpu,
             gpu,
             memory,
-            meshes,
+            meshes: Vec::new(),
         })
     }
 
-    /// Re-prepares after the rig's clips changed (the geometry and LOD order are unchanged), so
-    /// only the clip tables are rebuilt.
+    /// Prepares a rig: builds the CPU layout and, on a GPU, uploads geometry, deltas, clip
+    /// tables and LOD order; the same for each of its mesh levels, which share its clip
+    /// tables. A rig the GPU cannot hold is refused with `DoesNotFit`.
+    pub fn prepare(&self, rig: Arc<Rig>) -> Result<PreparedRig, EngineError> {
+        let derived =
+            crate::rig::mesh_level_rigs(&rig).map_err(|e| EngineError::Mesh(e.to_string()))?;
+        let tables = match self.gpu_active() {
+            Some(ctx) => self.resident(ClipTables::upload(ctx, &rig))?,
+            None => None,
+        };
+        let meshes = derived
+            .into_iter()
+            .map(|d| self.prepare_one(Arc::new(d), tables.as_ref()))
+            .collect::<Result<Vec<_>, _>>()?;
+        let mut full = self.prepare_one(rig, tables.as_ref())?;
+        full.memory = Self::memory(&full.rig, &full.cpu, full.gpu.as_deref(), &meshes);
+        full.meshes = meshes;
+        Ok(full)
+    }
+
+    /// Re-prepares after the rig's clips changed (the geometry and LOD are unchanged), so
+    /// only the clip tables are uploaded; the geometry, the layouts and the mesh levels'
+    /// geometry are shared with `prepared`.
     pub fn update_clips(
         &self,
         prepared: &PreparedRig,
         rig: Arc<Rig>,
     ) -> Result<PreparedRig, EngineError> {
-        if rig.lod != prepared.rig.lod || rig.primitives != prepared.rig.primitives {
+        let same_geometry = Arc::ptr_eq(&rig.primitives, &prepared.rig.primitives)
+            || rig.primitives == prepared.rig.primitives;
+        if rig.lod != prepared.rig.lod || !same_geometry {
             return self.prepare(rig);
         }
-        let gpu = match (self.gpu_active(), &prepared.gpu) {
-            (Some(ctx), Some(g)) => self.resident(g.with_clips(ctx, &rig))?,
+        let tables = match (self.gpu_active(), &prepared.gpu) {
+            (Some(ctx), Some(_)) => self.resident(ClipTables::upload(ctx, &rig))?,
             _ => None,
         };
-        // Mesh levels share the clips; give each its new tables too.
-        let derived =
-            crate::rig::mesh_level_rigs(&rig).map_err(|e| EngineError::Mesh(e.to_string()))?;
-        let meshes = derived
-            .into_iter()
-            .zip(&prepared.meshes)
-            .map(|(d, old)| self.update_clips(old, Arc::new(d)))
+        let with_clips = |old: &PreparedRig, rig: Arc<Rig>| -> Result<PreparedRig, EngineError> {
+            let gpu = match (self.gpu_active(), &old.gpu, &tables) {
+                (Some(ctx), Some(g), Some(t)) => {
+                    self.resident(g.with_clips(ctx, t.clone()))?.map(Arc::new)
+                }
+                _ => None,
+            };
+            Ok(PreparedRig {
+                memory: Self::memory(&rig, &old.cpu, gpu.as_deref(), &[]),
+                rig,
+                cpu: old.cpu.clone(),
+                gpu,
+                meshes: Vec::new(),
+            })
+        };
+        // Mesh levels evaluate the same clips: each gets the new (shared) tables, and keeps
+        // its geometry, which a clip change does not touch.
+        let meshes = prepared
+            .meshes
+            .iter()
+            .map(|old| {
+                let level = Rig {
+                    clips: rig.clips.clone(),
+                    ..(*old.rig).clone()
+                };
+                with_clips(old, Arc::new(level))
+            })
             .collect::<Result<Vec<_>, _>>()?;
-        let memory = Self::memory(&rig, &prepared.cpu, gpu.as_deref(), &meshes);
-        Ok(PreparedRig {
-            rig,
-            cpu: prepared.cpu.clone(),
-            gpu,
-            memory,
-            meshes,
-        })
+        let mut full = with_clips(prepared, rig)?;
+        full.memory = Self::memory(&full.rig, &full.cpu, full.gpu.as_deref(), &meshes);
+        full.meshes = meshes;
+        Ok(full)
     }
 
     fn evaluate_cpu(

@@ -654,7 +654,7 @@ fn build_rig(parsed: &Parsed<'_>, options: &ImportOptions) -> Result<Rig, Import
         name: options.name.clone().unwrap_or_else(|| "rig".into()),
         targets: targets.names,
         default_weights: targets.defaults,
-        primitives,
+        primitives: std::sync::Arc::new(primitives),
         clips,
         lod,
     };

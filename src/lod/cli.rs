@@ -276,7 +276,7 @@ fn neutral_obj(rig: &Rig) -> String {
     use std::fmt::Write as _;
     let mut s = String::new();
     let mut base = 1;
-    for p in &rig.primitives {
+    for p in rig.primitives.iter() {
         let _ = writeln!(s, "o {}", p.name.replace(char::is_whitespace, "_"));
         for v in &p.positions {
             let _ = writeln!(s, "v {} {} {}", v.x, v.y, v.z);

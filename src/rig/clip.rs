@@ -5,6 +5,8 @@
 //! rig-wide target so an engine can index the table without a per-clip map; targets a source does
 //! not animate hold the rig's default weight.
 
+use std::sync::Arc;
+
 use serde::{Deserialize, Serialize};
 
 /// Frames per second used when baking a keyframed timeline.
@@ -25,8 +27,9 @@ pub struct Clip {
     /// Number of targets (rows); equals the rig's target count.
     pub targets: u32,
     /// Row-major `targets × frames`: the weight of target `t` at frame `f` is
-    /// `weights[t * frames + f]`.
-    pub weights: Vec<f32>,
+    /// `weights[t * frames + f]`. Shared, not copied, by every version of a rig and every
+    /// mesh level derived from it: a clip table is often the largest array a rig has.
+    pub weights: Arc<Vec<f32>>,
 }
 
 /// What to do with a frame number past the end of a clip.
@@ -79,7 +82,7 @@ impl Clip {
             fps,
             frames: u32::try_from(frames).unwrap_or(u32::MAX),
             targets: u32::try_from(targets).unwrap_or(u32::MAX),
-            weights,
+            weights: Arc::new(weights),
         };
         clip.validate(targets)?;
         Ok(clip)
@@ -204,7 +207,7 @@ mod tests {
     fn table_layout_is_targets_by_frames() {
         let rows = vec![vec![1.0, 2.0], vec![3.0, 4.0], vec![5.0, 6.0]];
         let c = Clip::from_frames("c", 30.0, 2, &rows).expect("valid clip");
-        assert_eq!(c.weights, vec![1.0, 3.0, 5.0, 2.0, 4.0, 6.0]);
+        assert_eq!(*c.weights, vec![1.0, 3.0, 5.0, 2.0, 4.0, 6.0]);
         assert_eq!(c.weight(1, 2), 6.0);
         let mut w = [0.0; 2];
         c.frame_weights(1, &mut w);

@@ -289,7 +289,7 @@ impl MeshLevel {
                 self.triangle_fraction
             ));
         }
-        for p in &self.primitives {
+        for p in self.primitives.iter() {
             if p.vertices.windows(2).any(|w| w[0] >= w[1]) {
                 return Err("vertex list not strictly ascending".into());
             }

@@ -6,6 +6,8 @@
 //! Targets, default weights, clips and the LOD order are the full rig's, so weights and levels
 //! mean the same; the derived rig has no mesh levels of its own.
 
+use std::sync::Arc;
+
 use glam::Vec3;
 
 use super::{Lod, MeshLevel, Primitive, Rig, RigError, SparseTarget};
@@ -104,7 +106,7 @@ impl MeshLevel {
             ),
             targets: rig.targets.clone(),
             default_weights: rig.default_weights.clone(),
-            primitives,
+            primitives: Arc::new(primitives),
             clips: rig.clips.clone(),
             lod,
         };

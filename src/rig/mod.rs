@@ -14,16 +14,20 @@
 //!   maps a primitive to its first vertex there. Output buffers use this order.
 
 mod clip;
+mod cost;
 mod lod;
 mod mesh_level;
 mod sample;
 
 pub use clip::{Clip, ClipError, DEFAULT_FPS, FrameMode, MAX_FRAMES};
+pub use cost::{PrimShape, RigCost, RigShape};
 pub use lod::{
     IMPORT_LOD_METHOD, Lod, LodError, LodLevel, MeshLevel, MeshLevelPrimitive, default_lod_levels,
 };
 pub use mesh_level::mesh_level_rigs;
 pub use sample::{Interpolation, KeyTrack, sample_track};
+
+use std::sync::Arc;
 
 use glam::{Vec3, Vec4};
 use serde::{Deserialize, Serialize};
@@ -48,8 +52,9 @@ pub struct Rig {
     pub targets: Vec<String>,
     /// Weight of each target when a clip does not animate it (glTF `mesh.weights`, else 0).
     pub default_weights: Vec<f32>,
-    /// The primitives, in file order (default scene traversal order).
-    pub primitives: Vec<Primitive>,
+    /// The primitives, in file order (default scene traversal order). Shared by every
+    /// version of the rig (a new clip or LOD makes a new version, not a copy of the geometry).
+    pub primitives: Arc<Vec<Primitive>>,
     /// Animation clips: weight tables over all rig-wide targets.
     pub clips: Vec<Clip>,
     /// Importance order of the targets and the LOD table.
@@ -155,7 +160,7 @@ impl Rig {
     pub fn vertex_offsets(&self) -> Vec<usize> {
         let mut offsets = Vec::with_capacity(self.primitives.len() + 1);
         let mut acc = 0;
-        for p in &self.primitives {
+        for p in self.primitives.iter() {
             offsets.push(acc);
             acc += p.positions.len();
         }
@@ -172,7 +177,7 @@ impl Rig {
     pub fn bbox(&self) -> Aabb {
         let mut min = Vec3::splat(f32::INFINITY);
         let mut max = Vec3::splat(f32::NEG_INFINITY);
-        for p in &self.primitives {
+        for p in self.primitives.iter() {
             for &v in &p.positions {
                 min = min.min(v);
                 max = max.max(v);
@@ -201,7 +206,7 @@ impl Rig {
     /// Number of stored (non-zero) vertex deltas of each rig-wide target, over all primitives.
     pub fn target_nnz(&self) -> Vec<usize> {
         let mut nnz = vec![0usize; self.targets.len()];
-        for p in &self.primitives {
+        for p in self.primitives.iter() {
             for t in &p.targets {
                 if let Some(n) = nnz.get_mut(t.target as usize) {
                     *n += t.vertices.len();
@@ -216,23 +221,32 @@ impl Rig {
         self.primitives.iter().any(Primitive::has_normal_deltas)
     }
 
-    /// Host memory held by the rig's arrays, in bytes (approximate, for reports).
+    /// Host memory held by the rig's arrays, in bytes: geometry, clip tables and LOD.
     pub fn host_bytes(&self) -> usize {
-        let mut b = 0;
-        for p in &self.primitives {
-            b += p.positions.len() * 12 + p.normals.len() * 12 + p.indices.len() * 4;
-            b += p.tangents.as_ref().map_or(0, |t| t.len() * 16);
-            for t in &p.targets {
-                b += t.vertices.len() * 4 + t.positions.len() * 12;
-                b += t.normals.as_ref().map_or(0, |n| n.len() * 12);
-                b += t.tangents.as_ref().map_or(0, |n| n.len() * 12);
-            }
-        }
-        b + self
-            .clips
-            .iter()
-            .map(|c| c.weights.len() * 4)
-            .sum::<usize>()
+        self.geometry_bytes() + self.clip_bytes() + self.lod_bytes()
+    }
+
+    /// Bytes of the primitives' arrays (neutral mesh, indices, sparse deltas).
+    pub fn geometry_bytes(&self) -> usize {
+        self.primitives.iter().map(Primitive::bytes).sum()
+    }
+
+    /// Bytes of the clip tables.
+    pub fn clip_bytes(&self) -> usize {
+        self.clips.iter().map(|c| c.weights.len() * 4).sum()
+    }
+
+    /// Bytes of the LOD order, table and mesh levels.
+    pub fn lod_bytes(&self) -> usize {
+        self.lod.order.len() * 4
+            + self.lod.levels.len() * 8
+            + self
+                .lod
+                .meshes
+                .iter()
+                .flat_map(|m| &m.primitives)
+                .map(|p| (p.vertices.len() + p.indices.len()) * 4)
+                .sum::<usize>()
     }
 
     /// Checks every invariant the engines rely on. Importers call it before handing a rig out,
@@ -263,7 +277,7 @@ impl Rig {
             });
         }
         check_finite("default weights", self.default_weights.iter().copied())?;
-        for p in &self.primitives {
+        for p in self.primitives.iter() {
             p.validate(n_targets)?;
         }
         for c in &self.clips {
@@ -277,6 +291,18 @@ impl Rig {
 }
 
 impl Primitive {
+    /// Bytes of this primitive's arrays.
+    pub fn bytes(&self) -> usize {
+        let mut b = self.positions.len() * 12 + self.normals.len() * 12 + self.indices.len() * 4;
+        b += self.tangents.as_ref().map_or(0, |t| t.len() * 16);
+        for t in &self.targets {
+            b += t.vertices.len() * 4 + t.positions.len() * 12;
+            b += t.normals.as_ref().map_or(0, |n| n.len() * 12);
+            b += t.tangents.as_ref().map_or(0, |n| n.len() * 12);
+        }
+        b
+    }
+
     /// Whether any of this primitive's targets carries normal deltas.
     pub fn has_normal_deltas(&self) -> bool {
         self.targets.iter().any(|t| t.normals.is_some())

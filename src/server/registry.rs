@@ -126,7 +126,7 @@ impl RigEntry {
         let mut prims = Vec::with_capacity(rig.primitives.len());
         let mut first_vertex = 0u32;
         let mut first_index = 0u32;
-        for p in &rig.primitives {
+        for p in rig.primitives.iter() {
             for &i in &p.indices {
                 indices.extend_from_slice(&(i + first_vertex).to_le_bytes());
             }
@@ -203,7 +203,7 @@ pub fn quantization_box(rig: &Rig) -> Quantization {
     }
     let mut bmin = DVec3::splat(f64::INFINITY);
     let mut bmax = DVec3::splat(f64::NEG_INFINITY);
-    for p in &rig.primitives {
+    for p in rig.primitives.iter() {
         let mut vmin: Vec<DVec3> = p.positions.iter().map(|v| v.as_dvec3()).collect();
         let mut vmax = vmin.clone();
         for t in &p.targets {

@@ -71,7 +71,7 @@ pub fn geometry_fingerprint(rig: &Rig) -> u32 {
         h.update(t.as_bytes());
         h.update(&[0]);
     }
-    for p in &rig.primitives {
+    for p in rig.primitives.iter() {
         h.update(&(p.positions.len() as u64).to_le_bytes());
         for v in &p.positions {
             for c in v.to_array() {
@@ -154,7 +154,7 @@ impl<'a> RigRecordRef<'a> {
             name,
             targets,
             default_weights,
-            primitives,
+            primitives: primitives.as_slice(),
             clips,
             lod_json: lod_to_json(lod)?,
         })
@@ -176,7 +176,7 @@ impl RigRecord {
             name: self.name,
             targets: self.targets,
             default_weights: self.default_weights,
-            primitives: self.primitives,
+            primitives: std::sync::Arc::new(self.primitives),
             clips: self.clips,
             lod: lod_from_json(&self.lod_json)?,
         })

@@ -173,7 +173,7 @@ pub fn inspect_text(s: &RigSummary) -> String {
         s.host_bytes as f64 / (1 << 20) as f64
     );
     let _ = writeln!(o, "primitives:");
-    for p in &s.primitives {
+    for p in s.primitives.iter() {
         let _ = writeln!(
             o,
             "  {:<24} {:>8} vertices {:>8} triangles {:>4} targets  normals: {}{}",

@@ -75,13 +75,13 @@ pub fn paper_scale_rig() -> Rig {
         name: "paper-scale".into(),
         targets: (0..PAPER_TARGETS).map(|t| format!("shape{t}")).collect(),
         default_weights: vec![0.0; PAPER_TARGETS],
-        primitives,
+        primitives: std::sync::Arc::new(primitives),
         clips: vec![Clip {
             name: "anim".into(),
             fps: 30.0,
             frames: frames as u32,
             targets: PAPER_TARGETS as u32,
-            weights,
+            weights: std::sync::Arc::new(weights),
         }],
         lod,
     }
@@ -103,7 +103,7 @@ pub fn with_random_clip_of(mut rig: Rig, name: &str, frames: usize, seed: u64) -
     {
         let mut rng = SplitMix64(seed);
         let t = rig.targets.len();
-        let weights = (0..t * frames)
+        let weights: Vec<f32> = (0..t * frames)
             .map(|_| if rng.below(3) == 0 { 0.0 } else { rng.unit() })
             .collect();
         rig.clips.push(Clip {
@@ -111,7 +111,7 @@ pub fn with_random_clip_of(mut rig: Rig, name: &str, frames: usize, seed: u64) -
             fps: 30.0,
             frames: frames as u32,
             targets: t as u32,
-            weights,
+            weights: std::sync::Arc::new(weights),
         });
     }
     rig

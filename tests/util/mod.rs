@@ -466,7 +466,7 @@ pub fn max_abs_diff(got: &[f32], want: &[DVec3]) -> f64 {
 pub fn rig_oracle(rig: &crowdmorph::rig::Rig, w: &[f64]) -> (Vec<DVec3>, Vec<DVec3>) {
     let mut pos_out = Vec::new();
     let mut nrm_out = Vec::new();
-    for p in &rig.primitives {
+    for p in rig.primitives.iter() {
         let mut pos: Vec<DVec3> = p.positions.iter().map(|v| v.as_dvec3()).collect();
         let mut nrm: Vec<DVec3> = p.normals.iter().map(|v| v.as_dvec3()).collect();
         for t in &p.targets {
@@ -586,7 +586,7 @@ pub fn random_rig(seed: u64, sizes: &[usize], n_targets: usize) -> crowdmorph::r
         name: format!("random-{seed}"),
         targets: (0..n_targets).map(|t| format!("t{t}")).collect(),
         default_weights: vec![0.0; n_targets],
-        primitives,
+        primitives: std::sync::Arc::new(primitives),
         clips: vec![Clip::new("random", 30.0, n_targets, frames, weights).expect("clip")],
         lod,
     };

@@ -394,14 +394,68 @@ pub struct GpuRig {
     /// Empty when every vertex's normal is recomputed from positions.
     normals: Vec<GpuChunk>,
     order: wgpu::Buffer,
-    tables: wgpu::Buffer,
-    /// (offset in `tables`, frames) per clip.
-    clips: Vec<(u32, u32)>,
+    /// The clip tables, shared by every mesh level of the rig.
+    tables: Arc<ClipTables>,
     topology: Option<GpuTopology>,
     /// LOD shape counts per level.
     lod_shapes: Vec<u32>,
     geometry_bytes: u64,
-    table_bytes: u64,
+}
+
+/// A rig's clip tables resident on the device: every clip's `targets × frames` table, one
+/// after another in one storage buffer. A rig's mesh levels evaluate the same clips, so they
+/// share this buffer instead of holding copies (a clip table is often the largest array a rig
+/// has).
+pub struct ClipTables {
+    buffer: wgpu::Buffer,
+    /// (offset in `buffer`, in f32, and frames) per clip.
+    clips: Vec<(u32, u32)>,
+    bytes: u64,
+}
+
+impl std::fmt::Debug for ClipTables {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ClipTables")
+            .field("clips", &self.clips.len())
+            .field("bytes", &self.bytes)
+            .finish()
+    }
+}
+
+impl ClipTables {
+    /// Uploads every clip table of `rig`, each written in place (no concatenated host copy).
+    pub fn upload(ctx: &GpuContext, rig: &Rig) -> Result<Arc<ClipTables>, GpuError> {
+        ctx.health()?;
+        let total: u64 = rig.clips.iter().map(|c| c.weights.len() as u64 * 4).sum();
+        if total > ctx.max_binding {
+            return Err(GpuError::DoesNotFit(format!(
+                "clip tables of {total} bytes exceed one storage binding of {} bytes",
+                ctx.max_binding
+            )));
+        }
+        let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST;
+        let buffer = ctx.buffer("tables", total, storage);
+        let mut clips = Vec::with_capacity(rig.clips.len());
+        let mut at = 0u64;
+        for c in &rig.clips {
+            clips.push(((at / 4) as u32, c.frames));
+            if !c.weights.is_empty() {
+                ctx.queue
+                    .write_buffer(&buffer, at, bytemuck::cast_slice(&c.weights[..]));
+            }
+            at += c.weights.len() as u64 * 4;
+        }
+        Ok(Arc::new(ClipTables {
+            bytes: buffer.size(),
+            buffer,
+            clips,
+        }))
+    }
+
+    /// Bytes resident on the device.
+    pub fn bytes(&self) -> u64 {
+        self.bytes
+    }
 }
 
 impl std::fmt::Debug for GpuRig {
@@ -414,20 +468,16 @@ impl std::fmt::Debug for GpuRig {
     }
 }
 
-fn clip_tables(rig: &Rig) -> (Vec<f32>, Vec<(u32, u32)>) {
-    let mut tables = Vec::new();
-    let mut clips = Vec::new();
-    for c in &rig.clips {
-        clips.push((tables.len() as u32, c.frames));
-        tables.extend_from_slice(&c.weights);
-    }
-    (tables, clips)
-}
-
 impl GpuRig {
-    /// Uploads everything a batch of this rig reads. Refuses (`DoesNotFit`) rigs the device
-    /// cannot hold, instead of failing later in the middle of a batch.
-    pub fn upload(ctx: &GpuContext, rig: &Rig) -> Result<GpuRig, GpuError> {
+    /// Uploads everything a batch of this rig reads, with clip tables `tables` (uploaded with
+    /// [`ClipTables::upload`], and shared with the rig's other mesh levels). Refuses
+    /// (`DoesNotFit`) rigs the device cannot hold, instead of failing later in the middle of a
+    /// batch.
+    pub fn upload(
+        ctx: &GpuContext,
+        rig: &Rig,
+        tables: Arc<ClipTables>,
+    ) -> Result<GpuRig, GpuError> {
         ctx.health()?;
         let vertices = rig.vertex_count();
         let per_job = (vertices * 3 * 4) as u64;
@@ -450,11 +500,11 @@ impl GpuRig {
                 topology.triangles.len()
             )));
         }
-        let (tables, clips) = clip_tables(rig);
-        if tables.len() as u64 * 4 > ctx.max_binding {
+        if tables.clips.len() != rig.clips.len() {
             return Err(GpuError::DoesNotFit(format!(
-                "clip tables of {} bytes exceed one storage binding",
-                tables.len() * 4
+                "{} clip tables for a rig with {} clips",
+                tables.clips.len(),
+                rig.clips.len()
             )));
         }
         let scope = ctx.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
@@ -521,9 +571,7 @@ impl GpuRig {
             positions,
             normals,
             order: ctx.init("order", bytemuck::cast_slice(&order), storage),
-            table_bytes: tables.len() as u64 * 4,
-            tables: ctx.init("tables", bytemuck::cast_slice(&tables), storage),
-            clips,
+            tables,
             topology: topo,
             lod_shapes: rig.lod.levels.iter().map(|l| l.shapes).collect(),
         };
@@ -535,15 +583,12 @@ impl GpuRig {
     }
 
     /// A copy of this resident rig with new clip tables (geometry and LOD order unchanged).
-    pub fn with_clips(&self, ctx: &GpuContext, rig: &Rig) -> Result<GpuRig, GpuError> {
+    pub fn with_clips(
+        &self,
+        ctx: &GpuContext,
+        tables: Arc<ClipTables>,
+    ) -> Result<GpuRig, GpuError> {
         ctx.health()?;
-        let (tables, clips) = clip_tables(rig);
-        if tables.len() as u64 * 4 > ctx.max_binding {
-            return Err(GpuError::DoesNotFit(
-                "clip tables exceed one storage binding".into(),
-            ));
-        }
-        let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST;
         Ok(GpuRig {
             vertices: self.vertices,
             slots: self.slots,
@@ -551,9 +596,7 @@ impl GpuRig {
             positions: self.positions.iter().map(GpuChunk::share).collect(),
             normals: self.normals.iter().map(GpuChunk::share).collect(),
             order: self.order.clone(),
-            table_bytes: tables.len() as u64 * 4,
-            tables: ctx.init("tables", bytemuck::cast_slice(&tables), storage),
-            clips,
+            tables,
             topology: self.topology.as_ref().map(|t| GpuTopology {
                 triangles: t.triangles.clone(),
                 recomputed: t.recomputed.clone(),
@@ -567,9 +610,19 @@ impl GpuRig {
         })
     }
 
-    /// Bytes resident on the device.
+    /// Bytes resident on the device: geometry and clip tables.
     pub fn device_bytes(&self) -> u64 {
-        self.geometry_bytes + self.table_bytes
+        self.geometry_bytes + self.tables.bytes
+    }
+
+    /// Bytes of the geometry alone (what a mesh level adds: it shares the clip tables).
+    pub fn geometry_bytes(&self) -> u64 {
+        self.geometry_bytes
+    }
+
+    /// The clip tables this rig reads.
+    pub fn tables(&self) -> &Arc<ClipTables> {
+        &self.tables
     }
 
     /// Storage-binding chunks the rig was split into.
@@ -579,7 +632,7 @@ impl GpuRig {
 
     /// The job record for (clip, frame, LOD level); `None` if any is out of range.
     pub fn job(&self, clip: u32, frame: u32, lod: u32) -> Option<GpuJob> {
-        let &(table, frames) = self.clips.get(clip as usize)?;
+        let &(table, frames) = self.tables.clips.get(clip as usize)?;
         let shapes = *self.lod_shapes.get(lod as usize)?;
         (frame < frames).then_some(GpuJob {
             table,
@@ -944,7 +997,7 @@ impl GpuContext {
                     binding: 1,
                     resource: wgpu::BindingResource::Buffer(job_bytes),
                 },
-                entry(2, &rig.tables),
+                entry(2, &rig.tables.buffer),
                 entry(3, &rig.order),
                 entry(4, &slot.active_weights),
                 entry(5, &slot.active_slots),

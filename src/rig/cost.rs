@@ -1,0 +1,318 @@
+//! What a rig costs in memory, from its sizes alone: the model every budget check uses.
+//!
+//! A [`RigShape`] holds the counts that decide the cost (vertices, indices, stored deltas, clip
+//! table cells, mesh levels). It can be read from a glTF file's headers before anything is
+//! decoded (every delta counted as stored, an upper bound) or from a rig in memory (exact
+//! counts). [`RigShape::cost`] turns it into bytes: the rig's own arrays, the CPU engine's
+//! layout, the GPU copies, the transient peak of preparing it, and the stored file. The
+//! formulas mirror the data structures they bound (`Rig`, `CpuRig`, `GpuRig`, the store's
+//! record) and are upper bounds of the arrays, not of allocator overhead; the hostile-input
+//! tests compare them with the process's measured peak.
+
+use serde::Serialize;
+
+use super::{Primitive, Rig};
+
+/// Vertices per CPU engine tile, and bytes of one CPU delta block (16 lanes × xyz × f32) with
+/// its slot index.
+const CPU_LANES: u64 = 16;
+const CPU_BLOCK: u64 = 16 * 12 + 2;
+/// Vertices per GPU tile (one workgroup), and bytes of one GPU delta block.
+const GPU_LANES: u64 = 64;
+const GPU_BLOCK: u64 = 64 * 12;
+/// Bytes of one staging entry while the CPU layout is built (tile, slot, lane, delta).
+const LAYOUT_ENTRY: u64 = 24;
+
+/// The counts of one primitive that decide its cost.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
+pub struct PrimShape {
+    /// Vertices.
+    pub vertices: u64,
+    /// Triangle-list indices.
+    pub indices: u64,
+    /// Whether it has tangents.
+    pub tangents: bool,
+    /// Morph targets it has.
+    pub targets: u64,
+    /// Stored position deltas over its targets (an upper bound: `targets × vertices`).
+    pub deltas: u64,
+    /// Stored normal deltas.
+    pub normal_deltas: u64,
+    /// Stored tangent deltas.
+    pub tangent_deltas: u64,
+    /// Delta blocks of the CPU engine's 16-vertex tiles (position and normal deltas).
+    pub cpu_blocks: u64,
+    /// Delta blocks of the GPU engine's 64-vertex tiles (position and normal deltas).
+    pub gpu_blocks: u64,
+}
+
+/// Distinct tiles of `lanes` vertices that `vertices` (ascending, offset by `first`) touch.
+fn tiles_touched(vertices: &[u32], first: u64, lanes: u64) -> u64 {
+    let mut n = 0;
+    let mut last = u64::MAX;
+    for &v in vertices {
+        let t = (first + u64::from(v)) / lanes;
+        if t != last {
+            n += 1;
+            last = t;
+        }
+    }
+    n
+}
+
+impl PrimShape {
+    /// Counts from a file's headers, before decoding: every target is taken to move every
+    /// vertex (the most a sparse target can store), and each delta block to hold one delta
+    /// unless a target has more deltas than tiles.
+    #[allow(clippy::too_many_arguments)]
+    pub fn upper_bound(
+        vertices: u64,
+        indices: u64,
+        tangents: bool,
+        targets: u64,
+        normal_targets: u64,
+        tangent_targets: u64,
+    ) -> PrimShape {
+        let bound = |lanes: u64, with: u64| with.saturating_mul(vertices.div_ceil(lanes) + 1);
+        PrimShape {
+            vertices,
+            indices,
+            tangents,
+            targets,
+            deltas: targets.saturating_mul(vertices),
+            normal_deltas: normal_targets.saturating_mul(vertices),
+            tangent_deltas: tangent_targets.saturating_mul(vertices),
+            cpu_blocks: bound(CPU_LANES, targets) + bound(CPU_LANES, normal_targets),
+            gpu_blocks: bound(GPU_LANES, targets) + bound(GPU_LANES, normal_targets),
+        }
+    }
+
+    /// The exact counts of a primitive in memory whose first vertex is `first` in the rig's
+    /// evaluation order (tiles are counted over the concatenated vertices).
+    pub fn of(p: &Primitive, first: u64) -> PrimShape {
+        let blocks = |lanes: u64| -> u64 {
+            p.targets
+                .iter()
+                .map(|t| {
+                    let n = tiles_touched(&t.vertices, first, lanes);
+                    if t.normals.is_some() { 2 * n } else { n }
+                })
+                .sum()
+        };
+        PrimShape {
+            cpu_blocks: blocks(CPU_LANES),
+            gpu_blocks: blocks(GPU_LANES),
+            vertices: p.positions.len() as u64,
+            indices: p.indices.len() as u64,
+            tangents: p.tangents.is_some(),
+            targets: p.targets.len() as u64,
+            deltas: p.targets.iter().map(|t| t.vertices.len() as u64).sum(),
+            normal_deltas: p
+                .targets
+                .iter()
+                .filter_map(|t| t.normals.as_ref())
+                .map(|n| n.len() as u64)
+                .sum(),
+            tangent_deltas: p
+                .targets
+                .iter()
+                .filter_map(|t| t.tangents.as_ref())
+                .map(|n| n.len() as u64)
+                .sum(),
+        }
+    }
+
+    /// Bytes of the primitive's arrays in a [`Rig`].
+    pub fn rig_bytes(&self) -> u64 {
+        let base = self.vertices * (12 + 12 + if self.tangents { 16 } else { 0 });
+        base + self.indices * 4
+            + self.deltas * (4 + 12)
+            + self.normal_deltas * 12
+            + self.tangent_deltas * 12
+    }
+}
+
+/// The counts of a whole rig that decide its cost.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize)]
+pub struct RigShape {
+    /// The primitives.
+    pub primitives: Vec<PrimShape>,
+    /// Rig-wide targets.
+    pub targets: u64,
+    /// Clip table cells over all clips (targets × frames each).
+    pub clip_cells: u64,
+    /// The shapes of the rig's mesh levels (derived rigs; they share the clip tables).
+    pub mesh_levels: Vec<Vec<PrimShape>>,
+}
+
+/// Bytes a rig costs, by where they live and when.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
+pub struct RigCost {
+    /// The rig's own arrays: geometry, sparse deltas, clip tables, LOD.
+    pub rig: u64,
+    /// The CPU engine's layouts (the full mesh and every mesh level); kept on every backend,
+    /// since the CPU engine is the fallback.
+    pub layout: u64,
+    /// Resident on the GPU (0 without one).
+    pub device: u64,
+    /// Most transient host memory while preparing (layout staging, GPU upload copies) or
+    /// persisting (the encoded record), beyond the resident bytes.
+    pub transient: u64,
+    /// The stored file.
+    pub stored: u64,
+}
+
+impl RigCost {
+    /// Host bytes resident once the rig is prepared.
+    pub fn resident(&self) -> u64 {
+        self.rig + self.layout
+    }
+
+    /// Most host bytes held at once while the rig is prepared and persisted.
+    pub fn peak(&self) -> u64 {
+        self.resident() + self.transient
+    }
+}
+
+impl RigShape {
+    /// The exact counts of a rig in memory (with its mesh levels, when they exist).
+    pub fn of(rig: &Rig) -> RigShape {
+        let shapes = |r: &Rig| -> Vec<PrimShape> {
+            let offsets = r.vertex_offsets();
+            r.primitives
+                .iter()
+                .zip(offsets)
+                .map(|(p, first)| PrimShape::of(p, first as u64))
+                .collect()
+        };
+        RigShape {
+            primitives: shapes(rig),
+            targets: rig.targets.len() as u64,
+            clip_cells: rig.clips.iter().map(|c| c.weights.len() as u64).sum(),
+            mesh_levels: crate::rig::mesh_level_rigs(rig)
+                .map(|levels| levels.iter().map(shapes).collect())
+                .unwrap_or_default(),
+        }
+    }
+
+    /// Vertices over all primitives.
+    pub fn vertices(&self) -> u64 {
+        self.primitives.iter().map(|p| p.vertices).sum()
+    }
+
+    /// CPU layout bytes and staging bytes of one (full or mesh level) rig.
+    fn cpu_layout(prims: &[PrimShape]) -> (u64, u64) {
+        let vertices: u64 = prims.iter().map(|p| p.vertices).sum();
+        let tiles = vertices.div_ceil(CPU_LANES);
+        let base = 2 * tiles * CPU_BLOCK + (tiles + 1) * 4 * 2;
+        let blocks: u64 = prims.iter().map(|p| p.cpu_blocks * CPU_BLOCK).sum();
+        // Normals recomputed from triangles: triangles, incident lists, vertex lists.
+        let topology: u64 = prims
+            .iter()
+            .filter(|p| p.normal_deltas == 0)
+            .map(|p| p.indices * 4 + p.indices * 4 + (2 * p.vertices + 1) * 4)
+            .sum();
+        let staging: u64 = prims
+            .iter()
+            .map(|p| (p.deltas + p.normal_deltas) * LAYOUT_ENTRY)
+            .sum();
+        (base + blocks + topology, staging)
+    }
+
+    /// GPU geometry bytes of one (full or mesh level) rig: 64-vertex tiles of base and delta
+    /// blocks with per-tile slot masks, and the topology of recomputed normals.
+    fn gpu_geometry(prims: &[PrimShape], targets: u64) -> u64 {
+        let vertices: u64 = prims.iter().map(|p| p.vertices).sum();
+        let tiles = vertices.div_ceil(GPU_LANES) + 1;
+        let words = targets.div_ceil(32).max(1);
+        let attributes = if prims.iter().any(|p| p.normal_deltas > 0) {
+            2
+        } else {
+            1
+        };
+        let base = attributes * tiles * (GPU_BLOCK + words * 8);
+        let blocks: u64 = prims.iter().map(|p| p.gpu_blocks * GPU_BLOCK).sum();
+        let topology: u64 = prims
+            .iter()
+            .map(|p| p.indices * 8 + (2 * p.vertices + 1) * 4)
+            .sum();
+        base + blocks + topology + targets * 4
+    }
+
+    /// What the rig costs, on a GPU or not.
+    pub fn cost(&self, gpu: bool) -> RigCost {
+        let geometry = |prims: &[PrimShape]| prims.iter().map(PrimShape::rig_bytes).sum::<u64>();
+        let clips = self.clip_cells * 4;
+        let lod = self.targets * 4
+            + 64 * 8
+            + self
+                .mesh_levels
+                .iter()
+                .flatten()
+                .map(|p| p.vertices * 4 + p.indices * 4)
+                .sum::<u64>();
+        let rig = geometry(&self.primitives)
+            + self.mesh_levels.iter().map(|l| geometry(l)).sum::<u64>()
+            + clips
+            + lod;
+        let (mut layout, mut staging) = Self::cpu_layout(&self.primitives);
+        for level in &self.mesh_levels {
+            let (l, s) = Self::cpu_layout(level);
+            layout += l;
+            staging = staging.max(s);
+        }
+        let device = if gpu {
+            Self::gpu_geometry(&self.primitives, self.targets)
+                + self
+                    .mesh_levels
+                    .iter()
+                    .map(|l| Self::gpu_geometry(l, self.targets))
+                    .sum::<u64>()
+                + clips
+        } else {
+            0
+        };
+        // The GPU upload builds each chunk host-side and queues a copy of it.
+        let upload = if gpu { 2 * device } else { 0 };
+        // The stored record: bincode writes f32 in 4 bytes and integers in at most 5 (varint),
+        // so never more than 5/4 of the arrays, plus names and headers.
+        let stored = geometry(&self.primitives) * 5 / 4 + clips + lod * 5 / 4 + 64 * 1024;
+        RigCost {
+            rig,
+            layout,
+            device,
+            transient: staging.max(upload).max(stored),
+            stored,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_embedded_rig_costs_what_its_arrays_and_layouts_hold() {
+        let rig = crate::embedded::default_rig();
+        let cost = RigShape::of(&rig).cost(false);
+        // Exact counts: the rig's own arrays are what `Rig::host_bytes` reports (the LOD
+        // table is bounded by its 64-level cap).
+        let host = rig.host_bytes() as u64;
+        assert!(
+            cost.rig >= host && cost.rig <= host + 1024,
+            "{} vs {host}",
+            cost.rig
+        );
+        // From exact counts, the layout estimate holds the layout the CPU engine builds and is
+        // within a few percent of it.
+        let built = crate::engine::cpu::CpuRig::new(&rig).bytes() as u64;
+        assert!(cost.layout >= built, "{} < {built}", cost.layout);
+        assert!(
+            cost.layout <= built + built / 20,
+            "{} vs {built}",
+            cost.layout
+        );
+        let stored = crate::codec::to_stored(&rig).expect("encode").len() as u64;
+        assert!(cost.stored >= stored, "{} < {stored}", cost.stored);
+    }
+}
