@@ -13,6 +13,7 @@
 use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::time::{Duration, Instant};
 
+use crowdmorph::budget::BudgetError;
 use crowdmorph::embedded::default_rig;
 use crowdmorph::import::clips::ClipOptions;
 use crowdmorph::import::gltf::rig_from_slice;
@@ -253,20 +254,39 @@ fn huge_sparse_only_accessor_is_stopped_by_the_decode_budget() {
     // A sparse accessor without a buffer view is all zeros but one element: nothing in the file
     // bounds its count, only the decode budget does.
     let mut b = Builder::new();
-    let pos = b.accessor_sparse_vec3(1 << 31, &[0], &[[1.0, 0.0, 0.0]]);
+    let pos = b.accessor_sparse_vec3(60_000_000, &[0], &[[1.0, 0.0, 0.0]]);
     let mesh = b.mesh(vec![json!({ "attributes": { "POSITION": pos } })], None);
     let node = b.node(Some(mesh));
     b.scene(&[node]);
     let options = ImportOptions::default();
     let e = error(load_with(&b.to_glb(), &options));
     match e {
-        ImportError::TooLarge { declared, limit } => {
-            assert_eq!(limit, options.max_decoded_bytes);
-            assert_eq!(limit, 2 << 30);
-            assert!(declared >= (1usize << 31) * 12, "declared {declared}");
+        ImportError::Budget(BudgetError::TooLarge {
+            needed,
+            limit,
+            flag,
+            ..
+        }) => {
+            assert_eq!(limit, options.max_decoded_bytes as u64);
+            assert_eq!(limit, 1 << 30);
+            assert_eq!(flag, "--max-upload-memory");
+            // Positions and normals of 60 M vertices, at least.
+            assert!(needed >= 60_000_000 * 24, "needed {needed}");
         }
-        other => panic!("expected TooLarge, got {other:?}"),
+        other => panic!("expected a budget refusal, got {other:?}"),
     }
+    // Past the engines' vertex limit, the count alone refuses it.
+    let mut b = Builder::new();
+    let pos = b.accessor_sparse_vec3(1 << 31, &[0], &[[1.0, 0.0, 0.0]]);
+    let mesh = b.mesh(vec![json!({ "attributes": { "POSITION": pos } })], None);
+    let node = b.node(Some(mesh));
+    b.scene(&[node]);
+    let e = error(load_with(&b.to_glb(), &options));
+    assert!(
+        matches!(e, ImportError::Rig(RigError::TooLarge(_))),
+        "{e:?}"
+    );
+    assert_mentions(&e, "vertices");
 
     // The budget is the caller's: a tiny one refuses even a triangle.
     let options = ImportOptions {
@@ -275,10 +295,13 @@ fn huge_sparse_only_accessor_is_stopped_by_the_decode_budget() {
     };
     let e = error(load_with(&triangle_rig().to_glb(), &options));
     assert!(
-        matches!(e, ImportError::TooLarge { limit: 16, .. }),
+        matches!(
+            e,
+            ImportError::Budget(BudgetError::TooLarge { limit: 16, .. })
+        ),
         "{e:?}"
     );
-    assert_mentions(&e, "limit of 16");
+    assert_mentions(&e, "limit of 16 bytes");
 }
 
 #[test]

@@ -407,8 +407,13 @@ impl Engine {
     pub fn prepare(&self, rig: Arc<Rig>) -> Result<PreparedRig, EngineError> {
         let derived =
             crate::rig::mesh_level_rigs(&rig).map_err(|e| EngineError::Mesh(e.to_string()))?;
+        // The geometry is checked before the clip tables go up, so a rig the device cannot
+        // hold is refused for what it is.
         let tables = match self.gpu_active() {
-            Some(ctx) => self.resident(ClipTables::upload(ctx, &rig))?,
+            Some(ctx) => {
+                self.resident(GpuRig::check_fits(ctx, &rig))?;
+                self.resident(ClipTables::upload(ctx, &rig))?
+            }
             None => None,
         };
         let meshes = derived

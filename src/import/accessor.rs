@@ -6,18 +6,19 @@
 //! behind it is a typed error rather than a panic or a huge allocation.
 
 use std::borrow::Cow;
-use std::cell::Cell;
+use std::sync::Arc;
 
+use glam::{Vec3, Vec4};
 use gltf::accessor::sparse::IndexType;
 use gltf::accessor::{DataType, Dimensions};
 
 use super::ImportError;
+use crate::budget::Budget;
 
-/// The buffers of a document and what is left of the decoding budget.
+/// The buffers of a document and the budget decoding is charged to.
 pub(crate) struct Source<'a> {
     buffers: Vec<Cow<'a, [u8]>>,
-    budget: Cell<usize>,
-    limit: usize,
+    budget: Arc<Budget>,
 }
 
 fn component_size(t: DataType) -> usize {
@@ -62,25 +63,20 @@ fn decode(bytes: &[u8], t: DataType, normalized: bool) -> f32 {
 }
 
 impl<'a> Source<'a> {
-    pub(crate) fn new(buffers: Vec<Cow<'a, [u8]>>, limit: usize) -> Self {
-        Source {
-            buffers,
-            budget: Cell::new(limit),
-            limit,
-        }
+    pub(crate) fn new(buffers: Vec<Cow<'a, [u8]>>, budget: Arc<Budget>) -> Self {
+        Source { buffers, budget }
     }
 
-    /// Reserves `bytes` of the decoding budget.
-    pub(crate) fn reserve(&self, bytes: usize) -> Result<(), ImportError> {
-        let left = self.budget.get();
-        if bytes > left {
-            return Err(ImportError::TooLarge {
-                declared: self.limit - left + bytes,
-                limit: self.limit,
-            });
-        }
-        self.budget.set(left - bytes);
-        Ok(())
+    /// The budget allocations are charged to.
+    pub(crate) fn budget(&self) -> &Arc<Budget> {
+        &self.budget
+    }
+
+    /// Charges `bytes` about to be allocated for accessor `index`.
+    fn charge(&self, index: usize, bytes: u64) -> Result<(), ImportError> {
+        self.budget
+            .charge(bytes, || format!("decoding accessor {index}"))
+            .map_err(ImportError::from)
     }
 
     /// The bytes `[offset, offset + len)` of the buffer a view lives in, checked.
@@ -116,8 +112,87 @@ impl<'a> Source<'a> {
         Ok(&buffer[start as usize..end as usize])
     }
 
+    /// Checks that an accessor's declared elements (and sparse blocks) lie within the bytes
+    /// present, without decoding anything: a count larger than the data behind it is a
+    /// malformed file (400), found before any size estimate (413) is made from that count.
+    pub(crate) fn check_bounds(&self, acc: &gltf::Accessor<'_>) -> Result<(), ImportError> {
+        let index = acc.index();
+        let csize = component_size(acc.data_type());
+        let elem = dims_len(acc.dimensions()) * csize;
+        let count = acc.count();
+        if let Some(view) = acc.view() {
+            let stride = view.stride().unwrap_or(elem).max(elem);
+            let span = if count == 0 {
+                0
+            } else {
+                (count as u64 - 1)
+                    .saturating_mul(stride as u64)
+                    .saturating_add(elem as u64)
+            };
+            self.view_bytes(index, &view, acc.offset(), span)?;
+        }
+        if let Some(sparse) = acc.sparse() {
+            let n = sparse.count() as u64;
+            let isize = match sparse.indices().index_type() {
+                IndexType::U8 => 1,
+                IndexType::U16 => 2,
+                IndexType::U32 => 4,
+            };
+            self.view_bytes(
+                index,
+                &sparse.indices().view(),
+                sparse.indices().offset(),
+                n.saturating_mul(isize),
+            )?;
+            self.view_bytes(
+                index,
+                &sparse.values().view(),
+                sparse.values().offset(),
+                n.saturating_mul(elem as u64),
+            )?;
+        }
+        Ok(())
+    }
+
     /// Decodes an accessor to `count × components` f32, applying sparse substitution.
     pub(crate) fn read_f32(&self, acc: &gltf::Accessor<'_>) -> Result<Vec<f32>, ImportError> {
+        let comps = dims_len(acc.dimensions());
+        let mut out = Vec::new();
+        self.read_elements(acc, comps, comps, &mut out, |e, out: &mut Vec<f32>| {
+            out.extend_from_slice(e)
+        })?;
+        Ok(out)
+    }
+
+    /// Decodes a VEC3 accessor straight into vectors (no intermediate f32 array).
+    pub(crate) fn read_vec3s(&self, acc: &gltf::Accessor<'_>) -> Result<Vec<Vec3>, ImportError> {
+        let mut out = Vec::new();
+        self.read_elements(acc, 3, 1, &mut out, |e, out: &mut Vec<Vec3>| {
+            out.push(Vec3::new(e[0], e[1], e[2]))
+        })?;
+        Ok(out)
+    }
+
+    /// Decodes a VEC4 accessor straight into vectors.
+    pub(crate) fn read_vec4s(&self, acc: &gltf::Accessor<'_>) -> Result<Vec<Vec4>, ImportError> {
+        let mut out = Vec::new();
+        self.read_elements(acc, 4, 1, &mut out, |e, out: &mut Vec<Vec4>| {
+            out.push(Vec4::new(e[0], e[1], e[2], e[3]))
+        })?;
+        Ok(out)
+    }
+
+    /// Decodes every element of `acc` (which must have `comps` components) into `out`, as
+    /// `push` makes them (`per_element` items each), then applies the accessor's sparse
+    /// substitution. `out` is charged to the budget before it is allocated.
+    fn read_elements<T: Copy + Default>(
+        &self,
+        acc: &gltf::Accessor<'_>,
+        comps: usize,
+        per_element: usize,
+        out: &mut Vec<T>,
+        push: impl Fn(&[f32], &mut Vec<T>),
+    ) -> Result<(), ImportError> {
         let index = acc.index();
         let bad = |problem: String| ImportError::Accessor { index, problem };
         if matches!(
@@ -126,17 +201,24 @@ impl<'a> Source<'a> {
         ) {
             return Err(bad("matrix accessors are not used by rigs".into()));
         }
+        if dims_len(acc.dimensions()) != comps {
+            return Err(bad(format!(
+                "has {:?} elements, {comps} components were expected",
+                acc.dimensions()
+            )));
+        }
         let t = acc.data_type();
-        let comps = dims_len(acc.dimensions());
         let csize = component_size(t);
         let elem = comps * csize;
         let count = acc.count();
-        let total = (count as u64) * comps as u64;
-        if total > (usize::MAX / 8) as u64 {
-            return Err(bad(format!("declared count {count} is absurd")));
-        }
+        // Bytes of the decoded output: what `out` will hold.
+        let items = (count as u64).saturating_mul(per_element as u64);
+        let decoded = items
+            .checked_mul(size_of::<T>() as u64)
+            .filter(|&b| b < (1u64 << 48))
+            .ok_or_else(|| bad(format!("declared count {count} is absurd")))?;
         let normalized = acc.normalized();
-        let mut out: Vec<f32>;
+        let mut e = [0f32; 4];
         if let Some(view) = acc.view() {
             let stride = view.stride().unwrap_or(elem);
             if stride < elem {
@@ -152,19 +234,24 @@ impl<'a> Source<'a> {
                     .saturating_add(elem as u64)
             };
             let bytes = self.view_bytes(index, &view, acc.offset(), span)?;
-            self.reserve(total as usize * 4)?;
-            out = Vec::with_capacity(total as usize);
+            self.charge(index, decoded)?;
+            out.reserve_exact(items as usize);
             for i in 0..count {
-                let e = &bytes[i * stride..i * stride + elem];
-                for c in 0..comps {
-                    out.push(decode(&e[c * csize..], t, normalized));
+                let b = &bytes[i * stride..i * stride + elem];
+                for (c, v) in e.iter_mut().enumerate().take(comps) {
+                    *v = decode(&b[c * csize..], t, normalized);
                 }
+                push(&e[..comps], out);
             }
         } else {
             // No buffer view: the accessor is all zeros (then sparse values, if any). The budget
             // check is what stops a tiny file from declaring a billion zeros.
-            self.reserve(total as usize * 4)?;
-            out = vec![0.0; total as usize];
+            self.charge(index, decoded)?;
+            let zeros = [0f32; 4];
+            out.reserve_exact(items as usize);
+            for _ in 0..count {
+                push(&zeros[..comps], out);
+            }
         }
         if let Some(sparse) = acc.sparse() {
             let n = sparse.count();
@@ -184,6 +271,8 @@ impl<'a> Source<'a> {
             let vview = sparse.values().view();
             let vbytes =
                 self.view_bytes(index, &vview, sparse.values().offset(), (n * elem) as u64)?;
+            let per_elem = per_element;
+            let mut one = Vec::with_capacity(per_elem);
             for k in 0..n {
                 let ib = &ibytes[k * isize..];
                 let i = match isize {
@@ -196,13 +285,16 @@ impl<'a> Source<'a> {
                         "sparse index {i} out of range (count {count})"
                     )));
                 }
-                let e = &vbytes[k * elem..(k + 1) * elem];
-                for c in 0..comps {
-                    out[i * comps + c] = decode(&e[c * csize..], t, normalized);
+                let b = &vbytes[k * elem..(k + 1) * elem];
+                for (c, v) in e.iter_mut().enumerate().take(comps) {
+                    *v = decode(&b[c * csize..], t, normalized);
                 }
+                one.clear();
+                push(&e[..comps], &mut one);
+                out[i * per_elem..(i + 1) * per_elem].copy_from_slice(&one);
             }
         }
-        Ok(out)
+        Ok(())
     }
 
     /// Decodes an index accessor (unsigned integer scalars) exactly.
@@ -230,7 +322,7 @@ impl<'a> Source<'a> {
                 .saturating_add(csize as u64)
         };
         let bytes = self.view_bytes(index, &view, acc.offset(), span)?;
-        self.reserve(count * 4)?;
+        self.charge(index, count as u64 * 4)?;
         Ok((0..count)
             .map(|i| {
                 let e = &bytes[i * stride..];

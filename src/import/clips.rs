@@ -6,12 +6,16 @@
 //! nothing are an [`ImportError::UnknownTargets`] unless the caller asks to ignore them, in
 //! which case they are returned in [`ClipImport::ignored`] — reported, never silently dropped.
 
+use std::sync::Arc;
+
 use serde::Deserialize;
 
 use super::gltf::{
-    bake, mesh_target_count, mesh_target_names, parse, scene_instances, unique_name, weight_tracks,
+    bake, mesh_target_count, mesh_target_names, parse, scene_instances, tracks_bytes, unique_name,
+    weight_tracks,
 };
 use super::{ImportError, ImportOptions};
+use crate::budget::Budget;
 use crate::rig::{Clip, DEFAULT_FPS, MAX_FRAMES, Rig, TargetId};
 
 /// Options for reading a clip source.
@@ -21,6 +25,9 @@ pub struct ClipOptions {
     pub fps: f32,
     /// Accept sources that name targets the rig does not have, reporting them instead.
     pub ignore_unknown: bool,
+    /// The budget every allocation is charged to (the server's per-upload budget); `None`
+    /// makes one of [`ImportOptions::default`]'s size.
+    pub budget: Option<Arc<Budget>>,
 }
 
 impl Default for ClipOptions {
@@ -28,7 +35,22 @@ impl Default for ClipOptions {
         ClipOptions {
             fps: DEFAULT_FPS,
             ignore_unknown: false,
+            budget: None,
         }
+    }
+}
+
+impl ClipOptions {
+    fn import_options(&self) -> ImportOptions {
+        ImportOptions {
+            fps: self.fps,
+            budget: self.budget.clone(),
+            ..ImportOptions::default()
+        }
+    }
+
+    fn budget(&self) -> Arc<Budget> {
+        self.import_options().budget()
     }
 }
 
@@ -98,13 +120,16 @@ fn map_names(
     Ok((ids, unknown))
 }
 
-/// Builds a clip over all rig targets from frame-major source rows.
+/// Builds a clip over all rig targets from frame-major source rows. The table covers every
+/// rig target whatever the source names, so its size is charged before it is allocated: a
+/// one-column CSV of 65,535 rows on a 4,096-target rig asks for a gigabyte.
 fn clip_from_rows(
     rig: &Rig,
     name: &str,
     fps: f32,
     ids: &[Option<TargetId>],
     rows: &[Vec<f32>],
+    budget: &Budget,
 ) -> Result<Clip, ImportError> {
     let n = rig.targets.len();
     let frames = rows.len();
@@ -116,6 +141,9 @@ fn clip_from_rows(
             "{frames} frames (at most {MAX_FRAMES})"
         )));
     }
+    budget.charge((n * frames * 4) as u64, || {
+        format!("clip table {name:?} ({n} targets × {frames} frames)")
+    })?;
     let mut weights = vec![0.0; n * frames];
     for (t, row) in weights.chunks_exact_mut(frames).enumerate() {
         row.fill(rig.default_weights[t]);
@@ -175,6 +203,9 @@ pub fn clip_from_csv(
         ));
     }
     let (ids, ignored) = map_names(rig, &names, options)?;
+    let budget = options.budget();
+    // A parsed row: its vector header and weights.
+    let row_bytes = 24 + 4 * keep.len() as u64;
     let mut rows = Vec::new();
     for (r, record) in reader.records().enumerate() {
         let row_no = r + 2; // 1-based, after the header.
@@ -192,13 +223,15 @@ pub fn clip_from_csv(
                 "more than {MAX_FRAMES} rows"
             )));
         }
+        budget.charge(row_bytes, || format!("CSV row {row_no}"))?;
         let mut row = Vec::with_capacity(keep.len());
         for (&c, n) in keep.iter().zip(&names) {
             row.push(parse_weight(&record[c], row_no, n)?);
         }
         rows.push(row);
     }
-    let clip = clip_from_rows(rig, name, options.fps, &ids, &rows)?;
+    let clip = clip_from_rows(rig, name, options.fps, &ids, &rows, &budget)?;
+    budget.release(rows.len() as u64 * row_bytes);
     Ok(ClipImport { clip, ignored })
 }
 
@@ -217,6 +250,11 @@ pub fn clip_from_json(
     bytes: &[u8],
     options: &ClipOptions,
 ) -> Result<ClipImport, ImportError> {
+    // Parsed, a JSON table holds at most 4 bytes per weight (each takes at least two
+    // characters with its separator) and a 24-byte vector per row (at least three).
+    let budget = options.budget();
+    let parsed = bytes.len() as u64 * 8;
+    budget.charge(parsed, || "the JSON clip".into())?;
     let src: JsonClip =
         serde_json::from_slice(bytes).map_err(|e| ImportError::ClipSource(format!("JSON: {e}")))?;
     let (ids, ignored) = map_names(rig, &src.targets, options)?;
@@ -233,7 +271,9 @@ pub fn clip_from_json(
         )));
     }
     let fps = src.fps.unwrap_or(options.fps);
-    let clip = clip_from_rows(rig, name, fps, &ids, &src.frames)?;
+    let clip = clip_from_rows(rig, name, fps, &ids, &src.frames, &budget)?;
+    drop(src);
+    budget.release(parsed);
     Ok(ClipImport { clip, ignored })
 }
 
@@ -244,10 +284,7 @@ pub fn clips_from_gltf(
     bytes: &[u8],
     options: &ClipOptions,
 ) -> Result<Vec<ClipImport>, ImportError> {
-    let import = ImportOptions {
-        fps: options.fps,
-        ..ImportOptions::default()
-    };
+    let import = options.import_options();
     let parsed = parse(bytes, &import)?;
     let instances = scene_instances(&parsed.doc)?;
     let mut by_node = std::collections::HashMap::new();
@@ -278,7 +315,9 @@ pub fn clips_from_gltf(
             rig.targets.len(),
             &rig.default_weights,
             options.fps,
+            parsed.source.budget(),
         )?;
+        parsed.source.budget().release(tracks_bytes(&tracks));
         out.push(ClipImport {
             clip,
             ignored: ignored.clone(),

@@ -11,16 +11,18 @@ use std::collections::HashMap;
 use std::path::{Component, Path};
 
 use base64::Engine as _;
-use glam::{Mat3, Mat4, Vec3, Vec4};
+use glam::{Mat3, Mat4, Vec3};
 use gltf::animation::{Interpolation as GltfInterpolation, Property};
 use gltf::mesh::{Mode, Semantic};
 use serde::Deserialize;
 
 use super::accessor::Source;
 use super::{ImportError, ImportOptions};
+use crate::budget::Budget;
 use crate::rig::{
-    Clip, Interpolation, KeyTrack, Lod, MAX_FRAMES, Primitive, Rig, SparseTarget, TargetId,
-    sample_track, sparsify, vertex_normals,
+    Clip, Interpolation, KeyTrack, Lod, MAX_FRAMES, MAX_TARGETS, MAX_VERTICES, PrimShape,
+    Primitive, Rig, RigError, RigShape, SparseTarget, TargetId, sample_track, sparse_len, sparsify,
+    vertex_normals,
 };
 
 /// glTF extensions a file may require that we read correctly.
@@ -35,10 +37,55 @@ pub(crate) struct Parsed<'a> {
     pub(crate) source: Source<'a>,
 }
 
-/// Reads a rig from the bytes of a `.glb` or `.gltf` file.
+/// Reads a rig from the bytes of a `.glb` or `.gltf` file. Its size is checked from the
+/// file's headers and reserved in the import's budget before anything is decoded.
 pub fn rig_from_slice(bytes: &[u8], options: &ImportOptions) -> Result<Rig, ImportError> {
-    let parsed = parse(bytes, options)?;
-    build_rig(&parsed, options)
+    let import = GltfImport::open(bytes, options)?;
+    let budget = import.parsed.source.budget().clone();
+    let need = budget.used() + import.import_bytes();
+    budget.reserve(need, || "importing the rig".to_string())?;
+    import.build(options)
+}
+
+/// A glTF file parsed and sized, not yet decoded: what the server checks against its budgets
+/// before it commits to the work.
+pub struct GltfImport<'a> {
+    parsed: Parsed<'a>,
+    shape: RigShape,
+    /// Largest transient decode of one primitive or animation (dense target deltas, raw
+    /// indices, keyframes), beyond the rig's own arrays.
+    transient: u64,
+}
+
+impl<'a> GltfImport<'a> {
+    /// Parses the document (its parsed size charged to the budget first) and reads the rig's
+    /// shape from the headers: vertex, index, target and keyframe counts. Limits that the
+    /// counts alone break (targets, vertices, frames) are refused here, before any decoding.
+    pub fn open(bytes: &'a [u8], options: &ImportOptions) -> Result<GltfImport<'a>, ImportError> {
+        let parsed = parse(bytes, options)?;
+        let (shape, transient) = document_shape(&parsed, options)?;
+        Ok(GltfImport {
+            parsed,
+            shape,
+            transient,
+        })
+    }
+
+    /// The rig's counts from the headers (every target counted as moving every vertex).
+    pub fn shape(&self) -> &RigShape {
+        &self.shape
+    }
+
+    /// Most bytes the import holds at once beyond what the budget already holds: the rig's
+    /// arrays plus the largest transient decode.
+    pub fn import_bytes(&self) -> u64 {
+        self.shape.cost(false).rig + self.transient
+    }
+
+    /// Decodes and builds the rig, charging every allocation to the budget.
+    pub fn build(self, options: &ImportOptions) -> Result<Rig, ImportError> {
+        build_rig(&self.parsed, options)
+    }
 }
 
 /// Splits a GLB container into its JSON and BIN chunks, checking every length.
@@ -119,6 +166,10 @@ pub(crate) fn parse<'a>(
         }
         (bytes, None)
     };
+    let budget = options.budget();
+    budget.charge(document_cost(json), || {
+        format!("the glTF document ({} bytes of JSON)", json.len())
+    })?;
     let mut root: gltf::json::Root =
         gltf::json::deserialize::from_slice(json).map_err(|e| ImportError::Json(e.to_string()))?;
     drop_unknown_channels(&mut root);
@@ -132,7 +183,12 @@ pub(crate) fn parse<'a>(
             gltf::buffer::Source::Bin => Cow::Borrowed(
                 bin.ok_or_else(|| bad("refers to the GLB BIN chunk, which is missing".into()))?,
             ),
-            gltf::buffer::Source::Uri(uri) => Cow::Owned(load_uri(uri, options).map_err(bad)?),
+            gltf::buffer::Source::Uri(uri) => {
+                Cow::Owned(load_uri(uri, options, &budget).map_err(|e| match e {
+                    UriError::Budget(b) => ImportError::Budget(b),
+                    UriError::Bad(m) => bad(m),
+                })?)
+            }
         };
         if data.len() < buffer.length() {
             return Err(bad(format!(
@@ -151,7 +207,7 @@ pub(crate) fn parse<'a>(
     }
     Ok(Parsed {
         doc,
-        source: Source::new(buffers, options.max_decoded_bytes),
+        source: Source::new(buffers, budget),
     })
 }
 
@@ -248,23 +304,40 @@ fn validate(root: &gltf::json::Root) -> Result<(), ImportError> {
     }
 }
 
-/// Loads a buffer URI: a base64 data URI, or a relative file under `options.base_dir`.
-fn load_uri(uri: &str, options: &ImportOptions) -> Result<Vec<u8>, String> {
+/// Why a buffer URI could not be loaded.
+enum UriError {
+    Budget(crate::budget::BudgetError),
+    Bad(String),
+}
+
+impl From<String> for UriError {
+    fn from(m: String) -> Self {
+        UriError::Bad(m)
+    }
+}
+
+/// Loads a buffer URI: a base64 data URI, or a relative file under `options.base_dir`; the
+/// bytes are charged to `budget` before they are allocated.
+fn load_uri(uri: &str, options: &ImportOptions, budget: &Budget) -> Result<Vec<u8>, UriError> {
     if let Some(rest) = uri.strip_prefix("data:") {
         let (meta, data) = rest
             .split_once(',')
             .ok_or_else(|| "malformed data URI".to_string())?;
         if !meta.ends_with(";base64") {
-            return Err("data URI is not base64".into());
+            return Err("data URI is not base64".to_string().into());
         }
+        budget
+            .charge(data.len() as u64 * 3 / 4 + 3, || "a data URI buffer".into())
+            .map_err(UriError::Budget)?;
         return base64::engine::general_purpose::STANDARD
             .decode(data.trim())
-            .map_err(|e| format!("bad base64 in data URI: {e}"));
+            .map_err(|e| format!("bad base64 in data URI: {e}").into());
     }
     let Some(base) = &options.base_dir else {
         return Err(format!(
             "refers to external file {uri:?}; send a GLB or a glTF with embedded (data URI) buffers"
-        ));
+        )
+        .into());
     };
     let decoded = percent_decode(uri);
     let rel = Path::new(&decoded);
@@ -274,10 +347,49 @@ fn load_uri(uri: &str, options: &ImportOptions) -> Result<Vec<u8>, String> {
     {
         return Err(format!(
             "external buffer path {uri:?} must be relative and stay in the file's folder"
-        ));
+        )
+        .into());
     }
     let path = base.join(rel);
-    std::fs::read(&path).map_err(|e| format!("cannot read {}: {e}", path.display()))
+    let len = std::fs::metadata(&path)
+        .map_err(|e| format!("cannot read {}: {e}", path.display()))?
+        .len();
+    budget
+        .charge(len, || format!("buffer file {}", path.display()))
+        .map_err(UriError::Budget)?;
+    std::fs::read(&path).map_err(|e| format!("cannot read {}: {e}", path.display()).into())
+}
+
+/// Structural characters outside strings in a JSON text. Each starts at most one value or
+/// object member, so together they bound how many nodes the parsed document has.
+fn json_nodes(json: &[u8]) -> u64 {
+    let (mut n, mut in_string, mut escaped) = (0u64, false, false);
+    for &b in json {
+        if in_string {
+            if escaped {
+                escaped = false;
+            } else if b == b'\\' {
+                escaped = true;
+            } else if b == b'"' {
+                in_string = false;
+            }
+        } else {
+            match b {
+                b'"' => in_string = true,
+                b',' | b':' | b'[' | b'{' => n += 1,
+                _ => {}
+            }
+        }
+    }
+    n
+}
+
+/// Bytes the parsed glTF document may occupy: its strings (at most the text itself) plus one
+/// typed node per structural character (the `gltf` crate's largest, a node or an accessor
+/// with its options, is under 256 bytes). A few kilobytes of `[0,0,0,...]` cannot make the
+/// parser allocate gigabytes unnoticed.
+pub(crate) fn document_cost(json: &[u8]) -> u64 {
+    json.len() as u64 + 256 * json_nodes(json)
 }
 
 fn percent_decode(s: &str) -> String {
@@ -401,10 +513,6 @@ pub(crate) fn scene_instances(doc: &gltf::Document) -> Result<Vec<Instance<'_>>,
     Ok(out)
 }
 
-fn to_vec3(v: &[f32]) -> Vec<Vec3> {
-    v.chunks_exact(3).map(Vec3::from_slice).collect()
-}
-
 fn read_vec3(
     source: &Source<'_>,
     acc: &gltf::Accessor<'_>,
@@ -426,7 +534,164 @@ fn read_vec3(
             ),
         });
     }
-    Ok(to_vec3(&source.read_f32(acc)?))
+    source.read_vec3s(acc)
+}
+
+/// Triangle-list indices a primitive will have: its index (or vertex) count as a list.
+fn list_len(prim: &gltf::Primitive<'_>, vertices: usize) -> u64 {
+    let raw = prim.indices().map_or(vertices, |a| a.count()) as u64;
+    match prim.mode() {
+        Mode::Triangles => raw / 3 * 3,
+        Mode::TriangleStrip | Mode::TriangleFan => raw.saturating_sub(2) * 3,
+        _ => 0,
+    }
+}
+
+/// The shape of the rig a document describes, from its headers, and the largest transient
+/// decode of one primitive or animation. Counts that break a limit on their own are refused
+/// here: too many rig-wide targets, too many vertices, clips with too many frames. Only
+/// animation times whose accessor declares no `max` are decoded (and charged).
+fn document_shape(
+    parsed: &Parsed<'_>,
+    options: &ImportOptions,
+) -> Result<(RigShape, u64), ImportError> {
+    let doc = &parsed.doc;
+    let instances = scene_instances(doc)?;
+    let mut targets = Targets::default();
+    let mut primitives = Vec::new();
+    let mut node_targets: HashMap<usize, usize> = HashMap::new();
+    let mut transient = 0u64;
+    let mut vertices = 0u64;
+    for inst in &instances {
+        let count = mesh_target_count(&inst.mesh)?;
+        for name in mesh_target_names(&inst.mesh, count) {
+            targets.id(&name, 0.0);
+        }
+        if targets.names.len() > MAX_TARGETS {
+            return Err(RigError::TooLarge(format!(
+                "more than {MAX_TARGETS} rig-wide targets (the file names at least {})",
+                targets.names.len()
+            ))
+            .into());
+        }
+        node_targets.insert(inst.node.index(), count);
+        for prim in inst.mesh.primitives() {
+            let Some(pos) = prim.get(&Semantic::Positions) else {
+                continue;
+            };
+            for (_, acc) in prim.attributes() {
+                parsed.source.check_bounds(&acc)?;
+            }
+            if let Some(acc) = prim.indices() {
+                parsed.source.check_bounds(&acc)?;
+            }
+            for t in prim.morph_targets() {
+                for acc in [t.positions(), t.normals(), t.tangents()]
+                    .into_iter()
+                    .flatten()
+                {
+                    parsed.source.check_bounds(&acc)?;
+                }
+            }
+            let n = pos.count() as u64;
+            vertices += n;
+            if vertices > MAX_VERTICES as u64 {
+                return Err(RigError::TooLarge(format!(
+                    "more than {MAX_VERTICES} vertices (the file declares at least {vertices})"
+                ))
+                .into());
+            }
+            let tangents = prim.get(&Semantic::Tangents).is_some();
+            let (mut k, mut kn, mut kt) = (0u64, 0u64, 0u64);
+            for t in prim.morph_targets() {
+                k += 1;
+                kn += u64::from(t.normals().is_some());
+                kt += u64::from(t.tangents().is_some() && tangents);
+            }
+            let indices = list_len(&prim, n as usize);
+            let raw_indices = prim.indices().map_or(0, |a| a.count() as u64);
+            // One target decoded dense (positions, normals, tangents) with its scale factors,
+            // or the raw indices beside the list, whichever is larger.
+            transient = transient
+                .max(n * (12 + 12 + 12 + 8))
+                .max(raw_indices * 4 + indices * 4);
+            primitives.push(PrimShape::upper_bound(n, indices, tangents, k, kn, kt));
+        }
+    }
+    let n_targets = targets.names.len() as u64;
+    let mut clip_cells = 0u64;
+    for anim in doc.animations() {
+        let mut last = None::<f32>;
+        let mut keys = 0u64;
+        for channel in anim.channels() {
+            if channel.target().property() != Property::MorphTargetWeights
+                || !node_targets.contains_key(&channel.target().node().index())
+            {
+                continue;
+            }
+            let sampler = channel.sampler();
+            let input = sampler.input();
+            keys += (input.count() + sampler.output().count()) as u64 * 4;
+            let declared = input
+                .max()
+                .and_then(|m| {
+                    m.as_array()
+                        .and_then(|a| a.first())
+                        .and_then(|v| v.as_f64())
+                })
+                .map(|m| m as f32);
+            let t = match declared {
+                Some(t) => t,
+                None => {
+                    let times = parsed.source.read_f32(&input)?;
+                    let t = if times.iter().all(|t| t.is_finite()) {
+                        times.iter().copied().fold(0f32, f32::max)
+                    } else {
+                        f32::NAN
+                    };
+                    parsed.source.budget().release(times.len() as u64 * 4);
+                    t
+                }
+            };
+            if !t.is_finite() {
+                return Err(ImportError::Animation {
+                    animation: anim
+                        .name()
+                        .map_or_else(|| format!("#{}", anim.index()), str::to_string),
+                    problem: "key times are non-finite".into(),
+                });
+            }
+            last = Some(last.map_or(t, |l: f32| l.max(t)));
+        }
+        let Some(last) = last else { continue };
+        let frames = baked_frames(last, options.fps).ok_or_else(|| ImportError::Animation {
+            animation: anim
+                .name()
+                .map_or_else(|| format!("#{}", anim.index()), str::to_string),
+            problem: format!(
+                "lasts {last} s: more than {MAX_FRAMES} frames at {} fps",
+                options.fps
+            ),
+        })?;
+        clip_cells += n_targets * frames as u64;
+        transient = transient.max(keys);
+    }
+    Ok((
+        RigShape {
+            primitives,
+            targets: n_targets,
+            clip_cells,
+            mesh_levels: Vec::new(),
+        },
+        transient,
+    ))
+}
+
+/// Frames of a clip baked at `fps` from a timeline whose last key is at `last` seconds;
+/// `None` past [`MAX_FRAMES`].
+fn baked_frames(last: f32, fps: f32) -> Option<usize> {
+    let frames_f = (last.max(0.0) * fps + 1e-3).floor();
+    (frames_f.is_finite() && frames_f < MAX_FRAMES as f32).then(|| frames_f as usize + 1)
 }
 
 /// Triangle-list indices of a primitive, converting strips and fans.
@@ -435,6 +700,12 @@ fn triangle_indices(
     prim: &gltf::Primitive<'_>,
     n: usize,
 ) -> Result<Vec<u32>, ImportError> {
+    // The list is charged before it is built; the raw indices are released after.
+    let list = list_len(prim, n);
+    source.budget().charge(list * 4, || {
+        format!("triangles of a primitive of {n} vertices")
+    })?;
+    let raw_len;
     let raw: Vec<u32> = match prim.indices() {
         Some(acc) => {
             let idx = source.read_indices(&acc)?;
@@ -446,9 +717,15 @@ fn triangle_indices(
             }
             idx
         }
-        None => (0..n as u32).collect(),
+        None => {
+            source
+                .budget()
+                .charge(n as u64 * 4, || "implicit indices".to_string())?;
+            (0..n as u32).collect()
+        }
     };
-    Ok(match prim.mode() {
+    raw_len = raw.len() as u64 * 4;
+    let list = match prim.mode() {
         Mode::Triangles => raw[..raw.len() / 3 * 3].to_vec(),
         Mode::TriangleStrip => (2..raw.len())
             .flat_map(|i| {
@@ -464,7 +741,10 @@ fn triangle_indices(
             .collect(),
         // Points and lines still blend; they just have no triangles.
         _ => Vec::new(),
-    })
+    };
+    drop(raw);
+    source.budget().release(raw_len);
+    Ok(list)
 }
 
 /// Rig-wide target registry: name → id, first appearance first.
@@ -526,15 +806,43 @@ fn build_rig(parsed: &Parsed<'_>, options: &ImportOptions) -> Result<Rig, Import
                     problem: "primitive has no POSITION".into(),
                 })?;
             let n = pos_acc.count();
-            let positions = read_vec3(source, &pos_acc, n, "POSITION")?;
-            let file_normals = match prim.get(&Semantic::Normals) {
-                Some(a) => Some(read_vec3(source, &a, n, "NORMAL")?),
-                None => None,
+            let budget = source.budget();
+            // Rig space, transformed in place: the decoded arrays become the rig's.
+            let mut positions = read_vec3(source, &pos_acc, n, "POSITION")?;
+            for p in &mut positions {
+                *p = inst.world.transform_point3(*p);
+            }
+            let file_normals = prim.get(&Semantic::Normals).is_some();
+            // Per-vertex length of each transformed file normal (and tangent): their deltas
+            // are divided by it so that normalized vectors plus deltas stay consistent.
+            budget.charge(n as u64 * 8, || "normal and tangent scales".into())?;
+            let (normals, normal_scale) = match prim.get(&Semantic::Normals) {
+                Some(a) => {
+                    let mut ns = read_vec3(source, &a, n, "NORMAL")?;
+                    let mut scale = Vec::with_capacity(n);
+                    for nv in &mut ns {
+                        let t = normal_m * *nv;
+                        let l = t.length();
+                        let l = if l > 0.0 { l } else { 1.0 };
+                        *nv = t / l;
+                        scale.push(l);
+                    }
+                    (ns, scale)
+                }
+                None => (Vec::new(), vec![1.0; n]),
             };
-            let file_tangents = match prim.get(&Semantic::Tangents) {
+            let (tangents, tangent_scale) = match prim.get(&Semantic::Tangents) {
                 Some(a) if a.dimensions() == gltf::accessor::Dimensions::Vec4 && a.count() == n => {
-                    let t = source.read_f32(&a)?;
-                    Some(t.chunks_exact(4).map(Vec4::from_slice).collect::<Vec<_>>())
+                    let mut ts = source.read_vec4s(&a)?;
+                    let mut scale = Vec::with_capacity(n);
+                    for t in &mut ts {
+                        let x = linear * t.truncate();
+                        let l = x.length();
+                        let l = if l > 0.0 { l } else { 1.0 };
+                        *t = (x / l).extend(t.w);
+                        scale.push(l);
+                    }
+                    (Some(ts), scale)
                 }
                 Some(a) => {
                     return Err(ImportError::Accessor {
@@ -542,7 +850,7 @@ fn build_rig(parsed: &Parsed<'_>, options: &ImportOptions) -> Result<Rig, Import
                         problem: "TANGENT must be VEC4 with one element per vertex".into(),
                     });
                 }
-                None => None,
+                None => (None, Vec::new()),
             };
             let mut indices = triangle_indices(source, &prim, n)?;
             if flip {
@@ -550,72 +858,60 @@ fn build_rig(parsed: &Parsed<'_>, options: &ImportOptions) -> Result<Rig, Import
                     tri.swap(1, 2);
                 }
             }
-
-            // Rig space.
-            let positions: Vec<Vec3> = positions
-                .iter()
-                .map(|&p| inst.world.transform_point3(p))
-                .collect();
-            let (normals, normal_scale) = match &file_normals {
-                Some(ns) => {
-                    let mut out = Vec::with_capacity(n);
-                    let mut scale = Vec::with_capacity(n);
-                    for &nv in ns {
-                        let t = normal_m * nv;
-                        let s = t.length();
-                        let s = if s > 0.0 { s } else { 1.0 };
-                        out.push(t / s);
-                        scale.push(s);
-                    }
-                    (out, scale)
-                }
-                None => (vertex_normals(&positions, &indices), vec![1.0; n]),
-            };
-            let (tangents, tangent_scale) = match &file_tangents {
-                Some(ts) => {
-                    let mut out = Vec::with_capacity(n);
-                    let mut scale = Vec::with_capacity(n);
-                    for &t in ts {
-                        let x = linear * t.truncate();
-                        let s = x.length();
-                        let s = if s > 0.0 { s } else { 1.0 };
-                        out.push((x / s).extend(t.w));
-                        scale.push(s);
-                    }
-                    (Some(out), scale)
-                }
-                None => (None, Vec::new()),
+            let normals = if file_normals {
+                normals
+            } else {
+                budget.charge(n as u64 * 24, || "computed normals".into())?;
+                let computed = vertex_normals(&positions, &indices);
+                budget.release(n as u64 * 12);
+                computed
             };
 
             let mut sparse = Vec::new();
             for (k, target) in prim.morph_targets().enumerate() {
+                // Dense deltas, decoded and transformed in place, then kept sparse: the dense
+                // arrays are released once the sparse target is built.
+                let mut dense = 0u64;
                 let dp = match target.positions() {
-                    Some(a) => read_vec3(source, &a, n, "POSITION target")?
-                        .into_iter()
-                        .map(|d| linear * d)
-                        .collect(),
-                    None => vec![Vec3::ZERO; n],
+                    Some(a) => {
+                        let mut d = read_vec3(source, &a, n, "POSITION target")?;
+                        for v in &mut d {
+                            *v = linear * *v;
+                        }
+                        d
+                    }
+                    None => {
+                        budget.charge(n as u64 * 12, || "an empty target".into())?;
+                        vec![Vec3::ZERO; n]
+                    }
                 };
+                dense += n as u64 * 12;
                 let dn = match target.normals() {
-                    Some(a) => Some(
-                        read_vec3(source, &a, n, "NORMAL target")?
-                            .into_iter()
-                            .zip(&normal_scale)
-                            .map(|(d, s)| normal_m * d / *s)
-                            .collect::<Vec<_>>(),
-                    ),
+                    Some(a) => {
+                        let mut d = read_vec3(source, &a, n, "NORMAL target")?;
+                        for (v, s) in d.iter_mut().zip(&normal_scale) {
+                            *v = normal_m * *v / *s;
+                        }
+                        dense += n as u64 * 12;
+                        Some(d)
+                    }
                     None => None,
                 };
                 let dt = match (target.tangents(), &tangents) {
-                    (Some(a), Some(_)) => Some(
-                        read_vec3(source, &a, n, "TANGENT target")?
-                            .into_iter()
-                            .zip(&tangent_scale)
-                            .map(|(d, s)| linear * d / *s)
-                            .collect::<Vec<_>>(),
-                    ),
+                    (Some(a), Some(_)) => {
+                        let mut d = read_vec3(source, &a, n, "TANGENT target")?;
+                        for (v, s) in d.iter_mut().zip(&tangent_scale) {
+                            *v = linear * *v / *s;
+                        }
+                        dense += n as u64 * 12;
+                        Some(d)
+                    }
                     _ => None,
                 };
+                let m = sparse_len(&dp, dn.as_deref(), dt.as_deref(), options.delta_threshold);
+                let per =
+                    4 + 12 + if dn.is_some() { 12 } else { 0 } + if dt.is_some() { 12 } else { 0 };
+                budget.charge(m as u64 * per, || format!("target {k} of {label}"))?;
                 let st: SparseTarget = sparsify(
                     ids[k],
                     &dp,
@@ -623,16 +919,20 @@ fn build_rig(parsed: &Parsed<'_>, options: &ImportOptions) -> Result<Rig, Import
                     dt.as_deref(),
                     options.delta_threshold,
                 );
+                drop((dp, dn, dt));
+                budget.release(dense);
                 if !st.vertices.is_empty() {
                     sparse.push(st);
                 }
             }
+            drop((normal_scale, tangent_scale));
+            budget.release(n as u64 * 8);
 
             primitives.push(Primitive {
                 name: label,
                 positions,
                 normals,
-                normals_from_file: file_normals.is_some(),
+                normals_from_file: file_normals,
                 tangents,
                 indices,
                 targets: sparse,
@@ -660,6 +960,14 @@ fn build_rig(parsed: &Parsed<'_>, options: &ImportOptions) -> Result<Rig, Import
     };
     rig.validate()?;
     Ok(rig)
+}
+
+/// Bytes the decoded keyframes of `tracks` hold (released once they are baked).
+pub(crate) fn tracks_bytes(tracks: &[WeightTrack]) -> u64 {
+    tracks
+        .iter()
+        .map(|t| (t.track.times.len() + t.track.values.len()) as u64 * 4)
+        .sum()
 }
 
 /// One `weights` channel resolved to rig-wide targets.
@@ -730,19 +1038,19 @@ pub(crate) fn bake(
     n_targets: usize,
     defaults: &[f32],
     fps: f32,
+    budget: &Budget,
 ) -> Result<Clip, ImportError> {
     let last = tracks
         .iter()
         .map(|t| t.track.last_time())
         .fold(0.0f32, f32::max);
-    let frames_f = (last.max(0.0) * fps + 1e-3).floor();
-    if frames_f.is_nan() || frames_f >= MAX_FRAMES as f32 {
-        return Err(ImportError::Animation {
-            animation: name.to_string(),
-            problem: format!("lasts {last} s: more than {MAX_FRAMES} frames at {fps} fps"),
-        });
-    }
-    let frames = frames_f as usize + 1;
+    let frames = baked_frames(last, fps).ok_or_else(|| ImportError::Animation {
+        animation: name.to_string(),
+        problem: format!("lasts {last} s: more than {MAX_FRAMES} frames at {fps} fps"),
+    })?;
+    budget.charge((n_targets * frames * 4) as u64, || {
+        format!("clip table {name:?} ({n_targets} targets × {frames} frames at {fps} fps)")
+    })?;
     let mut weights = vec![0.0; n_targets * frames];
     for (t, row) in weights.chunks_exact_mut(frames.max(1)).enumerate() {
         row.fill(defaults.get(t).copied().unwrap_or(0.0));
@@ -798,7 +1106,15 @@ fn bake_animations(
             .map_or_else(|| format!("anim{}", anim.index()), str::to_string);
         let taken: Vec<String> = clips.iter().map(|c| c.name.clone()).collect();
         let name = unique_name(name, &taken);
-        clips.push(bake(&name, &tracks, n_targets, defaults, fps)?);
+        clips.push(bake(
+            &name,
+            &tracks,
+            n_targets,
+            defaults,
+            fps,
+            source.budget(),
+        )?);
+        source.budget().release(tracks_bytes(&tracks));
     }
     Ok(clips)
 }

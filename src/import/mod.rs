@@ -14,7 +14,9 @@ pub mod clips;
 pub mod gltf;
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
+use crate::budget::{Budget, BudgetError};
 use crate::rig::{ClipError, DEFAULT_DELTA_THRESHOLD, Rig, RigError};
 
 pub use self::clips::{clip_from_csv, clip_from_json, clips_from_gltf};
@@ -31,9 +33,26 @@ pub struct ImportOptions {
     pub base_dir: Option<PathBuf>,
     /// Rig name; defaults to the file stem.
     pub name: Option<String>,
-    /// Most bytes the decoded arrays of one import may occupy. Bounds what a small file that
+    /// Most bytes one import may hold at once (decoded arrays, baked clip tables, the rig it
+    /// builds), when no [`ImportOptions::budget`] is given. Bounds what a small file that
     /// declares huge counts (a "glTF bomb") can make us allocate.
     pub max_decoded_bytes: usize,
+    /// The budget every allocation of the import is charged to (the server's per-upload
+    /// budget, drawing from its memory pool); `None` makes one of `max_decoded_bytes`.
+    pub budget: Option<Arc<Budget>>,
+}
+
+impl ImportOptions {
+    /// The budget allocations are charged to.
+    pub fn budget(&self) -> Arc<Budget> {
+        self.budget.clone().unwrap_or_else(|| {
+            Arc::new(Budget::new(
+                self.max_decoded_bytes as u64,
+                "--max-upload-memory",
+                None,
+            ))
+        })
+    }
 }
 
 impl Default for ImportOptions {
@@ -43,7 +62,8 @@ impl Default for ImportOptions {
             fps: crate::rig::DEFAULT_FPS,
             base_dir: None,
             name: None,
-            max_decoded_bytes: 2 << 30,
+            max_decoded_bytes: 1 << 30,
+            budget: None,
         }
     }
 }
@@ -103,14 +123,10 @@ pub enum ImportError {
         /// What is wrong.
         problem: String,
     },
-    /// Decoding would allocate more than [`ImportOptions::max_decoded_bytes`].
-    #[error("file declares {declared} bytes of data, more than the limit of {limit}")]
-    TooLarge {
-        /// Bytes the file asks for.
-        declared: usize,
-        /// The limit.
-        limit: usize,
-    },
+    /// The import would hold more memory than its budget allows (a "glTF bomb", or just a
+    /// rig too big for the limits), or the server's memory pool is full.
+    #[error(transparent)]
+    Budget(#[from] BudgetError),
     /// A clip table is unusable (CSV/JSON shape, ragged rows, bad numbers).
     #[error("clip: {0}")]
     ClipSource(String),

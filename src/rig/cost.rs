@@ -277,11 +277,13 @@ impl RigShape {
         // The stored record: bincode writes f32 in 4 bytes and integers in at most 5 (varint),
         // so never more than 5/4 of the arrays, plus names and headers.
         let stored = geometry(&self.primitives) * 5 / 4 + clips + lod * 5 / 4 + 64 * 1024;
+        // The server's range check keeps per-vertex f64 bounds (two DVec3 per vertex).
+        let range_check = 48 * self.vertices();
         RigCost {
             rig,
             layout,
             device,
-            transient: staging.max(upload).max(stored),
+            transient: staging.max(upload).max(stored).max(range_check),
             stored,
         }
     }

@@ -412,17 +412,24 @@ pub fn sparsify(
     // A non-finite delta counts as exceeding, so that `Rig::validate` sees and refuses it
     // rather than the comparison silently dropping it.
     let exceeds = |v: Vec3| !v.is_finite() || v.abs().cmpgt(Vec3::splat(threshold)).any();
+    let kept = |i: usize| {
+        let n = normals.and_then(|n| n.get(i).copied());
+        let t = tangents.and_then(|t| t.get(i).copied());
+        exceeds(positions[i]) || n.is_some_and(exceeds) || t.is_some_and(exceeds)
+    };
+    // Counted first, so the arrays are allocated once at their size (see `sparse_len`).
+    let m = sparse_len(positions, normals, tangents, threshold);
     let mut out = SparseTarget {
         target,
-        vertices: Vec::new(),
-        positions: Vec::new(),
-        normals: normals.map(|_| Vec::new()),
-        tangents: tangents.map(|_| Vec::new()),
+        vertices: Vec::with_capacity(m),
+        positions: Vec::with_capacity(m),
+        normals: normals.map(|_| Vec::with_capacity(m)),
+        tangents: tangents.map(|_| Vec::with_capacity(m)),
     };
     for (i, &p) in positions.iter().enumerate() {
         let n = normals.and_then(|n| n.get(i).copied());
         let t = tangents.and_then(|t| t.get(i).copied());
-        if exceeds(p) || n.is_some_and(exceeds) || t.is_some_and(exceeds) {
+        if kept(i) {
             out.vertices.push(i as u32);
             out.positions.push(p);
             if let (Some(v), Some(n)) = (out.normals.as_mut(), n) {
@@ -434,6 +441,24 @@ pub fn sparsify(
         }
     }
     out
+}
+
+/// How many vertices [`sparsify`] keeps for these deltas: importers charge the sparse
+/// arrays to their memory budget before they are built.
+pub fn sparse_len(
+    positions: &[Vec3],
+    normals: Option<&[Vec3]>,
+    tangents: Option<&[Vec3]>,
+    threshold: f32,
+) -> usize {
+    let exceeds = |v: Vec3| !v.is_finite() || v.abs().cmpgt(Vec3::splat(threshold)).any();
+    (0..positions.len())
+        .filter(|&i| {
+            exceeds(positions[i])
+                || normals.and_then(|n| n.get(i)).is_some_and(|&n| exceeds(n))
+                || tangents.and_then(|t| t.get(i)).is_some_and(|&t| exceeds(t))
+        })
+        .count()
 }
 
 /// Area-weighted vertex normals of a triangle mesh; vertices on no triangle get +Z.

@@ -277,8 +277,18 @@ impl CpuRig {
 
         let mut base_positions = vec![Block::default(); tiles];
         let mut base_normals = vec![Block::default(); tiles];
-        let mut pos_entries = Vec::new();
-        let mut nrm_entries = Vec::new();
+        // Sized up front: grown by doubling, the staging would briefly hold three times
+        // the deltas (the memory model charges exactly one).
+        let deltas = |with_normals: bool| -> usize {
+            rig.primitives
+                .iter()
+                .flat_map(|p| &p.targets)
+                .filter(|t| !with_normals || t.normals.is_some())
+                .map(|t| t.vertices.len())
+                .sum()
+        };
+        let mut pos_entries = Vec::with_capacity(deltas(false));
+        let mut nrm_entries = Vec::with_capacity(deltas(true));
         let mut slot_nnz = vec![0usize; slots];
 
         for (p, prim) in rig.primitives.iter().enumerate() {

@@ -469,15 +469,13 @@ impl std::fmt::Debug for GpuRig {
 }
 
 impl GpuRig {
-    /// Uploads everything a batch of this rig reads, with clip tables `tables` (uploaded with
-    /// [`ClipTables::upload`], and shared with the rig's other mesh levels). Refuses
-    /// (`DoesNotFit`) rigs the device cannot hold, instead of failing later in the middle of a
-    /// batch.
-    pub fn upload(
-        ctx: &GpuContext,
-        rig: &Rig,
-        tables: Arc<ClipTables>,
-    ) -> Result<GpuRig, GpuError> {
+    /// Refuses (`DoesNotFit`) a rig whose geometry the device's bindings or dispatch limits
+    /// cannot hold, before anything is uploaded.
+    pub fn check_fits(ctx: &GpuContext, rig: &Rig) -> Result<(), GpuError> {
+        Self::fits(ctx, rig, &NormalTopology::of(rig))
+    }
+
+    fn fits(ctx: &GpuContext, rig: &Rig, topology: &NormalTopology) -> Result<(), GpuError> {
         ctx.health()?;
         let vertices = rig.vertex_count();
         let per_job = (vertices * 3 * 4) as u64;
@@ -488,7 +486,6 @@ impl GpuRig {
                 ctx.max_binding
             )));
         }
-        let topology = NormalTopology::of(rig);
         let tri_bytes = topology.triangles.len() as u64 * 12;
         if tri_bytes * JOBS_PER_GROUP as u64 > ctx.max_binding
             || topology.triangles.len() > 65_535 * 64
@@ -500,6 +497,21 @@ impl GpuRig {
                 topology.triangles.len()
             )));
         }
+        Ok(())
+    }
+
+    /// Uploads everything a batch of this rig reads, with clip tables `tables` (uploaded with
+    /// [`ClipTables::upload`], and shared with the rig's other mesh levels). Refuses
+    /// (`DoesNotFit`) rigs the device cannot hold, instead of failing later in the middle of a
+    /// batch.
+    pub fn upload(
+        ctx: &GpuContext,
+        rig: &Rig,
+        tables: Arc<ClipTables>,
+    ) -> Result<GpuRig, GpuError> {
+        let vertices = rig.vertex_count();
+        let topology = NormalTopology::of(rig);
+        Self::fits(ctx, rig, &topology)?;
         if tables.clips.len() != rig.clips.len() {
             return Err(GpuError::DoesNotFit(format!(
                 "{} clip tables for a rig with {} clips",
