@@ -241,8 +241,13 @@ struct ReqState {
 struct WorkGroup {
     entry: Arc<RigEntry>,
     spec: OutputSpec,
+    /// Unique engine jobs of the group.
     jobs: Vec<BlendJob>,
-    slots: Vec<(SlotId, Format)>,
+    /// Index of each job in `jobs`, to find it again.
+    job_at: HashMap<BlendJob, usize>,
+    /// Each slot, its wire format and the engine job it is made from. Slots that differ only
+    /// in wire format (f32 and q16 are both made from the f32 blend) share one job.
+    slots: Vec<(SlotId, Format, usize)>,
 }
 
 struct WorkBatch {
@@ -472,16 +477,22 @@ impl State {
                         precision,
                     },
                     jobs: Vec::new(),
+                    job_at: HashMap::new(),
                     slots: Vec::new(),
                 });
                 groups.len() - 1
             });
-            groups[g].jobs.push(BlendJob {
+            let group = &mut groups[g];
+            let job = BlendJob {
                 clip: slot.key.clip,
                 frame: slot.key.frame,
                 lod: slot.key.lod,
+            };
+            let j = *group.job_at.entry(job).or_insert_with(|| {
+                group.jobs.push(job);
+                group.jobs.len() - 1
             });
-            groups[g].slots.push((id, slot.key.format));
+            group.slots.push((id, slot.key.format, j));
         }
         if groups.is_empty() {
             return;
@@ -743,20 +754,21 @@ fn finish_batch(
                 if let Some(g) = gpu {
                     gpu_ns = Some(gpu_ns.unwrap_or(0) + g);
                 }
-                metrics
-                    .jobs_computed
-                    .fetch_add(outs.len() as u64, std::sync::atomic::Ordering::Relaxed);
+                metrics.jobs_computed.fetch_add(
+                    group.jobs.len() as u64,
+                    std::sync::atomic::Ordering::Relaxed,
+                );
                 results.extend(
                     group
                         .slots
                         .iter()
                         .zip(outs)
-                        .map(|(&(id, _), o)| (id, Ok(Arc::new(o)))),
+                        .map(|(&(id, _, _), o)| (id, Ok(Arc::new(o)))),
                 );
             }
             Ok(Err(e)) => {
                 tracing::error!(rig = %group.entry.id, error = %e, "engine evaluation failed");
-                results.extend(group.slots.iter().map(|&(id, _)| (id, Err(e.clone()))));
+                results.extend(group.slots.iter().map(|&(id, _, _)| (id, Err(e.clone()))));
             }
             Err(_) => {
                 tracing::error!(rig = %group.entry.id, "engine evaluation panicked");
@@ -764,7 +776,7 @@ fn finish_batch(
                     group
                         .slots
                         .iter()
-                        .map(|&(id, _)| (id, Err("engine evaluation panicked".to_string()))),
+                        .map(|&(id, _, _)| (id, Err("engine evaluation panicked".to_string()))),
                 );
             }
         }
@@ -829,8 +841,7 @@ fn finish_group(
         group
             .slots
             .par_iter()
-            .enumerate()
-            .map(|(j, &(_, format))| {
+            .map(|&(_, format, j)| {
                 (format == Format::Q16).then(|| {
                     let r = j * v3..(j + 1) * v3;
                     let mut p = Vec::new();
@@ -867,8 +878,8 @@ fn finish_group(
     } else {
         (Some(share(out.positions)), out.normals.map(share))
     };
-    let mut outs = Vec::with_capacity(n);
-    for (j, q) in quantized.into_iter().enumerate() {
+    let mut outs = Vec::with_capacity(group.slots.len());
+    for (&(_, _, j), q) in group.slots.iter().zip(quantized) {
         match q {
             Some((positions, normals)) => outs.push(JobOutput { positions, normals }),
             None => {

@@ -150,3 +150,57 @@ async fn two_hundred_clients_get_their_own_correct_frames_and_jobs_coalesce() {
     );
     server.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_f32_and_a_q16_request_for_one_frame_cost_one_blend() {
+    // Both requests wait in one batch; their slots differ only in wire format, and q16 is
+    // quantized from the f32 blend, so the engine computes the frame once.
+    let server = TestServer::start(ServerConfig {
+        batch_delay: Duration::from_millis(300),
+        ..ServerConfig::default()
+    })
+    .await;
+    let request = |format: Format| CrowdFrameRequest {
+        heads: vec![Head {
+            head: 1,
+            rig: "default-head".into(),
+            clip: "talk".into(),
+            frame: 17,
+            lod: 0,
+        }],
+        output: OutputOptions {
+            normals: false,
+            format,
+        },
+        wrap: true,
+    };
+    let (f32_req, q16_req) = (request(Format::F32), request(Format::Q16));
+    let (a, b) = tokio::join!(
+        server.client.crowd_frame(&f32_req, Encoding::Bincode),
+        server.client.crowd_frame(&q16_req, Encoding::Bincode),
+    );
+    let (a, _) = a.expect("f32 frame");
+    let (b, _) = b.expect("q16 frame");
+    let page = server.client.metrics().await.expect("metrics");
+    assert_eq!(
+        metric(&page, "crowdmorph_batches_total"),
+        Some(1.0),
+        "one batch"
+    );
+    assert_eq!(
+        metric(&page, "crowdmorph_jobs_computed_total"),
+        Some(1.0),
+        "one blend for both formats"
+    );
+    // And both answers are that blend: q16 within its stated error of the f32 one.
+    let f = super::positions_f32(Format::F32, &a.buffers[0]);
+    let q = super::positions_f32(Format::Q16, &b.buffers[0]);
+    let err = b.buffers[0].quantization.expect("box").max_error;
+    for (i, (x, y)) in f.iter().zip(&q).enumerate() {
+        assert!(
+            (x - y).abs() <= err[i % 3] * 1.0001,
+            "component {i}: {x} vs {y}"
+        );
+    }
+    server.stop().await;
+}
