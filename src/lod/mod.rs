@@ -214,6 +214,29 @@ pub fn resolve_targets(rig: &Rig, names: &[String]) -> Result<Vec<TargetId>, Lod
     Ok(out)
 }
 
+/// An upper bound of the transient memory [`build_lod`] holds for `rig`: per scoring thread a
+/// posed copy of the mesh, one target's displacement and a render at the scoring size; shared,
+/// the neutral mesh, its point index and the reference renders (Yee's pyramid included); and
+/// the mesh simplifier's working copies. The server charges it before a build starts.
+pub fn build_bytes(rig: &Rig, spec: &LodSpec) -> u64 {
+    let v = rig.vertex_count() as u64;
+    let i: u64 = rig.primitives.iter().map(|p| p.indices.len() as u64).sum();
+    let size = u64::from(spec.scoring.image_size.clamp(16, 4096));
+    let pixels = size * size;
+    let threads = rayon::current_num_threads() as u64;
+    let scoring = if spec.order.is_none() && spec.method != OrderMethod::FileOrder {
+        112 * v + 64 * pixels + threads * (32 * v + 32 * pixels + 4 * i)
+    } else {
+        0
+    };
+    let meshes = if spec.mesh_fractions.is_empty() {
+        0
+    } else {
+        64 * v + 32 * i
+    };
+    scoring.max(meshes) + (1 << 20)
+}
+
 /// Builds the LOD a rig persists: scores the targets when the method needs them (pass
 /// `scores` to reuse an earlier scoring), orders, pins, lays out the table and simplifies the
 /// meshes. The result passes `Lod::validate` and `Lod::validate_meshes` for this rig.

@@ -11,16 +11,18 @@
 //! shutdown; a `PUT` is itself a job, cancelled when its client goes away.
 
 use std::collections::HashMap;
-use std::sync::{Arc, Mutex};
+use std::sync::atomic::Ordering;
+use std::sync::{Arc, Mutex, Weak};
 
 use axum::body::Body;
 use axum::extract::{Path, State};
 use axum::http::{HeaderMap, StatusCode};
 use crowdmorph_proto::{LodInfo, LodRequest, RigInfo};
 
-use super::api::{ApiResult, blocking, decode, respond};
+use super::api::{ApiResult, blocking, budget_error, decode, prepare_charged, respond};
 use super::registry::RigEntry;
 use super::{ApiError, AppState};
+use crate::budget::Budget;
 use crate::lod::{LevelSpec, LodBuildError, LodSpec, OrderMethod, Progress, build_lod};
 use crate::rig::{Lod, Rig};
 
@@ -65,6 +67,16 @@ impl LodJobs {
                 }
                 !job.background
             });
+        }
+    }
+
+    /// Cancels every job (the state is being dropped).
+    pub fn cancel_all(&self) {
+        if let Ok(mut m) = self.0.lock() {
+            for job in m.values() {
+                job.progress.cancel();
+            }
+            m.clear();
         }
     }
 
@@ -137,24 +149,14 @@ impl AppState {
         rig: Arc<Rig>,
         spec: LodSpec,
         job: &Arc<LodJob>,
-    ) -> Result<Lod, ApiError> {
-        let _permit = self
-            .lod_builds
-            .acquire()
-            .await
-            .map_err(|_| ApiError::unavailable("shutting_down", "the server is stopping", 1))?;
-        let progress = job.progress.clone();
-        let built =
-            tokio::task::spawn_blocking(move || build_lod(&rig, &spec, None, Some(&progress)))
-                .await
-                .map_err(ApiError::internal)?;
-        built.map_err(|e| match e {
-            LodBuildError::Cancelled => cancelled(),
-            e => ApiError::bad_request("invalid_lod", e.to_string()),
-        })
+    ) -> Result<(Lod, Arc<Budget>), ApiError> {
+        build_with(&Arc::downgrade(&self.0), rig, spec, job).await
     }
 
     /// Starts the background LOD job for a rig that still has the import's quick order.
+    ///
+    /// The job holds the server state only weakly: dropping the last handle to the state
+    /// (the server stopping, a test ending) cancels it instead of leaving it computing.
     pub(super) fn start_auto_lod(&self, entry: &RigEntry) {
         if !self.config.auto_lod || entry.rig().lod.method != crate::rig::IMPORT_LOD_METHOD {
             return;
@@ -171,14 +173,18 @@ impl AppState {
             ..LodSpec::default()
         };
         let job = self.lod_jobs.start(&entry.id, true);
-        let state = self.clone();
+        let weak = Arc::downgrade(&self.0);
         let id = entry.id.clone();
         tokio::spawn(async move {
             let outcome = async {
-                let lod = state.build(rig.clone(), spec, &job).await?;
-                apply(&state, &id, &rig, lod, &job).await
+                let (lod, budget) = build_with(&weak, rig.clone(), spec, &job).await?;
+                let state = upgrade(&weak)?;
+                apply(&state, &id, &rig, lod, &job, &budget).await
             }
             .await;
+            let Ok(state) = upgrade(&weak) else {
+                return;
+            };
             match outcome {
                 Ok(_) => {
                     tracing::info!(rig = %id, "metric-ordered LOD and mesh levels ready");
@@ -196,6 +202,55 @@ impl AppState {
             }
         });
     }
+}
+
+/// The state, if it still exists.
+fn upgrade(weak: &Weak<super::Inner>) -> Result<AppState, ApiError> {
+    weak.upgrade()
+        .map(AppState)
+        .ok_or_else(|| ApiError::unavailable("shutting_down", "the server is stopping", 1))
+}
+
+/// [`AppState::build`] holding the state only while it takes a permit and reserves memory,
+/// not during the seconds of computing.
+async fn build_with(
+    weak: &Weak<super::Inner>,
+    rig: Arc<Rig>,
+    spec: LodSpec,
+    job: &Arc<LodJob>,
+) -> Result<(Lod, Arc<Budget>), ApiError> {
+    let (permit, budget, metrics) = {
+        let state = upgrade(weak)?;
+        let permit = state
+            .lod_builds
+            .clone()
+            .acquire_owned()
+            .await
+            .map_err(|_| ApiError::unavailable("shutting_down", "the server is stopping", 1))?;
+        // The build's working memory is reserved before it starts; the same budget then
+        // pays for preparing the rig with its new levels.
+        let budget = state.op_budget();
+        let work = crate::lod::build_bytes(&rig, &spec);
+        budget
+            .reserve(work, || format!("a LOD build of rig {:?}", rig.name))
+            .map_err(|e| budget_error(e, "lod_too_large"))?;
+        (permit, budget, state.metrics.clone())
+    };
+    let progress = job.progress.clone();
+    metrics.lod_builds_running.fetch_add(1, Ordering::Relaxed);
+    let built = tokio::task::spawn_blocking(move || build_lod(&rig, &spec, None, Some(&progress)))
+        .await
+        .map_err(ApiError::internal);
+    metrics.lod_builds_running.fetch_sub(1, Ordering::Relaxed);
+    drop(permit);
+    let lod = built?.map_err(|e| match e {
+        LodBuildError::Cancelled => {
+            metrics.lod_builds_cancelled.fetch_add(1, Ordering::Relaxed);
+            cancelled()
+        }
+        e => ApiError::bad_request("invalid_lod", e.to_string()),
+    })?;
+    Ok((lod, budget))
 }
 
 fn cancelled() -> ApiError {
@@ -216,6 +271,7 @@ async fn apply(
     scored: &Arc<Rig>,
     lod: Lod,
     job: &Arc<LodJob>,
+    budget: &Arc<Budget>,
 ) -> Result<Arc<RigEntry>, ApiError> {
     let _admin = state.admin.lock().await;
     // Checked under the admin lock, which a PUT's apply and a delete also take: a job that
@@ -232,6 +288,8 @@ async fn apply(
     let current = entry.prepared.rig().clone();
     let scored = scored.clone();
     let engine = state.engine.clone();
+    let gpu = state.on_gpu();
+    let b = budget.clone();
     let rid = id.to_string();
     // Comparing and cloning a big rig, validating and preparing it are CPU work: off the
     // async threads.
@@ -249,20 +307,17 @@ async fn apply(
         rig.lod = lod;
         rig.validate()
             .map_err(|e| ApiError::bad_request("invalid_lod", e.to_string()))?;
-        let rig = Arc::new(rig);
-        let prepared = engine.prepare(rig.clone()).map_err(|e| {
-            ApiError::new(
-                StatusCode::UNPROCESSABLE_ENTITY,
-                "cannot_prepare",
-                e.to_string(),
-            )
-        })?;
+        let (rig, prepared, _) = prepare_charged(&engine, &b, Arc::new(rig), gpu)?;
         Ok((rig, prepared))
     })
     .await?;
     state
         .persist(id, rig, entry.builtin.then_some(entry.builtin_clips))
         .await?;
+    // The new generation takes over the rig's charge, set to what it now holds (its mesh
+    // levels included).
+    let mut charge = entry.take_charge();
+    charge.set(prepared.memory().host_bytes as u64);
     let next = Arc::new(RigEntry {
         id: entry.id.clone(),
         builtin: entry.builtin,
@@ -271,6 +326,7 @@ async fn apply(
         qbox: entry.qbox,
         generation: state.registry.generation(),
         prepared,
+        charge: Mutex::new(charge),
     });
     state.registry.insert(next.clone());
     Ok(next)
@@ -344,8 +400,8 @@ pub(super) async fn put_lod(
         job: job.clone(),
     };
     let rig = entry.prepared.rig().clone();
-    let lod = state.build(rig.clone(), spec, &job).await?;
-    let entry = apply(&state, &id, &rig, lod, &job).await?;
+    let (lod, budget) = state.build(rig.clone(), spec, &job).await?;
+    let entry = apply(&state, &id, &rig, lod, &job, &budget).await?;
     // Done: the job is forgotten before the answer reports the rig's LOD status.
     drop(guard);
     tracing::info!(rig = %id, method = %entry.rig().lod.method, "LOD set");

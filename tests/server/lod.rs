@@ -7,6 +7,7 @@
 //! for the same rig version (bitwise equal on a CPU backend).
 
 use std::sync::Arc;
+use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
 use crowdmorph::engine::{BlendJob, Engine, OutputSpec};
@@ -368,9 +369,31 @@ async fn deleting_a_rig_cancels_its_lod_job() {
         .upload_rig("ict", upload_bytes(ict))
         .await
         .expect("upload");
+    // Wait until a background build is computing, then delete the rig.
+    let m = &server.state.metrics;
+    let t0 = Instant::now();
+    while m.lod_builds_running.load(Ordering::Relaxed) == 0 {
+        assert!(
+            t0.elapsed() < Duration::from_secs(30),
+            "no LOD build started"
+        );
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
     server.client.delete_rig("ict").await.expect("delete");
-    // The job notices the cancellation or finds the rig gone; either way nothing comes back.
-    tokio::time::sleep(Duration::from_millis(300)).await;
+    // Every build ends (the built-in rig's, if it runs, normally); ICT's must end as
+    // cancelled. A cancellation that did nothing would let it run to completion, uncounted.
+    while m.lod_builds_running.load(Ordering::Relaxed) > 0 {
+        assert!(
+            t0.elapsed() < Duration::from_secs(120),
+            "a LOD build never ended"
+        );
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    assert_eq!(
+        m.lod_builds_cancelled.load(Ordering::Relaxed),
+        1,
+        "the deleted rig's LOD build was not cancelled"
+    );
     assert!(server.state.registry.get("ict").is_none());
     assert!(matches!(
         server.client.lod("ict").await,
@@ -579,4 +602,34 @@ async fn the_cli_sets_a_lod_on_a_running_server() {
         .expect_err("no token");
     assert!(format!("{err:#}").contains("401"), "{err:#}");
     server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn dropping_the_server_state_cancels_its_lod_builds() {
+    // The built-in rig gets its metric order in the background once stored rigs are loaded.
+    let state = crowdmorph::server::AppState::new(ServerConfig::default()).expect("state");
+    state.load_stored().await;
+    let metrics = state.metrics.clone();
+    let t0 = Instant::now();
+    while metrics.lod_builds_running.load(Ordering::Relaxed) == 0 {
+        assert!(
+            t0.elapsed() < Duration::from_secs(30),
+            "no LOD build started"
+        );
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    // The owner lets go: the build is cancelled, not left to run to its end.
+    drop(state);
+    while metrics.lod_builds_running.load(Ordering::Relaxed) > 0 {
+        assert!(
+            t0.elapsed() < Duration::from_secs(120),
+            "the LOD build never ended"
+        );
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    assert_eq!(
+        metrics.lod_builds_cancelled.load(Ordering::Relaxed),
+        1,
+        "the build of a dropped state ran to completion"
+    );
 }
