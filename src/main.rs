@@ -267,9 +267,19 @@ struct ServeArgs {
     /// Most heads per crowd request.
     #[arg(long, env = "CROWDMORPH_MAX_HEADS", default_value_t = 100_000)]
     max_heads: usize,
-    /// Most bytes the decoded arrays of one glTF upload may occupy.
-    #[arg(long, env = "CROWDMORPH_MAX_DECODED_BYTES", default_value_t = 2 << 30)]
-    max_decoded_bytes: usize,
+    /// Most memory one upload (rig or clips) or LOD build may hold, bytes: estimated from the
+    /// file's headers before any work, then charged as it is allocated (413 past it).
+    #[arg(
+        long,
+        env = "CROWDMORPH_MAX_UPLOAD_MEMORY",
+        alias = "max-decoded-bytes",
+        default_value_t = 1 << 30
+    )]
+    max_upload_memory: u64,
+    /// Most memory all rigs together may hold, with uploads and LOD builds in progress,
+    /// bytes (503 past it; default: half the machine's memory).
+    #[arg(long, env = "CROWDMORPH_MAX_RIG_MEMORY")]
+    max_rig_memory: Option<u64>,
     /// Crowd requests that may wait for the batcher at once (more get 503).
     #[arg(long, env = "CROWDMORPH_QUEUE_REQUESTS", default_value_t = 1024)]
     queue_requests: usize,
@@ -309,7 +319,10 @@ fn run_serve(a: ServeArgs) -> Result<()> {
         max_upload_bytes: a.max_upload_bytes,
         max_request_bytes: a.max_request_bytes,
         max_heads: a.max_heads,
-        max_decoded_bytes: a.max_decoded_bytes,
+        max_upload_memory: a.max_upload_memory,
+        max_rig_memory: a
+            .max_rig_memory
+            .unwrap_or_else(server::config::default_rig_memory),
         queue_requests: a.queue_requests,
         queue_memory_bytes: a.queue_memory_bytes,
         batch_cost: a.batch_cost,

@@ -23,14 +23,18 @@ use serde::Serialize;
 use serde::de::DeserializeOwned;
 use tokio::sync::OwnedSemaphorePermit;
 
-use super::registry::{RigEntry, clip_infos, quantization_box, sanitize_id, valid_id};
+use super::registry::{
+    RigEntry, check_output_range, clip_infos, quantization_box, sanitize_id, valid_id,
+};
 use super::scheduler::{JobRequest, ScheduleError};
 use super::{ApiError, AppState};
+use crate::budget::{Budget, BudgetError};
 use crate::codec::{self, FrameBufferParts, FrameResponseEncoder};
 use crate::import::clips::{ClipImport, ClipOptions};
+use crate::import::gltf::GltfImport;
 use crate::import::{ImportError, ImportOptions};
 use crate::plan::{JobKey, Plan};
-use crate::rig::{ACTIVE_WEIGHT_EPSILON, FrameMode, Rig};
+use crate::rig::{ACTIVE_WEIGHT_EPSILON, FrameMode, Rig, RigShape};
 use crate::store::RecordRef;
 
 pub(super) type ApiResult = Result<Response, ApiError>;
@@ -87,12 +91,24 @@ async fn read_body(
 }
 
 impl AppState {
-    /// Reads a rig or clip upload: the upload size limit, the admin timeout.
+    /// Reads a rig or clip upload: the upload size limit, the admin timeout. The body is
+    /// charged to the upload's budget before it is read (its Content-Length, else the most
+    /// an upload may send).
     pub(super) async fn upload_body(
         &self,
         headers: &HeaderMap,
         body: Body,
+        budget: &Budget,
     ) -> Result<Bytes, ApiError> {
+        let declared = headers
+            .get(header::CONTENT_LENGTH)
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.parse::<u64>().ok())
+            .unwrap_or(self.config.max_upload_bytes as u64)
+            .min(self.config.max_upload_bytes as u64);
+        budget
+            .charge(declared, || format!("an upload body of {declared} bytes"))
+            .map_err(|e| budget_error(e, "upload_too_large"))?;
         read_body(
             headers,
             body,
@@ -141,19 +157,51 @@ fn wants_bincode(headers: &HeaderMap) -> bool {
         .any(|v| v.to_ascii_lowercase().contains(CONTENT_TYPE_BINCODE))
 }
 
+/// Content types a web page may send to any origin without a CORS preflight (a "simple"
+/// request), plus no type at all. A body arriving with one of them may come from any page
+/// the user has open, so no request body is accepted with them: a page on another origin
+/// cannot make this server (on localhost, say) change or compute anything.
+const SIMPLE_CONTENT_TYPES: [&str; 4] = [
+    "",
+    "text/plain",
+    "application/x-www-form-urlencoded",
+    "multipart/form-data",
+];
+
+/// 415 for a body sent with a type web pages can send unasked.
+fn simple_content_type(ct: &str, expected: &str) -> ApiError {
+    let got = if ct.is_empty() {
+        "no Content-Type".to_string()
+    } else {
+        format!("Content-Type {ct:?}")
+    };
+    ApiError::new(
+        StatusCode::UNSUPPORTED_MEDIA_TYPE,
+        "unsupported_media_type",
+        format!(
+            "the body came with {got}; send it as {expected} (types a web page on another \
+             origin could send without asking are refused)"
+        ),
+    )
+}
+
+/// The body's content type, refused when a cross-origin page could have sent it.
+fn checked_content_type(headers: &HeaderMap, expected: &str) -> Result<String, ApiError> {
+    let ct = content_type(headers);
+    if SIMPLE_CONTENT_TYPES.contains(&ct.as_str()) {
+        return Err(simple_content_type(&ct, expected));
+    }
+    Ok(ct)
+}
+
 /// Decodes a request body as JSON or bincode according to its Content-Type.
 pub(super) fn decode<T: DeserializeOwned>(headers: &HeaderMap, body: &[u8]) -> Result<T, ApiError> {
-    let ct = content_type(headers);
+    let expected = "application/json (or application/x-bincode)";
+    let ct = checked_content_type(headers, expected)?;
     match ct.as_str() {
         CONTENT_TYPE_BINCODE => codec::request_from_wire(body)
             .map_err(|e| ApiError::bad_request("malformed_bincode", e.to_string())),
-        // curl's -d sends application/x-www-form-urlencoded unless told otherwise; a JSON
-        // body is what anyone sending that here means.
-        ""
-        | CONTENT_TYPE_JSON
-        | "text/json"
-        | "text/plain"
-        | "application/x-www-form-urlencoded" => {
+        CONTENT_TYPE_JSON => {
             // The path (`heads[3].frame`) tells a human which field is wrong.
             let mut de = serde_json::Deserializer::from_slice(body);
             let value = serde_path_to_error::deserialize(&mut de).map_err(|e| {
@@ -215,11 +263,13 @@ impl AppState {
         let Some(token) = &self.config.admin_token else {
             return Ok(());
         };
+        // The scheme name is case-insensitive (RFC 7235 §2.1); the token is not.
         let given = headers
             .get(header::AUTHORIZATION)
             .and_then(|v| v.to_str().ok())
-            .and_then(|v| v.strip_prefix("Bearer "))
-            .map(str::trim);
+            .and_then(|v| v.trim().split_once(' '))
+            .filter(|(scheme, _)| scheme.eq_ignore_ascii_case("bearer"))
+            .map(|(_, token)| token.trim());
         match given {
             Some(g) if same(g.as_bytes(), token.as_bytes()) => Ok(()),
             Some(_) => Err(ApiError::new(
@@ -309,13 +359,28 @@ fn unknown_clip(entry: &RigEntry, clip: &str) -> ApiError {
     )
 }
 
+/// A refused memory charge: 413 when the operation can never fit its limit, 503 (retry
+/// later) when the server's pool is full now. Both messages name the bytes and the flag.
+pub(super) fn budget_error(e: BudgetError, too_large: &'static str) -> ApiError {
+    match e {
+        BudgetError::TooLarge { .. } => {
+            ApiError::new(StatusCode::PAYLOAD_TOO_LARGE, too_large, e.to_string())
+        }
+        BudgetError::Full { .. } => ApiError::unavailable("memory_full", e.to_string(), 5),
+    }
+}
+
+/// Errors of a clip import: like a rig's, with the clip's code for a clip too large.
+fn clip_import_error(e: ImportError) -> ApiError {
+    match e {
+        ImportError::Budget(b) => budget_error(b, "clip_too_large"),
+        e => import_error(e),
+    }
+}
+
 fn import_error(e: ImportError) -> ApiError {
     match e {
-        ImportError::TooLarge { .. } => ApiError::new(
-            StatusCode::PAYLOAD_TOO_LARGE,
-            "rig_too_large",
-            e.to_string(),
-        ),
+        ImportError::Budget(b) => budget_error(b, "rig_too_large"),
         ImportError::UnknownTargets(_) => ApiError::bad_request(
             "unknown_targets",
             format!("{e}; add ?ignore_unknown=true to import the rest and report these"),
@@ -325,6 +390,38 @@ fn import_error(e: ImportError) -> ApiError {
         }
         _ => ApiError::bad_request("invalid_rig", e.to_string()),
     }
+}
+
+/// Prepares `rig` for the engine after charging what that adds (the CPU layout and, on a GPU,
+/// the upload's staging copies, or the stored record, whichever is larger) to `budget`.
+pub(super) fn prepare_charged(
+    engine: &crate::engine::Engine,
+    budget: &Budget,
+    rig: Arc<Rig>,
+    gpu: bool,
+) -> Result<
+    (
+        Arc<Rig>,
+        crate::engine::PreparedRig,
+        crowdmorph_proto::Quantization,
+    ),
+    ApiError,
+> {
+    let cost = RigShape::of(&rig).cost(gpu);
+    budget
+        .charge(cost.layout + cost.transient, || {
+            format!("preparing a rig of {} vertices", rig.vertex_count())
+        })
+        .map_err(|e| budget_error(e, "rig_too_large"))?;
+    let prepared = engine.prepare(rig.clone()).map_err(|e| {
+        ApiError::new(
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "cannot_prepare",
+            e.to_string(),
+        )
+    })?;
+    let qbox = quantization_box(&rig);
+    Ok((rig, prepared, qbox))
 }
 
 pub(super) async fn blocking<T: Send + 'static>(
@@ -415,27 +512,59 @@ pub(super) async fn upload_rig(
             ),
         ));
     }
-    let bytes = state.upload_body(&headers, body).await?;
+    let rig_types = "model/gltf-binary (a GLB), model/gltf+json (a glTF with embedded buffers) \
+                     or application/octet-stream";
+    let ct = checked_content_type(&headers, rig_types)?;
+    if ![
+        "model/gltf-binary",
+        "model/gltf+json",
+        "application/octet-stream",
+        CONTENT_TYPE_JSON,
+    ]
+    .contains(&ct.as_str())
+    {
+        return Err(ApiError::new(
+            StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            "unsupported_media_type",
+            format!("a rig upload is {rig_types}, not {ct:?}"),
+        ));
+    }
+    // One of two upload slots before the body is read: each upload may hold up to
+    // `--max-upload-memory`, its body included.
     let _slot = state.uploads.acquire().await.map_err(ApiError::internal)?;
+    let budget = state.op_budget();
+    let bytes = state.upload_body(&headers, body, &budget).await?;
     let options = ImportOptions {
         base_dir: None,
         name: query.name.clone(),
-        max_decoded_bytes: state.config.max_decoded_bytes,
+        budget: Some(budget.clone()),
         ..ImportOptions::default()
     };
     let engine = state.engine.clone();
+    let gpu = state.on_gpu();
+    let b = budget.clone();
     let (rig, prepared, qbox) = blocking(move || {
-        let rig = crate::import::gltf::rig_from_slice(&bytes, &options).map_err(import_error)?;
-        let rig = Arc::new(rig);
-        let prepared = engine.prepare(rig.clone()).map_err(|e| {
-            ApiError::new(
-                StatusCode::UNPROCESSABLE_ENTITY,
-                "cannot_prepare",
-                e.to_string(),
+        let import = GltfImport::open(&bytes, &options).map_err(import_error)?;
+        // Everything the upload will hold, from the headers, before any decoding: the rig's
+        // arrays (every target counted dense), the largest transient decode, the engine's
+        // layouts and the stored record.
+        let estimate = import.shape().cost(gpu);
+        let need = b.used() + import.import_bytes() + estimate.layout + estimate.transient;
+        let shape = import.shape();
+        b.reserve(need, || {
+            format!(
+                "a rig of {} vertices, {} targets and {} clip table cells",
+                shape.vertices(),
+                shape.targets,
+                shape.clip_cells
             )
-        })?;
-        let qbox = quantization_box(&rig);
-        Ok((rig, prepared, qbox))
+        })
+        .map_err(|e| budget_error(e, "rig_too_large"))?;
+        let rig = import.build(&options).map_err(import_error)?;
+        drop(bytes);
+        check_output_range(&rig).map_err(|m| ApiError::bad_request("invalid_rig", m))?;
+        let rig = Arc::new(rig);
+        prepare_charged(&engine, &b, rig, gpu)
     })
     .await?;
     let id = query.name.unwrap_or_else(|| sanitize_id(&rig.name));
@@ -451,6 +580,7 @@ pub(super) async fn upload_rig(
     }
     // On disk before it is visible: a crash after this point loses nothing acknowledged.
     state.persist(&id, rig.clone(), None).await?;
+    let charge = budget.keep(prepared.memory().host_bytes as u64);
     let entry = Arc::new(RigEntry {
         id: id.clone(),
         builtin: false,
@@ -459,8 +589,11 @@ pub(super) async fn upload_rig(
         qbox,
         generation: state.registry.generation(),
         prepared,
+        charge: std::sync::Mutex::new(charge),
     });
     state.registry.insert(entry.clone());
+    drop(budget);
+    crate::budget::return_freed_memory();
     tracing::info!(rig = %id, vertices = entry.vertices, targets = rig.targets.len(), "rig registered");
     state.start_auto_lod(&entry);
     respond(&headers, StatusCode::CREATED, &state.rig_info(&entry))
@@ -515,6 +648,10 @@ pub(super) async fn delete_rig(
     }
     state.lod_jobs.cancel(&id);
     state.registry.remove(&id);
+    drop(entry);
+    // The rig's memory is freed when the last request using it is done; hand what is free
+    // now back to the OS, so that deleting a large rig lowers the resident size.
+    crate::budget::return_freed_memory();
     tracing::info!(rig = %id, "rig deleted");
     Ok(StatusCode::NO_CONTENT.into_response())
 }
@@ -609,39 +746,52 @@ pub(super) async fn upload_clips(
             format!("fps {fps} must be in (0, 1000]"),
         ));
     }
-    let bytes = state.upload_body(&headers, body).await?;
     state.rig(&id)?;
-    let source = clip_source(&content_type(&headers), &bytes);
+    let ct = checked_content_type(&headers, "text/csv, application/json or model/gltf-binary")?;
+    let _slot = state.uploads.acquire().await.map_err(ApiError::internal)?;
+    let budget = state.op_budget();
+    let bytes = state.upload_body(&headers, body, &budget).await?;
+    let source = clip_source(&ct, &bytes);
     if !matches!(source, ClipSource::Gltf) && query.name.is_none() {
         return Err(ApiError::bad_request(
             "missing_name",
             "CSV and JSON clips need a name: POST /v1/rigs/{id}/clips?name=NAME",
         ));
     }
-    let _admin = state.admin.lock().await;
-    // Re-read under the lock: another change may have landed since.
-    let entry = state.rig(&id)?;
+    // Clips are imported against a snapshot, outside the lock that serializes rig changes:
+    // they depend only on the rig's target names, which no change of the same rig alters.
+    let base = state.rig(&id)?;
     let options = ClipOptions {
         fps: query.fps.unwrap_or(crate::rig::DEFAULT_FPS),
         ignore_unknown: query.ignore_unknown,
+        budget: Some(budget.clone()),
     };
-    let engine = state.engine.clone();
     let name = query.name.clone();
-    let base = entry.clone();
-    let (rig, prepared, qbox, added, ignored) = blocking(move || {
-        let rig = base.rig();
-        let imports: Vec<ClipImport> = match source {
+    let snapshot = base.clone();
+    let imports = blocking(move || {
+        let rig = snapshot.rig();
+        let mut imports: Vec<ClipImport> = match source {
             ClipSource::Csv => vec![
-                crate::import::clip_from_csv(rig, name.as_deref().unwrap_or("clip"), &bytes, &options)
-                    .map_err(import_error)?,
+                crate::import::clip_from_csv(
+                    rig,
+                    name.as_deref().unwrap_or("clip"),
+                    &bytes,
+                    &options,
+                )
+                .map_err(clip_import_error)?,
             ],
             ClipSource::Json => vec![
-                crate::import::clip_from_json(rig, name.as_deref().unwrap_or("clip"), &bytes, &options)
-                    .map_err(import_error)?,
+                crate::import::clip_from_json(
+                    rig,
+                    name.as_deref().unwrap_or("clip"),
+                    &bytes,
+                    &options,
+                )
+                .map_err(clip_import_error)?,
             ],
             ClipSource::Gltf => {
                 let mut v = crate::import::clips_from_gltf(rig, &bytes, &options)
-                    .map_err(import_error)?;
+                    .map_err(clip_import_error)?;
                 let single = v.len() == 1;
                 for c in &mut v {
                     c.clip.name = match (&name, single) {
@@ -653,9 +803,34 @@ pub(super) async fn upload_clips(
                 v
             }
         };
-        let mut new = rig.clone();
+        // Weights big enough to overflow the output are refused with the clip, not later.
+        let mut probe = rig.clone();
+        probe.clips.extend(imports.iter().map(|i| i.clip.clone()));
+        check_output_range(&probe).map_err(|m| ApiError::bad_request("invalid_clip", m))?;
+        imports.shrink_to_fit();
+        Ok(imports)
+    })
+    .await?;
+    let _admin = state.admin.lock().await;
+    // Re-read under the lock: another change may have landed since. It must still be the
+    // same rig (not deleted and uploaded again with other targets).
+    let entry = state.rig(&id)?;
+    if !Arc::ptr_eq(&entry.rig().primitives, &base.rig().primitives)
+        || entry.rig().targets != base.rig().targets
+    {
+        return Err(ApiError::new(
+            StatusCode::CONFLICT,
+            "rig_changed",
+            format!("rig {id:?} was replaced while its clips were imported; upload them again"),
+        ));
+    }
+    let engine = state.engine.clone();
+    let current = entry.clone();
+    let (rig, prepared, qbox, added, ignored, table_bytes) = blocking(move || {
+        let mut new = current.rig().clone();
         let mut ignored: Vec<String> = Vec::new();
         let mut added = Vec::new();
+        let mut table_bytes = 0u64;
         for imp in imports {
             if new.clip_index(&imp.clip.name).is_some() {
                 return Err(ApiError::new(
@@ -663,7 +838,7 @@ pub(super) async fn upload_clips(
                     "clip_exists",
                     format!(
                         "rig {:?} has a clip {:?} already; DELETE it first or choose another ?name=",
-                        base.id, imp.clip.name
+                        current.id, imp.clip.name
                     ),
                 ));
             }
@@ -677,16 +852,18 @@ pub(super) async fn upload_clips(
                 frames: imp.clip.frames,
                 fps: imp.clip.fps,
             });
+            table_bytes += imp.clip.weights.len() as u64 * 4;
             new.clips.push(imp.clip);
         }
         new.validate()
             .map_err(|e| ApiError::bad_request("invalid_clip", e.to_string()))?;
+        check_output_range(&new).map_err(|m| ApiError::bad_request("invalid_clip", m))?;
         let new = Arc::new(new);
         let prepared = engine
-            .update_clips(&base.prepared, new.clone())
+            .update_clips(&current.prepared, new.clone())
             .map_err(|e| ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, "cannot_prepare", e.to_string()))?;
         let qbox = quantization_box(&new);
-        Ok((new, prepared, qbox, added, ignored))
+        Ok((new, prepared, qbox, added, ignored, table_bytes))
     })
     .await?;
     state
@@ -696,6 +873,10 @@ pub(super) async fn upload_clips(
             entry.builtin.then_some(entry.builtin_clips),
         )
         .await?;
+    // The new generation holds the old one's charge plus the new tables.
+    let mut charge = entry.take_charge();
+    charge.absorb(budget.keep(table_bytes));
+    charge.set(prepared.memory().host_bytes as u64);
     state.registry.insert(Arc::new(RigEntry {
         id: id.clone(),
         builtin: entry.builtin,
@@ -704,7 +885,10 @@ pub(super) async fn upload_clips(
         qbox,
         generation: state.registry.generation(),
         prepared,
+        charge: std::sync::Mutex::new(charge),
     }));
+    drop(budget);
+    crate::budget::return_freed_memory();
     tracing::info!(rig = %id, clips = added.len(), ignored = ignored.len(), "clips added");
     respond(
         &headers,
@@ -784,6 +968,8 @@ pub(super) async fn delete_clip(
     state
         .persist(&id, rig, entry.builtin.then_some(entry.builtin_clips))
         .await?;
+    let mut charge = entry.take_charge();
+    charge.set(prepared.memory().host_bytes as u64);
     state.registry.insert(Arc::new(RigEntry {
         id: id.clone(),
         builtin: entry.builtin,
@@ -792,13 +978,46 @@ pub(super) async fn delete_clip(
         qbox,
         generation: state.registry.generation(),
         prepared,
+        charge: std::sync::Mutex::new(charge),
     }));
+    crate::budget::return_freed_memory();
     tracing::info!(rig = %id, clip = %clip, "clip deleted");
     Ok(StatusCode::NO_CONTENT.into_response())
 }
 
 // ---------------------------------------------------------------------------------------------
 // Crowd frames.
+
+impl AppState {
+    /// Takes `bytes` of the queue memory (output held by admitted crowd requests, and
+    /// request bodies being decoded); 503 when it is full.
+    fn reserve_queue_memory(&self, bytes: u64) -> Result<OwnedSemaphorePermit, ApiError> {
+        let units = bytes.div_ceil(1024).clamp(1, u64::from(self.memory_units)) as u32;
+        self.memory
+            .clone()
+            .try_acquire_many_owned(units)
+            .map_err(|_| {
+                self.metrics.reject("queue_memory");
+                ApiError::unavailable(
+                    "queue_full",
+                    "the server is holding as much output as it may; retry shortly",
+                    1,
+                )
+            })
+    }
+}
+
+/// Largest coordinate (in absolute value) a rig's positions can reach, from its q16 box.
+fn head_reach(entry: &RigEntry) -> f64 {
+    let q = &entry.qbox;
+    (0..3)
+        .map(|a| {
+            let lo = f64::from(q.min[a]);
+            let hi = lo + f64::from(q.step[a]) * 65535.0;
+            lo.abs().max(hi.abs())
+        })
+        .fold(0.0, f64::max)
+}
 
 /// Keeps the admitted memory permit alive as long as the response body is being sent.
 struct PermitBytes {
@@ -865,9 +1084,24 @@ pub(super) async fn crowd_frame(
 ) -> ApiResult {
     let arrived = Instant::now();
     state.check_ready()?;
+    // The body and what it decodes to are charged to the queue memory before they are read:
+    // a head takes 72 bytes decoded, from at least 5 bytes of bincode or 40 of JSON.
+    let declared = headers
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.parse::<u64>().ok())
+        .unwrap_or(state.config.max_request_bytes as u64)
+        .min(state.config.max_request_bytes as u64);
+    let expansion = if content_type(&headers) == CONTENT_TYPE_BINCODE {
+        16
+    } else {
+        3
+    };
+    let decoding = state.reserve_queue_memory(declared * expansion)?;
     let bytes = state.request_body(&headers, body).await?;
     let req: CrowdFrameRequest = decode(&headers, &bytes)?;
     drop(bytes);
+    drop(decoding);
     let n_heads = req.heads.len();
     if n_heads > state.config.max_heads {
         return Err(ApiError::bad_request(
@@ -907,6 +1141,19 @@ pub(super) async fn crowd_frame(
         };
         let entry = &rigs[ri as usize];
         let rig = entry.rig();
+        if format == Format::F16 && head_reach(entry) > super::registry::MAX_F16 {
+            return Err(ApiError::bad_request(
+                "format_overflow",
+                format!(
+                    "head {h} (id {}): rig {:?} reaches coordinates of {:e}, past the largest \
+                     f16 ({}); ask for f32 or q16",
+                    head.head,
+                    entry.id,
+                    head_reach(entry),
+                    super::registry::MAX_F16
+                ),
+            ));
+        }
         let ci = match clip_at.get(&(ri, head.clip.as_str())) {
             Some(&c) => c,
             None => {
@@ -981,23 +1228,13 @@ pub(super) async fn crowd_frame(
             "response_too_large",
             format!(
                 "the response would hold {out_bytes} bytes of vertex data, more than the server's \
-                 queue memory of {} bytes; ask for fewer unique heads or a smaller format",
+                 queue memory of {} bytes (--queue-memory-bytes); ask for fewer unique heads or a \
+                 smaller format",
                 u64::from(state.memory_units) * 1024
             ),
         ));
     }
-    let permit = state
-        .memory
-        .clone()
-        .try_acquire_many_owned(units as u32)
-        .map_err(|_| {
-            state.metrics.reject("queue_memory");
-            ApiError::unavailable(
-                "queue_full",
-                "the server is holding as much output as it may; retry shortly",
-                1,
-            )
-        })?;
+    let permit = state.reserve_queue_memory(out_bytes)?;
     state
         .metrics
         .jobs_requested

@@ -20,8 +20,14 @@ pub struct ServerConfig {
     pub max_request_bytes: usize,
     /// Most heads in one crowd request.
     pub max_heads: usize,
-    /// Most bytes the decoded arrays of one glTF upload may occupy (bounds glTF bombs).
-    pub max_decoded_bytes: usize,
+    /// Most host memory one upload (rig or clips) or LOD build may hold at once: what its
+    /// file's headers say it will cost (decoded arrays, baked clip tables, engine layouts,
+    /// the stored record) is checked against this before any work, then every allocation is
+    /// charged as it happens. Past it, 413 (`--max-upload-memory`).
+    pub max_upload_memory: u64,
+    /// Most host memory all rigs together may hold, with the uploads and LOD builds in
+    /// progress; work that would go past it gets 503 (`--max-rig-memory`).
+    pub max_rig_memory: u64,
     /// Most crowd requests waiting for the batcher at once; more get 503.
     pub queue_requests: usize,
     /// Most output bytes that admitted crowd requests may hold at once (queued, computing or
@@ -55,7 +61,8 @@ impl Default for ServerConfig {
             max_upload_bytes: 256 << 20,
             max_request_bytes: 16 << 20,
             max_heads: 100_000,
-            max_decoded_bytes: 2 << 30,
+            max_upload_memory: 1 << 30,
+            max_rig_memory: default_rig_memory(),
             queue_requests: 1024,
             queue_memory_bytes: 2 << 30,
             batch_cost: 200_000_000,
@@ -75,4 +82,17 @@ pub fn default_data_dir() -> PathBuf {
     dirs::data_dir()
         .map(|d| d.join("crowdmorph"))
         .unwrap_or_else(|| PathBuf::from("crowdmorph-data"))
+}
+
+/// The default of [`ServerConfig::max_rig_memory`]: half the machine's memory (from
+/// `/proc/meminfo`), else 8 GiB.
+pub fn default_rig_memory() -> u64 {
+    std::fs::read_to_string("/proc/meminfo")
+        .ok()
+        .and_then(|m| {
+            m.lines()
+                .find_map(|l| l.strip_prefix("MemTotal:"))
+                .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
+        })
+        .map_or(8 << 30, |kib| kib * 1024 / 2)
 }

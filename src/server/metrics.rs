@@ -108,6 +108,11 @@ pub struct Metrics {
     pub batches_pipelined: AtomicU64,
     /// GPU time, nanoseconds.
     pub gpu_ns: AtomicU64,
+    /// LOD builds computing now (background jobs and PUTs).
+    pub lod_builds_running: AtomicU64,
+    /// LOD builds that stopped early because they were cancelled (a newer PUT, a delete,
+    /// shutdown, or the server state being dropped).
+    pub lod_builds_cancelled: AtomicU64,
     /// Crowd requests refused by reason (`queue_full`, `deadline`, ...).
     rejected: Mutex<BTreeMap<&'static str, u64>>,
     /// Crowd requests waiting in or being served by the batcher.
@@ -133,6 +138,8 @@ impl Default for Metrics {
             dispatches: AtomicU64::new(0),
             batches_pipelined: AtomicU64::new(0),
             gpu_ns: AtomicU64::new(0),
+            lod_builds_running: AtomicU64::new(0),
+            lod_builds_cancelled: AtomicU64::new(0),
             rejected: Mutex::new(BTreeMap::new()),
             queue_depth: AtomicU64::new(0),
             rate: Mutex::new(RateWindow {
@@ -157,6 +164,10 @@ pub struct Gauges {
     pub queue_memory_bytes: u64,
     /// The limit on that.
     pub queue_memory_limit: u64,
+    /// Bytes the memory pool holds: resident rigs plus uploads and LOD builds in progress.
+    pub rig_memory_bytes: u64,
+    /// The pool's size (`--max-rig-memory`).
+    pub rig_memory_limit: u64,
     /// 1 when the engine runs degraded (GPU lost).
     pub degraded: bool,
     /// 1 while stored rigs are loading.
@@ -295,6 +306,18 @@ impl Metrics {
             "Batches submitted to the GPU while an earlier batch was still computing.",
             load(&self.batches_pipelined),
         );
+        c(
+            &mut o,
+            "crowdmorph_lod_builds_cancelled_total",
+            "LOD builds stopped early by a newer PUT, a delete or shutdown.",
+            load(&self.lod_builds_cancelled),
+        );
+        gauge(
+            &mut o,
+            "crowdmorph_lod_builds_running",
+            "LOD builds computing now.",
+            load(&self.lod_builds_running) as f64,
+        );
         let _ = writeln!(
             o,
             "# HELP crowdmorph_gpu_seconds_total GPU time of evaluations.\n\
@@ -355,6 +378,18 @@ impl Metrics {
             "crowdmorph_rig_device_bytes",
             "Device bytes resident for rigs.",
             g.device_bytes as f64,
+        );
+        gauge(
+            &mut o,
+            "crowdmorph_rig_memory_bytes",
+            "Host bytes charged to the rig memory pool: resident rigs, uploads and LOD builds in progress.",
+            g.rig_memory_bytes as f64,
+        );
+        gauge(
+            &mut o,
+            "crowdmorph_rig_memory_limit_bytes",
+            "Size of the rig memory pool (--max-rig-memory).",
+            g.rig_memory_limit as f64,
         );
         gauge(
             &mut o,

@@ -48,7 +48,9 @@ use tower_http::trace::TraceLayer;
 pub use config::{ServerConfig, default_data_dir};
 pub use error::ApiError;
 
+use crate::budget::{Budget, MemoryPool};
 use crate::engine::{Engine, EngineError};
+use crate::rig::RigShape;
 use crate::store::{Record, Store, StoreError, geometry_fingerprint};
 use metrics::{Gauges, Metrics};
 use registry::{BUILTIN_ID, Registry, RigEntry, quantization_box};
@@ -92,17 +94,29 @@ pub struct Inner {
     skipped: Mutex<Vec<String>>,
     /// Serializes rig and clip changes (and their writes to disk).
     admin: tokio::sync::Mutex<()>,
+    /// Host memory of rigs and of the work that makes them (`--max-rig-memory`).
+    pub pool: Arc<MemoryPool>,
     /// Output memory admitted crowd requests hold, in KiB permits.
     memory: Arc<Semaphore>,
     memory_units: u32,
-    /// Imports run at most two at a time: each may use up to `max_decoded_bytes`.
+    /// Imports run at most two at a time (each may hold up to `max_upload_memory`); the
+    /// permit is taken before the body is read.
     uploads: Semaphore,
     /// Requests being handled; past `max_concurrency` new ones are shed.
     inflight: Arc<Semaphore>,
     /// Background LOD computations by rig id.
     lod_jobs: lod::LodJobs,
     /// LOD builds run at most two at a time: each keeps the rayon pool busy for seconds.
-    lod_builds: Semaphore,
+    lod_builds: Arc<Semaphore>,
+}
+
+impl Drop for Inner {
+    /// The state's owner is gone (the server stopped, a test ended): LOD builds still
+    /// computing for it are cancelled rather than left running on the blocking pool, which
+    /// would also hold up the runtime's shutdown.
+    fn drop(&mut self) {
+        self.lod_jobs.cancel_all();
+    }
 }
 
 impl std::ops::Deref for AppState {
@@ -144,8 +158,12 @@ impl AppState {
             .unwrap_or(u32::MAX)
             .min(Semaphore::MAX_PERMITS as u32);
         let registry = Registry::default();
+        let pool = MemoryPool::new(config.max_rig_memory, "--max-rig-memory");
         let builtin = Arc::new(crate::embedded::default_rig());
         let prepared = engine.prepare(builtin.clone())?;
+        // The built-in rig is always there: its memory is taken from the pool unconditionally.
+        let charge =
+            Budget::new(u64::MAX, "", Some(pool.clone())).keep(prepared.memory().host_bytes as u64);
         registry.insert(Arc::new(RigEntry {
             id: BUILTIN_ID.to_string(),
             builtin: true,
@@ -154,6 +172,7 @@ impl AppState {
             qbox: quantization_box(&builtin),
             generation: registry.generation(),
             prepared,
+            charge: Mutex::new(charge),
         }));
         Ok(AppState(Arc::new(Inner {
             config,
@@ -166,6 +185,7 @@ impl AppState {
             load_started: AtomicBool::new(false),
             skipped: Mutex::new(Vec::new()),
             admin: tokio::sync::Mutex::new(()),
+            pool,
             memory: Arc::new(Semaphore::new(memory_units as usize)),
             memory_units,
             uploads: Semaphore::new(2),
@@ -173,7 +193,7 @@ impl AppState {
                 config_concurrency.clamp(1, Semaphore::MAX_PERMITS),
             )),
             lod_jobs: lod::LodJobs::default(),
-            lod_builds: Semaphore::new(2),
+            lod_builds: Arc::new(Semaphore::new(2)),
         })))
     }
 
@@ -214,84 +234,137 @@ impl AppState {
         }
     }
 
+    /// A budget for one upload, clip import or LOD build: `--max-upload-memory`, drawing
+    /// from the pool.
+    pub(crate) fn op_budget(&self) -> Arc<Budget> {
+        Arc::new(Budget::new(
+            self.config.max_upload_memory,
+            "--max-upload-memory",
+            Some(self.pool.clone()),
+        ))
+    }
+
+    /// Whether the engine keeps rigs on a GPU (their layouts are then uploaded too).
+    pub(crate) fn on_gpu(&self) -> bool {
+        self.engine.info().kind == crate::engine::BackendKind::Gpu
+    }
+
+    /// Loads the stored records one at a time, each charged to the memory pool before it is
+    /// read (about twice its file: the bytes read and the rig decoded from them) and then
+    /// holding what its prepared rig occupies. A record that does not fit is skipped and
+    /// reported, never deleted.
     fn load_blocking(&self) -> Result<usize, StoreError> {
         let Some(store) = &self.store else {
             return Ok(0);
         };
-        let loaded = store.load_all()?;
-        for s in loaded.skipped {
-            self.skip(s);
-        }
         let mut n = 0;
-        for record in loaded.records {
-            match record {
-                Record::Rig(r) => {
-                    let r = *r;
-                    if self.registry.get(&r.id).is_some() {
-                        self.skip(format!("stored rig {:?} clashes with a built-in id", r.id));
-                        continue;
-                    }
-                    let rig = Arc::new(r.rig);
-                    match self.engine.prepare(rig.clone()) {
-                        Ok(prepared) => {
-                            self.registry.insert(Arc::new(RigEntry {
-                                id: r.id,
-                                builtin: false,
-                                builtin_clips: 0,
-                                vertices: rig.vertex_count(),
-                                qbox: quantization_box(&rig),
-                                generation: self.registry.generation(),
-                                prepared,
-                            }));
-                            n += 1;
-                        }
-                        Err(e) => self.skip(format!("stored rig {:?}: {e}", r.id)),
-                    }
+        for (path, size) in store.record_files()? {
+            let budget = Arc::new(Budget::new(
+                self.pool.limit(),
+                "--max-rig-memory",
+                Some(self.pool.clone()),
+            ));
+            let file = path.display().to_string();
+            if let Err(e) = budget.reserve(2 * size, || format!("stored record {file}")) {
+                tracing::error!(error = %e, "skipping a stored rig that does not fit in memory");
+                self.skip(e.to_string());
+                continue;
+            }
+            let record = match Store::read(&path) {
+                Ok(r) => r,
+                Err(e) => {
+                    tracing::error!(error = %e, "skipping a stored rig that cannot be loaded");
+                    self.skip(e.to_string());
+                    continue;
                 }
-                Record::Builtin(c) => {
-                    let Some(entry) = self.registry.get(&c.id).filter(|e| e.builtin) else {
-                        self.skip(format!("stored clips for unknown built-in rig {:?}", c.id));
-                        continue;
-                    };
-                    let mut rig = entry.rig().clone();
-                    rig.clips.extend(c.clips);
-                    let mut lod_changed = false;
-                    if let Some((lod, geometry)) = c.lod {
-                        if geometry == geometry_fingerprint(&rig) {
-                            lod_changed = lod != rig.lod;
-                            rig.lod = lod;
-                        } else {
-                            // This build's built-in rig is not the one the LOD was made for;
-                            // the clips still apply, and the background job makes a new LOD.
-                            tracing::warn!(rig = %c.id, "stored LOD is for another version of the built-in rig; recomputing it");
-                        }
-                    }
-                    if let Err(e) = rig.validate() {
-                        self.skip(format!("stored clips and LOD of {:?}: {e}", c.id));
-                        continue;
-                    }
-                    let rig = Arc::new(rig);
-                    let prepared = if lod_changed {
-                        self.engine.prepare(rig.clone())
-                    } else {
-                        self.engine.update_clips(&entry.prepared, rig.clone())
-                    };
-                    match prepared {
-                        Ok(prepared) => self.registry.insert(Arc::new(RigEntry {
-                            id: entry.id.clone(),
-                            builtin: true,
-                            builtin_clips: entry.builtin_clips,
-                            vertices: entry.vertices,
-                            qbox: quantization_box(&rig),
-                            generation: self.registry.generation(),
-                            prepared,
-                        })),
-                        Err(e) => self.skip(format!("stored clips and LOD of {:?}: {e}", c.id)),
-                    }
-                }
+            };
+            match self.load_record(record, &budget) {
+                Ok(true) => n += 1,
+                Ok(false) => {}
+                Err(why) => self.skip(why),
             }
         }
         Ok(n)
+    }
+
+    /// Registers one stored record; `Ok(true)` for an uploaded rig, `Ok(false)` for the
+    /// built-in rig's clips and LOD.
+    fn load_record(&self, record: Record, budget: &Budget) -> Result<bool, String> {
+        let cost = |rig: &crate::rig::Rig| {
+            let c = RigShape::of(rig).cost(self.on_gpu());
+            budget
+                .charge(c.layout + c.transient, || {
+                    format!("preparing stored rig {:?}", rig.name)
+                })
+                .map_err(|e| e.to_string())
+        };
+        match record {
+            Record::Rig(r) => {
+                let r = *r;
+                if self.registry.get(&r.id).is_some() {
+                    return Err(format!("stored rig {:?} clashes with a built-in id", r.id));
+                }
+                let rig = Arc::new(r.rig);
+                cost(&rig)?;
+                let prepared = self
+                    .engine
+                    .prepare(rig.clone())
+                    .map_err(|e| format!("stored rig {:?}: {e}", r.id))?;
+                let charge = budget.keep(prepared.memory().host_bytes as u64);
+                self.registry.insert(Arc::new(RigEntry {
+                    id: r.id,
+                    builtin: false,
+                    builtin_clips: 0,
+                    vertices: rig.vertex_count(),
+                    qbox: quantization_box(&rig),
+                    generation: self.registry.generation(),
+                    prepared,
+                    charge: Mutex::new(charge),
+                }));
+                Ok(true)
+            }
+            Record::Builtin(c) => {
+                let Some(entry) = self.registry.get(&c.id).filter(|e| e.builtin) else {
+                    return Err(format!("stored clips for unknown built-in rig {:?}", c.id));
+                };
+                let mut rig = entry.rig().clone();
+                rig.clips.extend(c.clips);
+                let mut lod_changed = false;
+                if let Some((lod, geometry)) = c.lod {
+                    if geometry == geometry_fingerprint(&rig) {
+                        lod_changed = lod != rig.lod;
+                        rig.lod = lod;
+                    } else {
+                        // This build's built-in rig is not the one the LOD was made for;
+                        // the clips still apply, and the background job makes a new LOD.
+                        tracing::warn!(rig = %c.id, "stored LOD is for another version of the built-in rig; recomputing it");
+                    }
+                }
+                rig.validate()
+                    .map_err(|e| format!("stored clips and LOD of {:?}: {e}", c.id))?;
+                let rig = Arc::new(rig);
+                cost(&rig)?;
+                let prepared = if lod_changed {
+                    self.engine.prepare(rig.clone())
+                } else {
+                    self.engine.update_clips(&entry.prepared, rig.clone())
+                }
+                .map_err(|e| format!("stored clips and LOD of {:?}: {e}", c.id))?;
+                let mut charge = entry.take_charge();
+                charge.set(prepared.memory().host_bytes as u64);
+                self.registry.insert(Arc::new(RigEntry {
+                    id: entry.id.clone(),
+                    builtin: true,
+                    builtin_clips: entry.builtin_clips,
+                    vertices: entry.vertices,
+                    qbox: quantization_box(&rig),
+                    generation: self.registry.generation(),
+                    prepared,
+                    charge: Mutex::new(charge),
+                }));
+                Ok(false)
+            }
+        }
     }
 
     /// Whether stored rigs have been loaded.
@@ -318,6 +391,8 @@ impl AppState {
             device_bytes: device,
             queue_memory_bytes: (u64::from(self.memory_units).saturating_sub(free)) * 1024,
             queue_memory_limit: u64::from(self.memory_units) * 1024,
+            rig_memory_bytes: self.pool.used(),
+            rig_memory_limit: self.pool.limit(),
             degraded: self.engine.info().degraded,
             loading: !self.is_ready(),
         }

@@ -8,7 +8,7 @@
 
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, RwLock};
+use std::sync::{Arc, Mutex, RwLock};
 
 use crowdmorph_proto::{
     Aabb, Blob, ClipInfo, LodInfo, LodLevelInfo, Memory, MeshPrimitive, MeshResponse,
@@ -16,6 +16,7 @@ use crowdmorph_proto::{
 };
 use glam::DVec3;
 
+use crate::budget::Charge;
 use crate::engine::PreparedRig;
 use crate::rig::{ACTIVE_WEIGHT_EPSILON, Rig};
 
@@ -39,12 +40,26 @@ pub struct RigEntry {
     pub qbox: Quantization,
     /// Vertices over all primitives.
     pub vertices: usize,
+    /// The rig's bytes in the server's memory pool. A new generation takes it over from the
+    /// one it replaces (they share most of their memory); it is given back when the last
+    /// generation of a deleted rig is dropped.
+    pub charge: Mutex<Charge>,
 }
 
 impl RigEntry {
     /// The rig.
     pub fn rig(&self) -> &Rig {
         self.prepared.rig()
+    }
+
+    /// Moves this generation's memory charge out, for the generation that replaces it.
+    pub fn take_charge(&self) -> Charge {
+        self.charge.lock().map(|mut c| c.take()).unwrap_or_default()
+    }
+
+    /// Bytes charged to the pool for this rig.
+    pub fn charged(&self) -> u64 {
+        self.charge.lock().map(|c| c.bytes()).unwrap_or(0)
     }
 
     /// What the API reports about this rig.
@@ -179,14 +194,17 @@ pub fn clip_infos(rig: &Rig) -> Vec<ClipInfo> {
         .collect()
 }
 
-/// The box that contains every position any clip of `rig` can produce at any LOD.
-///
-/// Per target, the weights a job can apply lie in `[min(0, w_min), max(0, w_max)]` over all
-/// clip frames (0 because a LOD or the activity threshold can switch the target off); a
-/// vertex then moves at most by the sum over targets of the extreme weight times its delta, per
-/// component. The union of those per-vertex intervals is the box, so quantizing in it never
-/// clamps. Computed in f64 and widened by a relative 1e-6 to absorb f32 rounding.
-pub fn quantization_box(rig: &Rig) -> Quantization {
+/// Largest coordinate a rig may reach, in rig units. Past it, f32 blending, recomputed
+/// normals (products of coordinate differences, summed over a vertex's faces) or a q16 box
+/// could overflow to infinity; no real mesh comes near (it is a billion kilometres in metres).
+pub const MAX_COORDINATE: f64 = 1e15;
+
+/// Largest coordinate f16 output can carry (the largest finite binary16).
+pub const MAX_F16: f64 = 65504.0;
+
+/// The corners of the box every position any clip of `rig` can produce at any LOD lies in
+/// (f64, unwidened); see [`quantization_box`].
+pub fn reachable_box(rig: &Rig) -> (DVec3, DVec3) {
     let n = rig.targets.len();
     let mut lo = vec![0f64; n];
     let mut hi = vec![0f64; n];
@@ -226,6 +244,33 @@ pub fn quantization_box(rig: &Rig) -> Quantization {
         bmin = DVec3::ZERO;
         bmax = DVec3::ZERO;
     }
+    (bmin, bmax)
+}
+
+/// Refuses a rig (or a rig with new clips) whose reachable positions exceed
+/// [`MAX_COORDINATE`], naming how far they reach.
+pub fn check_output_range(rig: &Rig) -> Result<(), String> {
+    let (bmin, bmax) = reachable_box(rig);
+    let reach = bmin.abs().max(bmax.abs()).max_element();
+    if reach.is_finite() && reach <= MAX_COORDINATE {
+        Ok(())
+    } else {
+        Err(format!(
+            "positions (with every clip's weights) reach {reach:e}, past the limit of {MAX_COORDINATE:e}: \
+             blending, normals and q16 output would overflow f32"
+        ))
+    }
+}
+
+/// The box that contains every position any clip of `rig` can produce at any LOD.
+///
+/// Per target, the weights a job can apply lie in `[min(0, w_min), max(0, w_max)]` over all
+/// clip frames (0 because a LOD or the activity threshold can switch the target off); a
+/// vertex then moves at most by the sum over targets of the extreme weight times its delta, per
+/// component. The union of those per-vertex intervals is the box, so quantizing in it never
+/// clamps. Computed in f64 and widened by a relative 1e-6 to absorb f32 rounding.
+pub fn quantization_box(rig: &Rig) -> Quantization {
+    let (bmin, bmax) = reachable_box(rig);
     let margin = (bmax - bmin).length().max(1e-30) * 1e-6;
     let bmin = bmin - DVec3::splat(margin);
     let bmax = bmax + DVec3::splat(margin);

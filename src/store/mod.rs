@@ -317,13 +317,13 @@ impl Store {
             ),
         };
         let payload = payload.map_err(|e| StoreError::Encode(e.to_string()))?;
-        let mut bytes = Vec::with_capacity(HEADER + payload.len());
-        bytes.extend_from_slice(MAGIC);
-        bytes.extend_from_slice(&kind.to_le_bytes());
-        bytes.extend_from_slice(&(payload.len() as u64).to_le_bytes());
-        bytes.extend_from_slice(&crc32fast::hash(&payload).to_le_bytes());
-        bytes.extend_from_slice(&payload);
-        drop(payload);
+        // The header is written before the payload, not copied in front of it: a record can
+        // be as large as the rig, and a second copy would double the peak of every write.
+        let mut header = Vec::with_capacity(HEADER);
+        header.extend_from_slice(MAGIC);
+        header.extend_from_slice(&kind.to_le_bytes());
+        header.extend_from_slice(&(payload.len() as u64).to_le_bytes());
+        header.extend_from_slice(&crc32fast::hash(&payload).to_le_bytes());
 
         let n = self.tmp_counter.fetch_add(1, Ordering::Relaxed);
         let tmp = self
@@ -331,7 +331,8 @@ impl Store {
             .join(format!("{TMP}{}-{n}-{id}.{EXT}", std::process::id()));
         let result = (|| {
             let mut f = File::create(&tmp).map_err(io("create", &tmp))?;
-            f.write_all(&bytes).map_err(io("write", &tmp))?;
+            f.write_all(&header).map_err(io("write", &tmp))?;
+            f.write_all(&payload).map_err(io("write", &tmp))?;
             f.sync_all().map_err(io("fsync", &tmp))?;
             drop(f);
             let path = self.path_of(id);
@@ -444,15 +445,16 @@ impl Store {
         }
     }
 
-    /// Loads every record, deleting stray temporary files (uploads interrupted before their
-    /// rename) and skipping, with a logged reason, every file that is not a valid record.
-    pub fn load_all(&self) -> Result<Loaded, StoreError> {
-        let mut loaded = Loaded::default();
+    /// The record files with their sizes, in name order, after deleting stray temporary
+    /// files (uploads interrupted before their rename). Callers read them one at a time with
+    /// [`Store::read`], so loading never holds more than one record's bytes.
+    pub fn record_files(&self) -> Result<Vec<(PathBuf, u64)>, StoreError> {
         let mut paths: Vec<PathBuf> = fs::read_dir(&self.dir)
             .map_err(io("list", &self.dir))?
             .filter_map(|e| e.ok().map(|e| e.path()))
             .collect();
         paths.sort();
+        let mut files = Vec::new();
         for path in paths {
             let name = path
                 .file_name()
@@ -466,6 +468,17 @@ impl Store {
             if !name.ends_with(&format!(".{EXT}")) {
                 continue;
             }
+            let size = fs::metadata(&path).map(|m| m.len()).unwrap_or(0);
+            files.push((path, size));
+        }
+        Ok(files)
+    }
+
+    /// Loads every record, deleting stray temporary files and skipping, with a logged reason,
+    /// every file that is not a valid record.
+    pub fn load_all(&self) -> Result<Loaded, StoreError> {
+        let mut loaded = Loaded::default();
+        for (path, _) in self.record_files()? {
             match Store::read(&path) {
                 Ok(r) => loaded.records.push(r),
                 Err(e) => {

@@ -233,7 +233,7 @@ async fn ten_million_heads_and_oversized_bodies_are_413() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn gltf_bombs_and_garbage_rigs_are_refused() {
     let server = TestServer::start(ServerConfig {
-        max_decoded_bytes: 8 << 20,
+        max_upload_memory: 8 << 20,
         ..ServerConfig::default()
     })
     .await;
@@ -251,7 +251,8 @@ async fn gltf_bombs_and_garbage_rigs_are_refused() {
     );
     still_serving(s).await;
     // Counts that fit the bytes present but exceed the decode budget.
-    let n = 1 << 18; // 256 Ki vertices × 12 bytes × (positions + 2 targets) > 8 MiB
+    // 128 Ki vertices: a 4.7 MB body (under the 8 MiB budget), a rig of 7 MB more.
+    let n = 1 << 17;
     let positions: Vec<[f32; 3]> = (0..n).map(|i| [i as f32, 0.0, 0.0]).collect();
     let targets = vec![positions.clone(); 2];
     let mut big = crate::util::builder::Builder::new();
@@ -282,5 +283,131 @@ async fn gltf_bombs_and_garbage_rigs_are_refused() {
     // Nothing half-registered.
     let rigs = s.client.rigs().await.unwrap();
     assert_eq!(rigs.rigs.len(), 1);
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bodies_a_web_page_could_send_cross_origin_are_refused() {
+    let server = TestServer::start(ServerConfig {
+        admin_token: Some("s3cret".into()),
+        ..ServerConfig::default()
+    })
+    .await;
+    let s = &server;
+    let frame = serde_json::to_vec(&frame_req(vec![head("default-head", "talk", 3, 0)], true))
+        .expect("json");
+    // The three CORS-safelisted types and no type at all: a page on any origin can send
+    // these without a preflight, so none of them is read as JSON.
+    for ct in [
+        "text/plain",
+        "application/x-www-form-urlencoded",
+        "multipart/form-data",
+    ] {
+        let r = post(s, "/v1/crowd/frame", ct, frame.clone()).await;
+        expect(s, r, 415, "unsupported_media_type", ct).await;
+    }
+    let r = s
+        .client
+        .send(
+            Method::POST,
+            "/v1/crowd/frame",
+            None,
+            None,
+            Bytes::from(frame.clone()),
+        )
+        .await
+        .expect("transport");
+    expect(s, r, 415, "unsupported_media_type", "no Content-Type").await;
+    // The same JSON as application/json is a frame.
+    let r = post(s, "/v1/crowd/frame", "application/json", frame).await;
+    assert_eq!(r.status, 200);
+
+    // A rig upload as text/plain is refused too.
+    let glb = crate::util::builder::triangle_rig().to_glb();
+    let upload = |ct: &'static str, scheme: &'static str| {
+        raw_post(
+            s,
+            "/v1/rigs?name=t",
+            ct,
+            format!("{scheme} s3cret"),
+            glb.clone(),
+        )
+    };
+    let (status, text) = upload("text/plain", "Bearer").await;
+    assert_eq!(status, 415, "{text}");
+    // RFC 7235: the scheme is case-insensitive (the token is not).
+    let (status, text) = upload("model/gltf-binary", "bearer").await;
+    assert_eq!(status, 201, "{text}");
+    let (status, text) = upload("model/gltf-binary", "BEARER").await;
+    assert_eq!(
+        status, 409,
+        "the same name again, past the token check: {text}"
+    );
+    server.stop().await;
+}
+
+/// A raw HTTP/1.1 POST with a content type and an Authorization header: (status, response).
+async fn raw_post(
+    server: &TestServer,
+    path: &str,
+    ct: &str,
+    authorization: String,
+    body: Vec<u8>,
+) -> (u16, String) {
+    let mut sock = tokio::net::TcpStream::connect(server.addr)
+        .await
+        .expect("connect");
+    let head = format!(
+        "POST {path} HTTP/1.1\r\nhost: {}\r\nconnection: close\r\ncontent-type: {ct}\r\n\
+         authorization: {authorization}\r\ncontent-length: {}\r\n\r\n",
+        server.addr,
+        body.len()
+    );
+    sock.write_all(head.as_bytes()).await.expect("write");
+    sock.write_all(&body).await.expect("write");
+    let mut out = Vec::new();
+    sock.read_to_end(&mut out).await.expect("read");
+    let text = String::from_utf8_lossy(&out).into_owned();
+    let status = text
+        .split(' ')
+        .nth(1)
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(0);
+    (status, text)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn f16_output_of_positions_past_its_range_is_refused() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let s = &server;
+    // A triangle 100 km out (in metres): fine in f32 and q16, past the largest f16 (65,504).
+    let mut b = crate::util::builder::Builder::new();
+    let far = [[1e5, 0.0, 0.0], [1e5 + 1.0, 0.0, 0.0], [1e5, 1.0, 0.0]];
+    let mesh = b.mesh_with_targets(&far, None, &[vec![[0.0, 0.0, 1.0]; 3]], None);
+    let node = b.node(Some(mesh));
+    b.animation_weights("wave", node, &[0.0, 1.0], &[0.0, 1.0], "LINEAR");
+    b.scene(&[node]);
+    let r = post(s, "/v1/rigs?name=far", "model/gltf-binary", b.to_glb()).await;
+    assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+    let mut req = frame_req(vec![head("far", "wave", 3, 0)], true);
+    req.output.format = crowdmorph_proto::Format::F16;
+    let r = post(
+        s,
+        "/v1/crowd/frame",
+        "application/json",
+        serde_json::to_vec(&req).unwrap(),
+    )
+    .await;
+    expect(s, r, 400, "format_overflow", "65504").await;
+    for format in [crowdmorph_proto::Format::F32, crowdmorph_proto::Format::Q16] {
+        req.output.format = format;
+        let (resp, _) = s
+            .client
+            .crowd_frame(&req, Encoding::Json)
+            .await
+            .expect("frame");
+        let p = super::positions_f32(format, &resp.buffers[0]);
+        assert!((p[0] - 1e5).abs() < 1.0, "{format:?}: {}", p[0]);
+    }
     server.stop().await;
 }

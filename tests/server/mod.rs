@@ -6,6 +6,7 @@ mod api;
 mod bad_input;
 mod concurrency;
 mod golden;
+mod hostile;
 mod lod;
 mod overload;
 mod persistence;

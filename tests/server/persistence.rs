@@ -128,9 +128,9 @@ async fn rigs_and_clips_survive_restarts_and_corrupt_files_are_skipped() {
 }
 
 /// The real binary, serving on a port it chose.
-struct Proc {
-    child: Child,
-    base: String,
+pub(super) struct Proc {
+    pub(super) child: Child,
+    pub(super) base: String,
 }
 
 fn spawn(dir: &Path) -> Proc {
@@ -138,7 +138,7 @@ fn spawn(dir: &Path) -> Proc {
 }
 
 /// [`spawn`] with extra environment variables (every serve flag has one).
-fn spawn_with(dir: &Path, env: &[(&str, &str)]) -> Proc {
+pub(super) fn spawn_with(dir: &Path, env: &[(&str, &str)]) -> Proc {
     let mut child = Command::new(env!("CARGO_BIN_EXE_crowdmorph"))
         .args(["serve", "--addr", "127.0.0.1:0", "--data-dir"])
         .arg(dir)
@@ -173,7 +173,7 @@ fn spawn_with(dir: &Path, env: &[(&str, &str)]) -> Proc {
     }
 }
 
-async fn ready(c: &Client) {
+pub(super) async fn ready(c: &Client) {
     for _ in 0..500 {
         if let Ok(r) = c
             .send(Method::GET, "/readyz", None, None, Bytes::new())
