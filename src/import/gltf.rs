@@ -705,7 +705,6 @@ fn triangle_indices(
     source.budget().charge(list * 4, || {
         format!("triangles of a primitive of {n} vertices")
     })?;
-    let raw_len;
     let raw: Vec<u32> = match prim.indices() {
         Some(acc) => {
             let idx = source.read_indices(&acc)?;
@@ -724,7 +723,7 @@ fn triangle_indices(
             (0..n as u32).collect()
         }
     };
-    raw_len = raw.len() as u64 * 4;
+    let raw_len = raw.len() as u64 * 4;
     let list = match prim.mode() {
         Mode::Triangles => raw[..raw.len() / 3 * 3].to_vec(),
         Mode::TriangleStrip => (2..raw.len())
