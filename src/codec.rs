@@ -53,6 +53,16 @@ pub fn to_stored<T: Serialize>(value: &T) -> Result<Vec<u8>, CodecError> {
         .map_err(|e| CodecError::Stored(e.to_string()))
 }
 
+/// Encodes a record for the store straight into `writer`, so a large record never exists as
+/// a second in-memory copy. Returns the bytes written.
+pub fn to_stored_writer<T: Serialize, W: std::io::Write>(
+    value: &T,
+    writer: &mut W,
+) -> Result<usize, CodecError> {
+    bincode::serde::encode_into_std_write(value, writer, bincode::config::standard())
+        .map_err(|e| CodecError::Stored(e.to_string()))
+}
+
 /// Decodes a record read from the store; the whole slice must be one record.
 pub fn from_stored<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, CodecError> {
     let cfg = bincode::config::standard().with_limit::<STORED_DECODE_LIMIT>();

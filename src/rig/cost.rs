@@ -156,7 +156,7 @@ pub struct RigCost {
     /// Resident on the GPU (0 without one).
     pub device: u64,
     /// Most transient host memory while preparing (layout staging, GPU upload copies) or
-    /// persisting (the encoded record), beyond the resident bytes.
+    /// checking and persisting the rig, beyond the resident bytes.
     pub transient: u64,
     /// The stored file.
     pub stored: u64,
@@ -277,13 +277,14 @@ impl RigShape {
         // The stored record: bincode writes f32 in 4 bytes and integers in at most 5 (varint),
         // so never more than 5/4 of the arrays, plus names and headers.
         let stored = geometry(&self.primitives) * 5 / 4 + clips + lod * 5 / 4 + 64 * 1024;
-        // The server's range check keeps per-vertex f64 bounds (two DVec3 per vertex).
+        // The server's range check keeps per-vertex f64 bounds (two DVec3 per vertex); the
+        // store encodes records straight into the file through a 1 MiB buffer.
         let range_check = 48 * self.vertices();
         RigCost {
             rig,
             layout,
             device,
-            transient: staging.max(upload).max(stored).max(range_check),
+            transient: staging.max(upload).max(range_check).max(1 << 20),
             stored,
         }
     }

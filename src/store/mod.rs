@@ -22,7 +22,7 @@
 //! invariants is skipped too.
 
 use std::fs::{self, File};
-use std::io::Write;
+use std::io::{Seek, Write};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -257,6 +257,26 @@ fn io<'a>(op: &'static str, path: &'a Path) -> impl FnOnce(std::io::Error) -> St
     }
 }
 
+/// Writes the payload of a record to a file while computing its length and CRC-32.
+struct Checksummed {
+    inner: std::io::BufWriter<File>,
+    crc: crc32fast::Hasher,
+    len: u64,
+}
+
+impl Write for Checksummed {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let n = self.inner.write(buf)?;
+        self.crc.update(&buf[..n]);
+        self.len += n as u64;
+        Ok(n)
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.inner.flush()
+    }
+}
+
 /// The rigs directory of a data dir.
 #[derive(Debug)]
 pub struct Store {
@@ -294,45 +314,62 @@ impl Store {
         self.dir.join(format!("{id}.{EXT}"))
     }
 
-    /// Writes a record atomically (temp file, fsync, rename, fsync of the directory).
+    /// Writes a record atomically (temp file, fsync, rename, fsync of the directory). The
+    /// payload is encoded straight into the file through a checksumming writer, and the
+    /// header (length, CRC) written last over a placeholder: a record as large as its rig is
+    /// never held in memory a second time.
     pub fn put(&self, record: RecordRef<'_>) -> Result<(), StoreError> {
-        let (id, kind, payload) = match record {
-            RecordRef::Rig { id, rig } => (
-                id,
-                KIND_RIG,
-                codec::to_stored(&StoredRigRef {
-                    id,
-                    rig: RigRecordRef::new(rig)?,
-                }),
-            ),
-            RecordRef::Builtin { id, clips, rig } => (
-                id,
-                KIND_BUILTIN,
-                codec::to_stored(&StoredBuiltinRef {
-                    id,
-                    clips,
-                    lod_json: lod_to_json(&rig.lod)?,
-                    geometry: geometry_fingerprint(rig),
-                }),
-            ),
-        };
-        let payload = payload.map_err(|e| StoreError::Encode(e.to_string()))?;
-        // The header is written before the payload, not copied in front of it: a record can
-        // be as large as the rig, and a second copy would double the peak of every write.
-        let mut header = Vec::with_capacity(HEADER);
-        header.extend_from_slice(MAGIC);
-        header.extend_from_slice(&kind.to_le_bytes());
-        header.extend_from_slice(&(payload.len() as u64).to_le_bytes());
-        header.extend_from_slice(&crc32fast::hash(&payload).to_le_bytes());
-
         let n = self.tmp_counter.fetch_add(1, Ordering::Relaxed);
+        let id = match record {
+            RecordRef::Rig { id, .. } | RecordRef::Builtin { id, .. } => id,
+        };
         let tmp = self
             .dir
             .join(format!("{TMP}{}-{n}-{id}.{EXT}", std::process::id()));
         let result = (|| {
-            let mut f = File::create(&tmp).map_err(io("create", &tmp))?;
+            let file = File::create(&tmp).map_err(io("create", &tmp))?;
+            let mut w = Checksummed {
+                inner: std::io::BufWriter::with_capacity(1 << 20, file),
+                crc: crc32fast::Hasher::new(),
+                len: 0,
+            };
+            w.inner
+                .write_all(&[0u8; HEADER])
+                .map_err(io("write", &tmp))?;
+            let kind = match record {
+                RecordRef::Rig { id, rig } => {
+                    let r = StoredRigRef {
+                        id,
+                        rig: RigRecordRef::new(rig)?,
+                    };
+                    codec::to_stored_writer(&r, &mut w)
+                        .map_err(|e| StoreError::Encode(e.to_string()))?;
+                    KIND_RIG
+                }
+                RecordRef::Builtin { id, clips, rig } => {
+                    let r = StoredBuiltinRef {
+                        id,
+                        clips,
+                        lod_json: lod_to_json(&rig.lod)?,
+                        geometry: geometry_fingerprint(rig),
+                    };
+                    codec::to_stored_writer(&r, &mut w)
+                        .map_err(|e| StoreError::Encode(e.to_string()))?;
+                    KIND_BUILTIN
+                }
+            };
+            let mut header = Vec::with_capacity(HEADER);
+            header.extend_from_slice(MAGIC);
+            header.extend_from_slice(&kind.to_le_bytes());
+            header.extend_from_slice(&w.len.to_le_bytes());
+            header.extend_from_slice(&w.crc.clone().finalize().to_le_bytes());
+            let mut f = w
+                .inner
+                .into_inner()
+                .map_err(|e| io("write", &tmp)(e.into_error()))?;
+            f.seek(std::io::SeekFrom::Start(0))
+                .map_err(io("seek", &tmp))?;
             f.write_all(&header).map_err(io("write", &tmp))?;
-            f.write_all(&payload).map_err(io("write", &tmp))?;
             f.sync_all().map_err(io("fsync", &tmp))?;
             drop(f);
             let path = self.path_of(id);
