@@ -207,11 +207,11 @@ enum BenchCommand {
         /// Seconds per measurement.
         #[arg(long, default_value_t = 3.0)]
         seconds: f64,
-        /// Print JSON.
-        #[arg(long)]
         /// Engine of the server and of the in-process comparison.
         #[arg(long, default_value = "auto")]
         backend: BackendChoice,
+        /// Print JSON.
+        #[arg(long)]
         json: bool,
     },
     /// The CPU engine against a dense sgemm and the memcpy roofline, measured in the same run.
@@ -575,4 +575,35 @@ fn run_lod(which: LodCommand) -> Result<()> {
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::{CommandFactory, Parser};
+
+    use super::{BenchCommand, Cli, Command};
+
+    /// clap checks a command's definition (a field without `#[arg]`, a doc comment on the wrong
+    /// field, clashing flags) only in debug builds and only when that subcommand is parsed; this
+    /// checks the whole tree at once.
+    #[test]
+    fn the_command_line_definition_is_well_formed() {
+        Cli::command().debug_assert();
+    }
+
+    #[test]
+    fn bench_http_takes_json_and_backend_flags() {
+        let cli =
+            Cli::try_parse_from(["crowdmorph", "bench", "http", "--json", "--backend", "cpu"])
+                .expect("bench http --json --backend cpu parses");
+        match cli.command {
+            Command::Bench {
+                which: BenchCommand::Http { json, backend, .. },
+            } => {
+                assert!(json);
+                assert_eq!(backend, crowdmorph::engine::BackendChoice::Cpu);
+            }
+            _ => panic!("parsed as another command"),
+        }
+    }
 }
