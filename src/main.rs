@@ -349,6 +349,16 @@ enum Format {
 }
 
 fn main() -> Result<()> {
+    // Mesa's device-select Vulkan layer prints "XDG_RUNTIME_DIR is invalid or not set" twice
+    // each time wgpu probes Vulkan outside a desktop session (servers, containers, CI): harmless,
+    // but it reads like a failure. NODEVICE_SELECT=1 turns that layer off; wgpu ranks the
+    // adapters itself, so the layer's reordering is not needed. A value the user set is kept.
+    if std::env::var_os("NODEVICE_SELECT").is_none() {
+        // SAFETY: this is the first statement of `main`, before anything that starts a thread
+        // (tracing, the tokio runtime, rayon, wgpu), and Rust starts none before `main`: no
+        // other thread exists that could read the environment while it is written.
+        unsafe { std::env::set_var("NODEVICE_SELECT", "1") };
+    }
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()
