@@ -25,15 +25,22 @@ use crowdmorph::render::{Camera, neutral_positions, render_pose};
 use crowdmorph::rig::{Rig, default_lod_levels};
 use glam::Vec3;
 
-use crate::util::{data_dir, max_abs_diff, open_gpu, rig_files, rig_oracle};
+use crate::util::{max_abs_diff, open_gpu, rig_files, rig_oracle};
 
-/// ICT FaceKit, loaded once per run (for tests that need ../shared/data).
+/// One of the shared rigs, by file name.
+fn rig_file(name: &str) -> std::path::PathBuf {
+    rig_files()
+        .into_iter()
+        .find(|f| f.ends_with(name))
+        .expect("a shared rig")
+}
+
+/// ICT FaceKit (from ../shared/data), loaded once per run.
 fn ict() -> &'static Rig {
     static RIG: OnceLock<Rig> = OnceLock::new();
     RIG.get_or_init(|| {
-        rig_files();
-        let path = data_dir().join("ict-facekit/ict_facekit_53.glb");
-        load_path(&path, &ImportOptions::default()).expect("ICT FaceKit loads")
+        load_path(&rig_file("ict_facekit_53.glb"), &ImportOptions::default())
+            .expect("ICT FaceKit loads")
     })
 }
 
@@ -43,10 +50,10 @@ fn ict_scores() -> &'static Scores {
     SCORES.get_or_init(|| score_targets(ict(), &ScoreOptions::default(), None).expect("ICT scores"))
 }
 
+/// MorphStressTest (from ../shared/data).
 fn morph_stress_test() -> Rig {
-    rig_files();
-    let path = data_dir().join("khronos/MorphStressTest/glTF/MorphStressTest.gltf");
-    load_path(&path, &ImportOptions::default()).expect("MorphStressTest loads")
+    load_path(&rig_file("MorphStressTest.gltf"), &ImportOptions::default())
+        .expect("MorphStressTest loads")
 }
 
 /// Relative difference of two scores.
