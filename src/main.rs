@@ -207,11 +207,11 @@ enum BenchCommand {
         /// Seconds per measurement.
         #[arg(long, default_value_t = 3.0)]
         seconds: f64,
-        /// Print JSON.
-        #[arg(long)]
         /// Engine of the server and of the in-process comparison.
         #[arg(long, default_value = "auto")]
         backend: BackendChoice,
+        /// Print JSON.
+        #[arg(long)]
         json: bool,
     },
     /// The CPU engine against a dense sgemm and the memcpy roofline, measured in the same run.
@@ -362,6 +362,16 @@ enum Format {
 }
 
 fn main() -> Result<()> {
+    // Mesa's device-select Vulkan layer prints "XDG_RUNTIME_DIR is invalid or not set" twice
+    // each time wgpu probes Vulkan outside a desktop session (servers, containers, CI): harmless,
+    // but it reads like a failure. NODEVICE_SELECT=1 turns that layer off; wgpu ranks the
+    // adapters itself, so the layer's reordering is not needed. A value the user set is kept.
+    if std::env::var_os("NODEVICE_SELECT").is_none() {
+        // SAFETY: this is the first statement of `main`, before anything that starts a thread
+        // (tracing, the tokio runtime, rayon, wgpu), and Rust starts none before `main`: no
+        // other thread exists that could read the environment while it is written.
+        unsafe { std::env::set_var("NODEVICE_SELECT", "1") };
+    }
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()
@@ -588,4 +598,35 @@ fn run_lod(which: LodCommand) -> Result<()> {
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::{CommandFactory, Parser};
+
+    use super::{BenchCommand, Cli, Command};
+
+    /// clap checks a command's definition (a field without `#[arg]`, a doc comment on the wrong
+    /// field, clashing flags) only in debug builds and only when that subcommand is parsed; this
+    /// checks the whole tree at once.
+    #[test]
+    fn the_command_line_definition_is_well_formed() {
+        Cli::command().debug_assert();
+    }
+
+    #[test]
+    fn bench_http_takes_json_and_backend_flags() {
+        let cli =
+            Cli::try_parse_from(["crowdmorph", "bench", "http", "--json", "--backend", "cpu"])
+                .expect("bench http --json --backend cpu parses");
+        match cli.command {
+            Command::Bench {
+                which: BenchCommand::Http { json, backend, .. },
+            } => {
+                assert!(json);
+                assert_eq!(backend, crowdmorph::engine::BackendChoice::Cpu);
+            }
+            _ => panic!("parsed as another command"),
+        }
+    }
 }

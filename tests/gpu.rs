@@ -10,31 +10,12 @@
 
 use std::sync::Arc;
 
-use crowdmorph::engine::gpu::{GpuContext, GpuOptions};
+use crowdmorph::engine::gpu::GpuOptions;
 use crowdmorph::engine::{BackendChoice, BackendKind, BlendJob, Engine, OutputSpec, Precision};
 use crowdmorph::import::{ImportOptions, load_path};
 use crowdmorph::rig::Rig;
 
-use crate::util::{Rng, paper_scale_rig, rig_files, with_random_clip};
-
-/// Opens a GPU context (any adapter, software included), or says why not.
-fn gpu(options: GpuOptions) -> Option<GpuContext> {
-    match GpuContext::open(true, options) {
-        Ok(ctx) => {
-            eprintln!(
-                "GPU tests run on {} ({:?}, {:?})",
-                ctx.adapter().name,
-                ctx.adapter().backend,
-                ctx.adapter().device_type
-            );
-            Some(ctx)
-        }
-        Err(e) => {
-            eprintln!("skipped: no GPU adapter ({e}); install mesa-vulkan-drivers for lavapipe");
-            None
-        }
-    }
-}
+use crate::util::{Rng, open_gpu, paper_scale_rig, rig_files, with_random_clip};
 
 fn random_jobs(rig: &Rig, seed: u64, n: usize) -> Vec<BlendJob> {
     let mut rng = Rng(seed);
@@ -142,35 +123,51 @@ fn check_parity(gpu_engine: &Engine, rig: Rig, jobs: &[BlendJob]) {
 }
 
 #[test]
-fn gpu_matches_cpu_on_every_rig_and_the_embedded_head() {
-    let Some(ctx) = gpu(GpuOptions::default()) else {
-        return;
-    };
-    let engine = Engine::with_gpu(ctx, BackendChoice::Gpu);
-    let mut rigs = vec![crowdmorph::embedded::default_rig()];
-    if let Some(files) = rig_files() {
-        for f in files {
-            rigs.push(load_path(&f, &ImportOptions::default()).expect("load"));
-        }
-    }
-    for (i, rig) in rigs.into_iter().enumerate() {
-        let rig = with_random_clip(rig, i as u64);
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+fn gpu_matches_cpu_on_the_embedded_head() {
+    let engine = Engine::with_gpu(open_gpu(GpuOptions::default()), BackendChoice::Gpu);
+    let rig = with_random_clip(crowdmorph::embedded::default_rig(), 0);
+    let jobs = random_jobs(&rig, 100, 33);
+    check_parity(&engine, rig, &jobs);
+}
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+#[cfg_attr(
+    all(crowdmorph_gpu_driver, not(crowdmorph_test_data)),
+    ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+)]
+fn gpu_matches_cpu_on_every_real_rig() {
+    let engine = Engine::with_gpu(open_gpu(GpuOptions::default()), BackendChoice::Gpu);
+    for (i, f) in rig_files().into_iter().enumerate() {
+        // Seeds continue after the embedded head's, as when one test covered all the rigs.
+        let i = i as u64 + 1;
+        let rig = load_path(&f, &ImportOptions::default()).expect("load");
+        let rig = with_random_clip(rig, i);
         let n = if rig.vertex_count() > 10_000 { 10 } else { 33 };
-        let jobs = random_jobs(&rig, 100 + i as u64, n);
+        let jobs = random_jobs(&rig, 100 + i, n);
         check_parity(&engine, rig, &jobs);
     }
 }
 
 #[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
 fn paper_scale_rig_over_the_binding_limit_is_chunked_and_matches() {
     // Chunks of at most 256 KiB split the rig's delta blocks several ways, and 4 MiB bindings
     // split a batch's output into sub-batches of four jobs.
-    let Some(ctx) = gpu(GpuOptions {
+    let ctx = open_gpu(GpuOptions {
         max_binding: Some(4 << 20),
         max_chunk: Some(256 << 10),
-    }) else {
-        return;
-    };
+    });
     let engine = Engine::with_gpu(ctx, BackendChoice::Gpu);
     let rig = paper_scale_rig();
     let prepared = engine.prepare(Arc::new(rig.clone())).expect("upload");
@@ -184,14 +181,16 @@ fn paper_scale_rig_over_the_binding_limit_is_chunked_and_matches() {
 }
 
 #[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
 fn a_rig_the_device_cannot_hold_is_refused_clearly() {
     // With 64 KiB bindings four jobs' output of the embedded head (7,262 vertices) cannot fit.
-    let Some(ctx) = gpu(GpuOptions {
+    let ctx = open_gpu(GpuOptions {
         max_binding: Some(64 << 10),
         ..GpuOptions::default()
-    }) else {
-        return;
-    };
+    });
     let engine = Engine::with_gpu(ctx, BackendChoice::Gpu);
     let err = engine
         .prepare(Arc::new(crowdmorph::embedded::default_rig()))
@@ -208,10 +207,12 @@ fn a_rig_the_device_cannot_hold_is_refused_clearly() {
 }
 
 #[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
 fn device_loss_falls_back_to_the_cpu_engine_without_losing_rigs() {
-    let Some(ctx) = gpu(GpuOptions::default()) else {
-        return;
-    };
+    let ctx = open_gpu(GpuOptions::default());
     let engine = Engine::with_gpu(ctx, BackendChoice::Gpu);
     let rig = Arc::new(crowdmorph::embedded::default_rig());
     let prepared = engine.prepare(rig.clone()).expect("upload");
@@ -251,10 +252,12 @@ fn device_loss_falls_back_to_the_cpu_engine_without_losing_rigs() {
 }
 
 #[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
 fn consecutive_batches_overlap_and_results_stay_on_the_device_without_readback() {
-    let Some(ctx) = gpu(GpuOptions::default()) else {
-        return;
-    };
+    let ctx = open_gpu(GpuOptions::default());
     let engine = Engine::with_gpu(ctx, BackendChoice::Gpu);
     let rig = Arc::new(crowdmorph::embedded::default_rig());
     let prepared = engine.prepare(rig.clone()).expect("upload");

@@ -7,7 +7,7 @@
 use std::sync::{Arc, OnceLock};
 
 use crowdmorph::engine::cpu::CpuRig;
-use crowdmorph::engine::gpu::{GpuContext, GpuOptions};
+use crowdmorph::engine::gpu::GpuOptions;
 use crowdmorph::engine::{
     BackendChoice, BackendKind, BlendJob, Engine, OutputSpec, Precision, WeightBatch,
 };
@@ -25,32 +25,35 @@ use crowdmorph::render::{Camera, neutral_positions, render_pose};
 use crowdmorph::rig::{Rig, default_lod_levels};
 use glam::Vec3;
 
-use crate::util::{data_dir, max_abs_diff, rig_files, rig_oracle};
+use crate::util::{max_abs_diff, open_gpu, rig_files, rig_oracle};
 
-fn ict() -> Option<&'static Rig> {
-    static RIG: OnceLock<Option<Rig>> = OnceLock::new();
+/// One of the shared rigs, by file name.
+fn rig_file(name: &str) -> std::path::PathBuf {
+    rig_files()
+        .into_iter()
+        .find(|f| f.ends_with(name))
+        .expect("a shared rig")
+}
+
+/// ICT FaceKit (from ../shared/data), loaded once per run.
+fn ict() -> &'static Rig {
+    static RIG: OnceLock<Rig> = OnceLock::new();
     RIG.get_or_init(|| {
-        rig_files()?;
-        let path = data_dir().join("ict-facekit/ict_facekit_53.glb");
-        Some(load_path(&path, &ImportOptions::default()).expect("ICT FaceKit loads"))
+        load_path(&rig_file("ict_facekit_53.glb"), &ImportOptions::default())
+            .expect("ICT FaceKit loads")
     })
-    .as_ref()
 }
 
-fn ict_scores() -> Option<&'static Scores> {
-    static SCORES: OnceLock<Option<Scores>> = OnceLock::new();
-    SCORES
-        .get_or_init(|| {
-            let rig = ict()?;
-            Some(score_targets(rig, &ScoreOptions::default(), None).expect("ICT scores"))
-        })
-        .as_ref()
+/// ICT FaceKit's scores, computed once per run.
+fn ict_scores() -> &'static Scores {
+    static SCORES: OnceLock<Scores> = OnceLock::new();
+    SCORES.get_or_init(|| score_targets(ict(), &ScoreOptions::default(), None).expect("ICT scores"))
 }
 
-fn morph_stress_test() -> Option<Rig> {
-    rig_files()?;
-    let path = data_dir().join("khronos/MorphStressTest/glTF/MorphStressTest.gltf");
-    Some(load_path(&path, &ImportOptions::default()).expect("MorphStressTest loads"))
+/// MorphStressTest (from ../shared/data).
+fn morph_stress_test() -> Rig {
+    load_path(&rig_file("MorphStressTest.gltf"), &ImportOptions::default())
+        .expect("MorphStressTest loads")
 }
 
 /// Relative difference of two scores.
@@ -136,10 +139,12 @@ fn mirrored_targets_score_alike_on_the_embedded_head() {
 }
 
 #[test]
+#[cfg_attr(
+    not(crowdmorph_test_data),
+    ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+)]
 fn mirrored_targets_score_alike_on_ict_facekit() {
-    let (Some(rig), Some(scores)) = (ict(), ict_scores()) else {
-        return;
-    };
+    let (rig, scores) = (ict(), ict_scores());
     let worst = check_mirror_twins(rig, scores);
     eprintln!(
         "ICT FaceKit: worst left/right difference {:.2} %",
@@ -249,10 +254,12 @@ fn ordered_lod_beats_unordered_truncation_on_the_embedded_head() {
 /// every clip; the image orders agree with it to 1e-6 (the bumps differ only by f32 rounding of
 /// the file's deltas, which is all an order can exploit there).
 #[test]
+#[cfg_attr(
+    not(crowdmorph_test_data),
+    ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+)]
 fn ordered_lod_is_no_worse_than_unordered_truncation_on_morph_stress_test() {
-    let Some(rig) = morph_stress_test() else {
-        return;
-    };
+    let rig = morph_stress_test();
     let scores = score_targets(&rig, &ScoreOptions::default(), None).expect("scores");
     let disp = Displacements::new(&rig);
     let levels = default_lod_levels(rig.targets.len());
@@ -281,10 +288,12 @@ fn ordered_lod_is_no_worse_than_unordered_truncation_on_morph_stress_test() {
 }
 
 #[test]
+#[cfg_attr(
+    not(crowdmorph_test_data),
+    ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+)]
 fn ordered_lod_beats_unordered_truncation_on_ict_facekit() {
-    let (Some(rig), Some(scores)) = (ict(), ict_scores()) else {
-        return;
-    };
+    let (rig, scores) = (ict(), ict_scores());
     let mut rig = rig.clone();
     rig.clips
         .push(synthetic_clip(&rig, "random", 60, 7).expect("synthetic clip"));
@@ -323,8 +332,12 @@ fn synthetic_clips_are_deterministic_and_plausible() {
 }
 
 #[test]
+#[cfg_attr(
+    not(crowdmorph_test_data),
+    ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+)]
 fn ict_feature_points_survive_at_ten_percent() {
-    let Some(rig) = ict() else { return };
+    let rig = ict();
     let (levels, features) =
         build_mesh_levels(rig, &[0.1], &SimplifyOptions::default(), None).expect("levels");
     for name in [
@@ -453,92 +466,100 @@ fn mesh_levels_evaluate_through_the_cpu_engine_on_the_embedded_head() {
 }
 
 #[test]
+#[cfg_attr(
+    not(crowdmorph_test_data),
+    ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+)]
 fn mesh_levels_evaluate_through_the_cpu_engine_on_real_rigs() {
-    if let Some(rig) = ict() {
-        check_mesh_levels(rig, &[0.5, 0.1]);
-    }
-    if let Some(rig) = morph_stress_test() {
-        check_mesh_levels(&rig, &[0.5, 0.25]);
-    }
+    check_mesh_levels(ict(), &[0.5, 0.1]);
+    check_mesh_levels(&morph_stress_test(), &[0.5, 0.25]);
 }
 
 /// Mesh levels are ordinary rigs to the engines: the GPU engine (Mesa's lavapipe where there is
 /// no hardware GPU) agrees with the CPU engine on every derived rig, positions and normals, at
 /// every LOD level. Tolerances as in the GPU engine's own tests.
-#[test]
-fn mesh_levels_match_on_the_gpu_and_cpu_engines() {
-    let ctx = match GpuContext::open(true, GpuOptions::default()) {
-        Ok(ctx) => ctx,
-        Err(e) => {
-            eprintln!("skipped: no GPU adapter ({e}); install mesa-vulkan-drivers for lavapipe");
-            return;
-        }
-    };
-    let gpu = Engine::with_gpu(ctx, BackendChoice::Gpu);
+fn check_mesh_levels_on_the_gpu(rig: &Rig, fractions: &[f32]) {
+    let gpu = Engine::with_gpu(open_gpu(GpuOptions::default()), BackendChoice::Gpu);
     let cpu = Engine::cpu();
-    let mut rigs = vec![(crowdmorph::embedded::default_rig(), vec![0.5, 0.1])];
-    if let Some(rig) = ict() {
-        let mut rig = rig.clone();
-        rig.clips
-            .push(synthetic_clip(&rig, "random", 20, 3).expect("synthetic clip"));
-        rigs.push((rig, vec![0.1]));
-    }
-    for (rig, fractions) in rigs {
-        let (levels, _) =
-            build_mesh_levels(&rig, &fractions, &SimplifyOptions::default(), None).expect("levels");
-        for level in &levels {
-            let derived = Arc::new(mesh_level_rig(&rig, level).expect("derived rig"));
-            let mut rng = crate::util::Rng(5);
-            let jobs: Vec<BlendJob> = (0..12)
-                .map(|k| {
-                    let clip = rng.below(derived.clips.len());
-                    BlendJob {
-                        clip: clip as u32,
-                        frame: rng.below(derived.clips[clip].frames as usize) as u32,
-                        lod: (k % derived.lod.levels.len()) as u32,
-                    }
-                })
-                .collect();
-            let spec = OutputSpec {
-                normals: true,
-                precision: Precision::F32,
-            };
-            let g = gpu.prepare(derived.clone()).expect("upload");
-            let c = cpu.prepare(derived.clone()).expect("prepare");
-            let got = gpu.evaluate(&g, &jobs, spec).expect("gpu");
-            let want = cpu.evaluate(&c, &jobs, spec).expect("cpu");
-            assert_eq!(got.kind, Some(BackendKind::Gpu), "{}", derived.name);
-            let diag = derived.bbox().diagonal();
-            let ntol = if derived.has_normal_deltas() {
-                1e-4
-            } else {
-                1e-3
-            };
-            let diff = |a: &[f32], b: &[f32]| {
-                a.iter()
-                    .zip(b)
-                    .map(|(x, y)| (x - y).abs())
-                    .fold(0.0f32, f32::max)
-            };
-            for j in 0..jobs.len() {
-                let d = diff(&got.output.job_positions(j), &want.output.job_positions(j));
-                assert!(
-                    d <= 1e-5 * diag,
-                    "{} job {j}: positions differ by {d:e}",
-                    derived.name
-                );
-                let n = diff(
-                    &got.output.job_normals(j).expect("normals"),
-                    &want.output.job_normals(j).expect("normals"),
-                );
-                assert!(
-                    n <= ntol,
-                    "{} job {j}: normals differ by {n:e}",
-                    derived.name
-                );
-            }
+    let (levels, _) =
+        build_mesh_levels(rig, fractions, &SimplifyOptions::default(), None).expect("levels");
+    for level in &levels {
+        let derived = Arc::new(mesh_level_rig(rig, level).expect("derived rig"));
+        let mut rng = crate::util::Rng(5);
+        let jobs: Vec<BlendJob> = (0..12)
+            .map(|k| {
+                let clip = rng.below(derived.clips.len());
+                BlendJob {
+                    clip: clip as u32,
+                    frame: rng.below(derived.clips[clip].frames as usize) as u32,
+                    lod: (k % derived.lod.levels.len()) as u32,
+                }
+            })
+            .collect();
+        let spec = OutputSpec {
+            normals: true,
+            precision: Precision::F32,
+        };
+        let g = gpu.prepare(derived.clone()).expect("upload");
+        let c = cpu.prepare(derived.clone()).expect("prepare");
+        let got = gpu.evaluate(&g, &jobs, spec).expect("gpu");
+        let want = cpu.evaluate(&c, &jobs, spec).expect("cpu");
+        assert_eq!(got.kind, Some(BackendKind::Gpu), "{}", derived.name);
+        let diag = derived.bbox().diagonal();
+        let ntol = if derived.has_normal_deltas() {
+            1e-4
+        } else {
+            1e-3
+        };
+        let diff = |a: &[f32], b: &[f32]| {
+            a.iter()
+                .zip(b)
+                .map(|(x, y)| (x - y).abs())
+                .fold(0.0f32, f32::max)
+        };
+        for j in 0..jobs.len() {
+            let d = diff(&got.output.job_positions(j), &want.output.job_positions(j));
+            assert!(
+                d <= 1e-5 * diag,
+                "{} job {j}: positions differ by {d:e}",
+                derived.name
+            );
+            let n = diff(
+                &got.output.job_normals(j).expect("normals"),
+                &want.output.job_normals(j).expect("normals"),
+            );
+            assert!(
+                n <= ntol,
+                "{} job {j}: normals differ by {n:e}",
+                derived.name
+            );
         }
     }
+}
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+fn mesh_levels_match_on_the_gpu_and_cpu_engines_on_the_embedded_head() {
+    check_mesh_levels_on_the_gpu(&crowdmorph::embedded::default_rig(), &[0.5, 0.1]);
+}
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+#[cfg_attr(
+    all(crowdmorph_gpu_driver, not(crowdmorph_test_data)),
+    ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+)]
+fn mesh_levels_match_on_the_gpu_and_cpu_engines_on_ict_facekit() {
+    let mut rig = ict().clone();
+    rig.clips
+        .push(synthetic_clip(&rig, "random", 20, 3).expect("synthetic clip"));
+    check_mesh_levels_on_the_gpu(&rig, &[0.1]);
 }
 
 #[test]

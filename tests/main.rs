@@ -1,7 +1,9 @@
 //! The integration test binary: one binary, modules per area, shared helpers in `util`.
 //!
-//! Tests that read the real rigs in `../shared/data` print why and return early when that
-//! folder is absent (it is present in CI and in every development checkout).
+//! Tests that need the real rigs in `../shared/data` (or `$CROWDMORPH_TEST_DATA`) or a GPU
+//! adapter are marked `#[cfg_attr(not(<cfg>), ignore = "<reason>")]` with the cfgs `build.rs`
+//! sets when it finds them (`crowdmorph_test_data`, `crowdmorph_gpu_driver`): without the
+//! resource they are listed as ignored with the reason, and with it they must pass.
 
 // A test that meets an unexpected error should fail loudly, which is what unwrap does.
 #![allow(clippy::unwrap_used)]
@@ -9,6 +11,7 @@
 mod util;
 
 mod bad_input;
+mod cli;
 mod engine;
 mod gpu;
 mod lod;

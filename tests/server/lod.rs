@@ -143,22 +143,29 @@ async fn rigs_get_a_metric_order_and_mesh_levels_in_the_background() {
         "10 % mesh: {lod:?}"
     );
     check_levels(&server, "default-head", "talk", 17).await;
+    server.stop().await;
+}
 
-    // An uploaded rig too.
-    if let Some(files) = rig_files() {
-        let stress = files
-            .iter()
-            .find(|f| f.ends_with("MorphStressTest.gltf"))
-            .expect("file");
-        server
-            .client
-            .upload_rig("stress", upload_bytes(stress))
-            .await
-            .expect("upload");
-        let lod = wait_ready(&server, "stress").await;
-        assert_eq!(lod.method, "combined");
-        check_levels(&server, "stress", "TheWave", 20).await;
-    }
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_test_data),
+    ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+)]
+async fn an_uploaded_rig_gets_a_metric_order_and_mesh_levels_in_the_background() {
+    let server = TestServer::start_with_auto_lod(ServerConfig::default()).await;
+    let files = rig_files();
+    let stress = files
+        .iter()
+        .find(|f| f.ends_with("MorphStressTest.gltf"))
+        .expect("file");
+    server
+        .client
+        .upload_rig("stress", upload_bytes(stress))
+        .await
+        .expect("upload");
+    let lod = wait_ready(&server, "stress").await;
+    assert_eq!(lod.method, "combined");
+    check_levels(&server, "stress", "TheWave", 20).await;
     server.stop().await;
 }
 
@@ -328,8 +335,12 @@ async fn put_lod_sets_order_pins_and_table() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_test_data),
+    ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+)]
 async fn a_computed_lod_survives_a_restart() {
-    let Some(files) = rig_files() else { return };
+    let files = rig_files();
     let dir = temp_dir("lod-restart");
     let config = stored_config(&dir);
     let stress = files
@@ -357,8 +368,12 @@ async fn a_computed_lod_survives_a_restart() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_test_data),
+    ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+)]
 async fn deleting_a_rig_cancels_its_lod_job() {
-    let Some(files) = rig_files() else { return };
+    let files = rig_files();
     let server = TestServer::start_with_auto_lod(ServerConfig::default()).await;
     let ict = files
         .iter()
@@ -405,8 +420,12 @@ async fn deleting_a_rig_cancels_its_lod_job() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_test_data),
+    ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+)]
 async fn a_put_lod_wins_over_the_background_job() {
-    let Some(files) = rig_files() else { return };
+    let files = rig_files();
     let stress = files
         .iter()
         .find(|f| f.ends_with("MorphStressTest.gltf"))

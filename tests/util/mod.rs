@@ -23,16 +23,17 @@ pub fn data_dir() -> PathBuf {
     }
 }
 
-/// Every real rig file, or `None` (after printing why) when the data folder is absent.
-pub fn rig_files() -> Option<Vec<PathBuf>> {
+/// Every real rig file. Tests that call this carry
+/// `#[cfg_attr(not(crowdmorph_test_data), ignore = "...")]`: `build.rs` sets that cfg when it
+/// finds the data folder, so here a missing folder is a failure, not a reason to skip.
+pub fn rig_files() -> Vec<PathBuf> {
     let dir = data_dir();
-    if !dir.is_dir() {
-        eprintln!(
-            "skipped: {} not found (the shared test rigs are absent)",
-            dir.display()
-        );
-        return None;
-    }
+    assert!(
+        dir.is_dir(),
+        "{} not found: the shared test rigs are absent although this test needs them \
+         (it runs when build.rs found them, or with --ignored); set CROWDMORPH_TEST_DATA",
+        dir.display()
+    );
     let mut files = vec![dir.join("ict-facekit/ict_facekit_53.glb")];
     for name in [
         "AnimatedMorphCube",
@@ -43,7 +44,30 @@ pub fn rig_files() -> Option<Vec<PathBuf>> {
     ] {
         files.push(dir.join(format!("khronos/{name}/glTF/{name}.gltf")));
     }
-    Some(files)
+    files
+}
+
+/// Opens a GPU context on any adapter, software ones (lavapipe) included. Tests that call this
+/// carry `#[cfg_attr(not(crowdmorph_gpu_driver), ignore = "...")]`: `build.rs` found a Vulkan
+/// driver, so an adapter that cannot be opened is a broken GPU, and the test fails.
+pub fn open_gpu(
+    options: crowdmorph::engine::gpu::GpuOptions,
+) -> crowdmorph::engine::gpu::GpuContext {
+    match crowdmorph::engine::gpu::GpuContext::open(true, options) {
+        Ok(ctx) => {
+            eprintln!(
+                "GPU tests run on {} ({:?}, {:?})",
+                ctx.adapter().name,
+                ctx.adapter().backend,
+                ctx.adapter().device_type
+            );
+            ctx
+        }
+        Err(e) => panic!(
+            "no GPU adapter ({e}), although a Vulkan driver is installed (or the test was run \
+             with --ignored): a present but broken GPU is a failure"
+        ),
+    }
 }
 
 /// Deterministic numbers for test workloads (the library's SplitMix64).

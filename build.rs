@@ -1,0 +1,120 @@
+//! Build script: tells the integration tests which of their two outside resources this machine
+//! has, as `cfg`s, so that a test whose resource is absent is reported as `ignored` with the
+//! reason instead of passing without having run.
+//!
+//! - `crowdmorph_test_data`: the shared test rigs are there — `$CROWDMORPH_TEST_DATA`, else
+//!   `../shared/data` beside the checkout (the same rule as `data_dir` in `tests/util`).
+//! - `crowdmorph_gpu_driver`: a Vulkan driver is installed (an ICD manifest the Vulkan loader
+//!   would read, such as Mesa's lavapipe `lvp_icd.x86_64.json`). On Windows and macOS wgpu
+//!   reaches the system's DirectX 12 or Metal, so the driver is taken as present there.
+//!
+//! A present resource that then fails at run time fails its tests: a broken GPU or a missing rig
+//! file is a fault, not a reason to skip.
+//!
+//! Only paths that exist are watched for changes: cargo treats a watched path that is missing as
+//! changed on every build, which would rebuild the crate every time. So after adding the rigs or
+//! a Vulkan driver to a machine that lacked them, `touch build.rs` (or set the environment
+//! variable) to make the tests see them.
+
+use std::env;
+use std::path::{Path, PathBuf};
+
+fn main() {
+    println!("cargo::rerun-if-changed=build.rs");
+    println!("cargo::rustc-check-cfg=cfg(crowdmorph_test_data)");
+    println!("cargo::rustc-check-cfg=cfg(crowdmorph_gpu_driver)");
+
+    if test_data_present() {
+        println!("cargo::rustc-cfg=crowdmorph_test_data");
+    }
+    if gpu_driver_present() {
+        println!("cargo::rustc-cfg=crowdmorph_gpu_driver");
+    }
+}
+
+fn test_data_present() -> bool {
+    println!("cargo::rerun-if-env-changed=CROWDMORPH_TEST_DATA");
+    let dir = match env::var_os("CROWDMORPH_TEST_DATA") {
+        Some(dir) => PathBuf::from(dir),
+        None => Path::new(&manifest_dir()).join("../shared/data"),
+    };
+    let present = dir.is_dir();
+    if present {
+        watch(&dir);
+    }
+    present
+}
+
+fn gpu_driver_present() -> bool {
+    let os = env::var("CARGO_CFG_TARGET_OS").unwrap_or_default();
+    if matches!(os.as_str(), "windows" | "macos" | "ios") {
+        return true;
+    }
+    // The Vulkan loader's own search: an explicit driver list replaces the system folders.
+    let explicit = ["VK_DRIVER_FILES", "VK_ICD_FILENAMES", "VK_ADD_DRIVER_FILES"];
+    for var in explicit
+        .iter()
+        .chain(&["XDG_CONFIG_DIRS", "XDG_DATA_DIRS", "XDG_DATA_HOME"])
+    {
+        println!("cargo::rerun-if-env-changed={var}");
+    }
+    let listed: Vec<PathBuf> = explicit[..2]
+        .iter()
+        .find_map(|var| env::var_os(var).filter(|v| !v.is_empty()))
+        .map(|v| env::split_paths(&v).collect())
+        .unwrap_or_else(system_icd_dirs);
+    let added: Vec<PathBuf> = env::var_os(explicit[2])
+        .map(|v| env::split_paths(&v).collect())
+        .unwrap_or_default();
+    let mut present = false;
+    for path in listed.iter().chain(&added) {
+        if path.is_file() {
+            watch(path);
+            present = true;
+        } else if path.is_dir() {
+            watch(path);
+            present |= has_manifest(path);
+        }
+    }
+    present
+}
+
+/// The folders the Vulkan loader reads ICD manifests from on Linux and the BSDs.
+fn system_icd_dirs() -> Vec<PathBuf> {
+    let list = |var: &str, default: &str| -> Vec<PathBuf> {
+        match env::var_os(var).filter(|v| !v.is_empty()) {
+            Some(v) => env::split_paths(&v).collect(),
+            None => env::split_paths(default).collect(),
+        }
+    };
+    let mut bases = list("XDG_CONFIG_DIRS", "/etc/xdg");
+    bases.push(PathBuf::from("/etc"));
+    match env::var_os("XDG_DATA_HOME").filter(|v| !v.is_empty()) {
+        Some(home) => bases.push(PathBuf::from(home)),
+        None => {
+            if let Some(home) = env::var_os("HOME") {
+                bases.push(Path::new(&home).join(".local/share"));
+            }
+        }
+    }
+    bases.extend(list("XDG_DATA_DIRS", "/usr/local/share:/usr/share"));
+    bases.iter().map(|b| b.join("vulkan/icd.d")).collect()
+}
+
+fn has_manifest(dir: &Path) -> bool {
+    std::fs::read_dir(dir).is_ok_and(|entries| {
+        entries
+            .flatten()
+            .any(|e| e.path().extension().is_some_and(|x| x == "json"))
+    })
+}
+
+fn watch(path: &Path) {
+    println!("cargo::rerun-if-changed={}", path.display());
+}
+
+fn manifest_dir() -> String {
+    // Cargo always sets it for build scripts; the fallback is the package root, which is also
+    // the directory cargo runs this script in.
+    env::var("CARGO_MANIFEST_DIR").unwrap_or_else(|_| ".".into())
+}

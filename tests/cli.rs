@@ -1,0 +1,621 @@
+//! The `crowdmorph` command line, run as the real binary: one test per subcommand plus a bad
+//! argument.
+//!
+//! The binary under test is built with debug assertions (the test profile), so clap checks each
+//! subcommand's definition when it parses it: a mistake there panics here even when no unit test
+//! parses that subcommand. Each test uses the embedded head (7,262 vertices, no files needed) or
+//! a small generated rig, and small sizes and durations, so that it takes a few seconds on two
+//! cores. Outputs are checked against the library evaluating the same thing in this process.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+use crowdmorph::engine::{BlendJob, Engine, OutputSpec};
+use crowdmorph::server::ServerConfig;
+use serde_json::Value;
+
+use crate::server::{TestServer, temp_dir};
+
+/// The embedded head's vertex count, as the README states it.
+const EMBEDDED_VERTICES: usize = 7_262;
+
+/// A command running the binary, with the environment variables its flags read removed, so a
+/// developer's own settings do not change what the tests see.
+fn crowdmorph(args: &[&str]) -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_crowdmorph"));
+    c.args(args)
+        .env_remove("CROWDMORPH_BACKEND")
+        .env_remove("CROWDMORPH_SERVER")
+        .env_remove("CROWDMORPH_ADMIN_TOKEN")
+        .env("RUST_LOG", "warn")
+        .env("NO_COLOR", "1");
+    c
+}
+
+/// Runs the command and requires exit status 0; returns its output.
+fn success(mut command: Command) -> Output {
+    let out = command.output().expect("run crowdmorph");
+    assert!(
+        out.status.success(),
+        "{command:?} exited with {:?}\nstdout:\n{}\nstderr:\n{}",
+        out.status,
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
+/// Runs the binary with `args` (which include `--json`), requires success, and parses stdout.
+fn json(args: &[&str]) -> Value {
+    let out = success(crowdmorph(args));
+    serde_json::from_slice(&out.stdout).unwrap_or_else(|e| {
+        panic!(
+            "{args:?}: stdout is not JSON ({e}):\n{}",
+            String::from_utf8_lossy(&out.stdout)
+        )
+    })
+}
+
+fn f64_of(v: &Value, key: &str) -> f64 {
+    v[key]
+        .as_f64()
+        .unwrap_or_else(|| panic!("{key} is not a number in {v}"))
+}
+
+fn usize_of(v: &Value, key: &str) -> usize {
+    v[key]
+        .as_u64()
+        .unwrap_or_else(|| panic!("{key} is not a whole number in {v}")) as usize
+}
+
+fn strings(v: &Value) -> Vec<String> {
+    v.as_array()
+        .unwrap_or_else(|| panic!("not an array: {v}"))
+        .iter()
+        .map(|s| s.as_str().expect("string").to_string())
+        .collect()
+}
+
+fn path_str(p: &Path) -> &str {
+    p.to_str().expect("temporary paths are UTF-8")
+}
+
+#[test]
+fn inspect_describes_the_embedded_head_as_text_and_json() {
+    let rig = crowdmorph::embedded::default_rig();
+    assert_eq!(rig.vertex_count(), EMBEDDED_VERTICES);
+
+    // Text, on the default backend, with Mesa's device-select layer free to complain: the
+    // binary turns it off itself, so its XDG_RUNTIME_DIR message never appears.
+    let mut command = crowdmorph(&["inspect"]);
+    command
+        .env_remove("NODEVICE_SELECT")
+        .env_remove("XDG_RUNTIME_DIR");
+    let out = success(command);
+    let text = String::from_utf8(out.stdout).expect("UTF-8");
+    let first = text.lines().next().expect("a first line");
+    assert!(
+        first.starts_with(&format!(
+            "rig \"default-head\": {EMBEDDED_VERTICES} vertices, {} triangles, {} targets, {} clips",
+            rig.triangle_count(),
+            rig.targets.len(),
+            rig.clips.len()
+        )),
+        "{text}"
+    );
+    for clip in &rig.clips {
+        assert!(text.contains(&format!("  {:<24}", clip.name)), "{text}");
+    }
+    assert!(text.contains("LOD levels (shapes):") && text.contains("backend: "));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!stderr.contains("XDG_RUNTIME_DIR"), "{stderr}");
+
+    let s = json(&["inspect", "--json", "--backend", "cpu"]);
+    assert_eq!(s["name"], "default-head");
+    assert_eq!(usize_of(&s, "vertices"), EMBEDDED_VERTICES);
+    assert_eq!(usize_of(&s, "triangles"), rig.triangle_count());
+    assert_eq!(
+        s["primitives"].as_array().expect("primitives").len(),
+        rig.primitives.len()
+    );
+    let targets = s["targets"].as_array().expect("targets");
+    assert_eq!(targets.len(), rig.targets.len());
+    assert!(targets.iter().all(|t| usize_of(t, "nnz") > 0));
+    let clips: Vec<&str> = s["clips"]
+        .as_array()
+        .expect("clips")
+        .iter()
+        .map(|c| c["name"].as_str().expect("name"))
+        .collect();
+    let want: Vec<&str> = rig.clips.iter().map(|c| c.name.as_str()).collect();
+    assert_eq!(clips, want);
+    assert_eq!(s["backend"]["kind"], "cpu");
+    assert!(usize_of(&s["memory"], "host_bytes") > 0);
+    assert_eq!(usize_of(&s["memory"], "device_bytes"), 0);
+}
+
+#[test]
+fn eval_writes_obj_and_bin_files_of_the_frame_the_library_computes() {
+    let dir = temp_dir("cli-eval");
+    let (obj, bin) = (dir.join("head.obj"), dir.join("head.bin"));
+    let common = ["eval", "--clip", "talk", "--frame", "12", "--lod", "1"];
+    for out in [&obj, &bin] {
+        let mut args = common.to_vec();
+        args.extend(["--backend", "cpu", "--out", path_str(out)]);
+        let done = success(crowdmorph(&args));
+        let stderr = String::from_utf8_lossy(&done.stderr);
+        assert!(
+            stderr.contains(&format!("({EMBEDDED_VERTICES} vertices, clip \"talk\"")),
+            "{stderr}"
+        );
+    }
+
+    // What the library computes for the same frame.
+    let rig = std::sync::Arc::new(crowdmorph::embedded::default_rig());
+    let engine = Engine::cpu();
+    let prepared = engine.prepare(rig.clone()).expect("prepare");
+    let job = BlendJob {
+        clip: rig.clip_index("talk").expect("talk") as u32,
+        frame: 12,
+        lod: 1,
+    };
+    let want = engine
+        .evaluate(&prepared, &[job], OutputSpec::default())
+        .expect("evaluate")
+        .output
+        .job_positions(0);
+    assert_eq!(want.len(), EMBEDDED_VERTICES * 3);
+
+    // .bin: raw little-endian f32 xyz, exactly those positions.
+    let bytes = std::fs::read(&bin).expect("read .bin");
+    assert_eq!(bytes.len(), EMBEDDED_VERTICES * 12);
+    let got: Vec<f32> = bytes
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect();
+    assert_eq!(got, want);
+
+    // .obj: a vertex and a normal per vertex, every triangle, one object per primitive; the
+    // vertices print the same f32 values (Rust prints floats so that they read back exactly).
+    let text = std::fs::read_to_string(&obj).expect("read .obj");
+    let count = |prefix: &str| text.lines().filter(|l| l.starts_with(prefix)).count();
+    assert_eq!(count("v "), EMBEDDED_VERTICES);
+    assert_eq!(count("vn "), EMBEDDED_VERTICES);
+    assert_eq!(count("f "), rig.triangle_count());
+    assert_eq!(count("o "), rig.primitives.len());
+    let obj_positions: Vec<f32> = text
+        .lines()
+        .filter_map(|l| l.strip_prefix("v "))
+        .flat_map(|l| l.split(' ').map(|x| x.parse::<f32>().expect("float")))
+        .collect();
+    assert_eq!(obj_positions, want);
+
+    // Another extension is refused before anything is written.
+    let bad = dir.join("head.txt");
+    let mut args = common.to_vec();
+    args.extend(["--out", path_str(&bad)]);
+    let out = crowdmorph(&args).output().expect("run");
+    assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("must end in .obj or .bin"));
+    assert!(!bad.exists());
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+#[test]
+fn lod_order_ranks_every_target_of_the_embedded_head_with_pins_first() {
+    let rig = crowdmorph::embedded::default_rig();
+    let o = json(&[
+        "lod",
+        "order",
+        "--size",
+        "64",
+        "--pin",
+        "eyeBlink_R",
+        "--json",
+    ]);
+    assert_eq!(o["rig"], "default-head");
+    assert_eq!(o["method"], "combined");
+    assert_eq!(strings(&o["pinned"]), ["eyeBlink_R"]);
+    let order = strings(&o["order"]);
+    assert_eq!(order[0], "eyeBlink_R");
+    let mut sorted = order.clone();
+    sorted.sort();
+    let mut all = rig.targets.clone();
+    all.sort();
+    assert_eq!(sorted, all, "the order is a permutation of the targets");
+    let metrics = o["metric_orders"].as_array().expect("metric orders");
+    assert_eq!(metrics.len(), 5, "five metrics");
+    for m in metrics {
+        assert_eq!(strings(&m[1]).len(), rig.targets.len(), "{}", m[0]);
+    }
+    let seconds = f64_of(&o, "seconds");
+    assert!(seconds > 0.0 && seconds < 60.0, "{seconds}");
+}
+
+#[test]
+fn lod_report_gives_every_order_its_error_over_a_clip_and_a_plot() {
+    let rig = crowdmorph::embedded::default_rig();
+    let dir = temp_dir("cli-lod-report");
+    let png = dir.join("report.png");
+    let r = json(&[
+        "lod",
+        "report",
+        "--clip",
+        "talk",
+        "--size",
+        "64",
+        "--out",
+        path_str(&png),
+        "--json",
+    ]);
+    assert_eq!(r["clip"], "talk");
+    let talk = &rig.clips[rig.clip_index("talk").expect("talk")];
+    assert_eq!(r["frames"].as_u64(), Some(u64::from(talk.frames)));
+    assert_eq!(usize_of(&r, "vertices"), EMBEDDED_VERTICES);
+    let orders = r["orders"].as_array().expect("orders");
+    let methods: Vec<&str> = orders
+        .iter()
+        .map(|o| o["method"].as_str().expect("method"))
+        .collect();
+    assert!(
+        methods.contains(&"combined") && methods.contains(&"file-order"),
+        "{methods:?}"
+    );
+    for o in orders {
+        let levels = o["levels"].as_array().expect("levels");
+        assert_eq!(levels.len(), rig.lod.levels.len());
+        // Level 0 keeps every shape: no error. The last keeps none: some.
+        assert_eq!(f64_of(&levels[0], "max"), 0.0, "{o}");
+        let last = levels.last().expect("a level");
+        assert!(f64_of(last, "rms") > 0.0 && f64_of(last, "max") >= f64_of(last, "rms"));
+    }
+    let bytes = std::fs::read(&png).expect("the plot");
+    assert!(bytes.starts_with(b"\x89PNG\r\n\x1a\n"));
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+#[test]
+fn lod_mesh_builds_smaller_levels_that_keep_the_feature_points() {
+    let rig = crowdmorph::embedded::default_rig();
+    let dir = temp_dir("cli-lod-mesh");
+    let m = json(&[
+        "lod",
+        "mesh",
+        "--fractions",
+        "0.5,0.25",
+        "--obj-dir",
+        path_str(&dir),
+        "--json",
+    ]);
+    let full = m["full"].as_array().expect("full");
+    assert_eq!(full[0].as_u64(), Some(EMBEDDED_VERTICES as u64));
+    assert_eq!(full[1].as_u64(), Some(rig.triangle_count() as u64));
+    let f = &m["features"];
+    let mut features: Vec<u64> = f["landmarks"]
+        .as_array()
+        .expect("landmarks")
+        .iter()
+        .map(|l| l["vertex"].as_u64().expect("vertex"))
+        .chain(
+            f["lip_line"]
+                .as_array()
+                .expect("lip line")
+                .iter()
+                .map(|v| v.as_u64().expect("vertex")),
+        )
+        .chain(
+            f["motion_peaks"]
+                .as_array()
+                .expect("peaks")
+                .iter()
+                .map(|v| v.as_u64().expect("vertex")),
+        )
+        .collect();
+    features.sort_unstable();
+    features.dedup();
+    assert!(!features.is_empty());
+    let levels = m["levels"].as_array().expect("levels");
+    assert_eq!(levels.len(), 2);
+    let mut previous = EMBEDDED_VERTICES;
+    for (level, (fraction, name)) in levels.iter().zip([(0.5, "mesh_50"), (0.25, "mesh_25")]) {
+        assert_eq!(f64_of(level, "fraction"), fraction);
+        let (vertices, triangles) = (usize_of(level, "vertices"), usize_of(level, "triangles"));
+        assert!(vertices < previous, "{level}");
+        previous = vertices;
+        let asked = fraction * rig.triangle_count() as f64;
+        assert!(
+            (triangles as f64) < asked * 1.1,
+            "{triangles} triangles for {fraction}"
+        );
+        assert_eq!(usize_of(level, "features_kept"), features.len());
+        // Each level's neutral mesh as OBJ, and a render of it.
+        let obj = std::fs::read_to_string(dir.join(format!("{name}.obj"))).expect("obj");
+        assert_eq!(
+            obj.lines().filter(|l| l.starts_with("v ")).count(),
+            vertices
+        );
+        assert_eq!(
+            obj.lines().filter(|l| l.starts_with("f ")).count(),
+            triangles
+        );
+        let png = std::fs::read(dir.join(format!("{name}.png"))).expect("png");
+        assert!(png.starts_with(b"\x89PNG"));
+    }
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+#[test]
+fn bench_cpu_reports_plausible_json() {
+    let r = json(&[
+        "bench",
+        "cpu",
+        "--heads",
+        "20",
+        "--unique",
+        "10",
+        "--seconds",
+        "0.05",
+        "--json",
+    ]);
+    assert_eq!(usize_of(&r, "vertices"), EMBEDDED_VERTICES);
+    assert_eq!(usize_of(&r, "targets"), 51);
+    assert_eq!((usize_of(&r, "heads"), usize_of(&r, "unique")), (20, 10));
+    assert_eq!(r["precision"], "f32");
+    for key in [
+        "eval_ms",
+        "crowd_ms",
+        "unique_heads_per_s",
+        "heads_per_s",
+        "dense_baseline_ms",
+        "memcpy_ms",
+        "speedup_vs_dense",
+    ] {
+        let v = f64_of(&r, key);
+        assert!(v.is_finite() && v > 0.0, "{key} = {v}");
+    }
+    // Ten unique heads evaluate in well under a second on any machine this runs on.
+    assert!(f64_of(&r, "eval_ms") < 1000.0, "{r}");
+    let scaling = r["lod_scaling"].as_array().expect("lod scaling");
+    assert!(!scaling.is_empty());
+    assert_eq!(usize_of(&scaling[0], "shapes"), 51);
+    assert_eq!(f64_of(&scaling[0], "delta_fraction"), 1.0);
+}
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+fn bench_gpu_measures_the_scenes_on_a_gpu_and_the_cpu() {
+    // `bench gpu` always includes the paper-scale rig unless told not to, and that takes
+    // seconds per scene on lavapipe: a tiny generated rig keeps this fast. `--backend gpu`
+    // (the default) takes software adapters such as lavapipe; auto would not.
+    let dir = temp_dir("cli-bench-gpu");
+    let rig = dir.join("triangle.glb");
+    std::fs::write(&rig, crate::util::builder::triangle_rig().to_glb()).expect("write rig");
+    let plot = dir.join("gpu.png");
+    let reports = json(&[
+        "bench",
+        "gpu",
+        "--backend",
+        "gpu",
+        "--no-paper",
+        "--rig",
+        path_str(&rig),
+        "--seconds",
+        "0.01",
+        "--with-cpu",
+        "--plot",
+        path_str(&plot),
+        "--json",
+    ]);
+    let reports = reports.as_array().expect("one report per engine");
+    assert_eq!(reports.len(), 2);
+    assert_eq!(
+        reports[0]["backend"]["kind"], "gpu",
+        "{}",
+        reports[0]["backend"]
+    );
+    assert_eq!(reports[0]["backend"]["degraded"], false);
+    assert_eq!(reports[1]["backend"]["kind"], "cpu");
+    for r in reports {
+        let scenes = r["scenes"].as_array().expect("scenes");
+        let names: Vec<&str> = scenes
+            .iter()
+            .map(|s| s["scene"].as_str().expect("scene"))
+            .collect();
+        for (scene, _, _) in crowdmorph::tools::bench_gpu::SCENES {
+            assert!(names.contains(&scene), "{scene} missing: {names:?}");
+        }
+        for s in scenes {
+            assert!(
+                f64_of(s, "round_trip_ms") > 0.0 && f64_of(s, "heads_per_s") > 0.0,
+                "{s}"
+            );
+        }
+    }
+    assert!(std::fs::read(&plot).expect("plot").starts_with(b"\x89PNG"));
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+#[test]
+fn bench_http_reports_plausible_json() {
+    let r = json(&[
+        "bench",
+        "http",
+        "--heads",
+        "10",
+        "--unique",
+        "5",
+        "--clients",
+        "2",
+        "--seconds",
+        "0.2",
+        "--backend",
+        "cpu",
+        "--format",
+        "f16",
+        "--json",
+    ]);
+    assert_eq!(r["backend"]["kind"], "cpu");
+    assert_eq!(usize_of(&r, "vertices"), EMBEDDED_VERTICES);
+    assert_eq!((usize_of(&r, "heads"), usize_of(&r, "unique")), (10, 5));
+    assert_eq!(r["format"], "f16");
+    for key in [
+        "inprocess_heads_per_s",
+        "http_heads_per_s",
+        "loopback_bytes_per_s",
+        "response_bytes_per_head",
+        "saturation_p50_ms",
+        "half_load_p50_ms",
+    ] {
+        let v = f64_of(&r, key);
+        assert!(v.is_finite() && v > 0.0, "{key} = {v}");
+    }
+    assert_eq!(r["saturation_errors"], 0);
+    assert_eq!(r["half_load_errors"], 0);
+    assert!(f64_of(&r, "half_load_p99_ms") >= f64_of(&r, "half_load_p50_ms"));
+    // Half the heads are clones: an f16 response carries five unique buffers of 6 bytes per
+    // vertex for ten heads, so about 3 bytes per vertex per head.
+    let per_head = f64_of(&r, "response_bytes_per_head");
+    let floor = (EMBEDDED_VERTICES * 3) as f64;
+    assert!(
+        per_head > floor && per_head < floor * 1.2,
+        "{per_head} bytes per head"
+    );
+    assert!(!r["sizes"].as_array().expect("sizes").is_empty());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn lod_set_changes_the_lod_a_running_server_serves() {
+    let server = TestServer::start(ServerConfig {
+        admin_token: Some("secret".into()),
+        ..ServerConfig::default()
+    })
+    .await;
+    let url = format!("http://{}", server.addr);
+    let args = |extra: &[&str]| -> Vec<String> {
+        [
+            "lod",
+            "set",
+            "default-head",
+            "--server",
+            &url,
+            "--method",
+            "file-order",
+            "--pin",
+            "jawOpen",
+            "--level",
+            "51",
+            "--level",
+            "12:0",
+            "--level",
+            "0:1",
+            "--mesh-fractions",
+            "0.5,0.2",
+        ]
+        .iter()
+        .chain(extra)
+        .map(|s| s.to_string())
+        .collect()
+    };
+    // The binary blocks on its own runtime: off this test's async threads.
+    let run = |args: Vec<String>, token: Option<&'static str>| {
+        tokio::task::spawn_blocking(move || {
+            let args: Vec<&str> = args.iter().map(String::as_str).collect();
+            let mut c = crowdmorph(&args);
+            if let Some(t) = token {
+                // The token from the environment, as an operator would pass it.
+                c.env("CROWDMORPH_ADMIN_TOKEN", t);
+            }
+            c.output().expect("run crowdmorph")
+        })
+    };
+
+    let refused = run(args(&[]), None).await.expect("join");
+    assert_eq!(refused.status.code(), Some(1));
+    assert!(
+        String::from_utf8_lossy(&refused.stderr).contains("401"),
+        "{}",
+        String::from_utf8_lossy(&refused.stderr)
+    );
+
+    let out = run(args(&["--json"]), Some("secret")).await.expect("join");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let info: crowdmorph_proto::RigInfo = serde_json::from_slice(&out.stdout).expect("RigInfo");
+    assert_eq!(info.lod.method, "file-order+pinned");
+    assert_eq!(info.lod.order[0], "jawOpen");
+    let table: Vec<(u32, Option<u32>)> =
+        info.lod.levels.iter().map(|l| (l.shapes, l.mesh)).collect();
+    assert_eq!(table, [(51, None), (12, Some(0)), (0, Some(1))]);
+    assert!(info.lod.levels[2].vertices < info.lod.levels[1].vertices);
+    assert_eq!(
+        server.client.lod("default-head").await.expect("lod"),
+        info.lod,
+        "what the command set is what the server serves"
+    );
+
+    // Without --json, the table as text.
+    let out = run(args(&[]), Some("secret")).await.expect("join");
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success() && text.contains("level 1:  12 shapes"),
+        "{text}"
+    );
+    server.stop().await;
+}
+
+#[test]
+fn serve_help_lists_every_flag_with_its_environment_variable() {
+    let mut command = crowdmorph(&["serve", "--help"]);
+    command.env("CROWDMORPH_ADMIN_TOKEN", "do-not-print-me");
+    let out = success(command);
+    let help = String::from_utf8(out.stdout).expect("UTF-8");
+    for (flag, env) in [
+        ("--addr", "CROWDMORPH_ADDR"),
+        ("--data-dir", "CROWDMORPH_DATA_DIR"),
+        ("--backend", "CROWDMORPH_BACKEND"),
+        ("--admin-token", "CROWDMORPH_ADMIN_TOKEN"),
+        ("--max-heads", "CROWDMORPH_MAX_HEADS"),
+        ("--batch-delay-us", "CROWDMORPH_BATCH_DELAY_US"),
+        ("--no-auto-lod", "CROWDMORPH_NO_AUTO_LOD"),
+    ] {
+        assert!(
+            help.contains(flag) && help.contains(env),
+            "{flag} / {env}:\n{help}"
+        );
+    }
+    assert!(help.contains("127.0.0.1:8080"), "the default address");
+    assert!(
+        !help.contains("do-not-print-me"),
+        "the token's value is hidden"
+    );
+}
+
+#[test]
+fn a_bad_argument_exits_with_status_2_and_says_why() {
+    let out = crowdmorph(&["bench", "http", "--no-such-flag"])
+        .output()
+        .expect("run");
+    assert_eq!(out.status.code(), Some(2));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("unexpected argument '--no-such-flag'") && stderr.contains("Usage:"),
+        "{stderr}"
+    );
+    assert!(out.stdout.is_empty());
+
+    let out = crowdmorph(&["eval", "--frame", "twelve"])
+        .output()
+        .expect("run");
+    assert_eq!(out.status.code(), Some(2));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("invalid value 'twelve' for '--frame <FRAME>'"),
+        "{stderr}"
+    );
+}
