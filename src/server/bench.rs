@@ -289,6 +289,9 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
         max_heads: opt.heads.max(1000),
         request_timeout: Duration::from_secs(60),
         backend: opt.backend,
+        // The background LOD job would score the embedded head (seconds of CPU) during the
+        // measurement, on the same cores.
+        auto_lod: false,
         ..ServerConfig::default()
     };
     let state = AppState::new(config)?;
