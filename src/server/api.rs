@@ -24,7 +24,8 @@ use serde::de::DeserializeOwned;
 use tokio::sync::OwnedSemaphorePermit;
 
 use super::registry::{
-    RigEntry, check_output_range, clip_infos, quantization_box, sanitize_id, valid_id,
+    ClipLayout, RigEntry, check_output_range, clip_infos, clips_named, quantization_box,
+    sanitize_id, valid_id,
 };
 use super::scheduler::{JobRequest, ScheduleError};
 use super::{ApiError, AppState};
@@ -301,34 +302,72 @@ impl AppState {
         self.registry.get(id).ok_or_else(|| unknown_rig(self, id))
     }
 
-    /// Persists a rig's current state (whole rig, or the built-in rig's uploaded clips).
-    pub(super) async fn persist(
+    /// Persists a rig's record: its geometry and LOD with the clips `layout` keeps in the
+    /// record (for the built-in rig: its extra clips and LOD).
+    pub(super) async fn persist_record(
         &self,
         id: &str,
         rig: Arc<Rig>,
-        builtin_clips: Option<usize>,
+        builtin: bool,
+        layout: &ClipLayout,
     ) -> Result<(), ApiError> {
         if self.store.is_none() {
             return Ok(());
         }
         let state = self.clone();
         let id = id.to_string();
-        tokio::task::spawn_blocking(move || {
+        let names = layout.record.clone();
+        blocking(move || {
             let Some(store) = &state.store else {
                 return Ok(());
             };
-            match builtin_clips {
-                Some(n) => store.put(RecordRef::Builtin {
+            let clips = clips_named(&rig, &names);
+            let record = if builtin {
+                RecordRef::Builtin {
                     id: &id,
-                    clips: rig.clips.get(n..).unwrap_or_default(),
+                    clips: &clips,
                     rig: &rig,
-                }),
-                None => store.put(RecordRef::Rig { id: &id, rig: &rig }),
-            }
+                }
+            } else {
+                RecordRef::Rig {
+                    id: &id,
+                    rig: &rig,
+                    clips: &clips,
+                }
+            };
+            store.put(record).map_err(ApiError::internal)
         })
         .await
-        .map_err(ApiError::internal)?
-        .map_err(ApiError::internal)
+    }
+
+    /// Persists clip file `seq` of a rig with `clips`, or deletes it when there are none.
+    pub(super) async fn persist_clips(
+        &self,
+        id: &str,
+        seq: u64,
+        clips: Vec<crate::rig::Clip>,
+    ) -> Result<(), ApiError> {
+        if self.store.is_none() {
+            return Ok(());
+        }
+        let state = self.clone();
+        let id = id.to_string();
+        blocking(move || {
+            let Some(store) = &state.store else {
+                return Ok(());
+            };
+            if clips.is_empty() {
+                store.remove_clips(&id, seq)
+            } else {
+                store.put(RecordRef::Clips {
+                    id: &id,
+                    seq,
+                    clips: &clips,
+                })
+            }
+            .map_err(ApiError::internal)
+        })
+        .await
     }
 }
 
@@ -579,7 +618,10 @@ pub(super) async fn upload_rig(
         ));
     }
     // On disk before it is visible: a crash after this point loses nothing acknowledged.
-    state.persist(&id, rig.clone(), None).await?;
+    let layout = ClipLayout::in_record(&rig.clips);
+    state
+        .persist_record(&id, rig.clone(), false, &layout)
+        .await?;
     let charge = budget.keep(prepared.memory().host_bytes as u64);
     let entry = Arc::new(RigEntry {
         id: id.clone(),
@@ -589,6 +631,7 @@ pub(super) async fn upload_rig(
         qbox,
         generation: state.registry.generation(),
         prepared,
+        layout,
         charge: std::sync::Mutex::new(charge),
     });
     state.registry.insert(entry.clone());
@@ -866,13 +909,14 @@ pub(super) async fn upload_clips(
         Ok((new, prepared, qbox, added, ignored, table_bytes))
     })
     .await?;
+    // The new clips go to a clip file of their own: the rig's record is not rewritten.
+    let names: Vec<String> = added.iter().map(|c| c.name.clone()).collect();
+    let seq = entry.layout.next_seq();
     state
-        .persist(
-            &id,
-            rig.clone(),
-            entry.builtin.then_some(entry.builtin_clips),
-        )
+        .persist_clips(&id, seq, clips_named(&rig, &names))
         .await?;
+    let mut layout = entry.layout.clone();
+    layout.files.push((seq, names));
     // The new generation holds the old one's charge plus the new tables.
     let mut charge = entry.take_charge();
     charge.absorb(budget.keep(table_bytes));
@@ -885,6 +929,7 @@ pub(super) async fn upload_clips(
         qbox,
         generation: state.registry.generation(),
         prepared,
+        layout,
         charge: std::sync::Mutex::new(charge),
     }));
     drop(budget);
@@ -965,9 +1010,24 @@ pub(super) async fn delete_clip(
         Ok((new, prepared, qbox))
     })
     .await?;
-    state
-        .persist(&id, rig, entry.builtin.then_some(entry.builtin_clips))
-        .await?;
+    // Only the file that held the clip is rewritten: its clip file, or the rig's record.
+    let layout = entry.layout.without(&clip);
+    match entry.layout.file_of(&clip) {
+        Some(seq) => {
+            let rest = layout
+                .files
+                .iter()
+                .find(|f| f.0 == seq)
+                .map(|f| clips_named(&rig, &f.1))
+                .unwrap_or_default();
+            state.persist_clips(&id, seq, rest).await?;
+        }
+        None => {
+            state
+                .persist_record(&id, rig.clone(), entry.builtin, &layout)
+                .await?;
+        }
+    }
     let mut charge = entry.take_charge();
     charge.set(prepared.memory().host_bytes as u64);
     state.registry.insert(Arc::new(RigEntry {
@@ -978,6 +1038,7 @@ pub(super) async fn delete_clip(
         qbox,
         generation: state.registry.generation(),
         prepared,
+        layout,
         charge: std::sync::Mutex::new(charge),
     }));
     crate::budget::return_freed_memory();

@@ -312,7 +312,7 @@ async fn apply(
     })
     .await?;
     state
-        .persist(id, rig, entry.builtin.then_some(entry.builtin_clips))
+        .persist_record(id, rig, entry.builtin, &entry.layout)
         .await?;
     // The new generation takes over the rig's charge, set to what it now holds (its mesh
     // levels included).
@@ -326,6 +326,7 @@ async fn apply(
         qbox: entry.qbox,
         generation: state.registry.generation(),
         prepared,
+        layout: entry.layout.clone(),
         charge: Mutex::new(charge),
     });
     state.registry.insert(next.clone());

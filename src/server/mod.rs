@@ -53,7 +53,7 @@ use crate::engine::{Engine, EngineError};
 use crate::rig::RigShape;
 use crate::store::{Record, Store, StoreError, geometry_fingerprint};
 use metrics::{Gauges, Metrics};
-use registry::{BUILTIN_ID, Registry, RigEntry, quantization_box};
+use registry::{BUILTIN_ID, ClipLayout, Registry, RigEntry, quantization_box};
 use scheduler::{BatchConfig, Scheduler};
 
 /// Why the server could not start or stopped abnormally.
@@ -172,6 +172,7 @@ impl AppState {
             qbox: quantization_box(&builtin),
             generation: registry.generation(),
             prepared,
+            layout: ClipLayout::default(),
             charge: Mutex::new(charge),
         }));
         Ok(AppState(Arc::new(Inner {
@@ -319,15 +320,64 @@ impl AppState {
                     qbox: quantization_box(&rig),
                     generation: self.registry.generation(),
                     prepared,
+                    layout: ClipLayout::in_record(&rig.clips),
                     charge: Mutex::new(charge),
                 }));
                 Ok(true)
+            }
+            Record::Clips(c) => {
+                let Some(entry) = self.registry.get(&c.id) else {
+                    // The rig's record was deleted and the process stopped before its clip
+                    // files were: leftovers of a delete, not data anyone can reach.
+                    if let Some(store) = &self.store {
+                        tracing::warn!(rig = %c.id, seq = c.seq, "removing clips of a deleted rig");
+                        let _ = store.remove_clips(&c.id, c.seq);
+                    }
+                    return Ok(false);
+                };
+                let mut rig = entry.rig().clone();
+                let names: Vec<String> = c.clips.iter().map(|c| c.name.clone()).collect();
+                if let Some(dup) = names.iter().find(|n| rig.clip_index(n).is_some()) {
+                    return Err(format!(
+                        "clip file {} of rig {:?} repeats clip {dup:?}",
+                        c.seq, c.id
+                    ));
+                }
+                rig.clips.extend(c.clips);
+                rig.validate()
+                    .map_err(|e| format!("clip file {} of rig {:?}: {e}", c.seq, c.id))?;
+                let rig = Arc::new(rig);
+                cost(&rig)?;
+                let prepared = self
+                    .engine
+                    .update_clips(&entry.prepared, rig.clone())
+                    .map_err(|e| format!("clip file {} of rig {:?}: {e}", c.seq, c.id))?;
+                let mut layout = entry.layout.clone();
+                layout.files.push((c.seq, names));
+                let mut charge = entry.take_charge();
+                charge.set(prepared.memory().host_bytes as u64);
+                self.registry.insert(Arc::new(RigEntry {
+                    id: entry.id.clone(),
+                    builtin: entry.builtin,
+                    builtin_clips: entry.builtin_clips,
+                    vertices: entry.vertices,
+                    qbox: quantization_box(&rig),
+                    generation: self.registry.generation(),
+                    prepared,
+                    layout,
+                    charge: Mutex::new(charge),
+                }));
+                Ok(false)
             }
             Record::Builtin(c) => {
                 let Some(entry) = self.registry.get(&c.id).filter(|e| e.builtin) else {
                     return Err(format!("stored clips for unknown built-in rig {:?}", c.id));
                 };
                 let mut rig = entry.rig().clone();
+                let layout = ClipLayout {
+                    record: c.clips.iter().map(|c| c.name.clone()).collect(),
+                    files: entry.layout.files.clone(),
+                };
                 rig.clips.extend(c.clips);
                 let mut lod_changed = false;
                 if let Some((lod, geometry)) = c.lod {
@@ -360,6 +410,7 @@ impl AppState {
                     qbox: quantization_box(&rig),
                     generation: self.registry.generation(),
                     prepared,
+                    layout,
                     charge: Mutex::new(charge),
                 }));
                 Ok(false)

@@ -40,10 +40,66 @@ pub struct RigEntry {
     pub qbox: Quantization,
     /// Vertices over all primitives.
     pub vertices: usize,
+    /// Where the rig's clips are stored.
+    pub layout: ClipLayout,
     /// The rig's bytes in the server's memory pool. A new generation takes it over from the
     /// one it replaces (they share most of their memory); it is given back when the last
     /// generation of a deleted rig is dropped.
     pub charge: Mutex<Charge>,
+}
+
+/// Where a rig's clips are stored (see [`crate::store`]): some in the rig's record (for the
+/// built-in rig, its record of extras), the rest in clip files, one per upload.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct ClipLayout {
+    /// Names of the clips the record holds.
+    pub record: Vec<String>,
+    /// Clip files: sequence number and the names of the clips each holds.
+    pub files: Vec<(u64, Vec<String>)>,
+}
+
+impl ClipLayout {
+    /// A layout with every clip of `clips` in the record.
+    pub fn in_record(clips: &[crate::rig::Clip]) -> ClipLayout {
+        ClipLayout {
+            record: clips.iter().map(|c| c.name.clone()).collect(),
+            files: Vec::new(),
+        }
+    }
+
+    /// The sequence number of the next clip file.
+    pub fn next_seq(&self) -> u64 {
+        self.files.iter().map(|f| f.0).max().map_or(1, |s| s + 1)
+    }
+
+    /// The clip file holding `name`, if a file does (else the record does, or none).
+    pub fn file_of(&self, name: &str) -> Option<u64> {
+        self.files
+            .iter()
+            .find(|(_, names)| names.iter().any(|n| n == name))
+            .map(|f| f.0)
+    }
+
+    /// This layout without clip `name`.
+    pub fn without(&self, name: &str) -> ClipLayout {
+        ClipLayout {
+            record: self.record.iter().filter(|n| *n != name).cloned().collect(),
+            files: self
+                .files
+                .iter()
+                .map(|(s, names)| (*s, names.iter().filter(|n| *n != name).cloned().collect()))
+                .collect(),
+        }
+    }
+}
+
+/// The clips of `rig` named in `names`, in the rig's order.
+pub fn clips_named(rig: &Rig, names: &[String]) -> Vec<crate::rig::Clip> {
+    rig.clips
+        .iter()
+        .filter(|c| names.contains(&c.name))
+        .cloned()
+        .collect()
 }
 
 impl RigEntry {

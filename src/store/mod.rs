@@ -1,4 +1,10 @@
-//! Persistence of registered rigs and clips: one checksummed file per rig under the data dir.
+//! Persistence of registered rigs and clips: one checksummed record per rig under the data
+//! dir, and one per batch of clips added to it later.
+//!
+//! A rig's record holds its geometry, LOD and the clips it was stored with; clips uploaded
+//! afterwards go to their own files (`<id>@<seq>.cmclips`, in upload order), so adding a clip
+//! writes that clip, not the whole rig again. A rig's clips are its record's, then its clip
+//! files' in sequence order. Deleting a clip rewrites only the file that holds it.
 //!
 //! Nothing is ever half-written where a reader looks: a record is written to a temporary file in
 //! the same directory, flushed to disk (`fsync`), renamed over its final name (atomic on POSIX
@@ -11,7 +17,7 @@
 //! | bytes | what |
 //! |---|---|
 //! | 8 | magic `CMSTORE1` |
-//! | 4 | record kind: 1 = a whole rig, 3 = extra clips and the LOD of a built-in rig (2 = its clips only, as older builds wrote them; still read) |
+//! | 4 | record kind: 1 = a whole rig, 3 = extra clips and the LOD of a built-in rig (2 = its clips only, as older builds wrote them; still read), 4 = clips added to a rig |
 //! | 8 | payload length `n` |
 //! | 4 | CRC-32 (IEEE) of the payload |
 //! | n | payload: the record encoded by [`crate::codec`] |
@@ -36,8 +42,11 @@ const HEADER: usize = 8 + 4 + 8 + 4;
 const KIND_RIG: u32 = 1;
 const KIND_BUILTIN_CLIPS: u32 = 2;
 const KIND_BUILTIN: u32 = 3;
+const KIND_CLIPS: u32 = 4;
 /// Extension of record files.
 const EXT: &str = "cmrig";
+/// Extension of clip files.
+const CLIPS_EXT: &str = "cmclips";
 /// Prefix of temporary files. Rig ids never start with a dot (`registry::valid_id`), so no
 /// record name can ever carry it, whatever the id.
 const TMP: &str = ".tmp-";
@@ -88,18 +97,29 @@ pub fn geometry_fingerprint(rig: &Rig) -> u32 {
 /// A record to write, borrowed so that a big rig is not cloned to be stored.
 #[derive(Clone, Copy, Debug)]
 pub enum RecordRef<'a> {
-    /// A whole uploaded rig.
+    /// An uploaded rig: geometry, LOD and the clips stored with it.
     Rig {
         /// Registry id.
         id: &'a str,
         /// The rig.
         rig: &'a Rig,
+        /// The clips stored in this record (the rig's others are in clip files).
+        clips: &'a [Clip],
+    },
+    /// Clips added to a rig after its record was written, as clip file `seq`.
+    Clips {
+        /// Registry id of the rig.
+        id: &'a str,
+        /// The file's sequence number (files load in this order).
+        seq: u64,
+        /// The clips.
+        clips: &'a [Clip],
     },
     /// Extra clips and the LOD of a built-in rig.
     Builtin {
         /// Id of the built-in rig.
         id: &'a str,
-        /// The clips added to it.
+        /// The clips stored in this record (the rig's others are built in or in clip files).
         clips: &'a [Clip],
         /// The whole rig as it is now (for its LOD and geometry fingerprint).
         rig: &'a Rig,
@@ -140,14 +160,15 @@ struct RigRecordRef<'a> {
 }
 
 impl<'a> RigRecordRef<'a> {
-    fn new(rig: &'a Rig) -> Result<Self, StoreError> {
+    /// The record of `rig` holding `clips` (the rest of its clips are in clip files).
+    fn new(rig: &'a Rig, clips: &'a [Clip]) -> Result<Self, StoreError> {
         // Exhaustive on purpose: a new Rig field must be added to the stored record.
         let Rig {
             name,
             targets,
             default_weights,
             primitives,
-            clips,
+            clips: _,
             lod,
         } = rig;
         Ok(RigRecordRef {
@@ -214,9 +235,37 @@ struct StoredBuiltinOwned {
     geometry: u32,
 }
 
+/// Kind 4: clips added to a rig.
+#[derive(Serialize)]
+struct StoredClipsRef<'a> {
+    id: &'a str,
+    seq: u64,
+    clips: &'a [Clip],
+}
+
+/// Clips added to a rig after its record was written, as loaded.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StoredClips {
+    /// Registry id of the rig.
+    pub id: String,
+    /// Sequence number of the file.
+    pub seq: u64,
+    /// The clips, in the order they were added.
+    pub clips: Vec<Clip>,
+}
+
+#[derive(Deserialize)]
+struct StoredClipsOwned {
+    id: String,
+    seq: u64,
+    clips: Vec<Clip>,
+}
+
 /// What a store file holds.
 #[derive(Clone, Debug, PartialEq)]
 pub enum Record {
+    /// Clips added to a rig (a clip file).
+    Clips(StoredClips),
     /// A whole uploaded rig (boxed: it is much bigger than the other variant).
     Rig(Box<StoredRig>),
     /// Extra clips and LOD of a built-in rig.
@@ -320,12 +369,17 @@ impl Store {
     /// never held in memory a second time.
     pub fn put(&self, record: RecordRef<'_>) -> Result<(), StoreError> {
         let n = self.tmp_counter.fetch_add(1, Ordering::Relaxed);
-        let id = match record {
-            RecordRef::Rig { id, .. } | RecordRef::Builtin { id, .. } => id,
+        let path = match record {
+            RecordRef::Rig { id, .. } | RecordRef::Builtin { id, .. } => self.path_of(id),
+            RecordRef::Clips { id, seq, .. } => self.clips_path(id, seq),
         };
+        let name = path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
         let tmp = self
             .dir
-            .join(format!("{TMP}{}-{n}-{id}.{EXT}", std::process::id()));
+            .join(format!("{TMP}{}-{n}-{name}", std::process::id()));
         let result = (|| {
             let file = File::create(&tmp).map_err(io("create", &tmp))?;
             let mut w = Checksummed {
@@ -337,10 +391,10 @@ impl Store {
                 .write_all(&[0u8; HEADER])
                 .map_err(io("write", &tmp))?;
             let kind = match record {
-                RecordRef::Rig { id, rig } => {
+                RecordRef::Rig { id, rig, clips } => {
                     let r = StoredRigRef {
                         id,
-                        rig: RigRecordRef::new(rig)?,
+                        rig: RigRecordRef::new(rig, clips)?,
                     };
                     codec::to_stored_writer(&r, &mut w)
                         .map_err(|e| StoreError::Encode(e.to_string()))?;
@@ -357,6 +411,11 @@ impl Store {
                         .map_err(|e| StoreError::Encode(e.to_string()))?;
                     KIND_BUILTIN
                 }
+                RecordRef::Clips { id, seq, clips } => {
+                    codec::to_stored_writer(&StoredClipsRef { id, seq, clips }, &mut w)
+                        .map_err(|e| StoreError::Encode(e.to_string()))?;
+                    KIND_CLIPS
+                }
             };
             let mut header = Vec::with_capacity(HEADER);
             header.extend_from_slice(MAGIC);
@@ -372,7 +431,6 @@ impl Store {
             f.write_all(&header).map_err(io("write", &tmp))?;
             f.sync_all().map_err(io("fsync", &tmp))?;
             drop(f);
-            let path = self.path_of(id);
             fs::rename(&tmp, &path).map_err(io("rename", &path))?;
             self.sync_dir()
         })();
@@ -382,14 +440,49 @@ impl Store {
         result
     }
 
-    /// Deletes the record of rig `id` (no error when there is none).
+    /// Path of clip file `seq` of rig `id` (`@` cannot appear in an id).
+    pub fn clips_path(&self, id: &str, seq: u64) -> PathBuf {
+        self.dir.join(format!("{id}@{seq:010}.{CLIPS_EXT}"))
+    }
+
+    /// Deletes the record of rig `id` and then its clip files (no error when there are
+    /// none). The record goes first: clip files whose rig has no record are leftovers that
+    /// [`Store::record_files`] callers delete.
     pub fn remove(&self, id: &str) -> Result<(), StoreError> {
-        let path = self.path_of(id);
-        match fs::remove_file(&path) {
+        self.remove_file(&self.path_of(id))?;
+        for path in self.clip_files_of(id)? {
+            self.remove_file(&path)?;
+        }
+        Ok(())
+    }
+
+    /// Deletes clip file `seq` of rig `id`.
+    pub fn remove_clips(&self, id: &str, seq: u64) -> Result<(), StoreError> {
+        self.remove_file(&self.clips_path(id, seq))
+    }
+
+    /// Deletes a file (no error when there is none) and makes the deletion durable.
+    pub fn remove_file(&self, path: &Path) -> Result<(), StoreError> {
+        match fs::remove_file(path) {
             Ok(()) => self.sync_dir(),
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
-            Err(e) => Err(io("remove", &path)(e)),
+            Err(e) => Err(io("remove", path)(e)),
         }
+    }
+
+    /// The clip files of rig `id`.
+    fn clip_files_of(&self, id: &str) -> Result<Vec<PathBuf>, StoreError> {
+        let prefix = format!("{id}@");
+        let suffix = format!(".{CLIPS_EXT}");
+        Ok(fs::read_dir(&self.dir)
+            .map_err(io("list", &self.dir))?
+            .filter_map(|e| e.ok())
+            .filter(|e| {
+                let n = e.file_name().to_string_lossy().into_owned();
+                n.starts_with(&prefix) && n.ends_with(&suffix)
+            })
+            .map(|e| e.path())
+            .collect())
     }
 
     fn sync_dir(&self) -> Result<(), StoreError> {
@@ -434,6 +527,26 @@ impl Store {
             .unwrap_or_default()
             .to_string();
         match kind {
+            KIND_CLIPS => {
+                let c: StoredClipsOwned =
+                    codec::from_stored(payload).map_err(|e| corrupt(e.to_string()))?;
+                let want = path
+                    .file_name()
+                    .and_then(|n| n.to_str())
+                    .and_then(|n| n.strip_suffix(&format!(".{CLIPS_EXT}")))
+                    .unwrap_or_default();
+                if want != format!("{}@{:010}", c.id, c.seq) {
+                    return Err(corrupt(format!(
+                        "clip file is for rig {:?} number {}, its name says {want:?}",
+                        c.id, c.seq
+                    )));
+                }
+                Ok(Record::Clips(StoredClips {
+                    id: c.id,
+                    seq: c.seq,
+                    clips: c.clips,
+                }))
+            }
             KIND_RIG => {
                 let r: StoredRigOwned =
                     codec::from_stored(payload).map_err(|e| corrupt(e.to_string()))?;
@@ -502,12 +615,18 @@ impl Store {
                 let _ = fs::remove_file(&path);
                 continue;
             }
-            if !name.ends_with(&format!(".{EXT}")) {
+            if !name.ends_with(&format!(".{EXT}")) && !name.ends_with(&format!(".{CLIPS_EXT}")) {
                 continue;
             }
             let size = fs::metadata(&path).map(|m| m.len()).unwrap_or(0);
             files.push((path, size));
         }
+        // Rig records before clip files (a rig's clip files attach to its record), clip files
+        // by rig and sequence number (their names sort so).
+        files.sort_by_key(|(p, _)| {
+            let clips = p.extension().is_some_and(|e| e == CLIPS_EXT);
+            (clips, p.clone())
+        });
         Ok(files)
     }
 
@@ -555,12 +674,14 @@ mod tests {
             .put(RecordRef::Rig {
                 id: "copy",
                 rig: &rig,
+                clips: &rig.clips,
             })
             .expect("put");
         store
             .put(RecordRef::Rig {
                 id: "other",
                 rig: &rig,
+                clips: &rig.clips,
             })
             .expect("put");
         // An id that merely contains the temp marker is an ordinary record, never a stray.
@@ -568,6 +689,7 @@ mod tests {
             .put(RecordRef::Rig {
                 id: "face.tmp-1",
                 rig: &rig,
+                clips: &rig.clips,
             })
             .expect("put");
         // Flip one payload byte of "other", truncate a third, leave a stray temp file.
@@ -604,6 +726,67 @@ mod tests {
         store.remove("copy").expect("remove twice is fine");
         store.remove("face.tmp-1").expect("remove");
         assert!(store.load_all().expect("load").records.is_empty());
+        let _ = fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn clips_added_later_live_in_their_own_files() {
+        let dir = tmpdir("clips");
+        let store = Store::open(&dir).expect("open");
+        let rig = crate::embedded::default_rig();
+        // The record holds the first two clips; two clip files hold the others.
+        store
+            .put(RecordRef::Rig {
+                id: "head",
+                rig: &rig,
+                clips: &rig.clips[..2],
+            })
+            .expect("put");
+        let record = fs::read(store.path_of("head")).expect("read");
+        store
+            .put(RecordRef::Clips {
+                id: "head",
+                seq: 2,
+                clips: &rig.clips[3..],
+            })
+            .expect("put clips");
+        store
+            .put(RecordRef::Clips {
+                id: "head",
+                seq: 1,
+                clips: &rig.clips[2..3],
+            })
+            .expect("put clips");
+        // Adding clips did not touch the rig's record.
+        assert_eq!(fs::read(store.path_of("head")).expect("read"), record);
+        let loaded = store.load_all().expect("load");
+        assert!(loaded.skipped.is_empty(), "{:?}", loaded.skipped);
+        // The record first, then the clip files in sequence order.
+        let kinds: Vec<String> = loaded
+            .records
+            .iter()
+            .map(|r| match r {
+                Record::Rig(r) => format!("rig {} {}", r.id, r.rig.clips.len()),
+                Record::Clips(c) => format!("clips {} {} {}", c.id, c.seq, c.clips[0].name),
+                Record::Builtin(b) => format!("builtin {}", b.id),
+            })
+            .collect();
+        assert_eq!(
+            kinds,
+            [
+                "rig head 2".to_string(),
+                format!("clips head 1 {}", rig.clips[2].name),
+                format!("clips head 2 {}", rig.clips[3].name),
+            ]
+        );
+        // A clip file renamed to another rig's name is refused, not attached to it.
+        fs::copy(store.clips_path("head", 1), store.clips_path("else", 1)).expect("copy");
+        let loaded = store.load_all().expect("load");
+        assert_eq!(loaded.skipped.len(), 1, "{:?}", loaded.skipped);
+        let _ = fs::remove_file(store.clips_path("else", 1));
+        // Removing the rig removes its clip files too.
+        store.remove("head").expect("remove");
+        assert!(store.record_files().expect("list").is_empty());
         let _ = fs::remove_dir_all(&dir);
     }
 }

@@ -337,3 +337,81 @@ async fn sigterm_lets_requests_in_flight_complete() {
     assert!(exit.success(), "exit status {exit:?}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_added_clip_writes_its_own_file_not_the_whole_rig() {
+    let dir = temp_dir("clipfiles");
+    let rigs_dir = dir.join("rigs");
+    let csv = |w: f32| Bytes::from(format!("a,b\n0,{w}\n1,0\n"));
+    let s1 = TestServer::start(stored_config(&dir)).await;
+    let tri = Bytes::from(crate::util::builder::triangle_rig().to_glb());
+    s1.client.upload_rig("tri", tri).await.unwrap();
+    let record = std::fs::read(rigs_dir.join("tri.cmrig")).unwrap();
+    for (name, w) in [("one", 0.1), ("two", 0.2), ("three", 0.3)] {
+        s1.client
+            .upload_clip("tri", &format!("name={name}"), "text/csv", csv(w))
+            .await
+            .unwrap();
+    }
+    // Three clip files; the rig's record is byte for byte what the upload wrote.
+    assert_eq!(std::fs::read(rigs_dir.join("tri.cmrig")).unwrap(), record);
+    let mut files: Vec<String> = std::fs::read_dir(&rigs_dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with("tri"))
+        .collect();
+    files.sort();
+    assert_eq!(
+        files,
+        [
+            "tri.cmrig",
+            "tri@0000000001.cmclips",
+            "tri@0000000002.cmclips",
+            "tri@0000000003.cmclips"
+        ]
+    );
+    // Deleting a clip removes its file and leaves the others alone.
+    let r = s1
+        .client
+        .send(
+            Method::DELETE,
+            "/v1/rigs/tri/clips/two",
+            None,
+            None,
+            Bytes::new(),
+        )
+        .await
+        .unwrap();
+    assert_eq!(r.status, 204);
+    assert!(!rigs_dir.join("tri@0000000002.cmclips").exists());
+    assert_eq!(std::fs::read(rigs_dir.join("tri.cmrig")).unwrap(), record);
+    let clip_names = |list: crowdmorph_proto::ClipList| -> Vec<String> {
+        list.clips.into_iter().map(|c| c.name).collect()
+    };
+    let before = clip_names(s1.client.clips("tri").await.unwrap());
+    assert_eq!(before, ["one", "three"]);
+    s1.stop().await;
+
+    // After a restart the rig has the same clips in the same order, and the next clip file
+    // does not reuse a number still on disk.
+    let s2 = TestServer::start(stored_config(&dir)).await;
+    assert_eq!(clip_names(s2.client.clips("tri").await.unwrap()), before);
+    s2.client
+        .upload_clip("tri", "name=four", "text/csv", csv(0.4))
+        .await
+        .unwrap();
+    assert!(rigs_dir.join("tri@0000000004.cmclips").exists());
+    assert_eq!(
+        clip_names(s2.client.clips("tri").await.unwrap()),
+        ["one", "three", "four"]
+    );
+    // Deleting the rig removes its record and every clip file.
+    s2.client.delete_rig("tri").await.unwrap();
+    let left: Vec<String> = std::fs::read_dir(&rigs_dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with("tri"))
+        .collect();
+    assert!(left.is_empty(), "{left:?}");
+    s2.stop().await;
+}
