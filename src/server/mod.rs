@@ -8,6 +8,7 @@
 //! | module | what it is |
 //! |---|---|
 //! | [`config`] | every limit, timeout and default |
+//! | `conn` | the accept loop: header and idle timeouts, the connection cap |
 //! | [`error`] | [`ApiError`]: the JSON error body of every 4xx/5xx |
 //! | [`registry`] | rigs prepared for the engine, q16 boxes, API descriptions |
 //! | [`scheduler`] | the dynamic batcher with cross-request dedupe |
@@ -18,6 +19,7 @@
 mod api;
 pub mod bench;
 pub mod config;
+mod conn;
 pub mod error;
 mod lod;
 pub mod metrics;
@@ -320,6 +322,7 @@ impl AppState {
             queue_memory_limit: u64::from(self.memory_units) * 1024,
             degraded: self.engine.info().degraded,
             loading: !self.is_ready(),
+            connections_limit: self.config.max_connections as u64,
         }
     }
 }
@@ -552,14 +555,6 @@ pub async fn serve(
     }
     let loader = state.clone();
     tokio::spawn(async move { loader.load_stored().await });
-    // Responses go out as a header write then body writes; without TCP_NODELAY, Nagle's
-    // algorithm holds the tail back until the client's delayed ACK (≈40 ms) at moderate load.
-    use axum::serve::ListenerExt;
-    let listener = listener.tap_io(|tcp| {
-        if let Err(error) = tcp.set_nodelay(true) {
-            tracing::warn!(%error, "cannot set TCP_NODELAY");
-        }
-    });
     // Background LOD jobs are not requests in flight: stop them at once, or the runtime
     // would wait for their blocking work before the process can exit.
     let jobs = state.clone();
@@ -567,10 +562,20 @@ pub async fn serve(
         shutdown.await;
         jobs.lod_jobs.cancel_background();
     };
-    let result = axum::serve(listener, app(state.clone()))
-        .with_graceful_shutdown(shutdown)
-        .await;
+    let limits = conn::Limits {
+        max_connections: state.config.max_connections,
+        header_timeout: state.config.header_timeout,
+        idle_timeout: state.config.idle_timeout,
+    };
+    conn::serve_connections(
+        listener,
+        app(state.clone()),
+        state.metrics.clone(),
+        limits,
+        shutdown,
+    )
+    .await;
     state.scheduler.shutdown().await;
     tracing::info!("stopped");
-    Ok(result?)
+    Ok(())
 }
