@@ -108,7 +108,7 @@ pub struct Metrics {
     pub batches_pipelined: AtomicU64,
     /// GPU time, nanoseconds.
     pub gpu_ns: AtomicU64,
-    /// Crowd requests refused by reason (`queue_full`, `deadline`, ...).
+    /// Requests refused by reason (`overloaded`, `queue_full`, `deadline`, `timeout`, ...).
     rejected: Mutex<BTreeMap<&'static str, u64>>,
     /// Connections admitted and not yet closed.
     pub connections_open: AtomicU64,
@@ -187,7 +187,7 @@ impl Metrics {
         }
     }
 
-    /// Counts a refused crowd request.
+    /// Counts a refused request.
     pub fn reject(&self, reason: &'static str) {
         if let Ok(mut m) = self.rejected.lock() {
             *m.entry(reason).or_insert(0) += 1;
@@ -250,7 +250,7 @@ impl Metrics {
         }
         let _ = writeln!(
             o,
-            "# HELP crowdmorph_rejected_total Crowd requests refused, by reason.\n\
+            "# HELP crowdmorph_rejected_total Requests refused or abandoned, by reason.\n\
              # TYPE crowdmorph_rejected_total counter"
         );
         if let Ok(m) = self.rejected.lock() {
