@@ -453,7 +453,7 @@ async fn a_storm_of_shed_requests_logs_a_few_summary_lines() {
     assert_eq!(overloaded, shed as f64, "every shed request is counted");
     assert!(overloaded >= SHED_AT_LEAST, "{overloaded} shed");
 
-    // The summaries add up to the shed requests once the last one is written (within ~1 s).
+    // The summaries add up to the shed requests once the last one is written (within 2 s).
     let reported = || -> u64 {
         lines
             .lock()
@@ -467,7 +467,7 @@ async fn a_storm_of_shed_requests_logs_a_few_summary_lines() {
             .sum()
     };
     let mut summed = 0;
-    for _ in 0..150 {
+    for _ in 0..250 {
         summed = reported();
         if summed >= shed {
             break;
