@@ -188,17 +188,19 @@ impl Slot {
         (self.state.load(Ordering::Acquire) == 0).then(|| self.since.load(Ordering::Acquire))
     }
 
-    /// The running timeout: when it expires and why; none while a request is in progress.
+    /// The running timeout: when it expires and why; none while a request is in progress (or
+    /// when a timeout is too long to be represented, which is as good as none).
     fn deadline(&self, limits: Limits) -> Option<(Instant, Close)> {
         if self.state.load(Ordering::Acquire) != 0 {
             return None;
         }
         let since = self.epoch + Duration::from_nanos(self.since.load(Ordering::Acquire));
-        Some(if self.awaiting_headers.load(Ordering::Acquire) {
-            (since + limits.header_timeout, Close::HeaderTimeout)
+        let (timeout, why) = if self.awaiting_headers.load(Ordering::Acquire) {
+            (limits.header_timeout, Close::HeaderTimeout)
         } else {
-            (since + limits.idle_timeout, Close::IdleTimeout)
-        })
+            (limits.idle_timeout, Close::IdleTimeout)
+        };
+        Some((since.checked_add(timeout)?, why))
     }
 }
 
