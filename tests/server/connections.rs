@@ -345,6 +345,18 @@ async fn a_request_in_progress_is_never_evicted() {
     server.stop().await;
 }
 
+/// Kills the server if the test fails before stopping it.
+struct KillOnDrop(std::process::Child);
+
+impl Drop for KillOnDrop {
+    fn drop(&mut self) {
+        if let Ok(None) = self.0.try_wait() {
+            let _ = self.0.kill();
+            let _ = self.0.wait();
+        }
+    }
+}
+
 /// The reproducer of the log flood: the real binary with one request at a time, under a storm of
 /// concurrent crowd requests until thousands are shed. Its log (the default filter, `info`) gets
 /// a few WARN summaries whose counts add up to the shed requests, and no ERROR.
@@ -352,7 +364,7 @@ async fn a_request_in_progress_is_never_evicted() {
 async fn a_storm_of_shed_requests_logs_a_few_summary_lines() {
     const SHED_AT_LEAST: f64 = 3000.0;
     let dir = temp_dir("storm");
-    let mut child = Command::new(env!("CARGO_BIN_EXE_crowdmorph"))
+    let child = Command::new(env!("CARGO_BIN_EXE_crowdmorph"))
         .args(["serve", "--addr", "127.0.0.1:0", "--data-dir"])
         .arg(&dir)
         .env_remove("RUST_LOG")
@@ -366,7 +378,8 @@ async fn a_storm_of_shed_requests_logs_a_few_summary_lines() {
         .stderr(Stdio::piped())
         .spawn()
         .expect("spawn crowdmorph serve");
-    let stderr = child.stderr.take().expect("stderr");
+    let mut child = KillOnDrop(child);
+    let stderr = child.0.stderr.take().expect("stderr");
     let lines = Arc::new(Mutex::new(Vec::<(Instant, String)>::new()));
     {
         let lines = lines.clone();
@@ -503,11 +516,11 @@ async fn a_storm_of_shed_requests_logs_a_few_summary_lines() {
     );
 
     let status = Command::new("kill")
-        .args(["-TERM", &child.id().to_string()])
+        .args(["-TERM", &child.0.id().to_string()])
         .status()
         .unwrap();
     assert!(status.success());
-    let exit = child.wait().unwrap();
+    let exit = child.0.wait().unwrap();
     assert!(exit.success(), "exit status {exit:?}");
     let _ = std::fs::remove_dir_all(&dir);
 }
