@@ -301,6 +301,18 @@ struct ServeArgs {
     /// Requests handled at once; more are shed with 503.
     #[arg(long, env = "CROWDMORPH_MAX_CONCURRENCY", default_value_t = 2048)]
     max_concurrency: usize,
+    /// Connections open at once; past it the longest-idle one is closed to admit a new one, and
+    /// with every one busy the new one gets 503 (default: from the open-file limit, which
+    /// `serve` first raises to its hard maximum; at most 65536).
+    #[arg(long, env = "CROWDMORPH_MAX_CONNECTIONS", value_parser = clap::value_parser!(u64).range(1..))]
+    max_connections: Option<u64>,
+    /// Milliseconds a request's headers may take, from the accept or from the request's first
+    /// byte on a kept-alive connection; then the connection is closed.
+    #[arg(long, env = "CROWDMORPH_HEADER_TIMEOUT_MS", default_value_t = 10_000, value_parser = clap::value_parser!(u64).range(1..))]
+    header_timeout_ms: u64,
+    /// Seconds a kept-alive connection may wait for its next request.
+    #[arg(long, env = "CROWDMORPH_IDLE_TIMEOUT_S", default_value_t = 60, value_parser = clap::value_parser!(u64).range(1..))]
+    idle_timeout_s: u64,
     /// Origins allowed by CORS, comma-separated (`*` for any; none by default).
     #[arg(long, env = "CROWDMORPH_CORS_ORIGINS", value_delimiter = ',')]
     cors_origin: Vec<String>,
@@ -310,8 +322,80 @@ struct ServeArgs {
     no_auto_lod: bool,
 }
 
+/// Descriptors kept for everything but connections: stored rig files, the engine's device
+/// files, the listener, and the refused connections being answered.
+const RESERVED_FILES: u64 = 320;
+
+/// Raises the soft open-file limit to the hard one, as every connection holds a descriptor, and
+/// returns the limit then in force (`None` where it cannot be read).
+#[cfg(unix)]
+#[allow(clippy::unnecessary_cast)] // rlim_t is u64 on Linux, not on every unix.
+fn raise_open_file_limit() -> Option<u64> {
+    let mut lim = libc::rlimit {
+        rlim_cur: 0,
+        rlim_max: 0,
+    };
+    // SAFETY: getrlimit writes one rlimit through a pointer to a live local.
+    if unsafe { libc::getrlimit(libc::RLIMIT_NOFILE, &mut lim) } != 0 {
+        return None;
+    }
+    if lim.rlim_cur >= lim.rlim_max {
+        return Some(lim.rlim_cur as u64);
+    }
+    let raised = libc::rlimit {
+        rlim_cur: lim.rlim_max,
+        rlim_max: lim.rlim_max,
+    };
+    // SAFETY: setrlimit reads one rlimit through a pointer to a live local.
+    if unsafe { libc::setrlimit(libc::RLIMIT_NOFILE, &raised) } == 0 {
+        tracing::info!(
+            from = lim.rlim_cur as u64,
+            to = lim.rlim_max as u64,
+            "raised the open-file limit"
+        );
+        Some(lim.rlim_max as u64)
+    } else {
+        // macOS, for one, refuses an unlimited hard limit as the soft one; the soft one stays.
+        Some(lim.rlim_cur as u64)
+    }
+}
+
+#[cfg(not(unix))]
+fn raise_open_file_limit() -> Option<u64> {
+    None
+}
+
+/// The connection cap: `--max-connections`, else the open-file limit less
+/// [`RESERVED_FILES`] (at least half of it), at most 65,536 (choosing which connection to evict
+/// scans the open ones).
+fn max_connections(flag: Option<u64>, open_files: Option<u64>) -> usize {
+    let derived = open_files.map(|limit| {
+        limit
+            .saturating_sub(RESERVED_FILES)
+            .max(limit / 2)
+            .clamp(1, 65_536)
+    });
+    let cap = match (flag, derived) {
+        (Some(n), _) => n,
+        (None, Some(n)) => n,
+        (None, None) => crowdmorph::server::ServerConfig::default().max_connections as u64,
+    };
+    if let Some(limit) = open_files
+        && cap + RESERVED_FILES > limit
+    {
+        tracing::warn!(
+            max_connections = cap,
+            open_file_limit = limit,
+            "the connection cap leaves little room under the open-file limit"
+        );
+    }
+    tracing::info!(max_connections = cap, open_file_limit = ?open_files, "connection cap");
+    usize::try_from(cap).unwrap_or(usize::MAX)
+}
+
 fn run_serve(a: ServeArgs) -> Result<()> {
     use crowdmorph::server::{self, ServerConfig};
+    let open_files = raise_open_file_limit();
     let config = ServerConfig {
         data_dir: Some(a.data_dir.unwrap_or_else(server::default_data_dir)),
         backend: a.backend,
@@ -330,6 +414,9 @@ fn run_serve(a: ServeArgs) -> Result<()> {
         request_timeout: std::time::Duration::from_millis(a.request_timeout_ms),
         admin_timeout: std::time::Duration::from_secs(a.admin_timeout_s),
         max_concurrency: a.max_concurrency,
+        max_connections: max_connections(a.max_connections, open_files),
+        header_timeout: std::time::Duration::from_millis(a.header_timeout_ms),
+        idle_timeout: std::time::Duration::from_secs(a.idle_timeout_s),
         cors_origins: a.cors_origin,
         auto_lod: !a.no_auto_lod,
     };

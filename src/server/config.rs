@@ -44,6 +44,18 @@ pub struct ServerConfig {
     pub admin_timeout: Duration,
     /// Requests handled at once; more are shed with 503.
     pub max_concurrency: usize,
+    /// Most connections open at once. Past it, the connection idle the longest (no request in
+    /// progress) is closed to admit the new one; when every connection has a request in
+    /// progress, the new one is answered 503 `too_many_connections` and closed. Keep it below
+    /// the open-file limit: `crowdmorph serve` derives its default from that limit.
+    pub max_connections: usize,
+    /// A request's headers must arrive complete within this long of the connection being
+    /// accepted, or of the request's first byte on a kept-alive connection; else the
+    /// connection is closed. Bytes trickling in do not extend it.
+    pub header_timeout: Duration,
+    /// A kept-alive connection with no request in progress is closed after this long without
+    /// the first byte of a new request.
+    pub idle_timeout: Duration,
     /// Origins allowed by CORS (`*` for any); empty disables CORS headers.
     pub cors_origins: Vec<String>,
     /// Order each new rig's blendshapes by the five importance metrics and build its 50/25/10 %
@@ -70,6 +82,9 @@ impl Default for ServerConfig {
             request_timeout: Duration::from_secs(10),
             admin_timeout: Duration::from_secs(300),
             max_concurrency: 2048,
+            max_connections: 4096,
+            header_timeout: Duration::from_secs(10),
+            idle_timeout: Duration::from_secs(60),
             cors_origins: Vec::new(),
             auto_lod: true,
         }

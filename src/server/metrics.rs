@@ -113,8 +113,18 @@ pub struct Metrics {
     /// LOD builds that stopped early because they were cancelled (a newer PUT, a delete,
     /// shutdown, or the server state being dropped).
     pub lod_builds_cancelled: AtomicU64,
-    /// Crowd requests refused by reason (`queue_full`, `deadline`, ...).
+    /// Requests refused by reason (`overloaded`, `queue_full`, `deadline`, `timeout`, ...).
     rejected: Mutex<BTreeMap<&'static str, u64>>,
+    /// Connections admitted and not yet closed.
+    pub connections_open: AtomicU64,
+    /// Connections accepted from the listener, refused ones included.
+    pub connections_accepted: AtomicU64,
+    /// Connections closed, by reason (`closed`, `error`, `header_timeout`, `idle_timeout`,
+    /// `evicted`, `refused`, `shutdown`).
+    connections_closed: Mutex<BTreeMap<&'static str, u64>>,
+    /// Failed `accept` calls other than a connection reset before it was accepted (e.g. the
+    /// open-file limit reached).
+    pub accept_errors: AtomicU64,
     /// Crowd requests waiting in or being served by the batcher.
     pub queue_depth: AtomicU64,
     rate: Mutex<RateWindow>,
@@ -141,6 +151,10 @@ impl Default for Metrics {
             lod_builds_running: AtomicU64::new(0),
             lod_builds_cancelled: AtomicU64::new(0),
             rejected: Mutex::new(BTreeMap::new()),
+            connections_open: AtomicU64::new(0),
+            connections_accepted: AtomicU64::new(0),
+            connections_closed: Mutex::new(BTreeMap::new()),
+            accept_errors: AtomicU64::new(0),
             queue_depth: AtomicU64::new(0),
             rate: Mutex::new(RateWindow {
                 start: Instant::now(),
@@ -172,6 +186,8 @@ pub struct Gauges {
     pub degraded: bool,
     /// 1 while stored rigs are loading.
     pub loading: bool,
+    /// The most connections open at once.
+    pub connections_limit: u64,
 }
 
 impl Metrics {
@@ -182,11 +198,26 @@ impl Metrics {
         }
     }
 
-    /// Counts a refused crowd request.
+    /// Counts a refused request.
     pub fn reject(&self, reason: &'static str) {
         if let Ok(mut m) = self.rejected.lock() {
             *m.entry(reason).or_insert(0) += 1;
         }
+    }
+
+    /// Counts a closed connection.
+    pub fn connection_closed(&self, reason: &'static str) {
+        if let Ok(mut m) = self.connections_closed.lock() {
+            *m.entry(reason).or_insert(0) += 1;
+        }
+    }
+
+    /// Connections closed so far for this reason (for tests).
+    pub fn connections_closed_with(&self, reason: &str) -> u64 {
+        self.connections_closed
+            .lock()
+            .map(|m| m.get(reason).copied().unwrap_or(0))
+            .unwrap_or(0)
     }
 
     /// Counts heads served (for heads/s).
@@ -230,12 +261,25 @@ impl Metrics {
         }
         let _ = writeln!(
             o,
-            "# HELP crowdmorph_rejected_total Crowd requests refused, by reason.\n\
+            "# HELP crowdmorph_rejected_total Requests refused or abandoned, by reason.\n\
              # TYPE crowdmorph_rejected_total counter"
         );
         if let Ok(m) = self.rejected.lock() {
             for (reason, n) in m.iter() {
                 let _ = writeln!(o, "crowdmorph_rejected_total{{reason=\"{reason}\"}} {n}");
+            }
+        }
+        let _ = writeln!(
+            o,
+            "# HELP crowdmorph_connections_closed_total Connections closed, by reason.\n\
+             # TYPE crowdmorph_connections_closed_total counter"
+        );
+        if let Ok(m) = self.connections_closed.lock() {
+            for (reason, n) in m.iter() {
+                let _ = writeln!(
+                    o,
+                    "crowdmorph_connections_closed_total{{reason=\"{reason}\"}} {n}"
+                );
             }
         }
         self.queue_seconds.write(
@@ -261,6 +305,30 @@ impl Metrics {
             "Heads per crowd request.",
         );
         let load = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        c(
+            &mut o,
+            "crowdmorph_connections_accepted_total",
+            "Connections accepted, refused ones included.",
+            load(&self.connections_accepted),
+        );
+        c(
+            &mut o,
+            "crowdmorph_accept_errors_total",
+            "Failed accepts (e.g. the open-file limit reached).",
+            load(&self.accept_errors),
+        );
+        gauge(
+            &mut o,
+            "crowdmorph_connections_open",
+            "Connections open now.",
+            load(&self.connections_open) as f64,
+        );
+        gauge(
+            &mut o,
+            "crowdmorph_connections_limit",
+            "Most connections open at once; past it the longest-idle one is closed.",
+            g.connections_limit as f64,
+        );
         let heads = load(&self.heads);
         let computed = load(&self.jobs_computed);
         c(&mut o, "crowdmorph_heads_total", "Heads served.", heads);

@@ -5,6 +5,7 @@
 mod api;
 mod bad_input;
 mod concurrency;
+mod connections;
 mod golden;
 mod hostile;
 mod lod;
