@@ -29,6 +29,17 @@ fn component_size(t: DataType) -> usize {
     }
 }
 
+/// Bytes `count` elements of `elem` bytes span at `stride` (the last one needs no padding).
+fn span(count: usize, stride: usize, elem: usize) -> u64 {
+    if count == 0 {
+        0
+    } else {
+        (count as u64 - 1)
+            .saturating_mul(stride as u64)
+            .saturating_add(elem as u64)
+    }
+}
+
 fn dims_len(d: Dimensions) -> usize {
     d.multiplicity()
 }
@@ -122,13 +133,7 @@ impl<'a> Source<'a> {
         let count = acc.count();
         if let Some(view) = acc.view() {
             let stride = view.stride().unwrap_or(elem).max(elem);
-            let span = if count == 0 {
-                0
-            } else {
-                (count as u64 - 1)
-                    .saturating_mul(stride as u64)
-                    .saturating_add(elem as u64)
-            };
+            let span = span(count, stride, elem);
             self.view_bytes(index, &view, acc.offset(), span)?;
         }
         if let Some(sparse) = acc.sparse() {
@@ -226,13 +231,7 @@ impl<'a> Source<'a> {
                     "byte stride {stride} is smaller than an element ({elem})"
                 )));
             }
-            let span = if count == 0 {
-                0
-            } else {
-                (count as u64 - 1)
-                    .saturating_mul(stride as u64)
-                    .saturating_add(elem as u64)
-            };
+            let span = span(count, stride, elem);
             let bytes = self.view_bytes(index, &view, acc.offset(), span)?;
             self.charge(index, decoded)?;
             out.reserve_exact(items as usize);
@@ -314,13 +313,7 @@ impl<'a> Source<'a> {
         let csize = component_size(t);
         let count = acc.count();
         let stride = view.stride().unwrap_or(csize).max(csize);
-        let span = if count == 0 {
-            0
-        } else {
-            (count as u64 - 1)
-                .saturating_mul(stride as u64)
-                .saturating_add(csize as u64)
-        };
+        let span = span(count, stride, csize);
         let bytes = self.view_bytes(index, &view, acc.offset(), span)?;
         self.charge(index, count as u64 * 4)?;
         Ok((0..count)

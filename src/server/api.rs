@@ -918,20 +918,13 @@ pub(super) async fn upload_clips(
     let mut layout = entry.layout.clone();
     layout.files.push((seq, names));
     // The new generation holds the old one's charge plus the new tables.
-    let mut charge = entry.take_charge();
-    charge.absorb(budget.keep(table_bytes));
-    charge.set(prepared.memory().host_bytes as u64);
-    state.registry.insert(Arc::new(RigEntry {
-        id: id.clone(),
-        builtin: entry.builtin,
-        builtin_clips: entry.builtin_clips,
-        vertices: entry.vertices,
-        qbox,
-        generation: state.registry.generation(),
+    state.registry.insert(Arc::new(entry.successor(
         prepared,
+        qbox,
         layout,
-        charge: std::sync::Mutex::new(charge),
-    }));
+        state.registry.generation(),
+        Some(budget.keep(table_bytes)),
+    )));
     drop(budget);
     crate::budget::return_freed_memory();
     tracing::info!(rig = %id, clips = added.len(), ignored = ignored.len(), "clips added");
@@ -1028,19 +1021,13 @@ pub(super) async fn delete_clip(
                 .await?;
         }
     }
-    let mut charge = entry.take_charge();
-    charge.set(prepared.memory().host_bytes as u64);
-    state.registry.insert(Arc::new(RigEntry {
-        id: id.clone(),
-        builtin: entry.builtin,
-        builtin_clips: entry.builtin_clips,
-        vertices: entry.vertices,
-        qbox,
-        generation: state.registry.generation(),
+    state.registry.insert(Arc::new(entry.successor(
         prepared,
+        qbox,
         layout,
-        charge: std::sync::Mutex::new(charge),
-    }));
+        state.registry.generation(),
+        None,
+    )));
     crate::budget::return_freed_memory();
     tracing::info!(rig = %id, clip = %clip, "clip deleted");
     Ok(StatusCode::NO_CONTENT.into_response())

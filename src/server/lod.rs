@@ -316,19 +316,13 @@ async fn apply(
         .await?;
     // The new generation takes over the rig's charge, set to what it now holds (its mesh
     // levels included).
-    let mut charge = entry.take_charge();
-    charge.set(prepared.memory().host_bytes as u64);
-    let next = Arc::new(RigEntry {
-        id: entry.id.clone(),
-        builtin: entry.builtin,
-        builtin_clips: entry.builtin_clips,
-        vertices: entry.vertices,
-        qbox: entry.qbox,
-        generation: state.registry.generation(),
+    let next = Arc::new(entry.successor(
         prepared,
-        layout: entry.layout.clone(),
-        charge: Mutex::new(charge),
-    });
+        entry.qbox,
+        entry.layout.clone(),
+        state.registry.generation(),
+        None,
+    ));
     state.registry.insert(next.clone());
     Ok(next)
 }

@@ -360,19 +360,13 @@ impl AppState {
                     .map_err(|e| format!("clip file {} of rig {:?}: {e}", c.seq, c.id))?;
                 let mut layout = entry.layout.clone();
                 layout.files.push((c.seq, names));
-                let mut charge = entry.take_charge();
-                charge.set(prepared.memory().host_bytes as u64);
-                self.registry.insert(Arc::new(RigEntry {
-                    id: entry.id.clone(),
-                    builtin: entry.builtin,
-                    builtin_clips: entry.builtin_clips,
-                    vertices: entry.vertices,
-                    qbox: quantization_box(&rig),
-                    generation: self.registry.generation(),
+                self.registry.insert(Arc::new(entry.successor(
                     prepared,
+                    quantization_box(&rig),
                     layout,
-                    charge: Mutex::new(charge),
-                }));
+                    self.registry.generation(),
+                    None,
+                )));
                 Ok(false)
             }
             Record::Builtin(c) => {
@@ -406,19 +400,13 @@ impl AppState {
                     self.engine.update_clips(&entry.prepared, rig.clone())
                 }
                 .map_err(|e| format!("stored clips and LOD of {:?}: {e}", c.id))?;
-                let mut charge = entry.take_charge();
-                charge.set(prepared.memory().host_bytes as u64);
-                self.registry.insert(Arc::new(RigEntry {
-                    id: entry.id.clone(),
-                    builtin: true,
-                    builtin_clips: entry.builtin_clips,
-                    vertices: entry.vertices,
-                    qbox: quantization_box(&rig),
-                    generation: self.registry.generation(),
+                self.registry.insert(Arc::new(entry.successor(
                     prepared,
+                    quantization_box(&rig),
                     layout,
-                    charge: Mutex::new(charge),
-                }));
+                    self.registry.generation(),
+                    None,
+                )));
                 Ok(false)
             }
         }

@@ -108,6 +108,35 @@ impl RigEntry {
         self.prepared.rig()
     }
 
+    /// The next generation of this rig: `prepared` (new clips or LOD) with its q16 box and
+    /// clip layout. It takes over this generation's memory charge, plus `extra` (what the
+    /// change reserved), and sets it to what the new generation holds.
+    pub fn successor(
+        &self,
+        prepared: PreparedRig,
+        qbox: Quantization,
+        layout: ClipLayout,
+        generation: u64,
+        extra: Option<Charge>,
+    ) -> RigEntry {
+        let mut charge = self.take_charge();
+        if let Some(extra) = extra {
+            charge.absorb(extra);
+        }
+        charge.set(prepared.memory().host_bytes as u64);
+        RigEntry {
+            id: self.id.clone(),
+            builtin: self.builtin,
+            builtin_clips: self.builtin_clips,
+            vertices: self.vertices,
+            qbox,
+            generation,
+            prepared,
+            layout,
+            charge: Mutex::new(charge),
+        }
+    }
+
     /// Moves this generation's memory charge out, for the generation that replaces it.
     pub fn take_charge(&self) -> Charge {
         self.charge.lock().map(|mut c| c.take()).unwrap_or_default()
