@@ -600,3 +600,59 @@ fn a_built_lod_persists_with_the_rig() {
         Err(LodBuildError::Cancelled)
     );
 }
+
+/// The embedded head with mesh levels at 50 and 25 % of its triangles (file order: no scoring).
+fn head_with_mesh_levels() -> Arc<Rig> {
+    let mut rig = crowdmorph::embedded::default_rig();
+    let spec = LodSpec {
+        method: OrderMethod::FileOrder,
+        mesh_fractions: vec![0.5, 0.25],
+        ..LodSpec::default()
+    };
+    rig.lod = build_lod(&rig, &spec, None, None).expect("lod");
+    rig.validate().expect("valid");
+    Arc::new(rig)
+}
+
+#[test]
+fn mesh_levels_share_the_clip_tables_and_count_them_once() {
+    let rig = head_with_mesh_levels();
+    let prepared = Engine::cpu().prepare(rig.clone()).expect("prepare");
+    assert_eq!(prepared.mesh_levels().len(), 2);
+    let mut expected = rig.host_bytes() + prepared.cpu().bytes();
+    for level in prepared.mesh_levels() {
+        for (c, full) in level.rig().clips.iter().zip(&rig.clips) {
+            assert!(
+                Arc::ptr_eq(&c.weights, &full.weights),
+                "mesh level copied clip {:?}",
+                c.name
+            );
+        }
+        expected += level.rig().geometry_bytes() + level.cpu().bytes();
+    }
+    // The clip tables are in the rig's bytes once, not again per level.
+    assert_eq!(prepared.memory().host_bytes, expected);
+    assert!(rig.clip_bytes() > 0);
+}
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+fn mesh_levels_share_one_device_buffer_of_clip_tables() {
+    let rig = head_with_mesh_levels();
+    let engine = Engine::with_gpu(open_gpu(GpuOptions::default()), BackendChoice::Gpu);
+    let prepared = engine.prepare(rig).expect("prepare");
+    let full = prepared.gpu().expect("resident");
+    let mut expected = full.device_bytes();
+    for level in prepared.mesh_levels() {
+        let g = level.gpu().expect("resident");
+        assert!(
+            Arc::ptr_eq(g.tables(), full.tables()),
+            "a level has its own tables"
+        );
+        expected += g.geometry_bytes();
+    }
+    assert_eq!(prepared.memory().device_bytes as u64, expected);
+}
