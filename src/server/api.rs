@@ -723,6 +723,12 @@ pub(super) async fn get_mesh(
             format!("LOD level {lod} out of range (rig {id:?} has {levels} levels)"),
         ));
     }
+    // The response copies the level's positions, normals and indices (and JSON triples them
+    // in base64 and digits): charged to the queue memory until it is encoded.
+    let at = entry.prepared.at_level(lod).rig();
+    let bytes = (at.vertex_count() * 24 + at.triangle_count() * 12) as u64;
+    let factor = if wants_bincode(&headers) { 2 } else { 4 };
+    let _held = state.reserve_queue_memory(bytes * factor)?;
     let mesh = blocking(move || Ok(entry.mesh(lod))).await?;
     respond(&headers, StatusCode::OK, &mesh)
 }
