@@ -96,9 +96,15 @@ pub fn default_rig() -> Rig {
 
     let [head_targets, eye_l_targets, eye_r_targets] = per_prim;
     let primitives = vec![
-        primitive("head", geo.head, geo.head_indices, head_targets),
-        primitive("eye_L", geo.eye_l, geo.eye_indices.clone(), eye_l_targets),
-        primitive("eye_R", geo.eye_r, geo.eye_indices, eye_r_targets),
+        primitive("head", geo.head, geo.head_indices, head_targets, SKIN),
+        primitive(
+            "eye_L",
+            geo.eye_l,
+            geo.eye_indices.clone(),
+            eye_l_targets,
+            EYE,
+        ),
+        primitive("eye_R", geo.eye_r, geo.eye_indices, eye_r_targets, EYE),
     ];
     let lod = Lod::by_delta_energy(&primitives, n_targets);
     Rig {
@@ -111,12 +117,18 @@ pub fn default_rig() -> Rig {
     }
 }
 
+/// A neutral skin tone (linear RGB of sRGB 224, 172, 150), the head's base colour.
+const SKIN: [f32; 4] = [0.745, 0.412, 0.305, 1.0];
+/// The eyes' base colour: a slightly blue-grey white.
+const EYE: [f32; 4] = [0.78, 0.80, 0.85, 1.0];
+
 /// Wraps neutral geometry and its targets in a [`Primitive`] with computed normals.
 fn primitive(
     name: &str,
     positions: Vec<Vec3>,
     indices: Vec<u32>,
     targets: Vec<SparseTarget>,
+    base_color: [f32; 4],
 ) -> Primitive {
     Primitive {
         name: name.to_string(),
@@ -126,6 +138,7 @@ fn primitive(
         tangents: None,
         indices,
         targets,
+        base_color,
     }
 }
 

@@ -346,3 +346,41 @@ fn mirrored_node_flips_winding_and_transforms_normals_by_the_inverse_transpose()
     );
     assert!((p.targets[0].positions[0] - glam::Vec3::Z).length() < 1e-6);
 }
+
+#[test]
+fn base_colour_factors_come_from_the_materials_and_survive_the_store() {
+    // Two primitives: one with a material's base colour, one without (glTF's white).
+    let mut b = Builder::new();
+    let tri = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
+    let mut p0 = b.primitive(&tri, None, &[]);
+    p0["material"] = json!(0);
+    let p1 = b.primitive(&tri, None, &[]);
+    let mesh = b.mesh(vec![p0, p1], None);
+    let node = b.node(Some(mesh));
+    b.scene(&[node]);
+    b.json_mut()["materials"] = json!([{
+        "pbrMetallicRoughness": { "baseColorFactor": [0.8, 0.5, 0.25, 1.0] }
+    }]);
+    let rig = rig_from_slice(&b.to_glb(), &ImportOptions::default()).expect("rig");
+    assert_eq!(rig.primitives[0].base_color, [0.8, 0.5, 0.25, 1.0]);
+    assert_eq!(rig.primitives[1].base_color, [1.0; 4]);
+
+    // The store keeps them.
+    let dir = std::env::temp_dir().join(format!("crowdmorph-colours-{}", std::process::id()));
+    let store = crowdmorph::store::Store::open(&dir).expect("store");
+    store
+        .put(crowdmorph::store::RecordRef::Rig {
+            id: "c",
+            rig: &rig,
+            clips: &rig.clips,
+        })
+        .expect("put");
+    match crowdmorph::store::Store::read(&store.path_of("c")).expect("read") {
+        crowdmorph::store::Record::Rig(r) => {
+            assert_eq!(r.rig.primitives[0].base_color, [0.8, 0.5, 0.25, 1.0]);
+            assert_eq!(r.rig, rig);
+        }
+        other => panic!("unexpected record {other:?}"),
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

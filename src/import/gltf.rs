@@ -927,6 +927,9 @@ fn build_rig(parsed: &Parsed<'_>, options: &ImportOptions) -> Result<Rig, Import
             drop((normal_scale, tangent_scale));
             budget.release(n as u64 * 8);
 
+            // glTF 2.0 §3.9.2: a primitive without a material, or a material without a
+            // factor, has base colour white.
+            let base_color = prim.material().pbr_metallic_roughness().base_color_factor();
             primitives.push(Primitive {
                 name: label,
                 positions,
@@ -935,6 +938,7 @@ fn build_rig(parsed: &Parsed<'_>, options: &ImportOptions) -> Result<Rig, Import
                 tangents,
                 indices,
                 targets: sparse,
+                base_color,
             });
         }
     }

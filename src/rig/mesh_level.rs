@@ -83,6 +83,7 @@ impl MeshLevel {
                     .map(|t| l.vertices.iter().map(|&v| t[v as usize]).collect()),
                 indices: l.indices.clone(),
                 targets,
+                base_color: p.base_color,
             });
         }
         let lod = Lod {

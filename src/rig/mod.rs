@@ -78,6 +78,11 @@ pub struct Primitive {
     pub indices: Vec<u32>,
     /// Morph targets of this primitive, each naming its rig-wide target.
     pub targets: Vec<SparseTarget>,
+    /// Base colour factor of the primitive's glTF material (linear RGBA; glTF's default white
+    /// when it has none), for rendered frames. Skipped by serde: the store keeps it beside the
+    /// primitives, since its records are positional (bincode) and this came after the first.
+    #[serde(skip, default = "Primitive::default_base_color")]
+    pub base_color: [f32; 4],
 }
 
 /// A morph target restricted to the vertices it moves.
@@ -291,6 +296,11 @@ impl Rig {
 }
 
 impl Primitive {
+    /// glTF's default base colour factor: white.
+    pub fn default_base_color() -> [f32; 4] {
+        [1.0; 4]
+    }
+
     /// Bytes of this primitive's arrays.
     pub fn bytes(&self) -> usize {
         let mut b = self.positions.len() * 12 + self.normals.len() * 12 + self.indices.len() * 4;

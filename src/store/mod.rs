@@ -17,7 +17,7 @@
 //! | bytes | what |
 //! |---|---|
 //! | 8 | magic `CMSTORE1` |
-//! | 4 | record kind: 1 = a whole rig, 3 = extra clips and the LOD of a built-in rig (2 = its clips only, as older builds wrote them; still read), 4 = clips added to a rig |
+//! | 4 | record kind: 5 = a whole rig (1 = without base colours, as older builds wrote it; still read), 3 = extra clips and the LOD of a built-in rig (2 = its clips only, as older builds wrote them; still read), 4 = clips added to a rig |
 //! | 8 | payload length `n` |
 //! | 4 | CRC-32 (IEEE) of the payload |
 //! | n | payload: the record encoded by [`crate::codec`] |
@@ -40,6 +40,8 @@ use crate::rig::{Clip, Lod, Rig};
 const MAGIC: &[u8; 8] = b"CMSTORE1";
 const HEADER: usize = 8 + 4 + 8 + 4;
 const KIND_RIG: u32 = 1;
+/// A whole rig with its primitives' base colours (written since they were added).
+const KIND_RIG_COLORS: u32 = 5;
 const KIND_BUILTIN_CLIPS: u32 = 2;
 const KIND_BUILTIN: u32 = 3;
 const KIND_CLIPS: u32 = 4;
@@ -157,6 +159,51 @@ struct RigRecordRef<'a> {
     primitives: &'a [crate::rig::Primitive],
     clips: &'a [Clip],
     lod_json: String,
+    /// Per primitive (kind 5 on): serde skips it inside [`crate::rig::Primitive`].
+    base_colors: Vec<[f32; 4]>,
+}
+
+/// Kind 5: [`RigRecord`] and the primitives' base colours.
+#[derive(Deserialize)]
+struct RigRecordColors {
+    name: String,
+    targets: Vec<String>,
+    default_weights: Vec<f32>,
+    primitives: Vec<crate::rig::Primitive>,
+    clips: Vec<Clip>,
+    lod_json: String,
+    base_colors: Vec<[f32; 4]>,
+}
+
+impl RigRecordColors {
+    fn into_rig(self) -> Result<Rig, String> {
+        if self.base_colors.len() != self.primitives.len() {
+            return Err(format!(
+                "{} base colours for {} primitives",
+                self.base_colors.len(),
+                self.primitives.len()
+            ));
+        }
+        let mut primitives = self.primitives;
+        for (p, c) in primitives.iter_mut().zip(self.base_colors) {
+            p.base_color = c;
+        }
+        RigRecord {
+            name: self.name,
+            targets: self.targets,
+            default_weights: self.default_weights,
+            primitives,
+            clips: self.clips,
+            lod_json: self.lod_json,
+        }
+        .into_rig()
+    }
+}
+
+#[derive(Deserialize)]
+struct StoredRigColorsOwned {
+    id: String,
+    rig: RigRecordColors,
 }
 
 impl<'a> RigRecordRef<'a> {
@@ -178,6 +225,7 @@ impl<'a> RigRecordRef<'a> {
             primitives: primitives.as_slice(),
             clips,
             lod_json: lod_to_json(lod)?,
+            base_colors: primitives.iter().map(|p| p.base_color).collect(),
         })
     }
 }
@@ -398,7 +446,7 @@ impl Store {
                     };
                     codec::to_stored_writer(&r, &mut w)
                         .map_err(|e| StoreError::Encode(e.to_string()))?;
-                    KIND_RIG
+                    KIND_RIG_COLORS
                 }
                 RecordRef::Builtin { id, clips, rig } => {
                     let r = StoredBuiltinRef {
@@ -547,12 +595,21 @@ impl Store {
                     clips: c.clips,
                 }))
             }
-            KIND_RIG => {
-                let r: StoredRigOwned =
-                    codec::from_stored(payload).map_err(|e| corrupt(e.to_string()))?;
-                let r = StoredRig {
-                    id: r.id,
-                    rig: r.rig.into_rig().map_err(corrupt)?,
+            KIND_RIG | KIND_RIG_COLORS => {
+                let r = if kind == KIND_RIG {
+                    let r: StoredRigOwned =
+                        codec::from_stored(payload).map_err(|e| corrupt(e.to_string()))?;
+                    StoredRig {
+                        id: r.id,
+                        rig: r.rig.into_rig().map_err(corrupt)?,
+                    }
+                } else {
+                    let r: StoredRigColorsOwned =
+                        codec::from_stored(payload).map_err(|e| corrupt(e.to_string()))?;
+                    StoredRig {
+                        id: r.id,
+                        rig: r.rig.into_rig().map_err(corrupt)?,
+                    }
                 };
                 if r.id != stem {
                     return Err(corrupt(format!(

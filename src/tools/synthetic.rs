@@ -65,6 +65,7 @@ pub fn paper_scale_rig() -> Rig {
         tangents: None,
         indices,
         targets,
+        base_color: Primitive::default_base_color(),
     }];
     let frames = 60;
     let weights: Vec<f32> = (0..PAPER_TARGETS * frames)

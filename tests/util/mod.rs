@@ -589,6 +589,7 @@ pub fn random_rig(seed: u64, sizes: &[usize], n_targets: usize) -> crowdmorph::r
             tangents: None,
             indices,
             targets,
+            base_color: Primitive::default_base_color(),
         });
     }
     let mut lod = Lod::file_order(n_targets);
