@@ -300,6 +300,11 @@ impl GpuContext {
         &self.adapter
     }
 
+    /// The queue (a renderer on the same device records its passes here).
+    pub fn queue(&self) -> &wgpu::Queue {
+        &self.queue
+    }
+
     /// The device (tests use it to simulate a loss with `destroy`).
     pub fn device(&self) -> &wgpu::Device {
         &self.device
