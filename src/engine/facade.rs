@@ -187,7 +187,7 @@ pub struct Evaluation {
 /// The engine: a backend plus the fallback logic.
 pub struct Engine {
     choice: BackendChoice,
-    gpu: Option<GpuContext>,
+    gpu: Option<Arc<GpuContext>>,
     degraded: AtomicBool,
     degraded_reason: std::sync::Mutex<Option<String>>,
 }
@@ -289,7 +289,7 @@ impl Engine {
         tracing::info!(adapter = %a.name, backend = ?a.backend, device_type = ?a.device_type, "GPU engine");
         Engine {
             choice,
-            gpu: Some(ctx),
+            gpu: Some(Arc::new(ctx)),
             degraded: AtomicBool::new(false),
             degraded_reason: std::sync::Mutex::new(None),
         }
@@ -297,7 +297,13 @@ impl Engine {
 
     /// The GPU context, when a GPU was chosen (even if it has since failed).
     pub fn gpu(&self) -> Option<&GpuContext> {
-        self.gpu.as_ref()
+        self.gpu.as_deref()
+    }
+
+    /// The GPU context, shared: a renderer on the same device reads the engine's outputs
+    /// where they are.
+    pub fn gpu_shared(&self) -> Option<Arc<GpuContext>> {
+        self.gpu.clone()
     }
 
     /// The GPU context while it is healthy.
@@ -305,7 +311,7 @@ impl Engine {
         if self.degraded.load(Ordering::SeqCst) {
             return None;
         }
-        self.gpu.as_ref()
+        self.gpu.as_deref()
     }
 
     /// Switches to the CPU engine for good after a GPU fault, keeping every rig.
@@ -321,7 +327,7 @@ impl Engine {
     /// What the engine is running on.
     pub fn info(&self) -> BackendInfo {
         let degraded = self.degraded.load(Ordering::SeqCst);
-        let adapter = self.gpu.as_ref().map(|g| g.adapter());
+        let adapter = self.gpu.as_deref().map(|g| g.adapter());
         BackendInfo {
             kind: if self.gpu.is_some() && !degraded {
                 BackendKind::Gpu
