@@ -290,6 +290,14 @@ fn consecutive_batches_overlap_and_results_stay_on_the_device_without_readback()
         kept.output.positions.is_empty(),
         "no readback was asked for"
     );
+    // Collecting it left the device healthy: the next batch still runs on the GPU.
+    assert!(
+        !engine.info().degraded,
+        "{:?}",
+        engine.info().degraded_reason
+    );
+    let again = engine.evaluate(&prepared, &b, spec).expect("again");
+    assert_eq!(again.kind, Some(BackendKind::Gpu));
 }
 
 #[test]
@@ -316,4 +324,94 @@ fn auto_never_picks_a_software_adapter() {
         assert_eq!(info.kind, BackendKind::Cpu, "{info:?}");
         assert!(info.adapter.is_none());
     }
+}
+
+/// Reads `len` f32 of `buffer` from byte `offset` back to the host (tests only).
+fn read_back(
+    ctx: &crowdmorph::engine::gpu::GpuContext,
+    buffer: &wgpu::Buffer,
+    offset: u64,
+    len: usize,
+) -> Vec<f32> {
+    let bytes = (len * 4) as u64;
+    let staging = ctx.device().create_buffer(&wgpu::BufferDescriptor {
+        label: Some("test readback"),
+        size: bytes,
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let mut encoder = ctx
+        .device()
+        .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
+    encoder.copy_buffer_to_buffer(buffer, offset, &staging, 0, bytes);
+    ctx.queue().submit([encoder.finish()]);
+    staging.map_async(wgpu::MapMode::Read, .., |r| r.expect("map"));
+    ctx.device()
+        .poll(wgpu::PollType::wait_indefinitely())
+        .expect("poll");
+    let view = staging.get_mapped_range(..).expect("mapped");
+    bytemuck::cast_slice::<u8, f32>(&view).to_vec()
+}
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+fn outputs_left_on_the_device_are_the_blend_and_the_engine_stays_healthy() {
+    // Small bindings split 20 jobs into sub-batches that reuse the slot's output buffers: the
+    // resident outputs must hold every job, not only the last sub-batch's.
+    let ctx = open_gpu(GpuOptions {
+        max_binding: Some(1 << 20),
+        ..GpuOptions::default()
+    });
+    let engine = Engine::with_gpu(ctx, BackendChoice::Gpu);
+    let rig = Arc::new(crowdmorph::embedded::default_rig());
+    let prepared = engine.prepare(rig.clone()).expect("upload");
+    let cpu = Engine::cpu();
+    let c = cpu.prepare(rig.clone()).expect("prepare");
+    let spec = OutputSpec {
+        normals: true,
+        precision: Precision::F32,
+    };
+    let diag = rig.bbox().diagonal();
+    let v3 = rig.vertex_count() * 3;
+    // Several batches in a row, then an ordinary read-back batch: none of them degrades the
+    // engine (unmapping a never-mapped staging buffer used to).
+    for seed in 0..3 {
+        let jobs = random_jobs(&rig, 10 + seed, 20);
+        let (buffers, _) = engine
+            .evaluate_for_render(&prepared, &jobs)
+            .expect("evaluate");
+        let crowdmorph::engine::RenderBuffers::Device(out) = buffers else {
+            panic!("a healthy GPU engine leaves render outputs on the device");
+        };
+        assert_eq!((out.jobs, out.vertices), (jobs.len(), rig.vertex_count()));
+        let want = cpu.evaluate(&c, &jobs, spec).expect("cpu");
+        let ctx = engine.gpu().expect("gpu");
+        for j in 0..jobs.len() {
+            let p = read_back(ctx, &out.positions, out.offset(j), v3);
+            assert!(
+                max_diff(&p, &want.output.job_positions(j)) <= 1e-5 * diag,
+                "job {j}"
+            );
+            let n = read_back(
+                ctx,
+                out.normals.as_ref().expect("normals"),
+                out.offset(j),
+                v3,
+            );
+            let wn = want.output.job_normals(j).expect("normals");
+            assert!(max_diff(&n, &wn) <= 1e-3, "normals of job {j}");
+        }
+        assert!(
+            !engine.info().degraded,
+            "{:?}",
+            engine.info().degraded_reason
+        );
+    }
+    let jobs = random_jobs(&rig, 99, 6);
+    let got = engine.evaluate(&prepared, &jobs, spec).expect("read back");
+    assert_eq!(got.kind, Some(BackendKind::Gpu));
+    assert!(!engine.info().degraded);
 }

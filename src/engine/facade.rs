@@ -12,7 +12,7 @@ use std::time::Instant;
 use serde::Serialize;
 
 use super::cpu::CpuRig;
-use super::gpu::{ClipTables, GpuContext, GpuError, GpuOptions, GpuRig, Pending};
+use super::gpu::{ClipTables, DeviceOutput, GpuContext, GpuError, GpuOptions, GpuRig, Pending};
 use super::{BlendJob, BlendOutput, EngineError, OutputSpec, WeightBatch};
 use crate::rig::Rig;
 
@@ -162,6 +162,15 @@ impl PreparedRig {
             None => self,
         })
     }
+}
+
+/// Where [`Engine::evaluate_for_render`] left a batch's positions and normals.
+#[derive(Debug)]
+pub enum RenderBuffers {
+    /// Host arrays (the CPU engine, or a degraded GPU engine).
+    Host(BlendOutput),
+    /// Buffers on the engine's GPU device.
+    Device(DeviceOutput),
 }
 
 /// Times of one evaluation.
@@ -601,6 +610,44 @@ impl Engine {
             },
             BackendKind::Cpu,
         ))
+    }
+
+    /// Evaluates unique jobs of one rig for drawing: positions and unit normals in f32. On a
+    /// healthy GPU they stay on the device ([`RenderBuffers::Device`], for a renderer sharing
+    /// the engine's device); otherwise they are host arrays. A GPU fault degrades the engine
+    /// and the jobs are computed on the CPU, as for every other evaluation.
+    pub fn evaluate_for_render(
+        &self,
+        rig: &PreparedRig,
+        jobs: &[BlendJob],
+    ) -> Result<(RenderBuffers, Timings), EngineError> {
+        let start = Instant::now();
+        let spec = OutputSpec {
+            normals: true,
+            precision: super::Precision::F32,
+        };
+        let target = rig.route(jobs)?;
+        if let (Some(ctx), Some(g)) = (self.gpu_active(), &target.gpu) {
+            let gpu_jobs: Option<Vec<_>> =
+                jobs.iter().map(|j| g.job(j.clip, j.frame, j.lod)).collect();
+            let gpu_jobs = gpu_jobs.ok_or(EngineError::NoSuchClip(u32::MAX))?;
+            match ctx
+                .submit(g, &gpu_jobs, spec, false)
+                .and_then(Pending::wait_resident)
+            {
+                Ok((out, gpu_ns)) => {
+                    let timings = Timings {
+                        wall_ns: start.elapsed().as_nanos() as u64,
+                        gpu_ns,
+                    };
+                    return Ok((RenderBuffers::Device(out), timings));
+                }
+                Err(e @ GpuError::DoesNotFit(_)) => return Err(gpu_to_engine(e)),
+                Err(e) => self.degrade(&e),
+            }
+        }
+        let e = self.evaluate_cpu(target, jobs, spec, start)?;
+        Ok((RenderBuffers::Host(e.output), e.timings))
     }
 
     /// Evaluates unique jobs of one rig and returns the buffers.

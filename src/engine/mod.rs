@@ -15,7 +15,7 @@ pub mod gpu;
 
 pub use facade::{
     BackendChoice, BackendInfo, BackendKind, Begun, Engine, Evaluation, PendingEvaluation,
-    PreparedRig, RigMemory, Timings,
+    PreparedRig, RenderBuffers, RigMemory, Timings,
 };
 
 use half::f16;

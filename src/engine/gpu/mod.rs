@@ -804,6 +804,30 @@ pub struct Pending<'a> {
     /// Bytes of the staging buffer this batch mapped.
     staged: u64,
     mapped: Arc<Mutex<Vec<Result<(), String>>>>,
+    /// Without readback: the batch's outputs, copied out of the slot so they outlive it.
+    resident: Option<DeviceOutput>,
+}
+
+/// A batch's outputs left on the device (`submit(.., readback: false)`): f32 x, y, z per
+/// vertex, job `j` from byte `j · vertices · 12`, in buffers usable as vertex buffers. They
+/// are the batch's own, not the pooled slot's, so they live as long as a renderer holds them.
+#[derive(Clone, Debug)]
+pub struct DeviceOutput {
+    /// Blended positions.
+    pub positions: wgpu::Buffer,
+    /// Unit normals, when asked for.
+    pub normals: Option<wgpu::Buffer>,
+    /// Vertices per job.
+    pub vertices: usize,
+    /// Jobs.
+    pub jobs: usize,
+}
+
+impl DeviceOutput {
+    /// Byte offset of job `j`'s data in either buffer.
+    pub fn offset(&self, j: usize) -> u64 {
+        (j * self.vertices * 12) as u64
+    }
 }
 
 impl GpuContext {
@@ -907,6 +931,33 @@ impl GpuContext {
                 }
             }
         };
+        // Without readback the outputs are copied into buffers of their own (f32 only: they
+        // are for drawing), since each sub-batch reuses the slot's output buffers.
+        let resident = if readback {
+            None
+        } else {
+            if f16 {
+                return Err(GpuError::Internal(
+                    "device-resident outputs are f32 (they are drawn as vertex buffers)".into(),
+                ));
+            }
+            let bytes = n as u64 * per_job_out;
+            if bytes > self.max_buffer {
+                return Err(GpuError::DoesNotFit(format!(
+                    "batch output of {bytes} bytes exceeds the device's largest buffer"
+                )));
+            }
+            use wgpu::BufferUsages as U;
+            let usage = U::VERTEX | U::STORAGE | U::COPY_DST | U::COPY_SRC;
+            Some(DeviceOutput {
+                positions: self.buffer("resident positions", bytes, usage),
+                normals: spec
+                    .normals
+                    .then(|| self.buffer("resident normals", bytes, usage)),
+                vertices: v as usize,
+                jobs: n,
+            })
+        };
         if let Some(e) = pollster::block_on(oom.pop()) {
             return Err(GpuError::OutOfMemory(e.to_string()));
         }
@@ -930,6 +981,14 @@ impl GpuContext {
                 encoder.copy_buffer_to_buffer(pos_src, 0, &slot.staging, r.positions, bytes);
                 if spec.normals {
                     encoder.copy_buffer_to_buffer(nrm_src, 0, &slot.staging, r.normals, bytes);
+                }
+            }
+            if let Some(out) = &resident {
+                let bytes = r.jobs as u64 * per_job_out;
+                let at = r.job as u64 * per_job_out;
+                encoder.copy_buffer_to_buffer(&slot.positions, 0, &out.positions, at, bytes);
+                if let Some(n) = &out.normals {
+                    encoder.copy_buffer_to_buffer(&slot.normals, 0, n, at, bytes);
                 }
             }
         }
@@ -969,6 +1028,7 @@ impl GpuContext {
             readback,
             staged: staging.max(4),
             mapped,
+            resident,
         })
     }
 
@@ -1179,20 +1239,33 @@ impl GpuContext {
 impl Pending<'_> {
     /// Waits for the batch and returns its buffers (empty without readback) and GPU time.
     pub fn wait(mut self) -> Result<(BlendOutput, Option<u64>), GpuError> {
-        let ctx = self.ctx;
         let result = self.finish();
+        self.release(result.is_ok());
+        result
+    }
+
+    /// Waits for a batch submitted without readback and returns its outputs where they are,
+    /// on the device, with the GPU time.
+    pub fn wait_resident(mut self) -> Result<(DeviceOutput, Option<u64>), GpuError> {
+        let result = self.finish();
+        self.release(result.is_ok());
+        let (_, gpu_ns) = result?;
+        let out = self
+            .resident
+            .take()
+            .ok_or_else(|| GpuError::Internal("the batch was submitted with readback".into()))?;
+        Ok((out, gpu_ns))
+    }
+
+    /// Unmaps what this batch mapped and returns its slot to the pool (after a success: a
+    /// failed batch's slot may be in any state).
+    fn release(&mut self, reuse: bool) {
         if let Some(slot) = self.slot.take() {
-            slot.staging.unmap();
-            if let Some((_, _, read)) = &slot.queries {
-                read.unmap();
-            }
-            if result.is_ok()
-                && let Ok(mut pool) = ctx.pool.lock()
-            {
+            unmap(&slot, self.readback);
+            if reuse && let Ok(mut pool) = self.ctx.pool.lock() {
                 pool.push(slot);
             }
         }
-        result
     }
 
     fn finish(&mut self) -> Result<(BlendOutput, Option<u64>), GpuError> {
@@ -1290,11 +1363,20 @@ impl Drop for Pending<'_> {
                 timeout: None,
             });
             if let Some(slot) = self.slot.take() {
-                slot.staging.unmap();
-                if let Some((_, _, read)) = &slot.queries {
-                    read.unmap();
-                }
+                unmap(&slot, self.readback);
             }
         }
+    }
+}
+
+/// Unmaps the buffers a batch mapped: the staging buffer only when it read back (unmapping a
+/// buffer that was never mapped is a validation error, which would fail the device), and the
+/// timestamp readback.
+fn unmap(slot: &Slot, readback: bool) {
+    if readback {
+        slot.staging.unmap();
+    }
+    if let Some((_, _, read)) = &slot.queries {
+        read.unmap();
     }
 }
