@@ -498,6 +498,7 @@ pub(super) async fn readyz(State(state): State<AppState>) -> Response {
         degraded_reason: info.degraded_reason,
         rigs: state.registry.len() as u32,
         skipped_files: state.skipped(),
+        renderer: None,
     };
     let code = if state.is_ready() {
         StatusCode::OK
