@@ -14,6 +14,9 @@
 //! Besides shading, a [`Frame`] keeps the depth and the nearest vertex of every covered pixel,
 //! which `crate::lod::mesh` uses to find facial feature points on the visible surface.
 
+pub mod encode;
+pub mod scene;
+
 use glam::{Vec2, Vec3};
 
 use crate::rig::{Aabb, Rig, vertex_normals};
