@@ -320,6 +320,14 @@ struct ServeArgs {
     /// in the background; they keep the import's quick order until PUT /v1/rigs/{id}/lod.
     #[arg(long, env = "CROWDMORPH_NO_AUTO_LOD")]
     no_auto_lod: bool,
+    /// Pixels that rendered frames in flight may hold together (a W × H image takes W × H;
+    /// 503 render_busy past it; default 64 Mpixels).
+    #[arg(long, env = "CROWDMORPH_RENDER_PIXELS", default_value_t = crowdmorph::server::config::DEFAULT_RENDER_PIXELS, value_parser = clap::value_parser!(u64).range(1..))]
+    render_pixels: u64,
+    /// Adapter that draws rendered frames: auto (the engine's GPU, else any adapter, software
+    /// ones such as lavapipe included), gpu (hardware only) or off.
+    #[arg(long, env = "CROWDMORPH_RENDER_BACKEND", default_value = "auto")]
+    render_backend: crowdmorph::server::RenderBackend,
 }
 
 /// Descriptors kept for everything but connections: stored rig files, the engine's device
@@ -419,6 +427,8 @@ fn run_serve(a: ServeArgs) -> Result<()> {
         idle_timeout: std::time::Duration::from_secs(a.idle_timeout_s),
         cors_origins: a.cors_origin,
         auto_lod: !a.no_auto_lod,
+        render_pixels: a.render_pixels,
+        render_backend: a.render_backend,
     };
     if let Some(d) = &config.data_dir {
         tracing::info!(data_dir = %d.display(), "data directory");

@@ -62,7 +62,44 @@ pub struct ServerConfig {
     /// mesh levels in the background after registration (and at start for stored rigs that
     /// still have the import's quick order).
     pub auto_lod: bool,
+    /// Pixels that renders in flight may hold together (`POST /v1/crowd/render`): a W × H
+    /// image takes W × H of them until its response is built. One larger than this gets 413,
+    /// one that does not fit now 503 `render_busy` (`--render-pixels`).
+    pub render_pixels: u64,
+    /// Which adapter draws rendered frames (`--render-backend`).
+    pub render_backend: RenderBackend,
 }
+
+/// Which adapter draws rendered frames.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum RenderBackend {
+    /// The engine's GPU when it has one (its outputs are drawn where they are), else any
+    /// adapter, software ones (lavapipe) included.
+    #[default]
+    Auto,
+    /// A hardware GPU only: the engine's, or one opened for rendering; never a software one.
+    Gpu,
+    /// No rendering: render requests get 503 `render_unavailable`.
+    Off,
+}
+
+impl std::str::FromStr for RenderBackend {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s.to_ascii_lowercase().as_str() {
+            "auto" => Ok(RenderBackend::Auto),
+            "gpu" => Ok(RenderBackend::Gpu),
+            "off" => Ok(RenderBackend::Off),
+            other => Err(format!(
+                "unknown render backend {other:?} (auto, gpu or off)"
+            )),
+        }
+    }
+}
+
+/// Default of [`ServerConfig::render_pixels`]: 64 Mpixels (64 × 2^20), four 4096 × 4096
+/// images or 72 of 1280 × 720.
+pub const DEFAULT_RENDER_PIXELS: u64 = 64 << 20;
 
 impl Default for ServerConfig {
     fn default() -> Self {
@@ -87,6 +124,8 @@ impl Default for ServerConfig {
             idle_timeout: Duration::from_secs(60),
             cors_origins: Vec::new(),
             auto_lod: true,
+            render_pixels: DEFAULT_RENDER_PIXELS,
+            render_backend: RenderBackend::Auto,
         }
     }
 }

@@ -48,7 +48,7 @@ use tower_http::request_id::{
 };
 use tower_http::trace::TraceLayer;
 
-pub use config::{ServerConfig, default_data_dir};
+pub use config::{RenderBackend, ServerConfig, default_data_dir};
 pub use error::ApiError;
 
 use crate::budget::{Budget, MemoryPool};
@@ -113,6 +113,8 @@ pub struct Inner {
     lod_builds: Arc<Semaphore>,
     /// The rate-limited summary of shed and timed-out requests.
     shed_log: ShedLog,
+    /// Pixels that renders in flight hold (`--render-pixels`), one permit per pixel.
+    pixels: Arc<Semaphore>,
 }
 
 impl Drop for Inner {
@@ -162,6 +164,9 @@ impl AppState {
         let memory_units = u32::try_from((config.queue_memory_bytes / 1024).max(1))
             .unwrap_or(u32::MAX)
             .min(Semaphore::MAX_PERMITS as u32);
+        let render_pixels = usize::try_from(config.render_pixels)
+            .unwrap_or(usize::MAX)
+            .min(Semaphore::MAX_PERMITS);
         let registry = Registry::default();
         let pool = MemoryPool::new(config.max_rig_memory, "--max-rig-memory");
         let builtin = Arc::new(crate::embedded::default_rig());
@@ -201,6 +206,7 @@ impl AppState {
             lod_jobs: lod::LodJobs::default(),
             lod_builds: Arc::new(Semaphore::new(2)),
             shed_log: ShedLog::default(),
+            pixels: Arc::new(Semaphore::new(render_pixels)),
         })))
     }
 
@@ -441,6 +447,9 @@ impl AppState {
             degraded: self.engine.info().degraded,
             loading: !self.is_ready(),
             connections_limit: self.config.max_connections as u64,
+            render_pixels: (self.config.render_pixels)
+                .saturating_sub(self.pixels.available_permits() as u64),
+            render_pixels_limit: self.config.render_pixels,
         }
     }
 }
