@@ -26,7 +26,7 @@
 //!   renderer's device (the GPU engine's outputs) are bound where they are, with no readback.
 //! - Everything a render allocates is proportional to its input (vertex data, instances, draws)
 //!   or to `width × height`; the last render's targets and buffers are kept for the next one
-//!   when they are small ([`RETAIN_BYTES`]), since a server renders the same sizes repeatedly.
+//!   when they are small (128 MiB in all), since a server renders the same sizes repeatedly.
 //! - Work runs inside validation and out-of-memory error scopes, so a failed render is a
 //!   [`RenderError`] for this request, not an uncaptured error that would stop the GPU engine
 //!   sharing the device; bad input is refused before anything reaches the device.
@@ -54,7 +54,7 @@ const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
 /// Targets and buffers of a render are kept for the next render only while they total at most
 /// this many bytes; larger frames allocate per render, so a rare huge picture does not keep its
 /// memory on the device.
-pub const RETAIN_BYTES: u64 = 128 << 20;
+const RETAIN_BYTES: u64 = 128 << 20;
 /// Bytes of one vertex attribute (f32 x, y, z).
 const VERTEX_STRIDE: u64 = 12;
 
@@ -352,7 +352,7 @@ fn normal_matrix(m: &Mat4) -> Mat3 {
 
 /// Where one mesh's vertex attribute is bound from during the pass.
 enum Bound<'a> {
-    /// At this offset of the scratch scene buffer, `len` bytes.
+    /// Uploaded from `data` to this offset of the scratch scene buffer.
     Scene { offset: u64, data: &'a [f32] },
     /// In the caller's buffer.
     Device {
@@ -532,9 +532,11 @@ impl Renderer {
         })?;
         let total_indices: usize = rig.primitives.iter().map(|p| p.indices.len()).sum();
         let bytes = total_indices as u64 * 4;
-        if bytes > self.max_buffer {
+        // Index ranges are u32 in draw calls.
+        if bytes > self.max_buffer || u32::try_from(total_indices).is_err() {
             return Err(RenderError::TooLarge(format!(
-                "{bytes} bytes of indices exceed the device's largest buffer ({} bytes)",
+                "{total_indices} indices ({bytes} bytes) exceed the device's largest buffer \
+                 ({} bytes) or 32-bit draw ranges",
                 self.max_buffer
             )));
         }
@@ -925,7 +927,9 @@ impl Renderer {
             )));
         }
         if let Some(c) = frame.background.iter().find(|c| !c.is_finite()) {
-            return Err(RenderError::Invalid(format!("background channel {c}")));
+            return Err(RenderError::Invalid(format!(
+                "background channel {c} is not finite"
+            )));
         }
         // At most 4 · 2^32 bytes: no overflow in u64, and it fits u32 for texture sizes the
         // limit allows (checked below rather than assumed).
