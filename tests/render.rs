@@ -684,3 +684,79 @@ fn renders_from_two_threads_at_once_match_renders_from_one() {
         }
     });
 }
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+fn the_gpu_engine_outputs_are_drawn_where_they_are() {
+    // The GPU engine and the renderer share one device: the blended buffers of
+    // `evaluate_for_render` go straight into the draw, never through the host. The picture
+    // equals the one drawn from the CPU engine's host arrays.
+    use crowdmorph::engine::{BackendChoice, RenderBuffers};
+    let engine = Engine::with_gpu(open_gpu(GpuOptions::default()), BackendChoice::Gpu);
+    let renderer = Renderer::new(engine.gpu_shared().expect("gpu")).expect("renderer");
+    let (rig, cpu_prepared) = head();
+    let prepared = engine.prepare(rig.clone()).expect("upload");
+    let talk = rig.clip_index("talk").expect("talk") as u32;
+    let jobs: Vec<BlendJob> = [3u32, 17, 29]
+        .iter()
+        .map(|&frame| BlendJob {
+            clip: talk,
+            frame,
+            lod: 0,
+        })
+        .collect();
+    let (buffers, _) = engine
+        .evaluate_for_render(&prepared, &jobs)
+        .expect("evaluate");
+    let RenderBuffers::Device(out) = buffers else {
+        panic!("a healthy GPU engine leaves render outputs on the device");
+    };
+    let topology = renderer.topology(rig).expect("topology");
+    let normals = out.normals.as_ref().expect("normals");
+    let spacing = (rig.bbox().max - rig.bbox().min).x * 1.2;
+    let instances: Vec<[Mat4; 1]> = (0..3)
+        .map(|i| [Mat4::from_translation(Vec3::X * spacing * (i as f32 - 1.0))])
+        .collect();
+    let device: Vec<SceneMesh<'_>> = (0..3)
+        .map(|j| SceneMesh {
+            topology: &topology,
+            positions: VertexSource::Device {
+                buffer: &out.positions,
+                offset: out.offset(j),
+            },
+            normals: VertexSource::Device {
+                buffer: normals,
+                offset: out.offset(j),
+            },
+            instances: &instances[j],
+        })
+        .collect();
+    let b = rig.bbox();
+    // A 3:1 frame: the view spans one spacing vertically, three across.
+    let view = front_view((b.min + b.max) * 0.5, spacing * 1.1);
+    let drawn = renderer
+        .render(&device, &view, &frame(384, 128))
+        .expect("render");
+    assert!(
+        !engine.info().degraded,
+        "{:?}",
+        engine.info().degraded_reason
+    );
+
+    let host_data: Vec<(Vec<f32>, Vec<f32>)> = [3u32, 17, 29]
+        .iter()
+        .map(|&f| evaluate(cpu_prepared, "talk", f))
+        .collect();
+    let from_host: Vec<SceneMesh<'_>> = (0..3)
+        .map(|j| host(&topology, &host_data[j], &instances[j]))
+        .collect();
+    let reference = renderer
+        .render(&from_host, &view, &frame(384, 128))
+        .expect("render");
+    let c = compare(&image(&drawn), &image(&reference), 8).expect("same size");
+    assert!(c.fraction() <= 0.002, "{} of pixels differ", c.fraction());
+    assert!(covered(&image(&drawn), 0, 384, 0, 128) > 384 * 128 / 10);
+}
