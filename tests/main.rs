@@ -16,6 +16,7 @@ mod engine;
 mod gpu;
 mod lod;
 mod planner;
+mod render;
 mod rigs;
 mod sampling;
 mod server;

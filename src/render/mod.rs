@@ -8,13 +8,15 @@
 //! renderer: orthographic front view framing the rig's bounding box, a z-buffer, per-pixel
 //! interpolated vertex normals, Lambert + ambient shading from a light in the x = 0 plane, one
 //! grayscale f32 channel. Triangles are drawn in order on one thread; ties in depth keep the first
-//! triangle drawn, so the output depends only on the input. A later rendering issue adds a GPU
-//! path; this one stays as the reference.
+//! triangle drawn, so the output depends only on the input. The GPU renderer in [`gpu`] draws
+//! the pictures clients see (perspective, colour, MSAA, instanced crowds); this one stays the
+//! reference for the metrics.
 //!
 //! Besides shading, a [`Frame`] keeps the depth and the nearest vertex of every covered pixel,
 //! which `crate::lod::mesh` uses to find facial feature points on the visible surface.
 
 pub mod encode;
+pub mod gpu;
 pub mod scene;
 
 use glam::{Vec2, Vec3};

@@ -8,6 +8,7 @@
 #![allow(dead_code)]
 
 pub mod builder;
+pub mod image;
 
 use std::path::{Path, PathBuf};
 
