@@ -4,6 +4,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use crate::engine::BackendChoice;
+pub use crate::render::crowd::RenderBackend;
 
 /// Everything [`super::run`] needs to know besides the listener.
 #[derive(Clone, Debug)]
@@ -68,33 +69,6 @@ pub struct ServerConfig {
     pub render_pixels: u64,
     /// Which adapter draws rendered frames (`--render-backend`).
     pub render_backend: RenderBackend,
-}
-
-/// Which adapter draws rendered frames.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub enum RenderBackend {
-    /// The engine's GPU when it has one (its outputs are drawn where they are), else any
-    /// adapter, software ones (lavapipe) included.
-    #[default]
-    Auto,
-    /// A hardware GPU only: the engine's, or one opened for rendering; never a software one.
-    Gpu,
-    /// No rendering: render requests get 503 `render_unavailable`.
-    Off,
-}
-
-impl std::str::FromStr for RenderBackend {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        match s.to_ascii_lowercase().as_str() {
-            "auto" => Ok(RenderBackend::Auto),
-            "gpu" => Ok(RenderBackend::Gpu),
-            "off" => Ok(RenderBackend::Off),
-            other => Err(format!(
-                "unknown render backend {other:?} (auto, gpu or off)"
-            )),
-        }
-    }
 }
 
 /// Default of [`ServerConfig::render_pixels`]: 64 Mpixels (64 × 2^20), four 4096 × 4096
