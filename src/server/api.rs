@@ -498,7 +498,7 @@ pub(super) async fn readyz(State(state): State<AppState>) -> Response {
         degraded_reason: info.degraded_reason,
         rigs: state.registry.len() as u32,
         skipped_files: state.skipped(),
-        renderer: None,
+        renderer: state.render.adapter_name(),
     };
     let code = if state.is_ready() {
         StatusCode::OK
@@ -692,6 +692,9 @@ pub(super) async fn delete_rig(
     }
     state.lod_jobs.cancel(&id);
     state.registry.remove(&id);
+    if let Ok(mut t) = state.render.topologies.lock() {
+        t.purge(&id);
+    }
     drop(entry);
     // The rig's memory is freed when the last request using it is done; hand what is free
     // now back to the OS, so that deleting a large rig lowers the resident size.
@@ -1120,7 +1123,7 @@ impl http_body::Body for ChunkBody {
     }
 }
 
-fn chunked_body(mut chunks: Vec<Bytes>, permit: OwnedSemaphorePermit) -> Body {
+pub(super) fn chunked_body(mut chunks: Vec<Bytes>, permit: OwnedSemaphorePermit) -> Body {
     // The last chunk carries the permit: it is released when the whole body has been sent
     // (or the connection dropped).
     let last = chunks.pop().unwrap_or_default();
