@@ -864,3 +864,50 @@ async fn bad_render_requests_are_named_4xx_and_without_a_renderer_503() {
     assert_eq!(resp.buffers.len(), 1);
     server.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+async fn the_gpu_engine_draws_its_outputs_where_they_are() {
+    // With the GPU engine the renderer shares its device and draws the blended buffers
+    // without a readback: the picture is the CPU engine's golden, within its tolerance.
+    let server = TestServer::start(ServerConfig {
+        backend: crowdmorph::engine::BackendChoice::Gpu,
+        ..ServerConfig::default()
+    })
+    .await;
+    let ready = server
+        .client
+        .send(Method::GET, "/readyz", None, None, Bytes::new())
+        .await
+        .expect("readyz");
+    let r: crowdmorph_proto::Readiness = serde_json::from_slice(&ready.body).expect("JSON");
+    assert_eq!(r.backend, "gpu");
+    let info = server.state.engine.info();
+    assert_eq!(
+        r.renderer, info.adapter,
+        "the renderer is the engine's adapter"
+    );
+    let device =
+        crowdmorph::render::crowd::RenderDevice::open(&server.state.engine, RenderBackend::Auto)
+            .expect("a renderer");
+    assert!(
+        device.shared,
+        "on the engine's own device, not a second one"
+    );
+    let one = request(vec![head(1, "talk", 12, 0)], 320, 240);
+    let img = png(&server, &one).await;
+    let expected = Image::read_png(&golden("http_head.png")).expect("golden");
+    let c = compare(&img, &expected, GOLDEN.per_pixel).expect("same size");
+    assert!(
+        c.fraction() <= GOLDEN.max_fraction,
+        "GPU engine against the CPU golden: {c}"
+    );
+    assert!(
+        !server.state.engine.info().degraded,
+        "no device fault on the way"
+    );
+    server.stop().await;
+}
