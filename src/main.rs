@@ -166,7 +166,8 @@ enum LodCommand {
 struct RenderArgs {
     /// glTF/GLB rig (default: the embedded head).
     file: Option<PathBuf>,
-    /// Clip name (default: talk when the rig has it, else its first clip).
+    /// Clip name (default: talk when the rig has it, else its first clip, else the neutral
+    /// pose); `random` makes a synthetic clip for rigs without one.
     #[arg(long)]
     clip: Option<String>,
     /// Frame number (wraps past the end).
@@ -267,7 +268,8 @@ enum BenchCommand {
     /// Rendered frames: ms per frame split into compute, render, readback and encode, for a
     /// crowd of unique heads (head i plays frame i) on the default grid and camera.
     Render {
-        /// glTF/GLB rig (default: the embedded head).
+        /// glTF/GLB rig (default: the embedded head; a rig without clips plays a synthetic
+        /// random clip).
         #[arg(long)]
         rig: Option<PathBuf>,
         /// Heads in the crowd, each a different frame.

@@ -22,10 +22,18 @@ use crate::render::gpu::{Frame, MeshTopology, View};
 use crate::render::scene;
 use crate::rig::{FrameMode, Rig};
 
+/// The clip `--clip random` makes for a rig (deterministic random weights, one frame per head
+/// at least): ICT FaceKit and other rigs without animation can still be benchmarked.
+pub const RANDOM_CLIP: &str = "random";
+
+/// The one-frame clip of all-zero weights a rig without clips is drawn with by default.
+pub const NEUTRAL_CLIP: &str = "neutral";
+
 /// What to draw.
 #[derive(Clone, Debug)]
 pub struct RenderOptions {
-    /// Clip name (default: `talk` when the rig has it, else its first clip).
+    /// Clip name (default: `talk` when the rig has it, else its first clip, else the neutral
+    /// pose); `random` makes a synthetic clip when the rig has none of that name.
     pub clip: Option<String>,
     /// Frame of the first head (wraps past the end).
     pub frame: i64,
@@ -113,8 +121,36 @@ struct Crowd {
     unique: usize,
 }
 
+/// The rig with the clip `opt` asks for added when it is a synthetic one (`random`, or the
+/// neutral pose of a rig without clips).
+fn playable(rig: &Rig, opt: &RenderOptions) -> Rig {
+    match opt.clip.as_deref() {
+        Some(RANDOM_CLIP) if rig.clip_index(RANDOM_CLIP).is_none() => {
+            crate::tools::synthetic::with_random_clip_of(
+                rig.clone(),
+                RANDOM_CLIP,
+                opt.heads.max(24),
+                7,
+            )
+        }
+        None if rig.clips.is_empty() => {
+            let mut r = rig.clone();
+            r.clips.push(crate::rig::Clip {
+                name: NEUTRAL_CLIP.into(),
+                fps: crate::rig::DEFAULT_FPS,
+                frames: 1,
+                targets: r.targets.len() as u32,
+                weights: Arc::new(vec![0.0; r.targets.len()]),
+            });
+            r
+        }
+        _ => rig.clone(),
+    }
+}
+
 fn build(engine: &Engine, device: &RenderDevice, rig: &Rig, opt: &RenderOptions) -> Result<Crowd> {
     encode::check_image(&opt.image, device.renderer.max_size())?;
+    let rig = &playable(rig, opt);
     let clip = match &opt.clip {
         Some(c) => rig.clip_index(c).with_context(|| {
             let names: Vec<&str> = rig.clips.iter().map(|c| c.name.as_str()).collect();
@@ -124,11 +160,7 @@ fn build(engine: &Engine, device: &RenderDevice, rig: &Rig, opt: &RenderOptions)
                 names.join(", ")
             )
         })?,
-        None => match rig.clip_index("talk") {
-            Some(c) => c,
-            None if !rig.clips.is_empty() => 0,
-            None => bail!("rig {:?} has no clips; nothing to play", rig.name),
-        },
+        None => rig.clip_index("talk").unwrap_or(0),
     };
     let levels = rig.lod.levels.len();
     if opt.lod as usize >= levels {
@@ -275,7 +307,8 @@ pub fn format_of(path: &Path) -> Option<ImageFormat> {
 }
 
 /// `crowdmorph bench render`: draws the crowd repeatedly for about `seconds` (at least
-/// `min_runs` times, after one warm-up frame) and reports the median of each stage.
+/// `min_runs` times, after one warm-up frame) and reports the median of each stage. A rig
+/// without clips plays a synthetic `random` clip, so its heads differ.
 pub fn bench_render(
     engine: &Engine,
     rig: &Rig,
@@ -283,6 +316,11 @@ pub fn bench_render(
     seconds: f64,
     min_runs: usize,
 ) -> Result<RenderReport> {
+    let mut opt = opt.clone();
+    if opt.clip.is_none() && rig.clips.is_empty() {
+        opt.clip = Some(RANDOM_CLIP.into());
+    }
+    let opt = &opt;
     let device = RenderDevice::open(engine, opt.backend).map_err(anyhow::Error::msg)?;
     let c = build(engine, &device, rig, opt)?;
     // The first frame pays for pipeline and buffer creation.
