@@ -72,7 +72,9 @@ pub struct ServerConfig {
 }
 
 /// Default of [`ServerConfig::render_pixels`]: 64 Mpixels (64 × 2^20), four 4096 × 4096
-/// images or 72 of 1280 × 720.
+/// images or 72 of 1280 × 720. A pixel in flight costs about 48 bytes (4× MSAA colour and
+/// depth, the resolved and staging copies on the device — host memory on lavapipe — the
+/// pixels read back and the encoded image), so the default bounds renders to about 3 GiB.
 pub const DEFAULT_RENDER_PIXELS: u64 = 64 << 20;
 
 impl Default for ServerConfig {
