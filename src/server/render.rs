@@ -49,14 +49,35 @@ struct TopologyKey {
     mesh: Option<usize>,
 }
 
-/// Topologies uploaded to the renderer, most recently used last, bounded by count and bytes.
-#[derive(Default)]
-pub struct TopologyCache {
-    entries: Vec<(TopologyKey, Arc<MeshTopology>)>,
+/// What a cache entry occupies.
+pub trait Footprint {
+    /// Bytes it holds (on the device, for a topology).
+    fn bytes(&self) -> u64;
+}
+
+impl Footprint for MeshTopology {
+    fn bytes(&self) -> u64 {
+        MeshTopology::bytes(self)
+    }
+}
+
+/// Topologies uploaded to the renderer, most recently used last, bounded by count and bytes
+/// (`T` is a parameter so the eviction rules are tested without a device).
+pub struct TopologyCache<T = MeshTopology> {
+    entries: Vec<(TopologyKey, Arc<T>)>,
     bytes: u64,
 }
 
-impl std::fmt::Debug for TopologyCache {
+impl<T> Default for TopologyCache<T> {
+    fn default() -> Self {
+        TopologyCache {
+            entries: Vec::new(),
+            bytes: 0,
+        }
+    }
+}
+
+impl<T> std::fmt::Debug for TopologyCache<T> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("TopologyCache")
             .field("entries", &self.entries.len())
@@ -65,8 +86,8 @@ impl std::fmt::Debug for TopologyCache {
     }
 }
 
-impl TopologyCache {
-    fn get(&mut self, key: &TopologyKey) -> Option<Arc<MeshTopology>> {
+impl<T: Footprint> TopologyCache<T> {
+    fn get(&mut self, key: &TopologyKey) -> Option<Arc<T>> {
         let i = self.entries.iter().position(|(k, _)| k == key)?;
         let e = self.entries.remove(i);
         let t = e.1.clone();
@@ -74,7 +95,7 @@ impl TopologyCache {
         Some(t)
     }
 
-    fn insert(&mut self, key: TopologyKey, t: Arc<MeshTopology>) -> Arc<MeshTopology> {
+    fn insert(&mut self, key: TopologyKey, t: Arc<T>) -> Arc<T> {
         // Another render may have uploaded the same topology meanwhile: keep one.
         if let Some(existing) = self.get(&key) {
             return existing;
@@ -447,6 +468,52 @@ pub(super) async fn crowd_render(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    struct Sized(u64);
+
+    impl Footprint for Sized {
+        fn bytes(&self) -> u64 {
+            self.0
+        }
+    }
+
+    fn key(rig: &str, generation: u64) -> TopologyKey {
+        TopologyKey {
+            rig: rig.into(),
+            generation,
+            mesh: None,
+        }
+    }
+
+    #[test]
+    fn the_topology_cache_keeps_the_most_recently_used_within_its_bounds() {
+        let mut c = TopologyCache::default();
+        for g in 0..TOPOLOGY_ENTRIES as u64 {
+            c.insert(key("a", g), Arc::new(Sized(1)));
+        }
+        // Using generation 0 makes generation 1 the oldest, which the next insert evicts.
+        assert!(c.get(&key("a", 0)).is_some());
+        c.insert(key("b", 0), Arc::new(Sized(1)));
+        assert_eq!(c.entries.len(), TOPOLOGY_ENTRIES);
+        assert!(c.get(&key("a", 1)).is_none() && c.get(&key("a", 0)).is_some());
+        // A second upload of the same key keeps the first.
+        let first = c.get(&key("b", 0)).expect("cached");
+        let kept = c.insert(key("b", 0), Arc::new(Sized(1)));
+        assert!(Arc::ptr_eq(&first, &kept));
+        assert_eq!(c.bytes, TOPOLOGY_ENTRIES as u64);
+        // Past the byte bound, the oldest go, but the newest always stays.
+        c.insert(key("huge", 0), Arc::new(Sized(TOPOLOGY_BYTES + 1)));
+        assert_eq!(c.entries.len(), 1);
+        assert_eq!(c.bytes, TOPOLOGY_BYTES + 1);
+        c.insert(key("a", 7), Arc::new(Sized(3)));
+        assert_eq!((c.entries.len(), c.bytes), (1, 3), "the huge one made room");
+        // A deleted rig's topologies go, whatever their generation and mesh.
+        c.insert(key("a", 8), Arc::new(Sized(4)));
+        c.insert(key("c", 0), Arc::new(Sized(5)));
+        c.purge("a");
+        assert_eq!((c.entries.len(), c.bytes), (1, 5));
+        assert!(c.get(&key("c", 0)).is_some());
+    }
 
     #[test]
     fn server_timing_durations_are_milliseconds_with_three_decimals() {
