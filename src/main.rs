@@ -55,6 +55,9 @@ enum Command {
         #[arg(long, default_value = "auto", env = "CROWDMORPH_BACKEND")]
         backend: BackendChoice,
     },
+    /// Draw a crowd of a rig's heads (the default grid and front camera) and write the image:
+    /// the same path as POST /v1/crowd/render, offline.
+    Render(Box<RenderArgs>),
     /// Measure throughput.
     Bench {
         #[command(subcommand)]
@@ -158,6 +161,54 @@ enum LodCommand {
     },
 }
 
+/// Arguments of `render`.
+#[derive(clap::Args)]
+struct RenderArgs {
+    /// glTF/GLB rig (default: the embedded head).
+    file: Option<PathBuf>,
+    /// Clip name (default: talk when the rig has it, else its first clip, else the neutral
+    /// pose); `random` makes a synthetic clip for rigs without one.
+    #[arg(long)]
+    clip: Option<String>,
+    /// Frame number (wraps past the end).
+    #[arg(long, default_value_t = 0, allow_negative_numbers = true)]
+    frame: i64,
+    /// Heads in the crowd, on a grid.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(0..=100_000))]
+    heads: u64,
+    /// Head i plays frame N + i (every head unique) instead of all heads cloning frame N.
+    #[arg(long)]
+    spread: bool,
+    /// LOD level of every head.
+    #[arg(long, default_value_t = 0)]
+    lod: u32,
+    /// Image width, pixels.
+    #[arg(long, default_value_t = crowdmorph_proto::DEFAULT_IMAGE_WIDTH)]
+    width: u32,
+    /// Image height, pixels.
+    #[arg(long, default_value_t = crowdmorph_proto::DEFAULT_IMAGE_HEIGHT)]
+    height: u32,
+    /// Image format (default: from the --out extension, else png).
+    #[arg(long)]
+    format: Option<crowdmorph_proto::ImageFormat>,
+    /// JPEG quality, 1-100.
+    #[arg(long, default_value_t = crowdmorph_proto::DEFAULT_JPEG_QUALITY)]
+    quality: u8,
+    /// Output file.
+    #[arg(long, default_value = "crowd.png")]
+    out: PathBuf,
+    /// Engine: a hardware GPU if any, else the CPU (auto); or force cpu / gpu.
+    #[arg(long, default_value = "auto", env = "CROWDMORPH_BACKEND")]
+    backend: BackendChoice,
+    /// Adapter that draws: auto (the engine's GPU, else any adapter, lavapipe included) or
+    /// gpu (hardware only).
+    #[arg(long, default_value = "auto", env = "CROWDMORPH_RENDER_BACKEND")]
+    render_backend: crowdmorph::render::crowd::RenderBackend,
+    /// Print what was drawn as JSON.
+    #[arg(long)]
+    json: bool,
+}
+
 #[derive(Subcommand)]
 enum BenchCommand {
     /// The scenes of Costigan et al. 2016 (1 head, 100 unique, 100 sharing 10 animations) at
@@ -210,6 +261,41 @@ enum BenchCommand {
         /// Engine of the server and of the in-process comparison.
         #[arg(long, default_value = "auto")]
         backend: BackendChoice,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Rendered frames: ms per frame split into compute, render, readback and encode, for a
+    /// crowd of unique heads (head i plays frame i) on the default grid and camera.
+    Render {
+        /// glTF/GLB rig (default: the embedded head; a rig without clips plays a synthetic
+        /// random clip).
+        #[arg(long)]
+        rig: Option<PathBuf>,
+        /// Heads in the crowd, each a different frame.
+        #[arg(long, default_value_t = 100)]
+        heads: usize,
+        /// Image width, pixels.
+        #[arg(long, default_value_t = 1280)]
+        width: u32,
+        /// Image height, pixels.
+        #[arg(long, default_value_t = 720)]
+        height: u32,
+        /// Image format.
+        #[arg(long, default_value = "png")]
+        format: crowdmorph_proto::ImageFormat,
+        /// LOD level of every head.
+        #[arg(long, default_value_t = 0)]
+        lod: u32,
+        /// Seconds to measure (at least 5 frames, after a warm-up frame).
+        #[arg(long, default_value_t = 3.0)]
+        seconds: f64,
+        /// Engine.
+        #[arg(long, default_value = "auto")]
+        backend: BackendChoice,
+        /// Adapter that draws (auto or gpu).
+        #[arg(long, default_value = "auto")]
+        render_backend: crowdmorph::render::crowd::RenderBackend,
         /// Print JSON.
         #[arg(long)]
         json: bool,
@@ -320,6 +406,14 @@ struct ServeArgs {
     /// in the background; they keep the import's quick order until PUT /v1/rigs/{id}/lod.
     #[arg(long, env = "CROWDMORPH_NO_AUTO_LOD")]
     no_auto_lod: bool,
+    /// Pixels that rendered frames in flight may hold together (a W × H image takes W × H;
+    /// 503 render_busy past it; default 64 Mpixels).
+    #[arg(long, env = "CROWDMORPH_RENDER_PIXELS", default_value_t = crowdmorph::server::config::DEFAULT_RENDER_PIXELS, value_parser = clap::value_parser!(u64).range(1..))]
+    render_pixels: u64,
+    /// Adapter that draws rendered frames: auto (the engine's GPU, else any adapter, software
+    /// ones such as lavapipe included), gpu (hardware only) or off.
+    #[arg(long, env = "CROWDMORPH_RENDER_BACKEND", default_value = "auto")]
+    render_backend: crowdmorph::server::RenderBackend,
 }
 
 /// Descriptors kept for everything but connections: stored rig files, the engine's device
@@ -419,6 +513,8 @@ fn run_serve(a: ServeArgs) -> Result<()> {
         idle_timeout: std::time::Duration::from_secs(a.idle_timeout_s),
         cors_origins: a.cors_origin,
         auto_lod: !a.no_auto_lod,
+        render_pixels: a.render_pixels,
+        render_backend: a.render_backend,
     };
     if let Some(d) = &config.data_dir {
         tracing::info!(data_dir = %d.display(), "data directory");
@@ -582,6 +678,48 @@ fn main() -> Result<()> {
             }
         }
         Command::Serve(args) => run_serve(*args)?,
+        Command::Render(args) => run_render(*args)?,
+        Command::Bench {
+            which:
+                BenchCommand::Render {
+                    rig,
+                    heads,
+                    width,
+                    height,
+                    format,
+                    lod,
+                    seconds,
+                    backend,
+                    render_backend,
+                    json,
+                },
+        } => {
+            use crowdmorph::tools::render as r;
+            let rig = tools::load_rig(rig.as_deref())?;
+            let engine = Engine::new(backend)?;
+            let opt = r::RenderOptions {
+                heads,
+                lod,
+                spread: true,
+                image: crowdmorph_proto::ImageOptions {
+                    width,
+                    height,
+                    format,
+                    ..crowdmorph_proto::ImageOptions::default()
+                },
+                backend: render_backend,
+                ..r::RenderOptions::default()
+            };
+            let bar = tools::spinner("bench render");
+            let report = r::bench_render(&engine, &rig, &opt, seconds, 5);
+            bar.finish_and_clear();
+            let report = report?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&report)?);
+            } else {
+                print!("{}", r::report_text(&report));
+            }
+        }
         Command::Bench {
             which:
                 BenchCommand::Http {
@@ -622,6 +760,47 @@ fn main() -> Result<()> {
                 print!("{}", http::report_text(&report));
             }
         }
+    }
+    Ok(())
+}
+
+fn run_render(a: RenderArgs) -> Result<()> {
+    use crowdmorph::tools::render as r;
+    let rig = tools::load_rig(a.file.as_deref())?;
+    let engine = Engine::new(a.backend)?;
+    let format = a
+        .format
+        .or_else(|| r::format_of(&a.out))
+        .unwrap_or_default();
+    let opt = r::RenderOptions {
+        clip: a.clip,
+        frame: a.frame,
+        heads: usize::try_from(a.heads)?,
+        lod: a.lod,
+        spread: a.spread,
+        image: crowdmorph_proto::ImageOptions {
+            width: a.width,
+            height: a.height,
+            format,
+            quality: a.quality,
+            ..crowdmorph_proto::ImageOptions::default()
+        },
+        backend: a.render_backend,
+    };
+    let report = r::render_to_file(&engine, &rig, &opt, &a.out)?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        eprintln!(
+            "wrote {} ({}×{} {}, {} heads, {} unique; rendered on {})",
+            a.out.display(),
+            report.width,
+            report.height,
+            report.format,
+            report.heads,
+            report.unique,
+            report.adapter
+        );
     }
     Ok(())
 }

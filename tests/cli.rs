@@ -132,6 +132,19 @@ fn inspect_describes_the_embedded_head_as_text_and_json() {
     assert_eq!(s["backend"]["kind"], "cpu");
     assert!(usize_of(&s["memory"], "host_bytes") > 0);
     assert_eq!(usize_of(&s["memory"], "device_bytes"), 0);
+    // Which adapter renders, or why none can.
+    if cfg!(crowdmorph_gpu_driver) {
+        let r = s["renderer"]
+            .as_str()
+            .expect("a renderer with a Vulkan driver");
+        assert!(text.contains(&format!("renderer: {r}")), "{text}");
+    } else {
+        assert!(
+            s["renderer"].is_string() || s["renderer_error"].is_string(),
+            "{s}"
+        );
+        assert!(text.contains("renderer: "), "{text}");
+    }
 }
 
 #[test]
@@ -436,6 +449,132 @@ fn bench_gpu_measures_the_scenes_on_a_gpu_and_the_cpu() {
     }
     assert!(std::fs::read(&plot).expect("plot").starts_with(b"\x89PNG"));
     let _ = std::fs::remove_dir_all(dir);
+}
+
+/// Counts pixels of a PNG that are not the default background.
+fn drawn_pixels(img: &crate::util::image::Image) -> usize {
+    let bg = crowdmorph_proto::DEFAULT_BACKGROUND;
+    img.rgba
+        .chunks_exact(4)
+        .filter(|p| p[..3] != bg[..])
+        .count()
+}
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+fn render_writes_a_picture_of_a_crowd_of_the_embedded_head() {
+    let dir = temp_dir("cli-render");
+    let out = dir.join("crowd.png");
+    let report = json(&[
+        "render",
+        "--clip",
+        "talk",
+        "--frame",
+        "12",
+        "--heads",
+        "4",
+        "--spread",
+        "--width",
+        "160",
+        "--height",
+        "120",
+        "--out",
+        path_str(&out),
+        "--json",
+    ]);
+    assert_eq!(usize_of(&report, "heads"), 4);
+    assert_eq!(
+        usize_of(&report, "unique"),
+        4,
+        "--spread: one frame per head"
+    );
+    assert!(report["adapter"].as_str().is_some_and(|a| !a.is_empty()));
+    let img = crate::util::image::Image::read_png(&out).expect("a PNG");
+    assert_eq!((img.width, img.height), (160, 120));
+    let drawn = drawn_pixels(&img);
+    assert!(
+        drawn > 160 * 120 / 10,
+        "only {drawn} pixels are not background"
+    );
+    // The corner is background: the crowd is framed, not cut.
+    let bg = crowdmorph_proto::DEFAULT_BACKGROUND;
+    assert_eq!(img.pixel(0, 0), [bg[0], bg[1], bg[2], 255]);
+    // Clones by default; the format follows the extension.
+    let jpeg = dir.join("crowd.jpg");
+    let report = json(&[
+        "render",
+        "--heads",
+        "3",
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "--out",
+        path_str(&jpeg),
+        "--json",
+    ]);
+    assert_eq!(usize_of(&report, "unique"), 1);
+    assert_eq!(report["format"], "jpeg");
+    assert!(
+        std::fs::read(&jpeg)
+            .expect("jpeg")
+            .starts_with(&[0xFF, 0xD8])
+    );
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+#[test]
+fn render_without_a_vulkan_driver_says_what_to_install() {
+    // No Vulkan driver to load and no other backend: nothing can render.
+    let dir = temp_dir("cli-render-none");
+    let out = dir.join("crowd.png");
+    let mut c = crowdmorph(&["render", "--out", path_str(&out)]);
+    c.env("VK_DRIVER_FILES", dir.join("none.json"))
+        .env_remove("VK_ICD_FILENAMES")
+        .env_remove("VK_ADD_DRIVER_FILES")
+        .env("WGPU_BACKEND", "vulkan");
+    let o = c.output().expect("run crowdmorph");
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "rendered without a driver? {stderr}");
+    assert!(stderr.contains("mesa-vulkan-drivers"), "{stderr}");
+    assert!(!out.exists(), "no file is written when nothing renders");
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+fn bench_render_reports_each_stage() {
+    let r = json(&[
+        "bench",
+        "render",
+        "--heads",
+        "4",
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "--seconds",
+        "0",
+        "--json",
+    ]);
+    assert_eq!(usize_of(&r, "heads"), 4);
+    assert_eq!(usize_of(&r, "unique"), 4, "every head a different frame");
+    assert!(usize_of(&r, "runs") >= 5);
+    assert!(usize_of(&r, "bytes") > 0);
+    let t = &r["times"];
+    for stage in ["compute_ms", "render_ms", "readback_ms", "encode_ms"] {
+        assert!(f64_of(t, stage) >= 0.0, "{stage}: {t}");
+    }
+    assert!(
+        f64_of(t, "render_ms") > 0.0 && f64_of(t, "total_ms") > 0.0,
+        "{t}"
+    );
 }
 
 #[test]

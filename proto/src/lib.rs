@@ -575,4 +575,183 @@ pub struct Readiness {
     pub rigs: u32,
     /// Stored files that could not be loaded at start, with the reason.
     pub skipped_files: Vec<String>,
+    /// The adapter that draws `POST /v1/crowd/render` images (e.g. `llvmpipe (LLVM 15.0.6,
+    /// 256 bits) (Vulkan)`), or `None` when rendering is unavailable.
+    #[serde(default)]
+    pub renderer: Option<String>,
+}
+
+/// Where one head of a rendered crowd stands, in world units (`POST /v1/crowd/render`).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Placement {
+    /// The [`Head::head`] id this placement applies to (every head with that id).
+    pub head: u64,
+    /// Where the rig's origin goes.
+    pub position: [f32; 3],
+    /// Turn about +Y, in degrees (0: the head faces +Z, toward the default camera).
+    #[serde(default)]
+    pub yaw: f32,
+    /// Uniform scale, > 0.
+    #[serde(default = "one")]
+    pub scale: f32,
+}
+
+fn one() -> f32 {
+    1.0
+}
+
+/// A perspective camera of a rendered crowd, in world units.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CameraSpec {
+    /// Where the eye is.
+    pub position: [f32; 3],
+    /// The point at the centre of the image (not equal to `position`).
+    pub target: [f32; 3],
+    /// Vertical field of view in degrees, in (0, 180).
+    #[serde(default = "default_fov")]
+    pub fov_y: f32,
+    /// Near clip distance (> 0); derived from the scene's bounds when absent.
+    #[serde(default)]
+    pub near: Option<f32>,
+    /// Far clip distance (> near); derived from the scene's bounds when absent.
+    #[serde(default)]
+    pub far: Option<f32>,
+}
+
+/// Default vertical field of view of a rendered crowd, degrees.
+pub const DEFAULT_FOV_Y: f32 = 30.0;
+
+fn default_fov() -> f32 {
+    DEFAULT_FOV_Y
+}
+
+/// Encoding of a rendered image.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ImageFormat {
+    /// PNG, 8-bit RGBA (`image/png`; bincode variant index 0).
+    #[default]
+    Png,
+    /// Baseline JPEG, 8-bit RGB (`image/jpeg`; variant index 1).
+    Jpeg,
+    /// Raw RGBA8, rows top-down, no header (`application/octet-stream`; variant index 2).
+    Rgba,
+}
+
+impl ImageFormat {
+    /// The lowercase name used in JSON and on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            ImageFormat::Png => "png",
+            ImageFormat::Jpeg => "jpeg",
+            ImageFormat::Rgba => "rgba",
+        }
+    }
+
+    /// The response's Content-Type.
+    pub fn content_type(self) -> &'static str {
+        match self {
+            ImageFormat::Png => "image/png",
+            ImageFormat::Jpeg => "image/jpeg",
+            ImageFormat::Rgba => "application/octet-stream",
+        }
+    }
+}
+
+impl std::str::FromStr for ImageFormat {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s.to_ascii_lowercase().as_str() {
+            "png" => Ok(ImageFormat::Png),
+            "jpeg" | "jpg" => Ok(ImageFormat::Jpeg),
+            "rgba" => Ok(ImageFormat::Rgba),
+            other => Err(format!(
+                "unknown image format {other:?} (png, jpeg or rgba)"
+            )),
+        }
+    }
+}
+
+/// Default image width of a rendered crowd, pixels.
+pub const DEFAULT_IMAGE_WIDTH: u32 = 640;
+/// Default image height of a rendered crowd, pixels.
+pub const DEFAULT_IMAGE_HEIGHT: u32 = 480;
+/// Largest image side a server renders, pixels.
+pub const MAX_IMAGE_SIDE: u32 = 4096;
+/// Default JPEG quality.
+pub const DEFAULT_JPEG_QUALITY: u8 = 90;
+/// Default background colour (sRGB, 0–255).
+pub const DEFAULT_BACKGROUND: [u8; 3] = [46, 50, 56];
+
+fn default_width() -> u32 {
+    DEFAULT_IMAGE_WIDTH
+}
+
+fn default_height() -> u32 {
+    DEFAULT_IMAGE_HEIGHT
+}
+
+fn default_quality() -> u8 {
+    DEFAULT_JPEG_QUALITY
+}
+
+fn default_background() -> [u8; 3] {
+    DEFAULT_BACKGROUND
+}
+
+/// Size, encoding and background of a rendered image.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ImageOptions {
+    /// Width in pixels, 1..=4096.
+    #[serde(default = "default_width")]
+    pub width: u32,
+    /// Height in pixels, 1..=4096.
+    #[serde(default = "default_height")]
+    pub height: u32,
+    /// Encoding.
+    #[serde(default)]
+    pub format: ImageFormat,
+    /// JPEG quality, 1..=100 (ignored by the other formats).
+    #[serde(default = "default_quality")]
+    pub quality: u8,
+    /// Background colour, sRGB 0–255.
+    #[serde(default = "default_background")]
+    pub background: [u8; 3],
+}
+
+impl Default for ImageOptions {
+    fn default() -> Self {
+        ImageOptions {
+            width: DEFAULT_IMAGE_WIDTH,
+            height: DEFAULT_IMAGE_HEIGHT,
+            format: ImageFormat::Png,
+            quality: DEFAULT_JPEG_QUALITY,
+            background: DEFAULT_BACKGROUND,
+        }
+    }
+}
+
+/// `POST /v1/crowd/render` request: a crowd (as in [`CrowdFrameRequest`]) and how to draw it.
+/// The response is the image itself, not a message (see `proto/README.md`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RenderRequest {
+    /// The heads; clones (same rig, clip, frame and LOD) are blended once and drawn as
+    /// instances.
+    pub heads: Vec<Head>,
+    /// Frames past the end of a clip loop (true, the default) or are an error (false).
+    #[serde(default = "yes")]
+    pub wrap: bool,
+    /// Where heads stand; heads without one are laid out on a grid, in request order.
+    #[serde(default)]
+    pub placements: Option<Vec<Placement>>,
+    /// The camera; absent, a front view framing every head.
+    #[serde(default)]
+    pub camera: Option<CameraSpec>,
+    /// Size and encoding; absent, 640 × 480 PNG.
+    #[serde(default)]
+    pub image: Option<ImageOptions>,
 }

@@ -314,8 +314,108 @@ fn readiness() {
         degraded_reason: Some("GPU device lost: test".into()),
         rigs: 2,
         skipped_files: vec!["rigs/broken.cmrig: checksum mismatch".into()],
+        renderer: Some("llvmpipe (LLVM 15.0.6, 256 bits) (Vulkan)".into()),
     };
     let json = serde_json::to_vec(&r).unwrap();
     check("readiness.json", &json);
     assert_eq!(serde_json::from_slice::<Readiness>(&json).unwrap(), r);
+}
+
+fn render_request() -> RenderRequest {
+    RenderRequest {
+        heads: vec![
+            Head {
+                head: 1,
+                rig: "default-head".into(),
+                clip: "talk".into(),
+                frame: 12,
+                lod: 0,
+            },
+            Head {
+                head: 2,
+                rig: "default-head".into(),
+                clip: "smile".into(),
+                frame: 40,
+                lod: 2,
+            },
+        ],
+        wrap: true,
+        placements: Some(vec![Placement {
+            head: 2,
+            position: [0.25, 0.0, -0.5],
+            yaw: 30.0,
+            scale: 1.5,
+        }]),
+        camera: Some(CameraSpec {
+            position: [0.0, 0.1, 1.0],
+            target: [0.0, 0.0, 0.0],
+            fov_y: 35.0,
+            near: None,
+            far: Some(10.0),
+        }),
+        image: Some(ImageOptions {
+            width: 320,
+            height: 240,
+            format: ImageFormat::Jpeg,
+            quality: 85,
+            background: [255, 128, 0],
+        }),
+    }
+}
+
+#[test]
+fn render_request_encodings() {
+    let r = render_request();
+    let bin = to_bincode(&r).unwrap();
+    check("render_request.bincode", &bin);
+    assert_eq!(request_from_bincode::<RenderRequest>(&bin).unwrap(), r);
+    let json = serde_json::to_vec(&r).unwrap();
+    check("render_request.json", &json);
+    assert_eq!(serde_json::from_slice::<RenderRequest>(&json).unwrap(), r);
+    // A request that lists heads only gets a grid, a front camera and a 640 × 480 PNG.
+    let short: RenderRequest = serde_json::from_str(
+        r#"{"heads":[{"head":7,"rig":"default-head","clip":"talk","frame":12}]}"#,
+    )
+    .unwrap();
+    assert!(short.wrap);
+    assert_eq!(
+        (short.placements, short.camera, short.image),
+        (None, None, None)
+    );
+    // Inside the optional objects, everything but positions may be left out too.
+    let parts: RenderRequest = serde_json::from_str(
+        r#"{"heads":[],"placements":[{"head":1,"position":[1,2,3]}],
+            "camera":{"position":[0,0,5],"target":[0,0,0]},"image":{"format":"rgba"}}"#,
+    )
+    .unwrap();
+    let p = parts.placements.unwrap()[0];
+    assert_eq!((p.yaw, p.scale), (0.0, 1.0));
+    let c = parts.camera.unwrap();
+    assert_eq!((c.fov_y, c.near, c.far), (DEFAULT_FOV_Y, None, None));
+    let i = parts.image.unwrap();
+    assert_eq!(
+        i,
+        ImageOptions {
+            format: ImageFormat::Rgba,
+            ..ImageOptions::default()
+        }
+    );
+    // Unknown fields are errors, as in every request.
+    assert!(serde_json::from_str::<RenderRequest>(r#"{"heads":[],"image":{"widht":10}}"#).is_err());
+}
+
+#[test]
+fn image_format_names_and_content_types() {
+    for (f, name, ct) in [
+        (ImageFormat::Png, "png", "image/png"),
+        (ImageFormat::Jpeg, "jpeg", "image/jpeg"),
+        (ImageFormat::Rgba, "rgba", "application/octet-stream"),
+    ] {
+        assert_eq!(f.name(), name);
+        assert_eq!(f.content_type(), ct);
+        assert_eq!(name.parse::<ImageFormat>().unwrap(), f);
+        assert_eq!(serde_json::to_string(&f).unwrap(), format!("\"{name}\""));
+    }
+    assert_eq!("JPG".parse::<ImageFormat>().unwrap(), ImageFormat::Jpeg);
+    assert!("gif".parse::<ImageFormat>().is_err());
 }

@@ -15,7 +15,10 @@
 //! Besides shading, a [`Frame`] keeps the depth and the nearest vertex of every covered pixel,
 //! which `crate::lod::mesh` uses to find facial feature points on the visible surface.
 
+pub mod crowd;
+pub mod encode;
 pub mod gpu;
+pub mod scene;
 
 use glam::{Vec2, Vec3};
 

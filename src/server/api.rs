@@ -16,7 +16,7 @@ use axum::response::{IntoResponse, Response};
 use bytes::Bytes;
 use crowdmorph_proto::{
     CONTENT_TYPE_BINCODE, CONTENT_TYPE_JSON, ClipList, ClipUpload, CrowdFrameRequest,
-    CrowdFrameResponse, Format, FrameBuffer, FrameTimings, HeadBuffer, Readiness, RigList,
+    CrowdFrameResponse, Format, FrameBuffer, FrameTimings, Head, HeadBuffer, Readiness, RigList,
 };
 use http_body_util::BodyExt;
 use serde::Serialize;
@@ -498,6 +498,7 @@ pub(super) async fn readyz(State(state): State<AppState>) -> Response {
         degraded_reason: info.degraded_reason,
         rigs: state.registry.len() as u32,
         skipped_files: state.skipped(),
+        renderer: state.render.adapter_name(),
     };
     let code = if state.is_ready() {
         StatusCode::OK
@@ -691,6 +692,9 @@ pub(super) async fn delete_rig(
     }
     state.lod_jobs.cancel(&id);
     state.registry.remove(&id);
+    if let Ok(mut t) = state.render.topologies.lock() {
+        t.purge(&id);
+    }
     drop(entry);
     // The rig's memory is freed when the last request using it is done; hand what is free
     // now back to the OS, so that deleting a large rig lowers the resident size.
@@ -1045,7 +1049,10 @@ pub(super) async fn delete_clip(
 impl AppState {
     /// Takes `bytes` of the queue memory (output held by admitted crowd requests, and
     /// request bodies being decoded); 503 when it is full.
-    fn reserve_queue_memory(&self, bytes: u64) -> Result<OwnedSemaphorePermit, ApiError> {
+    pub(super) fn reserve_queue_memory(
+        &self,
+        bytes: u64,
+    ) -> Result<OwnedSemaphorePermit, ApiError> {
         let units = bytes.div_ceil(1024).clamp(1, u64::from(self.memory_units)) as u32;
         self.memory
             .clone()
@@ -1116,7 +1123,7 @@ impl http_body::Body for ChunkBody {
     }
 }
 
-fn chunked_body(mut chunks: Vec<Bytes>, permit: OwnedSemaphorePermit) -> Body {
+pub(super) fn chunked_body(mut chunks: Vec<Bytes>, permit: OwnedSemaphorePermit) -> Body {
     // The last chunk carries the permit: it is released when the whole body has been sent
     // (or the connection dropped).
     let last = chunks.pop().unwrap_or_default();
@@ -1131,6 +1138,143 @@ fn chunked_body(mut chunks: Vec<Bytes>, permit: OwnedSemaphorePermit) -> Body {
     })
 }
 
+/// Crowd heads resolved against one snapshot of each rig they name: what both crowd endpoints
+/// compute from.
+pub(super) struct ResolvedHeads {
+    /// The rigs, in order of first appearance; `JobKey::rig` indexes this.
+    pub rigs: Vec<Arc<RigEntry>>,
+    /// Unique jobs and each head's job.
+    pub plan: Plan,
+}
+
+impl AppState {
+    /// Reads and decodes a crowd request body (JSON or bincode). The body and what it decodes
+    /// to are charged to the queue memory while they are read: a head takes 72 bytes decoded,
+    /// from at least 5 bytes of bincode or 40 of JSON.
+    pub(super) async fn crowd_request<T: DeserializeOwned>(
+        &self,
+        headers: &HeaderMap,
+        body: Body,
+    ) -> Result<T, ApiError> {
+        let declared = headers
+            .get(header::CONTENT_LENGTH)
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.parse::<u64>().ok())
+            .unwrap_or(self.config.max_request_bytes as u64)
+            .min(self.config.max_request_bytes as u64);
+        let expansion = if content_type(headers) == CONTENT_TYPE_BINCODE {
+            16
+        } else {
+            3
+        };
+        let decoding = self.reserve_queue_memory(declared * expansion)?;
+        let bytes = self.request_body(headers, body).await?;
+        let req = decode(headers, &bytes)?;
+        drop(bytes);
+        drop(decoding);
+        Ok(req)
+    }
+
+    /// Resolves every head against one snapshot of each rig it names (a rig changed or
+    /// deleted meanwhile does not change this request), checks clip, frame and LOD, and plans
+    /// the unique jobs. `f16` refuses rigs whose coordinates f16 cannot hold. Errors name the
+    /// head by position and id.
+    pub(super) fn resolve_heads(
+        &self,
+        heads: &[Head],
+        mode: FrameMode,
+        f16: bool,
+    ) -> Result<ResolvedHeads, ApiError> {
+        let n_heads = heads.len();
+        if n_heads > self.config.max_heads {
+            return Err(ApiError::bad_request(
+                "too_many_heads",
+                format!(
+                    "{n_heads} heads is more than the limit of {} per request",
+                    self.config.max_heads
+                ),
+            ));
+        }
+        let mut rigs: Vec<Arc<RigEntry>> = Vec::new();
+        let mut rig_at: HashMap<&str, u32> = HashMap::new();
+        let mut clip_at: HashMap<(u32, &str), u32> = HashMap::new();
+        let mut keys = Vec::with_capacity(n_heads);
+        for (h, head) in heads.iter().enumerate() {
+            let ri = match rig_at.get(head.rig.as_str()) {
+                Some(&i) => i,
+                None => {
+                    let e = self.rig(&head.rig).map_err(|e| ApiError {
+                        message: format!("head {h} (id {}): {}", head.head, e.message),
+                        ..e
+                    })?;
+                    rigs.push(e);
+                    let i = (rigs.len() - 1) as u32;
+                    rig_at.insert(head.rig.as_str(), i);
+                    i
+                }
+            };
+            let entry = &rigs[ri as usize];
+            let rig = entry.rig();
+            if f16 && head_reach(entry) > super::registry::MAX_F16 {
+                return Err(ApiError::bad_request(
+                    "format_overflow",
+                    format!(
+                        "head {h} (id {}): rig {:?} reaches coordinates of {:e}, past the largest \
+                         f16 ({}); ask for f32 or q16",
+                        head.head,
+                        entry.id,
+                        head_reach(entry),
+                        super::registry::MAX_F16
+                    ),
+                ));
+            }
+            let ci = match clip_at.get(&(ri, head.clip.as_str())) {
+                Some(&c) => c,
+                None => {
+                    let c = rig.clip_index(&head.clip).ok_or_else(|| {
+                        let e = unknown_clip(entry, &head.clip);
+                        ApiError {
+                            message: format!("head {h} (id {}): {}", head.head, e.message),
+                            ..e
+                        }
+                    })? as u32;
+                    clip_at.insert((ri, head.clip.as_str()), c);
+                    c
+                }
+            };
+            let clip = &rig.clips[ci as usize];
+            let frame = clip.resolve_frame(head.frame, mode).map_err(|e| {
+                ApiError::bad_request(
+                    "frame_out_of_range",
+                    format!("head {h} (id {}): {e}", head.head),
+                )
+            })?;
+            if head.lod as usize >= rig.lod.levels.len() {
+                return Err(ApiError::bad_request(
+                    "lod_out_of_range",
+                    format!(
+                        "head {h} (id {}): LOD {} out of range: rig {:?} has levels 0..{}",
+                        head.head,
+                        head.lod,
+                        entry.id,
+                        rig.lod.levels.len() - 1
+                    ),
+                ));
+            }
+            keys.push(JobKey {
+                rig: ri,
+                clip: ci,
+                frame,
+                lod: head.lod,
+            });
+        }
+        Ok(ResolvedHeads {
+            rigs,
+            plan: Plan::new(keys),
+        })
+    }
+}
+
 pub(super) async fn crowd_frame(
     State(state): State<AppState>,
     headers: HeaderMap,
@@ -1138,34 +1282,8 @@ pub(super) async fn crowd_frame(
 ) -> ApiResult {
     let arrived = Instant::now();
     state.check_ready()?;
-    // The body and what it decodes to are charged to the queue memory before they are read:
-    // a head takes 72 bytes decoded, from at least 5 bytes of bincode or 40 of JSON.
-    let declared = headers
-        .get(header::CONTENT_LENGTH)
-        .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.parse::<u64>().ok())
-        .unwrap_or(state.config.max_request_bytes as u64)
-        .min(state.config.max_request_bytes as u64);
-    let expansion = if content_type(&headers) == CONTENT_TYPE_BINCODE {
-        16
-    } else {
-        3
-    };
-    let decoding = state.reserve_queue_memory(declared * expansion)?;
-    let bytes = state.request_body(&headers, body).await?;
-    let req: CrowdFrameRequest = decode(&headers, &bytes)?;
-    drop(bytes);
-    drop(decoding);
+    let req: CrowdFrameRequest = state.crowd_request(&headers, body).await?;
     let n_heads = req.heads.len();
-    if n_heads > state.config.max_heads {
-        return Err(ApiError::bad_request(
-            "too_many_heads",
-            format!(
-                "{n_heads} heads is more than the limit of {} per request",
-                state.config.max_heads
-            ),
-        ));
-    }
     let format = req.output.format;
     let normals = req.output.normals;
     let mode = if req.wrap {
@@ -1173,82 +1291,8 @@ pub(super) async fn crowd_frame(
     } else {
         FrameMode::Strict
     };
-
-    // Resolve every head against one snapshot of each rig it names.
-    let mut rigs: Vec<Arc<RigEntry>> = Vec::new();
-    let mut rig_at: HashMap<&str, u32> = HashMap::new();
-    let mut clip_at: HashMap<(u32, &str), u32> = HashMap::new();
-    let mut keys = Vec::with_capacity(n_heads);
-    for (h, head) in req.heads.iter().enumerate() {
-        let ri = match rig_at.get(head.rig.as_str()) {
-            Some(&i) => i,
-            None => {
-                let e = state.rig(&head.rig).map_err(|e| ApiError {
-                    message: format!("head {h} (id {}): {}", head.head, e.message),
-                    ..e
-                })?;
-                rigs.push(e);
-                let i = (rigs.len() - 1) as u32;
-                rig_at.insert(head.rig.as_str(), i);
-                i
-            }
-        };
-        let entry = &rigs[ri as usize];
-        let rig = entry.rig();
-        if format == Format::F16 && head_reach(entry) > super::registry::MAX_F16 {
-            return Err(ApiError::bad_request(
-                "format_overflow",
-                format!(
-                    "head {h} (id {}): rig {:?} reaches coordinates of {:e}, past the largest \
-                     f16 ({}); ask for f32 or q16",
-                    head.head,
-                    entry.id,
-                    head_reach(entry),
-                    super::registry::MAX_F16
-                ),
-            ));
-        }
-        let ci = match clip_at.get(&(ri, head.clip.as_str())) {
-            Some(&c) => c,
-            None => {
-                let c = rig.clip_index(&head.clip).ok_or_else(|| {
-                    let e = unknown_clip(entry, &head.clip);
-                    ApiError {
-                        message: format!("head {h} (id {}): {}", head.head, e.message),
-                        ..e
-                    }
-                })? as u32;
-                clip_at.insert((ri, head.clip.as_str()), c);
-                c
-            }
-        };
-        let clip = &rig.clips[ci as usize];
-        let frame = clip.resolve_frame(head.frame, mode).map_err(|e| {
-            ApiError::bad_request(
-                "frame_out_of_range",
-                format!("head {h} (id {}): {e}", head.head),
-            )
-        })?;
-        if head.lod as usize >= rig.lod.levels.len() {
-            return Err(ApiError::bad_request(
-                "lod_out_of_range",
-                format!(
-                    "head {h} (id {}): LOD {} out of range: rig {:?} has levels 0..{}",
-                    head.head,
-                    head.lod,
-                    entry.id,
-                    rig.lod.levels.len() - 1
-                ),
-            ));
-        }
-        keys.push(JobKey {
-            rig: ri,
-            clip: ci,
-            frame,
-            lod: head.lod,
-        });
-    }
-    let plan = Plan::new(keys);
+    let ResolvedHeads { rigs, plan } =
+        state.resolve_heads(&req.heads, mode, format == Format::F16)?;
 
     // Admission: the output memory this request will hold, then a place in the queue.
     let per_component = format.component_bytes() as u64 * if normals { 2 } else { 1 };

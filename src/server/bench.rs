@@ -292,6 +292,8 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
         // The background LOD job would score the embedded head (seconds of CPU) during the
         // measurement, on the same cores.
         auto_lod: false,
+        // Frames only: no rendering device to open.
+        render_backend: super::RenderBackend::Off,
         ..ServerConfig::default()
     };
     let state = AppState::new(config)?;

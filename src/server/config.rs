@@ -4,6 +4,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use crate::engine::BackendChoice;
+pub use crate::render::crowd::RenderBackend;
 
 /// Everything [`super::run`] needs to know besides the listener.
 #[derive(Clone, Debug)]
@@ -62,7 +63,19 @@ pub struct ServerConfig {
     /// mesh levels in the background after registration (and at start for stored rigs that
     /// still have the import's quick order).
     pub auto_lod: bool,
+    /// Pixels that renders in flight may hold together (`POST /v1/crowd/render`): a W × H
+    /// image takes W × H of them until its response is built. One larger than this gets 413,
+    /// one that does not fit now 503 `render_busy` (`--render-pixels`).
+    pub render_pixels: u64,
+    /// Which adapter draws rendered frames (`--render-backend`).
+    pub render_backend: RenderBackend,
 }
+
+/// Default of [`ServerConfig::render_pixels`]: 64 Mpixels (64 × 2^20), four 4096 × 4096
+/// images or 72 of 1280 × 720. A pixel in flight costs about 48 bytes (4× MSAA colour and
+/// depth, the resolved and staging copies on the device — host memory on lavapipe — the
+/// pixels read back and the encoded image), so the default bounds renders to about 3 GiB.
+pub const DEFAULT_RENDER_PIXELS: u64 = 64 << 20;
 
 impl Default for ServerConfig {
     fn default() -> Self {
@@ -87,6 +100,8 @@ impl Default for ServerConfig {
             idle_timeout: Duration::from_secs(60),
             cors_origins: Vec::new(),
             auto_lod: true,
+            render_pixels: DEFAULT_RENDER_PIXELS,
+            render_backend: RenderBackend::Auto,
         }
     }
 }

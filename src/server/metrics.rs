@@ -188,6 +188,10 @@ pub struct Gauges {
     pub loading: bool,
     /// The most connections open at once.
     pub connections_limit: u64,
+    /// Pixels renders in flight hold now.
+    pub render_pixels: u64,
+    /// The limit on that (`--render-pixels`).
+    pub render_pixels_limit: u64,
 }
 
 impl Metrics {
@@ -433,6 +437,18 @@ impl Metrics {
             "crowdmorph_queue_memory_limit_bytes",
             "Limit on the output bytes admitted requests may hold.",
             g.queue_memory_limit as f64,
+        );
+        gauge(
+            &mut o,
+            "crowdmorph_render_pixels",
+            "Pixels rendered frames in flight hold.",
+            g.render_pixels as f64,
+        );
+        gauge(
+            &mut o,
+            "crowdmorph_render_pixels_limit",
+            "Limit on the pixels rendered frames in flight may hold (--render-pixels).",
+            g.render_pixels_limit as f64,
         );
         gauge(&mut o, "crowdmorph_rigs", "Rigs registered.", g.rigs as f64);
         gauge(

@@ -14,6 +14,7 @@
 //! | [`scheduler`] | the dynamic batcher with cross-request dedupe |
 //! | [`metrics`] | Prometheus text metrics |
 //! | `api` | the handlers |
+//! | `render` | `POST /v1/crowd/render`: a picture of a crowd |
 //! | [`bench`] | `crowdmorph bench http`: loopback load against in-process work |
 
 mod api;
@@ -24,6 +25,7 @@ pub mod error;
 mod lod;
 pub mod metrics;
 pub mod registry;
+mod render;
 pub mod scheduler;
 
 use std::future::Future;
@@ -48,7 +50,7 @@ use tower_http::request_id::{
 };
 use tower_http::trace::TraceLayer;
 
-pub use config::{ServerConfig, default_data_dir};
+pub use config::{RenderBackend, ServerConfig, default_data_dir};
 pub use error::ApiError;
 
 use crate::budget::{Budget, MemoryPool};
@@ -113,6 +115,10 @@ pub struct Inner {
     lod_builds: Arc<Semaphore>,
     /// The rate-limited summary of shed and timed-out requests.
     shed_log: ShedLog,
+    /// Pixels that renders in flight hold (`--render-pixels`), one permit per pixel.
+    pixels: Arc<Semaphore>,
+    /// The renderer (or why there is none) and its topologies.
+    render: render::RenderState,
 }
 
 impl Drop for Inner {
@@ -145,6 +151,16 @@ impl AppState {
             cpu_isa = %info.cpu_isa,
             "engine ready"
         );
+        // Never fails the start: without an adapter, render requests say why and everything
+        // else works.
+        let render = render::RenderState {
+            device: crate::render::crowd::RenderDevice::open(&engine, config.render_backend),
+            topologies: Mutex::default(),
+        };
+        match &render.device {
+            Ok(d) => tracing::info!(adapter = %d.name(), shared = d.shared, "renderer ready"),
+            Err(why) => tracing::warn!(%why, "rendering unavailable"),
+        }
         let store = match &config.data_dir {
             Some(dir) => Some(Store::open(dir)?),
             None => None,
@@ -162,6 +178,9 @@ impl AppState {
         let memory_units = u32::try_from((config.queue_memory_bytes / 1024).max(1))
             .unwrap_or(u32::MAX)
             .min(Semaphore::MAX_PERMITS as u32);
+        let render_pixels = usize::try_from(config.render_pixels)
+            .unwrap_or(usize::MAX)
+            .min(Semaphore::MAX_PERMITS);
         let registry = Registry::default();
         let pool = MemoryPool::new(config.max_rig_memory, "--max-rig-memory");
         let builtin = Arc::new(crate::embedded::default_rig());
@@ -201,6 +220,8 @@ impl AppState {
             lod_jobs: lod::LodJobs::default(),
             lod_builds: Arc::new(Semaphore::new(2)),
             shed_log: ShedLog::default(),
+            pixels: Arc::new(Semaphore::new(render_pixels)),
+            render,
         })))
     }
 
@@ -441,6 +462,9 @@ impl AppState {
             degraded: self.engine.info().degraded,
             loading: !self.is_ready(),
             connections_limit: self.config.max_connections as u64,
+            render_pixels: (self.config.render_pixels)
+                .saturating_sub(self.pixels.available_permits() as u64),
+            render_pixels_limit: self.config.render_pixels,
         }
     }
 }
@@ -659,6 +683,7 @@ pub fn app(state: AppState) -> Router {
             get(api::get_clip).delete(api::delete_clip),
         )
         .route("/v1/crowd/frame", post(api::crowd_frame))
+        .route("/v1/crowd/render", post(render::crowd_render))
         .fallback(api::not_found)
         // Bodies are read with explicit per-route limits (see api::read_body).
         .layer(DefaultBodyLimit::disable())
@@ -682,7 +707,13 @@ pub fn app(state: AppState) -> Router {
             .allow_origin(origins)
             .allow_methods([Method::GET, Method::POST, Method::PUT, Method::DELETE])
             .allow_headers([header::CONTENT_TYPE, header::ACCEPT, header::AUTHORIZATION])
-            .expose_headers([request_id.clone(), header::RETRY_AFTER])
+            .expose_headers([
+                request_id.clone(),
+                header::RETRY_AFTER,
+                render::IMAGE_WIDTH,
+                render::IMAGE_HEIGHT,
+                render::SERVER_TIMING,
+            ])
     });
     let timeout = cfg.admin_timeout.max(cfg.request_timeout) + Duration::from_secs(1);
     let routes = routes.layer(

@@ -1,10 +1,12 @@
-//! The command-line tools as library functions: `inspect`, `eval`, `bench` and `lod set`.
+//! The command-line tools as library functions: `inspect`, `eval`, `render`, `bench` and
+//! `lod set`.
 //!
 //! They live in the library so that tests can call them and `main.rs` stays a thin shell that
 //! parses arguments. Being tools rather than request paths, they report errors with `anyhow`.
 
 pub mod bench;
 pub mod bench_gpu;
+pub mod render;
 pub mod synthetic;
 
 use std::fmt::Write as _;
@@ -54,6 +56,10 @@ pub struct RigSummary {
     pub backend: Option<crate::engine::BackendInfo>,
     /// Memory of the prepared rig on that engine (host layout + device).
     pub memory: Option<crate::engine::RigMemory>,
+    /// The adapter `crowdmorph render` and the server draw rendered frames with, when asked.
+    pub renderer: Option<String>,
+    /// Why nothing can render, when nothing can.
+    pub renderer_error: Option<String>,
 }
 
 /// One primitive in [`RigSummary`].
@@ -146,6 +152,8 @@ pub fn summarize(rig: &Rig) -> RigSummary {
         host_bytes: rig.host_bytes(),
         backend: None,
         memory: None,
+        renderer: None,
+        renderer_error: None,
     }
 }
 
@@ -155,6 +163,13 @@ pub fn summarize_on(rig: &Rig, engine: &Engine) -> Result<RigSummary> {
     let prepared = engine.prepare(std::sync::Arc::new(rig.clone()))?;
     s.backend = Some(engine.info());
     s.memory = Some(prepared.memory());
+    match crate::render::crowd::RenderDevice::open(
+        engine,
+        crate::render::crowd::RenderBackend::Auto,
+    ) {
+        Ok(d) => s.renderer = Some(d.name()),
+        Err(why) => s.renderer_error = Some(why),
+    }
     Ok(s)
 }
 
@@ -227,6 +242,15 @@ pub fn inspect_text(s: &RigSummary) -> String {
             m.host_bytes as f64 / (1 << 20) as f64,
             m.device_bytes as f64 / (1 << 20) as f64
         );
+    }
+    match (&s.renderer, &s.renderer_error) {
+        (Some(r), _) => {
+            let _ = writeln!(o, "renderer: {r}");
+        }
+        (None, Some(why)) => {
+            let _ = writeln!(o, "renderer: none ({why})");
+        }
+        (None, None) => {}
     }
     o
 }

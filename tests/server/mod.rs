@@ -11,6 +11,7 @@ mod hostile;
 mod lod;
 mod overload;
 mod persistence;
+mod render;
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};

@@ -8,7 +8,8 @@
 use bytes::Bytes;
 use crowdmorph_proto::{
     CONTENT_TYPE_BINCODE, CONTENT_TYPE_JSON, ClipList, ClipUpload, CrowdFrameRequest,
-    CrowdFrameResponse, ErrorBody, LodInfo, LodRequest, MeshResponse, RigInfo, RigList,
+    CrowdFrameResponse, ErrorBody, LodInfo, LodRequest, MeshResponse, RenderRequest, RigInfo,
+    RigList,
 };
 use http_body_util::{BodyExt, Full};
 use hyper::{Request, StatusCode};
@@ -84,11 +85,18 @@ pub struct Reply {
     pub retry_after: Option<String>,
     /// x-request-id header, if any.
     pub request_id: Option<String>,
+    /// Every header.
+    pub headers: hyper::HeaderMap,
     /// The body.
     pub body: Bytes,
 }
 
 impl Reply {
+    /// A header's value, when present and text.
+    pub fn header(&self, name: &str) -> Option<&str> {
+        self.headers.get(name).and_then(|v| v.to_str().ok())
+    }
+
     /// The error body, when the status is 4xx/5xx and the body is the JSON error.
     pub fn error(&self) -> Option<ErrorBody> {
         serde_json::from_slice(&self.body).ok()
@@ -177,6 +185,7 @@ impl Client {
         let content_type = header("content-type");
         let retry_after = header("retry-after");
         let request_id = header("x-request-id");
+        let headers = resp.headers().clone();
         let body = resp
             .into_body()
             .collect()
@@ -188,6 +197,7 @@ impl Client {
             content_type,
             retry_after,
             request_id,
+            headers,
             body,
         })
     }
@@ -388,6 +398,29 @@ impl Client {
         let reply = self.crowd_frame_raw(Self::encode(req, enc)?, enc).await?;
         let len = reply.body.len();
         Ok((Self::decode(reply, enc)?, len))
+    }
+
+    /// `POST /v1/crowd/render` with an encoded body: the reply whatever its status (an image
+    /// with `x-image-width`, `x-image-height` and `Server-Timing`, or a JSON error).
+    pub async fn render_raw(&self, body: Bytes, enc: Encoding) -> Result<Reply, ClientError> {
+        self.send(
+            Method::POST,
+            "/v1/crowd/render",
+            Some(enc.content_type()),
+            None,
+            body,
+        )
+        .await
+    }
+
+    /// `POST /v1/crowd/render`: the image (PNG, JPEG or raw RGBA8 as the request asks) and its
+    /// headers; an error status is [`ClientError::Api`].
+    pub async fn render(&self, req: &RenderRequest, enc: Encoding) -> Result<Reply, ClientError> {
+        let reply = self.render_raw(Self::encode(req, enc)?, enc).await?;
+        if !(200..300).contains(&reply.status) {
+            return Err(reply.into_error());
+        }
+        Ok(reply)
     }
 
     /// `GET /metrics` as text.

@@ -1,0 +1,523 @@
+//! `POST /v1/crowd/render`: a picture of a crowd, for clients that cannot draw meshes.
+//!
+//! The request is resolved and planned exactly as a crowd frame (same snapshot rule, same
+//! errors), laid out by [`crate::render::scene`], drawn by [`crate::render::crowd::draw`] and
+//! encoded by [`crate::render::encode`] on the blocking pool. Two budgets bound what renders in
+//! flight hold: the pixel budget (`--render-pixels`; the image, from drawing until its bytes
+//! are sent) and the queue memory crowd frames also use (the unique jobs' blended vertices).
+//! Mesh topologies are uploaded to the renderer once per rig generation and mesh level and kept
+//! in a small LRU ([`TopologyCache`]), so a frame uploads no indices.
+
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use axum::body::Body;
+use axum::extract::State;
+use axum::http::{HeaderMap, HeaderName, HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use bytes::Bytes;
+use crowdmorph_proto::{ImageFormat, ImageOptions, MAX_IMAGE_SIDE, RenderRequest};
+use tokio::sync::OwnedSemaphorePermit;
+
+use super::api::{ApiResult, ResolvedHeads, blocking, chunked_body};
+use super::registry::RigEntry;
+use super::{ApiError, AppState};
+use crate::engine::EngineError;
+use crate::render::crowd::{self, CrowdError, CrowdGroup, PlannedGroup, RenderDevice};
+use crate::render::encode::{self, ImageError};
+use crate::render::gpu::{Frame, MeshTopology, RenderError, View};
+use crate::render::scene::{self, SceneError};
+use crate::rig::{Aabb, FrameMode};
+
+/// Header with the image's width in pixels.
+pub const IMAGE_WIDTH: HeaderName = HeaderName::from_static("x-image-width");
+/// Header with the image's height in pixels.
+pub const IMAGE_HEIGHT: HeaderName = HeaderName::from_static("x-image-height");
+/// The Server-Timing header (RFC: W3C Server Timing).
+pub const SERVER_TIMING: HeaderName = HeaderName::from_static("server-timing");
+
+/// Most topologies kept on the renderer's device.
+const TOPOLOGY_ENTRIES: usize = 32;
+/// Most bytes of index (and other topology) buffers kept on the renderer's device.
+const TOPOLOGY_BYTES: u64 = 512 << 20;
+
+/// Which mesh a topology is of: a rig's generation and mesh level (`None`: the full mesh).
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+struct TopologyKey {
+    rig: String,
+    generation: u64,
+    mesh: Option<usize>,
+}
+
+/// What a cache entry occupies.
+pub trait Footprint {
+    /// Bytes it holds (on the device, for a topology).
+    fn bytes(&self) -> u64;
+}
+
+impl Footprint for MeshTopology {
+    fn bytes(&self) -> u64 {
+        MeshTopology::bytes(self)
+    }
+}
+
+/// Topologies uploaded to the renderer, most recently used last, bounded by count and bytes
+/// (`T` is a parameter so the eviction rules are tested without a device).
+pub struct TopologyCache<T = MeshTopology> {
+    entries: Vec<(TopologyKey, Arc<T>)>,
+    bytes: u64,
+}
+
+impl<T> Default for TopologyCache<T> {
+    fn default() -> Self {
+        TopologyCache {
+            entries: Vec::new(),
+            bytes: 0,
+        }
+    }
+}
+
+impl<T> std::fmt::Debug for TopologyCache<T> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("TopologyCache")
+            .field("entries", &self.entries.len())
+            .field("bytes", &self.bytes)
+            .finish()
+    }
+}
+
+impl<T: Footprint> TopologyCache<T> {
+    fn get(&mut self, key: &TopologyKey) -> Option<Arc<T>> {
+        let i = self.entries.iter().position(|(k, _)| k == key)?;
+        let e = self.entries.remove(i);
+        let t = e.1.clone();
+        self.entries.push(e);
+        Some(t)
+    }
+
+    fn insert(&mut self, key: TopologyKey, t: Arc<T>) -> Arc<T> {
+        // Another render may have uploaded the same topology meanwhile: keep one.
+        if let Some(existing) = self.get(&key) {
+            return existing;
+        }
+        self.bytes += t.bytes();
+        self.entries.push((key, t.clone()));
+        while self.entries.len() > TOPOLOGY_ENTRIES
+            || (self.bytes > TOPOLOGY_BYTES && self.entries.len() > 1)
+        {
+            let (_, old) = self.entries.remove(0);
+            self.bytes -= old.bytes();
+        }
+        t
+    }
+
+    /// Forgets every topology of rig `id` (it was deleted): its device memory is freed once
+    /// renders in flight drop their handles.
+    pub fn purge(&mut self, id: &str) {
+        let bytes = &mut self.bytes;
+        self.entries.retain(|(k, t)| {
+            let keep = k.rig != id;
+            if !keep {
+                *bytes -= t.bytes();
+            }
+            keep
+        });
+    }
+}
+
+/// What rendering needs in the server state: the device, or why there is none, and the
+/// topologies uploaded to it.
+#[derive(Debug)]
+pub struct RenderState {
+    /// The renderer, or why there is none.
+    pub device: Result<RenderDevice, String>,
+    /// Topologies on its device.
+    pub topologies: Mutex<TopologyCache>,
+}
+
+impl RenderState {
+    /// The adapter that renders, for `/readyz`.
+    pub fn adapter_name(&self) -> Option<String> {
+        self.device.as_ref().ok().map(RenderDevice::name)
+    }
+}
+
+impl AppState {
+    /// The renderer; 503 `render_unavailable` naming why (and what to install) without one.
+    fn render_device(&self) -> Result<&RenderDevice, ApiError> {
+        self.render.device.as_ref().map_err(|why| {
+            ApiError::new(
+                StatusCode::SERVICE_UNAVAILABLE,
+                "render_unavailable",
+                format!("this server cannot render: {why}"),
+            )
+        })
+    }
+
+    /// Takes `pixels` of the pixel budget: 413 when one image is larger than the whole
+    /// budget, 503 `render_busy` when renders in flight hold too much of it now.
+    pub(super) fn reserve_pixels(&self, pixels: u64) -> Result<OwnedSemaphorePermit, ApiError> {
+        let limit = self.config.render_pixels;
+        let Some(n) = u32::try_from(pixels)
+            .ok()
+            .filter(|&n| u64::from(n) <= limit)
+        else {
+            return Err(self.too_many_pixels(pixels));
+        };
+        self.pixels.clone().try_acquire_many_owned(n).map_err(|_| {
+            self.metrics.reject("render_busy");
+            ApiError::unavailable(
+                "render_busy",
+                format!(
+                    "renders in flight hold the server's render budget of {limit} pixels \
+                     (--render-pixels); retry shortly"
+                ),
+                1,
+            )
+        })
+    }
+
+    /// 413 for an image larger than the whole pixel budget.
+    fn too_many_pixels(&self, pixels: u64) -> ApiError {
+        ApiError::new(
+            StatusCode::PAYLOAD_TOO_LARGE,
+            "image_too_large",
+            format!(
+                "an image of {pixels} pixels is larger than the server's render budget of {} \
+                 pixels (--render-pixels)",
+                self.config.render_pixels
+            ),
+        )
+    }
+
+    /// The topology of `entry`'s mesh level `mesh` on the renderer, uploaded on first use.
+    fn topology(
+        &self,
+        device: &RenderDevice,
+        entry: &RigEntry,
+        mesh: Option<usize>,
+    ) -> Result<Arc<MeshTopology>, RenderError> {
+        let key = TopologyKey {
+            rig: entry.id.clone(),
+            generation: entry.generation,
+            mesh,
+        };
+        if let Some(t) = self
+            .render
+            .topologies
+            .lock()
+            .ok()
+            .and_then(|mut c| c.get(&key))
+        {
+            return Ok(t);
+        }
+        let rig = match mesh {
+            Some(m) => entry
+                .prepared
+                .mesh_levels()
+                .get(m)
+                .map_or(entry.rig(), |l| l.rig()),
+            None => entry.rig(),
+        };
+        let t = Arc::new(device.renderer.topology(rig)?);
+        Ok(match self.render.topologies.lock() {
+            Ok(mut c) => c.insert(key, t),
+            Err(_) => t,
+        })
+    }
+}
+
+fn image_error(e: ImageError) -> ApiError {
+    match e {
+        ImageError::Invalid(m) => ApiError::bad_request("invalid_image", m),
+        ImageError::TooLarge(m) => {
+            ApiError::new(StatusCode::PAYLOAD_TOO_LARGE, "image_too_large", m)
+        }
+    }
+}
+
+fn scene_error(e: SceneError) -> ApiError {
+    match e {
+        SceneError::Placement(m) => ApiError::bad_request("invalid_placement", m),
+        SceneError::Camera(m) => ApiError::bad_request("invalid_camera", m),
+    }
+}
+
+fn crowd_error(e: CrowdError) -> ApiError {
+    match e {
+        CrowdError::Render(RenderError::TooLarge(m)) => {
+            ApiError::new(StatusCode::PAYLOAD_TOO_LARGE, "image_too_large", m)
+        }
+        CrowdError::Render(RenderError::Device(m)) => ApiError::new(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "render_unavailable",
+            format!("the rendering device failed: {m}"),
+        ),
+        CrowdError::Engine(e @ (EngineError::DoesNotFit(_) | EngineError::TooLarge(_))) => {
+            ApiError::new(
+                StatusCode::PAYLOAD_TOO_LARGE,
+                "response_too_large",
+                e.to_string(),
+            )
+        }
+        other => ApiError::internal(other),
+    }
+}
+
+/// Milliseconds with three decimals, as Server-Timing wants them.
+fn ms(ns: u64) -> String {
+    format!("{:.3}", ns as f64 / 1e6)
+}
+
+/// A render request checked, resolved, laid out and admitted: what the blocking pool draws.
+struct RenderJob {
+    image: ImageOptions,
+    rigs: Vec<Arc<RigEntry>>,
+    groups: Vec<PlannedGroup>,
+    view: View,
+    frame: Frame,
+    /// The image's pixels; they go with the response body.
+    pixels: OwnedSemaphorePermit,
+    /// The blended vertices; released once the crowd is drawn.
+    vertices: OwnedSemaphorePermit,
+}
+
+/// An encoded image with what its response headers say.
+struct Rendered {
+    bytes: Vec<u8>,
+    width: u32,
+    height: u32,
+    format: ImageFormat,
+    timing: String,
+    pixels: OwnedSemaphorePermit,
+}
+
+impl Rendered {
+    fn into_response(self) -> Response {
+        let mut resp = (
+            StatusCode::OK,
+            [(
+                header::CONTENT_TYPE,
+                HeaderValue::from_static(self.format.content_type()),
+            )],
+            // The pixel permit goes with the body: the image's bytes count until they are sent.
+            chunked_body(vec![Bytes::from(self.bytes)], self.pixels),
+        )
+            .into_response();
+        let headers = resp.headers_mut();
+        headers.insert(IMAGE_WIDTH, HeaderValue::from(self.width));
+        headers.insert(IMAGE_HEIGHT, HeaderValue::from(self.height));
+        if let Ok(v) = HeaderValue::from_str(&self.timing) {
+            headers.insert(SERVER_TIMING, v);
+        }
+        resp
+    }
+}
+
+impl AppState {
+    /// Checks the image, resolves the heads (as a crowd frame does), lays out the scene and
+    /// takes the pixel and vertex budgets; every refusal is the JSON error that names it.
+    fn admit_render(&self, req: RenderRequest, max_side: u32) -> Result<RenderJob, ApiError> {
+        let image = req.image.unwrap_or_default();
+        encode::check_image(&image, max_side).map_err(image_error)?;
+        let pixels = u64::from(image.width) * u64::from(image.height);
+        if pixels > self.config.render_pixels {
+            // Checked before the heads, so the answer does not depend on them.
+            return Err(self.too_many_pixels(pixels));
+        }
+        let mode = if req.wrap {
+            FrameMode::Wrap
+        } else {
+            FrameMode::Strict
+        };
+        let ResolvedHeads { rigs, plan } = self.resolve_heads(&req.heads, mode, false)?;
+        let rig_boxes: Vec<Aabb> = rigs.iter().map(|e| e.rig().bbox()).collect();
+        let boxes: Vec<Aabb> = plan
+            .head_job
+            .iter()
+            .map(|&j| rig_boxes[plan.jobs[j as usize].rig as usize])
+            .collect();
+        let ids: Vec<u64> = req.heads.iter().map(|h| h.head).collect();
+        let layout = scene::layout(
+            &boxes,
+            &ids,
+            req.placements.as_deref(),
+            req.camera.as_ref(),
+            image.width as f32 / image.height as f32,
+        )
+        .map_err(scene_error)?;
+        // Checked after the request itself, so a client learns its own mistakes first.
+        self.render_device()?;
+        let pixel_permit = self.reserve_pixels(pixels)?;
+        let vertex_bytes: u64 = plan
+            .jobs
+            .iter()
+            .map(|k| {
+                let level = rigs[k.rig as usize].prepared.at_level(k.lod);
+                crowd::job_bytes(level.rig().vertex_count())
+            })
+            .sum();
+        let limit = u64::from(self.memory_units) * 1024;
+        if vertex_bytes > limit {
+            return Err(ApiError::new(
+                StatusCode::PAYLOAD_TOO_LARGE,
+                "response_too_large",
+                format!(
+                    "drawing this crowd would hold {vertex_bytes} bytes of blended vertices, \
+                     more than the server's queue memory of {limit} bytes \
+                     (--queue-memory-bytes); ask for fewer unique heads"
+                ),
+            ));
+        }
+        let vertex_permit = self.reserve_queue_memory(vertex_bytes)?;
+        let groups = crowd::plan_groups(&plan, &layout.transforms, |k| {
+            rigs[k.rig as usize].prepared.mesh_of(k.lod)
+        });
+        Ok(RenderJob {
+            view: crowd::to_view(&layout.view),
+            frame: crowd::to_frame(image.width, image.height, image.background),
+            image,
+            rigs,
+            groups,
+            pixels: pixel_permit,
+            vertices: vertex_permit,
+        })
+    }
+
+    /// Draws and encodes an admitted render (blocking: engine, renderer and encoder).
+    fn run_render(&self, job: RenderJob) -> Result<Rendered, ApiError> {
+        let device = self.render_device()?;
+        let mut groups = Vec::with_capacity(job.groups.len());
+        for g in job.groups {
+            let entry = &job.rigs[g.rig as usize];
+            let topology = self
+                .topology(device, entry, g.mesh)
+                .map_err(|e| crowd_error(e.into()))?;
+            groups.push(CrowdGroup {
+                prepared: &entry.prepared,
+                topology,
+                jobs: g.jobs,
+                instances: g.instances,
+            });
+        }
+        let drawn = crowd::draw(&self.engine, device, &groups, &job.view, &job.frame)
+            .map_err(crowd_error)?;
+        drop(groups);
+        drop(job.vertices);
+        let encoding = Instant::now();
+        let out = drawn.output;
+        let (width, height) = (out.width, out.height);
+        let bytes = encode::encode(out.rgba, width, height, job.image.format, job.image.quality)
+            .map_err(ApiError::internal)?;
+        let timing = format!(
+            "compute;dur={}, render;dur={}, readback;dur={}, encode;dur={}",
+            ms(drawn.compute_ns),
+            ms(out.render_ns),
+            ms(out.readback_ns),
+            ms(encoding.elapsed().as_nanos() as u64)
+        );
+        Ok(Rendered {
+            bytes,
+            width,
+            height,
+            format: job.image.format,
+            timing,
+            pixels: job.pixels,
+        })
+    }
+}
+
+pub(super) async fn crowd_render(
+    State(state): State<AppState>,
+    headers: HeaderMap,
+    body: Body,
+) -> ApiResult {
+    let arrived = Instant::now();
+    state.check_ready()?;
+    let max_side = state
+        .render
+        .device
+        .as_ref()
+        .map_or(MAX_IMAGE_SIDE, |d| d.renderer.max_size());
+    let req: RenderRequest = state.crowd_request(&headers, body).await?;
+    let job = state.admit_render(req, max_side)?;
+    let deadline = state
+        .config
+        .request_timeout
+        .saturating_sub(arrived.elapsed())
+        .max(Duration::from_millis(1));
+    // Past the deadline the client gets a 504; the drawing finishes on the blocking pool and
+    // holds its budgets until then.
+    let s = state.clone();
+    let rendered = tokio::time::timeout(deadline, blocking(move || s.run_render(job)))
+        .await
+        .map_err(|_| {
+            state.metrics.reject("deadline");
+            ApiError::new(
+                StatusCode::GATEWAY_TIMEOUT,
+                "deadline_exceeded",
+                format!(
+                    "the image was not ready within the request deadline of {} ms",
+                    state.config.request_timeout.as_millis()
+                ),
+            )
+        })??;
+    Ok(rendered.into_response())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    struct Sized(u64);
+
+    impl Footprint for Sized {
+        fn bytes(&self) -> u64 {
+            self.0
+        }
+    }
+
+    fn key(rig: &str, generation: u64) -> TopologyKey {
+        TopologyKey {
+            rig: rig.into(),
+            generation,
+            mesh: None,
+        }
+    }
+
+    #[test]
+    fn the_topology_cache_keeps_the_most_recently_used_within_its_bounds() {
+        let mut c = TopologyCache::default();
+        for g in 0..TOPOLOGY_ENTRIES as u64 {
+            c.insert(key("a", g), Arc::new(Sized(1)));
+        }
+        // Using generation 0 makes generation 1 the oldest, which the next insert evicts.
+        assert!(c.get(&key("a", 0)).is_some());
+        c.insert(key("b", 0), Arc::new(Sized(1)));
+        assert_eq!(c.entries.len(), TOPOLOGY_ENTRIES);
+        assert!(c.get(&key("a", 1)).is_none() && c.get(&key("a", 0)).is_some());
+        // A second upload of the same key keeps the first.
+        let first = c.get(&key("b", 0)).expect("cached");
+        let kept = c.insert(key("b", 0), Arc::new(Sized(1)));
+        assert!(Arc::ptr_eq(&first, &kept));
+        assert_eq!(c.bytes, TOPOLOGY_ENTRIES as u64);
+        // Past the byte bound, the oldest go, but the newest always stays.
+        c.insert(key("huge", 0), Arc::new(Sized(TOPOLOGY_BYTES + 1)));
+        assert_eq!(c.entries.len(), 1);
+        assert_eq!(c.bytes, TOPOLOGY_BYTES + 1);
+        c.insert(key("a", 7), Arc::new(Sized(3)));
+        assert_eq!((c.entries.len(), c.bytes), (1, 3), "the huge one made room");
+        // A deleted rig's topologies go, whatever their generation and mesh.
+        c.insert(key("a", 8), Arc::new(Sized(4)));
+        c.insert(key("c", 0), Arc::new(Sized(5)));
+        c.purge("a");
+        assert_eq!((c.entries.len(), c.bytes), (1, 5));
+        assert!(c.get(&key("c", 0)).is_some());
+    }
+
+    #[test]
+    fn server_timing_durations_are_milliseconds_with_three_decimals() {
+        assert_eq!(ms(1_234_567), "1.235");
+        assert_eq!(ms(0), "0.000");
+    }
+}

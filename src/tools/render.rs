@@ -1,0 +1,406 @@
+//! `crowdmorph render` and `crowdmorph bench render`: a crowd of one rig drawn offline, through
+//! the same layout, draw and encoding path as `POST /v1/crowd/render`.
+//!
+//! The crowd is `heads` heads of one clip at one LOD on the default grid and camera; with
+//! `spread`, head `i` plays frame `frame + i` (every head unique), otherwise every head is a
+//! clone of one job. The bench draws such a crowd repeatedly and reports the median time of
+//! each stage: compute (the engine), render, readback and encode.
+
+use std::path::Path;
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use crowdmorph_proto::{ImageFormat, ImageOptions};
+use serde::Serialize;
+
+use crate::engine::{BackendKind, Engine, PreparedRig};
+use crate::plan::{JobKey, Plan};
+use crate::render::crowd::{self, CrowdGroup, RenderBackend, RenderDevice};
+use crate::render::encode;
+use crate::render::gpu::{Frame, MeshTopology, View};
+use crate::render::scene;
+use crate::rig::{FrameMode, Rig};
+
+/// The clip `--clip random` makes for a rig (deterministic random weights, one frame per head
+/// at least): ICT FaceKit and other rigs without animation can still be benchmarked.
+pub const RANDOM_CLIP: &str = "random";
+
+/// The one-frame clip of all-zero weights a rig without clips is drawn with by default.
+pub const NEUTRAL_CLIP: &str = "neutral";
+
+/// What to draw.
+#[derive(Clone, Debug)]
+pub struct RenderOptions {
+    /// Clip name (default: `talk` when the rig has it, else its first clip, else the neutral
+    /// pose); `random` makes a synthetic clip when the rig has none of that name.
+    pub clip: Option<String>,
+    /// Frame of the first head (wraps past the end).
+    pub frame: i64,
+    /// Heads in the crowd.
+    pub heads: usize,
+    /// LOD level of every head.
+    pub lod: u32,
+    /// Head `i` plays frame `frame + i` (unique heads) instead of cloning one job.
+    pub spread: bool,
+    /// Size, encoding and background.
+    pub image: ImageOptions,
+    /// Which adapter renders.
+    pub backend: RenderBackend,
+}
+
+impl Default for RenderOptions {
+    fn default() -> Self {
+        RenderOptions {
+            clip: None,
+            frame: 0,
+            heads: 1,
+            lod: 0,
+            spread: false,
+            image: ImageOptions::default(),
+            backend: RenderBackend::Auto,
+        }
+    }
+}
+
+/// Times of one drawn and encoded frame, milliseconds.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct StageTimes {
+    /// Engine evaluation of the unique jobs.
+    pub compute_ms: f64,
+    /// Drawing.
+    pub render_ms: f64,
+    /// Copying the pixels to host memory.
+    pub readback_ms: f64,
+    /// Encoding the image.
+    pub encode_ms: f64,
+    /// All four.
+    pub total_ms: f64,
+}
+
+/// What was drawn, and on what.
+#[derive(Clone, Debug, Serialize)]
+pub struct RenderReport {
+    /// Rig name.
+    pub rig: String,
+    /// The adapter that rendered.
+    pub adapter: String,
+    /// Whether it is the engine's own device (outputs drawn where they were computed).
+    pub shared_device: bool,
+    /// The engine that blended.
+    pub engine: BackendKind,
+    /// Vertices per head at the drawn LOD.
+    pub vertices: usize,
+    /// Heads drawn.
+    pub heads: usize,
+    /// Unique jobs among them.
+    pub unique: usize,
+    /// Image width.
+    pub width: u32,
+    /// Image height.
+    pub height: u32,
+    /// Image encoding.
+    pub format: String,
+    /// Encoded bytes.
+    pub bytes: usize,
+    /// Times of the (last, or median) frame.
+    pub times: StageTimes,
+    /// Frames measured (1 for `render`).
+    pub runs: usize,
+}
+
+/// A crowd laid out and planned, ready to draw as often as wanted.
+struct Crowd {
+    rig: String,
+    vertices: usize,
+    prepared: PreparedRig,
+    groups: Vec<crowd::PlannedGroup>,
+    topologies: Vec<Arc<MeshTopology>>,
+    view: View,
+    frame: Frame,
+    unique: usize,
+}
+
+/// The rig with the clip `opt` asks for added when it is a synthetic one (`random`, or the
+/// neutral pose of a rig without clips).
+fn playable(rig: &Rig, opt: &RenderOptions) -> Rig {
+    match opt.clip.as_deref() {
+        Some(RANDOM_CLIP) if rig.clip_index(RANDOM_CLIP).is_none() => {
+            crate::tools::synthetic::with_random_clip_of(
+                rig.clone(),
+                RANDOM_CLIP,
+                opt.heads.max(24),
+                7,
+            )
+        }
+        None if rig.clips.is_empty() => {
+            let mut r = rig.clone();
+            r.clips.push(crate::rig::Clip {
+                name: NEUTRAL_CLIP.into(),
+                fps: crate::rig::DEFAULT_FPS,
+                frames: 1,
+                targets: r.targets.len() as u32,
+                weights: Arc::new(vec![0.0; r.targets.len()]),
+            });
+            r
+        }
+        _ => rig.clone(),
+    }
+}
+
+fn build(engine: &Engine, device: &RenderDevice, rig: &Rig, opt: &RenderOptions) -> Result<Crowd> {
+    encode::check_image(&opt.image, device.renderer.max_size())?;
+    let rig = &playable(rig, opt);
+    let clip = match &opt.clip {
+        Some(c) => rig.clip_index(c).with_context(|| {
+            let names: Vec<&str> = rig.clips.iter().map(|c| c.name.as_str()).collect();
+            format!(
+                "rig {:?} has no clip {c:?} (clips: {})",
+                rig.name,
+                names.join(", ")
+            )
+        })?,
+        None => rig.clip_index("talk").unwrap_or(0),
+    };
+    let levels = rig.lod.levels.len();
+    if opt.lod as usize >= levels {
+        bail!(
+            "LOD {} out of range: rig {:?} has levels 0..{}",
+            opt.lod,
+            rig.name,
+            levels.saturating_sub(1)
+        );
+    }
+    let keys = (0..opt.heads)
+        .map(|i| {
+            let frame = opt.frame + if opt.spread { i as i64 } else { 0 };
+            Ok(JobKey {
+                rig: 0,
+                clip: clip as u32,
+                frame: rig.clips[clip].resolve_frame(frame, FrameMode::Wrap)?,
+                lod: opt.lod,
+            })
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let plan = Plan::new(keys);
+    let boxes = vec![rig.bbox(); opt.heads];
+    let ids: Vec<u64> = (0..opt.heads as u64).collect();
+    let aspect = opt.image.width as f32 / opt.image.height as f32;
+    let layout = scene::layout(&boxes, &ids, None, None, aspect)?;
+    let prepared = engine.prepare(Arc::new(rig.clone()))?;
+    let groups = crowd::plan_groups(&plan, &layout.transforms, |k| prepared.mesh_of(k.lod));
+    let topologies = groups
+        .iter()
+        .map(|g| {
+            let level = g
+                .mesh
+                .and_then(|m| prepared.mesh_levels().get(m))
+                .unwrap_or(&prepared);
+            Ok(Arc::new(device.renderer.topology(level.rig())?))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    Ok(Crowd {
+        rig: rig.name.clone(),
+        vertices: prepared.at_level(opt.lod).rig().vertex_count(),
+        groups,
+        topologies,
+        view: crowd::to_view(&layout.view),
+        frame: crowd::to_frame(opt.image.width, opt.image.height, opt.image.background),
+        unique: plan.jobs.len(),
+        prepared,
+    })
+}
+
+/// Draws and encodes the crowd once.
+fn draw_once(
+    engine: &Engine,
+    device: &RenderDevice,
+    c: &Crowd,
+    image: &ImageOptions,
+) -> Result<(Vec<u8>, StageTimes)> {
+    let groups: Vec<CrowdGroup<'_>> = c
+        .groups
+        .iter()
+        .zip(&c.topologies)
+        .map(|(g, t)| CrowdGroup {
+            prepared: &c.prepared,
+            topology: t.clone(),
+            jobs: g.jobs.clone(),
+            instances: g.instances.clone(),
+        })
+        .collect();
+    let drawn = crowd::draw(engine, device, &groups, &c.view, &c.frame)?;
+    let encoding = Instant::now();
+    let out = drawn.output;
+    let bytes = encode::encode(out.rgba, out.width, out.height, image.format, image.quality)?;
+    let ms = |ns: u64| ns as f64 / 1e6;
+    let mut t = StageTimes {
+        compute_ms: ms(drawn.compute_ns),
+        render_ms: ms(out.render_ns),
+        readback_ms: ms(out.readback_ns),
+        encode_ms: encoding.elapsed().as_secs_f64() * 1e3,
+        total_ms: 0.0,
+    };
+    t.total_ms = t.compute_ms + t.render_ms + t.readback_ms + t.encode_ms;
+    Ok((bytes, t))
+}
+
+fn report(
+    engine: &Engine,
+    device: &RenderDevice,
+    c: &Crowd,
+    opt: &RenderOptions,
+    bytes: usize,
+    times: StageTimes,
+    runs: usize,
+) -> RenderReport {
+    RenderReport {
+        rig: c.rig.clone(),
+        adapter: device.name(),
+        shared_device: device.shared,
+        engine: engine.info().kind,
+        vertices: c.vertices,
+        heads: opt.heads,
+        unique: c.unique,
+        width: opt.image.width,
+        height: opt.image.height,
+        format: opt.image.format.name().to_string(),
+        bytes,
+        times,
+        runs,
+    }
+}
+
+/// Draws the crowd `opt` describes and returns the encoded image.
+pub fn render_image(
+    engine: &Engine,
+    rig: &Rig,
+    opt: &RenderOptions,
+) -> Result<(Vec<u8>, RenderReport)> {
+    let device = RenderDevice::open(engine, opt.backend).map_err(anyhow::Error::msg)?;
+    let c = build(engine, &device, rig, opt)?;
+    let (bytes, times) = draw_once(engine, &device, &c, &opt.image)?;
+    let r = report(engine, &device, &c, opt, bytes.len(), times, 1);
+    Ok((bytes, r))
+}
+
+/// `crowdmorph render`: draws the crowd and writes the image to `out`.
+pub fn render_to_file(
+    engine: &Engine,
+    rig: &Rig,
+    opt: &RenderOptions,
+    out: &Path,
+) -> Result<RenderReport> {
+    let (bytes, report) = render_image(engine, rig, opt)?;
+    std::fs::write(out, &bytes).with_context(|| format!("writing {}", out.display()))?;
+    Ok(report)
+}
+
+/// The image format a file name asks for: `.png`, `.jpg`/`.jpeg`, `.rgba`/`.raw`.
+pub fn format_of(path: &Path) -> Option<ImageFormat> {
+    match path.extension()?.to_str()?.to_ascii_lowercase().as_str() {
+        "png" => Some(ImageFormat::Png),
+        "jpg" | "jpeg" => Some(ImageFormat::Jpeg),
+        "rgba" | "raw" => Some(ImageFormat::Rgba),
+        _ => None,
+    }
+}
+
+/// `crowdmorph bench render`: draws the crowd repeatedly for about `seconds` (at least
+/// `min_runs` times, after one warm-up frame) and reports the median of each stage. A rig
+/// without clips plays a synthetic `random` clip, so its heads differ.
+pub fn bench_render(
+    engine: &Engine,
+    rig: &Rig,
+    opt: &RenderOptions,
+    seconds: f64,
+    min_runs: usize,
+) -> Result<RenderReport> {
+    let mut opt = opt.clone();
+    if opt.clip.is_none() && rig.clips.is_empty() {
+        opt.clip = Some(RANDOM_CLIP.into());
+    }
+    let opt = &opt;
+    let device = RenderDevice::open(engine, opt.backend).map_err(anyhow::Error::msg)?;
+    let c = build(engine, &device, rig, opt)?;
+    // The first frame pays for pipeline and buffer creation.
+    let (bytes, _) = draw_once(engine, &device, &c, &opt.image)?;
+    let start = Instant::now();
+    let mut runs: Vec<StageTimes> = Vec::new();
+    while runs.len() < min_runs.max(1) || start.elapsed().as_secs_f64() < seconds {
+        runs.push(draw_once(engine, &device, &c, &opt.image)?.1);
+    }
+    let median = |f: fn(&StageTimes) -> f64| {
+        let mut v: Vec<f64> = runs.iter().map(f).collect();
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let times = StageTimes {
+        compute_ms: median(|t| t.compute_ms),
+        render_ms: median(|t| t.render_ms),
+        readback_ms: median(|t| t.readback_ms),
+        encode_ms: median(|t| t.encode_ms),
+        total_ms: median(|t| t.total_ms),
+    };
+    Ok(report(
+        engine,
+        &device,
+        &c,
+        opt,
+        bytes.len(),
+        times,
+        runs.len(),
+    ))
+}
+
+/// Human-readable `bench render` (and `render`) output.
+pub fn report_text(r: &RenderReport) -> String {
+    let t = &r.times;
+    format!(
+        "{} heads ({} unique) of {:?}, {} vertices each, {}×{} {} ({} bytes)\n\
+         engine {:?}, renderer {}{}\n\
+         ms per frame (median of {}): compute {:.2}, render {:.2}, readback {:.2}, encode {:.2}, \
+         total {:.2} ({:.1} frames/s)\n",
+        r.heads,
+        r.unique,
+        r.rig,
+        r.vertices,
+        r.width,
+        r.height,
+        r.format,
+        r.bytes,
+        r.engine,
+        r.adapter,
+        if r.shared_device {
+            " (the engine's device)"
+        } else {
+            ""
+        },
+        r.runs,
+        t.compute_ms,
+        t.render_ms,
+        t.readback_ms,
+        t.encode_ms,
+        t.total_ms,
+        if t.total_ms > 0.0 {
+            1e3 / t.total_ms
+        } else {
+            0.0
+        }
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn file_names_choose_the_format() {
+        assert_eq!(format_of(Path::new("a/crowd.png")), Some(ImageFormat::Png));
+        assert_eq!(format_of(Path::new("crowd.JPG")), Some(ImageFormat::Jpeg));
+        assert_eq!(format_of(Path::new("crowd.jpeg")), Some(ImageFormat::Jpeg));
+        assert_eq!(format_of(Path::new("crowd.rgba")), Some(ImageFormat::Rgba));
+        assert_eq!(format_of(Path::new("crowd")), None);
+        assert_eq!(format_of(Path::new("crowd.gif")), None);
+    }
+}

@@ -1,0 +1,913 @@
+//! `POST /v1/crowd/render` over real sockets: golden pictures of a head, a 3×3 crowd and placed
+//! clones on lavapipe (rewritten by `CROWDMORPH_BLESS=1 cargo test --locked render`, see
+//! `tests/util/image.rs`), behaviour that needs no golden (the background is exact, a LOD level
+//! changes little, the mouth moves in `talk`, formats agree), the pixel budget, a render racing
+//! a rig delete, and bad input — which is checked before anything is drawn, so those tests run
+//! without a GPU too.
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use bytes::Bytes;
+use crowdmorph::render::scene;
+use crowdmorph::server::{RenderBackend, ServerConfig};
+use crowdmorph_client::{Encoding, Method, Reply};
+use crowdmorph_proto::{
+    CameraSpec, Head, ImageFormat, ImageOptions, LodLevelRequest, LodRequest, Placement,
+    RenderRequest,
+};
+use glam::Vec3;
+use serde_json::json;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+use super::TestServer;
+use crate::util::image::{Image, Tolerance, check_golden, compare};
+
+/// Goldens are rendered on lavapipe and compared on lavapipe, where they match exactly; the
+/// tolerance absorbs MSAA edge samples and last-bit shading after a Mesa or LLVM update.
+const GOLDEN: Tolerance = Tolerance {
+    per_pixel: 8,
+    max_fraction: 0.005,
+};
+
+fn golden(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/golden/render")
+        .join(name)
+}
+
+fn head(id: u64, clip: &str, frame: i64, lod: u32) -> Head {
+    Head {
+        head: id,
+        rig: "default-head".into(),
+        clip: clip.into(),
+        frame,
+        lod,
+    }
+}
+
+fn request(heads: Vec<Head>, width: u32, height: u32) -> RenderRequest {
+    RenderRequest {
+        heads,
+        wrap: true,
+        placements: None,
+        camera: None,
+        image: Some(ImageOptions {
+            width,
+            height,
+            ..ImageOptions::default()
+        }),
+    }
+}
+
+fn with_format(mut r: RenderRequest, format: ImageFormat) -> RenderRequest {
+    if let Some(i) = r.image.as_mut() {
+        i.format = format;
+    }
+    r
+}
+
+/// Renders and decodes a PNG reply, checking its type and size headers.
+async fn png(server: &TestServer, req: &RenderRequest) -> Image {
+    let reply = server
+        .client
+        .render(req, Encoding::Json)
+        .await
+        .expect("render");
+    decode_png(&reply, req)
+}
+
+fn decode_png(reply: &Reply, req: &RenderRequest) -> Image {
+    let size = req.image.map_or((640, 480), |i| (i.width, i.height));
+    assert_eq!(reply.content_type.as_deref(), Some("image/png"));
+    assert_eq!(size_headers(reply), size);
+    let img = Image::decode_png(&reply.body).expect("a PNG");
+    assert_eq!((img.width, img.height), size);
+    img
+}
+
+fn size_headers(reply: &Reply) -> (u32, u32) {
+    let get = |name| {
+        reply
+            .header(name)
+            .unwrap_or_else(|| panic!("no {name} header"))
+            .parse::<u32>()
+            .expect("a number")
+    };
+    (get("x-image-width"), get("x-image-height"))
+}
+
+/// The stages of the Server-Timing header and their durations.
+fn server_timing(reply: &Reply) -> Vec<(String, f64)> {
+    reply
+        .header("server-timing")
+        .expect("Server-Timing")
+        .split(',')
+        .map(|entry| {
+            let (name, dur) = entry
+                .trim()
+                .split_once(";dur=")
+                .unwrap_or_else(|| panic!("malformed entry {entry:?}"));
+            (name.to_string(), dur.parse().expect("milliseconds"))
+        })
+        .collect()
+}
+
+fn is_colour(p: [u8; 4], rgb: [u8; 3]) -> bool {
+    p == [rgb[0], rgb[1], rgb[2], 255]
+}
+
+/// Fraction of the pixels of `a` and `b` inside `[x0, x1) × [y0, y1)` (or outside it) whose
+/// largest channel difference is over `threshold`.
+fn differing(a: &Image, b: &Image, rect: (u32, u32, u32, u32), inside: bool, threshold: u8) -> f64 {
+    let (x0, x1, y0, y1) = rect;
+    let (mut n, mut d) = (0usize, 0usize);
+    for y in 0..a.height {
+        for x in 0..a.width {
+            if (x >= x0 && x < x1 && y >= y0 && y < y1) != inside {
+                continue;
+            }
+            n += 1;
+            let (p, q) = (a.pixel(x, y), b.pixel(x, y));
+            if p.iter().zip(q).any(|(u, v)| u.abs_diff(v) > threshold) {
+                d += 1;
+            }
+        }
+    }
+    d as f64 / n.max(1) as f64
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+async fn a_head_a_crowd_and_placed_clones_match_their_golden_images() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let s = &server;
+    // /readyz names the adapter that renders.
+    let ready = s
+        .client
+        .send(Method::GET, "/readyz", None, None, Bytes::new())
+        .await
+        .expect("readyz");
+    let r: crowdmorph_proto::Readiness = serde_json::from_slice(&ready.body).expect("JSON");
+    let adapter = r.renderer.expect("a renderer");
+    eprintln!("rendering on {adapter}");
+
+    let one = request(vec![head(1, "talk", 12, 0)], 320, 240);
+    let reply = s.client.render(&one, Encoding::Json).await.expect("render");
+    let img = decode_png(&reply, &one);
+    check_golden(&golden("http_head.png"), &img, GOLDEN);
+    let stages: Vec<String> = server_timing(&reply).into_iter().map(|s| s.0).collect();
+    assert_eq!(stages, ["compute", "render", "readback", "encode"]);
+    // The same request in bincode draws the same picture.
+    let bin = s
+        .client
+        .render(&one, Encoding::Bincode)
+        .await
+        .expect("render");
+    assert_eq!(decode_png(&bin, &one), img);
+
+    let crowd: Vec<Head> = (0..9)
+        .map(|i| {
+            let clip = ["talk", "smile", "surprise"][i % 3];
+            head(i as u64, clip, 10 * i as i64, 0)
+        })
+        .collect();
+    let img = png(s, &request(crowd, 320, 240)).await;
+    check_golden(&golden("http_crowd_3x3.png"), &img, GOLDEN);
+
+    // Three clones of one job, placed, turned and scaled, seen from a raised camera.
+    let mut clones = request(
+        vec![
+            head(1, "smile", 30, 0),
+            head(2, "smile", 30, 0),
+            head(3, "smile", 30, 0),
+        ],
+        320,
+        240,
+    );
+    clones.placements = Some(vec![
+        Placement {
+            head: 1,
+            position: [-20.0, 0.0, 0.0],
+            yaw: 30.0,
+            scale: 1.0,
+        },
+        Placement {
+            head: 2,
+            position: [0.0, 0.0, -10.0],
+            yaw: 0.0,
+            scale: 1.4,
+        },
+        Placement {
+            head: 3,
+            position: [20.0, 0.0, 0.0],
+            yaw: -30.0,
+            scale: 1.0,
+        },
+    ]);
+    clones.camera = Some(CameraSpec {
+        position: [0.0, 15.0, 80.0],
+        target: [0.0, 0.0, 0.0],
+        fov_y: 40.0,
+        near: None,
+        far: None,
+    });
+    let img = png(s, &clones).await;
+    check_golden(&golden("http_clones.png"), &img, GOLDEN);
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+async fn no_heads_render_the_background_exactly_and_formats_agree() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let s = &server;
+    let bg = [12u8, 200, 99];
+    let mut empty = with_format(request(Vec::new(), 70, 33), ImageFormat::Rgba);
+    if let Some(i) = empty.image.as_mut() {
+        i.background = bg;
+    }
+    let reply = s
+        .client
+        .render(&empty, Encoding::Json)
+        .await
+        .expect("render");
+    assert_eq!(
+        reply.content_type.as_deref(),
+        Some("application/octet-stream")
+    );
+    assert_eq!(size_headers(&reply), (70, 33));
+    assert_eq!(reply.body.len(), 70 * 33 * 4);
+    assert!(
+        reply
+            .body
+            .chunks_exact(4)
+            .all(|p| is_colour([p[0], p[1], p[2], p[3]], bg)),
+        "every pixel is the background {bg:?}"
+    );
+
+    // One head as PNG, raw RGBA and JPEG: the same picture.
+    let one = request(vec![head(1, "talk", 20, 0)], 160, 120);
+    let png_img = png(s, &one).await;
+    let raw = s
+        .client
+        .render(&with_format(one.clone(), ImageFormat::Rgba), Encoding::Json)
+        .await
+        .expect("render");
+    assert_eq!(size_headers(&raw), (160, 120));
+    assert_eq!(Image::new(160, 120, raw.body.to_vec()), png_img);
+    let jpeg = s
+        .client
+        .render(&with_format(one, ImageFormat::Jpeg), Encoding::Json)
+        .await
+        .expect("render");
+    assert_eq!(jpeg.content_type.as_deref(), Some("image/jpeg"));
+    assert_eq!(size_headers(&jpeg), (160, 120));
+    let j = &jpeg.body;
+    assert_eq!(&j[..2], &[0xFF, 0xD8], "JPEG start of image");
+    assert_eq!(&j[j.len() - 2..], &[0xFF, 0xD9], "JPEG end of image");
+    assert_eq!(jpeg_size(j), Some((160, 120)));
+    // The head is drawn: not every pixel is the default background.
+    let bg = crowdmorph_proto::DEFAULT_BACKGROUND;
+    let drawn = png_img
+        .rgba
+        .chunks_exact(4)
+        .filter(|p| !is_colour([p[0], p[1], p[2], p[3]], bg))
+        .count();
+    assert!(drawn > 160 * 120 / 10, "{drawn} pixels drawn");
+    server.stop().await;
+}
+
+/// The frame size a JPEG's start-of-frame marker states.
+fn jpeg_size(bytes: &[u8]) -> Option<(u32, u32)> {
+    let mut i = 2;
+    while i + 9 < bytes.len() {
+        if bytes[i] != 0xFF {
+            return None;
+        }
+        let marker = bytes[i + 1];
+        let len = u16::from_be_bytes([bytes[i + 2], bytes[i + 3]]) as usize;
+        if (0xC0..=0xCF).contains(&marker) && ![0xC4, 0xC8, 0xCC].contains(&marker) {
+            let h = u16::from_be_bytes([bytes[i + 5], bytes[i + 6]]);
+            let w = u16::from_be_bytes([bytes[i + 7], bytes[i + 8]]);
+            return Some((u32::from(w), u32::from(h)));
+        }
+        i += 2 + len;
+    }
+    None
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+async fn a_lod_level_on_a_simplified_mesh_changes_the_picture_little() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let s = &server;
+    // Level 1 keeps every shape but draws the half-resolution mesh with its own triangles.
+    let info = s
+        .client
+        .set_lod(
+            "default-head",
+            &LodRequest {
+                method: Some("file-order".into()),
+                levels: Some(vec![
+                    LodLevelRequest {
+                        shapes: 51,
+                        mesh: None,
+                    },
+                    LodLevelRequest {
+                        shapes: 51,
+                        mesh: Some(0),
+                    },
+                ]),
+                mesh_fractions: vec![0.5],
+                ..LodRequest::default()
+            },
+        )
+        .await
+        .expect("set the LOD");
+    let levels = &info.lod.levels;
+    assert_eq!(levels[1].mesh, Some(0));
+    assert!(levels[1].triangles < levels[0].triangles / 3 * 2);
+    let full = png(s, &request(vec![head(1, "talk", 40, 0)], 320, 240)).await;
+    let coarse = png(s, &request(vec![head(1, "talk", 40, 1)], 320, 240)).await;
+    let c = compare(&coarse, &full, 32).expect("same size");
+    let any = compare(&coarse, &full, 0).expect("same size");
+    eprintln!(
+        "LOD 1 against LOD 0: {c}; {} pixels differ at all",
+        any.differing
+    );
+    assert!(
+        any.differing > 100,
+        "the simplified mesh draws its own triangles: {any}"
+    );
+    assert!(
+        c.fraction() < 0.03,
+        "half the triangles should change the picture little: {c}"
+    );
+    server.stop().await;
+}
+
+/// Frames of `talk` where `jawOpen` is smallest and largest.
+fn jaw_extremes(rig: &crowdmorph::rig::Rig) -> (u32, u32) {
+    let talk = &rig.clips[rig.clip_index("talk").expect("talk")];
+    let jaw = rig.target_id("jawOpen").expect("jawOpen") as usize;
+    let w: Vec<f32> = (0..talk.frames).map(|f| talk.weight(jaw, f)).collect();
+    let arg = |better: fn(f32, f32) -> bool| {
+        (0..w.len()).fold(0, |b, i| if better(w[i], w[b]) { i } else { b }) as u32
+    };
+    (arg(|a, b| a < b), arg(|a, b| a > b))
+}
+
+/// The pixel rectangle around the vertices `jawOpen` moves most, for a lone head seen by the
+/// default camera.
+fn mouth_rect(rig: &crowdmorph::rig::Rig, width: u32, height: u32) -> (u32, u32, u32, u32) {
+    let aspect = width as f32 / height as f32;
+    let layout = scene::layout(&[rig.bbox()], &[1], None, None, aspect).expect("layout");
+    let vp = layout.view.view_projection(aspect);
+    let jaw = rig.target_id("jawOpen").expect("jawOpen");
+    // (neutral position, length of the jawOpen delta) of every vertex the target moves.
+    let deltas: Vec<(Vec3, f32)> = rig
+        .primitives
+        .iter()
+        .flat_map(|p| {
+            p.targets
+                .iter()
+                .filter(|t| t.target == jaw)
+                .flat_map(move |t| {
+                    t.vertices
+                        .iter()
+                        .zip(&t.positions)
+                        .map(move |(&v, d)| (p.positions[v as usize], d.length()))
+                })
+        })
+        .collect();
+    let max = deltas.iter().map(|d| d.1).fold(0.0f32, f32::max);
+    let moved: Vec<Vec3> = deltas
+        .iter()
+        .filter(|d| d.1 > 0.5 * max)
+        .map(|d| layout.transforms[0].transform_point3(d.0))
+        .collect();
+    assert!(!moved.is_empty(), "jawOpen moves vertices");
+    let (mut x0, mut x1, mut y0, mut y1) = (f32::MAX, f32::MIN, f32::MAX, f32::MIN);
+    for p in moved {
+        let n = vp.project_point3(p);
+        let (x, y) = (
+            (n.x + 1.0) * 0.5 * width as f32,
+            (1.0 - n.y) * 0.5 * height as f32,
+        );
+        x0 = x0.min(x);
+        x1 = x1.max(x);
+        y0 = y0.min(y);
+        y1 = y1.max(y);
+    }
+    let clamp = |v: f32, hi: u32| v.clamp(0.0, hi as f32) as u32;
+    (
+        clamp(x0, width),
+        clamp(x1.ceil(), width),
+        clamp(y0, height),
+        clamp(y1.ceil(), height),
+    )
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+async fn the_mouth_visibly_moves_between_two_frames_of_talk() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let rig = crowdmorph::embedded::default_rig();
+    let (closed, open) = jaw_extremes(&rig);
+    let (w, h) = (320, 240);
+    let rect = mouth_rect(&rig, w, h);
+    let a = png(
+        &server,
+        &request(vec![head(1, "talk", closed.into(), 0)], w, h),
+    )
+    .await;
+    let b = png(
+        &server,
+        &request(vec![head(1, "talk", open.into(), 0)], w, h),
+    )
+    .await;
+    let mouth = differing(&a, &b, rect, true, 24);
+    let rest = differing(&a, &b, rect, false, 24);
+    eprintln!("frames {closed} and {open}: mouth {rect:?} differs {mouth:.3}, the rest {rest:.4}");
+    assert!(mouth > 0.15, "the mouth region barely changed: {mouth}");
+    assert!(
+        mouth > 5.0 * rest,
+        "the change is not concentrated at the mouth: mouth {mouth}, elsewhere {rest}"
+    );
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+async fn a_full_pixel_budget_is_503_render_busy_with_retry_after() {
+    // The budget holds one 2048 × 2048 image. Its permit goes with the response body, so a
+    // client that does not read a 16 MiB raw image keeps the budget full for as long as it
+    // likes: no timing involved.
+    let side = 2048u32;
+    let server = TestServer::start(ServerConfig {
+        render_pixels: u64::from(side * side),
+        ..ServerConfig::default()
+    })
+    .await;
+    let big = with_format(request(Vec::new(), side, side), ImageFormat::Rgba);
+    let body = serde_json::to_vec(&big).expect("JSON");
+    let socket = tokio::net::TcpSocket::new_v4().expect("socket");
+    // A small receive window, so that the server's writes block after a few MiB.
+    socket.set_recv_buffer_size(4096).expect("SO_RCVBUF");
+    let mut stream = socket.connect(server.addr).await.expect("connect");
+    let head = format!(
+        "POST /v1/crowd/render HTTP/1.1\r\nhost: x\r\ncontent-type: application/json\r\n\
+         content-length: {}\r\n\r\n",
+        body.len()
+    );
+    stream.write_all(head.as_bytes()).await.expect("send");
+    stream.write_all(&body).await.expect("send");
+    let mut first = [0u8; 12];
+    stream.read_exact(&mut first).await.expect("status line");
+    assert_eq!(&first, b"HTTP/1.1 200", "the big render is served");
+
+    let small = request(Vec::new(), 8, 8);
+    let r = s_render_raw(&server, &small).await;
+    assert_eq!(r.status, 503, "{}", String::from_utf8_lossy(&r.body));
+    assert_eq!(r.error().expect("JSON error").error.code, "render_busy");
+    assert_eq!(r.retry_after.as_deref(), Some("1"));
+    let page = server.client.metrics().await.expect("metrics");
+    assert_eq!(
+        crowdmorph_client::metric(&page, "crowdmorph_render_pixels"),
+        Some(f64::from(side * side))
+    );
+
+    // Reading the image (or dropping the connection) gives the budget back.
+    drop(stream);
+    let mut ok = false;
+    for _ in 0..500 {
+        let r = s_render_raw(&server, &small).await;
+        if r.status == 200 {
+            ok = true;
+            break;
+        }
+        assert_eq!(r.status, 503);
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    assert!(
+        ok,
+        "the budget came back after the big response's connection closed"
+    );
+    // An image larger than the whole budget can never be served: 413, not 503.
+    let too_big = request(Vec::new(), side, side + 1);
+    let r = s_render_raw(&server, &too_big).await;
+    assert_eq!(r.status, 413);
+    assert_eq!(r.error().expect("JSON").error.code, "image_too_large");
+    server.stop().await;
+}
+
+async fn s_render_raw(server: &TestServer, req: &RenderRequest) -> Reply {
+    server
+        .client
+        .render_raw(
+            Bytes::from(serde_json::to_vec(req).expect("JSON")),
+            Encoding::Json,
+        )
+        .await
+        .expect("transport")
+}
+
+/// A triangle rig with a two-key clip `wave`.
+fn triangle_glb() -> Bytes {
+    let mut b = crate::util::builder::Builder::new();
+    let tri = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
+    let mesh = b.mesh_with_targets(&tri, Some(&[0, 1, 2]), &[vec![[0.0, 0.0, 0.5]; 3]], None);
+    let node = b.node(Some(mesh));
+    b.animation_weights("wave", node, &[0.0, 1.0], &[0.0, 1.0], "LINEAR");
+    b.scene(&[node]);
+    Bytes::from(b.to_glb())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+async fn renders_racing_a_rig_delete_get_the_old_generation_or_404_never_500() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let glb = triangle_glb();
+    let mut seen = (0, 0);
+    for round in 0..6 {
+        server
+            .client
+            .upload_rig("tri", glb.clone())
+            .await
+            .expect("upload");
+        let renders: Vec<_> = (0..6)
+            .map(|i| {
+                let client = server.client.clone();
+                let req = request(
+                    vec![
+                        Head {
+                            head: 1,
+                            rig: "tri".into(),
+                            clip: "wave".into(),
+                            frame: i,
+                            lod: 0,
+                        },
+                        head(2, "talk", i, 0),
+                    ],
+                    96,
+                    64,
+                );
+                tokio::spawn(async move {
+                    let body = Bytes::from(serde_json::to_vec(&req).expect("JSON"));
+                    client.render_raw(body, Encoding::Json).await
+                })
+            })
+            .collect();
+        // Delete while the renders are in flight (some resolved the rig, some not yet).
+        if round % 2 == 1 {
+            tokio::task::yield_now().await;
+        }
+        server.client.delete_rig("tri").await.expect("delete");
+        for r in renders {
+            let r = r.await.expect("join").expect("transport");
+            match r.status {
+                200 => {
+                    assert_eq!(r.content_type.as_deref(), Some("image/png"));
+                    Image::decode_png(&r.body).expect("a PNG");
+                    seen.0 += 1;
+                }
+                404 => {
+                    assert_eq!(r.error().expect("JSON").error.code, "unknown_rig");
+                    seen.1 += 1;
+                }
+                other => panic!(
+                    "a render racing a delete got {other}: {}",
+                    String::from_utf8_lossy(&r.body)
+                ),
+            }
+        }
+    }
+    eprintln!("served {} old-generation renders, {} 404s", seen.0, seen.1);
+    server.stop().await;
+}
+
+/// Posts a JSON value to the render endpoint.
+async fn post_json(server: &TestServer, v: serde_json::Value) -> Reply {
+    server
+        .client
+        .render_raw(Bytes::from(v.to_string()), Encoding::Json)
+        .await
+        .expect("transport")
+}
+
+async fn expect_error(
+    server: &TestServer,
+    v: serde_json::Value,
+    status: u16,
+    code: &str,
+    needle: &str,
+) {
+    let r = post_json(server, v.clone()).await;
+    assert_eq!(
+        r.status,
+        status,
+        "{v}: {}",
+        String::from_utf8_lossy(&r.body)
+    );
+    assert_eq!(r.content_type.as_deref(), Some("application/json"));
+    let e = r.error().expect("a JSON error body");
+    assert_eq!(e.error.code, code, "{v}: {}", e.error.message);
+    assert!(
+        e.error.message.contains(needle),
+        "{v}: message {:?} should name {needle:?}",
+        e.error.message
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_render_requests_are_named_4xx_and_without_a_renderer_503() {
+    // Rendering off: requests are checked before anything would be drawn, so every 4xx is
+    // the same with or without a GPU, and a valid request is a 503 that says why.
+    let server = TestServer::start(ServerConfig {
+        render_backend: RenderBackend::Off,
+        render_pixels: 1_000_000,
+        max_heads: 50,
+        ..ServerConfig::default()
+    })
+    .await;
+    let s = &server;
+    let one = json!([{"head": 1, "rig": "default-head", "clip": "talk", "frame": 3}]);
+    let with = |extra: serde_json::Value| {
+        let mut v = json!({"heads": one});
+        if let (Some(o), Some(e)) = (v.as_object_mut(), extra.as_object()) {
+            o.extend(e.clone());
+        }
+        v
+    };
+    // The camera.
+    let cam = |c| with(json!({"camera": c}));
+    expect_error(
+        s,
+        cam(json!({"position": [1, 2, 3], "target": [1, 2, 3]})),
+        400,
+        "invalid_camera",
+        "target",
+    )
+    .await;
+    for fov in [0, 180, -1, 400] {
+        expect_error(
+            s,
+            cam(json!({"position": [0, 0, 5], "target": [0, 0, 0], "fov_y": fov})),
+            400,
+            "invalid_camera",
+            "fov_y",
+        )
+        .await;
+    }
+    expect_error(
+        s,
+        cam(json!({"position": [0, 0, 5], "target": [0, 0, 0], "near": 2, "far": 1})),
+        400,
+        "invalid_camera",
+        "near",
+    )
+    .await;
+    // The image.
+    let img = |i| with(json!({"image": i}));
+    expect_error(s, img(json!({"width": 0})), 400, "invalid_image", "width").await;
+    expect_error(s, img(json!({"height": 0})), 400, "invalid_image", "height").await;
+    expect_error(
+        s,
+        img(json!({"quality": 0})),
+        400,
+        "invalid_image",
+        "quality",
+    )
+    .await;
+    expect_error(
+        s,
+        img(json!({"quality": 101})),
+        400,
+        "invalid_image",
+        "quality",
+    )
+    .await;
+    expect_error(
+        s,
+        img(json!({"format": "gif"})),
+        400,
+        "malformed_json",
+        "format",
+    )
+    .await;
+    expect_error(
+        s,
+        img(json!({"width": 4097})),
+        413,
+        "image_too_large",
+        "4096",
+    )
+    .await;
+    // Under 4096 a side but more pixels than the whole budget.
+    expect_error(
+        s,
+        img(json!({"width": 2000, "height": 1000})),
+        413,
+        "image_too_large",
+        "--render-pixels",
+    )
+    .await;
+    // Placements.
+    let placed = |p| with(json!({"placements": p}));
+    expect_error(
+        s,
+        placed(json!([{"head": 9, "position": [0, 0, 0]}])),
+        400,
+        "invalid_placement",
+        "9",
+    )
+    .await;
+    expect_error(
+        s,
+        placed(json!([{"head": 1, "position": [0, 0, 0], "scale": 0}])),
+        400,
+        "invalid_placement",
+        "scale",
+    )
+    .await;
+    expect_error(
+        s,
+        placed(json!([{"head": 1, "position": [0, 0, 0]}, {"head": 1, "position": [1, 0, 0]}])),
+        400,
+        "invalid_placement",
+        "twice",
+    )
+    .await;
+    expect_error(
+        s,
+        placed(json!([{"head": 1}])),
+        400,
+        "malformed_json",
+        "position",
+    )
+    .await;
+    // Heads: the frame endpoint's checks and messages.
+    let heads = |h| json!({"heads": h, "wrap": false});
+    expect_error(
+        s,
+        heads(json!([{"head": 4, "rig": "nobody", "clip": "talk", "frame": 0}])),
+        404,
+        "unknown_rig",
+        "nobody",
+    )
+    .await;
+    expect_error(
+        s,
+        heads(json!([{"head": 4, "rig": "default-head", "clip": "sing", "frame": 0}])),
+        404,
+        "unknown_clip",
+        "sing",
+    )
+    .await;
+    expect_error(
+        s,
+        heads(json!([{"head": 4, "rig": "default-head", "clip": "talk", "frame": 100000}])),
+        400,
+        "frame_out_of_range",
+        "head 0 (id 4)",
+    )
+    .await;
+    expect_error(
+        s,
+        heads(json!([{"head": 4, "rig": "default-head", "clip": "talk", "frame": 0, "lod": 99}])),
+        400,
+        "lod_out_of_range",
+        "LOD 99",
+    )
+    .await;
+    let many: Vec<_> = (0..51)
+        .map(|i| json!({"head": i, "rig": "default-head", "clip": "talk", "frame": 0}))
+        .collect();
+    expect_error(s, json!({"heads": many}), 400, "too_many_heads", "51").await;
+    expect_error(
+        s,
+        json!({"heads": [], "output": {"format": "f16"}}),
+        400,
+        "malformed_json",
+        "output",
+    )
+    .await;
+    // Bodies as for every crowd request.
+    let r = s
+        .client
+        .send(
+            Method::POST,
+            "/v1/crowd/render",
+            Some("text/plain"),
+            None,
+            Bytes::from(with(json!({})).to_string()),
+        )
+        .await
+        .expect("transport");
+    assert_eq!(r.status, 415);
+    let r = s
+        .client
+        .render_raw(Bytes::from_static(&[0xFF; 9]), Encoding::Bincode)
+        .await
+        .expect("transport");
+    assert_eq!(r.status, 400);
+    assert_eq!(r.error().expect("JSON").error.code, "malformed_bincode");
+
+    // A valid request: 503 render_unavailable, no Retry-After (waiting does not help), and the
+    // message says why; /readyz says nothing renders; frames still work.
+    let r = post_json(s, with(json!({}))).await;
+    assert_eq!(r.status, 503);
+    let e = r.error().expect("JSON");
+    assert_eq!(e.error.code, "render_unavailable");
+    assert!(
+        e.error.message.contains("--render-backend off"),
+        "{}",
+        e.error.message
+    );
+    assert_eq!(r.retry_after, None);
+    let ready = s
+        .client
+        .send(Method::GET, "/readyz", None, None, Bytes::new())
+        .await
+        .expect("readyz");
+    let ready: crowdmorph_proto::Readiness = serde_json::from_slice(&ready.body).expect("JSON");
+    assert_eq!(ready.renderer, None);
+    let frame = crowdmorph_proto::CrowdFrameRequest {
+        heads: vec![head(1, "talk", 3, 0)],
+        output: crowdmorph_proto::OutputOptions::default(),
+        wrap: true,
+    };
+    let (resp, _) = s
+        .client
+        .crowd_frame(&frame, Encoding::Bincode)
+        .await
+        .expect("frames still work");
+    assert_eq!(resp.buffers.len(), 1);
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+async fn the_gpu_engine_draws_its_outputs_where_they_are() {
+    // With the GPU engine the renderer shares its device and draws the blended buffers
+    // without a readback: the picture is the CPU engine's golden, within its tolerance.
+    let server = TestServer::start(ServerConfig {
+        backend: crowdmorph::engine::BackendChoice::Gpu,
+        ..ServerConfig::default()
+    })
+    .await;
+    let ready = server
+        .client
+        .send(Method::GET, "/readyz", None, None, Bytes::new())
+        .await
+        .expect("readyz");
+    let r: crowdmorph_proto::Readiness = serde_json::from_slice(&ready.body).expect("JSON");
+    assert_eq!(r.backend, "gpu");
+    let info = server.state.engine.info();
+    assert_eq!(
+        r.renderer, info.adapter,
+        "the renderer is the engine's adapter"
+    );
+    let device =
+        crowdmorph::render::crowd::RenderDevice::open(&server.state.engine, RenderBackend::Auto)
+            .expect("a renderer");
+    assert!(
+        device.shared,
+        "on the engine's own device, not a second one"
+    );
+    let one = request(vec![head(1, "talk", 12, 0)], 320, 240);
+    let img = png(&server, &one).await;
+    let expected = Image::read_png(&golden("http_head.png")).expect("golden");
+    let c = compare(&img, &expected, GOLDEN.per_pixel).expect("same size");
+    assert!(
+        c.fraction() <= GOLDEN.max_fraction,
+        "GPU engine against the CPU golden: {c}"
+    );
+    assert!(
+        !server.state.engine.info().degraded,
+        "no device fault on the way"
+    );
+    server.stop().await;
+}
