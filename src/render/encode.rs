@@ -120,6 +120,27 @@ fn jpeg_bytes(rgba: &[u8], width: u32, height: u32, quality: u8) -> Result<Vec<u
     Ok(out)
 }
 
+/// The frame size a JPEG's start-of-frame marker states (`None` when the markers before it are
+/// not well formed): what a client would read from the file, used to check encoded frames.
+pub fn jpeg_size(bytes: &[u8]) -> Option<(u32, u32)> {
+    let mut i = 2;
+    while i + 9 < bytes.len() {
+        if bytes[i] != 0xFF {
+            return None;
+        }
+        let marker = bytes[i + 1];
+        let len = u16::from_be_bytes([bytes[i + 2], bytes[i + 3]]) as usize;
+        // SOF0..SOF15 except DHT (C4), JPG (C8) and DAC (CC).
+        if (0xC0..=0xCF).contains(&marker) && ![0xC4, 0xC8, 0xCC].contains(&marker) {
+            let h = u16::from_be_bytes([bytes[i + 5], bytes[i + 6]]);
+            let w = u16::from_be_bytes([bytes[i + 7], bytes[i + 8]]);
+            return Some((u32::from(w), u32::from(h)));
+        }
+        i += 2 + len;
+    }
+    None
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -155,26 +176,6 @@ mod tests {
         assert_eq!((info.width, info.height), (w, h));
         assert_eq!(info.color_type, png::ColorType::Rgba);
         assert_eq!(&buf[..info.buffer_size()], &px[..]);
-    }
-
-    /// The frame size a JPEG's start-of-frame marker states.
-    fn jpeg_size(bytes: &[u8]) -> Option<(u32, u32)> {
-        let mut i = 2;
-        while i + 9 < bytes.len() {
-            if bytes[i] != 0xFF {
-                return None;
-            }
-            let marker = bytes[i + 1];
-            let len = u16::from_be_bytes([bytes[i + 2], bytes[i + 3]]) as usize;
-            // SOF0..SOF15 except DHT (C4), JPG (C8) and DAC (CC).
-            if (0xC0..=0xCF).contains(&marker) && ![0xC4, 0xC8, 0xCC].contains(&marker) {
-                let h = u16::from_be_bytes([bytes[i + 5], bytes[i + 6]]);
-                let w = u16::from_be_bytes([bytes[i + 7], bytes[i + 8]]);
-                return Some((u32::from(w), u32::from(h)));
-            }
-            i += 2 + len;
-        }
-        None
     }
 
     #[test]

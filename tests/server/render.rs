@@ -272,7 +272,7 @@ async fn no_heads_render_the_background_exactly_and_formats_agree() {
     let j = &jpeg.body;
     assert_eq!(&j[..2], &[0xFF, 0xD8], "JPEG start of image");
     assert_eq!(&j[j.len() - 2..], &[0xFF, 0xD9], "JPEG end of image");
-    assert_eq!(jpeg_size(j), Some((160, 120)));
+    assert_eq!(crowdmorph::render::encode::jpeg_size(j), Some((160, 120)));
     // The head is drawn: not every pixel is the default background.
     let bg = crowdmorph_proto::DEFAULT_BACKGROUND;
     let drawn = png_img
@@ -282,25 +282,6 @@ async fn no_heads_render_the_background_exactly_and_formats_agree() {
         .count();
     assert!(drawn > 160 * 120 / 10, "{drawn} pixels drawn");
     server.stop().await;
-}
-
-/// The frame size a JPEG's start-of-frame marker states.
-fn jpeg_size(bytes: &[u8]) -> Option<(u32, u32)> {
-    let mut i = 2;
-    while i + 9 < bytes.len() {
-        if bytes[i] != 0xFF {
-            return None;
-        }
-        let marker = bytes[i + 1];
-        let len = u16::from_be_bytes([bytes[i + 2], bytes[i + 3]]) as usize;
-        if (0xC0..=0xCF).contains(&marker) && ![0xC4, 0xC8, 0xCC].contains(&marker) {
-            let h = u16::from_be_bytes([bytes[i + 5], bytes[i + 6]]);
-            let w = u16::from_be_bytes([bytes[i + 7], bytes[i + 8]]);
-            return Some((u32::from(w), u32::from(h)));
-        }
-        i += 2 + len;
-    }
-    None
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
