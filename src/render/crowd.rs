@@ -20,7 +20,6 @@ use glam::Mat4;
 use super::gpu::{
     Frame, MeshTopology, RenderError, RenderOutput, Renderer, SceneMesh, VertexSource, View,
 };
-use super::scene::SceneView;
 use crate::engine::gpu::{GpuContext, GpuOptions, is_hardware};
 use crate::engine::{
     BlendJob, BlendOutput, Engine, EngineError, OutputSpec, PreparedRig, RenderBuffers, VertexData,
@@ -143,18 +142,6 @@ impl RenderDevice {
     /// The adapter's name (`name (backend)`).
     pub fn name(&self) -> String {
         adapter_name(self.renderer.adapter())
-    }
-}
-
-/// The renderer's view of a laid-out scene.
-pub fn to_view(v: &SceneView) -> View {
-    View {
-        eye: v.eye,
-        target: v.target,
-        up: v.up,
-        fov_y_deg: v.fov_y_deg,
-        near: v.near,
-        far: v.far,
     }
 }
 

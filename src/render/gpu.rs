@@ -145,22 +145,8 @@ pub struct SceneMesh<'a> {
     pub instances: &'a [Mat4],
 }
 
-/// A perspective camera (right-handed, Y up).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct View {
-    /// Eye position, world space.
-    pub eye: Vec3,
-    /// Point looked at.
-    pub target: Vec3,
-    /// Up direction (need not be unit or orthogonal to the view direction, only not parallel).
-    pub up: Vec3,
-    /// Vertical field of view in degrees, in (0, 180).
-    pub fov_y_deg: f32,
-    /// Near plane distance, > 0.
-    pub near: f32,
-    /// Far plane distance, > `near`.
-    pub far: f32,
-}
+/// The camera: the scene layout's view type (right-handed, Y up).
+pub use super::scene::View;
 
 /// The picture's size and background.
 #[derive(Clone, Copy, Debug, PartialEq)]

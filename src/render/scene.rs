@@ -37,9 +37,10 @@ pub enum SceneError {
     Camera(String),
 }
 
-/// A perspective view: where the eye is, what it looks at, and the clip planes.
+/// A perspective view: where the eye is, what it looks at, and the clip planes. The one camera
+/// type of rendered frames: the scene layout makes it, the GPU renderer draws with it.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct SceneView {
+pub struct View {
     /// Eye position, world units.
     pub eye: Vec3,
     /// Point at the centre of the image.
@@ -54,7 +55,7 @@ pub struct SceneView {
     pub far: f32,
 }
 
-impl SceneView {
+impl View {
     /// The view-projection matrix (right-handed, depth 0..1 as in WebGPU), for tests and
     /// anything that wants to know where a point lands.
     pub fn view_projection(&self, aspect: f32) -> Mat4 {
@@ -74,7 +75,7 @@ pub struct Scene {
     /// World transform of each head's rig.
     pub transforms: Vec<Mat4>,
     /// The camera.
-    pub view: SceneView,
+    pub view: View,
 }
 
 /// Lays out a crowd: `boxes[h]` is head `h`'s neutral bounding box and `ids[h]` its request id;
@@ -242,9 +243,9 @@ pub fn world_bounds(boxes: &[Aabb], transforms: &[Mat4]) -> Option<Aabb> {
 
 /// A front view (looking down −Z) at `bounds`, from the distance at which the box's front face
 /// fills the image but for [`FRAME_MARGIN`]; without heads, a unit view of the origin.
-pub fn default_view(bounds: Option<Aabb>, fov_y_deg: f32, aspect: f32) -> SceneView {
+pub fn default_view(bounds: Option<Aabb>, fov_y_deg: f32, aspect: f32) -> View {
     let Some(b) = bounds else {
-        return SceneView {
+        return View {
             eye: Vec3::Z,
             target: Vec3::ZERO,
             up: Vec3::Y,
@@ -267,7 +268,7 @@ pub fn default_view(bounds: Option<Aabb>, fov_y_deg: f32, aspect: f32) -> SceneV
     let size = (b.max - b.min).max_element();
     let distance = fit.max(size * 1e-3).max(1e-4);
     let depth = b.max.z - b.min.z;
-    SceneView {
+    View {
         eye: Vec3::new(centre.x, centre.y, b.max.z + distance),
         target: centre,
         up: Vec3::Y,
@@ -279,7 +280,7 @@ pub fn default_view(bounds: Option<Aabb>, fov_y_deg: f32, aspect: f32) -> SceneV
 
 /// The view a [`CameraSpec`] asks for, checked; clip planes it leaves out are derived from
 /// `bounds` so that every head lies between them.
-pub fn camera_view(spec: &CameraSpec, bounds: Option<Aabb>) -> Result<SceneView, SceneError> {
+pub fn camera_view(spec: &CameraSpec, bounds: Option<Aabb>) -> Result<View, SceneError> {
     let bad = |m: String| SceneError::Camera(format!("camera: {m}"));
     if !finite3(spec.position) || !finite3(spec.target) {
         return Err(bad(format!(
@@ -328,7 +329,7 @@ pub fn camera_view(spec: &CameraSpec, bounds: Option<Aabb>) -> Result<SceneView,
     } else {
         Vec3::Y
     };
-    Ok(SceneView {
+    Ok(View {
         eye,
         target,
         up,

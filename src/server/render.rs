@@ -374,7 +374,7 @@ impl AppState {
             rigs[k.rig as usize].prepared.mesh_of(k.lod)
         });
         Ok(RenderJob {
-            view: crowd::to_view(&layout.view),
+            view: layout.view,
             frame: crowd::to_frame(image.width, image.height, image.background),
             image,
             rigs,

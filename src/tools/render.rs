@@ -204,7 +204,7 @@ fn build(engine: &Engine, device: &RenderDevice, rig: &Rig, opt: &RenderOptions)
         vertices: prepared.at_level(opt.lod).rig().vertex_count(),
         groups,
         topologies,
-        view: crowd::to_view(&layout.view),
+        view: layout.view,
         frame: crowd::to_frame(opt.image.width, opt.image.height, opt.image.background),
         unique: plan.jobs.len(),
         prepared,
