@@ -189,10 +189,67 @@ impl RigShape {
             primitives: shapes(rig),
             targets: rig.targets.len() as u64,
             clip_cells: rig.clips.iter().map(|c| c.weights.len() as u64).sum(),
-            mesh_levels: crate::rig::mesh_level_rigs(rig)
-                .map(|levels| levels.iter().map(shapes).collect())
-                .unwrap_or_default(),
+            mesh_levels: rig
+                .lod
+                .meshes
+                .iter()
+                .map(|level| Self::level_shapes(rig, level))
+                .collect(),
         }
+    }
+
+    /// The counts of the rig a mesh level derives (`MeshLevel::derive_rig`), counted in place:
+    /// deriving the rigs would copy every level's geometry just to measure it, doubling the
+    /// memory the estimate is meant to bound.
+    fn level_shapes(rig: &Rig, level: &super::MeshLevel) -> Vec<PrimShape> {
+        let mut first = 0u64;
+        let mut out = Vec::with_capacity(rig.primitives.len());
+        for (p, l) in rig.primitives.iter().zip(&level.primitives) {
+            // New index of each kept vertex (u32::MAX: dropped), as derive_rig renumbers them.
+            let mut remap = vec![u32::MAX; p.positions.len()];
+            for (new, &old) in l.vertices.iter().enumerate() {
+                if let Some(r) = remap.get_mut(old as usize) {
+                    *r = new as u32;
+                }
+            }
+            let mut shape = PrimShape {
+                vertices: l.vertices.len() as u64,
+                indices: l.indices.len() as u64,
+                tangents: p.tangents.is_some(),
+                ..PrimShape::default()
+            };
+            let mut kept = Vec::new();
+            for t in &p.targets {
+                kept.clear();
+                kept.extend(
+                    t.vertices
+                        .iter()
+                        .filter_map(|&v| remap.get(v as usize).copied())
+                        .filter(|&r| r != u32::MAX),
+                );
+                if kept.is_empty() {
+                    continue;
+                }
+                let m = kept.len() as u64;
+                shape.targets += 1;
+                shape.deltas += m;
+                let blocks = |lanes| {
+                    let n = tiles_touched(&kept, first, lanes);
+                    if t.normals.is_some() { 2 * n } else { n }
+                };
+                shape.cpu_blocks += blocks(CPU_LANES);
+                shape.gpu_blocks += blocks(GPU_LANES);
+                if t.normals.is_some() {
+                    shape.normal_deltas += m;
+                }
+                if t.tangents.is_some() {
+                    shape.tangent_deltas += m;
+                }
+            }
+            first += shape.vertices;
+            out.push(shape);
+        }
+        out
     }
 
     /// Vertices over all primitives.
@@ -317,5 +374,24 @@ mod tests {
         );
         let stored = crate::codec::to_stored(&rig).expect("encode").len() as u64;
         assert!(cost.stored >= stored, "{} < {stored}", cost.stored);
+    }
+
+    #[test]
+    fn mesh_level_shapes_are_counted_as_the_derived_rigs_have_them() {
+        let mut rig = crate::embedded::default_rig();
+        let spec = crate::lod::LodSpec {
+            method: crate::lod::OrderMethod::FileOrder,
+            mesh_fractions: vec![0.5, 0.1],
+            ..crate::lod::LodSpec::default()
+        };
+        rig.lod = crate::lod::build_lod(&rig, &spec, None, None).expect("lod");
+        let counted = RigShape::of(&rig).mesh_levels;
+        let derived: Vec<Vec<PrimShape>> = crate::rig::mesh_level_rigs(&rig)
+            .expect("derive")
+            .iter()
+            .map(|r| RigShape::of(r).primitives)
+            .collect();
+        assert_eq!(counted.len(), 2);
+        assert_eq!(counted, derived);
     }
 }
