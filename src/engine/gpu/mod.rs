@@ -474,13 +474,10 @@ impl std::fmt::Debug for GpuRig {
 }
 
 impl GpuRig {
-    /// Refuses (`DoesNotFit`) a rig whose geometry the device's bindings or dispatch limits
-    /// cannot hold, before anything is uploaded.
+    /// Refuses (`DoesNotFit`) a rig with more vertices than four jobs' output binding holds,
+    /// before anything is uploaded. It costs nothing; [`GpuRig::upload`] also checks the
+    /// triangles of recomputed normals, once it has built their topology.
     pub fn check_fits(ctx: &GpuContext, rig: &Rig) -> Result<(), GpuError> {
-        Self::fits(ctx, rig, &NormalTopology::of(rig))
-    }
-
-    fn fits(ctx: &GpuContext, rig: &Rig, topology: &NormalTopology) -> Result<(), GpuError> {
         ctx.health()?;
         let vertices = rig.vertex_count();
         let per_job = (vertices * 3 * 4) as u64;
@@ -491,6 +488,12 @@ impl GpuRig {
                 ctx.max_binding
             )));
         }
+        Ok(())
+    }
+
+    fn fits(ctx: &GpuContext, rig: &Rig, topology: &NormalTopology) -> Result<(), GpuError> {
+        Self::check_fits(ctx, rig)?;
+        let vertices = rig.vertex_count();
         let tri_bytes = topology.triangles.len() as u64 * 12;
         if tri_bytes * JOBS_PER_GROUP as u64 > ctx.max_binding
             || topology.triangles.len() > 65_535 * 64
