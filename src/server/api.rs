@@ -823,7 +823,7 @@ pub(super) async fn upload_clips(
     let snapshot = base.clone();
     let imports = blocking(move || {
         let rig = snapshot.rig();
-        let mut imports: Vec<ClipImport> = match source {
+        let imports: Vec<ClipImport> = match source {
             ClipSource::Csv => vec![
                 crate::import::clip_from_csv(
                     rig,
@@ -856,11 +856,6 @@ pub(super) async fn upload_clips(
                 v
             }
         };
-        // Weights big enough to overflow the output are refused with the clip, not later.
-        let mut probe = rig.clone();
-        probe.clips.extend(imports.iter().map(|i| i.clip.clone()));
-        check_output_range(&probe).map_err(|m| ApiError::bad_request("invalid_clip", m))?;
-        imports.shrink_to_fit();
         Ok(imports)
     })
     .await?;

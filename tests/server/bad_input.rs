@@ -411,3 +411,20 @@ async fn f16_output_of_positions_past_its_range_is_refused() {
     }
     server.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn clip_weights_that_would_overflow_the_output_are_refused() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let s = &server;
+    let tri = crate::util::builder::triangle_rig().to_glb();
+    let r = post(s, "/v1/rigs?name=tri", "model/gltf-binary", tri).await;
+    assert_eq!(r.status, 201);
+    // Weights of 1e30 on a unit delta: positions would reach 1e30, past what f32 blending,
+    // normals and q16 boxes can carry.
+    let clip = r#"{"fps":30,"targets":["a","b"],"frames":[[0,0],[1e30,0]]}"#;
+    let r = post(s, "/v1/rigs/tri/clips?name=huge", "application/json", clip).await;
+    expect(s, r, 400, "invalid_clip", "overflow").await;
+    let clips = s.client.clips("tri").await.expect("clips");
+    assert!(clips.clips.is_empty(), "nothing was added");
+    server.stop().await;
+}
