@@ -14,7 +14,14 @@
 
 #![warn(missing_docs)]
 
+pub mod session;
 pub mod wire;
+
+pub use session::{
+    DEFAULT_SESSION_FPS, DEFAULT_SESSION_IDLE_TIMEOUT_S, HEAD_MISSING, HEAD_UNCHANGED, HeadChange,
+    LodChoice, SessionHead, SessionInfo, SessionList, SessionPatch, SessionRequest, SessionStats,
+    StreamMessage, TickFrame, TickVertices, ViewerHello, ViewerOutput, ViewerUpdate,
+};
 
 use serde::de::{self, SeqAccess, Visitor};
 use serde::ser::SerializeTuple;

@@ -1,0 +1,281 @@
+//! Crowd sessions: one simulated crowd on a fixed tick, streamed to many viewers over a
+//! WebSocket (`GET /v1/sessions/{id}/stream`).
+//!
+//! The REST side (`/v1/sessions`) creates, inspects, changes and deletes sessions with the
+//! messages below, in JSON or bincode like every other message. The stream side is a WebSocket:
+//! the viewer's text messages are JSON ([`ViewerHello`] first, then [`ViewerUpdate`]s), and
+//! the server's binary messages are bincode [`StreamMessage`]s, one per tick.
+
+use serde::{Deserialize, Serialize};
+
+use crate::{Blob, CameraSpec, Format, FrameBuffer, FrameTimings, HeadBuffer, ImageFormat};
+use crate::{ImageOptions, yes};
+
+/// Default ticks per second of a session.
+pub const DEFAULT_SESSION_FPS: f32 = 30.0;
+/// Default seconds a session lives without viewers before it ends.
+pub const DEFAULT_SESSION_IDLE_TIMEOUT_S: u32 = 60;
+/// [`HeadBuffer::buffer`] of a head whose job is the same as in the last message this viewer
+/// received: keep drawing what it had.
+pub const HEAD_UNCHANGED: u32 = u32::MAX;
+/// [`HeadBuffer::buffer`] of a head that has nothing to draw this tick: its rig or clip was
+/// deleted after the head was added.
+pub const HEAD_MISSING: u32 = u32::MAX - 1;
+
+fn default_fps() -> f32 {
+    DEFAULT_SESSION_FPS
+}
+
+fn default_idle() -> u32 {
+    DEFAULT_SESSION_IDLE_TIMEOUT_S
+}
+
+fn one() -> f32 {
+    1.0
+}
+
+/// One head of a session: what it plays and where it stands.
+///
+/// At tick `t` (from 1) it plays frame `offset + floor((t − 1) × clip_fps / session_fps)` of its clip (wrapped
+/// or clamped by the session's `wrap`). Heads that share rig, clip and offset are clones: one
+/// blend per tick serves all of them.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SessionHead {
+    /// The client's id for this head, unique within the session.
+    pub head: u64,
+    /// Rig id.
+    pub rig: String,
+    /// Clip name within the rig.
+    pub clip: String,
+    /// Frames the head is ahead of the session's clock.
+    #[serde(default)]
+    pub offset: i64,
+    /// Where the rig's origin goes, world units.
+    #[serde(default)]
+    pub position: [f32; 3],
+    /// Turn about +Y, degrees (0: facing +Z).
+    #[serde(default)]
+    pub yaw: f32,
+    /// Uniform scale, > 0.
+    #[serde(default = "one")]
+    pub scale: f32,
+}
+
+/// `POST /v1/sessions` request.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SessionRequest {
+    /// Ticks per second, in (0, 120].
+    #[serde(default = "default_fps")]
+    pub fps: f32,
+    /// Clips loop (true) or hold their last frame (false).
+    #[serde(default = "yes")]
+    pub wrap: bool,
+    /// Seconds without viewers after which the session ends (1..=86,400).
+    #[serde(default = "default_idle")]
+    pub idle_timeout_s: u32,
+    /// The crowd.
+    pub heads: Vec<SessionHead>,
+}
+
+/// Counters of a session since it started.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SessionStats {
+    /// Ticks computed and delivered to the viewers' outboxes.
+    pub ticks: u64,
+    /// Of those, ticks whose blends finished after the next tick was due.
+    pub ticks_late: u64,
+    /// Ticks never computed, because an earlier one was still running or the server was out
+    /// of queue memory (skipped, not queued).
+    pub ticks_skipped: u64,
+    /// Unique jobs (rig, clip, frame, LOD, format) submitted to the batcher, summed over ticks.
+    pub jobs: u64,
+    /// Messages handed to viewers' sockets.
+    pub messages_sent: u64,
+    /// Messages replaced in a slow viewer's outbox by a newer tick before it could be sent.
+    pub messages_dropped: u64,
+    /// Bytes of the messages sent.
+    pub bytes_sent: u64,
+}
+
+/// `GET /v1/sessions/{id}` response (also the answer to create and change).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SessionInfo {
+    /// Session id.
+    pub id: String,
+    /// Ticks per second.
+    pub fps: f32,
+    /// Clips loop.
+    pub wrap: bool,
+    /// Seconds without viewers before the session ends.
+    pub idle_timeout_s: u32,
+    /// The last tick computed (0 before the first).
+    pub tick: u64,
+    /// The heads, in the order tick messages list them.
+    pub heads: Vec<SessionHead>,
+    /// Viewers connected now.
+    pub viewers: u32,
+    /// Counters.
+    pub stats: SessionStats,
+}
+
+/// `GET /v1/sessions` response.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SessionList {
+    /// Sessions, ordered by id.
+    pub sessions: Vec<SessionInfo>,
+}
+
+/// A change to one head; absent fields stay as they are.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct HeadChange {
+    /// The head to change.
+    pub head: u64,
+    /// New clip (of the same rig).
+    #[serde(default)]
+    pub clip: Option<String>,
+    /// New offset.
+    #[serde(default)]
+    pub offset: Option<i64>,
+    /// New position.
+    #[serde(default)]
+    pub position: Option<[f32; 3]>,
+    /// New yaw, degrees.
+    #[serde(default)]
+    pub yaw: Option<f32>,
+    /// New scale.
+    #[serde(default)]
+    pub scale: Option<f32>,
+}
+
+/// `PATCH /v1/sessions/{id}` request: applied together, at the next tick, in the order
+/// remove, change, add.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SessionPatch {
+    /// Head ids to remove.
+    #[serde(default)]
+    pub remove: Vec<u64>,
+    /// Changes to existing heads.
+    #[serde(default)]
+    pub change: Vec<HeadChange>,
+    /// Heads to add (ids not in the session).
+    #[serde(default)]
+    pub add: Vec<SessionHead>,
+}
+
+/// What a viewer receives each tick.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ViewerOutput {
+    /// Blended vertex buffers ([`TickVertices`]).
+    #[default]
+    Vertices,
+    /// A rendered, encoded image from the viewer's camera ([`TickFrame`]).
+    Frames,
+}
+
+/// Level of detail of a viewer: one level for every head, or a level by distance from the
+/// viewer's camera.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum LodChoice {
+    /// The same level for every head.
+    Fixed(u32),
+    /// `[[metres, level], ...]` with ascending metres: a head at distance `d` from the camera
+    /// gets the level of the last entry whose metres ≤ `d` (level 0 nearer than the first).
+    /// Levels past the rig's last are clamped to it.
+    ByDistance {
+        /// The table.
+        by_distance: Vec<[f32; 2]>,
+    },
+}
+
+impl Default for LodChoice {
+    fn default() -> Self {
+        LodChoice::Fixed(0)
+    }
+}
+
+/// The first message of a viewer on the stream (JSON text).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ViewerHello {
+    /// Vertex buffers or images.
+    #[serde(default)]
+    pub output: ViewerOutput,
+    /// Scalar format of vertex buffers.
+    #[serde(default)]
+    pub format: Format,
+    /// Also send normals with vertex buffers.
+    #[serde(default)]
+    pub normals: bool,
+    /// The viewer's camera: needed for images and for LOD by distance.
+    #[serde(default)]
+    pub camera: Option<CameraSpec>,
+    /// Level of detail.
+    #[serde(default)]
+    pub lod: LodChoice,
+    /// Size and encoding of images (output `frames`); absent, 640 × 480 JPEG quality 80.
+    #[serde(default)]
+    pub image: Option<ImageOptions>,
+}
+
+/// A later message of a viewer (JSON text): a new camera or LOD, used from the next tick.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ViewerUpdate {
+    /// New camera.
+    #[serde(default)]
+    pub camera: Option<CameraSpec>,
+    /// New level of detail.
+    #[serde(default)]
+    pub lod: Option<LodChoice>,
+}
+
+/// A tick of blended vertex buffers for one viewer.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TickVertices {
+    /// Tick number (the session's clock, starting at 1).
+    pub tick: u64,
+    /// Format of every buffer.
+    pub format: Format,
+    /// Whether buffers carry normals.
+    pub normals: bool,
+    /// The session's heads and placements, when they changed since the last message this
+    /// viewer received (always present in its first message).
+    pub layout: Option<Vec<SessionHead>>,
+    /// Buffers of the heads whose job changed for this viewer.
+    pub buffers: Vec<FrameBuffer>,
+    /// One entry per session head, in layout order: an index into `buffers`,
+    /// [`HEAD_UNCHANGED`] or [`HEAD_MISSING`].
+    pub heads: Vec<HeadBuffer>,
+    /// Where the tick's time went.
+    pub timings: FrameTimings,
+}
+
+/// A tick rendered for one viewer.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TickFrame {
+    /// Tick number.
+    pub tick: u64,
+    /// Encoding of `image`.
+    pub format: ImageFormat,
+    /// Width in pixels.
+    pub width: u32,
+    /// Height in pixels.
+    pub height: u32,
+    /// The encoded image (PNG, JPEG, or raw RGBA8 rows top-down).
+    pub image: Blob,
+}
+
+/// A binary message of the stream (bincode; variant index first).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum StreamMessage {
+    /// Variant 0: vertex buffers.
+    Vertices(TickVertices),
+    /// Variant 1: an image.
+    Frame(TickFrame),
+}
