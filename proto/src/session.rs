@@ -240,13 +240,13 @@ pub struct ViewerUpdate {
 pub struct TickVertices {
     /// Tick number (the session's clock, starting at 1).
     pub tick: u64,
-    /// The session's heads and placements, when they changed since the last message this
-    /// viewer received (always present in its first message).
-    pub layout: Option<Vec<SessionHead>>,
     /// Format of every buffer.
     pub format: Format,
     /// Whether buffers carry normals.
     pub normals: bool,
+    /// The session's heads and placements, when they changed since the last message this
+    /// viewer received (always present in its first message).
+    pub layout: Option<Vec<SessionHead>>,
     /// Buffers of the heads whose job changed for this viewer.
     pub buffers: Vec<FrameBuffer>,
     /// One entry per session head, in layout order: an index into `buffers`,
