@@ -15,6 +15,7 @@
 //! | [`metrics`] | Prometheus text metrics |
 //! | `api` | the handlers |
 //! | `render` | `POST /v1/crowd/render`: a picture of a crowd |
+//! | [`sessions`] | crowd sessions: a crowd on a fixed tick, streamed to many viewers over WebSockets |
 //! | [`bench`] | `crowdmorph bench http`: loopback load against in-process work |
 
 mod api;
@@ -27,6 +28,7 @@ pub mod metrics;
 pub mod registry;
 mod render;
 pub mod scheduler;
+pub mod sessions;
 
 use std::future::Future;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -119,6 +121,8 @@ pub struct Inner {
     pixels: Arc<Semaphore>,
     /// The renderer (or why there is none) and its topologies.
     render: render::RenderState,
+    /// Crowd sessions by id.
+    pub sessions: sessions::Sessions,
 }
 
 impl Drop for Inner {
@@ -222,6 +226,7 @@ impl AppState {
             shed_log: ShedLog::default(),
             pixels: Arc::new(Semaphore::new(render_pixels)),
             render,
+            sessions: sessions::Sessions::default(),
         })))
     }
 
@@ -684,6 +689,17 @@ pub fn app(state: AppState) -> Router {
         )
         .route("/v1/crowd/frame", post(api::crowd_frame))
         .route("/v1/crowd/render", post(render::crowd_render))
+        .route(
+            "/v1/sessions",
+            post(sessions::create_session).get(sessions::list_sessions),
+        )
+        .route(
+            "/v1/sessions/{id}",
+            get(sessions::get_session)
+                .patch(sessions::patch_session)
+                .delete(sessions::delete_session),
+        )
+        .route("/v1/sessions/{id}/stream", get(sessions::stream))
         .fallback(api::not_found)
         // Bodies are read with explicit per-route limits (see api::read_body).
         .layer(DefaultBodyLimit::disable())
@@ -705,7 +721,13 @@ pub fn app(state: AppState) -> Router {
         };
         CorsLayer::new()
             .allow_origin(origins)
-            .allow_methods([Method::GET, Method::POST, Method::PUT, Method::DELETE])
+            .allow_methods([
+                Method::GET,
+                Method::POST,
+                Method::PUT,
+                Method::PATCH,
+                Method::DELETE,
+            ])
             .allow_headers([header::CONTENT_TYPE, header::ACCEPT, header::AUTHORIZATION])
             .expose_headers([
                 request_id.clone(),
@@ -833,6 +855,7 @@ pub async fn serve(
         () = serving => {}
         _ = summaries => {}
     }
+    state.sessions.close_all("the server is stopping");
     state.scheduler.shutdown().await;
     tracing::info!("stopped");
     Ok(())
