@@ -295,7 +295,7 @@ def test_set_lod_rebuilds_the_table():
         frame = c.crowd_frame([(1, RIG, "talk", 3, 1)], format="q16")
         assert frame.buffer(0).vertices == mesh.vertices
         with pytest.raises(crowdmorph.BadRequest) as e:
-            c.set_lod(RIG, levels=[3])  # level 0 must use every shape
+            c.set_lod(RIG, method="file-order", levels=[3])  # level 0 must use every shape
         assert e.value.code == "invalid_lod"
 
 

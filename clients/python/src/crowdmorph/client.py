@@ -332,13 +332,15 @@ def _seg(s: str) -> str:
 class Client:
     """A client of one crowdmorph server.
 
-    ``Client("http://127.0.0.1:8080", token=None, timeout=60.0, arrays="auto")``. ``token`` is
+    ``Client("http://127.0.0.1:8080", token=None, timeout=300.0, arrays="auto")``. ``token`` is
     the admin token (sent as ``Authorization: Bearer``) that uploads, deletes and LOD changes
     need when the server has one. ``arrays``: ``"auto"`` (numpy when installed), ``"numpy"``
     or ``"python"`` (``array.array``). The client keeps one HTTP/1.1 connection alive across
     calls and reconnects when the server has closed it; calls from several threads take turns
     on it (use one client per thread for parallel requests). Use it as a context manager, or
-    call :meth:`close`.
+    call :meth:`close`. ``timeout`` is the socket timeout in seconds (per send or receive);
+    its default matches the server's deadline for uploads and LOD builds (``serve
+    --admin-timeout-s``), which can take minutes for large rigs.
 
     Error answers raise :class:`~crowdmorph.errors.CrowdmorphError` subclasses; a server that
     cannot be reached raises the :class:`OSError` of the socket.
@@ -348,7 +350,7 @@ class Client:
         self,
         url: str = "http://127.0.0.1:8080",
         token: Optional[str] = None,
-        timeout: Optional[float] = 60.0,
+        timeout: Optional[float] = 300.0,
         arrays: str = "auto",
     ):
         parts = urllib.parse.urlsplit(url if "://" in url else "http://" + url)
