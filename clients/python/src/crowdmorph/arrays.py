@@ -133,12 +133,14 @@ def decode_positions(
     lo: Sequence[float] = quantization.min
     step: Sequence[float] = quantization.step
     if backend == "numpy":
-        q = _np.frombuffer(data, dtype="<i2").reshape(-1, 3)
         f32 = _np.float32
-        # The reference's order of float32 operations: min + (q + 32768) * step.
-        return _np.asarray(lo, dtype=f32) + (q.astype(f32) + f32(32768.0)) * _np.asarray(
-            step, dtype=f32
-        )
+        # The reference's float32 operations in its order, min + (q + 32768) * step, done in
+        # place: one array allocated instead of three for a 30 MB crowd.
+        out = _np.frombuffer(data, dtype="<i2").astype(f32).reshape(-1, 3)
+        out += f32(32768.0)
+        out *= _np.asarray(step, dtype=f32)
+        out += _np.asarray(lo, dtype=f32)
+        return out
     q = _flat("h", data)
     lx, ly, lz = lo
     sx, sy, sz = step
@@ -158,7 +160,7 @@ def decode_normals(data: Any, fmt: str, backend: str, vertices: Optional[int] = 
     if fmt == "f16":
         return _decode_f16(data, backend)
     if backend == "numpy":
-        return _np.frombuffer(data, dtype="<i2").astype(_np.float32).reshape(-1, 3) / _np.float32(
-            32767.0
-        )
+        out = _np.frombuffer(data, dtype="<i2").astype(_np.float32).reshape(-1, 3)
+        out /= _np.float32(32767.0)
+        return out
     return array("f", [v / 32767.0 for v in _flat("h", data)])
