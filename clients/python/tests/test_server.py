@@ -299,6 +299,17 @@ def test_set_lod_rebuilds_the_table():
         assert e.value.code == "invalid_lod"
 
 
+def test_an_upload_refused_before_its_body_is_read_raises_the_servers_413():
+    # The server answers 413 and closes while 20 MB are still being sent: the client reads
+    # that answer instead of reporting the broken pipe.
+    with run_server("--no-auto-lod", "--max-upload-bytes", "100000") as s:
+        c = crowdmorph.Client(s.url, token=TOKEN)
+        with pytest.raises(crowdmorph.TooLarge) as e:
+            c.upload_rig(b"glTF" + bytes(20_000_000), name="big")
+        assert e.value.code == "body_too_large" and "100000" in e.value.message
+        assert c.rig(RIG).id == RIG, "the client goes on with a new connection"
+
+
 def test_the_connection_is_kept_alive_and_reopened_after_the_server_closes_it():
     with run_server("--no-auto-lod", "--idle-timeout-s", "1") as s, crowdmorph.Client(s.url) as c:
         ports = set()

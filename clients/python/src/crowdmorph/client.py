@@ -445,7 +445,13 @@ class Client:
             conn = self._connection()
             reused = self._used
             try:
-                conn.request(method, target, body=body, headers=headers)
+                try:
+                    conn.request(method, target, body=body, headers=headers)
+                except (ConnectionResetError, BrokenPipeError):
+                    # A server that refuses a body early (413 body_too_large on a large
+                    # upload) answers and closes before it has read everything: its answer
+                    # is still there to read. Without one, the error below stands.
+                    pass
                 r = conn.getresponse()
                 data = r.read()
             except (http.client.RemoteDisconnected, ConnectionResetError, BrokenPipeError):
