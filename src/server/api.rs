@@ -15,8 +15,8 @@ use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use bytes::Bytes;
 use crowdmorph_proto::{
-    CONTENT_TYPE_BINCODE, CONTENT_TYPE_JSON, ClipList, ClipUpload, CrowdFrameRequest,
-    CrowdFrameResponse, Format, FrameBuffer, FrameTimings, Head, HeadBuffer, Readiness, RigList,
+    CONTENT_TYPE_BINCODE, CONTENT_TYPE_JSON, ClipList, ClipUpload, CrowdFrameRequest, Format,
+    FrameTimings, Head, HeadBuffer, Readiness, RigList,
 };
 use http_body_util::BodyExt;
 use serde::Serialize;
@@ -1268,6 +1268,59 @@ impl AppState {
     }
 }
 
+/// Payload bytes above which a JSON response is encoded on the blocking pool.
+const JSON_INLINE_BYTES: usize = 64 << 10;
+
+/// Encodes a JSON crowd-frame response; base64 of a big crowd takes milliseconds, so those
+/// are encoded on the blocking pool, not on an async worker.
+async fn json_frame(
+    state: &AppState,
+    format: Format,
+    normals: bool,
+    parts: &[FrameBufferParts<'_>],
+    heads: Vec<HeadBuffer>,
+    timings: FrameTimings,
+) -> Result<Bytes, ApiError> {
+    let pool = state.json_pool.clone();
+    let payload: usize = parts
+        .iter()
+        .map(|p| p.positions.len() + p.normals.as_ref().map_or(0, Bytes::len))
+        .sum();
+    if payload <= JSON_INLINE_BYTES {
+        return Ok(super::json::encode_frame(
+            &pool, format, normals, parts, &heads, &timings,
+        ));
+    }
+    let owned: Vec<(String, String, FrameBufferParts<'static>)> = parts
+        .iter()
+        .map(|p| {
+            (
+                p.rig.to_string(),
+                p.clip.to_string(),
+                FrameBufferParts {
+                    rig: "",
+                    clip: "",
+                    ..p.clone()
+                },
+            )
+        })
+        .collect();
+    blocking(move || {
+        let parts: Vec<FrameBufferParts<'_>> = owned
+            .iter()
+            .map(|(rig, clip, p)| FrameBufferParts {
+                rig,
+                clip,
+                ..p.clone()
+            })
+            .collect();
+        Ok(super::json::encode_frame(
+            &pool, format, normals, &parts, &heads, &timings,
+        ))
+    })
+    .await
+}
+
 /// One unique job for the batcher, with its cost: vertices × (active shapes + 1) at the job's
 /// frame and level of detail.
 pub(super) fn job_request(entry: &Arc<RigEntry>, clip: u32, frame: u32, lod: u32) -> JobRequest {
@@ -1427,31 +1480,11 @@ pub(super) async fn crowd_frame(
         )
             .into_response());
     }
-    let resp = CrowdFrameResponse {
-        format,
-        normals,
-        buffers: parts
-            .into_iter()
-            .map(|p| FrameBuffer {
-                rig: p.rig.to_string(),
-                clip: p.clip.to_string(),
-                frame: p.frame,
-                lod: p.lod,
-                vertices: p.vertices,
-                quantization: p.quantization,
-                positions: crowdmorph_proto::Blob(p.positions.to_vec()),
-                normals: p.normals.map(|n| crowdmorph_proto::Blob(n.to_vec())),
-            })
-            .collect(),
-        heads,
-        timings,
-    };
-    let json = serde_json::to_vec(&resp).map_err(ApiError::internal)?;
-    drop(resp);
+    let json = json_frame(&state, format, normals, &parts, heads, timings).await?;
     Ok((
         StatusCode::OK,
         [(header::CONTENT_TYPE, CONTENT_TYPE_JSON)],
-        chunked_body(vec![Bytes::from(json)], permit),
+        chunked_body(vec![json], permit),
     )
         .into_response())
 }

@@ -14,6 +14,7 @@
 //! | [`scheduler`] | the dynamic batcher with cross-request dedupe |
 //! | [`metrics`] | Prometheus text metrics |
 //! | `api` | the handlers |
+//! | `json` | JSON crowd frames written straight into reused buffers |
 //! | `render` | `POST /v1/crowd/render`: a picture of a crowd |
 //! | [`sessions`] | crowd sessions: a crowd on a fixed tick, streamed to many viewers over WebSockets |
 //! | [`bench`] | `crowdmorph bench http`: loopback load against in-process work |
@@ -25,6 +26,7 @@ pub mod bench_sessions;
 pub mod config;
 mod conn;
 pub mod error;
+mod json;
 mod lod;
 pub mod metrics;
 pub mod registry;
@@ -125,6 +127,8 @@ pub struct Inner {
     render: render::RenderState,
     /// Crowd sessions by id.
     pub sessions: sessions::Sessions,
+    /// Reused buffers of JSON crowd frames.
+    json_pool: Arc<json::JsonPool>,
 }
 
 impl Drop for Inner {
@@ -229,6 +233,7 @@ impl AppState {
             pixels: Arc::new(Semaphore::new(render_pixels)),
             render,
             sessions: sessions::Sessions::default(),
+            json_pool: Arc::default(),
         })))
     }
 
