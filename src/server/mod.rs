@@ -16,6 +16,7 @@
 //! | `api` | the handlers |
 //! | `render` | `POST /v1/crowd/render`: a picture of a crowd |
 //! | [`bench`] | `crowdmorph bench http`: loopback load against in-process work |
+//! | `viewer` | `GET /viewer`: the browser viewer's embedded files |
 
 mod api;
 pub mod bench;
@@ -27,6 +28,7 @@ pub mod metrics;
 pub mod registry;
 mod render;
 pub mod scheduler;
+mod viewer;
 
 use std::future::Future;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -684,6 +686,8 @@ pub fn app(state: AppState) -> Router {
         )
         .route("/v1/crowd/frame", post(api::crowd_frame))
         .route("/v1/crowd/render", post(render::crowd_render))
+        .route("/viewer", get(viewer::index))
+        .route("/viewer/{file}", get(viewer::file))
         .fallback(api::not_found)
         // Bodies are read with explicit per-route limits (see api::read_body).
         .layer(DefaultBodyLimit::disable())
