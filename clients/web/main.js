@@ -199,7 +199,7 @@ function frameCrowd(heads) {
   const center = [0, 1, 2].map((a) => (min[a] + max[a]) / 2);
   const radius = Math.hypot(max[0] - min[0], max[1] - min[1], max[2] - min[2]) / 2;
   camera.elevation = 20;
-  camera.frame(center, radius * 0.75);
+  camera.frame(center, radius * 0.65);
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -465,7 +465,12 @@ function frame() {
   if (renderer.resize()) state.dirty = true;
   if (state.dirty || camera.version !== state.drawnCamera) {
     const aspect = renderer.canvas.width / renderer.canvas.height;
-    const view = { viewProj: multiply(camera.projection(aspect), camera.view()), eye: camera.eye() };
+    const projection = camera.projection(aspect);
+    // On a wide window, the orbit centre sits in the middle of the space the panel leaves.
+    const panel = $('panel').getBoundingClientRect();
+    const width = renderer.canvas.clientWidth;
+    if (width > 2.5 * panel.right) projection[8] -= panel.right / width;
+    const view = { viewProj: multiply(projection, camera.view()), eye: camera.eye() };
     const drawn = renderer.draw(view, state.layout);
     // What was drawn, for tests and for anyone inspecting the page.
     const lods = new Set(state.layout.filter((h) => h.entry).map((h) => h.entry.lod));
@@ -561,5 +566,9 @@ async function start() {
   setInterval(sendCamera, CAMERA_UPDATE_MS);
   requestAnimationFrame(frame);
 }
+
+// Faults no handler caught are shown on the page as well as in the console.
+window.addEventListener('error', (e) => showError(`${e.message}`, { fault: false }));
+window.addEventListener('unhandledrejection', (e) => showError(`${e.reason}`, { fault: false }));
 
 start();
