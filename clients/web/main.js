@@ -559,7 +559,12 @@ async function start() {
     frameCrowd(heads);
     openStream();
   } catch (e) {
-    showError(`starting: ${describe(e)}`);
+    if (e instanceof ApiError && e.code === 'unknown_session') {
+      // Sessions end after their idle timeout: an old link is an outcome, not a fault.
+      showError(`${e.message}: it has ended. Open /viewer without ?session= to start a new one.`, { fault: false });
+    } else {
+      showError(`starting: ${describe(e)}`);
+    }
     return;
   }
   setInterval(updateCounters, 1000);
