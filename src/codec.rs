@@ -13,7 +13,8 @@
 //! zero padding that aligns it to [`BLOB_ALIGN`] bytes from the start of the body.
 
 use bytes::Bytes;
-use crowdmorph_proto::wire::{self, WireError, put_varint};
+pub use crowdmorph_proto::wire::put_varint;
+use crowdmorph_proto::wire::{self, WireError};
 use crowdmorph_proto::{BLOB_ALIGN, Format, FrameTimings, HeadBuffer, Quantization};
 use serde::Serialize;
 use serde::de::DeserializeOwned;
@@ -115,7 +116,34 @@ impl FrameResponseEncoder {
         heads: &[HeadBuffer],
         timings: &FrameTimings,
     ) -> Vec<Bytes> {
-        let mut e = FrameResponseEncoder::default();
+        FrameResponseEncoder::encode_within(
+            Vec::new(),
+            &[],
+            format,
+            normals,
+            buffers,
+            heads,
+            timings,
+        )
+    }
+
+    /// Encodes a message that holds a response's fields: `prefix` (already encoded fields
+    /// of the enclosing message, e.g. a session stream's variant and tick), the format and
+    /// normals, `middle` (more encoded fields, e.g. the stream's layout), then the rest of the
+    /// response. Payloads are aligned from the start of the prefix.
+    pub fn encode_within(
+        prefix: Vec<u8>,
+        middle: &[u8],
+        format: Format,
+        normals: bool,
+        buffers: &[FrameBufferParts<'_>],
+        heads: &[HeadBuffer],
+        timings: &FrameTimings,
+    ) -> Vec<Bytes> {
+        let mut e = FrameResponseEncoder {
+            head: prefix,
+            ..FrameResponseEncoder::default()
+        };
         // Unit enum variants are their index as a varint.
         e.varint(match format {
             Format::F32 => 0,
@@ -123,6 +151,7 @@ impl FrameResponseEncoder {
             Format::Q16 => 2,
         });
         e.head.push(u8::from(normals));
+        e.head.extend_from_slice(middle);
         e.varint(buffers.len() as u64);
         for b in buffers {
             e.string(b.rig);

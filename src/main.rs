@@ -414,6 +414,18 @@ struct ServeArgs {
     /// ones such as lavapipe included), gpu (hardware only) or off.
     #[arg(long, env = "CROWDMORPH_RENDER_BACKEND", default_value = "auto")]
     render_backend: crowdmorph::server::RenderBackend,
+    /// Crowd sessions that may exist at once (503 too_many_sessions past it).
+    #[arg(long, env = "CROWDMORPH_MAX_SESSIONS", default_value_t = 64, value_parser = clap::value_parser!(u64).range(1..))]
+    max_sessions: u64,
+    /// Heads one session may hold (413 too_many_heads past it).
+    #[arg(long, env = "CROWDMORPH_MAX_SESSION_HEADS", default_value_t = 10_000, value_parser = clap::value_parser!(u64).range(1..))]
+    max_session_heads: u64,
+    /// Viewers one session may have at once (more are closed with 1013).
+    #[arg(long, env = "CROWDMORPH_MAX_SESSION_VIEWERS", default_value_t = 32, value_parser = clap::value_parser!(u64).range(1..))]
+    max_session_viewers: u64,
+    /// Messages per second a session viewer may send (more close it with 1008).
+    #[arg(long, env = "CROWDMORPH_MAX_VIEWER_MESSAGES", default_value_t = 60, value_parser = clap::value_parser!(u32).range(1..))]
+    max_viewer_messages: u32,
 }
 
 /// Descriptors kept for everything but connections: stored rig files, the engine's device
@@ -515,6 +527,12 @@ fn run_serve(a: ServeArgs) -> Result<()> {
         auto_lod: !a.no_auto_lod,
         render_pixels: a.render_pixels,
         render_backend: a.render_backend,
+        sessions: server::sessions::SessionLimits {
+            max_sessions: usize::try_from(a.max_sessions).unwrap_or(usize::MAX),
+            max_heads: usize::try_from(a.max_session_heads).unwrap_or(usize::MAX),
+            max_viewers: usize::try_from(a.max_session_viewers).unwrap_or(usize::MAX),
+            max_viewer_messages: a.max_viewer_messages,
+        },
     };
     if let Some(d) = &config.data_dir {
         tracing::info!(data_dir = %d.display(), "data directory");

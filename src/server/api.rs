@@ -510,11 +510,9 @@ pub(super) async fn readyz(State(state): State<AppState>) -> Response {
 }
 
 pub(super) async fn metrics(State(state): State<AppState>) -> Response {
-    (
-        [(header::CONTENT_TYPE, "text/plain; version=0.0.4")],
-        state.metrics.render(state.gauges()),
-    )
-        .into_response()
+    let mut text = state.metrics.render(state.gauges());
+    state.sessions.write_metrics(&mut text);
+    ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], text).into_response()
 }
 
 pub(super) async fn not_found() -> ApiError {
@@ -1064,7 +1062,7 @@ impl AppState {
 }
 
 /// Largest coordinate (in absolute value) a rig's positions can reach, from its q16 box.
-fn head_reach(entry: &RigEntry) -> f64 {
+pub(super) fn head_reach(entry: &RigEntry) -> f64 {
     let q = &entry.qbox;
     (0..3)
         .map(|a| {
@@ -1270,6 +1268,26 @@ impl AppState {
     }
 }
 
+/// One unique job for the batcher, with its cost: vertices × (active shapes + 1) at the job's
+/// frame and level of detail.
+pub(super) fn job_request(entry: &Arc<RigEntry>, clip: u32, frame: u32, lod: u32) -> JobRequest {
+    let rig = entry.rig();
+    let shapes = rig.lod.shapes_at(lod).unwrap_or(0) as usize;
+    let table = &rig.clips[clip as usize];
+    let active = rig.lod.order[..shapes.min(rig.lod.order.len())]
+        .iter()
+        .filter(|&&t| table.weight(t as usize, frame).abs() > ACTIVE_WEIGHT_EPSILON)
+        .count() as u64;
+    let v = entry.prepared.at_level(lod).rig().vertex_count() as u64;
+    JobRequest {
+        entry: entry.clone(),
+        clip,
+        frame,
+        lod,
+        cost: v * (active + 1),
+    }
+}
+
 pub(super) async fn crowd_frame(
     State(state): State<AppState>,
     headers: HeaderMap,
@@ -1295,24 +1313,11 @@ pub(super) async fn crowd_frame(
     let mut out_bytes = 0u64;
     let mut jobs = Vec::with_capacity(plan.jobs.len());
     for k in &plan.jobs {
-        let entry = &rigs[k.rig as usize];
-        let rig = entry.rig();
-        let shapes = rig.lod.shapes_at(k.lod).unwrap_or(0) as usize;
-        let clip = &rig.clips[k.clip as usize];
-        let active = rig.lod.order[..shapes.min(rig.lod.order.len())]
-            .iter()
-            .filter(|&&t| clip.weight(t as usize, k.frame).abs() > ACTIVE_WEIGHT_EPSILON)
-            .count() as u64;
+        let job = job_request(&rigs[k.rig as usize], k.clip, k.frame, k.lod);
         // A LOD level on a simplified mesh has fewer vertices.
-        let v = entry.prepared.at_level(k.lod).rig().vertex_count() as u64;
+        let v = job.entry.prepared.at_level(k.lod).rig().vertex_count() as u64;
         out_bytes += v * 3 * per_component * json_factor;
-        jobs.push(JobRequest {
-            entry: entry.clone(),
-            clip: k.clip,
-            frame: k.frame,
-            lod: k.lod,
-            cost: v * (active + 1),
-        });
+        jobs.push(job);
     }
     let units = out_bytes.div_ceil(1024).max(1);
     if units > u64::from(state.memory_units) {

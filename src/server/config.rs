@@ -69,6 +69,8 @@ pub struct ServerConfig {
     pub render_pixels: u64,
     /// Which adapter draws rendered frames (`--render-backend`).
     pub render_backend: RenderBackend,
+    /// Limits of crowd sessions.
+    pub sessions: super::sessions::SessionLimits,
 }
 
 /// Default of [`ServerConfig::render_pixels`]: 64 Mpixels (64 × 2^20), four 4096 × 4096
@@ -102,6 +104,7 @@ impl Default for ServerConfig {
             auto_lod: true,
             render_pixels: DEFAULT_RENDER_PIXELS,
             render_backend: RenderBackend::Auto,
+            sessions: super::sessions::SessionLimits::default(),
         }
     }
 }

@@ -557,7 +557,10 @@ async fn serve_one(
     let conn = http1::Builder::new()
         // The timeouts are this module's (see the module doc), so hyper needs no timer.
         .header_read_timeout(None)
-        .serve_connection(io, service);
+        .serve_connection(io, service)
+        // Session streams upgrade to WebSockets; an upgraded connection leaves this loop (and
+        // the connection cap): sessions bound their viewers themselves.
+        .with_upgrades();
     let mut conn = pin!(conn);
     let mut evicted = pin!(slot.evict.notified());
     let mut stop = pin!(async move {

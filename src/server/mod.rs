@@ -15,6 +15,7 @@
 //! | [`metrics`] | Prometheus text metrics |
 //! | `api` | the handlers |
 //! | `render` | `POST /v1/crowd/render`: a picture of a crowd |
+//! | [`sessions`] | crowd sessions: a crowd on a fixed tick, streamed to many viewers over WebSockets |
 //! | [`bench`] | `crowdmorph bench http`: loopback load against in-process work |
 //! | `viewer` | `GET /viewer`: the browser viewer's embedded files |
 
@@ -28,6 +29,7 @@ pub mod metrics;
 pub mod registry;
 mod render;
 pub mod scheduler;
+pub mod sessions;
 mod viewer;
 
 use std::future::Future;
@@ -121,6 +123,8 @@ pub struct Inner {
     pixels: Arc<Semaphore>,
     /// The renderer (or why there is none) and its topologies.
     render: render::RenderState,
+    /// Crowd sessions by id.
+    pub sessions: sessions::Sessions,
 }
 
 impl Drop for Inner {
@@ -224,6 +228,7 @@ impl AppState {
             shed_log: ShedLog::default(),
             pixels: Arc::new(Semaphore::new(render_pixels)),
             render,
+            sessions: sessions::Sessions::default(),
         })))
     }
 
@@ -688,6 +693,17 @@ pub fn app(state: AppState) -> Router {
         .route("/v1/crowd/render", post(render::crowd_render))
         .route("/viewer", get(viewer::index))
         .route("/viewer/{file}", get(viewer::file))
+        .route(
+            "/v1/sessions",
+            post(sessions::create_session).get(sessions::list_sessions),
+        )
+        .route(
+            "/v1/sessions/{id}",
+            get(sessions::get_session)
+                .patch(sessions::patch_session)
+                .delete(sessions::delete_session),
+        )
+        .route("/v1/sessions/{id}/stream", get(sessions::stream))
         .fallback(api::not_found)
         // Bodies are read with explicit per-route limits (see api::read_body).
         .layer(DefaultBodyLimit::disable())
@@ -709,7 +725,13 @@ pub fn app(state: AppState) -> Router {
         };
         CorsLayer::new()
             .allow_origin(origins)
-            .allow_methods([Method::GET, Method::POST, Method::PUT, Method::DELETE])
+            .allow_methods([
+                Method::GET,
+                Method::POST,
+                Method::PUT,
+                Method::PATCH,
+                Method::DELETE,
+            ])
             .allow_headers([header::CONTENT_TYPE, header::ACCEPT, header::AUTHORIZATION])
             .expose_headers([
                 request_id.clone(),
@@ -837,6 +859,7 @@ pub async fn serve(
         () = serving => {}
         _ = summaries => {}
     }
+    state.sessions.close_all("the server is stopping");
     state.scheduler.shutdown().await;
     tracing::info!("stopped");
     Ok(())

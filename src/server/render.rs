@@ -427,6 +427,25 @@ impl AppState {
     }
 }
 
+impl AppState {
+    /// Draws one tick for a session viewer that wants images: the same checks, budgets and
+    /// drawing as `POST /v1/crowd/render`. Returns the encoded image, its size and encoding.
+    pub(super) async fn render_for_session(
+        &self,
+        req: RenderRequest,
+    ) -> Result<(Vec<u8>, u32, u32, ImageFormat), ApiError> {
+        let max_side = self
+            .render
+            .device
+            .as_ref()
+            .map_or(MAX_IMAGE_SIDE, |d| d.renderer.max_size());
+        let job = self.admit_render(req, max_side)?;
+        let s = self.clone();
+        let r = blocking(move || s.run_render(job)).await?;
+        Ok((r.bytes, r.width, r.height, r.format))
+    }
+}
+
 pub(super) async fn crowd_render(
     State(state): State<AppState>,
     headers: HeaderMap,

@@ -12,6 +12,7 @@ mod lod;
 mod overload;
 mod persistence;
 mod render;
+mod sessions;
 mod viewer;
 
 use std::net::SocketAddr;

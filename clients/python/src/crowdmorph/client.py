@@ -1,0 +1,781 @@
+"""The HTTP client: one kept-alive connection, bincode bodies, typed errors.
+
+:class:`Client` has one method per endpoint of ``proto/README.md``. Requests and responses are
+bincode (``application/x-bincode``), never JSON, except where the protocol only has JSON
+(``/healthz``, ``/readyz``) or the body is a file (rig and clip uploads) or an image (renders).
+Crowd frames and meshes come back with their payloads decoded into arrays
+(:mod:`crowdmorph.arrays`); the raw message stays reachable as ``.response``.
+
+Extending: every call goes through :meth:`Client.request`, which sends one request on the kept
+connection and turns error answers into :mod:`crowdmorph.errors` exceptions, and through
+:func:`crowdmorph.wire.encode` / :func:`crowdmorph.wire.decode` for bodies. Sessions
+(``/v1/sessions``, WebSocket) are not spoken yet; they fit as messages declared in
+:mod:`crowdmorph.messages` plus a socket of their own, beside this class.
+"""
+
+from __future__ import annotations
+
+import base64
+import http.client
+import json
+import os
+import threading
+import time
+import urllib.parse
+from typing import Any, Dict, Iterable, List, Mapping, Optional, Sequence, Tuple, Union
+
+from . import arrays as _arrays
+from .errors import NotFound, ProtocolError, error_from_response
+from .messages import (
+    CameraSpec,
+    ClipInfo,
+    ClipList,
+    ClipUpload,
+    CrowdFrameRequest,
+    CrowdFrameResponse,
+    FrameBuffer,
+    FrameTimings,
+    Head,
+    HeadBuffer,
+    ImageOptions,
+    LodInfo,
+    LodLevelRequest,
+    LodRequest,
+    MeshPrimitive,
+    MeshResponse,
+    OutputOptions,
+    Placement,
+    Quantization,
+    Readiness,
+    RenderRequest,
+    RigInfo,
+    RigList,
+    Aabb,
+)
+from .wire import DecodeError, decode, encode
+
+__all__ = [
+    "Client",
+    "CrowdFrame",
+    "Buffer",
+    "Mesh",
+    "Image",
+    "Response",
+    "self_contained_gltf",
+    "BINCODE",
+]
+
+#: Content type of bincode bodies.
+BINCODE = "application/x-bincode"
+
+_VERSION = "0.1.0"
+
+HeadLike = Union[Head, Mapping[str, Any], Sequence[Any]]
+DataLike = Union[bytes, bytearray, memoryview, str, "os.PathLike[str]", Any]
+
+
+class Response:
+    """One HTTP answer: ``status``, ``headers`` (case-insensitive) and the whole ``body``."""
+
+    __slots__ = ("status", "headers", "body")
+
+    def __init__(self, status: int, headers: http.client.HTTPMessage, body: bytes):
+        self.status = status
+        self.headers = headers
+        self.body = body
+
+    @property
+    def content_type(self) -> str:
+        return self.headers.get("content-type", "")
+
+    @property
+    def request_id(self) -> Optional[str]:
+        return self.headers.get("x-request-id")
+
+
+class Buffer:
+    """One unique blended buffer of a crowd frame, decoded.
+
+    ``positions`` and ``normals`` (``None`` unless asked for) are float32 arrays: numpy
+    ``(vertices, 3)`` arrays, or flat ``array('f')`` without numpy. ``quantization`` is the box
+    q16 positions were decoded with (``None`` for other formats). ``wire`` is the undecoded
+    :class:`~crowdmorph.messages.FrameBuffer` (its ``positions`` are the payload bytes).
+    """
+
+    __slots__ = (
+        "rig",
+        "clip",
+        "frame",
+        "lod",
+        "vertices",
+        "quantization",
+        "positions",
+        "normals",
+        "wire",
+    )
+
+    def __init__(self, fb: FrameBuffer, fmt: str, backend: str):
+        self.rig = fb.rig
+        self.clip = fb.clip
+        self.frame = fb.frame
+        self.lod = fb.lod
+        self.vertices = fb.vertices
+        self.quantization = fb.quantization
+        self.wire = fb
+        self.positions = _arrays.decode_positions(
+            fb.positions, fmt, fb.quantization, backend, fb.vertices
+        )
+        self.normals = (
+            None
+            if fb.normals is None
+            else _arrays.decode_normals(fb.normals, fmt, backend, fb.vertices)
+        )
+
+    def __repr__(self) -> str:
+        return (
+            f"Buffer(rig={self.rig!r}, clip={self.clip!r}, frame={self.frame}, lod={self.lod}, "
+            f"vertices={self.vertices})"
+        )
+
+
+class CrowdFrame:
+    """A decoded crowd frame: the unique ``buffers``, and per request head (in request order)
+    its :class:`~crowdmorph.messages.HeadBuffer` in ``heads`` (a
+    :class:`~crowdmorph.messages.HeadBuffers`; ``heads.buffer_indices`` is an array).
+    ``positions(i)`` is the positions of request head ``i``; clones share one array.
+    ``response`` is the raw message."""
+
+    __slots__ = ("format", "normals", "buffers", "heads", "timings", "response")
+
+    def __init__(self, response: CrowdFrameResponse, backend: str):
+        self.response = response
+        self.format: str = response.format
+        self.normals: bool = response.normals
+        self.timings: FrameTimings = response.timings
+        self.heads: Sequence[HeadBuffer] = response.heads
+        self.buffers: List[Buffer] = [Buffer(b, response.format, backend) for b in response.buffers]
+        indices = getattr(self.heads, "buffer_indices", None)
+        if indices is None:
+            indices = [h.buffer for h in self.heads]
+        if len(indices) and max(indices) >= len(self.buffers):
+            raise ValueError(f"a head names buffer {max(indices)} of {len(self.buffers)}")
+
+    def __len__(self) -> int:
+        return len(self.heads)
+
+    def buffer(self, i: int) -> Buffer:
+        """The buffer request head ``i`` uses."""
+        return self.buffers[self.heads[i].buffer]
+
+    def positions(self, i: int) -> Any:
+        """Positions of request head ``i``."""
+        return self.buffer(i).positions
+
+    def __repr__(self) -> str:
+        return (
+            f"CrowdFrame(format={self.format!r}, heads={len(self.heads)}, "
+            f"buffers={len(self.buffers)}, timings={self.timings})"
+        )
+
+
+class Mesh:
+    """A rig's topology and neutral pose at a LOD level (``GET /v1/rigs/{id}/mesh``).
+
+    ``indices`` (a triangle list over the concatenated vertex space), ``positions`` and
+    ``normals`` are arrays as in :class:`Buffer` (numpy ``(n, 3)`` or flat ``array``);
+    ``primitives`` give each primitive's vertex and index ranges; ``quantization`` is the box
+    of the rig's q16 buffers. ``response`` is the raw message.
+    """
+
+    __slots__ = (
+        "rig",
+        "lod",
+        "vertices",
+        "primitives",
+        "bbox",
+        "quantization",
+        "indices",
+        "positions",
+        "normals",
+        "response",
+    )
+
+    def __init__(self, response: MeshResponse, backend: str):
+        self.response = response
+        self.rig: str = response.rig
+        self.lod: int = response.lod
+        self.vertices: int = response.vertices
+        self.primitives: List[MeshPrimitive] = response.primitives
+        self.bbox: Aabb = response.bbox
+        self.quantization: Quantization = response.quantization
+        self.indices = _arrays.decode_u32(response.indices, backend)
+        self.positions = _arrays.decode_f32(response.positions, backend, response.vertices)
+        self.normals = _arrays.decode_f32(response.normals, backend, response.vertices)
+
+    @property
+    def triangles(self) -> int:
+        return len(self.response.indices) // 12
+
+    def __repr__(self) -> str:
+        return (
+            f"Mesh(rig={self.rig!r}, lod={self.lod}, vertices={self.vertices}, "
+            f"triangles={self.triangles})"
+        )
+
+
+class Image(bytes):
+    """A rendered image: the body's bytes (PNG, JPEG or raw RGBA8), with ``content_type``,
+    ``width``, ``height`` and ``server_timing`` (milliseconds by phase: ``compute``,
+    ``render``, ``readback``, ``encode``)."""
+
+    content_type: str
+    width: int
+    height: int
+    server_timing: Dict[str, float]
+
+
+def _server_timing(value: Optional[str]) -> Dict[str, float]:
+    out: Dict[str, float] = {}
+    for part in (value or "").split(","):
+        name, _, params = part.strip().partition(";")
+        for p in params.split(";"):
+            k, _, v = p.strip().partition("=")
+            if k == "dur":
+                try:
+                    out[name.strip()] = float(v)
+                except ValueError:
+                    pass
+    return out
+
+
+def self_contained_gltf(path: Union[str, "os.PathLike[str]"]) -> bytes:
+    """The bytes of a rig file as the server takes them: a GLB as it is, a ``.gltf`` with its
+    external buffers inlined as base64 data URIs (the server reads no other files)."""
+    with open(path, "rb") as f:
+        data = f.read()
+    if data[:4] == b"glTF":
+        return data
+    doc = json.loads(data)
+    base = os.path.dirname(os.fspath(path))
+    changed = False
+    for buf in doc.get("buffers", []):
+        uri = buf.get("uri")
+        if not isinstance(uri, str) or uri.startswith("data:"):
+            continue
+        # glTF URIs are percent-encoded relative references.
+        with open(os.path.join(base, urllib.parse.unquote(uri)), "rb") as f:
+            payload = f.read()
+        buf["uri"] = "data:application/octet-stream;base64," + base64.b64encode(payload).decode(
+            "ascii"
+        )
+        changed = True
+    return json.dumps(doc).encode("utf-8") if changed else data
+
+
+def _read_data(data: DataLike) -> Tuple[bytes, Optional[str]]:
+    """Body bytes and, for a path, its file name (for the content type)."""
+    if isinstance(data, (bytes, bytearray, memoryview)):
+        return bytes(data), None
+    if isinstance(data, (str, os.PathLike)):
+        path = os.fspath(data)
+        if path.lower().endswith(".gltf"):
+            return self_contained_gltf(path), path
+        with open(path, "rb") as f:
+            return f.read(), path
+    if hasattr(data, "read"):
+        body = data.read()
+        return (body.encode("utf-8") if isinstance(body, str) else bytes(body)), None
+    raise TypeError(f"expected bytes, a path or a file object, not {type(data).__name__}")
+
+
+def _is_gltf_json(body: bytes) -> bool:
+    try:
+        doc = json.loads(body)
+    except ValueError:
+        return False
+    return isinstance(doc, dict) and "asset" in doc
+
+
+def _rig_type(body: bytes) -> str:
+    if body[:4] == b"glTF":
+        return "model/gltf-binary"
+    if body.lstrip()[:1] == b"{":
+        return "model/gltf+json"
+    return "application/octet-stream"
+
+
+def _clip_type(body: bytes, path: Optional[str]) -> str:
+    if body[:4] == b"glTF":
+        return "model/gltf-binary"
+    if body.lstrip()[:1] == b"{":
+        return "model/gltf+json" if _is_gltf_json(body) else "application/json"
+    if path is not None and path.lower().endswith(".csv"):
+        return "text/csv"
+    # The server sniffs octet-stream bodies: glTF magic, '{', else CSV.
+    return "application/octet-stream"
+
+
+def _of(cls: type, value: Any) -> Any:
+    """``value`` as ``cls``: itself, or built from a dict."""
+    if value is None or isinstance(value, cls):
+        return value
+    if isinstance(value, Mapping):
+        return cls(**value)
+    raise TypeError(f"expected {cls.__name__} or a dict, not {type(value).__name__}")
+
+
+def _seg(s: str) -> str:
+    """One path segment, percent-encoded (clip names may be any UTF-8)."""
+    return urllib.parse.quote(s, safe="")
+
+
+class Client:
+    """A client of one crowdmorph server.
+
+    ``Client("http://127.0.0.1:8080", token=None, timeout=300.0, arrays="auto")``. ``token`` is
+    the admin token (sent as ``Authorization: Bearer``) that uploads, deletes and LOD changes
+    need when the server has one. ``arrays``: ``"auto"`` (numpy when installed), ``"numpy"``
+    or ``"python"`` (``array.array``). The client keeps one HTTP/1.1 connection alive across
+    calls and reconnects when the server has closed it; calls from several threads take turns
+    on it (use one client per thread for parallel requests). Use it as a context manager, or
+    call :meth:`close`. ``timeout`` is the socket timeout in seconds (per send or receive);
+    its default matches the server's deadline for uploads and LOD builds (``serve
+    --admin-timeout-s``), which can take minutes for large rigs.
+
+    Error answers raise :class:`~crowdmorph.errors.CrowdmorphError` subclasses; a server that
+    cannot be reached raises the :class:`OSError` of the socket.
+    """
+
+    def __init__(
+        self,
+        url: str = "http://127.0.0.1:8080",
+        token: Optional[str] = None,
+        timeout: Optional[float] = 300.0,
+        arrays: str = "auto",
+    ):
+        parts = urllib.parse.urlsplit(url if "://" in url else "http://" + url)
+        if parts.scheme not in ("http", "https"):
+            raise ValueError(f"unsupported URL scheme {parts.scheme!r} in {url!r} (http or https)")
+        if not parts.hostname:
+            raise ValueError(f"no host in {url!r}")
+        self.url = url
+        self.token = token
+        self.timeout = timeout
+        self.arrays = _arrays.resolve_backend(arrays)
+        self._scheme = parts.scheme
+        self._host = parts.hostname
+        self._port = parts.port
+        self._prefix = parts.path.rstrip("/")
+        self._conn: Optional[http.client.HTTPConnection] = None
+        self._used = False
+        self._lock = threading.Lock()
+        #: ``x-request-id`` of the last answer (the server logs it).
+        self.last_request_id: Optional[str] = None
+
+    # -- connection ---------------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Closes the kept connection (a later call opens a new one)."""
+        with self._lock:
+            if self._conn is not None:
+                self._conn.close()
+                self._conn = None
+
+    def __enter__(self) -> "Client":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def _connection(self) -> http.client.HTTPConnection:
+        if self._conn is None:
+            cls = (
+                http.client.HTTPSConnection
+                if self._scheme == "https"
+                else http.client.HTTPConnection
+            )
+            self._conn = cls(self._host, self._port, timeout=self.timeout)
+            self._used = False
+        return self._conn
+
+    def request(
+        self,
+        method: str,
+        path: str,
+        body: Optional[bytes] = None,
+        content_type: Optional[str] = None,
+        accept: str = BINCODE,
+        query: Optional[Mapping[str, Any]] = None,
+        ok: Iterable[int] = (200,),
+    ) -> Response:
+        """Sends one request and returns the answer, raising for a status not in ``ok``.
+
+        ``path`` starts with ``/`` and is appended to the URL's path; ``query`` values that are
+        ``None`` are left out and booleans are sent as ``true``/``false``.
+        """
+        target = self._prefix + path
+        if query:
+            q = {
+                k: ("true" if v is True else "false" if v is False else v)
+                for k, v in query.items()
+                if v is not None
+            }
+            if q:
+                target += "?" + urllib.parse.urlencode(q)
+        headers = {"Accept": accept, "User-Agent": f"crowdmorph-python/{_VERSION}"}
+        if content_type is not None:
+            headers["Content-Type"] = content_type
+        if self.token is not None:
+            headers["Authorization"] = f"Bearer {self.token}"
+        if body is None and method in ("POST", "PUT"):
+            body = b""
+        with self._lock:
+            resp = self._send(method, target, body, headers)
+        self.last_request_id = resp.request_id
+        if resp.status not in ok:
+            raise error_from_response(
+                resp.status, resp.body, resp.headers.get("retry-after"), resp.request_id
+            )
+        return resp
+
+    def _send(
+        self, method: str, target: str, body: Optional[bytes], headers: Dict[str, str]
+    ) -> Response:
+        for attempt in (0, 1):
+            conn = self._connection()
+            reused = self._used
+            try:
+                try:
+                    conn.request(method, target, body=body, headers=headers)
+                except (ConnectionResetError, BrokenPipeError):
+                    # A server that refuses a body early (413 body_too_large on a large
+                    # upload) answers and closes before it has read everything: its answer
+                    # is still there to read. Without one, the error below stands.
+                    pass
+                r = conn.getresponse()
+                data = r.read()
+            except (http.client.RemoteDisconnected, ConnectionResetError, BrokenPipeError):
+                # A kept-alive connection the server closed while it was idle (its
+                # --idle-timeout-s) fails on first use; a fresh one is tried once.
+                conn.close()
+                self._conn = None
+                if attempt == 0 and reused:
+                    continue
+                raise
+            except BaseException:
+                conn.close()
+                self._conn = None
+                raise
+            self._used = True
+            if r.will_close:
+                conn.close()
+                self._conn = None
+            return Response(r.status, r.headers, data)
+        raise AssertionError("unreachable")
+
+    def _decode(self, cls: type, resp: Response) -> Any:
+        if BINCODE not in resp.content_type:
+            raise ProtocolError(
+                resp.status,
+                "bad_response",
+                f"expected {BINCODE}, got {resp.content_type or 'no Content-Type'}",
+                request_id=resp.request_id,
+            )
+        try:
+            return decode(cls, resp.body)
+        except DecodeError as e:
+            raise ProtocolError(
+                resp.status, "bad_response", f"{cls.__name__}: {e}", request_id=resp.request_id
+            ) from e
+
+    # -- health -------------------------------------------------------------------------------
+
+    def healthz(self) -> Dict[str, Any]:
+        """``GET /healthz``: ``{"status": "ok"}`` while the process serves."""
+        return json.loads(self.request("GET", "/healthz", accept="application/json").body)
+
+    def readyz(self) -> Readiness:
+        """``GET /readyz``: engine, renderer and whether stored rigs are loaded (``status`` is
+        ``loading`` until they are; that 503 is returned, not raised)."""
+        resp = self.request("GET", "/readyz", accept="application/json", ok=(200, 503))
+        try:
+            obj = json.loads(resp.body)
+            if resp.status == 503 and "error" in obj:
+                raise error_from_response(
+                    503, resp.body, resp.headers.get("retry-after"), resp.request_id
+                )
+            return Readiness.from_json(obj)
+        except (ValueError, KeyError, TypeError) as e:
+            raise ProtocolError(resp.status, "bad_response", f"readiness: {e}") from e
+
+    def wait_ready(self, timeout: float = 30.0, interval: float = 0.05) -> Readiness:
+        """Polls ``/readyz`` until the server has loaded its stored rigs (or ``timeout``)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                r = self.readyz()
+                if r.status != "loading":
+                    return r
+            except (ConnectionError, http.client.HTTPException):
+                if time.monotonic() >= deadline:
+                    raise
+            if time.monotonic() >= deadline:
+                raise TimeoutError(f"server at {self.url} still loading after {timeout} s")
+            time.sleep(interval)
+
+    def metrics(self) -> str:
+        """``GET /metrics``: Prometheus text."""
+        return self.request("GET", "/metrics", accept="text/plain").body.decode("utf-8")
+
+    # -- rigs ---------------------------------------------------------------------------------
+
+    def rigs(self) -> List[RigInfo]:
+        """``GET /v1/rigs``: every rig, ordered by id."""
+        return self._decode(RigList, self.request("GET", "/v1/rigs")).rigs
+
+    def rig(self, rig: str) -> RigInfo:
+        """``GET /v1/rigs/{id}``."""
+        return self._decode(RigInfo, self.request("GET", f"/v1/rigs/{_seg(rig)}"))
+
+    def upload_rig(
+        self,
+        data: DataLike,
+        name: Optional[str] = None,
+        *,
+        content_type: Optional[str] = None,
+        replace: bool = False,
+    ) -> RigInfo:
+        """``POST /v1/rigs?name=ID``: uploads a GLB or glTF rig and returns its description.
+
+        ``data`` is the file's bytes, a path (a ``.gltf``'s external buffers are inlined) or a
+        binary file object. Name it: without ``name`` its id is ``rig``. ``replace=True``
+        deletes an existing rig of that id first (not atomic: between the two a request for
+        it gets 404).
+        """
+        body, _ = _read_data(data)
+        if replace:
+            if name is None:
+                raise ValueError("replace=True needs the rig's name")
+            try:
+                self.delete_rig(name)
+            except NotFound:
+                pass
+        resp = self.request(
+            "POST",
+            "/v1/rigs",
+            body,
+            content_type or _rig_type(body),
+            query={"name": name},
+            ok=(201,),
+        )
+        return self._decode(RigInfo, resp)
+
+    def delete_rig(self, rig: str) -> None:
+        """``DELETE /v1/rigs/{id}`` (the embedded rig cannot be deleted: 403)."""
+        self.request("DELETE", f"/v1/rigs/{_seg(rig)}", ok=(204,))
+
+    def mesh(self, rig: str, lod: int = 0) -> Mesh:
+        """``GET /v1/rigs/{id}/mesh?lod=L``: topology and neutral pose of level ``lod``'s mesh
+        (the vertex order of that level's crowd-frame buffers)."""
+        resp = self.request("GET", f"/v1/rigs/{_seg(rig)}/mesh", query={"lod": lod})
+        return Mesh(self._decode(MeshResponse, resp), self.arrays)
+
+    def lod(self, rig: str) -> LodInfo:
+        """``GET /v1/rigs/{id}/lod``."""
+        return self._decode(LodInfo, self.request("GET", f"/v1/rigs/{_seg(rig)}/lod"))
+
+    def set_lod(
+        self,
+        rig: str,
+        request: Optional[LodRequest] = None,
+        *,
+        method: Optional[str] = None,
+        order: Optional[Sequence[str]] = None,
+        pinned: Sequence[str] = (),
+        levels: Optional[Sequence[Any]] = None,
+        mesh_fractions: Sequence[float] = (),
+    ) -> RigInfo:
+        """``PUT /v1/rigs/{id}/lod``: rebuilds the rig's level of detail.
+
+        Pass a :class:`~crowdmorph.messages.LodRequest`, or its fields: ``levels`` items are
+        :class:`~crowdmorph.messages.LodLevelRequest`, ``(shapes, mesh)`` pairs or shape
+        counts. Returns the rig with its new LOD (``lod.status`` may be ``computing``:
+        :meth:`wait_lod` waits for it).
+        """
+        if request is None:
+            lv = None
+            if levels is not None:
+                lv = []
+                for level in levels:
+                    if isinstance(level, LodLevelRequest):
+                        lv.append(level)
+                    elif isinstance(level, int):
+                        lv.append(LodLevelRequest(level))
+                    else:
+                        lv.append(LodLevelRequest(*level))
+            request = LodRequest(
+                method=method,
+                order=None if order is None else list(order),
+                pinned=list(pinned),
+                levels=lv,
+                mesh_fractions=list(mesh_fractions),
+            )
+        resp = self.request("PUT", f"/v1/rigs/{_seg(rig)}/lod", encode(request), BINCODE)
+        return self._decode(RigInfo, resp)
+
+    def wait_lod(self, rig: str, timeout: float = 60.0, interval: float = 0.1) -> LodInfo:
+        """Polls the rig's LOD until it is no longer ``computing`` (or ``timeout``)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            info = self.lod(rig)
+            if info.status != "computing":
+                return info
+            if time.monotonic() >= deadline:
+                raise TimeoutError(
+                    f"LOD of {rig!r} still computing after {timeout} s ({info.progress:.0%})"
+                )
+            time.sleep(interval)
+
+    # -- clips --------------------------------------------------------------------------------
+
+    def upload_clip(
+        self,
+        rig: str,
+        data: Union[DataLike, Mapping[str, Any]],
+        name: Optional[str] = None,
+        *,
+        content_type: Optional[str] = None,
+        fps: Optional[float] = None,
+        ignore_unknown: bool = False,
+    ) -> ClipUpload:
+        """``POST /v1/rigs/{id}/clips?name=NAME``: adds clips from CSV, a JSON clip or glTF.
+
+        ``data`` is bytes, a path, a binary file object, or a dict (a JSON clip:
+        ``{"fps": 30, "targets": [...], "frames": [[...], ...]}``). The content type is
+        inferred (glTF magic, JSON, ``.csv``) unless given. With ``ignore_unknown`` target
+        names the rig lacks are reported in ``ignored`` instead of refused.
+        """
+        if isinstance(data, Mapping):
+            body, path = json.dumps(data).encode("utf-8"), None
+            content_type = content_type or "application/json"
+        else:
+            body, path = _read_data(data)
+        resp = self.request(
+            "POST",
+            f"/v1/rigs/{_seg(rig)}/clips",
+            body,
+            content_type or _clip_type(body, path),
+            query={
+                "name": name,
+                "fps": fps,
+                "ignore_unknown": True if ignore_unknown else None,
+            },
+            ok=(201,),
+        )
+        return self._decode(ClipUpload, resp)
+
+    def clips(self, rig: str) -> List[ClipInfo]:
+        """``GET /v1/rigs/{id}/clips``."""
+        return self._decode(ClipList, self.request("GET", f"/v1/rigs/{_seg(rig)}/clips")).clips
+
+    def clip(self, rig: str, name: str) -> ClipInfo:
+        """``GET /v1/rigs/{id}/clips/{name}``."""
+        return self._decode(
+            ClipInfo, self.request("GET", f"/v1/rigs/{_seg(rig)}/clips/{_seg(name)}")
+        )
+
+    def delete_clip(self, rig: str, name: str) -> None:
+        """``DELETE /v1/rigs/{id}/clips/{name}`` (the embedded rig's own clips: 403)."""
+        self.request("DELETE", f"/v1/rigs/{_seg(rig)}/clips/{_seg(name)}", ok=(204,))
+
+    # -- crowds -------------------------------------------------------------------------------
+
+    def crowd_frame(
+        self,
+        heads: Iterable[HeadLike],
+        format: str = "f32",
+        normals: bool = False,
+        wrap: bool = True,
+        *,
+        decode: bool = True,
+    ) -> Any:
+        """``POST /v1/crowd/frame``: blends a crowd.
+
+        ``heads`` are :class:`~crowdmorph.messages.Head` objects, dicts with the same keys, or
+        ``(head, rig, clip, frame[, lod])`` tuples. ``format`` is ``"f32"`` (exact),
+        ``"f16"`` or ``"q16"`` (half the bytes; q16 is dequantized with the box each buffer
+        carries). Returns a :class:`CrowdFrame` with arrays, or with ``decode=False`` the raw
+        :class:`~crowdmorph.messages.CrowdFrameResponse` (payloads as bytes).
+        """
+        if format not in ("f32", "f16", "q16"):
+            raise ValueError(f"format must be 'f32', 'f16' or 'q16', not {format!r}")
+        req = CrowdFrameRequest(
+            heads=heads if isinstance(heads, (list, tuple)) else list(heads),
+            output=OutputOptions(normals=bool(normals), format=format),
+            wrap=bool(wrap),
+        )
+        resp = self.request("POST", "/v1/crowd/frame", encode(req), BINCODE)
+        frame = self._decode(CrowdFrameResponse, resp)
+        if not decode:
+            return frame
+        try:
+            return CrowdFrame(frame, self.arrays)
+        except ValueError as e:
+            raise ProtocolError(
+                resp.status, "bad_response", str(e), request_id=resp.request_id
+            ) from e
+
+    def render(
+        self,
+        heads: Iterable[HeadLike],
+        *,
+        wrap: bool = True,
+        placements: Optional[Sequence[Union[Placement, Mapping[str, Any]]]] = None,
+        camera: Optional[Union[CameraSpec, Mapping[str, Any]]] = None,
+        image: Optional[Union[ImageOptions, Mapping[str, Any]]] = None,
+        width: Optional[int] = None,
+        height: Optional[int] = None,
+        format: Optional[str] = None,
+        quality: Optional[int] = None,
+        background: Optional[Sequence[int]] = None,
+    ) -> Image:
+        """``POST /v1/crowd/render``: a picture of the crowd, as :class:`Image` bytes.
+
+        ``placements`` and ``camera`` as in ``proto/README.md`` (objects or dicts); the image
+        options either as ``image=`` or as the keywords ``width``, ``height``, ``format``
+        (``png``, ``jpeg``, ``rgba``), ``quality`` and ``background``. Defaults: heads on a
+        grid, a front camera, 640 × 480 PNG.
+        """
+        opts = _of(ImageOptions, image)
+        extra = {
+            k: v
+            for k, v in (
+                ("width", width),
+                ("height", height),
+                ("format", format),
+                ("quality", quality),
+                ("background", None if background is None else list(background)),
+            )
+            if v is not None
+        }
+        if extra:
+            if opts is not None:
+                raise ValueError("give the image options either as image= or as keywords")
+            opts = ImageOptions(**extra)
+        req = RenderRequest(
+            heads=heads if isinstance(heads, (list, tuple)) else list(heads),
+            wrap=bool(wrap),
+            placements=None if placements is None else [_of(Placement, p) for p in placements],
+            camera=_of(CameraSpec, camera),
+            image=opts,
+        )
+        resp = self.request("POST", "/v1/crowd/render", encode(req), BINCODE, accept="image/*, */*")
+        img = Image(resp.body)
+        img.content_type = resp.content_type
+        try:
+            img.width = int(resp.headers.get("x-image-width", "0"))
+            img.height = int(resp.headers.get("x-image-height", "0"))
+        except ValueError as e:
+            raise ProtocolError(resp.status, "bad_response", f"image size header: {e}") from e
+        img.server_timing = _server_timing(resp.headers.get("server-timing"))
+        return img

@@ -1,0 +1,675 @@
+"""The v1 messages, field for field as ``proto/README.md`` lists them.
+
+Each class is a dataclass whose ``@wire(...)`` declaration gives its bincode layout: the fields
+in wire order with their types. Field names are the protocol's (and its JSON's). Enums are the
+lowercase variant names as strings (``"f32"``, ``"q16"``, ``"png"``...). ``Blob`` payloads are
+``memoryview`` slices of the response body in decoded messages; any bytes-like object is
+accepted when encoding.
+
+These are the raw wire messages; :mod:`crowdmorph.client` turns payloads into arrays.
+"""
+
+from __future__ import annotations
+
+import base64
+import dataclasses
+import operator
+from array import array
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, Iterable, Iterator, List, Optional, Sequence, Union, overload
+
+from .wire import (
+    BLOB,
+    BOOL,
+    F32,
+    F32X3,
+    I64,
+    STR,
+    U8,
+    U8X3,
+    U32,
+    U64,
+    VAR16,
+    VAR32,
+    DecodeError,
+    Enum,
+    Msg,
+    Opt,
+    Reader,
+    Vec,
+    Writer,
+    wire,
+)
+
+__all__ = [
+    "FORMATS",
+    "IMAGE_FORMATS",
+    "Head",
+    "OutputOptions",
+    "CrowdFrameRequest",
+    "Quantization",
+    "FrameBuffer",
+    "HeadBuffer",
+    "HeadBuffers",
+    "FrameTimings",
+    "CrowdFrameResponse",
+    "Memory",
+    "Aabb",
+    "ClipInfo",
+    "PrimitiveInfo",
+    "LodLevelInfo",
+    "LodInfo",
+    "RigInfo",
+    "RigList",
+    "LodLevelRequest",
+    "LodRequest",
+    "MeshPrimitive",
+    "MeshResponse",
+    "ClipUpload",
+    "ClipList",
+    "Readiness",
+    "Placement",
+    "CameraSpec",
+    "ImageOptions",
+    "RenderRequest",
+    "as_dict",
+]
+
+#: Vertex formats by bincode variant index.
+FORMATS = ("f32", "f16", "q16")
+#: Image formats of rendered frames by bincode variant index.
+IMAGE_FORMATS = ("png", "jpeg", "rgba")
+
+FORMAT = Enum(*FORMATS)
+IMAGE_FORMAT = Enum(*IMAGE_FORMATS)
+
+
+# ---------------------------------------------------------------------------------------------
+# Crowd frames.
+
+
+@wire(("head", U64), ("rig", STR), ("clip", STR), ("frame", I64), ("lod", U32))
+@dataclass
+class Head:
+    """One head of a crowd: the client's id (echoed), which rig plays which clip at which frame
+    (wrapping past the end when the request's ``wrap`` is true) and level of detail."""
+
+    head: int
+    rig: str
+    clip: str
+    frame: int
+    lod: int = 0
+
+
+@wire(("normals", BOOL), ("format", FORMAT))
+@dataclass
+class OutputOptions:
+    """What the buffers of a crowd frame contain."""
+
+    normals: bool = False
+    format: str = "f32"
+
+
+class _HeadVec:
+    """``Vec<Head>`` with a fast writer: a crowd request can carry 100,000 heads, and the
+    generic per-field path spends microseconds on each. Items may be :class:`Head` objects,
+    ``(head, rig, clip, frame[, lod])`` tuples or dicts with those keys."""
+
+    def read(self, r: Reader) -> List[Head]:
+        return Vec(Msg(Head)).read(r)
+
+    def write(self, w: Writer, heads: Iterable[Any]) -> None:
+        items = heads if isinstance(heads, (list, tuple)) else list(heads)
+        out = w.out
+        varint = w.varint
+        var16 = VAR16.pack
+        var32 = VAR32.pack
+        w.varint(len(items))
+        # Rig and clip names repeat across a crowd: encode each once.
+        names: dict = {}
+        for h in items:
+            if type(h) is Head:
+                hid, rig, clip, frame, lod = h.head, h.rig, h.clip, h.frame, h.lod
+            elif isinstance(h, (tuple, list)):
+                if len(h) == 4:
+                    hid, rig, clip, frame = h
+                    lod = 0
+                else:
+                    hid, rig, clip, frame, lod = h
+            elif isinstance(h, Mapping):
+                hid, rig, clip, frame = h["head"], h["rig"], h["clip"], h["frame"]
+                lod = h.get("lod", 0)
+            elif isinstance(h, Head):
+                hid, rig, clip, frame, lod = h.head, h.rig, h.clip, h.frame, h.lod
+            else:
+                raise TypeError(
+                    "a head is a Head, a dict or a (head, rig, clip, frame[, lod]) tuple, "
+                    f"not {type(h).__name__}"
+                )
+            if type(hid) is int and 0 <= hid < 251:
+                out.append(hid)
+            elif type(hid) is int and 0 <= hid <= 0xFFFF:
+                out += var16(251, hid)
+            elif type(hid) is int and 0 <= hid <= 0xFFFF_FFFF:
+                out += var32(252, hid)
+            else:
+                varint(operator.index(hid))
+            for name in (rig, clip):
+                enc = names.get(name)
+                if enc is None:
+                    if not isinstance(name, str):
+                        raise TypeError(f"rig and clip are strings, not {type(name).__name__}")
+                    sub = Writer()
+                    sub.string(name)
+                    enc = names[name] = bytes(sub.out)
+                out += enc
+            frame = operator.index(frame)
+            if not -(1 << 63) <= frame < (1 << 63):
+                raise ValueError(f"frame {frame} does not fit an i64")
+            z = (frame << 1) ^ (frame >> 63)
+            if z < 251:
+                out.append(z)
+            elif z <= 0xFFFF:
+                out += var16(251, z)
+            else:
+                varint(z)
+            if type(lod) is int and 0 <= lod < 251:
+                out.append(lod)
+            else:
+                w.u32(operator.index(lod))
+
+
+HEADS = _HeadVec()
+
+
+@wire(("heads", HEADS), ("output", Msg(OutputOptions)), ("wrap", BOOL))
+@dataclass
+class CrowdFrameRequest:
+    """``POST /v1/crowd/frame`` request."""
+
+    heads: List[Head]
+    output: OutputOptions = field(default_factory=OutputOptions)
+    wrap: bool = True
+
+
+@wire(("min", F32X3), ("step", F32X3), ("max_error", F32X3))
+@dataclass
+class Quantization:
+    """How q16 positions map back to rig space: ``x = min[a] + (q + 32768) * step[a]``."""
+
+    min: List[float]
+    step: List[float]
+    max_error: List[float]
+
+
+@wire(
+    ("rig", STR),
+    ("clip", STR),
+    ("frame", U32),
+    ("lod", U32),
+    ("vertices", U32),
+    ("quantization", Opt(Msg(Quantization))),
+    ("positions", BLOB),
+    ("normals", Opt(BLOB)),
+)
+@dataclass
+class FrameBuffer:
+    """One unique blended buffer of a crowd frame (payloads still encoded)."""
+
+    rig: str
+    clip: str
+    frame: int
+    lod: int
+    vertices: int
+    quantization: Optional[Quantization]
+    positions: Any
+    normals: Optional[Any]
+
+
+@wire(("head", U64), ("buffer", U32))
+@dataclass
+class HeadBuffer:
+    """Which buffer (index into ``buffers``) a request head uses."""
+
+    head: int
+    buffer: int
+
+
+_U32_CODE = "I" if array("I").itemsize == 4 else "L"
+
+
+class HeadBuffers(Sequence):
+    """The ``heads`` of a crowd frame: a read-only list of :class:`HeadBuffer`, stored as two
+    arrays, ``head_ids`` (``array('Q')``) and ``buffer_indices`` (4-byte unsigned), because a
+    frame can have 100,000 heads and objects for each would cost more than the decoding."""
+
+    __slots__ = ("head_ids", "buffer_indices")
+
+    def __init__(self, head_ids: Iterable[int] = (), buffer_indices: Iterable[int] = ()):
+        self.head_ids = array("Q", head_ids)
+        self.buffer_indices = array(_U32_CODE, buffer_indices)
+        if len(self.head_ids) != len(self.buffer_indices):
+            raise ValueError("head_ids and buffer_indices differ in length")
+
+    def __len__(self) -> int:
+        return len(self.head_ids)
+
+    @overload
+    def __getitem__(self, i: int) -> HeadBuffer: ...
+
+    @overload
+    def __getitem__(self, i: slice) -> List[HeadBuffer]: ...
+
+    def __getitem__(self, i: Union[int, slice]) -> Any:
+        if isinstance(i, slice):
+            return [HeadBuffer(h, b) for h, b in zip(self.head_ids[i], self.buffer_indices[i])]
+        return HeadBuffer(self.head_ids[i], self.buffer_indices[i])
+
+    def __iter__(self) -> Iterator[HeadBuffer]:
+        for h, b in zip(self.head_ids, self.buffer_indices):
+            yield HeadBuffer(h, b)
+
+    def __eq__(self, other: object) -> bool:
+        if isinstance(other, HeadBuffers):
+            return self.head_ids == other.head_ids and self.buffer_indices == other.buffer_indices
+        if isinstance(other, (list, tuple)):
+            return list(self) == list(other)
+        return NotImplemented
+
+    def __repr__(self) -> str:
+        return f"HeadBuffers({len(self)} heads)"
+
+
+class _HeadBufferVec:
+    """``Vec<HeadBuffer>`` read in one tight loop into :class:`HeadBuffers`."""
+
+    def read(self, r: Reader) -> HeadBuffers:
+        n = r.length()
+        buf = r.buf
+        pos = r.pos
+        ids = array("Q", bytes(8 * n))
+        idx = array(_U32_CODE, bytes(4 * n))
+        start = pos
+        try:
+            for i in range(n):
+                for k in (0, 1):
+                    b = buf[pos]
+                    if b < 251:
+                        v = b
+                        pos += 1
+                    elif b == 251:
+                        v = buf[pos + 1] | (buf[pos + 2] << 8)
+                        pos += 3
+                    elif b == 252:
+                        v = int.from_bytes(buf[pos + 1 : pos + 5], "little")
+                        pos += 5
+                    elif b == 253:
+                        v = int.from_bytes(buf[pos + 1 : pos + 9], "little")
+                        pos += 9
+                    else:
+                        raise DecodeError(f"varint marker 0x{b:02x} in heads", pos)
+                    if k == 0:
+                        ids[i] = v
+                    else:
+                        idx[i] = v  # OverflowError past u32
+        except IndexError:
+            raise DecodeError(f"heads end early (after {pos - start} bytes)", pos) from None
+        except OverflowError:
+            raise DecodeError("a head's buffer index does not fit a u32", pos) from None
+        if pos > len(buf):
+            raise DecodeError(f"heads end early (after {len(buf) - start} bytes)", len(buf))
+        r.pos = pos
+        hb = HeadBuffers.__new__(HeadBuffers)
+        hb.head_ids = ids
+        hb.buffer_indices = idx
+        return hb
+
+    def write(self, w: Writer, heads: Sequence[HeadBuffer]) -> None:
+        if isinstance(heads, HeadBuffers):
+            w.varint(len(heads))
+            for h, b in zip(heads.head_ids, heads.buffer_indices):
+                w.varint(h)
+                w.u32(b)
+        else:
+            Vec(Msg(HeadBuffer)).write(w, heads)
+
+
+@wire(("queue_us", U64), ("compute_us", U64), ("total_us", U64), ("gpu_us", Opt(U64)))
+@dataclass
+class FrameTimings:
+    """Where the time of a crowd frame went, in microseconds."""
+
+    queue_us: int
+    compute_us: int
+    total_us: int
+    gpu_us: Optional[int]
+
+
+@wire(
+    ("format", FORMAT),
+    ("normals", BOOL),
+    ("buffers", Vec(Msg(FrameBuffer))),
+    ("heads", _HeadBufferVec()),
+    ("timings", Msg(FrameTimings)),
+)
+@dataclass
+class CrowdFrameResponse:
+    """``POST /v1/crowd/frame`` response: unique buffers, and per head which one it uses."""
+
+    format: str
+    normals: bool
+    buffers: List[FrameBuffer]
+    heads: HeadBuffers
+    timings: FrameTimings
+
+
+# ---------------------------------------------------------------------------------------------
+# Rigs, clips, level of detail.
+
+
+@wire(("host_bytes", U64), ("device_bytes", U64))
+@dataclass
+class Memory:
+    """Memory a rig holds on the server."""
+
+    host_bytes: int
+    device_bytes: int
+
+
+@wire(("min", F32X3), ("max", F32X3))
+@dataclass
+class Aabb:
+    """Axis-aligned box."""
+
+    min: List[float]
+    max: List[float]
+
+
+@wire(("name", STR), ("frames", U32), ("fps", F32))
+@dataclass
+class ClipInfo:
+    """A clip of a rig."""
+
+    name: str
+    frames: int
+    fps: float
+
+
+@wire(("name", STR), ("vertices", U32), ("triangles", U32))
+@dataclass
+class PrimitiveInfo:
+    """A primitive of a rig (``mesh/index`` as found in the file)."""
+
+    name: str
+    vertices: int
+    triangles: int
+
+
+@wire(("shapes", U32), ("mesh", Opt(U32)), ("vertices", U32), ("triangles", U32))
+@dataclass
+class LodLevelInfo:
+    """One LOD level: shapes evaluated, simplified mesh (``None`` = full) and its size."""
+
+    shapes: int
+    mesh: Optional[int]
+    vertices: int
+    triangles: int
+
+
+@wire(
+    ("method", STR),
+    ("status", STR),
+    ("progress", F32),
+    ("error", Opt(STR)),
+    ("order", Vec(STR)),
+    ("pinned", Vec(STR)),
+    ("levels", Vec(Msg(LodLevelInfo))),
+)
+@dataclass
+class LodInfo:
+    """A rig's level of detail (``GET /v1/rigs/{id}/lod``)."""
+
+    method: str
+    status: str
+    progress: float
+    error: Optional[str]
+    order: List[str]
+    pinned: List[str]
+    levels: List[LodLevelInfo]
+
+
+@wire(
+    ("id", STR),
+    ("name", STR),
+    ("builtin", BOOL),
+    ("vertices", U32),
+    ("triangles", U32),
+    ("primitives", Vec(Msg(PrimitiveInfo))),
+    ("targets", Vec(STR)),
+    ("clips", Vec(Msg(ClipInfo))),
+    ("lod", Msg(LodInfo)),
+    ("bbox", Msg(Aabb)),
+    ("memory", Msg(Memory)),
+)
+@dataclass
+class RigInfo:
+    """A registered rig."""
+
+    id: str
+    name: str
+    builtin: bool
+    vertices: int
+    triangles: int
+    primitives: List[PrimitiveInfo]
+    targets: List[str]
+    clips: List[ClipInfo]
+    lod: LodInfo
+    bbox: Aabb
+    memory: Memory
+
+
+@wire(("rigs", Vec(Msg(RigInfo))))
+@dataclass
+class RigList:
+    """``GET /v1/rigs`` response, ordered by id."""
+
+    rigs: List[RigInfo]
+
+
+@wire(("shapes", U32), ("mesh", Opt(U32)))
+@dataclass
+class LodLevelRequest:
+    """One level of a :class:`LodRequest` table (``mesh`` indexes ``mesh_fractions``)."""
+
+    shapes: int
+    mesh: Optional[int] = None
+
+
+@wire(
+    ("method", Opt(STR)),
+    ("order", Opt(Vec(STR))),
+    ("pinned", Vec(STR)),
+    ("levels", Opt(Vec(Msg(LodLevelRequest)))),
+    ("mesh_fractions", Vec(F32)),
+)
+@dataclass
+class LodRequest:
+    """``PUT /v1/rigs/{id}/lod`` request; every field optional."""
+
+    method: Optional[str] = None
+    order: Optional[List[str]] = None
+    pinned: List[str] = field(default_factory=list)
+    levels: Optional[List[LodLevelRequest]] = None
+    mesh_fractions: List[float] = field(default_factory=list)
+
+
+@wire(
+    ("name", STR),
+    ("first_vertex", U32),
+    ("vertices", U32),
+    ("first_index", U32),
+    ("indices", U32),
+)
+@dataclass
+class MeshPrimitive:
+    """A primitive's vertex and index ranges in a :class:`MeshResponse`."""
+
+    name: str
+    first_vertex: int
+    vertices: int
+    first_index: int
+    indices: int
+
+
+@wire(
+    ("rig", STR),
+    ("lod", U32),
+    ("vertices", U32),
+    ("primitives", Vec(Msg(MeshPrimitive))),
+    ("bbox", Msg(Aabb)),
+    ("quantization", Msg(Quantization)),
+    ("indices", BLOB),
+    ("positions", BLOB),
+    ("normals", BLOB),
+)
+@dataclass
+class MeshResponse:
+    """``GET /v1/rigs/{id}/mesh`` response (payloads still encoded)."""
+
+    rig: str
+    lod: int
+    vertices: int
+    primitives: List[MeshPrimitive]
+    bbox: Aabb
+    quantization: Quantization
+    indices: Any
+    positions: Any
+    normals: Any
+
+
+@wire(("rig", STR), ("added", Vec(Msg(ClipInfo))), ("ignored", Vec(STR)))
+@dataclass
+class ClipUpload:
+    """``POST /v1/rigs/{id}/clips`` response."""
+
+    rig: str
+    added: List[ClipInfo]
+    ignored: List[str]
+
+
+@wire(("rig", STR), ("clips", Vec(Msg(ClipInfo))))
+@dataclass
+class ClipList:
+    """``GET /v1/rigs/{id}/clips`` response."""
+
+    rig: str
+    clips: List[ClipInfo]
+
+
+@dataclass
+class Readiness:
+    """``GET /readyz`` body (always JSON)."""
+
+    status: str
+    backend: str
+    cpu_isa: str
+    degraded_reason: Optional[str]
+    rigs: int
+    skipped_files: List[str]
+    renderer: Optional[str] = None
+
+    @classmethod
+    def from_json(cls, obj: dict) -> "Readiness":
+        # A missing "renderer" (an older server) reads as None, as the protocol says.
+        return cls(
+            status=obj["status"],
+            backend=obj["backend"],
+            cpu_isa=obj["cpu_isa"],
+            degraded_reason=obj.get("degraded_reason"),
+            rigs=obj["rigs"],
+            skipped_files=list(obj.get("skipped_files", [])),
+            renderer=obj.get("renderer"),
+        )
+
+
+# ---------------------------------------------------------------------------------------------
+# Rendered frames.
+
+
+@wire(("head", U64), ("position", F32X3), ("yaw", F32), ("scale", F32))
+@dataclass
+class Placement:
+    """Where every head with id ``head`` stands: translate · rotate_y(yaw°) · scale."""
+
+    head: int
+    position: List[float]
+    yaw: float = 0.0
+    scale: float = 1.0
+
+
+@wire(
+    ("position", F32X3),
+    ("target", F32X3),
+    ("fov_y", F32),
+    ("near", Opt(F32)),
+    ("far", Opt(F32)),
+)
+@dataclass
+class CameraSpec:
+    """A perspective camera; +Y is up."""
+
+    position: List[float]
+    target: List[float]
+    fov_y: float = 30.0
+    near: Optional[float] = None
+    far: Optional[float] = None
+
+
+@wire(
+    ("width", U32),
+    ("height", U32),
+    ("format", IMAGE_FORMAT),
+    ("quality", U8),
+    ("background", U8X3),
+)
+@dataclass
+class ImageOptions:
+    """Size, encoding (``png``, ``jpeg``, ``rgba``) and background of a rendered image."""
+
+    width: int = 640
+    height: int = 480
+    format: str = "png"
+    quality: int = 90
+    background: List[int] = field(default_factory=lambda: [46, 50, 56])
+
+
+@wire(
+    ("heads", HEADS),
+    ("wrap", BOOL),
+    ("placements", Opt(Vec(Msg(Placement)))),
+    ("camera", Opt(Msg(CameraSpec))),
+    ("image", Opt(Msg(ImageOptions))),
+)
+@dataclass
+class RenderRequest:
+    """``POST /v1/crowd/render`` request; the response is the image itself."""
+
+    heads: List[Head]
+    wrap: bool = True
+    placements: Optional[List[Placement]] = None
+    camera: Optional[CameraSpec] = None
+    image: Optional[ImageOptions] = None
+
+
+def as_dict(message: Any) -> Any:
+    """The protocol's JSON form of a message: field names as keys, ``Blob`` payloads as
+    base64 strings, ``None`` as ``null``. Handy for printing and for comparing with the
+    server's JSON."""
+    if dataclasses.is_dataclass(message) and not isinstance(message, type):
+        return {f.name: as_dict(getattr(message, f.name)) for f in dataclasses.fields(message)}
+    if isinstance(message, (list, tuple, HeadBuffers)):
+        return [as_dict(v) for v in message]
+    if isinstance(message, (memoryview, bytes, bytearray)):
+        return base64.b64encode(message).decode("ascii")
+    return message

@@ -1,0 +1,253 @@
+"""The decoder and encoder against the protocol's golden files, byte for byte (no server).
+
+``proto/tests/golden/<message>.bincode`` and ``.json`` are what the Rust types write;
+``tests/golden/crowd_frame_aligned.bin`` is the server's own aligned encoding of a q16 frame.
+Every bincode file must decode to the message its JSON twin describes and encode back to the
+same bytes.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+
+import pytest
+
+import crowdmorph
+from crowdmorph import arrays, messages, wire
+from crowdmorph.client import CrowdFrame
+from conftest import ALIGNED_GOLDEN, PROTO_GOLDEN
+from _util import f32, flat, norm_floats
+
+# Every bincode golden file and the message class it holds.
+GOLDEN = {
+    "crowd_frame_request": messages.CrowdFrameRequest,
+    "crowd_frame_response": messages.CrowdFrameResponse,
+    "rig_info": messages.RigInfo,
+    "rig_list": messages.RigList,
+    "lod_info": messages.LodInfo,
+    "lod_request": messages.LodRequest,
+    "mesh_response": messages.MeshResponse,
+    "clip_upload": messages.ClipUpload,
+    "clip_list": messages.ClipList,
+    "render_request": messages.RenderRequest,
+}
+
+
+def test_every_golden_bincode_file_has_a_python_message():
+    found = {p.stem for p in PROTO_GOLDEN.glob("*.bincode")}
+    assert found, f"no golden files in {PROTO_GOLDEN}"
+    assert found == set(GOLDEN), "a golden file without a Python message, or the reverse"
+
+
+@pytest.mark.parametrize("name", sorted(GOLDEN))
+def test_golden_bincode_decodes_to_its_json_and_encodes_back(name):
+    raw = (PROTO_GOLDEN / f"{name}.bincode").read_bytes()
+    want = json.loads((PROTO_GOLDEN / f"{name}.json").read_bytes())
+    msg = wire.decode(GOLDEN[name], raw)
+    assert norm_floats(messages.as_dict(msg)) == norm_floats(want)
+    assert wire.encode(msg) == raw
+
+
+def test_the_worked_example_request_is_built_from_python_values():
+    # proto/README.md's worked example: two heads of talk, f16, wrap.
+    req = messages.CrowdFrameRequest(
+        heads=[
+            messages.Head(7, "default-head", "talk", 12),
+            messages.Head(300, "default-head", "talk", -1, lod=2),
+        ],
+        output=messages.OutputOptions(normals=False, format="f16"),
+        wrap=True,
+    )
+    raw = (PROTO_GOLDEN / "crowd_frame_request.bincode").read_bytes()
+    assert len(raw) == 48
+    assert wire.encode(req) == raw
+
+
+def test_the_worked_example_response_decodes_field_by_field():
+    raw = (PROTO_GOLDEN / "crowd_frame_response.bincode").read_bytes()
+    assert len(raw) == 61
+    r = wire.decode(messages.CrowdFrameResponse, raw)
+    assert (r.format, r.normals) == ("f32", False)
+    (b,) = r.buffers
+    assert (b.rig, b.clip, b.frame, b.lod, b.vertices) == ("tri", "wave", 1, 0, 2)
+    assert b.quantization is None and b.normals is None
+    assert struct.unpack("<6f", b.positions) == (0.0, 1.0, -2.5, 0.5, 0.25, 3.0)
+    assert [(h.head, h.buffer) for h in r.heads] == [(1, 0), (2, 0)]
+    assert r.timings == messages.FrameTimings(250, 70000, 71000, 5)
+
+
+def _walk_aligned(raw: bytes):
+    """Reads the aligned golden frame with the primitive reader, field by field as
+    proto/README.md lists them, and returns the offsets where the two payloads start."""
+    r = wire.Reader(raw)
+    assert r.u32() == 2 and r.bool() is True  # format q16, normals
+    assert r.length() == 1  # one buffer
+    assert (r.string(), r.string(), r.u32(), r.u32(), r.u32()) == ("default-head", "talk", 12, 1, 3)
+    assert r.u8() == 1  # Some(quantization)
+    r.f32x3(), r.f32x3(), r.f32x3()
+    offsets = []
+    for tag in (None, 1):  # positions, then Some(normals)
+        if tag is not None:
+            assert r.u8() == tag
+        pad = r.bytes()
+        assert len(pad) <= 15 and not any(pad), "pads are 0-15 zero bytes"
+        n = r.varint()
+        offsets.append(r.pos)
+        r.pos += n
+    return offsets
+
+
+def test_the_servers_aligned_frame_decodes_and_its_payloads_sit_on_16_bytes():
+    raw = ALIGNED_GOLDEN.read_bytes()
+    offsets = _walk_aligned(raw)
+    assert all(o % 16 == 0 for o in offsets), offsets
+    r = wire.decode(messages.CrowdFrameResponse, raw)
+    assert (r.format, r.normals) == ("q16", True)
+    (b,) = r.buffers
+    assert (b.rig, b.clip, b.frame, b.lod, b.vertices) == ("default-head", "talk", 12, 1, 3)
+    q = b.quantization
+    assert [round(v, 9) for v in q.min] == [-1.0, -2.0, -0.5]
+    assert struct.unpack("<9h", b.positions) == tuple(i * 1000 - 4000 for i in range(9))
+    assert struct.unpack("<9h", b.normals) == tuple(i * 3000 for i in range(9))
+    assert [(h.head, h.buffer) for h in r.heads] == [(7, 0), (300, 0)]
+    assert r.timings == messages.FrameTimings(120, 900, 1500, None)
+    # The decoded memoryviews are the body's own bytes at those offsets (no copy).
+    assert bytes(b.positions) == raw[offsets[0] : offsets[0] + 18]
+
+
+def test_the_aligned_frames_q16_payloads_dequantize_as_the_readme_says(backend):
+    raw = ALIGNED_GOLDEN.read_bytes()
+    frame = CrowdFrame(wire.decode(messages.CrowdFrameResponse, raw), backend)
+    b = frame.buffers[0]
+    q = b.quantization
+    pos = flat(b.positions)
+    for i, v in enumerate(pos):
+        a = i % 3
+        want = q.min[a] + ((i * 1000 - 4000) + 32768) * q.step[a]
+        assert math.isclose(v, want, rel_tol=2**-23, abs_tol=1e-7), (i, v, want)
+    nrm = flat(b.normals)
+    for i, v in enumerate(nrm):
+        assert abs(v - (i * 3000) / 32767) <= 2**-24, (i, v)
+    # Clones share a buffer; positions(i) is the head's.
+    assert frame.positions(1) is b.positions
+    if backend == "numpy":
+        assert b.positions.shape == (3, 3) and str(b.positions.dtype) == "float32"
+    else:
+        assert len(b.positions) == 9 and b.positions.typecode == "f"
+
+
+def test_the_numpy_q16_decoder_matches_the_reference_bit_for_bit():
+    np = pytest.importorskip("numpy", reason="numpy is not installed")
+    # Boxes arrive as float32, so the test's are float32 values too.
+    quant = messages.Quantization(
+        min=[f32(-0.123), 1.5, -7.25],
+        step=[f32(3.1e-6), f32(2.2e-5), f32(1.7e-4)],
+        max_error=[0, 0, 0],
+    )
+    q = np.arange(-32768, 32768, 7, dtype="<i2")[: (65536 // 7) // 3 * 3]
+    got = arrays.decode_positions(q.tobytes(), "q16", quant, "numpy").reshape(-1)
+    # The reference, in float32 one operation at a time: min + (q + 32768) * step.
+    f = np.float32
+    want = [
+        f(quant.min[i % 3]) + (f(v) + f(32768.0)) * f(quant.step[i % 3])
+        for i, v in enumerate(q.tolist())
+    ]
+    assert got.tobytes() == np.array(want, dtype=np.float32).tobytes()
+    # The pure-Python path computes in double and rounds once: it differs from the float32
+    # chain by its two roundings at most, a float32 ulp or two of the box's extent.
+    py = np.array(arrays.decode_positions(q.tobytes(), "q16", quant, "python"), dtype=np.float64)
+    extent = np.array(
+        [abs(quant.min[a]) + 65536 * quant.step[a] for a in range(3)] * (len(py) // 3)
+    )
+    assert np.all(np.abs(py - got.astype(np.float64)) <= 2**-22 * extent)
+
+
+@pytest.mark.parametrize(
+    "bits, value",
+    [(0x3C00, 1.0), (0xC100, -2.5), (0x7BFF, 65504.0), (0x0001, 2.0**-24), (0x8000, -0.0)],
+)
+def test_f16_components_decode_exactly(bits, value, backend):
+    data = struct.pack("<3H", bits, bits, bits)
+    out = flat(arrays.decode_positions(data, "f16", None, backend))
+    assert out == [value] * 3
+    assert math.copysign(1, out[0]) == math.copysign(1, value)
+
+
+@pytest.mark.parametrize(
+    "n, size",
+    [
+        (0, 1),
+        (250, 1),
+        (251, 3),
+        (65535, 3),
+        (65536, 5),
+        (2**32 - 1, 5),
+        (2**32, 9),
+        (2**64 - 1, 9),
+    ],
+)
+def test_varints_take_the_documented_bytes(n, size):
+    w = wire.Writer()
+    w.varint(n)
+    assert len(w.out) == size
+    r = wire.Reader(bytes(w.out))
+    assert r.varint() == n
+    r.finish()
+
+
+@pytest.mark.parametrize(
+    "n, z", [(0, 0), (-1, 1), (1, 2), (-2, 3), (2**63 - 1, 2**64 - 2), (-(2**63), 2**64 - 1)]
+)
+def test_i64_is_zigzag(n, z):
+    w = wire.Writer()
+    w.i64(n)
+    want = wire.Writer()
+    want.varint(z)
+    assert w.out == want.out
+    assert wire.Reader(bytes(w.out)).i64() == n
+
+
+def test_truncated_and_trailing_bytes_are_decode_errors():
+    raw = (PROTO_GOLDEN / "rig_info.bincode").read_bytes()
+    for cut in (1, len(raw) // 2, len(raw) - 1):
+        with pytest.raises(wire.DecodeError):
+            wire.decode(messages.RigInfo, raw[:cut])
+    with pytest.raises(wire.DecodeError, match="1 bytes after the message"):
+        wire.decode(messages.RigInfo, raw + b"\x00")
+
+
+def test_a_huge_declared_length_is_refused_without_allocating():
+    w = wire.Writer()
+    w.varint(1 << 40)  # a Vec<RigInfo> of 2^40 elements, then nothing
+    with pytest.raises(wire.DecodeError, match="more than the 0 bytes left"):
+        wire.decode(messages.RigList, bytes(w.out))
+
+
+def test_an_unknown_format_variant_is_a_decode_error():
+    raw = bytearray((PROTO_GOLDEN / "crowd_frame_response.bincode").read_bytes())
+    raw[0] = 3  # format: no variant 3
+    with pytest.raises(wire.DecodeError, match="variant 3"):
+        wire.decode(messages.CrowdFrameResponse, bytes(raw))
+
+
+def test_error_bodies_become_typed_exceptions():
+    body = (PROTO_GOLDEN / "error.json").read_bytes()
+    e = crowdmorph.errors.error_from_response(404, body, None, "req-1")
+    assert isinstance(e, crowdmorph.NotFound)
+    assert (e.status, e.code, e.request_id) == (404, "unknown_rig", "req-1")
+    assert e.message == 'no rig "x" (rigs: default-head)'
+
+    busy = b'{"error":{"code":"queue_full","message":"queue full"}}'
+    e = crowdmorph.errors.error_from_response(503, busy, "2")
+    assert isinstance(e, crowdmorph.Overloaded) and e.retry_after == 2.0
+
+    off = b'{"error":{"code":"render_unavailable","message":"install mesa-vulkan-drivers"}}'
+    e = crowdmorph.errors.error_from_response(503, off, None)
+    assert isinstance(e, crowdmorph.Unavailable) and not isinstance(e, crowdmorph.Overloaded)
+    assert e.retry_after is None
+
+    e = crowdmorph.errors.error_from_response(502, b"<html>Bad Gateway</html>")
+    assert isinstance(e, crowdmorph.ServerError)
+    assert e.code == "http_502" and "Bad Gateway" in e.message

@@ -1,0 +1,410 @@
+"""The client against a real ``crowdmorph serve``: the embedded rig ``default-head``.
+
+Decoded arrays are checked against the server's own JSON encoding of the same request (an
+independent path: serde_json and base64 on the server, ``json`` and ``base64`` here), and the
+lossy formats against f32 within the error bounds ``proto/README.md`` states. Tolerances are
+relative to the rig's bounding-box diagonal.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import math
+import os
+import struct
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+import crowdmorph
+from crowdmorph import wire
+from conftest import PACKAGE, TOKEN, run_server
+from _util import diagonal, f32, flat
+
+RIG = "default-head"
+BUILTIN_CLIPS = {"idle", "talk", "smile", "surprise"}
+
+
+def test_health_and_readiness(client):
+    assert client.healthz() == {"status": "ok"}
+    ready = client.readyz()
+    assert ready.status == "ready"
+    assert ready.backend in ("cpu", "gpu")
+    assert ready.cpu_isa in ("avx512", "avx2", "portable")
+    assert ready.rigs >= 1 and ready.skipped_files == []
+
+
+def test_the_embedded_rig_is_listed_with_its_clips(client):
+    rigs = {r.id: r for r in client.rigs()}
+    head = rigs[RIG]
+    assert head.builtin
+    assert {c.name for c in head.clips} >= BUILTIN_CLIPS
+    assert head == client.rig(RIG)
+    assert head.vertices == sum(p.vertices for p in head.primitives) > 0
+    assert head.triangles == sum(p.triangles for p in head.primitives) > 0
+    assert len(head.lod.levels) >= 2 and head.lod.levels[0].shapes == len(head.targets)
+    assert client.lod(RIG) == head.lod
+    assert {c.name for c in client.clips(RIG)} >= BUILTIN_CLIPS
+    talk = client.clip(RIG, "talk")
+    assert talk.frames > 0 and talk.fps > 0
+
+
+def _json_frame(client, heads, fmt, normals):
+    """The same request as JSON, decoded from base64 by hand: the server's second encoding."""
+    body = json.dumps(
+        {
+            "heads": [dict(head=h, rig=r, clip=c, frame=f, lod=lod) for h, r, c, f, lod in heads],
+            "output": {"normals": normals, "format": fmt},
+            "wrap": True,
+        }
+    ).encode()
+    resp = client.request(
+        "POST", "/v1/crowd/frame", body, "application/json", accept="application/json"
+    )
+    assert resp.content_type.startswith("application/json")
+    return json.loads(resp.body)
+
+
+HEADS = [(7, RIG, "talk", 12, 0), (8, RIG, "talk", 12, 0), (9, RIG, "smile", 40, 2)]
+
+
+@pytest.mark.parametrize("fmt", ["f32", "f16", "q16"])
+def test_bincode_frames_carry_the_bytes_of_the_servers_json(client, fmt):
+    frame = client.crowd_frame(HEADS, format=fmt, normals=True, decode=False)
+    want = _json_frame(client, HEADS, fmt, True)
+    assert frame.format == want["format"] == fmt and frame.normals is True
+    assert [(h.head, h.buffer) for h in frame.heads] == [
+        (h["head"], h["buffer"]) for h in want["heads"]
+    ]
+    assert len(frame.buffers) == len(want["buffers"]) == 2  # heads 7 and 8 are clones
+    for got, exp in zip(frame.buffers, want["buffers"]):
+        assert (got.rig, got.clip, got.frame, got.lod, got.vertices) == (
+            exp["rig"],
+            exp["clip"],
+            exp["frame"],
+            exp["lod"],
+            exp["vertices"],
+        )
+        assert bytes(got.positions) == base64.b64decode(exp["positions"])
+        assert bytes(got.normals) == base64.b64decode(exp["normals"])
+        if fmt == "q16":
+            q = exp["quantization"]
+            assert [struct.pack("<f", v) for v in got.quantization.min] == [
+                struct.pack("<f", v) for v in q["min"]
+            ]
+        else:
+            assert got.quantization is None and exp["quantization"] is None
+
+
+def test_f16_and_q16_positions_are_within_their_stated_error_of_f32(client, backend):
+    c = crowdmorph.Client(client.url, arrays=backend)
+    diag = diagonal(c.rig(RIG).bbox)
+    exact = c.crowd_frame(HEADS, format="f32", normals=True)
+    half = c.crowd_frame(HEADS, format="f16", normals=True)
+    quant = c.crowd_frame(HEADS, format="q16", normals=True)
+    assert len(exact) == len(half) == len(quant) == 3
+    for i in range(3):
+        e, h, q = exact.buffer(i), half.buffer(i), quant.buffer(i)
+        ep, hp, qp = flat(e.positions), flat(h.positions), flat(q.positions)
+        assert len(ep) == len(hp) == len(qp) == 3 * e.vertices
+        # f16: relative error ≤ 2^-11 per component (plus f16's subnormal step near 0).
+        assert all(abs(a - b) <= 2**-11 * abs(a) + 2**-24 for a, b in zip(ep, hp))
+        # q16: the stated max error per axis, plus float32 rounding of the largest coordinate.
+        err = q.quantization.max_error
+        slack = 4 * 2**-23 * diag
+        for k, (a, b) in enumerate(zip(ep, qp)):
+            assert abs(a - b) <= err[k % 3] + slack, (k, a, b, err)
+        # Normals are unit vectors in every format; q16's error ≤ 1/65534 per component.
+        en, qn = flat(e.normals), flat(q.normals)
+        assert all(abs(a - b) <= 1 / 65534 + 2**-20 for a, b in zip(en, qn))
+        for v in range(0, e.vertices, 97):
+            assert abs(math.hypot(*en[3 * v : 3 * v + 3]) - 1) < 1e-3
+    # Clones share one buffer, and a clip at another frame moves the head.
+    assert exact.positions(0) is exact.positions(1)
+    moved = max(abs(a - b) for a, b in zip(flat(exact.positions(0)), flat(exact.positions(2))))
+    assert moved > 1e-3 * diag
+
+
+def test_heads_may_be_objects_dicts_or_tuples(client):
+    forms = [
+        crowdmorph.Head(1, RIG, "talk", 5),
+        {"head": 2, "rig": RIG, "clip": "talk", "frame": 5},
+        (3, RIG, "talk", 5, 0),
+        (4, RIG, "talk", 5),
+    ]
+    frame = client.crowd_frame(forms, format="f32")
+    assert len(frame.buffers) == 1
+    assert list(frame.heads.head_ids) == [1, 2, 3, 4]
+    assert list(frame.heads.buffer_indices) == [0, 0, 0, 0]
+
+
+def test_a_large_crowd_round_trips(client):
+    talk = client.clip(RIG, "talk")
+    heads = [(i * 1000, RIG, "talk", i, 0) for i in range(5000)]
+    frame = client.crowd_frame(heads, format="q16")
+    assert len(frame) == 5000
+    assert len(frame.buffers) == talk.frames  # one per distinct frame, the rest clones
+    assert frame.heads[4999].head == 4999 * 1000
+    assert frame.buffer(4999).frame == 4999 % talk.frames
+
+
+def test_wrapping_and_frame_range(client):
+    frames = client.clip(RIG, "talk").frames
+    frame = client.crowd_frame([(1, RIG, "talk", frames + 3), (2, RIG, "talk", -1)])
+    assert [frame.buffer(0).frame, frame.buffer(1).frame] == [3, frames - 1]
+    with pytest.raises(crowdmorph.BadRequest) as e:
+        client.crowd_frame([(1, RIG, "talk", frames + 3)], wrap=False)
+    assert e.value.code == "frame_out_of_range" and e.value.status == 400
+
+
+def test_the_mesh_gives_topology_and_the_neutral_pose(client, backend):
+    c = crowdmorph.Client(client.url, arrays=backend)
+    info = c.rig(RIG)
+    mesh = c.mesh(RIG)
+    assert (mesh.rig, mesh.lod, mesh.vertices, mesh.triangles) == (
+        RIG,
+        0,
+        info.vertices,
+        info.triangles,
+    )
+    idx = flat(mesh.indices)
+    assert len(idx) == 3 * info.triangles and max(idx) < info.vertices
+    assert sum(p.indices for p in mesh.primitives) == len(idx)
+    pos = flat(mesh.positions)
+    lo, hi = mesh.bbox.min, mesh.bbox.max
+    for k, v in enumerate(pos):
+        assert lo[k % 3] <= v <= hi[k % 3]
+    if backend == "numpy":
+        assert mesh.positions.shape == (info.vertices, 3)
+        assert mesh.indices.shape == (info.triangles, 3)
+
+
+def test_every_lod_level_has_its_mesh_and_buffer_size(client):
+    info = client.rig(RIG)
+    for level, lv in enumerate(info.lod.levels):
+        mesh = client.mesh(RIG, lod=level)
+        assert mesh.lod == level and mesh.vertices == lv.vertices
+        frame = client.crowd_frame([(level, RIG, "idle", 10, level)], format="f16")
+        assert frame.buffer(0).lod == level and frame.buffer(0).vertices == lv.vertices
+    with pytest.raises(crowdmorph.BadRequest) as e:
+        client.crowd_frame([(1, RIG, "idle", 0, len(info.lod.levels))])
+    assert e.value.code == "lod_out_of_range"
+
+
+def test_errors_are_typed_with_code_message_and_request_id(client, anonymous):
+    with pytest.raises(crowdmorph.NotFound) as e:
+        client.rig("no-such-rig")
+    assert e.value.code == "unknown_rig" and "no-such-rig" in e.value.message
+    assert e.value.request_id and e.value.request_id == client.last_request_id
+    with pytest.raises(crowdmorph.NotFound) as e:
+        client.crowd_frame([(1, RIG, "no-such-clip", 0)])
+    assert e.value.code == "unknown_clip"
+    with pytest.raises(crowdmorph.Forbidden) as e:
+        client.delete_rig(RIG)
+    assert e.value.code == "builtin_rig"
+    with pytest.raises(crowdmorph.Forbidden) as e:
+        client.delete_clip(RIG, "talk")
+    assert e.value.code == "builtin_clip"
+    with pytest.raises(crowdmorph.Unauthorized) as e:
+        anonymous.upload_rig(b"glTF", name="nope")
+    assert e.value.code == "token_required" and e.value.status == 401
+    with pytest.raises(crowdmorph.Unauthorized) as e:
+        crowdmorph.Client(client.url, token="wrong").delete_rig("nope")
+    assert e.value.code == "bad_token"
+    with pytest.raises(crowdmorph.BadRequest) as e:
+        client.upload_rig(b"this is not a rig", name="garbage")
+    assert e.value.code == "invalid_rig"
+    with pytest.raises(crowdmorph.UnsupportedMediaType):
+        client.request("POST", "/v1/crowd/frame", b"{}", "text/plain")
+    with pytest.raises(crowdmorph.BadRequest) as e:
+        client.request("POST", "/v1/crowd/frame", b"\x01\x07", crowdmorph.BINCODE)
+    assert e.value.code == "malformed_bincode"
+    with pytest.raises(crowdmorph.NotFound) as e:
+        client.request("GET", "/v1/nothing-here")
+    assert e.value.code == "no_route"
+    # Reading is open without the token.
+    assert anonymous.rig(RIG).id == RIG
+
+
+def _csv(targets, rows):
+    lines = [",".join(targets)] + [",".join(str(v) for v in row) for row in rows]
+    return ("\n".join(lines) + "\n").encode()
+
+
+def test_clips_upload_list_play_and_delete(client):
+    info = client.rig(RIG)
+    t = info.targets[:2]
+    up = client.upload_clip(RIG, _csv(t, [[0, 0], [1, 0], [0, 1]]), name="py-csv")
+    assert up.rig == RIG and [(c.name, c.frames) for c in up.added] == [("py-csv", 3)]
+    assert up.ignored == []
+    js = client.upload_clip(
+        RIG, {"fps": 24, "targets": t, "frames": [[0, 0], [0.5, 0.5]]}, name="py-json"
+    )
+    assert [(c.name, c.frames, c.fps) for c in js.added] == [("py-json", 2, 24.0)]
+    try:
+        names = {c.name for c in client.clips(RIG)}
+        assert {"py-csv", "py-json"} <= names
+        assert client.clip(RIG, "py-csv").frames == 3
+        # Frame 0 is neutral, frame 1 moves the first target: the buffers differ.
+        f = client.crowd_frame([(1, RIG, "py-csv", 0), (2, RIG, "py-csv", 1)], format="f32")
+        moved = max(abs(a - b) for a, b in zip(flat(f.positions(0)), flat(f.positions(1))))
+        assert moved > 0
+        with pytest.raises(crowdmorph.Conflict) as e:
+            client.upload_clip(RIG, _csv(t, [[0, 0]]), name="py-csv")
+        assert e.value.code == "clip_exists"
+        with pytest.raises(crowdmorph.BadRequest) as e:
+            client.upload_clip(RIG, _csv(["notATarget"], [[1]]), name="py-bad")
+        assert e.value.code == "unknown_targets" and "notATarget" in e.value.message
+        ign = client.upload_clip(
+            RIG, _csv([t[0], "notATarget"], [[1, 1]]), name="py-ign", ignore_unknown=True
+        )
+        assert ign.ignored == ["notATarget"]
+        client.delete_clip(RIG, "py-ign")
+    finally:
+        client.delete_clip(RIG, "py-csv")
+        client.delete_clip(RIG, "py-json")
+    with pytest.raises(crowdmorph.NotFound) as e:
+        client.clip(RIG, "py-csv")
+    assert e.value.code == "unknown_clip"
+
+
+def test_set_lod_rebuilds_the_table():
+    # Its own server, so that the shared one keeps the embedded rig's LOD.
+    with run_server("--no-auto-lod") as s, crowdmorph.Client(s.url, token=TOKEN) as c:
+        targets = c.rig(RIG).targets
+        rig = c.set_lod(
+            RIG,
+            method="file-order",
+            pinned=[targets[-1]],
+            levels=[len(targets), (4, 0)],
+            mesh_fractions=[0.5],
+        )
+        lod = c.wait_lod(RIG, timeout=120)
+        assert lod.status == "ready", lod.error
+        assert lod.pinned == [targets[-1]] and lod.order[0] == targets[-1]
+        assert [lv.shapes for lv in lod.levels] == [len(targets), 4]
+        assert lod.levels[0].mesh is None and lod.levels[1].mesh == 0
+        assert lod.levels[1].vertices < lod.levels[0].vertices
+        assert rig.lod.pinned == lod.pinned
+        mesh = c.mesh(RIG, lod=1)
+        assert mesh.vertices == lod.levels[1].vertices
+        frame = c.crowd_frame([(1, RIG, "talk", 3, 1)], format="q16")
+        assert frame.buffer(0).vertices == mesh.vertices
+        with pytest.raises(crowdmorph.BadRequest) as e:
+            c.set_lod(RIG, method="file-order", levels=[3])  # level 0 must use every shape
+        assert e.value.code == "invalid_lod"
+
+
+def test_an_upload_refused_before_its_body_is_read_raises_the_servers_413():
+    # The server answers 413 and closes while 20 MB are still being sent: the client reads
+    # that answer instead of reporting the broken pipe.
+    with run_server("--no-auto-lod", "--max-upload-bytes", "100000") as s:
+        c = crowdmorph.Client(s.url, token=TOKEN)
+        with pytest.raises(crowdmorph.TooLarge) as e:
+            c.upload_rig(b"glTF" + bytes(20_000_000), name="big")
+        assert e.value.code == "body_too_large" and "100000" in e.value.message
+        assert c.rig(RIG).id == RIG, "the client goes on with a new connection"
+
+
+def test_the_connection_is_kept_alive_and_reopened_after_the_server_closes_it():
+    with run_server("--no-auto-lod", "--idle-timeout-s", "1") as s, crowdmorph.Client(s.url) as c:
+        ports = set()
+        for _ in range(5):
+            c.rig(RIG)
+            ports.add(c._conn.sock.getsockname()[1])
+        assert len(ports) == 1, "five calls, one connection"
+        time.sleep(2.5)  # past the server's idle timeout: it closes the connection
+        assert c.rig(RIG).id == RIG
+        assert c._conn.sock.getsockname()[1] not in ports
+
+
+def test_render_returns_an_image_or_says_why_not(client):
+    heads = [(1, RIG, "talk", 0), (2, RIG, "smile", 30)]
+    with pytest.raises(crowdmorph.BadRequest) as e:
+        client.render(heads, width=0, height=10)
+    assert e.value.code == "invalid_image"
+    if client.readyz().renderer is None:
+        with pytest.raises(crowdmorph.Unavailable) as e:
+            client.render(heads)
+        assert e.value.code == "render_unavailable" and e.value.retry_after is None
+        pytest.skip("the server has no adapter to render with (install mesa-vulkan-drivers)")
+    png = client.render(heads, width=64, height=48)
+    assert isinstance(png, bytes) and png[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (png.content_type, png.width, png.height) == ("image/png", 64, 48)
+    assert struct.unpack(">II", png[16:24]) == (64, 48)  # the IHDR's size
+    assert {"compute", "render", "readback", "encode"} <= set(png.server_timing)
+    jpeg = client.render(heads, image={"width": 32, "height": 32, "format": "jpeg"})
+    assert jpeg[:2] == b"\xff\xd8" and jpeg.content_type == "image/jpeg"
+    raw = client.render(
+        heads,
+        width=40,
+        height=30,
+        format="rgba",
+        background=[10, 200, 30],
+        camera={"position": [0, 0, 2000], "target": [0, 0, 0], "fov_y": 5},
+    )
+    assert len(raw) == 40 * 30 * 4 and raw.content_type == "application/octet-stream"
+    # A far, narrow camera leaves the corners to the background colour.
+    assert tuple(raw[0:4]) == (10, 200, 30, 255)
+    assert tuple(raw[-4:]) == (10, 200, 30, 255)
+    with pytest.raises(crowdmorph.BadRequest) as e:
+        client.render(heads, placements=[{"head": 99, "position": [0, 0, 0]}])
+    assert e.value.code == "invalid_placement"
+
+
+def test_the_save_obj_example_writes_the_posed_head(server, client, tmp_path):
+    out = tmp_path / "head.obj"
+    subprocess.run(
+        [
+            sys.executable,
+            str(PACKAGE / "examples" / "save_obj.py"),
+            "--url",
+            server.url,
+            "--clip",
+            "smile",
+            "--frame",
+            "40",
+            "--out",
+            str(out),
+        ],
+        check=True,
+        env=_env_with_package(),
+        timeout=120,
+    )
+    verts, normals, faces = [], [], []
+    for line in out.read_text().splitlines():
+        kind, *rest = line.split()
+        if kind == "v":
+            verts.append([float(x) for x in rest])
+        elif kind == "vn":
+            normals.append([float(x) for x in rest])
+        elif kind == "f":
+            faces.append([int(x.split("/")[0]) - 1 for x in rest])
+    info = client.rig(RIG)
+    assert len(verts) == len(normals) == info.vertices
+    assert len(faces) == info.triangles
+    # The coordinates are the f32 frame's, exactly (9 digits round-trip float32).
+    want = flat(client.crowd_frame([(1, RIG, "smile", 40)], format="f32").positions(0))
+    assert [f32(x) for v in verts for x in v] == want
+    assert faces[:3] == [list(t) for t in zip(*[iter(flat(client.mesh(RIG).indices)[:9])] * 3)]
+
+
+def _env_with_package():
+    """The environment with the tested package first on the path, installed or not."""
+    env = dict(os.environ)
+    src = str(Path(crowdmorph.__file__).resolve().parent.parent)
+    env["PYTHONPATH"] = src + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    return env
+
+
+def test_a_malformed_answer_is_a_protocol_error(client):
+    # Decoding a RigInfo as a RigList fails at a byte offset instead of returning garbage.
+    resp = client.request("GET", f"/v1/rigs/{RIG}")
+    with pytest.raises(crowdmorph.ProtocolError):
+        client._decode(crowdmorph.RigList, resp)
+    with pytest.raises(wire.DecodeError):
+        wire.decode(crowdmorph.RigList, resp.body)

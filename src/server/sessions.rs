@@ -1,0 +1,1475 @@
+//! Crowd sessions: one simulated crowd advanced on a fixed tick and streamed to many viewers
+//! over WebSockets (`/v1/sessions`, `GET /v1/sessions/{id}/stream`).
+//!
+//! Shape: [`Sessions`] (in the server state) owns every [`Session`] by id. Each session has one
+//! tick task, started with it and tied to it: the task holds the server state only weakly and
+//! stops when the session is deleted, ends idle, or the state is dropped. Each viewer is one
+//! task that owns its socket and reads a one-message outbox.
+//!
+//! A tick, once per `1/fps`:
+//! 1. applies pending patches (the layout changes at a tick, never inside one);
+//! 2. resolves every head to (rig generation, clip, frame) once, then each viewer's LOD per head
+//!    (fixed, or by distance from its camera);
+//! 3. takes the union over vertex viewers of (rig, clip, frame, LOD) per (format, normals), and
+//!    submits it to the server's batcher like a crowd-frame request, so it also coalesces
+//!    with HTTP traffic: two viewers at the same LOD cost one blend;
+//! 4. fans out: each viewer gets the buffers of the heads whose job changed since the last
+//!    message *it received* (others are "unchanged"). Identical messages (same group, same
+//!    head vector) are encoded once and shared.
+//!
+//! Back-pressure: the outbox holds one message. A newer tick replaces an unsent one (counted as
+//! dropped), so a slow viewer gets the latest tick, never delays the tick or other viewers, and
+//! holds at most one queued and one in-flight message. A tick that cannot be computed in time is
+//! skipped, not queued: the next tick is the first whose time has not passed. Viewers that want
+//! images get them rendered on the blocking pool, one at a time per viewer (a tick that finds
+//! the previous image still rendering skips that viewer).
+
+use std::collections::{BTreeMap, HashMap};
+use std::fmt::Write as _;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, Weak};
+use std::time::Duration;
+
+use axum::body::Body;
+use axum::extract::ws::{CloseFrame, Message, WebSocket, WebSocketUpgrade};
+use axum::extract::{Path, State};
+use axum::http::{HeaderMap, StatusCode};
+use axum::response::{IntoResponse, Response};
+use bytes::Bytes;
+use crowdmorph_proto::{
+    CameraSpec, Format, FrameTimings, HEAD_MISSING, HEAD_UNCHANGED, HeadBuffer, HeadChange,
+    ImageFormat, ImageOptions, LodChoice, Placement, RenderRequest, SessionHead, SessionInfo,
+    SessionList, SessionPatch, SessionRequest, SessionStats, ViewerHello, ViewerOutput,
+    ViewerUpdate,
+};
+use glam::Vec3;
+use tokio::sync::{Notify, OwnedSemaphorePermit};
+use tokio::time::Instant;
+
+use super::api::{ApiResult, job_request, respond};
+use super::registry::{MAX_F16, RigEntry};
+use super::scheduler::{JobRequest, ScheduleError};
+use super::{ApiError, AppState, Inner};
+use crate::codec::{FrameBufferParts, FrameResponseEncoder};
+use crate::render::scene;
+use crate::rig::FrameMode;
+
+/// Limits of the session API (`--max-sessions`, `--max-session-heads`,
+/// `--max-session-viewers`, `--max-viewer-messages`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SessionLimits {
+    /// Sessions that may exist at once.
+    pub max_sessions: usize,
+    /// Heads one session may hold.
+    pub max_heads: usize,
+    /// Viewers one session may have at once.
+    pub max_viewers: usize,
+    /// Messages per second a viewer may send (camera and LOD updates), averaged over a second.
+    pub max_viewer_messages: u32,
+}
+
+impl Default for SessionLimits {
+    fn default() -> Self {
+        SessionLimits {
+            max_sessions: 64,
+            max_heads: 10_000,
+            max_viewers: 32,
+            max_viewer_messages: 60,
+        }
+    }
+}
+
+/// Largest text message a viewer may send.
+pub const MAX_VIEWER_MESSAGE_BYTES: usize = 64 << 10;
+/// How long a viewer has to send its hello.
+const HELLO_TIMEOUT: Duration = Duration::from_secs(10);
+/// How long a close frame may take to go out before the socket is dropped.
+const CLOSE_TIMEOUT: Duration = Duration::from_secs(1);
+/// Highest tick rate.
+const MAX_FPS: f32 = 120.0;
+/// Longest idle timeout, seconds (a day).
+const MAX_IDLE_TIMEOUT_S: u32 = 86_400;
+
+/// RFC 6455 close codes the stream uses.
+mod close {
+    /// Normal closure.
+    pub const NORMAL: u16 = 1000;
+    /// Going away: the session was deleted or ended, or the server is stopping.
+    pub const AWAY: u16 = 1001;
+    /// Policy violation: a bad hello or update, too many messages.
+    pub const POLICY: u16 = 1008;
+    /// A message too big to process.
+    pub const TOO_BIG: u16 = 1009;
+    /// Try again later: the session is full.
+    pub const AGAIN: u16 = 1013;
+}
+
+/// Counters over all sessions, for `/metrics`.
+#[derive(Debug, Default)]
+pub struct SessionMetrics {
+    ticks: AtomicU64,
+    ticks_late: AtomicU64,
+    ticks_skipped: AtomicU64,
+    jobs: AtomicU64,
+    sent: AtomicU64,
+    dropped_slow: AtomicU64,
+    dropped_memory: AtomicU64,
+    dropped_rendering: AtomicU64,
+    bytes_sent: AtomicU64,
+    viewers_refused: AtomicU64,
+    viewers_closed_policy: AtomicU64,
+}
+
+fn bump(c: &AtomicU64, n: u64) {
+    c.fetch_add(n, Ordering::Relaxed);
+}
+
+/// Every session of the server, by id.
+#[derive(Debug, Default)]
+pub struct Sessions {
+    map: Mutex<BTreeMap<String, Arc<Session>>>,
+    next_id: AtomicU64,
+    /// Counters over all sessions.
+    pub metrics: SessionMetrics,
+}
+
+impl Sessions {
+    fn get(&self, id: &str) -> Result<Arc<Session>, ApiError> {
+        self.map
+            .lock()
+            .ok()
+            .and_then(|m| m.get(id).cloned())
+            .ok_or_else(|| {
+                ApiError::new(
+                    StatusCode::NOT_FOUND,
+                    "unknown_session",
+                    format!("no session {id:?}"),
+                )
+            })
+    }
+
+    fn all(&self) -> Vec<Arc<Session>> {
+        self.map
+            .lock()
+            .map(|m| m.values().cloned().collect())
+            .unwrap_or_default()
+    }
+
+    fn remove(&self, id: &str) -> Option<Arc<Session>> {
+        self.map.lock().ok()?.remove(id)
+    }
+
+    /// Ends every session (the server is stopping): viewers are closed with 1001.
+    pub fn close_all(&self, reason: &str) {
+        let all: Vec<Arc<Session>> = self
+            .map
+            .lock()
+            .map(|mut m| std::mem::take(&mut *m).into_values().collect())
+            .unwrap_or_default();
+        for s in all {
+            s.stop(close::AWAY, reason);
+        }
+    }
+
+    /// Appends the session metrics in the Prometheus text format.
+    pub fn write_metrics(&self, out: &mut String) {
+        let sessions = self.all();
+        let viewers: usize = sessions.iter().map(|s| s.viewer_count()).sum();
+        let m = &self.metrics;
+        let get = |c: &AtomicU64| c.load(Ordering::Relaxed);
+        let _ = writeln!(
+            out,
+            "# HELP crowdmorph_sessions Crowd sessions that exist now.\n\
+             # TYPE crowdmorph_sessions gauge\ncrowdmorph_sessions {}\n\
+             # HELP crowdmorph_session_viewers Viewers connected to sessions now.\n\
+             # TYPE crowdmorph_session_viewers gauge\ncrowdmorph_session_viewers {viewers}\n\
+             # HELP crowdmorph_session_ticks_total Session ticks by result: on_time and late \
+             were computed and delivered; skipped were never computed.\n\
+             # TYPE crowdmorph_session_ticks_total counter\n\
+             crowdmorph_session_ticks_total{{result=\"on_time\"}} {}\n\
+             crowdmorph_session_ticks_total{{result=\"late\"}} {}\n\
+             crowdmorph_session_ticks_total{{result=\"skipped\"}} {}\n\
+             # HELP crowdmorph_session_jobs_total Unique jobs sessions submitted to the batcher.\n\
+             # TYPE crowdmorph_session_jobs_total counter\ncrowdmorph_session_jobs_total {}\n\
+             # HELP crowdmorph_session_messages_total Stream messages by result: sent, or dropped \
+             because a newer tick replaced them (slow), the queue memory was full (memory) or \
+             the viewer's previous image was still rendering (rendering).\n\
+             # TYPE crowdmorph_session_messages_total counter\n\
+             crowdmorph_session_messages_total{{result=\"sent\"}} {}\n\
+             crowdmorph_session_messages_total{{result=\"dropped_slow\"}} {}\n\
+             crowdmorph_session_messages_total{{result=\"dropped_memory\"}} {}\n\
+             crowdmorph_session_messages_total{{result=\"dropped_rendering\"}} {}\n\
+             # HELP crowdmorph_session_bytes_sent_total Bytes of stream messages sent.\n\
+             # TYPE crowdmorph_session_bytes_sent_total counter\n\
+             crowdmorph_session_bytes_sent_total {}\n\
+             # HELP crowdmorph_session_viewers_closed_total Viewers the server closed, by reason.\n\
+             # TYPE crowdmorph_session_viewers_closed_total counter\n\
+             crowdmorph_session_viewers_closed_total{{reason=\"full\"}} {}\n\
+             crowdmorph_session_viewers_closed_total{{reason=\"policy\"}} {}",
+            sessions.len(),
+            get(&m.ticks).saturating_sub(get(&m.ticks_late)),
+            get(&m.ticks_late),
+            get(&m.ticks_skipped),
+            get(&m.jobs),
+            get(&m.sent),
+            get(&m.dropped_slow),
+            get(&m.dropped_memory),
+            get(&m.dropped_rendering),
+            get(&m.bytes_sent),
+            get(&m.viewers_refused),
+            get(&m.viewers_closed_policy),
+        );
+    }
+}
+
+/// One session.
+#[derive(Debug)]
+pub struct Session {
+    id: String,
+    fps: f32,
+    wrap: bool,
+    idle_timeout_s: u32,
+    inner: Mutex<SessionInner>,
+    /// Wakes the tick task when the session stops.
+    stopping: Notify,
+    stopped: AtomicBool,
+}
+
+#[derive(Debug)]
+struct SessionInner {
+    /// The heads of the last tick.
+    heads: Arc<Vec<SessionHead>>,
+    /// The heads after the patches received since, applied at the next tick.
+    next_heads: Option<Arc<Vec<SessionHead>>>,
+    /// Bumped whenever `heads` changes; viewers get the layout when theirs is older.
+    layout_rev: u64,
+    viewers: Vec<Arc<Viewer>>,
+    next_viewer: u64,
+    tick: u64,
+    stats: SessionStats,
+    /// When the last viewer left (or the session started without one).
+    idle_since: Option<Instant>,
+}
+
+/// What identifies a head's buffer for a viewer: the same key means the same vertices.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+struct HeadKey {
+    generation: u64,
+    clip: u32,
+    frame: u32,
+    lod: u32,
+}
+
+const MISSING_KEY: HeadKey = HeadKey {
+    generation: u64::MAX,
+    clip: 0,
+    frame: 0,
+    lod: 0,
+};
+
+/// What a viewer last received: "unchanged" is relative to this.
+#[derive(Clone, Debug)]
+struct Baseline {
+    version: u64,
+    /// `u64::MAX` before the first message.
+    layout_rev: u64,
+    keys: Arc<Vec<HeadKey>>,
+}
+
+/// A message encoded once, possibly shared by several viewers, holding its queue memory.
+#[derive(Debug)]
+struct Encoded {
+    bytes: Bytes,
+    _memory: OwnedSemaphorePermit,
+}
+
+#[derive(Debug)]
+struct Outgoing {
+    message: Arc<Encoded>,
+    /// The viewer's baseline once this is sent.
+    after: Baseline,
+}
+
+#[derive(Debug)]
+struct Outbox {
+    pending: Option<Outgoing>,
+    sent: Baseline,
+}
+
+/// A viewer's choices: its hello, then its updates.
+#[derive(Clone, Debug)]
+struct ViewerSettings {
+    output: ViewerOutput,
+    format: Format,
+    normals: bool,
+    camera: Option<CameraSpec>,
+    lod: LodChoice,
+    image: ImageOptions,
+}
+
+#[derive(Debug)]
+struct Viewer {
+    settings: Mutex<ViewerSettings>,
+    outbox: Mutex<Outbox>,
+    ready: Notify,
+    /// A close the server asked for (the session ended), and its wake-up.
+    close: Mutex<Option<(u16, String)>>,
+    closing: Notify,
+    /// An image for this viewer is being rendered.
+    rendering: AtomicBool,
+}
+
+impl Viewer {
+    fn new(settings: ViewerSettings) -> Viewer {
+        Viewer {
+            settings: Mutex::new(settings),
+            outbox: Mutex::new(Outbox {
+                pending: None,
+                sent: Baseline {
+                    version: 0,
+                    layout_rev: u64::MAX,
+                    keys: Arc::new(Vec::new()),
+                },
+            }),
+            ready: Notify::new(),
+            close: Mutex::new(None),
+            closing: Notify::new(),
+            rendering: AtomicBool::new(false),
+        }
+    }
+
+    fn settings(&self) -> Option<ViewerSettings> {
+        self.settings.lock().ok().map(|s| s.clone())
+    }
+
+    fn ask_close(&self, code: u16, reason: &str) {
+        if let Ok(mut c) = self.close.lock() {
+            c.get_or_insert((code, reason.to_string()));
+        }
+        self.closing.notify_one();
+    }
+
+    fn close_asked(&self) -> Option<(u16, String)> {
+        self.close.lock().ok().and_then(|c| c.clone())
+    }
+}
+
+impl Session {
+    fn viewer_count(&self) -> usize {
+        self.inner.lock().map(|i| i.viewers.len()).unwrap_or(0)
+    }
+
+    /// Stops the tick task and closes every viewer.
+    fn stop(&self, code: u16, reason: &str) {
+        self.stopped.store(true, Ordering::Release);
+        self.stopping.notify_one();
+        let viewers = self
+            .inner
+            .lock()
+            .map(|i| i.viewers.clone())
+            .unwrap_or_default();
+        for v in viewers {
+            v.ask_close(code, reason);
+        }
+    }
+
+    fn info(&self) -> SessionInfo {
+        let (heads, viewers, tick, stats) = match self.inner.lock() {
+            Ok(i) => (
+                i.next_heads.as_ref().unwrap_or(&i.heads).as_ref().clone(),
+                i.viewers.len() as u32,
+                i.tick,
+                i.stats,
+            ),
+            Err(_) => (Vec::new(), 0, 0, SessionStats::default()),
+        };
+        SessionInfo {
+            id: self.id.clone(),
+            fps: self.fps,
+            wrap: self.wrap,
+            idle_timeout_s: self.idle_timeout_s,
+            tick,
+            heads,
+            viewers,
+            stats,
+        }
+    }
+
+    fn with_stats(&self, f: impl FnOnce(&mut SessionStats)) {
+        if let Ok(mut i) = self.inner.lock() {
+            f(&mut i.stats);
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Checking requests.
+
+fn invalid(message: String) -> ApiError {
+    ApiError::bad_request("invalid_session", message)
+}
+
+impl AppState {
+    /// Checks one head: its rig and clip exist, its placement is drawable.
+    fn check_session_head(&self, h: &SessionHead) -> Result<(), ApiError> {
+        let entry = self.rig(&h.rig).map_err(|e| ApiError {
+            message: format!("head {}: {}", h.head, e.message),
+            ..e
+        })?;
+        if entry.rig().clip_index(&h.clip).is_none() {
+            let names: Vec<&str> = entry.rig().clips.iter().map(|c| c.name.as_str()).collect();
+            return Err(ApiError::new(
+                StatusCode::NOT_FOUND,
+                "unknown_clip",
+                format!(
+                    "head {}: rig {:?} has no clip {:?} (clips: {})",
+                    h.head,
+                    h.rig,
+                    h.clip,
+                    names.join(", ")
+                ),
+            ));
+        }
+        scene::placement_matrix(&placement(h))
+            .map_err(|e| invalid(format!("head {}: {e}", h.head)))?;
+        Ok(())
+    }
+
+    fn check_head_count(&self, n: usize) -> Result<(), ApiError> {
+        let max = self.config.sessions.max_heads;
+        if n > max {
+            return Err(ApiError::new(
+                StatusCode::PAYLOAD_TOO_LARGE,
+                "too_many_heads",
+                format!(
+                    "{n} heads is more than the limit of {max} per session (--max-session-heads)"
+                ),
+            ));
+        }
+        Ok(())
+    }
+}
+
+fn placement(h: &SessionHead) -> Placement {
+    Placement {
+        head: h.head,
+        position: h.position,
+        yaw: h.yaw,
+        scale: h.scale,
+    }
+}
+
+/// The heads after a patch, checked; `Err` names the first problem.
+fn patched(
+    state: &AppState,
+    heads: &[SessionHead],
+    patch: SessionPatch,
+) -> Result<Vec<SessionHead>, ApiError> {
+    let mut out: Vec<SessionHead> = heads.to_vec();
+    for id in &patch.remove {
+        let before = out.len();
+        out.retain(|h| h.head != *id);
+        if out.len() == before {
+            return Err(unknown_head(*id));
+        }
+    }
+    for HeadChange {
+        head,
+        clip,
+        offset,
+        position,
+        yaw,
+        scale,
+    } in patch.change
+    {
+        let h = out
+            .iter_mut()
+            .find(|h| h.head == head)
+            .ok_or_else(|| unknown_head(head))?;
+        if let Some(c) = clip {
+            h.clip = c;
+        }
+        if let Some(o) = offset {
+            h.offset = o;
+        }
+        if let Some(p) = position {
+            h.position = p;
+        }
+        if let Some(y) = yaw {
+            h.yaw = y;
+        }
+        if let Some(s) = scale {
+            h.scale = s;
+        }
+        state.check_session_head(h)?;
+    }
+    state.check_head_count(out.len() + patch.add.len())?;
+    let mut ids: std::collections::HashSet<u64> = out.iter().map(|h| h.head).collect();
+    for h in patch.add {
+        if !ids.insert(h.head) {
+            return Err(ApiError::new(
+                StatusCode::CONFLICT,
+                "head_exists",
+                format!("the session already has a head {}", h.head),
+            ));
+        }
+        state.check_session_head(&h)?;
+        out.push(h);
+    }
+    Ok(out)
+}
+
+fn unknown_head(id: u64) -> ApiError {
+    ApiError::new(
+        StatusCode::NOT_FOUND,
+        "unknown_head",
+        format!("the session has no head {id}"),
+    )
+}
+
+// ---------------------------------------------------------------------------------------------
+// Handlers.
+
+pub(super) async fn create_session(
+    State(state): State<AppState>,
+    headers: HeaderMap,
+    body: Body,
+) -> ApiResult {
+    state.check_admin(&headers)?;
+    state.check_ready()?;
+    let req: SessionRequest = state.crowd_request(&headers, body).await?;
+    if !(req.fps > 0.0 && req.fps <= MAX_FPS) {
+        return Err(invalid(format!("fps {} is not in (0, {MAX_FPS}]", req.fps)));
+    }
+    if !(1..=MAX_IDLE_TIMEOUT_S).contains(&req.idle_timeout_s) {
+        return Err(invalid(format!(
+            "idle_timeout_s {} is not in 1..={MAX_IDLE_TIMEOUT_S}",
+            req.idle_timeout_s
+        )));
+    }
+    state.check_head_count(req.heads.len())?;
+    let mut ids = std::collections::HashSet::new();
+    for h in &req.heads {
+        if !ids.insert(h.head) {
+            return Err(invalid(format!("head id {} appears twice", h.head)));
+        }
+        state.check_session_head(h)?;
+    }
+    let n = state.sessions.next_id.fetch_add(1, Ordering::Relaxed) + 1;
+    let id = format!("s{n}");
+    let session = Arc::new(Session {
+        id: id.clone(),
+        fps: req.fps,
+        wrap: req.wrap,
+        idle_timeout_s: req.idle_timeout_s,
+        inner: Mutex::new(SessionInner {
+            heads: Arc::new(req.heads),
+            next_heads: None,
+            layout_rev: 0,
+            viewers: Vec::new(),
+            next_viewer: 0,
+            tick: 0,
+            stats: SessionStats::default(),
+            idle_since: Some(Instant::now()),
+        }),
+        stopping: Notify::new(),
+        stopped: AtomicBool::new(false),
+    });
+    {
+        let mut map = state
+            .sessions
+            .map
+            .lock()
+            .map_err(|_| ApiError::internal("session map poisoned"))?;
+        if map.len() >= state.config.sessions.max_sessions {
+            return Err(ApiError::unavailable(
+                "too_many_sessions",
+                format!(
+                    "{} sessions exist, the most this server keeps (--max-sessions); delete one",
+                    map.len()
+                ),
+                5,
+            ));
+        }
+        map.insert(id.clone(), session.clone());
+    }
+    tokio::spawn(run_session(session.clone(), Arc::downgrade(&state.0)));
+    tracing::info!(session = %id, heads = session.info().heads.len(), fps = req.fps, "session created");
+    respond(&headers, StatusCode::CREATED, &session.info())
+}
+
+pub(super) async fn list_sessions(State(state): State<AppState>, headers: HeaderMap) -> ApiResult {
+    let sessions = state.sessions.all().iter().map(|s| s.info()).collect();
+    respond(&headers, StatusCode::OK, &SessionList { sessions })
+}
+
+pub(super) async fn get_session(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> ApiResult {
+    let s = state.sessions.get(&id)?;
+    respond(&headers, StatusCode::OK, &s.info())
+}
+
+pub(super) async fn patch_session(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+    body: Body,
+) -> ApiResult {
+    state.check_admin(&headers)?;
+    let s = state.sessions.get(&id)?;
+    let patch: SessionPatch = state.crowd_request(&headers, body).await?;
+    // Checked against the heads as they will be, then swapped in under the lock (a patch that
+    // raced with another is checked again on the newer heads).
+    loop {
+        let base = {
+            let i = s
+                .inner
+                .lock()
+                .map_err(|_| ApiError::internal("session poisoned"))?;
+            i.next_heads.clone().unwrap_or_else(|| i.heads.clone())
+        };
+        let next = Arc::new(patched(&state, &base, patch.clone())?);
+        let mut i = s
+            .inner
+            .lock()
+            .map_err(|_| ApiError::internal("session poisoned"))?;
+        let now = i.next_heads.clone().unwrap_or_else(|| i.heads.clone());
+        if Arc::ptr_eq(&now, &base) {
+            i.next_heads = Some(next);
+            break;
+        }
+    }
+    respond(&headers, StatusCode::OK, &s.info())
+}
+
+pub(super) async fn delete_session(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> ApiResult {
+    state.check_admin(&headers)?;
+    let s = state.sessions.remove(&id).ok_or_else(|| {
+        ApiError::new(
+            StatusCode::NOT_FOUND,
+            "unknown_session",
+            format!("no session {id:?}"),
+        )
+    })?;
+    s.stop(close::AWAY, "session deleted");
+    tracing::info!(session = %id, "session deleted");
+    Ok(StatusCode::NO_CONTENT.into_response())
+}
+
+pub(super) async fn stream(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    ws: WebSocketUpgrade,
+) -> Result<Response, ApiError> {
+    let session = state.sessions.get(&id)?;
+    let metrics_owner = state.clone();
+    Ok(ws
+        .max_message_size(MAX_VIEWER_MESSAGE_BYTES)
+        .max_frame_size(MAX_VIEWER_MESSAGE_BYTES)
+        .on_upgrade(move |socket| async move {
+            serve_viewer(metrics_owner, session, socket).await;
+        }))
+}
+
+// ---------------------------------------------------------------------------------------------
+// Viewers.
+
+async fn close_with(socket: &mut WebSocket, code: u16, reason: &str) {
+    let frame = CloseFrame {
+        code,
+        reason: reason.into(),
+    };
+    let _ = tokio::time::timeout(CLOSE_TIMEOUT, socket.send(Message::Close(Some(frame)))).await;
+}
+
+/// Reads the hello; `Err` is the close code and reason.
+async fn read_hello(socket: &mut WebSocket) -> Result<ViewerSettings, (u16, String)> {
+    let msg = match tokio::time::timeout(HELLO_TIMEOUT, socket.recv()).await {
+        Err(_) => return Err((close::POLICY, "no hello within 10 s".into())),
+        Ok(None) => return Err((close::NORMAL, String::new())),
+        Ok(Some(Err(e))) => return Err(socket_error(&e)),
+        Ok(Some(Ok(m))) => m,
+    };
+    let text = match msg {
+        Message::Text(t) => t,
+        Message::Close(_) => return Err((close::NORMAL, String::new())),
+        _ => {
+            return Err((
+                close::POLICY,
+                "the first message must be a JSON hello (text)".into(),
+            ));
+        }
+    };
+    let hello: ViewerHello = parse_json(text.as_str(), "hello")?;
+    if let Some(c) = &hello.camera {
+        check_camera(c)?;
+    }
+    check_lod(&hello.lod)?;
+    let image = hello.image.unwrap_or(ImageOptions {
+        format: ImageFormat::Jpeg,
+        quality: 80,
+        ..ImageOptions::default()
+    });
+    crate::render::encode::check_image(&image, crowdmorph_proto::MAX_IMAGE_SIDE)
+        .map_err(|e| (close::POLICY, truncate(format!("bad image: {e}"))))?;
+    Ok(ViewerSettings {
+        output: hello.output,
+        format: hello.format,
+        normals: hello.normals,
+        camera: hello.camera,
+        lod: hello.lod,
+        image,
+    })
+}
+
+fn socket_error(e: &axum::Error) -> (u16, String) {
+    let text = e.to_string();
+    if text.contains("too long") || text.contains("Space limit") || text.contains("size") {
+        (
+            close::TOO_BIG,
+            format!("messages are limited to {MAX_VIEWER_MESSAGE_BYTES} bytes"),
+        )
+    } else {
+        (close::POLICY, truncate(text))
+    }
+}
+
+/// Close reasons are at most 123 bytes (RFC 6455 §5.5).
+fn truncate(mut s: String) -> String {
+    if s.len() > 123 {
+        let mut end = 120;
+        while !s.is_char_boundary(end) {
+            end -= 1;
+        }
+        s.truncate(end);
+        s.push_str("...");
+    }
+    s
+}
+
+fn parse_json<T: serde::de::DeserializeOwned>(text: &str, what: &str) -> Result<T, (u16, String)> {
+    let mut de = serde_json::Deserializer::from_str(text);
+    let value: T = serde_path_to_error::deserialize(&mut de).map_err(|e| {
+        let path = e.path().to_string();
+        (
+            close::POLICY,
+            truncate(format!("bad {what} at {path}: {}", e.into_inner())),
+        )
+    })?;
+    de.end()
+        .map_err(|e| (close::POLICY, truncate(format!("bad {what}: {e}"))))?;
+    Ok(value)
+}
+
+fn check_camera(c: &CameraSpec) -> Result<(), (u16, String)> {
+    scene::layout(&[], &[], None, Some(c), 1.0)
+        .map(|_| ())
+        .map_err(|e| (close::POLICY, truncate(format!("bad camera: {e}"))))
+}
+
+fn check_lod(l: &LodChoice) -> Result<(), (u16, String)> {
+    if let LodChoice::ByDistance { by_distance } = l {
+        if by_distance.len() > 64 {
+            return Err((close::POLICY, "bad lod: at most 64 distances".into()));
+        }
+        let mut last = f32::NEG_INFINITY;
+        for [m, level] in by_distance {
+            if !m.is_finite() || *m < last {
+                return Err((
+                    close::POLICY,
+                    "bad lod: distances must be finite and ascending".into(),
+                ));
+            }
+            if !(level.is_finite() && *level >= 0.0 && level.fract() == 0.0) {
+                return Err((
+                    close::POLICY,
+                    "bad lod: levels must be whole numbers ≥ 0".into(),
+                ));
+            }
+            last = *m;
+        }
+    }
+    Ok(())
+}
+
+/// Runs one viewer until it leaves, breaks a rule or the session ends.
+async fn serve_viewer(state: AppState, session: Arc<Session>, mut socket: WebSocket) {
+    let settings = match read_hello(&mut socket).await {
+        Ok(s) => s,
+        Err((code, reason)) => {
+            if code == close::POLICY || code == close::TOO_BIG {
+                bump(&state.sessions.metrics.viewers_closed_policy, 1);
+            }
+            close_with(&mut socket, code, &reason).await;
+            return;
+        }
+    };
+    if session.stopped.load(Ordering::Acquire) {
+        close_with(&mut socket, close::AWAY, "session ended").await;
+        return;
+    }
+    let viewer = Arc::new(Viewer::new(settings));
+    let admitted = {
+        let mut i = match session.inner.lock() {
+            Ok(i) => i,
+            Err(_) => return,
+        };
+        if i.viewers.len() >= state.config.sessions.max_viewers {
+            false
+        } else {
+            i.viewers.push(viewer.clone());
+            i.next_viewer += 1;
+            i.idle_since = None;
+            true
+        }
+    };
+    if !admitted {
+        bump(&state.sessions.metrics.viewers_refused, 1);
+        let reason = format!(
+            "the session has {} viewers, the most it takes (--max-session-viewers)",
+            state.config.sessions.max_viewers
+        );
+        close_with(&mut socket, close::AGAIN, &reason).await;
+        return;
+    }
+    let (code, reason) = viewer_loop(&state, &session, &viewer, &mut socket).await;
+    if let Ok(mut i) = session.inner.lock() {
+        i.viewers.retain(|v| !Arc::ptr_eq(v, &viewer));
+        if i.viewers.is_empty() {
+            i.idle_since = Some(Instant::now());
+        }
+    }
+    if code == close::POLICY || code == close::TOO_BIG {
+        bump(&state.sessions.metrics.viewers_closed_policy, 1);
+    }
+    if code != 0 {
+        close_with(&mut socket, code, &reason).await;
+    }
+}
+
+/// The viewer's socket loop: sends what its outbox gets, reads its updates. Returns the close
+/// to send (code 0: none, the socket is gone).
+async fn viewer_loop(
+    state: &AppState,
+    session: &Session,
+    viewer: &Viewer,
+    socket: &mut WebSocket,
+) -> (u16, String) {
+    let limit = state.config.sessions.max_viewer_messages.max(1);
+    let mut window = Instant::now();
+    let mut in_window = 0u32;
+    loop {
+        if let Some(c) = viewer.close_asked() {
+            return c;
+        }
+        tokio::select! {
+            () = viewer.closing.notified() => {}
+            () = viewer.ready.notified() => {
+                let out = match viewer.outbox.lock() {
+                    Ok(mut o) => o.pending.take().map(|p| {
+                        o.sent = p.after;
+                        p.message
+                    }),
+                    Err(_) => return (close::AWAY, "internal error".into()),
+                };
+                let Some(message) = out else { continue };
+                let len = message.bytes.len() as u64;
+                let send = socket.send(Message::Binary(message.bytes.clone()));
+                tokio::select! {
+                    r = send => if r.is_err() { return (0, String::new()) },
+                    () = viewer.closing.notified() => {
+                        return viewer.close_asked().unwrap_or((close::AWAY, String::new()));
+                    }
+                }
+                drop(message);
+                let m = &state.sessions.metrics;
+                bump(&m.sent, 1);
+                bump(&m.bytes_sent, len);
+                session.with_stats(|s| {
+                    s.messages_sent += 1;
+                    s.bytes_sent += len;
+                });
+            }
+            msg = socket.recv() => {
+                let msg = match msg {
+                    None => return (0, String::new()),
+                    Some(Err(e)) => return socket_error(&e),
+                    Some(Ok(m)) => m,
+                };
+                let now = Instant::now();
+                if now.duration_since(window) >= Duration::from_secs(1) {
+                    window = now;
+                    in_window = 0;
+                }
+                in_window += 1;
+                if in_window > limit {
+                    return (
+                        close::POLICY,
+                        format!("more than {limit} messages per second (--max-viewer-messages)"),
+                    );
+                }
+                match msg {
+                    Message::Text(t) => {
+                        let update: ViewerUpdate = match parse_json(t.as_str(), "update") {
+                            Ok(u) => u,
+                            Err(c) => return c,
+                        };
+                        if let Some(c) = &update.camera
+                            && let Err(c) = check_camera(c)
+                        {
+                            return c;
+                        }
+                        if let Some(l) = &update.lod
+                            && let Err(c) = check_lod(l)
+                        {
+                            return c;
+                        }
+                        if let Ok(mut s) = viewer.settings.lock() {
+                            if let Some(c) = update.camera {
+                                s.camera = Some(c);
+                            }
+                            if let Some(l) = update.lod {
+                                s.lod = l;
+                            }
+                        }
+                    }
+                    Message::Binary(_) => {
+                        return (close::POLICY, "viewer messages are JSON text".into());
+                    }
+                    Message::Close(_) => return (close::NORMAL, String::new()),
+                    Message::Ping(_) | Message::Pong(_) => {}
+                }
+            }
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// The tick.
+
+/// The tick task of one session.
+async fn run_session(session: Arc<Session>, app: Weak<Inner>) {
+    let period = Duration::from_secs_f64(1.0 / f64::from(session.fps));
+    let start = Instant::now();
+    let mut slot: u64 = 0;
+    loop {
+        let due = start + period.mul_f64(slot as f64);
+        tokio::select! {
+            () = tokio::time::sleep_until(due) => {}
+            () = session.stopping.notified() => {}
+        }
+        if session.stopped.load(Ordering::Acquire) {
+            break;
+        }
+        let Some(inner) = app.upgrade() else { break };
+        let state = AppState(inner);
+        let idle = session
+            .inner
+            .lock()
+            .ok()
+            .and_then(|i| i.idle_since)
+            .is_some_and(|t| t.elapsed() >= Duration::from_secs(u64::from(session.idle_timeout_s)));
+        if idle {
+            tracing::info!(session = %session.id, "session ended: no viewer for its idle timeout");
+            state.sessions.remove(&session.id);
+            session.stop(close::AWAY, "session ended (idle)");
+            break;
+        }
+        let tick = slot + 1;
+        let computed = tick_once(&state, &session, tick).await;
+        let done = Instant::now();
+        let next_due = start + period.mul_f64((slot + 1) as f64);
+        let m = &state.sessions.metrics;
+        let mut next = slot + 1;
+        if done > next_due {
+            // Ticks whose time passed while this one ran are skipped, not queued: the next is
+            // the latest whose time has come.
+            let behind = (done.duration_since(start).as_secs_f64() / period.as_secs_f64()) as u64;
+            if behind > next {
+                let skipped = behind - next;
+                bump(&m.ticks_skipped, skipped);
+                session.with_stats(|s| s.ticks_skipped += skipped);
+                next = behind;
+            }
+        }
+        match computed {
+            Ticked::Delivered => {
+                let late = done > next_due;
+                bump(&m.ticks, 1);
+                if late {
+                    bump(&m.ticks_late, 1);
+                }
+                session.with_stats(|s| {
+                    s.ticks += 1;
+                    s.ticks_late += u64::from(late);
+                });
+            }
+            Ticked::Skipped => {
+                bump(&m.ticks_skipped, 1);
+                session.with_stats(|s| s.ticks_skipped += 1);
+            }
+            Ticked::NoViewers => {}
+        }
+        slot = next;
+    }
+}
+
+enum Ticked {
+    Delivered,
+    Skipped,
+    NoViewers,
+}
+
+/// One head resolved for this tick.
+#[derive(Clone, Copy)]
+struct HeadAt {
+    rig: u32,
+    clip: u32,
+    frame: u32,
+    levels: u32,
+    f16_ok: bool,
+}
+
+/// The vertex viewers that share a format and normals: their jobs go to the batcher as one
+/// submission.
+struct Group {
+    format: Format,
+    normals: bool,
+    jobs: Vec<JobRequest>,
+    keys: Vec<(u32, u32, u32, u32)>,
+    index: HashMap<(u32, u32, u32, u32), u32>,
+}
+
+fn level_for(lod: &LodChoice, camera: Option<&CameraSpec>, position: [f32; 3]) -> u32 {
+    match lod {
+        LodChoice::Fixed(l) => *l,
+        LodChoice::ByDistance { by_distance } => {
+            let Some(c) = camera else {
+                return 0;
+            };
+            let d = Vec3::from(position).distance(Vec3::from(c.position));
+            by_distance
+                .iter()
+                .rev()
+                .find(|[m, _]| *m <= d)
+                .map_or(0, |[_, l]| *l as u32)
+        }
+    }
+}
+
+async fn tick_once(state: &AppState, session: &Arc<Session>, tick: u64) -> Ticked {
+    let arrived = std::time::Instant::now();
+    let (heads, layout_rev, viewers) = {
+        let Ok(mut i) = session.inner.lock() else {
+            return Ticked::Skipped;
+        };
+        if let Some(n) = i.next_heads.take() {
+            i.heads = n;
+            i.layout_rev += 1;
+        }
+        i.tick = tick;
+        (i.heads.clone(), i.layout_rev, i.viewers.clone())
+    };
+    if viewers.is_empty() {
+        return Ticked::NoViewers;
+    }
+
+    // Every head once: its rig at this tick's generation, clip and frame.
+    let mode = if session.wrap {
+        FrameMode::Wrap
+    } else {
+        FrameMode::Clamp
+    };
+    let mut rigs: Vec<Arc<RigEntry>> = Vec::new();
+    let mut rig_at: HashMap<&str, Option<u32>> = HashMap::new();
+    let at: Vec<Option<HeadAt>> = heads
+        .iter()
+        .map(|h| {
+            let ri = *rig_at.entry(h.rig.as_str()).or_insert_with(|| {
+                state.registry.get(&h.rig).map(|e| {
+                    rigs.push(e);
+                    (rigs.len() - 1) as u32
+                })
+            });
+            let ri = ri?;
+            let entry = &rigs[ri as usize];
+            let rig = entry.rig();
+            let ci = rig.clip_index(&h.clip)?;
+            let clip = &rig.clips[ci];
+            let elapsed = (tick - 1) as f64 * f64::from(clip.fps) / f64::from(session.fps);
+            let frame = clip
+                .resolve_frame(h.offset.saturating_add(elapsed as i64), mode)
+                .ok()?;
+            Some(HeadAt {
+                rig: ri,
+                clip: ci as u32,
+                frame,
+                levels: rig.lod.levels.len() as u32,
+                f16_ok: super::api::head_reach(entry) <= MAX_F16,
+            })
+        })
+        .collect();
+
+    // Each viewer's job per head, grouped by what its buffers hold.
+    let mut groups: Vec<Group> = Vec::new();
+    let mut plans: Vec<(Arc<Viewer>, usize, Vec<Option<u32>>)> = Vec::new();
+    let mut frames: Vec<(Arc<Viewer>, ViewerSettings)> = Vec::new();
+    for v in &viewers {
+        let Some(s) = v.settings() else { continue };
+        if s.output == ViewerOutput::Frames {
+            frames.push((v.clone(), s));
+            continue;
+        }
+        let g = match groups
+            .iter()
+            .position(|g| g.format == s.format && g.normals == s.normals)
+        {
+            Some(g) => g,
+            None => {
+                groups.push(Group {
+                    format: s.format,
+                    normals: s.normals,
+                    jobs: Vec::new(),
+                    keys: Vec::new(),
+                    index: HashMap::new(),
+                });
+                groups.len() - 1
+            }
+        };
+        let group = &mut groups[g];
+        let jobs: Vec<Option<u32>> = heads
+            .iter()
+            .zip(&at)
+            .map(|(h, a)| {
+                let a = (*a)?;
+                if group.format == Format::F16 && !a.f16_ok {
+                    return None;
+                }
+                let lod = level_for(&s.lod, s.camera.as_ref(), h.position).min(a.levels - 1);
+                let key = (a.rig, a.clip, a.frame, lod);
+                Some(*group.index.entry(key).or_insert_with(|| {
+                    group.keys.push(key);
+                    group
+                        .jobs
+                        .push(job_request(&rigs[a.rig as usize], a.clip, a.frame, lod));
+                    (group.jobs.len() - 1) as u32
+                }))
+            })
+            .collect();
+        plans.push((v.clone(), g, jobs));
+    }
+
+    // Images are drawn on the blocking pool, one at a time per viewer; they bypass the
+    // batcher, as `POST /v1/crowd/render` does.
+    for (v, s) in frames {
+        start_frame(state, session, &heads, &at, &rigs, tick, v, s);
+    }
+    if groups.iter().all(|g| g.jobs.is_empty()) && plans.is_empty() {
+        return Ticked::Delivered;
+    }
+
+    // The blended outputs count against the queue memory while the tick holds them.
+    let out_bytes: u64 = groups
+        .iter()
+        .flat_map(|g| {
+            let per = g.format.component_bytes() as u64 * if g.normals { 2 } else { 1 };
+            g.jobs.iter().map(move |j| {
+                let v = j.entry.prepared.at_level(j.lod).rig().vertex_count() as u64;
+                v * 3 * per
+            })
+        })
+        .sum();
+    let Ok(memory) = state.reserve_queue_memory(out_bytes) else {
+        return Ticked::Skipped;
+    };
+    let mut tickets = Vec::with_capacity(groups.len());
+    for g in &groups {
+        bump(&state.sessions.metrics.jobs, g.jobs.len() as u64);
+        session.with_stats(|s| s.jobs += g.jobs.len() as u64);
+        state
+            .metrics
+            .jobs_requested
+            .fetch_add(g.jobs.len() as u64, Ordering::Relaxed);
+        match state.scheduler.submit(g.jobs.clone(), g.format, g.normals) {
+            Ok(t) => tickets.push(t),
+            Err(ScheduleError::QueueFull) => {
+                state.metrics.reject("queue_full");
+                return Ticked::Skipped;
+            }
+            Err(_) => return Ticked::Skipped,
+        }
+    }
+    let mut outcomes = Vec::with_capacity(tickets.len());
+    for t in tickets {
+        match tokio::time::timeout(state.config.request_timeout, t).await {
+            Ok(Ok(Ok(o))) => outcomes.push(o),
+            _ => return Ticked::Skipped,
+        }
+    }
+
+    // Fan-out.
+    let mut cache: HashMap<(usize, bool, Vec<u32>), Arc<Encoded>> = HashMap::new();
+    for (v, g, jobs) in plans {
+        let group = &groups[g];
+        let outcome = &outcomes[g];
+        let keys: Arc<Vec<HeadKey>> = Arc::new(
+            jobs.iter()
+                .map(|j| match j {
+                    None => MISSING_KEY,
+                    Some(j) => {
+                        let (r, c, f, l) = group.keys[*j as usize];
+                        HeadKey {
+                            generation: rigs[r as usize].generation,
+                            clip: c,
+                            frame: f,
+                            lod: l,
+                        }
+                    }
+                })
+                .collect(),
+        );
+        // Retried when the viewer's socket took a message meanwhile: "unchanged" must refer
+        // to what it last received.
+        for _attempt in 0..4 {
+            let base = match v.outbox.lock() {
+                Ok(o) => o.sent.clone(),
+                Err(_) => break,
+            };
+            let with_layout = base.layout_rev != layout_rev || base.keys.len() != keys.len();
+            let entries: Vec<u32> = jobs
+                .iter()
+                .enumerate()
+                .map(|(i, j)| match j {
+                    _ if !with_layout && base.keys[i] == keys[i] => HEAD_UNCHANGED,
+                    None => HEAD_MISSING,
+                    Some(j) => *j,
+                })
+                .collect();
+            let cache_key = (g, with_layout, entries);
+            let message = match cache.get(&cache_key) {
+                Some(m) => m.clone(),
+                None => {
+                    let bytes = encode_vertices(
+                        tick,
+                        with_layout.then_some(heads.as_slice()),
+                        group,
+                        outcome,
+                        &rigs,
+                        &heads,
+                        &cache_key.2,
+                        arrived,
+                    );
+                    let Ok(permit) = state.reserve_queue_memory(bytes.len() as u64) else {
+                        bump(&state.sessions.metrics.dropped_memory, 1);
+                        session.with_stats(|s| s.messages_dropped += 1);
+                        break;
+                    };
+                    let m = Arc::new(Encoded {
+                        bytes,
+                        _memory: permit,
+                    });
+                    cache.insert(cache_key, m.clone());
+                    m
+                }
+            };
+            let Ok(mut o) = v.outbox.lock() else { break };
+            if o.sent.version != base.version {
+                continue;
+            }
+            if o.pending.is_some() {
+                bump(&state.sessions.metrics.dropped_slow, 1);
+                session.with_stats(|s| s.messages_dropped += 1);
+            }
+            o.pending = Some(Outgoing {
+                message,
+                after: Baseline {
+                    version: base.version + 1,
+                    layout_rev,
+                    keys: keys.clone(),
+                },
+            });
+            drop(o);
+            v.ready.notify_one();
+            break;
+        }
+    }
+    drop(memory);
+    Ticked::Delivered
+}
+
+/// Encodes a [`crowdmorph_proto::TickVertices`] stream message: the variant, the tick and the
+/// layout, then the same fields as a crowd-frame response, with payloads aligned to 16 bytes
+/// from the start of the message.
+#[allow(clippy::too_many_arguments)]
+fn encode_vertices(
+    tick: u64,
+    layout: Option<&[SessionHead]>,
+    group: &Group,
+    outcome: &super::scheduler::Outcome,
+    rigs: &[Arc<RigEntry>],
+    heads: &[SessionHead],
+    entries: &[u32],
+    arrived: std::time::Instant,
+) -> Bytes {
+    let mut prefix = Vec::with_capacity(64);
+    crate::codec::put_varint(&mut prefix, 0);
+    crate::codec::put_varint(&mut prefix, tick);
+    let middle = crate::codec::to_wire(&layout).unwrap_or_else(|_| vec![0]);
+    // Buffers in order of first appearance among the heads.
+    let mut local: HashMap<u32, u32> = HashMap::new();
+    let mut parts: Vec<FrameBufferParts<'_>> = Vec::new();
+    let head_buffers: Vec<HeadBuffer> = heads
+        .iter()
+        .zip(entries)
+        .map(|(h, &e)| {
+            let buffer = if e == HEAD_UNCHANGED || e == HEAD_MISSING {
+                e
+            } else {
+                *local.entry(e).or_insert_with(|| {
+                    let (r, c, f, l) = group.keys[e as usize];
+                    let entry = &rigs[r as usize];
+                    let out = &outcome.outputs[e as usize];
+                    parts.push(FrameBufferParts {
+                        rig: &entry.id,
+                        clip: &entry.rig().clips[c as usize].name,
+                        frame: f,
+                        lod: l,
+                        vertices: entry.prepared.at_level(l).rig().vertex_count() as u32,
+                        quantization: (group.format == Format::Q16).then_some(entry.qbox),
+                        positions: out.positions.clone(),
+                        normals: if group.normals {
+                            out.normals.clone()
+                        } else {
+                            None
+                        },
+                    });
+                    (parts.len() - 1) as u32
+                })
+            };
+            HeadBuffer {
+                head: h.head,
+                buffer,
+            }
+        })
+        .collect();
+    let timings = FrameTimings {
+        queue_us: outcome.queue.as_micros() as u64,
+        compute_us: outcome.compute_ns / 1000,
+        total_us: arrived.elapsed().as_micros() as u64,
+        gpu_us: outcome.gpu_ns.map(|g| g / 1000),
+    };
+    let chunks = FrameResponseEncoder::encode_within(
+        prefix,
+        &middle,
+        group.format,
+        group.normals,
+        &parts,
+        &head_buffers,
+        &timings,
+    );
+    let total: usize = chunks.iter().map(Bytes::len).sum();
+    let mut out = Vec::with_capacity(total);
+    for c in &chunks {
+        out.extend_from_slice(c);
+    }
+    Bytes::from(out)
+}
+
+/// Starts drawing this tick for a viewer that wants images, unless its previous image is
+/// still being drawn.
+#[allow(clippy::too_many_arguments)]
+fn start_frame(
+    state: &AppState,
+    session: &Arc<Session>,
+    heads: &[SessionHead],
+    at: &[Option<HeadAt>],
+    rigs: &[Arc<RigEntry>],
+    tick: u64,
+    viewer: Arc<Viewer>,
+    s: ViewerSettings,
+) {
+    if viewer.rendering.swap(true, Ordering::AcqRel) {
+        bump(&state.sessions.metrics.dropped_rendering, 1);
+        session.with_stats(|st| st.messages_dropped += 1);
+        return;
+    }
+    let mut req_heads = Vec::new();
+    let mut placements = Vec::new();
+    for (h, a) in heads.iter().zip(at) {
+        let Some(a) = a else { continue };
+        let entry = &rigs[a.rig as usize];
+        let lod = level_for(&s.lod, s.camera.as_ref(), h.position).min(a.levels - 1);
+        req_heads.push(crowdmorph_proto::Head {
+            head: h.head,
+            rig: entry.id.clone(),
+            clip: entry.rig().clips[a.clip as usize].name.clone(),
+            frame: i64::from(a.frame),
+            lod,
+        });
+        placements.push(placement(h));
+    }
+    let req = RenderRequest {
+        heads: req_heads,
+        wrap: true,
+        placements: Some(placements),
+        camera: s.camera,
+        image: Some(s.image),
+    };
+    let state = state.clone();
+    let session = session.clone();
+    tokio::spawn(async move {
+        let rendered = state.render_for_session(req).await;
+        let delivered = match rendered {
+            Ok((image, width, height, format)) => {
+                let message = crowdmorph_proto::StreamMessage::Frame(crowdmorph_proto::TickFrame {
+                    tick,
+                    format,
+                    width,
+                    height,
+                    image: crowdmorph_proto::Blob(image),
+                });
+                match crate::codec::to_wire(&message) {
+                    Ok(bytes) => match state.reserve_queue_memory(bytes.len() as u64) {
+                        Ok(permit) => Some(Arc::new(Encoded {
+                            bytes: Bytes::from(bytes),
+                            _memory: permit,
+                        })),
+                        Err(_) => {
+                            bump(&state.sessions.metrics.dropped_memory, 1);
+                            None
+                        }
+                    },
+                    Err(_) => None,
+                }
+            }
+            Err(e) => {
+                tracing::debug!(error = %e.message, "session frame not drawn");
+                None
+            }
+        };
+        if let Some(message) = delivered
+            && let Ok(mut o) = viewer.outbox.lock()
+        {
+            if o.pending.is_some() {
+                bump(&state.sessions.metrics.dropped_slow, 1);
+                session.with_stats(|st| st.messages_dropped += 1);
+            }
+            let after = Baseline {
+                version: o.sent.version + 1,
+                layout_rev: u64::MAX,
+                keys: Arc::new(Vec::new()),
+            };
+            o.pending = Some(Outgoing { message, after });
+            drop(o);
+            viewer.ready.notify_one();
+        }
+        viewer.rendering.store(false, Ordering::Release);
+    });
+}

@@ -1,0 +1,787 @@
+//! Crowd sessions over real sockets: the REST side (`/v1/sessions`) and the WebSocket stream.
+//! Viewers are tokio-tungstenite clients that decode each binary message with the proto crate
+//! and keep every head's vertices as a viewer would (applying "unchanged" and layouts), so the
+//! tests check what a viewer ends up drawing, not just message counts.
+
+use std::collections::HashMap;
+use std::time::Duration;
+
+use bytes::Bytes;
+use crowdmorph::server::ServerConfig;
+use crowdmorph::server::sessions::SessionLimits;
+use crowdmorph_client::Method;
+use crowdmorph_proto::{
+    CrowdFrameRequest, Format, HEAD_MISSING, HEAD_UNCHANGED, Head, OutputOptions, SessionInfo,
+    StreamMessage, TickVertices,
+};
+use futures_util::{SinkExt, StreamExt};
+use serde_json::{Value, json};
+use tokio_tungstenite::tungstenite::Message;
+
+use super::{TestServer, positions_f32};
+
+type Ws =
+    tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>>;
+
+const READ: Duration = Duration::from_secs(20);
+
+async fn call(server: &TestServer, method: Method, path: &str, body: Value) -> (u16, Value) {
+    let bytes = if body.is_null() {
+        Bytes::new()
+    } else {
+        Bytes::from(body.to_string())
+    };
+    let ct = (!body.is_null()).then_some("application/json");
+    let reply = server
+        .client
+        .send(method, path, ct, None, bytes)
+        .await
+        .expect("request");
+    let value = if reply.body.is_empty() {
+        Value::Null
+    } else {
+        serde_json::from_slice(&reply.body).expect("JSON body")
+    };
+    (reply.status, value)
+}
+
+async fn create(server: &TestServer, body: Value) -> SessionInfo {
+    let (status, v) = call(server, Method::POST, "/v1/sessions", body).await;
+    assert_eq!(status, 201, "{v}");
+    serde_json::from_value(v).expect("SessionInfo")
+}
+
+async fn info(server: &TestServer, id: &str) -> SessionInfo {
+    let (status, v) = call(
+        server,
+        Method::GET,
+        &format!("/v1/sessions/{id}"),
+        Value::Null,
+    )
+    .await;
+    assert_eq!(status, 200, "{v}");
+    serde_json::from_value(v).expect("SessionInfo")
+}
+
+fn head(id: u64, clip: &str, offset: i64, position: [f32; 3]) -> Value {
+    json!({"head": id, "rig": "default-head", "clip": clip, "offset": offset, "position": position})
+}
+
+async fn connect(server: &TestServer, id: &str, hello: Value) -> Ws {
+    let url = format!("ws://{}/v1/sessions/{id}/stream", server.addr);
+    let (mut ws, _) = tokio_tungstenite::connect_async(url)
+        .await
+        .expect("connect");
+    ws.send(Message::text(hello.to_string()))
+        .await
+        .expect("hello");
+    ws
+}
+
+/// The next tick message; panics on a close or a timeout.
+async fn next_tick(ws: &mut Ws) -> TickVertices {
+    loop {
+        let msg = tokio::time::timeout(READ, ws.next())
+            .await
+            .expect("a tick within the timeout")
+            .expect("stream open")
+            .expect("message");
+        match msg {
+            Message::Binary(b) => {
+                let m: StreamMessage =
+                    crowdmorph_proto::wire::response_from_bincode(&b).expect("StreamMessage");
+                match m {
+                    StreamMessage::Vertices(v) => return v,
+                    StreamMessage::Frame(_) => panic!("asked for vertices, got a frame"),
+                }
+            }
+            Message::Close(c) => panic!("closed: {c:?}"),
+            _ => {}
+        }
+    }
+}
+
+/// The close frame the server sends next (skipping data messages).
+async fn next_close(ws: &mut Ws) -> (u16, String) {
+    loop {
+        let msg = tokio::time::timeout(READ, ws.next())
+            .await
+            .expect("a close within the timeout");
+        match msg {
+            Some(Ok(Message::Close(Some(c)))) => return (u16::from(c.code), c.reason.to_string()),
+            Some(Ok(Message::Close(None))) | None => return (0, String::new()),
+            Some(Ok(_)) => {}
+            Some(Err(e)) => panic!("stream error before a close: {e}"),
+        }
+    }
+}
+
+/// What a viewer draws: each head's positions, as f32, after applying messages in order.
+#[derive(Default)]
+struct View {
+    layout: Vec<u64>,
+    heads: HashMap<u64, Vec<f32>>,
+    lods: HashMap<u64, u32>,
+}
+
+impl View {
+    fn apply(&mut self, t: &TickVertices) {
+        if let Some(l) = &t.layout {
+            self.layout = l.iter().map(|h| h.head).collect();
+        }
+        assert_eq!(
+            t.heads.len(),
+            self.layout.len(),
+            "one entry per layout head"
+        );
+        for (h, id) in t.heads.iter().zip(&self.layout) {
+            assert_eq!(h.head, *id, "heads in layout order");
+            match h.buffer {
+                HEAD_UNCHANGED => assert!(
+                    self.heads.contains_key(id),
+                    "head {id} unchanged before it had a buffer"
+                ),
+                HEAD_MISSING => {
+                    self.heads.remove(id);
+                }
+                b => {
+                    let buf = &t.buffers[b as usize];
+                    self.heads.insert(*id, positions_f32(t.format, buf));
+                    self.lods.insert(*id, buf.lod);
+                }
+            }
+        }
+    }
+}
+
+fn config() -> ServerConfig {
+    ServerConfig::default()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn two_viewers_with_different_cameras_get_the_same_vertices_for_shared_jobs() {
+    let server = TestServer::start(config()).await;
+    let rig = server.client.rig("default-head").await.expect("rig");
+    let talk_fps = rig
+        .clips
+        .iter()
+        .find(|c| c.name == "talk")
+        .expect("talk")
+        .fps;
+    // Six heads, three of them clones of others (same clip and offset): four blends a tick.
+    let s = create(
+        &server,
+        json!({"fps": 15, "heads": [
+            head(1, "talk", 0, [0.0, 0.0, 0.0]), head(2, "talk", 0, [1.0, 0.0, 0.0]),
+            head(3, "smile", 7, [2.0, 0.0, 0.0]), head(4, "smile", 7, [3.0, 0.0, 0.0]),
+            head(5, "talk", 3, [4.0, 0.0, 0.0]), head(6, "surprise", 0, [5.0, 0.0, 0.0])]}),
+    )
+    .await;
+    let cam_a = json!({"position": [0, 0, 5], "target": [0, 0, 0]});
+    let cam_b = json!({"position": [8, 3, -4], "target": [2, 0, 0], "fov_y": 50});
+    let mut a = connect(&server, &s.id, json!({"format": "f32", "camera": cam_a})).await;
+    let mut b = connect(&server, &s.id, json!({"format": "f32", "camera": cam_b})).await;
+    let (mut va, mut vb) = (View::default(), View::default());
+    let mut by_tick_a: HashMap<u64, HashMap<u64, Vec<f32>>> = HashMap::new();
+    let mut by_tick_b: HashMap<u64, HashMap<u64, Vec<f32>>> = HashMap::new();
+    for _ in 0..12 {
+        let ta = next_tick(&mut a).await;
+        va.apply(&ta);
+        by_tick_a.insert(ta.tick, va.heads.clone());
+        let tb = next_tick(&mut b).await;
+        vb.apply(&tb);
+        by_tick_b.insert(tb.tick, vb.heads.clone());
+    }
+    let common: Vec<u64> = by_tick_a
+        .keys()
+        .filter(|t| by_tick_b.contains_key(t))
+        .copied()
+        .collect();
+    assert!(
+        common.len() >= 6,
+        "the viewers saw the same ticks: {common:?}"
+    );
+    for t in &common {
+        assert_eq!(
+            by_tick_a[t], by_tick_b[t],
+            "tick {t}: both viewers draw the same vertices"
+        );
+    }
+    // Clones share their blend: heads 1 and 2, 3 and 4 have identical vertices.
+    let last = &by_tick_a[common.iter().max().expect("a tick")];
+    assert_eq!(last[&1], last[&2]);
+    assert_eq!(last[&3], last[&4]);
+    assert_ne!(last[&1], last[&5], "offset 3 plays another frame");
+
+    // The vertices are what a crowd-frame request for the same frame gets.
+    let t = *common.iter().max().expect("a tick");
+    let frame = |offset: i64| offset + (((t - 1) as f64) * f64::from(talk_fps) / 15.0) as i64;
+    let req = CrowdFrameRequest {
+        heads: vec![
+            Head {
+                head: 1,
+                rig: "default-head".into(),
+                clip: "talk".into(),
+                frame: frame(0),
+                lod: 0,
+            },
+            Head {
+                head: 5,
+                rig: "default-head".into(),
+                clip: "talk".into(),
+                frame: frame(3),
+                lod: 0,
+            },
+        ],
+        output: OutputOptions {
+            normals: false,
+            format: Format::F32,
+        },
+        wrap: true,
+    };
+    let (resp, _) = server
+        .client
+        .crowd_frame(&req, crowdmorph_client::Encoding::Bincode)
+        .await
+        .expect("crowd frame");
+    assert_eq!(
+        by_tick_a[&t][&1],
+        positions_f32(Format::F32, &resp.buffers[0])
+    );
+    assert_eq!(
+        by_tick_a[&t][&5],
+        positions_f32(Format::F32, &resp.buffers[resp.heads[1].buffer as usize])
+    );
+
+    // Two viewers at the same LOD cost one blend per unique job: 4 a tick, not 8.
+    drop(a);
+    drop(b);
+    let i = info(&server, &s.id).await;
+    assert!(i.stats.ticks >= 12, "{:?}", i.stats);
+    assert!(
+        i.stats.jobs <= 4 * i.stats.ticks,
+        "jobs per tick are shared by viewers: {:?}",
+        i.stats
+    );
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn heads_whose_frame_did_not_change_are_sent_as_unchanged() {
+    let server = TestServer::start(config()).await;
+    let rig = server.client.rig("default-head").await.expect("rig");
+    let fps = rig
+        .clips
+        .iter()
+        .find(|c| c.name == "idle")
+        .expect("idle")
+        .fps;
+    // Ticks at twice the clip's rate: every clip frame lasts two ticks.
+    let s = create(
+        &server,
+        json!({"fps": 2.0 * fps, "heads": [head(1, "idle", 0, [0.0, 0.0, 0.0]), head(2, "idle", 0, [1.0, 0.0, 0.0])]}),
+    )
+    .await;
+    let mut ws = connect(&server, &s.id, json!({"format": "q16"})).await;
+    let first = next_tick(&mut ws).await;
+    assert!(
+        first.layout.is_some(),
+        "the first message carries the layout"
+    );
+    assert_eq!(first.buffers.len(), 1, "two clones, one buffer");
+    let mut unchanged = 0;
+    let mut changed = 0;
+    let mut prev = first.tick;
+    for _ in 0..10 {
+        let t = next_tick(&mut ws).await;
+        assert!(t.layout.is_none(), "the layout did not change");
+        assert!(t.tick > prev);
+        if t.tick == prev + 1 {
+            if t.heads.iter().all(|h| h.buffer == HEAD_UNCHANGED) {
+                assert!(t.buffers.is_empty());
+                unchanged += 1;
+            } else {
+                changed += 1;
+            }
+        }
+        prev = t.tick;
+    }
+    assert!(
+        unchanged >= 2 && changed >= 2,
+        "unchanged {unchanged}, changed {changed}"
+    );
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn lod_by_distance_gives_far_heads_fewer_shapes() {
+    let server = TestServer::start(config()).await;
+    let rig = server.client.rig("default-head").await.expect("rig");
+    assert!(rig.lod.levels.len() >= 3, "the embedded rig has LOD levels");
+    let s = create(
+        &server,
+        json!({"heads": [head(1, "talk", 0, [0.0, 0.0, 0.0]), head(2, "talk", 0, [0.0, 0.0, -30.0]),
+                         head(3, "talk", 0, [0.0, 0.0, -300.0])]}),
+    )
+    .await;
+    let hello = json!({"format": "f16",
+        "camera": {"position": [0, 0, 5], "target": [0, 0, 0]},
+        "lod": {"by_distance": [[0, 0], [20, 1], [100, 99]]}});
+    let mut ws = connect(&server, &s.id, hello).await;
+    let mut v = View::default();
+    v.apply(&next_tick(&mut ws).await);
+    let last = rig.lod.levels.len() as u32 - 1;
+    assert_eq!(v.lods[&1], 0);
+    assert_eq!(v.lods[&2], 1);
+    assert_eq!(v.lods[&3], last, "levels past the rig's last are clamped");
+    assert!(rig.lod.levels[1].shapes < rig.lod.levels[0].shapes);
+    // Moving the camera next to the far head swaps the levels from the next tick on.
+    ws.send(Message::text(
+        json!({"camera": {"position": [0, 0, -295], "target": [0, 0, -300]}}).to_string(),
+    ))
+    .await
+    .expect("update");
+    let mut swapped = false;
+    for _ in 0..20 {
+        v.apply(&next_tick(&mut ws).await);
+        if v.lods[&3] == 0 && v.lods[&1] == last {
+            swapped = true;
+            break;
+        }
+    }
+    assert!(swapped, "levels follow the camera: {:?}", v.lods);
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stalled_viewer_costs_another_almost_nothing_and_memory_stays_bounded() {
+    let server = TestServer::start(config()).await;
+    // Many unique heads with normals in f32: messages big enough to fill the stalled
+    // viewer's socket buffers within a few seconds.
+    let heads: Vec<Value> = (0..24)
+        .map(|i| {
+            let clip = ["idle", "talk", "smile", "surprise"][i % 4];
+            head(i as u64, clip, (i * 5) as i64, [i as f32, 0.0, 0.0])
+        })
+        .collect();
+    let s = create(&server, json!({"fps": 30, "heads": heads})).await;
+    let hello = json!({"format": "f32", "normals": true});
+    // The stalled viewer sends its hello and never reads again.
+    let stalled = connect(&server, &s.id, hello.clone()).await;
+    let mut good = connect(&server, &s.id, hello).await;
+    let mut v = View::default();
+    let first = next_tick(&mut good).await;
+    v.apply(&first);
+    let before = info(&server, &s.id).await.stats;
+    let started = std::time::Instant::now();
+    let mut delivered = 0u64;
+    let mut last_tick = first.tick;
+    while started.elapsed() < Duration::from_secs(10) {
+        let t = next_tick(&mut good).await;
+        v.apply(&t);
+        assert!(t.tick > last_tick);
+        last_tick = t.tick;
+        delivered += 1;
+    }
+    let after = info(&server, &s.id).await.stats;
+    let computed = after.ticks - before.ticks;
+    assert!(computed >= 30, "the session ticked: {after:?}");
+    // Ticks computed in the window that the good viewer did not get (allowing the one in
+    // flight at each end).
+    let missed = computed.saturating_sub(delivered + 2);
+    assert!(
+        (missed as f64) < 0.05 * computed as f64,
+        "the good viewer got {delivered} of {computed} ticks ({after:?})"
+    );
+    assert!(
+        after.messages_dropped > before.messages_dropped,
+        "the stalled viewer's outbox replaced messages it could not send: {after:?}"
+    );
+    // What the server holds for the viewers is bounded: at most a queued and an in-flight
+    // message each (plus the tick being computed), far below what 10 s of ticks would be.
+    let page = server.client.metrics().await.expect("metrics");
+    let held = crowdmorph_client::metric(&page, "crowdmorph_queue_memory_bytes").expect("gauge");
+    let message = 24.0 * 2.0 * 3.0 * 4.0 * first_vertex_count(&first) as f64;
+    assert!(
+        held <= 6.0 * message + (1 << 20) as f64,
+        "queue memory {held} bytes with messages of about {message}"
+    );
+    drop(stalled);
+    server.stop().await;
+}
+
+fn first_vertex_count(t: &TickVertices) -> u32 {
+    t.buffers.first().map_or(0, |b| b.vertices)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn idle_sessions_end() {
+    let server = TestServer::start(config()).await;
+    let s = create(
+        &server,
+        json!({"fps": 20, "idle_timeout_s": 1, "heads": [head(1, "talk", 0, [0.0, 0.0, 0.0])]}),
+    )
+    .await;
+    // A viewer keeps it alive; after it leaves, the session ends within its timeout.
+    let mut ws = connect(&server, &s.id, json!({})).await;
+    for _ in 0..30 {
+        next_tick(&mut ws).await;
+    }
+    assert_eq!(info(&server, &s.id).await.viewers, 1);
+    ws.close(None).await.expect("close");
+    drop(ws);
+    let mut gone = false;
+    for _ in 0..60 {
+        tokio::time::sleep(Duration::from_millis(100)).await;
+        let (status, _) = call(
+            &server,
+            Method::GET,
+            &format!("/v1/sessions/{}", s.id),
+            Value::Null,
+        )
+        .await;
+        if status == 404 {
+            gone = true;
+            break;
+        }
+    }
+    assert!(gone, "the idle session ended");
+    let page = server.client.metrics().await.expect("metrics");
+    assert_eq!(
+        crowdmorph_client::metric(&page, "crowdmorph_sessions"),
+        Some(0.0)
+    );
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_hellos_and_updates_close_with_1008_and_a_reason() {
+    let server = TestServer::start(config()).await;
+    let s = create(
+        &server,
+        json!({"heads": [head(1, "talk", 0, [0.0, 0.0, 0.0])]}),
+    )
+    .await;
+    let url = format!("ws://{}/v1/sessions/{}/stream", server.addr, s.id);
+    let cases: Vec<(Message, &str)> = vec![
+        (Message::text("hello?"), "bad hello"),
+        (Message::text(r#"{"format": "f64"}"#), "format"),
+        (Message::text(r#"{"zoom": 2}"#), "zoom"),
+        (
+            Message::text(r#"{"camera": {"position": [0,0,1], "target": [0,0,1]}}"#),
+            "camera",
+        ),
+        (
+            Message::text(r#"{"lod": {"by_distance": [[10, 1], [5, 2]]}}"#),
+            "ascending",
+        ),
+        (Message::binary(vec![1u8, 2, 3]), "JSON hello"),
+    ];
+    for (msg, expect) in cases {
+        let (mut ws, _) = tokio_tungstenite::connect_async(&url)
+            .await
+            .expect("connect");
+        ws.send(msg).await.expect("send");
+        let (code, reason) = next_close(&mut ws).await;
+        assert_eq!(code, 1008, "{expect}: {reason}");
+        assert!(reason.contains(expect), "{reason:?} names {expect:?}");
+    }
+    // An update after a good hello is checked the same way.
+    let mut ws = connect(&server, &s.id, json!({})).await;
+    next_tick(&mut ws).await;
+    ws.send(Message::text(r#"{"lod": -1}"#))
+        .await
+        .expect("send");
+    let (code, reason) = next_close(&mut ws).await;
+    assert_eq!(code, 1008, "{reason}");
+    assert!(reason.contains("update"), "{reason}");
+    // A message over 64 KiB is 1009.
+    let (mut ws, _) = tokio_tungstenite::connect_async(&url)
+        .await
+        .expect("connect");
+    ws.send(Message::text(" ".repeat(70_000)))
+        .await
+        .expect("send");
+    let (code, _) = next_close(&mut ws).await;
+    assert_eq!(code, 1009);
+    let page = server.client.metrics().await.expect("metrics");
+    assert!(
+        crowdmorph_client::metric(
+            &page,
+            "crowdmorph_session_viewers_closed_total{reason=\"policy\"}"
+        )
+        .unwrap_or(0.0)
+            >= 8.0
+    );
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn deleting_a_session_closes_its_viewers_cleanly() {
+    let server = TestServer::start(config()).await;
+    let s = create(
+        &server,
+        json!({"heads": [head(1, "talk", 0, [0.0, 0.0, 0.0])]}),
+    )
+    .await;
+    let mut a = connect(&server, &s.id, json!({})).await;
+    let mut b = connect(&server, &s.id, json!({"format": "q16"})).await;
+    next_tick(&mut a).await;
+    next_tick(&mut b).await;
+    let (status, _) = call(
+        &server,
+        Method::DELETE,
+        &format!("/v1/sessions/{}", s.id),
+        Value::Null,
+    )
+    .await;
+    assert_eq!(status, 204);
+    for ws in [&mut a, &mut b] {
+        let (code, reason) = next_close(ws).await;
+        assert_eq!((code, reason.as_str()), (1001, "session deleted"));
+    }
+    let (status, v) = call(
+        &server,
+        Method::GET,
+        &format!("/v1/sessions/{}", s.id),
+        Value::Null,
+    )
+    .await;
+    assert_eq!(status, 404);
+    assert_eq!(v["error"]["code"], "unknown_session");
+    let (status, _) = call(
+        &server,
+        Method::DELETE,
+        &format!("/v1/sessions/{}", s.id),
+        Value::Null,
+    )
+    .await;
+    assert_eq!(status, 404);
+    // A stream request for it is a plain 404 before any upgrade.
+    let url = format!("ws://{}/v1/sessions/{}/stream", server.addr, s.id);
+    assert!(tokio_tungstenite::connect_async(url).await.is_err());
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn patches_apply_at_the_next_tick_and_bad_ones_are_refused() {
+    let server = TestServer::start(ServerConfig {
+        sessions: SessionLimits {
+            max_heads: 4,
+            max_sessions: 2,
+            max_viewers: 1,
+            ..SessionLimits::default()
+        },
+        ..config()
+    })
+    .await;
+    let s = create(&server, json!({"heads": [head(1, "talk", 0, [0.0, 0.0, 0.0]), head(2, "smile", 0, [1.0, 0.0, 0.0])]})).await;
+    let path = format!("/v1/sessions/{}", s.id);
+    let mut ws = connect(&server, &s.id, json!({})).await;
+    let mut v = View::default();
+    v.apply(&next_tick(&mut ws).await);
+    assert_eq!(v.layout, vec![1, 2]);
+
+    let (status, body) = call(
+        &server,
+        Method::PATCH,
+        &path,
+        json!({"remove": [1], "change": [{"head": 2, "clip": "surprise", "yaw": 90}],
+               "add": [head(9, "idle", 4, [0.0, 0.0, 2.0])]}),
+    )
+    .await;
+    assert_eq!(status, 200, "{body}");
+    assert_eq!(body["heads"].as_array().map(Vec::len), Some(2));
+    let mut relaid = false;
+    for _ in 0..10 {
+        let t = next_tick(&mut ws).await;
+        if let Some(l) = &t.layout {
+            assert_eq!(l.iter().map(|h| h.head).collect::<Vec<_>>(), vec![2, 9]);
+            assert_eq!(l[0].clip, "surprise");
+            assert_eq!(l[0].yaw, 90.0);
+            relaid = true;
+        }
+        v.apply(&t);
+        if relaid {
+            break;
+        }
+    }
+    assert!(relaid, "a message carried the new layout");
+    assert!(v.heads.contains_key(&9));
+
+    // Refusals, each naming the problem.
+    let cases = [
+        (json!({"remove": [77]}), 404, "unknown_head"),
+        (
+            json!({"change": [{"head": 77, "yaw": 1}]}),
+            404,
+            "unknown_head",
+        ),
+        (
+            json!({"add": [head(2, "talk", 0, [0.0, 0.0, 0.0])]}),
+            409,
+            "head_exists",
+        ),
+        (
+            json!({"add": [{"head": 5, "rig": "default-head", "clip": "nope"}]}),
+            404,
+            "unknown_clip",
+        ),
+        (
+            json!({"add": [{"head": 5, "rig": "nope", "clip": "talk"}]}),
+            404,
+            "unknown_rig",
+        ),
+        (
+            json!({"change": [{"head": 2, "scale": 0}]}),
+            400,
+            "invalid_session",
+        ),
+        (
+            json!({"add": [head(5, "talk", 0, [0.0, 0.0, 0.0]), head(6, "talk", 0, [0.0, 0.0, 0.0]),
+                        head(7, "talk", 0, [0.0, 0.0, 0.0])]}),
+            413,
+            "too_many_heads",
+        ),
+        (json!({"add": 3}), 400, "malformed_json"),
+    ];
+    for (patch, status, code) in cases {
+        let (st, body) = call(&server, Method::PATCH, &path, patch.clone()).await;
+        assert_eq!(
+            (st, body["error"]["code"].as_str()),
+            (status, Some(code)),
+            "{patch}: {body}"
+        );
+    }
+    for (req, status, code) in [
+        (json!({"fps": 0, "heads": []}), 400, "invalid_session"),
+        (json!({"fps": 500, "heads": []}), 400, "invalid_session"),
+        (
+            json!({"idle_timeout_s": 0, "heads": []}),
+            400,
+            "invalid_session",
+        ),
+        (
+            json!({"heads": [head(1, "talk", 0, [0.0, 0.0, 0.0]), head(1, "talk", 0, [0.0, 0.0, 0.0])]}),
+            400,
+            "invalid_session",
+        ),
+        (
+            json!({"heads": [{"head": 1, "rig": "default-head", "clip": "talk", "position": [0, 1e39, 0]}]}),
+            400,
+            "invalid_session",
+        ),
+        (
+            json!({"heads": [{"head": 1, "rig": "x", "clip": "talk"}]}),
+            404,
+            "unknown_rig",
+        ),
+    ] {
+        let (st, body) = call(&server, Method::POST, "/v1/sessions", req.clone()).await;
+        assert_eq!(
+            (st, body["error"]["code"].as_str()),
+            (status, Some(code)),
+            "{req}: {body}"
+        );
+    }
+    // A second viewer is one too many (max 1): 1013 with the reason.
+    let mut extra = connect(&server, &s.id, json!({})).await;
+    let (code, reason) = next_close(&mut extra).await;
+    assert_eq!(code, 1013);
+    assert!(reason.contains("--max-session-viewers"), "{reason}");
+    // Two sessions exist at most.
+    create(&server, json!({"heads": []})).await;
+    let (st, body) = call(&server, Method::POST, "/v1/sessions", json!({"heads": []})).await;
+    assert_eq!(
+        (st, body["error"]["code"].as_str()),
+        (503, Some("too_many_sessions"))
+    );
+    let (st, body) = call(&server, Method::GET, "/v1/sessions", Value::Null).await;
+    assert_eq!(st, 200);
+    assert_eq!(body["sessions"].as_array().map(Vec::len), Some(2));
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn session_changes_need_the_admin_token_and_streams_do_not() {
+    let server = TestServer::start(ServerConfig {
+        admin_token: Some("sesame".into()),
+        ..config()
+    })
+    .await;
+    let body = json!({"heads": [head(1, "talk", 0, [0.0, 0.0, 0.0])]});
+    let (st, v) = call(&server, Method::POST, "/v1/sessions", body.clone()).await;
+    assert_eq!(
+        (st, v["error"]["code"].as_str()),
+        (401, Some("token_required"))
+    );
+    let admin = server.client.clone().with_token("sesame");
+    let reply = admin
+        .send(
+            Method::POST,
+            "/v1/sessions",
+            Some("application/json"),
+            None,
+            Bytes::from(body.to_string()),
+        )
+        .await
+        .expect("create");
+    assert_eq!(reply.status, 201);
+    let s: SessionInfo = serde_json::from_slice(&reply.body).expect("info");
+    let path = format!("/v1/sessions/{}", s.id);
+    let (st, _) = call(&server, Method::PATCH, &path, json!({"remove": [1]})).await;
+    assert_eq!(st, 401);
+    let (st, _) = call(&server, Method::DELETE, &path, Value::Null).await;
+    assert_eq!(st, 401);
+    // Reading and watching need no token.
+    assert_eq!(info(&server, &s.id).await.heads.len(), 1);
+    let mut ws = connect(&server, &s.id, json!({})).await;
+    next_tick(&mut ws).await;
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+async fn a_viewer_that_asks_for_frames_gets_images() {
+    let server = TestServer::start(config()).await;
+    let s = create(&server, json!({"fps": 10, "heads": [head(1, "talk", 0, [0.0, 0.0, 0.0]), head(2, "smile", 0, [0.3, 0.0, 0.0])]})).await;
+    // No camera: the front view framing every head.
+    let hello =
+        json!({"output": "frames", "image": {"width": 160, "height": 120, "format": "png"}});
+    let mut ws = connect(&server, &s.id, hello).await;
+    let mut ticks = Vec::new();
+    while ticks.len() < 3 {
+        let msg = tokio::time::timeout(READ, ws.next())
+            .await
+            .expect("a frame")
+            .expect("open")
+            .expect("message");
+        if let Message::Binary(b) = msg {
+            let m: StreamMessage =
+                crowdmorph_proto::wire::response_from_bincode(&b).expect("decode");
+            let StreamMessage::Frame(f) = m else {
+                panic!("asked for frames")
+            };
+            assert_eq!((f.width, f.height), (160, 120));
+            let img = crate::util::image::Image::decode_png(&f.image.0).expect("a PNG");
+            assert_eq!((img.width, img.height), (160, 120));
+            let background = img.pixel(0, 0);
+            let mut drawn = 0;
+            for y in 0..img.height {
+                for x in 0..img.width {
+                    drawn += usize::from(img.pixel(x, y) != background);
+                }
+            }
+            assert!(
+                drawn > 160 * 120 / 50,
+                "the heads are drawn: {drawn} pixels"
+            );
+            ticks.push(f.tick);
+        }
+    }
+    assert!(ticks.windows(2).all(|w| w[1] > w[0]), "{ticks:?}");
+    server.stop().await;
+}
