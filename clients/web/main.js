@@ -33,6 +33,7 @@ const state = {
   patching: Promise.resolve(),
   patchesInFlight: 0,
   selectedClips: null,
+  sliderMoving: false, // The crowd-size slider moved and its PATCH is not sent yet.
   ws: null,
   helloSent: false,
   cameraSent: -1,
@@ -304,11 +305,15 @@ function setLayout(layout) {
   });
   for (const gone of old.values()) setEntry(gone, null);
   state.layout = next;
-  if (state.patchesInFlight === 0) state.planned = layout;
+  if (state.patchesInFlight === 0 && !state.sliderMoving) {
+    // Another viewer may have changed the crowd: the slider follows.
+    state.planned = layout;
+    $('heads').value = String(layout.length);
+  }
   for (const spec of layout) {
     if (!state.rigs.has(spec.rig)) rigInfo(spec.rig).catch((e) => showError(`rig ${spec.rig}: ${describe(e)}`));
   }
-  $('heads-out').textContent = String(layout.length);
+  $('heads-out').textContent = $('heads').value;
 }
 
 function applyTick(msg, buffer) {
@@ -317,19 +322,22 @@ function applyTick(msg, buffer) {
   if (msg.heads.length !== state.layout.length) {
     throw new DecodeError(`${msg.heads.length} heads for a layout of ${state.layout.length}`);
   }
+  msg.heads.forEach((hb, i) => {
+    const want = state.layout[i].spec.head;
+    if (hb.head !== want) throw new DecodeError(`head ${i} is ${hb.head}, the layout says ${want}`);
+  });
   const entries = msg.buffers.map((b) => {
     const { key } = topologyKey(b.rig, b.lod);
     ensureTopology(key, b.rig, b.lod, b.vertices);
     const positions = typedView(buffer, b.positions, msg.format);
     const normals = b.normals ? typedView(buffer, b.normals, msg.format) : null;
-    const e = renderer.upload(key, b.vertices, msg.format, positions, normals, b.quantization);
+    const e = renderer.entry(key, b.vertices, msg.format, positions, normals, b.quantization);
     e.refs = 0;
     e.lod = b.lod;
     return e;
   });
   msg.heads.forEach((hb, i) => {
     const h = state.layout[i];
-    if (hb.head !== h.spec.head) throw new DecodeError(`head ${i} is ${hb.head}, the layout says ${h.spec.head}`);
     if (hb.buffer === HEAD_UNCHANGED) return;
     setEntry(h, hb.buffer === HEAD_MISSING ? null : entries[hb.buffer]);
   });
@@ -409,8 +417,12 @@ function buildControls(info, heads) {
   let timer = null;
   range.addEventListener('input', () => {
     $('heads-out').textContent = range.value;
+    state.sliderMoving = true;
     clearTimeout(timer);
-    timer = setTimeout(() => resizeCrowd(Number(range.value)), 300);
+    timer = setTimeout(() => {
+      state.sliderMoving = false;
+      resizeCrowd(Number(range.value));
+    }, 300);
   });
 
   const used = new Set(heads.filter((h) => h.rig === info.id).map((h) => h.clip));

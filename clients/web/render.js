@@ -1,6 +1,6 @@
 // The WebGL2 renderer: one index buffer per (rig, mesh level), one pair of vertex buffers per
-// unique blended buffer of the latest ticks, and one draw per head and primitive with the
-// head's placement. q16 positions stay 16-bit on the GPU: the vertex shader dequantizes them
+// unique blended buffer the heads show (uploaded when first drawn), and one draw per head and
+// primitive with the head's placement. q16 positions stay 16-bit on the GPU: the vertex shader dequantizes them
 // with the buffer's box (x = min + (q + 32768) × step), and q16 normals are read as normalized
 // shorts. Lighting is Lambert plus a Blinn highlight from a headlight at the eye.
 
@@ -107,7 +107,9 @@ export class Renderer {
   }
 
   /**
-   * Uploads one blended buffer; returns the entry heads draw with.
+   * Describes one blended buffer; returns the entry heads draw with. Nothing goes to the GPU
+   * yet: an entry is uploaded when it is first drawn, so that when ticks arrive faster than
+   * frames, buffers replaced before the next frame cost no upload at all.
    * @param {string} key the topology it needs
    * @param {number} vertices
    * @param {'f32'|'f16'|'q16'} format
@@ -115,36 +117,41 @@ export class Renderer {
    * @param {ArrayBufferView|null} normals
    * @param {{min: number[], step: number[]}|null} quantization
    */
-  upload(key, vertices, format, positions, normals, quantization) {
+  entry(key, vertices, format, positions, normals, quantization) {
+    const q16 = format === 'q16';
+    return {
+      key,
+      vertices,
+      format,
+      positions,
+      normals,
+      qmin: q16 ? quantization.min : [0, 0, 0],
+      qstep: q16 ? quantization.step : [1, 1, 1],
+      qbias: q16 ? 32768 : 0,
+      gl: null,
+      ibo: null,
+    };
+  }
+
+  /** Uploads an entry's arrays into vertex buffers from the pool, then lets the arrays go. */
+  realize(entry) {
     const gl = this.gl;
-    const entry = this.free.pop() || {
+    const objects = this.free.pop() || {
       vao: gl.createVertexArray(),
       positions: gl.createBuffer(),
       normals: gl.createBuffer(),
-      ibo: null,
     };
     this.live++;
-    entry.key = key;
-    entry.vertices = vertices;
-    entry.ibo = null;
-    if (format === 'q16') {
-      entry.qmin = quantization.min;
-      entry.qstep = quantization.step;
-      entry.qbias = 32768;
-    } else {
-      entry.qmin = [0, 0, 0];
-      entry.qstep = [1, 1, 1];
-      entry.qbias = 0;
-    }
+    const format = entry.format;
     const type = format === 'f32' ? gl.FLOAT : format === 'f16' ? gl.HALF_FLOAT : gl.SHORT;
-    gl.bindVertexArray(entry.vao);
-    gl.bindBuffer(gl.ARRAY_BUFFER, entry.positions);
-    gl.bufferData(gl.ARRAY_BUFFER, positions, gl.STREAM_DRAW);
+    gl.bindVertexArray(objects.vao);
+    gl.bindBuffer(gl.ARRAY_BUFFER, objects.positions);
+    gl.bufferData(gl.ARRAY_BUFFER, entry.positions, gl.STREAM_DRAW);
     gl.enableVertexAttribArray(0);
     gl.vertexAttribPointer(0, 3, type, false, 0, 0);
-    if (normals) {
-      gl.bindBuffer(gl.ARRAY_BUFFER, entry.normals);
-      gl.bufferData(gl.ARRAY_BUFFER, normals, gl.STREAM_DRAW);
+    if (entry.normals) {
+      gl.bindBuffer(gl.ARRAY_BUFFER, objects.normals);
+      gl.bufferData(gl.ARRAY_BUFFER, entry.normals, gl.STREAM_DRAW);
       gl.enableVertexAttribArray(1);
       // q16 normals are n = q / 32767: exactly what a normalized short reads as.
       gl.vertexAttribPointer(1, 3, type, format === 'q16', 0, 0);
@@ -154,19 +161,27 @@ export class Renderer {
     }
     gl.bindVertexArray(null);
     gl.bindBuffer(gl.ARRAY_BUFFER, null);
-    return entry;
+    entry.gl = objects;
+    entry.ibo = null; // The pooled vertex array may hold another topology's index buffer.
+    entry.positions = null;
+    entry.normals = null;
   }
 
-  /** Gives an entry no head uses any more back to the pool. */
+  /** An entry no head uses any more: its vertex buffers go back to the pool. */
   release(entry) {
+    entry.positions = null;
+    entry.normals = null;
+    const objects = entry.gl;
+    if (!objects) return;
+    entry.gl = null;
     this.live--;
     if (this.free.length < 64) {
-      this.free.push(entry);
+      this.free.push(objects);
     } else {
       const gl = this.gl;
-      gl.deleteVertexArray(entry.vao);
-      gl.deleteBuffer(entry.positions);
-      gl.deleteBuffer(entry.normals);
+      gl.deleteVertexArray(objects.vao);
+      gl.deleteBuffer(objects.positions);
+      gl.deleteBuffer(objects.normals);
     }
   }
 
@@ -207,7 +222,8 @@ export class Renderer {
       // since the topology was fetched) is not drawn: its indices would not fit.
       if (!topo || topo.vertices !== e.vertices) continue;
       if (bound !== e) {
-        gl.bindVertexArray(e.vao);
+        if (!e.gl) this.realize(e);
+        gl.bindVertexArray(e.gl.vao);
         if (e.ibo !== topo.ibo) {
           gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, topo.ibo);
           e.ibo = topo.ibo;
