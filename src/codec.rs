@@ -340,6 +340,55 @@ mod tests {
     }
 
     #[test]
+    fn a_stream_tick_wraps_a_response_with_aligned_payloads() {
+        use crowdmorph_proto::{SessionHead, StreamMessage, TickVertices};
+        let (parts, resp) = sample();
+        let layout = vec![SessionHead {
+            head: 7,
+            rig: "default-head".into(),
+            clip: "talk".into(),
+            offset: -3,
+            position: [1.0, 2.0, 3.0],
+            yaw: 45.0,
+            scale: 2.0,
+        }];
+        let mut prefix = Vec::new();
+        put_varint(&mut prefix, 0);
+        put_varint(&mut prefix, 1234);
+        let middle = to_wire(&Some(layout.clone())).expect("layout");
+        let chunks = FrameResponseEncoder::encode_within(
+            prefix,
+            &middle,
+            resp.format,
+            resp.normals,
+            &parts,
+            &resp.heads,
+            &resp.timings,
+        );
+        let body: Vec<u8> = chunks.iter().flat_map(|c| c.iter().copied()).collect();
+        let back: StreamMessage = response_from_wire(&body).expect("decodes");
+        let want = StreamMessage::Vertices(TickVertices {
+            tick: 1234,
+            format: resp.format,
+            normals: resp.normals,
+            layout: Some(layout),
+            buffers: resp.buffers.clone(),
+            heads: resp.heads.clone(),
+            timings: resp.timings,
+        });
+        assert_eq!(back, want);
+        let mut at = 0;
+        for c in &chunks {
+            for p in [&parts[0].positions, &parts[1].positions] {
+                if c.as_ptr() == p.as_ptr() {
+                    assert_eq!(at % BLOB_ALIGN, 0, "payload at {at}");
+                }
+            }
+            at += c.len();
+        }
+    }
+
+    #[test]
     fn stored_records_roundtrip_and_refuse_trailing_bytes() {
         let clips = crate::embedded::default_rig().clips;
         let bytes = to_stored(&clips).expect("encode");

@@ -265,6 +265,37 @@ enum BenchCommand {
         #[arg(long)]
         json: bool,
     },
+    /// One crowd session streamed to several viewers over loopback WebSockets: ticks on time,
+    /// CPU per tick, bytes per viewer per second.
+    Sessions {
+        /// glTF/GLB rig (default: the embedded head).
+        #[arg(long)]
+        rig: Option<PathBuf>,
+        /// Heads in the session.
+        #[arg(long, default_value_t = 1000)]
+        heads: usize,
+        /// Distinct animations (clip and offset pairs) among the heads.
+        #[arg(long, default_value_t = 100)]
+        animations: usize,
+        /// Viewers.
+        #[arg(long, default_value_t = 8)]
+        viewers: usize,
+        /// Ticks per second.
+        #[arg(long, default_value_t = 30.0)]
+        fps: f32,
+        /// Buffer format of every viewer.
+        #[arg(long, value_enum, default_value_t = WireFormat::Q16)]
+        format: WireFormat,
+        /// Seconds to measure.
+        #[arg(long, default_value_t = 10.0)]
+        seconds: f64,
+        /// Engine.
+        #[arg(long, default_value = "auto")]
+        backend: BackendChoice,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
+    },
     /// Rendered frames: ms per frame split into compute, render, readback and encode, for a
     /// crowd of unique heads (head i plays frame i) on the default grid and camera.
     Render {
@@ -556,6 +587,16 @@ enum WireFormat {
     Q16,
 }
 
+impl From<WireFormat> for crowdmorph_proto::Format {
+    fn from(f: WireFormat) -> Self {
+        match f {
+            WireFormat::F32 => crowdmorph_proto::Format::F32,
+            WireFormat::F16 => crowdmorph_proto::Format::F16,
+            WireFormat::Q16 => crowdmorph_proto::Format::Q16,
+        }
+    }
+}
+
 #[derive(Clone, Copy, ValueEnum)]
 enum Format {
     F32,
@@ -740,6 +781,44 @@ fn main() -> Result<()> {
         }
         Command::Bench {
             which:
+                BenchCommand::Sessions {
+                    rig,
+                    heads,
+                    animations,
+                    viewers,
+                    fps,
+                    format,
+                    seconds,
+                    backend,
+                    json,
+                },
+        } => {
+            use crowdmorph::server::bench_sessions as sessions;
+            let bytes = match &rig {
+                Some(p) => Some(crowdmorph::server::bench::self_contained_bytes(p)?),
+                None => None,
+            };
+            let opt = sessions::SessionBenchOptions {
+                heads,
+                animations,
+                viewers,
+                fps,
+                format: format.into(),
+                seconds,
+                backend,
+            };
+            let bar = tools::spinner("bench sessions");
+            let report = sessions::bench_sessions(bytes, &opt);
+            bar.finish_and_clear();
+            let report = report?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&report)?);
+            } else {
+                print!("{}", sessions::report_text(&report));
+            }
+        }
+        Command::Bench {
+            which:
                 BenchCommand::Http {
                     rig,
                     heads,
@@ -759,11 +838,7 @@ fn main() -> Result<()> {
             let opt = http::HttpBenchOptions {
                 heads,
                 unique,
-                format: match format {
-                    WireFormat::F32 => crowdmorph_proto::Format::F32,
-                    WireFormat::F16 => crowdmorph_proto::Format::F16,
-                    WireFormat::Q16 => crowdmorph_proto::Format::Q16,
-                },
+                format: format.into(),
                 clients,
                 seconds,
                 backend,

@@ -625,6 +625,45 @@ fn bench_http_reports_plausible_json() {
     assert!(!r["sizes"].as_array().expect("sizes").is_empty());
 }
 
+#[test]
+fn bench_sessions_reports_shared_blends_and_the_bytes_viewers_got() {
+    let r = json(&[
+        "bench",
+        "sessions",
+        "--heads",
+        "40",
+        "--animations",
+        "8",
+        "--viewers",
+        "3",
+        "--fps",
+        "10",
+        "--seconds",
+        "1.5",
+        "--backend",
+        "cpu",
+        "--format",
+        "q16",
+        "--json",
+    ]);
+    assert_eq!(usize_of(&r, "vertices"), EMBEDDED_VERTICES);
+    assert_eq!((usize_of(&r, "heads"), usize_of(&r, "viewers")), (40, 3));
+    let ticks = usize_of(&r, "ticks");
+    assert!(ticks >= 5, "{r}");
+    // 40 heads over 8 animations: 8 blends a tick, shared by the three viewers.
+    assert_eq!(f64_of(&r, "jobs_per_tick"), 8.0);
+    // Every message carries 8 q16 buffers (6 bytes a vertex) and about as many messages
+    // arrive per viewer as ticks were computed.
+    let per_message =
+        f64_of(&r, "bytes_per_viewer_per_s") / f64_of(&r, "messages_per_viewer_per_s");
+    let payload = (8 * EMBEDDED_VERTICES * 6) as f64;
+    assert!(
+        per_message > payload && per_message < payload * 1.05,
+        "{per_message} bytes a message"
+    );
+    assert!(f64_of(&r, "cpu_ms_per_tick") > 0.0);
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn lod_set_changes_the_lod_a_running_server_serves() {
     let server = TestServer::start(ServerConfig {

@@ -89,7 +89,7 @@ pub struct SessionStats {
     /// Ticks never computed, because an earlier one was still running or the server was out
     /// of queue memory (skipped, not queued).
     pub ticks_skipped: u64,
-    /// Unique jobs (rig, clip, frame, LOD, format) submitted to the batcher, summed over ticks.
+    /// Unique jobs (rig, clip, frame, LOD, format) the computed ticks submitted to the batcher.
     pub jobs: u64,
     /// Messages handed to viewers' sockets.
     pub messages_sent: u64,

@@ -419,3 +419,124 @@ fn image_format_names_and_content_types() {
     assert_eq!("JPG".parse::<ImageFormat>().unwrap(), ImageFormat::Jpeg);
     assert!("gif".parse::<ImageFormat>().is_err());
 }
+
+fn session_head(head: u64, clip: &str, offset: i64, x: f32) -> SessionHead {
+    SessionHead {
+        head,
+        rig: "default-head".into(),
+        clip: clip.into(),
+        offset,
+        position: [x, 0.0, -1.5],
+        yaw: 15.0,
+        scale: 1.0,
+    }
+}
+
+#[test]
+fn session_messages() {
+    let heads = vec![
+        session_head(1, "talk", 0, 0.0),
+        session_head(2, "talk", 0, 0.5),
+        session_head(3, "smile", -4, 1.0),
+    ];
+    pin(
+        "session_request",
+        &SessionRequest {
+            fps: 30.0,
+            wrap: true,
+            idle_timeout_s: 60,
+            heads: heads.clone(),
+        },
+    );
+    pin(
+        "session_patch",
+        &SessionPatch {
+            remove: vec![2],
+            change: vec![HeadChange {
+                head: 3,
+                clip: Some("talk".into()),
+                offset: None,
+                position: None,
+                yaw: Some(-30.0),
+                scale: None,
+            }],
+            add: vec![session_head(9, "idle", 7, 2.0)],
+        },
+    );
+    pin(
+        "session_info",
+        &SessionInfo {
+            id: "s1".into(),
+            fps: 30.0,
+            wrap: true,
+            idle_timeout_s: 60,
+            tick: 451,
+            heads: heads.clone(),
+            viewers: 2,
+            stats: SessionStats {
+                ticks: 450,
+                ticks_late: 3,
+                ticks_skipped: 1,
+                jobs: 900,
+                messages_sent: 899,
+                messages_dropped: 1,
+                bytes_sent: 123_456,
+            },
+        },
+    );
+    // A viewer's second tick: head 3 changed (one buffer), heads 1 and 2 did not.
+    let frame = response();
+    pin(
+        "stream_vertices",
+        &StreamMessage::Vertices(TickVertices {
+            tick: 452,
+            format: frame.format,
+            normals: false,
+            layout: None,
+            buffers: frame.buffers,
+            heads: vec![
+                HeadBuffer {
+                    head: 1,
+                    buffer: HEAD_UNCHANGED,
+                },
+                HeadBuffer {
+                    head: 2,
+                    buffer: HEAD_UNCHANGED,
+                },
+                HeadBuffer { head: 3, buffer: 0 },
+            ],
+            timings: frame.timings,
+        }),
+    );
+    pin(
+        "stream_frame",
+        &StreamMessage::Frame(TickFrame {
+            tick: 9,
+            format: ImageFormat::Jpeg,
+            width: 2,
+            height: 1,
+            image: Blob(vec![0xFF, 0xD8, 0xFF, 0xD9]),
+        }),
+    );
+    // The viewer's hello is JSON only (its `lod` is a number or an object).
+    let hello: ViewerHello = serde_json::from_str(
+        r#"{"output":"vertices","format":"q16","normals":true,
+            "camera":{"position":[0,1.6,6],"target":[0,1.6,0],"fov_y":40},
+            "lod":{"by_distance":[[0,0],[8,1],[16,3]]}}"#,
+    )
+    .unwrap();
+    assert_eq!(hello.format, Format::Q16);
+    assert_eq!(
+        hello.lod,
+        LodChoice::ByDistance {
+            by_distance: vec![[0.0, 0.0], [8.0, 1.0], [16.0, 3.0]]
+        }
+    );
+    let fixed: ViewerUpdate = serde_json::from_str(r#"{"lod":2}"#).unwrap();
+    assert_eq!(fixed.lod, Some(LodChoice::Fixed(2)));
+    assert!(serde_json::from_str::<ViewerHello>(r#"{"zoom":1}"#).is_err());
+    assert_eq!(
+        serde_json::from_str::<ViewerHello>("{}").unwrap(),
+        ViewerHello::default()
+    );
+}

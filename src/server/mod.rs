@@ -17,10 +17,12 @@
 //! | `render` | `POST /v1/crowd/render`: a picture of a crowd |
 //! | [`sessions`] | crowd sessions: a crowd on a fixed tick, streamed to many viewers over WebSockets |
 //! | [`bench`] | `crowdmorph bench http`: loopback load against in-process work |
+//! | [`bench_sessions`] | `crowdmorph bench sessions`: one session streamed to several viewers |
 //! | `viewer` | `GET /viewer`: the browser viewer's embedded files |
 
 mod api;
 pub mod bench;
+pub mod bench_sessions;
 pub mod config;
 mod conn;
 pub mod error;

@@ -1000,15 +1000,17 @@ async fn run_session(session: Arc<Session>, app: Weak<Inner>) {
             }
         }
         match computed {
-            Ticked::Delivered => {
+            Ticked::Delivered(jobs) => {
                 let late = done > next_due;
                 bump(&m.ticks, 1);
+                bump(&m.jobs, jobs);
                 if late {
                     bump(&m.ticks_late, 1);
                 }
                 session.with_stats(|s| {
                     s.ticks += 1;
                     s.ticks_late += u64::from(late);
+                    s.jobs += jobs;
                 });
             }
             Ticked::Skipped => {
@@ -1022,7 +1024,8 @@ async fn run_session(session: Arc<Session>, app: Weak<Inner>) {
 }
 
 enum Ticked {
-    Delivered,
+    /// Computed and handed to the outboxes, with the unique jobs it submitted.
+    Delivered(u64),
     Skipped,
     NoViewers,
 }
@@ -1172,7 +1175,7 @@ async fn tick_once(state: &AppState, session: &Arc<Session>, tick: u64) -> Ticke
         start_frame(state, session, &heads, &at, &rigs, tick, v, s);
     }
     if groups.iter().all(|g| g.jobs.is_empty()) && plans.is_empty() {
-        return Ticked::Delivered;
+        return Ticked::Delivered(0);
     }
 
     // The blended outputs count against the queue memory while the tick holds them.
@@ -1190,9 +1193,8 @@ async fn tick_once(state: &AppState, session: &Arc<Session>, tick: u64) -> Ticke
         return Ticked::Skipped;
     };
     let mut tickets = Vec::with_capacity(groups.len());
+    let jobs: u64 = groups.iter().map(|g| g.jobs.len() as u64).sum();
     for g in &groups {
-        bump(&state.sessions.metrics.jobs, g.jobs.len() as u64);
-        session.with_stats(|s| s.jobs += g.jobs.len() as u64);
         state
             .metrics
             .jobs_requested
@@ -1301,7 +1303,7 @@ async fn tick_once(state: &AppState, session: &Arc<Session>, tick: u64) -> Ticke
         }
     }
     drop(memory);
-    Ticked::Delivered
+    Ticked::Delivered(jobs)
 }
 
 /// Encodes a [`crowdmorph_proto::TickVertices`] stream message: the variant, the tick and the
