@@ -1,4 +1,4 @@
-//! Build script: tells the integration tests which of their two outside resources this machine
+//! Build script: tells the integration tests which of their outside resources this machine
 //! has, as `cfg`s, so that a test whose resource is absent is reported as `ignored` with the
 //! reason instead of passing without having run.
 //!
@@ -7,13 +7,16 @@
 //! - `crowdmorph_gpu_driver`: a Vulkan driver is installed (an ICD manifest the Vulkan loader
 //!   would read, such as Mesa's lavapipe `lvp_icd.x86_64.json`). On Windows and macOS wgpu
 //!   reaches the system's DirectX 12 or Metal, so the driver is taken as present there.
+//! - `crowdmorph_chromium`: a Chromium to drive the browser viewer's end-to-end test with —
+//!   `$CROWDMORPH_CHROMIUM`, else Debian's `/usr/bin/chromium` or another usual path. Its path
+//!   reaches the test as the compile-time variable `CROWDMORPH_CHROMIUM_PATH`.
 //!
 //! A present resource that then fails at run time fails its tests: a broken GPU or a missing rig
 //! file is a fault, not a reason to skip.
 //!
 //! Only paths that exist are watched for changes: cargo treats a watched path that is missing as
 //! changed on every build, which would rebuild the crate every time. So after adding the rigs or
-//! a Vulkan driver to a machine that lacked them, `touch build.rs` (or set the environment
+//! a Vulkan driver or Chromium to a machine that lacked them, `touch build.rs` (or set the environment
 //! variable) to make the tests see them.
 
 use std::env;
@@ -23,6 +26,7 @@ fn main() {
     println!("cargo::rerun-if-changed=build.rs");
     println!("cargo::rustc-check-cfg=cfg(crowdmorph_test_data)");
     println!("cargo::rustc-check-cfg=cfg(crowdmorph_gpu_driver)");
+    println!("cargo::rustc-check-cfg=cfg(crowdmorph_chromium)");
 
     if test_data_present() {
         println!("cargo::rustc-cfg=crowdmorph_test_data");
@@ -30,6 +34,34 @@ fn main() {
     if gpu_driver_present() {
         println!("cargo::rustc-cfg=crowdmorph_gpu_driver");
     }
+    if let Some(chromium) = chromium() {
+        println!("cargo::rustc-cfg=crowdmorph_chromium");
+        println!(
+            "cargo::rustc-env=CROWDMORPH_CHROMIUM_PATH={}",
+            chromium.display()
+        );
+    }
+}
+
+/// The Chromium binary: the environment's choice, else the first of the usual install paths
+/// (fixed paths rather than a `PATH` search, so that a different `PATH` does not rebuild).
+fn chromium() -> Option<PathBuf> {
+    println!("cargo::rerun-if-env-changed=CROWDMORPH_CHROMIUM");
+    let candidates: Vec<PathBuf> = match env::var_os("CROWDMORPH_CHROMIUM") {
+        Some(path) if !path.is_empty() => vec![PathBuf::from(path)],
+        _ => [
+            "/usr/bin/chromium",
+            "/usr/bin/chromium-browser",
+            "/usr/local/bin/chromium",
+            "/snap/bin/chromium",
+        ]
+        .iter()
+        .map(PathBuf::from)
+        .collect(),
+    };
+    let found = candidates.into_iter().find(|p| p.is_file())?;
+    watch(&found);
+    Some(found)
 }
 
 fn test_data_present() -> bool {

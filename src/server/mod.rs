@@ -19,6 +19,7 @@
 //! | [`sessions`] | crowd sessions: a crowd on a fixed tick, streamed to many viewers over WebSockets |
 //! | [`bench`] | `crowdmorph bench http`: loopback load against in-process work |
 //! | [`bench_sessions`] | `crowdmorph bench sessions`: one session streamed to several viewers |
+//! | `viewer` | `GET /viewer`: the browser viewer's embedded files |
 
 mod api;
 pub mod bench;
@@ -33,6 +34,7 @@ pub mod registry;
 mod render;
 pub mod scheduler;
 pub mod sessions;
+mod viewer;
 
 use std::future::Future;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -696,6 +698,8 @@ pub fn app(state: AppState) -> Router {
         )
         .route("/v1/crowd/frame", post(api::crowd_frame))
         .route("/v1/crowd/render", post(render::crowd_render))
+        .route("/viewer", get(viewer::index))
+        .route("/viewer/{file}", get(viewer::file))
         .route(
             "/v1/sessions",
             post(sessions::create_session).get(sessions::list_sessions),

@@ -13,6 +13,7 @@ mod overload;
 mod persistence;
 mod render;
 mod sessions;
+mod viewer;
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};

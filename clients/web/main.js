@@ -1,0 +1,591 @@
+// The crowdmorph browser viewer: creates a crowd session (or joins `?session=ID`), streams its
+// blended vertex buffers over the session's WebSocket and draws them with WebGL2.
+//
+// URL parameters: `session` (join), `token` (admin token for creating and changing sessions),
+// `rig` (default `default-head`), `heads` (initial crowd size, default 25), `fps` (ticks per
+// second of a new session), `format` (`q16`, the default, `f16` or `f32`).
+//
+// Errors are shown on the page; console.error is kept for real faults, since the end-to-end
+// test fails on any console error.
+
+import { Api, ApiError, base64Bytes } from './api.js';
+import { DecodeError, HEAD_MISSING, HEAD_UNCHANGED, decodeStreamMessage, typedView } from './bincode.js';
+import { OrbitCamera, multiply, placement } from './camera.js';
+import { Renderer } from './render.js';
+
+const params = new URLSearchParams(location.search);
+const $ = (id) => document.getElementById(id);
+
+const MAX_HEADS = 400;
+/** The least time between two camera updates sent to the server (it limits messages/s). */
+const CAMERA_UPDATE_MS = 250;
+
+const state = {
+  api: new Api(params.get('token')),
+  format: ['f32', 'f16', 'q16'].includes(params.get('format')) ? params.get('format') : 'q16',
+  rig: params.get('rig') || 'default-head',
+  sessionId: null,
+  rigs: new Map(), // rig id → RigInfo (or a pending promise)
+  pendingTopologies: new Map(), // topology key → promise
+  refetchAt: new Map(), // topology key → time of the last refetch for a vertex-count mismatch
+  layout: [], // per layout head: {spec, entry, model}
+  planned: [], // the heads as the server will have them at the next tick
+  patching: Promise.resolve(),
+  patchesInFlight: 0,
+  selectedClips: null,
+  sliderMoving: false, // The crowd-size slider moved and its PATCH is not sent yet.
+  ws: null,
+  helloSent: false,
+  cameraSent: -1,
+  drawnCamera: -1,
+  dirty: true,
+  tick: 0,
+  counters: { frames: 0, ticks: 0, bytes: 0, since: performance.now() },
+  lastTimings: null,
+  lastBuffers: 0,
+};
+
+let renderer;
+const camera = new OrbitCamera();
+
+// ---------------------------------------------------------------------------------------------
+// Messages on the page.
+
+function showError(message, { fault = true } = {}) {
+  const box = $('error');
+  box.textContent = message;
+  box.hidden = false;
+  if (fault) console.error(message);
+}
+
+function clearError() {
+  $('error').hidden = true;
+  $('error').textContent = '';
+}
+
+function setStatus(text) {
+  $('status').textContent = text;
+}
+
+function describe(e) {
+  return e instanceof ApiError || e instanceof DecodeError ? e.message : `${e.name || 'Error'}: ${e.message}`;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Rigs and topology.
+
+async function rigInfo(id) {
+  let entry = state.rigs.get(id);
+  if (!entry) {
+    entry = state.api.rig(id).then((info) => {
+      state.rigs.set(id, info);
+      return info;
+    });
+    state.rigs.set(id, entry);
+  }
+  return entry;
+}
+
+function knownRig(id) {
+  const r = state.rigs.get(id);
+  return r && !(r instanceof Promise) ? r : null;
+}
+
+/** The topology a buffer of `rig` at LOD `lod` uses: one per (rig, mesh level). */
+function topologyKey(rig, lod) {
+  const info = knownRig(rig);
+  const levels = info && info.lod && info.lod.levels;
+  if (levels && levels.length) {
+    const level = levels[Math.min(lod, levels.length - 1)];
+    return { key: `${rig}\u0000mesh:${level.mesh ?? 'full'}`, lod };
+  }
+  return { key: `${rig}\u0000lod:${lod}`, lod };
+}
+
+function ensureTopology(key, rig, lod, vertices) {
+  const have = renderer.topology(key);
+  if (have && have.vertices === vertices) return;
+  if (state.pendingTopologies.has(key)) return;
+  if (have) {
+    // The rig's mesh levels changed under us (a new LOD was computed): fetch it again, at
+    // most every two seconds, and meanwhile skip heads whose buffers do not fit.
+    const last = state.refetchAt.get(key) || 0;
+    if (performance.now() - last < 2000) return;
+    state.refetchAt.set(key, performance.now());
+    state.rigs.delete(rig);
+    rigInfo(rig).catch((e) => showError(`rig ${rig}: ${describe(e)}`));
+  }
+  const p = state.api
+    .mesh(rig, lod)
+    .then((mesh) => {
+      const indices = new Uint32Array(base64Bytes(mesh.indices));
+      for (let i = 0; i < indices.length; i++) {
+        if (indices[i] >= mesh.vertices) throw new DecodeError(`mesh of ${rig}: index ${indices[i]} past ${mesh.vertices} vertices`);
+      }
+      renderer.setTopology(key, mesh, indices);
+      state.dirty = true;
+    })
+    .catch((e) => showError(`topology of ${rig} at LOD ${lod}: ${describe(e)}`))
+    .finally(() => state.pendingTopologies.delete(key));
+  state.pendingTopologies.set(key, p);
+}
+
+// ---------------------------------------------------------------------------------------------
+// The crowd: placements on a square spiral, so growing the crowd never moves a head.
+
+function spiralCell(i) {
+  if (i === 0) return [0, 0];
+  const ring = Math.ceil((Math.sqrt(i + 1) - 1) / 2);
+  const side = 2 * ring;
+  const start = (2 * ring - 1) ** 2; // The first index of this ring.
+  const k = i - start;
+  const edge = Math.floor(k / side);
+  const t = (k % side) - ring + 1;
+  switch (edge) {
+    case 0:
+      return [ring, t];
+    case 1:
+      return [-t, ring];
+    case 2:
+      return [-ring, -t];
+    default:
+      return [t, -ring];
+  }
+}
+
+function spacing(info) {
+  const min = info.bbox.min;
+  const max = info.bbox.max;
+  const dx = max[0] - min[0];
+  const dz = max[2] - min[2];
+  return [dx * 1.35, Math.max(dx, dz) * 1.5];
+}
+
+function clipsOf(info) {
+  return info.clips.map((c) => c.name);
+}
+
+/** The head a new crowd member `id` of the page's rig gets. */
+function newHead(id, info, clips) {
+  const [cx, cz] = spiralCell(id);
+  const [sx, sz] = spacing(info);
+  const clip = clips[id % clips.length];
+  const frames = (info.clips.find((c) => c.name === clip) || { frames: 1 }).frames;
+  return {
+    head: id,
+    rig: info.id,
+    clip,
+    // Three offsets per clip: heads that share clip and offset are clones, which the server
+    // blends once per tick for all of them (25 heads cost 12 blends).
+    offset: (Math.floor(id / clips.length) % 3) * Math.floor(frames / 3),
+    position: [cx * sx, 0, cz * sz],
+    yaw: ((id * 37) % 31) - 15,
+    scale: 1,
+  };
+}
+
+/** Frames the camera on the crowd as planned. */
+function frameCrowd(heads) {
+  const info = knownRig(state.rig);
+  if (!info || !heads.length) return;
+  const min = [Infinity, Infinity, Infinity];
+  const max = [-Infinity, -Infinity, -Infinity];
+  for (const h of heads) {
+    const r = knownRig(h.rig) || info;
+    for (let a = 0; a < 3; a++) {
+      min[a] = Math.min(min[a], h.position[a] + r.bbox.min[a] * h.scale);
+      max[a] = Math.max(max[a], h.position[a] + r.bbox.max[a] * h.scale);
+    }
+  }
+  const center = [0, 1, 2].map((a) => (min[a] + max[a]) / 2);
+  const radius = Math.hypot(max[0] - min[0], max[1] - min[1], max[2] - min[2]) / 2;
+  camera.elevation = 20;
+  camera.frame(center, radius * 0.65);
+}
+
+// ---------------------------------------------------------------------------------------------
+// The stream.
+
+function defaultLodTable(info) {
+  const h = info.bbox.max[1] - info.bbox.min[1];
+  const levels = Math.max(info.lod.levels.length, 1);
+  const rows = [];
+  for (let l = 0; l < levels; l++) rows.push(`${Math.round(l * 8 * h)}:${l}`);
+  return rows.join(', ');
+}
+
+function parseLodTable(text) {
+  const rows = text
+    .split(/[,;]/)
+    .map((s) => s.trim())
+    .filter(Boolean)
+    .map((row) => {
+      const m = /^(\d+(?:\.\d+)?)\s*:\s*(\d+)$/.exec(row);
+      if (!m) throw new Error(`"${row}" is not metres:level`);
+      return [Number(m[1]), Number(m[2])];
+    });
+  for (let i = 1; i < rows.length; i++) {
+    if (rows[i][0] < rows[i - 1][0]) throw new Error('distances must ascend');
+  }
+  if (!rows.length) throw new Error('the table is empty');
+  return rows;
+}
+
+function lodChoice() {
+  const mode = $('lod-mode').value;
+  if (mode === 'distance') return { by_distance: parseLodTable($('lod-table').value) };
+  return Number(mode);
+}
+
+function openStream() {
+  const proto = location.protocol === 'https:' ? 'wss' : 'ws';
+  const ws = new WebSocket(`${proto}://${location.host}/v1/sessions/${encodeURIComponent(state.sessionId)}/stream`);
+  ws.binaryType = 'arraybuffer';
+  state.ws = ws;
+  ws.addEventListener('open', () => {
+    let lod;
+    try {
+      lod = lodChoice();
+    } catch (e) {
+      showError(`LOD table: ${e.message}`, { fault: false });
+      lod = 0;
+    }
+    const hello = { output: 'vertices', format: state.format, normals: true, camera: camera.spec(), lod };
+    ws.send(JSON.stringify(hello));
+    state.helloSent = true;
+    state.cameraSent = camera.version;
+    setStatus('streaming');
+  });
+  ws.addEventListener('message', (ev) => {
+    if (typeof ev.data === 'string') return; // The server sends no text; nothing to do.
+    state.counters.bytes += ev.data.byteLength;
+    try {
+      applyTick(decodeStreamMessage(ev.data), ev.data);
+    } catch (e) {
+      showError(`tick message: ${describe(e)}`);
+    }
+  });
+  ws.addEventListener('close', (ev) => {
+    state.ws = null;
+    state.helloSent = false;
+    const why = `stream closed (${ev.code}${ev.reason ? `: ${ev.reason}` : ''})`;
+    setStatus(why);
+    if (ev.code === 1000 || ev.code === 1001) {
+      // The session ended or was deleted: an outcome, not a fault of the page.
+      showError(`${why}. Reload the page without ?session= to start a new one.`, { fault: false });
+    } else {
+      showError(why);
+    }
+  });
+}
+
+function sendUpdate(update) {
+  if (state.ws && state.helloSent && state.ws.readyState === WebSocket.OPEN) {
+    state.ws.send(JSON.stringify(update));
+    return true;
+  }
+  return false;
+}
+
+function setEntry(h, entry) {
+  if (h.entry === entry) return;
+  if (entry) entry.refs++;
+  if (h.entry && --h.entry.refs === 0) renderer.release(h.entry);
+  h.entry = entry;
+}
+
+function setLayout(layout) {
+  const old = new Map(state.layout.map((h) => [h.spec.head, h]));
+  const next = layout.map((spec) => {
+    const h = old.get(spec.head) || { spec, entry: null };
+    old.delete(spec.head);
+    h.spec = spec;
+    h.model = placement(spec.position, spec.yaw, spec.scale);
+    return h;
+  });
+  for (const gone of old.values()) setEntry(gone, null);
+  state.layout = next;
+  if (state.patchesInFlight === 0 && !state.sliderMoving) {
+    // Another viewer may have changed the crowd: the slider follows.
+    state.planned = layout;
+    $('heads').value = String(layout.length);
+  }
+  for (const spec of layout) {
+    if (!state.rigs.has(spec.rig)) rigInfo(spec.rig).catch((e) => showError(`rig ${spec.rig}: ${describe(e)}`));
+  }
+  $('heads-out').textContent = $('heads').value;
+}
+
+function applyTick(msg, buffer) {
+  if (msg.kind !== 'vertices') throw new DecodeError(`a ${msg.kind} message on a vertices stream`);
+  if (msg.layout) setLayout(msg.layout);
+  if (msg.heads.length !== state.layout.length) {
+    throw new DecodeError(`${msg.heads.length} heads for a layout of ${state.layout.length}`);
+  }
+  msg.heads.forEach((hb, i) => {
+    const want = state.layout[i].spec.head;
+    if (hb.head !== want) throw new DecodeError(`head ${i} is ${hb.head}, the layout says ${want}`);
+  });
+  const entries = msg.buffers.map((b) => {
+    const { key } = topologyKey(b.rig, b.lod);
+    ensureTopology(key, b.rig, b.lod, b.vertices);
+    const positions = typedView(buffer, b.positions, msg.format);
+    const normals = b.normals ? typedView(buffer, b.normals, msg.format) : null;
+    const e = renderer.entry(key, b.vertices, msg.format, positions, normals, b.quantization);
+    e.refs = 0;
+    e.lod = b.lod;
+    return e;
+  });
+  msg.heads.forEach((hb, i) => {
+    const h = state.layout[i];
+    if (hb.buffer === HEAD_UNCHANGED) return;
+    setEntry(h, hb.buffer === HEAD_MISSING ? null : entries[hb.buffer]);
+  });
+  for (const e of entries) if (e.refs === 0) renderer.release(e);
+  state.tick = msg.tick;
+  state.lastTimings = msg.timings;
+  state.lastBuffers = msg.buffers.length;
+  state.counters.ticks++;
+  state.dirty = true;
+  $('tick').textContent = String(msg.tick);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Controls: crowd size and clip mix are session changes (PATCH, one at a time, each based on the
+// heads the last answer said the next tick will have); LOD and camera are this viewer's own.
+
+function patch(make) {
+  state.patchesInFlight++;
+  state.patching = state.patching
+    .then(async () => {
+      const body = make(state.planned);
+      if (!body) return;
+      const info = await state.api.patchSession(state.sessionId, body);
+      state.planned = info.heads;
+    })
+    .catch((e) => {
+      if (e instanceof ApiError && (e.status === 401 || e.status === 403)) {
+        showError(`changing the session needs the admin token (?token=): ${e.message}`, { fault: false });
+      } else {
+        showError(`changing the session: ${describe(e)}`);
+      }
+    })
+    .finally(() => state.patchesInFlight--);
+}
+
+function resizeCrowd(n) {
+  const info = knownRig(state.rig);
+  if (!info) return;
+  patch((heads) => {
+    if (n === heads.length) return null;
+    if (n < heads.length) {
+      const ids = heads.map((h) => h.head).sort((a, b) => b - a);
+      return { remove: ids.slice(0, heads.length - n) };
+    }
+    const used = new Set(heads.map((h) => h.head));
+    const add = [];
+    for (let id = 0; add.length < n - heads.length; id++) {
+      if (!used.has(id)) add.push(newHead(id, info, selectedClips(info)));
+    }
+    return { add };
+  });
+}
+
+function selectedClips(info) {
+  const all = clipsOf(info);
+  const picked = all.filter((c) => state.selectedClips && state.selectedClips.has(c));
+  return picked.length ? picked : all;
+}
+
+function applyClipMix() {
+  const info = knownRig(state.rig);
+  if (!info) return;
+  const clips = selectedClips(info);
+  patch((heads) => {
+    const change = heads
+      .filter((h) => h.rig === info.id && h.clip !== clips[h.head % clips.length])
+      .map((h) => ({ head: h.head, clip: clips[h.head % clips.length] }));
+    return change.length ? { change } : null;
+  });
+}
+
+function buildControls(info, heads) {
+  const range = $('heads');
+  range.max = String(MAX_HEADS);
+  range.value = String(heads.length);
+  $('heads-out').textContent = String(heads.length);
+  let timer = null;
+  range.addEventListener('input', () => {
+    $('heads-out').textContent = range.value;
+    state.sliderMoving = true;
+    clearTimeout(timer);
+    timer = setTimeout(() => {
+      state.sliderMoving = false;
+      resizeCrowd(Number(range.value));
+    }, 300);
+  });
+
+  const used = new Set(heads.filter((h) => h.rig === info.id).map((h) => h.clip));
+  state.selectedClips = new Set(clipsOf(info).filter((c) => used.has(c)));
+  const box = $('clips');
+  for (const name of clipsOf(info)) {
+    const label = document.createElement('label');
+    const check = document.createElement('input');
+    check.type = 'checkbox';
+    check.checked = state.selectedClips.has(name);
+    check.addEventListener('change', () => {
+      if (check.checked) state.selectedClips.add(name);
+      else state.selectedClips.delete(name);
+      applyClipMix();
+    });
+    label.append(check, ` ${name}`);
+    box.append(label);
+  }
+
+  const mode = $('lod-mode');
+  const distance = document.createElement('option');
+  distance.value = 'distance';
+  distance.textContent = 'by distance';
+  mode.append(distance);
+  info.lod.levels.forEach((level, l) => {
+    const o = document.createElement('option');
+    o.value = String(l);
+    o.textContent = `level ${l} (${level.shapes} shapes)`;
+    mode.append(o);
+  });
+  mode.value = 'distance';
+  const table = $('lod-table');
+  table.value = defaultLodTable(info);
+  const sendLod = () => {
+    table.disabled = mode.value !== 'distance';
+    try {
+      const lod = lodChoice();
+      clearError();
+      sendUpdate({ lod });
+    } catch (e) {
+      showError(`LOD table: ${e.message}`, { fault: false });
+    }
+  };
+  mode.addEventListener('change', sendLod);
+  table.addEventListener('change', sendLod);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Drawing and counters.
+
+function frame() {
+  if (renderer.resize()) state.dirty = true;
+  if (state.dirty || camera.version !== state.drawnCamera) {
+    const aspect = renderer.canvas.width / renderer.canvas.height;
+    const projection = camera.projection(aspect);
+    // On a wide window, the orbit centre sits in the middle of the space the panel leaves.
+    const panel = $('panel').getBoundingClientRect();
+    const width = renderer.canvas.clientWidth;
+    if (width > 2.5 * panel.right) projection[8] -= panel.right / width;
+    const view = { viewProj: multiply(projection, camera.view()), eye: camera.eye() };
+    const drawn = renderer.draw(view, state.layout);
+    // What was drawn, for tests and for anyone inspecting the page.
+    const lods = new Set(state.layout.filter((h) => h.entry).map((h) => h.entry.lod));
+    Object.assign(renderer.canvas.dataset, {
+      heads: String(state.layout.length),
+      drawn: String(drawn),
+      lods: [...lods].sort((a, b) => a - b).join(','),
+    });
+    state.drawnCamera = camera.version;
+    state.dirty = false;
+    state.counters.frames++;
+  }
+  requestAnimationFrame(frame);
+}
+
+function formatBytes(n) {
+  if (n >= 1e6) return `${(n / 1e6).toFixed(2)} MB`;
+  if (n >= 1e3) return `${(n / 1e3).toFixed(1)} kB`;
+  return `${Math.round(n)} B`;
+}
+
+function updateCounters() {
+  const now = performance.now();
+  const c = state.counters;
+  const s = (now - c.since) / 1000;
+  if (s <= 0) return;
+  $('fps').textContent = (c.frames / s).toFixed(1);
+  $('tps').textContent = (c.ticks / s).toFixed(1);
+  $('bps').textContent = formatBytes(c.bytes / s);
+  const t = state.lastTimings;
+  const lods = renderer.canvas.dataset.lods || '-';
+  $('detail').textContent =
+    `${state.layout.length} heads · ${state.lastBuffers} buffers last tick · LOD ${lods}` +
+    (t ? ` · compute ${(t.compute_us / 1000).toFixed(1)} ms` : '');
+  state.counters = { frames: 0, ticks: 0, bytes: 0, since: now };
+}
+
+function sendCamera() {
+  if (camera.version !== state.cameraSent && sendUpdate({ camera: camera.spec() })) {
+    state.cameraSent = camera.version;
+  }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Start.
+
+async function start() {
+  try {
+    renderer = new Renderer($('view'));
+  } catch (e) {
+    showError(`WebGL2: ${e.message}`);
+    return;
+  }
+  camera.attach($('view'));
+  try {
+    let heads;
+    const join = params.get('session');
+    if (join) {
+      setStatus(`joining session ${join}`);
+      const info = await state.api.session(join);
+      state.sessionId = info.id;
+      heads = info.heads;
+      if (!params.get('rig') && heads.length) state.rig = heads[0].rig;
+    }
+    const rig = await rigInfo(state.rig);
+    if (!join) {
+      const n = Math.max(1, Math.min(MAX_HEADS, Number(params.get('heads')) || 25));
+      const clips = clipsOf(rig);
+      if (!clips.length) throw new Error(`rig ${rig.id} has no clips to play`);
+      heads = Array.from({ length: n }, (_, id) => newHead(id, rig, clips));
+      const fps = Number(params.get('fps')) || 30;
+      setStatus('creating a session');
+      const info = await state.api.createSession({ fps, wrap: true, idle_timeout_s: 60, heads });
+      state.sessionId = info.id;
+      const url = new URL(location.href);
+      url.searchParams.set('session', info.id);
+      history.replaceState(null, '', url);
+    }
+    state.planned = heads;
+    const link = $('session-link');
+    link.textContent = state.sessionId;
+    const share = new URL(location.href);
+    share.searchParams.delete('token');
+    link.href = share.href;
+    buildControls(rig, heads);
+    frameCrowd(heads);
+    openStream();
+  } catch (e) {
+    if (e instanceof ApiError && e.code === 'unknown_session') {
+      // Sessions end after their idle timeout: an old link is an outcome, not a fault.
+      showError(`${e.message}: it has ended. Open /viewer without ?session= to start a new one.`, { fault: false });
+    } else {
+      showError(`starting: ${describe(e)}`);
+    }
+    return;
+  }
+  setInterval(updateCounters, 1000);
+  setInterval(sendCamera, CAMERA_UPDATE_MS);
+  requestAnimationFrame(frame);
+}
+
+// Faults no handler caught are shown on the page as well as in the console.
+window.addEventListener('error', (e) => showError(`${e.message}`, { fault: false }));
+window.addEventListener('unhandledrejection', (e) => showError(`${e.reason}`, { fault: false }));
+
+start();

@@ -1,0 +1,591 @@
+//! The browser viewer (`clients/web`, `GET /viewer`): its files are served from the binary with
+//! their content types and nothing else is; and, end to end in real headless Chromium driven
+//! over the DevTools protocol, the page creates a session, streams q16 ticks over the WebSocket
+//! and draws a lit crowd, with no console error, while its controls change the session.
+//!
+//! The end-to-end test runs in real time (the page streams while the server ticks), bounded by
+//! generous deadlines that only decide when to give up, never what passes. Its screenshot is
+//! kept at `$CROWDMORPH_VIEWER_SCREENSHOT`, else `target/viewer-screenshot.png`.
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use bytes::Bytes;
+use crowdmorph::server::ServerConfig;
+use crowdmorph_client::Method;
+use crowdmorph_proto::SessionInfo;
+use futures_util::{SinkExt, StreamExt};
+use serde_json::{Value, json};
+use tokio_tungstenite::tungstenite::Message;
+
+use super::{TestServer, temp_dir};
+use crate::util::image::Image;
+
+/// The files the page loads, with the types browsers insist on for them.
+const FILES: &[(&str, &str)] = &[
+    ("/viewer", "text/html"),
+    ("/viewer/index.html", "text/html"),
+    ("/viewer/viewer.css", "text/css"),
+    ("/viewer/main.js", "text/javascript"),
+    ("/viewer/api.js", "text/javascript"),
+    ("/viewer/bincode.js", "text/javascript"),
+    ("/viewer/camera.js", "text/javascript"),
+    ("/viewer/render.js", "text/javascript"),
+];
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn viewer_files_are_served_with_their_types_and_nothing_else_is() {
+    let server = TestServer::start(ServerConfig {
+        // The page itself needs no token, whatever the server's.
+        admin_token: Some("secret".into()),
+        ..ServerConfig::default()
+    })
+    .await;
+    let get = |path: String| {
+        let client = server.client.clone();
+        async move {
+            client
+                .send(Method::GET, &path, None, None, Bytes::new())
+                .await
+                .unwrap()
+        }
+    };
+    let mut referenced = Vec::new();
+    for (path, kind) in FILES {
+        let reply = get(path.to_string()).await;
+        assert_eq!(reply.status, 200, "{path}");
+        let ct = reply.content_type.clone().unwrap_or_default();
+        assert!(ct.starts_with(kind), "{path}: content-type {ct}");
+        assert!(
+            reply.header("content-security-policy").is_some(),
+            "{path}: no CSP"
+        );
+        assert_eq!(reply.header("x-content-type-options"), Some("nosniff"));
+        // Every file the page names must be one the server serves: collect the references.
+        let text = String::from_utf8(reply.body.to_vec()).expect("utf-8");
+        for quote in ['"', '\''] {
+            for (i, _) in text.match_indices(&format!("{quote}/viewer/")) {
+                let rest = &text[i + 1..];
+                referenced.push(rest[..rest.find(quote).unwrap()].to_string());
+            }
+            for (i, _) in text.match_indices(&format!("from {quote}./")) {
+                let rest = &text[i + 8..];
+                referenced.push(format!("/viewer/{}", &rest[..rest.find(quote).unwrap()]));
+            }
+        }
+    }
+    assert!(referenced.len() >= 6, "references found: {referenced:?}");
+    for path in referenced {
+        assert!(
+            FILES.iter().any(|(p, _)| *p == path),
+            "the page loads {path}, which this test does not check"
+        );
+        assert_eq!(get(path.clone()).await.status, 200, "{path}");
+    }
+    for bad in [
+        "/viewer/secret.js",
+        "/viewer/..%2FCargo.toml",
+        "/viewer/../Cargo.toml",
+        "/viewer/README.md",
+        "/viewer/main.js.map",
+        "/viewer/",
+    ] {
+        let reply = get(bad.to_string()).await;
+        assert_eq!(reply.status, 404, "{bad}");
+        let err = reply.error().expect("a JSON error body");
+        assert!(
+            ["no_route", "not_found"].contains(&err.error.code.as_str()),
+            "{bad}: {err:?}"
+        );
+    }
+    server.stop().await;
+}
+
+/// Chromium in the background, killed and its profile removed when dropped.
+struct Browser {
+    child: Child,
+    profile: PathBuf,
+}
+
+impl Browser {
+    fn launch() -> Browser {
+        let binary = option_env!("CROWDMORPH_CHROMIUM_PATH").unwrap_or("chromium");
+        let profile = temp_dir("chromium");
+        let log = std::fs::File::create(profile.join("stderr.log")).unwrap();
+        let mut command = Command::new(binary);
+        // Software WebGL keeps Chromium's processes busy the whole time the page streams (and
+        // Chromium sets its own priorities, so `nice` does not hold): on Linux it runs on one of
+        // this process's CPUs only, inherited by every process it starts, so that tests running
+        // beside this one keep the others for their own deadlines.
+        #[cfg(target_os = "linux")]
+        if let Some(one_cpu) = last_cpu_of_several() {
+            use std::os::unix::process::CommandExt;
+            // SAFETY: the closure runs in the forked child before exec and makes one
+            // async-signal-safe system call about that child, with a set built beforehand.
+            unsafe {
+                command.pre_exec(move || {
+                    libc::sched_setaffinity(0, size_of::<libc::cpu_set_t>(), &one_cpu);
+                    Ok(())
+                });
+            }
+        }
+        let child = command
+            .args([
+                "--headless",
+                "--no-sandbox",
+                // WebGL2 without a GPU: SwiftShader through ANGLE, which recent Chromium
+                // refuses without the "unsafe" flag.
+                "--use-gl=angle",
+                "--use-angle=swiftshader",
+                "--enable-unsafe-swiftshader",
+                "--disable-background-networking",
+                "--disable-component-update",
+                "--disable-default-apps",
+                "--disable-extensions",
+                "--disable-sync",
+                "--no-first-run",
+                "--no-default-browser-check",
+                "--mute-audio",
+                "--window-size=960,640",
+                "--remote-debugging-port=0",
+                "about:blank",
+            ])
+            .arg(format!("--user-data-dir={}", profile.display()))
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(log)
+            .spawn()
+            .unwrap_or_else(|e| panic!("cannot start {binary}: {e}"));
+        Browser { child, profile }
+    }
+
+    /// The browser's DevTools WebSocket URL, from the file Chromium writes once it listens.
+    async fn devtools_url(&mut self) -> String {
+        let file = self.profile.join("DevToolsActivePort");
+        let deadline = Instant::now() + Duration::from_secs(90);
+        loop {
+            if let Ok(text) = std::fs::read_to_string(&file) {
+                let mut lines = text.lines();
+                if let (Some(port), Some(path)) = (lines.next(), lines.next()) {
+                    return format!("ws://127.0.0.1:{port}{path}");
+                }
+            }
+            if let Ok(Some(status)) = self.child.try_wait() {
+                panic!("chromium exited with {status}: {}", self.stderr());
+            }
+            assert!(
+                Instant::now() < deadline,
+                "chromium did not open its DevTools port in 60 s: {}",
+                self.stderr()
+            );
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+    }
+
+    fn stderr(&self) -> String {
+        std::fs::read_to_string(self.profile.join("stderr.log")).unwrap_or_default()
+    }
+}
+
+/// The highest-numbered CPU this process may run on, as a set, when it may run on more than one.
+#[cfg(target_os = "linux")]
+fn last_cpu_of_several() -> Option<libc::cpu_set_t> {
+    // SAFETY: a zeroed cpu_set_t is the empty set; sched_getaffinity writes at most its size,
+    // and CPU_ISSET/CPU_SET index within it.
+    unsafe {
+        let mut mine: libc::cpu_set_t = std::mem::zeroed();
+        if libc::sched_getaffinity(0, size_of::<libc::cpu_set_t>(), &mut mine) != 0 {
+            return None;
+        }
+        let allowed: Vec<usize> = (0..libc::CPU_SETSIZE as usize)
+            .filter(|&c| libc::CPU_ISSET(c, &mine))
+            .collect();
+        let &last = allowed.last()?;
+        if allowed.len() < 2 {
+            return None;
+        }
+        let mut one: libc::cpu_set_t = std::mem::zeroed();
+        libc::CPU_SET(last, &mut one);
+        Some(one)
+    }
+}
+
+impl Drop for Browser {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+        let _ = std::fs::remove_dir_all(&self.profile);
+    }
+}
+
+type Socket =
+    tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>>;
+
+/// A DevTools protocol client: JSON-RPC over one WebSocket, one page session (flat mode), and
+/// every event kept so that console errors can be read at the end.
+struct Cdp {
+    socket: Socket,
+    next_id: u64,
+    session: Option<String>,
+    events: Vec<Value>,
+}
+
+impl Cdp {
+    async fn connect(url: &str) -> Cdp {
+        let (socket, _) = tokio_tungstenite::connect_async(url)
+            .await
+            .expect("DevTools WebSocket");
+        Cdp {
+            socket,
+            next_id: 0,
+            session: None,
+            events: Vec::new(),
+        }
+    }
+
+    /// Sends a command (to the page session once attached) and waits for its result.
+    async fn call(&mut self, method: &str, params: Value) -> Value {
+        self.next_id += 1;
+        let id = self.next_id;
+        let mut msg = json!({"id": id, "method": method, "params": params});
+        if let Some(s) = &self.session {
+            msg["sessionId"] = json!(s);
+        }
+        self.socket
+            .send(Message::text(msg.to_string()))
+            .await
+            .expect("DevTools send");
+        let deadline = Instant::now() + Duration::from_secs(90);
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            let next = tokio::time::timeout(left, self.socket.next())
+                .await
+                .unwrap_or_else(|_| panic!("{method}: no answer in 60 s"));
+            let text = match next {
+                Some(Ok(Message::Text(t))) => t.to_string(),
+                Some(Ok(_)) => continue,
+                other => panic!("DevTools connection ended during {method}: {other:?}"),
+            };
+            let v: Value = serde_json::from_str(&text).expect("DevTools JSON");
+            if v["id"] == json!(id) {
+                if let Some(err) = v.get("error") {
+                    panic!("{method}: {err}");
+                }
+                return v["result"].clone();
+            }
+            if v.get("method").is_some() {
+                self.events.push(v);
+            }
+        }
+    }
+
+    /// Evaluates an expression in the page and returns its value.
+    async fn eval(&mut self, expression: &str) -> Value {
+        let r = self
+            .call(
+                "Runtime.evaluate",
+                json!({"expression": expression, "returnByValue": true, "awaitPromise": true}),
+            )
+            .await;
+        if let Some(e) = r.get("exceptionDetails") {
+            panic!("evaluating {expression}: {e}");
+        }
+        r["result"]["value"].clone()
+    }
+
+    /// Console errors, uncaught exceptions and error log entries (failed loads included).
+    fn errors(&self) -> Vec<String> {
+        self.events
+            .iter()
+            .filter_map(|e| {
+                let p = &e["params"];
+                match e["method"].as_str()? {
+                    "Runtime.consoleAPICalled"
+                        if matches!(p["type"].as_str(), Some("error" | "assert")) =>
+                    {
+                        Some(format!("console.error: {}", p["args"]))
+                    }
+                    "Runtime.exceptionThrown" => Some(format!(
+                        "exception: {}",
+                        p["exceptionDetails"]["exception"]["description"]
+                            .as_str()
+                            .unwrap_or(&p["exceptionDetails"]["text"].to_string())
+                    )),
+                    "Log.entryAdded" if p["entry"]["level"] == "error" => {
+                        Some(format!("log: {} {}", p["entry"]["text"], p["entry"]["url"]))
+                    }
+                    _ => None,
+                }
+            })
+            .collect()
+    }
+
+    /// Polls `expression` every 250 ms until `done` accepts its value (then returns it), or
+    /// fails after `within`, or as soon as the page shows an error or logs one.
+    async fn wait_for(
+        &mut self,
+        what: &str,
+        expression: &str,
+        within: Duration,
+        mut done: impl FnMut(&Value) -> bool,
+    ) -> Value {
+        let start = Instant::now();
+        let deadline = start + within;
+        loop {
+            let v = self.eval(expression).await;
+            if done(&v) {
+                // Where the time goes, for `--nocapture` readers of a slow run.
+                println!("{what}: {:.1} s", start.elapsed().as_secs_f64());
+                return v;
+            }
+            let shown = self.eval(ERROR_TEXT).await;
+            let errors = self.errors();
+            assert!(
+                shown.as_str().unwrap_or("").is_empty() && errors.is_empty(),
+                "waiting for {what}: the page shows {shown} and logged {errors:#?}"
+            );
+            assert!(
+                Instant::now() < deadline,
+                "waiting for {what}: still {v} after {within:?}"
+            );
+            tokio::time::sleep(Duration::from_millis(250)).await;
+        }
+    }
+}
+
+/// The page's error box, empty while hidden (or while the page is still loading).
+const ERROR_TEXT: &str =
+    "(e => e && !e.hidden ? e.textContent : '')(document.getElementById('error'))";
+
+fn screenshot_path() -> PathBuf {
+    std::env::var_os("CROWDMORPH_VIEWER_SCREENSHOT")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| {
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("target/viewer-screenshot.png")
+        })
+}
+
+/// The viewer's background, sRGB (`BACKGROUND` in clients/web/render.js).
+const BACKGROUND: [u8; 3] = [46, 50, 56];
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_chromium),
+    ignore = "no Chromium (apt-get install chromium, or set CROWDMORPH_CHROMIUM and touch build.rs)"
+)]
+async fn the_viewer_streams_and_draws_a_lit_crowd_in_headless_chromium() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let mut browser = Browser::launch();
+    let url = browser.devtools_url().await;
+    let mut cdp = Cdp::connect(&url).await;
+    let target = cdp
+        .call("Target.createTarget", json!({"url": "about:blank"}))
+        .await;
+    let attached = cdp
+        .call(
+            "Target.attachToTarget",
+            json!({"targetId": target["targetId"], "flatten": true}),
+        )
+        .await;
+    cdp.session = Some(attached["sessionId"].as_str().unwrap().to_string());
+    // Console and log events are only reported after these, so they come before loading.
+    for domain in ["Runtime.enable", "Log.enable", "Page.enable"] {
+        cdp.call(domain, json!({})).await;
+    }
+    cdp.call(
+        "Page.navigate",
+        json!({"url": format!("http://{}/viewer", server.addr)}),
+    )
+    .await;
+
+    // The tick counter advances: the page created a session and the stream runs.
+    let tick = "Number(document.getElementById('tick')?.textContent || 0)";
+    let first = cdp
+        .wait_for("the first tick", tick, Duration::from_secs(120), |v| {
+            v.as_u64().unwrap_or(0) > 0
+        })
+        .await
+        .as_u64()
+        .unwrap();
+    cdp.wait_for("ten more ticks", tick, Duration::from_secs(90), |v| {
+        v.as_u64().unwrap_or(0) >= first + 10
+    })
+    .await;
+    // Every head of the default scene is drawn (topology fetched, buffers uploaded).
+    let drawn = "Number(document.getElementById('view').dataset.drawn || 0)";
+    cdp.wait_for("25 heads drawn", drawn, Duration::from_secs(90), |v| {
+        v.as_u64() == Some(25)
+    })
+    .await;
+    // The counters report what arrives.
+    cdp.wait_for(
+        "the bytes/s counter",
+        "document.getElementById('bps').textContent",
+        Duration::from_secs(10),
+        |v| v.as_str().is_some_and(|s| s != "0 B"),
+    )
+    .await;
+
+    // The server's view of it: one session of 25 heads, with this page as its viewer.
+    let id = cdp
+        .eval("new URL(location.href).searchParams.get('session')")
+        .await;
+    let id = id.as_str().expect("the page names its session").to_string();
+    let session = session_info(&server, &id).await;
+    assert_eq!(session.heads.len(), 25);
+    assert_eq!(session.viewers, 1);
+    assert!(session.stats.messages_sent > 0);
+
+    // The canvas is not blank: outside the control panel, a meaningful share of it is lit
+    // crowd, shaded over a range of brightness (a flat colour would be an unlit or failed draw).
+    let layout = cdp
+        .eval(
+            "JSON.stringify({w: innerWidth, h: innerHeight, \
+             panel: document.getElementById('panel').getBoundingClientRect()})",
+        )
+        .await;
+    let layout: Value = serde_json::from_str(layout.as_str().unwrap()).unwrap();
+    let shot = cdp
+        .call("Page.captureScreenshot", json!({"format": "png"}))
+        .await;
+    let png = base64_decode(shot["data"].as_str().unwrap());
+    let path = screenshot_path();
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir).unwrap();
+    }
+    std::fs::write(&path, &png).unwrap();
+    println!("viewer screenshot: {}", path.display());
+    let image = Image::decode_png(&png).unwrap();
+    let scale = f64::from(image.width) / layout["w"].as_f64().unwrap();
+    let panel = &layout["panel"];
+    let px = |k: &str| (panel[k].as_f64().unwrap() * scale) as u32;
+    let (pl, pt, pr, pb) = (px("left"), px("top"), px("right"), px("bottom"));
+    let (mut region, mut crowd) = (0u64, 0u64);
+    let (mut darkest, mut brightest) = (255u8, 0u8);
+    for y in 0..image.height {
+        for x in 0..image.width {
+            if (pl..=pr).contains(&x) && (pt..=pb).contains(&y) {
+                continue;
+            }
+            region += 1;
+            let p = image.pixel(x, y);
+            if (0..3).any(|c| p[c].abs_diff(BACKGROUND[c]) > 12) {
+                crowd += 1;
+                let luma =
+                    ((u32::from(p[0]) * 3 + u32::from(p[1]) * 6 + u32::from(p[2])) / 10) as u8;
+                darkest = darkest.min(luma);
+                brightest = brightest.max(luma);
+            }
+        }
+    }
+    let share = crowd as f64 / region as f64;
+    assert!(
+        share > 0.05,
+        "only {:.2} % of the canvas differs from the background (see {})",
+        share * 100.0,
+        path.display()
+    );
+    assert!(
+        brightest - darkest > 40,
+        "the crowd is flat: brightness {darkest}..{brightest} (see {})",
+        path.display()
+    );
+
+    // Crowd size: the slider adds heads with a PATCH; the next layout has them, and all are drawn.
+    cdp.eval(
+        "(() => { const r = document.getElementById('heads'); r.value = '36'; \
+         r.dispatchEvent(new Event('input')); })()",
+    )
+    .await;
+    cdp.wait_for("36 heads drawn", drawn, Duration::from_secs(90), |v| {
+        v.as_u64() == Some(36)
+    })
+    .await;
+    assert_eq!(session_info(&server, &id).await.heads.len(), 36);
+
+    // Clip mix: without `idle`, no head plays it.
+    cdp.eval(
+        "(() => { for (const c of document.querySelectorAll('#clips input')) \
+         if (c.parentElement.textContent.trim() === 'idle') c.click(); })()",
+    )
+    .await;
+    let deadline = Instant::now() + Duration::from_secs(90);
+    loop {
+        let info = session_info(&server, &id).await;
+        if info.heads.iter().all(|h| h.clip != "idle") {
+            let clips: std::collections::BTreeSet<_> = info.heads.iter().map(|h| &h.clip).collect();
+            assert_eq!(clips.len(), 3, "the other clips share the crowd: {clips:?}");
+            break;
+        }
+        assert!(Instant::now() < deadline, "heads still play idle");
+        tokio::time::sleep(Duration::from_millis(250)).await;
+    }
+
+    // LOD: a fixed level for every head is this viewer's choice, sent as a ViewerUpdate; the
+    // buffers that come back are at that level.
+    cdp.eval(
+        "(() => { const m = document.getElementById('lod-mode'); m.value = '2'; \
+         m.dispatchEvent(new Event('change')); })()",
+    )
+    .await;
+    cdp.wait_for(
+        "every head at LOD 2",
+        "document.getElementById('view').dataset.lods",
+        Duration::from_secs(90),
+        |v| v.as_str() == Some("2"),
+    )
+    .await;
+
+    // Orbiting the camera sends camera updates; the stream goes on.
+    cdp.call(
+        "Input.dispatchMouseEvent",
+        json!({"type": "mousePressed", "x": 600, "y": 400, "button": "left", "clickCount": 1}),
+    )
+    .await;
+    cdp.call(
+        "Input.dispatchMouseEvent",
+        json!({"type": "mouseMoved", "x": 680, "y": 380, "button": "left", "buttons": 1}),
+    )
+    .await;
+    cdp.call(
+        "Input.dispatchMouseEvent",
+        json!({"type": "mouseReleased", "x": 680, "y": 380, "button": "left", "clickCount": 1}),
+    )
+    .await;
+    let now = cdp.eval(tick).await.as_u64().unwrap();
+    cdp.wait_for("ticks after orbiting", tick, Duration::from_secs(90), |v| {
+        v.as_u64().unwrap_or(0) >= now + 10
+    })
+    .await;
+
+    let errors = cdp.errors();
+    assert!(errors.is_empty(), "the page logged errors: {errors:#?}");
+    assert_eq!(cdp.eval(ERROR_TEXT).await, json!(""));
+    drop(cdp);
+    drop(browser);
+    server.stop().await;
+}
+
+async fn session_info(server: &TestServer, id: &str) -> SessionInfo {
+    let reply = server
+        .client
+        .send(
+            Method::GET,
+            &format!("/v1/sessions/{id}"),
+            None,
+            Some("application/json"),
+            Bytes::new(),
+        )
+        .await
+        .unwrap();
+    assert_eq!(reply.status, 200, "{:?}", reply.error());
+    serde_json::from_slice(&reply.body).unwrap()
+}
+
+fn base64_decode(s: &str) -> Vec<u8> {
+    use base64::Engine as _;
+    base64::engine::general_purpose::STANDARD
+        .decode(s)
+        .expect("base64 screenshot")
+}
