@@ -11,6 +11,7 @@
 mod util;
 
 mod bad_input;
+mod channels;
 mod cli;
 mod engine;
 mod gpu;
