@@ -13,6 +13,7 @@ mod util;
 mod bad_input;
 mod channels;
 mod cli;
+mod compressed;
 mod engine;
 mod gpu;
 mod lod;
