@@ -54,6 +54,9 @@ struct Unit {
     class: usize,
 }
 
+/// A class found while refining: (its first unit, its new class id).
+type Representative = (usize, usize);
+
 /// Bytes the plan's bookkeeping holds per (node, target) pair, charged before it is built.
 const UNIT_BYTES: u64 = 64;
 
@@ -195,7 +198,7 @@ pub(crate) fn plan_channels(
         };
         // New class of each unit: (old class, curve hash) buckets, each holding the
         // representatives found so far (more than one only on a hash collision).
-        let mut buckets: HashMap<(usize, Option<u64>), Vec<(usize, usize)>> = HashMap::new();
+        let mut buckets: HashMap<(usize, Option<u64>), Vec<Representative>> = HashMap::new();
         let mut next = 0;
         for ui in 0..units.len() {
             let c = curve(&units[ui]);

@@ -138,7 +138,7 @@ impl RefDoc {
             };
             (json, bin)
         } else {
-            (serde_json::from_slice(&bytes).expect("glTF JSON"), None)
+            (serde_json::from_slice(bytes).expect("glTF JSON"), None)
         };
         let mut buffers = Vec::new();
         for b in json["buffers"].as_array().into_iter().flatten() {
