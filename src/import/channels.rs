@@ -307,7 +307,8 @@ pub(crate) fn curves_agree(
                                 "nodes {other} and {node} get different curves for target \
                                  {name:?}, which rig {:?} drives with one weight channel (its own \
                                  animations move those nodes alike); add this animation to the \
-                                 rig's file and upload the rig again",
+                                 rig's file and upload the rig again, or send it as a CSV or \
+                                 JSON clip, which drives every node by name",
                                 rig.name
                             ));
                         }
