@@ -630,7 +630,8 @@ fn main() -> Result<()> {
         } => {
             let rig = tools::load_rig(file.as_deref())?;
             let engine = Engine::new(backend)?;
-            let summary = tools::summarize_on(&rig, &engine)?;
+            let mut summary = tools::summarize_on(&rig, &engine)?;
+            summary.extensions = tools::file_extensions(file.as_deref())?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&summary)?);
             } else {

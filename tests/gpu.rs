@@ -415,3 +415,28 @@ fn outputs_left_on_the_device_are_the_blend_and_the_engine_stays_healthy() {
     assert_eq!(got.kind, Some(BackendKind::Gpu));
     assert!(!engine.info().degraded);
 }
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+fn gpu_plays_each_node_with_its_own_weights() {
+    // Per-node channels are ordinary weight rows: the GPU engine, unchanged, follows the
+    // independent glTF evaluator as the CPU engine does.
+    use crate::channels::{Case, check_against_reference};
+    let engine = Engine::with_gpu(open_gpu(GpuOptions::default()), BackendChoice::Gpu);
+    for case in [
+        Case::HeadOnly("CUBICSPLINE"),
+        Case::HeadOnly("STEP"),
+        Case::Different,
+        Case::Shared,
+    ] {
+        check_against_reference(&engine, case);
+        assert!(
+            !engine.info().degraded,
+            "{case:?}: {:?}",
+            engine.info().degraded_reason
+        );
+    }
+}

@@ -11,7 +11,9 @@
 mod util;
 
 mod bad_input;
+mod channels;
 mod cli;
+mod compressed;
 mod engine;
 mod gpu;
 mod lod;

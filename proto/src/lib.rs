@@ -406,7 +406,7 @@ pub struct RigInfo {
     pub triangles: u32,
     /// Primitives in evaluation order.
     pub primitives: Vec<PrimitiveInfo>,
-    /// Rig-wide target names.
+    /// Target names, each once, in the order of their first weight channel.
     pub targets: Vec<String>,
     /// Clips.
     pub clips: Vec<ClipInfo>,
@@ -416,6 +416,22 @@ pub struct RigInfo {
     pub bbox: Aabb,
     /// Memory resident for the rig.
     pub memory: Memory,
+    /// Target names that have more than one weight channel (empty for most rigs): a glTF file
+    /// whose animations or default weights treat nodes that share a target name differently
+    /// (a head animated while its teeth are not) gets one channel per behaviour, so each node
+    /// plays its own curve. Clips by name write every channel of a name; LOD orders list the
+    /// channels of such a name as `name#1`, `name#2`, ...
+    #[serde(default)]
+    pub split_targets: Vec<SplitTarget>,
+}
+
+/// A target name with several weight channels (see [`RigInfo::split_targets`]).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SplitTarget {
+    /// Target name.
+    pub name: String,
+    /// Weight channels it has (at least 2).
+    pub channels: u32,
 }
 
 /// A rig's level of detail (`GET /v1/rigs/{id}/lod`, and inside [`RigInfo`]).

@@ -211,6 +211,10 @@ fn rig_info() -> RigInfo {
             host_bytes: 4096,
             device_bytes: 0,
         },
+        split_targets: vec![SplitTarget {
+            name: "up".into(),
+            channels: 2,
+        }],
     }
 }
 

@@ -6,6 +6,7 @@
 //! behind it is a typed error rather than a panic or a huge allocation.
 
 use std::borrow::Cow;
+use std::collections::HashMap;
 use std::sync::Arc;
 
 use glam::{Vec3, Vec4};
@@ -15,9 +16,13 @@ use gltf::accessor::{DataType, Dimensions};
 use super::ImportError;
 use crate::budget::Budget;
 
-/// The buffers of a document and the budget decoding is charged to.
+/// The buffers of a document, its decompressed buffer views, and the budget decoding is
+/// charged to.
 pub(crate) struct Source<'a> {
     buffers: Vec<Cow<'a, [u8]>>,
+    /// Buffer views stored compressed (`EXT_meshopt_compression`), decoded: view index → the
+    /// view's bytes (4-byte aligned storage, at least the view's length).
+    decoded: HashMap<usize, Vec<u32>>,
     budget: Arc<Budget>,
 }
 
@@ -74,8 +79,16 @@ fn decode(bytes: &[u8], t: DataType, normalized: bool) -> f32 {
 }
 
 impl<'a> Source<'a> {
-    pub(crate) fn new(buffers: Vec<Cow<'a, [u8]>>, budget: Arc<Budget>) -> Self {
-        Source { buffers, budget }
+    pub(crate) fn new(
+        buffers: Vec<Cow<'a, [u8]>>,
+        decoded: HashMap<usize, Vec<u32>>,
+        budget: Arc<Budget>,
+    ) -> Self {
+        Source {
+            buffers,
+            decoded,
+            budget,
+        }
     }
 
     /// The budget allocations are charged to.
@@ -99,6 +112,20 @@ impl<'a> Source<'a> {
         len: u64,
     ) -> Result<&[u8], ImportError> {
         let bad = |problem: String| ImportError::Accessor { index, problem };
+        if let Some(words) = self.decoded.get(&view.index()) {
+            // A decompressed view: offsets count from its start.
+            let data = bytemuck::cast_slice::<u32, u8>(words);
+            let data = data.get(..view.length()).unwrap_or(data);
+            let end = (offset as u64).saturating_add(len);
+            if end > data.len() as u64 {
+                return Err(bad(format!(
+                    "needs bytes {offset}..{end} of buffer view {}, which has {} once decompressed",
+                    view.index(),
+                    data.len()
+                )));
+            }
+            return Ok(&data[offset..end as usize]);
+        }
         let buffer = self
             .buffers
             .get(view.buffer().index())

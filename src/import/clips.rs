@@ -5,14 +5,25 @@
 //! trailing `Left`/`Right` equals `_L`/`_R` (`EyeBlinkLeft` ≡ `eyeBlink_L`). Names that match
 //! nothing are an [`ImportError::UnknownTargets`] unless the caller asks to ignore them, in
 //! which case they are returned in [`ClipImport::ignored`] — reported, never silently dropped.
+//!
+//! Which weight channels a curve writes depends on the source (see [`crate::rig`]): a CSV or
+//! JSON column names a target, and writes every channel of that name (every primitive that
+//! has the target moves, as ARKit and Live Link users expect). A glTF animation animates nodes:
+//! when the file's scene has the rig's primitives (the same export: the same primitive names
+//! and vertex counts in the same order), each node's curve writes that node's channels and the
+//! rig's other nodes keep their default weights, as glTF viewers play it; an animation that
+//! gives two nodes different curves for a target the rig drives with one channel is refused,
+//! naming them. A glTF file with other meshes (an animation-only export) is matched by name.
 
+use std::collections::HashMap;
 use std::sync::Arc;
 
 use serde::Deserialize;
 
+use super::channels::curves_agree;
 use super::gltf::{
-    bake, mesh_target_count, mesh_target_names, parse, scene_instances, tracks_bytes, unique_name,
-    weight_tracks,
+    Instance, bake, mesh_target_count, mesh_target_names, parse, scene_instances, tracks_bytes,
+    unique_name, weight_tracks,
 };
 use super::{ImportError, ImportOptions};
 use crate::budget::Budget;
@@ -82,34 +93,41 @@ fn loose(name: &str) -> String {
     s
 }
 
-/// The rig target a source name refers to, if any.
-pub fn match_target(rig: &Rig, name: &str) -> Option<TargetId> {
+/// The rig target name a source name refers to, if any: the same name, else the only one
+/// that matches loosely.
+pub fn match_name<'r>(rig: &'r Rig, name: &str) -> Option<&'r str> {
     if let Some(id) = rig.target_id(name) {
-        return Some(id);
+        return rig.targets.get(id as usize).map(String::as_str);
     }
     let want = loose(name);
-    let mut hits = rig
-        .targets
-        .iter()
-        .enumerate()
-        .filter(|(_, t)| loose(t) == want);
+    let mut hits = rig.target_names().into_iter().filter(|t| loose(t) == want);
     match (hits.next(), hits.next()) {
-        (Some((i, _)), None) => Some(i as TargetId),
+        (Some(t), None) => Some(t),
         _ => None,
     }
 }
 
-/// Maps source column names to rig targets, collecting the unknown ones.
+/// The first weight channel of the rig target a source name refers to, if any.
+pub fn match_target(rig: &Rig, name: &str) -> Option<TargetId> {
+    match_name(rig, name).and_then(|n| rig.target_id(n))
+}
+
+/// Every weight channel of the rig target a source name refers to (empty: none).
+pub fn match_targets(rig: &Rig, name: &str) -> Vec<TargetId> {
+    match_name(rig, name).map_or_else(Vec::new, |n| rig.target_ids(n))
+}
+
+/// Maps source column names to the weight channels they write, collecting the unknown ones.
 fn map_names(
     rig: &Rig,
     names: &[String],
     options: &ClipOptions,
-) -> Result<(Vec<Option<TargetId>>, Vec<String>), ImportError> {
+) -> Result<(Vec<Vec<TargetId>>, Vec<String>), ImportError> {
     let mut ids = Vec::with_capacity(names.len());
     let mut unknown = Vec::new();
     for n in names {
-        let id = match_target(rig, n);
-        if id.is_none() {
+        let id = match_targets(rig, n);
+        if id.is_empty() {
             unknown.push(n.clone());
         }
         ids.push(id);
@@ -120,14 +138,15 @@ fn map_names(
     Ok((ids, unknown))
 }
 
-/// Builds a clip over all rig targets from frame-major source rows. The table covers every
-/// rig target whatever the source names, so its size is charged before it is allocated: a
-/// one-column CSV of 65,535 rows on a 4,096-target rig asks for a gigabyte.
+/// Builds a clip over all rig channels from frame-major source rows; column `c` writes every
+/// channel in `ids[c]`. The table covers every channel whatever the source names, so its size
+/// is charged before it is allocated: a one-column CSV of 65,535 rows on a 4,096-target rig
+/// asks for a gigabyte.
 fn clip_from_rows(
     rig: &Rig,
     name: &str,
     fps: f32,
-    ids: &[Option<TargetId>],
+    ids: &[Vec<TargetId>],
     rows: &[Vec<f32>],
     budget: &Budget,
 ) -> Result<Clip, ImportError> {
@@ -150,8 +169,10 @@ fn clip_from_rows(
     }
     for (f, row) in rows.iter().enumerate() {
         for (c, &w) in row.iter().enumerate() {
-            if let Some(Some(id)) = ids.get(c) {
-                weights[*id as usize * frames + f] = w;
+            for &id in ids.get(c).into_iter().flatten() {
+                if let Some(x) = weights.get_mut(id as usize * frames + f) {
+                    *x = w;
+                }
             }
         }
     }
@@ -277,8 +298,88 @@ pub fn clip_from_json(
     Ok(ClipImport { clip, ignored })
 }
 
-/// Reads every morph-weight animation of a glTF/GLB file as clips of `rig`, matching the file's
-/// mesh target names to the rig's. Clips are named after the animations.
+/// The rig primitive each primitive of the file's scene is, when the scene has exactly the
+/// rig's primitives (same names and vertex counts, same order): the file is the rig's own
+/// export, and its nodes can be matched one to one.
+fn same_scene(rig: &Rig, instances: &[Instance<'_>]) -> bool {
+    let mut rig_prims = rig.primitives.iter();
+    for inst in instances {
+        let label = inst
+            .mesh
+            .name()
+            .map_or_else(|| format!("#{}", inst.mesh.index()), str::to_string);
+        for prim in inst.mesh.primitives() {
+            let Some(p) = rig_prims.next() else {
+                return false;
+            };
+            let n = prim
+                .get(&gltf::mesh::Semantic::Positions)
+                .map_or(0, |a| a.count());
+            if p.name != format!("{label}/{}", prim.index()) || p.positions.len() != n {
+                return false;
+            }
+        }
+    }
+    rig_prims.next().is_none()
+}
+
+/// The channels each target of each node of the file's scene writes, node by node: the
+/// channels of that name that move the node's own primitives in the rig (the `o`-th of them
+/// for the `o`-th target of that name in the mesh). A target that moves none of them writes
+/// nothing, which changes nothing.
+fn node_channels(
+    rig: &Rig,
+    instances: &[Instance<'_>],
+    names: &[Vec<String>],
+) -> HashMap<usize, Vec<Vec<TargetId>>> {
+    let mut out = HashMap::new();
+    let mut first_prim = 0;
+    for (inst, names) in instances.iter().zip(names) {
+        let n_prims = inst.mesh.primitives().len();
+        let prims = rig
+            .primitives
+            .get(first_prim..first_prim + n_prims)
+            .unwrap_or(&[]);
+        first_prim += n_prims;
+        // The channels that move this node, by name, in channel order.
+        let mut by_name: HashMap<&str, Vec<TargetId>> = HashMap::new();
+        for p in prims {
+            for t in &p.targets {
+                if let Some(name) = rig.targets.get(t.target as usize) {
+                    let v = by_name.entry(name.as_str()).or_default();
+                    if !v.contains(&t.target) {
+                        v.push(t.target);
+                    }
+                }
+            }
+        }
+        for v in by_name.values_mut() {
+            v.sort_unstable();
+        }
+        let mut seen: HashMap<&str, usize> = HashMap::new();
+        let ids = names
+            .iter()
+            .map(|n| {
+                let o = seen.entry(n.as_str()).or_default();
+                let channels = by_name.get(n.as_str()).map_or(&[][..], Vec::as_slice);
+                let ids = match channels.get(*o) {
+                    Some(&c) if channels.len() > 1 => vec![c],
+                    _ => channels.to_vec(),
+                };
+                *o += 1;
+                ids
+            })
+            .collect();
+        out.insert(inst.node.index(), ids);
+    }
+    out
+}
+
+/// Reads every morph-weight animation of a glTF/GLB file as clips of `rig`. When the file is
+/// the rig's own export, each node's curves write that node's channels and the rig's other
+/// nodes keep their defaults; otherwise the file's target names are matched to the rig's and
+/// write every channel of the name (see the module documentation). Clips are named after the
+/// animations.
 pub fn clips_from_gltf(
     rig: &Rig,
     bytes: &[u8],
@@ -287,14 +388,24 @@ pub fn clips_from_gltf(
     let import = options.import_options();
     let parsed = parse(bytes, &import)?;
     let instances = scene_instances(&parsed.doc)?;
-    let mut by_node = std::collections::HashMap::new();
+    let mut all_names = Vec::with_capacity(instances.len());
     let mut ignored = Vec::new();
+    let mut by_node = HashMap::new();
     for inst in &instances {
         let count = mesh_target_count(&inst.mesh)?;
         let names = mesh_target_names(&inst.mesh, count);
         let (ids, unknown) = map_names(rig, &names, options)?;
-        ignored.extend(unknown);
+        for u in unknown {
+            if !ignored.contains(&u) {
+                ignored.push(u);
+            }
+        }
         by_node.insert(inst.node.index(), ids);
+        all_names.push(names);
+    }
+    let per_node = same_scene(rig, &instances);
+    if per_node {
+        by_node = node_channels(rig, &instances, &all_names);
     }
     let lookup = |node: &gltf::Node<'_>| by_node.get(&node.index()).cloned();
     let mut out: Vec<ClipImport> = Vec::new();
@@ -307,6 +418,11 @@ pub fn clips_from_gltf(
             .name()
             .filter(|n| !n.is_empty())
             .map_or_else(|| format!("anim{}", anim.index()), str::to_string);
+        if per_node {
+            curves_agree(rig, &tracks, &by_node).map_err(|problem| {
+                ImportError::ClipSource(format!("animation {name:?}: {problem}"))
+            })?;
+        }
         let taken: Vec<String> = out.iter().map(|c| c.clip.name.clone()).collect();
         let name = unique_name(name, &taken);
         let clip = bake(

@@ -17,7 +17,9 @@ use gltf::mesh::{Mode, Semantic};
 use serde::Deserialize;
 
 use super::accessor::Source;
+use super::channels::{ChannelPlan, plan_channels};
 use super::{ImportError, ImportOptions};
+use super::{extensions, meshopt};
 use crate::budget::Budget;
 use crate::rig::{
     Clip, Interpolation, KeyTrack, Lod, MAX_FRAMES, MAX_TARGETS, MAX_VERTICES, PrimShape,
@@ -26,7 +28,11 @@ use crate::rig::{
 };
 
 /// glTF extensions a file may require that we read correctly.
-const SUPPORTED_REQUIRED: &[&str] = &["KHR_mesh_quantization"];
+const SUPPORTED_REQUIRED: &[&str] = &[
+    "KHR_mesh_quantization",
+    "EXT_meshopt_compression",
+    "KHR_meshopt_compression",
+];
 
 /// Deepest node hierarchy we follow.
 const MAX_DEPTH: usize = 256;
@@ -51,6 +57,8 @@ pub fn rig_from_slice(bytes: &[u8], options: &ImportOptions) -> Result<Rig, Impo
 /// before it commits to the work.
 pub struct GltfImport<'a> {
     parsed: Parsed<'a>,
+    /// Which (node, target) pairs share a weight channel.
+    plan: ChannelPlan,
     shape: RigShape,
     /// Largest transient decode of one primitive or animation (dense target deltas, raw
     /// indices, keyframes), beyond the rig's own arrays.
@@ -63,9 +71,10 @@ impl<'a> GltfImport<'a> {
     /// counts alone break (targets, vertices, frames) are refused here, before any decoding.
     pub fn open(bytes: &'a [u8], options: &ImportOptions) -> Result<GltfImport<'a>, ImportError> {
         let parsed = parse(bytes, options)?;
-        let (shape, transient) = document_shape(&parsed, options)?;
+        let (shape, transient, plan) = document_shape(&parsed, options)?;
         Ok(GltfImport {
             parsed,
+            plan,
             shape,
             transient,
         })
@@ -84,8 +93,21 @@ impl<'a> GltfImport<'a> {
 
     /// Decodes and builds the rig, charging every allocation to the budget.
     pub fn build(self, options: &ImportOptions) -> Result<Rig, ImportError> {
-        build_rig(&self.parsed, options)
+        build_rig(&self.parsed, &self.plan, options)
     }
+}
+
+/// Every extension a `.glb` or `.gltf` file uses or requires, and how the importer treats
+/// it (read, ignored, unsupported): what `crowdmorph inspect` lists. Reads the JSON only.
+pub fn extension_report(bytes: &[u8]) -> Result<Vec<extensions::ExtensionUse>, ImportError> {
+    let json = if bytes.starts_with(b"glTF") {
+        split_glb(bytes)?.0
+    } else {
+        bytes
+    };
+    let root: serde_json::Value =
+        serde_json::from_slice(json).map_err(|e| ImportError::Json(e.to_string()))?;
+    Ok(extensions::report(&root))
 }
 
 /// Splits a GLB container into its JSON and BIN chunks, checking every length.
@@ -173,12 +195,22 @@ pub(crate) fn parse<'a>(
     let mut root: gltf::json::Root =
         gltf::json::deserialize::from_slice(json).map_err(|e| ImportError::Json(e.to_string()))?;
     drop_unknown_channels(&mut root);
-    validate(&root)?;
+    validate(&root, json, &budget)?;
     let doc = gltf::Document::from_json_without_validation(root);
     let mut buffers = Vec::new();
     for buffer in doc.buffers() {
         let index = buffer.index();
         let bad = |problem: String| ImportError::Buffer { index, problem };
+        // Fallback buffers stand in for compressed views and are never read; so are buffers
+        // past the first without a URI (only buffer 0 may be a GLB's BIN chunk), which are
+        // placeholders of the same kind. A view that reads one without decompressing finds
+        // no bytes there, an error naming it.
+        let placeholder = meshopt::is_fallback(&buffer)
+            || (index > 0 && matches!(buffer.source(), gltf::buffer::Source::Bin));
+        if placeholder {
+            buffers.push(Cow::Borrowed(&[][..]));
+            continue;
+        }
         let data: Cow<'a, [u8]> = match buffer.source() {
             gltf::buffer::Source::Bin => Cow::Borrowed(
                 bin.ok_or_else(|| bad("refers to the GLB BIN chunk, which is missing".into()))?,
@@ -205,9 +237,27 @@ pub(crate) fn parse<'a>(
             }
         });
     }
+    let mut decoded = HashMap::new();
+    for view in doc.views() {
+        let Some(ext) = meshopt::view_extension(&view) else {
+            continue;
+        };
+        let (name, ext) = ext?;
+        let compressed = buffers.get(ext.buffer).ok_or_else(|| {
+            ImportError::Invalid(format!(
+                "bufferViews[{}].extensions.{name} refers to buffer {} of {}",
+                view.index(),
+                ext.buffer,
+                buffers.len()
+            ))
+        })?;
+        let words =
+            meshopt::decode_view(view.index(), name, &ext, view.length(), compressed, &budget)?;
+        decoded.insert(view.index(), words);
+    }
     Ok(Parsed {
         doc,
-        source: Source::new(buffers, budget),
+        source: Source::new(buffers, decoded, budget),
     })
 }
 
@@ -230,8 +280,9 @@ fn drop_unknown_channels(root: &mut gltf::json::Root) {
     }
 }
 
-/// Runs the `gltf` crate's reference validation, tolerating what we handle ourselves.
-fn validate(root: &gltf::json::Root) -> Result<(), ImportError> {
+/// Runs the `gltf` crate's reference validation, tolerating what we handle ourselves, and
+/// refuses required extensions that could change the geometry (see [`super::extensions`]).
+fn validate(root: &gltf::json::Root, json: &[u8], budget: &Budget) -> Result<(), ImportError> {
     use gltf::json::validation::{Error, Validate};
     // The crate's own validation indexes accessors from primitive attributes before checking
     // them; check those references first so a dangling one is an error, not a panic.
@@ -272,12 +323,36 @@ fn validate(root: &gltf::json::Root) -> Result<(), ImportError> {
             }
         }
     }
+    let mut value: Option<serde_json::Value> = None;
     for ext in &root.extensions_required {
-        if !SUPPORTED_REQUIRED.contains(&ext.as_str())
-            && !gltf::json::extensions::ENABLED_EXTENSIONS.contains(&ext.as_str())
+        if SUPPORTED_REQUIRED.contains(&ext.as_str())
+            || gltf::json::extensions::ENABLED_EXTENSIONS.contains(&ext.as_str())
         {
-            return Err(ImportError::UnsupportedExtension(ext.clone()));
+            continue;
         }
+        // Rare: the document is read again as plain JSON to see where the extension is used.
+        let value = match &mut value {
+            Some(v) => v,
+            None => {
+                budget.charge(document_cost(json), || {
+                    format!(
+                        "the glTF document ({} bytes of JSON), to check its extensions",
+                        json.len()
+                    )
+                })?;
+                let v =
+                    serde_json::from_slice(json).map_err(|e| ImportError::Json(e.to_string()))?;
+                value.insert(v)
+            }
+        };
+        if extensions::texture_only(value, ext) {
+            tracing::info!(extension = %ext, "required extension is used only by textures; ignored");
+            continue;
+        }
+        return Err(ImportError::UnsupportedExtension(ext.clone()));
+    }
+    if value.take().is_some() {
+        budget.release(document_cost(json));
     }
     let mut errors = Vec::new();
     let outcome = std::panic::catch_unwind(|| {
@@ -285,8 +360,12 @@ fn validate(root: &gltf::json::Root) -> Result<(), ImportError> {
             let p = path().to_string();
             // Missing POSITION min/max is common in the wild and harmless here (we compute
             // bounds); extensions we support are allowed in extensionsRequired.
+            // A texture whose image comes from an extension (KHR_texture_basisu, ...) has no
+            // `source`; textures are never read here.
             let tolerated = (error == Error::Missing
-                && (p.ends_with(".min") || p.ends_with(".max")))
+                && (p.ends_with(".min")
+                    || p.ends_with(".max")
+                    || (p.starts_with("textures[") && p.ends_with(".source"))))
                 || (error == Error::Unsupported && p.starts_with("extensionsRequired"));
             if !tolerated {
                 errors.push(format!("{p}: {error}"));
@@ -547,14 +626,16 @@ fn list_len(prim: &gltf::Primitive<'_>, vertices: usize) -> u64 {
     }
 }
 
-/// The shape of the rig a document describes, from its headers, and the largest transient
-/// decode of one primitive or animation. Counts that break a limit on their own are refused
-/// here: too many rig-wide targets, too many vertices, clips with too many frames. Only
-/// animation times whose accessor declares no `max` are decoded (and charged).
+/// The shape of the rig a document describes, from its headers, the largest transient decode
+/// of one primitive or animation, and the weight channels. Counts that break a limit on their
+/// own are refused first: too many target names, too many vertices, clips with too many
+/// frames; only animation times whose accessor declares no `max` are decoded for that (and
+/// charged). Then the animations' keyframes are decoded, one animation at a time, to tell
+/// which nodes share a channel ([`plan_channels`]), which gives the clip tables' exact size.
 fn document_shape(
     parsed: &Parsed<'_>,
     options: &ImportOptions,
-) -> Result<(RigShape, u64), ImportError> {
+) -> Result<(RigShape, u64, ChannelPlan), ImportError> {
     let doc = &parsed.doc;
     let instances = scene_instances(doc)?;
     let mut targets = Targets::default();
@@ -618,8 +699,7 @@ fn document_shape(
             primitives.push(PrimShape::upper_bound(n, indices, tangents, k, kn, kt));
         }
     }
-    let n_targets = targets.names.len() as u64;
-    let mut clip_cells = 0u64;
+    let mut clip_frames = 0u64;
     for anim in doc.animations() {
         let mut last = None::<f32>;
         let mut keys = 0u64;
@@ -673,17 +753,20 @@ fn document_shape(
                 options.fps
             ),
         })?;
-        clip_cells += n_targets * frames as u64;
+        clip_frames += frames as u64;
         transient = transient.max(keys);
     }
+    let plan = plan_channels(doc, &parsed.source, &instances)?;
+    let n_targets = plan.len() as u64;
     Ok((
         RigShape {
             primitives,
             targets: n_targets,
-            clip_cells,
+            clip_cells: n_targets * clip_frames,
             mesh_levels: Vec::new(),
         },
         transient,
+        plan,
     ))
 }
 
@@ -767,26 +850,29 @@ impl Targets {
     }
 }
 
-fn build_rig(parsed: &Parsed<'_>, options: &ImportOptions) -> Result<Rig, ImportError> {
+fn build_rig(
+    parsed: &Parsed<'_>,
+    plan: &ChannelPlan,
+    options: &ImportOptions,
+) -> Result<Rig, ImportError> {
     let doc = &parsed.doc;
     let source = &parsed.source;
     let instances = scene_instances(doc)?;
-    let mut targets = Targets::default();
     let mut primitives = Vec::new();
-    // Rig-wide ids of each node's mesh targets, for animation channels.
-    let mut node_targets: HashMap<usize, Vec<TargetId>> = HashMap::new();
 
     for inst in &instances {
         let mesh = &inst.mesh;
         let count = mesh_target_count(mesh)?;
-        let names = mesh_target_names(mesh, count);
-        let defaults = mesh.weights().filter(|w| w.len() == count);
-        let ids: Vec<TargetId> = names
-            .iter()
-            .enumerate()
-            .map(|(i, n)| targets.id(n, defaults.map_or(0.0, |d| d[i])))
-            .collect();
-        node_targets.insert(inst.node.index(), ids.clone());
+        let ids = plan
+            .node_channels
+            .get(&inst.node.index())
+            .filter(|ids| ids.len() == count)
+            .ok_or_else(|| {
+                ImportError::Invalid(format!(
+                    "node {} has no weight channels planned",
+                    inst.node.index()
+                ))
+            })?;
 
         let linear = Mat3::from_mat4(inst.world);
         let normal_m = if linear.determinant().abs() > f32::MIN_POSITIVE {
@@ -943,20 +1029,20 @@ fn build_rig(parsed: &Parsed<'_>, options: &ImportOptions) -> Result<Rig, Import
         }
     }
 
-    let n_targets = targets.names.len();
+    let n_targets = plan.len();
     let clips = bake_animations(
         doc,
         source,
-        &node_targets,
+        &plan.node_channels,
         n_targets,
-        &targets.defaults,
+        &plan.defaults,
         options.fps,
     )?;
     let lod = Lod::by_delta_energy(&primitives, n_targets);
     let rig = Rig {
         name: options.name.clone().unwrap_or_else(|| "rig".into()),
-        targets: targets.names,
-        default_weights: targets.defaults,
+        targets: plan.names.clone(),
+        default_weights: plan.defaults.clone(),
         primitives: std::sync::Arc::new(primitives),
         clips,
         lod,
@@ -975,17 +1061,20 @@ pub(crate) fn tracks_bytes(tracks: &[WeightTrack]) -> u64 {
 
 /// One `weights` channel resolved to rig-wide targets.
 pub(crate) struct WeightTrack {
+    /// The node the channel animates.
+    pub(crate) node: usize,
     pub(crate) track: KeyTrack,
-    /// Rig-wide target of each of the track's `width` scalars (`None`: not in the rig).
-    pub(crate) targets: Vec<Option<TargetId>>,
+    /// The weight channels each of the track's `width` scalars writes (none: a target the
+    /// rig does not have; several: a clip addressed by name onto a name with several channels).
+    pub(crate) targets: Vec<Vec<TargetId>>,
 }
 
 /// Reads the `weights` channels of one animation. `node_targets(node)` maps a node to the
-/// rig-wide ids of its mesh's targets (`None` entries are targets the rig does not have).
+/// weight channels each of its mesh's targets writes (empty for targets the rig does not have).
 pub(crate) fn weight_tracks(
     source: &Source<'_>,
     anim: &gltf::Animation<'_>,
-    node_targets: &dyn Fn(&gltf::Node<'_>) -> Option<Vec<Option<TargetId>>>,
+    node_targets: &dyn Fn(&gltf::Node<'_>) -> Option<Vec<Vec<TargetId>>>,
 ) -> Result<Vec<WeightTrack>, ImportError> {
     let label = anim
         .name()
@@ -1024,6 +1113,7 @@ pub(crate) fn weight_tracks(
         };
         track.check().map_err(&bad)?;
         tracks.push(WeightTrack {
+            node: node.index(),
             track,
             targets: ids,
         });
@@ -1063,9 +1153,11 @@ pub(crate) fn bake(
         tmp.resize(wt.track.width, 0.0);
         for f in 0..frames {
             sample_track(&wt.track, f as f32 / fps, &mut tmp);
-            for (i, id) in wt.targets.iter().enumerate() {
-                if let Some(id) = id {
-                    weights[*id as usize * frames + f] = tmp[i];
+            for (i, ids) in wt.targets.iter().enumerate() {
+                for &id in ids {
+                    if let Some(w) = weights.get_mut(id as usize * frames + f) {
+                        *w = tmp[i];
+                    }
                 }
             }
         }
@@ -1095,7 +1187,7 @@ fn bake_animations(
     let lookup = |node: &gltf::Node<'_>| {
         node_targets
             .get(&node.index())
-            .map(|ids| ids.iter().map(|&i| Some(i)).collect())
+            .map(|ids| ids.iter().map(|&i| vec![i]).collect())
     };
     let mut clips: Vec<Clip> = Vec::new();
     for anim in doc.animations() {

@@ -10,8 +10,11 @@
 //! what is wrong. Nothing here panics on bad input.
 
 mod accessor;
+mod channels;
 pub mod clips;
+pub mod extensions;
 pub mod gltf;
+mod meshopt;
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -88,8 +91,9 @@ pub enum ImportError {
     /// The glTF document breaks the specification (e.g. dangling references).
     #[error("invalid glTF: {0}")]
     Invalid(String),
-    /// The file requires a glTF extension crowdmorph does not implement.
-    #[error("glTF requires unsupported extension {0:?}")]
+    /// The file requires a glTF extension crowdmorph does not implement (for Draco, the
+    /// message says how to convert the file).
+    #[error("glTF requires unsupported extension {0:?}{hint}", hint = extensions::conversion_hint(.0))]
     UnsupportedExtension(String),
     /// A buffer is missing, refused or shorter than declared.
     #[error("buffer {index}: {problem}")]

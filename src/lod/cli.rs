@@ -125,9 +125,8 @@ pub fn order_command(
     })?;
     let pin_ids = resolve_targets(rig, pins)?;
     let (scores, seconds) = score(rig, image_size)?;
-    let names = |o: &[TargetId]| -> Vec<String> {
-        o.iter().map(|&t| rig.targets[t as usize].clone()).collect()
-    };
+    let names =
+        |o: &[TargetId]| -> Vec<String> { o.iter().map(|&t| rig.channel_label(t)).collect() };
     let order = pin_front(&scores.order(method), &pin_ids);
     let out = OrderOutput {
         rig: rig.name.clone(),

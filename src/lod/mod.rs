@@ -162,7 +162,9 @@ pub struct LodSpec {
     /// How to order the targets (default: combined mean rank).
     #[serde(default)]
     pub method: OrderMethod,
-    /// An explicit full order by target name; overrides `method` (pins still apply).
+    /// An explicit full order by target name (a name with several weight channels stands for
+    /// all of them, or is listed once per channel as `name#k`); overrides `method` (pins
+    /// still apply).
     #[serde(default)]
     pub order: Option<Vec<String>>,
     /// Targets moved to the front, in this order.
@@ -199,17 +201,26 @@ impl LodSpec {
     }
 }
 
-/// Resolves target names to ids, refusing unknown and repeated names.
+/// Resolves target names to weight channels, refusing unknown and repeated ones. A name
+/// stands for every channel it has (in channel order: usually one); a channel label
+/// `name#k` ([`Rig::channel_label`], as LOD orders list the channels of a name that has
+/// several) stands for that channel alone.
 pub fn resolve_targets(rig: &Rig, names: &[String]) -> Result<Vec<TargetId>, LodBuildError> {
     let mut out = Vec::with_capacity(names.len());
     for n in names {
-        let id = rig
-            .target_id(n)
-            .ok_or_else(|| LodBuildError::UnknownTarget(n.clone()))?;
-        if out.contains(&id) {
-            return Err(LodBuildError::DuplicateTarget(n.clone()));
+        let mut ids = rig.target_ids(n);
+        if ids.is_empty() {
+            ids.extend(rig.channel_by_label(n));
         }
-        out.push(id);
+        if ids.is_empty() {
+            return Err(LodBuildError::UnknownTarget(n.clone()));
+        }
+        for id in ids {
+            if out.contains(&id) {
+                return Err(LodBuildError::DuplicateTarget(n.clone()));
+            }
+            out.push(id);
+        }
     }
     Ok(out)
 }

@@ -304,7 +304,7 @@ pub fn score_targets(
             let b = &frame.image.pixels;
             let score = TargetScore {
                 target: t,
-                name: rig.targets[t as usize].clone(),
+                name: rig.channel_label(t),
                 geometric_mse: geometric_mse(&deltas, neutral.len()),
                 hausdorff: hausdorff(&neutral, &index, &vertices, &deltas),
                 image_mse: image_mse(a, b),

@@ -234,10 +234,7 @@ pub fn lod_report(
         let order = pin_front(&scores.order(method), pins);
         orders.push(OrderReport {
             method: method.name().to_string(),
-            order: order
-                .iter()
-                .map(|&t| rig.targets[t as usize].clone())
-                .collect(),
+            order: order.iter().map(|&t| rig.channel_label(t)).collect(),
             levels: clip_errors(rig, &disp, clip, &order, &levels)?,
         });
     }
@@ -247,10 +244,7 @@ pub fn lod_report(
         frames: c.frames,
         vertices: rig.vertex_count(),
         bbox_diagonal: rig.bbox().diagonal(),
-        pinned: pins
-            .iter()
-            .map(|&t| rig.targets[t as usize].clone())
-            .collect(),
+        pinned: pins.iter().map(|&t| rig.channel_label(t)).collect(),
         orders,
         scores: scores.clone(),
     })

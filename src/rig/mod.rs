@@ -7,9 +7,15 @@
 //! of I/O and of `wgpu` means every layer above can depend on it without dragging the others in.
 //!
 //! Conventions:
-//! - Targets are addressed rig-wide by [`TargetId`] (an index into [`Rig::targets`]); a
-//!   primitive's [`SparseTarget::target`] says which rig-wide target it belongs to, so one weight
-//!   drives every primitive that has that target.
+//! - Weights are addressed rig-wide by [`TargetId`], an index into [`Rig::targets`]: a *weight
+//!   channel*, one row of every clip table and one LOD slot. A primitive's
+//!   [`SparseTarget::target`] says which channel drives it, so one weight drives every primitive
+//!   that has that channel.
+//! - A channel is named by its target name, and usually each name has one channel. A glTF file
+//!   whose animations (or default weights) treat two nodes that share a target name differently
+//!   gets one channel per distinct behaviour, so the name then maps to several channels
+//!   ([`Rig::target_ids`]). Sources that address targets by name (CSV and JSON clips, LOD pins)
+//!   write every channel of the name; glTF animations write each node's own channel.
 //! - The evaluation vertex space is all primitives concatenated in order; [`Rig::vertex_offsets`]
 //!   maps a primitive to its first vertex there. Output buffers use this order.
 
@@ -48,9 +54,12 @@ pub const ACTIVE_WEIGHT_EPSILON: f32 = 1e-6;
 pub struct Rig {
     /// Human-readable name (file stem or the name given on upload).
     pub name: String,
-    /// Rig-wide target names; a [`TargetId`] indexes this list.
+    /// The weight channels, by target name; a [`TargetId`] indexes this list. A name appears
+    /// more than once when the file's nodes that share it are animated differently (see the
+    /// module documentation); it appears once otherwise.
     pub targets: Vec<String>,
-    /// Weight of each target when a clip does not animate it (glTF `mesh.weights`, else 0).
+    /// Weight of each channel when a clip does not animate it (glTF `node.weights`, else
+    /// `mesh.weights`, else 0).
     pub default_weights: Vec<f32>,
     /// The primitives, in file order (default scene traversal order). Shared by every
     /// version of the rig (a new clip or LOD makes a new version, not a copy of the geometry).
@@ -195,12 +204,84 @@ impl Rig {
         Aabb { min, max }
     }
 
-    /// Index of the target with this name.
+    /// The first weight channel of the target with this name (its only one, unless the name
+    /// has several: see [`Rig::target_ids`]).
     pub fn target_id(&self, name: &str) -> Option<TargetId> {
         self.targets
             .iter()
             .position(|t| t == name)
             .map(|i| i as TargetId)
+    }
+
+    /// Every weight channel of the target with this name, in channel order (empty when the rig
+    /// has no such target). Sources that address targets by name write all of them.
+    pub fn target_ids(&self, name: &str) -> Vec<TargetId> {
+        self.targets
+            .iter()
+            .enumerate()
+            .filter(|(_, t)| *t == name)
+            .map(|(i, _)| i as TargetId)
+            .collect()
+    }
+
+    /// The distinct target names, in order of their first channel.
+    pub fn target_names(&self) -> Vec<&str> {
+        let mut seen = std::collections::HashSet::with_capacity(self.targets.len());
+        self.targets
+            .iter()
+            .filter(|t| seen.insert(t.as_str()))
+            .map(String::as_str)
+            .collect()
+    }
+
+    /// The names that have more than one weight channel, with how many, in order of their
+    /// first channel.
+    pub fn split_targets(&self) -> Vec<(&str, usize)> {
+        let mut counts: std::collections::HashMap<&str, usize> =
+            std::collections::HashMap::with_capacity(self.targets.len());
+        for t in &self.targets {
+            *counts.entry(t.as_str()).or_default() += 1;
+        }
+        self.target_names()
+            .into_iter()
+            .filter_map(|n| counts.get(n).filter(|&&c| c > 1).map(|&c| (n, c)))
+            .collect()
+    }
+
+    /// A label for channel `id` that tells a name's channels apart in reports: the name, with
+    /// `#k` (k counted from 1 in channel order) when the name has several channels.
+    pub fn channel_label(&self, id: TargetId) -> String {
+        let Some(name) = self.targets.get(id as usize) else {
+            return format!("#{id}");
+        };
+        let before = self.targets[..id as usize]
+            .iter()
+            .filter(|t| *t == name)
+            .count();
+        let after = self.targets[id as usize + 1..]
+            .iter()
+            .filter(|t| *t == name)
+            .count();
+        if before + after == 0 {
+            name.clone()
+        } else {
+            format!("{name}#{}", before + 1)
+        }
+    }
+
+    /// The channel a [`Rig::channel_label`] names: `name#k` is the k-th channel of `name`
+    /// (a plain name with a single channel is its label too).
+    pub fn channel_by_label(&self, label: &str) -> Option<TargetId> {
+        let ids = self.target_ids(label);
+        if ids.len() == 1 {
+            return ids.first().copied();
+        }
+        let (name, k) = label.rsplit_once('#')?;
+        let k: usize = k.parse().ok()?;
+        let ids = self.target_ids(name);
+        (ids.len() > 1 && k >= 1)
+            .then(|| ids.get(k - 1).copied())
+            .flatten()
     }
 
     /// Index of the clip with this name.

@@ -591,7 +591,7 @@ pub(super) async fn upload_rig(
         let shape = import.shape();
         b.reserve(need, || {
             format!(
-                "a rig of {} vertices, {} targets and {} clip table cells",
+                "a rig of {} vertices, {} weight channels and {} clip table cells",
                 shape.vertices(),
                 shape.targets,
                 shape.clip_cells
@@ -636,7 +636,7 @@ pub(super) async fn upload_rig(
     state.registry.insert(entry.clone());
     drop(budget);
     crate::budget::return_freed_memory();
-    tracing::info!(rig = %id, vertices = entry.vertices, targets = rig.targets.len(), "rig registered");
+    tracing::info!(rig = %id, vertices = entry.vertices, channels = rig.targets.len(), "rig registered");
     state.start_auto_lod(&entry);
     respond(&headers, StatusCode::CREATED, &state.rig_info(&entry))
 }

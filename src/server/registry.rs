@@ -12,7 +12,7 @@ use std::sync::{Arc, Mutex, RwLock};
 
 use crowdmorph_proto::{
     Aabb, Blob, ClipInfo, LodInfo, LodLevelInfo, Memory, MeshPrimitive, MeshResponse,
-    PrimitiveInfo, Quantization, RigInfo,
+    PrimitiveInfo, Quantization, RigInfo, SplitTarget,
 };
 use glam::DVec3;
 
@@ -167,7 +167,7 @@ impl RigEntry {
                     triangles: (p.indices.len() / 3) as u32,
                 })
                 .collect(),
-            targets: rig.targets.clone(),
+            targets: rig.target_names().into_iter().map(str::to_string).collect(),
             clips: clip_infos(rig),
             lod: self.lod_info(),
             bbox: Aabb {
@@ -178,6 +178,14 @@ impl RigEntry {
                 host_bytes: mem.host_bytes as u64,
                 device_bytes: mem.device_bytes as u64,
             },
+            split_targets: rig
+                .split_targets()
+                .into_iter()
+                .map(|(name, channels)| SplitTarget {
+                    name: name.to_string(),
+                    channels: channels as u32,
+                })
+                .collect(),
         }
     }
 
@@ -187,7 +195,9 @@ impl RigEntry {
     pub fn lod_info(&self) -> LodInfo {
         let rig = self.rig();
         let lod = &rig.lod;
-        let name = |t: &u32| rig.targets.get(*t as usize).cloned().unwrap_or_default();
+        // Channel labels: the target name, with `#k` for a name that has several channels,
+        // so that an order read here can be sent back as an explicit order.
+        let name = |t: &u32| rig.channel_label(*t);
         LodInfo {
             method: lod.method.clone(),
             status: if lod.method == crate::rig::IMPORT_LOD_METHOD {

@@ -60,6 +60,25 @@ pub struct RigSummary {
     pub renderer: Option<String>,
     /// Why nothing can render, when nothing can.
     pub renderer_error: Option<String>,
+    /// Target names with more than one weight channel, and how many (see [`crate::rig`]).
+    pub split_targets: Vec<(String, usize)>,
+    /// The glTF extensions the file uses and how the importer treated each (empty for the
+    /// embedded rig); see [`file_extensions`].
+    pub extensions: Vec<crate::import::extensions::ExtensionUse>,
+}
+
+/// The glTF extensions a rig file uses or requires and how the importer treats each: read
+/// (quantized or meshopt-compressed data), ignored (textures, optional ones) or unsupported.
+/// `None` (the embedded rig) has none.
+pub fn file_extensions(
+    path: Option<&Path>,
+) -> Result<Vec<crate::import::extensions::ExtensionUse>> {
+    let Some(path) = path else {
+        return Ok(Vec::new());
+    };
+    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    crate::import::gltf::extension_report(&bytes)
+        .with_context(|| format!("reading the extensions of {}", path.display()))
 }
 
 /// One primitive in [`RigSummary`].
@@ -84,7 +103,7 @@ pub struct PrimitiveSummary {
 /// One target in [`RigSummary`].
 #[derive(Debug, Serialize)]
 pub struct TargetSummary {
-    /// Target name.
+    /// Target name, with `#k` for the k-th weight channel of a name that has several.
     pub name: String,
     /// Stored (non-zero) vertex deltas over all primitives.
     pub nnz: usize,
@@ -131,8 +150,8 @@ pub fn summarize(rig: &Rig) -> RigSummary {
             .targets
             .iter()
             .enumerate()
-            .map(|(i, n)| TargetSummary {
-                name: n.clone(),
+            .map(|(i, _)| TargetSummary {
+                name: rig.channel_label(i as u32),
                 nnz: nnz[i],
                 lod_slot: slots[i],
             })
@@ -154,6 +173,12 @@ pub fn summarize(rig: &Rig) -> RigSummary {
         memory: None,
         renderer: None,
         renderer_error: None,
+        split_targets: rig
+            .split_targets()
+            .into_iter()
+            .map(|(n, c)| (n.to_string(), c))
+            .collect(),
+        extensions: Vec::new(),
     }
 }
 
@@ -220,6 +245,19 @@ pub fn inspect_text(s: &RigSummary) -> String {
             t.name, t.nnz, t.lod_slot
         );
     }
+    if !s.split_targets.is_empty() {
+        let list: Vec<String> = s
+            .split_targets
+            .iter()
+            .map(|(n, c)| format!("{n} ×{c}"))
+            .collect();
+        let _ = writeln!(
+            o,
+            "targets with several weight channels (nodes animated differently; glTF clips \
+             drive each node's own, name-addressed clips all of them): {}",
+            list.join(", ")
+        );
+    }
     let _ = writeln!(o, "clips:");
     if s.clips.is_empty() {
         let _ = writeln!(o, "  (none)");
@@ -242,6 +280,19 @@ pub fn inspect_text(s: &RigSummary) -> String {
             m.host_bytes as f64 / (1 << 20) as f64,
             m.device_bytes as f64 / (1 << 20) as f64
         );
+    }
+    if !s.extensions.is_empty() {
+        let _ = writeln!(o, "glTF extensions:");
+        for e in &s.extensions {
+            let _ = writeln!(
+                o,
+                "  {:<32} {}{}: {}",
+                e.name,
+                e.handling,
+                if e.required { " (required)" } else { "" },
+                e.note
+            );
+        }
     }
     match (&s.renderer, &s.renderer_error) {
         (Some(r), _) => {

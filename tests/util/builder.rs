@@ -343,6 +343,11 @@ impl Builder {
         self.push("nodes", node)
     }
 
+    /// Sets `node.weights`, the node's own default weights (they win over `mesh.weights`).
+    pub fn set_node_weights(&mut self, node: usize, weights: &[f32]) {
+        self.json["nodes"][node]["weights"] = json!(weights);
+    }
+
     /// A scene of root `nodes`; the first scene added becomes the default scene.
     pub fn scene(&mut self, nodes: &[usize]) -> usize {
         let s = self.push("scenes", json!({ "nodes": nodes }));
@@ -386,6 +391,29 @@ impl Builder {
         let input = self.accessor_scalar(times);
         let output = self.accessor_scalar(values);
         self.animation_weights_accessors(name, node, input, output, interpolation)
+    }
+
+    /// An animation with one `weights` channel per entry of `channels` — `(node, times,
+    /// values, interpolation)`, each with its own sampler and f32 accessors — so that one clip
+    /// drives several nodes, each with its own curve.
+    pub fn animation_weights_nodes(
+        &mut self,
+        name: &str,
+        channels: &[(usize, &[f32], &[f32], &str)],
+    ) -> usize {
+        let mut samplers = Vec::new();
+        let mut chans = Vec::new();
+        for (i, &(node, times, values, interpolation)) in channels.iter().enumerate() {
+            let input = self.accessor_scalar(times);
+            let output = self.accessor_scalar(values);
+            samplers
+                .push(json!({ "input": input, "output": output, "interpolation": interpolation }));
+            chans.push(json!({ "sampler": i, "target": { "node": node, "path": "weights" } }));
+        }
+        self.push(
+            "animations",
+            json!({ "name": name, "samplers": samplers, "channels": chans }),
+        )
     }
 
     /// An animation like [`Builder::animation_weights`] whose output is stored as normalized

@@ -94,6 +94,9 @@ pub struct RefPrim {
     pub targets: Vec<RefTarget>,
     /// Names of the mesh's targets (`extras.targetNames` or `target_<i>`).
     pub target_names: Vec<String>,
+    /// The node's weights when no animation drives it (glTF 2.0 §3.7.2.1): `node.weights`,
+    /// else `mesh.weights`, else zeros.
+    pub default_weights: Vec<f64>,
 }
 
 /// Dense deltas of one morph target of a primitive.
@@ -118,6 +121,11 @@ fn u(v: &Value) -> usize {
 impl RefDoc {
     pub fn load(path: &Path) -> RefDoc {
         let bytes = std::fs::read(path).expect("read rig file");
+        Self::from_bytes(&bytes, path.parent().unwrap_or(Path::new(".")))
+    }
+
+    /// A document from the bytes of a `.glb` or `.gltf` file; external buffers resolve in `dir`.
+    pub fn from_bytes(bytes: &[u8], dir: &Path) -> RefDoc {
         let (json, bin): (Value, Option<Vec<u8>>) = if bytes.starts_with(b"glTF") {
             let jl = u32::from_le_bytes(bytes[12..16].try_into().unwrap()) as usize;
             let json = serde_json::from_slice(&bytes[20..20 + jl]).expect("GLB JSON");
@@ -130,9 +138,8 @@ impl RefDoc {
             };
             (json, bin)
         } else {
-            (serde_json::from_slice(&bytes).expect("glTF JSON"), None)
+            (serde_json::from_slice(bytes).expect("glTF JSON"), None)
         };
-        let dir = path.parent().unwrap_or(Path::new("."));
         let mut buffers = Vec::new();
         for b in json["buffers"].as_array().into_iter().flatten() {
             let data = match b["uri"].as_str() {
@@ -316,6 +323,15 @@ impl RefDoc {
                         .unwrap_or_else(|| {
                             (0..targets.len()).map(|i| format!("target_{i}")).collect()
                         });
+                    let weights_of = |v: &Value| -> Option<Vec<f64>> {
+                        v["weights"]
+                            .as_array()
+                            .map(|a| a.iter().map(|x| x.as_f64().unwrap()).collect::<Vec<f64>>())
+                            .filter(|w| w.len() == targets.len())
+                    };
+                    let default_weights = weights_of(node)
+                        .or_else(|| weights_of(mesh))
+                        .unwrap_or_else(|| vec![0.0; targets.len()]);
                     out.push(RefPrim {
                         node: n,
                         mesh: u(m),
@@ -326,6 +342,7 @@ impl RefDoc {
                         indices,
                         targets,
                         target_names,
+                        default_weights,
                     });
                 }
             }

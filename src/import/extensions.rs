@@ -1,0 +1,203 @@
+//! Which glTF extensions a file uses, and what the importer does with each.
+//!
+//! A rig needs geometry, morph targets, node transforms and weight animations; textures and
+//! materials matter only to how a rendered frame is coloured. So an extension is:
+//! - *read* when it changes how that data is stored: `KHR_mesh_quantization` (integer
+//!   attributes) and `EXT_meshopt_compression` / `KHR_meshopt_compression` (compressed buffer
+//!   views, see [`super::meshopt`]);
+//! - *ignored* when it only touches textures and images (`KHR_texture_basisu`,
+//!   `EXT_texture_webp`, `KHR_texture_transform`, ...) — even when the file lists it as
+//!   required, since a viewer that cannot decode a KTX2 texture still has the mesh — or when
+//!   the file does not require it;
+//! - *unsupported* otherwise, when required: `KHR_draco_mesh_compression` (with how to convert
+//!   the file) and anything unknown whose meaning could change the geometry.
+//!
+//! Whether an unknown extension touches only textures is read from where the document uses it:
+//! every `extensions` object that names it lies under `textures`, `images` or `samplers`, or in
+//! a material's texture reference (`baseColorTexture`, `normalTexture`, ...).
+
+use serde::Serialize;
+use serde_json::Value;
+
+use super::meshopt;
+
+/// How the importer treats one extension of a file.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
+pub struct ExtensionUse {
+    /// Extension name.
+    pub name: String,
+    /// Whether the file lists it in `extensionsRequired`.
+    pub required: bool,
+    /// `read`, `ignored` or `unsupported`.
+    pub handling: &'static str,
+    /// Why, in a sentence.
+    pub note: String,
+}
+
+/// The extension that marks Draco-compressed geometry.
+pub const DRACO: &str = "KHR_draco_mesh_compression";
+
+/// How to convert a file that needs an extension crowdmorph does not read (empty when there is
+/// no known conversion). Shown in the import error.
+pub fn conversion_hint(name: &str) -> &'static str {
+    if name == DRACO {
+        ": Draco-compressed geometry is not decoded here. Convert the file first, e.g. \
+         `npx @gltf-transform/cli cp in.glb plain.glb` (writes it without Draco), optionally \
+         then `gltfpack -i plain.glb -o small.glb -c` (EXT_meshopt_compression, which \
+         crowdmorph reads)"
+    } else {
+        ""
+    }
+}
+
+/// Where in the document an extension is used: in texture data only, elsewhere, or nowhere.
+#[derive(Default)]
+struct Uses {
+    texture: bool,
+    other: bool,
+}
+
+/// Records every `extensions.<name>` object under `value`; `texture` says whether `value` lies
+/// in texture data (see the module documentation).
+fn scan(value: &Value, name: &str, texture: bool, uses: &mut Uses) {
+    match value {
+        Value::Object(map) => {
+            if map
+                .get("extensions")
+                .and_then(Value::as_object)
+                .is_some_and(|e| e.contains_key(name))
+            {
+                if texture {
+                    uses.texture = true;
+                } else {
+                    uses.other = true;
+                }
+            }
+            for (k, v) in map {
+                let inner = texture || k.ends_with("Texture");
+                scan(v, name, inner, uses);
+            }
+        }
+        Value::Array(items) => {
+            for v in items {
+                scan(v, name, texture, uses);
+            }
+        }
+        _ => {}
+    }
+}
+
+/// Whether the document uses `name` in texture data and nowhere else.
+pub(crate) fn texture_only(root: &Value, name: &str) -> bool {
+    let mut uses = Uses::default();
+    if let Some(map) = root.as_object() {
+        for (k, v) in map {
+            let texture = matches!(k.as_str(), "textures" | "images" | "samplers");
+            scan(v, name, texture, &mut uses);
+        }
+    }
+    uses.texture && !uses.other
+}
+
+/// How one extension is handled (see the module documentation).
+fn classify(root: &Value, name: &str, required: bool) -> ExtensionUse {
+    let (handling, note) = if name == "KHR_mesh_quantization" {
+        (
+            "read",
+            "integer and normalized-integer positions, normals, tangents and morph deltas are dequantized".to_string(),
+        )
+    } else if meshopt::EXTENSIONS.contains(&name) {
+        (
+            "read",
+            "compressed buffer views are decompressed (attributes, indices; octahedral, quaternion and exponential filters)".to_string(),
+        )
+    } else if texture_only(root, name) {
+        (
+            "ignored",
+            "used only by textures and images, which crowdmorph does not use for blending"
+                .to_string(),
+        )
+    } else if !required {
+        (
+            "ignored",
+            "optional, and not needed to blend the rig".to_string(),
+        )
+    } else if name == DRACO {
+        (
+            "unsupported",
+            conversion_hint(name).trim_start_matches(": ").to_string(),
+        )
+    } else {
+        (
+            "unsupported",
+            "required, and crowdmorph cannot tell whether it changes the geometry".to_string(),
+        )
+    };
+    ExtensionUse {
+        name: name.to_string(),
+        required,
+        handling,
+        note,
+    }
+}
+
+/// Every extension a glTF document (its JSON) uses or requires, with how it is handled.
+pub(crate) fn report(root: &Value) -> Vec<ExtensionUse> {
+    let list = |key: &str| -> Vec<String> {
+        root.get(key)
+            .and_then(Value::as_array)
+            .map(|a| {
+                a.iter()
+                    .filter_map(Value::as_str)
+                    .map(str::to_string)
+                    .collect()
+            })
+            .unwrap_or_default()
+    };
+    let required = list("extensionsRequired");
+    let mut names = list("extensionsUsed");
+    for r in &required {
+        if !names.contains(r) {
+            names.push(r.clone());
+        }
+    }
+    names
+        .iter()
+        .map(|n| classify(root, n, required.contains(n)))
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    #[test]
+    fn texture_extensions_are_told_from_geometry_ones() {
+        let doc = json!({
+            "extensionsUsed": ["KHR_texture_basisu", "KHR_texture_transform", "EXT_weird", "KHR_draco_mesh_compression", "KHR_mesh_quantization"],
+            "extensionsRequired": ["KHR_texture_basisu", "EXT_weird", "KHR_draco_mesh_compression", "KHR_mesh_quantization"],
+            "textures": [{"extensions": {"KHR_texture_basisu": {"source": 0}}}],
+            "materials": [{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0,
+                "extensions": {"KHR_texture_transform": {"scale": [2, 2]}}}}}],
+            "meshes": [{"primitives": [{"attributes": {},
+                "extensions": {"KHR_draco_mesh_compression": {}, "EXT_weird": {}}}]}],
+            "nodes": [{"extensions": {"EXT_weird": {}}}],
+        });
+        let r = report(&doc);
+        let get = |n: &str| r.iter().find(|e| e.name == n).expect("listed");
+        assert_eq!(get("KHR_texture_basisu").handling, "ignored");
+        assert!(get("KHR_texture_basisu").required);
+        assert_eq!(get("KHR_texture_transform").handling, "ignored");
+        assert_eq!(get("EXT_weird").handling, "unsupported");
+        assert_eq!(get("KHR_draco_mesh_compression").handling, "unsupported");
+        assert!(
+            get("KHR_draco_mesh_compression")
+                .note
+                .contains("gltf-transform")
+        );
+        assert_eq!(get("KHR_mesh_quantization").handling, "read");
+        // Required but used nowhere: it may change how accessors read, so it is refused.
+        assert!(!texture_only(&json!({"extensionsRequired": ["X"]}), "X"));
+    }
+}
