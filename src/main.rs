@@ -375,9 +375,14 @@ struct ServeArgs {
     /// A batch closes at this cost (vertices × active shapes over its unique jobs)...
     #[arg(long, env = "CROWDMORPH_BATCH_COST", default_value_t = 200_000_000)]
     batch_cost: u64,
-    /// ...or when its oldest job has waited this many microseconds.
+    /// ...or when its oldest job has waited this many microseconds, while the engine is busy
+    /// (an idle engine takes work at once).
     #[arg(long, env = "CROWDMORPH_BATCH_DELAY_US", default_value_t = 1000)]
     batch_delay_us: u64,
+    /// Hold work for the batch delay even when the engine is idle (more coalescing of
+    /// identical jobs at low load; every lone request waits the delay).
+    #[arg(long, env = "CROWDMORPH_BATCH_HOLD_WHEN_IDLE")]
+    batch_hold_when_idle: bool,
     /// Crowd-request deadline, milliseconds (504 past it).
     #[arg(long, env = "CROWDMORPH_REQUEST_TIMEOUT_MS", default_value_t = 10_000)]
     request_timeout_ms: u64,
@@ -505,6 +510,7 @@ fn run_serve(a: ServeArgs) -> Result<()> {
         queue_memory_bytes: a.queue_memory_bytes,
         batch_cost: a.batch_cost,
         batch_delay: std::time::Duration::from_micros(a.batch_delay_us),
+        batch_hold_when_idle: a.batch_hold_when_idle,
         request_timeout: std::time::Duration::from_millis(a.request_timeout_ms),
         admin_timeout: std::time::Duration::from_secs(a.admin_timeout_s),
         max_concurrency: a.max_concurrency,

@@ -37,8 +37,12 @@ pub struct ServerConfig {
     /// A batch closes when the cost (vertices × active shapes, summed over its unique jobs)
     /// reaches this.
     pub batch_cost: u64,
-    /// ... or when its oldest job has waited this long.
+    /// ... or when its oldest job has waited this long (while the engine is busy: an idle
+    /// engine takes work at once, unless `batch_hold_when_idle`).
     pub batch_delay: Duration,
+    /// Hold work for `batch_delay` even when the engine is idle (the batcher's behaviour before
+    /// idle dispatch): more coalescing at low load, the delay added to every lone request.
+    pub batch_hold_when_idle: bool,
     /// Deadline of a crowd request, from arrival to its response being ready; past it, 504.
     pub request_timeout: Duration,
     /// Deadline of any other request (uploads included); past it, 504.
@@ -92,6 +96,7 @@ impl Default for ServerConfig {
             queue_memory_bytes: 2 << 30,
             batch_cost: 200_000_000,
             batch_delay: Duration::from_micros(1000),
+            batch_hold_when_idle: false,
             request_timeout: Duration::from_secs(10),
             admin_timeout: Duration::from_secs(300),
             max_concurrency: 2048,

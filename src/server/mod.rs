@@ -173,6 +173,7 @@ impl AppState {
                 queue_requests: config.queue_requests,
                 batch_cost: config.batch_cost.max(1),
                 batch_delay: config.batch_delay,
+                hold_when_idle: config.batch_hold_when_idle,
             },
         );
         let memory_units = u32::try_from((config.queue_memory_bytes / 1024).max(1))
