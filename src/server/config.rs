@@ -73,6 +73,15 @@ pub struct ServerConfig {
     pub render_pixels: u64,
     /// Which adapter draws rendered frames (`--render-backend`).
     pub render_backend: RenderBackend,
+    /// Longest `POST /v1/loadtest` (warm-up and measured window together); zero disables the
+    /// endpoint (`--loadtest-max-duration-s`).
+    pub loadtest_max_duration: Duration,
+    /// Highest request rate a load test may ask for, requests per second
+    /// (`--loadtest-max-rate`).
+    pub loadtest_max_rate: f64,
+    /// Most lanes (requests in flight) of a load test; never more than half of
+    /// `queue_requests` (`--loadtest-max-concurrency`).
+    pub loadtest_max_concurrency: usize,
 }
 
 /// Default of [`ServerConfig::render_pixels`]: 64 Mpixels (64 × 2^20), four 4096 × 4096
@@ -107,6 +116,9 @@ impl Default for ServerConfig {
             auto_lod: true,
             render_pixels: DEFAULT_RENDER_PIXELS,
             render_backend: RenderBackend::Auto,
+            loadtest_max_duration: Duration::from_secs(60),
+            loadtest_max_rate: 10_000.0,
+            loadtest_max_concurrency: 64,
         }
     }
 }

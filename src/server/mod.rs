@@ -15,6 +15,7 @@
 //! | [`metrics`] | Prometheus text metrics |
 //! | `api` | the handlers |
 //! | `render` | `POST /v1/crowd/render`: a picture of a crowd |
+//! | [`loadtest`] | `POST /v1/loadtest`: synthetic load through the real batcher, at low priority |
 //! | [`bench`] | `crowdmorph bench http`: loopback load against in-process work |
 
 mod api;
@@ -22,6 +23,7 @@ pub mod bench;
 pub mod config;
 mod conn;
 pub mod error;
+pub mod loadtest;
 mod lod;
 pub mod metrics;
 pub mod registry;
@@ -119,6 +121,8 @@ pub struct Inner {
     pixels: Arc<Semaphore>,
     /// The renderer (or why there is none) and its topologies.
     render: render::RenderState,
+    /// `POST /v1/loadtest`: the load running and the last ones done.
+    loadtests: loadtest::Loadtests,
 }
 
 impl Drop for Inner {
@@ -223,6 +227,7 @@ impl AppState {
             shed_log: ShedLog::default(),
             pixels: Arc::new(Semaphore::new(render_pixels)),
             render,
+            loadtests: loadtest::Loadtests::default(),
         })))
     }
 
@@ -685,6 +690,8 @@ pub fn app(state: AppState) -> Router {
         )
         .route("/v1/crowd/frame", post(api::crowd_frame))
         .route("/v1/crowd/render", post(render::crowd_render))
+        .route("/v1/loadtest", post(loadtest::start_loadtest))
+        .route("/v1/loadtest/{id}", get(loadtest::get_loadtest))
         .fallback(api::not_found)
         // Bodies are read with explicit per-route limits (see api::read_body).
         .layer(DefaultBodyLimit::disable())
@@ -834,6 +841,7 @@ pub async fn serve(
         () = serving => {}
         _ = summaries => {}
     }
+    state.loadtests.cancel_all();
     state.scheduler.shutdown().await;
     tracing::info!("stopped");
     Ok(())
