@@ -186,6 +186,9 @@ impl Lane for HttpLane {
 
 #[cfg(test)]
 mod tests {
+    // A test that meets an unexpected error should fail loudly.
+    #![allow(clippy::unwrap_used)]
+
     use super::*;
 
     #[test]

@@ -553,6 +553,9 @@ where
 
 #[cfg(test)]
 mod tests {
+    // A test that meets an unexpected error should fail loudly.
+    #![allow(clippy::unwrap_used)]
+
     use super::*;
 
     #[test]
@@ -575,7 +578,7 @@ mod tests {
 
     impl Lane for Echo {
         async fn send(&mut self, i: u64) -> Reply {
-            if i % 2 == 0 {
+            if i.is_multiple_of(2) {
                 Reply {
                     status: 200,
                     bytes: 10,
@@ -643,7 +646,7 @@ mod tests {
         let rates: Vec<f64> = r.steps.iter().map(|s| s.rate).collect();
         assert_eq!(&rates[..3], &[100.0, 200.0, 400.0]);
         let best = r.best_rate.unwrap();
-        assert!(best <= 300.0 && best >= 300.0 / 1.1 - 1e-9, "{rates:?}");
+        assert!((300.0 / 1.1 - 1e-9..=300.0).contains(&best), "{rates:?}");
         assert_eq!(r.best.unwrap().rate, best);
     }
 }

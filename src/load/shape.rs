@@ -283,6 +283,9 @@ impl CrowdShape {
 
 #[cfg(test)]
 mod tests {
+    // A test that meets an unexpected error should fail loudly.
+    #![allow(clippy::unwrap_used)]
+
     use super::*;
 
     fn rigs() -> Vec<RigClips> {

@@ -1302,7 +1302,7 @@ fn ms(d: std::time::Duration) -> String {
 async fn frame(state: &AppState, headers: &HeaderMap, body: Body, source: Source) -> ApiResult {
     let arrived = Instant::now();
     state.check_ready()?;
-    let req: CrowdFrameRequest = state.crowd_request(&headers, body).await?;
+    let req: CrowdFrameRequest = state.crowd_request(headers, body).await?;
     let n_heads = req.heads.len();
     let format = req.output.format;
     let normals = req.output.normals;
@@ -1316,7 +1316,7 @@ async fn frame(state: &AppState, headers: &HeaderMap, body: Body, source: Source
 
     // Admission: the output memory this request will hold, then a place in the queue.
     let per_component = format.component_bytes() as u64 * if normals { 2 } else { 1 };
-    let json_factor = if wants_bincode(&headers) { 1 } else { 3 };
+    let json_factor = if wants_bincode(headers) { 1 } else { 3 };
     let mut out_bytes = 0u64;
     let mut jobs = Vec::with_capacity(plan.jobs.len());
     for k in &plan.jobs {
@@ -1458,7 +1458,7 @@ async fn frame(state: &AppState, headers: &HeaderMap, body: Body, source: Source
             }
         })
         .collect();
-    if wants_bincode(&headers) {
+    if wants_bincode(headers) {
         let chunks = FrameResponseEncoder::encode(format, normals, &parts, &heads, &timings);
         let mut resp = (
             StatusCode::OK,

@@ -258,7 +258,7 @@ impl AppState {
             ));
         }
         let positive = |v: f64| v.is_finite() && v > 0.0;
-        if !positive(req.duration_s) || !(req.warmup_s.is_finite() && req.warmup_s >= 0.0) {
+        if !(positive(req.duration_s) && req.warmup_s.is_finite() && req.warmup_s >= 0.0) {
             return Err(invalid(format!(
                 "duration_s must be positive and warmup_s at least 0, not {} and {}",
                 req.duration_s, req.warmup_s

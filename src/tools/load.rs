@@ -137,11 +137,14 @@ async fn run_at(
     }
     let rate = opts.rate;
     let live = Live::new(opts);
-    let bar = progress.then(|| {
-        let b = indicatif::ProgressBar::new_spinner();
+    // indicatif hides the line when standard error is not a terminal; then nothing is drawn
+    // and no snapshot is taken.
+    let bar = progress
+        .then(indicatif::ProgressBar::new_spinner)
+        .filter(|b| !b.is_hidden());
+    if let Some(b) = &bar {
         b.enable_steady_tick(Duration::from_millis(120));
-        b
-    });
+    }
     let ticker = bar.clone().map(|bar| {
         let live = live.clone();
         tokio::spawn(async move {
@@ -201,6 +204,9 @@ pub fn parse_weighted_lod(s: &str) -> Result<(u32, f64)> {
 
 #[cfg(test)]
 mod tests {
+    // A test that meets an unexpected error should fail loudly.
+    #![allow(clippy::unwrap_used)]
+
     use super::*;
 
     #[test]
