@@ -15,7 +15,8 @@
 //! | [`lod`] | level of detail: importance metrics and orders, LOD tables and reports, feature-preserving mesh levels |
 //! | [`codec`] | the one module that touches bincode: wire messages and stored records |
 //! | [`store`] | persistence: one checksummed, atomically replaced file per rig under the data dir |
-//! | [`server`] | the HTTP API (axum), the dynamic batcher with cross-request dedupe, metrics |
+//! | [`load`] | the load generator: open loop, latency corrected for coordinated omission, HdrHistogram reports |
+//! | [`server`] | the HTTP API (axum), the dynamic batcher with cross-request dedupe, metrics, `POST /v1/loadtest` |
 //! | [`tools`] | the CLI's commands (`inspect`, `eval`, `bench`) as library functions |
 //!
 //! The binary (`src/main.rs`) only parses the command line, sets up tracing and calls into
@@ -26,6 +27,7 @@ pub mod codec;
 pub mod embedded;
 pub mod engine;
 pub mod import;
+pub mod load;
 pub mod lod;
 pub mod plan;
 pub mod render;

@@ -65,6 +65,10 @@ enum Command {
     },
     /// Run the HTTP server (the embedded rig is always registered).
     Serve(Box<ServeArgs>),
+    /// Load a running server: crowd-frame requests at a fixed rate (open loop, latency from
+    /// each request's intended send time), or --ramp to the highest rate whose p99 meets a
+    /// target; a report as a table or --json.
+    Load(Box<LoadArgs>),
     /// Level of detail: importance orders, their error over a clip, simplified meshes.
     Lod {
         #[command(subcommand)]
@@ -360,6 +364,76 @@ enum BenchCommand {
     },
 }
 
+/// Arguments of `load`.
+#[derive(clap::Args)]
+struct LoadArgs {
+    /// The server.
+    #[arg(
+        long,
+        env = "CROWDMORPH_SERVER",
+        default_value = "http://127.0.0.1:8080"
+    )]
+    url: String,
+    /// Requests per second (with --ramp, the first rate tried).
+    #[arg(long, default_value_t = 100.0)]
+    rate: f64,
+    /// Seconds measured (with --ramp, per rate).
+    #[arg(long, default_value_t = 10.0)]
+    duration: f64,
+    /// Seconds sent before each measured window, left out of the report.
+    #[arg(long, default_value_t = 1.0)]
+    warmup: f64,
+    /// Seconds unanswered requests may take after the window before they count as unfinished.
+    #[arg(long, default_value_t = 10.0)]
+    grace: f64,
+    /// HTTP/1.1 connections; requests go to them in turn, one at a time on each.
+    #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u64).range(1..=100_000))]
+    connections: u64,
+    /// Heads per request.
+    #[arg(long, default_value_t = 100, value_parser = clap::value_parser!(u32).range(1..))]
+    heads: u32,
+    /// Share of the heads that are unique jobs, in (0, 1]; the rest are clones.
+    #[arg(long, default_value_t = 1.0)]
+    unique: f64,
+    /// A rig to play (repeatable; each job picks one uniformly).
+    #[arg(long = "rig", default_value = "default-head")]
+    rigs: Vec<String>,
+    /// A clip of the mix, NAME[:WEIGHT] (repeatable; default every clip of the rig equally).
+    #[arg(long = "clip", value_parser = tools::load::parse_weighted)]
+    clips: Vec<(String, f64)>,
+    /// A LOD level of the mix, LEVEL[:WEIGHT] (repeatable; default 0).
+    #[arg(long = "lod", value_parser = tools::load::parse_weighted_lod)]
+    lods: Vec<(u32, f64)>,
+    /// Vertex format.
+    #[arg(long, value_enum, default_value_t = WireFormat::F32)]
+    format: WireFormat,
+    /// Ask for normals too.
+    #[arg(long)]
+    normals: bool,
+    /// Request and response encoding.
+    #[arg(long, value_enum, default_value_t = Encoding::Bincode)]
+    encoding: Encoding,
+    /// Seed of the clip and LOD picks.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Find the highest rate whose p99 stays under --p99-ms: double the rate from --rate until
+    /// a run misses, then bisect.
+    #[arg(long)]
+    ramp: bool,
+    /// The ramp's p99 target, milliseconds.
+    #[arg(long, default_value_t = 10.0)]
+    p99_ms: f64,
+    /// The highest rate the ramp tries.
+    #[arg(long, default_value_t = 1e6)]
+    max_rate: f64,
+    /// Most runs of the ramp.
+    #[arg(long, default_value_t = 12)]
+    max_steps: usize,
+    /// Print JSON.
+    #[arg(long)]
+    json: bool,
+}
+
 /// Arguments of `serve`; every flag is also an environment variable.
 #[derive(clap::Args)]
 struct ServeArgs {
@@ -406,9 +480,14 @@ struct ServeArgs {
     /// A batch closes at this cost (vertices × active shapes over its unique jobs)...
     #[arg(long, env = "CROWDMORPH_BATCH_COST", default_value_t = 200_000_000)]
     batch_cost: u64,
-    /// ...or when its oldest job has waited this many microseconds.
+    /// ...or when its oldest job has waited this many microseconds, while the engine is busy
+    /// (an idle engine takes work at once).
     #[arg(long, env = "CROWDMORPH_BATCH_DELAY_US", default_value_t = 1000)]
     batch_delay_us: u64,
+    /// Hold work for the batch delay even when the engine is idle (more coalescing of
+    /// identical jobs at low load; every lone request waits the delay).
+    #[arg(long, env = "CROWDMORPH_BATCH_HOLD_WHEN_IDLE")]
+    batch_hold_when_idle: bool,
     /// Crowd-request deadline, milliseconds (504 past it).
     #[arg(long, env = "CROWDMORPH_REQUEST_TIMEOUT_MS", default_value_t = 10_000)]
     request_timeout_ms: u64,
@@ -457,6 +536,19 @@ struct ServeArgs {
     /// Messages per second a session viewer may send (more close it with 1008).
     #[arg(long, env = "CROWDMORPH_MAX_VIEWER_MESSAGES", default_value_t = 60, value_parser = clap::value_parser!(u32).range(1..))]
     max_viewer_messages: u32,
+    /// Longest POST /v1/loadtest, warm-up included, seconds; 0 disables the endpoint.
+    #[arg(long, env = "CROWDMORPH_LOADTEST_MAX_DURATION_S", default_value_t = 60)]
+    loadtest_max_duration_s: u64,
+    /// Highest request rate of a load test, requests per second.
+    #[arg(long, env = "CROWDMORPH_LOADTEST_MAX_RATE", default_value_t = 10_000.0)]
+    loadtest_max_rate: f64,
+    /// Most requests a load test keeps in flight (never more than half of --queue-requests).
+    #[arg(
+        long,
+        env = "CROWDMORPH_LOADTEST_MAX_CONCURRENCY",
+        default_value_t = 64
+    )]
+    loadtest_max_concurrency: usize,
 }
 
 /// Descriptors kept for everything but connections: stored rig files, the engine's device
@@ -548,6 +640,7 @@ fn run_serve(a: ServeArgs) -> Result<()> {
         queue_memory_bytes: a.queue_memory_bytes,
         batch_cost: a.batch_cost,
         batch_delay: std::time::Duration::from_micros(a.batch_delay_us),
+        batch_hold_when_idle: a.batch_hold_when_idle,
         request_timeout: std::time::Duration::from_millis(a.request_timeout_ms),
         admin_timeout: std::time::Duration::from_secs(a.admin_timeout_s),
         max_concurrency: a.max_concurrency,
@@ -564,6 +657,9 @@ fn run_serve(a: ServeArgs) -> Result<()> {
             max_viewers: usize::try_from(a.max_session_viewers).unwrap_or(usize::MAX),
             max_viewer_messages: a.max_viewer_messages,
         },
+        loadtest_max_duration: std::time::Duration::from_secs(a.loadtest_max_duration_s),
+        loadtest_max_rate: a.loadtest_max_rate,
+        loadtest_max_concurrency: a.loadtest_max_concurrency,
     };
     if let Some(d) = &config.data_dir {
         tracing::info!(data_dir = %d.display(), "data directory");
@@ -595,6 +691,12 @@ impl From<WireFormat> for crowdmorph_proto::Format {
             WireFormat::Q16 => crowdmorph_proto::Format::Q16,
         }
     }
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum Encoding {
+    Bincode,
+    Json,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -738,6 +840,7 @@ fn main() -> Result<()> {
             }
         }
         Command::Serve(args) => run_serve(*args)?,
+        Command::Load(args) => run_load(*args)?,
         Command::Render(args) => run_render(*args)?,
         Command::Bench {
             which:
@@ -854,6 +957,55 @@ fn main() -> Result<()> {
                 print!("{}", http::report_text(&report));
             }
         }
+    }
+    Ok(())
+}
+
+fn run_load(a: LoadArgs) -> Result<()> {
+    use crowdmorph::load::{CrowdShape, RampOptions, WireEncoding};
+    let crowd = CrowdShape {
+        heads: a.heads,
+        unique: a.unique,
+        rigs: a.rigs,
+        clips: a.clips.into_iter().collect(),
+        lods: if a.lods.is_empty() {
+            CrowdShape::default().lods
+        } else {
+            a.lods.into_iter().collect()
+        },
+        format: match a.format {
+            WireFormat::F32 => crowdmorph_proto::Format::F32,
+            WireFormat::F16 => crowdmorph_proto::Format::F16,
+            WireFormat::Q16 => crowdmorph_proto::Format::Q16,
+        },
+        normals: a.normals,
+        encoding: match a.encoding {
+            Encoding::Bincode => WireEncoding::Bincode,
+            Encoding::Json => WireEncoding::Json,
+        },
+        seed: a.seed,
+    };
+    let cmd = tools::load::LoadCommand {
+        url: a.url,
+        rate: a.rate,
+        duration: a.duration,
+        warmup: a.warmup,
+        grace: a.grace,
+        connections: usize::try_from(a.connections)?,
+        crowd,
+        ramp: a.ramp.then(|| RampOptions {
+            p99_ms: a.p99_ms,
+            max_rate: a.max_rate,
+            max_steps: a.max_steps,
+            ..RampOptions::default()
+        }),
+        progress: true,
+    };
+    let outcome = tools::load::load(&cmd)?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&outcome)?);
+    } else {
+        print!("{}", outcome.text());
     }
     Ok(())
 }

@@ -747,6 +747,108 @@ async fn lod_set_changes_the_lod_a_running_server_serves() {
     server.stop().await;
 }
 
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn load_sends_the_planned_requests_and_reports_them() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let url = format!("http://{}", server.addr);
+    // 0.5 s at 60 requests/s: requests 0..30 fall in the window; the warm-up sends 6 more.
+    let args: Vec<String> = [
+        "load",
+        "--url",
+        &url,
+        "--rate",
+        "60",
+        "--duration",
+        "0.5",
+        "--warmup",
+        "0.1",
+        "--connections",
+        "2",
+        "--heads",
+        "4",
+        "--unique",
+        "0.5",
+        "--clip",
+        "talk:3",
+        "--clip",
+        "smile",
+        "--lod",
+        "0",
+        "--lod",
+        "2:1",
+        "--format",
+        "q16",
+        "--json",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect();
+    let out = tokio::task::spawn_blocking(move || {
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        success(crowdmorph(&args))
+    })
+    .await
+    .expect("join");
+    let r: crowdmorph::load::LoadReport = serde_json::from_slice(&out.stdout).unwrap_or_else(|e| {
+        panic!(
+            "not a report ({e}): {}",
+            String::from_utf8_lossy(&out.stdout)
+        )
+    });
+    assert_eq!(
+        (r.sent, r.ok, r.errors, r.unfinished),
+        (30, 30, 0, 0),
+        "{r:?}"
+    );
+    assert_eq!((r.lanes, r.heads_per_request), (2, 4));
+    assert_eq!(r.latency_ms.count, 30);
+    assert!((r.heads_per_s - 30.0 * 4.0 / 0.5).abs() < 1e-9, "{r:?}");
+    // Two unique q16 jobs of the embedded head per response.
+    let payload = 2.0 * (EMBEDDED_VERTICES * 3 * 2) as f64;
+    assert!(r.bytes_per_s >= payload * 30.0 / 0.5, "{r:?}");
+    let timings = r.server_ms.expect("Server-Timing was read");
+    assert_eq!(timings.compute_ms.count, 30);
+    // The server saw the warm-up too, as client traffic.
+    let page = server.client.metrics().await.expect("metrics");
+    assert_eq!(
+        crowdmorph_client::metric(
+            &page,
+            "crowdmorph_crowd_frames_total{source=\"api\",status=\"200\"}"
+        ),
+        Some(36.0),
+        "{page}"
+    );
+    assert_eq!(
+        crowdmorph_client::metric(&page, "crowdmorph_heads_total{source=\"api\"}"),
+        Some(36.0 * 4.0)
+    );
+
+    // A shape the server cannot serve is named before any load is sent.
+    let url = format!("http://{}", server.addr);
+    let out = tokio::task::spawn_blocking(move || {
+        crowdmorph(&[
+            "load",
+            "--url",
+            &url,
+            "--clip",
+            "dance",
+            "--duration",
+            "0.1",
+        ])
+        .output()
+        .expect("run")
+    })
+    .await
+    .expect("join");
+    assert_eq!(out.status.code(), Some(1));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("no rig of the load has a clip \"dance\""),
+        "{stderr}"
+    );
+    server.stop().await;
+}
+
 #[test]
 fn serve_help_lists_every_flag_with_its_environment_variable() {
     let mut command = crowdmorph(&["serve", "--help"]);
@@ -761,6 +863,12 @@ fn serve_help_lists_every_flag_with_its_environment_variable() {
         ("--max-heads", "CROWDMORPH_MAX_HEADS"),
         ("--batch-delay-us", "CROWDMORPH_BATCH_DELAY_US"),
         ("--no-auto-lod", "CROWDMORPH_NO_AUTO_LOD"),
+        ("--batch-hold-when-idle", "CROWDMORPH_BATCH_HOLD_WHEN_IDLE"),
+        (
+            "--loadtest-max-duration-s",
+            "CROWDMORPH_LOADTEST_MAX_DURATION_S",
+        ),
+        ("--loadtest-max-rate", "CROWDMORPH_LOADTEST_MAX_RATE"),
     ] {
         assert!(
             help.contains(flag) && help.contains(env),

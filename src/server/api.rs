@@ -23,11 +23,12 @@ use serde::Serialize;
 use serde::de::DeserializeOwned;
 use tokio::sync::OwnedSemaphorePermit;
 
+use super::metrics::Source;
 use super::registry::{
     ClipLayout, RigEntry, check_output_range, clip_infos, clips_named, quantization_box,
     sanitize_id, valid_id,
 };
-use super::scheduler::{JobRequest, ScheduleError};
+use super::scheduler::{JobRequest, Priority, ScheduleError};
 use super::{ApiError, AppState};
 use crate::budget::{Budget, BudgetError};
 use crate::codec::{self, FrameBufferParts, FrameResponseEncoder};
@@ -1345,10 +1346,34 @@ pub(super) async fn crowd_frame(
     State(state): State<AppState>,
     headers: HeaderMap,
     body: Body,
-) -> ApiResult {
+) -> Response {
+    crowd_frame_from(&state, &headers, body, Source::Api).await
+}
+
+/// `POST /v1/crowd/frame` for a request from `source`: the route's handler, and what
+/// `POST /v1/loadtest` calls for each synthetic request, so that synthetic load goes through
+/// the same decoding, admission, batcher and encoders as real traffic. Loadtest requests are
+/// queued at low priority and counted under their own label.
+pub(super) async fn crowd_frame_from(
+    state: &AppState,
+    headers: &HeaderMap,
+    body: Body,
+    source: Source,
+) -> Response {
+    let resp = frame(state, headers, body, source).await.into_response();
+    state.metrics.crowd_frame(source, resp.status().as_u16());
+    resp
+}
+
+/// Milliseconds with three decimals, as Server-Timing wants them.
+fn ms(d: std::time::Duration) -> String {
+    format!("{:.3}", d.as_secs_f64() * 1e3)
+}
+
+async fn frame(state: &AppState, headers: &HeaderMap, body: Body, source: Source) -> ApiResult {
     let arrived = Instant::now();
     state.check_ready()?;
-    let req: CrowdFrameRequest = state.crowd_request(&headers, body).await?;
+    let req: CrowdFrameRequest = state.crowd_request(headers, body).await?;
     let n_heads = req.heads.len();
     let format = req.output.format;
     let normals = req.output.normals;
@@ -1362,7 +1387,7 @@ pub(super) async fn crowd_frame(
 
     // Admission: the output memory this request will hold, then a place in the queue.
     let per_component = format.component_bytes() as u64 * if normals { 2 } else { 1 };
-    let json_factor = if wants_bincode(&headers) { 1 } else { 3 };
+    let json_factor = if wants_bincode(headers) { 1 } else { 3 };
     let mut out_bytes = 0u64;
     let mut jobs = Vec::with_capacity(plan.jobs.len());
     for k in &plan.jobs {
@@ -1390,9 +1415,13 @@ pub(super) async fn crowd_frame(
         .metrics
         .jobs_requested
         .fetch_add(jobs.len() as u64, std::sync::atomic::Ordering::Relaxed);
+    let priority = match source {
+        Source::Api => Priority::Normal,
+        Source::Loadtest => Priority::Low,
+    };
     let ticket = state
         .scheduler
-        .submit(jobs, format, normals)
+        .submit_with(jobs, format, normals, priority)
         .map_err(|e| match e {
             ScheduleError::QueueFull => {
                 state.metrics.reject("queue_full");
@@ -1446,12 +1475,28 @@ pub(super) async fn crowd_frame(
         total_us: arrived.elapsed().as_micros() as u64,
         gpu_us: outcome.gpu_ns.map(|g| g / 1000),
     };
-    state.metrics.served(n_heads as u64);
+    state.metrics.served_to(source, n_heads as u64);
     state.metrics.request_heads.observe(n_heads as f64);
     state
         .metrics
         .request_seconds
         .observe(arrived.elapsed().as_secs_f64());
+    // Server-Timing: where the time went, for load generators and browsers' dev tools
+    // (the body's FrameTimings cannot include the encoding that writes them).
+    let encoding = Instant::now();
+    let server_timing = |encoded: Instant| {
+        let mut t = format!(
+            "queue;dur={}, compute;dur={}, encode;dur={}, total;dur={}",
+            ms(outcome.queue),
+            ms(std::time::Duration::from_nanos(outcome.compute_ns)),
+            ms(encoded.duration_since(encoding)),
+            ms(encoded.duration_since(arrived)),
+        );
+        if let Some(g) = outcome.gpu_ns {
+            t += &format!(", gpu;dur={}", ms(std::time::Duration::from_nanos(g)));
+        }
+        HeaderValue::from_str(&t).ok()
+    };
 
     let parts: Vec<FrameBufferParts<'_>> = plan
         .jobs
@@ -1471,20 +1516,28 @@ pub(super) async fn crowd_frame(
             }
         })
         .collect();
-    if wants_bincode(&headers) {
+    if wants_bincode(headers) {
         let chunks = FrameResponseEncoder::encode(format, normals, &parts, &heads, &timings);
-        return Ok((
+        let mut resp = (
             StatusCode::OK,
             [(header::CONTENT_TYPE, CONTENT_TYPE_BINCODE)],
             chunked_body(chunks, permit),
         )
-            .into_response());
+            .into_response();
+        if let Some(v) = server_timing(Instant::now()) {
+            resp.headers_mut().insert(super::render::SERVER_TIMING, v);
+        }
+        return Ok(resp);
     }
     let json = json_frame(&state, format, normals, &parts, heads, timings).await?;
-    Ok((
+    let mut resp = (
         StatusCode::OK,
         [(header::CONTENT_TYPE, CONTENT_TYPE_JSON)],
         chunked_body(vec![json], permit),
     )
-        .into_response())
+        .into_response();
+    if let Some(v) = server_timing(Instant::now()) {
+        resp.headers_mut().insert(super::render::SERVER_TIMING, v);
+    }
+    Ok(resp)
 }

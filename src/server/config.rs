@@ -37,8 +37,12 @@ pub struct ServerConfig {
     /// A batch closes when the cost (vertices × active shapes, summed over its unique jobs)
     /// reaches this.
     pub batch_cost: u64,
-    /// ... or when its oldest job has waited this long.
+    /// ... or when its oldest job has waited this long (while the engine is busy: an idle
+    /// engine takes work at once, unless `batch_hold_when_idle`).
     pub batch_delay: Duration,
+    /// Hold work for `batch_delay` even when the engine is idle (the batcher's behaviour before
+    /// idle dispatch): more coalescing at low load, the delay added to every lone request.
+    pub batch_hold_when_idle: bool,
     /// Deadline of a crowd request, from arrival to its response being ready; past it, 504.
     pub request_timeout: Duration,
     /// Deadline of any other request (uploads included); past it, 504.
@@ -71,6 +75,15 @@ pub struct ServerConfig {
     pub render_backend: RenderBackend,
     /// Limits of crowd sessions.
     pub sessions: super::sessions::SessionLimits,
+    /// Longest `POST /v1/loadtest` (warm-up and measured window together); zero disables the
+    /// endpoint (`--loadtest-max-duration-s`).
+    pub loadtest_max_duration: Duration,
+    /// Highest request rate a load test may ask for, requests per second
+    /// (`--loadtest-max-rate`).
+    pub loadtest_max_rate: f64,
+    /// Most lanes (requests in flight) of a load test; never more than half of
+    /// `queue_requests` (`--loadtest-max-concurrency`).
+    pub loadtest_max_concurrency: usize,
 }
 
 /// Default of [`ServerConfig::render_pixels`]: 64 Mpixels (64 × 2^20), four 4096 × 4096
@@ -94,6 +107,7 @@ impl Default for ServerConfig {
             queue_memory_bytes: 2 << 30,
             batch_cost: 200_000_000,
             batch_delay: Duration::from_micros(1000),
+            batch_hold_when_idle: false,
             request_timeout: Duration::from_secs(10),
             admin_timeout: Duration::from_secs(300),
             max_concurrency: 2048,
@@ -105,6 +119,9 @@ impl Default for ServerConfig {
             render_pixels: DEFAULT_RENDER_PIXELS,
             render_backend: RenderBackend::Auto,
             sessions: super::sessions::SessionLimits::default(),
+            loadtest_max_duration: Duration::from_secs(60),
+            loadtest_max_rate: 10_000.0,
+            loadtest_max_concurrency: 64,
         }
     }
 }

@@ -19,6 +19,26 @@ const COUNTS: &[f64] = &[
     1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0, 256.0, 512.0, 1024.0, 4096.0, 16384.0,
 ];
 
+/// Where a crowd request came from, so that synthetic load can be told apart from real
+/// traffic: the `source` label of `crowdmorph_heads_total` and `crowdmorph_crowd_frames_total`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub enum Source {
+    /// A client over HTTP.
+    Api,
+    /// `POST /v1/loadtest`: synthetic load generated inside the server.
+    Loadtest,
+}
+
+impl Source {
+    /// The label value.
+    pub fn label(self) -> &'static str {
+        match self {
+            Source::Api => "api",
+            Source::Loadtest => "loadtest",
+        }
+    }
+}
+
 /// A cumulative histogram with fixed bucket bounds.
 #[derive(Debug)]
 pub struct Histogram {
@@ -90,8 +110,12 @@ pub struct Metrics {
     pub batch_jobs: Histogram,
     /// Heads per crowd request.
     pub request_heads: Histogram,
-    /// Heads served.
+    /// Heads served to clients.
     pub heads: AtomicU64,
+    /// Heads served to `POST /v1/loadtest`'s synthetic requests.
+    pub loadtest_heads: AtomicU64,
+    /// Crowd-frame requests answered, by source and status.
+    crowd_frames: Mutex<BTreeMap<(Source, u16), u64>>,
     /// Unique jobs asked for, summed over requests (after in-request dedupe).
     pub jobs_requested: AtomicU64,
     /// Jobs the engine computed.
@@ -140,6 +164,8 @@ impl Default for Metrics {
             batch_jobs: Histogram::new(COUNTS),
             request_heads: Histogram::new(COUNTS),
             heads: AtomicU64::new(0),
+            loadtest_heads: AtomicU64::new(0),
+            crowd_frames: Mutex::new(BTreeMap::new()),
             jobs_requested: AtomicU64::new(0),
             jobs_computed: AtomicU64::new(0),
             jobs_coalesced: AtomicU64::new(0),
@@ -224,12 +250,28 @@ impl Metrics {
             .unwrap_or(0)
     }
 
-    /// Counts heads served (for heads/s).
+    /// Counts heads served to a client (for heads/s).
     pub fn served(&self, heads: u64) {
-        self.heads.fetch_add(heads, Ordering::Relaxed);
+        self.served_to(Source::Api, heads);
+    }
+
+    /// Counts heads served to `source`; the heads/s gauge counts every source.
+    pub fn served_to(&self, source: Source, heads: u64) {
+        match source {
+            Source::Api => &self.heads,
+            Source::Loadtest => &self.loadtest_heads,
+        }
+        .fetch_add(heads, Ordering::Relaxed);
         if let Ok(mut w) = self.rate.lock() {
             roll(&mut w);
             w.count += heads;
+        }
+    }
+
+    /// Counts an answered crowd-frame request by source and status.
+    pub fn crowd_frame(&self, source: Source, status: u16) {
+        if let Ok(mut m) = self.crowd_frames.lock() {
+            *m.entry((source, status)).or_insert(0) += 1;
         }
     }
 
@@ -334,8 +376,30 @@ impl Metrics {
             g.connections_limit as f64,
         );
         let heads = load(&self.heads);
+        let loadtest_heads = load(&self.loadtest_heads);
         let computed = load(&self.jobs_computed);
-        c(&mut o, "crowdmorph_heads_total", "Heads served.", heads);
+        let _ = writeln!(
+            o,
+            "# HELP crowdmorph_heads_total Heads served, by source (api: clients; loadtest: \
+             POST /v1/loadtest).\n# TYPE crowdmorph_heads_total counter\n\
+             crowdmorph_heads_total{{source=\"api\"}} {heads}\n\
+             crowdmorph_heads_total{{source=\"loadtest\"}} {loadtest_heads}"
+        );
+        let _ = writeln!(
+            o,
+            "# HELP crowdmorph_crowd_frames_total Crowd-frame requests answered, by source and \
+             status.\n# TYPE crowdmorph_crowd_frames_total counter"
+        );
+        if let Ok(m) = self.crowd_frames.lock() {
+            for ((source, status), n) in m.iter() {
+                let _ = writeln!(
+                    o,
+                    "crowdmorph_crowd_frames_total{{source=\"{}\",status=\"{status}\"}} {n}",
+                    source.label()
+                );
+            }
+        }
+        let heads = heads + loadtest_heads;
         c(
             &mut o,
             "crowdmorph_jobs_requested_total",

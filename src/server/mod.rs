@@ -17,6 +17,7 @@
 //! | `json` | JSON crowd frames written straight into reused buffers |
 //! | `render` | `POST /v1/crowd/render`: a picture of a crowd |
 //! | [`sessions`] | crowd sessions: a crowd on a fixed tick, streamed to many viewers over WebSockets |
+//! | [`loadtest`] | `POST /v1/loadtest`: synthetic load through the real batcher, at low priority |
 //! | [`bench`] | `crowdmorph bench http`: loopback load against in-process work |
 //! | [`bench_sessions`] | `crowdmorph bench sessions`: one session streamed to several viewers |
 //! | `viewer` | `GET /viewer`: the browser viewer's embedded files |
@@ -28,6 +29,7 @@ pub mod config;
 mod conn;
 pub mod error;
 mod json;
+pub mod loadtest;
 mod lod;
 pub mod metrics;
 pub mod registry;
@@ -131,6 +133,8 @@ pub struct Inner {
     pub sessions: sessions::Sessions,
     /// Reused buffers of JSON crowd frames.
     json_pool: Arc<json::JsonPool>,
+    /// `POST /v1/loadtest`: the load running and the last ones done.
+    loadtests: loadtest::Loadtests,
 }
 
 impl Drop for Inner {
@@ -185,6 +189,7 @@ impl AppState {
                 queue_requests: config.queue_requests,
                 batch_cost: config.batch_cost.max(1),
                 batch_delay: config.batch_delay,
+                hold_when_idle: config.batch_hold_when_idle,
             },
         );
         let memory_units = u32::try_from((config.queue_memory_bytes / 1024).max(1))
@@ -236,6 +241,7 @@ impl AppState {
             render,
             sessions: sessions::Sessions::default(),
             json_pool: Arc::default(),
+            loadtests: loadtest::Loadtests::default(),
         })))
     }
 
@@ -711,6 +717,8 @@ pub fn app(state: AppState) -> Router {
                 .delete(sessions::delete_session),
         )
         .route("/v1/sessions/{id}/stream", get(sessions::stream))
+        .route("/v1/loadtest", post(loadtest::start_loadtest))
+        .route("/v1/loadtest/{id}", get(loadtest::get_loadtest))
         .fallback(api::not_found)
         // Bodies are read with explicit per-route limits (see api::read_body).
         .layer(DefaultBodyLimit::disable())
@@ -867,6 +875,7 @@ pub async fn serve(
         _ = summaries => {}
     }
     state.sessions.close_all("the server is stopping");
+    state.loadtests.cancel_all();
     state.scheduler.shutdown().await;
     tracing::info!("stopped");
     Ok(())

@@ -9,10 +9,19 @@
 //! - A request is split into *slots*, one per unique job, keyed by rig generation, clip, frame,
 //!   LOD, wire format and normals. A job whose key is already queued or computing joins that
 //!   slot (it is *coalesced*); otherwise a new slot goes to the back of the pending queue.
-//! - When the compute thread has room, a batch is closed and dispatched as soon as the pending
-//!   cost (vertices × (active shapes + 1) per job) reaches `batch_cost`, or the oldest pending
-//!   job has waited `batch_delay`. While the engine is busy, pending work accumulates, so
-//!   batches grow with load.
+//! - When the engine is idle, pending work is dispatched at once: a lone request is never held
+//!   for a batch delay (as the best dynamic batchers do; the old timer-only rule made a
+//!   1-head request wait ≈ 2 ms, tokio's timer granularity, for ≈ 0.3 ms of compute). While
+//!   the engine is busy, pending work accumulates, so batches grow with load; when it has room
+//!   again (on the GPU, a second batch while one computes) a batch is closed as soon as the
+//!   pending cost (vertices × (active shapes + 1) per job) reaches `batch_cost`, or the oldest
+//!   pending job has waited `batch_delay`. `hold_when_idle` restores the timer-only rule.
+//! - Two priority classes. Client requests are [`Priority::Normal`]; synthetic load
+//!   (`POST /v1/loadtest`) is [`Priority::Low`]: its slots wait in a queue of their own that is
+//!   dispatched only when no normal work is waiting and the engine is idle, and a batch holds
+//!   one class only. So a client request waits behind at most the one low batch already
+//!   computing, never behind queued synthetic work. A normal job that coalesces with a queued
+//!   low slot promotes it to the normal queue.
 //! - Room is one batch on the CPU engine, two on the GPU: the compute thread submits batch
 //!   N + 1 to the GPU before it waits for batch N, so upload, compute and readback of
 //!   consecutive batches overlap (the GPU engine's pooled slots are the ring of buffers).
@@ -92,14 +101,30 @@ pub struct BatchConfig {
     pub queue_requests: usize,
     /// Cost at which a batch closes.
     pub batch_cost: u64,
-    /// Longest a job waits for its batch to fill.
+    /// Longest a job waits for its batch to fill while the engine is busy.
     pub batch_delay: Duration,
+    /// Hold work for `batch_delay` (or `batch_cost`) even when the engine is idle, instead of
+    /// dispatching it at once: more coalescing of identical jobs at low load, at the price of
+    /// the delay on every lone request. Off by default; tests use it to keep requests queued.
+    pub hold_when_idle: bool,
+}
+
+/// The class a submission's jobs are queued in.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Priority {
+    /// Client requests: always dispatched before low-priority work.
+    #[default]
+    Normal,
+    /// Synthetic load (`POST /v1/loadtest`): dispatched only when no normal work waits and the
+    /// engine is idle, so it fills the engine time clients leave and never starves them.
+    Low,
 }
 
 struct Submission {
     jobs: Vec<JobRequest>,
     format: Format,
     normals: bool,
+    priority: Priority,
     reply: oneshot::Sender<Result<Outcome, ScheduleError>>,
 }
 
@@ -143,6 +168,8 @@ impl Scheduler {
             index: HashMap::new(),
             pending: VecDeque::new(),
             pending_cost: 0,
+            low: VecDeque::new(),
+            low_cost: 0,
             requests: HashMap::new(),
             in_flight: 0,
             depth,
@@ -160,18 +187,30 @@ impl Scheduler {
         }
     }
 
-    /// Queues the jobs of one request; the ticket resolves when every job is computed.
+    /// Queues the jobs of one client request; the ticket resolves when every job is computed.
     pub fn submit(
         &self,
         jobs: Vec<JobRequest>,
         format: Format,
         normals: bool,
     ) -> Result<Ticket, ScheduleError> {
+        self.submit_with(jobs, format, normals, Priority::Normal)
+    }
+
+    /// Queues the jobs of one request in a priority class.
+    pub fn submit_with(
+        &self,
+        jobs: Vec<JobRequest>,
+        format: Format,
+        normals: bool,
+        priority: Priority,
+    ) -> Result<Ticket, ScheduleError> {
         let (reply, rx) = oneshot::channel();
         let sub = Submission {
             jobs,
             format,
             normals,
+            priority,
             reply,
         };
         let tx = self
@@ -225,6 +264,10 @@ struct Slot {
     cost: u64,
     created: Instant,
     waiters: Vec<(ReqId, usize)>,
+    /// The queue it waits in (or waited in, once dispatched).
+    priority: Priority,
+    /// Still in a pending queue (not yet dispatched).
+    queued: bool,
 }
 
 struct ReqState {
@@ -268,8 +311,13 @@ struct State {
     work: Option<std::sync::mpsc::Sender<WorkBatch>>,
     slots: HashMap<SlotId, Slot>,
     index: HashMap<SlotKey, SlotId>,
+    /// Normal slots waiting for a batch, oldest first, and their total cost.
     pending: VecDeque<SlotId>,
     pending_cost: u64,
+    /// Low-priority slots waiting, oldest first, and their cost. A slot promoted to the normal
+    /// queue stays here as a stale entry, skipped when met (`trim_low`, `pop`).
+    low: VecDeque<SlotId>,
+    low_cost: u64,
     requests: HashMap<ReqId, ReqState>,
     /// Batches at the compute thread, and how many it may hold.
     in_flight: usize,
@@ -286,14 +334,11 @@ impl State {
     ) {
         let mut closed = false;
         loop {
-            if closed && self.pending.is_empty() && self.in_flight == 0 {
+            self.trim_low();
+            if closed && self.pending.is_empty() && self.low.is_empty() && self.in_flight == 0 {
                 break;
             }
-            let wake = self
-                .pending
-                .front()
-                .and_then(|id| self.slots.get(id))
-                .map(|s| s.created + self.cfg.batch_delay);
+            let wake = self.wake();
             let timer_armed = wake.is_some() && self.in_flight < self.depth;
             let sleep_until = wake.unwrap_or_else(Instant::now);
             tokio::select! {
@@ -323,6 +368,57 @@ impl State {
         self.fail_all("the server is shutting down");
     }
 
+    /// When the oldest waiting job of the queue that would be dispatched next is due: the
+    /// normal queue's, else (only with the engine idle) the low queue's.
+    fn wake(&self) -> Option<Instant> {
+        let front = match self.pending.front() {
+            Some(id) => Some(id),
+            None if self.in_flight == 0 => self.low.front(),
+            None => None,
+        };
+        front
+            .and_then(|id| self.slots.get(id))
+            .map(|s| s.created + self.cfg.batch_delay)
+    }
+
+    /// Drops stale entries (promoted, dispatched or failed slots) from the front of the low
+    /// queue, so that its front is a slot that really waits there.
+    fn trim_low(&mut self) {
+        while let Some(id) = self.low.front() {
+            if self
+                .slots
+                .get(id)
+                .is_some_and(|s| s.queued && s.priority == Priority::Low)
+            {
+                break;
+            }
+            self.low.pop_front();
+        }
+    }
+
+    /// The next slot waiting in `priority`'s queue, taken off it (its cost too).
+    fn pop(&mut self, priority: Priority) -> Option<SlotId> {
+        loop {
+            let id = match priority {
+                Priority::Normal => self.pending.pop_front()?,
+                Priority::Low => self.low.pop_front()?,
+            };
+            let Some(slot) = self.slots.get_mut(&id) else {
+                continue;
+            };
+            if !slot.queued || slot.priority != priority {
+                // A promoted slot's stale entry in the low queue.
+                continue;
+            }
+            slot.queued = false;
+            match priority {
+                Priority::Normal => self.pending_cost = self.pending_cost.saturating_sub(slot.cost),
+                Priority::Low => self.low_cost = self.low_cost.saturating_sub(slot.cost),
+            }
+            return Some(id);
+        }
+    }
+
     fn add(&mut self, sub: Submission) {
         let n = sub.jobs.len();
         if n == 0 {
@@ -349,17 +445,36 @@ impl State {
                 format: sub.format,
                 normals: sub.normals,
             };
-            if let Some(slot) = self.index.get(&key).and_then(|id| self.slots.get_mut(id)) {
+            if let Some(&id) = self.index.get(&key)
+                && let Some(slot) = self.slots.get_mut(&id)
+            {
                 slot.waiters.push((req, i));
                 self.metrics
                     .jobs_coalesced
                     .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                if sub.priority == Priority::Normal && slot.priority == Priority::Low {
+                    // A client now waits for it: it leaves the low queue for the normal one.
+                    slot.priority = Priority::Normal;
+                    if slot.queued {
+                        self.low_cost = self.low_cost.saturating_sub(slot.cost);
+                        self.pending_cost += slot.cost;
+                        self.pending.push_back(id);
+                    }
+                }
                 continue;
             }
             let id = self.next_id;
             self.next_id += 1;
-            self.pending_cost += job.cost;
-            self.pending.push_back(id);
+            match sub.priority {
+                Priority::Normal => {
+                    self.pending_cost += job.cost;
+                    self.pending.push_back(id);
+                }
+                Priority::Low => {
+                    self.low_cost += job.cost;
+                    self.low.push_back(id);
+                }
+            }
             self.index.insert(key, id);
             self.slots.insert(
                 id,
@@ -369,6 +484,8 @@ impl State {
                     cost: job.cost,
                     created: now,
                     waiters: vec![(req, i)],
+                    priority: sub.priority,
+                    queued: true,
                 },
             );
         }
@@ -401,9 +518,13 @@ impl State {
         }
     }
 
-    /// Closes and sends a batch when the engine is idle and the batch is due.
+    /// Closes and sends a batch when the engine has room and a batch is due: normal work at
+    /// once when the engine is idle (unless `hold_when_idle`), else when its cost or its oldest
+    /// job's delay says so; low-priority work only when no normal work waits and the engine
+    /// is idle. A batch holds one class.
     fn dispatch(&mut self, closing: bool) {
-        if self.in_flight >= self.depth || self.pending.is_empty() {
+        self.trim_low();
+        if self.in_flight >= self.depth || (self.pending.is_empty() && self.low.is_empty()) {
             return;
         }
         let Some(work) = self.work.clone() else {
@@ -413,14 +534,29 @@ impl State {
             return;
         };
         let now = Instant::now();
-        let oldest_due = self
-            .pending
-            .front()
-            .and_then(|id| self.slots.get(id))
-            .is_some_and(|s| now >= s.created + self.cfg.batch_delay);
-        if !(closing || oldest_due || self.pending_cost >= self.cfg.batch_cost) {
-            return;
-        }
+        let idle = self.in_flight == 0;
+        let eager = idle && !self.cfg.hold_when_idle;
+        let due = |front: Option<&SlotId>, cost: u64| {
+            closing
+                || eager
+                || cost >= self.cfg.batch_cost
+                || front
+                    .and_then(|id| self.slots.get(id))
+                    .is_some_and(|s| now >= s.created + self.cfg.batch_delay)
+        };
+        let class = if !self.pending.is_empty() {
+            // Normal work that is not due yet keeps low work waiting too: it must not find
+            // the engine busy with synthetic load when its time comes.
+            if !due(self.pending.front(), self.pending_cost) {
+                return;
+            }
+            Priority::Normal
+        } else {
+            if !((idle || closing) && due(self.low.front(), self.low_cost)) {
+                return;
+            }
+            Priority::Low
+        };
         let batch_id = self.next_batch;
         self.next_batch += 1;
         let mut cost = 0u64;
@@ -430,13 +566,12 @@ impl State {
         let mut at: HashMap<(u64, bool, bool, Option<usize>), usize> = HashMap::new();
         let mut jobs = 0usize;
         while cost < self.cfg.batch_cost {
-            let Some(id) = self.pending.pop_front() else {
+            let Some(id) = self.pop(class) else {
                 break;
             };
             let Some(slot) = self.slots.get(&id) else {
                 continue;
             };
-            self.pending_cost = self.pending_cost.saturating_sub(slot.cost);
             let waiters: Vec<ReqId> = slot.waiters.iter().map(|w| w.0).collect();
             if !waiters.iter().any(|&r| self.alive(r)) {
                 // Nobody waits for this job any more: do not compute it.
@@ -605,6 +740,8 @@ impl State {
         self.index.clear();
         self.pending.clear();
         self.pending_cost = 0;
+        self.low.clear();
+        self.low_cost = 0;
     }
 }
 
@@ -895,4 +1032,202 @@ fn finish_group(
         }
     }
     Ok((outs, gpu_ns))
+}
+
+#[cfg(test)]
+mod tests {
+    //! The batcher's decisions, driven by hand: no compute thread, batches read off the work
+    //! channel and finished with empty outputs, so every assertion is about order, not time.
+
+    #![allow(clippy::unwrap_used)]
+
+    use std::sync::atomic::Ordering;
+
+    use super::*;
+    use crate::budget::Budget;
+    use crate::server::registry::{ClipLayout, quantization_box};
+
+    fn entry() -> Arc<RigEntry> {
+        let engine = Engine::cpu();
+        let rig = Arc::new(crate::embedded::default_rig());
+        let prepared = engine.prepare(rig.clone()).unwrap();
+        Arc::new(RigEntry {
+            id: "default-head".into(),
+            builtin: true,
+            builtin_clips: rig.clips.len(),
+            vertices: rig.vertex_count(),
+            qbox: quantization_box(&rig),
+            generation: 1,
+            prepared,
+            layout: ClipLayout::default(),
+            charge: std::sync::Mutex::new(Budget::new(u64::MAX, "", None).keep(0)),
+        })
+    }
+
+    fn state(hold_when_idle: bool) -> (State, std::sync::mpsc::Receiver<WorkBatch>) {
+        let (tx, rx) = std::sync::mpsc::channel();
+        let state = State {
+            cfg: BatchConfig {
+                queue_requests: 100,
+                batch_cost: u64::MAX,
+                batch_delay: Duration::from_secs(3600),
+                hold_when_idle,
+            },
+            metrics: Arc::new(Metrics::default()),
+            work: Some(tx),
+            slots: HashMap::new(),
+            index: HashMap::new(),
+            pending: VecDeque::new(),
+            pending_cost: 0,
+            low: VecDeque::new(),
+            low_cost: 0,
+            requests: HashMap::new(),
+            in_flight: 0,
+            depth: 1,
+            next_id: 0,
+            next_batch: 0,
+        };
+        (state, rx)
+    }
+
+    /// Submits one request for `frames` of clip 0 and returns its ticket.
+    fn submit(state: &mut State, e: &Arc<RigEntry>, frames: &[u32], priority: Priority) -> Ticket {
+        let (reply, ticket) = oneshot::channel();
+        state.add(Submission {
+            jobs: frames
+                .iter()
+                .map(|&frame| JobRequest {
+                    entry: e.clone(),
+                    clip: 0,
+                    frame,
+                    lod: 0,
+                    cost: 1,
+                })
+                .collect(),
+            format: Format::F32,
+            normals: false,
+            priority,
+            reply,
+        });
+        state.dispatch(false);
+        ticket
+    }
+
+    /// The frames of the batch sent to the compute thread, if one was.
+    fn sent(state: &State, rx: &std::sync::mpsc::Receiver<WorkBatch>) -> Option<(u64, Vec<u32>)> {
+        let batch = rx.try_recv().ok()?;
+        let mut frames: Vec<u32> = batch
+            .groups
+            .iter()
+            .flat_map(|g| g.slots.iter().map(|&(id, _, _)| state.slots[&id].key.frame))
+            .collect();
+        frames.sort_unstable();
+        Some((batch.id, frames))
+    }
+
+    /// Finishes batch `id` (every slot it computed gets an empty output) and dispatches.
+    fn finish(state: &mut State, id: u64) {
+        let results = state
+            .slots
+            .iter()
+            .filter(|(_, s)| !s.queued)
+            .map(|(&slot, _)| {
+                let out = JobOutput {
+                    positions: Bytes::new(),
+                    normals: None,
+                };
+                (slot, Ok(Arc::new(out)))
+            })
+            .collect();
+        state.finish(BatchDone {
+            id,
+            results,
+            wall_ns: 0,
+            gpu_ns: None,
+        });
+        state.dispatch(false);
+    }
+
+    fn answered(t: &mut Ticket) -> bool {
+        matches!(t.try_recv(), Ok(Ok(_)))
+    }
+
+    #[test]
+    fn a_lone_request_on_an_idle_engine_is_not_held_for_the_delay() {
+        let e = entry();
+        let (mut s, rx) = state(false);
+        let _t = submit(&mut s, &e, &[1], Priority::Normal);
+        assert_eq!(sent(&s, &rx), Some((0, vec![1])), "dispatched at once");
+        // What arrives while the engine is busy waits for it and goes in one batch.
+        let _a = submit(&mut s, &e, &[2], Priority::Normal);
+        let _b = submit(&mut s, &e, &[3, 4], Priority::Normal);
+        assert_eq!(sent(&s, &rx), None, "the engine is busy");
+        finish(&mut s, 0);
+        assert_eq!(sent(&s, &rx), Some((1, vec![2, 3, 4])));
+
+        // With hold_when_idle, the old rule: nothing goes before the (hour-long) delay.
+        let (mut s, rx) = state(true);
+        let _t = submit(&mut s, &e, &[1], Priority::Normal);
+        assert_eq!(sent(&s, &rx), None);
+    }
+
+    #[test]
+    fn queued_low_priority_work_never_goes_before_a_client_request() {
+        let e = entry();
+        let (mut s, rx) = state(false);
+        // A load test saturates the engine: one low batch computing, more low work queued.
+        let mut low_a = submit(&mut s, &e, &[1], Priority::Low);
+        assert_eq!(sent(&s, &rx), Some((0, vec![1])), "idle: low work may run");
+        let mut low_b = submit(&mut s, &e, &[2, 3], Priority::Low);
+        let mut low_c = submit(&mut s, &e, &[4], Priority::Low);
+        // A client request arrives after them.
+        let mut client = submit(&mut s, &e, &[10, 11], Priority::Normal);
+        assert_eq!(sent(&s, &rx), None, "the engine is busy");
+        finish(&mut s, 0);
+        assert!(answered(&mut low_a));
+        // The next batch is the client's alone, ahead of the low work queued before it.
+        assert_eq!(sent(&s, &rx), Some((1, vec![10, 11])));
+        finish(&mut s, 1);
+        assert!(answered(&mut client));
+        assert!(!answered(&mut low_b) && !answered(&mut low_c));
+        // Then the low work, in one batch of its own.
+        assert_eq!(sent(&s, &rx), Some((2, vec![2, 3, 4])));
+        finish(&mut s, 2);
+        assert!(answered(&mut low_b) && answered(&mut low_c));
+        assert!(s.pending.is_empty() && s.low.is_empty() && s.requests.is_empty());
+    }
+
+    #[test]
+    fn a_client_job_that_joins_a_queued_low_job_takes_it_to_the_front() {
+        let e = entry();
+        let (mut s, rx) = state(false);
+        let _busy = submit(&mut s, &e, &[1], Priority::Low);
+        assert_eq!(sent(&s, &rx), Some((0, vec![1])));
+        let mut low = submit(&mut s, &e, &[2, 3], Priority::Low);
+        // Frame 3 is already queued as low work: the client's job joins it.
+        let mut client = submit(&mut s, &e, &[3], Priority::Normal);
+        assert_eq!(s.metrics.jobs_coalesced.load(Ordering::Relaxed), 1);
+        finish(&mut s, 0);
+        assert_eq!(sent(&s, &rx), Some((1, vec![3])), "promoted, alone");
+        finish(&mut s, 1);
+        assert!(answered(&mut client));
+        assert!(!answered(&mut low), "frame 2 is still queued");
+        assert_eq!(sent(&s, &rx), Some((2, vec![2])));
+        finish(&mut s, 2);
+        assert!(answered(&mut low));
+        assert_eq!((s.pending_cost, s.low_cost), (0, 0));
+    }
+
+    #[test]
+    fn low_work_waits_while_a_client_request_waits_for_its_batch() {
+        // With the old rule, a client job not yet due keeps the engine free for it.
+        let e = entry();
+        let (mut s, rx) = state(true);
+        let _client = submit(&mut s, &e, &[1], Priority::Normal);
+        let _low = submit(&mut s, &e, &[2], Priority::Low);
+        assert_eq!(sent(&s, &rx), None);
+        // Shutting down, everything goes: the client's work first.
+        s.dispatch(true);
+        assert_eq!(sent(&s, &rx), Some((0, vec![1])));
+    }
 }

@@ -1,11 +1,12 @@
-//! The command-line tools as library functions: `inspect`, `eval`, `render`, `bench` and
-//! `lod set`.
+//! The command-line tools as library functions: `inspect`, `eval`, `render`, `bench`,
+//! `load` and `lod set`.
 //!
 //! They live in the library so that tests can call them and `main.rs` stays a thin shell that
 //! parses arguments. Being tools rather than request paths, they report errors with `anyhow`.
 
 pub mod bench;
 pub mod bench_gpu;
+pub mod load;
 pub mod render;
 pub mod synthetic;
 

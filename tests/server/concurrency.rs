@@ -15,10 +15,12 @@ use crate::util::Rng;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn two_hundred_clients_get_their_own_correct_frames_and_jobs_coalesce() {
-    // A long batch delay makes the requests meet in the queue, so that identical jobs of
-    // different requests are waiting together (correctness does not depend on it).
+    // A long batch delay, held even while the engine is idle, makes the requests meet in the
+    // queue, so that identical jobs of different requests are waiting together (correctness
+    // does not depend on it).
     let server = TestServer::start(ServerConfig {
         batch_delay: Duration::from_millis(150),
+        batch_hold_when_idle: true,
         ..ServerConfig::default()
     })
     .await;
@@ -157,6 +159,7 @@ async fn an_f32_and_a_q16_request_for_one_frame_cost_one_blend() {
     // quantized from the f32 blend, so the engine computes the frame once.
     let server = TestServer::start(ServerConfig {
         batch_delay: Duration::from_millis(300),
+        batch_hold_when_idle: true,
         ..ServerConfig::default()
     })
     .await;

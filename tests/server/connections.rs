@@ -287,6 +287,7 @@ async fn a_request_in_progress_is_never_evicted() {
         max_connections: 2,
         // Crowd requests wait in the batcher this long: "in progress" for the whole test.
         batch_delay: Duration::from_millis(2500),
+        batch_hold_when_idle: true,
         batch_cost: u64::MAX,
         ..ServerConfig::default()
     })
@@ -375,6 +376,7 @@ async fn a_storm_of_shed_requests_logs_a_few_summary_lines() {
         .env("CROWDMORPH_MAX_CONCURRENCY", "1")
         // The one admitted crowd request holds the only slot for ≥ 20 ms.
         .env("CROWDMORPH_BATCH_DELAY_US", "20000")
+        .env("CROWDMORPH_BATCH_HOLD_WHEN_IDLE", "true")
         .env("CROWDMORPH_BATCH_COST", "18446744073709551615")
         .env("CROWDMORPH_NO_AUTO_LOD", "true")
         .stdout(Stdio::null())

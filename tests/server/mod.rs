@@ -8,6 +8,7 @@ mod concurrency;
 mod connections;
 mod golden;
 mod hostile;
+mod loadtest;
 mod lod;
 mod overload;
 mod persistence;

@@ -2,8 +2,9 @@
 //! requests stays under its limit, late requests get 504, the server recovers, and a graceful
 //! shutdown lets requests in flight complete.
 //!
-//! Long batch delays make requests wait in the queue deterministically enough: the assertions
-//! are about what happens when the queue is full, never about how long anything took.
+//! Long batch delays, held even while the engine is idle (`batch_hold_when_idle`), make
+//! requests wait in the queue deterministically enough: the assertions are about what happens
+//! when the queue is full, never about how long anything took.
 
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
@@ -52,6 +53,7 @@ async fn a_full_queue_answers_503_then_recovers() {
     let server = TestServer::start(ServerConfig {
         queue_requests: 4,
         batch_delay: Duration::from_secs(2),
+        batch_hold_when_idle: true,
         batch_cost: u64::MAX,
         ..ServerConfig::default()
     })
@@ -107,6 +109,7 @@ async fn output_memory_is_bounded_and_oversized_responses_are_413() {
     let server = TestServer::start(ServerConfig {
         queue_memory_bytes: 200 << 10,
         batch_delay: Duration::from_secs(1),
+        batch_hold_when_idle: true,
         batch_cost: u64::MAX,
         ..ServerConfig::default()
     })
@@ -157,6 +160,7 @@ async fn past_the_deadline_is_504_and_abandoned_jobs_are_not_computed() {
     let server = TestServer::start(ServerConfig {
         request_timeout: Duration::from_millis(100),
         batch_delay: Duration::from_millis(600),
+        batch_hold_when_idle: true,
         batch_cost: u64::MAX,
         ..ServerConfig::default()
     })
@@ -184,6 +188,7 @@ async fn too_many_requests_at_once_are_shed_with_503() {
     let server = TestServer::start(ServerConfig {
         max_concurrency: 2,
         batch_delay: Duration::from_millis(800),
+        batch_hold_when_idle: true,
         batch_cost: u64::MAX,
         ..ServerConfig::default()
     })
@@ -219,6 +224,7 @@ async fn too_many_requests_at_once_are_shed_with_503() {
 async fn shutdown_lets_requests_in_flight_complete() {
     let mut server = TestServer::start(ServerConfig {
         batch_delay: Duration::from_millis(500),
+        batch_hold_when_idle: true,
         batch_cost: u64::MAX,
         ..ServerConfig::default()
     })
@@ -254,6 +260,7 @@ async fn a_client_that_disconnects_does_not_cancel_shared_work() {
     use tokio::io::AsyncWriteExt;
     let server = TestServer::start(ServerConfig {
         batch_delay: Duration::from_millis(600),
+        batch_hold_when_idle: true,
         batch_cost: u64::MAX,
         ..ServerConfig::default()
     })

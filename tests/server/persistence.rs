@@ -300,6 +300,7 @@ async fn sigterm_lets_requests_in_flight_complete() {
         &dir,
         &[
             ("CROWDMORPH_BATCH_DELAY_US", "800000"),
+            ("CROWDMORPH_BATCH_HOLD_WHEN_IDLE", "true"),
             ("CROWDMORPH_BATCH_COST", "18446744073709551615"),
         ],
     );

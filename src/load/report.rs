@@ -1,0 +1,225 @@
+//! The report of a load run (the same for `crowdmorph load --json` and `POST /v1/loadtest`) and
+//! its text table.
+
+use hdrhistogram::Histogram;
+use serde::{Deserialize, Serialize};
+
+/// Percentiles of a distribution, milliseconds.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Percentiles {
+    /// Median.
+    pub p50: f64,
+    /// 90th percentile.
+    pub p90: f64,
+    /// 99th percentile.
+    pub p99: f64,
+    /// 99.9th percentile.
+    pub p999: f64,
+    /// Largest value.
+    pub max: f64,
+    /// Mean.
+    pub mean: f64,
+    /// Values recorded.
+    pub count: u64,
+}
+
+impl Percentiles {
+    /// Of a histogram of microseconds.
+    pub(super) fn of(h: &Histogram<u64>) -> Percentiles {
+        if h.is_empty() {
+            return Percentiles::default();
+        }
+        let ms = |us: u64| us as f64 / 1e3;
+        Percentiles {
+            p50: ms(h.value_at_quantile(0.5)),
+            p90: ms(h.value_at_quantile(0.9)),
+            p99: ms(h.value_at_quantile(0.99)),
+            p999: ms(h.value_at_quantile(0.999)),
+            max: ms(h.max()),
+            mean: h.mean() / 1e3,
+            count: h.len(),
+        }
+    }
+}
+
+/// Failed requests with one status and code.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ErrorCount {
+    /// HTTP status; 0 when no response came.
+    pub status: u16,
+    /// The JSON error body's code (`queue_full`, ...), `transport` or `connect` without a
+    /// response, empty when the body had none.
+    pub code: String,
+    /// How many.
+    pub count: u64,
+}
+
+/// The server's own timings of the successful requests (their `Server-Timing` headers).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ServerTimings {
+    /// From admission to the start of the batch that computed the request's last job.
+    pub queue_ms: Percentiles,
+    /// Engine wall time of the request's batches.
+    pub compute_ms: Percentiles,
+    /// Building the response body.
+    pub encode_ms: Percentiles,
+}
+
+/// What a load run measured, over the window after the warm-up.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct LoadReport {
+    /// Target requests per second.
+    pub rate: f64,
+    /// The measured window (so far, while running), seconds.
+    pub duration_s: f64,
+    /// Warm-up before the window, seconds (not in the report).
+    pub warmup_s: f64,
+    /// Connections (in-process callers for `POST /v1/loadtest`) the requests were spread over.
+    pub lanes: usize,
+    /// Heads per request.
+    pub heads_per_request: u64,
+    /// Requests whose intended send time fell in the window.
+    pub sent: u64,
+    /// Of those, answered 200.
+    pub ok: u64,
+    /// Answered with an error status, or not at all (the connection failed).
+    pub errors: u64,
+    /// Still unanswered when the run stopped waiting (the end of the window plus a grace).
+    pub unfinished: u64,
+    /// Successful requests per second.
+    pub achieved_rate: f64,
+    /// Heads of successful requests per second.
+    pub heads_per_s: f64,
+    /// Response bytes of successful requests per second.
+    pub bytes_per_s: f64,
+    /// Latency of successful requests from their intended send time (corrected for
+    /// coordinated omission), milliseconds.
+    pub latency_ms: Percentiles,
+    /// Failures by status and code.
+    pub errors_by: Vec<ErrorCount>,
+    /// The server's timings, when its responses carried `Server-Timing`.
+    pub server_ms: Option<ServerTimings>,
+    /// Whether the run is over.
+    pub finished: bool,
+    /// Whether it was stopped early (shutdown, or its grace ran out).
+    pub cancelled: bool,
+}
+
+/// One rate tried by a ramp.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RampStep {
+    /// Requests per second.
+    pub rate: f64,
+    /// Whether it met the target.
+    pub met: bool,
+    /// Its report.
+    pub report: LoadReport,
+}
+
+/// The result of `--ramp`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RampReport {
+    /// The p99 target, milliseconds.
+    pub p99_target_ms: f64,
+    /// The highest rate that met it, if any did.
+    pub best_rate: Option<f64>,
+    /// That rate's step.
+    pub best: Option<RampStep>,
+    /// Every rate tried, in order.
+    pub steps: Vec<RampStep>,
+}
+
+fn si(v: f64) -> String {
+    match v {
+        v if v >= 1e9 => format!("{:.2} G", v / 1e9),
+        v if v >= 1e6 => format!("{:.2} M", v / 1e6),
+        v if v >= 1e3 => format!("{:.2} k", v / 1e3),
+        v => format!("{v:.1} "),
+    }
+}
+
+fn percentiles_line(p: &Percentiles) -> String {
+    format!(
+        "p50 {:.3}  p90 {:.3}  p99 {:.3}  p99.9 {:.3}  max {:.3}  mean {:.3}",
+        p.p50, p.p90, p.p99, p.p999, p.max, p.mean
+    )
+}
+
+impl LoadReport {
+    /// The human-readable table.
+    pub fn text(&self) -> String {
+        let mut s = format!(
+            "target {:.1} requests/s for {:.1} s (after {:.1} s of warm-up) over {} connections, {} heads per request\n",
+            self.rate, self.duration_s, self.warmup_s, self.lanes, self.heads_per_request
+        );
+        s += &format!(
+            "  achieved   {:>10.1} requests/s   {}heads/s   {}B/s\n",
+            self.achieved_rate,
+            si(self.heads_per_s),
+            si(self.bytes_per_s)
+        );
+        s += &format!(
+            "  requests   {} sent, {} ok, {} errors, {} unfinished{}\n",
+            self.sent,
+            self.ok,
+            self.errors,
+            self.unfinished,
+            if self.cancelled {
+                " (stopped early)"
+            } else {
+                ""
+            }
+        );
+        s += &format!(
+            "  latency ms {}   (from the intended send time)\n",
+            percentiles_line(&self.latency_ms)
+        );
+        if let Some(t) = &self.server_ms {
+            s += &format!("  server ms  queue   {}\n", percentiles_line(&t.queue_ms));
+            s += &format!("             compute {}\n", percentiles_line(&t.compute_ms));
+            s += &format!("             encode  {}\n", percentiles_line(&t.encode_ms));
+        }
+        for e in &self.errors_by {
+            s += &format!(
+                "  error      {} {} × {}\n",
+                if e.status == 0 {
+                    "-".to_string()
+                } else {
+                    e.status.to_string()
+                },
+                if e.code.is_empty() { "?" } else { &e.code },
+                e.count
+            );
+        }
+        s
+    }
+}
+
+impl RampReport {
+    /// The human-readable table: one line per rate tried, then the best one in full.
+    pub fn text(&self) -> String {
+        let mut s = format!("ramp: highest rate with p99 ≤ {} ms\n", self.p99_target_ms);
+        s += "  requests/s   achieved     p50 ms     p99 ms   errors  unfinished  met\n";
+        for st in &self.steps {
+            let r = &st.report;
+            s += &format!(
+                "  {:>10.1} {:>10.1} {:>10.3} {:>10.3} {:>8} {:>11}  {}\n",
+                st.rate,
+                r.achieved_rate,
+                r.latency_ms.p50,
+                r.latency_ms.p99,
+                r.errors,
+                r.unfinished,
+                if st.met { "yes" } else { "no" }
+            );
+        }
+        match &self.best {
+            Some(b) => {
+                s += &format!("best: {:.1} requests/s\n", b.rate);
+                s += &b.report.text();
+            }
+            None => s += "no rate met the target\n",
+        }
+        s
+    }
+}

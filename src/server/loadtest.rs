@@ -1,0 +1,447 @@
+//! `POST /v1/loadtest` and `GET /v1/loadtest/{id}`: a bounded synthetic load generated inside
+//! the server, so that an operator can measure a box without a client machine.
+//!
+//! The load is the open loop of [`crate::load`], with in-process lanes instead of connections:
+//! each synthetic request is an encoded crowd-frame body handed to the crowd-frame handler
+//! itself ([`super::api::crowd_frame_from`]), so it is decoded, resolved, admitted, batched,
+//! deduplicated and encoded exactly as a client's — only the socket is missing. Its jobs are
+//! queued at [`Priority::Low`](super::scheduler::Priority::Low): they fill the engine time
+//! clients leave and never push a client's request back by more than the one batch already
+//! computing. Its heads and requests carry `source="loadtest"` in the metrics.
+//!
+//! Bounds: one load at a time (409 `loadtest_running`); duration, rate and lanes capped by
+//! flags (400 past them); the output the lanes can hold at once at most half the queue memory,
+//! and the lanes at most half the batch queue, so that clients always find room.
+
+use std::collections::VecDeque;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use axum::body::Body;
+use axum::extract::{Path, Query, State};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::response::Response;
+use bytes::Bytes;
+use http_body_util::BodyExt;
+use serde::{Deserialize, Serialize};
+
+use super::api::{ApiResult, crowd_frame_from, decode, respond};
+use super::metrics::Source;
+use super::{ApiError, AppState};
+use crate::load::{self, CrowdShape, Lane, Live, LoadReport, Reply, RigClips, RunOptions};
+
+/// Request bodies generated per load; request `i` sends body `i mod RING`.
+const RING: usize = 64;
+
+/// Finished loads kept for `GET /v1/loadtest/{id}`.
+const KEEP_DONE: usize = 8;
+
+/// The body of `POST /v1/loadtest`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LoadtestRequest {
+    /// Requests per second.
+    pub rate: f64,
+    /// Seconds measured.
+    pub duration_s: f64,
+    /// Seconds sent before the measured window.
+    #[serde(default)]
+    pub warmup_s: f64,
+    /// In-process lanes the requests are spread over (a lane sends one request at a time).
+    #[serde(default = "default_concurrency")]
+    pub concurrency: u32,
+    /// The crowds.
+    #[serde(default)]
+    pub crowd: CrowdShape,
+}
+
+fn default_concurrency() -> u32 {
+    16
+}
+
+/// What `POST /v1/loadtest` and `GET /v1/loadtest/{id}` answer.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LoadtestStatus {
+    /// The load's id.
+    pub id: String,
+    /// `running`, `done`, or `cancelled` (the server shut down, or answers ran past the grace).
+    pub status: String,
+    /// Seconds since it started.
+    pub elapsed_s: f64,
+    /// What was asked for.
+    pub request: LoadtestRequest,
+    /// The report: so far while running, final when done.
+    pub report: LoadReport,
+}
+
+/// One load, running or done.
+#[derive(Debug)]
+struct Run {
+    id: String,
+    request: LoadtestRequest,
+    live: Arc<Live>,
+    done: tokio::sync::watch::Sender<bool>,
+}
+
+impl Run {
+    fn status(&self) -> LoadtestStatus {
+        let report = self.live.snapshot();
+        let status = if !report.finished {
+            "running"
+        } else if report.cancelled {
+            "cancelled"
+        } else {
+            "done"
+        };
+        LoadtestStatus {
+            id: self.id.clone(),
+            status: status.into(),
+            elapsed_s: self.live.elapsed(),
+            request: self.request.clone(),
+            report,
+        }
+    }
+}
+
+#[derive(Debug, Default)]
+struct Runs {
+    next: u64,
+    current: Option<Arc<Run>>,
+    done: VecDeque<Arc<Run>>,
+}
+
+/// The server's loads: the one running and the last few done.
+#[derive(Debug, Default)]
+pub struct Loadtests(Mutex<Runs>);
+
+impl Loadtests {
+    /// Stops the running load (the server is shutting down).
+    pub fn cancel_all(&self) {
+        if let Ok(runs) = self.0.lock()
+            && let Some(r) = &runs.current
+        {
+            r.live.cancel();
+        }
+    }
+
+    fn find(&self, id: &str) -> Option<Arc<Run>> {
+        let runs = self.0.lock().ok()?;
+        runs.current
+            .iter()
+            .chain(runs.done.iter())
+            .find(|r| r.id == id)
+            .cloned()
+    }
+
+    /// Registers a new load unless one is running.
+    fn start(&self, request: LoadtestRequest, live: Arc<Live>) -> Result<Arc<Run>, ApiError> {
+        let mut runs = self
+            .0
+            .lock()
+            .map_err(|_| ApiError::internal("the loadtest registry lock is poisoned"))?;
+        if let Some(r) = &runs.current {
+            return Err(ApiError::new(
+                StatusCode::CONFLICT,
+                "loadtest_running",
+                format!(
+                    "load test {} is running (GET /v1/loadtest/{}); one runs at a time",
+                    r.id, r.id
+                ),
+            ));
+        }
+        runs.next += 1;
+        let run = Arc::new(Run {
+            id: runs.next.to_string(),
+            request,
+            live,
+            done: tokio::sync::watch::Sender::new(false),
+        });
+        runs.current = Some(run.clone());
+        Ok(run)
+    }
+
+    fn finish(&self, run: &Arc<Run>) {
+        if let Ok(mut runs) = self.0.lock() {
+            if runs.current.as_ref().is_some_and(|r| Arc::ptr_eq(r, run)) {
+                runs.current = None;
+            }
+            runs.done.push_back(run.clone());
+            while runs.done.len() > KEEP_DONE {
+                runs.done.pop_front();
+            }
+        }
+        run.done.send_replace(true);
+    }
+}
+
+/// A lane that calls the crowd-frame handler in-process.
+struct InProcessLane {
+    state: AppState,
+    bodies: Arc<Vec<Bytes>>,
+    content_type: HeaderValue,
+}
+
+impl Lane for InProcessLane {
+    async fn send(&mut self, i: u64) -> Reply {
+        let body = self.bodies[(i % self.bodies.len() as u64) as usize].clone();
+        let mut headers = HeaderMap::new();
+        headers.insert(header::CONTENT_TYPE, self.content_type.clone());
+        headers.insert(header::ACCEPT, self.content_type.clone());
+        headers.insert(header::CONTENT_LENGTH, HeaderValue::from(body.len()));
+        let resp =
+            crowd_frame_from(&self.state, &headers, Body::from(body), Source::Loadtest).await;
+        read_reply(resp).await
+    }
+}
+
+/// Status, Server-Timing and body size of a handler's response; the body is dropped chunk by
+/// chunk as it would be sent (which releases its queue memory), and read only when it is an
+/// error, for its code.
+async fn read_reply(resp: Response) -> Reply {
+    let status = resp.status().as_u16();
+    let timing = resp
+        .headers()
+        .get(super::render::SERVER_TIMING)
+        .and_then(|v| v.to_str().ok())
+        .map(load::ServerTiming::parse)
+        .unwrap_or_default();
+    let mut body = resp.into_body();
+    let mut bytes = 0u64;
+    let mut kept = Vec::new();
+    while let Some(frame) = body.frame().await {
+        let Ok(frame) = frame else {
+            break;
+        };
+        if let Some(d) = frame.data_ref() {
+            bytes += d.len() as u64;
+            if status != 200 && kept.len() < 4096 {
+                kept.extend_from_slice(d);
+            }
+        }
+    }
+    let code = (status != 200).then(|| {
+        serde_json::from_slice::<crowdmorph_proto::ErrorBody>(&kept)
+            .map(|e| e.error.code)
+            .unwrap_or_default()
+    });
+    Reply {
+        status,
+        code,
+        bytes,
+        timing,
+    }
+}
+
+impl AppState {
+    /// The status of load test `id` (running, or one of the last few done), as
+    /// `GET /v1/loadtest/{id}` answers it.
+    pub fn loadtest(&self, id: &str) -> Option<LoadtestStatus> {
+        self.loadtests.find(id).map(|r| r.status())
+    }
+}
+
+fn invalid(message: impl Into<String>) -> ApiError {
+    ApiError::bad_request("invalid_loadtest", message)
+}
+
+impl AppState {
+    /// Checks a load against the caps and the registry; returns the request bodies and the
+    /// run's timing.
+    fn plan_loadtest(&self, req: &LoadtestRequest) -> Result<(Vec<Bytes>, RunOptions), ApiError> {
+        let cfg = &self.config;
+        let max_s = cfg.loadtest_max_duration.as_secs_f64();
+        if max_s <= 0.0 {
+            return Err(ApiError::new(
+                StatusCode::FORBIDDEN,
+                "loadtest_disabled",
+                "load tests are disabled on this server (--loadtest-max-duration-s 0)",
+            ));
+        }
+        let positive = |v: f64| v.is_finite() && v > 0.0;
+        if !(positive(req.duration_s) && req.warmup_s.is_finite() && req.warmup_s >= 0.0) {
+            return Err(invalid(format!(
+                "duration_s must be positive and warmup_s at least 0, not {} and {}",
+                req.duration_s, req.warmup_s
+            )));
+        }
+        if req.duration_s + req.warmup_s > max_s {
+            return Err(ApiError::bad_request(
+                "loadtest_too_long",
+                format!(
+                    "duration_s + warmup_s = {} s is more than this server allows \
+                     (--loadtest-max-duration-s {max_s})",
+                    req.duration_s + req.warmup_s
+                ),
+            ));
+        }
+        if !positive(req.rate) {
+            return Err(invalid(format!(
+                "rate must be a positive number of requests per second, not {}",
+                req.rate
+            )));
+        }
+        if req.rate > cfg.loadtest_max_rate {
+            return Err(ApiError::bad_request(
+                "loadtest_rate_too_high",
+                format!(
+                    "rate {} is more requests per second than this server allows \
+                     (--loadtest-max-rate {})",
+                    req.rate, cfg.loadtest_max_rate
+                ),
+            ));
+        }
+        // Half the batch queue stays free for clients.
+        let max_lanes = cfg
+            .loadtest_max_concurrency
+            .min(cfg.queue_requests / 2)
+            .max(1);
+        if req.concurrency == 0 || req.concurrency as usize > max_lanes {
+            return Err(invalid(format!(
+                "concurrency must be 1 to {max_lanes} (--loadtest-max-concurrency, and half of \
+                 --queue-requests), not {}",
+                req.concurrency
+            )));
+        }
+        let crowd = &req.crowd;
+        if crowd.heads as usize > cfg.max_heads {
+            return Err(ApiError::bad_request(
+                "too_many_heads",
+                format!(
+                    "{} heads is more than the limit of {} per request",
+                    crowd.heads, cfg.max_heads
+                ),
+            ));
+        }
+        let mut rigs = Vec::new();
+        let mut max_vertices = 0u64;
+        for id in &crowd.rigs {
+            let entry = self.rig(id)?;
+            let rig = entry.rig();
+            max_vertices = max_vertices.max(entry.vertices as u64);
+            rigs.push(RigClips {
+                id: id.clone(),
+                clips: rig.clips.iter().map(|c| c.name.clone()).collect(),
+                lod_levels: rig.lod.levels.len() as u32,
+            });
+        }
+        // The output every lane may hold at once stays within half the queue memory.
+        let per_request = u64::from(crowd.unique_jobs())
+            * max_vertices
+            * 3
+            * crowd.format.component_bytes() as u64
+            * if crowd.normals { 2 } else { 1 }
+            * if crowd.encoding == load::WireEncoding::Json {
+                3
+            } else {
+                1
+            };
+        let held = per_request.saturating_mul(u64::from(req.concurrency));
+        let room = cfg.queue_memory_bytes as u64 / 2;
+        if held > room {
+            return Err(ApiError::bad_request(
+                "loadtest_too_large",
+                format!(
+                    "{} lanes of {per_request} bytes of output each would hold {held} bytes, more \
+                     than half the queue memory ({room} of --queue-memory-bytes); use fewer \
+                     lanes, fewer unique heads or a smaller format",
+                    req.concurrency
+                ),
+            ));
+        }
+        let bodies = crowd
+            .bodies(&rigs, RING)
+            .map_err(|e| invalid(e.to_string()))?;
+        let opts = RunOptions {
+            rate: req.rate,
+            duration: Duration::from_secs_f64(req.duration_s),
+            warmup: Duration::from_secs_f64(req.warmup_s),
+            // A synthetic request gets the deadline of any crowd request, then 504.
+            grace: cfg.request_timeout + Duration::from_secs(1),
+            heads_per_request: u64::from(crowd.heads),
+        };
+        opts.check().map_err(|e| invalid(e.to_string()))?;
+        Ok((bodies, opts))
+    }
+}
+
+/// `?wait=false`: answer 202 at once instead of when the load is done.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct LoadtestQuery {
+    wait: Option<bool>,
+}
+
+/// `POST /v1/loadtest`: runs a load and answers its report (or 202 at once with `?wait=false`).
+pub(super) async fn start_loadtest(
+    State(state): State<AppState>,
+    query: Result<Query<LoadtestQuery>, axum::extract::rejection::QueryRejection>,
+    headers: HeaderMap,
+    body: Body,
+) -> ApiResult {
+    state.check_admin(&headers)?;
+    let Query(query) = query.map_err(|e| ApiError::bad_request("bad_query", e.body_text()))?;
+    state.check_ready()?;
+    let bytes = state.request_body(&headers, body).await?;
+    let req: LoadtestRequest = decode(&headers, &bytes)?;
+    let (bodies, opts) = state.plan_loadtest(&req)?;
+    let content_type = HeaderValue::from_static(req.crowd.encoding.content_type());
+    let lanes = req.concurrency as usize;
+    let live = Live::new(opts);
+    let run = state.loadtests.start(req, live.clone())?;
+    tracing::info!(
+        id = %run.id,
+        rate = run.request.rate,
+        duration_s = run.request.duration_s,
+        heads = run.request.crowd.heads,
+        "load test started"
+    );
+    let bodies = Arc::new(bodies);
+    let lanes: Vec<InProcessLane> = (0..lanes)
+        .map(|_| InProcessLane {
+            state: state.clone(),
+            bodies: bodies.clone(),
+            content_type: content_type.clone(),
+        })
+        .collect();
+    // The load runs on its own task: a client that hangs up does not stop it (it stays
+    // readable with GET until later loads push it out).
+    let task_state = state.clone();
+    let task_run = run.clone();
+    tokio::spawn(async move {
+        if let Err(e) = load::run(lanes, &live).await {
+            tracing::error!(id = %task_run.id, error = %e, "load test failed to run");
+            live.cancel();
+        }
+        let r = live.snapshot();
+        tracing::info!(
+            id = %task_run.id,
+            achieved_rate = r.achieved_rate,
+            p99_ms = r.latency_ms.p99,
+            errors = r.errors,
+            "load test finished"
+        );
+        task_state.loadtests.finish(&task_run);
+    });
+    if query.wait == Some(false) {
+        return respond(&headers, StatusCode::ACCEPTED, &run.status());
+    }
+    let mut done = run.done.subscribe();
+    let _ = done.wait_for(|d| *d).await;
+    respond(&headers, StatusCode::OK, &run.status())
+}
+
+/// `GET /v1/loadtest/{id}`: a load's progress (the report so far) or its final report.
+pub(super) async fn get_loadtest(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> ApiResult {
+    state.check_admin(&headers)?;
+    let run = state.loadtests.find(&id).ok_or_else(|| {
+        ApiError::not_found(
+            "unknown_loadtest",
+            format!("no load test {id:?} (the server keeps the last {KEEP_DONE})"),
+        )
+    })?;
+    respond(&headers, StatusCode::OK, &run.status())
+}
