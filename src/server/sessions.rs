@@ -807,7 +807,7 @@ async fn serve_viewer(state: AppState, session: Arc<Session>, mut socket: WebSoc
             if code == close::POLICY || code == close::TOO_BIG {
                 bump(&state.sessions.metrics.viewers_closed_policy, 1);
             }
-            close_with(&mut socket, code, &reason).await;
+            finish(&mut socket, code, &reason).await;
             return;
         }
     };
@@ -849,8 +849,17 @@ async fn serve_viewer(state: AppState, session: Arc<Session>, mut socket: WebSoc
     if code == close::POLICY || code == close::TOO_BIG {
         bump(&state.sessions.metrics.viewers_closed_policy, 1);
     }
-    if code != 0 {
-        close_with(&mut socket, code, &reason).await;
+    finish(&mut socket, code, &reason).await;
+}
+
+/// Ends a viewer's socket: after the viewer's own close (1000, no reason) the WebSocket library
+/// has queued the 1000 reply, and a second close would be refused, so that is only flushed out;
+/// code 0 means the socket is gone; anything else is the server's close.
+async fn finish(socket: &mut WebSocket, code: u16, reason: &str) {
+    if code == close::NORMAL && reason.is_empty() {
+        let _ = tokio::time::timeout(CLOSE_TIMEOUT, futures_util::SinkExt::flush(socket)).await;
+    } else if code != 0 {
+        close_with(socket, code, reason).await;
     }
 }
 
