@@ -1,4 +1,4 @@
-//! Build script: tells the integration tests which of their two outside resources this machine
+//! Build script: tells the integration tests which of their outside resources this machine
 //! has, as `cfg`s, so that a test whose resource is absent is reported as `ignored` with the
 //! reason instead of passing without having run.
 //!
@@ -7,6 +7,10 @@
 //! - `crowdmorph_gpu_driver`: a Vulkan driver is installed (an ICD manifest the Vulkan loader
 //!   would read, such as Mesa's lavapipe `lvp_icd.x86_64.json`). On Windows and macOS wgpu
 //!   reaches the system's DirectX 12 or Metal, so the driver is taken as present there.
+//! - `crowdmorph_python`: `/usr/bin/python3` can `import pytest`, so the Python client's suite
+//!   (`clients/python/tests`, run by `tests/python_client.rs`) can run. The system's Python,
+//!   not whatever `python3` comes first on `PATH`, so that the test runs the same interpreter
+//!   this script checked (Debian: `apt-get install python3-pytest python3-numpy`).
 //!
 //! A present resource that then fails at run time fails its tests: a broken GPU or a missing rig
 //! file is a fault, not a reason to skip.
@@ -14,7 +18,7 @@
 //! Only paths that exist are watched for changes: cargo treats a watched path that is missing as
 //! changed on every build, which would rebuild the crate every time. So after adding the rigs or
 //! a Vulkan driver to a machine that lacked them, `touch build.rs` (or set the environment
-//! variable) to make the tests see them.
+//! variable) to make the tests see them; the same after installing pytest.
 
 use std::env;
 use std::path::{Path, PathBuf};
@@ -23,12 +27,45 @@ fn main() {
     println!("cargo::rerun-if-changed=build.rs");
     println!("cargo::rustc-check-cfg=cfg(crowdmorph_test_data)");
     println!("cargo::rustc-check-cfg=cfg(crowdmorph_gpu_driver)");
+    println!("cargo::rustc-check-cfg=cfg(crowdmorph_python)");
 
     if test_data_present() {
         println!("cargo::rustc-cfg=crowdmorph_test_data");
     }
     if gpu_driver_present() {
         println!("cargo::rustc-cfg=crowdmorph_gpu_driver");
+    }
+    if python_with_pytest() {
+        println!("cargo::rustc-cfg=crowdmorph_python");
+    }
+}
+
+/// The interpreter `tests/python_client.rs` runs the Python client's tests with.
+const PYTHON: &str = "/usr/bin/python3";
+
+fn python_with_pytest() -> bool {
+    let python = Path::new(PYTHON);
+    if !python.is_file() {
+        return false;
+    }
+    watch(python);
+    println!("cargo::rerun-if-env-changed=PYTHONPATH");
+    // Where pytest was found: watched, so that removing it is noticed. (Installing it later is
+    // not: nothing that exists before the install changes in a way cargo could watch cheaply.)
+    let found = std::process::Command::new(python)
+        .args(["-c", "import pytest; print(pytest.__file__)"])
+        .env("PYTHONDONTWRITEBYTECODE", "1")
+        .stderr(std::process::Stdio::null())
+        .output();
+    match found {
+        Ok(out) if out.status.success() => {
+            let file = String::from_utf8_lossy(&out.stdout).trim().to_owned();
+            if Path::new(&file).is_file() {
+                watch(Path::new(&file));
+            }
+            true
+        }
+        _ => false,
     }
 }
 
