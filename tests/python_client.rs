@@ -8,13 +8,18 @@
 //! pytest (`build.rs` sets `crowdmorph_python` when `/usr/bin/python3` imports it) the test is
 //! listed as ignored with the reason.
 //!
-//! The suite runs beside the other integration tests (libtest's threads), so it is written to
-//! be slower, not wrong, on a busy machine: its shared server has a one-minute crowd deadline
-//! and its session tests read ticks until what they check has happened, never within a time.
+//! The suite runs beside the other integration tests (libtest's threads). So that it does not
+//! take CPU from the Rust tests that have timeouts of their own (header timeouts, deadlines),
+//! pytest and the servers it starts run at a lower priority (nice 10); and the suite is written
+//! to be slower, not wrong, when it gets little CPU: its shared server has a one-minute crowd
+//! deadline and its session tests read ticks until what they check has happened, never within
+//! a time.
 
+use std::collections::VecDeque;
 use std::io::{BufRead, BufReader};
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
+use std::sync::{Arc, Mutex, mpsc};
 use std::time::{Duration, Instant};
 
 /// The suite takes 30–60 s on the 2-core dev VM; a hung server or test must not hang CI.
@@ -38,7 +43,8 @@ fn the_python_clients_pytest_suite_passes_against_this_server() {
     };
     // One pipe for stdout and stderr, so that the lines keep their order.
     let (reader, writer) = std::io::pipe().expect("a pipe");
-    let mut child = Command::new("/usr/bin/python3")
+    let mut command = Command::new("/usr/bin/python3");
+    command
         .args([
             "-m",
             "pytest",
@@ -54,23 +60,30 @@ fn the_python_clients_pytest_suite_passes_against_this_server() {
         .env("CROWDMORPH_BIN", env!("CARGO_BIN_EXE_crowdmorph"))
         .stdin(Stdio::null())
         .stdout(writer.try_clone().expect("a second pipe writer"))
-        .stderr(writer)
+        .stderr(writer);
+    lower_priority(&mut command);
+    let mut child = command
         .spawn()
         .expect("/usr/bin/python3 starts (build.rs found it)");
-    // The writers went to the child (the Command that held them is gone), so the reader ends
-    // when pytest does. Lines are printed from this thread's spawnee, which inherits libtest's
-    // output capture.
-    let echo = std::thread::spawn(move || {
-        let mut tail: Vec<String> = Vec::new();
+    // The command holds this side's pipe writers: dropped, the reader ends when pytest (the
+    // only other holder) exits. Lines are printed from a spawned thread, which inherits
+    // libtest's output capture.
+    drop(command);
+    let tail = Arc::new(Mutex::new(VecDeque::new()));
+    let (done, echoed) = mpsc::channel::<()>();
+    let lines = Arc::clone(&tail);
+    std::thread::spawn(move || {
         for line in BufReader::new(reader).lines() {
             let Ok(line) = line else { break };
             println!("{line}");
-            tail.push(line);
-            if tail.len() > 40 {
-                tail.remove(0);
+            if let Ok(mut t) = lines.lock() {
+                t.push_back(line);
+                if t.len() > 40 {
+                    t.pop_front();
+                }
             }
         }
-        tail
+        let _ = done.send(());
     });
     let started = Instant::now();
     let status = loop {
@@ -83,12 +96,37 @@ fn the_python_clients_pytest_suite_passes_against_this_server() {
         }
         std::thread::sleep(Duration::from_millis(100));
     };
-    let tail = echo.join().expect("the echo thread");
+    // The last lines, unless something pytest started still holds the pipe open.
+    let _ = echoed.recv_timeout(Duration::from_secs(30));
+    let tail: Vec<String> = tail
+        .lock()
+        .map(|t| t.iter().cloned().collect())
+        .unwrap_or_default();
     assert!(
         status.success(),
         "pytest failed ({status}); its last lines:\n{}",
         tail.join("\n")
     );
+}
+
+/// Makes the command run at nice 10 (its children inherit it): on a busy machine the Rust tests
+/// beside it get the CPU first.
+fn lower_priority(command: &mut Command) {
+    #[cfg(unix)]
+    {
+        use std::os::unix::process::CommandExt;
+        // SAFETY: the closure runs in the forked child before exec and only makes one system
+        // call, setpriority(2), which is async-signal-safe; it touches no memory of the parent.
+        unsafe {
+            command.pre_exec(|| {
+                // Best effort: a failure (a sandbox that forbids it) leaves the priority as is.
+                let _ = libc::setpriority(libc::PRIO_PROCESS, 0, 10);
+                Ok(())
+            });
+        }
+    }
+    #[cfg(not(unix))]
+    let _ = command;
 }
 
 /// Stops a pytest that ran too long: first an interrupt, which pytest turns into
