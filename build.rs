@@ -10,13 +10,17 @@
 //! - `crowdmorph_chromium`: a Chromium to drive the browser viewer's end-to-end test with —
 //!   `$CROWDMORPH_CHROMIUM`, else Debian's `/usr/bin/chromium` or another usual path. Its path
 //!   reaches the test as the compile-time variable `CROWDMORPH_CHROMIUM_PATH`.
+//! - `crowdmorph_python`: `/usr/bin/python3` can `import pytest`, so the Python client's suite
+//!   (`clients/python/tests`, run by `tests/python_client.rs`) can run. The system's Python,
+//!   not whatever `python3` comes first on `PATH`, so that the test runs the same interpreter
+//!   this script checked (Debian: `apt-get install python3-pytest python3-numpy`).
 //!
 //! A present resource that then fails at run time fails its tests: a broken GPU or a missing rig
 //! file is a fault, not a reason to skip.
 //!
 //! Only paths that exist are watched for changes: cargo treats a watched path that is missing as
 //! changed on every build, which would rebuild the crate every time. So after adding the rigs or
-//! a Vulkan driver or Chromium to a machine that lacked them, `touch build.rs` (or set the environment
+//! a Vulkan driver, Chromium or pytest to a machine that lacked them, `touch build.rs` (or set the environment
 //! variable) to make the tests see them.
 
 use std::env;
@@ -27,6 +31,7 @@ fn main() {
     println!("cargo::rustc-check-cfg=cfg(crowdmorph_test_data)");
     println!("cargo::rustc-check-cfg=cfg(crowdmorph_gpu_driver)");
     println!("cargo::rustc-check-cfg=cfg(crowdmorph_chromium)");
+    println!("cargo::rustc-check-cfg=cfg(crowdmorph_python)");
 
     if test_data_present() {
         println!("cargo::rustc-cfg=crowdmorph_test_data");
@@ -40,6 +45,9 @@ fn main() {
             "cargo::rustc-env=CROWDMORPH_CHROMIUM_PATH={}",
             chromium.display()
         );
+    }
+    if python_with_pytest() {
+        println!("cargo::rustc-cfg=crowdmorph_python");
     }
 }
 
@@ -62,6 +70,35 @@ fn chromium() -> Option<PathBuf> {
     let found = candidates.into_iter().find(|p| p.is_file())?;
     watch(&found);
     Some(found)
+}
+
+/// The interpreter `tests/python_client.rs` runs the Python client's tests with.
+const PYTHON: &str = "/usr/bin/python3";
+
+fn python_with_pytest() -> bool {
+    let python = Path::new(PYTHON);
+    if !python.is_file() {
+        return false;
+    }
+    watch(python);
+    println!("cargo::rerun-if-env-changed=PYTHONPATH");
+    // Where pytest was found: watched, so that removing it is noticed. (Installing it later is
+    // not: nothing that exists before the install changes in a way cargo could watch cheaply.)
+    let found = std::process::Command::new(python)
+        .args(["-c", "import pytest; print(pytest.__file__)"])
+        .env("PYTHONDONTWRITEBYTECODE", "1")
+        .stderr(std::process::Stdio::null())
+        .output();
+    match found {
+        Ok(out) if out.status.success() => {
+            let file = String::from_utf8_lossy(&out.stdout).trim().to_owned();
+            if Path::new(&file).is_file() {
+                watch(Path::new(&file));
+            }
+            true
+        }
+        _ => false,
+    }
 }
 
 fn test_data_present() -> bool {

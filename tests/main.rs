@@ -1,9 +1,10 @@
 //! The integration test binary: one binary, modules per area, shared helpers in `util`.
 //!
-//! Tests that need the real rigs in `../shared/data` (or `$CROWDMORPH_TEST_DATA`) or a GPU
-//! adapter are marked `#[cfg_attr(not(<cfg>), ignore = "<reason>")]` with the cfgs `build.rs`
-//! sets when it finds them (`crowdmorph_test_data`, `crowdmorph_gpu_driver`): without the
-//! resource they are listed as ignored with the reason, and with it they must pass.
+//! Tests that need the real rigs in `../shared/data` (or `$CROWDMORPH_TEST_DATA`), a GPU
+//! adapter or Python with pytest are marked `#[cfg_attr(not(<cfg>), ignore = "<reason>")]` with
+//! the cfgs `build.rs` sets when it finds them (`crowdmorph_test_data`, `crowdmorph_gpu_driver`,
+//! `crowdmorph_python`): without the resource they are listed as ignored with the reason, and
+//! with it they must pass.
 
 // A test that meets an unexpected error should fail loudly, which is what unwrap does.
 #![allow(clippy::unwrap_used)]
@@ -18,6 +19,7 @@ mod engine;
 mod gpu;
 mod lod;
 mod planner;
+mod python_client;
 mod render;
 mod rigs;
 mod sampling;

@@ -146,10 +146,12 @@ def _stop(proc: subprocess.Popen) -> None:
 
 
 # The shared server: an admin token (to test 401s), no background LOD computation (so that
-# uploads leave the CPU to the other tests and LOD states are the ones the tests set).
+# uploads leave the CPU to the other tests and LOD states are the ones the tests set), and a
+# crowd-request deadline of a minute instead of 10 s: `cargo test` runs this suite beside the
+# Rust tests, and a busy machine must make the tests slower, not fail them with 504s.
 @pytest.fixture(scope="session")
 def server() -> Iterator[Server]:
-    with run_server("--no-auto-lod") as s:
+    with run_server("--no-auto-lod", "--request-timeout-ms", "60000") as s:
         yield s
 
 

@@ -12,7 +12,8 @@ only, numpy optional (decoded vertex arrays are numpy arrays when it is installe
 Modules: :mod:`~crowdmorph.client` (the HTTP client and decoded results),
 :mod:`~crowdmorph.messages` (the wire messages), :mod:`~crowdmorph.wire` (bincode),
 :mod:`~crowdmorph.arrays` (payload decoding), :mod:`~crowdmorph.errors` (typed errors),
-:mod:`~crowdmorph.obj` (OBJ output).
+:mod:`~crowdmorph.obj` (OBJ output), :mod:`~crowdmorph.sessions` (session viewers) and
+:mod:`~crowdmorph.websocket` (the WebSocket client they use).
 """
 
 from .arrays import HAVE_NUMPY
@@ -36,6 +37,7 @@ from .errors import (
     Overloaded,
     ProtocolError,
     ServerError,
+    StreamClosed,
     TooLarge,
     Unauthorized,
     Unavailable,
@@ -71,8 +73,21 @@ from .messages import (
     RenderRequest,
     RigInfo,
     RigList,
+    HEAD_MISSING,
+    HEAD_UNCHANGED,
+    HeadChange,
+    SessionHead,
+    SessionInfo,
+    SessionList,
+    SessionPatch,
+    SessionRequest,
+    SessionStats,
+    TickFrame,
+    TickVertices,
     as_dict,
+    decode_stream_message,
 )
+from .sessions import StreamFrame, Tick, Viewer
 from .obj import write_obj
 from .wire import DecodeError, decode, encode
 
@@ -107,6 +122,10 @@ __all__ = [
     "Overloaded",
     "DeadlineExceeded",
     "ProtocolError",
+    "StreamClosed",
+    "Viewer",
+    "Tick",
+    "StreamFrame",
     "Head",
     "OutputOptions",
     "CrowdFrameRequest",
@@ -135,6 +154,18 @@ __all__ = [
     "CameraSpec",
     "ImageOptions",
     "RenderRequest",
+    "SessionHead",
+    "SessionRequest",
+    "SessionStats",
+    "SessionInfo",
+    "SessionList",
+    "HeadChange",
+    "SessionPatch",
+    "TickVertices",
+    "TickFrame",
+    "HEAD_UNCHANGED",
+    "HEAD_MISSING",
+    "decode_stream_message",
     "as_dict",
     "encode",
     "decode",

@@ -8,9 +8,9 @@ Crowd frames and meshes come back with their payloads decoded into arrays
 
 Extending: every call goes through :meth:`Client.request`, which sends one request on the kept
 connection and turns error answers into :mod:`crowdmorph.errors` exceptions, and through
-:func:`crowdmorph.wire.encode` / :func:`crowdmorph.wire.decode` for bodies. Sessions
-(``/v1/sessions``, WebSocket) are not spoken yet; they fit as messages declared in
-:mod:`crowdmorph.messages` plus a socket of their own, beside this class.
+:func:`crowdmorph.wire.encode` / :func:`crowdmorph.wire.decode` for bodies. Session
+streams are WebSockets (:mod:`crowdmorph.websocket`), opened by :meth:`Client.stream` on a
+socket of their own and decoded by :class:`crowdmorph.sessions.Viewer`.
 """
 
 from __future__ import annotations
@@ -51,6 +51,12 @@ from .messages import (
     RigInfo,
     RigList,
     Aabb,
+    HeadChange,
+    SessionHead,
+    SessionInfo,
+    SessionList,
+    SessionPatch,
+    SessionRequest,
 )
 from .wire import DecodeError, decode, encode
 
@@ -71,6 +77,7 @@ BINCODE = "application/x-bincode"
 _VERSION = "0.1.0"
 
 HeadLike = Union[Head, Mapping[str, Any], Sequence[Any]]
+SessionHeadLike = Union[SessionHead, Mapping[str, Any], Sequence[Any]]
 DataLike = Union[bytes, bytearray, memoryview, str, "os.PathLike[str]", Any]
 
 
@@ -779,3 +786,131 @@ class Client:
             raise ProtocolError(resp.status, "bad_response", f"image size header: {e}") from e
         img.server_timing = _server_timing(resp.headers.get("server-timing"))
         return img
+
+    # -- sessions -----------------------------------------------------------------------------
+
+    def create_session(
+        self,
+        heads: Iterable[SessionHeadLike],
+        fps: float = 30.0,
+        wrap: bool = True,
+        idle_timeout_s: int = 60,
+    ) -> SessionInfo:
+        """``POST /v1/sessions``: a crowd the server advances ``fps`` times a second and
+        streams to viewers (:meth:`stream`). Needs the admin token when the server has one.
+
+        ``heads`` are :class:`~crowdmorph.messages.SessionHead` objects, dicts with its keys,
+        or ``(head, rig, clip[, offset[, position[, yaw[, scale]]]])`` tuples. At tick ``t``
+        a head plays frame ``offset + floor((t - 1) * clip_fps / fps)``, looping when
+        ``wrap`` (else holding the last frame). The session ends ``idle_timeout_s`` seconds
+        after its last viewer leaves.
+        """
+        req = SessionRequest(
+            fps=float(fps),
+            wrap=bool(wrap),
+            idle_timeout_s=int(idle_timeout_s),
+            heads=[_session_head(h) for h in heads],
+        )
+        resp = self.request("POST", "/v1/sessions", encode(req), BINCODE, ok=(201,))
+        return self._decode(SessionInfo, resp)
+
+    def sessions(self) -> List[SessionInfo]:
+        """``GET /v1/sessions``: every session, ordered by id."""
+        return self._decode(SessionList, self.request("GET", "/v1/sessions")).sessions
+
+    def session(self, session: str) -> SessionInfo:
+        """``GET /v1/sessions/{id}``: heads, viewers, the last tick and the counters."""
+        return self._decode(SessionInfo, self.request("GET", f"/v1/sessions/{_seg(session)}"))
+
+    def patch_session(
+        self,
+        session: str,
+        add: Iterable[SessionHeadLike] = (),
+        remove: Iterable[int] = (),
+        change: Iterable[Union[HeadChange, Mapping[str, Any]]] = (),
+    ) -> SessionInfo:
+        """``PATCH /v1/sessions/{id}``: removes, changes and adds heads, together, at the next
+        tick (in that order). ``change`` items are :class:`~crowdmorph.messages.HeadChange`
+        objects or dicts (``{"head": 2, "clip": "smile", "yaw": 90}``; absent fields stay).
+        Returns the session with its heads as they will be at the next tick."""
+        patch = SessionPatch(
+            remove=[int(h) for h in remove],
+            change=[_of(HeadChange, c) for c in change],
+            add=[_session_head(h) for h in add],
+        )
+        resp = self.request(
+            "PATCH", f"/v1/sessions/{_seg(session)}", encode(patch), BINCODE
+        )
+        return self._decode(SessionInfo, resp)
+
+    def delete_session(self, session: str) -> None:
+        """``DELETE /v1/sessions/{id}``: ends it; its viewers are closed with 1001."""
+        self.request("DELETE", f"/v1/sessions/{_seg(session)}", ok=(204,))
+
+    def stream(
+        self,
+        session: str,
+        format: str = "q16",
+        normals: bool = False,
+        lod: Union[int, Sequence[Sequence[float]], Mapping[str, Any]] = 0,
+        camera: Optional[Union[CameraSpec, Mapping[str, Any]]] = None,
+        output: str = "vertices",
+        image: Optional[Union[ImageOptions, Mapping[str, Any]]] = None,
+        *,
+        timeout: Optional[float] = None,
+        max_message: int = 1 << 31,
+    ) -> Any:
+        """Watches a session: opens ``GET /v1/sessions/{id}/stream`` (a WebSocket on its own
+        connection), sends the hello and returns a :class:`~crowdmorph.sessions.Viewer`, an
+        iterator of :class:`~crowdmorph.sessions.Tick` (every head's current positions, with
+        "unchanged" applied) or, for ``output="frames"``,
+        :class:`~crowdmorph.sessions.StreamFrame` images.
+
+        ``format`` (``f32``, ``f16``, ``q16``) and ``normals`` as for crowd frames; ``lod`` is a
+        level for every head or ``[[metres, level], ...]`` by distance from ``camera``
+        (a :class:`~crowdmorph.messages.CameraSpec` or dict; needed for LOD by distance and
+        images); ``image`` the :class:`~crowdmorph.messages.ImageOptions` of frames.
+        ``timeout`` is the socket timeout (default: the client's). An unknown session raises
+        :class:`~crowdmorph.errors.NotFound`; a hello the server refuses raises
+        :class:`~crowdmorph.errors.StreamClosed` (1008 with the reason) from the iteration.
+        """
+        from . import sessions as _sessions
+        from . import websocket as _websocket
+
+        settings = _sessions.hello(format, normals, lod, camera, output, image)
+        port = self._port or (443 if self._scheme == "https" else 80)
+        headers = {"User-Agent": f"crowdmorph-python/{_VERSION}"}
+        if self.token is not None:
+            headers["Authorization"] = f"Bearer {self.token}"
+        ws = _websocket.connect(
+            self._host,
+            port,
+            f"{self._prefix}/v1/sessions/{_seg(session)}/stream",
+            tls=self._scheme == "https",
+            headers=headers,
+            timeout=self.timeout if timeout is None else timeout,
+            max_message=max_message,
+        )
+        try:
+            ws.send_text(json.dumps(settings))
+        except BaseException:
+            ws.sock.close()
+            raise
+        return _sessions.Viewer(ws, session, settings, self.arrays)
+
+
+def _session_head(h: SessionHeadLike) -> SessionHead:
+    """A session head from a :class:`SessionHead`, a dict or a tuple."""
+    if isinstance(h, SessionHead):
+        return h
+    if isinstance(h, Mapping):
+        return SessionHead(**h)
+    if isinstance(h, (tuple, list)) and 3 <= len(h) <= 7:
+        fields = list(h)
+        if len(fields) > 4:
+            fields[4] = [float(x) for x in fields[4]]
+        return SessionHead(*fields)
+    raise TypeError(
+        "a session head is a SessionHead, a dict or a "
+        f"(head, rig, clip[, offset[, position[, yaw[, scale]]]]) tuple, not {h!r}"
+    )

@@ -27,6 +27,7 @@ __all__ = [
     "Overloaded",
     "DeadlineExceeded",
     "ProtocolError",
+    "StreamClosed",
     "error_from_response",
 ]
 
@@ -116,6 +117,28 @@ class DeadlineExceeded(CrowdmorphError):
 class ProtocolError(CrowdmorphError):
     """The server's answer is not what the protocol says (a malformed body, an unexpected
     Content-Type). ``status`` is the HTTP status of the answer."""
+
+
+class StreamClosed(Exception):
+    """A session stream (WebSocket) ended: ``code`` and ``reason`` of its close frame.
+
+    The server's codes (``proto/README.md``): ``1008`` with why a hello or update was refused
+    (``"bad lod: distances must be finite and ascending"``), ``1009`` a viewer message over
+    64 KiB, ``1013`` the session has all the viewers it takes or the server is stopping,
+    ``1001`` the session was deleted (``"session deleted"``) or ended, ``1000`` the answer to
+    this viewer's own close. ``local`` is true when this side ended the connection: ``1006``
+    (it ended without a close frame, or timed out mid-frame), or ``1002``/``1007``/``1009``
+    when the server broke the WebSocket protocol.
+
+    Not a :class:`CrowdmorphError`: its ``code`` is the WebSocket's number, not an HTTP
+    error's string.
+    """
+
+    def __init__(self, code: int, reason: str = "", local: bool = False):
+        super().__init__(f"stream closed with {code}" + (f": {reason}" if reason else ""))
+        self.code = code
+        self.reason = reason
+        self.local = local
 
 
 _BY_STATUS: Dict[int, Type[CrowdmorphError]] = {

@@ -37,8 +37,10 @@ from .wire import (
     Msg,
     Opt,
     Reader,
+    Tagged,
     Vec,
     Writer,
+    decode_as,
     wire,
 )
 
@@ -73,6 +75,19 @@ __all__ = [
     "CameraSpec",
     "ImageOptions",
     "RenderRequest",
+    "SessionHead",
+    "SessionRequest",
+    "SessionStats",
+    "SessionInfo",
+    "SessionList",
+    "HeadChange",
+    "SessionPatch",
+    "TickVertices",
+    "TickFrame",
+    "STREAM_MESSAGE",
+    "HEAD_UNCHANGED",
+    "HEAD_MISSING",
+    "decode_stream_message",
     "as_dict",
 ]
 
@@ -660,6 +675,191 @@ class RenderRequest:
     placements: Optional[List[Placement]] = None
     camera: Optional[CameraSpec] = None
     image: Optional[ImageOptions] = None
+
+
+# ---------------------------------------------------------------------------------------------
+# Crowd sessions.
+
+#: ``HeadBuffer.buffer`` of a stream head whose job is the one in the last message this viewer
+#: received: keep drawing what it had (``u32::MAX``).
+HEAD_UNCHANGED = 0xFFFF_FFFF
+#: ``HeadBuffer.buffer`` of a stream head with nothing to draw: its rig or clip was deleted.
+HEAD_MISSING = 0xFFFF_FFFE
+
+
+@wire(
+    ("head", U64),
+    ("rig", STR),
+    ("clip", STR),
+    ("offset", I64),
+    ("position", F32X3),
+    ("yaw", F32),
+    ("scale", F32),
+)
+@dataclass
+class SessionHead:
+    """One head of a session: at tick ``t`` it plays frame
+    ``offset + floor((t - 1) * clip_fps / session_fps)`` of its clip, standing at ``position``
+    turned ``yaw`` degrees about +Y and scaled by ``scale``."""
+
+    head: int
+    rig: str
+    clip: str
+    offset: int = 0
+    position: List[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    yaw: float = 0.0
+    scale: float = 1.0
+
+
+@wire(("fps", F32), ("wrap", BOOL), ("idle_timeout_s", U32), ("heads", Vec(Msg(SessionHead))))
+@dataclass
+class SessionRequest:
+    """``POST /v1/sessions`` request: ticks per second (0–120], whether clips loop (else they
+    hold their last frame), seconds without viewers before the session ends, and the crowd."""
+
+    fps: float = 30.0
+    wrap: bool = True
+    idle_timeout_s: int = 60
+    heads: List[SessionHead] = field(default_factory=list)
+
+
+@wire(
+    ("ticks", U64),
+    ("ticks_late", U64),
+    ("ticks_skipped", U64),
+    ("jobs", U64),
+    ("messages_sent", U64),
+    ("messages_dropped", U64),
+    ("bytes_sent", U64),
+)
+@dataclass
+class SessionStats:
+    """A session's counters since it started."""
+
+    ticks: int
+    ticks_late: int
+    ticks_skipped: int
+    jobs: int
+    messages_sent: int
+    messages_dropped: int
+    bytes_sent: int
+
+
+@wire(
+    ("id", STR),
+    ("fps", F32),
+    ("wrap", BOOL),
+    ("idle_timeout_s", U32),
+    ("tick", U64),
+    ("heads", Vec(Msg(SessionHead))),
+    ("viewers", U32),
+    ("stats", Msg(SessionStats)),
+)
+@dataclass
+class SessionInfo:
+    """A session (``GET /v1/sessions/{id}``; also the answer to create and patch): ``tick``
+    is the last tick computed (0 before the first), ``heads`` in the order stream messages
+    list them."""
+
+    id: str
+    fps: float
+    wrap: bool
+    idle_timeout_s: int
+    tick: int
+    heads: List[SessionHead]
+    viewers: int
+    stats: SessionStats
+
+
+@wire(("sessions", Vec(Msg(SessionInfo))))
+@dataclass
+class SessionList:
+    """``GET /v1/sessions`` response, ordered by id."""
+
+    sessions: List[SessionInfo]
+
+
+@wire(
+    ("head", U64),
+    ("clip", Opt(STR)),
+    ("offset", Opt(I64)),
+    ("position", Opt(F32X3)),
+    ("yaw", Opt(F32)),
+    ("scale", Opt(F32)),
+)
+@dataclass
+class HeadChange:
+    """A change to one session head; ``None`` fields stay as they are."""
+
+    head: int
+    clip: Optional[str] = None
+    offset: Optional[int] = None
+    position: Optional[List[float]] = None
+    yaw: Optional[float] = None
+    scale: Optional[float] = None
+
+
+@wire(
+    ("remove", Vec(U64)),
+    ("change", Vec(Msg(HeadChange))),
+    ("add", Vec(Msg(SessionHead))),
+)
+@dataclass
+class SessionPatch:
+    """``PATCH /v1/sessions/{id}`` request, applied at the next tick: remove, change, add."""
+
+    remove: List[int] = field(default_factory=list)
+    change: List[HeadChange] = field(default_factory=list)
+    add: List[SessionHead] = field(default_factory=list)
+
+
+@wire(
+    ("tick", U64),
+    ("format", FORMAT),
+    ("normals", BOOL),
+    ("layout", Opt(Vec(Msg(SessionHead)))),
+    ("buffers", Vec(Msg(FrameBuffer))),
+    ("heads", _HeadBufferVec()),
+    ("timings", Msg(FrameTimings)),
+)
+@dataclass
+class TickVertices:
+    """Stream message variant 0: a tick's vertex buffers for one viewer (payloads encoded).
+
+    ``layout`` is the session's heads when they changed since the viewer's last message (always
+    in its first); ``heads`` has one entry per layout head, in layout order, whose ``buffer`` is
+    an index into ``buffers``, :data:`HEAD_UNCHANGED` or :data:`HEAD_MISSING`."""
+
+    tick: int
+    format: str
+    normals: bool
+    layout: Optional[List[SessionHead]]
+    buffers: List[FrameBuffer]
+    heads: HeadBuffers
+    timings: FrameTimings
+
+
+@wire(("tick", U64), ("format", IMAGE_FORMAT), ("width", U32), ("height", U32), ("image", BLOB))
+@dataclass
+class TickFrame:
+    """Stream message variant 1: a tick drawn from the viewer's camera (``png``, ``jpeg`` or
+    ``rgba`` bytes in ``image``)."""
+
+    tick: int
+    format: str
+    width: int
+    height: int
+    image: Any
+
+
+#: ``StreamMessage``: the binary messages of a session stream, by variant index.
+STREAM_MESSAGE = Tagged(TickVertices, TickFrame)
+
+
+def decode_stream_message(data: Any) -> Union[TickVertices, TickFrame]:
+    """One binary message of a session stream: a :class:`TickVertices` or a
+    :class:`TickFrame` (payloads are slices of ``data``)."""
+    return decode_as(STREAM_MESSAGE, data)
 
 
 def as_dict(message: Any) -> Any:

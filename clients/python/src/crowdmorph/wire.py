@@ -23,6 +23,9 @@ __all__ = [
     "Writer",
     "encode",
     "decode",
+    "encode_as",
+    "decode_as",
+    "Tagged",
 ]
 
 _F32 = struct.Struct("<f")
@@ -320,6 +323,35 @@ class Enum:
             raise ValueError(f"{v!r} is not one of {', '.join(self.names)}") from None
 
 
+class Tagged:
+    """An enum whose variants each hold a message (``StreamMessage``): the varint variant
+    index, then that variant's message. Python sees the message itself; its class says which
+    variant it is."""
+
+    __slots__ = ("classes", "msgs")
+
+    def __init__(self, *classes: type):
+        self.classes = classes
+        self.msgs = [Msg(c) for c in classes]
+
+    def read(self, r: Reader) -> Any:
+        at = r.pos
+        i = r.u32()
+        if i >= len(self.msgs):
+            names = "/".join(c.__name__ for c in self.classes)
+            raise DecodeError(f"variant {i} of {names} does not exist", at)
+        return self.msgs[i].read(r)
+
+    def write(self, w: Writer, v: Any) -> None:
+        for i, cls in enumerate(self.classes):
+            if type(v) is cls:
+                w.varint(i)
+                self.msgs[i].write(w, v)
+                return
+        names = ", ".join(c.__name__ for c in self.classes)
+        raise TypeError(f"expected one of {names}, got {type(v).__name__}")
+
+
 class Msg:
     """A message: a dataclass whose ``_WIRE`` lists ``(field, type)`` in wire order."""
 
@@ -362,7 +394,19 @@ def encode(value: Any) -> bytes:
 
 def decode(cls: type, data: Any) -> Any:
     """Decodes one whole message of class ``cls``; trailing bytes are an error."""
+    return decode_as(Msg(cls), data)
+
+
+def encode_as(typ: Any, value: Any) -> bytes:
+    """The bincode bytes of ``value`` as the type description ``typ`` (``Tagged(...)``...)."""
+    w = Writer()
+    typ.write(w, value)
+    return bytes(w.out)
+
+
+def decode_as(typ: Any, data: Any) -> Any:
+    """Decodes one whole value of the type description ``typ``; trailing bytes are an error."""
     r = Reader(data)
-    value = Msg(cls).read(r)
+    value = typ.read(r)
     r.finish()
     return value
