@@ -421,6 +421,15 @@ class PrimitiveInfo:
     triangles: int
 
 
+@wire(("name", STR), ("channels", U32))
+@dataclass
+class SplitTarget:
+    """A target name with more than one weight channel (glTF nodes animated differently)."""
+
+    name: str
+    channels: int
+
+
 @wire(("shapes", U32), ("mesh", Opt(U32)), ("vertices", U32), ("triangles", U32))
 @dataclass
 class LodLevelInfo:
@@ -466,6 +475,7 @@ class LodInfo:
     ("lod", Msg(LodInfo)),
     ("bbox", Msg(Aabb)),
     ("memory", Msg(Memory)),
+    ("split_targets", Vec(Msg(SplitTarget))),
 )
 @dataclass
 class RigInfo:
@@ -482,6 +492,7 @@ class RigInfo:
     lod: LodInfo
     bbox: Aabb
     memory: Memory
+    split_targets: List[SplitTarget] = field(default_factory=list)
 
 
 @wire(("rigs", Vec(Msg(RigInfo))))
