@@ -385,8 +385,9 @@ impl Dense {
 /// GFLOP/s of `isa`'s multiply-adds on every worker thread.
 fn fma_peak(isa: crate::engine::cpu::Isa, seconds: f64, bar: Option<&ProgressBar>) -> f64 {
     let threads = rayon::current_num_threads();
-    // About 10 ms per run on a machine near 100 GFLOP/s per thread.
-    let iterations = 1 << 15;
+    // About 10 ms per run on a machine near 150 GFLOP/s per thread (AVX-512: 384 FLOP per
+    // iteration), long enough that the fork and join of the threads do not count.
+    let iterations = 1 << 22;
     let mut flops = 0u64;
     let ms = median_ms(seconds, bar, "fma peak", || {
         flops = (0..threads)

@@ -717,6 +717,7 @@ unsafe fn blend_sub<L: Lanes, const Q: usize>(
         .min(rig.vertices)
         .saturating_sub(first_vertex)
         * 3;
+    let mut park = Park([[0.0; 3 * LANES]; GROUP]);
     for (t, tile) in tiles.enumerate() {
         let base = &ctx.base[tile];
         let first = blocks.tile_start[tile] as usize;
@@ -751,8 +752,18 @@ unsafe fn blend_sub<L: Lanes, const Q: usize>(
                     a[2] = L::mul_add(wq, dz, a[2]);
                 }
             }
-            for (a, st) in acc.iter().zip(stage.0.iter_mut()) {
-                let [mut x, mut y, mut z] = *a;
+            // Park the accumulators in L1 (three stores per job, a loop small enough to be
+            // unrolled): indexing `acc` in the larger output stage below would keep it in
+            // memory, and the hot loop above would store every sum on each block.
+            for (a, p) in acc.iter().zip(park.0.iter_mut()) {
+                for (c, v) in a.iter().enumerate() {
+                    L::store(*v, p.as_mut_ptr().add(c * LANES));
+                }
+            }
+            for (p, st) in park.0.iter().zip(stage.0.iter_mut()).take(Q) {
+                let mut x = L::load(p.as_ptr());
+                let mut y = L::load(p.as_ptr().add(LANES));
+                let mut z = L::load(p.as_ptr().add(2 * LANES));
                 if ctx.normalize {
                     (x, y, z) = L::normalize(x, y, z);
                 }
@@ -852,6 +863,11 @@ unsafe fn fma_chains<L: Lanes, const C: usize>(iterations: usize) -> u64 {
     }
     (iterations * C * LANES * 2) as u64
 }
+
+/// One tile's accumulators per job (x[16], y[16], z[16]), between the sums and the output
+/// stage.
+#[repr(C, align(64))]
+struct Park([[f32; 3 * LANES]; GROUP]);
 
 /// Floats of one job's part of a chunk.
 const STAGE: usize = CHUNK_TILES * LANES * 3;
