@@ -206,6 +206,8 @@ pub struct BenchReport {
     pub threads: usize,
     /// Fraction of stored block lanes that hold a real delta.
     pub block_fill: f64,
+    /// Bytes of the CPU layout (neutral and delta blocks), which every call streams once.
+    pub layout_bytes: usize,
     /// The machine's measured bounds.
     pub machine: Machine,
     /// Median ms to evaluate the unique jobs (weights gathered, output written), f32.
@@ -666,6 +668,7 @@ pub fn bench_cpu(rig: &Rig, opt: &BenchOptions) -> Result<BenchReport> {
         isa: cpu.isa().name().to_string(),
         threads: rayon::current_num_threads(),
         block_fill: cpu.block_fill(),
+        layout_bytes: cpu.bytes(),
         machine: Machine {
             fma_peak_gflops,
             copy_gb_per_s,
@@ -771,8 +774,11 @@ pub fn report_text(r: &BenchReport) -> String {
         );
     }
     s += &format!(
-        "  one head per call: {:.3} ms, {:.3} ms above its share of a {}-job call\n",
-        r.one_head_ms, r.one_head_overhead_ms, r.unique
+        "  one head per call: {:.3} ms, {:.3} ms above its share of a {}-job call (each call streams the {:.1} MB layout once)\n",
+        r.one_head_ms,
+        r.one_head_overhead_ms,
+        r.unique,
+        r.layout_bytes as f64 / 1e6
     );
     s += &format!(
         "  10× crowd, same unique jobs: {:.2}× the cost\n",
