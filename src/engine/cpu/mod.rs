@@ -22,9 +22,10 @@
 //! stream past: each delta block is loaded once and serves all Q jobs (batch-aware), and a
 //! block whose slot is inactive for the whole group is skipped (Lorach 2007); a group's last
 //! jobs go 4, 2 or 1 at a time, so a batch of one job costs one job. The output stage then
-//! works on the registers: normal blending normalizes them, they are interleaved as x, y, z,
-//! encoded in the wire format (f32, binary16, or q16 in the rig's box) and staged in L1;
-//! each job's part of the chunk is copied out contiguously (streaming stores for outputs
+//! takes each tile's sums (parked in L1 once per tile, so the block loop keeps them in
+//! registers) through vector registers: normal blending normalizes them, they are interleaved
+//! as x, y, z, encoded in the wire format (f32, binary16, or q16 in the rig's box) and staged
+//! in L1; each job's part of the chunk is copied out contiguously (streaming stores for outputs
 //! larger than the caches) — no transposing or converting pass over the output. Only when
 //! normals are recomputed from the blended positions are positions blended in f32 and
 //! encoded after the normals pass.
