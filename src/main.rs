@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand, ValueEnum};
-use crowdmorph::engine::{BackendChoice, Engine, Precision};
+use crowdmorph::engine::{BackendChoice, Engine};
 use crowdmorph::rig::FrameMode;
 use crowdmorph::tools::{self, bench};
 
@@ -335,7 +335,8 @@ enum BenchCommand {
         #[arg(long)]
         json: bool,
     },
-    /// The CPU engine against a dense sgemm and the memcpy roofline, measured in the same run.
+    /// The CPU engine against the dense sgemm of the same blend and its roofline (FMA peak,
+    /// copy bandwidth), the wire formats, batch sizes and LOD levels, measured in the same run.
     Cpu {
         /// glTF/GLB rig (default: the embedded head).
         #[arg(long)]
@@ -349,12 +350,16 @@ enum BenchCommand {
         /// LOD level.
         #[arg(long, default_value_t = 0)]
         lod: u32,
-        /// Output precision.
-        #[arg(long, value_enum, default_value_t = Format::F32)]
-        format: Format,
         /// Compute normals too.
         #[arg(long)]
         normals: bool,
+        /// Unique jobs per engine call of the batch-size table.
+        #[arg(long, value_delimiter = ',', default_value = "1,10,100,1000")]
+        batches: Vec<usize>,
+        /// Simplified meshes to build and time when the rig has none (fractions of the
+        /// triangles; `none` for none).
+        #[arg(long, default_value = "0.5,0.25,0.1")]
+        mesh_fractions: String,
         /// Seconds per measurement.
         #[arg(long, default_value_t = 1.0)]
         seconds: f64,
@@ -776,22 +781,30 @@ fn main() -> Result<()> {
                     heads,
                     unique,
                     lod,
-                    format,
                     normals,
+                    batches,
+                    mesh_fractions,
                     seconds,
                     json,
                 },
         } => {
             let rig = tools::load_rig(rig.as_deref())?;
+            let mesh_fractions = if mesh_fractions == "none" {
+                Vec::new()
+            } else {
+                mesh_fractions
+                    .split(',')
+                    .map(|f| f.trim().parse::<f32>())
+                    .collect::<Result<Vec<_>, _>>()
+                    .map_err(|e| anyhow::anyhow!("--mesh-fractions: {e}"))?
+            };
             let opt = bench::BenchOptions {
                 heads,
                 unique,
                 lod,
-                precision: match format {
-                    Format::F32 => Precision::F32,
-                    Format::F16 => Precision::F16,
-                },
                 normals,
+                batches,
+                mesh_fractions,
                 seconds,
                 progress: !json,
             };

@@ -366,6 +366,10 @@ fn bench_cpu_reports_plausible_json() {
         "20",
         "--unique",
         "10",
+        "--batches",
+        "1,3,10",
+        "--mesh-fractions",
+        "0.5",
         "--seconds",
         "0.05",
         "--json",
@@ -380,12 +384,59 @@ fn bench_cpu_reports_plausible_json() {
         "unique_heads_per_s",
         "heads_per_s",
         "dense_baseline_ms",
+        "dense_gemm_ms",
+        "dense_matrixmultiply_ms",
         "memcpy_ms",
         "speedup_vs_dense",
+        "one_head_ms",
     ] {
         let v = f64_of(&r, key);
         assert!(v.is_finite() && v > 0.0, "{key} = {v}");
     }
+    // The roofline terms are measured, and the kernel cannot beat its own FMA bound.
+    let machine = &r["machine"];
+    assert!(f64_of(machine, "fma_peak_gflops") > 0.0 && f64_of(machine, "copy_gb_per_s") > 0.0);
+    let roof = &r["roofline"];
+    assert!(f64_of(roof, "useful_gflop") <= f64_of(roof, "sparse_gflop"));
+    assert!(f64_of(roof, "sparse_gflop") <= f64_of(roof, "dense_gflop"));
+    assert_eq!(usize_of(roof, "output_bytes"), 10 * EMBEDDED_VERTICES * 12);
+    // Every wire format, at its size.
+    let formats: Vec<(String, usize)> = r["formats"]
+        .as_array()
+        .expect("formats")
+        .iter()
+        .map(|f| {
+            (
+                f["format"].as_str().expect("name").to_string(),
+                usize_of(f, "bytes_per_head"),
+            )
+        })
+        .collect();
+    let v3 = EMBEDDED_VERTICES * 3;
+    assert_eq!(
+        formats,
+        [
+            ("f32".into(), v3 * 4),
+            ("f16".into(), v3 * 2),
+            ("q16".into(), v3 * 2)
+        ]
+    );
+    let batches: Vec<usize> = r["batches"]
+        .as_array()
+        .expect("batches")
+        .iter()
+        .map(|b| usize_of(b, "unique"))
+        .collect();
+    assert_eq!(batches, [1, 3, 10]);
+    // The simplified mesh's output shrinks with its vertices.
+    let meshes = r["mesh_levels"].as_array().expect("mesh levels");
+    assert_eq!(meshes.len(), 1);
+    let m = &meshes[0];
+    assert!(usize_of(m, "vertices") < EMBEDDED_VERTICES);
+    assert_eq!(
+        usize_of(m, "output_bytes"),
+        10 * usize_of(m, "vertices") * 12
+    );
     // Ten unique heads evaluate in well under a second on any machine this runs on.
     assert!(f64_of(&r, "eval_ms") < 1000.0, "{r}");
     let scaling = r["lod_scaling"].as_array().expect("lod scaling");

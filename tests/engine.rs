@@ -1,14 +1,18 @@
 //! The CPU engine against the f64 dense evaluation, for every real rig, the embedded head and
-//! random rigs; every kernel family this CPU has; f32 and f16; positions and normals; mixed
-//! clips, frames and LODs with clones.
+//! random rigs; every kernel family this CPU has; f32, f16 and q16; positions and normals;
+//! mixed clips, frames and LODs with clones; the 16-bit formats bit for bit against the
+//! scalar encoding of the same family's f32 output; a job alone and in a batch.
 //!
 //! Tolerances: positions within 1e-5 × the rig's bounding-box diagonal (f32). binary16 keeps
 //! 11 significant bits, so f16 positions are allowed an extra `max |coordinate| × 2^-11`, and
-//! f16 normals an extra 2^-11. Normals are unit vectors: within 1e-4 when blended from normal
-//! deltas, 1e-3 when recomputed from blended f32 positions (cross products of short edges).
+//! f16 normals an extra 2^-11; q16 positions the box's stated `max_error`, q16 normals
+//! 1/65534. Normals are unit vectors: within 1e-4 when blended from normal deltas, 1e-3 when
+//! recomputed from blended f32 positions (cross products of short edges).
 
 use crowdmorph::engine::cpu::{CpuRig, Isa};
-use crowdmorph::engine::{BlendJob, BlendOutput, OutputSpec, Precision, WeightBatch};
+use crowdmorph::engine::{
+    BlendJob, BlendOutput, OutputSpec, Precision, Q16Scale, Quantization, VertexData, WeightBatch,
+};
 use crowdmorph::import::{ImportOptions, load_path};
 use crowdmorph::rig::Rig;
 use glam::DVec3;
@@ -92,13 +96,13 @@ fn check_job(
     diag: f64,
     recomputed: bool,
 ) {
-    let f16 = matches!(out.positions, crowdmorph::engine::VertexData::F16(_));
-    let max_coord = want_p
-        .iter()
-        .map(|p| p.abs().max_element())
-        .fold(0.0, f64::max);
-    let pos_tol = 1e-5 * diag + if f16 { max_coord * F16_REL } else { 0.0 };
-    let nrm_tol = if recomputed { 1e-3 } else { 1e-4 } + if f16 { F16_REL } else { 0.0 };
+    let pos_tol = pos_tol(out, want_p, diag);
+    let nrm_tol = if recomputed { 1e-3 } else { 1e-4 }
+        + match out.positions {
+            VertexData::F32(_) => 0.0,
+            VertexData::F16(_) => F16_REL,
+            VertexData::Q16(..) => f64::from(crowdmorph_proto::Q16_NORMAL_MAX_ERROR),
+        };
     let dp = max_abs_diff(&out.job_positions(j), want_p);
     assert!(
         dp <= pos_tol,
@@ -111,7 +115,47 @@ fn check_job(
     );
 }
 
-fn specs() -> [OutputSpec; 3] {
+/// Tolerance of positions in `out`'s format against the f64 oracle.
+fn pos_tol(out: &BlendOutput, want_p: &[DVec3], diag: f64) -> f64 {
+    let max_coord = want_p
+        .iter()
+        .map(|p| p.abs().max_element())
+        .fold(0.0, f64::max);
+    1e-5 * diag
+        + match &out.positions {
+            VertexData::F32(_) => 0.0,
+            VertexData::F16(_) => max_coord * F16_REL,
+            VertexData::Q16(_, Q16Scale::Box(b)) => {
+                f64::from(b.max_error.iter().copied().fold(0.0, f32::max))
+            }
+            VertexData::Q16(_, Q16Scale::Unit) => panic!("positions in the normals' scale"),
+        }
+}
+
+/// The q16 box of a workload: the rig's own (every clip frame) when the jobs come from its
+/// clips; for random weights, a box around the expected positions built as the registry
+/// builds one (a relative margin, then `max_error = step / 2` plus 8 units in the last place
+/// of the largest coordinate).
+fn test_box(rig: &Rig, expected: &[(Vec<DVec3>, Vec<DVec3>)]) -> Quantization {
+    if !rig.clips.is_empty() {
+        return crowdmorph::server::registry::quantization_box(rig);
+    }
+    let (lo, hi) = expected.iter().flat_map(|(p, _)| p).fold(
+        (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
+        |(lo, hi), p| (lo.min(*p), hi.max(*p)),
+    );
+    let margin = (hi - lo).length().max(1e-30) * 1e-4;
+    let (lo, hi) = (lo - DVec3::splat(margin), hi + DVec3::splat(margin));
+    let step = ((hi - lo) / 65535.0).as_vec3().to_array();
+    let ulp = lo.abs().max(hi.abs()) * f64::from(f32::EPSILON) * 8.0;
+    Quantization {
+        min: lo.as_vec3().to_array(),
+        step,
+        max_error: [0, 1, 2].map(|a| (f64::from(step[a]) * 0.5 + ulp[a]) as f32),
+    }
+}
+
+fn specs(q: Quantization) -> [OutputSpec; 5] {
     [
         OutputSpec {
             normals: true,
@@ -124,6 +168,14 @@ fn specs() -> [OutputSpec; 3] {
         OutputSpec {
             normals: false,
             precision: Precision::F32,
+        },
+        OutputSpec {
+            normals: true,
+            precision: Precision::Q16(q),
+        },
+        OutputSpec {
+            normals: false,
+            precision: Precision::Q16(q),
         },
     ]
 }
@@ -165,9 +217,10 @@ fn cpu_engine_matches_f64_dense_evaluation_of_every_file() {
             .collect();
         let recomputed =
             !rig.has_normal_deltas() && rig.primitives.iter().any(|p| !p.targets.is_empty());
+        let qbox = test_box(&rig, &expected);
         for isa in Isa::available() {
             let cpu = CpuRig::with_isa(&rig, isa);
-            for spec in specs() {
+            for spec in specs(qbox) {
                 let out = cpu.evaluate(&batch, spec).expect("evaluate");
                 assert_eq!(out.jobs, per_job.len());
                 for (j, (p, n)) in expected.iter().enumerate() {
@@ -176,7 +229,8 @@ fn cpu_engine_matches_f64_dense_evaluation_of_every_file() {
                         check_job(&ctx, &out, j, p, n, diag, recomputed);
                     } else {
                         let d = max_abs_diff(&out.job_positions(j), p);
-                        assert!(d <= 1e-5 * diag, "{ctx} job {j}: {d:e}");
+                        let tol = pos_tol(&out, p, diag);
+                        assert!(d <= tol, "{ctx} job {j}: {d:e} > {tol:e}");
                         assert!(out.normals.is_none(), "normals were not asked for");
                     }
                 }
@@ -194,9 +248,10 @@ fn check_rig_against_oracle(rig: &Rig, seed: u64, n_jobs: usize) {
         .map(|(w, lod)| rig_oracle(rig, &effective_weights(rig, w, *lod)))
         .collect();
     let recomputed = !rig.has_normal_deltas();
+    let qbox = test_box(rig, &expected);
     for isa in Isa::available() {
         let cpu = CpuRig::with_isa(rig, isa);
-        for spec in specs() {
+        for spec in specs(qbox) {
             let out = cpu.evaluate(&batch, spec).expect("evaluate");
             for (j, (p, n)) in expected.iter().enumerate() {
                 let ctx = format!("{} {} {spec:?}", rig.name, isa.name());
@@ -204,7 +259,8 @@ fn check_rig_against_oracle(rig: &Rig, seed: u64, n_jobs: usize) {
                     check_job(&ctx, &out, j, p, n, diag, recomputed);
                 } else {
                     let d = max_abs_diff(&out.job_positions(j), p);
-                    assert!(d <= 1e-5 * diag, "{ctx} job {j}: {d:e}");
+                    let tol = pos_tol(&out, p, diag);
+                    assert!(d <= tol, "{ctx} job {j}: {d:e} > {tol:e}");
                 }
             }
         }
@@ -311,4 +367,105 @@ fn output_buffers_are_reused_across_batches() {
         .evaluate(&small, OutputSpec::default())
         .expect("evaluate");
     assert_eq!(out, fresh);
+}
+
+/// Rigs for the format and batch tests: the embedded head (normals recomputed from the blended
+/// positions) and random rigs with normal deltas on some primitives (normals blended in the
+/// kernel) whose sizes straddle tiles.
+fn format_rigs() -> Vec<Rig> {
+    vec![
+        crowdmorph::embedded::default_rig(),
+        crate::util::random_rig(21, &[17, 250, 33], 40),
+        crate::util::random_rig(22, &[1000], 12),
+    ]
+}
+
+#[test]
+fn wire_formats_are_the_f32_blend_encoded_bit_for_bit_in_every_family() {
+    // The kernel's output stage encodes from the registers the f32 path stores, with the
+    // scalar reference's arithmetic: for every family, f16 and q16 outputs must be exactly
+    // `VertexData::encode` of that family's f32 output, positions and normals.
+    for rig in format_rigs() {
+        let (per_job, batch) = workload(&rig, 31, 21);
+        let expected: Vec<_> = per_job
+            .iter()
+            .map(|(w, lod)| rig_oracle(&rig, &effective_weights(&rig, w, *lod)))
+            .collect();
+        let qbox = test_box(&rig, &expected);
+        for isa in Isa::available() {
+            let cpu = CpuRig::with_isa(&rig, isa);
+            for normals in [true, false] {
+                let f = cpu
+                    .evaluate(
+                        &batch,
+                        OutputSpec {
+                            normals,
+                            precision: Precision::F32,
+                        },
+                    )
+                    .expect("f32");
+                let VertexData::F32(fp) = &f.positions else {
+                    panic!("f32 asked");
+                };
+                for precision in [Precision::F16, Precision::Q16(qbox)] {
+                    let ctx = format!(
+                        "{} {} {precision:?} normals {normals}",
+                        rig.name,
+                        isa.name()
+                    );
+                    let o = cpu
+                        .evaluate(&batch, OutputSpec { normals, precision })
+                        .expect("evaluate");
+                    assert!(o.positions.is_kind(precision), "{ctx}");
+                    assert!(
+                        o.positions == VertexData::encode(fp, precision, false),
+                        "{ctx}: positions differ from the encoded f32 blend"
+                    );
+                    match (&o.normals, &f.normals) {
+                        (Some(got), Some(VertexData::F32(fnrm))) => assert!(
+                            *got == VertexData::encode(fnrm, precision, true),
+                            "{ctx}: normals differ from the encoded f32 blend"
+                        ),
+                        (None, None) => {}
+                        _ => panic!("{ctx}: normals asked {normals}"),
+                    }
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn a_job_alone_equals_the_same_job_in_any_batch() {
+    // Batches of 1 to 13 jobs take the kernels' 8-, 4-, 2- and 1-job paths; each job's sum
+    // runs over the same blocks in the same order on every path, so the bits agree.
+    for rig in format_rigs() {
+        let (_, batch) = workload(&rig, 41, 13);
+        for isa in Isa::available() {
+            let cpu = CpuRig::with_isa(&rig, isa);
+            let spec = OutputSpec {
+                normals: true,
+                precision: Precision::F32,
+            };
+            let all = cpu.evaluate(&batch, spec).expect("batch");
+            for n in 1..=batch.jobs() {
+                let part = WeightBatch {
+                    slots: batch.slots,
+                    weights: batch.weights[..n * batch.slots].to_vec(),
+                    shapes: batch.shapes[..n].to_vec(),
+                };
+                let some = cpu.evaluate(&part, spec).expect("part");
+                for j in 0..n {
+                    assert_eq!(
+                        some.job_positions(j),
+                        all.job_positions(j),
+                        "{} {}: job {j} of {n}",
+                        rig.name,
+                        isa.name()
+                    );
+                    assert_eq!(some.job_normals(j), all.job_normals(j));
+                }
+            }
+        }
+    }
 }

@@ -55,6 +55,7 @@ fn check_parity(gpu_engine: &Engine, rig: Rig, jobs: &[BlendJob]) {
     );
     let diag = rig.bbox().diagonal();
     let recomputed = !rig.has_normal_deltas();
+    let qbox = crowdmorph::server::registry::quantization_box(&rig);
     for spec in [
         OutputSpec {
             normals: true,
@@ -67,6 +68,11 @@ fn check_parity(gpu_engine: &Engine, rig: Rig, jobs: &[BlendJob]) {
         OutputSpec {
             normals: false,
             precision: Precision::F32,
+        },
+        // The GPU blends q16 jobs in f32 and the engine encodes them on the host.
+        OutputSpec {
+            normals: true,
+            precision: Precision::Q16(qbox),
         },
     ] {
         let got = gpu_engine.evaluate(&g, jobs, spec).expect("gpu evaluate");
@@ -86,10 +92,19 @@ fn check_parity(gpu_engine: &Engine, rig: Rig, jobs: &[BlendJob]) {
         );
         assert_eq!(got.output.jobs, jobs.len());
         let f16 = spec.precision == Precision::F16;
+        // Each side is within the stated error of its own f32 blend.
+        let (q16_pos, q16_nrm) = match spec.precision {
+            Precision::Q16(b) => (
+                2.0 * b.max_error.iter().copied().fold(0.0, f32::max),
+                2.0 * crowdmorph_proto::Q16_NORMAL_MAX_ERROR,
+            ),
+            _ => (0.0, 0.0),
+        };
+        assert!(got.output.positions.is_kind(spec.precision));
         for j in 0..jobs.len() {
             let (gp, cp) = (got.output.job_positions(j), want.output.job_positions(j));
             let max_coord = cp.iter().map(|x| x.abs()).fold(0.0, f32::max);
-            let tol = 1e-5 * diag + if f16 { max_coord / 1024.0 } else { 0.0 };
+            let tol = 1e-5 * diag + if f16 { max_coord / 1024.0 } else { 0.0 } + q16_pos;
             let d = max_diff(&gp, &cp);
             assert!(
                 d <= tol,
@@ -101,8 +116,9 @@ fn check_parity(gpu_engine: &Engine, rig: Rig, jobs: &[BlendJob]) {
                     got.output.job_normals(j).expect("normals"),
                     want.output.job_normals(j).expect("normals"),
                 );
-                let tol =
-                    if recomputed { 1e-3 } else { 1e-5 } + if f16 { 1.0 / 1024.0 } else { 0.0 };
+                let tol = if recomputed { 1e-3 } else { 1e-5 }
+                    + if f16 { 1.0 / 1024.0 } else { 0.0 }
+                    + q16_nrm;
                 let d = max_diff(&gn, &cn);
                 assert!(
                     d <= tol,

@@ -245,8 +245,13 @@ impl PendingEvaluation<'_> {
         match self.state {
             PendingState::Ready(r) => r,
             PendingState::Gpu(pending) => match pending.wait() {
-                Ok((output, gpu_ns)) => Ok(Evaluation {
-                    output,
+                Ok((mut output, gpu_ns)) => Ok(Evaluation {
+                    output: {
+                        // The GPU produces f32 and f16; q16 is encoded here, on the host,
+                        // with the CPU kernels' arithmetic.
+                        output.encode_as(self.spec);
+                        output
+                    },
                     timings: Timings {
                         wall_ns: self.start.elapsed().as_nanos() as u64,
                         gpu_ns,

@@ -18,8 +18,9 @@ pub use facade::{
     PreparedRig, RenderBuffers, RigMemory, Timings,
 };
 
+pub use crowdmorph_proto::Quantization;
 use half::f16;
-use serde::{Deserialize, Serialize};
+use rayon::prelude::*;
 
 use crate::rig::{ACTIVE_WEIGHT_EPSILON, ClipError, LodError, Rig};
 
@@ -65,23 +66,45 @@ impl From<&crate::plan::JobKey> for BlendJob {
     }
 }
 
-/// Scalar format of output vertex buffers.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
+/// Scalar format of output vertex buffers: what goes on the wire, produced by the engine.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub enum Precision {
     /// IEEE binary32.
     #[default]
     F32,
-    /// IEEE binary16 (relative error ≤ 2^-11 per component).
+    /// IEEE binary16, rounded to nearest even (relative error ≤ 2^-11 per component).
     F16,
+    /// int16 in a box (proto/README.md, "Formats"): positions as
+    /// `round((x - min) / step) - 32768` per axis of the given box, unit normals as
+    /// `round(n × 32767)`; both rounded to nearest even and clamped to the int16 range.
+    Q16(Quantization),
+}
+
+impl Precision {
+    /// Bytes of one component.
+    pub fn component_bytes(self) -> usize {
+        match self {
+            Precision::F32 => 4,
+            Precision::F16 | Precision::Q16(_) => 2,
+        }
+    }
+
+    /// Short name for logs and bench output.
+    pub fn name(self) -> &'static str {
+        match self {
+            Precision::F32 => "f32",
+            Precision::F16 => "f16",
+            Precision::Q16(_) => "q16",
+        }
+    }
 }
 
 /// What a batch should produce.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct OutputSpec {
     /// Also produce unit normals.
     pub normals: bool,
-    /// Scalar format of the buffers.
+    /// Scalar format of the buffers (positions and normals alike).
     pub precision: Precision,
 }
 
@@ -203,13 +226,24 @@ fn active(w: f32) -> f32 {
     }
 }
 
-/// A vertex buffer in one of the output precisions.
+/// How the integers of a q16 buffer map back to f32.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Q16Scale {
+    /// Positions: `x = min[a] + (q + 32768) × step[a]` for axis `a` of the box.
+    Box(Quantization),
+    /// Unit normals: `n = q / 32767`.
+    Unit,
+}
+
+/// A vertex buffer in one of the output precisions: the bytes the wire carries.
 #[derive(Clone, Debug, PartialEq)]
 pub enum VertexData {
     /// binary32 components.
     F32(Vec<f32>),
     /// binary16 components.
     F16(Vec<f16>),
+    /// int16 components and how they map back to f32.
+    Q16(Vec<i16>, Q16Scale),
 }
 
 impl Default for VertexData {
@@ -224,6 +258,7 @@ impl VertexData {
         match self {
             VertexData::F32(v) => v.len(),
             VertexData::F16(v) => v.len(),
+            VertexData::Q16(v, _) => v.len(),
         }
     }
 
@@ -232,11 +267,21 @@ impl VertexData {
         self.len() == 0
     }
 
-    /// The components as f32 (converting from f16 when needed).
+    /// The components as f32 (converting from f16, dequantizing q16).
     pub fn to_f32(&self) -> Vec<f32> {
+        self.range_f32(0..self.len())
+    }
+
+    /// Components `r` as f32.
+    fn range_f32(&self, r: std::ops::Range<usize>) -> Vec<f32> {
         match self {
-            VertexData::F32(v) => v.clone(),
-            VertexData::F16(v) => v.iter().map(|h| h.to_f32()).collect(),
+            VertexData::F32(v) => v[r].to_vec(),
+            VertexData::F16(v) => v[r].iter().map(|h| h.to_f32()).collect(),
+            VertexData::Q16(v, Q16Scale::Unit) => {
+                v[r].iter().map(|&q| f32::from(q) / 32767.0).collect()
+            }
+            // Components start at an x (every range here is whole vertices).
+            VertexData::Q16(v, Q16Scale::Box(b)) => b.dequantize(&v[r]),
         }
     }
 
@@ -245,7 +290,112 @@ impl VertexData {
         match self {
             VertexData::F32(v) => bytemuck::cast_slice(v),
             VertexData::F16(v) => bytemuck::cast_slice(v),
+            VertexData::Q16(v, _) => bytemuck::cast_slice(v),
         }
+    }
+
+    /// Whether this buffer is of the kind `precision` produces (q16 of any box).
+    pub fn is_kind(&self, precision: Precision) -> bool {
+        matches!(
+            (self, precision),
+            (VertexData::F32(_), Precision::F32)
+                | (VertexData::F16(_), Precision::F16)
+                | (VertexData::Q16(..), Precision::Q16(_))
+        )
+    }
+
+    /// Encodes f32 components in `precision`, in parallel: positions (`normals == false`) in
+    /// the q16 box, unit normals as `q / 32767`. Engines that blend in f32 and cannot encode
+    /// in their kernel (the GPU for q16; the CPU when normals are recomputed from the blended
+    /// positions) use this; the results are bitwise those of the CPU kernel's output stage.
+    pub fn encode(v: &[f32], precision: Precision, normals: bool) -> VertexData {
+        const PART: usize = 3 << 14;
+        match precision {
+            Precision::F32 => VertexData::F32(v.to_vec()),
+            Precision::F16 => {
+                use half::slice::HalfFloatSliceExt;
+                let mut out = vec![f16::ZERO; v.len()];
+                out.par_chunks_mut(PART)
+                    .zip(v.par_chunks(PART))
+                    .for_each(|(o, i)| o.convert_from_f32_slice(i));
+                VertexData::F16(out)
+            }
+            Precision::Q16(b) => {
+                let q = Q16Params::new(b, normals);
+                let mut out = vec![0i16; v.len()];
+                // Parts are whole vertices, so component `i` of a part is axis `i % 3`.
+                out.par_chunks_mut(PART)
+                    .zip(v.par_chunks(PART))
+                    .for_each(|(o, i)| {
+                        for (k, (o, &x)) in o.iter_mut().zip(i).enumerate() {
+                            *o = q.quantize(x, k % 3);
+                        }
+                    });
+                let scale = if normals {
+                    Q16Scale::Unit
+                } else {
+                    Q16Scale::Box(b)
+                };
+                VertexData::Q16(out, scale)
+            }
+        }
+    }
+}
+
+/// The arithmetic of q16 output, shared by the scalar reference and every kernel family so
+/// that they agree bit for bit: `q = round_even(clamp((x - sub[a]) × mul[a], lo, hi)) + add`,
+/// all in f32. Positions: `sub = min`, `mul = 1 / step` (rounded to f32), clamp to
+/// `[0, 65535]`, `add = -32768`. Normals: `sub = 0`, `mul = 32767`, clamp to
+/// `[-32767, 32767]`, `add = 0`.
+///
+/// In f32 the quantized index can be off the exact `(x - min) / step` by at most
+/// `3 × 2^-24 × |x - min|` (three roundings: the difference, `1 / step` and the product), that
+/// is at most 3 units in the last place of the largest coordinate of the box; the box's stated
+/// `max_error` (the registry's `quantization_box`) includes it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Q16Params {
+    /// Subtracted per axis before scaling.
+    pub sub: [f32; 3],
+    /// Scale per axis.
+    pub mul: [f32; 3],
+    /// Lower clamp of the scaled value.
+    pub lo: f32,
+    /// Upper clamp of the scaled value.
+    pub hi: f32,
+    /// Added to the rounded integer.
+    pub add: i32,
+}
+
+impl Q16Params {
+    /// The parameters for positions in `b` (`normals == false`) or for unit normals.
+    pub fn new(b: Quantization, normals: bool) -> Q16Params {
+        if normals {
+            Q16Params {
+                sub: [0.0; 3],
+                mul: [32767.0; 3],
+                lo: -32767.0,
+                hi: 32767.0,
+                add: 0,
+            }
+        } else {
+            Q16Params {
+                sub: b.min,
+                mul: b.step.map(|s| if s > 0.0 { 1.0 / s } else { 0.0 }),
+                lo: 0.0,
+                hi: 65535.0,
+                add: -32768,
+            }
+        }
+    }
+
+    /// Quantizes one component of axis `a` (the scalar reference of the kernels).
+    #[inline]
+    pub fn quantize(&self, x: f32, a: usize) -> i16 {
+        let u = (x - self.sub[a]) * self.mul[a];
+        // Written as the vector max/min are defined (NaN goes to `lo`).
+        let u = if u > self.lo { u } else { self.lo };
+        let u = if u < self.hi { u } else { self.hi };
+        (u.round_ties_even() as i32 + self.add) as i16
     }
 }
 
@@ -265,21 +415,30 @@ pub struct BlendOutput {
 impl BlendOutput {
     /// Positions of job `j` as f32.
     pub fn job_positions(&self, j: usize) -> Vec<f32> {
-        job_slice(&self.positions, self.vertices, j)
+        self.positions
+            .range_f32(j * self.vertices * 3..(j + 1) * self.vertices * 3)
     }
 
     /// Normals of job `j` as f32, when computed.
     pub fn job_normals(&self, j: usize) -> Option<Vec<f32>> {
         self.normals
             .as_ref()
-            .map(|n| job_slice(n, self.vertices, j))
+            .map(|n| n.range_f32(j * self.vertices * 3..(j + 1) * self.vertices * 3))
     }
-}
 
-fn job_slice(data: &VertexData, vertices: usize, j: usize) -> Vec<f32> {
-    let r = j * vertices * 3..(j + 1) * vertices * 3;
-    match data {
-        VertexData::F32(v) => v[r].to_vec(),
-        VertexData::F16(v) => v[r].iter().map(|h| h.to_f32()).collect(),
+    /// Re-encodes f32 buffers in `spec`'s precision (a no-op when they already are): for
+    /// engines whose kernels produce f32 only in some cases.
+    pub fn encode_as(&mut self, spec: OutputSpec) {
+        if let VertexData::F32(v) = &self.positions
+            && spec.precision != Precision::F32
+        {
+            self.positions = VertexData::encode(v, spec.precision, false);
+        }
+        if let Some(n) = &mut self.normals
+            && let VertexData::F32(v) = n
+            && spec.precision != Precision::F32
+        {
+            *n = VertexData::encode(v, spec.precision, true);
+        }
     }
 }

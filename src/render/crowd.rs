@@ -330,7 +330,9 @@ fn job_f32(d: &VertexData, range: std::ops::Range<usize>) -> Result<&[f32], Crow
         VertexData::F32(v) => v
             .get(range)
             .ok_or_else(|| CrowdError::Output("a short host buffer".into())),
-        VertexData::F16(_) => Err(CrowdError::Output("f16 output where f32 was asked".into())),
+        VertexData::F16(_) | VertexData::Q16(..) => Err(CrowdError::Output(
+            "16-bit output where f32 was asked".into(),
+        )),
     }
 }
 

@@ -1529,7 +1529,7 @@ async fn frame(state: &AppState, headers: &HeaderMap, body: Body, source: Source
         }
         return Ok(resp);
     }
-    let json = json_frame(&state, format, normals, &parts, heads, timings).await?;
+    let json = json_frame(state, format, normals, &parts, heads, timings).await?;
     let mut resp = (
         StatusCode::OK,
         [(header::CONTENT_TYPE, CONTENT_TYPE_JSON)],

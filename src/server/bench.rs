@@ -369,10 +369,12 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
     let prepared = engine.prepare(Arc::new(rig.clone()))?;
     let spec = OutputSpec {
         normals: false,
-        precision: if opt.format == Format::F16 {
-            crate::engine::Precision::F16
-        } else {
-            crate::engine::Precision::F32
+        precision: match opt.format {
+            Format::F32 => crate::engine::Precision::F32,
+            Format::F16 => crate::engine::Precision::F16,
+            Format::Q16 => {
+                crate::engine::Precision::Q16(crate::server::registry::quantization_box(&rig))
+            }
         },
     };
     let inproc = tokio::task::spawn_blocking({

@@ -372,36 +372,15 @@ pub fn quantization_box(rig: &Rig) -> Quantization {
     let step = (bmax - bmin) / 65535.0;
     let min = bmin.as_vec3().to_array();
     let step = step.as_vec3().to_array();
-    // Half a step, plus what rounding to f32 (the output, and a reader's f32 dequantization)
-    // can add: a few units in the last place of the largest coordinate.
-    let ulp = (bmin.abs().max(bmax.abs())) * f64::from(f32::EPSILON) * 4.0;
+    // Half a step, plus what f32 arithmetic can add: the engine quantizes in f32 (at most
+    // 3 × 2^-24 × |x - min| ≤ 3 units in the last place of the largest coordinate, see
+    // `engine::Q16Params`) and a reader dequantizes in f32 (at most 1.5 more); 8 units in the
+    // last place of the largest coordinate cover both.
+    let ulp = (bmin.abs().max(bmax.abs())) * f64::from(f32::EPSILON) * 8.0;
     Quantization {
         min,
         step,
         max_error: [0, 1, 2].map(|a| (f64::from(step[a]) * 0.5 + ulp[a]) as f32),
-    }
-}
-
-/// Quantizes interleaved x, y, z positions to little-endian int16 inside `q`'s box.
-pub fn quantize_positions(q: &Quantization, xyz: &[f32], out: &mut Vec<u8>) {
-    out.reserve(xyz.len() * 2);
-    let inv = q
-        .step
-        .map(|s| if s > 0.0 { 1.0 / f64::from(s) } else { 0.0 });
-    for (i, &x) in xyz.iter().enumerate() {
-        let a = i % 3;
-        let u = ((f64::from(x) - f64::from(q.min[a])) * inv[a]).round();
-        let v = (u.clamp(0.0, 65535.0) - 32768.0) as i16;
-        out.extend_from_slice(&v.to_le_bytes());
-    }
-}
-
-/// Quantizes unit-normal components to little-endian int16 as `round(n × 32767)`.
-pub fn quantize_normals(xyz: &[f32], out: &mut Vec<u8>) {
-    out.reserve(xyz.len() * 2);
-    for &n in xyz {
-        let v = (n.clamp(-1.0, 1.0) * 32767.0).round() as i16;
-        out.extend_from_slice(&v.to_le_bytes());
     }
 }
 
@@ -488,6 +467,7 @@ mod tests {
 
     #[test]
     fn quantization_box_covers_every_clip_frame() {
+        use crate::engine::{OutputSpec, Precision, VertexData};
         let rig = crate::embedded::default_rig();
         let q = quantization_box(&rig);
         let cpu = crate::engine::cpu::CpuRig::new(&rig);
@@ -501,17 +481,23 @@ mod tests {
                 })
                 .collect();
             let batch = crate::engine::WeightBatch::gather(&rig, &jobs).expect("batch");
-            let out = cpu
-                .evaluate(&batch, crate::engine::OutputSpec::default())
-                .expect("eval");
+            let out = cpu.evaluate(&batch, OutputSpec::default()).expect("eval");
             let xyz = out.positions.to_f32();
-            let mut bytes = Vec::new();
-            quantize_positions(&q, &xyz, &mut bytes);
-            let qs: Vec<i16> = bytes
-                .chunks_exact(2)
-                .map(|b| i16::from_le_bytes([b[0], b[1]]))
-                .collect();
-            let back = q.dequantize(&qs);
+            // The kernel's q16 output stage, from the same registers.
+            let spec = OutputSpec {
+                normals: false,
+                precision: Precision::Q16(q),
+            };
+            let quantized = cpu.evaluate(&batch, spec).expect("eval q16");
+            let VertexData::Q16(qs, _) = &quantized.positions else {
+                panic!("q16 asked, {:?} returned", quantized.positions.len());
+            };
+            assert_eq!(
+                quantized.positions,
+                VertexData::encode(&xyz, spec.precision, false),
+                "the kernel encodes as the scalar reference does"
+            );
+            let back = q.dequantize(qs);
             for (i, (a, b)) in xyz.iter().zip(&back).enumerate() {
                 let axis = i % 3;
                 assert!(*a >= q.min[axis], "inside the box");

@@ -40,7 +40,7 @@ use crowdmorph_proto::Format;
 use tokio::sync::{mpsc, oneshot};
 
 use super::metrics::Metrics;
-use super::registry::{RigEntry, quantize_normals, quantize_positions};
+use super::registry::RigEntry;
 use crate::engine::{Begun, BlendJob, BlendOutput, Engine, OutputSpec, Precision, VertexData};
 
 /// One unique job of a crowd request, resolved against a rig entry.
@@ -288,8 +288,8 @@ struct WorkGroup {
     jobs: Vec<BlendJob>,
     /// Index of each job in `jobs`, to find it again.
     job_at: HashMap<BlendJob, usize>,
-    /// Each slot, its wire format and the engine job it is made from. Slots that differ only
-    /// in wire format (f32 and q16 are both made from the f32 blend) share one job.
+    /// Each slot, its wire format and the engine job it is made from. The engine writes the
+    /// group's wire format itself, so a group has one format.
     slots: Vec<(SlotId, Format, usize)>,
 }
 
@@ -561,9 +561,9 @@ impl State {
         self.next_batch += 1;
         let mut cost = 0u64;
         let mut groups: Vec<WorkGroup> = Vec::new();
-        // One engine call per rig version, output kind and mesh level (LOD levels on a
-        // simplified mesh produce buffers of a different size).
-        let mut at: HashMap<(u64, bool, bool, Option<usize>), usize> = HashMap::new();
+        // One engine call per rig version, wire format, output kind and mesh level (LOD levels
+        // on a simplified mesh produce buffers of a different size).
+        let mut at: HashMap<(u64, Format, bool, Option<usize>), usize> = HashMap::new();
         let mut jobs = 0usize;
         while cost < self.cfg.batch_cost {
             let Some(id) = self.pop(class) else {
@@ -593,14 +593,14 @@ impl State {
             }
             cost += slot.cost;
             jobs += 1;
-            let precision = if slot.key.format == Format::F16 {
-                Precision::F16
-            } else {
-                Precision::F32
+            let precision = match slot.key.format {
+                Format::F32 => Precision::F32,
+                Format::F16 => Precision::F16,
+                Format::Q16 => Precision::Q16(slot.entry.qbox),
             };
             let gkey = (
                 slot.key.generation,
-                precision == Precision::F16,
+                slot.key.format,
                 slot.key.normals,
                 slot.entry.prepared.mesh_of(slot.key.lod),
             );
@@ -757,21 +757,20 @@ struct BufferPool {
 const POOL_BUFFERS: usize = 8;
 
 impl BufferPool {
-    /// The largest free buffer of the same kind as `like`, or an empty one.
-    fn take(&self, f16: bool) -> VertexData {
+    /// The largest free buffer of the kind `precision` produces, or an empty one.
+    fn take(&self, precision: Precision) -> VertexData {
         let Ok(mut free) = self.free.lock() else {
             return VertexData::default();
         };
         let best = free
             .iter()
             .enumerate()
-            .filter(|(_, d)| matches!(d, VertexData::F16(_)) == f16)
+            .filter(|(_, d)| d.is_kind(precision))
             .max_by_key(|(_, d)| d.len())
             .map(|(i, _)| i);
         match best {
             Some(i) => free.swap_remove(i),
-            None if f16 => VertexData::F16(Vec::new()),
-            None => VertexData::F32(Vec::new()),
+            None => VertexData::default(),
         }
     }
 
@@ -935,11 +934,11 @@ fn finish_group(
     begun: Begun<'_>,
 ) -> GroupResult {
     // Warm pooled buffers: the CPU engine writes into them (no page faults); the GPU engine
-    // replaces them with its readback.
-    let f16 = group.spec.precision == Precision::F16;
+    // replaces them with its readback. The engine writes the wire format, so the response
+    // shares the buffer's bytes as they are.
     let mut out = BlendOutput {
-        positions: pool.take(f16),
-        normals: group.spec.normals.then(|| pool.take(f16)),
+        positions: pool.take(group.spec.precision),
+        normals: group.spec.normals.then(|| pool.take(group.spec.precision)),
         ..BlendOutput::default()
     };
     let (timings, _) = engine
@@ -954,83 +953,37 @@ fn finish_group(
     let gpu_ns = timings.gpu_ns;
     let v3 = out.vertices * 3;
     let n = group.jobs.len();
-    let comp = match group.spec.precision {
-        Precision::F32 => 4,
-        Precision::F16 => 2,
-    };
-    if out.jobs != n || out.positions.len() != n * v3 {
+    let comp = group.spec.precision.component_bytes();
+    if out.jobs != n
+        || out.positions.len() != n * v3
+        || !out.positions.is_kind(group.spec.precision)
+    {
         return Err(format!(
-            "engine returned {} jobs × {} components for {n} jobs of {v3}",
+            "engine returned {} jobs × {} components for {n} jobs of {v3} in {}",
             out.jobs,
-            out.positions.len()
+            out.positions.len(),
+            group.spec.precision.name()
         ));
     }
-    // q16 jobs are quantized from the f32 output, in parallel over jobs.
-    let quantized: Vec<Option<(Bytes, Option<Bytes>)>> = {
-        use rayon::prelude::*;
-        let qbox = &group.entry.qbox;
-        let f32_of = |d: &VertexData, r: std::ops::Range<usize>| -> Vec<f32> {
-            match d {
-                VertexData::F32(v) => v[r].to_vec(),
-                VertexData::F16(v) => v[r].iter().map(|h| h.to_f32()).collect(),
-            }
-        };
-        group
-            .slots
-            .par_iter()
-            .map(|&(_, format, j)| {
-                (format == Format::Q16).then(|| {
-                    let r = j * v3..(j + 1) * v3;
-                    let mut p = Vec::new();
-                    match &out.positions {
-                        VertexData::F32(v) => quantize_positions(qbox, &v[r.clone()], &mut p),
-                        other => quantize_positions(qbox, &f32_of(other, r.clone()), &mut p),
-                    }
-                    let n = out.normals.as_ref().map(|d| {
-                        let mut b = Vec::new();
-                        match d {
-                            VertexData::F32(v) => quantize_normals(&v[r.clone()], &mut b),
-                            other => quantize_normals(&f32_of(other, r.clone()), &mut b),
-                        }
-                        Bytes::from(b)
-                    });
-                    (Bytes::from(p), n)
-                })
-            })
-            .collect()
-    };
-    let all_q16 = quantized.iter().all(Option::is_some);
     let share = |d: VertexData| {
         Bytes::from_owner(VertexBytes {
             data: d,
             pool: pool.clone(),
         })
     };
-    let (pos_bytes, nrm_bytes) = if all_q16 {
-        pool.put(out.positions);
-        if let Some(n) = out.normals {
-            pool.put(n);
-        }
-        (None, None)
-    } else {
-        (Some(share(out.positions)), out.normals.map(share))
-    };
-    let mut outs = Vec::with_capacity(group.slots.len());
-    for (&(_, _, j), q) in group.slots.iter().zip(quantized) {
-        match q {
-            Some((positions, normals)) => outs.push(JobOutput { positions, normals }),
-            None => {
-                let br = j * v3 * comp..(j + 1) * v3 * comp;
-                outs.push(JobOutput {
-                    positions: pos_bytes
-                        .as_ref()
-                        .map(|b| b.slice(br.clone()))
-                        .unwrap_or_default(),
-                    normals: nrm_bytes.as_ref().map(|b| b.slice(br.clone())),
-                });
+    let pos_bytes = share(out.positions);
+    let nrm_bytes = out.normals.map(share);
+    let outs = group
+        .slots
+        .iter()
+        .map(|&(_, _, j)| {
+            let br = j * v3 * comp..(j + 1) * v3 * comp;
+            JobOutput {
+                positions: pos_bytes.slice(br.clone()),
+                normals: nrm_bytes.as_ref().map(|b| b.slice(br)),
             }
-        }
-    }
+        })
+        .collect();
     Ok((outs, gpu_ns))
 }
 

@@ -154,9 +154,10 @@ async fn two_hundred_clients_get_their_own_correct_frames_and_jobs_coalesce() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn an_f32_and_a_q16_request_for_one_frame_cost_one_blend() {
-    // Both requests wait in one batch; their slots differ only in wire format, and q16 is
-    // quantized from the f32 blend, so the engine computes the frame once.
+async fn an_f32_and_a_q16_request_for_one_frame_share_a_batch_and_each_gets_its_format() {
+    // Both requests wait in one batch; the engine writes each wire format in its kernel's
+    // output stage (no second pass over an f32 buffer), so the batch has one engine call per
+    // format, and both answers are the same blend.
     let server = TestServer::start(ServerConfig {
         batch_delay: Duration::from_millis(300),
         batch_hold_when_idle: true,
@@ -191,9 +192,14 @@ async fn an_f32_and_a_q16_request_for_one_frame_cost_one_blend() {
         "one batch"
     );
     assert_eq!(
+        metric(&page, "crowdmorph_engine_dispatches_total"),
+        Some(2.0),
+        "one engine call per wire format"
+    );
+    assert_eq!(
         metric(&page, "crowdmorph_jobs_computed_total"),
-        Some(1.0),
-        "one blend for both formats"
+        Some(2.0),
+        "the frame once in each format"
     );
     // And both answers are that blend: q16 within its stated error of the f32 one.
     let f = super::positions_f32(Format::F32, &a.buffers[0]);

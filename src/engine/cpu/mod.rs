@@ -6,7 +6,7 @@
 //!   per Eq. 1 over the active slots of each job's LOD;
 //! - [`CpuRig::recompute_normals`] (`face_normals.wgsl`, `vertex_normals.wgsl`): area-weighted normals from the blended
 //!   positions for primitives whose targets carry no normal deltas;
-//! - [`pack_f16`] (`pack_f16.wgsl`): binary16 output.
+//! - the output stage of `blend` (`pack_f16.wgsl` on the GPU): binary16 or q16 output.
 //!
 //! # Layout
 //! Vertices (all primitives concatenated) are cut into tiles of [`LANES`] = 16. For each tile
@@ -20,9 +20,15 @@
 //! (Q = 8 with AVX-512, 2 with AVX2, 4 portable: as many as the registers hold) the 3·Q
 //! accumulators start at the neutral positions and stay in registers while the tile's blocks
 //! stream past: each delta block is loaded once and serves all Q jobs (batch-aware), and a
-//! block whose slot is inactive for the whole group is skipped (Lorach 2007). Each job's 16
-//! vertices are then written contiguously into that job's output, already interleaved as
-//! x, y, z — no transposing pass over the output.
+//! block whose slot is inactive for the whole group is skipped (Lorach 2007); a group's last
+//! jobs go 4, 2 or 1 at a time, so a batch of one job costs one job. The output stage then
+//! takes each tile's sums (parked in L1 once per tile, so the block loop keeps them in
+//! registers) through vector registers: normal blending normalizes them, they are interleaved
+//! as x, y, z, encoded in the wire format (f32, binary16, or q16 in the rig's box) and staged
+//! in L1; each job's part of the chunk is copied out contiguously (streaming stores for outputs
+//! larger than the caches) — no transposing or converting pass over the output. Only when
+//! normals are recomputed from the blended positions are positions blended in f32 and
+//! encoded after the normals pass.
 
 mod simd;
 
@@ -33,8 +39,10 @@ use glam::Vec3;
 use half::f16;
 use rayon::prelude::*;
 
-use self::simd::{Lanes, Portable};
-use super::{BlendOutput, EngineError, OutputSpec, Precision, VertexData, WeightBatch};
+use self::simd::{Lanes, Portable, Q16Pattern};
+use super::{
+    BlendOutput, EngineError, OutputSpec, Precision, Q16Params, Q16Scale, VertexData, WeightBatch,
+};
 use crate::rig::Rig;
 
 /// Jobs whose weights are stored together; kernels take them `Q` at a time (Q divides 8).
@@ -183,35 +191,24 @@ pub struct CpuRig {
     slot_nnz: Vec<usize>,
 }
 
+/// Where a blend pass writes: `jobs × V × 3` components of `elem` bytes each, in the
+/// pass's output format.
 #[derive(Clone, Copy)]
-enum OutPtr {
-    F32(*mut f32),
-    F16(*mut f16),
+struct OutPtr {
+    bytes: *mut u8,
+    elem: usize,
 }
 // SAFETY: work items write disjoint vertex ranges of each job's output; see `blend`.
 unsafe impl Send for OutPtr {}
 // SAFETY: as above.
 unsafe impl Sync for OutPtr {}
 
-/// Where a blend pass writes: an f32 or an f16 buffer of `jobs × V × 3` components.
-enum Dst<'a> {
-    F32(&'a mut [f32]),
-    F16(&'a mut [f16]),
-}
-
-impl Dst<'_> {
-    fn len(&self) -> usize {
-        match self {
-            Dst::F32(v) => v.len(),
-            Dst::F16(v) => v.len(),
-        }
-    }
-    fn ptr(&mut self) -> OutPtr {
-        match self {
-            Dst::F32(v) => OutPtr::F32(v.as_mut_ptr()),
-            Dst::F16(v) => OutPtr::F16(v.as_mut_ptr()),
-        }
-    }
+/// The format a blend pass's output stage writes.
+#[derive(Clone, Copy)]
+enum Format<'a> {
+    F32,
+    F16,
+    Q16(&'a Q16Pattern),
 }
 
 /// The per-batch weights rearranged for the kernel: jobs sorted by LOD, grouped by [`GROUP`].
@@ -222,8 +219,10 @@ struct Groups {
     active: Vec<u8>,
     /// Per group: slots past this are unused by every job of the group.
     end: Vec<u32>,
-    /// Per group: the output job of each lane, or `u32::MAX` for padding.
+    /// Per group: the output job of each lane, or `u32::MAX` for padding (valid jobs first).
     jobs: Vec<[u32; GROUP]>,
+    /// Jobs in the batch.
+    count: usize,
 }
 
 impl Groups {
@@ -239,6 +238,7 @@ impl Groups {
             active: vec![0; n_groups * slots],
             end: vec![0; n_groups],
             jobs: vec![[u32::MAX; GROUP]; n_groups],
+            count: order.len(),
         };
         for (i, &j) in order.iter().enumerate() {
             let (gi, q) = (i / GROUP, i % GROUP);
@@ -356,6 +356,16 @@ impl CpuRig {
             + self.topology.incident.len() * 4
     }
 
+    /// Position blocks of the slots below `shapes`: what the kernel loads per job when every
+    /// one of those slots is active (each block is 48 multiply-adds per job).
+    pub fn blocks_below(&self, shapes: u32) -> usize {
+        self.positions
+            .slot
+            .iter()
+            .filter(|&&s| u32::from(s) < shapes)
+            .count()
+    }
+
     /// Fraction of stored block lanes that hold a real delta (the rest are padding zeros).
     pub fn block_fill(&self) -> f64 {
         let lanes = self.positions.data.len() * LANES;
@@ -402,79 +412,115 @@ impl CpuRig {
         out.jobs = jobs;
         let recompute = spec.normals && !self.topology.vertices.is_empty();
 
-        if spec.precision == Precision::F16 && !recompute {
-            // Direct path: each staged chunk is rounded to binary16 as it is copied out.
-            let mut positions = take_f16(&mut out.positions, len);
-            self.blend(
-                &groups,
-                &self.base_positions,
-                &self.positions,
-                Dst::F16(&mut positions),
-                Flags::POSITIONS,
-            );
-            out.positions = VertexData::F16(positions);
-            out.normals = if spec.normals {
-                let mut n = take_f16(out.normals.get_or_insert_with(VertexData::default), len);
-                self.blend(
-                    &groups,
-                    &self.base_normals,
-                    &self.normals,
-                    Dst::F16(&mut n),
-                    Flags::NORMALS,
-                );
-                Some(VertexData::F16(n))
-            } else {
-                None
+        if recompute {
+            // Normals come from the blended f32 positions: blend in f32 (kept in cache for
+            // the normals pass), recompute, then encode both in the wire format.
+            let mut positions = take_f32(&mut out.positions, len);
+            let mut normals = take_f32(out.normals.get_or_insert_with(VertexData::default), len);
+            let pos = Pass {
+                base: &self.base_positions,
+                blocks: &self.positions,
+                normalize: false,
+                read_next: true,
             };
+            self.blend(&groups, pos, OutPtr::of_f32(&mut positions), Format::F32);
+            // Vertices whose normals are all recomputed need no blended normals first.
+            if self.topology.vertices.len() < self.vertices {
+                let nrm = Pass {
+                    base: &self.base_normals,
+                    blocks: &self.normals,
+                    normalize: true,
+                    read_next: true,
+                };
+                self.blend(&groups, nrm, OutPtr::of_f32(&mut normals), Format::F32);
+            }
+            self.recompute_normals(&positions, &mut normals, jobs);
+            out.positions = VertexData::F32(positions);
+            out.normals = Some(VertexData::F32(normals));
+            out.encode_as(spec);
             return Ok(());
         }
 
-        // f32 path (also used for f16 when normals are recomputed from f32 positions).
-        let mut positions = take_f32(&mut out.positions, len);
-        // Positions that the normals pass reads next must stay in cache (no streaming).
-        let ctx_flags = Flags {
+        // Every other case: the kernel's output stage writes the wire format from registers.
+        let pos = Pass {
+            base: &self.base_positions,
+            blocks: &self.positions,
             normalize: false,
-            read_next: recompute,
+            read_next: false,
         };
-        self.blend(
-            &groups,
-            &self.base_positions,
-            &self.positions,
-            Dst::F32(&mut positions),
-            ctx_flags,
-        );
-        let normals = if spec.normals {
-            let mut n = take_f32(out.normals.get_or_insert_with(VertexData::default), len);
-            // Vertices whose normals are all recomputed need no blended normals first.
-            if self.topology.vertices.len() < self.vertices {
-                self.blend(
-                    &groups,
-                    &self.base_normals,
-                    &self.normals,
-                    Dst::F32(&mut n),
-                    Flags::NORMALS,
-                );
-            }
-            self.recompute_normals(&positions, &mut n, jobs);
-            Some(n)
+        out.positions =
+            self.blend_into(&groups, pos, spec.precision, false, &mut out.positions, len);
+        out.normals = if spec.normals {
+            let nrm = Pass {
+                base: &self.base_normals,
+                blocks: &self.normals,
+                normalize: true,
+                read_next: false,
+            };
+            let mut n = out.normals.take().unwrap_or_default();
+            Some(self.blend_into(&groups, nrm, spec.precision, true, &mut n, len))
         } else {
             None
         };
-        out.positions = finish(positions, spec.precision);
-        out.normals = normals.map(|n| finish(n, spec.precision));
         Ok(())
+    }
+
+    /// Runs one blend pass into `buffer`'s allocation (reused when it is of the same kind),
+    /// encoding in `precision`; `normals` selects the q16 scale of unit normals.
+    fn blend_into(
+        &self,
+        groups: &Groups,
+        pass: Pass<'_>,
+        precision: Precision,
+        normals: bool,
+        buffer: &mut VertexData,
+        len: usize,
+    ) -> VertexData {
+        match precision {
+            Precision::F32 => {
+                let mut v = take_f32(buffer, len);
+                self.blend(groups, pass, OutPtr::of_f32(&mut v), Format::F32);
+                VertexData::F32(v)
+            }
+            Precision::F16 => {
+                let mut v = match std::mem::take(buffer) {
+                    VertexData::F16(v) => v,
+                    _ => Vec::new(),
+                };
+                v.resize(len, f16::ZERO);
+                let out = OutPtr {
+                    bytes: v.as_mut_ptr().cast(),
+                    elem: 2,
+                };
+                self.blend(groups, pass, out, Format::F16);
+                VertexData::F16(v)
+            }
+            Precision::Q16(b) => {
+                let mut v = match std::mem::take(buffer) {
+                    VertexData::Q16(v, _) => v,
+                    _ => Vec::new(),
+                };
+                v.resize(len, 0);
+                let out = OutPtr {
+                    bytes: v.as_mut_ptr().cast(),
+                    elem: 2,
+                };
+                let pattern = Q16Pattern::new(&Q16Params::new(b, normals));
+                self.blend(groups, pass, out, Format::Q16(&pattern));
+                let scale = if normals {
+                    Q16Scale::Unit
+                } else {
+                    Q16Scale::Box(b)
+                };
+                VertexData::Q16(v, scale)
+            }
+        }
     }
 
     /// The `blend` pass: `out[j] = base + Σ_slot w[j][slot] · Δ[slot]` over every tile, for
     /// every job; with `normalize`, each result is scaled to unit length (normal blending).
-    fn blend(
-        &self,
-        groups: &Groups,
-        base: &[Block],
-        blocks: &TileBlocks,
-        mut out: Dst<'_>,
-        flags: Flags,
-    ) {
+    /// `out` must hold `jobs × V × 3` components of the format's size.
+    fn blend(&self, groups: &Groups, pass: Pass<'_>, out: OutPtr, format: Format<'_>) {
         if groups.len() == 0 || self.vertices == 0 {
             return;
         }
@@ -483,33 +529,39 @@ impl CpuRig {
         let want_items = 4 * rayon::current_num_threads();
         let group_chunks = want_items.div_ceil(tile_chunks).clamp(1, groups.len());
         let groups_per_chunk = groups.len().div_ceil(group_chunks);
-        let ptr = out.ptr();
+        let bytes = groups.count * self.vertices * 3 * out.elem;
         let ctx = Ctx {
             rig: self,
             groups,
-            base,
-            blocks,
-            out: ptr,
-            normalize: flags.normalize,
-            stream: !flags.read_next && out.len() * 4 > STREAM_BYTES,
+            base: pass.base,
+            blocks: pass.blocks,
+            out,
+            format,
+            normalize: pass.normalize,
+            stream: !pass.read_next && bytes > STREAM_BYTES,
         };
-        (0..tile_chunks * group_chunks)
-            .into_par_iter()
-            .for_each(|item| {
-                let (tc, gc) = (item % tile_chunks, item / tile_chunks);
-                let tiles = tc * CHUNK_TILES..((tc + 1) * CHUNK_TILES).min(self.tiles);
-                let gs = gc * groups_per_chunk..((gc + 1) * groups_per_chunk).min(groups.len());
-                match self.isa {
-                    #[cfg(target_arch = "x86_64")]
-                    // SAFETY: `Isa::Avx512` is only chosen when the CPU has AVX-512F.
-                    Isa::Avx512 => unsafe { blend_tiles_avx512(&ctx, tiles, gs) },
-                    #[cfg(target_arch = "x86_64")]
-                    // SAFETY: `Isa::Avx2Fma` is only chosen when the CPU has AVX2, FMA and F16C.
-                    Isa::Avx2Fma => unsafe { blend_tiles_avx2(&ctx, tiles, gs) },
-                    // SAFETY: the portable kernel needs no CPU feature.
-                    _ => unsafe { blend_tiles::<Portable, 4>(&ctx, tiles, gs) },
-                }
-            });
+        let run = |item: usize| {
+            let (tc, gc) = (item % tile_chunks, item / tile_chunks);
+            let tiles = tc * CHUNK_TILES..((tc + 1) * CHUNK_TILES).min(self.tiles);
+            let gs = gc * groups_per_chunk..((gc + 1) * groups_per_chunk).min(groups.len());
+            match self.isa {
+                #[cfg(target_arch = "x86_64")]
+                // SAFETY: `Isa::Avx512` is only chosen when the CPU has AVX-512F.
+                Isa::Avx512 => unsafe { blend_tiles_avx512(&ctx, tiles, gs) },
+                #[cfg(target_arch = "x86_64")]
+                // SAFETY: `Isa::Avx2Fma` is only chosen when the CPU has AVX2, FMA and F16C.
+                Isa::Avx2Fma => unsafe { blend_tiles_avx2(&ctx, tiles, gs) },
+                // SAFETY: the portable kernel needs no CPU feature.
+                _ => unsafe { blend_tiles::<Portable, 4>(&ctx, tiles, gs) },
+            }
+        };
+        let items = tile_chunks * group_chunks;
+        if items == 1 {
+            // One unit of work (a small rig, one group): no thread hand-off.
+            run(0);
+        } else {
+            (0..items).into_par_iter().for_each(run);
+        }
     }
 
     /// The `recompute_normals` pass: for vertices of primitives without normal deltas, the
@@ -541,24 +593,24 @@ impl CpuRig {
     }
 }
 
-/// How a blend pass treats its output.
+/// One blend pass: which neutral and deltas, and how its output is used.
 #[derive(Clone, Copy)]
-struct Flags {
+struct Pass<'a> {
+    base: &'a [Block],
+    blocks: &'a TileBlocks,
     /// Scale each result to unit length (normal blending).
     normalize: bool,
     /// Another pass reads the output right away: keep it in cache.
     read_next: bool,
 }
 
-impl Flags {
-    const POSITIONS: Flags = Flags {
-        normalize: false,
-        read_next: false,
-    };
-    const NORMALS: Flags = Flags {
-        normalize: true,
-        read_next: false,
-    };
+impl OutPtr {
+    fn of_f32(v: &mut [f32]) -> OutPtr {
+        OutPtr {
+            bytes: v.as_mut_ptr().cast(),
+            elem: 4,
+        }
+    }
 }
 
 /// Everything a kernel invocation reads.
@@ -568,6 +620,7 @@ struct Ctx<'a> {
     base: &'a [Block],
     blocks: &'a TileBlocks,
     out: OutPtr,
+    format: Format<'a>,
     normalize: bool,
     stream: bool,
 }
@@ -594,101 +647,41 @@ unsafe fn blend_tiles_avx2(
     unsafe { blend_tiles::<simd::Avx2, 2>(ctx, tiles, groups) }
 }
 
-/// The blend kernel over a range of tiles and job groups, `Q` jobs of a group at a time.
+/// The blend kernel over a range of tiles and job groups, at most `QMAX` jobs of a group at a
+/// time (as many as the registers hold; a group's last few jobs go `4`, `2` or `1` at a time,
+/// so that a batch of one job does one job's work).
 ///
 /// # Safety
-/// `L`'s CPU features must be present and `Q` must divide [`GROUP`]. Concurrent calls must
+/// `L`'s CPU features must be present and `QMAX` must be 1, 2, 4 or 8. Concurrent calls must
 /// cover disjoint tile ranges or disjoint group ranges, so that no output component is written
 /// twice.
 #[inline(always)]
-unsafe fn blend_tiles<L: Lanes, const Q: usize>(
+unsafe fn blend_tiles<L: Lanes, const QMAX: usize>(
     ctx: &Ctx<'_>,
     tiles: std::ops::Range<usize>,
     groups: std::ops::Range<usize>,
 ) {
-    let rig = ctx.rig;
-    let slots = rig.slots;
-    let stride = rig.vertices * 3;
-    let blocks = ctx.blocks;
     // Groups outside, tiles inside: only Q output streams are being written at a time, which
     // the hardware prefetchers follow; the chunk's delta blocks stay in L2 between groups.
     // Each job's part of the chunk is staged in L1 and then copied out with streaming stores.
     let mut stage = Stage([[0.0; STAGE]; GROUP]);
-    let first_vertex = tiles.start * LANES;
-    let chunk_floats = (tiles.end * LANES)
-        .min(rig.vertices)
-        .saturating_sub(first_vertex)
-        * 3;
     for g in groups {
-        let weights = &ctx.groups.weights[g * slots * GROUP..(g + 1) * slots * GROUP];
-        let active = &ctx.groups.active[g * slots..(g + 1) * slots];
-        let end = ctx.groups.end[g] as usize;
         let jobs = &ctx.groups.jobs[g];
-        for sub in (0..GROUP).step_by(Q) {
-            if jobs[sub] == u32::MAX {
-                break;
-            }
-            for (t, tile) in tiles.clone().enumerate() {
-                let base = &ctx.base[tile];
-                let first = blocks.tile_start[tile] as usize;
-                let last = blocks.tile_start[tile + 1] as usize;
-                let tile_slots = &blocks.slot[first..last];
-                let tile_data = &blocks.data[first..last];
-                let n_valid = (rig.vertices - tile * LANES).min(LANES);
-                // SAFETY (whole block): `L`'s features are present (caller); `Block` is 64-byte
-                // aligned, so its x, y, z arrays are too; the stage holds CHUNK_TILES tiles.
-                unsafe {
-                    let bx = L::load(base.x.as_ptr());
-                    let by = L::load(base.y.as_ptr());
-                    let bz = L::load(base.z.as_ptr());
-                    let mut acc = [[bx, by, bz]; Q];
-                    for (&s, d) in tile_slots.iter().zip(tile_data) {
-                        let s = s as usize;
-                        if s >= end {
-                            break;
-                        }
-                        if active[s] == 0 {
-                            continue;
-                        }
-                        let dx = L::load(d.x.as_ptr());
-                        let dy = L::load(d.y.as_ptr());
-                        let dz = L::load(d.z.as_ptr());
-                        let w = &weights[s * GROUP + sub..s * GROUP + sub + Q];
-                        for (a, &wq) in acc.iter_mut().zip(w) {
-                            let wq = L::splat(wq);
-                            a[0] = L::mul_add(wq, dx, a[0]);
-                            a[1] = L::mul_add(wq, dy, a[1]);
-                            a[2] = L::mul_add(wq, dz, a[2]);
-                        }
-                    }
-                    for (a, st) in acc.iter().zip(stage.0.iter_mut()) {
-                        let dst = st.as_mut_ptr().add(t * LANES * 3);
-                        L::store_xyz(a[0], a[1], a[2], dst, n_valid);
-                    }
-                }
-            }
-            for (q, &job) in jobs[sub..sub + Q].iter().enumerate() {
-                if job == u32::MAX {
-                    continue;
-                }
-                let staged = &mut stage.0[q][..chunk_floats];
-                if ctx.normalize {
-                    normalize_in_place(staged);
-                }
-                // SAFETY: the job's range of this chunk is inside the output and written by this
-                // invocation only; the stage is a separate buffer.
-                unsafe {
-                    let at = job as usize * stride + first_vertex * 3;
-                    match ctx.out {
-                        OutPtr::F32(p) if ctx.stream => {
-                            L::copy_out(p.add(at), staged.as_ptr(), chunk_floats)
-                        }
-                        OutPtr::F32(p) => {
-                            std::ptr::copy_nonoverlapping(staged.as_ptr(), p.add(at), chunk_floats)
-                        }
-                        OutPtr::F16(p) => L::copy_out_f16(p.add(at), staged.as_ptr(), chunk_floats),
-                    }
-                }
+        let valid = jobs.iter().take_while(|&&j| j != u32::MAX).count();
+        let mut sub = 0;
+        while sub < valid {
+            let left = valid - sub;
+            // SAFETY: forwarded from the caller; `sub + Q <= valid <= GROUP`.
+            unsafe {
+                sub += if QMAX >= 8 && left >= 8 {
+                    blend_sub::<L, 8>(ctx, tiles.clone(), g, sub, &mut stage)
+                } else if QMAX >= 4 && left >= 4 {
+                    blend_sub::<L, 4>(ctx, tiles.clone(), g, sub, &mut stage)
+                } else if QMAX >= 2 && left >= 2 {
+                    blend_sub::<L, 2>(ctx, tiles.clone(), g, sub, &mut stage)
+                } else {
+                    blend_sub::<L, 1>(ctx, tiles.clone(), g, sub, &mut stage)
+                };
             }
         }
     }
@@ -696,58 +689,201 @@ unsafe fn blend_tiles<L: Lanes, const Q: usize>(
     unsafe { L::fence() };
 }
 
+/// Jobs `sub..sub + Q` of group `g` over `tiles`: accumulate in registers, then the output
+/// stage (normalize, interleave, encode) into the stage, then copy each job's part of the
+/// chunk out. Returns `Q`.
+///
+/// Every job's sum runs over the same blocks in the same order whatever `Q` is, so a job and
+/// its clone come out bitwise identical wherever they fall in a batch.
+///
+/// # Safety
+/// As [`blend_tiles`]; `sub + Q` must not pass the group's valid jobs.
+#[inline(always)]
+unsafe fn blend_sub<L: Lanes, const Q: usize>(
+    ctx: &Ctx<'_>,
+    tiles: std::ops::Range<usize>,
+    g: usize,
+    sub: usize,
+    stage: &mut Stage,
+) -> usize {
+    let rig = ctx.rig;
+    let slots = rig.slots;
+    let blocks = ctx.blocks;
+    let weights = &ctx.groups.weights[g * slots * GROUP..(g + 1) * slots * GROUP];
+    let active = &ctx.groups.active[g * slots..(g + 1) * slots];
+    let end = ctx.groups.end[g] as usize;
+    let jobs = &ctx.groups.jobs[g][sub..sub + Q];
+    let first_vertex = tiles.start * LANES;
+    let chunk_floats = (tiles.end * LANES)
+        .min(rig.vertices)
+        .saturating_sub(first_vertex)
+        * 3;
+    let mut park = Park([[0.0; 3 * LANES]; GROUP]);
+    for (t, tile) in tiles.enumerate() {
+        let base = &ctx.base[tile];
+        let first = blocks.tile_start[tile] as usize;
+        let last = blocks.tile_start[tile + 1] as usize;
+        let tile_slots = &blocks.slot[first..last];
+        let tile_data = &blocks.data[first..last];
+        // SAFETY (whole block): `L`'s features are present (caller); `Block` is 64-byte
+        // aligned, so its x, y, z arrays are too; the stage holds CHUNK_TILES whole tiles of
+        // 48 components (a rig's last, partial tile included: the lanes past its vertices
+        // are computed from zeros and never copied out).
+        unsafe {
+            let bx = L::load(base.x.as_ptr());
+            let by = L::load(base.y.as_ptr());
+            let bz = L::load(base.z.as_ptr());
+            let mut acc = [[bx, by, bz]; Q];
+            for (&s, d) in tile_slots.iter().zip(tile_data) {
+                let s = s as usize;
+                if s >= end {
+                    break;
+                }
+                if active[s] == 0 {
+                    continue;
+                }
+                let dx = L::load(d.x.as_ptr());
+                let dy = L::load(d.y.as_ptr());
+                let dz = L::load(d.z.as_ptr());
+                let w = &weights[s * GROUP + sub..s * GROUP + sub + Q];
+                for (a, &wq) in acc.iter_mut().zip(w) {
+                    let wq = L::splat(wq);
+                    a[0] = L::mul_add(wq, dx, a[0]);
+                    a[1] = L::mul_add(wq, dy, a[1]);
+                    a[2] = L::mul_add(wq, dz, a[2]);
+                }
+            }
+            // Park the accumulators in L1 (three stores per job, a loop small enough to be
+            // unrolled): indexing `acc` in the larger output stage below would keep it in
+            // memory, and the hot loop above would store every sum on each block.
+            for (a, p) in acc.iter().zip(park.0.iter_mut()) {
+                for (c, v) in a.iter().enumerate() {
+                    L::store(*v, p.as_mut_ptr().add(c * LANES));
+                }
+            }
+            for (p, st) in park.0.iter().zip(stage.0.iter_mut()).take(Q) {
+                let mut x = L::load(p.as_ptr());
+                let mut y = L::load(p.as_ptr().add(LANES));
+                let mut z = L::load(p.as_ptr().add(2 * LANES));
+                if ctx.normalize {
+                    (x, y, z) = L::normalize(x, y, z);
+                }
+                let r = L::interleave(x, y, z);
+                let at = t * LANES * 3;
+                match ctx.format {
+                    Format::F32 => {
+                        let dst = st.as_mut_ptr().add(at);
+                        for (k, v) in r.into_iter().enumerate() {
+                            L::store(v, dst.add(LANES * k));
+                        }
+                    }
+                    Format::F16 => {
+                        let dst = st.as_mut_ptr().cast::<u16>().add(at);
+                        for (k, v) in r.into_iter().enumerate() {
+                            L::store_f16(v, dst.add(LANES * k));
+                        }
+                    }
+                    Format::Q16(p) => {
+                        let dst = st.as_mut_ptr().cast::<i16>().add(at);
+                        for (k, v) in r.into_iter().enumerate() {
+                            L::store_q16(v, p, LANES * k, dst.add(LANES * k));
+                        }
+                    }
+                }
+            }
+        }
+    }
+    let elem = ctx.out.elem;
+    let stride = rig.vertices * 3;
+    for (&job, st) in jobs.iter().zip(stage.0.iter()) {
+        let n = chunk_floats * elem;
+        // SAFETY: the job's range of this chunk is inside the output and written by this
+        // invocation only; the stage is a separate buffer of at least `n` bytes.
+        unsafe {
+            let at = (job as usize * stride + first_vertex * 3) * elem;
+            let dst = ctx.out.bytes.add(at);
+            let src = st.as_ptr().cast::<u8>();
+            if ctx.stream {
+                L::copy_out(dst, src, n);
+            } else {
+                std::ptr::copy_nonoverlapping(src, dst, n);
+            }
+        }
+    }
+    Q
+}
+
+/// Runs `iterations` rounds of independent multiply-adds in registers with `isa`'s kernels on
+/// the calling thread and returns the floating-point operations done (2 per lane per
+/// multiply-add): the machine's FMA peak, for the roofline of `bench cpu`.
+pub fn fma_probe(isa: Isa, iterations: usize) -> u64 {
+    match isa {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: `Isa::Avx512` is only offered when the CPU has AVX-512F.
+        Isa::Avx512 => unsafe { fma_probe_avx512(iterations) },
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: `Isa::Avx2Fma` is only offered when the CPU has AVX2, FMA and F16C.
+        Isa::Avx2Fma => unsafe { fma_probe_avx2(iterations) },
+        // SAFETY: the portable lanes need no CPU feature.
+        _ => unsafe { fma_chains::<Portable, 4>(iterations) },
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn fma_probe_avx512(iterations: usize) -> u64 {
+    // SAFETY: AVX-512F is present (caller).
+    unsafe { fma_chains::<simd::Avx512, 12>(iterations) }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma,f16c")]
+unsafe fn fma_probe_avx2(iterations: usize) -> u64 {
+    // SAFETY: AVX2, FMA and F16C are present (caller).
+    unsafe { fma_chains::<simd::Avx2, 6>(iterations) }
+}
+
+/// `C` independent multiply-add chains (enough to hide the latency, few enough to stay in
+/// registers).
+///
+/// # Safety
+/// `L`'s CPU features must be present.
+#[inline(always)]
+unsafe fn fma_chains<L: Lanes, const C: usize>(iterations: usize) -> u64 {
+    // SAFETY: forwarded from the caller.
+    unsafe {
+        let m = L::splat(std::hint::black_box(0.999_999));
+        let c = L::splat(std::hint::black_box(1e-7));
+        let mut acc = [L::splat(1.0); C];
+        for _ in 0..iterations {
+            for a in &mut acc {
+                *a = L::mul_add(*a, m, c);
+            }
+        }
+        std::hint::black_box(&acc);
+    }
+    (iterations * C * LANES * 2) as u64
+}
+
+/// One tile's accumulators per job (x[16], y[16], z[16]), between the sums and the output
+/// stage.
+#[repr(C, align(64))]
+struct Park([[f32; 3 * LANES]; GROUP]);
+
 /// Floats of one job's part of a chunk.
 const STAGE: usize = CHUNK_TILES * LANES * 3;
 
-/// Per-job staging of a chunk's output, aligned for vector stores.
+/// Per-job staging of a chunk's output, aligned for vector stores; 16-bit formats use the
+/// first half of each job's bytes.
 #[repr(C, align(64))]
 struct Stage([[f32; STAGE]; GROUP]);
-
-/// Scales each xyz triple to unit length (zero stays zero).
-#[inline(never)]
-fn normalize_in_place(v: &mut [f32]) {
-    for n in v.chunks_exact_mut(3) {
-        let len2 = n[0] * n[0] + n[1] * n[1] + n[2] * n[2];
-        let inv = if len2 > 0.0 { len2.sqrt().recip() } else { 0.0 };
-        n[0] *= inv;
-        n[1] *= inv;
-        n[2] *= inv;
-    }
-}
 
 /// Takes the f32 buffer out of `data` (reusing its allocation) and sizes it to `len`.
 fn take_f32(data: &mut VertexData, len: usize) -> Vec<f32> {
     let mut v = match std::mem::take(data) {
         VertexData::F32(v) => v,
-        VertexData::F16(_) => Vec::new(),
+        _ => Vec::new(),
     };
     v.resize(len, 0.0);
     v
-}
-
-/// Takes the f16 buffer out of `data` (reusing its allocation) and sizes it to `len`.
-fn take_f16(data: &mut VertexData, len: usize) -> Vec<f16> {
-    let mut v = match std::mem::take(data) {
-        VertexData::F16(v) => v,
-        VertexData::F32(_) => Vec::new(),
-    };
-    v.resize(len, f16::ZERO);
-    v
-}
-
-fn finish(v: Vec<f32>, precision: Precision) -> VertexData {
-    match precision {
-        Precision::F32 => VertexData::F32(v),
-        Precision::F16 => VertexData::F16(pack_f16(&v)),
-    }
-}
-
-/// The `pack_f16` pass: round to nearest binary16, in parallel.
-pub fn pack_f16(v: &[f32]) -> Vec<f16> {
-    use half::slice::HalfFloatSliceExt;
-    let mut out = vec![f16::ZERO; v.len()];
-    out.par_chunks_mut(1 << 16)
-        .zip(v.par_chunks(1 << 16))
-        .for_each(|(o, i)| o.convert_from_f32_slice(i));
-    out
 }

@@ -1325,8 +1325,9 @@ impl Pending<'_> {
             .get_mapped_range(0..self.staged)
             .map_err(|e| GpuError::Internal(e.to_string()))?;
         let read = |region_of: &dyn Fn(&Region) -> u64| -> VertexData {
+            // q16 is read back in f32: the engine facade encodes it on the host.
             match self.spec.precision {
-                Precision::F32 => {
+                Precision::F32 | Precision::Q16(_) => {
                     let mut v = vec![0f32; comps];
                     for r in &self.regions {
                         let dst = &mut v[r.job * per_job..(r.job + r.jobs) * per_job];
