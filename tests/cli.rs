@@ -613,6 +613,7 @@ fn bench_http_reports_plausible_json() {
         "http_cpu_s_per_request",
         "ceiling_heads_per_s",
         "http_fraction_of_ceiling",
+        "http_cpu_fraction_of_ceiling",
     ] {
         let v = f64_of(&r, key);
         assert!(v.is_finite() && v > 0.0, "{key} = {v}");
@@ -634,12 +635,9 @@ fn bench_http_reports_plausible_json() {
     );
     assert!((f64_of(&r, "http_fraction_of_ceiling") - http / ceiling).abs() < 1e-9);
     // The socket copies' CPU per response is the per-byte cost times the response bytes.
-    let per_response = f64_of(&r, "socket_cpu_s_per_byte")
-        * f64_of(&r, "response_bytes_per_head")
-        * 10.0;
-    assert!(
-        (f64_of(&r, "socket_cpu_s_per_response") - per_response).abs() <= per_response * 1e-9
-    );
+    let per_response =
+        f64_of(&r, "socket_cpu_s_per_byte") * f64_of(&r, "response_bytes_per_head") * 10.0;
+    assert!((f64_of(&r, "socket_cpu_s_per_response") - per_response).abs() <= per_response * 1e-9);
     assert_eq!(r["saturation_errors"], 0);
     assert_eq!(r["half_load_errors"], 0);
     assert!(f64_of(&r, "half_load_p99_ms") >= f64_of(&r, "half_load_p50_ms"));
