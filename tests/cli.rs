@@ -658,10 +658,37 @@ fn bench_http_reports_plausible_json() {
         "response_bytes_per_head",
         "saturation_p50_ms",
         "half_load_p50_ms",
+        "engine_cpu_s_per_request",
+        "socket_cpu_s_per_byte",
+        "socket_cpu_s_per_response",
+        "http_cpu_s_per_request",
+        "ceiling_heads_per_s",
+        "http_fraction_of_ceiling",
+        "http_cpu_fraction_of_ceiling",
     ] {
         let v = f64_of(&r, key);
         assert!(v.is_finite() && v > 0.0, "{key} = {v}");
     }
+    // The ceiling is what any server could reach from the CPU the engine and the socket copies
+    // cost: HTTP, which pays both plus HTTP itself, cannot be far above it, and it is built
+    // from its parts as documented.
+    let ceiling = f64_of(&r, "ceiling_heads_per_s");
+    let http = f64_of(&r, "http_heads_per_s");
+    assert!(ceiling >= http * 0.5, "ceiling {ceiling} vs HTTP {http}");
+    let cores = usize_of(&r, "cores");
+    assert!(cores >= 1);
+    let per_request =
+        f64_of(&r, "socket_cpu_s_per_response") + f64_of(&r, "engine_cpu_s_per_request");
+    let expected = cores as f64 / per_request * 10.0;
+    assert!(
+        (ceiling - expected).abs() <= expected * 1e-9,
+        "ceiling {ceiling} vs {expected}"
+    );
+    assert!((f64_of(&r, "http_fraction_of_ceiling") - http / ceiling).abs() < 1e-9);
+    // The socket copies' CPU per response is the per-byte cost times the response bytes.
+    let per_response =
+        f64_of(&r, "socket_cpu_s_per_byte") * f64_of(&r, "response_bytes_per_head") * 10.0;
+    assert!((f64_of(&r, "socket_cpu_s_per_response") - per_response).abs() <= per_response * 1e-9);
     assert_eq!(r["saturation_errors"], 0);
     assert_eq!(r["half_load_errors"], 0);
     assert!(f64_of(&r, "half_load_p99_ms") >= f64_of(&r, "half_load_p50_ms"));

@@ -14,6 +14,14 @@
 //!   possible from the server on the same machine), heads per second.
 //! - Half load: requests arrive at a fixed rate of half the saturated request rate (open
 //!   loop), latency percentiles from an HDR histogram.
+//! - Ceiling: what any server could reach on this machine, from CPU costs measured in the
+//!   same run. The copies into and out of a loopback socket cost about as much CPU as the
+//!   blend itself, so bandwidth is not the limit: CPU is. The ceiling is
+//!   `cores / (socket CPU per response + engine CPU per request) × heads per request`, where
+//!   the socket CPU is measured by moving response-sized messages through plain loopback TCP
+//!   between writer and reader threads (process CPU time from `getrusage`), and the engine CPU
+//!   per request comes from the in-process run. The client's own decoding is not counted, as
+//!   the saturation client does not decode.
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -149,6 +157,26 @@ pub struct HttpBenchReport {
     pub loopback_roofline_heads_per_s: f64,
     /// `http_heads_per_s / loopback_roofline_heads_per_s`.
     pub http_fraction_of_loopback: f64,
+    /// Logical cores of this machine (the CPU the server and its clients share).
+    pub cores: usize,
+    /// Process CPU seconds (user + system) the in-process run spent per crowd request.
+    pub engine_cpu_s_per_request: f64,
+    /// Process CPU seconds per byte moved through plain loopback TCP (writer and reader
+    /// threads, response-sized messages, as many connections as the saturation run).
+    pub socket_cpu_s_per_byte: f64,
+    /// `socket_cpu_s_per_byte × response bytes per request`: the copies' CPU per response.
+    pub socket_cpu_s_per_response: f64,
+    /// Process CPU seconds per request during the HTTP saturation run (server and client).
+    pub http_cpu_s_per_request: f64,
+    /// `cores / (socket_cpu_s_per_response + engine_cpu_s_per_request) × heads`: the most
+    /// heads per second any server can hand to clients on this machine for this format.
+    pub ceiling_heads_per_s: f64,
+    /// `http_heads_per_s / ceiling_heads_per_s` (goal ≥ 0.85). This assumes the run had every
+    /// core to itself: on a machine shared with other work it understates the server.
+    pub http_fraction_of_ceiling: f64,
+    /// `(socket_cpu_s_per_response + engine_cpu_s_per_request) / http_cpu_s_per_request`: the
+    /// same comparison in CPU per request, which other load on the machine barely moves.
+    pub http_cpu_fraction_of_ceiling: f64,
     /// Requests that failed during the saturation run.
     pub saturation_errors: u64,
     /// Latency percentiles at saturation, ms.
@@ -270,6 +298,80 @@ async fn loopback_throughput(connections: usize, seconds: f64) -> Result<f64> {
     Ok(total as f64 / elapsed)
 }
 
+/// CPU seconds (user + system) this process has used so far, all threads together.
+fn process_cpu_s() -> f64 {
+    // SAFETY: `getrusage` only writes into the zeroed struct it is given.
+    let usage = unsafe {
+        let mut u: libc::rusage = std::mem::zeroed();
+        if libc::getrusage(libc::RUSAGE_SELF, &mut u) != 0 {
+            return 0.0;
+        }
+        u
+    };
+    let tv = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+    tv(usage.ru_utime) + tv(usage.ru_stime)
+}
+
+/// CPU seconds per byte this process spends moving `message` byte messages through
+/// `connections` plain loopback TCP connections for about `seconds`: one writer and one
+/// reader thread per connection, each message written whole and read whole into a reused
+/// buffer, as a server writes a response and a client reads it. Returns
+/// `(cpu seconds per byte, bytes per wall second)`.
+fn socket_cpu_per_byte(connections: usize, message: usize, seconds: f64) -> Result<(f64, f64)> {
+    use std::io::{Read, Write};
+    let listener = std::net::TcpListener::bind("127.0.0.1:0")?;
+    let addr = listener.local_addr()?;
+    let n = connections.max(1);
+    let message = message.max(1);
+    let deadline = Instant::now() + Duration::from_secs_f64(seconds);
+    let cpu0 = process_cpu_s();
+    let start = Instant::now();
+    let total = std::thread::scope(|scope| -> Result<usize> {
+        let mut readers = Vec::new();
+        let mut writers = Vec::new();
+        for _ in 0..n {
+            let mut rx = std::net::TcpStream::connect(addr)?;
+            let (mut tx, _) = listener.accept()?;
+            tx.set_nodelay(true)?;
+            writers.push(scope.spawn(move || -> Result<()> {
+                let chunk = vec![7u8; message];
+                while Instant::now() < deadline {
+                    tx.write_all(&chunk)?;
+                }
+                Ok(())
+            }));
+            readers.push(scope.spawn(move || -> Result<usize> {
+                let mut buf = vec![0u8; message];
+                let mut total = 0usize;
+                loop {
+                    let got = rx.read(&mut buf)?;
+                    if got == 0 {
+                        return Ok(total);
+                    }
+                    total += got;
+                }
+            }));
+        }
+        for w in writers {
+            w.join()
+                .map_err(|_| anyhow::anyhow!("socket writer panicked"))??;
+        }
+        let mut total = 0usize;
+        for r in readers {
+            total += r
+                .join()
+                .map_err(|_| anyhow::anyhow!("socket reader panicked"))??;
+        }
+        Ok(total)
+    })?;
+    let wall = start.elapsed().as_secs_f64();
+    let cpu = process_cpu_s() - cpu0;
+    if total == 0 {
+        bail!("no bytes moved through the loopback socket");
+    }
+    Ok((cpu / total as f64, total as f64 / wall))
+}
+
 fn pct(h: &Histogram<u64>, q: f64) -> f64 {
     h.value_at_quantile(q) as f64 / 1000.0
 }
@@ -379,7 +481,7 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
     };
     let inproc = tokio::task::spawn_blocking({
         let opt = opt.clone();
-        move || -> Result<(f64, f64)> {
+        move || -> Result<(f64, f64, f64)> {
             let mut out = crate::engine::BlendOutput::default();
             let mut one = |i: u64| -> Result<()> {
                 let base = i as usize * opt.unique;
@@ -398,6 +500,7 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
             for i in 0..3 {
                 one(i)?;
             }
+            let cpu0 = process_cpu_s();
             let start = Instant::now();
             let mut n = 0u64;
             while start.elapsed().as_secs_f64() < opt.seconds || n < 5 {
@@ -405,7 +508,12 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
                 n += 1;
             }
             let s = start.elapsed().as_secs_f64();
-            Ok(((n as usize * opt.heads) as f64 / s, s * 1e3 / n as f64))
+            let cpu = process_cpu_s() - cpu0;
+            Ok((
+                (n as usize * opt.heads) as f64 / s,
+                s * 1e3 / n as f64,
+                cpu / n as f64,
+            ))
         }
     })
     .await??;
@@ -456,11 +564,17 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
             anyhow::Ok(hist)
         }));
     }
+    // Process CPU over the measured window (after the warm-up; the few requests in flight at
+    // its edges make this approximate).
+    tokio::time::sleep_until(tokio::time::Instant::from_std(warm_until)).await;
+    let sat_cpu0 = process_cpu_s();
     let mut sat = Histogram::<u64>::new_with_bounds(1, 600_000_000, 3)?;
     for t in tasks {
         sat.add(t.await??)?;
     }
+    let sat_cpu = process_cpu_s() - sat_cpu0;
     let http_heads_per_s = counter.load(Ordering::Relaxed) as f64 / opt.seconds;
+    let http_requests = (counter.load(Ordering::Relaxed) / opt.heads.max(1) as u64).max(1);
     let loopback_bytes_per_s = loopback_throughput(opt.clients, opt.seconds.min(2.0)).await?;
     let response_bytes_per_head = {
         let req = crowd(opt, &rig_id, 1, opt.format, false);
@@ -468,6 +582,17 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
         b as f64 / opt.heads as f64
     };
     let loopback_roofline_heads_per_s = loopback_bytes_per_s / response_bytes_per_head;
+    // The copies' CPU, measured with response-sized messages on plain threads while the
+    // server is idle.
+    let response_bytes = response_bytes_per_head * opt.heads as f64;
+    let (socket_cpu_s_per_byte, _) = {
+        let (clients, message, secs) = (opt.clients, response_bytes as usize, opt.seconds.min(2.0));
+        tokio::task::spawn_blocking(move || socket_cpu_per_byte(clients, message, secs)).await??
+    };
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let socket_cpu_s_per_response = socket_cpu_s_per_byte * response_bytes;
+    let ceiling_heads_per_s =
+        cores as f64 / (socket_cpu_s_per_response + inproc.2) * opt.heads as f64;
 
     // Half load: open loop at half the saturated request rate.
     let rate = (http_heads_per_s / opt.heads as f64 / 2.0).max(0.5);
@@ -535,6 +660,15 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
         response_bytes_per_head,
         loopback_roofline_heads_per_s,
         http_fraction_of_loopback: http_heads_per_s / loopback_roofline_heads_per_s,
+        cores,
+        engine_cpu_s_per_request: inproc.2,
+        socket_cpu_s_per_byte,
+        socket_cpu_s_per_response,
+        http_cpu_s_per_request: sat_cpu / http_requests as f64,
+        ceiling_heads_per_s,
+        http_fraction_of_ceiling: http_heads_per_s / ceiling_heads_per_s,
+        http_cpu_fraction_of_ceiling: (socket_cpu_s_per_response + inproc.2)
+            / (sat_cpu / http_requests as f64),
         saturation_errors: errors.load(Ordering::Relaxed),
         saturation_p50_ms: pct(&sat, 0.5),
         saturation_p99_ms: pct(&sat, 0.99),
@@ -580,6 +714,16 @@ pub fn report_text(r: &HttpBenchReport) -> String {
         r.loopback_bytes_per_s / 1e9,
         r.response_bytes_per_head,
         r.http_fraction_of_loopback * 100.0
+    );
+    s += &format!(
+        "  ceiling         {:>10.0} heads/s  = {} cores ÷ ({:.3} ms socket copies per response + {:.3} ms engine per request); HTTP reaches {:.0} % of it (goal ≥ 85 %)\n                               HTTP spends {:.3} ms CPU per request (server and client): {:.0} % of the ceiling's CPU efficiency\n",
+        r.ceiling_heads_per_s,
+        r.cores,
+        r.socket_cpu_s_per_response * 1e3,
+        r.engine_cpu_s_per_request * 1e3,
+        r.http_fraction_of_ceiling * 100.0,
+        r.http_cpu_s_per_request * 1e3,
+        r.http_cpu_fraction_of_ceiling * 100.0
     );
     s += &format!(
         "  HTTP half load  {:>10.1} requests/s: p50 {:.2} ms, p99 {:.2} ms, p99/p50 = {:.2} (goal ≤ 3), {} errors\n",
