@@ -388,6 +388,58 @@ pub fn bench_http(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<
     runtime.block_on(run(rig_bytes, opt))
 }
 
+/// A server started in this process on a loopback port for a benchmark, with its rig.
+pub(super) struct BenchServer {
+    /// The server's state.
+    pub state: AppState,
+    /// Where it listens.
+    pub addr: std::net::SocketAddr,
+    /// A client of it.
+    pub client: Client,
+    /// The rig to measure: the uploaded one, else the embedded head.
+    pub rig_id: String,
+    /// Stops the server.
+    pub stop_tx: tokio::sync::oneshot::Sender<()>,
+    /// The serving task.
+    pub server: tokio::task::JoinHandle<Result<(), super::ServerError>>,
+}
+
+impl BenchServer {
+    /// Starts a server with `config` and uploads `rig_bytes` as rig `bench` when given.
+    pub(super) async fn start(
+        config: ServerConfig,
+        rig_bytes: Option<Vec<u8>>,
+    ) -> Result<BenchServer> {
+        let state = AppState::new(config)?;
+        state.load_stored().await;
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
+        let addr = listener.local_addr()?;
+        let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+        let server = tokio::spawn(super::serve(listener, state.clone(), async {
+            let _ = stop_rx.await;
+        }));
+        let client = Client::new(format!("http://{addr}"));
+        let rig_id = match rig_bytes {
+            Some(b) => {
+                client
+                    .upload_rig("bench", Bytes::from(b))
+                    .await
+                    .context("uploading the rig")?
+                    .id
+            }
+            None => super::registry::BUILTIN_ID.to_string(),
+        };
+        Ok(BenchServer {
+            state,
+            addr,
+            client,
+            rig_id,
+            stop_tx,
+            server,
+        })
+    }
+}
+
 async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpBenchReport> {
     let config = ServerConfig {
         max_heads: opt.heads.max(1000),
@@ -400,27 +452,14 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
         render_backend: super::RenderBackend::Off,
         ..ServerConfig::default()
     };
-    let state = AppState::new(config)?;
-    state.load_stored().await;
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
-    let addr = listener.local_addr()?;
-    let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
-    let server_state = state.clone();
-    let server = tokio::spawn(super::serve(listener, server_state, async {
-        let _ = stop_rx.await;
-    }));
-    let client = Client::new(format!("http://{addr}"));
-
-    let rig_id = match rig_bytes {
-        Some(b) => {
-            client
-                .upload_rig("bench", Bytes::from(b))
-                .await
-                .context("uploading the rig")?
-                .id
-        }
-        None => super::registry::BUILTIN_ID.to_string(),
-    };
+    let BenchServer {
+        state,
+        client,
+        rig_id,
+        stop_tx,
+        server,
+        ..
+    } = BenchServer::start(config, rig_bytes).await?;
     let entry = state
         .registry
         .get(&rig_id)

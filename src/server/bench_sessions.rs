@@ -18,12 +18,11 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use bytes::Bytes;
-use crowdmorph_client::Client;
 use crowdmorph_proto::{Format, SessionInfo};
 use futures_util::{SinkExt, StreamExt};
 use serde::Serialize;
 
-use super::{AppState, ServerConfig};
+use super::ServerConfig;
 use crate::engine::BackendChoice;
 
 /// What to measure.
@@ -138,25 +137,14 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &SessionBenchOptions) -> Result<Se
         },
         ..ServerConfig::default()
     };
-    let state = AppState::new(config)?;
-    state.load_stored().await;
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
-    let addr = listener.local_addr()?;
-    let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
-    let server = tokio::spawn(super::serve(listener, state.clone(), async {
-        let _ = stop_rx.await;
-    }));
-    let client = Client::new(format!("http://{addr}"));
-    let rig_id = match rig_bytes {
-        Some(b) => {
-            client
-                .upload_rig("bench", Bytes::from(b))
-                .await
-                .context("uploading the rig")?
-                .id
-        }
-        None => super::registry::BUILTIN_ID.to_string(),
-    };
+    let super::bench::BenchServer {
+        addr,
+        client,
+        rig_id,
+        stop_tx,
+        server,
+        ..
+    } = super::bench::BenchServer::start(config, rig_bytes).await?;
     let info = client.rig(&rig_id).await.context("reading the rig")?;
     if info.clips.is_empty() {
         bail!("rig {rig_id:?} has no clips to play");
