@@ -661,6 +661,7 @@ fn run_serve(a: ServeArgs) -> Result<()> {
             max_heads: usize::try_from(a.max_session_heads).unwrap_or(usize::MAX),
             max_viewers: usize::try_from(a.max_session_viewers).unwrap_or(usize::MAX),
             max_viewer_messages: a.max_viewer_messages,
+            ..server::sessions::SessionLimits::default()
         },
         loadtest_max_duration: std::time::Duration::from_secs(a.loadtest_max_duration_s),
         loadtest_max_rate: a.loadtest_max_rate,

@@ -66,6 +66,8 @@ pub struct SessionLimits {
     pub max_viewers: usize,
     /// Messages per second a viewer may send (camera and LOD updates), averaged over a second.
     pub max_viewer_messages: u32,
+    /// How long a viewer has to send its hello before it is closed with 1008.
+    pub hello_timeout: Duration,
 }
 
 impl Default for SessionLimits {
@@ -75,14 +77,13 @@ impl Default for SessionLimits {
             max_heads: 10_000,
             max_viewers: 32,
             max_viewer_messages: 60,
+            hello_timeout: Duration::from_secs(10),
         }
     }
 }
 
 /// Largest text message a viewer may send.
 pub const MAX_VIEWER_MESSAGE_BYTES: usize = 64 << 10;
-/// How long a viewer has to send its hello.
-const HELLO_TIMEOUT: Duration = Duration::from_secs(10);
 /// How long a close frame may take to go out before the socket is dropped.
 const CLOSE_TIMEOUT: Duration = Duration::from_secs(1);
 /// Highest tick rate.
@@ -690,9 +691,17 @@ async fn close_with(socket: &mut WebSocket, code: u16, reason: &str) {
 }
 
 /// Reads the hello; `Err` is the close code and reason.
-async fn read_hello(socket: &mut WebSocket) -> Result<ViewerSettings, (u16, String)> {
-    let msg = match tokio::time::timeout(HELLO_TIMEOUT, socket.recv()).await {
-        Err(_) => return Err((close::POLICY, "no hello within 10 s".into())),
+async fn read_hello(
+    socket: &mut WebSocket,
+    timeout: Duration,
+) -> Result<ViewerSettings, (u16, String)> {
+    let msg = match tokio::time::timeout(timeout, socket.recv()).await {
+        Err(_) => {
+            return Err((
+                close::POLICY,
+                format!("no hello within {:.1} s", timeout.as_secs_f64()),
+            ));
+        }
         Ok(None) => return Err((close::NORMAL, String::new())),
         Ok(Some(Err(e))) => return Err(socket_error(&e)),
         Ok(Some(Ok(m))) => m,
@@ -801,7 +810,7 @@ fn check_lod(l: &LodChoice) -> Result<(), (u16, String)> {
 
 /// Runs one viewer until it leaves, breaks a rule or the session ends.
 async fn serve_viewer(state: AppState, session: Arc<Session>, mut socket: WebSocket) {
-    let settings = match read_hello(&mut socket).await {
+    let settings = match read_hello(&mut socket, state.config.sessions.hello_timeout).await {
         Ok(s) => s,
         Err((code, reason)) => {
             if code == close::POLICY || code == close::TOO_BIG {

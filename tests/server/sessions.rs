@@ -785,3 +785,54 @@ async fn a_viewer_that_asks_for_frames_gets_images() {
     assert!(ticks.windows(2).all(|w| w[1] > w[0]), "{ticks:?}");
     server.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_silent_viewer_and_a_chatty_one_are_closed_with_the_rule_they_broke() {
+    let server = TestServer::start(ServerConfig {
+        sessions: SessionLimits {
+            max_viewer_messages: 5,
+            hello_timeout: Duration::from_millis(300),
+            ..SessionLimits::default()
+        },
+        ..config()
+    })
+    .await;
+    let s = create(
+        &server,
+        json!({"heads": [head(1, "talk", 0, [0.0, 0.0, 0.0])]}),
+    )
+    .await;
+    // A viewer that never sends its hello is closed once the hello timeout passes.
+    let url = format!("ws://{}/v1/sessions/{}/stream", server.addr, s.id);
+    let (mut silent, _) = tokio_tungstenite::connect_async(&url)
+        .await
+        .expect("connect");
+    let (code, reason) = next_close(&mut silent).await;
+    assert_eq!(code, 1008, "{reason}");
+    assert!(reason.contains("no hello within 0.3 s"), "{reason:?}");
+
+    // A viewer that sends more updates in a second than allowed is closed, naming the limit;
+    // five are fine.
+    let mut chatty = connect(&server, &s.id, json!({})).await;
+    next_tick(&mut chatty).await;
+    let update = json!({"lod": 0}).to_string();
+    for _ in 0..5 {
+        chatty
+            .send(Message::text(update.clone()))
+            .await
+            .expect("send");
+    }
+    next_tick(&mut chatty).await;
+    for _ in 0..20 {
+        if chatty.send(Message::text(update.clone())).await.is_err() {
+            break;
+        }
+    }
+    let (code, reason) = next_close(&mut chatty).await;
+    assert_eq!(code, 1008, "{reason}");
+    assert!(
+        reason.contains("more than 5 messages per second"),
+        "{reason:?}"
+    );
+    server.stop().await;
+}
