@@ -323,16 +323,8 @@ mod tests {
         let body: Vec<u8> = chunks.iter().flat_map(|c| c.iter().copied()).collect();
         let back: CrowdFrameResponse = response_from_wire(&body).expect("decodes");
         assert_eq!(back, resp);
-        // Every payload starts aligned: find each payload's bytes in the body.
-        let mut at = 0;
-        for c in &chunks {
-            for p in [&parts[0].positions, &parts[1].positions] {
-                if c.as_ptr() == p.as_ptr() {
-                    assert_eq!(at % BLOB_ALIGN, 0, "payload at {at}");
-                }
-            }
-            at += c.len();
-        }
+        // Every payload starts aligned.
+        assert_payloads_aligned(&chunks, &parts);
         // Without padding it is byte for byte the serde encoding.
         let plain = to_wire(&resp).expect("encode");
         let back: CrowdFrameResponse = response_from_wire(&plain).expect("decodes");
@@ -377,15 +369,25 @@ mod tests {
             timings: resp.timings,
         });
         assert_eq!(back, want);
+        assert_payloads_aligned(&chunks, &parts);
+    }
+
+    /// Finds each part's payload among the chunks (the encoder passes payloads through as
+    /// their own chunks, without copying) and checks that it starts at an offset of the body
+    /// that is a multiple of [`BLOB_ALIGN`].
+    fn assert_payloads_aligned(chunks: &[Bytes], parts: &[FrameBufferParts<'_>]) {
+        let mut found = 0;
         let mut at = 0;
-        for c in &chunks {
-            for p in [&parts[0].positions, &parts[1].positions] {
-                if c.as_ptr() == p.as_ptr() {
+        for c in chunks {
+            for p in parts {
+                if c.as_ptr() == p.positions.as_ptr() {
                     assert_eq!(at % BLOB_ALIGN, 0, "payload at {at}");
+                    found += 1;
                 }
             }
             at += c.len();
         }
+        assert_eq!(found, parts.len(), "every payload is its own chunk");
     }
 
     #[test]
