@@ -927,6 +927,131 @@ async fn load_sends_the_planned_requests_and_reports_them() {
     server.stop().await;
 }
 
+/// Runs `crowdmorph load` with `args` off the async workers and returns its output.
+async fn load_output(args: Vec<String>) -> Output {
+    tokio::task::spawn_blocking(move || {
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        crowdmorph(&args).output().expect("run crowdmorph")
+    })
+    .await
+    .expect("join")
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn load_session_watches_every_tick_with_three_viewers() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let url = format!("http://{}", server.addr);
+    // 6 heads over 3 animations (clip and offset pairs) of the embedded head, 30 ticks/s like
+    // its clips, so every tick every animation moves to its next frame: 3 buffers and 6
+    // changed heads in every message.
+    let args: Vec<String> = [
+        "load",
+        "--url",
+        &url,
+        "--session",
+        "--viewers",
+        "3",
+        "--fps",
+        "30",
+        "--heads",
+        "6",
+        "--unique",
+        "0.5",
+        "--format",
+        "f16",
+        "--duration",
+        "2",
+        "--warmup",
+        "0.5",
+        "--grace",
+        "5",
+        "--json",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect();
+    let out = load_output(args).await;
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let r: crowdmorph::load::LoadReport = serde_json::from_slice(&out.stdout).unwrap_or_else(|e| {
+        panic!(
+            "not a report ({e}): {}",
+            String::from_utf8_lossy(&out.stdout)
+        )
+    });
+    let s = r.session.clone().expect("a sessions report");
+    assert!(s.created);
+    assert_eq!((s.viewers, s.heads, s.fps), (3, 6, 30.0), "{s:?}");
+    assert_eq!((r.lanes, r.heads_per_request, r.rate), (3, 6, 90.0));
+    // 2 s at 30 ticks/s, counted from the session's own clock.
+    assert!((59..=61).contains(&s.ticks_due), "{s:?}");
+    assert_eq!(r.sent, 3 * s.ticks_due);
+    assert_eq!(r.errors, 0, "{r:?}");
+    assert!(r.errors_by.is_empty(), "{r:?}");
+    assert_eq!(r.ok, s.ticks_received);
+    assert_eq!(r.unfinished, r.sent - r.ok);
+    assert_eq!(s.per_viewer.len(), 3);
+    for v in &s.per_viewer {
+        // A loose lower bound: a loaded machine may skip ticks, but not most of them.
+        assert!(
+            v.received >= s.ticks_due / 2 && v.received <= s.ticks_due,
+            "{v:?} of {}",
+            s.ticks_due
+        );
+        assert!(v.received + v.missed <= s.ticks_due, "{v:?}");
+        assert_eq!(v.heads, 6 * v.received, "{v:?}");
+        assert_eq!(v.close_code, None);
+        assert!(v.latency_max_ms >= v.latency_mean_ms && v.latency_mean_ms > 0.0);
+    }
+    // Heads and bytes follow the session's head count and the format.
+    assert_eq!(s.changed_heads_per_message, 6.0);
+    assert!(
+        (r.heads_per_s - r.ok as f64 * 6.0 / r.duration_s).abs() < 1e-6,
+        "{r:?}"
+    );
+    let payload = (3 * EMBEDDED_VERTICES * 3 * 2) as f64;
+    assert!(
+        s.bytes_per_message > payload && s.bytes_per_message < payload + 1024.0,
+        "{} bytes a message for {payload} bytes of f16 positions",
+        s.bytes_per_message
+    );
+    assert!((r.bytes_per_s - s.bytes_per_message * r.achieved_rate).abs() < 1e-3 * r.bytes_per_s);
+    assert_eq!(r.latency_ms.count, r.ok);
+    let t = r.server_ms.expect("the messages' timings were read");
+    assert_eq!((t.total_ms.count, t.compute_ms.count), (r.ok, r.ok));
+    // The session the run created is gone.
+    let list = server
+        .client
+        .send(
+            crowdmorph_client::Method::GET,
+            "/v1/sessions",
+            None,
+            None,
+            bytes::Bytes::new(),
+        )
+        .await
+        .expect("list sessions");
+    let list: crowdmorph_proto::SessionList = serde_json::from_slice(&list.body).expect("list");
+    assert!(list.sessions.is_empty(), "{list:?}");
+
+    // An unknown session, and a ramp, are refused with a reason before any load.
+    for (extra, says) in [
+        (vec!["--session-id", "nope"], "has no session \"nope\""),
+        (vec!["--session", "--ramp"], "--ramp"),
+    ] {
+        let mut args = vec!["load".to_string(), "--url".into(), url.clone()];
+        args.extend(extra.iter().map(|s| s.to_string()));
+        let out = load_output(args).await;
+        assert_eq!(out.status.code(), Some(1));
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(stderr.contains(says), "{stderr}");
+    }
+    server.stop().await;
+}
+
 #[test]
 fn serve_help_lists_every_flag_with_its_environment_variable() {
     let mut command = crowdmorph(&["serve", "--help"]);
