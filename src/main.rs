@@ -460,7 +460,6 @@ struct LoadArgs {
     json: bool,
 }
 
-
 /// Arguments of `serve`; every flag is also an environment variable.
 #[derive(clap::Args)]
 struct ServeArgs {
@@ -1200,9 +1199,7 @@ mod tests {
         assert!(
             Cli::try_parse_from(["crowdmorph", "load", "--session", "--viewers", "0"]).is_err()
         );
-        assert!(
-            Cli::try_parse_from(["crowdmorph", "load", "--lod-by-distance", "8"]).is_err()
-        );
+        assert!(Cli::try_parse_from(["crowdmorph", "load", "--lod-by-distance", "8"]).is_err());
     }
 
     #[test]

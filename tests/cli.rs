@@ -927,11 +927,13 @@ async fn load_sends_the_planned_requests_and_reports_them() {
     server.stop().await;
 }
 
-/// Runs `crowdmorph load` with `args` off the async workers and returns its output.
-async fn load_output(args: Vec<String>) -> Output {
+/// Runs `crowdmorph load --url URL` with `args` off the async workers; returns its output.
+async fn load_output(url: &str, args: &[&str]) -> Output {
+    let mut all = vec!["load".to_string(), "--url".into(), url.to_string()];
+    all.extend(args.iter().map(|s| s.to_string()));
     tokio::task::spawn_blocking(move || {
-        let args: Vec<&str> = args.iter().map(String::as_str).collect();
-        crowdmorph(&args).output().expect("run crowdmorph")
+        let all: Vec<&str> = all.iter().map(String::as_str).collect();
+        crowdmorph(&all).output().expect("run crowdmorph")
     })
     .await
     .expect("join")
@@ -944,33 +946,30 @@ async fn load_session_watches_every_tick_with_three_viewers() {
     // 6 heads over 3 animations (clip and offset pairs) of the embedded head, 30 ticks/s like
     // its clips, so every tick every animation moves to its next frame: 3 buffers and 6
     // changed heads in every message.
-    let args: Vec<String> = [
-        "load",
-        "--url",
+    let out = load_output(
         &url,
-        "--session",
-        "--viewers",
-        "3",
-        "--fps",
-        "30",
-        "--heads",
-        "6",
-        "--unique",
-        "0.5",
-        "--format",
-        "f16",
-        "--duration",
-        "2",
-        "--warmup",
-        "0.5",
-        "--grace",
-        "5",
-        "--json",
-    ]
-    .iter()
-    .map(|s| s.to_string())
-    .collect();
-    let out = load_output(args).await;
+        &[
+            "--session",
+            "--viewers",
+            "3",
+            "--fps",
+            "30",
+            "--heads",
+            "6",
+            "--unique",
+            "0.5",
+            "--format",
+            "f16",
+            "--duration",
+            "2",
+            "--warmup",
+            "0.5",
+            "--grace",
+            "5",
+            "--json",
+        ],
+    )
+    .await;
     assert!(
         out.status.success(),
         "{}",
@@ -1038,13 +1037,11 @@ async fn load_session_watches_every_tick_with_three_viewers() {
     assert!(list.sessions.is_empty(), "{list:?}");
 
     // An unknown session, and a ramp, are refused with a reason before any load.
-    for (extra, says) in [
-        (vec!["--session-id", "nope"], "has no session \"nope\""),
-        (vec!["--session", "--ramp"], "--ramp"),
+    for (args, says) in [
+        (&["--session-id", "nope"], "has no session \"nope\""),
+        (&["--session", "--ramp"], "--ramp"),
     ] {
-        let mut args = vec!["load".to_string(), "--url".into(), url.clone()];
-        args.extend(extra.iter().map(|s| s.to_string()));
-        let out = load_output(args).await;
+        let out = load_output(&url, args).await;
         assert_eq!(out.status.code(), Some(1));
         let stderr = String::from_utf8_lossy(&out.stderr);
         assert!(stderr.contains(says), "{stderr}");

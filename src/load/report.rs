@@ -231,12 +231,7 @@ impl SessionReport {
         );
         s += &format!(
             "  ticks      {} due per viewer, {} received of {} ({} missed, {} not received in all), {} viewers closed with an error\n",
-            self.ticks_due,
-            self.ticks_received,
-            r.sent,
-            self.ticks_missed,
-            r.unfinished,
-            r.errors
+            self.ticks_due, self.ticks_received, r.sent, self.ticks_missed, r.unfinished, r.errors
         );
         s += &format!(
             "  messages   {}B and {:.1} changed heads each (mean)\n",
@@ -281,7 +276,11 @@ impl LoadReport {
                 ("total  ", &t.total_ms),
             ] {
                 if p.count > 0 {
-                    let lead = if first { "  server ms " } else { "            " };
+                    let lead = if first {
+                        "  server ms "
+                    } else {
+                        "            "
+                    };
                     s += &format!("{lead}{name} {}\n", percentiles_line(p));
                     first = false;
                 }

@@ -73,8 +73,7 @@ pub struct Viewer {
 impl Viewer {
     /// Connects to `ws_url` (see [`stream_url`]) and sends `hello`.
     pub async fn connect(ws_url: &str, hello: &ViewerHello) -> Result<Viewer, LoadError> {
-        let hello =
-            serde_json::to_string(hello).map_err(|e| LoadError::Encode(e.to_string()))?;
+        let hello = serde_json::to_string(hello).map_err(|e| LoadError::Encode(e.to_string()))?;
         let (mut ws, _) = tokio_tungstenite::connect_async(ws_url)
             .await
             .map_err(|e| LoadError::Http(format!("connecting a viewer to {ws_url}: {e}")))?;
@@ -367,7 +366,8 @@ enum Recorded {
 
 impl Live {
     fn record_tick(&self, viewer: usize, at: Instant, bytes: u64, t: &TickSummary) -> Recorded {
-        self.completed.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        self.completed
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         let Some(&start) = self.start.get() else {
             return Recorded::Before;
         };
@@ -475,8 +475,7 @@ async fn read_viewer(mut viewer: Viewer, index: usize, live: Arc<Live>, deadline
         match event {
             ViewerEvent::Tick(bytes, at) => match skim(&bytes) {
                 Ok(t) => {
-                    if let Recorded::After = live.record_tick(index, at, bytes.len() as u64, &t)
-                    {
+                    if let Recorded::After = live.record_tick(index, at, bytes.len() as u64, &t) {
                         break;
                     }
                 }
@@ -506,7 +505,9 @@ async fn read_viewer(mut viewer: Viewer, index: usize, live: Arc<Live>, deadline
 pub async fn run(load: &SessionLoad, live: &Arc<Live>) -> Result<LoadReport, LoadError> {
     live.opts.check()?;
     if load.hellos.is_empty() {
-        return Err(LoadError::Invalid("a sessions run needs at least one viewer".into()));
+        return Err(LoadError::Invalid(
+            "a sessions run needs at least one viewer".into(),
+        ));
     }
     if !(load.fps.is_finite() && load.fps > 0.0) {
         return Err(LoadError::Invalid(format!(
@@ -519,10 +520,8 @@ pub async fn run(load: &SessionLoad, live: &Arc<Live>) -> Result<LoadReport, Loa
     for hello in &load.hellos {
         viewers.push(Viewer::connect(&url, hello).await?);
     }
-    live.lanes.store(
-        viewers.len() as u64,
-        std::sync::atomic::Ordering::Relaxed,
-    );
+    live.lanes
+        .store(viewers.len() as u64, std::sync::atomic::Ordering::Relaxed);
     if let Ok(mut r) = live.rec.lock() {
         r.session = Some(SessionTally {
             id: load.id.clone(),
@@ -631,9 +630,18 @@ mod tests {
             buffers: vec![buffer.clone(), buffer],
             heads: vec![
                 HeadBuffer { head: 0, buffer: 0 },
-                HeadBuffer { head: 1000, buffer: HEAD_UNCHANGED },
-                HeadBuffer { head: 2000, buffer: 1 },
-                HeadBuffer { head: 3000, buffer: HEAD_MISSING },
+                HeadBuffer {
+                    head: 1000,
+                    buffer: HEAD_UNCHANGED,
+                },
+                HeadBuffer {
+                    head: 2000,
+                    buffer: 1,
+                },
+                HeadBuffer {
+                    head: 3000,
+                    buffer: HEAD_MISSING,
+                },
             ],
             timings: FrameTimings {
                 queue_us: 5,

@@ -14,8 +14,7 @@ use serde::Serialize;
 use crate::load::http::{HttpLane, HttpTarget};
 use crate::load::session::SessionLoad;
 use crate::load::{
-    self, CrowdShape, Live, LoadReport, RampOptions, RampReport, RigClips, RunOptions,
-    WireEncoding,
+    self, CrowdShape, Live, LoadReport, RampOptions, RampReport, RigClips, RunOptions, WireEncoding,
 };
 
 /// Request bodies generated; request `i` sends body `i mod RING`.
@@ -237,11 +236,7 @@ fn session_heads(crowd: &CrowdShape, rigs: &[RigClips]) -> Result<Vec<SessionHea
             rig: h.rig,
             clip: h.clip,
             offset: h.frame,
-            position: [
-                (i % side) as f32 * GRID,
-                0.0,
-                -((i / side) as f32) * GRID,
-            ],
+            position: [(i % side) as f32 * GRID, 0.0, -((i / side) as f32) * GRID],
             yaw: 0.0,
             scale: 1.0,
         })
