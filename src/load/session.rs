@@ -392,7 +392,7 @@ impl Live {
         };
         let gap = v
             .last_tick
-            .map_or(0, |last| t.tick.saturating_sub(last + 1));
+            .map_or(0, |last| t.tick.saturating_sub(last.saturating_add(1)));
         v.last_tick = Some(t.tick);
         if intended < from {
             return Recorded::Before;
