@@ -939,6 +939,23 @@ async fn load_output(url: &str, args: &[&str]) -> Output {
     .expect("join")
 }
 
+/// Runs `crowdmorph load --url URL` with `args` (which include `--json`), requires success,
+/// and parses its report.
+async fn load_report(url: &str, args: &[&str]) -> crowdmorph::load::LoadReport {
+    let out = load_output(url, args).await;
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).unwrap_or_else(|e| {
+        panic!(
+            "not a report ({e}): {}",
+            String::from_utf8_lossy(&out.stdout)
+        )
+    })
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn load_session_watches_every_tick_with_three_viewers() {
     let server = TestServer::start(ServerConfig::default()).await;
@@ -946,7 +963,7 @@ async fn load_session_watches_every_tick_with_three_viewers() {
     // 6 heads over 3 animations (clip and offset pairs) of the embedded head, 30 ticks/s like
     // its clips, so every tick every animation moves to its next frame: 3 buffers and 6
     // changed heads in every message.
-    let out = load_output(
+    let r = load_report(
         &url,
         &[
             "--session",
@@ -970,17 +987,6 @@ async fn load_session_watches_every_tick_with_three_viewers() {
         ],
     )
     .await;
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let r: crowdmorph::load::LoadReport = serde_json::from_slice(&out.stdout).unwrap_or_else(|e| {
-        panic!(
-            "not a report ({e}): {}",
-            String::from_utf8_lossy(&out.stdout)
-        )
-    });
     let s = r.session.clone().expect("a sessions report");
     assert!(s.created);
     assert_eq!((s.viewers, s.heads, s.fps), (3, 6, 30.0), "{s:?}");
@@ -1035,6 +1041,63 @@ async fn load_session_watches_every_tick_with_three_viewers() {
         .expect("list sessions");
     let list: crowdmorph_proto::SessionList = serde_json::from_slice(&list.body).expect("list");
     assert!(list.sessions.is_empty(), "{list:?}");
+
+    // Attached to an existing session, the run reads its heads and leaves it in place.
+    let created = server
+        .client
+        .send(
+            crowdmorph_client::Method::POST,
+            "/v1/sessions",
+            Some("application/json"),
+            None,
+            bytes::Bytes::from(
+                serde_json::json!({"fps": 20, "heads": [
+                    {"head": 7, "rig": "default-head", "clip": "talk"},
+                    {"head": 8, "rig": "default-head", "clip": "talk"}]})
+                .to_string(),
+            ),
+        )
+        .await
+        .expect("create a session");
+    assert_eq!(created.status, 201);
+    let info: crowdmorph_proto::SessionInfo =
+        serde_json::from_slice(&created.body).expect("SessionInfo");
+    let r = load_report(
+        &url,
+        &[
+            "--session-id",
+            &info.id,
+            "--viewers",
+            "2",
+            "--duration",
+            "1",
+            "--warmup",
+            "0.3",
+            "--json",
+        ],
+    )
+    .await;
+    let s = r.session.expect("a sessions report");
+    assert!(!s.created);
+    assert_eq!(
+        (s.id.as_str(), s.heads, s.fps, s.viewers),
+        (info.id.as_str(), 2, 20.0, 2)
+    );
+    // Two clones: one buffer, both heads changed, in every message.
+    assert_eq!(s.changed_heads_per_message, 2.0);
+    assert!(s.ticks_received >= s.ticks_due, "{s:?}");
+    let still = server
+        .client
+        .send(
+            crowdmorph_client::Method::GET,
+            &format!("/v1/sessions/{}", info.id),
+            None,
+            None,
+            bytes::Bytes::new(),
+        )
+        .await
+        .expect("get the session");
+    assert_eq!(still.status, 200, "an attached session is not deleted");
 
     // An unknown session, and a ramp, are refused with a reason before any load.
     for (args, says) in [

@@ -360,3 +360,80 @@ impl RampReport {
         s
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_sessions_table_names_ticks_viewers_closes_and_the_server_times_it_has() {
+        let viewer = ViewerReport {
+            received: 58,
+            missed: 2,
+            bytes: 58 << 20,
+            heads: 580,
+            latency_mean_ms: 4.0,
+            latency_max_ms: 9.5,
+            close_code: None,
+            close_reason: None,
+        };
+        let r = LoadReport {
+            rate: 60.0,
+            duration_s: 2.0,
+            lanes: 2,
+            sent: 120,
+            ok: 116,
+            errors: 1,
+            unfinished: 4,
+            achieved_rate: 58.0,
+            errors_by: vec![ErrorCount {
+                status: 1013,
+                code: "too many viewers".into(),
+                count: 1,
+            }],
+            server_ms: Some(ServerTimings {
+                total_ms: Percentiles {
+                    p50: 1.5,
+                    count: 116,
+                    ..Percentiles::default()
+                },
+                ..ServerTimings::default()
+            }),
+            session: Some(SessionReport {
+                id: "s7".into(),
+                created: true,
+                fps: 30.0,
+                heads: 10,
+                viewers: 2,
+                ticks_due: 60,
+                ticks_received: 116,
+                ticks_missed: 2,
+                bytes_per_message: 1e6,
+                changed_heads_per_message: 10.0,
+                per_viewer: vec![
+                    viewer.clone(),
+                    ViewerReport {
+                        close_code: Some(1013),
+                        ..viewer
+                    },
+                ],
+            }),
+            ..LoadReport::default()
+        };
+        let text = r.text();
+        for line in [
+            "session s7 (created for the run): 10 heads at 30 ticks/s, 2 viewers",
+            "58.0 messages/s",
+            "60 due per viewer, 116 received of 120 (2 missed, 4 not received in all), 1 viewers closed with an error",
+            "viewer 1   58 received, 2 missed",
+            ", closed 1013",
+            "  server ms total   p50 1.500",
+            "error      1013 too many viewers × 1",
+        ] {
+            assert!(text.contains(line), "{line:?} not in\n{text}");
+        }
+        // Timings the messages do not carry are left out rather than printed as zeros.
+        assert!(!text.contains("encode"), "{text}");
+        assert!(!text.contains("requests/s"), "{text}");
+    }
+}
