@@ -434,6 +434,27 @@ struct LoadArgs {
     /// Most runs of the ramp.
     #[arg(long, default_value_t = 12)]
     max_steps: usize,
+    /// Load a crowd session instead: create one from the crowd flags (--heads, --unique,
+    /// --rig, --clip; --lod, --format and --normals go to the viewers), connect --viewers
+    /// viewers to its stream for the run, delete it at the end.
+    #[arg(long)]
+    session: bool,
+    /// Watch this existing session instead of creating one (implies --session).
+    #[arg(long, value_name = "ID")]
+    session_id: Option<String>,
+    /// Viewers of the session.
+    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u64).range(1..=100_000))]
+    viewers: u64,
+    /// Ticks per second of the session created.
+    #[arg(long, default_value_t = 30.0)]
+    fps: f32,
+    /// LOD by distance from each viewer's camera (in front of the crowd's grid), METRES:LEVEL
+    /// (repeatable, ascending metres), instead of the --lod mix.
+    #[arg(long = "lod-by-distance", value_name = "METRES:LEVEL", value_parser = tools::load::parse_distance_level)]
+    lod_by_distance: Vec<[f32; 2]>,
+    /// Bearer token for creating and deleting the session.
+    #[arg(long, env = "CROWDMORPH_ADMIN_TOKEN", hide_env_values = true)]
+    admin_token: Option<String>,
     /// Print JSON.
     #[arg(long)]
     json: bool,
@@ -1014,6 +1035,13 @@ fn run_load(a: LoadArgs) -> Result<()> {
             ..RampOptions::default()
         }),
         progress: true,
+        session: (a.session || a.session_id.is_some()).then(|| tools::load::SessionMode {
+            viewers: a.viewers as usize,
+            fps: a.fps,
+            attach: a.session_id,
+            admin_token: a.admin_token,
+            lod_by_distance: (!a.lod_by_distance.is_empty()).then_some(a.lod_by_distance),
+        }),
     };
     let outcome = tools::load::load(&cmd)?;
     if a.json {
@@ -1138,6 +1166,41 @@ mod tests {
     #[test]
     fn the_command_line_definition_is_well_formed() {
         Cli::command().debug_assert();
+    }
+
+    #[test]
+    fn load_takes_session_flags() {
+        let cli = Cli::try_parse_from([
+            "crowdmorph",
+            "load",
+            "--session-id",
+            "s1",
+            "--viewers",
+            "3",
+            "--fps",
+            "20",
+            "--lod-by-distance",
+            "0:0",
+            "--lod-by-distance",
+            "8.5:2",
+            "--admin-token",
+            "secret",
+        ])
+        .expect("load with session flags parses");
+        match cli.command {
+            Command::Load(a) => {
+                assert_eq!(a.session_id.as_deref(), Some("s1"));
+                assert!(!a.session, "--session-id alone implies it later");
+                assert_eq!((a.viewers, a.fps), (3, 20.0));
+                assert_eq!(a.lod_by_distance, vec![[0.0, 0.0], [8.5, 2.0]]);
+                assert_eq!(a.admin_token.as_deref(), Some("secret"));
+            }
+            _ => panic!("parsed as another command"),
+        }
+        assert!(
+            Cli::try_parse_from(["crowdmorph", "load", "--session", "--viewers", "0"]).is_err()
+        );
+        assert!(Cli::try_parse_from(["crowdmorph", "load", "--lod-by-distance", "8"]).is_err());
     }
 
     #[test]

@@ -927,6 +927,191 @@ async fn load_sends_the_planned_requests_and_reports_them() {
     server.stop().await;
 }
 
+/// Runs `crowdmorph load --url URL` with `args` off the async workers; returns its output.
+async fn load_output(url: &str, args: &[&str]) -> Output {
+    let mut all = vec!["load".to_string(), "--url".into(), url.to_string()];
+    all.extend(args.iter().map(|s| s.to_string()));
+    tokio::task::spawn_blocking(move || {
+        let all: Vec<&str> = all.iter().map(String::as_str).collect();
+        crowdmorph(&all).output().expect("run crowdmorph")
+    })
+    .await
+    .expect("join")
+}
+
+/// Runs `crowdmorph load --url URL` with `args` (which include `--json`), requires success,
+/// and parses its report.
+async fn load_report(url: &str, args: &[&str]) -> crowdmorph::load::LoadReport {
+    let out = load_output(url, args).await;
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).unwrap_or_else(|e| {
+        panic!(
+            "not a report ({e}): {}",
+            String::from_utf8_lossy(&out.stdout)
+        )
+    })
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn load_session_watches_every_tick_with_three_viewers() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let url = format!("http://{}", server.addr);
+    // 6 heads over 3 animations (clip and offset pairs) of the embedded head, 30 ticks/s like
+    // its clips, so every tick every animation moves to its next frame: 3 buffers and 6
+    // changed heads in every message.
+    let r = load_report(
+        &url,
+        &[
+            "--session",
+            "--viewers",
+            "3",
+            "--fps",
+            "30",
+            "--heads",
+            "6",
+            "--unique",
+            "0.5",
+            "--format",
+            "f16",
+            "--duration",
+            "2",
+            "--warmup",
+            "0.5",
+            "--grace",
+            "5",
+            "--json",
+        ],
+    )
+    .await;
+    let s = r.session.clone().expect("a sessions report");
+    assert!(s.created);
+    assert_eq!((s.viewers, s.heads, s.fps), (3, 6, 30.0), "{s:?}");
+    assert_eq!((r.lanes, r.heads_per_request, r.rate), (3, 6, 90.0));
+    // 2 s at 30 ticks/s, counted from the session's own clock.
+    assert!((59..=61).contains(&s.ticks_due), "{s:?}");
+    assert_eq!(r.sent, 3 * s.ticks_due);
+    assert_eq!(r.errors, 0, "{r:?}");
+    assert!(r.errors_by.is_empty(), "{r:?}");
+    assert_eq!(r.ok, s.ticks_received);
+    assert_eq!(r.unfinished, r.sent - r.ok);
+    assert_eq!(s.per_viewer.len(), 3);
+    for v in &s.per_viewer {
+        // A loose lower bound: a loaded machine may skip ticks, but not most of them.
+        assert!(
+            v.received >= s.ticks_due / 2 && v.received <= s.ticks_due,
+            "{v:?} of {}",
+            s.ticks_due
+        );
+        assert!(v.received + v.missed <= s.ticks_due, "{v:?}");
+        assert_eq!(v.heads, 6 * v.received, "{v:?}");
+        assert_eq!(v.close_code, None);
+        assert!(v.latency_max_ms >= v.latency_mean_ms && v.latency_mean_ms > 0.0);
+    }
+    // Heads and bytes follow the session's head count and the format.
+    assert_eq!(s.changed_heads_per_message, 6.0);
+    assert!(
+        (r.heads_per_s - r.ok as f64 * 6.0 / r.duration_s).abs() < 1e-6,
+        "{r:?}"
+    );
+    let payload = (3 * EMBEDDED_VERTICES * 3 * 2) as f64;
+    assert!(
+        s.bytes_per_message > payload && s.bytes_per_message < payload + 1024.0,
+        "{} bytes a message for {payload} bytes of f16 positions",
+        s.bytes_per_message
+    );
+    assert!((r.bytes_per_s - s.bytes_per_message * r.achieved_rate).abs() < 1e-3 * r.bytes_per_s);
+    assert_eq!(r.latency_ms.count, r.ok);
+    let t = r.server_ms.expect("the messages' timings were read");
+    assert_eq!((t.total_ms.count, t.compute_ms.count), (r.ok, r.ok));
+    // The session the run created is gone.
+    let list = server
+        .client
+        .send(
+            crowdmorph_client::Method::GET,
+            "/v1/sessions",
+            None,
+            None,
+            bytes::Bytes::new(),
+        )
+        .await
+        .expect("list sessions");
+    let list: crowdmorph_proto::SessionList = serde_json::from_slice(&list.body).expect("list");
+    assert!(list.sessions.is_empty(), "{list:?}");
+
+    // Attached to an existing session, the run reads its heads and leaves it in place.
+    let created = server
+        .client
+        .send(
+            crowdmorph_client::Method::POST,
+            "/v1/sessions",
+            Some("application/json"),
+            None,
+            bytes::Bytes::from(
+                serde_json::json!({"fps": 20, "heads": [
+                    {"head": 7, "rig": "default-head", "clip": "talk"},
+                    {"head": 8, "rig": "default-head", "clip": "talk"}]})
+                .to_string(),
+            ),
+        )
+        .await
+        .expect("create a session");
+    assert_eq!(created.status, 201);
+    let info: crowdmorph_proto::SessionInfo =
+        serde_json::from_slice(&created.body).expect("SessionInfo");
+    let r = load_report(
+        &url,
+        &[
+            "--session-id",
+            &info.id,
+            "--viewers",
+            "2",
+            "--duration",
+            "1",
+            "--warmup",
+            "0.3",
+            "--json",
+        ],
+    )
+    .await;
+    let s = r.session.expect("a sessions report");
+    assert!(!s.created);
+    assert_eq!(
+        (s.id.as_str(), s.heads, s.fps, s.viewers),
+        (info.id.as_str(), 2, 20.0, 2)
+    );
+    // Two clones: one buffer, both heads changed, in every message.
+    assert_eq!(s.changed_heads_per_message, 2.0);
+    assert!(s.ticks_received >= s.ticks_due, "{s:?}");
+    let still = server
+        .client
+        .send(
+            crowdmorph_client::Method::GET,
+            &format!("/v1/sessions/{}", info.id),
+            None,
+            None,
+            bytes::Bytes::new(),
+        )
+        .await
+        .expect("get the session");
+    assert_eq!(still.status, 200, "an attached session is not deleted");
+
+    // An unknown session, and a ramp, are refused with a reason before any load.
+    for (args, says) in [
+        (&["--session-id", "nope"], "has no session \"nope\""),
+        (&["--session", "--ramp"], "--ramp"),
+    ] {
+        let out = load_output(&url, args).await;
+        assert_eq!(out.status.code(), Some(1));
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(stderr.contains(says), "{stderr}");
+    }
+    server.stop().await;
+}
+
 #[test]
 fn serve_help_lists_every_flag_with_its_environment_variable() {
     let mut command = crowdmorph(&["serve", "--help"]);

@@ -11,8 +11,10 @@
 //!
 //! The core ([`run`]) is generic over how a request is sent ([`Lane`]): [`http`] sends real HTTP
 //! requests with hyper, `src/server/loadtest.rs` calls the crowd-frame handler in-process.
-//! Sessions (N viewers of one session) will be one more [`Lane`] kind once sessions exist; the
-//! core, the report and `--ramp` need nothing new for them.
+//! Sessions (N viewers of one session, [`session`]) turned out not to be a [`Lane`]: the
+//! server's tick clock, not a dispatcher, decides when their messages go. They share [`Live`]
+//! and the report instead, with the latency of a tick measured from its due time on the
+//! session's clock; `--ramp` is for request rates only.
 //!
 //! - [`CrowdShape`] describes the crowds (heads per request, unique share, rigs, clip and LOD
 //!   mixes, format, normals, encoding) and makes deterministic request bodies from a seed.
@@ -22,6 +24,7 @@
 
 pub mod http;
 mod report;
+pub mod session;
 mod shape;
 
 use std::collections::BTreeMap;
@@ -32,7 +35,10 @@ use std::time::{Duration, Instant};
 
 use hdrhistogram::Histogram;
 
-pub use report::{ErrorCount, LoadReport, Percentiles, RampReport, RampStep, ServerTimings};
+pub use report::{
+    ErrorCount, LoadReport, Percentiles, RampReport, RampStep, ServerTimings, SessionReport,
+    ViewerReport,
+};
 pub use shape::{CrowdShape, RigClips, WireEncoding};
 
 /// Why a load could not be generated.
@@ -55,6 +61,9 @@ pub enum LoadError {
     /// A request body could not be encoded.
     #[error("encoding a request: {0}")]
     Encode(String),
+    /// A session's stream sent what the generator cannot read.
+    #[error("session stream: {0}")]
+    Stream(String),
 }
 
 /// What one request got back.
@@ -171,6 +180,7 @@ struct Recorder {
     queue: Histogram<u64>,
     compute: Histogram<u64>,
     encode: Histogram<u64>,
+    total: Histogram<u64>,
     /// Requests of the window handed to a lane.
     sent: u64,
     ok: u64,
@@ -178,6 +188,8 @@ struct Recorder {
     heads: u64,
     bytes: u64,
     errors: BTreeMap<(u16, String), u64>,
+    /// A sessions run's own tallies.
+    session: Option<session::SessionTally>,
 }
 
 impl Recorder {
@@ -187,12 +199,28 @@ impl Recorder {
             queue: histogram(),
             compute: histogram(),
             encode: histogram(),
+            total: histogram(),
             sent: 0,
             ok: 0,
             failed: 0,
             heads: 0,
             bytes: 0,
             errors: BTreeMap::new(),
+            session: None,
+        }
+    }
+
+    /// Records the server's own timings of one answer.
+    fn record_server(&mut self, t: &ServerTiming) {
+        for (h, d) in [
+            (&mut self.queue, t.queue),
+            (&mut self.compute, t.compute),
+            (&mut self.encode, t.encode),
+            (&mut self.total, t.total),
+        ] {
+            if let Some(d) = d {
+                h.saturating_record(micros(d));
+            }
         }
     }
 }
@@ -307,16 +335,7 @@ impl Live {
             r.bytes += reply.bytes;
             r.latency
                 .saturating_record(micros(done.saturating_duration_since(intended)));
-            let t = &reply.timing;
-            for (h, d) in [
-                (&mut r.queue, t.queue),
-                (&mut r.compute, t.compute),
-                (&mut r.encode, t.encode),
-            ] {
-                if let Some(d) = d {
-                    h.saturating_record(micros(d));
-                }
-            }
+            r.record_server(&reply.timing);
         } else {
             r.failed += 1;
             let code = reply.code.clone().unwrap_or_default();
@@ -336,20 +355,30 @@ impl Live {
             queue_ms: Percentiles::of(&r.queue),
             compute_ms: Percentiles::of(&r.compute),
             encode_ms: Percentiles::of(&r.encode),
+            total_ms: Percentiles::of(&r.total),
         };
+        let session = r
+            .session
+            .as_ref()
+            .map(|s| s.report(self.opts.warmup.as_secs_f64(), window));
+        // A sessions run is due its ticks, viewer by viewer; what was neither received nor
+        // closed with an error is unfinished.
+        let sent = session
+            .as_ref()
+            .map_or(r.sent, |s| s.ticks_due * s.viewers as u64);
         LoadReport {
             rate: self.opts.rate,
             duration_s: window,
             warmup_s: self.opts.warmup.as_secs_f64(),
             lanes,
             heads_per_request: self.opts.heads_per_request,
-            sent: r.sent,
+            sent,
             ok: r.ok,
             errors: r.failed,
-            unfinished: if self.is_finished() {
-                r.sent.saturating_sub(r.ok + r.failed)
-            } else {
-                0
+            unfinished: match (&session, self.is_finished()) {
+                (_, false) => 0,
+                (None, true) => sent.saturating_sub(r.ok + r.failed),
+                (Some(_), true) => sent.saturating_sub(r.ok),
             },
             achieved_rate: per_s(r.ok),
             heads_per_s: per_s(r.heads),
@@ -364,7 +393,9 @@ impl Live {
                     count,
                 })
                 .collect(),
-            server_ms: (r.queue.len() + r.compute.len() + r.encode.len() > 0).then_some(server),
+            server_ms: (r.queue.len() + r.compute.len() + r.encode.len() + r.total.len() > 0)
+                .then_some(server),
+            session,
             finished: self.is_finished(),
             cancelled: self.is_cancelled(),
         }

@@ -63,6 +63,58 @@ pub struct ServerTimings {
     pub compute_ms: Percentiles,
     /// Building the response body.
     pub encode_ms: Percentiles,
+    /// From the request's arrival (a session's tick start) to the response (the tick's
+    /// message) being ready to send.
+    #[serde(default)]
+    pub total_ms: Percentiles,
+}
+
+/// One viewer of a sessions run, over the window.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ViewerReport {
+    /// Tick messages received.
+    pub received: u64,
+    /// Ticks missed: gaps in the tick numbers received.
+    pub missed: u64,
+    /// Bytes of the messages received.
+    pub bytes: u64,
+    /// Heads whose new buffer the messages carried.
+    pub heads: u64,
+    /// Mean latency of its messages from their ticks' due times, milliseconds.
+    pub latency_mean_ms: f64,
+    /// Largest such latency, milliseconds.
+    pub latency_max_ms: f64,
+    /// The close code, when the stream was closed before the viewer was done.
+    pub close_code: Option<u16>,
+    /// Its reason.
+    pub close_reason: Option<String>,
+}
+
+/// What a sessions run (`crowdmorph load --session`) measured besides the common fields.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct SessionReport {
+    /// The session's id.
+    pub id: String,
+    /// Whether the run created the session (and deleted it at the end).
+    pub created: bool,
+    /// Its ticks per second.
+    pub fps: f64,
+    /// Its heads.
+    pub heads: u64,
+    /// Viewers connected.
+    pub viewers: usize,
+    /// Ticks due per viewer in the window.
+    pub ticks_due: u64,
+    /// Tick messages received in the window, all viewers together.
+    pub ticks_received: u64,
+    /// Ticks missed (gaps in the tick numbers), all viewers together.
+    pub ticks_missed: u64,
+    /// Mean bytes of a message.
+    pub bytes_per_message: f64,
+    /// Mean heads whose new buffer a message carried.
+    pub changed_heads_per_message: f64,
+    /// Each viewer.
+    pub per_viewer: Vec<ViewerReport>,
 }
 
 /// What a load run measured, over the window after the warm-up.
@@ -103,6 +155,13 @@ pub struct LoadReport {
     pub finished: bool,
     /// Whether it was stopped early (shutdown, or its grace ran out).
     pub cancelled: bool,
+    /// A sessions run's own fields. There `rate` is the tick messages due per second (all
+    /// viewers), `lanes` the viewers, `heads_per_request` the session's heads, `sent` the ticks
+    /// due, `ok` those received, `errors` the viewers closed with an error, `unfinished` the
+    /// due ticks not received, `heads_per_s` the changed heads delivered and the latency is
+    /// from each tick's due time (see `crowdmorph::load::session`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub session: Option<SessionReport>,
 }
 
 /// One rate tried by a ramp.
@@ -145,9 +204,104 @@ fn percentiles_line(p: &Percentiles) -> String {
     )
 }
 
+/// Per-viewer lines are printed up to this many viewers; `--json` always has them all.
+const VIEWER_LINES: usize = 16;
+
+impl SessionReport {
+    fn text(&self, r: &LoadReport) -> String {
+        let mut s = format!(
+            "session {} ({}): {} heads at {} ticks/s, {} viewers, {:.1} s (after {:.1} s of warm-up)\n",
+            self.id,
+            if self.created {
+                "created for the run"
+            } else {
+                "attached"
+            },
+            self.heads,
+            self.fps,
+            self.viewers,
+            r.duration_s,
+            r.warmup_s
+        );
+        s += &format!(
+            "  achieved   {:>10.1} messages/s   {}heads/s   {}B/s\n",
+            r.achieved_rate,
+            si(r.heads_per_s),
+            si(r.bytes_per_s)
+        );
+        s += &format!(
+            "  ticks      {} due per viewer, {} received of {} ({} missed, {} not received in all), {} viewers closed with an error\n",
+            self.ticks_due, self.ticks_received, r.sent, self.ticks_missed, r.unfinished, r.errors
+        );
+        s += &format!(
+            "  messages   {}B and {:.1} changed heads each (mean)\n",
+            si(self.bytes_per_message),
+            self.changed_heads_per_message
+        );
+        s += &format!(
+            "  latency ms {}   (from the tick's due time)\n",
+            percentiles_line(&r.latency_ms)
+        );
+        if self.per_viewer.len() <= VIEWER_LINES {
+            for (i, v) in self.per_viewer.iter().enumerate() {
+                s += &format!(
+                    "  viewer {i:<3} {} received, {} missed, {}B, latency mean {:.3} max {:.3} ms{}\n",
+                    v.received,
+                    v.missed,
+                    si(v.bytes as f64),
+                    v.latency_mean_ms,
+                    v.latency_max_ms,
+                    v.close_code
+                        .map_or(String::new(), |c| format!(", closed {c}"))
+                );
+            }
+        }
+        s
+    }
+}
+
 impl LoadReport {
     /// The human-readable table.
     pub fn text(&self) -> String {
+        let mut s = match &self.session {
+            Some(session) => session.text(self),
+            None => self.requests_text(),
+        };
+        if let Some(t) = &self.server_ms {
+            let mut first = true;
+            for (name, p) in [
+                ("queue  ", &t.queue_ms),
+                ("compute", &t.compute_ms),
+                ("encode ", &t.encode_ms),
+                ("total  ", &t.total_ms),
+            ] {
+                if p.count > 0 {
+                    let lead = if first {
+                        "  server ms "
+                    } else {
+                        "            "
+                    };
+                    s += &format!("{lead}{name} {}\n", percentiles_line(p));
+                    first = false;
+                }
+            }
+        }
+        for e in &self.errors_by {
+            s += &format!(
+                "  error      {} {} × {}\n",
+                if e.status == 0 {
+                    "-".to_string()
+                } else {
+                    e.status.to_string()
+                },
+                if e.code.is_empty() { "?" } else { &e.code },
+                e.count
+            );
+        }
+        s
+    }
+
+    fn requests_text(&self) -> String {
         let mut s = format!(
             "target {:.1} requests/s for {:.1} s (after {:.1} s of warm-up) over {} connections, {} heads per request\n",
             self.rate, self.duration_s, self.warmup_s, self.lanes, self.heads_per_request
@@ -174,23 +328,6 @@ impl LoadReport {
             "  latency ms {}   (from the intended send time)\n",
             percentiles_line(&self.latency_ms)
         );
-        if let Some(t) = &self.server_ms {
-            s += &format!("  server ms  queue   {}\n", percentiles_line(&t.queue_ms));
-            s += &format!("             compute {}\n", percentiles_line(&t.compute_ms));
-            s += &format!("             encode  {}\n", percentiles_line(&t.encode_ms));
-        }
-        for e in &self.errors_by {
-            s += &format!(
-                "  error      {} {} × {}\n",
-                if e.status == 0 {
-                    "-".to_string()
-                } else {
-                    e.status.to_string()
-                },
-                if e.code.is_empty() { "?" } else { &e.code },
-                e.count
-            );
-        }
         s
     }
 }
@@ -221,5 +358,82 @@ impl RampReport {
             None => s += "no rate met the target\n",
         }
         s
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_sessions_table_names_ticks_viewers_closes_and_the_server_times_it_has() {
+        let viewer = ViewerReport {
+            received: 58,
+            missed: 2,
+            bytes: 58 << 20,
+            heads: 580,
+            latency_mean_ms: 4.0,
+            latency_max_ms: 9.5,
+            close_code: None,
+            close_reason: None,
+        };
+        let r = LoadReport {
+            rate: 60.0,
+            duration_s: 2.0,
+            lanes: 2,
+            sent: 120,
+            ok: 116,
+            errors: 1,
+            unfinished: 4,
+            achieved_rate: 58.0,
+            errors_by: vec![ErrorCount {
+                status: 1013,
+                code: "too many viewers".into(),
+                count: 1,
+            }],
+            server_ms: Some(ServerTimings {
+                total_ms: Percentiles {
+                    p50: 1.5,
+                    count: 116,
+                    ..Percentiles::default()
+                },
+                ..ServerTimings::default()
+            }),
+            session: Some(SessionReport {
+                id: "s7".into(),
+                created: true,
+                fps: 30.0,
+                heads: 10,
+                viewers: 2,
+                ticks_due: 60,
+                ticks_received: 116,
+                ticks_missed: 2,
+                bytes_per_message: 1e6,
+                changed_heads_per_message: 10.0,
+                per_viewer: vec![
+                    viewer.clone(),
+                    ViewerReport {
+                        close_code: Some(1013),
+                        ..viewer
+                    },
+                ],
+            }),
+            ..LoadReport::default()
+        };
+        let text = r.text();
+        for line in [
+            "session s7 (created for the run): 10 heads at 30 ticks/s, 2 viewers",
+            "58.0 messages/s",
+            "60 due per viewer, 116 received of 120 (2 missed, 4 not received in all), 1 viewers closed with an error",
+            "viewer 1   58 received, 2 missed",
+            ", closed 1013",
+            "  server ms total   p50 1.500",
+            "error      1013 too many viewers × 1",
+        ] {
+            assert!(text.contains(line), "{line:?} not in\n{text}");
+        }
+        // Timings the messages do not carry are left out rather than printed as zeros.
+        assert!(!text.contains("encode"), "{text}");
+        assert!(!text.contains("requests/s"), "{text}");
     }
 }

@@ -3,10 +3,10 @@
 //!
 //! Workload (defaults from the sessions issue): 1,000 heads playing 100 animations (distinct
 //! clip and offset pairs, so 100 blends a tick), 8 viewers at 30 ticks/s, q16, every viewer at
-//! LOD 0 (so the viewers share every blend). Viewers are tokio-tungstenite clients in the same
-//! process that count bytes and read each message's tick number without decoding the rest:
-//! they cost little next to the server, and their CPU is inside the process figure, which says
-//! so.
+//! LOD 0 (so the viewers share every blend). Viewers are the load generator's WebSocket
+//! clients ([`crate::load::session::Viewer`]) in the same process that only count bytes and
+//! messages: they cost little next to the server, and their CPU is inside the process figure,
+//! which says so.
 //!
 //! Reported: ticks on time, late and skipped (the session's own counters), CPU time of the
 //! process per computed tick, engine time per tick (the batcher's compute histogram), bytes and
@@ -18,8 +18,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use bytes::Bytes;
-use crowdmorph_proto::{Format, SessionInfo};
-use futures_util::{SinkExt, StreamExt};
+use crowdmorph_proto::{Format, SessionInfo, ViewerHello};
 use serde::Serialize;
 
 use super::ServerConfig;
@@ -191,22 +190,21 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &SessionBenchOptions) -> Result<Se
             })
         })
         .collect();
-    let hello = serde_json::json!({"format": opt.format.name()}).to_string();
+    let hello = ViewerHello {
+        format: opt.format,
+        ..ViewerHello::default()
+    };
+    let url = crate::load::session::stream_url(&format!("http://{addr}"), &session.id)?;
     let mut readers = Vec::new();
     for c in &counts {
-        let url = format!("ws://{addr}/v1/sessions/{}/stream", session.id);
-        let (mut ws, _) = tokio_tungstenite::connect_async(url)
+        let mut viewer = crate::load::session::Viewer::connect(&url, &hello)
             .await
             .context("connecting a viewer")?;
-        ws.send(tokio_tungstenite::tungstenite::Message::text(hello.clone()))
-            .await?;
         let c = c.clone();
         readers.push(tokio::spawn(async move {
-            while let Some(Ok(m)) = ws.next().await {
-                if let tokio_tungstenite::tungstenite::Message::Binary(b) = m {
-                    c.bytes.fetch_add(b.len() as u64, Ordering::Relaxed);
-                    c.messages.fetch_add(1, Ordering::Relaxed);
-                }
+            while let crate::load::session::ViewerEvent::Tick(b, _) = viewer.next().await {
+                c.bytes.fetch_add(b.len() as u64, Ordering::Relaxed);
+                c.messages.fetch_add(1, Ordering::Relaxed);
             }
         }));
     }

@@ -1,16 +1,20 @@
 //! `crowdmorph load`: the open-loop load generator of [`crate::load`] against a running server
-//! over HTTP, at a fixed rate or ramping to the highest rate whose p99 meets a target, with a
-//! live progress line on standard error (only when it is a terminal).
+//! over HTTP, at a fixed rate or ramping to the highest rate whose p99 meets a target, or
+//! (`--session`) N viewers of one crowd session; with a live progress line on standard error
+//! (only when it is a terminal).
 
 use std::sync::Arc;
 use std::time::Duration;
 
-use anyhow::{Context, Result};
+use anyhow::{Context, Result, bail};
+use bytes::Bytes;
+use crowdmorph_proto::{CameraSpec, LodChoice, SessionHead, SessionInfo, ViewerHello};
 use serde::Serialize;
 
 use crate::load::http::{HttpLane, HttpTarget};
+use crate::load::session::SessionLoad;
 use crate::load::{
-    self, CrowdShape, Live, LoadReport, RampOptions, RampReport, RigClips, RunOptions,
+    self, CrowdShape, Live, LoadReport, RampOptions, RampReport, RigClips, RunOptions, WireEncoding,
 };
 
 /// Request bodies generated; request `i` sends body `i mod RING`.
@@ -37,6 +41,24 @@ pub struct LoadCommand {
     pub ramp: Option<RampOptions>,
     /// Draw the progress line (it is drawn only when standard error is a terminal).
     pub progress: bool,
+    /// Viewers of a session instead of crowd-frame requests.
+    pub session: Option<SessionMode>,
+}
+
+/// `crowdmorph load --session`: what the viewers watch.
+#[derive(Clone, Debug)]
+pub struct SessionMode {
+    /// Viewers connected.
+    pub viewers: usize,
+    /// Ticks per second of a session the run creates.
+    pub fps: f32,
+    /// Watch this existing session instead of creating one from the crowd shape.
+    pub attach: Option<String>,
+    /// Bearer token for creating and deleting the session.
+    pub admin_token: Option<String>,
+    /// `[metres, level]` pairs: LOD by distance from each viewer's camera instead of the
+    /// crowd shape's LOD mix.
+    pub lod_by_distance: Option<Vec<[f32; 2]>>,
 }
 
 /// The result: one report, or a ramp's.
@@ -89,6 +111,9 @@ async fn describe_rigs(url: &str, crowd: &CrowdShape) -> Result<Vec<RigClips>> {
 
 async fn run(cmd: &LoadCommand) -> Result<LoadOutcome> {
     load::http::authority_of(&cmd.url)?;
+    if let Some(mode) = &cmd.session {
+        return Ok(LoadOutcome::Fixed(run_session(cmd, mode).await?));
+    }
     let rigs = describe_rigs(&cmd.url, &cmd.crowd).await?;
     let bodies = cmd.crowd.bodies(&rigs, RING)?;
     let target = HttpTarget::new(&cmd.url, bodies, cmd.crowd.encoding)?;
@@ -137,8 +162,33 @@ async fn run_at(
     }
     let rate = opts.rate;
     let live = Live::new(opts);
-    // indicatif hides the line when standard error is not a terminal; then nothing is drawn
-    // and no snapshot is taken.
+    let line = move |live: &Live| {
+        let r = live.snapshot();
+        let (sent, done) = live.counts();
+        format!(
+            "{rate:.0} req/s: {:.1} s, {sent} sent, {} in flight, {} ok, {} errors; \
+             p50 {:.2} ms, p99 {:.2} ms; {:.0} heads/s",
+            live.elapsed(),
+            sent.saturating_sub(done),
+            r.ok,
+            r.errors,
+            r.latency_ms.p50,
+            r.latency_ms.p99,
+            r.heads_per_s
+        )
+    };
+    Ok(with_progress(&live, progress, line, load::run(lanes, &live)).await?)
+}
+
+/// Runs `work` with a progress line that shows `line` of `live` four times a second.
+/// indicatif hides the line when standard error is not a terminal; then nothing is drawn and
+/// no snapshot is taken.
+async fn with_progress<T>(
+    live: &Arc<Live>,
+    progress: bool,
+    line: impl Fn(&Live) -> String + Send + 'static,
+    work: impl Future<Output = T>,
+) -> T {
     let bar = progress
         .then(indicatif::ProgressBar::new_spinner)
         .filter(|b| !b.is_hidden());
@@ -150,30 +200,234 @@ async fn run_at(
         tokio::spawn(async move {
             loop {
                 tokio::time::sleep(Duration::from_millis(250)).await;
-                let r = live.snapshot();
-                let (sent, done) = live.counts();
-                bar.set_message(format!(
-                    "{rate:.0} req/s: {:.1} s, {sent} sent, {} in flight, {} ok, {} errors; \
-                     p50 {:.2} ms, p99 {:.2} ms; {:.0} heads/s",
-                    live.elapsed(),
-                    sent.saturating_sub(done),
-                    r.ok,
-                    r.errors,
-                    r.latency_ms.p50,
-                    r.latency_ms.p99,
-                    r.heads_per_s
-                ));
+                bar.set_message(line(&live));
             }
         })
     });
-    let result = load::run(lanes, &live).await;
+    let result = work.await;
     if let Some(t) = ticker {
         t.abort();
     }
     if let Some(b) = bar {
         b.finish_and_clear();
     }
-    Ok(result?)
+    result
+}
+
+/// Heads of a session stand on a square grid this far apart (metres), in rows going away
+/// from the viewers' cameras along −Z.
+const GRID: f32 = 0.4;
+
+/// The session's heads from the crowd shape: head `h` plays what head `h` of the shape's
+/// first request plays, its frame as the offset (so the shape's unique jobs are the session's
+/// distinct animations and the rest are clones), on a square grid.
+fn session_heads(crowd: &CrowdShape, rigs: &[RigClips]) -> Result<Vec<SessionHead>> {
+    let request = crowd
+        .requests(rigs, 1)?
+        .pop()
+        .context("the crowd shape made no request")?;
+    let side = (request.heads.len() as f64).sqrt().ceil().max(1.0) as usize;
+    Ok(request
+        .heads
+        .into_iter()
+        .enumerate()
+        .map(|(i, h)| SessionHead {
+            head: h.head,
+            rig: h.rig,
+            clip: h.clip,
+            offset: h.frame,
+            position: [(i % side) as f32 * GRID, 0.0, -((i / side) as f32) * GRID],
+            yaw: 0.0,
+            scale: 1.0,
+        })
+        .collect())
+}
+
+/// A camera in front of the grid of `heads` heads, at eye height, looking at its middle.
+fn grid_camera(heads: usize) -> CameraSpec {
+    let side = (heads as f64).sqrt().ceil().max(1.0) as f32;
+    let middle = (side - 1.0) * GRID / 2.0;
+    CameraSpec {
+        position: [middle, 1.6, 3.0],
+        target: [middle, 1.6, -middle],
+        fov_y: crowdmorph_proto::DEFAULT_FOV_Y,
+        near: None,
+        far: None,
+    }
+}
+
+/// One hello per viewer: the shape's format and normals, and the LOD by distance or from
+/// the shape's LOD mix (in proportion to its weights).
+fn hellos(crowd: &CrowdShape, mode: &SessionMode, heads: usize) -> Vec<ViewerHello> {
+    let levels = load::session::viewer_lods(&crowd.lods, mode.viewers);
+    levels
+        .into_iter()
+        .map(|level| ViewerHello {
+            format: crowd.format,
+            normals: crowd.normals,
+            camera: mode.lod_by_distance.is_some().then(|| grid_camera(heads)),
+            lod: match &mode.lod_by_distance {
+                Some(table) => LodChoice::ByDistance {
+                    by_distance: table.clone(),
+                },
+                None => LodChoice::Fixed(level),
+            },
+            ..ViewerHello::default()
+        })
+        .collect()
+}
+
+/// Sends a session request and returns the reply, an error naming `what` on a transport
+/// failure.
+async fn session_call(
+    client: &crowdmorph_client::Client,
+    method: hyper::Method,
+    path: &str,
+    body: Option<String>,
+    what: &str,
+) -> Result<crowdmorph_client::Reply> {
+    client
+        .send(
+            method,
+            path,
+            body.as_ref().map(|_| crowdmorph_proto::CONTENT_TYPE_JSON),
+            Some(crowdmorph_proto::CONTENT_TYPE_JSON),
+            body.map(Bytes::from).unwrap_or_default(),
+        )
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))
+        .with_context(|| what.to_string())
+}
+
+/// The reply's JSON body as `T`, or an error with the server's code and message.
+fn session_reply<T: serde::de::DeserializeOwned>(
+    reply: &crowdmorph_client::Reply,
+    ok: u16,
+    what: &str,
+) -> Result<T> {
+    if reply.status != ok {
+        let detail = reply.error().map_or_else(
+            || String::from_utf8_lossy(&reply.body).into_owned(),
+            |e| format!("{} {}", e.error.code, e.error.message),
+        );
+        bail!("{what}: the server answered {}: {detail}", reply.status);
+    }
+    serde_json::from_slice(&reply.body).with_context(|| format!("{what}: reading the answer"))
+}
+
+/// `--session`: creates the session (or finds the one to attach to), runs the viewers, and
+/// deletes a session it created, whatever the run's outcome.
+async fn run_session(cmd: &LoadCommand, mode: &SessionMode) -> Result<LoadReport> {
+    if cmd.ramp.is_some() {
+        bail!(
+            "--ramp ramps a request rate and cannot be combined with --session \
+             (run --session at a few --viewers counts instead)"
+        );
+    }
+    if cmd.crowd.encoding == WireEncoding::Json {
+        bail!("a session's stream is always bincode: --encoding json cannot apply to --session");
+    }
+    if mode.viewers == 0 {
+        bail!("--session needs at least one viewer");
+    }
+    let mut client = crowdmorph_client::Client::new(cmd.url.trim_end_matches('/'));
+    if let Some(t) = &mode.admin_token {
+        client = client.with_token(t);
+    }
+    let (info, created) = match &mode.attach {
+        Some(id) => {
+            let what = format!("asking {} about session {id:?}", cmd.url);
+            let reply = session_call(
+                &client,
+                hyper::Method::GET,
+                &format!("/v1/sessions/{id}"),
+                None,
+                &what,
+            )
+            .await?;
+            if reply.status == 404 {
+                bail!("the server at {} has no session {id:?}", cmd.url);
+            }
+            (session_reply::<SessionInfo>(&reply, 200, &what)?, false)
+        }
+        None => {
+            let rigs = describe_rigs(&cmd.url, &cmd.crowd).await?;
+            let heads = session_heads(&cmd.crowd, &rigs)?;
+            // The session outlives a run that stalls, but not for long after one that died.
+            let lifetime = cmd.warmup + cmd.duration + cmd.grace + 60.0;
+            let body = serde_json::json!({
+                "fps": mode.fps,
+                "idle_timeout_s": lifetime.clamp(60.0, 86_400.0).ceil() as u32,
+                "heads": heads,
+            });
+            let what = "creating the session";
+            let reply = session_call(
+                &client,
+                hyper::Method::POST,
+                "/v1/sessions",
+                Some(body.to_string()),
+                what,
+            )
+            .await?;
+            (session_reply::<SessionInfo>(&reply, 201, what)?, true)
+        }
+    };
+    let load = SessionLoad {
+        url: cmd.url.clone(),
+        id: info.id.clone(),
+        created,
+        fps: f64::from(info.fps),
+        heads: info.heads.len() as u64,
+        hellos: hellos(&cmd.crowd, mode, info.heads.len()),
+    };
+    let result = watch(cmd, &load).await;
+    if created {
+        let what = format!("deleting session {:?}", info.id);
+        let reply = session_call(
+            &client,
+            hyper::Method::DELETE,
+            &format!("/v1/sessions/{}", info.id),
+            None,
+            &what,
+        )
+        .await;
+        match reply {
+            Ok(r) if r.status == 204 || r.status == 404 => {}
+            Ok(r) => tracing::warn!("{what}: the server answered {}", r.status),
+            Err(e) => tracing::warn!("{e:#}"),
+        }
+    }
+    result
+}
+
+/// The viewers of `load` for the run's warm-up and window, with the progress line.
+async fn watch(cmd: &LoadCommand, load: &SessionLoad) -> Result<LoadReport> {
+    let opts = RunOptions {
+        rate: load.rate(),
+        duration: Duration::from_secs_f64(cmd.duration.max(0.0)),
+        warmup: Duration::from_secs_f64(cmd.warmup.max(0.0)),
+        grace: Duration::from_secs_f64(cmd.grace.max(0.0)),
+        heads_per_request: load.heads,
+    };
+    opts.check()?;
+    let live = Live::new(opts);
+    let viewers = load.hellos.len();
+    let fps = load.fps;
+    let line = move |live: &Live| {
+        let r = live.snapshot();
+        let missed = r.session.as_ref().map_or(0, |s| s.ticks_missed);
+        format!(
+            "{viewers} viewers × {fps} ticks/s: {:.1} s, {} messages, {missed} missed, {} errors; \
+             p50 {:.2} ms, p99 {:.2} ms; {:.0} heads/s",
+            live.elapsed(),
+            r.ok,
+            r.errors,
+            r.latency_ms.p50,
+            r.latency_ms.p99,
+            r.heads_per_s
+        )
+    };
+    Ok(with_progress(&live, cmd.progress, line, load::session::run(load, &live)).await?)
 }
 
 /// Parses a mix entry `NAME[:WEIGHT]` (`--clip talk:3`); without a weight, 1.
@@ -202,6 +456,20 @@ pub fn parse_weighted_lod(s: &str) -> Result<(u32, f64)> {
     Ok((level, weight))
 }
 
+/// Parses `METRES:LEVEL` (`--lod-by-distance 8:1`).
+pub fn parse_distance_level(s: &str) -> Result<[f32; 2]> {
+    let (m, l) = s
+        .split_once(':')
+        .with_context(|| format!("{s:?}: write METRES:LEVEL"))?;
+    let metres: f32 = m.trim().parse().with_context(|| format!("{s:?}: metres"))?;
+    let level: u32 = l.trim().parse().with_context(|| format!("{s:?}: level"))?;
+    anyhow::ensure!(
+        metres.is_finite() && metres >= 0.0,
+        "{s:?}: metres must be >= 0"
+    );
+    Ok([metres, level as f32])
+}
+
 #[cfg(test)]
 mod tests {
     // A test that meets an unexpected error should fail loudly.
@@ -218,5 +486,9 @@ mod tests {
         assert!(parse_weighted("talk:-1").is_err());
         assert_eq!(parse_weighted_lod("2:0.25").unwrap(), (2, 0.25));
         assert!(parse_weighted_lod("x:1").is_err());
+        assert_eq!(parse_distance_level("8.5:2").unwrap(), [8.5, 2.0]);
+        assert!(parse_distance_level("8").is_err());
+        assert!(parse_distance_level("-1:2").is_err());
+        assert!(parse_distance_level("1:x").is_err());
     }
 }
