@@ -265,6 +265,14 @@ enum BenchCommand {
         /// Engine of the server and of the in-process comparison.
         #[arg(long, default_value = "auto")]
         backend: BackendChoice,
+        /// Also measure the dense Python server (aiohttp + numpy,
+        /// clients/python/bench/dense_server.py) on the same requests, with this Python
+        /// (default /usr/bin/python3).
+        #[arg(long, value_name = "PYTHON", num_args = 0..=1, default_missing_value = "/usr/bin/python3")]
+        python_peer: Option<PathBuf>,
+        /// Where the Python peer runs numpy: off its event loop (thread) or on it (inline).
+        #[arg(long, default_value = "thread", value_parser = ["thread", "inline"])]
+        python_peer_compute: String,
         /// Print JSON.
         #[arg(long)]
         json: bool,
@@ -363,6 +371,10 @@ enum BenchCommand {
         /// Seconds per measurement.
         #[arg(long, default_value_t = 1.0)]
         seconds: f64,
+        /// Also time the warm numpy blend (`np.matmul(W, D, out=OUT); OUT += neutral`) on the
+        /// same jobs with this Python (default /usr/bin/python3).
+        #[arg(long, value_name = "PYTHON", num_args = 0..=1, default_missing_value = "/usr/bin/python3")]
+        numpy: Option<PathBuf>,
         /// Print JSON.
         #[arg(long)]
         json: bool,
@@ -785,6 +797,7 @@ fn main() -> Result<()> {
                     batches,
                     mesh_fractions,
                     seconds,
+                    numpy,
                     json,
                 },
         } => {
@@ -807,6 +820,7 @@ fn main() -> Result<()> {
                 mesh_fractions,
                 seconds,
                 progress: !json,
+                numpy,
             };
             let report = bench::bench_cpu(&rig, &opt)?;
             if json {
@@ -944,6 +958,8 @@ fn main() -> Result<()> {
                     clients,
                     seconds,
                     backend,
+                    python_peer,
+                    python_peer_compute,
                     json,
                 },
         } => {
@@ -959,6 +975,8 @@ fn main() -> Result<()> {
                 clients,
                 seconds,
                 backend,
+                python_peer,
+                python_compute: python_peer_compute,
             };
             let bar = tools::spinner("bench http: in-process, loopback, saturation, half load");
             let report = http::bench_http(bytes, &opt);
