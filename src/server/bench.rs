@@ -331,7 +331,9 @@ async fn measure_python_peer(
 ) -> Result<PythonPeerReport> {
     use super::pypeer;
     if opt.format == Format::Q16 {
-        bail!("the Python peer serves f32 and f16 only: run --python-peer with --format f32 or f16");
+        bail!(
+            "the Python peer serves f32 and f16 only: run --python-peer with --format f32 or f16"
+        );
     }
     // Removed when this returns, whichever way; the peer is killed before it (declared after).
     let dir = pypeer::temp_dir("crowdmorph-pypeer-")?;

@@ -148,7 +148,11 @@ pub fn read_npy_f32(path: &Path) -> Result<(Vec<usize>, Vec<f32>)> {
         .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
         .collect();
     if data.len() != shape.iter().product::<usize>() {
-        bail!("{}: {} values for shape {shape:?}", path.display(), data.len());
+        bail!(
+            "{}: {} values for shape {shape:?}",
+            path.display(),
+            data.len()
+        );
     }
     Ok((shape, data))
 }
@@ -518,7 +522,11 @@ mod tests {
                 for (i, &vert) in st.vertices.iter().enumerate() {
                     let at = st.target as usize * 3 * v + (offsets[pi] + vert as usize) * 3;
                     assert_eq!(d[at..at + 3], st.positions[i].to_array());
-                    stored += st.positions[i].to_array().iter().filter(|x| **x != 0.0).count();
+                    stored += st.positions[i]
+                        .to_array()
+                        .iter()
+                        .filter(|x| **x != 0.0)
+                        .count();
                 }
             }
         }
@@ -535,7 +543,10 @@ mod tests {
         let (shape, masks) = read_npy_f32(&dir.path().join("lod_masks.npy")).unwrap();
         assert_eq!(shape, vec![rig.lod.levels.len(), t]);
         for (l, level) in rig.lod.levels.iter().enumerate() {
-            let kept = masks[l * t..(l + 1) * t].iter().filter(|m| **m == 1.0).count();
+            let kept = masks[l * t..(l + 1) * t]
+                .iter()
+                .filter(|m| **m == 1.0)
+                .count();
             assert_eq!(kept, level.shapes as usize);
         }
         let manifest: serde_json::Value =
