@@ -419,7 +419,8 @@ pub fn compare_responses(
             } else {
                 0.0
             };
-            if !(d <= tolerance + step) {
+            // Written so that a NaN on either side fails too.
+            if d.is_nan() || d > tolerance + step {
                 bail!("buffer {i}: {x} against the peer's {y} (tolerance {tolerance})");
             }
             worst = worst.max(d);
@@ -483,6 +484,9 @@ pub struct NumpyTiming {
 
 #[cfg(test)]
 mod tests {
+    // A test that meets an unexpected error should fail loudly, which is what unwrap does.
+    #![allow(clippy::unwrap_used)]
+
     use super::*;
 
     #[test]
