@@ -35,6 +35,10 @@ pub const SCRIPTS: &[(&str, &str)] = &[
         include_str!("../../clients/python/bench/numpy_blend.py"),
     ),
     (
+        "bench/blas_env.py",
+        include_str!("../../clients/python/bench/blas_env.py"),
+    ),
+    (
         "src/crowdmorph/__init__.py",
         include_str!("../../clients/python/src/crowdmorph/__init__.py"),
     ),

@@ -15,7 +15,8 @@ to be fast, not to lose:
 - the blend is one ``np.matmul(W, D, out=OUT[:u])`` and ``OUT[:u] += neutral`` into a warm
   buffer taken from a pool (one per request in flight, reused, never freed), by OpenBLAS on
   every core, off the event loop (``--compute thread``, the default, measured faster here than
-  ``--compute inline``);
+  ``--compute inline``), with OpenBLAS's kernels chosen from the CPU's flags (``blas_env.py``:
+  Debian's OpenBLAS 0.3.21 takes the dev VM's Xeon for a Prescott and runs SSE3 kernels);
 - the payloads are written to the socket straight from that buffer (asyncio copies only what
   the kernel does not take at once), with the bincode framing around them; f16 is converted
   into a second warm buffer.
@@ -34,6 +35,10 @@ import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+
+from blas_env import blas_library, pin_openblas_core  # noqa: E402  (this script's folder)
+
+pin_openblas_core()
 
 try:
     import numpy as np
@@ -260,20 +265,6 @@ def make_app(rig: Rig, compute: str) -> web.Application:
     app.router.add_post("/v1/crowd/frame", crowd_frame)
     app.router.add_get("/healthz", healthz)
     return app
-
-
-def blas_library() -> str:
-    """The BLAS numpy is linked with, as mapped into this process (a path fragment)."""
-    try:
-        maps = Path("/proc/self/maps").read_text()
-    except OSError:
-        return "unknown"
-    for line in maps.splitlines():
-        path = line.split()[-1] if line.split() else ""
-        name = path.rsplit("/", 1)[-1]
-        if any(k in name for k in ("openblas", "mkl_rt", "blis", "libblas", "accelerate")):
-            return path.split("/x86_64-linux-gnu/")[-1]
-    return "unknown"
 
 
 async def main() -> None:

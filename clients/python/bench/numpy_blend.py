@@ -19,6 +19,10 @@ import sys
 import time
 from pathlib import Path
 
+from blas_env import blas_library, pin_openblas_core  # noqa: E402  (this script's folder)
+
+pin_openblas_core()
+
 try:
     import numpy as np
 except ImportError:
@@ -40,20 +44,6 @@ def median_ms(seconds: float, f) -> float:
         times.append((time.perf_counter() - t) * 1e3)
     times.sort()
     return times[len(times) // 2]
-
-
-def blas_library() -> str:
-    """The file name of the BLAS numpy is linked with, as mapped into this process."""
-    try:
-        maps = Path("/proc/self/maps").read_text()
-    except OSError:
-        return "unknown"
-    for line in maps.splitlines():
-        path = line.split()[-1] if line.split() else ""
-        name = path.rsplit("/", 1)[-1]
-        if any(k in name for k in ("openblas", "mkl_rt", "blis", "libblas", "accelerate")):
-            return path.split("/x86_64-linux-gnu/")[-1] if "/x86_64-linux-gnu/" in path else name
-    return "unknown"
 
 
 def main() -> None:
