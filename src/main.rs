@@ -1158,6 +1158,43 @@ mod tests {
     }
 
     #[test]
+    fn python_peer_flags_default_to_the_system_python_and_take_a_path() {
+        let peer = |args: &[&str]| match Cli::try_parse_from(args)
+            .expect("bench http parses")
+            .command
+        {
+            Command::Bench {
+                which: BenchCommand::Http { python_peer, .. },
+            } => python_peer,
+            _ => panic!("parsed as another command"),
+        };
+        assert_eq!(peer(&["crowdmorph", "bench", "http"]), None);
+        assert_eq!(
+            peer(&["crowdmorph", "bench", "http", "--python-peer", "--json"]),
+            Some(std::path::PathBuf::from("/usr/bin/python3"))
+        );
+        assert_eq!(
+            peer(&[
+                "crowdmorph",
+                "bench",
+                "http",
+                "--python-peer",
+                "/opt/py/bin/python"
+            ]),
+            Some(std::path::PathBuf::from("/opt/py/bin/python"))
+        );
+        match Cli::try_parse_from(["crowdmorph", "bench", "cpu", "--numpy"])
+            .expect("bench cpu --numpy parses")
+            .command
+        {
+            Command::Bench {
+                which: BenchCommand::Cpu { numpy, .. },
+            } => assert_eq!(numpy, Some(std::path::PathBuf::from("/usr/bin/python3"))),
+            _ => panic!("parsed as another command"),
+        }
+    }
+
+    #[test]
     fn bench_http_takes_json_and_backend_flags() {
         let cli =
             Cli::try_parse_from(["crowdmorph", "bench", "http", "--json", "--backend", "cpu"])
