@@ -12,6 +12,10 @@
 //! - Saturation: `clients` connections send requests back to back (bincode both ways; the
 //!   client reads each body whole but does not decode it, so that it steals as little CPU as
 //!   possible from the server on the same machine), heads per second.
+//! - JSON: the same crowds and connections with JSON requests and responses, right after.
+//! - The Python peer (`--python-peer`): the dense aiohttp + numpy server of
+//!   [`super::pypeer`], checked once against crowdmorph's vertices and then driven by the same
+//!   client loop with the same bincode bodies, while crowdmorph idles.
 //! - Half load: requests arrive at a fixed rate of half the saturated request rate (open
 //!   loop), latency percentiles from an HDR histogram.
 //! - Ceiling: what any server could reach on this machine, from CPU costs measured in the

@@ -565,18 +565,46 @@ mod tests {
     }
 
     #[test]
+    #[cfg_attr(
+        not(crowdmorph_python_peer),
+        ignore = "needs /usr/bin/python3 with numpy and aiohttp"
+    )]
+    fn a_missing_package_is_named_in_the_error() {
+        for missing in ["numpy", "aiohttp"] {
+            let dir = temp_dir("crowdmorph-missing-").unwrap();
+            let scripts = write_scripts(dir.path()).unwrap();
+            // The script's own folder comes first on sys.path: this module shadows the real one.
+            std::fs::write(
+                scripts.join(format!("bench/{missing}.py")),
+                format!("raise ImportError('No module named {missing}')\n"),
+            )
+            .unwrap();
+            let err = PythonPeer::start(Path::new(DEFAULT_PYTHON), &scripts, dir.path(), "thread")
+                .err()
+                .expect("the peer cannot start");
+            let text = format!("{err:#}");
+            assert!(
+                text.contains(&format!("needs {missing}")) && text.contains("apt-get install"),
+                "{text}"
+            );
+        }
+    }
+
+    #[test]
     fn the_embedded_scripts_are_the_whole_client_package() {
         // A module added to the package but not to SCRIPTS would make the peer's imports fail
         // only at bench time.
-        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("clients/python/src/crowdmorph");
-        for entry in std::fs::read_dir(&dir).unwrap() {
-            let name = entry.unwrap().file_name().to_string_lossy().into_owned();
-            if name.ends_with(".py") {
-                let path = format!("src/crowdmorph/{name}");
-                assert!(
-                    SCRIPTS.iter().any(|(p, _)| *p == path),
-                    "{path} is missing from pypeer::SCRIPTS"
-                );
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("clients/python");
+        for folder in ["src/crowdmorph", "bench"] {
+            for entry in std::fs::read_dir(root.join(folder)).unwrap() {
+                let name = entry.unwrap().file_name().to_string_lossy().into_owned();
+                if name.ends_with(".py") {
+                    let path = format!("{folder}/{name}");
+                    assert!(
+                        SCRIPTS.iter().any(|(p, _)| *p == path),
+                        "{path} is missing from pypeer::SCRIPTS"
+                    );
+                }
             }
         }
     }
