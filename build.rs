@@ -14,6 +14,9 @@
 //!   (`clients/python/tests`, run by `tests/python_client.rs`) can run. The system's Python,
 //!   not whatever `python3` comes first on `PATH`, so that the test runs the same interpreter
 //!   this script checked (Debian: `apt-get install python3-pytest python3-numpy`).
+//! - `crowdmorph_python_peer`: `/usr/bin/python3` imports numpy and aiohttp, so the dense
+//!   Python peer of `bench http --python-peer` can be checked against the server
+//!   (`tests/server/python_peer.rs`; Debian: `apt-get install python3-numpy python3-aiohttp`).
 //!
 //! A present resource that then fails at run time fails its tests: a broken GPU or a missing rig
 //! file is a fault, not a reason to skip.
@@ -32,6 +35,7 @@ fn main() {
     println!("cargo::rustc-check-cfg=cfg(crowdmorph_gpu_driver)");
     println!("cargo::rustc-check-cfg=cfg(crowdmorph_chromium)");
     println!("cargo::rustc-check-cfg=cfg(crowdmorph_python)");
+    println!("cargo::rustc-check-cfg=cfg(crowdmorph_python_peer)");
 
     if test_data_present() {
         println!("cargo::rustc-cfg=crowdmorph_test_data");
@@ -48,6 +52,9 @@ fn main() {
     }
     if python_with_pytest() {
         println!("cargo::rustc-cfg=crowdmorph_python");
+    }
+    if python_imports(&["numpy", "aiohttp"]) {
+        println!("cargo::rustc-cfg=crowdmorph_python_peer");
     }
 }
 
@@ -99,6 +106,22 @@ fn python_with_pytest() -> bool {
         }
         _ => false,
     }
+}
+
+/// Whether `/usr/bin/python3` imports every module of `modules` (the Python peer of `bench
+/// http --python-peer` needs numpy and aiohttp; `tests/server/python_peer.rs` checks it).
+fn python_imports(modules: &[&str]) -> bool {
+    let python = Path::new(PYTHON);
+    if !python.is_file() {
+        return false;
+    }
+    watch(python);
+    std::process::Command::new(python)
+        .args(["-c", &format!("import {}", modules.join(", "))])
+        .env("PYTHONDONTWRITEBYTECODE", "1")
+        .stderr(std::process::Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success())
 }
 
 fn test_data_present() -> bool {

@@ -265,6 +265,14 @@ enum BenchCommand {
         /// Engine of the server and of the in-process comparison.
         #[arg(long, default_value = "auto")]
         backend: BackendChoice,
+        /// Also measure the dense Python server (aiohttp + numpy,
+        /// clients/python/bench/dense_server.py) on the same requests, with this Python
+        /// (default /usr/bin/python3).
+        #[arg(long, value_name = "PYTHON", num_args = 0..=1, default_missing_value = "/usr/bin/python3")]
+        python_peer: Option<PathBuf>,
+        /// Where the Python peer runs numpy: off its event loop (thread) or on it (inline).
+        #[arg(long, default_value = "thread", value_parser = ["thread", "inline"])]
+        python_peer_compute: String,
         /// Print JSON.
         #[arg(long)]
         json: bool,
@@ -363,6 +371,10 @@ enum BenchCommand {
         /// Seconds per measurement.
         #[arg(long, default_value_t = 1.0)]
         seconds: f64,
+        /// Also time the warm numpy blend (`np.matmul(W, D, out=OUT); OUT += neutral`) on the
+        /// same jobs with this Python (default /usr/bin/python3).
+        #[arg(long, value_name = "PYTHON", num_args = 0..=1, default_missing_value = "/usr/bin/python3")]
+        numpy: Option<PathBuf>,
         /// Print JSON.
         #[arg(long)]
         json: bool,
@@ -807,6 +819,7 @@ fn main() -> Result<()> {
                     batches,
                     mesh_fractions,
                     seconds,
+                    numpy,
                     json,
                 },
         } => {
@@ -829,6 +842,7 @@ fn main() -> Result<()> {
                 mesh_fractions,
                 seconds,
                 progress: !json,
+                numpy,
             };
             let report = bench::bench_cpu(&rig, &opt)?;
             if json {
@@ -966,6 +980,8 @@ fn main() -> Result<()> {
                     clients,
                     seconds,
                     backend,
+                    python_peer,
+                    python_peer_compute,
                     json,
                 },
         } => {
@@ -981,6 +997,8 @@ fn main() -> Result<()> {
                 clients,
                 seconds,
                 backend,
+                python_peer,
+                python_compute: python_peer_compute,
             };
             let bar = tools::spinner("bench http: in-process, loopback, saturation, half load");
             let report = http::bench_http(bytes, &opt);
@@ -1201,6 +1219,43 @@ mod tests {
             Cli::try_parse_from(["crowdmorph", "load", "--session", "--viewers", "0"]).is_err()
         );
         assert!(Cli::try_parse_from(["crowdmorph", "load", "--lod-by-distance", "8"]).is_err());
+    }
+
+    #[test]
+    fn python_peer_flags_default_to_the_system_python_and_take_a_path() {
+        let peer = |args: &[&str]| match Cli::try_parse_from(args)
+            .expect("bench http parses")
+            .command
+        {
+            Command::Bench {
+                which: BenchCommand::Http { python_peer, .. },
+            } => python_peer,
+            _ => panic!("parsed as another command"),
+        };
+        assert_eq!(peer(&["crowdmorph", "bench", "http"]), None);
+        assert_eq!(
+            peer(&["crowdmorph", "bench", "http", "--python-peer", "--json"]),
+            Some(std::path::PathBuf::from("/usr/bin/python3"))
+        );
+        assert_eq!(
+            peer(&[
+                "crowdmorph",
+                "bench",
+                "http",
+                "--python-peer",
+                "/opt/py/bin/python"
+            ]),
+            Some(std::path::PathBuf::from("/opt/py/bin/python"))
+        );
+        match Cli::try_parse_from(["crowdmorph", "bench", "cpu", "--numpy"])
+            .expect("bench cpu --numpy parses")
+            .command
+        {
+            Command::Bench {
+                which: BenchCommand::Cpu { numpy, .. },
+            } => assert_eq!(numpy, Some(std::path::PathBuf::from("/usr/bin/python3"))),
+            _ => panic!("parsed as another command"),
+        }
     }
 
     #[test]

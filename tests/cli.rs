@@ -692,6 +692,13 @@ fn bench_http_reports_plausible_json() {
     assert_eq!(r["saturation_errors"], 0);
     assert_eq!(r["half_load_errors"], 0);
     assert!(f64_of(&r, "half_load_p99_ms") >= f64_of(&r, "half_load_p50_ms"));
+    // JSON, measured beside bincode in the same run.
+    assert_eq!(r["json_errors"], 0);
+    let json_rate = f64_of(&r, "json_heads_per_s");
+    assert!(json_rate > 0.0);
+    assert!((f64_of(&r, "json_over_bincode") - json_rate / http).abs() < 1e-9);
+    assert!(f64_of(&r, "json_bytes_per_head") > f64_of(&r, "response_bytes_per_head"));
+    assert!(r["python"].is_null(), "no Python peer unless asked for");
     // Half the heads are clones: an f16 response carries five unique buffers of 6 bytes per
     // vertex for ten heads, so about 3 bytes per vertex per head.
     let per_head = f64_of(&r, "response_bytes_per_head");
@@ -701,6 +708,64 @@ fn bench_http_reports_plausible_json() {
         "{per_head} bytes per head"
     );
     assert!(!r["sizes"].as_array().expect("sizes").is_empty());
+}
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_python_peer),
+    ignore = "needs /usr/bin/python3 with numpy and aiohttp: apt-get install python3-numpy python3-aiohttp"
+)]
+fn bench_http_and_cpu_measure_the_python_peers_on_the_same_work() {
+    let r = json(&[
+        "bench",
+        "http",
+        "--heads",
+        "10",
+        "--unique",
+        "5",
+        "--clients",
+        "2",
+        "--seconds",
+        "0.3",
+        "--backend",
+        "cpu",
+        "--python-peer",
+        "--json",
+    ]);
+    let p = &r["python"];
+    assert_eq!(p["python"], "/usr/bin/python3");
+    assert_eq!(p["compute"], "thread");
+    assert!(!p["blas"].as_str().expect("blas").is_empty());
+    assert!(f64_of(p, "max_error") <= f64_of(p, "tolerance"));
+    assert_eq!(p["errors"], 0);
+    let rate = f64_of(p, "heads_per_s");
+    assert!(rate > 0.0);
+    let ratio = f64_of(p, "crowdmorph_over_python");
+    assert!((ratio - f64_of(&r, "http_heads_per_s") / rate).abs() <= ratio * 1e-9);
+
+    let c = json(&[
+        "bench",
+        "cpu",
+        "--unique",
+        "10",
+        "--heads",
+        "10",
+        "--batches",
+        "10",
+        "--mesh-fractions",
+        "none",
+        "--seconds",
+        "0.05",
+        "--numpy",
+        "--json",
+    ]);
+    let n = &c["numpy"];
+    let warm = f64_of(n, "warm_ms");
+    assert!(warm > 0.0 && f64_of(n, "alloc_ms") > 0.0);
+    assert!((f64_of(n, "kernel_speedup") - warm / f64_of(&c, "eval_ms")).abs() < 1e-9);
+    assert!(
+        (f64_of(n, "dense_baseline_speedup") - warm / f64_of(&c, "dense_baseline_ms")).abs() < 1e-9
+    );
 }
 
 #[test]

@@ -12,6 +12,10 @@
 //! - Saturation: `clients` connections send requests back to back (bincode both ways; the
 //!   client reads each body whole but does not decode it, so that it steals as little CPU as
 //!   possible from the server on the same machine), heads per second.
+//! - JSON: the same crowds and connections with JSON requests and responses, right after.
+//! - The Python peer (`--python-peer`): the dense aiohttp + numpy server of
+//!   [`super::pypeer`], checked once against crowdmorph's vertices and then driven by the same
+//!   client loop with the same bincode bodies, while crowdmorph idles.
 //! - Half load: requests arrive at a fixed rate of half the saturated request rate (open
 //!   loop), latency percentiles from an HDR histogram.
 //! - Ceiling: what any server could reach on this machine, from CPU costs measured in the
@@ -89,6 +93,11 @@ pub struct HttpBenchOptions {
     pub seconds: f64,
     /// Engine of the server and of the in-process comparison (the same one for both).
     pub backend: crate::engine::BackendChoice,
+    /// Also measure the dense Python peer (`clients/python/bench/dense_server.py`) with this
+    /// interpreter.
+    pub python_peer: Option<std::path::PathBuf>,
+    /// Where the peer runs numpy: `thread` (off the event loop) or `inline`.
+    pub python_compute: String,
 }
 
 impl Default for HttpBenchOptions {
@@ -100,6 +109,8 @@ impl Default for HttpBenchOptions {
             clients: 4,
             seconds: 3.0,
             backend: crate::engine::BackendChoice::Auto,
+            python_peer: None,
+            python_compute: "thread".to_string(),
         }
     }
 }
@@ -179,6 +190,17 @@ pub struct HttpBenchReport {
     pub http_cpu_fraction_of_ceiling: f64,
     /// Requests that failed during the saturation run.
     pub saturation_errors: u64,
+    /// Heads per second at saturation with JSON requests and responses (same crowds, same
+    /// connections), measured right after the bincode run.
+    pub json_heads_per_s: f64,
+    /// `json_heads_per_s / http_heads_per_s` (goal ≥ 0.5).
+    pub json_over_bincode: f64,
+    /// JSON response bytes per head.
+    pub json_bytes_per_head: f64,
+    /// Requests that failed during the JSON run.
+    pub json_errors: u64,
+    /// The dense Python peer, when asked for (`--python-peer`).
+    pub python: Option<PythonPeerReport>,
     /// Latency percentiles at saturation, ms.
     pub saturation_p50_ms: f64,
     /// 99th percentile at saturation, ms.
@@ -197,6 +219,166 @@ pub struct HttpBenchReport {
     pub mean_batch_jobs: f64,
     /// Bytes per head of each format.
     pub sizes: Vec<FormatSize>,
+}
+
+/// The dense Python peer (aiohttp + numpy) driven like crowdmorph.
+#[derive(Debug, Serialize)]
+pub struct PythonPeerReport {
+    /// The interpreter.
+    pub python: String,
+    /// numpy's version.
+    pub numpy: String,
+    /// The BLAS library numpy loaded.
+    pub blas: String,
+    /// Where the peer ran numpy (`thread`: off the event loop; `inline`).
+    pub compute: String,
+    /// Largest position difference from crowdmorph's response to the same request.
+    pub max_error: f64,
+    /// The tolerance it was checked against (1e-5 of the bounding-box diagonal).
+    pub tolerance: f64,
+    /// Heads per second at saturation (same client loop, bodies and connections).
+    pub heads_per_s: f64,
+    /// `http_heads_per_s / heads_per_s` (goal ≥ 3).
+    pub crowdmorph_over_python: f64,
+    /// Median latency at saturation, ms.
+    pub p50_ms: f64,
+    /// 99th percentile at saturation, ms.
+    pub p99_ms: f64,
+    /// Requests that failed.
+    pub errors: u64,
+}
+
+/// One closed-loop saturation run.
+struct Saturation {
+    heads_per_s: f64,
+    hist: Histogram<u64>,
+    errors: u64,
+    /// Process CPU seconds over the measured window.
+    cpu_s: f64,
+    requests: u64,
+}
+
+/// `clients` connections send `bodies` (cycled) back to back for `seconds` after a 0.5 s
+/// warm-up; each response is read whole but not decoded, so that the client steals as little
+/// CPU as possible from the server on the same machine. The same loop drives crowdmorph in
+/// either encoding and the Python peer.
+async fn saturate(
+    client: &Client,
+    bodies: &Arc<Vec<Bytes>>,
+    enc: Encoding,
+    heads: usize,
+    clients: usize,
+    seconds: f64,
+) -> Result<Saturation> {
+    let counter = Arc::new(AtomicU64::new(0));
+    let errors = Arc::new(AtomicU64::new(0));
+    let warm_until = Instant::now() + Duration::from_millis(500);
+    let end = warm_until + Duration::from_secs_f64(seconds);
+    let mut tasks = Vec::new();
+    for c in 0..clients.max(1) {
+        let client = client.clone();
+        let bodies = bodies.clone();
+        let counter = counter.clone();
+        let errors = errors.clone();
+        let heads = heads as u64;
+        tasks.push(tokio::spawn(async move {
+            let mut hist = Histogram::<u64>::new_with_bounds(1, 600_000_000, 3)?;
+            let mut i = c;
+            while Instant::now() < end {
+                let t = Instant::now();
+                let body = bodies[i % bodies.len()].clone();
+                i += 7;
+                match client.crowd_frame_drain(body, enc).await {
+                    Ok((200, _)) => {
+                        if t >= warm_until && Instant::now() <= end {
+                            counter.fetch_add(heads, Ordering::Relaxed);
+                            hist.record(t.elapsed().as_micros() as u64)?;
+                        }
+                    }
+                    _ => {
+                        errors.fetch_add(1, Ordering::Relaxed);
+                    }
+                }
+            }
+            anyhow::Ok(hist)
+        }));
+    }
+    // Process CPU over the measured window (after the warm-up; the few requests in flight at
+    // its edges make this approximate).
+    tokio::time::sleep_until(tokio::time::Instant::from_std(warm_until)).await;
+    let cpu0 = process_cpu_s();
+    let mut hist = Histogram::<u64>::new_with_bounds(1, 600_000_000, 3)?;
+    for t in tasks {
+        hist.add(t.await??)?;
+    }
+    let cpu_s = process_cpu_s() - cpu0;
+    let counted = counter.load(Ordering::Relaxed);
+    Ok(Saturation {
+        heads_per_s: counted as f64 / seconds,
+        hist,
+        errors: errors.load(Ordering::Relaxed),
+        cpu_s,
+        requests: (counted / heads.max(1) as u64).max(1),
+    })
+}
+
+/// Starts the dense Python peer on `rig` (served as `rig_id`), checks its response to one
+/// crowd against crowdmorph's, and drives it with the same bodies and connections.
+async fn measure_python_peer(
+    python: &std::path::Path,
+    opt: &HttpBenchOptions,
+    rig: &Rig,
+    rig_id: &str,
+    ours: &Client,
+    bodies: &Arc<Vec<Bytes>>,
+    crowdmorph_heads_per_s: f64,
+) -> Result<PythonPeerReport> {
+    use super::pypeer;
+    if opt.format == Format::Q16 {
+        bail!(
+            "the Python peer serves f32 and f16 only: run --python-peer with --format f32 or f16"
+        );
+    }
+    // Removed when this returns, whichever way; the peer is killed before it (declared after).
+    let dir = pypeer::temp_dir("crowdmorph-pypeer-")?;
+    let scripts = pypeer::write_scripts(&dir.path().join("py"))?;
+    let rig_dir = dir.path().join("rig");
+    pypeer::export_rig(rig, rig_id, &rig_dir)?;
+    let peer = pypeer::PythonPeer::start(python, &scripts, &rig_dir, &opt.python_compute)?;
+    let client = Client::new(peer.url());
+    let req = crowd(opt, rig_id, 3, opt.format, false);
+    let (a, _) = ours.crowd_frame(&req, Encoding::Bincode).await?;
+    let (b, _) = client
+        .crowd_frame(&req, Encoding::Bincode)
+        .await
+        .context("the Python peer's response")?;
+    let tolerance = 1e-5 * rig.bbox().diagonal();
+    let max_error = pypeer::compare_responses(&a, &b, tolerance)
+        .context("the Python peer's response differs from crowdmorph's")?;
+    let sat = saturate(
+        &client,
+        bodies,
+        Encoding::Bincode,
+        opt.heads,
+        opt.clients,
+        opt.seconds,
+    )
+    .await?;
+    let (numpy, blas) = (peer.numpy.clone(), peer.blas.clone());
+    drop(peer);
+    Ok(PythonPeerReport {
+        python: python.display().to_string(),
+        numpy,
+        blas,
+        compute: opt.python_compute.clone(),
+        max_error: f64::from(max_error),
+        tolerance: f64::from(tolerance),
+        heads_per_s: sat.heads_per_s,
+        crowdmorph_over_python: crowdmorph_heads_per_s / sat.heads_per_s.max(1e-9),
+        p50_ms: pct(&sat.hist, 0.5),
+        p99_ms: pct(&sat.hist, 0.99),
+        errors: sat.errors,
+    })
 }
 
 /// Deterministic all-active weights in [0.05, 1): a JSON clip for the rig.
@@ -569,51 +751,39 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
             .collect::<Result<_, _>>()?,
     );
 
-    // Saturation: closed loop, `clients` connections.
-    let counter = Arc::new(AtomicU64::new(0));
-    let errors = Arc::new(AtomicU64::new(0));
-    let warm_until = Instant::now() + Duration::from_millis(500);
-    let end = warm_until + Duration::from_secs_f64(opt.seconds);
-    let mut tasks = Vec::new();
-    for c in 0..opt.clients.max(1) {
-        let client = client.clone();
-        let bodies = bodies.clone();
-        let counter = counter.clone();
-        let errors = errors.clone();
-        let heads = opt.heads as u64;
-        tasks.push(tokio::spawn(async move {
-            let mut hist = Histogram::<u64>::new_with_bounds(1, 600_000_000, 3)?;
-            let mut i = c;
-            while Instant::now() < end {
-                let t = Instant::now();
-                let body = bodies[i % bodies.len()].clone();
-                i += 7;
-                match client.crowd_frame_drain(body, Encoding::Bincode).await {
-                    Ok((200, _)) => {
-                        if t >= warm_until && Instant::now() <= end {
-                            counter.fetch_add(heads, Ordering::Relaxed);
-                            hist.record(t.elapsed().as_micros() as u64)?;
-                        }
-                    }
-                    _ => {
-                        errors.fetch_add(1, Ordering::Relaxed);
-                    }
-                }
-            }
-            anyhow::Ok(hist)
-        }));
-    }
-    // Process CPU over the measured window (after the warm-up; the few requests in flight at
-    // its edges make this approximate).
-    tokio::time::sleep_until(tokio::time::Instant::from_std(warm_until)).await;
-    let sat_cpu0 = process_cpu_s();
-    let mut sat = Histogram::<u64>::new_with_bounds(1, 600_000_000, 3)?;
-    for t in tasks {
-        sat.add(t.await??)?;
-    }
-    let sat_cpu = process_cpu_s() - sat_cpu0;
-    let http_heads_per_s = counter.load(Ordering::Relaxed) as f64 / opt.seconds;
-    let http_requests = (counter.load(Ordering::Relaxed) / opt.heads.max(1) as u64).max(1);
+    // Saturation: closed loop, `clients` connections, bincode.
+    let sat = saturate(
+        &client,
+        &bodies,
+        Encoding::Bincode,
+        opt.heads,
+        opt.clients,
+        opt.seconds,
+    )
+    .await?;
+    let sat_cpu = sat.cpu_s;
+    let http_heads_per_s = sat.heads_per_s;
+    let http_requests = sat.requests;
+    // The same crowds in JSON, both ways.
+    let json_bodies: Arc<Vec<Bytes>> = Arc::new(
+        (0..64)
+            .map(|i| Client::encode(&crowd(opt, &rig_id, i, opt.format, false), Encoding::Json))
+            .collect::<Result<_, _>>()?,
+    );
+    let json = saturate(
+        &client,
+        &json_bodies,
+        Encoding::Json,
+        opt.heads,
+        opt.clients,
+        opt.seconds,
+    )
+    .await?;
+    let json_bytes_per_head = {
+        let req = crowd(opt, &rig_id, 1, opt.format, false);
+        let (_, j) = client.crowd_frame(&req, Encoding::Json).await?;
+        j as f64 / opt.heads as f64
+    };
     let loopback_bytes_per_s = loopback_throughput(opt.clients, opt.seconds.min(2.0)).await?;
     let response_bytes_per_head = {
         let req = crowd(opt, &rig_id, 1, opt.format, false);
@@ -677,6 +847,23 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
 
     let batches = state.metrics.batches.load(Ordering::Relaxed).max(1);
     let computed = state.metrics.jobs_computed.load(Ordering::Relaxed);
+
+    // The Python peer last, while crowdmorph idles (its check asks crowdmorph once more).
+    let python = match &opt.python_peer {
+        Some(python) => Some(
+            measure_python_peer(
+                python,
+                opt,
+                &rig,
+                &rig_id,
+                &client,
+                &bodies,
+                http_heads_per_s,
+            )
+            .await?,
+        ),
+        None => None,
+    };
     let _ = stop_tx.send(());
     server.await??;
 
@@ -708,9 +895,14 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
         http_fraction_of_ceiling: http_heads_per_s / ceiling_heads_per_s,
         http_cpu_fraction_of_ceiling: (socket_cpu_s_per_response + inproc.2)
             / (sat_cpu / http_requests as f64),
-        saturation_errors: errors.load(Ordering::Relaxed),
-        saturation_p50_ms: pct(&sat, 0.5),
-        saturation_p99_ms: pct(&sat, 0.99),
+        saturation_errors: sat.errors,
+        json_heads_per_s: json.heads_per_s,
+        json_over_bincode: json.heads_per_s / http_heads_per_s.max(1e-9),
+        json_bytes_per_head,
+        json_errors: json.errors,
+        python,
+        saturation_p50_ms: pct(&sat.hist, 0.5),
+        saturation_p99_ms: pct(&sat.hist, 0.99),
         half_load_requests_per_s: rate,
         half_load_p50_ms: p50,
         half_load_p99_ms: p99,
@@ -747,6 +939,25 @@ pub fn report_text(r: &HttpBenchReport) -> String {
         r.saturation_p99_ms,
         r.saturation_errors
     );
+    s += &format!(
+        "  HTTP JSON       {:>10.0} heads/s  = {:.2}× bincode (goal ≥ 0.5); {:.0} bytes per head, {} errors\n",
+        r.json_heads_per_s, r.json_over_bincode, r.json_bytes_per_head, r.json_errors
+    );
+    if let Some(p) = &r.python {
+        s += &format!(
+            "  Python peer     {:>10.0} heads/s  aiohttp + numpy {} ({}), compute {}; crowdmorph is {:.2}× it (goal ≥ 3); p50 {:.2} ms, p99 {:.2} ms, {} errors; max difference {:.2e} (tolerance {:.2e})\n",
+            p.heads_per_s,
+            p.numpy,
+            p.blas,
+            p.compute,
+            p.crowdmorph_over_python,
+            p.p50_ms,
+            p.p99_ms,
+            p.errors,
+            p.max_error,
+            p.tolerance
+        );
+    }
     s += &format!(
         "  loopback TCP    {:>10.0} heads/s  = {:.2} GB/s ÷ {:.0} bytes per head; HTTP reaches {:.0} % of it\n",
         r.loopback_roofline_heads_per_s,

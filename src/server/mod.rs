@@ -19,6 +19,7 @@
 //! | [`sessions`] | crowd sessions: a crowd on a fixed tick, streamed to many viewers over WebSockets |
 //! | [`loadtest`] | `POST /v1/loadtest`: synthetic load through the real batcher, at low priority |
 //! | [`bench`] | `crowdmorph bench http`: loopback load against in-process work |
+//! | [`pypeer`] | the Python peers of the benchmarks: the rig as `.npy`, the dense aiohttp + numpy server |
 //! | [`bench_sessions`] | `crowdmorph bench sessions`: one session streamed to several viewers |
 //! | `viewer` | `GET /viewer`: the browser viewer's embedded files |
 
@@ -32,6 +33,7 @@ mod json;
 pub mod loadtest;
 mod lod;
 pub mod metrics;
+pub mod pypeer;
 pub mod registry;
 mod render;
 pub mod scheduler;

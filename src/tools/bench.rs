@@ -6,6 +6,8 @@
 //!   writes the finished positions) into a reused, warm output buffer; the `gemm` crate
 //!   (AVX-512 kernels) and `matrixmultiply` (AVX2) are both timed and the faster is the
 //!   baseline;
+//! - with `--numpy`, the best numpy blend a user could write (`np.matmul(W, D, out=OUT)` then
+//!   `OUT += neutral`, warm, reused output) on the same jobs, in a Python subprocess;
 //! - the roofline terms: the multiply-adds the sparse kernel executes at the machine's measured
 //!   FMA peak, and the output bytes at the measured copy bandwidth (a parallel copy of the same
 //!   bytes between warm buffers);
@@ -53,6 +55,8 @@ pub struct BenchOptions {
     pub seconds: f64,
     /// Show progress bars.
     pub progress: bool,
+    /// Also time the warm numpy blend with this Python (a subprocess, same jobs).
+    pub numpy: Option<std::path::PathBuf>,
 }
 
 impl Default for BenchOptions {
@@ -66,6 +70,7 @@ impl Default for BenchOptions {
             mesh_fractions: vec![0.5, 0.25, 0.1],
             seconds: 1.0,
             progress: true,
+            numpy: None,
         }
     }
 }
@@ -102,6 +107,27 @@ pub struct Roofline {
     pub fraction_of_overlapped: f64,
     /// GFLOP/s the kernel reaches (sparse FLOPs over the measured time).
     pub achieved_gflops: f64,
+}
+
+/// The numpy peer: `np.matmul(W, D, out=OUT); OUT += neutral` on the same `unique` jobs, warm
+/// and into a reused output (issue 13's honest baseline), timed in a Python subprocess by
+/// `clients/python/bench/numpy_blend.py`.
+#[derive(Debug, Serialize)]
+pub struct NumpyPeer {
+    /// The interpreter.
+    pub python: String,
+    /// numpy's version.
+    pub numpy: String,
+    /// The BLAS library numpy loaded.
+    pub blas: String,
+    /// Median ms, warm, reused output.
+    pub warm_ms: f64,
+    /// Median ms of `W @ D + neutral` allocating its output each time.
+    pub alloc_ms: f64,
+    /// `warm_ms / eval_ms`: how many times faster the kernel is.
+    pub kernel_speedup: f64,
+    /// `warm_ms / dense_baseline_ms`: the Rust dense peer against numpy's.
+    pub dense_baseline_speedup: f64,
 }
 
 /// One wire format through the kernel's output stage.
@@ -234,6 +260,8 @@ pub struct BenchReport {
     pub dense_baseline_heads_per_s: f64,
     /// `unique_heads_per_s / dense_baseline_heads_per_s`.
     pub speedup_vs_dense: f64,
+    /// The best numpy blend a user could write, when asked for (`--numpy`).
+    pub numpy: Option<NumpyPeer>,
     /// Plain parallel copy of the same output bytes, median ms.
     pub memcpy_ms: f64,
     /// `memcpy_ms / eval_ms`.
@@ -602,6 +630,29 @@ pub fn bench_cpu(rig: &Rig, opt: &BenchOptions) -> Result<BenchReport> {
         });
     }
     drop(c);
+    let numpy = match &opt.numpy {
+        Some(python) => {
+            if let Some(b) = bar {
+                b.set_message("numpy");
+            }
+            let t = crate::server::pypeer::numpy_blend_ms(
+                python,
+                rig,
+                &weights[..opt.unique],
+                opt.seconds,
+            )?;
+            Some(NumpyPeer {
+                python: python.display().to_string(),
+                numpy: t.numpy,
+                blas: t.blas,
+                warm_ms: t.warm_ms,
+                alloc_ms: t.alloc_ms,
+                kernel_speedup: t.warm_ms / base_ms,
+                dense_baseline_speedup: t.warm_ms / dense_baseline_ms,
+            })
+        }
+        None => None,
+    };
     let one_head_ms = match batches.iter().find(|b| b.unique == 1) {
         Some(b) => b.eval_ms,
         None => call(1, 0, Precision::F32, "1 per call")?,
@@ -696,6 +747,7 @@ pub fn bench_cpu(rig: &Rig, opt: &BenchOptions) -> Result<BenchReport> {
         dense_baseline_ms,
         dense_baseline_heads_per_s,
         speedup_vs_dense: unique_heads_per_s / dense_baseline_heads_per_s,
+        numpy,
         memcpy_ms,
         fraction_of_memcpy: memcpy_ms / eval_ms,
         formats,
@@ -756,6 +808,12 @@ pub fn report_text(r: &BenchReport) -> String {
         "  dense        gemm {:.3} ms, matrixmultiply {:.3} ms ({:.3} GFLOP) → sparse is {:.2}× faster than the better\n",
         r.dense_gemm_ms, r.dense_matrixmultiply_ms, f.dense_gflop, r.speedup_vs_dense
     );
+    if let Some(n) = &r.numpy {
+        s += &format!(
+            "  numpy        warm {:.3} ms, allocating {:.3} ms (numpy {}, {}) → the kernel is {:.2}× the warm numpy, the gemm peer {:.2}×\n",
+            n.warm_ms, n.alloc_ms, n.numpy, n.blas, n.kernel_speedup, n.dense_baseline_speedup
+        );
+    }
     s += &format!(
         "  memcpy     {:>8.3} ms  (same bytes; {:.0} % of the blend's time)\n",
         r.memcpy_ms,

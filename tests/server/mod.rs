@@ -12,6 +12,7 @@ mod loadtest;
 mod lod;
 mod overload;
 mod persistence;
+mod python_peer;
 mod render;
 mod sessions;
 mod viewer;
