@@ -206,6 +206,9 @@ pub struct BenchReport {
     pub threads: usize,
     /// Fraction of stored block lanes that hold a real delta.
     pub block_fill: f64,
+    /// What `block_fill` would be with tiles of consecutive vertices (before the layout
+    /// regroups each chunk's vertices).
+    pub block_fill_vertex_order: f64,
     /// Bytes of the CPU layout (neutral and delta blocks), which every call streams once.
     pub layout_bytes: usize,
     /// The machine's measured bounds.
@@ -668,6 +671,7 @@ pub fn bench_cpu(rig: &Rig, opt: &BenchOptions) -> Result<BenchReport> {
         isa: cpu.isa().name().to_string(),
         threads: rayon::current_num_threads(),
         block_fill: cpu.block_fill(),
+        block_fill_vertex_order: cpu.block_fill_in_vertex_order(),
         layout_bytes: cpu.bytes(),
         machine: Machine {
             fma_peak_gflops,
@@ -714,6 +718,17 @@ pub fn bench_cpu(rig: &Rig, opt: &BenchOptions) -> Result<BenchReport> {
     })
 }
 
+/// The layout's fill, before and after the regrouping of vertices within chunks, and its size
+/// (what one call streams).
+fn layout_line(r: &BenchReport) -> String {
+    format!(
+        "  layout       block fill {:.0} % ({:.0} % with tiles of consecutive vertices), {:.1} MB\n",
+        r.block_fill * 100.0,
+        r.block_fill_vertex_order * 100.0,
+        r.layout_bytes as f64 / 1e6
+    )
+}
+
 /// Human-readable bench output.
 pub fn report_text(r: &BenchReport) -> String {
     let mut s = format!(
@@ -752,6 +767,7 @@ pub fn report_text(r: &BenchReport) -> String {
         f.serial_ms,
         f.fraction_of_overlapped * 100.0
     );
+    s += &layout_line(r);
     s += &format!(
         "  dense        gemm {:.3} ms, matrixmultiply {:.3} ms ({:.3} GFLOP) → sparse is {:.2}× faster than the better\n",
         r.dense_gemm_ms, r.dense_matrixmultiply_ms, f.dense_gflop, r.speedup_vs_dense
