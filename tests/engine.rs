@@ -588,9 +588,12 @@ fn vertices_regrouped_in_the_layout_come_out_in_vertex_order() {
             "{}",
             cpu.block_fill_in_vertex_order()
         );
-        assert!(cpu.block_fill() > 0.85, "fill {}", cpu.block_fill());
+        assert!(cpu.block_fill() > 0.75, "fill {}", cpu.block_fill());
         let (blocks, in_order) = cpu.blocks();
-        assert!(blocks * 3 < in_order, "{blocks} blocks, {in_order} in order");
+        assert!(
+            blocks * 3 < in_order,
+            "{blocks} blocks, {in_order} in order"
+        );
         // The grouped rig is nearly packed in vertex order already (whatever its layout
         // regroups, it is another order of the same sums): each vertex's nonzero terms come
         // in the same slot order in both layouts, the rest are terms of zero, so the outputs
@@ -605,6 +608,17 @@ fn vertices_regrouped_in_the_layout_come_out_in_vertex_order() {
         };
         let a = cpu.evaluate(&batch, spec).expect("raw");
         let b = reference.evaluate(&batch, spec).expect("grouped");
+        // The same rig without the regrouping: the same bits.
+        let plain = CpuRig::in_vertex_order(&raw, isa);
+        assert_eq!(plain.blocks().0, in_order);
+        for spec in [spec, OutputSpec::default()] {
+            assert!(
+                plain.evaluate(&batch, spec).expect("vertex order")
+                    == cpu.evaluate(&batch, spec).expect("regrouped"),
+                "{} {spec:?}: regrouped layout differs from vertex order",
+                isa.name()
+            );
+        }
         for j in 0..jobs.len() {
             let (pa, pb) = (a.job_positions(j), b.job_positions(j));
             let (na, nb) = (

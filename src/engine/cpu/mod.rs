@@ -143,15 +143,16 @@ type Entry = (u32, u16, u8, Vec3);
 /// output stage holds in L1) vertices are regrouped greedily so that vertices moved by the same
 /// slots share tiles: a tile starts from the vertex with the most slots, and takes in turn the
 /// vertex that adds the fewest slots the tile does not have yet. A chunk keeps the file's order
-/// when that stores no fewer blocks (so the layout never grows), or when it has more distinct
-/// slots than [`ORDER_MAX_WORDS`] words of bits hold. The output stage gathers the sums back
-/// into vertex order, so nothing outside the kernel sees the order.
+/// when that saves fewer than [`MIN_SAVED_PER_MOVED_TILE`] blocks per tile it changes (never
+/// when it stores more: the layout never grows), or when it has more distinct slots than
+/// [`ORDER_MAX_WORDS`] words of bits hold. The output stage gathers the sums of changed tiles
+/// back into vertex order, so nothing outside the kernel sees the order.
 struct VertexOrder {
     /// New position (chunk base + lane within the chunk) of each vertex.
     new_index: Vec<u32>,
     /// Per vertex, padded to whole tiles: its lane within its chunk.
     unperm: Vec<u16>,
-    /// Per chunk: whether it is reordered.
+    /// Per tile: whether its lanes come from other places of the chunk's layout.
     permuted: Vec<bool>,
     /// Position and normal blocks in the file's vertex order.
     natural_blocks: [usize; 2],
@@ -160,20 +161,34 @@ struct VertexOrder {
 /// Vertices per chunk: the unit of parallel work, within which vertices may be reordered.
 const CHUNK: usize = CHUNK_TILES * LANES;
 
+/// A chunk is regrouped only when it saves at least this many blocks per tile whose vertices
+/// move: each such tile costs three gathers per job in the output stage, about what eight
+/// blocks' multiply-adds cost on the Xeon that measured it (ICT FaceKit keeps 84 % of the
+/// blocks regrouping saves and 63 % of the gathers; the embedded head, whose tiles gain
+/// less, mostly keeps vertex order).
+const MIN_SAVED_PER_MOVED_TILE: usize = 8;
+
 /// Chunks with more distinct slots than this many 64-bit words hold keep the file's order (the
 /// greedy search costs `CHUNK² × words` per chunk).
 const ORDER_MAX_WORDS: usize = 4;
 
 impl VertexOrder {
-    /// Sorts `pos` and `nrm` by (vertex, slot) and chooses each chunk's order.
-    fn build(vertices: usize, tiles: usize, pos: &mut [Entry], nrm: &mut [Entry]) -> VertexOrder {
+    /// Sorts `pos` and `nrm` by (vertex, slot) and chooses each chunk's order (the file's
+    /// order everywhere unless `regroup`).
+    fn build(
+        vertices: usize,
+        tiles: usize,
+        pos: &mut [Entry],
+        nrm: &mut [Entry],
+        regroup: bool,
+    ) -> VertexOrder {
         pos.sort_unstable_by_key(|e| (e.0, e.1));
         nrm.sort_unstable_by_key(|e| (e.0, e.1));
         let chunks = tiles.div_ceil(CHUNK_TILES);
         let mut order = VertexOrder {
             new_index: (0..vertices as u32).collect(),
             unperm: (0..tiles * LANES).map(|i| (i % CHUNK) as u16).collect(),
-            permuted: vec![false; chunks],
+            permuted: Vec::new(),
             natural_blocks: [natural_blocks(pos), natural_blocks(nrm)],
         };
         // Scratch reused by every chunk: slot → bit, the slots seen, the masks, the order.
@@ -199,7 +214,7 @@ impl VertexOrder {
             }
             let words = seen.len().div_ceil(64).max(1);
             let n = hi - lo;
-            if seen.len() <= ORDER_MAX_WORDS * 64 {
+            if regroup && seen.len() <= ORDER_MAX_WORDS * 64 {
                 for (m, r) in [(&mut pm, &pos[pr]), (&mut nm, &nrm[nr])] {
                     m.clear();
                     m.resize(n * words, 0u64);
@@ -215,8 +230,18 @@ impl VertexOrder {
                 };
                 masks.greedy(n, &mut chosen);
                 let natural = masks.blocks((0..n as u16).collect::<Vec<_>>().as_slice());
-                if masks.blocks(&chosen) < natural {
-                    order.permuted[c] = true;
+                let saved = natural.saturating_sub(masks.blocks(&chosen));
+                let moved = chosen
+                    .chunks(LANES)
+                    .enumerate()
+                    .filter(|&(t, lanes)| {
+                        lanes
+                            .iter()
+                            .enumerate()
+                            .any(|(l, &v)| usize::from(v) != t * LANES + l)
+                    })
+                    .count();
+                if saved > 0 && saved >= MIN_SAVED_PER_MOVED_TILE * moved {
                     for (lane, &v) in chosen.iter().enumerate() {
                         let v = usize::from(v);
                         order.new_index[lo + v] = (lo + lane) as u32;
@@ -228,6 +253,19 @@ impl VertexOrder {
                 bit[usize::from(s)] = u16::MAX;
             }
         }
+        // Tiles that the regrouping left in place read their sums without a gather.
+        order.permuted = order
+            .unperm
+            .chunks(LANES)
+            .enumerate()
+            .map(|(t, lanes)| {
+                let first = t * LANES % CHUNK;
+                lanes
+                    .iter()
+                    .enumerate()
+                    .any(|(l, &u)| usize::from(u) != first + l)
+            })
+            .collect();
         order
     }
 }
@@ -303,9 +341,11 @@ impl Masks<'_> {
                     .min_by_key(|&(_, &v)| key(v))
                     .unwrap_or((0, &0));
                 let v = usize::from(left.swap_remove(i));
-                for k in 0..self.words {
-                    have[0][k] |= self.pos[v * self.words + k];
-                    have[1][k] |= self.nrm[v * self.words + k];
+                let w = self.words;
+                for (h, m) in have.iter_mut().zip([self.pos, self.nrm]) {
+                    for (h, &b) in h.iter_mut().zip(&m[v * w..(v + 1) * w]) {
+                        *h |= b;
+                    }
                 }
                 order.push(v as u16);
             }
@@ -382,7 +422,7 @@ pub struct CpuRig {
     /// Per vertex (padded to whole tiles), its lane within its chunk's layout: the output
     /// stage gathers each chunk's sums back into vertex order through it.
     unperm: Vec<u16>,
-    /// Per chunk, whether its vertices are reordered (else `unperm` is the identity there).
+    /// Per tile, whether its vertices were moved (else `unperm` is the identity there).
     permuted: Vec<bool>,
     /// Position and normal blocks the layout would have in vertex order.
     vertex_order_blocks: [usize; 2],
@@ -466,6 +506,17 @@ impl CpuRig {
 
     /// Prepares `rig` for evaluation with a given kernel family (tests compare them).
     pub fn with_isa(rig: &Rig, isa: Isa) -> CpuRig {
+        Self::build(rig, isa, true)
+    }
+
+    /// Prepares `rig` with tiles of consecutive vertices, without regrouping them: the same
+    /// sums in the layout the regrouping replaces, for comparisons (tests check the outputs
+    /// are bitwise the same; `bench cpu` times both).
+    pub fn in_vertex_order(rig: &Rig, isa: Isa) -> CpuRig {
+        Self::build(rig, isa, false)
+    }
+
+    fn build(rig: &Rig, isa: Isa, regroup: bool) -> CpuRig {
         let vertices = rig.vertex_count();
         let tiles = vertices.div_ceil(LANES);
         let slots = rig.targets.len();
@@ -503,7 +554,8 @@ impl CpuRig {
                 }
             }
         }
-        let order = VertexOrder::build(vertices, tiles, &mut pos_entries, &mut nrm_entries);
+        let order =
+            VertexOrder::build(vertices, tiles, &mut pos_entries, &mut nrm_entries, regroup);
         for e in pos_entries.iter_mut().chain(nrm_entries.iter_mut()) {
             let n = order.new_index[e.0 as usize] as usize;
             (e.0, e.2) = ((n / LANES) as u32, (n % LANES) as u8);
@@ -954,8 +1006,8 @@ unsafe fn blend_sub<L: Lanes, const Q: usize>(
         .saturating_sub(first_vertex)
         * 3;
     let n_tiles = tiles.len();
-    let unperm = rig.permuted[tiles.start / CHUNK_TILES]
-        .then(|| &rig.unperm[first_vertex..first_vertex + n_tiles * LANES]);
+    let unperm = &rig.unperm[first_vertex..first_vertex + n_tiles * LANES];
+    let permuted = &rig.permuted[tiles.start..tiles.end];
     for (t, tile) in tiles.enumerate() {
         let base = &ctx.base[tile];
         let first = blocks.tile_start[tile] as usize;
@@ -1003,7 +1055,7 @@ unsafe fn blend_sub<L: Lanes, const Q: usize>(
     let stride = rig.vertices * 3;
     for (&job, p) in jobs.iter().zip(park.0.iter()) {
         let p = p.as_ptr();
-        for o in 0..n_tiles {
+        for (o, &moved) in permuted.iter().enumerate() {
             // SAFETY (whole block): `L`'s features are present (caller); the park rows are
             // 64-byte aligned and hold `n_tiles` tiles per component; `unperm` holds lanes
             // below `n_tiles × LANES` for the chunk's `n_tiles × LANES` vertices; the stage
@@ -1011,20 +1063,19 @@ unsafe fn blend_sub<L: Lanes, const Q: usize>(
             // included: the lanes past its vertices are computed from whatever the park holds
             // and never copied out).
             unsafe {
-                let (mut x, mut y, mut z) = match unperm {
-                    Some(idx) => {
-                        let i = idx.as_ptr().add(o * LANES);
-                        (
-                            L::gather(p, i),
-                            L::gather(p.add(CHUNK), i),
-                            L::gather(p.add(2 * CHUNK), i),
-                        )
-                    }
-                    None => (
+                let (mut x, mut y, mut z) = if moved {
+                    let i = unperm.as_ptr().add(o * LANES);
+                    (
+                        L::gather(p, i),
+                        L::gather(p.add(CHUNK), i),
+                        L::gather(p.add(2 * CHUNK), i),
+                    )
+                } else {
+                    (
                         L::load(p.add(o * LANES)),
                         L::load(p.add(CHUNK + o * LANES)),
                         L::load(p.add(2 * CHUNK + o * LANES)),
-                    ),
+                    )
                 };
                 if ctx.normalize {
                     (x, y, z) = L::normalize(x, y, z);
