@@ -232,6 +232,12 @@ pub struct BenchReport {
     pub threads: usize,
     /// Fraction of stored block lanes that hold a real delta.
     pub block_fill: f64,
+    /// What `block_fill` would be with tiles of consecutive vertices (before the layout
+    /// regroups each chunk's vertices).
+    pub block_fill_vertex_order: f64,
+    /// Median ms of the f32 blend with this layout and with tiles of consecutive vertices,
+    /// calls alternating between the two in one loop (the fair comparison under load).
+    pub layout_ms: [f64; 2],
     /// Bytes of the CPU layout (neutral and delta blocks), which every call streams once.
     pub layout_bytes: usize,
     /// The machine's measured bounds.
@@ -559,6 +565,15 @@ pub fn bench_cpu(rig: &Rig, opt: &BenchOptions) -> Result<BenchReport> {
         });
     }
 
+    let layout_ms = layout_ab(
+        rig,
+        &cpu,
+        &weights[..opt.unique],
+        opt.lod,
+        spec,
+        opt.seconds,
+    )?;
+
     // LOD levels on the full mesh, and the line through them.
     let total_nnz: usize = cpu.slot_nnz().iter().sum();
     let mut lod_scaling = Vec::new();
@@ -719,6 +734,8 @@ pub fn bench_cpu(rig: &Rig, opt: &BenchOptions) -> Result<BenchReport> {
         isa: cpu.isa().name().to_string(),
         threads: rayon::current_num_threads(),
         block_fill: cpu.block_fill(),
+        block_fill_vertex_order: cpu.block_fill_in_vertex_order(),
+        layout_ms,
         layout_bytes: cpu.bytes(),
         machine: Machine {
             fma_peak_gflops,
@@ -766,6 +783,55 @@ pub fn bench_cpu(rig: &Rig, opt: &BenchOptions) -> Result<BenchReport> {
     })
 }
 
+/// Median ms of `cpu` and of the same rig in vertex order (`CpuRig::in_vertex_order`) for one
+/// call of `weights`, the two alternating call by call so that a change of load hits both.
+fn layout_ab(
+    rig: &Rig,
+    cpu: &CpuRig,
+    weights: &[Vec<f32>],
+    lod: u32,
+    spec: OutputSpec,
+    seconds: f64,
+) -> Result<[f64; 2]> {
+    let plain = CpuRig::in_vertex_order(rig, cpu.isa());
+    let batch = WeightBatch::from_target_weights(rig, weights, lod)?;
+    let mut outs = [BlendOutput::default(), BlendOutput::default()];
+    let mut times = [Vec::new(), Vec::new()];
+    let start = Instant::now();
+    for round in 0.. {
+        if round >= 7 && (start.elapsed().as_secs_f64() >= seconds || round >= 1000) {
+            break;
+        }
+        for (i, (c, out)) in [cpu, &plain].into_iter().zip(&mut outs).enumerate() {
+            let t = Instant::now();
+            c.evaluate_into(&batch, spec, out)?;
+            // The first two rounds warm the caches and the output buffers.
+            if round >= 2 {
+                times[i].push(t.elapsed().as_secs_f64() * 1e3);
+            }
+        }
+    }
+    Ok(times.map(|mut t| {
+        t.sort_by(f64::total_cmp);
+        t[t.len() / 2]
+    }))
+}
+
+/// The layout's fill, before and after the regrouping of vertices within chunks, and its size
+/// (what one call streams).
+fn layout_line(r: &BenchReport) -> String {
+    format!(
+        "  layout       block fill {:.0} % ({:.0} % with tiles of consecutive vertices), {:.1} MB; \
+         alternating calls: {:.3} ms against {:.3} ms in vertex order ({:.2}×)\n",
+        r.block_fill * 100.0,
+        r.block_fill_vertex_order * 100.0,
+        r.layout_bytes as f64 / 1e6,
+        r.layout_ms[0],
+        r.layout_ms[1],
+        r.layout_ms[1] / r.layout_ms[0]
+    )
+}
+
 /// Human-readable bench output.
 pub fn report_text(r: &BenchReport) -> String {
     let mut s = format!(
@@ -804,6 +870,7 @@ pub fn report_text(r: &BenchReport) -> String {
         f.serial_ms,
         f.fraction_of_overlapped * 100.0
     );
+    s += &layout_line(r);
     s += &format!(
         "  dense        gemm {:.3} ms, matrixmultiply {:.3} ms ({:.3} GFLOP) → sparse is {:.2}× faster than the better\n",
         r.dense_gemm_ms, r.dense_matrixmultiply_ms, f.dense_gflop, r.speedup_vs_dense

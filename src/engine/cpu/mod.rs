@@ -15,18 +15,27 @@
 //! vertices the target does not move. A tile's blocks are sorted by LOD slot, so a LOD level is a prefix and
 //! the loop stops at the first slot past it (the paper's early exit).
 //!
+//! Tiles do not take sixteen consecutive vertices: within each chunk of `CHUNK_TILES` tiles
+//! (256 vertices, the unit of parallel work) vertices moved by the same targets are grouped
+//! into the same tiles (`VertexOrder`), so blocks hold fewer padding zeros (ICT FaceKit: 76 %
+//! of the lanes hold a delta instead of 60 %, 22 % fewer blocks to load and multiply), where
+//! that saves more than the output stage's gathers cost. The output stage puts the vertices
+//! back in the rig's order; nothing outside the kernel sees the layout's order.
+//!
 //! # Kernel
 //! Jobs are sorted by LOD and grouped by [`GROUP`] = 8. For one tile and one group of Q jobs
 //! (Q = 8 with AVX-512, 2 with AVX2, 4 portable: as many as the registers hold) the 3·Q
 //! accumulators start at the neutral positions and stay in registers while the tile's blocks
 //! stream past: each delta block is loaded once and serves all Q jobs (batch-aware), and a
 //! block whose slot is inactive for the whole group is skipped (Lorach 2007); a group's last
-//! jobs go 4, 2 or 1 at a time, so a batch of one job costs one job. The output stage then
-//! takes each tile's sums (parked in L1 once per tile, so the block loop keeps them in
-//! registers) through vector registers: normal blending normalizes them, they are interleaved
-//! as x, y, z, encoded in the wire format (f32, binary16, or q16 in the rig's box) and staged
-//! in L1; each job's part of the chunk is copied out contiguously (streaming stores for outputs
-//! larger than the caches) — no transposing or converting pass over the output. Only when
+//! jobs go 4, 2 or 1 at a time, so a batch of one job costs one job. Each tile's sums are
+//! parked in L1 (a chunk's worth per job, in the layout's order, so the block loop keeps them
+//! in registers). The output stage then takes a job's chunk sixteen vertices at a time through
+//! vector registers: gathered from the park in the rig's vertex order, normalized for normal
+//! blending, interleaved as x, y, z, encoded in the wire format (f32, binary16, or q16 in the
+//! rig's box) and staged in L1; the job's part of the chunk is copied out contiguously
+//! (streaming stores for outputs larger than the caches) — no transposing or converting pass
+//! over the output. Only when
 //! normals are recomputed from the blended positions are positions blended in f32 and
 //! encoded after the normals pass.
 
@@ -123,6 +132,227 @@ impl TileBlocks {
     }
 }
 
+/// One staged delta while the layout is built: (vertex, then tile; slot; lane; delta).
+type Entry = (u32, u16, u8, Vec3);
+
+/// The order of vertices inside each chunk of the layout.
+///
+/// A tile stores one block for every slot that moves any of its sixteen vertices, so sixteen
+/// neighbours in the file's order, moved by different targets, make mostly-empty blocks (ICT
+/// FaceKit: 60 % of the lanes hold a delta). Within each chunk (the unit of work whose sums the
+/// output stage holds in L1) vertices are regrouped greedily so that vertices moved by the same
+/// slots share tiles: a tile starts from the vertex with the most slots, and takes in turn the
+/// vertex that adds the fewest slots the tile does not have yet. A chunk keeps the file's order
+/// when that saves fewer than [`MIN_SAVED_PER_MOVED_TILE`] blocks per tile it changes (never
+/// when it stores more: the layout never grows), or when it has more distinct slots than
+/// [`ORDER_MAX_WORDS`] words of bits hold. The output stage gathers the sums of changed tiles
+/// back into vertex order, so nothing outside the kernel sees the order.
+struct VertexOrder {
+    /// New position (chunk base + lane within the chunk) of each vertex.
+    new_index: Vec<u32>,
+    /// Per vertex, padded to whole tiles: its lane within its chunk.
+    unperm: Vec<u16>,
+    /// Per tile: whether its lanes come from other places of the chunk's layout.
+    permuted: Vec<bool>,
+    /// Position and normal blocks in the file's vertex order.
+    natural_blocks: [usize; 2],
+}
+
+/// Vertices per chunk: the unit of parallel work, within which vertices may be reordered.
+const CHUNK: usize = CHUNK_TILES * LANES;
+
+/// A chunk is regrouped only when it saves at least this many blocks per tile whose vertices
+/// move: each such tile costs three gathers per job in the output stage, about what eight
+/// blocks' multiply-adds cost on the Xeon that measured it (ICT FaceKit keeps 84 % of the
+/// blocks regrouping saves and 63 % of the gathers; the embedded head, whose tiles gain
+/// less, mostly keeps vertex order).
+const MIN_SAVED_PER_MOVED_TILE: usize = 8;
+
+/// Chunks with more distinct slots than this many 64-bit words hold keep the file's order (the
+/// greedy search costs `CHUNK² × words` per chunk).
+const ORDER_MAX_WORDS: usize = 4;
+
+impl VertexOrder {
+    /// Sorts `pos` and `nrm` by (vertex, slot) and chooses each chunk's order (the file's
+    /// order everywhere unless `regroup`).
+    fn build(
+        vertices: usize,
+        tiles: usize,
+        pos: &mut [Entry],
+        nrm: &mut [Entry],
+        regroup: bool,
+    ) -> VertexOrder {
+        pos.sort_unstable_by_key(|e| (e.0, e.1));
+        nrm.sort_unstable_by_key(|e| (e.0, e.1));
+        let chunks = tiles.div_ceil(CHUNK_TILES);
+        let mut order = VertexOrder {
+            new_index: (0..vertices as u32).collect(),
+            unperm: (0..tiles * LANES).map(|i| (i % CHUNK) as u16).collect(),
+            permuted: Vec::new(),
+            natural_blocks: [natural_blocks(pos), natural_blocks(nrm)],
+        };
+        // Scratch reused by every chunk: slot → bit, the slots seen, the masks, the order.
+        let max_slot = pos.iter().map(|e| usize::from(e.1) + 1).max().unwrap_or(0);
+        let mut bit = vec![u16::MAX; max_slot];
+        let mut seen: Vec<u16> = Vec::new();
+        let (mut pm, mut nm) = (Vec::new(), Vec::new());
+        let mut chosen = Vec::with_capacity(CHUNK);
+        let (mut pe, mut ne) = (0, 0);
+        for c in 0..chunks {
+            let lo = c * CHUNK;
+            let hi = (lo + CHUNK).min(vertices);
+            let end = |e: &[Entry], from: usize| {
+                from + e[from..].partition_point(|x| (x.0 as usize) < hi)
+            };
+            let (pr, nr) = (pe..end(pos, pe), ne..end(nrm, ne));
+            (pe, ne) = (pr.end, nr.end);
+            for e in &pos[pr.clone()] {
+                if bit[usize::from(e.1)] == u16::MAX {
+                    bit[usize::from(e.1)] = seen.len() as u16;
+                    seen.push(e.1);
+                }
+            }
+            let words = seen.len().div_ceil(64).max(1);
+            let n = hi - lo;
+            if regroup && seen.len() <= ORDER_MAX_WORDS * 64 {
+                for (m, r) in [(&mut pm, &pos[pr]), (&mut nm, &nrm[nr])] {
+                    m.clear();
+                    m.resize(n * words, 0u64);
+                    for e in r {
+                        let b = usize::from(bit[usize::from(e.1)]);
+                        m[(e.0 as usize - lo) * words + b / 64] |= 1 << (b % 64);
+                    }
+                }
+                let masks = Masks {
+                    pos: &pm,
+                    nrm: &nm,
+                    words,
+                };
+                masks.greedy(n, &mut chosen);
+                let natural = masks.blocks((0..n as u16).collect::<Vec<_>>().as_slice());
+                let saved = natural.saturating_sub(masks.blocks(&chosen));
+                let moved = chosen
+                    .chunks(LANES)
+                    .enumerate()
+                    .filter(|&(t, lanes)| {
+                        lanes
+                            .iter()
+                            .enumerate()
+                            .any(|(l, &v)| usize::from(v) != t * LANES + l)
+                    })
+                    .count();
+                if saved > 0 && saved >= MIN_SAVED_PER_MOVED_TILE * moved {
+                    for (lane, &v) in chosen.iter().enumerate() {
+                        let v = usize::from(v);
+                        order.new_index[lo + v] = (lo + lane) as u32;
+                        order.unperm[lo + v] = lane as u16;
+                    }
+                }
+            }
+            for s in seen.drain(..) {
+                bit[usize::from(s)] = u16::MAX;
+            }
+        }
+        // Tiles that the regrouping left in place read their sums without a gather.
+        order.permuted = order
+            .unperm
+            .chunks(LANES)
+            .enumerate()
+            .map(|(t, lanes)| {
+                let first = t * LANES % CHUNK;
+                lanes
+                    .iter()
+                    .enumerate()
+                    .any(|(l, &u)| usize::from(u) != first + l)
+            })
+            .collect();
+        order
+    }
+}
+
+/// Blocks of `entries` (sorted by vertex) in the file's vertex order: distinct (tile, slot).
+fn natural_blocks(entries: &[Entry]) -> usize {
+    let mut n = 0;
+    let mut slots: Vec<u16> = Vec::new();
+    for tile in entries.chunk_by(|a, b| a.0 as usize / LANES == b.0 as usize / LANES) {
+        slots.clear();
+        slots.extend(tile.iter().map(|e| e.1));
+        slots.sort_unstable();
+        slots.dedup();
+        n += slots.len();
+    }
+    n
+}
+
+/// One chunk's slots per vertex as bits (`words` per vertex), for position and normal deltas.
+struct Masks<'a> {
+    pos: &'a [u64],
+    nrm: &'a [u64],
+    words: usize,
+}
+
+impl Masks<'_> {
+    /// Position plus normal blocks of the chunk's vertices laid out in `order`.
+    fn blocks(&self, order: &[u16]) -> usize {
+        let w = self.words;
+        let mut n = 0;
+        for tile in order.chunks(LANES) {
+            for m in [self.pos, self.nrm] {
+                for k in 0..w {
+                    let or = tile
+                        .iter()
+                        .fold(0u64, |a, &v| a | m[usize::from(v) * w + k]);
+                    n += or.count_ones() as usize;
+                }
+            }
+        }
+        n
+    }
+
+    /// Blocks `v` adds to a tile that already has the slots in `have`.
+    fn added(&self, v: usize, have: &[[u64; ORDER_MAX_WORDS]; 2]) -> u32 {
+        let w = self.words;
+        (0..w)
+            .map(|k| {
+                (self.pos[v * w + k] & !have[0][k]).count_ones()
+                    + (self.nrm[v * w + k] & !have[1][k]).count_ones()
+            })
+            .sum()
+    }
+
+    /// The greedy order of `n` vertices (see [`VertexOrder`]) into `order`.
+    fn greedy(&self, n: usize, order: &mut Vec<u16>) {
+        let none = [[0u64; ORDER_MAX_WORDS]; 2];
+        let weight: Vec<u32> = (0..n).map(|v| self.added(v, &none)).collect();
+        let mut left: Vec<u16> = (0..n as u16).collect();
+        order.clear();
+        while !left.is_empty() {
+            let mut have = none;
+            for lane in 0..LANES.min(left.len()) {
+                // The seed: most slots; then fewest added slots, most slots, lowest index.
+                let key = |v: u16| {
+                    let v = usize::from(v);
+                    let added = if lane == 0 { 0 } else { self.added(v, &have) };
+                    (added, std::cmp::Reverse(weight[v]), v)
+                };
+                let (i, _) = left
+                    .iter()
+                    .enumerate()
+                    .min_by_key(|&(_, &v)| key(v))
+                    .unwrap_or((0, &0));
+                let v = usize::from(left.swap_remove(i));
+                let w = self.words;
+                for (h, m) in have.iter_mut().zip([self.pos, self.nrm]) {
+                    for (h, &b) in h.iter_mut().zip(&m[v * w..(v + 1) * w]) {
+                        *h |= b;
+                    }
+                }
+                order.push(v as u16);
+            }
+        }
+    }
+}
+
 /// Topology for recomputing normals of the primitives whose targets have no normal deltas;
 /// shared by the CPU pass and the GPU's `face_normals.wgsl` and `vertex_normals.wgsl`.
 #[derive(Clone, Debug, Default)]
@@ -189,6 +419,13 @@ pub struct CpuRig {
     topology: NormalTopology,
     /// Stored (non-zero) vertex deltas per slot.
     slot_nnz: Vec<usize>,
+    /// Per vertex (padded to whole tiles), its lane within its chunk's layout: the output
+    /// stage gathers each chunk's sums back into vertex order through it.
+    unperm: Vec<u16>,
+    /// Per tile, whether its vertices were moved (else `unperm` is the identity there).
+    permuted: Vec<bool>,
+    /// Position and normal blocks the layout would have in vertex order.
+    vertex_order_blocks: [usize; 2],
 }
 
 /// Where a blend pass writes: `jobs × V × 3` components of `elem` bytes each, in the
@@ -269,6 +506,17 @@ impl CpuRig {
 
     /// Prepares `rig` for evaluation with a given kernel family (tests compare them).
     pub fn with_isa(rig: &Rig, isa: Isa) -> CpuRig {
+        Self::build(rig, isa, true)
+    }
+
+    /// Prepares `rig` with tiles of consecutive vertices, without regrouping them: the same
+    /// sums in the layout the regrouping replaces, for comparisons (tests check the outputs
+    /// are bitwise the same; `bench cpu` times both).
+    pub fn in_vertex_order(rig: &Rig, isa: Isa) -> CpuRig {
+        Self::build(rig, isa, false)
+    }
+
+    fn build(rig: &Rig, isa: Isa, regroup: bool) -> CpuRig {
         let vertices = rig.vertex_count();
         let tiles = vertices.div_ceil(LANES);
         let slots = rig.targets.len();
@@ -291,28 +539,38 @@ impl CpuRig {
         let mut nrm_entries = Vec::with_capacity(deltas(true));
         let mut slot_nnz = vec![0usize; slots];
 
+        // Deltas first keyed by vertex (the tile and lane are decided by the vertex order).
+        for (p, prim) in rig.primitives.iter().enumerate() {
+            let off = offsets[p];
+            for target in &prim.targets {
+                let slot = slot_of[target.target as usize] as u16;
+                slot_nnz[slot as usize] += target.vertices.len();
+                for (k, &v) in target.vertices.iter().enumerate() {
+                    let g = (off + v as usize) as u32;
+                    pos_entries.push((g, slot, 0, target.positions[k]));
+                    if let Some(n) = &target.normals {
+                        nrm_entries.push((g, slot, 0, n[k]));
+                    }
+                }
+            }
+        }
+        let order =
+            VertexOrder::build(vertices, tiles, &mut pos_entries, &mut nrm_entries, regroup);
+        for e in pos_entries.iter_mut().chain(nrm_entries.iter_mut()) {
+            let n = order.new_index[e.0 as usize] as usize;
+            (e.0, e.2) = ((n / LANES) as u32, (n % LANES) as u8);
+        }
         for (p, prim) in rig.primitives.iter().enumerate() {
             let off = offsets[p];
             for (i, (&pos, &nrm)) in prim.positions.iter().zip(&prim.normals).enumerate() {
-                let (t, l) = ((off + i) / LANES, (off + i) % LANES);
+                let n = order.new_index[off + i] as usize;
+                let (t, l) = (n / LANES, n % LANES);
                 base_positions[t].x[l] = pos.x;
                 base_positions[t].y[l] = pos.y;
                 base_positions[t].z[l] = pos.z;
                 base_normals[t].x[l] = nrm.x;
                 base_normals[t].y[l] = nrm.y;
                 base_normals[t].z[l] = nrm.z;
-            }
-            for target in &prim.targets {
-                let slot = slot_of[target.target as usize] as u16;
-                slot_nnz[slot as usize] += target.vertices.len();
-                for (k, &v) in target.vertices.iter().enumerate() {
-                    let g = off + v as usize;
-                    let (t, l) = ((g / LANES) as u32, (g % LANES) as u8);
-                    pos_entries.push((t, slot, l, target.positions[k]));
-                    if let Some(n) = &target.normals {
-                        nrm_entries.push((t, slot, l, n[k]));
-                    }
-                }
             }
         }
         let topology = NormalTopology::of(rig);
@@ -328,6 +586,9 @@ impl CpuRig {
             normals: TileBlocks::build(tiles, nrm_entries),
             topology,
             slot_nnz,
+            unperm: order.unperm,
+            permuted: order.permuted,
+            vertex_order_blocks: order.natural_blocks,
         }
     }
 
@@ -349,6 +610,8 @@ impl CpuRig {
     /// Bytes of the prepared layout.
     pub fn bytes(&self) -> usize {
         (self.base_positions.len() + self.base_normals.len()) * size_of::<Block>()
+            + self.unperm.len() * 2
+            + self.permuted.len()
             + self.positions.bytes()
             + self.normals.bytes()
             + self.topology.triangles.len() * 12
@@ -374,6 +637,26 @@ impl CpuRig {
         } else {
             self.slot_nnz.iter().sum::<usize>() as f64 / lanes as f64
         }
+    }
+
+    /// What [`CpuRig::block_fill`] would be with the vertices in the rig's own order (tiles of
+    /// sixteen consecutive vertices): the fill before the layout regroups them.
+    pub fn block_fill_in_vertex_order(&self) -> f64 {
+        let lanes = self.vertex_order_blocks[0] * LANES;
+        if lanes == 0 {
+            1.0
+        } else {
+            self.slot_nnz.iter().sum::<usize>() as f64 / lanes as f64
+        }
+    }
+
+    /// Delta blocks (positions and normals) of the layout, and the blocks the same deltas take
+    /// in the rig's vertex order: the memory model bounds the latter.
+    pub fn blocks(&self) -> (usize, usize) {
+        (
+            self.positions.data.len() + self.normals.data.len(),
+            self.vertex_order_blocks.iter().sum(),
+        )
     }
 
     /// Evaluates a batch into a new output.
@@ -664,7 +947,8 @@ unsafe fn blend_tiles<L: Lanes, const QMAX: usize>(
     // Groups outside, tiles inside: only Q output streams are being written at a time, which
     // the hardware prefetchers follow; the chunk's delta blocks stay in L2 between groups.
     // Each job's part of the chunk is staged in L1 and then copied out with streaming stores.
-    let mut stage = Stage([[0.0; STAGE]; GROUP]);
+    let mut stage = Stage([0.0; STAGE]);
+    let mut park = Park([[0.0; 3 * CHUNK]; GROUP]);
     for g in groups {
         let jobs = &ctx.groups.jobs[g];
         let valid = jobs.iter().take_while(|&&j| j != u32::MAX).count();
@@ -674,13 +958,13 @@ unsafe fn blend_tiles<L: Lanes, const QMAX: usize>(
             // SAFETY: forwarded from the caller; `sub + Q <= valid <= GROUP`.
             unsafe {
                 sub += if QMAX >= 8 && left >= 8 {
-                    blend_sub::<L, 8>(ctx, tiles.clone(), g, sub, &mut stage)
+                    blend_sub::<L, 8>(ctx, tiles.clone(), g, sub, &mut park, &mut stage)
                 } else if QMAX >= 4 && left >= 4 {
-                    blend_sub::<L, 4>(ctx, tiles.clone(), g, sub, &mut stage)
+                    blend_sub::<L, 4>(ctx, tiles.clone(), g, sub, &mut park, &mut stage)
                 } else if QMAX >= 2 && left >= 2 {
-                    blend_sub::<L, 2>(ctx, tiles.clone(), g, sub, &mut stage)
+                    blend_sub::<L, 2>(ctx, tiles.clone(), g, sub, &mut park, &mut stage)
                 } else {
-                    blend_sub::<L, 1>(ctx, tiles.clone(), g, sub, &mut stage)
+                    blend_sub::<L, 1>(ctx, tiles.clone(), g, sub, &mut park, &mut stage)
                 };
             }
         }
@@ -689,21 +973,24 @@ unsafe fn blend_tiles<L: Lanes, const QMAX: usize>(
     unsafe { L::fence() };
 }
 
-/// Jobs `sub..sub + Q` of group `g` over `tiles`: accumulate in registers, then the output
-/// stage (normalize, interleave, encode) into the stage, then copy each job's part of the
-/// chunk out. Returns `Q`.
+/// Jobs `sub..sub + Q` of group `g` over the tiles of one chunk: accumulate in registers and
+/// park the sums in L1 (in the layout's vertex order), then per job the output stage (gather
+/// back into the rig's vertex order, normalize, interleave, encode) into the stage, and copy
+/// the job's part of the chunk out. Returns `Q`.
 ///
 /// Every job's sum runs over the same blocks in the same order whatever `Q` is, so a job and
 /// its clone come out bitwise identical wherever they fall in a batch.
 ///
 /// # Safety
-/// As [`blend_tiles`]; `sub + Q` must not pass the group's valid jobs.
+/// As [`blend_tiles`]; `tiles` must be one chunk (or the rig's last, shorter one); `sub + Q`
+/// must not pass the group's valid jobs.
 #[inline(always)]
 unsafe fn blend_sub<L: Lanes, const Q: usize>(
     ctx: &Ctx<'_>,
     tiles: std::ops::Range<usize>,
     g: usize,
     sub: usize,
+    park: &mut Park,
     stage: &mut Stage,
 ) -> usize {
     let rig = ctx.rig;
@@ -718,7 +1005,9 @@ unsafe fn blend_sub<L: Lanes, const Q: usize>(
         .min(rig.vertices)
         .saturating_sub(first_vertex)
         * 3;
-    let mut park = Park([[0.0; 3 * LANES]; GROUP]);
+    let n_tiles = tiles.len();
+    let unperm = &rig.unperm[first_vertex..first_vertex + n_tiles * LANES];
+    let permuted = &rig.permuted[tiles.start..tiles.end];
     for (t, tile) in tiles.enumerate() {
         let base = &ctx.base[tile];
         let first = blocks.tile_start[tile] as usize;
@@ -726,9 +1015,8 @@ unsafe fn blend_sub<L: Lanes, const Q: usize>(
         let tile_slots = &blocks.slot[first..last];
         let tile_data = &blocks.data[first..last];
         // SAFETY (whole block): `L`'s features are present (caller); `Block` is 64-byte
-        // aligned, so its x, y, z arrays are too; the stage holds CHUNK_TILES whole tiles of
-        // 48 components (a rig's last, partial tile included: the lanes past its vertices
-        // are computed from zeros and never copied out).
+        // aligned, so its x, y, z arrays are too; the park holds a whole chunk per job, and
+        // `t < CHUNK_TILES`.
         unsafe {
             let bx = L::load(base.x.as_ptr());
             let by = L::load(base.y.as_ptr());
@@ -754,55 +1042,75 @@ unsafe fn blend_sub<L: Lanes, const Q: usize>(
                 }
             }
             // Park the accumulators in L1 (three stores per job, a loop small enough to be
-            // unrolled): indexing `acc` in the larger output stage below would keep it in
-            // memory, and the hot loop above would store every sum on each block.
+            // unrolled): the output stage below reads them in the rig's vertex order, and
+            // indexing `acc` there would keep it in memory for the hot loop above.
             for (a, p) in acc.iter().zip(park.0.iter_mut()) {
                 for (c, v) in a.iter().enumerate() {
-                    L::store(*v, p.as_mut_ptr().add(c * LANES));
-                }
-            }
-            for (p, st) in park.0.iter().zip(stage.0.iter_mut()).take(Q) {
-                let mut x = L::load(p.as_ptr());
-                let mut y = L::load(p.as_ptr().add(LANES));
-                let mut z = L::load(p.as_ptr().add(2 * LANES));
-                if ctx.normalize {
-                    (x, y, z) = L::normalize(x, y, z);
-                }
-                let r = L::interleave(x, y, z);
-                let at = t * LANES * 3;
-                match ctx.format {
-                    Format::F32 => {
-                        let dst = st.as_mut_ptr().add(at);
-                        for (k, v) in r.into_iter().enumerate() {
-                            L::store(v, dst.add(LANES * k));
-                        }
-                    }
-                    Format::F16 => {
-                        let dst = st.as_mut_ptr().cast::<u16>().add(at);
-                        for (k, v) in r.into_iter().enumerate() {
-                            L::store_f16(v, dst.add(LANES * k));
-                        }
-                    }
-                    Format::Q16(p) => {
-                        let dst = st.as_mut_ptr().cast::<i16>().add(at);
-                        for (k, v) in r.into_iter().enumerate() {
-                            L::store_q16(v, p, LANES * k, dst.add(LANES * k));
-                        }
-                    }
+                    L::store(*v, p.as_mut_ptr().add(c * CHUNK + t * LANES));
                 }
             }
         }
     }
     let elem = ctx.out.elem;
     let stride = rig.vertices * 3;
-    for (&job, st) in jobs.iter().zip(stage.0.iter()) {
+    for (&job, p) in jobs.iter().zip(park.0.iter()) {
+        let p = p.as_ptr();
+        for (o, &moved) in permuted.iter().enumerate() {
+            // SAFETY (whole block): `L`'s features are present (caller); the park rows are
+            // 64-byte aligned and hold `n_tiles` tiles per component; `unperm` holds lanes
+            // below `n_tiles × LANES` for the chunk's `n_tiles × LANES` vertices; the stage
+            // holds CHUNK_TILES whole tiles of 48 components (a rig's last, partial tile
+            // included: the lanes past its vertices are computed from whatever the park holds
+            // and never copied out).
+            unsafe {
+                let (mut x, mut y, mut z) = if moved {
+                    let i = unperm.as_ptr().add(o * LANES);
+                    (
+                        L::gather(p, i),
+                        L::gather(p.add(CHUNK), i),
+                        L::gather(p.add(2 * CHUNK), i),
+                    )
+                } else {
+                    (
+                        L::load(p.add(o * LANES)),
+                        L::load(p.add(CHUNK + o * LANES)),
+                        L::load(p.add(2 * CHUNK + o * LANES)),
+                    )
+                };
+                if ctx.normalize {
+                    (x, y, z) = L::normalize(x, y, z);
+                }
+                let r = L::interleave(x, y, z);
+                let at = o * LANES * 3;
+                match ctx.format {
+                    Format::F32 => {
+                        let dst = stage.0.as_mut_ptr().add(at);
+                        for (k, v) in r.into_iter().enumerate() {
+                            L::store(v, dst.add(LANES * k));
+                        }
+                    }
+                    Format::F16 => {
+                        let dst = stage.0.as_mut_ptr().cast::<u16>().add(at);
+                        for (k, v) in r.into_iter().enumerate() {
+                            L::store_f16(v, dst.add(LANES * k));
+                        }
+                    }
+                    Format::Q16(q) => {
+                        let dst = stage.0.as_mut_ptr().cast::<i16>().add(at);
+                        for (k, v) in r.into_iter().enumerate() {
+                            L::store_q16(v, q, LANES * k, dst.add(LANES * k));
+                        }
+                    }
+                }
+            }
+        }
         let n = chunk_floats * elem;
         // SAFETY: the job's range of this chunk is inside the output and written by this
         // invocation only; the stage is a separate buffer of at least `n` bytes.
         unsafe {
             let at = (job as usize * stride + first_vertex * 3) * elem;
             let dst = ctx.out.bytes.add(at);
-            let src = st.as_ptr().cast::<u8>();
+            let src = stage.0.as_ptr().cast::<u8>();
             if ctx.stream {
                 L::copy_out(dst, src, n);
             } else {
@@ -865,18 +1173,18 @@ unsafe fn fma_chains<L: Lanes, const C: usize>(iterations: usize) -> u64 {
     (iterations * C * LANES * 2) as u64
 }
 
-/// One tile's accumulators per job (x[16], y[16], z[16]), between the sums and the output
-/// stage.
+/// One chunk's accumulators per job (x[256], y[256], z[256], in the layout's vertex order),
+/// between the sums and the output stage: 24 KiB for a group, in L1.
 #[repr(C, align(64))]
-struct Park([[f32; 3 * LANES]; GROUP]);
+struct Park([[f32; 3 * CHUNK]; GROUP]);
 
 /// Floats of one job's part of a chunk.
-const STAGE: usize = CHUNK_TILES * LANES * 3;
+const STAGE: usize = CHUNK * 3;
 
-/// Per-job staging of a chunk's output, aligned for vector stores; 16-bit formats use the
-/// first half of each job's bytes.
+/// One job's part of a chunk in the wire format, aligned for vector stores; 16-bit formats use
+/// the first half of the bytes.
 #[repr(C, align(64))]
-struct Stage([[f32; STAGE]; GROUP]);
+struct Stage([f32; STAGE]);
 
 /// Takes the f32 buffer out of `data` (reusing its allocation) and sizes it to `len`.
 fn take_f32(data: &mut VertexData, len: usize) -> Vec<f32> {

@@ -61,6 +61,11 @@ pub unsafe trait Lanes: Copy {
     /// # Safety
     /// `p` must be valid for reading sixteen f32 and 64-byte aligned.
     unsafe fn load(p: *const f32) -> Self;
+    /// Loads lane `i` from `base[idx[i]]`: undoes a chunk's vertex permutation in L1.
+    ///
+    /// # Safety
+    /// `idx` must be readable for sixteen u16 and `base` readable at every index it holds.
+    unsafe fn gather(base: *const f32, idx: *const u16) -> Self;
     /// All lanes `x`.
     ///
     /// # Safety
@@ -126,6 +131,13 @@ unsafe impl Lanes for Portable {
     unsafe fn load(p: *const f32) -> Self {
         // SAFETY: the caller guarantees sixteen readable floats.
         Portable(unsafe { *(p as *const [f32; LANES]) })
+    }
+    #[inline(always)]
+    unsafe fn gather(base: *const f32, idx: *const u16) -> Self {
+        // SAFETY: the caller guarantees sixteen indices, each readable in `base`.
+        Portable(std::array::from_fn(|i| unsafe {
+            *base.add(usize::from(*idx.add(i)))
+        }))
     }
     #[inline(always)]
     unsafe fn splat(x: f32) -> Self {
@@ -261,6 +273,18 @@ mod x86 {
             unsafe { Avx2(_mm256_load_ps(p), _mm256_load_ps(p.add(8))) }
         }
         #[inline(always)]
+        unsafe fn gather(base: *const f32, idx: *const u16) -> Self {
+            // SAFETY: AVX2 is available; the caller guarantees the indices and their targets.
+            unsafe {
+                let lo = _mm256_cvtepu16_epi32(_mm_loadu_si128(idx.cast()));
+                let hi = _mm256_cvtepu16_epi32(_mm_loadu_si128(idx.add(8).cast()));
+                Avx2(
+                    _mm256_i32gather_ps::<4>(base, lo),
+                    _mm256_i32gather_ps::<4>(base, hi),
+                )
+            }
+        }
+        #[inline(always)]
         unsafe fn splat(x: f32) -> Self {
             // SAFETY: AVX is available (see the impl's safety note).
             unsafe { Avx2(_mm256_set1_ps(x), _mm256_set1_ps(x)) }
@@ -366,6 +390,15 @@ mod x86 {
         unsafe fn load(p: *const f32) -> Self {
             // SAFETY: the caller guarantees alignment and sixteen readable floats.
             unsafe { Avx512(_mm512_load_ps(p)) }
+        }
+        #[inline(always)]
+        unsafe fn gather(base: *const f32, idx: *const u16) -> Self {
+            // SAFETY: AVX-512F is available; the caller guarantees the indices and their
+            // targets.
+            unsafe {
+                let i = _mm512_cvtepu16_epi32(_mm256_loadu_si256(idx.cast()));
+                Avx512(_mm512_i32gather_ps::<4>(i, base))
+            }
         }
         #[inline(always)]
         unsafe fn splat(x: f32) -> Self {
