@@ -12,8 +12,10 @@
 //! time from the tick's start to the message being ready (`timings.total_us`), and a message
 //! cannot arrive before its tick was due plus that time, so every message gives an upper bound
 //! of `T0`: `arrival − (k − 1) / fps − total`. The run keeps the smallest bound seen by any
-//! viewer (the first message fixes it, later ones can only lower it; the warm-up lets it
-//! settle) and measures each message from `T0 + (k − 1) / fps` to its arrival. So the latency
+//! viewer during the warm-up (the first message fixes it, later ones can only lower it) and
+//! freezes it when the window opens, so the window's messages and its count of due ticks use
+//! one clock; it measures each message from `T0 + (k − 1) / fps` to its arrival (a message
+//! faster than every warm-up message counts 0). So the latency
 //! holds the tick timer's lateness, the blend, the encoding, the wait in the viewer's outbox,
 //! the socket and the viewer's read, all on one clock shared by the viewers (a viewer served
 //! last in every tick shows it); it leaves out only what the fastest message of the run had
@@ -382,11 +384,18 @@ impl Live {
         let since_t0 = t.tick.saturating_sub(1) as f64 / s.fps;
         let server = t.timings.map_or(0.0, |t| t.total_us as f64 / 1e6);
         let bound = now - since_t0 - server;
-        let t0 = s.clock.map_or(bound, |c| c.min(bound));
-        s.clock = Some(t0);
-        let intended = t0 + since_t0;
         let from = self.opts.warmup.as_secs_f64();
         let to = from + self.opts.duration.as_secs_f64();
+        // The clock settles during the warm-up and is frozen when the window opens, so that
+        // every message of the window and the count of due ticks use the same clock (a clock
+        // lowered mid-window would move the window's first tick after it was counted).
+        let t0 = match s.clock {
+            Some(c) if now >= from => c,
+            Some(c) => c.min(bound),
+            None => bound,
+        };
+        s.clock = Some(t0);
+        let intended = t0 + since_t0;
         let Some(v) = s.viewers.get_mut(viewer) else {
             return Recorded::Before;
         };
