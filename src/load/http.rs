@@ -9,15 +9,12 @@
 use std::sync::Arc;
 
 use bytes::Bytes;
-use http_body_util::{BodyExt, Full};
+use http_body_util::Full;
 use hyper::client::conn::http1::SendRequest;
 use hyper::header::{ACCEPT, CONTENT_TYPE, HOST};
 use hyper_util::rt::TokioIo;
 
-use super::{Lane, LoadError, Reply, ServerTiming, WireEncoding};
-
-/// Most bytes of an error body read for its code.
-const ERROR_BODY_LIMIT: usize = 64 << 10;
+use super::{Lane, LoadError, Reply, WireEncoding};
 
 /// Where to send and what.
 #[derive(Debug)]
@@ -142,39 +139,12 @@ impl HttpLane {
             Ok(r) => r,
             Err(_) => return failed("transport"),
         };
-        let status = resp.status().as_u16();
-        let timing = resp
-            .headers()
-            .get("server-timing")
-            .and_then(|v| v.to_str().ok())
-            .map(ServerTiming::parse)
-            .unwrap_or_default();
-        let mut body = resp.into_body();
-        let mut bytes = 0u64;
-        let mut kept = Vec::new();
-        while let Some(frame) = body.frame().await {
-            let Ok(frame) = frame else {
-                return failed("transport");
-            };
-            if let Some(d) = frame.data_ref() {
-                bytes += d.len() as u64;
-                if status != 200 && kept.len() < ERROR_BODY_LIMIT {
-                    kept.extend_from_slice(&d[..d.len().min(ERROR_BODY_LIMIT - kept.len())]);
-                }
-            }
+        let (reply, complete) = super::read_reply(resp).await;
+        if !complete {
+            return failed("transport");
         }
         self.sender = Some(sender);
-        let code = (status != 200).then(|| {
-            serde_json::from_slice::<crowdmorph_proto::ErrorBody>(&kept)
-                .map(|e| e.error.code)
-                .unwrap_or_default()
-        });
-        Reply {
-            status,
-            code,
-            bytes,
-            timing,
-        }
+        reply
     }
 }
 

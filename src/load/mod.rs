@@ -80,6 +80,56 @@ pub struct Reply {
     pub timing: ServerTiming,
 }
 
+/// Bytes of an error body kept to read its code; a longer body is counted, not kept.
+const ERROR_BODY_LIMIT: usize = 64 << 10;
+
+/// Reads a crowd-frame response the way every lane does: the status and `Server-Timing` from
+/// its head, the body counted frame by frame (each frame dropped as read, as it would be sent),
+/// and kept, up to [`ERROR_BODY_LIMIT`], only when it is an error, for its code. The flag is
+/// false when the body broke off before its end.
+pub(crate) async fn read_reply<B>(resp: hyper::Response<B>) -> (Reply, bool)
+where
+    B: http_body::Body<Data = bytes::Bytes> + Unpin,
+{
+    use http_body_util::BodyExt;
+
+    let status = resp.status().as_u16();
+    let timing = resp
+        .headers()
+        .get("server-timing")
+        .and_then(|v| v.to_str().ok())
+        .map(ServerTiming::parse)
+        .unwrap_or_default();
+    let mut body = resp.into_body();
+    let mut bytes = 0u64;
+    let mut kept = Vec::new();
+    let mut complete = true;
+    while let Some(frame) = body.frame().await {
+        let Ok(frame) = frame else {
+            complete = false;
+            break;
+        };
+        if let Some(d) = frame.data_ref() {
+            bytes += d.len() as u64;
+            if status != 200 && kept.len() < ERROR_BODY_LIMIT {
+                kept.extend_from_slice(&d[..d.len().min(ERROR_BODY_LIMIT - kept.len())]);
+            }
+        }
+    }
+    let code = (status != 200).then(|| {
+        serde_json::from_slice::<crowdmorph_proto::ErrorBody>(&kept)
+            .map(|e| e.error.code)
+            .unwrap_or_default()
+    });
+    let reply = Reply {
+        status,
+        code,
+        bytes,
+        timing,
+    };
+    (reply, complete)
+}
+
 /// The server's own account of a crowd frame (its `Server-Timing` header).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct ServerTiming {

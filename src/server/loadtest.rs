@@ -22,7 +22,6 @@ use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::Response;
 use bytes::Bytes;
-use http_body_util::BodyExt;
 use serde::{Deserialize, Serialize};
 
 use super::api::{ApiResult, crowd_frame_from, decode, respond};
@@ -198,38 +197,7 @@ impl Lane for InProcessLane {
 /// chunk as it would be sent (which releases its queue memory), and read only when it is an
 /// error, for its code.
 async fn read_reply(resp: Response) -> Reply {
-    let status = resp.status().as_u16();
-    let timing = resp
-        .headers()
-        .get(super::render::SERVER_TIMING)
-        .and_then(|v| v.to_str().ok())
-        .map(load::ServerTiming::parse)
-        .unwrap_or_default();
-    let mut body = resp.into_body();
-    let mut bytes = 0u64;
-    let mut kept = Vec::new();
-    while let Some(frame) = body.frame().await {
-        let Ok(frame) = frame else {
-            break;
-        };
-        if let Some(d) = frame.data_ref() {
-            bytes += d.len() as u64;
-            if status != 200 && kept.len() < 4096 {
-                kept.extend_from_slice(d);
-            }
-        }
-    }
-    let code = (status != 200).then(|| {
-        serde_json::from_slice::<crowdmorph_proto::ErrorBody>(&kept)
-            .map(|e| e.error.code)
-            .unwrap_or_default()
-    });
-    Reply {
-        status,
-        code,
-        bytes,
-        timing,
-    }
+    load::read_reply(resp).await.0
 }
 
 impl AppState {
