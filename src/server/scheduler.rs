@@ -160,22 +160,7 @@ impl Scheduler {
         if let Err(e) = &spawned {
             tracing::error!(error = %e, "cannot start the compute thread");
         }
-        let state = State {
-            cfg,
-            metrics,
-            work: Some(work_tx),
-            slots: HashMap::new(),
-            index: HashMap::new(),
-            pending: VecDeque::new(),
-            pending_cost: 0,
-            low: VecDeque::new(),
-            low_cost: 0,
-            requests: HashMap::new(),
-            in_flight: 0,
-            depth,
-            next_id: 0,
-            next_batch: 0,
-        };
+        let state = State::new(cfg, metrics, work_tx, depth);
         let limit = cfg.queue_requests.max(1) as u64;
         let depth_metrics = state.metrics.clone();
         let task = tokio::spawn(state.run(rx, done_rx));
@@ -327,6 +312,31 @@ struct State {
 }
 
 impl State {
+    /// An empty scheduler state: nothing queued, nothing in flight.
+    fn new(
+        cfg: BatchConfig,
+        metrics: Arc<Metrics>,
+        work: std::sync::mpsc::Sender<WorkBatch>,
+        depth: usize,
+    ) -> State {
+        State {
+            cfg,
+            metrics,
+            work: Some(work),
+            slots: HashMap::new(),
+            index: HashMap::new(),
+            pending: VecDeque::new(),
+            pending_cost: 0,
+            low: VecDeque::new(),
+            low_cost: 0,
+            requests: HashMap::new(),
+            in_flight: 0,
+            depth,
+            next_id: 0,
+            next_batch: 0,
+        }
+    }
+
     async fn run(
         mut self,
         mut rx: mpsc::Receiver<Submission>,
@@ -1019,27 +1029,13 @@ mod tests {
 
     fn state(hold_when_idle: bool) -> (State, std::sync::mpsc::Receiver<WorkBatch>) {
         let (tx, rx) = std::sync::mpsc::channel();
-        let state = State {
-            cfg: BatchConfig {
-                queue_requests: 100,
-                batch_cost: u64::MAX,
-                batch_delay: Duration::from_secs(3600),
-                hold_when_idle,
-            },
-            metrics: Arc::new(Metrics::default()),
-            work: Some(tx),
-            slots: HashMap::new(),
-            index: HashMap::new(),
-            pending: VecDeque::new(),
-            pending_cost: 0,
-            low: VecDeque::new(),
-            low_cost: 0,
-            requests: HashMap::new(),
-            in_flight: 0,
-            depth: 1,
-            next_id: 0,
-            next_batch: 0,
+        let cfg = BatchConfig {
+            queue_requests: 100,
+            batch_cost: u64::MAX,
+            batch_delay: Duration::from_secs(3600),
+            hold_when_idle,
         };
+        let state = State::new(cfg, Arc::new(Metrics::default()), tx, 1);
         (state, rx)
     }
 
