@@ -482,16 +482,7 @@ async fn loopback_throughput(connections: usize, seconds: f64) -> Result<f64> {
 
 /// CPU seconds (user + system) this process has used so far, all threads together.
 fn process_cpu_s() -> f64 {
-    // SAFETY: `getrusage` only writes into the zeroed struct it is given.
-    let usage = unsafe {
-        let mut u: libc::rusage = std::mem::zeroed();
-        if libc::getrusage(libc::RUSAGE_SELF, &mut u) != 0 {
-            return 0.0;
-        }
-        u
-    };
-    let tv = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
-    tv(usage.ru_utime) + tv(usage.ru_stime)
+    super::bench_sessions::process_cpu().as_secs_f64()
 }
 
 /// CPU seconds per byte this process spends moving `message` byte messages through

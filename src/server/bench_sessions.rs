@@ -103,8 +103,8 @@ pub fn bench_sessions(
     runtime.block_on(run(rig_bytes, opt))
 }
 
-/// CPU time of this process (user + system).
-fn process_cpu() -> Duration {
+/// CPU time of this process (user + system); zero where `getrusage` is unavailable.
+pub(super) fn process_cpu() -> Duration {
     #[cfg(unix)]
     {
         // SAFETY: getrusage writes one rusage through a pointer to a live, zeroed local.
