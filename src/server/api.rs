@@ -1366,10 +1366,6 @@ pub(super) async fn crowd_frame_from(
 }
 
 /// Milliseconds with three decimals, as Server-Timing wants them.
-fn ms(d: std::time::Duration) -> String {
-    format!("{:.3}", d.as_secs_f64() * 1e3)
-}
-
 async fn frame(state: &AppState, headers: &HeaderMap, body: Body, source: Source) -> ApiResult {
     let arrived = Instant::now();
     state.check_ready()?;
@@ -1487,13 +1483,16 @@ async fn frame(state: &AppState, headers: &HeaderMap, body: Body, source: Source
     let server_timing = |encoded: Instant| {
         let mut t = format!(
             "queue;dur={}, compute;dur={}, encode;dur={}, total;dur={}",
-            ms(outcome.queue),
-            ms(std::time::Duration::from_nanos(outcome.compute_ns)),
-            ms(encoded.duration_since(encoding)),
-            ms(encoded.duration_since(arrived)),
+            super::render::ms(outcome.queue),
+            super::render::ms(std::time::Duration::from_nanos(outcome.compute_ns)),
+            super::render::ms(encoded.duration_since(encoding)),
+            super::render::ms(encoded.duration_since(arrived)),
         );
         if let Some(g) = outcome.gpu_ns {
-            t += &format!(", gpu;dur={}", ms(std::time::Duration::from_nanos(g)));
+            t += &format!(
+                ", gpu;dur={}",
+                super::render::ms(std::time::Duration::from_nanos(g))
+            );
         }
         HeaderValue::from_str(&t).ok()
     };

@@ -265,8 +265,9 @@ fn crowd_error(e: CrowdError) -> ApiError {
 }
 
 /// Milliseconds with three decimals, as Server-Timing wants them.
-fn ms(ns: u64) -> String {
-    format!("{:.3}", ns as f64 / 1e6)
+/// A duration as a `Server-Timing` `dur` value: milliseconds with three decimals.
+pub(super) fn ms(d: Duration) -> String {
+    format!("{:.3}", d.as_secs_f64() * 1e3)
 }
 
 /// A render request checked, resolved, laid out and admitted: what the blocking pool draws.
@@ -411,10 +412,10 @@ impl AppState {
             .map_err(ApiError::internal)?;
         let timing = format!(
             "compute;dur={}, render;dur={}, readback;dur={}, encode;dur={}",
-            ms(drawn.compute_ns),
-            ms(out.render_ns),
-            ms(out.readback_ns),
-            ms(encoding.elapsed().as_nanos() as u64)
+            ms(Duration::from_nanos(drawn.compute_ns)),
+            ms(Duration::from_nanos(out.render_ns)),
+            ms(Duration::from_nanos(out.readback_ns)),
+            ms(encoding.elapsed())
         );
         Ok(Rendered {
             bytes,
