@@ -173,6 +173,18 @@ impl Loadtests {
     }
 }
 
+/// Marks a run finished when dropped (see the load task).
+struct FinishOnDrop {
+    state: AppState,
+    run: Arc<Run>,
+}
+
+impl Drop for FinishOnDrop {
+    fn drop(&mut self) {
+        self.state.loadtests.finish(&self.run);
+    }
+}
+
 /// A lane that calls the crowd-frame handler in-process.
 struct InProcessLane {
     state: AppState,
@@ -376,6 +388,12 @@ pub(super) async fn start_loadtest(
     let task_state = state.clone();
     let task_run = run.clone();
     tokio::spawn(async move {
+        // Ends the run in the registry however the task ends, a panic included, so that a
+        // failed load never blocks later ones with 409.
+        let _finish = FinishOnDrop {
+            state: task_state,
+            run: task_run.clone(),
+        };
         if let Err(e) = load::run(lanes, &live).await {
             tracing::error!(id = %task_run.id, error = %e, "load test failed to run");
             live.cancel();
@@ -388,7 +406,6 @@ pub(super) async fn start_loadtest(
             errors = r.errors,
             "load test finished"
         );
-        task_state.loadtests.finish(&task_run);
     });
     if query.wait == Some(false) {
         return respond(&headers, StatusCode::ACCEPTED, &run.status());
