@@ -19,8 +19,11 @@ use crate::codec::FrameBufferParts;
 
 /// Buffers kept for reuse.
 const POOL_BUFFERS: usize = 4;
-/// Buffers larger than this are not kept (a rare huge response should not pin its memory).
-const POOL_MAX_BYTES: usize = 256 << 20;
+/// Most bytes the kept buffers may hold together. A buffer is charged to the queue memory
+/// while its response is in flight; once sent it is no longer charged, so what the pool keeps
+/// is a fixed amount of memory beside the budgets, and this bounds it (a rare huge response
+/// does not pin its memory).
+const POOL_TOTAL_BYTES: usize = 192 << 20;
 
 /// A pool of response buffers.
 #[derive(Debug, Default)]
@@ -41,14 +44,12 @@ impl AsRef<[u8]> for Pooled {
 impl Drop for Pooled {
     fn drop(&mut self) {
         let mut buf = std::mem::take(&mut self.buf);
-        if buf.capacity() > POOL_MAX_BYTES {
-            return;
-        }
         buf.clear();
-        if let Ok(mut p) = self.pool.0.lock()
-            && p.len() < POOL_BUFFERS
-        {
-            p.push(buf);
+        if let Ok(mut p) = self.pool.0.lock() {
+            let kept: usize = p.iter().map(Vec::capacity).sum();
+            if p.len() < POOL_BUFFERS && kept + buf.capacity() <= POOL_TOTAL_BYTES {
+                p.push(buf);
+            }
         }
     }
 }

@@ -765,6 +765,10 @@ struct BufferPool {
 
 /// Buffers kept at most; more are freed.
 const POOL_BUFFERS: usize = 8;
+/// Most bytes the kept buffers may hold together: a buffer is charged to the queue memory
+/// while its responses are in flight, and what the pool keeps afterwards is a fixed amount of
+/// memory beside the budgets, bounded here (a rare huge batch does not pin its output).
+const POOL_TOTAL_BYTES: usize = 512 << 20;
 
 impl BufferPool {
     /// The largest free buffer of the kind `precision` produces, or an empty one.
@@ -785,10 +789,11 @@ impl BufferPool {
     }
 
     fn put(&self, data: VertexData) {
-        if let Ok(mut free) = self.free.lock()
-            && free.len() < POOL_BUFFERS
-        {
-            free.push(data);
+        if let Ok(mut free) = self.free.lock() {
+            let kept: usize = free.iter().map(|d| d.as_bytes().len()).sum();
+            if free.len() < POOL_BUFFERS && kept + data.as_bytes().len() <= POOL_TOTAL_BYTES {
+                free.push(data);
+            }
         }
     }
 }
