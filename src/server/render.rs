@@ -537,7 +537,7 @@ mod tests {
 
     #[test]
     fn server_timing_durations_are_milliseconds_with_three_decimals() {
-        assert_eq!(ms(1_234_567), "1.235");
-        assert_eq!(ms(0), "0.000");
+        assert_eq!(ms(Duration::from_nanos(1_234_567)), "1.235");
+        assert_eq!(ms(Duration::ZERO), "0.000");
     }
 }
