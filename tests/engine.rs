@@ -479,7 +479,7 @@ fn a_job_alone_equals_the_same_job_in_any_batch() {
 /// maps each old global vertex index to its new one. Primitive 1 carries normal deltas, the
 /// others have their normals recomputed; sizes straddle chunks and tiles.
 fn interleaved_rig(sizes: &[usize], stride: usize, grouped: bool) -> (Rig, Vec<usize>) {
-    use crowdmorph::rig::{Clip, Lod, Primitive, sparsify, vertex_normals};
+    use crowdmorph::rig::{Primitive, sparsify, vertex_normals};
     use glam::Vec3;
     let n_targets = 2 * stride + 1;
     let mut rng = Rng(77);
@@ -546,28 +546,8 @@ fn interleaved_rig(sizes: &[usize], stride: usize, grouped: bool) -> (Rig, Vec<u
             base_color: Primitive::default_base_color(),
         });
     }
-    let mut lod = Lod::file_order(n_targets);
-    for i in (1..n_targets).rev() {
-        lod.order.swap(i, rng.below(i + 1));
-    }
-    let frames = 10;
-    let weights: Vec<f32> = (0..n_targets * frames)
-        .map(|_| {
-            if rng.below(4) == 0 {
-                0.0
-            } else {
-                rng.f64() as f32 * 1.5 - 0.25
-            }
-        })
-        .collect();
-    let rig = Rig {
-        name: format!("interleaved-{}", if grouped { "grouped" } else { "raw" }),
-        targets: (0..n_targets).map(|t| format!("t{t}")).collect(),
-        default_weights: vec![0.0; n_targets],
-        primitives: std::sync::Arc::new(primitives),
-        clips: vec![Clip::new("random", 30.0, n_targets, frames, weights).expect("clip")],
-        lod,
-    };
+    let name = format!("interleaved-{}", if grouped { "grouped" } else { "raw" });
+    let rig = crate::util::rig_with_random_clip(name, primitives, n_targets, 10, 4, &mut rng);
     rig.validate().expect("interleaved rig is valid");
     (rig, map)
 }

@@ -549,7 +549,7 @@ pub fn effective_weights(rig: &crowdmorph::rig::Rig, w: &[f64], lod: u32) -> Vec
 /// multiples of the 16-vertex tile), normal deltas on some primitives, a shuffled LOD order,
 /// and one clip of random frames.
 pub fn random_rig(seed: u64, sizes: &[usize], n_targets: usize) -> crowdmorph::rig::Rig {
-    use crowdmorph::rig::{Clip, Lod, Primitive, Rig, sparsify, vertex_normals};
+    use crowdmorph::rig::{Primitive, sparsify, vertex_normals};
     use glam::Vec3;
     let mut rng = Rng(seed);
     let mut primitives = Vec::new();
@@ -610,31 +610,52 @@ pub fn random_rig(seed: u64, sizes: &[usize], n_targets: usize) -> crowdmorph::r
             base_color: Primitive::default_base_color(),
         });
     }
+    let mut rig = rig_with_random_clip(
+        format!("random-{seed}"),
+        primitives,
+        n_targets,
+        12,
+        3,
+        &mut rng,
+    );
+    rig.lod.method = "random".into();
+    rig.validate().expect("random rig is valid");
+    rig
+}
+
+/// A rig of `primitives` with targets `t0, t1, ...`, a shuffled LOD order and one clip
+/// `random` of `frames` frames whose weights are zero one time in `zero_one_in`, else in
+/// [−0.25, 1.25); drawn from `rng` in that order. Not validated.
+pub fn rig_with_random_clip(
+    name: String,
+    primitives: Vec<crowdmorph::rig::Primitive>,
+    n_targets: usize,
+    frames: usize,
+    zero_one_in: usize,
+    rng: &mut Rng,
+) -> crowdmorph::rig::Rig {
+    use crowdmorph::rig::{Clip, Lod, Rig};
     let mut lod = Lod::file_order(n_targets);
     for i in (1..n_targets).rev() {
         lod.order.swap(i, rng.below(i + 1));
     }
-    lod.method = "random".into();
-    let frames = 12;
     let weights: Vec<f32> = (0..n_targets * frames)
         .map(|_| {
-            if rng.below(3) == 0 {
+            if rng.below(zero_one_in) == 0 {
                 0.0
             } else {
                 rng.f64() as f32 * 1.5 - 0.25
             }
         })
         .collect();
-    let rig = Rig {
-        name: format!("random-{seed}"),
+    Rig {
+        name,
         targets: (0..n_targets).map(|t| format!("t{t}")).collect(),
         default_weights: vec![0.0; n_targets],
         primitives: std::sync::Arc::new(primitives),
         clips: vec![Clip::new("random", 30.0, n_targets, frames, weights).expect("clip")],
         lod,
-    };
-    rig.validate().expect("random rig is valid");
-    rig
+    }
 }
 
 /// The paper's rig size (Costigan et al. 2016: 72 blendshapes, 43,788 vertices) with
