@@ -205,6 +205,11 @@ async fn one_load_test_at_a_time_and_its_caps_are_400() {
             400,
             "malformed_json",
         ),
+        (
+            json!({"rate": 10, "duration_s": 1, "concurrency": 1, "crowd": {"heads": 100000000}}),
+            400,
+            "too_many_heads",
+        ),
         // 8 lanes of 100,000 unique f32 heads would hold far more than half the queue memory.
         (
             json!({"rate": 10, "duration_s": 1, "concurrency": 8, "crowd": {"heads": 100000}}),
@@ -346,5 +351,23 @@ async fn client_requests_go_ahead_of_a_saturating_load_test() {
         Some(5.0)
     );
     // Shutdown stops the load test.
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_disabled_endpoint_is_403_and_an_oversized_body_413() {
+    let server = TestServer::start(ServerConfig {
+        loadtest_max_duration: Duration::ZERO,
+        max_request_bytes: 4096,
+        ..ServerConfig::default()
+    })
+    .await;
+    let c = &server.client;
+    let r = post(c, "", json!({"rate": 10, "duration_s": 1})).await;
+    assert_eq!(code_of(&r), (403, "loadtest_disabled".into()));
+    // The body is refused before it is parsed, whatever it asks for.
+    let pad = "x".repeat(8192);
+    let r = post(c, "", json!({"rate": 10, "duration_s": 1, "pad": pad})).await;
+    assert_eq!(code_of(&r), (413, "body_too_large".into()));
     server.stop().await;
 }
