@@ -760,3 +760,137 @@ fn the_gpu_engine_outputs_are_drawn_where_they_are() {
     assert!(c.fraction() <= 0.002, "{} of pixels differ", c.fraction());
     assert!(covered(&image(&drawn), 0, 384, 0, 128) > 384 * 128 / 10);
 }
+
+/// How long [`collect_mappings_elsewhere`]'s other thread holds back the mapping callbacks it
+/// collected: long enough that the waiting thread looks while they have not run (it looks
+/// within microseconds), not a measured duration.
+const HOLD: std::time::Duration = std::time::Duration::from_millis(300);
+
+/// Makes another thread collect the mappings this thread's work has requested on `ctx` and
+/// hold their callbacks back, as a concurrent render's submit or the GPU engine's compute
+/// thread on a shared device does under load: a blocker buffer's mapping is requested now,
+/// ahead of the work's (which wgpu queues once the submission is done), so the other thread's
+/// poll reports the blocker first, and the blocker's callback sleeps before returning. Returns
+/// once the other thread is inside that callback, i.e. has taken the work's mappings off the
+/// device; the work's own poll then finds nothing left to report. Join the handle at the end.
+pub(crate) fn collect_mappings_elsewhere(
+    ctx: &crowdmorph::engine::gpu::GpuContext,
+) -> std::thread::JoinHandle<()> {
+    let device = ctx.device().clone();
+    let blocker = device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("test blocker"),
+        size: 4,
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let (inside, entered) = std::sync::mpsc::channel();
+    blocker.map_async(wgpu::MapMode::Read, .., move |r| {
+        r.expect("the blocker maps");
+        let _ = inside.send(());
+        std::thread::sleep(HOLD);
+    });
+    let other = std::thread::spawn(move || {
+        device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .expect("the other thread's poll");
+        drop(blocker);
+    });
+    entered
+        .recv_timeout(std::time::Duration::from_secs(60))
+        .expect("the other thread collected the mappings");
+    other
+}
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+fn a_frame_whose_mapping_another_thread_collects_is_still_read_back() {
+    // The cause of a 503 "mapping the rendered frame failed" under load: another thread's
+    // poll or submit found the render's copy done and took its mapping callbacks, and the
+    // render read its results before that thread had run them. The frame must come back, and
+    // be the same picture as without the race.
+    let r = renderer();
+    let (rig, prepared) = head();
+    let topology = r.topology(rig).expect("topology");
+    let data = evaluate(prepared, "talk", 12);
+    let view = head_view(rig);
+    // Large enough that the copy is still running when the render submits it, so its mapping
+    // waits behind the blocker (see `collect_mappings_elsewhere`).
+    let size = frame(1024, 768);
+    let meshes = [host(&topology, &data, &[Mat4::IDENTITY])];
+    let alone = r.render(&meshes, &view, &size).expect("render alone");
+    let others = Arc::new(std::sync::Mutex::new(Vec::new()));
+    let o = others.clone();
+    r.set_after_submit(Some(Arc::new(move |ctx| {
+        let t = collect_mappings_elsewhere(ctx);
+        o.lock().expect("lock").push(t);
+    })));
+    let raced = r.render(&meshes, &view, &size);
+    r.set_after_submit(None);
+    for t in std::mem::take(&mut *others.lock().expect("lock")) {
+        t.join().expect("the other thread");
+    }
+    let raced = raced.expect("a render whose mapping another thread collected");
+    assert!(
+        raced.rgba == alone.rgba,
+        "the raced render drew something else"
+    );
+}
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+fn a_batch_whose_mapping_another_thread_collects_is_read_back_and_the_engine_stays_healthy() {
+    // The same race in the GPU engine, where a missing callback was taken for a lost device
+    // and sent every later batch to the CPU engine: a render on the shared device (or another
+    // batch) collects a batch's mappings between its submit and its wait.
+    use crowdmorph::engine::{BackendChoice, BackendKind};
+    let engine = Engine::with_gpu(open_gpu(GpuOptions::default()), BackendChoice::Gpu);
+    let ctx = engine.gpu_shared().expect("gpu");
+    let (rig, cpu_prepared) = head();
+    let prepared = engine.prepare(rig.clone()).expect("upload");
+    let talk = rig.clip_index("talk").expect("talk");
+    let frames = rig.clips[talk].frames;
+    // Enough jobs that the batch is still running when `submit` returns.
+    let jobs: Vec<BlendJob> = (0..64)
+        .map(|j| BlendJob {
+            clip: talk as u32,
+            frame: j % frames,
+            lod: 0,
+        })
+        .collect();
+    let spec = OutputSpec {
+        normals: true,
+        precision: Precision::F32,
+    };
+    let pending = engine.submit(&prepared, &jobs, spec, true).expect("submit");
+    let other = collect_mappings_elsewhere(&ctx);
+    let got = pending.wait();
+    other.join().expect("the other thread");
+    let got = got.expect("a batch whose mapping another thread collected");
+    assert_eq!(got.kind, Some(BackendKind::Gpu));
+    assert!(
+        !engine.info().degraded,
+        "{:?}",
+        engine.info().degraded_reason
+    );
+    let want = Engine::cpu()
+        .evaluate(cpu_prepared, &jobs, spec)
+        .expect("cpu")
+        .output;
+    let diag = rig.bbox().diagonal();
+    for j in [0, 31, 63] {
+        let worst = got
+            .output
+            .job_positions(j)
+            .iter()
+            .zip(want.job_positions(j))
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0f32, f32::max);
+        assert!(worst <= 1e-5 * diag, "job {j}: {worst}");
+    }
+}

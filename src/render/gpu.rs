@@ -41,7 +41,7 @@ use std::time::Instant;
 
 use glam::{Mat3, Mat4, Vec3};
 
-use crate::engine::gpu::GpuContext;
+use crate::engine::gpu::{GpuContext, MapResults};
 use crate::rig::Rig;
 
 /// MSAA samples per pixel.
@@ -260,7 +260,14 @@ pub struct Renderer {
     /// taken by a concurrent render makes its own).
     targets: Mutex<Option<Targets>>,
     scratch: Mutex<Option<Scratch>>,
+    /// A test's code to run inside every render's race window (see
+    /// [`Renderer::set_after_submit`]).
+    after_submit: Mutex<Option<AfterSubmit>>,
 }
+
+/// Code a test runs inside a render, after its work is submitted and its frame's mapping
+/// requested, before it waits for them; it gets the renderer's context.
+pub type AfterSubmit = Arc<dyn Fn(&GpuContext) + Send + Sync>;
 
 impl std::fmt::Debug for Renderer {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -492,8 +499,28 @@ impl Renderer {
             timestamp_period,
             targets: Mutex::new(None),
             scratch: Mutex::new(None),
+            after_submit: Mutex::new(None),
             ctx,
         })
+    }
+
+    /// Test hook: `hook` runs in every later render after its work is submitted and its
+    /// frame's mapping requested, before the render waits for them — the window in which a rig
+    /// delete or another thread's device poll races it, which tests need to hit every time
+    /// rather than by luck. `None` removes it.
+    #[doc(hidden)]
+    pub fn set_after_submit(&self, hook: Option<AfterSubmit>) {
+        if let Ok(mut h) = self.after_submit.lock() {
+            *h = hook;
+        }
+    }
+
+    /// Runs the test hook, if one is set.
+    fn after_submit(&self) {
+        let hook = self.after_submit.lock().ok().and_then(|h| h.clone());
+        if let Some(hook) = hook {
+            hook(&self.ctx);
+        }
     }
 
     /// The adapter the renderer draws on.
@@ -611,42 +638,30 @@ impl Renderer {
         let start = Instant::now();
         let pass_done = queue.submit([pass]);
         let copy_done = queue.submit([copy]);
-        let mapped = Arc::new(Mutex::new(Vec::new()));
-        let map = |buffer: &wgpu::Buffer, size: u64| {
-            let m = mapped.clone();
-            buffer.map_async(wgpu::MapMode::Read, 0..size, move |r| {
-                if let Ok(mut v) = m.lock() {
-                    v.push(r.map_err(|e| e.to_string()));
-                }
-            });
-        };
-        map(&targets.staging, targets.staging.size());
+        let mapped = MapResults::new();
+        mapped.request(&targets.staging, ..);
         if let Some((_, _, read)) = &scratch.queries {
-            map(read, 16);
+            mapped.request(read, 0..16);
         }
         scopes.pop("rendering")?;
+        self.after_submit();
 
-        let wait = |submission: wgpu::SubmissionIndex| {
-            self.ctx
-                .device()
-                .poll(wgpu::PollType::Wait {
-                    submission_index: Some(submission),
-                    timeout: None,
-                })
-                .map_err(lost)
-        };
-        wait(pass_done)?;
+        self.ctx
+            .device()
+            .poll(wgpu::PollType::Wait {
+                submission_index: Some(pass_done),
+                timeout: None,
+            })
+            .map_err(lost)?;
         let wall_render = nanos(start);
         let copy_start = Instant::now();
-        wait(copy_done)?;
-        self.ctx.health().map_err(lost)?;
+        // The callbacks, not only the submission: another thread's poll or submit may have
+        // collected this frame's mappings and be about to report them (see `MapResults`).
         let expected = 1 + usize::from(scratch.queries.is_some());
-        let results = mapped.lock().map(|v| v.clone()).unwrap_or_default();
-        if results.len() < expected || results.iter().any(Result::is_err) {
-            return Err(RenderError::Device(format!(
-                "mapping the rendered frame failed: {results:?}"
-            )));
-        }
+        let mapped = mapped.wait(self.ctx.device(), copy_done, expected);
+        self.ctx.health().map_err(lost)?;
+        mapped
+            .map_err(|e| RenderError::Device(format!("mapping the rendered frame failed: {e}")))?;
         let rgba = strip_padding(&targets, frame)?;
         let readback_ns = nanos(copy_start);
         let render_ns = self.pass_time(&scratch)?.unwrap_or(wall_render);

@@ -25,7 +25,7 @@ use super::{ApiError, AppState};
 use crate::engine::EngineError;
 use crate::render::crowd::{self, CrowdError, CrowdGroup, PlannedGroup, RenderDevice};
 use crate::render::encode::{self, ImageError};
-use crate::render::gpu::{Frame, MeshTopology, RenderError, View};
+use crate::render::gpu::{Frame, MeshTopology, RenderError, Renderer, View};
 use crate::render::scene::{self, SceneError};
 use crate::rig::{Aabb, FrameMode};
 
@@ -143,6 +143,13 @@ impl RenderState {
 }
 
 impl AppState {
+    /// The renderer, when the server has one (tests reach its race-window hook,
+    /// [`Renderer::set_after_submit`], through it).
+    #[doc(hidden)]
+    pub fn renderer(&self) -> Option<&Renderer> {
+        self.render.device.as_ref().ok().map(|d| &d.renderer)
+    }
+
     /// The renderer; 503 `render_unavailable` naming why (and what to install) without one.
     fn render_device(&self) -> Result<&RenderDevice, ApiError> {
         self.render.device.as_ref().map_err(|why| {

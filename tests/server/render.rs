@@ -528,6 +528,8 @@ fn triangle_glb() -> Bytes {
 async fn renders_racing_a_rig_delete_get_the_old_generation_or_404_never_500() {
     let server = TestServer::start(ServerConfig::default()).await;
     let glb = triangle_glb();
+    // First the race made to happen every time, then the races left to chance.
+    a_delete_and_another_poll_inside_the_race_window(&server, glb.clone()).await;
     let mut seen = (0, 0);
     for round in 0..6 {
         server
@@ -584,6 +586,82 @@ async fn renders_racing_a_rig_delete_get_the_old_generation_or_404_never_500() {
     }
     eprintln!("served {} old-generation renders, {} 404s", seen.0, seen.1);
     server.stop().await;
+}
+
+/// One render whose race window (its work submitted, its frame's mapping requested, not yet
+/// waited for) holds both a delete of its rig and another thread taking the frame's mapping
+/// callbacks, as a concurrent render's submit did under load (the 503 "mapping the rendered
+/// frame failed" this test once got): the render gets the old generation's picture, the same
+/// as before the delete, and the next one a 404.
+async fn a_delete_and_another_poll_inside_the_race_window(server: &TestServer, glb: Bytes) {
+    use std::sync::{Arc, Mutex};
+    server.client.upload_rig("tri", glb).await.expect("upload");
+    let req = request(
+        vec![
+            Head {
+                head: 1,
+                rig: "tri".into(),
+                clip: "wave".into(),
+                frame: 1,
+                lod: 0,
+            },
+            head(2, "talk", 1, 0),
+        ],
+        // Large enough that the frame's copy still runs when the render submits it.
+        1024,
+        768,
+    );
+    let before = png(server, &req).await;
+    let renderer = server.state.renderer().expect("a renderer");
+    let (entered, in_window) = tokio::sync::oneshot::channel::<()>();
+    let entered = Mutex::new(Some(entered));
+    let (resume, resumed) = std::sync::mpsc::channel::<()>();
+    let resumed = Mutex::new(resumed);
+    let others = Arc::new(Mutex::new(Vec::new()));
+    let o = others.clone();
+    renderer.set_after_submit(Some(Arc::new(move |ctx| {
+        // Only the first render waits in its window.
+        let Some(entered) = entered.lock().expect("lock").take() else {
+            return;
+        };
+        o.lock()
+            .expect("lock")
+            .push(crate::render::collect_mappings_elsewhere(ctx));
+        let _ = entered.send(());
+        let _ = resumed
+            .lock()
+            .expect("lock")
+            .recv_timeout(Duration::from_secs(60));
+    })));
+    let client = server.client.clone();
+    let body = Bytes::from(serde_json::to_vec(&req).expect("JSON"));
+    let raced = tokio::spawn(async move { client.render_raw(body, Encoding::Json).await });
+    in_window.await.expect("the render reached its race window");
+    server.client.delete_rig("tri").await.expect("delete");
+    resume.send(()).expect("the render waits");
+    let raced = raced.await.expect("join").expect("transport");
+    renderer.set_after_submit(None);
+    for t in std::mem::take(&mut *others.lock().expect("lock")) {
+        t.join().expect("the other thread");
+    }
+    assert_eq!(
+        raced.status,
+        200,
+        "a render racing a delete: {}",
+        String::from_utf8_lossy(&raced.body)
+    );
+    let raced = decode_png(&raced, &req);
+    assert!(raced == before, "the raced render drew something else");
+    let after = server
+        .client
+        .render_raw(
+            Bytes::from(serde_json::to_vec(&req).expect("JSON")),
+            Encoding::Json,
+        )
+        .await
+        .expect("transport");
+    assert_eq!(after.status, 404);
+    assert_eq!(after.error().expect("JSON").error.code, "unknown_rig");
 }
 
 /// Posts a JSON value to the render endpoint.

@@ -25,11 +25,14 @@
 //! own device with [`GpuContext::from_device`].
 
 pub mod layout;
+mod map;
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 
 use half::f16;
+
+pub use self::map::MapResults;
 
 use self::layout::{
     ActiveParams, Attribute, BlendParams, GpuJob, JOBS_PER_GROUP, NormalParams, PackParams,
@@ -806,7 +809,7 @@ pub struct Pending<'a> {
     readback: bool,
     /// Bytes of the staging buffer this batch mapped.
     staged: u64,
-    mapped: Arc<Mutex<Vec<Result<(), String>>>>,
+    mapped: MapResults,
     /// Without readback: the batch's outputs, copied out of the slot so they outlive it.
     resident: Option<DeviceOutput>,
 }
@@ -1005,20 +1008,12 @@ impl GpuContext {
             self.health.fail(e.to_string());
             return Err(GpuError::Internal(e.to_string()));
         }
-        let mapped = Arc::new(Mutex::new(Vec::new()));
-        let map = |buffer: &wgpu::Buffer, size: u64| {
-            let m = mapped.clone();
-            buffer.map_async(wgpu::MapMode::Read, 0..size, move |r| {
-                if let Ok(mut v) = m.lock() {
-                    v.push(r.map_err(|e| e.to_string()));
-                }
-            });
-        };
+        let mapped = MapResults::new();
         if readback {
-            map(&slot.staging, staging.max(4));
+            mapped.request(&slot.staging, 0..staging.max(4));
         }
         if let Some((_, _, read)) = &slot.queries {
-            map(read, 16 * subs as u64);
+            mapped.request(read, 0..16 * subs as u64);
         }
         Ok(Pending {
             ctx: self,
@@ -1273,21 +1268,15 @@ impl Pending<'_> {
 
     fn finish(&mut self) -> Result<(BlendOutput, Option<u64>), GpuError> {
         let ctx = self.ctx;
-        ctx.device
-            .poll(wgpu::PollType::Wait {
-                submission_index: Some(self.submission.clone()),
-                timeout: None,
-            })
-            .map_err(|e| {
-                ctx.health.fail(e.to_string());
-                GpuError::Lost(e.to_string())
-            })?;
-        ctx.health()?;
         let expected = usize::from(self.readback)
             + usize::from(self.slot.as_ref().is_some_and(|s| s.queries.is_some()));
-        let results = self.mapped.lock().map(|v| v.clone()).unwrap_or_default();
-        if results.len() < expected || results.iter().any(Result::is_err) {
-            let msg = format!("buffer mapping failed: {results:?}");
+        // Waits for the mapping callbacks too, not only the submission: a render or another
+        // batch on this device may have collected them on its own thread (see `map`).
+        let mapped = self
+            .mapped
+            .wait(&ctx.device, self.submission.clone(), expected);
+        ctx.health()?;
+        if let Err(msg) = mapped {
             ctx.health.fail(msg.clone());
             return Err(GpuError::Lost(msg));
         }
