@@ -83,6 +83,22 @@ impl MemoryPool {
         self.limit
     }
 
+    /// Takes `bytes` for an object that keeps them until it is dropped (a buffer on the GPU,
+    /// charged to the device's pool before it is created): refused as [`Budget::charge`]
+    /// refuses, `TooLarge` when `bytes` alone exceed the pool, `Full` when what is held leaves
+    /// no room now.
+    pub fn charge(
+        self: &Arc<Self>,
+        bytes: u64,
+        what: impl Fn() -> String,
+    ) -> Result<Charge, BudgetError> {
+        self.try_take(bytes, &what)?;
+        Ok(Charge {
+            pool: Some(self.clone()),
+            bytes,
+        })
+    }
+
     /// Takes `bytes` if they fit.
     fn try_take(&self, bytes: u64, what: &dyn Fn() -> String) -> Result<(), BudgetError> {
         if bytes > self.limit {
@@ -396,6 +412,31 @@ mod tests {
         assert_eq!(pool.used(), 250, "the rest of the reservation goes back");
         drop(kept);
         assert_eq!(pool.used(), 0);
+    }
+
+    #[test]
+    fn a_pool_charges_objects_directly_until_they_are_dropped() {
+        let pool = MemoryPool::new(100, "--gpu");
+        let a = pool.charge(60, || "a".into()).expect("fits");
+        assert_eq!((a.bytes(), pool.used()), (60, 60));
+        let e = pool.charge(50, || "b".into()).expect_err("full");
+        assert!(matches!(
+            e,
+            BudgetError::Full {
+                used: 60,
+                limit: 100,
+                flag: "--gpu",
+                ..
+            }
+        ));
+        let e = pool.charge(101, || "huge".into()).expect_err("too large");
+        assert!(matches!(e, BudgetError::TooLarge { needed: 101, .. }));
+        assert!(e.to_string().contains("huge") && e.to_string().contains("--gpu"));
+        drop(a);
+        assert_eq!(pool.used(), 0);
+        let b = pool.charge(50, || "b".into()).expect("fits once a is gone");
+        assert_eq!(pool.used(), 50);
+        drop(b);
     }
 
     #[test]

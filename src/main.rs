@@ -509,6 +509,11 @@ struct ServeArgs {
     /// bytes (503 past it; default: half the machine's memory).
     #[arg(long, env = "CROWDMORPH_MAX_RIG_MEMORY")]
     max_rig_memory: Option<u64>,
+    /// Most GPU memory resident rigs, batch buffers and render targets may hold on each device,
+    /// bytes (a rig over it gets 413, one that does not fit now 503; default: 2 GiB, or the
+    /// device's largest buffer if larger).
+    #[arg(long, env = "CROWDMORPH_MAX_GPU_MEMORY")]
+    max_gpu_memory: Option<u64>,
     /// Crowd requests that may wait for the batcher at once (more get 503).
     #[arg(long, env = "CROWDMORPH_QUEUE_REQUESTS", default_value_t = 1024)]
     queue_requests: usize,
@@ -688,6 +693,7 @@ fn run_serve(a: ServeArgs) -> Result<()> {
         cors_origins: a.cors_origin,
         auto_lod: !a.no_auto_lod,
         render_pixels: a.render_pixels,
+        gpu_memory: a.max_gpu_memory,
         render_backend: a.render_backend,
         sessions: server::sessions::SessionLimits {
             max_sessions: usize::try_from(a.max_sessions).unwrap_or(usize::MAX),

@@ -183,6 +183,7 @@ fn paper_scale_rig_over_the_binding_limit_is_chunked_and_matches() {
     let ctx = open_gpu(GpuOptions {
         max_binding: Some(4 << 20),
         max_chunk: Some(256 << 10),
+        ..GpuOptions::default()
     });
     let engine = Engine::with_gpu(ctx, BackendChoice::Gpu);
     let rig = paper_scale_rig();
@@ -455,4 +456,95 @@ fn gpu_plays_each_node_with_its_own_weights() {
             engine.info().degraded_reason
         );
     }
+}
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+fn the_gpu_memory_budget_refuses_rigs_over_it_and_gets_back_a_dropped_rigs_memory() {
+    use crowdmorph::budget::BudgetError;
+    use crowdmorph::engine::EngineError;
+    let rig = Arc::new(crowdmorph::embedded::default_rig());
+    // What the rig holds on the device, under the default budget.
+    let probe = Engine::with_gpu(open_gpu(GpuOptions::default()), BackendChoice::Gpu);
+    let memory = probe.gpu_memory().expect("gpu").clone();
+    let before = memory.used();
+    let prepared = probe.prepare(rig.clone()).expect("upload");
+    let bytes = memory.used() - before;
+    assert!(
+        bytes > 0 && bytes >= prepared.memory().device_bytes as u64,
+        "charged {bytes}, resident {}",
+        prepared.memory().device_bytes
+    );
+    drop(prepared);
+    assert_eq!(
+        memory.used(),
+        before,
+        "a dropped rig gives its GPU memory back"
+    );
+
+    // A budget smaller than the rig's vertex data: refused, naming the flag, nothing left
+    // charged, and the device is fine.
+    let small = Engine::with_gpu(
+        open_gpu(GpuOptions {
+            memory: Some(64 << 10),
+            ..GpuOptions::default()
+        }),
+        BackendChoice::Gpu,
+    );
+    let e = small.prepare(rig.clone()).expect_err("over the budget");
+    assert!(
+        matches!(e, EngineError::GpuMemory(BudgetError::TooLarge { .. })),
+        "{e:?}"
+    );
+    assert!(e.to_string().contains("--max-gpu-memory"), "{e}");
+    assert_eq!(small.gpu_memory().expect("gpu").used(), 0);
+    assert!(!small.info().degraded, "a refusal is not a device fault");
+
+    // Room for one copy of the rig, not two: the second is refused while the first is
+    // resident, and fits once it is gone.
+    let one = Engine::with_gpu(
+        open_gpu(GpuOptions {
+            memory: Some(bytes + bytes / 2),
+            ..GpuOptions::default()
+        }),
+        BackendChoice::Gpu,
+    );
+    let first = one.prepare(rig.clone()).expect("the first fits");
+    let e = one.prepare(rig.clone()).expect_err("no room for a second");
+    assert!(
+        matches!(e, EngineError::GpuMemory(BudgetError::Full { .. })),
+        "{e:?}"
+    );
+    drop(first);
+    let second = one
+        .prepare(rig.clone())
+        .expect("fits once the first is dropped");
+
+    // A batch whose buffers do not fit next to the rig runs on the CPU, with the same answer,
+    // and leaves the GPU engine in use.
+    let jobs = random_jobs(&rig, 5, 64);
+    let spec = OutputSpec {
+        normals: true,
+        precision: Precision::F32,
+    };
+    let tight = Engine::with_gpu(
+        open_gpu(GpuOptions {
+            memory: Some(bytes + 1024),
+            ..GpuOptions::default()
+        }),
+        BackendChoice::Gpu,
+    );
+    let resident = tight.prepare(rig.clone()).expect("the rig fits");
+    let got = tight.evaluate(&resident, &jobs, spec).expect("evaluated");
+    assert_eq!(got.kind, Some(BackendKind::Cpu), "the batch ran on the CPU");
+    assert!(!tight.info().degraded, "{:?}", tight.info().degraded_reason);
+    let cpu = Engine::cpu();
+    let want = cpu
+        .evaluate(&cpu.prepare(rig).expect("prepare"), &jobs, spec)
+        .expect("cpu");
+    assert_eq!(got.output, want.output);
+    drop(second);
 }

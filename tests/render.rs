@@ -894,3 +894,36 @@ fn a_batch_whose_mapping_another_thread_collects_is_read_back_and_the_engine_sta
         assert!(worst <= 1e-5 * diag, "job {j}: {worst}");
     }
 }
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+fn a_frame_over_the_gpu_memory_budget_is_refused_and_smaller_ones_still_render() {
+    use crowdmorph::budget::BudgetError;
+    let budget = 8u64 << 20;
+    let r = Renderer::new(Arc::new(open_gpu(GpuOptions {
+        memory: Some(budget),
+        ..GpuOptions::default()
+    })))
+    .expect("renderer");
+    let (rig, prepared) = head();
+    let topology = r.topology(rig).expect("topology");
+    let data = evaluate(prepared, "talk", 12);
+    let meshes = [host(&topology, &data, &[Mat4::IDENTITY])];
+    let view = head_view(rig);
+    // 1024 × 1024 with 4× MSAA colour and depth alone is 32 MiB.
+    let e = r
+        .render(&meshes, &view, &frame(1024, 1024))
+        .expect_err("over the budget");
+    assert!(
+        matches!(e, RenderError::Memory(BudgetError::TooLarge { limit, .. }) if limit == budget),
+        "{e:?}"
+    );
+    assert!(e.to_string().contains("--max-gpu-memory"), "{e}");
+    let out = r
+        .render(&meshes, &view, &frame(128, 128))
+        .expect("a small frame fits");
+    assert!(covered(&image(&out), 32, 96, 32, 96) > 1000);
+}

@@ -212,6 +212,7 @@ impl std::fmt::Debug for Engine {
 fn gpu_to_engine(e: GpuError) -> EngineError {
     match e {
         GpuError::DoesNotFit(m) | GpuError::OutOfMemory(m) => EngineError::DoesNotFit(m),
+        GpuError::Memory(b) => EngineError::GpuMemory(b),
         other => EngineError::NoGpu(other.to_string()),
     }
 }
@@ -282,16 +283,21 @@ impl Engine {
     /// Creates the engine for `choice`. `Gpu` fails when no adapter can be opened; `Auto`
     /// uses a hardware adapter when there is one and the CPU engine otherwise.
     pub fn new(choice: BackendChoice) -> Result<Engine, EngineError> {
+        Engine::with_options(choice, GpuOptions::default())
+    }
+
+    /// [`Engine::new`] with the GPU context's options (the server's `--max-gpu-memory`).
+    pub fn with_options(choice: BackendChoice, options: GpuOptions) -> Result<Engine, EngineError> {
         match choice {
             BackendChoice::Cpu => Ok(Engine::cpu()),
-            BackendChoice::Auto => match GpuContext::open(false, GpuOptions::default()) {
+            BackendChoice::Auto => match GpuContext::open(false, options) {
                 Ok(ctx) => Ok(Engine::with_gpu(ctx, BackendChoice::Auto)),
                 Err(e) => {
                     tracing::info!(reason = %e, "no hardware GPU; using the CPU engine");
                     Ok(Engine::cpu())
                 }
             },
-            BackendChoice::Gpu => GpuContext::open(true, GpuOptions::default())
+            BackendChoice::Gpu => GpuContext::open(true, options)
                 .map(|ctx| Engine::with_gpu(ctx, BackendChoice::Gpu))
                 .map_err(|e| EngineError::NoGpu(e.to_string())),
         }
@@ -318,6 +324,11 @@ impl Engine {
     /// where they are.
     pub fn gpu_shared(&self) -> Option<Arc<GpuContext>> {
         self.gpu.clone()
+    }
+
+    /// The GPU's memory budget (`--max-gpu-memory`), while the GPU engine is in use.
+    pub fn gpu_memory(&self) -> Option<&Arc<crate::budget::MemoryPool>> {
+        self.gpu_active().map(GpuContext::memory)
     }
 
     /// The GPU context while it is healthy.
@@ -389,7 +400,9 @@ impl Engine {
     fn resident<T>(&self, r: Result<T, GpuError>) -> Result<Option<T>, EngineError> {
         match r {
             Ok(g) => Ok(Some(g)),
-            Err(e @ (GpuError::DoesNotFit(_) | GpuError::OutOfMemory(_))) => Err(gpu_to_engine(e)),
+            Err(e @ (GpuError::DoesNotFit(_) | GpuError::OutOfMemory(_) | GpuError::Memory(_))) => {
+                Err(gpu_to_engine(e))
+            }
             Err(e) => {
                 self.degrade(&e);
                 Ok(None)
@@ -536,6 +549,12 @@ impl Engine {
                 match ctx.submit(g, &gpu_jobs, spec, readback) {
                     Ok(p) => PendingState::Gpu(Box::new(p)),
                     Err(e @ GpuError::DoesNotFit(_)) => return Err(gpu_to_engine(e)),
+                    // The device's memory budget is full now: this batch runs on the CPU,
+                    // which holds every rig too; the device is fine.
+                    Err(GpuError::Memory(e)) => {
+                        tracing::debug!(error = %e, "GPU memory budget full; batch on the CPU");
+                        PendingState::Ready(self.evaluate_cpu(rig, jobs, spec, start))
+                    }
                     Err(e) => {
                         self.degrade(&e);
                         PendingState::Ready(self.evaluate_cpu(rig, jobs, spec, start))
@@ -648,6 +667,11 @@ impl Engine {
                     return Ok((RenderBuffers::Device(out), timings));
                 }
                 Err(e @ GpuError::DoesNotFit(_)) => return Err(gpu_to_engine(e)),
+                // The device's memory budget is full now: these jobs are evaluated on the CPU
+                // and drawn from host arrays; the device is fine.
+                Err(GpuError::Memory(e)) => {
+                    tracing::debug!(error = %e, "GPU memory budget full; render jobs on the CPU");
+                }
                 Err(e) => self.degrade(&e),
             }
         }

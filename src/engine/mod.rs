@@ -143,6 +143,11 @@ pub enum EngineError {
     /// The rig does not fit in the device's memory or limits.
     #[error("rig does not fit on the GPU: {0}")]
     DoesNotFit(String),
+    /// The GPU memory budget (`--max-gpu-memory`) refused a rig: too large for it ever, or
+    /// too large for what the device holds now (the server answers as for its host memory
+    /// budget: 413 or 503).
+    #[error("rig does not fit the GPU memory budget: {0}")]
+    GpuMemory(crate::budget::BudgetError),
 }
 
 /// Weights of a batch of jobs, in LOD slot order, zero where inactive or past the LOD.

@@ -99,6 +99,16 @@ impl RenderDevice {
     /// (a message for a person, naming what to install); it never panics and never blocks for
     /// long (device creation is tens of milliseconds on lavapipe).
     pub fn open(engine: &Engine, backend: RenderBackend) -> Result<RenderDevice, String> {
+        RenderDevice::open_with(engine, backend, GpuOptions::default())
+    }
+
+    /// [`RenderDevice::open`] with the options of a context opened for rendering only (its
+    /// memory budget; on the engine's device the engine's budget applies).
+    pub fn open_with(
+        engine: &Engine,
+        backend: RenderBackend,
+        options: GpuOptions,
+    ) -> Result<RenderDevice, String> {
         if backend == RenderBackend::Off {
             return Err("rendering is off (--render-backend off)".into());
         }
@@ -121,7 +131,7 @@ impl RenderDevice {
             }
         }
         let software = backend == RenderBackend::Auto;
-        let ctx = GpuContext::open(software, GpuOptions::default()).map_err(|e| {
+        let ctx = GpuContext::open(software, options).map_err(|e| {
             if software {
                 format!("no adapter can render ({e}); {INSTALL_HINT}")
             } else {

@@ -41,6 +41,7 @@ use std::time::Instant;
 
 use glam::{Mat3, Mat4, Vec3};
 
+use crate::budget::{BudgetError, Charge};
 use crate::engine::gpu::{GpuContext, MapResults};
 use crate::rig::Rig;
 
@@ -95,6 +96,8 @@ pub struct MeshTopology {
     primitives: Vec<TopologyPrimitive>,
     vertices: u32,
     triangles: u32,
+    /// The index buffer's bytes in the device's memory budget.
+    _charge: Charge,
 }
 
 /// One primitive's slice of a topology's index buffer.
@@ -186,6 +189,11 @@ pub enum RenderError {
     /// Bad input: a vertex source that does not match its topology, a bad view, zero size...
     #[error("invalid render input: {0}")]
     Invalid(String),
+    /// The device's memory budget (`--max-gpu-memory`) refused the render's targets or
+    /// buffers: `TooLarge` when they can never fit, `Full` when what the device holds now
+    /// leaves no room.
+    #[error("GPU memory: {0}")]
+    Memory(#[from] BudgetError),
 }
 
 /// The per-render uniform block the shader's `Camera` mirrors.
@@ -218,13 +226,21 @@ struct Targets {
     staging: wgpu::Buffer,
     /// Padded bytes per row in `staging`.
     row: u32,
+    /// Their bytes in the device's memory budget.
+    charge: Charge,
 }
 
 impl Targets {
+    /// Device bytes of the targets of a `width × height` frame whose readback rows are `row`
+    /// bytes: MSAA colour and depth (4 bytes × samples each), the resolved colour and the
+    /// staging copy.
+    fn bytes_of(width: u32, height: u32, row: u32) -> u64 {
+        let pixels = u64::from(width) * u64::from(height);
+        pixels * 4 * u64::from(SAMPLES) * 2 + pixels * 4 + u64::from(row) * u64::from(height)
+    }
+
     fn bytes(&self) -> u64 {
-        let pixels = u64::from(self.width) * u64::from(self.height);
-        // MSAA colour and depth (4 bytes × samples), the resolved colour, the staging copy.
-        pixels * 4 * u64::from(SAMPLES) * 2 + pixels * 4 + self.staging.size()
+        self.charge.bytes()
     }
 }
 
@@ -236,6 +252,10 @@ struct Scratch {
     uniforms: wgpu::Buffer,
     /// Query set of two timestamps, its resolve buffer and the mappable copy.
     queries: Option<(wgpu::QuerySet, wgpu::Buffer, wgpu::Buffer)>,
+    /// The scene and uniform buffers' bytes in the device's memory budget (each moves with
+    /// its buffer when that is kept for the next render).
+    scene_charge: Charge,
+    uniforms_charge: Charge,
 }
 
 impl Scratch {
@@ -588,6 +608,9 @@ impl Renderer {
             }
             first_vertex += n;
         }
+        let charge = self.ctx.memory().charge(bytes.max(4), || {
+            format!("{} triangles' indices on the GPU", total_indices / 3)
+        })?;
         let device = self.ctx.device();
         let scopes = Scopes::push(device);
         // Not `create_buffer_init`: it maps the buffer and panics if the device is gone, while a
@@ -611,6 +634,7 @@ impl Renderer {
             primitives,
             vertices: vertex_count,
             triangles: (total_indices / 3) as u32,
+            _charge: charge,
         })
     }
 
@@ -629,8 +653,8 @@ impl Renderer {
         let layout = self.layout(meshes)?;
 
         let scopes = Scopes::push(self.ctx.device());
-        let targets = self.take_targets(frame, row);
-        let scratch = self.take_scratch(layout.scene_bytes, layout.uniform_bytes);
+        let targets = self.take_targets(frame, row)?;
+        let scratch = self.take_scratch(layout.scene_bytes, layout.uniform_bytes)?;
         self.upload(&layout, &camera, &scratch);
         let pass = self.encode_pass(&layout, frame, &targets, &scratch);
         let copy = self.encode_copy(frame, &targets, &scratch);
@@ -1044,15 +1068,26 @@ impl Renderer {
         }))
     }
 
-    /// The pooled targets when they have this size, else new ones.
-    fn take_targets(&self, frame: &Frame, row: u32) -> Targets {
+    /// The pooled targets when they have this size, else new ones, charged to the device's
+    /// memory budget first (pooled ones of another size are dropped, and their charge given
+    /// back, before).
+    fn take_targets(&self, frame: &Frame, row: u32) -> Result<Targets, RenderError> {
         let pooled = self.targets.lock().ok().and_then(|mut t| t.take());
         if let Some(t) = pooled
             && t.width == frame.width
             && t.height == frame.height
         {
-            return t;
+            return Ok(t);
         }
+        let charge =
+            self.ctx
+                .memory()
+                .charge(Targets::bytes_of(frame.width, frame.height, row), || {
+                    format!(
+                        "the render targets of a {}×{} frame",
+                        frame.width, frame.height
+                    )
+                })?;
         let device = self.ctx.device();
         let size = wgpu::Extent3d {
             width: frame.width,
@@ -1096,7 +1131,7 @@ impl Renderer {
             mapped_at_creation: false,
         });
         let view = |t: &wgpu::Texture| t.create_view(&wgpu::TextureViewDescriptor::default());
-        Targets {
+        Ok(Targets {
             width: frame.width,
             height: frame.height,
             msaa: view(&msaa),
@@ -1105,47 +1140,60 @@ impl Renderer {
             resolve,
             staging,
             row,
-        }
+            charge,
+        })
     }
 
-    /// The pooled buffers, each replaced by a new one when too small.
-    fn take_scratch(&self, scene_bytes: u64, uniform_bytes: u64) -> Scratch {
+    /// The pooled buffers, each replaced by a new one (charged to the device's memory budget
+    /// first) when too small.
+    fn take_scratch(&self, scene_bytes: u64, uniform_bytes: u64) -> Result<Scratch, RenderError> {
         let device = self.ctx.device();
         let buffer = |label: &str, size: u64, usage: wgpu::BufferUsages| {
-            device.create_buffer(&wgpu::BufferDescriptor {
+            // Rounded up so that slightly different scenes reuse the buffer.
+            let size = size
+                .max(256)
+                .next_multiple_of(64 << 10)
+                .min(self.max_buffer);
+            let charge = self
+                .ctx
+                .memory()
+                .charge(size, || format!("a render's {label} buffer ({size} bytes)"))?;
+            let buffer = device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some(label),
-                // Rounded up so that slightly different scenes reuse the buffer.
-                size: size
-                    .max(256)
-                    .next_multiple_of(64 << 10)
-                    .min(self.max_buffer),
+                size,
                 usage,
                 mapped_at_creation: false,
-            })
+            });
+            Ok::<_, RenderError>((buffer, charge))
         };
         let pooled = self.scratch.lock().ok().and_then(|mut s| s.take());
         let (scene, uniforms, queries) = match pooled {
-            Some(s) => (Some(s.scene), Some(s.uniforms), s.queries),
+            Some(s) => (
+                Some((s.scene, s.scene_charge)),
+                Some((s.uniforms, s.uniforms_charge)),
+                s.queries,
+            ),
             None => (None, None, None),
         };
-        let scene = scene
-            .filter(|b| b.size() >= scene_bytes)
-            .unwrap_or_else(|| {
-                buffer(
-                    "render scene",
-                    scene_bytes,
-                    wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::COPY_DST,
-                )
-            });
-        let uniforms = uniforms
-            .filter(|b| b.size() >= uniform_bytes)
-            .unwrap_or_else(|| {
-                buffer(
-                    "render uniforms",
-                    uniform_bytes,
-                    wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-                )
-            });
+        // A pooled buffer too small is dropped (its charge given back) before its replacement
+        // is charged.
+        let (scene, scene_charge) = match scene.filter(|(b, _)| b.size() >= scene_bytes) {
+            Some(kept) => kept,
+            None => buffer(
+                "render scene",
+                scene_bytes,
+                wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::COPY_DST,
+            )?,
+        };
+        let (uniforms, uniforms_charge) = match uniforms.filter(|(b, _)| b.size() >= uniform_bytes)
+        {
+            Some(kept) => kept,
+            None => buffer(
+                "render uniforms",
+                uniform_bytes,
+                wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            )?,
+        };
         let queries = queries.or_else(|| {
             self.timestamp_period.map(|_| {
                 let small = |label: &str, usage| {
@@ -1173,11 +1221,13 @@ impl Renderer {
                 )
             })
         });
-        Scratch {
+        Ok(Scratch {
             scene,
             uniforms,
             queries,
-        }
+            scene_charge,
+            uniforms_charge,
+        })
     }
 
     /// Returns a successful render's targets and buffers to the pool when they are small

@@ -410,6 +410,20 @@ pub(super) fn budget_error(e: BudgetError, too_large: &'static str) -> ApiError 
     }
 }
 
+/// A rig the engine could not prepare: over the GPU memory budget, answered as the host
+/// budget answers (413 `too_large`, 503 `memory_full`, naming `--max-gpu-memory`); anything
+/// else the device cannot hold, 422 `cannot_prepare`.
+fn prepare_error(e: crate::engine::EngineError, too_large: &'static str) -> ApiError {
+    match e {
+        crate::engine::EngineError::GpuMemory(b) => budget_error(b, too_large),
+        e => ApiError::new(
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "cannot_prepare",
+            e.to_string(),
+        ),
+    }
+}
+
 /// Errors of a clip import: like a rig's, with the clip's code for a clip too large.
 fn clip_import_error(e: ImportError) -> ApiError {
     match e {
@@ -448,18 +462,34 @@ pub(super) fn prepare_charged(
     ApiError,
 > {
     let cost = RigShape::of(&rig).cost(gpu);
+    // A rig whose resident GPU copy alone exceeds the GPU memory budget is refused up front,
+    // as one over the host budget is; one that does not fit next to the rigs already there is
+    // refused by the engine's charges (503, or 413 for one buffer over the whole budget).
+    if let Some(pool) = engine.gpu_memory().filter(|_| gpu)
+        && cost.device > pool.limit()
+    {
+        return Err(budget_error(
+            BudgetError::TooLarge {
+                what: format!(
+                    "a rig of {} vertices and {} targets on the GPU",
+                    rig.vertex_count(),
+                    rig.targets.len()
+                ),
+                needed: cost.device,
+                limit: pool.limit(),
+                flag: crate::engine::gpu::GPU_MEMORY_FLAG,
+            },
+            "rig_too_large",
+        ));
+    }
     budget
         .charge(cost.layout + cost.transient, || {
             format!("preparing a rig of {} vertices", rig.vertex_count())
         })
         .map_err(|e| budget_error(e, "rig_too_large"))?;
-    let prepared = engine.prepare(rig.clone()).map_err(|e| {
-        ApiError::new(
-            StatusCode::UNPROCESSABLE_ENTITY,
-            "cannot_prepare",
-            e.to_string(),
-        )
-    })?;
+    let prepared = engine
+        .prepare(rig.clone())
+        .map_err(|e| prepare_error(e, "rig_too_large"))?;
     let qbox = quantization_box(&rig);
     Ok((rig, prepared, qbox))
 }
@@ -908,7 +938,7 @@ pub(super) async fn upload_clips(
         let new = Arc::new(new);
         let prepared = engine
             .update_clips(&current.prepared, new.clone())
-            .map_err(|e| ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, "cannot_prepare", e.to_string()))?;
+            .map_err(|e| prepare_error(e, "clip_too_large"))?;
         let qbox = quantization_box(&new);
         Ok((new, prepared, qbox, added, ignored, table_bytes))
     })

@@ -73,6 +73,10 @@ pub struct ServerConfig {
     pub render_pixels: u64,
     /// Which adapter draws rendered frames (`--render-backend`).
     pub render_backend: RenderBackend,
+    /// Bytes of GPU buffers and textures whose size an input decides (resident rigs, batch
+    /// buffers, render targets) each device may hold at once (`--max-gpu-memory`; `None`:
+    /// [`crate::engine::gpu::default_gpu_memory`] of the device's limits).
+    pub gpu_memory: Option<u64>,
     /// Limits of crowd sessions.
     pub sessions: super::sessions::SessionLimits,
     /// Longest `POST /v1/loadtest` (warm-up and measured window together); zero disables the
@@ -118,6 +122,7 @@ impl Default for ServerConfig {
             auto_lod: true,
             render_pixels: DEFAULT_RENDER_PIXELS,
             render_backend: RenderBackend::Auto,
+            gpu_memory: None,
             sessions: super::sessions::SessionLimits::default(),
             loadtest_max_duration: Duration::from_secs(60),
             loadtest_max_rate: 10_000.0,

@@ -161,7 +161,11 @@ impl AppState {
     /// inside a tokio runtime.
     pub fn new(config: ServerConfig) -> Result<AppState, ServerError> {
         let config_concurrency = config.max_concurrency;
-        let engine = Arc::new(Engine::new(config.backend)?);
+        let gpu_options = crate::engine::gpu::GpuOptions {
+            memory: config.gpu_memory,
+            ..Default::default()
+        };
+        let engine = Arc::new(Engine::with_options(config.backend, gpu_options)?);
         let info = engine.info();
         tracing::info!(
             backend = ?info.kind,
@@ -172,7 +176,11 @@ impl AppState {
         // Never fails the start: without an adapter, render requests say why and everything
         // else works.
         let render = render::RenderState {
-            device: crate::render::crowd::RenderDevice::open(&engine, config.render_backend),
+            device: crate::render::crowd::RenderDevice::open_with(
+                &engine,
+                config.render_backend,
+                gpu_options,
+            ),
             topologies: Mutex::default(),
         };
         match &render.device {

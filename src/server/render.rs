@@ -255,6 +255,12 @@ fn crowd_error(e: CrowdError) -> ApiError {
         CrowdError::Render(RenderError::TooLarge(m)) => {
             ApiError::new(StatusCode::PAYLOAD_TOO_LARGE, "image_too_large", m)
         }
+        CrowdError::Render(RenderError::Memory(b)) => {
+            super::api::budget_error(b, "image_too_large")
+        }
+        CrowdError::Engine(EngineError::GpuMemory(b)) => {
+            super::api::budget_error(b, "response_too_large")
+        }
         CrowdError::Render(RenderError::Device(m)) => ApiError::new(
             StatusCode::SERVICE_UNAVAILABLE,
             "render_unavailable",

@@ -970,3 +970,98 @@ async fn the_gpu_engine_draws_its_outputs_where_they_are() {
     );
     server.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+#[cfg_attr(
+    not(crowdmorph_test_data),
+    ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+)]
+async fn the_gpu_memory_budget_refuses_rigs_and_renders_over_it_and_a_delete_gives_it_back() {
+    use crowdmorph::engine::BackendChoice;
+    use crowdmorph_client::ClientError;
+    let glb = Bytes::from(
+        std::fs::read(crate::util::data_dir().join("ict-facekit/ict_facekit_53.glb"))
+            .expect("ICT FaceKit"),
+    );
+    // The GPU engine (lavapipe here) with the renderer on its device.
+    let gpu = || ServerConfig {
+        backend: BackendChoice::Gpu,
+        ..ServerConfig::default()
+    };
+    // Under the default budget: what the built-in head and ICT FaceKit hold on the device, and
+    // a delete gives the rig's share back.
+    let server = TestServer::start(gpu()).await;
+    let memory = server
+        .state
+        .engine
+        .gpu_memory()
+        .expect("GPU engine")
+        .clone();
+    let builtin = memory.used();
+    server
+        .client
+        .upload_rig("ict", glb.clone())
+        .await
+        .expect("upload");
+    let ict = memory.used() - builtin;
+    assert!(ict > 0, "the rig is charged to the GPU budget");
+    server.client.delete_rig("ict").await.expect("delete");
+    assert_eq!(
+        memory.used(),
+        builtin,
+        "a delete gives the rig's GPU memory back"
+    );
+    server.stop().await;
+
+    // A budget with room for the built-in head and half of ICT FaceKit: the upload is refused
+    // with the JSON error naming the flag, as the host budget refuses (413 when the rig alone
+    // is over it, 503 when it does not fit next to what is there), and leaves nothing charged.
+    let cap = builtin + ict / 2;
+    let server = TestServer::start(ServerConfig {
+        gpu_memory: Some(cap),
+        ..gpu()
+    })
+    .await;
+    let memory = server
+        .state
+        .engine
+        .gpu_memory()
+        .expect("GPU engine")
+        .clone();
+    let at_start = memory.used();
+    let e = server
+        .client
+        .upload_rig("ict", glb)
+        .await
+        .expect_err("over the GPU budget");
+    let ClientError::Api {
+        status,
+        code,
+        message,
+    } = e
+    else {
+        panic!("not a JSON error: {e}");
+    };
+    assert!(
+        (status, code.as_str()) == (413, "rig_too_large")
+            || (status, code.as_str()) == (503, "memory_full"),
+        "{status} {code}: {message}"
+    );
+    assert!(message.contains("--max-gpu-memory"), "{message}");
+    assert_eq!(memory.used(), at_start, "a refused upload holds nothing");
+
+    // A render whose targets alone (4× MSAA colour and depth: 32 bytes a pixel) exceed the
+    // budget: 413 naming the flag. A small one still renders.
+    let side = ((cap / 32) as f64).sqrt().ceil() as u32 + 16;
+    let r = s_render_raw(&server, &request(vec![head(1, "talk", 0, 0)], side, side)).await;
+    assert_eq!(r.status, 413, "{}", String::from_utf8_lossy(&r.body));
+    let err = r.error().expect("JSON").error;
+    assert_eq!(err.code, "image_too_large");
+    assert!(err.message.contains("--max-gpu-memory"), "{}", err.message);
+    png(&server, &request(vec![head(1, "talk", 0, 0)], 96, 64)).await;
+    server.stop().await;
+}

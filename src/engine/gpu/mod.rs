@@ -40,6 +40,7 @@ use self::layout::{
 };
 use super::cpu::NormalTopology;
 use super::{BlendOutput, OutputSpec, Precision, VertexData};
+use crate::budget::{BudgetError, Charge, MemoryPool};
 use crate::rig::Rig;
 
 /// Why the GPU engine could not do something.
@@ -63,6 +64,20 @@ pub enum GpuError {
     /// Any other device error (a validation error here is a bug in crowdmorph).
     #[error("GPU error: {0}")]
     Internal(String),
+    /// The device's memory budget (`--max-gpu-memory`) refused a buffer: `TooLarge` when it
+    /// can never fit, `Full` when what the device holds now leaves no room.
+    #[error("GPU memory: {0}")]
+    Memory(#[from] BudgetError),
+}
+
+/// Default of [`GpuOptions::memory`]: 2 GiB, or the device's largest buffer when that is
+/// larger (capped at 16 GiB), so that one buffer the device allows can always be charged. wgpu
+/// does not report how much memory a device has; a server that knows sets `--max-gpu-memory`.
+pub const DEFAULT_GPU_MEMORY: u64 = 2 << 30;
+
+/// The GPU memory cap of a device with `limits` when none is configured.
+pub fn default_gpu_memory(limits: &wgpu::Limits) -> u64 {
+    DEFAULT_GPU_MEMORY.max(limits.max_buffer_size.min(16 << 30))
 }
 
 /// Options of a GPU context.
@@ -73,7 +88,13 @@ pub struct GpuOptions {
     /// Cut rigs into chunks of at most this many bytes (tests lower it to force chunking; by
     /// default a chunk is as large as a storage binding).
     pub max_chunk: Option<u64>,
+    /// Bytes of buffers and textures whose size an input decides that the device may hold at
+    /// once (`--max-gpu-memory`; default [`default_gpu_memory`]).
+    pub memory: Option<u64>,
 }
+
+/// The flag that sets the GPU memory cap, for error messages.
+pub const GPU_MEMORY_FLAG: &str = "--max-gpu-memory";
 
 /// Whether the device is still usable, and why not.
 #[derive(Default)]
@@ -125,6 +146,9 @@ pub struct GpuContext {
     max_buffer: u64,
     health: Arc<Health>,
     pool: Mutex<Vec<Slot>>,
+    /// The device memory budget every input-sized buffer (rigs, batch slots, outputs kept for
+    /// drawing, a renderer's targets) is charged to before it is created.
+    memory: Arc<MemoryPool>,
 }
 
 impl std::fmt::Debug for GpuContext {
@@ -295,7 +319,23 @@ impl GpuContext {
             max_buffer: limits.max_buffer_size,
             health,
             pool: Mutex::new(Vec::new()),
+            memory: MemoryPool::new(
+                options
+                    .memory
+                    .unwrap_or_else(|| default_gpu_memory(&limits)),
+                GPU_MEMORY_FLAG,
+            ),
         }
+    }
+
+    /// The device memory budget (a renderer on this device charges its buffers here too).
+    pub fn memory(&self) -> &Arc<MemoryPool> {
+        &self.memory
+    }
+
+    /// Charges `bytes` of device memory about to be allocated for `what`.
+    pub fn charge(&self, bytes: u64, what: impl Fn() -> String) -> Result<Charge, GpuError> {
+        Ok(self.memory.charge(bytes, what)?)
     }
 
     /// The adapter in use.
@@ -331,7 +371,7 @@ impl GpuContext {
     fn buffer(&self, label: &str, size: u64, usage: wgpu::BufferUsages) -> wgpu::Buffer {
         self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some(label),
-            size: size.max(16).next_multiple_of(4),
+            size: padded(size),
             usage,
             mapped_at_creation: false,
         })
@@ -357,6 +397,11 @@ impl GpuContext {
         });
         self.queue.write_buffer(&buffer, 0, contents);
         buffer
+    }
+
+    /// Bytes `init` allocates for `data`, for charging before it does.
+    fn init_bytes<T>(data: &[T]) -> u64 {
+        padded(size_of_val(data) as u64)
     }
 
     fn uniform<T: bytemuck::Pod>(&self, value: &T) -> wgpu::Buffer {
@@ -393,6 +438,12 @@ struct GpuTopology {
     n_recomputed: u32,
 }
 
+/// Bytes of a buffer `GpuContext::buffer` or `init` makes for `size` bytes: bindings may not
+/// be empty, so tiny arrays are padded to 16 bytes, and sizes to whole words.
+fn padded(size: u64) -> u64 {
+    size.max(16).next_multiple_of(4)
+}
+
 /// A rig resident on the GPU.
 pub struct GpuRig {
     vertices: u32,
@@ -408,6 +459,9 @@ pub struct GpuRig {
     /// LOD shape counts per level.
     lod_shapes: Vec<u32>,
     geometry_bytes: u64,
+    /// The geometry's bytes in the device's memory budget, shared by the versions of the rig
+    /// that share the geometry (new clips); given back when the last one is dropped.
+    charge: Arc<Charge>,
 }
 
 /// A rig's clip tables resident on the device: every clip's `targets × frames` table, one
@@ -419,6 +473,8 @@ pub struct ClipTables {
     /// (offset in `buffer`, in f32, and frames) per clip.
     clips: Vec<(u32, u32)>,
     bytes: u64,
+    /// Its bytes in the device's memory budget.
+    _charge: Charge,
 }
 
 impl std::fmt::Debug for ClipTables {
@@ -442,6 +498,9 @@ impl ClipTables {
             )));
         }
         let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST;
+        let charge = ctx.charge(padded(total), || {
+            format!("{} clip tables ({total} bytes) on the GPU", rig.clips.len())
+        })?;
         let buffer = ctx.buffer("tables", total, storage);
         let mut clips = Vec::with_capacity(rig.clips.len());
         let mut at = 0u64;
@@ -457,6 +516,7 @@ impl ClipTables {
             bytes: buffer.size(),
             buffer,
             clips,
+            _charge: charge,
         }))
     }
 
@@ -530,10 +590,44 @@ impl GpuRig {
                 rig.clips.len()
             )));
         }
+        // Laid out on the host first, so that everything the device will hold is charged to
+        // its memory budget before any buffer is created.
+        let position_chunks = build_chunks(rig, Attribute::Positions, ctx.max_chunk);
+        let normal_chunks = if topology.vertices.len() < vertices {
+            build_chunks(rig, Attribute::Normals, ctx.max_chunk)
+        } else {
+            Vec::new()
+        };
+        let chunk_bytes: u64 = position_chunks
+            .iter()
+            .chain(&normal_chunks)
+            .map(|c| {
+                GpuContext::init_bytes(&c.base)
+                    + GpuContext::init_bytes(&c.blocks)
+                    + GpuContext::init_bytes(&c.masks)
+            })
+            .sum();
+        let topology_bytes = if topology.vertices.is_empty() {
+            0
+        } else {
+            GpuContext::init_bytes(&topology.triangles)
+                + GpuContext::init_bytes(&topology.vertices)
+                + GpuContext::init_bytes(&topology.incident_start)
+                + GpuContext::init_bytes(&topology.incident)
+        };
+        let charge = Arc::new(ctx.charge(
+            chunk_bytes + topology_bytes + GpuContext::init_bytes(&rig.lod.order),
+            || {
+                format!(
+                    "a rig of {vertices} vertices and {} targets on the GPU",
+                    rig.targets.len()
+                )
+            },
+        )?);
         let scope = ctx.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
         let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST;
-        let upload_chunks = |attribute| -> Vec<GpuChunk> {
-            build_chunks(rig, attribute, ctx.max_chunk)
+        let upload_chunks = |chunks: Vec<layout::Chunk>| -> Vec<GpuChunk> {
+            chunks
                 .into_iter()
                 .map(|c| GpuChunk {
                     tile_begin: c.tile_begin,
@@ -544,12 +638,8 @@ impl GpuRig {
                 })
                 .collect()
         };
-        let positions = upload_chunks(Attribute::Positions);
-        let normals = if topology.vertices.len() < vertices {
-            upload_chunks(Attribute::Normals)
-        } else {
-            Vec::new()
-        };
+        let positions = upload_chunks(position_chunks);
+        let normals = upload_chunks(normal_chunks);
         let order: Vec<u32> = rig.lod.order.clone();
         let topo = (!topology.vertices.is_empty()).then(|| GpuTopology {
             triangles: ctx.init(
@@ -597,6 +687,7 @@ impl GpuRig {
             tables,
             topology: topo,
             lod_shapes: rig.lod.levels.iter().map(|l| l.shapes).collect(),
+            charge,
         };
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(GpuError::OutOfMemory(e.to_string()));
@@ -629,6 +720,7 @@ impl GpuRig {
                 n_recomputed: t.n_recomputed,
             }),
             lod_shapes: self.lod_shapes.clone(),
+            charge: self.charge.clone(),
             geometry_bytes: self.geometry_bytes,
         })
     }
@@ -691,6 +783,8 @@ struct Slot {
     packed_normals: wgpu::Buffer,
     staging: wgpu::Buffer,
     queries: Option<(wgpu::QuerySet, wgpu::Buffer, wgpu::Buffer)>,
+    /// Its buffers' bytes in the device's memory budget.
+    _charge: Charge,
 }
 
 /// Sizes a batch needs from a slot.
@@ -727,9 +821,34 @@ impl SlotNeeds {
 }
 
 impl Slot {
-    fn new(ctx: &GpuContext, n: SlotNeeds) -> Slot {
+    fn new(ctx: &GpuContext, n: SlotNeeds) -> Result<Slot, GpuError> {
         use wgpu::BufferUsages as U;
         let storage = U::STORAGE | U::COPY_SRC | U::COPY_DST;
+        let query_bytes = ctx
+            .timestamp_period
+            .map_or(0, |_| 2 * padded(u64::from(n.queries.max(2)) * 8));
+        let bytes = [
+            n.jobs,
+            n.active * 4,
+            n.active,
+            n.active,
+            n.output,
+            n.normals,
+            n.faces,
+            n.packed,
+            n.packed_normals,
+            n.staging,
+        ]
+        .into_iter()
+        .map(padded)
+        .sum::<u64>()
+            + query_bytes;
+        let charge = ctx.charge(bytes, || {
+            format!(
+                "a batch's buffers ({} bytes of output, {} of readback) on the GPU",
+                n.output, n.staging
+            )
+        })?;
         let queries = ctx.timestamp_period.map(|_| {
             let count = n.queries.max(2);
             (
@@ -750,7 +869,7 @@ impl Slot {
                 ),
             )
         });
-        Slot {
+        Ok(Slot {
             jobs: ctx.buffer("jobs", n.jobs, storage),
             active_weights: ctx.buffer("active weights", n.active * 4, storage),
             active_slots: ctx.buffer("active slots", n.active, storage),
@@ -762,7 +881,8 @@ impl Slot {
             packed_normals: ctx.buffer("packed normals", n.packed_normals, storage),
             staging: ctx.buffer("staging", n.staging, U::MAP_READ | U::COPY_DST),
             queries,
-        }
+            _charge: charge,
+        })
     }
 
     /// What this slot can serve.
@@ -827,6 +947,9 @@ pub struct DeviceOutput {
     pub vertices: usize,
     /// Jobs.
     pub jobs: usize,
+    /// The buffers' bytes in the device's memory budget, given back when the last clone is
+    /// dropped.
+    _charge: Arc<Charge>,
 }
 
 impl DeviceOutput {
@@ -932,8 +1055,9 @@ impl GpuContext {
                     // No pooled slot is big enough: replace them all with one that serves
                     // this batch and everything they served, so that alternating batch
                     // shapes (with and without normals, f16 and f32) do not reallocate.
+                    // The old slots are dropped (and their memory given back) first.
                     let merged = pool.drain(..).fold(needs, |acc, s| acc.max(s.capacity()));
-                    Slot::new(self, merged)
+                    Slot::new(self, merged)?
                 }
             }
         };
@@ -955,7 +1079,11 @@ impl GpuContext {
             }
             use wgpu::BufferUsages as U;
             let usage = U::VERTEX | U::STORAGE | U::COPY_DST | U::COPY_SRC;
+            let charge = self.charge(padded(bytes) * (1 + u64::from(spec.normals)), || {
+                format!("{n} jobs' outputs kept on the GPU for drawing")
+            })?;
             Some(DeviceOutput {
+                _charge: Arc::new(charge),
                 positions: self.buffer("resident positions", bytes, usage),
                 normals: spec
                     .normals
