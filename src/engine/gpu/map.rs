@@ -24,11 +24,14 @@ const CALLBACK_WAIT: Duration = Duration::from_secs(30);
 /// thread's poll has collected yet is collected by the next one).
 const REPOLL: Duration = Duration::from_millis(20);
 
+/// Each request's outcome, in the order the callbacks ran.
+type Outcomes = Vec<Result<(), String>>;
+
 /// The results of the `map_async` requests made through it; cheap to clone (callbacks hold a
 /// clone).
 #[derive(Clone, Default)]
 pub struct MapResults {
-    shared: Arc<(Mutex<Vec<Result<(), String>>>, Condvar)>,
+    shared: Arc<(Mutex<Outcomes>, Condvar)>,
 }
 
 impl std::fmt::Debug for MapResults {
@@ -58,7 +61,7 @@ impl MapResults {
     }
 
     /// The outcomes reported so far.
-    pub fn reported(&self) -> Vec<Result<(), String>> {
+    pub fn reported(&self) -> Outcomes {
         self.shared.0.lock().map(|v| v.clone()).unwrap_or_default()
     }
 
