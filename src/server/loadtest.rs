@@ -15,11 +15,12 @@
 //! the batch queue, so that clients always find room. The bodies are charged to the queue
 //! memory before they are made (on the blocking pool when large) and until the load ends; a
 //! body longer than `--max-request-bytes`, which the handler would refuse with 413, refuses
-//! the load with 400.
+//! the load with 400. A `POST` that waits for its load answers 202 with the running status
+//! when the request's deadline would otherwise cut it.
 
 use std::collections::VecDeque;
 use std::sync::{Arc, Mutex};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use axum::body::Body;
 use axum::extract::{Path, Query, State};
@@ -438,6 +439,7 @@ pub(super) async fn start_loadtest(
     headers: HeaderMap,
     body: Body,
 ) -> ApiResult {
+    let arrived = Instant::now();
     state.check_admin(&headers)?;
     let Query(query) = query.map_err(|e| ApiError::bad_request("bad_query", e.body_text()))?;
     state.check_ready()?;
@@ -497,9 +499,17 @@ pub(super) async fn start_loadtest(
     if query.wait == Some(false) {
         return respond(&headers, StatusCode::ACCEPTED, &run.status());
     }
+    // Waiting past the handler's deadline would end in the router's 504 while the load runs
+    // on: at the deadline, answer what `?wait=false` would have (202, running) instead.
+    let left = state
+        .config
+        .handler_timeout()
+        .saturating_sub(arrived.elapsed());
     let mut done = run.done.subscribe();
-    let _ = done.wait_for(|d| *d).await;
-    respond(&headers, StatusCode::OK, &run.status())
+    match tokio::time::timeout(left, done.wait_for(|d| *d)).await {
+        Ok(_) => respond(&headers, StatusCode::OK, &run.status()),
+        Err(_) => respond(&headers, StatusCode::ACCEPTED, &run.status()),
+    }
 }
 
 /// `GET /v1/loadtest/{id}`: a load's progress (the report so far) or its final report.

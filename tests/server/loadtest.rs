@@ -517,3 +517,30 @@ async fn a_load_whose_bodies_exceed_the_request_limit_is_400() {
     assert_eq!((done.report.ok, done.report.errors), (2, 0), "{done:?}");
     server.stop().await;
 }
+
+/// `wait=true` (the default) for a load longer than the server lets a request run: the answer
+/// comes before the timeout would cut the request with a 504, as 202 with the running status,
+/// and the load goes on to finish (readable with GET).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn waiting_for_a_load_longer_than_the_timeout_answers_202_running() {
+    let server = TestServer::start(ServerConfig {
+        admin_timeout: Duration::from_secs(1),
+        request_timeout: Duration::from_secs(1),
+        ..ServerConfig::default()
+    })
+    .await;
+    let c = &server.client;
+    let r = post(
+        c,
+        "",
+        json!({"rate": 4, "duration_s": 2.5, "concurrency": 1, "crowd": {"heads": 1}}),
+    )
+    .await;
+    assert_eq!(r.status, 202, "{}", String::from_utf8_lossy(&r.body));
+    let running = status_of(&r);
+    assert_eq!(running.status, "running");
+    let done = wait_for(c, &running.id, |s| s.status != "running").await;
+    assert_eq!(done.status, "done");
+    assert_eq!((done.report.sent, done.report.ok), (10, 10), "{done:?}");
+    server.stop().await;
+}
