@@ -446,7 +446,6 @@ mod tests {
                     unique: 0.3,
                     rigs: vec!["a".into(), "b".into()],
                     clips: BTreeMap::from([("talk".into(), 1.0), ("smile".into(), 3.0)]),
-                    lods: BTreeMap::from([(0, 1.0), (2, 1.0)]),
                     encoding,
                     ..CrowdShape::default()
                 };
