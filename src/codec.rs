@@ -35,6 +35,11 @@ pub fn to_wire<T: Serialize>(value: &T) -> Result<Vec<u8>, CodecError> {
     Ok(wire::to_bincode(value)?)
 }
 
+/// Length of [`to_wire`]'s encoding of `value`, without encoding it.
+pub fn wire_len<T: Serialize>(value: &T) -> Result<usize, CodecError> {
+    Ok(wire::bincode_len(value)?)
+}
+
 /// Decodes a request body sent as bincode (untrusted: decoding is byte-limited).
 pub fn request_from_wire<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, CodecError> {
     Ok(wire::request_from_bincode(bytes)?)
@@ -105,7 +110,12 @@ pub struct FrameResponseEncoder {
     chunks: Vec<Bytes>,
     head: Vec<u8>,
     offset: usize,
+    /// Only count the bytes (see [`FrameResponseEncoder::encoded_len_within`]).
+    count_only: bool,
 }
+
+/// Bytes a counting encoder lets its head grow to before it moves them into the count.
+const COUNT_FLUSH_BYTES: usize = 4096;
 
 impl FrameResponseEncoder {
     /// Encodes a whole response. Concatenating the chunks gives the body.
@@ -144,14 +154,53 @@ impl FrameResponseEncoder {
             head: prefix,
             ..FrameResponseEncoder::default()
         };
+        e.format(format, normals);
+        e.head.extend_from_slice(middle);
+        e.rest(buffers, heads, timings);
+        e.chunks
+    }
+
+    /// The length of what [`FrameResponseEncoder::encode_within`] makes (all chunks together)
+    /// from a prefix and a middle of these lengths, computed by the same code without
+    /// allocating the message, so that its memory can be charged first.
+    pub fn encoded_len_within(
+        prefix_len: usize,
+        middle_len: usize,
+        format: Format,
+        normals: bool,
+        buffers: &[FrameBufferParts<'_>],
+        heads: &[HeadBuffer],
+        timings: &FrameTimings,
+    ) -> usize {
+        let mut e = FrameResponseEncoder {
+            offset: prefix_len,
+            count_only: true,
+            ..FrameResponseEncoder::default()
+        };
+        e.format(format, normals);
+        e.offset += middle_len;
+        e.rest(buffers, heads, timings);
+        e.offset
+    }
+
+    fn format(&mut self, format: Format, normals: bool) {
         // Unit enum variants are their index as a varint.
-        e.varint(match format {
+        self.varint(match format {
             Format::F32 => 0,
             Format::F16 => 1,
             Format::Q16 => 2,
         });
-        e.head.push(u8::from(normals));
-        e.head.extend_from_slice(middle);
+        self.head.push(u8::from(normals));
+    }
+
+    /// Everything after the middle.
+    fn rest(
+        &mut self,
+        buffers: &[FrameBufferParts<'_>],
+        heads: &[HeadBuffer],
+        timings: &FrameTimings,
+    ) {
+        let e = self;
         e.varint(buffers.len() as u64);
         for b in buffers {
             e.string(b.rig);
@@ -193,11 +242,14 @@ impl FrameResponseEncoder {
             }
         }
         e.flush();
-        e.chunks
     }
 
     fn varint(&mut self, n: u64) {
         put_varint(&mut self.head, n);
+        // A count needs no more than a small head: positions only depend on the total.
+        if self.count_only && self.head.len() >= COUNT_FLUSH_BYTES {
+            self.flush();
+        }
     }
 
     fn string(&mut self, s: &str) {
@@ -217,7 +269,7 @@ impl FrameResponseEncoder {
         self.head.extend_from_slice(&len_bytes);
         self.flush();
         self.offset += data.len();
-        if !data.is_empty() {
+        if !data.is_empty() && !self.count_only {
             self.chunks.push(data);
         }
     }
@@ -225,8 +277,12 @@ impl FrameResponseEncoder {
     fn flush(&mut self) {
         if !self.head.is_empty() {
             self.offset += self.head.len();
-            self.chunks
-                .push(Bytes::from(std::mem::take(&mut self.head)));
+            if self.count_only {
+                self.head.clear();
+            } else {
+                self.chunks
+                    .push(Bytes::from(std::mem::take(&mut self.head)));
+            }
         }
     }
 }
@@ -348,6 +404,19 @@ mod tests {
         put_varint(&mut prefix, 0);
         put_varint(&mut prefix, 1234);
         let middle = to_wire(&Some(layout.clone())).expect("layout");
+        assert_eq!(
+            wire_len(&Some(layout.clone())).expect("layout"),
+            middle.len()
+        );
+        let counted = FrameResponseEncoder::encoded_len_within(
+            prefix.len(),
+            middle.len(),
+            resp.format,
+            resp.normals,
+            &parts,
+            &resp.heads,
+            &resp.timings,
+        );
         let chunks = FrameResponseEncoder::encode_within(
             prefix,
             &middle,
@@ -370,6 +439,47 @@ mod tests {
         });
         assert_eq!(back, want);
         assert_payloads_aligned(&chunks, &parts);
+        assert_eq!(counted, body.len(), "the length is known before encoding");
+    }
+
+    /// The length computed before encoding is the encoding's, whatever the prefix (which moves
+    /// the payloads' padding) and however many heads (which the count does not hold at once).
+    #[test]
+    fn encoded_lengths_are_exact() {
+        let (parts, resp) = sample();
+        for prefix_len in 0..20 {
+            for n in [0, 1, 3, 5_000] {
+                let heads: Vec<HeadBuffer> = (0..n)
+                    .map(|i| HeadBuffer {
+                        head: (i as u64) << (i % 50),
+                        buffer: (i % 2) as u32,
+                    })
+                    .collect();
+                let middle = vec![7u8; prefix_len * 3];
+                let want: usize = FrameResponseEncoder::encode_within(
+                    vec![1u8; prefix_len],
+                    &middle,
+                    resp.format,
+                    resp.normals,
+                    &parts,
+                    &heads,
+                    &resp.timings,
+                )
+                .iter()
+                .map(Bytes::len)
+                .sum();
+                let got = FrameResponseEncoder::encoded_len_within(
+                    prefix_len,
+                    middle.len(),
+                    resp.format,
+                    resp.normals,
+                    &parts,
+                    &heads,
+                    &resp.timings,
+                );
+                assert_eq!(got, want, "prefix {prefix_len}, {n} heads");
+            }
+        }
     }
 
     /// Finds each part's payload among the chunks (the encoder passes payloads through as

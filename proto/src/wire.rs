@@ -46,6 +46,15 @@ pub fn to_bincode<T: Serialize>(value: &T) -> Result<Vec<u8>, WireError> {
     bincode::serde::encode_to_vec(value, config()).map_err(|e| WireError::Encode(e.to_string()))
 }
 
+/// Length of a message's encoding, computed without encoding it (so that its memory can be
+/// charged before it is allocated).
+pub fn bincode_len<T: Serialize>(value: &T) -> Result<usize, WireError> {
+    let mut w = bincode::enc::write::SizeWriter::default();
+    bincode::serde::encode_into_writer(value, &mut w, config())
+        .map_err(|e| WireError::Encode(e.to_string()))?;
+    Ok(w.bytes_written)
+}
+
 fn finish<T>(
     r: Result<(T, usize), bincode::error::DecodeError>,
     len: usize,

@@ -226,59 +226,160 @@ impl CrowdShape {
         rigs: &[RigClips],
         count: usize,
     ) -> Result<Vec<CrowdFrameRequest>, LoadError> {
+        let mut out = Vec::with_capacity(count);
+        self.each_request(rigs, count, |r| {
+            out.push(r);
+            Ok(())
+        })?;
+        Ok(out)
+    }
+
+    /// Makes the `count` requests one at a time and hands each to `each`, so that a caller
+    /// that keeps only their encodings never holds more than one request's heads.
+    fn each_request(
+        &self,
+        rigs: &[RigClips],
+        count: usize,
+        mut each: impl FnMut(CrowdFrameRequest) -> Result<(), LoadError>,
+    ) -> Result<(), LoadError> {
         let mixes = self.mixes(rigs)?;
         let lods = Mix::new(self.lods.iter().map(|(&l, &w)| (l, w)).collect())
             .ok_or_else(|| LoadError::Invalid("the LOD mix is empty".into()))?;
         let mut rng = SplitMix64(self.seed);
         let unique = self.unique_jobs() as usize;
-        Ok((0..count)
-            .map(|i| {
-                let jobs: Vec<(String, String, u32)> = (0..unique)
-                    .map(|_| {
-                        let (rig, clips) = &mixes[rng.below(mixes.len())];
-                        (rig.clone(), clips.pick(&mut rng), lods.pick(&mut rng))
+        for i in 0..count {
+            let jobs: Vec<(String, String, u32)> = (0..unique)
+                .map(|_| {
+                    let (rig, clips) = &mixes[rng.below(mixes.len())];
+                    (rig.clone(), clips.pick(&mut rng), lods.pick(&mut rng))
+                })
+                .collect();
+            each(CrowdFrameRequest {
+                heads: (0..self.heads as usize)
+                    .map(|h| {
+                        let j = h % unique;
+                        let (rig, clip, lod) = &jobs[j];
+                        Head {
+                            head: h as u64,
+                            rig: rig.clone(),
+                            clip: clip.clone(),
+                            frame: (i * unique + j) as i64,
+                            lod: *lod,
+                        }
                     })
-                    .collect();
-                CrowdFrameRequest {
-                    heads: (0..self.heads as usize)
-                        .map(|h| {
-                            let j = h % unique;
-                            let (rig, clip, lod) = &jobs[j];
-                            Head {
-                                head: h as u64,
-                                rig: rig.clone(),
-                                clip: clip.clone(),
-                                frame: (i * unique + j) as i64,
-                                lod: *lod,
-                            }
-                        })
-                        .collect(),
-                    output: OutputOptions {
-                        normals: self.normals,
-                        format: self.format,
-                    },
-                    wrap: true,
-                }
-            })
-            .collect())
+                    .collect(),
+                output: OutputOptions {
+                    normals: self.normals,
+                    format: self.format,
+                },
+                wrap: true,
+            })?;
+        }
+        Ok(())
     }
 
-    /// `count` request bodies in the shape's encoding.
-    pub fn bodies(&self, rigs: &[RigClips], count: usize) -> Result<Vec<Bytes>, LoadError> {
-        self.requests(rigs, count)?
-            .iter()
-            .map(|r| {
-                match self.encoding {
-                    WireEncoding::Bincode => crowdmorph_proto::wire::to_bincode(r)
-                        .map_err(|e| LoadError::Encode(e.to_string())),
-                    WireEncoding::Json => {
-                        serde_json::to_vec(r).map_err(|e| LoadError::Encode(e.to_string()))
-                    }
-                }
-                .map(Bytes::from)
-            })
-            .collect()
+    /// A request in the shape's encoding.
+    fn encode(&self, r: &CrowdFrameRequest) -> Result<Vec<u8>, LoadError> {
+        match self.encoding {
+            WireEncoding::Bincode => {
+                crowdmorph_proto::wire::to_bincode(r).map_err(|e| LoadError::Encode(e.to_string()))
+            }
+            WireEncoding::Json => {
+                serde_json::to_vec(r).map_err(|e| LoadError::Encode(e.to_string()))
+            }
+        }
     }
+
+    /// `count` request bodies in the shape's encoding, made one request at a time.
+    pub fn bodies(&self, rigs: &[RigClips], count: usize) -> Result<Vec<Bytes>, LoadError> {
+        let mut out = Vec::with_capacity(count);
+        self.each_request(rigs, count, |r| {
+            out.push(Bytes::from(self.encode(&r)?));
+            Ok(())
+        })?;
+        Ok(out)
+    }
+
+    /// Upper bounds of what [`CrowdShape::bodies`] makes, known before it runs (so that the
+    /// memory can be charged first): the longest body, and what making one holds besides the
+    /// bodies (one request's heads and its encoding). Every field of a head encodes to at
+    /// most the length of its largest value (head id, frame, LOD level) or its longest name,
+    /// so a head made of those, encoded by the shape's own encoder, bounds every head.
+    pub fn body_sizes(&self, rigs: &[RigClips], count: usize) -> Result<BodySizes, LoadError> {
+        let mixes = self.mixes(rigs)?;
+        let longest = |names: &mut dyn Iterator<Item = &String>| -> Result<String, LoadError> {
+            let mut best = (0, String::new());
+            for n in names {
+                let len = self.encode_str(n)?;
+                if len > best.0 || best.1.is_empty() {
+                    best = (len, n.clone());
+                }
+            }
+            Ok(best.1)
+        };
+        let rig = longest(&mut mixes.iter().map(|(id, _)| id))?;
+        let clip = longest(
+            &mut mixes
+                .iter()
+                .flat_map(|(_, m)| m.items.iter().map(|(c, _)| c)),
+        )?;
+        let unique = u64::from(self.unique_jobs());
+        let heads = u64::from(self.heads);
+        let worst = Head {
+            head: heads.saturating_sub(1),
+            frame: i64::try_from((count as u64).saturating_mul(unique)).unwrap_or(i64::MAX),
+            lod: self.lods.keys().copied().max().unwrap_or(0),
+            rig,
+            clip,
+        };
+        let empty = CrowdFrameRequest {
+            heads: Vec::new(),
+            output: OutputOptions {
+                normals: self.normals,
+                format: self.format,
+            },
+            wrap: true,
+        };
+        let one = CrowdFrameRequest {
+            heads: vec![worst.clone()],
+            ..empty.clone()
+        };
+        let (empty_len, one_len) = (
+            self.encode(&empty)?.len() as u64,
+            self.encode(&one)?.len() as u64,
+        );
+        // JSON adds a comma between heads; bincode's head count grows to at most 9 bytes.
+        let per_head = one_len - empty_len + 1;
+        let body = empty_len + 8 + heads.saturating_mul(per_head);
+        let names = (worst.rig.len() + worst.clip.len()) as u64;
+        let request = heads.saturating_mul(size_of::<Head>() as u64 + names);
+        Ok(BodySizes {
+            body,
+            // The request's heads, and its encoding while the vector it grows in doubles.
+            building: request.saturating_add(body.saturating_mul(2)),
+        })
+    }
+
+    /// Length of a name in the shape's encoding.
+    fn encode_str(&self, s: &str) -> Result<usize, LoadError> {
+        Ok(match self.encoding {
+            WireEncoding::Bincode => crowdmorph_proto::wire::to_bincode(&s)
+                .map_err(|e| LoadError::Encode(e.to_string()))?
+                .len(),
+            WireEncoding::Json => serde_json::to_vec(s)
+                .map_err(|e| LoadError::Encode(e.to_string()))?
+                .len(),
+        })
+    }
+}
+
+/// Sizes of a load's request bodies, bounded before they are made ([`CrowdShape::body_sizes`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct BodySizes {
+    /// Bytes of the longest body.
+    pub body: u64,
+    /// Bytes making one body holds besides the bodies already made.
+    pub building: u64,
 }
 
 #[cfg(test)]
@@ -334,6 +435,34 @@ mod tests {
         // Deterministic.
         assert_eq!(reqs, shape.requests(&rigs(), 4).unwrap());
         assert_eq!(shape.bodies(&rigs(), 2).unwrap().len(), 2);
+    }
+
+    #[test]
+    fn body_sizes_bound_every_body_in_both_encodings() {
+        for encoding in [WireEncoding::Bincode, WireEncoding::Json] {
+            for heads in [1, 10, 300, 5_000] {
+                let shape = CrowdShape {
+                    heads,
+                    unique: 0.3,
+                    rigs: vec!["a".into(), "b".into()],
+                    clips: BTreeMap::from([("talk".into(), 1.0), ("smile".into(), 3.0)]),
+                    encoding,
+                    ..CrowdShape::default()
+                };
+                let sizes = shape.body_sizes(&rigs(), 64).unwrap();
+                let bodies = shape.bodies(&rigs(), 64).unwrap();
+                let longest = bodies.iter().map(Bytes::len).max().unwrap() as u64;
+                assert!(
+                    longest <= sizes.body,
+                    "{encoding:?} {heads}: {longest} > {sizes:?}"
+                );
+                // A bound, not a guess: within a third of the real length.
+                assert!(
+                    sizes.body <= longest + longest / 3 + 16,
+                    "{encoding:?} {heads}: {longest} vs {sizes:?}"
+                );
+            }
+        }
     }
 
     #[test]

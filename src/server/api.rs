@@ -1171,10 +1171,17 @@ pub(super) struct ResolvedHeads {
     pub plan: Plan,
 }
 
+/// Queue memory a crowd request body of `declared` bytes reserves while it is read and decoded
+/// (bincode or JSON): the body and what it decodes to, a head taking 72 bytes decoded from at
+/// least 5 bytes of bincode or 40 of JSON. `POST /v1/loadtest` counts the same for each of its
+/// synthetic requests.
+pub(super) fn decode_reservation(bincode: bool, declared: u64) -> u64 {
+    declared.saturating_mul(if bincode { 16 } else { 3 })
+}
+
 impl AppState {
     /// Reads and decodes a crowd request body (JSON or bincode). The body and what it decodes
-    /// to are charged to the queue memory while they are read: a head takes 72 bytes decoded,
-    /// from at least 5 bytes of bincode or 40 of JSON.
+    /// to are charged to the queue memory while they are read ([`decode_reservation`]).
     pub(super) async fn crowd_request<T: DeserializeOwned>(
         &self,
         headers: &HeaderMap,
@@ -1186,12 +1193,10 @@ impl AppState {
             .and_then(|v| v.parse::<u64>().ok())
             .unwrap_or(self.config.max_request_bytes as u64)
             .min(self.config.max_request_bytes as u64);
-        let expansion = if content_type(headers) == CONTENT_TYPE_BINCODE {
-            16
-        } else {
-            3
-        };
-        let decoding = self.reserve_queue_memory(declared * expansion)?;
+        let decoding = self.reserve_queue_memory(decode_reservation(
+            content_type(headers) == CONTENT_TYPE_BINCODE,
+            declared,
+        ))?;
         let bytes = self.request_body(headers, body).await?;
         let req = decode(headers, &bytes)?;
         drop(bytes);

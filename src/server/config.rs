@@ -131,6 +131,15 @@ impl Default for ServerConfig {
     }
 }
 
+impl ServerConfig {
+    /// How long any handler may run: the longer of the two deadlines. The router's timeout
+    /// layer answers 504 a second after it, so a handler that waits (`POST /v1/loadtest`)
+    /// answers by itself before then.
+    pub fn handler_timeout(&self) -> Duration {
+        self.admin_timeout.max(self.request_timeout)
+    }
+}
+
 /// The default data directory: `<user data dir>/crowdmorph` (e.g.
 /// `~/.local/share/crowdmorph` on Linux), else `./crowdmorph-data`.
 pub fn default_data_dir() -> PathBuf {

@@ -10,12 +10,17 @@
 //! computing. Its heads and requests carry `source="loadtest"` in the metrics.
 //!
 //! Bounds: one load at a time (409 `loadtest_running`); duration, rate and lanes capped by
-//! flags (400 past them); the output the lanes can hold at once at most half the queue memory,
-//! and the lanes at most half the batch queue, so that clients always find room.
+//! flags (400 past them); what the load can hold at once — its request bodies, and each lane's
+//! output and decode reservation — at most half the queue memory, and the lanes at most half
+//! the batch queue, so that clients always find room. The bodies are charged to the queue
+//! memory before they are made (on the blocking pool when large) and until the load ends; a
+//! body longer than `--max-request-bytes`, which the handler would refuse with 413, refuses
+//! the load with 400. A `POST` that waits for its load answers 202 with the running status
+//! when the request's deadline would otherwise cut it.
 
 use std::collections::VecDeque;
 use std::sync::{Arc, Mutex};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use axum::body::Body;
 use axum::extract::{Path, Query, State};
@@ -23,8 +28,9 @@ use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::Response;
 use bytes::Bytes;
 use serde::{Deserialize, Serialize};
+use tokio::sync::OwnedSemaphorePermit;
 
-use super::api::{ApiResult, crowd_frame_from, decode, respond};
+use super::api::{ApiResult, blocking, crowd_frame_from, decode, decode_reservation, respond};
 use super::metrics::Source;
 use super::{ApiError, AppState};
 use crate::load::{self, CrowdShape, Lane, Live, LoadReport, Reply, RigClips, RunOptions};
@@ -34,6 +40,9 @@ const RING: usize = 64;
 
 /// Finished loads kept for `GET /v1/loadtest/{id}`.
 const KEEP_DONE: usize = 8;
+
+/// Bodies larger than this in all are made on the blocking pool, not on an async worker.
+const BUILD_INLINE_BYTES: u64 = 64 << 10;
 
 /// The body of `POST /v1/loadtest`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -123,6 +132,12 @@ impl Loadtests {
         }
     }
 
+    /// The running load's id, if one runs (a check before work; [`Loadtests::start`] is the
+    /// one that decides).
+    fn running(&self) -> Option<String> {
+        self.0.lock().ok()?.current.as_ref().map(|r| r.id.clone())
+    }
+
     fn find(&self, id: &str) -> Option<Arc<Run>> {
         let runs = self.0.lock().ok()?;
         runs.current
@@ -139,14 +154,7 @@ impl Loadtests {
             .lock()
             .map_err(|_| ApiError::internal("the loadtest registry lock is poisoned"))?;
         if let Some(r) = &runs.current {
-            return Err(ApiError::new(
-                StatusCode::CONFLICT,
-                "loadtest_running",
-                format!(
-                    "load test {} is running (GET /v1/loadtest/{}); one runs at a time",
-                    r.id, r.id
-                ),
-            ));
+            return Err(already_running(&r.id));
         }
         runs.next += 1;
         let run = Arc::new(Run {
@@ -171,6 +179,14 @@ impl Loadtests {
         }
         run.done.send_replace(true);
     }
+}
+
+fn already_running(id: &str) -> ApiError {
+    ApiError::new(
+        StatusCode::CONFLICT,
+        "loadtest_running",
+        format!("load test {id} is running (GET /v1/loadtest/{id}); one runs at a time"),
+    )
 }
 
 /// Marks a run finished when dropped (see the load task).
@@ -225,9 +241,9 @@ fn invalid(message: impl Into<String>) -> ApiError {
 }
 
 impl AppState {
-    /// Checks a load against the caps and the registry; returns the request bodies and the
-    /// run's timing.
-    fn plan_loadtest(&self, req: &LoadtestRequest) -> Result<(Vec<Bytes>, RunOptions), ApiError> {
+    /// Checks a load against the caps and the registry, its memory included, before anything
+    /// is made.
+    fn plan_loadtest(&self, req: &LoadtestRequest) -> Result<Plan, ApiError> {
         let cfg = &self.config;
         let max_s = cfg.loadtest_max_duration.as_secs_f64();
         if max_s <= 0.0 {
@@ -304,8 +320,13 @@ impl AppState {
                 lod_levels: rig.lod.levels.len() as u32,
             });
         }
-        // The output every lane may hold at once stays within half the queue memory.
-        let per_request = u64::from(crowd.unique_jobs())
+        // What the load may hold at once stays within half the queue memory: its bodies, and
+        // per lane the output of one request and what the handler reserves while it decodes
+        // one of those bodies.
+        let sizes = crowd
+            .body_sizes(&rigs, RING)
+            .map_err(|e| invalid(e.to_string()))?;
+        let output = u64::from(crowd.unique_jobs())
             * max_vertices
             * 3
             * crowd.format.component_bytes() as u64
@@ -315,22 +336,27 @@ impl AppState {
             } else {
                 1
             };
-        let held = per_request.saturating_mul(u64::from(req.concurrency));
+        let decoding =
+            decode_reservation(crowd.encoding == load::WireEncoding::Bincode, sizes.body);
+        let per_request = output.saturating_add(decoding);
+        let bodies = sizes.body.saturating_mul(RING as u64);
+        let held = per_request
+            .saturating_mul(u64::from(req.concurrency))
+            .saturating_add(bodies);
         let room = cfg.queue_memory_bytes as u64 / 2;
         if held > room {
             return Err(ApiError::bad_request(
                 "loadtest_too_large",
                 format!(
-                    "{} lanes of {per_request} bytes of output each would hold {held} bytes, more \
-                     than half the queue memory ({room} of --queue-memory-bytes); use fewer \
-                     lanes, fewer unique heads or a smaller format",
-                    req.concurrency
+                    "{} lanes of {output} bytes of output and {decoding} bytes reserved while \
+                     decoding each, plus {RING} request bodies of up to {} bytes ({bodies} \
+                     bytes), would hold {held} bytes, more than half the queue memory ({room} \
+                     of --queue-memory-bytes); use fewer lanes, fewer heads, fewer unique heads \
+                     or a smaller format",
+                    req.concurrency, sizes.body
                 ),
             ));
         }
-        let bodies = crowd
-            .bodies(&rigs, RING)
-            .map_err(|e| invalid(e.to_string()))?;
         let opts = RunOptions {
             rate: req.rate,
             duration: Duration::from_secs_f64(req.duration_s),
@@ -340,8 +366,63 @@ impl AppState {
             heads_per_request: u64::from(crowd.heads),
         };
         opts.check().map_err(|e| invalid(e.to_string()))?;
-        Ok((bodies, opts))
+        Ok(Plan { rigs, sizes, opts })
     }
+
+    /// Charges the bodies of a planned load to the queue memory (503 when it is too full
+    /// now), then makes them, on the blocking pool when they are large. Keeps the charge of
+    /// the bodies made, which the load holds until it ends; 400 when a body is longer than
+    /// the handler accepts.
+    async fn loadtest_bodies(
+        &self,
+        crowd: &CrowdShape,
+        plan: &Plan,
+    ) -> Result<(Vec<Bytes>, OwnedSemaphorePermit), ApiError> {
+        let bound = plan.sizes.body.saturating_mul(RING as u64);
+        let mut memory = self.reserve_queue_memory(bound.saturating_add(plan.sizes.building))?;
+        let make = {
+            let crowd = crowd.clone();
+            let rigs = plan.rigs.clone();
+            move || {
+                crowd
+                    .bodies(&rigs, RING)
+                    .map_err(|e| invalid(e.to_string()))
+            }
+        };
+        let bodies = if bound > BUILD_INLINE_BYTES {
+            blocking(make).await?
+        } else {
+            make()?
+        };
+        let limit = self.config.max_request_bytes;
+        if let Some(longest) = bodies.iter().map(Bytes::len).max()
+            && longest > limit
+        {
+            return Err(ApiError::bad_request(
+                "loadtest_too_large",
+                format!(
+                    "the load's requests would be {longest} bytes long, more than the server \
+                     accepts (--max-request-bytes {limit}), and each would be refused with \
+                     413; use fewer heads"
+                ),
+            ));
+        }
+        // Keep what the bodies take; the estimate's slack and the building's transient memory
+        // go back now.
+        let made: u64 = bodies.iter().map(|b| b.len() as u64).sum();
+        let keep = made.div_ceil(1024).max(1) as usize;
+        if let Some(extra) = memory.num_permits().checked_sub(keep).filter(|&n| n > 0) {
+            drop(memory.split(extra));
+        }
+        Ok((bodies, memory))
+    }
+}
+
+/// A load checked against the caps: the rigs it plays, its bodies' sizes, its timing.
+struct Plan {
+    rigs: Vec<RigClips>,
+    sizes: load::BodySizes,
+    opts: RunOptions,
 }
 
 /// `?wait=false`: answer 202 at once instead of when the load is done.
@@ -358,15 +439,21 @@ pub(super) async fn start_loadtest(
     headers: HeaderMap,
     body: Body,
 ) -> ApiResult {
+    let arrived = Instant::now();
     state.check_admin(&headers)?;
     let Query(query) = query.map_err(|e| ApiError::bad_request("bad_query", e.body_text()))?;
     state.check_ready()?;
     let bytes = state.request_body(&headers, body).await?;
     let req: LoadtestRequest = decode(&headers, &bytes)?;
-    let (bodies, opts) = state.plan_loadtest(&req)?;
+    let plan = state.plan_loadtest(&req)?;
+    // No bodies are made for a load that would be refused as a second one.
+    if let Some(id) = state.loadtests.running() {
+        return Err(already_running(&id));
+    }
+    let (bodies, bodies_memory) = state.loadtest_bodies(&req.crowd, &plan).await?;
     let content_type = HeaderValue::from_static(req.crowd.encoding.content_type());
     let lanes = req.concurrency as usize;
-    let live = Live::new(opts);
+    let live = Live::new(plan.opts);
     let run = state.loadtests.start(req, live.clone())?;
     tracing::info!(
         id = %run.id,
@@ -394,6 +481,8 @@ pub(super) async fn start_loadtest(
             state: task_state,
             run: task_run.clone(),
         };
+        // Dropped before `_finish`: the bodies' queue memory is back when the run reads done.
+        let _bodies_memory = bodies_memory;
         if let Err(e) = load::run(lanes, &live).await {
             tracing::error!(id = %task_run.id, error = %e, "load test failed to run");
             live.cancel();
@@ -410,9 +499,17 @@ pub(super) async fn start_loadtest(
     if query.wait == Some(false) {
         return respond(&headers, StatusCode::ACCEPTED, &run.status());
     }
+    // Waiting past the handler's deadline would end in the router's 504 while the load runs
+    // on: at the deadline, answer what `?wait=false` would have (202, running) instead.
+    let left = state
+        .config
+        .handler_timeout()
+        .saturating_sub(arrived.elapsed());
     let mut done = run.done.subscribe();
-    let _ = done.wait_for(|d| *d).await;
-    respond(&headers, StatusCode::OK, &run.status())
+    match tokio::time::timeout(left, done.wait_for(|d| *d)).await {
+        Ok(_) => respond(&headers, StatusCode::OK, &run.status()),
+        Err(_) => respond(&headers, StatusCode::ACCEPTED, &run.status()),
+    }
 }
 
 /// `GET /v1/loadtest/{id}`: a load's progress (the report so far) or its final report.

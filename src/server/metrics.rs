@@ -114,7 +114,9 @@ pub struct Metrics {
     pub heads: AtomicU64,
     /// Heads served to `POST /v1/loadtest`'s synthetic requests.
     pub loadtest_heads: AtomicU64,
-    /// Crowd-frame requests answered, by source and status.
+    /// Crowd-frame requests answered, by source and status: one count per response, made by
+    /// the handler (`api::crowd_frame_from`), the one place that sees synthetic requests too.
+    /// A client's response is also counted by route in `requests`, as every HTTP response is.
     crowd_frames: Mutex<BTreeMap<(Source, u16), u64>>,
     /// Unique jobs asked for, summed over requests (after in-request dedupe).
     pub jobs_requested: AtomicU64,
@@ -388,7 +390,8 @@ impl Metrics {
         let _ = writeln!(
             o,
             "# HELP crowdmorph_crowd_frames_total Crowd-frame requests answered, by source and \
-             status.\n# TYPE crowdmorph_crowd_frames_total counter"
+             status, each once (a client's is also in crowdmorph_http_requests_total under its \
+             route: do not add the two).\n# TYPE crowdmorph_crowd_frames_total counter"
         );
         if let Ok(m) = self.crowd_frames.lock() {
             for ((source, status), n) in m.iter() {

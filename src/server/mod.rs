@@ -766,7 +766,7 @@ pub fn app(state: AppState) -> Router {
                 render::SERVER_TIMING,
             ])
     });
-    let timeout = cfg.admin_timeout.max(cfg.request_timeout) + Duration::from_secs(1);
+    let timeout = cfg.handler_timeout() + Duration::from_secs(1);
     let routes = routes.layer(
         ServiceBuilder::new()
             .layer(HandleErrorLayer::new({

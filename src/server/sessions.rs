@@ -1276,7 +1276,8 @@ async fn tick_once(state: &AppState, session: &Arc<Session>, tick: u64) -> Ticke
             let message = match cache.get(&cache_key) {
                 Some(m) => m.clone(),
                 None => {
-                    let bytes = encode_vertices(
+                    let Some(m) = encode_vertices(
+                        state,
                         tick,
                         with_layout.then_some(heads.as_slice()),
                         group,
@@ -1285,16 +1286,12 @@ async fn tick_once(state: &AppState, session: &Arc<Session>, tick: u64) -> Ticke
                         &heads,
                         &cache_key.2,
                         arrived,
-                    );
-                    let Ok(permit) = state.reserve_queue_memory(bytes.len() as u64) else {
+                    ) else {
                         bump(&state.sessions.metrics.dropped_memory, 1);
                         session.with_stats(|s| s.messages_dropped += 1);
                         break;
                     };
-                    let m = Arc::new(Encoded {
-                        bytes,
-                        _memory: permit,
-                    });
+                    let m = Arc::new(m);
                     cache.insert(cache_key, m.clone());
                     m
                 }
@@ -1326,9 +1323,11 @@ async fn tick_once(state: &AppState, session: &Arc<Session>, tick: u64) -> Ticke
 
 /// Encodes a [`crowdmorph_proto::TickVertices`] stream message: the variant, the tick and the
 /// layout, then the same fields as a crowd-frame response, with payloads aligned to 16 bytes
-/// from the start of the message.
+/// from the start of the message. Its length is computed first and charged to the queue
+/// memory before anything of its size is allocated; `None` when the queue memory is full.
 #[allow(clippy::too_many_arguments)]
 fn encode_vertices(
+    state: &AppState,
     tick: u64,
     layout: Option<&[SessionHead]>,
     group: &Group,
@@ -1337,11 +1336,10 @@ fn encode_vertices(
     heads: &[SessionHead],
     entries: &[u32],
     arrived: std::time::Instant,
-) -> Bytes {
+) -> Option<Encoded> {
     let mut prefix = Vec::with_capacity(64);
     crate::codec::put_varint(&mut prefix, 0);
     crate::codec::put_varint(&mut prefix, tick);
-    let middle = crate::codec::to_wire(&layout).unwrap_or_else(|_| vec![0]);
     // Buffers in order of first appearance among the heads.
     let mut local: HashMap<u32, u32> = HashMap::new();
     let mut parts: Vec<FrameBufferParts<'_>> = Vec::new();
@@ -1385,6 +1383,22 @@ fn encode_vertices(
         total_us: arrived.elapsed().as_micros() as u64,
         gpu_us: outcome.gpu_ns.map(|g| g / 1000),
     };
+    // The layout's length (bincode, without encoding it; `None` is one byte), then the
+    // message's: charged before either is allocated.
+    let middle_len = crate::codec::wire_len(&layout).unwrap_or(1);
+    let total = FrameResponseEncoder::encoded_len_within(
+        prefix.len(),
+        middle_len,
+        group.format,
+        group.normals,
+        &parts,
+        &head_buffers,
+        &timings,
+    );
+    let memory = state
+        .reserve_queue_memory((total + middle_len) as u64)
+        .ok()?;
+    let middle = crate::codec::to_wire(&layout).unwrap_or_else(|_| vec![0]);
     let chunks = FrameResponseEncoder::encode_within(
         prefix,
         &middle,
@@ -1394,12 +1408,22 @@ fn encode_vertices(
         &head_buffers,
         &timings,
     );
-    let total: usize = chunks.iter().map(Bytes::len).sum();
+    drop(middle);
+    let mut memory = memory;
+    let keep = (total as u64).div_ceil(1024).max(1) as usize;
+    if let Some(extra) = memory.num_permits().checked_sub(keep).filter(|&n| n > 0) {
+        // The layout's encoding is gone; the message keeps only its own bytes.
+        drop(memory.split(extra));
+    }
     let mut out = Vec::with_capacity(total);
     for c in &chunks {
         out.extend_from_slice(c);
     }
-    Bytes::from(out)
+    debug_assert_eq!(out.len(), total, "the counted length is the encoding's");
+    Some(Encoded {
+        bytes: Bytes::from(out),
+        _memory: memory,
+    })
 }
 
 /// Starts drawing this tick for a viewer that wants images, unless its previous image is
@@ -1455,12 +1479,15 @@ fn start_frame(
                     height,
                     image: crowdmorph_proto::Blob(image),
                 });
-                match crate::codec::to_wire(&message) {
-                    Ok(bytes) => match state.reserve_queue_memory(bytes.len() as u64) {
-                        Ok(permit) => Some(Arc::new(Encoded {
-                            bytes: Bytes::from(bytes),
-                            _memory: permit,
-                        })),
+                // The message's length is known without encoding it: charged first.
+                match crate::codec::wire_len(&message) {
+                    Ok(len) => match state.reserve_queue_memory(len as u64) {
+                        Ok(permit) => crate::codec::to_wire(&message).ok().map(|bytes| {
+                            Arc::new(Encoded {
+                                bytes: Bytes::from(bytes),
+                                _memory: permit,
+                            })
+                        }),
                         Err(_) => {
                             bump(&state.sessions.metrics.dropped_memory, 1);
                             None

@@ -6,6 +6,7 @@
 use std::time::Duration;
 
 use bytes::Bytes;
+use crowdmorph::load::{CrowdShape, RigClips};
 use crowdmorph::server::ServerConfig;
 use crowdmorph::server::loadtest::LoadtestStatus;
 use crowdmorph_client::{Client, Encoding, Method, Reply, metric};
@@ -369,5 +370,185 @@ async fn a_disabled_endpoint_is_403_and_an_oversized_body_413() {
     let pad = "x".repeat(8192);
     let r = post(c, "", json!({"rate": 10, "duration_s": 1, "pad": pad})).await;
     assert_eq!(code_of(&r), (413, "body_too_large".into()));
+    server.stop().await;
+}
+
+/// The shape of `crowd` as the server reads it from JSON, and the embedded rig as the load
+/// generator sees it, so that a test can build the same bodies as the server.
+fn bodies_of(crowd: &serde_json::Value) -> u64 {
+    let shape: CrowdShape = serde_json::from_value(crowd.clone()).expect("a crowd shape");
+    let rigs = [RigClips {
+        id: "default-head".into(),
+        clips: vec!["talk".into()],
+        lod_levels: 1,
+    }];
+    shape
+        .bodies(&rigs, 64)
+        .expect("bodies")
+        .iter()
+        .map(|b| b.len() as u64)
+        .sum()
+}
+
+/// The 64 synthetic request bodies are charged to the queue memory before they are built and
+/// for as long as the load runs, and given back when it ends.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_load_test_holds_its_bodies_in_the_queue_memory_while_it_runs() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let crowd = json!({"heads": 2000, "unique": 0.0005, "clips": {"talk": 1}});
+    let bodies = bodies_of(&crowd);
+    assert!(bodies > 64 * 2000 * 20, "{bodies} bytes of bodies");
+    // One request a second: between them, only the bodies are held.
+    let started = post(
+        &server.client,
+        "?wait=false",
+        json!({"rate": 1, "duration_s": 2, "concurrency": 1, "crowd": crowd}),
+    )
+    .await;
+    let id = status_of(&started).id;
+    let held = server.state.gauges().queue_memory_bytes;
+    assert!(
+        held >= bodies,
+        "the running load holds {held} bytes of queue memory, less than its {bodies} bytes of \
+         request bodies"
+    );
+    let done = wait_for(&server.client, &id, |s| s.status != "running").await;
+    assert_eq!((done.report.ok, done.report.errors), (2, 0), "{done:?}");
+    assert_eq!(
+        server.state.gauges().queue_memory_bytes,
+        0,
+        "the bodies' memory is given back when the load ends"
+    );
+    server.stop().await;
+}
+
+/// What the lanes hold at once — each one's output and the decode reservation a request of its
+/// body makes (the crowd-frame handler's own), plus the 64 bodies — must fit in half the queue
+/// memory; counting only the outputs let a load of big bodies take what clients need.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_load_test_counts_its_bodies_and_decode_reservations_against_the_queue_memory() {
+    // One unique f32 job of the embedded head: 87 KB of output per lane. The 2,000-head bincode
+    // bodies are about 46 KB each (2.9 MB for 64), and a request of one reserves 16 × its body
+    // (0.74 MB) while it is decoded.
+    let crowd = json!({"heads": 2000, "unique": 0.0005, "clips": {"talk": 1}});
+    let bodies = bodies_of(&crowd);
+    assert!(bodies > (5 << 20) / 2 && bodies < 4 << 20, "{bodies}");
+    // 8 lanes in 16 MB (half: 8 MB): outputs 0.7 MB and bodies 2.9 MB fit, the decode
+    // reservations (5.9 MB) do not. 1 lane in 5 MB (half: 2.5 MB): the bodies alone do not.
+    for (queue_memory_bytes, concurrency) in [(16 << 20, 8), (5 << 20, 1)] {
+        let server = TestServer::start(ServerConfig {
+            queue_memory_bytes,
+            ..ServerConfig::default()
+        })
+        .await;
+        let c = &server.client;
+        let r = post(
+            c,
+            "",
+            json!({"rate": 20, "duration_s": 0.1, "concurrency": concurrency, "crowd": crowd}),
+        )
+        .await;
+        assert_eq!(
+            code_of(&r),
+            (400, "loadtest_too_large".into()),
+            "{concurrency} lanes in {queue_memory_bytes} bytes"
+        );
+        let message = r.error().expect("an error body").error.message;
+        assert!(
+            message.contains("decod") && message.contains("bodies"),
+            "{message}"
+        );
+        // A small load still runs on the same server, and gives its memory back.
+        let done = status_of(
+            &post(
+                c,
+                "",
+                json!({"rate": 20, "duration_s": 0.1, "concurrency": concurrency,
+                       "crowd": {"heads": 100, "unique": 0.05, "clips": {"talk": 1}}}),
+            )
+            .await,
+        );
+        assert_eq!((done.report.ok, done.report.errors), (2, 0), "{done:?}");
+        assert_eq!(server.state.gauges().queue_memory_bytes, 0);
+        server.stop().await;
+    }
+}
+
+/// Synthetic bodies longer than `--max-request-bytes` would each be refused with 413: the load
+/// is refused up front with 400 naming the limit, and nothing runs.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_load_whose_bodies_exceed_the_request_limit_is_400() {
+    let server = TestServer::start(ServerConfig {
+        max_request_bytes: 4096,
+        ..ServerConfig::default()
+    })
+    .await;
+    let c = &server.client;
+    let crowd = json!({"heads": 1000, "clips": {"talk": 1}});
+    assert!(bodies_of(&crowd) > 64 * 4096);
+    let r = post(
+        c,
+        "",
+        json!({"rate": 20, "duration_s": 0.1, "concurrency": 1, "crowd": crowd}),
+    )
+    .await;
+    assert_eq!(code_of(&r), (400, "loadtest_too_large".into()));
+    let message = r.error().expect("an error body").error.message;
+    assert!(
+        message.contains("--max-request-bytes") && message.contains("4096"),
+        "{message}"
+    );
+    assert_eq!(server.state.gauges().queue_memory_bytes, 0);
+    assert_eq!(
+        code_of(&get(c, "1").await),
+        (404, "unknown_loadtest".into()),
+        "no load ran"
+    );
+    // Bodies within the limit run.
+    let done = status_of(
+        &post(
+            c,
+            "",
+            json!({"rate": 20, "duration_s": 0.1, "concurrency": 1,
+                   "crowd": {"heads": 10, "clips": {"talk": 1}}}),
+        )
+        .await,
+    );
+    assert_eq!((done.report.ok, done.report.errors), (2, 0), "{done:?}");
+    server.stop().await;
+}
+
+/// `wait=true` (the default) for a load longer than the server lets a request run: the answer
+/// comes before the timeout would cut the request with a 504, as 202 with the running status,
+/// and the load goes on to finish (readable with GET).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn waiting_for_a_load_longer_than_the_timeout_answers_202_running() {
+    let server = TestServer::start(ServerConfig {
+        admin_timeout: Duration::from_secs(1),
+        request_timeout: Duration::from_secs(1),
+        ..ServerConfig::default()
+    })
+    .await;
+    let c = &server.client;
+    let r = post(
+        c,
+        "",
+        json!({"rate": 4, "duration_s": 2.5, "concurrency": 1, "crowd": {"heads": 1}}),
+    )
+    .await;
+    assert_eq!(r.status, 202, "{}", String::from_utf8_lossy(&r.body));
+    let running = status_of(&r);
+    assert_eq!(running.status, "running");
+    let done = wait_for(c, &running.id, |s| s.status != "running").await;
+    assert_eq!(done.status, "done");
+    // Every request was sent and answered; with a 1 s request deadline on a busy machine an
+    // answer may be a 504, which is not what this test is about.
+    let r = &done.report;
+    assert_eq!(
+        (r.sent, r.ok + r.errors, r.unfinished),
+        (10, 10, 0),
+        "{done:?}"
+    );
+    assert!(r.ok > 0, "{done:?}");
     server.stop().await;
 }

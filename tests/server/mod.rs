@@ -10,6 +10,7 @@ mod golden;
 mod hostile;
 mod loadtest;
 mod lod;
+mod metrics;
 mod overload;
 mod persistence;
 mod python_peer;
