@@ -9,25 +9,29 @@
 //! given back when the response body has been sent. The bytes are exactly serde_json's
 //! encoding of the response (a test checks it).
 
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 
 use bytes::Bytes;
 use crowdmorph_proto::{Format, FrameTimings, HeadBuffer};
 use serde::Serialize;
 
+use super::pool::Pool;
 use crate::codec::FrameBufferParts;
 
 /// Buffers kept for reuse.
 const POOL_BUFFERS: usize = 4;
-/// Most bytes the kept buffers may hold together. A buffer is charged to the queue memory
-/// while its response is in flight; once sent it is no longer charged, so what the pool keeps
-/// is a fixed amount of memory beside the budgets, and this bounds it (a rare huge response
-/// does not pin its memory).
+/// Most bytes the kept buffers may hold together (see [`Pool`]).
 const POOL_TOTAL_BYTES: usize = 192 << 20;
 
 /// A pool of response buffers.
-#[derive(Debug, Default)]
-pub struct JsonPool(Mutex<Vec<Vec<u8>>>);
+#[derive(Debug)]
+pub struct JsonPool(Pool<Vec<u8>>);
+
+impl Default for JsonPool {
+    fn default() -> Self {
+        JsonPool(Pool::new(POOL_BUFFERS, POOL_TOTAL_BYTES))
+    }
+}
 
 /// A response body that returns its buffer to the pool when dropped.
 struct Pooled {
@@ -45,25 +49,20 @@ impl Drop for Pooled {
     fn drop(&mut self) {
         let mut buf = std::mem::take(&mut self.buf);
         buf.clear();
-        if let Ok(mut p) = self.pool.0.lock() {
-            let kept: usize = p.iter().map(Vec::capacity).sum();
-            if p.len() < POOL_BUFFERS && kept + buf.capacity() <= POOL_TOTAL_BYTES {
-                p.push(buf);
-            }
-        }
+        self.pool.0.put(buf);
     }
 }
 
 impl JsonPool {
     fn take(&self, capacity: usize) -> Vec<u8> {
-        let reused = self.0.lock().ok().and_then(|mut p| {
-            // The smallest kept buffer that fits, else the largest (it grows once).
-            p.sort_by_key(Vec::capacity);
-            let i = p
-                .iter()
-                .position(|b| b.capacity() >= capacity)
-                .or_else(|| p.len().checked_sub(1))?;
-            Some(p.swap_remove(i))
+        // The smallest kept buffer that fits, else the largest (it grows once).
+        let reused = self.0.take_best(|b| {
+            let c = b.capacity();
+            Some(if c >= capacity {
+                (true, std::cmp::Reverse(c))
+            } else {
+                (false, std::cmp::Reverse(usize::MAX - c))
+            })
         });
         let mut buf = reused.unwrap_or_default();
         buf.reserve(capacity);

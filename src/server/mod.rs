@@ -33,6 +33,7 @@ mod json;
 pub mod loadtest;
 mod lod;
 pub mod metrics;
+mod pool;
 pub mod pypeer;
 pub mod registry;
 mod render;

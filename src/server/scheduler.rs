@@ -40,6 +40,7 @@ use crowdmorph_proto::Format;
 use tokio::sync::{mpsc, oneshot};
 
 use super::metrics::Metrics;
+use super::pool::{Pool, Reusable};
 use super::registry::RigEntry;
 use crate::engine::{Begun, BlendJob, BlendOutput, Engine, OutputSpec, Precision, VertexData};
 
@@ -758,43 +759,36 @@ impl State {
 /// Output buffers whose responses have been sent, kept for the next batch: a warm buffer
 /// costs no page faults, and for large outputs the page faults of a fresh allocation cost
 /// several times the blend itself (ICT FaceKit, 100 jobs: 32 MB, ≈ 20 ms cold vs ≈ 2 ms warm).
-#[derive(Debug, Default)]
-struct BufferPool {
-    free: std::sync::Mutex<Vec<VertexData>>,
-}
+#[derive(Debug)]
+struct BufferPool(Pool<VertexData>);
 
 /// Buffers kept at most; more are freed.
 const POOL_BUFFERS: usize = 8;
-/// Most bytes the kept buffers may hold together: a buffer is charged to the queue memory
-/// while its responses are in flight, and what the pool keeps afterwards is a fixed amount of
-/// memory beside the budgets, bounded here (a rare huge batch does not pin its output).
+/// Most bytes the kept buffers may hold together (see [`Pool`]).
 const POOL_TOTAL_BYTES: usize = 512 << 20;
+
+impl Reusable for VertexData {
+    fn kept_bytes(&self) -> usize {
+        self.as_bytes().len()
+    }
+}
+
+impl Default for BufferPool {
+    fn default() -> Self {
+        BufferPool(Pool::new(POOL_BUFFERS, POOL_TOTAL_BYTES))
+    }
+}
 
 impl BufferPool {
     /// The largest free buffer of the kind `precision` produces, or an empty one.
     fn take(&self, precision: Precision) -> VertexData {
-        let Ok(mut free) = self.free.lock() else {
-            return VertexData::default();
-        };
-        let best = free
-            .iter()
-            .enumerate()
-            .filter(|(_, d)| d.is_kind(precision))
-            .max_by_key(|(_, d)| d.len())
-            .map(|(i, _)| i);
-        match best {
-            Some(i) => free.swap_remove(i),
-            None => VertexData::default(),
-        }
+        self.0
+            .take_best(|d| d.is_kind(precision).then(|| d.len()))
+            .unwrap_or_default()
     }
 
     fn put(&self, data: VertexData) {
-        if let Ok(mut free) = self.free.lock() {
-            let kept: usize = free.iter().map(|d| d.as_bytes().len()).sum();
-            if free.len() < POOL_BUFFERS && kept + data.as_bytes().len() <= POOL_TOTAL_BYTES {
-                free.push(data);
-            }
-        }
+        self.0.put(data);
     }
 }
 
