@@ -25,7 +25,7 @@ pub struct Percentiles {
 
 impl Percentiles {
     /// Of a histogram of microseconds.
-    pub(super) fn of(h: &Histogram<u64>) -> Percentiles {
+    pub(crate) fn of(h: &Histogram<u64>) -> Percentiles {
         if h.is_empty() {
             return Percentiles::default();
         }

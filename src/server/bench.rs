@@ -40,6 +40,7 @@ use serde::Serialize;
 
 use super::{AppState, ServerConfig};
 use crate::engine::{BlendJob, Engine, OutputSpec};
+use crate::load::Percentiles;
 use crate::plan::{JobKey, Plan};
 use crate::rig::Rig;
 
@@ -375,8 +376,8 @@ async fn measure_python_peer(
         tolerance: f64::from(tolerance),
         heads_per_s: sat.heads_per_s,
         crowdmorph_over_python: crowdmorph_heads_per_s / sat.heads_per_s.max(1e-9),
-        p50_ms: pct(&sat.hist, 0.5),
-        p99_ms: pct(&sat.hist, 0.99),
+        p50_ms: Percentiles::of(&sat.hist).p50,
+        p99_ms: Percentiles::of(&sat.hist).p99,
         errors: sat.errors,
     })
 }
@@ -543,10 +544,6 @@ fn socket_cpu_per_byte(connections: usize, message: usize, seconds: f64) -> Resu
         bail!("no bytes moved through the loopback socket");
     }
     Ok((cpu / total as f64, total as f64 / wall))
-}
-
-fn pct(h: &Histogram<u64>, q: f64) -> f64 {
-    h.value_at_quantile(q) as f64 / 1000.0
 }
 
 /// Runs the benchmark: `rig_bytes` is a GLB/glTF to upload, or `None` for the embedded head.
@@ -858,8 +855,7 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
     let _ = stop_tx.send(());
     server.await??;
 
-    let p50 = pct(&half, 0.5);
-    let p99 = pct(&half, 0.99);
+    let Percentiles { p50, p99, .. } = Percentiles::of(&half);
     Ok(HttpBenchReport {
         backend,
         rig: rig.name.clone(),
@@ -892,8 +888,8 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
         json_bytes_per_head,
         json_errors: json.errors,
         python,
-        saturation_p50_ms: pct(&sat.hist, 0.5),
-        saturation_p99_ms: pct(&sat.hist, 0.99),
+        saturation_p50_ms: Percentiles::of(&sat.hist).p50,
+        saturation_p99_ms: Percentiles::of(&sat.hist).p99,
         half_load_requests_per_s: rate,
         half_load_p50_ms: p50,
         half_load_p99_ms: p99,
