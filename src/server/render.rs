@@ -95,6 +95,18 @@ impl<T: Footprint> TopologyCache<T> {
         Some(t)
     }
 
+    /// Keeps `t` for `key` unless `current` (the rig's registered generation now, `None` when
+    /// it is gone) says `key`'s generation was deleted or replaced while `t` was uploaded: the
+    /// delete's purge may already have run, and nothing but the LRU would drop it. Returns the
+    /// topology to use.
+    fn insert_if_current(&mut self, key: TopologyKey, t: Arc<T>, current: Option<u64>) -> Arc<T> {
+        if current == Some(key.generation) {
+            self.insert(key, t)
+        } else {
+            t
+        }
+    }
+
     fn insert(&mut self, key: TopologyKey, t: Arc<T>) -> Arc<T> {
         // Another render may have uploaded the same topology meanwhile: keep one.
         if let Some(existing) = self.get(&key) {
@@ -228,7 +240,12 @@ impl AppState {
         };
         let t = Arc::new(device.renderer.topology(rig)?);
         Ok(match self.render.topologies.lock() {
-            Ok(mut c) => c.insert(key, t),
+            // Read under the cache's lock: a delete removes the rig from the registry before
+            // it purges the cache, so either this sees it gone or the purge comes after.
+            Ok(mut c) => {
+                let current = self.registry.get(&entry.id).map(|e| e.generation);
+                c.insert_if_current(key, t, current)
+            }
             Err(_) => t,
         })
     }
@@ -546,6 +563,14 @@ mod tests {
         c.purge("a");
         assert_eq!((c.entries.len(), c.bytes), (1, 5));
         assert!(c.get(&key("c", 0)).is_some());
+        // An upload that a delete or a replacement overtook is used but not kept.
+        let late = c.insert_if_current(key("d", 1), Arc::new(Sized(6)), None);
+        assert_eq!(late.0, 6);
+        c.insert_if_current(key("d", 1), Arc::new(Sized(6)), Some(2));
+        assert!(c.get(&key("d", 1)).is_none());
+        assert_eq!((c.entries.len(), c.bytes), (1, 5));
+        c.insert_if_current(key("d", 2), Arc::new(Sized(6)), Some(2));
+        assert!(c.get(&key("d", 2)).is_some());
     }
 
     #[test]
