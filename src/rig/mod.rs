@@ -307,6 +307,15 @@ impl Rig {
         self.primitives.iter().any(Primitive::has_normal_deltas)
     }
 
+    /// Whether normals, when asked for, are recomputed from the blended positions for some
+    /// primitive (one that moves and whose targets carry no normal deltas): engines then
+    /// blend its positions in f32 first, whatever the wire format.
+    pub fn recomputes_normals(&self) -> bool {
+        self.primitives
+            .iter()
+            .any(|p| !p.targets.is_empty() && !p.has_normal_deltas())
+    }
+
     /// Host memory held by the rig's arrays, in bytes: geometry, clip tables and LOD.
     pub fn host_bytes(&self) -> usize {
         self.geometry_bytes() + self.clip_bytes() + self.lod_bytes()

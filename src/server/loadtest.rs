@@ -30,7 +30,9 @@ use bytes::Bytes;
 use serde::{Deserialize, Serialize};
 use tokio::sync::OwnedSemaphorePermit;
 
-use super::api::{ApiResult, blocking, crowd_frame_from, decode, decode_reservation, respond};
+use super::api::{
+    ApiResult, blocking, crowd_frame_from, decode, decode_reservation, job_output_bytes, respond,
+};
 use super::metrics::Source;
 use super::{ApiError, AppState};
 use crate::load::{self, CrowdShape, Lane, Live, LoadReport, Reply, RigClips, RunOptions};
@@ -309,11 +311,13 @@ impl AppState {
             ));
         }
         let mut rigs = Vec::new();
-        let mut max_vertices = 0u64;
+        let json = crowd.encoding == load::WireEncoding::Json;
+        let mut max_job_bytes = 0u64;
         for id in &crowd.rigs {
             let entry = self.rig(id)?;
             let rig = entry.rig();
-            max_vertices = max_vertices.max(entry.vertices as u64);
+            max_job_bytes =
+                max_job_bytes.max(job_output_bytes(rig, crowd.format, crowd.normals, json));
             rigs.push(RigClips {
                 id: id.clone(),
                 clips: rig.clips.iter().map(|c| c.name.clone()).collect(),
@@ -326,16 +330,7 @@ impl AppState {
         let sizes = crowd
             .body_sizes(&rigs, RING)
             .map_err(|e| invalid(e.to_string()))?;
-        let output = u64::from(crowd.unique_jobs())
-            * max_vertices
-            * 3
-            * crowd.format.component_bytes() as u64
-            * if crowd.normals { 2 } else { 1 }
-            * if crowd.encoding == load::WireEncoding::Json {
-                3
-            } else {
-                1
-            };
+        let output = u64::from(crowd.unique_jobs()) * max_job_bytes;
         let decoding =
             decode_reservation(crowd.encoding == load::WireEncoding::Bincode, sizes.body);
         let per_request = output.saturating_add(decoding);

@@ -1200,10 +1200,9 @@ async fn tick_once(state: &AppState, session: &Arc<Session>, tick: u64) -> Ticke
     let out_bytes: u64 = groups
         .iter()
         .flat_map(|g| {
-            let per = g.format.component_bytes() as u64 * if g.normals { 2 } else { 1 };
             g.jobs.iter().map(move |j| {
-                let v = j.entry.prepared.at_level(j.lod).rig().vertex_count() as u64;
-                v * 3 * per
+                let rig = j.entry.prepared.at_level(j.lod).rig();
+                super::api::job_output_bytes(rig, g.format, g.normals, false)
             })
         })
         .sum();

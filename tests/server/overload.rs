@@ -302,3 +302,44 @@ async fn a_client_that_disconnects_does_not_cancel_shared_work() {
     assert_eq!(answered, 1.0, "{text}");
     server.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sixteen_bit_normals_that_are_recomputed_are_charged_for_the_f32_blend_before_them() {
+    // The default head's normals are recomputed from the blended positions, which the CPU
+    // engine blends in f32 before it encodes f16: one job with normals holds 7262 × 3 × 2 × 2
+    // = 87,144 bytes of f16 and 174,288 bytes of f32 on the way. 128 KiB holds the first only.
+    let rig = crowdmorph::embedded::default_rig();
+    assert!(
+        rig.recomputes_normals(),
+        "the test needs a rig whose normals are recomputed"
+    );
+    let server = TestServer::start(ServerConfig {
+        queue_memory_bytes: 128 << 10,
+        ..ServerConfig::default()
+    })
+    .await;
+    let mut r = req(&[1]);
+    r.output.format = Format::F16;
+    let (resp, _) = server
+        .client
+        .crowd_frame(&r, Encoding::Bincode)
+        .await
+        .expect("f16 positions fit");
+    assert_eq!(resp.buffers.len(), 1);
+    r.output.normals = true;
+    match server.client.crowd_frame(&r, Encoding::Bincode).await {
+        Err(ClientError::Api {
+            status,
+            code,
+            message,
+        }) => {
+            assert_eq!(
+                (status, code.as_str()),
+                (413, "response_too_large"),
+                "{message}"
+            );
+        }
+        other => panic!("f16 with recomputed normals within 128 KiB: {other:?}"),
+    }
+    server.stop().await;
+}
