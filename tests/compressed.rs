@@ -613,6 +613,20 @@ fn texture_only_required_extensions_load_and_draco_says_how_to_convert() {
         ),
         ("KHR_texture_basisu", "ignored", true)
     );
+    // Several required texture extensions (one listed twice), checked in one walk: it loads,
+    // and one of them also on a node is refused by name.
+    let mut several = crate::util::builder::triangle_rig();
+    *several.json_mut() = b.json_mut().clone();
+    let j = several.json_mut();
+    j["textures"][0]["extensions"]["EXT_texture_webp"] = json!({ "source": 0 });
+    j["extensionsUsed"] = json!(["KHR_texture_basisu", "EXT_texture_webp"]);
+    j["extensionsRequired"] = json!(["EXT_texture_webp", "KHR_texture_basisu", "EXT_texture_webp"]);
+    import(&several.to_glb()).expect("required texture-only extensions do not stop a rig");
+    several.json_mut()["nodes"][0]["extensions"] = json!({ "EXT_texture_webp": {} });
+    match import(&several.to_glb()) {
+        Err(ImportError::UnsupportedExtension(e)) => assert_eq!(e, "EXT_texture_webp"),
+        other => panic!("expected the node's extension refused, got {other:?}"),
+    }
     // The same name on a mesh primitive is not texture-only: refused.
     b.json_mut()["meshes"][0]["primitives"][0]["extensions"] = json!({ "KHR_texture_basisu": {} });
     assert!(matches!(

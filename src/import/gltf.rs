@@ -323,36 +323,36 @@ fn validate(root: &gltf::json::Root, json: &[u8], budget: &Budget) -> Result<(),
             }
         }
     }
-    let mut value: Option<serde_json::Value> = None;
-    for ext in &root.extensions_required {
-        if SUPPORTED_REQUIRED.contains(&ext.as_str())
-            || gltf::json::extensions::ENABLED_EXTENSIONS.contains(&ext.as_str())
-        {
-            continue;
-        }
-        // Rare: the document is read again as plain JSON to see where the extension is used.
-        let value = match &mut value {
-            Some(v) => v,
-            None => {
-                budget.charge(document_cost(json), || {
-                    format!(
-                        "the glTF document ({} bytes of JSON), to check its extensions",
-                        json.len()
-                    )
-                })?;
-                let v =
-                    serde_json::from_slice(json).map_err(|e| ImportError::Json(e.to_string()))?;
-                value.insert(v)
+    // Required extensions we do not read are accepted only when they touch textures alone.
+    // Rare: the document is then read again as plain JSON and walked once for all of them.
+    let unknown: Vec<&str> = root
+        .extensions_required
+        .iter()
+        .map(String::as_str)
+        .filter(|ext| {
+            !SUPPORTED_REQUIRED.contains(ext)
+                && !gltf::json::extensions::ENABLED_EXTENSIONS.contains(ext)
+        })
+        .collect();
+    if !unknown.is_empty() {
+        let cost = document_cost(json);
+        budget.charge(cost, || {
+            format!(
+                "the glTF document ({} bytes of JSON), to check its extensions",
+                json.len()
+            )
+        })?;
+        let value: serde_json::Value =
+            serde_json::from_slice(json).map_err(|e| ImportError::Json(e.to_string()))?;
+        let texture_only = extensions::texture_only(&value, &unknown);
+        drop(value);
+        budget.release(cost);
+        for (ext, texture_only) in unknown.iter().zip(texture_only) {
+            if !texture_only {
+                return Err(ImportError::UnsupportedExtension(ext.to_string()));
             }
-        };
-        if extensions::texture_only(value, ext) {
             tracing::info!(extension = %ext, "required extension is used only by textures; ignored");
-            continue;
         }
-        return Err(ImportError::UnsupportedExtension(ext.clone()));
-    }
-    if value.take().is_some() {
-        budget.release(document_cost(json));
     }
     let mut errors = Vec::new();
     let outcome = std::panic::catch_unwind(|| {
