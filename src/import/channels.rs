@@ -22,7 +22,7 @@ use std::hash::{Hash, Hasher};
 
 use super::ImportError;
 use super::accessor::Source;
-use super::gltf::{Instance, WeightTrack, mesh_target_count, mesh_target_names, weight_tracks};
+use super::gltf::{Instance, MeshNames, WeightTrack, mesh_target_count, weight_tracks};
 use crate::rig::{Interpolation, MAX_TARGETS, RigError, TargetId};
 
 /// The channels of a document: their names and default weights, and the channel of each
@@ -118,14 +118,16 @@ impl Curve<'_> {
     }
 }
 
-/// Partitions the (node, target) pairs of `instances` into weight channels by their names,
-/// default weights and the curves every animation gives them (see the module documentation).
-/// Each animation's keyframes are decoded, compared and released in turn, charged to the
-/// source's budget; more than [`MAX_TARGETS`] channels is refused.
+/// Partitions the (node, target) pairs of `instances` into weight channels by their names
+/// (`names`, read once per mesh), default weights and the curves every animation gives them
+/// (see the module documentation). Each animation's keyframes are decoded, compared and
+/// released in turn, charged to the source's budget; so are the channel names the plan keeps.
+/// More than [`MAX_TARGETS`] channels is refused.
 pub(crate) fn plan_channels(
     doc: &gltf::Document,
     source: &Source<'_>,
     instances: &[Instance<'_>],
+    names: &MeshNames,
 ) -> Result<ChannelPlan, ImportError> {
     let budget = source.budget();
     let mut counts = Vec::with_capacity(instances.len());
@@ -141,16 +143,16 @@ pub(crate) fn plan_channels(
     // Initial classes: name, occurrence of the name within the mesh, default weight.
     let mut units = Vec::with_capacity(total as usize);
     let mut names_of = Vec::with_capacity(instances.len());
-    let mut classes: HashMap<(String, usize, u32), usize> = HashMap::new();
+    let mut classes: HashMap<(&str, usize, u32), usize> = HashMap::new();
     let mut n_classes = 0;
     for (i, inst) in instances.iter().enumerate() {
         let count = counts[i];
-        let names = mesh_target_names(&inst.mesh, count);
+        let names = names.of(&inst.mesh);
         let defaults = node_defaults(inst, count);
         let mut seen: HashMap<&str, usize> = HashMap::new();
         for (k, name) in names.iter().enumerate() {
             let occurrence = seen.entry(name.as_str()).or_default();
-            let key = (name.clone(), *occurrence, defaults[k].to_bits());
+            let key = (name.as_str(), *occurrence, defaults[k].to_bits());
             *occurrence += 1;
             let class = *classes.entry(key).or_insert_with(|| {
                 n_classes += 1;
@@ -241,15 +243,19 @@ pub(crate) fn plan_channels(
             }
             named.insert(name);
             channel_of[u.class] = Some(plan.names.len() as TargetId);
-            plan.names.push(name.to_string());
-            plan.defaults.push(defaults[u.k]);
-            if plan.names.len() > MAX_TARGETS {
+            if plan.names.len() >= MAX_TARGETS {
                 return Err(RigError::TooLarge(format!(
                     "more than {MAX_TARGETS} weight channels (targets, counted once per \
                      differently animated node)"
                 ))
                 .into());
             }
+            // The plan's names become the rig's: charged here, kept by the import.
+            budget.charge(24 + name.len() as u64, || {
+                format!("the name of weight channel {}", plan.names.len())
+            })?;
+            plan.names.push(name.to_string());
+            plan.defaults.push(defaults[u.k]);
         }
     }
     for (i, inst) in instances.iter().enumerate() {

@@ -22,7 +22,7 @@ use serde::Deserialize;
 
 use super::channels::curves_agree;
 use super::gltf::{
-    Instance, bake, mesh_target_count, mesh_target_names, parse, scene_instances, tracks_bytes,
+    Instance, MeshNames, bake, parse, scene_instances, tracks_bytes,
     unique_name, weight_tracks,
 };
 use super::{ImportError, ImportOptions};
@@ -330,11 +330,12 @@ fn same_scene(rig: &Rig, instances: &[Instance<'_>]) -> bool {
 fn node_channels(
     rig: &Rig,
     instances: &[Instance<'_>],
-    names: &[Vec<String>],
+    names: &MeshNames,
 ) -> HashMap<usize, Vec<Vec<TargetId>>> {
     let mut out = HashMap::new();
     let mut first_prim = 0;
-    for (inst, names) in instances.iter().zip(names) {
+    for inst in instances {
+        let names = names.of(&inst.mesh);
         let n_prims = inst.mesh.primitives().len();
         let prims = rig
             .primitives
@@ -388,25 +389,32 @@ pub fn clips_from_gltf(
     let import = options.import_options();
     let parsed = parse(bytes, &import)?;
     let instances = scene_instances(&parsed.doc)?;
-    let mut all_names = Vec::with_capacity(instances.len());
+    let names = MeshNames::read(&parsed.doc, &instances, parsed.source.budget())?;
     let mut ignored = Vec::new();
+    // Each mesh's names are matched once, however many nodes instance it.
+    let mut by_mesh: HashMap<usize, Vec<Vec<TargetId>>> = HashMap::new();
     let mut by_node = HashMap::new();
     for inst in &instances {
-        let count = mesh_target_count(&inst.mesh)?;
-        let names = mesh_target_names(&inst.mesh, count);
-        let (ids, unknown) = map_names(rig, &names, options)?;
-        for u in unknown {
-            if !ignored.contains(&u) {
-                ignored.push(u);
+        let m = inst.mesh.index();
+        if !by_mesh.contains_key(&m) {
+            let (ids, unknown) = map_names(rig, names.of(&inst.mesh), options)?;
+            for u in unknown {
+                if !ignored.contains(&u) {
+                    ignored.push(u);
+                }
             }
+            by_mesh.insert(m, ids);
         }
-        by_node.insert(inst.node.index(), ids);
-        all_names.push(names);
+        if let Some(ids) = by_mesh.get(&m) {
+            by_node.insert(inst.node.index(), ids.clone());
+        }
     }
+    drop(by_mesh);
     let per_node = same_scene(rig, &instances);
     if per_node {
-        by_node = node_channels(rig, &instances, &all_names);
+        by_node = node_channels(rig, &instances, &names);
     }
+    drop(names);
     let lookup = |node: &gltf::Node<'_>| by_node.get(&node.index()).cloned();
     let mut out: Vec<ClipImport> = Vec::new();
     for anim in parsed.doc.animations() {

@@ -9,6 +9,7 @@
 use std::borrow::Cow;
 use std::collections::HashMap;
 use std::path::{Component, Path};
+use std::sync::Arc;
 
 use base64::Engine as _;
 use glam::{Mat3, Mat4, Vec3};
@@ -93,7 +94,7 @@ impl<'a> GltfImport<'a> {
 
     /// Decodes and builds the rig, charging every allocation to the budget.
     pub fn build(self, options: &ImportOptions) -> Result<Rig, ImportError> {
-        build_rig(&self.parsed, &self.plan, options)
+        build_rig(&self.parsed, self.plan, options)
     }
 }
 
@@ -497,17 +498,99 @@ struct MeshExtras {
     target_names: Option<Vec<String>>,
 }
 
-/// Target names of a mesh: `extras.targetNames`, else `target_<i>`.
-pub(crate) fn mesh_target_names(mesh: &gltf::Mesh<'_>, count: usize) -> Vec<String> {
-    let names = mesh
-        .extras()
-        .as_ref()
-        .and_then(|raw| serde_json::from_str::<MeshExtras>(raw.get()).ok())
-        .and_then(|e| e.target_names)
-        .filter(|n| n.len() == count);
-    match names {
-        Some(n) => n,
-        None => (0..count).map(|i| format!("target_{i}")).collect(),
+/// Heap bytes a list of names holds: each `String`'s header and text.
+pub(crate) fn names_bytes(names: &[String]) -> u64 {
+    names.iter().map(|n| 24 + n.capacity() as u64).sum()
+}
+
+/// Target names of a mesh with `count` targets: `extras.targetNames`, else `target_<i>`. The
+/// names are charged to `budget` before they are allocated, at a bound (each name holds at
+/// most its own text, and a `String` header of 24 bytes, doubled for the list's growth, per
+/// structural character of the extras: every list element but the first follows a comma),
+/// which is brought down to the names' exact bytes once they are read. The caller releases
+/// [`names_bytes`] of the result when it drops it.
+fn mesh_target_names(
+    mesh: &gltf::Mesh<'_>,
+    count: usize,
+    budget: &Budget,
+) -> Result<Vec<String>, ImportError> {
+    let what = || format!("target names of mesh {}", mesh_label(mesh));
+    let mut names = None;
+    if let Some(raw) = mesh.extras().as_ref() {
+        let text = raw.get();
+        let bound = text.len() as u64 + (json_nodes(text.as_bytes()) + 1) * 48;
+        budget.charge(bound, what)?;
+        names = serde_json::from_str::<MeshExtras>(raw.get())
+            .ok()
+            .and_then(|e| e.target_names)
+            .filter(|n| n.len() == count)
+            .map(|mut n| {
+                n.shrink_to_fit();
+                n
+            });
+        budget.release(bound);
+    }
+    // Exact once read; the generated names have at most 7 + 20 characters.
+    let bytes = names
+        .as_deref()
+        .map_or(count as u64 * (24 + 27), names_bytes);
+    budget.charge(bytes, what)?;
+    let names = names.unwrap_or_else(|| (0..count).map(|i| format!("target_{i}")).collect());
+    let exact = names_bytes(&names);
+    budget.release(bytes.saturating_sub(exact));
+    Ok(names)
+}
+
+/// The target names of every mesh the scene instances, read once per mesh however many nodes
+/// instance it (see [`mesh_target_names`]), and charged while they are held.
+pub(crate) struct MeshNames {
+    /// Mesh index → its target names (empty for a mesh the scene does not instance).
+    by_mesh: Vec<Vec<String>>,
+    /// Bytes charged for them, released on drop.
+    bytes: u64,
+    budget: Arc<Budget>,
+}
+
+impl MeshNames {
+    /// Reads the names of every mesh of `instances`, refusing meshes whose primitives disagree
+    /// on their target count.
+    pub(crate) fn read(
+        doc: &gltf::Document,
+        instances: &[Instance<'_>],
+        budget: &Arc<Budget>,
+    ) -> Result<MeshNames, ImportError> {
+        let meshes = doc.meshes().len();
+        let table = meshes as u64 * 24;
+        budget.charge(table, || format!("target names of {meshes} meshes"))?;
+        let mut out = MeshNames {
+            by_mesh: vec![Vec::new(); meshes],
+            bytes: table,
+            budget: budget.clone(),
+        };
+        let mut done = vec![false; meshes];
+        for inst in instances {
+            let m = inst.mesh.index();
+            if done.get(m).copied().unwrap_or(true) {
+                continue;
+            }
+            done[m] = true;
+            let count = mesh_target_count(&inst.mesh)?;
+            let names = mesh_target_names(&inst.mesh, count, budget)?;
+            out.bytes += names_bytes(&names);
+            out.by_mesh[m] = names;
+        }
+        Ok(out)
+    }
+
+    /// The target names of `mesh` (empty when it was not read).
+    pub(crate) fn of(&self, mesh: &gltf::Mesh<'_>) -> &[String] {
+        self.by_mesh.get(mesh.index()).map_or(&[], Vec::as_slice)
+    }
+}
+
+impl Drop for MeshNames {
+    fn drop(&mut self) {
+        self.budget.release(self.bytes);
     }
 }
 
@@ -638,22 +721,24 @@ fn document_shape(
 ) -> Result<(RigShape, u64, ChannelPlan), ImportError> {
     let doc = &parsed.doc;
     let instances = scene_instances(doc)?;
-    let mut targets = Targets::default();
+    let names = MeshNames::read(doc, &instances, parsed.source.budget())?;
+    // Distinct names seen so far: at most MAX_TARGETS + 1 entries before the refusal.
+    let mut distinct: std::collections::HashSet<&str> = std::collections::HashSet::new();
     let mut primitives = Vec::new();
     let mut node_targets: HashMap<usize, usize> = HashMap::new();
     let mut transient = 0u64;
     let mut vertices = 0u64;
     for inst in &instances {
         let count = mesh_target_count(&inst.mesh)?;
-        for name in mesh_target_names(&inst.mesh, count) {
-            targets.id(&name, 0.0);
-        }
-        if targets.names.len() > MAX_TARGETS {
-            return Err(RigError::TooLarge(format!(
-                "more than {MAX_TARGETS} rig-wide targets (the file names at least {})",
-                targets.names.len()
-            ))
-            .into());
+        for name in names.of(&inst.mesh) {
+            distinct.insert(name);
+            if distinct.len() > MAX_TARGETS {
+                return Err(RigError::TooLarge(format!(
+                    "more than {MAX_TARGETS} rig-wide targets (the file names at least {})",
+                    distinct.len()
+                ))
+                .into());
+            }
         }
         node_targets.insert(inst.node.index(), count);
         for prim in inst.mesh.primitives() {
@@ -756,7 +841,7 @@ fn document_shape(
         clip_frames += frames as u64;
         transient = transient.max(keys);
     }
-    let plan = plan_channels(doc, &parsed.source, &instances)?;
+    let plan = plan_channels(doc, &parsed.source, &instances, &names)?;
     let n_targets = plan.len() as u64;
     Ok((
         RigShape {
@@ -829,30 +914,9 @@ fn triangle_indices(
     Ok(list)
 }
 
-/// Rig-wide target registry: name → id, first appearance first.
-#[derive(Default)]
-struct Targets {
-    names: Vec<String>,
-    defaults: Vec<f32>,
-    index: HashMap<String, TargetId>,
-}
-
-impl Targets {
-    fn id(&mut self, name: &str, default: f32) -> TargetId {
-        if let Some(&id) = self.index.get(name) {
-            return id;
-        }
-        let id = self.names.len() as TargetId;
-        self.names.push(name.to_string());
-        self.defaults.push(default);
-        self.index.insert(name.to_string(), id);
-        id
-    }
-}
-
 fn build_rig(
     parsed: &Parsed<'_>,
-    plan: &ChannelPlan,
+    plan: ChannelPlan,
     options: &ImportOptions,
 ) -> Result<Rig, ImportError> {
     let doc = &parsed.doc;
@@ -1041,9 +1105,10 @@ fn build_rig(
     let lod = Lod::by_delta_energy(&primitives, n_targets);
     let rig = Rig {
         name: options.name.clone().unwrap_or_else(|| "rig".into()),
-        targets: plan.names.clone(),
-        default_weights: plan.defaults.clone(),
-        primitives: std::sync::Arc::new(primitives),
+        // The plan's names and defaults (charged when it was made) become the rig's.
+        targets: plan.names,
+        default_weights: plan.defaults,
+        primitives: Arc::new(primitives),
         clips,
         lod,
     };
