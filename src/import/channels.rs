@@ -22,7 +22,9 @@ use std::hash::{Hash, Hasher};
 
 use super::ImportError;
 use super::accessor::Source;
-use super::gltf::{Instance, MeshNames, WeightTrack, mesh_target_count, weight_tracks};
+use super::gltf::{
+    AnimationTracks, Instance, MeshNames, WeightTrack, mesh_target_count, weight_tracks,
+};
 use crate::rig::{Interpolation, MAX_TARGETS, RigError, TargetId};
 
 /// The channels of a document: their names and default weights, and the channel of each
@@ -120,15 +122,15 @@ impl Curve<'_> {
 
 /// Partitions the (node, target) pairs of `instances` into weight channels by their names
 /// (`names`, read once per mesh), default weights and the curves every animation gives them
-/// (see the module documentation). Each animation's keyframes are decoded, compared and
-/// released in turn, charged to the source's budget; so are the channel names the plan keeps.
-/// More than [`MAX_TARGETS`] channels is refused.
+/// (see the module documentation). Every animation's keyframes are decoded once, charged to
+/// the source's budget, and returned with the plan (still charged) for baking; the channel
+/// names the plan keeps are charged too. More than [`MAX_TARGETS`] channels is refused.
 pub(crate) fn plan_channels(
     doc: &gltf::Document,
     source: &Source<'_>,
     instances: &[Instance<'_>],
     names: &MeshNames,
-) -> Result<ChannelPlan, ImportError> {
+) -> Result<(ChannelPlan, Vec<AnimationTracks>), ImportError> {
     let budget = source.budget();
     let mut counts = Vec::with_capacity(instances.len());
     for inst in instances {
@@ -174,13 +176,10 @@ pub(crate) fn plan_channels(
         .enumerate()
         .map(|(i, inst)| (inst.node.index(), i))
         .collect();
-    let lookup = |node: &gltf::Node<'_>| {
-        node_instance
-            .get(&node.index())
-            .map(|&i| vec![Vec::new(); counts[i]])
-    };
+    let width = |node: &gltf::Node<'_>| node_instance.get(&node.index()).map(|&i| counts[i]);
+    let mut animations = Vec::new();
     for anim in doc.animations() {
-        let tracks = weight_tracks(source, &anim, &lookup)?;
+        let tracks = weight_tracks(source, &anim, &width)?;
         if tracks.is_empty() {
             continue;
         }
@@ -225,7 +224,10 @@ pub(crate) fn plan_channels(
         }
         n_classes = next;
         drop(buckets);
-        budget.release(super::gltf::tracks_bytes(&tracks));
+        animations.push(AnimationTracks {
+            index: anim.index(),
+            tracks,
+        });
     }
 
     // Channel ids: first the class of each name's first pair, in the order names first
@@ -275,7 +277,7 @@ pub(crate) fn plan_channels(
     drop(names_of);
     // What stays is the node → channel map (4 bytes a pair) and the channel names.
     budget.release(bookkeeping.saturating_sub(total * 4));
-    Ok(plan)
+    Ok((plan, animations))
 }
 
 /// Checks that an animation matched node by node onto `rig` gives every weight channel one

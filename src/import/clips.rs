@@ -415,10 +415,16 @@ pub fn clips_from_gltf(
         by_node = node_channels(rig, &instances, &names);
     }
     drop(names);
-    let lookup = |node: &gltf::Node<'_>| by_node.get(&node.index()).cloned();
+    let width = |node: &gltf::Node<'_>| by_node.get(&node.index()).map(Vec::len);
+    let channels = |node: usize, k: usize| -> &[TargetId] {
+        by_node
+            .get(&node)
+            .and_then(|ids| ids.get(k))
+            .map_or(&[], Vec::as_slice)
+    };
     let mut out: Vec<ClipImport> = Vec::new();
     for anim in parsed.doc.animations() {
-        let tracks = weight_tracks(&parsed.source, &anim, &lookup)?;
+        let tracks = weight_tracks(&parsed.source, &anim, &width)?;
         if tracks.is_empty() {
             continue;
         }
@@ -436,6 +442,7 @@ pub fn clips_from_gltf(
         let clip = bake(
             &name,
             &tracks,
+            channels,
             rig.targets.len(),
             &rig.default_weights,
             options.fps,

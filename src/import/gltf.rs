@@ -60,9 +60,12 @@ pub struct GltfImport<'a> {
     parsed: Parsed<'a>,
     /// Which (node, target) pairs share a weight channel.
     plan: ChannelPlan,
+    /// Every animation's weight tracks, decoded once to make the plan and kept (charged to
+    /// the budget) until [`GltfImport::build`] bakes them.
+    animations: Vec<AnimationTracks>,
     shape: RigShape,
-    /// Largest transient decode of one primitive or animation (dense target deltas, raw
-    /// indices, keyframes), beyond the rig's own arrays.
+    /// Largest transient decode of one primitive (dense target deltas, raw indices), beyond
+    /// the rig's own arrays.
     transient: u64,
 }
 
@@ -72,10 +75,11 @@ impl<'a> GltfImport<'a> {
     /// counts alone break (targets, vertices, frames) are refused here, before any decoding.
     pub fn open(bytes: &'a [u8], options: &ImportOptions) -> Result<GltfImport<'a>, ImportError> {
         let parsed = parse(bytes, options)?;
-        let (shape, transient, plan) = document_shape(&parsed, options)?;
+        let (shape, transient, plan, animations) = document_shape(&parsed, options)?;
         Ok(GltfImport {
             parsed,
             plan,
+            animations,
             shape,
             transient,
         })
@@ -86,15 +90,15 @@ impl<'a> GltfImport<'a> {
         &self.shape
     }
 
-    /// Most bytes the import holds at once beyond what the budget already holds: the rig's
-    /// arrays plus the largest transient decode.
+    /// Most bytes the import holds at once beyond what the budget already holds (which
+    /// includes the decoded keyframes): the rig's arrays plus the largest transient decode.
     pub fn import_bytes(&self) -> u64 {
         self.shape.cost(false).rig + self.transient
     }
 
     /// Decodes and builds the rig, charging every allocation to the budget.
     pub fn build(self, options: &ImportOptions) -> Result<Rig, ImportError> {
-        build_rig(&self.parsed, self.plan, options)
+        build_rig(&self.parsed, self.plan, self.animations, options)
     }
 }
 
@@ -710,15 +714,15 @@ fn list_len(prim: &gltf::Primitive<'_>, vertices: usize) -> u64 {
 }
 
 /// The shape of the rig a document describes, from its headers, the largest transient decode
-/// of one primitive or animation, and the weight channels. Counts that break a limit on their
-/// own are refused first: too many target names, too many vertices, clips with too many
-/// frames; only animation times whose accessor declares no `max` are decoded for that (and
-/// charged). Then the animations' keyframes are decoded, one animation at a time, to tell
-/// which nodes share a channel ([`plan_channels`]), which gives the clip tables' exact size.
+/// of one primitive, the weight channels and the decoded keyframes. Counts that break a limit
+/// on their own are refused first: too many target names, too many vertices, clips too long
+/// by their declared key times. Then every animation's keyframes are decoded (charged, and
+/// kept for baking) to tell which nodes share a channel ([`plan_channels`]), which gives the
+/// clip tables' exact size; clips whose key times declare no `max` are measured on them.
 fn document_shape(
     parsed: &Parsed<'_>,
     options: &ImportOptions,
-) -> Result<(RigShape, u64, ChannelPlan), ImportError> {
+) -> Result<(RigShape, u64, ChannelPlan, Vec<AnimationTracks>), ImportError> {
     let doc = &parsed.doc;
     let instances = scene_instances(doc)?;
     let names = MeshNames::read(doc, &instances, parsed.source.budget())?;
@@ -784,64 +788,81 @@ fn document_shape(
             primitives.push(PrimShape::upper_bound(n, indices, tangents, k, kn, kt));
         }
     }
+    // Clip lengths from the declared key times first, so that a clip too long on its
+    // headers alone is refused before any keyframe is decoded; animations with a channel
+    // that declares no `max` wait for the decoded keyframes below.
+    let anim_label = |anim: &gltf::Animation<'_>| {
+        anim.name()
+            .map_or_else(|| format!("#{}", anim.index()), str::to_string)
+    };
+    let too_long = |anim: &gltf::Animation<'_>, last: f32| ImportError::Animation {
+        animation: anim_label(anim),
+        problem: format!(
+            "lasts {last} s: more than {MAX_FRAMES} frames at {} fps",
+            options.fps
+        ),
+    };
     let mut clip_frames = 0u64;
+    let mut undeclared = Vec::new();
     for anim in doc.animations() {
         let mut last = None::<f32>;
-        let mut keys = 0u64;
+        let mut complete = true;
         for channel in anim.channels() {
             if channel.target().property() != Property::MorphTargetWeights
                 || !node_targets.contains_key(&channel.target().node().index())
             {
                 continue;
             }
-            let sampler = channel.sampler();
-            let input = sampler.input();
-            keys += (input.count() + sampler.output().count()) as u64 * 4;
-            let declared = input
-                .max()
-                .and_then(|m| {
-                    m.as_array()
-                        .and_then(|a| a.first())
-                        .and_then(|v| v.as_f64())
-                })
-                .map(|m| m as f32);
-            let t = match declared {
-                Some(t) => t,
-                None => {
-                    let times = parsed.source.read_f32(&input)?;
-                    let t = if times.iter().all(|t| t.is_finite()) {
-                        times.iter().copied().fold(0f32, f32::max)
-                    } else {
-                        f32::NAN
-                    };
-                    parsed.source.budget().release(times.len() as u64 * 4);
-                    t
-                }
+            let Some(t) = declared_last(&channel.sampler().input()) else {
+                complete = false;
+                continue;
             };
             if !t.is_finite() {
                 return Err(ImportError::Animation {
-                    animation: anim
-                        .name()
-                        .map_or_else(|| format!("#{}", anim.index()), str::to_string),
+                    animation: anim_label(&anim),
                     problem: "key times are non-finite".into(),
                 });
             }
             last = Some(last.map_or(t, |l: f32| l.max(t)));
         }
-        let Some(last) = last else { continue };
-        let frames = baked_frames(last, options.fps).ok_or_else(|| ImportError::Animation {
-            animation: anim
-                .name()
-                .map_or_else(|| format!("#{}", anim.index()), str::to_string),
-            problem: format!(
-                "lasts {last} s: more than {MAX_FRAMES} frames at {} fps",
-                options.fps
-            ),
-        })?;
-        clip_frames += frames as u64;
-        transient = transient.max(keys);
+        if let Some(last) = last {
+            baked_frames(last, options.fps).ok_or_else(|| too_long(&anim, last))?;
+        }
+        match (complete, last) {
+            (false, _) => undeclared.push(anim.index()),
+            (true, Some(last)) => {
+                clip_frames += baked_frames(last, options.fps).unwrap_or(0) as u64;
+            }
+            (true, None) => {}
+        }
     }
-    let plan = plan_channels(doc, &parsed.source, &instances, &names)?;
+    // The keyframes are decoded once, here, to tell which nodes share a channel; they stay
+    // charged (in the budget's use) until the build bakes them.
+    let (plan, animations) = plan_channels(doc, &parsed.source, &instances, &names)?;
+    for decoded in animations
+        .iter()
+        .filter(|d| undeclared.binary_search(&d.index).is_ok())
+    {
+        let Some(anim) = doc.animations().nth(decoded.index) else {
+            continue;
+        };
+        // A channel's end is its declared `max`, else its last key (the keys are checked to
+        // be finite and increasing).
+        let last = decoded
+            .tracks
+            .iter()
+            .map(|t| {
+                doc.accessors()
+                    .nth(t.times_accessor)
+                    .and_then(|a| declared_last(&a))
+                    .unwrap_or_else(|| t.track.last_time().max(0.0))
+            })
+            .fold(None::<f32>, |l, t| Some(l.map_or(t, |l| l.max(t))));
+        if let Some(last) = last {
+            let frames = baked_frames(last, options.fps).ok_or_else(|| too_long(&anim, last))?;
+            clip_frames += frames as u64;
+        }
+    }
     let n_targets = plan.len() as u64;
     Ok((
         RigShape {
@@ -852,6 +873,7 @@ fn document_shape(
         },
         transient,
         plan,
+        animations,
     ))
 }
 
@@ -917,10 +939,23 @@ fn triangle_indices(
 fn build_rig(
     parsed: &Parsed<'_>,
     plan: ChannelPlan,
+    animations: Vec<AnimationTracks>,
     options: &ImportOptions,
 ) -> Result<Rig, ImportError> {
     let doc = &parsed.doc;
     let source = &parsed.source;
+    // The clips first: baking releases the keyframes the plan decoded before the geometry's
+    // decodes need the memory.
+    let n_targets = plan.len();
+    let clips = bake_animations(
+        doc,
+        source,
+        animations,
+        &plan.node_channels,
+        n_targets,
+        &plan.defaults,
+        options.fps,
+    )?;
     let instances = scene_instances(doc)?;
     let mut primitives = Vec::new();
 
@@ -1093,15 +1128,6 @@ fn build_rig(
         }
     }
 
-    let n_targets = plan.len();
-    let clips = bake_animations(
-        doc,
-        source,
-        &plan.node_channels,
-        n_targets,
-        &plan.defaults,
-        options.fps,
-    )?;
     let lod = Lod::by_delta_energy(&primitives, n_targets);
     let rig = Rig {
         name: options.name.clone().unwrap_or_else(|| "rig".into()),
@@ -1124,22 +1150,43 @@ pub(crate) fn tracks_bytes(tracks: &[WeightTrack]) -> u64 {
         .sum()
 }
 
-/// One `weights` channel resolved to rig-wide targets.
+/// One `weights` channel, decoded. Which weight channels its scalars write is the caller's
+/// business (see [`bake`]): the rig's own file writes each node's channels, a clip by name
+/// every channel of the name.
 pub(crate) struct WeightTrack {
     /// The node the channel animates.
     pub(crate) node: usize,
+    /// The accessor of its key times (whose declared `max` may stand for the last one).
+    pub(crate) times_accessor: usize,
     pub(crate) track: KeyTrack,
-    /// The weight channels each of the track's `width` scalars writes (none: a target the
-    /// rig does not have; several: a clip addressed by name onto a name with several channels).
-    pub(crate) targets: Vec<Vec<TargetId>>,
 }
 
-/// Reads the `weights` channels of one animation. `node_targets(node)` maps a node to the
-/// weight channels each of its mesh's targets writes (empty for targets the rig does not have).
+/// The weight tracks of one animation of the rig's file, decoded while planning the channels
+/// and kept until they are baked.
+pub(crate) struct AnimationTracks {
+    /// The animation's index in the document.
+    pub(crate) index: usize,
+    pub(crate) tracks: Vec<WeightTrack>,
+}
+
+/// The last key time an accessor of key times declares (its `max`), if it declares one.
+fn declared_last(times: &gltf::Accessor<'_>) -> Option<f32> {
+    times
+        .max()
+        .and_then(|m| {
+            m.as_array()
+                .and_then(|a| a.first())
+                .and_then(serde_json::Value::as_f64)
+        })
+        .map(|m| m as f32)
+}
+
+/// Reads the `weights` channels of one animation. `width(node)` is the number of morph targets
+/// of the node's mesh, `None` for a node outside the rig (its channels are skipped).
 pub(crate) fn weight_tracks(
     source: &Source<'_>,
     anim: &gltf::Animation<'_>,
-    node_targets: &dyn Fn(&gltf::Node<'_>) -> Option<Vec<Vec<TargetId>>>,
+    width: &dyn Fn(&gltf::Node<'_>) -> Option<usize>,
 ) -> Result<Vec<WeightTrack>, ImportError> {
     let label = anim
         .name()
@@ -1154,7 +1201,7 @@ pub(crate) fn weight_tracks(
             continue;
         }
         let node = channel.target().node();
-        let Some(ids) = node_targets(&node) else {
+        let Some(width) = width(&node) else {
             tracing::warn!(animation = %label, node = node.index(), "weights channel targets a node outside the rig; ignored");
             continue;
         };
@@ -1173,14 +1220,14 @@ pub(crate) fn weight_tracks(
         let track = KeyTrack {
             times,
             values,
-            width: ids.len(),
+            width,
             interpolation,
         };
         track.check().map_err(&bad)?;
         tracks.push(WeightTrack {
             node: node.index(),
+            times_accessor: input.index(),
             track,
-            targets: ids,
         });
     }
     Ok(tracks)
@@ -1189,10 +1236,12 @@ pub(crate) fn weight_tracks(
 /// Bakes weight tracks into a `targets × frames` table at `fps`.
 ///
 /// Frame `f` samples `t = f / fps` on the glTF timeline; the clip has
-/// `floor(last_key_time × fps) + 1` frames. Targets no track drives hold `defaults`.
-pub(crate) fn bake(
+/// `floor(last_key_time × fps) + 1` frames. Targets no track drives hold `defaults`. Scalar `k`
+/// of a track on node `n` writes the weight channels `channels(n, k)`.
+pub(crate) fn bake<'c>(
     name: &str,
     tracks: &[WeightTrack],
+    channels: impl Fn(usize, usize) -> &'c [TargetId],
     n_targets: usize,
     defaults: &[f32],
     fps: f32,
@@ -1213,13 +1262,20 @@ pub(crate) fn bake(
     for (t, row) in weights.chunks_exact_mut(frames.max(1)).enumerate() {
         row.fill(defaults.get(t).copied().unwrap_or(0.0));
     }
+    // Per track: one sample and one channel list per scalar (charged: a track may be wide).
+    let widest = tracks.iter().map(|t| t.track.width).max().unwrap_or(0) as u64;
+    let scratch = widest * (4 + 16);
+    budget.charge(scratch, || format!("baking clip {name:?}"))?;
     let mut tmp = Vec::new();
+    let mut ids: Vec<&[TargetId]> = Vec::new();
     for wt in tracks {
         tmp.resize(wt.track.width, 0.0);
+        ids.clear();
+        ids.extend((0..wt.track.width).map(|k| channels(wt.node, k)));
         for f in 0..frames {
             sample_track(&wt.track, f as f32 / fps, &mut tmp);
-            for (i, ids) in wt.targets.iter().enumerate() {
-                for &id in ids {
+            for (i, ids) in ids.iter().enumerate() {
+                for &id in *ids {
                     if let Some(w) = weights.get_mut(id as usize * frames + f) {
                         *w = tmp[i];
                     }
@@ -1227,6 +1283,8 @@ pub(crate) fn bake(
             }
         }
     }
+    drop((tmp, ids));
+    budget.release(scratch);
     Ok(Clip::new(name, fps, n_targets, frames, weights)?)
 }
 
@@ -1241,34 +1299,41 @@ pub(crate) fn unique_name(name: String, taken: &[String]) -> String {
         .unwrap_or(name)
 }
 
+/// Bakes the animations the plan decoded, one at a time, releasing each one's keyframes once
+/// its table is made.
 fn bake_animations(
     doc: &gltf::Document,
     source: &Source<'_>,
-    node_targets: &HashMap<usize, Vec<TargetId>>,
+    animations: Vec<AnimationTracks>,
+    node_channels: &HashMap<usize, Vec<TargetId>>,
     n_targets: usize,
     defaults: &[f32],
     fps: f32,
 ) -> Result<Vec<Clip>, ImportError> {
-    let lookup = |node: &gltf::Node<'_>| {
-        node_targets
-            .get(&node.index())
-            .map(|ids| ids.iter().map(|&i| vec![i]).collect())
+    let channels = |node: usize, k: usize| -> &[TargetId] {
+        node_channels
+            .get(&node)
+            .and_then(|ids| ids.get(k))
+            .map_or(&[], std::slice::from_ref)
     };
     let mut clips: Vec<Clip> = Vec::new();
-    for anim in doc.animations() {
-        let tracks = weight_tracks(source, &anim, &lookup)?;
+    for decoded in animations {
+        let tracks = decoded.tracks;
         if tracks.is_empty() {
             continue;
         }
-        let name = anim
-            .name()
+        let name = doc
+            .animations()
+            .nth(decoded.index)
+            .and_then(|a| a.name().map(str::to_string))
             .filter(|n| !n.is_empty())
-            .map_or_else(|| format!("anim{}", anim.index()), str::to_string);
+            .unwrap_or_else(|| format!("anim{}", decoded.index));
         let taken: Vec<String> = clips.iter().map(|c| c.name.clone()).collect();
         let name = unique_name(name, &taken);
         clips.push(bake(
             &name,
             &tracks,
+            channels,
             n_targets,
             defaults,
             fps,
