@@ -17,7 +17,7 @@ use gltf::animation::{Interpolation as GltfInterpolation, Property};
 use gltf::mesh::{Mode, Semantic};
 use serde::Deserialize;
 
-use super::accessor::Source;
+use super::accessor::{CompressedView, Source};
 use super::channels::{ChannelPlan, plan_channels};
 use super::{ImportError, ImportOptions};
 use super::{extensions, meshopt};
@@ -64,8 +64,9 @@ pub struct GltfImport<'a> {
     /// the budget) until [`GltfImport::build`] bakes them.
     animations: Vec<AnimationTracks>,
     shape: RigShape,
-    /// Largest transient decode of one primitive (dense target deltas, raw indices), beyond
-    /// the rig's own arrays.
+    /// Largest transient decode of one primitive (dense target deltas, raw indices), plus the
+    /// compressed views the geometry reads, decoded during the build and kept until its end,
+    /// beyond the rig's own arrays.
     transient: u64,
 }
 
@@ -242,13 +243,14 @@ pub(crate) fn parse<'a>(
             }
         });
     }
-    let mut decoded = HashMap::new();
+    // Compressed views: headers checked now, bytes decoded when an accessor first reads them.
+    let mut compressed = HashMap::new();
     for view in doc.views() {
         let Some(ext) = meshopt::view_extension(&view) else {
             continue;
         };
         let (name, ext) = ext?;
-        let compressed = buffers.get(ext.buffer).ok_or_else(|| {
+        let data = buffers.get(ext.buffer).ok_or_else(|| {
             ImportError::Invalid(format!(
                 "bufferViews[{}].extensions.{name} refers to buffer {} of {}",
                 view.index(),
@@ -256,13 +258,12 @@ pub(crate) fn parse<'a>(
                 buffers.len()
             ))
         })?;
-        let words =
-            meshopt::decode_view(view.index(), name, &ext, view.length(), compressed, &budget)?;
-        decoded.insert(view.index(), words);
+        meshopt::check_view(view.index(), name, &ext, view.length(), data.len())?;
+        compressed.insert(view.index(), CompressedView::new(name, ext, view.length()));
     }
     Ok(Parsed {
         doc,
-        source: Source::new(buffers, decoded, budget),
+        source: Source::new(buffers, compressed, budget),
     })
 }
 
@@ -732,6 +733,14 @@ fn document_shape(
     let mut node_targets: HashMap<usize, usize> = HashMap::new();
     let mut transient = 0u64;
     let mut vertices = 0u64;
+    // Which buffer views the geometry's accessors read: the compressed ones among them are
+    // decoded during the build, so their decoded bytes join the estimate.
+    let views = doc.views().len();
+    parsed
+        .source
+        .budget()
+        .charge(views as u64, || format!("a mark per buffer view ({views})"))?;
+    let mut read_views = vec![false; views];
     for inst in &instances {
         let count = mesh_target_count(&inst.mesh)?;
         for name in names.of(&inst.mesh) {
@@ -749,18 +758,26 @@ fn document_shape(
             let Some(pos) = prim.get(&Semantic::Positions) else {
                 continue;
             };
+            let mut check = |acc: gltf::Accessor<'_>| -> Result<(), ImportError> {
+                for v in parsed.source.check_bounds(&acc)?.into_iter().flatten() {
+                    if let Some(r) = read_views.get_mut(v) {
+                        *r = true;
+                    }
+                }
+                Ok(())
+            };
             for (_, acc) in prim.attributes() {
-                parsed.source.check_bounds(&acc)?;
+                check(acc)?;
             }
             if let Some(acc) = prim.indices() {
-                parsed.source.check_bounds(&acc)?;
+                check(acc)?;
             }
             for t in prim.morph_targets() {
                 for acc in [t.positions(), t.normals(), t.tangents()]
                     .into_iter()
                     .flatten()
                 {
-                    parsed.source.check_bounds(&acc)?;
+                    check(acc)?;
                 }
             }
             let n = pos.count() as u64;
@@ -863,6 +880,17 @@ fn document_shape(
             clip_frames += frames as u64;
         }
     }
+    // Compressed views the geometry reads, not decoded yet (the keyframes' were, above): they
+    // stay decoded for the whole build.
+    let decompress = parsed.source.pending_decode_bytes(
+        read_views
+            .iter()
+            .enumerate()
+            .filter_map(|(v, &read)| read.then_some(v)),
+    );
+    drop(read_views);
+    parsed.source.budget().release(views as u64);
+    let transient = transient + decompress;
     let n_targets = plan.len() as u64;
     Ok((
         RigShape {
