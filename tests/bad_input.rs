@@ -773,13 +773,15 @@ proptest! {
 /// bytes of JSON per node that once made the importer rebuild (and hold) a megabyte of names
 /// per node, uncharged.
 fn long_names_many_nodes() -> (Builder, Vec<String>) {
-    let names: Vec<String> = ["a", "b"]
-        .iter()
-        .map(|c| c.repeat(512 << 10))
-        .collect();
+    let names: Vec<String> = ["a", "b"].iter().map(|c| c.repeat(512 << 10)).collect();
     let refs: Vec<&str> = names.iter().map(String::as_str).collect();
     let mut b = Builder::new();
-    let mesh = b.mesh_with_targets(&TRIANGLE, Some(&[0, 1, 2]), &triangle_targets(), Some(&refs));
+    let mesh = b.mesh_with_targets(
+        &TRIANGLE,
+        Some(&[0, 1, 2]),
+        &triangle_targets(),
+        Some(&refs),
+    );
     let nodes: Vec<usize> = (0..100).map(|_| b.node(Some(mesh))).collect();
     b.scene(&nodes);
     (b, names)
@@ -802,9 +804,16 @@ fn import_charges_target_names_once_per_mesh_not_per_node() {
     assert_eq!(rig.primitives.len(), 100);
     // The names are charged (the document's text alone is not what holds them)...
     let peak = budget.peak() as usize;
-    assert!(peak >= glb.len() + text, "peak {peak} < file {} + names {text}", glb.len());
+    assert!(
+        peak >= glb.len() + text,
+        "peak {peak} < file {} + names {text}",
+        glb.len()
+    );
     // ... once for the mesh (and once for the rig's channels), not once per node.
-    assert!(peak < glb.len() + 8 * text, "peak {peak}: names charged per node?");
+    assert!(
+        peak < glb.len() + 8 * text,
+        "peak {peak}: names charged per node?"
+    );
     // A budget that holds the document but not its names twice refuses the import.
     let e = error(load_with(
         &glb,

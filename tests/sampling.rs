@@ -534,7 +534,11 @@ fn import_decodes_keyframes_once_and_holds_them_charged_until_baked() {
     let ahead = import.import_bytes();
     let rig = import.build(&options).expect("builds");
     // The build stays within what the headers and the held keyframes promised ...
-    assert!(budget.peak() <= held + ahead, "peak {} > {held} + {ahead}", budget.peak());
+    assert!(
+        budget.peak() <= held + ahead,
+        "peak {} > {held} + {ahead}",
+        budget.peak()
+    );
     // ... and gives the keyframes back once baked: what stays is less than the rig's arrays
     // on top of what open held without them.
     assert!(

@@ -22,12 +22,11 @@ use serde::Deserialize;
 
 use super::channels::curves_agree;
 use super::gltf::{
-    Instance, MeshNames, bake, parse, scene_instances, tracks_bytes,
-    unique_name, weight_tracks,
+    Instance, MeshNames, bake, parse, scene_instances, tracks_bytes, unique_name, weight_tracks,
 };
 use super::{ImportError, ImportOptions};
 use crate::budget::Budget;
-use crate::rig::{Clip, DEFAULT_FPS, MAX_FRAMES, Rig, TargetId};
+use crate::rig::{Clip, DEFAULT_FPS, MAX_FRAMES, Rig, TargetId, TargetIndex};
 
 /// Options for reading a clip source.
 #[derive(Clone, Debug)]
@@ -117,20 +116,85 @@ pub fn match_targets(rig: &Rig, name: &str) -> Vec<TargetId> {
     match_name(rig, name).map_or_else(Vec::new, |n| rig.target_ids(n))
 }
 
+/// A rig's targets by exact and by loose name, built once per clip source, so that each
+/// source name costs two hash probes rather than a scan (and a loose spelling) of every rig
+/// channel: what [`match_targets`] answers, for many names.
+struct Matcher<'r> {
+    exact: TargetIndex<'r>,
+    /// Loose spelling → the one rig name with it (`None` when several names share it).
+    loose: HashMap<String, Option<&'r str>>,
+}
+
+impl<'r> Matcher<'r> {
+    /// Bytes a matcher of `rig` holds at most: the exact index, and per name a loose spelling
+    /// (at most the name's text) in a map entry at the table's worst load factor.
+    fn bytes(rig: &Rig) -> u64 {
+        let n = rig.targets.len() as u64;
+        let text: u64 = rig.targets.iter().map(|t| t.len() as u64).sum();
+        TargetIndex::bytes_for(rig.targets.len()) + text + n * 2 * (24 + 16 + 1)
+    }
+
+    /// The matcher of `rig`; the caller has charged [`Matcher::bytes`].
+    fn new(rig: &'r Rig) -> Matcher<'r> {
+        let exact = rig.target_index();
+        let mut loose_names: HashMap<String, Option<&'r str>> = HashMap::new();
+        for name in exact.names() {
+            loose_names
+                .entry(loose(name))
+                .and_modify(|m| *m = None)
+                .or_insert(Some(name));
+        }
+        Matcher {
+            exact,
+            loose: loose_names,
+        }
+    }
+
+    /// Every weight channel of the rig target `name` refers to: the same name, else the only
+    /// one that matches loosely (empty: none).
+    fn ids(&self, name: &str) -> &[TargetId] {
+        let exact = self.exact.ids(name);
+        if !exact.is_empty() {
+            return exact;
+        }
+        match self.loose.get(&loose(name)) {
+            Some(Some(n)) => self.exact.ids(n),
+            _ => &[],
+        }
+    }
+}
+
 /// Maps source column names to the weight channels they write, collecting the unknown ones.
+/// The rig's names are indexed once per source (charged to `budget` while they are).
 fn map_names(
     rig: &Rig,
+    names: &[String],
+    options: &ClipOptions,
+    budget: &Budget,
+) -> Result<(Vec<Vec<TargetId>>, Vec<String>), ImportError> {
+    let bytes = Matcher::bytes(rig);
+    budget.charge(bytes, || format!("the target names of rig {:?}", rig.name))?;
+    let matcher = Matcher::new(rig);
+    let mapped = map_with(&matcher, names, options);
+    drop(matcher);
+    budget.release(bytes);
+    mapped
+}
+
+/// [`map_names`] with the rig's names already indexed.
+fn map_with(
+    matcher: &Matcher<'_>,
     names: &[String],
     options: &ClipOptions,
 ) -> Result<(Vec<Vec<TargetId>>, Vec<String>), ImportError> {
     let mut ids = Vec::with_capacity(names.len());
     let mut unknown = Vec::new();
     for n in names {
-        let id = match_targets(rig, n);
+        let id = matcher.ids(n);
         if id.is_empty() {
             unknown.push(n.clone());
         }
-        ids.push(id);
+        ids.push(id.to_vec());
     }
     if !unknown.is_empty() && !options.ignore_unknown {
         return Err(ImportError::UnknownTargets(unknown));
@@ -223,8 +287,8 @@ pub fn clip_from_csv(
             "CSV header names no targets".into(),
         ));
     }
-    let (ids, ignored) = map_names(rig, &names, options)?;
     let budget = options.budget();
+    let (ids, ignored) = map_names(rig, &names, options, &budget)?;
     // A parsed row: its vector header and weights.
     let row_bytes = 24 + 4 * keep.len() as u64;
     let mut rows = Vec::new();
@@ -278,7 +342,7 @@ pub fn clip_from_json(
     budget.charge(parsed, || "the JSON clip".into())?;
     let src: JsonClip =
         serde_json::from_slice(bytes).map_err(|e| ImportError::ClipSource(format!("JSON: {e}")))?;
-    let (ids, ignored) = map_names(rig, &src.targets, options)?;
+    let (ids, ignored) = map_names(rig, &src.targets, options, &budget)?;
     if let Some((f, row)) = src
         .frames
         .iter()
@@ -390,16 +454,22 @@ pub fn clips_from_gltf(
     let parsed = parse(bytes, &import)?;
     let instances = scene_instances(&parsed.doc)?;
     let names = MeshNames::read(&parsed.doc, &instances, parsed.source.budget())?;
+    let matcher_bytes = Matcher::bytes(rig);
+    parsed.source.budget().charge(matcher_bytes, || {
+        format!("the target names of rig {:?}", rig.name)
+    })?;
+    let matcher = Matcher::new(rig);
     let mut ignored = Vec::new();
+    let mut ignored_set = std::collections::HashSet::new();
     // Each mesh's names are matched once, however many nodes instance it.
     let mut by_mesh: HashMap<usize, Vec<Vec<TargetId>>> = HashMap::new();
     let mut by_node = HashMap::new();
     for inst in &instances {
         let m = inst.mesh.index();
         if !by_mesh.contains_key(&m) {
-            let (ids, unknown) = map_names(rig, names.of(&inst.mesh), options)?;
+            let (ids, unknown) = map_with(&matcher, names.of(&inst.mesh), options)?;
             for u in unknown {
-                if !ignored.contains(&u) {
+                if ignored_set.insert(u.clone()) {
                     ignored.push(u);
                 }
             }
@@ -410,6 +480,8 @@ pub fn clips_from_gltf(
         }
     }
     drop(by_mesh);
+    drop(matcher);
+    parsed.source.budget().release(matcher_bytes);
     let per_node = same_scene(rig, &instances);
     if per_node {
         by_node = node_channels(rig, &instances, &names);
@@ -464,7 +536,32 @@ pub fn clips_from_gltf(
 
 #[cfg(test)]
 mod tests {
-    use super::loose;
+    use super::{Matcher, loose, match_targets};
+
+    #[test]
+    fn the_matcher_maps_names_as_one_lookup_each_does() {
+        let rig = crate::embedded::default_rig();
+        let matcher = Matcher::new(&rig);
+        let mut names: Vec<String> = rig.targets.clone();
+        // Loose spellings, a name no rig target has, and a loose clash made below.
+        names.extend(
+            ["EyeBlinkLeft", "JAW_OPEN", "mouthSmileRight", "noSuchShape"].map(String::from),
+        );
+        for n in &names {
+            assert_eq!(matcher.ids(n), match_targets(&rig, n), "{n}");
+        }
+        assert!(!matcher.ids("EyeBlinkLeft").is_empty());
+        assert!(matcher.ids("noSuchShape").is_empty());
+        // Two rig names with one loose spelling: only exact names match them.
+        let mut clash = rig.clone();
+        clash.targets[0] = "eye_blink_l".into();
+        clash.targets[1] = "EyeBlink_L".into();
+        let matcher = Matcher::new(&clash);
+        for n in ["eyeblinkl", "eye_blink_l", "EyeBlink_L", "eyeBlinkLeft"] {
+            assert_eq!(matcher.ids(n), match_targets(&clash, n), "{n}");
+        }
+        assert!(matcher.ids("eyeblinkl").is_empty());
+    }
 
     #[test]
     fn loose_names_match_arkit_spellings() {
