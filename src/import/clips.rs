@@ -16,6 +16,7 @@
 //! naming them. A glTF file with other meshes (an animation-only export) is matched by name.
 
 use std::collections::HashMap;
+use std::collections::hash_map::Entry;
 use std::sync::Arc;
 
 use serde::Deserialize;
@@ -465,19 +466,19 @@ pub fn clips_from_gltf(
     let mut by_mesh: HashMap<usize, Vec<Vec<TargetId>>> = HashMap::new();
     let mut by_node = HashMap::new();
     for inst in &instances {
-        let m = inst.mesh.index();
-        if !by_mesh.contains_key(&m) {
-            let (ids, unknown) = map_with(&matcher, names.of(&inst.mesh), options)?;
-            for u in unknown {
-                if ignored_set.insert(u.clone()) {
-                    ignored.push(u);
+        let ids = match by_mesh.entry(inst.mesh.index()) {
+            Entry::Occupied(e) => e.into_mut(),
+            Entry::Vacant(e) => {
+                let (ids, unknown) = map_with(&matcher, names.of(&inst.mesh), options)?;
+                for u in unknown {
+                    if ignored_set.insert(u.clone()) {
+                        ignored.push(u);
+                    }
                 }
+                e.insert(ids)
             }
-            by_mesh.insert(m, ids);
-        }
-        if let Some(ids) = by_mesh.get(&m) {
-            by_node.insert(inst.node.index(), ids.clone());
-        }
+        };
+        by_node.insert(inst.node.index(), ids.clone());
     }
     drop(by_mesh);
     drop(matcher);
