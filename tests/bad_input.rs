@@ -768,3 +768,59 @@ proptest! {
         prop_assert!(matches!(result, Ok(Err(ImportError::Glb(_)))), "cut at {}: {:?}", cut, result.map(|r| r.err()));
     }
 }
+
+/// A mesh whose two target names are 512 KiB each, instanced by 100 nodes: a few hundred
+/// bytes of JSON per node that once made the importer rebuild (and hold) a megabyte of names
+/// per node, uncharged.
+fn long_names_many_nodes() -> (Builder, Vec<String>) {
+    let names: Vec<String> = ["a", "b"].iter().map(|c| c.repeat(512 << 10)).collect();
+    let refs: Vec<&str> = names.iter().map(String::as_str).collect();
+    let mut b = Builder::new();
+    let mesh = b.mesh_with_targets(
+        &TRIANGLE,
+        Some(&[0, 1, 2]),
+        &triangle_targets(),
+        Some(&refs),
+    );
+    let nodes: Vec<usize> = (0..100).map(|_| b.node(Some(mesh))).collect();
+    b.scene(&nodes);
+    (b, names)
+}
+
+#[test]
+fn import_charges_target_names_once_per_mesh_not_per_node() {
+    use crowdmorph::budget::Budget;
+    use std::sync::Arc;
+    let (b, names) = long_names_many_nodes();
+    let glb = b.to_glb();
+    let text: usize = names.iter().map(String::len).sum();
+    let budget = Arc::new(Budget::new(1 << 30, "--max-upload-memory", None));
+    let options = ImportOptions {
+        budget: Some(budget.clone()),
+        ..ImportOptions::default()
+    };
+    let rig = load_with(&glb, &options).expect("imports");
+    assert_eq!(rig.targets, names);
+    assert_eq!(rig.primitives.len(), 100);
+    // The names are charged (the document's text alone is not what holds them)...
+    let peak = budget.peak() as usize;
+    assert!(
+        peak >= glb.len() + text,
+        "peak {peak} < file {} + names {text}",
+        glb.len()
+    );
+    // ... once for the mesh (and once for the rig's channels), not once per node.
+    assert!(
+        peak < glb.len() + 8 * text,
+        "peak {peak}: names charged per node?"
+    );
+    // A budget that holds the document but not its names twice refuses the import.
+    let e = error(load_with(
+        &glb,
+        &ImportOptions {
+            max_decoded_bytes: peak - text,
+            ..ImportOptions::default()
+        },
+    ));
+    assert!(matches!(e, ImportError::Budget(_)), "{e:?}");
+}

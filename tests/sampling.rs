@@ -492,3 +492,73 @@ fn json_clip_lands_in_the_right_rows_and_frames() {
     assert_eq!(clip.fps, 50.0);
     assert_eq!(row(&rig, &clip, "jawOpen"), [0.5]);
 }
+
+/// The keyframes of a rig's own animations are decoded once, to plan the weight channels, and
+/// held (charged to the import's budget) until they are baked, then released; a clip whose
+/// key times declare their `max` is sized from it, one that does not from its decoded keys.
+#[test]
+fn import_decodes_keyframes_once_and_holds_them_charged_until_baked() {
+    use crowdmorph::budget::Budget;
+    use crowdmorph::import::gltf::GltfImport;
+    use std::sync::Arc;
+    const KEYS: usize = 4000;
+    let times: Vec<f32> = (0..KEYS).map(|k| k as f32 / 100.0).collect();
+    let values: Vec<f32> = (0..2 * KEYS)
+        .map(|i| ((i * 7919) % 1000) as f32 / 1000.0)
+        .collect();
+    let mut b = triangle_rig();
+    b.animation_weights("declared", 0, &times, &values, "STEP");
+    let input = b.json_mut()["animations"][0]["samplers"][0]["input"]
+        .as_u64()
+        .unwrap() as usize;
+    b.accessor_mut(input)["min"] = serde_json::json!([0.0]);
+    b.accessor_mut(input)["max"] = serde_json::json!([times[KEYS - 1]]);
+    b.animation_weights("measured", 0, &times, &values, "STEP");
+    let glb = b.to_glb();
+    let fps = 30.0;
+    let budget = Arc::new(Budget::new(1 << 30, "--max-upload-memory", None));
+    let options = ImportOptions {
+        fps,
+        budget: Some(budget.clone()),
+        ..Default::default()
+    };
+    let import = GltfImport::open(&glb, &options).expect("opens");
+    let keyframes = (2 * (times.len() + values.len()) * 4) as u64;
+    let held = budget.used();
+    assert!(
+        held >= keyframes,
+        "open holds {held} bytes, less than the {keyframes} of decoded keyframes"
+    );
+    let frames = (times[KEYS - 1] * fps + 1e-3).floor() as u64 + 1;
+    assert_eq!(import.shape().clip_cells, 2 * 2 * frames);
+    let ahead = import.import_bytes();
+    let rig = import.build(&options).expect("builds");
+    // The build stays within what the headers and the held keyframes promised ...
+    assert!(
+        budget.peak() <= held + ahead,
+        "peak {} > {held} + {ahead}",
+        budget.peak()
+    );
+    // ... and gives the keyframes back once baked: what stays is less than the rig's arrays
+    // on top of what open held without them.
+    assert!(
+        budget.used() <= held - keyframes + rig.host_bytes() as u64,
+        "{} bytes still held",
+        budget.used()
+    );
+    for clip in &rig.clips {
+        assert_eq!(u64::from(clip.frames), frames, "{}", clip.name);
+        for f in (0..clip.frames).step_by(97) {
+            let t = f as f32 / fps;
+            let key = times.partition_point(|&k| k <= t).saturating_sub(1);
+            for j in 0..2 {
+                assert_eq!(
+                    clip.weight(j, f),
+                    values[key * 2 + j],
+                    "{} frame {f}",
+                    clip.name
+                );
+            }
+        }
+    }
+}

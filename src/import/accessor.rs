@@ -7,23 +7,52 @@
 
 use std::borrow::Cow;
 use std::collections::HashMap;
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 
 use glam::{Vec3, Vec4};
 use gltf::accessor::sparse::IndexType;
 use gltf::accessor::{DataType, Dimensions};
 
-use super::ImportError;
+use super::{ImportError, meshopt};
 use crate::budget::Budget;
 
-/// The buffers of a document, its decompressed buffer views, and the budget decoding is
-/// charged to.
+/// The buffers of a document, its compressed buffer views (decoded when first read), and the
+/// budget decoding is charged to.
 pub(crate) struct Source<'a> {
     buffers: Vec<Cow<'a, [u8]>>,
-    /// Buffer views stored compressed (`EXT_meshopt_compression`), decoded: view index → the
-    /// view's bytes (4-byte aligned storage, at least the view's length).
-    decoded: HashMap<usize, Vec<u32>>,
+    /// Buffer views stored compressed (`EXT_meshopt_compression`): view index → its checked
+    /// header and, once an accessor has read it, its bytes.
+    compressed: HashMap<usize, CompressedView>,
     budget: Arc<Budget>,
+}
+
+/// A compressed buffer view whose header passed [`meshopt::check_view`].
+pub(crate) struct CompressedView {
+    /// The extension's name (`EXT_` or `KHR_meshopt_compression`).
+    pub(crate) name: &'static str,
+    pub(crate) ext: meshopt::CompressedView,
+    /// The view's declared (decoded) length.
+    pub(crate) length: usize,
+    /// The decoded bytes (4-byte aligned storage, at least `length` bytes), made by the first
+    /// read.
+    decoded: OnceLock<Vec<u32>>,
+}
+
+impl CompressedView {
+    /// A view whose header was checked, not yet decoded.
+    pub(crate) fn new(name: &'static str, ext: meshopt::CompressedView, length: usize) -> Self {
+        CompressedView {
+            name,
+            ext,
+            length,
+            decoded: OnceLock::new(),
+        }
+    }
+
+    /// Bytes decoding it will charge.
+    fn decoded_bytes(&self) -> u64 {
+        (self.length as u64).div_ceil(4) * 4
+    }
 }
 
 fn component_size(t: DataType) -> usize {
@@ -81,14 +110,49 @@ fn decode(bytes: &[u8], t: DataType, normalized: bool) -> f32 {
 impl<'a> Source<'a> {
     pub(crate) fn new(
         buffers: Vec<Cow<'a, [u8]>>,
-        decoded: HashMap<usize, Vec<u32>>,
+        compressed: HashMap<usize, CompressedView>,
         budget: Arc<Budget>,
     ) -> Self {
         Source {
             buffers,
-            decoded,
+            compressed,
             budget,
         }
+    }
+
+    /// Bytes that decoding the compressed views among `views` (view indices, each counted
+    /// once) not decoded yet will charge: what reading their accessors will add.
+    pub(crate) fn pending_decode_bytes(&self, views: impl IntoIterator<Item = usize>) -> u64 {
+        views
+            .into_iter()
+            .filter_map(|v| self.compressed.get(&v))
+            .filter(|c| c.decoded.get().is_none())
+            .map(CompressedView::decoded_bytes)
+            .sum()
+    }
+
+    /// The decoded bytes of compressed view `view`, decoding it (charged first) on the first
+    /// read.
+    fn decompressed<'s>(
+        &'s self,
+        view: usize,
+        c: &'s CompressedView,
+    ) -> Result<&'s [u8], ImportError> {
+        if let Some(words) = c.decoded.get() {
+            return Ok(bytemuck::cast_slice::<u32, u8>(words));
+        }
+        let compressed = self.buffers.get(c.ext.buffer).ok_or_else(|| {
+            ImportError::Invalid(format!(
+                "bufferViews[{view}].extensions.{} refers to buffer {} of {}",
+                c.name,
+                c.ext.buffer,
+                self.buffers.len()
+            ))
+        })?;
+        let words = meshopt::decode_view(view, c.name, &c.ext, c.length, compressed, &self.budget)?;
+        // Only this thread decodes (a `Source` is read by one import), so the cell is empty.
+        let words = c.decoded.get_or_init(|| words);
+        Ok(bytemuck::cast_slice::<u32, u8>(words))
     }
 
     /// The budget allocations are charged to.
@@ -112,10 +176,19 @@ impl<'a> Source<'a> {
         len: u64,
     ) -> Result<&[u8], ImportError> {
         let bad = |problem: String| ImportError::Accessor { index, problem };
-        if let Some(words) = self.decoded.get(&view.index()) {
-            // A decompressed view: offsets count from its start.
-            let data = bytemuck::cast_slice::<u32, u8>(words);
-            let data = data.get(..view.length()).unwrap_or(data);
+        if let Some(c) = self.compressed.get(&view.index()) {
+            // A compressed view: offsets count from its start once decoded, which it is only
+            // after the range is known to lie within its declared length.
+            let end = (offset as u64).saturating_add(len);
+            if end > c.length as u64 {
+                return Err(bad(format!(
+                    "needs bytes {offset}..{end} of buffer view {}, which has {} once decompressed",
+                    view.index(),
+                    c.length
+                )));
+            }
+            let data = self.decompressed(view.index(), c)?;
+            let data = data.get(..c.length).unwrap_or(data);
             let end = (offset as u64).saturating_add(len);
             if end > data.len() as u64 {
                 return Err(bad(format!(
@@ -150,18 +223,52 @@ impl<'a> Source<'a> {
         Ok(&buffer[start as usize..end as usize])
     }
 
+    /// Checks that `[offset, offset + len)` lies within a view and its buffer, without
+    /// decoding a compressed view (its declared length is what it will have).
+    fn check_range(
+        &self,
+        index: usize,
+        view: &gltf::buffer::View<'_>,
+        offset: usize,
+        len: u64,
+    ) -> Result<(), ImportError> {
+        match self.compressed.get(&view.index()) {
+            Some(c) => {
+                let end = (offset as u64).saturating_add(len);
+                if end > c.length as u64 {
+                    return Err(ImportError::Accessor {
+                        index,
+                        problem: format!(
+                            "needs bytes {offset}..{end} of buffer view {}, which has {} once decompressed",
+                            view.index(),
+                            c.length
+                        ),
+                    });
+                }
+                Ok(())
+            }
+            None => self.view_bytes(index, view, offset, len).map(|_| ()),
+        }
+    }
+
     /// Checks that an accessor's declared elements (and sparse blocks) lie within the bytes
-    /// present, without decoding anything: a count larger than the data behind it is a
-    /// malformed file (400), found before any size estimate (413) is made from that count.
-    pub(crate) fn check_bounds(&self, acc: &gltf::Accessor<'_>) -> Result<(), ImportError> {
+    /// present, without decoding anything (compressed views included): a count larger than
+    /// the data behind it is a malformed file (400), found before any size estimate (413) is
+    /// made from that count. Returns the views the accessor reads.
+    pub(crate) fn check_bounds(
+        &self,
+        acc: &gltf::Accessor<'_>,
+    ) -> Result<[Option<usize>; 3], ImportError> {
         let index = acc.index();
         let csize = component_size(acc.data_type());
         let elem = dims_len(acc.dimensions()) * csize;
         let count = acc.count();
+        let mut views = [None; 3];
         if let Some(view) = acc.view() {
             let stride = view.stride().unwrap_or(elem).max(elem);
             let span = span(count, stride, elem);
-            self.view_bytes(index, &view, acc.offset(), span)?;
+            self.check_range(index, &view, acc.offset(), span)?;
+            views[0] = Some(view.index());
         }
         if let Some(sparse) = acc.sparse() {
             let n = sparse.count() as u64;
@@ -170,20 +277,22 @@ impl<'a> Source<'a> {
                 IndexType::U16 => 2,
                 IndexType::U32 => 4,
             };
-            self.view_bytes(
+            self.check_range(
                 index,
                 &sparse.indices().view(),
                 sparse.indices().offset(),
                 n.saturating_mul(isize),
             )?;
-            self.view_bytes(
+            self.check_range(
                 index,
                 &sparse.values().view(),
                 sparse.values().offset(),
                 n.saturating_mul(elem as u64),
             )?;
+            views[1] = Some(sparse.indices().view().index());
+            views[2] = Some(sparse.values().view().index());
         }
-        Ok(())
+        Ok(views)
     }
 
     /// Decodes an accessor to `count × components` f32, applying sparse substitution.

@@ -22,7 +22,9 @@ use std::hash::{Hash, Hasher};
 
 use super::ImportError;
 use super::accessor::Source;
-use super::gltf::{Instance, WeightTrack, mesh_target_count, mesh_target_names, weight_tracks};
+use super::gltf::{
+    AnimationTracks, Instance, MeshNames, WeightTrack, mesh_target_count, weight_tracks,
+};
 use crate::rig::{Interpolation, MAX_TARGETS, RigError, TargetId};
 
 /// The channels of a document: their names and default weights, and the channel of each
@@ -118,15 +120,17 @@ impl Curve<'_> {
     }
 }
 
-/// Partitions the (node, target) pairs of `instances` into weight channels by their names,
-/// default weights and the curves every animation gives them (see the module documentation).
-/// Each animation's keyframes are decoded, compared and released in turn, charged to the
-/// source's budget; more than [`MAX_TARGETS`] channels is refused.
+/// Partitions the (node, target) pairs of `instances` into weight channels by their names
+/// (`names`, read once per mesh), default weights and the curves every animation gives them
+/// (see the module documentation). Every animation's keyframes are decoded once, charged to
+/// the source's budget, and returned with the plan (still charged) for baking; the channel
+/// names the plan keeps are charged too. More than [`MAX_TARGETS`] channels is refused.
 pub(crate) fn plan_channels(
     doc: &gltf::Document,
     source: &Source<'_>,
     instances: &[Instance<'_>],
-) -> Result<ChannelPlan, ImportError> {
+    names: &MeshNames,
+) -> Result<(ChannelPlan, Vec<AnimationTracks>), ImportError> {
     let budget = source.budget();
     let mut counts = Vec::with_capacity(instances.len());
     for inst in instances {
@@ -141,16 +145,16 @@ pub(crate) fn plan_channels(
     // Initial classes: name, occurrence of the name within the mesh, default weight.
     let mut units = Vec::with_capacity(total as usize);
     let mut names_of = Vec::with_capacity(instances.len());
-    let mut classes: HashMap<(String, usize, u32), usize> = HashMap::new();
+    let mut classes: HashMap<(&str, usize, u32), usize> = HashMap::new();
     let mut n_classes = 0;
     for (i, inst) in instances.iter().enumerate() {
         let count = counts[i];
-        let names = mesh_target_names(&inst.mesh, count);
+        let names = names.of(&inst.mesh);
         let defaults = node_defaults(inst, count);
         let mut seen: HashMap<&str, usize> = HashMap::new();
         for (k, name) in names.iter().enumerate() {
             let occurrence = seen.entry(name.as_str()).or_default();
-            let key = (name.clone(), *occurrence, defaults[k].to_bits());
+            let key = (name.as_str(), *occurrence, defaults[k].to_bits());
             *occurrence += 1;
             let class = *classes.entry(key).or_insert_with(|| {
                 n_classes += 1;
@@ -172,13 +176,10 @@ pub(crate) fn plan_channels(
         .enumerate()
         .map(|(i, inst)| (inst.node.index(), i))
         .collect();
-    let lookup = |node: &gltf::Node<'_>| {
-        node_instance
-            .get(&node.index())
-            .map(|&i| vec![Vec::new(); counts[i]])
-    };
+    let width = |node: &gltf::Node<'_>| node_instance.get(&node.index()).map(|&i| counts[i]);
+    let mut animations = Vec::new();
     for anim in doc.animations() {
-        let tracks = weight_tracks(source, &anim, &lookup)?;
+        let tracks = weight_tracks(source, &anim, &width)?;
         if tracks.is_empty() {
             continue;
         }
@@ -223,7 +224,10 @@ pub(crate) fn plan_channels(
         }
         n_classes = next;
         drop(buckets);
-        budget.release(super::gltf::tracks_bytes(&tracks));
+        animations.push(AnimationTracks {
+            index: anim.index(),
+            tracks,
+        });
     }
 
     // Channel ids: first the class of each name's first pair, in the order names first
@@ -241,15 +245,19 @@ pub(crate) fn plan_channels(
             }
             named.insert(name);
             channel_of[u.class] = Some(plan.names.len() as TargetId);
-            plan.names.push(name.to_string());
-            plan.defaults.push(defaults[u.k]);
-            if plan.names.len() > MAX_TARGETS {
+            if plan.names.len() >= MAX_TARGETS {
                 return Err(RigError::TooLarge(format!(
                     "more than {MAX_TARGETS} weight channels (targets, counted once per \
                      differently animated node)"
                 ))
                 .into());
             }
+            // The plan's names become the rig's: charged here, kept by the import.
+            budget.charge(24 + name.len() as u64, || {
+                format!("the name of weight channel {}", plan.names.len())
+            })?;
+            plan.names.push(name.to_string());
+            plan.defaults.push(defaults[u.k]);
         }
     }
     for (i, inst) in instances.iter().enumerate() {
@@ -269,7 +277,7 @@ pub(crate) fn plan_channels(
     drop(names_of);
     // What stays is the node → channel map (4 bytes a pair) and the channel names.
     budget.release(bookkeeping.saturating_sub(total * 4));
-    Ok(plan)
+    Ok((plan, animations))
 }
 
 /// Checks that an animation matched node by node onto `rig` gives every weight channel one

@@ -16,18 +16,18 @@
 //! naming them. A glTF file with other meshes (an animation-only export) is matched by name.
 
 use std::collections::HashMap;
+use std::collections::hash_map::Entry;
 use std::sync::Arc;
 
 use serde::Deserialize;
 
 use super::channels::curves_agree;
 use super::gltf::{
-    Instance, bake, mesh_target_count, mesh_target_names, parse, scene_instances, tracks_bytes,
-    unique_name, weight_tracks,
+    Instance, MeshNames, bake, parse, scene_instances, tracks_bytes, unique_name, weight_tracks,
 };
 use super::{ImportError, ImportOptions};
 use crate::budget::Budget;
-use crate::rig::{Clip, DEFAULT_FPS, MAX_FRAMES, Rig, TargetId};
+use crate::rig::{Clip, DEFAULT_FPS, MAX_FRAMES, Rig, TargetId, TargetIndex};
 
 /// Options for reading a clip source.
 #[derive(Clone, Debug)]
@@ -117,20 +117,85 @@ pub fn match_targets(rig: &Rig, name: &str) -> Vec<TargetId> {
     match_name(rig, name).map_or_else(Vec::new, |n| rig.target_ids(n))
 }
 
+/// A rig's targets by exact and by loose name, built once per clip source, so that each
+/// source name costs two hash probes rather than a scan (and a loose spelling) of every rig
+/// channel: what [`match_targets`] answers, for many names.
+struct Matcher<'r> {
+    exact: TargetIndex<'r>,
+    /// Loose spelling → the one rig name with it (`None` when several names share it).
+    loose: HashMap<String, Option<&'r str>>,
+}
+
+impl<'r> Matcher<'r> {
+    /// Bytes a matcher of `rig` holds at most: the exact index, and per name a loose spelling
+    /// (at most the name's text) in a map entry at the table's worst load factor.
+    fn bytes(rig: &Rig) -> u64 {
+        let n = rig.targets.len() as u64;
+        let text: u64 = rig.targets.iter().map(|t| t.len() as u64).sum();
+        TargetIndex::bytes_for(rig.targets.len()) + text + n * 2 * (24 + 16 + 1)
+    }
+
+    /// The matcher of `rig`; the caller has charged [`Matcher::bytes`].
+    fn new(rig: &'r Rig) -> Matcher<'r> {
+        let exact = rig.target_index();
+        let mut loose_names: HashMap<String, Option<&'r str>> = HashMap::new();
+        for name in exact.names() {
+            loose_names
+                .entry(loose(name))
+                .and_modify(|m| *m = None)
+                .or_insert(Some(name));
+        }
+        Matcher {
+            exact,
+            loose: loose_names,
+        }
+    }
+
+    /// Every weight channel of the rig target `name` refers to: the same name, else the only
+    /// one that matches loosely (empty: none).
+    fn ids(&self, name: &str) -> &[TargetId] {
+        let exact = self.exact.ids(name);
+        if !exact.is_empty() {
+            return exact;
+        }
+        match self.loose.get(&loose(name)) {
+            Some(Some(n)) => self.exact.ids(n),
+            _ => &[],
+        }
+    }
+}
+
 /// Maps source column names to the weight channels they write, collecting the unknown ones.
+/// The rig's names are indexed once per source (charged to `budget` while they are).
 fn map_names(
     rig: &Rig,
+    names: &[String],
+    options: &ClipOptions,
+    budget: &Budget,
+) -> Result<(Vec<Vec<TargetId>>, Vec<String>), ImportError> {
+    let bytes = Matcher::bytes(rig);
+    budget.charge(bytes, || format!("the target names of rig {:?}", rig.name))?;
+    let matcher = Matcher::new(rig);
+    let mapped = map_with(&matcher, names, options);
+    drop(matcher);
+    budget.release(bytes);
+    mapped
+}
+
+/// [`map_names`] with the rig's names already indexed.
+fn map_with(
+    matcher: &Matcher<'_>,
     names: &[String],
     options: &ClipOptions,
 ) -> Result<(Vec<Vec<TargetId>>, Vec<String>), ImportError> {
     let mut ids = Vec::with_capacity(names.len());
     let mut unknown = Vec::new();
     for n in names {
-        let id = match_targets(rig, n);
+        let id = matcher.ids(n);
         if id.is_empty() {
             unknown.push(n.clone());
         }
-        ids.push(id);
+        ids.push(id.to_vec());
     }
     if !unknown.is_empty() && !options.ignore_unknown {
         return Err(ImportError::UnknownTargets(unknown));
@@ -223,8 +288,8 @@ pub fn clip_from_csv(
             "CSV header names no targets".into(),
         ));
     }
-    let (ids, ignored) = map_names(rig, &names, options)?;
     let budget = options.budget();
+    let (ids, ignored) = map_names(rig, &names, options, &budget)?;
     // A parsed row: its vector header and weights.
     let row_bytes = 24 + 4 * keep.len() as u64;
     let mut rows = Vec::new();
@@ -278,7 +343,7 @@ pub fn clip_from_json(
     budget.charge(parsed, || "the JSON clip".into())?;
     let src: JsonClip =
         serde_json::from_slice(bytes).map_err(|e| ImportError::ClipSource(format!("JSON: {e}")))?;
-    let (ids, ignored) = map_names(rig, &src.targets, options)?;
+    let (ids, ignored) = map_names(rig, &src.targets, options, &budget)?;
     if let Some((f, row)) = src
         .frames
         .iter()
@@ -330,11 +395,12 @@ fn same_scene(rig: &Rig, instances: &[Instance<'_>]) -> bool {
 fn node_channels(
     rig: &Rig,
     instances: &[Instance<'_>],
-    names: &[Vec<String>],
+    names: &MeshNames,
 ) -> HashMap<usize, Vec<Vec<TargetId>>> {
     let mut out = HashMap::new();
     let mut first_prim = 0;
-    for (inst, names) in instances.iter().zip(names) {
+    for inst in instances {
+        let names = names.of(&inst.mesh);
         let n_prims = inst.mesh.primitives().len();
         let prims = rig
             .primitives
@@ -388,29 +454,50 @@ pub fn clips_from_gltf(
     let import = options.import_options();
     let parsed = parse(bytes, &import)?;
     let instances = scene_instances(&parsed.doc)?;
-    let mut all_names = Vec::with_capacity(instances.len());
+    let names = MeshNames::read(&parsed.doc, &instances, parsed.source.budget())?;
+    let matcher_bytes = Matcher::bytes(rig);
+    parsed.source.budget().charge(matcher_bytes, || {
+        format!("the target names of rig {:?}", rig.name)
+    })?;
+    let matcher = Matcher::new(rig);
     let mut ignored = Vec::new();
+    let mut ignored_set = std::collections::HashSet::new();
+    // Each mesh's names are matched once, however many nodes instance it.
+    let mut by_mesh: HashMap<usize, Vec<Vec<TargetId>>> = HashMap::new();
     let mut by_node = HashMap::new();
     for inst in &instances {
-        let count = mesh_target_count(&inst.mesh)?;
-        let names = mesh_target_names(&inst.mesh, count);
-        let (ids, unknown) = map_names(rig, &names, options)?;
-        for u in unknown {
-            if !ignored.contains(&u) {
-                ignored.push(u);
+        let ids = match by_mesh.entry(inst.mesh.index()) {
+            Entry::Occupied(e) => e.into_mut(),
+            Entry::Vacant(e) => {
+                let (ids, unknown) = map_with(&matcher, names.of(&inst.mesh), options)?;
+                for u in unknown {
+                    if ignored_set.insert(u.clone()) {
+                        ignored.push(u);
+                    }
+                }
+                e.insert(ids)
             }
-        }
-        by_node.insert(inst.node.index(), ids);
-        all_names.push(names);
+        };
+        by_node.insert(inst.node.index(), ids.clone());
     }
+    drop(by_mesh);
+    drop(matcher);
+    parsed.source.budget().release(matcher_bytes);
     let per_node = same_scene(rig, &instances);
     if per_node {
-        by_node = node_channels(rig, &instances, &all_names);
+        by_node = node_channels(rig, &instances, &names);
     }
-    let lookup = |node: &gltf::Node<'_>| by_node.get(&node.index()).cloned();
+    drop(names);
+    let width = |node: &gltf::Node<'_>| by_node.get(&node.index()).map(Vec::len);
+    let channels = |node: usize, k: usize| -> &[TargetId] {
+        by_node
+            .get(&node)
+            .and_then(|ids| ids.get(k))
+            .map_or(&[], Vec::as_slice)
+    };
     let mut out: Vec<ClipImport> = Vec::new();
     for anim in parsed.doc.animations() {
-        let tracks = weight_tracks(&parsed.source, &anim, &lookup)?;
+        let tracks = weight_tracks(&parsed.source, &anim, &width)?;
         if tracks.is_empty() {
             continue;
         }
@@ -428,6 +515,7 @@ pub fn clips_from_gltf(
         let clip = bake(
             &name,
             &tracks,
+            channels,
             rig.targets.len(),
             &rig.default_weights,
             options.fps,
@@ -449,7 +537,32 @@ pub fn clips_from_gltf(
 
 #[cfg(test)]
 mod tests {
-    use super::loose;
+    use super::{Matcher, loose, match_targets};
+
+    #[test]
+    fn the_matcher_maps_names_as_one_lookup_each_does() {
+        let rig = crate::embedded::default_rig();
+        let matcher = Matcher::new(&rig);
+        let mut names: Vec<String> = rig.targets.clone();
+        // Loose spellings, a name no rig target has, and a loose clash made below.
+        names.extend(
+            ["EyeBlinkLeft", "JAW_OPEN", "mouthSmileRight", "noSuchShape"].map(String::from),
+        );
+        for n in &names {
+            assert_eq!(matcher.ids(n), match_targets(&rig, n), "{n}");
+        }
+        assert!(!matcher.ids("EyeBlinkLeft").is_empty());
+        assert!(matcher.ids("noSuchShape").is_empty());
+        // Two rig names with one loose spelling: only exact names match them.
+        let mut clash = rig.clone();
+        clash.targets[0] = "eye_blink_l".into();
+        clash.targets[1] = "EyeBlink_L".into();
+        let matcher = Matcher::new(&clash);
+        for n in ["eyeblinkl", "eye_blink_l", "EyeBlink_L", "eyeBlinkLeft"] {
+            assert_eq!(matcher.ids(n), match_targets(&clash, n), "{n}");
+        }
+        assert!(matcher.ids("eyeblinkl").is_empty());
+    }
 
     #[test]
     fn loose_names_match_arkit_spellings() {

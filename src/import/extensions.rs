@@ -16,6 +16,8 @@
 //! every `extensions` object that names it lies under `textures`, `images` or `samplers`, or in
 //! a material's texture reference (`baseColorTexture`, `normalTexture`, ...).
 
+use std::collections::{HashMap, HashSet};
+
 use serde::Serialize;
 use serde_json::Value;
 
@@ -50,57 +52,88 @@ pub fn conversion_hint(name: &str) -> &'static str {
     }
 }
 
-/// Where in the document an extension is used: in texture data only, elsewhere, or nowhere.
-#[derive(Default)]
+/// Where in the document an extension is used: in texture data, elsewhere, both or nowhere.
+#[derive(Clone, Copy, Default)]
 struct Uses {
     texture: bool,
     other: bool,
 }
 
-/// Records every `extensions.<name>` object under `value`; `texture` says whether `value` lies
-/// in texture data (see the module documentation).
-fn scan(value: &Value, name: &str, texture: bool, uses: &mut Uses) {
+impl Uses {
+    /// Whether the extension is used in texture data and nowhere else.
+    fn texture_only(self) -> bool {
+        self.texture && !self.other
+    }
+}
+
+/// Where each extension of `names` is used in the document, read in one walk over it: every
+/// `extensions` object met is looked up in an index of the names, so a file that lists many
+/// extensions costs one walk, not one per extension. Bytes: the index and the result, a few
+/// dozen per name, which the caller has already paid for as part of the parsed document.
+fn uses_of(root: &Value, names: &[&str]) -> Vec<Uses> {
+    // A name listed twice is looked up under its first place and copied to the others.
+    let mut index: HashMap<&str, usize> = HashMap::with_capacity(names.len());
+    for (i, &n) in names.iter().enumerate() {
+        index.entry(n).or_insert(i);
+    }
+    let mut uses = vec![Uses::default(); names.len()];
+    if let Some(map) = root.as_object() {
+        for (k, v) in map {
+            let texture = matches!(k.as_str(), "textures" | "images" | "samplers");
+            scan(v, &index, texture, &mut uses);
+        }
+    }
+    for (i, n) in names.iter().enumerate() {
+        if let Some(&first) = index.get(n) {
+            uses[i] = uses[first];
+        }
+    }
+    uses
+}
+
+/// Records every `extensions.<name>` object under `value` whose name is in `index` (name → its
+/// place in `uses`); `texture` says whether `value` lies in texture data (see the module
+/// documentation).
+fn scan(value: &Value, index: &HashMap<&str, usize>, texture: bool, uses: &mut [Uses]) {
     match value {
         Value::Object(map) => {
-            if map
-                .get("extensions")
-                .and_then(Value::as_object)
-                .is_some_and(|e| e.contains_key(name))
-            {
-                if texture {
-                    uses.texture = true;
-                } else {
-                    uses.other = true;
+            if let Some(exts) = map.get("extensions").and_then(Value::as_object) {
+                for name in exts.keys() {
+                    if let Some(u) = index.get(name.as_str()).and_then(|&i| uses.get_mut(i)) {
+                        if texture {
+                            u.texture = true;
+                        } else {
+                            u.other = true;
+                        }
+                    }
                 }
             }
             for (k, v) in map {
                 let inner = texture || k.ends_with("Texture");
-                scan(v, name, inner, uses);
+                scan(v, index, inner, uses);
             }
         }
         Value::Array(items) => {
             for v in items {
-                scan(v, name, texture, uses);
+                scan(v, index, texture, uses);
             }
         }
         _ => {}
     }
 }
 
-/// Whether the document uses `name` in texture data and nowhere else.
-pub(crate) fn texture_only(root: &Value, name: &str) -> bool {
-    let mut uses = Uses::default();
-    if let Some(map) = root.as_object() {
-        for (k, v) in map {
-            let texture = matches!(k.as_str(), "textures" | "images" | "samplers");
-            scan(v, name, texture, &mut uses);
-        }
-    }
-    uses.texture && !uses.other
+/// Which of `names` the document uses in texture data and nowhere else, in one walk over it
+/// (see [`uses_of`]).
+pub(crate) fn texture_only(root: &Value, names: &[&str]) -> Vec<bool> {
+    uses_of(root, names)
+        .into_iter()
+        .map(Uses::texture_only)
+        .collect()
 }
 
-/// How one extension is handled (see the module documentation).
-fn classify(root: &Value, name: &str, required: bool) -> ExtensionUse {
+/// How one extension is handled (see the module documentation); `uses` says where the
+/// document uses it.
+fn classify(name: &str, required: bool, uses: Uses) -> ExtensionUse {
     let (handling, note) = if name == "KHR_mesh_quantization" {
         (
             "read",
@@ -111,7 +144,7 @@ fn classify(root: &Value, name: &str, required: bool) -> ExtensionUse {
             "read",
             "compressed buffer views are decompressed (attributes, indices; octahedral, quaternion and exponential filters)".to_string(),
         )
-    } else if texture_only(root, name) {
+    } else if uses.texture_only() {
         (
             "ignored",
             "used only by textures and images, which crowdmorph does not use for blending"
@@ -155,15 +188,20 @@ pub(crate) fn report(root: &Value) -> Vec<ExtensionUse> {
             .unwrap_or_default()
     };
     let required = list("extensionsRequired");
+    let required_set: HashSet<&str> = required.iter().map(String::as_str).collect();
     let mut names = list("extensionsUsed");
+    let mut listed: HashSet<String> = names.iter().cloned().collect();
     for r in &required {
-        if !names.contains(r) {
+        if listed.insert(r.clone()) {
             names.push(r.clone());
         }
     }
+    let refs: Vec<&str> = names.iter().map(String::as_str).collect();
+    let uses = uses_of(root, &refs);
     names
         .iter()
-        .map(|n| classify(root, n, required.contains(n)))
+        .zip(uses)
+        .map(|(n, u)| classify(n, required_set.contains(n.as_str()), u))
         .collect()
 }
 
@@ -198,6 +236,22 @@ mod tests {
         );
         assert_eq!(get("KHR_mesh_quantization").handling, "read");
         // Required but used nowhere: it may change how accessors read, so it is refused.
-        assert!(!texture_only(&json!({"extensionsRequired": ["X"]}), "X"));
+        assert_eq!(
+            texture_only(&json!({"extensionsRequired": ["X"]}), &["X"]),
+            [false]
+        );
+        // One walk answers for every name, each as if asked alone.
+        let names = [
+            "KHR_texture_basisu",
+            "KHR_texture_transform",
+            "EXT_weird",
+            "KHR_draco_mesh_compression",
+            "absent",
+            "KHR_texture_basisu",
+        ];
+        assert_eq!(
+            texture_only(&doc, &names),
+            [true, true, false, false, false, true]
+        );
     }
 }

@@ -9,6 +9,7 @@
 use std::borrow::Cow;
 use std::collections::HashMap;
 use std::path::{Component, Path};
+use std::sync::Arc;
 
 use base64::Engine as _;
 use glam::{Mat3, Mat4, Vec3};
@@ -16,7 +17,7 @@ use gltf::animation::{Interpolation as GltfInterpolation, Property};
 use gltf::mesh::{Mode, Semantic};
 use serde::Deserialize;
 
-use super::accessor::Source;
+use super::accessor::{CompressedView, Source};
 use super::channels::{ChannelPlan, plan_channels};
 use super::{ImportError, ImportOptions};
 use super::{extensions, meshopt};
@@ -59,9 +60,13 @@ pub struct GltfImport<'a> {
     parsed: Parsed<'a>,
     /// Which (node, target) pairs share a weight channel.
     plan: ChannelPlan,
+    /// Every animation's weight tracks, decoded once to make the plan and kept (charged to
+    /// the budget) until [`GltfImport::build`] bakes them.
+    animations: Vec<AnimationTracks>,
     shape: RigShape,
-    /// Largest transient decode of one primitive or animation (dense target deltas, raw
-    /// indices, keyframes), beyond the rig's own arrays.
+    /// Largest transient decode of one primitive (dense target deltas, raw indices), plus the
+    /// compressed views the geometry reads, decoded during the build and kept until its end,
+    /// beyond the rig's own arrays.
     transient: u64,
 }
 
@@ -71,10 +76,11 @@ impl<'a> GltfImport<'a> {
     /// counts alone break (targets, vertices, frames) are refused here, before any decoding.
     pub fn open(bytes: &'a [u8], options: &ImportOptions) -> Result<GltfImport<'a>, ImportError> {
         let parsed = parse(bytes, options)?;
-        let (shape, transient, plan) = document_shape(&parsed, options)?;
+        let (shape, transient, plan, animations) = document_shape(&parsed, options)?;
         Ok(GltfImport {
             parsed,
             plan,
+            animations,
             shape,
             transient,
         })
@@ -85,15 +91,15 @@ impl<'a> GltfImport<'a> {
         &self.shape
     }
 
-    /// Most bytes the import holds at once beyond what the budget already holds: the rig's
-    /// arrays plus the largest transient decode.
+    /// Most bytes the import holds at once beyond what the budget already holds (which
+    /// includes the decoded keyframes): the rig's arrays plus the largest transient decode.
     pub fn import_bytes(&self) -> u64 {
         self.shape.cost(false).rig + self.transient
     }
 
     /// Decodes and builds the rig, charging every allocation to the budget.
     pub fn build(self, options: &ImportOptions) -> Result<Rig, ImportError> {
-        build_rig(&self.parsed, &self.plan, options)
+        build_rig(&self.parsed, self.plan, self.animations, options)
     }
 }
 
@@ -237,13 +243,14 @@ pub(crate) fn parse<'a>(
             }
         });
     }
-    let mut decoded = HashMap::new();
+    // Compressed views: headers checked now, bytes decoded when an accessor first reads them.
+    let mut compressed = HashMap::new();
     for view in doc.views() {
         let Some(ext) = meshopt::view_extension(&view) else {
             continue;
         };
         let (name, ext) = ext?;
-        let compressed = buffers.get(ext.buffer).ok_or_else(|| {
+        let data = buffers.get(ext.buffer).ok_or_else(|| {
             ImportError::Invalid(format!(
                 "bufferViews[{}].extensions.{name} refers to buffer {} of {}",
                 view.index(),
@@ -251,13 +258,12 @@ pub(crate) fn parse<'a>(
                 buffers.len()
             ))
         })?;
-        let words =
-            meshopt::decode_view(view.index(), name, &ext, view.length(), compressed, &budget)?;
-        decoded.insert(view.index(), words);
+        meshopt::check_view(view.index(), name, &ext, view.length(), data.len())?;
+        compressed.insert(view.index(), CompressedView::new(name, ext, view.length()));
     }
     Ok(Parsed {
         doc,
-        source: Source::new(buffers, decoded, budget),
+        source: Source::new(buffers, compressed, budget),
     })
 }
 
@@ -323,36 +329,36 @@ fn validate(root: &gltf::json::Root, json: &[u8], budget: &Budget) -> Result<(),
             }
         }
     }
-    let mut value: Option<serde_json::Value> = None;
-    for ext in &root.extensions_required {
-        if SUPPORTED_REQUIRED.contains(&ext.as_str())
-            || gltf::json::extensions::ENABLED_EXTENSIONS.contains(&ext.as_str())
-        {
-            continue;
-        }
-        // Rare: the document is read again as plain JSON to see where the extension is used.
-        let value = match &mut value {
-            Some(v) => v,
-            None => {
-                budget.charge(document_cost(json), || {
-                    format!(
-                        "the glTF document ({} bytes of JSON), to check its extensions",
-                        json.len()
-                    )
-                })?;
-                let v =
-                    serde_json::from_slice(json).map_err(|e| ImportError::Json(e.to_string()))?;
-                value.insert(v)
+    // Required extensions we do not read are accepted only when they touch textures alone.
+    // Rare: the document is then read again as plain JSON and walked once for all of them.
+    let unknown: Vec<&str> = root
+        .extensions_required
+        .iter()
+        .map(String::as_str)
+        .filter(|ext| {
+            !SUPPORTED_REQUIRED.contains(ext)
+                && !gltf::json::extensions::ENABLED_EXTENSIONS.contains(ext)
+        })
+        .collect();
+    if !unknown.is_empty() {
+        let cost = document_cost(json);
+        budget.charge(cost, || {
+            format!(
+                "the glTF document ({} bytes of JSON), to check its extensions",
+                json.len()
+            )
+        })?;
+        let value: serde_json::Value =
+            serde_json::from_slice(json).map_err(|e| ImportError::Json(e.to_string()))?;
+        let texture_only = extensions::texture_only(&value, &unknown);
+        drop(value);
+        budget.release(cost);
+        for (ext, texture_only) in unknown.iter().zip(texture_only) {
+            if !texture_only {
+                return Err(ImportError::UnsupportedExtension(ext.to_string()));
             }
-        };
-        if extensions::texture_only(value, ext) {
             tracing::info!(extension = %ext, "required extension is used only by textures; ignored");
-            continue;
         }
-        return Err(ImportError::UnsupportedExtension(ext.clone()));
-    }
-    if value.take().is_some() {
-        budget.release(document_cost(json));
     }
     let mut errors = Vec::new();
     let outcome = std::panic::catch_unwind(|| {
@@ -497,17 +503,99 @@ struct MeshExtras {
     target_names: Option<Vec<String>>,
 }
 
-/// Target names of a mesh: `extras.targetNames`, else `target_<i>`.
-pub(crate) fn mesh_target_names(mesh: &gltf::Mesh<'_>, count: usize) -> Vec<String> {
-    let names = mesh
-        .extras()
-        .as_ref()
-        .and_then(|raw| serde_json::from_str::<MeshExtras>(raw.get()).ok())
-        .and_then(|e| e.target_names)
-        .filter(|n| n.len() == count);
-    match names {
-        Some(n) => n,
-        None => (0..count).map(|i| format!("target_{i}")).collect(),
+/// Heap bytes a list of names holds: each `String`'s header and text.
+pub(crate) fn names_bytes(names: &[String]) -> u64 {
+    names.iter().map(|n| 24 + n.capacity() as u64).sum()
+}
+
+/// Target names of a mesh with `count` targets: `extras.targetNames`, else `target_<i>`. The
+/// names are charged to `budget` before they are allocated, at a bound (each name holds at
+/// most its own text, and a `String` header of 24 bytes, doubled for the list's growth, per
+/// structural character of the extras: every list element but the first follows a comma),
+/// which is brought down to the names' exact bytes once they are read. The caller releases
+/// [`names_bytes`] of the result when it drops it.
+fn mesh_target_names(
+    mesh: &gltf::Mesh<'_>,
+    count: usize,
+    budget: &Budget,
+) -> Result<Vec<String>, ImportError> {
+    let what = || format!("target names of mesh {}", mesh_label(mesh));
+    let mut names = None;
+    if let Some(raw) = mesh.extras().as_ref() {
+        let text = raw.get();
+        let bound = text.len() as u64 + (json_nodes(text.as_bytes()) + 1) * 48;
+        budget.charge(bound, what)?;
+        names = serde_json::from_str::<MeshExtras>(raw.get())
+            .ok()
+            .and_then(|e| e.target_names)
+            .filter(|n| n.len() == count)
+            .map(|mut n| {
+                n.shrink_to_fit();
+                n
+            });
+        budget.release(bound);
+    }
+    // Exact once read; the generated names have at most 7 + 20 characters.
+    let bytes = names
+        .as_deref()
+        .map_or(count as u64 * (24 + 27), names_bytes);
+    budget.charge(bytes, what)?;
+    let names = names.unwrap_or_else(|| (0..count).map(|i| format!("target_{i}")).collect());
+    let exact = names_bytes(&names);
+    budget.release(bytes.saturating_sub(exact));
+    Ok(names)
+}
+
+/// The target names of every mesh the scene instances, read once per mesh however many nodes
+/// instance it (see [`mesh_target_names`]), and charged while they are held.
+pub(crate) struct MeshNames {
+    /// Mesh index → its target names (empty for a mesh the scene does not instance).
+    by_mesh: Vec<Vec<String>>,
+    /// Bytes charged for them, released on drop.
+    bytes: u64,
+    budget: Arc<Budget>,
+}
+
+impl MeshNames {
+    /// Reads the names of every mesh of `instances`, refusing meshes whose primitives disagree
+    /// on their target count.
+    pub(crate) fn read(
+        doc: &gltf::Document,
+        instances: &[Instance<'_>],
+        budget: &Arc<Budget>,
+    ) -> Result<MeshNames, ImportError> {
+        let meshes = doc.meshes().len();
+        let table = meshes as u64 * 24;
+        budget.charge(table, || format!("target names of {meshes} meshes"))?;
+        let mut out = MeshNames {
+            by_mesh: vec![Vec::new(); meshes],
+            bytes: table,
+            budget: budget.clone(),
+        };
+        let mut done = vec![false; meshes];
+        for inst in instances {
+            let m = inst.mesh.index();
+            if done.get(m).copied().unwrap_or(true) {
+                continue;
+            }
+            done[m] = true;
+            let count = mesh_target_count(&inst.mesh)?;
+            let names = mesh_target_names(&inst.mesh, count, budget)?;
+            out.bytes += names_bytes(&names);
+            out.by_mesh[m] = names;
+        }
+        Ok(out)
+    }
+
+    /// The target names of `mesh` (empty when it was not read).
+    pub(crate) fn of(&self, mesh: &gltf::Mesh<'_>) -> &[String] {
+        self.by_mesh.get(mesh.index()).map_or(&[], Vec::as_slice)
+    }
+}
+
+impl Drop for MeshNames {
+    fn drop(&mut self) {
+        self.budget.release(self.bytes);
     }
 }
 
@@ -627,51 +715,69 @@ fn list_len(prim: &gltf::Primitive<'_>, vertices: usize) -> u64 {
 }
 
 /// The shape of the rig a document describes, from its headers, the largest transient decode
-/// of one primitive or animation, and the weight channels. Counts that break a limit on their
-/// own are refused first: too many target names, too many vertices, clips with too many
-/// frames; only animation times whose accessor declares no `max` are decoded for that (and
-/// charged). Then the animations' keyframes are decoded, one animation at a time, to tell
-/// which nodes share a channel ([`plan_channels`]), which gives the clip tables' exact size.
+/// of one primitive, the weight channels and the decoded keyframes. Counts that break a limit
+/// on their own are refused first: too many target names, too many vertices, clips too long
+/// by their declared key times. Then every animation's keyframes are decoded (charged, and
+/// kept for baking) to tell which nodes share a channel ([`plan_channels`]), which gives the
+/// clip tables' exact size; clips whose key times declare no `max` are measured on them.
 fn document_shape(
     parsed: &Parsed<'_>,
     options: &ImportOptions,
-) -> Result<(RigShape, u64, ChannelPlan), ImportError> {
+) -> Result<(RigShape, u64, ChannelPlan, Vec<AnimationTracks>), ImportError> {
     let doc = &parsed.doc;
     let instances = scene_instances(doc)?;
-    let mut targets = Targets::default();
+    let names = MeshNames::read(doc, &instances, parsed.source.budget())?;
+    // Distinct names seen so far: at most MAX_TARGETS + 1 entries before the refusal.
+    let mut distinct: std::collections::HashSet<&str> = std::collections::HashSet::new();
     let mut primitives = Vec::new();
     let mut node_targets: HashMap<usize, usize> = HashMap::new();
     let mut transient = 0u64;
     let mut vertices = 0u64;
+    // Which buffer views the geometry's accessors read: the compressed ones among them are
+    // decoded during the build, so their decoded bytes join the estimate.
+    let views = doc.views().len();
+    parsed
+        .source
+        .budget()
+        .charge(views as u64, || format!("a mark per buffer view ({views})"))?;
+    let mut read_views = vec![false; views];
     for inst in &instances {
         let count = mesh_target_count(&inst.mesh)?;
-        for name in mesh_target_names(&inst.mesh, count) {
-            targets.id(&name, 0.0);
-        }
-        if targets.names.len() > MAX_TARGETS {
-            return Err(RigError::TooLarge(format!(
-                "more than {MAX_TARGETS} rig-wide targets (the file names at least {})",
-                targets.names.len()
-            ))
-            .into());
+        for name in names.of(&inst.mesh) {
+            distinct.insert(name);
+            if distinct.len() > MAX_TARGETS {
+                return Err(RigError::TooLarge(format!(
+                    "more than {MAX_TARGETS} rig-wide targets (the file names at least {})",
+                    distinct.len()
+                ))
+                .into());
+            }
         }
         node_targets.insert(inst.node.index(), count);
         for prim in inst.mesh.primitives() {
             let Some(pos) = prim.get(&Semantic::Positions) else {
                 continue;
             };
+            let mut check = |acc: gltf::Accessor<'_>| -> Result<(), ImportError> {
+                for v in parsed.source.check_bounds(&acc)?.into_iter().flatten() {
+                    if let Some(r) = read_views.get_mut(v) {
+                        *r = true;
+                    }
+                }
+                Ok(())
+            };
             for (_, acc) in prim.attributes() {
-                parsed.source.check_bounds(&acc)?;
+                check(acc)?;
             }
             if let Some(acc) = prim.indices() {
-                parsed.source.check_bounds(&acc)?;
+                check(acc)?;
             }
             for t in prim.morph_targets() {
                 for acc in [t.positions(), t.normals(), t.tangents()]
                     .into_iter()
                     .flatten()
                 {
-                    parsed.source.check_bounds(&acc)?;
+                    check(acc)?;
                 }
             }
             let n = pos.count() as u64;
@@ -699,64 +805,92 @@ fn document_shape(
             primitives.push(PrimShape::upper_bound(n, indices, tangents, k, kn, kt));
         }
     }
+    // Clip lengths from the declared key times first, so that a clip too long on its
+    // headers alone is refused before any keyframe is decoded; animations with a channel
+    // that declares no `max` wait for the decoded keyframes below.
+    let anim_label = |anim: &gltf::Animation<'_>| {
+        anim.name()
+            .map_or_else(|| format!("#{}", anim.index()), str::to_string)
+    };
+    let too_long = |anim: &gltf::Animation<'_>, last: f32| ImportError::Animation {
+        animation: anim_label(anim),
+        problem: format!(
+            "lasts {last} s: more than {MAX_FRAMES} frames at {} fps",
+            options.fps
+        ),
+    };
     let mut clip_frames = 0u64;
+    let mut undeclared = Vec::new();
     for anim in doc.animations() {
         let mut last = None::<f32>;
-        let mut keys = 0u64;
+        let mut complete = true;
         for channel in anim.channels() {
             if channel.target().property() != Property::MorphTargetWeights
                 || !node_targets.contains_key(&channel.target().node().index())
             {
                 continue;
             }
-            let sampler = channel.sampler();
-            let input = sampler.input();
-            keys += (input.count() + sampler.output().count()) as u64 * 4;
-            let declared = input
-                .max()
-                .and_then(|m| {
-                    m.as_array()
-                        .and_then(|a| a.first())
-                        .and_then(|v| v.as_f64())
-                })
-                .map(|m| m as f32);
-            let t = match declared {
-                Some(t) => t,
-                None => {
-                    let times = parsed.source.read_f32(&input)?;
-                    let t = if times.iter().all(|t| t.is_finite()) {
-                        times.iter().copied().fold(0f32, f32::max)
-                    } else {
-                        f32::NAN
-                    };
-                    parsed.source.budget().release(times.len() as u64 * 4);
-                    t
-                }
+            let Some(t) = declared_last(&channel.sampler().input()) else {
+                complete = false;
+                continue;
             };
             if !t.is_finite() {
                 return Err(ImportError::Animation {
-                    animation: anim
-                        .name()
-                        .map_or_else(|| format!("#{}", anim.index()), str::to_string),
+                    animation: anim_label(&anim),
                     problem: "key times are non-finite".into(),
                 });
             }
             last = Some(last.map_or(t, |l: f32| l.max(t)));
         }
-        let Some(last) = last else { continue };
-        let frames = baked_frames(last, options.fps).ok_or_else(|| ImportError::Animation {
-            animation: anim
-                .name()
-                .map_or_else(|| format!("#{}", anim.index()), str::to_string),
-            problem: format!(
-                "lasts {last} s: more than {MAX_FRAMES} frames at {} fps",
-                options.fps
-            ),
-        })?;
-        clip_frames += frames as u64;
-        transient = transient.max(keys);
+        if let Some(last) = last {
+            baked_frames(last, options.fps).ok_or_else(|| too_long(&anim, last))?;
+        }
+        match (complete, last) {
+            (false, _) => undeclared.push(anim.index()),
+            (true, Some(last)) => {
+                clip_frames += baked_frames(last, options.fps).unwrap_or(0) as u64;
+            }
+            (true, None) => {}
+        }
     }
-    let plan = plan_channels(doc, &parsed.source, &instances)?;
+    // The keyframes are decoded once, here, to tell which nodes share a channel; they stay
+    // charged (in the budget's use) until the build bakes them.
+    let (plan, animations) = plan_channels(doc, &parsed.source, &instances, &names)?;
+    for decoded in animations
+        .iter()
+        .filter(|d| undeclared.binary_search(&d.index).is_ok())
+    {
+        let Some(anim) = doc.animations().nth(decoded.index) else {
+            continue;
+        };
+        // A channel's end is its declared `max`, else its last key (the keys are checked to
+        // be finite and increasing).
+        let last = decoded
+            .tracks
+            .iter()
+            .map(|t| {
+                doc.accessors()
+                    .nth(t.times_accessor)
+                    .and_then(|a| declared_last(&a))
+                    .unwrap_or_else(|| t.track.last_time().max(0.0))
+            })
+            .fold(None::<f32>, |l, t| Some(l.map_or(t, |l| l.max(t))));
+        if let Some(last) = last {
+            let frames = baked_frames(last, options.fps).ok_or_else(|| too_long(&anim, last))?;
+            clip_frames += frames as u64;
+        }
+    }
+    // Compressed views the geometry reads, not decoded yet (the keyframes' were, above): they
+    // stay decoded for the whole build.
+    let decompress = parsed.source.pending_decode_bytes(
+        read_views
+            .iter()
+            .enumerate()
+            .filter_map(|(v, &read)| read.then_some(v)),
+    );
+    drop(read_views);
+    parsed.source.budget().release(views as u64);
+    let transient = transient + decompress;
     let n_targets = plan.len() as u64;
     Ok((
         RigShape {
@@ -767,6 +901,7 @@ fn document_shape(
         },
         transient,
         plan,
+        animations,
     ))
 }
 
@@ -829,34 +964,26 @@ fn triangle_indices(
     Ok(list)
 }
 
-/// Rig-wide target registry: name → id, first appearance first.
-#[derive(Default)]
-struct Targets {
-    names: Vec<String>,
-    defaults: Vec<f32>,
-    index: HashMap<String, TargetId>,
-}
-
-impl Targets {
-    fn id(&mut self, name: &str, default: f32) -> TargetId {
-        if let Some(&id) = self.index.get(name) {
-            return id;
-        }
-        let id = self.names.len() as TargetId;
-        self.names.push(name.to_string());
-        self.defaults.push(default);
-        self.index.insert(name.to_string(), id);
-        id
-    }
-}
-
 fn build_rig(
     parsed: &Parsed<'_>,
-    plan: &ChannelPlan,
+    plan: ChannelPlan,
+    animations: Vec<AnimationTracks>,
     options: &ImportOptions,
 ) -> Result<Rig, ImportError> {
     let doc = &parsed.doc;
     let source = &parsed.source;
+    // The clips first: baking releases the keyframes the plan decoded before the geometry's
+    // decodes need the memory.
+    let n_targets = plan.len();
+    let clips = bake_animations(
+        doc,
+        source,
+        animations,
+        &plan.node_channels,
+        n_targets,
+        &plan.defaults,
+        options.fps,
+    )?;
     let instances = scene_instances(doc)?;
     let mut primitives = Vec::new();
 
@@ -1029,21 +1156,13 @@ fn build_rig(
         }
     }
 
-    let n_targets = plan.len();
-    let clips = bake_animations(
-        doc,
-        source,
-        &plan.node_channels,
-        n_targets,
-        &plan.defaults,
-        options.fps,
-    )?;
     let lod = Lod::by_delta_energy(&primitives, n_targets);
     let rig = Rig {
         name: options.name.clone().unwrap_or_else(|| "rig".into()),
-        targets: plan.names.clone(),
-        default_weights: plan.defaults.clone(),
-        primitives: std::sync::Arc::new(primitives),
+        // The plan's names and defaults (charged when it was made) become the rig's.
+        targets: plan.names,
+        default_weights: plan.defaults,
+        primitives: Arc::new(primitives),
         clips,
         lod,
     };
@@ -1059,22 +1178,43 @@ pub(crate) fn tracks_bytes(tracks: &[WeightTrack]) -> u64 {
         .sum()
 }
 
-/// One `weights` channel resolved to rig-wide targets.
+/// One `weights` channel, decoded. Which weight channels its scalars write is the caller's
+/// business (see [`bake`]): the rig's own file writes each node's channels, a clip by name
+/// every channel of the name.
 pub(crate) struct WeightTrack {
     /// The node the channel animates.
     pub(crate) node: usize,
+    /// The accessor of its key times (whose declared `max` may stand for the last one).
+    pub(crate) times_accessor: usize,
     pub(crate) track: KeyTrack,
-    /// The weight channels each of the track's `width` scalars writes (none: a target the
-    /// rig does not have; several: a clip addressed by name onto a name with several channels).
-    pub(crate) targets: Vec<Vec<TargetId>>,
 }
 
-/// Reads the `weights` channels of one animation. `node_targets(node)` maps a node to the
-/// weight channels each of its mesh's targets writes (empty for targets the rig does not have).
+/// The weight tracks of one animation of the rig's file, decoded while planning the channels
+/// and kept until they are baked.
+pub(crate) struct AnimationTracks {
+    /// The animation's index in the document.
+    pub(crate) index: usize,
+    pub(crate) tracks: Vec<WeightTrack>,
+}
+
+/// The last key time an accessor of key times declares (its `max`), if it declares one.
+fn declared_last(times: &gltf::Accessor<'_>) -> Option<f32> {
+    times
+        .max()
+        .and_then(|m| {
+            m.as_array()
+                .and_then(|a| a.first())
+                .and_then(serde_json::Value::as_f64)
+        })
+        .map(|m| m as f32)
+}
+
+/// Reads the `weights` channels of one animation. `width(node)` is the number of morph targets
+/// of the node's mesh, `None` for a node outside the rig (its channels are skipped).
 pub(crate) fn weight_tracks(
     source: &Source<'_>,
     anim: &gltf::Animation<'_>,
-    node_targets: &dyn Fn(&gltf::Node<'_>) -> Option<Vec<Vec<TargetId>>>,
+    width: &dyn Fn(&gltf::Node<'_>) -> Option<usize>,
 ) -> Result<Vec<WeightTrack>, ImportError> {
     let label = anim
         .name()
@@ -1089,7 +1229,7 @@ pub(crate) fn weight_tracks(
             continue;
         }
         let node = channel.target().node();
-        let Some(ids) = node_targets(&node) else {
+        let Some(width) = width(&node) else {
             tracing::warn!(animation = %label, node = node.index(), "weights channel targets a node outside the rig; ignored");
             continue;
         };
@@ -1108,14 +1248,14 @@ pub(crate) fn weight_tracks(
         let track = KeyTrack {
             times,
             values,
-            width: ids.len(),
+            width,
             interpolation,
         };
         track.check().map_err(&bad)?;
         tracks.push(WeightTrack {
             node: node.index(),
+            times_accessor: input.index(),
             track,
-            targets: ids,
         });
     }
     Ok(tracks)
@@ -1124,10 +1264,12 @@ pub(crate) fn weight_tracks(
 /// Bakes weight tracks into a `targets × frames` table at `fps`.
 ///
 /// Frame `f` samples `t = f / fps` on the glTF timeline; the clip has
-/// `floor(last_key_time × fps) + 1` frames. Targets no track drives hold `defaults`.
-pub(crate) fn bake(
+/// `floor(last_key_time × fps) + 1` frames. Targets no track drives hold `defaults`. Scalar `k`
+/// of a track on node `n` writes the weight channels `channels(n, k)`.
+pub(crate) fn bake<'c>(
     name: &str,
     tracks: &[WeightTrack],
+    channels: impl Fn(usize, usize) -> &'c [TargetId],
     n_targets: usize,
     defaults: &[f32],
     fps: f32,
@@ -1148,13 +1290,20 @@ pub(crate) fn bake(
     for (t, row) in weights.chunks_exact_mut(frames.max(1)).enumerate() {
         row.fill(defaults.get(t).copied().unwrap_or(0.0));
     }
+    // Per track: one sample and one channel list per scalar (charged: a track may be wide).
+    let widest = tracks.iter().map(|t| t.track.width).max().unwrap_or(0) as u64;
+    let scratch = widest * (4 + 16);
+    budget.charge(scratch, || format!("baking clip {name:?}"))?;
     let mut tmp = Vec::new();
+    let mut ids: Vec<&[TargetId]> = Vec::new();
     for wt in tracks {
         tmp.resize(wt.track.width, 0.0);
+        ids.clear();
+        ids.extend((0..wt.track.width).map(|k| channels(wt.node, k)));
         for f in 0..frames {
             sample_track(&wt.track, f as f32 / fps, &mut tmp);
-            for (i, ids) in wt.targets.iter().enumerate() {
-                for &id in ids {
+            for (i, ids) in ids.iter().enumerate() {
+                for &id in *ids {
                     if let Some(w) = weights.get_mut(id as usize * frames + f) {
                         *w = tmp[i];
                     }
@@ -1162,6 +1311,8 @@ pub(crate) fn bake(
             }
         }
     }
+    drop((tmp, ids));
+    budget.release(scratch);
     Ok(Clip::new(name, fps, n_targets, frames, weights)?)
 }
 
@@ -1176,34 +1327,41 @@ pub(crate) fn unique_name(name: String, taken: &[String]) -> String {
         .unwrap_or(name)
 }
 
+/// Bakes the animations the plan decoded, one at a time, releasing each one's keyframes once
+/// its table is made.
 fn bake_animations(
     doc: &gltf::Document,
     source: &Source<'_>,
-    node_targets: &HashMap<usize, Vec<TargetId>>,
+    animations: Vec<AnimationTracks>,
+    node_channels: &HashMap<usize, Vec<TargetId>>,
     n_targets: usize,
     defaults: &[f32],
     fps: f32,
 ) -> Result<Vec<Clip>, ImportError> {
-    let lookup = |node: &gltf::Node<'_>| {
-        node_targets
-            .get(&node.index())
-            .map(|ids| ids.iter().map(|&i| vec![i]).collect())
+    let channels = |node: usize, k: usize| -> &[TargetId] {
+        node_channels
+            .get(&node)
+            .and_then(|ids| ids.get(k))
+            .map_or(&[], std::slice::from_ref)
     };
     let mut clips: Vec<Clip> = Vec::new();
-    for anim in doc.animations() {
-        let tracks = weight_tracks(source, &anim, &lookup)?;
+    for decoded in animations {
+        let tracks = decoded.tracks;
         if tracks.is_empty() {
             continue;
         }
-        let name = anim
-            .name()
+        let name = doc
+            .animations()
+            .nth(decoded.index)
+            .and_then(|a| a.name().map(str::to_string))
             .filter(|n| !n.is_empty())
-            .map_or_else(|| format!("anim{}", anim.index()), str::to_string);
+            .unwrap_or_else(|| format!("anim{}", decoded.index));
         let taken: Vec<String> = clips.iter().map(|c| c.name.clone()).collect();
         let name = unique_name(name, &taken);
         clips.push(bake(
             &name,
             &tracks,
+            channels,
             n_targets,
             defaults,
             fps,

@@ -4,8 +4,11 @@
 //! A compressed view names a byte range of another buffer, the element count and stride, the
 //! codec mode (attributes, triangle indices, other indices) and an optional filter applied
 //! after decoding (octahedral unit vectors, quaternions, exponential floats; `KHR_` adds YCoCg
-//! colours). Each view is decoded once, when the document is parsed, into bytes laid out as the
-//! view declares, and accessors then read it as they read any view. The bitstream decoders are
+//! colours). Each view's header is checked when the document is parsed; a view is decoded
+//! only when an accessor first reads it (views no accessor reads are never decoded), once, into
+//! bytes laid out as the view declares, and accessors then read it as they read any view. The
+//! header-only size checks read the declared length, and the import's estimate counts the
+//! decoded bytes of the views its accessors read before any of them is decoded. The bitstream decoders are
 //! meshoptimizer's (through the `meshopt` crate's bindings), which are written for untrusted
 //! input: a malformed stream returns an error code, never reads or writes out of bounds. Every
 //! precondition they only `assert` (stride limits, index sizes, counts) is checked here first,
@@ -77,18 +80,17 @@ pub(crate) fn is_fallback(buffer: &gltf::Buffer<'_>) -> bool {
     })
 }
 
-/// Decodes one compressed view: `compressed` is the whole buffer the extension names,
-/// `view_length` the view's declared (decoded) length. Returns the decoded bytes in
-/// 4-byte-aligned storage (filters read 16- and 32-bit components), `view_length` bytes long
-/// once cast. The decoded size is charged to `budget` before it is allocated.
-pub(crate) fn decode_view(
+/// Checks a compressed view's header without decoding anything: the decoded size
+/// (`count × byteStride`) equals `view_length`, the view's declared length; the mode, stride
+/// and filter are ones the decoders take; the compressed bytes lie within the
+/// `compressed_len` bytes of the buffer the extension names.
+pub(crate) fn check_view(
     index: usize,
     name: &str,
     ext: &CompressedView,
     view_length: usize,
-    compressed: &[u8],
-    budget: &Budget,
-) -> Result<Vec<u32>, ImportError> {
+    compressed_len: usize,
+) -> Result<(), ImportError> {
     let bad = |problem: String| {
         ImportError::Invalid(format!("bufferViews[{index}].extensions.{name}: {problem}"))
     };
@@ -140,20 +142,41 @@ pub(crate) fn decode_view(
         }
         other => return Err(bad(format!("unknown mode {other:?}"))),
     }
-    let end = ext
-        .byte_offset
+    ext.byte_offset
         .checked_add(ext.byte_length)
-        .filter(|&e| e <= compressed.len() as u64)
+        .filter(|&e| e <= compressed_len as u64)
         .ok_or_else(|| {
             bad(format!(
-                "compressed bytes {}..{} lie past the {} bytes of buffer {}",
+                "compressed bytes {}..{} lie past the {compressed_len} bytes of buffer {}",
                 ext.byte_offset,
                 ext.byte_offset.saturating_add(ext.byte_length),
-                compressed.len(),
                 ext.buffer
             ))
         })?;
-    let input = &compressed[ext.byte_offset as usize..end as usize];
+    Ok(())
+}
+
+/// Decodes one compressed view: `compressed` is the whole buffer the extension names,
+/// `view_length` the view's declared (decoded) length. Returns the decoded bytes in
+/// 4-byte-aligned storage (filters read 16- and 32-bit components), `view_length` bytes long
+/// once cast. The header is checked first ([`check_view`]) and the decoded size is charged to
+/// `budget` before it is allocated.
+pub(crate) fn decode_view(
+    index: usize,
+    name: &str,
+    ext: &CompressedView,
+    view_length: usize,
+    compressed: &[u8],
+    budget: &Budget,
+) -> Result<Vec<u32>, ImportError> {
+    check_view(index, name, ext, view_length, compressed.len())?;
+    let bad = |problem: String| {
+        ImportError::Invalid(format!("bufferViews[{index}].extensions.{name}: {problem}"))
+    };
+    let (stride, count) = (ext.byte_stride, ext.count);
+    let decoded = stride * count;
+    let filter = ext.filter.as_deref().unwrap_or("NONE");
+    let input = &compressed[ext.byte_offset as usize..(ext.byte_offset + ext.byte_length) as usize];
 
     let words = decoded.div_ceil(4);
     budget.charge(words * 4, || {

@@ -70,6 +70,61 @@ pub struct Rig {
     pub lod: Lod,
 }
 
+/// A rig's weight channels by target name, for operations that look up many names (the
+/// columns of a CSV or JSON clip, the targets of a glTF clip): one hash probe per lookup
+/// instead of a scan of every channel, which made a clip naming all of a 4,096-channel rig's
+/// targets quadratic. The channel ids are kept in one array, grouped by name (channel order
+/// within a name), so a lookup returns a slice and building allocates two arrays, not one per
+/// name.
+#[derive(Clone, Debug)]
+pub struct TargetIndex<'r> {
+    /// Every channel id, grouped by name, ascending within a name.
+    order: Vec<TargetId>,
+    /// Name → its range of `order` (start, length).
+    ranges: std::collections::HashMap<&'r str, (u32, u32)>,
+}
+
+impl<'r> TargetIndex<'r> {
+    /// Most bytes an index over `targets` channels holds: four per channel in `order`, and per
+    /// name a map entry (a `&str`, a range and the hash table's control byte) at the table's
+    /// worst load factor.
+    pub fn bytes_for(targets: usize) -> u64 {
+        targets as u64 * (4 + 2 * (16 + 8 + 1))
+    }
+
+    /// Indexes the channel names `targets` (a rig's [`Rig::targets`]).
+    pub fn new(targets: &'r [String]) -> TargetIndex<'r> {
+        let mut order: Vec<TargetId> = (0..targets.len() as TargetId).collect();
+        // Stable: a name's channels stay in channel order.
+        order.sort_by(|&a, &b| targets[a as usize].cmp(&targets[b as usize]));
+        let mut ranges = std::collections::HashMap::new();
+        let mut start = 0;
+        while start < order.len() {
+            let name = targets[order[start] as usize].as_str();
+            let len = order[start..]
+                .iter()
+                .take_while(|&&id| targets[id as usize] == name)
+                .count();
+            ranges.insert(name, (start as u32, len as u32));
+            start += len;
+        }
+        TargetIndex { order, ranges }
+    }
+
+    /// Every weight channel of the target with this name, in channel order (empty when there
+    /// is no such target); what [`Rig::target_ids`] returns.
+    pub fn ids(&self, name: &str) -> &[TargetId] {
+        self.ranges.get(name).map_or(&[], |&(start, len)| {
+            &self.order[start as usize..(start + len) as usize]
+        })
+    }
+
+    /// The distinct names.
+    pub fn names(&self) -> impl Iterator<Item = &'r str> + '_ {
+        self.ranges.keys().copied()
+    }
+}
+
 /// One primitive of the rig, in rig space.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 pub struct Primitive {
@@ -214,7 +269,9 @@ impl Rig {
     }
 
     /// Every weight channel of the target with this name, in channel order (empty when the rig
-    /// has no such target). Sources that address targets by name write all of them.
+    /// has no such target). Sources that address targets by name write all of them. This scans
+    /// every channel: an operation that looks up many names builds a [`Rig::target_index`]
+    /// once instead.
     pub fn target_ids(&self, name: &str) -> Vec<TargetId> {
         self.targets
             .iter()
@@ -222,6 +279,12 @@ impl Rig {
             .filter(|(_, t)| *t == name)
             .map(|(i, _)| i as TargetId)
             .collect()
+    }
+
+    /// The name → channels map of this rig, built once (see [`TargetIndex`]); its size is
+    /// [`TargetIndex::bytes_for`] this rig, which a caller charges to its budget first.
+    pub fn target_index(&self) -> TargetIndex<'_> {
+        TargetIndex::new(&self.targets)
     }
 
     /// The distinct target names, in order of their first channel.
@@ -581,4 +644,32 @@ pub fn vertex_normals(positions: &[Vec3], indices: &[u32]) -> Vec<Vec3> {
     acc.into_iter()
         .map(|n| n.try_normalize().unwrap_or(Vec3::Z))
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_target_index_answers_what_target_ids_scans_for() {
+        // Names with several channels, interleaved, as a split-channel rig has them.
+        let targets: Vec<String> = ["jaw", "blink", "jaw", "smile", "blink", "jaw", "x"]
+            .iter()
+            .map(|s| s.to_string())
+            .collect();
+        let index = TargetIndex::new(&targets);
+        assert_eq!(index.ids("jaw"), [0, 2, 5]);
+        assert_eq!(index.ids("blink"), [1, 4]);
+        assert_eq!(index.ids("x"), [6]);
+        assert!(index.ids("absent").is_empty());
+        let mut names: Vec<&str> = index.names().collect();
+        names.sort_unstable();
+        assert_eq!(names, ["blink", "jaw", "smile", "x"]);
+        // The embedded rig: every name, as the scan finds it.
+        let rig = crate::embedded::default_rig();
+        let index = rig.target_index();
+        for name in &rig.targets {
+            assert_eq!(index.ids(name), rig.target_ids(name), "{name}");
+        }
+    }
 }
