@@ -396,6 +396,12 @@ struct Layout<'a> {
 }
 
 impl Renderer {
+    /// The memory budget of the renderer's device (`--max-gpu-memory`), which its targets,
+    /// scenes and index buffers are charged to.
+    pub fn memory(&self) -> &Arc<crate::budget::MemoryPool> {
+        self.ctx.memory()
+    }
+
     /// Builds the pipeline on the context's device (the device the GPU engine uses, so its
     /// outputs can be drawn where they are).
     pub fn new(ctx: Arc<GpuContext>) -> Result<Renderer, RenderError> {

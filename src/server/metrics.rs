@@ -220,6 +220,11 @@ pub struct Gauges {
     pub render_pixels: u64,
     /// The limit on that (`--render-pixels`).
     pub render_pixels_limit: u64,
+    /// Bytes charged to the GPU memory budgets (the engine's and the renderer's devices, each
+    /// counted once); 0 without a GPU.
+    pub gpu_memory_bytes: u64,
+    /// The sum of those budgets (`--max-gpu-memory` per device).
+    pub gpu_memory_limit: u64,
 }
 
 impl Metrics {
@@ -516,6 +521,18 @@ impl Metrics {
             "crowdmorph_render_pixels_limit",
             "Limit on the pixels rendered frames in flight may hold (--render-pixels).",
             g.render_pixels_limit as f64,
+        );
+        gauge(
+            &mut o,
+            "crowdmorph_gpu_memory_bytes",
+            "Bytes charged to the GPU memory budget: rigs, batches, render targets (0 without a GPU).",
+            g.gpu_memory_bytes as f64,
+        );
+        gauge(
+            &mut o,
+            "crowdmorph_gpu_memory_limit_bytes",
+            "The GPU memory budget (--max-gpu-memory per device; 0 without a GPU).",
+            g.gpu_memory_limit as f64,
         );
         gauge(&mut o, "crowdmorph_rigs", "Rigs registered.", g.rigs as f64);
         gauge(

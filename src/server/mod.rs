@@ -482,6 +482,19 @@ impl AppState {
             (h + m.host_bytes as u64, d + m.device_bytes as u64)
         });
         let free = self.memory.available_permits() as u64;
+        // The engine and the renderer may share one device, and then one budget.
+        let mut gpu_pools: Vec<&Arc<MemoryPool>> = Vec::new();
+        for p in [
+            self.engine.gpu_memory(),
+            self.renderer().map(crate::render::gpu::Renderer::memory),
+        ]
+        .into_iter()
+        .flatten()
+        {
+            if !gpu_pools.iter().any(|q| Arc::ptr_eq(q, p)) {
+                gpu_pools.push(p);
+            }
+        }
         Gauges {
             rigs: rigs.len() as u64,
             host_bytes: host,
@@ -496,6 +509,8 @@ impl AppState {
             render_pixels: (self.config.render_pixels)
                 .saturating_sub(self.pixels.available_permits() as u64),
             render_pixels_limit: self.config.render_pixels,
+            gpu_memory_bytes: gpu_pools.iter().map(|p| p.used()).sum(),
+            gpu_memory_limit: gpu_pools.iter().map(|p| p.limit()).sum(),
         }
     }
 }

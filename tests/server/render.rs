@@ -1009,6 +1009,17 @@ async fn the_gpu_memory_budget_refuses_rigs_and_renders_over_it_and_a_delete_giv
         .expect("upload");
     let ict = memory.used() - builtin;
     assert!(ict > 0, "the rig is charged to the GPU budget");
+    // /metrics reports the budget once: the renderer shares the engine's device and pool.
+    let page = server.client.metrics().await.expect("metrics");
+    let gauge = |name: &str| crowdmorph_client::metric(&page, name);
+    assert_eq!(
+        gauge("crowdmorph_gpu_memory_bytes"),
+        Some(memory.used() as f64)
+    );
+    assert_eq!(
+        gauge("crowdmorph_gpu_memory_limit_bytes"),
+        Some(memory.limit() as f64)
+    );
     server.client.delete_rig("ict").await.expect("delete");
     assert_eq!(
         memory.used(),
