@@ -229,12 +229,19 @@ pub fn lod_report(
     let levels = default_lod_levels(rig.targets.len());
     let c = rig.clips.get(clip).ok_or(ReportError::NoSuchClip(clip))?;
     let disp = Displacements::new(rig);
+    let labels = rig.channel_labels();
+    let label = |&t: &TargetId| {
+        labels
+            .get(t as usize)
+            .cloned()
+            .unwrap_or_else(|| rig.channel_label(t))
+    };
     let mut orders = Vec::new();
     for method in OrderMethod::all() {
         let order = pin_front(&scores.order(method), pins);
         orders.push(OrderReport {
             method: method.name().to_string(),
-            order: order.iter().map(|&t| rig.channel_label(t)).collect(),
+            order: order.iter().map(label).collect(),
             levels: clip_errors(rig, &disp, clip, &order, &levels)?,
         });
     }
@@ -244,7 +251,7 @@ pub fn lod_report(
         frames: c.frames,
         vertices: rig.vertex_count(),
         bbox_diagonal: rig.bbox().diagonal(),
-        pinned: pins.iter().map(|&t| rig.channel_label(t)).collect(),
+        pinned: pins.iter().map(label).collect(),
         orders,
         scores: scores.clone(),
     })

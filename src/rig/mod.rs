@@ -332,6 +332,30 @@ impl Rig {
         }
     }
 
+    /// Every channel's [`Rig::channel_label`], in channel order, in one pass (labelling the
+    /// channels one call at a time would scan them all per call).
+    pub fn channel_labels(&self) -> Vec<String> {
+        let mut total: std::collections::HashMap<&str, usize> =
+            std::collections::HashMap::with_capacity(self.targets.len());
+        for t in &self.targets {
+            *total.entry(t.as_str()).or_default() += 1;
+        }
+        let mut seen: std::collections::HashMap<&str, usize> =
+            std::collections::HashMap::with_capacity(total.len());
+        self.targets
+            .iter()
+            .map(|t| {
+                let k = seen.entry(t.as_str()).or_default();
+                *k += 1;
+                if total.get(t.as_str()).copied().unwrap_or(0) > 1 {
+                    format!("{t}#{k}")
+                } else {
+                    t.clone()
+                }
+            })
+            .collect()
+    }
+
     /// The channel a [`Rig::channel_label`] names: `name#k` is the k-th channel of `name`
     /// (a plain name with a single channel is its label too).
     pub fn channel_by_label(&self, label: &str) -> Option<TargetId> {
@@ -671,5 +695,24 @@ mod tests {
         for name in &rig.targets {
             assert_eq!(index.ids(name), rig.target_ids(name), "{name}");
         }
+    }
+
+    #[test]
+    fn channel_labels_are_each_channels_label_in_one_pass() {
+        let mut rig = crate::embedded::default_rig();
+        // Split channels, interleaved, as a rig whose meshes reuse names has them.
+        let n = rig.targets.len();
+        for (i, t) in rig.targets.iter_mut().enumerate() {
+            if i % 3 == 0 {
+                *t = ["jaw", "blink"][i % 2].to_string();
+            }
+        }
+        let labels = rig.channel_labels();
+        assert_eq!(labels.len(), n);
+        for (i, l) in labels.iter().enumerate() {
+            assert_eq!(*l, rig.channel_label(i as u32), "channel {i}");
+            assert_eq!(rig.channel_by_label(l), Some(i as u32), "{l}");
+        }
+        assert!(labels.iter().any(|l| l == "jaw#2"));
     }
 }

@@ -197,7 +197,13 @@ impl RigEntry {
         let lod = &rig.lod;
         // Channel labels: the target name, with `#k` for a name that has several channels,
         // so that an order read here can be sent back as an explicit order.
-        let name = |t: &u32| rig.channel_label(*t);
+        let labels = rig.channel_labels();
+        let name = |&t: &u32| {
+            labels
+                .get(t as usize)
+                .cloned()
+                .unwrap_or_else(|| rig.channel_label(t))
+        };
         LodInfo {
             method: lod.method.clone(),
             status: if lod.method == crate::rig::IMPORT_LOD_METHOD {

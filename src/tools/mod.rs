@@ -148,11 +148,11 @@ pub fn summarize(rig: &Rig) -> RigSummary {
             })
             .collect(),
         targets: rig
-            .targets
-            .iter()
+            .channel_labels()
+            .into_iter()
             .enumerate()
-            .map(|(i, _)| TargetSummary {
-                name: rig.channel_label(i as u32),
+            .map(|(i, name)| TargetSummary {
+                name,
                 nnz: nnz[i],
                 lod_slot: slots[i],
             })
