@@ -369,6 +369,50 @@ fn output_buffers_are_reused_across_batches() {
     assert_eq!(out, fresh);
 }
 
+#[test]
+fn reused_buffers_holding_other_values_come_out_as_fresh_ones_in_every_format() {
+    // The engine does not clear a reused buffer before the kernel writes it: a buffer whose
+    // spare room holds NaN (a bigger batch's old output, then a small batch) grown for a
+    // bigger batch again must come out bitwise equal to a fresh evaluation.
+    let poisoned = |n: usize| -> (Vec<f32>, Vec<half::f16>, Vec<i16>) {
+        let mut f = vec![f32::NAN; n];
+        let mut h = vec![half::f16::NAN; n];
+        let mut q = vec![i16::MIN; n];
+        f.truncate(3);
+        h.truncate(3);
+        q.truncate(3);
+        (f, h, q)
+    };
+    for (r, rig) in format_rigs().iter().enumerate() {
+        let cpu = CpuRig::new(rig);
+        let q = crowdmorph::server::registry::quantization_box(rig);
+        let mut rng = Rng(0xB0FF + r as u64);
+        let jobs = random_jobs(rig, &mut rng, 19);
+        let batch = WeightBatch::gather(rig, &jobs).expect("gather");
+        let n = 19 * rig.vertex_count() * 3;
+        let f16 = OutputSpec {
+            normals: false,
+            precision: Precision::F16,
+        };
+        for spec in specs(q).into_iter().chain([f16]) {
+            let fresh = cpu.evaluate(&batch, spec).expect("evaluate");
+            let (f, h, qv) = poisoned(n);
+            let data = |kind: &VertexData| match kind {
+                VertexData::F32(_) => VertexData::F32(f.clone()),
+                VertexData::F16(_) => VertexData::F16(h.clone()),
+                VertexData::Q16(_, s) => VertexData::Q16(qv.clone(), *s),
+            };
+            let mut out = BlendOutput {
+                positions: data(&fresh.positions),
+                normals: fresh.normals.as_ref().map(data),
+                ..BlendOutput::default()
+            };
+            cpu.evaluate_into(&batch, spec, &mut out).expect("evaluate");
+            assert!(out == fresh, "rig {r}, {spec:?}");
+        }
+    }
+}
+
 /// Rigs for the format and batch tests: the embedded head (normals recomputed from the blended
 /// positions) and random rigs with normal deltas on some primitives (normals blended in the
 /// kernel) whose sizes straddle tiles.

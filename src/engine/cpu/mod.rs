@@ -45,7 +45,6 @@ pub use simd::{Isa, LANES};
 
 use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
-use half::f16;
 use rayon::prelude::*;
 
 use self::simd::{Lanes, Portable, Q16Pattern};
@@ -759,10 +758,16 @@ impl CpuRig {
         buffer: &mut VertexData,
         len: usize,
     ) -> VertexData {
+        // The pass writes every component of its output, so a reused buffer is not cleared
+        // first: growing it with zeros would write up to the whole output once more (a batch
+        // larger than the buffer's last one).
         match precision {
             Precision::F32 => {
-                let mut v = take_f32(buffer, len);
-                self.blend(groups, pass, OutPtr::of_f32(&mut v), Format::F32);
+                let mut v = match std::mem::take(buffer) {
+                    VertexData::F32(v) => v,
+                    _ => Vec::new(),
+                };
+                self.blend_uninit(groups, pass, &mut v, len, Format::F32);
                 VertexData::F32(v)
             }
             Precision::F16 => {
@@ -770,12 +775,7 @@ impl CpuRig {
                     VertexData::F16(v) => v,
                     _ => Vec::new(),
                 };
-                v.resize(len, f16::ZERO);
-                let out = OutPtr {
-                    bytes: v.as_mut_ptr().cast(),
-                    elem: 2,
-                };
-                self.blend(groups, pass, out, Format::F16);
+                self.blend_uninit(groups, pass, &mut v, len, Format::F16);
                 VertexData::F16(v)
             }
             Precision::Q16(b) => {
@@ -783,13 +783,8 @@ impl CpuRig {
                     VertexData::Q16(v, _) => v,
                     _ => Vec::new(),
                 };
-                v.resize(len, 0);
-                let out = OutPtr {
-                    bytes: v.as_mut_ptr().cast(),
-                    elem: 2,
-                };
                 let pattern = Q16Pattern::new(&Q16Params::new(b, normals));
-                self.blend(groups, pass, out, Format::Q16(&pattern));
+                self.blend_uninit(groups, pass, &mut v, len, Format::Q16(&pattern));
                 let scale = if normals {
                     Q16Scale::Unit
                 } else {
@@ -798,6 +793,36 @@ impl CpuRig {
                 VertexData::Q16(v, scale)
             }
         }
+    }
+
+    /// Runs `pass` into `v`'s allocation, grown to `len` elements of the format's size
+    /// (`T` is f32, f16 or i16, as `format` says), without initializing it first: the pass
+    /// writes every one of the `groups.count × V × 3` components, and `v`'s length is set
+    /// only after it has.
+    fn blend_uninit<T: Copy>(
+        &self,
+        groups: &Groups,
+        pass: Pass<'_>,
+        v: &mut Vec<T>,
+        len: usize,
+        format: Format<'_>,
+    ) {
+        debug_assert_eq!(len, groups.count * self.vertices * 3);
+        debug_assert_eq!(
+            size_of::<T>(),
+            if matches!(format, Format::F32) { 4 } else { 2 }
+        );
+        v.clear();
+        v.reserve(len);
+        let out = OutPtr {
+            bytes: v.as_mut_ptr().cast(),
+            elem: size_of::<T>(),
+        };
+        self.blend(groups, pass, out, format);
+        // SAFETY: `v` has capacity for `len` elements, and `blend` has written all of them:
+        // every job of every group, every tile's vertices (it returns early only when there
+        // are no jobs or no vertices, that is when `len` is 0).
+        unsafe { v.set_len(len) };
     }
 
     /// The `blend` pass: `out[j] = base + Σ_slot w[j][slot] · Δ[slot]` over every tile, for
