@@ -299,6 +299,16 @@ impl VertexData {
         }
     }
 
+    /// Bytes the buffer's allocation holds (its capacity, which a reused buffer keeps when a
+    /// smaller batch shortens it).
+    pub fn capacity_bytes(&self) -> usize {
+        match self {
+            VertexData::F32(v) => v.capacity() * 4,
+            VertexData::F16(v) => v.capacity() * 2,
+            VertexData::Q16(v, _) => v.capacity() * 2,
+        }
+    }
+
     /// Whether this buffer is of the kind `precision` produces (q16 of any box).
     pub fn is_kind(&self, precision: Precision) -> bool {
         matches!(

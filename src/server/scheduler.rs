@@ -769,7 +769,7 @@ const POOL_TOTAL_BYTES: usize = 512 << 20;
 
 impl Reusable for VertexData {
     fn kept_bytes(&self) -> usize {
-        self.as_bytes().len()
+        self.capacity_bytes()
     }
 }
 

@@ -730,8 +730,7 @@ impl CpuRig {
             normalize: false,
             read_next: false,
         };
-        out.positions =
-            self.blend_into(&groups, pos, spec.precision, false, &mut out.positions, len);
+        out.positions = self.blend_into(&groups, pos, spec.precision, false, &mut out.positions);
         out.normals = if spec.normals {
             let nrm = Pass {
                 base: &self.base_normals,
@@ -740,7 +739,7 @@ impl CpuRig {
                 read_next: false,
             };
             let mut n = out.normals.take().unwrap_or_default();
-            Some(self.blend_into(&groups, nrm, spec.precision, true, &mut n, len))
+            Some(self.blend_into(&groups, nrm, spec.precision, true, &mut n))
         } else {
             None
         };
@@ -756,7 +755,6 @@ impl CpuRig {
         precision: Precision,
         normals: bool,
         buffer: &mut VertexData,
-        len: usize,
     ) -> VertexData {
         // The pass writes every component of its output, so a reused buffer is not cleared
         // first: growing it with zeros would write up to the whole output once more (a batch
@@ -767,7 +765,7 @@ impl CpuRig {
                     VertexData::F32(v) => v,
                     _ => Vec::new(),
                 };
-                self.blend_uninit(groups, pass, &mut v, len, Format::F32);
+                self.blend_uninit(groups, pass, &mut v, Format::F32);
                 VertexData::F32(v)
             }
             Precision::F16 => {
@@ -775,7 +773,7 @@ impl CpuRig {
                     VertexData::F16(v) => v,
                     _ => Vec::new(),
                 };
-                self.blend_uninit(groups, pass, &mut v, len, Format::F16);
+                self.blend_uninit(groups, pass, &mut v, Format::F16);
                 VertexData::F16(v)
             }
             Precision::Q16(b) => {
@@ -784,7 +782,7 @@ impl CpuRig {
                     _ => Vec::new(),
                 };
                 let pattern = Q16Pattern::new(&Q16Params::new(b, normals));
-                self.blend_uninit(groups, pass, &mut v, len, Format::Q16(&pattern));
+                self.blend_uninit(groups, pass, &mut v, Format::Q16(&pattern));
                 let scale = if normals {
                     Q16Scale::Unit
                 } else {
@@ -795,19 +793,19 @@ impl CpuRig {
         }
     }
 
-    /// Runs `pass` into `v`'s allocation, grown to `len` elements of the format's size
-    /// (`T` is f32, f16 or i16, as `format` says), without initializing it first: the pass
-    /// writes every one of the `groups.count × V × 3` components, and `v`'s length is set
-    /// only after it has.
+    /// Runs `pass` into `v`'s allocation, grown to the pass's `groups.count × V × 3`
+    /// components of the format's size (`T` is f32, f16 or i16, as `format` says), without
+    /// initializing it first: the pass writes every one of them, and `v`'s length is set only
+    /// after it has.
     fn blend_uninit<T: Copy>(
         &self,
         groups: &Groups,
         pass: Pass<'_>,
         v: &mut Vec<T>,
-        len: usize,
         format: Format<'_>,
     ) {
-        debug_assert_eq!(len, groups.count * self.vertices * 3);
+        // The caller checked that this product fits (`MAX_OUTPUT_COMPONENTS`).
+        let len = groups.count * self.vertices * 3;
         debug_assert_eq!(
             size_of::<T>(),
             if matches!(format, Format::F32) { 4 } else { 2 }
