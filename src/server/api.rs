@@ -1171,23 +1171,32 @@ pub(super) struct ResolvedHeads {
     pub plan: Plan,
 }
 
+/// Bytes one job's output holds while it is computed and sent: positions (and normals) in the
+/// wire format, three times that as JSON (base64 text and its escape), plus, with normals in a
+/// 16-bit format on a rig whose normals are recomputed, the f32 positions and normals the CPU
+/// engine blends before the normals pass and the encoding, and, for q16 on the GPU engine
+/// (`gpu`), the f32 outputs it reads back and quantizes on the host. Every admission (crowd
+/// frames, sessions, load tests) charges this.
+pub(super) fn job_output_bytes(
+    rig: &Rig,
+    format: Format,
+    normals: bool,
+    json: bool,
+    gpu: bool,
+) -> u64 {
+    let v3 = rig.vertex_count() as u64 * 3;
+    let comp = format.component_bytes() as u64;
+    let outputs = if normals { 2 } else { 1 };
+    let wire = v3 * comp * outputs * if json { 3 } else { 1 };
+    let f32_first =
+        (normals && comp < 4 && rig.recomputes_normals()) || (gpu && format == Format::Q16);
+    wire + if f32_first { v3 * 4 * outputs } else { 0 }
+}
+
 /// Queue memory a crowd request body of `declared` bytes reserves while it is read and decoded
 /// (bincode or JSON): the body and what it decodes to, a head taking 72 bytes decoded from at
 /// least 5 bytes of bincode or 40 of JSON. `POST /v1/loadtest` counts the same for each of its
 /// synthetic requests.
-/// Bytes one job's output holds while it is computed and sent: positions (and normals) in the
-/// wire format, three times that as JSON (base64 text and its escape), plus, with normals in a
-/// 16-bit format on a rig whose normals are recomputed, the f32 positions and normals the CPU
-/// engine blends before the normals pass and the encoding. Every admission (crowd frames,
-/// sessions, load tests) charges this.
-pub(super) fn job_output_bytes(rig: &Rig, format: Format, normals: bool, json: bool) -> u64 {
-    let v3 = rig.vertex_count() as u64 * 3;
-    let comp = format.component_bytes() as u64;
-    let wire = v3 * comp * if normals { 2 } else { 1 } * if json { 3 } else { 1 };
-    let f32_first = normals && comp < 4 && rig.recomputes_normals();
-    wire + if f32_first { v3 * 4 * 2 } else { 0 }
-}
-
 pub(super) fn decode_reservation(bincode: bool, declared: u64) -> u64 {
     declared.saturating_mul(if bincode { 16 } else { 3 })
 }
@@ -1431,13 +1440,14 @@ async fn frame(state: &AppState, headers: &HeaderMap, body: Body, source: Source
 
     // Admission: the output memory this request will hold, then a place in the queue.
     let json = !wants_bincode(headers);
+    let gpu = state.engine.gpu_memory().is_some();
     let mut out_bytes = 0u64;
     let mut jobs = Vec::with_capacity(plan.jobs.len());
     for k in &plan.jobs {
         let job = job_request(&rigs[k.rig as usize], k.clip, k.frame, k.lod);
         // A LOD level on a simplified mesh has fewer vertices.
         let rig = job.entry.prepared.at_level(k.lod).rig();
-        out_bytes += job_output_bytes(rig, format, normals, json);
+        out_bytes += job_output_bytes(rig, format, normals, json, gpu);
         jobs.push(job);
     }
     let units = out_bytes.div_ceil(1024).max(1);

@@ -312,12 +312,18 @@ impl AppState {
         }
         let mut rigs = Vec::new();
         let json = crowd.encoding == load::WireEncoding::Json;
+        let gpu = self.engine.gpu_memory().is_some();
         let mut max_job_bytes = 0u64;
         for id in &crowd.rigs {
             let entry = self.rig(id)?;
             let rig = entry.rig();
-            max_job_bytes =
-                max_job_bytes.max(job_output_bytes(rig, crowd.format, crowd.normals, json));
+            max_job_bytes = max_job_bytes.max(job_output_bytes(
+                rig,
+                crowd.format,
+                crowd.normals,
+                json,
+                gpu,
+            ));
             rigs.push(RigClips {
                 id: id.clone(),
                 clips: rig.clips.iter().map(|c| c.name.clone()).collect(),

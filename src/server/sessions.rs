@@ -1197,12 +1197,13 @@ async fn tick_once(state: &AppState, session: &Arc<Session>, tick: u64) -> Ticke
     }
 
     // The blended outputs count against the queue memory while the tick holds them.
+    let gpu = state.engine.gpu_memory().is_some();
     let out_bytes: u64 = groups
         .iter()
         .flat_map(|g| {
             g.jobs.iter().map(move |j| {
                 let rig = j.entry.prepared.at_level(j.lod).rig();
-                super::api::job_output_bytes(rig, g.format, g.normals, false)
+                super::api::job_output_bytes(rig, g.format, g.normals, false, gpu)
             })
         })
         .sum();
@@ -1408,17 +1409,18 @@ fn encode_vertices(
         &timings,
     );
     drop(middle);
-    let mut memory = memory;
-    let keep = (total as u64).div_ceil(1024).max(1) as usize;
-    if let Some(extra) = memory.num_permits().checked_sub(keep).filter(|&n| n > 0) {
-        // The layout's encoding is gone; the message keeps only its own bytes.
-        drop(memory.split(extra));
-    }
     let mut out = Vec::with_capacity(total);
     for c in &chunks {
         out.extend_from_slice(c);
     }
     debug_assert_eq!(out.len(), total, "the counted length is the encoding's");
+    drop(chunks);
+    let mut memory = memory;
+    let keep = (total as u64).div_ceil(1024).max(1) as usize;
+    if let Some(extra) = memory.num_permits().checked_sub(keep).filter(|&n| n > 0) {
+        // The layout's encoding and the chunks are gone; the message keeps only its bytes.
+        drop(memory.split(extra));
+    }
     Some(Encoded {
         bytes: Bytes::from(out),
         _memory: memory,

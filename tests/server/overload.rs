@@ -343,3 +343,44 @@ async fn sixteen_bit_normals_that_are_recomputed_are_charged_for_the_f32_blend_b
     }
     server.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn q16_on_the_gpu_engine_is_charged_for_the_f32_it_reads_back() {
+    // The GPU engine reads q16 jobs back as f32 and quantizes them on the host: one default-head
+    // job holds 7262 × 3 × 2 = 43,572 bytes of q16 and 87,144 of f32 beside it. 100 KiB holds
+    // the first only; f16, which the GPU packs itself, still fits.
+    let server = TestServer::start(ServerConfig {
+        queue_memory_bytes: 100 << 10,
+        backend: crowdmorph::engine::BackendChoice::Gpu,
+        ..ServerConfig::default()
+    })
+    .await;
+    assert!(
+        server.state.engine.gpu_memory().is_some(),
+        "the GPU engine (lavapipe)"
+    );
+    let mut r = req(&[1]);
+    r.output.format = Format::F16;
+    let (resp, _) = server
+        .client
+        .crowd_frame(&r, Encoding::Bincode)
+        .await
+        .expect("f16 fits");
+    assert_eq!(resp.buffers.len(), 1);
+    r.output.format = Format::Q16;
+    match server.client.crowd_frame(&r, Encoding::Bincode).await {
+        Err(ClientError::Api {
+            status,
+            code,
+            message,
+        }) => {
+            assert_eq!(
+                (status, code.as_str()),
+                (413, "response_too_large"),
+                "{message}"
+            );
+        }
+        other => panic!("q16 on the GPU within 100 KiB: {other:?}"),
+    }
+    server.stop().await;
+}
