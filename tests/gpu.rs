@@ -543,8 +543,38 @@ fn the_gpu_memory_budget_refuses_rigs_over_it_and_gets_back_a_dropped_rigs_memor
     assert!(!tight.info().degraded, "{:?}", tight.info().degraded_reason);
     let cpu = Engine::cpu();
     let want = cpu
-        .evaluate(&cpu.prepare(rig).expect("prepare"), &jobs, spec)
+        .evaluate(&cpu.prepare(rig.clone()).expect("prepare"), &jobs, spec)
         .expect("cpu");
     assert_eq!(got.output, want.output);
     drop(second);
+
+    // Idle batch slots kept for reuse do not hold the budget against rigs: with room for two
+    // copies of the rig plus half of one, a batch's pooled slot is given back when a second
+    // copy would not fit beside it.
+    let slot = {
+        let r = probe.prepare(rig.clone()).expect("upload");
+        let at = memory.used();
+        let out = probe.evaluate(&r, &jobs, spec).expect("evaluated");
+        assert_eq!(out.kind, Some(BackendKind::Gpu));
+        memory.used() - at
+    };
+    assert!(
+        slot > bytes / 2,
+        "the pooled slot ({slot}) is larger than half the rig"
+    );
+    let pooled = Engine::with_gpu(
+        open_gpu(GpuOptions {
+            memory: Some(bytes + slot + bytes / 2),
+            ..GpuOptions::default()
+        }),
+        BackendChoice::Gpu,
+    );
+    let first = pooled.prepare(rig.clone()).expect("the first fits");
+    let out = pooled.evaluate(&first, &jobs, spec).expect("evaluated");
+    assert_eq!(out.kind, Some(BackendKind::Gpu), "the batch ran on the GPU");
+    let second = pooled
+        .prepare(rig.clone())
+        .expect("the idle slot makes room for a second copy");
+    drop((first, second));
+    assert_eq!(pooled.gpu_memory().expect("gpu").used(), 0);
 }

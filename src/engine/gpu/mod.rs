@@ -333,9 +333,27 @@ impl GpuContext {
         &self.memory
     }
 
-    /// Charges `bytes` of device memory about to be allocated for `what`.
+    /// Charges `bytes` of device memory about to be allocated for `what`. When the budget is
+    /// full, the idle batch slots kept for reuse are freed and the charge tried once more: they
+    /// only save reallocations, and kept forever they would refuse every later rig upload
+    /// ("retry shortly" that never succeeds).
     pub fn charge(&self, bytes: u64, what: impl Fn() -> String) -> Result<Charge, GpuError> {
-        Ok(self.memory.charge(bytes, what)?)
+        match self.memory.charge(bytes, &what) {
+            Err(BudgetError::Full { .. }) if self.free_idle_slots() => {
+                Ok(self.memory.charge(bytes, what)?)
+            }
+            r => Ok(r?),
+        }
+    }
+
+    /// Drops the pooled batch slots, giving their memory back; whether there were any. A
+    /// thread that holds the pool (choosing or building a slot) is not waited for.
+    fn free_idle_slots(&self) -> bool {
+        let idle = match self.pool.try_lock() {
+            Ok(mut pool) => std::mem::take(&mut *pool),
+            Err(_) => return false,
+        };
+        !idle.is_empty()
     }
 
     /// The adapter in use.
