@@ -128,17 +128,19 @@ struct Matcher<'r> {
 
 impl<'r> Matcher<'r> {
     /// Bytes a matcher of `rig` holds at most: the exact index, and per name a loose spelling
-    /// (at most the name's text) in a map entry at the table's worst load factor.
+    /// (at most the name's text) in a map allocated once for every name.
     fn bytes(rig: &Rig) -> u64 {
-        let n = rig.targets.len() as u64;
+        let n = rig.targets.len();
         let text: u64 = rig.targets.iter().map(|t| t.len() as u64).sum();
-        TargetIndex::bytes_for(rig.targets.len()) + text + n * 2 * (24 + 16 + 1)
+        TargetIndex::bytes_for(n) + text + crate::rig::map_bytes(n, 24 + 16)
     }
 
     /// The matcher of `rig`; the caller has charged [`Matcher::bytes`].
     fn new(rig: &'r Rig) -> Matcher<'r> {
         let exact = rig.target_index();
-        let mut loose_names: HashMap<String, Option<&'r str>> = HashMap::new();
+        // Sized once for every name at most, so it never grows (what `bytes` counts).
+        let mut loose_names: HashMap<String, Option<&'r str>> =
+            HashMap::with_capacity(rig.targets.len());
         for name in exact.names() {
             loose_names
                 .entry(loose(name))

@@ -85,11 +85,11 @@ pub struct TargetIndex<'r> {
 }
 
 impl<'r> TargetIndex<'r> {
-    /// Most bytes an index over `targets` channels holds: four per channel in `order`, and per
-    /// name a map entry (a `&str`, a range and the hash table's control byte) at the table's
-    /// worst load factor.
+    /// Most bytes an index over `targets` channels holds: four per channel in `order`, and
+    /// the name map, allocated once for `targets` names (a `&str` and a range per bucket, a
+    /// control byte each; see [`map_bytes`]).
     pub fn bytes_for(targets: usize) -> u64 {
-        targets as u64 * (4 + 2 * (16 + 8 + 1))
+        targets as u64 * 4 + map_bytes(targets, 16 + 8)
     }
 
     /// Indexes the channel names `targets` (a rig's [`Rig::targets`]).
@@ -97,7 +97,8 @@ impl<'r> TargetIndex<'r> {
         let mut order: Vec<TargetId> = (0..targets.len() as TargetId).collect();
         // Stable: a name's channels stay in channel order.
         order.sort_by(|&a, &b| targets[a as usize].cmp(&targets[b as usize]));
-        let mut ranges = std::collections::HashMap::new();
+        // Sized once for every name at most, so it never grows (what `bytes_for` counts).
+        let mut ranges = std::collections::HashMap::with_capacity(targets.len());
         let mut start = 0;
         while start < order.len() {
             let name = targets[order[start] as usize].as_str();
@@ -123,6 +124,14 @@ impl<'r> TargetIndex<'r> {
     pub fn names(&self) -> impl Iterator<Item = &'r str> + '_ {
         self.ranges.keys().copied()
     }
+}
+
+/// Most bytes a `std` hash map built `with_capacity(n)` (and never grown past `n`) allocates
+/// for entries of `entry` bytes: hashbrown's buckets (the next power of two at its 7/8 load
+/// factor) of an entry and a control byte each, plus one group of control bytes.
+pub fn map_bytes(n: usize, entry: u64) -> u64 {
+    let buckets = (n.saturating_mul(8) / 7 + 1).next_power_of_two().max(4) as u64;
+    buckets * (entry + 1) + 16
 }
 
 /// One primitive of the rig, in rig space.
@@ -695,6 +704,15 @@ mod tests {
         for name in &rig.targets {
             assert_eq!(index.ids(name), rig.target_ids(name), "{name}");
         }
+        // The charge bounds what the map holds: built once, it never grew past the buckets
+        // `map_bytes` counts (a table's capacity is 7/8 of its buckets).
+        let n = rig.targets.len();
+        assert!(index.ranges.capacity() >= n, "sized once for every name");
+        let buckets = (map_bytes(n, 24) - 16) / 25;
+        assert!(
+            index.ranges.capacity() as u64 <= buckets,
+            "{buckets} buckets"
+        );
     }
 
     #[test]
