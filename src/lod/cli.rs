@@ -126,16 +126,7 @@ pub fn order_command(
     let pin_ids = resolve_targets(rig, pins)?;
     let (scores, seconds) = score(rig, image_size)?;
     let labels = rig.channel_labels();
-    let names = |o: &[TargetId]| -> Vec<String> {
-        o.iter()
-            .map(|&t| {
-                labels
-                    .get(t as usize)
-                    .cloned()
-                    .unwrap_or_else(|| rig.channel_label(t))
-            })
-            .collect()
-    };
+    let names = |o: &[TargetId]| labels.of(o);
     let order = pin_front(&scores.order(method), &pin_ids);
     let out = OrderOutput {
         rig: rig.name.clone(),

@@ -230,18 +230,12 @@ pub fn lod_report(
     let c = rig.clips.get(clip).ok_or(ReportError::NoSuchClip(clip))?;
     let disp = Displacements::new(rig);
     let labels = rig.channel_labels();
-    let label = |&t: &TargetId| {
-        labels
-            .get(t as usize)
-            .cloned()
-            .unwrap_or_else(|| rig.channel_label(t))
-    };
     let mut orders = Vec::new();
     for method in OrderMethod::all() {
         let order = pin_front(&scores.order(method), pins);
         orders.push(OrderReport {
             method: method.name().to_string(),
-            order: order.iter().map(label).collect(),
+            order: labels.of(&order),
             levels: clip_errors(rig, &disp, clip, &order, &levels)?,
         });
     }
@@ -251,7 +245,7 @@ pub fn lod_report(
         frames: c.frames,
         vertices: rig.vertex_count(),
         bbox_diagonal: rig.bbox().diagonal(),
-        pinned: pins.iter().map(label).collect(),
+        pinned: labels.of(pins),
         orders,
         scores: scores.clone(),
     })

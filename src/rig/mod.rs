@@ -134,6 +134,30 @@ pub fn map_bytes(n: usize, entry: u64) -> u64 {
     buckets * (entry + 1) + 16
 }
 
+/// Every channel's label, in channel order ([`Rig::channel_labels`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct ChannelLabels(Vec<String>);
+
+impl ChannelLabels {
+    /// The labels of `ids`, in their order (`#id` for an id past the channels, as
+    /// [`Rig::channel_label`] says it).
+    pub fn of(&self, ids: &[TargetId]) -> Vec<String> {
+        ids.iter()
+            .map(|&t| {
+                self.0
+                    .get(t as usize)
+                    .cloned()
+                    .unwrap_or_else(|| format!("#{t}"))
+            })
+            .collect()
+    }
+
+    /// All the labels, in channel order.
+    pub fn into_vec(self) -> Vec<String> {
+        self.0
+    }
+}
+
 /// One primitive of the rig, in rig space.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 pub struct Primitive {
@@ -343,7 +367,7 @@ impl Rig {
 
     /// Every channel's [`Rig::channel_label`], in channel order, in one pass (labelling the
     /// channels one call at a time would scan them all per call).
-    pub fn channel_labels(&self) -> Vec<String> {
+    pub fn channel_labels(&self) -> ChannelLabels {
         let mut total: std::collections::HashMap<&str, usize> =
             std::collections::HashMap::with_capacity(self.targets.len());
         for t in &self.targets {
@@ -351,18 +375,20 @@ impl Rig {
         }
         let mut seen: std::collections::HashMap<&str, usize> =
             std::collections::HashMap::with_capacity(total.len());
-        self.targets
-            .iter()
-            .map(|t| {
-                let k = seen.entry(t.as_str()).or_default();
-                *k += 1;
-                if total.get(t.as_str()).copied().unwrap_or(0) > 1 {
-                    format!("{t}#{k}")
-                } else {
-                    t.clone()
-                }
-            })
-            .collect()
+        ChannelLabels(
+            self.targets
+                .iter()
+                .map(|t| {
+                    let k = seen.entry(t.as_str()).or_default();
+                    *k += 1;
+                    if total.get(t.as_str()).copied().unwrap_or(0) > 1 {
+                        format!("{t}#{k}")
+                    } else {
+                        t.clone()
+                    }
+                })
+                .collect(),
+        )
     }
 
     /// The channel a [`Rig::channel_label`] names: `name#k` is the k-th channel of `name`
@@ -725,7 +751,7 @@ mod tests {
                 *t = ["jaw", "blink"][i % 2].to_string();
             }
         }
-        let labels = rig.channel_labels();
+        let labels = rig.channel_labels().into_vec();
         assert_eq!(labels.len(), n);
         for (i, l) in labels.iter().enumerate() {
             assert_eq!(*l, rig.channel_label(i as u32), "channel {i}");

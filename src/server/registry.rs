@@ -198,12 +198,6 @@ impl RigEntry {
         // Channel labels: the target name, with `#k` for a name that has several channels,
         // so that an order read here can be sent back as an explicit order.
         let labels = rig.channel_labels();
-        let name = |&t: &u32| {
-            labels
-                .get(t as usize)
-                .cloned()
-                .unwrap_or_else(|| rig.channel_label(t))
-        };
         LodInfo {
             method: lod.method.clone(),
             status: if lod.method == crate::rig::IMPORT_LOD_METHOD {
@@ -213,8 +207,8 @@ impl RigEntry {
             },
             progress: 1.0,
             error: None,
-            order: lod.order.iter().map(name).collect(),
-            pinned: lod.pinned.iter().map(name).collect(),
+            order: labels.of(&lod.order),
+            pinned: labels.of(&lod.pinned),
             levels: (0..lod.levels.len() as u32)
                 .map(|l| {
                     let at = self.prepared.at_level(l).rig();

@@ -149,6 +149,7 @@ pub fn summarize(rig: &Rig) -> RigSummary {
             .collect(),
         targets: rig
             .channel_labels()
+            .into_vec()
             .into_iter()
             .enumerate()
             .map(|(i, name)| TargetSummary {
