@@ -303,6 +303,35 @@ async fn a_client_that_disconnects_does_not_cancel_shared_work() {
     server.stop().await;
 }
 
+/// Serves `fits` and refuses `refused` with 413 `response_too_large`: the queue memory holds
+/// the first request's output but not the second's.
+async fn serves_then_refuses_as_too_large(
+    server: &TestServer,
+    fits: CrowdFrameRequest,
+    refused: CrowdFrameRequest,
+) {
+    let (resp, _) = server
+        .client
+        .crowd_frame(&fits, Encoding::Bincode)
+        .await
+        .expect("the first request fits");
+    assert_eq!(resp.buffers.len(), 1);
+    match server.client.crowd_frame(&refused, Encoding::Bincode).await {
+        Err(ClientError::Api {
+            status,
+            code,
+            message,
+        }) => {
+            assert_eq!(
+                (status, code.as_str()),
+                (413, "response_too_large"),
+                "{message}"
+            );
+        }
+        other => panic!("{:?}: {other:?}", refused.output),
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sixteen_bit_normals_that_are_recomputed_are_charged_for_the_f32_blend_before_them() {
     // The default head's normals are recomputed from the blended positions, which the CPU
@@ -318,29 +347,11 @@ async fn sixteen_bit_normals_that_are_recomputed_are_charged_for_the_f32_blend_b
         ..ServerConfig::default()
     })
     .await;
-    let mut r = req(&[1]);
-    r.output.format = Format::F16;
-    let (resp, _) = server
-        .client
-        .crowd_frame(&r, Encoding::Bincode)
-        .await
-        .expect("f16 positions fit");
-    assert_eq!(resp.buffers.len(), 1);
-    r.output.normals = true;
-    match server.client.crowd_frame(&r, Encoding::Bincode).await {
-        Err(ClientError::Api {
-            status,
-            code,
-            message,
-        }) => {
-            assert_eq!(
-                (status, code.as_str()),
-                (413, "response_too_large"),
-                "{message}"
-            );
-        }
-        other => panic!("f16 with recomputed normals within 128 KiB: {other:?}"),
-    }
+    let mut positions = req(&[1]);
+    positions.output.format = Format::F16;
+    let mut with_normals = positions.clone();
+    with_normals.output.normals = true;
+    serves_then_refuses_as_too_large(&server, positions, with_normals).await;
     server.stop().await;
 }
 
@@ -359,28 +370,10 @@ async fn q16_on_the_gpu_engine_is_charged_for_the_f32_it_reads_back() {
         server.state.engine.gpu_memory().is_some(),
         "the GPU engine (lavapipe)"
     );
-    let mut r = req(&[1]);
-    r.output.format = Format::F16;
-    let (resp, _) = server
-        .client
-        .crowd_frame(&r, Encoding::Bincode)
-        .await
-        .expect("f16 fits");
-    assert_eq!(resp.buffers.len(), 1);
-    r.output.format = Format::Q16;
-    match server.client.crowd_frame(&r, Encoding::Bincode).await {
-        Err(ClientError::Api {
-            status,
-            code,
-            message,
-        }) => {
-            assert_eq!(
-                (status, code.as_str()),
-                (413, "response_too_large"),
-                "{message}"
-            );
-        }
-        other => panic!("q16 on the GPU within 100 KiB: {other:?}"),
-    }
+    let mut f16 = req(&[1]);
+    f16.output.format = Format::F16;
+    let mut q16 = f16.clone();
+    q16.output.format = Format::Q16;
+    serves_then_refuses_as_too_large(&server, f16, q16).await;
     server.stop().await;
 }
