@@ -188,9 +188,60 @@ impl Clip {
     }
 }
 
+/// A rig's clips by name: clip indices sorted by name, so that finding a clip is a binary
+/// search, not a scan of every clip. A crowd frame or a session tick looks up a clip for each
+/// head, and a rig may hold hundreds of thousands of tiny clips (a one-frame clip of a
+/// one-target rig is a few bytes of table): scanned per head, a 10,000-head tick on such a rig
+/// compared billions of names. Four bytes per clip, built once per rig version.
+#[derive(Clone, Debug, Default)]
+pub struct ClipIndex {
+    /// Clip indices ordered by name; equal names keep the clips' order.
+    order: Vec<u32>,
+}
+
+impl ClipIndex {
+    /// The index of `clips`.
+    pub fn new(clips: &[Clip]) -> ClipIndex {
+        let mut order: Vec<u32> = (0..clips.len() as u32).collect();
+        // Stable: of two clips with one name the earlier comes first, as a scan finds it.
+        order.sort_by(|&a, &b| clips[a as usize].name.cmp(&clips[b as usize].name));
+        ClipIndex { order }
+    }
+
+    /// The first clip of `clips` (the slice the index was built from) named `name`.
+    pub fn find(&self, clips: &[Clip], name: &str) -> Option<usize> {
+        let name_of = |i: u32| clips.get(i as usize).map_or("", |c| c.name.as_str());
+        let k = self.order.partition_point(|&i| name_of(i) < name);
+        self.order
+            .get(k)
+            .filter(|&&i| name_of(i) == name && (i as usize) < clips.len())
+            .map(|&i| i as usize)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_clip_index_finds_what_a_scan_finds() {
+        let clip = |name: &str| Clip::new(name, 30.0, 1, 1, vec![0.0]).unwrap();
+        // Unsorted names, a repeated name (the first one wins, as in a scan) and names that
+        // sort around the ones present.
+        let clips: Vec<Clip> = ["talk", "blink", "talk", "a", "smile", "Talk", "talk_2"]
+            .into_iter()
+            .map(clip)
+            .collect();
+        let index = ClipIndex::new(&clips);
+        let scan = |name: &str| clips.iter().position(|c| c.name == name);
+        for name in [
+            "talk", "blink", "a", "smile", "Talk", "talk_2", "", "b", "zzz", "tal",
+        ] {
+            assert_eq!(index.find(&clips, name), scan(name), "{name:?}");
+        }
+        assert_eq!(index.find(&clips, "talk"), Some(0));
+        assert_eq!(ClipIndex::new(&[]).find(&[], "talk"), None);
+    }
 
     #[test]
     fn frame_modes() {

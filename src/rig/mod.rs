@@ -25,7 +25,7 @@ mod lod;
 mod mesh_level;
 mod sample;
 
-pub use clip::{Clip, ClipError, DEFAULT_FPS, FrameMode, MAX_FRAMES};
+pub use clip::{Clip, ClipError, ClipIndex, DEFAULT_FPS, FrameMode, MAX_FRAMES};
 pub use cost::{PrimShape, RigCost, RigShape};
 pub use lod::{
     IMPORT_LOD_METHOD, Lod, LodError, LodLevel, MeshLevel, MeshLevelPrimitive, default_lod_levels,

@@ -381,7 +381,7 @@ fn unknown_rig(state: &AppState, id: &str) -> ApiError {
     )
 }
 
-fn unknown_clip(entry: &RigEntry, clip: &str) -> ApiError {
+pub(super) fn unknown_clip(entry: &RigEntry, clip: &str) -> ApiError {
     let names: Vec<&str> = entry
         .rig()
         .clips
@@ -663,6 +663,7 @@ pub(super) async fn upload_rig(
         prepared,
         layout,
         charge: std::sync::Mutex::new(charge),
+        clip_names: Default::default(),
     });
     state.registry.insert(entry.clone());
     drop(budget);
@@ -906,10 +907,16 @@ pub(super) async fn upload_clips(
     let (rig, prepared, qbox, added, ignored, table_bytes) = blocking(move || {
         let mut new = current.rig().clone();
         let mut ignored: Vec<String> = Vec::new();
+        // Hash sets, not scans of what came before: a file may hold thousands of clips and
+        // name thousands of unknown targets.
+        let mut seen_ignored = std::collections::HashSet::new();
+        let mut added_names = std::collections::HashSet::new();
         let mut added = Vec::new();
         let mut table_bytes = 0u64;
         for imp in imports {
-            if new.clip_index(&imp.clip.name).is_some() {
+            if current.clip_index(&imp.clip.name).is_some()
+                || !added_names.insert(imp.clip.name.clone())
+            {
                 return Err(ApiError::new(
                     StatusCode::CONFLICT,
                     "clip_exists",
@@ -919,9 +926,9 @@ pub(super) async fn upload_clips(
                     ),
                 ));
             }
-            for i in imp.ignored {
-                if !ignored.contains(&i) {
-                    ignored.push(i);
+            for i in imp.ignored.iter() {
+                if seen_ignored.insert(i.clone()) {
+                    ignored.push(i.clone());
                 }
             }
             added.push(crowdmorph_proto::ClipInfo {
@@ -998,7 +1005,6 @@ pub(super) async fn get_clip(
     state.check_ready()?;
     let entry = state.rig(&id)?;
     let ci = entry
-        .rig()
         .clip_index(&clip)
         .ok_or_else(|| unknown_clip(&entry, &clip))?;
     respond(&headers, StatusCode::OK, &clip_infos(entry.rig())[ci])
@@ -1014,7 +1020,6 @@ pub(super) async fn delete_clip(
     let _admin = state.admin.lock().await;
     let entry = state.rig(&id)?;
     let ci = entry
-        .rig()
         .clip_index(&clip)
         .ok_or_else(|| unknown_clip(&entry, &clip))?;
     if entry.builtin && ci < entry.builtin_clips {
@@ -1282,7 +1287,7 @@ impl AppState {
             let ci = match clip_at.get(&(ri, head.clip.as_str())) {
                 Some(&c) => c,
                 None => {
-                    let c = rig.clip_index(&head.clip).ok_or_else(|| {
+                    let c = entry.clip_index(&head.clip).ok_or_else(|| {
                         let e = unknown_clip(entry, &head.clip);
                         ApiError {
                             message: format!("head {h} (id {}): {}", head.head, e.message),

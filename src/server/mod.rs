@@ -226,6 +226,7 @@ impl AppState {
             prepared,
             layout: ClipLayout::default(),
             charge: Mutex::new(charge),
+            clip_names: Default::default(),
         }));
         Ok(AppState(Arc::new(Inner {
             config,
@@ -380,6 +381,7 @@ impl AppState {
                     prepared,
                     layout: ClipLayout::in_record(&rig.clips),
                     charge: Mutex::new(charge),
+                    clip_names: Default::default(),
                 }));
                 Ok(true)
             }
@@ -395,7 +397,11 @@ impl AppState {
                 };
                 let mut rig = entry.rig().clone();
                 let names: Vec<String> = c.clips.iter().map(|c| c.name.clone()).collect();
-                if let Some(dup) = names.iter().find(|n| rig.clip_index(n).is_some()) {
+                let mut seen = std::collections::HashSet::new();
+                if let Some(dup) = names
+                    .iter()
+                    .find(|n| entry.clip_index(n).is_some() || !seen.insert(n.as_str()))
+                {
                     return Err(format!(
                         "clip file {} of rig {:?} repeats clip {dup:?}",
                         c.seq, c.id

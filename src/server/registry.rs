@@ -46,6 +46,8 @@ pub struct RigEntry {
     /// one it replaces (they share most of their memory); it is given back when the last
     /// generation of a deleted rig is dropped.
     pub charge: Mutex<Charge>,
+    /// The rig's clips by name, built on the first lookup (see [`RigEntry::clip_index`]).
+    pub clip_names: std::sync::OnceLock<crate::rig::ClipIndex>,
 }
 
 /// Where a rig's clips are stored (see [`crate::store`]): some in the rig's record (for the
@@ -108,6 +110,15 @@ impl RigEntry {
         self.prepared.rig()
     }
 
+    /// The index of the clip named `name`: a binary search over the clips sorted by name
+    /// (four bytes per clip, built once per generation), where [`Rig::clip_index`] scans them.
+    pub fn clip_index(&self, name: &str) -> Option<usize> {
+        let clips = &self.rig().clips;
+        self.clip_names
+            .get_or_init(|| crate::rig::ClipIndex::new(clips))
+            .find(clips, name)
+    }
+
     /// The next generation of this rig: `prepared` (new clips or LOD) with its q16 box and
     /// clip layout. It takes over this generation's memory charge, plus `extra` (what the
     /// change reserved), and sets it to what the new generation holds.
@@ -134,6 +145,7 @@ impl RigEntry {
             prepared,
             layout,
             charge: Mutex::new(charge),
+            clip_names: Default::default(),
         }
     }
 

@@ -1023,6 +1023,7 @@ mod tests {
             prepared,
             layout: ClipLayout::default(),
             charge: std::sync::Mutex::new(Budget::new(u64::MAX, "", None).keep(0)),
+            clip_names: Default::default(),
         })
     }
 

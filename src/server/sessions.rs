@@ -417,19 +417,13 @@ impl AppState {
             message: format!("head {}: {}", h.head, e.message),
             ..e
         })?;
-        if entry.rig().clip_index(&h.clip).is_none() {
-            let names: Vec<&str> = entry.rig().clips.iter().map(|c| c.name.as_str()).collect();
-            return Err(ApiError::new(
-                StatusCode::NOT_FOUND,
-                "unknown_clip",
-                format!(
-                    "head {}: rig {:?} has no clip {:?} (clips: {})",
-                    h.head,
-                    h.rig,
-                    h.clip,
-                    names.join(", ")
-                ),
-            ));
+        if entry.clip_index(&h.clip).is_none() {
+            // The same message as a crowd frame's (at most 20 names, whatever the rig holds).
+            let e = super::api::unknown_clip(&entry, &h.clip);
+            return Err(ApiError {
+                message: format!("head {}: {}", h.head, e.message),
+                ..e
+            });
         }
         scene::placement_matrix(&placement(h))
             .map_err(|e| invalid(format!("head {}: {e}", h.head)))?;
@@ -1122,7 +1116,7 @@ async fn tick_once(state: &AppState, session: &Arc<Session>, tick: u64) -> Ticke
             let ri = ri?;
             let entry = &rigs[ri as usize];
             let rig = entry.rig();
-            let ci = rig.clip_index(&h.clip)?;
+            let ci = entry.clip_index(&h.clip)?;
             let clip = &rig.clips[ci];
             let elapsed = (tick - 1) as f64 * f64::from(clip.fps) / f64::from(session.fps);
             let frame = clip
