@@ -662,7 +662,7 @@ fn csv_unknown_targets() {
     let rig = default_rig();
     let imported =
         clip_from_csv(&rig, "c", text.as_bytes(), &options).expect("unknown names ignored");
-    assert_eq!(imported.ignored, ["fooBar", "tongueOut"]);
+    assert_eq!(*imported.ignored, ["fooBar", "tongueOut"]);
     let jaw = rig.target_id("jawOpen").expect("jawOpen") as usize;
     assert_eq!(imported.clip.weight(jaw, 0), 0.5);
     assert_eq!(imported.clip.weight(jaw, 1), 0.25);
@@ -691,7 +691,7 @@ fn json_clip_problems() {
         ..Default::default()
     };
     let imported = clip_from_json(&rig, "j", text, &options).expect("unknown names ignored");
-    assert_eq!(imported.ignored, ["noSuchShape"]);
+    assert_eq!(*imported.ignored, ["noSuchShape"]);
 
     let e = clip_from_json(
         &rig,

@@ -562,3 +562,43 @@ fn import_decodes_keyframes_once_and_holds_them_charged_until_baked() {
         }
     }
 }
+
+/// Animations that share a name (or take a suffixed name another already has) come out
+/// named uniquely, in file order, from the rig's own file and as clips of another rig; each
+/// keeps its own curve.
+#[test]
+fn animations_with_one_name_get_the_first_free_suffixes() {
+    let mut b = triangle_rig();
+    // Four "talk"s, one of them after an animation that took "talk_3" itself.
+    for (k, name) in ["talk", "talk", "talk_3", "talk", "talk", ""]
+        .iter()
+        .enumerate()
+    {
+        let w = k as f32 / 10.0;
+        b.animation_weights(name, 0, &[0.0], &[w, 0.0], "STEP");
+    }
+    let want = ["talk", "talk_2", "talk_3", "talk_4", "talk_5", "anim5"];
+    let rig = import(&b, 30.0);
+    let names: Vec<&str> = rig.clips.iter().map(|c| c.name.as_str()).collect();
+    assert_eq!(names, want);
+    for (k, c) in rig.clips.iter().enumerate() {
+        assert_eq!(
+            c.weights[0],
+            k as f32 / 10.0,
+            "clip {} keeps its own curve",
+            c.name
+        );
+    }
+    let clips = crowdmorph::import::clips_from_gltf(
+        &rig,
+        &b.to_glb(),
+        &ClipOptions {
+            fps: 30.0,
+            ..ClipOptions::default()
+        },
+    )
+    .expect("the same file imports as clips");
+    let names: Vec<&str> = clips.iter().map(|c| c.clip.name.as_str()).collect();
+    assert_eq!(names, want);
+    assert!(clips.iter().all(|c| c.ignored.is_empty()));
+}

@@ -23,11 +23,11 @@ use serde::Deserialize;
 
 use super::channels::curves_agree;
 use super::gltf::{
-    Instance, MeshNames, bake, parse, scene_instances, tracks_bytes, unique_name, weight_tracks,
+    Instance, MeshNames, UniqueNames, bake, parse, scene_instances, tracks_bytes, weight_tracks,
 };
 use super::{ImportError, ImportOptions};
 use crate::budget::Budget;
-use crate::rig::{Clip, DEFAULT_FPS, MAX_FRAMES, Rig, TargetId, TargetIndex};
+use crate::rig::{Clip, DEFAULT_FPS, MAX_FRAMES, Rig, TargetId, TargetIndex, map_bytes};
 
 /// Options for reading a clip source.
 #[derive(Clone, Debug)]
@@ -70,8 +70,10 @@ impl ClipOptions {
 pub struct ClipImport {
     /// The clip, over all the rig's targets.
     pub clip: Clip,
-    /// Source target names not in the rig (only when `ignore_unknown` was set).
-    pub ignored: Vec<String>,
+    /// Source target names not in the rig (only when `ignore_unknown` was set). The clips of
+    /// one glTF file share one list (it is the file's, not an animation's), so a file of many
+    /// animations and many unknown names does not hold a copy per clip.
+    pub ignored: Arc<[String]>,
 }
 
 /// Columns of face-capture CSVs that are metadata, not targets.
@@ -132,7 +134,7 @@ impl<'r> Matcher<'r> {
     fn bytes(rig: &Rig) -> u64 {
         let n = rig.targets.len();
         let text: u64 = rig.targets.iter().map(|t| t.len() as u64).sum();
-        TargetIndex::bytes_for(n) + text + crate::rig::map_bytes(n, 24 + 16)
+        TargetIndex::bytes_for(n) + text + map_bytes(n, 24 + 16)
     }
 
     /// The matcher of `rig`; the caller has charged [`Matcher::bytes`].
@@ -178,18 +180,32 @@ fn map_names(
     let bytes = Matcher::bytes(rig);
     budget.charge(bytes, || format!("the target names of rig {:?}", rig.name))?;
     let matcher = Matcher::new(rig);
-    let mapped = map_with(&matcher, names, options);
+    let mapped = map_with(&matcher, names, options, budget);
     drop(matcher);
     budget.release(bytes);
     mapped
 }
 
-/// [`map_names`] with the rig's names already indexed.
+/// [`map_names`] with the rig's names already indexed. The id lists (a vector per column)
+/// and the unknown names are sized by the source, so they are charged to `budget` first; they
+/// are held until the import ends, so the charge is not given back before.
 fn map_with(
     matcher: &Matcher<'_>,
     names: &[String],
     options: &ClipOptions,
+    budget: &Budget,
 ) -> Result<(Vec<Vec<TargetId>>, Vec<String>), ImportError> {
+    let vec_bytes = size_of::<Vec<TargetId>>() as u64;
+    let bytes: u64 = names
+        .iter()
+        .map(|n| match matcher.ids(n) {
+            [] => 2 * vec_bytes + n.len() as u64,
+            ids => vec_bytes + 4 * ids.len() as u64,
+        })
+        .sum();
+    budget.charge(bytes, || {
+        format!("the channel lists of {} source targets", names.len())
+    })?;
     let mut ids = Vec::with_capacity(names.len());
     let mut unknown = Vec::new();
     for n in names {
@@ -277,8 +293,14 @@ pub fn clip_from_csv(
         .headers()
         .map_err(|e| ImportError::ClipSource(format!("CSV header: {e}")))?
         .clone();
-    let mut keep = Vec::new();
-    let mut names = Vec::new();
+    // The header, its kept columns and their names are copies sized by the source.
+    let budget = options.budget();
+    budget.charge(
+        2 * header.as_byte_record().as_slice().len() as u64 + 56 * header.len() as u64,
+        || format!("the CSV header ({} columns)", header.len()),
+    )?;
+    let mut keep = Vec::with_capacity(header.len());
+    let mut names = Vec::with_capacity(header.len());
     for (i, h) in header.iter().enumerate() {
         if !METADATA_COLUMNS.contains(&loose(h).as_str()) {
             keep.push(i);
@@ -290,8 +312,8 @@ pub fn clip_from_csv(
             "CSV header names no targets".into(),
         ));
     }
-    let budget = options.budget();
     let (ids, ignored) = map_names(rig, &names, options, &budget)?;
+    let ignored = ignored.into();
     // A parsed row: its vector header and weights.
     let row_bytes = 24 + 4 * keep.len() as u64;
     let mut rows = Vec::new();
@@ -346,6 +368,7 @@ pub fn clip_from_json(
     let src: JsonClip =
         serde_json::from_slice(bytes).map_err(|e| ImportError::ClipSource(format!("JSON: {e}")))?;
     let (ids, ignored) = map_names(rig, &src.targets, options, &budget)?;
+    let ignored = ignored.into();
     if let Some((f, row)) = src
         .frames
         .iter()
@@ -462,42 +485,56 @@ pub fn clips_from_gltf(
         format!("the target names of rig {:?}", rig.name)
     })?;
     let matcher = Matcher::new(rig);
+    let budget = parsed.source.budget();
     let mut ignored = Vec::new();
     let mut ignored_set = std::collections::HashSet::new();
-    // Each mesh's names are matched once, however many nodes instance it.
+    // Each mesh's names are matched once, however many nodes instance it; a node refers to
+    // its mesh's lists (a copy per node would make a file of many instances of a mesh with
+    // many targets a multiplier).
     let mut by_mesh: HashMap<usize, Vec<Vec<TargetId>>> = HashMap::new();
-    let mut by_node = HashMap::new();
+    let mut mesh_of: HashMap<usize, usize> = HashMap::with_capacity(instances.len());
+    budget.charge(
+        map_bytes(instances.len(), 16) + map_bytes(instances.len(), 32),
+        || format!("the meshes of {} scene nodes", instances.len()),
+    )?;
     for inst in &instances {
-        let ids = match by_mesh.entry(inst.mesh.index()) {
-            Entry::Occupied(e) => e.into_mut(),
-            Entry::Vacant(e) => {
-                let (ids, unknown) = map_with(&matcher, names.of(&inst.mesh), options)?;
-                for u in unknown {
-                    if ignored_set.insert(u.clone()) {
-                        ignored.push(u);
-                    }
+        if let Entry::Vacant(e) = by_mesh.entry(inst.mesh.index()) {
+            let (ids, unknown) = map_with(&matcher, names.of(&inst.mesh), options, budget)?;
+            for u in unknown {
+                if !ignored_set.contains(u.as_str()) {
+                    // Held twice (the set and the list) for the rest of the import.
+                    budget.charge(2 * (u.len() as u64 + 24), || {
+                        format!("the unknown target name {u:?}")
+                    })?;
+                    ignored_set.insert(u.clone());
+                    ignored.push(u);
                 }
-                e.insert(ids)
             }
-        };
-        by_node.insert(inst.node.index(), ids.clone());
+            e.insert(ids);
+        }
+        mesh_of.insert(inst.node.index(), inst.mesh.index());
     }
-    drop(by_mesh);
+    drop(ignored_set);
+    let ignored: Arc<[String]> = ignored.into();
     drop(matcher);
-    parsed.source.budget().release(matcher_bytes);
-    let per_node = same_scene(rig, &instances);
-    if per_node {
-        by_node = node_channels(rig, &instances, &names);
-    }
+    budget.release(matcher_bytes);
+    // The rig's own export writes each node's channels; another file writes by name.
+    let per_node = same_scene(rig, &instances).then(|| node_channels(rig, &instances, &names));
     drop(names);
-    let width = |node: &gltf::Node<'_>| by_node.get(&node.index()).map(Vec::len);
+    let lists = |node: usize| -> Option<&Vec<Vec<TargetId>>> {
+        match &per_node {
+            Some(by_node) => by_node.get(&node),
+            None => mesh_of.get(&node).and_then(|m| by_mesh.get(m)),
+        }
+    };
+    let width = |node: &gltf::Node<'_>| lists(node.index()).map(Vec::len);
     let channels = |node: usize, k: usize| -> &[TargetId] {
-        by_node
-            .get(&node)
+        lists(node)
             .and_then(|ids| ids.get(k))
             .map_or(&[], Vec::as_slice)
     };
     let mut out: Vec<ClipImport> = Vec::new();
+    let mut taken = UniqueNames::default();
     for anim in parsed.doc.animations() {
         let tracks = weight_tracks(&parsed.source, &anim, &width)?;
         if tracks.is_empty() {
@@ -507,13 +544,12 @@ pub fn clips_from_gltf(
             .name()
             .filter(|n| !n.is_empty())
             .map_or_else(|| format!("anim{}", anim.index()), str::to_string);
-        if per_node {
-            curves_agree(rig, &tracks, &by_node).map_err(|problem| {
+        if let Some(by_node) = &per_node {
+            curves_agree(rig, &tracks, by_node).map_err(|problem| {
                 ImportError::ClipSource(format!("animation {name:?}: {problem}"))
             })?;
         }
-        let taken: Vec<String> = out.iter().map(|c| c.clip.name.clone()).collect();
-        let name = unique_name(name, &taken);
+        let name = taken.take(name, budget)?;
         let clip = bake(
             &name,
             &tracks,
@@ -521,9 +557,9 @@ pub fn clips_from_gltf(
             rig.targets.len(),
             &rig.default_weights,
             options.fps,
-            parsed.source.budget(),
+            budget,
         )?;
-        parsed.source.budget().release(tracks_bytes(&tracks));
+        budget.release(tracks_bytes(&tracks));
         out.push(ClipImport {
             clip,
             ignored: ignored.clone(),

@@ -1316,15 +1316,39 @@ pub(crate) fn bake<'c>(
     Ok(Clip::new(name, fps, n_targets, frames, weights)?)
 }
 
-/// Makes `name` unique among `taken` by appending `_2`, `_3`, ...
-pub(crate) fn unique_name(name: String, taken: &[String]) -> String {
-    if !taken.contains(&name) {
-        return name;
+/// Names made unique as they are taken: a name taken before gets the first free `_2`, `_3`...
+/// suffix. Hash lookups and a next-suffix counter per name keep this linear in the names:
+/// with a scan of the names taken so far for every candidate, a file of thousands of
+/// animations with one name cost a cube of their number.
+#[derive(Default)]
+pub(crate) struct UniqueNames {
+    /// Every name handed out.
+    taken: std::collections::HashSet<String>,
+    /// Per name asked for again: the next suffix to try.
+    next: HashMap<String, u64>,
+}
+
+impl UniqueNames {
+    /// `name`, or its first free suffixed form; the name (held twice at most, in the set and
+    /// as a counter's key) is charged to `budget`.
+    pub(crate) fn take(&mut self, name: String, budget: &Budget) -> Result<String, ImportError> {
+        budget.charge(2 * (name.len() as u64 + 48) + 32, || {
+            format!("the animation name {name:?}")
+        })?;
+        if !self.taken.contains(&name) {
+            self.taken.insert(name.clone());
+            return Ok(name);
+        }
+        let next = self.next.entry(name.clone()).or_insert(2);
+        loop {
+            let candidate = format!("{name}_{next}");
+            *next += 1;
+            if !self.taken.contains(&candidate) {
+                self.taken.insert(candidate.clone());
+                return Ok(candidate);
+            }
+        }
     }
-    (2..)
-        .map(|i| format!("{name}_{i}"))
-        .find(|n| !taken.contains(n))
-        .unwrap_or(name)
 }
 
 /// Bakes the animations the plan decoded, one at a time, releasing each one's keyframes once
@@ -1345,6 +1369,7 @@ fn bake_animations(
             .map_or(&[], std::slice::from_ref)
     };
     let mut clips: Vec<Clip> = Vec::new();
+    let mut taken = UniqueNames::default();
     for decoded in animations {
         let tracks = decoded.tracks;
         if tracks.is_empty() {
@@ -1356,8 +1381,7 @@ fn bake_animations(
             .and_then(|a| a.name().map(str::to_string))
             .filter(|n| !n.is_empty())
             .unwrap_or_else(|| format!("anim{}", decoded.index));
-        let taken: Vec<String> = clips.iter().map(|c| c.name.clone()).collect();
-        let name = unique_name(name, &taken);
+        let name = taken.take(name, source.budget())?;
         clips.push(bake(
             &name,
             &tracks,
