@@ -1062,6 +1062,23 @@ struct Group {
     index: HashMap<(u32, u32, u32, u32), u32>,
 }
 
+/// Most bytes a tick's bookkeeping holds at once for `heads` heads and `viewers` viewers:
+/// each head's resolved rig, clip and frame; per viewer its job per head, the keys it is sent,
+/// the entries of its message and the fan-out cache's copy of them; per group (viewers that
+/// share a format and normals: at most six) the jobs, their keys and the index over them, with
+/// room for the vectors' and the map's growth. At the session limits (10,000 heads, dozens of
+/// viewers) this is tens of megabytes per tick, so it is charged to the queue memory before
+/// any of it is built.
+fn tick_bookkeeping_bytes(heads: usize, viewers: usize) -> u64 {
+    type Key = (u32, u32, u32, u32);
+    let groups = viewers.min(6);
+    let per_viewer = size_of::<Option<u32>>() + size_of::<HeadKey>() + 2 * size_of::<u32>();
+    let per_group = 2 * (size_of::<JobRequest>() + size_of::<Key>())
+        + 3 * (size_of::<Key>() + size_of::<u32>() + 1);
+    let per_head = size_of::<Option<HeadAt>>() + viewers * per_viewer + groups * per_group;
+    (heads as u64).saturating_mul(per_head as u64)
+}
+
 fn level_for(lod: &LodChoice, camera: Option<&CameraSpec>, position: [f32; 3]) -> u32 {
     match lod {
         LodChoice::Fixed(l) => *l,
@@ -1095,6 +1112,12 @@ async fn tick_once(state: &AppState, session: &Arc<Session>, tick: u64) -> Ticke
     if viewers.is_empty() {
         return Ticked::NoViewers;
     }
+    // What this tick builds per head is charged first, as every request's memory is.
+    let Ok(_bookkeeping) =
+        state.reserve_queue_memory(tick_bookkeeping_bytes(heads.len(), viewers.len()))
+    else {
+        return Ticked::Skipped;
+    };
 
     // Every head once: its rig at this tick's generation, clip and frame.
     let mode = if session.wrap {

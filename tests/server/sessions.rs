@@ -836,3 +836,46 @@ async fn a_silent_viewer_and_a_chatty_one_are_closed_with_the_rule_they_broke() 
     );
     server.stop().await;
 }
+
+/// A tick's own bookkeeping (per head and viewer) is charged to the queue memory before it is
+/// built: 10,000 clones of one head need one small blend, but their per-head lists do not
+/// fit in 2 MB, so those ticks are skipped (counted, and the rejection named in the metrics),
+/// while a 100-head session ticks under the same limit.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_ticks_per_head_lists_are_charged_to_the_queue_memory() {
+    let server = TestServer::start(ServerConfig {
+        queue_memory_bytes: 2 << 20,
+        ..config()
+    })
+    .await;
+    let crowd = |n: u64| -> Vec<Value> {
+        (0..n)
+            .map(|i| head(i, "idle", 0, [(i % 100) as f32, 0.0, (i / 100) as f32]))
+            .collect()
+    };
+    let hello = json!({"format": "f32", "normals": true});
+    let small = create(&server, json!({"fps": 30, "heads": crowd(100)})).await;
+    let mut viewer = connect(&server, &small.id, hello.clone()).await;
+    let first = next_tick(&mut viewer).await;
+    assert_eq!(first.buffers.len(), 1, "100 clones share one job");
+    drop(viewer);
+
+    let large = create(&server, json!({"fps": 30, "heads": crowd(10_000)})).await;
+    let _viewer = connect(&server, &large.id, hello).await;
+    let deadline = std::time::Instant::now() + Duration::from_secs(20);
+    let stats = loop {
+        let stats = info(&server, &large.id).await.stats;
+        if stats.ticks_skipped >= 3 || std::time::Instant::now() > deadline {
+            break stats;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    assert!(stats.ticks_skipped >= 3, "{stats:?}");
+    assert_eq!(stats.ticks, 0, "no tick fits: {stats:?}");
+    let page = server.client.metrics().await.expect("metrics");
+    let rejected =
+        crowdmorph_client::metric(&page, "crowdmorph_rejected_total{reason=\"queue_memory\"}")
+            .unwrap_or(0.0);
+    assert!(rejected >= 3.0, "queue-memory rejections: {rejected}");
+    server.stop().await;
+}
