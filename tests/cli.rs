@@ -742,6 +742,8 @@ fn bench_http_and_cpu_measure_the_python_peers_on_the_same_work() {
     assert!(rate > 0.0);
     let ratio = f64_of(p, "crowdmorph_over_python");
     assert!((ratio - f64_of(&r, "http_heads_per_s") / rate).abs() <= ratio * 1e-9);
+    let bound = f64_of(p, "ceiling_over_python");
+    assert!((bound - f64_of(&r, "ceiling_heads_per_s") / rate).abs() <= bound * 1e-9);
 
     let c = json(&[
         "bench",
