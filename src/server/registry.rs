@@ -95,11 +95,13 @@ impl ClipLayout {
     }
 }
 
-/// The clips of `rig` named in `names`, in the rig's order.
+/// The clips of `rig` named in `names`, in the rig's order (through a set of the names: an
+/// upload of thousands of clips onto a rig of thousands would otherwise compare every pair).
 pub fn clips_named(rig: &Rig, names: &[String]) -> Vec<crate::rig::Clip> {
+    let names: std::collections::HashSet<&str> = names.iter().map(String::as_str).collect();
     rig.clips
         .iter()
-        .filter(|c| names.contains(&c.name))
+        .filter(|c| names.contains(c.name.as_str()))
         .cloned()
         .collect()
 }
