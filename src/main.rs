@@ -165,6 +165,26 @@ enum LodCommand {
     },
 }
 
+/// `--max-gpu-memory` of the commands that open GPU devices besides `serve` (same meaning).
+#[derive(clap::Args, Clone, Copy, Debug)]
+struct GpuMemoryArgs {
+    /// Most GPU memory resident rigs, batch buffers and render targets may hold on each device,
+    /// bytes (a rig or frame over it is refused, naming the flag; default: 2 GiB, or the
+    /// device's largest buffer if larger).
+    #[arg(long, env = "CROWDMORPH_MAX_GPU_MEMORY")]
+    max_gpu_memory: Option<u64>,
+}
+
+impl GpuMemoryArgs {
+    /// The GPU context options the flag asks for.
+    fn options(self) -> crowdmorph::engine::gpu::GpuOptions {
+        crowdmorph::engine::gpu::GpuOptions {
+            memory: self.max_gpu_memory,
+            ..Default::default()
+        }
+    }
+}
+
 /// Arguments of `render`.
 #[derive(clap::Args)]
 struct RenderArgs {
@@ -208,6 +228,8 @@ struct RenderArgs {
     /// gpu (hardware only).
     #[arg(long, default_value = "auto", env = "CROWDMORPH_RENDER_BACKEND")]
     render_backend: crowdmorph::render::crowd::RenderBackend,
+    #[command(flatten)]
+    gpu: GpuMemoryArgs,
     /// Print what was drawn as JSON.
     #[arg(long)]
     json: bool,
@@ -237,6 +259,8 @@ enum BenchCommand {
         /// Also run the same scenes on the CPU engine (a second table, same plot).
         #[arg(long)]
         with_cpu: bool,
+        #[command(flatten)]
+        gpu: GpuMemoryArgs,
         /// Print JSON.
         #[arg(long)]
         json: bool,
@@ -304,6 +328,8 @@ enum BenchCommand {
         /// Engine.
         #[arg(long, default_value = "auto")]
         backend: BackendChoice,
+        #[command(flatten)]
+        gpu: GpuMemoryArgs,
         /// Print JSON.
         #[arg(long)]
         json: bool,
@@ -339,6 +365,8 @@ enum BenchCommand {
         /// Adapter that draws (auto or gpu).
         #[arg(long, default_value = "auto")]
         render_backend: crowdmorph::render::crowd::RenderBackend,
+        #[command(flatten)]
+        gpu: GpuMemoryArgs,
         /// Print JSON.
         #[arg(long)]
         json: bool,
@@ -867,11 +895,12 @@ fn main() -> Result<()> {
                     seconds,
                     plot,
                     with_cpu,
+                    gpu,
                     json,
                 },
         } => {
             use crowdmorph::tools::bench_gpu;
-            let engine = Engine::new(backend)?;
+            let engine = Engine::with_options(backend, gpu.options())?;
             let mut rigs = Vec::new();
             if !no_paper {
                 rigs.push(tools::synthetic::paper_scale_rig());
@@ -909,12 +938,13 @@ fn main() -> Result<()> {
                     seconds,
                     backend,
                     render_backend,
+                    gpu,
                     json,
                 },
         } => {
             use crowdmorph::tools::render as r;
             let rig = tools::load_rig(rig.as_deref())?;
-            let engine = Engine::new(backend)?;
+            let engine = Engine::with_options(backend, gpu.options())?;
             let opt = r::RenderOptions {
                 heads,
                 lod,
@@ -926,6 +956,7 @@ fn main() -> Result<()> {
                     ..crowdmorph_proto::ImageOptions::default()
                 },
                 backend: render_backend,
+                gpu_memory: gpu.max_gpu_memory,
                 ..r::RenderOptions::default()
             };
             let bar = tools::spinner("bench render");
@@ -949,6 +980,7 @@ fn main() -> Result<()> {
                     format,
                     seconds,
                     backend,
+                    gpu,
                     json,
                 },
         } => {
@@ -965,6 +997,7 @@ fn main() -> Result<()> {
                 format: format.into(),
                 seconds,
                 backend,
+                gpu_memory: gpu.max_gpu_memory,
             };
             let bar = tools::spinner("bench sessions");
             let report = sessions::bench_sessions(bytes, &opt);
@@ -1079,7 +1112,7 @@ fn run_load(a: LoadArgs) -> Result<()> {
 fn run_render(a: RenderArgs) -> Result<()> {
     use crowdmorph::tools::render as r;
     let rig = tools::load_rig(a.file.as_deref())?;
-    let engine = Engine::new(a.backend)?;
+    let engine = Engine::with_options(a.backend, a.gpu.options())?;
     let format = a
         .format
         .or_else(|| r::format_of(&a.out))
@@ -1098,6 +1131,7 @@ fn run_render(a: RenderArgs) -> Result<()> {
             ..crowdmorph_proto::ImageOptions::default()
         },
         backend: a.render_backend,
+        gpu_memory: a.gpu.max_gpu_memory,
     };
     let report = r::render_to_file(&engine, &rig, &opt, &a.out)?;
     if a.json {
@@ -1261,6 +1295,32 @@ mod tests {
                 which: BenchCommand::Cpu { numpy, .. },
             } => assert_eq!(numpy, Some(std::path::PathBuf::from("/usr/bin/python3"))),
             _ => panic!("parsed as another command"),
+        }
+    }
+
+    #[test]
+    fn render_and_bench_commands_take_max_gpu_memory() {
+        let memory = |args: &[&str]| match Cli::try_parse_from(args).expect("parses").command {
+            Command::Render(a) => a.gpu.max_gpu_memory,
+            Command::Bench {
+                which:
+                    BenchCommand::Gpu { gpu, .. }
+                    | BenchCommand::Render { gpu, .. }
+                    | BenchCommand::Sessions { gpu, .. },
+            } => gpu.max_gpu_memory,
+            _ => panic!("parsed as another command"),
+        };
+        for cmd in [
+            &["render"][..],
+            &["bench", "gpu"],
+            &["bench", "render"],
+            &["bench", "sessions"],
+        ] {
+            let mut args = vec!["crowdmorph"];
+            args.extend_from_slice(cmd);
+            assert_eq!(memory(&args), None, "{cmd:?}: the default");
+            args.extend_from_slice(&["--max-gpu-memory", "67108864"]);
+            assert_eq!(memory(&args), Some(64 << 20), "{cmd:?}");
         }
     }
 

@@ -6,7 +6,7 @@
 //! `CROWDMORPH_BLESS=1 cargo test --locked render`; and behaviour checks that need no golden
 //! (coverage where the head is and background where it is not, device and host vertex sources
 //! agreeing, instances at their transforms, normals mattering, mesh levels close to the full
-//! mesh, bad input refused, concurrent renders).
+//! mesh, bad input refused, concurrent renders, the GPU budget and kept targets giving way).
 
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, OnceLock};
@@ -926,4 +926,87 @@ fn a_frame_over_the_gpu_memory_budget_is_refused_and_smaller_ones_still_render()
         .render(&meshes, &view, &frame(128, 128))
         .expect("a small frame fits");
     assert!(covered(&image(&out), 32, 96, 32, 96) > 1000);
+}
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+fn a_renderers_kept_targets_give_way_to_a_rig_upload_and_renders_make_new_ones() {
+    // The renderer keeps its last targets and buffers for the next render. On the engine's
+    // device, with a budget that has room for them or for a second copy of the rig but not
+    // both, the upload frees them instead of being refused; the next render makes new ones and
+    // draws the same picture.
+    use crowdmorph::engine::BackendChoice;
+    let (rig, cpu_prepared) = head();
+    let data = evaluate(cpu_prepared, "talk", 12);
+    let view = head_view(rig);
+    let size = frame(96, 96);
+    let on_gpu = |memory: Option<u64>| {
+        let engine = Engine::with_gpu(
+            open_gpu(GpuOptions {
+                memory,
+                ..GpuOptions::default()
+            }),
+            BackendChoice::Gpu,
+        );
+        let renderer = Renderer::new(engine.gpu_shared().expect("gpu")).expect("renderer");
+        (engine, renderer)
+    };
+
+    // What the rig, its topology and a render's kept targets and buffers hold, by default.
+    let (engine, renderer) = on_gpu(None);
+    let memory = renderer.memory().clone();
+    let start = memory.used();
+    let prepared = engine.prepare(rig.clone()).expect("upload");
+    let rig_bytes = memory.used() - start;
+    let topology = renderer.topology(rig).expect("topology");
+    let before = memory.used();
+    let want = renderer
+        .render(&[host(&topology, &data, &[Mat4::IDENTITY])], &view, &size)
+        .expect("render");
+    let kept = memory.used() - before;
+    assert!(
+        kept > 0 && kept / 2 < rig_bytes,
+        "kept {kept} bytes: between 0 and twice the rig's {rig_bytes}"
+    );
+    drop((topology, prepared, renderer, engine));
+
+    // Room for two copies of the rig, the topology and half of what a render keeps.
+    let (engine, renderer) = on_gpu(Some(before + rig_bytes + kept / 2));
+    let memory = renderer.memory().clone();
+    let first = engine.prepare(rig.clone()).expect("the first copy fits");
+    let topology = renderer.topology(rig).expect("topology");
+    let meshes = [host(&topology, &data, &[Mat4::IDENTITY])];
+    renderer
+        .render(&meshes, &view, &size)
+        .expect("a render fits next to one copy");
+    assert_eq!(memory.used(), before + kept, "the render keeps its targets");
+    let second = engine
+        .prepare(rig.clone())
+        .expect("the kept targets make room for a second copy");
+    assert_eq!(
+        memory.used(),
+        before + rig_bytes,
+        "the kept targets and buffers were given back"
+    );
+
+    // With one copy gone, a render fits again: new targets, the same picture.
+    drop(first);
+    let again = renderer
+        .render(&meshes, &view, &size)
+        .expect("renders work after the reclaim");
+    assert_eq!(memory.used(), before + kept, "new targets are kept");
+    assert!(
+        again.rgba == want.rgba,
+        "the picture after the reclaim differs from the one before"
+    );
+    assert!(covered(&image(&again), 24, 72, 24, 72) > 500);
+    assert!(
+        !engine.info().degraded,
+        "{:?}",
+        engine.info().degraded_reason
+    );
+    drop((second, topology));
 }

@@ -27,6 +27,9 @@
 //! - Everything a render allocates is proportional to its input (vertex data, instances, draws)
 //!   or to `width × height`; the last render's targets and buffers are kept for the next one
 //!   when they are small (128 MiB in all), since a server renders the same sizes repeatedly.
+//!   Every charge goes through [`GpuContext::charge`], and the kept ones are registered with
+//!   the context ([`Reclaim`]): a charge that finds the device's budget full — a rig upload, a
+//!   batch, a render — frees them first, so memory kept only for reuse never refuses work.
 //! - Work runs inside validation and out-of-memory error scopes, so a failed render is a
 //!   [`RenderError`] for this request, not an uncaptured error that would stop the GPU engine
 //!   sharing the device; bad input is refused before anything reaches the device.
@@ -36,13 +39,13 @@
 
 use std::num::NonZeroU64;
 use std::ops::Range;
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, Weak};
 use std::time::Instant;
 
 use glam::{Mat3, Mat4, Vec3};
 
 use crate::budget::{BudgetError, Charge};
-use crate::engine::gpu::{GpuContext, MapResults};
+use crate::engine::gpu::{GpuContext, MapResults, Reclaim};
 use crate::rig::Rig;
 
 /// MSAA samples per pixel.
@@ -276,13 +279,32 @@ pub struct Renderer {
     max_buffer: u64,
     /// Nanoseconds per timestamp tick, when the device has timestamp queries.
     timestamp_period: Option<f64>,
-    /// The last render's targets and buffers, for the next one (a render that finds them
-    /// taken by a concurrent render makes its own).
-    targets: Mutex<Option<Targets>>,
-    scratch: Mutex<Option<Scratch>>,
+    /// The last render's targets and buffers, for the next one; registered with the context,
+    /// which frees them when a charge finds the device's budget full.
+    kept: Arc<Kept>,
     /// A test's code to run inside every render's race window (see
     /// [`Renderer::set_after_submit`]).
     after_submit: Mutex<Option<AfterSubmit>>,
+}
+
+/// The last render's targets and buffers, kept for the next render (a render that finds them
+/// taken by a concurrent render makes its own). Only idle ones are here: a render takes them
+/// out while it uses them.
+#[derive(Default)]
+struct Kept {
+    targets: Mutex<Option<Targets>>,
+    scratch: Mutex<Option<Scratch>>,
+}
+
+impl Reclaim for Kept {
+    /// Drops the kept targets and buffers, giving their memory back (the next render makes new
+    /// ones). A lock held means a render is putting them back or taking them out right now: it
+    /// is not waited for.
+    fn reclaim(&self) -> bool {
+        let targets = self.targets.try_lock().ok().and_then(|mut t| t.take());
+        let scratch = self.scratch.try_lock().ok().and_then(|mut s| s.take());
+        targets.is_some() || scratch.is_some()
+    }
 }
 
 /// Code a test runs inside a render, after its work is submitted and its frame's mapping
@@ -402,6 +424,13 @@ impl Renderer {
         self.ctx.memory()
     }
 
+    /// Registers something else that keeps memory on the renderer's device only for reuse
+    /// (the server's topology cache), so that a charge that finds the budget full frees it
+    /// too ([`GpuContext::register_reclaim`]).
+    pub fn register_reclaim(&self, reclaimer: Weak<dyn Reclaim>) {
+        self.ctx.register_reclaim(reclaimer);
+    }
+
     /// Builds the pipeline on the context's device (the device the GPU engine uses, so its
     /// outputs can be drawn where they are).
     pub fn new(ctx: Arc<GpuContext>) -> Result<Renderer, RenderError> {
@@ -513,6 +542,8 @@ impl Renderer {
         let timestamp_period = ctx
             .has_timestamps()
             .then(|| f64::from(ctx.queue().get_timestamp_period()));
+        let kept = Arc::new(Kept::default());
+        ctx.register_reclaim(Arc::downgrade(&kept) as Weak<dyn Reclaim>);
         Ok(Renderer {
             pipeline,
             camera_layout,
@@ -523,8 +554,7 @@ impl Renderer {
             max_size: limits.max_texture_dimension_2d,
             max_buffer: limits.max_buffer_size,
             timestamp_period,
-            targets: Mutex::new(None),
-            scratch: Mutex::new(None),
+            kept,
             after_submit: Mutex::new(None),
             ctx,
         })
@@ -614,7 +644,7 @@ impl Renderer {
             }
             first_vertex += n;
         }
-        let charge = self.ctx.memory().charge(bytes.max(4), || {
+        let charge = self.ctx.charge(bytes.max(4), || {
             format!("{} triangles' indices on the GPU", total_indices / 3)
         })?;
         let device = self.ctx.device();
@@ -1076,24 +1106,24 @@ impl Renderer {
 
     /// The pooled targets when they have this size, else new ones, charged to the device's
     /// memory budget first (pooled ones of another size are dropped, and their charge given
-    /// back, before).
+    /// back, before). The charge may free what is kept for reuse (ours included), so no lock
+    /// of `kept` is held across it.
     fn take_targets(&self, frame: &Frame, row: u32) -> Result<Targets, RenderError> {
-        let pooled = self.targets.lock().ok().and_then(|mut t| t.take());
+        let pooled = self.kept.targets.lock().ok().and_then(|mut t| t.take());
         if let Some(t) = pooled
             && t.width == frame.width
             && t.height == frame.height
         {
             return Ok(t);
         }
-        let charge =
-            self.ctx
-                .memory()
-                .charge(Targets::bytes_of(frame.width, frame.height, row), || {
-                    format!(
-                        "the render targets of a {}×{} frame",
-                        frame.width, frame.height
-                    )
-                })?;
+        let charge = self
+            .ctx
+            .charge(Targets::bytes_of(frame.width, frame.height, row), || {
+                format!(
+                    "the render targets of a {}×{} frame",
+                    frame.width, frame.height
+                )
+            })?;
         let device = self.ctx.device();
         let size = wgpu::Extent3d {
             width: frame.width,
@@ -1151,7 +1181,7 @@ impl Renderer {
     }
 
     /// The pooled buffers, each replaced by a new one (charged to the device's memory budget
-    /// first) when too small.
+    /// first, with no lock of `kept` held) when too small.
     fn take_scratch(&self, scene_bytes: u64, uniform_bytes: u64) -> Result<Scratch, RenderError> {
         let device = self.ctx.device();
         let buffer = |label: &str, size: u64, usage: wgpu::BufferUsages| {
@@ -1162,7 +1192,6 @@ impl Renderer {
                 .min(self.max_buffer);
             let charge = self
                 .ctx
-                .memory()
                 .charge(size, || format!("a render's {label} buffer ({size} bytes)"))?;
             let buffer = device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some(label),
@@ -1172,7 +1201,7 @@ impl Renderer {
             });
             Ok::<_, RenderError>((buffer, charge))
         };
-        let pooled = self.scratch.lock().ok().and_then(|mut s| s.take());
+        let pooled = self.kept.scratch.lock().ok().and_then(|mut s| s.take());
         let (scene, uniforms, queries) = match pooled {
             Some(s) => (
                 Some((s.scene, s.scene_charge)),
@@ -1242,10 +1271,10 @@ impl Renderer {
         if targets.bytes() + scratch.bytes() > RETAIN_BYTES {
             return;
         }
-        if let Ok(mut t) = self.targets.lock() {
+        if let Ok(mut t) = self.kept.targets.lock() {
             *t = Some(targets);
         }
-        if let Ok(mut s) = self.scratch.lock() {
+        if let Ok(mut s) = self.kept.scratch.lock() {
             *s = Some(scratch);
         }
     }

@@ -41,6 +41,8 @@ pub struct SessionBenchOptions {
     pub seconds: f64,
     /// Engine.
     pub backend: BackendChoice,
+    /// The server's `--max-gpu-memory` (`None`: the default).
+    pub gpu_memory: Option<u64>,
 }
 
 /// The measurement.
@@ -127,6 +129,7 @@ struct ViewerCount {
 async fn run(rig_bytes: Option<Vec<u8>>, opt: &SessionBenchOptions) -> Result<SessionBenchReport> {
     let config = ServerConfig {
         backend: opt.backend,
+        gpu_memory: opt.gpu_memory,
         auto_lod: false,
         render_backend: super::RenderBackend::Off,
         sessions: super::sessions::SessionLimits {

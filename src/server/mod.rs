@@ -176,14 +176,11 @@ impl AppState {
         );
         // Never fails the start: without an adapter, render requests say why and everything
         // else works.
-        let render = render::RenderState {
-            device: crate::render::crowd::RenderDevice::open_with(
-                &engine,
-                config.render_backend,
-                gpu_options,
-            ),
-            topologies: Mutex::default(),
-        };
+        let render = render::RenderState::new(crate::render::crowd::RenderDevice::open_with(
+            &engine,
+            config.render_backend,
+            gpu_options,
+        ));
         match &render.device {
             Ok(d) => tracing::info!(adapter = %d.name(), shared = d.shared, "renderer ready"),
             Err(why) => tracing::warn!(%why, "rendering unavailable"),

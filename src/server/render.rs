@@ -6,7 +6,9 @@
 //! flight hold: the pixel budget (`--render-pixels`; the image, from drawing until its bytes
 //! are sent) and the queue memory crowd frames also use (the unique jobs' blended vertices).
 //! Mesh topologies are uploaded to the renderer once per rig generation and mesh level and kept
-//! in a small LRU ([`TopologyCache`]), so a frame uploads no indices.
+//! in a small LRU ([`TopologyCache`]), so a frame uploads no indices. The cache keeps them only
+//! for reuse: it is registered with the renderer's device, and a charge there that finds the
+//! GPU budget full (a rig upload, a batch, a render) empties it first.
 
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -23,6 +25,7 @@ use super::api::{ApiResult, ResolvedHeads, blocking, chunked_body};
 use super::registry::RigEntry;
 use super::{ApiError, AppState};
 use crate::engine::EngineError;
+use crate::engine::gpu::Reclaim;
 use crate::render::crowd::{self, CrowdError, CrowdGroup, PlannedGroup, RenderDevice};
 use crate::render::encode::{self, ImageError};
 use crate::render::gpu::{Frame, MeshTopology, RenderError, Renderer, View};
@@ -123,6 +126,12 @@ impl<T: Footprint> TopologyCache<T> {
         t
     }
 
+    /// Forgets every topology, returning them so the caller can drop them outside its lock.
+    fn take_all(&mut self) -> Vec<(TopologyKey, Arc<T>)> {
+        self.bytes = 0;
+        std::mem::take(&mut self.entries)
+    }
+
     /// Forgets every topology of rig `id` (it was deleted): its device memory is freed once
     /// renders in flight drop their handles.
     pub fn purge(&mut self, id: &str) {
@@ -137,17 +146,42 @@ impl<T: Footprint> TopologyCache<T> {
     }
 }
 
+/// The cache gives its topologies up when the device's budget is full: a render in flight that
+/// uses one holds its own `Arc`, so its index buffer lives (and stays charged) until that render
+/// ends; the others are freed at once, and a later render uploads them again.
+impl<T: Footprint + Send + Sync> Reclaim for Mutex<TopologyCache<T>> {
+    fn reclaim(&self) -> bool {
+        // Not waited for: a holder is looking a topology up or inserting one right now.
+        let dropped = match self.try_lock() {
+            Ok(mut cache) => cache.take_all(),
+            Err(_) => return false,
+        };
+        !dropped.is_empty()
+    }
+}
+
 /// What rendering needs in the server state: the device, or why there is none, and the
 /// topologies uploaded to it.
 #[derive(Debug)]
 pub struct RenderState {
     /// The renderer, or why there is none.
     pub device: Result<RenderDevice, String>,
-    /// Topologies on its device.
-    pub topologies: Mutex<TopologyCache>,
+    /// Topologies on its device (registered with the device as memory kept for reuse).
+    pub topologies: Arc<Mutex<TopologyCache>>,
 }
 
 impl RenderState {
+    /// The state of `device`, with an empty topology cache registered with the renderer's
+    /// device, so a full GPU budget empties it.
+    pub fn new(device: Result<RenderDevice, String>) -> RenderState {
+        let topologies = Arc::new(Mutex::new(TopologyCache::default()));
+        if let Ok(d) = &device {
+            d.renderer
+                .register_reclaim(Arc::downgrade(&topologies) as std::sync::Weak<dyn Reclaim>);
+        }
+        RenderState { device, topologies }
+    }
+
     /// The adapter that renders, for `/readyz`.
     pub fn adapter_name(&self) -> Option<String> {
         self.device.as_ref().ok().map(RenderDevice::name)
@@ -571,6 +605,29 @@ mod tests {
         assert_eq!((c.entries.len(), c.bytes), (1, 5));
         c.insert_if_current(key("d", 2), Arc::new(Sized(6)), Some(2));
         assert!(c.get(&key("d", 2)).is_some());
+    }
+
+    #[test]
+    fn a_reclaim_empties_the_cache_but_topologies_in_use_stay_alive() {
+        let cache = Mutex::new(TopologyCache::default());
+        assert!(!cache.reclaim(), "nothing to give back");
+        let in_use = Arc::new(Sized(10));
+        if let Ok(mut c) = cache.lock() {
+            c.insert(key("a", 0), in_use.clone());
+            c.insert(key("b", 0), Arc::new(Sized(20)));
+        }
+        let idle = Arc::downgrade(&cache.lock().expect("lock").get(&key("b", 0)).expect("b"));
+        // A holder of the lock is not waited for.
+        {
+            let _held = cache.lock().expect("lock");
+            assert!(!cache.reclaim());
+        }
+        assert!(cache.reclaim());
+        let c = cache.lock().expect("lock");
+        assert_eq!((c.entries.len(), c.bytes), (0, 0));
+        assert!(idle.upgrade().is_none(), "an idle topology is freed");
+        // One a render holds lives on, now held by that render alone.
+        assert_eq!(Arc::strong_count(&in_use), 1);
     }
 
     #[test]

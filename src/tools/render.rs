@@ -14,6 +14,7 @@ use anyhow::{Context, Result, bail};
 use crowdmorph_proto::{ImageFormat, ImageOptions};
 use serde::Serialize;
 
+use crate::engine::gpu::GpuOptions;
 use crate::engine::{BackendKind, Engine, PreparedRig};
 use crate::plan::{JobKey, Plan};
 use crate::render::crowd::{self, CrowdGroup, RenderBackend, RenderDevice};
@@ -47,6 +48,9 @@ pub struct RenderOptions {
     pub image: ImageOptions,
     /// Which adapter renders.
     pub backend: RenderBackend,
+    /// `--max-gpu-memory` of a device opened for rendering only (on the engine's device, the
+    /// engine's budget applies); `None`: the default.
+    pub gpu_memory: Option<u64>,
 }
 
 impl Default for RenderOptions {
@@ -59,6 +63,7 @@ impl Default for RenderOptions {
             spread: false,
             image: ImageOptions::default(),
             backend: RenderBackend::Auto,
+            gpu_memory: None,
         }
     }
 }
@@ -271,13 +276,22 @@ fn report(
     }
 }
 
+/// The renderer `opt` asks for, next to `engine`.
+fn open_device(engine: &Engine, opt: &RenderOptions) -> Result<RenderDevice> {
+    let options = GpuOptions {
+        memory: opt.gpu_memory,
+        ..GpuOptions::default()
+    };
+    RenderDevice::open_with(engine, opt.backend, options).map_err(anyhow::Error::msg)
+}
+
 /// Draws the crowd `opt` describes and returns the encoded image.
 pub fn render_image(
     engine: &Engine,
     rig: &Rig,
     opt: &RenderOptions,
 ) -> Result<(Vec<u8>, RenderReport)> {
-    let device = RenderDevice::open(engine, opt.backend).map_err(anyhow::Error::msg)?;
+    let device = open_device(engine, opt)?;
     let c = build(engine, &device, rig, opt)?;
     let (bytes, times) = draw_once(engine, &device, &c, &opt.image)?;
     let r = report(engine, &device, &c, opt, bytes.len(), times, 1);
@@ -321,7 +335,7 @@ pub fn bench_render(
         opt.clip = Some(RANDOM_CLIP.into());
     }
     let opt = &opt;
-    let device = RenderDevice::open(engine, opt.backend).map_err(anyhow::Error::msg)?;
+    let device = open_device(engine, opt)?;
     let c = build(engine, &device, rig, opt)?;
     // The first frame pays for pipeline and buffer creation.
     let (bytes, _) = draw_once(engine, &device, &c, &opt.image)?;

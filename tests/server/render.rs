@@ -1,8 +1,8 @@
 //! `POST /v1/crowd/render` over real sockets: golden pictures of a head, a 3×3 crowd and placed
 //! clones on lavapipe (rewritten by `CROWDMORPH_BLESS=1 cargo test --locked render`, see
 //! `tests/util/image.rs`), behaviour that needs no golden (the background is exact, a LOD level
-//! changes little, the mouth moves in `talk`, formats agree), the pixel budget, a render racing
-//! a rig delete, and bad input — which is checked before anything is drawn, so those tests run
+//! changes little, the mouth moves in `talk`, formats agree), the pixel budget and the GPU
+//! budget (cached topologies give way to uploads), a render racing a rig delete, and bad input — which is checked before anything is drawn, so those tests run
 //! without a GPU too.
 
 use std::path::{Path, PathBuf};
@@ -1074,5 +1074,138 @@ async fn the_gpu_memory_budget_refuses_rigs_and_renders_over_it_and_a_delete_giv
     assert_eq!(err.code, "image_too_large");
     assert!(err.message.contains("--max-gpu-memory"), "{}", err.message);
     png(&server, &request(vec![head(1, "talk", 0, 0)], 96, 64)).await;
+    server.stop().await;
+}
+
+/// A flat grid rig of `side` × `side` vertices (two triangles a cell) with `targets` targets
+/// that each move every vertex, and a two-key clip `wave` driving them all: many triangles, so
+/// its index buffer on the renderer's device is large. Returns the GLB and its triangle count.
+fn grid_glb(side: u32, targets: usize) -> (Bytes, u64) {
+    let positions: Vec<[f32; 3]> = (0..side * side)
+        .map(|i| [(i % side) as f32, (i / side) as f32, 0.0])
+        .collect();
+    let mut indices = Vec::new();
+    for y in 0..side - 1 {
+        for x in 0..side - 1 {
+            let i = y * side + x;
+            indices.extend_from_slice(&[i, i + 1, i + side, i + 1, i + side + 1, i + side]);
+        }
+    }
+    let deltas: Vec<Vec<[f32; 3]>> = (0..targets)
+        .map(|t| {
+            (0..side * side)
+                .map(|i| [0.0, 0.0, 0.01 * ((i as usize + t) % 7) as f32 + 0.01])
+                .collect()
+        })
+        .collect();
+    let mut b = crate::util::builder::Builder::new();
+    let mesh = b.mesh_with_targets(&positions, Some(&indices), &deltas, None);
+    let node = b.node(Some(mesh));
+    let values: Vec<f32> = (0..2 * targets).map(|i| (i / targets) as f32).collect();
+    b.animation_weights("wave", node, &[0.0, 1.0], &values, "LINEAR");
+    b.scene(&[node]);
+    (Bytes::from(b.to_glb()), indices.len() as u64 / 3)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+async fn a_cached_topology_gives_way_to_a_rig_upload_and_the_next_render_uploads_it_again() {
+    // The server keeps each rendered rig's index buffer for the next render, on the engine's
+    // device. With a GPU budget that has room for two copies of a rig and half that index
+    // buffer, a second upload after a render frees it (with the render's kept targets and the
+    // engine's idle batch buffers) instead of being refused with 503 forever.
+    use crowdmorph::engine::BackendChoice;
+    let (glb, triangles) = grid_glb(96, 32);
+    let topology = triangles * 12;
+    let gpu = || ServerConfig {
+        backend: BackendChoice::Gpu,
+        ..ServerConfig::default()
+    };
+    let grid = |rig: &str| {
+        request(
+            vec![Head {
+                head: 1,
+                rig: rig.into(),
+                clip: "wave".into(),
+                frame: 0,
+                lod: 0,
+            }],
+            96,
+            64,
+        )
+    };
+
+    // Under the default budget: what the rig holds, and what a render of it leaves kept.
+    let server = TestServer::start(gpu()).await;
+    let memory = server
+        .state
+        .engine
+        .gpu_memory()
+        .expect("GPU engine")
+        .clone();
+    let base = memory.used();
+    server
+        .client
+        .upload_rig("a", glb.clone())
+        .await
+        .expect("upload");
+    let rig = memory.used() - base;
+    let want = png(&server, &grid("a")).await;
+    let kept = memory.used() - base - rig;
+    // Less than the rig: the render fits next to one copy under the budget below.
+    assert!(
+        kept > topology && kept < rig,
+        "a render keeps {kept} bytes: more than the index buffer ({topology}), less than the \
+         rig ({rig})"
+    );
+    server.stop().await;
+
+    let server = TestServer::start(ServerConfig {
+        gpu_memory: Some(base + 2 * rig + topology / 2),
+        ..gpu()
+    })
+    .await;
+    let memory = server
+        .state
+        .engine
+        .gpu_memory()
+        .expect("GPU engine")
+        .clone();
+    assert_eq!(memory.used(), base);
+    server
+        .client
+        .upload_rig("a", glb.clone())
+        .await
+        .expect("upload");
+    png(&server, &grid("a")).await;
+    assert_eq!(
+        memory.used(),
+        base + rig + kept,
+        "the render's memory is kept"
+    );
+    server
+        .client
+        .upload_rig("b", glb)
+        .await
+        .expect("what is kept for reuse makes room for a second copy");
+    assert_eq!(
+        memory.used(),
+        base + 2 * rig,
+        "the cached topology, kept targets and idle batch buffers were given back"
+    );
+
+    // Renders still work: with the first copy deleted, the second draws the same picture,
+    // uploading its topology and making new targets.
+    server.client.delete_rig("a").await.expect("delete");
+    let again = png(&server, &grid("b")).await;
+    assert!(again == want, "the picture after the reclaim differs");
+    assert_eq!(
+        memory.used(),
+        base + rig + kept,
+        "kept again for the next render"
+    );
     server.stop().await;
 }

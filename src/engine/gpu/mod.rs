@@ -28,7 +28,7 @@ pub mod layout;
 mod map;
 
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, Weak};
 
 use half::f16;
 
@@ -96,6 +96,17 @@ pub struct GpuOptions {
 /// The flag that sets the GPU memory cap, for error messages.
 pub const GPU_MEMORY_FLAG: &str = "--max-gpu-memory";
 
+/// Something that keeps device memory only to save reallocations (a renderer's last targets,
+/// a cache of uploaded topologies) and can give it back when a charge finds the device's budget
+/// full. Registered with [`GpuContext::register_reclaim`] as a `Weak`, so the context keeps
+/// nothing alive and the owner needs no unregistering.
+pub trait Reclaim: Send + Sync {
+    /// Drops what is kept only for reuse; whether anything was. Must not wait for a lock that a
+    /// user of the kept things may hold while charging device memory (use `try_lock`: a holder
+    /// is using it, so it is not idle), and must not charge device memory itself.
+    fn reclaim(&self) -> bool;
+}
+
 /// Whether the device is still usable, and why not.
 #[derive(Default)]
 struct Health {
@@ -149,6 +160,10 @@ pub struct GpuContext {
     /// The device memory budget every input-sized buffer (rigs, batch slots, outputs kept for
     /// drawing, a renderer's targets) is charged to before it is created.
     memory: Arc<MemoryPool>,
+    /// The other holders of memory kept only for reuse on this device (a renderer, the
+    /// server's topology cache), which [`GpuContext::charge`] asks to give it back when the
+    /// budget is full.
+    reclaimers: Mutex<Vec<Weak<dyn Reclaim>>>,
 }
 
 impl std::fmt::Debug for GpuContext {
@@ -325,25 +340,55 @@ impl GpuContext {
                     .unwrap_or_else(|| default_gpu_memory(&limits)),
                 GPU_MEMORY_FLAG,
             ),
+            reclaimers: Mutex::new(Vec::new()),
         }
     }
 
-    /// The device memory budget (a renderer on this device charges its buffers here too).
+    /// The device memory budget (what is charged and allowed; charge through
+    /// [`GpuContext::charge`], which makes room by freeing what is kept only for reuse).
     pub fn memory(&self) -> &Arc<MemoryPool> {
         &self.memory
     }
 
     /// Charges `bytes` of device memory about to be allocated for `what`. When the budget is
-    /// full, the idle batch slots kept for reuse are freed and the charge tried once more: they
-    /// only save reallocations, and kept forever they would refuse every later rig upload
-    /// ("retry shortly" that never succeeds).
-    pub fn charge(&self, bytes: u64, what: impl Fn() -> String) -> Result<Charge, GpuError> {
+    /// full, everything kept on this device only for reuse — the engine's idle batch slots and
+    /// whatever the registered [`Reclaim`]ers keep (a renderer's last targets and buffers,
+    /// cached topologies) — is given back and the charge tried once more: kept forever, such
+    /// memory would refuse every later rig upload, batch or render ("retry shortly" that never
+    /// succeeds). Call it holding no lock a reclaimer may need (each uses `try_lock`, so a held
+    /// one only means that holder's memory is not freed).
+    pub fn charge(&self, bytes: u64, what: impl Fn() -> String) -> Result<Charge, BudgetError> {
         match self.memory.charge(bytes, &what) {
-            Err(BudgetError::Full { .. }) if self.free_idle_slots() => {
-                Ok(self.memory.charge(bytes, what)?)
-            }
-            r => Ok(r?),
+            Err(BudgetError::Full { .. }) if self.reclaim() => self.memory.charge(bytes, what),
+            r => r,
         }
+    }
+
+    /// Registers a holder of memory kept only for reuse on this device, asked to give it back
+    /// when a charge finds the budget full (until it is dropped).
+    pub fn register_reclaim(&self, reclaimer: Weak<dyn Reclaim>) {
+        if let Ok(mut r) = self.reclaimers.lock() {
+            r.retain(|w| w.strong_count() > 0);
+            r.push(reclaimer);
+        }
+    }
+
+    /// Gives back everything kept only for reuse on this device; whether anything was. The
+    /// reclaimers are called with no lock of the context held (the list is copied first), so
+    /// one may drop buffers or take its own locks freely.
+    fn reclaim(&self) -> bool {
+        let mut freed = self.free_idle_slots();
+        let live: Vec<Arc<dyn Reclaim>> = match self.reclaimers.lock() {
+            Ok(mut r) => {
+                r.retain(|w| w.strong_count() > 0);
+                r.iter().filter_map(Weak::upgrade).collect()
+            }
+            Err(_) => Vec::new(),
+        };
+        for r in live {
+            freed |= r.reclaim();
+        }
+        freed
     }
 
     /// Drops the pooled batch slots, giving their memory back; whether there were any. A
