@@ -297,6 +297,8 @@ enum BenchCommand {
         /// Where the Python peer runs numpy: off its event loop (thread) or on it (inline).
         #[arg(long, default_value = "thread", value_parser = ["thread", "inline"])]
         python_peer_compute: String,
+        #[command(flatten)]
+        gpu: GpuMemoryArgs,
         /// Print JSON.
         #[arg(long)]
         json: bool,
@@ -1021,6 +1023,7 @@ fn main() -> Result<()> {
                     backend,
                     python_peer,
                     python_peer_compute,
+                    gpu,
                     json,
                 },
         } => {
@@ -1038,6 +1041,7 @@ fn main() -> Result<()> {
                 backend,
                 python_peer,
                 python_compute: python_peer_compute,
+                gpu_memory: gpu.max_gpu_memory,
             };
             let bar = tools::spinner("bench http: in-process, loopback, saturation, half load");
             let report = http::bench_http(bytes, &opt);
@@ -1299,14 +1303,15 @@ mod tests {
     }
 
     #[test]
-    fn render_and_bench_commands_take_max_gpu_memory() {
+    fn render_and_every_bench_command_with_a_gpu_take_max_gpu_memory() {
         let memory = |args: &[&str]| match Cli::try_parse_from(args).expect("parses").command {
             Command::Render(a) => a.gpu.max_gpu_memory,
             Command::Bench {
                 which:
                     BenchCommand::Gpu { gpu, .. }
                     | BenchCommand::Render { gpu, .. }
-                    | BenchCommand::Sessions { gpu, .. },
+                    | BenchCommand::Sessions { gpu, .. }
+                    | BenchCommand::Http { gpu, .. },
             } => gpu.max_gpu_memory,
             _ => panic!("parsed as another command"),
         };
@@ -1315,6 +1320,7 @@ mod tests {
             &["bench", "gpu"],
             &["bench", "render"],
             &["bench", "sessions"],
+            &["bench", "http"],
         ] {
             let mut args = vec!["crowdmorph"];
             args.extend_from_slice(cmd);

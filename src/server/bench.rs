@@ -99,6 +99,8 @@ pub struct HttpBenchOptions {
     pub python_peer: Option<std::path::PathBuf>,
     /// Where the peer runs numpy: `thread` (off the event loop) or `inline`.
     pub python_compute: String,
+    /// The server's `--max-gpu-memory` (`None`: the default), also the in-process engine's.
+    pub gpu_memory: Option<u64>,
 }
 
 impl Default for HttpBenchOptions {
@@ -112,6 +114,7 @@ impl Default for HttpBenchOptions {
             backend: crate::engine::BackendChoice::Auto,
             python_peer: None,
             python_compute: "thread".to_string(),
+            gpu_memory: None,
         }
     }
 }
@@ -621,6 +624,7 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
         max_heads: opt.heads.max(1000),
         request_timeout: Duration::from_secs(60),
         backend: opt.backend,
+        gpu_memory: opt.gpu_memory,
         // The background LOD job would score the embedded head (seconds of CPU) during the
         // measurement, on the same cores.
         auto_lod: false,
@@ -681,7 +685,13 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
     }
 
     // In-process: the same crowds through plan + engine on this thread.
-    let engine = Engine::new(opt.backend)?;
+    let engine = Engine::with_options(
+        opt.backend,
+        crate::engine::gpu::GpuOptions {
+            memory: opt.gpu_memory,
+            ..Default::default()
+        },
+    )?;
     let backend = engine.info();
     let prepared = engine.prepare(Arc::new(rig.clone()))?;
     let spec = OutputSpec {
