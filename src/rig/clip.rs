@@ -225,7 +225,7 @@ mod tests {
 
     #[test]
     fn the_clip_index_finds_what_a_scan_finds() {
-        let clip = |name: &str| Clip::new(name, 30.0, 1, 1, vec![0.0]).unwrap();
+        let clip = |name: &str| Clip::new(name, 30.0, 1, 1, vec![0.0]).expect("a one-frame clip");
         // Unsorted names, a repeated name (the first one wins, as in a scan) and names that
         // sort around the ones present.
         let clips: Vec<Clip> = ["talk", "blink", "talk", "a", "smile", "Talk", "talk_2"]
