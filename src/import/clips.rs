@@ -534,7 +534,7 @@ pub fn clips_from_gltf(
             .map_or(&[], Vec::as_slice)
     };
     let mut out: Vec<ClipImport> = Vec::new();
-    let mut taken = UniqueNames::default();
+    let mut taken = UniqueNames::new(budget);
     for anim in parsed.doc.animations() {
         let tracks = weight_tracks(&parsed.source, &anim, &width)?;
         if tracks.is_empty() {
@@ -549,7 +549,7 @@ pub fn clips_from_gltf(
                 ImportError::ClipSource(format!("animation {name:?}: {problem}"))
             })?;
         }
-        let name = taken.take(name, budget)?;
+        let name = taken.take(name)?;
         let clip = bake(
             &name,
             &tracks,

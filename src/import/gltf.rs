@@ -1320,21 +1320,34 @@ pub(crate) fn bake<'c>(
 /// suffix. Hash lookups and a next-suffix counter per name keep this linear in the names:
 /// with a scan of the names taken so far for every candidate, a file of thousands of
 /// animations with one name cost a cube of their number.
-#[derive(Default)]
-pub(crate) struct UniqueNames {
+pub(crate) struct UniqueNames<'b> {
     /// Every name handed out.
     taken: std::collections::HashSet<String>,
     /// Per name asked for again: the next suffix to try.
     next: HashMap<String, u64>,
+    /// Where the names are charged while they are held, and how much.
+    budget: &'b Budget,
+    charged: u64,
 }
 
-impl UniqueNames {
-    /// `name`, or its first free suffixed form; the name (held twice at most, in the set and
-    /// as a counter's key) is charged to `budget`.
-    pub(crate) fn take(&mut self, name: String, budget: &Budget) -> Result<String, ImportError> {
-        budget.charge(2 * (name.len() as u64 + 48) + 32, || {
-            format!("the animation name {name:?}")
-        })?;
+impl<'b> UniqueNames<'b> {
+    /// An empty set whose names are charged to `budget` (given back when it is dropped).
+    pub(crate) fn new(budget: &'b Budget) -> UniqueNames<'b> {
+        UniqueNames {
+            taken: std::collections::HashSet::new(),
+            next: HashMap::new(),
+            budget,
+            charged: 0,
+        }
+    }
+
+    /// `name`, or its first free suffixed form; the copies this keeps (in the set, and as a
+    /// counter's key) are charged first.
+    pub(crate) fn take(&mut self, name: String) -> Result<String, ImportError> {
+        let bytes = 2 * (name.len() as u64 + 48) + 32;
+        self.budget
+            .charge(bytes, || format!("the animation name {name:?}"))?;
+        self.charged += bytes;
         if !self.taken.contains(&name) {
             self.taken.insert(name.clone());
             return Ok(name);
@@ -1348,6 +1361,12 @@ impl UniqueNames {
                 return Ok(candidate);
             }
         }
+    }
+}
+
+impl Drop for UniqueNames<'_> {
+    fn drop(&mut self) {
+        self.budget.release(self.charged);
     }
 }
 
@@ -1369,7 +1388,7 @@ fn bake_animations(
             .map_or(&[], std::slice::from_ref)
     };
     let mut clips: Vec<Clip> = Vec::new();
-    let mut taken = UniqueNames::default();
+    let mut taken = UniqueNames::new(source.budget());
     for decoded in animations {
         let tracks = decoded.tracks;
         if tracks.is_empty() {
@@ -1381,7 +1400,7 @@ fn bake_animations(
             .and_then(|a| a.name().map(str::to_string))
             .filter(|n| !n.is_empty())
             .unwrap_or_else(|| format!("anim{}", decoded.index));
-        let name = taken.take(name, source.budget())?;
+        let name = taken.take(name)?;
         clips.push(bake(
             &name,
             &tracks,
