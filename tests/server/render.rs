@@ -995,19 +995,9 @@ async fn the_gpu_memory_budget_refuses_rigs_and_renders_over_it_and_a_delete_giv
     // Under the default budget: what the built-in head and ICT FaceKit hold on the device, and
     // a delete gives the rig's share back.
     let server = TestServer::start(gpu()).await;
-    let memory = server
-        .state
-        .engine
-        .gpu_memory()
-        .expect("GPU engine")
-        .clone();
+    let memory = gpu_pool(&server);
     let builtin = memory.used();
-    server
-        .client
-        .upload_rig("ict", glb.clone())
-        .await
-        .expect("upload");
-    let ict = memory.used() - builtin;
+    let ict = upload_charged(&server, &memory, "ict", glb.clone()).await;
     assert!(ict > 0, "the rig is charged to the GPU budget");
     // /metrics reports the budget once: the renderer shares the engine's device and pool.
     let page = server.client.metrics().await.expect("metrics");
@@ -1037,12 +1027,7 @@ async fn the_gpu_memory_budget_refuses_rigs_and_renders_over_it_and_a_delete_giv
         ..gpu()
     })
     .await;
-    let memory = server
-        .state
-        .engine
-        .gpu_memory()
-        .expect("GPU engine")
-        .clone();
+    let memory = gpu_pool(&server);
     let at_start = memory.used();
     let e = server
         .client
@@ -1140,19 +1125,9 @@ async fn a_cached_topology_gives_way_to_a_rig_upload_and_the_next_render_uploads
 
     // Under the default budget: what the rig holds, and what a render of it leaves kept.
     let server = TestServer::start(gpu()).await;
-    let memory = server
-        .state
-        .engine
-        .gpu_memory()
-        .expect("GPU engine")
-        .clone();
+    let memory = gpu_pool(&server);
     let base = memory.used();
-    server
-        .client
-        .upload_rig("a", glb.clone())
-        .await
-        .expect("upload");
-    let rig = memory.used() - base;
+    let rig = upload_charged(&server, &memory, "a", glb.clone()).await;
     let want = png(&server, &grid("a")).await;
     let kept = memory.used() - base - rig;
     // Less than the rig: the render fits next to one copy under the budget below.
@@ -1168,12 +1143,7 @@ async fn a_cached_topology_gives_way_to_a_rig_upload_and_the_next_render_uploads
         ..gpu()
     })
     .await;
-    let memory = server
-        .state
-        .engine
-        .gpu_memory()
-        .expect("GPU engine")
-        .clone();
+    let memory = gpu_pool(&server);
     assert_eq!(memory.used(), base);
     server
         .client
@@ -1208,4 +1178,26 @@ async fn a_cached_topology_gives_way_to_a_rig_upload_and_the_next_render_uploads
         "kept again for the next render"
     );
     server.stop().await;
+}
+
+/// The GPU memory budget of a server running the GPU engine.
+fn gpu_pool(server: &TestServer) -> std::sync::Arc<crowdmorph::budget::MemoryPool> {
+    server
+        .state
+        .engine
+        .gpu_memory()
+        .expect("GPU engine")
+        .clone()
+}
+
+/// Uploads `glb` as rig `id`; the bytes of `pool` the rig took.
+async fn upload_charged(
+    server: &TestServer,
+    pool: &crowdmorph::budget::MemoryPool,
+    id: &str,
+    glb: Bytes,
+) -> u64 {
+    let before = pool.used();
+    server.client.upload_rig(id, glb).await.expect("upload");
+    pool.used() - before
 }
