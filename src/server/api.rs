@@ -25,7 +25,7 @@ use tokio::sync::OwnedSemaphorePermit;
 
 use super::metrics::Source;
 use super::registry::{
-    ClipLayout, RigEntry, check_output_range, clip_infos, clips_named, quantization_box,
+    ClipLayout, RigEntry, check_output_range, clip_info, clip_infos, clips_named, quantization_box,
     sanitize_id, valid_id,
 };
 use super::scheduler::{JobRequest, Priority, ScheduleError};
@@ -1007,7 +1007,7 @@ pub(super) async fn get_clip(
     let ci = entry
         .clip_index(&clip)
         .ok_or_else(|| unknown_clip(&entry, &clip))?;
-    respond(&headers, StatusCode::OK, &clip_infos(entry.rig())[ci])
+    respond(&headers, StatusCode::OK, &clip_info(&entry.rig().clips[ci]))
 }
 
 pub(super) async fn delete_clip(
@@ -1077,12 +1077,26 @@ pub(super) async fn delete_clip(
 
 impl AppState {
     /// Takes `bytes` of the queue memory (output held by admitted crowd requests, and
-    /// request bodies being decoded); 503 when it is full.
+    /// request bodies being decoded); 503 when it is full, 413 when `bytes` is more than the
+    /// whole queue memory (taking all of it would let the holder allocate past the limit).
     pub(super) fn reserve_queue_memory(
         &self,
         bytes: u64,
     ) -> Result<OwnedSemaphorePermit, ApiError> {
-        let units = bytes.div_ceil(1024).clamp(1, u64::from(self.memory_units)) as u32;
+        let units = bytes.div_ceil(1024).max(1);
+        if units > u64::from(self.memory_units) {
+            self.metrics.reject("queue_memory");
+            return Err(ApiError::new(
+                StatusCode::PAYLOAD_TOO_LARGE,
+                "response_too_large",
+                format!(
+                    "this needs {bytes} bytes of queue memory, more than the server's {} \
+                     (--queue-memory-bytes)",
+                    self.queue_memory_bytes()
+                ),
+            ));
+        }
+        let units = units as u32;
         self.memory
             .clone()
             .try_acquire_many_owned(units)
@@ -1094,6 +1108,11 @@ impl AppState {
                     1,
                 )
             })
+    }
+
+    /// The whole queue memory, bytes.
+    pub(super) fn queue_memory_bytes(&self) -> u64 {
+        u64::from(self.memory_units) * 1024
     }
 }
 
@@ -1180,8 +1199,10 @@ pub(super) struct ResolvedHeads {
 /// wire format, three times that as JSON (base64 text and its escape), plus, with normals in a
 /// 16-bit format on a rig whose normals are recomputed, the f32 positions and normals the CPU
 /// engine blends before the normals pass and the encoding, and, for q16 on the GPU engine
-/// (`gpu`), the f32 outputs it reads back and quantizes on the host. Every admission (crowd
-/// frames, sessions, load tests) charges this.
+/// (`gpu`), the f32 outputs it reads back and quantizes on the host. The job's weights are
+/// counted too ([`JOB_WEIGHT_BYTES_PER_TARGET`] per rig target): on a rig of many targets and
+/// few vertices they outweigh the output. Every admission (crowd frames, sessions, load tests)
+/// charges this.
 pub(super) fn job_output_bytes(
     rig: &Rig,
     format: Format,
@@ -1195,8 +1216,15 @@ pub(super) fn job_output_bytes(
     let wire = v3 * comp * outputs * if json { 3 } else { 1 };
     let f32_first =
         (normals && comp < 4 && rig.recomputes_normals()) || (gpu && format == Format::Q16);
-    wire + if f32_first { v3 * 4 * outputs } else { 0 }
+    let weights = rig.targets.len() as u64 * JOB_WEIGHT_BYTES_PER_TARGET + 16;
+    wire + if f32_first { v3 * 4 * outputs } else { 0 } + weights
 }
+
+/// What a batch holds per job and rig target besides the outputs: the job's row of the
+/// gathered weights (`WeightBatch`, 4 bytes per target) and its lane of the CPU kernel's
+/// group tables (4 bytes of weight and, per group of 8 jobs, a byte per target), rounded up.
+/// The GPU engine gathers the same rows before it uploads them.
+pub(super) const JOB_WEIGHT_BYTES_PER_TARGET: u64 = 9;
 
 /// Queue memory a crowd request body of `declared` bytes reserves while it is read and decoded
 /// (bincode or JSON): the body and what it decodes to, a head taking 72 bytes decoded from at
@@ -1220,10 +1248,13 @@ impl AppState {
             .and_then(|v| v.parse::<u64>().ok())
             .unwrap_or(self.config.max_request_bytes as u64)
             .min(self.config.max_request_bytes as u64);
-        let decoding = self.reserve_queue_memory(decode_reservation(
-            content_type(headers) == CONTENT_TYPE_BINCODE,
-            declared,
-        ))?;
+        // A body whose decoding could need more than the whole queue memory (a large or
+        // unknown length on a small queue) reserves all of it: the request-size limit bounds
+        // the rest, and refusing would refuse every chunked body on such a server.
+        let decoding = self.reserve_queue_memory(
+            decode_reservation(content_type(headers) == CONTENT_TYPE_BINCODE, declared)
+                .min(self.queue_memory_bytes()),
+        )?;
         let bytes = self.request_body(headers, body).await?;
         let req = decode(headers, &bytes)?;
         drop(bytes);
@@ -1446,14 +1477,16 @@ async fn frame(state: &AppState, headers: &HeaderMap, body: Body, source: Source
     // Admission: the output memory this request will hold, then a place in the queue.
     let json = !wants_bincode(headers);
     let gpu = state.engine.gpu_memory().is_some();
+    // Priced per rig and level (a LOD level on a simplified mesh has fewer vertices), before
+    // any per-job work: a request refused as too large costs a lookup per unique job.
+    let mut per_level: HashMap<(u32, u32), u64> = HashMap::new();
     let mut out_bytes = 0u64;
-    let mut jobs = Vec::with_capacity(plan.jobs.len());
     for k in &plan.jobs {
-        let job = job_request(&rigs[k.rig as usize], k.clip, k.frame, k.lod);
-        // A LOD level on a simplified mesh has fewer vertices.
-        let rig = job.entry.prepared.at_level(k.lod).rig();
-        out_bytes += job_output_bytes(rig, format, normals, json, gpu);
-        jobs.push(job);
+        let bytes = *per_level.entry((k.rig, k.lod)).or_insert_with(|| {
+            let rig = rigs[k.rig as usize].prepared.at_level(k.lod).rig();
+            job_output_bytes(rig, format, normals, json, gpu)
+        });
+        out_bytes = out_bytes.saturating_add(bytes);
     }
     let units = out_bytes.div_ceil(1024).max(1);
     if units > u64::from(state.memory_units) {
@@ -1469,6 +1502,11 @@ async fn frame(state: &AppState, headers: &HeaderMap, body: Body, source: Source
         ));
     }
     let permit = state.reserve_queue_memory(out_bytes)?;
+    let jobs: Vec<JobRequest> = plan
+        .jobs
+        .iter()
+        .map(|k| job_request(&rigs[k.rig as usize], k.clip, k.frame, k.lod))
+        .collect();
     state
         .metrics
         .jobs_requested

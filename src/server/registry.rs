@@ -293,14 +293,16 @@ impl RigEntry {
 
 /// The clips of a rig as the API lists them.
 pub fn clip_infos(rig: &Rig) -> Vec<ClipInfo> {
-    rig.clips
-        .iter()
-        .map(|c| ClipInfo {
-            name: c.name.clone(),
-            frames: c.frames,
-            fps: c.fps,
-        })
-        .collect()
+    rig.clips.iter().map(clip_info).collect()
+}
+
+/// What the API reports about one clip.
+pub fn clip_info(c: &crate::rig::Clip) -> ClipInfo {
+    ClipInfo {
+        name: c.name.clone(),
+        frames: c.frames,
+        fps: c.fps,
+    }
 }
 
 /// Largest coordinate a rig may reach, in rig units. Past it, f32 blending, recomputed

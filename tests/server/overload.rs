@@ -315,7 +315,12 @@ async fn serves_then_refuses_as_too_large(
         .crowd_frame(&fits, Encoding::Bincode)
         .await
         .expect("the first request fits");
-    assert_eq!(resp.buffers.len(), 1);
+    let unique: std::collections::HashSet<_> = fits
+        .heads
+        .iter()
+        .map(|h| (&h.rig, &h.clip, h.frame, h.lod))
+        .collect();
+    assert_eq!(resp.buffers.len(), unique.len());
     match server.client.crowd_frame(&refused, Encoding::Bincode).await {
         Err(ClientError::Api {
             status,
@@ -375,5 +380,80 @@ async fn q16_on_the_gpu_engine_is_charged_for_the_f32_it_reads_back() {
     let mut q16 = f16.clone();
     q16.output.format = Format::Q16;
     serves_then_refuses_as_too_large(&server, f16, q16).await;
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_rig_of_many_targets_and_few_vertices_is_charged_for_its_jobs_weights() {
+    // A triangle with 1,024 targets: a job's f32 output is 36 bytes, but the batch gathers
+    // 1,024 weights per job (and the CPU kernel regroups them): about 9 KiB. 64 unique jobs
+    // fit in 1 MiB of queue memory, 256 do not, though their outputs are 9 KiB in all.
+    use crate::util::builder::{Builder, TRIANGLE};
+    const TARGETS: usize = 1024;
+    let targets: Vec<Vec<[f32; 3]>> = (0..TARGETS)
+        .map(|t| vec![[0.0; 3], [0.0, 0.0, 1e-3 * (t + 1) as f32], [0.0; 3]])
+        .collect();
+    let mut b = Builder::new();
+    let mesh = b.mesh_with_targets(&TRIANGLE, Some(&[0, 1, 2]), &targets, None);
+    let node = b.node(Some(mesh));
+    b.scene(&[node]);
+    // Two keys ten seconds apart: 301 frames at 30 fps, every weight moving.
+    let values: Vec<f32> = (0..2 * TARGETS).map(|i| (i % 7) as f32 / 7.0).collect();
+    b.animation_weights("sweep", node, &[0.0, 10.0], &values, "LINEAR");
+    let server = TestServer::start(ServerConfig {
+        queue_memory_bytes: 1 << 20,
+        ..ServerConfig::default()
+    })
+    .await;
+    server
+        .client
+        .upload_rig("many", b.to_glb().into())
+        .await
+        .expect("upload");
+    let crowd = |n: i64| CrowdFrameRequest {
+        heads: (0..n)
+            .map(|f| Head {
+                head: f as u64,
+                rig: "many".into(),
+                clip: "sweep".into(),
+                frame: f,
+                lod: 0,
+            })
+            .collect(),
+        ..req(&[])
+    };
+    serves_then_refuses_as_too_large(&server, crowd(64), crowd(256)).await;
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_mesh_larger_than_the_whole_queue_memory_is_413_not_all_of_it() {
+    // The default head's mesh response copies 7,262 positions and normals and 14,512
+    // triangles (≈ 349 KB, twice that while it is encoded): more than 256 KiB of queue memory
+    // can ever hold. It used to take the whole queue and allocate past it.
+    let server = TestServer::start(ServerConfig {
+        queue_memory_bytes: 256 << 10,
+        ..ServerConfig::default()
+    })
+    .await;
+    match server.client.mesh("default-head", Encoding::Bincode).await {
+        Err(ClientError::Api {
+            status,
+            code,
+            message,
+        }) => {
+            assert_eq!((status, code.as_str()), (413, "response_too_large"));
+            assert!(message.contains("--queue-memory-bytes"), "{message}");
+        }
+        other => panic!("the mesh was not refused: {other:?}"),
+    }
+    // The server answers what fits afterwards: nothing stayed reserved.
+    let (resp, _) = server
+        .client
+        .crowd_frame(&req(&[1]), Encoding::Bincode)
+        .await
+        .expect("a crowd frame fits");
+    assert_eq!(resp.buffers.len(), 1);
+    assert_eq!(server.state.gauges().queue_memory_bytes, 0);
     server.stop().await;
 }
