@@ -1226,6 +1226,20 @@ pub(super) fn job_output_bytes(
 /// The GPU engine gathers the same rows before it uploads them.
 pub(super) const JOB_WEIGHT_BYTES_PER_TARGET: u64 = 9;
 
+/// What a crowd-frame request holds per head from its decoding until its response is sent:
+/// the decoded head and its two names, its job index in the plan, its `HeadBuffer`, and its
+/// entry in the encoded response (at most 64 bytes as JSON, 16 as bincode).
+fn frame_held_bytes(req: &CrowdFrameRequest, json: bool) -> u64 {
+    let per_head = (size_of::<Head>()
+        + size_of::<u32>()
+        + size_of::<HeadBuffer>()
+        + if json { 64 } else { 16 }) as u64;
+    req.heads
+        .iter()
+        .map(|h| per_head + h.rig.capacity() as u64 + h.clip.capacity() as u64)
+        .sum()
+}
+
 /// Queue memory a crowd request body of `declared` bytes reserves while it is read and decoded
 /// (bincode or JSON): the body and what it decodes to, a head taking 72 bytes decoded from at
 /// least 5 bytes of bincode or 40 of JSON. `POST /v1/loadtest` counts the same for each of its
@@ -1242,6 +1256,19 @@ impl AppState {
         headers: &HeaderMap,
         body: Body,
     ) -> Result<T, ApiError> {
+        let (req, _) = self.crowd_request_held(headers, body, |_| 0).await?;
+        Ok(req)
+    }
+
+    /// [`AppState::crowd_request`] for a request whose decoded form (and what is built per
+    /// head from it) stays alive until its response is sent: `held` bytes of the decode
+    /// reservation are kept (or more reserved) and returned, to be held as long.
+    pub(super) async fn crowd_request_held<T: DeserializeOwned>(
+        &self,
+        headers: &HeaderMap,
+        body: Body,
+        held: impl FnOnce(&T) -> u64,
+    ) -> Result<(T, OwnedSemaphorePermit), ApiError> {
         let declared = headers
             .get(header::CONTENT_LENGTH)
             .and_then(|v| v.to_str().ok())
@@ -1258,8 +1285,19 @@ impl AppState {
         let bytes = self.request_body(headers, body).await?;
         let req = decode(headers, &bytes)?;
         drop(bytes);
-        drop(decoding);
-        Ok(req)
+        let mut decoding = decoding;
+        let units = held(&req).div_ceil(1024) as usize;
+        let have = decoding.num_permits();
+        let kept = if units <= have {
+            // The rest of the reservation is given back as `decoding` drops.
+            decoding.split(units)
+        } else {
+            let more = self.reserve_queue_memory((units - have) as u64 * 1024)?;
+            decoding.merge(more);
+            Some(decoding)
+        };
+        let kept = kept.ok_or_else(|| ApiError::internal("splitting a queue-memory permit"))?;
+        Ok((req, kept))
     }
 
     /// Resolves every head against one snapshot of each rig it names (a rig changed or
@@ -1462,7 +1500,12 @@ pub(super) async fn crowd_frame_from(
 async fn frame(state: &AppState, headers: &HeaderMap, body: Body, source: Source) -> ApiResult {
     let arrived = Instant::now();
     state.check_ready()?;
-    let req: CrowdFrameRequest = state.crowd_request(headers, body).await?;
+    let json = !wants_bincode(headers);
+    let (req, held): (CrowdFrameRequest, _) = state
+        .crowd_request_held(headers, body, |r: &CrowdFrameRequest| {
+            frame_held_bytes(r, json)
+        })
+        .await?;
     let n_heads = req.heads.len();
     let format = req.output.format;
     let normals = req.output.normals;
@@ -1475,21 +1518,25 @@ async fn frame(state: &AppState, headers: &HeaderMap, body: Body, source: Source
         state.resolve_heads(&req.heads, mode, format == Format::F16)?;
 
     // Admission: the output memory this request will hold, then a place in the queue.
-    let json = !wants_bincode(headers);
     let gpu = state.engine.gpu_memory().is_some();
     // Priced per rig and level (a LOD level on a simplified mesh has fewer vertices), before
     // any per-job work: a request refused as too large costs a lookup per unique job.
-    let mut per_level: HashMap<(u32, u32), u64> = HashMap::new();
+    // (bytes per job, vertices) of each rig level the request uses.
+    let mut per_level: HashMap<(u32, u32), (u64, u32)> = HashMap::new();
     let mut out_bytes = 0u64;
     for k in &plan.jobs {
-        let bytes = *per_level.entry((k.rig, k.lod)).or_insert_with(|| {
+        let (bytes, _) = *per_level.entry((k.rig, k.lod)).or_insert_with(|| {
             let rig = rigs[k.rig as usize].prepared.at_level(k.lod).rig();
-            job_output_bytes(rig, format, normals, json, gpu)
+            (
+                job_output_bytes(rig, format, normals, json, gpu),
+                rig.vertex_count() as u32,
+            )
         });
         out_bytes = out_bytes.saturating_add(bytes);
     }
     let units = out_bytes.div_ceil(1024).max(1);
-    if units > u64::from(state.memory_units) {
+    // The heads' share is already held (`held`): together they must fit the whole queue.
+    if units.saturating_add(held.num_permits() as u64) > u64::from(state.memory_units) {
         return Err(ApiError::new(
             StatusCode::PAYLOAD_TOO_LARGE,
             "response_too_large",
@@ -1501,7 +1548,9 @@ async fn frame(state: &AppState, headers: &HeaderMap, body: Body, source: Source
             ),
         ));
     }
-    let permit = state.reserve_queue_memory(out_bytes)?;
+    let mut permit = state.reserve_queue_memory(out_bytes)?;
+    // Held with the outputs until the body is sent.
+    permit.merge(held);
     let jobs: Vec<JobRequest> = plan
         .jobs
         .iter()
@@ -1608,7 +1657,7 @@ async fn frame(state: &AppState, headers: &HeaderMap, body: Body, source: Source
                 clip: &entry.rig().clips[k.clip as usize].name,
                 frame: k.frame,
                 lod: k.lod,
-                vertices: entry.prepared.at_level(k.lod).rig().vertex_count() as u32,
+                vertices: per_level.get(&(k.rig, k.lod)).map_or(0, |&(_, v)| v),
                 quantization: (format == Format::Q16).then_some(entry.qbox),
                 positions: out.positions.clone(),
                 normals: if normals { out.normals.clone() } else { None },
