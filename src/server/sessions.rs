@@ -24,7 +24,7 @@
 //! images get them rendered on the blocking pool, one at a time per viewer (a tick that finds
 //! the previous image still rendering skips that viewer).
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, HashMap, HashSet};
 use std::fmt::Write as _;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, Weak};
@@ -454,20 +454,51 @@ fn placement(h: &SessionHead) -> Placement {
     }
 }
 
+/// Refuses a patch whose `remove` or `change` list is longer than a session may hold heads:
+/// neither can name more distinct heads than that, and an uncapped list (a 16 MiB bincode body
+/// holds millions of changes, each a lookup and a head check on the async worker) is work the
+/// client decides.
+fn check_patch_size(state: &AppState, patch: &SessionPatch) -> Result<(), ApiError> {
+    let max = state.config.sessions.max_heads;
+    for (field, n) in [
+        ("remove", patch.remove.len()),
+        ("change", patch.change.len()),
+    ] {
+        if n > max {
+            return Err(invalid(format!(
+                "{field} has {n} entries, more than the limit of {max} heads per session \
+                 (--max-session-heads)"
+            )));
+        }
+    }
+    Ok(())
+}
+
 /// The heads after a patch, checked; `Err` names the first problem.
+///
+/// The same result as applying the lists one entry at a time: removes in order (a repeated
+/// id is unknown the second time, its head being gone), then changes in order (a head changed
+/// twice gets both, each checked as it lands), then the count, then adds. Each list costs one
+/// hash lookup per entry, not a scan of the heads.
 fn patched(
     state: &AppState,
     heads: &[SessionHead],
-    patch: SessionPatch,
+    patch: &SessionPatch,
 ) -> Result<Vec<SessionHead>, ApiError> {
-    let mut out: Vec<SessionHead> = heads.to_vec();
+    check_patch_size(state, patch)?;
+    // Where each id stands; ids are unique in a session, but the first one wins as a scan's
+    // would if they were not.
+    let mut at: HashMap<u64, usize> = HashMap::with_capacity(heads.len());
+    for (k, h) in heads.iter().enumerate() {
+        at.entry(h.head).or_insert(k);
+    }
+    let mut removed: HashSet<u64> = HashSet::with_capacity(patch.remove.len());
     for id in &patch.remove {
-        let before = out.len();
-        out.retain(|h| h.head != *id);
-        if out.len() == before {
+        if !at.contains_key(id) || !removed.insert(*id) {
             return Err(unknown_head(*id));
         }
     }
+    let mut out: Vec<SessionHead> = heads.to_vec();
     for HeadChange {
         head,
         clip,
@@ -475,32 +506,36 @@ fn patched(
         position,
         yaw,
         scale,
-    } in patch.change
+    } in &patch.change
     {
-        let h = out
-            .iter_mut()
-            .find(|h| h.head == head)
-            .ok_or_else(|| unknown_head(head))?;
+        let h = at
+            .get(head)
+            .filter(|_| !removed.contains(head))
+            .and_then(|&k| out.get_mut(k))
+            .ok_or_else(|| unknown_head(*head))?;
         if let Some(c) = clip {
-            h.clip = c;
+            h.clip.clone_from(c);
         }
         if let Some(o) = offset {
-            h.offset = o;
+            h.offset = *o;
         }
         if let Some(p) = position {
-            h.position = p;
+            h.position = *p;
         }
         if let Some(y) = yaw {
-            h.yaw = y;
+            h.yaw = *y;
         }
         if let Some(s) = scale {
-            h.scale = s;
+            h.scale = *s;
         }
         state.check_session_head(h)?;
     }
+    if !removed.is_empty() {
+        out.retain(|h| !removed.contains(&h.head));
+    }
     state.check_head_count(out.len() + patch.add.len())?;
-    let mut ids: std::collections::HashSet<u64> = out.iter().map(|h| h.head).collect();
-    for h in patch.add {
+    let mut ids: HashSet<u64> = out.iter().map(|h| h.head).collect();
+    for h in &patch.add {
         if !ids.insert(h.head) {
             return Err(ApiError::new(
                 StatusCode::CONFLICT,
@@ -508,8 +543,8 @@ fn patched(
                 format!("the session already has a head {}", h.head),
             ));
         }
-        state.check_session_head(&h)?;
-        out.push(h);
+        state.check_session_head(h)?;
+        out.push(h.clone());
     }
     Ok(out)
 }
@@ -543,7 +578,7 @@ pub(super) async fn create_session(
         )));
     }
     state.check_head_count(req.heads.len())?;
-    let mut ids = std::collections::HashSet::new();
+    let mut ids = HashSet::new();
     for h in &req.heads {
         if !ids.insert(h.head) {
             return Err(invalid(format!("head id {} appears twice", h.head)));
@@ -626,7 +661,7 @@ pub(super) async fn patch_session(
                 .map_err(|_| ApiError::internal("session poisoned"))?;
             i.next_heads.clone().unwrap_or_else(|| i.heads.clone())
         };
-        let next = Arc::new(patched(&state, &base, patch.clone())?);
+        let next = Arc::new(patched(&state, &base, &patch)?);
         let mut i = s
             .inner
             .lock()
