@@ -1122,12 +1122,18 @@ fn level_for(lod: &LodChoice, camera: Option<&CameraSpec>, position: [f32; 3]) -
                 return 0;
             };
             let d = Vec3::from(position).distance(Vec3::from(c.position));
-            by_distance
-                .iter()
-                .rev()
-                .find(|[m, _]| *m <= d)
-                .map_or(0, |[_, l]| *l as u32)
+            level_at(by_distance, d)
         }
+    }
+}
+
+/// The level of the last entry whose metres ≤ `d` (0 nearer than the first). The table is
+/// ascending (`check_lod` refuses any other), so the entries at or below `d` are a prefix and
+/// a binary search finds its end: this runs per head, per viewer, per tick.
+fn level_at(by_distance: &[[f32; 2]], d: f32) -> u32 {
+    match by_distance.partition_point(|[m, _]| *m <= d) {
+        0 => 0,
+        n => by_distance.get(n - 1).map_or(0, |[_, l]| *l as u32),
     }
 }
 
@@ -1572,4 +1578,72 @@ fn start_frame(
         }
         viewer.rendering.store(false, Ordering::Release);
     });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The linear search `level_at` replaced: the last entry whose metres ≤ `d`.
+    fn level_by_scan(by_distance: &[[f32; 2]], d: f32) -> u32 {
+        by_distance
+            .iter()
+            .rev()
+            .find(|[m, _]| *m <= d)
+            .map_or(0, |[_, l]| *l as u32)
+    }
+
+    #[test]
+    fn the_binary_search_finds_the_level_the_scan_did() {
+        let tables: Vec<Vec<[f32; 2]>> = vec![
+            vec![],
+            vec![[5.0, 3.0]],
+            vec![[0.0, 1.0], [2.0, 2.0], [4.0, 3.0]],
+            // Repeated thresholds: the last of them counts, as the scan's.
+            vec![[1.0, 1.0], [3.0, 2.0], [3.0, 5.0], [3.0, 4.0], [6.0, 6.0]],
+            // Negative thresholds, and the 64 entries `check_lod` allows.
+            vec![[-2.0, 7.0], [-1.0, 0.0], [10.0, 2.0]],
+            (0..64).map(|k| [k as f32 * 0.5, (k % 7) as f32]).collect(),
+        ];
+        for table in &tables {
+            assert!(
+                check_lod(&LodChoice::ByDistance {
+                    by_distance: table.clone()
+                })
+                .is_ok(),
+                "{table:?} is a table viewers may send"
+            );
+            // On every threshold, just either side of it, between, below and above them all.
+            let mut ds = vec![-1e30, -3.0, 0.0, 1e30, f32::INFINITY, f32::NAN];
+            for [m, _] in table {
+                ds.extend([*m, m.next_down(), m.next_up(), m + 0.25]);
+            }
+            for d in ds {
+                assert_eq!(
+                    level_at(table, d),
+                    level_by_scan(table, d),
+                    "{table:?} at {d}"
+                );
+            }
+        }
+        // Spot values, so the test does not only compare two searches with each other.
+        let t = &tables[3];
+        assert_eq!(
+            [0.5, 1.0, 2.9, 3.0, 5.0, 6.0, 9.0].map(|d| level_at(t, d)),
+            [0, 1, 1, 4, 4, 6, 6]
+        );
+        let camera = CameraSpec {
+            position: [0.0, 0.0, 10.0],
+            target: [0.0; 3],
+            fov_y: 30.0,
+            near: None,
+            far: None,
+        };
+        let lod = LodChoice::ByDistance {
+            by_distance: t.clone(),
+        };
+        assert_eq!(level_for(&lod, Some(&camera), [0.0, 0.0, 7.0]), 4);
+        assert_eq!(level_for(&lod, None, [0.0, 0.0, 7.0]), 0);
+        assert_eq!(level_for(&LodChoice::Fixed(3), Some(&camera), [0.0; 3]), 3);
+    }
 }
