@@ -136,33 +136,46 @@ pub fn placed_transforms(
     ids: &[u64],
     placements: &[Placement],
 ) -> Result<Vec<Option<Mat4>>, SceneError> {
-    let mut by_id = std::collections::HashMap::with_capacity(placements.len());
+    // Each placement's matrix and whether some head has its id. One pass over the placements
+    // and one over the heads: checking every placement against every head was heads ×
+    // placements compares per request (5e9 at 100,000 of each).
+    let mut by_id: std::collections::HashMap<u64, (Mat4, bool)> =
+        std::collections::HashMap::with_capacity(placements.len());
     for (i, p) in placements.iter().enumerate() {
         let m = placement_matrix(p).map_err(|e| match e {
             SceneError::Placement(m) => SceneError::Placement(format!("placements[{i}]: {m}")),
             other => other,
         })?;
-        if by_id.insert(p.head, m).is_some() {
+        if by_id.insert(p.head, (m, false)).is_some() {
             return Err(SceneError::Placement(format!(
                 "placements[{i}]: head {} is placed twice",
                 p.head
             )));
         }
     }
-    if by_id.len() > ids.len() || by_id.keys().any(|id| !ids.contains(id)) {
-        // Sorted, so the message is the same on every run.
-        let mut missing: Vec<u64> = by_id
-            .keys()
-            .filter(|id| !ids.contains(id))
-            .copied()
-            .collect();
+    let placed: Vec<Option<Mat4>> = ids
+        .iter()
+        .map(|id| {
+            by_id.get_mut(id).map(|(m, used)| {
+                *used = true;
+                *m
+            })
+        })
+        .collect();
+    // Sorted, so the message is the same on every run.
+    let mut missing: Vec<u64> = by_id
+        .iter()
+        .filter(|(_, (_, used))| !used)
+        .map(|(&id, _)| id)
+        .collect();
+    if !missing.is_empty() {
         missing.sort_unstable();
         missing.truncate(10);
         return Err(SceneError::Placement(format!(
             "placements name heads that are not in the request: {missing:?}"
         )));
     }
-    Ok(ids.iter().map(|id| by_id.get(id).copied()).collect())
+    Ok(placed)
 }
 
 /// Every head's world transform: its placement's, or its grid cell's.
@@ -515,6 +528,54 @@ mod tests {
         let ok = placed_transforms(&ids, &[placement(2, [1.0, 0.0, 0.0], 0.0, 1.0)])
             .expect("a valid scene");
         assert!(ok[0].is_none() && ok[1].is_some() && ok[1] == ok[2]);
+    }
+
+    #[test]
+    fn many_placements_match_their_heads_and_name_the_first_missing_ids_sorted() {
+        // A large crowd with repeated ids: every even id is placed at x = id, odd ids go on
+        // the grid, and each head with a placed id gets that placement's transform.
+        let ids: Vec<u64> = (0..5_000u64).map(|k| k % 2_500).collect();
+        let placements: Vec<Placement> = (0..2_500u64)
+            .rev()
+            .filter(|id| id % 2 == 0)
+            .map(|id| placement(id, [id as f32, 0.0, 0.0], 0.0, 1.0))
+            .collect();
+        let placed = placed_transforms(&ids, &placements).expect("every placement names a head");
+        assert_eq!(placed.len(), ids.len());
+        for (id, m) in ids.iter().zip(&placed) {
+            if id % 2 == 0 {
+                let want = Mat4::from_translation(Vec3::new(*id as f32, 0.0, 0.0));
+                assert_eq!(*m, Some(want), "head {id}");
+            } else {
+                assert_eq!(*m, None, "head {id}");
+            }
+        }
+        // Fifteen placements name no head, given in descending order: the message lists the
+        // ten smallest, ascending, whatever the order of the request.
+        let mut with_strays = placements.clone();
+        with_strays.extend(
+            (0..15u64)
+                .rev()
+                .map(|k| placement(10_000 + 3 * k, [0.0; 3], 0.0, 1.0)),
+        );
+        let m = match placed_transforms(&ids, &with_strays) {
+            Err(SceneError::Placement(m)) => m,
+            other => panic!("expected a placement error, got {other:?}"),
+        };
+        assert_eq!(
+            m,
+            "placements name heads that are not in the request: \
+             [10000, 10003, 10006, 10009, 10012, 10015, 10018, 10021, 10024, 10027]"
+        );
+        // More placements than heads: still the same message, not a shortcut.
+        let m = match placed_transforms(&ids[..1], &placements[..3]) {
+            Err(SceneError::Placement(m)) => m,
+            other => panic!("expected a placement error, got {other:?}"),
+        };
+        assert_eq!(
+            m,
+            "placements name heads that are not in the request: [2494, 2496, 2498]"
+        );
     }
 
     #[test]

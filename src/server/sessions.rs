@@ -24,7 +24,7 @@
 //! images get them rendered on the blocking pool, one at a time per viewer (a tick that finds
 //! the previous image still rendering skips that viewer).
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, HashMap, HashSet};
 use std::fmt::Write as _;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, Weak};
@@ -38,9 +38,8 @@ use axum::response::{IntoResponse, Response};
 use bytes::Bytes;
 use crowdmorph_proto::{
     CameraSpec, Format, FrameTimings, HEAD_MISSING, HEAD_UNCHANGED, HeadBuffer, HeadChange,
-    ImageFormat, ImageOptions, LodChoice, Placement, RenderRequest, SessionHead, SessionInfo,
-    SessionList, SessionPatch, SessionRequest, SessionStats, ViewerHello, ViewerOutput,
-    ViewerUpdate,
+    ImageFormat, ImageOptions, LodChoice, Placement, RenderRequest, SessionHead, SessionPatch,
+    SessionRequest, SessionStats, ViewerHello, ViewerOutput, ViewerUpdate,
 };
 use glam::Vec3;
 use tokio::sync::{Notify, OwnedSemaphorePermit};
@@ -374,17 +373,21 @@ impl Session {
         }
     }
 
-    fn info(&self) -> SessionInfo {
+    /// What `SessionInfo` says of this session now. Under the lock it takes a reference to
+    /// the heads, not a copy: the GETs need no token, and copying every head of every session
+    /// (64 × 10,000) under each session's lock was work and memory a caller could ask for at
+    /// will.
+    fn info(&self) -> InfoNow {
         let (heads, viewers, tick, stats) = match self.inner.lock() {
             Ok(i) => (
-                i.next_heads.as_ref().unwrap_or(&i.heads).as_ref().clone(),
+                i.next_heads.clone().unwrap_or_else(|| i.heads.clone()),
                 i.viewers.len() as u32,
                 i.tick,
                 i.stats,
             ),
-            Err(_) => (Vec::new(), 0, 0, SessionStats::default()),
+            Err(_) => (Arc::default(), 0, 0, SessionStats::default()),
         };
-        SessionInfo {
+        InfoNow {
             id: self.id.clone(),
             fps: self.fps,
             wrap: self.wrap,
@@ -401,6 +404,109 @@ impl Session {
             f(&mut i.stats);
         }
     }
+}
+
+/// A session's [`crowdmorph_proto::SessionInfo`], holding its heads by reference: it serializes
+/// to exactly the bytes a `SessionInfo` of the same values does (same fields in the same order;
+/// an `Arc` is written as what it holds), without copying the heads first.
+#[derive(Debug, serde::Serialize)]
+struct InfoNow {
+    id: String,
+    fps: f32,
+    wrap: bool,
+    idle_timeout_s: u32,
+    tick: u64,
+    heads: Arc<Vec<SessionHead>>,
+    viewers: u32,
+    stats: SessionStats,
+}
+
+/// [`crowdmorph_proto::SessionList`] of [`InfoNow`]s, the same way.
+#[derive(Debug, serde::Serialize)]
+struct ListNow {
+    sessions: Vec<InfoNow>,
+}
+
+/// Most bytes a session's info takes in JSON besides its heads: the field names, the id and
+/// every number at its widest (14 `u64`s and `u32`s of at most 20 digits, one `f32`).
+const INFO_JSON_BYTES: u64 = 640;
+
+/// Most bytes one head takes in JSON besides its two names: the field names and every number
+/// at its widest (`u64`, `i64`: 20 characters; five `f32`s: 15 each), with the separators.
+const HEAD_JSON_BYTES: u64 = 200;
+
+/// Most bytes a string takes in JSON: each byte at most a six-byte `\u00XX` escape.
+fn json_str_bytes(s: &str) -> u64 {
+    2 + s
+        .bytes()
+        .map(|b| match b {
+            b'"' | b'\\' => 2,
+            0..=0x1f => 6,
+            _ => 1,
+        })
+        .sum::<u64>()
+}
+
+impl InfoNow {
+    /// Most bytes this takes serialized, in JSON or bincode (JSON is the larger): what
+    /// answering with it charges to the queue memory before the body is built.
+    fn response_bytes(&self) -> u64 {
+        let heads: u64 = self
+            .heads
+            .iter()
+            .map(|h| HEAD_JSON_BYTES + json_str_bytes(&h.rig) + json_str_bytes(&h.clip))
+            .sum();
+        INFO_JSON_BYTES + json_str_bytes(&self.id) + heads
+    }
+}
+
+/// Keeps a queue memory permit with a response body until the body has been sent (or the
+/// connection dropped).
+struct HeldBody {
+    body: Body,
+    _permit: OwnedSemaphorePermit,
+}
+
+impl http_body::Body for HeldBody {
+    type Data = Bytes;
+    type Error = axum::Error;
+
+    fn poll_frame(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<Option<Result<http_body::Frame<Bytes>, Self::Error>>> {
+        std::pin::Pin::new(&mut self.body).poll_frame(cx)
+    }
+
+    fn is_end_stream(&self) -> bool {
+        self.body.is_end_stream()
+    }
+
+    fn size_hint(&self) -> http_body::SizeHint {
+        self.body.size_hint()
+    }
+}
+
+/// Answers a GET with session infos, their largest serialized size charged to the queue
+/// memory first (503 `queue_full` when it is full) and held until the body is sent: a listing
+/// of 64 sessions of 10,000 heads is tens of megabytes, and the GETs need no token.
+fn respond_infos<T: serde::Serialize>(
+    state: &AppState,
+    headers: &HeaderMap,
+    status: StatusCode,
+    bytes: u64,
+    value: &T,
+) -> ApiResult {
+    let permit = state.reserve_queue_memory(bytes)?;
+    let response = respond(headers, status, value)?;
+    let (parts, body) = response.into_parts();
+    Ok(Response::from_parts(
+        parts,
+        Body::new(HeldBody {
+            body,
+            _permit: permit,
+        }),
+    ))
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -454,20 +560,51 @@ fn placement(h: &SessionHead) -> Placement {
     }
 }
 
+/// Refuses a patch whose `remove` or `change` list is longer than a session may hold heads:
+/// neither can name more distinct heads than that, and an uncapped list (a 16 MiB bincode body
+/// holds millions of changes, each a lookup and a head check on the async worker) is work the
+/// client decides.
+fn check_patch_size(state: &AppState, patch: &SessionPatch) -> Result<(), ApiError> {
+    let max = state.config.sessions.max_heads;
+    for (field, n) in [
+        ("remove", patch.remove.len()),
+        ("change", patch.change.len()),
+    ] {
+        if n > max {
+            return Err(invalid(format!(
+                "{field} has {n} entries, more than the limit of {max} heads per session \
+                 (--max-session-heads)"
+            )));
+        }
+    }
+    Ok(())
+}
+
 /// The heads after a patch, checked; `Err` names the first problem.
+///
+/// The same result as applying the lists one entry at a time: removes in order (a repeated
+/// id is unknown the second time, its head being gone), then changes in order (a head changed
+/// twice gets both, each checked as it lands), then the count, then adds. Each list costs one
+/// hash lookup per entry, not a scan of the heads.
 fn patched(
     state: &AppState,
     heads: &[SessionHead],
-    patch: SessionPatch,
+    patch: &SessionPatch,
 ) -> Result<Vec<SessionHead>, ApiError> {
-    let mut out: Vec<SessionHead> = heads.to_vec();
+    check_patch_size(state, patch)?;
+    // Where each id stands; ids are unique in a session, but the first one wins as a scan's
+    // would if they were not.
+    let mut at: HashMap<u64, usize> = HashMap::with_capacity(heads.len());
+    for (k, h) in heads.iter().enumerate() {
+        at.entry(h.head).or_insert(k);
+    }
+    let mut removed: HashSet<u64> = HashSet::with_capacity(patch.remove.len());
     for id in &patch.remove {
-        let before = out.len();
-        out.retain(|h| h.head != *id);
-        if out.len() == before {
+        if !at.contains_key(id) || !removed.insert(*id) {
             return Err(unknown_head(*id));
         }
     }
+    let mut out: Vec<SessionHead> = heads.to_vec();
     for HeadChange {
         head,
         clip,
@@ -475,32 +612,36 @@ fn patched(
         position,
         yaw,
         scale,
-    } in patch.change
+    } in &patch.change
     {
-        let h = out
-            .iter_mut()
-            .find(|h| h.head == head)
-            .ok_or_else(|| unknown_head(head))?;
+        let h = at
+            .get(head)
+            .filter(|_| !removed.contains(head))
+            .and_then(|&k| out.get_mut(k))
+            .ok_or_else(|| unknown_head(*head))?;
         if let Some(c) = clip {
-            h.clip = c;
+            h.clip.clone_from(c);
         }
         if let Some(o) = offset {
-            h.offset = o;
+            h.offset = *o;
         }
         if let Some(p) = position {
-            h.position = p;
+            h.position = *p;
         }
         if let Some(y) = yaw {
-            h.yaw = y;
+            h.yaw = *y;
         }
         if let Some(s) = scale {
-            h.scale = s;
+            h.scale = *s;
         }
         state.check_session_head(h)?;
     }
+    if !removed.is_empty() {
+        out.retain(|h| !removed.contains(&h.head));
+    }
     state.check_head_count(out.len() + patch.add.len())?;
-    let mut ids: std::collections::HashSet<u64> = out.iter().map(|h| h.head).collect();
-    for h in patch.add {
+    let mut ids: HashSet<u64> = out.iter().map(|h| h.head).collect();
+    for h in &patch.add {
         if !ids.insert(h.head) {
             return Err(ApiError::new(
                 StatusCode::CONFLICT,
@@ -508,8 +649,8 @@ fn patched(
                 format!("the session already has a head {}", h.head),
             ));
         }
-        state.check_session_head(&h)?;
-        out.push(h);
+        state.check_session_head(h)?;
+        out.push(h.clone());
     }
     Ok(out)
 }
@@ -543,7 +684,7 @@ pub(super) async fn create_session(
         )));
     }
     state.check_head_count(req.heads.len())?;
-    let mut ids = std::collections::HashSet::new();
+    let mut ids = HashSet::new();
     for h in &req.heads {
         if !ids.insert(h.head) {
             return Err(invalid(format!("head id {} appears twice", h.head)));
@@ -589,13 +730,23 @@ pub(super) async fn create_session(
         map.insert(id.clone(), session.clone());
     }
     tokio::spawn(run_session(session.clone(), Arc::downgrade(&state.0)));
-    tracing::info!(session = %id, heads = session.info().heads.len(), fps = req.fps, "session created");
-    respond(&headers, StatusCode::CREATED, &session.info())
+    let info = session.info();
+    tracing::info!(session = %id, heads = info.heads.len(), fps = req.fps, "session created");
+    // Not charged: the session exists now, so a 503 would tell a client that retries to make
+    // a second one; the heads came in a body the queue memory was charged for.
+    respond(&headers, StatusCode::CREATED, &info)
 }
 
 pub(super) async fn list_sessions(State(state): State<AppState>, headers: HeaderMap) -> ApiResult {
-    let sessions = state.sessions.all().iter().map(|s| s.info()).collect();
-    respond(&headers, StatusCode::OK, &SessionList { sessions })
+    let sessions: Vec<InfoNow> = state.sessions.all().iter().map(|s| s.info()).collect();
+    let bytes = 32 + sessions.iter().map(InfoNow::response_bytes).sum::<u64>();
+    respond_infos(
+        &state,
+        &headers,
+        StatusCode::OK,
+        bytes,
+        &ListNow { sessions },
+    )
 }
 
 pub(super) async fn get_session(
@@ -603,8 +754,14 @@ pub(super) async fn get_session(
     Path(id): Path<String>,
     headers: HeaderMap,
 ) -> ApiResult {
-    let s = state.sessions.get(&id)?;
-    respond(&headers, StatusCode::OK, &s.info())
+    let info = state.sessions.get(&id)?.info();
+    respond_infos(
+        &state,
+        &headers,
+        StatusCode::OK,
+        info.response_bytes(),
+        &info,
+    )
 }
 
 pub(super) async fn patch_session(
@@ -626,7 +783,7 @@ pub(super) async fn patch_session(
                 .map_err(|_| ApiError::internal("session poisoned"))?;
             i.next_heads.clone().unwrap_or_else(|| i.heads.clone())
         };
-        let next = Arc::new(patched(&state, &base, patch.clone())?);
+        let next = Arc::new(patched(&state, &base, &patch)?);
         let mut i = s
             .inner
             .lock()
@@ -637,6 +794,8 @@ pub(super) async fn patch_session(
             break;
         }
     }
+    // Not charged, as for a create: the patch is in, and a 503 now would invite a retry that
+    // applies it twice.
     respond(&headers, StatusCode::OK, &s.info())
 }
 
@@ -1087,12 +1246,18 @@ fn level_for(lod: &LodChoice, camera: Option<&CameraSpec>, position: [f32; 3]) -
                 return 0;
             };
             let d = Vec3::from(position).distance(Vec3::from(c.position));
-            by_distance
-                .iter()
-                .rev()
-                .find(|[m, _]| *m <= d)
-                .map_or(0, |[_, l]| *l as u32)
+            level_at(by_distance, d)
         }
+    }
+}
+
+/// The level of the last entry whose metres ≤ `d` (0 nearer than the first). The table is
+/// ascending (`check_lod` refuses any other), so the entries at or below `d` are a prefix and
+/// a binary search finds its end: this runs per head, per viewer, per tick.
+fn level_at(by_distance: &[[f32; 2]], d: f32) -> u32 {
+    match by_distance.partition_point(|[m, _]| *m <= d) {
+        0 => 0,
+        n => by_distance.get(n - 1).map_or(0, |[_, l]| *l as u32),
     }
 }
 
@@ -1537,4 +1702,160 @@ fn start_frame(
         }
         viewer.rendering.store(false, Ordering::Release);
     });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crowdmorph_proto::{SessionInfo, SessionList};
+
+    /// A head with every number at its widest in JSON, and names that need escaping.
+    fn widest_head(head: u64, rig: &str, clip: &str) -> SessionHead {
+        SessionHead {
+            head,
+            rig: rig.into(),
+            clip: clip.into(),
+            offset: i64::MIN,
+            position: [-1.1754942e-38, -3.4028235e38, -1.4e-45],
+            yaw: -1.1754942e-38,
+            scale: -1.1754942e-38,
+        }
+    }
+
+    #[test]
+    fn session_infos_serialize_as_before_within_their_charge() {
+        let heads = vec![
+            widest_head(u64::MAX, "default-head", "talk"),
+            widest_head(0, "a\"b\\c\u{1}\n", "é"),
+            SessionHead {
+                head: 7,
+                rig: "r".into(),
+                clip: "c".into(),
+                offset: 3,
+                position: [1.0, 2.0, 3.0],
+                yaw: 90.0,
+                scale: 1.0,
+            },
+        ];
+        let stats = SessionStats {
+            ticks: u64::MAX,
+            ticks_late: u64::MAX,
+            ticks_skipped: u64::MAX,
+            jobs: u64::MAX,
+            messages_sent: u64::MAX,
+            messages_dropped: u64::MAX,
+            bytes_sent: u64::MAX,
+        };
+        let now = |heads: &[SessionHead]| InfoNow {
+            id: "s18446744073709551615".into(),
+            fps: -1.1754942e-38,
+            wrap: false,
+            idle_timeout_s: u32::MAX,
+            tick: u64::MAX,
+            heads: Arc::new(heads.to_vec()),
+            viewers: u32::MAX,
+            stats,
+        };
+        let before = |heads: &[SessionHead]| SessionInfo {
+            id: "s18446744073709551615".into(),
+            fps: -1.1754942e-38,
+            wrap: false,
+            idle_timeout_s: u32::MAX,
+            tick: u64::MAX,
+            heads: heads.to_vec(),
+            viewers: u32::MAX,
+            stats,
+        };
+        for n in [0, 1, heads.len()] {
+            let (a, b) = (now(&heads[..n]), before(&heads[..n]));
+            let json = serde_json::to_vec(&a).expect("JSON");
+            assert_eq!(json, serde_json::to_vec(&b).expect("JSON"));
+            let wire = crate::codec::to_wire(&a).expect("bincode");
+            assert_eq!(wire, crate::codec::to_wire(&b).expect("bincode"));
+            // The charge covers the body in either format, and is not wildly above it.
+            let charged = a.response_bytes();
+            assert!(json.len() as u64 <= charged, "{} > {charged}", json.len());
+            assert!(wire.len() as u64 <= charged, "{} > {charged}", wire.len());
+            assert!(
+                charged <= 2 * json.len() as u64 + 64,
+                "{charged} for {}",
+                json.len()
+            );
+        }
+        let list = ListNow {
+            sessions: vec![now(&heads), now(&heads[..1])],
+        };
+        let old = SessionList {
+            sessions: vec![before(&heads), before(&heads[..1])],
+        };
+        let json = serde_json::to_vec(&list).expect("JSON");
+        assert_eq!(json, serde_json::to_vec(&old).expect("JSON"));
+        assert_eq!(
+            crate::codec::to_wire(&list).expect("bincode"),
+            crate::codec::to_wire(&old).expect("bincode")
+        );
+    }
+
+    /// The linear search `level_at` replaced: the last entry whose metres ≤ `d`.
+    fn level_by_scan(by_distance: &[[f32; 2]], d: f32) -> u32 {
+        by_distance
+            .iter()
+            .rev()
+            .find(|[m, _]| *m <= d)
+            .map_or(0, |[_, l]| *l as u32)
+    }
+
+    #[test]
+    fn the_binary_search_finds_the_level_the_scan_did() {
+        let tables: Vec<Vec<[f32; 2]>> = vec![
+            vec![],
+            vec![[5.0, 3.0]],
+            vec![[0.0, 1.0], [2.0, 2.0], [4.0, 3.0]],
+            // Repeated thresholds: the last of them counts, as the scan's.
+            vec![[1.0, 1.0], [3.0, 2.0], [3.0, 5.0], [3.0, 4.0], [6.0, 6.0]],
+            // Negative thresholds, and the 64 entries `check_lod` allows.
+            vec![[-2.0, 7.0], [-1.0, 0.0], [10.0, 2.0]],
+            (0..64).map(|k| [k as f32 * 0.5, (k % 7) as f32]).collect(),
+        ];
+        for table in &tables {
+            assert!(
+                check_lod(&LodChoice::ByDistance {
+                    by_distance: table.clone()
+                })
+                .is_ok(),
+                "{table:?} is a table viewers may send"
+            );
+            // On every threshold, just either side of it, between, below and above them all.
+            let mut ds = vec![-1e30, -3.0, 0.0, 1e30, f32::INFINITY, f32::NAN];
+            for [m, _] in table {
+                ds.extend([*m, m.next_down(), m.next_up(), m + 0.25]);
+            }
+            for d in ds {
+                assert_eq!(
+                    level_at(table, d),
+                    level_by_scan(table, d),
+                    "{table:?} at {d}"
+                );
+            }
+        }
+        // Spot values, so the test does not only compare two searches with each other.
+        let t = &tables[3];
+        assert_eq!(
+            [0.5, 1.0, 2.9, 3.0, 5.0, 6.0, 9.0].map(|d| level_at(t, d)),
+            [0, 1, 1, 4, 4, 6, 6]
+        );
+        let camera = CameraSpec {
+            position: [0.0, 0.0, 10.0],
+            target: [0.0; 3],
+            fov_y: 30.0,
+            near: None,
+            far: None,
+        };
+        let lod = LodChoice::ByDistance {
+            by_distance: t.clone(),
+        };
+        assert_eq!(level_for(&lod, Some(&camera), [0.0, 0.0, 7.0]), 4);
+        assert_eq!(level_for(&lod, None, [0.0, 0.0, 7.0]), 0);
+        assert_eq!(level_for(&LodChoice::Fixed(3), Some(&camera), [0.0; 3]), 3);
+    }
 }

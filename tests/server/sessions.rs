@@ -703,6 +703,156 @@ async fn patches_apply_at_the_next_tick_and_bad_ones_are_refused() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn patches_apply_entry_by_entry_and_long_lists_are_refused() {
+    let server = TestServer::start(ServerConfig {
+        sessions: SessionLimits {
+            max_heads: 400,
+            ..SessionLimits::default()
+        },
+        ..config()
+    })
+    .await;
+    // Ids do not follow positions, so a lookup by position would be caught.
+    let heads: Vec<Value> = (0..300u64)
+        .map(|k| head(1_000 - k, "talk", 0, [k as f32, 0.0, 0.0]))
+        .collect();
+    let s = create(&server, json!({ "heads": heads })).await;
+    let path = format!("/v1/sessions/{}", s.id);
+    let ids = |i: &SessionInfo| i.heads.iter().map(|h| h.head).collect::<Vec<_>>();
+
+    // Remove every third id, change the next one, add two: the heads keep their order, the
+    // changed ones carry their change, the added ones come last.
+    let remove: Vec<u64> = (0..300u64)
+        .filter(|k| k % 3 == 0)
+        .map(|k| 1_000 - k)
+        .collect();
+    let change: Vec<Value> = (0..300u64)
+        .filter(|k| k % 3 == 1)
+        .map(|k| json!({"head": 1_000 - k, "yaw": k as f32, "clip": "smile"}))
+        .collect();
+    let (st, body) = call(
+        &server,
+        Method::PATCH,
+        &path,
+        json!({"remove": remove, "change": change,
+               "add": [head(5, "idle", 0, [0.0; 3]), head(1_000, "idle", 0, [0.0; 3])]}),
+    )
+    .await;
+    assert_eq!(st, 200, "{body}");
+    let after = info(&server, &s.id).await;
+    let mut want: Vec<u64> = (0..300u64)
+        .filter(|k| k % 3 != 0)
+        .map(|k| 1_000 - k)
+        .collect();
+    want.extend([5, 1_000]);
+    assert_eq!(ids(&after), want);
+    for h in &after.heads[..200] {
+        let k = 1_000 - h.head;
+        assert_eq!(h.position, [k as f32, 0.0, 0.0], "head {}", h.head);
+        if k % 3 == 1 {
+            assert_eq!(
+                (h.yaw, h.clip.as_str()),
+                (k as f32, "smile"),
+                "head {}",
+                h.head
+            );
+        } else {
+            assert_eq!((h.yaw, h.clip.as_str()), (0.0, "talk"), "head {}", h.head);
+        }
+    }
+
+    // Repeated changes to one head apply in order: each field keeps its last value.
+    let (st, body) = call(
+        &server,
+        Method::PATCH,
+        &path,
+        json!({"change": [{"head": 999, "yaw": 10}, {"head": 999, "scale": 2},
+                          {"head": 999, "yaw": 20, "clip": "surprise"}]}),
+    )
+    .await;
+    assert_eq!(st, 200, "{body}");
+    let h = &info(&server, &s.id).await.heads[0];
+    assert_eq!(
+        (h.head, h.yaw, h.scale, h.clip.as_str()),
+        (999, 20.0, 2.0, "surprise")
+    );
+
+    // Refused, and the session keeps its heads: each change is checked as it lands (a bad
+    // one is not rescued by a later one), a second remove of an id finds it gone, a change
+    // of a removed head finds it gone; removing an id then adding it back is fine.
+    let before = ids(&info(&server, &s.id).await);
+    for (patch, status, code, says) in [
+        (
+            json!({"change": [{"head": 999, "scale": 0}, {"head": 999, "scale": 1}]}),
+            400,
+            "invalid_session",
+            "head 999",
+        ),
+        (
+            json!({"remove": [998, 998]}),
+            404,
+            "unknown_head",
+            "no head 998",
+        ),
+        (
+            json!({"remove": [998], "change": [{"head": 998, "yaw": 1}]}),
+            404,
+            "unknown_head",
+            "no head 998",
+        ),
+    ] {
+        let (st, body) = call(&server, Method::PATCH, &path, patch.clone()).await;
+        assert_eq!(
+            (st, body["error"]["code"].as_str()),
+            (status, Some(code)),
+            "{patch}: {body}"
+        );
+        let message = body["error"]["message"].as_str().unwrap_or_default();
+        assert!(message.contains(says), "{patch}: {message}");
+        assert_eq!(ids(&info(&server, &s.id).await), before, "{patch}");
+    }
+    let (st, body) = call(
+        &server,
+        Method::PATCH,
+        &path,
+        json!({"remove": [998], "add": [head(998, "idle", 0, [0.0; 3])]}),
+    )
+    .await;
+    assert_eq!(st, 200, "{body}");
+    let now = ids(&info(&server, &s.id).await);
+    assert_eq!(now.last(), Some(&998));
+    assert_eq!(now.len(), before.len());
+
+    // Lists longer than the session may hold heads are refused before any work, naming the
+    // limit, even when every entry alone would do; a list at the limit is fine.
+    let at_limit: Vec<Value> = (0..400).map(|_| json!({"head": 999})).collect();
+    let (st, body) = call(&server, Method::PATCH, &path, json!({ "change": at_limit })).await;
+    assert_eq!(st, 200, "{body}");
+    let over: Vec<Value> = (0..401).map(|_| json!({"head": 999})).collect();
+    let removes: Vec<u64> = now.iter().copied().chain(now.iter().copied()).collect();
+    for (patch, field) in [
+        (json!({ "change": over }), "change has 401 entries"),
+        (json!({ "remove": removes }), "remove has 404 entries"),
+    ] {
+        let (st, body) = call(&server, Method::PATCH, &path, patch).await;
+        assert_eq!(
+            (st, body["error"]["code"].as_str()),
+            (400, Some("invalid_session")),
+            "{body}"
+        );
+        let message = body["error"]["message"].as_str().unwrap_or_default();
+        assert!(
+            message.contains(field)
+                && message.contains("400")
+                && message.contains("--max-session-heads"),
+            "{message}"
+        );
+    }
+    assert_eq!(ids(&info(&server, &s.id).await), now);
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn session_changes_need_the_admin_token_and_streams_do_not() {
     let server = TestServer::start(ServerConfig {
         admin_token: Some("sesame".into()),
