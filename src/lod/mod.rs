@@ -31,7 +31,7 @@ pub use mesh::{
 };
 pub use order::{Metric, OrderMethod, ScoreOptions, Scores, TargetScore, pin_front, score_targets};
 
-use crate::rig::{Lod, LodError, LodLevel, Rig, TargetId, default_lod_levels};
+use crate::rig::{Lod, LodError, LodLevel, Rig, TargetId, default_lod_levels, map_bytes};
 
 /// Why a LOD could not be built.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -206,23 +206,44 @@ impl LodSpec {
 /// `name#k` ([`Rig::channel_label`], as LOD orders list the channels of a name that has
 /// several) stands for that channel alone.
 pub fn resolve_targets(rig: &Rig, names: &[String]) -> Result<Vec<TargetId>, LodBuildError> {
+    // One name index and one seen-flag per channel: a request naming all of a 4,096-channel
+    // rig's targets costs a hash probe per name, not a scan of every channel (and of every
+    // id resolved so far) per name.
+    let index = rig.target_index();
+    let mut seen = vec![false; rig.targets.len()];
     let mut out = Vec::with_capacity(names.len());
     for n in names {
-        let mut ids = rig.target_ids(n);
-        if ids.is_empty() {
-            ids.extend(rig.channel_by_label(n));
-        }
+        let label;
+        let ids = match index.ids(n) {
+            [] => {
+                label = channel_by_label(&index, n);
+                label.as_slice()
+            }
+            ids => ids,
+        };
         if ids.is_empty() {
             return Err(LodBuildError::UnknownTarget(n.clone()));
         }
-        for id in ids {
-            if out.contains(&id) {
+        for &id in ids {
+            // Ids come from the rig's own channels, so they index `seen`.
+            if std::mem::replace(&mut seen[id as usize], true) {
                 return Err(LodBuildError::DuplicateTarget(n.clone()));
             }
             out.push(id);
         }
     }
     Ok(out)
+}
+
+/// [`Rig::channel_by_label`] for a label that is not itself a name (the caller looked that
+/// up first), through `index`: `name#k` is the k-th channel of a name with several.
+fn channel_by_label(index: &crate::rig::TargetIndex<'_>, label: &str) -> Option<TargetId> {
+    let (name, k) = label.rsplit_once('#')?;
+    let k: usize = k.parse().ok()?;
+    let ids = index.ids(name);
+    (ids.len() > 1 && k >= 1)
+        .then(|| ids.get(k - 1).copied())
+        .flatten()
 }
 
 /// An upper bound of the transient memory [`build_lod`] holds for `rig`: per scoring thread a
@@ -245,7 +266,10 @@ pub fn build_bytes(rig: &Rig, spec: &LodSpec) -> u64 {
     } else {
         64 * v + 32 * i
     };
-    scoring.max(meshes) + (1 << 20)
+    // Resolving names and pins: the name index, a flag per channel, and the pin sets.
+    let n = rig.targets.len();
+    let lookups = crate::rig::TargetIndex::bytes_for(n) + n as u64 + 2 * map_bytes(n, 4);
+    scoring.max(meshes) + lookups + (1 << 20)
 }
 
 /// Builds the LOD a rig persists: scores the targets when the method needs them (pass
@@ -365,6 +389,83 @@ pub fn build_lod(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `resolve_targets` as it was before the name index: a scan of every channel (and of
+    /// the ids resolved so far) per name. The indexed one must agree with it exactly.
+    fn resolve_targets_by_scan(
+        rig: &Rig,
+        names: &[String],
+    ) -> Result<Vec<TargetId>, LodBuildError> {
+        let mut out = Vec::with_capacity(names.len());
+        for n in names {
+            let mut ids = rig.target_ids(n);
+            if ids.is_empty() {
+                ids.extend(rig.channel_by_label(n));
+            }
+            if ids.is_empty() {
+                return Err(LodBuildError::UnknownTarget(n.clone()));
+            }
+            for id in ids {
+                if out.contains(&id) {
+                    return Err(LodBuildError::DuplicateTarget(n.clone()));
+                }
+                out.push(id);
+            }
+        }
+        Ok(out)
+    }
+
+    #[test]
+    fn indexed_resolution_agrees_with_the_scan() {
+        let mut rig = crate::embedded::default_rig();
+        let names: Vec<String> = rig.targets.clone();
+        // A name with two channels (`jawOpen#1`, `jawOpen#2`) and one with three, so that
+        // labels and whole names of split targets are both resolved.
+        let split = rig.targets[0].clone();
+        rig.targets[1] = split.clone();
+        let triple = rig.targets[2].clone();
+        rig.targets[3] = triple.clone();
+        rig.targets[4] = triple.clone();
+        let all = |v: Vec<&str>| v.into_iter().map(String::from).collect::<Vec<_>>();
+        let cases: Vec<Vec<String>> = vec![
+            Vec::new(),
+            rig.target_names().into_iter().map(String::from).collect(),
+            rig.channel_labels().into_vec(),
+            rig.channel_labels().into_vec().into_iter().rev().collect(),
+            all(vec![&split, &names[5]]),
+            all(vec![
+                &format!("{split}#2"),
+                &format!("{triple}#3"),
+                &names[6],
+            ]),
+            // Duplicates: a name twice, a label and its name, a label twice.
+            all(vec![&names[6], &names[7], &names[6]]),
+            all(vec![&format!("{split}#1"), &split]),
+            all(vec![&split, &format!("{split}#2")]),
+            all(vec![&format!("{triple}#2"), &format!("{triple}#2")]),
+            // Unknown: no such name, labels past a name's channels or of a single-channel
+            // name, malformed labels.
+            all(vec![&names[5], "noSuchShape"]),
+            all(vec![&format!("{split}#3")]),
+            all(vec![&format!("{split}#0")]),
+            all(vec![&format!("{}#1", names[5])]),
+            all(vec![&format!("{split}#x"), &names[5]]),
+            all(vec!["#1", "", "#"]),
+        ];
+        for names in cases {
+            assert_eq!(
+                resolve_targets(&rig, &names),
+                resolve_targets_by_scan(&rig, &names),
+                "{names:?}"
+            );
+        }
+        // Every case above that should succeed did, and the failures were of both kinds.
+        assert!(resolve_targets(&rig, &rig.channel_labels().into_vec()).is_ok());
+        assert_eq!(
+            resolve_targets(&rig, &all(vec![&split, &format!("{split}#2")])),
+            Err(LodBuildError::DuplicateTarget(format!("{split}#2")))
+        );
+    }
 
     #[test]
     fn progress_counts_and_cancels() {

@@ -7,6 +7,7 @@
 //! undervalues blinks, [`pin_front`] moves hand-picked targets to the front. Every order is
 //! deterministic: ties fall back to the geometric MSE, then to the target id.
 
+use std::collections::HashSet;
 use std::time::Instant;
 
 use glam::Vec3;
@@ -220,14 +221,17 @@ impl Scores {
 /// Moves `pins` to the front of `order`, in the order given; the rest keep their order.
 /// Unknown or repeated pins are ignored (callers resolve names first and report them).
 pub fn pin_front(order: &[TargetId], pins: &[TargetId]) -> Vec<TargetId> {
+    // Sets, not scans of `order` and of the pins so far per pin and per target: pinning
+    // every target of a 4,096-channel rig stays linear.
+    let listed: HashSet<TargetId> = order.iter().copied().collect();
+    let mut pinned: HashSet<TargetId> = HashSet::with_capacity(pins.len());
     let mut out: Vec<TargetId> = Vec::with_capacity(order.len());
     for &p in pins {
-        if order.contains(&p) && !out.contains(&p) {
+        if listed.contains(&p) && pinned.insert(p) {
             out.push(p);
         }
     }
-    let rest: Vec<TargetId> = order.iter().copied().filter(|t| !out.contains(t)).collect();
-    out.extend(rest);
+    out.extend(order.iter().copied().filter(|t| !pinned.contains(t)));
     out
 }
 
@@ -285,6 +289,8 @@ pub fn score_targets(
     let yee_ref = YeeReference::new(&neutral_frame.image.pixels, w, h, opts.yee);
     let index = PointIndex::new(&neutral);
     let n = rig.targets.len();
+    // Every label in one pass: `Rig::channel_label` per target scans every channel each time.
+    let labels = rig.channel_labels().into_vec();
     if let Some(p) = progress {
         p.start(n);
     }
@@ -304,7 +310,7 @@ pub fn score_targets(
             let b = &frame.image.pixels;
             let score = TargetScore {
                 target: t,
-                name: rig.channel_label(t),
+                name: labels[t as usize].clone(),
                 geometric_mse: geometric_mse(&deltas, neutral.len()),
                 hausdorff: hausdorff(&neutral, &index, &vertices, &deltas),
                 image_mse: image_mse(a, b),
@@ -366,6 +372,42 @@ mod tests {
     fn pins_go_first_in_the_given_order() {
         assert_eq!(pin_front(&[3, 1, 0, 2], &[2, 0, 2, 9]), vec![2, 0, 3, 1]);
         assert_eq!(pin_front(&[3, 1], &[]), vec![3, 1]);
+    }
+
+    /// `pin_front` as it was before the sets: scans of `order` and of the output per pin
+    /// and per target. The set-based one must agree with it exactly.
+    fn pin_front_by_scan(order: &[TargetId], pins: &[TargetId]) -> Vec<TargetId> {
+        let mut out: Vec<TargetId> = Vec::with_capacity(order.len());
+        for &p in pins {
+            if order.contains(&p) && !out.contains(&p) {
+                out.push(p);
+            }
+        }
+        let rest: Vec<TargetId> = order.iter().copied().filter(|t| !out.contains(t)).collect();
+        out.extend(rest);
+        out
+    }
+
+    #[test]
+    fn set_pins_agree_with_the_scan() {
+        let rig = crate::embedded::default_rig();
+        let n = rig.targets.len() as TargetId;
+        let file: Vec<TargetId> = (0..n).collect();
+        let reversed: Vec<TargetId> = (0..n).rev().collect();
+        // An order with a repeated id keeps both copies of an unpinned one.
+        let repeated: Vec<TargetId> = [3, 1, 3, 0, 2].to_vec();
+        let pins: [Vec<TargetId>; 5] = [
+            Vec::new(),
+            vec![n - 1, 0, n / 2],
+            vec![5, 5, n + 7, 2, 5],
+            (0..n).rev().collect(),
+            vec![3, 9, 1],
+        ];
+        for order in [&file, &reversed, &repeated] {
+            for p in &pins {
+                assert_eq!(pin_front(order, p), pin_front_by_scan(order, p), "{p:?}");
+            }
+        }
     }
 
     #[test]
