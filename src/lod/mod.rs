@@ -266,9 +266,13 @@ pub fn build_bytes(rig: &Rig, spec: &LodSpec) -> u64 {
     } else {
         64 * v + 32 * i
     };
-    // Resolving names and pins: the name index, a flag per channel, and the pin sets.
+    // Resolving names and pins (the name index, a flag per channel, the pin sets) and the
+    // index of each target's sparse deltas.
     let n = rig.targets.len();
-    let lookups = crate::rig::TargetIndex::bytes_for(n) + n as u64 + 2 * map_bytes(n, 4);
+    let lookups = crate::rig::TargetIndex::bytes_for(n)
+        + n as u64
+        + 2 * map_bytes(n, 4)
+        + order::SparseIndex::bytes_for(rig);
     scoring.max(meshes) + lookups + (1 << 20)
 }
 
