@@ -276,6 +276,85 @@ pub fn build_bytes(rig: &Rig, spec: &LodSpec) -> u64 {
     scoring.max(meshes) + lookups + (1 << 20)
 }
 
+/// What [`check_spec`] resolved: the pins, the explicit order if any, and the table.
+struct Checked {
+    pinned: Vec<TargetId>,
+    explicit: Option<Vec<TargetId>>,
+    levels: Vec<LodLevel>,
+}
+
+/// Every check of a request against `rig` that needs no scoring or simplifying: the spec's
+/// own ([`LodSpec::check`]), its target names, and its table (with one mesh level per
+/// fraction). [`build_lod`] runs it before its expensive work, so that a bad request is
+/// refused at once; the server runs it before a `PUT` replaces the rig's running job.
+pub fn check_request(rig: &Rig, spec: &LodSpec) -> Result<(), LodBuildError> {
+    check_spec(rig, spec).map(drop)
+}
+
+fn check_spec(rig: &Rig, spec: &LodSpec) -> Result<Checked, LodBuildError> {
+    let n = rig.targets.len();
+    spec.check()?;
+    let pinned = resolve_targets(rig, &spec.pinned)?;
+    let explicit = match &spec.order {
+        Some(names) => {
+            let order = resolve_targets(rig, names)?;
+            if order.len() != n {
+                return Err(LodBuildError::IncompleteOrder {
+                    got: order.len(),
+                    want: n,
+                });
+            }
+            Some(order)
+        }
+        None => None,
+    };
+    // The table needs only the number of mesh levels, one per fraction, so it is checked
+    // here, before the build's seconds of scoring and simplifying, not after them.
+    let meshes = spec.mesh_fractions.len();
+    let levels = match &spec.levels {
+        Some(specs) => specs
+            .iter()
+            .enumerate()
+            .map(|(i, l)| {
+                let shapes = match (l.shapes, l.fraction) {
+                    (Some(s), _) => s,
+                    (None, Some(f)) if (0.0..=1.0).contains(&f) => (n as f32 * f).round() as u32,
+                    (None, Some(f)) => {
+                        return Err(LodBuildError::BadLevel {
+                            level: i,
+                            problem: format!("fraction {f} is not in [0, 1]"),
+                        });
+                    }
+                    (None, None) => {
+                        return Err(LodBuildError::BadLevel {
+                            level: i,
+                            problem: "neither shapes nor fraction given".into(),
+                        });
+                    }
+                };
+                Ok(LodLevel {
+                    shapes,
+                    mesh: l.mesh,
+                })
+            })
+            .collect::<Result<Vec<_>, _>>()?,
+        None => default_lod_levels(n)
+            .into_iter()
+            .enumerate()
+            .map(|(i, l)| LodLevel {
+                mesh: (i > 0 && meshes > 0).then(|| (i.min(meshes) - 1) as u32),
+                ..l
+            })
+            .collect(),
+    };
+    Lod::validate_levels(&levels, n, meshes)?;
+    Ok(Checked {
+        pinned,
+        explicit,
+        levels,
+    })
+}
+
 /// Builds the LOD a rig persists: scores the targets when the method needs them (pass
 /// `scores` to reuse an earlier scoring), orders, pins, lays out the table and simplifies the
 /// meshes. The result passes `Lod::validate` and `Lod::validate_meshes` for this rig.
@@ -286,19 +365,13 @@ pub fn build_lod(
     progress: Option<&Progress>,
 ) -> Result<Lod, LodBuildError> {
     let n = rig.targets.len();
-    spec.check()?;
-    let pinned = resolve_targets(rig, &spec.pinned)?;
-    let (base, method) = match &spec.order {
-        Some(names) => {
-            let order = resolve_targets(rig, names)?;
-            if order.len() != n {
-                return Err(LodBuildError::IncompleteOrder {
-                    got: order.len(),
-                    want: n,
-                });
-            }
-            (order, "explicit".to_string())
-        }
+    let Checked {
+        pinned,
+        explicit,
+        levels,
+    } = check_spec(rig, spec)?;
+    let (base, method) = match explicit {
+        Some(order) => (order, "explicit".to_string()),
         None => match spec.method {
             OrderMethod::FileOrder => ((0..n as TargetId).collect(), "file-order".to_string()),
             m => {
@@ -340,42 +413,6 @@ pub fn build_lod(
             return Err(MeshLodError::Rig(crate::rig::RigError::NoVertices).into());
         }
         levels
-    };
-    let levels = match &spec.levels {
-        Some(specs) => specs
-            .iter()
-            .enumerate()
-            .map(|(i, l)| {
-                let shapes = match (l.shapes, l.fraction) {
-                    (Some(s), _) => s,
-                    (None, Some(f)) if (0.0..=1.0).contains(&f) => (n as f32 * f).round() as u32,
-                    (None, Some(f)) => {
-                        return Err(LodBuildError::BadLevel {
-                            level: i,
-                            problem: format!("fraction {f} is not in [0, 1]"),
-                        });
-                    }
-                    (None, None) => {
-                        return Err(LodBuildError::BadLevel {
-                            level: i,
-                            problem: "neither shapes nor fraction given".into(),
-                        });
-                    }
-                };
-                Ok(LodLevel {
-                    shapes,
-                    mesh: l.mesh,
-                })
-            })
-            .collect::<Result<Vec<_>, _>>()?,
-        None => default_lod_levels(n)
-            .into_iter()
-            .enumerate()
-            .map(|(i, l)| LodLevel {
-                mesh: (i > 0 && !meshes.is_empty()).then(|| (i.min(meshes.len()) - 1) as u32),
-                ..l
-            })
-            .collect(),
     };
     let lod = Lod {
         order,
@@ -469,6 +506,47 @@ mod tests {
             resolve_targets(&rig, &all(vec![&split, &format!("{split}#2")])),
             Err(LodBuildError::DuplicateTarget(format!("{split}#2")))
         );
+    }
+
+    #[test]
+    fn a_bad_table_is_refused_before_any_scoring() {
+        let rig = crate::embedded::default_rig();
+        let n = rig.targets.len() as u32;
+        let level = |shapes, mesh| LevelSpec {
+            shapes: Some(shapes),
+            fraction: None,
+            mesh,
+        };
+        let bad = [
+            (vec![level(n, None); 65], "more than 64 levels"),
+            (vec![level(n, None), level(n + 1, None)], "shapes of"),
+            (vec![level(n, None), level(3, Some(1))], "names mesh 1 of 1"),
+            (vec![level(3, None)], "level 0 must evaluate"),
+        ];
+        for (levels, needle) in bad {
+            let spec = LodSpec {
+                levels: Some(levels),
+                mesh_fractions: vec![0.5],
+                ..LodSpec::default()
+            };
+            let progress = Progress::new();
+            let e = build_lod(&rig, &spec, None, Some(&progress)).expect_err("a bad table");
+            assert!(e.to_string().contains(needle), "{e} should say {needle:?}");
+            assert_eq!(check_request(&rig, &spec), Err(e));
+            // Neither the scoring nor the simplifier started (each counts its steps first).
+            assert_eq!(
+                progress.total(),
+                0,
+                "{needle}: work started before the refusal"
+            );
+        }
+        // A good table passes the same check.
+        let good = LodSpec {
+            levels: Some(vec![level(n, None), level(3, Some(0))]),
+            mesh_fractions: vec![0.5],
+            ..LodSpec::default()
+        };
+        assert_eq!(check_request(&rig, &good), Ok(()));
     }
 
     #[test]
