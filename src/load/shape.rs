@@ -94,6 +94,9 @@ pub struct RigClips {
     pub lod_levels: u32,
 }
 
+/// A rig id with the clip mix it plays (shared by every entry that lists the rig).
+type RigMix = (String, Arc<Mix<String>>);
+
 /// A weighted pick from a list.
 struct Mix<T> {
     items: Vec<(T, f64)>,
@@ -188,7 +191,7 @@ impl CrowdShape {
     /// describe, a clip of the mix that no rig has, a rig that has none of the mix's clips, or
     /// a LOD level a rig does not have.
     /// A rig listed several times (to weight it) shares one mix.
-    fn mixes(&self, rigs: &[RigClips]) -> Result<Vec<(String, Arc<Mix<String>>)>, LoadError> {
+    fn mixes(&self, rigs: &[RigClips]) -> Result<Vec<RigMix>, LoadError> {
         self.check()?;
         for name in self.clips.keys() {
             let has = |r: &&RigClips| r.clips.iter().any(|c| c == name);

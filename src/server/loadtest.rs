@@ -9,7 +9,9 @@
 //! clients leave and never push a client's request back by more than the one batch already
 //! computing. Its heads and requests carry `source="loadtest"` in the metrics.
 //!
-//! Bounds: one load at a time (409 `loadtest_running`); duration, rate and lanes capped by
+//! Bounds: one load at a time (409 `loadtest_running`, before the load is planned); the
+//! crowd's rig, clip and LOD lists at most [`load::MAX_MIX`] entries each; the request body
+//! charged to the queue memory while it is decoded; duration, rate and lanes capped by
 //! flags (400 past them); what the load can hold at once — its request bodies, and each lane's
 //! output and decode reservation — at most half the queue memory, and the lanes at most half
 //! the batch queue, so that clients always find room. The bodies are charged to the queue
