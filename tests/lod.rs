@@ -13,7 +13,7 @@ use crowdmorph::engine::{
 };
 use crowdmorph::import::{ImportOptions, load_path};
 use crowdmorph::lod::metrics::{PointIndex, YeeParams, YeeReference, hausdorff, image_mse, ssim};
-use crowdmorph::lod::order::target_displacement;
+use crowdmorph::lod::order::{SparseIndex, target_displacement};
 use crowdmorph::lod::report::{
     Displacements, clip_errors, lod_report, no_worse, report_png, report_text, synthetic_clip,
 };
@@ -662,4 +662,32 @@ fn mesh_levels_share_one_device_buffer_of_clip_tables() {
         expected += g.geometry_bytes();
     }
     assert_eq!(prepared.memory().device_bytes as u64, expected);
+}
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_test_data),
+    ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+)]
+fn indexed_displacements_equal_the_scan_on_real_rigs() {
+    // Scoring, motion peaks and reports gather every target through the index; what they
+    // gather must be exactly what the per-target scan gathers, bit for bit.
+    for rig in [ict(), &morph_stress_test()] {
+        let offsets = rig.vertex_offsets();
+        let index = SparseIndex::new(rig);
+        let bits = |d: &[Vec3]| -> Vec<u32> {
+            d.iter()
+                .flat_map(|x| x.to_array().map(f32::to_bits))
+                .collect()
+        };
+        let mut moved = 0;
+        for t in 0..rig.targets.len() as u32 {
+            let (v, d) = index.displacement(rig, t);
+            let (sv, sd) = target_displacement(rig, &offsets, t);
+            assert_eq!(v, sv, "{}: target {t}", rig.name);
+            assert_eq!(bits(&d), bits(&sd), "{}: target {t}", rig.name);
+            moved += usize::from(!v.is_empty());
+        }
+        assert!(moved > 0, "{}: targets move vertices", rig.name);
+    }
 }

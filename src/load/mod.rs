@@ -39,7 +39,7 @@ pub use report::{
     ErrorCount, LoadReport, Percentiles, RampReport, RampStep, ServerTimings, SessionReport,
     ViewerReport,
 };
-pub use shape::{BodySizes, CrowdShape, RigClips, WireEncoding};
+pub use shape::{BodySizes, CrowdShape, MAX_MIX, RigClips, WireEncoding};
 
 /// Why a load could not be generated.
 #[derive(Debug, thiserror::Error)]

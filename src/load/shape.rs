@@ -2,6 +2,7 @@
 //! levels, format and encoding; and the deterministic request bodies made from them.
 
 use std::collections::BTreeMap;
+use std::sync::Arc;
 
 use bytes::Bytes;
 use crowdmorph_proto::{CrowdFrameRequest, Format, Head, OutputOptions};
@@ -79,6 +80,9 @@ impl Default for CrowdShape {
     }
 }
 
+/// Most entries in each of a shape's lists: its rigs, its clip mix, its LOD mix.
+pub const MAX_MIX: usize = 64;
+
 /// What the generator needs to know about a rig on the server.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct RigClips {
@@ -89,6 +93,9 @@ pub struct RigClips {
     /// Its LOD levels.
     pub lod_levels: u32,
 }
+
+/// A rig id with the clip mix it plays (shared by every entry that lists the rig).
+type RigMix = (String, Arc<Mix<String>>);
 
 /// A weighted pick from a list.
 struct Mix<T> {
@@ -160,6 +167,19 @@ impl CrowdShape {
         if self.rigs.is_empty() {
             return Err(LoadError::Invalid("name at least one rig".into()));
         }
+        // Every entry costs a lookup and its rig's clip list while the load is planned, before
+        // any body is charged: the lists are capped, not left to the request size.
+        for (what, len) in [
+            ("rigs", self.rigs.len()),
+            ("clips", self.clips.len()),
+            ("lods", self.lods.len()),
+        ] {
+            if len > MAX_MIX {
+                return Err(LoadError::Invalid(format!(
+                    "crowd.{what} has {len} entries; at most {MAX_MIX}"
+                )));
+            }
+        }
         if !self.clips.is_empty() {
             weights_ok("clip", self.clips.values().copied())?;
         }
@@ -170,7 +190,8 @@ impl CrowdShape {
     /// Each rig of the shape with the clip mix it plays; errors name a rig the server did not
     /// describe, a clip of the mix that no rig has, a rig that has none of the mix's clips, or
     /// a LOD level a rig does not have.
-    fn mixes(&self, rigs: &[RigClips]) -> Result<Vec<(String, Mix<String>)>, LoadError> {
+    /// A rig listed several times (to weight it) shares one mix.
+    fn mixes(&self, rigs: &[RigClips]) -> Result<Vec<RigMix>, LoadError> {
         self.check()?;
         for name in self.clips.keys() {
             let has = |r: &&RigClips| r.clips.iter().any(|c| c == name);
@@ -184,9 +205,13 @@ impl CrowdShape {
                 )));
             }
         }
+        let mut made: BTreeMap<&str, Arc<Mix<String>>> = BTreeMap::new();
         self.rigs
             .iter()
             .map(|id| {
+                if let Some(mix) = made.get(id.as_str()) {
+                    return Ok((id.clone(), mix.clone()));
+                }
                 let rig = rigs
                     .iter()
                     .find(|r| &r.id == id)
@@ -215,6 +240,8 @@ impl CrowdShape {
                         )
                     })
                 })?;
+                let mix = Arc::new(mix);
+                made.insert(id.as_str(), mix.clone());
                 Ok((id.clone(), mix))
             })
             .collect()

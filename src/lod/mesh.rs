@@ -145,10 +145,10 @@ pub fn detect_features(rig: &Rig, opts: &SimplifyOptions) -> FeaturePoints {
 /// Per target, the vertices displaced at least `fraction` of its largest displacement, at most
 /// `per_target` of them (largest first, then lowest index).
 fn motion_peaks(rig: &Rig, fraction: f32, per_target: usize) -> Vec<u32> {
-    let offsets = rig.vertex_offsets();
+    let sparse = super::order::SparseIndex::new(rig);
     let mut out = Vec::new();
     for t in 0..rig.targets.len() as TargetId {
-        let (vertices, deltas) = super::order::target_displacement(rig, &offsets, t);
+        let (vertices, deltas) = sparse.displacement(rig, t);
         let lens: Vec<f32> = deltas.iter().map(|d| d.length()).collect();
         let max = lens.iter().copied().fold(0.0f32, f32::max);
         if max <= 0.0 {

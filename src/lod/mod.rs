@@ -31,7 +31,7 @@ pub use mesh::{
 };
 pub use order::{Metric, OrderMethod, ScoreOptions, Scores, TargetScore, pin_front, score_targets};
 
-use crate::rig::{Lod, LodError, LodLevel, Rig, TargetId, default_lod_levels};
+use crate::rig::{Lod, LodError, LodLevel, Rig, TargetId, default_lod_levels, map_bytes};
 
 /// Why a LOD could not be built.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -206,23 +206,44 @@ impl LodSpec {
 /// `name#k` ([`Rig::channel_label`], as LOD orders list the channels of a name that has
 /// several) stands for that channel alone.
 pub fn resolve_targets(rig: &Rig, names: &[String]) -> Result<Vec<TargetId>, LodBuildError> {
+    // One name index and one seen-flag per channel: a request naming all of a 4,096-channel
+    // rig's targets costs a hash probe per name, not a scan of every channel (and of every
+    // id resolved so far) per name.
+    let index = rig.target_index();
+    let mut seen = vec![false; rig.targets.len()];
     let mut out = Vec::with_capacity(names.len());
     for n in names {
-        let mut ids = rig.target_ids(n);
-        if ids.is_empty() {
-            ids.extend(rig.channel_by_label(n));
-        }
+        let label;
+        let ids = match index.ids(n) {
+            [] => {
+                label = channel_by_label(&index, n);
+                label.as_slice()
+            }
+            ids => ids,
+        };
         if ids.is_empty() {
             return Err(LodBuildError::UnknownTarget(n.clone()));
         }
-        for id in ids {
-            if out.contains(&id) {
+        for &id in ids {
+            // Ids come from the rig's own channels, so they index `seen`.
+            if std::mem::replace(&mut seen[id as usize], true) {
                 return Err(LodBuildError::DuplicateTarget(n.clone()));
             }
             out.push(id);
         }
     }
     Ok(out)
+}
+
+/// [`Rig::channel_by_label`] for a label that is not itself a name (the caller looked that
+/// up first), through `index`: `name#k` is the k-th channel of a name with several.
+fn channel_by_label(index: &crate::rig::TargetIndex<'_>, label: &str) -> Option<TargetId> {
+    let (name, k) = label.rsplit_once('#')?;
+    let k: usize = k.parse().ok()?;
+    let ids = index.ids(name);
+    (ids.len() > 1 && k >= 1)
+        .then(|| ids.get(k - 1).copied())
+        .flatten()
 }
 
 /// An upper bound of the transient memory [`build_lod`] holds for `rig`: per scoring thread a
@@ -245,7 +266,93 @@ pub fn build_bytes(rig: &Rig, spec: &LodSpec) -> u64 {
     } else {
         64 * v + 32 * i
     };
-    scoring.max(meshes) + (1 << 20)
+    // Resolving names and pins (the name index, a flag per channel, the pin sets) and the
+    // index of each target's sparse deltas.
+    let n = rig.targets.len();
+    let lookups = crate::rig::TargetIndex::bytes_for(n)
+        + n as u64
+        + 2 * map_bytes(n, 4)
+        + order::SparseIndex::bytes_for(rig);
+    scoring.max(meshes) + lookups + (1 << 20)
+}
+
+/// What [`check_spec`] resolved: the pins, the explicit order if any, and the table.
+struct Checked {
+    pinned: Vec<TargetId>,
+    explicit: Option<Vec<TargetId>>,
+    levels: Vec<LodLevel>,
+}
+
+/// Every check of a request against `rig` that needs no scoring or simplifying: the spec's
+/// own ([`LodSpec::check`]), its target names, and its table (with one mesh level per
+/// fraction). [`build_lod`] runs it before its expensive work, so that a bad request is
+/// refused at once; the server runs it before a `PUT` replaces the rig's running job.
+pub fn check_request(rig: &Rig, spec: &LodSpec) -> Result<(), LodBuildError> {
+    check_spec(rig, spec).map(drop)
+}
+
+fn check_spec(rig: &Rig, spec: &LodSpec) -> Result<Checked, LodBuildError> {
+    let n = rig.targets.len();
+    spec.check()?;
+    let pinned = resolve_targets(rig, &spec.pinned)?;
+    let explicit = match &spec.order {
+        Some(names) => {
+            let order = resolve_targets(rig, names)?;
+            if order.len() != n {
+                return Err(LodBuildError::IncompleteOrder {
+                    got: order.len(),
+                    want: n,
+                });
+            }
+            Some(order)
+        }
+        None => None,
+    };
+    // The table needs only the number of mesh levels, one per fraction, so it is checked
+    // here, before the build's seconds of scoring and simplifying, not after them.
+    let meshes = spec.mesh_fractions.len();
+    let levels = match &spec.levels {
+        Some(specs) => specs
+            .iter()
+            .enumerate()
+            .map(|(i, l)| {
+                let shapes = match (l.shapes, l.fraction) {
+                    (Some(s), _) => s,
+                    (None, Some(f)) if (0.0..=1.0).contains(&f) => (n as f32 * f).round() as u32,
+                    (None, Some(f)) => {
+                        return Err(LodBuildError::BadLevel {
+                            level: i,
+                            problem: format!("fraction {f} is not in [0, 1]"),
+                        });
+                    }
+                    (None, None) => {
+                        return Err(LodBuildError::BadLevel {
+                            level: i,
+                            problem: "neither shapes nor fraction given".into(),
+                        });
+                    }
+                };
+                Ok(LodLevel {
+                    shapes,
+                    mesh: l.mesh,
+                })
+            })
+            .collect::<Result<Vec<_>, _>>()?,
+        None => default_lod_levels(n)
+            .into_iter()
+            .enumerate()
+            .map(|(i, l)| LodLevel {
+                mesh: (i > 0 && meshes > 0).then(|| (i.min(meshes) - 1) as u32),
+                ..l
+            })
+            .collect(),
+    };
+    Lod::validate_levels(&levels, n, meshes)?;
+    Ok(Checked {
+        pinned,
+        explicit,
+        levels,
+    })
 }
 
 /// Builds the LOD a rig persists: scores the targets when the method needs them (pass
@@ -258,19 +365,13 @@ pub fn build_lod(
     progress: Option<&Progress>,
 ) -> Result<Lod, LodBuildError> {
     let n = rig.targets.len();
-    spec.check()?;
-    let pinned = resolve_targets(rig, &spec.pinned)?;
-    let (base, method) = match &spec.order {
-        Some(names) => {
-            let order = resolve_targets(rig, names)?;
-            if order.len() != n {
-                return Err(LodBuildError::IncompleteOrder {
-                    got: order.len(),
-                    want: n,
-                });
-            }
-            (order, "explicit".to_string())
-        }
+    let Checked {
+        pinned,
+        explicit,
+        levels,
+    } = check_spec(rig, spec)?;
+    let (base, method) = match explicit {
+        Some(order) => (order, "explicit".to_string()),
         None => match spec.method {
             OrderMethod::FileOrder => ((0..n as TargetId).collect(), "file-order".to_string()),
             m => {
@@ -313,42 +414,6 @@ pub fn build_lod(
         }
         levels
     };
-    let levels = match &spec.levels {
-        Some(specs) => specs
-            .iter()
-            .enumerate()
-            .map(|(i, l)| {
-                let shapes = match (l.shapes, l.fraction) {
-                    (Some(s), _) => s,
-                    (None, Some(f)) if (0.0..=1.0).contains(&f) => (n as f32 * f).round() as u32,
-                    (None, Some(f)) => {
-                        return Err(LodBuildError::BadLevel {
-                            level: i,
-                            problem: format!("fraction {f} is not in [0, 1]"),
-                        });
-                    }
-                    (None, None) => {
-                        return Err(LodBuildError::BadLevel {
-                            level: i,
-                            problem: "neither shapes nor fraction given".into(),
-                        });
-                    }
-                };
-                Ok(LodLevel {
-                    shapes,
-                    mesh: l.mesh,
-                })
-            })
-            .collect::<Result<Vec<_>, _>>()?,
-        None => default_lod_levels(n)
-            .into_iter()
-            .enumerate()
-            .map(|(i, l)| LodLevel {
-                mesh: (i > 0 && !meshes.is_empty()).then(|| (i.min(meshes.len()) - 1) as u32),
-                ..l
-            })
-            .collect(),
-    };
     let lod = Lod {
         order,
         levels,
@@ -365,6 +430,124 @@ pub fn build_lod(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `resolve_targets` as it was before the name index: a scan of every channel (and of
+    /// the ids resolved so far) per name. The indexed one must agree with it exactly.
+    fn resolve_targets_by_scan(
+        rig: &Rig,
+        names: &[String],
+    ) -> Result<Vec<TargetId>, LodBuildError> {
+        let mut out = Vec::with_capacity(names.len());
+        for n in names {
+            let mut ids = rig.target_ids(n);
+            if ids.is_empty() {
+                ids.extend(rig.channel_by_label(n));
+            }
+            if ids.is_empty() {
+                return Err(LodBuildError::UnknownTarget(n.clone()));
+            }
+            for id in ids {
+                if out.contains(&id) {
+                    return Err(LodBuildError::DuplicateTarget(n.clone()));
+                }
+                out.push(id);
+            }
+        }
+        Ok(out)
+    }
+
+    #[test]
+    fn indexed_resolution_agrees_with_the_scan() {
+        let mut rig = crate::embedded::default_rig();
+        let names: Vec<String> = rig.targets.clone();
+        // A name with two channels (`jawOpen#1`, `jawOpen#2`) and one with three, so that
+        // labels and whole names of split targets are both resolved.
+        let split = rig.targets[0].clone();
+        rig.targets[1] = split.clone();
+        let triple = rig.targets[2].clone();
+        rig.targets[3] = triple.clone();
+        rig.targets[4] = triple.clone();
+        let all = |v: Vec<&str>| v.into_iter().map(String::from).collect::<Vec<_>>();
+        let cases: Vec<Vec<String>> = vec![
+            Vec::new(),
+            rig.target_names().into_iter().map(String::from).collect(),
+            rig.channel_labels().into_vec(),
+            rig.channel_labels().into_vec().into_iter().rev().collect(),
+            all(vec![&split, &names[5]]),
+            all(vec![
+                &format!("{split}#2"),
+                &format!("{triple}#3"),
+                &names[6],
+            ]),
+            // Duplicates: a name twice, a label and its name, a label twice.
+            all(vec![&names[6], &names[7], &names[6]]),
+            all(vec![&format!("{split}#1"), &split]),
+            all(vec![&split, &format!("{split}#2")]),
+            all(vec![&format!("{triple}#2"), &format!("{triple}#2")]),
+            // Unknown: no such name, labels past a name's channels or of a single-channel
+            // name, malformed labels.
+            all(vec![&names[5], "noSuchShape"]),
+            all(vec![&format!("{split}#3")]),
+            all(vec![&format!("{split}#0")]),
+            all(vec![&format!("{}#1", names[5])]),
+            all(vec![&format!("{split}#x"), &names[5]]),
+            all(vec!["#1", "", "#"]),
+        ];
+        for names in cases {
+            assert_eq!(
+                resolve_targets(&rig, &names),
+                resolve_targets_by_scan(&rig, &names),
+                "{names:?}"
+            );
+        }
+        // Every case above that should succeed did, and the failures were of both kinds.
+        assert!(resolve_targets(&rig, &rig.channel_labels().into_vec()).is_ok());
+        assert_eq!(
+            resolve_targets(&rig, &all(vec![&split, &format!("{split}#2")])),
+            Err(LodBuildError::DuplicateTarget(format!("{split}#2")))
+        );
+    }
+
+    #[test]
+    fn a_bad_table_is_refused_before_any_scoring() {
+        let rig = crate::embedded::default_rig();
+        let n = rig.targets.len() as u32;
+        let level = |shapes, mesh| LevelSpec {
+            shapes: Some(shapes),
+            fraction: None,
+            mesh,
+        };
+        let bad = [
+            (vec![level(n, None); 65], "more than 64 levels"),
+            (vec![level(n, None), level(n + 1, None)], "shapes of"),
+            (vec![level(n, None), level(3, Some(1))], "names mesh 1 of 1"),
+            (vec![level(3, None)], "level 0 must evaluate"),
+        ];
+        for (levels, needle) in bad {
+            let spec = LodSpec {
+                levels: Some(levels),
+                mesh_fractions: vec![0.5],
+                ..LodSpec::default()
+            };
+            let progress = Progress::new();
+            let e = build_lod(&rig, &spec, None, Some(&progress)).expect_err("a bad table");
+            assert!(e.to_string().contains(needle), "{e} should say {needle:?}");
+            assert_eq!(check_request(&rig, &spec), Err(e));
+            // Neither the scoring nor the simplifier started (each counts its steps first).
+            assert_eq!(
+                progress.total(),
+                0,
+                "{needle}: work started before the refusal"
+            );
+        }
+        // A good table passes the same check.
+        let good = LodSpec {
+            levels: Some(vec![level(n, None), level(3, Some(0))]),
+            mesh_fractions: vec![0.5],
+            ..LodSpec::default()
+        };
+        assert_eq!(check_request(&rig, &good), Ok(()));
+    }
 
     #[test]
     fn progress_counts_and_cancels() {

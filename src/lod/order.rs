@@ -7,6 +7,7 @@
 //! undervalues blinks, [`pin_front`] moves hand-picked targets to the front. Every order is
 //! deterministic: ties fall back to the geometric MSE, then to the target id.
 
+use std::collections::HashSet;
 use std::time::Instant;
 
 use glam::Vec3;
@@ -220,14 +221,17 @@ impl Scores {
 /// Moves `pins` to the front of `order`, in the order given; the rest keep their order.
 /// Unknown or repeated pins are ignored (callers resolve names first and report them).
 pub fn pin_front(order: &[TargetId], pins: &[TargetId]) -> Vec<TargetId> {
+    // Sets, not scans of `order` and of the pins so far per pin and per target: pinning
+    // every target of a 4,096-channel rig stays linear.
+    let listed: HashSet<TargetId> = order.iter().copied().collect();
+    let mut pinned: HashSet<TargetId> = HashSet::with_capacity(pins.len());
     let mut out: Vec<TargetId> = Vec::with_capacity(order.len());
     for &p in pins {
-        if order.contains(&p) && !out.contains(&p) {
+        if listed.contains(&p) && pinned.insert(p) {
             out.push(p);
         }
     }
-    let rest: Vec<TargetId> = order.iter().copied().filter(|t| !out.contains(t)).collect();
-    out.extend(rest);
+    out.extend(order.iter().copied().filter(|t| !pinned.contains(t)));
     out
 }
 
@@ -250,7 +254,8 @@ impl Default for ScoreOptions {
 }
 
 /// Sparse displacement of one target over the whole rig: global vertex ids (ascending) and
-/// their deltas at weight 1.
+/// their deltas at weight 1. This scans every sparse target of the rig: to gather many
+/// targets, build a [`SparseIndex`] once.
 pub fn target_displacement(
     rig: &Rig,
     offsets: &[usize],
@@ -267,6 +272,80 @@ pub fn target_displacement(
     (vertices, deltas)
 }
 
+/// Where each target's sparse deltas are: for every target, its (primitive, sparse target)
+/// pairs, found in one pass over the rig's sparse targets. [`target_displacement`] scans every
+/// sparse target of the rig for the one target it gathers, so gathering all of them that way
+/// is targets × sparse targets (4,096 × 123k on a big rig); through this index it is linear.
+#[derive(Clone, Debug)]
+pub struct SparseIndex {
+    /// Start of each target's pairs in `at`, and the end of the last (targets + 1 entries).
+    starts: Vec<u32>,
+    /// (primitive, index into its `targets`), grouped by target, in primitive then sparse
+    /// order within a target (the order [`target_displacement`] gathers them in).
+    at: Vec<(u32, u32)>,
+    /// First global vertex id of each primitive ([`Rig::vertex_offsets`]).
+    offsets: Vec<usize>,
+}
+
+impl SparseIndex {
+    /// Bytes an index over `rig` holds (charged with the LOD build: see `build_bytes`).
+    pub fn bytes_for(rig: &Rig) -> u64 {
+        let sparse: usize = rig.primitives.iter().map(|p| p.targets.len()).sum();
+        4 * (rig.targets.len() as u64 + 1) + 8 * sparse as u64 + 8 * rig.primitives.len() as u64
+    }
+
+    /// Indexes the sparse targets of `rig` (a sparse target naming no channel of the rig is
+    /// left out, as [`target_displacement`] never gathers it).
+    pub fn new(rig: &Rig) -> SparseIndex {
+        let n = rig.targets.len();
+        let mut starts = vec![0u32; n + 1];
+        for p in rig.primitives.iter() {
+            for t in p.targets.iter().filter(|t| (t.target as usize) < n) {
+                starts[t.target as usize + 1] += 1;
+            }
+        }
+        for i in 0..n {
+            starts[i + 1] += starts[i];
+        }
+        let mut next = starts.clone();
+        let mut at = vec![(0u32, 0u32); starts[n] as usize];
+        for (pi, p) in rig.primitives.iter().enumerate() {
+            for (si, t) in p.targets.iter().enumerate() {
+                if (t.target as usize) < n {
+                    let slot = &mut next[t.target as usize];
+                    at[*slot as usize] = (pi as u32, si as u32);
+                    *slot += 1;
+                }
+            }
+        }
+        SparseIndex {
+            starts,
+            at,
+            offsets: rig.vertex_offsets(),
+        }
+    }
+
+    /// [`target_displacement`] of `target` through the index: the same vertices and deltas
+    /// in the same order (empty for a target past the rig's channels). `rig` is the one the
+    /// index was built from.
+    pub fn displacement(&self, rig: &Rig, target: TargetId) -> (Vec<u32>, Vec<Vec3>) {
+        let t = target as usize;
+        let pairs = match (self.starts.get(t), self.starts.get(t + 1)) {
+            (Some(&a), Some(&b)) => &self.at[a as usize..b as usize],
+            _ => &[],
+        };
+        let mut vertices = Vec::new();
+        let mut deltas = Vec::new();
+        for &(pi, si) in pairs {
+            let (p, o) = (&rig.primitives[pi as usize], self.offsets[pi as usize]);
+            let st = &p.targets[si as usize];
+            vertices.extend(st.vertices.iter().map(|&v| o as u32 + v));
+            deltas.extend_from_slice(&st.positions);
+        }
+        (vertices, deltas)
+    }
+}
+
 /// Scores every target of `rig` against its neutral face under all five metrics, in parallel
 /// over targets (rayon). `progress`, when given, counts finished targets and is checked for
 /// cancellation between targets.
@@ -277,7 +356,7 @@ pub fn score_targets(
 ) -> Result<Scores, LodBuildError> {
     let started = Instant::now();
     let neutral = neutral_positions(rig);
-    let offsets = rig.vertex_offsets();
+    let sparse = SparseIndex::new(rig);
     let size = opts.image_size.clamp(16, 4096);
     let camera = Camera::for_rig(rig, size);
     let neutral_frame = render_pose(rig, &neutral, &camera);
@@ -285,6 +364,8 @@ pub fn score_targets(
     let yee_ref = YeeReference::new(&neutral_frame.image.pixels, w, h, opts.yee);
     let index = PointIndex::new(&neutral);
     let n = rig.targets.len();
+    // Every label in one pass: `Rig::channel_label` per target scans every channel each time.
+    let labels = rig.channel_labels().into_vec();
     if let Some(p) = progress {
         p.start(n);
     }
@@ -294,7 +375,7 @@ pub fn score_targets(
             if progress.is_some_and(Progress::is_cancelled) {
                 return Err(LodBuildError::Cancelled);
             }
-            let (vertices, deltas) = target_displacement(rig, &offsets, t);
+            let (vertices, deltas) = sparse.displacement(rig, t);
             let mut posed = neutral.clone();
             for (&v, &d) in vertices.iter().zip(&deltas) {
                 posed[v as usize] += d;
@@ -304,7 +385,7 @@ pub fn score_targets(
             let b = &frame.image.pixels;
             let score = TargetScore {
                 target: t,
-                name: rig.channel_label(t),
+                name: labels[t as usize].clone(),
                 geometric_mse: geometric_mse(&deltas, neutral.len()),
                 hausdorff: hausdorff(&neutral, &index, &vertices, &deltas),
                 image_mse: image_mse(a, b),
@@ -366,6 +447,65 @@ mod tests {
     fn pins_go_first_in_the_given_order() {
         assert_eq!(pin_front(&[3, 1, 0, 2], &[2, 0, 2, 9]), vec![2, 0, 3, 1]);
         assert_eq!(pin_front(&[3, 1], &[]), vec![3, 1]);
+    }
+
+    /// `pin_front` as it was before the sets: scans of `order` and of the output per pin
+    /// and per target. The set-based one must agree with it exactly.
+    fn pin_front_by_scan(order: &[TargetId], pins: &[TargetId]) -> Vec<TargetId> {
+        let mut out: Vec<TargetId> = Vec::with_capacity(order.len());
+        for &p in pins {
+            if order.contains(&p) && !out.contains(&p) {
+                out.push(p);
+            }
+        }
+        let rest: Vec<TargetId> = order.iter().copied().filter(|t| !out.contains(t)).collect();
+        out.extend(rest);
+        out
+    }
+
+    #[test]
+    fn set_pins_agree_with_the_scan() {
+        let rig = crate::embedded::default_rig();
+        let n = rig.targets.len() as TargetId;
+        let file: Vec<TargetId> = (0..n).collect();
+        let reversed: Vec<TargetId> = (0..n).rev().collect();
+        // An order with a repeated id keeps both copies of an unpinned one.
+        let repeated: Vec<TargetId> = [3, 1, 3, 0, 2].to_vec();
+        let pins: [Vec<TargetId>; 5] = [
+            Vec::new(),
+            vec![n - 1, 0, n / 2],
+            vec![5, 5, n + 7, 2, 5],
+            (0..n).rev().collect(),
+            vec![3, 9, 1],
+        ];
+        for order in [&file, &reversed, &repeated] {
+            for p in &pins {
+                assert_eq!(pin_front(order, p), pin_front_by_scan(order, p), "{p:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn indexed_displacements_equal_the_scan() {
+        let rig = crate::embedded::default_rig();
+        let offsets = rig.vertex_offsets();
+        let index = SparseIndex::new(&rig);
+        let n = rig.targets.len() as TargetId;
+        let mut gathered = 0;
+        for t in 0..n + 2 {
+            let (v, d) = index.displacement(&rig, t);
+            let (sv, sd) = target_displacement(&rig, &offsets, t);
+            assert_eq!(v, sv, "target {t}");
+            // Bitwise: the same deltas, copied in the same order.
+            let bits = |d: &[Vec3]| {
+                d.iter()
+                    .flat_map(|x| x.to_array().map(f32::to_bits))
+                    .collect::<Vec<_>>()
+            };
+            assert_eq!(bits(&d), bits(&sd), "target {t}");
+            gathered += v.len();
+        }
+        assert!(gathered > 0, "the embedded rig's targets move vertices");
     }
 
     #[test]

@@ -17,7 +17,7 @@ use serde::{Deserialize, Serialize};
 use glam::Vec3;
 use rayon::prelude::*;
 
-use super::order::{OrderMethod, Scores, target_displacement};
+use super::order::{OrderMethod, Scores, SparseIndex};
 use super::pin_front;
 use super::plot::{Plot, Series};
 use crate::rig::{
@@ -124,11 +124,11 @@ pub struct Displacements {
 impl Displacements {
     /// Gathers the displacements of every target of `rig`.
     pub fn new(rig: &Rig) -> Displacements {
-        let offsets = rig.vertex_offsets();
+        let sparse = SparseIndex::new(rig);
         Displacements {
             vertices: rig.vertex_count(),
             targets: (0..rig.targets.len() as TargetId)
-                .map(|t| target_displacement(rig, &offsets, t))
+                .map(|t| sparse.displacement(rig, t))
                 .collect(),
         }
     }

@@ -196,6 +196,46 @@ impl Lod {
         slot
     }
 
+    /// The table checks of [`Lod::validate`], which need only the number of targets `n` and
+    /// of mesh levels `meshes`: a LOD build runs them before its seconds of scoring and
+    /// simplifying, so that a request with a bad table is refused at once.
+    pub fn validate_levels(levels: &[LodLevel], n: usize, meshes: usize) -> Result<(), LodError> {
+        let Some(first) = levels.first() else {
+            return Err(LodError::BadTable("no levels".into()));
+        };
+        if first.shapes as usize != n {
+            return Err(LodError::BadTable(format!(
+                "level 0 must evaluate all {n} shapes, not {}",
+                first.shapes
+            )));
+        }
+        if levels.len() > 64 {
+            return Err(LodError::BadTable("more than 64 levels".into()));
+        }
+        if let Some(l) = levels.iter().find(|l| l.shapes as usize > n) {
+            return Err(LodError::BadTable(format!(
+                "a level asks for {} shapes of {n}",
+                l.shapes
+            )));
+        }
+        if first.mesh.is_some() {
+            return Err(LodError::BadTable(
+                "level 0 must evaluate the full mesh".into(),
+            ));
+        }
+        if let Some(m) = levels
+            .iter()
+            .filter_map(|l| l.mesh)
+            .find(|&m| m as usize >= meshes)
+        {
+            return Err(LodError::BadTable(format!(
+                "a level names mesh {m} of {}",
+                meshes
+            )));
+        }
+        Ok(())
+    }
+
     /// Checks that the order is a permutation and the table is usable.
     pub fn validate(&self, n: usize) -> Result<(), LodError> {
         if self.order.len() != n {
@@ -208,40 +248,7 @@ impl Lod {
                 _ => return Err(LodError::NotAPermutation(n)),
             }
         }
-        let Some(first) = self.levels.first() else {
-            return Err(LodError::BadTable("no levels".into()));
-        };
-        if first.shapes as usize != n {
-            return Err(LodError::BadTable(format!(
-                "level 0 must evaluate all {n} shapes, not {}",
-                first.shapes
-            )));
-        }
-        if self.levels.len() > 64 {
-            return Err(LodError::BadTable("more than 64 levels".into()));
-        }
-        if let Some(l) = self.levels.iter().find(|l| l.shapes as usize > n) {
-            return Err(LodError::BadTable(format!(
-                "a level asks for {} shapes of {n}",
-                l.shapes
-            )));
-        }
-        if first.mesh.is_some() {
-            return Err(LodError::BadTable(
-                "level 0 must evaluate the full mesh".into(),
-            ));
-        }
-        if let Some(m) = self
-            .levels
-            .iter()
-            .filter_map(|l| l.mesh)
-            .find(|&m| m as usize >= self.meshes.len())
-        {
-            return Err(LodError::BadTable(format!(
-                "a level names mesh {m} of {}",
-                self.meshes.len()
-            )));
-        }
+        Lod::validate_levels(&self.levels, n, self.meshes.len())?;
         if self.pinned.len() > n || self.order.get(..self.pinned.len()) != Some(&self.pinned[..]) {
             return Err(LodError::BadTable(
                 "the order does not start with the pinned targets".into(),

@@ -9,7 +9,9 @@
 //! clients leave and never push a client's request back by more than the one batch already
 //! computing. Its heads and requests carry `source="loadtest"` in the metrics.
 //!
-//! Bounds: one load at a time (409 `loadtest_running`); duration, rate and lanes capped by
+//! Bounds: one load at a time (409 `loadtest_running`, before the load is planned); the
+//! crowd's rig, clip and LOD lists at most [`load::MAX_MIX`] entries each; the request body
+//! charged to the queue memory while it is decoded; duration, rate and lanes capped by
 //! flags (400 past them); what the load can hold at once — its request bodies, and each lane's
 //! output and decode reservation — at most half the queue memory, and the lanes at most half
 //! the batch queue, so that clients always find room. The bodies are charged to the queue
@@ -31,7 +33,7 @@ use serde::{Deserialize, Serialize};
 use tokio::sync::OwnedSemaphorePermit;
 
 use super::api::{
-    ApiResult, blocking, crowd_frame_from, decode, decode_reservation, job_output_bytes, respond,
+    ApiResult, blocking, crowd_frame_from, decode_reservation, job_output_bytes, respond,
 };
 use super::metrics::Source;
 use super::{ApiError, AppState};
@@ -310,11 +312,18 @@ impl AppState {
                 ),
             ));
         }
-        let mut rigs = Vec::new();
+        // The lists are checked (and capped at `load::MAX_MIX`) before any rig is looked up,
+        // and each distinct rig is looked up and described once: a rig listed many times (to
+        // weight it) costs one copy of its clip names.
+        crowd.check().map_err(|e| invalid(e.to_string()))?;
+        let mut rigs: Vec<RigClips> = Vec::new();
         let json = crowd.encoding == load::WireEncoding::Json;
         let gpu = self.engine.gpu_memory().is_some();
         let mut max_job_bytes = 0u64;
         for id in &crowd.rigs {
+            if rigs.iter().any(|r| &r.id == id) {
+                continue;
+            }
             let entry = self.rig(id)?;
             let rig = entry.rig();
             max_job_bytes = max_job_bytes.max(job_output_bytes(
@@ -367,7 +376,11 @@ impl AppState {
             heads_per_request: u64::from(crowd.heads),
         };
         opts.check().map_err(|e| invalid(e.to_string()))?;
-        Ok(Plan { rigs, sizes, opts })
+        Ok(Plan {
+            rigs: Arc::new(rigs),
+            sizes,
+            opts,
+        })
     }
 
     /// Charges the bodies of a planned load to the queue memory (503 when it is too full
@@ -421,7 +434,8 @@ impl AppState {
 
 /// A load checked against the caps: the rigs it plays, its bodies' sizes, its timing.
 struct Plan {
-    rigs: Vec<RigClips>,
+    /// One per distinct rig, shared with the task that makes the bodies.
+    rigs: Arc<Vec<RigClips>>,
     sizes: load::BodySizes,
     opts: RunOptions,
 }
@@ -444,13 +458,13 @@ pub(super) async fn start_loadtest(
     state.check_admin(&headers)?;
     let Query(query) = query.map_err(|e| ApiError::bad_request("bad_query", e.body_text()))?;
     state.check_ready()?;
-    let bytes = state.request_body(&headers, body).await?;
-    let req: LoadtestRequest = decode(&headers, &bytes)?;
-    let plan = state.plan_loadtest(&req)?;
-    // No bodies are made for a load that would be refused as a second one.
+    let req: LoadtestRequest = super::lod::decode_names(&state, &headers, body).await?;
+    // A second load is refused before it is planned (rig lookups, clip lists, body sizes):
+    // concurrent POSTs do not all pay for a plan only one of them can run.
     if let Some(id) = state.loadtests.running() {
         return Err(already_running(&id));
     }
+    let plan = state.plan_loadtest(&req)?;
     let (bodies, bodies_memory) = state.loadtest_bodies(&req.crowd, &plan).await?;
     let content_type = HeaderValue::from_static(req.crowd.encoding.content_type());
     let lanes = req.concurrency as usize;

@@ -16,10 +16,13 @@ use std::sync::{Arc, Mutex, Weak};
 
 use axum::body::Body;
 use axum::extract::{Path, State};
-use axum::http::{HeaderMap, StatusCode};
-use crowdmorph_proto::{LodInfo, LodRequest, RigInfo};
+use axum::http::{HeaderMap, StatusCode, header};
+use crowdmorph_proto::{CONTENT_TYPE_BINCODE, LodInfo, LodRequest, RigInfo};
+use serde::de::DeserializeOwned;
 
-use super::api::{ApiResult, blocking, budget_error, decode, prepare_charged, respond};
+use super::api::{
+    ApiResult, blocking, budget_error, decode, decode_reservation, prepare_charged, respond,
+};
 use super::registry::RigEntry;
 use super::{ApiError, AppState};
 use crate::budget::Budget;
@@ -327,6 +330,46 @@ async fn apply(
     Ok(next)
 }
 
+/// Queue memory that decoding `len` bytes of a body made mostly of names reserves besides
+/// what [`decode_reservation`] counts for a crowd body: a `String` (24 bytes) per name, in a
+/// vector that may be twice as long as its names, for names as short as 3 bytes of JSON
+/// (`"",`) or 1 byte of bincode (an empty name's length).
+fn names_reservation(bincode: bool, len: u64) -> u64 {
+    len.saturating_mul(if bincode { 48 } else { 16 })
+}
+
+/// Reads and decodes an admin body made mostly of lists of names (a LOD request's order and
+/// pins, a load test's rigs and clip mix), charged to the queue memory like a crowd body (503
+/// when it is full): the declared length's [`decode_reservation`] while it is read, and
+/// [`names_reservation`] of the bytes read while they are decoded. Without it, 16 MiB of
+/// `"",` decoded to 5.6 million strings that nothing counted.
+pub(super) async fn decode_names<T: DeserializeOwned>(
+    state: &AppState,
+    headers: &HeaderMap,
+    body: Body,
+) -> Result<T, ApiError> {
+    let bincode = headers
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.split(';').next())
+        .is_some_and(|v| v.trim().eq_ignore_ascii_case(CONTENT_TYPE_BINCODE));
+    let limit = state.config.max_request_bytes as u64;
+    let declared = headers
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.parse::<u64>().ok())
+        .unwrap_or(limit)
+        .min(limit);
+    let reading = state.reserve_queue_memory(decode_reservation(bincode, declared))?;
+    let bytes = state.request_body(headers, body).await?;
+    let decoding = state.reserve_queue_memory(names_reservation(bincode, bytes.len() as u64))?;
+    let req = decode(headers, &bytes)?;
+    drop(bytes);
+    drop(decoding);
+    drop(reading);
+    Ok(req)
+}
+
 /// The build spec a `PUT` asks for.
 fn spec_of(req: &LodRequest) -> Result<LodSpec, ApiError> {
     let method = match &req.method {
@@ -382,10 +425,29 @@ pub(super) async fn put_lod(
 ) -> ApiResult {
     state.check_admin(&headers)?;
     state.check_ready()?;
-    let bytes = state.request_body(&headers, body).await?;
-    let req: LodRequest = decode(&headers, &bytes)?;
+    let req: LodRequest = decode_names(&state, &headers, body).await?;
     let spec = spec_of(&req)?;
     let entry = state.rig(&id)?;
+    // Neither list can name more channels than the rig has without naming one twice.
+    let targets = entry.rig().targets.len();
+    for (what, len) in [
+        ("order", req.order.as_ref().map_or(0, Vec::len)),
+        ("pinned", req.pinned.len()),
+    ] {
+        if len > targets {
+            return Err(ApiError::bad_request(
+                "invalid_lod",
+                format!(
+                    "{what} lists {len} names; rig {id:?} has {targets} targets, so at most \
+                     {targets}"
+                ),
+            ));
+        }
+    }
+    // Names and table are checked against the rig before anything else: a bad request is
+    // refused without a build, and without cancelling the job it would have replaced.
+    crate::lod::check_request(entry.rig(), &spec)
+        .map_err(|e| ApiError::bad_request("invalid_lod", e.to_string()))?;
     // The PUT replaces whatever was computing for this rig, and is itself replaced by a later
     // PUT or a delete; `guard` cancels it if this handler stops early.
     let job = state.lod_jobs.start(&id, false);

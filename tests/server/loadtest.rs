@@ -163,7 +163,30 @@ async fn one_load_test_at_a_time_and_its_caps_are_400() {
     .await;
     assert_eq!(code_of(&second), (409, "loadtest_running".into()));
     assert!(second.error().unwrap().error.message.contains(&running.id));
+    // The second is refused before it is planned: its rigs are not even looked up.
+    let unplanned = post(
+        c,
+        "",
+        json!({"rate": 20, "duration_s": 1, "concurrency": 1, "crowd": {"rigs": ["nope"]}}),
+    )
+    .await;
+    assert_eq!(code_of(&unplanned), (409, "loadtest_running".into()));
 
+    // The first one finishes and its report is there; then the caps are checked, and
+    // another may start.
+    let done = wait_for(c, &running.id, |s| s.status != "running").await;
+    assert_eq!(done.status, "done");
+    assert_eq!(
+        (done.report.sent, done.report.ok),
+        (40, 40),
+        "{:?}",
+        done.report
+    );
+    let rigs = vec!["default-head"; 65];
+    let clips: serde_json::Map<String, serde_json::Value> =
+        (0..65).map(|i| (format!("c{i}"), json!(1))).collect();
+    let lods: serde_json::Map<String, serde_json::Value> =
+        (0..65).map(|i| (i.to_string(), json!(1))).collect();
     let refused = [
         (
             json!({"rate": 20, "duration_s": 9, "warmup_s": 2}),
@@ -222,19 +245,31 @@ async fn one_load_test_at_a_time_and_its_caps_are_400() {
         let r = post(c, "", body.clone()).await;
         assert_eq!(code_of(&r), (status, code.to_string()), "{body}");
     }
+    // Each list of the crowd is capped at 64 entries, and the refusal names the list and the
+    // limit (a rig listed 65 times was planned, and its clip names copied, 65 times).
+    for (list, value) in [
+        ("rigs", json!(rigs)),
+        ("clips", json!(clips)),
+        ("lods", json!(lods)),
+    ] {
+        let mut crowd = serde_json::Map::new();
+        crowd.insert(list.to_string(), value);
+        let r = post(
+            c,
+            "",
+            json!({"rate": 10, "duration_s": 1, "concurrency": 1, "crowd": crowd}),
+        )
+        .await;
+        assert_eq!(code_of(&r), (400, "invalid_loadtest".into()), "{list}");
+        let message = r.error().unwrap().error.message;
+        assert!(
+            message.contains(&format!("crowd.{list}")) && message.contains("at most 64"),
+            "{message}"
+        );
+    }
     assert_eq!(
         code_of(&get(c, "999").await),
         (404, "unknown_loadtest".into())
-    );
-
-    // The first one finishes and its report is there; then another may start.
-    let done = wait_for(c, &running.id, |s| s.status != "running").await;
-    assert_eq!(done.status, "done");
-    assert_eq!(
-        (done.report.sent, done.report.ok),
-        (40, 40),
-        "{:?}",
-        done.report
     );
     let next = status_of(
         &post(

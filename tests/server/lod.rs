@@ -652,3 +652,129 @@ async fn dropping_the_server_state_cancels_its_lod_builds() {
         "the build of a dropped state ran to completion"
     );
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_bad_table_is_refused_before_a_build_is_started() {
+    // An upload memory budget too small for scoring the built-in rig: any PUT that reaches
+    // the build is refused with 413 when it reserves the build's memory, so a 400 for a bad
+    // table shows the table was checked before a build was started.
+    let server = TestServer::start(ServerConfig {
+        admin_token: Some("secret".into()),
+        max_upload_memory: 2 << 20,
+        ..ServerConfig::default()
+    })
+    .await;
+    let admin = server.client.clone().with_token("secret");
+    let before = server.client.lod("default-head").await.expect("lod");
+    let n = server
+        .state
+        .registry
+        .get("default-head")
+        .expect("built-in rig")
+        .rig()
+        .targets
+        .len() as u32;
+    let level = |shapes| LodLevelRequest { shapes, mesh: None };
+    let build = |levels| LodRequest {
+        levels: Some(levels),
+        ..LodRequest::default()
+    };
+    match admin
+        .set_lod("default-head", &build(vec![level(n), level(3)]))
+        .await
+    {
+        Err(ClientError::Api {
+            status: 413, code, ..
+        }) => assert_eq!(code, "lod_too_large"),
+        other => panic!("a good table reaches the build and its budget: {other:?}"),
+    }
+    for (levels, needle) in [
+        (vec![level(n); 65], "more than 64 levels"),
+        (
+            vec![level(n), level(n + 1)],
+            &format!("{} shapes of {n}", n + 1),
+        ),
+    ] {
+        match admin.set_lod("default-head", &build(levels)).await {
+            Err(ClientError::Api {
+                status: 400,
+                code,
+                message,
+            }) => {
+                assert_eq!(code, "invalid_lod");
+                assert!(
+                    message.contains(needle),
+                    "{message:?} should say {needle:?}"
+                );
+            }
+            other => panic!("expected a 400 before any build, got {other:?}"),
+        }
+    }
+    let after = server.client.lod("default-head").await.expect("lod");
+    assert_eq!(after, before, "refused requests leave the LOD as it was");
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_lod_body_is_charged_while_decoded_and_its_lists_are_capped() {
+    let server = TestServer::start(ServerConfig {
+        admin_token: Some("secret".into()),
+        queue_memory_bytes: 8 << 20,
+        ..ServerConfig::default()
+    })
+    .await;
+    let admin = server.client.clone().with_token("secret");
+    let before = server.client.lod("default-head").await.expect("lod");
+    let n = before.order.len();
+    // 1 MB of empty names decodes to 350,000 strings (8 MB and more): more than this
+    // server's queue memory, so the decode is refused before it is made.
+    let many = LodRequest {
+        order: Some(vec![String::new(); 350_000]),
+        ..LodRequest::default()
+    };
+    match admin.set_lod("default-head", &many).await {
+        Err(ClientError::Api {
+            status: 503, code, ..
+        }) => assert_eq!(code, "queue_full"),
+        other => panic!("expected the decode to be refused with 503, got {other:?}"),
+    }
+    // A list longer than the rig's targets names the limit.
+    let mut order = before.order.clone();
+    order.push(order[0].clone());
+    for bad in [
+        LodRequest {
+            order: Some(order.clone()),
+            ..LodRequest::default()
+        },
+        LodRequest {
+            pinned: order,
+            ..LodRequest::default()
+        },
+    ] {
+        match admin.set_lod("default-head", &bad).await {
+            Err(ClientError::Api {
+                status: 400,
+                code,
+                message,
+            }) => {
+                assert_eq!(code, "invalid_lod");
+                assert!(
+                    message.contains(&format!("at most {n}")),
+                    "{message:?} should name the limit"
+                );
+            }
+            other => panic!("expected a 400 naming the limit, got {other:?}"),
+        }
+    }
+    // The charge is given back: a request of the rig's size goes through.
+    let ok = LodRequest {
+        method: Some("file-order".into()),
+        order: Some(before.order.clone()),
+        ..LodRequest::default()
+    };
+    admin
+        .set_lod("default-head", &ok)
+        .await
+        .expect("a good PUT");
+    server.stop().await;
+}
