@@ -1088,7 +1088,7 @@ impl AppState {
             self.metrics.reject("queue_memory");
             return Err(ApiError::new(
                 StatusCode::PAYLOAD_TOO_LARGE,
-                "response_too_large",
+                "queue_memory_exceeded",
                 format!(
                     "this needs {bytes} bytes of queue memory, more than the server's {} \
                      (--queue-memory-bytes)",

@@ -341,7 +341,8 @@ fn names_reservation(bincode: bool, len: u64) -> u64 {
 /// Reads and decodes an admin body made mostly of lists of names (a LOD request's order and
 /// pins, a load test's rigs and clip mix), charged to the queue memory like a crowd body (503
 /// when it is full): the declared length's [`decode_reservation`] while it is read, and
-/// [`names_reservation`] of the bytes read while they are decoded. Without it, 16 MiB of
+/// [`names_reservation`] of the bytes read while they are decoded (413 when that is more than
+/// the whole queue memory: such a body can never be decoded within it). Without it, 16 MiB of
 /// `"",` decoded to 5.6 million strings that nothing counted.
 pub(super) async fn decode_names<T: DeserializeOwned>(
     state: &AppState,
@@ -360,7 +361,10 @@ pub(super) async fn decode_names<T: DeserializeOwned>(
         .and_then(|v| v.parse::<u64>().ok())
         .unwrap_or(limit)
         .min(limit);
-    let reading = state.reserve_queue_memory(decode_reservation(bincode, declared))?;
+    // Capped at the whole queue as a crowd body's is (an unknown length reserves the limit's).
+    let reading = state.reserve_queue_memory(
+        decode_reservation(bincode, declared).min(state.queue_memory_bytes()),
+    )?;
     let bytes = state.request_body(headers, body).await?;
     let decoding = state.reserve_queue_memory(names_reservation(bincode, bytes.len() as u64))?;
     let req = decode(headers, &bytes)?;

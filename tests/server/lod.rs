@@ -727,16 +727,17 @@ async fn a_lod_body_is_charged_while_decoded_and_its_lists_are_capped() {
     let before = server.client.lod("default-head").await.expect("lod");
     let n = before.order.len();
     // 1 MB of empty names decodes to 350,000 strings (8 MB and more): more than this
-    // server's queue memory, so the decode is refused before it is made.
+    // server's whole queue memory, so the decode is refused before it is made, as too large
+    // (it could never fit), not as busy.
     let many = LodRequest {
         order: Some(vec![String::new(); 350_000]),
         ..LodRequest::default()
     };
     match admin.set_lod("default-head", &many).await {
         Err(ClientError::Api {
-            status: 503, code, ..
-        }) => assert_eq!(code, "queue_full"),
-        other => panic!("expected the decode to be refused with 503, got {other:?}"),
+            status: 413, code, ..
+        }) => assert_eq!(code, "queue_memory_exceeded"),
+        other => panic!("expected the decode to be refused with 413, got {other:?}"),
     }
     // A list longer than the rig's targets names the limit.
     let mut order = before.order.clone();

@@ -442,7 +442,7 @@ async fn a_mesh_larger_than_the_whole_queue_memory_is_413_not_all_of_it() {
             code,
             message,
         }) => {
-            assert_eq!((status, code.as_str()), (413, "response_too_large"));
+            assert_eq!((status, code.as_str()), (413, "queue_memory_exceeded"));
             assert!(message.contains("--queue-memory-bytes"), "{message}");
         }
         other => panic!("the mesh was not refused: {other:?}"),
