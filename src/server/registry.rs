@@ -316,6 +316,17 @@ pub const MAX_F16: f64 = 65504.0;
 /// The corners of the box every position any clip of `rig` can produce at any LOD lies in
 /// (f64, unwidened); see [`quantization_box`].
 pub fn reachable_box(rig: &Rig) -> (DVec3, DVec3) {
+    reachable_box_in_chunks(rig, BOX_CHUNK)
+}
+
+/// Vertices whose bounds [`reachable_box`] accumulates at a time: 3 MiB of f64 corners,
+/// whatever the rig's size (one pair per vertex of a primitive was 48 bytes a vertex, four
+/// times the positions, uncharged, on every upload).
+const BOX_CHUNK: usize = 1 << 16;
+
+/// [`reachable_box`] over `chunk` vertices at a time (each target's sparse list is walked
+/// with a cursor, its vertices being ascending): the same sums in the same order.
+fn reachable_box_in_chunks(rig: &Rig, chunk: usize) -> (DVec3, DVec3) {
     let n = rig.targets.len();
     let mut lo = vec![0f64; n];
     let mut hi = vec![0f64; n];
@@ -330,25 +341,39 @@ pub fn reachable_box(rig: &Rig) -> (DVec3, DVec3) {
             }
         }
     }
+    let chunk = chunk.max(1);
     let mut bmin = DVec3::splat(f64::INFINITY);
     let mut bmax = DVec3::splat(f64::NEG_INFINITY);
+    let mut vmin: Vec<DVec3> = Vec::new();
+    let mut vmax: Vec<DVec3> = Vec::new();
     for p in rig.primitives.iter() {
-        let mut vmin: Vec<DVec3> = p.positions.iter().map(|v| v.as_dvec3()).collect();
-        let mut vmax = vmin.clone();
-        for t in &p.targets {
-            let (wl, wh) = (lo[t.target as usize], hi[t.target as usize]);
-            for (&v, d) in t.vertices.iter().zip(&t.positions) {
-                let d = d.as_dvec3();
-                let (a, b) = (d * wl, d * wh);
-                vmin[v as usize] += a.min(b);
-                vmax[v as usize] += a.max(b);
+        let mut cursor = vec![0usize; p.targets.len()];
+        for start in (0..p.positions.len()).step_by(chunk) {
+            let end = start.saturating_add(chunk).min(p.positions.len());
+            vmin.clear();
+            vmin.extend(p.positions[start..end].iter().map(|v| v.as_dvec3()));
+            vmax.clear();
+            vmax.extend_from_slice(&vmin);
+            for (t, c) in p.targets.iter().zip(cursor.iter_mut()) {
+                let (wl, wh) = (lo[t.target as usize], hi[t.target as usize]);
+                while let (Some(&v), Some(d)) = (t.vertices.get(*c), t.positions.get(*c)) {
+                    let v = v as usize;
+                    if v >= end {
+                        break;
+                    }
+                    let d = d.as_dvec3();
+                    let (a, b) = (d * wl, d * wh);
+                    vmin[v - start] += a.min(b);
+                    vmax[v - start] += a.max(b);
+                    *c += 1;
+                }
             }
-        }
-        for v in vmin {
-            bmin = bmin.min(v);
-        }
-        for v in vmax {
-            bmax = bmax.max(v);
+            for &v in &vmin {
+                bmin = bmin.min(v);
+            }
+            for &v in &vmax {
+                bmax = bmax.max(v);
+            }
         }
     }
     if bmin.x > bmax.x {
@@ -480,6 +505,22 @@ pub fn sanitize_id(name: &str) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_reachable_box_is_the_same_in_chunks_of_any_size() {
+        // The embedded head: its clips move its targets both ways over three primitives.
+        let head = crate::embedded::default_rig();
+        let whole = reachable_box_in_chunks(&head, usize::MAX);
+        for chunk in [1, 7, 256, 4096, BOX_CHUNK] {
+            assert_eq!(
+                reachable_box_in_chunks(&head, chunk),
+                whole,
+                "chunks of {chunk}"
+            );
+        }
+        assert_eq!(reachable_box(&head), whole);
+        assert!(whole.0.x < whole.1.x, "a real box: {whole:?}");
+    }
 
     #[test]
     fn quantization_box_covers_every_clip_frame() {
