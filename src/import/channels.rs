@@ -56,8 +56,9 @@ struct Unit {
     class: usize,
 }
 
-/// A class found while refining: (its first unit, its new class id).
-type Representative = (usize, usize);
+/// A class found while refining: (its first unit, the track that drives it, its new class
+/// id).
+type Representative = (usize, usize, usize);
 
 /// Bytes the plan's bookkeeping holds per (node, target) pair, charged before it is built.
 const UNIT_BYTES: u64 = 64;
@@ -147,7 +148,10 @@ pub(crate) fn plan_channels(
     let mut names_of = Vec::with_capacity(instances.len());
     let mut classes: HashMap<(&str, usize, u32), usize> = HashMap::new();
     let mut n_classes = 0;
+    // Each instance's units are contiguous: instance i's are `first_unit[i]..first_unit[i + 1]`.
+    let mut first_unit = Vec::with_capacity(instances.len() + 1);
     for (i, inst) in instances.iter().enumerate() {
+        first_unit.push(units.len());
         let count = counts[i];
         let names = names.of(&inst.mesh);
         let defaults = node_defaults(inst, count);
@@ -168,6 +172,7 @@ pub(crate) fn plan_channels(
         }
         names_of.push((names, defaults));
     }
+    first_unit.push(units.len());
     drop(classes);
 
     // Refinement: in each animation, a class splits by the curves its members get.
@@ -191,39 +196,47 @@ pub(crate) fn plan_channels(
                 driven.insert(i, j);
             }
         }
-        let curve = |u: &Unit| {
-            driven.get(&u.instance).map(|&j| Curve {
-                track: &tracks[j],
-                k: u.k,
-            })
+        // Only the units of driven nodes can leave their class: each (class, curve) group of
+        // them gets a fresh class id, the others keep theirs. The partition is the one a pass
+        // over every unit gives, for work in the driven pairs (bounded by the decoded
+        // keyframes) instead of every pair of the scene per animation, which made a file of
+        // many one-track animations over a large scene quadratic.
+        let mut driven_instances: Vec<(usize, usize)> =
+            driven.iter().map(|(&i, &j)| (i, j)).collect();
+        driven_instances.sort_unstable();
+        let curve = |ui: usize, track: usize| Curve {
+            track: &tracks[track],
+            k: units[ui].k,
         };
-        // New class of each unit: (old class, curve hash) buckets, each holding the
-        // representatives found so far (more than one only on a hash collision).
-        let mut buckets: HashMap<(usize, Option<u64>), Vec<Representative>> = HashMap::new();
-        let mut next = 0;
-        for ui in 0..units.len() {
-            let c = curve(&units[ui]);
-            let key = (units[ui].class, c.as_ref().map(Curve::hash));
-            let reps = buckets.entry(key).or_default();
-            let found = reps
-                .iter()
-                .find(|&&(rep, _)| match (&c, curve(&units[rep])) {
-                    (Some(a), Some(b)) => a.same(&b),
-                    (None, None) => true,
-                    _ => false,
-                });
-            let class = match found {
-                Some(&(_, class)) => class,
-                None => {
-                    reps.push((ui, next));
-                    next += 1;
-                    next - 1
-                }
-            };
+        // New class of each driven unit: (old class, curve hash) buckets, each holding the
+        // representatives found so far (more than one only on a hash collision) and the track
+        // that drives them.
+        let mut buckets: HashMap<(usize, u64), Vec<Representative>> = HashMap::new();
+        let mut moved: Vec<(usize, usize)> = Vec::new();
+        for &(i, j) in &driven_instances {
+            let range = first_unit.get(i).copied().unwrap_or(0)
+                ..first_unit.get(i + 1).copied().unwrap_or(0);
+            for ui in range {
+                let c = curve(ui, j);
+                let reps = buckets.entry((units[ui].class, c.hash())).or_default();
+                let found = reps
+                    .iter()
+                    .find(|&&(rep, track, _)| c.same(&curve(rep, track)));
+                let class = match found {
+                    Some(&(_, _, class)) => class,
+                    None => {
+                        reps.push((ui, j, n_classes));
+                        n_classes += 1;
+                        n_classes - 1
+                    }
+                };
+                moved.push((ui, class));
+            }
+        }
+        drop(buckets);
+        for (ui, class) in moved {
             units[ui].class = class;
         }
-        n_classes = next;
-        drop(buckets);
         animations.push(AnimationTracks {
             index: anim.index(),
             tracks,
@@ -233,6 +246,14 @@ pub(crate) fn plan_channels(
     // Channel ids: first the class of each name's first pair, in the order names first
     // appear (one channel per name when nothing splits, as a plain name mapping gives), then
     // every other class in the order its first pair appears.
+    // Class ids grew with every split: number them densely (the partition is what counts).
+    let mut dense: HashMap<usize, usize> = HashMap::new();
+    for u in &mut units {
+        let next = dense.len();
+        u.class = *dense.entry(u.class).or_insert(next);
+    }
+    let n_classes = dense.len();
+    drop(dense);
     let mut channel_of = vec![None::<TargetId>; n_classes];
     let mut plan = ChannelPlan::default();
     let mut named: std::collections::HashSet<&str> = std::collections::HashSet::new();
@@ -280,17 +301,71 @@ pub(crate) fn plan_channels(
     Ok((plan, animations))
 }
 
+/// How many (node, target) pairs of `by_node` write each of `channels` weight channels, for
+/// [`curves_agree`].
+pub(crate) fn channel_writers(
+    by_node: &HashMap<usize, Vec<Vec<TargetId>>>,
+    channels: usize,
+) -> Vec<u32> {
+    let mut writers = vec![0u32; channels];
+    for ids in by_node.values() {
+        for &c in ids.iter().flatten() {
+            if let Some(w) = writers.get_mut(c as usize) {
+                *w += 1;
+            }
+        }
+    }
+    writers
+}
+
 /// Checks that an animation matched node by node onto `rig` gives every weight channel one
 /// curve: all the (node, target) pairs that write a channel (`by_node`: node → channels of
-/// each target) get the same curve from `tracks`, or none. A rig made its channels from its
+/// each target; `writers`: how many pairs write each channel, from [`channel_writers`]) get
+/// the same curve from `tracks`, or none. A rig made its channels from its
 /// own file's animations, so a later animation that moves two nodes apart where the rig moves
 /// them together cannot be played as glTF viewers would; the message names both nodes.
 pub(crate) fn curves_agree(
     rig: &crate::rig::Rig,
     tracks: &[WeightTrack],
     by_node: &HashMap<usize, Vec<Vec<TargetId>>>,
+    writers: &[u32],
 ) -> Result<(), String> {
     let driven: HashMap<usize, &WeightTrack> = tracks.iter().map(|t| (t.node, t)).collect();
+    // The common case, in the driven pairs only: a channel agrees when every pair that writes
+    // it is driven (`writers` counts them) with one curve, or none is driven. Only when that
+    // fails are all pairs walked in node order, for the message naming the first two nodes
+    // that differ (a walk of every pair per animation made many animations quadratic).
+    let mut seen: HashMap<TargetId, (u32, Curve<'_>)> = HashMap::new();
+    let mut agree = true;
+    let mut driven_nodes: Vec<(&usize, &&WeightTrack)> = driven.iter().collect();
+    driven_nodes.sort_unstable_by_key(|&(n, _)| *n);
+    'pairs: for (node, &track) in driven_nodes {
+        let Some(ids) = by_node.get(node) else {
+            continue;
+        };
+        for (k, channels) in ids.iter().enumerate() {
+            for &c in channels {
+                let curve = Curve { track, k };
+                match seen.get_mut(&c) {
+                    None => {
+                        seen.insert(c, (1, curve));
+                    }
+                    Some((n, first)) if first.same(&curve) => *n += 1,
+                    Some(_) => {
+                        agree = false;
+                        break 'pairs;
+                    }
+                }
+            }
+        }
+    }
+    if agree
+        && seen
+            .iter()
+            .all(|(&c, (n, _))| writers.get(c as usize).is_some_and(|&w| w == *n))
+    {
+        return Ok(());
+    }
     let mut nodes: Vec<(usize, &Vec<Vec<TargetId>>)> =
         by_node.iter().map(|(&n, ids)| (n, ids)).collect();
     nodes.sort_unstable_by_key(|&(n, _)| n);

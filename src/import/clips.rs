@@ -21,7 +21,7 @@ use std::sync::Arc;
 
 use serde::Deserialize;
 
-use super::channels::curves_agree;
+use super::channels::{channel_writers, curves_agree};
 use super::gltf::{
     Instance, MeshNames, UniqueNames, bake, parse, scene_instances, tracks_bytes, weight_tracks,
 };
@@ -533,6 +533,10 @@ pub fn clips_from_gltf(
             .and_then(|ids| ids.get(k))
             .map_or(&[], Vec::as_slice)
     };
+    // Pairs writing each channel, counted once for every animation's check.
+    let writers = per_node.as_ref().map_or_else(Vec::new, |by_node| {
+        channel_writers(by_node, rig.targets.len())
+    });
     let mut out: Vec<ClipImport> = Vec::new();
     let mut taken = UniqueNames::new(budget);
     for anim in parsed.doc.animations() {
@@ -545,7 +549,7 @@ pub fn clips_from_gltf(
             .filter(|n| !n.is_empty())
             .map_or_else(|| format!("anim{}", anim.index()), str::to_string);
         if let Some(by_node) = &per_node {
-            curves_agree(rig, &tracks, by_node).map_err(|problem| {
+            curves_agree(rig, &tracks, by_node, &writers).map_err(|problem| {
                 ImportError::ClipSource(format!("animation {name:?}: {problem}"))
             })?;
         }
