@@ -1085,16 +1085,7 @@ impl AppState {
     ) -> Result<OwnedSemaphorePermit, ApiError> {
         let units = bytes.div_ceil(1024).max(1);
         if units > u64::from(self.memory_units) {
-            self.metrics.reject("queue_memory");
-            return Err(ApiError::new(
-                StatusCode::PAYLOAD_TOO_LARGE,
-                "queue_memory_exceeded",
-                format!(
-                    "this needs {bytes} bytes of queue memory, more than the server's {} \
-                     (--queue-memory-bytes)",
-                    self.queue_memory_bytes()
-                ),
-            ));
+            return Err(self.queue_memory_exceeded(bytes));
         }
         let units = units as u32;
         self.memory
@@ -1108,6 +1099,21 @@ impl AppState {
                     1,
                 )
             })
+    }
+
+    /// 413 for something that needs `bytes` of queue memory, more than all of it: it could
+    /// never be admitted (counted as a queue-memory rejection).
+    fn queue_memory_exceeded(&self, bytes: u64) -> ApiError {
+        self.metrics.reject("queue_memory");
+        ApiError::new(
+            StatusCode::PAYLOAD_TOO_LARGE,
+            "queue_memory_exceeded",
+            format!(
+                "this needs {bytes} bytes of queue memory, more than the server's {} \
+                 (--queue-memory-bytes)",
+                self.queue_memory_bytes()
+            ),
+        )
     }
 
     /// The whole queue memory, bytes.
@@ -1286,7 +1292,12 @@ impl AppState {
         let req = decode(headers, &bytes)?;
         drop(bytes);
         let mut decoding = decoding;
-        let units = held(&req).div_ceil(1024) as usize;
+        let need = held(&req);
+        if need.div_ceil(1024) > u64::from(self.memory_units) {
+            // It could never be held, whatever else is queued: too large, not busy.
+            return Err(self.queue_memory_exceeded(need));
+        }
+        let units = need.div_ceil(1024) as usize;
         let have = decoding.num_permits();
         let kept = if units <= have {
             // The rest of the reservation is given back as `decoding` drops.

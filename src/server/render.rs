@@ -382,7 +382,12 @@ impl Rendered {
 impl AppState {
     /// Checks the image, resolves the heads (as a crowd frame does), lays out the scene and
     /// takes the pixel and vertex budgets; every refusal is the JSON error that names it.
-    fn admit_render(&self, req: RenderRequest, max_side: u32) -> Result<RenderJob, ApiError> {
+    fn admit_render(
+        &self,
+        req: RenderRequest,
+        max_side: u32,
+        held: Option<OwnedSemaphorePermit>,
+    ) -> Result<RenderJob, ApiError> {
         let image = req.image.unwrap_or_default();
         encode::check_image(&image, max_side).map_err(image_error)?;
         let pixels = u64::from(image.width) * u64::from(image.height);
@@ -423,7 +428,10 @@ impl AppState {
             })
             .sum();
         let limit = u64::from(self.memory_units) * 1024;
-        if vertex_bytes > limit {
+        // The request's own share (`held`, taken while it was decoded) and the vertices must
+        // fit the whole queue together.
+        let held_bytes = held.as_ref().map_or(0, |p| p.num_permits() as u64 * 1024);
+        if vertex_bytes.saturating_add(held_bytes) > limit {
             return Err(ApiError::new(
                 StatusCode::PAYLOAD_TOO_LARGE,
                 "response_too_large",
@@ -434,7 +442,10 @@ impl AppState {
                 ),
             ));
         }
-        let vertex_permit = self.reserve_queue_memory(vertex_bytes)?;
+        let mut vertex_permit = self.reserve_queue_memory(vertex_bytes)?;
+        if let Some(held) = held {
+            vertex_permit.merge(held);
+        }
         let groups = crowd::plan_groups(&plan, &layout.transforms, |k| {
             rigs[k.rig as usize].prepared.mesh_of(k.lod)
         });
@@ -504,7 +515,7 @@ impl AppState {
             .device
             .as_ref()
             .map_or(MAX_IMAGE_SIDE, |d| d.renderer.max_size());
-        let job = self.admit_render(req, max_side)?;
+        let job = self.admit_render(req, max_side, None)?;
         let s = self.clone();
         let r = blocking(move || s.run_render(job)).await?;
         Ok((r.bytes, r.width, r.height, r.format))
@@ -523,8 +534,10 @@ pub(super) async fn crowd_render(
         .device
         .as_ref()
         .map_or(MAX_IMAGE_SIDE, |d| d.renderer.max_size());
-    let req: RenderRequest = state.crowd_request(&headers, body).await?;
-    let job = state.admit_render(req, max_side)?;
+    let (req, held): (RenderRequest, _) = state
+        .crowd_request_held(&headers, body, render_held_bytes)
+        .await?;
+    let job = state.admit_render(req, max_side, Some(held))?;
     let deadline = state
         .config
         .request_timeout
@@ -547,6 +560,22 @@ pub(super) async fn crowd_render(
             )
         })??;
     Ok(rendered.into_response())
+}
+
+/// What a render request holds per head and placement from its decoding until its image is
+/// sent: the decoded head and its names, its placement, and what admission builds per head
+/// (its box, id, job index, transform and the instance its group draws: 256 bytes cover them).
+fn render_held_bytes(req: &RenderRequest) -> u64 {
+    let per_head = (size_of::<crowdmorph_proto::Head>() + 256) as u64;
+    let heads: u64 = req
+        .heads
+        .iter()
+        .map(|h| per_head + h.rig.capacity() as u64 + h.clip.capacity() as u64)
+        .sum();
+    let placements = req.placements.as_ref().map_or(0, |p| {
+        p.len() as u64 * size_of::<crowdmorph_proto::Placement>() as u64
+    });
+    heads + placements
 }
 
 #[cfg(test)]

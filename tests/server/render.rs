@@ -1201,3 +1201,51 @@ async fn upload_charged(
     server.client.upload_rig(id, glb).await.expect("upload");
     pool.used() - before
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_renders_heads_are_charged_until_its_image_is_sent() {
+    // Each head of a render holds its decoded form, names and what admission builds for it
+    // (box, transform, instance: ≈ 350 bytes) until the image is sent. 100 clones of the
+    // default head fit 512 KiB of queue memory beside their one 174 KB blend; 2,000 clones'
+    // heads alone are more than all of it, which used to be drawn uncharged.
+    let server = TestServer::start(ServerConfig {
+        queue_memory_bytes: 512 << 10,
+        ..ServerConfig::default()
+    })
+    .await;
+    let crowd = |n: u64| RenderRequest {
+        heads: (0..n)
+            .map(|h| Head {
+                head: h,
+                rig: "default-head".into(),
+                clip: "talk".into(),
+                frame: 3,
+                lod: 0,
+            })
+            .collect(),
+        image: Some(ImageOptions {
+            width: 64,
+            height: 48,
+            ..ImageOptions::default()
+        }),
+        wrap: true,
+        placements: None,
+        camera: None,
+    };
+    png(&server, &crowd(100)).await;
+    match server.client.render(&crowd(2_000), Encoding::Json).await {
+        Err(crowdmorph_client::ClientError::Api {
+            status,
+            code,
+            message,
+        }) => {
+            assert_eq!(
+                (status, code.as_str()),
+                (413, "queue_memory_exceeded"),
+                "{message}"
+            );
+        }
+        other => panic!("2,000 heads were not refused: {other:?}"),
+    }
+    server.stop().await;
+}
