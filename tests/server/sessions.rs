@@ -988,13 +988,13 @@ async fn a_silent_viewer_and_a_chatty_one_are_closed_with_the_rule_they_broke() 
 }
 
 /// A tick's own bookkeeping (per head and viewer) is charged to the queue memory before it is
-/// built: 10,000 clones of one head need one small blend, but their per-head lists do not
-/// fit in 2 MB, so those ticks are skipped (counted, and the rejection named in the metrics),
-/// while a 100-head session ticks under the same limit.
+/// built: 10,000 clones of one head need one small blend, but their per-head lists for two
+/// viewers (≈ 4 MB) do not fit in 3 MB, so those ticks are skipped (counted, and the
+/// rejection named in the metrics), while a 100-head session ticks under the same limit.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_ticks_per_head_lists_are_charged_to_the_queue_memory() {
     let server = TestServer::start(ServerConfig {
-        queue_memory_bytes: 2 << 20,
+        queue_memory_bytes: 3 << 20,
         ..config()
     })
     .await;
@@ -1011,7 +1011,10 @@ async fn a_ticks_per_head_lists_are_charged_to_the_queue_memory() {
     drop(viewer);
 
     let large = create(&server, json!({"fps": 30, "heads": crowd(10_000)})).await;
-    let _viewer = connect(&server, &large.id, hello).await;
+    let _viewers = [
+        connect(&server, &large.id, hello.clone()).await,
+        connect(&server, &large.id, hello).await,
+    ];
     let deadline = std::time::Instant::now() + Duration::from_secs(20);
     let stats = loop {
         let stats = info(&server, &large.id).await.stats;
