@@ -301,20 +301,7 @@ async fn put_lod_sets_order_pins_and_table() {
             "mesh",
         ),
     ] {
-        match admin.set_lod("default-head", &bad).await {
-            Err(ClientError::Api {
-                status: 400,
-                code,
-                message,
-            }) => {
-                assert_eq!(code, "invalid_lod");
-                assert!(
-                    message.contains(needle),
-                    "{message:?} should mention {needle:?}"
-                );
-            }
-            other => panic!("{bad:?}: expected a 400, got {other:?}"),
-        }
+        assert_invalid_lod(admin.set_lod("default-head", &bad).await, needle);
     }
     let after = server.client.lod("default-head").await.expect("lod");
     assert_eq!(
@@ -508,27 +495,18 @@ async fn a_rig_without_triangles_gets_an_order_and_no_unloadable_mesh_levels() {
         "no mesh levels for a rig without triangles: {lod:?}"
     );
     // Asking for mesh levels explicitly is a named 400, and nothing is stored.
-    match s1
-        .client
-        .set_lod(
-            "dots",
-            &LodRequest {
-                mesh_fractions: vec![0.5],
-                ..LodRequest::default()
-            },
-        )
-        .await
-    {
-        Err(ClientError::Api {
-            status: 400,
-            code,
-            message,
-        }) => {
-            assert_eq!(code, "invalid_lod");
-            assert!(message.contains("no vertices"), "{message}");
-        }
-        other => panic!("expected a 400, got {other:?}"),
-    }
+    assert_invalid_lod(
+        s1.client
+            .set_lod(
+                "dots",
+                &LodRequest {
+                    mesh_fractions: vec![0.5],
+                    ..LodRequest::default()
+                },
+            )
+            .await,
+        "no vertices",
+    );
     assert_eq!(s1.client.lod("dots").await.expect("lod"), lod);
     s1.stop().await;
     // What was stored loads again.
@@ -695,20 +673,7 @@ async fn a_bad_table_is_refused_before_a_build_is_started() {
             &format!("{} shapes of {n}", n + 1),
         ),
     ] {
-        match admin.set_lod("default-head", &build(levels)).await {
-            Err(ClientError::Api {
-                status: 400,
-                code,
-                message,
-            }) => {
-                assert_eq!(code, "invalid_lod");
-                assert!(
-                    message.contains(needle),
-                    "{message:?} should say {needle:?}"
-                );
-            }
-            other => panic!("expected a 400 before any build, got {other:?}"),
-        }
+        assert_invalid_lod(admin.set_lod("default-head", &build(levels)).await, needle);
     }
     let after = server.client.lod("default-head").await.expect("lod");
     assert_eq!(after, before, "refused requests leave the LOD as it was");
@@ -752,20 +717,10 @@ async fn a_lod_body_is_charged_while_decoded_and_its_lists_are_capped() {
             ..LodRequest::default()
         },
     ] {
-        match admin.set_lod("default-head", &bad).await {
-            Err(ClientError::Api {
-                status: 400,
-                code,
-                message,
-            }) => {
-                assert_eq!(code, "invalid_lod");
-                assert!(
-                    message.contains(&format!("at most {n}")),
-                    "{message:?} should name the limit"
-                );
-            }
-            other => panic!("expected a 400 naming the limit, got {other:?}"),
-        }
+        assert_invalid_lod(
+            admin.set_lod("default-head", &bad).await,
+            &format!("at most {n}"),
+        );
     }
     // The charge is given back: a request of the rig's size goes through.
     let ok = LodRequest {
@@ -778,4 +733,23 @@ async fn a_lod_body_is_charged_while_decoded_and_its_lists_are_capped() {
         .await
         .expect("a good PUT");
     server.stop().await;
+}
+
+/// Asserts that a LOD request was refused with 400 `invalid_lod` and a message containing
+/// `needle`.
+fn assert_invalid_lod<T: std::fmt::Debug>(result: Result<T, ClientError>, needle: &str) {
+    match result {
+        Err(ClientError::Api {
+            status: 400,
+            code,
+            message,
+        }) => {
+            assert_eq!(code, "invalid_lod", "{message}");
+            assert!(
+                message.contains(needle),
+                "{message:?} should mention {needle:?}"
+            );
+        }
+        other => panic!("expected a 400 invalid_lod mentioning {needle:?}, got {other:?}"),
+    }
 }

@@ -180,3 +180,22 @@ pub fn random_clip_json(targets: &[String], frames: usize, seed: u64) -> String 
         .collect();
     serde_json::json!({"fps": 30, "targets": targets, "frames": rows}).to_string()
 }
+
+/// Asserts that `result` is the JSON error `status` `code`, and returns its message.
+pub fn api_error<T: std::fmt::Debug>(
+    result: Result<T, crowdmorph_client::ClientError>,
+    status: u16,
+    code: &str,
+) -> String {
+    match result {
+        Err(crowdmorph_client::ClientError::Api {
+            status: got,
+            code: got_code,
+            message,
+        }) => {
+            assert_eq!((got, got_code.as_str()), (status, code), "{message}");
+            message
+        }
+        other => panic!("expected {status} {code}, got {other:?}"),
+    }
+}

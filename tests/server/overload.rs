@@ -321,20 +321,11 @@ async fn serves_then_refuses_as_too_large(
         .map(|h| (&h.rig, &h.clip, h.frame, h.lod))
         .collect();
     assert_eq!(resp.buffers.len(), unique.len());
-    match server.client.crowd_frame(&refused, Encoding::Bincode).await {
-        Err(ClientError::Api {
-            status,
-            code,
-            message,
-        }) => {
-            assert_eq!(
-                (status, code.as_str()),
-                (413, "response_too_large"),
-                "{message}"
-            );
-        }
-        other => panic!("{:?}: {other:?}", refused.output),
-    }
+    super::api_error(
+        server.client.crowd_frame(&refused, Encoding::Bincode).await,
+        413,
+        "response_too_large",
+    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -436,17 +427,12 @@ async fn a_mesh_larger_than_the_whole_queue_memory_is_413_not_all_of_it() {
         ..ServerConfig::default()
     })
     .await;
-    match server.client.mesh("default-head", Encoding::Bincode).await {
-        Err(ClientError::Api {
-            status,
-            code,
-            message,
-        }) => {
-            assert_eq!((status, code.as_str()), (413, "queue_memory_exceeded"));
-            assert!(message.contains("--queue-memory-bytes"), "{message}");
-        }
-        other => panic!("the mesh was not refused: {other:?}"),
-    }
+    let message = super::api_error(
+        server.client.mesh("default-head", Encoding::Bincode).await,
+        413,
+        "queue_memory_exceeded",
+    );
+    assert!(message.contains("--queue-memory-bytes"), "{message}");
     // The server answers what fits afterwards: nothing stayed reserved.
     let (resp, _) = server
         .client

@@ -1233,19 +1233,10 @@ async fn a_renders_heads_are_charged_until_its_image_is_sent() {
         camera: None,
     };
     png(&server, &crowd(100)).await;
-    match server.client.render(&crowd(2_000), Encoding::Json).await {
-        Err(crowdmorph_client::ClientError::Api {
-            status,
-            code,
-            message,
-        }) => {
-            assert_eq!(
-                (status, code.as_str()),
-                (413, "queue_memory_exceeded"),
-                "{message}"
-            );
-        }
-        other => panic!("2,000 heads were not refused: {other:?}"),
-    }
+    super::api_error(
+        server.client.render(&crowd(2_000), Encoding::Json).await,
+        413,
+        "queue_memory_exceeded",
+    );
     server.stop().await;
 }
