@@ -1236,11 +1236,16 @@ pub(super) const JOB_WEIGHT_BYTES_PER_TARGET: u64 = 9;
 /// the decoded head and its two names, its job index in the plan, its `HeadBuffer`, and its
 /// entry in the encoded response (at most 64 bytes as JSON, 16 as bincode).
 fn frame_held_bytes(req: &CrowdFrameRequest, json: bool) -> u64 {
-    let per_head = (size_of::<Head>()
-        + size_of::<u32>()
-        + size_of::<HeadBuffer>()
-        + if json { 64 } else { 16 }) as u64;
-    req.heads
+    let built = size_of::<u32>() + size_of::<HeadBuffer>() + if json { 64 } else { 16 };
+    heads_held_bytes(&req.heads, built as u64)
+}
+
+/// Bytes `heads` hold decoded (each `Head` and its two names), plus `built` bytes a head of
+/// what a handler builds from them: the per-head share a crowd frame or a render keeps charged
+/// until its response is sent.
+pub(super) fn heads_held_bytes(heads: &[Head], built: u64) -> u64 {
+    let per_head = size_of::<Head>() as u64 + built;
+    heads
         .iter()
         .map(|h| per_head + h.rig.capacity() as u64 + h.clip.capacity() as u64)
         .sum()

@@ -566,12 +566,7 @@ pub(super) async fn crowd_render(
 /// sent: the decoded head and its names, its placement, and what admission builds per head
 /// (its box, id, job index, transform and the instance its group draws: 256 bytes cover them).
 fn render_held_bytes(req: &RenderRequest) -> u64 {
-    let per_head = (size_of::<crowdmorph_proto::Head>() + 256) as u64;
-    let heads: u64 = req
-        .heads
-        .iter()
-        .map(|h| per_head + h.rig.capacity() as u64 + h.clip.capacity() as u64)
-        .sum();
+    let heads = super::api::heads_held_bytes(&req.heads, 256);
     let placements = req.placements.as_ref().map_or(0, |p| {
         p.len() as u64 * size_of::<crowdmorph_proto::Placement>() as u64
     });
