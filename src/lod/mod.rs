@@ -216,7 +216,7 @@ pub fn resolve_targets(rig: &Rig, names: &[String]) -> Result<Vec<TargetId>, Lod
         let label;
         let ids = match index.ids(n) {
             [] => {
-                label = channel_by_label(&index, n);
+                label = index.channel_by_label(n);
                 label.as_slice()
             }
             ids => ids,
@@ -233,17 +233,6 @@ pub fn resolve_targets(rig: &Rig, names: &[String]) -> Result<Vec<TargetId>, Lod
         }
     }
     Ok(out)
-}
-
-/// [`Rig::channel_by_label`] for a label that is not itself a name (the caller looked that
-/// up first), through `index`: `name#k` is the k-th channel of a name with several.
-fn channel_by_label(index: &crate::rig::TargetIndex<'_>, label: &str) -> Option<TargetId> {
-    let (name, k) = label.rsplit_once('#')?;
-    let k: usize = k.parse().ok()?;
-    let ids = index.ids(name);
-    (ids.len() > 1 && k >= 1)
-        .then(|| ids.get(k - 1).copied())
-        .flatten()
 }
 
 /// An upper bound of the transient memory [`build_lod`] holds for `rig`: per scoring thread a

@@ -124,6 +124,24 @@ impl<'r> TargetIndex<'r> {
     pub fn names(&self) -> impl Iterator<Item = &'r str> + '_ {
         self.ranges.keys().copied()
     }
+
+    /// What [`Rig::channel_by_label`] finds, through this index.
+    pub fn channel_by_label(&self, label: &str) -> Option<TargetId> {
+        if let [id] = self.ids(label) {
+            return Some(*id);
+        }
+        let (name, k) = label.rsplit_once('#')?;
+        kth_channel(self.ids(name), k)
+    }
+}
+
+/// The channel a label's `#k` suffix picks among `ids`, the channels of a name that has
+/// several (`k` counts from 1); `None` for a name with one channel or a bad `k`.
+fn kth_channel(ids: &[TargetId], k: &str) -> Option<TargetId> {
+    let k: usize = k.parse().ok()?;
+    (ids.len() > 1 && k >= 1)
+        .then(|| ids.get(k - 1).copied())
+        .flatten()
 }
 
 /// Most bytes a `std` hash map built `with_capacity(n)` (and never grown past `n`) allocates
@@ -399,11 +417,7 @@ impl Rig {
             return ids.first().copied();
         }
         let (name, k) = label.rsplit_once('#')?;
-        let k: usize = k.parse().ok()?;
-        let ids = self.target_ids(name);
-        (ids.len() > 1 && k >= 1)
-            .then(|| ids.get(k - 1).copied())
-            .flatten()
+        kth_channel(&self.target_ids(name), k)
     }
 
     /// Index of the clip with this name.
