@@ -129,6 +129,14 @@ pub fn placement_matrix(p: &Placement) -> Result<Mat4, SceneError> {
     ))
 }
 
+/// Most bytes [`placed_transforms`] allocates for `n` placements beyond its result (one per
+/// head): its map of each placement's matrix and use, and the list of ids that name no head.
+/// A caller charges this before the placements arrive at it.
+pub fn placement_bytes(n: usize) -> u64 {
+    crate::rig::map_bytes(n, size_of::<(u64, (Mat4, bool))>() as u64)
+        + n as u64 * size_of::<u64>() as u64
+}
+
 /// Per head (by position in `ids`), the transform its placement gives, if any. A placement
 /// applies to every head with its id; one naming no head, or a second one for an id, is an
 /// error.

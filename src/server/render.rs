@@ -562,13 +562,16 @@ pub(super) async fn crowd_render(
     Ok(rendered.into_response())
 }
 
-/// What a render request holds per head and placement from its decoding until its image is
-/// sent: the decoded head and its names, its placement, and what admission builds per head
-/// (its box, id, job index, transform and the instance its group draws: 256 bytes cover them).
+/// What a render request holds per head and placement from its decoding until its frame is
+/// drawn: the decoded head and its names, its placement, what admission builds per head (its
+/// box, id, job index, transform and the instance its group draws: 256 bytes cover them), and
+/// the map the scene layout builds of the placements before it checks them against the heads
+/// ([`crate::render::scene::placement_bytes`]: up to seven times a decoded placement).
 fn render_held_bytes(req: &RenderRequest) -> u64 {
     let heads = super::api::heads_held_bytes(&req.heads, 256);
     let placements = req.placements.as_ref().map_or(0, |p| {
-        p.len() as u64 * size_of::<crowdmorph_proto::Placement>() as u64
+        p.capacity() as u64 * size_of::<crowdmorph_proto::Placement>() as u64
+            + crate::render::scene::placement_bytes(p.len())
     });
     heads + placements
 }

@@ -1203,9 +1203,61 @@ async fn upload_charged(
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_renders_heads_are_charged_until_its_image_is_sent() {
+async fn a_renders_placements_are_charged_for_the_map_its_layout_builds() {
+    // The layout maps each placement's id to its matrix (up to ≈ 220 bytes a placement)
+    // before it checks them against the heads. 5,000 placements naming no head of a one-head
+    // render are 160 KB decoded but ≈ 1 MB with their map: under 512 KiB of queue memory they
+    // are refused before the map is built (413); charged at their decoded size they were
+    // mapped uncharged and then refused as naming no head (400).
+    let server = TestServer::start(ServerConfig {
+        queue_memory_bytes: 512 << 10,
+        ..ServerConfig::default()
+    })
+    .await;
+    let render = |placements: Vec<Placement>| RenderRequest {
+        heads: vec![Head {
+            head: 0,
+            rig: "default-head".into(),
+            clip: "talk".into(),
+            frame: 3,
+            lod: 0,
+        }],
+        image: Some(ImageOptions {
+            width: 64,
+            height: 48,
+            ..ImageOptions::default()
+        }),
+        wrap: true,
+        placements: Some(placements),
+        camera: None,
+    };
+    let place = |head: u64| Placement {
+        head,
+        position: [0.0; 3],
+        yaw: 0.0,
+        scale: 1.0,
+    };
+    // The head's own placement draws under this budget.
+    let one = render(vec![place(0)]);
+    let reply = server
+        .client
+        .render(&one, Encoding::Bincode)
+        .await
+        .expect("render");
+    decode_png(&reply, &one);
+    let strays = render((1..=5_000).map(place).collect());
+    super::api_error(
+        server.client.render(&strays, Encoding::Bincode).await,
+        413,
+        "queue_memory_exceeded",
+    );
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_renders_heads_are_charged_until_its_frame_is_drawn() {
     // Each head of a render holds its decoded form, names and what admission builds for it
-    // (box, transform, instance: ≈ 350 bytes) until the image is sent. 100 clones of the
+    // (box, transform, instance: ≈ 350 bytes) until its frame is drawn. 100 clones of the
     // default head fit 512 KiB of queue memory beside their one 174 KB blend; 2,000 clones'
     // heads alone are more than all of it, which used to be drawn uncharged.
     let server = TestServer::start(ServerConfig {
