@@ -1241,8 +1241,8 @@ fn frame_held_bytes(req: &CrowdFrameRequest, json: bool) -> u64 {
 }
 
 /// Bytes `heads` hold decoded (each `Head` and its two names), plus `built` bytes a head of
-/// what a handler builds from them: the per-head share a crowd frame or a render keeps charged
-/// until its response is sent.
+/// what a handler builds from them: the per-head share a crowd frame keeps charged until its
+/// response is sent, and a render until its frame is drawn.
 pub(super) fn heads_held_bytes(heads: &[Head], built: u64) -> u64 {
     let per_head = size_of::<Head>() as u64 + built;
     heads

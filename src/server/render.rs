@@ -436,9 +436,11 @@ impl AppState {
                 StatusCode::PAYLOAD_TOO_LARGE,
                 "response_too_large",
                 format!(
-                    "drawing this crowd would hold {vertex_bytes} bytes of blended vertices, \
-                     more than the server's queue memory of {limit} bytes \
-                     (--queue-memory-bytes); ask for fewer unique heads"
+                    "drawing this crowd would hold {} bytes ({vertex_bytes} of blended \
+                     vertices, {held_bytes} of its heads and placements), more than the \
+                     server's queue memory of {limit} bytes (--queue-memory-bytes); ask for \
+                     fewer unique heads, heads or placements",
+                    vertex_bytes.saturating_add(held_bytes)
                 ),
             ));
         }
