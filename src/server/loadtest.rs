@@ -458,13 +458,16 @@ pub(super) async fn start_loadtest(
     state.check_admin(&headers)?;
     let Query(query) = query.map_err(|e| ApiError::bad_request("bad_query", e.body_text()))?;
     state.check_ready()?;
-    let req: LoadtestRequest = super::lod::decode_names(&state, &headers, body).await?;
+    let (req, decoded): (LoadtestRequest, _) =
+        super::lod::decode_names(&state, &headers, body).await?;
     // A second load is refused before it is planned (rig lookups, clip lists, body sizes):
     // concurrent POSTs do not all pay for a plan only one of them can run.
     if let Some(id) = state.loadtests.running() {
         return Err(already_running(&id));
     }
     let plan = state.plan_loadtest(&req)?;
+    // Planned: its rig, clip and LOD lists are capped (`load::MAX_MIX` entries each).
+    drop(decoded);
     let (bodies, bodies_memory) = state.loadtest_bodies(&req.crowd, &plan).await?;
     let content_type = HeaderValue::from_static(req.crowd.encoding.content_type());
     let lanes = req.concurrency as usize;

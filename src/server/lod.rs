@@ -19,6 +19,7 @@ use axum::extract::{Path, State};
 use axum::http::{HeaderMap, StatusCode, header};
 use crowdmorph_proto::{CONTENT_TYPE_BINCODE, LodInfo, LodRequest, RigInfo};
 use serde::de::DeserializeOwned;
+use tokio::sync::OwnedSemaphorePermit;
 
 use super::api::{
     ApiResult, blocking, budget_error, decode, decode_reservation, prepare_charged, respond,
@@ -343,12 +344,14 @@ fn names_reservation(bincode: bool, len: u64) -> u64 {
 /// when it is full): the declared length's [`decode_reservation`] while it is read, and
 /// [`names_reservation`] of the bytes read while they are decoded (413 when that is more than
 /// the whole queue memory: such a body can never be decoded within it). Without it, 16 MiB of
-/// `"",` decoded to 5.6 million strings that nothing counted.
+/// `"",` decoded to 5.6 million strings that nothing counted. The decoding's reservation comes
+/// back with the request: the caller holds it until it has capped the lists against what they
+/// may name.
 pub(super) async fn decode_names<T: DeserializeOwned>(
     state: &AppState,
     headers: &HeaderMap,
     body: Body,
-) -> Result<T, ApiError> {
+) -> Result<(T, OwnedSemaphorePermit), ApiError> {
     let bincode = headers
         .get(header::CONTENT_TYPE)
         .and_then(|v| v.to_str().ok())
@@ -369,13 +372,12 @@ pub(super) async fn decode_names<T: DeserializeOwned>(
     let decoding = state.reserve_queue_memory(names_reservation(bincode, bytes.len() as u64))?;
     let req = decode(headers, &bytes)?;
     drop(bytes);
-    drop(decoding);
     drop(reading);
-    Ok(req)
+    Ok((req, decoding))
 }
 
-/// The build spec a `PUT` asks for.
-fn spec_of(req: &LodRequest) -> Result<LodSpec, ApiError> {
+/// The build spec a `PUT` asks for (its lists moved, not copied).
+fn spec_of(req: LodRequest) -> Result<LodSpec, ApiError> {
     let method = match &req.method {
         None => OrderMethod::Combined,
         Some(m) => OrderMethod::from_name(m).ok_or_else(|| {
@@ -388,8 +390,8 @@ fn spec_of(req: &LodRequest) -> Result<LodSpec, ApiError> {
     };
     let spec = LodSpec {
         method,
-        order: req.order.clone(),
-        pinned: req.pinned.clone(),
+        order: req.order,
+        pinned: req.pinned,
         levels: req.levels.as_ref().map(|levels| {
             levels
                 .iter()
@@ -400,7 +402,7 @@ fn spec_of(req: &LodRequest) -> Result<LodSpec, ApiError> {
                 })
                 .collect()
         }),
-        mesh_fractions: req.mesh_fractions.clone(),
+        mesh_fractions: req.mesh_fractions,
         ..LodSpec::default()
     };
     spec.check()
@@ -429,8 +431,7 @@ pub(super) async fn put_lod(
 ) -> ApiResult {
     state.check_admin(&headers)?;
     state.check_ready()?;
-    let req: LodRequest = decode_names(&state, &headers, body).await?;
-    let spec = spec_of(&req)?;
+    let (req, decoded): (LodRequest, _) = decode_names(&state, &headers, body).await?;
     let entry = state.rig(&id)?;
     // Neither list can name more channels than the rig has without naming one twice.
     let targets = entry.rig().targets.len();
@@ -448,10 +449,13 @@ pub(super) async fn put_lod(
             ));
         }
     }
+    let spec = spec_of(req)?;
     // Names and table are checked against the rig before anything else: a bad request is
     // refused without a build, and without cancelling the job it would have replaced.
     crate::lod::check_request(entry.rig(), &spec)
         .map_err(|e| ApiError::bad_request("invalid_lod", e.to_string()))?;
+    // Checked: its lists are at most a rig's worth of names and 64 levels.
+    drop(decoded);
     // The PUT replaces whatever was computing for this rig, and is itself replaced by a later
     // PUT or a delete; `guard` cancels it if this handler stops early.
     let job = state.lod_jobs.start(&id, false);

@@ -573,7 +573,7 @@ fn render_held_bytes(req: &RenderRequest) -> u64 {
     let heads = super::api::heads_held_bytes(&req.heads, 256);
     let placements = req.placements.as_ref().map_or(0, |p| {
         p.capacity() as u64 * size_of::<crowdmorph_proto::Placement>() as u64
-            + crate::render::scene::placement_bytes(p.len())
+            + scene::placement_bytes(p.len())
     });
     heads + placements
 }
