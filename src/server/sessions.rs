@@ -451,13 +451,20 @@ impl InfoNow {
     /// Most bytes this takes serialized, in JSON or bincode (JSON is the larger): what
     /// answering with it charges to the queue memory before the body is built.
     fn response_bytes(&self) -> u64 {
-        let heads: u64 = self
-            .heads
-            .iter()
-            .map(|h| HEAD_JSON_BYTES + json_str_bytes(&h.rig) + json_str_bytes(&h.clip))
-            .sum();
-        INFO_JSON_BYTES + json_str_bytes(&self.id) + heads
+        info_bytes(&self.id, &self.heads)
     }
+}
+
+/// [`InfoNow::response_bytes`] of a session `id` with `heads`, known before the session is
+/// created or a patch applied: their answers are charged before the change, so that a full
+/// queue refuses the request (503, nothing changed) instead of its answer (a retry would
+/// change it twice).
+fn info_bytes(id: &str, heads: &[SessionHead]) -> u64 {
+    let heads: u64 = heads
+        .iter()
+        .map(|h| HEAD_JSON_BYTES + json_str_bytes(&h.rig) + json_str_bytes(&h.clip))
+        .sum();
+    INFO_JSON_BYTES + json_str_bytes(id) + heads
 }
 
 /// Keeps a queue memory permit with a response body until the body has been sent (or the
@@ -498,6 +505,16 @@ fn respond_infos<T: serde::Serialize>(
     value: &T,
 ) -> ApiResult {
     let permit = state.reserve_queue_memory(bytes)?;
+    respond_held(headers, status, value, permit)
+}
+
+/// [`respond`], keeping `permit` (the answer's charge) until the body has been sent.
+fn respond_held<T: serde::Serialize>(
+    headers: &HeaderMap,
+    status: StatusCode,
+    value: &T,
+    permit: OwnedSemaphorePermit,
+) -> ApiResult {
     let response = respond(headers, status, value)?;
     let (parts, body) = response.into_parts();
     Ok(Response::from_parts(
@@ -693,6 +710,7 @@ pub(super) async fn create_session(
     }
     let n = state.sessions.next_id.fetch_add(1, Ordering::Relaxed) + 1;
     let id = format!("s{n}");
+    let answer = state.reserve_queue_memory(info_bytes(&id, &req.heads))?;
     let session = Arc::new(Session {
         id: id.clone(),
         fps: req.fps,
@@ -732,9 +750,9 @@ pub(super) async fn create_session(
     tokio::spawn(run_session(session.clone(), Arc::downgrade(&state.0)));
     let info = session.info();
     tracing::info!(session = %id, heads = info.heads.len(), fps = req.fps, "session created");
-    // Not charged: the session exists now, so a 503 would tell a client that retries to make
-    // a second one; the heads came in a body the queue memory was charged for.
-    respond(&headers, StatusCode::CREATED, &info)
+    // Charged before the session existed (`answer`): a 503 now would tell a client that
+    // retries to make a second one.
+    respond_held(&headers, StatusCode::CREATED, &info, answer)
 }
 
 pub(super) async fn list_sessions(State(state): State<AppState>, headers: HeaderMap) -> ApiResult {
@@ -775,7 +793,7 @@ pub(super) async fn patch_session(
     let patch: SessionPatch = state.crowd_request(&headers, body).await?;
     // Checked against the heads as they will be, then swapped in under the lock (a patch that
     // raced with another is checked again on the newer heads).
-    loop {
+    let answer = loop {
         let base = {
             let i = s
                 .inner
@@ -784,6 +802,9 @@ pub(super) async fn patch_session(
             i.next_heads.clone().unwrap_or_else(|| i.heads.clone())
         };
         let next = Arc::new(patched(&state, &base, &patch)?);
+        // The answer lists the patched heads: charged before the patch is in (see
+        // `info_bytes`).
+        let answer = state.reserve_queue_memory(info_bytes(&s.id, &next))?;
         let mut i = s
             .inner
             .lock()
@@ -791,12 +812,10 @@ pub(super) async fn patch_session(
         let now = i.next_heads.clone().unwrap_or_else(|| i.heads.clone());
         if Arc::ptr_eq(&now, &base) {
             i.next_heads = Some(next);
-            break;
+            break answer;
         }
-    }
-    // Not charged, as for a create: the patch is in, and a 503 now would invite a retry that
-    // applies it twice.
-    respond(&headers, StatusCode::OK, &s.info())
+    };
+    respond_held(&headers, StatusCode::OK, &s.info(), answer)
 }
 
 pub(super) async fn delete_session(

@@ -1032,3 +1032,74 @@ async fn a_ticks_per_head_lists_are_charged_to_the_queue_memory() {
     assert!(rejected >= 3.0, "queue-memory rejections: {rejected}");
     server.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_patchs_answer_is_charged_before_the_patch_applies() {
+    use tokio::io::AsyncWriteExt;
+    // A PATCH answers with every head of the session (≈ 230 bytes each as JSON), however small
+    // the patch. That answer is charged before the patch applies: while a crowd body that is
+    // still arriving holds most of the queue memory, a one-head patch to a 10,000-head session
+    // is refused (503) and changes nothing; it used to apply and answer 2.3 MB uncharged.
+    let server = TestServer::start(ServerConfig {
+        queue_memory_bytes: 8 << 20,
+        ..config()
+    })
+    .await;
+    let heads: Vec<Value> = (0..10_000u64)
+        .map(|i| head(i, "idle", 0, [(i % 100) as f32, 0.0, (i / 100) as f32]))
+        .collect();
+    let s = create(&server, json!({"fps": 1, "heads": heads})).await;
+    let path = format!("/v1/sessions/{}", s.id);
+    let patch = json!({"change": [{"head": 1, "clip": "talk"}]});
+    let held = || async {
+        let page = server.client.metrics().await.expect("metrics");
+        crowdmorph_client::metric(&page, "crowdmorph_queue_memory_bytes").expect("gauge")
+    };
+
+    // A JSON crowd body of 2.4 MB reserves three times its declared length (7.3 MB of the 8)
+    // while it is read; this one never arrives.
+    let mut stalled = tokio::net::TcpStream::connect(server.addr)
+        .await
+        .expect("connect");
+    stalled
+        .write_all(
+            b"POST /v1/crowd/frame HTTP/1.1\r\nhost: test\r\ncontent-type: application/json\r\n\
+              content-length: 2446677\r\n\r\n{\"heads\":[",
+        )
+        .await
+        .expect("send the head of the request");
+    let deadline = std::time::Instant::now() + READ;
+    while held().await < (7 << 20) as f64 {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the body's reservation"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    // A body that lists 10,000 heads is cut short in a failure message.
+    let brief = |v: &Value| v.to_string().chars().take(300).collect::<String>();
+    let (status, body) = call(&server, Method::PATCH, &path, patch.clone()).await;
+    assert_eq!(status, 503, "{}", brief(&body));
+    assert!(body.to_string().contains("queue_full"), "{body}");
+
+    drop(stalled);
+    while held().await >= (7 << 20) as f64 {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the reservation given back"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let unchanged = info(&server, &s.id).await;
+    assert_eq!(unchanged.heads.len(), 10_000);
+    assert_eq!(
+        unchanged.heads[1].clip, "idle",
+        "the refused patch changed nothing"
+    );
+    // With the memory free, the same patch applies and answers every head.
+    let (status, body) = call(&server, Method::PATCH, &path, patch).await;
+    assert_eq!(status, 200, "{}", brief(&body));
+    assert_eq!(body["heads"].as_array().map(Vec::len), Some(10_000));
+    assert_eq!(body["heads"][1]["clip"], "talk");
+    server.stop().await;
+}
