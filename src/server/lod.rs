@@ -452,8 +452,13 @@ pub(super) async fn put_lod(
     let spec = spec_of(req)?;
     // Names and table are checked against the rig before anything else: a bad request is
     // refused without a build, and without cancelling the job it would have replaced.
+    // The check resolves names through an index of the rig's channels (one at a time, each
+    // with a seen-flag per channel) and keeps the resolved pins: charged while it runs.
+    let checking = state
+        .reserve_queue_memory(crate::rig::TargetIndex::bytes_for(targets) + 9 * targets as u64)?;
     crate::lod::check_request(entry.rig(), &spec)
         .map_err(|e| ApiError::bad_request("invalid_lod", e.to_string()))?;
+    drop(checking);
     // Checked: its lists are at most a rig's worth of names and 64 levels.
     drop(decoded);
     // The PUT replaces whatever was computing for this rig, and is itself replaced by a later
