@@ -67,6 +67,13 @@ fn head(id: u64, clip: &str, offset: i64, position: [f32; 3]) -> Value {
     json!({"head": id, "rig": "default-head", "clip": clip, "offset": offset, "position": position})
 }
 
+/// `n` heads playing "idle", ids 0.., on a grid of 100 per row one metre apart.
+fn idle_grid(n: u64) -> Vec<Value> {
+    (0..n)
+        .map(|i| head(i, "idle", 0, [(i % 100) as f32, 0.0, (i / 100) as f32]))
+        .collect()
+}
+
 async fn connect(server: &TestServer, id: &str, hello: Value) -> Ws {
     let url = format!("ws://{}/v1/sessions/{id}/stream", server.addr);
     let (mut ws, _) = tokio_tungstenite::connect_async(url)
@@ -998,19 +1005,14 @@ async fn a_ticks_per_head_lists_are_charged_to_the_queue_memory() {
         ..config()
     })
     .await;
-    let crowd = |n: u64| -> Vec<Value> {
-        (0..n)
-            .map(|i| head(i, "idle", 0, [(i % 100) as f32, 0.0, (i / 100) as f32]))
-            .collect()
-    };
     let hello = json!({"format": "f32", "normals": true});
-    let small = create(&server, json!({"fps": 30, "heads": crowd(100)})).await;
+    let small = create(&server, json!({"fps": 30, "heads": idle_grid(100)})).await;
     let mut viewer = connect(&server, &small.id, hello.clone()).await;
     let first = next_tick(&mut viewer).await;
     assert_eq!(first.buffers.len(), 1, "100 clones share one job");
     drop(viewer);
 
-    let large = create(&server, json!({"fps": 30, "heads": crowd(10_000)})).await;
+    let large = create(&server, json!({"fps": 30, "heads": idle_grid(10_000)})).await;
     let _viewers = [
         connect(&server, &large.id, hello.clone()).await,
         connect(&server, &large.id, hello).await,
@@ -1045,10 +1047,7 @@ async fn a_patchs_answer_is_charged_before_the_patch_applies() {
         ..config()
     })
     .await;
-    let heads: Vec<Value> = (0..10_000u64)
-        .map(|i| head(i, "idle", 0, [(i % 100) as f32, 0.0, (i / 100) as f32]))
-        .collect();
-    let s = create(&server, json!({"fps": 1, "heads": heads})).await;
+    let s = create(&server, json!({"fps": 1, "heads": idle_grid(10_000)})).await;
     let path = format!("/v1/sessions/{}", s.id);
     let patch = json!({"change": [{"head": 1, "clip": "talk"}]});
     let held = || async {
