@@ -452,8 +452,9 @@ pub(super) async fn put_lod(
     let spec = spec_of(req)?;
     // Names and table are checked against the rig before anything else: a bad request is
     // refused without a build, and without cancelling the job it would have replaced.
-    // The check resolves names through an index of the rig's channels (one at a time, each
-    // with a seen-flag per channel) and keeps the resolved pins: charged while it runs.
+    // The check resolves names through an index of the rig's channels (one at a time), with
+    // per channel a seen-flag (1 byte), a resolved id (4) and a kept pin (4): charged while it
+    // runs.
     let checking = state
         .reserve_queue_memory(crate::rig::TargetIndex::bytes_for(targets) + 9 * targets as u64)?;
     crate::lod::check_request(entry.rig(), &spec)
