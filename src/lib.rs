@@ -6,6 +6,7 @@
 //! |---|---|
 //! | [`rng`] | SplitMix64: deterministic numbers for synthetic rigs, clips and workloads |
 //! | [`budget`] | memory budgets: every allocation an input sizes is charged before it happens |
+//! | [`cancel`] | a request's cancellation token: work off the runtime stops at its next stage when the request is gone or late |
 //! | [`rig`] | pure data: primitives, sparse targets, clips (weight tables), LOD order; keyframe sampling math |
 //! | [`import`] | glTF/GLB, CSV and JSON readers that build a validated [`rig::Rig`] |
 //! | [`embedded`] | the procedural default rig that needs no files |
@@ -23,6 +24,7 @@
 //! [`tools`].
 
 pub mod budget;
+pub mod cancel;
 pub mod codec;
 pub mod embedded;
 pub mod engine;

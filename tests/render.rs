@@ -266,6 +266,22 @@ fn a_crowd_of_instances_matches_its_golden_image() {
     let out = r.render(&meshes, &view, &frame(256, 256)).expect("render");
     let img = image(&out);
     check_golden(&golden("crowd_3x3.png"), &img, GOLDEN);
+    // The same crowd cut into render passes (a pass per instance, then passes that split a
+    // mesh's instances) is the same picture: samples and depth carry over between passes.
+    for per_pass in [
+        u64::from(topology.triangles()),
+        u64::from(topology.triangles()) * 2 + 1,
+    ] {
+        r.set_pass_triangles(per_pass);
+        let passes = r
+            .render(&meshes, &view, &frame(256, 256))
+            .expect("render in passes");
+        assert!(
+            image(&passes) == img,
+            "{per_pass} triangles a pass draws the single pass's picture"
+        );
+    }
+    r.set_pass_triangles(crowdmorph::render::gpu::SOFTWARE_PASS_TRIANGLES);
     // Every cell has a head in its middle.
     for row in 0..3u32 {
         for col in 0..3u32 {
@@ -902,7 +918,10 @@ fn a_batch_whose_mapping_another_thread_collects_is_read_back_and_the_engine_sta
 )]
 fn a_frame_over_the_gpu_memory_budget_is_refused_and_smaller_ones_still_render() {
     use crowdmorph::budget::BudgetError;
-    let budget = 8u64 << 20;
+    // 8 MiB beyond what the renderer itself holds (a software rasterizer's bins).
+    let probe = open_gpu(GpuOptions::default());
+    let budget = (8u64 << 20) + crowdmorph::render::gpu::fixed_bytes(probe.adapter());
+    drop(probe);
     let r = Renderer::new(Arc::new(open_gpu(GpuOptions {
         memory: Some(budget),
         ..GpuOptions::default()
@@ -913,9 +932,9 @@ fn a_frame_over_the_gpu_memory_budget_is_refused_and_smaller_ones_still_render()
     let data = evaluate(prepared, "talk", 12);
     let meshes = [host(&topology, &data, &[Mat4::IDENTITY])];
     let view = head_view(rig);
-    // 1024 × 1024 with 4× MSAA colour and depth alone is 32 MiB.
+    // 2048 × 2048 with 4× MSAA colour and depth alone is 128 MiB: more than the whole budget.
     let e = r
-        .render(&meshes, &view, &frame(1024, 1024))
+        .render(&meshes, &view, &frame(2048, 2048))
         .expect_err("over the budget");
     assert!(
         matches!(e, RenderError::Memory(BudgetError::TooLarge { limit, .. }) if limit == budget),

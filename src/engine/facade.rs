@@ -173,6 +173,16 @@ pub enum RenderBuffers {
     Device(DeviceOutput),
 }
 
+impl RenderBuffers {
+    /// How many jobs the buffers hold.
+    pub fn jobs(&self) -> usize {
+        match self {
+            RenderBuffers::Host(h) => h.jobs,
+            RenderBuffers::Device(d) => d.jobs,
+        }
+    }
+}
+
 /// Times of one evaluation.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
 pub struct Timings {

@@ -20,9 +20,10 @@ use glam::Mat4;
 use super::gpu::{
     Frame, MeshTopology, RenderError, RenderOutput, Renderer, SceneMesh, VertexSource, View,
 };
+use crate::cancel::{Cancel, Cancelled};
 use crate::engine::gpu::{GpuContext, GpuOptions, is_hardware};
 use crate::engine::{
-    BlendJob, BlendOutput, Engine, EngineError, OutputSpec, PreparedRig, RenderBuffers, VertexData,
+    BlendJob, Engine, EngineError, OutputSpec, PreparedRig, RenderBuffers, VertexData,
 };
 use crate::plan::{JobKey, Plan};
 
@@ -69,6 +70,9 @@ pub enum CrowdError {
     /// The engine's output is not what drawing needs (f32 positions and normals).
     #[error("engine output: {0}")]
     Output(String),
+    /// The render's request was cancelled or passed its deadline.
+    #[error("stopped: {0}")]
+    Cancelled(#[from] Cancelled),
 }
 
 /// A renderer and whether it draws on the engine's own device.
@@ -237,6 +241,10 @@ pub fn job_bytes(vertices: usize) -> u64 {
     vertices as u64 * 24
 }
 
+/// Most vertices (jobs × the mesh's vertices) one engine call of a render blends: a group with
+/// more unique jobs is blended in several calls, with a cancellation check between them.
+pub const BLEND_CHUNK_VERTICES: usize = 1 << 22;
+
 /// Evaluates every group and draws the crowd.
 pub fn draw(
     engine: &Engine,
@@ -245,30 +253,47 @@ pub fn draw(
     view: &View,
     frame: &Frame,
 ) -> Result<Drawn, CrowdError> {
+    draw_until(engine, device, groups, view, frame, &Cancel::never())
+}
+
+/// [`draw`] that stops at the next stage boundary — between engine calls, between render
+/// passes, before the readback — once `cancel` says so ([`CrowdError::Cancelled`]).
+pub fn draw_until(
+    engine: &Engine,
+    device: &RenderDevice,
+    groups: &[CrowdGroup<'_>],
+    view: &View,
+    frame: &Frame,
+    cancel: &Cancel,
+) -> Result<Drawn, CrowdError> {
     let start = Instant::now();
     let spec = OutputSpec {
         normals: true,
         precision: crate::engine::Precision::F32,
     };
     // Every group is evaluated before anything is drawn: the draw borrows all outputs at once.
-    let mut outputs = Vec::with_capacity(groups.len());
-    for g in groups {
-        if g.jobs.is_empty() {
-            outputs.push(RenderBuffers::Host(BlendOutput::default()));
-            continue;
+    // A group's jobs go in chunks of at most BLEND_CHUNK_VERTICES: (group, first job, output).
+    let mut outputs: Vec<(usize, usize, RenderBuffers)> = Vec::with_capacity(groups.len());
+    for (gi, g) in groups.iter().enumerate() {
+        let per_call = (BLEND_CHUNK_VERTICES / (g.topology.vertices() as usize).max(1)).max(1);
+        for (ci, jobs) in g.jobs.chunks(per_call).enumerate() {
+            cancel.check()?;
+            let buffers = if device.shared {
+                engine.evaluate_for_render(g.prepared, jobs)?.0
+            } else {
+                // Device buffers of another device cannot be drawn here: read them back.
+                RenderBuffers::Host(engine.evaluate(g.prepared, jobs, spec)?.output)
+            };
+            outputs.push((gi, ci * per_call, buffers));
         }
-        let buffers = if device.shared {
-            engine.evaluate_for_render(g.prepared, &g.jobs)?.0
-        } else {
-            // Device buffers of another device cannot be drawn here: read them back.
-            RenderBuffers::Host(engine.evaluate(g.prepared, &g.jobs, spec)?.output)
-        };
-        outputs.push(buffers);
     }
     let compute_ns = start.elapsed().as_nanos() as u64;
+    cancel.check()?;
     let mut meshes = Vec::new();
-    for (g, out) in groups.iter().zip(&outputs) {
-        for (j, instances) in g.instances.iter().enumerate() {
+    for (gi, first, out) in &outputs {
+        let g = &groups[*gi];
+        let n = out.jobs();
+        for (j, instances) in g.instances[*first..].iter().take(n).enumerate() {
             if instances.is_empty() {
                 continue;
             }
@@ -281,7 +306,7 @@ pub fn draw(
             });
         }
     }
-    let output = device.renderer.render(&meshes, view, frame)?;
+    let output = device.renderer.render_until(&meshes, view, frame, cancel)?;
     Ok(Drawn { output, compute_ns })
 }
 

@@ -45,11 +45,12 @@ use std::time::Instant;
 use glam::{Mat3, Mat4, Vec3};
 
 use crate::budget::{BudgetError, Charge};
+use crate::cancel::{Cancel, Cancelled};
 use crate::engine::gpu::{GpuContext, MapResults, Reclaim};
 use crate::rig::Rig;
 
 /// MSAA samples per pixel.
-const SAMPLES: u32 = 4;
+pub const SAMPLES: u32 = 4;
 /// The resolved (and read back) colour format: the shader writes linear colour, the target
 /// stores sRGB.
 const COLOR_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8UnormSrgb;
@@ -61,6 +62,35 @@ const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
 const RETAIN_BYTES: u64 = 128 << 20;
 /// Bytes of one vertex attribute (f32 x, y, z).
 const VERTEX_STRIDE: u64 = 12;
+/// Most triangles (summed over instances) one render pass draws on a hardware GPU. A crowd of
+/// more is drawn in several passes, each submitted and waited for before the next, so that a
+/// cancelled render stops within one pass. One pass (the common case) clears, draws and
+/// resolves as before; with more, the multisampled colour and depth are stored between them
+/// (at 1080p, 66 MB a pass: microseconds of a GPU's bandwidth).
+pub const PASS_TRIANGLES: u64 = 1 << 22;
+
+/// [`PASS_TRIANGLES`] on a software adapter (lavapipe). llvmpipe bins every triangle of a
+/// submission before it rasterizes, about 240 bytes each (measured: 62 MB for a pass of 2^18,
+/// 213 MB for 2^20, kept in its pool afterwards), so the pass bounds a render's host memory as
+/// well as its cancellation latency: 2^18 is about 90 ms of drawing there (2.9 M triangles/s
+/// on two cores), at 10–20 % more time than passes of 2^20.
+pub const SOFTWARE_PASS_TRIANGLES: u64 = 1 << 18;
+
+/// Bytes a software rasterizer holds per triangle of a pass while it draws (llvmpipe's bins,
+/// measured at about 240). Its device runs one submission at a time, so this times
+/// [`SOFTWARE_PASS_TRIANGLES`] bounds its bins whatever the number of renders in flight: a
+/// software renderer charges that much (64 MiB) to its device's budget when it is created.
+pub const SOFTWARE_BIN_BYTES: u64 = 256;
+
+/// What a renderer on `adapter` charges its device's budget when it is created: a software
+/// rasterizer's bins for one pass, nothing on a GPU.
+pub fn fixed_bytes(adapter: &wgpu::AdapterInfo) -> u64 {
+    if crate::engine::gpu::is_hardware(adapter) {
+        0
+    } else {
+        SOFTWARE_PASS_TRIANGLES * SOFTWARE_BIN_BYTES
+    }
+}
 
 /// Key light: from the camera's upper left and a little in front (view space: x right, y up,
 /// z toward the viewer), unit direction toward the light, and its intensity.
@@ -197,6 +227,9 @@ pub enum RenderError {
     /// leaves no room.
     #[error("GPU memory: {0}")]
     Memory(#[from] BudgetError),
+    /// The render's request was cancelled or passed its deadline between two passes.
+    #[error("render stopped: {0}")]
+    Cancelled(#[from] Cancelled),
 }
 
 /// The per-render uniform block the shader's `Camera` mirrors.
@@ -282,9 +315,13 @@ pub struct Renderer {
     /// The last render's targets and buffers, for the next one; registered with the context,
     /// which frees them when a charge finds the device's budget full.
     kept: Arc<Kept>,
+    /// On a software adapter, the rasterizer's bins for one pass (the host's memory there).
+    _bins: Option<Charge>,
     /// A test's code to run inside every render's race window (see
     /// [`Renderer::set_after_submit`]).
     after_submit: Mutex<Option<AfterSubmit>>,
+    /// Most triangles one render pass draws ([`PASS_TRIANGLES`]; tests lower it).
+    pass_triangles: std::sync::atomic::AtomicU64,
 }
 
 /// The last render's targets and buffers, kept for the next render (a render that finds them
@@ -435,6 +472,15 @@ impl Renderer {
     /// outputs can be drawn where they are).
     pub fn new(ctx: Arc<GpuContext>) -> Result<Renderer, RenderError> {
         ctx.health().map_err(lost)?;
+        let software = !crate::engine::gpu::is_hardware(ctx.adapter());
+        let bins = fixed_bytes(ctx.adapter());
+        let bins = (bins > 0)
+            .then(|| {
+                ctx.charge(bins, || {
+                    format!("a software rasterizer's bins for one render pass ({bins} bytes)")
+                })
+            })
+            .transpose()?;
         let device = ctx.device();
         let scopes = Scopes::push(device);
         let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
@@ -555,9 +601,35 @@ impl Renderer {
             max_buffer: limits.max_buffer_size,
             timestamp_period,
             kept,
+            _bins: bins,
             after_submit: Mutex::new(None),
+            pass_triangles: std::sync::atomic::AtomicU64::new(if software {
+                SOFTWARE_PASS_TRIANGLES
+            } else {
+                PASS_TRIANGLES
+            }),
             ctx,
         })
+    }
+
+    /// Most triangles one pass draws ([`PASS_TRIANGLES`], or [`SOFTWARE_PASS_TRIANGLES`] on a
+    /// software adapter).
+    pub fn pass_triangles(&self) -> u64 {
+        self.pass_triangles
+            .load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// Whether the adapter rasterizes on the CPU (lavapipe, SwiftShader).
+    pub fn is_software(&self) -> bool {
+        !crate::engine::gpu::is_hardware(self.ctx.adapter())
+    }
+
+    /// Test hook: later renders draw at most `triangles` per pass (default
+    /// [`Renderer::pass_triangles`]), so that the several-pass path is tested on small scenes.
+    #[doc(hidden)]
+    pub fn set_pass_triangles(&self, triangles: u64) {
+        self.pass_triangles
+            .store(triangles.max(1), std::sync::atomic::Ordering::Relaxed);
     }
 
     /// Test hook: `hook` runs in every later render after its work is submitted and its
@@ -682,6 +754,19 @@ impl Renderer {
         view: &View,
         frame: &Frame,
     ) -> Result<RenderOutput, RenderError> {
+        self.render_until(meshes, view, frame, &Cancel::never())
+    }
+
+    /// [`Renderer::render`] that stops between passes (and before the readback) once `cancel`
+    /// says so, with [`RenderError::Cancelled`]; a crowd of more than [`PASS_TRIANGLES`]
+    /// triangles is drawn in several passes.
+    pub fn render_until(
+        &self,
+        meshes: &[SceneMesh<'_>],
+        view: &View,
+        frame: &Frame,
+        cancel: &Cancel,
+    ) -> Result<RenderOutput, RenderError> {
         self.ctx.health().map_err(lost)?;
         let row = self.check_frame(frame)?;
         let camera = camera(view, frame)?;
@@ -692,11 +777,31 @@ impl Renderer {
         let targets = self.take_targets(frame, row)?;
         let scratch = self.take_scratch(layout.scene_bytes, layout.uniform_bytes)?;
         self.upload(&layout, &camera, &scratch);
-        let pass = self.encode_pass(&layout, frame, &targets, &scratch);
+        let passes = self.encode_passes(&layout, frame, &targets, &scratch);
         let copy = self.encode_copy(frame, &targets, &scratch);
         let queue = self.ctx.queue();
         let start = Instant::now();
-        let pass_done = queue.submit([pass]);
+        let last = passes.len().saturating_sub(1);
+        let mut pass_done = None;
+        for (k, pass) in passes.into_iter().enumerate() {
+            let done = queue.submit([pass]);
+            if k < last {
+                // Waited for, so that a cancelled render has at most one pass on the device. A
+                // pass that failed validation was never submitted: its scope says why.
+                if let Err(e) = self.ctx.device().poll(wgpu::PollType::Wait {
+                    submission_index: Some(done.clone()),
+                    timeout: None,
+                }) {
+                    scopes.pop("rendering")?;
+                    return Err(lost(e));
+                }
+                if let Err(c) = cancel.check() {
+                    scopes.pop("rendering")?;
+                    return Err(c.into());
+                }
+            }
+            pass_done = Some(done);
+        }
         let copy_done = queue.submit([copy]);
         let mapped = MapResults::new();
         mapped.request(&targets.staging, ..);
@@ -709,11 +814,13 @@ impl Renderer {
         self.ctx
             .device()
             .poll(wgpu::PollType::Wait {
-                submission_index: Some(pass_done),
+                submission_index: pass_done,
                 timeout: None,
             })
             .map_err(lost)?;
         let wall_render = nanos(start);
+        // The copy is already queued; reading it back is the last thing a cancel can skip.
+        cancel.check()?;
         let copy_start = Instant::now();
         // The callbacks, not only the submission: another thread's poll or submit may have
         // collected this frame's mappings and be about to report them (see `MapResults`).
@@ -807,14 +914,16 @@ impl Renderer {
         queue.write_buffer(&scratch.uniforms, 0, &uniforms);
     }
 
-    /// Records the render pass: clear, then per mesh one instanced draw per primitive.
-    fn encode_pass(
+    /// Records the render passes: the first clears, then per mesh one instanced draw per
+    /// primitive, cut into passes of at most [`PASS_TRIANGLES`] triangles (a mesh with more
+    /// instances than fit is split by instance ranges); the last resolves.
+    fn encode_passes(
         &self,
         layout: &Layout<'_>,
         frame: &Frame,
         targets: &Targets,
         scratch: &Scratch,
-    ) -> wgpu::CommandBuffer {
+    ) -> Vec<wgpu::CommandBuffer> {
         let device = self.ctx.device();
         let camera_bg = device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("render camera"),
@@ -840,80 +949,124 @@ impl Renderer {
                 }),
             }],
         });
-
         let bg = frame.background.map(srgb_to_linear);
-        let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-            label: Some("render pass"),
-        });
-        {
-            let timestamp_writes =
-                scratch
-                    .queries
-                    .as_ref()
-                    .map(|(set, _, _)| wgpu::RenderPassTimestampWrites {
-                        query_set: set,
-                        beginning_of_pass_write_index: Some(0),
-                        end_of_pass_write_index: Some(1),
-                    });
-            let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
-                label: Some("crowd"),
-                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                    view: &targets.msaa,
-                    depth_slice: None,
-                    resolve_target: Some(&targets.resolve_view),
-                    ops: wgpu::Operations {
-                        load: wgpu::LoadOp::Clear(wgpu::Color {
+        let passes = pass_pieces(layout, self.pass_triangles());
+        let n = passes.len();
+        passes
+            .into_iter()
+            .enumerate()
+            .map(|(k, pieces)| {
+                let (first, last) = (k == 0, k + 1 == n);
+                let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                    label: Some("render pass"),
+                });
+                {
+                    // The first pass writes the start, the last the end (a pass in between
+                    // writes neither: wgpu wants at least one index when timestamps are set).
+                    let timestamp_writes =
+                        scratch
+                            .queries
+                            .as_ref()
+                            .filter(|_| first || last)
+                            .map(|(set, _, _)| wgpu::RenderPassTimestampWrites {
+                                query_set: set,
+                                beginning_of_pass_write_index: first.then_some(0),
+                                end_of_pass_write_index: last.then_some(1),
+                            });
+                    // Only the resolved picture is kept; between passes the multisampled
+                    // colour and depth are.
+                    let keep = if last {
+                        wgpu::StoreOp::Discard
+                    } else {
+                        wgpu::StoreOp::Store
+                    };
+                    let color_load = if first {
+                        wgpu::LoadOp::Clear(wgpu::Color {
                             r: bg[0],
                             g: bg[1],
                             b: bg[2],
                             a: 1.0,
-                        }),
-                        // Only the resolved picture is kept.
-                        store: wgpu::StoreOp::Discard,
-                    },
-                })],
-                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                    view: &targets.depth,
-                    depth_ops: Some(wgpu::Operations {
-                        load: wgpu::LoadOp::Clear(0.0),
-                        store: wgpu::StoreOp::Discard,
-                    }),
-                    stencil_ops: None,
-                }),
-                timestamp_writes,
-                occlusion_query_set: None,
-                multiview_mask: None,
-            });
-            pass.set_pipeline(&self.pipeline);
-            pass.set_bind_group(0, &camera_bg, &[]);
-            for draw in &layout.draws {
-                let t = draw.topology;
-                let attr = u64::from(t.vertices) * VERTEX_STRIDE;
-                pass.set_index_buffer(t.indices.slice(..), wgpu::IndexFormat::Uint32);
-                for (slot, bound) in [(0, &draw.positions), (1, &draw.normals)] {
-                    let (buffer, offset) = match bound {
-                        Bound::Scene { offset, .. } => (&scratch.scene, *offset),
-                        Bound::Device { buffer, offset } => (*buffer, *offset),
+                        })
+                    } else {
+                        wgpu::LoadOp::Load
                     };
-                    pass.set_vertex_buffer(slot, buffer.slice(offset..offset + attr));
+                    let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+                        label: Some("crowd"),
+                        color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                            view: &targets.msaa,
+                            depth_slice: None,
+                            resolve_target: last.then_some(&targets.resolve_view),
+                            ops: wgpu::Operations {
+                                load: color_load,
+                                store: keep,
+                            },
+                        })],
+                        depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                            view: &targets.depth,
+                            depth_ops: Some(wgpu::Operations {
+                                load: if first {
+                                    wgpu::LoadOp::Clear(0.0)
+                                } else {
+                                    wgpu::LoadOp::Load
+                                },
+                                store: keep,
+                            }),
+                            stencil_ops: None,
+                        }),
+                        timestamp_writes,
+                        occlusion_query_set: None,
+                        multiview_mask: None,
+                    });
+                    pass.set_pipeline(&self.pipeline);
+                    pass.set_bind_group(0, &camera_bg, &[]);
+                    for piece in pieces {
+                        self.draw_piece(
+                            &mut pass,
+                            &layout.draws[piece.draw],
+                            piece.instances,
+                            scratch,
+                            &material_bg,
+                        );
+                    }
                 }
-                let inst = u64::from(draw.instances) * size_of::<InstanceData>() as u64;
-                pass.set_vertex_buffer(
-                    2,
-                    scratch
-                        .scene
-                        .slice(draw.instance_offset..draw.instance_offset + inst),
-                );
-                for (k, p) in t.primitives.iter().enumerate() {
-                    let offset = (draw.first_material + k as u64) * self.uniform_align;
-                    // Below `uniform_bytes`, checked to fit u32 above.
-                    let offset = u32::try_from(offset).unwrap_or(u32::MAX);
-                    pass.set_bind_group(1, &material_bg, &[offset]);
-                    pass.draw_indexed(p.indices.clone(), 0, 0..draw.instances);
-                }
-            }
+                encoder.finish()
+            })
+            .collect()
+    }
+
+    /// Records one mesh's instances `instances` (one instanced draw per primitive).
+    fn draw_piece(
+        &self,
+        pass: &mut wgpu::RenderPass<'_>,
+        draw: &Draw<'_>,
+        instances: Range<u32>,
+        scratch: &Scratch,
+        material_bg: &wgpu::BindGroup,
+    ) {
+        let t = draw.topology;
+        let attr = u64::from(t.vertices) * VERTEX_STRIDE;
+        pass.set_index_buffer(t.indices.slice(..), wgpu::IndexFormat::Uint32);
+        for (slot, bound) in [(0, &draw.positions), (1, &draw.normals)] {
+            let (buffer, offset) = match bound {
+                Bound::Scene { offset, .. } => (&scratch.scene, *offset),
+                Bound::Device { buffer, offset } => (*buffer, *offset),
+            };
+            pass.set_vertex_buffer(slot, buffer.slice(offset..offset + attr));
         }
-        encoder.finish()
+        let inst = u64::from(draw.instances) * size_of::<InstanceData>() as u64;
+        pass.set_vertex_buffer(
+            2,
+            scratch
+                .scene
+                .slice(draw.instance_offset..draw.instance_offset + inst),
+        );
+        for (k, p) in t.primitives.iter().enumerate() {
+            let offset = (draw.first_material + k as u64) * self.uniform_align;
+            // Below `uniform_bytes`, checked to fit u32 above.
+            let offset = u32::try_from(offset).unwrap_or(u32::MAX);
+            pass.set_bind_group(1, material_bg, &[offset]);
+            pass.draw_indexed(p.indices.clone(), 0, instances.clone());
+        }
     }
 
     /// Records the copy of the resolved picture into the staging buffer (rows padded to
@@ -1281,6 +1434,55 @@ impl Renderer {
 }
 
 /// The picture from the mapped staging buffer, without the rows' padding; unmaps it.
+/// A range of one draw's instances, drawn in one pass.
+#[derive(Clone, Debug, PartialEq, Eq)]
+struct Piece {
+    draw: usize,
+    instances: Range<u32>,
+}
+
+/// The draws cut into passes of at most `budget` triangles (instances × the draw's triangles);
+/// a draw with more is split by instance ranges, and one instance larger than `budget` is a
+/// pass of its own. Always at least one pass, so the frame is cleared and resolved.
+fn pass_pieces(layout: &Layout<'_>, budget: u64) -> Vec<Vec<Piece>> {
+    let sizes: Vec<(u64, u32)> = layout
+        .draws
+        .iter()
+        .map(|d| (u64::from(d.topology.triangles), d.instances))
+        .collect();
+    cut_passes(&sizes, budget)
+}
+
+/// [`pass_pieces`] over (triangles per instance, instances) per draw.
+fn cut_passes(sizes: &[(u64, u32)], budget: u64) -> Vec<Vec<Piece>> {
+    let budget = budget.max(1);
+    let mut passes: Vec<Vec<Piece>> = vec![Vec::new()];
+    let mut room = budget;
+    for (draw, &(triangles, instances)) in sizes.iter().enumerate() {
+        let triangles = triangles.max(1);
+        let mut next = 0u32;
+        while next < instances {
+            if room < triangles && passes.last().is_some_and(|p| !p.is_empty()) {
+                passes.push(Vec::new());
+                room = budget;
+            }
+            let fit = (room / triangles).max(1);
+            let end = u64::from(next)
+                .saturating_add(fit)
+                .min(u64::from(instances)) as u32;
+            if let Some(pass) = passes.last_mut() {
+                pass.push(Piece {
+                    draw,
+                    instances: next..end,
+                });
+            }
+            room = room.saturating_sub(u64::from(end - next) * triangles);
+            next = end;
+        }
+    }
+    passes
+}
+
 fn strip_padding(targets: &Targets, frame: &Frame) -> Result<Vec<u8>, RenderError> {
     let width_bytes = frame.width as usize * 4;
     let mut rgba = Vec::with_capacity(width_bytes * frame.height as usize);
@@ -1334,15 +1536,9 @@ fn camera(view: &View, frame: &Frame) -> Result<CameraUniform, RenderError> {
         ));
     }
     let up = right.cross(forward);
-    let look = glam::camera::rh::view::look_at_mat4(view.eye, view.target, view.up);
-    // Near and far swapped: depth 1 at the near plane and 0 at the far plane (reversed Z).
-    let proj = glam::camera::rh::proj::directx::perspective(
-        view.fov_y_deg.to_radians(),
-        frame.width as f32 / frame.height as f32,
-        view.far,
-        view.near,
-    );
-    let view_proj = proj * look;
+    // Depth 1 at the near plane and 0 at the far plane (reversed Z); the scene layout checked
+    // this same matrix, so a request's view never fails here.
+    let view_proj = view.clip_from_world(frame.width as f32 / frame.height as f32);
     if !view_proj.is_finite() {
         return Err(RenderError::Invalid(format!(
             "the view gives a non-finite projection: {view:?}"
@@ -1389,6 +1585,43 @@ mod tests {
                 assert!((a - b).length() < 1e-5, "{m:?} {v:?}: {a:?} vs {b:?}");
             }
         }
+    }
+
+    #[test]
+    fn passes_hold_at_most_their_triangles_and_draw_every_instance_once() {
+        // One pass for a small crowd, even an empty one.
+        assert_eq!(cut_passes(&[], 100).len(), 1);
+        assert_eq!(
+            cut_passes(&[(10, 3), (5, 2)], 100),
+            vec![vec![
+                Piece {
+                    draw: 0,
+                    instances: 0..3
+                },
+                Piece {
+                    draw: 1,
+                    instances: 0..2
+                }
+            ]]
+        );
+        // Split by instance ranges; an instance larger than the budget is a pass of its own.
+        let sizes = [(30u64, 10u32), (7, 1), (250, 2), (1, 0), (40, 5)];
+        let passes = cut_passes(&sizes, 100);
+        let mut drawn = vec![0u32; sizes.len()];
+        for pass in &passes {
+            assert!(!pass.is_empty());
+            let tris: u64 = pass
+                .iter()
+                .map(|p| u64::from(p.instances.end - p.instances.start) * sizes[p.draw].0)
+                .sum();
+            let lone_big = pass.len() == 1 && sizes[pass[0].draw].0 > 100;
+            assert!(tris <= 100 || lone_big, "{pass:?}: {tris}");
+            for p in pass {
+                assert_eq!(p.instances.start, drawn[p.draw], "in order, no gaps");
+                drawn[p.draw] = p.instances.end;
+            }
+        }
+        assert_eq!(drawn, vec![10, 1, 2, 0, 5]);
     }
 
     #[test]

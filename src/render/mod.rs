@@ -15,6 +15,7 @@
 //! Besides shading, a [`Frame`] keeps the depth and the nearest vertex of every covered pixel,
 //! which `crate::lod::mesh` uses to find facial feature points on the visible surface.
 
+pub mod cost;
 pub mod crowd;
 pub mod encode;
 pub mod gpu;

@@ -14,6 +14,12 @@
 //!   With one, near and far planes it does not give are derived from the same box.
 //!
 //! Validation errors name the field, so the server can answer a 400 that says what to fix.
+//! "Finite" is not enough for a renderer: a camera at 3e38, a field of view of 1e-40° or clip
+//! planes at 1e-45 are finite numbers whose matrices are not. So every number a request gives
+//! is held to a stated range ([`MAX_COORDINATE`], [`MIN_SCALE`]..[`MAX_SCALE`],
+//! [`MIN_FOV_Y`]..[`MAX_FOV_Y`], [`MIN_NEAR`], [`MAX_DEPTH_RATIO`]) and the view the layout
+//! ends with is checked the way the renderer will use it: its reversed-Z view-projection
+//! ([`View::clip_from_world`]) must be finite and invertible. What passes here draws.
 
 use glam::{Mat4, Quat, Vec3};
 
@@ -25,6 +31,30 @@ pub const GRID_GAP: f32 = 0.15;
 
 /// Margin of the default camera around the crowd, as a fraction of the image.
 pub const FRAME_MARGIN: f32 = 0.05;
+
+/// Largest magnitude of any coordinate a request gives (camera position and target, placement
+/// positions), in world units. A million rig units is 1,000 km of metre rigs and 10 km of
+/// centimetre ones: every crowd fits, and f32 keeps sub-unit precision across it.
+pub const MAX_COORDINATE: f32 = 1e6;
+
+/// Smallest uniform scale of a placement.
+pub const MIN_SCALE: f32 = 1e-4;
+
+/// Largest uniform scale of a placement.
+pub const MAX_SCALE: f32 = 1e4;
+
+/// Narrowest vertical field of view, degrees (a long telephoto is about 1°).
+pub const MIN_FOV_Y: f32 = 0.1;
+
+/// Widest vertical field of view, degrees.
+pub const MAX_FOV_Y: f32 = 179.0;
+
+/// Nearest near clip plane, world units.
+pub const MIN_NEAR: f32 = 1e-6;
+
+/// Largest ratio of the far clip distance to the near one. The renderer's reversed-Z f32 depth
+/// keeps precision far beyond this, but past it a near plane is a typo, not a camera.
+pub const MAX_DEPTH_RATIO: f32 = 1e7;
 
 /// Why a scene cannot be laid out.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
@@ -56,6 +86,74 @@ pub struct View {
 }
 
 impl View {
+    /// The matrix the renderer draws with: reversed-Z perspective (depth 1 at `near`, 0 at
+    /// `far`; right-handed, as WebGPU) times the look-at view.
+    pub fn clip_from_world(&self, aspect: f32) -> Mat4 {
+        // Near and far swapped: reversed Z.
+        let proj = glam::camera::rh::proj::directx::perspective(
+            self.fov_y_deg.to_radians(),
+            aspect,
+            self.far,
+            self.near,
+        );
+        proj * glam::camera::rh::view::look_at_mat4(self.eye, self.target, self.up)
+    }
+
+    /// Checks that the view can be drawn at `aspect`: its numbers are in range and
+    /// [`View::clip_from_world`] is finite and invertible (a matrix of finite numbers can
+    /// still overflow, underflow or collapse).
+    pub fn check(&self, aspect: f32) -> Result<(), SceneError> {
+        let bad = |m: String| Err(SceneError::Camera(format!("camera: {m}")));
+        let finite = self.eye.is_finite()
+            && self.target.is_finite()
+            && self.up.is_finite()
+            && self.fov_y_deg.is_finite()
+            && self.near.is_finite()
+            && self.far.is_finite();
+        if !finite {
+            return bad(format!("a view of non-finite numbers: {self:?}"));
+        }
+        if !(MIN_FOV_Y..=MAX_FOV_Y).contains(&self.fov_y_deg) {
+            return bad(format!(
+                "fov_y {} must be in [{MIN_FOV_Y}, {MAX_FOV_Y}] degrees",
+                self.fov_y_deg
+            ));
+        }
+        if !(self.near >= MIN_NEAR && self.far > self.near) {
+            return bad(format!(
+                "near {} and far {} must satisfy {MIN_NEAR} <= near < far",
+                self.near, self.far
+            ));
+        }
+        if self.far / self.near > MAX_DEPTH_RATIO {
+            return bad(format!(
+                "far {} is more than {MAX_DEPTH_RATIO} times near {}",
+                self.far, self.near
+            ));
+        }
+        let forward = (self.target - self.eye).normalize_or_zero();
+        if forward == Vec3::ZERO || forward.cross(self.up).normalize_or_zero() == Vec3::ZERO {
+            return bad("the eye is at the target, or up is parallel to the view direction".into());
+        }
+        if !(aspect.is_finite() && aspect > 0.0) {
+            return bad(format!("an image aspect of {aspect}"));
+        }
+        let m = self.clip_from_world(aspect);
+        let det = m.determinant();
+        if !(m.is_finite() && det.is_finite() && det != 0.0 && m.inverse().is_finite()) {
+            return bad(format!(
+                "eye {:?}, target {:?}, fov_y {}, near {} and far {} give a projection that \
+                 cannot be drawn (not finite or not invertible in f32)",
+                self.eye.to_array(),
+                self.target.to_array(),
+                self.fov_y_deg,
+                self.near,
+                self.far
+            ));
+        }
+        Ok(())
+    }
+
     /// The view-projection matrix (right-handed, depth 0..1 as in WebGPU), for tests and
     /// anything that wants to know where a point lands.
     pub fn view_projection(&self, aspect: f32) -> Mat4 {
@@ -90,10 +188,22 @@ pub fn layout(
     let placed = placed_transforms(ids, placements.unwrap_or_default())?;
     let transforms = head_transforms(boxes, &placed);
     let bounds = world_bounds(boxes, &transforms);
+    if let Some(b) = bounds
+        && (b.max - b.min).max_element() > 4.0 * MAX_COORDINATE
+    {
+        // Only uploaded rigs of enormous coordinates get here: placements are bounded.
+        return Err(SceneError::Camera(format!(
+            "the crowd spans {:?} to {:?}, more than {} world units across",
+            b.min.to_array(),
+            b.max.to_array(),
+            4.0 * MAX_COORDINATE
+        )));
+    }
     let view = match camera {
         Some(c) => camera_view(c, bounds)?,
         None => default_view(bounds, crowdmorph_proto::DEFAULT_FOV_Y, aspect),
     };
+    view.check(aspect)?;
     Ok(Scene { transforms, view })
 }
 
@@ -101,12 +211,17 @@ fn finite3(v: [f32; 3]) -> bool {
     v.iter().all(|c| c.is_finite())
 }
 
+/// Whether every coordinate is finite and within ±[`MAX_COORDINATE`].
+fn in_range3(v: [f32; 3]) -> bool {
+    v.iter().all(|c| c.is_finite() && c.abs() <= MAX_COORDINATE)
+}
+
 /// The transform of one placement: translate · rotate about +Y · uniform scale.
 pub fn placement_matrix(p: &Placement) -> Result<Mat4, SceneError> {
     let bad = |what: String| SceneError::Placement(format!("placement of head {}: {what}", p.head));
-    if !finite3(p.position) {
+    if !in_range3(p.position) {
         return Err(bad(format!(
-            "position {:?} must be finite numbers",
+            "position {:?} must be finite numbers within ±{MAX_COORDINATE}",
             p.position
         )));
     }
@@ -122,9 +237,17 @@ pub fn placement_matrix(p: &Placement) -> Result<Mat4, SceneError> {
             p.scale
         )));
     }
+    if !(MIN_SCALE..=MAX_SCALE).contains(&p.scale) {
+        return Err(bad(format!(
+            "scale {} must be in [{MIN_SCALE}, {MAX_SCALE}]",
+            p.scale
+        )));
+    }
+    // Whole turns dropped first: any finite yaw is an angle (fmod is exact in f32).
+    let yaw = p.yaw.rem_euclid(360.0);
     Ok(Mat4::from_scale_rotation_translation(
         Vec3::splat(p.scale),
-        Quat::from_rotation_y(p.yaw.to_radians()),
+        Quat::from_rotation_y(yaw.to_radians()),
         Vec3::from_array(p.position),
     ))
 }
@@ -309,6 +432,12 @@ pub fn camera_view(spec: &CameraSpec, bounds: Option<Aabb>) -> Result<View, Scen
             spec.position, spec.target
         )));
     }
+    if !in_range3(spec.position) || !in_range3(spec.target) {
+        return Err(bad(format!(
+            "position {:?} and target {:?} must be within ±{MAX_COORDINATE}",
+            spec.position, spec.target
+        )));
+    }
     let eye = Vec3::from_array(spec.position);
     let target = Vec3::from_array(spec.target);
     let forward = target - eye;
@@ -319,9 +448,9 @@ pub fn camera_view(spec: &CameraSpec, bounds: Option<Aabb>) -> Result<View, Scen
             spec.target
         )));
     }
-    if !(spec.fov_y.is_finite() && spec.fov_y > 0.0 && spec.fov_y < 180.0) {
+    if !(spec.fov_y.is_finite() && (MIN_FOV_Y..=MAX_FOV_Y).contains(&spec.fov_y)) {
         return Err(bad(format!(
-            "fov_y {} must be in (0, 180) degrees",
+            "fov_y {} must be in [{MIN_FOV_Y}, {MAX_FOV_Y}] degrees",
             spec.fov_y
         )));
     }
@@ -333,15 +462,30 @@ pub fn camera_view(spec: &CameraSpec, bounds: Option<Aabb>) -> Result<View, Scen
             return Err(bad(format!("{name} {v} must be a finite number > 0")));
         }
     }
+    if let Some(n) = spec.near
+        && n < MIN_NEAR
+    {
+        return Err(bad(format!("near {n} must be at least {MIN_NEAR}")));
+    }
     let (near_d, far_d) = derived_planes(eye, forward, bounds);
+    // A plane the camera leaves out is derived, and kept within MAX_DEPTH_RATIO of the one it
+    // gives, so that only the client's own numbers can be refused.
     let (near, far) = match (spec.near, spec.far) {
         (Some(n), Some(f)) => (n, f),
-        (Some(n), None) => (n, far_d.max(n * 2.0)),
-        (None, Some(f)) => (if near_d < f { near_d } else { f * 1e-3 }, f),
-        (None, None) => (near_d, far_d),
+        (Some(n), None) => (n, far_d.max(n * 2.0).min(n * MAX_DEPTH_RATIO)),
+        (None, Some(f)) => {
+            let n = if near_d < f { near_d } else { f * 1e-3 };
+            (n.max(f / MAX_DEPTH_RATIO).max(MIN_NEAR), f)
+        }
+        (None, None) => (near_d.max(MIN_NEAR), far_d.max(MIN_NEAR * 2.0)),
     };
     if near >= far {
         return Err(bad(format!("near {near} must be less than far {far}")));
+    }
+    if far / near > MAX_DEPTH_RATIO {
+        return Err(bad(format!(
+            "far {far} is more than {MAX_DEPTH_RATIO} times near {near}"
+        )));
     }
     // Looking straight up or down, +Y cannot be up: the image's top is then the direction
     // away from the heads' faces (−Z looking down, +Z looking up).
@@ -702,5 +846,54 @@ mod tests {
         assert!(msg(planes(Some(0.0), None)).contains("near 0"));
         assert!(msg(planes(None, Some(-1.0))).contains("far -1"));
         assert!(msg(planes(Some(1.0), Some(1.0))).contains("less than far"));
+        // Finite but absurd: each is refused by the number that makes it so.
+        assert!(msg(camera([3e38, 0.0, 5.0], [0.0; 3], 30.0)).contains("within"));
+        assert!(msg(camera([0.0, 0.0, 5.0], [0.0; 3], 1e-40)).contains("fov_y"));
+        assert!(msg(camera([0.0, 0.0, 5.0], [0.0; 3], 179.5)).contains("fov_y"));
+        assert!(msg(planes(Some(1e-45), Some(1e-44))).contains("near"));
+        assert!(msg(planes(Some(1e-3), Some(1e30))).contains("times near"));
+        // The limits themselves draw, planes derived or not.
+        for spec in [
+            camera([0.0, 0.0, MAX_COORDINATE], [0.0; 3], MIN_FOV_Y),
+            camera([0.0, 0.0, 5.0], [0.0; 3], MAX_FOV_Y),
+            planes(Some(MIN_NEAR), Some(MIN_NEAR * MAX_DEPTH_RATIO)),
+            planes(Some(MIN_NEAR), None),
+            planes(None, Some(1e9)),
+        ] {
+            let v = camera_view(&spec, Some(unit_box())).expect("a valid camera");
+            for aspect in [1.0 / 4096.0, 1.0, 4096.0] {
+                assert_eq!(v.check(aspect), Ok(()), "{spec:?} at {aspect}");
+            }
+        }
+    }
+
+    #[test]
+    fn absurd_placements_are_refused_and_huge_yaws_are_angles() {
+        let bad = |p: Placement| match placement_matrix(&p) {
+            Err(SceneError::Placement(m)) => m,
+            other => panic!("expected a placement error for {p:?}, got {other:?}"),
+        };
+        assert!(bad(placement(1, [1e20, 0.0, 0.0], 0.0, 1.0)).contains("position"));
+        assert!(bad(placement(1, [0.0, -1e7, 0.0], 0.0, 1.0)).contains("position"));
+        assert!(bad(placement(1, [0.0; 3], 0.0, 1e-30)).contains("scale"));
+        assert!(bad(placement(1, [0.0; 3], 0.0, 1e30)).contains("scale"));
+        let turned = placement_matrix(&placement(1, [0.0; 3], 1e30, 1.0)).expect("an angle");
+        assert!(turned.is_finite());
+        let same = placement_matrix(&placement(1, [0.0; 3], 370.0, 1.0)).expect("an angle");
+        let ten = placement_matrix(&placement(1, [0.0; 3], 10.0, 1.0)).expect("an angle");
+        assert!(same.abs_diff_eq(ten, 1e-5), "whole turns are dropped");
+        // A crowd laid out at the limits has a view that draws.
+        let boxes = vec![unit_box(); 2];
+        let far = [
+            placement(
+                1,
+                [MAX_COORDINATE, MAX_COORDINATE, -MAX_COORDINATE],
+                0.0,
+                MAX_SCALE,
+            ),
+            placement(2, [-MAX_COORDINATE, 0.0, MAX_COORDINATE], 0.0, MIN_SCALE),
+        ];
+        let scene = layout(&boxes, &[1, 2], Some(&far), None, 16.0 / 9.0).expect("a scene");
+        assert_eq!(scene.view.check(16.0 / 9.0), Ok(()));
     }
 }

@@ -219,13 +219,28 @@ fn pipeline(
 }
 
 impl GpuContext {
+    /// The adapters of the backends `WGPU_BACKEND` names, else of the primary ones (Vulkan,
+    /// Metal, DX12) or, with `with_gl`, of every backend. GL is probed only when nothing else
+    /// was found: its EGL probe logs an ERROR on every machine without a GL driver (a server
+    /// on Vulkan, or with no GPU at all), which reads like a failure at every start.
+    fn adapters(with_gl: bool) -> Vec<wgpu::Adapter> {
+        let mut desc = wgpu::InstanceDescriptor::new_without_display_handle_from_env();
+        if std::env::var_os("WGPU_BACKEND").is_none() && !with_gl {
+            desc.backends = wgpu::Backends::PRIMARY;
+        }
+        let backends = desc.backends;
+        let instance = wgpu::Instance::new(desc);
+        pollster::block_on(instance.enumerate_adapters(backends))
+    }
+
     /// Opens the best adapter: hardware only when `allow_software` is false (the `auto`
     /// backend), any adapter otherwise. `WGPU_BACKEND`, `WGPU_ADAPTER_NAME` (a substring of the
     /// adapter name) narrow the choice.
     pub fn open(allow_software: bool, options: GpuOptions) -> Result<GpuContext, GpuError> {
-        let instance =
-            wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
-        let mut adapters = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::all()));
+        let mut adapters = Self::adapters(false);
+        if adapters.is_empty() && std::env::var_os("WGPU_BACKEND").is_none() {
+            adapters = Self::adapters(true);
+        }
         let name_filter = std::env::var("WGPU_ADAPTER_NAME")
             .ok()
             .map(|s| s.to_lowercase());
