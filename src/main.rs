@@ -1,5 +1,6 @@
 //! The `crowdmorph` binary: parses the command line, sets up tracing, and calls the library.
 
+use std::io::IsTerminal as _;
 use std::path::PathBuf;
 
 use anyhow::Result;
@@ -514,7 +515,9 @@ struct ServeArgs {
     /// Engine: auto, cpu or gpu.
     #[arg(long, env = "CROWDMORPH_BACKEND", default_value = "auto")]
     backend: BackendChoice,
-    /// Bearer token required for uploads, deletes and LOD changes (open when unset).
+    /// Bearer token required for every change: rig and clip uploads and deletes, LOD changes,
+    /// creating, changing and deleting crowd sessions, and load tests (open when unset;
+    /// crowd frames, renders, GETs and session streams never need it).
     #[arg(long, env = "CROWDMORPH_ADMIN_TOKEN", hide_env_values = true)]
     admin_token: Option<String>,
     /// Largest rig or clip upload, bytes.
@@ -593,6 +596,19 @@ struct ServeArgs {
     /// 503 render_busy past it; default 64 Mpixels).
     #[arg(long, env = "CROWDMORPH_RENDER_PIXELS", default_value_t = crowdmorph::server::config::DEFAULT_RENDER_PIXELS, value_parser = clap::value_parser!(u64).range(1..))]
     render_pixels: u64,
+    /// Estimated milliseconds of rendering (blending, drawing and encoding, priced from what
+    /// each render draws) that rendered frames in flight may hold together: a render estimated
+    /// past it gets 413 render_too_costly, one that does not fit now 503 render_busy.
+    #[arg(long, env = "CROWDMORPH_RENDER_WORK_MS", default_value_t = crowdmorph::server::config::DEFAULT_RENDER_WORK.as_millis() as u64, value_parser = clap::value_parser!(u64).range(1..))]
+    render_work_ms: u64,
+    /// Share (0 to 1) of the pixel and render work budgets that session viewers' frames may
+    /// hold together, so that HTTP renders keep being served while viewers stream.
+    #[arg(long, env = "CROWDMORPH_VIEWER_RENDER_SHARE", default_value_t = crowdmorph::server::config::DEFAULT_VIEWER_RENDER_SHARE, value_parser = parse_share)]
+    viewer_render_share: f64,
+    /// Most pixels of one session viewer's image (a hello asking for more is closed with
+    /// 1008; default 1920 × 1080).
+    #[arg(long, env = "CROWDMORPH_MAX_VIEWER_PIXELS", default_value_t = crowdmorph::server::sessions::DEFAULT_MAX_VIEWER_PIXELS, value_parser = clap::value_parser!(u64).range(1..))]
+    max_viewer_pixels: u64,
     /// Adapter that draws rendered frames: auto (the engine's GPU, else any adapter, software
     /// ones such as lavapipe included), gpu (hardware only) or off.
     #[arg(long, env = "CROWDMORPH_RENDER_BACKEND", default_value = "auto")]
@@ -622,6 +638,14 @@ struct ServeArgs {
         default_value_t = 64
     )]
     loadtest_max_concurrency: usize,
+}
+
+/// A share in [0, 1].
+fn parse_share(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if (0.0..=1.0).contains(&v) => Ok(v),
+        _ => Err(format!("{s:?} is not a number in [0, 1]")),
+    }
 }
 
 /// Descriptors kept for everything but connections: stored rig files, the engine's device
@@ -723,6 +747,8 @@ fn run_serve(a: ServeArgs) -> Result<()> {
         cors_origins: a.cors_origin,
         auto_lod: !a.no_auto_lod,
         render_pixels: a.render_pixels,
+        render_work: std::time::Duration::from_millis(a.render_work_ms),
+        viewer_render_share: a.viewer_render_share,
         gpu_memory: a.max_gpu_memory,
         render_backend: a.render_backend,
         sessions: server::sessions::SessionLimits {
@@ -730,6 +756,7 @@ fn run_serve(a: ServeArgs) -> Result<()> {
             max_heads: usize::try_from(a.max_session_heads).unwrap_or(usize::MAX),
             max_viewers: usize::try_from(a.max_session_viewers).unwrap_or(usize::MAX),
             max_viewer_messages: a.max_viewer_messages,
+            max_viewer_pixels: a.max_viewer_pixels,
             ..server::sessions::SessionLimits::default()
         },
         loadtest_max_duration: std::time::Duration::from_secs(a.loadtest_max_duration_s),
@@ -797,6 +824,12 @@ fn main() -> Result<()> {
                 .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
         )
         .with_writer(std::io::stderr)
+        // Colour only on a terminal, and never with NO_COLOR set (https://no-color.org): logs
+        // written to a file or a pipe carry no escape codes.
+        .with_ansi(
+            std::io::stderr().is_terminal()
+                && std::env::var_os("NO_COLOR").is_none_or(|v| v.is_empty()),
+        )
         .init();
     let cli = Cli::parse();
     match cli.command {

@@ -25,3 +25,4 @@ mod rigs;
 mod sampling;
 mod server;
 mod shaders;
+mod tidy;

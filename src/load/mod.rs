@@ -280,6 +280,8 @@ pub struct Live {
     opts: RunOptions,
     lanes: AtomicU64,
     start: OnceLock<Instant>,
+    /// When [`run`] returned: a finished run's elapsed time stops there.
+    end: OnceLock<Instant>,
     cancelled: AtomicBool,
     finished: AtomicBool,
     /// Requests handed to lanes, warm-up included.
@@ -306,6 +308,7 @@ impl Live {
             opts,
             lanes: AtomicU64::new(0),
             start: OnceLock::new(),
+            end: OnceLock::new(),
             cancelled: AtomicBool::new(false),
             finished: AtomicBool::new(false),
             dispatched: AtomicU64::new(0),
@@ -335,10 +338,11 @@ impl Live {
         self.finished.load(Ordering::Acquire)
     }
 
-    /// Seconds since the run started (warm-up included).
+    /// Seconds since the run started (warm-up included), up to when it finished.
     pub fn elapsed(&self) -> f64 {
         self.start.get().map_or(0.0, |s| {
-            Instant::now().saturating_duration_since(*s).as_secs_f64()
+            let until = self.end.get().copied().unwrap_or_else(Instant::now);
+            until.saturating_duration_since(*s).as_secs_f64()
         })
     }
 
@@ -539,6 +543,7 @@ pub async fn run<L: Lane>(lanes: Vec<L>, live: &Arc<Live>) -> Result<LoadReport,
     // The dispatcher has returned (its lanes are gone, or it saw the cancel flag within
     // CANCEL_POLL); joining it off the async workers keeps them free meanwhile.
     let _ = tokio::task::spawn_blocking(move || dispatcher.join()).await;
+    let _ = live.end.set(Instant::now());
     live.finished.store(true, Ordering::Release);
     Ok(live.snapshot())
 }

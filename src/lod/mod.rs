@@ -36,11 +36,12 @@ use crate::rig::{Lod, LodError, LodLevel, Rig, TargetId, default_lod_levels, map
 /// Why a LOD could not be built.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum LodBuildError {
-    /// A name in the request is not a target of the rig.
-    #[error("unknown target {0:?}")]
+    /// A name in the request is not a target of the rig (the name as
+    /// [`crate::rig::quoted_name`] quotes it).
+    #[error("unknown target {0}")]
     UnknownTarget(String),
-    /// A target appears twice in an explicit order or pin list.
-    #[error("target {0:?} is listed twice")]
+    /// A target appears twice in an explicit order or pin list (quoted likewise).
+    #[error("target {0} is listed twice")]
     DuplicateTarget(String),
     /// An explicit order does not list every target.
     #[error("explicit order lists {got} of the rig's {want} targets")]
@@ -222,12 +223,12 @@ pub fn resolve_targets(rig: &Rig, names: &[String]) -> Result<Vec<TargetId>, Lod
             ids => ids,
         };
         if ids.is_empty() {
-            return Err(LodBuildError::UnknownTarget(n.clone()));
+            return Err(LodBuildError::UnknownTarget(crate::rig::quoted_name(n)));
         }
         for &id in ids {
             // Ids come from the rig's own channels, so they index `seen`.
             if std::mem::replace(&mut seen[id as usize], true) {
-                return Err(LodBuildError::DuplicateTarget(n.clone()));
+                return Err(LodBuildError::DuplicateTarget(crate::rig::quoted_name(n)));
             }
             out.push(id);
         }
@@ -433,11 +434,11 @@ mod tests {
                 ids.extend(rig.channel_by_label(n));
             }
             if ids.is_empty() {
-                return Err(LodBuildError::UnknownTarget(n.clone()));
+                return Err(LodBuildError::UnknownTarget(crate::rig::quoted_name(n)));
             }
             for id in ids {
                 if out.contains(&id) {
-                    return Err(LodBuildError::DuplicateTarget(n.clone()));
+                    return Err(LodBuildError::DuplicateTarget(crate::rig::quoted_name(n)));
                 }
                 out.push(id);
             }
@@ -493,7 +494,9 @@ mod tests {
         assert!(resolve_targets(&rig, &rig.channel_labels().into_vec()).is_ok());
         assert_eq!(
             resolve_targets(&rig, &all(vec![&split, &format!("{split}#2")])),
-            Err(LodBuildError::DuplicateTarget(format!("{split}#2")))
+            Err(LodBuildError::DuplicateTarget(crate::rig::quoted_name(
+                &format!("{split}#2")
+            )))
         );
     }
 
@@ -595,7 +598,7 @@ mod tests {
         };
         assert_eq!(
             build_lod(&rig, &bad, None, None),
-            Err(LodBuildError::UnknownTarget("noSuchShape".into()))
+            Err(LodBuildError::UnknownTarget("\"noSuchShape\"".into()))
         );
         let short = LodSpec {
             order: Some(vec!["jawOpen".into()]),

@@ -144,6 +144,18 @@ fn kth_channel(ids: &[TargetId], k: &str) -> Option<TargetId> {
         .flatten()
 }
 
+/// Longest prefix of a client's name (a rig id, clip or target name) an error message quotes.
+pub const QUOTED_NAME_CHARS: usize = 64;
+
+/// A name as an error message quotes it: Rust-quoted, its first [`QUOTED_NAME_CHARS`]
+/// characters and its length when longer. A 15 MB name in a request is not echoed back whole.
+pub fn quoted_name(s: &str) -> String {
+    match s.char_indices().nth(QUOTED_NAME_CHARS) {
+        None => format!("{s:?}"),
+        Some((end, _)) => format!("{:?}... ({} bytes)", &s[..end], s.len()),
+    }
+}
+
 /// Most bytes a `std` hash map built `with_capacity(n)` (and never grown past `n`) allocates
 /// for entries of `entry` bytes: hashbrown's buckets (the next power of two at its 7/8 load
 /// factor) of an entry and a control byte each, plus one group of control bytes.
@@ -721,6 +733,20 @@ pub fn vertex_normals(positions: &[Vec3], indices: &[u32]) -> Vec<Vec3> {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn long_names_are_quoted_by_their_start_and_length() {
+        assert_eq!(quoted_name("jawOpen"), "\"jawOpen\"");
+        let long = "é".repeat(1 << 20);
+        let q = quoted_name(&long);
+        assert!(q.len() < 200, "{} bytes", q.len());
+        assert!(
+            q.starts_with("\"éé") && q.ends_with("... (2097152 bytes)"),
+            "{q}"
+        );
+        let exact = "x".repeat(QUOTED_NAME_CHARS);
+        assert_eq!(quoted_name(&exact), format!("{exact:?}"));
+    }
+
     use super::*;
 
     #[test]

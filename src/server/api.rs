@@ -36,6 +36,7 @@ use crate::import::clips::{ClipImport, ClipOptions};
 use crate::import::gltf::GltfImport;
 use crate::import::{ImportError, ImportOptions};
 use crate::plan::{JobKey, Plan};
+use crate::rig::quoted_name;
 use crate::rig::{ACTIVE_WEIGHT_EPSILON, FrameMode, Rig, RigShape};
 use crate::store::RecordRef;
 
@@ -377,7 +378,7 @@ fn unknown_rig(state: &AppState, id: &str) -> ApiError {
     ids.truncate(20);
     ApiError::not_found(
         "unknown_rig",
-        format!("no rig {id:?} (rigs: {})", ids.join(", ")),
+        format!("no rig {} (rigs: {})", quoted_name(id), ids.join(", ")),
     )
 }
 
@@ -392,8 +393,9 @@ pub(super) fn unknown_clip(entry: &RigEntry, clip: &str) -> ApiError {
     ApiError::not_found(
         "unknown_clip",
         format!(
-            "rig {:?} has no clip {clip:?} (clips: {})",
+            "rig {:?} has no clip {} (clips: {})",
             entry.id,
+            quoted_name(clip),
             names.join(", ")
         ),
     )
@@ -577,7 +579,8 @@ pub(super) async fn upload_rig(
         return Err(ApiError::bad_request(
             "invalid_name",
             format!(
-                "rig name {n:?} must be 1-64 characters of A-Z a-z 0-9 . _ - (not starting with a dot)"
+                "rig name {} must be 1-64 characters of A-Z a-z 0-9 . _ - (not starting with a dot)",
+                quoted_name(n)
             ),
         ));
     }
@@ -818,7 +821,10 @@ pub(super) async fn upload_clips(
     {
         return Err(ApiError::bad_request(
             "invalid_name",
-            format!("clip name {n:?} must be 1-64 characters of A-Z a-z 0-9 . _ -"),
+            format!(
+                "clip name {} must be 1-64 characters of A-Z a-z 0-9 . _ -",
+                quoted_name(n)
+            ),
         ));
     }
     if let Some(fps) = query.fps
@@ -1507,7 +1513,11 @@ pub(super) async fn crowd_frame_from(
     body: Body,
     source: Source,
 ) -> Response {
+    // Counted as cancelled if this future is dropped (the client hung up) before it answers;
+    // its queued jobs are then dropped by the batcher before they are computed.
+    let waiting = super::metrics::DropCounter::new(state.metrics.clone(), "frame");
     let resp = frame(state, headers, body, source).await.into_response();
+    waiting.finish();
     state.metrics.crowd_frame(source, resp.status().as_u16());
     resp
 }
@@ -1600,6 +1610,9 @@ async fn frame(state: &AppState, headers: &HeaderMap, body: Body, source: Source
     let outcome = match tokio::time::timeout(deadline, ticket).await {
         Err(_) => {
             state.metrics.reject("deadline");
+            state
+                .metrics
+                .cancelled("frame", crate::cancel::Cancelled::Deadline);
             return Err(ApiError::new(
                 StatusCode::GATEWAY_TIMEOUT,
                 "deadline_exceeded",
@@ -1621,6 +1634,22 @@ async fn frame(state: &AppState, headers: &HeaderMap, body: Body, source: Source
         Ok(Ok(Ok(o))) => o,
     };
 
+    // The last stage boundary: a response the client has already been told is late (or
+    // that the router's timeout is about to answer) is not encoded.
+    if arrived.elapsed() >= state.config.request_timeout {
+        state.metrics.reject("deadline");
+        state
+            .metrics
+            .cancelled("frame", crate::cancel::Cancelled::Deadline);
+        return Err(ApiError::new(
+            StatusCode::GATEWAY_TIMEOUT,
+            "deadline_exceeded",
+            format!(
+                "the frame was not ready within the request deadline of {} ms",
+                state.config.request_timeout.as_millis()
+            ),
+        ));
+    }
     let heads: Vec<HeadBuffer> = req
         .heads
         .iter()

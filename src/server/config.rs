@@ -71,6 +71,15 @@ pub struct ServerConfig {
     /// image takes W × H of them until its response is built. One larger than this gets 413,
     /// one that does not fit now 503 `render_busy` (`--render-pixels`).
     pub render_pixels: u64,
+    /// Estimated time of the renders in flight together (blending, drawing and encoding, from
+    /// what each draws: [`crate::render::cost`]); a render estimated past this gets 413
+    /// `render_too_costly`, one that does not fit now 503 `render_busy` (`--render-work-ms`).
+    /// One admitted past its request deadline gets 504 and stops at its next stage.
+    pub render_work: Duration,
+    /// Share (0 to 1) of the pixel and render work budgets that session viewers' frames may
+    /// hold together, so HTTP renders keep being served while viewers stream
+    /// (`--viewer-render-share`).
+    pub viewer_render_share: f64,
     /// Which adapter draws rendered frames (`--render-backend`).
     pub render_backend: RenderBackend,
     /// Bytes of GPU buffers and textures whose size an input decides (resident rigs, batch
@@ -95,6 +104,14 @@ pub struct ServerConfig {
 /// depth, the resolved and staging copies on the device — host memory on lavapipe — the
 /// pixels read back and the encoded image), so the default bounds renders to about 3 GiB.
 pub const DEFAULT_RENDER_PIXELS: u64 = 64 << 20;
+
+/// Default of [`ServerConfig::render_work`]: 4 s of estimated rendering in flight. On two
+/// cores of lavapipe that is a few full-HD frames of a hundred heads at once; a render that
+/// waits behind all of it still answers well within the default 10 s deadline.
+pub const DEFAULT_RENDER_WORK: Duration = Duration::from_secs(4);
+
+/// Default of [`ServerConfig::viewer_render_share`]: viewers together hold at most half.
+pub const DEFAULT_VIEWER_RENDER_SHARE: f64 = 0.5;
 
 impl Default for ServerConfig {
     fn default() -> Self {
@@ -121,6 +138,8 @@ impl Default for ServerConfig {
             cors_origins: Vec::new(),
             auto_lod: true,
             render_pixels: DEFAULT_RENDER_PIXELS,
+            render_work: DEFAULT_RENDER_WORK,
+            viewer_render_share: DEFAULT_VIEWER_RENDER_SHARE,
             render_backend: RenderBackend::Auto,
             gpu_memory: None,
             sessions: super::sessions::SessionLimits::default(),

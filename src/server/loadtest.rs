@@ -540,7 +540,10 @@ pub(super) async fn get_loadtest(
     let run = state.loadtests.find(&id).ok_or_else(|| {
         ApiError::not_found(
             "unknown_loadtest",
-            format!("no load test {id:?} (the server keeps the last {KEEP_DONE})"),
+            format!(
+                "no load test {} (the server keeps the last {KEEP_DONE})",
+                crate::rig::quoted_name(&id)
+            ),
         )
     })?;
     respond(&headers, StatusCode::OK, &run.status())

@@ -241,11 +241,11 @@ async fn build_with(
         (permit, budget, state.metrics.clone())
     };
     let progress = job.progress.clone();
-    metrics.lod_builds_running.fetch_add(1, Ordering::Relaxed);
+    let running = Running::new(metrics.clone());
     let built = tokio::task::spawn_blocking(move || build_lod(&rig, &spec, None, Some(&progress)))
         .await
         .map_err(ApiError::internal);
-    metrics.lod_builds_running.fetch_sub(1, Ordering::Relaxed);
+    running.finish();
     drop(permit);
     let lod = built?.map_err(|e| match e {
         LodBuildError::Cancelled => {
@@ -255,6 +255,43 @@ async fn build_with(
         e => ApiError::bad_request("invalid_lod", e.to_string()),
     })?;
     Ok((lod, budget))
+}
+
+/// A LOD build in progress, for the metrics: counted running while it lives, and — if the
+/// request future awaiting it is dropped first (the client of a `PUT` hung up; the guard
+/// cancels the build itself) — counted cancelled, since nobody will see its result.
+struct Running {
+    metrics: Arc<super::metrics::Metrics>,
+    finished: bool,
+}
+
+impl Running {
+    fn new(metrics: Arc<super::metrics::Metrics>) -> Running {
+        metrics.lod_builds_running.fetch_add(1, Ordering::Relaxed);
+        Running {
+            metrics,
+            finished: false,
+        }
+    }
+
+    fn finish(mut self) {
+        self.finished = true;
+    }
+}
+
+impl Drop for Running {
+    fn drop(&mut self) {
+        self.metrics
+            .lod_builds_running
+            .fetch_sub(1, Ordering::Relaxed);
+        if !self.finished {
+            self.metrics
+                .lod_builds_cancelled
+                .fetch_add(1, Ordering::Relaxed);
+            self.metrics
+                .cancelled("lod", crate::cancel::Cancelled::Dropped);
+        }
+    }
 }
 
 fn cancelled() -> ApiError {
@@ -384,7 +421,11 @@ fn spec_of(req: LodRequest) -> Result<LodSpec, ApiError> {
             let names: Vec<&str> = OrderMethod::all().iter().map(|m| m.name()).collect();
             ApiError::bad_request(
                 "invalid_lod",
-                format!("unknown method {m:?} (methods: {})", names.join(", ")),
+                format!(
+                    "unknown method {} (methods: {})",
+                    crate::rig::quoted_name(m),
+                    names.join(", ")
+                ),
             )
         })?,
     };

@@ -141,6 +141,11 @@ pub struct Metrics {
     pub lod_builds_cancelled: AtomicU64,
     /// Requests refused by reason (`overloaded`, `queue_full`, `deadline`, `timeout`, ...).
     rejected: Mutex<BTreeMap<&'static str, u64>>,
+    /// Work stopped before it finished because its request was gone or late, by kind of work
+    /// (`render`, `session_frame`, `frame`, `lod`) and reason (`dropped`, `deadline`).
+    cancelled: Mutex<BTreeMap<(&'static str, &'static str), u64>>,
+    /// Session tick tasks that panicked (each ended its session).
+    pub session_panics: AtomicU64,
     /// Connections admitted and not yet closed.
     pub connections_open: AtomicU64,
     /// Connections accepted from the listener, refused ones included.
@@ -179,6 +184,8 @@ impl Default for Metrics {
             lod_builds_running: AtomicU64::new(0),
             lod_builds_cancelled: AtomicU64::new(0),
             rejected: Mutex::new(BTreeMap::new()),
+            cancelled: Mutex::new(BTreeMap::new()),
+            session_panics: AtomicU64::new(0),
             connections_open: AtomicU64::new(0),
             connections_accepted: AtomicU64::new(0),
             connections_closed: Mutex::new(BTreeMap::new()),
@@ -189,6 +196,41 @@ impl Default for Metrics {
                 count: 0,
                 last_rate: 0.0,
             }),
+        }
+    }
+}
+
+/// Counts a request's work as cancelled (`reason="dropped"`) when dropped before
+/// [`DropCounter::finish`]: what a handler holds while it waits, so that a client hanging up
+/// (its future dropped) is counted.
+#[derive(Debug)]
+pub struct DropCounter {
+    metrics: std::sync::Arc<Metrics>,
+    work: &'static str,
+    armed: bool,
+}
+
+impl DropCounter {
+    /// Armed for work of kind `work`.
+    pub fn new(metrics: std::sync::Arc<Metrics>, work: &'static str) -> DropCounter {
+        DropCounter {
+            metrics,
+            work,
+            armed: true,
+        }
+    }
+
+    /// The work finished (or was answered): nothing to count.
+    pub fn finish(mut self) {
+        self.armed = false;
+    }
+}
+
+impl Drop for DropCounter {
+    fn drop(&mut self) {
+        if self.armed {
+            self.metrics
+                .cancelled(self.work, crate::cancel::Cancelled::Dropped);
         }
     }
 }
@@ -220,6 +262,10 @@ pub struct Gauges {
     pub render_pixels: u64,
     /// The limit on that (`--render-pixels`).
     pub render_pixels_limit: u64,
+    /// Estimated seconds of work renders in flight hold.
+    pub render_work_seconds: f64,
+    /// The limit on that (`--render-work-ms`).
+    pub render_work_limit_seconds: f64,
     /// Bytes charged to the GPU memory budgets (the engine's and the renderer's devices, each
     /// counted once); 0 without a GPU.
     pub gpu_memory_bytes: u64,
@@ -239,6 +285,17 @@ impl Metrics {
     pub fn reject(&self, reason: &'static str) {
         if let Ok(mut m) = self.rejected.lock() {
             *m.entry(reason).or_insert(0) += 1;
+        }
+    }
+
+    /// Counts work of kind `work` stopped by its cancellation.
+    pub fn cancelled(&self, work: &'static str, why: crate::cancel::Cancelled) {
+        let reason = match why {
+            crate::cancel::Cancelled::Dropped => "dropped",
+            crate::cancel::Cancelled::Deadline => "deadline",
+        };
+        if let Ok(mut m) = self.cancelled.lock() {
+            *m.entry((work, reason)).or_insert(0) += 1;
         }
     }
 
@@ -320,6 +377,20 @@ impl Metrics {
         if let Ok(m) = self.rejected.lock() {
             for (reason, n) in m.iter() {
                 let _ = writeln!(o, "crowdmorph_rejected_total{{reason=\"{reason}\"}} {n}");
+            }
+        }
+        let _ = writeln!(
+            o,
+            "# HELP crowdmorph_cancelled_total Work stopped at a stage boundary because its \
+             request was gone or past its deadline, by kind of work and reason.\n\
+             # TYPE crowdmorph_cancelled_total counter"
+        );
+        if let Ok(m) = self.cancelled.lock() {
+            for ((work, reason), n) in m.iter() {
+                let _ = writeln!(
+                    o,
+                    "crowdmorph_cancelled_total{{work=\"{work}\",reason=\"{reason}\"}} {n}"
+                );
             }
         }
         let _ = writeln!(
@@ -456,6 +527,12 @@ impl Metrics {
             "LOD builds stopped early by a newer PUT, a delete or shutdown.",
             load(&self.lod_builds_cancelled),
         );
+        c(
+            &mut o,
+            "crowdmorph_session_panics_total",
+            "Session tick tasks that panicked; each ended its session (a bug: the log has it).",
+            load(&self.session_panics),
+        );
         gauge(
             &mut o,
             "crowdmorph_lod_builds_running",
@@ -521,6 +598,18 @@ impl Metrics {
             "crowdmorph_render_pixels_limit",
             "Limit on the pixels rendered frames in flight may hold (--render-pixels).",
             g.render_pixels_limit as f64,
+        );
+        gauge(
+            &mut o,
+            "crowdmorph_render_work_seconds",
+            "Estimated seconds of work that rendered frames in flight hold.",
+            g.render_work_seconds,
+        );
+        gauge(
+            &mut o,
+            "crowdmorph_render_work_limit_seconds",
+            "Limit on the estimated work of rendered frames in flight (--render-work-ms).",
+            g.render_work_limit_seconds,
         );
         gauge(
             &mut o,

@@ -128,8 +128,9 @@ pub struct Inner {
     lod_builds: Arc<Semaphore>,
     /// The rate-limited summary of shed and timed-out requests.
     shed_log: ShedLog,
-    /// Pixels that renders in flight hold (`--render-pixels`), one permit per pixel.
-    pixels: Arc<Semaphore>,
+    /// Pixels and estimated work that renders in flight hold (`--render-pixels`,
+    /// `--render-work-ms`, `--viewer-render-share`).
+    render_budget: render::RenderBudget,
     /// The renderer (or why there is none) and its topologies.
     render: render::RenderState,
     /// Crowd sessions by id.
@@ -203,9 +204,11 @@ impl AppState {
         let memory_units = u32::try_from((config.queue_memory_bytes / 1024).max(1))
             .unwrap_or(u32::MAX)
             .min(Semaphore::MAX_PERMITS as u32);
-        let render_pixels = usize::try_from(config.render_pixels)
-            .unwrap_or(usize::MAX)
-            .min(Semaphore::MAX_PERMITS);
+        let render_budget = render::RenderBudget::new(
+            config.render_pixels,
+            config.render_work,
+            config.viewer_render_share,
+        );
         let registry = Registry::default();
         let pool = MemoryPool::new(config.max_rig_memory, "--max-rig-memory");
         let builtin = Arc::new(crate::embedded::default_rig());
@@ -246,7 +249,7 @@ impl AppState {
             lod_jobs: lod::LodJobs::default(),
             lod_builds: Arc::new(Semaphore::new(2)),
             shed_log: ShedLog::default(),
-            pixels: Arc::new(Semaphore::new(render_pixels)),
+            render_budget,
             render,
             sessions: sessions::Sessions::default(),
             json_pool: Arc::default(),
@@ -509,9 +512,10 @@ impl AppState {
             degraded: self.engine.info().degraded,
             loading: !self.is_ready(),
             connections_limit: self.config.max_connections as u64,
-            render_pixels: (self.config.render_pixels)
-                .saturating_sub(self.pixels.available_permits() as u64),
-            render_pixels_limit: self.config.render_pixels,
+            render_pixels: self.render_budget.pixels().0,
+            render_pixels_limit: self.render_budget.pixels().1,
+            render_work_seconds: self.render_budget.work_seconds().0,
+            render_work_limit_seconds: self.render_budget.work_seconds().1,
             gpu_memory_bytes: gpu_pools.iter().map(|p| p.used()).sum(),
             gpu_memory_limit: gpu_pools.iter().map(|p| p.limit()).sum(),
         }

@@ -2,9 +2,16 @@
 //!
 //! The request is resolved and planned exactly as a crowd frame (same snapshot rule, same
 //! errors), laid out by [`crate::render::scene`], drawn by [`crate::render::crowd::draw`] and
-//! encoded by [`crate::render::encode`] on the blocking pool. Two budgets bound what renders in
-//! flight hold: the pixel budget (`--render-pixels`; the image, from drawing until its bytes
-//! are sent) and the queue memory crowd frames also use (the unique jobs' blended vertices).
+//! encoded by [`crate::render::encode`] on the blocking pool. Three budgets bound what renders in
+//! flight hold, all taken before any work ([`RenderBudget`]): the pixel budget
+//! (`--render-pixels`; the image, from drawing until its bytes are sent), the render work budget
+//! (`--render-work-ms`; the render's estimated duration, [`crate::render::cost`], until it is
+//! encoded) and the queue memory crowd frames also use (the unique jobs' blended vertices and
+//! the request's heads). Session viewers' frames draw from the same pixel and work budgets but
+//! together hold at most `--viewer-render-share` of each, so HTTP renders are served while
+//! viewers stream. A render whose client hangs up or whose deadline passes stops at its next
+//! stage boundary ([`crate::cancel`]): between engine calls, between render passes, before the
+//! readback and before the encoding.
 //! Mesh topologies are uploaded to the renderer once per rig generation and mesh level and kept
 //! in a small LRU ([`TopologyCache`]), so a frame uploads no indices. The cache keeps them only
 //! for reuse: it is registered with the renderer's device, and a charge there that finds the
@@ -19,13 +26,15 @@ use axum::http::{HeaderMap, HeaderName, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use bytes::Bytes;
 use crowdmorph_proto::{ImageFormat, ImageOptions, MAX_IMAGE_SIDE, RenderRequest};
-use tokio::sync::OwnedSemaphorePermit;
+use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 
-use super::api::{ApiResult, ResolvedHeads, blocking, chunked_body};
+use super::api::{ApiResult, ResolvedHeads, blocking, chunked_body, job_request};
 use super::registry::RigEntry;
 use super::{ApiError, AppState};
+use crate::cancel::{Cancel, Cancelled};
 use crate::engine::EngineError;
 use crate::engine::gpu::Reclaim;
+use crate::render::cost::{Rates, RenderCost};
 use crate::render::crowd::{self, CrowdError, CrowdGroup, PlannedGroup, RenderDevice};
 use crate::render::encode::{self, ImageError};
 use crate::render::gpu::{Frame, MeshTopology, RenderError, Renderer, View};
@@ -188,6 +197,100 @@ impl RenderState {
     }
 }
 
+/// Who a render is for: session viewers' frames hold a capped share of the budgets.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum Renderee {
+    /// `POST /v1/crowd/render`.
+    Http,
+    /// A session viewer that asked for frames.
+    Viewer,
+}
+
+/// The render budgets: pixels in flight (memory: targets, read-back pixels, the encoded image)
+/// and estimated work in flight (time: blending, drawing, encoding, in microseconds of the
+/// drawing device's [`Rates`]), each with the share that session viewers may hold together.
+#[derive(Debug)]
+pub struct RenderBudget {
+    pixels: Arc<Semaphore>,
+    pixels_limit: u64,
+    work: Arc<Semaphore>,
+    work_limit_us: u64,
+    viewer_pixels: Arc<Semaphore>,
+    viewer_pixels_limit: u64,
+    viewer_work: Arc<Semaphore>,
+    viewer_work_limit_us: u64,
+}
+
+/// A semaphore of `n` permits (at most the most tokio allows).
+fn semaphore(n: u64) -> Arc<Semaphore> {
+    Arc::new(Semaphore::new(
+        usize::try_from(n)
+            .unwrap_or(usize::MAX)
+            .min(Semaphore::MAX_PERMITS),
+    ))
+}
+
+impl RenderBudget {
+    /// Budgets of `pixels` and `work`, of which viewers may hold `viewer_share` (0 to 1).
+    pub fn new(pixels: u64, work: Duration, viewer_share: f64) -> RenderBudget {
+        let share = if viewer_share.is_finite() {
+            viewer_share.clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
+        let work_us = u64::try_from(work.as_micros()).unwrap_or(u64::MAX).max(1);
+        let viewer_pixels = (pixels as f64 * share) as u64;
+        let viewer_work = (work_us as f64 * share) as u64;
+        RenderBudget {
+            pixels: semaphore(pixels),
+            pixels_limit: pixels,
+            work: semaphore(work_us),
+            work_limit_us: work_us,
+            viewer_pixels: semaphore(viewer_pixels),
+            viewer_pixels_limit: viewer_pixels,
+            viewer_work: semaphore(viewer_work),
+            viewer_work_limit_us: viewer_work,
+        }
+    }
+
+    /// Pixels held now, and the limit.
+    pub fn pixels(&self) -> (u64, u64) {
+        let free = self.pixels.available_permits() as u64;
+        (self.pixels_limit.saturating_sub(free), self.pixels_limit)
+    }
+
+    /// Estimated work held now, and the limit, in seconds.
+    pub fn work_seconds(&self) -> (f64, f64) {
+        let free = self.work.available_permits() as u64;
+        (
+            self.work_limit_us.saturating_sub(free) as f64 * 1e-6,
+            self.work_limit_us as f64 * 1e-6,
+        )
+    }
+
+    /// Seconds until the work held now has drained, as a Retry-After (1 to 60).
+    fn retry_after(&self) -> u32 {
+        let (held, _) = self.work_seconds();
+        held.ceil().clamp(1.0, 60.0) as u32
+    }
+}
+
+/// What an admitted render holds of the [`RenderBudget`]: the pixels go with the response
+/// body, the work is given back once the image is encoded.
+struct RenderPermits {
+    pixels: OwnedSemaphorePermit,
+    work: OwnedSemaphorePermit,
+    /// A viewer's frame also holds its share.
+    _viewer: Option<(OwnedSemaphorePermit, OwnedSemaphorePermit)>,
+}
+
+/// Tries to take `n` permits of `s`: `None` when they are not free now.
+fn take(s: &Arc<Semaphore>, n: u64) -> Option<OwnedSemaphorePermit> {
+    s.clone()
+        .try_acquire_many_owned(u32::try_from(n).ok()?)
+        .ok()
+}
+
 impl AppState {
     /// The renderer, when the server has one (tests reach its race-window hook,
     /// [`Renderer::set_after_submit`], through it).
@@ -207,40 +310,152 @@ impl AppState {
         })
     }
 
-    /// Takes `pixels` of the pixel budget: 413 when one image is larger than the whole
-    /// budget, 503 `render_busy` when renders in flight hold too much of it now.
-    pub(super) fn reserve_pixels(&self, pixels: u64) -> Result<OwnedSemaphorePermit, ApiError> {
-        let limit = self.config.render_pixels;
-        let Some(n) = u32::try_from(pixels)
-            .ok()
-            .filter(|&n| u64::from(n) <= limit)
-        else {
-            return Err(self.too_many_pixels(pixels));
+    /// Takes the render budgets for an image of `pixels` and an estimated duration of
+    /// `estimate`: 413 when the render can never fit (larger than the whole budget, or than
+    /// the share viewers may hold), 503 `render_busy` with a Retry-After when renders in flight
+    /// hold too much now.
+    fn reserve_render(
+        &self,
+        pixels: u64,
+        estimate: Duration,
+        cost: &RenderCost,
+        who: Renderee,
+    ) -> Result<RenderPermits, ApiError> {
+        let b = &self.render_budget;
+        let viewer = who == Renderee::Viewer;
+        let (pixel_limit, work_limit_us) = if viewer {
+            (b.viewer_pixels_limit, b.viewer_work_limit_us)
+        } else {
+            (b.pixels_limit, b.work_limit_us)
         };
-        self.pixels.clone().try_acquire_many_owned(n).map_err(|_| {
+        if pixels > pixel_limit {
+            return Err(self.too_many_pixels(pixels, viewer));
+        }
+        let work_us = u64::try_from(estimate.as_micros())
+            .unwrap_or(u64::MAX)
+            .max(1);
+        if work_us > work_limit_us {
+            self.metrics.reject("render_too_costly");
+            let flag = if viewer {
+                format!(
+                    "{} ms, the share session viewers may hold (--viewer-render-share) of the \
+                     render work budget (--render-work-ms)",
+                    work_limit_us / 1000
+                )
+            } else {
+                format!(
+                    "the render work budget of {} ms (--render-work-ms)",
+                    work_limit_us / 1000
+                )
+            };
+            return Err(ApiError::new(
+                StatusCode::PAYLOAD_TOO_LARGE,
+                "render_too_costly",
+                format!(
+                    "drawing this crowd is estimated at {:.0} ms on this server's renderer \
+                     ({} blend work, {} vertices and {} triangles drawn, {} pixels), more than \
+                     {flag}; ask for fewer heads, a coarser lod or a smaller image",
+                    estimate.as_secs_f64() * 1e3,
+                    cost.blend,
+                    cost.vertices,
+                    cost.triangles,
+                    cost.pixels
+                ),
+            ));
+        }
+        let busy = |what: &str| {
             self.metrics.reject("render_busy");
             ApiError::unavailable(
                 "render_busy",
-                format!(
-                    "renders in flight hold the server's render budget of {limit} pixels \
-                     (--render-pixels); retry shortly"
-                ),
-                1,
+                format!("renders in flight hold the server's {what}; retry shortly"),
+                b.retry_after(),
             )
+        };
+        let share = if viewer {
+            let p = take(&b.viewer_pixels, pixels).ok_or_else(|| {
+                busy("share of the render budget that session viewers may hold (--viewer-render-share)")
+            })?;
+            let w = take(&b.viewer_work, work_us).ok_or_else(|| {
+                busy("share of the render budget that session viewers may hold (--viewer-render-share)")
+            })?;
+            Some((p, w))
+        } else {
+            None
+        };
+        let pixel_permit = take(&b.pixels, pixels).ok_or_else(|| {
+            busy(&format!(
+                "render budget of {} pixels (--render-pixels)",
+                b.pixels_limit
+            ))
+        })?;
+        let work = take(&b.work, work_us).ok_or_else(|| {
+            busy(&format!(
+                "render work budget of {} ms (--render-work-ms)",
+                b.work_limit_us / 1000
+            ))
+        })?;
+        Ok(RenderPermits {
+            pixels: pixel_permit,
+            work,
+            _viewer: share,
         })
     }
 
-    /// 413 for an image larger than the whole pixel budget.
-    fn too_many_pixels(&self, pixels: u64) -> ApiError {
+    /// 413 for an image larger than the whole pixel budget (or a viewer's share of it).
+    fn too_many_pixels(&self, pixels: u64, viewer: bool) -> ApiError {
+        let b = &self.render_budget;
+        let (limit, flag) = if viewer {
+            (
+                b.viewer_pixels_limit,
+                "the share session viewers may hold (--viewer-render-share) of --render-pixels",
+            )
+        } else {
+            (b.pixels_limit, "--render-pixels")
+        };
         ApiError::new(
             StatusCode::PAYLOAD_TOO_LARGE,
             "image_too_large",
             format!(
-                "an image of {pixels} pixels is larger than the server's render budget of {} \
-                 pixels (--render-pixels)",
-                self.config.render_pixels
+                "an image of {pixels} pixels is larger than the server's render budget of \
+                 {limit} pixels ({flag})"
             ),
         )
+    }
+
+    /// What rendering `plan` at `pixels` costs, and how long the renderer is estimated to take.
+    fn render_cost(
+        &self,
+        device: &RenderDevice,
+        rigs: &[Arc<RigEntry>],
+        plan: &crate::plan::Plan,
+        pixels: u64,
+    ) -> (RenderCost, Duration) {
+        let mut instances = vec![0u64; plan.jobs.len()];
+        for &j in &plan.head_job {
+            instances[j as usize] += 1;
+        }
+        // (vertices, triangles) of each rig level, looked up once.
+        let mut sizes: std::collections::HashMap<(u32, u32), (u64, u64)> =
+            std::collections::HashMap::new();
+        let mut cost = RenderCost {
+            pixels,
+            ..RenderCost::default()
+        };
+        for (k, &n) in plan.jobs.iter().zip(&instances) {
+            let entry = &rigs[k.rig as usize];
+            let (v, t) = *sizes.entry((k.rig, k.lod)).or_insert_with(|| {
+                let rig = entry.prepared.at_level(k.lod).rig();
+                (rig.vertex_count() as u64, rig.triangle_count() as u64)
+            });
+            let blend = job_request(entry, k.clip, k.frame, k.lod).cost;
+            cost.add_job(blend, n, v, t);
+        }
+        let rates = Rates::new(
+            self.on_gpu() && device.shared,
+            device.renderer.is_software(),
+        );
+        let estimate = cost.estimate(&rates);
+        (cost, estimate)
     }
 
     /// The topology of `entry`'s mesh level `mesh` on the renderer, uploaded on first use.
@@ -341,10 +556,14 @@ struct RenderJob {
     groups: Vec<PlannedGroup>,
     view: View,
     frame: Frame,
-    /// The image's pixels; they go with the response body.
-    pixels: OwnedSemaphorePermit,
-    /// The blended vertices; released once the crowd is drawn.
+    /// Its share of the render budgets.
+    permits: RenderPermits,
+    /// The blended vertices and the request's heads; released once the crowd is drawn.
     vertices: OwnedSemaphorePermit,
+    /// Raised when the request is gone or late: the work stops at its next stage.
+    cancel: Cancel,
+    /// Whose render it is, for the cancellation metrics.
+    who: Renderee,
 }
 
 /// An encoded image with what its response headers say.
@@ -379,21 +598,35 @@ impl Rendered {
     }
 }
 
+/// The answer to a render stopped by its cancellation (its client is gone, or has its 504).
+fn cancelled(c: Cancelled) -> ApiError {
+    match c {
+        Cancelled::Deadline => ApiError::new(
+            StatusCode::GATEWAY_TIMEOUT,
+            "deadline_exceeded",
+            "the image was not ready within the request deadline",
+        ),
+        Cancelled::Dropped => ApiError::unavailable("cancelled", "the request was cancelled", 1),
+    }
+}
+
 impl AppState {
-    /// Checks the image, resolves the heads (as a crowd frame does), lays out the scene and
-    /// takes the pixel and vertex budgets; every refusal is the JSON error that names it.
+    /// Checks the image, resolves the heads (as a crowd frame does), lays out the scene,
+    /// prices the render and takes its budgets; every refusal is the JSON error that names it.
     fn admit_render(
         &self,
         req: RenderRequest,
         max_side: u32,
         held: Option<OwnedSemaphorePermit>,
+        who: Renderee,
+        cancel: Cancel,
     ) -> Result<RenderJob, ApiError> {
         let image = req.image.unwrap_or_default();
         encode::check_image(&image, max_side).map_err(image_error)?;
         let pixels = u64::from(image.width) * u64::from(image.height);
-        if pixels > self.config.render_pixels {
+        if pixels > self.render_budget.pixels_limit {
             // Checked before the heads, so the answer does not depend on them.
-            return Err(self.too_many_pixels(pixels));
+            return Err(self.too_many_pixels(pixels, false));
         }
         let mode = if req.wrap {
             FrameMode::Wrap
@@ -417,8 +650,8 @@ impl AppState {
         )
         .map_err(scene_error)?;
         // Checked after the request itself, so a client learns its own mistakes first.
-        self.render_device()?;
-        let pixel_permit = self.reserve_pixels(pixels)?;
+        let device = self.render_device()?;
+        let (cost, estimate) = self.render_cost(device, &rigs, &plan, pixels);
         let vertex_bytes: u64 = plan
             .jobs
             .iter()
@@ -444,6 +677,7 @@ impl AppState {
                 ),
             ));
         }
+        let permits = self.reserve_render(pixels, estimate, &cost, who)?;
         let mut vertex_permit = self.reserve_queue_memory(vertex_bytes)?;
         if let Some(held) = held {
             vertex_permit.merge(held);
@@ -457,13 +691,29 @@ impl AppState {
             image,
             rigs,
             groups,
-            pixels: pixel_permit,
+            permits,
             vertices: vertex_permit,
+            cancel,
+            who,
         })
     }
 
-    /// Draws and encodes an admitted render (blocking: engine, renderer and encoder).
+    /// Counts a render stopped by its cancellation and answers for it.
+    fn render_cancelled(&self, who: Renderee, c: Cancelled) -> ApiError {
+        let work = match who {
+            Renderee::Http => "render",
+            Renderee::Viewer => "session_frame",
+        };
+        self.metrics.cancelled(work, c);
+        cancelled(c)
+    }
+
+    /// Draws and encodes an admitted render (blocking: engine, renderer and encoder), stopping
+    /// at the next stage once the job's cancellation is raised.
     fn run_render(&self, job: RenderJob) -> Result<Rendered, ApiError> {
+        let who = job.who;
+        let stop = |c| self.render_cancelled(who, c);
+        job.cancel.check().map_err(stop)?;
         let device = self.render_device()?;
         let mut groups = Vec::with_capacity(job.groups.len());
         for g in job.groups {
@@ -478,10 +728,23 @@ impl AppState {
                 instances: g.instances,
             });
         }
-        let drawn = crowd::draw(&self.engine, device, &groups, &job.view, &job.frame)
-            .map_err(crowd_error)?;
+        let drawn = match crowd::draw_until(
+            &self.engine,
+            device,
+            &groups,
+            &job.view,
+            &job.frame,
+            &job.cancel,
+        ) {
+            Ok(d) => d,
+            Err(CrowdError::Cancelled(c) | CrowdError::Render(RenderError::Cancelled(c))) => {
+                return Err(stop(c));
+            }
+            Err(e) => return Err(crowd_error(e)),
+        };
         drop(groups);
         drop(job.vertices);
+        job.cancel.check().map_err(stop)?;
         let encoding = Instant::now();
         let out = drawn.output;
         let (width, height) = (out.width, out.height);
@@ -494,30 +757,38 @@ impl AppState {
             ms(Duration::from_nanos(out.readback_ns)),
             ms(encoding.elapsed())
         );
+        // The work is done; the pixels stay held until the image is sent.
+        drop(job.permits.work);
         Ok(Rendered {
             bytes,
             width,
             height,
             format: job.image.format,
             timing,
-            pixels: job.pixels,
+            pixels: job.permits.pixels,
         })
+    }
+
+    /// The largest image side the renderer draws.
+    fn max_side(&self) -> u32 {
+        self.render
+            .device
+            .as_ref()
+            .map_or(MAX_IMAGE_SIDE, |d| d.renderer.max_size())
     }
 }
 
 impl AppState {
-    /// Draws one tick for a session viewer that wants images: the same checks, budgets and
-    /// drawing as `POST /v1/crowd/render`. Returns the encoded image, its size and encoding.
+    /// Draws one tick for a session viewer that wants images: the same checks and drawing as
+    /// `POST /v1/crowd/render`, within the viewers' share of the render budgets, stopped by
+    /// `cancel` (the viewer leaving, or the deadline). Returns the encoded image, its size and
+    /// encoding.
     pub(super) async fn render_for_session(
         &self,
         req: RenderRequest,
+        cancel: Cancel,
     ) -> Result<(Vec<u8>, u32, u32, ImageFormat), ApiError> {
-        let max_side = self
-            .render
-            .device
-            .as_ref()
-            .map_or(MAX_IMAGE_SIDE, |d| d.renderer.max_size());
-        let job = self.admit_render(req, max_side, None)?;
+        let job = self.admit_render(req, self.max_side(), None, Renderee::Viewer, cancel)?;
         let s = self.clone();
         let r = blocking(move || s.run_render(job)).await?;
         Ok((r.bytes, r.width, r.height, r.format))
@@ -531,22 +802,19 @@ pub(super) async fn crowd_render(
 ) -> ApiResult {
     let arrived = Instant::now();
     state.check_ready()?;
-    let max_side = state
-        .render
-        .device
-        .as_ref()
-        .map_or(MAX_IMAGE_SIDE, |d| d.renderer.max_size());
+    let max_side = state.max_side();
     let (req, held): (RenderRequest, _) = state
         .crowd_request_held(&headers, body, render_held_bytes)
         .await?;
-    let job = state.admit_render(req, max_side, Some(held))?;
     let deadline = state
         .config
         .request_timeout
         .saturating_sub(arrived.elapsed())
         .max(Duration::from_millis(1));
-    // Past the deadline the client gets a 504; the drawing finishes on the blocking pool and
-    // holds its budgets until then.
+    // The guard lives in this future: a 504 below, or the client hanging up (the future is
+    // dropped), raises the cancellation and the drawing stops at its next stage.
+    let (cancel, _guard) = Cancel::new(Some(Instant::now() + deadline));
+    let job = state.admit_render(req, max_side, Some(held), Renderee::Http, cancel)?;
     let s = state.clone();
     let rendered = tokio::time::timeout(deadline, blocking(move || s.run_render(job)))
         .await
@@ -566,11 +834,13 @@ pub(super) async fn crowd_render(
 
 /// What a render request holds per head and placement from its decoding until its frame is
 /// drawn: the decoded head and its names, its placement, what admission builds per head (its
-/// box, id, job index, transform and the instance its group draws: 256 bytes cover them), and
-/// the map the scene layout builds of the placements before it checks them against the heads
-/// ([`crate::render::scene::placement_bytes`]: up to seven times a decoded placement).
+/// box, 24 bytes; id, 8; job index, 4; transform, 64; the instance matrix its group keeps, 64;
+/// the instance record the renderer uploads, 112; and the per-job instance count, 8: 384 bytes
+/// cover them), and the map the scene layout builds of the placements before it checks them
+/// against the heads ([`crate::render::scene::placement_bytes`]: up to seven times a decoded
+/// placement).
 fn render_held_bytes(req: &RenderRequest) -> u64 {
-    let heads = super::api::heads_held_bytes(&req.heads, 256);
+    let heads = super::api::heads_held_bytes(&req.heads, 384);
     let placements = req.placements.as_ref().map_or(0, |p| {
         p.capacity() as u64 * size_of::<crowdmorph_proto::Placement>() as u64
             + scene::placement_bytes(p.len())
@@ -657,6 +927,33 @@ mod tests {
         assert!(idle.upgrade().is_none(), "an idle topology is freed");
         // One a render holds lives on, now held by that render alone.
         assert_eq!(Arc::strong_count(&in_use), 1);
+    }
+
+    #[test]
+    fn viewers_hold_at_most_their_share_and_http_renders_keep_the_rest() {
+        let b = RenderBudget::new(1_000, Duration::from_millis(100), 0.5);
+        assert_eq!(
+            (b.viewer_pixels_limit, b.viewer_work_limit_us),
+            (500, 50_000)
+        );
+        // Viewers take their whole share...
+        let v1 = (take(&b.viewer_pixels, 300), take(&b.pixels, 300));
+        let v2 = (take(&b.viewer_pixels, 200), take(&b.pixels, 200));
+        assert!(v1.0.is_some() && v1.1.is_some() && v2.0.is_some() && v2.1.is_some());
+        // ...and no more, while half of the budget stays for HTTP renders.
+        assert!(take(&b.viewer_pixels, 1).is_none());
+        assert_eq!(b.pixels(), (500, 1_000));
+        let http = take(&b.pixels, 500);
+        assert!(http.is_some());
+        assert!(take(&b.pixels, 1).is_none());
+        drop((v1, v2, http));
+        assert_eq!(b.pixels(), (0, 1_000));
+        // Retry-After follows the work held: 1 s at least, a minute at most.
+        assert_eq!(b.retry_after(), 1);
+        let big = RenderBudget::new(1, Duration::from_secs(600), 0.0);
+        let _w = take(&big.work, 120_000_000);
+        assert_eq!(big.retry_after(), 60);
+        assert_eq!(big.viewer_pixels_limit, 0, "a share of 0 keeps viewers out");
     }
 
     #[test]

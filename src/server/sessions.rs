@@ -67,6 +67,9 @@ pub struct SessionLimits {
     pub max_viewer_messages: u32,
     /// How long a viewer has to send its hello before it is closed with 1008.
     pub hello_timeout: Duration,
+    /// Most pixels of one viewer's image (`--max-viewer-pixels`); a hello asking for more is
+    /// closed with 1008.
+    pub max_viewer_pixels: u64,
 }
 
 impl Default for SessionLimits {
@@ -77,6 +80,7 @@ impl Default for SessionLimits {
             max_viewers: 32,
             max_viewer_messages: 60,
             hello_timeout: Duration::from_secs(10),
+            max_viewer_pixels: DEFAULT_MAX_VIEWER_PIXELS,
         }
     }
 }
@@ -87,6 +91,11 @@ pub const MAX_VIEWER_MESSAGE_BYTES: usize = 64 << 10;
 const CLOSE_TIMEOUT: Duration = Duration::from_secs(1);
 /// Highest tick rate.
 const MAX_FPS: f32 = 120.0;
+/// Lowest tick rate: a tick every ten seconds. Below it a period is a client's typo (1e-30
+/// ticks per second is a period past what a `Duration` holds).
+pub const MIN_FPS: f32 = 0.1;
+/// Default of [`SessionLimits::max_viewer_pixels`]: a full-HD image.
+pub const DEFAULT_MAX_VIEWER_PIXELS: u64 = 1920 * 1080;
 /// Longest idle timeout, seconds (a day).
 const MAX_IDLE_TIMEOUT_S: u32 = 86_400;
 
@@ -100,6 +109,8 @@ mod close {
     pub const POLICY: u16 = 1008;
     /// A message too big to process.
     pub const TOO_BIG: u16 = 1009;
+    /// The server hit an unexpected condition (a bug).
+    pub const INTERNAL: u16 = 1011;
     /// Try again later: the session is full.
     pub const AGAIN: u16 = 1013;
 }
@@ -143,7 +154,7 @@ impl Sessions {
                 ApiError::new(
                     StatusCode::NOT_FOUND,
                     "unknown_session",
-                    format!("no session {id:?}"),
+                    format!("no session {}", crate::rig::quoted_name(id)),
                 )
             })
     }
@@ -157,6 +168,15 @@ impl Sessions {
 
     fn remove(&self, id: &str) -> Option<Arc<Session>> {
         self.map.lock().ok()?.remove(id)
+    }
+
+    /// Test hook: makes session `id`'s next tick panic, so that the tick task's supervision
+    /// can be tested. Returns whether the session exists.
+    #[doc(hidden)]
+    pub fn panic_next_tick(&self, id: &str) -> bool {
+        self.get(id)
+            .map(|s| s.panic_next_tick.store(true, Ordering::Release))
+            .is_ok()
     }
 
     /// Ends every session (the server is stopping): viewers are closed with 1001.
@@ -233,6 +253,11 @@ pub struct Session {
     /// Wakes the tick task when the session stops.
     stopping: Notify,
     stopped: AtomicBool,
+    /// Wakes the tick task when its viewers change, so an idle timeout is kept whatever the
+    /// tick period.
+    viewers_changed: Notify,
+    /// Test hook: the next tick panics (the supervision of the tick task is tested with it).
+    panic_next_tick: AtomicBool,
 }
 
 #[derive(Debug)]
@@ -317,6 +342,8 @@ struct Viewer {
     closing: Notify,
     /// An image for this viewer is being rendered.
     rendering: AtomicBool,
+    /// Raised when the viewer leaves: an image being rendered for it stops.
+    gone: crate::cancel::Cancel,
 }
 
 impl Viewer {
@@ -335,6 +362,7 @@ impl Viewer {
             close: Mutex::new(None),
             closing: Notify::new(),
             rendering: AtomicBool::new(false),
+            gone: crate::cancel::Cancel::manual(),
         }
     }
 
@@ -691,8 +719,11 @@ pub(super) async fn create_session(
     state.check_admin(&headers)?;
     state.check_ready()?;
     let req: SessionRequest = state.crowd_request(&headers, body).await?;
-    if !(req.fps > 0.0 && req.fps <= MAX_FPS) {
-        return Err(invalid(format!("fps {} is not in (0, {MAX_FPS}]", req.fps)));
+    if !(MIN_FPS..=MAX_FPS).contains(&req.fps) {
+        return Err(invalid(format!(
+            "fps {} is not in [{MIN_FPS}, {MAX_FPS}]",
+            req.fps
+        )));
     }
     if !(1..=MAX_IDLE_TIMEOUT_S).contains(&req.idle_timeout_s) {
         return Err(invalid(format!(
@@ -728,6 +759,8 @@ pub(super) async fn create_session(
         }),
         stopping: Notify::new(),
         stopped: AtomicBool::new(false),
+        viewers_changed: Notify::new(),
+        panic_next_tick: AtomicBool::new(false),
     });
     {
         let mut map = state
@@ -747,7 +780,7 @@ pub(super) async fn create_session(
         }
         map.insert(id.clone(), session.clone());
     }
-    tokio::spawn(run_session(session.clone(), Arc::downgrade(&state.0)));
+    supervise(session.clone(), Arc::downgrade(&state.0));
     let info = session.info();
     tracing::info!(session = %id, heads = info.heads.len(), fps = req.fps, "session created");
     // Charged before the session existed (`answer`): a 503 now would tell a client that
@@ -828,7 +861,7 @@ pub(super) async fn delete_session(
         ApiError::new(
             StatusCode::NOT_FOUND,
             "unknown_session",
-            format!("no session {id:?}"),
+            format!("no session {}", crate::rig::quoted_name(&id)),
         )
     })?;
     s.stop(close::AWAY, "session deleted");
@@ -865,8 +898,9 @@ async fn close_with(socket: &mut WebSocket, code: u16, reason: &str) {
 /// Reads the hello; `Err` is the close code and reason.
 async fn read_hello(
     socket: &mut WebSocket,
-    timeout: Duration,
+    limits: &SessionLimits,
 ) -> Result<ViewerSettings, (u16, String)> {
+    let timeout = limits.hello_timeout;
     let msg = match tokio::time::timeout(timeout, socket.recv()).await {
         Err(_) => {
             return Err((
@@ -889,9 +923,6 @@ async fn read_hello(
         }
     };
     let hello: ViewerHello = parse_json(text.as_str(), "hello")?;
-    if let Some(c) = &hello.camera {
-        check_camera(c)?;
-    }
     check_lod(&hello.lod)?;
     let image = hello.image.unwrap_or(ImageOptions {
         format: ImageFormat::Jpeg,
@@ -900,6 +931,19 @@ async fn read_hello(
     });
     crate::render::encode::check_image(&image, crowdmorph_proto::MAX_IMAGE_SIDE)
         .map_err(|e| (close::POLICY, truncate(format!("bad image: {e}"))))?;
+    let pixels = u64::from(image.width) * u64::from(image.height);
+    if hello.output == ViewerOutput::Frames && pixels > limits.max_viewer_pixels {
+        return Err((
+            close::POLICY,
+            truncate(format!(
+                "bad image: {}x{} is more than {} pixels (--max-viewer-pixels)",
+                image.width, image.height, limits.max_viewer_pixels
+            )),
+        ));
+    }
+    if let Some(c) = &hello.camera {
+        check_camera(c, &image)?;
+    }
     Ok(ViewerSettings {
         output: hello.output,
         format: hello.format,
@@ -949,8 +993,12 @@ fn parse_json<T: serde::de::DeserializeOwned>(text: &str, what: &str) -> Result<
     Ok(value)
 }
 
-fn check_camera(c: &CameraSpec) -> Result<(), (u16, String)> {
-    scene::layout(&[], &[], None, Some(c), 1.0)
+/// Checks a viewer's camera as the renderer will use it, at its image's aspect: the checks of
+/// `POST /v1/crowd/render` (range, a finite and invertible projection), so a camera that
+/// could never draw is refused at the hello or update, not found out at every tick.
+fn check_camera(c: &CameraSpec, image: &ImageOptions) -> Result<(), (u16, String)> {
+    let aspect = image.width.max(1) as f32 / image.height.max(1) as f32;
+    scene::layout(&[], &[], None, Some(c), aspect)
         .map(|_| ())
         .map_err(|e| (close::POLICY, truncate(format!("bad camera: {e}"))))
 }
@@ -982,7 +1030,7 @@ fn check_lod(l: &LodChoice) -> Result<(), (u16, String)> {
 
 /// Runs one viewer until it leaves, breaks a rule or the session ends.
 async fn serve_viewer(state: AppState, session: Arc<Session>, mut socket: WebSocket) {
-    let settings = match read_hello(&mut socket, state.config.sessions.hello_timeout).await {
+    let settings = match read_hello(&mut socket, &state.config.sessions).await {
         Ok(s) => s,
         Err((code, reason)) => {
             if code == close::POLICY || code == close::TOO_BIG {
@@ -1008,6 +1056,7 @@ async fn serve_viewer(state: AppState, session: Arc<Session>, mut socket: WebSoc
             i.viewers.push(viewer.clone());
             i.next_viewer += 1;
             i.idle_since = None;
+            session.viewers_changed.notify_one();
             true
         }
     };
@@ -1021,10 +1070,13 @@ async fn serve_viewer(state: AppState, session: Arc<Session>, mut socket: WebSoc
         return;
     }
     let (code, reason) = viewer_loop(&state, &session, &viewer, &mut socket).await;
+    // An image still rendering for it stops at its next stage.
+    viewer.gone.cancel();
     if let Ok(mut i) = session.inner.lock() {
         i.viewers.retain(|v| !Arc::ptr_eq(v, &viewer));
         if i.viewers.is_empty() {
             i.idle_since = Some(Instant::now());
+            session.viewers_changed.notify_one();
         }
     }
     if code == close::POLICY || code == close::TOO_BIG {
@@ -1112,7 +1164,8 @@ async fn viewer_loop(
                             Err(c) => return c,
                         };
                         if let Some(c) = &update.camera
-                            && let Err(c) = check_camera(c)
+                            && let Some(s) = viewer.settings()
+                            && let Err(c) = check_camera(c, &s.image)
                         {
                             return c;
                         }
@@ -1144,33 +1197,78 @@ async fn viewer_loop(
 // ---------------------------------------------------------------------------------------------
 // The tick.
 
+/// Starts the tick task of `session`, supervised: if it panics (a bug), the session ends —
+/// removed from the server, its viewers closed with 1011 — and the panic is logged once and
+/// counted (`crowdmorph_session_panics_total`), rather than leaving a session registered that
+/// never ticks, never idles out and counts toward `--max-sessions`.
+fn supervise(session: Arc<Session>, app: Weak<Inner>) {
+    let task = tokio::spawn(run_session(session.clone(), app.clone()));
+    tokio::spawn(async move {
+        let Err(e) = task.await else { return };
+        if !e.is_panic() {
+            return;
+        }
+        let payload = e.into_panic();
+        let why = payload
+            .downcast_ref::<&str>()
+            .map(|s| (*s).to_string())
+            .or_else(|| payload.downcast_ref::<String>().cloned())
+            .unwrap_or_else(|| "a panic".into());
+        tracing::error!(session = %session.id, panic = %why, "a session's tick task panicked; the session ends");
+        if let Some(inner) = app.upgrade() {
+            let state = AppState(inner);
+            bump_panic(&state);
+            state.sessions.remove(&session.id);
+        }
+        session.stop(close::INTERNAL, "session ended: internal error");
+    });
+}
+
+fn bump_panic(state: &AppState) {
+    state.metrics.session_panics.fetch_add(1, Ordering::Relaxed);
+}
+
+impl Session {
+    /// When the session ends for want of viewers, if it has none now.
+    fn idle_deadline(&self) -> Option<Instant> {
+        let since = self.inner.lock().ok().and_then(|i| i.idle_since)?;
+        Some(since + Duration::from_secs(u64::from(self.idle_timeout_s)))
+    }
+}
+
 /// The tick task of one session.
 async fn run_session(session: Arc<Session>, app: Weak<Inner>) {
-    let period = Duration::from_secs_f64(1.0 / f64::from(session.fps));
+    // `fps` is at least MIN_FPS (checked at creation): a period of at most ten seconds.
+    let period = Duration::from_secs_f64(1.0 / f64::from(session.fps.max(MIN_FPS)));
     let start = Instant::now();
     let mut slot: u64 = 0;
     loop {
         let due = start + period.mul_f64(slot as f64);
+        // Woken for the tick, for the idle timeout (whichever comes first: a slow session
+        // still ends on time), when its viewers change, or when it stops.
+        let idle_at = session.idle_deadline();
+        let wake = idle_at.map_or(due, |t| t.min(due));
         tokio::select! {
-            () = tokio::time::sleep_until(due) => {}
+            () = tokio::time::sleep_until(wake) => {}
             () = session.stopping.notified() => {}
+            () = session.viewers_changed.notified() => {}
         }
         if session.stopped.load(Ordering::Acquire) {
             break;
         }
         let Some(inner) = app.upgrade() else { break };
         let state = AppState(inner);
-        let idle = session
-            .inner
-            .lock()
-            .ok()
-            .and_then(|i| i.idle_since)
-            .is_some_and(|t| t.elapsed() >= Duration::from_secs(u64::from(session.idle_timeout_s)));
-        if idle {
+        if session.idle_deadline().is_some_and(|t| Instant::now() >= t) {
             tracing::info!(session = %session.id, "session ended: no viewer for its idle timeout");
             state.sessions.remove(&session.id);
             session.stop(close::AWAY, "session ended (idle)");
             break;
+        }
+        if Instant::now() < due {
+            continue;
+        }
+        if session.panic_next_tick.swap(false, Ordering::AcqRel) {
+            panic!("test hook: a session tick panics");
         }
         let tick = slot + 1;
         let computed = tick_once(&state, &session, tick).await;
@@ -1670,8 +1768,11 @@ fn start_frame(
     };
     let state = state.clone();
     let session = session.clone();
+    let cancel = viewer
+        .gone
+        .with_deadline(std::time::Instant::now() + state.config.request_timeout);
     tokio::spawn(async move {
-        let rendered = state.render_for_session(req).await;
+        let rendered = state.render_for_session(req, cancel).await;
         let delivered = match rendered {
             Ok((image, width, height, format)) => {
                 let message = crowdmorph_proto::StreamMessage::Frame(crowdmorph_proto::TickFrame {
@@ -1698,8 +1799,19 @@ fn start_frame(
                     Err(_) => None,
                 }
             }
+            Err(e) if e.status.is_client_error() => {
+                // The viewer's own choice can never be drawn (its image over the viewers'
+                // share, a crowd too costly at its size): tell it once and close it, rather
+                // than failing at every tick.
+                tracing::debug!(error = %e.message, "session frame cannot be drawn; closing the viewer");
+                bump(&state.sessions.metrics.viewers_closed_policy, 1);
+                viewer.ask_close(close::POLICY, &truncate(e.message));
+                None
+            }
             Err(e) => {
+                // Busy (503), cancelled: this tick's image is skipped.
                 tracing::debug!(error = %e.message, "session frame not drawn");
+                bump(&state.sessions.metrics.dropped_rendering, 1);
                 None
             }
         };

@@ -3,6 +3,7 @@
 //! reference for every vertex that comes back.
 
 mod api;
+mod attack;
 mod bad_input;
 mod concurrency;
 mod connections;

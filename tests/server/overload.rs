@@ -180,6 +180,15 @@ async fn past_the_deadline_is_504_and_abandoned_jobs_are_not_computed() {
     assert!(eventually(|| m.jobs_cancelled.load(Ordering::Relaxed) == 1).await);
     assert_eq!(m.jobs_computed.load(Ordering::Relaxed), 0);
     assert!(eventually(|| m.queue_depth.load(Ordering::Relaxed) == 0).await);
+    let page = server.client.metrics().await.unwrap();
+    assert_eq!(
+        metric(
+            &page,
+            "crowdmorph_cancelled_total{work=\"frame\",reason=\"deadline\"}"
+        ),
+        Some(1.0),
+        "the request stopped by its deadline is counted"
+    );
     server.stop().await;
 }
 
@@ -292,8 +301,15 @@ async fn a_client_that_disconnects_does_not_cancel_shared_work() {
         "shared work kept"
     );
     assert_eq!(m.jobs_computed.load(Ordering::Relaxed), 2);
-    // A was really gone: only B's request was answered.
+    // A was really gone: only B's request was answered, and A's counted as cancelled.
     let text = server.client.metrics().await.unwrap();
+    assert_eq!(
+        metric(
+            &text,
+            "crowdmorph_cancelled_total{work=\"frame\",reason=\"dropped\"}"
+        ),
+        Some(1.0)
+    );
     let answered: f64 = text
         .lines()
         .filter(|l| l.starts_with("crowdmorph_http_requests_total{route=\"/v1/crowd/frame\""))

@@ -131,6 +131,8 @@ async fn rigs_and_clips_survive_restarts_and_corrupt_files_are_skipped() {
 pub(super) struct Proc {
     pub(super) child: Child,
     pub(super) base: String,
+    /// Every line it has logged (stderr), as it arrives.
+    pub(super) log: std::sync::Arc<std::sync::Mutex<Vec<String>>>,
 }
 
 fn spawn(dir: &Path) -> Proc {
@@ -152,8 +154,10 @@ pub(super) fn spawn_with(dir: &Path, env: &[(&str, &str)]) -> Proc {
     let stderr = child.stderr.take().expect("stderr");
     let mut lines = BufReader::new(stderr).lines();
     let mut base = None;
+    let log = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
     for line in lines.by_ref() {
         let line = line.expect("log line");
+        log.lock().unwrap().push(line.clone());
         if line.contains("listening")
             && let Some(at) = line.rfind("127.0.0.1:")
         {
@@ -166,10 +170,16 @@ pub(super) fn spawn_with(dir: &Path, env: &[(&str, &str)]) -> Proc {
         }
     }
     // Keep draining the log so the child never blocks on a full pipe.
-    std::thread::spawn(move || for _ in lines {});
+    let kept = log.clone();
+    std::thread::spawn(move || {
+        for line in lines.map_while(Result::ok) {
+            kept.lock().unwrap().push(line);
+        }
+    });
     Proc {
         child,
         base: base.expect("the server logged its address"),
+        log,
     }
 }
 

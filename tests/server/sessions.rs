@@ -20,12 +20,17 @@ use tokio_tungstenite::tungstenite::Message;
 
 use super::{TestServer, positions_f32};
 
-type Ws =
+pub(super) type Ws =
     tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>>;
 
-const READ: Duration = Duration::from_secs(20);
+pub(super) const READ: Duration = Duration::from_secs(20);
 
-async fn call(server: &TestServer, method: Method, path: &str, body: Value) -> (u16, Value) {
+pub(super) async fn call(
+    server: &TestServer,
+    method: Method,
+    path: &str,
+    body: Value,
+) -> (u16, Value) {
     let bytes = if body.is_null() {
         Bytes::new()
     } else {
@@ -45,7 +50,7 @@ async fn call(server: &TestServer, method: Method, path: &str, body: Value) -> (
     (reply.status, value)
 }
 
-async fn create(server: &TestServer, body: Value) -> SessionInfo {
+pub(super) async fn create(server: &TestServer, body: Value) -> SessionInfo {
     let (status, v) = call(server, Method::POST, "/v1/sessions", body).await;
     assert_eq!(status, 201, "{v}");
     serde_json::from_value(v).expect("SessionInfo")
@@ -63,7 +68,7 @@ async fn info(server: &TestServer, id: &str) -> SessionInfo {
     serde_json::from_value(v).expect("SessionInfo")
 }
 
-fn head(id: u64, clip: &str, offset: i64, position: [f32; 3]) -> Value {
+pub(super) fn head(id: u64, clip: &str, offset: i64, position: [f32; 3]) -> Value {
     json!({"head": id, "rig": "default-head", "clip": clip, "offset": offset, "position": position})
 }
 
@@ -74,7 +79,7 @@ fn idle_grid(n: u64) -> Vec<Value> {
         .collect()
 }
 
-async fn connect(server: &TestServer, id: &str, hello: Value) -> Ws {
+pub(super) async fn connect(server: &TestServer, id: &str, hello: Value) -> Ws {
     let url = format!("ws://{}/v1/sessions/{id}/stream", server.addr);
     let (mut ws, _) = tokio_tungstenite::connect_async(url)
         .await
@@ -109,7 +114,7 @@ async fn next_tick(ws: &mut Ws) -> TickVertices {
 }
 
 /// The close frame the server sends next (skipping data messages).
-async fn next_close(ws: &mut Ws) -> (u16, String) {
+pub(super) async fn next_close(ws: &mut Ws) -> (u16, String) {
     loop {
         let msg = tokio::time::timeout(READ, ws.next())
             .await

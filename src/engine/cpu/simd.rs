@@ -589,11 +589,12 @@ impl Isa {
         v
     }
 
-    /// Name for logs and bench output.
+    /// Name for logs, bench output and `/readyz`'s `cpu_isa` (the values proto/README.md lists,
+    /// and that `CROWDMORPH_SIMD` takes).
     pub fn name(self) -> &'static str {
         match self {
             Isa::Avx512 => "avx512",
-            Isa::Avx2Fma => "avx2+fma",
+            Isa::Avx2Fma => "avx2",
             Isa::Portable => "portable",
         }
     }
