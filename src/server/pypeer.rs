@@ -63,12 +63,12 @@ pub const SCRIPTS: &[(&str, &str)] = &[
         include_str!("../../clients/python/src/crowdmorph/obj.py"),
     ),
     (
-        "src/crowdmorph/sessions.py",
-        include_str!("../../clients/python/src/crowdmorph/sessions.py"),
+        "src/crowdmorph/results.py",
+        include_str!("../../clients/python/src/crowdmorph/results.py"),
     ),
     (
-        "src/crowdmorph/websocket.py",
-        include_str!("../../clients/python/src/crowdmorph/websocket.py"),
+        "src/crowdmorph/sessions.py",
+        include_str!("../../clients/python/src/crowdmorph/sessions.py"),
     ),
     (
         "src/crowdmorph/wire.py",

@@ -37,6 +37,23 @@ except ImportError:  # pragma: no cover - depends on how the tests are run
 #: The admin token the shared server runs with.
 TOKEN = "py-test-token"
 
+# Session streams need the optional websockets package (`pip install 'crowdmorph[sessions]'`);
+# without it the tests that open one are skipped, saying so, and the others still run.
+try:
+    import websockets.sync.client  # noqa: F401
+
+    HAVE_WEBSOCKETS = True
+except ImportError:  # pragma: no cover - depends on the machine
+    HAVE_WEBSOCKETS = False
+
+#: Marks a test that opens a session stream.
+needs_websockets = pytest.mark.skipif(
+    not HAVE_WEBSOCKETS,
+    reason="websockets (>= 11) is not installed, so session streams cannot be opened: "
+    "pip install 'crowdmorph[sessions]' (or /usr/bin/python3 -m pip install "
+    "--break-system-packages 'websockets>=11')",
+)
+
 PROTO_GOLDEN = REPO / "proto" / "tests" / "golden"
 ALIGNED_GOLDEN = REPO / "tests" / "golden" / "crowd_frame_aligned.bin"
 

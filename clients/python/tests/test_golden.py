@@ -16,7 +16,7 @@ import pytest
 
 import crowdmorph
 from crowdmorph import arrays, messages, wire
-from crowdmorph.client import CrowdFrame
+from crowdmorph.results import CrowdFrame
 from conftest import ALIGNED_GOLDEN, PROTO_GOLDEN
 from _util import f32, flat, norm_floats
 

@@ -1,14 +1,17 @@
 """Crowd sessions against a real ``crowdmorph serve``: the REST calls and the stream viewer.
 
-Viewers here are :class:`crowdmorph.Viewer` objects (the package's own WebSocket client), and
-the tests check what a viewer ends up drawing (each head's positions after "unchanged" and
-layouts are applied), against the server's ``/v1/crowd/frame`` for the same frames.
+Viewers here are :class:`crowdmorph.Viewer` objects (over the ``websockets`` package's client),
+and the tests check what a viewer ends up drawing (each head's positions after "unchanged" and
+layouts are applied), against the server's ``/v1/crowd/frame`` for the same frames, and how
+the stream's closes, limits and timeouts reach the caller. The tests that open a stream are
+skipped, with the reason, where websockets is not installed; the REST ones run everywhere.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import sys
 import time
 from typing import Dict, Iterator, List
 
@@ -17,6 +20,7 @@ import pytest
 import crowdmorph
 from crowdmorph import HEAD_UNCHANGED, SessionHead, as_dict
 from _util import flat, norm_floats
+from conftest import needs_websockets
 
 RIG = "default-head"
 
@@ -88,10 +92,33 @@ def test_sessions_are_created_listed_patched_and_deleted(client, anonymous, sess
     assert e.value.code == "invalid_session" and "fps" in e.value.message
 
     client.delete_session(info.id)
-    for call in (client.session, client.delete_session, client.stream):
+    for call in (client.session, client.delete_session):
         with pytest.raises(crowdmorph.NotFound) as e:
             call(info.id)
         assert e.value.code == "unknown_session"
+
+
+@needs_websockets
+def test_a_stream_of_an_unknown_session_raises_the_servers_404(client, sessions):
+    info = _create(client, sessions, [(1, RIG, "talk")])
+    client.delete_session(info.id)
+    # The refused handshake's JSON error body, as for every other call.
+    with pytest.raises(crowdmorph.NotFound) as e:
+        client.stream(info.id)
+    assert e.value.code == "unknown_session" and info.id in e.value.message
+
+
+def test_without_websockets_a_stream_says_what_to_install(monkeypatch):
+    # None in sys.modules makes `import websockets` fail, as on a machine without it; the
+    # error comes before any connection, and the rest of the package needs nothing.
+    for name in [m for m in sys.modules if m == "websockets" or m.startswith("websockets.")]:
+        monkeypatch.delitem(sys.modules, name)
+    monkeypatch.setitem(sys.modules, "websockets", None)
+    with crowdmorph.Client("http://127.0.0.1:9") as c:
+        with pytest.raises(ImportError) as e:
+            c.stream("s1")
+    assert "pip install 'crowdmorph[sessions]'" in str(e.value)
+    assert "websockets>=11" in str(e.value)
 
 
 def test_session_messages_decode_to_the_servers_json(client, sessions):
@@ -127,6 +154,7 @@ def test_session_messages_decode_to_the_servers_json(client, sessions):
     assert [s["id"] for s in listed["sessions"]] == [s.id for s in client.sessions()]
 
 
+@needs_websockets
 def test_two_viewers_get_identical_vertices_for_clones(client, sessions):
     # Heads 1 and 2, 3 and 4 are clones (same clip and offset) at different places; two
     # viewers with different cameras draw the same vertices at every tick both received.
@@ -167,6 +195,7 @@ def test_two_viewers_get_identical_vertices_for_clones(client, sessions):
     assert last[1] != last[5], "offset 3 plays another frame"
 
 
+@needs_websockets
 @pytest.mark.parametrize("fmt, normals", [("f32", False), ("q16", True), ("f16", False)])
 def test_the_decoded_vertices_equal_a_crowd_frame_of_the_same_frame(
     client, sessions, backend, fmt, normals
@@ -195,6 +224,7 @@ def test_the_decoded_vertices_equal_a_crowd_frame_of_the_same_frame(
                 assert t.normals == {}
 
 
+@needs_websockets
 def test_unchanged_heads_keep_their_vertices(client, sessions):
     idle = client.clip(RIG, "idle")
     # Ticks at twice the clip's rate: every clip frame lasts two ticks, so about every other
@@ -226,6 +256,7 @@ def test_unchanged_heads_keep_their_vertices(client, sessions):
     assert unchanged >= 2 and changed >= 2, (unchanged, changed)
 
 
+@needs_websockets
 def test_a_patch_changes_the_layout_at_a_later_tick(client, sessions):
     info = _create(client, sessions, [(1, RIG, "talk"), (2, RIG, "smile", 0, [1, 0, 0])])
     with client.stream(info.id, format="f16") as viewer:
@@ -251,6 +282,7 @@ def test_a_patch_changes_the_layout_at_a_later_tick(client, sessions):
         assert t.buffers[2].clip == "surprise" and t.buffers[9].clip == "idle"
 
 
+@needs_websockets
 def test_a_lod_update_applies_from_a_later_tick(client, sessions):
     levels = len(client.rig(RIG).lod.levels)
     assert levels >= 2
@@ -268,6 +300,7 @@ def test_a_lod_update_applies_from_a_later_tick(client, sessions):
         assert t.buffers[1].vertices == client.rig(RIG).lod.levels[-1].vertices
 
 
+@needs_websockets
 def test_a_bad_hello_closes_the_stream_with_1008_and_the_reason(client, sessions):
     info = _create(client, sessions, [(1, RIG, "talk")])
     viewer = client.stream(info.id, lod=[[10, 1], [5, 2]])
@@ -282,6 +315,7 @@ def test_a_bad_hello_closes_the_stream_with_1008_and_the_reason(client, sessions
     assert e.value.code == 1008 and "camera" in e.value.reason
 
 
+@needs_websockets
 def test_deleting_the_session_closes_its_streams_with_1001(client, sessions):
     info = _create(client, sessions, [(1, RIG, "talk")])
     a = client.stream(info.id)
@@ -296,6 +330,7 @@ def test_deleting_the_session_closes_its_streams_with_1001(client, sessions):
         assert (e.value.code, e.value.reason, e.value.local) == (1001, "session deleted", False)
 
 
+@needs_websockets
 def test_closing_a_viewer_ends_its_iteration_and_frees_its_place(client, sessions):
     info = _create(client, sessions, [(1, RIG, "talk")])
     viewer = client.stream(info.id)
@@ -312,6 +347,7 @@ def test_closing_a_viewer_ends_its_iteration_and_frees_its_place(client, session
     assert client.session(info.id).viewers == 0
 
 
+@needs_websockets
 def test_the_server_answers_a_viewers_close_with_1000(client, sessions):
     info = _create(client, sessions, [(1, RIG, "talk")])
     viewer = client.stream(info.id)
@@ -320,6 +356,7 @@ def test_the_server_answers_a_viewers_close_with_1000(client, sessions):
     assert viewer.closed.code == 1000 and not viewer.closed.local
 
 
+@needs_websockets
 def test_a_viewer_that_asks_for_frames_gets_images(client, sessions):
     if client.readyz().renderer is None:
         pytest.skip("the server has no adapter to render with (install mesa-vulkan-drivers)")
@@ -332,3 +369,41 @@ def test_a_viewer_that_asks_for_frames_gets_images(client, sessions):
         assert isinstance(f, crowdmorph.StreamFrame)
         assert (f.format, f.width, f.height) == ("png", 80, 60)
         assert f.image[:8] == b"\x89PNG\r\n\x1a\n" and f.image.content_type == "image/png"
+
+
+@needs_websockets
+def test_a_message_over_max_message_closes_the_stream_with_1009(client, sessions):
+    # The first message carries the layout and a whole buffer: far over 1 KiB.
+    info = _create(client, sessions, [(1, RIG, "talk")])
+    viewer = client.stream(info.id, format="f32", max_message=1024)
+    with pytest.raises(crowdmorph.StreamClosed) as e:
+        next(viewer)
+    assert e.value.code == 1009 and e.value.local, e.value
+    assert viewer.closed is e.value
+    with pytest.raises(crowdmorph.StreamClosed) as again:
+        next(viewer)
+    assert again.value is e.value
+    viewer.close()
+    assert viewer.closed is e.value
+
+
+@needs_websockets
+def test_a_timeout_between_ticks_leaves_the_stream_usable(client, sessions):
+    info = _create(client, sessions, [(1, RIG, "talk")], fps=1)
+    with client.stream(info.id, timeout=30) as viewer:
+        first = next(viewer)
+        # Right after a tick the next one is about a second away (but the first message may
+        # have been an older tick, so a tick may still come at once).
+        for _ in range(3):
+            started = time.monotonic()
+            try:
+                first = viewer.next(timeout=0.2)
+            except TimeoutError:
+                break
+        else:
+            pytest.fail("no 0.2 s without a tick at 1 fps")
+        assert time.monotonic() - started < 0.9
+        later = next(viewer)
+        assert later.tick > first.tick and set(later.positions) == {1}
+        viewer.update(lod=1)
+        assert next(viewer).tick > later.tick

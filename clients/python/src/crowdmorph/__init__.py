@@ -1,7 +1,8 @@
 """Python client of the crowdmorph blendshape crowd server (v1 protocol).
 
 Speaks the binary protocol (``application/x-bincode``) of ``proto/README.md``; standard library
-only, numpy optional (decoded vertex arrays are numpy arrays when it is installed)::
+only, numpy optional (decoded vertex arrays are numpy arrays when it is installed), and
+``websockets`` (11 or later) for session streams only (``pip install 'crowdmorph[sessions]'``)::
 
     import crowdmorph
 
@@ -9,24 +10,15 @@ only, numpy optional (decoded vertex arrays are numpy arrays when it is installe
         frame = c.crowd_frame([(7, "default-head", "talk", 12)], format="q16")
         xyz = frame.positions(0)          # (vertices, 3) float32, dequantized
 
-Modules: :mod:`~crowdmorph.client` (the HTTP client and decoded results),
-:mod:`~crowdmorph.messages` (the wire messages), :mod:`~crowdmorph.wire` (bincode),
-:mod:`~crowdmorph.arrays` (payload decoding), :mod:`~crowdmorph.errors` (typed errors),
-:mod:`~crowdmorph.obj` (OBJ output), :mod:`~crowdmorph.sessions` (session viewers) and
-:mod:`~crowdmorph.websocket` (the WebSocket client they use).
+Modules: :mod:`~crowdmorph.client` (the HTTP client), :mod:`~crowdmorph.results` (decoded
+results: buffers, crowd frames, meshes, images), :mod:`~crowdmorph.sessions` (session
+viewers, over the ``websockets`` client), :mod:`~crowdmorph.messages` (the wire messages),
+:mod:`~crowdmorph.wire` (bincode), :mod:`~crowdmorph.arrays` (payload decoding),
+:mod:`~crowdmorph.errors` (typed errors) and :mod:`~crowdmorph.obj` (OBJ output).
 """
 
 from .arrays import HAVE_NUMPY
-from .client import (
-    BINCODE,
-    Buffer,
-    Client,
-    CrowdFrame,
-    Image,
-    Mesh,
-    Response,
-    self_contained_gltf,
-)
+from .client import BINCODE, Client, Response, self_contained_gltf
 from .errors import (
     BadRequest,
     Conflict,
@@ -88,8 +80,9 @@ from .messages import (
     as_dict,
     decode_stream_message,
 )
-from .sessions import StreamFrame, Tick, Viewer
 from .obj import write_obj
+from .results import Buffer, CrowdFrame, Image, Mesh
+from .sessions import StreamFrame, Tick, Viewer
 from .wire import DecodeError, decode, encode
 
 #: The wire protocol version this client speaks (the ``/v1`` of every path).

@@ -4,13 +4,13 @@
 bincode (``application/x-bincode``), never JSON, except where the protocol only has JSON
 (``/healthz``, ``/readyz``) or the body is a file (rig and clip uploads) or an image (renders).
 Crowd frames and meshes come back with their payloads decoded into arrays
-(:mod:`crowdmorph.arrays`); the raw message stays reachable as ``.response``.
+(:mod:`crowdmorph.results`); the raw message stays reachable as ``.response``.
 
 Extending: every call goes through :meth:`Client.request`, which sends one request on the kept
 connection and turns error answers into :mod:`crowdmorph.errors` exceptions, and through
 :func:`crowdmorph.wire.encode` / :func:`crowdmorph.wire.decode` for bodies. Session
-streams are WebSockets (:mod:`crowdmorph.websocket`), opened by :meth:`Client.stream` on a
-socket of their own and decoded by :class:`crowdmorph.sessions.Viewer`.
+streams are WebSockets, opened by :meth:`Client.stream` on a connection of their own (with
+the optional ``websockets`` package) and decoded by :class:`crowdmorph.sessions.Viewer`.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ import urllib.parse
 from typing import Any, Dict, Iterable, List, Mapping, Optional, Sequence, Tuple, Union
 
 from . import arrays as _arrays
+from . import sessions as _sessions
 from .errors import NotFound, ProtocolError, error_from_response
 from .messages import (
     CameraSpec,
@@ -33,31 +34,28 @@ from .messages import (
     ClipUpload,
     CrowdFrameRequest,
     CrowdFrameResponse,
-    FrameBuffer,
-    FrameTimings,
     Head,
-    HeadBuffer,
+    HeadChange,
     ImageOptions,
     LodInfo,
     LodLevelRequest,
     LodRequest,
-    MeshPrimitive,
     MeshResponse,
     OutputOptions,
     Placement,
-    Quantization,
     Readiness,
     RenderRequest,
     RigInfo,
     RigList,
-    Aabb,
-    HeadChange,
     SessionHead,
     SessionInfo,
     SessionList,
     SessionPatch,
     SessionRequest,
 )
+# The decoded results live in crowdmorph.results (crowdmorph.sessions makes them too); they are
+# imported here as well, so that crowdmorph.client.Buffer and the like keep working.
+from .results import Buffer, CrowdFrame, Image, Mesh
 from .wire import DecodeError, decode, encode
 
 __all__ = [
@@ -98,147 +96,6 @@ class Response:
     @property
     def request_id(self) -> Optional[str]:
         return self.headers.get("x-request-id")
-
-
-class Buffer:
-    """One unique blended buffer of a crowd frame, decoded.
-
-    ``positions`` and ``normals`` (``None`` unless asked for) are float32 arrays: numpy
-    ``(vertices, 3)`` arrays, or flat ``array('f')`` without numpy. ``quantization`` is the box
-    q16 positions were decoded with (``None`` for other formats). ``wire`` is the undecoded
-    :class:`~crowdmorph.messages.FrameBuffer` (its ``positions`` are the payload bytes).
-    """
-
-    __slots__ = (
-        "rig",
-        "clip",
-        "frame",
-        "lod",
-        "vertices",
-        "quantization",
-        "positions",
-        "normals",
-        "wire",
-    )
-
-    def __init__(self, fb: FrameBuffer, fmt: str, backend: str):
-        self.rig = fb.rig
-        self.clip = fb.clip
-        self.frame = fb.frame
-        self.lod = fb.lod
-        self.vertices = fb.vertices
-        self.quantization = fb.quantization
-        self.wire = fb
-        self.positions = _arrays.decode_positions(
-            fb.positions, fmt, fb.quantization, backend, fb.vertices
-        )
-        self.normals = (
-            None
-            if fb.normals is None
-            else _arrays.decode_normals(fb.normals, fmt, backend, fb.vertices)
-        )
-
-    def __repr__(self) -> str:
-        return (
-            f"Buffer(rig={self.rig!r}, clip={self.clip!r}, frame={self.frame}, lod={self.lod}, "
-            f"vertices={self.vertices})"
-        )
-
-
-class CrowdFrame:
-    """A decoded crowd frame: the unique ``buffers``, and per request head (in request order)
-    its :class:`~crowdmorph.messages.HeadBuffer` in ``heads`` (a
-    :class:`~crowdmorph.messages.HeadBuffers`; ``heads.buffer_indices`` is an array).
-    ``positions(i)`` is the positions of request head ``i``; clones share one array.
-    ``response`` is the raw message."""
-
-    __slots__ = ("format", "normals", "buffers", "heads", "timings", "response")
-
-    def __init__(self, response: CrowdFrameResponse, backend: str):
-        self.response = response
-        self.format: str = response.format
-        self.normals: bool = response.normals
-        self.timings: FrameTimings = response.timings
-        self.heads: Sequence[HeadBuffer] = response.heads
-        self.buffers: List[Buffer] = [Buffer(b, response.format, backend) for b in response.buffers]
-        indices = getattr(self.heads, "buffer_indices", None)
-        if indices is None:
-            indices = [h.buffer for h in self.heads]
-        if len(indices) and max(indices) >= len(self.buffers):
-            raise ValueError(f"a head names buffer {max(indices)} of {len(self.buffers)}")
-
-    def __len__(self) -> int:
-        return len(self.heads)
-
-    def buffer(self, i: int) -> Buffer:
-        """The buffer request head ``i`` uses."""
-        return self.buffers[self.heads[i].buffer]
-
-    def positions(self, i: int) -> Any:
-        """Positions of request head ``i``."""
-        return self.buffer(i).positions
-
-    def __repr__(self) -> str:
-        return (
-            f"CrowdFrame(format={self.format!r}, heads={len(self.heads)}, "
-            f"buffers={len(self.buffers)}, timings={self.timings})"
-        )
-
-
-class Mesh:
-    """A rig's topology and neutral pose at a LOD level (``GET /v1/rigs/{id}/mesh``).
-
-    ``indices`` (a triangle list over the concatenated vertex space), ``positions`` and
-    ``normals`` are arrays as in :class:`Buffer` (numpy ``(n, 3)`` or flat ``array``);
-    ``primitives`` give each primitive's vertex and index ranges; ``quantization`` is the box
-    of the rig's q16 buffers. ``response`` is the raw message.
-    """
-
-    __slots__ = (
-        "rig",
-        "lod",
-        "vertices",
-        "primitives",
-        "bbox",
-        "quantization",
-        "indices",
-        "positions",
-        "normals",
-        "response",
-    )
-
-    def __init__(self, response: MeshResponse, backend: str):
-        self.response = response
-        self.rig: str = response.rig
-        self.lod: int = response.lod
-        self.vertices: int = response.vertices
-        self.primitives: List[MeshPrimitive] = response.primitives
-        self.bbox: Aabb = response.bbox
-        self.quantization: Quantization = response.quantization
-        self.indices = _arrays.decode_u32(response.indices, backend)
-        self.positions = _arrays.decode_f32(response.positions, backend, response.vertices)
-        self.normals = _arrays.decode_f32(response.normals, backend, response.vertices)
-
-    @property
-    def triangles(self) -> int:
-        return len(self.response.indices) // 12
-
-    def __repr__(self) -> str:
-        return (
-            f"Mesh(rig={self.rig!r}, lod={self.lod}, vertices={self.vertices}, "
-            f"triangles={self.triangles})"
-        )
-
-
-class Image(bytes):
-    """A rendered image: the body's bytes (PNG, JPEG or raw RGBA8), with ``content_type``,
-    ``width``, ``height`` and ``server_timing`` (milliseconds by phase: ``compute``,
-    ``render``, ``readback``, ``encode``)."""
-
-    content_type: str
-    width: int
-    height: int
-    server_timing: Dict[str, float]
 
 
 def _server_timing(value: Optional[str]) -> Dict[str, float]:
@@ -858,45 +715,42 @@ class Client:
         image: Optional[Union[ImageOptions, Mapping[str, Any]]] = None,
         *,
         timeout: Optional[float] = None,
-        max_message: int = 1 << 31,
-    ) -> Any:
+        max_message: Optional[int] = 1 << 31,
+    ) -> _sessions.Viewer:
         """Watches a session: opens ``GET /v1/sessions/{id}/stream`` (a WebSocket on its own
         connection), sends the hello and returns a :class:`~crowdmorph.sessions.Viewer`, an
         iterator of :class:`~crowdmorph.sessions.Tick` (every head's current positions, with
         "unchanged" applied) or, for ``output="frames"``,
         :class:`~crowdmorph.sessions.StreamFrame` images.
 
+        Needs the ``websockets`` package (11 or later): ``pip install 'crowdmorph[sessions]'``;
+        without it this raises :class:`ImportError` saying so (the rest of the client works
+        without it).
+
         ``format`` (``f32``, ``f16``, ``q16``) and ``normals`` as for crowd frames; ``lod`` is a
         level for every head or ``[[metres, level], ...]`` by distance from ``camera``
         (a :class:`~crowdmorph.messages.CameraSpec` or dict; needed for LOD by distance and
         images); ``image`` the :class:`~crowdmorph.messages.ImageOptions` of frames.
-        ``timeout`` is the socket timeout (default: the client's). An unknown session raises
+        ``timeout`` (seconds; default: the client's) bounds the opening handshake and each
+        wait for a message; ``max_message`` is the largest message taken, in bytes (``None``:
+        no limit; a larger one closes the stream with 1009). An unknown session raises
         :class:`~crowdmorph.errors.NotFound`; a hello the server refuses raises
         :class:`~crowdmorph.errors.StreamClosed` (1008 with the reason) from the iteration.
         """
-        from . import sessions as _sessions
-        from . import websocket as _websocket
-
         settings = _sessions.hello(format, normals, lod, camera, output, image)
-        port = self._port or (443 if self._scheme == "https" else 80)
-        headers = {"User-Agent": f"crowdmorph-python/{_VERSION}"}
-        if self.token is not None:
-            headers["Authorization"] = f"Bearer {self.token}"
-        ws = _websocket.connect(
-            self._host,
-            port,
-            f"{self._prefix}/v1/sessions/{_seg(session)}/stream",
-            tls=self._scheme == "https",
-            headers=headers,
+        host = f"[{self._host}]" if ":" in self._host else self._host
+        netloc = host if self._port is None else f"{host}:{self._port}"
+        scheme = "wss" if self._scheme == "https" else "ws"
+        return _sessions.open_viewer(
+            f"{scheme}://{netloc}{self._prefix}/v1/sessions/{_seg(session)}/stream",
+            session,
+            settings,
+            self.arrays,
+            token=self.token,
+            user_agent=f"crowdmorph-python/{_VERSION}",
             timeout=self.timeout if timeout is None else timeout,
             max_message=max_message,
         )
-        try:
-            ws.send_text(json.dumps(settings))
-        except BaseException:
-            ws.sock.close()
-            raise
-        return _sessions.Viewer(ws, session, settings, self.arrays)
 
 
 def _session_head(h: SessionHeadLike) -> SessionHead:

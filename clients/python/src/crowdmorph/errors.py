@@ -127,8 +127,9 @@ class StreamClosed(Exception):
     64 KiB, ``1013`` the session has all the viewers it takes or the server is stopping,
     ``1001`` the session was deleted (``"session deleted"``) or ended, ``1000`` the answer to
     this viewer's own close. ``local`` is true when this side ended the connection: ``1006``
-    (it ended without a close frame, or timed out mid-frame), or ``1002``/``1007``/``1009``
-    when the server broke the WebSocket protocol.
+    (it ended without a close frame, or no answer came to this side's close), ``1009`` a
+    message over the stream's ``max_message``, or ``1002``/``1007`` when the server broke the
+    WebSocket protocol.
 
     Not a :class:`CrowdmorphError`: its ``code`` is the WebSocket's number, not an HTTP
     error's string.

@@ -6,7 +6,7 @@ lowercase variant names as strings (``"f32"``, ``"q16"``, ``"png"``...). ``Blob`
 ``memoryview`` slices of the response body in decoded messages; any bytes-like object is
 accepted when encoding.
 
-These are the raw wire messages; :mod:`crowdmorph.client` turns payloads into arrays.
+These are the raw wire messages; :mod:`crowdmorph.results` turns payloads into arrays.
 """
 
 from __future__ import annotations

@@ -11,15 +11,20 @@ every head's current positions (and normals), as drawing code wants them.
 The server drops ticks a slow viewer has not read yet and sends the newest one instead, so
 tick numbers may skip; "unchanged" always refers to the message this viewer last received, so
 applying the messages in order is always right.
+
+The WebSocket is the ``websockets`` package's synchronous client (version 11 or later), an
+optional dependency: ``pip install 'crowdmorph[sessions]'``. It is imported only when a
+stream is opened, so the rest of the package needs nothing but the standard library.
 """
 
 from __future__ import annotations
 
+import inspect
 import json
+import threading
 from typing import Any, Dict, Iterator, List, Mapping, Optional, Sequence, Union
 
-from .client import Buffer, Image
-from .errors import ProtocolError, StreamClosed
+from .errors import ProtocolError, StreamClosed, error_from_response
 from .messages import (
     HEAD_MISSING,
     HEAD_UNCHANGED,
@@ -31,10 +36,13 @@ from .messages import (
     as_dict,
     decode_stream_message,
 )
-from .websocket import WebSocket
+from .results import Buffer, Image
 from .wire import DecodeError
 
-__all__ = ["Viewer", "Tick", "StreamFrame", "hello", "lod_json", "camera_json"]
+__all__ = ["Viewer", "Tick", "StreamFrame", "open_viewer", "hello", "lod_json", "camera_json"]
+
+#: What to install when the WebSocket library is missing (or older than 11).
+INSTALL_HINT = "pip install 'crowdmorph[sessions]' (or pip install 'websockets>=11')"
 
 _CONTENT_TYPES = {"png": "image/png", "jpeg": "image/jpeg", "rgba": "application/octet-stream"}
 
@@ -50,7 +58,7 @@ class Tick:
     - ``positions`` / ``normals``: head id → its current array (numpy ``(vertices, 3)``
       float32, or a flat ``array('f')``), for every head that has something to draw; clones
       share one array. ``normals`` is empty unless the viewer asked for them.
-    - ``buffers``: head id → the :class:`~crowdmorph.client.Buffer` drawn (its ``rig``,
+    - ``buffers``: head id → the :class:`~crowdmorph.results.Buffer` drawn (its ``rig``,
       ``clip``, ``frame`` played and ``lod``).
     - ``changed``: ids whose buffer this message brought; ``missing``: ids with nothing to
       draw (their rig or clip was deleted).
@@ -91,7 +99,7 @@ class Tick:
 
 class StreamFrame:
     """One tick drawn by the server from the viewer's camera (``output="frames"``):
-    ``tick`` and ``image`` (:class:`~crowdmorph.client.Image` bytes with ``width``,
+    ``tick`` and ``image`` (:class:`~crowdmorph.results.Image` bytes with ``width``,
     ``height`` and ``content_type``); ``format`` is ``png``, ``jpeg`` or ``rgba``."""
 
     __slots__ = ("tick", "format", "image", "message")
@@ -122,19 +130,29 @@ class StreamFrame:
 class Viewer:
     """A viewer of one session: an iterator of :class:`Tick` (or :class:`StreamFrame`).
 
-    Its state is the last message applied: ``tick``, ``layout``, ``positions``, ``normals``
-    and ``buffers`` (each a dict by head id, as in :class:`Tick`). :meth:`update` changes the
-    camera or LOD from the next tick; :meth:`close` leaves (iteration then ends). A close by
-    the server raises :class:`~crowdmorph.errors.StreamClosed` from the iteration, with its
-    code and reason (``1008`` and why for a refused hello, ``1001 session deleted``...).
+    Made by :meth:`crowdmorph.Client.stream` (:func:`open_viewer`). Its state is the last
+    message applied: ``tick``, ``layout``, ``positions``, ``normals`` and ``buffers`` (each a
+    dict by head id, as in :class:`Tick`). :meth:`update` changes the camera or LOD from the
+    next tick; :meth:`close` leaves (iteration then ends). A close by the server raises
+    :class:`~crowdmorph.errors.StreamClosed` from the iteration, with its code and reason
+    (``1008`` and why for a refused hello, ``1001 session deleted``...). ``ws`` is the
+    ``websockets`` connection; ``timeout`` bounds each wait for a message (``None``: none).
     """
 
-    def __init__(self, ws: WebSocket, session: str, settings: Mapping[str, Any], backend: str):
+    def __init__(
+        self,
+        ws: Any,
+        session: str,
+        settings: Mapping[str, Any],
+        backend: str,
+        timeout: Optional[float] = None,
+    ):
         self.ws = ws
         self.session = session
         #: The hello this viewer sent (JSON object).
         self.settings: Dict[str, Any] = dict(settings)
         self.backend = backend
+        self.timeout = timeout
         self.tick = 0
         self.layout: List[SessionHead] = []
         self.positions: Dict[int, Any] = {}
@@ -151,14 +169,25 @@ class Viewer:
         return self
 
     def __next__(self) -> Union[Tick, StreamFrame]:
+        return self._next(self.timeout)
+
+    def next(self, timeout: Optional[float] = None) -> Union[Tick, StreamFrame]:
+        """The next tick, waiting at most ``timeout`` seconds (:class:`TimeoutError`, after
+        which the stream is still usable; ``None``: the stream's ``timeout``)."""
+        return self._next(self.timeout if timeout is None else timeout)
+
+    def _next(self, timeout: Optional[float]) -> Union[Tick, StreamFrame]:
         if self._closing:
             raise StopIteration
+        if self.closed is not None:
+            raise self.closed
+        closed = _websockets().exceptions.ConnectionClosed
         while True:
             try:
-                data = self.ws.recv()
-            except StreamClosed as e:
-                self.closed = e
-                raise
+                data = self.ws.recv(timeout)
+            except closed as e:
+                self.closed = _stream_closed(e)
+                raise self.closed from None
             if isinstance(data, str):
                 continue  # The server sends only binary messages; text is for later versions.
             try:
@@ -169,19 +198,6 @@ class Viewer:
                 self.tick = msg.tick
                 return StreamFrame(msg)
             return self._apply(msg)
-
-    def next(self, timeout: Optional[float] = None) -> Union[Tick, StreamFrame]:
-        """The next tick, waiting at most ``timeout`` seconds (:class:`TimeoutError`;
-        ``None``: the client's timeout)."""
-        if timeout is None:
-            return next(self)
-        before = self.ws.sock.gettimeout()
-        self.ws.sock.settimeout(timeout)
-        try:
-            return next(self)
-        finally:
-            if self.ws.closed is None:
-                self.ws.sock.settimeout(before)
 
     def _apply(self, m: TickVertices) -> Tick:
         layout_changed = m.layout is not None
@@ -276,14 +292,43 @@ class Viewer:
             msg["camera"] = camera_json(camera)
         if lod is not None:
             msg["lod"] = lod_json(lod)
-        self.ws.send_text(json.dumps(msg))
+        self._send(json.dumps(msg))
+
+    def _send(self, text: str) -> None:
+        if self.closed is not None:
+            raise self.closed
+        try:
+            self.ws.send(text)
+        except _websockets().exceptions.ConnectionClosed as e:
+            self.closed = _stream_closed(e)
+            raise self.closed from None
 
     def close(self, timeout: float = 5.0) -> None:
-        """Leaves the session (close 1000); later iteration ends. Idempotent."""
+        """Leaves the session (close 1000), waiting at most ``timeout`` seconds for the
+        server's answer; later iteration ends. ``closed`` then says how it ended: the
+        server's answer (``1000``), or ``1006`` (``local``) when none came. Idempotent."""
         if self._closing:
             return
         self._closing = True
-        self.closed = self.ws.close(1000, "", timeout=timeout)
+        if self.closed is not None:
+            return  # The server closed it first; that is how it ended.
+        ws = self.ws
+        ws.close_timeout = timeout
+        # Messages the viewer has not read are read and dropped meanwhile: websockets stops
+        # reading while they wait (11 holds one, later releases max_queue frames), so that
+        # they would hold back the server's close frame until the timeout.
+        drain = threading.Thread(target=_drain, args=(ws,), daemon=True)
+        drain.start()
+        try:
+            ws.close(1000)
+        except OSError:
+            pass
+        drain.join(timeout)
+        rcvd = ws.protocol.close_rcvd
+        if rcvd is not None:
+            self.closed = StreamClosed(int(rcvd.code), rcvd.reason)
+        else:
+            self.closed = StreamClosed(1006, "no close frame from the server", local=True)
 
     def __enter__(self) -> "Viewer":
         return self
@@ -345,3 +390,104 @@ def hello(
         else:
             raise TypeError(f"image is ImageOptions or a dict, not {type(image).__name__}")
     return msg
+
+
+def _websockets() -> Any:
+    """The ``websockets`` package with its synchronous client, or an :class:`ImportError`
+    that says what to install."""
+    try:
+        import websockets
+        import websockets.exceptions
+        import websockets.sync.client
+    except ImportError as e:
+        raise ImportError(
+            f"session streams need the websockets package, version 11 or later: {INSTALL_HINT}",
+            name="websockets",
+        ) from e
+    return websockets
+
+
+def open_viewer(
+    url: str,
+    session: str,
+    settings: Mapping[str, Any],
+    backend: str,
+    *,
+    token: Optional[str] = None,
+    user_agent: Optional[str] = None,
+    timeout: Optional[float] = 30.0,
+    max_message: Optional[int] = 1 << 31,
+) -> Viewer:
+    """Opens the WebSocket ``url`` (``ws://`` or ``wss://``, the stream of ``session``), sends
+    the hello ``settings`` and returns its :class:`Viewer` (arrays of ``backend``).
+
+    ``token`` is sent as ``Authorization: Bearer``; ``timeout`` bounds the handshake and each
+    wait for a message; ``max_message`` is the largest message taken (``None``: any). No
+    compression is offered (vertex payloads do not shrink), proxies are not used (as by
+    :class:`~crowdmorph.Client`'s HTTP calls), and no keepalive pings are sent (a viewer that
+    stops reading would otherwise miss their answers and be closed).
+
+    A refused handshake raises the :class:`~crowdmorph.errors.CrowdmorphError` of the server's
+    JSON error body (a stream of an unknown session is a 404 ``unknown_session``); a broken
+    one a :class:`~crowdmorph.errors.ProtocolError`; an unreachable server the socket's
+    :class:`OSError`. Without ``websockets`` this raises :class:`ImportError`.
+    """
+    ws_mod = _websockets()
+    client = ws_mod.sync.client
+    exc = ws_mod.exceptions
+    options: Dict[str, Any] = {
+        "compression": None,
+        "open_timeout": timeout,
+        "close_timeout": 5.0,
+        "max_size": max_message,
+    }
+    if token is not None:
+        options["additional_headers"] = {"Authorization": f"Bearer {token}"}
+    if user_agent is not None:
+        options["user_agent_header"] = user_agent
+    # Options that later websockets releases have: no proxy, no keepalive pings, at most a
+    # frame or so read ahead (so that a slow viewer leaves the unread ticks to the server,
+    # which then sends it the newest one instead), and the connection itself as the result
+    # (`legacy`: what connect() returns without a `with` is to change).
+    known = inspect.signature(client.connect).parameters
+    optional = (("proxy", None), ("ping_interval", None), ("max_queue", 1), ("legacy", True))
+    for name, value in optional:
+        if name in known:
+            options[name] = value
+    try:
+        ws = client.connect(url, **options)
+    except exc.InvalidStatus as e:
+        r = e.response
+        retry_after, request_id = r.headers.get("Retry-After"), r.headers.get("x-request-id")
+        raise error_from_response(r.status_code, r.body or b"", retry_after, request_id) from None
+    except exc.InvalidHandshake as e:
+        raise ProtocolError(101, "bad_handshake", str(e)) from e
+    viewer = Viewer(ws, session, settings, backend, timeout)
+    try:
+        viewer._send(json.dumps(viewer.settings))
+    except BaseException:
+        ws.close()
+        raise
+    return viewer
+
+
+def _stream_closed(e: Any) -> StreamClosed:
+    """A ``websockets`` ``ConnectionClosed`` as :class:`StreamClosed`: the close frame of the
+    side that closed first (``local`` when it was this one: ``1002`` the server broke the
+    protocol, ``1007`` text that is not UTF-8, ``1009`` a message over ``max_message``), or
+    ``1006`` when the connection ended without one."""
+    rcvd, sent = e.rcvd, e.sent
+    if sent is not None and (rcvd is None or e.rcvd_then_sent is False):
+        return StreamClosed(int(sent.code), sent.reason, local=True)
+    if rcvd is not None:
+        return StreamClosed(int(rcvd.code), rcvd.reason)
+    return StreamClosed(1006, "the connection ended without a close frame", local=True)
+
+
+def _drain(ws: Any) -> None:
+    """Reads and drops messages until the connection is closed."""
+    try:
+        while True:
+            ws.recv()
+    except Exception:
+        pass
