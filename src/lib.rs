@@ -1,6 +1,6 @@
 //! crowdmorph: a network animation server for blendshape (morph-target) crowds.
 //!
-//! Layout (each layer depends only on the ones above it):
+//! Layout (each layer depends only on the ones above it; `ARCHITECTURE.md` has the why):
 //!
 //! | module | what it is |
 //! |---|---|
@@ -10,24 +10,27 @@
 //! | [`rig`] | pure data: primitives, sparse targets, clips (weight tables), LOD order; keyframe sampling math |
 //! | [`import`] | glTF/GLB, CSV and JSON readers that build a validated [`rig::Rig`] |
 //! | [`embedded`] | the procedural default rig that needs no files |
+//! | [`synthetic`] | synthetic rigs and clips: the paper-scale rig, deterministic random clips |
 //! | [`plan`] | the batch planner: a crowd of heads → unique jobs + per-head index |
 //! | [`engine`] | blend engines; [`engine::cpu`] is the oracle and the no-GPU production engine |
-//! | [`render`] | a deterministic CPU software rasterizer (front view, z-buffer, Lambert) for image metrics |
-//! | [`lod`] | level of detail: importance metrics and orders, LOD tables and reports, feature-preserving mesh levels |
+//! | [`export`] | one blended frame written as OBJ or raw f32 (`crowdmorph eval`) |
+//! | [`render`] | rendered frames: scene layout, cost, the wgpu renderer, encoding, offline renders |
+//! | [`lod`] | level of detail: importance metrics and orders, reports, feature-preserving mesh levels, the reference rasterizer |
 //! | [`codec`] | the one module that touches bincode: wire messages and stored records |
 //! | [`store`] | persistence: one checksummed, atomically replaced file per rig under the data dir |
 //! | [`load`] | the load generator: open loop, latency corrected for coordinated omission, HdrHistogram reports |
-//! | [`server`] | the HTTP API (axum), the dynamic batcher with cross-request dedupe, metrics, `POST /v1/loadtest` |
-//! | [`tools`] | the CLI's commands (`inspect`, `eval`, `bench`) as library functions |
+//! | [`server`] | the HTTP server: routes, the HTTP layer, admission, the batcher, sessions, metrics |
+//! | [`bench`] | benchmarks, their peers and harness (feature `bench`) |
 //!
-//! The binary (`src/main.rs`) only parses the command line, sets up tracing and calls into
-//! [`tools`].
+//! The binary (`src/main.rs`, one module per subcommand in `src/cli/`) parses the command line,
+//! sets up tracing, calls into the library and prints each command's report.
 
 pub mod budget;
 pub mod cancel;
 pub mod codec;
 pub mod embedded;
 pub mod engine;
+pub mod export;
 pub mod import;
 pub mod load;
 pub mod lod;
@@ -37,4 +40,7 @@ pub mod rig;
 pub mod rng;
 pub mod server;
 pub mod store;
-pub mod tools;
+pub mod synthetic;
+
+#[cfg(feature = "bench")]
+pub mod bench;

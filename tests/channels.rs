@@ -322,7 +322,7 @@ fn eval_writes_what_the_reference_evaluates() {
     let dir = std::env::temp_dir().join(format!("crowdmorph-channels-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let out = dir.join("frame.bin");
-    crowdmorph::tools::eval_to_file(&rig, "talk", 3, 0, crowdmorph::rig::FrameMode::Strict, &out)
+    crowdmorph::export::eval_to_file(&rig, "talk", 3, 0, crowdmorph::rig::FrameMode::Strict, &out)
         .unwrap();
     let raw = std::fs::read(&out).unwrap();
     let got: Vec<f32> = raw

@@ -488,7 +488,7 @@ fn bench_gpu_measures_the_scenes_on_a_gpu_and_the_cpu() {
             .iter()
             .map(|s| s["scene"].as_str().expect("scene"))
             .collect();
-        for (scene, _, _) in crowdmorph::tools::bench_gpu::SCENES {
+        for (scene, _, _) in crowdmorph::bench::gpu::SCENES {
             assert!(names.contains(&scene), "{scene} missing: {names:?}");
         }
         for s in scenes {

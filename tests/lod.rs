@@ -14,6 +14,7 @@ use crowdmorph::engine::{
 use crowdmorph::import::{ImportOptions, load_path};
 use crowdmorph::lod::metrics::{PointIndex, YeeParams, YeeReference, hausdorff, image_mse, ssim};
 use crowdmorph::lod::order::{SparseIndex, target_displacement};
+use crowdmorph::lod::raster::{Camera, neutral_positions, render_pose};
 use crowdmorph::lod::report::{
     Displacements, clip_errors, lod_report, no_worse, report_png, report_text, synthetic_clip,
 };
@@ -21,7 +22,6 @@ use crowdmorph::lod::{
     LodBuildError, LodSpec, Metric, OrderMethod, Progress, ScoreOptions, Scores, SimplifyOptions,
     build_lod, build_mesh_levels, mesh_level_rig, score_targets,
 };
-use crowdmorph::render::{Camera, neutral_positions, render_pose};
 use crowdmorph::rig::{Rig, default_lod_levels};
 use glam::Vec3;
 

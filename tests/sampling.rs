@@ -7,16 +7,16 @@
 //! formulas, independently of the library, on tiny glTF files made with the test builder.
 //!
 //! Also covered: `mesh.weights` as the default of targets a clip does not animate, frame wrap
-//! and clamp (directly and through `tools::eval_to_file`), and the CSV and JSON clip sources.
+//! and clamp (directly and through `export::eval_to_file`), and the CSV and JSON clip sources.
 
 use std::path::PathBuf;
 
 use crowdmorph::embedded::default_rig;
+use crowdmorph::export::eval_to_file;
 use crowdmorph::import::clips::ClipOptions;
 use crowdmorph::import::gltf::rig_from_slice;
 use crowdmorph::import::{ImportOptions, clip_from_csv, clip_from_json};
 use crowdmorph::rig::{Clip, ClipError, FrameMode, Rig};
-use crowdmorph::tools::eval_to_file;
 
 use crate::util::builder::{Builder, Component, TRIANGLE, triangle_rig, triangle_targets};
 

@@ -29,7 +29,7 @@ use meshopt::{SimplifyOptions as MeshoptOptions, SimplifyVertex};
 use serde::{Deserialize, Serialize};
 
 use super::Progress;
-use crate::render::{Camera, Frame, MeshView, NO_VERTEX, render};
+use crate::lod::raster::{Camera, Frame, MeshView, NO_VERTEX, render};
 use crate::rig::{
     Lod, MeshLevel, MeshLevelPrimitive, Primitive, Rig, RigError, SparseTarget, TargetId,
 };

@@ -14,11 +14,11 @@
 //! Building a LOD is a background job on rig registration: it takes a [`Progress`] that counts
 //! finished steps and can cancel it.
 
-pub mod cli;
 pub mod mesh;
 pub mod metrics;
 pub mod order;
 pub mod plot;
+pub mod raster;
 pub mod report;
 
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};

@@ -18,7 +18,7 @@ use super::metrics::{
     PointIndex, YeeParams, YeeReference, geometric_mse, hausdorff, image_mse, ssim,
 };
 use super::{LodBuildError, Progress};
-use crate::render::{Camera, neutral_positions, render_pose};
+use crate::lod::raster::{Camera, neutral_positions, render_pose};
 use crate::rig::{Rig, TargetId};
 
 /// One of the importance metrics of §4.1.

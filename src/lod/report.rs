@@ -253,6 +253,13 @@ pub fn lod_report(
 
 /// The report as a text table: per level, max and RMS error (% of the bbox diagonal) of each
 /// order, then the per-target scores.
+impl std::fmt::Display for LodReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&report_text(self))
+    }
+}
+
+/// The report as text (its [`std::fmt::Display`]).
 pub fn report_text(r: &LodReport) -> String {
     let mut o = String::new();
     let _ = writeln!(

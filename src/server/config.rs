@@ -1,101 +1,194 @@
-//! Server configuration: every limit and timeout in one place, with the defaults `serve` uses.
+//! Server configuration: every limit and timeout in one place. [`ServerConfig`] is also the
+//! `serve` command's flags (`clap::Args`, flattened into it): each setting, its flag, its
+//! environment variable, its default and its `--help` text are written once, here. The
+//! [`Default`] is those defaults without reading the environment (tests build on it).
 
 use std::path::PathBuf;
 use std::time::Duration;
+
+use clap::{Args, FromArgMatches};
 
 use crate::engine::BackendChoice;
 pub use crate::render::crowd::RenderBackend;
 
 /// Everything [`super::run`] needs to know besides the listener.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, Args)]
 pub struct ServerConfig {
-    /// Where rigs and clips are persisted; `None` keeps them in memory only (tests).
+    /// Where rigs and clips are persisted; `None` keeps them in memory only (tests). `serve`
+    /// sets it from its own `--data-dir`.
+    #[arg(skip)]
     pub data_dir: Option<PathBuf>,
-    /// Engine to use.
+    /// Engine: auto (a hardware GPU if there is one, else the CPU engine), cpu or gpu.
+    #[arg(long, env = "CROWDMORPH_BACKEND", default_value = "auto")]
     pub backend: BackendChoice,
-    /// Bearer token required for uploads and deletes; `None` leaves them open.
+    /// Bearer token required for every change: rig and clip uploads and deletes, LOD changes,
+    /// creating, changing and deleting crowd sessions, and load tests (open when unset; crowd
+    /// frames, renders, GETs and session streams never need it).
+    #[arg(long, env = "CROWDMORPH_ADMIN_TOKEN", hide_env_values = true, value_parser = non_empty)]
     pub admin_token: Option<String>,
-    /// Largest rig or clip upload body.
+    /// Largest rig or clip upload, bytes.
+    #[arg(long, env = "CROWDMORPH_MAX_UPLOAD_BYTES", default_value_t = 256 << 20)]
     pub max_upload_bytes: usize,
-    /// Largest body of any other request.
+    /// Largest body of other requests, bytes.
+    #[arg(long, env = "CROWDMORPH_MAX_REQUEST_BYTES", default_value_t = 16 << 20)]
     pub max_request_bytes: usize,
-    /// Most heads in one crowd request.
+    /// Most heads per crowd request.
+    #[arg(long, env = "CROWDMORPH_MAX_HEADS", default_value_t = 100_000)]
     pub max_heads: usize,
-    /// Most host memory one upload (rig or clips) or LOD build may hold at once: what its
-    /// file's headers say it will cost (decoded arrays, baked clip tables, engine layouts,
-    /// the stored record) is checked against this before any work, then every allocation is
-    /// charged as it happens. Past it, 413 (`--max-upload-memory`).
+    /// Most memory one upload (rig or clips) or LOD build may hold, bytes: what its file's
+    /// headers say it will cost (decoded arrays, baked clip tables, engine layouts, the stored
+    /// record) is checked against this before any work, then every allocation is charged as
+    /// it happens (413 past it).
+    #[arg(
+        long,
+        env = "CROWDMORPH_MAX_UPLOAD_MEMORY",
+        alias = "max-decoded-bytes",
+        default_value_t = 1 << 30
+    )]
     pub max_upload_memory: u64,
-    /// Most host memory all rigs together may hold, with the uploads and LOD builds in
-    /// progress; work that would go past it gets 503 (`--max-rig-memory`).
-    pub max_rig_memory: u64,
-    /// Most crowd requests waiting for the batcher at once; more get 503.
+    /// Most memory all rigs together may hold, with uploads and LOD builds in progress, bytes
+    /// (503 past it; default: half the machine's memory).
+    #[arg(long, env = "CROWDMORPH_MAX_RIG_MEMORY")]
+    pub max_rig_memory: Option<u64>,
+    /// Most GPU memory resident rigs, batch buffers and render targets may hold on each
+    /// device, bytes (a rig over it gets 413, one that does not fit now 503; default: 2 GiB, or
+    /// the device's largest buffer if larger).
+    #[arg(long = "max-gpu-memory", env = "CROWDMORPH_MAX_GPU_MEMORY")]
+    pub gpu_memory: Option<u64>,
+    /// Crowd requests that may wait for the batcher at once (more get 503).
+    #[arg(long, env = "CROWDMORPH_QUEUE_REQUESTS", default_value_t = 1024)]
     pub queue_requests: usize,
-    /// Most output bytes that admitted crowd requests may hold at once (queued, computing or
-    /// being sent); a request that would exceed it gets 503, one larger than it gets 413.
+    /// Output bytes admitted crowd requests may hold at once, queued, computing or being sent
+    /// (more get 503; one request larger than it, 413).
+    #[arg(long, env = "CROWDMORPH_QUEUE_MEMORY_BYTES", default_value_t = 2 << 30)]
     pub queue_memory_bytes: usize,
-    /// A batch closes when the cost (vertices × active shapes, summed over its unique jobs)
-    /// reaches this.
+    /// A batch closes at this cost (vertices × active shapes over its unique jobs)...
+    #[arg(long, env = "CROWDMORPH_BATCH_COST", default_value_t = 200_000_000)]
     pub batch_cost: u64,
-    /// ... or when its oldest job has waited this long (while the engine is busy: an idle
-    /// engine takes work at once, unless `batch_hold_when_idle`).
+    /// ...or when its oldest job has waited this many microseconds, while the engine is busy
+    /// (an idle engine takes work at once).
+    #[arg(
+        long = "batch-delay-us",
+        env = "CROWDMORPH_BATCH_DELAY_US",
+        default_value = "1000",
+        value_parser = micros
+    )]
     pub batch_delay: Duration,
-    /// Hold work for `batch_delay` even when the engine is idle (the batcher's behaviour before
-    /// idle dispatch): more coalescing at low load, the delay added to every lone request.
+    /// Hold work for the batch delay even when the engine is idle (more coalescing of
+    /// identical jobs at low load; every lone request waits the delay).
+    #[arg(long, env = "CROWDMORPH_BATCH_HOLD_WHEN_IDLE")]
     pub batch_hold_when_idle: bool,
-    /// Deadline of a crowd request, from arrival to its response being ready; past it, 504.
+    /// Crowd-request deadline, milliseconds, from arrival to the response being ready (504
+    /// past it).
+    #[arg(
+        long = "request-timeout-ms",
+        env = "CROWDMORPH_REQUEST_TIMEOUT_MS",
+        default_value = "10000",
+        value_parser = millis
+    )]
     pub request_timeout: Duration,
-    /// Deadline of any other request (uploads included); past it, 504.
+    /// Deadline of uploads and other requests, seconds (504 past it).
+    #[arg(
+        long = "admin-timeout-s",
+        env = "CROWDMORPH_ADMIN_TIMEOUT_S",
+        default_value = "300",
+        value_parser = seconds
+    )]
     pub admin_timeout: Duration,
     /// Requests handled at once; more are shed with 503.
+    #[arg(long, env = "CROWDMORPH_MAX_CONCURRENCY", default_value_t = 2048)]
     pub max_concurrency: usize,
-    /// Most connections open at once. Past it, the connection idle the longest (no request in
-    /// progress) is closed to admit the new one; when every connection has a request in
-    /// progress, the new one is answered 503 `too_many_connections` and closed. Keep it below
-    /// the open-file limit: `crowdmorph serve` derives its default from that limit.
-    pub max_connections: usize,
-    /// A request's headers must arrive complete within this long of the connection being
-    /// accepted, or of the request's first byte on a kept-alive connection; else the
-    /// connection is closed. Bytes trickling in do not extend it.
+    /// Connections open at once; past it the longest-idle one is closed to admit a new one,
+    /// and with every one busy the new one gets 503 `too_many_connections` (default: `serve`
+    /// derives it from the open-file limit, which it first raises to its hard maximum; at most
+    /// 65536; 4096 elsewhere).
+    #[arg(long, env = "CROWDMORPH_MAX_CONNECTIONS", value_parser = at_least_one)]
+    pub max_connections: Option<usize>,
+    /// Milliseconds a request's headers may take, from the accept or from the request's first
+    /// byte on a kept-alive connection; then the connection is closed (bytes trickling in do
+    /// not extend it).
+    #[arg(
+        long = "header-timeout-ms",
+        env = "CROWDMORPH_HEADER_TIMEOUT_MS",
+        default_value = "10000",
+        value_parser = millis_positive
+    )]
     pub header_timeout: Duration,
-    /// A kept-alive connection with no request in progress is closed after this long without
-    /// the first byte of a new request.
+    /// Seconds a kept-alive connection may wait for its next request.
+    #[arg(
+        long = "idle-timeout-s",
+        env = "CROWDMORPH_IDLE_TIMEOUT_S",
+        default_value = "60",
+        value_parser = seconds_positive
+    )]
     pub idle_timeout: Duration,
-    /// Origins allowed by CORS (`*` for any); empty disables CORS headers.
+    /// Origins allowed by CORS, comma-separated (`*` for any; none by default, which disables
+    /// CORS headers).
+    #[arg(
+        long = "cors-origin",
+        env = "CROWDMORPH_CORS_ORIGINS",
+        value_delimiter = ','
+    )]
     pub cors_origins: Vec<String>,
-    /// Order each new rig's blendshapes by the five importance metrics and build its 50/25/10 %
-    /// mesh levels in the background after registration (and at start for stored rigs that
-    /// still have the import's quick order).
-    pub auto_lod: bool,
-    /// Pixels that renders in flight may hold together (`POST /v1/crowd/render`): a W × H
-    /// image takes W × H of them until its response is built. One larger than this gets 413,
-    /// one that does not fit now 503 `render_busy` (`--render-pixels`).
+    /// Do not order new rigs' blendshapes by the importance metrics (nor build their 50/25/10 %
+    /// mesh levels) in the background after registration and at start; they keep the
+    /// import's quick order until PUT /v1/rigs/{id}/lod.
+    #[arg(long, env = "CROWDMORPH_NO_AUTO_LOD")]
+    pub no_auto_lod: bool,
+    /// Pixels that rendered frames in flight may hold together: a W × H image takes W × H
+    /// until it is sent (413 image_too_large over it, 503 render_busy when full; default 64
+    /// Mpixels, about 3 GiB at ~48 bytes a pixel in flight).
+    #[arg(
+        long,
+        env = "CROWDMORPH_RENDER_PIXELS",
+        default_value_t = DEFAULT_RENDER_PIXELS,
+        value_parser = clap::value_parser!(u64).range(1..)
+    )]
     pub render_pixels: u64,
-    /// Estimated time of the renders in flight together (blending, drawing and encoding, from
-    /// what each draws: [`crate::render::cost`]); a render estimated past this gets 413
-    /// `render_too_costly`, one that does not fit now 503 `render_busy` (`--render-work-ms`).
-    /// One admitted past its request deadline gets 504 and stops at its next stage.
+    /// Estimated milliseconds of rendering (blending, drawing and encoding, priced from what
+    /// each render draws) that rendered frames in flight may hold together: a render estimated
+    /// past it gets 413 render_too_costly, one that does not fit now 503 render_busy. One
+    /// admitted past its request deadline gets 504 and stops at its next stage.
+    #[arg(
+        long = "render-work-ms",
+        env = "CROWDMORPH_RENDER_WORK_MS",
+        default_value = "4000",
+        value_parser = millis_positive
+    )]
     pub render_work: Duration,
     /// Share (0 to 1) of the pixel and render work budgets that session viewers' frames may
-    /// hold together, so HTTP renders keep being served while viewers stream
-    /// (`--viewer-render-share`).
+    /// hold together, so that HTTP renders keep being served while viewers stream.
+    #[arg(
+        long,
+        env = "CROWDMORPH_VIEWER_RENDER_SHARE",
+        default_value_t = 0.5,
+        value_parser = share
+    )]
     pub viewer_render_share: f64,
-    /// Which adapter draws rendered frames (`--render-backend`).
+    /// Adapter that draws rendered frames: auto (the engine's GPU, else any adapter, software
+    /// ones such as lavapipe included), gpu (hardware only) or off.
+    #[arg(long, env = "CROWDMORPH_RENDER_BACKEND", default_value = "auto")]
     pub render_backend: RenderBackend,
-    /// Bytes of GPU buffers and textures whose size an input decides (resident rigs, batch
-    /// buffers, render targets) each device may hold at once (`--max-gpu-memory`; `None`:
-    /// [`crate::engine::gpu::default_gpu_memory`] of the device's limits).
-    pub gpu_memory: Option<u64>,
     /// Limits of crowd sessions.
+    #[command(flatten)]
     pub sessions: super::sessions::SessionLimits,
-    /// Longest `POST /v1/loadtest` (warm-up and measured window together); zero disables the
-    /// endpoint (`--loadtest-max-duration-s`).
+    /// Longest POST /v1/loadtest, warm-up included, seconds; 0 disables the endpoint.
+    #[arg(
+        long = "loadtest-max-duration-s",
+        env = "CROWDMORPH_LOADTEST_MAX_DURATION_S",
+        default_value = "60",
+        value_parser = seconds
+    )]
     pub loadtest_max_duration: Duration,
-    /// Highest request rate a load test may ask for, requests per second
-    /// (`--loadtest-max-rate`).
+    /// Highest request rate of a load test, requests per second.
+    #[arg(long, env = "CROWDMORPH_LOADTEST_MAX_RATE", default_value_t = 10_000.0)]
     pub loadtest_max_rate: f64,
-    /// Most lanes (requests in flight) of a load test; never more than half of
-    /// `queue_requests` (`--loadtest-max-concurrency`).
+    /// Most requests a load test keeps in flight (never more than half of --queue-requests).
+    #[arg(
+        long,
+        env = "CROWDMORPH_LOADTEST_MAX_CONCURRENCY",
+        default_value_t = 64
+    )]
     pub loadtest_max_concurrency: usize,
 }
 
@@ -105,48 +198,20 @@ pub struct ServerConfig {
 /// pixels read back and the encoded image), so the default bounds renders to about 3 GiB.
 pub const DEFAULT_RENDER_PIXELS: u64 = 64 << 20;
 
-/// Default of [`ServerConfig::render_work`]: 4 s of estimated rendering in flight. On two
-/// cores of lavapipe that is a few full-HD frames of a hundred heads at once; a render that
-/// waits behind all of it still answers well within the default 10 s deadline.
-pub const DEFAULT_RENDER_WORK: Duration = Duration::from_secs(4);
-
-/// Default of [`ServerConfig::viewer_render_share`]: viewers together hold at most half.
-pub const DEFAULT_VIEWER_RENDER_SHARE: f64 = 0.5;
+/// Connections [`ServerConfig::connection_cap`] allows when neither the flag nor `serve` set
+/// them.
+pub const DEFAULT_MAX_CONNECTIONS: usize = 4096;
 
 impl Default for ServerConfig {
+    /// The defaults the attributes above state, without reading the environment.
     fn default() -> Self {
-        ServerConfig {
-            data_dir: None,
-            backend: BackendChoice::Auto,
-            admin_token: None,
-            max_upload_bytes: 256 << 20,
-            max_request_bytes: 16 << 20,
-            max_heads: 100_000,
-            max_upload_memory: 1 << 30,
-            max_rig_memory: default_rig_memory(),
-            queue_requests: 1024,
-            queue_memory_bytes: 2 << 30,
-            batch_cost: 200_000_000,
-            batch_delay: Duration::from_micros(1000),
-            batch_hold_when_idle: false,
-            request_timeout: Duration::from_secs(10),
-            admin_timeout: Duration::from_secs(300),
-            max_concurrency: 2048,
-            max_connections: 4096,
-            header_timeout: Duration::from_secs(10),
-            idle_timeout: Duration::from_secs(60),
-            cors_origins: Vec::new(),
-            auto_lod: true,
-            render_pixels: DEFAULT_RENDER_PIXELS,
-            render_work: DEFAULT_RENDER_WORK,
-            viewer_render_share: DEFAULT_VIEWER_RENDER_SHARE,
-            render_backend: RenderBackend::Auto,
-            gpu_memory: None,
-            sessions: super::sessions::SessionLimits::default(),
-            loadtest_max_duration: Duration::from_secs(60),
-            loadtest_max_rate: 10_000.0,
-            loadtest_max_concurrency: 64,
-        }
+        let command = ServerConfig::augment_args(clap::Command::new("defaults"))
+            .mut_args(|a| a.env(None::<&'static str>));
+        let matches = command
+            .try_get_matches_from(["defaults"])
+            .expect("the defaults parse: every default above is a valid value");
+        ServerConfig::from_arg_matches(&matches)
+            .expect("the defaults parse: every default above is a valid value")
     }
 }
 
@@ -156,6 +221,21 @@ impl ServerConfig {
     /// answers by itself before then.
     pub fn handler_timeout(&self) -> Duration {
         self.admin_timeout.max(self.request_timeout)
+    }
+
+    /// Whether new rigs get their metric order and mesh levels in the background.
+    pub fn auto_lod(&self) -> bool {
+        !self.no_auto_lod
+    }
+
+    /// The connection cap: `--max-connections`, else [`DEFAULT_MAX_CONNECTIONS`].
+    pub fn connection_cap(&self) -> usize {
+        self.max_connections.unwrap_or(DEFAULT_MAX_CONNECTIONS)
+    }
+
+    /// The rig memory pool's limit: `--max-rig-memory`, else [`default_rig_memory`].
+    pub fn rig_memory(&self) -> u64 {
+        self.max_rig_memory.unwrap_or_else(default_rig_memory)
     }
 }
 
@@ -178,4 +258,138 @@ pub fn default_rig_memory() -> u64 {
                 .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
         })
         .map_or(8 << 30, |kib| kib * 1024 / 2)
+}
+
+fn number(s: &str) -> Result<u64, String> {
+    s.trim()
+        .parse::<u64>()
+        .map_err(|e| format!("{s:?} is not a whole number: {e}"))
+}
+
+/// A duration given in milliseconds.
+pub fn millis(s: &str) -> Result<Duration, String> {
+    number(s).map(Duration::from_millis)
+}
+
+/// A duration given in microseconds.
+pub fn micros(s: &str) -> Result<Duration, String> {
+    number(s).map(Duration::from_micros)
+}
+
+/// A duration given in seconds.
+pub fn seconds(s: &str) -> Result<Duration, String> {
+    number(s).map(Duration::from_secs)
+}
+
+fn positive(d: Duration, s: &str) -> Result<Duration, String> {
+    if d.is_zero() {
+        Err(format!("{s:?} must be at least 1"))
+    } else {
+        Ok(d)
+    }
+}
+
+fn millis_positive(s: &str) -> Result<Duration, String> {
+    positive(millis(s)?, s)
+}
+
+fn seconds_positive(s: &str) -> Result<Duration, String> {
+    positive(seconds(s)?, s)
+}
+
+/// A count of at least one.
+pub(crate) fn at_least_one(s: &str) -> Result<usize, String> {
+    match number(s)? {
+        0 => Err(format!("{s:?} must be at least 1")),
+        n => usize::try_from(n).map_err(|e| e.to_string()),
+    }
+}
+
+/// A share in [0, 1].
+pub fn share(s: &str) -> Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(v) if (0.0..=1.0).contains(&v) => Ok(v),
+        _ => Err(format!("{s:?} is not a number in [0, 1]")),
+    }
+}
+
+/// A token that is not empty (an empty one set in the environment leaves the server open).
+fn non_empty(s: &str) -> Result<String, String> {
+    if s.is_empty() {
+        Err("the admin token is empty".into())
+    } else {
+        Ok(s.to_string())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_defaults_are_the_flags_defaults_and_every_flag_says_what_it_does() {
+        let d = ServerConfig::default();
+        assert_eq!(d.request_timeout, Duration::from_secs(10));
+        assert_eq!(d.batch_delay, Duration::from_micros(1000));
+        assert_eq!(d.render_work, Duration::from_secs(4));
+        assert_eq!(d.render_pixels, DEFAULT_RENDER_PIXELS);
+        assert!(d.auto_lod(), "--no-auto-lod is off by default");
+        assert_eq!(d.sessions, super::super::sessions::SessionLimits::default());
+        assert_eq!(
+            (d.data_dir, d.admin_token, d.max_connections),
+            (None, None, None)
+        );
+        let command = ServerConfig::augment_args(clap::Command::new("serve"));
+        for a in command.get_arguments() {
+            let help = a.get_help().map(|h| h.to_string()).unwrap_or_default();
+            assert!(help.len() > 10, "--{:?} has no help text", a.get_long());
+            assert!(
+                a.get_env().is_some(),
+                "--{:?} has no environment variable",
+                a.get_long()
+            );
+        }
+    }
+
+    #[test]
+    fn flags_parse_into_the_config() {
+        let command = ServerConfig::augment_args(clap::Command::new("serve"))
+            .mut_args(|a| a.env(None::<&'static str>));
+        let m = command
+            .try_get_matches_from([
+                "serve",
+                "--request-timeout-ms",
+                "250",
+                "--no-auto-lod",
+                "--max-session-heads",
+                "7",
+                "--cors-origin",
+                "a,b",
+            ])
+            .expect("flags");
+        let c = ServerConfig::from_arg_matches(&m).expect("config");
+        assert_eq!(c.request_timeout, Duration::from_millis(250));
+        assert!(!c.auto_lod());
+        assert_eq!(c.sessions.max_heads, 7);
+        assert_eq!(c.cors_origins, vec!["a", "b"]);
+        // A switch (its environment variable, CROWDMORPH_NO_AUTO_LOD=true, is read as the
+        // switch: the real binary's tests start servers with it).
+        let command = ServerConfig::augment_args(clap::Command::new("serve"));
+        let m = command
+            .try_get_matches_from(["serve", "--no-auto-lod"])
+            .expect("flag");
+        assert!(
+            !ServerConfig::from_arg_matches(&m)
+                .expect("config")
+                .auto_lod()
+        );
+        for bad in [
+            ["serve", "--viewer-render-share", "1.5"],
+            ["serve", "--header-timeout-ms", "0"],
+            ["serve", "--max-connections", "0"],
+        ] {
+            let command = ServerConfig::augment_args(clap::Command::new("serve"));
+            assert!(command.try_get_matches_from(bad).is_err(), "{bad:?}");
+        }
+    }
 }

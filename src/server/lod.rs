@@ -162,7 +162,7 @@ impl AppState {
     /// The job holds the server state only weakly: dropping the last handle to the state
     /// (the server stopping, a test ending) cancels it instead of leaving it computing.
     pub(super) fn start_auto_lod(&self, entry: &RigEntry) {
-        if !self.config.auto_lod || entry.rig().lod.method != crate::rig::IMPORT_LOD_METHOD {
+        if !self.config.auto_lod() || entry.rig().lod.method != crate::rig::IMPORT_LOD_METHOD {
             return;
         }
         let rig = entry.prepared.rig().clone();

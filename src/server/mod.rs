@@ -18,14 +18,9 @@
 //! | `render` | `POST /v1/crowd/render`: a picture of a crowd |
 //! | [`sessions`] | crowd sessions: a crowd on a fixed tick, streamed to many viewers over WebSockets |
 //! | [`loadtest`] | `POST /v1/loadtest`: synthetic load through the real batcher, at low priority |
-//! | [`bench`] | `crowdmorph bench http`: loopback load against in-process work |
-//! | [`pypeer`] | the Python peers of the benchmarks: the rig as `.npy`, the dense aiohttp + numpy server |
-//! | [`bench_sessions`] | `crowdmorph bench sessions`: one session streamed to several viewers |
 //! | `viewer` | `GET /viewer`: the browser viewer's embedded files |
 
 mod api;
-pub mod bench;
-pub mod bench_sessions;
 pub mod config;
 mod conn;
 pub mod error;
@@ -34,7 +29,6 @@ pub mod loadtest;
 mod lod;
 pub mod metrics;
 mod pool;
-pub mod pypeer;
 pub mod registry;
 mod render;
 pub mod scheduler;
@@ -210,7 +204,7 @@ impl AppState {
             config.viewer_render_share,
         );
         let registry = Registry::default();
-        let pool = MemoryPool::new(config.max_rig_memory, "--max-rig-memory");
+        let pool = MemoryPool::new(config.rig_memory(), "--max-rig-memory");
         let builtin = Arc::new(crate::embedded::default_rig());
         let prepared = engine.prepare(builtin.clone())?;
         // The built-in rig is always there: its memory is taken from the pool unconditionally.
@@ -511,7 +505,7 @@ impl AppState {
             rig_memory_limit: self.pool.limit(),
             degraded: self.engine.info().degraded,
             loading: !self.is_ready(),
-            connections_limit: self.config.max_connections as u64,
+            connections_limit: self.config.connection_cap() as u64,
             render_pixels: self.render_budget.pixels().0,
             render_pixels_limit: self.render_budget.pixels().1,
             render_work_seconds: self.render_budget.work_seconds().0,
@@ -885,7 +879,7 @@ pub async fn serve(
         jobs.lod_jobs.cancel_background();
     };
     let limits = conn::Limits {
-        max_connections: state.config.max_connections,
+        max_connections: state.config.connection_cap(),
         header_timeout: state.config.header_timeout,
         idle_timeout: state.config.idle_timeout,
     };

@@ -53,35 +53,61 @@ use crate::codec::{FrameBufferParts, FrameResponseEncoder};
 use crate::render::scene;
 use crate::rig::FrameMode;
 
-/// Limits of the session API (`--max-sessions`, `--max-session-heads`,
-/// `--max-session-viewers`, `--max-viewer-messages`).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+/// Limits of the session API: flags of `serve`, flattened into [`super::ServerConfig`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::Args)]
 pub struct SessionLimits {
-    /// Sessions that may exist at once.
+    /// Crowd sessions that may exist at once (503 too_many_sessions past it).
+    #[arg(
+        long = "max-sessions",
+        env = "CROWDMORPH_MAX_SESSIONS",
+        default_value = "64",
+        value_parser = super::config::at_least_one
+    )]
     pub max_sessions: usize,
-    /// Heads one session may hold.
+    /// Heads one session may hold (413 too_many_heads past it).
+    #[arg(
+        id = "max_session_heads",
+        long = "max-session-heads",
+        env = "CROWDMORPH_MAX_SESSION_HEADS",
+        default_value = "10000",
+        value_parser = super::config::at_least_one
+    )]
     pub max_heads: usize,
-    /// Viewers one session may have at once.
+    /// Viewers one session may have at once (more are closed with 1013).
+    #[arg(
+        id = "max_session_viewers",
+        long = "max-session-viewers",
+        env = "CROWDMORPH_MAX_SESSION_VIEWERS",
+        default_value = "32",
+        value_parser = super::config::at_least_one
+    )]
     pub max_viewers: usize,
-    /// Messages per second a viewer may send (camera and LOD updates), averaged over a second.
+    /// Messages per second a session viewer may send, camera and LOD updates, averaged over a
+    /// second (more close it with 1008).
+    #[arg(
+        long = "max-viewer-messages",
+        env = "CROWDMORPH_MAX_VIEWER_MESSAGES",
+        default_value_t = 60,
+        value_parser = clap::value_parser!(u32).range(1..)
+    )]
     pub max_viewer_messages: u32,
     /// How long a viewer has to send its hello before it is closed with 1008.
+    #[arg(skip = Duration::from_secs(10))]
     pub hello_timeout: Duration,
-    /// Most pixels of one viewer's image (`--max-viewer-pixels`); a hello asking for more is
-    /// closed with 1008.
+    /// Most pixels of one session viewer's image (a hello asking for more is closed with
+    /// 1008; default 1920 × 1080).
+    #[arg(
+        long = "max-viewer-pixels",
+        env = "CROWDMORPH_MAX_VIEWER_PIXELS",
+        default_value_t = DEFAULT_MAX_VIEWER_PIXELS,
+        value_parser = clap::value_parser!(u64).range(1..)
+    )]
     pub max_viewer_pixels: u64,
 }
 
 impl Default for SessionLimits {
     fn default() -> Self {
-        SessionLimits {
-            max_sessions: 64,
-            max_heads: 10_000,
-            max_viewers: 32,
-            max_viewer_messages: 60,
-            hello_timeout: Duration::from_secs(10),
-            max_viewer_pixels: DEFAULT_MAX_VIEWER_PIXELS,
-        }
+        super::ServerConfig::default().sessions
     }
 }
 

@@ -619,11 +619,12 @@ async fn viewers_images_are_capped_and_http_renders_are_served_while_viewers_str
     server.stop().await;
 
     // Within the cap, viewers that would fill the pixel budget hold at most their share: a
-    // budget of two 256² images, eight viewers of 256² each at 30 fps, and HTTP renders of
-    // 256² keep being served.
+    // budget of four 256² images, eight viewers of 256² each at 30 fps (together at most two
+    // images), and HTTP renders of 256² keep being served (one, and the previous one's
+    // pixels until its body is sent).
     let side = 256u32;
     let server = TestServer::start(ServerConfig {
-        render_pixels: 2 * u64::from(side * side),
+        render_pixels: 4 * u64::from(side * side),
         sessions: SessionLimits {
             max_viewer_pixels: u64::from(side * side),
             ..SessionLimits::default()

@@ -131,7 +131,7 @@ async fn idle_and_half_open_connections_are_capped_and_closed() {
     const CAP: usize = 64;
     const FLOOD: usize = 300;
     let server = TestServer::start(ServerConfig {
-        max_connections: CAP,
+        max_connections: Some(CAP),
         header_timeout: Duration::from_secs(1),
         idle_timeout: Duration::from_secs(2),
         ..ServerConfig::default()
@@ -284,7 +284,7 @@ async fn the_header_timeout_is_not_extended_by_trickling_and_differs_from_idle()
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_request_in_progress_is_never_evicted() {
     let server = TestServer::start(ServerConfig {
-        max_connections: 2,
+        max_connections: Some(2),
         // Crowd requests wait in the batcher this long: "in progress" for the whole test.
         batch_delay: Duration::from_millis(2500),
         batch_hold_when_idle: true,

@@ -551,40 +551,71 @@ async fn the_built_in_rigs_lod_survives_a_restart() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_cli_sets_a_lod_on_a_running_server() {
-    use crowdmorph::tools::{lod_set, lod_table_text, parse_lod_level};
     let server = TestServer::start(ServerConfig {
         admin_token: Some("secret".into()),
         ..ServerConfig::default()
     })
     .await;
     let url = format!("http://{}", server.addr);
-    // `crowdmorph lod set default-head --method file-order --pin jawOpen --level 51
-    //  --level 12:0 --level 0:0 --mesh-fractions 0.3`, as the binary builds it.
-    let levels: Vec<LodLevelRequest> = ["51", "12:0", "0:0"]
-        .iter()
-        .map(|l| parse_lod_level(l).expect("level"))
-        .collect();
-    assert!(parse_lod_level("twelve").is_err());
-    assert!(parse_lod_level("12:x").is_err());
-    let request = LodRequest {
-        method: Some("file-order".into()),
-        pinned: vec!["jawOpen".into()],
-        levels: Some(levels),
-        mesh_fractions: vec![0.3],
-        ..LodRequest::default()
+    // The binary, off this test's async threads.
+    let lod_set = |args: Vec<String>| {
+        tokio::task::spawn_blocking(move || {
+            std::process::Command::new(env!("CARGO_BIN_EXE_crowdmorph"))
+                .args(args)
+                .env_remove("CROWDMORPH_ADMIN_TOKEN")
+                .env("NO_COLOR", "1")
+                .output()
+                .expect("run crowdmorph")
+        })
     };
-    // The tool runs its own runtime, as the binary does: off this test's async threads.
-    let (u, r) = (url.clone(), request.clone());
-    let info = tokio::task::spawn_blocking(move || lod_set(&u, Some("secret"), "default-head", &r))
-        .await
-        .expect("join")
-        .expect("lod set");
+    let args = |extra: &[&str], token: bool| -> Vec<String> {
+        let mut a: Vec<String> = ["lod", "set", "default-head", "--server", &url]
+            .iter()
+            .map(|s| s.to_string())
+            .collect();
+        if token {
+            a.extend(["--token".to_string(), "secret".to_string()]);
+        }
+        a.extend(extra.iter().map(|s| s.to_string()));
+        a
+    };
+    // Levels it cannot parse are refused before anything is sent.
+    for bad in ["twelve", "12:x"] {
+        let out = lod_set(args(&["--level", bad], true)).await.expect("join");
+        assert_eq!(out.status.code(), Some(2), "--level {bad}");
+    }
+    // `crowdmorph lod set default-head --method file-order --pin jawOpen --level 51
+    //  --level 12:0 --level 0:0 --mesh-fractions 0.3`.
+    let request = [
+        "--method",
+        "file-order",
+        "--pin",
+        "jawOpen",
+        "--level",
+        "51",
+        "--level",
+        "12:0",
+        "--level",
+        "0:0",
+        "--mesh-fractions",
+        "0.3",
+    ];
+    let mut json = request.to_vec();
+    json.push("--json");
+    let out = lod_set(args(&json, true)).await.expect("join");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let info: crowdmorph_proto::RigInfo = serde_json::from_slice(&out.stdout).expect("RigInfo");
     assert_eq!(info.lod.method, "file-order+pinned");
     assert_eq!(info.lod.order[0], "jawOpen");
     let shapes: Vec<u32> = info.lod.levels.iter().map(|l| l.shapes).collect();
     assert_eq!(shapes, vec![51, 12, 0]);
     assert_eq!(info.lod.levels[1].mesh, Some(0));
-    let text = lod_table_text(&info);
+    let out = lod_set(args(&request, true)).await.expect("join");
+    let text = String::from_utf8_lossy(&out.stdout);
     assert!(text.contains("level 1:  12 shapes"), "{text}");
     assert_eq!(
         server.client.lod("default-head").await.expect("lod"),
@@ -592,12 +623,10 @@ async fn the_cli_sets_a_lod_on_a_running_server() {
         "what the tool set is what the server serves"
     );
     // Without the token the server refuses, and the tool says so.
-    let (u, r) = (url, request);
-    let err = tokio::task::spawn_blocking(move || lod_set(&u, None, "default-head", &r))
-        .await
-        .expect("join")
-        .expect_err("no token");
-    assert!(format!("{err:#}").contains("401"), "{err:#}");
+    let out = lod_set(args(&request, false)).await.expect("join");
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("401"), "{err}");
     server.stop().await;
 }
 

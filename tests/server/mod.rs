@@ -43,7 +43,7 @@ impl TestServer {
     /// with [`TestServer::start_with_auto_lod`].
     pub async fn start(config: ServerConfig) -> TestServer {
         Self::start_with_auto_lod(ServerConfig {
-            auto_lod: false,
+            no_auto_lod: true,
             ..config
         })
         .await
@@ -123,7 +123,7 @@ pub fn stored_config(dir: &Path) -> ServerConfig {
 
 /// The upload bytes of a rig file (external glTF buffers inlined).
 pub fn upload_bytes(path: &Path) -> Bytes {
-    Bytes::from(crowdmorph::server::bench::self_contained_bytes(path).expect("rig bytes"))
+    Bytes::from(crowdmorph::bench::server::self_contained_bytes(path).expect("rig bytes"))
 }
 
 /// Positions of a buffer as f32, whatever the format.

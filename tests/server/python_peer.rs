@@ -5,8 +5,8 @@
 //! otherwise.
 
 use bytes::Bytes;
+use crowdmorph::bench::peers::{self as pypeer, PythonPeer};
 use crowdmorph::server::ServerConfig;
-use crowdmorph::server::pypeer::{self, PythonPeer};
 use crowdmorph_client::{Client, Encoding};
 use crowdmorph_proto::{CrowdFrameRequest, Format, Head, OutputOptions};
 

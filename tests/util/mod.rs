@@ -661,11 +661,11 @@ pub fn rig_with_random_clip(
 /// The paper's rig size (Costigan et al. 2016: 72 blendshapes, 43,788 vertices) with
 /// localized deltas (built by the library, shared with `bench gpu`).
 pub fn paper_scale_rig() -> crowdmorph::rig::Rig {
-    crowdmorph::tools::synthetic::paper_scale_rig()
+    crowdmorph::synthetic::paper_scale_rig()
 }
 
 /// Gives a rig without clips a deterministic random one (the GPU reads weights from resident
 /// clip tables, so every job needs a clip).
 pub fn with_random_clip(rig: crowdmorph::rig::Rig, seed: u64) -> crowdmorph::rig::Rig {
-    crowdmorph::tools::synthetic::with_random_clip(rig, seed)
+    crowdmorph::synthetic::with_random_clip(rig, seed)
 }

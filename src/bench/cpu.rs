@@ -29,6 +29,7 @@ use indicatif::ProgressBar;
 use rayon::prelude::*;
 use serde::Serialize;
 
+use super::sample::{Samples, sample};
 use crate::engine::cpu::{CpuRig, fma_probe};
 use crate::engine::{BlendOutput, OutputSpec, Precision, WeightBatch};
 use crate::plan::{JobKey, Plan};
@@ -302,25 +303,17 @@ pub fn random_weights(rig: &Rig, n: usize, seed: u64) -> Vec<Vec<f32>> {
         .collect()
 }
 
-/// Median of `f`'s wall time in milliseconds, over at least 5 runs and about `seconds`.
-fn median_ms(seconds: f64, bar: Option<&ProgressBar>, label: &str, mut f: impl FnMut()) -> f64 {
-    f(); // Warm-up: page faults, caches, thread pool.
-    f();
-    let mut times = Vec::new();
-    let start = Instant::now();
+/// Median of `f`'s wall time in milliseconds ([`sample`]: at least 5 runs, about `seconds`),
+/// counted as a step of the progress bar.
+fn median_ms(seconds: f64, bar: Option<&ProgressBar>, label: &str, f: impl FnMut()) -> f64 {
     if let Some(b) = bar {
         b.set_message(label.to_string());
     }
-    while times.len() < 5 || (start.elapsed().as_secs_f64() < seconds && times.len() < 1000) {
-        let t = Instant::now();
-        f();
-        times.push(t.elapsed().as_secs_f64() * 1e3);
-    }
+    let ms = sample(seconds, 5, f).median();
     if let Some(b) = bar {
         b.inc(1);
     }
-    times.sort_by(f64::total_cmp);
-    times[times.len() / 2]
+    ms
 }
 
 /// The dense peer: `[W 1]` (jobs × (K + 1)) and `[D; neutral]` ((K + 1) × 3V), row-major.
@@ -650,12 +643,7 @@ pub fn bench_cpu(rig: &Rig, opt: &BenchOptions) -> Result<BenchReport> {
             if let Some(b) = bar {
                 b.set_message("numpy");
             }
-            let t = crate::server::pypeer::numpy_blend_ms(
-                python,
-                rig,
-                &weights[..opt.unique],
-                opt.seconds,
-            )?;
+            let t = super::peers::numpy_blend_ms(python, rig, &weights[..opt.unique], opt.seconds)?;
             Some(NumpyPeer {
                 python: python.display().to_string(),
                 numpy: t.numpy,
@@ -811,10 +799,7 @@ fn layout_ab(
             }
         }
     }
-    Ok(times.map(|mut t| {
-        t.sort_by(f64::total_cmp);
-        t[t.len() / 2]
-    }))
+    Ok(times.map(|t| Samples::new(t).median()))
 }
 
 /// The layout's fill, before and after the regrouping of vertices within chunks, and its size
@@ -833,6 +818,13 @@ fn layout_line(r: &BenchReport) -> String {
 }
 
 /// Human-readable bench output.
+impl std::fmt::Display for BenchReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&report_text(self))
+    }
+}
+
+/// The report as text (its [`std::fmt::Display`]).
 pub fn report_text(r: &BenchReport) -> String {
     let mut s = format!(
         "rig {:?}: {} vertices × {} targets, {} heads / {} unique, LOD {} ({} shapes), {}{}, {} on {} threads\n",

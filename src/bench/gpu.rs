@@ -11,6 +11,7 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use serde::Serialize;
 
+use super::sample::Samples;
 use crate::engine::{BackendInfo, BlendJob, BlendOutput, Engine, OutputSpec, PreparedRig};
 use crate::lod::plot::{Plot, Series};
 use crate::plan::{JobKey, Plan};
@@ -66,7 +67,7 @@ pub fn bench_gpu(engine: &Engine, rigs: &[Rig], seconds: f64) -> Result<GpuBench
     let bar = super::progress_bar((rigs.len() * SCENES.len() * 3) as u64, "bench gpu");
     for rig in rigs {
         // A clip of its own with more frames than heads, so "100 unique" is 100 unique jobs.
-        let rig = crate::tools::synthetic::with_random_clip_of(rig.clone(), "bench", 128, 1);
+        let rig = crate::synthetic::with_random_clip_of(rig.clone(), "bench", 128, 1);
         let clip = (rig.clips.len() - 1) as u32;
         let prepared = engine
             .prepare(std::sync::Arc::new(rig.clone()))
@@ -126,12 +127,8 @@ fn measure(
             gpu.push(ns as f64 / 1e6);
         }
     }
-    let median = |v: &mut Vec<f64>| {
-        v.sort_by(f64::total_cmp);
-        v[v.len() / 2]
-    };
-    let round_trip_ms = median(&mut round);
-    let gpu_ms = (!gpu.is_empty()).then(|| median(&mut gpu));
+    let round_trip_ms = Samples::new(round).median();
+    let gpu_ms = (!gpu.is_empty()).then(|| Samples::new(gpu).median());
     let shapes = rig.lod.shapes_at(lod)?;
     Ok(SceneResult {
         rig: rig.name.clone(),
@@ -149,6 +146,13 @@ fn measure(
 }
 
 /// The table as text.
+impl std::fmt::Display for GpuBenchReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&report_text(self))
+    }
+}
+
+/// The report as text (its [`std::fmt::Display`]).
 pub fn report_text(r: &GpuBenchReport) -> String {
     let mut s = format!(
         "backend: {:?} {}{}\n",

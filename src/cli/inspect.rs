@@ -1,33 +1,34 @@
-//! The command-line tools as library functions: `inspect`, `eval`, `render`, `bench`,
-//! `load` and `lod set`.
-//!
-//! They live in the library so that tests can call them and `main.rs` stays a thin shell that
-//! parses arguments. Being tools rather than request paths, they report errors with `anyhow`.
-
-pub mod bench;
-pub mod bench_gpu;
-pub mod load;
-pub mod render;
-pub mod synthetic;
+//! `crowdmorph inspect`: what a rig holds (primitives, targets, clips, LOD), the memory it takes
+//! on an engine, the adapter that would render it, and the glTF extensions of its file.
 
 use std::fmt::Write as _;
-use std::io::Write as _;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Context, Result};
+use crowdmorph::engine::{BackendChoice, Engine};
+use crowdmorph::rig::Rig;
 use serde::Serialize;
 
-use crate::engine::{BlendJob, Engine, OutputSpec};
-use crate::import::{ImportOptions, load_path};
-use crate::rig::{FrameMode, Rig};
+/// Arguments of `inspect`.
+#[derive(clap::Args)]
+pub struct Args {
+    /// glTF/GLB rig (default: the embedded head).
+    file: Option<PathBuf>,
+    /// Print JSON instead of text.
+    #[arg(long)]
+    json: bool,
+    /// Backend to report the rig's memory on (auto: a hardware GPU if any, else the CPU).
+    #[arg(long, default_value = "auto", env = "CROWDMORPH_BACKEND")]
+    backend: BackendChoice,
+}
 
-/// Loads a rig from a file, or the embedded default rig when `path` is `None`.
-pub fn load_rig(path: Option<&Path>) -> Result<Rig> {
-    match path {
-        Some(p) => load_path(p, &ImportOptions::default())
-            .with_context(|| format!("loading {}", p.display())),
-        None => Ok(crate::embedded::default_rig()),
-    }
+/// Runs `inspect`.
+pub fn run(a: Args) -> Result<()> {
+    let rig = super::load_rig(a.file.as_deref())?;
+    let engine = Engine::new(a.backend)?;
+    let mut summary = summarize_on(&rig, &engine)?;
+    summary.extensions = file_extensions(a.file.as_deref())?;
+    super::emit(&summary, a.json)
 }
 
 /// What `inspect` reports about a rig.
@@ -54,18 +55,18 @@ pub struct RigSummary {
     /// Host memory of the rig's arrays.
     pub host_bytes: usize,
     /// The engine the rig was prepared on, when asked.
-    pub backend: Option<crate::engine::BackendInfo>,
+    pub backend: Option<crowdmorph::engine::BackendInfo>,
     /// Memory of the prepared rig on that engine (host layout + device).
-    pub memory: Option<crate::engine::RigMemory>,
+    pub memory: Option<crowdmorph::engine::RigMemory>,
     /// The adapter `crowdmorph render` and the server draw rendered frames with, when asked.
     pub renderer: Option<String>,
     /// Why nothing can render, when nothing can.
     pub renderer_error: Option<String>,
-    /// Target names with more than one weight channel, and how many (see [`crate::rig`]).
+    /// Target names with more than one weight channel, and how many (see `crowdmorph::rig`).
     pub split_targets: Vec<(String, usize)>,
     /// The glTF extensions the file uses and how the importer treated each (empty for the
     /// embedded rig); see [`file_extensions`].
-    pub extensions: Vec<crate::import::extensions::ExtensionUse>,
+    pub extensions: Vec<crowdmorph::import::extensions::ExtensionUse>,
 }
 
 /// The glTF extensions a rig file uses or requires and how the importer treats each: read
@@ -73,12 +74,12 @@ pub struct RigSummary {
 /// `None` (the embedded rig) has none.
 pub fn file_extensions(
     path: Option<&Path>,
-) -> Result<Vec<crate::import::extensions::ExtensionUse>> {
+) -> Result<Vec<crowdmorph::import::extensions::ExtensionUse>> {
     let Some(path) = path else {
         return Ok(Vec::new());
     };
     let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-    crate::import::gltf::extension_report(&bytes)
+    crowdmorph::import::gltf::extension_report(&bytes)
         .with_context(|| format!("reading the extensions of {}", path.display()))
 }
 
@@ -190,9 +191,9 @@ pub fn summarize_on(rig: &Rig, engine: &Engine) -> Result<RigSummary> {
     let prepared = engine.prepare(std::sync::Arc::new(rig.clone()))?;
     s.backend = Some(engine.info());
     s.memory = Some(prepared.memory());
-    match crate::render::crowd::RenderDevice::open(
+    match crowdmorph::render::crowd::RenderDevice::open(
         engine,
-        crate::render::crowd::RenderBackend::Auto,
+        crowdmorph::render::crowd::RenderBackend::Auto,
     ) {
         Ok(d) => s.renderer = Some(d.name()),
         Err(why) => s.renderer_error = Some(why),
@@ -201,7 +202,7 @@ pub fn summarize_on(rig: &Rig, engine: &Engine) -> Result<RigSummary> {
 }
 
 /// Human-readable `inspect` output.
-pub fn inspect_text(s: &RigSummary) -> String {
+fn inspect_text(s: &RigSummary) -> String {
     let mut o = String::new();
     let _ = writeln!(
         o,
@@ -308,173 +309,10 @@ pub fn inspect_text(s: &RigSummary) -> String {
     o
 }
 
-/// Evaluates one frame of a clip on the CPU engine and writes it to `out` (`.obj` mesh or
-/// `.bin` raw f32 xyz).
-pub fn eval_to_file(
-    rig: &Rig,
-    clip: &str,
-    frame: i64,
-    lod: u32,
-    mode: FrameMode,
-    out: &Path,
-) -> Result<()> {
-    eval_with(&Engine::cpu(), rig, clip, frame, lod, mode, out)
-}
-
-/// [`eval_to_file`] on a given engine (the `--backend` of `crowdmorph eval`).
-pub fn eval_with(
-    engine: &Engine,
-    rig: &Rig,
-    clip: &str,
-    frame: i64,
-    lod: u32,
-    mode: FrameMode,
-    out: &Path,
-) -> Result<()> {
-    let ci = rig.clip_index(clip).with_context(|| {
-        let names: Vec<&str> = rig.clips.iter().map(|c| c.name.as_str()).collect();
-        format!(
-            "rig {:?} has no clip {clip:?} (clips: {})",
-            rig.name,
-            names.join(", ")
-        )
-    })?;
-    let f = rig.clips[ci].resolve_frame(frame, mode)?;
-    let job = BlendJob {
-        clip: ci as u32,
-        frame: f,
-        lod,
-    };
-    let kind = out
-        .extension()
-        .and_then(|e| e.to_str())
-        .map(str::to_ascii_lowercase);
-    // Checked before anything is evaluated or created: a bad name leaves no empty file.
-    let obj = match kind.as_deref() {
-        Some("obj") => true,
-        Some("bin") => false,
-        _ => bail!("output must end in .obj or .bin: {}", out.display()),
-    };
-    let spec = OutputSpec {
-        normals: obj,
-        ..OutputSpec::default()
-    };
-    let prepared = engine.prepare(std::sync::Arc::new(rig.clone()))?;
-    let evaluation = engine.evaluate(&prepared, &[job], spec)?;
-    tracing::info!(backend = ?evaluation.kind, wall_ms = evaluation.timings.wall_ns as f64 / 1e6, "evaluated");
-    let result = evaluation.output;
-    let positions = result.job_positions(0);
-    let file = std::fs::File::create(out).with_context(|| format!("creating {}", out.display()))?;
-    let mut w = std::io::BufWriter::new(file);
-    if obj {
-        let normals = result.job_normals(0).unwrap_or_default();
-        writeln!(
-            w,
-            "# crowdmorph eval: rig {:?}, clip {clip:?}, frame {f}, lod {lod}",
-            rig.name
-        )?;
-        for p in positions.chunks_exact(3) {
-            writeln!(w, "v {} {} {}", p[0], p[1], p[2])?;
-        }
-        for n in normals.chunks_exact(3) {
-            writeln!(w, "vn {} {} {}", n[0], n[1], n[2])?;
-        }
-        let offsets = rig.vertex_offsets();
-        for (pi, prim) in rig.primitives.iter().enumerate() {
-            writeln!(w, "o {}", prim.name.replace(char::is_whitespace, "_"))?;
-            for tri in prim.indices.chunks_exact(3) {
-                let [a, b, c] = [0, 1, 2].map(|k| offsets[pi] + tri[k] as usize + 1);
-                writeln!(w, "f {a}//{a} {b}//{b} {c}//{c}")?;
-            }
-        }
-    } else {
-        w.write_all(bytemuck::cast_slice(&positions))?;
+impl std::fmt::Display for RigSummary {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&inspect_text(self))
     }
-    w.flush()?;
-    Ok(())
 }
 
-/// A progress bar on standard error for a command that takes seconds (hidden when standard
-/// error is not a terminal, so JSON on standard output stays clean).
-pub fn progress_bar(len: u64, label: &str) -> indicatif::ProgressBar {
-    let b = indicatif::ProgressBar::new(len);
-    b.set_style(
-        indicatif::ProgressStyle::with_template(&format!(
-            "{{spinner}} {label} {{pos}}/{{len}} {{msg}}"
-        ))
-        .unwrap_or_else(|_| indicatif::ProgressStyle::default_spinner()),
-    );
-    b
-}
-
-/// Parses a `--level SHAPES[:MESH]` argument of `lod set` (the mesh is an index into the
-/// request's mesh fractions).
-pub fn parse_lod_level(s: &str) -> Result<crowdmorph_proto::LodLevelRequest> {
-    let (shapes, mesh) = match s.split_once(':') {
-        Some((a, b)) => (a, Some(b)),
-        None => (s, None),
-    };
-    Ok(crowdmorph_proto::LodLevelRequest {
-        shapes: shapes
-            .trim()
-            .parse()
-            .with_context(|| format!("level {s:?}: shapes must be a whole number"))?,
-        mesh: mesh
-            .map(|m| m.trim().parse())
-            .transpose()
-            .with_context(|| format!("level {s:?}: the mesh must be a whole number"))?,
-    })
-}
-
-/// `crowdmorph lod set`: sets a registered rig's LOD on a running server (`PUT
-/// /v1/rigs/{id}/lod`), where it is rebuilt, persisted with the rig and used by later frames.
-pub fn lod_set(
-    server: &str,
-    token: Option<&str>,
-    id: &str,
-    request: &crowdmorph_proto::LodRequest,
-) -> Result<crowdmorph_proto::RigInfo> {
-    let mut client = crowdmorph_client::Client::new(server.trim_end_matches('/'));
-    if let Some(t) = token {
-        client = client.with_token(t);
-    }
-    let runtime = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .context("starting the tokio runtime")?;
-    runtime
-        .block_on(client.set_lod(id, request))
-        .with_context(|| format!("setting the LOD of rig {id:?} on {server}"))
-}
-
-/// The LOD table of a rig as text, a line per level.
-pub fn lod_table_text(info: &crowdmorph_proto::RigInfo) -> String {
-    let lod = &info.lod;
-    let mut s = format!(
-        "rig {:?}: LOD {} ({}), pinned [{}]\n",
-        info.id,
-        lod.method,
-        lod.status,
-        lod.pinned.join(", ")
-    );
-    for (i, l) in lod.levels.iter().enumerate() {
-        let _ = writeln!(
-            s,
-            "  level {i}: {:>3} shapes, {} vertices, {} triangles{}",
-            l.shapes,
-            l.vertices,
-            l.triangles,
-            l.mesh.map_or(String::new(), |m| format!(" (mesh {m})"))
-        );
-    }
-    s
-}
-
-/// A spinner on standard error for work whose steps are not counted (hidden when standard
-/// error is not a terminal); finish it with `finish_and_clear` before printing the result.
-pub fn spinner(label: &str) -> indicatif::ProgressBar {
-    let b = indicatif::ProgressBar::new_spinner();
-    b.set_message(label.to_string());
-    b.enable_steady_tick(std::time::Duration::from_millis(120));
-    b
-}
+impl super::Report for RigSummary {}

@@ -1,4 +1,4 @@
-//! `crowdmorph load`: the open-loop load generator of [`crate::load`] against a running server
+//! `crowdmorph load`: the open-loop load generator of [`crowdmorph::load`] against a running server
 //! over HTTP, at a fixed rate or ramping to the highest rate whose p99 meets a target, or
 //! (`--session`) N viewers of one crowd session; with a live progress line on standard error
 //! (only when it is a terminal).
@@ -7,15 +7,168 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::{Context, Result, bail};
+
+use super::WireFormat;
 use bytes::Bytes;
 use crowdmorph_proto::{CameraSpec, LodChoice, SessionHead, SessionInfo, ViewerHello};
 use serde::Serialize;
 
-use crate::load::http::{HttpLane, HttpTarget};
-use crate::load::session::SessionLoad;
-use crate::load::{
+use crowdmorph::load::http::{HttpLane, HttpTarget};
+use crowdmorph::load::session::SessionLoad;
+use crowdmorph::load::{
     self, CrowdShape, Live, LoadReport, RampOptions, RampReport, RigClips, RunOptions, WireEncoding,
 };
+
+/// Arguments of `load`.
+#[derive(clap::Args)]
+pub struct Args {
+    /// The server.
+    #[arg(
+        long,
+        env = "CROWDMORPH_SERVER",
+        default_value = "http://127.0.0.1:8080"
+    )]
+    pub(super) url: String,
+    /// Requests per second (with --ramp, the first rate tried).
+    #[arg(long, default_value_t = 100.0)]
+    pub(super) rate: f64,
+    /// Seconds measured (with --ramp, per rate).
+    #[arg(long, default_value_t = 10.0)]
+    pub(super) duration: f64,
+    /// Seconds sent before each measured window, left out of the report.
+    #[arg(long, default_value_t = 1.0)]
+    pub(super) warmup: f64,
+    /// Seconds unanswered requests may take after the window before they count as unfinished.
+    #[arg(long, default_value_t = 10.0)]
+    pub(super) grace: f64,
+    /// HTTP/1.1 connections; requests go to them in turn, one at a time on each.
+    #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u64).range(1..=100_000))]
+    pub(super) connections: u64,
+    /// Heads per request.
+    #[arg(long, default_value_t = 100, value_parser = clap::value_parser!(u32).range(1..))]
+    pub(super) heads: u32,
+    /// Share of the heads that are unique jobs, in (0, 1]; the rest are clones.
+    #[arg(long, default_value_t = 1.0)]
+    pub(super) unique: f64,
+    /// A rig to play (repeatable; each job picks one uniformly).
+    #[arg(long = "rig", default_value = "default-head")]
+    pub(super) rigs: Vec<String>,
+    /// A clip of the mix, NAME[:WEIGHT] (repeatable; default every clip of the rig equally).
+    #[arg(long = "clip", value_parser = parse_weighted)]
+    pub(super) clips: Vec<(String, f64)>,
+    /// A LOD level of the mix, LEVEL[:WEIGHT] (repeatable; default 0).
+    #[arg(long = "lod", value_parser = parse_weighted_lod)]
+    pub(super) lods: Vec<(u32, f64)>,
+    /// Vertex format.
+    #[arg(long, value_enum, default_value_t = WireFormat::F32)]
+    pub(super) format: WireFormat,
+    /// Ask for normals too.
+    #[arg(long)]
+    pub(super) normals: bool,
+    /// Request and response encoding.
+    #[arg(long, value_enum, default_value_t = Encoding::Bincode)]
+    pub(super) encoding: Encoding,
+    /// Seed of the clip and LOD picks.
+    #[arg(long, default_value_t = 1)]
+    pub(super) seed: u64,
+    /// Find the highest rate whose p99 stays under --p99-ms: double the rate from --rate until
+    /// a run misses, then bisect.
+    #[arg(long)]
+    pub(super) ramp: bool,
+    /// The ramp's p99 target, milliseconds.
+    #[arg(long, default_value_t = 10.0)]
+    pub(super) p99_ms: f64,
+    /// The highest rate the ramp tries.
+    #[arg(long, default_value_t = 1e6)]
+    pub(super) max_rate: f64,
+    /// Most runs of the ramp.
+    #[arg(long, default_value_t = 12)]
+    pub(super) max_steps: usize,
+    /// Load a crowd session instead: create one from the crowd flags (--heads, --unique,
+    /// --rig, --clip; --lod, --format and --normals go to the viewers), connect --viewers
+    /// viewers to its stream for the run, delete it at the end.
+    #[arg(long)]
+    pub(super) session: bool,
+    /// Watch this existing session instead of creating one (implies --session).
+    #[arg(long, value_name = "ID")]
+    pub(super) session_id: Option<String>,
+    /// Viewers of the session.
+    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u64).range(1..=100_000))]
+    pub(super) viewers: u64,
+    /// Ticks per second of the session created.
+    #[arg(long, default_value_t = 30.0)]
+    pub(super) fps: f32,
+    /// LOD by distance from each viewer's camera (in front of the crowd's grid), METRES:LEVEL
+    /// (repeatable, ascending metres), instead of the --lod mix.
+    #[arg(long = "lod-by-distance", value_name = "METRES:LEVEL", value_parser = parse_distance_level)]
+    pub(super) lod_by_distance: Vec<[f32; 2]>,
+    /// Bearer token for creating and deleting the session.
+    #[arg(long, env = "CROWDMORPH_ADMIN_TOKEN", hide_env_values = true)]
+    pub(super) admin_token: Option<String>,
+    /// Print JSON.
+    #[arg(long)]
+    pub(super) json: bool,
+}
+
+/// Runs `load` and prints its report.
+pub fn run(a: Args) -> Result<()> {
+    let crowd = CrowdShape {
+        heads: a.heads,
+        unique: a.unique,
+        rigs: a.rigs,
+        clips: a.clips.into_iter().collect(),
+        lods: if a.lods.is_empty() {
+            CrowdShape::default().lods
+        } else {
+            a.lods.into_iter().collect()
+        },
+        format: match a.format {
+            WireFormat::F32 => crowdmorph_proto::Format::F32,
+            WireFormat::F16 => crowdmorph_proto::Format::F16,
+            WireFormat::Q16 => crowdmorph_proto::Format::Q16,
+        },
+        normals: a.normals,
+        encoding: match a.encoding {
+            Encoding::Bincode => WireEncoding::Bincode,
+            Encoding::Json => WireEncoding::Json,
+        },
+        seed: a.seed,
+    };
+    let cmd = LoadCommand {
+        url: a.url,
+        rate: a.rate,
+        duration: a.duration,
+        warmup: a.warmup,
+        grace: a.grace,
+        connections: usize::try_from(a.connections)?,
+        crowd,
+        ramp: a.ramp.then(|| RampOptions {
+            p99_ms: a.p99_ms,
+            max_rate: a.max_rate,
+            max_steps: a.max_steps,
+            ..RampOptions::default()
+        }),
+        progress: true,
+        session: (a.session || a.session_id.is_some()).then(|| SessionMode {
+            viewers: a.viewers as usize,
+            fps: a.fps,
+            attach: a.session_id,
+            admin_token: a.admin_token,
+            lod_by_distance: (!a.lod_by_distance.is_empty()).then_some(a.lod_by_distance),
+        }),
+    };
+    let outcome = load(&cmd)?;
+    super::emit(&outcome, a.json)
+}
+
+/// Request and response encoding of `load`.
+#[derive(Clone, Copy, clap::ValueEnum)]
+pub enum Encoding {
+    /// application/x-bincode.
+    Bincode,
+    /// application/json.
+    Json,
+}
 
 /// Request bodies generated; request `i` sends body `i mod RING`.
 const RING: usize = 64;
@@ -71,15 +224,16 @@ pub enum LoadOutcome {
     Ramp(RampReport),
 }
 
-impl LoadOutcome {
-    /// The human-readable table.
-    pub fn text(&self) -> String {
+impl std::fmt::Display for LoadOutcome {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
-            LoadOutcome::Fixed(r) => r.text(),
-            LoadOutcome::Ramp(r) => r.text(),
+            LoadOutcome::Fixed(r) => f.write_str(&r.text()),
+            LoadOutcome::Ramp(r) => f.write_str(&r.text()),
         }
     }
 }
+
+impl super::Report for LoadOutcome {}
 
 /// Runs the command to the end.
 pub fn load(cmd: &LoadCommand) -> Result<LoadOutcome> {
@@ -87,7 +241,7 @@ pub fn load(cmd: &LoadCommand) -> Result<LoadOutcome> {
         .enable_all()
         .build()
         .context("starting the tokio runtime")?;
-    runtime.block_on(run(cmd))
+    runtime.block_on(run_command(cmd))
 }
 
 /// What the server says about the rigs of the shape.
@@ -109,7 +263,7 @@ async fn describe_rigs(url: &str, crowd: &CrowdShape) -> Result<Vec<RigClips>> {
     Ok(rigs)
 }
 
-async fn run(cmd: &LoadCommand) -> Result<LoadOutcome> {
+async fn run_command(cmd: &LoadCommand) -> Result<LoadOutcome> {
     load::http::authority_of(&cmd.url)?;
     if let Some(mode) = &cmd.session {
         return Ok(LoadOutcome::Fixed(run_session(cmd, mode).await?));

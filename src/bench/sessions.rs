@@ -21,8 +21,9 @@ use bytes::Bytes;
 use crowdmorph_proto::{Format, SessionInfo, ViewerHello};
 use serde::Serialize;
 
-use super::ServerConfig;
+use super::server::{BenchServer, process_cpu};
 use crate::engine::BackendChoice;
+use crate::server::ServerConfig;
 
 /// What to measure.
 #[derive(Clone, Debug)]
@@ -105,22 +106,6 @@ pub fn bench_sessions(
     runtime.block_on(run(rig_bytes, opt))
 }
 
-/// CPU time of this process (user + system); zero where `getrusage` is unavailable.
-pub(super) fn process_cpu() -> Duration {
-    #[cfg(unix)]
-    {
-        // SAFETY: getrusage writes one rusage through a pointer to a live, zeroed local.
-        let mut u: libc::rusage = unsafe { std::mem::zeroed() };
-        if unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut u) } == 0 {
-            let tv = |t: libc::timeval| {
-                Duration::from_secs(t.tv_sec as u64) + Duration::from_micros(t.tv_usec as u64)
-            };
-            return tv(u.ru_utime) + tv(u.ru_stime);
-        }
-    }
-    Duration::ZERO
-}
-
 struct ViewerCount {
     bytes: AtomicU64,
     messages: AtomicU64,
@@ -130,23 +115,23 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &SessionBenchOptions) -> Result<Se
     let config = ServerConfig {
         backend: opt.backend,
         gpu_memory: opt.gpu_memory,
-        auto_lod: false,
-        render_backend: super::RenderBackend::Off,
-        sessions: super::sessions::SessionLimits {
+        no_auto_lod: true,
+        render_backend: crate::server::RenderBackend::Off,
+        sessions: crate::server::sessions::SessionLimits {
             max_heads: opt.heads.max(1),
             max_viewers: opt.viewers.max(1),
             ..Default::default()
         },
         ..ServerConfig::default()
     };
-    let super::bench::BenchServer {
+    let BenchServer {
         addr,
         client,
         rig_id,
         stop_tx,
         server,
         ..
-    } = super::bench::BenchServer::start(config, rig_bytes).await?;
+    } = BenchServer::start(config, rig_bytes).await?;
     let info = client.rig(&rig_id).await.context("reading the rig")?;
     if info.clips.is_empty() {
         bail!("rig {rig_id:?} has no clips to play");
@@ -292,6 +277,13 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &SessionBenchOptions) -> Result<Se
 }
 
 /// The report as a table.
+impl std::fmt::Display for SessionBenchReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&report_text(self))
+    }
+}
+
+/// The report as text (its [`std::fmt::Display`]).
 pub fn report_text(r: &SessionBenchReport) -> String {
     format!(
         "bench sessions: rig {} ({} vertices), {} heads playing {} animations, {} viewers, \

@@ -14,7 +14,7 @@
 //!   possible from the server on the same machine), heads per second.
 //! - JSON: the same crowds and connections with JSON requests and responses, right after.
 //! - The Python peer (`--python-peer`): the dense aiohttp + numpy server of
-//!   [`super::pypeer`], checked once against crowdmorph's vertices and then driven by the same
+//!   [`super::peers`], checked once against crowdmorph's vertices and then driven by the same
 //!   client loop with the same bincode bodies, while crowdmorph idles.
 //! - Half load: requests arrive at a fixed rate of half the saturated request rate (open
 //!   loop), latency percentiles from an HDR histogram.
@@ -38,41 +38,12 @@ use crowdmorph_proto::{CrowdFrameRequest, Format, Head, OutputOptions};
 use hdrhistogram::Histogram;
 use serde::Serialize;
 
-use super::{AppState, ServerConfig};
+use super::server::BenchServer;
 use crate::engine::{BlendJob, Engine, OutputSpec};
 use crate::load::Percentiles;
 use crate::plan::{JobKey, Plan};
 use crate::rig::Rig;
-
-/// The bytes to upload for a rig file: a `.glb` as it is, a `.gltf` with its external buffers
-/// inlined as base64 data URIs (the server accepts only self-contained files).
-pub fn self_contained_bytes(path: &std::path::Path) -> Result<Vec<u8>> {
-    use base64::Engine as _;
-    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-    if bytes.starts_with(b"glTF") {
-        return Ok(bytes);
-    }
-    let mut doc: serde_json::Value =
-        serde_json::from_slice(&bytes).with_context(|| format!("parsing {}", path.display()))?;
-    let dir = path.parent().unwrap_or(std::path::Path::new("."));
-    if let Some(buffers) = doc.get_mut("buffers").and_then(|b| b.as_array_mut()) {
-        for b in buffers {
-            let Some(uri) = b.get("uri").and_then(|u| u.as_str()).map(str::to_string) else {
-                continue;
-            };
-            if uri.starts_with("data:") {
-                continue;
-            }
-            let data = std::fs::read(dir.join(&uri))
-                .with_context(|| format!("reading buffer {uri} of {}", path.display()))?;
-            b["uri"] = serde_json::Value::String(format!(
-                "data:application/octet-stream;base64,{}",
-                base64::engine::general_purpose::STANDARD.encode(data)
-            ));
-        }
-    }
-    Ok(serde_json::to_vec(&doc)?)
-}
+use crate::server::ServerConfig;
 
 /// Frames of the benchmark clip.
 const CLIP_FRAMES: usize = 1024;
@@ -341,7 +312,7 @@ async fn measure_python_peer(
     bodies: &Arc<Vec<Bytes>>,
     crowdmorph_heads_per_s: f64,
 ) -> Result<PythonPeerReport> {
-    use super::pypeer;
+    use super::peers as pypeer;
     if opt.format == Format::Q16 {
         bail!(
             "the Python peer serves f32 and f16 only: run --python-peer with --format f32 or f16"
@@ -492,7 +463,7 @@ async fn loopback_throughput(connections: usize, seconds: f64) -> Result<f64> {
 
 /// CPU seconds (user + system) this process has used so far, all threads together.
 fn process_cpu_s() -> f64 {
-    super::bench_sessions::process_cpu().as_secs_f64()
+    super::server::process_cpu().as_secs_f64()
 }
 
 /// CPU seconds per byte this process spends moving `message` byte messages through
@@ -567,58 +538,6 @@ pub fn bench_http(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<
     runtime.block_on(run(rig_bytes, opt))
 }
 
-/// A server started in this process on a loopback port for a benchmark, with its rig.
-pub(super) struct BenchServer {
-    /// The server's state.
-    pub state: AppState,
-    /// Where it listens.
-    pub addr: std::net::SocketAddr,
-    /// A client of it.
-    pub client: Client,
-    /// The rig to measure: the uploaded one, else the embedded head.
-    pub rig_id: String,
-    /// Stops the server.
-    pub stop_tx: tokio::sync::oneshot::Sender<()>,
-    /// The serving task.
-    pub server: tokio::task::JoinHandle<Result<(), super::ServerError>>,
-}
-
-impl BenchServer {
-    /// Starts a server with `config` and uploads `rig_bytes` as rig `bench` when given.
-    pub(super) async fn start(
-        config: ServerConfig,
-        rig_bytes: Option<Vec<u8>>,
-    ) -> Result<BenchServer> {
-        let state = AppState::new(config)?;
-        state.load_stored().await;
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
-        let addr = listener.local_addr()?;
-        let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
-        let server = tokio::spawn(super::serve(listener, state.clone(), async {
-            let _ = stop_rx.await;
-        }));
-        let client = Client::new(format!("http://{addr}"));
-        let rig_id = match rig_bytes {
-            Some(b) => {
-                client
-                    .upload_rig("bench", Bytes::from(b))
-                    .await
-                    .context("uploading the rig")?
-                    .id
-            }
-            None => super::registry::BUILTIN_ID.to_string(),
-        };
-        Ok(BenchServer {
-            state,
-            addr,
-            client,
-            rig_id,
-            stop_tx,
-            server,
-        })
-    }
-}
-
 async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpBenchReport> {
     let config = ServerConfig {
         max_heads: opt.heads.max(1000),
@@ -627,9 +546,9 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
         gpu_memory: opt.gpu_memory,
         // The background LOD job would score the embedded head (seconds of CPU) during the
         // measurement, on the same cores.
-        auto_lod: false,
+        no_auto_lod: true,
         // Frames only: no rendering device to open.
-        render_backend: super::RenderBackend::Off,
+        render_backend: crate::server::RenderBackend::Off,
         ..ServerConfig::default()
     };
     let BenchServer {
@@ -920,6 +839,13 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
 }
 
 /// Human-readable report.
+impl std::fmt::Display for HttpBenchReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&report_text(self))
+    }
+}
+
+/// The report as text (its [`std::fmt::Display`]).
 pub fn report_text(r: &HttpBenchReport) -> String {
     let mut s = format!(
         "rig {:?}: {} vertices × {} targets; {} heads / {} unique per request, {}, {} connections; engine {:?} {}\n",

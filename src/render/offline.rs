@@ -1,27 +1,85 @@
-//! `crowdmorph render` and `crowdmorph bench render`: a crowd of one rig drawn offline, through
-//! the same layout, draw and encoding path as `POST /v1/crowd/render`.
+//! A crowd of one rig drawn offline (`crowdmorph render`; `crowdmorph bench render` draws the
+//! same crowd repeatedly), through the same layout, draw and encoding path as
+//! `POST /v1/crowd/render`.
 //!
 //! The crowd is `heads` heads of one clip at one LOD on the default grid and camera; with
 //! `spread`, head `i` plays frame `frame + i` (every head unique), otherwise every head is a
-//! clone of one job. The bench draws such a crowd repeatedly and reports the median time of
-//! each stage: compute (the engine), render, readback and encode.
+//! clone of one job.
 
 use std::path::Path;
 use std::sync::Arc;
 use std::time::Instant;
 
-use anyhow::{Context, Result, bail};
 use crowdmorph_proto::{ImageFormat, ImageOptions};
 use serde::Serialize;
 
 use crate::engine::gpu::GpuOptions;
-use crate::engine::{BackendKind, Engine, PreparedRig};
+use crate::engine::{BackendKind, Engine, EngineError, PreparedRig};
 use crate::plan::{JobKey, Plan};
-use crate::render::crowd::{self, CrowdGroup, RenderBackend, RenderDevice};
-use crate::render::encode;
-use crate::render::gpu::{Frame, MeshTopology, View};
-use crate::render::scene;
-use crate::rig::{FrameMode, Rig};
+use crate::render::crowd::{self, CrowdError, CrowdGroup, RenderBackend, RenderDevice};
+use crate::render::encode::{self, EncodeError, ImageError};
+use crate::render::gpu::{Frame, MeshTopology, RenderError, View};
+use crate::render::scene::{self, SceneError};
+use crate::rig::{ClipError, FrameMode, Rig};
+
+/// Why an offline render failed.
+#[derive(Debug, thiserror::Error)]
+pub enum OfflineError {
+    /// No adapter can render (the reason names what to install).
+    #[error("{0}")]
+    NoRenderer(String),
+    /// The rig has no such clip.
+    #[error("rig {rig:?} has no clip {clip:?} (clips: {clips})")]
+    UnknownClip {
+        /// The rig.
+        rig: String,
+        /// The clip asked for.
+        clip: String,
+        /// The clips it has.
+        clips: String,
+    },
+    /// The LOD level is past the rig's last.
+    #[error("LOD {lod} out of range: rig {rig:?} has levels 0..{last}")]
+    Lod {
+        /// The rig.
+        rig: String,
+        /// The level asked for.
+        lod: u32,
+        /// Its last level.
+        last: usize,
+    },
+    /// The image options.
+    #[error(transparent)]
+    Image(#[from] ImageError),
+    /// A frame outside the clip.
+    #[error(transparent)]
+    Clip(#[from] ClipError),
+    /// The scene layout.
+    #[error(transparent)]
+    Scene(#[from] SceneError),
+    /// The engine.
+    #[error(transparent)]
+    Engine(#[from] EngineError),
+    /// The renderer.
+    #[error(transparent)]
+    Render(#[from] RenderError),
+    /// Drawing the crowd.
+    #[error(transparent)]
+    Crowd(#[from] CrowdError),
+    /// Encoding the image.
+    #[error(transparent)]
+    Encode(#[from] EncodeError),
+    /// Writing the file.
+    #[error("writing {path}: {source}")]
+    Io {
+        /// The file.
+        path: String,
+        /// What failed.
+        source: std::io::Error,
+    },
+}
+
+type Result<T, E = OfflineError> = std::result::Result<T, E>;
 
 /// The clip `--clip random` makes for a rig (deterministic random weights, one frame per head
 /// at least): ICT FaceKit and other rigs without animation can still be benchmarked.
@@ -115,7 +173,7 @@ pub struct RenderReport {
 }
 
 /// A crowd laid out and planned, ready to draw as often as wanted.
-struct Crowd {
+pub struct Crowd {
     rig: String,
     vertices: usize,
     prepared: PreparedRig,
@@ -131,12 +189,7 @@ struct Crowd {
 fn playable(rig: &Rig, opt: &RenderOptions) -> Rig {
     match opt.clip.as_deref() {
         Some(RANDOM_CLIP) if rig.clip_index(RANDOM_CLIP).is_none() => {
-            crate::tools::synthetic::with_random_clip_of(
-                rig.clone(),
-                RANDOM_CLIP,
-                opt.heads.max(24),
-                7,
-            )
+            crate::synthetic::with_random_clip_of(rig.clone(), RANDOM_CLIP, opt.heads.max(24), 7)
         }
         None if rig.clips.is_empty() => {
             let mut r = rig.clone();
@@ -153,28 +206,35 @@ fn playable(rig: &Rig, opt: &RenderOptions) -> Rig {
     }
 }
 
-fn build(engine: &Engine, device: &RenderDevice, rig: &Rig, opt: &RenderOptions) -> Result<Crowd> {
+/// Lays out and plans the crowd `opt` asks for, and uploads its topologies to `device`.
+pub fn build(
+    engine: &Engine,
+    device: &RenderDevice,
+    rig: &Rig,
+    opt: &RenderOptions,
+) -> Result<Crowd> {
     encode::check_image(&opt.image, device.renderer.max_size())?;
     let rig = &playable(rig, opt);
     let clip = match &opt.clip {
-        Some(c) => rig.clip_index(c).with_context(|| {
-            let names: Vec<&str> = rig.clips.iter().map(|c| c.name.as_str()).collect();
-            format!(
-                "rig {:?} has no clip {c:?} (clips: {})",
-                rig.name,
-                names.join(", ")
-            )
+        Some(c) => rig.clip_index(c).ok_or_else(|| OfflineError::UnknownClip {
+            rig: rig.name.clone(),
+            clip: c.clone(),
+            clips: rig
+                .clips
+                .iter()
+                .map(|c| c.name.as_str())
+                .collect::<Vec<_>>()
+                .join(", "),
         })?,
         None => rig.clip_index("talk").unwrap_or(0),
     };
     let levels = rig.lod.levels.len();
     if opt.lod as usize >= levels {
-        bail!(
-            "LOD {} out of range: rig {:?} has levels 0..{}",
-            opt.lod,
-            rig.name,
-            levels.saturating_sub(1)
-        );
+        return Err(OfflineError::Lod {
+            rig: rig.name.clone(),
+            lod: opt.lod,
+            last: levels.saturating_sub(1),
+        });
     }
     let keys = (0..opt.heads)
         .map(|i| {
@@ -217,7 +277,7 @@ fn build(engine: &Engine, device: &RenderDevice, rig: &Rig, opt: &RenderOptions)
 }
 
 /// Draws and encodes the crowd once.
-fn draw_once(
+pub fn draw_once(
     engine: &Engine,
     device: &RenderDevice,
     c: &Crowd,
@@ -250,7 +310,8 @@ fn draw_once(
     Ok((bytes, t))
 }
 
-fn report(
+/// What drawing `c` at `opt` reports, with the times of `runs` frames.
+pub fn report(
     engine: &Engine,
     device: &RenderDevice,
     c: &Crowd,
@@ -277,12 +338,12 @@ fn report(
 }
 
 /// The renderer `opt` asks for, next to `engine`.
-fn open_device(engine: &Engine, opt: &RenderOptions) -> Result<RenderDevice> {
+pub fn open_device(engine: &Engine, opt: &RenderOptions) -> Result<RenderDevice> {
     let options = GpuOptions {
         memory: opt.gpu_memory,
         ..GpuOptions::default()
     };
-    RenderDevice::open_with(engine, opt.backend, options).map_err(anyhow::Error::msg)
+    RenderDevice::open_with(engine, opt.backend, options).map_err(OfflineError::NoRenderer)
 }
 
 /// Draws the crowd `opt` describes and returns the encoded image.
@@ -306,7 +367,10 @@ pub fn render_to_file(
     out: &Path,
 ) -> Result<RenderReport> {
     let (bytes, report) = render_image(engine, rig, opt)?;
-    std::fs::write(out, &bytes).with_context(|| format!("writing {}", out.display()))?;
+    std::fs::write(out, &bytes).map_err(|source| OfflineError::Io {
+        path: out.display().to_string(),
+        source,
+    })?;
     Ok(report)
 }
 
@@ -320,88 +384,45 @@ pub fn format_of(path: &Path) -> Option<ImageFormat> {
     }
 }
 
-/// `crowdmorph bench render`: draws the crowd repeatedly for about `seconds` (at least
-/// `min_runs` times, after one warm-up frame) and reports the median of each stage. A rig
-/// without clips plays a synthetic `random` clip, so its heads differ.
-pub fn bench_render(
-    engine: &Engine,
-    rig: &Rig,
-    opt: &RenderOptions,
-    seconds: f64,
-    min_runs: usize,
-) -> Result<RenderReport> {
-    let mut opt = opt.clone();
-    if opt.clip.is_none() && rig.clips.is_empty() {
-        opt.clip = Some(RANDOM_CLIP.into());
-    }
-    let opt = &opt;
-    let device = open_device(engine, opt)?;
-    let c = build(engine, &device, rig, opt)?;
-    // The first frame pays for pipeline and buffer creation.
-    let (bytes, _) = draw_once(engine, &device, &c, &opt.image)?;
-    let start = Instant::now();
-    let mut runs: Vec<StageTimes> = Vec::new();
-    while runs.len() < min_runs.max(1) || start.elapsed().as_secs_f64() < seconds {
-        runs.push(draw_once(engine, &device, &c, &opt.image)?.1);
-    }
-    let median = |f: fn(&StageTimes) -> f64| {
-        let mut v: Vec<f64> = runs.iter().map(f).collect();
-        v.sort_by(f64::total_cmp);
-        v[v.len() / 2]
-    };
-    let times = StageTimes {
-        compute_ms: median(|t| t.compute_ms),
-        render_ms: median(|t| t.render_ms),
-        readback_ms: median(|t| t.readback_ms),
-        encode_ms: median(|t| t.encode_ms),
-        total_ms: median(|t| t.total_ms),
-    };
-    Ok(report(
-        engine,
-        &device,
-        &c,
-        opt,
-        bytes.len(),
-        times,
-        runs.len(),
-    ))
-}
-
 /// Human-readable `bench render` (and `render`) output.
-pub fn report_text(r: &RenderReport) -> String {
-    let t = &r.times;
-    format!(
-        "{} heads ({} unique) of {:?}, {} vertices each, {}×{} {} ({} bytes)\n\
+impl std::fmt::Display for RenderReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let r = self;
+        let t = &r.times;
+        write!(
+            f,
+            "{} heads ({} unique) of {:?}, {} vertices each, {}×{} {} ({} bytes)\n\
          engine {:?}, renderer {}{}\n\
          ms per frame (median of {}): compute {:.2}, render {:.2}, readback {:.2}, encode {:.2}, \
          total {:.2} ({:.1} frames/s)\n",
-        r.heads,
-        r.unique,
-        r.rig,
-        r.vertices,
-        r.width,
-        r.height,
-        r.format,
-        r.bytes,
-        r.engine,
-        r.adapter,
-        if r.shared_device {
-            " (the engine's device)"
-        } else {
-            ""
-        },
-        r.runs,
-        t.compute_ms,
-        t.render_ms,
-        t.readback_ms,
-        t.encode_ms,
-        t.total_ms,
-        if t.total_ms > 0.0 {
-            1e3 / t.total_ms
-        } else {
-            0.0
-        }
-    )
+            r.heads,
+            r.unique,
+            r.rig,
+            r.vertices,
+            r.width,
+            r.height,
+            r.format,
+            r.bytes,
+            r.engine,
+            r.adapter,
+            if r.shared_device {
+                " (the engine's device)"
+            } else {
+                ""
+            },
+            r.runs,
+            t.compute_ms,
+            t.render_ms,
+            t.readback_ms,
+            t.encode_ms,
+            t.total_ms,
+            if t.total_ms > 0.0 {
+                1e3 / t.total_ms
+            } else {
+                0.0
+            }
+        )
+    }
 }
 
 #[cfg(test)]

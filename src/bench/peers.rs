@@ -163,7 +163,7 @@ pub fn read_npy_f32(path: &Path) -> Result<(Vec<usize>, Vec<f32>)> {
 
 /// The neutral positions of every primitive, concatenated (`3V` values).
 pub fn neutral(rig: &Rig) -> Vec<f32> {
-    bytemuck::cast_slice(&crate::render::neutral_positions(rig)).to_vec()
+    bytemuck::cast_slice(&crate::lod::raster::neutral_positions(rig)).to_vec()
 }
 
 /// Every target's position deltas as a dense row-major `T × 3V` matrix.

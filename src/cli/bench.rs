@@ -1,0 +1,373 @@
+//! `crowdmorph bench cpu|gpu|http|render|sessions`: the benchmarks of [`crowdmorph::bench`],
+//! each printed as its report.
+
+use std::path::PathBuf;
+
+use anyhow::Result;
+use clap::Subcommand;
+use crowdmorph::bench;
+use crowdmorph::engine::{BackendChoice, Engine};
+use crowdmorph::render::crowd::RenderBackend;
+use serde::Serialize;
+
+use super::{GpuMemoryArgs, WireFormat, load_rig, spinner};
+
+/// `crowdmorph bench ...`.
+#[derive(Subcommand)]
+pub enum Command {
+    /// The scenes of Costigan et al. 2016 (1 head, 100 unique, 100 sharing 10 animations) at
+    /// 100/50/25 % shapes: GPU time and round-trip time, on the paper-scale synthetic rig and
+    /// any --rig.
+    Gpu {
+        /// More rigs to measure (glTF/GLB), after the paper-scale synthetic rig.
+        #[arg(long)]
+        rig: Vec<PathBuf>,
+        /// Leave out the paper-scale synthetic rig.
+        #[arg(long)]
+        no_paper: bool,
+        /// Engine (gpu includes software adapters such as lavapipe).
+        #[arg(long, default_value = "gpu")]
+        backend: BackendChoice,
+        /// Seconds per measurement.
+        #[arg(long, default_value_t = 1.0)]
+        seconds: f64,
+        /// Write the table as a PNG plot (like the paper's Figures 5 and 6).
+        #[arg(long)]
+        plot: Option<PathBuf>,
+        /// Also run the same scenes on the CPU engine (a second table, same plot).
+        #[arg(long)]
+        with_cpu: bool,
+        #[command(flatten)]
+        gpu: GpuMemoryArgs,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Crowd frames over loopback HTTP against the same work in-process; latency at half
+    /// load; bytes per head of each format.
+    Http {
+        /// glTF/GLB rig (default: the embedded head).
+        #[arg(long)]
+        rig: Option<PathBuf>,
+        /// Heads per request.
+        #[arg(long, default_value_t = 100)]
+        heads: usize,
+        /// Unique jobs per request.
+        #[arg(long, default_value_t = 100)]
+        unique: usize,
+        /// Format of the throughput runs.
+        #[arg(long, value_enum, default_value_t = WireFormat::F32)]
+        format: WireFormat,
+        /// Concurrent connections at saturation.
+        #[arg(long, default_value_t = 4)]
+        clients: usize,
+        /// Seconds per measurement.
+        #[arg(long, default_value_t = 3.0)]
+        seconds: f64,
+        /// Engine of the server and of the in-process comparison.
+        #[arg(long, default_value = "auto")]
+        backend: BackendChoice,
+        /// Also measure the dense Python server (aiohttp + numpy,
+        /// clients/python/bench/dense_server.py) on the same requests, with this Python
+        /// (default /usr/bin/python3).
+        #[arg(long, value_name = "PYTHON", num_args = 0..=1, default_missing_value = "/usr/bin/python3")]
+        python_peer: Option<PathBuf>,
+        /// Where the Python peer runs numpy: off its event loop (thread) or on it (inline).
+        #[arg(long, default_value = "thread", value_parser = ["thread", "inline"])]
+        python_peer_compute: String,
+        #[command(flatten)]
+        gpu: GpuMemoryArgs,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
+    },
+    /// One crowd session streamed to several viewers over loopback WebSockets: ticks on time,
+    /// CPU per tick, bytes per viewer per second.
+    Sessions {
+        /// glTF/GLB rig (default: the embedded head).
+        #[arg(long)]
+        rig: Option<PathBuf>,
+        /// Heads in the session.
+        #[arg(long, default_value_t = 1000)]
+        heads: usize,
+        /// Distinct animations (clip and offset pairs) among the heads.
+        #[arg(long, default_value_t = 100)]
+        animations: usize,
+        /// Viewers.
+        #[arg(long, default_value_t = 8)]
+        viewers: usize,
+        /// Ticks per second.
+        #[arg(long, default_value_t = 30.0)]
+        fps: f32,
+        /// Buffer format of every viewer.
+        #[arg(long, value_enum, default_value_t = WireFormat::Q16)]
+        format: WireFormat,
+        /// Seconds to measure.
+        #[arg(long, default_value_t = 10.0)]
+        seconds: f64,
+        /// Engine.
+        #[arg(long, default_value = "auto")]
+        backend: BackendChoice,
+        #[command(flatten)]
+        gpu: GpuMemoryArgs,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Rendered frames: ms per frame split into compute, render, readback and encode, for a
+    /// crowd of unique heads (head i plays frame i) on the default grid and camera.
+    Render {
+        /// glTF/GLB rig (default: the embedded head; a rig without clips plays a synthetic
+        /// random clip).
+        #[arg(long)]
+        rig: Option<PathBuf>,
+        /// Heads in the crowd, each a different frame.
+        #[arg(long, default_value_t = 100)]
+        heads: usize,
+        /// Image width, pixels.
+        #[arg(long, default_value_t = 1280)]
+        width: u32,
+        /// Image height, pixels.
+        #[arg(long, default_value_t = 720)]
+        height: u32,
+        /// Image format.
+        #[arg(long, default_value = "png")]
+        format: crowdmorph_proto::ImageFormat,
+        /// LOD level of every head.
+        #[arg(long, default_value_t = 0)]
+        lod: u32,
+        /// Seconds to measure (at least 5 frames, after a warm-up frame).
+        #[arg(long, default_value_t = 3.0)]
+        seconds: f64,
+        /// Engine.
+        #[arg(long, default_value = "auto")]
+        backend: BackendChoice,
+        /// Adapter that draws (auto or gpu).
+        #[arg(long, default_value = "auto")]
+        render_backend: RenderBackend,
+        #[command(flatten)]
+        gpu: GpuMemoryArgs,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
+    },
+    /// The CPU engine against the dense sgemm of the same blend and its roofline (FMA peak,
+    /// copy bandwidth), the wire formats, batch sizes and LOD levels, measured in the same run.
+    Cpu {
+        /// glTF/GLB rig (default: the embedded head).
+        #[arg(long)]
+        rig: Option<PathBuf>,
+        /// Heads in the crowd.
+        #[arg(long, default_value_t = 100)]
+        heads: usize,
+        /// Unique jobs among the heads.
+        #[arg(long, default_value_t = 100)]
+        unique: usize,
+        /// LOD level.
+        #[arg(long, default_value_t = 0)]
+        lod: u32,
+        /// Compute normals too.
+        #[arg(long)]
+        normals: bool,
+        /// Unique jobs per engine call of the batch-size table.
+        #[arg(long, value_delimiter = ',', default_value = "1,10,100,1000")]
+        batches: Vec<usize>,
+        /// Simplified meshes to build and time when the rig has none (fractions of the
+        /// triangles; `none` for none).
+        #[arg(long, default_value = "0.5,0.25,0.1")]
+        mesh_fractions: String,
+        /// Seconds per measurement.
+        #[arg(long, default_value_t = 1.0)]
+        seconds: f64,
+        /// Also time the warm numpy blend (`np.matmul(W, D, out=OUT); OUT += neutral`) on the
+        /// same jobs with this Python (default /usr/bin/python3).
+        #[arg(long, value_name = "PYTHON", num_args = 0..=1, default_missing_value = "/usr/bin/python3")]
+        numpy: Option<PathBuf>,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+/// `bench gpu`'s tables: the engine's, and the CPU engine's with `--with-cpu`.
+#[derive(Serialize)]
+#[serde(transparent)]
+struct GpuReports(Vec<bench::gpu::GpuBenchReport>);
+
+impl std::fmt::Display for GpuReports {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        self.0.iter().try_for_each(|r| write!(f, "{r}"))
+    }
+}
+
+impl super::Report for GpuReports {}
+impl super::Report for bench::cpu::BenchReport {}
+impl super::Report for bench::http::HttpBenchReport {}
+impl super::Report for bench::sessions::SessionBenchReport {}
+impl super::Report for crowdmorph::render::offline::RenderReport {}
+
+/// Runs one benchmark and prints its report.
+pub fn run(which: Command) -> Result<()> {
+    match which {
+        Command::Cpu {
+            rig,
+            heads,
+            unique,
+            lod,
+            normals,
+            batches,
+            mesh_fractions,
+            seconds,
+            numpy,
+            json,
+        } => {
+            let rig = load_rig(rig.as_deref())?;
+            let mesh_fractions = if mesh_fractions == "none" {
+                Vec::new()
+            } else {
+                mesh_fractions
+                    .split(',')
+                    .map(|f| f.trim().parse::<f32>())
+                    .collect::<Result<Vec<_>, _>>()
+                    .map_err(|e| anyhow::anyhow!("--mesh-fractions: {e}"))?
+            };
+            let opt = bench::cpu::BenchOptions {
+                heads,
+                unique,
+                lod,
+                normals,
+                batches,
+                mesh_fractions,
+                seconds,
+                progress: !json,
+                numpy,
+            };
+            super::emit(&bench::cpu::bench_cpu(&rig, &opt)?, json)
+        }
+        Command::Gpu {
+            rig,
+            no_paper,
+            backend,
+            seconds,
+            plot,
+            with_cpu,
+            gpu,
+            json,
+        } => {
+            let engine = Engine::with_options(backend, gpu.options())?;
+            let mut rigs = Vec::new();
+            if !no_paper {
+                rigs.push(crowdmorph::synthetic::paper_scale_rig());
+            }
+            for p in &rig {
+                rigs.push(load_rig(Some(p))?);
+            }
+            let mut reports = vec![bench::gpu::bench_gpu(&engine, &rigs, seconds)?];
+            if with_cpu {
+                reports.push(bench::gpu::bench_gpu(&Engine::cpu(), &rigs, seconds)?);
+            }
+            if let Some(path) = &plot {
+                bench::gpu::write_plot(&reports, path)?;
+            }
+            super::emit(&GpuReports(reports), json)
+        }
+        Command::Render {
+            rig,
+            heads,
+            width,
+            height,
+            format,
+            lod,
+            seconds,
+            backend,
+            render_backend,
+            gpu,
+            json,
+        } => {
+            let rig = load_rig(rig.as_deref())?;
+            let engine = Engine::with_options(backend, gpu.options())?;
+            let opt = crowdmorph::render::offline::RenderOptions {
+                heads,
+                lod,
+                spread: true,
+                image: crowdmorph_proto::ImageOptions {
+                    width,
+                    height,
+                    format,
+                    ..crowdmorph_proto::ImageOptions::default()
+                },
+                backend: render_backend,
+                gpu_memory: gpu.max_gpu_memory,
+                ..crowdmorph::render::offline::RenderOptions::default()
+            };
+            let bar = spinner("bench render");
+            let report = bench::render::bench_render(&engine, &rig, &opt, seconds, 5);
+            bar.finish_and_clear();
+            super::emit(&report?, json)
+        }
+        Command::Sessions {
+            rig,
+            heads,
+            animations,
+            viewers,
+            fps,
+            format,
+            seconds,
+            backend,
+            gpu,
+            json,
+        } => {
+            let bytes = rig
+                .as_deref()
+                .map(bench::server::self_contained_bytes)
+                .transpose()?;
+            let opt = bench::sessions::SessionBenchOptions {
+                heads,
+                animations,
+                viewers,
+                fps,
+                format: format.into(),
+                seconds,
+                backend,
+                gpu_memory: gpu.max_gpu_memory,
+            };
+            let bar = spinner("bench sessions");
+            let report = bench::sessions::bench_sessions(bytes, &opt);
+            bar.finish_and_clear();
+            super::emit(&report?, json)
+        }
+        Command::Http {
+            rig,
+            heads,
+            unique,
+            format,
+            clients,
+            seconds,
+            backend,
+            python_peer,
+            python_peer_compute,
+            gpu,
+            json,
+        } => {
+            let bytes = rig
+                .as_deref()
+                .map(bench::server::self_contained_bytes)
+                .transpose()?;
+            let opt = bench::http::HttpBenchOptions {
+                heads,
+                unique,
+                format: format.into(),
+                clients,
+                seconds,
+                backend,
+                python_peer,
+                python_compute: python_peer_compute,
+                gpu_memory: gpu.max_gpu_memory,
+            };
+            let bar = spinner("bench http: in-process, loopback, saturation, half load");
+            let report = bench::http::bench_http(bytes, &opt);
+            bar.finish_and_clear();
+            super::emit(&report?, json)
+        }
+    }
+}
