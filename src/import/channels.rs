@@ -22,7 +22,7 @@ use std::hash::{Hash, Hasher};
 
 use super::ImportError;
 use super::accessor::Source;
-use super::gltf::{
+use super::scene::{
     AnimationTracks, Instance, MeshNames, WeightTrack, mesh_target_count, weight_tracks,
 };
 use crate::rig::{Interpolation, MAX_TARGETS, RigError, TargetId};

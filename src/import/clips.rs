@@ -22,9 +22,8 @@ use std::sync::Arc;
 use serde::Deserialize;
 
 use super::channels::{channel_writers, curves_agree};
-use super::gltf::{
-    Instance, MeshNames, UniqueNames, bake, parse, scene_instances, tracks_bytes, weight_tracks,
-};
+use super::gltf::{UniqueNames, bake, parse};
+use super::scene::{Instance, MeshNames, scene_instances, tracks_bytes, weight_tracks};
 use super::{ImportError, ImportOptions};
 use crate::budget::Budget;
 use crate::rig::{Clip, DEFAULT_FPS, MAX_FRAMES, Rig, TargetId, TargetIndex, map_bytes};

@@ -15,6 +15,7 @@ pub mod clips;
 pub mod extensions;
 pub mod gltf;
 mod meshopt;
+mod scene;
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
