@@ -768,8 +768,8 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
         half.record(us.max(1))?;
     }
 
-    let batches = state.metrics.batches.load(Ordering::Relaxed).max(1);
-    let computed = state.metrics.jobs_computed.load(Ordering::Relaxed);
+    let batches = state.metrics.batches.get().max(1);
+    let computed = state.metrics.jobs_computed.get();
 
     // The Python peer last, while crowdmorph idles (its check asks crowdmorph once more).
     let mut python = match &opt.python_peer {

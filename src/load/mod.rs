@@ -10,7 +10,7 @@
 //! with the server and hide exactly the stalls an operator needs to see.
 //!
 //! The core ([`run`]) is generic over how a request is sent ([`Lane`]): [`http`] sends real HTTP
-//! requests with hyper, `src/server/loadtest.rs` calls the crowd-frame handler in-process.
+//! requests with hyper, `src/server/routes/loadtest.rs` calls the crowd-frame handler in-process.
 //! Sessions (N viewers of one session, [`session`]) turned out not to be a [`Lane`]: the
 //! server's tick clock, not a dispatcher, decides when their messages go. They share [`Live`]
 //! and the report instead, with the latency of a tick measured from its due time on the

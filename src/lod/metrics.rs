@@ -7,7 +7,7 @@
 //! published `pdiff` algorithm: a Laplacian pyramid of luminance, Barten's contrast sensitivity
 //! function, Daly's visual masking, Ward's threshold-versus-intensity luminance adaptation; the
 //! result is the number of pixels whose difference is visible). Images are the grayscale renders
-//! of `crate::render`, read as linear luminance.
+//! of the reference rasterizer (`super::raster`), read as linear luminance.
 
 use glam::Vec3;
 use rstar::RTree;

@@ -171,7 +171,7 @@ pub struct ServerConfig {
     pub render_backend: RenderBackend,
     /// Limits of crowd sessions.
     #[command(flatten)]
-    pub sessions: super::sessions::SessionLimits,
+    pub sessions: SessionLimits,
     /// Longest POST /v1/loadtest, warm-up included, seconds; 0 disables the endpoint.
     #[arg(
         long = "loadtest-max-duration-s",
@@ -297,6 +297,67 @@ fn seconds_positive(s: &str) -> Result<Duration, String> {
     positive(seconds(s)?, s)
 }
 
+/// Default of [`SessionLimits::max_viewer_pixels`]: a full-HD image.
+pub const DEFAULT_MAX_VIEWER_PIXELS: u64 = 1920 * 1080;
+
+/// Limits of the session API: flags of `serve`, flattened into [`ServerConfig`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::Args)]
+pub struct SessionLimits {
+    /// Crowd sessions that may exist at once (503 too_many_sessions past it).
+    #[arg(
+        long = "max-sessions",
+        env = "CROWDMORPH_MAX_SESSIONS",
+        default_value = "64",
+        value_parser = at_least_one
+    )]
+    pub max_sessions: usize,
+    /// Heads one session may hold (413 too_many_heads past it).
+    #[arg(
+        id = "max_session_heads",
+        long = "max-session-heads",
+        env = "CROWDMORPH_MAX_SESSION_HEADS",
+        default_value = "10000",
+        value_parser = at_least_one
+    )]
+    pub max_heads: usize,
+    /// Viewers one session may have at once (more are closed with 1013).
+    #[arg(
+        id = "max_session_viewers",
+        long = "max-session-viewers",
+        env = "CROWDMORPH_MAX_SESSION_VIEWERS",
+        default_value = "32",
+        value_parser = at_least_one
+    )]
+    pub max_viewers: usize,
+    /// Messages per second a session viewer may send, camera and LOD updates, averaged over a
+    /// second (more close it with 1008).
+    #[arg(
+        long = "max-viewer-messages",
+        env = "CROWDMORPH_MAX_VIEWER_MESSAGES",
+        default_value_t = 60,
+        value_parser = clap::value_parser!(u32).range(1..)
+    )]
+    pub max_viewer_messages: u32,
+    /// How long a viewer has to send its hello before it is closed with 1008.
+    #[arg(skip = Duration::from_secs(10))]
+    pub hello_timeout: Duration,
+    /// Most pixels of one session viewer's image (a hello asking for more is closed with
+    /// 1008; default 1920 × 1080).
+    #[arg(
+        long = "max-viewer-pixels",
+        env = "CROWDMORPH_MAX_VIEWER_PIXELS",
+        default_value_t = DEFAULT_MAX_VIEWER_PIXELS,
+        value_parser = clap::value_parser!(u64).range(1..)
+    )]
+    pub max_viewer_pixels: u64,
+}
+
+impl Default for SessionLimits {
+    fn default() -> Self {
+        ServerConfig::default().sessions
+    }
+}
+
 /// A count of at least one.
 pub(crate) fn at_least_one(s: &str) -> Result<usize, String> {
     match number(s)? {
@@ -334,7 +395,7 @@ mod tests {
         assert_eq!(d.render_work, Duration::from_secs(4));
         assert_eq!(d.render_pixels, DEFAULT_RENDER_PIXELS);
         assert!(d.auto_lod(), "--no-auto-lod is off by default");
-        assert_eq!(d.sessions, super::super::sessions::SessionLimits::default());
+        assert_eq!(d.sessions, SessionLimits::default());
         assert_eq!(
             (d.data_dir, d.admin_token, d.max_connections),
             (None, None, None)

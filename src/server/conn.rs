@@ -52,7 +52,7 @@ use tokio::sync::{Notify, OwnedSemaphorePermit, Semaphore, watch};
 use tokio::task::JoinSet;
 use tokio::time::Instant;
 
-use super::error::ApiError;
+use super::http::ApiError;
 use super::metrics::Metrics;
 
 /// Connections being answered `too_many_connections` at once; past this many, a refused
@@ -285,9 +285,7 @@ struct Tenancy {
 impl Drop for Tenancy {
     fn drop(&mut self) {
         self.table.remove(self.slot.id);
-        self.metrics
-            .connections_open
-            .fetch_sub(1, Ordering::Relaxed);
+        self.metrics.connections_open.dec();
         self.metrics.connection_closed(self.reason.label());
     }
 }
@@ -449,13 +447,19 @@ pub(crate) async fn serve_connections(
     limits: Limits,
     shutdown: impl Future<Output = ()>,
 ) {
-    let table = Arc::new(Table {
-        limit: limits.max_connections,
-        epoch: Instant::now(),
-        open: Mutex::new(Open::default()),
-    });
-    let refusals = Arc::new(Semaphore::new(REFUSALS));
     let (stop, stopped) = watch::channel(false);
+    let acceptor = Acceptor {
+        table: Arc::new(Table {
+            limit: limits.max_connections,
+            epoch: Instant::now(),
+            open: Mutex::new(Open::default()),
+        }),
+        refusals: Arc::new(Semaphore::new(REFUSALS)),
+        metrics,
+        router,
+        limits,
+        stopped,
+    };
     let mut tasks = JoinSet::new();
     let mut shutdown = pin!(shutdown);
     loop {
@@ -463,43 +467,7 @@ pub(crate) async fn serve_connections(
             () = &mut shutdown => break,
             Some(done) = tasks.join_next() => reap(done),
             accepted = listener.accept() => match accepted {
-                Ok((tcp, _)) => {
-                    metrics.connections_accepted.fetch_add(1, Ordering::Relaxed);
-                    // Responses go out as a header write then body writes; without
-                    // TCP_NODELAY, Nagle's algorithm holds the tail back until the client's
-                    // delayed ACK (≈40 ms) at moderate load.
-                    if let Err(error) = tcp.set_nodelay(true) {
-                        tracing::debug!(%error, "cannot set TCP_NODELAY");
-                    }
-                    match table.admit() {
-                        Admission::Admitted(slot, evicted) => {
-                            if let Some(victim) = evicted {
-                                victim.evict.notify_one();
-                            }
-                            metrics.connections_open.fetch_add(1, Ordering::Relaxed);
-                            let tenancy = Tenancy {
-                                table: table.clone(),
-                                metrics: metrics.clone(),
-                                slot,
-                                reason: Close::Error,
-                            };
-                            tasks.spawn(serve_one(
-                                tcp,
-                                tenancy,
-                                router.clone(),
-                                limits,
-                                stopped.clone(),
-                            ));
-                        }
-                        Admission::Full => {
-                            metrics.connection_closed("refused");
-                            // Without a permit, dropping the socket closes it at once.
-                            if let Ok(permit) = refusals.clone().try_acquire_owned() {
-                                tasks.spawn(refuse(tcp, permit));
-                            }
-                        }
-                    }
-                }
+                Ok((tcp, _)) => acceptor.take(tcp, &mut tasks),
                 // The client gave up between connecting and being accepted.
                 Err(e) if matches!(
                     e.kind(),
@@ -509,7 +477,7 @@ pub(crate) async fn serve_connections(
                         | io::ErrorKind::Interrupted
                 ) => {}
                 Err(error) => {
-                    metrics.accept_errors.fetch_add(1, Ordering::Relaxed);
+                    acceptor.metrics.accept_errors.inc();
                     tracing::warn!(
                         %error,
                         pause_s = ACCEPT_BACKOFF.as_secs_f64(),
@@ -526,6 +494,59 @@ pub(crate) async fn serve_connections(
     let _ = stop.send(true);
     while let Some(done) = tasks.join_next().await {
         reap(done);
+    }
+}
+
+/// What the accept loop hands each new connection.
+struct Acceptor {
+    table: Arc<Table>,
+    /// Refusals answered at once (a 503 written before closing), at most [`REFUSALS`].
+    refusals: Arc<Semaphore>,
+    metrics: Arc<Metrics>,
+    router: Router,
+    limits: Limits,
+    stopped: watch::Receiver<bool>,
+}
+
+impl Acceptor {
+    /// Serves an accepted connection on its own task, evicting the longest-idle one when the
+    /// table is full, or refuses it when every connection has a request in progress.
+    fn take(&self, tcp: TcpStream, tasks: &mut JoinSet<()>) {
+        self.metrics.connections_accepted.inc();
+        // Responses go out as a header write then body writes; without TCP_NODELAY, Nagle's
+        // algorithm holds the tail back until the client's delayed ACK (≈40 ms) at moderate
+        // load.
+        if let Err(error) = tcp.set_nodelay(true) {
+            tracing::debug!(%error, "cannot set TCP_NODELAY");
+        }
+        match self.table.admit() {
+            Admission::Admitted(slot, evicted) => {
+                if let Some(victim) = evicted {
+                    victim.evict.notify_one();
+                }
+                self.metrics.connections_open.inc();
+                let tenancy = Tenancy {
+                    table: self.table.clone(),
+                    metrics: self.metrics.clone(),
+                    slot,
+                    reason: Close::Error,
+                };
+                tasks.spawn(serve_one(
+                    tcp,
+                    tenancy,
+                    self.router.clone(),
+                    self.limits,
+                    self.stopped.clone(),
+                ));
+            }
+            Admission::Full => {
+                self.metrics.connection_closed("refused");
+                // Without a permit, dropping the socket closes it at once.
+                if let Ok(permit) = self.refusals.clone().try_acquire_owned() {
+                    tasks.spawn(refuse(tcp, permit));
+                }
+            }
+        }
     }
 }
 

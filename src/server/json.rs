@@ -146,6 +146,8 @@ mod tests {
     use super::*;
     use crowdmorph_proto::{Blob, CrowdFrameResponse, FrameBuffer, Quantization};
 
+    // Long on purpose: one table of every format and buffer kind, each checked against
+    // serde_json's bytes, then the same pool reused; split up, the reuse would not be tested.
     #[test]
     fn the_bytes_are_serde_jsons_and_buffers_are_reused() {
         let pool = Arc::new(JsonPool::default());

@@ -106,7 +106,45 @@ pub fn clips_named(rig: &Rig, names: &[String]) -> Vec<crate::rig::Clip> {
         .collect()
 }
 
+/// What a new rig entry is made of; [`RigEntry::new`] derives the vertex count from the
+/// prepared rig. The q16 box is passed in because it reads every clip frame: callers compute
+/// it with [`quantization_box`] on a blocking thread, beside the preparation.
+#[derive(Debug)]
+pub struct NewEntry {
+    /// Registry id.
+    pub id: String,
+    /// Whether it is the embedded rig, and how many of its clips came with it.
+    pub builtin: Option<usize>,
+    /// The rig, prepared for the engine.
+    pub prepared: PreparedRig,
+    /// Its generation.
+    pub generation: u64,
+    /// Where its clips are stored.
+    pub layout: ClipLayout,
+    /// Its bytes in the memory pool.
+    pub charge: Charge,
+    /// The box its q16 output is quantized in.
+    pub qbox: Quantization,
+}
+
 impl RigEntry {
+    /// A first generation of a rig.
+    pub fn new(e: NewEntry) -> RigEntry {
+        let rig = e.prepared.rig();
+        RigEntry {
+            vertices: rig.vertex_count(),
+            qbox: e.qbox,
+            id: e.id,
+            builtin: e.builtin.is_some(),
+            builtin_clips: e.builtin.unwrap_or(0),
+            generation: e.generation,
+            prepared: e.prepared,
+            layout: e.layout,
+            charge: Mutex::new(e.charge),
+            clip_names: Default::default(),
+        }
+    }
+
     /// The rig.
     pub fn rig(&self) -> &Rig {
         self.prepared.rig()

@@ -205,7 +205,7 @@ impl Scheduler {
             .map_err(|_| ScheduleError::ShuttingDown)?
             .clone()
             .ok_or(ScheduleError::ShuttingDown)?;
-        let depth = &self.metrics.queue_depth;
+        let depth = self.metrics.queue_depth.inner();
         if depth.fetch_add(1, std::sync::atomic::Ordering::AcqRel) >= self.limit {
             depth.fetch_sub(1, std::sync::atomic::Ordering::AcqRel);
             return Err(ScheduleError::QueueFull);
@@ -277,6 +277,55 @@ struct WorkGroup {
     /// Each slot, its wire format and the engine job it is made from. The engine writes the
     /// group's wire format itself, so a group has one format.
     slots: Vec<(SlotId, Format, usize)>,
+}
+
+/// A batch being filled: its groups and where each group key's group is.
+#[derive(Default)]
+struct BatchGroups {
+    groups: Vec<WorkGroup>,
+    at: HashMap<(u64, Format, bool, Option<usize>), usize>,
+}
+
+impl BatchGroups {
+    /// Adds slot `id`'s job to its group, once per distinct job of the group.
+    fn add(&mut self, id: SlotId, slot: &Slot) {
+        let precision = match slot.key.format {
+            Format::F32 => Precision::F32,
+            Format::F16 => Precision::F16,
+            Format::Q16 => Precision::Q16(slot.entry.qbox),
+        };
+        let gkey = (
+            slot.key.generation,
+            slot.key.format,
+            slot.key.normals,
+            slot.entry.prepared.mesh_of(slot.key.lod),
+        );
+        let groups = &mut self.groups;
+        let g = *self.at.entry(gkey).or_insert_with(|| {
+            groups.push(WorkGroup {
+                entry: slot.entry.clone(),
+                spec: OutputSpec {
+                    normals: slot.key.normals,
+                    precision,
+                },
+                jobs: Vec::new(),
+                job_at: HashMap::new(),
+                slots: Vec::new(),
+            });
+            groups.len() - 1
+        });
+        let group = &mut groups[g];
+        let job = BlendJob {
+            clip: slot.key.clip,
+            frame: slot.key.frame,
+            lod: slot.key.lod,
+        };
+        let j = *group.job_at.entry(job).or_insert_with(|| {
+            group.jobs.push(job);
+            group.jobs.len() - 1
+        });
+        group.slots.push((id, slot.key.format, j));
+    }
 }
 
 struct WorkBatch {
@@ -433,9 +482,7 @@ impl State {
     fn add(&mut self, sub: Submission) {
         let n = sub.jobs.len();
         if n == 0 {
-            self.metrics
-                .queue_depth
-                .fetch_sub(1, std::sync::atomic::Ordering::Relaxed);
+            self.metrics.queue_depth.dec();
             let _ = sub.reply.send(Ok(Outcome {
                 outputs: Vec::new(),
                 queue: Duration::ZERO,
@@ -456,49 +503,9 @@ impl State {
                 format: sub.format,
                 normals: sub.normals,
             };
-            if let Some(&id) = self.index.get(&key)
-                && let Some(slot) = self.slots.get_mut(&id)
-            {
-                slot.waiters.push((req, i));
-                self.metrics
-                    .jobs_coalesced
-                    .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                if sub.priority == Priority::Normal && slot.priority == Priority::Low {
-                    // A client now waits for it: it leaves the low queue for the normal one.
-                    slot.priority = Priority::Normal;
-                    if slot.queued {
-                        self.low_cost = self.low_cost.saturating_sub(slot.cost);
-                        self.pending_cost += slot.cost;
-                        self.pending.push_back(id);
-                    }
-                }
-                continue;
+            if !self.join(key, (req, i), sub.priority) {
+                self.queue_slot(key, job, (req, i), sub.priority, now);
             }
-            let id = self.next_id;
-            self.next_id += 1;
-            match sub.priority {
-                Priority::Normal => {
-                    self.pending_cost += job.cost;
-                    self.pending.push_back(id);
-                }
-                Priority::Low => {
-                    self.low_cost += job.cost;
-                    self.low.push_back(id);
-                }
-            }
-            self.index.insert(key, id);
-            self.slots.insert(
-                id,
-                Slot {
-                    key,
-                    entry: job.entry,
-                    cost: job.cost,
-                    created: now,
-                    waiters: vec![(req, i)],
-                    priority: sub.priority,
-                    queued: true,
-                },
-            );
         }
         self.requests.insert(
             req,
@@ -515,6 +522,65 @@ impl State {
         );
     }
 
+    /// Adds a waiter to the slot already queued or computing for `key` (a clone in this or
+    /// another request); false when there is none. A client joining low-priority work moves it
+    /// to the normal queue.
+    fn join(&mut self, key: SlotKey, waiter: (ReqId, usize), priority: Priority) -> bool {
+        let Some(&id) = self.index.get(&key) else {
+            return false;
+        };
+        let Some(slot) = self.slots.get_mut(&id) else {
+            return false;
+        };
+        slot.waiters.push(waiter);
+        self.metrics.jobs_coalesced.inc();
+        if priority == Priority::Normal && slot.priority == Priority::Low {
+            slot.priority = Priority::Normal;
+            if slot.queued {
+                self.low_cost = self.low_cost.saturating_sub(slot.cost);
+                self.pending_cost += slot.cost;
+                self.pending.push_back(id);
+            }
+        }
+        true
+    }
+
+    /// A new slot for `key`, at the back of its class's queue.
+    fn queue_slot(
+        &mut self,
+        key: SlotKey,
+        job: JobRequest,
+        waiter: (ReqId, usize),
+        priority: Priority,
+        now: Instant,
+    ) {
+        let id = self.next_id;
+        self.next_id += 1;
+        match priority {
+            Priority::Normal => {
+                self.pending_cost += job.cost;
+                self.pending.push_back(id);
+            }
+            Priority::Low => {
+                self.low_cost += job.cost;
+                self.low.push_back(id);
+            }
+        }
+        self.index.insert(key, id);
+        self.slots.insert(
+            id,
+            Slot {
+                key,
+                entry: job.entry,
+                cost: job.cost,
+                created: now,
+                waiters: vec![waiter],
+                priority,
+                queued: true,
+            },
+        );
+    }
+
     fn alive(&self, req: ReqId) -> bool {
         self.requests
             .get(&req)
@@ -523,16 +589,12 @@ impl State {
 
     fn drop_request(&mut self, req: ReqId) {
         if self.requests.remove(&req).is_some() {
-            self.metrics
-                .queue_depth
-                .fetch_sub(1, std::sync::atomic::Ordering::Relaxed);
+            self.metrics.queue_depth.dec();
         }
     }
 
-    /// Closes and sends a batch when the engine has room and a batch is due: normal work at
-    /// once when the engine is idle (unless `hold_when_idle`), else when its cost or its oldest
-    /// job's delay says so; low-priority work only when no normal work waits and the engine
-    /// is idle. A batch holds one class.
+    /// Closes and sends a batch when the engine has room and a batch is due (see
+    /// [`State::due_class`]). A batch holds one class.
     fn dispatch(&mut self, closing: bool) {
         self.trim_low();
         if self.in_flight >= self.depth || (self.pending.is_empty() && self.low.is_empty()) {
@@ -544,109 +606,18 @@ impl State {
             self.fail_all("the compute thread stopped");
             return;
         };
-        let now = Instant::now();
-        let idle = self.in_flight == 0;
-        let eager = idle && !self.cfg.hold_when_idle;
-        let due = |front: Option<&SlotId>, cost: u64| {
-            closing
-                || eager
-                || cost >= self.cfg.batch_cost
-                || front
-                    .and_then(|id| self.slots.get(id))
-                    .is_some_and(|s| now >= s.created + self.cfg.batch_delay)
-        };
-        let class = if !self.pending.is_empty() {
-            // Normal work that is not due yet keeps low work waiting too: it must not find
-            // the engine busy with synthetic load when its time comes.
-            if !due(self.pending.front(), self.pending_cost) {
-                return;
-            }
-            Priority::Normal
-        } else {
-            if !((idle || closing) && due(self.low.front(), self.low_cost)) {
-                return;
-            }
-            Priority::Low
+        let Some(class) = self.due_class(closing) else {
+            return;
         };
         let batch_id = self.next_batch;
         self.next_batch += 1;
-        let mut cost = 0u64;
-        let mut groups: Vec<WorkGroup> = Vec::new();
-        // One engine call per rig version, wire format, output kind and mesh level (LOD levels
-        // on a simplified mesh produce buffers of a different size).
-        let mut at: HashMap<(u64, Format, bool, Option<usize>), usize> = HashMap::new();
-        let mut jobs = 0usize;
-        while cost < self.cfg.batch_cost {
-            let Some(id) = self.pop(class) else {
-                break;
-            };
-            let Some(slot) = self.slots.get(&id) else {
-                continue;
-            };
-            let waiters: Vec<ReqId> = slot.waiters.iter().map(|w| w.0).collect();
-            if !waiters.iter().any(|&r| self.alive(r)) {
-                // Nobody waits for this job any more: do not compute it.
-                if let Some(slot) = self.slots.remove(&id) {
-                    self.index.remove(&slot.key);
-                }
-                for r in waiters {
-                    self.drop_request(r);
-                }
-                self.metrics
-                    .jobs_cancelled
-                    .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                continue;
-            }
-            for &r in &waiters {
-                if let Some(state) = self.requests.get_mut(&r) {
-                    state.last_start = Some(now);
-                }
-            }
-            cost += slot.cost;
-            jobs += 1;
-            let precision = match slot.key.format {
-                Format::F32 => Precision::F32,
-                Format::F16 => Precision::F16,
-                Format::Q16 => Precision::Q16(slot.entry.qbox),
-            };
-            let gkey = (
-                slot.key.generation,
-                slot.key.format,
-                slot.key.normals,
-                slot.entry.prepared.mesh_of(slot.key.lod),
-            );
-            let g = *at.entry(gkey).or_insert_with(|| {
-                groups.push(WorkGroup {
-                    entry: slot.entry.clone(),
-                    spec: OutputSpec {
-                        normals: slot.key.normals,
-                        precision,
-                    },
-                    jobs: Vec::new(),
-                    job_at: HashMap::new(),
-                    slots: Vec::new(),
-                });
-                groups.len() - 1
-            });
-            let group = &mut groups[g];
-            let job = BlendJob {
-                clip: slot.key.clip,
-                frame: slot.key.frame,
-                lod: slot.key.lod,
-            };
-            let j = *group.job_at.entry(job).or_insert_with(|| {
-                group.jobs.push(job);
-                group.jobs.len() - 1
-            });
-            group.slots.push((id, slot.key.format, j));
-        }
+        let (groups, jobs) = self.fill_batch(class);
         if groups.is_empty() {
             return;
         }
         let m = &self.metrics;
-        m.batches.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-        m.dispatches
-            .fetch_add(groups.len() as u64, std::sync::atomic::Ordering::Relaxed);
+        m.batches.inc();
+        m.dispatches.inc_by(groups.len() as u64);
         m.batch_jobs.observe(jobs as f64);
         if work
             .send(WorkBatch {
@@ -663,12 +634,75 @@ impl State {
         self.in_flight += 1;
     }
 
+    /// The class of work a batch closes for now, if any: normal work at once when the engine
+    /// is idle (unless `hold_when_idle`), else when its cost or its oldest job's delay says
+    /// so; low-priority work only when no normal work waits and the engine is idle.
+    fn due_class(&self, closing: bool) -> Option<Priority> {
+        let now = Instant::now();
+        let idle = self.in_flight == 0;
+        let eager = idle && !self.cfg.hold_when_idle;
+        let due = |front: Option<&SlotId>, cost: u64| {
+            closing
+                || eager
+                || cost >= self.cfg.batch_cost
+                || front
+                    .and_then(|id| self.slots.get(id))
+                    .is_some_and(|s| now >= s.created + self.cfg.batch_delay)
+        };
+        if !self.pending.is_empty() {
+            // Normal work that is not due yet keeps low work waiting too: it must not find
+            // the engine busy with synthetic load when its time comes.
+            due(self.pending.front(), self.pending_cost).then_some(Priority::Normal)
+        } else {
+            ((idle || closing) && due(self.low.front(), self.low_cost)).then_some(Priority::Low)
+        }
+    }
+
+    /// Pops `class` jobs up to the batch cost, in one engine call per rig version, wire
+    /// format, output kind and mesh level (LOD levels on a simplified mesh produce buffers of
+    /// a different size). A job nobody waits for any more is dropped, not computed. Returns
+    /// the groups and their job count.
+    fn fill_batch(&mut self, class: Priority) -> (Vec<WorkGroup>, usize) {
+        let now = Instant::now();
+        let mut batch = BatchGroups::default();
+        let mut cost = 0u64;
+        let mut jobs = 0usize;
+        while cost < self.cfg.batch_cost {
+            let Some(id) = self.pop(class) else {
+                break;
+            };
+            let Some(slot) = self.slots.get(&id) else {
+                continue;
+            };
+            let waiters: Vec<ReqId> = slot.waiters.iter().map(|w| w.0).collect();
+            if !waiters.iter().any(|&r| self.alive(r)) {
+                if let Some(slot) = self.slots.remove(&id) {
+                    self.index.remove(&slot.key);
+                }
+                for r in waiters {
+                    self.drop_request(r);
+                }
+                self.metrics.jobs_cancelled.inc();
+                continue;
+            }
+            cost += slot.cost;
+            jobs += 1;
+            batch.add(id, slot);
+            for &r in &waiters {
+                if let Some(state) = self.requests.get_mut(&r) {
+                    state.last_start = Some(now);
+                }
+            }
+        }
+        (batch.groups, jobs)
+    }
+
     fn finish(&mut self, done: BatchDone) {
         self.in_flight = self.in_flight.saturating_sub(1);
         let m = &self.metrics;
         m.compute_seconds.observe(done.wall_ns as f64 / 1e9);
         if let Some(g) = done.gpu_ns {
-            m.gpu_ns.fetch_add(g, std::sync::atomic::Ordering::Relaxed);
+            m.gpu_seconds.inc_by(g as f64 / 1e9);
         }
         for (id, result) in done.results {
             let Some(slot) = self.slots.remove(&id) else {
@@ -700,9 +734,7 @@ impl State {
                     }
                     Err(e) => {
                         if let Some(state) = self.requests.remove(&req) {
-                            self.metrics
-                                .queue_depth
-                                .fetch_sub(1, std::sync::atomic::Ordering::Relaxed);
+                            self.metrics.queue_depth.dec();
                             let _ = state.reply.send(Err(ScheduleError::Engine(e.clone())));
                         }
                     }
@@ -715,9 +747,7 @@ impl State {
         let Some(state) = self.requests.remove(&req) else {
             return;
         };
-        self.metrics
-            .queue_depth
-            .fetch_sub(1, std::sync::atomic::Ordering::Relaxed);
+        self.metrics.queue_depth.dec();
         let queue = state
             .last_start
             .map(|s| s.saturating_duration_since(state.enqueued))
@@ -738,9 +768,7 @@ impl State {
 
     fn fail_all(&mut self, why: &str) {
         for (_, state) in self.requests.drain() {
-            self.metrics
-                .queue_depth
-                .fetch_sub(1, std::sync::atomic::Ordering::Relaxed);
+            self.metrics.queue_depth.dec();
             let _ = state.reply.send(Err(if why.contains("shutting") {
                 ScheduleError::ShuttingDown
             } else {
@@ -840,9 +868,7 @@ fn compute_thread(
         };
         let started = next.map(|batch| begin_batch(engine, batch));
         if started.is_some() && in_flight.is_some() {
-            metrics
-                .batches_pipelined
-                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            metrics.batches_pipelined.inc();
         }
         if let Some(current) = in_flight.take()
             && done
@@ -899,10 +925,7 @@ fn finish_batch(
                 if let Some(g) = gpu {
                     gpu_ns = Some(gpu_ns.unwrap_or(0) + g);
                 }
-                metrics.jobs_computed.fetch_add(
-                    group.jobs.len() as u64,
-                    std::sync::atomic::Ordering::Relaxed,
-                );
+                metrics.jobs_computed.inc_by(group.jobs.len() as u64);
                 results.extend(
                     group
                         .slots
@@ -1003,28 +1026,23 @@ mod tests {
 
     #![allow(clippy::unwrap_used)]
 
-    use std::sync::atomic::Ordering;
-
     use super::*;
     use crate::budget::Budget;
-    use crate::server::registry::{ClipLayout, quantization_box};
+    use crate::server::registry::{ClipLayout, NewEntry};
 
     fn entry() -> Arc<RigEntry> {
         let engine = Engine::cpu();
         let rig = Arc::new(crate::embedded::default_rig());
         let prepared = engine.prepare(rig.clone()).unwrap();
-        Arc::new(RigEntry {
+        Arc::new(RigEntry::new(NewEntry {
             id: "default-head".into(),
-            builtin: true,
-            builtin_clips: rig.clips.len(),
-            vertices: rig.vertex_count(),
-            qbox: quantization_box(&rig),
-            generation: 1,
+            builtin: Some(rig.clips.len()),
             prepared,
+            generation: 1,
             layout: ClipLayout::default(),
-            charge: std::sync::Mutex::new(Budget::new(u64::MAX, "", None).keep(0)),
-            clip_names: Default::default(),
-        })
+            charge: Budget::new(u64::MAX, "", None).keep(0),
+            qbox: crate::server::registry::quantization_box(&rig),
+        }))
     }
 
     fn state(hold_when_idle: bool) -> (State, std::sync::mpsc::Receiver<WorkBatch>) {
@@ -1155,7 +1173,7 @@ mod tests {
         let mut low = submit(&mut s, &e, &[2, 3], Priority::Low);
         // Frame 3 is already queued as low work: the client's job joins it.
         let mut client = submit(&mut s, &e, &[3], Priority::Normal);
-        assert_eq!(s.metrics.jobs_coalesced.load(Ordering::Relaxed), 1);
+        assert_eq!(s.metrics.jobs_coalesced.get(), 1);
         finish(&mut s, 0);
         assert_eq!(sent(&s, &rx), Some((1, vec![3])), "promoted, alone");
         finish(&mut s, 1);

@@ -291,11 +291,7 @@ async fn a_lod_put_whose_client_hangs_up_stops_and_is_counted() {
     tcp.write_all(head.as_bytes()).await.expect("write");
     tcp.write_all(body.as_bytes()).await.expect("write");
     let t0 = Instant::now();
-    while m
-        .lod_builds_running
-        .load(std::sync::atomic::Ordering::Relaxed)
-        == 0
-    {
+    while m.lod_builds_running.get() == 0 {
         assert!(
             t0.elapsed() < Duration::from_secs(30),
             "no LOD build started"
@@ -304,11 +300,7 @@ async fn a_lod_put_whose_client_hangs_up_stops_and_is_counted() {
     }
     drop(tcp);
     // The build stops at its next stage, and is neither counted running forever nor lost.
-    while m
-        .lod_builds_running
-        .load(std::sync::atomic::Ordering::Relaxed)
-        > 0
-    {
+    while m.lod_builds_running.get() > 0 {
         assert!(
             t0.elapsed() < Duration::from_secs(60),
             "the LOD build of a client that left is still counted running"

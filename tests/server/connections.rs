@@ -161,7 +161,7 @@ async fn idle_and_half_open_connections_are_capped_and_closed() {
                 assert_eq!(read_response(&mut s).await.status, 200);
             }
         }
-        most_open = most_open.max(m.connections_open.load(Ordering::Relaxed));
+        most_open = most_open.max(m.connections_open.get());
         socks.push(s);
     }
     let flood = start.elapsed();
@@ -207,7 +207,7 @@ async fn idle_and_half_open_connections_are_capped_and_closed() {
         evicted + header + idle >= FLOOD as u64,
         "{evicted} evicted + {header} header timeouts + {idle} idle timeouts < {FLOOD}"
     );
-    assert!(eventually(|| m.connections_open.load(Ordering::Relaxed) == 0).await);
+    assert!(eventually(|| m.connections_open.get() == 0).await);
     let page = get_once(server.addr, "/metrics").await;
     let page = String::from_utf8(page.body).unwrap();
     assert_eq!(
@@ -295,11 +295,11 @@ async fn a_request_in_progress_is_never_evicted() {
     let m = server.state.metrics.clone();
     let open = |n: u64| {
         let m = m.clone();
-        move || m.connections_open.load(Ordering::Relaxed) == n
+        move || m.connections_open.get() == n
     };
     let mut a = TcpStream::connect(server.addr).await.unwrap();
     a.write_all(&crowd_post(3)).await.unwrap();
-    assert!(eventually(|| m.queue_depth.load(Ordering::Relaxed) == 1).await);
+    assert!(eventually(|| m.queue_depth.get() == 1).await);
     let mut b = TcpStream::connect(server.addr).await.unwrap();
     assert!(eventually(open(2)).await);
     // Past the cap: B (idle) makes room, not A.
@@ -312,7 +312,7 @@ async fn a_request_in_progress_is_never_evicted() {
     );
     assert_eq!(m.connections_closed_with("evicted"), 1);
     c.write_all(&crowd_post(4)).await.unwrap();
-    assert!(eventually(|| m.queue_depth.load(Ordering::Relaxed) == 2).await);
+    assert!(eventually(|| m.queue_depth.get() == 2).await);
     // Both busy: D is refused, and told why.
     let mut d = TcpStream::connect(server.addr).await.unwrap();
     d.write_all(b"GET /healthz HTTP/1.1\r\nhost: t\r\n\r\n")

@@ -8,7 +8,7 @@ use std::time::Duration;
 use bytes::Bytes;
 use crowdmorph::load::{CrowdShape, RigClips};
 use crowdmorph::server::ServerConfig;
-use crowdmorph::server::loadtest::LoadtestStatus;
+use crowdmorph::server::loadtests::LoadtestStatus;
 use crowdmorph_client::{Client, Encoding, Method, Reply, metric};
 use crowdmorph_proto::{CrowdFrameRequest, Format, Head, OutputOptions};
 use serde_json::json;

@@ -7,7 +7,6 @@
 //! for the same rig version (bitwise equal on a CPU backend).
 
 use std::sync::Arc;
-use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
 use crowdmorph::engine::{BlendJob, Engine, OutputSpec};
@@ -374,7 +373,7 @@ async fn deleting_a_rig_cancels_its_lod_job() {
     // Wait until a background build is computing, then delete the rig.
     let m = &server.state.metrics;
     let t0 = Instant::now();
-    while m.lod_builds_running.load(Ordering::Relaxed) == 0 {
+    while m.lod_builds_running.get() == 0 {
         assert!(
             t0.elapsed() < Duration::from_secs(30),
             "no LOD build started"
@@ -384,7 +383,7 @@ async fn deleting_a_rig_cancels_its_lod_job() {
     server.client.delete_rig("ict").await.expect("delete");
     // Every build ends (the built-in rig's, if it runs, normally); ICT's must end as
     // cancelled. A cancellation that did nothing would let it run to completion, uncounted.
-    while m.lod_builds_running.load(Ordering::Relaxed) > 0 {
+    while m.lod_builds_running.get() > 0 {
         assert!(
             t0.elapsed() < Duration::from_secs(120),
             "a LOD build never ended"
@@ -392,7 +391,7 @@ async fn deleting_a_rig_cancels_its_lod_job() {
         tokio::time::sleep(Duration::from_millis(10)).await;
     }
     assert_eq!(
-        m.lod_builds_cancelled.load(Ordering::Relaxed),
+        m.lod_builds_cancelled.get(),
         1,
         "the deleted rig's LOD build was not cancelled"
     );
@@ -637,7 +636,7 @@ async fn dropping_the_server_state_cancels_its_lod_builds() {
     state.load_stored().await;
     let metrics = state.metrics.clone();
     let t0 = Instant::now();
-    while metrics.lod_builds_running.load(Ordering::Relaxed) == 0 {
+    while metrics.lod_builds_running.get() == 0 {
         assert!(
             t0.elapsed() < Duration::from_secs(30),
             "no LOD build started"
@@ -646,7 +645,7 @@ async fn dropping_the_server_state_cancels_its_lod_builds() {
     }
     // The owner lets go: the build is cancelled, not left to run to its end.
     drop(state);
-    while metrics.lod_builds_running.load(Ordering::Relaxed) > 0 {
+    while metrics.lod_builds_running.get() > 0 {
         assert!(
             t0.elapsed() < Duration::from_secs(120),
             "the LOD build never ended"
@@ -654,7 +653,7 @@ async fn dropping_the_server_state_cancels_its_lod_builds() {
         tokio::time::sleep(Duration::from_millis(5)).await;
     }
     assert_eq!(
-        metrics.lod_builds_cancelled.load(Ordering::Relaxed),
+        metrics.lod_builds_cancelled.get(),
         1,
         "the build of a dropped state ran to completion"
     );

@@ -7,7 +7,6 @@
 //! when the queue is full, never about how long anything took.
 
 use std::sync::Arc;
-use std::sync::atomic::Ordering;
 use std::time::Duration;
 
 use crowdmorph::server::ServerConfig;
@@ -72,7 +71,7 @@ async fn a_full_queue_answers_503_then_recovers() {
     }
     // While they wait: never more than 4 requests in the batcher.
     let depth = &server.state.metrics.queue_depth;
-    assert!(eventually(|| depth.load(Ordering::Relaxed) == 4).await);
+    assert!(eventually(|| depth.get() == 4).await);
     let page = server.client.metrics().await.unwrap();
     assert!(metric(&page, "crowdmorph_queue_depth").unwrap() <= 4.0);
     let (mut ok, mut full) = (0, 0);
@@ -91,7 +90,7 @@ async fn a_full_queue_answers_503_then_recovers() {
     assert!(ok >= 4 && full > 0, "{ok} ok, {full} refused");
     assert_eq!(ok + full, 40);
     // Recovery: the queue is empty again and requests succeed.
-    assert!(eventually(|| depth.load(Ordering::Relaxed) == 0).await);
+    assert!(eventually(|| depth.get() == 0).await);
     let (resp, _) = server
         .client
         .crowd_frame(&req(&[1, 2]), Encoding::Bincode)
@@ -177,9 +176,9 @@ async fn past_the_deadline_is_504_and_abandoned_jobs_are_not_computed() {
         other => panic!("{other}"),
     }
     let m = server.state.metrics.clone();
-    assert!(eventually(|| m.jobs_cancelled.load(Ordering::Relaxed) == 1).await);
-    assert_eq!(m.jobs_computed.load(Ordering::Relaxed), 0);
-    assert!(eventually(|| m.queue_depth.load(Ordering::Relaxed) == 0).await);
+    assert!(eventually(|| m.jobs_cancelled.get() == 1).await);
+    assert_eq!(m.jobs_computed.get(), 0);
+    assert!(eventually(|| m.queue_depth.get() == 0).await);
     let page = server.client.metrics().await.unwrap();
     assert_eq!(
         metric(
@@ -248,7 +247,7 @@ async fn shutdown_lets_requests_in_flight_complete() {
         }));
     }
     let m = server.state.metrics.clone();
-    assert!(eventually(|| m.queue_depth.load(Ordering::Relaxed) == 10).await);
+    assert!(eventually(|| m.queue_depth.get() == 10).await);
     server.signal_stop();
     for t in tasks {
         let (resp, _) = t.await.unwrap().expect("in-flight request completes");
@@ -285,22 +284,18 @@ async fn a_client_that_disconnects_does_not_cancel_shared_work() {
     );
     a.write_all(head.as_bytes()).await.unwrap();
     a.write_all(&body).await.unwrap();
-    assert!(eventually(|| m.queue_depth.load(Ordering::Relaxed) == 1).await);
+    assert!(eventually(|| m.queue_depth.get() == 1).await);
     // B asks for frames 5 and 6: frame 5 joins A's queued job.
     let c = server.client.clone();
     let b = tokio::spawn(async move { c.crowd_frame(&req(&[5, 6]), Encoding::Bincode).await });
-    assert!(eventually(|| m.jobs_coalesced.load(Ordering::Relaxed) == 1).await);
+    assert!(eventually(|| m.jobs_coalesced.get() == 1).await);
     // A hangs up before the batch closes.
     drop(a);
     let (resp, _) = b.await.unwrap().expect("B is answered");
     let frames: Vec<u32> = resp.buffers.iter().map(|b| b.frame).collect();
     assert_eq!(frames, vec![5, 6]);
-    assert_eq!(
-        m.jobs_cancelled.load(Ordering::Relaxed),
-        0,
-        "shared work kept"
-    );
-    assert_eq!(m.jobs_computed.load(Ordering::Relaxed), 2);
+    assert_eq!(m.jobs_cancelled.get(), 0, "shared work kept");
+    assert_eq!(m.jobs_computed.get(), 2);
     // A was really gone: only B's request was answered, and A's counted as cancelled.
     let text = server.client.metrics().await.unwrap();
     assert_eq!(

@@ -436,7 +436,9 @@ impl Client {
 }
 
 /// The value of a sample (first line starting with `name` followed by a space or `{`) in a
-/// Prometheus text page.
+/// Prometheus or OpenMetrics text page (what `/metrics` answers). Comment lines (`# HELP`,
+/// `# TYPE`, `# EOF`) are skipped; `name` may include the labels, as written on the page
+/// (`crowdmorph_heads_total{source="api"}`), else the first series of the family is read.
 pub fn metric(page: &str, name: &str) -> Option<f64> {
     page.lines()
         .filter(|l| !l.starts_with('#'))
@@ -446,4 +448,49 @@ pub fn metric(page: &str, name: &str) -> Option<f64> {
         })
         .and_then(|l| l.rsplit(' ').next())
         .and_then(|v| v.parse().ok())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::metric;
+
+    /// What `prometheus-client` writes: counters with `_total` on their samples only, labels
+    /// in declaration order, real numbers with a decimal point, `# EOF` last.
+    const PAGE: &str = "# HELP crowdmorph_heads Heads served.\n\
+        # TYPE crowdmorph_heads counter\n\
+        crowdmorph_heads_total{source=\"api\"} 3\n\
+        crowdmorph_heads_total{source=\"loadtest\"} 0\n\
+        # HELP crowdmorph_heads_per_second Heads served during the last complete second.\n\
+        # TYPE crowdmorph_heads_per_second gauge\n\
+        crowdmorph_heads_per_second 2.5\n\
+        # HELP crowdmorph_queue_seconds Queue time.\n\
+        # TYPE crowdmorph_queue_seconds histogram\n\
+        crowdmorph_queue_seconds_sum 0.5\n\
+        crowdmorph_queue_seconds_count 2\n\
+        crowdmorph_queue_seconds_bucket{le=\"5.0e-5\"} 1\n\
+        crowdmorph_queue_seconds_bucket{le=\"+Inf\"} 2\n\
+        # EOF\n";
+
+    #[test]
+    fn reads_openmetrics_samples() {
+        assert_eq!(
+            metric(PAGE, "crowdmorph_heads_total{source=\"api\"}"),
+            Some(3.0)
+        );
+        assert_eq!(
+            metric(PAGE, "crowdmorph_heads_total{source=\"loadtest\"}"),
+            Some(0.0)
+        );
+        assert_eq!(metric(PAGE, "crowdmorph_heads_per_second"), Some(2.5));
+        assert_eq!(metric(PAGE, "crowdmorph_queue_seconds_sum"), Some(0.5));
+        assert_eq!(metric(PAGE, "crowdmorph_queue_seconds_count"), Some(2.0));
+        assert_eq!(
+            metric(PAGE, "crowdmorph_queue_seconds_bucket{le=\"+Inf\"}"),
+            Some(2.0)
+        );
+        // Family names (of `# TYPE` lines) and `# EOF` are no samples.
+        assert_eq!(metric(PAGE, "crowdmorph_heads"), None);
+        assert_eq!(metric(PAGE, "EOF"), None);
+        assert_eq!(metric(PAGE, "crowdmorph_queue"), None);
+    }
 }

@@ -388,7 +388,7 @@ class Client:
             time.sleep(interval)
 
     def metrics(self) -> str:
-        """``GET /metrics``: Prometheus text."""
+        """``GET /metrics``: OpenMetrics text (what Prometheus scrapes)."""
         return self.request("GET", "/metrics", accept="text/plain").body.decode("utf-8")
 
     # -- rigs ---------------------------------------------------------------------------------

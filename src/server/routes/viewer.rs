@@ -11,44 +11,44 @@ use axum::extract::Path;
 use axum::http::{HeaderValue, header};
 use axum::response::{IntoResponse, Response};
 
-use super::ApiError;
+use crate::server::http::ApiError;
 
 /// Name, content type and bytes of each file of the viewer.
 pub const FILES: &[(&str, &str, &str)] = &[
     (
         "index.html",
         "text/html; charset=utf-8",
-        include_str!("../../clients/web/index.html"),
+        include_str!("../../../clients/web/index.html"),
     ),
     (
         "viewer.css",
         "text/css; charset=utf-8",
-        include_str!("../../clients/web/viewer.css"),
+        include_str!("../../../clients/web/viewer.css"),
     ),
     (
         "main.js",
         "text/javascript; charset=utf-8",
-        include_str!("../../clients/web/main.js"),
+        include_str!("../../../clients/web/main.js"),
     ),
     (
         "api.js",
         "text/javascript; charset=utf-8",
-        include_str!("../../clients/web/api.js"),
+        include_str!("../../../clients/web/api.js"),
     ),
     (
         "bincode.js",
         "text/javascript; charset=utf-8",
-        include_str!("../../clients/web/bincode.js"),
+        include_str!("../../../clients/web/bincode.js"),
     ),
     (
         "camera.js",
         "text/javascript; charset=utf-8",
-        include_str!("../../clients/web/camera.js"),
+        include_str!("../../../clients/web/camera.js"),
     ),
     (
         "render.js",
         "text/javascript; charset=utf-8",
-        include_str!("../../clients/web/render.js"),
+        include_str!("../../../clients/web/render.js"),
     ),
 ];
 
@@ -58,12 +58,12 @@ const CSP: &str = "default-src 'self'; img-src 'self' data:; connect-src 'self';
                    object-src 'none'; base-uri 'none'; frame-ancestors 'none'";
 
 /// `GET /viewer`: the page.
-pub(super) async fn index() -> Response {
+pub async fn index() -> Response {
     serve("index.html")
 }
 
 /// `GET /viewer/{file}`: one of the page's scripts or its style sheet.
-pub(super) async fn file(Path(name): Path<String>) -> Response {
+pub async fn file(Path(name): Path<String>) -> Response {
     serve(&name)
 }
 

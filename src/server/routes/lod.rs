@@ -10,100 +10,26 @@
 //! clips uploaded meanwhile are kept. A `PUT` or a delete cancels a running job, and so does
 //! shutdown; a `PUT` is itself a job, cancelled when its client goes away.
 
-use std::collections::HashMap;
-use std::sync::atomic::Ordering;
-use std::sync::{Arc, Mutex, Weak};
+use std::sync::{Arc, Weak};
 
-use axum::body::Body;
 use axum::extract::{Path, State};
-use axum::http::{HeaderMap, StatusCode, header};
-use crowdmorph_proto::{CONTENT_TYPE_BINCODE, LodInfo, LodRequest, RigInfo};
-use serde::de::DeserializeOwned;
-use tokio::sync::OwnedSemaphorePermit;
+use axum::http::StatusCode;
+use crowdmorph_proto::{LodInfo, LodRequest, RigInfo};
 
-use super::api::{
-    ApiResult, blocking, budget_error, decode, decode_reservation, prepare_charged, respond,
-};
-use super::registry::RigEntry;
-use super::{ApiError, AppState};
+use super::rigs::prepare_charged;
 use crate::budget::Budget;
-use crate::lod::{LevelSpec, LodBuildError, LodSpec, OrderMethod, Progress, build_lod};
+use crate::lod::{LevelSpec, LodBuildError, LodSpec, OrderMethod, build_lod};
 use crate::rig::{Lod, Rig};
+use crate::server::admission::{Decoded, Priced, names_bytes, names_reservation};
+use crate::server::http::{Accept, Admin, ApiError, ApiResult, Ready, blocking};
+use crate::server::lod_jobs::LodJob;
+use crate::server::registry::RigEntry;
+use crate::server::state::{AppState, Inner};
 
 /// Mesh levels the background job builds, as fractions of the triangles (the 50, 25
 /// and 10 %); with the default table, LOD levels 1, 2 and 3 use them, and level 4 (no shapes)
 /// the coarsest.
 pub const AUTO_MESH_FRACTIONS: [f32; 3] = [0.5, 0.25, 0.1];
-
-/// A running or failed LOD computation: the background job of a newly registered rig, or a
-/// `PUT` being served.
-#[derive(Debug, Default)]
-pub struct LodJob {
-    progress: Arc<Progress>,
-    failed: Mutex<Option<String>>,
-    /// Started by registration rather than by a request.
-    background: bool,
-}
-
-/// The jobs by rig id. At most one per rig: a new one cancels the old.
-#[derive(Debug, Default)]
-pub struct LodJobs(Mutex<HashMap<String, Arc<LodJob>>>);
-
-impl LodJobs {
-    fn get(&self, id: &str) -> Option<Arc<LodJob>> {
-        self.0.lock().ok().and_then(|m| m.get(id).cloned())
-    }
-
-    /// Cancels and forgets the job of a rig (on delete, or before a `PUT` replaces it).
-    pub fn cancel(&self, id: &str) {
-        if let Some(job) = self.0.lock().ok().and_then(|mut m| m.remove(id)) {
-            job.progress.cancel();
-        }
-    }
-
-    /// Cancels every background job (on shutdown: they are not requests in flight, and a
-    /// half-scored rig keeps its import order until the next start computes it again).
-    pub fn cancel_background(&self) {
-        if let Ok(mut m) = self.0.lock() {
-            m.retain(|_, job| {
-                if job.background {
-                    job.progress.cancel();
-                }
-                !job.background
-            });
-        }
-    }
-
-    /// Cancels every job (the state is being dropped).
-    pub fn cancel_all(&self) {
-        if let Ok(mut m) = self.0.lock() {
-            for job in m.values() {
-                job.progress.cancel();
-            }
-            m.clear();
-        }
-    }
-
-    fn start(&self, id: &str, background: bool) -> Arc<LodJob> {
-        self.cancel(id);
-        let job = Arc::new(LodJob {
-            background,
-            ..LodJob::default()
-        });
-        if let Ok(mut m) = self.0.lock() {
-            m.insert(id.to_string(), job.clone());
-        }
-        job
-    }
-
-    fn finish(&self, id: &str, job: &Arc<LodJob>) {
-        if let Ok(mut m) = self.0.lock()
-            && m.get(id).is_some_and(|j| Arc::ptr_eq(j, job))
-        {
-            m.remove(id);
-        }
-    }
-}
 
 /// A `PUT`'s job for as long as the request is served: dropping it (the handler finished, or
 /// its future was dropped because the client went away or the request timed out) cancels the
@@ -123,7 +49,7 @@ impl Drop for PutGuard {
 
 impl AppState {
     /// What the API reports about a rig, with the LOD job's status overlaid.
-    pub(super) fn rig_info(&self, entry: &RigEntry) -> RigInfo {
+    pub(crate) fn rig_info(&self, entry: &RigEntry) -> RigInfo {
         let mut info = entry.info();
         info.lod = self.lod_info(entry);
         info
@@ -161,7 +87,7 @@ impl AppState {
     ///
     /// The job holds the server state only weakly: dropping the last handle to the state
     /// (the server stopping, a test ending) cancels it instead of leaving it computing.
-    pub(super) fn start_auto_lod(&self, entry: &RigEntry) {
+    pub(crate) fn start_auto_lod(&self, entry: &RigEntry) {
         if !self.config.auto_lod() || entry.rig().lod.method != crate::rig::IMPORT_LOD_METHOD {
             return;
         }
@@ -209,7 +135,7 @@ impl AppState {
 }
 
 /// The state, if it still exists.
-fn upgrade(weak: &Weak<super::Inner>) -> Result<AppState, ApiError> {
+fn upgrade(weak: &Weak<Inner>) -> Result<AppState, ApiError> {
     weak.upgrade()
         .map(AppState)
         .ok_or_else(|| ApiError::unavailable("shutting_down", "the server is stopping", 1))
@@ -218,7 +144,7 @@ fn upgrade(weak: &Weak<super::Inner>) -> Result<AppState, ApiError> {
 /// [`AppState::build`] holding the state only while it takes a permit and reserves memory,
 /// not during the seconds of computing.
 async fn build_with(
-    weak: &Weak<super::Inner>,
+    weak: &Weak<Inner>,
     rig: Arc<Rig>,
     spec: LodSpec,
     job: &Arc<LodJob>,
@@ -237,7 +163,7 @@ async fn build_with(
         let work = crate::lod::build_bytes(&rig, &spec);
         budget
             .reserve(work, || format!("a LOD build of rig {:?}", rig.name))
-            .map_err(|e| budget_error(e, "lod_too_large"))?;
+            .map_err(|e| ApiError::budget(e, "lod_too_large"))?;
         (permit, budget, state.metrics.clone())
     };
     let progress = job.progress.clone();
@@ -249,7 +175,7 @@ async fn build_with(
     drop(permit);
     let lod = built?.map_err(|e| match e {
         LodBuildError::Cancelled => {
-            metrics.lod_builds_cancelled.fetch_add(1, Ordering::Relaxed);
+            metrics.lod_builds_cancelled.inc();
             cancelled()
         }
         e => ApiError::bad_request("invalid_lod", e.to_string()),
@@ -261,13 +187,13 @@ async fn build_with(
 /// request future awaiting it is dropped first (the client of a `PUT` hung up; the guard
 /// cancels the build itself) — counted cancelled, since nobody will see its result.
 struct Running {
-    metrics: Arc<super::metrics::Metrics>,
+    metrics: Arc<crate::server::metrics::Metrics>,
     finished: bool,
 }
 
 impl Running {
-    fn new(metrics: Arc<super::metrics::Metrics>) -> Running {
-        metrics.lod_builds_running.fetch_add(1, Ordering::Relaxed);
+    fn new(metrics: Arc<crate::server::metrics::Metrics>) -> Running {
+        metrics.lod_builds_running.inc();
         Running {
             metrics,
             finished: false,
@@ -281,13 +207,9 @@ impl Running {
 
 impl Drop for Running {
     fn drop(&mut self) {
-        self.metrics
-            .lod_builds_running
-            .fetch_sub(1, Ordering::Relaxed);
+        self.metrics.lod_builds_running.dec();
         if !self.finished {
-            self.metrics
-                .lod_builds_cancelled
-                .fetch_add(1, Ordering::Relaxed);
+            self.metrics.lod_builds_cancelled.inc();
             self.metrics
                 .cancelled("lod", crate::cancel::Cancelled::Dropped);
         }
@@ -368,49 +290,21 @@ async fn apply(
     Ok(next)
 }
 
-/// Queue memory that decoding `len` bytes of a body made mostly of names reserves besides
-/// what [`decode_reservation`] counts for a crowd body: a `String` (24 bytes) per name, in a
-/// vector that may be twice as long as its names, for names as short as 3 bytes of JSON
-/// (`"",`) or 1 byte of bincode (an empty name's length).
-fn names_reservation(bincode: bool, len: u64) -> u64 {
-    len.saturating_mul(if bincode { 48 } else { 16 })
-}
+impl Priced for LodRequest {
+    /// The lists it holds until they are capped against the rig: the names of the order and
+    /// the pins, the table's levels, the mesh fractions.
+    fn price(&self, _: Accept) -> u64 {
+        self.order.as_ref().map_or(0, names_bytes)
+            + names_bytes(&self.pinned)
+            + self.levels.as_ref().map_or(0, |l| {
+                l.capacity() as u64 * size_of::<crowdmorph_proto::LodLevelRequest>() as u64
+            })
+            + self.mesh_fractions.capacity() as u64 * 4
+    }
 
-/// Reads and decodes an admin body made mostly of lists of names (a LOD request's order and
-/// pins, a load test's rigs and clip mix), charged to the queue memory like a crowd body (503
-/// when it is full): the declared length's [`decode_reservation`] while it is read, and
-/// [`names_reservation`] of the bytes read while they are decoded (413 when that is more than
-/// the whole queue memory: such a body can never be decoded within it). Without it, 16 MiB of
-/// `"",` decoded to 5.6 million strings that nothing counted. The decoding's reservation comes
-/// back with the request: the caller holds it until it has capped the lists against what they
-/// may name.
-pub(super) async fn decode_names<T: DeserializeOwned>(
-    state: &AppState,
-    headers: &HeaderMap,
-    body: Body,
-) -> Result<(T, OwnedSemaphorePermit), ApiError> {
-    let bincode = headers
-        .get(header::CONTENT_TYPE)
-        .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.split(';').next())
-        .is_some_and(|v| v.trim().eq_ignore_ascii_case(CONTENT_TYPE_BINCODE));
-    let limit = state.config.max_request_bytes as u64;
-    let declared = headers
-        .get(header::CONTENT_LENGTH)
-        .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.parse::<u64>().ok())
-        .unwrap_or(limit)
-        .min(limit);
-    // Capped at the whole queue as a crowd body's is (an unknown length reserves the limit's).
-    let reading = state.reserve_queue_memory(
-        decode_reservation(bincode, declared).min(state.queue_memory_bytes()),
-    )?;
-    let bytes = state.request_body(headers, body).await?;
-    let decoding = state.reserve_queue_memory(names_reservation(bincode, bytes.len() as u64))?;
-    let req = decode(headers, &bytes)?;
-    drop(bytes);
-    drop(reading);
-    Ok((req, decoding))
+    fn decoding(bincode: bool, len: u64) -> u64 {
+        names_reservation(bincode, len)
+    }
 }
 
 /// The build spec a `PUT` asks for (its lists moved, not copied).
@@ -452,27 +346,27 @@ fn spec_of(req: LodRequest) -> Result<LodSpec, ApiError> {
 }
 
 /// `GET /v1/rigs/{id}/lod`.
-pub(super) async fn get_lod(
+pub async fn get_lod(
     State(state): State<AppState>,
+    _ready: Ready,
+    accept: Accept,
     Path(id): Path<String>,
-    headers: HeaderMap,
 ) -> ApiResult {
-    state.check_ready()?;
     let entry = state.rig(&id)?;
-    respond(&headers, StatusCode::OK, &state.lod_info(&entry))
+    accept.reply(StatusCode::OK, &state.lod_info(&entry))
 }
 
 /// `PUT /v1/rigs/{id}/lod`: rebuilds the order, table and mesh levels as asked, then answers
 /// with the rig (its new generation is what later frames use).
-pub(super) async fn put_lod(
+pub async fn put_lod(
     State(state): State<AppState>,
+    _admin: Admin,
+    _ready: Ready,
+    accept: Accept,
     Path(id): Path<String>,
-    headers: HeaderMap,
-    body: Body,
+    Decoded(req): Decoded<LodRequest>,
 ) -> ApiResult {
-    state.check_admin(&headers)?;
-    state.check_ready()?;
-    let (req, decoded): (LodRequest, _) = decode_names(&state, &headers, body).await?;
+    let (req, decoded) = req.into_parts();
     let entry = state.rig(&id)?;
     // Neither list can name more channels than the rig has without naming one twice.
     let targets = entry.rig().targets.len();
@@ -497,7 +391,8 @@ pub(super) async fn put_lod(
     // per channel a seen-flag (1 byte), a resolved id (4) and a kept pin (4): charged while it
     // runs.
     let checking = state
-        .reserve_queue_memory(crate::rig::TargetIndex::bytes_for(targets) + 9 * targets as u64)?;
+        .queue_memory
+        .reserve(crate::rig::TargetIndex::bytes_for(targets) + 9 * targets as u64)?;
     crate::lod::check_request(entry.rig(), &spec)
         .map_err(|e| ApiError::bad_request("invalid_lod", e.to_string()))?;
     drop(checking);
@@ -517,5 +412,5 @@ pub(super) async fn put_lod(
     // Done: the job is forgotten before the answer reports the rig's LOD status.
     drop(guard);
     tracing::info!(rig = %id, method = %entry.rig().lod.method, "LOD set");
-    respond(&headers, StatusCode::OK, &state.rig_info(&entry))
+    accept.reply(StatusCode::OK, &state.rig_info(&entry))
 }

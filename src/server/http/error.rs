@@ -9,6 +9,11 @@ use axum::http::{HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use crowdmorph_proto::{ErrorBody, ErrorDetail};
 
+use crate::budget::BudgetError;
+
+/// What every handler returns.
+pub type ApiResult = Result<Response, ApiError>;
+
 /// An API error: a status, a stable code and a message for the client.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("{status} {code}: {message}")]
@@ -60,6 +65,18 @@ impl ApiError {
             "internal",
             "internal error; the server log has the details",
         )
+    }
+
+    /// A refused memory charge: 413 `too_large` when the operation can never fit its limit,
+    /// 503 `memory_full` (retry later) when the pool is full now. Both messages name the bytes
+    /// and the flag.
+    pub fn budget(e: BudgetError, too_large: &'static str) -> ApiError {
+        match e {
+            BudgetError::TooLarge { .. } => {
+                ApiError::new(StatusCode::PAYLOAD_TOO_LARGE, too_large, e.to_string())
+            }
+            BudgetError::Full { .. } => ApiError::unavailable("memory_full", e.to_string(), 5),
+        }
     }
 
     /// The JSON body.

@@ -1,0 +1,15 @@
+//! The handlers, one file per resource, each in short named phases: `health` (`/healthz`,
+//! `/readyz`, `/metrics`), `rigs`, `clips`, `frames` (`POST /v1/crowd/frame`), `render`
+//! (`POST /v1/crowd/render`), `lod`, `loadtest`, `sessions` (handlers, the viewer protocol,
+//! the tick) and `viewer` (the browser viewer's files). They use the HTTP layer and admission;
+//! nothing below them imports them.
+
+pub mod clips;
+pub mod frames;
+pub mod health;
+pub mod loadtest;
+pub mod lod;
+pub mod render;
+pub mod rigs;
+pub mod sessions;
+pub mod viewer;

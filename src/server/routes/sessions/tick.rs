@@ -1,0 +1,887 @@
+//! A session's tick: every head resolved once, each viewer's jobs per head grouped by what
+//! their buffers hold, one submission to the batcher per group, and the fan-out of messages
+//! relative to what each viewer last received. The tick task is supervised: a panic ends its
+//! session.
+
+use std::collections::HashMap;
+use std::sync::atomic::Ordering;
+use std::sync::{Arc, Weak};
+use std::time::Duration;
+
+use bytes::Bytes;
+use crowdmorph_proto::{
+    CameraSpec, Format, FrameTimings, HEAD_MISSING, HEAD_UNCHANGED, HeadBuffer, LodChoice,
+    RenderRequest, SessionHead, ViewerOutput,
+};
+use glam::Vec3;
+use tokio::time::Instant;
+
+use crate::codec::{FrameBufferParts, FrameResponseEncoder};
+use crate::rig::FrameMode;
+use crate::server::admission::resolve::{head_reach, job_output_bytes, job_request};
+use crate::server::registry::{MAX_F16, RigEntry};
+use crate::server::scheduler::{JobRequest, ScheduleError};
+use crate::server::sessions::{
+    Baseline, Encoded, HeadKey, MIN_FPS, MISSING_KEY, Outgoing, Session, Viewer, ViewerSettings,
+    bump, close,
+};
+use crate::server::state::{AppState, Inner};
+
+/// Starts the tick task of `session`, supervised: if it panics (a bug), the session ends —
+/// removed from the server, its viewers closed with 1011 — and the panic is logged once and
+/// counted (`crowdmorph_session_panics_total`), rather than leaving a session registered that
+/// never ticks, never idles out and counts toward `--max-sessions`.
+pub(super) fn supervise(session: Arc<Session>, app: Weak<Inner>) {
+    let task = tokio::spawn(run_session(session.clone(), app.clone()));
+    tokio::spawn(async move {
+        let Err(e) = task.await else { return };
+        if !e.is_panic() {
+            return;
+        }
+        let payload = e.into_panic();
+        let why = payload
+            .downcast_ref::<&str>()
+            .map(|s| (*s).to_string())
+            .or_else(|| payload.downcast_ref::<String>().cloned())
+            .unwrap_or_else(|| "a panic".into());
+        tracing::error!(session = %session.id, panic = %why, "a session's tick task panicked; the session ends");
+        if let Some(inner) = app.upgrade() {
+            let state = AppState(inner);
+            bump_panic(&state);
+            state.sessions.remove(&session.id);
+        }
+        session.stop(close::INTERNAL, "session ended: internal error");
+    });
+}
+
+fn bump_panic(state: &AppState) {
+    state.metrics.session_panics.inc();
+}
+
+/// The tick task of one session.
+async fn run_session(session: Arc<Session>, app: Weak<Inner>) {
+    // `fps` is at least MIN_FPS (checked at creation): a period of at most ten seconds.
+    let period = Duration::from_secs_f64(1.0 / f64::from(session.fps.max(MIN_FPS)));
+    let start = Instant::now();
+    let mut slot: u64 = 0;
+    loop {
+        let due = start + period.mul_f64(slot as f64);
+        // Woken for the tick, for the idle timeout (whichever comes first: a slow session
+        // still ends on time), when its viewers change, or when it stops.
+        let idle_at = session.idle_deadline();
+        let wake = idle_at.map_or(due, |t| t.min(due));
+        tokio::select! {
+            () = tokio::time::sleep_until(wake) => {}
+            () = session.stopping.notified() => {}
+            () = session.viewers_changed.notified() => {}
+        }
+        if session.stopped.load(Ordering::Acquire) {
+            break;
+        }
+        let Some(inner) = app.upgrade() else { break };
+        let state = AppState(inner);
+        if session.idle_deadline().is_some_and(|t| Instant::now() >= t) {
+            tracing::info!(session = %session.id, "session ended: no viewer for its idle timeout");
+            state.sessions.remove(&session.id);
+            session.stop(close::AWAY, "session ended (idle)");
+            break;
+        }
+        if Instant::now() < due {
+            continue;
+        }
+        if session.panic_next_tick.swap(false, Ordering::AcqRel) {
+            panic!("test hook: a session tick panics");
+        }
+        let tick = slot + 1;
+        let computed = tick_once(&state, &session, tick).await;
+        let done = Instant::now();
+        let next_due = start + period.mul_f64((slot + 1) as f64);
+        let m = &state.sessions.metrics;
+        let mut next = slot + 1;
+        if done > next_due {
+            // Ticks whose time passed while this one ran are skipped, not queued: the next is
+            // the latest whose time has come.
+            let behind = (done.duration_since(start).as_secs_f64() / period.as_secs_f64()) as u64;
+            if behind > next {
+                let skipped = behind - next;
+                bump(&m.ticks_skipped, skipped);
+                session.with_stats(|s| s.ticks_skipped += skipped);
+                next = behind;
+            }
+        }
+        match computed {
+            Ticked::Delivered(jobs) => {
+                let late = done > next_due;
+                bump(
+                    if late {
+                        &m.ticks_late
+                    } else {
+                        &m.ticks_on_time
+                    },
+                    1,
+                );
+                bump(&m.jobs, jobs);
+                session.with_stats(|s| {
+                    s.ticks += 1;
+                    s.ticks_late += u64::from(late);
+                    s.jobs += jobs;
+                });
+            }
+            Ticked::Skipped => {
+                bump(&m.ticks_skipped, 1);
+                session.with_stats(|s| s.ticks_skipped += 1);
+            }
+            Ticked::NoViewers => {}
+        }
+        slot = next;
+    }
+}
+
+enum Ticked {
+    /// Computed and handed to the outboxes, with the unique jobs it submitted.
+    Delivered(u64),
+    Skipped,
+    NoViewers,
+}
+
+/// One head resolved for this tick.
+#[derive(Clone, Copy)]
+struct HeadAt {
+    rig: u32,
+    clip: u32,
+    frame: u32,
+    levels: u32,
+    f16_ok: bool,
+}
+
+/// The vertex viewers that share a format and normals: their jobs go to the batcher as one
+/// submission.
+struct Group {
+    format: Format,
+    normals: bool,
+    jobs: Vec<JobRequest>,
+    keys: Vec<(u32, u32, u32, u32)>,
+    index: HashMap<(u32, u32, u32, u32), u32>,
+}
+
+/// Most bytes a tick's bookkeeping holds at once for `heads` heads and `viewers` viewers:
+/// each head's resolved rig, clip and frame; per viewer its job per head, the keys it is sent,
+/// the entries of its message and the fan-out cache's copy of them; per group (viewers that
+/// share a format and normals: at most six) the jobs, their keys and the index over them, with
+/// room for the vectors' and the map's growth. At the session limits (10,000 heads, dozens of
+/// viewers) this is tens of megabytes per tick, so it is charged to the queue memory before
+/// any of it is built.
+fn tick_bookkeeping_bytes(heads: usize, viewers: usize) -> u64 {
+    type Key = (u32, u32, u32, u32);
+    let groups = viewers.min(6);
+    let per_viewer = size_of::<Option<u32>>() + size_of::<HeadKey>() + 2 * size_of::<u32>();
+    let per_group = 2 * (size_of::<JobRequest>() + size_of::<Key>())
+        + 3 * (size_of::<Key>() + size_of::<u32>() + 1);
+    let per_head = size_of::<Option<HeadAt>>() + viewers * per_viewer + groups * per_group;
+    (heads as u64).saturating_mul(per_head as u64)
+}
+
+fn level_for(lod: &LodChoice, camera: Option<&CameraSpec>, position: [f32; 3]) -> u32 {
+    match lod {
+        LodChoice::Fixed(l) => *l,
+        LodChoice::ByDistance { by_distance } => {
+            let Some(c) = camera else {
+                return 0;
+            };
+            let d = Vec3::from(position).distance(Vec3::from(c.position));
+            level_at(by_distance, d)
+        }
+    }
+}
+
+/// The level of the last entry whose metres ≤ `d` (0 nearer than the first). The table is
+/// ascending (`check_lod` refuses any other), so the entries at or below `d` are a prefix and
+/// a binary search finds its end: this runs per head, per viewer, per tick.
+fn level_at(by_distance: &[[f32; 2]], d: f32) -> u32 {
+    match by_distance.partition_point(|[m, _]| *m <= d) {
+        0 => 0,
+        n => by_distance.get(n - 1).map_or(0, |[_, l]| *l as u32),
+    }
+}
+
+/// One tick: the four phases of the module doc — [`resolve`] every head once, [`group`] each
+/// viewer's jobs by what its buffers hold (image viewers' frames start on the blocking pool),
+/// [`submit`] each group to the batcher, [`fan_out`] the messages.
+async fn tick_once(state: &AppState, session: &Arc<Session>, tick: u64) -> Ticked {
+    let arrived = std::time::Instant::now();
+    let Some(TickInput {
+        heads,
+        layout_rev,
+        viewers,
+    }) = take_heads(session, tick)
+    else {
+        return Ticked::Skipped;
+    };
+    if viewers.is_empty() {
+        return Ticked::NoViewers;
+    }
+    // What this tick builds per head is charged first, as every request's memory is.
+    let Ok(_bookkeeping) = state
+        .queue_memory
+        .reserve(tick_bookkeeping_bytes(heads.len(), viewers.len()))
+    else {
+        return Ticked::Skipped;
+    };
+    let resolved = resolve(state, session, &heads, tick);
+    let mut grouped = group(&resolved, &heads, &viewers);
+    for (v, s) in std::mem::take(&mut grouped.frames) {
+        start_frame(state, session, &heads, &resolved, tick, v, s);
+    }
+    if grouped.groups.iter().all(|g| g.jobs.is_empty()) && grouped.plans.is_empty() {
+        return Ticked::Delivered(0);
+    }
+    let Some(submitted) = submit(state, &grouped.groups).await else {
+        return Ticked::Skipped;
+    };
+    let jobs: u64 = grouped.groups.iter().map(|g| g.jobs.len() as u64).sum();
+    let tick_heads = TickHeads {
+        tick,
+        heads: &heads,
+        layout_rev,
+        rigs: &resolved.rigs,
+        arrived,
+    };
+    fan_out(state, session, &tick_heads, &grouped, &submitted.outcomes);
+    drop(submitted.memory);
+    Ticked::Delivered(jobs)
+}
+
+/// Applies the patches received since the last tick (the layout changes at a tick, never
+/// inside one) and takes what this tick works on: the heads, the layout's revision, the
+/// viewers. `None` when the session's lock is poisoned.
+fn take_heads(session: &Session, tick: u64) -> Option<TickInput> {
+    let mut i = session.inner.lock().ok()?;
+    if let Some(n) = i.next_heads.take() {
+        i.heads = n;
+        i.layout_rev += 1;
+    }
+    i.tick = tick;
+    Some(TickInput {
+        heads: i.heads.clone(),
+        layout_rev: i.layout_rev,
+        viewers: i.viewers.clone(),
+    })
+}
+
+/// What a tick works on, taken under the session's lock.
+struct TickInput {
+    heads: Arc<Vec<SessionHead>>,
+    layout_rev: u64,
+    viewers: Vec<Arc<Viewer>>,
+}
+
+/// Every head of a tick resolved once: the rigs it names (at this tick's generation), and per
+/// head its rig, clip and frame (`None`: its rig or clip is gone).
+struct Resolved {
+    rigs: Vec<Arc<RigEntry>>,
+    at: Vec<Option<HeadAt>>,
+}
+
+/// Resolve: each head's rig at this tick's generation, its clip and the frame it plays.
+fn resolve(state: &AppState, session: &Session, heads: &[SessionHead], tick: u64) -> Resolved {
+    let mode = if session.wrap {
+        FrameMode::Wrap
+    } else {
+        FrameMode::Clamp
+    };
+    let mut rigs: Vec<Arc<RigEntry>> = Vec::new();
+    let mut rig_at: HashMap<&str, Option<u32>> = HashMap::new();
+    let at = heads
+        .iter()
+        .map(|h| {
+            let ri = *rig_at.entry(h.rig.as_str()).or_insert_with(|| {
+                state.registry.get(&h.rig).map(|e| {
+                    rigs.push(e);
+                    (rigs.len() - 1) as u32
+                })
+            });
+            let ri = ri?;
+            let entry = &rigs[ri as usize];
+            let rig = entry.rig();
+            let ci = entry.clip_index(&h.clip)?;
+            let clip = &rig.clips[ci];
+            let elapsed = (tick - 1) as f64 * f64::from(clip.fps) / f64::from(session.fps);
+            let frame = clip
+                .resolve_frame(h.offset.saturating_add(elapsed as i64), mode)
+                .ok()?;
+            Some(HeadAt {
+                rig: ri,
+                clip: ci as u32,
+                frame,
+                levels: rig.lod.levels.len() as u32,
+                f16_ok: head_reach(entry) <= MAX_F16,
+            })
+        })
+        .collect();
+    Resolved { rigs, at }
+}
+
+/// The viewers of a tick sorted by what they get: vertex viewers' jobs per head, grouped by
+/// format and normals, and the image viewers with their settings.
+struct Grouped {
+    groups: Vec<Group>,
+    /// Per vertex viewer: its group and its job (an index into the group's) per head.
+    plans: Vec<(Arc<Viewer>, usize, Vec<Option<u32>>)>,
+    frames: Vec<(Arc<Viewer>, ViewerSettings)>,
+}
+
+/// Group: each vertex viewer's job per head (its LOD fixed or by distance from its camera),
+/// deduplicated within the group of viewers that share a format and normals.
+fn group(resolved: &Resolved, heads: &[SessionHead], viewers: &[Arc<Viewer>]) -> Grouped {
+    let mut groups: Vec<Group> = Vec::new();
+    let mut plans = Vec::new();
+    let mut frames = Vec::new();
+    for v in viewers {
+        let Some(s) = v.settings() else { continue };
+        if s.output == ViewerOutput::Frames {
+            frames.push((v.clone(), s));
+            continue;
+        }
+        let g = match groups
+            .iter()
+            .position(|g| g.format == s.format && g.normals == s.normals)
+        {
+            Some(g) => g,
+            None => {
+                groups.push(Group {
+                    format: s.format,
+                    normals: s.normals,
+                    jobs: Vec::new(),
+                    keys: Vec::new(),
+                    index: HashMap::new(),
+                });
+                groups.len() - 1
+            }
+        };
+        let jobs = groups[g].jobs_of(resolved, heads, &s);
+        plans.push((v.clone(), g, jobs));
+    }
+    Grouped {
+        groups,
+        plans,
+        frames,
+    }
+}
+
+impl Group {
+    /// A viewer's job per head in this group, adding the jobs the group does not have yet.
+    fn jobs_of(
+        &mut self,
+        resolved: &Resolved,
+        heads: &[SessionHead],
+        s: &ViewerSettings,
+    ) -> Vec<Option<u32>> {
+        heads
+            .iter()
+            .zip(&resolved.at)
+            .map(|(h, a)| {
+                let a = (*a)?;
+                if self.format == Format::F16 && !a.f16_ok {
+                    return None;
+                }
+                let lod = level_for(&s.lod, s.camera.as_ref(), h.position).min(a.levels - 1);
+                let key = (a.rig, a.clip, a.frame, lod);
+                Some(*self.index.entry(key).or_insert_with(|| {
+                    self.keys.push(key);
+                    self.jobs.push(job_request(
+                        &resolved.rigs[a.rig as usize],
+                        a.clip,
+                        a.frame,
+                        lod,
+                    ));
+                    (self.jobs.len() - 1) as u32
+                }))
+            })
+            .collect()
+    }
+}
+
+/// What [`submit`] got back: each group's outcome, and the queue memory their outputs hold.
+struct Submitted {
+    outcomes: Vec<crate::server::scheduler::Outcome>,
+    memory: crate::server::admission::Charge,
+}
+
+/// Submit: the blended outputs charged to the queue memory, then one submission per group to
+/// the batcher (so session jobs coalesce with HTTP traffic), waited for within the request
+/// deadline. `None`: the tick is skipped (memory or queue full, a deadline, shutting down).
+async fn submit(state: &AppState, groups: &[Group]) -> Option<Submitted> {
+    let gpu = state.engine.gpu_memory().is_some();
+    let out_bytes: u64 = groups
+        .iter()
+        .flat_map(|g| {
+            g.jobs.iter().map(move |j| {
+                let rig = j.entry.prepared.at_level(j.lod).rig();
+                job_output_bytes(rig, g.format, g.normals, false, gpu)
+            })
+        })
+        .sum();
+    let memory = state.queue_memory.reserve(out_bytes).ok()?;
+    let mut tickets = Vec::with_capacity(groups.len());
+    for g in groups {
+        state.metrics.jobs_requested.inc_by(g.jobs.len() as u64);
+        match state.scheduler.submit(g.jobs.clone(), g.format, g.normals) {
+            Ok(t) => tickets.push(t),
+            Err(ScheduleError::QueueFull) => {
+                state.metrics.reject("queue_full");
+                return None;
+            }
+            Err(_) => return None,
+        }
+    }
+    let mut outcomes = Vec::with_capacity(tickets.len());
+    for t in tickets {
+        match tokio::time::timeout(state.config.request_timeout, t).await {
+            Ok(Ok(Ok(o))) => outcomes.push(o),
+            _ => return None,
+        }
+    }
+    Some(Submitted { outcomes, memory })
+}
+
+/// What every viewer's message of a tick shares.
+struct TickHeads<'a> {
+    tick: u64,
+    heads: &'a [SessionHead],
+    layout_rev: u64,
+    rigs: &'a [Arc<RigEntry>],
+    arrived: std::time::Instant,
+}
+
+/// Fan out: each vertex viewer gets the buffers of the heads whose job changed since the last
+/// message it received (the others "unchanged"); identical messages (same group, same head
+/// vector) are encoded once and shared.
+fn fan_out(
+    state: &AppState,
+    session: &Session,
+    t: &TickHeads<'_>,
+    grouped: &Grouped,
+    outcomes: &[crate::server::scheduler::Outcome],
+) {
+    let mut cache: HashMap<(usize, bool, Vec<u32>), Arc<Encoded>> = HashMap::new();
+    for (v, g, jobs) in &grouped.plans {
+        let group = &grouped.groups[*g];
+        let keys = Arc::new(head_keys(group, jobs, t.rigs));
+        deliver(
+            state,
+            session,
+            t,
+            v,
+            (*g, group),
+            &outcomes[*g],
+            jobs,
+            &keys,
+            &mut cache,
+        );
+    }
+}
+
+/// Each head's key for a viewer (what its buffer is: rig generation, clip, frame, LOD).
+fn head_keys(group: &Group, jobs: &[Option<u32>], rigs: &[Arc<RigEntry>]) -> Vec<HeadKey> {
+    jobs.iter()
+        .map(|j| match j {
+            None => MISSING_KEY,
+            Some(j) => {
+                let (r, c, f, l) = group.keys[*j as usize];
+                HeadKey {
+                    generation: rigs[r as usize].generation,
+                    clip: c,
+                    frame: f,
+                    lod: l,
+                }
+            }
+        })
+        .collect()
+}
+
+/// Puts one viewer's message in its outbox: its entries relative to what it last received,
+/// the message from `cache` when another viewer got the same one. Retried when the viewer's
+/// socket took a message meanwhile: "unchanged" must refer to what it last received.
+#[allow(clippy::too_many_arguments)]
+fn deliver(
+    state: &AppState,
+    session: &Session,
+    t: &TickHeads<'_>,
+    v: &Viewer,
+    (g, group): (usize, &Group),
+    outcome: &crate::server::scheduler::Outcome,
+    jobs: &[Option<u32>],
+    keys: &Arc<Vec<HeadKey>>,
+    cache: &mut HashMap<(usize, bool, Vec<u32>), Arc<Encoded>>,
+) {
+    for _attempt in 0..4 {
+        let base = match v.outbox.lock() {
+            Ok(o) => o.sent.clone(),
+            Err(_) => return,
+        };
+        let with_layout = base.layout_rev != t.layout_rev || base.keys.len() != keys.len();
+        let entries: Vec<u32> = jobs
+            .iter()
+            .enumerate()
+            .map(|(i, j)| match j {
+                _ if !with_layout && base.keys[i] == keys[i] => HEAD_UNCHANGED,
+                None => HEAD_MISSING,
+                Some(j) => *j,
+            })
+            .collect();
+        let cache_key = (g, with_layout, entries);
+        let message = match cache.get(&cache_key) {
+            Some(m) => m.clone(),
+            None => {
+                let Some(m) = encode_vertices(
+                    state,
+                    t.tick,
+                    with_layout.then_some(t.heads),
+                    group,
+                    outcome,
+                    t.rigs,
+                    t.heads,
+                    &cache_key.2,
+                    t.arrived,
+                ) else {
+                    bump(&state.sessions.metrics.dropped_memory, 1);
+                    session.with_stats(|s| s.messages_dropped += 1);
+                    return;
+                };
+                let m = Arc::new(m);
+                cache.insert(cache_key, m.clone());
+                m
+            }
+        };
+        let Ok(mut o) = v.outbox.lock() else { return };
+        if o.sent.version != base.version {
+            continue;
+        }
+        if o.pending.is_some() {
+            bump(&state.sessions.metrics.dropped_slow, 1);
+            session.with_stats(|s| s.messages_dropped += 1);
+        }
+        o.pending = Some(Outgoing {
+            message,
+            after: Baseline {
+                version: base.version + 1,
+                layout_rev: t.layout_rev,
+                keys: keys.clone(),
+            },
+        });
+        drop(o);
+        v.ready.notify_one();
+        return;
+    }
+}
+
+/// The buffers of a viewer's message (in order of first appearance among the heads) and each
+/// head's entry: a buffer index, or `HEAD_UNCHANGED` / `HEAD_MISSING`.
+fn message_buffers<'a>(
+    group: &Group,
+    outcome: &crate::server::scheduler::Outcome,
+    rigs: &'a [Arc<RigEntry>],
+    heads: &[SessionHead],
+    entries: &[u32],
+) -> (Vec<FrameBufferParts<'a>>, Vec<HeadBuffer>) {
+    let mut local: HashMap<u32, u32> = HashMap::new();
+    let mut parts: Vec<FrameBufferParts<'a>> = Vec::new();
+    let head_buffers: Vec<HeadBuffer> = heads
+        .iter()
+        .zip(entries)
+        .map(|(h, &e)| {
+            let buffer = if e == HEAD_UNCHANGED || e == HEAD_MISSING {
+                e
+            } else {
+                *local.entry(e).or_insert_with(|| {
+                    let (r, c, f, l) = group.keys[e as usize];
+                    let entry = &rigs[r as usize];
+                    let out = &outcome.outputs[e as usize];
+                    parts.push(FrameBufferParts {
+                        rig: &entry.id,
+                        clip: &entry.rig().clips[c as usize].name,
+                        frame: f,
+                        lod: l,
+                        vertices: entry.prepared.at_level(l).rig().vertex_count() as u32,
+                        quantization: (group.format == Format::Q16).then_some(entry.qbox),
+                        positions: out.positions.clone(),
+                        normals: if group.normals {
+                            out.normals.clone()
+                        } else {
+                            None
+                        },
+                    });
+                    (parts.len() - 1) as u32
+                })
+            };
+            HeadBuffer {
+                head: h.head,
+                buffer,
+            }
+        })
+        .collect();
+    (parts, head_buffers)
+}
+
+/// Encodes a [`crowdmorph_proto::TickVertices`] stream message: the variant, the tick and the
+/// layout, then the same fields as a crowd-frame response, with payloads aligned to 16 bytes
+/// from the start of the message. Its length is computed first and charged to the queue
+/// memory before anything of its size is allocated; `None` when the queue memory is full.
+#[allow(clippy::too_many_arguments)]
+fn encode_vertices(
+    state: &AppState,
+    tick: u64,
+    layout: Option<&[SessionHead]>,
+    group: &Group,
+    outcome: &crate::server::scheduler::Outcome,
+    rigs: &[Arc<RigEntry>],
+    heads: &[SessionHead],
+    entries: &[u32],
+    arrived: std::time::Instant,
+) -> Option<Encoded> {
+    let mut prefix = Vec::with_capacity(64);
+    crate::codec::put_varint(&mut prefix, 0);
+    crate::codec::put_varint(&mut prefix, tick);
+    let (parts, head_buffers) = message_buffers(group, outcome, rigs, heads, entries);
+    let timings = FrameTimings {
+        queue_us: outcome.queue.as_micros() as u64,
+        compute_us: outcome.compute_ns / 1000,
+        total_us: arrived.elapsed().as_micros() as u64,
+        gpu_us: outcome.gpu_ns.map(|g| g / 1000),
+    };
+    // The layout's length (bincode, without encoding it; `None` is one byte), then the
+    // message's: charged before either is allocated.
+    let middle_len = crate::codec::wire_len(&layout).unwrap_or(1);
+    let total = FrameResponseEncoder::encoded_len_within(
+        prefix.len(),
+        middle_len,
+        group.format,
+        group.normals,
+        &parts,
+        &head_buffers,
+        &timings,
+    );
+    let memory = state
+        .queue_memory
+        .reserve((total + middle_len) as u64)
+        .ok()?;
+    let middle = crate::codec::to_wire(&layout).unwrap_or_else(|_| vec![0]);
+    let chunks = FrameResponseEncoder::encode_within(
+        prefix,
+        &middle,
+        group.format,
+        group.normals,
+        &parts,
+        &head_buffers,
+        &timings,
+    );
+    drop(middle);
+    let mut out = Vec::with_capacity(total);
+    for c in &chunks {
+        out.extend_from_slice(c);
+    }
+    debug_assert_eq!(out.len(), total, "the counted length is the encoding's");
+    drop(chunks);
+    let mut memory = memory;
+    // The layout's encoding and the chunks are gone; the message keeps only its bytes.
+    memory.keep(total as u64);
+    Some(Encoded {
+        bytes: Bytes::from(out),
+        _memory: Box::new(memory),
+    })
+}
+
+/// Starts drawing this tick for a viewer that wants images, unless its previous image is
+/// still being drawn.
+#[allow(clippy::too_many_arguments)]
+fn start_frame(
+    state: &AppState,
+    session: &Arc<Session>,
+    heads: &[SessionHead],
+    resolved: &Resolved,
+    tick: u64,
+    viewer: Arc<Viewer>,
+    s: ViewerSettings,
+) {
+    if viewer.rendering.swap(true, Ordering::AcqRel) {
+        bump(&state.sessions.metrics.dropped_rendering, 1);
+        session.with_stats(|st| st.messages_dropped += 1);
+        return;
+    }
+    let req = frame_request(heads, resolved, &s);
+    let state = state.clone();
+    let session = session.clone();
+    let cancel = viewer
+        .gone
+        .with_deadline(std::time::Instant::now() + state.config.request_timeout);
+    tokio::spawn(async move {
+        let rendered = state.render_for_session(req, cancel).await;
+        if let Some(message) = frame_message(&state, &viewer, tick, rendered) {
+            put_frame(&state, &session, &viewer, message);
+        }
+        viewer.rendering.store(false, Ordering::Release);
+    });
+}
+
+/// The request that draws a tick for a viewer: every resolved head at its LOD for the
+/// viewer's camera, in its placement.
+fn frame_request(heads: &[SessionHead], resolved: &Resolved, s: &ViewerSettings) -> RenderRequest {
+    let mut req_heads = Vec::new();
+    let mut placements = Vec::new();
+    for (h, a) in heads.iter().zip(&resolved.at) {
+        let Some(a) = a else { continue };
+        let entry = &resolved.rigs[a.rig as usize];
+        let lod = level_for(&s.lod, s.camera.as_ref(), h.position).min(a.levels - 1);
+        req_heads.push(crowdmorph_proto::Head {
+            head: h.head,
+            rig: entry.id.clone(),
+            clip: entry.rig().clips[a.clip as usize].name.clone(),
+            frame: i64::from(a.frame),
+            lod,
+        });
+        placements.push(super::placement(h));
+    }
+    RenderRequest {
+        heads: req_heads,
+        wrap: true,
+        placements: Some(placements),
+        camera: s.camera,
+        image: Some(s.image),
+    }
+}
+
+/// A drawn image as a stream message, charged to the queue memory (its length is known
+/// without encoding it); `None` when it was not drawn or does not fit. An image the viewer's
+/// own choice can never draw (over the viewers' share, too costly at its size) closes the
+/// viewer with the reason, once, rather than failing at every tick.
+fn frame_message(
+    state: &AppState,
+    viewer: &Viewer,
+    tick: u64,
+    rendered: Result<
+        (Vec<u8>, u32, u32, crowdmorph_proto::ImageFormat),
+        crate::server::http::ApiError,
+    >,
+) -> Option<Arc<Encoded>> {
+    match rendered {
+        Ok((image, width, height, format)) => {
+            let message = crowdmorph_proto::StreamMessage::Frame(crowdmorph_proto::TickFrame {
+                tick,
+                format,
+                width,
+                height,
+                image: crowdmorph_proto::Blob(image),
+            });
+            let len = crate::codec::wire_len(&message).ok()?;
+            let Ok(charge) = state.queue_memory.reserve(len as u64) else {
+                bump(&state.sessions.metrics.dropped_memory, 1);
+                return None;
+            };
+            crate::codec::to_wire(&message).ok().map(|bytes| {
+                Arc::new(Encoded {
+                    bytes: Bytes::from(bytes),
+                    _memory: Box::new(charge),
+                })
+            })
+        }
+        Err(e) if e.status.is_client_error() => {
+            tracing::debug!(error = %e.message, "session frame cannot be drawn; closing the viewer");
+            bump(&state.sessions.metrics.viewers_closed_policy, 1);
+            viewer.ask_close(close::POLICY, &super::viewer::truncate(e.message));
+            None
+        }
+        Err(e) => {
+            // Busy (503), cancelled: this tick's image is skipped.
+            tracing::debug!(error = %e.message, "session frame not drawn");
+            bump(&state.sessions.metrics.dropped_rendering, 1);
+            None
+        }
+    }
+}
+
+/// Puts an image message in the viewer's outbox (replacing an unsent one, counted).
+fn put_frame(state: &AppState, session: &Session, viewer: &Viewer, message: Arc<Encoded>) {
+    let Ok(mut o) = viewer.outbox.lock() else {
+        return;
+    };
+    if o.pending.is_some() {
+        bump(&state.sessions.metrics.dropped_slow, 1);
+        session.with_stats(|st| st.messages_dropped += 1);
+    }
+    let after = Baseline {
+        version: o.sent.version + 1,
+        layout_rev: u64::MAX,
+        keys: Arc::new(Vec::new()),
+    };
+    o.pending = Some(Outgoing { message, after });
+    drop(o);
+    viewer.ready.notify_one();
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The linear search `level_at` replaced: the last entry whose metres ≤ `d`.
+    fn level_by_scan(by_distance: &[[f32; 2]], d: f32) -> u32 {
+        by_distance
+            .iter()
+            .rev()
+            .find(|[m, _]| *m <= d)
+            .map_or(0, |[_, l]| *l as u32)
+    }
+
+    #[test]
+    fn the_binary_search_finds_the_level_the_scan_did() {
+        let tables: Vec<Vec<[f32; 2]>> = vec![
+            vec![],
+            vec![[5.0, 3.0]],
+            vec![[0.0, 1.0], [2.0, 2.0], [4.0, 3.0]],
+            // Repeated thresholds: the last of them counts, as the scan's.
+            vec![[1.0, 1.0], [3.0, 2.0], [3.0, 5.0], [3.0, 4.0], [6.0, 6.0]],
+            // Negative thresholds, and the 64 entries `check_lod` allows.
+            vec![[-2.0, 7.0], [-1.0, 0.0], [10.0, 2.0]],
+            (0..64).map(|k| [k as f32 * 0.5, (k % 7) as f32]).collect(),
+        ];
+        for table in &tables {
+            assert!(
+                super::super::viewer::check_lod(&LodChoice::ByDistance {
+                    by_distance: table.clone()
+                })
+                .is_ok(),
+                "{table:?} is a table viewers may send"
+            );
+            // On every threshold, just either side of it, between, below and above them all.
+            let mut ds = vec![-1e30, -3.0, 0.0, 1e30, f32::INFINITY, f32::NAN];
+            for [m, _] in table {
+                ds.extend([*m, m.next_down(), m.next_up(), m + 0.25]);
+            }
+            for d in ds {
+                assert_eq!(
+                    level_at(table, d),
+                    level_by_scan(table, d),
+                    "{table:?} at {d}"
+                );
+            }
+        }
+        // Spot values, so the test does not only compare two searches with each other.
+        let t = &tables[3];
+        assert_eq!(
+            [0.5, 1.0, 2.9, 3.0, 5.0, 6.0, 9.0].map(|d| level_at(t, d)),
+            [0, 1, 1, 4, 4, 6, 6]
+        );
+        let camera = CameraSpec {
+            position: [0.0, 0.0, 10.0],
+            target: [0.0; 3],
+            fov_y: 30.0,
+            near: None,
+            far: None,
+        };
+        let lod = LodChoice::ByDistance {
+            by_distance: t.clone(),
+        };
+        assert_eq!(level_for(&lod, Some(&camera), [0.0, 0.0, 7.0]), 4);
+        assert_eq!(level_for(&lod, None, [0.0, 0.0, 7.0]), 0);
+        assert_eq!(level_for(&LodChoice::Fixed(3), Some(&camera), [0.0; 3]), 3);
+    }
+}
