@@ -126,3 +126,483 @@ fn readme_examples_do_not_hard_code_a_session_id() {
         );
     }
 }
+
+/// The module names a `//!` table of `file` lists in its first column (`` [`x`] `` or `` `x` ``).
+fn mapped_modules(file: &Path) -> Vec<String> {
+    read(file)
+        .lines()
+        .filter_map(|l| l.strip_prefix("//! | "))
+        .filter_map(|row| row.split(" | ").next())
+        .map(|cell| {
+            cell.trim_matches(|c| matches!(c, '[' | ']' | '`' | ' '))
+                .to_string()
+        })
+        .filter(|m| m != "module" && !m.starts_with("---"))
+        .collect()
+}
+
+/// The modules `file` declares (`mod x;`, `pub mod x;`, `pub(crate) mod x;`), test-only ones
+/// left out.
+fn declared_modules(file: &Path) -> Vec<String> {
+    let src = read(file);
+    let mut out = Vec::new();
+    let mut test_only = false;
+    for line in src.lines().map(str::trim) {
+        if line.starts_with("#[cfg(test)]") {
+            test_only = true;
+            continue;
+        }
+        let decl = line
+            .strip_prefix("pub mod ")
+            .or_else(|| line.strip_prefix("pub(crate) mod "))
+            .or_else(|| line.strip_prefix("mod "));
+        if let Some(name) = decl.and_then(|d| d.strip_suffix(';'))
+            && !test_only
+        {
+            out.push(name.to_string());
+        }
+        if !line.starts_with("#[") {
+            test_only = false;
+        }
+    }
+    out
+}
+
+#[test]
+fn every_module_is_in_its_parents_map() {
+    for parent in ["src/lib.rs", "src/server/mod.rs"] {
+        let path = root().join(parent);
+        let mapped = mapped_modules(&path);
+        let declared = declared_modules(&path);
+        assert!(
+            declared.len() > 10,
+            "{parent}: the scan finds its modules: {declared:?}"
+        );
+        let missing: Vec<&String> = declared.iter().filter(|m| !mapped.contains(m)).collect();
+        assert!(
+            missing.is_empty(),
+            "{parent}'s `//!` map does not list {missing:?}"
+        );
+        let stale: Vec<&String> = mapped.iter().filter(|m| !declared.contains(m)).collect();
+        assert!(
+            stale.is_empty(),
+            "{parent}'s `//!` map lists modules it lacks: {stale:?}"
+        );
+    }
+}
+
+/// Backticked words of a Markdown text that name files or folders of the repository: they
+/// contain a `/` or end in a source extension, and are not routes (`/v1/...`), globs, media
+/// types or URLs.
+fn named_paths(text: &str) -> Vec<String> {
+    let mut out = Vec::new();
+    let mut in_fence = false;
+    for line in text.lines() {
+        if line.trim_start().starts_with("```") || line.trim_start().starts_with("~~~") {
+            in_fence = !in_fence;
+            continue;
+        }
+        if in_fence {
+            continue;
+        }
+        for (i, part) in line.split('`').enumerate() {
+            let path = part.trim();
+            let source = [".rs", ".md", ".wgsl", ".py", ".toml", ".js", ".html"]
+                .iter()
+                .any(|x| path.ends_with(x));
+            let plain = !path.is_empty()
+                && path
+                    .chars()
+                    .all(|c| c.is_ascii_alphanumeric() || matches!(c, '/' | '.' | '_' | '-'));
+            if i % 2 == 1
+                && plain
+                && (path.contains('/') || source)
+                && !path.starts_with('/')
+                && !path.starts_with("application/")
+                && !path.starts_with("text/")
+                && !path.starts_with("model/")
+                && !path.starts_with("image/")
+            {
+                out.push(path.to_string());
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn every_path_architecture_md_names_exists() {
+    let mut docs = vec![root().join("ARCHITECTURE.md")];
+    let design = root().join("docs/design");
+    if let Ok(dir) = std::fs::read_dir(&design) {
+        docs.extend(dir.filter_map(Result::ok).map(|e| e.path()));
+    }
+    let mut checked = 0;
+    for doc in &docs {
+        let missing: Vec<String> = named_paths(&read(doc))
+            .into_iter()
+            .inspect(|_| checked += 1)
+            .filter(|p| {
+                // A bare file name (`mod.rs`) names a file somewhere in the tree: only paths
+                // are checked.
+                p.contains('/') && !root().join(p).exists()
+            })
+            .collect();
+        assert!(
+            missing.is_empty(),
+            "{} names paths that do not exist: {missing:?}",
+            doc.display()
+        );
+    }
+    assert!(checked > 50, "the scan finds the paths ({checked})");
+}
+
+/// `src` with its `#[cfg(test)]` items cut off: the product code, where tests sit at the end.
+fn product_code(src: &str) -> &str {
+    src.find("#[cfg(test)]").map_or(src, |i| &src[..i])
+}
+
+/// `src` without its comments (line comments, doc comments included).
+fn code_only(src: &str) -> String {
+    src.lines()
+        .map(|l| l.find("//").map_or(l, |i| &l[..i]))
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+#[test]
+fn rig_is_pure_data() {
+    let files = rust_files(&root().join("src/rig"));
+    assert!(files.len() >= 5, "the scan finds rig/: {files:?}");
+    for f in files {
+        let src = read(&f);
+        let code = code_only(product_code(&src));
+        for forbidden in [
+            "tokio",
+            "wgpu",
+            "axum",
+            "std::fs",
+            "crate::server",
+            "crate::engine",
+        ] {
+            assert!(
+                !code.contains(forbidden),
+                "{} uses {forbidden}: rig/ is pure data (ARCHITECTURE.md)",
+                f.display()
+            );
+        }
+    }
+}
+
+/// The library's module path of a file under `src/` (`src/server/http/mod.rs` →
+/// `["server", "http"]`); `None` for the binary's files.
+fn module_of(file: &Path) -> Option<Vec<String>> {
+    let rel = file.strip_prefix(root().join("src")).ok()?;
+    let mut parts: Vec<String> = rel
+        .iter()
+        .map(|p| p.to_string_lossy().trim_end_matches(".rs").to_string())
+        .collect();
+    if parts.first().is_some_and(|p| p == "main" || p == "cli") {
+        return None;
+    }
+    if parts.last().is_some_and(|p| p == "mod" || p == "lib") {
+        parts.pop();
+    }
+    Some(parts)
+}
+
+/// Expands a `use` tree `a::{b, c::{d, e}}` into its leaves, each after `prefix`.
+fn expand(tree: &str, prefix: &[String], out: &mut Vec<Vec<String>>) {
+    let tree = tree.trim();
+    if let Some(open) = tree.find('{') {
+        let mut p = prefix.to_vec();
+        p.extend(
+            tree[..open]
+                .split("::")
+                .map(str::trim)
+                .filter(|s| !s.is_empty())
+                .map(str::to_string),
+        );
+        let close = tree.rfind('}').filter(|&c| c > open).unwrap_or(tree.len());
+        let inner = &tree[open + 1..close];
+        let (mut depth, mut start) = (0, 0);
+        for (i, c) in inner.char_indices() {
+            match c {
+                '{' => depth += 1,
+                '}' => depth -= 1,
+                ',' if depth == 0 => {
+                    expand(&inner[start..i], &p, out);
+                    start = i + 1;
+                }
+                _ => {}
+            }
+        }
+        expand(&inner[start..], &p, out);
+    } else if !tree.is_empty() {
+        let mut p = prefix.to_vec();
+        let leaf = tree.split(" as ").next().unwrap_or(tree);
+        p.extend(leaf.split("::").map(|s| s.trim().to_string()));
+        out.push(p);
+    }
+}
+
+/// `path` (starting with `crate`, `super` or `self`) as absolute segments, seen from `base`.
+fn absolute(path: &[String], base: &[String]) -> Vec<String> {
+    let mut abs = base.to_vec();
+    let mut segs = path;
+    match segs.first().map(String::as_str) {
+        Some("crate") => {
+            abs.clear();
+            segs = &segs[1..];
+        }
+        Some("self") => segs = &segs[1..],
+        _ => {
+            while segs.first().is_some_and(|s| s == "super") {
+                abs.pop();
+                segs = &segs[1..];
+            }
+        }
+    }
+    abs.extend(segs.iter().filter(|s| *s != "self" && *s != "*").cloned());
+    abs
+}
+
+/// Every path the code of a file of module `module` names that starts with `crate`, `super`
+/// or `self` (in `use` statements, braces expanded, and inline), made absolute. Inline
+/// modules (`mod x { ... }`) are followed, so that their `super` is the file's module.
+/// `pub use` re-exports are the parent's facade, not a dependency of its code: left out.
+fn crate_paths(code: &str, module: &[String]) -> Vec<Vec<String>> {
+    let mut out = Vec::new();
+    let mut inline: Vec<(String, i32)> = Vec::new();
+    let mut depth = 0i32;
+    let mut pending_use: Option<String> = None;
+    for line in code.lines() {
+        let t = line.trim();
+        let mut base = module.to_vec();
+        base.extend(inline.iter().map(|(m, _)| m.clone()));
+        let mut relative = Vec::new();
+        if let Some(stmt) = pending_use.as_mut() {
+            stmt.push_str(t);
+        } else if let Some(rest) = t.strip_prefix("use ") {
+            pending_use = Some(rest.to_string());
+        } else {
+            // Inline paths.
+            for start in ["crate::", "super::"] {
+                let mut from = 0;
+                while let Some(i) = t[from..].find(start) {
+                    let at = from + i;
+                    let prev = t[..at].chars().last();
+                    if prev.is_none_or(|c| !c.is_alphanumeric() && c != '_' && c != ':') {
+                        let path: String = t[at..]
+                            .chars()
+                            .take_while(|c| c.is_alphanumeric() || *c == '_' || *c == ':')
+                            .collect();
+                        relative.push(
+                            path.split("::")
+                                .filter(|s| !s.is_empty())
+                                .map(str::to_string)
+                                .collect(),
+                        );
+                    }
+                    from = at + start.len();
+                }
+            }
+        }
+        if pending_use.as_ref().is_some_and(|s| s.contains(';')) {
+            let stmt = pending_use.take().unwrap_or_default();
+            expand(stmt.split(';').next().unwrap_or(""), &[], &mut relative);
+        }
+        for p in relative {
+            if p.first()
+                .is_some_and(|s| s == "crate" || s == "super" || s == "self")
+            {
+                out.push(absolute(&p, &base));
+            }
+        }
+        // Inline modules open with `mod x {` and close with their brace.
+        let name = t
+            .strip_prefix("pub mod ")
+            .or_else(|| t.strip_prefix("pub(crate) mod "))
+            .or_else(|| t.strip_prefix("mod "))
+            .and_then(|r| r.strip_suffix('{'))
+            .map(str::trim);
+        for c in t.chars() {
+            match c {
+                '{' => depth += 1,
+                '}' => depth -= 1,
+                _ => {}
+            }
+        }
+        if let Some(name) = name {
+            inline.push((name.to_string(), depth));
+        }
+        while inline.last().is_some_and(|&(_, d)| depth < d) {
+            inline.pop();
+        }
+    }
+    out
+}
+
+/// Finds a cycle in `edges` (a file → the files it imports), if there is one.
+fn find_cycle(
+    edges: &std::collections::BTreeMap<String, std::collections::BTreeSet<String>>,
+) -> Option<Vec<String>> {
+    fn visit(
+        n: &str,
+        edges: &std::collections::BTreeMap<String, std::collections::BTreeSet<String>>,
+        state: &mut std::collections::BTreeMap<String, u8>,
+        stack: &mut Vec<String>,
+    ) -> Option<Vec<String>> {
+        state.insert(n.to_string(), 1);
+        stack.push(n.to_string());
+        for m in edges.get(n).into_iter().flatten() {
+            match state.get(m.as_str()).copied().unwrap_or(0) {
+                1 => {
+                    let at = stack.iter().position(|s| s == m).unwrap_or(0);
+                    let mut cycle = stack[at..].to_vec();
+                    cycle.push(m.clone());
+                    return Some(cycle);
+                }
+                0 => {
+                    if let Some(c) = visit(m, edges, state, stack) {
+                        return Some(c);
+                    }
+                }
+                _ => {}
+            }
+        }
+        stack.pop();
+        state.insert(n.to_string(), 2);
+        None
+    }
+    let mut state = std::collections::BTreeMap::new();
+    for n in edges.keys() {
+        if state.get(n.as_str()).copied().unwrap_or(0) == 0 {
+            let mut stack = Vec::new();
+            if let Some(c) = visit(n, edges, &mut state, &mut stack) {
+                return Some(c);
+            }
+        }
+    }
+    None
+}
+
+/// The library's file-level import graph: an edge from each file to every other file whose
+/// module (or an item of it) its product code names through `crate::`, `super::` or `self::`.
+/// Re-exports (`pub use`) are not edges, and a path through one ends at the re-exporting
+/// module; test modules and files ending in `tests.rs` are left out.
+fn import_graph() -> std::collections::BTreeMap<String, std::collections::BTreeSet<String>> {
+    let files: Vec<(PathBuf, Vec<String>)> = rust_files(&root().join("src"))
+        .into_iter()
+        .filter(|f| !f.to_string_lossy().ends_with("tests.rs"))
+        .filter_map(|f| module_of(&f).map(|m| (f, m)))
+        .collect();
+    let by_module: std::collections::BTreeMap<Vec<String>, String> = files
+        .iter()
+        .map(|(f, m)| {
+            (
+                m.clone(),
+                f.strip_prefix(root()).unwrap_or(f).display().to_string(),
+            )
+        })
+        .collect();
+    let mut edges = std::collections::BTreeMap::new();
+    for (file, module) in &files {
+        let name = by_module[module].clone();
+        let src = read(file);
+        let code = code_only(product_code(&src));
+        let mut targets = std::collections::BTreeSet::new();
+        for abs in crate_paths(&code, module) {
+            // The longest prefix that is a module file.
+            let target = (0..=abs.len())
+                .rev()
+                .find_map(|n| by_module.get(&abs[..n]))
+                .cloned();
+            if let Some(t) = target
+                && t != name
+            {
+                targets.insert(t);
+            }
+        }
+        edges.insert(name, targets);
+    }
+    edges
+}
+
+#[test]
+fn no_file_of_the_library_imports_one_that_imports_it_back() {
+    let edges = import_graph();
+    let n: usize = edges.values().map(|t| t.len()).sum();
+    assert!(n > 200, "the scan finds the imports ({n})");
+    assert!(
+        edges["src/server/routes/frames.rs"].contains("src/server/scheduler.rs"),
+        "the scan resolves `use crate::server::scheduler::...`"
+    );
+    assert!(
+        edges["src/import/gltf.rs"].contains("src/import/channels.rs"),
+        "the scan resolves `use super::channels::...`"
+    );
+    // The search finds a cycle where there is one.
+    let two = std::collections::BTreeMap::from([
+        (
+            "a".to_string(),
+            std::collections::BTreeSet::from(["b".to_string()]),
+        ),
+        (
+            "b".to_string(),
+            std::collections::BTreeSet::from(["a".to_string()]),
+        ),
+    ]);
+    assert_eq!(find_cycle(&two).map(|c| c.len()), Some(3));
+    if let Some(cycle) = find_cycle(&edges) {
+        panic!("import cycle: {}", cycle.join(" → "));
+    }
+    // Routes are the top layer: only the router and other routes name them.
+    for (file, targets) in &edges {
+        let top = file.starts_with("src/server/routes/") || file == "src/server/app.rs";
+        assert!(
+            top || !targets.iter().any(|t| t.starts_with("src/server/routes/")),
+            "{file} imports a route module: {targets:?}"
+        );
+    }
+}
+
+#[test]
+fn no_module_of_the_python_client_imports_one_that_imports_it_back() {
+    let dir = root().join("clients/python/src/crowdmorph");
+    let mut edges = std::collections::BTreeMap::new();
+    let modules: Vec<String> = std::fs::read_dir(&dir)
+        .expect("the Python package")
+        .filter_map(Result::ok)
+        .filter_map(|e| {
+            let name = e.file_name().to_string_lossy().to_string();
+            name.strip_suffix(".py").map(str::to_string)
+        })
+        .collect();
+    assert!(
+        modules.len() >= 4,
+        "the scan finds the package: {modules:?}"
+    );
+    for m in &modules {
+        let src = read(&dir.join(format!("{m}.py")));
+        let mut targets = std::collections::BTreeSet::new();
+        for line in src.lines().map(str::trim) {
+            // `from .x import ...`, `from crowdmorph.x import ...`, `import crowdmorph.x`.
+            let named = line
+                .strip_prefix("from .")
+                .or_else(|| line.strip_prefix("from crowdmorph."))
+                .or_else(|| line.strip_prefix("import crowdmorph."))
+                .and_then(|r| r.split([' ', ',', '.']).next());
+            if let Some(t) = named
+                && t != m
+                && modules.iter().any(|x| x == t)
+            {
+                targets.insert(t.to_string());
+            }
+        }
+        edges.insert(m.clone(), targets);
+    }
+    if let Some(cycle) = find_cycle(&edges) {
+        panic!("import cycle in the Python client: {}", cycle.join(" → "));
+    }
+}
