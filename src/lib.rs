@@ -1,13 +1,14 @@
 //! crowdmorph: a network animation server for blendshape (morph-target) crowds.
 //!
-//! Layout (each layer depends only on the ones above it; `ARCHITECTURE.md` has the why):
+//! Layout: outside tests, each module depends only on the ones above it in this table (no
+//! cycles). `ARCHITECTURE.md` maps the tree and its invariants; `docs/design/` has the longer why.
 //!
 //! | module | what it is |
 //! |---|---|
 //! | [`rng`] | SplitMix64: deterministic numbers for synthetic rigs, clips and workloads |
 //! | [`budget`] | memory budgets: every allocation an input sizes is charged before it happens |
 //! | [`cancel`] | a request's cancellation token: work off the runtime stops at its next stage when the request is gone or late |
-//! | [`rig`] | pure data: primitives, sparse targets, clips (weight tables), LOD order; keyframe sampling math |
+//! | [`rig`] | pure data: primitives, sparse targets, clips (weight tables), LOD order and mesh levels; keyframe sampling; the memory cost model |
 //! | [`import`] | glTF/GLB, CSV and JSON readers that build a validated [`rig::Rig`] |
 //! | [`embedded`] | the procedural default rig that needs no files |
 //! | [`synthetic`] | synthetic rigs and clips: the paper-scale rig, deterministic random clips |
@@ -17,7 +18,7 @@
 //! | [`render`] | rendered frames: scene layout, cost, the wgpu renderer, encoding, offline renders |
 //! | [`lod`] | level of detail: importance metrics and orders, reports, feature-preserving mesh levels, the reference rasterizer |
 //! | [`codec`] | the one module that touches bincode: wire messages and stored records |
-//! | [`store`] | persistence: one checksummed, atomically replaced file per rig under the data dir |
+//! | [`store`] | persistence: checksummed, atomically replaced files under the data dir, one per rig and one per later batch of its clips |
 //! | [`load`] | the load generator: open loop, latency corrected for coordinated omission, HdrHistogram reports |
 //! | [`server`] | the HTTP server: routes, the HTTP layer, admission, the batcher, sessions, metrics |
 //! | [`bench`] | benchmarks, their peers and harness (feature `bench`) |
