@@ -40,7 +40,8 @@ use serde::Serialize;
 
 use super::server::BenchServer;
 use crate::engine::{BlendJob, Engine, OutputSpec};
-use crate::load::Percentiles;
+use crate::load::http::HttpTarget;
+use crate::load::{self, Live, LoadReport, Percentiles, RunOptions, WireEncoding};
 use crate::plan::{JobKey, Plan};
 use crate::rig::Rig;
 use crate::server::ServerConfig;
@@ -526,6 +527,34 @@ fn socket_cpu_per_byte(connections: usize, message: usize, seconds: f64) -> Resu
     Ok((cpu / total as f64, total as f64 / wall))
 }
 
+/// Open-loop load at `rate` requests per second over as many connections as the saturation
+/// run used, through [`crate::load::run`]: `bodies` in turn, bincode, for `opt.seconds` after
+/// a 300 ms warm-up.
+async fn half_load(
+    addr: std::net::SocketAddr,
+    bodies: &[Bytes],
+    rate: f64,
+    opt: &HttpBenchOptions,
+) -> Result<LoadReport> {
+    let target = HttpTarget::new(
+        &format!("http://{addr}"),
+        bodies.to_vec(),
+        WireEncoding::Bincode,
+    )?;
+    let mut lanes = Vec::with_capacity(opt.clients.max(1));
+    for _ in 0..opt.clients.max(1) {
+        lanes.push(target.lane().await?);
+    }
+    let live = Live::new(RunOptions {
+        rate,
+        duration: Duration::from_secs_f64(opt.seconds),
+        warmup: Duration::from_millis(300),
+        grace: Duration::from_secs(10),
+        heads_per_request: opt.heads as u64,
+    });
+    Ok(load::run(lanes, &live).await?)
+}
+
 /// Runs the benchmark: `rig_bytes` is a GLB/glTF to upload, or `None` for the embedded head.
 pub fn bench_http(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpBenchReport> {
     if opt.unique == 0 || opt.heads < opt.unique || opt.unique > CLIP_FRAMES {
@@ -553,11 +582,11 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
     };
     let BenchServer {
         state,
+        addr,
         client,
         rig_id,
         stop_tx,
         server,
-        ..
     } = BenchServer::start(config, rig_bytes).await?;
     let entry = state
         .registry
@@ -726,47 +755,11 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
     let ceiling_heads_per_s =
         cores as f64 / (socket_cpu_s_per_response + inproc.2) * opt.heads as f64;
 
-    // Half load: open loop at half the saturated request rate.
+    // Half load: the load generator's open loop at half the saturated request rate, each
+    // latency from the request's due time (corrected for coordinated omission, as `crowdmorph
+    // load` reports it).
     let rate = (http_heads_per_s / opt.heads as f64 / 2.0).max(0.5);
-    let interval = Duration::from_secs_f64(1.0 / rate);
-    let half_errors = Arc::new(AtomicU64::new(0));
-    let (lat_tx, mut lat_rx) = tokio::sync::mpsc::unbounded_channel::<u64>();
-    let start = Instant::now();
-    let mut ticker = tokio::time::interval(interval);
-    ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Burst);
-    let mut i = 0usize;
-    let mut inflight = Vec::new();
-    let warm = Duration::from_millis(300);
-    while start.elapsed().as_secs_f64() < opt.seconds + warm.as_secs_f64() {
-        ticker.tick().await;
-        let client = client.clone();
-        let body = bodies[i % bodies.len()].clone();
-        let tx = lat_tx.clone();
-        let errs = half_errors.clone();
-        let record = start.elapsed() >= warm;
-        i += 1;
-        inflight.push(tokio::spawn(async move {
-            let t = Instant::now();
-            match client.crowd_frame_drain(body, Encoding::Bincode).await {
-                Ok((200, _)) => {
-                    if record {
-                        let _ = tx.send(t.elapsed().as_micros() as u64);
-                    }
-                }
-                _ => {
-                    errs.fetch_add(1, Ordering::Relaxed);
-                }
-            }
-        }));
-    }
-    for t in inflight {
-        let _ = t.await;
-    }
-    drop(lat_tx);
-    let mut half = Histogram::<u64>::new_with_bounds(1, 600_000_000, 3)?;
-    while let Some(us) = lat_rx.recv().await {
-        half.record(us.max(1))?;
-    }
+    let half = half_load(addr, &bodies, rate, opt).await?;
 
     let batches = state.metrics.batches.get().max(1);
     let computed = state.metrics.jobs_computed.get();
@@ -793,7 +786,7 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
     let _ = stop_tx.send(());
     server.await??;
 
-    let Percentiles { p50, p99, .. } = Percentiles::of(&half);
+    let Percentiles { p50, p99, .. } = half.latency_ms;
     Ok(HttpBenchReport {
         backend,
         rig: rig.name.clone(),
@@ -832,7 +825,7 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
         half_load_p50_ms: p50,
         half_load_p99_ms: p99,
         half_load_p99_over_p50: if p50 > 0.0 { p99 / p50 } else { 0.0 },
-        half_load_errors: half_errors.load(Ordering::Relaxed),
+        half_load_errors: half.errors + half.unfinished,
         mean_batch_jobs: computed as f64 / batches as f64,
         sizes,
     })
