@@ -9,18 +9,17 @@ use axum::http::{HeaderMap, StatusCode};
 use axum::response::IntoResponse;
 use crowdmorph_proto::{CONTENT_TYPE_JSON, ClipInfo, ClipList, ClipUpload, Quantization};
 
-use super::rigs::{clip_import_error, prepare_error, upload_body};
+use super::rigs::{check_name, clip_import_error, prepare_error, upload_body};
 use crate::engine::{Engine, PreparedRig};
 use crate::import::ImportError;
 use crate::import::clips::{ClipImport, ClipOptions};
-use crate::rig::{Rig, quoted_name};
+use crate::rig::Rig;
 use crate::server::admission::resolve::unknown_clip;
 use crate::server::http::{
     Accept, Admin, ApiError, ApiResult, Query, Ready, blocking, checked_content_type,
 };
 use crate::server::registry::{
-    RigEntry, check_output_range, clip_info, clip_infos, clips_named, quantization_box,
-    sanitize_id, valid_id,
+    RigEntry, check_output_range, clip_info, clip_infos, clips_named, quantization_box, sanitize_id,
 };
 use crate::server::state::AppState;
 
@@ -144,17 +143,7 @@ pub async fn upload_clips(
 impl ClipQuery {
     /// A 400 for a malformed `?name=` or `?fps=`, before any of the body is read.
     fn check(&self) -> Result<(), ApiError> {
-        if let Some(n) = &self.name
-            && !valid_id(n)
-        {
-            return Err(ApiError::bad_request(
-                "invalid_name",
-                format!(
-                    "clip name {} must be 1-64 characters of A-Z a-z 0-9 . _ -",
-                    quoted_name(n)
-                ),
-            ));
-        }
+        check_name("clip", self.name.as_deref())?;
         if let Some(fps) = self.fps
             && !(fps.is_finite() && fps > 0.0 && fps <= 1000.0)
         {

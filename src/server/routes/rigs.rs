@@ -277,18 +277,22 @@ pub async fn upload_rig(
 impl RigQuery {
     /// A 400 for a malformed `?name=`, before any of the body is read.
     fn check(&self) -> Result<(), ApiError> {
-        if let Some(n) = &self.name
-            && !valid_id(n)
-        {
-            return Err(ApiError::bad_request(
-                "invalid_name",
-                format!(
-                    "rig name {} must be 1-64 characters of A-Z a-z 0-9 . _ - (not starting with a dot)",
-                    quoted_name(n)
-                ),
-            ));
-        }
-        Ok(())
+        check_name("rig", self.name.as_deref())
+    }
+}
+
+/// A 400 `invalid_name` unless `name` (of a rig or clip) is a valid id.
+pub fn check_name(what: &str, name: Option<&str>) -> Result<(), ApiError> {
+    match name {
+        Some(n) if !valid_id(n) => Err(ApiError::bad_request(
+            "invalid_name",
+            format!(
+                "{what} name {} must be 1-64 characters of A-Z a-z 0-9 . _ - (not starting \
+                 with a dot)",
+                quoted_name(n)
+            ),
+        )),
+        _ => Ok(()),
     }
 }
 
