@@ -286,10 +286,10 @@ pub async fn list_clips(
     State(state): State<AppState>,
     _ready: Ready,
     Path(id): Path<String>,
-    headers: HeaderMap,
+    accept: Accept,
 ) -> ApiResult {
     let entry = state.rig(&id)?;
-    Accept::of(&headers).reply(
+    accept.reply(
         StatusCode::OK,
         &ClipList {
             rig: id,
@@ -302,13 +302,13 @@ pub async fn get_clip(
     State(state): State<AppState>,
     _ready: Ready,
     Path((id, clip)): Path<(String, String)>,
-    headers: HeaderMap,
+    accept: Accept,
 ) -> ApiResult {
     let entry = state.rig(&id)?;
     let ci = entry
         .clip_index(&clip)
         .ok_or_else(|| unknown_clip(&entry, &clip))?;
-    Accept::of(&headers).reply(StatusCode::OK, &clip_info(&entry.rig().clips[ci]))
+    accept.reply(StatusCode::OK, &clip_info(&entry.rig().clips[ci]))
 }
 
 pub async fn delete_clip(
@@ -316,7 +316,6 @@ pub async fn delete_clip(
     _admin: Admin,
     _ready: Ready,
     Path((id, clip)): Path<(String, String)>,
-    _headers: HeaderMap,
 ) -> ApiResult {
     let _admin = state.admin.lock().await;
     let entry = state.rig(&id)?;

@@ -350,27 +350,23 @@ fn import_rig(
     prepare_charged(engine, budget, Arc::new(rig), gpu)
 }
 
-pub async fn list_rigs(
-    State(state): State<AppState>,
-    _ready: Ready,
-    headers: HeaderMap,
-) -> ApiResult {
+pub async fn list_rigs(State(state): State<AppState>, _ready: Ready, accept: Accept) -> ApiResult {
     let rigs = state
         .registry
         .all()
         .iter()
         .map(|e| state.rig_info(e))
         .collect();
-    Accept::of(&headers).reply(StatusCode::OK, &RigList { rigs })
+    accept.reply(StatusCode::OK, &RigList { rigs })
 }
 
 pub async fn get_rig(
     State(state): State<AppState>,
     _ready: Ready,
     Path(id): Path<String>,
-    headers: HeaderMap,
+    accept: Accept,
 ) -> ApiResult {
-    Accept::of(&headers).reply(StatusCode::OK, &state.rig_info(&*state.rig(&id)?))
+    accept.reply(StatusCode::OK, &state.rig_info(&*state.rig(&id)?))
 }
 
 pub async fn delete_rig(
@@ -378,7 +374,6 @@ pub async fn delete_rig(
     _admin: Admin,
     _ready: Ready,
     Path(id): Path<String>,
-    _headers: HeaderMap,
 ) -> ApiResult {
     let _admin = state.admin.lock().await;
     let entry = state.rig(&id)?;
@@ -425,7 +420,7 @@ pub async fn get_mesh(
     _ready: Ready,
     Path(id): Path<String>,
     Query(query): Query<MeshQuery>,
-    headers: HeaderMap,
+    accept: Accept,
 ) -> ApiResult {
     let entry = state.rig(&id)?;
     let lod = query.lod.unwrap_or(0);
@@ -440,8 +435,8 @@ pub async fn get_mesh(
     // in base64 and digits): charged to the queue memory until it is encoded.
     let at = entry.prepared.at_level(lod).rig();
     let bytes = (at.vertex_count() * 24 + at.triangle_count() * 12) as u64;
-    let factor = if Accept::of(&headers).bincode { 2 } else { 4 };
+    let factor = if accept.bincode { 2 } else { 4 };
     let _held = state.queue_memory.reserve(bytes * factor)?;
     let mesh = blocking(move || Ok(entry.mesh(lod))).await?;
-    Accept::of(&headers).reply(StatusCode::OK, &mesh)
+    accept.reply(StatusCode::OK, &mesh)
 }
