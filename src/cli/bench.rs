@@ -10,7 +10,7 @@ use crowdmorph::engine::{BackendChoice, Engine};
 use crowdmorph::render::crowd::RenderBackend;
 use serde::Serialize;
 
-use super::{GpuMemoryArgs, WireFormat, load_rig, spinner};
+use super::{GpuMemoryArgs, WireFormat, load_rig, with_spinner};
 
 /// `crowdmorph bench ...`.
 #[derive(Subcommand)]
@@ -207,6 +207,11 @@ impl super::Report for bench::sessions::SessionBenchReport {}
 impl super::Report for crowdmorph::render::offline::RenderReport {}
 
 /// Runs one benchmark and prints its report.
+/// The rig file a benchmark server uploads (its glTF with every buffer embedded), if any.
+fn server_rig(rig: Option<&std::path::Path>) -> Result<Option<Vec<u8>>> {
+    rig.map(bench::server::self_contained_bytes).transpose()
+}
+
 pub fn run(which: Command) -> Result<()> {
     match which {
         Command::Cpu {
@@ -300,9 +305,9 @@ pub fn run(which: Command) -> Result<()> {
                 gpu_memory: gpu.max_gpu_memory,
                 ..crowdmorph::render::offline::RenderOptions::default()
             };
-            let bar = spinner("bench render");
-            let report = bench::render::bench_render(&engine, &rig, &opt, seconds, 5);
-            bar.finish_and_clear();
+            let report = with_spinner("bench render", || {
+                bench::render::bench_render(&engine, &rig, &opt, seconds, 5)
+            });
             super::emit(&report?, json)
         }
         Command::Sessions {
@@ -317,10 +322,7 @@ pub fn run(which: Command) -> Result<()> {
             gpu,
             json,
         } => {
-            let bytes = rig
-                .as_deref()
-                .map(bench::server::self_contained_bytes)
-                .transpose()?;
+            let bytes = server_rig(rig.as_deref())?;
             let opt = bench::sessions::SessionBenchOptions {
                 heads,
                 animations,
@@ -331,9 +333,9 @@ pub fn run(which: Command) -> Result<()> {
                 backend,
                 gpu_memory: gpu.max_gpu_memory,
             };
-            let bar = spinner("bench sessions");
-            let report = bench::sessions::bench_sessions(bytes, &opt);
-            bar.finish_and_clear();
+            let report = with_spinner("bench sessions", || {
+                bench::sessions::bench_sessions(bytes, &opt)
+            });
             super::emit(&report?, json)
         }
         Command::Http {
@@ -349,10 +351,7 @@ pub fn run(which: Command) -> Result<()> {
             gpu,
             json,
         } => {
-            let bytes = rig
-                .as_deref()
-                .map(bench::server::self_contained_bytes)
-                .transpose()?;
+            let bytes = server_rig(rig.as_deref())?;
             let opt = bench::http::HttpBenchOptions {
                 heads,
                 unique,
@@ -364,9 +363,10 @@ pub fn run(which: Command) -> Result<()> {
                 python_compute: python_peer_compute,
                 gpu_memory: gpu.max_gpu_memory,
             };
-            let bar = spinner("bench http: in-process, loopback, saturation, half load");
-            let report = bench::http::bench_http(bytes, &opt);
-            bar.finish_and_clear();
+            let report = with_spinner(
+                "bench http: in-process, loopback, saturation, half load",
+                || bench::http::bench_http(bytes, &opt),
+            );
             super::emit(&report?, json)
         }
     }

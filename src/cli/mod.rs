@@ -141,13 +141,16 @@ impl From<WireFormat> for crowdmorph_proto::Format {
     }
 }
 
-/// A spinner on standard error for work whose steps are not counted (hidden when standard
-/// error is not a terminal); finish it with `finish_and_clear` before printing the result.
-pub fn spinner(label: &str) -> indicatif::ProgressBar {
+/// Runs `work` under a spinner on standard error (hidden when standard error is not a
+/// terminal), for work whose steps are not counted; the spinner is cleared before the result
+/// is printed.
+pub fn with_spinner<T>(label: &str, work: impl FnOnce() -> T) -> T {
     let b = indicatif::ProgressBar::new_spinner();
     b.set_message(label.to_string());
     b.enable_steady_tick(std::time::Duration::from_millis(120));
-    b
+    let out = work();
+    b.finish_and_clear();
+    out
 }
 
 #[cfg(test)]
