@@ -541,10 +541,7 @@ async fn half_load(
         bodies.to_vec(),
         WireEncoding::Bincode,
     )?;
-    let mut lanes = Vec::with_capacity(opt.clients.max(1));
-    for _ in 0..opt.clients.max(1) {
-        lanes.push(target.lane().await?);
-    }
+    let lanes = target.lanes(opt.clients).await?;
     let live = Live::new(RunOptions {
         rate,
         duration: Duration::from_secs_f64(opt.seconds),

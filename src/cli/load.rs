@@ -13,7 +13,7 @@ use bytes::Bytes;
 use crowdmorph_proto::{CameraSpec, LodChoice, SessionHead, SessionInfo, ViewerHello};
 use serde::Serialize;
 
-use crowdmorph::load::http::{HttpLane, HttpTarget};
+use crowdmorph::load::http::HttpTarget;
 use crowdmorph::load::session::SessionLoad;
 use crowdmorph::load::{
     self, CrowdShape, Live, LoadReport, RampOptions, RampReport, RigClips, RunOptions, WireEncoding,
@@ -122,11 +122,7 @@ pub fn run(a: Args) -> Result<()> {
         } else {
             a.lods.into_iter().collect()
         },
-        format: match a.format {
-            WireFormat::F32 => crowdmorph_proto::Format::F32,
-            WireFormat::F16 => crowdmorph_proto::Format::F16,
-            WireFormat::Q16 => crowdmorph_proto::Format::Q16,
-        },
+        format: a.format.into(),
         normals: a.normals,
         encoding: match a.encoding {
             Encoding::Bincode => WireEncoding::Bincode,
@@ -310,10 +306,7 @@ async fn run_at(
     opts: RunOptions,
     progress: bool,
 ) -> Result<LoadReport> {
-    let mut lanes: Vec<HttpLane> = Vec::with_capacity(connections.max(1));
-    for _ in 0..connections.max(1) {
-        lanes.push(target.lane().await?);
-    }
+    let lanes = target.lanes(connections).await?;
     let rate = opts.rate;
     let live = Live::new(opts);
     let line = move |live: &Live| {

@@ -86,6 +86,15 @@ impl HttpTarget {
         Ok(sender)
     }
 
+    /// Opens `n` lanes (at least one), each its own connection.
+    pub async fn lanes(self: &Arc<Self>, n: usize) -> Result<Vec<HttpLane>, LoadError> {
+        let mut lanes = Vec::with_capacity(n.max(1));
+        for _ in 0..n.max(1) {
+            lanes.push(self.lane().await?);
+        }
+        Ok(lanes)
+    }
+
     /// Opens one lane (one connection, opened now so that a wrong address fails before the
     /// run starts).
     pub async fn lane(self: &Arc<Self>) -> Result<HttpLane, LoadError> {

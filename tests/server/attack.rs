@@ -93,8 +93,10 @@ async fn binary(tag: &str, env: &[(&str, &str)]) -> (Proc, Client) {
     (proc, client)
 }
 
+/// A sample's value; NaN when the page lacks it, so that no comparison passes on a series that
+/// is not exported.
 fn metric(page: &str, name: &str) -> f64 {
-    crowdmorph_client::metric(page, name).unwrap_or(0.0)
+    crowdmorph_client::metric(page, name).unwrap_or(f64::NAN)
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -159,12 +161,13 @@ async fn big_renders_in_flight_make_others_wait_with_a_503_not_a_504() {
         let c = server.client.clone();
         tokio::spawn(async move { post_json(&c, "/v1/crowd/render", &clones(2, 64, 48)).await })
     };
-    let mut served = 0;
+    let (mut served, mut busy) = (0, 0);
     for t in tasks.into_iter().chain([normal]) {
         let r = t.await.expect("join");
         match r.status {
             200 => served += 1,
             503 => {
+                busy += 1;
                 assert_eq!(error_code(&r), "render_busy");
                 assert!(
                     r.header("retry-after")
@@ -177,6 +180,10 @@ async fn big_renders_in_flight_make_others_wait_with_a_503_not_a_504() {
         }
     }
     assert!(served >= 1, "what fits is drawn");
+    assert!(
+        busy >= 1,
+        "renders that do not fit beside those in flight are refused with 503"
+    );
     // Once they are done, the normal render is served.
     let r = post_json(&server.client, "/v1/crowd/render", &clones(2, 64, 48)).await;
     assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
