@@ -60,13 +60,16 @@ impl LodJobs {
 
     /// Starts a job for rig `id`, cancelling the one it had.
     pub fn start(&self, id: &str, background: bool) -> Arc<LodJob> {
-        self.cancel(id);
         let job = Arc::new(LodJob {
             background,
             ..LodJob::default()
         });
-        if let Ok(mut m) = self.0.lock() {
-            m.insert(id.to_string(), job.clone());
+        // Replaced and cancelled under one lock: two starts at once cannot both miss the
+        // other and leave a build running that nothing can cancel.
+        if let Ok(mut m) = self.0.lock()
+            && let Some(old) = m.insert(id.to_string(), job.clone())
+        {
+            old.progress.cancel();
         }
         job
     }

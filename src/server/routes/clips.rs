@@ -337,7 +337,7 @@ pub async fn delete_clip(
         let new = Arc::new(new);
         let prepared = engine
             .update_clips(&base.prepared, new.clone())
-            .map_err(ApiError::internal)?;
+            .map_err(|e| prepare_error(e, "clip_too_large"))?;
         let qbox = quantization_box(&new);
         Ok((new, prepared, qbox))
     })

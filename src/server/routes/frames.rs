@@ -102,8 +102,8 @@ async fn frame(
     let accept = Accept::of(headers);
     let req = decode(state, headers, body).await?;
     let planned = plan(state, &req)?;
-    let admitted = admit(state, &req, planned, accept)?;
-    let outcome = compute(state, arrived, &req, &admitted, source).await?;
+    let mut admitted = admit(state, &req, planned, accept)?;
+    let outcome = compute(state, arrived, &req, &mut admitted, source).await?;
     state.metrics.served_to(source, req.heads.len() as u64);
     state.metrics.request_heads.observe(req.heads.len() as f64);
     state
@@ -222,7 +222,7 @@ async fn compute(
     state: &AppState,
     arrived: Instant,
     req: &CrowdFrameRequest,
-    admitted: &Admitted,
+    admitted: &mut Admitted,
     source: Source,
 ) -> Result<Outcome, ApiError> {
     state
@@ -236,7 +236,8 @@ async fn compute(
     let ticket = state
         .scheduler
         .submit_with(
-            admitted.jobs.clone(),
+            // Moved, not cloned: nothing reads the jobs after they are submitted.
+            std::mem::take(&mut admitted.jobs),
             req.output.format,
             req.output.normals,
             priority,

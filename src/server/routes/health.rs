@@ -1,21 +1,18 @@
 //! `/healthz` (the process answers), `/readyz` (stored rigs loaded; the engine and renderer),
-//! `/metrics` (Prometheus) and the JSON 404 of every other path.
+//! `/metrics` (OpenMetrics) and the JSON 404 of every other path.
 
 use axum::extract::State;
 use axum::http::{StatusCode, header};
 use axum::response::{IntoResponse, Response};
-use crowdmorph_proto::{CONTENT_TYPE_JSON, Readiness};
+use crowdmorph_proto::Readiness;
 
 use crate::server::http::ApiError;
+use crate::server::http::negotiate::json_text;
 use crate::server::metrics;
 use crate::server::state::AppState;
 
 pub async fn healthz() -> Response {
-    (
-        [(header::CONTENT_TYPE, CONTENT_TYPE_JSON)],
-        r#"{"status":"ok"}"#,
-    )
-        .into_response()
+    json_text(StatusCode::OK, r#"{"status":"ok"}"#)
 }
 
 pub async fn readyz(State(state): State<AppState>) -> Response {
@@ -41,8 +38,7 @@ pub async fn readyz(State(state): State<AppState>) -> Response {
     } else {
         StatusCode::SERVICE_UNAVAILABLE
     };
-    let json = serde_json::to_vec(&body).unwrap_or_default();
-    (code, [(header::CONTENT_TYPE, CONTENT_TYPE_JSON)], json).into_response()
+    json_text(code, serde_json::to_vec(&body).unwrap_or_default())
 }
 
 pub async fn metrics(State(state): State<AppState>) -> Response {

@@ -270,7 +270,7 @@ async fn apply(
         rig.lod = lod;
         rig.validate()
             .map_err(|e| ApiError::bad_request("invalid_lod", e.to_string()))?;
-        let (rig, prepared, _) = prepare_charged(&engine, &b, Arc::new(rig), gpu)?;
+        let (rig, prepared) = prepare_charged(&engine, &b, Arc::new(rig), gpu)?;
         Ok((rig, prepared))
     })
     .await?;

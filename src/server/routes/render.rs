@@ -39,9 +39,9 @@ use crate::server::admission::resolve::{heads_held_bytes, job_request};
 use crate::server::admission::{
     Charge, Decoded, Priced, RenderPermits, Renderee, ResolvedHeads, resolve_heads,
 };
-use crate::server::http::timing::Arrived;
+use crate::server::http::timing::{Arrived, ServerTiming};
 use crate::server::http::{
-    Accept, ApiError, ApiResult, Ready, SERVER_TIMING, blocking, chunked_body, ms,
+    Accept, ApiError, ApiResult, Ready, SERVER_TIMING, blocking, chunked_body,
 };
 use crate::server::registry::RigEntry;
 use crate::server::state::AppState;
@@ -211,7 +211,7 @@ struct Rendered {
     width: u32,
     height: u32,
     format: ImageFormat,
-    timing: String,
+    timing: Option<HeaderValue>,
     pixels: OwnedSemaphorePermit,
 }
 
@@ -230,7 +230,7 @@ impl Rendered {
         let headers = resp.headers_mut();
         headers.insert(IMAGE_WIDTH, HeaderValue::from(self.width));
         headers.insert(IMAGE_HEIGHT, HeaderValue::from(self.height));
-        if let Ok(v) = HeaderValue::from_str(&self.timing) {
+        if let Some(v) = self.timing {
             headers.insert(SERVER_TIMING, v);
         }
         resp
@@ -417,13 +417,12 @@ impl AppState {
         let (width, height) = (out.width, out.height);
         let bytes = encode::encode(out.rgba, width, height, job.image.format, job.image.quality)
             .map_err(ApiError::internal)?;
-        let timing = format!(
-            "compute;dur={}, render;dur={}, readback;dur={}, encode;dur={}",
-            ms(Duration::from_nanos(drawn.compute_ns)),
-            ms(Duration::from_nanos(out.render_ns)),
-            ms(Duration::from_nanos(out.readback_ns)),
-            ms(encoding.elapsed())
-        );
+        let timing = ServerTiming::default()
+            .with("compute", Duration::from_nanos(drawn.compute_ns))
+            .with("render", Duration::from_nanos(out.render_ns))
+            .with("readback", Duration::from_nanos(out.readback_ns))
+            .with("encode", encoding.elapsed())
+            .header();
         // The work is done; the pixels stay held until the image is sent.
         drop(job.permits.work);
         Ok(Rendered {
@@ -455,7 +454,13 @@ impl AppState {
         req: RenderRequest,
         cancel: Cancel,
     ) -> Result<(Vec<u8>, u32, u32, ImageFormat), ApiError> {
-        let job = self.admit_render(req, None, Renderee::Viewer, cancel)?;
+        // The heads and placements built for the viewer, and what admission builds from them,
+        // are charged as an HTTP render's are (503 when the queue memory is full now: the
+        // viewer's frame is dropped, not queued).
+        let held = self
+            .queue_memory
+            .reserve(req.price(Accept { bincode: true }))?;
+        let job = self.admit_render(req, Some(held), Renderee::Viewer, cancel)?;
         let s = self.clone();
         let r = blocking(move || s.run_render(job)).await?;
         Ok((r.bytes, r.width, r.height, r.format))

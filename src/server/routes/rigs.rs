@@ -157,12 +157,8 @@ pub fn import_error(e: ImportError) -> ApiError {
     }
 }
 
-/// A rig prepared for the engine, and the box its q16 output is quantized in.
-pub type Prepared = (
-    Arc<Rig>,
-    crate::engine::PreparedRig,
-    crowdmorph_proto::Quantization,
-);
+/// A rig and its preparation for the engine.
+pub type Prepared = (Arc<Rig>, crate::engine::PreparedRig);
 
 /// Prepares `rig` for the engine after charging what that adds (the CPU layout and, on a GPU,
 /// the upload's staging copies, or the stored record, whichever is larger) to `budget`.
@@ -201,8 +197,7 @@ pub fn prepare_charged(
     let prepared = engine
         .prepare(rig.clone())
         .map_err(|e| prepare_error(e, "rig_too_large"))?;
-    let qbox = quantization_box(&rig);
-    Ok((rig, prepared, qbox))
+    Ok((rig, prepared))
 }
 
 #[derive(serde::Deserialize)]
@@ -327,7 +322,14 @@ fn import_rig(
     bytes: Bytes,
     options: &ImportOptions,
     gpu: bool,
-) -> Result<Prepared, ApiError> {
+) -> Result<
+    (
+        Arc<Rig>,
+        crate::engine::PreparedRig,
+        crowdmorph_proto::Quantization,
+    ),
+    ApiError,
+> {
     let import = GltfImport::open(&bytes, options).map_err(import_error)?;
     let estimate = import.shape().cost(gpu);
     let need = budget.used() + import.import_bytes() + estimate.layout + estimate.transient;
@@ -347,7 +349,9 @@ fn import_rig(
     // gone before the engine's copies are made.
     drop(bytes);
     check_output_range(&rig).map_err(|m| ApiError::bad_request("invalid_rig", m))?;
-    prepare_charged(engine, budget, Arc::new(rig), gpu)
+    let (rig, prepared) = prepare_charged(engine, budget, Arc::new(rig), gpu)?;
+    let qbox = quantization_box(&rig);
+    Ok((rig, prepared, qbox))
 }
 
 pub async fn list_rigs(State(state): State<AppState>, _ready: Ready, accept: Accept) -> ApiResult {
@@ -432,11 +436,12 @@ pub async fn get_mesh(
         ));
     }
     // The response copies the level's positions, normals and indices (and JSON triples them
-    // in base64 and digits): charged to the queue memory until it is encoded.
+    // in base64 and digits): charged to the queue memory until it is sent.
     let at = entry.prepared.at_level(lod).rig();
     let bytes = (at.vertex_count() * 24 + at.triangle_count() * 12) as u64;
     let factor = if accept.bincode { 2 } else { 4 };
-    let _held = state.queue_memory.reserve(bytes * factor)?;
-    let mesh = blocking(move || Ok(entry.mesh(lod))).await?;
-    accept.reply(StatusCode::OK, &mesh)
+    let held = state.queue_memory.reserve(bytes * factor)?;
+    // Built and encoded off the runtime; the charge goes with the body until it is sent.
+    let response = blocking(move || accept.reply(StatusCode::OK, &entry.mesh(lod))).await?;
+    Ok(http::body::hold(response, held))
 }
