@@ -121,8 +121,12 @@ pub enum Command {
         /// random clip).
         #[arg(long)]
         rig: Option<PathBuf>,
-        /// Heads in the crowd, each a different frame.
-        #[arg(long, default_value_t = 100)]
+        /// Heads in the crowd, each a different frame (at most 100,000, as `render`).
+        #[arg(
+            long,
+            default_value_t = 100,
+            value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=100_000)
+        )]
         heads: usize,
         /// Image width, pixels.
         #[arg(long, default_value_t = 1280)]
@@ -206,12 +210,12 @@ impl super::Report for bench::http::HttpBenchReport {}
 impl super::Report for bench::sessions::SessionBenchReport {}
 impl super::Report for crowdmorph::render::offline::RenderReport {}
 
-/// Runs one benchmark and prints its report.
 /// The rig file a benchmark server uploads (its glTF with every buffer embedded), if any.
 fn server_rig(rig: Option<&std::path::Path>) -> Result<Option<Vec<u8>>> {
     rig.map(bench::server::self_contained_bytes).transpose()
 }
 
+/// Runs one benchmark and prints its report.
 pub fn run(which: Command) -> Result<()> {
     match which {
         Command::Cpu {

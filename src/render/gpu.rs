@@ -1433,7 +1433,6 @@ impl Renderer {
     }
 }
 
-/// The picture from the mapped staging buffer, without the rows' padding; unmaps it.
 /// A range of one draw's instances, drawn in one pass.
 #[derive(Clone, Debug, PartialEq, Eq)]
 struct Piece {
@@ -1483,6 +1482,7 @@ fn cut_passes(sizes: &[(u64, u32)], budget: u64) -> Vec<Vec<Piece>> {
     passes
 }
 
+/// The picture from the mapped staging buffer, without the rows' padding; unmaps it.
 fn strip_padding(targets: &Targets, frame: &Frame) -> Result<Vec<u8>, RenderError> {
     let width_bytes = frame.width as usize * 4;
     let mut rgba = Vec::with_capacity(width_bytes * frame.height as usize);

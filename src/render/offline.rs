@@ -214,7 +214,8 @@ pub fn build(
     opt: &RenderOptions,
 ) -> Result<Crowd> {
     encode::check_image(&opt.image, device.renderer.max_size())?;
-    let rig = &playable(rig, opt);
+    // One copy of the rig: the engine's preparation shares it.
+    let rig = Arc::new(playable(rig, opt));
     let clip = match &opt.clip {
         Some(c) => rig.clip_index(c).ok_or_else(|| OfflineError::UnknownClip {
             rig: rig.name.clone(),
@@ -252,7 +253,7 @@ pub fn build(
     let ids: Vec<u64> = (0..opt.heads as u64).collect();
     let aspect = opt.image.width as f32 / opt.image.height as f32;
     let layout = scene::layout(&boxes, &ids, None, None, aspect)?;
-    let prepared = engine.prepare(Arc::new(rig.clone()))?;
+    let prepared = engine.prepare(rig.clone())?;
     let groups = crowd::plan_groups(&plan, &layout.transforms, |k| prepared.mesh_of(k.lod));
     let topologies = groups
         .iter()
