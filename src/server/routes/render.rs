@@ -460,9 +460,12 @@ impl AppState {
         let held = self
             .queue_memory
             .reserve(req.price(Accept { bincode: true }))?;
-        let job = self.admit_render(req, Some(held), Renderee::Viewer, cancel)?;
         let s = self.clone();
-        let r = blocking(move || s.run_render(job)).await?;
+        let r = blocking(move || {
+            let job = s.admit_render(req, Some(held), Renderee::Viewer, cancel)?;
+            s.run_render(job)
+        })
+        .await?;
         Ok((r.bytes, r.width, r.height, r.format))
     }
 }
@@ -484,9 +487,14 @@ pub async fn crowd_render(
     // dropped), raises the cancellation and the drawing stops at its next stage.
     let (cancel, _guard) = Cancel::new(Some(Instant::now() + deadline));
     let (req, held) = req.into_parts();
-    let job = state.admit_render(req, Some(held), Renderee::Http, cancel)?;
     let s = state.clone();
-    let rendered = tokio::time::timeout(deadline, blocking(move || s.run_render(job)))
+    // Admission too runs on the blocking pool: it resolves every head and reads each rig's
+    // box, work that grows with the request and must not hold an async worker.
+    let draw = move || {
+        let job = s.admit_render(req, Some(held), Renderee::Http, cancel)?;
+        s.run_render(job)
+    };
+    let rendered = tokio::time::timeout(deadline, blocking(draw))
         .await
         .map_err(|_| {
             state.metrics.reject("deadline");
