@@ -135,6 +135,15 @@ pub(super) struct Proc {
     pub(super) log: std::sync::Arc<std::sync::Mutex<Vec<String>>>,
 }
 
+/// A failing assertion must not leave its server running (a test's 600 s render would spoil the
+/// CPU measurements of the tests after it): the process is killed and reaped when dropped.
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
 fn spawn(dir: &Path) -> Proc {
     spawn_with(dir, &[])
 }
