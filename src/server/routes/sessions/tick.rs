@@ -235,10 +235,10 @@ async fn tick_once(state: &AppState, session: &Arc<Session>, tick: u64) -> Ticke
     if grouped.groups.iter().all(|g| g.jobs.is_empty()) && grouped.plans.is_empty() {
         return Ticked::Delivered(0);
     }
-    let Some(submitted) = submit(state, &grouped.groups).await else {
+    let jobs: u64 = grouped.groups.iter().map(|g| g.jobs.len() as u64).sum();
+    let Some(submitted) = submit(state, &mut grouped.groups).await else {
         return Ticked::Skipped;
     };
-    let jobs: u64 = grouped.groups.iter().map(|g| g.jobs.len() as u64).sum();
     let tick_heads = TickHeads {
         tick,
         heads: &heads,
@@ -410,7 +410,7 @@ struct Submitted {
 /// Submit: the blended outputs charged to the queue memory, then one submission per group to
 /// the batcher (so session jobs coalesce with HTTP traffic), waited for within the request
 /// deadline. `None`: the tick is skipped (memory or queue full, a deadline, shutting down).
-async fn submit(state: &AppState, groups: &[Group]) -> Option<Submitted> {
+async fn submit(state: &AppState, groups: &mut [Group]) -> Option<Submitted> {
     let gpu = state.engine.gpu_memory().is_some();
     let out_bytes: u64 = groups
         .iter()
@@ -425,7 +425,11 @@ async fn submit(state: &AppState, groups: &[Group]) -> Option<Submitted> {
     let mut tickets = Vec::with_capacity(groups.len());
     for g in groups {
         state.metrics.jobs_requested.inc_by(g.jobs.len() as u64);
-        match state.scheduler.submit(g.jobs.clone(), g.format, g.normals) {
+        // Moved, not cloned: the fan-out reads the plans, not the jobs.
+        match state
+            .scheduler
+            .submit(std::mem::take(&mut g.jobs), g.format, g.normals)
+        {
             Ok(t) => tickets.push(t),
             Err(ScheduleError::QueueFull) => {
                 state.metrics.reject("queue_full");
