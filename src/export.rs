@@ -76,11 +76,7 @@ pub fn eval_with(
                 .join(", "),
         })?;
     let f = rig.clips[ci].resolve_frame(frame, mode)?;
-    let job = BlendJob {
-        clip: ci as u32,
-        frame: f,
-        lod,
-    };
+    let job = BlendJob::frame(ci as u32, f, lod);
     let kind = out
         .extension()
         .and_then(|e| e.to_str())

@@ -7,17 +7,29 @@
 
 use std::collections::HashMap;
 
-/// What makes two heads clones: same rig, clip, (resolved) frame and level of detail.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+use crate::rig::Pose;
+
+/// What makes two heads clones: same rig, pose (clip and resolved frame, or a canonical blend,
+/// or quantized live weights) and level of detail.
+#[derive(Clone, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct JobKey {
     /// Rig index in the caller's registry.
     pub rig: u32,
-    /// Clip index within the rig.
-    pub clip: u32,
-    /// Frame of the clip's table, already wrapped or clamped.
-    pub frame: u32,
+    /// The weights the job evaluates.
+    pub pose: Pose,
     /// LOD level.
     pub lod: u32,
+}
+
+impl JobKey {
+    /// A job playing frame `frame` of clip `clip`.
+    pub fn frame(rig: u32, clip: u32, frame: u32, lod: u32) -> JobKey {
+        JobKey {
+            rig,
+            pose: Pose::Frame { clip, frame },
+            lod,
+        }
+    }
 }
 
 /// Unique jobs and, for every head, which job computes it.
@@ -38,10 +50,14 @@ impl Plan {
         let mut plan = Plan::default();
         for key in heads {
             let next = plan.jobs.len() as u32;
-            let job = *index.entry(key).or_insert_with(|| {
-                plan.jobs.push(key);
-                next
-            });
+            let job = match index.get(&key) {
+                Some(&j) => j,
+                None => {
+                    plan.jobs.push(key.clone());
+                    index.insert(key, next);
+                    next
+                }
+            };
             plan.head_job.push(job);
         }
         plan
@@ -77,12 +93,7 @@ mod tests {
 
     #[test]
     fn clones_share_jobs_in_first_appearance_order() {
-        let k = |rig, frame| JobKey {
-            rig,
-            clip: 0,
-            frame,
-            lod: 0,
-        };
+        let k = |rig, frame| JobKey::frame(rig, 0, frame, 0);
         let plan = Plan::new([k(0, 1), k(1, 1), k(0, 1), k(0, 2), k(1, 1)]);
         assert_eq!(plan.jobs, vec![k(0, 1), k(1, 1), k(0, 2)]);
         assert_eq!(plan.head_job, vec![0, 1, 0, 2, 1]);

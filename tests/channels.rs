@@ -195,11 +195,7 @@ pub fn frames(engine: &Engine, rig: &Rig, clip: &str) -> Vec<Vec<f32>> {
         .prepare(Arc::new(rig.clone()))
         .expect("prepare the rig");
     let jobs: Vec<BlendJob> = (0..rig.clips[ci].frames)
-        .map(|f| BlendJob {
-            clip: ci as u32,
-            frame: f,
-            lod: 0,
-        })
+        .map(|f| BlendJob::frame(ci as u32, f, 0))
         .collect();
     let evaluation = engine
         .evaluate(&prepared, &jobs, OutputSpec::default())
@@ -457,11 +453,7 @@ fn lod_pins_by_name_take_every_channel_and_labels_name_one() {
     let out = engine
         .evaluate(
             &prepared,
-            &[BlendJob {
-                clip: 0,
-                frame: 5,
-                lod: 1,
-            }],
+            &[BlendJob::frame(0, 5, 1)],
             OutputSpec::default(),
         )
         .unwrap()
@@ -544,6 +536,7 @@ async fn the_server_frames_each_node_with_its_own_weights_and_says_which_names_s
                 clip: "talk".into(),
                 frame: f as i64,
                 lod: 0,
+                ..Default::default()
             })
             .collect(),
         output: OutputOptions {

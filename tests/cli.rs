@@ -167,11 +167,7 @@ fn eval_writes_obj_and_bin_files_of_the_frame_the_library_computes() {
     let rig = std::sync::Arc::new(crowdmorph::embedded::default_rig());
     let engine = Engine::cpu();
     let prepared = engine.prepare(rig.clone()).expect("prepare");
-    let job = BlendJob {
-        clip: rig.clip_index("talk").expect("talk") as u32,
-        frame: 12,
-        lod: 1,
-    };
+    let job = BlendJob::frame(rig.clip_index("talk").expect("talk") as u32, 12, 1);
     let want = engine
         .evaluate(&prepared, &[job], OutputSpec::default())
         .expect("evaluate")

@@ -347,11 +347,7 @@ fn frames(rig: &Rig) -> Vec<Vec<f32>> {
     let engine = Engine::cpu();
     let prepared = engine.prepare(Arc::new(rig.clone())).unwrap();
     let jobs: Vec<BlendJob> = (0..rig.clips[0].frames)
-        .map(|f| BlendJob {
-            clip: 0,
-            frame: f,
-            lod: 0,
-        })
+        .map(|f| BlendJob::frame(0, f, 0))
         .collect();
     let out = engine
         .evaluate(&prepared, &jobs, OutputSpec::default())

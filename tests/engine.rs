@@ -26,11 +26,11 @@ fn random_jobs(rig: &Rig, rng: &mut Rng, n: usize) -> Vec<BlendJob> {
     let mut jobs: Vec<BlendJob> = (0..n)
         .map(|_| {
             let clip = rng.below(rig.clips.len());
-            BlendJob {
-                clip: clip as u32,
-                frame: rng.below(rig.clips[clip].frames as usize) as u32,
-                lod: rng.below(rig.lod.levels.len()) as u32,
-            }
+            BlendJob::frame(
+                clip as u32,
+                rng.below(rig.clips[clip].frames as usize) as u32,
+                rng.below(rig.lod.levels.len()) as u32,
+            )
         })
         .collect();
     // Clones: the engine evaluates what it is given; repeated jobs must come out identical.
@@ -75,9 +75,8 @@ fn workload(rig: &Rig, seed: u64, n: usize) -> (Vec<(Vec<f64>, u32)>, WeightBatc
         let per_job = jobs
             .iter()
             .map(|j| {
-                let clip = &rig.clips[j.clip as usize];
                 let w = (0..rig.targets.len())
-                    .map(|t| clip.weight(t, j.frame) as f64)
+                    .map(|t| j.pose.weight(rig, t) as f64)
                     .collect();
                 (w, j.lod)
             })
@@ -350,11 +349,7 @@ fn output_buffers_are_reused_across_batches() {
     let rig = crowdmorph::embedded::default_rig();
     let cpu = CpuRig::new(&rig);
     let mut out = BlendOutput::default();
-    let job = |frame| BlendJob {
-        clip: 0,
-        frame,
-        lod: 0,
-    };
+    let job = |frame| BlendJob::frame(0, frame, 0);
     let big = WeightBatch::gather(&rig, &[job(1), job(2), job(3)]).expect("gather");
     cpu.evaluate_into(&big, OutputSpec::default(), &mut out)
         .expect("evaluate");

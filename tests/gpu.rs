@@ -13,20 +13,47 @@ use std::sync::Arc;
 use crowdmorph::engine::gpu::GpuOptions;
 use crowdmorph::engine::{BackendChoice, BackendKind, BlendJob, Engine, OutputSpec, Precision};
 use crowdmorph::import::{ImportOptions, load_path};
-use crowdmorph::rig::Rig;
+use crowdmorph::rig::{MAX_BLEND_LAYERS, Pose, Rig};
 
 use crate::util::{Rng, open_gpu, paper_scale_rig, rig_files, with_random_clip};
 
+/// `n` random jobs of `rig` and a quarter of them again (clones): plain clip frames, blends of
+/// up to five frames, and live weights (some negative, some past one), in about equal parts,
+/// so every parity test also holds the GPU's weight-space blend to the CPU's.
 fn random_jobs(rig: &Rig, seed: u64, n: usize) -> Vec<BlendJob> {
     let mut rng = Rng(seed);
+    let frame = |rng: &mut Rng| {
+        let clip = rng.below(rig.clips.len());
+        (
+            clip as u32,
+            rng.below(rig.clips[clip].frames as usize) as u32,
+        )
+    };
     let mut jobs: Vec<BlendJob> = (0..n)
-        .map(|_| {
-            let clip = rng.below(rig.clips.len());
-            BlendJob {
-                clip: clip as u32,
-                frame: rng.below(rig.clips[clip].frames as usize) as u32,
-                lod: rng.below(rig.lod.levels.len()) as u32,
-            }
+        .map(|i| {
+            let lod = rng.below(rig.lod.levels.len()) as u32;
+            let pose = match i % 3 {
+                0 => {
+                    let (clip, frame) = frame(&mut rng);
+                    Pose::Frame { clip, frame }
+                }
+                1 => {
+                    let layers: Vec<(u32, u32, f32)> = (0..1 + rng.below(MAX_BLEND_LAYERS))
+                        .map(|_| {
+                            let (c, f) = frame(&mut rng);
+                            (c, f, rng.unit() / MAX_BLEND_LAYERS as f32)
+                        })
+                        .collect();
+                    Pose::blend(frame(&mut rng), &layers)
+                }
+                _ => {
+                    let w: Vec<f32> = (0..rig.targets.len())
+                        .map(|_| rng.unit() * 2.0 - 0.5)
+                        .collect();
+                    Pose::live(&w)
+                }
+            };
+            BlendJob { pose, lod }
         })
         .collect();
     let clones = jobs[..n / 4].to_vec();

@@ -489,11 +489,11 @@ fn check_mesh_levels_on_the_gpu(rig: &Rig, fractions: &[f32]) {
         let jobs: Vec<BlendJob> = (0..12)
             .map(|k| {
                 let clip = rng.below(derived.clips.len());
-                BlendJob {
-                    clip: clip as u32,
-                    frame: rng.below(derived.clips[clip].frames as usize) as u32,
-                    lod: (k % derived.lod.levels.len()) as u32,
-                }
+                BlendJob::frame(
+                    clip as u32,
+                    rng.below(derived.clips[clip].frames as usize) as u32,
+                    (k % derived.lod.levels.len()) as u32,
+                )
             })
             .collect();
         let spec = OutputSpec {

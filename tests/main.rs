@@ -11,6 +11,7 @@
 
 mod util;
 
+mod animation;
 mod bad_input;
 mod channels;
 mod cli;

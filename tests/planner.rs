@@ -13,16 +13,13 @@ fn thousand_heads_over_ten_jobs_evaluate_ten_jobs_and_map_every_head() {
     let idle = rig.clip_index("idle").expect("idle clip") as u32;
     // Ten distinct (clip, frame, lod) keys, spread over 1,000 heads in a shuffled order.
     let keys: Vec<JobKey> = (0..10)
-        .map(|i| JobKey {
-            rig: 0,
-            clip: if i % 2 == 0 { talk } else { idle },
-            frame: 3 * i,
-            lod: i % 3,
-        })
+        .map(|i| JobKey::frame(0, if i % 2 == 0 { talk } else { idle }, 3 * i, i % 3))
         .collect();
     let mut rng = Rng(42);
-    let heads: Vec<JobKey> = (0..1000).map(|_| keys[rng.below(keys.len())]).collect();
-    let plan = Plan::new(heads.iter().copied());
+    let heads: Vec<JobKey> = (0..1000)
+        .map(|_| keys[rng.below(keys.len())].clone())
+        .collect();
+    let plan = Plan::new(heads.iter().cloned());
     assert_eq!(plan.jobs.len(), 10, "exactly the unique jobs");
     assert_eq!(plan.head_job.len(), 1000);
     for (h, key) in heads.iter().enumerate() {
@@ -44,15 +41,7 @@ fn thousand_heads_over_ten_jobs_evaluate_ten_jobs_and_map_every_head() {
     );
     // Each head's buffer is exactly what evaluating its own key alone gives.
     for (h, key) in heads.iter().enumerate().step_by(37) {
-        let alone = WeightBatch::gather(
-            &rig,
-            &[BlendJob {
-                clip: key.clip,
-                frame: key.frame,
-                lod: key.lod,
-            }],
-        )
-        .expect("gather");
+        let alone = WeightBatch::gather(&rig, &[BlendJob::from(key)]).expect("gather");
         let want = cpu
             .evaluate(&alone, OutputSpec::default())
             .expect("evaluate");
@@ -66,12 +55,7 @@ fn thousand_heads_over_ten_jobs_evaluate_ten_jobs_and_map_every_head() {
 
 #[test]
 fn jobs_group_by_rig_in_order_of_first_appearance() {
-    let k = |rig, frame| JobKey {
-        rig,
-        clip: 0,
-        frame,
-        lod: 0,
-    };
+    let k = |rig, frame| JobKey::frame(rig, 0, frame, 0);
     let plan = Plan::new([k(2, 0), k(0, 0), k(2, 1), k(2, 0), k(1, 5), k(0, 0)]);
     assert_eq!(plan.jobs.len(), 4);
     assert_eq!(

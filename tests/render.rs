@@ -76,11 +76,7 @@ fn evaluate(prepared: &PreparedRig, clip: &str, frame: u32) -> (Vec<f32>, Vec<f3
     let out = Engine::cpu()
         .evaluate(
             prepared,
-            &[BlendJob {
-                clip,
-                frame,
-                lod: 0,
-            }],
+            &[BlendJob::frame(clip, frame, 0)],
             OutputSpec {
                 normals: true,
                 precision: Precision::F32,
@@ -719,11 +715,7 @@ fn the_gpu_engine_outputs_are_drawn_where_they_are() {
     let talk = rig.clip_index("talk").expect("talk") as u32;
     let jobs: Vec<BlendJob> = [3u32, 17, 29]
         .iter()
-        .map(|&frame| BlendJob {
-            clip: talk,
-            frame,
-            lod: 0,
-        })
+        .map(|&frame| BlendJob::frame(talk, frame, 0))
         .collect();
     let (buffers, _) = engine
         .evaluate_for_render(&prepared, &jobs)
@@ -874,11 +866,7 @@ fn a_batch_whose_mapping_another_thread_collects_is_read_back_and_the_engine_sta
     let frames = rig.clips[talk].frames;
     // Enough jobs that the batch is still running when `submit` returns.
     let jobs: Vec<BlendJob> = (0..64)
-        .map(|j| BlendJob {
-            clip: talk as u32,
-            frame: j % frames,
-            lod: 0,
-        })
+        .map(|j| BlendJob::frame(talk as u32, j % frames, 0))
         .collect();
     let spec = OutputSpec {
         normals: true,

@@ -216,21 +216,161 @@ impl<'de> Deserialize<'de> for Blob {
     }
 }
 
-/// One head of a crowd: which rig plays which clip at which frame and level of detail.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+/// One head of a crowd: which rig plays which clip at which frame and level of detail,
+/// optionally blended with other clip frames, or driven by live weights instead of a clip.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Head {
     /// The client's id for this head; echoed in the response, never interpreted.
     pub head: u64,
     /// Rig id (as returned by `POST /v1/rigs`; the embedded rig is `default-head`).
     pub rig: String,
-    /// Clip name within the rig.
+    /// Clip name within the rig (empty, or absent in JSON, when `weights` drive the head).
+    #[serde(default)]
     pub clip: String,
     /// Frame number; past the end it wraps when the request's `wrap` is true.
+    #[serde(default)]
     pub frame: i64,
     /// Level of detail (0 = all shapes).
     #[serde(default)]
     pub lod: u32,
+    /// Up to four layers blended over the clip frame, in weight space:
+    /// `w = (1 − Σt)·clip[frame] + Σ tᵢ·clipᵢ[frameᵢ]`, each `t` in [0, 1], `Σt ≤ 1`.
+    #[serde(default)]
+    pub blend: Vec<BlendLayer>,
+    /// Live weights (a face tracker's or an Audio2Face-style service's), instead of a clip:
+    /// by name, or one per weight channel in the rig's order.
+    /// Boxed: a head without them stays small (the server reserves memory per body byte).
+    #[serde(default)]
+    pub weights: Option<Box<LiveWeights>>,
+}
+
+impl Head {
+    /// A head playing `frame` of `clip` at LOD 0, with no blend.
+    pub fn playing(head: u64, rig: &str, clip: &str, frame: i64) -> Head {
+        Head {
+            head,
+            rig: rig.into(),
+            clip: clip.into(),
+            frame,
+            ..Head::default()
+        }
+    }
+
+    /// A head driven by live weights.
+    pub fn live(head: u64, rig: &str, weights: LiveWeights) -> Head {
+        Head {
+            head,
+            rig: rig.into(),
+            weights: Some(Box::new(weights)),
+            ..Head::default()
+        }
+    }
+}
+
+/// One blend layer of a head: fraction `t` of frame `frame` of clip `clip` (same rig).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BlendLayer {
+    /// Clip name within the head's rig.
+    pub clip: String,
+    /// Frame, wrapped or clamped like the head's own.
+    #[serde(default)]
+    pub frame: i64,
+    /// Fraction in [0, 1].
+    pub t: f32,
+}
+
+/// Live weights of a head. In JSON an object (`{"jawOpen": 0.6}`: names matched as a CSV
+/// clip's columns are, ARKit's 52 names included, each driving every channel of its name;
+/// names not given are 0) or an array (one weight per name of [`RigInfo::targets`], in that
+/// order). In bincode an enum: variant 0 `Named(Vec<(String, f32)>)`, variant 1
+/// `Dense(Vec<f32>)`.
+#[derive(Clone, Debug, PartialEq)]
+pub enum LiveWeights {
+    /// Weights by target name, in the order given.
+    Named(Vec<(String, f32)>),
+    /// One weight per target name, in the order of [`RigInfo::targets`].
+    Dense(Vec<f32>),
+}
+
+impl LiveWeights {
+    /// How many weights it carries.
+    pub fn len(&self) -> usize {
+        match self {
+            LiveWeights::Named(v) => v.len(),
+            LiveWeights::Dense(v) => v.len(),
+        }
+    }
+
+    /// True when it carries none.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// The tagged form bincode uses (JSON uses an object or an array instead).
+#[derive(Serialize, Deserialize)]
+enum LiveWeightsTagged {
+    Named(Vec<(String, f32)>),
+    Dense(Vec<f32>),
+}
+
+impl Serialize for LiveWeights {
+    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        use serde::ser::SerializeMap;
+        match (self, s.is_human_readable()) {
+            (LiveWeights::Named(v), true) => {
+                let mut m = s.serialize_map(Some(v.len()))?;
+                for (k, w) in v {
+                    m.serialize_entry(k, w)?;
+                }
+                m.end()
+            }
+            (LiveWeights::Dense(v), true) => v.serialize(s),
+            (LiveWeights::Named(v), false) => {
+                s.serialize_newtype_variant("LiveWeights", 0, "Named", v)
+            }
+            (LiveWeights::Dense(v), false) => {
+                s.serialize_newtype_variant("LiveWeights", 1, "Dense", v)
+            }
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for LiveWeights {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<LiveWeights, D::Error> {
+        if !d.is_human_readable() {
+            return Ok(match LiveWeightsTagged::deserialize(d)? {
+                LiveWeightsTagged::Named(v) => LiveWeights::Named(v),
+                LiveWeightsTagged::Dense(v) => LiveWeights::Dense(v),
+            });
+        }
+        struct V;
+        impl<'de> Visitor<'de> for V {
+            type Value = LiveWeights;
+            fn expecting(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+                f.write_str("an object of weights by name, or an array of weights")
+            }
+            fn visit_map<A: de::MapAccess<'de>>(self, mut m: A) -> Result<LiveWeights, A::Error> {
+                // Capped while decoding too: the server charges the body before it decodes,
+                // and a weight is never larger in memory than three times its text.
+                let mut v = Vec::with_capacity(m.size_hint().unwrap_or(0).min(1024));
+                while let Some((k, w)) = m.next_entry::<String, f32>()? {
+                    v.push((k, w));
+                }
+                Ok(LiveWeights::Named(v))
+            }
+            fn visit_seq<A: SeqAccess<'de>>(self, mut q: A) -> Result<LiveWeights, A::Error> {
+                let mut v = Vec::with_capacity(q.size_hint().unwrap_or(0).min(1024));
+                while let Some(w) = q.next_element::<f32>()? {
+                    v.push(w);
+                }
+                Ok(LiveWeights::Dense(v))
+            }
+        }
+        d.deserialize_any(V)
+    }
 }
 
 /// What the buffers of a crowd frame contain.
@@ -250,7 +390,7 @@ fn yes() -> bool {
 }
 
 /// `POST /v1/crowd/frame` request.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct CrowdFrameRequest {
     /// The heads, in the order the response lists them.

@@ -36,6 +36,7 @@ fn request() -> CrowdFrameRequest {
                 clip: "talk".into(),
                 frame: 12,
                 lod: 0,
+                ..Default::default()
             },
             Head {
                 head: 300,
@@ -43,6 +44,7 @@ fn request() -> CrowdFrameRequest {
                 clip: "talk".into(),
                 frame: -1,
                 lod: 2,
+                ..Default::default()
             },
         ],
         output: OutputOptions {
@@ -79,6 +81,53 @@ fn response() -> CrowdFrameResponse {
             gpu_us: Some(5),
         },
     }
+}
+
+/// Heads with a blend layer, live weights by name and dense live weights.
+fn animated_request() -> CrowdFrameRequest {
+    CrowdFrameRequest {
+        heads: vec![
+            Head {
+                blend: vec![BlendLayer {
+                    clip: "smile".into(),
+                    frame: 3,
+                    t: 0.25,
+                }],
+                ..Head::playing(8, "default-head", "talk", 40)
+            },
+            Head::live(
+                9,
+                "default-head",
+                LiveWeights::Named(vec![("jawOpen".into(), 0.5), ("eyeBlinkLeft".into(), 1.0)]),
+            ),
+            Head::live(10, "default-head", LiveWeights::Dense(vec![0.0, 0.5])),
+        ],
+        output: OutputOptions::default(),
+        wrap: true,
+    }
+}
+
+#[test]
+fn animated_crowd_frame_request() {
+    let r = animated_request();
+    let bin = to_bincode(&r).unwrap();
+    check("crowd_frame_request_animated.bincode", &bin);
+    assert_eq!(request_from_bincode::<CrowdFrameRequest>(&bin).unwrap(), r);
+    let json = serde_json::to_vec(&r).unwrap();
+    check("crowd_frame_request_animated.json", &json);
+    assert_eq!(
+        serde_json::from_slice::<CrowdFrameRequest>(&json).unwrap(),
+        r
+    );
+    // Humans leave out what a head does not use.
+    let short: CrowdFrameRequest = serde_json::from_str(
+        r#"{"heads":[{"head":8,"rig":"default-head","clip":"talk","frame":40,
+            "blend":[{"clip":"smile","frame":3,"t":0.25}]},
+            {"head":9,"rig":"default-head","weights":{"jawOpen":0.5,"eyeBlinkLeft":1}},
+            {"head":10,"rig":"default-head","weights":[0,0.5]}]}"#,
+    )
+    .unwrap();
+    assert_eq!(short, r);
 }
 
 #[test]
@@ -334,6 +383,7 @@ fn render_request() -> RenderRequest {
                 clip: "talk".into(),
                 frame: 12,
                 lod: 0,
+                ..Default::default()
             },
             Head {
                 head: 2,
@@ -341,6 +391,7 @@ fn render_request() -> RenderRequest {
                 clip: "smile".into(),
                 frame: 40,
                 lod: 2,
+                ..Default::default()
             },
         ],
         wrap: true,

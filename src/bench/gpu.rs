@@ -102,12 +102,7 @@ fn measure(
 ) -> Result<SceneResult> {
     let rig = prepared.rig();
     // Heads play `unique` different frames; clones share them (the planner dedupes).
-    let keys = (0..heads).map(|h| JobKey {
-        rig: 0,
-        clip,
-        frame: (h % unique) as u32,
-        lod,
-    });
+    let keys = (0..heads).map(|h| JobKey::frame(0, clip, (h % unique) as u32, lod));
     let plan = Plan::new(keys);
     let jobs: Vec<BlendJob> = plan.jobs.iter().map(BlendJob::from).collect();
     let spec = OutputSpec::default();

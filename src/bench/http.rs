@@ -402,6 +402,7 @@ fn crowd(
                 clip: CLIP.to_string(),
                 frame: ((base + h % opt.unique) % CLIP_FRAMES) as i64,
                 lod: 0,
+                ..Default::default()
             })
             .collect(),
         output: OutputOptions { normals, format },
@@ -655,11 +656,13 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
             let mut out = crate::engine::BlendOutput::default();
             let mut one = |i: u64| -> Result<()> {
                 let base = i as usize * opt.unique;
-                let plan = Plan::new((0..opt.heads).map(|h| JobKey {
-                    rig: 0,
-                    clip: clip_index,
-                    frame: ((base + h % opt.unique) % CLIP_FRAMES) as u32,
-                    lod: 0,
+                let plan = Plan::new((0..opt.heads).map(|h| {
+                    JobKey::frame(
+                        0,
+                        clip_index,
+                        ((base + h % opt.unique) % CLIP_FRAMES) as u32,
+                        0,
+                    )
                 }));
                 let jobs: Vec<BlendJob> = plan.jobs.iter().map(BlendJob::from).collect();
                 // Warm output buffers, as the server's pool gives it.

@@ -553,10 +553,8 @@ impl Engine {
         let rig = rig.route(jobs)?;
         let state = match (self.gpu_active(), &rig.gpu) {
             (Some(ctx), Some(g)) => {
-                let gpu_jobs: Option<Vec<_>> =
-                    jobs.iter().map(|j| g.job(j.clip, j.frame, j.lod)).collect();
-                let gpu_jobs = gpu_jobs.ok_or(EngineError::NoSuchClip(u32::MAX))?;
-                match ctx.submit(g, &gpu_jobs, spec, readback) {
+                let (gpu_jobs, live) = gpu_records(&rig.rig, g, jobs)?;
+                match ctx.submit(g, &gpu_jobs, &live, spec, readback) {
                     Ok(p) => PendingState::Gpu(Box::new(p)),
                     Err(e @ GpuError::DoesNotFit(_)) => return Err(gpu_to_engine(e)),
                     // The device's memory budget is full now: this batch runs on the CPU,
@@ -662,11 +660,9 @@ impl Engine {
         };
         let target = rig.route(jobs)?;
         if let (Some(ctx), Some(g)) = (self.gpu_active(), &target.gpu) {
-            let gpu_jobs: Option<Vec<_>> =
-                jobs.iter().map(|j| g.job(j.clip, j.frame, j.lod)).collect();
-            let gpu_jobs = gpu_jobs.ok_or(EngineError::NoSuchClip(u32::MAX))?;
+            let (gpu_jobs, live) = gpu_records(&target.rig, g, jobs)?;
             match ctx
-                .submit(g, &gpu_jobs, spec, false)
+                .submit(g, &gpu_jobs, &live, spec, false)
                 .and_then(Pending::wait_resident)
             {
                 Ok((out, gpu_ns)) => {
@@ -698,4 +694,25 @@ impl Engine {
     ) -> Result<Evaluation, EngineError> {
         self.submit(rig, jobs, spec, true)?.wait()
     }
+}
+
+/// The GPU records of `jobs` and the live weights they point at, each job checked against the
+/// rig first so that a bad one is the same error on both engines.
+fn gpu_records(
+    rig: &Rig,
+    g: &GpuRig,
+    jobs: &[BlendJob],
+) -> Result<(Vec<crate::engine::gpu::layout::GpuJob>, Vec<f32>), EngineError> {
+    let mut live = Vec::new();
+    let mut records = Vec::with_capacity(jobs.len());
+    for job in jobs {
+        job.check(rig)?;
+        let record = g.job(job, &mut live).ok_or_else(|| {
+            EngineError::Mesh(format!(
+                "the GPU copy of the rig does not match job {job:?}"
+            ))
+        })?;
+        records.push(record);
+    }
+    Ok((records, live))
 }

@@ -22,35 +22,30 @@ pub use crowdmorph_proto::Quantization;
 use half::f16;
 use rayon::prelude::*;
 
-use crate::rig::{ACTIVE_WEIGHT_EPSILON, ClipError, LodError, Rig};
+use crate::rig::{ACTIVE_WEIGHT_EPSILON, LodError, Pose, PoseError, Rig};
 
-/// One unique job of a rig: which clip, which (resolved) frame, which LOD level.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+/// One unique job of a rig: which pose (a clip frame, a blend, live weights) at which LOD level.
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
 pub struct BlendJob {
-    /// Clip index within the rig.
-    pub clip: u32,
-    /// Frame within the clip's table (already wrapped or clamped).
-    pub frame: u32,
+    /// The weights to evaluate.
+    pub pose: Pose,
     /// LOD level.
     pub lod: u32,
 }
 
 impl BlendJob {
-    /// Checks the job against its rig (clip, frame and LOD level exist) and returns how many
-    /// shapes its LOD level evaluates.
-    pub fn check(&self, rig: &Rig) -> Result<u32, EngineError> {
-        let clip = rig
-            .clips
-            .get(self.clip as usize)
-            .ok_or(EngineError::NoSuchClip(self.clip))?;
-        if self.frame >= clip.frames {
-            return Err(ClipError::FrameOutOfRange {
-                clip: clip.name.clone(),
-                frame: i64::from(self.frame),
-                frames: clip.frames,
-            }
-            .into());
+    /// A job playing one frame of one clip.
+    pub fn frame(clip: u32, frame: u32, lod: u32) -> BlendJob {
+        BlendJob {
+            pose: Pose::Frame { clip, frame },
+            lod,
         }
+    }
+
+    /// Checks the job against its rig (clips, frames, live weights and LOD level exist) and
+    /// returns how many shapes its LOD level evaluates.
+    pub fn check(&self, rig: &Rig) -> Result<u32, EngineError> {
+        self.pose.check(rig)?;
         Ok(rig.lod.shapes_at(self.lod)?)
     }
 }
@@ -59,8 +54,7 @@ impl From<&crate::plan::JobKey> for BlendJob {
     /// The engine's view of a planned job (the rig is chosen by the caller).
     fn from(k: &crate::plan::JobKey) -> BlendJob {
         BlendJob {
-            clip: k.clip,
-            frame: k.frame,
+            pose: k.pose.clone(),
             lod: k.lod,
         }
     }
@@ -111,12 +105,9 @@ pub struct OutputSpec {
 /// Why an engine could not evaluate a batch.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum EngineError {
-    /// A job names a clip the rig does not have.
-    #[error("clip index {0} out of range")]
-    NoSuchClip(u32),
-    /// A job names a frame outside its clip.
+    /// A job's pose does not fit the rig (clip, frame or live weights).
     #[error(transparent)]
-    Frame(#[from] ClipError),
+    Pose(#[from] PoseError),
     /// A job names a LOD level the rig does not have.
     #[error(transparent)]
     Lod(#[from] LodError),
@@ -172,7 +163,8 @@ impl WeightBatch {
         &self.weights[j * self.slots..(j + 1) * self.slots]
     }
 
-    /// Gathers the weights of `jobs` from the rig's clip tables.
+    /// Gathers the weights of `jobs` from the rig's clip tables: a blend in weight space,
+    /// term by term (`Pose::weight`), as the GPU's `build_active` does.
     pub fn gather(rig: &Rig, jobs: &[BlendJob]) -> Result<WeightBatch, EngineError> {
         let slots = rig.targets.len();
         let mut batch = WeightBatch {
@@ -182,10 +174,21 @@ impl WeightBatch {
         };
         for (j, job) in jobs.iter().enumerate() {
             let shapes = job.check(rig)?;
-            let clip = &rig.clips[job.clip as usize];
             let row = &mut batch.weights[j * slots..(j + 1) * slots];
-            for (s, &t) in rig.lod.order.iter().enumerate().take(shapes as usize) {
-                row[s] = active(clip.weight(t as usize, job.frame));
+            let order = rig.lod.order.iter().enumerate().take(shapes as usize);
+            match &job.pose {
+                // The common case, kept a plain table read.
+                &Pose::Frame { clip, frame } => {
+                    let clip = &rig.clips[clip as usize];
+                    for (s, &t) in order {
+                        row[s] = active(clip.weight(t as usize, frame));
+                    }
+                }
+                pose => {
+                    for (s, &t) in order {
+                        row[s] = active(pose.weight(rig, t as usize));
+                    }
+                }
             }
             batch.shapes.push(shapes);
         }

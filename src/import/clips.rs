@@ -79,7 +79,7 @@ pub struct ClipImport {
 const METADATA_COLUMNS: &[&str] = &["timecode", "time", "timestamp", "frame", "blendshapecount"];
 
 /// Canonical spelling for loose matching: lower case, no separators, `left`/`right` → `l`/`r`.
-fn loose(name: &str) -> String {
+pub fn loose(name: &str) -> String {
     let mut s: String = name
         .chars()
         .filter(|c| c.is_alphanumeric())
@@ -120,8 +120,9 @@ pub fn match_targets(rig: &Rig, name: &str) -> Vec<TargetId> {
 
 /// A rig's targets by exact and by loose name, built once per clip source, so that each
 /// source name costs two hash probes rather than a scan (and a loose spelling) of every rig
-/// channel: what [`match_targets`] answers, for many names.
-struct Matcher<'r> {
+/// channel: what [`match_targets`] answers, for many names. The server resolves live weights
+/// by name with it, so that a weight is matched as a clip's column is.
+pub struct Matcher<'r> {
     exact: TargetIndex<'r>,
     /// Loose spelling → the one rig name with it (`None` when several names share it).
     loose: HashMap<String, Option<&'r str>>,
@@ -130,14 +131,14 @@ struct Matcher<'r> {
 impl<'r> Matcher<'r> {
     /// Bytes a matcher of `rig` holds at most: the exact index, and per name a loose spelling
     /// (at most the name's text) in a map allocated once for every name.
-    fn bytes(rig: &Rig) -> u64 {
+    pub fn bytes(rig: &Rig) -> u64 {
         let n = rig.targets.len();
         let text: u64 = rig.targets.iter().map(|t| t.len() as u64).sum();
         TargetIndex::bytes_for(n) + text + map_bytes(n, 24 + 16)
     }
 
     /// The matcher of `rig`; the caller has charged [`Matcher::bytes`].
-    fn new(rig: &'r Rig) -> Matcher<'r> {
+    pub fn new(rig: &'r Rig) -> Matcher<'r> {
         let exact = rig.target_index();
         // Sized once for every name at most, so it never grows (what `bytes` counts).
         let mut loose_names: HashMap<String, Option<&'r str>> =
@@ -156,7 +157,7 @@ impl<'r> Matcher<'r> {
 
     /// Every weight channel of the rig target `name` refers to: the same name, else the only
     /// one that matches loosely (empty: none).
-    fn ids(&self, name: &str) -> &[TargetId] {
+    pub fn ids(&self, name: &str) -> &[TargetId] {
         let exact = self.exact.ids(name);
         if !exact.is_empty() {
             return exact;

@@ -292,6 +292,7 @@ impl CrowdShape {
                             clip: clip.clone(),
                             frame: (i * unique + j) as i64,
                             lod: *lod,
+                            ..Default::default()
                         }
                     })
                     .collect(),
@@ -358,6 +359,7 @@ impl CrowdShape {
             lod: self.lods.keys().copied().max().unwrap_or(0),
             rig,
             clip,
+            ..Default::default()
         };
         let empty = CrowdFrameRequest {
             heads: Vec::new(),

@@ -376,12 +376,7 @@ mod tests {
     use super::*;
 
     fn key(rig: u32, frame: u32, lod: u32) -> JobKey {
-        JobKey {
-            rig,
-            clip: 0,
-            frame,
-            lod,
-        }
+        JobKey::frame(rig, 0, frame, lod)
     }
 
     #[test]
@@ -408,14 +403,7 @@ mod tests {
         assert_eq!((groups[1].rig, groups[1].mesh), (0, Some(0)));
         assert_eq!(groups[1].instances, vec![vec![t[2]]]);
         assert_eq!((groups[2].rig, groups[2].mesh), (1, None));
-        assert_eq!(
-            groups[2].jobs,
-            vec![BlendJob {
-                clip: 0,
-                frame: 5,
-                lod: 0
-            }]
-        );
+        assert_eq!(groups[2].jobs, vec![BlendJob::frame(0, 5, 0)]);
         let heads: usize = groups.iter().flat_map(|g| &g.instances).map(Vec::len).sum();
         assert_eq!(heads, 5, "every head is drawn once");
     }

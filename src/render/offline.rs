@@ -240,12 +240,12 @@ pub fn build(
     let keys = (0..opt.heads)
         .map(|i| {
             let frame = opt.frame + if opt.spread { i as i64 } else { 0 };
-            Ok(JobKey {
-                rig: 0,
-                clip: clip as u32,
-                frame: rig.clips[clip].resolve_frame(frame, FrameMode::Wrap)?,
-                lod: opt.lod,
-            })
+            Ok(JobKey::frame(
+                0,
+                clip as u32,
+                rig.clips[clip].resolve_frame(frame, FrameMode::Wrap)?,
+                opt.lod,
+            ))
         })
         .collect::<Result<Vec<_>>>()?;
     let plan = Plan::new(keys);

@@ -23,6 +23,7 @@ mod clip;
 mod cost;
 mod lod;
 mod mesh_level;
+mod pose;
 mod sample;
 
 pub use clip::{Clip, ClipError, ClipIndex, DEFAULT_FPS, FrameMode, MAX_FRAMES};
@@ -31,6 +32,10 @@ pub use lod::{
     IMPORT_LOD_METHOD, Lod, LodError, LodLevel, MeshLevel, MeshLevelPrimitive, default_lod_levels,
 };
 pub use mesh_level::mesh_level_rigs;
+pub use pose::{
+    LIVE_STEP, MAX_BLEND_LAYERS, MAX_LIVE_WEIGHT, MAX_TERMS, Pose, PoseError, T_ONE, Term,
+    quantize_live,
+};
 pub use sample::{Interpolation, KeyTrack, sample_track};
 
 use std::sync::Arc;

@@ -569,11 +569,7 @@ mod tests {
         for (ci, c) in rig.clips.iter().enumerate() {
             let jobs: Vec<_> = (0..c.frames)
                 .step_by(7)
-                .map(|f| crate::engine::BlendJob {
-                    clip: ci as u32,
-                    frame: f,
-                    lod: 0,
-                })
+                .map(|f| crate::engine::BlendJob::frame(ci as u32, f, 0))
                 .collect();
             let batch = crate::engine::WeightBatch::gather(&rig, &jobs).expect("batch");
             let out = cpu.evaluate(&batch, OutputSpec::default()).expect("eval");

@@ -6,8 +6,8 @@
 //! state — no locks — and talks to a single dedicated compute thread over channels, so the
 //! engine's synchronous, rayon-parallel `evaluate` never runs on a tokio worker.
 //!
-//! - A request is split into *slots*, one per unique job, keyed by rig generation, clip, frame,
-//!   LOD, wire format and normals. A job whose key is already queued or computing joins that
+//! - A request is split into *slots*, one per unique job, keyed by rig generation, pose (a
+//!   clip frame, a blend or live weights), LOD, wire format and normals. A job whose key is already queued or computing joins that
 //!   slot (it is *coalesced*); otherwise a new slot goes to the back of the pending queue.
 //! - When the engine is idle, pending work is dispatched at once: a lone request is never held
 //!   for a batch delay (as the best dynamic batchers do; the old timer-only rule made a
@@ -43,16 +43,15 @@ use super::metrics::Metrics;
 use super::pool::{Pool, Reusable};
 use super::registry::RigEntry;
 use crate::engine::{Begun, BlendJob, BlendOutput, Engine, OutputSpec, Precision, VertexData};
+use crate::rig::Pose;
 
 /// One unique job of a crowd request, resolved against a rig entry.
 #[derive(Clone, Debug)]
 pub struct JobRequest {
     /// The rig at the generation the request saw.
     pub entry: Arc<RigEntry>,
-    /// Clip index.
-    pub clip: u32,
-    /// Resolved frame.
-    pub frame: u32,
+    /// The weights to evaluate (a clip frame, a canonical blend, live weights).
+    pub pose: Pose,
     /// LOD level.
     pub lod: u32,
     /// Cost: vertices × (active shapes + 1).
@@ -234,11 +233,10 @@ impl Scheduler {
 type SlotId = u64;
 type ReqId = u64;
 
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
 struct SlotKey {
     generation: u64,
-    clip: u32,
-    frame: u32,
+    pose: Pose,
     lod: u32,
     format: Format,
     normals: bool,
@@ -316,14 +314,17 @@ impl BatchGroups {
         });
         let group = &mut groups[g];
         let job = BlendJob {
-            clip: slot.key.clip,
-            frame: slot.key.frame,
+            pose: slot.key.pose.clone(),
             lod: slot.key.lod,
         };
-        let j = *group.job_at.entry(job).or_insert_with(|| {
-            group.jobs.push(job);
-            group.jobs.len() - 1
-        });
+        let j = match group.job_at.get(&job) {
+            Some(&j) => j,
+            None => {
+                group.jobs.push(job.clone());
+                group.job_at.insert(job, group.jobs.len() - 1);
+                group.jobs.len() - 1
+            }
+        };
         group.slots.push((id, slot.key.format, j));
     }
 }
@@ -497,13 +498,12 @@ impl State {
         for (i, job) in sub.jobs.into_iter().enumerate() {
             let key = SlotKey {
                 generation: job.entry.generation,
-                clip: job.clip,
-                frame: job.frame,
+                pose: job.pose.clone(),
                 lod: job.lod,
                 format: sub.format,
                 normals: sub.normals,
             };
-            if !self.join(key, (req, i), sub.priority) {
+            if !self.join(&key, (req, i), sub.priority) {
                 self.queue_slot(key, job, (req, i), sub.priority, now);
             }
         }
@@ -525,8 +525,8 @@ impl State {
     /// Adds a waiter to the slot already queued or computing for `key` (a clone in this or
     /// another request); false when there is none. A client joining low-priority work moves it
     /// to the normal queue.
-    fn join(&mut self, key: SlotKey, waiter: (ReqId, usize), priority: Priority) -> bool {
-        let Some(&id) = self.index.get(&key) else {
+    fn join(&mut self, key: &SlotKey, waiter: (ReqId, usize), priority: Priority) -> bool {
+        let Some(&id) = self.index.get(key) else {
             return false;
         };
         let Some(slot) = self.slots.get_mut(&id) else {
@@ -566,7 +566,7 @@ impl State {
                 self.low.push_back(id);
             }
         }
-        self.index.insert(key, id);
+        self.index.insert(key.clone(), id);
         self.slots.insert(
             id,
             Slot {
@@ -1065,8 +1065,7 @@ mod tests {
                 .iter()
                 .map(|&frame| JobRequest {
                     entry: e.clone(),
-                    clip: 0,
-                    frame,
+                    pose: Pose::Frame { clip: 0, frame },
                     lod: 0,
                     cost: 1,
                 })
@@ -1086,7 +1085,14 @@ mod tests {
         let mut frames: Vec<u32> = batch
             .groups
             .iter()
-            .flat_map(|g| g.slots.iter().map(|&(id, _, _)| state.slots[&id].key.frame))
+            .flat_map(|g| {
+                g.slots
+                    .iter()
+                    .map(|&(id, _, _)| match state.slots[&id].key.pose {
+                        Pose::Frame { frame, .. } => frame,
+                        _ => u32::MAX,
+                    })
+            })
             .collect();
         frames.sort_unstable();
         Some((batch.id, frames))

@@ -35,6 +35,7 @@ fn crowd(rig_id: &str, rig: &Rig, format: Format, normals: bool) -> CrowdFrameRe
                     clip: c.name.clone(),
                     frame,
                     lod,
+                    ..Default::default()
                 });
             }
         }
@@ -299,6 +300,7 @@ async fn clips_upload_list_get_delete_and_report_unknown_targets() {
             clip: "capture".into(),
             frame: 1,
             lod: 0,
+            ..Default::default()
         }],
         output: OutputOptions::default(),
         wrap: false,
@@ -489,11 +491,7 @@ async fn frames_on_the_gpu_backend_match_the_cpu_engine() {
         for (h, head) in req.heads.iter().zip(&resp.heads) {
             let b = &resp.buffers[head.buffer as usize];
             let ci = rig.clip_index(&h.clip).expect("clip") as u32;
-            let job = crowdmorph::engine::BlendJob {
-                clip: ci,
-                frame: b.frame,
-                lod: h.lod,
-            };
+            let job = crowdmorph::engine::BlendJob::frame(ci, b.frame, h.lod);
             let want = cpu
                 .evaluate(
                     &prepared,
@@ -600,6 +598,7 @@ async fn gpu_batches_overlap_under_load_and_every_response_is_right() {
                     clip: "talk".into(),
                     frame: (r * 3 + k) % frames,
                     lod: (k % 2) as u32,
+                    ..Default::default()
                 })
                 .collect();
             tokio::spawn(async move {
@@ -627,11 +626,7 @@ async fn gpu_batches_overlap_under_load_and_every_response_is_right() {
             let want = cpu
                 .evaluate(
                     &prepared,
-                    &[crowdmorph::engine::BlendJob {
-                        clip: talk,
-                        frame: b.frame,
-                        lod: h.lod,
-                    }],
+                    &[crowdmorph::engine::BlendJob::frame(talk, b.frame, h.lod)],
                     crowdmorph::engine::OutputSpec::default(),
                 )
                 .expect("cpu");

@@ -17,6 +17,7 @@ fn head(rig: &str, clip: &str, frame: i64, lod: u32) -> Head {
         clip: clip.into(),
         frame,
         lod,
+        ..Default::default()
     }
 }
 

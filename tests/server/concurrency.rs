@@ -38,11 +38,7 @@ async fn two_hundred_clients_get_their_own_correct_frames_and_jobs_coalesce() {
     let cpu = CpuRig::new(&rig);
     let jobs: Vec<BlendJob> = pool
         .iter()
-        .map(|&(c, f, l)| BlendJob {
-            clip: c as u32,
-            frame: f,
-            lod: l,
-        })
+        .map(|&(c, f, l)| BlendJob::frame(c as u32, f, l))
         .collect();
     let out = cpu
         .evaluate(
@@ -94,6 +90,7 @@ async fn two_hundred_clients_get_their_own_correct_frames_and_jobs_coalesce() {
                                 0
                             },
                         lod: pool[p].2,
+                        ..Default::default()
                     })
                     .collect(),
                 output: OutputOptions {
@@ -172,6 +169,7 @@ async fn an_f32_and_a_q16_request_for_one_frame_share_a_batch_and_each_gets_its_
             clip: "talk".into(),
             frame: 17,
             lod: 0,
+            ..Default::default()
         }],
         output: OutputOptions {
             normals: false,

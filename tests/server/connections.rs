@@ -103,6 +103,7 @@ fn crowd_json(frame: i64) -> String {
             clip: "talk".into(),
             frame,
             lod: 0,
+            ..Default::default()
         }],
         output: OutputOptions {
             normals: false,

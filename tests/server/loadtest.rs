@@ -350,6 +350,7 @@ async fn client_requests_go_ahead_of_a_saturating_load_test() {
                 clip: "smile".into(),
                 frame: k,
                 lod: 0,
+                ..Default::default()
             }],
             output: OutputOptions {
                 normals: false,

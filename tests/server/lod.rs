@@ -52,6 +52,7 @@ async fn check_levels(server: &TestServer, id: &str, clip: &str, frame: u32) {
                 clip: clip.to_string(),
                 frame: i64::from(frame),
                 lod,
+                ..Default::default()
             })
             .collect(),
         output: OutputOptions {
@@ -79,11 +80,7 @@ async fn check_levels(server: &TestServer, id: &str, clip: &str, frame: u32) {
         let want = engine
             .evaluate(
                 &prepared,
-                &[BlendJob {
-                    clip: ci,
-                    frame,
-                    lod: lod as u32,
-                }],
+                &[BlendJob::frame(ci, frame, lod as u32)],
                 OutputSpec::default(),
             )
             .expect("evaluate");

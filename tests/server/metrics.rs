@@ -55,6 +55,7 @@ fn request(rig: &str) -> CrowdFrameRequest {
             clip: "talk".into(),
             frame: 3,
             lod: 0,
+            ..Default::default()
         }],
         output: OutputOptions {
             normals: false,

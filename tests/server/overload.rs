@@ -26,6 +26,7 @@ fn req(frames: &[i64]) -> CrowdFrameRequest {
                 clip: "talk".into(),
                 frame: f,
                 lod: 0,
+                ..Default::default()
             })
             .collect(),
         output: OutputOptions {
@@ -420,6 +421,7 @@ async fn a_rig_of_many_targets_and_few_vertices_is_charged_for_its_jobs_weights(
                 clip: "sweep".into(),
                 frame: f,
                 lod: 0,
+                ..Default::default()
             })
             .collect(),
         ..req(&[])
@@ -457,8 +459,8 @@ async fn a_mesh_larger_than_the_whole_queue_memory_is_413_not_all_of_it() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_crowds_heads_are_charged_until_its_response_is_sent() {
-    // 2,000 clones of one head need one 87 KB blend, but their decoded heads, names, plan
-    // and response entries (≈ 124 bytes each) stay alive until the response is sent: with
+    // 1,500 clones of one head need one 87 KB blend, but their decoded heads, names, plan
+    // and response entries (≈ 156 bytes each) stay alive until the response is sent: with
     // the blend they are more than 256 KiB of queue memory. They used to be charged only while
     // the body was decoded. 100 clones fit.
     let server = TestServer::start(ServerConfig {
@@ -467,7 +469,7 @@ async fn a_crowds_heads_are_charged_until_its_response_is_sent() {
     })
     .await;
     let clones = |n: usize| req(&vec![3; n]);
-    serves_then_refuses_as_too_large(&server, clones(100), clones(2_000)).await;
+    serves_then_refuses_as_too_large(&server, clones(100), clones(1_500)).await;
     assert!(
         eventually(|| server.state.gauges().queue_memory_bytes == 0).await,
         "everything given back"

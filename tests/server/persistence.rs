@@ -24,6 +24,7 @@ fn frames(heads: &[(&str, &str, i64)]) -> CrowdFrameRequest {
                 clip: clip.into(),
                 frame,
                 lod: 0,
+                ..Default::default()
             })
             .collect(),
         output: OutputOptions {

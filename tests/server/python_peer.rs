@@ -96,6 +96,7 @@ fn head(head: u64, rig: &str, clip: &str, frame: i64, lod: u32) -> Head {
         clip: clip.to_string(),
         frame,
         lod,
+        ..Default::default()
     }
 }
 

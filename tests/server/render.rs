@@ -43,6 +43,7 @@ fn head(id: u64, clip: &str, frame: i64, lod: u32) -> Head {
         clip: clip.into(),
         frame,
         lod,
+        ..Default::default()
     }
 }
 
@@ -548,6 +549,7 @@ async fn renders_racing_a_rig_delete_get_the_old_generation_or_404_never_500() {
                             clip: "wave".into(),
                             frame: i,
                             lod: 0,
+                            ..Default::default()
                         },
                         head(2, "talk", i, 0),
                     ],
@@ -604,6 +606,7 @@ async fn a_delete_and_another_poll_inside_the_race_window(server: &TestServer, g
                 clip: "wave".into(),
                 frame: 1,
                 lod: 0,
+                ..Default::default()
             },
             head(2, "talk", 1, 0),
         ],
@@ -1117,6 +1120,7 @@ async fn a_cached_topology_gives_way_to_a_rig_upload_and_the_next_render_uploads
                 clip: "wave".into(),
                 frame: 0,
                 lod: 0,
+                ..Default::default()
             }],
             96,
             64,
@@ -1221,6 +1225,7 @@ async fn a_renders_placements_are_charged_for_the_map_its_layout_builds() {
             clip: "talk".into(),
             frame: 3,
             lod: 0,
+            ..Default::default()
         }],
         image: Some(ImageOptions {
             width: 64,
@@ -1273,6 +1278,7 @@ async fn a_renders_heads_are_charged_until_its_frame_is_drawn() {
                 clip: "talk".into(),
                 frame: 3,
                 lod: 0,
+                ..Default::default()
             })
             .collect(),
         image: Some(ImageOptions {

@@ -236,6 +236,7 @@ async fn two_viewers_with_different_cameras_get_the_same_vertices_for_shared_job
                 clip: "talk".into(),
                 frame: frame(0),
                 lod: 0,
+                ..Default::default()
             },
             Head {
                 head: 5,
@@ -243,6 +244,7 @@ async fn two_viewers_with_different_cameras_get_the_same_vertices_for_shared_job
                 clip: "talk".into(),
                 frame: frame(3),
                 lod: 0,
+                ..Default::default()
             },
         ],
         output: OutputOptions {

@@ -23,6 +23,7 @@ from _util import f32, flat, norm_floats
 # Every bincode golden file and the message class it holds.
 GOLDEN = {
     "crowd_frame_request": messages.CrowdFrameRequest,
+    "crowd_frame_request_animated": messages.CrowdFrameRequest,
     "crowd_frame_response": messages.CrowdFrameResponse,
     "rig_info": messages.RigInfo,
     "rig_list": messages.RigList,
@@ -77,7 +78,7 @@ def test_the_worked_example_request_is_built_from_python_values():
         wrap=True,
     )
     raw = (PROTO_GOLDEN / "crowd_frame_request.bincode").read_bytes()
-    assert len(raw) == 48
+    assert len(raw) == 52
     assert wire.encode(req) == raw
 
 

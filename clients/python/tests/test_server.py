@@ -142,6 +142,32 @@ def test_heads_may_be_objects_dicts_or_tuples(client):
     assert list(frame.heads.buffer_indices) == [0, 0, 0, 0]
 
 
+def test_blends_and_live_weights(client):
+    """A blend's clones share a buffer whatever their layer order; live weights by name, by
+    ARKit spelling and dense agree; ``t = 1`` is the layer's frame."""
+    info = client.rig(RIG)
+    layers = [crowdmorph.BlendLayer("smile", 3, 0.25), {"clip": "surprise", "frame": 9, "t": 0.125}]
+    frame = client.crowd_frame(
+        [
+            crowdmorph.Head(1, RIG, "talk", 40, blend=layers),
+            {"head": 2, "rig": RIG, "clip": "talk", "frame": 40, "blend": list(reversed(layers))},
+            crowdmorph.Head(3, RIG, "talk", 40, blend=[("smile", 3, 1.0)]),
+            (4, RIG, "smile", 3),
+        ]
+    )
+    assert list(frame.heads.buffer_indices) == [0, 0, 1, 1]
+    dense = [0.6 if name == "jawOpen" else 0.0 for name in info.targets]
+    live = client.live_frame(RIG, [{"jawOpen": 0.6}, {"JawOpen": 0.6}, dense])
+    assert list(live.heads.buffer_indices) == [0, 0, 0]
+    one = client.live_frame(RIG, {"jawOpen": 0.6})
+    assert flat(one.positions(0)) == flat(live.positions(0))
+    neutral = client.live_frame(RIG, {})
+    assert flat(neutral.positions(0)) != flat(live.positions(0))
+    with pytest.raises(crowdmorph.BadRequest) as e:
+        client.live_frame(RIG, {"jawOpen": 0.5, "noSuchShape": 1.0})
+    assert e.value.code == "unknown_targets" and "noSuchShape" in e.value.message
+
+
 def test_a_large_crowd_round_trips(client):
     talk = client.clip(RIG, "talk")
     heads = [(i * 1000, RIG, "talk", i, 0) for i in range(5000)]

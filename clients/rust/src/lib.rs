@@ -400,6 +400,33 @@ impl Client {
         Ok((Self::decode(reply, enc)?, len))
     }
 
+    /// `POST /v1/crowd/frame` for faces driven by live weights (a face tracker's, an
+    /// Audio2Face-style service's): head `i` is `faces[i]`, by name or dense in the order of
+    /// `RigInfo::targets`, at LOD `lod`. Faces whose weights agree to 1/4096 share a buffer.
+    pub async fn live_frame(
+        &self,
+        rig: &str,
+        faces: Vec<crowdmorph_proto::LiveWeights>,
+        lod: u32,
+        output: crowdmorph_proto::OutputOptions,
+        enc: Encoding,
+    ) -> Result<(CrowdFrameResponse, usize), ClientError> {
+        let heads = faces
+            .into_iter()
+            .enumerate()
+            .map(|(i, w)| crowdmorph_proto::Head {
+                lod,
+                ..crowdmorph_proto::Head::live(i as u64, rig, w)
+            })
+            .collect();
+        let req = CrowdFrameRequest {
+            heads,
+            output,
+            wrap: true,
+        };
+        self.crowd_frame(&req, enc).await
+    }
+
     /// `POST /v1/crowd/render` with an encoded body: the reply whatever its status (an image
     /// with `x-image-width`, `x-image-height` and `Server-Timing`, or a JSON error).
     pub async fn render_raw(&self, body: Bytes, enc: Encoding) -> Result<Reply, ClientError> {

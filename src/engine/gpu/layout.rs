@@ -20,18 +20,38 @@ pub const JOBS_PER_GROUP: usize = 4;
 /// Floats per delta block: x, y, z for 64 vertices.
 pub const BLOCK_FLOATS: usize = 3 * TILE;
 
-/// One job as `build_active` reads it.
+/// One term of a job's pose as `build_active` reads it: `t ×` a clip table's frame.
 #[repr(C)]
-#[derive(Clone, Copy, Debug, Default, Pod, Zeroable, PartialEq, Eq)]
-pub struct GpuJob {
-    /// Offset of the job's clip table in the rig's table buffer.
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable, PartialEq)]
+pub struct GpuTerm {
+    /// Offset of the term's clip table in the rig's table buffer.
     pub table: u32,
     /// Frames of that clip.
     pub frames: u32,
     /// Frame to play.
     pub frame: u32,
+    /// Fraction of the term (1.0 for a plain frame; a multiple of 1/4096 in a blend).
+    pub t: f32,
+}
+
+/// `GpuJob::live` of a job without live weights.
+pub const NO_LIVE: u32 = u32::MAX;
+
+/// One job as `build_active` reads it: a clip frame is one term, a blend up to
+/// [`crate::rig::MAX_TERMS`], and live weights are a row of the batch's live buffer instead.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable, PartialEq)]
+pub struct GpuJob {
     /// Length of the job's LOD prefix.
     pub shapes: u32,
+    /// Terms in use.
+    pub terms: u32,
+    /// Index of the job's first weight in the live buffer, or [`NO_LIVE`].
+    pub live: u32,
+    /// Keeps `term` 16-byte aligned, as WGSL lays it out.
+    pub _pad: u32,
+    /// The pose's terms, summed in this order (the CPU's `Pose::weight` order).
+    pub term: [GpuTerm; crate::rig::MAX_TERMS],
 }
 
 /// Uniforms of `build_active`.
@@ -230,8 +250,11 @@ mod tests {
     #[test]
     fn uniform_structs_match_the_wgsl_layouts() {
         // Sizes and field offsets as the WGSL structs declare them (all u32, 16-byte multiples).
-        assert_eq!(size_of::<GpuJob>(), 16);
-        assert_eq!(std::mem::offset_of!(GpuJob, frame), 8);
+        assert_eq!(size_of::<GpuTerm>(), 16);
+        assert_eq!(std::mem::offset_of!(GpuTerm, t), 12);
+        assert_eq!(size_of::<GpuJob>(), 96);
+        assert_eq!(std::mem::offset_of!(GpuJob, live), 8);
+        assert_eq!(std::mem::offset_of!(GpuJob, term), 16);
         assert_eq!(size_of::<ActiveParams>(), 16);
         assert_eq!(size_of::<BlendParams>(), 32);
         assert_eq!(std::mem::offset_of!(BlendParams, normalize), 24);

@@ -35,13 +35,13 @@ use half::f16;
 pub use self::map::MapResults;
 
 use self::layout::{
-    ActiveParams, Attribute, BlendParams, GpuJob, JOBS_PER_GROUP, NormalParams, PackParams,
-    build_chunks,
+    ActiveParams, Attribute, BlendParams, GpuJob, GpuTerm, JOBS_PER_GROUP, NO_LIVE, NormalParams,
+    PackParams, build_chunks,
 };
 use super::cpu::NormalTopology;
-use super::{BlendOutput, OutputSpec, Precision, VertexData};
+use super::{BlendJob, BlendOutput, OutputSpec, Precision, VertexData};
 use crate::budget::{BudgetError, Charge, MemoryPool};
-use crate::rig::Rig;
+use crate::rig::{LIVE_STEP, Pose, Rig};
 
 /// Why the GPU engine could not do something.
 #[derive(Debug, thiserror::Error, Clone, PartialEq)]
@@ -823,16 +823,48 @@ impl GpuRig {
         self.positions.len()
     }
 
-    /// The job record for (clip, frame, LOD level); `None` if any is out of range.
-    pub fn job(&self, clip: u32, frame: u32, lod: u32) -> Option<GpuJob> {
-        let &(table, frames) = self.tables.clips.get(clip as usize)?;
-        let shapes = *self.lod_shapes.get(lod as usize)?;
-        (frame < frames).then_some(GpuJob {
-            table,
-            frames,
-            frame,
+    /// The job record for `job`; `None` if its clips, frames or LOD level are out of range.
+    /// Live weights are appended to `live` (one per channel, by target id) and the record
+    /// points at them.
+    pub fn job(&self, job: &BlendJob, live: &mut Vec<f32>) -> Option<GpuJob> {
+        let shapes = *self.lod_shapes.get(job.lod as usize)?;
+        let mut out = GpuJob {
             shapes,
-        })
+            live: NO_LIVE,
+            ..GpuJob::default()
+        };
+        let term = |clip: u32, frame: u32, t: f32| -> Option<GpuTerm> {
+            let &(table, frames) = self.tables.clips.get(clip as usize)?;
+            (frame < frames).then_some(GpuTerm {
+                table,
+                frames,
+                frame,
+                t,
+            })
+        };
+        match &job.pose {
+            &Pose::Frame { clip, frame } => {
+                out.terms = 1;
+                out.term[0] = term(clip, frame, 1.0)?;
+            }
+            Pose::Blend(terms) => {
+                if terms.len() > out.term.len() {
+                    return None;
+                }
+                out.terms = terms.len() as u32;
+                for (slot, t) in out.term.iter_mut().zip(terms.iter()) {
+                    *slot = term(t.clip, t.frame, t.fraction())?;
+                }
+            }
+            Pose::Live(w) => {
+                if w.len() != self.slots as usize {
+                    return None;
+                }
+                out.live = u32::try_from(live.len()).ok()?;
+                live.extend(w.iter().map(|&q| q as f32 * LIVE_STEP));
+            }
+        }
+        Some(out)
     }
 }
 
@@ -993,6 +1025,9 @@ struct Region {
     jobs: usize,
     positions: u64,
     normals: u64,
+    /// Byte offset and length of the live weights in the jobs buffer (the same for every
+    /// sub-batch).
+    live: (u64, u64),
 }
 
 /// A submitted batch whose results are not read yet.
@@ -1038,19 +1073,27 @@ impl DeviceOutput {
 }
 
 impl GpuContext {
-    /// Records and submits a batch of jobs of one rig. With `readback`, results are copied to
-    /// staging memory for [`Pending::wait`]; without, they stay on the device (for a renderer)
-    /// and `wait` returns only the timing.
+    /// Records and submits a batch of jobs of one rig (records from [`GpuRig::job`], with the
+    /// live weights it gathered). With `readback`, results are copied to staging memory for
+    /// [`Pending::wait`]; without, they stay on the device (for a renderer) and `wait` returns
+    /// only the timing.
     pub fn submit<'a>(
         &'a self,
         rig: &GpuRig,
         jobs: &[GpuJob],
+        live: &[f32],
         spec: OutputSpec,
         readback: bool,
     ) -> Result<Pending<'a>, GpuError> {
         self.health()?;
         let v = rig.vertices as u64;
         let n = jobs.len();
+        // The live weights follow the job records in the same buffer, at the first offset a
+        // storage binding may start at.
+        let live_at = ((n.max(1) * size_of::<GpuJob>()) as u64).next_multiple_of(u64::from(
+            self.device.limits().min_storage_buffer_offset_alignment,
+        ));
+        let live_bytes = (live.len().max(1) * 4) as u64;
         let per_job_out = v * 12;
         let tris = rig
             .topology
@@ -1087,6 +1130,7 @@ impl GpuContext {
                 jobs: count,
                 positions,
                 normals,
+                live: (live_at, live_bytes),
             });
         }
         if staging > self.max_buffer {
@@ -1100,7 +1144,7 @@ impl GpuContext {
         let output = widest * per_job_out;
         let f16 = spec.precision == Precision::F16;
         let needs = SlotNeeds {
-            jobs: (n.max(1) * size_of::<GpuJob>()) as u64,
+            jobs: live_at + live_bytes,
             active: widest / JOBS_PER_GROUP as u64 * u64::from(rig.slots.max(1)) * 4,
             output,
             normals: if spec.normals { output } else { 4 },
@@ -1176,6 +1220,10 @@ impl GpuContext {
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
         self.queue
             .write_buffer(&slot.jobs, 0, bytemuck::cast_slice(jobs));
+        if !live.is_empty() {
+            self.queue
+                .write_buffer(&slot.jobs, live_at, bytemuck::cast_slice(live));
+        }
         let mut encoder = self
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
@@ -1246,6 +1294,7 @@ impl GpuContext {
         spec: OutputSpec,
         k: u32,
     ) {
+        let (live_at, live_bytes) = r.live;
         let d = &self.device;
         let p = &self.pipelines;
         let jobs = r.jobs as u32;
@@ -1257,11 +1306,16 @@ impl GpuContext {
                 entries,
             })
         };
-        // The sub-batch's jobs start at byte r.job * 16 of the jobs buffer.
+        // The whole job list (the sub-batch starts at record `job_base`), then the live rows.
         let job_bytes = wgpu::BufferBinding {
             buffer: &slot.jobs,
             offset: 0,
-            size: None,
+            size: std::num::NonZeroU64::new(live_at),
+        };
+        let live_rows = wgpu::BufferBinding {
+            buffer: &slot.jobs,
+            offset: live_at,
+            size: std::num::NonZeroU64::new(live_bytes),
         };
         let active_params = self.uniform(&ActiveParams {
             jobs,
@@ -1283,6 +1337,10 @@ impl GpuContext {
                 entry(4, &slot.active_weights),
                 entry(5, &slot.active_slots),
                 entry(6, &slot.active_count),
+                wgpu::BindGroupEntry {
+                    binding: 7,
+                    resource: wgpu::BindingResource::Buffer(live_rows),
+                },
             ],
         });
         let blend_groups = |chunks: &[GpuChunk],

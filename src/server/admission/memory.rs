@@ -191,11 +191,12 @@ pub fn names_bytes(names: &Vec<String>) -> u64 {
 }
 
 /// Queue memory a request body of `declared` bytes reserves while it is read and decoded
-/// (bincode or JSON): the body and what it decodes to, a head taking 72 bytes decoded from at
-/// least 5 bytes of bincode or 40 of JSON. `POST /v1/loadtest` counts the same for each of its
+/// (bincode or JSON): the body and what it decodes to. A head takes 104 bytes decoded (up to
+/// twice that in a vector that grew by doubling, as past serde's cautious preallocation) from
+/// at least 7 bytes of bincode or 20 of JSON (`{"head":0,"rig":""},`). `POST /v1/loadtest` counts the same for each of its
 /// synthetic requests.
 pub fn decode_reservation(bincode: bool, declared: u64) -> u64 {
-    declared.saturating_mul(if bincode { 16 } else { 3 })
+    declared.saturating_mul(if bincode { 32 } else { 12 })
 }
 
 /// Reads and decodes a request body, charged: the body and what it decodes to are charged

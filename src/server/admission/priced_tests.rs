@@ -132,14 +132,38 @@ fn check<T: Serialize + DeserializeOwned + Priced>(what: &str, value: &T) -> Vec
     seen
 }
 
+/// Heads of every kind: plain, blended (every third), live by name (every fifth) and dense
+/// (every seventh).
 fn heads(n: usize) -> Vec<Head> {
+    use crowdmorph_proto::{BlendLayer, LiveWeights};
     (0..n)
-        .map(|i| Head {
-            head: i as u64,
-            rig: "default-head".into(),
-            clip: if i % 2 == 0 { "talk" } else { "blink" }.into(),
-            frame: i as i64,
-            lod: 0,
+        .map(|i| {
+            let mut h = Head {
+                head: i as u64,
+                rig: "default-head".into(),
+                clip: if i % 2 == 0 { "talk" } else { "blink" }.into(),
+                frame: i as i64,
+                lod: 0,
+                ..Default::default()
+            };
+            if i % 3 == 1 {
+                h.blend = vec![BlendLayer {
+                    clip: "smile".into(),
+                    frame: 2,
+                    t: 0.5,
+                }];
+            }
+            if i % 5 == 2 {
+                h.clip.clear();
+                h.weights = Some(Box::new(LiveWeights::Named(vec![
+                    ("jawOpen".into(), 0.5),
+                    ("eyeBlinkLeft".into(), 1.0),
+                ])));
+            } else if i % 7 == 3 {
+                h.clip.clear();
+                h.weights = Some(Box::new(LiveWeights::Dense(vec![0.25; 51])));
+            }
+            h
         })
         .collect()
 }

@@ -5,11 +5,15 @@
 use std::collections::HashMap;
 use std::sync::Arc;
 
-use crowdmorph_proto::{Format, Head};
+use crowdmorph_proto::{BlendLayer, Format, Head, LiveWeights};
 
+use crate::import::clips::loose;
 use crate::plan::{JobKey, Plan};
 use crate::rig::quoted_name;
-use crate::rig::{ACTIVE_WEIGHT_EPSILON, FrameMode, Rig};
+use crate::rig::{
+    ACTIVE_WEIGHT_EPSILON, FrameMode, MAX_BLEND_LAYERS, MAX_LIVE_WEIGHT, Pose, Rig, TargetId,
+};
+use crate::server::admission::memory::{Charge, QueueMemory};
 use crate::server::http::ApiError;
 use crate::server::registry::{MAX_F16, Registry, RigEntry};
 use crate::server::scheduler::JobRequest;
@@ -63,6 +67,9 @@ pub struct ResolvedHeads {
     pub rigs: Vec<Arc<RigEntry>>,
     /// Unique jobs and each head's job.
     pub plan: Plan,
+    /// What the live weights' poses hold (none without live heads), charged before they
+    /// were built; the request keeps it until it is answered.
+    pub charge: Option<Charge>,
 }
 
 /// Bytes one job's output holds while it is computed and sent: positions (and normals) in the
@@ -99,9 +106,28 @@ pub fn heads_held_bytes(heads: &Vec<Head>, built: u64) -> u64 {
     let slots = heads.capacity() as u64 * size_of::<Head>() as u64;
     let names: u64 = heads
         .iter()
-        .map(|h| h.rig.capacity() as u64 + h.clip.capacity() as u64)
+        .map(|h| h.rig.capacity() as u64 + h.clip.capacity() as u64 + animation_bytes(h))
         .sum();
     slots + heads.len() as u64 * built + names
+}
+
+/// Bytes a head's blend layers and live weights hold decoded (by capacity, with their names).
+fn animation_bytes(h: &Head) -> u64 {
+    let layers = h.blend.capacity() as u64 * size_of::<BlendLayer>() as u64
+        + h.blend
+            .iter()
+            .map(|l| l.clip.capacity() as u64)
+            .sum::<u64>();
+    let weights = match h.weights.as_deref() {
+        None => 0,
+        Some(LiveWeights::Dense(w)) => size_of::<LiveWeights>() as u64 + w.capacity() as u64 * 4,
+        Some(LiveWeights::Named(w)) => {
+            size_of::<LiveWeights>() as u64
+                + w.capacity() as u64 * size_of::<(String, f32)>() as u64
+                + w.iter().map(|(n, _)| n.capacity() as u64).sum::<u64>()
+        }
+    };
+    layers + weights
 }
 
 /// Resolves every head against one snapshot of each rig it names (a rig changed or
@@ -110,6 +136,7 @@ pub fn heads_held_bytes(heads: &Vec<Head>, built: u64) -> u64 {
 /// head by position and id.
 pub fn resolve_heads(
     registry: &Registry,
+    memory: &QueueMemory,
     max_heads: usize,
     heads: &[Head],
     mode: FrameMode,
@@ -127,9 +154,13 @@ pub fn resolve_heads(
     }
     let mut lookups = Lookups {
         registry,
+        memory,
         rigs: Vec::new(),
         rig_at: HashMap::new(),
         clip_at: HashMap::new(),
+        live: HashMap::new(),
+        charge: None,
+        row: Vec::new(),
     };
     let mut keys = Vec::with_capacity(n_heads);
     for (h, head) in heads.iter().enumerate() {
@@ -148,16 +179,9 @@ pub fn resolve_heads(
                 ),
             ));
         }
-        let ci = lookups.clip(h, head, ri)?;
-        let rig = lookups.rigs[ri as usize].rig();
-        let frame = rig.clips[ci as usize]
-            .resolve_frame(head.frame, mode)
-            .map_err(|e| {
-                ApiError::bad_request(
-                    "frame_out_of_range",
-                    format!("head {h} (id {}): {e}", head.head),
-                )
-            })?;
+        let pose = lookups.pose(h, head, ri, mode)?;
+        let entry = &lookups.rigs[ri as usize];
+        let rig = entry.rig();
         if head.lod as usize >= rig.lod.levels.len() {
             return Err(ApiError::bad_request(
                 "lod_out_of_range",
@@ -165,22 +189,22 @@ pub fn resolve_heads(
                     "head {h} (id {}): LOD {} out of range: rig {:?} has levels 0..{}",
                     head.head,
                     head.lod,
-                    lookups.rigs[ri as usize].id,
+                    entry.id,
                     rig.lod.levels.len() - 1
                 ),
             ));
         }
         keys.push(JobKey {
             rig: ri,
-            clip: ci,
-            frame,
+            pose,
             lod: head.lod,
         });
     }
-    let rigs = lookups.rigs;
+    let Lookups { rigs, charge, .. } = lookups;
     Ok(ResolvedHeads {
         rigs,
         plan: Plan::new(keys),
+        charge,
     })
 }
 
@@ -188,10 +212,69 @@ pub fn resolve_heads(
 /// names a handful.
 struct Lookups<'h> {
     registry: &'h Registry,
+    memory: &'h QueueMemory,
     /// One snapshot per distinct rig, in order of first mention.
     rigs: Vec<Arc<RigEntry>>,
     rig_at: HashMap<&'h str, u32>,
     clip_at: HashMap<(u32, &'h str), u32>,
+    /// Per rig with live heads, its name matcher (built once, charged).
+    live: HashMap<u32, LiveNames>,
+    /// What the live weights' poses and matchers hold, charged before they are built.
+    charge: Option<Charge>,
+    /// One head's channel weights, reused.
+    row: Vec<f32>,
+}
+
+/// A rig's names for live weights, owned (a request's lookups outlive no rig snapshot but
+/// borrow none): channels by exact name, else by the one name with that loose spelling, as
+/// `import::clips::Matcher` matches a clip's columns; and, for dense weights, by position in
+/// `RigInfo::targets`.
+struct LiveNames {
+    /// Per name, in `RigInfo::targets` order, its channels.
+    by_position: Vec<Vec<TargetId>>,
+    /// Exact name → index into `by_position`.
+    exact: HashMap<String, u32>,
+    /// Loose spelling → the one name with it (`None` when several share it).
+    loose: HashMap<String, Option<u32>>,
+}
+
+impl LiveNames {
+    /// Bytes [`LiveNames::new`] holds for `rig`, at most: per channel an id, per name a list,
+    /// two spellings of its text and two map entries.
+    fn bytes(rig: &Rig) -> u64 {
+        let n = rig.targets.len() as u64;
+        let text: u64 = rig.targets.iter().map(|t| t.len() as u64).sum();
+        n * (size_of::<Vec<TargetId>>() as u64 + 4 + 2 * 64) + 2 * text
+    }
+
+    fn new(rig: &Rig) -> LiveNames {
+        let names = rig.target_names();
+        let index = rig.target_index();
+        let mut exact = HashMap::with_capacity(names.len());
+        let mut loose_names: HashMap<String, Option<u32>> = HashMap::with_capacity(names.len());
+        let by_position = names.iter().map(|n| index.ids(n).to_vec()).collect();
+        for (i, name) in names.iter().enumerate() {
+            exact.insert((*name).to_string(), i as u32);
+            loose_names
+                .entry(loose(name))
+                .and_modify(|m| *m = None)
+                .or_insert(Some(i as u32));
+        }
+        LiveNames {
+            by_position,
+            exact,
+            loose: loose_names,
+        }
+    }
+
+    /// The channels the name refers to (empty: none, or several names loosely).
+    fn ids(&self, name: &str) -> &[TargetId] {
+        let found = match self.exact.get(name) {
+            Some(&i) => Some(i),
+            None => self.loose.get(&loose(name)).copied().flatten(),
+        };
+        found.map_or(&[], |i| &self.by_position[i as usize])
+    }
 }
 
 impl<'h> Lookups<'h> {
@@ -210,19 +293,219 @@ impl<'h> Lookups<'h> {
         Ok(i)
     }
 
-    /// The index of head `h`'s clip in rig `ri`, or 404 naming the head.
-    fn clip(&mut self, h: usize, head: &'h Head, ri: u32) -> Result<u32, ApiError> {
-        if let Some(&c) = self.clip_at.get(&(ri, head.clip.as_str())) {
+    /// The index of clip `name` in rig `ri`, or 404 naming head `h`.
+    fn clip(&mut self, h: usize, head: &Head, name: &'h str, ri: u32) -> Result<u32, ApiError> {
+        if let Some(&c) = self.clip_at.get(&(ri, name)) {
             return Ok(c);
         }
         let entry = &self.rigs[ri as usize];
         let c = entry
-            .clip_index(&head.clip)
-            .ok_or_else(|| at_head(h, head, unknown_clip(entry, &head.clip)))?
-            as u32;
-        self.clip_at.insert((ri, head.clip.as_str()), c);
+            .clip_index(name)
+            .ok_or_else(|| at_head(h, head, unknown_clip(entry, name)))? as u32;
+        self.clip_at.insert((ri, name), c);
         Ok(c)
     }
+
+    /// Frame `frame` of clip `ci` resolved by `mode`, or 400 naming head `h`.
+    fn frame(
+        &self,
+        h: usize,
+        head: &Head,
+        ri: u32,
+        ci: u32,
+        frame: i64,
+        mode: FrameMode,
+    ) -> Result<u32, ApiError> {
+        self.rigs[ri as usize].rig().clips[ci as usize]
+            .resolve_frame(frame, mode)
+            .map_err(|e| {
+                ApiError::bad_request(
+                    "frame_out_of_range",
+                    format!("head {h} (id {}): {e}", head.head),
+                )
+            })
+    }
+
+    /// Head `h`'s pose: its clip frame, blended with its layers, or its live weights.
+    fn pose(
+        &mut self,
+        h: usize,
+        head: &'h Head,
+        ri: u32,
+        mode: FrameMode,
+    ) -> Result<Pose, ApiError> {
+        if let Some(weights) = &head.weights {
+            if !head.clip.is_empty() || !head.blend.is_empty() {
+                return Err(invalid_weights(
+                    h,
+                    head,
+                    "weights drive the head instead of a clip: send weights, or clip and blend, \
+                     not both"
+                        .into(),
+                ));
+            }
+            return self.live_pose(h, head, ri, weights);
+        }
+        let ci = self.clip(h, head, &head.clip, ri)?;
+        let frame = self.frame(h, head, ri, ci, head.frame, mode)?;
+        if head.blend.is_empty() {
+            return Ok(Pose::Frame { clip: ci, frame });
+        }
+        if head.blend.len() > MAX_BLEND_LAYERS {
+            return Err(invalid_blend(
+                h,
+                head,
+                format!(
+                    "blend has {} layers; at most {MAX_BLEND_LAYERS}",
+                    head.blend.len()
+                ),
+            ));
+        }
+        let mut layers = [(0u32, 0u32, 0f32); MAX_BLEND_LAYERS];
+        let mut sum = 0f64;
+        for (i, layer) in head.blend.iter().enumerate() {
+            if !(layer.t.is_finite() && (0.0..=1.0).contains(&layer.t)) {
+                return Err(invalid_blend(
+                    h,
+                    head,
+                    format!("blend[{i}].t is {}; it must be in [0, 1]", layer.t),
+                ));
+            }
+            sum += f64::from(layer.t);
+            let c = self.clip(h, head, &layer.clip, ri)?;
+            let f = self.frame(h, head, ri, c, layer.frame, mode)?;
+            layers[i] = (c, f, layer.t);
+        }
+        if sum > 1.0 + 1e-6 {
+            return Err(invalid_blend(
+                h,
+                head,
+                format!("the blend's fractions sum to {sum}; Σt must be at most 1"),
+            ));
+        }
+        Ok(Pose::blend((ci, frame), &layers[..head.blend.len()]))
+    }
+
+    /// Head `h`'s live weights as a pose, its bytes charged before it is built.
+    fn live_pose(
+        &mut self,
+        h: usize,
+        head: &Head,
+        ri: u32,
+        weights: &LiveWeights,
+    ) -> Result<Pose, ApiError> {
+        let entry = self.rigs[ri as usize].clone();
+        let rig = entry.rig();
+        let channels = rig.targets.len();
+        let mut bytes = 16 + channels as u64 * 4;
+        if !self.live.contains_key(&ri) {
+            bytes += LiveNames::bytes(rig);
+        }
+        if self.row.capacity() < channels {
+            bytes += channels as u64 * 4;
+        }
+        let more = self.memory.reserve(bytes)?;
+        match &mut self.charge {
+            Some(c) => c.merge(more),
+            None => self.charge = Some(more),
+        }
+        let names = self.live.entry(ri).or_insert_with(|| LiveNames::new(rig));
+        // Channels not named keep the rig's default weight, as in a CSV clip.
+        self.row.clear();
+        self.row.extend_from_slice(&rig.default_weights);
+        let check = |what: &dyn std::fmt::Display, w: f32| -> Result<(), ApiError> {
+            if w.is_finite() && w.abs() <= MAX_LIVE_WEIGHT {
+                Ok(())
+            } else {
+                Err(invalid_weights(
+                    h,
+                    head,
+                    format!(
+                        "weights[{what}] is {w}; a weight must be finite, within ±{MAX_LIVE_WEIGHT}"
+                    ),
+                ))
+            }
+        };
+        match weights {
+            LiveWeights::Dense(w) => {
+                if w.len() != names.by_position.len() {
+                    return Err(invalid_weights(
+                        h,
+                        head,
+                        format!(
+                            "{} dense weights for rig {:?}, which has {} targets (RigInfo.targets)",
+                            w.len(),
+                            entry.id,
+                            names.by_position.len()
+                        ),
+                    ));
+                }
+                for (i, (&w, ids)) in w.iter().zip(&names.by_position).enumerate() {
+                    check(&i, w)?;
+                    for &id in ids {
+                        self.row[id as usize] = w;
+                    }
+                }
+            }
+            LiveWeights::Named(pairs) => {
+                if pairs.len() > names.by_position.len() {
+                    return Err(invalid_weights(
+                        h,
+                        head,
+                        format!(
+                            "{} named weights for rig {:?}, which has {} targets",
+                            pairs.len(),
+                            entry.id,
+                            names.by_position.len()
+                        ),
+                    ));
+                }
+                // Each channel once: a second weight for one name (or two spellings of it) is
+                // an error, not a silent override.
+                let mut seen = std::collections::HashSet::with_capacity(pairs.len());
+                for (name, w) in pairs {
+                    check(&quoted_name(name), *w)?;
+                    let ids = names.ids(name);
+                    if ids.is_empty() {
+                        return Err(at_head(
+                            h,
+                            head,
+                            ApiError::bad_request(
+                                "unknown_targets",
+                                format!(
+                                    "weights name {}, which rig {:?} does not have (GET /v1/rigs/{} lists its targets)",
+                                    quoted_name(name),
+                                    entry.id,
+                                    entry.id
+                                ),
+                            ),
+                        ));
+                    }
+                    if !seen.insert(ids[0]) {
+                        return Err(invalid_weights(
+                            h,
+                            head,
+                            format!("weights name the target of {} twice", quoted_name(name)),
+                        ));
+                    }
+                    for &id in ids {
+                        self.row[id as usize] = *w;
+                    }
+                }
+            }
+        }
+        Ok(Pose::live(&self.row))
+    }
+}
+
+/// 400 `invalid_blend` about head `h`.
+fn invalid_blend(h: usize, head: &Head, message: String) -> ApiError {
+    at_head(h, head, ApiError::bad_request("invalid_blend", message))
+}
+
+/// 400 `invalid_weights` about head `h`.
+fn invalid_weights(h: usize, head: &Head, message: String) -> ApiError {
+    at_head(h, head, ApiError::bad_request("invalid_weights", message))
 }
 
 /// `e` with its message prefixed by the head it is about.
@@ -234,20 +517,18 @@ fn at_head(h: usize, head: &Head, e: ApiError) -> ApiError {
 }
 
 /// One unique job for the batcher, with its cost: vertices × (active shapes + 1) at the job's
-/// frame and level of detail.
-pub fn job_request(entry: &Arc<RigEntry>, clip: u32, frame: u32, lod: u32) -> JobRequest {
+/// pose and level of detail.
+pub fn job_request(entry: &Arc<RigEntry>, pose: &Pose, lod: u32) -> JobRequest {
     let rig = entry.rig();
     let shapes = rig.lod.shapes_at(lod).unwrap_or(0) as usize;
-    let table = &rig.clips[clip as usize];
     let active = rig.lod.order[..shapes.min(rig.lod.order.len())]
         .iter()
-        .filter(|&&t| table.weight(t as usize, frame).abs() > ACTIVE_WEIGHT_EPSILON)
+        .filter(|&&t| pose.weight(rig, t as usize).abs() > ACTIVE_WEIGHT_EPSILON)
         .count() as u64;
     let v = entry.prepared.at_level(lod).rig().vertex_count() as u64;
     JobRequest {
         entry: entry.clone(),
-        clip,
-        frame,
+        pose: pose.clone(),
         lod,
         cost: v * (active + 1),
     }

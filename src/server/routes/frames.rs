@@ -131,6 +131,7 @@ fn plan(state: &AppState, req: &CrowdFrameRequest) -> Result<ResolvedHeads, ApiE
     };
     resolve_heads(
         &state.registry,
+        state.queue_memory(),
         state.config.max_heads,
         &req.heads,
         mode,
@@ -160,7 +161,7 @@ fn admit(
 ) -> Result<Admitted, ApiError> {
     let (format, normals) = (req.output.format, req.output.normals);
     let gpu = state.engine.gpu_memory().is_some();
-    let ResolvedHeads { rigs, plan } = &resolved;
+    let ResolvedHeads { rigs, plan, .. } = &resolved;
     let mut per_level: HashMap<(u32, u32), (u64, u32)> = HashMap::new();
     let mut out_bytes = 0u64;
     for k in &plan.jobs {
@@ -192,7 +193,7 @@ fn admit(
     let jobs: Vec<JobRequest> = plan
         .jobs
         .iter()
-        .map(|k| job_request(&rigs[k.rig as usize], k.clip, k.frame, k.lod))
+        .map(|k| job_request(&rigs[k.rig as usize], &k.pose, k.lod))
         .collect();
     Ok(Admitted {
         resolved,
@@ -277,12 +278,20 @@ async fn encode(
 ) -> ApiResult {
     let (req, held) = req.into_parts();
     let Admitted {
-        resolved: ResolvedHeads { rigs, plan },
+        resolved:
+            ResolvedHeads {
+                rigs,
+                plan,
+                charge: poses,
+            },
         per_level,
         mut charge,
         ..
     } = admitted;
     charge.merge(held);
+    if let Some(poses) = poses {
+        charge.merge(poses);
+    }
     let (format, normals) = (req.output.format, req.output.normals);
     let heads: Vec<HeadBuffer> = req
         .heads
@@ -306,10 +315,15 @@ async fn encode(
         .zip(&outcome.outputs)
         .map(|(k, out)| {
             let entry = &rigs[k.rig as usize];
+            // A blend names its largest term; live weights name no clip.
+            let (clip, frame) = match k.pose.shown() {
+                Some((c, f)) => (entry.rig().clips[c as usize].name.as_str(), f),
+                None => ("", 0),
+            };
             FrameBufferParts {
                 rig: &entry.id,
-                clip: &entry.rig().clips[k.clip as usize].name,
-                frame: k.frame,
+                clip,
+                frame,
                 lod: k.lod,
                 vertices: per_level.get(&(k.rig, k.lod)).map_or(0, |&(_, v)| v),
                 quantization: (format == Format::Q16).then_some(entry.qbox),

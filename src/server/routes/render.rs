@@ -96,7 +96,7 @@ impl AppState {
                 let rig = entry.prepared.at_level(k.lod).rig();
                 (rig.vertex_count() as u64, rig.triangle_count() as u64)
             });
-            let blend = job_request(entry, k.clip, k.frame, k.lod).cost;
+            let blend = job_request(entry, &k.pose, k.lod).cost;
             cost.add_job(blend, n, v, t);
         }
         let rates = Rates::new(
@@ -297,8 +297,13 @@ impl AppState {
         } else {
             FrameMode::Strict
         };
-        let ResolvedHeads { rigs, plan } = resolve_heads(
+        let ResolvedHeads {
+            rigs,
+            plan,
+            charge: poses,
+        } = resolve_heads(
             &self.registry,
+            &self.queue_memory,
             self.config.max_heads,
             &req.heads,
             mode,
@@ -323,6 +328,9 @@ impl AppState {
         let mut vertex_permit = self.queue_memory.reserve(vertex_bytes)?;
         if let Some(held) = held {
             vertex_permit.merge(held);
+        }
+        if let Some(poses) = poses {
+            vertex_permit.merge(poses);
         }
         let groups = crowd::plan_groups(&plan, &layout.transforms, |k| {
             rigs[k.rig as usize].prepared.mesh_of(k.lod)

@@ -38,6 +38,7 @@ from .errors import (
 )
 from .messages import (
     Aabb,
+    BlendLayer,
     CameraSpec,
     ClipInfo,
     ClipList,
@@ -121,6 +122,7 @@ __all__ = [
     "Tick",
     "StreamFrame",
     "Head",
+    "BlendLayer",
     "OutputOptions",
     "CrowdFrameRequest",
     "CrowdFrameResponse",

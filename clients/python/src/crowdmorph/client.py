@@ -589,6 +589,27 @@ class Client:
                 resp.status, "bad_response", str(e), request_id=resp.request_id
             ) from e
 
+    def live_frame(
+        self,
+        rig: str,
+        weights: Any,
+        *,
+        lod: int = 0,
+        format: str = "f32",
+        normals: bool = False,
+    ) -> Any:
+        """``POST /v1/crowd/frame`` for faces driven by live weights (a face tracker's, an
+        Audio2Face-style service's): ``weights`` is one face — a dict of weights by target
+        name (ARKit's names match loosely, e.g. ``eyeBlink_L``; names left out are 0) or a
+        sequence of one weight per ``RigInfo.targets`` name — or a list of such faces. Head
+        ``i`` is face ``i``; faces whose weights agree to 1/4096 share one buffer."""
+        one = isinstance(weights, Mapping) or (
+            isinstance(weights, Sequence) and all(isinstance(w, (int, float)) for w in weights)
+        )
+        faces = [weights] if one else list(weights)
+        heads = [Head(head=i, rig=rig, lod=lod, weights=f) for i, f in enumerate(faces)]
+        return self.crowd_frame(heads, format=format, normals=normals)
+
     def render(
         self,
         heads: Iterable[HeadLike],

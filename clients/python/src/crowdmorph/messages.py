@@ -48,6 +48,7 @@ __all__ = [
     "FORMATS",
     "IMAGE_FORMATS",
     "Head",
+    "BlendLayer",
     "OutputOptions",
     "CrowdFrameRequest",
     "Quantization",
@@ -104,17 +105,74 @@ IMAGE_FORMAT = Enum(*IMAGE_FORMATS)
 # Crowd frames.
 
 
-@wire(("head", U64), ("rig", STR), ("clip", STR), ("frame", I64), ("lod", U32))
+@wire(("clip", STR), ("frame", I64), ("t", F32))
+@dataclass
+class BlendLayer:
+    """One blend layer of a head: fraction ``t`` (0–1) of ``frame`` of ``clip``."""
+
+    clip: str
+    frame: int
+    t: float
+
+
+class _LiveWeights:
+    """``LiveWeights``: a dict of weights by target name (bincode variant 0, ``Vec<(String,
+    f32)>``) or a sequence of one weight per ``RigInfo.targets`` name (variant 1,
+    ``Vec<f32>``)."""
+
+    def read(self, r: Reader) -> Any:
+        at = r.pos
+        i = r.u32()
+        if i == 0:
+            return {r.string(): r.f32() for _ in range(r.length())}
+        if i == 1:
+            return [r.f32() for _ in range(r.length())]
+        raise DecodeError(f"variant {i} of LiveWeights does not exist", at)
+
+    def write(self, w: Writer, v: Any) -> None:
+        if isinstance(v, Mapping):
+            w.varint(0)
+            w.varint(len(v))
+            for name, x in v.items():
+                w.string(name)
+                w.f32(float(x))
+        else:
+            xs = list(v)
+            w.varint(1)
+            w.varint(len(xs))
+            for x in xs:
+                w.f32(float(x))
+
+
+LIVE_WEIGHTS = _LiveWeights()
+_BLEND = Vec(Msg(BlendLayer))
+_WEIGHTS = Opt(LIVE_WEIGHTS)
+
+
+@wire(
+    ("head", U64),
+    ("rig", STR),
+    ("clip", STR),
+    ("frame", I64),
+    ("lod", U32),
+    ("blend", _BLEND),
+    ("weights", _WEIGHTS),
+)
 @dataclass
 class Head:
     """One head of a crowd: the client's id (echoed), which rig plays which clip at which frame
-    (wrapping past the end when the request's ``wrap`` is true) and level of detail."""
+    (wrapping past the end when the request's ``wrap`` is true) and level of detail; optionally
+    up to four ``blend`` layers over that frame (weights = (1 − Σt)·clip[frame] + Σ tᵢ·layerᵢ),
+    or live ``weights`` instead of a clip (a dict by target name, or one per
+    ``RigInfo.targets`` name)."""
 
     head: int
     rig: str
-    clip: str
-    frame: int
+    clip: str = ""
+    frame: int = 0
     lod: int = 0
+    blend: List[BlendLayer] = field(default_factory=list)
+    weights: Optional[Union[Mapping[str, float], Sequence[float]]] = None
 
 
 @wire(("normals", BOOL), ("format", FORMAT))
@@ -144,8 +202,11 @@ class _HeadVec:
         # Rig and clip names repeat across a crowd: encode each once.
         names: dict = {}
         for h in items:
+            blend: Any = ()
+            weights: Any = None
             if type(h) is Head:
                 hid, rig, clip, frame, lod = h.head, h.rig, h.clip, h.frame, h.lod
+                blend, weights = h.blend, h.weights
             elif isinstance(h, (tuple, list)):
                 if len(h) == 4:
                     hid, rig, clip, frame = h
@@ -153,10 +214,12 @@ class _HeadVec:
                 else:
                     hid, rig, clip, frame, lod = h
             elif isinstance(h, Mapping):
-                hid, rig, clip, frame = h["head"], h["rig"], h["clip"], h["frame"]
-                lod = h.get("lod", 0)
+                hid, rig = h["head"], h["rig"]
+                clip, frame, lod = h.get("clip", ""), h.get("frame", 0), h.get("lod", 0)
+                blend, weights = h.get("blend", ()), h.get("weights")
             elif isinstance(h, Head):
                 hid, rig, clip, frame, lod = h.head, h.rig, h.clip, h.frame, h.lod
+                blend, weights = h.blend, h.weights
             else:
                 raise TypeError(
                     "a head is a Head, a dict or a (head, rig, clip, frame[, lod]) tuple, "
@@ -193,6 +256,21 @@ class _HeadVec:
                 out.append(lod)
             else:
                 w.u32(operator.index(lod))
+            if not blend and weights is None:
+                out += b"\x00\x00"
+            else:
+                _BLEND.write(w, [_of_layer(b) for b in blend])
+                _WEIGHTS.write(w, weights)
+
+
+def _of_layer(b: Any) -> BlendLayer:
+    """A blend layer from a :class:`BlendLayer`, a dict or a ``(clip, frame, t)`` tuple."""
+    if isinstance(b, BlendLayer):
+        return b
+    if isinstance(b, Mapping):
+        return BlendLayer(b["clip"], b.get("frame", 0), b["t"])
+    clip, frame, t = b
+    return BlendLayer(clip, frame, t)
 
 
 HEADS = _HeadVec()

@@ -17,7 +17,7 @@ use glam::Vec3;
 use tokio::time::Instant;
 
 use crate::codec::{FrameBufferParts, FrameResponseEncoder};
-use crate::rig::FrameMode;
+use crate::rig::{FrameMode, Pose};
 use crate::server::admission::resolve::{head_reach, job_output_bytes, job_request};
 use crate::server::registry::{MAX_F16, RigEntry};
 use crate::server::scheduler::{JobRequest, ScheduleError};
@@ -390,8 +390,10 @@ impl Group {
                     self.keys.push(key);
                     self.jobs.push(job_request(
                         &resolved.rigs[a.rig as usize],
-                        a.clip,
-                        a.frame,
+                        &Pose::Frame {
+                            clip: a.clip,
+                            frame: a.frame,
+                        },
                         lod,
                     ));
                     (self.jobs.len() - 1) as u32
@@ -742,6 +744,7 @@ fn frame_request(heads: &[SessionHead], resolved: &Resolved, s: &ViewerSettings)
             clip: entry.rig().clips[a.clip as usize].name.clone(),
             frame: i64::from(a.frame),
             lod,
+            ..Default::default()
         });
         placements.push(super::placement(h));
     }

@@ -1,0 +1,282 @@
+//! What a job plays: one frame of a clip, a blend of clip frames, or live weights.
+//!
+//! GPU Gems 3 ch. 15 blends animation in weight space: blending the weights of two frames before
+//! the shapes are summed is the same as blending the two meshes, because Eq. 1 is linear in the
+//! weights. A [`Pose`] is that weight vector, described compactly enough to be a dedupe key:
+//!
+//! - [`Pose::Frame`]: one frame of one clip (what a head played before blends existed);
+//! - [`Pose::Blend`]: up to [`MAX_TERMS`] clip frames with fractions that sum to one, kept in
+//!   a canonical form (fractions quantized to multiples of `1/T_ONE`, terms sorted by clip and
+//!   frame, equal terms merged, zero terms dropped), so that two heads asking for the same blend
+//!   in a different order, or with float noise in their fractions, share one job;
+//! - [`Pose::Live`]: a dense weight per rig channel, quantized to multiples of
+//!   [`LIVE_STEP`], as a face tracker or an Audio2Face-style service sends them.
+//!
+//! **Quantization error.** A fraction moves by at most `1/(2·T_ONE)` = 2^-13 when it is
+//! quantized (plus at most 2^-12 on the largest layer when rounding pushed the sum past one),
+//! so a blended weight moves by at most 2^-12 × the largest difference between its layers'
+//! weights, and a vertex by at most that times `Σ_k ‖Δ_k‖` over the shapes whose weights differ.
+//! A live weight moves by at most `LIVE_STEP / 2` = 2^-13. For ARKit-range weights (0–1) on
+//! the embedded head that is below 1e-4 of the head's diagonal; documented in
+//! `proto/README.md` ("Blends and live weights").
+
+use std::sync::Arc;
+
+use super::{ClipError, Rig};
+
+/// Blend fractions are multiples of `1 / T_ONE`.
+pub const T_ONE: u32 = 4096;
+
+/// Live weights are multiples of this (2^-12).
+pub const LIVE_STEP: f32 = 1.0 / 4096.0;
+
+/// Largest magnitude of a live weight: far past any rig's useful range (ARKit weights are 0–1),
+/// small enough that a quantized weight fits an `i32` with room to spare.
+pub const MAX_LIVE_WEIGHT: f32 = 64.0;
+
+/// Blend layers a head may add to its own clip frame.
+pub const MAX_BLEND_LAYERS: usize = 4;
+
+/// Terms of a blend: the head's frame and its layers.
+pub const MAX_TERMS: usize = MAX_BLEND_LAYERS + 1;
+
+/// One term of a blend: `t / T_ONE` of a clip's frame.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct Term {
+    /// Clip index within the rig.
+    pub clip: u32,
+    /// Frame of that clip (already wrapped or clamped).
+    pub frame: u32,
+    /// Fraction, in units of `1 / T_ONE` (1..=T_ONE).
+    pub t: u32,
+}
+
+impl Term {
+    /// The term's fraction as an `f32` (exact: `T_ONE` is a power of two).
+    pub fn fraction(&self) -> f32 {
+        self.t as f32 / T_ONE as f32
+    }
+}
+
+/// The weights a job evaluates, before its level of detail cuts them.
+#[derive(Clone, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Pose {
+    /// One frame of one clip.
+    Frame {
+        /// Clip index within the rig.
+        clip: u32,
+        /// Frame of that clip (already wrapped or clamped).
+        frame: u32,
+    },
+    /// Two to [`MAX_TERMS`] clip frames, canonical (see the module doc); fractions sum to
+    /// `T_ONE`.
+    Blend(Arc<[Term]>),
+    /// One quantized weight per rig channel (`w = q × LIVE_STEP`).
+    Live(Arc<[i32]>),
+}
+
+/// Why a pose does not fit its rig.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum PoseError {
+    /// A term names a clip the rig does not have.
+    #[error("clip index {0} out of range")]
+    NoSuchClip(u32),
+    /// A term names a frame outside its clip.
+    #[error(transparent)]
+    Frame(#[from] ClipError),
+    /// Live weights of the wrong length.
+    #[error("{got} live weights for a rig of {want} channels")]
+    LiveLength {
+        /// Weights given.
+        got: usize,
+        /// Channels of the rig.
+        want: usize,
+    },
+    /// A blend that is not in canonical form (built by hand, not by [`Pose::blend`]).
+    #[error("blend terms are not canonical")]
+    NotCanonical,
+}
+
+impl Pose {
+    /// The canonical pose of `terms` (clip, frame, fraction in `[0, 1]`), whose fractions must
+    /// sum to at most one (callers check, and say which field is wrong): the first term's
+    /// fraction is raised so that they sum to exactly one. Quantized, sorted, merged; a blend
+    /// of one frame with itself, or whose other fractions are all zero, is that
+    /// [`Pose::Frame`].
+    pub fn blend(base: (u32, u32), layers: &[(u32, u32, f32)]) -> Pose {
+        let mut terms: Vec<Term> = Vec::with_capacity(layers.len() + 1);
+        let mut sum = 0u32;
+        for &(clip, frame, t) in layers {
+            let t = (f64::from(t.clamp(0.0, 1.0)) * f64::from(T_ONE)).round() as u32;
+            sum += t;
+            terms.push(Term { clip, frame, t });
+        }
+        // Rounding may push the layers a step or two past one: take it from the largest.
+        if sum > T_ONE {
+            let excess = sum - T_ONE;
+            if let Some(big) = terms.iter_mut().max_by_key(|t| t.t) {
+                big.t -= excess.min(big.t);
+            }
+            sum = T_ONE;
+        }
+        terms.push(Term {
+            clip: base.0,
+            frame: base.1,
+            t: T_ONE - sum,
+        });
+        terms.retain(|t| t.t > 0);
+        terms.sort_unstable_by_key(|t| (t.clip, t.frame));
+        let mut merged: Vec<Term> = Vec::with_capacity(terms.len());
+        for t in terms {
+            match merged.last_mut() {
+                Some(m) if (m.clip, m.frame) == (t.clip, t.frame) => m.t += t.t,
+                _ => merged.push(t),
+            }
+        }
+        match merged.as_slice() {
+            [only] => Pose::Frame {
+                clip: only.clip,
+                frame: only.frame,
+            },
+            _ => Pose::Blend(merged.into()),
+        }
+    }
+
+    /// The live pose of `weights` (one per rig channel, finite, within
+    /// ±[`MAX_LIVE_WEIGHT`]; callers check).
+    pub fn live(weights: &[f32]) -> Pose {
+        Pose::Live(weights.iter().map(|&w| quantize_live(w)).collect())
+    }
+
+    /// Checks the pose against its rig: clips, frames and the live vector's length.
+    pub fn check(&self, rig: &Rig) -> Result<(), PoseError> {
+        let frame_ok = |clip: u32, frame: u32| -> Result<(), PoseError> {
+            let c = rig
+                .clips
+                .get(clip as usize)
+                .ok_or(PoseError::NoSuchClip(clip))?;
+            if frame >= c.frames {
+                return Err(ClipError::FrameOutOfRange {
+                    clip: c.name.clone(),
+                    frame: i64::from(frame),
+                    frames: c.frames,
+                }
+                .into());
+            }
+            Ok(())
+        };
+        match self {
+            Pose::Frame { clip, frame } => frame_ok(*clip, *frame),
+            Pose::Blend(terms) => {
+                let sum: u32 = terms.iter().map(|t| t.t).sum();
+                let sorted = terms
+                    .windows(2)
+                    .all(|p| (p[0].clip, p[0].frame) < (p[1].clip, p[1].frame));
+                if terms.len() < 2 || terms.len() > MAX_TERMS || sum != T_ONE || !sorted {
+                    return Err(PoseError::NotCanonical);
+                }
+                terms.iter().try_for_each(|t| frame_ok(t.clip, t.frame))
+            }
+            Pose::Live(w) if w.len() != rig.targets.len() => Err(PoseError::LiveLength {
+                got: w.len(),
+                want: rig.targets.len(),
+            }),
+            Pose::Live(_) => Ok(()),
+        }
+    }
+
+    /// Weight of channel `target` (the pose must have passed [`Pose::check`]). A blend sums
+    /// its terms in order, `Σ fraction × weight` in f32: the GPU's `build_active` does the
+    /// same, in the same order.
+    #[inline]
+    pub fn weight(&self, rig: &Rig, target: usize) -> f32 {
+        match self {
+            Pose::Frame { clip, frame } => rig.clips[*clip as usize].weight(target, *frame),
+            Pose::Blend(terms) => terms.iter().fold(0.0f32, |acc, t| {
+                acc + t.fraction() * rig.clips[t.clip as usize].weight(target, t.frame)
+            }),
+            Pose::Live(w) => w[target] as f32 * LIVE_STEP,
+        }
+    }
+
+    /// Every channel's weight (length = rig channels).
+    pub fn weights(&self, rig: &Rig) -> Vec<f32> {
+        (0..rig.targets.len())
+            .map(|t| self.weight(rig, t))
+            .collect()
+    }
+
+    /// The clip frame a response names for this pose: the frame itself, a blend's largest
+    /// term (the first of equals), none for live weights.
+    pub fn shown(&self) -> Option<(u32, u32)> {
+        match self {
+            Pose::Frame { clip, frame } => Some((*clip, *frame)),
+            Pose::Blend(terms) => terms
+                .iter()
+                .rev()
+                .max_by_key(|t| t.t)
+                .map(|t| (t.clip, t.frame)),
+            Pose::Live(_) => None,
+        }
+    }
+
+    /// Heap bytes the pose holds (for queue-memory charges).
+    pub fn heap_bytes(&self) -> u64 {
+        match self {
+            Pose::Frame { .. } => 0,
+            Pose::Blend(t) => 16 + size_of_val(&t[..]) as u64,
+            Pose::Live(w) => 16 + size_of_val(&w[..]) as u64,
+        }
+    }
+}
+
+/// `w` rounded to the nearest multiple of [`LIVE_STEP`], as an integer count of steps.
+pub fn quantize_live(w: f32) -> i32 {
+    let w = w.clamp(-MAX_LIVE_WEIGHT, MAX_LIVE_WEIGHT);
+    (f64::from(w) / f64::from(LIVE_STEP)).round() as i32
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn blends_are_canonical() {
+        let a = Pose::blend((0, 40), &[(2, 3, 0.25), (1, 5, 0.25)]);
+        let b = Pose::blend((0, 40), &[(1, 5, 0.250_000_1), (2, 3, 0.249_999_9)]);
+        assert_eq!(a, b, "order and float noise do not change a blend");
+        let Pose::Blend(terms) = &a else {
+            panic!("{a:?} is a blend")
+        };
+        assert_eq!(
+            terms
+                .iter()
+                .map(|t| (t.clip, t.frame, t.t))
+                .collect::<Vec<_>>(),
+            vec![(0, 40, 2048), (1, 5, 1024), (2, 3, 1024)]
+        );
+        // A frame blended with itself, and a blend whose layers are all zero, are the frame.
+        let frame = Pose::Frame { clip: 0, frame: 40 };
+        assert_eq!(Pose::blend((0, 40), &[(0, 40, 0.7)]), frame);
+        assert_eq!(Pose::blend((0, 40), &[(1, 2, 0.0)]), frame);
+        // t = 1 is the layer alone.
+        assert_eq!(
+            Pose::blend((0, 40), &[(1, 2, 1.0)]),
+            Pose::Frame { clip: 1, frame: 2 }
+        );
+        // Sums rounded past one are taken back from the largest layer.
+        let p = Pose::blend((0, 0), &[(1, 0, 0.500_06), (2, 0, 0.499_94)]);
+        let Pose::Blend(terms) = &p else {
+            panic!("{p:?} is a blend")
+        };
+        assert_eq!(terms.iter().map(|t| t.t).sum::<u32>(), T_ONE);
+    }
+
+    #[test]
+    fn live_weights_quantize_to_steps() {
+        assert_eq!(quantize_live(0.6), (0.6f64 * 4096.0).round() as i32);
+        assert_eq!(quantize_live(-1.0), -4096);
+        assert_eq!(quantize_live(1e9), (MAX_LIVE_WEIGHT * 4096.0) as i32);
+        assert_eq!(Pose::live(&[0.5, 0.500_000_1]), Pose::live(&[0.5, 0.5]));
+    }
+}
