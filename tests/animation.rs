@@ -13,7 +13,7 @@ use crowdmorph::import::{ImportOptions, load_path};
 use crowdmorph::rig::{LIVE_STEP, Pose, Rig};
 use glam::DVec3;
 
-use crate::util::{Rng, effective_weights, rig_files, rig_oracle};
+use crate::util::{Rng, effective_weights, pose_positions, rig_files, rig_oracle};
 
 /// Largest distance between a buffer and oracle positions.
 fn max_dist(got: &[f32], want: &[DVec3]) -> f64 {
@@ -115,17 +115,7 @@ fn a_frame_blended_with_itself_and_the_endpoints_are_the_frames() {
     let smile = rig.clip_index("smile").unwrap() as u32;
     let engine = Engine::cpu();
     let prepared = engine.prepare(Arc::new(rig.clone())).expect("prepare");
-    let eval = |pose: Pose| {
-        engine
-            .evaluate(
-                &prepared,
-                &[BlendJob { pose, lod: 0 }],
-                OutputSpec::default(),
-            )
-            .expect("evaluate")
-            .output
-            .job_positions(0)
-    };
+    let eval = |pose: Pose| pose_positions(&engine, &prepared, pose);
     let a = eval(Pose::Frame {
         clip: talk,
         frame: 40,

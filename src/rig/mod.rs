@@ -33,8 +33,8 @@ pub use lod::{
 };
 pub use mesh_level::mesh_level_rigs;
 pub use pose::{
-    LIVE_STEP, MAX_BLEND_LAYERS, MAX_LIVE_WEIGHT, MAX_TERMS, Pose, PoseError, T_ONE, Term,
-    quantize_live,
+    ARKIT_NAMES, LIVE_STEP, MAX_BLEND_LAYERS, MAX_LIVE_WEIGHT, MAX_TERMS, Pose, PoseError, T_ONE,
+    Term, quantize_live,
 };
 pub use sample::{Interpolation, KeyTrack, sample_track};
 

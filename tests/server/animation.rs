@@ -3,7 +3,7 @@
 //! the fractions) share one buffer, and every malformed blend or weight is a 400 naming it.
 
 use bytes::Bytes;
-use crowdmorph::engine::{BlendJob, Engine, OutputSpec};
+use crowdmorph::engine::Engine;
 use crowdmorph::rig::Pose;
 use crowdmorph::server::ServerConfig;
 use crowdmorph_client::{Encoding, Method};
@@ -42,15 +42,7 @@ fn expected(pose: Pose) -> Vec<f32> {
     let rig = std::sync::Arc::new(crowdmorph::embedded::default_rig());
     let engine = Engine::cpu();
     let prepared = engine.prepare(rig).expect("prepare");
-    engine
-        .evaluate(
-            &prepared,
-            &[BlendJob { pose, lod: 0 }],
-            OutputSpec::default(),
-        )
-        .expect("evaluate")
-        .output
-        .job_positions(0)
+    crate::util::pose_positions(&engine, &prepared, pose)
 }
 
 fn positions(resp: &crowdmorph_proto::CrowdFrameResponse, head: usize) -> Vec<f32> {
@@ -134,6 +126,29 @@ async fn blended_and_live_heads_are_blended_in_weight_space_and_clones_share() {
         .await
         .expect("live frame");
     assert_eq!(resp.buffers.len(), 1);
+    // A tracker's full ARKit frame: the embedded head has no tongue, so `tongueOut` is ignored
+    // (any other unknown name is a 400, below).
+    let mut arkit: Vec<(String, f32)> = crowdmorph::rig::ARKIT_NAMES
+        .iter()
+        .map(|n| (n.to_string(), 0.0))
+        .collect();
+    arkit[17].1 = 0.6;
+    assert_eq!(arkit[17].0, "jawOpen");
+    let (resp, _) = server
+        .client
+        .live_frame(
+            "default-head",
+            vec![
+                LiveWeights::Named(arkit),
+                LiveWeights::Named(vec![("jawOpen".into(), 0.6)]),
+            ],
+            0,
+            OutputOptions::default(),
+            Encoding::Json,
+        )
+        .await
+        .expect("an ARKit frame");
+    assert_eq!(resp.heads[0].buffer, resp.heads[1].buffer);
     server.stop().await;
 }
 

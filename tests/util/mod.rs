@@ -669,3 +669,20 @@ pub fn paper_scale_rig() -> crowdmorph::rig::Rig {
 pub fn with_random_clip(rig: crowdmorph::rig::Rig, seed: u64) -> crowdmorph::rig::Rig {
     crowdmorph::synthetic::with_random_clip(rig, seed)
 }
+
+/// The CPU engine's positions (f32, LOD 0) of one `pose` of a prepared rig.
+pub fn pose_positions(
+    engine: &crowdmorph::engine::Engine,
+    prepared: &crowdmorph::engine::PreparedRig,
+    pose: crowdmorph::rig::Pose,
+) -> Vec<f32> {
+    engine
+        .evaluate(
+            prepared,
+            &[crowdmorph::engine::BlendJob { pose, lod: 0 }],
+            crowdmorph::engine::OutputSpec::default(),
+        )
+        .expect("evaluate")
+        .output
+        .job_positions(0)
+}

@@ -11,7 +11,8 @@ use crate::import::clips::loose;
 use crate::plan::{JobKey, Plan};
 use crate::rig::quoted_name;
 use crate::rig::{
-    ACTIVE_WEIGHT_EPSILON, FrameMode, MAX_BLEND_LAYERS, MAX_LIVE_WEIGHT, Pose, Rig, TargetId,
+    ACTIVE_WEIGHT_EPSILON, ARKIT_NAMES, FrameMode, MAX_BLEND_LAYERS, MAX_LIVE_WEIGHT, Pose, Rig,
+    TargetId,
 };
 use crate::server::admission::memory::{Charge, QueueMemory};
 use crate::server::http::ApiError;
@@ -448,7 +449,8 @@ impl<'h> Lookups<'h> {
                 }
             }
             LiveWeights::Named(pairs) => {
-                if pairs.len() > names.by_position.len() {
+                // Each target once, plus ARKit names the rig may lack.
+                if pairs.len() > names.by_position.len() + ARKIT_NAMES.len() {
                     return Err(invalid_weights(
                         h,
                         head,
@@ -466,6 +468,10 @@ impl<'h> Lookups<'h> {
                 for (name, w) in pairs {
                     check(&quoted_name(name), *w)?;
                     let ids = names.ids(name);
+                    if ids.is_empty() && is_arkit_name(name) {
+                        // A tracker sends all 52 every frame; this rig cannot show this one.
+                        continue;
+                    }
                     if ids.is_empty() {
                         return Err(at_head(
                             h,
@@ -496,6 +502,13 @@ impl<'h> Lookups<'h> {
         }
         Ok(Pose::live(&self.row))
     }
+}
+
+/// Whether `name` is one of ARKit's 52 blendshape names, in any loose spelling.
+fn is_arkit_name(name: &str) -> bool {
+    static LOOSE: std::sync::LazyLock<std::collections::HashSet<String>> =
+        std::sync::LazyLock::new(|| ARKIT_NAMES.iter().map(|n| loose(n)).collect());
+    LOOSE.contains(&loose(name))
 }
 
 /// 400 `invalid_blend` about head `h`.
