@@ -12,6 +12,7 @@
 //!   FMA peak, and the output bytes at the measured copy bandwidth (a parallel copy of the same
 //!   bytes between warm buffers);
 //! - the wire formats (f32, f16, q16) written by the kernel's output stage;
+//! - a clip's frames against four-layer blends of them (what a blend adds to the gather);
 //! - batches of 1, 10, 100 and 1,000 unique jobs per engine call, against the dense peer at
 //!   each size, and the per-call overhead of one job;
 //! - LOD: the cost of each level against the deltas it keeps (a least-squares line whose
@@ -31,7 +32,7 @@ use serde::Serialize;
 
 use super::sample::{Samples, sample};
 use crate::engine::cpu::{CpuRig, fma_probe};
-use crate::engine::{BlendOutput, OutputSpec, Precision, WeightBatch};
+use crate::engine::{BlendJob, BlendOutput, OutputSpec, Precision, WeightBatch};
 use crate::plan::{JobKey, Plan};
 use crate::rig::Rig;
 use crate::rng::SplitMix64;
@@ -275,6 +276,8 @@ pub struct BenchReport {
     pub fraction_of_memcpy: f64,
     /// The wire formats at `unique` jobs.
     pub formats: Vec<FormatRow>,
+    /// `unique` clip frames against `unique` four-layer blends, weights gathered from a table.
+    pub blend: BlendRow,
     /// Engine calls of several sizes.
     pub batches: Vec<BatchRow>,
     /// One job per call, median ms.
@@ -289,6 +292,86 @@ pub struct BenchReport {
     pub lod_fit: LodFit,
     /// The simplified meshes at all shapes.
     pub mesh_levels: Vec<MeshRow>,
+}
+
+/// What a four-layer blend adds (GPU Gems 3 ch. 15, blending in weight space): `unique` jobs
+/// that each play one frame of a clip against `unique` jobs that each blend five of its frames,
+/// both gathered from the clip table as the server gathers them, then evaluated. With
+/// all-active random weights the active set does not grow with the blend, so the difference is
+/// the gather's; a blend of real frames with different active shapes also pays for the union.
+#[derive(Clone, Debug, Serialize)]
+pub struct BlendRow {
+    /// Median ms: gather and evaluate the frames.
+    pub frames_ms: f64,
+    /// Median ms: gather and evaluate the blends.
+    pub blends_ms: f64,
+    /// `blends_ms / frames_ms − 1`.
+    pub overhead: f64,
+}
+
+/// Measures [`BlendRow`]: `weights` become the frames of a clip of a copy of `rig` (the
+/// engine layout `cpu` is shared: a clip does not change geometry).
+fn blend_row(
+    rig: &Rig,
+    cpu: &CpuRig,
+    weights: &[Vec<f32>],
+    opt: &BenchOptions,
+    spec: OutputSpec,
+    bar: Option<&ProgressBar>,
+) -> Result<BlendRow> {
+    let (n, k) = (weights.len(), rig.targets.len());
+    let mut table = vec![0f32; k * n];
+    for (f, w) in weights.iter().enumerate() {
+        for (t, &x) in w.iter().enumerate() {
+            table[t * n + f] = x;
+        }
+    }
+    let mut rig = rig.clone();
+    rig.clips
+        .push(crate::rig::Clip::new("bench-blend", 30.0, k, n, table)?);
+    let c = (rig.clips.len() - 1) as u32;
+    let at = |i: usize| (i % n) as u32;
+    let frames: Vec<BlendJob> = (0..n).map(|i| BlendJob::frame(c, at(i), opt.lod)).collect();
+    let blends: Vec<BlendJob> = (0..n)
+        .map(|i| BlendJob {
+            pose: crate::rig::Pose::blend(
+                (c, at(i)),
+                &[
+                    (c, at(i + 1), 0.25),
+                    (c, at(i + 2), 0.25),
+                    (c, at(i + 3), 0.125),
+                    (c, at(i + 4), 0.125),
+                ],
+            ),
+            lod: opt.lod,
+        })
+        .collect();
+    // Alternating in one loop, as `layout_ab` does: the two differ by a few per cent, less
+    // than the drift between two back-to-back medians on a busy machine.
+    let mut outs = [BlendOutput::default(), BlendOutput::default()];
+    let mut times = [Vec::new(), Vec::new()];
+    let start = Instant::now();
+    for round in 0.. {
+        if round >= 7 && (start.elapsed().as_secs_f64() >= 2.0 * opt.seconds || round >= 2000) {
+            break;
+        }
+        for (i, (jobs, out)) in [&frames, &blends].into_iter().zip(&mut outs).enumerate() {
+            let t = Instant::now();
+            cpu.evaluate_into(&WeightBatch::gather(&rig, jobs)?, spec, out)?;
+            if round >= 2 {
+                times[i].push(t.elapsed().as_secs_f64() * 1e3);
+            }
+        }
+    }
+    if let Some(b) = bar {
+        b.inc(2);
+    }
+    let [frames_ms, blends_ms] = times.map(|t| Samples::new(t).median());
+    Ok(BlendRow {
+        frames_ms,
+        blends_ms,
+        overhead: blends_ms / frames_ms - 1.0,
+    })
 }
 
 /// Random all-active weights for `n` jobs, by target id.
@@ -479,7 +562,7 @@ pub fn bench_cpu(rig: &Rig, opt: &BenchOptions) -> Result<BenchReport> {
     };
     let spec = spec_of(Precision::F32);
     let levels = rig.lod.levels.len() as u32;
-    let steps = u64::from(levels) + 2 * opt.batches.len() as u64 + 12;
+    let steps = u64::from(levels) + 2 * opt.batches.len() as u64 + 14;
     let bar = opt.progress.then(|| super::progress_bar(steps, "bench"));
     let bar = bar.as_ref();
 
@@ -499,16 +582,15 @@ pub fn bench_cpu(rig: &Rig, opt: &BenchOptions) -> Result<BenchReport> {
     // The crowd: plan, gather, evaluate.
     let mut out = BlendOutput::default();
     let crowd = |heads: usize, out: &mut BlendOutput| -> Result<()> {
-        let plan = Plan::new((0..heads).map(|h| JobKey {
-            rig: 0,
-            clip: 0,
-            frame: (h % opt.unique) as u32,
-            lod: opt.lod,
-        }));
+        let plan =
+            Plan::new((0..heads).map(|h| JobKey::frame(0, 0, (h % opt.unique) as u32, opt.lod)));
         let w: Vec<Vec<f32>> = plan
             .jobs
             .iter()
-            .map(|j| weights[j.frame as usize].clone())
+            .map(|j| match j.pose {
+                crate::rig::Pose::Frame { frame, .. } => weights[frame as usize].clone(),
+                _ => Vec::new(),
+            })
             .collect();
         let batch = WeightBatch::from_target_weights(rig, &w, opt.lod)?;
         cpu.evaluate_into(&batch, spec, out)?;
@@ -557,6 +639,8 @@ pub fn bench_cpu(rig: &Rig, opt: &BenchOptions) -> Result<BenchReport> {
             vs_f32: eval_ms / ms,
         });
     }
+
+    let blend = blend_row(rig, &cpu, &weights[..opt.unique], opt, spec, bar)?;
 
     let layout_ms = layout_ab(
         rig,
@@ -756,6 +840,7 @@ pub fn bench_cpu(rig: &Rig, opt: &BenchOptions) -> Result<BenchReport> {
         memcpy_ms,
         fraction_of_memcpy: memcpy_ms / eval_ms,
         formats,
+        blend,
         batches,
         one_head_ms,
         one_head_overhead_ms: one_head_ms - base_ms / jobs,
@@ -884,6 +969,14 @@ pub fn report_text(r: &BenchReport) -> String {
             x.format, x.eval_ms, x.unique_heads_per_s, x.bytes_per_head, x.vs_f32
         );
     }
+    s += &format!(
+        "  blend        {} frames {:.3} ms, {} four-layer blends {:.3} ms (weights gathered from a clip table): {:+.1} %\n",
+        r.unique,
+        r.blend.frames_ms,
+        r.unique,
+        r.blend.blends_ms,
+        r.blend.overhead * 100.0
+    );
     for b in &r.batches {
         s += &format!(
             "  {:>5} per call {:>9.3} ms  {:>8.2} µs/head  dense {:>9.3} ms  → {:.2}×\n",
