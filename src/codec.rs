@@ -399,6 +399,7 @@ mod tests {
             position: [1.0, 2.0, 3.0],
             yaw: 45.0,
             scale: 2.0,
+            graph: None,
         }];
         let mut prefix = Vec::new();
         put_varint(&mut prefix, 0);

@@ -13,6 +13,7 @@
 //! | [`embedded`] | the procedural default rig that needs no files |
 //! | [`synthetic`] | synthetic rigs and clips: the paper-scale rig, deterministic random clips |
 //! | [`plan`] | the batch planner: a crowd of heads → unique jobs + per-head index |
+//! | [`graph`] | motion graphs checked against a rig, and the player that walks one with bounded cross-fades |
 //! | [`engine`] | blend engines; [`engine::cpu`] is the oracle and the no-GPU production engine |
 //! | [`export`] | one blended frame written as OBJ or raw f32 (`crowdmorph eval`) |
 //! | [`render`] | rendered frames: scene layout, cost, the wgpu renderer, encoding, offline renders |
@@ -32,6 +33,7 @@ pub mod codec;
 pub mod embedded;
 pub mod engine;
 pub mod export;
+pub mod graph;
 pub mod import;
 pub mod load;
 pub mod lod;

@@ -80,6 +80,19 @@ export class Reader {
     throw new DecodeError(`varint tag 0x${first.toString(16)} at ${this.pos - 1} (u128 is not used)`);
   }
 
+  /** A u64 varint that is only shown, never computed with (a graph head's seed): past 2^53
+   * it is rounded rather than refused. */
+  varintLossy() {
+    this.need(1);
+    if (this.view.getUint8(this.pos) === 0xfd) {
+      this.need(9);
+      const v = this.view.getBigUint64(this.pos + 1, true);
+      this.pos += 9;
+      return Number(v);
+    }
+    return this.varint();
+  }
+
   /** A u32 varint, checked to fit. */
   u32() {
     const v = this.varint();
@@ -162,6 +175,12 @@ function sessionHead(r) {
     position: r.vec3(),
     yaw: r.f32(),
     scale: r.f32(),
+    graph: r.option(() => ({
+      name: r.string(),
+      start: r.string(),
+      seed: r.varintLossy(),
+      script: r.vec(() => r.string()),
+    })),
   };
 }
 

@@ -14,9 +14,11 @@
 
 #![warn(missing_docs)]
 
+pub mod graph;
 pub mod session;
 pub mod wire;
 
+pub use graph::{GraphEdge, GraphInfo, GraphList, GraphNode, GraphPlay, MotionGraph};
 pub use session::{
     DEFAULT_SESSION_FPS, DEFAULT_SESSION_IDLE_TIMEOUT_S, HEAD_MISSING, HEAD_UNCHANGED, HeadChange,
     LodChoice, SessionHead, SessionInfo, SessionList, SessionPatch, SessionRequest, SessionStats,
@@ -563,6 +565,10 @@ pub struct RigInfo {
     /// channels of such a name as `name#1`, `name#2`, ...
     #[serde(default)]
     pub split_targets: Vec<SplitTarget>,
+    /// Names of the rig's motion graphs (`GET /v1/rigs/{id}/graphs`); JSON readers should treat
+    /// a missing field as empty.
+    #[serde(default)]
+    pub graphs: Vec<String>,
 }
 
 /// A target name with several weight channels (see [`RigInfo::split_targets`]).

@@ -46,7 +46,8 @@ pub struct SessionHead {
     pub head: u64,
     /// Rig id.
     pub rig: String,
-    /// Clip name within the rig.
+    /// Clip name within the rig (ignored when `graph` is given).
+    #[serde(default)]
     pub clip: String,
     /// Frames the head is ahead of the session's clock.
     #[serde(default)]
@@ -60,6 +61,9 @@ pub struct SessionHead {
     /// Uniform scale, > 0.
     #[serde(default = "one")]
     pub scale: f32,
+    /// A motion graph to play instead of `clip` (`proto/README.md`, "Motion graphs").
+    #[serde(default)]
+    pub graph: Option<crate::GraphPlay>,
 }
 
 /// `POST /v1/sessions` request.
@@ -148,6 +152,10 @@ pub struct HeadChange {
     /// New scale.
     #[serde(default)]
     pub scale: Option<f32>,
+    /// For a head playing a graph: the node to go to now. The head fades from the pose it
+    /// shows (also in the middle of a transition) into the node's first frame.
+    #[serde(default)]
+    pub node: Option<String>,
 }
 
 /// `PATCH /v1/sessions/{id}` request: applied together, at the next tick, in the order

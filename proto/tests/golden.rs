@@ -264,6 +264,7 @@ fn rig_info() -> RigInfo {
             name: "up".into(),
             channels: 2,
         }],
+        graphs: vec!["moods".into()],
     }
 }
 
@@ -484,6 +485,7 @@ fn session_head(head: u64, clip: &str, offset: i64, x: f32) -> SessionHead {
         position: [x, 0.0, -1.5],
         yaw: 15.0,
         scale: 1.0,
+        graph: None,
     }
 }
 
@@ -493,6 +495,15 @@ fn session_messages() {
         session_head(1, "talk", 0, 0.0),
         session_head(2, "talk", 0, 0.5),
         session_head(3, "smile", -4, 1.0),
+        SessionHead {
+            graph: Some(GraphPlay {
+                name: "moods".into(),
+                start: "talk".into(),
+                seed: 7,
+                script: vec!["smile".into()],
+            }),
+            ..session_head(4, "", 0, 1.5)
+        },
     ];
     pin(
         "session_request",
@@ -507,14 +518,26 @@ fn session_messages() {
         "session_patch",
         &SessionPatch {
             remove: vec![2],
-            change: vec![HeadChange {
-                head: 3,
-                clip: Some("talk".into()),
-                offset: None,
-                position: None,
-                yaw: Some(-30.0),
-                scale: None,
-            }],
+            change: vec![
+                HeadChange {
+                    head: 3,
+                    clip: Some("talk".into()),
+                    offset: None,
+                    position: None,
+                    yaw: Some(-30.0),
+                    scale: None,
+                    node: None,
+                },
+                HeadChange {
+                    head: 4,
+                    clip: None,
+                    offset: None,
+                    position: None,
+                    yaw: None,
+                    scale: None,
+                    node: Some("surprise".into()),
+                },
+            ],
             add: vec![session_head(9, "idle", 7, 2.0)],
         },
     );
@@ -593,5 +616,48 @@ fn session_messages() {
     assert_eq!(
         serde_json::from_str::<ViewerHello>("{}").unwrap(),
         ViewerHello::default()
+    );
+}
+
+#[test]
+fn graph_messages() {
+    let graph = MotionGraph {
+        nodes: vec![
+            GraphNode {
+                name: "talk".into(),
+                clip: "talk".into(),
+                frames: None,
+            },
+            GraphNode {
+                name: "smile".into(),
+                clip: "smile".into(),
+                frames: Some([0, 59]),
+            },
+        ],
+        edges: vec![
+            GraphEdge {
+                from: "talk".into(),
+                to: "smile".into(),
+                fade: 10,
+                window: None,
+            },
+            GraphEdge {
+                from: "smile".into(),
+                to: "talk".into(),
+                fade: 8,
+                window: Some([20, 40]),
+            },
+        ],
+    };
+    pin("motion_graph", &graph);
+    pin(
+        "graph_list",
+        &GraphList {
+            graphs: vec![GraphInfo {
+                rig: "default-head".into(),
+                name: "moods".into(),
+                graph,
+            }],
+        },
     );
 }

@@ -386,6 +386,7 @@ fn session_heads(crowd: &CrowdShape, rigs: &[RigClips]) -> Result<Vec<SessionHea
             position: [(i % side) as f32 * GRID, 0.0, -((i / side) as f32) * GRID],
             yaw: 0.0,
             scale: 1.0,
+            graph: None,
         })
         .collect())
 }

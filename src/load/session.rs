@@ -220,6 +220,14 @@ pub fn skim(message: &[u8]) -> Result<TickSummary, LoadError> {
                     s.varint("offset")?;
                     // position [f32; 3], yaw and scale: fixed 4-byte floats.
                     s.skip(20, "placement")?;
+                    if s.some("graph")? {
+                        s.skip_bytes("graph name")?;
+                        s.skip_bytes("graph start")?;
+                        s.varint("graph seed")?;
+                        for _ in 0..s.varint("graph script")? {
+                            s.skip_bytes("graph script node")?;
+                        }
+                    }
                 }
             }
             out.buffers = s.varint("buffers")?;
@@ -629,6 +637,13 @@ mod tests {
                 position: [1.0, 2.0, 3.0],
                 yaw: 90.0,
                 scale: 1.5,
+                // One head walks a graph, so the skim passes over one too.
+                graph: (h == 2).then(|| crowdmorph_proto::GraphPlay {
+                    name: "moods".into(),
+                    start: "talk".into(),
+                    seed: u64::MAX,
+                    script: vec!["smile".into(), "talk".into()],
+                }),
             })
             .collect();
         let m = StreamMessage::Vertices(TickVertices {

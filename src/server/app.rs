@@ -235,6 +235,13 @@ fn resources() -> Router<AppState> {
             "/v1/rigs/{id}/lod",
             get(routes::lod::get_lod).put(routes::lod::put_lod),
         )
+        .route("/v1/rigs/{id}/graphs", get(routes::graphs::list_graphs))
+        .route(
+            "/v1/rigs/{id}/graphs/{name}",
+            get(routes::graphs::get_graph)
+                .put(routes::graphs::put_graph)
+                .delete(routes::graphs::delete_graph),
+        )
         .route(
             "/v1/rigs/{id}/clips",
             post(routes::clips::upload_clips).get(routes::clips::list_clips),

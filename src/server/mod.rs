@@ -14,7 +14,7 @@
 //! | module | what it is |
 //! |---|---|
 //! | `app` | [`app`]: the router and its layers; [`serve`] and [`run`] |
-//! | `routes` | the handlers: `health`, `rigs`, `clips`, `frames`, `render`, `lod` (with the background job), `loadtest`, `viewer`, and `sessions` (its REST handlers, `sessions::viewer` the viewer socket, `sessions::tick` the tick) |
+//! | `routes` | the handlers: `health`, `rigs`, `clips`, `frames`, `render`, `lod` (with the background job), `graphs`, `loadtest`, `viewer`, and `sessions` (its REST handlers, `sessions::viewer` the viewer socket, `sessions::tick` the tick) |
 //! | [`state`] | [`AppState`]: engine, batcher, registry, budgets, each resource's state |
 //! | [`config`] | every limit, timeout and default, the session limits included; the `serve` command's flags |
 //! | [`admission`] | the queue memory and its charges ([`admission::memory`]), the render budgets ([`admission::render`]), heads resolved into jobs ([`admission::resolve`]) |
@@ -27,6 +27,7 @@
 //! | `pool` | reused output buffers, bounded in count and bytes |
 //! | `shed` | the rate-limited log of shed and timed-out requests |
 //! | [`sessions`] | crowd sessions' state: sessions, viewers, outboxes, limits |
+//! | [`graphs`] | motion graphs by rig: as stored, and resolved and measured per rig generation |
 //! | [`loadtests`] | the load tests running and done |
 //! | `lod_jobs` | LOD jobs by rig |
 //! | `topologies` | the renderer and the mesh topologies cached on its device |
@@ -37,6 +38,7 @@ pub mod admission;
 mod app;
 pub mod config;
 mod conn;
+pub mod graphs;
 pub mod http;
 mod json;
 pub mod loadtests;

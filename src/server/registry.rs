@@ -238,6 +238,7 @@ impl RigEntry {
                     channels: channels as u32,
                 })
                 .collect(),
+            graphs: Vec::new(),
         }
     }
 

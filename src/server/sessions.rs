@@ -232,21 +232,21 @@ pub(crate) struct SessionInner {
     pub(crate) stats: SessionStats,
     /// When the last viewer left (or the session started without one).
     pub(crate) idle_since: Option<Instant>,
+    /// Graph heads sent to a node by patches since the last tick: (head id, node), in order.
+    pub(crate) jumps: Vec<(u64, String)>,
 }
 
 /// What identifies a head's buffer for a viewer: the same key means the same vertices.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
 pub(crate) struct HeadKey {
     pub(crate) generation: u64,
-    pub(crate) clip: u32,
-    pub(crate) frame: u32,
+    pub(crate) pose: crate::rig::Pose,
     pub(crate) lod: u32,
 }
 
 pub(crate) const MISSING_KEY: HeadKey = HeadKey {
     generation: u64::MAX,
-    clip: 0,
-    frame: 0,
+    pose: crate::rig::Pose::Frame { clip: 0, frame: 0 },
     lod: 0,
 };
 

@@ -73,6 +73,8 @@ pub struct Inner {
     pub(crate) render: RenderState,
     /// Crowd sessions by id.
     pub sessions: Sessions,
+    /// Motion graphs by rig.
+    pub graphs: crate::server::graphs::Graphs,
     /// Reused buffers of JSON crowd frames.
     pub(crate) json_pool: Arc<JsonPool>,
     /// `POST /v1/loadtest`: the load running and the last ones done.
@@ -203,6 +205,7 @@ impl AppState {
             render_budget,
             render,
             sessions,
+            graphs: Default::default(),
             json_pool: Arc::default(),
             loadtests: Loadtests::default(),
         })))
@@ -293,6 +296,18 @@ impl AppState {
                 Ok(true) => n += 1,
                 Ok(false) => {}
                 Err(why) => self.skip(why),
+            }
+        }
+        // Motion graphs come after the rigs they belong to; a graph file that does not parse
+        // is skipped and reported, and graphs of a rig that is gone are left unused.
+        let (graphs, skipped) = store.load_graphs();
+        for why in skipped {
+            tracing::error!(error = %why, "skipping a stored graph file that cannot be read");
+            self.skip(why);
+        }
+        for g in graphs {
+            if self.registry.get(&g.rig).is_some() {
+                self.graphs.load(g.rig, g.graphs);
             }
         }
         Ok(n)

@@ -320,6 +320,15 @@ pub enum Record {
     Builtin(StoredBuiltin),
 }
 
+/// A rig's motion graphs as stored (`data_dir/graphs/<rig>.json`).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct StoredGraphs {
+    /// The rig id.
+    pub rig: String,
+    /// Its graphs by name.
+    pub graphs: std::collections::BTreeMap<String, crowdmorph_proto::MotionGraph>,
+}
+
 /// Why the store failed.
 #[derive(Debug, thiserror::Error)]
 pub enum StoreError {
@@ -488,6 +497,82 @@ impl Store {
         result
     }
 
+    /// Directory of the rigs' motion graphs, next to the records' (`data_dir/graphs`).
+    fn graphs_dir(&self) -> PathBuf {
+        self.dir
+            .parent()
+            .map_or_else(|| self.dir.join("graphs"), |d| d.join("graphs"))
+    }
+
+    /// Writes rig `id`'s motion graphs (all of them, replacing the file atomically), or
+    /// removes the file when there are none. JSON: a graph is small, and a truncated or
+    /// corrupt file fails to parse, so it is reported at start and skipped, never served.
+    pub fn put_graphs(
+        &self,
+        id: &str,
+        graphs: &std::collections::BTreeMap<String, crowdmorph_proto::MotionGraph>,
+    ) -> Result<(), StoreError> {
+        let dir = self.graphs_dir();
+        let path = dir.join(format!("{id}.json"));
+        if graphs.is_empty() {
+            return self.remove_file(&path);
+        }
+        fs::create_dir_all(&dir).map_err(io("create directory", &dir))?;
+        let bytes = serde_json::to_vec(&StoredGraphs {
+            rig: id.to_string(),
+            graphs: graphs.clone(),
+        })
+        .map_err(|e| StoreError::Encode(e.to_string()))?;
+        let n = self.tmp_counter.fetch_add(1, Ordering::Relaxed);
+        let tmp = dir.join(format!("{TMP}{}-{n}-{id}.json", std::process::id()));
+        let result = (|| {
+            let mut f = File::create(&tmp).map_err(io("create", &tmp))?;
+            f.write_all(&bytes).map_err(io("write", &tmp))?;
+            f.sync_all().map_err(io("fsync", &tmp))?;
+            drop(f);
+            fs::rename(&tmp, &path).map_err(io("rename", &path))?;
+            File::open(&dir)
+                .and_then(|d| d.sync_all())
+                .map_err(io("fsync directory", &dir))
+        })();
+        if result.is_err() {
+            let _ = fs::remove_file(&tmp);
+        }
+        result
+    }
+
+    /// Every rig's stored motion graphs, and the files that could not be read (with why).
+    pub fn load_graphs(&self) -> (Vec<StoredGraphs>, Vec<String>) {
+        let dir = self.graphs_dir();
+        let Ok(entries) = fs::read_dir(&dir) else {
+            return (Vec::new(), Vec::new());
+        };
+        let mut ok = Vec::new();
+        let mut skipped = Vec::new();
+        for e in entries.filter_map(Result::ok) {
+            let path = e.path();
+            let name = e.file_name().to_string_lossy().into_owned();
+            if name.starts_with(TMP) || !name.ends_with(".json") {
+                continue;
+            }
+            // A graph file is a few kilobytes; a huge one is not ours.
+            let parsed = match e.metadata() {
+                Ok(m) if m.len() <= 64 << 20 => fs::read(&path)
+                    .map_err(|err| err.to_string())
+                    .and_then(|b| {
+                        serde_json::from_slice::<StoredGraphs>(&b).map_err(|err| err.to_string())
+                    }),
+                Ok(m) => Err(format!("{} bytes is too large for a graph file", m.len())),
+                Err(err) => Err(err.to_string()),
+            };
+            match parsed {
+                Ok(g) => ok.push(g),
+                Err(why) => skipped.push(format!("{}: {why}", path.display())),
+            }
+        }
+        (ok, skipped)
+    }
+
     /// Path of clip file `seq` of rig `id` (`@` cannot appear in an id).
     pub fn clips_path(&self, id: &str, seq: u64) -> PathBuf {
         self.dir.join(format!("{id}@{seq:010}.{CLIPS_EXT}"))
@@ -498,6 +583,7 @@ impl Store {
     /// [`Store::record_files`] callers delete.
     pub fn remove(&self, id: &str) -> Result<(), StoreError> {
         self.remove_file(&self.path_of(id))?;
+        self.remove_file(&self.graphs_dir().join(format!("{id}.json")))?;
         for path in self.clip_files_of(id)? {
             self.remove_file(&path)?;
         }

@@ -9,6 +9,7 @@ mod bad_input;
 mod concurrency;
 mod connections;
 mod golden;
+mod graphs;
 mod hostile;
 mod loadtest;
 mod lod;

@@ -91,7 +91,7 @@ pub(super) async fn connect(server: &TestServer, id: &str, hello: Value) -> Ws {
 }
 
 /// The next tick message; panics on a close or a timeout.
-async fn next_tick(ws: &mut Ws) -> TickVertices {
+pub(super) async fn next_tick(ws: &mut Ws) -> TickVertices {
     loop {
         let msg = tokio::time::timeout(READ, ws.next())
             .await
@@ -130,14 +130,14 @@ pub(super) async fn next_close(ws: &mut Ws) -> (u16, String) {
 
 /// What a viewer draws: each head's positions, as f32, after applying messages in order.
 #[derive(Default)]
-struct View {
+pub(super) struct View {
     layout: Vec<u64>,
-    heads: HashMap<u64, Vec<f32>>,
+    pub(super) heads: HashMap<u64, Vec<f32>>,
     lods: HashMap<u64, u32>,
 }
 
 impl View {
-    fn apply(&mut self, t: &TickVertices) {
+    pub(super) fn apply(&mut self, t: &TickVertices) {
         if let Some(l) = &t.layout {
             self.layout = l.iter().map(|h| h.head).collect();
         }

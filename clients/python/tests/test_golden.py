@@ -36,6 +36,8 @@ GOLDEN = {
     "session_request": messages.SessionRequest,
     "session_patch": messages.SessionPatch,
     "session_info": messages.SessionInfo,
+    "motion_graph": messages.MotionGraph,
+    "graph_list": messages.GraphList,
 }
 
 

@@ -148,6 +148,7 @@ def test_session_messages_decode_to_the_servers_json(client, sessions):
             "position": [1.0, 2.0, 3.0],
             "yaw": -10.0,
             "scale": 2.0,
+            "graph": None,
         }
     ]
     listed = json.loads(client.request("GET", "/v1/sessions", accept="application/json").body)
@@ -407,3 +408,35 @@ def test_a_timeout_between_ticks_leaves_the_stream_usable(client, sessions):
         assert later.tick > first.tick and set(later.positions) == {1}
         viewer.update(lod=1)
         assert next(viewer).tick > later.tick
+
+
+def test_heads_walk_a_motion_graph_and_patches_send_them_to_a_node(client, sessions):
+    graph = {
+        "nodes": [{"name": "talk", "clip": "talk"}, {"name": "smile", "clip": "smile"}],
+        "edges": [
+            {"from": "talk", "to": "smile", "fade": 10},
+            {"from": "smile", "to": "talk", "fade": 10},
+        ],
+    }
+    stored = client.put_graph(RIG, "py-moods", graph)
+    try:
+        assert stored.graph.edges[0].from_ == "talk"
+        assert "py-moods" in client.rig(RIG).graphs
+        assert [g.name for g in client.graphs(RIG)].count("py-moods") == 1
+        walk = {"name": "py-moods", "start": "talk", "seed": 3}
+        info = _create(
+            client,
+            sessions,
+            [{"head": 1, "rig": RIG, "graph": walk}, {"head": 2, "rig": RIG, "graph": walk}],
+        )
+        assert info.heads[0].graph == crowdmorph.GraphPlay("py-moods", "talk", 3, [])
+        client.patch_session(info.id, change=[{"head": 1, "node": "smile"}])
+        with pytest.raises(crowdmorph.NotFound) as e:
+            client.patch_session(info.id, change=[{"head": 1, "node": "nowhere"}])
+        assert e.value.code == "unknown_node"
+        with client.stream(info.id, format="f32") as stream:
+            ticks = [next(stream) for _ in range(3)]
+        assert all(len(t.layout) == 2 and set(t.positions) == {1, 2} for t in ticks)
+    finally:
+        client.delete_graph(RIG, "py-moods")
+    assert "py-moods" not in client.rig(RIG).graphs

@@ -281,6 +281,7 @@ fn a_session_and_its_patch_are_charged_while_decoded() {
                 position: [0.0; 3],
                 yaw: 0.0,
                 scale: 1.0,
+                graph: None,
             })
             .collect::<Vec<_>>()
     };
@@ -304,6 +305,7 @@ fn a_session_and_its_patch_are_charged_while_decoded() {
                 position: Some([1.0, 0.0, 0.0]),
                 yaw: None,
                 scale: None,
+                node: None,
             })
             .collect(),
         add: session_heads(300),

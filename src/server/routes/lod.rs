@@ -51,6 +51,7 @@ impl AppState {
     /// What the API reports about a rig, with the LOD job's status overlaid.
     pub(crate) fn rig_info(&self, entry: &RigEntry) -> RigInfo {
         let mut info = entry.info();
+        info.graphs = self.graphs.names(&entry.id);
         info.lod = self.lod_info(entry);
         info
     }

@@ -1,11 +1,12 @@
 //! The handlers, one file per resource, each in short named phases: `health` (`/healthz`,
 //! `/readyz`, `/metrics`), `rigs`, `clips`, `frames` (`POST /v1/crowd/frame`), `render`
-//! (`POST /v1/crowd/render`), `lod`, `loadtest`, `sessions` (handlers, the viewer protocol,
+//! (`POST /v1/crowd/render`), `lod`, `graphs` (motion graphs), `loadtest`, `sessions` (handlers, the viewer protocol,
 //! the tick) and `viewer` (the browser viewer's files). They use the HTTP layer and admission;
 //! nothing below them imports them.
 
 pub mod clips;
 pub mod frames;
+pub mod graphs;
 pub mod health;
 pub mod loadtest;
 pub mod lod;

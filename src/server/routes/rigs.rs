@@ -401,6 +401,7 @@ pub async fn delete_rig(
     }
     state.lod_jobs.cancel(&id);
     state.registry.remove(&id);
+    state.graphs.drop_rig(&id);
     if let Ok(mut t) = state.render.topologies.lock() {
         t.purge(&id);
     }

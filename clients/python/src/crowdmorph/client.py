@@ -34,6 +34,9 @@ from .messages import (
     ClipUpload,
     CrowdFrameRequest,
     CrowdFrameResponse,
+    GraphInfo,
+    GraphList,
+    GraphPlay,
     Head,
     HeadChange,
     ImageOptions,
@@ -52,6 +55,7 @@ from .messages import (
     SessionList,
     SessionPatch,
     SessionRequest,
+    as_dict,
 )
 # The decoded results live in crowdmorph.results (crowdmorph.sessions makes them too); they are
 # imported here as well, so that crowdmorph.client.Buffer and the like keep working.
@@ -589,6 +593,28 @@ class Client:
                 resp.status, "bad_response", str(e), request_id=resp.request_id
             ) from e
 
+    # -- motion graphs ------------------------------------------------------------------------
+
+    def put_graph(self, rig: str, name: str, graph: Any) -> GraphInfo:
+        """``PUT /v1/rigs/{rig}/graphs/{name}``: stores a motion graph (a :class:`MotionGraph`
+        or a dict in its JSON form: ``{"nodes": [...], "edges": [{"from": ..., ...}]}``)."""
+        body = graph if isinstance(graph, Mapping) else as_dict(graph)
+        resp = self.request(
+            "PUT",
+            f"/v1/rigs/{_seg(rig)}/graphs/{_seg(name)}",
+            json.dumps(body).encode(),
+            "application/json",
+        )
+        return self._decode(GraphInfo, resp)
+
+    def graphs(self, rig: str) -> List[GraphInfo]:
+        """``GET /v1/rigs/{rig}/graphs``."""
+        return self._decode(GraphList, self.request("GET", f"/v1/rigs/{_seg(rig)}/graphs")).graphs
+
+    def delete_graph(self, rig: str, name: str) -> None:
+        """``DELETE /v1/rigs/{rig}/graphs/{name}``."""
+        self.request("DELETE", f"/v1/rigs/{_seg(rig)}/graphs/{_seg(name)}", ok=(204,))
+
     def live_frame(
         self,
         rig: str,
@@ -779,6 +805,9 @@ def _session_head(h: SessionHeadLike) -> SessionHead:
     if isinstance(h, SessionHead):
         return h
     if isinstance(h, Mapping):
+        h = dict(h)
+        if h.get("graph") is not None:
+            h["graph"] = _of(GraphPlay, h["graph"])
         return SessionHead(**h)
     if isinstance(h, (tuple, list)) and 3 <= len(h) <= 7:
         fields = list(h)

@@ -76,6 +76,12 @@ __all__ = [
     "CameraSpec",
     "ImageOptions",
     "RenderRequest",
+    "GraphPlay",
+    "GraphNode",
+    "GraphEdge",
+    "MotionGraph",
+    "GraphInfo",
+    "GraphList",
     "SessionHead",
     "SessionRequest",
     "SessionStats",
@@ -554,6 +560,7 @@ class LodInfo:
     ("bbox", Msg(Aabb)),
     ("memory", Msg(Memory)),
     ("split_targets", Vec(Msg(SplitTarget))),
+    ("graphs", Vec(STR)),
 )
 @dataclass
 class RigInfo:
@@ -571,6 +578,7 @@ class RigInfo:
     bbox: Aabb
     memory: Memory
     split_targets: List[SplitTarget] = field(default_factory=list)
+    graphs: List[str] = field(default_factory=list)
 
 
 @wire(("rigs", Vec(Msg(RigInfo))))
@@ -776,6 +784,18 @@ HEAD_UNCHANGED = 0xFFFF_FFFF
 HEAD_MISSING = 0xFFFF_FFFE
 
 
+@wire(("name", STR), ("start", STR), ("seed", U64), ("script", Vec(STR)))
+@dataclass
+class GraphPlay:
+    """How a session head plays a motion graph: from node ``start``, through ``script`` (node
+    names) or, without one, on a random walk seeded by ``seed``."""
+
+    name: str
+    start: str
+    seed: int = 0
+    script: List[str] = field(default_factory=list)
+
+
 @wire(
     ("head", U64),
     ("rig", STR),
@@ -784,6 +804,7 @@ HEAD_MISSING = 0xFFFF_FFFE
     ("position", F32X3),
     ("yaw", F32),
     ("scale", F32),
+    ("graph", Opt(Msg(GraphPlay))),
 )
 @dataclass
 class SessionHead:
@@ -793,11 +814,12 @@ class SessionHead:
 
     head: int
     rig: str
-    clip: str
+    clip: str = ""
     offset: int = 0
     position: List[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     yaw: float = 0.0
     scale: float = 1.0
+    graph: Optional[GraphPlay] = None
 
 
 @wire(("fps", F32), ("wrap", BOOL), ("idle_timeout_s", U32), ("heads", Vec(Msg(SessionHead))))
@@ -875,6 +897,7 @@ class SessionList:
     ("position", Opt(F32X3)),
     ("yaw", Opt(F32)),
     ("scale", Opt(F32)),
+    ("node", Opt(STR)),
 )
 @dataclass
 class HeadChange:
@@ -886,6 +909,70 @@ class HeadChange:
     position: Optional[List[float]] = None
     yaw: Optional[float] = None
     scale: Optional[float] = None
+    node: Optional[str] = None
+
+
+class _U32Pair:
+    """``[u32; 2]``: two varints, no length (a fixed-size array)."""
+
+    def read(self, r: Reader) -> List[int]:
+        return [r.u32(), r.u32()]
+
+    def write(self, w: Writer, v: Sequence[int]) -> None:
+        a, b = v
+        w.u32(operator.index(a))
+        w.u32(operator.index(b))
+
+
+U32X2 = _U32Pair()
+
+
+@wire(("name", STR), ("clip", STR), ("frames", Opt(U32X2)))
+@dataclass
+class GraphNode:
+    """A motion-graph node: a clip, or its frames ``[first, last]``."""
+
+    name: str
+    clip: str
+    frames: Optional[List[int]] = None
+
+
+@wire(("from_", STR), ("to", STR), ("fade", U32), ("window", Opt(U32X2)))
+@dataclass
+class GraphEdge:
+    """A transition: ``to`` fades in over ``fade`` frames, starting within ``window``."""
+
+    from_: str
+    to: str
+    fade: int
+    window: Optional[List[int]] = None
+
+
+@wire(("nodes", Vec(Msg(GraphNode))), ("edges", Vec(Msg(GraphEdge))))
+@dataclass
+class MotionGraph:
+    """A rig's motion graph (``PUT /v1/rigs/{id}/graphs/{name}``)."""
+
+    nodes: List[GraphNode] = field(default_factory=list)
+    edges: List[GraphEdge] = field(default_factory=list)
+
+
+@wire(("rig", STR), ("name", STR), ("graph", Msg(MotionGraph)))
+@dataclass
+class GraphInfo:
+    """A stored motion graph."""
+
+    rig: str
+    name: str
+    graph: MotionGraph
+
+
+@wire(("graphs", Vec(Msg(GraphInfo))))
+@dataclass
+class GraphList:
+    """A rig's motion graphs."""
+
+    graphs: List[GraphInfo] = field(default_factory=list)
 
 
 @wire(
@@ -956,7 +1043,11 @@ def as_dict(message: Any) -> Any:
     base64 strings, ``None`` as ``null``. Handy for printing and for comparing with the
     server's JSON."""
     if dataclasses.is_dataclass(message) and not isinstance(message, type):
-        return {f.name: as_dict(getattr(message, f.name)) for f in dataclasses.fields(message)}
+        # A field named after a Python keyword has a trailing underscore (``GraphEdge.from_``).
+        return {
+            f.name.rstrip("_"): as_dict(getattr(message, f.name))
+            for f in dataclasses.fields(message)
+        }
     if isinstance(message, (list, tuple, HeadBuffers)):
         return [as_dict(v) for v in message]
     if isinstance(message, (memoryview, bytes, bytearray)):

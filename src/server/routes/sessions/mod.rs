@@ -102,7 +102,22 @@ impl AppState {
             message: format!("head {}: {}", h.head, e.message),
             ..e
         })?;
-        if entry.clip_index(&h.clip).is_none() {
+        if let Some(play) = &h.graph {
+            let graph = self.graphs.resolved(&entry, &play.name).ok_or_else(|| {
+                let e = crate::server::routes::graphs::unknown_graph(
+                    &entry.id,
+                    &play.name,
+                    &self.graphs.names(&entry.id),
+                );
+                ApiError {
+                    message: format!("head {}: {}", h.head, e.message),
+                    ..e
+                }
+            })?;
+            graph.play(play).map_err(|m| {
+                ApiError::not_found("unknown_node", format!("head {}: {m}", h.head))
+            })?;
+        } else if entry.clip_index(&h.clip).is_none() {
             // The same message as a crowd frame's (at most 20 names, whatever the rig holds).
             let e = unknown_clip(&entry, &h.clip);
             return Err(ApiError {
@@ -159,7 +174,11 @@ fn check_patch_size(state: &AppState, patch: &SessionPatch) -> Result<(), ApiErr
     Ok(())
 }
 
-/// The heads after a patch, checked; `Err` names the first problem.
+/// A graph head sent to a node by a patch: (head id, node name).
+type Jump = (u64, String);
+
+/// The heads after a patch, checked, and the jumps it asks for; `Err` names the first
+/// problem.
 ///
 /// The same result as applying the lists one entry at a time: removes in order (a repeated
 /// id is unknown the second time, its head being gone), then changes in order (a head changed
@@ -169,7 +188,7 @@ fn patched(
     state: &AppState,
     heads: &[SessionHead],
     patch: &SessionPatch,
-) -> Result<Vec<SessionHead>, ApiError> {
+) -> Result<(Vec<SessionHead>, Vec<Jump>), ApiError> {
     check_patch_size(state, patch)?;
     // Where each id stands; ids are unique in a session, but the first one wins as a scan's
     // would if they were not.
@@ -184,6 +203,7 @@ fn patched(
         }
     }
     let mut out: Vec<SessionHead> = heads.to_vec();
+    let mut jumps = Vec::new();
     for HeadChange {
         head,
         clip,
@@ -191,6 +211,7 @@ fn patched(
         position,
         yaw,
         scale,
+        node,
     } in &patch.change
     {
         let h = at
@@ -214,6 +235,23 @@ fn patched(
             h.scale = *s;
         }
         state.check_session_head(h)?;
+        if let Some(n) = node {
+            let play = h.graph.as_ref().ok_or_else(|| {
+                invalid(format!(
+                    "change of head {head}: `node` is for heads that play a graph"
+                ))
+            })?;
+            let to = crowdmorph_proto::GraphPlay {
+                start: n.clone(),
+                script: Vec::new(),
+                ..play.clone()
+            };
+            state.check_session_head(&SessionHead {
+                graph: Some(to),
+                ..h.clone()
+            })?;
+            jumps.push((*head, n.clone()));
+        }
     }
     if !removed.is_empty() {
         out.retain(|h| !removed.contains(&h.head));
@@ -231,7 +269,7 @@ fn patched(
         state.check_session_head(h)?;
         out.push(h.clone());
     }
-    Ok(out)
+    Ok((out, jumps))
 }
 
 fn unknown_head(id: u64) -> ApiError {
@@ -307,6 +345,7 @@ pub async fn create_session(
             tick: 0,
             stats: SessionStats::default(),
             idle_since: Some(Instant::now()),
+            jumps: Vec::new(),
         }),
         stopping: Notify::new(),
         stopped: AtomicBool::new(false),
@@ -381,7 +420,8 @@ pub async fn patch_session(
                 .map_err(|_| ApiError::internal("session poisoned"))?;
             i.next_heads.clone().unwrap_or_else(|| i.heads.clone())
         };
-        let next = Arc::new(patched(&state, &base, &patch)?);
+        let (next, jumps) = patched(&state, &base, &patch)?;
+        let next = Arc::new(next);
         // The answer lists the patched heads: charged before the patch is in (see
         // `info_bytes`).
         let answer = state.queue_memory.reserve(info_bytes(&s.id, &next))?;
@@ -392,6 +432,7 @@ pub async fn patch_session(
         let now = i.next_heads.clone().unwrap_or_else(|| i.heads.clone());
         if Arc::ptr_eq(&now, &base) {
             i.next_heads = Some(next);
+            i.jumps.extend(jumps);
             break answer;
         }
     };
@@ -447,6 +488,7 @@ mod tests {
             position: [-1.1754942e-38, -3.4028235e38, -1.4e-45],
             yaw: -1.1754942e-38,
             scale: -1.1754942e-38,
+            graph: None,
         }
     }
 
@@ -463,6 +505,7 @@ mod tests {
                 position: [1.0, 2.0, 3.0],
                 yaw: 90.0,
                 scale: 1.0,
+                graph: None,
             },
         ];
         let stats = SessionStats {

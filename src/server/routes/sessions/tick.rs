@@ -17,6 +17,7 @@ use glam::Vec3;
 use tokio::time::Instant;
 
 use crate::codec::{FrameBufferParts, FrameResponseEncoder};
+use crate::graph::{Graph, Player};
 use crate::rig::{FrameMode, Pose};
 use crate::server::admission::resolve::{head_reach, job_output_bytes, job_request};
 use crate::server::registry::{MAX_F16, RigEntry};
@@ -64,6 +65,8 @@ async fn run_session(session: Arc<Session>, app: Weak<Inner>) {
     let period = Duration::from_secs_f64(1.0 / f64::from(session.fps.max(MIN_FPS)));
     let start = Instant::now();
     let mut slot: u64 = 0;
+    // The graph heads' state lives with the task that advances it.
+    let mut players = Players::default();
     loop {
         let due = start + period.mul_f64(slot as f64);
         // Woken for the tick, for the idle timeout (whichever comes first: a slow session
@@ -93,7 +96,7 @@ async fn run_session(session: Arc<Session>, app: Weak<Inner>) {
             panic!("test hook: a session tick panics");
         }
         let tick = slot + 1;
-        let computed = tick_once(&state, &session, tick).await;
+        let computed = tick_once(&state, &session, tick, &mut players).await;
         let done = Instant::now();
         let next_due = start + period.mul_f64((slot + 1) as f64);
         let m = &state.sessions.metrics;
@@ -145,14 +148,17 @@ enum Ticked {
 }
 
 /// One head resolved for this tick.
-#[derive(Clone, Copy)]
+#[derive(Clone)]
 struct HeadAt {
     rig: u32,
-    clip: u32,
-    frame: u32,
+    /// What it shows: its clip's frame, or a graph head's pose.
+    pose: Pose,
     levels: u32,
     f16_ok: bool,
 }
+
+/// A group's job: rig (index into the tick's rigs), pose, LOD.
+type Key = (u32, Pose, u32);
 
 /// The vertex viewers that share a format and normals: their jobs go to the batcher as one
 /// submission.
@@ -160,8 +166,8 @@ struct Group {
     format: Format,
     normals: bool,
     jobs: Vec<JobRequest>,
-    keys: Vec<(u32, u32, u32, u32)>,
-    index: HashMap<(u32, u32, u32, u32), u32>,
+    keys: Vec<Key>,
+    index: HashMap<Key, u32>,
 }
 
 /// Most bytes a tick's bookkeeping holds at once for `heads` heads and `viewers` viewers:
@@ -172,7 +178,6 @@ struct Group {
 /// viewers) this is tens of megabytes per tick, so it is charged to the queue memory before
 /// any of it is built.
 fn tick_bookkeeping_bytes(heads: usize, viewers: usize) -> u64 {
-    type Key = (u32, u32, u32, u32);
     let groups = viewers.min(6);
     let per_viewer = size_of::<Option<u32>>() + size_of::<HeadKey>() + 2 * size_of::<u32>();
     let per_group = 2 * (size_of::<JobRequest>() + size_of::<Key>())
@@ -207,16 +212,25 @@ fn level_at(by_distance: &[[f32; 2]], d: f32) -> u32 {
 /// One tick: the four phases of the module doc — [`resolve`] every head once, [`group`] each
 /// viewer's jobs by what its buffers hold (image viewers' frames start on the blocking pool),
 /// [`submit`] each group to the batcher, [`fan_out`] the messages.
-async fn tick_once(state: &AppState, session: &Arc<Session>, tick: u64) -> Ticked {
+async fn tick_once(
+    state: &AppState,
+    session: &Arc<Session>,
+    tick: u64,
+    players: &mut Players,
+) -> Ticked {
     let arrived = std::time::Instant::now();
     let Some(TickInput {
         heads,
         layout_rev,
         viewers,
+        jumps,
     }) = take_heads(session, tick)
     else {
         return Ticked::Skipped;
     };
+    // Graph heads move on every tick, watched or not, so that what a viewer joining later
+    // sees does not depend on when others watched.
+    let resolved = resolve(state, session, &heads, tick, players, jumps);
     if viewers.is_empty() {
         return Ticked::NoViewers;
     }
@@ -227,7 +241,6 @@ async fn tick_once(state: &AppState, session: &Arc<Session>, tick: u64) -> Ticke
     else {
         return Ticked::Skipped;
     };
-    let resolved = resolve(state, session, &heads, tick);
     let mut grouped = group(&resolved, &heads, &viewers);
     for (v, s) in std::mem::take(&mut grouped.frames) {
         start_frame(state, session, &heads, &resolved, tick, v, s);
@@ -265,6 +278,7 @@ fn take_heads(session: &Session, tick: u64) -> Option<TickInput> {
         heads: i.heads.clone(),
         layout_rev: i.layout_rev,
         viewers: i.viewers.clone(),
+        jumps: std::mem::take(&mut i.jumps),
     })
 }
 
@@ -273,6 +287,8 @@ struct TickInput {
     heads: Arc<Vec<SessionHead>>,
     layout_rev: u64,
     viewers: Vec<Arc<Viewer>>,
+    /// Graph heads sent to a node since the last tick.
+    jumps: Vec<(u64, String)>,
 }
 
 /// Every head of a tick resolved once: the rigs it names (at this tick's generation), and per
@@ -282,13 +298,26 @@ struct Resolved {
     at: Vec<Option<HeadAt>>,
 }
 
-/// Resolve: each head's rig at this tick's generation, its clip and the frame it plays.
-fn resolve(state: &AppState, session: &Session, heads: &[SessionHead], tick: u64) -> Resolved {
+/// Resolve: each head's rig at this tick's generation and what it shows — its clip's frame,
+/// or for a graph head the pose its player reaches this tick (jumps applied first).
+fn resolve(
+    state: &AppState,
+    session: &Session,
+    heads: &[SessionHead],
+    tick: u64,
+    players: &mut Players,
+    jumps: Vec<(u64, String)>,
+) -> Resolved {
     let mode = if session.wrap {
         FrameMode::Wrap
     } else {
         FrameMode::Clamp
     };
+    let steps = players.steps_to(tick, session.fps);
+    let mut jumps_by_head: HashMap<u64, Vec<String>> = HashMap::new();
+    for (h, node) in jumps {
+        jumps_by_head.entry(h).or_default().push(node);
+    }
     let mut rigs: Vec<Arc<RigEntry>> = Vec::new();
     let mut rig_at: HashMap<&str, Option<u32>> = HashMap::new();
     let at = heads
@@ -303,22 +332,117 @@ fn resolve(state: &AppState, session: &Session, heads: &[SessionHead], tick: u64
             let ri = ri?;
             let entry = &rigs[ri as usize];
             let rig = entry.rig();
-            let ci = entry.clip_index(&h.clip)?;
-            let clip = &rig.clips[ci];
-            let elapsed = (tick - 1) as f64 * f64::from(clip.fps) / f64::from(session.fps);
-            let frame = clip
-                .resolve_frame(h.offset.saturating_add(elapsed as i64), mode)
-                .ok()?;
+            let pose = match &h.graph {
+                Some(play) => {
+                    let graph = state.graphs.resolved(entry, &play.name)?;
+                    let jumps = jumps_by_head.remove(&h.head).unwrap_or_default();
+                    players.pose(h.head, play, &graph, rig, &jumps, steps)?
+                }
+                None => {
+                    let ci = entry.clip_index(&h.clip)?;
+                    let clip = &rig.clips[ci];
+                    let elapsed = (tick - 1) as f64 * f64::from(clip.fps) / f64::from(session.fps);
+                    let frame = clip
+                        .resolve_frame(h.offset.saturating_add(elapsed as i64), mode)
+                        .ok()?;
+                    Pose::Frame {
+                        clip: ci as u32,
+                        frame,
+                    }
+                }
+            };
             Some(HeadAt {
                 rig: ri,
-                clip: ci as u32,
-                frame,
+                pose,
                 levels: rig.lod.levels.len() as u32,
                 f16_ok: head_reach(entry) <= MAX_F16,
             })
         })
         .collect();
+    players.keep(heads);
     Resolved { rigs, at }
+}
+
+/// The graph heads of one session, each with the player that walks its graph, owned by the
+/// session's tick task.
+#[derive(Default)]
+pub(super) struct Players {
+    by_head: HashMap<u64, PlayerOf>,
+    /// The tick the players last advanced to.
+    tick: u64,
+}
+
+struct PlayerOf {
+    play: crowdmorph_proto::GraphPlay,
+    graph: Arc<Graph>,
+    player: Player,
+}
+
+impl Players {
+    /// Seconds to advance each player by, once per tick since the last (a skipped tick still
+    /// moves the graph heads, as it moves every clip head); at most ten seconds' worth.
+    fn steps_to(&mut self, tick: u64, fps: f32) -> (u64, f64) {
+        let n = tick.saturating_sub(self.tick).max(1);
+        self.tick = tick;
+        let limit = (10.0 * f64::from(fps)).ceil().max(1.0) as u64;
+        (n.min(limit), 1.0 / f64::from(fps.max(MIN_FPS)))
+    }
+
+    /// Head `id`'s pose after this tick: its player (new if the head is new, its play changed
+    /// or its graph was replaced), sent through `jumps`, advanced `steps`.
+    fn pose(
+        &mut self,
+        id: u64,
+        play: &crowdmorph_proto::GraphPlay,
+        graph: &Arc<Graph>,
+        rig: &crate::rig::Rig,
+        jumps: &[String],
+        (steps, dt): (u64, f64),
+    ) -> Option<Pose> {
+        let same_graph = |p: &PlayerOf| {
+            Arc::ptr_eq(&p.graph, graph)
+                || (p.graph.nodes.len() == graph.nodes.len()
+                    && p.graph
+                        .nodes
+                        .iter()
+                        .zip(&graph.nodes)
+                        .all(|(a, b)| a.name == b.name))
+        };
+        let fresh = match self.by_head.get(&id) {
+            Some(p) => p.play != *play || !same_graph(p),
+            None => true,
+        };
+        if fresh {
+            let (start, script, seed) = graph.play(play).ok()?;
+            self.by_head.insert(
+                id,
+                PlayerOf {
+                    play: play.clone(),
+                    graph: graph.clone(),
+                    player: Player::new(graph, start, script, seed),
+                },
+            );
+        }
+        let p = self.by_head.get_mut(&id)?;
+        p.graph = graph.clone();
+        for node in jumps {
+            if let Some(n) = graph.node(node) {
+                p.player.jump(graph, rig, n);
+            }
+        }
+        for _ in 0..steps {
+            p.player.advance(graph, rig, dt);
+        }
+        Some(p.player.pose(graph, rig))
+    }
+
+    /// Forgets the players of heads no longer in the session.
+    fn keep(&mut self, heads: &[SessionHead]) {
+        if self.by_head.len() > heads.iter().filter(|h| h.graph.is_some()).count() {
+            let ids: std::collections::HashSet<u64> = heads.iter().map(|h| h.head).collect();
+            self.by_head.retain(|id, _| ids.contains(id));
+        }
+    }
 }
 
 /// The viewers of a tick sorted by what they get: vertex viewers' jobs per head, grouped by
@@ -380,24 +504,21 @@ impl Group {
             .iter()
             .zip(&resolved.at)
             .map(|(h, a)| {
-                let a = (*a)?;
+                let a = a.as_ref()?;
                 if self.format == Format::F16 && !a.f16_ok {
                     return None;
                 }
                 let lod = level_for(&s.lod, s.camera.as_ref(), h.position).min(a.levels - 1);
-                let key = (a.rig, a.clip, a.frame, lod);
-                Some(*self.index.entry(key).or_insert_with(|| {
-                    self.keys.push(key);
-                    self.jobs.push(job_request(
-                        &resolved.rigs[a.rig as usize],
-                        &Pose::Frame {
-                            clip: a.clip,
-                            frame: a.frame,
-                        },
-                        lod,
-                    ));
-                    (self.jobs.len() - 1) as u32
-                }))
+                let key = (a.rig, a.pose.clone(), lod);
+                if let Some(&j) = self.index.get(&key) {
+                    return Some(j);
+                }
+                self.jobs
+                    .push(job_request(&resolved.rigs[a.rig as usize], &a.pose, lod));
+                self.keys.push(key.clone());
+                let j = (self.jobs.len() - 1) as u32;
+                self.index.insert(key, j);
+                Some(j)
             })
             .collect()
     }
@@ -493,12 +614,11 @@ fn head_keys(group: &Group, jobs: &[Option<u32>], rigs: &[Arc<RigEntry>]) -> Vec
         .map(|j| match j {
             None => MISSING_KEY,
             Some(j) => {
-                let (r, c, f, l) = group.keys[*j as usize];
+                let (r, pose, l) = &group.keys[*j as usize];
                 HeadKey {
-                    generation: rigs[r as usize].generation,
-                    clip: c,
-                    frame: f,
-                    lod: l,
+                    generation: rigs[*r as usize].generation,
+                    pose: pose.clone(),
+                    lod: *l,
                 }
             }
         })
@@ -600,13 +720,19 @@ fn message_buffers<'a>(
                 e
             } else {
                 *local.entry(e).or_insert_with(|| {
-                    let (r, c, f, l) = group.keys[e as usize];
+                    let (r, pose, l) = &group.keys[e as usize];
+                    let (r, l) = (*r, *l);
                     let entry = &rigs[r as usize];
                     let out = &outcome.outputs[e as usize];
+                    // A blend names its largest term; live weights name no clip.
+                    let (clip, frame) = match pose.shown() {
+                        Some((c, f)) => (entry.rig().clips[c as usize].name.as_str(), f),
+                        None => ("", 0),
+                    };
                     parts.push(FrameBufferParts {
                         rig: &entry.id,
-                        clip: &entry.rig().clips[c as usize].name,
-                        frame: f,
+                        clip,
+                        frame,
                         lod: l,
                         vertices: entry.prepared.at_level(l).rig().vertex_count() as u32,
                         quantization: (group.format == Format::Q16).then_some(entry.qbox),
@@ -741,10 +867,8 @@ fn frame_request(heads: &[SessionHead], resolved: &Resolved, s: &ViewerSettings)
         req_heads.push(crowdmorph_proto::Head {
             head: h.head,
             rig: entry.id.clone(),
-            clip: entry.rig().clips[a.clip as usize].name.clone(),
-            frame: i64::from(a.frame),
             lod,
-            ..Default::default()
+            ..pose_head(entry.rig(), &a.pose)
         });
         placements.push(super::placement(h));
     }
@@ -754,6 +878,50 @@ fn frame_request(heads: &[SessionHead], resolved: &Resolved, s: &ViewerSettings)
         placements: Some(placements),
         camera: s.camera,
         image: Some(s.image),
+    }
+}
+
+/// A head of a render request that shows `pose`: a clip frame, a blend (its first term as
+/// the base, the others as layers: the same canonical blend), or live weights by name (each
+/// name takes its first channel's weight: a rig with split targets draws them alike).
+fn pose_head(rig: &crate::rig::Rig, pose: &Pose) -> crowdmorph_proto::Head {
+    let name = |c: u32| rig.clips[c as usize].name.clone();
+    match pose {
+        Pose::Frame { clip, frame } => crowdmorph_proto::Head {
+            clip: name(*clip),
+            frame: i64::from(*frame),
+            ..Default::default()
+        },
+        Pose::Blend(terms) => crowdmorph_proto::Head {
+            clip: name(terms[0].clip),
+            frame: i64::from(terms[0].frame),
+            blend: terms[1..]
+                .iter()
+                .map(|t| crowdmorph_proto::BlendLayer {
+                    clip: name(t.clip),
+                    frame: i64::from(t.frame),
+                    t: t.fraction(),
+                })
+                .collect(),
+            ..Default::default()
+        },
+        Pose::Live(q) => {
+            let index = rig.target_index();
+            let dense = rig
+                .target_names()
+                .iter()
+                .map(|n| {
+                    index
+                        .ids(n)
+                        .first()
+                        .map_or(0.0, |&c| q[c as usize] as f32 * crate::rig::LIVE_STEP)
+                })
+                .collect();
+            crowdmorph_proto::Head {
+                weights: Some(Box::new(crowdmorph_proto::LiveWeights::Dense(dense))),
+                ..Default::default()
+            }
+        }
     }
 }
 

@@ -1,0 +1,566 @@
+//! Motion graphs (Kovar et al. 2002; GPU Gems 3 ch. 15 sequences captured clips so): a
+//! [`MotionGraph`] checked against a rig ([`Graph`]), and the [`Player`] that walks one for a
+//! session head, cross-fading in weight space.
+//!
+//! **No pops.** Every change of what a head plays is a fade from the pose it shows: an edge
+//! fades the target node in while the source keeps playing; a jump (a session `PATCH` sending
+//! the head to a node, also in the middle of a fade) freezes the pose shown and fades from it.
+//! So weights are continuous. Their change per tick is bounded too: a fade's progress per tick
+//! is capped so that `Δα × U ≤ 0.45 × D`, where `U = Σₖ |w_src,k − w_dst,k| × Lₖ` bounds the
+//! vertex distance between the two poses (`Lₖ`: channel k's longest delta) and `D` is the
+//! largest per-frame vertex displacement inside the nodes involved (measured by the server on
+//! the CPU engine, [`Graph::set_motion`]). A vertex then moves per tick by at most
+//! `(1 − α)·D_src + α·D_dst + Δα·U ≤ 1.45 × D` — within 1.5× the clips' own motion, with room
+//! for the 1/4096 quantization of blend fractions. A fade between poses far apart takes longer
+//! than its edge's nominal `fade` frames.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+
+use crowdmorph_proto::{GraphPlay, MotionGraph};
+
+use crate::rig::{Pose, Rig};
+use crate::rng::SplitMix64;
+
+/// Most nodes a graph may have.
+pub const MAX_GRAPH_NODES: usize = 1024;
+/// Most edges a graph may have.
+pub const MAX_GRAPH_EDGES: usize = 16_384;
+/// Cross-fade of a jump to a node that no edge from the current node reaches, in frames.
+pub const DEFAULT_JUMP_FADE: u32 = 8;
+/// Share of the involved clips' per-frame motion that a fade's progress may add per tick.
+const STEP_SHARE: f64 = 0.45;
+
+/// Why a graph does not fit its rig; each names the field.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum GraphError {
+    /// A malformed graph (400 `invalid_graph`).
+    #[error("{0}")]
+    Invalid(String),
+    /// A node names a clip the rig does not have (404 `unknown_clip`).
+    #[error("node {node:?} plays clip {clip:?}, which the rig does not have")]
+    UnknownClip {
+        /// Node name.
+        node: String,
+        /// Clip name.
+        clip: String,
+    },
+}
+
+/// A node: `len` frames of clip `clip` from frame `first`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Node {
+    /// Node name.
+    pub name: String,
+    /// Clip index in the rig.
+    pub clip: u32,
+    /// First frame played.
+    pub first: u32,
+    /// Frames played.
+    pub len: u32,
+    /// Frames per second of the clip.
+    pub fps: f32,
+    /// Edges leaving the node (indices into [`Graph::edges`]).
+    pub out: Vec<u32>,
+}
+
+/// A transition.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Edge {
+    /// Source node.
+    pub from: u32,
+    /// Target node.
+    pub to: u32,
+    /// Nominal cross-fade, frames.
+    pub fade: u32,
+    /// Source-node frames where it may start, inclusive.
+    pub window: [u32; 2],
+}
+
+/// A motion graph resolved against one version of a rig.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Graph {
+    /// The nodes.
+    pub nodes: Vec<Node>,
+    /// The edges.
+    pub edges: Vec<Edge>,
+    by_name: HashMap<String, u32>,
+    /// Per node, the largest per-frame vertex displacement of its frames.
+    motion: Vec<f32>,
+    /// Per weight channel, its longest delta.
+    reach: Vec<f32>,
+}
+
+impl Graph {
+    /// Bytes a resolved `spec` holds at most (for the caller's charge).
+    pub fn bytes(spec: &MotionGraph, rig: &Rig) -> u64 {
+        let names: u64 = spec.nodes.iter().map(|n| n.name.len() as u64 + 64).sum();
+        names
+            + spec.nodes.len() as u64 * (size_of::<Node>() as u64 + 8)
+            + spec.edges.len() as u64 * (size_of::<Edge>() as u64 + 4)
+            + rig.targets.len() as u64 * 4
+    }
+
+    /// Checks `spec` against `rig` (`clip_index` finds a clip by name) and resolves it. Motion
+    /// is zero until [`Graph::set_motion`].
+    pub fn resolve(
+        spec: &MotionGraph,
+        rig: &Rig,
+        clip_index: impl Fn(&str) -> Option<usize>,
+    ) -> Result<Graph, GraphError> {
+        let bad = |m: String| Err(GraphError::Invalid(m));
+        if spec.nodes.is_empty() || spec.nodes.len() > MAX_GRAPH_NODES {
+            return bad(format!(
+                "nodes: {} nodes; a graph has 1 to {MAX_GRAPH_NODES}",
+                spec.nodes.len()
+            ));
+        }
+        if spec.edges.len() > MAX_GRAPH_EDGES {
+            return bad(format!(
+                "edges: {} edges, more than the limit of {MAX_GRAPH_EDGES}",
+                spec.edges.len()
+            ));
+        }
+        let mut nodes = Vec::with_capacity(spec.nodes.len());
+        let mut by_name = HashMap::with_capacity(spec.nodes.len());
+        for (i, n) in spec.nodes.iter().enumerate() {
+            if n.name.is_empty() || n.name.len() > 64 {
+                return bad(format!("nodes[{i}].name must be 1 to 64 bytes"));
+            }
+            if by_name.insert(n.name.clone(), i as u32).is_some() {
+                return bad(format!("nodes[{i}].name {:?} is used twice", n.name));
+            }
+            let c = clip_index(&n.clip).ok_or_else(|| GraphError::UnknownClip {
+                node: n.name.clone(),
+                clip: n.clip.clone(),
+            })?;
+            let clip = &rig.clips[c];
+            let [first, last] = n.frames.unwrap_or([0, clip.frames.saturating_sub(1)]);
+            if first > last || last >= clip.frames {
+                return bad(format!(
+                    "nodes[{i}].frames [{first}, {last}] is not a range of clip {:?} (frames 0..{})",
+                    n.clip, clip.frames
+                ));
+            }
+            nodes.push(Node {
+                name: n.name.clone(),
+                clip: c as u32,
+                first,
+                len: last - first + 1,
+                fps: clip.fps,
+                out: Vec::new(),
+            });
+        }
+        let mut edges = Vec::with_capacity(spec.edges.len());
+        for (i, e) in spec.edges.iter().enumerate() {
+            let node = |name: &str, field: &str| {
+                by_name.get(name).copied().ok_or_else(|| {
+                    GraphError::Invalid(format!("edges[{i}].{field} names no node: {name:?}"))
+                })
+            };
+            let (from, to) = (node(&e.from, "from")?, node(&e.to, "to")?);
+            let (lf, lt) = (nodes[from as usize].len, nodes[to as usize].len);
+            if e.fade == 0 {
+                return bad(format!(
+                    "edges[{i}].fade is 0; a cross-fade lasts at least one frame"
+                ));
+            }
+            if e.fade > lf || e.fade > lt {
+                return bad(format!(
+                    "edges[{i}].fade of {} frames is longer than node {:?} ({} frames) or {:?} ({})",
+                    e.fade, e.from, lf, e.to, lt
+                ));
+            }
+            let window = e.window.unwrap_or([lf - e.fade, lf - e.fade]);
+            if window[0] > window[1] || window[1] >= lf {
+                return bad(format!(
+                    "edges[{i}].window {window:?} is not a range of node {:?}'s frames 0..{lf}",
+                    e.from
+                ));
+            }
+            nodes[from as usize].out.push(i as u32);
+            edges.push(Edge {
+                from,
+                to,
+                fade: e.fade,
+                window,
+            });
+        }
+        if let Some(n) = nodes.iter().find(|n| n.out.is_empty()) {
+            return bad(format!(
+                "node {:?} has no edge out: a head reaching it would have nowhere to go (every \
+                 node needs one; a self-loop plays it again)",
+                n.name
+            ));
+        }
+        let mut reach = vec![0f32; rig.targets.len()];
+        for p in rig.primitives.iter() {
+            for t in &p.targets {
+                let longest = t.positions.iter().map(|d| d.length()).fold(0.0, f32::max);
+                let r = &mut reach[t.target as usize];
+                *r = r.max(longest);
+            }
+        }
+        Ok(Graph {
+            motion: vec![0.0; nodes.len()],
+            nodes,
+            edges,
+            by_name,
+            reach,
+        })
+    }
+
+    /// The node named `name`.
+    pub fn node(&self, name: &str) -> Option<u32> {
+        self.by_name.get(name).copied()
+    }
+
+    /// The first edge from `from` to `to`.
+    pub fn edge(&self, from: u32, to: u32) -> Option<u32> {
+        self.nodes[from as usize]
+            .out
+            .iter()
+            .copied()
+            .find(|&e| self.edges[e as usize].to == to)
+    }
+
+    /// Sets each node's largest per-frame vertex displacement (the server measures it).
+    pub fn set_motion(&mut self, motion: Vec<f32>) {
+        if motion.len() == self.nodes.len() {
+            self.motion = motion;
+        }
+    }
+
+    /// The largest per-frame displacement of node `n`.
+    pub fn motion(&self, n: u32) -> f32 {
+        self.motion[n as usize]
+    }
+
+    /// Checks a head's play (start and script nodes exist, each script step has an edge)
+    /// and returns its start, script and seed.
+    pub fn play(&self, p: &GraphPlay) -> Result<(u32, Vec<u32>, u64), String> {
+        let start = self
+            .node(&p.start)
+            .ok_or_else(|| format!("graph {:?} has no node {:?}", p.name, p.start))?;
+        let mut script = Vec::with_capacity(p.script.len());
+        let mut at = start;
+        for (i, name) in p.script.iter().enumerate() {
+            let n = self
+                .node(name)
+                .ok_or_else(|| format!("script[{i}]: graph {:?} has no node {name:?}", p.name))?;
+            if self.edge(at, n).is_none() {
+                return Err(format!(
+                    "script[{i}]: no edge from {:?} to {name:?}",
+                    self.nodes[at as usize].name
+                ));
+            }
+            script.push(n);
+            at = n;
+        }
+        Ok((start, script, p.seed))
+    }
+
+    /// `U`: a bound on the vertex distance between two weight vectors.
+    fn distance(&self, a: &[f32], b: &[f32]) -> f64 {
+        a.iter()
+            .zip(b)
+            .zip(&self.reach)
+            .map(|((x, y), r)| f64::from((x - y).abs() * r))
+            .sum()
+    }
+}
+
+/// Where a fade comes from.
+#[derive(Clone, Debug, PartialEq)]
+enum Source {
+    /// A node still playing (an edge's source).
+    Node { node: u32, t: f64 },
+    /// The pose a jump froze, and the motion of the nodes it came from.
+    Frozen { weights: Arc<[f32]>, motion: f32 },
+}
+
+#[derive(Clone, Debug, PartialEq)]
+struct Fade {
+    source: Source,
+    /// Progress, 0 → 1.
+    alpha: f64,
+    /// Nominal progress per frame (1 / fade).
+    rate: f64,
+}
+
+/// One head walking a graph: the node it plays (the fade's target while fading), the frames
+/// played in it, its next edge and where that starts, the fade in progress.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Player {
+    node: u32,
+    t: f64,
+    rng: u64,
+    script: Vec<u32>,
+    script_at: usize,
+    next: Option<(u32, f64)>,
+    fade: Option<Fade>,
+}
+
+impl Player {
+    /// A head at the first frame of `start`, following `script` then walking at random with
+    /// `seed`. Two players made alike stay alike: clones cost one blend.
+    pub fn new(g: &Graph, start: u32, script: Vec<u32>, seed: u64) -> Player {
+        let mut p = Player {
+            node: start,
+            t: 0.0,
+            rng: seed,
+            script,
+            script_at: 0,
+            next: None,
+            fade: None,
+        };
+        p.plan(g);
+        p
+    }
+
+    /// Picks the next edge out of the current node and the frame it starts at.
+    fn plan(&mut self, g: &Graph) {
+        let out = &g.nodes[self.node as usize].out;
+        let mut rng = SplitMix64(self.rng);
+        let (edge, scripted) = match self.script.get(self.script_at) {
+            Some(&to) => match g.edge(self.node, to) {
+                Some(e) => (e, true),
+                None => (out[rng.below(out.len())], false),
+            },
+            None => (out[rng.below(out.len())], false),
+        };
+        if scripted {
+            self.script_at += 1;
+        }
+        let [a, b] = g.edges[edge as usize].window;
+        let at = if scripted {
+            a
+        } else {
+            a + rng.below((b - a + 1) as usize) as u32
+        };
+        self.rng = rng.0;
+        self.next = Some((edge, f64::from(at)));
+    }
+
+    /// The node the head plays now (the target while fading).
+    pub fn node(&self) -> u32 {
+        self.node
+    }
+
+    /// Whether a fade is in progress.
+    pub fn fading(&self) -> bool {
+        self.fade.is_some()
+    }
+
+    fn frame(g: &Graph, node: u32, t: f64) -> (u32, u32) {
+        let n = &g.nodes[node as usize];
+        // The tiny bias keeps a clock that sums 1/fps steps from landing just below a whole
+        // frame and then skipping one.
+        let f = ((t.max(0.0) + 1e-6).floor() as u64).min(u64::from(n.len - 1)) as u32;
+        (n.clip, n.first + f)
+    }
+
+    fn frame_weights(rig: &Rig, (clip, frame): (u32, u32)) -> Vec<f32> {
+        let mut w = vec![0.0; rig.targets.len()];
+        rig.clips[clip as usize].frame_weights(frame, &mut w);
+        w
+    }
+
+    fn source_weights(g: &Graph, rig: &Rig, s: &Source) -> Vec<f32> {
+        match s {
+            Source::Node { node, t } => Self::frame_weights(rig, Self::frame(g, *node, *t)),
+            Source::Frozen { weights, .. } => weights.to_vec(),
+        }
+    }
+
+    /// The pose shown now: a clip frame, a two-frame blend while an edge fades, live weights
+    /// while a jump fades from a frozen pose.
+    pub fn pose(&self, g: &Graph, rig: &Rig) -> Pose {
+        let here = Self::frame(g, self.node, self.t);
+        match &self.fade {
+            None => Pose::Frame {
+                clip: here.0,
+                frame: here.1,
+            },
+            Some(Fade {
+                source: Source::Node { node, t },
+                alpha,
+                ..
+            }) => Pose::blend(
+                Self::frame(g, *node, *t),
+                &[(here.0, here.1, *alpha as f32)],
+            ),
+            Some(f) => Pose::live(&self.weights_with(g, rig, f)),
+        }
+    }
+
+    fn weights_with(&self, g: &Graph, rig: &Rig, f: &Fade) -> Vec<f32> {
+        let here = Self::frame_weights(rig, Self::frame(g, self.node, self.t));
+        let from = Self::source_weights(g, rig, &f.source);
+        let a = f.alpha as f32;
+        from.iter()
+            .zip(&here)
+            .map(|(s, d)| (1.0 - a) * s + a * d)
+            .collect()
+    }
+
+    /// The weights shown now, per channel.
+    pub fn weights(&self, g: &Graph, rig: &Rig) -> Vec<f32> {
+        match &self.fade {
+            Some(f) => self.weights_with(g, rig, f),
+            None => Self::frame_weights(rig, Self::frame(g, self.node, self.t)),
+        }
+    }
+
+    /// Advances `dt` seconds: every node playing moves by `dt × fps` frames, a fade by at most
+    /// its nominal rate and at most what keeps the per-tick change bounded (module doc); an
+    /// edge whose start frame is reached begins its fade.
+    pub fn advance(&mut self, g: &Graph, rig: &Rig, dt: f64) {
+        let frames = |n: u32| dt * f64::from(g.nodes[n as usize].fps);
+        let step = frames(self.node);
+        self.t += step;
+        if let Some(mut f) = self.fade.take() {
+            if let Source::Node { node, t } = &mut f.source {
+                *t += dt * f64::from(g.nodes[*node as usize].fps);
+            }
+            let d = match &f.source {
+                Source::Node { node, .. } => g.motion(*node),
+                Source::Frozen { motion, .. } => *motion,
+            }
+            .max(g.motion(self.node));
+            let here = Self::frame_weights(rig, Self::frame(g, self.node, self.t));
+            let u = g.distance(&Self::source_weights(g, rig, &f.source), &here);
+            let mut da = f.rate * step;
+            if u > 0.0 && d > 0.0 {
+                da = da.min(STEP_SHARE * f64::from(d) / u);
+            }
+            f.alpha = (f.alpha + da).min(1.0);
+            if f.alpha < 1.0 {
+                self.fade = Some(f);
+                return;
+            }
+        }
+        if self.next.is_none() {
+            self.plan(g);
+        }
+        if let Some((edge, at)) = self.next
+            && self.t >= at
+        {
+            let e = &g.edges[edge as usize];
+            self.fade = Some(Fade {
+                source: Source::Node {
+                    node: self.node,
+                    t: self.t,
+                },
+                alpha: 0.0,
+                rate: 1.0 / f64::from(e.fade),
+            });
+            self.node = e.to;
+            self.t = 0.0;
+            self.next = None;
+        }
+    }
+
+    /// Sends the head to node `to` now: the pose shown is frozen and faded from, over the
+    /// fade of an edge from the current node to `to` if there is one, else
+    /// [`DEFAULT_JUMP_FADE`] frames (at most the node's length).
+    pub fn jump(&mut self, g: &Graph, rig: &Rig, to: u32) {
+        let weights: Arc<[f32]> = self.weights(g, rig).into();
+        let motion = match &self.fade {
+            Some(Fade {
+                source: Source::Node { node, .. },
+                ..
+            }) => g.motion(*node),
+            Some(Fade {
+                source: Source::Frozen { motion, .. },
+                ..
+            }) => *motion,
+            None => 0.0,
+        }
+        .max(g.motion(self.node));
+        let fade = g
+            .edge(self.node, to)
+            .map_or(DEFAULT_JUMP_FADE, |e| g.edges[e as usize].fade)
+            .min(g.nodes[to as usize].len)
+            .max(1);
+        self.fade = Some(Fade {
+            source: Source::Frozen { weights, motion },
+            alpha: 0.0,
+            rate: 1.0 / f64::from(fade),
+        });
+        self.node = to;
+        self.t = 0.0;
+        self.next = None;
+        // A jump replaces what the script asked for; the walk goes on from `to`.
+        self.script_at = self.script.len();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crowdmorph_proto::{GraphEdge, GraphNode};
+
+    fn spec() -> MotionGraph {
+        let node = |name: &str, clip: &str| GraphNode {
+            name: name.into(),
+            clip: clip.into(),
+            frames: None,
+        };
+        let edge = |from: &str, to: &str, fade| GraphEdge {
+            from: from.into(),
+            to: to.into(),
+            fade,
+            window: None,
+        };
+        MotionGraph {
+            nodes: vec![node("talk", "talk"), node("smile", "smile")],
+            edges: vec![edge("talk", "smile", 10), edge("smile", "talk", 10)],
+        }
+    }
+
+    fn graph(spec: &MotionGraph) -> Result<Graph, GraphError> {
+        let rig = crate::embedded::default_rig();
+        Graph::resolve(spec, &rig, |n| rig.clip_index(n))
+    }
+
+    #[test]
+    fn malformed_graphs_name_the_field() {
+        assert!(graph(&spec()).is_ok());
+        let mut s = spec();
+        s.edges[0].fade = 0;
+        assert!(matches!(graph(&s), Err(GraphError::Invalid(m)) if m.contains("edges[0].fade")));
+        let mut s = spec();
+        s.edges[1].fade = 100_000;
+        assert!(matches!(graph(&s), Err(GraphError::Invalid(m)) if m.contains("longer")));
+        let mut s = spec();
+        s.edges.pop();
+        assert!(matches!(graph(&s), Err(GraphError::Invalid(m)) if m.contains("no edge out")));
+        let mut s = spec();
+        s.nodes[1].clip = "nope".into();
+        assert!(matches!(graph(&s), Err(GraphError::UnknownClip { .. })));
+        let mut s = spec();
+        s.edges[0].to = "nobody".into();
+        assert!(matches!(graph(&s), Err(GraphError::Invalid(m)) if m.contains("edges[0].to")));
+        let mut s = spec();
+        s.edges[0].window = Some([5, 100_000]);
+        assert!(matches!(graph(&s), Err(GraphError::Invalid(m)) if m.contains("window")));
+    }
+
+    #[test]
+    fn players_alike_stay_alike_and_fades_end_in_the_target() {
+        let rig = crate::embedded::default_rig();
+        let mut g = graph(&spec()).expect("a valid graph");
+        g.set_motion(vec![0.01, 0.01]);
+        let mut a = Player::new(&g, 0, Vec::new(), 7);
+        let mut b = a.clone();
+        let mut seen_fade = false;
+        for _ in 0..2000 {
+            a.advance(&g, &rig, 1.0 / 30.0);
+            b.advance(&g, &rig, 1.0 / 30.0);
+            assert_eq!(a.pose(&g, &rig), b.pose(&g, &rig));
+            seen_fade |= a.fading();
+        }
+        assert!(seen_fade, "the walk took an edge");
+    }
+}
