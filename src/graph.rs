@@ -302,13 +302,21 @@ pub struct Player {
 }
 
 impl Player {
-    /// A head at the first frame of `start`, following `script` then walking at random with
-    /// `seed`. Two players made alike stay alike: clones cost one blend.
+    /// A head in node `start`, following `script` (from the node's first frame) then walking
+    /// at random with `seed`. A walk starts at a frame of `start` its seed picks, so that a
+    /// crowd on one graph does not move in lockstep; two players made alike stay alike, and
+    /// clones cost one blend.
     pub fn new(g: &Graph, start: u32, script: Vec<u32>, seed: u64) -> Player {
+        let mut rng = SplitMix64(seed);
+        let t = if script.is_empty() {
+            rng.below(g.nodes[start as usize].len as usize) as f64
+        } else {
+            0.0
+        };
         let mut p = Player {
             node: start,
-            t: 0.0,
-            rng: seed,
+            t,
+            rng: rng.0,
             script,
             script_at: 0,
             next: None,

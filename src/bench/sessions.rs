@@ -44,6 +44,9 @@ pub struct SessionBenchOptions {
     pub backend: BackendChoice,
     /// The server's `--max-gpu-memory` (`None`: the default).
     pub gpu_memory: Option<u64>,
+    /// Heads walk a motion graph over every clip (random walks, one seed per animation)
+    /// instead of playing clips.
+    pub graph: bool,
 }
 
 /// The measurement.
@@ -57,6 +60,8 @@ pub struct SessionBenchReport {
     pub heads: usize,
     /// Distinct animations.
     pub animations: usize,
+    /// Whether the heads walked a motion graph.
+    pub graph: bool,
     /// Viewers.
     pub viewers: usize,
     /// Target ticks per second.
@@ -136,18 +141,30 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &SessionBenchOptions) -> Result<Se
     if info.clips.is_empty() {
         bail!("rig {rig_id:?} has no clips to play");
     }
-    // Animation a plays clip a mod C from an offset that makes (clip, frame) distinct.
+    // Animation a plays clip a mod C from an offset that makes (clip, frame) distinct; with
+    // --graph it is a random walk with seed a from node a mod C of a graph over every clip.
     let clips = &info.clips;
+    if opt.graph {
+        put_graph(&client, &rig_id, clips).await?;
+    }
     let side = (opt.heads as f64).sqrt().ceil() as usize;
     let heads: Vec<serde_json::Value> = (0..opt.heads)
         .map(|i| {
             let a = i % opt.animations;
             let clip = &clips[a % clips.len()];
             let offset = (a / clips.len()) * 3;
-            serde_json::json!({
-                "head": i, "rig": rig_id, "clip": clip.name, "offset": offset,
-                "position": [(i % side) as f32 * 0.4, 0.0, -((i / side) as f32) * 0.4],
-            })
+            let position = [(i % side) as f32 * 0.4, 0.0, -((i / side) as f32) * 0.4];
+            if opt.graph {
+                serde_json::json!({
+                    "head": i, "rig": rig_id, "position": position,
+                    "graph": {"name": "bench", "start": clip.name, "seed": a},
+                })
+            } else {
+                serde_json::json!({
+                    "head": i, "rig": rig_id, "clip": clip.name, "offset": offset,
+                    "position": position,
+                })
+            }
         })
         .collect();
     let body = serde_json::json!({"fps": opt.fps, "idle_timeout_s": 600, "heads": heads});
@@ -257,6 +274,7 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &SessionBenchOptions) -> Result<Se
         vertices: info.vertices,
         heads: opt.heads,
         animations: opt.animations,
+        graph: opt.graph,
         viewers: opt.viewers,
         fps: opt.fps,
         format: opt.format.name().to_string(),
@@ -276,6 +294,52 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &SessionBenchOptions) -> Result<Se
     })
 }
 
+/// Stores graph `bench` on the rig: a node per clip, an edge from each to each (itself
+/// included) fading over a quarter of the shorter clip (1–10 frames), leaving anywhere in
+/// the second half of the source.
+async fn put_graph(
+    client: &crowdmorph_client::Client,
+    rig: &str,
+    clips: &[crowdmorph_proto::ClipInfo],
+) -> Result<()> {
+    let nodes: Vec<serde_json::Value> = clips
+        .iter()
+        .map(|c| serde_json::json!({"name": c.name, "clip": c.name}))
+        .collect();
+    let mut edges = Vec::new();
+    for a in clips {
+        for b in clips {
+            let fade = (a.frames.min(b.frames) / 4).clamp(1, 10);
+            // Leaving anywhere in the second half of the source spreads the crowd's
+            // transitions over time.
+            let last = a.frames.saturating_sub(fade);
+            let window = [(a.frames / 2).min(last), last];
+            edges.push(serde_json::json!({
+                "from": a.name, "to": b.name, "fade": fade, "window": window,
+            }));
+        }
+    }
+    let body = serde_json::json!({"nodes": nodes, "edges": edges});
+    let reply = client
+        .send(
+            hyper::Method::PUT,
+            &format!("/v1/rigs/{rig}/graphs/bench"),
+            Some("application/json"),
+            None,
+            Bytes::from(body.to_string()),
+        )
+        .await
+        .context("storing the graph")?;
+    if reply.status != 200 {
+        bail!(
+            "storing the graph: {} {}",
+            reply.status,
+            String::from_utf8_lossy(&reply.body)
+        );
+    }
+    Ok(())
+}
+
 /// The report as a table.
 impl std::fmt::Display for SessionBenchReport {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -286,7 +350,7 @@ impl std::fmt::Display for SessionBenchReport {
 /// The report as text (its [`std::fmt::Display`]).
 pub fn report_text(r: &SessionBenchReport) -> String {
     format!(
-        "bench sessions: rig {} ({} vertices), {} heads playing {} animations, {} viewers, \
+        "bench sessions: rig {} ({} vertices), {} heads playing {} animations{}, {} viewers, \
          {} ticks/s, {}, {:.1} s, {} cores\n\
          ticks computed          {} of {:.0} due ({:.1} % on time), {} late, {} skipped\n\
          unique jobs per tick    {:.1} (shared by all viewers)\n\
@@ -297,6 +361,11 @@ pub fn report_text(r: &SessionBenchReport) -> String {
         r.vertices,
         r.heads,
         r.animations,
+        if r.graph {
+            " (random walks over a motion graph)"
+        } else {
+            ""
+        },
         r.viewers,
         r.fps,
         r.format,

@@ -110,6 +110,9 @@ pub enum Command {
         backend: BackendChoice,
         #[command(flatten)]
         gpu: GpuMemoryArgs,
+        /// Heads walk a motion graph over every clip (one random walk per animation).
+        #[arg(long)]
+        graph: bool,
         /// Print JSON.
         #[arg(long)]
         json: bool,
@@ -324,6 +327,7 @@ pub fn run(which: Command) -> Result<()> {
             seconds,
             backend,
             gpu,
+            graph,
             json,
         } => {
             let bytes = server_rig(rig.as_deref())?;
@@ -336,6 +340,7 @@ pub fn run(which: Command) -> Result<()> {
                 seconds,
                 backend,
                 gpu_memory: gpu.max_gpu_memory,
+                graph,
             };
             let report = with_spinner("bench sessions", || {
                 bench::sessions::bench_sessions(bytes, &opt)
