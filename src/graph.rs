@@ -504,6 +504,351 @@ impl Player {
     }
 }
 
+/// What [`build`] found: the graph, each edge's cost (the mean vertex distance, over the
+/// fade's window, between the frames it blends, as a fraction of the rig's diagonal; 0 for an
+/// edge that plays a clip on), and what the pruning dropped.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct Built {
+    /// The graph, ready to store.
+    pub graph: MotionGraph,
+    /// Per edge of `graph`, its cost.
+    pub costs: Vec<f32>,
+    /// Candidate transitions found (local minima under the threshold).
+    pub candidates: usize,
+    /// Nodes dropped because they were outside the largest strongly connected component.
+    pub dropped_nodes: usize,
+}
+
+/// Options of [`build`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BuildOptions {
+    /// Frames compared per candidate transition, and the fade of the transitions made.
+    pub window: u32,
+    /// Largest mean vertex distance of a transition, as a fraction of the rig's diagonal.
+    pub threshold: f32,
+    /// Most transitions kept per (source clip, target clip), cheapest first.
+    pub per_pair: usize,
+}
+
+impl Default for BuildOptions {
+    fn default() -> Self {
+        BuildOptions {
+            window: 5,
+            threshold: 0.02,
+            per_pair: 8,
+        }
+    }
+}
+
+/// Bytes [`build`] holds at most for `rig` (for the caller's charge): the projected frames,
+/// one distance row, the Gram matrix.
+pub fn build_bytes(rig: &Rig) -> u64 {
+    let k = rig.targets.len() as u64;
+    let frames: u64 = rig.clips.iter().map(|c| u64::from(c.frames)).sum();
+    frames * k * 8 + frames * 8 + k * k * 16 + 4096
+}
+
+/// Builds a motion graph from the rig's clips the way Kovar et al. (2002) do: frame distances
+/// in vertex space, `‖Dᵀ(w_a − w_b)‖` over the rig's deltas (computed as `‖Lᵀ(w_a − w_b)‖`
+/// with `L` the Cholesky factor of the Gram matrix `DDᵀ`, so a pair costs K operations, not a
+/// mesh), summed over a window of frames; the local minima under the threshold become
+/// transitions; clips are cut into nodes where transitions land, nodes of one clip play on
+/// into each other, and the graph is pruned to its largest strongly connected component (so
+/// every node can reach every other). `None` when no clip has a window's frames.
+pub fn build(rig: &Rig, opt: BuildOptions) -> Option<Built> {
+    let w = opt.window.max(1) as usize;
+    let project = projector(rig);
+    let v = rig.vertex_count().max(1) as f64;
+    let diag = f64::from(rig.bbox().diagonal()).max(1e-12);
+    // Per clip, per frame: Lᵀ w, so that a distance is a difference of these.
+    let frames: Vec<Vec<Vec<f64>>> = rig
+        .clips
+        .iter()
+        .map(|c| {
+            let mut wf = vec![0f32; rig.targets.len()];
+            (0..c.frames)
+                .map(|f| {
+                    c.frame_weights(f, &mut wf);
+                    project(&wf)
+                })
+                .collect()
+        })
+        .collect();
+    let dist = |a: &[f64], b: &[f64]| -> f64 {
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y) * (x - y))
+            .sum::<f64>()
+            .sqrt()
+    };
+    // Candidate transitions (source clip, source frame, target clip, target frame, cost).
+    let mut candidates: Vec<(usize, u32, usize, u32, f64)> = Vec::new();
+    for (a, fa) in frames.iter().enumerate() {
+        for (b, fb) in frames.iter().enumerate() {
+            if fa.len() < w || fb.len() < w {
+                continue;
+            }
+            let (ni, nj) = (fa.len() - w + 1, fb.len() - w + 1);
+            let cost = |i: usize, j: usize| -> f64 {
+                (0..w).map(|k| dist(&fa[i + k], &fb[j + k])).sum::<f64>()
+                    / w as f64
+                    / v.sqrt()
+                    / diag
+            };
+            let grid: Vec<f64> = (0..ni * nj).map(|x| cost(x / nj, x % nj)).collect();
+            let at = |i: isize, j: isize| -> f64 {
+                if i < 0 || j < 0 || i as usize >= ni || j as usize >= nj {
+                    f64::INFINITY
+                } else {
+                    grid[i as usize * nj + j as usize]
+                }
+            };
+            let mut found = Vec::new();
+            for i in 0..ni {
+                for j in 0..nj {
+                    // A clip's frame with itself, or its next few, is no transition.
+                    if a == b && i.abs_diff(j) <= w {
+                        continue;
+                    }
+                    let c = grid[i * nj + j];
+                    if c > f64::from(opt.threshold) {
+                        continue;
+                    }
+                    let (ii, jj) = (i as isize, j as isize);
+                    let minimum = (-1..=1).all(|di| {
+                        (-1..=1).all(|dj| (di == 0 && dj == 0) || at(ii + di, jj + dj) >= c)
+                    });
+                    if minimum {
+                        found.push((a, i as u32, b, j as u32, c));
+                    }
+                }
+            }
+            found.sort_by(|x, y| x.4.total_cmp(&y.4));
+            found.truncate(opt.per_pair);
+            candidates.extend(found);
+        }
+    }
+    // Transitions landing a few frames apart in one clip would cut it into slivers: the
+    // cheapest lands, and others land on the same frame or at least a window away.
+    candidates.sort_by(|x, y| x.4.total_cmp(&y.4));
+    let mut landed: Vec<Vec<u32>> = rig.clips.iter().map(|_| Vec::new()).collect();
+    let mut taken: Vec<(usize, u32, usize, u32)> = Vec::new();
+    candidates.retain(|&(a, i, b, j, _)| {
+        // The same landing from a few frames earlier or later of the same source is the same
+        // transition.
+        if taken
+            .iter()
+            .any(|&(ta, ti, tb, tj)| (ta, tb, tj) == (a, b, j) && ti.abs_diff(i) < w as u32)
+        {
+            return false;
+        }
+        let here = &mut landed[b];
+        if here.contains(&j) {
+            taken.push((a, i, b, j));
+            return true;
+        }
+        if here.iter().any(|&x| x.abs_diff(j) < w as u32) || j.abs_diff(0) < w as u32 && j != 0 {
+            return false;
+        }
+        here.push(j);
+        taken.push((a, i, b, j));
+        true
+    });
+    // Nodes: each clip cut where a transition lands.
+    let mut cuts: Vec<Vec<u32>> = rig.clips.iter().map(|_| vec![0]).collect();
+    for &(_, _, b, j, _) in &candidates {
+        cuts[b].push(j);
+    }
+    for c in &mut cuts {
+        c.sort_unstable();
+        c.dedup();
+    }
+    // (clip, first, last) per node.
+    let mut nodes: Vec<(usize, u32, u32)> = Vec::new();
+    for (ci, c) in cuts.iter().enumerate() {
+        let n = rig.clips[ci].frames;
+        if (n as usize) < w {
+            continue;
+        }
+        for (k, &first) in c.iter().enumerate() {
+            let last = c.get(k + 1).map_or(n - 1, |&x| x - 1);
+            nodes.push((ci, first, last));
+        }
+    }
+    let node_of = |clip: usize, frame: u32| {
+        nodes
+            .iter()
+            .position(|&(c, f, l)| c == clip && f <= frame && frame <= l)
+    };
+    // Edges (from, to, fade, window start, cost).
+    let mut edges: Vec<(usize, usize, u32, u32, f64)> = Vec::new();
+    for (n, &(c, _, last)) in nodes.iter().enumerate() {
+        if let Some(next) = node_of(c, last + 1) {
+            let len = last + 1 - nodes[n].1;
+            edges.push((n, next, 1, len - 1, 0.0));
+        }
+    }
+    for &(a, i, b, j, cost) in &candidates {
+        let (Some(from), Some(to)) = (node_of(a, i), node_of(b, j)) else {
+            continue;
+        };
+        let (first, last) = (nodes[from].1, nodes[from].2);
+        let fade = (w as u32)
+            .min(last - first + 1)
+            .min(nodes[to].2 - nodes[to].1 + 1);
+        edges.push((from, to, fade, i - first, cost));
+    }
+    let keep = largest_scc(nodes.len(), &edges);
+    let kept: Vec<usize> = (0..nodes.len()).filter(|&n| keep[n]).collect();
+    if kept.is_empty() {
+        return None;
+    }
+    let name = |n: usize| {
+        let (c, f, l) = nodes[n];
+        format!("{}@{f}-{l}", rig.clips[c].name)
+    };
+    let mut graph = MotionGraph::default();
+    for &n in &kept {
+        let (c, f, l) = nodes[n];
+        graph.nodes.push(crowdmorph_proto::GraphNode {
+            name: name(n),
+            clip: rig.clips[c].name.clone(),
+            frames: Some([f, l]),
+        });
+    }
+    let mut costs = Vec::new();
+    for &(from, to, fade, at, cost) in &edges {
+        if keep[from] && keep[to] {
+            graph.edges.push(crowdmorph_proto::GraphEdge {
+                from: name(from),
+                to: name(to),
+                fade,
+                window: Some([at, at]),
+            });
+            costs.push(cost as f32);
+        }
+    }
+    Some(Built {
+        graph,
+        costs,
+        candidates: candidates.len(),
+        dropped_nodes: nodes.len() - kept.len(),
+    })
+}
+
+/// `w ↦ Lᵀw` with `LLᵀ = DDᵀ` (the Gram matrix of the rig's position deltas over all
+/// vertices), so that `‖Lᵀ(w_a − w_b)‖ = ‖Dᵀ(w_a − w_b)‖`. The factor is a Cholesky
+/// decomposition that zeroes a column whose pivot vanishes (shapes that repeat others), which
+/// keeps the identity for the positive semi-definite Gram matrix.
+fn projector(rig: &Rig) -> impl Fn(&[f32]) -> Vec<f64> {
+    let k = rig.targets.len();
+    let mut g = vec![0f64; k * k];
+    for p in rig.primitives.iter() {
+        // Per vertex, the (channel, delta) pairs that move it.
+        let mut by_vertex: HashMap<u32, Vec<(usize, glam::Vec3)>> = HashMap::new();
+        for t in &p.targets {
+            for (&vtx, d) in t.vertices.iter().zip(&t.positions) {
+                by_vertex
+                    .entry(vtx)
+                    .or_default()
+                    .push((t.target as usize, *d));
+            }
+        }
+        for list in by_vertex.values() {
+            for &(a, da) in list {
+                for &(b, db) in list {
+                    g[a * k + b] += f64::from(da.dot(db));
+                }
+            }
+        }
+    }
+    let mut l = vec![0f64; k * k];
+    let scale = (0..k).map(|i| g[i * k + i]).fold(0.0, f64::max).max(1e-300);
+    for j in 0..k {
+        let d = g[j * k + j] - (0..j).map(|m| l[j * k + m] * l[j * k + m]).sum::<f64>();
+        if d <= 1e-12 * scale {
+            continue;
+        }
+        let ljj = d.sqrt();
+        l[j * k + j] = ljj;
+        for i in j + 1..k {
+            let s = g[i * k + j] - (0..j).map(|m| l[i * k + m] * l[j * k + m]).sum::<f64>();
+            l[i * k + j] = s / ljj;
+        }
+    }
+    move |w: &[f32]| {
+        // (Lᵀ w)_j = Σ_i L[i][j] w_i
+        (0..k)
+            .map(|j| (j..k).map(|i| l[i * k + j] * f64::from(w[i])).sum())
+            .collect()
+    }
+}
+
+/// Which nodes belong to the largest strongly connected component of the edges (Tarjan's
+/// algorithm, iterative); a lone node counts only with a self-loop.
+fn largest_scc(n: usize, edges: &[(usize, usize, u32, u32, f64)]) -> Vec<bool> {
+    let mut out: Vec<Vec<usize>> = vec![Vec::new(); n];
+    for &(a, b, ..) in edges {
+        out[a].push(b);
+    }
+    let mut index = vec![usize::MAX; n];
+    let mut low = vec![0; n];
+    let mut on = vec![false; n];
+    let mut stack = Vec::new();
+    let mut next = 0;
+    let mut best: Vec<usize> = Vec::new();
+    for root in 0..n {
+        if index[root] != usize::MAX {
+            continue;
+        }
+        let mut call: Vec<(usize, usize)> = vec![(root, 0)];
+        index[root] = next;
+        low[root] = next;
+        next += 1;
+        stack.push(root);
+        on[root] = true;
+        while let Some(&mut (v, ref mut e)) = call.last_mut() {
+            if let Some(&u) = out[v].get(*e) {
+                *e += 1;
+                if index[u] == usize::MAX {
+                    index[u] = next;
+                    low[u] = next;
+                    next += 1;
+                    stack.push(u);
+                    on[u] = true;
+                    call.push((u, 0));
+                } else if on[u] {
+                    low[v] = low[v].min(index[u]);
+                }
+                continue;
+            }
+            call.pop();
+            if let Some(&(parent, _)) = call.last() {
+                low[parent] = low[parent].min(low[v]);
+            }
+            if low[v] == index[v] {
+                let mut comp = Vec::new();
+                while let Some(x) = stack.pop() {
+                    on[x] = false;
+                    comp.push(x);
+                    if x == v {
+                        break;
+                    }
+                }
+                let cyclic = comp.len() > 1 || out[v].contains(&v);
+                if cyclic && comp.len() > best.len() {
+                    best = comp;
+                }
+            }
+        }
+    }
+    let mut keep = vec![false; n];
+    for x in best {
+        keep[x] = true;
+    }
+    keep
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

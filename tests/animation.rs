@@ -199,3 +199,114 @@ fn blends_gather_the_same_weights_in_any_order() {
     assert_eq!(batch.job(0), batch.job(1));
     assert!(batch.active_pairs() > 0);
 }
+
+/// Every node of `g` reaches every other along its edges.
+fn strongly_connected(g: &crowdmorph_proto::MotionGraph) -> bool {
+    let names: Vec<&str> = g.nodes.iter().map(|n| n.name.as_str()).collect();
+    let idx = |n: &str| names.iter().position(|x| *x == n).unwrap();
+    let reach = |forward: bool| {
+        let mut seen = vec![false; names.len()];
+        let mut todo = vec![0usize];
+        seen[0] = true;
+        while let Some(n) = todo.pop() {
+            for e in &g.edges {
+                let (a, b) = (idx(&e.from), idx(&e.to));
+                let (a, b) = if forward { (a, b) } else { (b, a) };
+                if a == n && !seen[b] {
+                    seen[b] = true;
+                    todo.push(b);
+                }
+            }
+        }
+        seen.into_iter().all(|s| s)
+    };
+    reach(true) && reach(false)
+}
+
+#[test]
+fn graphs_built_from_clips_check_are_strongly_connected_and_cost_under_the_threshold() {
+    let mut rigs = vec![crowdmorph::embedded::default_rig()];
+    if cfg!(crowdmorph_test_data) {
+        let path =
+            crate::util::data_dir().join("khronos/MorphStressTest/glTF/MorphStressTest.gltf");
+        rigs.push(load_path(&path, &ImportOptions::default()).expect("MorphStressTest"));
+    }
+    for rig in rigs {
+        let opt = crowdmorph::graph::BuildOptions::default();
+        let built = crowdmorph::graph::build(&rig, opt).expect("a graph");
+        let g = &built.graph;
+        eprintln!(
+            "{}: {} candidates, {} nodes, {} edges, {} dropped",
+            rig.name,
+            built.candidates,
+            g.nodes.len(),
+            g.edges.len(),
+            built.dropped_nodes
+        );
+        crowdmorph::graph::Graph::resolve(g, &rig, |n| rig.clip_index(n))
+            .expect("the built graph checks");
+        assert!(g.nodes.len() > 1 && strongly_connected(g), "{}", rig.name);
+        assert_eq!(built.costs.len(), g.edges.len());
+        assert!(built.costs.iter().all(|&c| c <= opt.threshold));
+        let clips: std::collections::HashSet<&str> =
+            g.nodes.iter().map(|n| n.clip.as_str()).collect();
+        assert!(
+            clips.len() >= 2,
+            "{}: transitions join clips: {clips:?}",
+            rig.name
+        );
+        // A transition's cost is what it says: the mean RMS vertex distance, over the fade,
+        // between the frames it blends (checked on one, through the CPU engine).
+        let engine = Engine::cpu();
+        let prepared = engine.prepare(Arc::new(rig.clone())).expect("prepare");
+        let diag = f64::from(rig.bbox().diagonal());
+        let (e, cost) = g
+            .edges
+            .iter()
+            .zip(&built.costs)
+            .filter(|(e, _)| e.fade > 1)
+            .max_by(|a, b| a.1.total_cmp(b.1))
+            .expect("a transition");
+        eprintln!("{}: checking {e:?}, cost {cost}", rig.name);
+        let node = |name: &str| g.nodes.iter().find(|n| n.name == name).unwrap();
+        let (from, to) = (node(&e.from), node(&e.to));
+        let (fc, tc) = (
+            rig.clip_index(&from.clip).unwrap() as u32,
+            rig.clip_index(&to.clip).unwrap() as u32,
+        );
+        let i = from.frames.unwrap()[0] + e.window.unwrap()[0];
+        let j = to.frames.unwrap()[0];
+        let mut sum = 0.0;
+        for k in 0..e.fade {
+            let a = pose_positions(
+                &engine,
+                &prepared,
+                Pose::Frame {
+                    clip: fc,
+                    frame: i + k,
+                },
+            );
+            let b = pose_positions(
+                &engine,
+                &prepared,
+                Pose::Frame {
+                    clip: tc,
+                    frame: j + k,
+                },
+            );
+            let ms: f64 = a
+                .chunks_exact(3)
+                .zip(b.chunks_exact(3))
+                .map(|(p, q)| (0..3).map(|c| f64::from(p[c] - q[c]).powi(2)).sum::<f64>())
+                .sum::<f64>()
+                / rig.vertex_count() as f64;
+            sum += ms.sqrt();
+        }
+        let measured = sum / f64::from(e.fade) / diag;
+        assert!(
+            (measured - f64::from(*cost)).abs() <= 1e-4 + 1e-3 * measured,
+            "{}: edge {e:?} costs {cost}, measured {measured}",
+            rig.name
+        );
+    }
+}

@@ -57,6 +57,22 @@ pub struct GraphInfo {
     pub graph: MotionGraph,
 }
 
+/// `POST /v1/rigs/{id}/graphs/{name}?auto=1` response: the graph built from the rig's clips
+/// and stored, with each edge's cost (the mean RMS vertex distance, over the fade's window,
+/// between the frames it blends, as a fraction of the rig's diagonal; 0 for an edge that
+/// plays a clip on).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct BuiltGraph {
+    /// The graph as stored.
+    pub info: GraphInfo,
+    /// Per edge of `info.graph`, its cost.
+    pub costs: Vec<f32>,
+    /// Candidate transitions found.
+    pub candidates: u32,
+    /// Nodes dropped outside the largest strongly connected component.
+    pub dropped_nodes: u32,
+}
+
 /// `GET /v1/rigs/{id}/graphs` response.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct GraphList {

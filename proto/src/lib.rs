@@ -18,7 +18,7 @@ pub mod graph;
 pub mod session;
 pub mod wire;
 
-pub use graph::{GraphEdge, GraphInfo, GraphList, GraphNode, GraphPlay, MotionGraph};
+pub use graph::{BuiltGraph, GraphEdge, GraphInfo, GraphList, GraphNode, GraphPlay, MotionGraph};
 pub use session::{
     DEFAULT_SESSION_FPS, DEFAULT_SESSION_IDLE_TIMEOUT_S, HEAD_MISSING, HEAD_UNCHANGED, HeadChange,
     LodChoice, SessionHead, SessionInfo, SessionList, SessionPatch, SessionRequest, SessionStats,

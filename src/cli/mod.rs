@@ -4,6 +4,7 @@
 //! uses it.
 
 mod bench;
+mod clips;
 mod eval;
 mod inspect;
 mod load;
@@ -50,6 +51,11 @@ enum Command {
     /// each request's intended send time), or --ramp to the highest rate whose p99 meets a
     /// target; a report as a table or --json.
     Load(Box<load::Args>),
+    /// Clips: motion graphs built from a rig's clips.
+    Clips {
+        #[command(subcommand)]
+        which: clips::Command,
+    },
     /// Level of detail: importance orders, their error over a clip, simplified meshes.
     Lod {
         #[command(subcommand)]
@@ -67,6 +73,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Serve(a) => serve::run(*a),
         Command::Load(a) => load::run(*a),
         Command::Lod { which } => lod::run(which),
+        Command::Clips { which } => clips::run(which),
     }
 }
 

@@ -240,6 +240,7 @@ fn resources() -> Router<AppState> {
             "/v1/rigs/{id}/graphs/{name}",
             get(routes::graphs::get_graph)
                 .put(routes::graphs::put_graph)
+                .post(routes::graphs::build_graph)
                 .delete(routes::graphs::delete_graph),
         )
         .route(

@@ -11,22 +11,35 @@ use serde_json::{Value, json};
 use super::sessions::{View, call, connect, create, next_tick};
 use super::{TestServer, stored_config, temp_dir};
 
-/// Three moods of the embedded head: talk ⇄ smile → surprise → talk, and talk again from talk.
-fn moods() -> Value {
+/// Three nodes `n[0]` ⇄ `n[1]` → `n[2]` → `n[0]`, and `n[0]` again from `n[0]`, playing `clips`
+/// (the middle one frames `mid`), with the edges' start windows `w` (absent: the default).
+fn three_nodes(n: [&str; 3], clips: [&str; 3], mid: [u32; 2], w: [Option<[u32; 2]>; 5]) -> Value {
+    let edge = |from: &str, to: &str, fade: u32, window: Option<[u32; 2]>| json!({"from": from, "to": to, "fade": fade, "window": window});
     json!({
         "nodes": [
-            {"name": "talk", "clip": "talk"},
-            {"name": "smile", "clip": "smile", "frames": [0, 59]},
-            {"name": "surprise", "clip": "surprise"},
+            {"name": n[0], "clip": clips[0]},
+            {"name": n[1], "clip": clips[1], "frames": mid},
+            {"name": n[2], "clip": clips[2]},
         ],
         "edges": [
-            {"from": "talk", "to": "smile", "fade": 10},
-            {"from": "talk", "to": "talk", "fade": 6},
-            {"from": "smile", "to": "talk", "fade": 10, "window": [20, 40]},
-            {"from": "smile", "to": "surprise", "fade": 12},
-            {"from": "surprise", "to": "talk", "fade": 8},
+            edge(n[0], n[1], 10, w[0]),
+            edge(n[0], n[0], 6, w[1]),
+            edge(n[1], n[0], 10, w[2]),
+            edge(n[1], n[2], 12, w[3]),
+            edge(n[2], n[0], 8, w[4]),
         ],
     })
+}
+
+/// Three moods of the embedded head's own clips.
+fn moods() -> Value {
+    let names = ["talk", "smile", "surprise"];
+    three_nodes(
+        names,
+        names,
+        [0, 59],
+        [None, None, Some([20, 40]), None, None],
+    )
 }
 
 async fn put(server: &TestServer, name: &str, graph: Value) -> (u16, Value) {
@@ -242,22 +255,14 @@ async fn upload_smooth_clips(server: &TestServer) {
     }
 }
 
-/// A graph over the smooth clips: jaw ⇄ smile → brow → jaw, and jaw again from jaw.
+/// A graph over the smooth clips.
 fn smooth_graph() -> Value {
-    json!({
-        "nodes": [
-            {"name": "jaw", "clip": "slow-jaw"},
-            {"name": "smile", "clip": "slow-smile", "frames": [10, 80]},
-            {"name": "brow", "clip": "slow-brow"},
-        ],
-        "edges": [
-            {"from": "jaw", "to": "smile", "fade": 10, "window": [30, 60]},
-            {"from": "jaw", "to": "jaw", "fade": 6},
-            {"from": "smile", "to": "jaw", "fade": 10, "window": [20, 40]},
-            {"from": "smile", "to": "brow", "fade": 12},
-            {"from": "brow", "to": "jaw", "fade": 8, "window": [40, 70]},
-        ],
-    })
+    three_nodes(
+        ["jaw", "smile", "brow"],
+        ["slow-jaw", "slow-smile", "slow-brow"],
+        [10, 80],
+        [Some([30, 60]), None, Some([20, 40]), None, Some([40, 70])],
+    )
 }
 
 /// The largest distance any vertex moves between consecutive frames of the smooth clips
@@ -393,5 +398,64 @@ async fn graph_heads_fade_without_pops_even_when_interrupted_and_clones_stay_clo
     )
     .await;
     assert_eq!((status, code(&v)), (404, "unknown_node"), "{v}");
+    server.stop().await;
+}
+
+#[tokio::test]
+async fn a_graph_built_from_the_clips_is_stored_and_played() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let (status, v) = call(
+        &server,
+        Method::POST,
+        "/v1/rigs/default-head/graphs/auto?auto=1&window=5",
+        Value::Null,
+    )
+    .await;
+    assert_eq!(status, 200, "{v}");
+    let edges = v["info"]["graph"]["edges"].as_array().unwrap().len();
+    assert!(edges > 3, "{v}");
+    assert_eq!(v["costs"].as_array().unwrap().len(), edges);
+    let start = v["info"]["graph"]["nodes"][0]["name"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let (status, got) = call(
+        &server,
+        Method::GET,
+        "/v1/rigs/default-head/graphs/auto",
+        Value::Null,
+    )
+    .await;
+    assert_eq!(status, 200);
+    assert_eq!(got["graph"], v["info"]["graph"]);
+    let info = create(
+        &server,
+        json!({"heads": [{"head": 1, "rig": "default-head",
+                          "graph": {"name": "auto", "start": start, "seed": 5}}]}),
+    )
+    .await;
+    let mut ws = connect(&server, &info.id, json!({"format": "f32"})).await;
+    for _ in 0..5 {
+        assert_eq!(next_tick(&mut ws).await.heads.len(), 1);
+    }
+    for (query, needle) in [
+        ("", "auto=1"),
+        ("?auto=0", "auto=1"),
+        ("?auto=1&window=0", "window"),
+        ("?auto=1&threshold=-1", "threshold"),
+    ] {
+        let (status, v) = call(
+            &server,
+            Method::POST,
+            &format!("/v1/rigs/default-head/graphs/auto2{query}"),
+            Value::Null,
+        )
+        .await;
+        assert_eq!((status, code(&v)), (400, "bad_query"), "{query}: {v}");
+        assert!(
+            v["error"]["message"].as_str().unwrap().contains(needle),
+            "{v}"
+        );
+    }
     server.stop().await;
 }

@@ -440,3 +440,9 @@ def test_heads_walk_a_motion_graph_and_patches_send_them_to_a_node(client, sessi
     finally:
         client.delete_graph(RIG, "py-moods")
     assert "py-moods" not in client.rig(RIG).graphs
+    built = client.build_graph(RIG, "py-auto", window=5)
+    try:
+        assert len(built.costs) == len(built.info.graph.edges) > 0
+        assert all(0 <= c <= 0.02 for c in built.costs)
+    finally:
+        client.delete_graph(RIG, "py-auto")

@@ -7,13 +7,13 @@ use std::sync::Arc;
 use axum::extract::{Path, State};
 use axum::http::StatusCode;
 use axum::response::IntoResponse;
-use crowdmorph_proto::{GraphInfo, GraphList, MotionGraph};
+use crowdmorph_proto::{BuiltGraph, GraphInfo, GraphList, MotionGraph};
 
 use crate::graph::GraphError;
 use crate::server::admission::{Decoded, Priced};
 use crate::server::graphs::{MAX_GRAPHS_PER_RIG, measure_bytes, resolve_and_measure};
-use crate::server::http::{Accept, Admin, ApiError, ApiResult, Ready, blocking};
-use crate::server::registry::valid_id;
+use crate::server::http::{Accept, Admin, ApiError, ApiResult, Query, Ready, blocking};
+use crate::server::registry::{RigEntry, valid_id};
 use crate::server::state::AppState;
 
 /// A graph's names and edges, held until it is resolved and stored.
@@ -67,16 +67,29 @@ pub async fn put_graph(
 ) -> ApiResult {
     let (spec, _decoded) = req.into_parts();
     let entry = state.rig(&id)?;
-    if !valid_id(&name) {
+    let info = store(&state, &entry, &id, &name, spec).await?;
+    accept.reply(StatusCode::OK, &info)
+}
+
+/// Checks `spec` against the rig, measures its nodes' motion and stores it as graph `name`
+/// of rig `id`, in memory and on disk.
+async fn store(
+    state: &AppState,
+    entry: &Arc<RigEntry>,
+    id: &str,
+    name: &str,
+    spec: MotionGraph,
+) -> Result<GraphInfo, ApiError> {
+    if !valid_id(name) {
         return Err(ApiError::bad_request(
             "invalid_name",
             format!(
                 "graph name {} must be 1–64 characters of A-Z a-z 0-9 . _ - and not start with a dot",
-                crate::rig::quoted_name(&name)
+                crate::rig::quoted_name(name)
             ),
         ));
     }
-    let (count, exists) = state.graphs.count(&id, &name);
+    let (count, exists) = state.graphs.count(id, name);
     if !exists && count >= MAX_GRAPHS_PER_RIG {
         return Err(ApiError::bad_request(
             "invalid_graph",
@@ -86,22 +99,18 @@ pub async fn put_graph(
     // Resolving holds the graph a second time; measuring holds a few frames of vertices.
     let _work = state
         .queue_memory
-        .reserve(crate::graph::Graph::bytes(&spec, entry.rig()) + measure_bytes(&entry))?;
+        .reserve(crate::graph::Graph::bytes(&spec, entry.rig()) + measure_bytes(entry))?;
     let checked = {
         let (entry, spec) = (entry.clone(), spec.clone());
         blocking(move || resolve_and_measure(&entry, &spec).map_err(graph_error)).await?
     };
     let _admin = state.admin.lock().await;
-    let all = state.graphs.insert(
-        &id,
-        &name,
-        spec.clone(),
-        entry.generation,
-        Arc::new(checked),
-    );
+    let all = state
+        .graphs
+        .insert(id, name, spec.clone(), entry.generation, Arc::new(checked));
     if state.store.is_some() {
         let s = state.clone();
-        let rid = id.clone();
+        let rid = id.to_string();
         blocking(move || {
             s.store
                 .as_ref()
@@ -110,12 +119,90 @@ pub async fn put_graph(
         })
         .await?;
     }
+    Ok(GraphInfo {
+        rig: id.to_string(),
+        name: name.to_string(),
+        graph: spec,
+    })
+}
+
+/// `POST /v1/rigs/{id}/graphs/{name}` query: `auto=1` builds the graph from the rig's clips.
+#[derive(Debug, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AutoQuery {
+    /// Must be 1 (or true): the only kind of POST.
+    #[serde(default)]
+    pub auto: String,
+    /// Frames compared per transition, and its fade (1–120).
+    #[serde(default)]
+    pub window: Option<u32>,
+    /// Largest transition cost, as a fraction of the rig's diagonal (0–1).
+    #[serde(default)]
+    pub threshold: Option<f32>,
+}
+
+/// `POST /v1/rigs/{id}/graphs/{name}?auto=1[&window=W][&threshold=T]`: builds a graph from
+/// the rig's clips (`crate::graph::build`, Kovar et al.), stores it as `PUT` would, and
+/// answers with it and its edges' costs.
+pub async fn build_graph(
+    State(state): State<AppState>,
+    _admin: Admin,
+    _ready: Ready,
+    accept: Accept,
+    Path((id, name)): Path<(String, String)>,
+    Query(q): Query<AutoQuery>,
+) -> ApiResult {
+    if !matches!(q.auto.as_str(), "1" | "true") {
+        return Err(ApiError::bad_request(
+            "bad_query",
+            "POST builds a graph from the clips: send ?auto=1 (PUT stores one you made)",
+        ));
+    }
+    let mut opt = crate::graph::BuildOptions::default();
+    if let Some(w) = q.window {
+        if !(1..=120).contains(&w) {
+            return Err(ApiError::bad_request(
+                "bad_query",
+                format!("window is {w}; it must be 1 to 120 frames"),
+            ));
+        }
+        opt.window = w;
+    }
+    if let Some(t) = q.threshold {
+        if !(t.is_finite() && (0.0..=1.0).contains(&t)) {
+            return Err(ApiError::bad_request(
+                "bad_query",
+                format!("threshold is {t}; it must be in [0, 1] (a fraction of the diagonal)"),
+            ));
+        }
+        opt.threshold = t;
+    }
+    let entry = state.rig(&id)?;
+    let _work = state
+        .queue_memory
+        .reserve(crate::graph::build_bytes(entry.rig()))?;
+    let built = {
+        let entry = entry.clone();
+        blocking(move || Ok::<_, ApiError>(crate::graph::build(entry.rig(), opt))).await?
+    }
+    .ok_or_else(|| {
+        ApiError::bad_request(
+            "invalid_graph",
+            format!(
+                "rig {id:?}: no cycle of transitions under the threshold {} (raise threshold or \
+                 lower window)",
+                opt.threshold
+            ),
+        )
+    })?;
+    let info = store(&state, &entry, &id, &name, built.graph).await?;
     accept.reply(
         StatusCode::OK,
-        &GraphInfo {
-            rig: id,
-            name,
-            graph: spec,
+        &BuiltGraph {
+            info,
+            costs: built.costs,
+            candidates: built.candidates as u32,
+            dropped_nodes: built.dropped_nodes as u32,
         },
     )
 }

@@ -33,6 +33,7 @@ from .messages import (
     ClipList,
     ClipUpload,
     CrowdFrameRequest,
+    BuiltGraph,
     CrowdFrameResponse,
     GraphInfo,
     GraphList,
@@ -606,6 +607,23 @@ class Client:
             "application/json",
         )
         return self._decode(GraphInfo, resp)
+
+    def build_graph(
+        self,
+        rig: str,
+        name: str,
+        window: Optional[int] = None,
+        threshold: Optional[float] = None,
+    ) -> BuiltGraph:
+        """``POST /v1/rigs/{rig}/graphs/{name}?auto=1``: builds a motion graph from the rig's
+        clips (Kovar et al.: transitions where frames match in vertex space), stores it, and
+        returns it with each edge's cost."""
+        resp = self.request(
+            "POST",
+            f"/v1/rigs/{_seg(rig)}/graphs/{_seg(name)}",
+            query={"auto": 1, "window": window, "threshold": threshold},
+        )
+        return self._decode(BuiltGraph, resp)
 
     def graphs(self, rig: str) -> List[GraphInfo]:
         """``GET /v1/rigs/{rig}/graphs``."""

@@ -82,6 +82,7 @@ __all__ = [
     "MotionGraph",
     "GraphInfo",
     "GraphList",
+    "BuiltGraph",
     "SessionHead",
     "SessionRequest",
     "SessionStats",
@@ -965,6 +966,23 @@ class GraphInfo:
     rig: str
     name: str
     graph: MotionGraph
+
+
+@wire(
+    ("info", Msg(GraphInfo)),
+    ("costs", Vec(F32)),
+    ("candidates", U32),
+    ("dropped_nodes", U32),
+)
+@dataclass
+class BuiltGraph:
+    """A graph built from a rig's clips (``POST /v1/rigs/{id}/graphs/{name}?auto=1``), with
+    each edge's cost as a fraction of the rig's diagonal."""
+
+    info: GraphInfo
+    costs: List[float] = field(default_factory=list)
+    candidates: int = 0
+    dropped_nodes: int = 0
 
 
 @wire(("graphs", Vec(Msg(GraphInfo))))
