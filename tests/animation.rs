@@ -310,3 +310,23 @@ fn graphs_built_from_clips_check_are_strongly_connected_and_cost_under_the_thres
         );
     }
 }
+
+#[test]
+fn compressed_clips_stay_within_their_vertex_budget_on_every_rig_with_clips() {
+    for rig in rigs() {
+        for clip in &rig.clips {
+            for budget in [3e-4f32, 1e-3] {
+                let c = crowdmorph::compress::compress(&rig, clip, budget).expect("compresses");
+                let table = crowdmorph::compress::decode(&c).expect("decodes");
+                let r = crowdmorph::compress::measure(&rig, clip, &table, budget);
+                assert!(
+                    r.max <= f64::from(budget) && r.under_budget == 1.0,
+                    "{} {}: {r:?}",
+                    rig.name,
+                    clip.name
+                );
+                assert!(c.bytes() < c.f32_bytes(), "{} {}", rig.name, clip.name);
+            }
+        }
+    }
+}

@@ -1231,3 +1231,57 @@ fn a_bad_argument_exits_with_status_2_and_says_why() {
         "{stderr}"
     );
 }
+
+#[test]
+fn clips_compress_meets_its_budget_checked_from_the_decoded_csv() {
+    let dir = temp_dir("compress");
+    let csv = dir.join("decoded.csv");
+    let report = json(&[
+        "clips",
+        "compress",
+        "--max-error",
+        "3e-4",
+        "--out",
+        path_str(&csv),
+        "--json",
+    ]);
+    let rig = crowdmorph::embedded::default_rig();
+    assert_eq!(report["clips"].as_array().unwrap().len(), rig.clips.len());
+    assert!(f64_of(&report, "ratio") > 1.0, "{report}");
+    // The decoded weights, read back and blended by the f64 oracle, against the original
+    // frames: every vertex within the budget.
+    let text = std::fs::read_to_string(&csv).unwrap();
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    assert_eq!(header.len(), 2 + rig.targets.len());
+    let diag = f64::from(rig.bbox().diagonal());
+    let mut checked = 0;
+    for (i, line) in lines.enumerate() {
+        if i % 17 != 0 {
+            continue;
+        }
+        let cells: Vec<&str> = line.split(',').collect();
+        let clip = &rig.clips[rig.clip_index(cells[0]).unwrap()];
+        let frame: u32 = cells[1].parse().unwrap();
+        let decoded: Vec<f64> = cells[2..].iter().map(|c| c.parse().unwrap()).collect();
+        let original: Vec<f64> = (0..rig.targets.len())
+            .map(|t| f64::from(clip.weight(t, frame)))
+            .collect();
+        let (a, _) = crate::util::rig_oracle(&rig, &decoded);
+        let (b, _) = crate::util::rig_oracle(&rig, &original);
+        let worst = a
+            .iter()
+            .zip(&b)
+            .map(|(x, y)| (*x - *y).length())
+            .fold(0.0, f64::max);
+        assert!(
+            worst <= 3e-4 * diag,
+            "{} frame {frame}: {worst} > budget {}",
+            clip.name,
+            3e-4 * diag
+        );
+        checked += 1;
+    }
+    assert!(checked > 10);
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -35,6 +35,84 @@ pub enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Compress the rig's clips within a vertex-space error budget (per-curve quantization,
+    /// temporal prediction, zstd segments) and report, as ACL does, the ratio against f32, the
+    /// largest vertex error, its p99 and the share of samples under the budget.
+    Compress {
+        /// glTF/GLB rig with clips (default: the embedded head).
+        rig: Option<PathBuf>,
+        /// Largest vertex error, as a fraction of the rig's bounding-box diagonal.
+        #[arg(long, default_value_t = 3e-4)]
+        max_error: f32,
+        /// Write the decoded weights here as CSV (`clip,frame,` then one column per channel),
+        /// so that the error can be checked independently.
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+/// One clip of `clips compress`.
+#[derive(Serialize)]
+pub struct ClipRow {
+    /// Clip name.
+    pub clip: String,
+    /// Frames.
+    pub frames: u32,
+    /// Codec used.
+    pub codec: &'static str,
+    /// Bytes of the f32 table.
+    pub f32_bytes: usize,
+    /// Bytes compressed.
+    pub bytes: usize,
+    /// `f32_bytes / bytes`.
+    pub ratio: f64,
+    /// The vertex errors, as fractions of the diagonal.
+    #[serde(flatten)]
+    pub error: crowdmorph::compress::ErrorReport,
+}
+
+/// What `clips compress` reports.
+#[derive(Serialize)]
+pub struct CompressReport {
+    /// The rig's name.
+    pub rig: String,
+    /// The budget, as a fraction of the diagonal.
+    pub max_error: f32,
+    /// Per clip.
+    pub clips: Vec<ClipRow>,
+    /// All clips: f32 bytes over compressed bytes.
+    pub ratio: f64,
+}
+
+impl super::Report for CompressReport {}
+
+impl std::fmt::Display for CompressReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        writeln!(
+            f,
+            "rig {:?}, budget {:e} × diagonal: {:.1}× smaller than f32 over all clips",
+            self.rig, self.max_error, self.ratio
+        )?;
+        for c in &self.clips {
+            writeln!(
+                f,
+                "  {:>16} {:>5} frames  {:>8} → {:>7} bytes ({:>5.1}×, {})  max {:.2e}  p99 {:.2e}  under budget {:.4} %",
+                c.clip,
+                c.frames,
+                c.f32_bytes,
+                c.bytes,
+                c.ratio,
+                c.codec,
+                c.error.max,
+                c.error.p99,
+                c.error.under_budget * 100.0
+            )?;
+        }
+        Ok(())
+    }
 }
 
 /// What `clips graph` reports.
@@ -84,6 +162,67 @@ impl std::fmt::Display for GraphReport {
 /// Runs `crowdmorph clips ...`.
 pub fn run(which: Command) -> Result<()> {
     match which {
+        Command::Compress {
+            rig,
+            max_error,
+            out,
+            json,
+        } => {
+            anyhow::ensure!(
+                max_error.is_finite() && max_error > 0.0,
+                "--max-error must be a positive fraction of the diagonal"
+            );
+            let rig = super::load_rig(rig.as_deref())?;
+            let mut rows = Vec::new();
+            let mut csv = String::new();
+            if out.is_some() {
+                csv.push_str("clip,frame");
+                for t in &rig.targets {
+                    csv.push(',');
+                    csv.push_str(t);
+                }
+                csv.push('\n');
+            }
+            for clip in &rig.clips {
+                let c = crowdmorph::compress::compress(&rig, clip, max_error)?;
+                let table = crowdmorph::compress::decode(&c)?;
+                if out.is_some() {
+                    let n = clip.frames as usize;
+                    for fr in 0..n {
+                        csv.push_str(&format!("{},{fr}", clip.name));
+                        for t in 0..clip.targets as usize {
+                            csv.push_str(&format!(",{}", table[t * n + fr]));
+                        }
+                        csv.push('\n');
+                    }
+                }
+                rows.push(ClipRow {
+                    clip: clip.name.clone(),
+                    frames: clip.frames,
+                    codec: "curves",
+                    f32_bytes: c.f32_bytes(),
+                    bytes: c.bytes(),
+                    ratio: c.f32_bytes() as f64 / c.bytes().max(1) as f64,
+                    error: crowdmorph::compress::measure(&rig, clip, &table, max_error),
+                });
+            }
+            if let Some(path) = out {
+                std::fs::write(&path, csv)
+                    .with_context(|| format!("writing {}", path.display()))?;
+            }
+            let (a, b) = rows
+                .iter()
+                .fold((0usize, 0usize), |(a, b), r| (a + r.f32_bytes, b + r.bytes));
+            super::emit(
+                &CompressReport {
+                    rig: rig.name.clone(),
+                    max_error,
+                    clips: rows,
+                    ratio: a as f64 / b.max(1) as f64,
+                },
+                json,
+            )
+        }
         Command::Graph {
             rig,
             window,

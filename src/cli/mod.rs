@@ -88,14 +88,23 @@ pub trait Report: serde::Serialize + std::fmt::Display {
 
 /// The one printer: `report` as pretty JSON on standard output with `json`, else as its text.
 pub fn emit(report: &impl Report, json: bool) -> Result<()> {
-    if json {
-        println!("{}", serde_json::to_string_pretty(report)?);
+    use std::io::Write as _;
+    let written = if json {
+        writeln!(
+            std::io::stdout(),
+            "{}",
+            serde_json::to_string_pretty(report)?
+        )
     } else if report.text_on_stderr() {
-        eprint!("{report}");
+        write!(std::io::stderr(), "{report}")
     } else {
-        print!("{report}");
+        write!(std::io::stdout(), "{report}")
+    };
+    match written {
+        // `crowdmorph ... | head` closes the pipe early: not an error worth a panic.
+        Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => Ok(()),
+        other => Ok(other?),
     }
-    Ok(())
 }
 
 /// Loads a rig from a file, or the embedded default rig when `path` is `None`.

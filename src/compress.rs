@@ -1,0 +1,328 @@
+//! Compressed clips: weight tables stored with an error budget stated in vertex space
+//! (GPU Gems 3 ch. 15 compresses its captured animation; ACL's per-curve codec is the anchor).
+//!
+//! **The budget.** A clip is compressed so that no vertex of any frame moves by more than
+//! `max_error × diagonal`. Weight channel `k` is quantized with step `s_k = 2·c·E / L_k` (`L_k`:
+//! its longest delta; `E = max_error × diagonal`), with `c = 1 / maxᵥ Σₖ ‖Δₖ(v)‖ / L_k`, so
+//! that at every vertex `Σₖ (s_k / 2)·‖Δₖ(v)‖ ≤ E`: a weight that moves a large delta gets
+//! more bits, and the bound holds by the triangle inequality whatever the errors' signs.
+//!
+//! **The codec** (per curve, ACL's approach): quantized weights predicted linearly from the two
+//! before (`2q[t−1] − q[t−2]`), the residuals zigzag varints, curve after curve; frames are cut
+//! into segments of [`SEGMENT`] frames, each predicted from its own start and entropy-coded
+//! with zstd on its own, so any frame decodes from its segment alone.
+//!
+//! A PCA codec (the chapter's: a mean and components shared by the library, per-frame
+//! coefficients) is not implemented yet; see `docs/perf/2026-12-02-clip-compression.md`.
+
+use crate::rig::{Clip, Rig};
+
+/// Frames per independently decodable segment.
+pub const SEGMENT: u32 = 32;
+
+/// zstd level of the segments (clips are compressed once, decoded often).
+const LEVEL: i32 = 19;
+
+/// A clip compressed by [`compress`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct Compressed {
+    /// Clip name.
+    pub name: String,
+    /// Frames per second.
+    pub fps: f32,
+    /// Frames.
+    pub frames: u32,
+    /// Weight channels.
+    pub targets: u32,
+    /// Per channel, the quantization step (0: the channel is constant, stored as its value).
+    pub steps: Vec<f32>,
+    /// Per channel, the value of step 0 (quantized weights are `base + q × step`).
+    pub bases: Vec<f32>,
+    /// The zstd-compressed segments.
+    pub segments: Vec<Vec<u8>>,
+}
+
+impl Compressed {
+    /// Bytes of the compressed form: the segments, the steps and bases, a small header.
+    pub fn bytes(&self) -> usize {
+        self.segments.iter().map(|s| s.len() + 4).sum::<usize>() + self.steps.len() * 8 + 16
+    }
+
+    /// Bytes of the clip's f32 table.
+    pub fn f32_bytes(&self) -> usize {
+        self.frames as usize * self.targets as usize * 4
+    }
+}
+
+/// Why a compressed clip does not decode.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum DecodeError {
+    /// A segment is corrupt or truncated.
+    #[error("segment {0}: {1}")]
+    Corrupt(usize, String),
+}
+
+/// Per channel, the quantization step of the module doc's budget (0 for channels that move
+/// no vertex).
+pub fn steps(rig: &Rig, max_error: f32) -> Vec<f32> {
+    let k = rig.targets.len();
+    let mut longest = vec![0f32; k];
+    for p in rig.primitives.iter() {
+        for t in &p.targets {
+            let l = t.positions.iter().map(|d| d.length()).fold(0.0, f32::max);
+            longest[t.target as usize] = longest[t.target as usize].max(l);
+        }
+    }
+    // maxᵥ Σₖ ‖Δₖ(v)‖ / L_k, per primitive's vertices.
+    let mut worst = 0f32;
+    for p in rig.primitives.iter() {
+        let mut sum = vec![0f32; p.positions.len()];
+        for t in &p.targets {
+            let l = longest[t.target as usize];
+            if l > 0.0 {
+                for (&v, d) in t.vertices.iter().zip(&t.positions) {
+                    sum[v as usize] += d.length() / l;
+                }
+            }
+        }
+        worst = sum.into_iter().fold(worst, f32::max);
+    }
+    let budget = max_error * rig.bbox().diagonal();
+    let c = if worst > 0.0 { 1.0 / worst } else { 0.0 };
+    longest
+        .iter()
+        .map(|&l| if l > 0.0 { 2.0 * c * budget / l } else { 0.0 })
+        .collect()
+}
+
+fn zigzag(x: i64) -> u64 {
+    ((x << 1) ^ (x >> 63)) as u64
+}
+
+fn unzigzag(z: u64) -> i64 {
+    ((z >> 1) as i64) ^ -((z & 1) as i64)
+}
+
+fn put_varint(out: &mut Vec<u8>, mut v: u64) {
+    while v >= 0x80 {
+        out.push((v as u8) | 0x80);
+        v >>= 7;
+    }
+    out.push(v as u8);
+}
+
+fn get_varint(bytes: &[u8], at: &mut usize) -> Option<u64> {
+    let mut v = 0u64;
+    for shift in (0..64).step_by(7) {
+        let b = *bytes.get(*at)?;
+        *at += 1;
+        v |= u64::from(b & 0x7f) << shift;
+        if b & 0x80 == 0 {
+            return Some(v);
+        }
+    }
+    None
+}
+
+/// Compresses `clip` of `rig` within `max_error × diagonal` per vertex (zstd fails only when
+/// it cannot allocate).
+pub fn compress(rig: &Rig, clip: &Clip, max_error: f32) -> std::io::Result<Compressed> {
+    let k = clip.targets as usize;
+    let n = clip.frames as usize;
+    let mut steps = steps(rig, max_error);
+    steps.resize(k, 0.0);
+    let mut bases = vec![0f32; k];
+    // A channel whose curve is constant, or that moves no vertex, is its first value.
+    for t in 0..k {
+        let curve = &clip.weights[t * n..(t + 1) * n];
+        let constant = curve.iter().all(|&w| w == curve[0]);
+        bases[t] = curve.first().copied().unwrap_or(0.0);
+        if constant || steps[t] == 0.0 {
+            steps[t] = 0.0;
+        }
+    }
+    let q = |t: usize, f: usize| -> i64 {
+        if steps[t] == 0.0 {
+            0
+        } else {
+            (f64::from(clip.weights[t * n + f] - bases[t]) / f64::from(steps[t])).round() as i64
+        }
+    };
+    let mut segments = Vec::new();
+    for start in (0..n).step_by(SEGMENT as usize) {
+        let end = (start + SEGMENT as usize).min(n);
+        let mut raw = Vec::with_capacity((end - start) * k);
+        for (t, &step) in steps.iter().enumerate() {
+            if step == 0.0 {
+                continue;
+            }
+            let (mut p1, mut p2) = (0i64, 0i64);
+            for (i, f) in (start..end).enumerate() {
+                let predicted = match i {
+                    0 => 0,
+                    1 => p1,
+                    _ => 2 * p1 - p2,
+                };
+                let v = q(t, f);
+                put_varint(&mut raw, zigzag(v - predicted));
+                p2 = p1;
+                p1 = v;
+            }
+        }
+        segments.push(zstd::bulk::compress(&raw, LEVEL)?);
+    }
+    Ok(Compressed {
+        name: clip.name.clone(),
+        fps: clip.fps,
+        frames: clip.frames,
+        targets: clip.targets,
+        steps,
+        bases,
+        segments,
+    })
+}
+
+/// Decodes segment `s` into `out` (targets × frames, row-major, the clip's layout).
+fn decode_segment(c: &Compressed, s: usize, out: &mut [f32]) -> Result<(), DecodeError> {
+    let n = c.frames as usize;
+    let start = s * SEGMENT as usize;
+    let end = (start + SEGMENT as usize).min(n);
+    let len = end - start;
+    let active = c.steps.iter().filter(|&&x| x != 0.0).count();
+    let seg = c
+        .segments
+        .get(s)
+        .ok_or_else(|| DecodeError::Corrupt(s, "missing".into()))?;
+    // At most 10 bytes a varint: a bound that also refuses a zstd frame claiming more.
+    let raw = zstd::bulk::decompress(seg, active * len * 10)
+        .map_err(|e| DecodeError::Corrupt(s, e.to_string()))?;
+    let mut at = 0;
+    for t in 0..c.targets as usize {
+        let row = &mut out[t * n + start..t * n + end];
+        if c.steps[t] == 0.0 {
+            row.fill(c.bases[t]);
+            continue;
+        }
+        let (mut p1, mut p2) = (0i64, 0i64);
+        for (i, w) in row.iter_mut().enumerate() {
+            let predicted = match i {
+                0 => 0,
+                1 => p1,
+                _ => 2 * p1 - p2,
+            };
+            let r = get_varint(&raw, &mut at)
+                .ok_or_else(|| DecodeError::Corrupt(s, "truncated".into()))?;
+            let v = predicted + unzigzag(r);
+            *w = c.bases[t] + (v as f64 * f64::from(c.steps[t])) as f32;
+            p2 = p1;
+            p1 = v;
+        }
+    }
+    if at != raw.len() {
+        return Err(DecodeError::Corrupt(s, "trailing bytes".into()));
+    }
+    Ok(())
+}
+
+/// The whole table (targets × frames).
+pub fn decode(c: &Compressed) -> Result<Vec<f32>, DecodeError> {
+    let mut out = vec![0f32; c.frames as usize * c.targets as usize];
+    for s in 0..c.segments.len() {
+        decode_segment(c, s, &mut out)?;
+    }
+    Ok(out)
+}
+
+/// One frame's weights, decoding only its segment.
+pub fn decode_frame(c: &Compressed, frame: u32) -> Result<Vec<f32>, DecodeError> {
+    let n = c.frames as usize;
+    let mut table = vec![0f32; n * c.targets as usize];
+    decode_segment(c, (frame / SEGMENT) as usize, &mut table)?;
+    Ok((0..c.targets as usize)
+        .map(|t| table[t * n + frame as usize])
+        .collect())
+}
+
+/// ACL's report of a compressed clip, in vertex space: each frame's largest vertex error
+/// against the original, as a fraction of the diagonal.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct ErrorReport {
+    /// Largest vertex error over all frames.
+    pub max: f64,
+    /// 99th percentile of the per-(frame, vertex) errors.
+    pub p99: f64,
+    /// Share of (frame, vertex) samples within the budget.
+    pub under_budget: f64,
+}
+
+/// Measures `decoded` (targets × frames) against `clip` at every frame and vertex, with the
+/// sparse deltas directly (the f64 sum of Eq. 1's differences).
+pub fn measure(rig: &Rig, clip: &Clip, decoded: &[f32], max_error: f32) -> ErrorReport {
+    let n = clip.frames as usize;
+    let diag = f64::from(rig.bbox().diagonal()).max(1e-12);
+    let mut errors: Vec<f64> = Vec::new();
+    for f in 0..n {
+        for p in rig.primitives.iter() {
+            let mut d = vec![glam::DVec3::ZERO; p.positions.len()];
+            for t in &p.targets {
+                let k = t.target as usize;
+                let dw = f64::from(decoded[k * n + f]) - f64::from(clip.weights[k * n + f]);
+                if dw != 0.0 {
+                    for (&v, delta) in t.vertices.iter().zip(&t.positions) {
+                        d[v as usize] += dw * delta.as_dvec3();
+                    }
+                }
+            }
+            errors.extend(d.iter().map(|x| x.length() / diag));
+        }
+    }
+    errors.sort_by(f64::total_cmp);
+    let at = |q: f64| errors[((errors.len() as f64 - 1.0) * q).round() as usize];
+    let under = errors
+        .iter()
+        .filter(|&&e| e <= f64::from(max_error) * (1.0 + 1e-6))
+        .count();
+    ErrorReport {
+        max: errors.last().copied().unwrap_or(0.0),
+        p99: if errors.is_empty() { 0.0 } else { at(0.99) },
+        under_budget: under as f64 / errors.len().max(1) as f64,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn clips_round_trip_within_the_budget_and_frames_decode_alone() {
+        let rig = crate::embedded::default_rig();
+        for clip in &rig.clips {
+            let c = compress(&rig, clip, 3e-4).expect("compresses");
+            let table = decode(&c).expect("decodes");
+            let r = measure(&rig, clip, &table, 3e-4);
+            assert!(r.max <= 3e-4, "{}: {r:?}", clip.name);
+            let f = clip.frames / 2;
+            let alone = decode_frame(&c, f).expect("one frame");
+            let n = clip.frames as usize;
+            for (t, w) in alone.iter().enumerate() {
+                assert_eq!(*w, table[t * n + f as usize]);
+            }
+        }
+    }
+
+    #[test]
+    fn a_tiny_budget_reproduces_the_input_and_corruption_is_an_error() {
+        let rig = crate::embedded::default_rig();
+        let clip = &rig.clips[0];
+        let c = compress(&rig, clip, 1e-9).expect("compresses");
+        let table = decode(&c).expect("decodes");
+        for (a, b) in table.iter().zip(clip.weights.iter()) {
+            assert!((a - b).abs() <= 1e-6 * b.abs().max(1.0), "{a} vs {b}");
+        }
+        let mut bad = c.clone();
+        let last = bad.segments[0].len() - 1;
+        bad.segments[0][last] ^= 0x5a;
+        bad.segments[0].truncate(last);
+        assert!(decode(&bad).is_err());
+    }
+}
