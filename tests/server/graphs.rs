@@ -52,6 +52,11 @@ async fn put(server: &TestServer, name: &str, graph: Value) -> (u16, Value) {
     .await
 }
 
+/// A request without a body: its status and JSON answer.
+async fn bodiless(server: &TestServer, method: Method, path: &str) -> (u16, Value) {
+    call(server, method, path, Value::Null).await
+}
+
 fn code(v: &Value) -> &str {
     v["error"]["code"].as_str().unwrap_or("")
 }
@@ -162,13 +167,7 @@ async fn graphs_are_checked_listed_stored_and_deleted() {
         reply.status,
         String::from_utf8_lossy(&reply.body)
     );
-    let (_, list) = call(
-        &server,
-        Method::GET,
-        "/v1/rigs/default-head/graphs",
-        Value::Null,
-    )
-    .await;
+    let (_, list) = bodiless(&server, Method::GET, "/v1/rigs/default-head/graphs").await;
     assert_eq!(list["graphs"].as_array().unwrap().len(), 1, "{list}");
     // Sessions name graphs and nodes that exist.
     for (graph, start, status, want) in [
@@ -188,30 +187,17 @@ async fn graphs_are_checked_listed_stored_and_deleted() {
     // Stored with the rig: a restarted server has it.
     server.stop().await;
     let server = TestServer::start(stored_config(&dir)).await;
-    let (status, v) = call(
-        &server,
-        Method::GET,
-        "/v1/rigs/default-head/graphs/moods",
-        Value::Null,
-    )
-    .await;
+    let (status, v) = bodiless(&server, Method::GET, "/v1/rigs/default-head/graphs/moods").await;
     assert_eq!(status, 200, "{v}");
     assert_eq!(v["graph"]["edges"].as_array().unwrap().len(), 5);
-    let (status, _) = call(
+    let (status, _) = bodiless(
         &server,
         Method::DELETE,
         "/v1/rigs/default-head/graphs/moods",
-        Value::Null,
     )
     .await;
     assert_eq!(status, 204);
-    let (status, v) = call(
-        &server,
-        Method::GET,
-        "/v1/rigs/default-head/graphs/moods",
-        Value::Null,
-    )
-    .await;
+    let (status, v) = bodiless(&server, Method::GET, "/v1/rigs/default-head/graphs/moods").await;
     assert_eq!((status, code(&v)), (404, "unknown_graph"));
     server.stop().await;
     let _ = std::fs::remove_dir_all(&dir);
@@ -404,11 +390,10 @@ async fn graph_heads_fade_without_pops_even_when_interrupted_and_clones_stay_clo
 #[tokio::test]
 async fn a_graph_built_from_the_clips_is_stored_and_played() {
     let server = TestServer::start(ServerConfig::default()).await;
-    let (status, v) = call(
+    let (status, v) = bodiless(
         &server,
         Method::POST,
         "/v1/rigs/default-head/graphs/auto?auto=1&window=5",
-        Value::Null,
     )
     .await;
     assert_eq!(status, 200, "{v}");
@@ -419,13 +404,7 @@ async fn a_graph_built_from_the_clips_is_stored_and_played() {
         .as_str()
         .unwrap()
         .to_string();
-    let (status, got) = call(
-        &server,
-        Method::GET,
-        "/v1/rigs/default-head/graphs/auto",
-        Value::Null,
-    )
-    .await;
+    let (status, got) = bodiless(&server, Method::GET, "/v1/rigs/default-head/graphs/auto").await;
     assert_eq!(status, 200);
     assert_eq!(got["graph"], v["info"]["graph"]);
     let info = create(
@@ -444,11 +423,10 @@ async fn a_graph_built_from_the_clips_is_stored_and_played() {
         ("?auto=1&window=0", "window"),
         ("?auto=1&threshold=-1", "threshold"),
     ] {
-        let (status, v) = call(
+        let (status, v) = bodiless(
             &server,
             Method::POST,
             &format!("/v1/rigs/default-head/graphs/auto2{query}"),
-            Value::Null,
         )
         .await;
         assert_eq!((status, code(&v)), (400, "bad_query"), "{query}: {v}");
