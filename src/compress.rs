@@ -12,8 +12,10 @@
 //! into segments of [`SEGMENT`] frames, each predicted from its own start and entropy-coded
 //! with zstd on its own, so any frame decodes from its segment alone.
 //!
-//! A PCA codec (the chapter's: a mean and components shared by the library, per-frame
-//! coefficients) is not implemented yet; see `docs/perf/2026-12-02-clip-compression.md`.
+//! **PCA** (the chapter's codec): a [`Basis`] — the mean and principal components of every
+//! frame of the library's clips, shared by them — and per clip the fewest components that keep
+//! half the budget, their per-frame coefficients coded as curves are with steps that keep the
+//! other half ([`compress_pca`]). The caller keeps the smaller of the two per clip.
 
 use crate::rig::{Clip, Rig};
 
@@ -40,6 +42,9 @@ pub struct Compressed {
     pub bases: Vec<f32>,
     /// The zstd-compressed segments.
     pub segments: Vec<Vec<u8>>,
+    /// PCA-coded: the streams are the first this many components' coefficients of a
+    /// [`Basis`] (decode with [`decode_with`]); `None`: the streams are the weight curves.
+    pub components: Option<usize>,
 }
 
 impl Compressed {
@@ -128,16 +133,35 @@ fn get_varint(bytes: &[u8], at: &mut usize) -> Option<u64> {
 /// it cannot allocate).
 pub fn compress(rig: &Rig, clip: &Clip, max_error: f32) -> std::io::Result<Compressed> {
     let k = clip.targets as usize;
-    let n = clip.frames as usize;
     let mut steps = steps(rig, max_error);
     steps.resize(k, 0.0);
+    let (steps, bases, segments) = encode_streams(&clip.weights, clip.frames as usize, steps)?;
+    Ok(Compressed {
+        name: clip.name.clone(),
+        fps: clip.fps,
+        frames: clip.frames,
+        targets: clip.targets,
+        steps,
+        bases,
+        segments,
+        components: None,
+    })
+}
+
+/// Encoded streams: per stream its step and base, then the zstd segments.
+type Streams = (Vec<f32>, Vec<f32>, Vec<Vec<u8>>);
+
+/// Quantizes `values` (streams × `n` frames, row-major) with `steps` per stream, predicts and
+/// entropy-codes them in segments; a constant stream (or one of step 0) is its first value.
+fn encode_streams(values: &[f32], n: usize, mut steps: Vec<f32>) -> std::io::Result<Streams> {
+    let k = steps.len();
     let mut bases = vec![0f32; k];
-    // A channel whose curve is constant, or that moves no vertex, is its first value.
     for t in 0..k {
-        let curve = &clip.weights[t * n..(t + 1) * n];
+        let curve = &values[t * n..(t + 1) * n];
         let constant = curve.iter().all(|&w| w == curve[0]);
         bases[t] = curve.first().copied().unwrap_or(0.0);
-        if constant || steps[t] == 0.0 {
+        // A NaN or non-positive step (a channel that moves nothing) stores the constant.
+        if constant || steps[t].is_nan() || steps[t] <= 0.0 {
             steps[t] = 0.0;
         }
     }
@@ -145,7 +169,7 @@ pub fn compress(rig: &Rig, clip: &Clip, max_error: f32) -> std::io::Result<Compr
         if steps[t] == 0.0 {
             0
         } else {
-            (f64::from(clip.weights[t * n + f] - bases[t]) / f64::from(steps[t])).round() as i64
+            (f64::from(values[t * n + f] - bases[t]) / f64::from(steps[t])).round() as i64
         }
     };
     let mut segments = Vec::new();
@@ -171,15 +195,7 @@ pub fn compress(rig: &Rig, clip: &Clip, max_error: f32) -> std::io::Result<Compr
         }
         segments.push(zstd::bulk::compress(&raw, LEVEL)?);
     }
-    Ok(Compressed {
-        name: clip.name.clone(),
-        fps: clip.fps,
-        frames: clip.frames,
-        targets: clip.targets,
-        steps,
-        bases,
-        segments,
-    })
+    Ok((steps, bases, segments))
 }
 
 /// Decodes segment `s` into `out` (targets × frames, row-major, the clip's layout).
@@ -197,7 +213,7 @@ fn decode_segment(c: &Compressed, s: usize, out: &mut [f32]) -> Result<(), Decod
     let raw = zstd::bulk::decompress(seg, active * len * 10)
         .map_err(|e| DecodeError::Corrupt(s, e.to_string()))?;
     let mut at = 0;
-    for t in 0..c.targets as usize {
+    for t in 0..c.steps.len() {
         let row = &mut out[t * n + start..t * n + end];
         if c.steps[t] == 0.0 {
             row.fill(c.bases[t]);
@@ -224,23 +240,134 @@ fn decode_segment(c: &Compressed, s: usize, out: &mut [f32]) -> Result<(), Decod
     Ok(())
 }
 
-/// The whole table (targets × frames).
-pub fn decode(c: &Compressed) -> Result<Vec<f32>, DecodeError> {
-    let mut out = vec![0f32; c.frames as usize * c.targets as usize];
+/// The decoded streams (streams × frames).
+fn decode_streams(c: &Compressed) -> Result<Vec<f32>, DecodeError> {
+    let mut out = vec![0f32; c.frames as usize * c.steps.len()];
     for s in 0..c.segments.len() {
         decode_segment(c, s, &mut out)?;
     }
     Ok(out)
 }
 
-/// One frame's weights, decoding only its segment.
+/// The whole table (targets × frames) of a curve-coded clip.
+pub fn decode(c: &Compressed) -> Result<Vec<f32>, DecodeError> {
+    if c.components.is_some() {
+        return Err(DecodeError::Corrupt(
+            0,
+            "PCA-coded: decode with its basis".into(),
+        ));
+    }
+    decode_streams(c)
+}
+
+/// The whole table (targets × frames) of a clip coded either way.
+pub fn decode_with(c: &Compressed, basis: &Basis) -> Result<Vec<f32>, DecodeError> {
+    let Some(m) = c.components else {
+        return decode(c);
+    };
+    let coeffs = decode_streams(c)?;
+    Ok(reconstruct(basis, m, &coeffs, c.frames as usize))
+}
+
+/// Weights (targets × n) from `m` components' coefficients (m × n): `mean + Σ c_j U_j`.
+fn reconstruct(basis: &Basis, m: usize, coeffs: &[f32], n: usize) -> Vec<f32> {
+    let k = basis.mean.len();
+    let mut out = vec![0f32; k * n];
+    for t in 0..k {
+        for f in 0..n {
+            out[t * n + f] = basis.mean[t]
+                + (0..m)
+                    .map(|j| basis.components[j][t] * coeffs[j * n + f])
+                    .sum::<f32>();
+        }
+    }
+    out
+}
+
+/// One frame's weights of a curve-coded clip, decoding only its segment.
 pub fn decode_frame(c: &Compressed, frame: u32) -> Result<Vec<f32>, DecodeError> {
     let n = c.frames as usize;
-    let mut table = vec![0f32; n * c.targets as usize];
+    let mut table = vec![0f32; n * c.steps.len()];
     decode_segment(c, (frame / SEGMENT) as usize, &mut table)?;
-    Ok((0..c.targets as usize)
+    Ok((0..c.steps.len())
         .map(|t| table[t * n + frame as usize])
         .collect())
+}
+
+/// Compresses `clip` with the library's PCA `basis`: the fewest components whose
+/// reconstruction stays within half the budget (measured at every frame and vertex), their
+/// coefficients quantized so that the other half bounds their error (component j's step is
+/// `E / (m · M_j)`, `M_j = maxᵥ Σₖ |U_kj| ‖Δₖ(v)‖`), then predicted and entropy-coded as
+/// curves are. `None` when even every component misses the budget.
+pub fn compress_pca(
+    rig: &Rig,
+    clip: &Clip,
+    basis: &Basis,
+    max_error: f32,
+) -> std::io::Result<Option<Compressed>> {
+    let n = clip.frames as usize;
+    let k = rig.targets.len();
+    let coeffs_of = |m: usize| -> Vec<f32> {
+        let mut out = vec![0f32; m * n];
+        let mut w = vec![0f32; k];
+        for f in 0..n {
+            clip.frame_weights(f as u32, &mut w);
+            for j in 0..m {
+                out[j * n + f] = (0..k)
+                    .map(|t| basis.components[j][t] * (w[t] - basis.mean[t]))
+                    .sum();
+            }
+        }
+        out
+    };
+    let half = max_error / 2.0;
+    // The fewest components within half the budget: the error falls as components are added,
+    // so a binary search over the count.
+    let fits = |m: usize| {
+        let table = reconstruct(basis, m, &coeffs_of(m), n);
+        measure(rig, clip, &table, half).max <= f64::from(half)
+    };
+    if !fits(k) {
+        return Ok(None);
+    }
+    let (mut lo, mut hi) = (0usize, k);
+    while lo < hi {
+        let mid = (lo + hi) / 2;
+        if fits(mid) { hi = mid } else { lo = mid + 1 }
+    }
+    let m = lo;
+    let budget = f64::from(half * rig.bbox().diagonal());
+    let steps: Vec<f32> = (0..m)
+        .map(|j| {
+            let mut worst = 0f64;
+            for p in rig.primitives.iter() {
+                let mut sum = vec![0f64; p.positions.len()];
+                for t in &p.targets {
+                    let u = f64::from(basis.components[j][t.target as usize].abs());
+                    for (&v, d) in t.vertices.iter().zip(&t.positions) {
+                        sum[v as usize] += u * f64::from(d.length());
+                    }
+                }
+                worst = sum.into_iter().fold(worst, f64::max);
+            }
+            if worst > 0.0 {
+                (2.0 * budget / (m as f64 * worst)) as f32
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    let (steps, bases, segments) = encode_streams(&coeffs_of(m), n, steps)?;
+    Ok(Some(Compressed {
+        name: clip.name.clone(),
+        fps: clip.fps,
+        frames: clip.frames,
+        targets: clip.targets,
+        steps,
+        bases,
+        segments,
+        components: Some(m),
+    }))
 }
 
 /// ACL's report of a compressed clip, in vertex space: each frame's largest vertex error
@@ -289,6 +416,116 @@ pub fn measure(rig: &Rig, clip: &Clip, decoded: &[f32], max_error: f32) -> Error
     }
 }
 
+/// The chapter's PCA of a clip library: the mean weight vector of every frame of every clip
+/// and the principal directions of the frames around it, strongest first (a Jacobi
+/// eigendecomposition of the K × K covariance). The library's clips share it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Basis {
+    /// Mean weights, per channel.
+    pub mean: Vec<f32>,
+    /// Components, each a unit vector over the channels, strongest first.
+    pub components: Vec<Vec<f32>>,
+}
+
+impl Basis {
+    /// The basis of `rig`'s clips (every component kept; [`compress_pca`] chooses how many).
+    pub fn of(rig: &Rig) -> Basis {
+        let k = rig.targets.len();
+        let mut mean = vec![0f64; k];
+        let mut count = 0f64;
+        let mut w = vec![0f32; k];
+        for c in &rig.clips {
+            for f in 0..c.frames {
+                c.frame_weights(f, &mut w);
+                for (m, x) in mean.iter_mut().zip(&w) {
+                    *m += f64::from(*x);
+                }
+                count += 1.0;
+            }
+        }
+        for m in &mut mean {
+            *m /= count.max(1.0);
+        }
+        let mut cov = vec![0f64; k * k];
+        for c in &rig.clips {
+            for f in 0..c.frames {
+                c.frame_weights(f, &mut w);
+                let d: Vec<f64> = w
+                    .iter()
+                    .zip(&mean)
+                    .map(|(x, m)| f64::from(*x) - m)
+                    .collect();
+                for i in 0..k {
+                    for j in 0..k {
+                        cov[i * k + j] += d[i] * d[j];
+                    }
+                }
+            }
+        }
+        let (values, vectors) = jacobi(cov, k);
+        let mut order: Vec<usize> = (0..k).collect();
+        order.sort_by(|&a, &b| values[b].total_cmp(&values[a]));
+        Basis {
+            mean: mean.iter().map(|&m| m as f32).collect(),
+            components: order
+                .iter()
+                .map(|&j| (0..k).map(|i| vectors[i * k + j] as f32).collect())
+                .collect(),
+        }
+    }
+
+    /// Bytes of the mean and `c` components (the library pays them once).
+    pub fn bytes(&self, c: usize) -> usize {
+        4 * self.mean.len() * (1 + c)
+    }
+}
+
+/// Eigenvalues and eigenvectors (columns) of a symmetric `k × k` matrix, cyclic Jacobi.
+fn jacobi(mut a: Vec<f64>, k: usize) -> (Vec<f64>, Vec<f64>) {
+    let mut v = vec![0f64; k * k];
+    for i in 0..k {
+        v[i * k + i] = 1.0;
+    }
+    for _sweep in 0..64 {
+        let off: f64 = (0..k)
+            .flat_map(|i| (0..k).filter(move |&j| j != i).map(move |j| (i, j)))
+            .map(|(i, j)| a[i * k + j] * a[i * k + j])
+            .sum();
+        if off < 1e-22 {
+            break;
+        }
+        for p in 0..k {
+            for q in p + 1..k {
+                let apq = a[p * k + q];
+                if apq.abs() < 1e-300 {
+                    continue;
+                }
+                let theta = (a[q * k + q] - a[p * k + p]) / (2.0 * apq);
+                let sign = if theta >= 0.0 { 1.0 } else { -1.0 };
+                let t = sign / (theta.abs() + (theta * theta + 1.0).sqrt());
+                let c = 1.0 / (t * t + 1.0).sqrt();
+                let s = t * c;
+                for r in 0..k {
+                    let (arp, arq) = (a[r * k + p], a[r * k + q]);
+                    a[r * k + p] = c * arp - s * arq;
+                    a[r * k + q] = s * arp + c * arq;
+                }
+                for r in 0..k {
+                    let (apr, aqr) = (a[p * k + r], a[q * k + r]);
+                    a[p * k + r] = c * apr - s * aqr;
+                    a[q * k + r] = s * apr + c * aqr;
+                }
+                for r in 0..k {
+                    let (vrp, vrq) = (v[r * k + p], v[r * k + q]);
+                    v[r * k + p] = c * vrp - s * vrq;
+                    v[r * k + q] = s * vrp + c * vrq;
+                }
+            }
+        }
+    }
+    ((0..k).map(|i| a[i * k + i]).collect(), v)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -306,6 +543,57 @@ mod tests {
             let n = clip.frames as usize;
             for (t, w) in alone.iter().enumerate() {
                 assert_eq!(*w, table[t * n + f as usize]);
+            }
+        }
+    }
+
+    #[test]
+    fn pca_keeps_its_budget_and_every_component_reproduces_the_input() {
+        let rig = crate::embedded::default_rig();
+        let basis = Basis::of(&rig);
+        let k = rig.targets.len();
+        // Orthonormal components.
+        for a in 0..k.min(8) {
+            for b in 0..k.min(8) {
+                let dot: f32 = (0..k)
+                    .map(|t| basis.components[a][t] * basis.components[b][t])
+                    .sum();
+                assert!(
+                    (dot - if a == b { 1.0 } else { 0.0 }).abs() < 1e-4,
+                    "{a}·{b} = {dot}"
+                );
+            }
+        }
+        for clip in &rig.clips {
+            let c = compress_pca(&rig, clip, &basis, 3e-4)
+                .expect("compresses")
+                .expect("within budget");
+            let table = decode_with(&c, &basis).expect("decodes");
+            let r = measure(&rig, clip, &table, 3e-4);
+            assert!(
+                r.max <= 3e-4,
+                "{}: {r:?} with {:?} components",
+                clip.name,
+                c.components
+            );
+            // Every component and no quantization to speak of: the input, to float error.
+            let coeffs = {
+                let n = clip.frames as usize;
+                let mut out = vec![0f32; k * n];
+                let mut w = vec![0f32; k];
+                for f in 0..n {
+                    clip.frame_weights(f as u32, &mut w);
+                    for j in 0..k {
+                        out[j * n + f] = (0..k)
+                            .map(|t| basis.components[j][t] * (w[t] - basis.mean[t]))
+                            .sum();
+                    }
+                }
+                out
+            };
+            let full = reconstruct(&basis, k, &coeffs, clip.frames as usize);
+            for (a, b) in full.iter().zip(clip.weights.iter()) {
+                assert!((a - b).abs() <= 1e-5, "{}: {a} vs {b}", clip.name);
             }
         }
     }

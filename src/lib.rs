@@ -13,7 +13,7 @@
 //! | [`embedded`] | the procedural default rig that needs no files |
 //! | [`synthetic`] | synthetic rigs and clips: the paper-scale rig, deterministic random clips |
 //! | [`plan`] | the batch planner: a crowd of heads → unique jobs + per-head index |
-//! | [`compress`] | compressed clips: per-curve quantization within a vertex-space error budget, temporal prediction, zstd segments |
+//! | [`compress`] | compressed clips within a vertex-space error budget: per-curve quantization or PCA, temporal prediction, zstd segments |
 //! | [`graph`] | motion graphs checked against a rig, and the player that walks one with bounded cross-fades |
 //! | [`engine`] | blend engines; [`engine::cpu`] is the oracle and the no-GPU production engine |
 //! | [`export`] | one blended frame written as OBJ or raw f32 (`crowdmorph eval`) |

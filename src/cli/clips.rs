@@ -35,8 +35,9 @@ pub enum Command {
         #[arg(long)]
         json: bool,
     },
-    /// Compress the rig's clips within a vertex-space error budget (per-curve quantization,
-    /// temporal prediction, zstd segments) and report, as ACL does, the ratio against f32, the
+    /// Compress the rig's clips within a vertex-space error budget (per-curve quantization or
+    /// the library's PCA, whichever is smaller per clip; temporal prediction, zstd segments)
+    /// and report, as ACL does, the ratio against f32, the
     /// largest vertex error, its p99 and the share of samples under the budget.
     Compress {
         /// glTF/GLB rig with clips (default: the embedded head).
@@ -61,8 +62,10 @@ pub struct ClipRow {
     pub clip: String,
     /// Frames.
     pub frames: u32,
-    /// Codec used.
+    /// Codec used: `curves` or `pca` (the smaller at the budget).
     pub codec: &'static str,
+    /// PCA components kept (`pca` only).
+    pub components: Option<usize>,
     /// Bytes of the f32 table.
     pub f32_bytes: usize,
     /// Bytes compressed.
@@ -83,7 +86,9 @@ pub struct CompressReport {
     pub max_error: f32,
     /// Per clip.
     pub clips: Vec<ClipRow>,
-    /// All clips: f32 bytes over compressed bytes.
+    /// Bytes of the shared PCA basis (mean and the components the clips use), counted once.
+    pub basis_bytes: usize,
+    /// All clips: f32 bytes over compressed bytes (the basis included).
     pub ratio: f64,
 }
 
@@ -93,19 +98,22 @@ impl std::fmt::Display for CompressReport {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         writeln!(
             f,
-            "rig {:?}, budget {:e} × diagonal: {:.1}× smaller than f32 over all clips",
-            self.rig, self.max_error, self.ratio
+            "rig {:?}, budget {:e} × diagonal: {:.1}× smaller than f32 over all clips \
+             (shared PCA basis: {} bytes)",
+            self.rig, self.max_error, self.ratio, self.basis_bytes
         )?;
         for c in &self.clips {
             writeln!(
                 f,
-                "  {:>16} {:>5} frames  {:>8} → {:>7} bytes ({:>5.1}×, {})  max {:.2e}  p99 {:.2e}  under budget {:.4} %",
+                "  {:>16} {:>5} frames  {:>8} → {:>7} bytes ({:>5.1}×, {}{})  max {:.2e}  p99 {:.2e}  under budget {:.4} %",
                 c.clip,
                 c.frames,
                 c.f32_bytes,
                 c.bytes,
                 c.ratio,
                 c.codec,
+                c.components
+                    .map_or(String::new(), |m| format!(", {m} components")),
                 c.error.max,
                 c.error.p99,
                 c.error.under_budget * 100.0
@@ -183,9 +191,39 @@ pub fn run(which: Command) -> Result<()> {
                 }
                 csv.push('\n');
             }
+            // The chapter's PCA basis, shared by the library: its bytes count once, when a
+            // clip uses it.
+            let basis = crowdmorph::compress::Basis::of(&rig);
+            // Both codecs per clip; PCA is used where it is smaller only if the library's
+            // total, with the shared basis (the mean and as many components as the PCA clips
+            // keep), is smaller than with curves alone.
+            let mut both = Vec::new();
             for clip in &rig.clips {
-                let c = crowdmorph::compress::compress(&rig, clip, max_error)?;
-                let table = crowdmorph::compress::decode(&c)?;
+                let curves = crowdmorph::compress::compress(&rig, clip, max_error)?;
+                let pca = crowdmorph::compress::compress_pca(&rig, clip, &basis, max_error)?
+                    .filter(|p| p.bytes() < curves.bytes());
+                both.push((curves, pca));
+            }
+            let curves_only: usize = both.iter().map(|(c, _)| c.bytes()).sum();
+            let used = both
+                .iter()
+                .filter_map(|(_, p)| p.as_ref()?.components)
+                .max()
+                .unwrap_or(0);
+            let mixed: usize = both
+                .iter()
+                .map(|(c, p)| p.as_ref().map_or(c.bytes(), |p| p.bytes()))
+                .sum::<usize>()
+                + if used > 0 { basis.bytes(used) } else { 0 };
+            let use_pca = used > 0 && mixed < curves_only;
+            let mut basis_components = 0;
+            for (clip, (curves, pca)) in rig.clips.iter().zip(both) {
+                let (c, codec) = match pca {
+                    Some(p) if use_pca => (p, "pca"),
+                    _ => (curves, "curves"),
+                };
+                basis_components = basis_components.max(c.components.unwrap_or(0));
+                let table = crowdmorph::compress::decode_with(&c, &basis)?;
                 if out.is_some() {
                     let n = clip.frames as usize;
                     for fr in 0..n {
@@ -199,7 +237,8 @@ pub fn run(which: Command) -> Result<()> {
                 rows.push(ClipRow {
                     clip: clip.name.clone(),
                     frames: clip.frames,
-                    codec: "curves",
+                    codec,
+                    components: c.components,
                     f32_bytes: c.f32_bytes(),
                     bytes: c.bytes(),
                     ratio: c.f32_bytes() as f64 / c.bytes().max(1) as f64,
@@ -213,11 +252,18 @@ pub fn run(which: Command) -> Result<()> {
             let (a, b) = rows
                 .iter()
                 .fold((0usize, 0usize), |(a, b), r| (a + r.f32_bytes, b + r.bytes));
+            let shared = if basis_components > 0 {
+                basis.bytes(basis_components)
+            } else {
+                0
+            };
+            let b = b + shared;
             super::emit(
                 &CompressReport {
                     rig: rig.name.clone(),
                     max_error,
                     clips: rows,
+                    basis_bytes: shared,
                     ratio: a as f64 / b.max(1) as f64,
                 },
                 json,
