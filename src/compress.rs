@@ -294,6 +294,22 @@ pub fn decode_frame(c: &Compressed, frame: u32) -> Result<Vec<f32>, DecodeError>
         .collect())
 }
 
+/// The first `m` components' coefficients of every frame of `clip` (m × frames).
+fn project(basis: &Basis, clip: &Clip, m: usize) -> Vec<f32> {
+    let (n, k) = (clip.frames as usize, basis.mean.len());
+    let mut out = vec![0f32; m * n];
+    let mut w = vec![0f32; k];
+    for f in 0..n {
+        clip.frame_weights(f as u32, &mut w);
+        for j in 0..m {
+            out[j * n + f] = (0..k)
+                .map(|t| basis.components[j][t] * (w[t] - basis.mean[t]))
+                .sum();
+        }
+    }
+    out
+}
+
 /// Compresses `clip` with the library's PCA `basis`: the fewest components whose
 /// reconstruction stays within half the budget (measured at every frame and vertex), their
 /// coefficients quantized so that the other half bounds their error (component j's step is
@@ -307,19 +323,7 @@ pub fn compress_pca(
 ) -> std::io::Result<Option<Compressed>> {
     let n = clip.frames as usize;
     let k = rig.targets.len();
-    let coeffs_of = |m: usize| -> Vec<f32> {
-        let mut out = vec![0f32; m * n];
-        let mut w = vec![0f32; k];
-        for f in 0..n {
-            clip.frame_weights(f as u32, &mut w);
-            for j in 0..m {
-                out[j * n + f] = (0..k)
-                    .map(|t| basis.components[j][t] * (w[t] - basis.mean[t]))
-                    .sum();
-            }
-        }
-        out
-    };
+    let coeffs_of = |m: usize| project(basis, clip, m);
     let half = max_error / 2.0;
     // The fewest components within half the budget: the error falls as components are added,
     // so a binary search over the count.
@@ -577,20 +581,7 @@ mod tests {
                 c.components
             );
             // Every component and no quantization to speak of: the input, to float error.
-            let coeffs = {
-                let n = clip.frames as usize;
-                let mut out = vec![0f32; k * n];
-                let mut w = vec![0f32; k];
-                for f in 0..n {
-                    clip.frame_weights(f as u32, &mut w);
-                    for j in 0..k {
-                        out[j * n + f] = (0..k)
-                            .map(|t| basis.components[j][t] * (w[t] - basis.mean[t]))
-                            .sum();
-                    }
-                }
-                out
-            };
+            let coeffs = project(&basis, clip, k);
             let full = reconstruct(&basis, k, &coeffs, clip.frames as usize);
             for (a, b) in full.iter().zip(clip.weights.iter()) {
                 assert!((a - b).abs() <= 1e-5, "{}: {a} vs {b}", clip.name);
