@@ -48,6 +48,20 @@ pub struct Compressed {
 }
 
 impl Compressed {
+    /// `clip` coded as `streams` (curves, or `components` PCA coefficients).
+    fn of(clip: &Clip, (steps, bases, segments): Streams, components: Option<usize>) -> Compressed {
+        Compressed {
+            name: clip.name.clone(),
+            fps: clip.fps,
+            frames: clip.frames,
+            targets: clip.targets,
+            steps,
+            bases,
+            segments,
+            components,
+        }
+    }
+
     /// Bytes of the compressed form: the segments, the steps and bases, a small header.
     pub fn bytes(&self) -> usize {
         self.segments.iter().map(|s| s.len() + 4).sum::<usize>() + self.steps.len() * 8 + 16
@@ -135,17 +149,8 @@ pub fn compress(rig: &Rig, clip: &Clip, max_error: f32) -> std::io::Result<Compr
     let k = clip.targets as usize;
     let mut steps = steps(rig, max_error);
     steps.resize(k, 0.0);
-    let (steps, bases, segments) = encode_streams(&clip.weights, clip.frames as usize, steps)?;
-    Ok(Compressed {
-        name: clip.name.clone(),
-        fps: clip.fps,
-        frames: clip.frames,
-        targets: clip.targets,
-        steps,
-        bases,
-        segments,
-        components: None,
-    })
+    let streams = encode_streams(&clip.weights, clip.frames as usize, steps)?;
+    Ok(Compressed::of(clip, streams, None))
 }
 
 /// Encoded streams: per stream its step and base, then the zstd segments.
@@ -361,17 +366,8 @@ pub fn compress_pca(
             }
         })
         .collect();
-    let (steps, bases, segments) = encode_streams(&coeffs_of(m), n, steps)?;
-    Ok(Some(Compressed {
-        name: clip.name.clone(),
-        fps: clip.fps,
-        frames: clip.frames,
-        targets: clip.targets,
-        steps,
-        bases,
-        segments,
-        components: Some(m),
-    }))
+    let streams = encode_streams(&coeffs_of(m), n, steps)?;
+    Ok(Some(Compressed::of(clip, streams, Some(m))))
 }
 
 /// ACL's report of a compressed clip, in vertex space: each frame's largest vertex error
