@@ -540,12 +540,25 @@ impl Default for BuildOptions {
     }
 }
 
-/// Bytes [`build`] holds at most for `rig` (for the caller's charge): the projected frames,
-/// one distance row, the Gram matrix.
-pub fn build_bytes(rig: &Rig) -> u64 {
+/// Most (source frame, target frame) pairs [`build`] compares for one pair of clips: the
+/// distance grid it keeps (8 bytes a pair) and the work (K operations a pair times the window)
+/// grow with it, so larger clips are refused ([`build_bytes`] returns `None`).
+pub const MAX_BUILD_PAIRS: u64 = 1 << 22;
+
+/// Bytes [`build`] holds at most for `rig` (for the caller's charge): the projected frames, the
+/// largest pair of clips' distance grid, the Gram matrix and its factor. `None` when two clips
+/// are too long to compare ([`MAX_BUILD_PAIRS`]).
+pub fn build_bytes(rig: &Rig) -> Option<u64> {
     let k = rig.targets.len() as u64;
     let frames: u64 = rig.clips.iter().map(|c| u64::from(c.frames)).sum();
-    frames * k * 8 + frames * 8 + k * k * 16 + 4096
+    let longest = rig
+        .clips
+        .iter()
+        .map(|c| u64::from(c.frames))
+        .max()
+        .unwrap_or(0);
+    let pairs = longest * longest;
+    (pairs <= MAX_BUILD_PAIRS).then(|| frames * k * 8 + pairs * 8 + k * k * 16 + 4096)
 }
 
 /// Builds a motion graph from the rig's clips the way Kovar et al. (2002) do: frame distances
@@ -556,6 +569,7 @@ pub fn build_bytes(rig: &Rig) -> u64 {
 /// into each other, and the graph is pruned to its largest strongly connected component (so
 /// every node can reach every other). `None` when no clip has a window's frames.
 pub fn build(rig: &Rig, opt: BuildOptions) -> Option<Built> {
+    build_bytes(rig)?;
     let w = opt.window.max(1) as usize;
     let project = projector(rig);
     let v = rig.vertex_count().max(1) as f64;
@@ -898,6 +912,15 @@ mod tests {
         let mut s = spec();
         s.edges[0].window = Some([5, 100_000]);
         assert!(matches!(graph(&s), Err(GraphError::Invalid(m)) if m.contains("window")));
+    }
+
+    #[test]
+    fn clips_too_long_to_compare_are_refused_before_any_work() {
+        let rig = crate::embedded::default_rig();
+        assert!(build_bytes(&rig).is_some());
+        let long = crate::synthetic::with_random_clip_of(rig, "long", 3000, 1);
+        assert_eq!(build_bytes(&long), None);
+        assert_eq!(build(&long, BuildOptions::default()), None);
     }
 
     #[test]

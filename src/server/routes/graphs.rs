@@ -178,9 +178,17 @@ pub async fn build_graph(
         opt.threshold = t;
     }
     let entry = state.rig(&id)?;
-    let _work = state
-        .queue_memory
-        .reserve(crate::graph::build_bytes(entry.rig()))?;
+    let bytes = crate::graph::build_bytes(entry.rig()).ok_or_else(|| {
+        ApiError::bad_request(
+            "invalid_graph",
+            format!(
+                "rig {id:?} has clips too long to compare frame by frame (more than {} frame \
+                 pairs); build the graph offline with `crowdmorph clips graph` and PUT it",
+                crate::graph::MAX_BUILD_PAIRS
+            ),
+        )
+    })?;
+    let _work = state.queue_memory.reserve(bytes)?;
     let built = {
         let entry = entry.clone();
         blocking(move || Ok::<_, ApiError>(crate::graph::build(entry.rig(), opt))).await?
