@@ -10,7 +10,8 @@
 //! **The codec** (per curve, ACL's approach): quantized weights predicted linearly from the two
 //! before (`2q[t−1] − q[t−2]`), the residuals zigzag varints, curve after curve; frames are cut
 //! into segments of [`SEGMENT`] frames, each predicted from its own start and entropy-coded
-//! with zstd on its own, so any frame decodes from its segment alone.
+//! with zstd on its own (with its content checksum, so a damaged segment is an error, not other
+//! weights), so any frame decodes from its segment alone.
 //!
 //! **PCA** (the chapter's codec): a [`Basis`] — the mean and principal components of every
 //! frame of the library's clips, shared by them — and per clip the fewest components that keep
@@ -26,7 +27,7 @@ pub const SEGMENT: u32 = 32;
 const LEVEL: i32 = 19;
 
 /// A clip compressed by [`compress`].
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Compressed {
     /// Clip name.
     pub name: String,
@@ -79,6 +80,9 @@ pub enum DecodeError {
     /// A segment is corrupt or truncated.
     #[error("segment {0}: {1}")]
     Corrupt(usize, String),
+    /// The header disagrees with itself or with the rig (its shape, steps, segment count).
+    #[error("{0}")]
+    Malformed(String),
 }
 
 /// Per channel, the quantization step of the module doc's budget (0 for channels that move
@@ -178,6 +182,10 @@ fn encode_streams(values: &[f32], n: usize, mut steps: Vec<f32>) -> std::io::Res
         }
     };
     let mut segments = Vec::new();
+    // Each segment carries zstd's content checksum, so a damaged one fails to decode instead
+    // of decoding to other weights.
+    let mut zstd = zstd::bulk::Compressor::new(LEVEL)?;
+    zstd.set_parameter(zstd::zstd_safe::CParameter::ChecksumFlag(true))?;
     for start in (0..n).step_by(SEGMENT as usize) {
         let end = (start + SEGMENT as usize).min(n);
         let mut raw = Vec::with_capacity((end - start) * k);
@@ -198,7 +206,7 @@ fn encode_streams(values: &[f32], n: usize, mut steps: Vec<f32>) -> std::io::Res
                 p1 = v;
             }
         }
-        segments.push(zstd::bulk::compress(&raw, LEVEL)?);
+        segments.push(zstd.compress(&raw)?);
     }
     Ok((steps, bases, segments))
 }
@@ -297,6 +305,117 @@ pub fn decode_frame(c: &Compressed, frame: u32) -> Result<Vec<f32>, DecodeError>
     Ok((0..c.steps.len())
         .map(|t| table[t * n + frame as usize])
         .collect())
+}
+
+impl Compressed {
+    /// Checks the header before anything is allocated from it: a shape a clip may have, one
+    /// step and base per channel of a rig with `targets` channels, one segment per
+    /// [`SEGMENT`] frames, finite steps and bases, and curves (not PCA coefficients).
+    pub fn check(&self, targets: usize) -> Result<(), DecodeError> {
+        let bad = |m: String| Err(DecodeError::Malformed(m));
+        if self.components.is_some() {
+            return bad("PCA-coded without its basis".into());
+        }
+        if self.frames == 0 || self.frames as usize > crate::rig::MAX_FRAMES {
+            return bad(format!("{} frames", self.frames));
+        }
+        if self.targets as usize != targets
+            || self.steps.len() != targets
+            || self.bases.len() != targets
+        {
+            return bad(format!(
+                "{} channels ({} steps, {} bases) for a rig of {targets}",
+                self.targets,
+                self.steps.len(),
+                self.bases.len()
+            ));
+        }
+        if self.segments.len() != self.frames.div_ceil(SEGMENT) as usize {
+            return bad(format!(
+                "{} segments for {} frames",
+                self.segments.len(),
+                self.frames
+            ));
+        }
+        if let Some(t) = (0..targets).find(|&t| {
+            !(self.steps[t].is_finite() && self.steps[t] >= 0.0 && self.bases[t].is_finite())
+        }) {
+            return bad(format!("channel {t}: step or base not finite"));
+        }
+        Ok(())
+    }
+
+    /// The clip it decodes to, checked as an imported clip is ([`Clip::validate`]).
+    pub fn to_clip(&self, targets: usize) -> Result<Clip, DecodeError> {
+        self.check(targets)?;
+        let weights = decode(self)?;
+        Clip::new(
+            self.name.clone(),
+            self.fps,
+            targets,
+            self.frames as usize,
+            weights,
+        )
+        .map_err(|e| DecodeError::Malformed(e.to_string()))
+    }
+}
+
+/// `clip` as a store that compresses clips keeps it: curve-coded within the budget, and the
+/// clip that decodes from it (what the server then plays, so that what it serves before and
+/// after a restart is the same). Applying it again changes nothing: decoded weights sit on
+/// their channel's quantization lattice, which quantizes to itself.
+pub fn stored_form(rig: &Rig, clip: &Clip, max_error: f32) -> std::io::Result<(Compressed, Clip)> {
+    let c = compress(rig, clip, max_error)?;
+    let decoded = c
+        .to_clip(rig.targets.len())
+        .map_err(|e| std::io::Error::other(e.to_string()))?;
+    Ok((c, decoded))
+}
+
+/// A blend of PCA-coded frames, done where the chapter does it: on the coefficients. Each
+/// term is a clip coded with `basis`, a frame and a fraction; the fractions sum to 1 (the
+/// caller's canonical blend, [`crate::rig::Pose`]). Only each frame's segment is decoded, the
+/// coefficients are mixed, and one frame's weights are rebuilt — the same weights as blending
+/// the decoded frames, since `mean + U·Σ tᵢcᵢ = Σ tᵢ(mean + U·cᵢ)` when `Σ tᵢ = 1`.
+pub fn blend_pca(
+    basis: &Basis,
+    terms: &[(&Compressed, u32, f32)],
+) -> Result<Vec<f32>, DecodeError> {
+    let m = terms
+        .iter()
+        .map(|(c, _, _)| c.components.unwrap_or(0))
+        .max()
+        .unwrap_or(0);
+    if m > basis.components.len() {
+        return Err(DecodeError::Malformed(format!(
+            "{m} components of a basis of {}",
+            basis.components.len()
+        )));
+    }
+    let mut mixed = vec![0f32; m];
+    for &(c, frame, t) in terms {
+        let Some(mc) = c.components else {
+            return Err(DecodeError::Malformed(format!(
+                "clip {:?} is not PCA-coded",
+                c.name
+            )));
+        };
+        if frame >= c.frames || c.steps.len() != mc {
+            return Err(DecodeError::Malformed(format!(
+                "frame {frame} of clip {:?} ({} frames, {} streams for {mc} components)",
+                c.name,
+                c.frames,
+                c.steps.len()
+            )));
+        }
+        let n = c.frames as usize;
+        let mut table = vec![0f32; n * mc];
+        decode_segment(c, (frame / SEGMENT) as usize, &mut table)?;
+        for (j, x) in mixed.iter_mut().enumerate().take(mc) {
+            *x += t * table[j * n + frame as usize];
+        }
+    }
+    Ok(reconstruct(basis, m, &mixed, 1))
 }
 
 /// The first `m` components' coefficients of every frame of `clip` (m × frames).
@@ -582,6 +701,64 @@ mod tests {
             for (a, b) in full.iter().zip(clip.weights.iter()) {
                 assert!((a - b).abs() <= 1e-5, "{}: {a} vs {b}", clip.name);
             }
+        }
+    }
+
+    #[test]
+    fn blending_pca_coefficients_equals_blending_the_decoded_frames() {
+        let rig = crate::embedded::default_rig();
+        let basis = Basis::of(&rig);
+        let coded: Vec<(Compressed, Vec<f32>)> = rig
+            .clips
+            .iter()
+            .map(|clip| {
+                let c = compress_pca(&rig, clip, &basis, 3e-4)
+                    .expect("compresses")
+                    .expect("within budget");
+                let table = decode_with(&c, &basis).expect("decodes");
+                (c, table)
+            })
+            .collect();
+        let k = rig.targets.len();
+        let (a, b) = (&coded[0], &coded[1]);
+        let (fa, fb) = (3u32, b.0.frames - 1);
+        for t in [0.0f32, 0.25, 0.5, 1.0] {
+            let got = blend_pca(&basis, &[(&a.0, fa, 1.0 - t), (&b.0, fb, t)]).expect("blend");
+            assert_eq!(got.len(), k);
+            for (i, g) in got.iter().enumerate() {
+                let want = (1.0 - t) * a.1[i * a.0.frames as usize + fa as usize]
+                    + t * b.1[i * b.0.frames as usize + fb as usize];
+                assert!(
+                    (g - want).abs() <= 1e-5,
+                    "t {t}, channel {i}: {g} vs {want}"
+                );
+            }
+        }
+        // A curve-coded clip has no coefficients to blend.
+        let curves = compress(&rig, &rig.clips[0], 3e-4).expect("compresses");
+        assert!(blend_pca(&basis, &[(&curves, 0, 1.0)]).is_err());
+    }
+
+    #[test]
+    fn the_stored_form_is_a_fixed_point() {
+        let rig = crate::embedded::default_rig();
+        for clip in &rig.clips {
+            let (c, once) = stored_form(&rig, clip, 3e-4).expect("form");
+            let (c2, twice) = stored_form(&rig, &once, 3e-4).expect("form");
+            assert_eq!(once.weights, twice.weights, "{}", clip.name);
+            assert_eq!(c, c2, "{}: the same bytes again", clip.name);
+            assert!(measure(&rig, clip, &once.weights, 3e-4).max <= 3e-4);
+            // A header that lies is refused before anything is allocated from it.
+            let mut bad = c.clone();
+            bad.frames = u32::MAX;
+            assert!(matches!(
+                bad.to_clip(rig.targets.len()),
+                Err(DecodeError::Malformed(_))
+            ));
+            let mut bad = c.clone();
+            bad.steps.pop();
+            assert!(bad.to_clip(rig.targets.len()).is_err());
+            assert!(c.to_clip(rig.targets.len() + 1).is_err());
         }
     }
 

@@ -169,6 +169,12 @@ pub struct ServerConfig {
     /// ones such as lavapipe included), gpu (hardware only) or off.
     #[arg(long, env = "CROWDMORPH_RENDER_BACKEND", default_value = "auto")]
     pub render_backend: RenderBackend,
+    /// Store clips compressed (per-curve quantization, linear prediction, zstd segments)
+    /// within this fraction of the rig's bounding-box diagonal per vertex, e.g. 3e-4; clips
+    /// are put into that form as they arrive, so the same frames are served before and after a
+    /// restart (default: stored exactly).
+    #[arg(long, env = "CROWDMORPH_COMPRESS_CLIPS", value_parser = clip_error)]
+    pub compress_clips: Option<f32>,
     /// Limits of crowd sessions.
     #[command(flatten)]
     pub sessions: SessionLimits,
@@ -295,6 +301,21 @@ fn millis_positive(s: &str) -> Result<Duration, String> {
 
 fn seconds_positive(s: &str) -> Result<Duration, String> {
     positive(seconds(s)?, s)
+}
+
+/// A clip error budget: a fraction of the diagonal in (0, 0.01].
+fn clip_error(s: &str) -> Result<f32, String> {
+    let e: f32 = s
+        .trim()
+        .parse()
+        .map_err(|_| format!("{s:?} is not a number"))?;
+    if e > 0.0 && e <= 0.01 {
+        Ok(e)
+    } else {
+        Err(format!(
+            "{s} must be in (0, 0.01] (a fraction of the rig's diagonal)"
+        ))
+    }
 }
 
 /// Default of [`SessionLimits::max_viewer_pixels`]: a full-HD image.
@@ -448,6 +469,8 @@ mod tests {
             ["serve", "--viewer-render-share", "1.5"],
             ["serve", "--header-timeout-ms", "0"],
             ["serve", "--max-connections", "0"],
+            ["serve", "--compress-clips", "0"],
+            ["serve", "--compress-clips", "NaN"],
         ] {
             let command = ServerConfig::augment_args(clap::Command::new("serve"));
             assert!(command.try_get_matches_from(bad).is_err(), "{bad:?}");

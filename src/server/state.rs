@@ -156,7 +156,7 @@ impl AppState {
         );
         let render = open_renderer(&engine, &config, gpu_options);
         let store = match &config.data_dir {
-            Some(dir) => Some(Store::open(dir)?),
+            Some(dir) => Some(Store::open(dir)?.compress_clips(config.compress_clips)),
             None => None,
         };
         // The session counters are registered with the server's registry before it is shared.
@@ -284,8 +284,13 @@ impl AppState {
                 self.skip(e.to_string());
                 continue;
             }
-            let record = match Store::read(&path) {
-                Ok(r) => r,
+            let record = match Store::read_reporting(&path) {
+                Ok((r, dropped)) => {
+                    for why in dropped {
+                        self.skip(why);
+                    }
+                    r
+                }
                 Err(e) => {
                     tracing::error!(error = %e, "skipping a stored rig that cannot be loaded");
                     self.skip(e.to_string());

@@ -17,7 +17,7 @@
 //! | bytes | what |
 //! |---|---|
 //! | 8 | magic `CMSTORE1` |
-//! | 4 | record kind: 5 = a whole rig (1 = without base colours, as older builds wrote it; still read), 3 = extra clips and the LOD of a built-in rig (2 = its clips only, as older builds wrote them; still read), 4 = clips added to a rig |
+//! | 4 | record kind: 6 = a whole rig, 7 = extra clips and the LOD of a built-in rig, 8 = clips added to a rig; read but no longer written: 5 and 1 (a rig with and without base colours), 3 and 2 (a built-in rig's clips with and without its LOD), 4 (clips added to a rig), which hold their clips as plain tables |
 //! | 8 | payload length `n` |
 //! | 4 | CRC-32 (IEEE) of the payload |
 //! | n | payload: the record encoded by [`crate::codec`] |
@@ -26,6 +26,16 @@
 //! [`Store::load_all`]; nothing of it is loaded. Loaded rigs are re-validated with
 //! [`Rig::validate`] so that a record from an older build that no longer satisfies the
 //! invariants is skipped too.
+//!
+//! **Compressed clips** (`serve --compress-clips E`, [`Store::compress_clips`]). Kinds 6–8 hold
+//! each clip either as its plain table or curve-coded by [`crate::compress`] within `E ×` the
+//! rig's diagonal. The server puts a clip into that form as it arrives
+//! ([`crate::compress::stored_form`]), so the clip it plays is the one the record decodes to,
+//! before and after a restart; the writer compresses only a clip that is already in that form
+//! (it checks by decoding), and stores any other plainly. A compressed clip is decoded and
+//! checked on its own when its file is read: one that does not decode (a record a faulty
+//! build wrote, a segment damaged before the checksum was taken) is skipped and reported,
+//! and the rest of its file loads.
 
 use std::fs::{self, File};
 use std::io::{Seek, Write};
@@ -45,6 +55,12 @@ const KIND_RIG_COLORS: u32 = 5;
 const KIND_BUILTIN_CLIPS: u32 = 2;
 const KIND_BUILTIN: u32 = 3;
 const KIND_CLIPS: u32 = 4;
+/// Kind 5 with each clip as a [`ClipRecord`].
+const KIND_RIG_V6: u32 = 6;
+/// Kind 3 with each clip as a [`ClipRecord`].
+const KIND_BUILTIN_V7: u32 = 7;
+/// Kind 4 with each clip as a [`ClipRecord`].
+const KIND_CLIPS_V8: u32 = 8;
 /// Extension of record files.
 const EXT: &str = "cmrig";
 /// Extension of clip files.
@@ -116,6 +132,8 @@ pub enum RecordRef<'a> {
         seq: u64,
         /// The clips.
         clips: &'a [Clip],
+        /// The rig they belong to (a compressing store's budget is in its vertex space).
+        rig: &'a Rig,
     },
     /// Extra clips and the LOD of a built-in rig.
     Builtin {
@@ -135,6 +153,75 @@ struct StoredRigRef<'a> {
     rig: RigRecordRef<'a>,
 }
 
+/// One clip in a kind 6–8 record.
+#[derive(Deserialize)]
+enum ClipRecord {
+    /// The table as it is.
+    Plain(Clip),
+    /// Curve-coded within the store's budget.
+    Compressed(crate::compress::Compressed),
+}
+
+/// The written mirror of [`ClipRecord`].
+#[derive(Serialize)]
+enum ClipRecordRef<'a> {
+    Plain(&'a Clip),
+    Compressed(crate::compress::Compressed),
+}
+
+/// How a store writes clips: `None` plainly, `Some(E)` compressed within `E ×` diagonal where
+/// a clip is already in that form.
+fn clip_records<'a>(
+    clips: &'a [Clip],
+    rig: &Rig,
+    max_error: Option<f32>,
+) -> Result<Vec<ClipRecordRef<'a>>, StoreError> {
+    clips
+        .iter()
+        .map(|clip| {
+            let Some(e) = max_error else {
+                return Ok(ClipRecordRef::Plain(clip));
+            };
+            let (c, decoded) = crate::compress::stored_form(rig, clip, e)
+                .map_err(|e| StoreError::Encode(e.to_string()))?;
+            Ok(if decoded.weights == clip.weights {
+                ClipRecordRef::Compressed(c)
+            } else {
+                ClipRecordRef::Plain(clip)
+            })
+        })
+        .collect()
+}
+
+/// The clips of a kind 6–8 record, decoded; a compressed one that does not decode is left out
+/// and its reason added to `skipped`.
+fn decode_clips(
+    records: Vec<ClipRecord>,
+    targets: Option<usize>,
+    file: &Path,
+    skipped: &mut Vec<String>,
+) -> Vec<Clip> {
+    records
+        .into_iter()
+        .filter_map(|r| match r {
+            ClipRecord::Plain(c) => Some(c),
+            ClipRecord::Compressed(c) => match c.to_clip(targets.unwrap_or(c.targets as usize)) {
+                Ok(clip) => Some(clip),
+                Err(e) => {
+                    let why = format!(
+                        "{}: compressed clip {:?} skipped: {e}",
+                        file.display(),
+                        c.name
+                    );
+                    tracing::error!(error = %why, "skipping a stored clip that does not decode");
+                    skipped.push(why);
+                    None
+                }
+            },
+        })
+        .collect()
+}
+
 /// How a rig is stored. bincode is not self-describing, so a serde attribute that skips a
 /// field when it is empty (as [`crate::rig::Lod`]'s newer fields do, for human-readable
 /// formats) would make the bytes unreadable. The big arrays therefore go through bincode
@@ -150,17 +237,35 @@ struct RigRecord {
     lod_json: String,
 }
 
-/// The borrowed mirror of [`RigRecord`] used for writing.
+/// The borrowed mirror of [`RigRecordV6`] used for writing.
 #[derive(Serialize)]
 struct RigRecordRef<'a> {
     name: &'a str,
     targets: &'a [String],
     default_weights: &'a [f32],
     primitives: &'a [crate::rig::Primitive],
-    clips: &'a [Clip],
+    clips: Vec<ClipRecordRef<'a>>,
     lod_json: String,
     /// Per primitive (kind 5 on): serde skips it inside [`crate::rig::Primitive`].
     base_colors: Vec<[f32; 4]>,
+}
+
+/// Kind 6: kind 5 with [`ClipRecord`]s.
+#[derive(Deserialize)]
+struct RigRecordV6 {
+    name: String,
+    targets: Vec<String>,
+    default_weights: Vec<f32>,
+    primitives: Vec<crate::rig::Primitive>,
+    clips: Vec<ClipRecord>,
+    lod_json: String,
+    base_colors: Vec<[f32; 4]>,
+}
+
+#[derive(Deserialize)]
+struct StoredRigV6Owned {
+    id: String,
+    rig: RigRecordV6,
 }
 
 /// Kind 5: [`RigRecord`] and the primitives' base colours.
@@ -208,7 +313,7 @@ struct StoredRigColorsOwned {
 
 impl<'a> RigRecordRef<'a> {
     /// The record of `rig` holding `clips` (the rest of its clips are in clip files).
-    fn new(rig: &'a Rig, clips: &'a [Clip]) -> Result<Self, StoreError> {
+    fn new(rig: &'a Rig, clips: &'a [Clip], max_error: Option<f32>) -> Result<Self, StoreError> {
         // Exhaustive on purpose: a new Rig field must be added to the stored record.
         let Rig {
             name,
@@ -223,7 +328,7 @@ impl<'a> RigRecordRef<'a> {
             targets,
             default_weights,
             primitives: primitives.as_slice(),
-            clips,
+            clips: clip_records(clips, rig, max_error)?,
             lod_json: lod_to_json(lod)?,
             base_colors: primitives.iter().map(|p| p.base_color).collect(),
         })
@@ -265,16 +370,26 @@ struct StoredClipsV2 {
     clips: Vec<Clip>,
 }
 
-/// Kind 3. The LOD goes as JSON for the reason given at [`RigRecord`].
+/// Kind 7 (kind 3 with [`ClipRecord`]s). The LOD goes as JSON for the reason given at
+/// [`RigRecord`].
 #[derive(Serialize)]
 struct StoredBuiltinRef<'a> {
     id: &'a str,
-    clips: &'a [Clip],
+    clips: Vec<ClipRecordRef<'a>>,
     lod_json: String,
     geometry: u32,
 }
 
 /// Owned mirror of [`StoredBuiltinRef`].
+#[derive(Deserialize)]
+struct StoredBuiltinV7Owned {
+    id: String,
+    clips: Vec<ClipRecord>,
+    lod_json: String,
+    geometry: u32,
+}
+
+/// Kind 3.
 #[derive(Deserialize)]
 struct StoredBuiltinOwned {
     id: String,
@@ -283,12 +398,19 @@ struct StoredBuiltinOwned {
     geometry: u32,
 }
 
-/// Kind 4: clips added to a rig.
+/// Kind 8: clips added to a rig.
 #[derive(Serialize)]
 struct StoredClipsRef<'a> {
     id: &'a str,
     seq: u64,
-    clips: &'a [Clip],
+    clips: Vec<ClipRecordRef<'a>>,
+}
+
+#[derive(Deserialize)]
+struct StoredClipsV8Owned {
+    id: String,
+    seq: u64,
+    clips: Vec<ClipRecord>,
 }
 
 /// Clips added to a rig after its record was written, as loaded.
@@ -388,6 +510,8 @@ impl Write for Checksummed {
 pub struct Store {
     dir: PathBuf,
     tmp_counter: AtomicU64,
+    /// `Some(E)`: clips are written compressed within `E ×` diagonal (module doc).
+    clip_error: Option<f32>,
 }
 
 /// Result of loading every record at start.
@@ -407,7 +531,20 @@ impl Store {
         Ok(Store {
             dir,
             tmp_counter: AtomicU64::new(0),
+            clip_error: None,
         })
+    }
+
+    /// This store, writing clips compressed within `max_error ×` their rig's diagonal (the
+    /// module doc says which and how they are read back).
+    pub fn compress_clips(mut self, max_error: Option<f32>) -> Store {
+        self.clip_error = max_error;
+        self
+    }
+
+    /// The budget clips are compressed within, when they are.
+    pub fn clip_error(&self) -> Option<f32> {
+        self.clip_error
     }
 
     /// Directory holding the record files.
@@ -451,27 +588,33 @@ impl Store {
                 RecordRef::Rig { id, rig, clips } => {
                     let r = StoredRigRef {
                         id,
-                        rig: RigRecordRef::new(rig, clips)?,
+                        rig: RigRecordRef::new(rig, clips, self.clip_error)?,
                     };
                     codec::to_stored_writer(&r, &mut w)
                         .map_err(|e| StoreError::Encode(e.to_string()))?;
-                    KIND_RIG_COLORS
+                    KIND_RIG_V6
                 }
                 RecordRef::Builtin { id, clips, rig } => {
                     let r = StoredBuiltinRef {
                         id,
-                        clips,
+                        clips: clip_records(clips, rig, self.clip_error)?,
                         lod_json: lod_to_json(&rig.lod)?,
                         geometry: geometry_fingerprint(rig),
                     };
                     codec::to_stored_writer(&r, &mut w)
                         .map_err(|e| StoreError::Encode(e.to_string()))?;
-                    KIND_BUILTIN
+                    KIND_BUILTIN_V7
                 }
-                RecordRef::Clips { id, seq, clips } => {
+                RecordRef::Clips {
+                    id,
+                    seq,
+                    clips,
+                    rig,
+                } => {
+                    let clips = clip_records(clips, rig, self.clip_error)?;
                     codec::to_stored_writer(&StoredClipsRef { id, seq, clips }, &mut w)
                         .map_err(|e| StoreError::Encode(e.to_string()))?;
-                    KIND_CLIPS
+                    KIND_CLIPS_V8
                 }
             };
             let mut header = Vec::with_capacity(HEADER);
@@ -626,8 +769,20 @@ impl Store {
             .map_err(io("fsync directory", &self.dir))
     }
 
-    /// Reads one record file, checking magic, length, checksum, payload and rig invariants.
+    /// Reads one record file, checking magic, length, checksum, payload and rig invariants
+    /// (compressed clips that do not decode are left out: [`Store::read_reporting`] says which).
     pub fn read(path: &Path) -> Result<Record, StoreError> {
+        Store::read_reporting(path).map(|(r, _)| r)
+    }
+
+    /// [`Store::read`], with a reason for each compressed clip it left out.
+    pub fn read_reporting(path: &Path) -> Result<(Record, Vec<String>), StoreError> {
+        let mut skipped = Vec::new();
+        let record = Store::read_into(path, &mut skipped)?;
+        Ok((record, skipped))
+    }
+
+    fn read_into(path: &Path, skipped: &mut Vec<String>) -> Result<Record, StoreError> {
         let corrupt = |problem: String| StoreError::Corrupt {
             path: path.display().to_string(),
             problem,
@@ -661,9 +816,18 @@ impl Store {
             .unwrap_or_default()
             .to_string();
         match kind {
-            KIND_CLIPS => {
-                let c: StoredClipsOwned =
-                    codec::from_stored(payload).map_err(|e| corrupt(e.to_string()))?;
+            KIND_CLIPS | KIND_CLIPS_V8 => {
+                let c: StoredClipsOwned = if kind == KIND_CLIPS {
+                    codec::from_stored(payload).map_err(|e| corrupt(e.to_string()))?
+                } else {
+                    let c: StoredClipsV8Owned =
+                        codec::from_stored(payload).map_err(|e| corrupt(e.to_string()))?;
+                    StoredClipsOwned {
+                        id: c.id,
+                        seq: c.seq,
+                        clips: decode_clips(c.clips, None, path, skipped),
+                    }
+                };
                 let want = path
                     .file_name()
                     .and_then(|n| n.to_str())
@@ -681,13 +845,30 @@ impl Store {
                     clips: c.clips,
                 }))
             }
-            KIND_RIG | KIND_RIG_COLORS => {
+            KIND_RIG | KIND_RIG_COLORS | KIND_RIG_V6 => {
                 let r = if kind == KIND_RIG {
                     let r: StoredRigOwned =
                         codec::from_stored(payload).map_err(|e| corrupt(e.to_string()))?;
                     StoredRig {
                         id: r.id,
                         rig: r.rig.into_rig().map_err(corrupt)?,
+                    }
+                } else if kind == KIND_RIG_V6 {
+                    let StoredRigV6Owned { id, rig: r } =
+                        codec::from_stored(payload).map_err(|e| corrupt(e.to_string()))?;
+                    let clips = decode_clips(r.clips, Some(r.targets.len()), path, skipped);
+                    let rig = RigRecordColors {
+                        name: r.name,
+                        targets: r.targets,
+                        default_weights: r.default_weights,
+                        primitives: r.primitives,
+                        clips,
+                        lod_json: r.lod_json,
+                        base_colors: r.base_colors,
+                    };
+                    StoredRig {
+                        id,
+                        rig: rig.into_rig().map_err(corrupt)?,
                     }
                 } else {
                     let r: StoredRigColorsOwned =
@@ -708,8 +889,16 @@ impl Store {
                     .map_err(|e| corrupt(format!("invalid rig: {e}")))?;
                 Ok(Record::Rig(Box::new(r)))
             }
-            KIND_BUILTIN_CLIPS | KIND_BUILTIN => {
-                let c = if kind == KIND_BUILTIN_CLIPS {
+            KIND_BUILTIN_CLIPS | KIND_BUILTIN | KIND_BUILTIN_V7 => {
+                let c = if kind == KIND_BUILTIN_V7 {
+                    let c: StoredBuiltinV7Owned =
+                        codec::from_stored(payload).map_err(|e| corrupt(e.to_string()))?;
+                    StoredBuiltin {
+                        id: c.id,
+                        clips: decode_clips(c.clips, None, path, skipped),
+                        lod: Some((lod_from_json(&c.lod_json).map_err(corrupt)?, c.geometry)),
+                    }
+                } else if kind == KIND_BUILTIN_CLIPS {
                     let c: StoredClipsV2 =
                         codec::from_stored(payload).map_err(|e| corrupt(e.to_string()))?;
                     StoredBuiltin {
@@ -778,7 +967,7 @@ impl Store {
     pub fn load_all(&self) -> Result<Loaded, StoreError> {
         let mut loaded = Loaded::default();
         for (path, _) in self.record_files()? {
-            match Store::read(&path) {
+            match Store::read_into(&path, &mut loaded.skipped) {
                 Ok(r) => loaded.records.push(r),
                 Err(e) => {
                     tracing::error!(error = %e, "skipping a stored rig that cannot be loaded");
@@ -805,6 +994,77 @@ mod tests {
         ));
         let _ = fs::remove_dir_all(&d);
         d
+    }
+
+    #[test]
+    fn compressed_clips_read_back_exactly_and_a_damaged_one_is_skipped_alone() {
+        let dir = tmpdir("cc");
+        let plain = Store::open(&dir.join("plain")).expect("open");
+        let store = Store::open(&dir).expect("open").compress_clips(Some(3e-4));
+        let mut rig = crate::embedded::default_rig();
+        // Every clip but the last arrives in stored form; the last was stored exactly before
+        // compression was switched on, and must stay exact.
+        let n = rig.clips.len();
+        assert!(n >= 3);
+        let stored: Vec<Clip> = rig.clips[..n - 1]
+            .iter()
+            .map(|c| crate::compress::stored_form(&rig, c, 3e-4).expect("form").1)
+            .collect();
+        rig.clips.splice(..n - 1, stored);
+        for s in [&plain, &store] {
+            s.put(RecordRef::Rig {
+                id: "e",
+                rig: &rig,
+                clips: &rig.clips,
+            })
+            .expect("put");
+        }
+        let (small, big) = (
+            fs::metadata(store.path_of("e")).expect("file").len(),
+            fs::metadata(plain.path_of("e")).expect("file").len(),
+        );
+        let table_bytes: u64 = rig.clips[..n - 1]
+            .iter()
+            .map(|c| c.weights.len() as u64 * 4)
+            .sum();
+        assert!(
+            big - small > table_bytes / 2,
+            "compressed record {small} B, plain {big} B, tables {table_bytes} B"
+        );
+        let (record, dropped) = Store::read_reporting(&store.path_of("e")).expect("read");
+        assert!(dropped.is_empty(), "{dropped:?}");
+        match record {
+            Record::Rig(r) => assert_eq!(r.rig, rig, "bit for bit"),
+            other => panic!("unexpected record {other:?}"),
+        }
+
+        // Damage the first clip's first segment (a zstd frame, magic 28 B5 2F FD) and fix the
+        // record's checksum over it, as a faulty writer would have: that clip is skipped and
+        // named, the rig and its other clips load.
+        let path = store.path_of("e");
+        let mut b = fs::read(&path).expect("read");
+        let magic = [0x28, 0xb5, 0x2f, 0xfd];
+        let at = b
+            .windows(4)
+            .position(|w| w == magic)
+            .expect("a zstd segment");
+        b[at + 12] ^= 0x41;
+        let crc = crc32fast::hash(&b[HEADER..]);
+        b[20..24].copy_from_slice(&crc.to_le_bytes());
+        fs::write(&path, &b).expect("write");
+        let (record, dropped) = Store::read_reporting(&path).expect("the rest reads");
+        assert_eq!(dropped.len(), 1, "{dropped:?}");
+        assert!(
+            dropped[0].contains(&format!("{:?}", rig.clips[0].name)),
+            "{dropped:?}"
+        );
+        match record {
+            Record::Rig(r) => assert_eq!(r.rig.clips[..], rig.clips[1..]),
+            other => panic!("unexpected record {other:?}"),
+        }
+        let loaded = store.load_all().expect("load");
+        assert_eq!((loaded.records.len(), loaded.skipped.len()), (1, 1));
+        let _ = fs::remove_dir_all(&dir);
     }
 
     #[test]
@@ -891,6 +1151,7 @@ mod tests {
                 id: "head",
                 seq: 2,
                 clips: &rig.clips[3..],
+                rig: &rig,
             })
             .expect("put clips");
         store
@@ -898,6 +1159,7 @@ mod tests {
                 id: "head",
                 seq: 1,
                 clips: &rig.clips[2..3],
+                rig: &rig,
             })
             .expect("put clips");
         // Adding clips did not touch the rig's record.

@@ -436,3 +436,122 @@ async fn an_added_clip_writes_its_own_file_not_the_whole_rig() {
     assert!(left.is_empty(), "{left:?}");
     s2.stop().await;
 }
+
+/// A CSV clip of `frames` smooth frames over a few of the embedded head's channels.
+fn smooth_csv(frames: usize, phase: f32) -> String {
+    let mut csv = String::from("jawOpen,eyeBlink_L,mouthSmile_L,browInnerUp\n");
+    for f in 0..frames {
+        let t = f as f32 / 24.0 + phase;
+        csv += &format!(
+            "{},{},{},{}\n",
+            0.5 + 0.5 * (t * 2.1).sin(),
+            (t * 3.7).cos().abs(),
+            0.3 + 0.3 * (t * 1.3).sin(),
+            0.25 * (1.0 + (t * 0.7).cos())
+        );
+    }
+    csv
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn compressed_clips_serve_the_same_frames_across_restarts_and_a_damaged_one_is_skipped() {
+    let dir = temp_dir("compressed");
+    let budget = 3e-4f32;
+    let config = || crowdmorph::server::ServerConfig {
+        compress_clips: Some(budget),
+        ..stored_config(&dir)
+    };
+    let req = frames(&[
+        ("default-head", "talk2", 5),
+        ("default-head", "talk2", 70),
+        ("default-head", "hum", 33),
+    ]);
+    // The same clips, stored exactly, by a server without a data dir.
+    let exact = TestServer::start(crowdmorph::server::ServerConfig::default()).await;
+    let s1 = TestServer::start(config()).await;
+    for s in [&exact, &s1] {
+        for (name, phase) in [("talk2", 0.0), ("hum", 1.7)] {
+            s.client
+                .upload_clip(
+                    "default-head",
+                    &format!("name={name}"),
+                    "text/csv",
+                    Bytes::from(smooth_csv(96, phase)),
+                )
+                .await
+                .unwrap();
+        }
+    }
+    let want = frame(&exact.client, &req).await;
+    let before = frame(&s1.client, &req).await;
+    exact.stop().await;
+    s1.stop().await;
+    // Within the budget of the exact clips, in vertex space.
+    let diagonal = crowdmorph::embedded::default_rig().bbox().diagonal();
+    for (a, b) in want.buffers.iter().zip(&before.buffers) {
+        let (a, b) = (
+            crate::server::positions_f32(Format::F32, a),
+            crate::server::positions_f32(Format::F32, b),
+        );
+        for (p, q) in a.chunks(3).zip(b.chunks(3)) {
+            let d = ((p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2)).sqrt();
+            assert!(d <= budget * diagonal * 1.01, "{d} > {budget} × {diagonal}");
+        }
+    }
+    assert_ne!(want.buffers, before.buffers, "the clips were compressed");
+
+    let s2 = TestServer::start(config()).await;
+    let after = frame(&s2.client, &req).await;
+    assert_eq!(
+        before.buffers, after.buffers,
+        "the same frames after a restart"
+    );
+    s2.stop().await;
+
+    // Damage hum's first zstd segment (fixing the file's checksum, as a faulty build would
+    // have written it): hum is skipped and named at start, talk2 still plays.
+    let rigs_dir = dir.join("rigs");
+    let mut files: Vec<_> = std::fs::read_dir(&rigs_dir)
+        .unwrap()
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|e| e == "cmclips"))
+        .collect();
+    files.sort();
+    assert_eq!(files.len(), 2, "{files:?}");
+    let mut b = std::fs::read(&files[1]).unwrap();
+    let at = b
+        .windows(4)
+        .position(|w| w == [0x28, 0xb5, 0x2f, 0xfd])
+        .expect("compressed");
+    b[at + 12] ^= 0x41;
+    let crc = crc32fast::hash(&b[24..]);
+    b[20..24].copy_from_slice(&crc.to_le_bytes());
+    std::fs::write(&files[1], &b).unwrap();
+    let s3 = TestServer::start(config()).await;
+    let ready = s3
+        .client
+        .send(Method::GET, "/readyz", None, None, Bytes::new())
+        .await
+        .unwrap();
+    let ready: crowdmorph_proto::Readiness = serde_json::from_slice(&ready.body).unwrap();
+    assert_eq!(ready.skipped_files.len(), 1, "{:?}", ready.skipped_files);
+    assert!(
+        ready.skipped_files[0].contains("\"hum\""),
+        "{:?}",
+        ready.skipped_files
+    );
+    let names: Vec<String> = s3
+        .client
+        .clips("default-head")
+        .await
+        .unwrap()
+        .clips
+        .into_iter()
+        .map(|c| c.name)
+        .collect();
+    assert!(names.contains(&"talk2".to_string()) && !names.contains(&"hum".to_string()));
+    let talk = frame(&s3.client, &frames(&[("default-head", "talk2", 70)])).await;
+    assert_eq!(talk.buffers[0], after.buffers[1]);
+    s3.stop().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}

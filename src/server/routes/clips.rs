@@ -91,9 +91,10 @@ pub async fn upload_clips(
     };
     let name = query.name;
     let snapshot = base.clone();
+    let clip_error = state.clip_error();
     let imports = blocking(move || {
         let rig = snapshot.rig();
-        match source {
+        let mut imports = match source {
             ClipSource::Csv => {
                 named_clip(crate::import::clip_from_csv, rig, name, &bytes, &options)
             }
@@ -101,7 +102,20 @@ pub async fn upload_clips(
                 named_clip(crate::import::clip_from_json, rig, name, &bytes, &options)
             }
             ClipSource::Gltf => gltf_clips(rig, name, &bytes, &options),
+        }?;
+        let budget = options
+            .budget
+            .as_deref()
+            .ok_or_else(|| ApiError::internal("a clip upload without its budget"))?;
+        for import in &mut imports {
+            super::rigs::stored_form(
+                rig,
+                std::slice::from_mut(&mut import.clip),
+                clip_error,
+                budget,
+            )?;
         }
+        Ok(imports)
     })
     .await?;
     let _admin = state.admin.lock().await;
@@ -115,7 +129,12 @@ pub async fn upload_clips(
     let names: Vec<String> = merged.added.iter().map(|c| c.name.clone()).collect();
     let seq = entry.layout.next_seq();
     state
-        .persist_clips(&id, seq, clips_named(&merged.rig, &names))
+        .persist_clips(
+            &id,
+            seq,
+            merged.rig.clone(),
+            clips_named(&merged.rig, &names),
+        )
         .await?;
     let mut layout = entry.layout.clone();
     layout.files.push((seq, names));
@@ -352,7 +371,7 @@ pub async fn delete_clip(
                 .find(|f| f.0 == seq)
                 .map(|f| clips_named(&rig, &f.1))
                 .unwrap_or_default();
-            state.persist_clips(&id, seq, rest).await?;
+            state.persist_clips(&id, seq, rig.clone(), rest).await?;
         }
         None => {
             state

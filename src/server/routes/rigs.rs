@@ -28,6 +28,11 @@ use crate::server::state::AppState;
 use crate::store::RecordRef;
 
 impl AppState {
+    /// The error budget clips are stored within, when the store compresses them.
+    pub fn clip_error(&self) -> Option<f32> {
+        self.store.as_ref().and_then(|s| s.clip_error())
+    }
+
     /// Rig `id`, or 404 `unknown_rig` listing the rigs there are.
     pub fn rig(&self, id: &str) -> Result<Arc<RigEntry>, ApiError> {
         self.registry
@@ -73,11 +78,12 @@ impl AppState {
         .await
     }
 
-    /// Persists clip file `seq` of a rig with `clips`, or deletes it when there are none.
+    /// Persists clip file `seq` of `rig` with `clips`, or deletes it when there are none.
     pub async fn persist_clips(
         &self,
         id: &str,
         seq: u64,
+        rig: Arc<Rig>,
         clips: Vec<crate::rig::Clip>,
     ) -> Result<(), ApiError> {
         if self.store.is_none() {
@@ -96,12 +102,37 @@ impl AppState {
                     id: &id,
                     seq,
                     clips: &clips,
+                    rig: &rig,
                 })
             }
             .map_err(ApiError::internal)
         })
         .await
     }
+}
+
+/// Puts arriving clips into the form a compressing store keeps (`serve --compress-clips`):
+/// the server then plays the clip its record decodes to, before and after a restart. Each
+/// decoded table is charged to the upload's budget before it is made.
+pub fn stored_form(
+    rig: &Rig,
+    clips: &mut [crate::rig::Clip],
+    max_error: Option<f32>,
+    budget: &Budget,
+) -> Result<(), ApiError> {
+    let Some(e) = max_error else {
+        return Ok(());
+    };
+    for clip in clips {
+        let bytes = clip.weights.len() as u64 * 4;
+        budget
+            .charge(bytes, || format!("compressing clip {:?}", clip.name))
+            .map_err(|e| ApiError::budget(e, "clip_too_large"))?;
+        let (_, decoded) =
+            crate::compress::stored_form(rig, clip, e).map_err(ApiError::internal)?;
+        *clip = decoded;
+    }
+    Ok(())
 }
 
 /// Reads a rig or clip upload: the upload size limit, the admin timeout. The body is charged
@@ -233,8 +264,9 @@ pub async fn upload_rig(
     let engine = state.engine.clone();
     let gpu = state.on_gpu();
     let b = budget.clone();
+    let clip_error = state.clip_error();
     let (rig, prepared, qbox) =
-        blocking(move || import_rig(&engine, &b, bytes, &options, gpu)).await?;
+        blocking(move || import_rig(&engine, &b, bytes, &options, gpu, clip_error)).await?;
     let id = query.name.unwrap_or_else(|| sanitize_id(&rig.name));
     let _admin = state.admin.lock().await;
     if state.registry.get(&id).is_some() {
@@ -322,6 +354,7 @@ fn import_rig(
     bytes: Bytes,
     options: &ImportOptions,
     gpu: bool,
+    clip_error: Option<f32>,
 ) -> Result<
     (
         Arc<Rig>,
@@ -344,10 +377,13 @@ fn import_rig(
             )
         })
         .map_err(|e| ApiError::budget(e, "rig_too_large"))?;
-    let rig = import.build(options).map_err(import_error)?;
+    let mut rig = import.build(options).map_err(import_error)?;
     // The body is not needed past the build (which consumed the import that borrowed it):
     // gone before the engine's copies are made.
     drop(bytes);
+    let mut clips = std::mem::take(&mut rig.clips);
+    stored_form(&rig, &mut clips, clip_error, budget)?;
+    rig.clips = clips;
     check_output_range(&rig).map_err(|m| ApiError::bad_request("invalid_rig", m))?;
     let (rig, prepared) = prepare_charged(engine, budget, Arc::new(rig), gpu)?;
     let qbox = quantization_box(&rig);
