@@ -6,9 +6,10 @@
 //! | module | what it is |
 //! |---|---|
 //! | [`rng`] | SplitMix64: deterministic numbers for synthetic rigs, clips and workloads |
+//! | [`linalg`] | the symmetric eigendecomposition the PCA codecs share (cyclic Jacobi) |
 //! | [`budget`] | memory budgets: every allocation an input sizes is charged before it happens |
 //! | [`cancel`] | a request's cancellation token: work off the runtime stops at its next stage when the request is gone or late |
-//! | [`rig`] | pure data: primitives, sparse targets, clips (weight tables), LOD order and mesh levels; keyframe sampling; the memory cost model |
+//! | [`rig`] | pure data: primitives, sparse targets, clips (weight tables), LOD order and mesh levels, the variable-PCA form of the deltas; keyframe sampling; the memory cost model |
 //! | [`import`] | glTF/GLB, CSV and JSON readers that build a validated [`rig::Rig`] |
 //! | [`embedded`] | the procedural default rig that needs no files |
 //! | [`synthetic`] | synthetic rigs and clips: the paper-scale rig, deterministic random clips |
@@ -18,7 +19,7 @@
 //! | [`engine`] | blend engines; [`engine::cpu`] is the oracle and the no-GPU production engine |
 //! | [`export`] | one blended frame written as OBJ or raw f32 (`crowdmorph eval`) |
 //! | [`render`] | rendered frames: scene layout, cost, the wgpu renderer, encoding, offline renders |
-//! | [`lod`] | level of detail: importance metrics and orders, reports, feature-preserving mesh levels, the reference rasterizer |
+//! | [`lod`] | level of detail: importance metrics and orders, reports, feature-preserving mesh levels, PCA levels of the deltas, the reference rasterizer |
 //! | [`codec`] | the one module that touches bincode: wire messages and stored records |
 //! | [`store`] | persistence: checksummed, atomically replaced files under the data dir, one per rig and one per later batch of its clips |
 //! | [`load`] | the load generator: open loop, latency corrected for coordinated omission, HdrHistogram reports |
@@ -37,6 +38,7 @@ pub mod engine;
 pub mod export;
 pub mod graph;
 pub mod import;
+pub mod linalg;
 pub mod load;
 pub mod lod;
 pub mod plan;

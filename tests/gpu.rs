@@ -81,7 +81,11 @@ fn check_parity(gpu_engine: &Engine, rig: Rig, jobs: &[BlendJob]) {
         rig.name
     );
     let diag = rig.bbox().diagonal();
-    let recomputed = !rig.has_normal_deltas();
+    // A PCA level's rig has no normal deltas: its normals are recomputed on both engines.
+    let recomputed = !rig.has_normal_deltas()
+        || jobs
+            .iter()
+            .any(|j| rig.lod.levels[j.lod as usize].pca.is_some());
     let qbox = crowdmorph::server::registry::quantization_box(&rig);
     for spec in [
         OutputSpec {
@@ -175,6 +179,33 @@ fn gpu_matches_cpu_on_the_embedded_head() {
     let rig = with_random_clip(crowdmorph::embedded::default_rig(), 0);
     let jobs = random_jobs(&rig, 100, 33);
     check_parity(&engine, rig, &jobs);
+}
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+fn gpu_matches_cpu_at_pca_levels() {
+    let engine = Engine::with_gpu(open_gpu(GpuOptions::default()), BackendChoice::Gpu);
+    let mut rig = with_random_clip(crowdmorph::embedded::default_rig(), 0);
+    let spec = crowdmorph::lod::LodSpec {
+        method: crowdmorph::lod::OrderMethod::FileOrder,
+        ..Default::default()
+    };
+    rig.lod = crowdmorph::lod::build_lod(&rig, &spec, None, None).expect("lod");
+    let levels: Vec<u32> = (0..rig.lod.levels.len() as u32)
+        .filter(|&l| rig.lod.levels[l as usize].pca.is_some())
+        .collect();
+    assert!(!levels.is_empty(), "{:?}", rig.lod.levels);
+    // One level per call (a call evaluates one level's rig), every kind of pose.
+    for l in levels {
+        let mut jobs = random_jobs(&rig, 200 + u64::from(l), 24);
+        for j in &mut jobs {
+            j.lod = l;
+        }
+        check_parity(&engine, rig.clone(), &jobs);
+    }
 }
 
 #[test]

@@ -691,3 +691,189 @@ fn indexed_displacements_equal_the_scan_on_real_rigs() {
         assert!(moved > 0, "{}: targets move vertices", rig.name);
     }
 }
+
+/// The positions of `job` on `prepared` through the engine (its LOD level's routing).
+fn engine_positions(
+    engine: &Engine,
+    prepared: &crowdmorph::engine::PreparedRig,
+    job: BlendJob,
+) -> Vec<f32> {
+    let spec = OutputSpec {
+        normals: true,
+        precision: Precision::F32,
+    };
+    engine
+        .evaluate(prepared, &[job], spec)
+        .expect("evaluate")
+        .output
+        .job_positions(0)
+}
+
+#[test]
+fn pca_levels_are_used_where_they_pay_and_stay_within_their_budget() {
+    use crowdmorph::lod::pca;
+    use crowdmorph::rig::Pose;
+    let mut rig = crowdmorph::embedded::default_rig();
+    let spec = LodSpec {
+        method: OrderMethod::FileOrder,
+        ..LodSpec::default()
+    };
+    let lod = build_lod(&rig, &spec, None, None).expect("lod");
+    let n = rig.targets.len() as u32;
+    assert!(lod.levels[0].pca.is_none(), "level 0 stays exact");
+    assert!(
+        !lod.pca.is_empty(),
+        "the embedded head's coarse levels pay: {:?}",
+        lod.levels
+    );
+    // Every level that names a form gains by the cost model; every other full-mesh level does
+    // not.
+    for l in &lod.levels[1..] {
+        let error = pca::level_error(&rig, &lod.order, l.shapes);
+        let (madds, bytes) = (
+            pca::level_madds(&rig, &lod.order, l.shapes),
+            pca::level_bytes(&rig, &lod.order, l.shapes),
+        );
+        match l.pca {
+            Some(p) => {
+                let form = &lod.pca[p as usize];
+                assert!(pca::pays(form, madds, bytes), "{l:?}");
+                assert!((f64::from(form.max_error) - error).abs() <= 1e-6 * error.max(1e-6));
+            }
+            None if l.shapes < n && error > f64::from(crowdmorph::lod::PCA_FLOOR) => {
+                assert!(
+                    !pca::pays(&pca::build(&rig, error as f32), madds, bytes),
+                    "{l:?}"
+                );
+            }
+            None => {}
+        }
+    }
+    rig.lod = lod;
+    rig.validate().expect("valid with its PCA levels");
+    let diag = f64::from(rig.bbox().diagonal());
+    let engine = Engine::cpu();
+    let prepared = engine.prepare(Arc::new(rig.clone())).expect("prepare");
+    // The cost model counts the PCA levels' rigs, clip tables and forms.
+    let cost = crowdmorph::rig::RigShape::of(&rig).cost(false);
+    assert!(
+        cost.resident() >= prepared.memory().host_bytes as u64,
+        "{} < {}",
+        cost.resident(),
+        prepared.memory().host_bytes
+    );
+    let mut checked = 0;
+    for (level, l) in rig.lod.levels.iter().enumerate() {
+        let Some(p) = l.pca else { continue };
+        let form = &rig.lod.pca[p as usize];
+        let derived = form.derive_rig(&rig).expect("derived");
+        let budget = f64::from(form.max_error) * diag;
+        let mut poses: Vec<(Pose, Vec<f32>)> = Vec::new();
+        for (c, clip) in rig.clips.iter().enumerate() {
+            for frame in [0, clip.frames / 2, clip.frames - 1] {
+                let mut w = vec![0f32; rig.targets.len()];
+                clip.frame_weights(frame, &mut w);
+                poses.push((
+                    Pose::Frame {
+                        clip: c as u32,
+                        frame,
+                    },
+                    w,
+                ));
+            }
+        }
+        // A shape alone at 1 (a test pose), sent as live weights.
+        let mut w = vec![0f32; rig.targets.len()];
+        w[rig.lod.order[n as usize - 1] as usize] = 1.0;
+        poses.push((Pose::live(&w), w));
+        // A blend of two frames: weight-space, so coefficient-space.
+        let (a, b) = (&rig.clips[0], &rig.clips[1]);
+        let mut wa = vec![0f32; rig.targets.len()];
+        let mut wb = wa.clone();
+        a.frame_weights(3, &mut wa);
+        b.frame_weights(5, &mut wb);
+        let t = 0.25f32;
+        let wt: Vec<f32> = wa
+            .iter()
+            .zip(&wb)
+            .map(|(x, y)| (1.0 - t) * x + t * y)
+            .collect();
+        poses.push((Pose::blend((0, 3), &[(1, 5, t)]), wt));
+        for (pose, w) in poses {
+            let got = engine_positions(
+                &engine,
+                &prepared,
+                BlendJob {
+                    pose,
+                    lod: level as u32,
+                },
+            );
+            // Against the derived rig's f64 oracle: the engine evaluates the form exactly.
+            let coefs: Vec<f64> = form
+                .coefficients(&w)
+                .iter()
+                .map(|&x| f64::from(x))
+                .collect();
+            let (want, _) = rig_oracle(&derived, &coefs);
+            let err = max_abs_diff(&got, &want);
+            assert!(
+                err <= 2e-5 * diag,
+                "level {level}: {err} vs the form's oracle"
+            );
+            // Against the exact rig: within the level's budget (test poses; a blend of two
+            // is within it by the triangle inequality).
+            let w64: Vec<f64> = w.iter().map(|&x| f64::from(x)).collect();
+            let (exact, _) = rig_oracle(&rig, &w64);
+            let err = max_abs_diff(&got, &exact);
+            let allowed = budget + 2e-5 * diag;
+            assert!(err <= allowed, "level {level}: {err} > {allowed}");
+            checked += 1;
+        }
+    }
+    assert!(checked > 0);
+}
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_test_data),
+    ignore = "needs ../shared/data (or CROWDMORPH_TEST_DATA)"
+)]
+fn pca_levels_pay_on_ict_facekits_coarse_levels() {
+    use crowdmorph::lod::pca;
+    let mut rig = ict().clone();
+    let spec = LodSpec {
+        method: OrderMethod::FileOrder,
+        ..LodSpec::default()
+    };
+    rig.lod = build_lod(&rig, &spec, None, None).expect("lod");
+    // 53 dense-ish FACS shapes: every coarse full-mesh level is cheaper as regional PCA.
+    let with: Vec<usize> = (1..rig.lod.levels.len())
+        .filter(|&l| rig.lod.levels[l].pca.is_some())
+        .collect();
+    assert!(with.len() >= 2, "{:?}", rig.lod.levels);
+    let diag = f64::from(rig.bbox().diagonal());
+    let engine = Engine::cpu();
+    let prepared = engine.prepare(Arc::new(rig.clone())).expect("prepare");
+    for l in with {
+        let form = &rig.lod.pca[rig.lod.levels[l].pca.expect("pca") as usize];
+        let shapes = rig.lod.levels[l].shapes;
+        assert!(form.madds_per_head() * 2 < pca::level_madds(&rig, &rig.lod.order, shapes));
+        // A shape alone at 1, live: within the level's error of the exact rig.
+        let t = rig.lod.order[rig.targets.len() - 1] as usize;
+        let mut w = vec![0f32; rig.targets.len()];
+        w[t] = 1.0;
+        let got = engine_positions(
+            &engine,
+            &prepared,
+            BlendJob {
+                pose: crowdmorph::rig::Pose::live(&w),
+                lod: l as u32,
+            },
+        );
+        let w64: Vec<f64> = w.iter().map(|&x| f64::from(x)).collect();
+        let (exact, _) = rig_oracle(&rig, &w64);
+        let err = max_abs_diff(&got, &exact);
+        let allowed = f64::from(form.max_error) * diag + 2e-5 * diag;
+        assert!(err <= allowed, "level {l}: {err} > {allowed}");
+    }
+}

@@ -17,7 +17,10 @@
 //!   each size, and the per-call overhead of one job;
 //! - LOD: the cost of each level against the deltas it keeps (a least-squares line whose
 //!   intercept is the output-write floor), and the simplified meshes' levels, whose outputs
-//!   shrink with their vertices.
+//!   shrink with their vertices;
+//! - the PCA level: each full-mesh LOD level against the variable-PCA form of the deltas built
+//!   within that level's error (`lod::pca`), its size, multiply-adds and time on the same jobs
+//!   (its derived rig on the same CPU engine), and whether it is both smaller and faster.
 //!
 //! Workload: `unique` distinct jobs whose weights are drawn uniformly from [0.05, 1) for every
 //! target (all shapes active: the most expensive case), spread over `heads` heads; head `h`
@@ -292,6 +295,63 @@ pub struct BenchReport {
     pub lod_fit: LodFit,
     /// The simplified meshes at all shapes.
     pub mesh_levels: Vec<MeshRow>,
+    /// Each full-mesh LOD level against the PCA form within its error.
+    pub pca: Vec<PcaRow>,
+}
+
+/// A LOD level against the variable-PCA form of the deltas built within its error.
+#[derive(Debug, Serialize)]
+pub struct PcaRow {
+    /// Sizes, multiply-adds and errors of the two forms.
+    #[serde(flatten)]
+    pub level: crate::lod::pca::PcaLevel,
+    /// Median ms of the sparse level (`lod_scaling`).
+    pub sparse_ms: f64,
+    /// Median ms of the PCA form's rig (`DeltaPca::derive_rig`) on the same jobs, their
+    /// weights mapped to its coefficients: the CPU engine and output stage the server runs.
+    pub pca_ms: f64,
+    /// Whether the PCA form is both smaller and faster (where a LOD table would use it).
+    pub pays: bool,
+    /// Whether `lod::pca::pays` (the cost model `build_lod` decides with) agrees.
+    pub model_pays: bool,
+}
+
+/// Measures [`PcaRow`]s for the full-mesh levels of `lod_scaling`.
+fn pca_rows(
+    rig: &Rig,
+    weights: &[Vec<f32>],
+    lod_scaling: &[LodScaling],
+    spec: OutputSpec,
+    seconds: f64,
+    bar: Option<&ProgressBar>,
+) -> Result<Vec<PcaRow>> {
+    let mut rows = Vec::new();
+    for (level, form) in crate::lod::pca::compare_levels(rig, crate::lod::PCA_FLOOR) {
+        let Some(sparse_ms) = lod_scaling
+            .iter()
+            .find(|l| l.level == level.level)
+            .map(|l| l.eval_ms)
+        else {
+            continue;
+        };
+        let derived = form.derive_rig(rig)?;
+        let cpu = CpuRig::new(&derived);
+        let coefs: Vec<Vec<f32>> = weights.iter().map(|w| form.coefficients(w)).collect();
+        let batch = WeightBatch::from_target_weights(&derived, &coefs, 0)?;
+        let mut out = BlendOutput::default();
+        cpu.evaluate_into(&batch, spec, &mut out)?;
+        let pca_ms = median_ms(seconds, bar, &format!("pca {}", level.level), || {
+            let _ = cpu.evaluate_into(&batch, spec, &mut out);
+        });
+        rows.push(PcaRow {
+            pays: pca_ms < sparse_ms && level.pca_bytes < level.sparse_bytes,
+            model_pays: crate::lod::pca::pays(&form, level.sparse_madds, level.sparse_bytes),
+            level,
+            sparse_ms,
+            pca_ms,
+        });
+    }
+    Ok(rows)
 }
 
 /// What a four-layer blend adds (GPU Gems 3 ch. 15, blending in weight space): `unique` jobs
@@ -562,7 +622,7 @@ pub fn bench_cpu(rig: &Rig, opt: &BenchOptions) -> Result<BenchReport> {
     };
     let spec = spec_of(Precision::F32);
     let levels = rig.lod.levels.len() as u32;
-    let steps = u64::from(levels) + 2 * opt.batches.len() as u64 + 14;
+    let steps = 2 * u64::from(levels) + 2 * opt.batches.len() as u64 + 14;
     let bar = opt.progress.then(|| super::progress_bar(steps, "bench"));
     let bar = bar.as_ref();
 
@@ -683,6 +743,14 @@ pub fn bench_cpu(rig: &Rig, opt: &BenchOptions) -> Result<BenchReport> {
         .map(|l| (l.delta_fraction, l.eval_ms))
         .collect();
     let (floor_ms, slope_ms, r2) = fit_line(&points);
+    let pca = pca_rows(
+        rig,
+        &weights[..opt.unique],
+        &lod_scaling,
+        spec,
+        opt.seconds,
+        bar,
+    )?;
 
     // Dense peers and batch sizes.
     let dense = Dense::new(rig, &weights);
@@ -853,6 +921,7 @@ pub fn bench_cpu(rig: &Rig, opt: &BenchOptions) -> Result<BenchReport> {
         },
         lod_scaling,
         mesh_levels,
+        pca,
     })
 }
 
@@ -1009,6 +1078,28 @@ pub fn report_text(r: &BenchReport) -> String {
         "  LOD line: {:.3} ms + {:.3} ms × deltas kept (r² {:.3}); the floor is {:.2}× the output write\n",
         fit.floor_ms, fit.slope_ms, fit.r2, fit.floor_vs_write
     );
+    for p in &r.pca {
+        let l = &p.level;
+        s += &format!(
+            "  PCA at LOD {} ({:>3} shapes, error {:.1e}): {:>5} components, {:>6.2} MB vs {:>6.2} MB sparse, {:>6.0} vs {:>6.0} kmadd/head, {:.3} ms vs {:.3} ms{}{}\n",
+            l.level,
+            l.shapes,
+            l.pca_budget,
+            l.components,
+            l.pca_bytes as f64 / 1e6,
+            l.sparse_bytes as f64 / 1e6,
+            l.pca_madds as f64 / 1e3,
+            l.sparse_madds as f64 / 1e3,
+            p.pca_ms,
+            p.sparse_ms,
+            if p.pays { "  (pays)" } else { "" },
+            if p.pays == p.model_pays {
+                ""
+            } else {
+                "  (the cost model disagrees)"
+            }
+        );
+    }
     for m in &r.mesh_levels {
         s += &format!(
             "  mesh {:>4.0} %: {:>6} vertices, {:>6.1} MB out ({:.2}×), {:.3} ms ({:.2}× the full mesh)\n",

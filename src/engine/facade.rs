@@ -86,8 +86,11 @@ pub struct PreparedRig {
     gpu: Option<Arc<GpuRig>>,
     memory: RigMemory,
     /// The rig's mesh levels (`rig.lod.meshes`), each prepared as the derived rig the engines
-    /// evaluate: a job whose LOD level names mesh `m` runs on `meshes[m]`.
+    /// evaluate: a job whose LOD level names mesh `m` runs on `meshes[m]`; then its PCA levels
+    /// (`rig.lod.pca`): a level naming form `p` runs on `meshes[rig.lod.meshes.len() + p]`.
     meshes: Vec<PreparedRig>,
+    /// For a PCA level's derived rig, its form: live weights become its coefficients.
+    pca: Option<Arc<crate::rig::DeltaPca>>,
 }
 
 impl std::fmt::Debug for PreparedRig {
@@ -120,14 +123,13 @@ impl PreparedRig {
         self.gpu.as_deref()
     }
 
-    /// The mesh level LOD level `lod` evaluates (`None`: the full mesh or no such level).
+    /// Which of [`PreparedRig::mesh_levels`] LOD level `lod` evaluates (`None`: this rig, or
+    /// no such level): its mesh level, else its PCA level, which comes after them.
     pub fn mesh_of(&self, lod: u32) -> Option<usize> {
-        self.rig
-            .lod
-            .levels
-            .get(lod as usize)
-            .and_then(|l| l.mesh)
+        let l = self.rig.lod.levels.get(lod as usize)?;
+        l.mesh
             .map(|m| m as usize)
+            .or_else(|| l.pca.map(|p| self.rig.lod.meshes.len() + p as usize))
     }
 
     /// What jobs at LOD level `lod` are evaluated on: this rig, or one of its mesh levels.
@@ -137,13 +139,42 @@ impl PreparedRig {
             .unwrap_or(self)
     }
 
-    /// The prepared mesh levels, in `rig.lod.meshes` order.
+    /// The prepared mesh levels, in `rig.lod.meshes` order, then the PCA levels (same
+    /// vertices and triangles as this rig).
     pub fn mesh_levels(&self) -> &[PreparedRig] {
         &self.meshes
     }
 
-    /// Checks every job and picks the rig they run on; all must share one mesh level.
-    fn route(&self, jobs: &[BlendJob]) -> Result<&PreparedRig, EngineError> {
+    /// Checks every job and picks the rig they run on, with the jobs as that rig reads them
+    /// (a PCA level's rig takes live weights as its coefficients); all must share one level.
+    fn route<'j>(
+        &self,
+        jobs: &'j [BlendJob],
+    ) -> Result<(&PreparedRig, std::borrow::Cow<'j, [BlendJob]>), EngineError> {
+        let target = self.route_rig(jobs)?;
+        let Some(form) = &target.pca else {
+            return Ok((target, std::borrow::Cow::Borrowed(jobs)));
+        };
+        let mapped = jobs
+            .iter()
+            .map(|j| match &j.pose {
+                crate::rig::Pose::Live(_) => {
+                    let w: Vec<f32> = (0..self.rig.targets.len())
+                        .map(|t| j.pose.weight(&self.rig, t))
+                        .collect();
+                    BlendJob {
+                        pose: crate::rig::Pose::live(&form.coefficients(&w)),
+                        lod: j.lod,
+                    }
+                }
+                _ => j.clone(),
+            })
+            .collect();
+        Ok((target, std::borrow::Cow::Owned(mapped)))
+    }
+
+    /// [`PreparedRig::route`]'s choice of rig.
+    fn route_rig(&self, jobs: &[BlendJob]) -> Result<&PreparedRig, EngineError> {
         for j in jobs {
             j.check(&self.rig)?;
         }
@@ -387,11 +418,15 @@ impl Engine {
     }
 
     /// Memory of a prepared rig. Mesh levels share the full rig's clip tables (host and
-    /// device), so only their geometry and layouts count.
+    /// device), so only their geometry and layouts count; a PCA level has clip tables of its
+    /// own (in coefficients), so all of it counts.
     fn memory(rig: &Rig, cpu: &CpuRig, gpu: Option<&GpuRig>, meshes: &[PreparedRig]) -> RigMemory {
-        let level = |m: &PreparedRig| RigMemory {
-            host_bytes: m.rig.geometry_bytes() + m.cpu.bytes(),
-            device_bytes: m.gpu.as_ref().map_or(0, |g| g.geometry_bytes() as usize),
+        let level = |m: &PreparedRig| match m.pca {
+            Some(_) => m.memory,
+            None => RigMemory {
+                host_bytes: m.rig.geometry_bytes() + m.cpu.bytes(),
+                device_bytes: m.gpu.as_ref().map_or(0, |g| g.geometry_bytes() as usize),
+            },
         };
         let mut memory = RigMemory {
             host_bytes: rig.host_bytes() + cpu.bytes(),
@@ -441,6 +476,7 @@ impl Engine {
             gpu,
             memory,
             meshes: Vec::new(),
+            pca: None,
         })
     }
 
@@ -459,10 +495,23 @@ impl Engine {
             }
             None => None,
         };
-        let meshes = derived
+        let mut meshes = derived
             .into_iter()
             .map(|d| self.prepare_one(Arc::new(d), tables.as_ref()))
             .collect::<Result<Vec<_>, _>>()?;
+        // PCA levels: their own rigs, with their own (coefficient) clip tables.
+        let pcas =
+            crate::rig::pca_level_rigs(&rig).map_err(|e| EngineError::Mesh(e.to_string()))?;
+        for (form, derived) in rig.lod.pca.iter().zip(pcas) {
+            let derived = Arc::new(derived);
+            let own = match self.gpu_active() {
+                Some(ctx) => self.resident(ClipTables::upload(ctx, &derived))?,
+                None => None,
+            };
+            let mut level = self.prepare_one(derived, own.as_ref())?;
+            level.pca = Some(Arc::new(form.clone()));
+            meshes.push(level);
+        }
         let mut full = self.prepare_one(rig, tables.as_ref())?;
         full.memory = Self::memory(&full.rig, &full.cpu, full.gpu.as_deref(), &meshes);
         full.meshes = meshes;
@@ -479,7 +528,8 @@ impl Engine {
     ) -> Result<PreparedRig, EngineError> {
         let same_geometry = Arc::ptr_eq(&rig.primitives, &prepared.rig.primitives)
             || rig.primitives == prepared.rig.primitives;
-        if rig.lod != prepared.rig.lod || !same_geometry {
+        // A PCA level's clip tables are the clips mapped into its coefficients: rebuilt.
+        if rig.lod != prepared.rig.lod || !same_geometry || !rig.lod.pca.is_empty() {
             return self.prepare(rig);
         }
         let tables = match (self.gpu_active(), &prepared.gpu) {
@@ -499,6 +549,7 @@ impl Engine {
                 cpu: old.cpu.clone(),
                 gpu,
                 meshes: Vec::new(),
+                pca: None,
             })
         };
         // Mesh levels evaluate the same clips: each gets the new (shared) tables, and keeps
@@ -550,7 +601,8 @@ impl Engine {
         readback: bool,
     ) -> Result<PendingEvaluation<'_>, EngineError> {
         let start = Instant::now();
-        let rig = rig.route(jobs)?;
+        let (rig, jobs) = rig.route(jobs)?;
+        let jobs: &[BlendJob] = &jobs;
         let state = match (self.gpu_active(), &rig.gpu) {
             (Some(ctx), Some(g)) => {
                 let (gpu_jobs, live) = gpu_records(&rig.rig, g, jobs)?;
@@ -607,7 +659,7 @@ impl Engine {
         spec: OutputSpec,
     ) -> Result<Begun<'_>, EngineError> {
         let start = Instant::now();
-        let target = rig.route(jobs)?;
+        let (target, _) = rig.route(jobs)?;
         if self.gpu_active().is_some() && target.gpu.is_some() {
             return Ok(Begun {
                 start,
@@ -632,8 +684,8 @@ impl Engine {
             *out = e.output;
             return Ok((e.timings, e.kind.unwrap_or(BackendKind::Gpu)));
         }
-        let target = rig.route(jobs)?;
-        let batch = WeightBatch::gather(&target.rig, jobs)?;
+        let (target, jobs) = rig.route(jobs)?;
+        let batch = WeightBatch::gather(&target.rig, &jobs)?;
         target.cpu.evaluate_into(&batch, spec, out)?;
         Ok((
             Timings {
@@ -658,7 +710,8 @@ impl Engine {
             normals: true,
             precision: super::Precision::F32,
         };
-        let target = rig.route(jobs)?;
+        let (target, jobs) = rig.route(jobs)?;
+        let jobs: &[BlendJob] = &jobs;
         if let (Some(ctx), Some(g)) = (self.gpu_active(), &target.gpu) {
             let (gpu_jobs, live) = gpu_records(&target.rig, g, jobs)?;
             match ctx

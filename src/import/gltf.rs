@@ -690,6 +690,7 @@ fn document_shape(
             targets: n_targets,
             clip_cells: n_targets * clip_frames,
             mesh_levels: Vec::new(),
+            pca_levels: Vec::new(),
         },
         transient,
         plan,

@@ -8,6 +8,8 @@
 //!   a mesh level is evaluated as.
 //! - [`report`]: the error of each order's LOD levels against the full rig over a clip, as a
 //!   table, JSON and a PNG plot; synthetic clips for rigs without animation.
+//! - [`pca`]: the variable-PCA form of the deltas within an error budget, and where a LOD level
+//!   would gain from it.
 //! - [`build_lod`]: everything above turned into the [`Lod`] a rig persists, from a [`LodSpec`]
 //!   (what `PUT /v1/rigs/{id}/lod` and `crowdmorph lod` ask for).
 //!
@@ -17,6 +19,7 @@
 pub mod mesh;
 pub mod metrics;
 pub mod order;
+pub mod pca;
 pub mod plot;
 pub mod raster;
 pub mod report;
@@ -158,7 +161,7 @@ pub struct LevelSpec {
 }
 
 /// A request for a rig's LOD: how to order, what to pin, the levels, the meshes.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct LodSpec {
     /// How to order the targets (default: combined mean rank).
     #[serde(default)]
@@ -181,6 +184,29 @@ pub struct LodSpec {
     /// Scoring options.
     #[serde(default)]
     pub scoring: ScoreOptions,
+    /// Let full-mesh levels use the variable-PCA form of the deltas where it is smaller and
+    /// needs fewer multiply-adds at the level's error ([`pca`]); default on.
+    #[serde(default = "yes")]
+    pub pca: bool,
+}
+
+fn yes() -> bool {
+    true
+}
+
+impl Default for LodSpec {
+    /// What an empty JSON body asks for (the serde defaults above).
+    fn default() -> Self {
+        LodSpec {
+            method: OrderMethod::default(),
+            order: None,
+            pinned: Vec::new(),
+            levels: None,
+            mesh_fractions: Vec::new(),
+            scoring: ScoreOptions::default(),
+            pca: true,
+        }
+    }
 }
 
 impl LodSpec {
@@ -263,7 +289,45 @@ pub fn build_bytes(rig: &Rig, spec: &LodSpec) -> u64 {
         + n as u64
         + 2 * map_bytes(n, 4)
         + order::SparseIndex::bytes_for(rig);
-    scoring.max(meshes) + lookups + (1 << 20)
+    let pca = if spec.pca { pca::build_bytes(rig) } else { 0 };
+    scoring.max(meshes).max(pca) + lookups + (1 << 20)
+}
+
+/// The smallest error a PCA level is built within, as a fraction of the diagonal.
+pub const PCA_FLOOR: f32 = 1e-4;
+
+/// The table with a PCA form on each full-mesh level where one pays ([`pca::pays`]) at that
+/// level's error on the test poses; the forms, in level order.
+fn pca_levels(
+    rig: &Rig,
+    order: &[TargetId],
+    mut levels: Vec<LodLevel>,
+    progress: Option<&Progress>,
+) -> Result<(Vec<LodLevel>, Vec<crate::rig::DeltaPca>), LodBuildError> {
+    let n = rig.targets.len() as u32;
+    let mut forms = Vec::new();
+    for level in levels.iter_mut().skip(1) {
+        if level.mesh.is_some() || level.shapes >= n {
+            continue;
+        }
+        if progress.is_some_and(Progress::is_cancelled) {
+            return Err(LodBuildError::Cancelled);
+        }
+        let error = pca::level_error(rig, order, level.shapes);
+        if error <= f64::from(PCA_FLOOR) {
+            continue;
+        }
+        let form = pca::build(rig, error as f32);
+        let (madds, bytes) = (
+            pca::level_madds(rig, order, level.shapes),
+            pca::level_bytes(rig, order, level.shapes),
+        );
+        if pca::pays(&form, madds, bytes) {
+            level.pca = Some(forms.len() as u32);
+            forms.push(form);
+        }
+    }
+    Ok((levels, forms))
 }
 
 /// What [`check_spec`] resolved: the pins, the explicit order if any, and the table.
@@ -325,6 +389,7 @@ fn check_spec(rig: &Rig, spec: &LodSpec) -> Result<Checked, LodBuildError> {
                 Ok(LodLevel {
                     shapes,
                     mesh: l.mesh,
+                    pca: None,
                 })
             })
             .collect::<Result<Vec<_>, _>>()?,
@@ -337,7 +402,7 @@ fn check_spec(rig: &Rig, spec: &LodSpec) -> Result<Checked, LodBuildError> {
             })
             .collect(),
     };
-    Lod::validate_levels(&levels, n, meshes)?;
+    Lod::validate_levels(&levels, n, meshes, 0)?;
     Ok(Checked {
         pinned,
         explicit,
@@ -404,12 +469,18 @@ pub fn build_lod(
         }
         levels
     };
+    let (levels, pca) = if spec.pca {
+        pca_levels(rig, &order, levels, progress)?
+    } else {
+        (levels, Vec::new())
+    };
     let lod = Lod {
         order,
         levels,
         method,
         pinned,
         meshes,
+        pca,
     };
     lod.validate(n)?;
     let counts: Vec<usize> = rig.primitives.iter().map(|p| p.positions.len()).collect();

@@ -158,6 +158,7 @@ pub fn clip_errors(
         method: "report".into(),
         pinned: Vec::new(),
         meshes: Vec::new(),
+        pca: Vec::new(),
     };
     check.validate(n)?;
     // Levels by shape count, most shapes first: each drops a superset of the previous one's

@@ -144,6 +144,9 @@ pub struct RigShape {
     pub clip_cells: u64,
     /// The shapes of the rig's mesh levels (derived rigs; they share the clip tables).
     pub mesh_levels: Vec<Vec<PrimShape>>,
+    /// The shapes of the rigs of its PCA levels (`DeltaPca::derive_rig`), with their clip
+    /// table cells (the clips in coefficients) and the bytes of the form itself.
+    pub pca_levels: Vec<(Vec<PrimShape>, u64, u64)>,
 }
 
 /// Bytes a rig costs, by where they live and when.
@@ -196,7 +199,56 @@ impl RigShape {
                 .iter()
                 .map(|level| Self::level_shapes(rig, level))
                 .collect(),
+            pca_levels: rig
+                .lod
+                .pca
+                .iter()
+                .map(|form| Self::pca_shapes(rig, form))
+                .collect(),
         }
+    }
+
+    /// The counts of the rig a PCA level derives, counted in place: each component a target
+    /// over its region's consecutive vertices, no normal deltas.
+    fn pca_shapes(rig: &Rig, form: &super::DeltaPca) -> (Vec<PrimShape>, u64, u64) {
+        let offsets = rig.vertex_offsets();
+        let prims = rig
+            .primitives
+            .iter()
+            .zip(&offsets)
+            .map(|(p, &first)| {
+                let end = first + p.positions.len();
+                let mut shape = PrimShape {
+                    vertices: p.positions.len() as u64,
+                    indices: p.indices.len() as u64,
+                    tangents: p.tangents.is_some(),
+                    ..PrimShape::default()
+                };
+                for r in form
+                    .regions
+                    .iter()
+                    .filter(|r| (first..end).contains(&(r.first as usize)))
+                {
+                    let (c, n) = (u64::from(r.components), u64::from(r.count));
+                    let tiles = |lanes: u64| {
+                        let a = u64::from(r.first) / lanes;
+                        let b = (u64::from(r.first) + n).div_ceil(lanes);
+                        b - a
+                    };
+                    shape.targets += c;
+                    shape.deltas += c * n;
+                    shape.cpu_blocks += c * tiles(CPU_LANES);
+                    shape.gpu_blocks += c * tiles(GPU_LANES);
+                }
+                shape
+            })
+            .collect();
+        let frames: u64 = rig.clips.iter().map(|c| u64::from(c.frames)).sum();
+        (
+            prims,
+            frames * form.components() as u64,
+            form.bytes() as u64,
+        )
     }
 
     /// The counts of the rig a mesh level derives (`MeshLevel::derive_rig`), counted in place:
@@ -310,12 +362,20 @@ impl RigShape {
                 .flatten()
                 .map(|p| p.vertices * 4 + p.indices * 4)
                 .sum::<u64>();
+        let pca_clips: u64 = self.pca_levels.iter().map(|l| l.1 * 4).sum();
+        let lod = lod + self.pca_levels.iter().map(|l| l.2).sum::<u64>();
         let rig = geometry(&self.primitives)
             + self.mesh_levels.iter().map(|l| geometry(l)).sum::<u64>()
+            + self.pca_levels.iter().map(|l| geometry(&l.0)).sum::<u64>()
             + clips
+            + pca_clips
             + lod;
         let (mut layout, mut staging) = Self::cpu_layout(&self.primitives);
-        for level in &self.mesh_levels {
+        for level in self
+            .mesh_levels
+            .iter()
+            .chain(self.pca_levels.iter().map(|l| &l.0))
+        {
             let (l, s) = Self::cpu_layout(level);
             layout += l;
             staging = staging.max(s);
@@ -327,7 +387,13 @@ impl RigShape {
                     .iter()
                     .map(|l| Self::gpu_geometry(l, self.targets))
                     .sum::<u64>()
+                + self
+                    .pca_levels
+                    .iter()
+                    .map(|l| Self::gpu_geometry(&l.0, l.0.iter().map(|p| p.targets).sum()))
+                    .sum::<u64>()
                 + clips
+                + pca_clips
         } else {
             0
         };

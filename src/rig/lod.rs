@@ -31,12 +31,21 @@ pub struct LodLevel {
     /// full mesh.
     #[serde(default)]
     pub mesh: Option<u32>,
+    /// Index into [`Lod::pca`] of the variable-PCA form this level evaluates instead of its
+    /// shapes (only on the full mesh; `crate::lod::pca` picks it where it is smaller and
+    /// faster at the level's error).
+    #[serde(default)]
+    pub pca: Option<u32>,
 }
 
 impl LodLevel {
     /// A level on the full mesh.
     pub fn shapes(shapes: u32) -> Self {
-        LodLevel { shapes, mesh: None }
+        LodLevel {
+            shapes,
+            mesh: None,
+            pca: None,
+        }
     }
 }
 
@@ -100,6 +109,9 @@ pub struct Lod {
     /// Simplified meshes that levels may name.
     #[serde(default)]
     pub meshes: Vec<MeshLevel>,
+    /// Variable-PCA forms of the deltas that levels may name.
+    #[serde(default)]
+    pub pca: Vec<super::DeltaPca>,
 }
 
 /// Why a LOD table is not acceptable.
@@ -141,6 +153,7 @@ impl Lod {
             method: "file-order".into(),
             pinned: Vec::new(),
             meshes: Vec::new(),
+            pca: Vec::new(),
         }
     }
 
@@ -171,6 +184,7 @@ impl Lod {
             method: IMPORT_LOD_METHOD.into(),
             pinned: Vec::new(),
             meshes: Vec::new(),
+            pca: Vec::new(),
         }
     }
 
@@ -199,7 +213,12 @@ impl Lod {
     /// The table checks of [`Lod::validate`], which need only the number of targets `n` and
     /// of mesh levels `meshes`: a LOD build runs them before its seconds of scoring and
     /// simplifying, so that a request with a bad table is refused at once.
-    pub fn validate_levels(levels: &[LodLevel], n: usize, meshes: usize) -> Result<(), LodError> {
+    pub fn validate_levels(
+        levels: &[LodLevel],
+        n: usize,
+        meshes: usize,
+        pcas: usize,
+    ) -> Result<(), LodError> {
         let Some(first) = levels.first() else {
             return Err(LodError::BadTable("no levels".into()));
         };
@@ -218,10 +237,24 @@ impl Lod {
                 l.shapes
             )));
         }
-        if first.mesh.is_some() {
+        if first.mesh.is_some() || first.pca.is_some() {
             return Err(LodError::BadTable(
-                "level 0 must evaluate the full mesh".into(),
+                "level 0 must evaluate the full mesh and its shapes".into(),
             ));
+        }
+        if levels.iter().any(|l| l.mesh.is_some() && l.pca.is_some()) {
+            return Err(LodError::BadTable(
+                "a level names both a mesh and a PCA form".into(),
+            ));
+        }
+        if let Some(p) = levels
+            .iter()
+            .filter_map(|l| l.pca)
+            .find(|&p| p as usize >= pcas)
+        {
+            return Err(LodError::BadTable(format!(
+                "a level names PCA form {p} of {pcas}"
+            )));
         }
         if let Some(m) = levels
             .iter()
@@ -248,7 +281,17 @@ impl Lod {
                 _ => return Err(LodError::NotAPermutation(n)),
             }
         }
-        Lod::validate_levels(&self.levels, n, self.meshes.len())?;
+        Lod::validate_levels(&self.levels, n, self.meshes.len(), self.pca.len())?;
+        for (i, f) in self.pca.iter().enumerate() {
+            f.validate()
+                .map_err(|e| LodError::BadTable(format!("PCA form {i}: {e}")))?;
+            if f.targets as usize != n {
+                return Err(LodError::BadTable(format!(
+                    "PCA form {i} has {} channels of {n}",
+                    f.targets
+                )));
+            }
+        }
         if self.pinned.len() > n || self.order.get(..self.pinned.len()) != Some(&self.pinned[..]) {
             return Err(LodError::BadTable(
                 "the order does not start with the pinned targets".into(),
@@ -264,6 +307,25 @@ impl Lod {
     /// one entry per primitive and every kept vertex in range. [`Lod::validate`] checks the
     /// rest; `Rig::validate` calls both.
     pub fn validate_meshes(&self, vertex_counts: &[usize]) -> Result<(), LodError> {
+        let total: usize = vertex_counts.iter().sum();
+        let ends: Vec<usize> = vertex_counts
+            .iter()
+            .scan(0usize, |a, &n| {
+                *a += n;
+                Some(*a)
+            })
+            .collect();
+        for (i, f) in self.pca.iter().enumerate() {
+            let crosses = f.regions.iter().any(|r| {
+                let (a, b) = (r.first as usize, (r.first + r.count) as usize);
+                ends.iter().any(|&e| a < e && b > e)
+            });
+            if f.vertices as usize != total || crosses {
+                return Err(LodError::BadTable(format!(
+                    "PCA form {i} does not fit the rig's {total} vertices and primitives"
+                )));
+            }
+        }
         for (i, m) in self.meshes.iter().enumerate() {
             if m.primitives.len() != vertex_counts.len() {
                 return Err(LodError::BadMesh(

@@ -91,12 +91,10 @@ impl MeshLevel {
                 .lod
                 .levels
                 .iter()
-                .map(|lv| super::LodLevel {
-                    shapes: lv.shapes,
-                    mesh: None,
-                })
+                .map(|lv| super::LodLevel::shapes(lv.shapes))
                 .collect(),
             meshes: Vec::new(),
+            pca: Vec::new(),
             ..rig.lod.clone()
         };
         let derived = Rig {

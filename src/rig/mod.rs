@@ -23,6 +23,7 @@ mod clip;
 mod cost;
 mod lod;
 mod mesh_level;
+mod pca;
 mod pose;
 mod sample;
 
@@ -32,6 +33,7 @@ pub use lod::{
     IMPORT_LOD_METHOD, Lod, LodError, LodLevel, MeshLevel, MeshLevelPrimitive, default_lod_levels,
 };
 pub use mesh_level::mesh_level_rigs;
+pub use pca::{DeltaPca, PcaRegion, pca_level_rigs};
 pub use pose::{
     ARKIT_NAMES, LIVE_STEP, MAX_BLEND_LAYERS, MAX_LIVE_WEIGHT, MAX_TERMS, Pose, PoseError, T_ONE,
     Term, quantize_live,
@@ -484,7 +486,7 @@ impl Rig {
         self.clips.iter().map(|c| c.weights.len() * 4).sum()
     }
 
-    /// Bytes of the LOD order, table and mesh levels.
+    /// Bytes of the LOD order, table, mesh levels and PCA forms.
     pub fn lod_bytes(&self) -> usize {
         self.lod.order.len() * 4
             + self.lod.levels.len() * 8
@@ -495,6 +497,7 @@ impl Rig {
                 .flat_map(|m| &m.primitives)
                 .map(|p| (p.vertices.len() + p.indices.len()) * 4)
                 .sum::<usize>()
+            + self.lod.pca.iter().map(DeltaPca::bytes).sum::<usize>()
     }
 
     /// Checks every invariant the engines rely on. Importers call it before handing a rig out,

@@ -1073,6 +1073,13 @@ mod tests {
         let store = Store::open(&dir).expect("open");
         let mut rig = crate::embedded::default_rig();
         rig.name = "copy".into();
+        // With PCA levels, whose forms travel in the LOD table.
+        let spec = crate::lod::LodSpec {
+            method: crate::lod::OrderMethod::FileOrder,
+            ..Default::default()
+        };
+        rig.lod = crate::lod::build_lod(&rig, &spec, None, None).expect("lod");
+        assert!(!rig.lod.pca.is_empty());
         store
             .put(RecordRef::Rig {
                 id: "copy",
