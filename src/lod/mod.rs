@@ -161,7 +161,7 @@ pub struct LevelSpec {
 }
 
 /// A request for a rig's LOD: how to order, what to pin, the levels, the meshes.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct LodSpec {
     /// How to order the targets (default: combined mean rank).
     #[serde(default)]
@@ -185,31 +185,19 @@ pub struct LodSpec {
     #[serde(default)]
     pub scoring: ScoreOptions,
     /// Let full-mesh levels use the variable-PCA form of the deltas where it is smaller and
-    /// needs fewer multiply-adds at the level's error ([`pca`]); default on.
-    #[serde(default = "yes")]
-    pub pca: bool,
-}
-
-fn yes() -> bool {
-    true
-}
-
-impl Default for LodSpec {
-    /// What an empty JSON body asks for (the serde defaults above).
-    fn default() -> Self {
-        LodSpec {
-            method: OrderMethod::default(),
-            order: None,
-            pinned: Vec::new(),
-            levels: None,
-            mesh_fractions: Vec::new(),
-            scoring: ScoreOptions::default(),
-            pca: true,
-        }
-    }
+    /// needs fewer multiply-adds at the level's error ([`pca`]). Default (`None`): with the
+    /// default table, yes; with explicit `levels`, no — a level asked for as "the first N
+    /// shapes" then is exactly that.
+    #[serde(default)]
+    pub pca: Option<bool>,
 }
 
 impl LodSpec {
+    /// Whether full-mesh levels may become PCA levels ([`LodSpec::pca`]).
+    pub fn uses_pca(&self) -> bool {
+        self.pca.unwrap_or(self.levels.is_none())
+    }
+
     /// The checks that need no rig: the number and range of mesh fractions. `build_lod` runs
     /// them first, so that a bad request is refused before seconds of scoring; the server
     /// runs them before it replaces a running job.
@@ -289,7 +277,11 @@ pub fn build_bytes(rig: &Rig, spec: &LodSpec) -> u64 {
         + n as u64
         + 2 * map_bytes(n, 4)
         + order::SparseIndex::bytes_for(rig);
-    let pca = if spec.pca { pca::build_bytes(rig) } else { 0 };
+    let pca = if spec.uses_pca() {
+        pca::build_bytes(rig)
+    } else {
+        0
+    };
     scoring.max(meshes).max(pca) + lookups + (1 << 20)
 }
 
@@ -469,7 +461,7 @@ pub fn build_lod(
         }
         levels
     };
-    let (levels, pca) = if spec.pca {
+    let (levels, pca) = if spec.uses_pca() {
         pca_levels(rig, &order, levels, progress)?
     } else {
         (levels, Vec::new())

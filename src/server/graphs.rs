@@ -27,8 +27,49 @@ pub struct Graphs {
 #[derive(Debug, Default)]
 struct RigGraphs {
     specs: BTreeMap<String, MotionGraph>,
-    /// Name → (rig generation, the graph resolved and measured against it).
-    resolved: HashMap<String, (u64, Arc<Graph>)>,
+    /// Name → the graph resolved and measured against a rig generation.
+    resolved: HashMap<String, Resolved>,
+}
+
+/// A graph resolved against one rig generation, with what its measured motion depends on.
+#[derive(Debug, Clone)]
+struct Resolved {
+    generation: u64,
+    graph: Arc<Graph>,
+    inputs: MotionInputs,
+}
+
+/// What a graph's measured motion is a function of: the rig's geometry and each node's clip
+/// table (shared, not copied, by every generation that keeps them).
+#[derive(Debug, Clone)]
+struct MotionInputs {
+    primitives: Arc<Vec<crate::rig::Primitive>>,
+    tables: Vec<Arc<Vec<f32>>>,
+}
+
+impl MotionInputs {
+    fn of(entry: &RigEntry, graph: &Graph) -> MotionInputs {
+        let rig = entry.rig();
+        MotionInputs {
+            primitives: rig.primitives.clone(),
+            tables: graph
+                .nodes
+                .iter()
+                .map(|n| rig.clips[n.clip as usize].weights.clone())
+                .collect(),
+        }
+    }
+
+    /// The same geometry and the same tables, node by node.
+    fn same(&self, other: &MotionInputs) -> bool {
+        Arc::ptr_eq(&self.primitives, &other.primitives)
+            && self.tables.len() == other.tables.len()
+            && self
+                .tables
+                .iter()
+                .zip(&other.tables)
+                .all(|(a, b)| Arc::ptr_eq(a, b))
+    }
 }
 
 impl Graphs {
@@ -67,20 +108,29 @@ impl Graphs {
         })
     }
 
-    /// Adds or replaces a graph (resolved against `generation`); returns the rig's graphs to
-    /// persist.
+    /// Adds or replaces a graph (resolved against `entry`'s generation); returns the rig's
+    /// graphs to persist.
     pub fn insert(
         &self,
-        rig: &str,
+        entry: &RigEntry,
         name: &str,
         spec: MotionGraph,
-        generation: u64,
         resolved: Arc<Graph>,
     ) -> BTreeMap<String, MotionGraph> {
+        let rig = entry.id.as_str();
+        let generation = entry.generation;
+        let inputs = MotionInputs::of(entry, &resolved);
         self.with(|m| {
             let r = m.entry(rig.to_string()).or_default();
             r.specs.insert(name.to_string(), spec);
-            r.resolved.insert(name.to_string(), (generation, resolved));
+            r.resolved.insert(
+                name.to_string(),
+                Resolved {
+                    generation,
+                    graph: resolved,
+                    inputs,
+                },
+            );
             r.specs.clone()
         })
     }
@@ -107,27 +157,66 @@ impl Graphs {
         });
     }
 
-    /// Graph `name` of `entry`'s rig resolved against `entry`'s generation: cached, or
-    /// resolved and measured now (after a clip or LOD change made a new generation).
-    /// `None` when the rig has no such graph or it no longer fits the rig (a clip it plays was
-    /// deleted).
-    pub fn resolved(&self, entry: &RigEntry, name: &str) -> Option<Arc<Graph>> {
-        let spec = self.with(|m| {
+    /// Graph `name` of `entry`'s rig resolved against `entry`'s generation: cached; else
+    /// resolved again (names to indices, cheap) with the motion measured for an earlier
+    /// generation when what it depends on is unchanged (the geometry and the nodes' clip
+    /// tables, shared by generations that keep them: a clip added or deleted elsewhere, a new
+    /// LOD); else measured now, its memory charged to `memory` first. `None` when the rig has
+    /// no such graph, it no longer fits the rig (a clip it plays was deleted), or the
+    /// measurement's memory is not available now.
+    pub fn resolved(
+        &self,
+        entry: &RigEntry,
+        name: &str,
+        memory: &crate::server::admission::QueueMemory,
+    ) -> Option<Arc<Graph>> {
+        enum Found {
+            Current(Arc<Graph>),
+            Stale(MotionGraph, Option<Resolved>),
+        }
+        let found = self.with(|m| {
             let r = m.get(&entry.id)?;
-            match r.resolved.get(name) {
-                Some((g, graph)) if *g == entry.generation => Some(Err(graph.clone())),
-                _ => r.specs.get(name).cloned().map(Ok),
+            let earlier = r.resolved.get(name);
+            match earlier {
+                Some(e) if e.generation == entry.generation => {
+                    Some(Found::Current(e.graph.clone()))
+                }
+                _ => r
+                    .specs
+                    .get(name)
+                    .map(|s| Found::Stale(s.clone(), earlier.cloned())),
             }
         })?;
-        let spec = match spec {
-            Err(cached) => return Some(cached),
-            Ok(spec) => spec,
+        let (spec, earlier) = match found {
+            Found::Current(g) => return Some(g),
+            Found::Stale(spec, earlier) => (spec, earlier),
         };
-        let graph = Arc::new(resolve_and_measure(entry, &spec).ok()?);
+        let rig = entry.rig();
+        let mut graph = Graph::resolve(&spec, rig, |n| entry.clip_index(n)).ok()?;
+        let inputs = MotionInputs::of(entry, &graph);
+        match earlier.filter(|e| e.inputs.same(&inputs) && e.graph.nodes.len() == graph.nodes.len())
+        {
+            Some(e) => graph.set_motion(
+                (0..graph.nodes.len() as u32)
+                    .map(|n| e.graph.motion(n))
+                    .collect(),
+            ),
+            None => {
+                let _charge = memory.reserve(measure_bytes(entry)).ok()?;
+                graph.set_motion(measure(entry, &graph));
+            }
+        }
+        let graph = Arc::new(graph);
         self.with(|m| {
             if let Some(r) = m.get_mut(&entry.id) {
-                r.resolved
-                    .insert(name.to_string(), (entry.generation, graph.clone()));
+                r.resolved.insert(
+                    name.to_string(),
+                    Resolved {
+                        generation: entry.generation,
+                        graph: graph.clone(),
+                        inputs,
+                    },
+                );
             }
         });
         Some(graph)
@@ -145,10 +234,16 @@ pub fn measure_bytes(entry: &RigEntry) -> u64 {
 /// `spec` resolved against `entry`'s rig, with each node's largest per-frame vertex
 /// displacement measured on the CPU engine (the caller has charged [`measure_bytes`]).
 pub fn resolve_and_measure(entry: &RigEntry, spec: &MotionGraph) -> Result<Graph, GraphError> {
+    let mut graph = Graph::resolve(spec, entry.rig(), |n| entry.clip_index(n))?;
+    graph.set_motion(measure(entry, &graph));
+    Ok(graph)
+}
+
+/// Each node's largest per-frame vertex displacement, on the CPU engine at LOD 0.
+fn measure(entry: &RigEntry, graph: &Graph) -> Vec<f32> {
     let rig = entry.rig();
-    let mut graph = Graph::resolve(spec, rig, |n| entry.clip_index(n))?;
     let cpu = entry.prepared.cpu();
-    let motion = graph
+    graph
         .nodes
         .iter()
         .map(|n| {
@@ -186,7 +281,5 @@ pub fn resolve_and_measure(entry: &RigEntry, spec: &MotionGraph) -> Result<Graph
             }
             largest
         })
-        .collect();
-    graph.set_motion(motion);
-    Ok(graph)
+        .collect()
 }

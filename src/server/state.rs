@@ -305,7 +305,17 @@ impl AppState {
         }
         // Motion graphs come after the rigs they belong to; a graph file that does not parse
         // is skipped and reported, and graphs of a rig that is gone are left unused.
-        let (graphs, skipped) = store.load_graphs();
+        let budget = Arc::new(Budget::new(
+            self.pool.limit(),
+            "--max-rig-memory",
+            Some(self.pool.clone()),
+        ));
+        let (graphs, skipped) = store.load_graphs(|bytes, path| {
+            budget
+                .charge(bytes, || format!("stored graph file {}", path.display()))
+                .map(drop)
+                .map_err(|e| e.to_string())
+        });
         for why in skipped {
             tracing::error!(error = %why, "skipping a stored graph file that cannot be read");
             self.skip(why);

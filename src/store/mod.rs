@@ -685,7 +685,12 @@ impl Store {
     }
 
     /// Every rig's stored motion graphs, and the files that could not be read (with why).
-    pub fn load_graphs(&self) -> (Vec<StoredGraphs>, Vec<String>) {
+    /// `charge` is asked for each file's memory (its size, the parsed graphs about as much
+    /// again) before it is read; a file it refuses is skipped with its reason.
+    pub fn load_graphs(
+        &self,
+        charge: impl Fn(u64, &Path) -> Result<(), String>,
+    ) -> (Vec<StoredGraphs>, Vec<String>) {
         let dir = self.graphs_dir();
         let Ok(entries) = fs::read_dir(&dir) else {
             return (Vec::new(), Vec::new());
@@ -700,8 +705,8 @@ impl Store {
             }
             // A graph file is a few kilobytes; a huge one is not ours.
             let parsed = match e.metadata() {
-                Ok(m) if m.len() <= 64 << 20 => fs::read(&path)
-                    .map_err(|err| err.to_string())
+                Ok(m) if m.len() <= 64 << 20 => charge(2 * m.len(), &path)
+                    .and_then(|()| fs::read(&path).map_err(|err| err.to_string()))
                     .and_then(|b| {
                         serde_json::from_slice::<StoredGraphs>(&b).map_err(|err| err.to_string())
                     }),

@@ -103,17 +103,20 @@ impl AppState {
             ..e
         })?;
         if let Some(play) = &h.graph {
-            let graph = self.graphs.resolved(&entry, &play.name).ok_or_else(|| {
-                let e = crate::server::routes::graphs::unknown_graph(
-                    &entry.id,
-                    &play.name,
-                    &self.graphs.names(&entry.id),
-                );
-                ApiError {
-                    message: format!("head {}: {}", h.head, e.message),
-                    ..e
-                }
-            })?;
+            let graph = self
+                .graphs
+                .resolved(&entry, &play.name, &self.queue_memory)
+                .ok_or_else(|| {
+                    let e = crate::server::routes::graphs::unknown_graph(
+                        &entry.id,
+                        &play.name,
+                        &self.graphs.names(&entry.id),
+                    );
+                    ApiError {
+                        message: format!("head {}: {}", h.head, e.message),
+                        ..e
+                    }
+                })?;
             graph.play(play).map_err(|m| {
                 ApiError::not_found("unknown_node", format!("head {}: {m}", h.head))
             })?;

@@ -334,7 +334,9 @@ fn resolve(
             let rig = entry.rig();
             let pose = match &h.graph {
                 Some(play) => {
-                    let graph = state.graphs.resolved(entry, &play.name)?;
+                    let graph = state
+                        .graphs
+                        .resolved(entry, &play.name, &state.queue_memory)?;
                     let jumps = jumps_by_head.remove(&h.head).unwrap_or_default();
                     players.pose(h.head, play, &graph, rig, &jumps, steps)?
                 }
