@@ -107,7 +107,7 @@ async fn store(
     let _admin = state.admin.lock().await;
     let all = state
         .graphs
-        .insert(&entry, name, spec.clone(), Arc::new(checked));
+        .insert(entry, name, spec.clone(), Arc::new(checked));
     if state.store.is_some() {
         let s = state.clone();
         let rid = id.to_string();
