@@ -105,6 +105,33 @@ pub struct FormatSize {
     /// Raw vertex payload bytes per unique head (`vertices × 3 × component bytes`, doubled
     /// with normals).
     pub payload_bytes_per_unique_head: usize,
+    /// bincode bytes per head as the server sends them with `Accept-Encoding: zstd`.
+    pub zstd_bytes_per_head: f64,
+    /// ... and with `Accept-Encoding: gzip`.
+    pub gzip_bytes_per_head: f64,
+    /// CPU of compressing one such response as the server does (zstd level 1), median ms on
+    /// this thread.
+    pub zstd_ms: f64,
+    /// ... with gzip level 1.
+    pub gzip_ms: f64,
+}
+
+/// Median ms of compressing `body` as the server's compression layer does.
+fn compress_ms(body: &[u8], zstd: bool) -> f64 {
+    use std::io::Write;
+    let once = || {
+        if zstd {
+            let _ = std::hint::black_box(zstd::bulk::compress(body, 1));
+        } else {
+            let mut e = flate2::write::GzEncoder::new(
+                Vec::with_capacity(body.len() / 2),
+                flate2::Compression::fast(),
+            );
+            let _ = e.write_all(body);
+            let _ = std::hint::black_box(e.finish());
+        }
+    };
+    super::sample::sample(0.3, 5, once).median()
 }
 
 /// The benchmark result.
@@ -617,7 +644,29 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
                 bail!("unexpected response shape");
             }
             let (_, j) = client.crowd_frame(&req, Encoding::Json).await?;
+            let body = Client::encode(&req, Encoding::Bincode)?;
+            let plain = client
+                .crowd_frame_raw(body.clone(), Encoding::Bincode)
+                .await?;
+            let mut wire = [0f64; 2];
+            for (i, c) in [
+                crowdmorph_client::Compression::Zstd,
+                crowdmorph_client::Compression::Gzip,
+            ]
+            .into_iter()
+            .enumerate()
+            {
+                let r = Client::new(client.base())
+                    .with_compression(c)
+                    .crowd_frame_raw(body.clone(), Encoding::Bincode)
+                    .await?;
+                wire[i] = r.wire_bytes as f64 / opt.heads as f64;
+            }
             sizes.push(FormatSize {
+                zstd_bytes_per_head: wire[0],
+                gzip_bytes_per_head: wire[1],
+                zstd_ms: compress_ms(&plain.body, true),
+                gzip_ms: compress_ms(&plain.body, false),
                 format: format.name().to_string(),
                 normals,
                 bincode_bytes_per_head: b as f64 / opt.heads as f64,
@@ -918,12 +967,16 @@ pub fn report_text(r: &HttpBenchReport) -> String {
     s += "  bytes per head (all heads unique):\n";
     for f in &r.sizes {
         s += &format!(
-            "    {:<4}{:<9} bincode {:>10.0}  JSON {:>10.0}  (payload {} per unique head)\n",
+            "    {:<4}{:<9} bincode {:>10.0}  JSON {:>10.0}  zstd {:>10.0}  gzip {:>10.0}  (payload {} per unique head; compressing a response: zstd {:.2} ms, gzip {:.2} ms)\n",
             f.format,
             if f.normals { "+normals" } else { "" },
             f.bincode_bytes_per_head,
             f.json_bytes_per_head,
-            f.payload_bytes_per_unique_head
+            f.zstd_bytes_per_head,
+            f.gzip_bytes_per_head,
+            f.payload_bytes_per_unique_head,
+            f.zstd_ms,
+            f.gzip_ms
         );
     }
     s

@@ -26,7 +26,7 @@ use tower_http::trace::TraceLayer;
 use super::ServerError;
 use super::config::ServerConfig;
 use super::conn;
-use super::http::{ApiError, SERVER_TIMING};
+use super::http::{ApiError, SERVER_TIMING, encoding};
 use super::metrics::Metrics;
 use super::routes::{
     self,
@@ -45,6 +45,30 @@ impl MakeRequestId for Counter {
         HeaderValue::from_str(&format!("{n:08x}"))
             .ok()
             .map(RequestId::new)
+    }
+}
+
+/// Charges what compressing the response will hold (its encoder) to the queue memory before
+/// the response is made, kept until its body has been sent; without room, the response goes
+/// out plain (the `Accept-Encoding` the compression layer would read is dropped). A WebSocket
+/// upgrade is never compressed by it, so it is not charged.
+async fn charge_compression(
+    State(state): State<AppState>,
+    mut req: Request,
+    next: Next,
+) -> Response {
+    let Some(e) = encoding::accepted(req.headers()) else {
+        return next.run(req).await;
+    };
+    if req.headers().contains_key(header::UPGRADE) {
+        return next.run(req).await;
+    }
+    match state.queue_memory.reserve(encoding::encoder_bytes(e)) {
+        Ok(charge) => super::http::body::hold(next.run(req).await, charge),
+        Err(_) => {
+            req.headers_mut().remove(header::ACCEPT_ENCODING);
+            next.run(req).await
+        }
     }
 }
 
@@ -169,9 +193,16 @@ pub fn app(state: AppState) -> Router {
     let cfg = &state.config;
     let routes = resources()
         .fallback(routes::health::not_found)
-        // Bodies are read with explicit per-route limits (see http::body::read_body).
+        // Bodies are read with explicit per-route limits (see http::body::read_body), after
+        // a compressed one is inflated: the limits bound the inflated bytes.
         .layer(DefaultBodyLimit::disable())
+        .layer(encoding::decompress_layer())
         .layer(middleware::from_fn(json_errors))
+        .layer(encoding::compress_layer())
+        .layer(middleware::from_fn_with_state(
+            state.clone(),
+            charge_compression,
+        ))
         .layer(middleware::from_fn_with_state(state.clone(), shed_load))
         .layer(middleware::from_fn_with_state(
             state.clone(),

@@ -8,6 +8,7 @@ mod attack;
 mod bad_input;
 mod concurrency;
 mod connections;
+mod encoding;
 mod golden;
 mod graphs;
 mod hostile;

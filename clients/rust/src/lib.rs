@@ -87,8 +87,48 @@ pub struct Reply {
     pub request_id: Option<String>,
     /// Every header.
     pub headers: hyper::HeaderMap,
-    /// The body.
+    /// The body (inflated, when it came with a `Content-Encoding`).
     pub body: Bytes,
+    /// Bytes of the body as it came over the wire.
+    pub wire_bytes: usize,
+}
+
+/// A `Content-Encoding` the client asks for (`Accept-Encoding`) and inflates.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Compression {
+    /// zstd.
+    Zstd,
+    /// gzip.
+    Gzip,
+}
+
+impl Compression {
+    fn token(self) -> &'static str {
+        match self {
+            Compression::Zstd => "zstd",
+            Compression::Gzip => "gzip",
+        }
+    }
+}
+
+/// `body` inflated as its `Content-Encoding` says (none, zstd or gzip).
+fn inflate(encoding: Option<&str>, body: Bytes) -> Result<Bytes, ClientError> {
+    use std::io::Read;
+    let bad = |e: std::io::Error| ClientError::Decode(format!("inflating the body: {e}"));
+    match encoding.map(str::trim) {
+        None | Some("identity") => Ok(body),
+        Some("zstd") => Ok(zstd::stream::decode_all(&body[..]).map_err(bad)?.into()),
+        Some("gzip") => {
+            let mut out = Vec::new();
+            flate2::read::GzDecoder::new(&body[..])
+                .read_to_end(&mut out)
+                .map_err(bad)?;
+            Ok(out.into())
+        }
+        Some(other) => Err(ClientError::Decode(format!(
+            "unknown Content-Encoding {other:?}"
+        ))),
+    }
 }
 
 impl Reply {
@@ -124,6 +164,7 @@ pub struct Client {
     http: HyperClient<HttpConnector, Full<Bytes>>,
     base: String,
     token: Option<String>,
+    compression: Option<Compression>,
 }
 
 impl Client {
@@ -137,7 +178,20 @@ impl Client {
                 .build(connector),
             base: base.into().trim_end_matches('/').to_string(),
             token: None,
+            compression: None,
         }
+    }
+
+    /// The server's base URL.
+    pub fn base(&self) -> &str {
+        &self.base
+    }
+
+    /// Asks for compressed responses (`Accept-Encoding`) and inflates them; `Reply::wire_bytes`
+    /// says what came over the wire.
+    pub fn with_compression(mut self, compression: Compression) -> Client {
+        self.compression = Some(compression);
+        self
     }
 
     /// Sends `Authorization: Bearer <token>` with every request.
@@ -155,17 +209,35 @@ impl Client {
         accept: Option<&str>,
         body: Bytes,
     ) -> Result<Reply, ClientError> {
+        let mut headers = Vec::new();
+        if let Some(ct) = content_type {
+            headers.push(("content-type", ct));
+        }
+        if let Some(a) = accept {
+            headers.push(("accept", a));
+        }
+        self.send_with(method, path, &headers, body).await
+    }
+
+    /// [`Client::send`] with any request headers (e.g. a `Content-Encoding` of the body).
+    pub async fn send_with(
+        &self,
+        method: Method,
+        path: &str,
+        headers: &[(&str, &str)],
+        body: Bytes,
+    ) -> Result<Reply, ClientError> {
         let mut req = Request::builder()
             .method(method)
             .uri(format!("{}{path}", self.base));
-        if let Some(ct) = content_type {
-            req = req.header("content-type", ct);
-        }
-        if let Some(a) = accept {
-            req = req.header("accept", a);
+        for (name, value) in headers {
+            req = req.header(*name, *value);
         }
         if let Some(t) = &self.token {
             req = req.header("authorization", format!("Bearer {t}"));
+        }
+        if let Some(c) = self.compression {
+            req = req.header("accept-encoding", c.token());
         }
         let req = req
             .body(Full::new(body))
@@ -185,6 +257,7 @@ impl Client {
         let content_type = header("content-type");
         let retry_after = header("retry-after");
         let request_id = header("x-request-id");
+        let encoding = header("content-encoding");
         let headers = resp.headers().clone();
         let body = resp
             .into_body()
@@ -192,6 +265,8 @@ impl Client {
             .await
             .map_err(|e| ClientError::Transport(e.to_string()))?
             .to_bytes();
+        let wire_bytes = body.len();
+        let body = inflate(encoding.as_deref(), body)?;
         Ok(Reply {
             status,
             content_type,
@@ -199,6 +274,7 @@ impl Client {
             request_id,
             headers,
             body,
+            wire_bytes,
         })
     }
 
