@@ -434,3 +434,24 @@ def test_a_malformed_answer_is_a_protocol_error(client):
         client._decode(crowdmorph.RigList, resp)
     with pytest.raises(wire.DecodeError):
         wire.decode(crowdmorph.RigList, resp.body)
+
+
+@pytest.mark.parametrize("compression", ["gzip", "zstd"])
+def test_compressed_answers_inflate_to_the_plain_bytes(server, compression):
+    # zstd needs the optional zstandard package; gzip is the standard library's.
+    if compression == "zstd":
+        pytest.importorskip("zstandard", reason="zstandard is not installed (crowdmorph[zstd])")
+    heads = [(i, RIG, "talk", 5 * i, 0) for i in range(8)]
+    with crowdmorph.Client(server.url) as plain, crowdmorph.Client(
+        server.url, compression=compression
+    ) as packed:
+        want = plain.crowd_frame(heads, format="q16", normals=True, decode=False)
+        got = packed.crowd_frame(heads, format="q16", normals=True, decode=False)
+        for a, b in zip(got.buffers, want.buffers):
+            assert bytes(a.positions) == bytes(b.positions)
+            assert bytes(a.normals) == bytes(b.normals)
+        r = packed.request("GET", "/v1/rigs/" + RIG + "/mesh")
+        assert r.headers.get("content-encoding") == compression
+        assert r.wire_bytes < len(r.body)
+        r = plain.request("GET", "/v1/rigs/" + RIG + "/mesh")
+        assert r.headers.get("content-encoding") is None and r.wire_bytes == len(r.body)

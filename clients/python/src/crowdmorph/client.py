@@ -87,12 +87,14 @@ DataLike = Union[bytes, bytearray, memoryview, str, "os.PathLike[str]", Any]
 class Response:
     """One HTTP answer: ``status``, ``headers`` (case-insensitive) and the whole ``body``."""
 
-    __slots__ = ("status", "headers", "body")
+    __slots__ = ("status", "headers", "body", "wire_bytes")
 
     def __init__(self, status: int, headers: http.client.HTTPMessage, body: bytes):
         self.status = status
         self.headers = headers
-        self.body = body
+        #: Bytes of the body as they came over the wire (before inflating).
+        self.wire_bytes = len(body)
+        self.body = _inflate(headers.get("content-encoding"), body)
 
     @property
     def content_type(self) -> str:
@@ -101,6 +103,31 @@ class Response:
     @property
     def request_id(self) -> Optional[str]:
         return self.headers.get("x-request-id")
+
+
+def _inflate(encoding: Optional[str], body: bytes) -> bytes:
+    """``body`` inflated as its ``Content-Encoding`` says: none, gzip (standard library) or
+    zstd (the optional ``zstandard`` package: ``pip install crowdmorph[zstd]``)."""
+    enc = (encoding or "identity").strip().lower()
+    if enc == "identity":
+        return body
+    if enc == "gzip":
+        import gzip
+
+        return gzip.decompress(body)
+    if enc == "zstd":
+        import zstandard  # type: ignore[import-not-found]
+
+        return zstandard.ZstdDecompressor().decompressobj().decompress(body)
+    raise ProtocolError(0, "bad_response", f"unknown Content-Encoding {encoding!r}")
+
+
+def _zstd_available() -> bool:
+    try:
+        import zstandard  # type: ignore[import-not-found]  # noqa: F401
+    except ImportError:
+        return False
+    return True
 
 
 def _server_timing(value: Optional[str]) -> Dict[str, float]:
@@ -221,6 +248,7 @@ class Client:
         token: Optional[str] = None,
         timeout: Optional[float] = 300.0,
         arrays: str = "auto",
+        compression: Optional[str] = None,
     ):
         parts = urllib.parse.urlsplit(url if "://" in url else "http://" + url)
         if parts.scheme not in ("http", "https"):
@@ -231,6 +259,12 @@ class Client:
         self.token = token
         self.timeout = timeout
         self.arrays = _arrays.resolve_backend(arrays)
+        if compression not in (None, "gzip", "zstd"):
+            raise ValueError(f"compression {compression!r}: gzip, zstd or None")
+        if compression == "zstd" and not _zstd_available():
+            raise ValueError("compression 'zstd' needs the zstandard package (crowdmorph[zstd])")
+        #: ``Accept-Encoding`` asked for: ``None`` (plain bytes), ``"gzip"`` or ``"zstd"``.
+        self.compression = compression
         self._scheme = parts.scheme
         self._host = parts.hostname
         self._port = parts.port
@@ -291,7 +325,11 @@ class Client:
             }
             if q:
                 target += "?" + urllib.parse.urlencode(q)
-        headers = {"Accept": accept, "User-Agent": f"crowdmorph-python/{_VERSION}"}
+        headers = {
+            "Accept": accept,
+            "User-Agent": f"crowdmorph-python/{_VERSION}",
+            "Accept-Encoding": self.compression or "identity",
+        }
         if content_type is not None:
             headers["Content-Type"] = content_type
         if self.token is not None:
