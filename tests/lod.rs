@@ -831,6 +831,36 @@ fn pca_levels_are_used_where_they_pay_and_stay_within_their_budget() {
         }
     }
     assert!(checked > 0);
+
+    // A clip added later reaches the PCA levels too (their tables are the clips mapped into
+    // their coefficients), with the geometry kept.
+    let mut more = rig.clone();
+    let k = rig.targets.len();
+    let table: Vec<f32> = (0..k * 4)
+        .map(|i| ((i * 37) % 100) as f32 / 100.0)
+        .collect();
+    more.clips
+        .push(crowdmorph::rig::Clip::new("late", 30.0, k, 4, table).expect("clip"));
+    let c = (more.clips.len() - 1) as u32;
+    let updated = engine
+        .update_clips(&prepared, Arc::new(more.clone()))
+        .expect("update");
+    for (level, l) in more.lod.levels.iter().enumerate() {
+        let Some(p) = l.pca else { continue };
+        let form = &more.lod.pca[p as usize];
+        let derived = form.derive_rig(&more).expect("derived");
+        let mut w = vec![0f32; k];
+        more.clips[c as usize].frame_weights(2, &mut w);
+        let got = engine_positions(&engine, &updated, BlendJob::frame(c, 2, level as u32));
+        let coefs: Vec<f64> = form
+            .coefficients(&w)
+            .iter()
+            .map(|&x| f64::from(x))
+            .collect();
+        let (want, _) = rig_oracle(&derived, &coefs);
+        let err = max_abs_diff(&got, &want);
+        assert!(err <= 2e-5 * diag, "level {level} after a clip: {err}");
+    }
 }
 
 #[test]

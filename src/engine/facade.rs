@@ -528,16 +528,19 @@ impl Engine {
     ) -> Result<PreparedRig, EngineError> {
         let same_geometry = Arc::ptr_eq(&rig.primitives, &prepared.rig.primitives)
             || rig.primitives == prepared.rig.primitives;
-        // A PCA level's clip tables are the clips mapped into its coefficients: rebuilt.
-        if rig.lod != prepared.rig.lod || !same_geometry || !rig.lod.pca.is_empty() {
+        if rig.lod != prepared.rig.lod || !same_geometry {
             return self.prepare(rig);
         }
-        let tables = match (self.gpu_active(), &prepared.gpu) {
-            (Some(ctx), Some(_)) => self.resident(ClipTables::upload(ctx, &rig))?,
-            _ => None,
+        let upload = |r: &Rig| match (self.gpu_active(), &prepared.gpu) {
+            (Some(ctx), Some(_)) => self.resident(ClipTables::upload(ctx, r)),
+            _ => Ok(None),
         };
-        let with_clips = |old: &PreparedRig, rig: Arc<Rig>| -> Result<PreparedRig, EngineError> {
-            let gpu = match (self.gpu_active(), &old.gpu, &tables) {
+        let tables = upload(&rig)?;
+        let with_clips = |old: &PreparedRig,
+                          rig: Arc<Rig>,
+                          tables: &Option<Arc<ClipTables>>|
+         -> Result<PreparedRig, EngineError> {
+            let gpu = match (self.gpu_active(), &old.gpu, tables) {
                 (Some(ctx), Some(g), Some(t)) => {
                     self.resident(g.with_clips(ctx, t.clone()))?.map(Arc::new)
                 }
@@ -549,23 +552,36 @@ impl Engine {
                 cpu: old.cpu.clone(),
                 gpu,
                 meshes: Vec::new(),
-                pca: None,
+                pca: old.pca.clone(),
             })
         };
         // Mesh levels evaluate the same clips: each gets the new (shared) tables, and keeps
-        // its geometry, which a clip change does not touch.
+        // its geometry, which a clip change does not touch. A PCA level keeps its geometry too;
+        // its tables are the new clips mapped into its coefficients, its own.
         let meshes = prepared
             .meshes
             .iter()
-            .map(|old| {
-                let level = Rig {
-                    clips: rig.clips.clone(),
-                    ..(*old.rig).clone()
-                };
-                with_clips(old, Arc::new(level))
+            .map(|old| match &old.pca {
+                None => {
+                    let level = Rig {
+                        clips: rig.clips.clone(),
+                        ..(*old.rig).clone()
+                    };
+                    with_clips(old, Arc::new(level), &tables)
+                }
+                Some(form) => {
+                    let level = Rig {
+                        clips: form
+                            .map_clips(&rig.clips)
+                            .map_err(|e| EngineError::Mesh(e.to_string()))?,
+                        ..(*old.rig).clone()
+                    };
+                    let own = upload(&level)?;
+                    with_clips(old, Arc::new(level), &own)
+                }
             })
             .collect::<Result<Vec<_>, _>>()?;
-        let mut full = with_clips(prepared, rig)?;
+        let mut full = with_clips(prepared, rig, &tables)?;
         full.memory = Self::memory(&full.rig, &full.cpu, full.gpu.as_deref(), &meshes);
         full.meshes = meshes;
         Ok(full)

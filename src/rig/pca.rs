@@ -153,22 +153,7 @@ impl DeltaPca {
             });
         }
         let c = self.components();
-        let clips = rig
-            .clips
-            .iter()
-            .map(|clip| {
-                let n = clip.frames as usize;
-                let mut table = vec![0f32; c * n];
-                let mut w = vec![0f32; rig.targets.len()];
-                for f in 0..n {
-                    clip.frame_weights(f as u32, &mut w);
-                    for (j, x) in self.coefficients(&w).into_iter().enumerate() {
-                        table[j * n + f] = x;
-                    }
-                }
-                Clip::new(clip.name.clone(), clip.fps, c, n, table)
-            })
-            .collect::<Result<Vec<_>, _>>()?;
+        let clips = self.map_clips(&rig.clips)?;
         let derived = Rig {
             name: format!("{}@pca{:.0e}", rig.name, self.max_error),
             targets: (0..c).map(|i| format!("pca{i}")).collect(),
@@ -191,6 +176,27 @@ impl DeltaPca {
         };
         derived.validate()?;
         Ok(derived)
+    }
+
+    /// `clips` (of the form's rig) as the derived rig plays them: each frame's weights mapped
+    /// into the coefficients (`C × frames`).
+    pub fn map_clips(&self, clips: &[Clip]) -> Result<Vec<Clip>, super::ClipError> {
+        let c = self.components();
+        clips
+            .iter()
+            .map(|clip| {
+                let n = clip.frames as usize;
+                let mut table = vec![0f32; c * n];
+                let mut w = vec![0f32; self.targets as usize];
+                for f in 0..n {
+                    clip.frame_weights(f as u32, &mut w);
+                    for (j, x) in self.coefficients(&w).into_iter().enumerate() {
+                        table[j * n + f] = x;
+                    }
+                }
+                Clip::new(clip.name.clone(), clip.fps, c, n, table)
+            })
+            .collect()
     }
 
     /// Checks that the arrays agree with the regions (a form built elsewhere, or damaged).
