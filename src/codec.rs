@@ -189,6 +189,7 @@ impl FrameResponseEncoder {
             Format::F32 => 0,
             Format::F16 => 1,
             Format::Q16 => 2,
+            Format::Q16R => 3,
         });
         self.head.push(u8::from(normals));
     }

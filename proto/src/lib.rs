@@ -54,6 +54,11 @@ pub enum Format {
     /// int16 quantized inside the rig's quantization box, 2 bytes per component (variant
     /// index 2); absolute error ≤ half a step per axis, stated in [`Quantization::max_error`].
     Q16,
+    /// q16 as residuals against the buffer's reference (variant index 3): each int16 `q`
+    /// minus the reference's `r` (the q16 buffer of the same rig, LOD and box with every weight
+    /// 0: the neutral), wrapping, zigzag-coded as u16, sent as two byte planes (all low bytes,
+    /// then all high bytes). Decodes bit for bit to q16; small, so it compresses well.
+    Q16R,
 }
 
 impl Format {
@@ -61,8 +66,13 @@ impl Format {
     pub fn component_bytes(self) -> usize {
         match self {
             Format::F32 => 4,
-            Format::F16 | Format::Q16 => 2,
+            Format::F16 | Format::Q16 | Format::Q16R => 2,
         }
+    }
+
+    /// Whether the payload is int16 in the rig's box (q16, or q16 residuals).
+    pub fn quantized(self) -> bool {
+        matches!(self, Format::Q16 | Format::Q16R)
     }
 
     /// The lowercase name used in JSON and query strings.
@@ -71,6 +81,7 @@ impl Format {
             Format::F32 => "f32",
             Format::F16 => "f16",
             Format::Q16 => "q16",
+            Format::Q16R => "q16r",
         }
     }
 }
@@ -82,7 +93,8 @@ impl std::str::FromStr for Format {
             "f32" => Ok(Format::F32),
             "f16" => Ok(Format::F16),
             "q16" => Ok(Format::Q16),
-            other => Err(format!("unknown format {other:?} (f32, f16 or q16)")),
+            "q16r" => Ok(Format::Q16R),
+            other => Err(format!("unknown format {other:?} (f32, f16, q16 or q16r)")),
         }
     }
 }
@@ -923,4 +935,34 @@ pub struct RenderRequest {
     /// Size and encoding; absent, 640 × 480 PNG.
     #[serde(default)]
     pub image: Option<ImageOptions>,
+}
+
+/// Residual planes of `q` (q16 components) against `reference` ([`Format::Q16R`]): `out` gets
+/// the low bytes of `zigzag(q[i] − reference[i])` (wrapping, as u16), then the high bytes.
+pub fn q16r_encode(q: &[i16], reference: &[i16], out: &mut [u8]) {
+    let n = q.len();
+    for (i, (&a, &b)) in q.iter().zip(reference).enumerate() {
+        let d = a.wrapping_sub(b);
+        let z = ((d << 1) ^ (d >> 15)) as u16;
+        out[i] = z as u8;
+        out[n + i] = (z >> 8) as u8;
+    }
+}
+
+/// The q16 components that [`q16r_encode`] coded as `planes` against `reference`.
+pub fn q16r_decode(planes: &[u8], reference: &[i16]) -> Result<Vec<i16>, String> {
+    let n = reference.len();
+    if planes.len() != 2 * n {
+        return Err(format!(
+            "{} residual bytes for a reference of {n} components",
+            planes.len()
+        ));
+    }
+    Ok((0..n)
+        .map(|i| {
+            let z = u16::from(planes[i]) | (u16::from(planes[n + i]) << 8);
+            let d = ((z >> 1) as i16) ^ -((z & 1) as i16);
+            reference[i].wrapping_add(d)
+        })
+        .collect())
 }

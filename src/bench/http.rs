@@ -637,7 +637,7 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
     // Bytes per head of every format, and a check that bincode decodes.
     let mut sizes = Vec::new();
     for normals in [false, true] {
-        for format in [Format::F32, Format::F16, Format::Q16] {
+        for format in [Format::F32, Format::F16, Format::Q16, Format::Q16R] {
             let req = crowd(opt, &rig_id, 0, format, normals);
             let (resp, b) = client.crowd_frame(&req, Encoding::Bincode).await?;
             if resp.heads.len() != opt.heads || resp.buffers.len() != opt.unique {
@@ -694,7 +694,7 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
         precision: match opt.format {
             Format::F32 => crate::engine::Precision::F32,
             Format::F16 => crate::engine::Precision::F16,
-            Format::Q16 => {
+            Format::Q16 | Format::Q16R => {
                 crate::engine::Precision::Q16(crate::server::registry::quantization_box(&rig))
             }
         },

@@ -367,7 +367,7 @@ fn positions(format: Format, b: &crowdmorph_proto::FrameBuffer) -> Result<Vec<f3
             .into_iter()
             .map(|h| half::f16::from_bits(h).to_f32())
             .collect()),
-        Format::Q16 => bail!("the Python peer does not serve q16"),
+        Format::Q16 | Format::Q16R => bail!("the Python peer does not serve q16"),
     }
 }
 

@@ -145,6 +145,8 @@ pub enum WireFormat {
     F16,
     /// int16 quantized in the rig's box.
     Q16,
+    /// q16 as residuals against the neutral, in byte planes (compresses well).
+    Q16r,
 }
 
 impl From<WireFormat> for crowdmorph_proto::Format {
@@ -153,6 +155,7 @@ impl From<WireFormat> for crowdmorph_proto::Format {
             WireFormat::F32 => crowdmorph_proto::Format::F32,
             WireFormat::F16 => crowdmorph_proto::Format::F16,
             WireFormat::Q16 => crowdmorph_proto::Format::Q16,
+            WireFormat::Q16r => crowdmorph_proto::Format::Q16R,
         }
     }
 }

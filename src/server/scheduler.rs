@@ -267,6 +267,8 @@ struct ReqState {
 
 struct WorkGroup {
     entry: Arc<RigEntry>,
+    /// The group's wire format (q16 residuals are coded after the engine's q16).
+    format: Format,
     spec: OutputSpec,
     /// Unique engine jobs of the group.
     jobs: Vec<BlendJob>,
@@ -290,7 +292,8 @@ impl BatchGroups {
         let precision = match slot.key.format {
             Format::F32 => Precision::F32,
             Format::F16 => Precision::F16,
-            Format::Q16 => Precision::Q16(slot.entry.qbox),
+            // q16 residuals are q16 from the engine, coded against the reference after it.
+            Format::Q16 | Format::Q16R => Precision::Q16(slot.entry.qbox),
         };
         let gkey = (
             slot.key.generation,
@@ -302,6 +305,7 @@ impl BatchGroups {
         let g = *self.at.entry(gkey).or_insert_with(|| {
             groups.push(WorkGroup {
                 entry: slot.entry.clone(),
+                format: slot.key.format,
                 spec: OutputSpec {
                     normals: slot.key.normals,
                     precision,
@@ -959,6 +963,41 @@ fn finish_batch(
 
 type GroupResult = Result<(Vec<JobOutput>, Option<u64>), String>;
 
+/// Codes a group's q16 positions as [`Format::Q16R`] in place: per job, the residual planes
+/// against the reference — the q16 positions of the group's rig (its mesh or PCA level) with
+/// every weight 0, which both engines compute exactly (the neutral, quantized as any q16 output
+/// is); clients fetch it as that frame. Normals stay q16: recomputed normals differ between the
+/// engines in their last bits, so a reference for them would not be the same everywhere.
+fn to_residuals(group: &WorkGroup, positions: &mut VertexData, v3: usize) -> Result<(), String> {
+    let Some(first) = group.jobs.first() else {
+        return Ok(());
+    };
+    let target = group.entry.prepared.at_level(first.lod);
+    let zero = vec![vec![0f32; target.rig().targets.len()]];
+    let batch = crate::engine::WeightBatch::from_target_weights(target.rig(), &zero, 0)
+        .map_err(|e| e.to_string())?;
+    let spec = OutputSpec {
+        normals: false,
+        precision: group.spec.precision,
+    };
+    let reference = target
+        .cpu()
+        .evaluate(&batch, spec)
+        .map_err(|e| e.to_string())?;
+    let (VertexData::Q16(r, _), VertexData::Q16(q, _)) = (&reference.positions, positions) else {
+        return Err("q16 residuals of a buffer that is not q16".into());
+    };
+    if r.len() != v3 {
+        return Err(format!("a reference of {} components for {v3}", r.len()));
+    }
+    let mut planes = vec![0u8; 2 * v3];
+    for job in q.chunks_exact_mut(v3) {
+        crowdmorph_proto::q16r_encode(job, r, &mut planes);
+        bytemuck::cast_slice_mut::<i16, u8>(job).copy_from_slice(&planes);
+    }
+    Ok(())
+}
+
 fn finish_group(
     engine: &Engine,
     pool: &Arc<BufferPool>,
@@ -996,6 +1035,9 @@ fn finish_group(
             out.positions.len(),
             group.spec.precision.name()
         ));
+    }
+    if group.format == Format::Q16R {
+        to_residuals(group, &mut out.positions, v3)?;
     }
     let share = |d: VertexData| {
         Bytes::from_owner(VertexBytes {

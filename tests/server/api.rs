@@ -108,7 +108,7 @@ fn check(rig: &Rig, req: &CrowdFrameRequest, resp: &crowdmorph_proto::CrowdFrame
                 + match format {
                     Format::F32 => 0.0,
                     Format::F16 => max_coord / 2048.0,
-                    Format::Q16 => f64::from(b.quantization.unwrap().max_error[a]),
+                    Format::Q16 | Format::Q16R => f64::from(b.quantization.unwrap().max_error[a]),
                 };
             assert!(
                 off <= tol,
@@ -127,7 +127,9 @@ fn check(rig: &Rig, req: &CrowdFrameRequest, resp: &crowdmorph_proto::CrowdFrame
                     + match format {
                         Format::F32 => 0.0,
                         Format::F16 => 1.0 / 2048.0,
-                        Format::Q16 => f64::from(crowdmorph_proto::Q16_NORMAL_MAX_ERROR),
+                        Format::Q16 | Format::Q16R => {
+                            f64::from(crowdmorph_proto::Q16_NORMAL_MAX_ERROR)
+                        }
                     };
                 let dn = max_diff(&n, &nrm);
                 assert!(

@@ -179,3 +179,92 @@ async fn post_encoded(base: &str, encoding: &str, body: Bytes) -> (u16, Bytes) {
         .unwrap();
     (r.status, r.body)
 }
+
+/// The int16 values of a q16 blob.
+fn i16s(b: &[u8]) -> Vec<i16> {
+    b.chunks_exact(2)
+        .map(|c| i16::from_le_bytes([c[0], c[1]]))
+        .collect()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn q16_residuals_decode_bit_for_bit_to_q16_and_compress_better() {
+    let s = TestServer::start(crowdmorph::server::ServerConfig::default()).await;
+    let base = format!("http://{}", s.addr);
+    let client = Client::new(&base);
+    // Real clip frames at every LOD level the rig has, a blend and live weights among them.
+    let rig = client.rig("default-head").await.unwrap();
+    let levels = rig.lod.levels.len() as u32;
+    let mut heads: Vec<Head> = Vec::new();
+    for (i, clip) in ["talk", "smile", "surprise", "idle"].iter().enumerate() {
+        for lod in 0..levels {
+            heads.push(Head {
+                head: heads.len() as u64,
+                rig: "default-head".into(),
+                clip: (*clip).into(),
+                frame: 11 * i as i64 + lod as i64,
+                lod,
+                ..Default::default()
+            });
+        }
+    }
+    let req = |format| CrowdFrameRequest {
+        heads: heads.clone(),
+        output: OutputOptions {
+            normals: true,
+            format,
+        },
+        wrap: true,
+    };
+    let (plain, plain_bytes) = client
+        .crowd_frame(&req(Format::Q16), Encoding::Bincode)
+        .await
+        .unwrap();
+    let (resid, _) = client
+        .crowd_frame(&req(Format::Q16R), Encoding::Bincode)
+        .await
+        .unwrap();
+    assert_eq!(resid.format, Format::Q16R);
+    assert_eq!(plain.heads, resid.heads);
+    let mut refs = std::collections::HashMap::new();
+    for (a, b) in plain.buffers.iter().zip(&resid.buffers) {
+        assert_eq!(
+            (a.rig.as_str(), a.lod, a.vertices),
+            (b.rig.as_str(), b.lod, b.vertices)
+        );
+        assert_eq!(a.quantization, b.quantization, "the same box");
+        if let std::collections::hash_map::Entry::Vacant(e) = refs.entry(b.lod) {
+            let (r, q) = client.q16_reference("default-head", b.lod).await.unwrap();
+            assert_eq!(Some(q), b.quantization);
+            e.insert(r);
+        }
+        let decoded = crowdmorph_proto::q16r_decode(&b.positions.0, &refs[&b.lod]).unwrap();
+        assert_eq!(decoded, i16s(&a.positions.0), "lod {}: bit for bit", b.lod);
+        assert_eq!(a.normals, b.normals, "normals travel as q16");
+        assert_ne!(b.positions, a.positions);
+    }
+    // The JSON answer carries the same bytes.
+    let (json, _) = client
+        .crowd_frame(&req(Format::Q16R), Encoding::Json)
+        .await
+        .unwrap();
+    assert_eq!(json.buffers, resid.buffers);
+    // Compressed, the residuals are smaller than compressed q16 (they are mostly zero bytes).
+    let zc = Client::new(&base).with_compression(Compression::Zstd);
+    let size = |f| {
+        let zc = zc.clone();
+        let body = Client::encode(&req(f), Encoding::Bincode).unwrap();
+        async move {
+            zc.crowd_frame_raw(body, Encoding::Bincode)
+                .await
+                .unwrap()
+                .wire_bytes
+        }
+    };
+    let (zq, zr) = (size(Format::Q16).await, size(Format::Q16R).await);
+    assert!(
+        zr < zq,
+        "zstd: q16r {zr} bytes, q16 {zq} (plain {plain_bytes})"
+    );
+    s.stop().await;
+}

@@ -152,7 +152,7 @@ fn decode(
             .into_iter()
             .map(|h| half::f16::from_bits(h).to_f32())
             .collect(),
-        Format::Q16 if normals => blob
+        Format::Q16 | Format::Q16R if normals => blob
             .to_i16()
             .into_iter()
             .map(|v| f32::from(v) / 32767.0)
@@ -160,6 +160,7 @@ fn decode(
         Format::Q16 => q
             .expect("q16 buffers carry their box")
             .dequantize(&blob.to_i16()),
+        Format::Q16R => panic!("q16r positions need their reference: decode with q16r_decode"),
     }
 }
 

@@ -480,6 +480,8 @@ async fn bad_hellos_and_updates_close_with_1008_and_a_reason() {
     let cases: Vec<(Message, &str)> = vec![
         (Message::text("hello?"), "bad hello"),
         (Message::text(r#"{"format": "f64"}"#), "format"),
+        // A residual format sessions cannot send is refused with why, not swapped.
+        (Message::text(r#"{"format": "q16r"}"#), "q16r"),
         (Message::text(r#"{"zoom": 2}"#), "zoom"),
         (
             Message::text(r#"{"camera": {"position": [0,0,1], "target": [0,0,1]}}"#),

@@ -246,8 +246,8 @@ def test_a_huge_declared_length_is_refused_without_allocating():
 
 def test_an_unknown_format_variant_is_a_decode_error():
     raw = bytearray((PROTO_GOLDEN / "crowd_frame_response.bincode").read_bytes())
-    raw[0] = 3  # format: no variant 3
-    with pytest.raises(wire.DecodeError, match="variant 3"):
+    raw[0] = 4  # format: no variant 4 (f32, f16, q16, q16r)
+    with pytest.raises(wire.DecodeError, match="variant 4"):
         wire.decode(messages.CrowdFrameResponse, bytes(raw))
 
 

@@ -455,3 +455,20 @@ def test_compressed_answers_inflate_to_the_plain_bytes(server, compression):
         assert r.wire_bytes < len(r.body)
         r = plain.request("GET", "/v1/rigs/" + RIG + "/mesh")
         assert r.headers.get("content-encoding") is None and r.wire_bytes == len(r.body)
+
+
+def test_q16_residuals_decode_to_the_q16_values(client, backend):
+    heads = [(i, RIG, clip, 9 * i, i % 3) for i, clip in enumerate(["talk", "smile", "idle"] * 3)]
+    with crowdmorph.Client(client.url, arrays=backend, compression="gzip") as c:
+        raw = c.crowd_frame(heads, format="q16r", normals=True, decode=False)
+        assert raw.format == "q16r"
+        q16 = c.crowd_frame(heads, format="q16", normals=True, decode=False)
+        for a, b in zip(raw.buffers, q16.buffers):
+            got = crowdmorph.client.q16r_decode(bytes(a.positions), c.q16_reference(a))
+            assert got == bytes(b.positions)
+            assert bytes(a.normals) == bytes(b.normals)
+        # Decoded frames are the q16 frames.
+        want = c.crowd_frame(heads, format="q16", normals=True)
+        got = c.crowd_frame(heads, format="q16r", normals=True)
+        for i in range(len(heads)):
+            assert flat(got.positions(i)) == flat(want.positions(i))

@@ -503,6 +503,44 @@ impl Client {
         self.crowd_frame(&req, enc).await
     }
 
+    /// The reference of [`crowdmorph_proto::Format::Q16R`] buffers of rig `rig` at LOD `lod`:
+    /// the q16 positions of the frame with every weight 0 (an empty set of live weights), with
+    /// the box they are in. Fetch it once per rig, LOD and box (a buffer's `quantization`).
+    pub async fn q16_reference(
+        &self,
+        rig: &str,
+        lod: u32,
+    ) -> Result<(Vec<i16>, crowdmorph_proto::Quantization), ClientError> {
+        let output = crowdmorph_proto::OutputOptions {
+            normals: false,
+            format: crowdmorph_proto::Format::Q16,
+        };
+        let (resp, _) = self
+            .live_frame(
+                rig,
+                vec![crowdmorph_proto::LiveWeights::Named(Vec::new())],
+                lod,
+                output,
+                Encoding::Bincode,
+            )
+            .await?;
+        let b = resp
+            .buffers
+            .into_iter()
+            .next()
+            .ok_or_else(|| ClientError::Decode("no buffer in the reference frame".into()))?;
+        let q = b
+            .quantization
+            .ok_or_else(|| ClientError::Decode("the reference frame is not q16".into()))?;
+        let values = b
+            .positions
+            .0
+            .chunks_exact(2)
+            .map(|c| i16::from_le_bytes([c[0], c[1]]))
+            .collect();
+        Ok((values, q))
+    }
+
     /// `POST /v1/crowd/render` with an encoded body: the reply whatever its status (an image
     /// with `x-image-width`, `x-image-height` and `Server-Timing`, or a JSON error).
     pub async fn render_raw(&self, body: Bytes, enc: Encoding) -> Result<Reply, ClientError> {

@@ -87,9 +87,12 @@ pub fn job_output_bytes(rig: &Rig, format: Format, normals: bool, json: bool, gp
     let outputs = if normals { 2 } else { 1 };
     let wire = v3 * comp * outputs * if json { 3 } else { 1 };
     let f32_first =
-        (normals && comp < 4 && rig.recomputes_normals()) || (gpu && format == Format::Q16);
+        (normals && comp < 4 && rig.recomputes_normals()) || (gpu && format.quantized());
     let weights = rig.targets.len() as u64 * JOB_WEIGHT_BYTES_PER_TARGET + 16;
-    wire + if f32_first { v3 * 4 * outputs } else { 0 } + weights
+    // q16 residuals are coded after the engine with a reference and planes of one job each
+    // (per batch group; charged per job, which bounds it).
+    let residual = if format == Format::Q16R { 4 * v3 } else { 0 };
+    wire + if f32_first { v3 * 4 * outputs } else { 0 } + weights + residual
 }
 
 /// What a batch holds per job and rig target besides the outputs: the job's row of the

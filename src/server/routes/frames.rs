@@ -326,7 +326,7 @@ async fn encode(
                 frame,
                 lod: k.lod,
                 vertices: per_level.get(&(k.rig, k.lod)).map_or(0, |&(_, v)| v),
-                quantization: (format == Format::Q16).then_some(entry.qbox),
+                quantization: format.quantized().then_some(entry.qbox),
                 positions: out.positions.clone(),
                 normals: if normals { out.normals.clone() } else { None },
             }

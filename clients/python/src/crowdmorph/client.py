@@ -122,6 +122,33 @@ def _inflate(encoding: Optional[str], body: bytes) -> bytes:
     raise ProtocolError(0, "bad_response", f"unknown Content-Encoding {encoding!r}")
 
 
+def q16r_decode(planes: bytes, reference: bytes) -> bytes:
+    """The q16 bytes (int16 little-endian) that ``q16r`` residual ``planes`` code against
+    ``reference`` (``proto/README.md``, "Vertex data"): ``q = r + unzigzag(lo | hi << 8)``,
+    wrapping."""
+    n = len(reference) // 2
+    if len(planes) != 2 * n:
+        raise ProtocolError(0, "bad_response", f"{len(planes)} residual bytes for {n} values")
+    try:
+        import numpy as np
+
+        z = np.frombuffer(planes[:n], np.uint8).astype(np.uint16) | (
+            np.frombuffer(planes[n:], np.uint8).astype(np.uint16) << 8
+        )
+        d = (z >> 1).astype(np.int16) ^ -(z & 1).astype(np.int16)
+        return (np.frombuffer(reference, "<i2") + d).astype("<i2").tobytes()
+    except ImportError:
+        import array
+
+        r = array.array("h", reference)
+        out = array.array("h", bytes(2 * n))
+        for i in range(n):
+            z = planes[i] | (planes[n + i] << 8)
+            d = (z >> 1) ^ -(z & 1)
+            out[i] = ((r[i] + d + 32768) & 0xFFFF) - 32768
+        return out.tobytes()
+
+
 def _zstd_available() -> bool:
     try:
         import zstandard  # type: ignore[import-not-found]  # noqa: F401
@@ -274,6 +301,7 @@ class Client:
         self._lock = threading.Lock()
         #: ``x-request-id`` of the last answer (the server logs it).
         self.last_request_id: Optional[str] = None
+        self._references: Dict[Any, bytes] = {}
 
     # -- connection ---------------------------------------------------------------------------
 
@@ -611,11 +639,15 @@ class Client:
         ``heads`` are :class:`~crowdmorph.messages.Head` objects, dicts with the same keys, or
         ``(head, rig, clip, frame[, lod])`` tuples. ``format`` is ``"f32"`` (exact),
         ``"f16"`` or ``"q16"`` (half the bytes; q16 is dequantized with the box each buffer
-        carries). Returns a :class:`CrowdFrame` with arrays, or with ``decode=False`` the raw
-        :class:`~crowdmorph.messages.CrowdFrameResponse` (payloads as bytes).
+        carries), or ``"q16r"``: q16 positions as residuals against the rig's neutral (the
+        same values, bytes that compress well: ask for ``compression`` too); the client fetches
+        each (rig, LOD, box)'s reference once and decodes them to q16. Returns a
+        :class:`CrowdFrame` with arrays, or with ``decode=False`` the raw
+        :class:`~crowdmorph.messages.CrowdFrameResponse` (payloads as bytes; q16r positions
+        still residual planes).
         """
-        if format not in ("f32", "f16", "q16"):
-            raise ValueError(f"format must be 'f32', 'f16' or 'q16', not {format!r}")
+        if format not in ("f32", "f16", "q16", "q16r"):
+            raise ValueError(f"format must be 'f32', 'f16', 'q16' or 'q16r', not {format!r}")
         req = CrowdFrameRequest(
             heads=heads if isinstance(heads, (list, tuple)) else list(heads),
             output=OutputOptions(normals=bool(normals), format=format),
@@ -625,12 +657,28 @@ class Client:
         frame = self._decode(CrowdFrameResponse, resp)
         if not decode:
             return frame
+        if frame.format == "q16r":
+            for b in frame.buffers:
+                b.positions = q16r_decode(bytes(b.positions), self.q16_reference(b))
+            frame.format = "q16"
         try:
             return CrowdFrame(frame, self.arrays)
         except ValueError as e:
             raise ProtocolError(
                 resp.status, "bad_response", str(e), request_id=resp.request_id
             ) from e
+
+    def q16_reference(self, buffer: Any) -> bytes:
+        """The q16 reference of a ``q16r`` buffer (its rig, LOD and box): the q16 positions of
+        the frame with every weight 0, fetched once and kept."""
+        q = buffer.quantization
+        key = (buffer.rig, buffer.lod, tuple(q.min), tuple(q.step)) if q else None
+        cache = self._references
+        if key not in cache:
+            heads = [Head(head=0, rig=buffer.rig, lod=buffer.lod, weights={})]
+            ref = self.crowd_frame(heads, format="q16", decode=False).buffers[0]
+            cache[key] = bytes(ref.positions)
+        return cache[key]
 
     # -- motion graphs ------------------------------------------------------------------------
 

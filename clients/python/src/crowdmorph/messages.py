@@ -100,7 +100,7 @@ __all__ = [
 ]
 
 #: Vertex formats by bincode variant index.
-FORMATS = ("f32", "f16", "q16")
+FORMATS = ("f32", "f16", "q16", "q16r")
 #: Image formats of rendered frames by bincode variant index.
 IMAGE_FORMATS = ("png", "jpeg", "rgba")
 

@@ -737,7 +737,7 @@ fn message_buffers<'a>(
                         frame,
                         lod: l,
                         vertices: entry.prepared.at_level(l).rig().vertex_count() as u32,
-                        quantization: (group.format == Format::Q16).then_some(entry.qbox),
+                        quantization: group.format.quantized().then_some(entry.qbox),
                         positions: out.positions.clone(),
                         normals: if group.normals {
                             out.normals.clone()

@@ -56,6 +56,15 @@ async fn read_hello(
     };
     let hello: ViewerHello = parse_json(text.as_str(), "hello")?;
     check_lod(&hello.lod)?;
+    // A viewer that asks for what a session cannot send is told so, not given something else.
+    if hello.format == crowdmorph_proto::Format::Q16R {
+        return Err((
+            close::POLICY,
+            "bad hello: format q16r (residuals against the neutral) is for crowd frames; \
+             sessions send f32, f16 or q16"
+                .into(),
+        ));
+    }
     let image = hello.image.unwrap_or(ImageOptions {
         format: ImageFormat::Jpeg,
         quality: 80,
