@@ -692,6 +692,12 @@ fn indexed_displacements_equal_the_scan_on_real_rigs() {
     }
 }
 
+/// Positions of a PCA form at weights `w`: its derived rig's f64 oracle at `w`'s coefficients.
+fn form_oracle(form: &crowdmorph::rig::DeltaPca, derived: &Rig, w: &[f32]) -> Vec<glam::DVec3> {
+    let coefs: Vec<f64> = form.coefficients(w).iter().map(|&x| f64::from(x)).collect();
+    rig_oracle(derived, &coefs).0
+}
+
 /// The positions of `job` on `prepared` through the engine (its LOD level's routing).
 fn engine_positions(
     engine: &Engine,
@@ -809,13 +815,7 @@ fn pca_levels_are_used_where_they_pay_and_stay_within_their_budget() {
                 },
             );
             // Against the derived rig's f64 oracle: the engine evaluates the form exactly.
-            let coefs: Vec<f64> = form
-                .coefficients(&w)
-                .iter()
-                .map(|&x| f64::from(x))
-                .collect();
-            let (want, _) = rig_oracle(&derived, &coefs);
-            let err = max_abs_diff(&got, &want);
+            let err = max_abs_diff(&got, &form_oracle(form, &derived, &w));
             assert!(
                 err <= 2e-5 * diag,
                 "level {level}: {err} vs the form's oracle"
@@ -852,13 +852,7 @@ fn pca_levels_are_used_where_they_pay_and_stay_within_their_budget() {
         let mut w = vec![0f32; k];
         more.clips[c as usize].frame_weights(2, &mut w);
         let got = engine_positions(&engine, &updated, BlendJob::frame(c, 2, level as u32));
-        let coefs: Vec<f64> = form
-            .coefficients(&w)
-            .iter()
-            .map(|&x| f64::from(x))
-            .collect();
-        let (want, _) = rig_oracle(&derived, &coefs);
-        let err = max_abs_diff(&got, &want);
+        let err = max_abs_diff(&got, &form_oracle(form, &derived, &w));
         assert!(err <= 2e-5 * diag, "level {level} after a clip: {err}");
     }
 }
