@@ -675,7 +675,8 @@ impl Engine {
         spec: OutputSpec,
     ) -> Result<Begun<'_>, EngineError> {
         let start = Instant::now();
-        let (target, _) = rig.route(jobs)?;
+        // Only which rig: `submit` maps the jobs for it.
+        let target = rig.route_rig(jobs)?;
         if self.gpu_active().is_some() && target.gpu.is_some() {
             return Ok(Begun {
                 start,
