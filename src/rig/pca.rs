@@ -230,3 +230,55 @@ impl DeltaPca {
 pub fn pca_level_rigs(rig: &Rig) -> Result<Vec<Rig>, RigError> {
     rig.lod.pca.iter().map(|f| f.derive_rig(rig)).collect()
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn form() -> DeltaPca {
+        DeltaPca {
+            targets: 2,
+            vertices: 3,
+            max_error: 1e-3,
+            regions: vec![
+                PcaRegion {
+                    first: 0,
+                    count: 2,
+                    components: 1,
+                    basis: 0,
+                    coef: 0,
+                },
+                PcaRegion {
+                    first: 2,
+                    count: 1,
+                    components: 0,
+                    basis: 6,
+                    coef: 1,
+                },
+            ],
+            basis: vec![0.5; 6],
+            map: vec![1.0, 0.0],
+        }
+    }
+
+    #[test]
+    fn a_form_whose_arrays_disagree_with_its_regions_is_refused() {
+        form().validate().expect("consistent");
+        assert_eq!(form().coefficients(&[0.25, 9.0]), vec![0.25]);
+        let mut f = form();
+        f.regions[1].first = 3;
+        assert!(f.validate().is_err(), "a gap between regions");
+        let mut f = form();
+        f.basis.pop();
+        assert!(f.validate().is_err(), "a short basis");
+        let mut f = form();
+        f.vertices = u32::MAX;
+        assert!(f.validate().is_err(), "more vertices than regions cover");
+        let mut f = form();
+        f.regions[0].count = u32::MAX;
+        assert!(f.validate().is_err(), "a region past u32");
+        let mut f = form();
+        f.map.push(1.0);
+        assert!(f.validate().is_err(), "a map row too many");
+    }
+}
