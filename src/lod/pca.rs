@@ -245,13 +245,15 @@ pub fn pays(form: &DeltaPca, sparse_madds: usize, sparse_bytes: usize) -> bool {
     form.madds_per_head() < sparse_madds && form.bytes() < sparse_bytes
 }
 
-/// Working memory of [`build`] on `rig` at most: the form itself (every region keeping every
-/// component) and one region's dense deltas, test-pose residual and eigenvectors, in f64.
+/// Working memory of [`build`] on `rig` at most: every region's dense deltas (in f64: `regions`
+/// makes them all before the first is reduced), the form itself (every region keeping every
+/// component), and one region's test-pose residual and eigenvectors, in f64.
 pub fn build_bytes(rig: &Rig) -> u64 {
     let (v, k) = (rig.vertex_count() as u64, rig.targets.len() as u64);
     let m = k + rig.clips.iter().map(|c| u64::from(c.frames)).sum::<u64>();
     let rows = 3 * REGION as u64;
-    4 * (rows.max(3 * v) * k + k * (v / REGION as u64 + 1) * k)
+    8 * 3 * v * k
+        + 4 * (rows.max(3 * v) * k + k * (v / REGION as u64 + 1) * k)
         + 8 * rows * (k + 2 * m)
         + 4 * m * k
         + 24 * k * k
@@ -315,6 +317,14 @@ pub fn compare_levels(rig: &Rig, floor: f32) -> Vec<(PcaLevel, DeltaPca)> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_build_charge_holds_the_dense_deltas_and_the_form() {
+        let rig = crate::embedded::default_rig();
+        let dense: u64 = regions(&rig).iter().map(|r| r.d.len() as u64 * 8).sum();
+        let exact = build(&rig, 1e-9);
+        assert!(build_bytes(&rig) >= dense + exact.bytes() as u64);
+    }
 
     #[test]
     fn the_form_keeps_its_budget_and_every_component_is_the_deltas() {
