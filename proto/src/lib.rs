@@ -16,14 +16,17 @@
 
 pub mod graph;
 pub mod session;
+pub mod stream;
 pub mod wire;
 
 pub use graph::{BuiltGraph, GraphEdge, GraphInfo, GraphList, GraphNode, GraphPlay, MotionGraph};
 pub use session::{
-    DEFAULT_SESSION_FPS, DEFAULT_SESSION_IDLE_TIMEOUT_S, HEAD_MISSING, HEAD_UNCHANGED, HeadChange,
-    LodChoice, SessionHead, SessionInfo, SessionList, SessionPatch, SessionRequest, SessionStats,
-    StreamMessage, TickFrame, TickVertices, ViewerHello, ViewerOutput, ViewerUpdate,
+    DEFAULT_KEYFRAME_EVERY, DEFAULT_SESSION_FPS, DEFAULT_SESSION_IDLE_TIMEOUT_S, HEAD_MISSING,
+    HEAD_UNCHANGED, HeadChange, LodChoice, MAX_KEYFRAME_EVERY, MessageEncoding, PackedMessage,
+    SessionHead, SessionInfo, SessionList, SessionPatch, SessionRequest, SessionStats,
+    StreamMessage, TickDelta, TickFrame, TickVertices, ViewerHello, ViewerOutput, ViewerUpdate,
 };
+pub use stream::{Applied, Received, StreamError, StreamState};
 
 use serde::de::{self, SeqAccess, Visitor};
 use serde::ser::SerializeTuple;

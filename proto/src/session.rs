@@ -229,6 +229,43 @@ pub struct ViewerHello {
     /// Size and encoding of images (output `frames`); absent, 640 × 480 JPEG quality 80.
     #[serde(default)]
     pub image: Option<ImageOptions>,
+    /// Send each head's buffer as q16 residuals against the last buffer this viewer received
+    /// for that head ([`TickDelta`]); needs format q16 and output vertices.
+    #[serde(default)]
+    pub temporal: bool,
+    /// With `temporal`: every head gets a keyframe (its plain q16 buffer) at least every this
+    /// many ticks, 1..=[`MAX_KEYFRAME_EVERY`]; absent, [`DEFAULT_KEYFRAME_EVERY`].
+    #[serde(default)]
+    pub keyframe_every: Option<u32>,
+    /// Compress each binary message ([`PackedMessage`]); absent, messages go as they are.
+    #[serde(default)]
+    pub compression: Option<MessageEncoding>,
+}
+
+/// Default [`ViewerHello::keyframe_every`]: two seconds at the default 30 ticks/s.
+pub const DEFAULT_KEYFRAME_EVERY: u32 = 60;
+/// Largest [`ViewerHello::keyframe_every`].
+pub const MAX_KEYFRAME_EVERY: u32 = 3600;
+
+/// How a viewer's binary messages are compressed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum MessageEncoding {
+    /// Zstandard frame (RFC 8878), variant 0.
+    Zstd,
+    /// zlib stream (RFC 1950, what `DecompressionStream("deflate")` and Python's
+    /// `zlib.decompress` read), variant 1.
+    Deflate,
+}
+
+impl MessageEncoding {
+    /// The name used in JSON and on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            MessageEncoding::Zstd => "zstd",
+            MessageEncoding::Deflate => "deflate",
+        }
+    }
 }
 
 /// A later message of a viewer (JSON text): a new camera or LOD, used from the next tick.
@@ -264,6 +301,43 @@ pub struct TickVertices {
     pub timings: FrameTimings,
 }
 
+/// A tick of q16 vertex buffers for a viewer that asked for temporal residuals: [`TickVertices`]
+/// with one flag per buffer. A buffer whose flag is false is a keyframe, plain q16; one whose
+/// flag is true holds, for each head that names it, that head's q16 values as residual planes
+/// (the coding of [`crate::Format::Q16R`], [`crate::q16r_encode`]) against the buffer this
+/// viewer last received for the same head id. Normals, when sent, are coded the same way.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TickDelta {
+    /// Tick number.
+    pub tick: u64,
+    /// What every buffer decodes to (q16).
+    pub format: Format,
+    /// Whether buffers carry normals.
+    pub normals: bool,
+    /// As in [`TickVertices`].
+    pub layout: Option<Vec<SessionHead>>,
+    /// Per buffer: residuals against each naming head's previous buffer (true) or a keyframe.
+    pub residual: Vec<bool>,
+    /// Buffers of the heads whose job changed for this viewer.
+    pub buffers: Vec<FrameBuffer>,
+    /// One entry per session head, in layout order, as in [`TickVertices`].
+    pub heads: Vec<HeadBuffer>,
+    /// Where the tick's time went.
+    pub timings: FrameTimings,
+}
+
+/// A compressed stream message: `data` decompresses (by `encoding`) to `length` bytes, the
+/// bincode of a [`StreamMessage`] that is not itself packed.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PackedMessage {
+    /// The compression.
+    pub encoding: MessageEncoding,
+    /// Bytes of the message once decompressed.
+    pub length: u64,
+    /// The compressed bytes.
+    pub data: Blob,
+}
+
 /// A tick rendered for one viewer.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TickFrame {
@@ -286,4 +360,8 @@ pub enum StreamMessage {
     Vertices(TickVertices),
     /// Variant 1: an image.
     Frame(TickFrame),
+    /// Variant 2: vertex buffers as temporal residuals (a viewer that asked for `temporal`).
+    Delta(TickDelta),
+    /// Variant 3: a compressed message (a viewer that asked for `compression`).
+    Packed(PackedMessage),
 }

@@ -661,3 +661,188 @@ fn graph_messages() {
         },
     );
 }
+
+/// A zlib stream (RFC 1950) of one stored deflate block: what any inflater reads, with bytes
+/// that do not depend on a compressor's version.
+fn zlib_stored(data: &[u8]) -> Vec<u8> {
+    assert!(data.len() < 65_536);
+    let mut out = vec![0x78, 0x01, 0x01];
+    let n = data.len() as u16;
+    out.extend_from_slice(&n.to_le_bytes());
+    out.extend_from_slice(&(!n).to_le_bytes());
+    out.extend_from_slice(data);
+    let (mut a, mut b) = (1u32, 0u32);
+    for &x in data {
+        a = (a + u32::from(x)) % 65_521;
+        b = (b + a) % 65_521;
+    }
+    out.extend_from_slice(&((b << 16) | a).to_be_bytes());
+    out
+}
+
+fn q16_bytes(q: &[i16]) -> Blob {
+    Blob(q.iter().flat_map(|v| v.to_le_bytes()).collect())
+}
+
+#[test]
+fn temporal_stream_messages_and_q16r() {
+    let box_ = Quantization {
+        min: [-1.0, -1.0, -1.0],
+        step: [2.0 / 65_535.0; 3],
+        max_error: [1.0 / 65_535.0; 3],
+    };
+    let buffer = |q: &[i16], frame: u32| FrameBuffer {
+        rig: "tri".into(),
+        clip: "wave".into(),
+        frame,
+        lod: 0,
+        vertices: 2,
+        quantization: Some(box_),
+        positions: q16_bytes(q),
+        normals: None,
+    };
+    let layout = vec![
+        SessionHead {
+            head: 1,
+            rig: "tri".into(),
+            clip: "wave".into(),
+            offset: 0,
+            position: [0.0; 3],
+            yaw: 0.0,
+            scale: 1.0,
+            graph: None,
+        },
+        SessionHead {
+            head: 2,
+            rig: "tri".into(),
+            clip: "wave".into(),
+            offset: 5,
+            position: [1.0, 0.0, 0.0],
+            yaw: 0.0,
+            scale: 1.0,
+            graph: None,
+        },
+    ];
+    let timings = FrameTimings {
+        queue_us: 1,
+        compute_us: 2,
+        total_us: 3,
+        gpu_us: None,
+    };
+    let first_q: [i16; 6] = [0, 100, -100, 32_767, -32_768, 7];
+    let other_q: [i16; 6] = [5, 5, 5, 5, 5, 5];
+    let next_q: [i16; 6] = [2, 98, -97, -32_768, 32_767, 7];
+    // Tick 10: both heads keyframes, in q16.
+    let first = StreamMessage::Delta(TickDelta {
+        tick: 10,
+        format: Format::Q16,
+        normals: false,
+        layout: Some(layout.clone()),
+        residual: vec![false, false],
+        buffers: vec![buffer(&first_q, 0), buffer(&other_q, 5)],
+        heads: vec![
+            HeadBuffer { head: 1, buffer: 0 },
+            HeadBuffer { head: 2, buffer: 1 },
+        ],
+        timings,
+    });
+    // Tick 11: head 1 as residuals against what it had (wrapping at the ends), head 2 unchanged.
+    let mut planes = vec![0u8; 12];
+    q16r_encode(&next_q, &first_q, &mut planes);
+    assert_eq!(
+        planes,
+        [4, 3, 6, 2, 1, 0, 0, 0, 0, 0, 0, 0],
+        "differences 2, −2, 3, 1 and −1 (both wrapping), 0; zigzag; low bytes then high"
+    );
+    let second = StreamMessage::Delta(TickDelta {
+        tick: 11,
+        format: Format::Q16,
+        normals: false,
+        layout: None,
+        residual: vec![true],
+        buffers: vec![FrameBuffer {
+            positions: Blob(planes),
+            ..buffer(&[], 1)
+        }],
+        heads: vec![
+            HeadBuffer { head: 1, buffer: 0 },
+            HeadBuffer {
+                head: 2,
+                buffer: HEAD_UNCHANGED,
+            },
+        ],
+        timings,
+    });
+    pin("stream_delta_keyframes", &first);
+    pin("stream_delta_residuals", &second);
+    // The second tick packed: a zlib stream of its bincode.
+    let inner = to_bincode(&second).unwrap();
+    let packed = StreamMessage::Packed(PackedMessage {
+        encoding: MessageEncoding::Deflate,
+        length: inner.len() as u64,
+        data: Blob(zlib_stored(&inner)),
+    });
+    pin("stream_packed_deflate", &packed);
+
+    let mut state = StreamState::new();
+    state.receive(&to_bincode(&first).unwrap()).unwrap();
+    let got = state.receive(&to_bincode(&packed).unwrap()).unwrap();
+    assert_eq!(
+        got,
+        Received::Vertices(Applied {
+            tick: 11,
+            changed: 1,
+            from_residuals: 1,
+            buffers: 1
+        })
+    );
+    assert_eq!(state.buffer(1).unwrap().positions.to_i16(), next_q);
+    assert_eq!(state.buffer(1).unwrap().frame, 1);
+    assert_eq!(state.buffer(2).unwrap().positions.to_i16(), other_q);
+    // Residuals for a head that never had a buffer, or a packed message that lies about its
+    // length, are errors that leave the state as it was.
+    let mut fresh = StreamState::new();
+    let lost = StreamMessage::Delta(TickDelta {
+        layout: Some(layout),
+        heads: vec![
+            HeadBuffer { head: 1, buffer: 0 },
+            HeadBuffer {
+                head: 2,
+                buffer: HEAD_MISSING,
+            },
+        ],
+        ..match &second {
+            StreamMessage::Delta(d) => d.clone(),
+            _ => unreachable!(),
+        }
+    });
+    assert!(fresh.apply(lost).is_err());
+    assert_eq!(fresh.tick(), 0);
+    let liar = StreamMessage::Packed(PackedMessage {
+        encoding: MessageEncoding::Deflate,
+        length: inner.len() as u64 - 1,
+        data: Blob(zlib_stored(&inner)),
+    });
+    assert!(state.receive(&to_bincode(&liar).unwrap()).is_err());
+    assert_eq!(state.tick(), 11);
+
+    // A q16r crowd frame: one head's positions as residual planes against its reference.
+    let q16r = CrowdFrameResponse {
+        format: Format::Q16R,
+        normals: false,
+        buffers: vec![FrameBuffer {
+            positions: match &second {
+                StreamMessage::Delta(d) => d.buffers[0].positions.clone(),
+                _ => unreachable!(),
+            },
+            ..buffer(&[], 1)
+        }],
+        heads: vec![HeadBuffer { head: 1, buffer: 0 }],
+        timings,
+    };
+    pin("crowd_frame_response_q16r", &q16r);
+    assert_eq!(
+        q16r_decode(&q16r.buffers[0].positions.0, &first_q).unwrap(),
+        next_q
+    );
+}

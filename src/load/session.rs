@@ -203,13 +203,40 @@ impl Skim<'_> {
 pub fn skim(message: &[u8]) -> Result<TickSummary, LoadError> {
     let mut s = Skim { bytes: message };
     let variant = s.varint("variant")?;
+    if variant == 3 {
+        // Packed: decompressed (bounded by its stated length), then skimmed.
+        let encoding = match s.varint("encoding")? {
+            0 => crowdmorph_proto::MessageEncoding::Zstd,
+            1 => crowdmorph_proto::MessageEncoding::Deflate,
+            _ => return Err(malformed("encoding")),
+        };
+        let length = s.varint("length")?;
+        s.skip_bytes("pad")?;
+        let n = usize::try_from(s.varint("data")?).map_err(|_| malformed("data"))?;
+        let data = s.bytes.get(..n).ok_or_else(|| malformed("data"))?;
+        if s.bytes.len() != n {
+            return Err(malformed("bytes after the message"));
+        }
+        let packed = crowdmorph_proto::PackedMessage {
+            encoding,
+            length,
+            data: crowdmorph_proto::Blob(data.to_vec()),
+        };
+        let inner = packed
+            .unpack()
+            .map_err(|e| LoadError::Stream(e.to_string()))?;
+        if inner.first() == Some(&3) {
+            return Err(malformed("a packed message inside a packed message"));
+        }
+        return skim(&inner);
+    }
     let tick = s.varint("tick")?;
     let mut out = TickSummary {
         tick,
         ..TickSummary::default()
     };
     match variant {
-        0 => {
+        0 | 2 => {
             s.varint("format")?;
             s.byte("normals")?;
             if s.some("layout")? {
@@ -229,6 +256,11 @@ pub fn skim(message: &[u8]) -> Result<TickSummary, LoadError> {
                         }
                     }
                 }
+            }
+            if variant == 2 {
+                // One residual flag per buffer.
+                let flags = s.varint("residual flags")?;
+                s.skip(flags, "residual flags")?;
             }
             out.buffers = s.varint("buffers")?;
             for _ in 0..out.buffers {
@@ -693,6 +725,46 @@ mod tests {
         let mut longer = bytes.clone();
         longer.push(0);
         assert!(skim(&longer).is_err());
+
+        // The same tick as temporal residuals, then packed both ways, skims alike.
+        let StreamMessage::Vertices(v) = m else {
+            unreachable!()
+        };
+        let delta = StreamMessage::Delta(crowdmorph_proto::TickDelta {
+            tick: v.tick,
+            format: v.format,
+            normals: v.normals,
+            layout: v.layout,
+            residual: vec![true, false],
+            buffers: v.buffers,
+            heads: v.heads,
+            timings: v.timings,
+        });
+        let delta_bytes = crowdmorph_proto::wire::to_bincode(&delta).unwrap();
+        assert_eq!(skim(&delta_bytes).unwrap(), t);
+        for n in 0..delta_bytes.len() {
+            assert!(skim(&delta_bytes[..n]).is_err(), "prefix of {n} bytes");
+        }
+        let zstd = zstd::bulk::compress(&delta_bytes, 1).unwrap();
+        let mut z = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::fast());
+        std::io::Write::write_all(&mut z, &delta_bytes).unwrap();
+        let zlib = z.finish().unwrap();
+        for (encoding, data) in [
+            (crowdmorph_proto::MessageEncoding::Zstd, zstd),
+            (crowdmorph_proto::MessageEncoding::Deflate, zlib),
+        ] {
+            let mut packed = crowdmorph_proto::PackedMessage {
+                encoding,
+                length: delta_bytes.len() as u64,
+                data: Blob(data),
+            };
+            let bytes = crowdmorph_proto::wire::to_bincode(&StreamMessage::Packed(packed.clone()));
+            assert_eq!(skim(&bytes.unwrap()).unwrap(), t, "{encoding:?}");
+            // A packed message that lies about its length is refused, not misread.
+            packed.length -= 1;
+            let bytes = crowdmorph_proto::wire::to_bincode(&StreamMessage::Packed(packed));
+            assert!(skim(&bytes.unwrap()).is_err(), "{encoding:?}");
+        }
 
         let frame = StreamMessage::Frame(TickFrame {
             tick: 9,

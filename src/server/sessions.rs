@@ -3,7 +3,7 @@
 //! The handlers, the viewer protocol and the tick are `routes::sessions`; nothing here knows
 //! the server state.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -257,6 +257,41 @@ pub(crate) struct Baseline {
     /// `u64::MAX` before the first message.
     pub(crate) layout_rev: u64,
     pub(crate) keys: Arc<Vec<HeadKey>>,
+    /// For a temporal viewer: per head id, the buffer it last received (what residuals are
+    /// against). Empty for other viewers.
+    pub(crate) prev: Arc<HashMap<u64, HeadPrev>>,
+}
+
+impl Baseline {
+    /// Before the first message.
+    pub(crate) fn empty() -> Baseline {
+        Baseline {
+            version: 0,
+            layout_rev: u64::MAX,
+            keys: Arc::new(Vec::new()),
+            prev: Arc::new(HashMap::new()),
+        }
+    }
+}
+
+/// A copy of one job's q16 output that temporal viewers keep as their reference after the tick's
+/// outputs are gone (a copy: the outputs are views of a whole batch's buffer), holding its
+/// queue memory.
+#[derive(Debug)]
+pub(crate) struct Retained {
+    pub(crate) positions: Bytes,
+    pub(crate) normals: Option<Bytes>,
+    pub(crate) _memory: crate::server::admission::Charge,
+}
+
+/// What a temporal viewer last received for one head.
+#[derive(Clone, Debug)]
+pub(crate) struct HeadPrev {
+    pub(crate) data: Arc<Retained>,
+    pub(crate) generation: u64,
+    pub(crate) lod: u32,
+    /// The tick from which its next keyframe is counted.
+    pub(crate) key_tick: u64,
 }
 
 /// A message encoded once, possibly shared by several viewers, holding its queue memory.
@@ -289,6 +324,10 @@ pub(crate) struct ViewerSettings {
     pub(crate) camera: Option<CameraSpec>,
     pub(crate) lod: LodChoice,
     pub(crate) image: ImageOptions,
+    /// Residuals against each head's previous buffer: `Some(keyframe interval)`.
+    pub(crate) temporal: Option<u32>,
+    /// Messages compressed with this.
+    pub(crate) compression: Option<crowdmorph_proto::MessageEncoding>,
 }
 
 #[derive(Debug)]
@@ -311,11 +350,7 @@ impl Viewer {
             settings: Mutex::new(settings),
             outbox: Mutex::new(Outbox {
                 pending: None,
-                sent: Baseline {
-                    version: 0,
-                    layout_rev: u64::MAX,
-                    keys: Arc::new(Vec::new()),
-                },
+                sent: Baseline::empty(),
             }),
             ready: Notify::new(),
             close: Mutex::new(None),

@@ -20,6 +20,7 @@ mod persistence;
 mod python_peer;
 mod render;
 mod sessions;
+mod temporal;
 mod viewer;
 
 use std::net::SocketAddr;

@@ -56,7 +56,7 @@ pub(super) async fn create(server: &TestServer, body: Value) -> SessionInfo {
     serde_json::from_value(v).expect("SessionInfo")
 }
 
-async fn info(server: &TestServer, id: &str) -> SessionInfo {
+pub(super) async fn info(server: &TestServer, id: &str) -> SessionInfo {
     let (status, v) = call(
         server,
         Method::GET,
@@ -105,6 +105,9 @@ pub(super) async fn next_tick(ws: &mut Ws) -> TickVertices {
                 match m {
                     StreamMessage::Vertices(v) => return v,
                     StreamMessage::Frame(_) => panic!("asked for vertices, got a frame"),
+                    StreamMessage::Delta(_) | StreamMessage::Packed(_) => {
+                        panic!("asked for plain vertices, got residuals or a packed message")
+                    }
                 }
             }
             Message::Close(c) => panic!("closed: {c:?}"),
@@ -482,6 +485,27 @@ async fn bad_hellos_and_updates_close_with_1008_and_a_reason() {
         (Message::text(r#"{"format": "f64"}"#), "format"),
         // A residual format sessions cannot send is refused with why, not swapped.
         (Message::text(r#"{"format": "q16r"}"#), "q16r"),
+        (
+            Message::text(r#"{"format": "f32", "temporal": true}"#),
+            "temporal residuals need format q16",
+        ),
+        (
+            Message::text(r#"{"format": "q16", "temporal": true, "output": "frames"}"#),
+            "not output frames",
+        ),
+        (
+            Message::text(r#"{"output": "frames", "compression": "zstd"}"#),
+            "images are already compressed",
+        ),
+        (
+            Message::text(r#"{"format": "q16", "temporal": true, "keyframe_every": 0}"#),
+            "keyframe_every must be 1..=3600",
+        ),
+        (
+            Message::text(r#"{"format": "q16", "keyframe_every": 5}"#),
+            "keyframe_every is for temporal viewers",
+        ),
+        (Message::text(r#"{"compression": "br"}"#), "compression"),
         (Message::text(r#"{"zoom": 2}"#), "zoom"),
         (
             Message::text(r#"{"camera": {"position": [0,0,1], "target": [0,0,1]}}"#),
@@ -527,7 +551,7 @@ async fn bad_hellos_and_updates_close_with_1008_and_a_reason() {
             "crowdmorph_session_viewers_closed_total{reason=\"policy\"}"
         )
         .unwrap_or(0.0)
-            >= 8.0
+            >= 14.0
     );
     server.stop().await;
 }

@@ -50,6 +50,7 @@ use crate::server::sessions::{
 };
 use crate::server::state::AppState;
 
+mod delta;
 mod tick;
 mod viewer;
 

@@ -11,7 +11,7 @@ use std::time::Duration;
 use bytes::Bytes;
 use crowdmorph_proto::{
     CameraSpec, Format, FrameTimings, HEAD_MISSING, HEAD_UNCHANGED, HeadBuffer, LodChoice,
-    RenderRequest, SessionHead, ViewerOutput,
+    MessageEncoding, RenderRequest, SessionHead, ViewerOutput,
 };
 use glam::Vec3;
 use tokio::time::Instant;
@@ -27,6 +27,8 @@ use crate::server::sessions::{
     bump, close,
 };
 use crate::server::state::{AppState, Inner};
+
+use super::delta;
 
 /// Starts the tick task of `session`, supervised: if it panics (a bug), the session ends —
 /// removed from the server, its viewers closed with 1011 — and the panic is logged once and
@@ -592,7 +594,7 @@ fn fan_out(
     grouped: &Grouped,
     outcomes: &[crate::server::scheduler::Outcome],
 ) {
-    let mut cache: HashMap<(usize, bool, Vec<u32>), Arc<Encoded>> = HashMap::new();
+    let mut cache = Caches::default();
     for (v, g, jobs) in &grouped.plans {
         let group = &grouped.groups[*g];
         let keys = Arc::new(head_keys(group, jobs, t.rigs));
@@ -608,6 +610,24 @@ fn fan_out(
             &mut cache,
         );
     }
+}
+
+/// What identifies a viewer's message within a tick: the same key, the same bytes.
+#[derive(Clone, PartialEq, Eq, Hash)]
+struct MessageKey {
+    group: usize,
+    with_layout: bool,
+    entries: Vec<u32>,
+    /// Temporal viewers: per head, what its buffer is coded against.
+    bases: Option<delta::Bases>,
+    compression: Option<MessageEncoding>,
+}
+
+/// The fan-out's shared work: messages encoded once per key, references copied once per job.
+#[derive(Default)]
+struct Caches {
+    messages: HashMap<MessageKey, Arc<Encoded>>,
+    retained: delta::RetainedCache,
 }
 
 /// Each head's key for a viewer (what its buffer is: rig generation, clip, frame, LOD).
@@ -640,8 +660,13 @@ fn deliver(
     outcome: &crate::server::scheduler::Outcome,
     jobs: &[Option<u32>],
     keys: &Arc<Vec<HeadKey>>,
-    cache: &mut HashMap<(usize, bool, Vec<u32>), Arc<Encoded>>,
+    cache: &mut Caches,
 ) {
+    let Some(settings) = v.settings() else { return };
+    let dropped = || {
+        bump(&state.sessions.metrics.dropped_memory, 1);
+        session.with_stats(|s| s.messages_dropped += 1);
+    };
     for _attempt in 0..4 {
         let base = match v.outbox.lock() {
             Ok(o) => o.sent.clone(),
@@ -657,27 +682,59 @@ fn deliver(
                 Some(j) => *j,
             })
             .collect();
-        let cache_key = (g, with_layout, entries);
-        let message = match cache.get(&cache_key) {
+        let plan = match settings.temporal {
+            None => None,
+            Some(every) => {
+                let ids: Vec<u64> = t.heads.iter().map(|h| h.head).collect();
+                let input = delta::PlanInput {
+                    tick: t.tick,
+                    head_ids: &ids,
+                    entries: &entries,
+                    keys,
+                    every,
+                    group: g,
+                    outputs: &outcome.outputs,
+                };
+                match delta::plan(state, &base, &input, &mut cache.retained) {
+                    Some(p) => Some(p),
+                    None => return dropped(),
+                }
+            }
+        };
+        let cache_key = MessageKey {
+            group: g,
+            with_layout,
+            entries,
+            bases: plan.as_ref().map(|p| p.bases.clone()),
+            compression: settings.compression,
+        };
+        let message = match cache.messages.get(&cache_key) {
             Some(m) => m.clone(),
             None => {
-                let Some(m) = encode_vertices(
-                    state,
-                    t.tick,
-                    with_layout.then_some(t.heads),
+                let layout = with_layout.then_some(t.heads);
+                let content = MessageContent {
+                    tick: t.tick,
+                    layout,
                     group,
                     outcome,
-                    t.rigs,
-                    t.heads,
-                    &cache_key.2,
-                    t.arrived,
-                ) else {
-                    bump(&state.sessions.metrics.dropped_memory, 1);
-                    session.with_stats(|s| s.messages_dropped += 1);
-                    return;
+                    rigs: t.rigs,
+                    heads: t.heads,
+                    entries: &cache_key.entries,
+                    arrived: t.arrived,
+                };
+                let encoded = match &plan {
+                    None => encode_vertices(state, &content),
+                    Some(p) => encode_delta(state, &content, p),
+                };
+                let packed = match (encoded, settings.compression) {
+                    (Some(m), Some(e)) => delta::pack(state, &m, e),
+                    (m, _) => m,
+                };
+                let Some(m) = packed else {
+                    return dropped();
                 };
                 let m = Arc::new(m);
-                cache.insert(cache_key, m.clone());
+                cache.messages.insert(cache_key, m.clone());
                 m
             }
         };
@@ -695,6 +752,7 @@ fn deliver(
                 version: base.version + 1,
                 layout_rev: t.layout_rev,
                 keys: keys.clone(),
+                prev: plan.map_or_else(|| base.prev.clone(), |p| p.after),
             },
         });
         drop(o);
@@ -703,48 +761,66 @@ fn deliver(
     }
 }
 
+/// What a viewer's vertex message is made of.
+struct MessageContent<'a> {
+    tick: u64,
+    layout: Option<&'a [SessionHead]>,
+    group: &'a Group,
+    outcome: &'a crate::server::scheduler::Outcome,
+    rigs: &'a [Arc<RigEntry>],
+    heads: &'a [SessionHead],
+    entries: &'a [u32],
+    arrived: std::time::Instant,
+}
+
+impl MessageContent<'_> {
+    fn timings(&self) -> FrameTimings {
+        FrameTimings {
+            queue_us: self.outcome.queue.as_micros() as u64,
+            compute_us: self.outcome.compute_ns / 1000,
+            total_us: self.arrived.elapsed().as_micros() as u64,
+            gpu_us: self.outcome.gpu_ns.map(|g| g / 1000),
+        }
+    }
+
+    /// A buffer's parts for job `e` of the group, with these payloads.
+    fn part(&self, e: u32, positions: Bytes, normals: Option<Bytes>) -> FrameBufferParts<'_> {
+        let (r, pose, l) = &self.group.keys[e as usize];
+        let entry = &self.rigs[*r as usize];
+        // A blend names its largest term; live weights name no clip.
+        let (clip, frame) = match pose.shown() {
+            Some((c, f)) => (entry.rig().clips[c as usize].name.as_str(), f),
+            None => ("", 0),
+        };
+        FrameBufferParts {
+            rig: &entry.id,
+            clip,
+            frame,
+            lod: *l,
+            vertices: entry.prepared.at_level(*l).rig().vertex_count() as u32,
+            quantization: self.group.format.quantized().then_some(entry.qbox),
+            positions,
+            normals: if self.group.normals { normals } else { None },
+        }
+    }
+}
+
 /// The buffers of a viewer's message (in order of first appearance among the heads) and each
 /// head's entry: a buffer index, or `HEAD_UNCHANGED` / `HEAD_MISSING`.
-fn message_buffers<'a>(
-    group: &Group,
-    outcome: &crate::server::scheduler::Outcome,
-    rigs: &'a [Arc<RigEntry>],
-    heads: &[SessionHead],
-    entries: &[u32],
-) -> (Vec<FrameBufferParts<'a>>, Vec<HeadBuffer>) {
+fn message_buffers<'a>(c: &'a MessageContent<'a>) -> (Vec<FrameBufferParts<'a>>, Vec<HeadBuffer>) {
     let mut local: HashMap<u32, u32> = HashMap::new();
     let mut parts: Vec<FrameBufferParts<'a>> = Vec::new();
-    let head_buffers: Vec<HeadBuffer> = heads
+    let head_buffers: Vec<HeadBuffer> = c
+        .heads
         .iter()
-        .zip(entries)
+        .zip(c.entries)
         .map(|(h, &e)| {
             let buffer = if e == HEAD_UNCHANGED || e == HEAD_MISSING {
                 e
             } else {
                 *local.entry(e).or_insert_with(|| {
-                    let (r, pose, l) = &group.keys[e as usize];
-                    let (r, l) = (*r, *l);
-                    let entry = &rigs[r as usize];
-                    let out = &outcome.outputs[e as usize];
-                    // A blend names its largest term; live weights name no clip.
-                    let (clip, frame) = match pose.shown() {
-                        Some((c, f)) => (entry.rig().clips[c as usize].name.as_str(), f),
-                        None => ("", 0),
-                    };
-                    parts.push(FrameBufferParts {
-                        rig: &entry.id,
-                        clip,
-                        frame,
-                        lod: l,
-                        vertices: entry.prepared.at_level(l).rig().vertex_count() as u32,
-                        quantization: group.format.quantized().then_some(entry.qbox),
-                        positions: out.positions.clone(),
-                        normals: if group.normals {
-                            out.normals.clone()
-                        } else {
-                            None
-                        },
-                    });
+                    let out = &c.outcome.outputs[e as usize];
+                    parts.push(c.part(e, out.positions.clone(), out.normals.clone()));
                     (parts.len() - 1) as u32
                 })
             };
@@ -761,52 +837,97 @@ fn message_buffers<'a>(
 /// layout, then the same fields as a crowd-frame response, with payloads aligned to 16 bytes
 /// from the start of the message. Its length is computed first and charged to the queue
 /// memory before anything of its size is allocated; `None` when the queue memory is full.
-#[allow(clippy::too_many_arguments)]
-fn encode_vertices(
+fn encode_vertices(state: &AppState, c: &MessageContent<'_>) -> Option<Encoded> {
+    let (parts, head_buffers) = message_buffers(c);
+    encode_message(state, c, 0, &[], &parts, &head_buffers)
+}
+
+/// Encodes a [`crowdmorph_proto::TickDelta`]: as [`encode_vertices`], with each buffer a
+/// keyframe or residual planes against the head's reference, and a flag per buffer. Heads
+/// share a buffer when they share the job and the reference. The residuals are charged before
+/// they are computed.
+fn encode_delta(
     state: &AppState,
-    tick: u64,
-    layout: Option<&[SessionHead]>,
-    group: &Group,
-    outcome: &crate::server::scheduler::Outcome,
-    rigs: &[Arc<RigEntry>],
-    heads: &[SessionHead],
-    entries: &[u32],
-    arrived: std::time::Instant,
+    c: &MessageContent<'_>,
+    plan: &delta::DeltaPlan,
+) -> Option<Encoded> {
+    let residual_bytes: u64 = (0..c.entries.len())
+        .filter_map(|i| Some((plan.refs[i].as_ref()?, plan.cur[i].as_ref()?)))
+        .map(|(_, cur)| (cur.positions.len() + cur.normals.as_ref().map_or(0, |n| n.len())) as u64)
+        .sum();
+    let _residual_memory = state.queue_memory.reserve(residual_bytes).ok()?;
+    let mut local: HashMap<(u32, usize), u32> = HashMap::new();
+    let mut parts: Vec<FrameBufferParts<'_>> = Vec::new();
+    let mut residual: Vec<bool> = Vec::new();
+    let mut head_buffers = Vec::with_capacity(c.heads.len());
+    for (i, (h, &e)) in c.heads.iter().zip(c.entries).enumerate() {
+        let buffer = match (e, &plan.cur[i]) {
+            (HEAD_UNCHANGED | HEAD_MISSING, _) | (_, None) => e,
+            (e, Some(cur)) => *local.entry((e, plan.bases[i])).or_insert_with(|| {
+                let part = match &plan.refs[i] {
+                    None => c.part(e, cur.positions.clone(), cur.normals.clone()),
+                    Some(r) => {
+                        let p = delta::residual_planes(&cur.positions, &r.positions);
+                        let n = cur.normals.as_ref().zip(r.normals.as_ref());
+                        let n = n.map(|(n, rn)| Bytes::from(delta::residual_planes(n, rn)));
+                        c.part(e, Bytes::from(p), n)
+                    }
+                };
+                parts.push(part);
+                residual.push(plan.refs[i].is_some());
+                (parts.len() - 1) as u32
+            }),
+        };
+        head_buffers.push(HeadBuffer {
+            head: h.head,
+            buffer,
+        });
+    }
+    let residual_len = crate::codec::wire_len(&residual).unwrap_or(0);
+    let residual = crate::codec::to_wire(&residual).ok()?;
+    debug_assert_eq!(residual.len(), residual_len);
+    encode_message(state, c, 2, &residual, &parts, &head_buffers)
+}
+
+/// The variant, the tick, the format and normals, the layout, `after_layout` (more encoded
+/// fields), then buffers, heads and timings; charged before it is allocated.
+fn encode_message(
+    state: &AppState,
+    c: &MessageContent<'_>,
+    variant: u64,
+    after_layout: &[u8],
+    parts: &[FrameBufferParts<'_>],
+    head_buffers: &[HeadBuffer],
 ) -> Option<Encoded> {
     let mut prefix = Vec::with_capacity(64);
-    crate::codec::put_varint(&mut prefix, 0);
-    crate::codec::put_varint(&mut prefix, tick);
-    let (parts, head_buffers) = message_buffers(group, outcome, rigs, heads, entries);
-    let timings = FrameTimings {
-        queue_us: outcome.queue.as_micros() as u64,
-        compute_us: outcome.compute_ns / 1000,
-        total_us: arrived.elapsed().as_micros() as u64,
-        gpu_us: outcome.gpu_ns.map(|g| g / 1000),
-    };
+    crate::codec::put_varint(&mut prefix, variant);
+    crate::codec::put_varint(&mut prefix, c.tick);
+    let timings = c.timings();
     // The layout's length (bincode, without encoding it; `None` is one byte), then the
     // message's: charged before either is allocated.
-    let middle_len = crate::codec::wire_len(&layout).unwrap_or(1);
+    let middle_len = crate::codec::wire_len(&c.layout).unwrap_or(1) + after_layout.len();
     let total = FrameResponseEncoder::encoded_len_within(
         prefix.len(),
         middle_len,
-        group.format,
-        group.normals,
-        &parts,
-        &head_buffers,
+        c.group.format,
+        c.group.normals,
+        parts,
+        head_buffers,
         &timings,
     );
     let memory = state
         .queue_memory
         .reserve((total + middle_len) as u64)
         .ok()?;
-    let middle = crate::codec::to_wire(&layout).unwrap_or_else(|_| vec![0]);
+    let mut middle = crate::codec::to_wire(&c.layout).unwrap_or_else(|_| vec![0]);
+    middle.extend_from_slice(after_layout);
     let chunks = FrameResponseEncoder::encode_within(
         prefix,
         &middle,
-        group.format,
-        group.normals,
-        &parts,
-        &head_buffers,
+        c.group.format,
+        c.group.normals,
+        parts,
+        head_buffers,
         &timings,
     );
     drop(middle);
@@ -987,8 +1108,7 @@ fn put_frame(state: &AppState, session: &Session, viewer: &Viewer, message: Arc<
     }
     let after = Baseline {
         version: o.sent.version + 1,
-        layout_rev: u64::MAX,
-        keys: Arc::new(Vec::new()),
+        ..Baseline::empty()
     };
     o.pending = Some(Outgoing { message, after });
     drop(o);

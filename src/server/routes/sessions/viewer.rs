@@ -8,7 +8,8 @@ use std::time::Duration;
 
 use axum::extract::ws::{CloseFrame, Message, WebSocket};
 use crowdmorph_proto::{
-    CameraSpec, ImageFormat, ImageOptions, LodChoice, ViewerHello, ViewerOutput, ViewerUpdate,
+    CameraSpec, DEFAULT_KEYFRAME_EVERY, Format, ImageFormat, ImageOptions, LodChoice,
+    MAX_KEYFRAME_EVERY, ViewerHello, ViewerOutput, ViewerUpdate,
 };
 use tokio::time::Instant;
 
@@ -56,15 +57,7 @@ async fn read_hello(
     };
     let hello: ViewerHello = parse_json(text.as_str(), "hello")?;
     check_lod(&hello.lod)?;
-    // A viewer that asks for what a session cannot send is told so, not given something else.
-    if hello.format == crowdmorph_proto::Format::Q16R {
-        return Err((
-            close::POLICY,
-            "bad hello: format q16r (residuals against the neutral) is for crowd frames; \
-             sessions send f32, f16 or q16"
-                .into(),
-        ));
-    }
+    let temporal = check_modes(&hello)?;
     let image = hello.image.unwrap_or(ImageOptions {
         format: ImageFormat::Jpeg,
         quality: 80,
@@ -92,7 +85,43 @@ async fn read_hello(
         camera: hello.camera,
         lod: hello.lod,
         image,
+        temporal,
+        compression: hello.compression,
     })
+}
+
+/// The hello's residual and compression modes: a viewer that asks for what a session cannot
+/// send is told why, not given something else. `Ok` is the keyframe interval of a temporal
+/// viewer.
+fn check_modes(hello: &ViewerHello) -> Result<Option<u32>, (u16, String)> {
+    let refuse = |why: &str| Err((close::POLICY, truncate(format!("bad hello: {why}"))));
+    if hello.format == Format::Q16R {
+        return refuse(
+            "format q16r is for crowd frames; sessions send residuals with \"temporal\": \
+             true and format q16",
+        );
+    }
+    let frames = hello.output == ViewerOutput::Frames;
+    if frames && hello.temporal {
+        return refuse("temporal residuals are for vertex buffers, not output frames");
+    }
+    if frames && hello.compression.is_some() {
+        return refuse("compression is for vertex buffers; images are already compressed");
+    }
+    if hello.temporal && hello.format != Format::Q16 {
+        return refuse(&format!(
+            "temporal residuals need format q16 ({} values would not decode bit for bit)",
+            hello.format.name()
+        ));
+    }
+    match (hello.temporal, hello.keyframe_every) {
+        (false, Some(_)) => refuse("keyframe_every is for temporal viewers"),
+        (true, Some(n)) if !(1..=MAX_KEYFRAME_EVERY).contains(&n) => refuse(&format!(
+            "keyframe_every must be 1..={MAX_KEYFRAME_EVERY}, not {n}"
+        )),
+        (true, n) => Ok(Some(n.unwrap_or(DEFAULT_KEYFRAME_EVERY))),
+        (false, None) => Ok(None),
+    }
 }
 
 fn socket_error(e: &axum::Error) -> (u16, String) {

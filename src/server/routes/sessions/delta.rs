@@ -1,0 +1,270 @@
+//! What a viewer that asked for less gets: temporal residuals (`TickDelta`: each head's q16
+//! buffer against the one this viewer last received for it, keyframes on join, on LOD or rig
+//! change and every `keyframe_every` ticks) and compressed messages (`PackedMessage`, zstd or
+//! zlib). `proto/README.md`, "The stream", has the bytes.
+//!
+//! The reference of a head is what the viewer's socket actually took (the outbox's baseline),
+//! never a message an outbox replaced, so a viewer that skips ticks still decodes exactly. The
+//! references outlive the tick, so they are copies of the outputs ([`Retained`]: the outputs are
+//! views of a whole batch's buffer) charged to the queue memory like everything else.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+
+use bytes::Bytes;
+use crowdmorph_proto::{HEAD_MISSING, HEAD_UNCHANGED, MessageEncoding};
+
+use crate::server::admission::Charge;
+use crate::server::sessions::{Baseline, Encoded, HeadKey, HeadPrev, Retained};
+use crate::server::state::AppState;
+
+/// Each temporal viewer's message, per head: `0` for a keyframe, else the address of the
+/// reference it is coded against (two viewers whose heads have the same references get the
+/// same bytes, so the fan-out's cache shares them).
+pub(super) type Bases = Vec<usize>;
+
+/// The copies of a tick's outputs that temporal viewers keep, one per (group, job).
+#[derive(Default)]
+pub(super) struct RetainedCache(HashMap<(usize, u32), Arc<Retained>>);
+
+impl RetainedCache {
+    /// The kept copy of job `j` of group `g`; `None` when the queue memory is full.
+    fn get(
+        &mut self,
+        state: &AppState,
+        g: usize,
+        j: u32,
+        out: &crate::server::scheduler::JobOutput,
+    ) -> Option<Arc<Retained>> {
+        if let Some(r) = self.0.get(&(g, j)) {
+            return Some(r.clone());
+        }
+        let bytes = out.positions.len() + out.normals.as_ref().map_or(0, |n| n.len());
+        let memory = state.queue_memory.reserve(bytes as u64).ok()?;
+        let r = Arc::new(Retained {
+            positions: Bytes::copy_from_slice(&out.positions),
+            normals: out.normals.as_ref().map(|n| Bytes::copy_from_slice(n)),
+            _memory: memory,
+        });
+        self.0.insert((g, j), r.clone());
+        Some(r)
+    }
+}
+
+/// A temporal viewer's plan for one message: per head its base (see [`Bases`]) and the
+/// reference a residual head is coded against, and the baseline's references once it is sent.
+pub(super) struct DeltaPlan {
+    pub(super) bases: Bases,
+    pub(super) refs: Vec<Option<Arc<Retained>>>,
+    pub(super) cur: Vec<Option<Arc<Retained>>>,
+    pub(super) after: Arc<HashMap<u64, HeadPrev>>,
+}
+
+/// What [`plan`] reads of the tick.
+pub(super) struct PlanInput<'a> {
+    pub(super) tick: u64,
+    pub(super) head_ids: &'a [u64],
+    pub(super) entries: &'a [u32],
+    pub(super) keys: &'a [HeadKey],
+    pub(super) every: u32,
+    pub(super) group: usize,
+    pub(super) outputs: &'a [Arc<crate::server::scheduler::JobOutput>],
+}
+
+/// Plans a temporal viewer's message against its baseline: a head is a keyframe when it has
+/// no reference (the viewer's first message, a new head, one back from missing), when its LOD,
+/// rig generation or length changed, or when its last keyframe is `every` ticks old. First
+/// keyframes are staggered over the interval by head position. `None`: out of queue memory.
+pub(super) fn plan(
+    state: &AppState,
+    base: &Baseline,
+    input: &PlanInput<'_>,
+    retained: &mut RetainedCache,
+) -> Option<DeltaPlan> {
+    let n = input.entries.len();
+    let every = u64::from(input.every.max(1));
+    let mut plan = DeltaPlan {
+        bases: vec![0; n],
+        refs: vec![None; n],
+        cur: vec![None; n],
+        after: Arc::new(HashMap::new()),
+    };
+    let mut after = HashMap::with_capacity(n);
+    for i in 0..n {
+        let id = input.head_ids[i];
+        let prev = base.prev.get(&id);
+        let j = match input.entries[i] {
+            HEAD_MISSING => continue,
+            HEAD_UNCHANGED => {
+                if let Some(p) = prev {
+                    after.insert(id, p.clone());
+                }
+                continue;
+            }
+            j => j,
+        };
+        let cur = retained.get(state, input.group, j, &input.outputs[j as usize])?;
+        let key = &input.keys[i];
+        let residual_of = prev.filter(|p| {
+            p.lod == key.lod
+                && p.generation == key.generation
+                && p.data.positions.len() == cur.positions.len()
+                && p.data.normals.as_ref().map(|b| b.len()) == cur.normals.as_ref().map(|b| b.len())
+                && input.tick < p.key_tick.saturating_add(every)
+        });
+        let key_tick = match (residual_of, prev) {
+            (Some(p), _) => p.key_tick,
+            // A head seen before gets its keyframe now and counts from now.
+            (None, Some(_)) => input.tick,
+            // A first keyframe: staggered, so that the next ones do not all fall on one tick.
+            (None, None) => input.tick.saturating_sub(i as u64 % every),
+        };
+        if let Some(p) = residual_of {
+            plan.bases[i] = Arc::as_ptr(&p.data) as usize;
+            plan.refs[i] = Some(p.data.clone());
+        }
+        after.insert(
+            id,
+            HeadPrev {
+                data: cur.clone(),
+                generation: key.generation,
+                lod: key.lod,
+                key_tick,
+            },
+        );
+        plan.cur[i] = Some(cur);
+    }
+    plan.after = Arc::new(after);
+    Some(plan)
+}
+
+/// The residual planes of q16 components `cur` against `reference` (both little-endian int16
+/// bytes of one length): the n low bytes of `zigzag(cur − reference)` (wrapping), then the n
+/// high bytes — `crowdmorph_proto::q16r_encode` on bytes.
+pub(super) fn residual_planes(cur: &[u8], reference: &[u8]) -> Vec<u8> {
+    let n = cur.len() / 2;
+    let mut out = vec![0u8; 2 * n];
+    let (lo, hi) = out.split_at_mut(n);
+    for (i, (c, r)) in cur
+        .chunks_exact(2)
+        .zip(reference.chunks_exact(2))
+        .enumerate()
+    {
+        let d = i16::from_le_bytes([c[0], c[1]]).wrapping_sub(i16::from_le_bytes([r[0], r[1]]));
+        let z = ((d << 1) ^ (d >> 15)) as u16;
+        lo[i] = z as u8;
+        hi[i] = (z >> 8) as u8;
+    }
+    out
+}
+
+/// Bytes an encoder of `e` holds while it compresses one message (as for HTTP responses).
+fn encoder_bytes(e: MessageEncoding) -> u64 {
+    use crate::server::http::encoding::{Encoding, encoder_bytes};
+    match e {
+        MessageEncoding::Zstd => encoder_bytes(Encoding::Zstd),
+        MessageEncoding::Deflate => encoder_bytes(Encoding::Gzip),
+    }
+}
+
+/// Most bytes compressing `n` bytes can make (zstd's bound; deflate's stored blocks add 5
+/// bytes per 16 KiB block, less than that).
+fn packed_bound(n: usize) -> usize {
+    zstd::zstd_safe::compress_bound(n).max(n + n / 16_384 * 5 + 64)
+}
+
+/// A message compressed into a `PackedMessage` (`StreamMessage` variant 3): the encoder's
+/// memory and the output's bound are charged first, the output kept. `None`: out of queue
+/// memory, or the codec failed.
+pub(super) fn pack(state: &AppState, message: &Encoded, e: MessageEncoding) -> Option<Encoded> {
+    let raw = &message.bytes[..];
+    let bound = packed_bound(raw.len());
+    let mut memory: Charge = state
+        .queue_memory
+        .reserve(encoder_bytes(e) + 2 * bound as u64 + 32)
+        .ok()?;
+    let data = compress(raw, e)?;
+    let out = packed_bytes(e, raw.len(), &data);
+    drop(data);
+    memory.keep(out.len() as u64);
+    Some(Encoded {
+        bytes: Bytes::from(out),
+        _memory: Box::new(memory),
+    })
+}
+
+/// The bincode of a `StreamMessage::Packed` of `data`, written without copying it twice.
+fn packed_bytes(e: MessageEncoding, raw_len: usize, data: &[u8]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(data.len() + 32);
+    crate::codec::put_varint(&mut out, 3);
+    crate::codec::put_varint(
+        &mut out,
+        match e {
+            MessageEncoding::Zstd => 0,
+            MessageEncoding::Deflate => 1,
+        },
+    );
+    crate::codec::put_varint(&mut out, raw_len as u64);
+    // The blob: an empty pad, then the data (nothing inside needs aligning).
+    out.push(0);
+    crate::codec::put_varint(&mut out, data.len() as u64);
+    out.extend_from_slice(data);
+    out
+}
+
+fn compress(raw: &[u8], e: MessageEncoding) -> Option<Vec<u8>> {
+    use std::io::Write;
+    match e {
+        MessageEncoding::Zstd => zstd::bulk::compress(raw, 1).ok(),
+        MessageEncoding::Deflate => {
+            let mut z = flate2::write::ZlibEncoder::new(
+                Vec::with_capacity(packed_bound(raw.len())),
+                flate2::Compression::fast(),
+            );
+            z.write_all(raw).ok()?;
+            z.finish().ok()
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn residual_planes_are_q16r_encode_on_bytes() {
+        let cur: Vec<i16> = vec![0, 1, -1, i16::MAX, i16::MIN, 1234, -32000, 7];
+        let reference: Vec<i16> = vec![0, 0, 0, i16::MIN, i16::MAX, 1000, 32000, 7];
+        let bytes = |v: &[i16]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
+        let got = residual_planes(&bytes(&cur), &bytes(&reference));
+        let mut want = vec![0u8; 2 * cur.len()];
+        crowdmorph_proto::q16r_encode(&cur, &reference, &mut want);
+        assert_eq!(got, want);
+        assert_eq!(
+            crowdmorph_proto::q16r_decode(&got, &reference).expect("decodes"),
+            cur
+        );
+    }
+
+    #[test]
+    fn a_packed_message_is_the_bincode_of_its_type_and_unpacks_to_the_message() {
+        for e in [MessageEncoding::Zstd, MessageEncoding::Deflate] {
+            let raw: Vec<u8> = (0..50_000u32).map(|i| (i % 251) as u8 / 3).collect();
+            let data = compress(&raw, e).expect("compresses");
+            assert!(data.len() < raw.len() / 4, "{e:?} {}", data.len());
+            let message =
+                crowdmorph_proto::StreamMessage::Packed(crowdmorph_proto::PackedMessage {
+                    encoding: e,
+                    length: raw.len() as u64,
+                    data: crowdmorph_proto::Blob(data.clone()),
+                });
+            let mine = packed_bytes(e, raw.len(), &data);
+            assert_eq!(crate::codec::to_wire(&message).expect("encodes"), mine);
+            let crowdmorph_proto::StreamMessage::Packed(p) = message else {
+                unreachable!()
+            };
+            assert_eq!(p.unpack().expect("unpacks"), raw);
+            assert!(packed_bound(raw.len()) >= data.len());
+        }
+    }
+}
