@@ -1,10 +1,12 @@
 // A reader for the server's bincode messages, written from proto/README.md ("bincode" and
 // "Crowd sessions"): bincode 2, standard configuration (little-endian, varint integers).
 //
-// Only what the viewer receives is decoded: the stream's StreamMessage. Vertex payloads are not
-// copied: a Blob is returned as its byte offset and length in the message's ArrayBuffer, and
-// typedView() views it in place (the server pads each payload to a 16-byte offset), copying
-// only when an odd offset makes a view impossible.
+// Only what the viewer receives is decoded: the stream's StreamMessage (proto/README.md, "The
+// stream": variants 0 TickVertices, 1 TickFrame, 2 TickDelta, 3 PackedMessage). Vertex payloads
+// are not copied: a Blob is returned as its byte offset and length in the message's ArrayBuffer,
+// and typedView() views it in place (the server pads each payload to a 16-byte offset), copying
+// only when an odd offset makes a view impossible. unpack() inflates a PackedMessage into the
+// bytes of the message it holds, and q16rDecode() resolves a TickDelta's residual planes.
 
 /** HeadBuffer.buffer of a head whose job did not change: keep drawing what it had. */
 export const HEAD_UNCHANGED = 0xffffffff;
@@ -15,6 +17,10 @@ export const HEAD_MISSING = 0xfffffffe;
 export const FORMATS = ['f32', 'f16', 'q16'];
 /** Image formats of TickFrame by their variant index. */
 export const IMAGE_FORMATS = ['png', 'jpeg', 'rgba'];
+/** Compressions of PackedMessage by their variant index. */
+export const MESSAGE_ENCODINGS = ['zstd', 'deflate'];
+/** Most bytes a packed message may claim once decompressed (as the Rust decoder: 1 GiB). */
+export const MAX_UNPACKED_BYTES = 2 ** 30;
 
 /** A message that does not follow the spec; the viewer reports it and drops the message. */
 export class DecodeError extends Error {
@@ -216,11 +222,19 @@ function timings(r) {
 
 /**
  * Decodes one binary message of `GET /v1/sessions/{id}/stream`.
+ *
+ * Variants 0 (TickVertices) and 2 (TickDelta) both come back as kind `vertices`; a TickDelta
+ * has `residual` (one flag per buffer: true for residual planes against each naming head's
+ * previous buffer, false for a plain q16 keyframe), a TickVertices has `residual: null`.
+ * Variant 3 (PackedMessage) comes back as kind `packed`, for unpack().
  * @param {ArrayBuffer} buffer
- * @returns {{kind: 'vertices', tick: number, format: string, normals: boolean,
- *   layout: object[]|null, buffers: object[], heads: {head: number, buffer: number}[],
- *   timings: object} | {kind: 'frame', tick: number, format: string, width: number,
- *   height: number, image: {offset: number, length: number}}}
+ * @returns {{kind: 'vertices', variant: 0|2, tick: number, format: string, normals: boolean,
+ *   layout: object[]|null, residual: boolean[]|null, buffers: object[],
+ *   heads: {head: number, buffer: number}[], timings: object}
+ *   | {kind: 'frame', variant: 1, tick: number, format: string, width: number, height: number,
+ *   image: {offset: number, length: number}}
+ *   | {kind: 'packed', variant: 3, encoding: string, length: number,
+ *   data: {offset: number, length: number}}}
  */
 export function decodeStreamMessage(buffer) {
   const r = new Reader(buffer);
@@ -229,10 +243,12 @@ export function decodeStreamMessage(buffer) {
   if (variant === 0) {
     msg = {
       kind: 'vertices',
+      variant,
       tick: r.varint(),
       format: r.enumIndex(FORMATS, 'Format'),
       normals: r.bool(),
       layout: r.option(() => r.vec(() => sessionHead(r))),
+      residual: null,
       buffers: r.vec(() => frameBuffer(r)),
       heads: r.vec(() => headBuffer(r)),
       timings: timings(r),
@@ -241,17 +257,117 @@ export function decodeStreamMessage(buffer) {
   } else if (variant === 1) {
     msg = {
       kind: 'frame',
+      variant,
       tick: r.varint(),
       format: r.enumIndex(IMAGE_FORMATS, 'ImageFormat'),
       width: r.u32(),
       height: r.u32(),
       image: r.blob(),
     };
+  } else if (variant === 2) {
+    msg = {
+      kind: 'vertices',
+      variant,
+      tick: r.varint(),
+      format: r.enumIndex(FORMATS, 'Format'),
+      normals: r.bool(),
+      layout: r.option(() => r.vec(() => sessionHead(r))),
+      residual: r.vec(() => r.bool()),
+      buffers: r.vec(() => frameBuffer(r)),
+      heads: r.vec(() => headBuffer(r)),
+      timings: timings(r),
+    };
+    if (msg.format !== 'q16') throw new DecodeError(`a temporal message in ${msg.format}, not q16`);
+    if (msg.residual.length !== msg.buffers.length) {
+      throw new DecodeError(`${msg.residual.length} residual flags for ${msg.buffers.length} buffers`);
+    }
+    checkBuffers(msg);
+  } else if (variant === 3) {
+    msg = {
+      kind: 'packed',
+      variant,
+      encoding: r.enumIndex(MESSAGE_ENCODINGS, 'MessageEncoding'),
+      length: r.varint(),
+      data: r.blob(),
+    };
   } else {
     throw new DecodeError(`StreamMessage variant ${variant}`);
   }
   r.end();
   return msg;
+}
+
+/**
+ * The bytes of the message a PackedMessage holds, decompressed with the browser's own
+ * DecompressionStream ("deflate" reads a zlib stream, RFC 1950, as the server sends it). A
+ * claimed length past MAX_UNPACKED_BYTES is refused before anything is inflated, and inflating
+ * stops as soon as the output passes the claimed length.
+ * @param {{encoding: string, length: number, data: {offset: number, length: number}}} packed
+ * @param {ArrayBuffer} buffer the packed message
+ * @returns {Promise<ArrayBuffer>} exactly `packed.length` bytes, starting at offset 0 (so that
+ *   the inner message's 16-byte payload alignment holds)
+ */
+export async function unpack(packed, buffer) {
+  if (packed.encoding !== 'deflate') {
+    throw new DecodeError(`a ${packed.encoding} packed message (this viewer asks for deflate and reads only that)`);
+  }
+  if (packed.length > MAX_UNPACKED_BYTES) {
+    throw new DecodeError(`a packed message claims ${packed.length} bytes, more than ${MAX_UNPACKED_BYTES}`);
+  }
+  const ds = new DecompressionStream('deflate');
+  const writer = ds.writable.getWriter();
+  // Failures show up on the reading side; the writer's own promises only repeat them.
+  writer.write(new Uint8Array(buffer, packed.data.offset, packed.data.length)).catch(() => {});
+  writer.close().catch(() => {});
+  const reader = ds.readable.getReader();
+  const chunks = [];
+  let n = 0;
+  try {
+    for (;;) {
+      const { done, value } = await reader.read();
+      if (done) break;
+      n += value.length;
+      if (n > packed.length) throw new DecodeError(`a packed message of more bytes than the ${packed.length} it claimed`);
+      chunks.push(value);
+    }
+  } catch (e) {
+    reader.cancel().catch(() => {});
+    if (e instanceof DecodeError) throw e;
+    throw new DecodeError(`bad deflate data: ${e.message}`);
+  }
+  if (n !== packed.length) throw new DecodeError(`a packed message of ${n} bytes claimed ${packed.length}`);
+  if (chunks.length === 1 && chunks[0].byteOffset === 0 && chunks[0].byteLength === chunks[0].buffer.byteLength) {
+    return chunks[0].buffer;
+  }
+  const out = new Uint8Array(n);
+  let at = 0;
+  for (const c of chunks) {
+    out.set(c, at);
+    at += c.length;
+  }
+  return out.buffer;
+}
+
+/**
+ * A head's q16 values from residual planes against its previous values `reference`: the
+ * planes are the `n` low bytes then the `n` high bytes of the u16 zigzag of the wrapping int16
+ * difference q − reference (format q16r's coding, against the head's own last buffer).
+ * @param {Uint8Array} planes 2 × reference.length bytes
+ * @param {Int16Array} reference
+ * @returns {Int16Array} a new array
+ */
+export function q16rDecode(planes, reference) {
+  const n = reference.length;
+  if (planes.length !== 2 * n) {
+    throw new DecodeError(`${planes.length} residual bytes for a reference of ${n} components`);
+  }
+  const out = new Int16Array(n);
+  for (let i = 0; i < n; i++) {
+    const z = planes[i] | (planes[n + i] << 8);
+    // Un-zigzag (z >>> 1 ^ -(z & 1)); the Int16Array store wraps the sum as int16 does.
+    out[i] = reference[i] + ((z >>> 1) ^ -(z & 1));
+  }
+  return out;
 }
 
 const COMPONENT_BYTES = { f32: 4, f16: 2, q16: 2 };

@@ -3,13 +3,32 @@
 //
 // URL parameters: `session` (join), `token` (admin token for creating and changing sessions),
 // `rig` (default `default-head`), `heads` (initial crowd size, default 25), `fps` (ticks per
-// second of a new session), `format` (`q16`, the default, `f16` or `f32`).
+// second of a new session), `format` (`q16`, the default, `f16` or `f32`), `temporal` (`0`: ask
+// for plain q16 buffers instead of temporal residuals) and `compression` (`deflate`, the default
+// with temporal residuals, or `none`).
+//
+// With q16 the viewer asks for temporal residuals (TickDelta: each head's buffer coded against
+// the last one it received for that head) packed with deflate (PackedMessage), inflated by the
+// browser's DecompressionStream. Messages are applied strictly in arrival order, one after the
+// other, whatever the time each takes to inflate: a residual needs the buffer before it.
+//
+// For tests and for anyone inspecting the page, `window.crowdmorphViewer` tells what arrived and
+// what the heads hold (the last tick applied, message counts, a checksum of the decoded q16
+// values).
 //
 // Errors are shown on the page; console.error is kept for real faults, since the end-to-end
 // test fails on any console error.
 
 import { Api, ApiError, base64Bytes } from './api.js';
-import { DecodeError, HEAD_MISSING, HEAD_UNCHANGED, decodeStreamMessage, typedView } from './bincode.js';
+import {
+  DecodeError,
+  HEAD_MISSING,
+  HEAD_UNCHANGED,
+  decodeStreamMessage,
+  q16rDecode,
+  typedView,
+  unpack,
+} from './bincode.js';
 import { OrbitCamera, multiply, placement } from './camera.js';
 import { Renderer } from './render.js';
 
@@ -20,9 +39,21 @@ const MAX_HEADS = 400;
 /** The least time between two camera updates sent to the server (it limits messages/s). */
 const CAMERA_UPDATE_MS = 250;
 
+const FORMAT = ['f32', 'f16', 'q16'].includes(params.get('format')) ? params.get('format') : 'q16';
+/** Temporal residuals are q16's only (f32 and f16 differences would not decode bit for bit). */
+const TEMPORAL = FORMAT === 'q16' && !['0', 'false', 'no'].includes(params.get('temporal'));
+/** Deflate where the browser inflates it: by default with residuals, else on `?compression=deflate`. */
+const COMPRESSION =
+  typeof DecompressionStream === 'function' &&
+  (params.get('compression') === 'deflate' || (TEMPORAL && !['none', '0'].includes(params.get('compression'))))
+    ? 'deflate'
+    : null;
+
 const state = {
   api: new Api(params.get('token')),
-  format: ['f32', 'f16', 'q16'].includes(params.get('format')) ? params.get('format') : 'q16',
+  format: FORMAT,
+  temporal: TEMPORAL,
+  compression: COMPRESSION,
   rig: params.get('rig') || 'default-head',
   sessionId: null,
   rigs: new Map(), // rig id → RigInfo (or a pending promise)
@@ -36,6 +67,10 @@ const state = {
   sliderMoving: false, // The crowd-size slider moved and its PATCH is not sent yet.
   ws: null,
   helloSent: false,
+  inbox: Promise.resolve(), // The binary messages of the socket, applied one after the other.
+  // Per head id, the q16 values it holds, as decoded: {positions, normals, quantization}, the
+  // reference of that head's next residuals (q16 streams only).
+  decoded: new Map(),
   cameraSent: -1,
   drawnCamera: -1,
   dirty: true,
@@ -43,6 +78,10 @@ const state = {
   counters: { frames: 0, ticks: 0, bytes: 0, since: performance.now() },
   lastTimings: null,
   lastBuffers: 0,
+  // Since the page opened: messages by StreamMessage variant (a packed message counts as 3 and
+  // again as what it held), heads given a new buffer decoded from residuals or as keyframes,
+  // and bytes on the wire and once inflated.
+  received: { variants: [0, 0, 0, 0], fromResiduals: 0, keyframes: 0, wireBytes: 0, bytes: 0 },
 };
 
 let renderer;
@@ -251,19 +290,23 @@ function openStream() {
       lod = 0;
     }
     const hello = { output: 'vertices', format: state.format, normals: true, camera: camera.spec(), lod };
+    if (state.temporal) hello.temporal = true;
+    if (state.compression) hello.compression = state.compression;
     ws.send(JSON.stringify(hello));
     state.helloSent = true;
     state.cameraSent = camera.version;
     setStatus('streaming');
   });
+  state.decoded = new Map(); // Residuals refer to what this socket delivered only.
   ws.addEventListener('message', (ev) => {
     if (typeof ev.data === 'string') return; // The server sends no text; nothing to do.
-    state.counters.bytes += ev.data.byteLength;
-    try {
-      applyTick(decodeStreamMessage(ev.data), ev.data);
-    } catch (e) {
-      showError(`tick message: ${describe(e)}`);
-    }
+    const data = ev.data;
+    state.counters.bytes += data.byteLength;
+    state.received.wireBytes += data.byteLength;
+    // Inflating is asynchronous: each message waits for the one before it to be applied.
+    state.inbox = state.inbox
+      .then(() => receive(data))
+      .catch((e) => showError(`tick message: ${describe(e)}`));
   });
   ws.addEventListener('close', (ev) => {
     state.ws = null;
@@ -316,32 +359,137 @@ function setLayout(layout) {
   $('heads-out').textContent = $('heads').value;
 }
 
+/** Decodes one binary message of the socket (inflating a packed one) and applies it. */
+async function receive(data) {
+  let msg = decodeStreamMessage(data);
+  let buffer = data;
+  state.received.variants[msg.variant]++;
+  if (msg.kind === 'packed') {
+    buffer = await unpack(msg, data);
+    msg = decodeStreamMessage(buffer);
+    if (msg.kind === 'packed') throw new DecodeError('a packed message inside a packed message');
+    state.received.variants[msg.variant]++;
+  }
+  state.received.bytes += buffer.byteLength;
+  applyTick(msg, buffer);
+}
+
+/** The q16 values of a buffer sent plain, copied out of the message (which can then go). */
+function plainQ16(buffer, b) {
+  return {
+    positions: typedView(buffer, b.positions, 'q16').slice(),
+    normals: b.normals ? typedView(buffer, b.normals, 'q16').slice() : null,
+    quantization: b.quantization,
+  };
+}
+
+/** The q16 values of a head whose buffer `b` holds residuals against its previous values. */
+function resolveResiduals(buffer, b, prev, head) {
+  const planes = (blob) => new Uint8Array(buffer, blob.offset, blob.length);
+  if (prev.positions.length !== b.vertices * 3) {
+    throw new DecodeError(`head ${head}: residuals for ${b.vertices} vertices against a buffer of ${prev.positions.length / 3}`);
+  }
+  let normals = null;
+  if (b.normals) {
+    if (!prev.normals) throw new DecodeError(`head ${head}: residual normals but no earlier normals`);
+    normals = q16rDecode(planes(b.normals), prev.normals);
+  }
+  return { positions: q16rDecode(planes(b.positions), prev.positions), normals, quantization: b.quantization };
+}
+
+/**
+ * Applies a vertex message, as crowdmorph_proto's StreamState does: every head's new values
+ * are decoded first (a message that does not fit what came before is refused whole and changes
+ * nothing), then the heads draw them.
+ */
 function applyTick(msg, buffer) {
   if (msg.kind !== 'vertices') throw new DecodeError(`a ${msg.kind} message on a vertices stream`);
-  if (msg.layout) setLayout(msg.layout);
-  if (msg.heads.length !== state.layout.length) {
-    throw new DecodeError(`${msg.heads.length} heads for a layout of ${state.layout.length}`);
+  const layout = msg.layout || state.layout.map((h) => h.spec);
+  if (msg.heads.length !== layout.length) {
+    throw new DecodeError(`${msg.heads.length} heads for a layout of ${layout.length}`);
   }
   msg.heads.forEach((hb, i) => {
-    const want = state.layout[i].spec.head;
+    const want = layout[i].head;
     if (hb.head !== want) throw new DecodeError(`head ${i} is ${hb.head}, the layout says ${want}`);
   });
-  const entries = msg.buffers.map((b) => {
-    const { key } = topologyKey(b.rig, b.lod);
-    ensureTopology(key, b.rig, b.lod, b.vertices);
-    const positions = typedView(buffer, b.positions, msg.format);
-    const normals = b.normals ? typedView(buffer, b.normals, msg.format) : null;
-    const e = renderer.entry(key, b.vertices, msg.format, positions, normals, b.quantization);
-    e.refs = 0;
-    e.lod = b.lod;
-    return e;
-  });
+  const q16 = msg.format === 'q16';
+  // What each head draws: a slot per buffer sent plain, and per (residual buffer, previous
+  // values) pair, each with one renderer entry: heads that share a residual buffer had the same
+  // previous buffer, so they share the decoded values too.
+  const plain = new Array(msg.buffers.length).fill(null);
+  const resolved = msg.buffers.map(() => new Map());
+  const decoded = new Map();
+  const slots = new Array(msg.heads.length);
+  let fromResiduals = 0;
+  let keyframes = 0;
   msg.heads.forEach((hb, i) => {
+    const id = hb.head;
+    if (hb.buffer === HEAD_MISSING) {
+      slots[i] = null;
+      return;
+    }
+    if (hb.buffer === HEAD_UNCHANGED) {
+      const had = state.decoded.get(id);
+      if (had) decoded.set(id, had);
+      slots[i] = undefined;
+      return;
+    }
+    const b = msg.buffers[hb.buffer];
+    let slot;
+    if (msg.residual && msg.residual[hb.buffer]) {
+      const prev = state.decoded.get(id);
+      if (!prev) throw new DecodeError(`head ${id} has residuals but no earlier buffer`);
+      slot = resolved[hb.buffer].get(prev);
+      if (!slot) {
+        slot = { b, values: resolveResiduals(buffer, b, prev, id), entry: null };
+        resolved[hb.buffer].set(prev, slot);
+      }
+      fromResiduals++;
+    } else {
+      slot = plain[hb.buffer];
+      if (!slot) {
+        const values = q16
+          ? plainQ16(buffer, b)
+          : {
+              positions: typedView(buffer, b.positions, msg.format),
+              normals: b.normals ? typedView(buffer, b.normals, msg.format) : null,
+              quantization: b.quantization,
+            };
+        slot = { b, values, entry: null };
+        plain[hb.buffer] = slot;
+      }
+      keyframes++;
+    }
+    if (q16) decoded.set(id, slot.values);
+    slots[i] = slot;
+  });
+
+  // Decoded: from here on nothing throws.
+  if (msg.layout) setLayout(msg.layout);
+  const entries = [];
+  slots.forEach((slot, i) => {
     const h = state.layout[i];
-    if (hb.buffer === HEAD_UNCHANGED) return;
-    setEntry(h, hb.buffer === HEAD_MISSING ? null : entries[hb.buffer]);
+    if (slot === undefined) return; // HEAD_UNCHANGED: keep what it had.
+    if (slot === null) {
+      setEntry(h, null);
+      return;
+    }
+    if (!slot.entry) {
+      const { b, values } = slot;
+      const { key } = topologyKey(b.rig, b.lod);
+      ensureTopology(key, b.rig, b.lod, b.vertices);
+      const e = renderer.entry(key, b.vertices, msg.format, values.positions, values.normals, values.quantization);
+      e.refs = 0;
+      e.lod = b.lod;
+      slot.entry = e;
+      entries.push(e);
+    }
+    setEntry(h, slot.entry);
   });
   for (const e of entries) if (e.refs === 0) renderer.release(e);
+  state.decoded = q16 ? decoded : new Map();
+  state.received.fromResiduals += fromResiduals;
+  state.received.keyframes += keyframes;
   state.tick = msg.tick;
   state.lastTimings = msg.timings;
   state.lastBuffers = msg.buffers.length;
@@ -514,8 +662,9 @@ function updateCounters() {
   $('bps').textContent = formatBytes(c.bytes / s);
   const t = state.lastTimings;
   const lods = renderer.canvas.dataset.lods || '-';
+  const mode = [state.format, state.temporal && 'temporal', state.compression].filter(Boolean).join(' + ');
   $('detail').textContent =
-    `${state.layout.length} heads · ${state.lastBuffers} buffers last tick · LOD ${lods}` +
+    `${state.layout.length} heads · ${state.lastBuffers} buffers last tick · LOD ${lods} · ${mode}` +
     (t ? ` · compute ${(t.compute_us / 1000).toFixed(1)} ms` : '');
   state.counters = { frames: 0, ticks: 0, bytes: 0, since: now };
 }
@@ -525,6 +674,57 @@ function sendCamera() {
     state.cameraSent = camera.version;
   }
 }
+
+// ---------------------------------------------------------------------------------------------
+// What the page holds, for tests (tests/server/viewer.rs) and for inspecting it by hand.
+
+/** FNV-1a, 32-bit, fed byte by byte. */
+function fnv1a(h, bytes) {
+  for (let i = 0; i < bytes.length; i++) h = Math.imul(h ^ bytes[i], 0x01000193);
+  return h;
+}
+
+/**
+ * A checksum of the q16 values every head holds after the last tick applied: FNV-1a 32 (basis
+ * 0x811c9dc5) fed, for each layout head in order that has a buffer, its id as u64
+ * little-endian, its positions' int16 values little-endian, then its normals' (if any). A plain
+ * q16 reader of the same ticks computes the same number; null on an f32 or f16 stream.
+ */
+function q16Checksum() {
+  if (state.format !== 'q16') return null;
+  let h = 0x811c9dc5;
+  const id = new DataView(new ArrayBuffer(8));
+  for (const { spec } of state.layout) {
+    const v = state.decoded.get(spec.head);
+    if (!v) continue;
+    id.setUint32(0, spec.head % 2 ** 32, true);
+    id.setUint32(4, Math.floor(spec.head / 2 ** 32), true);
+    h = fnv1a(h, new Uint8Array(id.buffer));
+    // Int16Array bytes are the platform's order: little-endian everywhere WebGL runs.
+    for (const a of [v.positions, v.normals]) if (a) h = fnv1a(h, new Uint8Array(a.buffer, a.byteOffset, a.byteLength));
+  }
+  return h >>> 0;
+}
+
+window.crowdmorphViewer = Object.freeze({
+  /** The hello's modes. */
+  get mode() {
+    return { format: state.format, temporal: state.temporal, compression: state.compression };
+  },
+  /** The last tick applied (0 before the first). */
+  get tick() {
+    return state.tick;
+  },
+  /** Counters since the page opened (a copy). */
+  get received() {
+    return { ...state.received, variants: [...state.received.variants] };
+  },
+  q16Checksum,
+  /** Tick, checksum and counters at one instant (messages are applied between tasks). */
+  snapshot() {
+    return { tick: state.tick, checksum: q16Checksum(), received: this.received };
+  },
+});
 
 // ---------------------------------------------------------------------------------------------
 // Start.

@@ -1,20 +1,25 @@
 //! The browser viewer (`clients/web`, `GET /viewer`): its files are served from the binary with
 //! their content types and nothing else is; and, end to end in real headless Chromium driven
 //! over the DevTools protocol, the page creates a session, streams q16 ticks over the WebSocket
-//! and draws a lit crowd, with no console error, while its controls change the session.
+//! and draws a lit crowd, with no console error, while its controls change the session. The page
+//! asks for temporal residuals packed with deflate (`TickDelta` inside `PackedMessage`), and what
+//! it decodes is checked bit for bit against a plain q16 viewer of the same session (Rust, over
+//! its own WebSocket) at the same tick; so is the page's `?temporal=0` plain mode.
 //!
 //! The end-to-end test runs in real time (the page streams while the server ticks), bounded by
 //! generous deadlines that only decide when to give up, never what passes. Its screenshot is
 //! kept at `$CROWDMORPH_VIEWER_SCREENSHOT`, else `target/viewer-screenshot.png`.
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use bytes::Bytes;
 use crowdmorph::server::ServerConfig;
 use crowdmorph_client::Method;
-use crowdmorph_proto::SessionInfo;
+use crowdmorph_proto::{Received, SessionInfo, StreamState};
 use futures_util::{SinkExt, StreamExt};
 use serde_json::{Value, json};
 use tokio_tungstenite::tungstenite::Message;
@@ -537,6 +542,48 @@ async fn the_viewer_streams_and_draws_a_lit_crowd_in_headless_chromium() {
     )
     .await;
 
+    // What the page decoded from temporal residuals, inflated by the browser, is bit for bit
+    // what a plain q16 viewer of the same session gets, at the same ticks (every head is at
+    // LOD 2 now, so the camera does not matter).
+    let mode = cdp.eval("window.crowdmorphViewer.mode").await;
+    assert_eq!(
+        mode,
+        json!({"format": "q16", "temporal": true, "compression": "deflate"}),
+        "the page's hello"
+    );
+    let plain = PlainViewer::start(
+        &server,
+        &id,
+        json!({"format": "q16", "normals": true, "lod": 2}),
+    )
+    .await;
+    let compared = compare_with_plain(&mut cdp, &plain, "window.crowdmorphViewer.snapshot()").await;
+    let received = cdp.eval("window.crowdmorphViewer.received").await;
+    println!("temporal page: compared ticks {compared:?}, received {received}");
+    let variants: Vec<u64> = received["variants"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_u64().unwrap())
+        .collect();
+    assert_eq!(
+        variants[0], 0,
+        "plain TickVertices to a temporal viewer: {received}"
+    );
+    assert!(variants[2] > 0, "no TickDelta: {received}");
+    assert_eq!(
+        variants[3], variants[2],
+        "every message packed, each holding a TickDelta: {received}"
+    );
+    assert!(
+        received["fromResiduals"].as_u64().unwrap() > 0,
+        "no head was decoded from residuals: {received}"
+    );
+    assert!(
+        received["bytes"].as_u64().unwrap() > received["wireBytes"].as_u64().unwrap(),
+        "deflate made nothing smaller: {received}"
+    );
+
     // Orbiting the camera sends camera updates; the stream goes on.
     cdp.call(
         "Input.dispatchMouseEvent",
@@ -562,9 +609,188 @@ async fn the_viewer_streams_and_draws_a_lit_crowd_in_headless_chromium() {
     let errors = cdp.errors();
     assert!(errors.is_empty(), "the page logged errors: {errors:#?}");
     assert_eq!(cdp.eval(ERROR_TEXT).await, json!(""));
+
+    // `?temporal=0` switches the page back to plain q16 messages, decoded the same.
+    cdp.call(
+        "Page.navigate",
+        json!({"url": format!("http://{}/viewer?session={id}&temporal=0", server.addr)}),
+    )
+    .await;
+    cdp.wait_for(
+        "the plain page's first tick",
+        "window.crowdmorphViewer?.tick ?? 0",
+        Duration::from_secs(120),
+        |v| v.as_u64().unwrap_or(0) > 0,
+    )
+    .await;
+    let mode = cdp.eval("window.crowdmorphViewer.mode").await;
+    assert_eq!(
+        mode,
+        json!({"format": "q16", "temporal": false, "compression": null}),
+        "the page's hello with ?temporal=0"
+    );
+    // A page that joins chooses LOD by distance: make it LOD 2 for every head, as the plain
+    // Rust viewer has.
+    cdp.wait_for(
+        "the plain page's LOD control",
+        "document.getElementById('lod-mode').options.length",
+        Duration::from_secs(60),
+        |v| v.as_u64().unwrap_or(0) > 2,
+    )
+    .await;
+    cdp.eval(
+        "(() => { const m = document.getElementById('lod-mode'); m.value = '2'; \
+         m.dispatchEvent(new Event('change')); })()",
+    )
+    .await;
+    cdp.wait_for(
+        "every head at LOD 2 on the plain page",
+        "document.getElementById('view').dataset.lods",
+        Duration::from_secs(90),
+        |v| v.as_str() == Some("2"),
+    )
+    .await;
+    let compared = compare_with_plain(&mut cdp, &plain, "window.crowdmorphViewer.snapshot()").await;
+    let received = cdp.eval("window.crowdmorphViewer.received").await;
+    println!("plain page: compared ticks {compared:?}, received {received}");
+    let variants = &received["variants"];
+    assert!(variants[0].as_u64().unwrap() > 0, "{received}");
+    assert_eq!(variants[2], json!(0), "{received}");
+    assert_eq!(variants[3], json!(0), "{received}");
+    assert_eq!(received["fromResiduals"], json!(0), "{received}");
+
+    let errors = cdp.errors();
+    assert!(errors.is_empty(), "the page logged errors: {errors:#?}");
+    assert_eq!(cdp.eval(ERROR_TEXT).await, json!(""));
+    plain.stop();
     drop(cdp);
     drop(browser);
     server.stop().await;
+}
+
+/// FNV-1a 32 over what a viewer's heads hold, as `q16Checksum` in clients/web/main.js: for each
+/// layout head with a buffer, in layout order, its id (u64 little-endian), its q16 positions'
+/// bytes, then its normals' bytes.
+fn q16_checksum(state: &StreamState) -> u32 {
+    let mut h: u32 = 0x811c_9dc5;
+    let mut feed = |bytes: &[u8]| {
+        for &b in bytes {
+            h = (h ^ u32::from(b)).wrapping_mul(0x0100_0193);
+        }
+    };
+    for head in state.layout() {
+        let Some(b) = state.buffer(head.head) else {
+            continue;
+        };
+        feed(&head.head.to_le_bytes());
+        feed(&b.positions.0);
+        if let Some(n) = &b.normals {
+            feed(&n.0);
+        }
+    }
+    h
+}
+
+/// A plain q16 viewer of a session over its own WebSocket, decoded with the proto crate's
+/// `StreamState`: the checksum of what it holds after each tick it received.
+struct PlainViewer {
+    checksums: Arc<Mutex<BTreeMap<u64, u32>>>,
+    task: tokio::task::JoinHandle<()>,
+}
+
+impl PlainViewer {
+    async fn start(server: &TestServer, id: &str, hello: Value) -> PlainViewer {
+        let url = format!("ws://{}/v1/sessions/{id}/stream", server.addr);
+        let (mut ws, _) = tokio_tungstenite::connect_async(url)
+            .await
+            .expect("connect the plain viewer");
+        ws.send(Message::text(hello.to_string()))
+            .await
+            .expect("hello");
+        let checksums = Arc::new(Mutex::new(BTreeMap::new()));
+        let out = checksums.clone();
+        let task = tokio::spawn(async move {
+            let mut state = StreamState::new();
+            while let Some(msg) = ws.next().await {
+                match msg.expect("the plain viewer's stream") {
+                    Message::Binary(b) => match state.receive(&b) {
+                        Ok(Received::Vertices(applied)) => {
+                            let sum = q16_checksum(&state);
+                            let mut map = out.lock().unwrap();
+                            map.insert(applied.tick, sum);
+                            // The ticks the page may still report, not the whole run.
+                            while map.len() > 4096 {
+                                map.pop_first();
+                            }
+                        }
+                        Ok(Received::Frame(_)) => panic!("the plain viewer got a frame"),
+                        Err(e) => panic!("the plain viewer: {e}"),
+                    },
+                    Message::Close(c) => panic!("the plain viewer was closed: {c:?}"),
+                    _ => {}
+                }
+            }
+        });
+        PlainViewer { checksums, task }
+    }
+
+    fn checksum_at(&self, tick: u64) -> Option<u32> {
+        if self.task.is_finished() {
+            panic!("the plain viewer stopped reading");
+        }
+        self.checksums.lock().unwrap().get(&tick).copied()
+    }
+
+    fn stop(self) {
+        self.task.abort();
+    }
+}
+
+/// Samples the page's `{tick, checksum}` (`snapshot`, evaluated in one go between two
+/// messages) until five of its ticks are ones the plain viewer also received, and asserts that
+/// the page's checksum equals the plain viewer's at each. Returns the ticks compared.
+async fn compare_with_plain(cdp: &mut Cdp, plain: &PlainViewer, snapshot: &str) -> Vec<u64> {
+    let mut pending: BTreeMap<u64, u64> = BTreeMap::new(); // page tick → page checksum
+    let mut compared = Vec::new();
+    let deadline = Instant::now() + Duration::from_secs(120);
+    while compared.len() < 5 {
+        let s = cdp.eval(snapshot).await;
+        let tick = s["tick"].as_u64().expect("the page's tick");
+        let sum = s["checksum"].as_u64().expect("the page's q16 checksum");
+        pending.entry(tick).or_insert(sum);
+        // Page ticks the plain viewer has received are compared; others wait (the plain viewer
+        // may not have read that far yet, or may have skipped them).
+        let settled: Vec<u64> = pending.keys().copied().collect();
+        for t in settled {
+            if let Some(want) = plain.checksum_at(t) {
+                let got = pending.remove(&t).unwrap();
+                assert_eq!(
+                    got,
+                    u64::from(want),
+                    "tick {t}: the page's decoded q16 values differ from a plain q16 viewer's"
+                );
+                compared.push(t);
+            }
+        }
+        let errors = cdp.errors();
+        let shown = cdp.eval(ERROR_TEXT).await;
+        assert!(
+            shown.as_str().unwrap_or("").is_empty() && errors.is_empty(),
+            "comparing with a plain viewer: the page shows {shown} and logged {errors:#?}"
+        );
+        assert!(
+            Instant::now() < deadline,
+            "no five ticks in common with a plain viewer in 120 s: page ticks {:?} pending, \
+             compared {compared:?}",
+            pending.keys().collect::<Vec<_>>()
+        );
+        // Never more than a few hundred page ticks kept waiting.
+        while pending.len() > 256 {
+            pending.pop_first();
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    compared
 }
 
 async fn session_info(server: &TestServer, id: &str) -> SessionInfo {
