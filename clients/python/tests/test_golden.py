@@ -25,6 +25,7 @@ GOLDEN = {
     "crowd_frame_request": messages.CrowdFrameRequest,
     "crowd_frame_request_animated": messages.CrowdFrameRequest,
     "crowd_frame_response": messages.CrowdFrameResponse,
+    "crowd_frame_response_q16r": messages.CrowdFrameResponse,
     "rig_info": messages.RigInfo,
     "rig_list": messages.RigList,
     "lod_info": messages.LodInfo,
@@ -42,7 +43,13 @@ GOLDEN = {
 
 
 # The stream's binary messages: an enum, whose JSON (serde's) wraps the message in its variant.
-STREAM_GOLDEN = {"stream_vertices": "Vertices", "stream_frame": "Frame"}
+STREAM_GOLDEN = {
+    "stream_vertices": "Vertices",
+    "stream_frame": "Frame",
+    "stream_delta_keyframes": "Delta",
+    "stream_delta_residuals": "Delta",
+    "stream_packed_deflate": "Packed",
+}
 
 
 def test_every_golden_bincode_file_has_a_python_message():

@@ -446,3 +446,97 @@ def test_heads_walk_a_motion_graph_and_patches_send_them_to_a_node(client, sessi
         assert all(0 <= c <= 0.02 for c in built.costs)
     finally:
         client.delete_graph(RIG, "py-auto")
+
+
+def _zstd_available() -> bool:
+    try:
+        import zstandard  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+@needs_websockets
+@pytest.mark.parametrize(
+    "mode",
+    [
+        {"temporal": True},
+        {"temporal": True, "compression": "deflate", "keyframe_every": 2},
+        pytest.param(
+            {"temporal": True, "compression": "zstd"},
+            marks=pytest.mark.skipif(
+                not _zstd_available(), reason="zstd needs the zstandard package (crowdmorph[zstd])"
+            ),
+        ),
+        {"compression": "deflate"},
+    ],
+)
+def test_temporal_and_packed_streams_decode_exactly_what_a_q16_viewer_gets(
+    client, sessions, mode
+):
+    # Clones (heads 1 and 2) and heads of their own; a plain q16 viewer is the reference.
+    heads = [
+        (1, RIG, "talk", 0),
+        (2, RIG, "talk", 0),
+        (3, RIG, "smile", 11),
+        (4, RIG, "surprise", -5),
+        (5, RIG, "idle", 3),
+    ]
+    info = _create(client, sessions, heads, fps=15)
+    plain_seen: Dict[int, Dict[int, tuple]] = {}
+    mode_seen: Dict[int, Dict[int, tuple]] = {}
+    residual_heads = 0
+    packed = 0
+    plain = client.stream(info.id, format="q16", normals=True)
+    other = client.stream(info.id, format="q16", normals=True, **mode)
+    common: List[int] = []
+    with plain, other:
+        for _ in range(200):
+            for viewer, seen in ((plain, plain_seen), (other, mode_seen)):
+                t = next(viewer)
+                seen[t.tick] = {
+                    h: (flat(t.positions[h]), flat(t.normals[h])) for h in t.positions
+                }
+                if viewer is other:
+                    residual_heads += t.from_residuals
+                    packed += t.compression is not None
+            common = sorted(set(plain_seen) & set(mode_seen))
+            if len(common) >= 6:
+                break
+    assert len(common) >= 6, (sorted(plain_seen), sorted(mode_seen))
+    for tick in common:
+        assert mode_seen[tick] == plain_seen[tick], f"tick {tick}"
+    assert (residual_heads > 0) is bool(mode.get("temporal")), residual_heads
+    assert (packed > 0) is ("compression" in mode), packed
+
+
+@needs_websockets
+def test_a_temporal_f32_hello_is_refused_naming_q16(client, sessions):
+    info = _create(client, sessions, [(1, RIG, "talk")])
+    viewer = client.stream(info.id, format="f32", temporal=True)
+    with pytest.raises(crowdmorph.StreamClosed) as e:
+        next(viewer)
+    assert e.value.code == 1008 and "q16" in e.value.reason, e.value.reason
+
+
+def test_residuals_and_packed_messages_decode_by_hand():
+    from crowdmorph import messages
+
+    # Residual planes of [2, -32768] against [0, 32767]: differences 2 and 1 (wrapping).
+    import struct
+
+    prev = struct.pack("<2h", 0, 32767)
+    planes = bytes([4, 2, 0, 0])
+    assert bytes(crowdmorph.arrays.q16r_decode(planes, prev)) == struct.pack("<2h", 2, -32768)
+    with pytest.raises(ValueError):
+        crowdmorph.arrays.q16r_decode(planes[:3], prev)
+    import zlib
+
+    inner = bytes(range(40))
+    good = messages.PackedMessage(encoding="deflate", length=len(inner), data=zlib.compress(inner))
+    assert good.unpack() == inner
+    liar = messages.PackedMessage(
+        encoding="deflate", length=len(inner) + 1, data=zlib.compress(inner)
+    )
+    with pytest.raises(Exception):
+        liar.unpack()

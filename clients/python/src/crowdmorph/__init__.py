@@ -82,10 +82,13 @@ from .messages import (
     SessionPatch,
     SessionRequest,
     SessionStats,
+    PackedMessage,
+    TickDelta,
     TickFrame,
     TickVertices,
     as_dict,
     decode_stream_message,
+    unpack_stream_message,
 )
 from .obj import write_obj
 from .results import Buffer, CrowdFrame, Image, Mesh
@@ -172,9 +175,12 @@ __all__ = [
     "SessionPatch",
     "TickVertices",
     "TickFrame",
+    "TickDelta",
+    "PackedMessage",
     "HEAD_UNCHANGED",
     "HEAD_MISSING",
     "decode_stream_message",
+    "unpack_stream_message",
     "as_dict",
     "encode",
     "decode",

@@ -32,6 +32,7 @@ __all__ = [
     "decode_normals",
     "decode_f32",
     "decode_u32",
+    "q16r_decode",
 ]
 
 #: Whether numpy could be imported.
@@ -164,3 +165,36 @@ def decode_normals(data: Any, fmt: str, backend: str, vertices: Optional[int] = 
         out /= _np.float32(32767.0)
         return out
     return array("f", [v / 32767.0 for v in _flat("h", data)])
+
+
+def q16r_decode(planes: Any, reference: Any) -> bytes:
+    """The q16 bytes (int16 little-endian) that ``q16r`` residual ``planes`` code against the
+    q16 bytes ``reference`` (``proto/README.md``, "Vertex data"): for ``n`` values, ``planes``
+    are the ``n`` low bytes then the ``n`` high bytes of ``z = zigzag(q - r)`` (the wrapping
+    int16 difference), so ``q = r + unzigzag(lo | hi << 8)``, wrapping. A length that does not
+    match (``2 × n`` bytes of planes for ``n`` reference values) is a :class:`ValueError`.
+
+    Session streams' temporal residuals (``TickDelta``) use the same coding, with a head's
+    previous buffer as the reference."""
+    if len(reference) % 2:
+        raise ValueError(f"a q16 reference of {len(reference)} bytes (not whole int16 values)")
+    n = len(reference) // 2
+    if len(planes) != 2 * n:
+        raise ValueError(f"{len(planes)} residual bytes for {n} values")
+    if _np is not None:
+        p = _np.frombuffer(planes, _np.uint8)
+        z = p[:n].astype(_np.uint16) | (p[n:].astype(_np.uint16) << 8)
+        d = (z >> 1).astype(_np.int16) ^ -(z & 1).astype(_np.int16)
+        # int16 + int16 wraps in numpy, as the Rust wrapping_add does.
+        return (_np.frombuffer(reference, "<i2") + d).astype("<i2").tobytes()
+    r = _flat("h", reference)
+    lo = bytes(planes[:n])
+    hi = bytes(planes[n:])
+    out = array("h", bytes(2 * n))
+    for i in range(n):
+        z = lo[i] | (hi[i] << 8)
+        d = (z >> 1) ^ -(z & 1)
+        out[i] = ((r[i] + d + 32768) & 0xFFFF) - 32768
+    if not _LITTLE:  # pragma: no cover - big-endian machines
+        out.byteswap()
+    return out.tobytes()

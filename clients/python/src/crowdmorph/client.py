@@ -125,28 +125,12 @@ def _inflate(encoding: Optional[str], body: bytes) -> bytes:
 def q16r_decode(planes: bytes, reference: bytes) -> bytes:
     """The q16 bytes (int16 little-endian) that ``q16r`` residual ``planes`` code against
     ``reference`` (``proto/README.md``, "Vertex data"): ``q = r + unzigzag(lo | hi << 8)``,
-    wrapping."""
-    n = len(reference) // 2
-    if len(planes) != 2 * n:
-        raise ProtocolError(0, "bad_response", f"{len(planes)} residual bytes for {n} values")
+    wrapping (:func:`crowdmorph.arrays.q16r_decode`, with a length mismatch as a
+    :class:`~crowdmorph.errors.ProtocolError`)."""
     try:
-        import numpy as np
-
-        z = np.frombuffer(planes[:n], np.uint8).astype(np.uint16) | (
-            np.frombuffer(planes[n:], np.uint8).astype(np.uint16) << 8
-        )
-        d = (z >> 1).astype(np.int16) ^ -(z & 1).astype(np.int16)
-        return (np.frombuffer(reference, "<i2") + d).astype("<i2").tobytes()
-    except ImportError:
-        import array
-
-        r = array.array("h", reference)
-        out = array.array("h", bytes(2 * n))
-        for i in range(n):
-            z = planes[i] | (planes[n + i] << 8)
-            d = (z >> 1) ^ -(z & 1)
-            out[i] = ((r[i] + d + 32768) & 0xFFFF) - 32768
-        return out.tobytes()
+        return _arrays.q16r_decode(planes, reference)
+    except ValueError as e:
+        raise ProtocolError(0, "bad_response", str(e)) from None
 
 
 def _zstd_available() -> bool:
@@ -865,6 +849,9 @@ class Client:
         output: str = "vertices",
         image: Optional[Union[ImageOptions, Mapping[str, Any]]] = None,
         *,
+        temporal: bool = False,
+        keyframe_every: Optional[int] = None,
+        compression: Optional[str] = None,
         timeout: Optional[float] = None,
         max_message: Optional[int] = 1 << 31,
     ) -> _sessions.Viewer:
@@ -882,13 +869,29 @@ class Client:
         level for every head or ``[[metres, level], ...]`` by distance from ``camera``
         (a :class:`~crowdmorph.messages.CameraSpec` or dict; needed for LOD by distance and
         images); ``image`` the :class:`~crowdmorph.messages.ImageOptions` of frames.
+        ``temporal=True`` (q16 vertices only) has the server send each head's buffer as
+        residuals against the last one this viewer received for it, with a keyframe at
+        least every ``keyframe_every`` ticks (server default 60); ``compression``
+        (``"deflate"`` or ``"zstd"``, the latter needing ``pip install 'crowdmorph[zstd]'``)
+        has it compress every message. Both are decoded here: the ticks are bit for bit a
+        plain q16 viewer's (plus ``wire_bytes``, ``keyframes`` and ``from_residuals``).
         ``timeout`` (seconds; default: the client's) bounds the opening handshake and each
         wait for a message; ``max_message`` is the largest message taken, in bytes (``None``:
         no limit; a larger one closes the stream with 1009). An unknown session raises
         :class:`~crowdmorph.errors.NotFound`; a hello the server refuses raises
         :class:`~crowdmorph.errors.StreamClosed` (1008 with the reason) from the iteration.
         """
-        settings = _sessions.hello(format, normals, lod, camera, output, image)
+        settings = _sessions.hello(
+            format,
+            normals,
+            lod,
+            camera,
+            output,
+            image,
+            temporal=temporal,
+            keyframe_every=keyframe_every,
+            compression=compression,
+        )
         host = f"[{self._host}]" if ":" in self._host else self._host
         netloc = host if self._port is None else f"{host}:{self._port}"
         scheme = "wss" if self._scheme == "https" else "ws"

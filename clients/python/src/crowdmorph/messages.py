@@ -92,10 +92,15 @@ __all__ = [
     "SessionPatch",
     "TickVertices",
     "TickFrame",
+    "TickDelta",
+    "PackedMessage",
+    "MESSAGE_ENCODINGS",
+    "MAX_UNPACKED_BYTES",
     "STREAM_MESSAGE",
     "HEAD_UNCHANGED",
     "HEAD_MISSING",
     "decode_stream_message",
+    "unpack_stream_message",
     "as_dict",
 ]
 
@@ -103,9 +108,12 @@ __all__ = [
 FORMATS = ("f32", "f16", "q16", "q16r")
 #: Image formats of rendered frames by bincode variant index.
 IMAGE_FORMATS = ("png", "jpeg", "rgba")
+#: Compressions of packed stream messages (``MessageEncoding``) by bincode variant index.
+MESSAGE_ENCODINGS = ("zstd", "deflate")
 
 FORMAT = Enum(*FORMATS)
 IMAGE_FORMAT = Enum(*IMAGE_FORMATS)
+MESSAGE_ENCODING = Enum(*MESSAGE_ENCODINGS)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1046,14 +1054,140 @@ class TickFrame:
     image: Any
 
 
+@wire(
+    ("tick", U64),
+    ("format", FORMAT),
+    ("normals", BOOL),
+    ("layout", Opt(Vec(Msg(SessionHead)))),
+    ("residual", Vec(BOOL)),
+    ("buffers", Vec(Msg(FrameBuffer))),
+    ("heads", _HeadBufferVec()),
+    ("timings", Msg(FrameTimings)),
+)
+@dataclass
+class TickDelta:
+    """Stream message variant 2 (a viewer that asked for ``temporal``): :class:`TickVertices`
+    with one ``residual`` flag per buffer. A buffer whose flag is false is a keyframe, plain
+    q16; one whose flag is true holds, for each head that names it, that head's q16 values as
+    ``q16r`` byte planes against the buffer this viewer last received for the same head id
+    (normals likewise). ``format`` is what the buffers decode to (always ``q16``)."""
+
+    tick: int
+    format: str
+    normals: bool
+    layout: Optional[List[SessionHead]]
+    residual: List[bool]
+    buffers: List[FrameBuffer]
+    heads: HeadBuffers
+    timings: FrameTimings
+
+
+#: Most bytes a packed message may claim once decompressed (as the Rust reader: 1 GiB).
+MAX_UNPACKED_BYTES = 1 << 30
+
+
+@wire(("encoding", MESSAGE_ENCODING), ("length", U64), ("data", BLOB))
+@dataclass
+class PackedMessage:
+    """Stream message variant 3 (a viewer that asked for ``compression``): ``data``
+    decompresses (``encoding``: ``zstd`` or ``deflate``, a zlib stream) to ``length`` bytes,
+    the bincode of one whole stream message that is not itself packed."""
+
+    encoding: str
+    length: int
+    data: Any
+
+    def unpack(self, limit: int = MAX_UNPACKED_BYTES) -> bytes:
+        """The decompressed bytes. A ``length`` over ``limit``, data that decompresses to more
+        or fewer bytes than ``length`` (found without inflating past it) or is not valid
+        compressed data is a :class:`~crowdmorph.wire.DecodeError`; zstd needs the optional
+        ``zstandard`` package (:class:`ImportError` without it)."""
+        n = self.length
+        if n > limit:
+            raise DecodeError(f"a packed message claims {n} bytes, more than {limit}")
+        if self.encoding == "deflate":
+            out = _inflate_zlib(self.data, n)
+        elif self.encoding == "zstd":
+            out = _inflate_zstd(self.data, n)
+        else:  # pragma: no cover - the enum has no other names
+            raise DecodeError(f"unknown packed encoding {self.encoding!r}")
+        if len(out) != n:
+            got = "more" if len(out) > n else str(len(out))
+            raise DecodeError(f"a packed message of {got} bytes claimed {n}")
+        return out
+
+
+def _inflate_zlib(data: Any, n: int) -> bytes:
+    import zlib
+
+    d = zlib.decompressobj()
+    try:
+        # At most one byte past the claim: enough to tell "more" without inflating it all.
+        out = d.decompress(data, n + 1)
+    except zlib.error as e:
+        raise DecodeError(f"bad deflate data: {e}") from None
+    if len(out) <= n and not d.eof:
+        raise DecodeError("bad deflate data: the zlib stream ends early")
+    return out
+
+
+#: What to install when zstd messages are asked for without the ``zstandard`` package.
+ZSTD_HINT = "pip install 'crowdmorph[zstd]' (or pip install zstandard)"
+
+
+def _zstandard() -> Any:
+    try:
+        import zstandard  # type: ignore[import-not-found]
+    except ImportError as e:
+        raise ImportError(
+            f"zstd compression needs the zstandard package: {ZSTD_HINT}", name="zstandard"
+        ) from e
+    return zstandard
+
+
+def _inflate_zstd(data: Any, n: int) -> bytes:
+    import io
+
+    zstandard = _zstandard()
+    try:
+        reader = zstandard.ZstdDecompressor().stream_reader(
+            io.BytesIO(data), read_across_frames=True
+        )
+        parts = []
+        got = 0
+        while got <= n:
+            chunk = reader.read(n + 1 - got)
+            if not chunk:
+                break
+            parts.append(chunk)
+            got += len(chunk)
+    except zstandard.ZstdError as e:
+        raise DecodeError(f"bad zstd data: {e}") from None
+    return b"".join(parts)
+
+
 #: ``StreamMessage``: the binary messages of a session stream, by variant index.
-STREAM_MESSAGE = Tagged(TickVertices, TickFrame)
+STREAM_MESSAGE = Tagged(TickVertices, TickFrame, TickDelta, PackedMessage)
+
+StreamMessage = Union[TickVertices, TickFrame, TickDelta, PackedMessage]
 
 
-def decode_stream_message(data: Any) -> Union[TickVertices, TickFrame]:
-    """One binary message of a session stream: a :class:`TickVertices` or a
-    :class:`TickFrame` (payloads are slices of ``data``)."""
+def decode_stream_message(data: Any) -> StreamMessage:
+    """One binary message of a session stream: a :class:`TickVertices`, :class:`TickFrame`,
+    :class:`TickDelta` or :class:`PackedMessage` (payloads are slices of ``data``)."""
     return decode_as(STREAM_MESSAGE, data)
+
+
+def unpack_stream_message(data: Any) -> Union[TickVertices, TickFrame, TickDelta]:
+    """One binary message of a session stream, decompressed when it is a
+    :class:`PackedMessage` (whose payload must be a message of another variant)."""
+    m = decode_stream_message(data)
+    if not isinstance(m, PackedMessage):
+        return m
+    inner = decode_as(STREAM_MESSAGE, m.unpack())
+    if isinstance(inner, PackedMessage):
+        raise DecodeError("a packed message inside a packed message")
+    return inner
 
 
 def as_dict(message: Any) -> Any:

@@ -12,6 +12,12 @@ The server drops ticks a slow viewer has not read yet and sends the newest one i
 tick numbers may skip; "unchanged" always refers to the message this viewer last received, so
 applying the messages in order is always right.
 
+A q16 viewer may ask for ``temporal`` buffers (``TickDelta`` messages: a head's buffer as
+residuals against the last buffer it received for that head, with a keyframe at least every
+``keyframe_every`` ticks) and for ``compression`` (``"deflate"``, the standard library's zlib,
+or ``"zstd"``, the optional ``zstandard`` package: ``pip install 'crowdmorph[zstd]'``) of every
+message. The viewer decodes both: its ticks are the same, bit for bit, as a plain q16 viewer's.
+
 The WebSocket is the ``websockets`` package's synchronous client (version 11 or later), an
 optional dependency: ``pip install 'crowdmorph[sessions]'``. It is imported only when a
 stream is opened, so the rest of the package needs nothing but the standard library.
@@ -19,22 +25,29 @@ stream is opened, so the rest of the package needs nothing but the standard libr
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 import json
 import threading
 from typing import Any, Dict, Iterator, List, Mapping, Optional, Sequence, Union
 
+from . import arrays as _arrays
 from .errors import ProtocolError, StreamClosed, error_from_response
 from .messages import (
     HEAD_MISSING,
     HEAD_UNCHANGED,
+    MESSAGE_ENCODINGS,
     CameraSpec,
     ImageOptions,
+    PackedMessage,
     SessionHead,
+    TickDelta,
     TickFrame,
     TickVertices,
+    _zstandard,
     as_dict,
     decode_stream_message,
+    unpack_stream_message,
 )
 from .results import Buffer, Image
 from .wire import DecodeError
@@ -62,7 +75,14 @@ class Tick:
       ``clip``, ``frame`` played and ``lod``).
     - ``changed``: ids whose buffer this message brought; ``missing``: ids with nothing to
       draw (their rig or clip was deleted).
-    - ``message``: the raw :class:`~crowdmorph.messages.TickVertices`.
+    - ``message``: the raw :class:`~crowdmorph.messages.TickVertices` (or, for a ``temporal``
+      viewer, :class:`~crowdmorph.messages.TickDelta`, whose residual buffers are still
+      residual planes; decompressed when it came packed).
+    - ``wire_bytes``: bytes of the WebSocket message as received (compressed, when the viewer
+      asked for ``compression``); ``compression``: ``"zstd"``, ``"deflate"`` or ``None``.
+    - ``keyframes`` / ``from_residuals``: of the ``changed`` heads, how many got a plain buffer
+      and how many one decoded from residuals against their previous buffer (always 0 unless
+      the viewer asked for ``temporal``).
     """
 
     __slots__ = (
@@ -78,6 +98,10 @@ class Tick:
         "missing",
         "timings",
         "message",
+        "wire_bytes",
+        "compression",
+        "keyframes",
+        "from_residuals",
     )
 
     def __init__(self, **kw: Any):
@@ -100,12 +124,14 @@ class Tick:
 class StreamFrame:
     """One tick drawn by the server from the viewer's camera (``output="frames"``):
     ``tick`` and ``image`` (:class:`~crowdmorph.results.Image` bytes with ``width``,
-    ``height`` and ``content_type``); ``format`` is ``png``, ``jpeg`` or ``rgba``."""
+    ``height`` and ``content_type``); ``format`` is ``png``, ``jpeg`` or ``rgba``;
+    ``wire_bytes`` the bytes of the WebSocket message."""
 
-    __slots__ = ("tick", "format", "image", "message")
+    __slots__ = ("tick", "format", "image", "message", "wire_bytes")
 
-    def __init__(self, message: TickFrame):
+    def __init__(self, message: TickFrame, wire_bytes: int = 0):
         self.message = message
+        self.wire_bytes = wire_bytes
         self.tick: int = message.tick
         self.format: str = message.format
         img = Image(message.image)
@@ -191,83 +217,115 @@ class Viewer:
             if isinstance(data, str):
                 continue  # The server sends only binary messages; text is for later versions.
             try:
-                msg = decode_stream_message(data)
-            except DecodeError as e:
+                outer = decode_stream_message(data)
+                if isinstance(outer, PackedMessage):
+                    compression: Optional[str] = outer.encoding
+                    msg = unpack_stream_message(data)
+                else:
+                    compression, msg = None, outer
+            except (DecodeError, ImportError) as e:
                 raise ProtocolError(101, "bad_stream_message", str(e)) from e
             if isinstance(msg, TickFrame):
                 self.tick = msg.tick
-                return StreamFrame(msg)
-            return self._apply(msg)
+                return StreamFrame(msg, len(data))
+            return self._apply(msg, len(data), compression)
 
-    def _apply(self, m: TickVertices) -> Tick:
-        layout_changed = m.layout is not None
-        if m.layout is not None:
-            self.layout = m.layout
-            keep = {h.head for h in m.layout}
-            for d in (self.positions, self.normals, self.buffers):
-                for hid in [k for k in d if k not in keep]:
-                    del d[hid]
-            self._missing &= keep
+    def _apply(
+        self,
+        m: Union[TickVertices, TickDelta],
+        wire_bytes: int = 0,
+        compression: Optional[str] = None,
+    ) -> Tick:
+        """Applies one vertex message (as ``crowdmorph_proto::StreamState`` does): every layout
+        head gets its new buffer, keeps its last one (``HEAD_UNCHANGED``) or has none
+        (``HEAD_MISSING``); residual buffers decode against the head's last buffer. A message
+        that does not fit what came before raises :class:`ProtocolError` and changes
+        nothing."""
+
+        def bad(why: str) -> ProtocolError:
+            return ProtocolError(101, "bad_stream_message", f"tick {m.tick}: {why}")
+
+        residual: Optional[List[bool]] = None
+        if isinstance(m, TickDelta):
+            if m.format != "q16":
+                raise bad(f"a temporal message in {m.format}, not q16")
+            if len(m.residual) != len(m.buffers):
+                raise bad(f"{len(m.residual)} residual flags for {len(m.buffers)} buffers")
+            residual = m.residual
+        layout = self.layout if m.layout is None else m.layout
         ids = m.heads.head_ids
         entries = m.heads.buffer_indices
-        if len(ids) != len(self.layout):
-            raise ProtocolError(
-                101,
-                "bad_stream_message",
-                f"tick {m.tick}: {len(ids)} heads for a layout of {len(self.layout)}",
-            )
+        if len(ids) != len(layout):
+            raise bad(f"{len(ids)} heads for a layout of {len(layout)}")
+        prev = self.buffers
+        buffers: Dict[int, Buffer] = {}
         decoded: Dict[int, Buffer] = {}
+        # Per residual buffer: (previous buffer, decoded) pairs, so that heads that name it
+        # with the same previous buffer share one decoded buffer, as clones do.
+        resolved: Dict[int, List[Any]] = {}
+        missing_now = set(self._missing)
         changed: List[int] = []
         missing: List[int] = []
+        from_residuals = 0
         for i, (hid, b) in enumerate(zip(ids, entries)):
-            if hid != self.layout[i].head:
-                raise ProtocolError(
-                    101,
-                    "bad_stream_message",
-                    f"tick {m.tick}: head {hid} where the layout has {self.layout[i].head}",
-                )
+            if hid != layout[i].head:
+                raise bad(f"head {hid} where the layout has {layout[i].head}")
             if b == HEAD_UNCHANGED:
-                if hid not in self.buffers and hid not in self._missing:
-                    raise ProtocolError(
-                        101,
-                        "bad_stream_message",
-                        f"tick {m.tick}: head {hid} is unchanged but had nothing yet",
-                    )
-                if hid in self._missing:
+                if hid in prev:
+                    buffers[hid] = prev[hid]
+                elif hid in missing_now:
                     missing.append(hid)
+                else:
+                    raise bad(f"head {hid} is unchanged but had nothing yet")
                 continue
             if b == HEAD_MISSING:
-                self.positions.pop(hid, None)
-                self.normals.pop(hid, None)
-                self.buffers.pop(hid, None)
-                self._missing.add(hid)
+                missing_now.add(hid)
                 missing.append(hid)
                 continue
-            buf = decoded.get(b)
-            if buf is None:
-                if b >= len(m.buffers):
-                    raise ProtocolError(
-                        101,
-                        "bad_stream_message",
-                        f"tick {m.tick}: head {hid} names buffer {b} of {len(m.buffers)}",
-                    )
-                try:
-                    buf = decoded[b] = Buffer(m.buffers[b], m.format, self.backend)
-                except ValueError as e:
-                    raise ProtocolError(101, "bad_stream_message", str(e)) from e
-            self._missing.discard(hid)
-            self.buffers[hid] = buf
-            self.positions[hid] = buf.positions
-            if buf.normals is not None:
-                self.normals[hid] = buf.normals
+            if b >= len(m.buffers):
+                raise bad(f"head {hid} names buffer {b} of {len(m.buffers)}")
+            if residual is not None and residual[b]:
+                before = prev.get(hid)
+                if before is None:
+                    raise bad(f"head {hid} has residuals but no earlier buffer")
+                buf = None
+                pairs = resolved.setdefault(b, [])
+                for other, done in pairs:
+                    if other is before or _same_values(other, before):
+                        buf = done
+                        break
+                if buf is None:
+                    try:
+                        buf = _resolve(m.buffers[b], before, self.backend)
+                    except ValueError as e:
+                        raise bad(f"head {hid}: {e}") from e
+                    pairs.append((before, buf))
+                from_residuals += 1
+            else:
+                buf = decoded.get(b)
+                if buf is None:
+                    try:
+                        buf = decoded[b] = Buffer(m.buffers[b], m.format, self.backend)
+                    except ValueError as e:
+                        raise ProtocolError(101, "bad_stream_message", str(e)) from e
+            missing_now.discard(hid)
+            buffers[hid] = buf
             changed.append(hid)
+        # Everything decoded: the new state.
+        self.layout = layout
+        self._missing = missing_now & {h.head for h in layout}
+        self.buffers = buffers
+        self.positions = {hid: buf.positions for hid, buf in buffers.items()}
+        self.normals = {
+            hid: buf.normals for hid, buf in buffers.items() if buf.normals is not None
+        }
         self.tick = m.tick
         return Tick(
             tick=m.tick,
             format=m.format,
             normals_included=m.normals,
             layout=self.layout,
-            layout_changed=layout_changed,
+            layout_changed=m.layout is not None,
             positions=dict(self.positions),
             normals=dict(self.normals),
             buffers=dict(self.buffers),
@@ -275,6 +333,10 @@ class Viewer:
             missing=missing,
             timings=m.timings,
             message=m,
+            wire_bytes=wire_bytes,
+            compression=compression,
+            keyframes=len(changed) - from_residuals,
+            from_residuals=from_residuals,
         )
 
     # -- control ------------------------------------------------------------------------------
@@ -340,6 +402,30 @@ class Viewer:
         return f"Viewer(session={self.session!r}, tick={self.tick}, heads={len(self.layout)})"
 
 
+def _resolve(fb: Any, before: Buffer, backend: str) -> Buffer:
+    """The buffer a head draws from the residual planes ``fb`` (a ``FrameBuffer`` of a
+    ``TickDelta``) against ``before``, the head's previous buffer (q16): its positions, and
+    its normals when ``fb`` has them, decode with ``q16r`` against the previous ones; the
+    rest (rig, clip, frame, LOD, box) is ``fb``'s."""
+    positions = _arrays.q16r_decode(fb.positions, before.wire.positions)
+    normals = None
+    if fb.normals is not None:
+        if before.wire.normals is None:
+            raise ValueError("residual normals but no earlier normals")
+        normals = _arrays.q16r_decode(fb.normals, before.wire.normals)
+    return Buffer(dataclasses.replace(fb, positions=positions, normals=normals), "q16", backend)
+
+
+def _same_values(a: Buffer, b: Buffer) -> bool:
+    """Whether two q16 buffers hold the same values (the same reference for residuals)."""
+    wa, wb = a.wire, b.wire
+    if wa.positions != wb.positions:
+        return False
+    if (wa.normals is None) != (wb.normals is None):
+        return False
+    return wa.normals is None or wa.normals == wb.normals
+
+
 def camera_json(camera: Union[CameraSpec, Mapping[str, Any]]) -> Dict[str, Any]:
     """A camera as the hello's JSON (a :class:`CameraSpec` or a dict of its fields)."""
     if isinstance(camera, CameraSpec):
@@ -368,8 +454,18 @@ def hello(
     camera: Optional[Union[CameraSpec, Mapping[str, Any]]] = None,
     output: str = "vertices",
     image: Optional[Union[ImageOptions, Mapping[str, Any]]] = None,
+    temporal: bool = False,
+    keyframe_every: Optional[int] = None,
+    compression: Optional[str] = None,
 ) -> Dict[str, Any]:
-    """The ``ViewerHello`` JSON object a viewer sends first."""
+    """The ``ViewerHello`` JSON object a viewer sends first.
+
+    ``temporal``, ``keyframe_every`` and ``compression`` are sent only when set (an older
+    server then sees the hello it knows). Which combinations a stream can give (``temporal``
+    needs ``format="q16"`` and vertices; ``keyframe_every`` 1..=3600 needs ``temporal``) is
+    the server's to say: it refuses the others with close 1008 and the reason.
+    ``compression="zstd"`` needs the ``zstandard`` package (:class:`ImportError` saying what
+    to install, before any connection)."""
     if output not in ("vertices", "frames"):
         raise ValueError(f"output must be 'vertices' or 'frames', not {output!r}")
     if format not in ("f32", "f16", "q16"):
@@ -389,6 +485,20 @@ def hello(
             msg["image"] = dict(image)
         else:
             raise TypeError(f"image is ImageOptions or a dict, not {type(image).__name__}")
+    if not isinstance(temporal, bool):
+        raise TypeError(f"temporal is a bool, not {type(temporal).__name__}")
+    if temporal:
+        msg["temporal"] = True
+    if keyframe_every is not None:
+        if isinstance(keyframe_every, bool) or not isinstance(keyframe_every, int):
+            raise TypeError(f"keyframe_every is an int, not {type(keyframe_every).__name__}")
+        msg["keyframe_every"] = keyframe_every
+    if compression is not None:
+        if compression not in MESSAGE_ENCODINGS:
+            raise ValueError(f"compression must be 'zstd', 'deflate' or None, not {compression!r}")
+        if compression == "zstd":
+            _zstandard()
+        msg["compression"] = compression
     return msg
 
 
@@ -422,10 +532,13 @@ def open_viewer(
     the hello ``settings`` and returns its :class:`Viewer` (arrays of ``backend``).
 
     ``token`` is sent as ``Authorization: Bearer``; ``timeout`` bounds the handshake and each
-    wait for a message; ``max_message`` is the largest message taken (``None``: any). No
-    compression is offered (vertex payloads do not shrink), proxies are not used (as by
+    wait for a message; ``max_message`` is the largest message taken (``None``: any; a
+    packed message counts at its compressed size). No WebSocket compression is offered (the
+    hello's ``compression`` packs messages instead), proxies are not used (as by
     :class:`~crowdmorph.Client`'s HTTP calls), and no keepalive pings are sent (a viewer that
-    stops reading would otherwise miss their answers and be closed).
+    stops reading would otherwise miss their answers and be closed). A hello asking for
+    ``"compression": "zstd"`` without the ``zstandard`` package raises :class:`ImportError`
+    before connecting.
 
     A refused handshake raises the :class:`~crowdmorph.errors.CrowdmorphError` of the server's
     JSON error body (a stream of an unknown session is a 404 ``unknown_session``); a broken
@@ -433,6 +546,8 @@ def open_viewer(
     :class:`OSError`. Without ``websockets`` this raises :class:`ImportError`.
     """
     ws_mod = _websockets()
+    if settings.get("compression") == "zstd":
+        _zstandard()  # Before connecting: what to install, not a stream that cannot be read.
     client = ws_mod.sync.client
     exc = ws_mod.exceptions
     options: Dict[str, Any] = {
