@@ -181,7 +181,12 @@ struct Group {
 /// any of it is built.
 fn tick_bookkeeping_bytes(heads: usize, viewers: usize) -> u64 {
     let groups = viewers.min(6);
-    let per_viewer = size_of::<Option<u32>>() + size_of::<HeadKey>() + 2 * size_of::<u32>();
+    // A temporal viewer also builds its next baseline's map of references (the last one is
+    // alive until the socket takes the message): two map entries per head.
+    let per_viewer = size_of::<Option<u32>>()
+        + size_of::<HeadKey>()
+        + 2 * size_of::<u32>()
+        + 2 * (size_of::<(u64, crate::server::sessions::HeadPrev)>() + 16);
     let per_group = 2 * (size_of::<JobRequest>() + size_of::<Key>())
         + 3 * (size_of::<Key>() + size_of::<u32>() + 1);
     let per_head = size_of::<Option<HeadAt>>() + viewers * per_viewer + groups * per_group;
