@@ -240,7 +240,8 @@ export function decodeStreamMessage(buffer) {
   const r = new Reader(buffer);
   const variant = r.varint();
   let msg;
-  if (variant === 0) {
+  if (variant === 0 || variant === 2) {
+    // TickVertices, or TickDelta: the same fields with a residual flag per buffer.
     msg = {
       kind: 'vertices',
       variant,
@@ -248,11 +249,17 @@ export function decodeStreamMessage(buffer) {
       format: r.enumIndex(FORMATS, 'Format'),
       normals: r.bool(),
       layout: r.option(() => r.vec(() => sessionHead(r))),
-      residual: null,
+      residual: variant === 2 ? r.vec(() => r.bool()) : null,
       buffers: r.vec(() => frameBuffer(r)),
       heads: r.vec(() => headBuffer(r)),
       timings: timings(r),
     };
+    if (variant === 2) {
+      if (msg.format !== 'q16') throw new DecodeError(`a temporal message in ${msg.format}, not q16`);
+      if (msg.residual.length !== msg.buffers.length) {
+        throw new DecodeError(`${msg.residual.length} residual flags for ${msg.buffers.length} buffers`);
+      }
+    }
     checkBuffers(msg);
   } else if (variant === 1) {
     msg = {
@@ -264,24 +271,6 @@ export function decodeStreamMessage(buffer) {
       height: r.u32(),
       image: r.blob(),
     };
-  } else if (variant === 2) {
-    msg = {
-      kind: 'vertices',
-      variant,
-      tick: r.varint(),
-      format: r.enumIndex(FORMATS, 'Format'),
-      normals: r.bool(),
-      layout: r.option(() => r.vec(() => sessionHead(r))),
-      residual: r.vec(() => r.bool()),
-      buffers: r.vec(() => frameBuffer(r)),
-      heads: r.vec(() => headBuffer(r)),
-      timings: timings(r),
-    };
-    if (msg.format !== 'q16') throw new DecodeError(`a temporal message in ${msg.format}, not q16`);
-    if (msg.residual.length !== msg.buffers.length) {
-      throw new DecodeError(`${msg.residual.length} residual flags for ${msg.buffers.length} buffers`);
-    }
-    checkBuffers(msg);
   } else if (variant === 3) {
     msg = {
       kind: 'packed',

@@ -128,6 +128,15 @@ pub struct NewEntry {
 }
 
 impl RigEntry {
+    /// The clip and frame a buffer of `pose` names: a blend its largest term, live weights
+    /// no clip (`""`, 0).
+    pub(crate) fn shown(&self, pose: &crate::rig::Pose) -> (&str, u32) {
+        match pose.shown() {
+            Some((c, f)) => (self.rig().clips[c as usize].name.as_str(), f),
+            None => ("", 0),
+        }
+    }
+
     /// A first generation of a rig.
     pub fn new(e: NewEntry) -> RigEntry {
         let rig = e.prepared.rig();

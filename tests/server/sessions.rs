@@ -90,8 +90,8 @@ pub(super) async fn connect(server: &TestServer, id: &str, hello: Value) -> Ws {
     ws
 }
 
-/// The next tick message; panics on a close or a timeout.
-pub(super) async fn next_tick(ws: &mut Ws) -> TickVertices {
+/// The next binary message; panics on a close or a timeout.
+pub(super) async fn next_raw(ws: &mut Ws) -> Bytes {
     loop {
         let msg = tokio::time::timeout(READ, ws.next())
             .await
@@ -99,19 +99,23 @@ pub(super) async fn next_tick(ws: &mut Ws) -> TickVertices {
             .expect("stream open")
             .expect("message");
         match msg {
-            Message::Binary(b) => {
-                let m: StreamMessage =
-                    crowdmorph_proto::wire::response_from_bincode(&b).expect("StreamMessage");
-                match m {
-                    StreamMessage::Vertices(v) => return v,
-                    StreamMessage::Frame(_) => panic!("asked for vertices, got a frame"),
-                    StreamMessage::Delta(_) | StreamMessage::Packed(_) => {
-                        panic!("asked for plain vertices, got residuals or a packed message")
-                    }
-                }
-            }
+            Message::Binary(b) => return b,
             Message::Close(c) => panic!("closed: {c:?}"),
             _ => {}
+        }
+    }
+}
+
+/// The next tick message; panics on a close or a timeout.
+pub(super) async fn next_tick(ws: &mut Ws) -> TickVertices {
+    let b = next_raw(ws).await;
+    let m: StreamMessage =
+        crowdmorph_proto::wire::response_from_bincode(&b).expect("StreamMessage");
+    match m {
+        StreamMessage::Vertices(v) => v,
+        StreamMessage::Frame(_) => panic!("asked for vertices, got a frame"),
+        StreamMessage::Delta(_) | StreamMessage::Packed(_) => {
+            panic!("asked for plain vertices, got residuals or a packed message")
         }
     }
 }

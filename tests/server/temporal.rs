@@ -6,31 +6,14 @@
 use std::collections::{BTreeMap, HashMap};
 use std::time::Duration;
 
-use bytes::Bytes;
 use crowdmorph_client::Method;
 use crowdmorph_proto::{StreamMessage, StreamState};
-use futures_util::{SinkExt, StreamExt};
+use futures_util::SinkExt;
 use serde_json::{Value, json};
 use tokio_tungstenite::tungstenite::Message;
 
 use super::TestServer;
-use super::sessions::{READ, Ws, call, connect, create, head};
-
-/// The next binary message; panics on a close or a timeout.
-async fn next_raw(ws: &mut Ws) -> Bytes {
-    loop {
-        let msg = tokio::time::timeout(READ, ws.next())
-            .await
-            .expect("a tick within the timeout")
-            .expect("stream open")
-            .expect("message");
-        match msg {
-            Message::Binary(b) => return b,
-            Message::Close(c) => panic!("closed: {c:?}"),
-            _ => {}
-        }
-    }
-}
+use super::sessions::{Ws, call, connect, create, head, next_raw};
 
 /// Per head id, its q16 positions and normals bytes.
 type Decoded = BTreeMap<u64, (Vec<u8>, Option<Vec<u8>>)>;

@@ -315,11 +315,7 @@ async fn encode(
         .zip(&outcome.outputs)
         .map(|(k, out)| {
             let entry = &rigs[k.rig as usize];
-            // A blend names its largest term; live weights name no clip.
-            let (clip, frame) = match k.pose.shown() {
-                Some((c, f)) => (entry.rig().clips[c as usize].name.as_str(), f),
-                None => ("", 0),
-            };
+            let (clip, frame) = entry.shown(&k.pose);
             FrameBufferParts {
                 rig: &entry.id,
                 clip,

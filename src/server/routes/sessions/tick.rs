@@ -792,11 +792,7 @@ impl MessageContent<'_> {
     fn part(&self, e: u32, positions: Bytes, normals: Option<Bytes>) -> FrameBufferParts<'_> {
         let (r, pose, l) = &self.group.keys[e as usize];
         let entry = &self.rigs[*r as usize];
-        // A blend names its largest term; live weights name no clip.
-        let (clip, frame) = match pose.shown() {
-            Some((c, f)) => (entry.rig().clips[c as usize].name.as_str(), f),
-            None => ("", 0),
-        };
+        let (clip, frame) = entry.shown(pose);
         FrameBufferParts {
             rig: &entry.id,
             clip,
