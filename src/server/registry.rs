@@ -48,6 +48,9 @@ pub struct RigEntry {
     pub charge: Mutex<Charge>,
     /// The rig's clips by name, built on the first lookup (see [`RigEntry::clip_index`]).
     pub clip_names: std::sync::OnceLock<crate::rig::ClipIndex>,
+    /// The q16 references of [`Format::Q16R`](crowdmorph_proto::Format::Q16R) buffers, one
+    /// per mesh level asked for, by the level's address (see [`RigEntry::q16_reference`]).
+    q16_references: Mutex<Vec<(usize, Arc<[i16]>)>>,
 }
 
 /// Where a rig's clips are stored (see [`crate::store`]): some in the rig's record (for the
@@ -151,6 +154,7 @@ impl RigEntry {
             layout: e.layout,
             charge: Mutex::new(e.charge),
             clip_names: Default::default(),
+            q16_references: Default::default(),
         }
     }
 
@@ -195,7 +199,40 @@ impl RigEntry {
             layout,
             charge: Mutex::new(charge),
             clip_names: Default::default(),
+            q16_references: Default::default(),
         }
+    }
+
+    /// The q16 reference of mesh level `level` (one of this generation's prepared levels):
+    /// `compute`d on its first use, then kept with the generation and added to its memory
+    /// charge (a new generation starts over, its charge set from what it holds). Computing it
+    /// per batch cost a single-head blend per batch, 2.5 µs per head at 24 heads a batch.
+    pub(crate) fn q16_reference(
+        &self,
+        level: &PreparedRig,
+        compute: impl FnOnce() -> Result<Vec<i16>, String>,
+    ) -> Result<Arc<[i16]>, String> {
+        let key = std::ptr::from_ref(level) as usize;
+        let kept = |refs: &Vec<(usize, Arc<[i16]>)>| {
+            refs.iter().find(|(k, _)| *k == key).map(|(_, r)| r.clone())
+        };
+        if let Some(r) = self.q16_references.lock().ok().and_then(|g| kept(&g)) {
+            return Ok(r);
+        }
+        let r: Arc<[i16]> = compute()?.into();
+        let Ok(mut refs) = self.q16_references.lock() else {
+            return Ok(r);
+        };
+        if let Some(other) = kept(&refs) {
+            // Another batch computed it meanwhile: the same values.
+            return Ok(other);
+        }
+        refs.push((key, r.clone()));
+        if let Ok(mut c) = self.charge.lock() {
+            let bytes = c.bytes() + size_of_val(&*r) as u64;
+            c.set(bytes);
+        }
+        Ok(r)
     }
 
     /// Moves this generation's memory charge out, for the generation that replaces it.

@@ -973,28 +973,46 @@ fn to_residuals(group: &WorkGroup, positions: &mut VertexData, v3: usize) -> Res
         return Ok(());
     };
     let target = group.entry.prepared.at_level(first.lod);
-    let zero = vec![vec![0f32; target.rig().targets.len()]];
-    let batch = crate::engine::WeightBatch::from_target_weights(target.rig(), &zero, 0)
-        .map_err(|e| e.to_string())?;
-    let spec = OutputSpec {
-        normals: false,
-        precision: group.spec.precision,
-    };
-    let reference = target
-        .cpu()
-        .evaluate(&batch, spec)
-        .map_err(|e| e.to_string())?;
-    let (VertexData::Q16(r, _), VertexData::Q16(q, _)) = (&reference.positions, positions) else {
+    let precision = group.spec.precision;
+    let r = group.entry.q16_reference(target, || {
+        let zero = vec![vec![0f32; target.rig().targets.len()]];
+        let batch = crate::engine::WeightBatch::from_target_weights(target.rig(), &zero, 0)
+            .map_err(|e| e.to_string())?;
+        let spec = OutputSpec {
+            normals: false,
+            precision,
+        };
+        match target.cpu().evaluate(&batch, spec) {
+            Ok(out) => match out.positions {
+                VertexData::Q16(r, _) => Ok(r),
+                _ => Err("a q16 reference that is not q16".to_string()),
+            },
+            Err(e) => Err(e.to_string()),
+        }
+    })?;
+    let r = &*r;
+    let VertexData::Q16(q, _) = positions else {
         return Err("q16 residuals of a buffer that is not q16".into());
     };
     if r.len() != v3 {
         return Err(format!("a reference of {} components for {v3}", r.len()));
     }
-    let mut planes = vec![0u8; 2 * v3];
-    for job in q.chunks_exact_mut(v3) {
-        crowdmorph_proto::q16r_encode(job, r, &mut planes);
-        bytemuck::cast_slice_mut::<i16, u8>(job).copy_from_slice(&planes);
+    // On every core, as the blend was: on the compute thread alone the coding took as long as
+    // the blend of the whole group and cost a third of q16's heads/s over loopback. Each
+    // worker codes a job into its own scratch (the planes interleave, so not in place), kept
+    // between batches (a fresh one per job was page faults), then copies the planes over the
+    // job's components.
+    use rayon::prelude::*;
+    thread_local! {
+        static PLANES: std::cell::RefCell<Vec<u8>> = const { std::cell::RefCell::new(Vec::new()) };
     }
+    q.par_chunks_exact_mut(v3).for_each(|job| {
+        PLANES.with_borrow_mut(|planes| {
+            planes.resize(2 * v3, 0);
+            crowdmorph_proto::q16r_encode(job, r, planes);
+            bytemuck::cast_slice_mut::<i16, u8>(job).copy_from_slice(planes);
+        });
+    });
     Ok(())
 }
 
