@@ -33,7 +33,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use bytes::Bytes;
-use crowdmorph_client::{Client, Encoding};
+use crowdmorph_client::{Client, Compression, Encoding};
 use crowdmorph_proto::{CrowdFrameRequest, Format, Head, OutputOptions};
 use hdrhistogram::Histogram;
 use serde::Serialize;
@@ -73,6 +73,11 @@ pub struct HttpBenchOptions {
     pub python_compute: String,
     /// The server's `--max-gpu-memory` (`None`: the default), also the in-process engine's.
     pub gpu_memory: Option<u64>,
+    /// Clips to upload to the rig first (`.csv` or `.json` files, named by file stem); the
+    /// link benchmark plays these instead of the rig's own.
+    pub clips: Option<std::path::PathBuf>,
+    /// Shaped links for [`bench_http_links`].
+    pub links: Vec<super::link::LinkSpec>,
 }
 
 impl Default for HttpBenchOptions {
@@ -87,6 +92,8 @@ impl Default for HttpBenchOptions {
             python_peer: None,
             python_compute: "thread".to_string(),
             gpu_memory: None,
+            clips: None,
+            links: Vec::new(),
         }
     }
 }
@@ -263,6 +270,8 @@ struct Saturation {
     /// Process CPU seconds over the measured window.
     cpu_s: f64,
     requests: u64,
+    /// Response body bytes as they came over the wire, of the counted requests.
+    wire_bytes: u64,
 }
 
 /// `clients` connections send `bodies` (cycled) back to back for `seconds` after a 0.5 s
@@ -278,6 +287,7 @@ async fn saturate(
     seconds: f64,
 ) -> Result<Saturation> {
     let counter = Arc::new(AtomicU64::new(0));
+    let wire = Arc::new(AtomicU64::new(0));
     let errors = Arc::new(AtomicU64::new(0));
     let warm_until = Instant::now() + Duration::from_millis(500);
     let end = warm_until + Duration::from_secs_f64(seconds);
@@ -286,6 +296,7 @@ async fn saturate(
         let client = client.clone();
         let bodies = bodies.clone();
         let counter = counter.clone();
+        let wire = wire.clone();
         let errors = errors.clone();
         let heads = heads as u64;
         tasks.push(tokio::spawn(async move {
@@ -296,9 +307,10 @@ async fn saturate(
                 let body = bodies[i % bodies.len()].clone();
                 i += 7;
                 match client.crowd_frame_drain(body, enc).await {
-                    Ok((200, _)) => {
+                    Ok((200, len)) => {
                         if t >= warm_until && Instant::now() <= end {
                             counter.fetch_add(heads, Ordering::Relaxed);
+                            wire.fetch_add(len as u64, Ordering::Relaxed);
                             hist.record(t.elapsed().as_micros() as u64)?;
                         }
                     }
@@ -326,6 +338,7 @@ async fn saturate(
         errors: errors.load(Ordering::Relaxed),
         cpu_s,
         requests: (counted / heads.max(1) as u64).max(1),
+        wire_bytes: wire.load(Ordering::Relaxed),
     })
 }
 
@@ -441,53 +454,9 @@ fn crowd(
 /// and reads, in this process's runtime (as the server and client share it): the roofline for
 /// moving response bytes from a server to its clients on this machine.
 async fn loopback_throughput(connections: usize, seconds: f64) -> Result<f64> {
-    use tokio::io::{AsyncReadExt, AsyncWriteExt};
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
     let addr = listener.local_addr()?;
-    let deadline = Instant::now() + Duration::from_secs_f64(seconds);
-    let n = connections.max(1);
-    let writers = tokio::spawn(async move {
-        let mut tasks = Vec::new();
-        for _ in 0..n {
-            let (mut tcp, _) = listener.accept().await?;
-            tcp.set_nodelay(true)?;
-            tasks.push(tokio::spawn(async move {
-                let chunk = vec![7u8; 1 << 20];
-                while Instant::now() < deadline {
-                    tcp.write_all(&chunk).await?;
-                }
-                anyhow::Ok(())
-            }));
-        }
-        for t in tasks {
-            t.await??;
-        }
-        anyhow::Ok(())
-    });
-    let start = Instant::now();
-    let mut readers = Vec::new();
-    for _ in 0..n {
-        let mut tcp = tokio::net::TcpStream::connect(addr).await?;
-        readers.push(tokio::spawn(async move {
-            let mut buf = vec![0u8; 1 << 20];
-            let mut total = 0usize;
-            loop {
-                let got = tcp.read(&mut buf).await?;
-                if got == 0 {
-                    break;
-                }
-                total += got;
-            }
-            anyhow::Ok(total)
-        }));
-    }
-    let mut total = 0usize;
-    for r in readers {
-        total += r.await??;
-    }
-    let elapsed = start.elapsed().as_secs_f64();
-    writers.await??;
-    Ok(total as f64 / elapsed)
+    super::link::tcp_throughput(listener, addr, connections, seconds).await
 }
 
 /// CPU seconds (user + system) this process has used so far, all threads together.
@@ -592,8 +561,9 @@ pub fn bench_http(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<
     runtime.block_on(run(rig_bytes, opt))
 }
 
-async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpBenchReport> {
-    let config = ServerConfig {
+/// The server of both HTTP benchmarks.
+fn bench_config(opt: &HttpBenchOptions) -> ServerConfig {
+    ServerConfig {
         max_heads: opt.heads.max(1000),
         request_timeout: Duration::from_secs(60),
         backend: opt.backend,
@@ -604,7 +574,10 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
         // Frames only: no rendering device to open.
         render_backend: crate::server::RenderBackend::Off,
         ..ServerConfig::default()
-    };
+    }
+}
+
+async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpBenchReport> {
     let BenchServer {
         state,
         addr,
@@ -612,7 +585,10 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
         rig_id,
         stop_tx,
         server,
-    } = BenchServer::start(config, rig_bytes).await?;
+    } = BenchServer::start(bench_config(opt), rig_bytes).await?;
+    if let Some(dir) = &opt.clips {
+        super::server::upload_clips(&client, &rig_id, dir).await?;
+    }
     let entry = state
         .registry
         .get(&rig_id)
@@ -649,12 +625,9 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
                 .crowd_frame_raw(body.clone(), Encoding::Bincode)
                 .await?;
             let mut wire = [0f64; 2];
-            for (i, c) in [
-                crowdmorph_client::Compression::Zstd,
-                crowdmorph_client::Compression::Gzip,
-            ]
-            .into_iter()
-            .enumerate()
+            for (i, c) in [Compression::Zstd, Compression::Gzip]
+                .into_iter()
+                .enumerate()
             {
                 let r = Client::new(client.base())
                     .with_compression(c)
@@ -878,6 +851,290 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
         mean_batch_jobs: computed as f64 / batches as f64,
         sizes,
     })
+}
+
+/// The encodings `bench http --link` measures on every route: format, then compression.
+const LINK_ENCODINGS: [(Format, Option<Compression>); 6] = [
+    (Format::F32, None),
+    (Format::Q16, None),
+    (Format::Q16, Some(Compression::Zstd)),
+    (Format::Q16R, None),
+    (Format::Q16R, Some(Compression::Gzip)),
+    (Format::Q16R, Some(Compression::Zstd)),
+];
+
+/// One route and encoding of `bench http --link`.
+#[derive(Debug, Serialize)]
+pub struct LinkRow {
+    /// `loopback` or the link's rate.
+    pub route: String,
+    /// Format, and `+ zstd` or `+ gzip` when the responses were compressed.
+    pub encoding: String,
+    /// Unique heads per second at saturation (every head of a request is unique).
+    pub heads_per_s: f64,
+    /// Response bytes per head as they came over the wire.
+    pub bytes_per_head: f64,
+    /// The route's plain TCP throughput ÷ bytes per head: the most any server could send.
+    pub route_limit_heads_per_s: f64,
+    /// `heads_per_s` ÷ q16's on the same route (goals: ≥ 3 for the best encoding over
+    /// 1 Gbit/s; over loopback no format below 0.9).
+    pub over_q16: f64,
+    /// Process CPU (server and client) per head, microseconds.
+    pub cpu_us_per_head: f64,
+    /// Requests that failed.
+    pub errors: u64,
+}
+
+/// `bench http --link`: heads per second and bytes per head of each encoding on loopback and
+/// over each shaped link, on real clips.
+#[derive(Debug, Serialize)]
+pub struct LinkBenchReport {
+    /// The engine.
+    pub backend: crate::engine::BackendInfo,
+    /// Rig name.
+    pub rig: String,
+    /// Vertices per head.
+    pub vertices: usize,
+    /// Heads per request, all unique.
+    pub heads: usize,
+    /// Connections.
+    pub clients: usize,
+    /// Seconds per measurement.
+    pub seconds: f64,
+    /// The clips played.
+    pub clips: Vec<String>,
+    /// The routes, with their measured TCP throughput.
+    pub routes: Vec<super::link::Route>,
+    /// Why the shaped links were skipped, when they were.
+    pub skipped: Option<String>,
+    /// One row per route and encoding.
+    pub rows: Vec<LinkRow>,
+}
+
+/// Runs `bench http --link`: `rig_bytes` is a GLB/glTF to upload, or `None` for the embedded
+/// head.
+pub fn bench_http_links(
+    rig_bytes: Option<Vec<u8>>,
+    opt: &HttpBenchOptions,
+) -> Result<LinkBenchReport> {
+    if opt.heads == 0 {
+        bail!("need heads >= 1");
+    }
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("starting the tokio runtime")?;
+    runtime.block_on(run_links(rig_bytes, opt))
+}
+
+/// A crowd of `opt.heads` unique heads: head `h` of request `i` plays pair
+/// `(i + h × pairs ÷ heads) mod pairs` of every (clip, frame) of the clips played, so that
+/// the heads of one response are spread over the clips, not consecutive frames that a
+/// compressor would find in each other.
+fn real_crowd(
+    opt: &HttpBenchOptions,
+    rig_id: &str,
+    pairs: &[(String, u32)],
+    i: usize,
+    format: Format,
+) -> CrowdFrameRequest {
+    CrowdFrameRequest {
+        heads: (0..opt.heads)
+            .map(|h| {
+                let (clip, frame) = &pairs[(i + h * (pairs.len() / opt.heads)) % pairs.len()];
+                Head {
+                    head: h as u64,
+                    rig: rig_id.to_string(),
+                    clip: clip.clone(),
+                    frame: i64::from(*frame),
+                    lod: 0,
+                    ..Default::default()
+                }
+            })
+            .collect(),
+        output: OutputOptions {
+            normals: false,
+            format,
+        },
+        wrap: true,
+    }
+}
+
+async fn run_links(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<LinkBenchReport> {
+    let BenchServer {
+        state,
+        addr,
+        client,
+        rig_id,
+        stop_tx,
+        server,
+    } = BenchServer::start(bench_config(opt), rig_bytes).await?;
+    let uploaded = match &opt.clips {
+        Some(dir) => Some(super::server::upload_clips(&client, &rig_id, dir).await?),
+        None => None,
+    };
+    let entry = state
+        .registry
+        .get(&rig_id)
+        .context("the rig is not registered")?;
+    let rig = entry.rig();
+    let played: Vec<&crate::rig::Clip> = rig
+        .clips
+        .iter()
+        .filter(|c| uploaded.as_ref().is_none_or(|u| u.contains(&c.name)))
+        .collect();
+    let pairs: Vec<(String, u32)> = played
+        .iter()
+        .flat_map(|c| (0..c.frames).map(|f| (c.name.clone(), f)))
+        .collect();
+    if pairs.len() < opt.heads {
+        bail!(
+            "the clips played have {} frames in all, fewer than --heads {}: give --clips DIR",
+            pairs.len(),
+            opt.heads
+        );
+    }
+    let bodies: Vec<Arc<Vec<Bytes>>> = [Format::F32, Format::Q16, Format::Q16R]
+        .into_iter()
+        .map(|format| {
+            (0..64)
+                .map(|i| {
+                    Client::encode(
+                        &real_crowd(opt, &rig_id, &pairs, i, format),
+                        Encoding::Bincode,
+                    )
+                })
+                .collect::<Result<Vec<_>, _>>()
+                .map(Arc::new)
+        })
+        .collect::<Result<_, _>>()?;
+    let routes =
+        super::link::Routes::open(&state, addr, &opt.links, opt.clients, opt.seconds.min(2.0))
+            .await?;
+    let measured = measure_routes(opt, &routes.routes, &bodies).await;
+    let (route_list, skipped) = (routes.routes.clone(), routes.skipped.clone());
+    routes.close().await;
+    let _ = stop_tx.send(());
+    server.await??;
+    Ok(LinkBenchReport {
+        backend: state.engine.info(),
+        rig: rig.name.clone(),
+        vertices: entry.vertices,
+        heads: opt.heads,
+        clients: opt.clients,
+        seconds: opt.seconds,
+        clips: played.iter().map(|c| c.name.clone()).collect(),
+        routes: route_list,
+        skipped,
+        rows: measured?,
+    })
+}
+
+/// Every encoding of [`LINK_ENCODINGS`] on every route, one saturation run each.
+async fn measure_routes(
+    opt: &HttpBenchOptions,
+    routes: &[super::link::Route],
+    bodies: &[Arc<Vec<Bytes>>],
+) -> Result<Vec<LinkRow>> {
+    let mut rows = Vec::new();
+    for route in routes {
+        let first = rows.len();
+        for (format, compression) in LINK_ENCODINGS {
+            let mut client = Client::new(format!("http://{}", route.addr));
+            if let Some(c) = compression {
+                client = client.with_compression(c);
+            }
+            let bodies = &bodies[match format {
+                Format::F32 => 0,
+                Format::Q16R => 2,
+                _ => 1,
+            }];
+            let sat = saturate(
+                &client,
+                bodies,
+                Encoding::Bincode,
+                opt.heads,
+                opt.clients,
+                opt.seconds,
+            )
+            .await?;
+            let heads = (sat.heads_per_s * opt.seconds).max(1.0);
+            let bytes_per_head = sat.wire_bytes as f64 / heads;
+            rows.push(LinkRow {
+                route: route.name.clone(),
+                encoding: match compression {
+                    Some(c) => format!("{} + {}", format.name(), c.token()),
+                    None => format.name().to_string(),
+                },
+                heads_per_s: sat.heads_per_s,
+                bytes_per_head,
+                route_limit_heads_per_s: route.tcp_bytes_per_s / bytes_per_head.max(1.0),
+                // Filled in below, once q16 is measured.
+                over_q16: 0.0,
+                cpu_us_per_head: sat.cpu_s * 1e6 / heads,
+                errors: sat.errors,
+            });
+        }
+        let on_route = &mut rows[first..];
+        if let Some(q16) = on_route.iter().find(|r| r.encoding == Format::Q16.name()) {
+            let q16 = q16.heads_per_s.max(1e-9);
+            for r in on_route {
+                r.over_q16 = r.heads_per_s / q16;
+            }
+        }
+    }
+    Ok(rows)
+}
+
+/// The link report as text.
+impl std::fmt::Display for LinkBenchReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        writeln!(
+            f,
+            "bench http --link: rig {:?} ({} vertices), {} unique heads per request, {} connections, {:.1} s each; engine {:?}; clips {}",
+            self.rig,
+            self.vertices,
+            self.heads,
+            self.clients,
+            self.seconds,
+            self.backend.kind,
+            self.clips.join(", ")
+        )?;
+        if let Some(why) = &self.skipped {
+            writeln!(f, "  shaped links skipped: {why}")?;
+        }
+        for route in &self.routes {
+            writeln!(
+                f,
+                "  {:<9} plain TCP carries {:.1} MB/s{}",
+                route.name,
+                route.tcp_bytes_per_s / 1e6,
+                route
+                    .bits_per_s
+                    .map(|b| format!(" (shaped at {:.1} MB/s)", b as f64 / 8e6))
+                    .unwrap_or_default()
+            )?;
+            writeln!(
+                f,
+                "    {:<12} {:>10} {:>12} {:>12} {:>8} {:>10} {:>6}",
+                "encoding", "heads/s", "bytes/head", "TCP limit", "× q16", "CPU µs/h", "errors"
+            )?;
+            for r in self.rows.iter().filter(|r| r.route == route.name) {
+                writeln!(
+                    f,
+                    "    {:<12} {:>10.0} {:>12.0} {:>12.0} {:>8.2} {:>10.1} {:>6}",
+                    r.encoding,
+                    r.heads_per_s,
+                    r.bytes_per_head,
+                    r.route_limit_heads_per_s,
+                    r.over_q16,
+                    r.cpu_us_per_head,
+                    r.errors
+                )?;
+            }
+        }
+        Ok(())
+    }
 }
 
 /// Human-readable report.

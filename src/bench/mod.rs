@@ -9,6 +9,7 @@
 //! | [`gpu`] | `bench gpu`: the paper's scenes on any backend, with a plot |
 //! | [`http`] | `bench http`: loopback HTTP against in-process work, half load through [`crate::load`], the socket ceiling |
 //! | [`sessions`] | `bench sessions`: one session streamed to several viewers |
+//! | [`link`] | `--link`: the server also behind shaped veth links in namespaces of its own |
 //! | [`render`] | `bench render`: the offline crowd drawn repeatedly |
 //! | [`peers`] | the Python peers: the rig as `.npy`, warm numpy, the dense aiohttp + numpy server |
 //!
@@ -18,6 +19,7 @@
 pub mod cpu;
 pub mod gpu;
 pub mod http;
+pub mod link;
 pub mod peers;
 pub mod render;
 pub mod sample;

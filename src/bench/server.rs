@@ -88,6 +88,48 @@ impl BenchServer {
     }
 }
 
+/// Uploads every `.csv` and `.json` clip in `dir` to rig `rig`, each named by its file stem
+/// (in name order); returns the names.
+pub async fn upload_clips(
+    client: &Client,
+    rig: &str,
+    dir: &std::path::Path,
+) -> Result<Vec<String>> {
+    let mut files: Vec<std::path::PathBuf> = std::fs::read_dir(dir)
+        .with_context(|| format!("reading {}", dir.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| matches!(p.extension().and_then(|e| e.to_str()), Some("csv" | "json")))
+        .collect();
+    files.sort();
+    if files.is_empty() {
+        anyhow::bail!("{} has no .csv or .json clips", dir.display());
+    }
+    let mut names = Vec::new();
+    for path in files {
+        let name = path
+            .file_stem()
+            .and_then(|s| s.to_str())
+            .context("a clip file name that is not UTF-8")?
+            .to_string();
+        let content_type = match path.extension().and_then(|e| e.to_str()) {
+            Some("csv") => "text/csv",
+            _ => "application/json",
+        };
+        let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
+        client
+            .upload_clip(
+                rig,
+                &format!("name={name}"),
+                content_type,
+                Bytes::from(bytes),
+            )
+            .await
+            .with_context(|| format!("uploading clip {}", path.display()))?;
+        names.push(name);
+    }
+    Ok(names)
+}
+
 /// CPU time of this process (user + system); zero where `getrusage` is unavailable.
 pub fn process_cpu() -> Duration {
     #[cfg(unix)]

@@ -11,6 +11,14 @@
 //! Reported: ticks on time, late and skipped (the session's own counters), CPU time of the
 //! process per computed tick, engine time per tick (the batcher's compute histogram), bytes and
 //! messages per viewer per second, messages dropped by slow viewers.
+//!
+//! With `--link` ([`bench_session_links`]) one viewer per mode (f32, q16, q16 + zstd,
+//! temporal, temporal + deflate, temporal + zstd) watches the same session in turn, over
+//! loopback and over each shaped link ([`super::link`]); each message is skimmed for its buffer
+//! count (inflated when packed, as any viewer must), so heads/s is buffers received per
+//! second. A head whose frame did not change since the viewer's last message has no buffer
+//! in it, so a session offers at most (distinct frames of its clips) × 30 unique heads/s
+//! with 30 fps clips, whatever its tick rate.
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -18,7 +26,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use bytes::Bytes;
-use crowdmorph_proto::{Format, SessionInfo, ViewerHello};
+use crowdmorph_proto::{Format, MessageEncoding, SessionInfo, ViewerHello};
 use serde::Serialize;
 
 use super::server::{BenchServer, process_cpu};
@@ -47,6 +55,11 @@ pub struct SessionBenchOptions {
     /// Heads walk a motion graph over every clip (random walks, one seed per animation)
     /// instead of playing clips.
     pub graph: bool,
+    /// Clips to upload to the rig first (`.csv` or `.json` files, named by file stem); the
+    /// heads then play these instead of the rig's own.
+    pub clips: Option<std::path::PathBuf>,
+    /// Shaped links for [`bench_session_links`].
+    pub links: Vec<super::link::LinkSpec>,
 }
 
 /// The measurement.
@@ -114,10 +127,13 @@ pub fn bench_sessions(
 struct ViewerCount {
     bytes: AtomicU64,
     messages: AtomicU64,
+    /// Buffers the messages carried (counted by the link benchmark, which reads each message).
+    buffers: AtomicU64,
 }
 
-async fn run(rig_bytes: Option<Vec<u8>>, opt: &SessionBenchOptions) -> Result<SessionBenchReport> {
-    let config = ServerConfig {
+/// The server of both session benchmarks.
+fn bench_config(opt: &SessionBenchOptions) -> ServerConfig {
+    ServerConfig {
         backend: opt.backend,
         gpu_memory: opt.gpu_memory,
         no_auto_lod: true,
@@ -128,31 +144,44 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &SessionBenchOptions) -> Result<Se
             ..Default::default()
         },
         ..ServerConfig::default()
+    }
+}
+
+/// Uploads `opt.clips`, then creates the session of `opt` on rig `rig_id`: animation `a`
+/// plays clip `a mod C` (of the uploaded clips, else the rig's) from an offset that spreads
+/// the clip's animations evenly over it; with `opt.graph` it is a random walk with seed `a` from node
+/// `a mod C` of a graph over every clip.
+async fn create_session(
+    client: &crowdmorph_client::Client,
+    rig_id: &str,
+    opt: &SessionBenchOptions,
+) -> Result<(SessionInfo, crowdmorph_proto::RigInfo)> {
+    let uploaded = match &opt.clips {
+        Some(dir) => Some(super::server::upload_clips(client, rig_id, dir).await?),
+        None => None,
     };
-    let BenchServer {
-        addr,
-        client,
-        rig_id,
-        stop_tx,
-        server,
-        ..
-    } = BenchServer::start(config, rig_bytes).await?;
-    let info = client.rig(&rig_id).await.context("reading the rig")?;
-    if info.clips.is_empty() {
+    let info = client.rig(rig_id).await.context("reading the rig")?;
+    let clips: Vec<crowdmorph_proto::ClipInfo> = info
+        .clips
+        .iter()
+        .filter(|c| uploaded.as_ref().is_none_or(|u| u.contains(&c.name)))
+        .cloned()
+        .collect();
+    if clips.is_empty() {
         bail!("rig {rig_id:?} has no clips to play");
     }
-    // Animation a plays clip a mod C from an offset that makes (clip, frame) distinct; with
-    // --graph it is a random walk with seed a from node a mod C of a graph over every clip.
-    let clips = &info.clips;
     if opt.graph {
-        put_graph(&client, &rig_id, clips).await?;
+        put_graph(client, rig_id, &clips).await?;
     }
     let side = (opt.heads as f64).sqrt().ceil() as usize;
     let heads: Vec<serde_json::Value> = (0..opt.heads)
         .map(|i| {
             let a = i % opt.animations;
             let clip = &clips[a % clips.len()];
-            let offset = (a / clips.len()) * 3;
+            // The animations of one clip spread evenly over it: distinct frames while there
+            // are no more of them than the clip has frames.
+            let per_clip = opt.animations.div_ceil(clips.len());
+            let offset = (a / clips.len()) * clip.frames as usize / per_clip;
             let position = [(i % side) as f32 * 0.4, 0.0, -((i / side) as f32) * 0.4];
             if opt.graph {
                 serde_json::json!({
@@ -185,13 +214,26 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &SessionBenchOptions) -> Result<Se
             String::from_utf8_lossy(&reply.body)
         );
     }
-    let session: SessionInfo = serde_json::from_slice(&reply.body)?;
+    Ok((serde_json::from_slice(&reply.body)?, info))
+}
+
+async fn run(rig_bytes: Option<Vec<u8>>, opt: &SessionBenchOptions) -> Result<SessionBenchReport> {
+    let BenchServer {
+        addr,
+        client,
+        rig_id,
+        stop_tx,
+        server,
+        ..
+    } = BenchServer::start(bench_config(opt), rig_bytes).await?;
+    let (session, info) = create_session(&client, &rig_id, opt).await?;
 
     let counts: Vec<Arc<ViewerCount>> = (0..opt.viewers)
         .map(|_| {
             Arc::new(ViewerCount {
                 bytes: AtomicU64::new(0),
                 messages: AtomicU64::new(0),
+                buffers: AtomicU64::new(0),
             })
         })
         .collect();
@@ -292,6 +334,321 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &SessionBenchOptions) -> Result<Se
         messages_dropped: s1.messages_dropped - s0.messages_dropped,
         cores: std::thread::available_parallelism().map_or(1, usize::from),
     })
+}
+
+/// The viewer modes `bench sessions --link` measures on every route: format, temporal
+/// residuals, per-message compression.
+const VIEWER_MODES: [(Format, bool, Option<MessageEncoding>); 6] = [
+    (Format::F32, false, None),
+    (Format::Q16, false, None),
+    (Format::Q16, false, Some(MessageEncoding::Zstd)),
+    (Format::Q16, true, None),
+    (Format::Q16, true, Some(MessageEncoding::Deflate)),
+    (Format::Q16, true, Some(MessageEncoding::Zstd)),
+];
+
+/// One route and viewer mode of `bench sessions --link`.
+#[derive(Clone, Debug, Serialize)]
+pub struct ViewerRow {
+    /// `loopback` or the link's rate.
+    pub route: String,
+    /// Format, `temporal`, and `+ zstd` or `+ deflate` when messages were compressed.
+    pub mode: String,
+    /// Unique heads per second the viewer received: buffers its messages carried.
+    pub heads_per_s: f64,
+    /// Bytes per buffer it received, as they came over the wire.
+    pub bytes_per_head: f64,
+    /// Messages per second it received.
+    pub messages_per_s: f64,
+    /// Ticks per second the session computed meanwhile (below its rate when the machine's
+    /// CPU, shared by the server and this viewer, ran out).
+    pub ticks_per_s: f64,
+    /// The route's plain TCP throughput ÷ bytes per head: the most any server could send.
+    pub route_limit_heads_per_s: f64,
+    /// `heads_per_s` ÷ q16's on the same route (goal: ≥ 6 for the best mode over 1 Gbit/s).
+    pub over_q16: f64,
+    /// Messages the viewer's outbox replaced before they were sent (the viewer was slower
+    /// than the ticks).
+    pub messages_dropped: u64,
+}
+
+/// `bench sessions --link`: one session, one viewer at a time per mode on loopback and over
+/// each shaped link.
+#[derive(Clone, Debug, Serialize)]
+pub struct SessionLinkReport {
+    /// The rig's id and vertex count.
+    pub rig: String,
+    /// Vertices of one buffer.
+    pub vertices: u32,
+    /// Heads in the session.
+    pub heads: usize,
+    /// Distinct animations.
+    pub animations: usize,
+    /// Target ticks per second.
+    pub fps: f32,
+    /// Seconds per viewer.
+    pub seconds: f64,
+    /// Unique jobs per tick (every viewer at LOD 0 shares them).
+    pub jobs_per_tick: f64,
+    /// Unique heads per second the session computed: what a viewer could get at most.
+    pub offered_heads_per_s: f64,
+    /// The routes, with their measured TCP throughput.
+    pub routes: Vec<super::link::Route>,
+    /// Why the shaped links were skipped, when they were.
+    pub skipped: Option<String>,
+    /// One row per route and mode.
+    pub rows: Vec<ViewerRow>,
+}
+
+/// Runs `bench sessions --link` on a server started in this process.
+pub fn bench_session_links(
+    rig_bytes: Option<Vec<u8>>,
+    opt: &SessionBenchOptions,
+) -> Result<SessionLinkReport> {
+    if opt.animations == 0 || opt.heads < opt.animations || opt.fps <= 0.0 {
+        bail!("need heads >= animations >= 1 and fps > 0");
+    }
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("starting the tokio runtime")?;
+    runtime.block_on(run_links(rig_bytes, opt))
+}
+
+async fn run_links(
+    rig_bytes: Option<Vec<u8>>,
+    opt: &SessionBenchOptions,
+) -> Result<SessionLinkReport> {
+    let BenchServer {
+        state,
+        addr,
+        client,
+        rig_id,
+        stop_tx,
+        server,
+    } = BenchServer::start(bench_config(opt), rig_bytes).await?;
+    let (session, info) = create_session(&client, &rig_id, opt).await?;
+    let routes =
+        super::link::Routes::open(&state, addr, &opt.links, 1, opt.seconds.min(2.0)).await?;
+    let stats0 = session_stats(&client, &session.id).await?;
+    let measured = measure_viewers(opt, &client, &session.id, &routes.routes).await;
+    let stats1 = session_stats(&client, &session.id).await?;
+    let (route_list, skipped) = (routes.routes.clone(), routes.skipped.clone());
+    routes.close().await;
+    let _ = stop_tx.send(());
+    let _ = server.await;
+    let (rows, seconds) = measured?;
+    let ticks = (stats1.ticks - stats0.ticks).max(1) as f64;
+    let jobs_per_tick = (stats1.jobs - stats0.jobs) as f64 / ticks;
+    Ok(SessionLinkReport {
+        rig: rig_id,
+        vertices: info.vertices,
+        heads: opt.heads,
+        animations: opt.animations,
+        fps: opt.fps,
+        seconds: opt.seconds,
+        jobs_per_tick,
+        offered_heads_per_s: jobs_per_tick * ticks / seconds,
+        routes: route_list,
+        skipped,
+        rows,
+    })
+}
+
+/// The session's counters.
+async fn session_stats(
+    client: &crowdmorph_client::Client,
+    id: &str,
+) -> Result<crowdmorph_proto::SessionStats> {
+    let reply = client
+        .send(
+            hyper::Method::GET,
+            &format!("/v1/sessions/{id}"),
+            None,
+            None,
+            Bytes::new(),
+        )
+        .await?;
+    Ok(serde_json::from_slice::<SessionInfo>(&reply.body)?.stats)
+}
+
+/// One viewer per mode and route, in turn, each for `opt.seconds` after a second's warm-up;
+/// rows per message (the caller scales them by the jobs per tick), and the seconds the whole
+/// measurement took.
+async fn measure_viewers(
+    opt: &SessionBenchOptions,
+    client: &crowdmorph_client::Client,
+    session: &str,
+    routes: &[super::link::Route],
+) -> Result<(Vec<ViewerRow>, f64)> {
+    let start = Instant::now();
+    let mut rows = Vec::new();
+    for route in routes {
+        let url = crate::load::session::stream_url(&format!("http://{}", route.addr), session)?;
+        let first = rows.len();
+        for (format, temporal, compression) in VIEWER_MODES {
+            let hello = ViewerHello {
+                format,
+                temporal,
+                compression,
+                ..ViewerHello::default()
+            };
+            let mut viewer = crate::load::session::Viewer::connect(&url, &hello)
+                .await
+                .with_context(|| format!("connecting a viewer over {}", route.name))?;
+            let count = Arc::new(ViewerCount {
+                bytes: AtomicU64::new(0),
+                messages: AtomicU64::new(0),
+                buffers: AtomicU64::new(0),
+            });
+            // Each message is skimmed (inflated when packed) for its buffer count: a head
+            // whose frame did not change since the viewer's last message has no buffer in it.
+            let reader = tokio::spawn({
+                let count = count.clone();
+                async move {
+                    loop {
+                        match viewer.next().await {
+                            crate::load::session::ViewerEvent::Tick(b, _) => {
+                                let summary = crate::load::session::skim(&b)
+                                    .map_err(|e| format!("an unreadable message: {e}"))?;
+                                count.bytes.fetch_add(b.len() as u64, Ordering::Relaxed);
+                                count.messages.fetch_add(1, Ordering::Relaxed);
+                                count.buffers.fetch_add(summary.buffers, Ordering::Relaxed);
+                            }
+                            crate::load::session::ViewerEvent::Closed(code, why) => {
+                                return Err(format!("closed with {code}: {why}"));
+                            }
+                            crate::load::session::ViewerEvent::Failed(e) => return Err(e),
+                        }
+                    }
+                    #[allow(unreachable_code)]
+                    Ok::<(), String>(())
+                }
+            });
+            tokio::time::sleep(Duration::from_secs(1)).await;
+            let s0 = session_stats(client, session).await?;
+            let read = || {
+                [&count.bytes, &count.messages, &count.buffers].map(|c| c.load(Ordering::Relaxed))
+            };
+            let first = read();
+            let t0 = Instant::now();
+            tokio::time::sleep(Duration::from_secs_f64(opt.seconds)).await;
+            let secs = t0.elapsed().as_secs_f64();
+            let last = read();
+            let s1 = session_stats(client, session).await?;
+            let [bytes, messages, buffers] = [0, 1, 2].map(|i| (last[i] - first[i]) as f64);
+            let mode = mode_name(format, temporal, compression);
+            if reader.is_finished() {
+                let why = match reader.await {
+                    Ok(Err(why)) => why,
+                    _ => "its reader stopped".to_string(),
+                };
+                bail!("the {mode} viewer over {}: {why}", route.name);
+            }
+            reader.abort();
+            if messages == 0.0 {
+                bail!("the {mode} viewer over {} got no messages", route.name);
+            }
+            let bytes_per_head = bytes / buffers.max(1.0);
+            rows.push(ViewerRow {
+                route: route.name.clone(),
+                mode,
+                heads_per_s: buffers / secs,
+                bytes_per_head,
+                messages_per_s: messages / secs,
+                ticks_per_s: (s1.ticks - s0.ticks) as f64 / secs,
+                route_limit_heads_per_s: route.tcp_bytes_per_s / bytes_per_head.max(1.0),
+                // Filled in below, once q16 is measured.
+                over_q16: 0.0,
+                messages_dropped: s1.messages_dropped - s0.messages_dropped,
+            });
+        }
+        let on_route = &mut rows[first..];
+        if let Some(q16) = on_route.iter().find(|r| r.mode == Format::Q16.name()) {
+            let q16 = q16.heads_per_s.max(1e-9);
+            for r in on_route {
+                r.over_q16 = r.heads_per_s / q16;
+            }
+        }
+    }
+    Ok((rows, start.elapsed().as_secs_f64()))
+}
+
+/// A viewer mode as the report names it: `f32`, `q16`, `temporal`, then `+ zstd` or
+/// `+ deflate`.
+fn mode_name(format: Format, temporal: bool, compression: Option<MessageEncoding>) -> String {
+    let mut mode = if temporal {
+        "temporal".to_string()
+    } else {
+        format.name().to_string()
+    };
+    if let Some(c) = compression {
+        mode += match c {
+            MessageEncoding::Zstd => " + zstd",
+            MessageEncoding::Deflate => " + deflate",
+        };
+    }
+    mode
+}
+
+/// The link report as text.
+impl std::fmt::Display for SessionLinkReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        writeln!(
+            f,
+            "bench sessions --link: rig {} ({} vertices), {} heads playing {} animations at {} ticks/s: {:.1} unique jobs per tick, {:.0} unique heads/s offered; one viewer at a time, {:.1} s each",
+            self.rig,
+            self.vertices,
+            self.heads,
+            self.animations,
+            self.fps,
+            self.jobs_per_tick,
+            self.offered_heads_per_s,
+            self.seconds
+        )?;
+        if let Some(why) = &self.skipped {
+            writeln!(f, "  shaped links skipped: {why}")?;
+        }
+        for route in &self.routes {
+            writeln!(
+                f,
+                "  {:<9} plain TCP carries {:.1} MB/s{}",
+                route.name,
+                route.tcp_bytes_per_s / 1e6,
+                route
+                    .bits_per_s
+                    .map(|b| format!(" (shaped at {:.1} MB/s)", b as f64 / 8e6))
+                    .unwrap_or_default()
+            )?;
+            writeln!(
+                f,
+                "    {:<18} {:>10} {:>12} {:>10} {:>10} {:>12} {:>8} {:>8}",
+                "viewer",
+                "heads/s",
+                "bytes/head",
+                "msgs/s",
+                "ticks/s",
+                "TCP limit",
+                "× q16",
+                "dropped"
+            )?;
+            for r in self.rows.iter().filter(|r| r.route == route.name) {
+                writeln!(
+                    f,
+                    "    {:<18} {:>10.0} {:>12.0} {:>10.1} {:>10.1} {:>12.0} {:>8.2} {:>8}",
+                    r.mode,
+                    r.heads_per_s,
+                    r.bytes_per_head,
+                    r.messages_per_s,
+                    r.ticks_per_s,
+                    r.route_limit_heads_per_s,
+                    r.over_q16,
+                    r.messages_dropped
+                )?;
+            }
+        }
+        Ok(())
+    }
 }
 
 /// Stores graph `bench` on the rig: a node per clip, an edge from each to each (itself

@@ -77,6 +77,15 @@ pub enum Command {
         python_peer_compute: String,
         #[command(flatten)]
         gpu: GpuMemoryArgs,
+        /// Upload these clips first (`.csv`/`.json` files in a folder, named by file stem)
+        /// and play them.
+        #[arg(long, value_name = "DIR")]
+        clips: Option<PathBuf>,
+        /// Instead: measure each encoding on loopback and over shaped links at these rates
+        /// (comma-separated, e.g. 1gbit,100mbit; a network namespace and a tbf-shaped veth
+        /// pair each, removed at the end; needs root and iproute2, else only loopback).
+        #[arg(long, value_delimiter = ',', value_name = "RATES")]
+        link: Vec<bench::link::LinkSpec>,
         /// Print JSON.
         #[arg(long)]
         json: bool,
@@ -113,6 +122,15 @@ pub enum Command {
         /// Heads walk a motion graph over every clip (one random walk per animation).
         #[arg(long)]
         graph: bool,
+        /// Upload these clips first (`.csv`/`.json` files in a folder, named by file stem)
+        /// and play them.
+        #[arg(long, value_name = "DIR")]
+        clips: Option<PathBuf>,
+        /// Instead: one viewer at a time per mode (f32, q16, temporal, compressed) on loopback and over shaped links at these rates
+        /// (comma-separated, e.g. 1gbit,100mbit; a network namespace and a tbf-shaped veth
+        /// pair each, removed at the end; needs root and iproute2, else only loopback).
+        #[arg(long, value_delimiter = ',', value_name = "RATES")]
+        link: Vec<bench::link::LinkSpec>,
         /// Print JSON.
         #[arg(long)]
         json: bool,
@@ -211,6 +229,8 @@ impl super::Report for GpuReports {}
 impl super::Report for bench::cpu::BenchReport {}
 impl super::Report for bench::http::HttpBenchReport {}
 impl super::Report for bench::sessions::SessionBenchReport {}
+impl super::Report for bench::sessions::SessionLinkReport {}
+impl super::Report for bench::http::LinkBenchReport {}
 impl super::Report for crowdmorph::render::offline::RenderReport {}
 
 /// The rig file a benchmark server uploads (its glTF with every buffer embedded), if any.
@@ -328,6 +348,8 @@ pub fn run(which: Command) -> Result<()> {
             backend,
             gpu,
             graph,
+            clips,
+            link,
             json,
         } => {
             let bytes = server_rig(rig.as_deref())?;
@@ -341,7 +363,15 @@ pub fn run(which: Command) -> Result<()> {
                 backend,
                 gpu_memory: gpu.max_gpu_memory,
                 graph,
+                clips,
+                links: link,
             };
+            if !opt.links.is_empty() {
+                let report = with_spinner("bench sessions --link", || {
+                    bench::sessions::bench_session_links(bytes, &opt)
+                });
+                return super::emit(&report?, json);
+            }
             let report = with_spinner("bench sessions", || {
                 bench::sessions::bench_sessions(bytes, &opt)
             });
@@ -358,6 +388,8 @@ pub fn run(which: Command) -> Result<()> {
             python_peer,
             python_peer_compute,
             gpu,
+            clips,
+            link,
             json,
         } => {
             let bytes = server_rig(rig.as_deref())?;
@@ -371,7 +403,15 @@ pub fn run(which: Command) -> Result<()> {
                 python_peer,
                 python_compute: python_peer_compute,
                 gpu_memory: gpu.max_gpu_memory,
+                clips,
+                links: link,
             };
+            if !opt.links.is_empty() {
+                let report = with_spinner("bench http --link", || {
+                    bench::http::bench_http_links(bytes, &opt)
+                });
+                return super::emit(&report?, json);
+            }
             let report = with_spinner(
                 "bench http: in-process, loopback, saturation, half load",
                 || bench::http::bench_http(bytes, &opt),

@@ -76,13 +76,16 @@ impl Viewer {
     /// Connects to `ws_url` (see [`stream_url`]) and sends `hello`.
     pub async fn connect(ws_url: &str, hello: &ViewerHello) -> Result<Viewer, LoadError> {
         let hello = serde_json::to_string(hello).map_err(|e| LoadError::Encode(e.to_string()))?;
-        let (mut ws, _) = tokio_tungstenite::connect_async(ws_url)
+        // A tick of a large crowd in f32 is tens of MB, sent as one frame: past tungstenite's
+        // default 16 MiB frame limit. This client reads a server it was pointed at, so it
+        // takes what a browser would (up to 1 GiB).
+        let config = tokio_tungstenite::tungstenite::protocol::WebSocketConfig::default()
+            .max_message_size(Some(1 << 30))
+            .max_frame_size(Some(1 << 30));
+        // Messages are measured on arrival: no Nagle delay on the hello or the close.
+        let (mut ws, _) = tokio_tungstenite::connect_async_with_config(ws_url, Some(config), true)
             .await
             .map_err(|e| LoadError::Http(format!("connecting a viewer to {ws_url}: {e}")))?;
-        if let tokio_tungstenite::MaybeTlsStream::Plain(tcp) = ws.get_ref() {
-            // Messages are measured on arrival: no Nagle delay on the hello or the close.
-            let _ = tcp.set_nodelay(true);
-        }
         ws.send(Message::text(hello))
             .await
             .map_err(|e| LoadError::Http(format!("sending a viewer's hello: {e}")))?;

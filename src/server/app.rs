@@ -373,6 +373,36 @@ pub async fn run(
     serve(listener, state, shutdown).await
 }
 
+/// The connection limits of `state`'s configuration.
+fn limits(state: &AppState) -> conn::Limits {
+    conn::Limits {
+        max_connections: state.config.connection_cap(),
+        header_timeout: state.config.header_timeout,
+        idle_timeout: state.config.idle_timeout,
+    }
+}
+
+/// Serves connections from one more listener with `state`'s app until `shutdown` resolves,
+/// letting requests in flight complete, as [`serve`] does, but without the state's lifecycle
+/// (loading stored rigs, closing sessions, draining the batcher), which stays with the one
+/// [`serve`] of `state`: for a server reachable on several addresses, such as a benchmark's
+/// shaped link beside loopback. Each listener has its own connection cap.
+pub async fn serve_also(
+    listener: TcpListener,
+    state: AppState,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) {
+    let limits = limits(&state);
+    conn::serve_connections(
+        listener,
+        app(state.clone()),
+        state.metrics.clone(),
+        limits,
+        shutdown,
+    )
+    .await;
+}
+
 /// Like [`run`] with a state built by the caller (tests inspect it afterwards).
 pub async fn serve(
     listener: TcpListener,
@@ -391,16 +421,11 @@ pub async fn serve(
         shutdown.await;
         jobs.lod_jobs.cancel_background();
     };
-    let limits = conn::Limits {
-        max_connections: state.config.connection_cap(),
-        header_timeout: state.config.header_timeout,
-        idle_timeout: state.config.idle_timeout,
-    };
     let serving = conn::serve_connections(
         listener,
         app(state.clone()),
         state.metrics.clone(),
-        limits,
+        limits(&state),
         shutdown,
     );
     let summaries = async {

@@ -53,7 +53,7 @@ mod shed;
 pub mod state;
 mod topologies;
 
-pub use app::{app, run, serve, shutdown_signal};
+pub use app::{app, run, serve, serve_also, shutdown_signal};
 pub use config::{RenderBackend, ServerConfig, default_data_dir};
 pub use http::ApiError;
 pub use state::{AppState, Inner};

@@ -103,7 +103,8 @@ pub enum Compression {
 }
 
 impl Compression {
-    fn token(self) -> &'static str {
+    /// The `Accept-Encoding` token.
+    pub fn token(self) -> &'static str {
         match self {
             Compression::Zstd => "zstd",
             Compression::Gzip => "gzip",
@@ -434,18 +435,26 @@ impl Client {
     }
 
     /// `POST /v1/crowd/frame` with a pre-encoded body, reading the response without keeping
-    /// it: returns the status and the body length. For load generators, which should spend as
-    /// little CPU as possible.
+    /// it: returns the status and the body length as it came over the wire (compressed, and
+    /// not inflated, when [`Client::with_compression`] asked for it). For load generators,
+    /// which should spend as little CPU as possible.
     pub async fn crowd_frame_drain(
         &self,
         body: Bytes,
         enc: Encoding,
     ) -> Result<(u16, usize), ClientError> {
-        let req = Request::builder()
+        let mut req = Request::builder()
             .method(Method::POST)
             .uri(format!("{}/v1/crowd/frame", self.base))
             .header("content-type", enc.content_type())
-            .header("accept", enc.content_type())
+            .header("accept", enc.content_type());
+        if let Some(t) = &self.token {
+            req = req.header("authorization", format!("Bearer {t}"));
+        }
+        if let Some(c) = self.compression {
+            req = req.header("accept-encoding", c.token());
+        }
+        let req = req
             .body(Full::new(body))
             .map_err(|e| ClientError::Transport(e.to_string()))?;
         let resp = self
