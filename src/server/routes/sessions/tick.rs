@@ -727,13 +727,9 @@ fn deliver(
                     entries: &cache_key.entries,
                     arrived: t.arrived,
                 };
-                let encoded = match &plan {
-                    None => encode_vertices(state, &content),
-                    Some(p) => encode_delta(state, &content, p),
-                };
-                let packed = match (encoded, settings.compression) {
-                    (Some(m), Some(e)) => delta::pack(state, &m, e),
-                    (m, _) => m,
+                let packed = match &plan {
+                    None => encode_vertices(state, &content, settings.compression),
+                    Some(p) => encode_delta(state, &content, p, settings.compression),
                 };
                 let Some(m) = packed else {
                     return dropped();
@@ -838,9 +834,13 @@ fn message_buffers<'a>(c: &'a MessageContent<'a>) -> (Vec<FrameBufferParts<'a>>,
 /// layout, then the same fields as a crowd-frame response, with payloads aligned to 16 bytes
 /// from the start of the message. Its length is computed first and charged to the queue
 /// memory before anything of its size is allocated; `None` when the queue memory is full.
-fn encode_vertices(state: &AppState, c: &MessageContent<'_>) -> Option<Encoded> {
+fn encode_vertices(
+    state: &AppState,
+    c: &MessageContent<'_>,
+    compression: Option<MessageEncoding>,
+) -> Option<Encoded> {
     let (parts, head_buffers) = message_buffers(c);
-    encode_message(state, c, 0, &[], &parts, &head_buffers)
+    encode_message(state, c, 0, &[], &parts, &head_buffers, compression)
 }
 
 /// Encodes a [`crowdmorph_proto::TickDelta`]: as [`encode_vertices`], with each buffer a
@@ -851,6 +851,7 @@ fn encode_delta(
     state: &AppState,
     c: &MessageContent<'_>,
     plan: &delta::DeltaPlan,
+    compression: Option<MessageEncoding>,
 ) -> Option<Encoded> {
     let residual_bytes: u64 = (0..c.entries.len())
         .filter_map(|i| Some((plan.refs[i].as_ref()?, plan.cur[i].as_ref()?)))
@@ -887,11 +888,13 @@ fn encode_delta(
     let residual_len = crate::codec::wire_len(&residual).unwrap_or(0);
     let residual = crate::codec::to_wire(&residual).ok()?;
     debug_assert_eq!(residual.len(), residual_len);
-    encode_message(state, c, 2, &residual, &parts, &head_buffers)
+    encode_message(state, c, 2, &residual, &parts, &head_buffers, compression)
 }
 
 /// The variant, the tick, the format and normals, the layout, `after_layout` (more encoded
-/// fields), then buffers, heads and timings; charged before it is allocated.
+/// fields), then buffers, heads and timings; charged before it is allocated. With
+/// `compression`, the pieces go through the compressor as they are encoded, into a
+/// `StreamMessage::Packed` ([`delta::pack`]): the whole message is never written out.
 fn encode_message(
     state: &AppState,
     c: &MessageContent<'_>,
@@ -899,6 +902,7 @@ fn encode_message(
     after_layout: &[u8],
     parts: &[FrameBufferParts<'_>],
     head_buffers: &[HeadBuffer],
+    compression: Option<MessageEncoding>,
 ) -> Option<Encoded> {
     let mut prefix = Vec::with_capacity(64);
     crate::codec::put_varint(&mut prefix, variant);
@@ -916,9 +920,11 @@ fn encode_message(
         head_buffers,
         &timings,
     );
+    // Packed, the message's bytes only pass through the compressor, which `pack` charges.
+    let unpacked = if compression.is_some() { 0 } else { total };
     let memory = state
         .queue_memory
-        .reserve((total + middle_len) as u64)
+        .reserve((unpacked + middle_len) as u64)
         .ok()?;
     let mut middle = crate::codec::to_wire(&c.layout).unwrap_or_else(|_| vec![0]);
     middle.extend_from_slice(after_layout);
@@ -932,6 +938,12 @@ fn encode_message(
         &timings,
     );
     drop(middle);
+    if let Some(e) = compression {
+        let packed = delta::pack(state, &chunks, total, e);
+        drop(chunks);
+        drop(memory);
+        return packed;
+    }
     let mut out = Vec::with_capacity(total);
     for c in &chunks {
         out.extend_from_slice(c);
