@@ -17,6 +17,10 @@
 //! - `crowdmorph_python_peer`: `/usr/bin/python3` imports numpy and aiohttp, so the dense
 //!   Python peer of `bench http --python-peer` can be checked against the server
 //!   (`tests/server/python_peer.rs`; Debian: `apt-get install python3-numpy python3-aiohttp`).
+//! - `crowdmorph_shaped_links`: the build runs as root with iproute2, and a network namespace,
+//!   a veth pair and a `tbf` qdisc can be made (tried, then removed), so the benchmarks'
+//!   `--link` mode can run (`tests/cli.rs`; Debian: `apt-get install iproute2`, run as root
+//!   where namespaces are allowed).
 //!
 //! A present resource that then fails at run time fails its tests: a broken GPU or a missing rig
 //! file is a fault, not a reason to skip.
@@ -36,6 +40,7 @@ fn main() {
     println!("cargo::rustc-check-cfg=cfg(crowdmorph_chromium)");
     println!("cargo::rustc-check-cfg=cfg(crowdmorph_python)");
     println!("cargo::rustc-check-cfg=cfg(crowdmorph_python_peer)");
+    println!("cargo::rustc-check-cfg=cfg(crowdmorph_shaped_links)");
 
     if test_data_present() {
         println!("cargo::rustc-cfg=crowdmorph_test_data");
@@ -56,6 +61,48 @@ fn main() {
     if python_imports(&["numpy", "aiohttp"]) {
         println!("cargo::rustc-cfg=crowdmorph_python_peer");
     }
+    if shaped_links_possible() {
+        println!("cargo::rustc-cfg=crowdmorph_shaped_links");
+    }
+}
+
+/// Root, iproute2, and a kernel (or container) that lets this process make a network
+/// namespace, a veth pair and a `tbf` qdisc: tried for real, then removed again (a container
+/// without `CAP_NET_ADMIN` or `sch_tbf` would fail the tests, not skip them).
+fn shaped_links_possible() -> bool {
+    let run = |args: &[&str]| {
+        std::process::Command::new(args[0])
+            .args(&args[1..])
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::null())
+            .output()
+            .ok()
+            .filter(|o| o.status.success())
+            .map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string())
+    };
+    if run(&["id", "-u"]).as_deref() != Some("0") || run(&["tc", "-V"]).is_none() {
+        return false;
+    }
+    let pid = std::process::id() % 100_000;
+    let (ns, host, peer) = (
+        format!("crowdmorph-probe-{pid}"),
+        format!("cmp{pid}h"),
+        format!("cmp{pid}n"),
+    );
+    let ok = run(&["ip", "netns", "add", &ns]).is_some()
+        && run(&[
+            "ip", "link", "add", &host, "type", "veth", "peer", "name", &peer,
+        ])
+        .is_some()
+        && run(&["ip", "link", "set", &peer, "netns", &ns]).is_some()
+        && run(&[
+            "tc", "qdisc", "add", "dev", &host, "root", "tbf", "rate", "100mbit", "burst", "256kb",
+            "latency", "50ms",
+        ])
+        .is_some();
+    run(&["ip", "link", "del", &host]);
+    run(&["ip", "netns", "del", &ns]);
+    ok
 }
 
 /// The Chromium binary: the environment's choice, else the first of the usual install paths

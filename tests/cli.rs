@@ -706,6 +706,177 @@ fn bench_http_reports_plausible_json() {
     assert!(!r["sizes"].as_array().expect("sizes").is_empty());
 }
 
+/// Rows of `report` on `route`, by their name field `key`.
+fn rows_on<'a>(report: &'a Value, route: &str, key: &str) -> Vec<(String, &'a Value)> {
+    report["rows"]
+        .as_array()
+        .expect("rows")
+        .iter()
+        .filter(|r| r["route"] == route)
+        .map(|r| (r[key].as_str().expect("a name").to_string(), r))
+        .collect()
+}
+
+/// The namespaces of `report`'s links that are still there (none once the benchmark ended).
+fn leftover_links(report: &Value) -> Vec<String> {
+    let out = Command::new("ip")
+        .args(["netns", "list"])
+        .output()
+        .expect("ip netns list");
+    let listed = String::from_utf8_lossy(&out.stdout).into_owned();
+    let made: Vec<String> = report["routes"]
+        .as_array()
+        .expect("routes")
+        .iter()
+        .filter_map(|r| r["namespace"].as_str().map(str::to_string))
+        .collect();
+    assert!(!made.is_empty(), "the report names no namespace");
+    made.into_iter()
+        .filter(|ns| {
+            listed
+                .lines()
+                .any(|l| l.split_whitespace().next() == Some(ns))
+        })
+        .collect()
+}
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_shaped_links),
+    ignore = "needs root, iproute2 and leave to make network namespaces, veth pairs and tbf (build.rs tries)"
+)]
+fn bench_http_link_measures_each_encoding_on_loopback_and_a_shaped_link() {
+    let r = json(&[
+        "bench",
+        "http",
+        "--link",
+        "100mbit",
+        "--heads",
+        "4",
+        "--clients",
+        "2",
+        "--seconds",
+        "0.4",
+        "--backend",
+        "cpu",
+        "--json",
+    ]);
+    assert!(r["skipped"].is_null(), "{}", r["skipped"]);
+    assert_eq!(strings(&r["clips"]), ["idle", "talk", "smile", "surprise"]);
+    let routes = r["routes"].as_array().expect("routes");
+    assert_eq!(routes.len(), 2);
+    assert_eq!(
+        (routes[0]["name"].as_str(), routes[1]["name"].as_str()),
+        (Some("loopback"), Some("100mbit"))
+    );
+    // The link carries what tbf lets through: most of 12.5 MB/s, never more.
+    let link = f64_of(&routes[1], "tcp_bytes_per_s");
+    assert!(
+        link > 6e6 && link < 12.5e6 * 1.05,
+        "{link} bytes/s over the 100mbit link"
+    );
+    for route in ["loopback", "100mbit"] {
+        let rows = rows_on(&r, route, "encoding");
+        let names: Vec<&str> = rows.iter().map(|(n, _)| n.as_str()).collect();
+        assert_eq!(
+            names,
+            [
+                "f32",
+                "q16",
+                "q16 + zstd",
+                "q16r",
+                "q16r + gzip",
+                "q16r + zstd"
+            ]
+        );
+        let bytes = |name: &str| {
+            let row = rows.iter().find(|(n, _)| n == name).expect("row").1;
+            assert_eq!(row["errors"], 0, "{route} {name}");
+            assert!(f64_of(row, "heads_per_s") > 0.0, "{route} {name}");
+            f64_of(row, "bytes_per_head")
+        };
+        let q16 = bytes("q16");
+        // Uncompressed, bytes follow the format: q16 is 6 bytes a vertex, f32 twice that,
+        // q16r's planes as long as q16 (response framing adds a little).
+        let floor = (EMBEDDED_VERTICES * 6) as f64;
+        assert!(q16 > floor && q16 < floor * 1.05, "{route}: q16 {q16}");
+        assert!((bytes("f32") / q16 - 2.0).abs() < 0.05, "{route}");
+        assert!((bytes("q16r") / q16 - 1.0).abs() < 0.01, "{route}");
+        // Residuals on real clips compress (the 3x goal is checked by the bytes tests).
+        assert!(bytes("q16r + zstd") * 3.0 < q16, "{route}");
+        assert!(bytes("q16r + gzip") * 3.0 < q16, "{route}");
+        assert!(bytes("q16 + zstd") < q16, "{route}");
+    }
+    // Over the link no encoding moves more bytes a second than the link carries.
+    for (name, row) in rows_on(&r, "100mbit", "encoding") {
+        let rate = f64_of(row, "heads_per_s") * f64_of(row, "bytes_per_head");
+        assert!(rate < 12.5e6 * 1.05, "{name}: {rate} bytes/s");
+    }
+    assert_eq!(leftover_links(&r), Vec::<String>::new());
+}
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_shaped_links),
+    ignore = "needs root, iproute2 and leave to make network namespaces, veth pairs and tbf (build.rs tries)"
+)]
+fn bench_sessions_link_gives_each_viewer_mode_its_turn_on_each_route() {
+    let r = json(&[
+        "bench",
+        "sessions",
+        "--link",
+        "100mbit",
+        "--heads",
+        "8",
+        "--animations",
+        "8",
+        "--seconds",
+        "0.5",
+        "--backend",
+        "cpu",
+        "--json",
+    ]);
+    assert!(r["skipped"].is_null(), "{}", r["skipped"]);
+    assert!(f64_of(&r, "jobs_per_tick") > 0.0);
+    for route in ["loopback", "100mbit"] {
+        let rows = rows_on(&r, route, "mode");
+        let names: Vec<&str> = rows.iter().map(|(n, _)| n.as_str()).collect();
+        assert_eq!(
+            names,
+            [
+                "f32",
+                "q16",
+                "q16 + zstd",
+                "temporal",
+                "temporal + deflate",
+                "temporal + zstd"
+            ]
+        );
+        let bytes = |name: &str| {
+            let row = rows.iter().find(|(n, _)| n == name).expect("row").1;
+            assert!(f64_of(row, "heads_per_s") > 0.0, "{route} {name}");
+            f64_of(row, "bytes_per_head")
+        };
+        let q16 = bytes("q16");
+        assert!((bytes("f32") / q16 - 2.0).abs() < 0.05, "{route}");
+        // Against the viewer's previous buffer, compressed: well under a third of q16 even
+        // with the join keyframes in the window.
+        assert!(bytes("temporal + zstd") * 3.0 < q16, "{route}");
+        assert!(bytes("temporal + deflate") * 3.0 < q16, "{route}");
+    }
+    assert_eq!(leftover_links(&r), Vec::<String>::new());
+}
+
+#[test]
+fn bench_link_rates_are_checked_before_anything_starts() {
+    let out = crowdmorph(&["bench", "http", "--link", "1gb"])
+        .output()
+        .expect("runs");
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("<n>kbit, <n>mbit or <n>gbit"), "{err}");
+}
+
 #[test]
 #[cfg_attr(
     not(crowdmorph_python_peer),

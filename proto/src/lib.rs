@@ -1032,7 +1032,11 @@ mod tests {
             let mut planes = vec![0u8; 2 * n];
             q16r_encode(&q, &reference, &mut planes);
             assert_eq!(planes, planes_by_definition(&q, &reference), "n = {n}");
-            assert_eq!(q16r_decode(&planes, &reference).unwrap(), q, "n = {n}");
+            assert_eq!(
+                q16r_decode(&planes, &reference).expect("decodes"),
+                q,
+                "n = {n}"
+            );
         }
     }
 }

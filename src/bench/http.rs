@@ -1058,7 +1058,10 @@ async fn measure_routes(
                 opt.seconds,
             )
             .await?;
-            let heads = (sat.heads_per_s * opt.seconds).max(1.0);
+            // No request finished inside the window (a large response over a slow link):
+            // zero heads/s, and no bytes per head to state.
+            let counted = sat.heads_per_s * opt.seconds;
+            let heads = counted.max(1.0);
             let bytes_per_head = sat.wire_bytes as f64 / heads;
             rows.push(LinkRow {
                 route: route.name.clone(),
@@ -1068,10 +1071,18 @@ async fn measure_routes(
                 },
                 heads_per_s: sat.heads_per_s,
                 bytes_per_head,
-                route_limit_heads_per_s: route.tcp_bytes_per_s / bytes_per_head.max(1.0),
+                route_limit_heads_per_s: if counted > 0.0 {
+                    route.tcp_bytes_per_s / bytes_per_head
+                } else {
+                    0.0
+                },
                 // Filled in below, once q16 is measured.
                 over_q16: 0.0,
-                cpu_us_per_head: sat.cpu_s * 1e6 / heads,
+                cpu_us_per_head: if counted > 0.0 {
+                    sat.cpu_s * 1e6 / heads
+                } else {
+                    0.0
+                },
                 errors: sat.errors,
             });
         }

@@ -6,7 +6,8 @@
 //!
 //! Only `tbf` and `htb` exist in the kernels of the project's machines (no `netem`, `cake` or
 //! `fq`), so a link has a rate and no added delay or loss; its queue holds at most 50 ms.
-//! Traffic stays on addresses of the namespaces made here (`10.213.x.0/30`); each is removed
+//! Traffic stays on addresses of the namespaces made here (a free /30 of `10.213.0.0/16`
+//! each, the host's end and the namespace's); each is removed
 //! when its [`ShapedLink`] drops, and on Ctrl-C ([`cleanup_on_ctrl_c`]). It needs root and
 //! iproute2; [`preflight`] says what is missing, and the benchmarks then skip the shaped
 //! routes with that reason and measure loopback alone.
@@ -159,9 +160,7 @@ impl ShapedLink {
         let ns = format!("crowdmorph-bench-{pid}-{index}");
         let host = format!("cmb{pid}h{index}");
         let peer = format!("cmb{pid}n{index}");
-        let net = [10, 213, 100 + index, 0];
-        let host_addr = Ipv4Addr::new(net[0], net[1], net[2], 1);
-        let addr = Ipv4Addr::new(net[0], net[1], net[2], 2);
+        let (host_addr, addr) = free_subnet(pid, index)?;
         ACTIVE
             .lock()
             .unwrap_or_else(|e| e.into_inner())
@@ -228,6 +227,30 @@ impl ShapedLink {
     }
 }
 
+/// A /30 of 10.213.0.0/16 that no interface here uses: the host's end and the namespace's.
+/// The search starts at a place given by the pid and the link's index, so that two
+/// benchmarks at once (tests run in parallel) pick different ones.
+fn free_subnet(pid: u32, index: u8) -> Result<(Ipv4Addr, Ipv4Addr)> {
+    let out = Command::new("ip")
+        .args(["-o", "-4", "addr", "show"])
+        .output()
+        .context("listing addresses")?;
+    let used = String::from_utf8_lossy(&out.stdout).into_owned();
+    const SUBNETS: u32 = 1 << 14;
+    let start = (pid.wrapping_mul(64) + u32::from(index)) % SUBNETS;
+    for k in 0..SUBNETS {
+        let n = (start + k) % SUBNETS;
+        let (c, d) = ((n / 64) as u8, ((n % 64) * 4) as u8);
+        let host = Ipv4Addr::new(10, 213, c, d + 1);
+        let inside = Ipv4Addr::new(10, 213, c, d + 2);
+        let taken = |a: Ipv4Addr| used.contains(&format!("inet {a}/"));
+        if !taken(host) && !taken(inside) {
+            return Ok((host, inside));
+        }
+    }
+    bail!("no free /30 left in 10.213.0.0/16")
+}
+
 #[cfg(unix)]
 fn enter_namespace(path: &str) -> Result<()> {
     use std::os::fd::AsRawFd;
@@ -264,6 +287,8 @@ pub struct Route {
     pub addr: SocketAddr,
     /// The link's rate in bits per second (`None`: loopback, no shaping).
     pub bits_per_s: Option<u64>,
+    /// The link's network namespace (`None`: loopback); gone when the benchmark ends.
+    pub namespace: Option<String>,
     /// Bytes per second plain TCP carried over it in this run (as many connections as the
     /// benchmark's clients, large writes, no HTTP): the most any server can send over it.
     pub tcp_bytes_per_s: f64,
@@ -305,6 +330,7 @@ impl Routes {
             name: "loopback".to_string(),
             addr: loopback,
             bits_per_s: None,
+            namespace: None,
             tcp_bytes_per_s: tcp_throughput(tcp, connect, connections, seconds).await?,
         });
         if specs.is_empty() {
@@ -316,8 +342,15 @@ impl Routes {
         }
         cleanup_on_ctrl_c();
         for (i, spec) in specs.iter().enumerate() {
-            let link = ShapedLink::create(i as u8, spec)
-                .with_context(|| format!("making the {} link", spec.name))?;
+            // Root without leave to make namespaces (an unprivileged container) is a reason
+            // to skip the links, not a failed benchmark.
+            let link = match ShapedLink::create(i as u8, spec) {
+                Ok(link) => link,
+                Err(e) => {
+                    routes.skipped = Some(format!("could not make the {} link: {e:#}", spec.name));
+                    break;
+                }
+            };
             let listener = link.bind()?;
             let addr = listener.local_addr()?;
             let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
@@ -336,6 +369,7 @@ impl Routes {
                 name: spec.name.clone(),
                 addr,
                 bits_per_s: Some(spec.bits_per_s),
+                namespace: Some(link.ns.clone()),
                 tcp_bytes_per_s,
             });
             routes.links.push(link);
@@ -418,10 +452,10 @@ mod tests {
 
     #[test]
     fn rates_parse_with_their_units_and_bounds() {
-        let l: LinkSpec = "1gbit".parse().unwrap();
+        let l: LinkSpec = "1gbit".parse().expect("a rate");
         assert_eq!(l.bits_per_s, 1_000_000_000);
         assert_eq!(l.burst_bytes(), 1_000_000);
-        let l: LinkSpec = " 100Mbit".parse().unwrap();
+        let l: LinkSpec = " 100Mbit".parse().expect("a rate");
         assert_eq!((l.name.as_str(), l.bits_per_s), ("100mbit", 100_000_000));
         assert_eq!(l.burst_bytes(), 256 * 1024);
         for bad in [

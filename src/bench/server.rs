@@ -89,7 +89,8 @@ impl BenchServer {
 }
 
 /// Uploads every `.csv` and `.json` clip in `dir` to rig `rig`, each named by its file stem
-/// (in name order); returns the names.
+/// (in name order), with `ignore_unknown=true` (the embedded head's clips name 51 ARKit
+/// targets; ICT FaceKit spells two of them differently); returns the names.
 pub async fn upload_clips(
     client: &Client,
     rig: &str,
@@ -119,7 +120,7 @@ pub async fn upload_clips(
         client
             .upload_clip(
                 rig,
-                &format!("name={name}"),
+                &format!("name={name}&ignore_unknown=true"),
                 content_type,
                 Bytes::from(bytes),
             )

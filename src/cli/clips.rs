@@ -53,6 +53,17 @@ pub enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Write each of the rig's clips as CSV by target name (`<clip>.csv`: a header of the
+    /// target names, one row of weights per frame), the form `POST /v1/rigs/{id}/clips` and
+    /// `bench --clips DIR` read: the embedded head's ARKit-named clips then drive another
+    /// ARKit-named face.
+    Export {
+        /// glTF/GLB rig with clips (default: the embedded head).
+        rig: Option<PathBuf>,
+        /// The folder to write the files into (made if missing).
+        #[arg(long)]
+        out: PathBuf,
+    },
 }
 
 /// One clip of `clips compress`.
@@ -170,6 +181,39 @@ impl std::fmt::Display for GraphReport {
 /// Runs `crowdmorph clips ...`.
 pub fn run(which: Command) -> Result<()> {
     match which {
+        Command::Export { rig, out } => {
+            let rig = super::load_rig(rig.as_deref())?;
+            std::fs::create_dir_all(&out).with_context(|| format!("making {}", out.display()))?;
+            for clip in &rig.clips {
+                let frames = clip.frames as usize;
+                let mut csv = rig.targets.join(",");
+                csv.push('\n');
+                for f in 0..frames {
+                    let row: Vec<String> = (0..rig.targets.len())
+                        .map(|t| clip.weights[t * frames + f].to_string())
+                        .collect();
+                    csv.push_str(&row.join(","));
+                    csv.push('\n');
+                }
+                // Clip names become file names: keep them plain.
+                let file: String = clip
+                    .name
+                    .chars()
+                    .map(|c| {
+                        if c.is_ascii_alphanumeric() || "-_.".contains(c) {
+                            c
+                        } else {
+                            '_'
+                        }
+                    })
+                    .collect();
+                let path = out.join(format!("{file}.csv"));
+                std::fs::write(&path, csv)
+                    .with_context(|| format!("writing {}", path.display()))?;
+                println!("{} ({} frames)", path.display(), frames);
+            }
+            Ok(())
+        }
         Command::Compress {
             rig,
             max_error,
