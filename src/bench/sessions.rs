@@ -503,7 +503,7 @@ async fn measure_viewers(
             });
             // Each message is skimmed (inflated when packed) for its buffer count: a head
             // whose frame did not change since the viewer's last message has no buffer in it.
-            let reader = tokio::spawn({
+            let reader: tokio::task::JoinHandle<Result<(), String>> = tokio::spawn({
                 let count = count.clone();
                 async move {
                     loop {
@@ -521,8 +521,6 @@ async fn measure_viewers(
                             crate::load::session::ViewerEvent::Failed(e) => return Err(e),
                         }
                     }
-                    #[allow(unreachable_code)]
-                    Ok::<(), String>(())
                 }
             });
             tokio::time::sleep(Duration::from_secs(1)).await;
