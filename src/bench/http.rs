@@ -1115,16 +1115,7 @@ impl std::fmt::Display for LinkBenchReport {
             writeln!(f, "  shaped links skipped: {why}")?;
         }
         for route in &self.routes {
-            writeln!(
-                f,
-                "  {:<9} plain TCP carries {:.1} MB/s{}",
-                route.name,
-                route.tcp_bytes_per_s / 1e6,
-                route
-                    .bits_per_s
-                    .map(|b| format!(" (shaped at {:.1} MB/s)", b as f64 / 8e6))
-                    .unwrap_or_default()
-            )?;
+            writeln!(f, "{route}")?;
             writeln!(
                 f,
                 "    {:<12} {:>10} {:>12} {:>12} {:>8} {:>10} {:>6}",

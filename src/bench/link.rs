@@ -294,6 +294,22 @@ pub struct Route {
     pub tcp_bytes_per_s: f64,
 }
 
+/// The route's line in both link reports: its name and what plain TCP carried over it.
+impl std::fmt::Display for Route {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "  {:<9} plain TCP carries {:.1} MB/s",
+            self.name,
+            self.tcp_bytes_per_s / 1e6
+        )?;
+        match self.bits_per_s {
+            Some(b) => write!(f, " (shaped at {:.1} MB/s)", b as f64 / 8e6),
+            None => Ok(()),
+        }
+    }
+}
+
 /// The routes of one benchmark run and what keeps them open.
 pub struct Routes {
     /// Loopback first, then each link.
