@@ -14,6 +14,7 @@ use crowdmorph_proto::{
     MessageEncoding, RenderRequest, SessionHead, ViewerOutput,
 };
 use glam::Vec3;
+use rayon::prelude::*;
 use tokio::time::Instant;
 
 use crate::codec::{FrameBufferParts, FrameResponseEncoder};
@@ -23,8 +24,8 @@ use crate::server::admission::resolve::{head_reach, job_output_bytes, job_reques
 use crate::server::registry::{MAX_F16, RigEntry};
 use crate::server::scheduler::{JobRequest, ScheduleError};
 use crate::server::sessions::{
-    Baseline, Encoded, HeadKey, MIN_FPS, MISSING_KEY, Outgoing, Session, Viewer, ViewerSettings,
-    bump, close,
+    Baseline, Encoded, HeadKey, MIN_FPS, MISSING_KEY, Outgoing, Retained, Session, Viewer,
+    ViewerSettings, bump, close,
 };
 use crate::server::state::{AppState, Inner};
 
@@ -69,6 +70,9 @@ async fn run_session(session: Arc<Session>, app: Weak<Inner>) {
     let mut slot: u64 = 0;
     // The graph heads' state lives with the task that advances it.
     let mut players = Players::default();
+    // The previous tick's fan-out, still encoding on a blocking thread while this tick's
+    // heads are blended: fan-outs run one at a time and in tick order.
+    let mut fanning = FanOuts::default();
     loop {
         let due = start + period.mul_f64(slot as f64);
         // Woken for the tick, for the idle timeout (whichever comes first: a slow session
@@ -98,7 +102,7 @@ async fn run_session(session: Arc<Session>, app: Weak<Inner>) {
             panic!("test hook: a session tick panics");
         }
         let tick = slot + 1;
-        let computed = tick_once(&state, &session, tick, &mut players).await;
+        let computed = tick_once(&state, &session, tick, &mut players, &mut fanning).await;
         let done = Instant::now();
         let next_due = start + period.mul_f64((slot + 1) as f64);
         let m = &state.sessions.metrics;
@@ -224,6 +228,7 @@ async fn tick_once(
     session: &Arc<Session>,
     tick: u64,
     players: &mut Players,
+    fanning: &mut FanOuts,
 ) -> Ticked {
     let arrived = std::time::Instant::now();
     let Some(TickInput {
@@ -242,7 +247,7 @@ async fn tick_once(
         return Ticked::NoViewers;
     }
     // What this tick builds per head is charged first, as every request's memory is.
-    let Ok(_bookkeeping) = state
+    let Ok(bookkeeping) = state
         .queue_memory
         .reserve(tick_bookkeeping_bytes(heads.len(), viewers.len()))
     else {
@@ -259,16 +264,80 @@ async fn tick_once(
     let Some(submitted) = submit(state, &mut grouped.groups).await else {
         return Ticked::Skipped;
     };
-    let tick_heads = TickHeads {
+    let work = FanOutWork {
+        state: state.clone(),
+        session: session.clone(),
         tick,
-        heads: &heads,
+        heads,
         layout_rev,
-        rigs: &resolved.rigs,
+        rigs: resolved.rigs,
         arrived,
+        grouped,
+        submitted,
+        _bookkeeping: bookkeeping,
     };
-    fan_out(state, session, &tick_heads, &grouped, &submitted.outcomes);
-    drop(submitted.memory);
+    fanning.start(work).await;
     Ticked::Delivered(jobs)
+}
+
+/// A tick's fan-out, owned, so that it runs on a blocking thread while the next tick blends:
+/// on two cores the engine and the encoding of messages (residual planes, compression) then
+/// overlap instead of taking turns. It holds the tick's outputs and bookkeeping charges until
+/// every message is in its outbox.
+struct FanOutWork {
+    state: AppState,
+    session: Arc<Session>,
+    tick: u64,
+    heads: Arc<Vec<SessionHead>>,
+    layout_rev: u64,
+    rigs: Vec<Arc<RigEntry>>,
+    arrived: std::time::Instant,
+    grouped: Grouped,
+    submitted: Submitted,
+    _bookkeeping: crate::server::admission::Charge,
+}
+
+impl FanOutWork {
+    fn run(self) {
+        let tick_heads = TickHeads {
+            tick: self.tick,
+            heads: &self.heads,
+            layout_rev: self.layout_rev,
+            rigs: &self.rigs,
+            arrived: self.arrived,
+        };
+        fan_out(
+            &self.state,
+            &self.session,
+            &tick_heads,
+            &self.grouped,
+            &self.submitted.outcomes,
+        );
+    }
+}
+
+/// The session's fan-out in flight: at most one, so that a viewer's messages are put in its
+/// outbox in tick order ("unchanged" and residuals refer to the message before).
+#[derive(Default)]
+struct FanOuts(Option<tokio::task::JoinHandle<()>>);
+
+impl FanOuts {
+    /// Waits for the previous fan-out (a panic in it is the tick task's panic, so the
+    /// supervisor ends the session), then starts `work`'s.
+    async fn start(&mut self, work: FanOutWork) {
+        self.finish().await;
+        self.0 = Some(tokio::task::spawn_blocking(move || work.run()));
+    }
+
+    /// Waits for the fan-out in flight, if any.
+    async fn finish(&mut self) {
+        if let Some(h) = self.0.take()
+            && let Err(e) = h.await
+            && e.is_panic()
+        {
+            std::panic::resume_unwind(e.into_panic());
+        }
+    }
 }
 
 /// Applies the patches received since the last tick (the layout changes at a tick, never
@@ -536,7 +605,7 @@ impl Group {
 /// What [`submit`] got back: each group's outcome, and the queue memory their outputs hold.
 struct Submitted {
     outcomes: Vec<crate::server::scheduler::Outcome>,
-    memory: crate::server::admission::Charge,
+    _memory: crate::server::admission::Charge,
 }
 
 /// Submit: the blended outputs charged to the queue memory, then one submission per group to
@@ -577,7 +646,10 @@ async fn submit(state: &AppState, groups: &mut [Group]) -> Option<Submitted> {
             _ => return None,
         }
     }
-    Some(Submitted { outcomes, memory })
+    Some(Submitted {
+        outcomes,
+        _memory: memory,
+    })
 }
 
 /// What every viewer's message of a tick shares.
@@ -591,7 +663,10 @@ struct TickHeads<'a> {
 
 /// Fan out: each vertex viewer gets the buffers of the heads whose job changed since the last
 /// message it received (the others "unchanged"); identical messages (same group, same head
-/// vector) are encoded once and shared.
+/// vector) are encoded once and shared. Viewers are planned one by one (their references are
+/// shared copies), then their distinct messages are encoded on every core — with several
+/// temporal or compressed viewers, that encoding is most of a tick's work — and put in the
+/// outboxes in viewer order.
 fn fan_out(
     state: &AppState,
     session: &Session,
@@ -600,21 +675,151 @@ fn fan_out(
     outcomes: &[crate::server::scheduler::Outcome],
 ) {
     let mut cache = Caches::default();
+    let mut viewers = Vec::with_capacity(grouped.plans.len());
     for (v, g, jobs) in &grouped.plans {
         let group = &grouped.groups[*g];
         let keys = Arc::new(head_keys(group, jobs, t.rigs));
-        deliver(
-            state,
-            session,
-            t,
-            v,
-            (*g, group),
-            &outcomes[*g],
+        let target = Target {
+            viewer: v,
+            group: (*g, group),
+            outcome: &outcomes[*g],
             jobs,
-            &keys,
-            &mut cache,
-        );
+            keys,
+        };
+        let first = prepare(state, session, t, &target, &mut cache);
+        viewers.push((target, first));
     }
+    // Each distinct message once, in parallel.
+    let mut distinct: Vec<(&Target<'_>, &Prepared)> = Vec::new();
+    let mut seen = std::collections::HashSet::new();
+    for (target, p) in &viewers {
+        if let Some(p) = p
+            && !cache.messages.contains_key(&p.key)
+            && seen.insert(&p.key)
+        {
+            distinct.push((target, p));
+        }
+    }
+    let encoded: Vec<Option<Arc<Encoded>>> = distinct
+        .par_iter()
+        .map(|(target, p)| encode(state, t, target, p).map(Arc::new))
+        .collect();
+    for ((_, p), m) in distinct.iter().zip(encoded) {
+        if let Some(m) = m {
+            cache.messages.insert(p.key.clone(), m);
+        }
+    }
+    for (target, first) in viewers {
+        deliver(state, session, t, &target, first, &mut cache);
+    }
+}
+
+/// One vertex viewer of a tick: its group, that group's outcome, its job per head and the key
+/// of each head's buffer.
+struct Target<'a> {
+    viewer: &'a Arc<Viewer>,
+    group: (usize, &'a Group),
+    outcome: &'a crate::server::scheduler::Outcome,
+    jobs: &'a [Option<u32>],
+    keys: Arc<Vec<HeadKey>>,
+}
+
+/// A viewer's message planned against the baseline it had when planned.
+struct Prepared {
+    settings: ViewerSettings,
+    base: Baseline,
+    plan: Option<delta::DeltaPlan>,
+    key: MessageKey,
+}
+
+/// Plans a viewer's message against what its socket last took: each head's entry, and for a
+/// temporal viewer what each buffer is coded against. `None` when the viewer is gone or its
+/// plan did not fit the queue memory (counted as a dropped message).
+fn prepare(
+    state: &AppState,
+    session: &Session,
+    t: &TickHeads<'_>,
+    target: &Target<'_>,
+    cache: &mut Caches,
+) -> Option<Prepared> {
+    let settings = target.viewer.settings()?;
+    let base = target.viewer.outbox.lock().ok()?.sent.clone();
+    let keys = &target.keys;
+    let with_layout = base.layout_rev != t.layout_rev || base.keys.len() != keys.len();
+    let entries: Vec<u32> = target
+        .jobs
+        .iter()
+        .enumerate()
+        .map(|(i, j)| match j {
+            _ if !with_layout && base.keys[i] == keys[i] => HEAD_UNCHANGED,
+            None => HEAD_MISSING,
+            Some(j) => *j,
+        })
+        .collect();
+    let (g, _) = target.group;
+    let plan = match settings.temporal {
+        None => None,
+        Some(every) => {
+            let ids: Vec<u64> = t.heads.iter().map(|h| h.head).collect();
+            let input = delta::PlanInput {
+                tick: t.tick,
+                head_ids: &ids,
+                entries: &entries,
+                keys,
+                every,
+                group: g,
+                outputs: &target.outcome.outputs,
+            };
+            match delta::plan(state, &base, &input, &mut cache.retained) {
+                Some(p) => Some(p),
+                None => {
+                    dropped_memory(state, session);
+                    return None;
+                }
+            }
+        }
+    };
+    let key = MessageKey {
+        group: g,
+        with_layout,
+        entries,
+        bases: plan.as_ref().map(|p| p.bases.clone()),
+        compression: settings.compression,
+    };
+    Some(Prepared {
+        settings,
+        base,
+        plan,
+        key,
+    })
+}
+
+/// Encodes a prepared message. `None`: out of queue memory.
+fn encode(
+    state: &AppState,
+    t: &TickHeads<'_>,
+    target: &Target<'_>,
+    p: &Prepared,
+) -> Option<Encoded> {
+    let content = MessageContent {
+        tick: t.tick,
+        layout: p.key.with_layout.then_some(t.heads),
+        group: target.group.1,
+        outcome: target.outcome,
+        rigs: t.rigs,
+        heads: t.heads,
+        entries: &p.key.entries,
+        arrived: t.arrived,
+    };
+    match &p.plan {
+        None => encode_vertices(state, &content, p.settings.compression),
+        Some(plan) => encode_delta(state, &content, plan, p.settings.compression),
+    }
+}
+
+fn dropped_memory(state: &AppState, session: &Session) {
+    bump(&state.sessions.metrics.dropped_memory, 1);
+    session.with_stats(|s| s.messages_dropped += 1);
 }
 
 /// What identifies a viewer's message within a tick: the same key, the same bytes.
@@ -653,94 +858,37 @@ fn head_keys(group: &Group, jobs: &[Option<u32>], rigs: &[Arc<RigEntry>]) -> Vec
 }
 
 /// Puts one viewer's message in its outbox: its entries relative to what it last received,
-/// the message from `cache` when another viewer got the same one. Retried when the viewer's
-/// socket took a message meanwhile: "unchanged" must refer to what it last received.
-#[allow(clippy::too_many_arguments)]
+/// the message from `cache` (encoded by the fan-out, or here when another viewer did not
+/// need the same one). Planned again when the viewer's socket took a message since `first`
+/// was planned: "unchanged" must refer to what it last received.
 fn deliver(
     state: &AppState,
     session: &Session,
     t: &TickHeads<'_>,
-    v: &Viewer,
-    (g, group): (usize, &Group),
-    outcome: &crate::server::scheduler::Outcome,
-    jobs: &[Option<u32>],
-    keys: &Arc<Vec<HeadKey>>,
+    target: &Target<'_>,
+    first: Option<Prepared>,
     cache: &mut Caches,
 ) {
-    let Some(settings) = v.settings() else { return };
-    let dropped = || {
-        bump(&state.sessions.metrics.dropped_memory, 1);
-        session.with_stats(|s| s.messages_dropped += 1);
-    };
+    let mut next = first;
     for _attempt in 0..4 {
-        let base = match v.outbox.lock() {
-            Ok(o) => o.sent.clone(),
-            Err(_) => return,
-        };
-        let with_layout = base.layout_rev != t.layout_rev || base.keys.len() != keys.len();
-        let entries: Vec<u32> = jobs
-            .iter()
-            .enumerate()
-            .map(|(i, j)| match j {
-                _ if !with_layout && base.keys[i] == keys[i] => HEAD_UNCHANGED,
-                None => HEAD_MISSING,
-                Some(j) => *j,
-            })
-            .collect();
-        let plan = match settings.temporal {
-            None => None,
-            Some(every) => {
-                let ids: Vec<u64> = t.heads.iter().map(|h| h.head).collect();
-                let input = delta::PlanInput {
-                    tick: t.tick,
-                    head_ids: &ids,
-                    entries: &entries,
-                    keys,
-                    every,
-                    group: g,
-                    outputs: &outcome.outputs,
-                };
-                match delta::plan(state, &base, &input, &mut cache.retained) {
-                    Some(p) => Some(p),
-                    None => return dropped(),
-                }
-            }
-        };
-        let cache_key = MessageKey {
-            group: g,
-            with_layout,
-            entries,
-            bases: plan.as_ref().map(|p| p.bases.clone()),
-            compression: settings.compression,
-        };
-        let message = match cache.messages.get(&cache_key) {
+        let Some(p) = next.take() else { return };
+        let message = match cache.messages.get(&p.key) {
             Some(m) => m.clone(),
             None => {
-                let layout = with_layout.then_some(t.heads);
-                let content = MessageContent {
-                    tick: t.tick,
-                    layout,
-                    group,
-                    outcome,
-                    rigs: t.rigs,
-                    heads: t.heads,
-                    entries: &cache_key.entries,
-                    arrived: t.arrived,
-                };
-                let packed = match &plan {
-                    None => encode_vertices(state, &content, settings.compression),
-                    Some(p) => encode_delta(state, &content, p, settings.compression),
-                };
-                let Some(m) = packed else {
-                    return dropped();
+                let Some(m) = encode(state, t, target, &p) else {
+                    return dropped_memory(state, session);
                 };
                 let m = Arc::new(m);
-                cache.messages.insert(cache_key, m.clone());
+                cache.messages.insert(p.key.clone(), m.clone());
                 m
             }
         };
-        let Ok(mut o) = v.outbox.lock() else { return };
-        if o.sent.version != base.version {
+        let Ok(mut o) = target.viewer.outbox.lock() else {
+            return;
+        };
+        if o.sent.version != p.base.version {
+            drop(o);
+            next = prepare(state, session, t, target, cache);
             continue;
         }
         if o.pending.is_some() {
@@ -750,14 +898,16 @@ fn deliver(
         o.pending = Some(Outgoing {
             message,
             after: Baseline {
-                version: base.version + 1,
+                version: p.base.version + 1,
                 layout_rev: t.layout_rev,
-                keys: keys.clone(),
-                prev: plan.map_or_else(|| base.prev.clone(), |p| p.after),
+                keys: target.keys.clone(),
+                prev: p
+                    .plan
+                    .map_or_else(|| p.base.prev.clone(), |plan| plan.after),
             },
         });
         drop(o);
-        v.ready.notify_one();
+        target.viewer.ready.notify_one();
         return;
     }
 }
@@ -858,26 +1008,17 @@ fn encode_delta(
         .map(|(_, cur)| (cur.positions.len() + cur.normals.as_ref().map_or(0, |n| n.len())) as u64)
         .sum();
     let _residual_memory = state.queue_memory.reserve(residual_bytes).ok()?;
+    // Each distinct (job, reference) is one buffer: numbered in order of first appearance,
+    // then coded on every core (the residual planes are the viewer's per-head work).
     let mut local: HashMap<(u32, usize), u32> = HashMap::new();
-    let mut parts: Vec<FrameBufferParts<'_>> = Vec::new();
-    let mut residual: Vec<bool> = Vec::new();
+    let mut todo: Vec<(u32, &Retained, Option<&Retained>)> = Vec::new();
     let mut head_buffers = Vec::with_capacity(c.heads.len());
     for (i, (h, &e)) in c.heads.iter().zip(c.entries).enumerate() {
         let buffer = match (e, &plan.cur[i]) {
             (HEAD_UNCHANGED | HEAD_MISSING, _) | (_, None) => e,
             (e, Some(cur)) => *local.entry((e, plan.bases[i])).or_insert_with(|| {
-                let part = match &plan.refs[i] {
-                    None => c.part(e, cur.positions.clone(), cur.normals.clone()),
-                    Some(r) => {
-                        let p = delta::residual_planes(&cur.positions, &r.positions);
-                        let n = cur.normals.as_ref().zip(r.normals.as_ref());
-                        let n = n.map(|(n, rn)| Bytes::from(delta::residual_planes(n, rn)));
-                        c.part(e, Bytes::from(p), n)
-                    }
-                };
-                parts.push(part);
-                residual.push(plan.refs[i].is_some());
-                (parts.len() - 1) as u32
+                todo.push((e, cur, plan.refs[i].as_deref()));
+                (todo.len() - 1) as u32
             }),
         };
         head_buffers.push(HeadBuffer {
@@ -885,6 +1026,24 @@ fn encode_delta(
             buffer,
         });
     }
+    let payloads: Vec<(Bytes, Option<Bytes>)> = todo
+        .par_iter()
+        .map(|&(_, cur, reference)| match reference {
+            None => (cur.positions.clone(), cur.normals.clone()),
+            Some(r) => {
+                let p = delta::residual_planes(&cur.positions, &r.positions);
+                let n = cur.normals.as_ref().zip(r.normals.as_ref());
+                let n = n.map(|(n, rn)| Bytes::from(delta::residual_planes(n, rn)));
+                (Bytes::from(p), n)
+            }
+        })
+        .collect();
+    let residual: Vec<bool> = todo.iter().map(|t| t.2.is_some()).collect();
+    let parts: Vec<FrameBufferParts<'_>> = todo
+        .iter()
+        .zip(payloads)
+        .map(|(&(e, _, _), (p, n))| c.part(e, p, n))
+        .collect();
     let residual_len = crate::codec::wire_len(&residual).unwrap_or(0);
     let residual = crate::codec::to_wire(&residual).ok()?;
     debug_assert_eq!(residual.len(), residual_len);
