@@ -13,6 +13,7 @@ use std::sync::Arc;
 
 use bytes::Bytes;
 use crowdmorph_proto::{HEAD_MISSING, HEAD_UNCHANGED, MessageEncoding};
+use rayon::prelude::*;
 
 use crate::server::admission::Charge;
 use crate::server::sessions::{Baseline, Encoded, HeadKey, HeadPrev, Retained};
@@ -28,26 +29,47 @@ pub(super) type Bases = Vec<usize>;
 pub(super) struct RetainedCache(HashMap<(usize, u32), Arc<Retained>>);
 
 impl RetainedCache {
-    /// The kept copy of job `j` of group `g`; `None` when the queue memory is full.
-    fn get(
+    /// Copies the outputs of the jobs in `jobs` (of group `g`) that are not kept yet, each
+    /// charged first, on every core. `None` when the queue memory is full.
+    fn fill(
         &mut self,
         state: &AppState,
         g: usize,
-        j: u32,
-        out: &crate::server::scheduler::JobOutput,
-    ) -> Option<Arc<Retained>> {
-        if let Some(r) = self.0.get(&(g, j)) {
-            return Some(r.clone());
+        jobs: impl Iterator<Item = u32>,
+        outputs: &[Arc<crate::server::scheduler::JobOutput>],
+    ) -> Option<()> {
+        let mut todo = Vec::new();
+        // One flag per job of the group (counted in the tick's bookkeeping, as its entries).
+        let mut queued = vec![false; outputs.len()];
+        for j in jobs {
+            let out = outputs.get(j as usize)?;
+            if self.0.contains_key(&(g, j)) || std::mem::replace(&mut queued[j as usize], true) {
+                continue;
+            }
+            let bytes = out.positions.len() + out.normals.as_ref().map_or(0, |n| n.len());
+            todo.push((j, state.queue_memory.reserve(bytes as u64).ok()?));
         }
-        let bytes = out.positions.len() + out.normals.as_ref().map_or(0, |n| n.len());
-        let memory = state.queue_memory.reserve(bytes as u64).ok()?;
-        let r = Arc::new(Retained {
-            positions: Bytes::copy_from_slice(&out.positions),
-            normals: out.normals.as_ref().map(|n| Bytes::copy_from_slice(n)),
-            _memory: memory,
-        });
-        self.0.insert((g, j), r.clone());
-        Some(r)
+        let copies: Vec<(u32, Arc<Retained>)> = todo
+            .into_par_iter()
+            .map(|(j, memory)| {
+                let out = &outputs[j as usize];
+                let r = Retained {
+                    positions: Bytes::copy_from_slice(&out.positions),
+                    normals: out.normals.as_ref().map(|n| Bytes::copy_from_slice(n)),
+                    _memory: memory,
+                };
+                (j, Arc::new(r))
+            })
+            .collect();
+        for (j, r) in copies {
+            self.0.insert((g, j), r);
+        }
+        Some(())
+    }
+
+    /// The kept copy of job `j` of group `g`, once [`RetainedCache::fill`] made it.
+    fn get(&self, g: usize, j: u32) -> Option<Arc<Retained>> {
+        self.0.get(&(g, j)).cloned()
     }
 }
 
@@ -90,6 +112,12 @@ pub(super) fn plan(
         after: Arc::new(HashMap::new()),
     };
     let mut after = HashMap::with_capacity(n);
+    let sent = input
+        .entries
+        .iter()
+        .copied()
+        .filter(|&e| e != HEAD_MISSING && e != HEAD_UNCHANGED);
+    retained.fill(state, input.group, sent, input.outputs)?;
     for i in 0..n {
         let id = input.head_ids[i];
         let prev = base.prev.get(&id);
@@ -103,7 +131,7 @@ pub(super) fn plan(
             }
             j => j,
         };
-        let cur = retained.get(state, input.group, j, &input.outputs[j as usize])?;
+        let cur = retained.get(input.group, j)?;
         let key = &input.keys[i];
         let residual_of = prev.filter(|p| {
             p.lod == key.lod
@@ -178,12 +206,49 @@ pub(super) fn residual_planes(cur: &[u8], reference: &[u8]) -> Vec<u8> {
     out
 }
 
-/// Bytes an encoder of `e` holds while it compresses one message (as for HTTP responses).
-fn encoder_bytes(e: MessageEncoding) -> u64 {
+/// Messages at least this large are compressed by zstd's own worker threads: one viewer's
+/// message is otherwise compressed on one core, and for a crowd of large heads that is most
+/// of a tick (ICT FaceKit, 200 heads a tick on two cores: 8.5 → 12 ticks/s with two workers).
+/// Smaller messages are not worth the workers' start (zstd's jobs are at least 512 KiB).
+const PARALLEL_ZSTD_BYTES: usize = 4 << 20;
+
+/// Most worker threads one message's zstd may use.
+const MAX_ZSTD_WORKERS: u32 = 4;
+
+/// zstd worker threads for a message of at most `bound` compressed bytes: none below
+/// [`PARALLEL_ZSTD_BYTES`] or on one core, else one per core up to [`MAX_ZSTD_WORKERS`].
+fn zstd_workers(bound: usize) -> u32 {
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get()) as u32;
+    if bound < PARALLEL_ZSTD_BYTES || cores < 2 {
+        0
+    } else {
+        cores.min(MAX_ZSTD_WORKERS)
+    }
+}
+
+/// Bytes an encoder of `e` holds while it compresses a message of at most `bound` compressed
+/// bytes (as for HTTP responses; with zstd's workers, their job buffers and contexts too:
+/// measured in `tests`).
+fn encoder_bytes(e: MessageEncoding, bound: usize) -> u64 {
     use crate::server::http::encoding::{Encoding, encoder_bytes};
     match e {
-        MessageEncoding::Zstd => encoder_bytes(Encoding::Zstd),
+        MessageEncoding::Zstd => {
+            encoder_bytes(Encoding::Zstd) + zstd_workers_bytes(zstd_workers(bound))
+        }
         MessageEncoding::Deflate => encoder_bytes(Encoding::Gzip),
+    }
+}
+
+/// What `workers` zstd workers add to a level-1 context: per worker its own context and a
+/// job's input and output buffers (jobs of about 2 MiB at level 1, with a window of overlap),
+/// plus the buffers zstd pools for jobs waiting to start (up to 2 × workers + 3). Measured
+/// after 48 MiB through a context on a loaded machine (`tests`): 9–11 MiB with 1 worker,
+/// 15 MiB with 2, 18–20 MiB with 3, 22–24 MiB with 4; this charges about twice that.
+fn zstd_workers_bytes(workers: u32) -> u64 {
+    if workers == 0 {
+        0
+    } else {
+        (8 << 20) + u64::from(workers) * (10 << 20)
     }
 }
 
@@ -206,7 +271,7 @@ pub(super) fn pack(
     let bound = packed_bound(raw_len);
     let mut memory: Charge = state
         .queue_memory
-        .reserve(encoder_bytes(e) + 2 * bound as u64 + 32)
+        .reserve(encoder_bytes(e, bound) + 2 * bound as u64 + 32)
         .ok()?;
     let data = compress(pieces, bound, e)?;
     let out = packed_bytes(e, raw_len, &data);
@@ -245,6 +310,10 @@ fn compress(pieces: &[Bytes], bound: usize, e: MessageEncoding) -> Option<Vec<u8
     match e {
         MessageEncoding::Zstd => {
             let mut z = zstd::stream::write::Encoder::new(out, 1).ok()?;
+            let workers = zstd_workers(bound);
+            if workers > 0 {
+                z.multithread(workers).ok()?;
+            }
             for p in pieces {
                 z.write_all(p).ok()?;
             }
@@ -296,6 +365,69 @@ mod tests {
     }
 
     #[test]
+    fn the_charge_bounds_a_multithreaded_zstd_context() {
+        use zstd::zstd_safe::{CCtx, CParameter, InBuffer, OutBuffer, zstd_sys::ZSTD_EndDirective};
+        // A 48 MiB message of residual-like bytes (mostly small, some zeros) through a
+        // level-1 context with the most workers the charge allows for.
+        let mut x = 0u32;
+        let chunk: Vec<u8> = (0..1 << 20)
+            .map(|i| {
+                x = x.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+                if i % 3 == 0 { 0 } else { (x >> 28) as u8 }
+            })
+            .collect();
+        for workers in 1..=MAX_ZSTD_WORKERS {
+            let mut cctx = CCtx::create();
+            cctx.set_parameter(CParameter::CompressionLevel(1))
+                .expect("level");
+            cctx.set_parameter(CParameter::NbWorkers(workers))
+                .expect("zstd is built with its workers");
+            let mut out = vec![0u8; 4 << 20];
+            let mut most = 0;
+            for _ in 0..48 {
+                let mut input = InBuffer::around(&chunk);
+                while input.pos() < chunk.len() {
+                    let mut output = OutBuffer::around(&mut out[..]);
+                    cctx.compress_stream2(
+                        &mut output,
+                        &mut input,
+                        ZSTD_EndDirective::ZSTD_e_continue,
+                    )
+                    .expect("compress");
+                }
+                most = most.max(cctx.sizeof() as u64);
+            }
+            let charged = crate::server::http::encoding::encoder_bytes(
+                crate::server::http::encoding::Encoding::Zstd,
+            ) + zstd_workers_bytes(workers);
+            assert!(most <= charged, "{workers} workers: {most} > {charged}");
+            assert!(
+                most > charged / 8,
+                "{workers} workers: {most}, charged {charged}"
+            );
+        }
+    }
+
+    #[test]
+    fn large_messages_get_workers_on_several_cores() {
+        assert_eq!(zstd_workers(PARALLEL_ZSTD_BYTES - 1), 0);
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get()) as u32;
+        let big = zstd_workers(PARALLEL_ZSTD_BYTES);
+        assert_eq!(
+            big,
+            if cores < 2 {
+                0
+            } else {
+                cores.min(MAX_ZSTD_WORKERS)
+            }
+        );
+        assert!(
+            encoder_bytes(MessageEncoding::Zstd, PARALLEL_ZSTD_BYTES)
+                >= encoder_bytes(MessageEncoding::Zstd, 0)
+        );
+    }
+
+    #[test]
     fn a_packed_message_is_the_bincode_of_its_type_and_unpacks_to_the_message() {
         for e in [MessageEncoding::Zstd, MessageEncoding::Deflate] {
             let raw: Vec<u8> = (0..50_000u32).map(|i| (i % 251) as u8 / 3).collect();
@@ -304,6 +436,20 @@ mod tests {
                 .map(|r| Bytes::copy_from_slice(&raw[r]))
                 .into();
             let data = compress(&pieces, packed_bound(raw.len()), e).expect("compresses");
+            // A message large enough for zstd's workers round-trips too.
+            let big: Vec<u8> = (0..(PARALLEL_ZSTD_BYTES + 12_345) as u32)
+                .map(|i| (i % 251) as u8 / 7)
+                .collect();
+            let packed = compress(&[Bytes::from(big.clone())], packed_bound(big.len()), e)
+                .expect("compresses");
+            let unpacked = crowdmorph_proto::PackedMessage {
+                encoding: e,
+                length: big.len() as u64,
+                data: crowdmorph_proto::Blob(packed),
+            }
+            .unpack()
+            .expect("unpacks");
+            assert!(unpacked == big, "{e:?}: a large message round-trips");
             assert!(data.len() < raw.len() / 4, "{e:?} {}", data.len());
             let message =
                 crowdmorph_proto::StreamMessage::Packed(crowdmorph_proto::PackedMessage {
