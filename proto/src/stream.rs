@@ -259,8 +259,20 @@ impl PackedMessage {
             ));
         }
         let n = self.length as usize;
-        let mut out = Vec::with_capacity(n);
         let data = &self.data.0[..];
+        if self.encoding == crate::MessageEncoding::Zstd {
+            // One call into a buffer of the stated length: no zeroing, no staging copy (the
+            // stream reader below does both). A frame that does not fit, or that is short or
+            // bad, goes the streaming way, which names what is wrong.
+            let mut out = Vec::with_capacity(n);
+            if let Ok(mut z) = zstd::bulk::Decompressor::new()
+                && z.decompress_to_buffer(data, &mut out).is_ok()
+                && out.len() == n
+            {
+                return Ok(out);
+            }
+        }
+        let mut out = Vec::with_capacity(n);
         let read = match self.encoding {
             crate::MessageEncoding::Zstd => zstd::stream::read::Decoder::new(data)
                 .and_then(|d| d.take(n as u64 + 1).read_to_end(&mut out)),
