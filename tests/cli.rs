@@ -868,6 +868,67 @@ fn bench_sessions_link_gives_each_viewer_mode_its_turn_on_each_route() {
 }
 
 #[test]
+fn bench_sessions_modes_are_checked_before_anything_starts() {
+    let out = crowdmorph(&[
+        "bench", "sessions", "--link", "1gbit", "--modes", "q16,q16r",
+    ])
+    .output()
+    .expect("runs");
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("unknown viewer mode \"q16r\""), "{err}");
+    assert!(err.contains("temporal+zstd"), "{err}");
+}
+
+#[test]
+fn bench_codecs_codes_real_frames_losslessly_each_way() {
+    let r = json(&[
+        "bench",
+        "codecs",
+        "--frames",
+        "24",
+        "--zstd-levels",
+        "-5,1",
+        "--json",
+    ]);
+    assert_eq!(r["vertices"].as_u64(), Some(EMBEDDED_VERTICES as u64));
+    assert_eq!(r["frames"].as_u64(), Some(24));
+    let rows = r["rows"].as_array().expect("rows");
+    let row = |reference: &str, coding: &str, entropy: &str| {
+        rows.iter()
+            .find(|x| {
+                x["reference"] == reference && x["coding"] == coding && x["entropy"] == entropy
+            })
+            .unwrap_or_else(|| panic!("no row {reference} {coding} {entropy}: {rows:?}"))
+    };
+    // Plain q16 is 6 bytes a vertex; the command refuses to report a row that does not decode
+    // to q16 bit for bit, so every row here round-tripped.
+    let q16 = f64_of(row("none", "q16", "none"), "bytes_per_head");
+    assert_eq!(q16, (EMBEDDED_VERTICES * 6) as f64);
+    for reference in ["neutral", "previous"] {
+        for (coding, entropy) in [
+            ("planes", "zstd -5"),
+            ("planes", "zstd 1"),
+            ("planes", "zlib 1"),
+            ("meshopt", "none"),
+            ("meshopt", "zstd 1"),
+            ("meshopt", "zlib 1"),
+        ] {
+            let x = row(reference, coding, entropy);
+            assert!(
+                f64_of(x, "bytes_per_head") < q16 / 3.0,
+                "{reference} {coding} {entropy}"
+            );
+            assert!(f64_of(x, "encode_us") > 0.0 && f64_of(x, "decode_us") > 0.0);
+        }
+    }
+    // The previous frame predicts better than the neutral, and zstd's fast mode gives up bytes.
+    let b = |r: &str, c: &str, e: &str| f64_of(row(r, c, e), "bytes_per_head");
+    assert!(b("previous", "planes", "zstd 1") < b("neutral", "planes", "zstd 1"));
+    assert!(b("previous", "planes", "zstd 1") < b("previous", "planes", "zstd -5"));
+}
+
+#[test]
 fn bench_link_rates_are_checked_before_anything_starts() {
     let out = crowdmorph(&["bench", "http", "--link", "1gb"])
         .output()

@@ -1,5 +1,5 @@
 //! Benchmarks, their peers and their harness (feature `bench`, on by default): what
-//! `crowdmorph bench cpu|gpu|http|render|sessions` run, kept out of the product modules.
+//! `crowdmorph bench cpu|gpu|http|render|sessions|codecs` run, kept out of the product modules.
 //!
 //! | module | what it is |
 //! |---|---|
@@ -11,11 +11,13 @@
 //! | [`sessions`] | `bench sessions`: one session streamed to several viewers |
 //! | [`link`] | `--link`: the server also behind shaped veth links in namespaces of its own |
 //! | [`render`] | `bench render`: the offline crowd drawn repeatedly |
+//! | [`codecs`] | `bench codecs`: each way a head's q16 buffer can travel (references, byte planes or meshopt, zstd levels, zlib) on real frames |
 //! | [`peers`] | the Python peers: the rig as `.npy`, warm numpy, the dense aiohttp + numpy server |
 //!
 //! Harness code reports errors with `anyhow`, as the binary does: nothing here is on a request
 //! path, and the product never calls it.
 
+pub mod codecs;
 pub mod cpu;
 pub mod gpu;
 pub mod http;

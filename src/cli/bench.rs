@@ -1,4 +1,4 @@
-//! `crowdmorph bench cpu|gpu|http|render|sessions`: the benchmarks of [`crowdmorph::bench`],
+//! `crowdmorph bench cpu|gpu|http|render|sessions|codecs`: the benchmarks of [`crowdmorph::bench`],
 //! each printed as its report.
 
 use std::path::PathBuf;
@@ -131,6 +131,10 @@ pub enum Command {
         /// pair each, removed at the end; needs root and iproute2, else only loopback).
         #[arg(long, value_delimiter = ',', value_name = "RATES")]
         link: Vec<bench::link::LinkSpec>,
+        /// With --link: only these viewer modes (comma-separated: f32, q16, q16+zstd,
+        /// temporal, temporal+deflate, temporal+zstd; default all).
+        #[arg(long, value_delimiter = ',', value_name = "MODES")]
+        modes: Vec<bench::sessions::ViewerMode>,
         /// Print JSON.
         #[arg(long)]
         json: bool,
@@ -212,6 +216,32 @@ pub enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// The ways a head's q16 buffer can travel, on real frames: against nothing, the neutral
+    /// or the previous frame; byte planes or meshoptimizer's vertex codec; zstd levels or zlib.
+    /// Bytes per head and encode/decode CPU per head, each checked lossless.
+    Codecs {
+        /// glTF/GLB rig (default: the embedded head).
+        #[arg(long)]
+        rig: Option<PathBuf>,
+        /// Play these clips (`.csv`/`.json` files in a folder, named by file stem) instead of
+        /// the rig's own.
+        #[arg(long, value_name = "DIR")]
+        clips: Option<PathBuf>,
+        /// Frames in all, consecutive runs from every clip.
+        #[arg(long, default_value_t = 240)]
+        frames: usize,
+        /// zstd levels of the residual rows (negative: its fast modes).
+        #[arg(
+            long,
+            value_delimiter = ',',
+            allow_hyphen_values = true,
+            default_value = "-5,-1,1,3"
+        )]
+        zstd_levels: Vec<i32>,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
+    },
 }
 
 /// `bench gpu`'s tables: the engine's, and the CPU engine's with `--with-cpu`.
@@ -232,6 +262,7 @@ impl super::Report for bench::sessions::SessionBenchReport {}
 impl super::Report for bench::sessions::SessionLinkReport {}
 impl super::Report for bench::http::LinkBenchReport {}
 impl super::Report for crowdmorph::render::offline::RenderReport {}
+impl super::Report for bench::codecs::CodecReport {}
 
 /// The rig file a benchmark server uploads (its glTF with every buffer embedded), if any.
 fn server_rig(rig: Option<&std::path::Path>) -> Result<Option<Vec<u8>>> {
@@ -337,6 +368,22 @@ pub fn run(which: Command) -> Result<()> {
             });
             super::emit(&report?, json)
         }
+        Command::Codecs {
+            rig,
+            clips,
+            frames,
+            zstd_levels,
+            json,
+        } => {
+            let rig = load_rig(rig.as_deref())?;
+            let opt = bench::codecs::CodecBenchOptions {
+                clips,
+                frames,
+                zstd_levels,
+            };
+            let report = with_spinner("bench codecs", || bench::codecs::bench_codecs(rig, &opt));
+            super::emit(&report?, json)
+        }
         Command::Sessions {
             rig,
             heads,
@@ -350,6 +397,7 @@ pub fn run(which: Command) -> Result<()> {
             graph,
             clips,
             link,
+            modes,
             json,
         } => {
             let bytes = server_rig(rig.as_deref())?;
@@ -365,6 +413,7 @@ pub fn run(which: Command) -> Result<()> {
                 graph,
                 clips,
                 links: link,
+                modes,
             };
             if !opt.links.is_empty() {
                 let report = with_spinner("bench sessions --link", || {
