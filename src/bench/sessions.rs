@@ -60,6 +60,46 @@ pub struct SessionBenchOptions {
     pub clips: Option<std::path::PathBuf>,
     /// Shaped links for [`bench_session_links`].
     pub links: Vec<super::link::LinkSpec>,
+    /// The viewer modes [`bench_session_links`] measures (empty: all of [`VIEWER_MODES`]).
+    pub modes: Vec<ViewerMode>,
+}
+
+/// A viewer mode of `bench sessions --link`, by its name in the report (`q16 + zstd`, spaces
+/// optional on the command line).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ViewerMode {
+    format: Format,
+    temporal: bool,
+    compression: Option<MessageEncoding>,
+}
+
+impl std::str::FromStr for ViewerMode {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let want: String = s.chars().filter(|c| !c.is_whitespace()).collect();
+        VIEWER_MODES
+            .iter()
+            .map(|&(format, temporal, compression)| ViewerMode {
+                format,
+                temporal,
+                compression,
+            })
+            .find(|m| m.name().replace(' ', "") == want)
+            .ok_or_else(|| {
+                let names: Vec<String> = VIEWER_MODES
+                    .iter()
+                    .map(|&(f, t, c)| mode_name(f, t, c).replace(' ', ""))
+                    .collect();
+                format!("unknown viewer mode {s:?}: one of {}", names.join(", "))
+            })
+    }
+}
+
+impl ViewerMode {
+    fn name(self) -> String {
+        mode_name(self.format, self.temporal, self.compression)
+    }
 }
 
 /// The measurement.
@@ -487,6 +527,14 @@ async fn measure_viewers(
         let url = crate::load::session::stream_url(&format!("http://{}", route.addr), session)?;
         let first = rows.len();
         for (format, temporal, compression) in VIEWER_MODES {
+            let mode = ViewerMode {
+                format,
+                temporal,
+                compression,
+            };
+            if !opt.modes.is_empty() && !opt.modes.contains(&mode) {
+                continue;
+            }
             let hello = ViewerHello {
                 format,
                 temporal,
