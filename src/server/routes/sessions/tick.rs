@@ -1,7 +1,8 @@
 //! A session's tick: every head resolved once, each viewer's jobs per head grouped by what
 //! their buffers hold, one submission to the batcher per group, and the fan-out of messages
-//! relative to what each viewer last received. The tick task is supervised: a panic ends its
-//! session.
+//! relative to what each viewer last received. The fan-out of tick N runs on a blocking thread
+//! while tick N + 1 is resolved and blended (one in flight, so outboxes get messages in tick
+//! order). The tick task is supervised: a panic, in it or in its fan-out, ends its session.
 
 use std::collections::HashMap;
 use std::sync::atomic::Ordering;
