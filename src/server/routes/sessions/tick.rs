@@ -300,9 +300,12 @@ struct FanOutWork {
 
 impl FanOutWork {
     fn run(self) {
+        // Temporal viewers' references are by head id: collected once a tick for all of them.
+        let head_ids: Vec<u64> = self.heads.iter().map(|h| h.head).collect();
         let tick_heads = TickHeads {
             tick: self.tick,
             heads: &self.heads,
+            head_ids: &head_ids,
             layout_rev: self.layout_rev,
             rigs: &self.rigs,
             arrived: self.arrived,
@@ -657,6 +660,8 @@ async fn submit(state: &AppState, groups: &mut [Group]) -> Option<Submitted> {
 struct TickHeads<'a> {
     tick: u64,
     heads: &'a [SessionHead],
+    /// Each head's id, in order.
+    head_ids: &'a [u64],
     layout_rev: u64,
     rigs: &'a [Arc<RigEntry>],
     arrived: std::time::Instant,
@@ -761,10 +766,9 @@ fn prepare(
     let plan = match settings.temporal {
         None => None,
         Some(every) => {
-            let ids: Vec<u64> = t.heads.iter().map(|h| h.head).collect();
             let input = delta::PlanInput {
                 tick: t.tick,
-                head_ids: &ids,
+                head_ids: t.head_ids,
                 entries: &entries,
                 keys,
                 every,
