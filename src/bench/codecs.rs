@@ -73,32 +73,20 @@ pub struct CodecReport {
 
 /// Reads every `.csv` and `.json` clip in `dir` for `rig` (names it lacks ignored).
 pub fn read_clips(rig: &Rig, dir: &std::path::Path) -> Result<Vec<crate::rig::Clip>> {
-    let mut files: Vec<std::path::PathBuf> = std::fs::read_dir(dir)
-        .with_context(|| format!("reading {}", dir.display()))?
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| matches!(p.extension().and_then(|e| e.to_str()), Some("csv" | "json")))
-        .collect();
-    files.sort();
     let options = ClipOptions {
         ignore_unknown: true,
         ..ClipOptions::default()
     };
     let mut clips = Vec::new();
-    for path in files {
-        let name = path
-            .file_stem()
-            .and_then(|s| s.to_str())
-            .context("a clip file name that is not UTF-8")?;
+    for (path, name, csv) in super::server::clip_files(dir)? {
         let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
-        let import = match path.extension().and_then(|e| e.to_str()) {
-            Some("csv") => clip_from_csv(rig, name, &bytes, &options),
-            _ => clip_from_json(rig, name, &bytes, &options),
+        let import = if csv {
+            clip_from_csv(rig, &name, &bytes, &options)
+        } else {
+            clip_from_json(rig, &name, &bytes, &options)
         }
         .with_context(|| format!("importing {}", path.display()))?;
         clips.push(import.clip);
-    }
-    if clips.is_empty() {
-        bail!("{} has no .csv or .json clips", dir.display());
     }
     Ok(clips)
 }

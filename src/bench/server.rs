@@ -96,26 +96,9 @@ pub async fn upload_clips(
     rig: &str,
     dir: &std::path::Path,
 ) -> Result<Vec<String>> {
-    let mut files: Vec<std::path::PathBuf> = std::fs::read_dir(dir)
-        .with_context(|| format!("reading {}", dir.display()))?
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| matches!(p.extension().and_then(|e| e.to_str()), Some("csv" | "json")))
-        .collect();
-    files.sort();
-    if files.is_empty() {
-        anyhow::bail!("{} has no .csv or .json clips", dir.display());
-    }
     let mut names = Vec::new();
-    for path in files {
-        let name = path
-            .file_stem()
-            .and_then(|s| s.to_str())
-            .context("a clip file name that is not UTF-8")?
-            .to_string();
-        let content_type = match path.extension().and_then(|e| e.to_str()) {
-            Some("csv") => "text/csv",
-            _ => "application/json",
-        };
+    for (path, name, csv) in clip_files(dir)? {
+        let content_type = if csv { "text/csv" } else { "application/json" };
         let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
         client
             .upload_clip(
@@ -129,6 +112,32 @@ pub async fn upload_clips(
         names.push(name);
     }
     Ok(names)
+}
+
+/// The `.csv` and `.json` clips in `dir`, in name order: each path, its name (the file stem)
+/// and whether it is CSV. An empty folder is an error.
+pub fn clip_files(dir: &std::path::Path) -> Result<Vec<(std::path::PathBuf, String, bool)>> {
+    let mut files: Vec<std::path::PathBuf> = std::fs::read_dir(dir)
+        .with_context(|| format!("reading {}", dir.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| matches!(p.extension().and_then(|e| e.to_str()), Some("csv" | "json")))
+        .collect();
+    files.sort();
+    if files.is_empty() {
+        anyhow::bail!("{} has no .csv or .json clips", dir.display());
+    }
+    files
+        .into_iter()
+        .map(|path| {
+            let name = path
+                .file_stem()
+                .and_then(|s| s.to_str())
+                .context("a clip file name that is not UTF-8")?
+                .to_string();
+            let csv = path.extension().and_then(|e| e.to_str()) == Some("csv");
+            Ok((path, name, csv))
+        })
+        .collect()
 }
 
 /// CPU time of this process (user + system); zero where `getrusage` is unavailable.
