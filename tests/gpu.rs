@@ -376,6 +376,67 @@ fn consecutive_batches_overlap_and_results_stay_on_the_device_without_readback()
 }
 
 #[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+fn the_device_packs_q16_and_f16_bit_for_bit_and_reads_back_into_warm_buffers() {
+    use crowdmorph::engine::{BlendOutput, VertexData};
+    let engine = Engine::with_gpu(open_gpu(GpuOptions::default()), BackendChoice::Gpu);
+    let rig = with_random_clip(crowdmorph::embedded::default_rig(), 7);
+    // An odd number of components per job, so the last packed half is padding.
+    let jobs = random_jobs(&rig, 11, 13);
+    let qbox = crowdmorph::server::registry::quantization_box(&rig);
+    let rig = Arc::new(rig);
+    let prepared = engine.prepare(rig).expect("upload");
+    let f32_spec = OutputSpec {
+        normals: true,
+        precision: Precision::F32,
+    };
+    let blended = engine.evaluate(&prepared, &jobs, f32_spec).expect("f32");
+    let VertexData::F32(pos) = &blended.output.positions else {
+        panic!("f32 positions")
+    };
+    let Some(VertexData::F32(nrm)) = &blended.output.normals else {
+        panic!("f32 normals")
+    };
+    for precision in [Precision::Q16(qbox), Precision::F16] {
+        let spec = OutputSpec {
+            normals: true,
+            precision,
+        };
+        let mut out = BlendOutput::default();
+        // Twice into the same output: the second read overwrites the first's arrays in place.
+        let mut first_address = 0;
+        for round in 0..2 {
+            let pending = engine.submit(&prepared, &jobs, spec, true).expect("submit");
+            let (_, kind) = pending.wait_into(&mut out).expect("wait");
+            assert_eq!(kind, BackendKind::Gpu);
+            let address = out.positions.as_bytes().as_ptr() as usize;
+            if round == 0 {
+                first_address = address;
+            } else {
+                assert_eq!(
+                    address, first_address,
+                    "{precision:?}: the warm array was reused"
+                );
+            }
+        }
+        // The device's 16-bit output is the host's encoding of the device's own f32 blend.
+        assert_eq!(
+            out.positions,
+            VertexData::encode(pos, precision, false),
+            "{precision:?} positions"
+        );
+        assert_eq!(
+            out.normals.as_ref().expect("normals"),
+            &VertexData::encode(nrm, precision, true),
+            "{precision:?} normals"
+        );
+    }
+}
+
+#[test]
 fn auto_never_picks_a_software_adapter() {
     let instance =
         wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
@@ -398,6 +459,35 @@ fn auto_never_picks_a_software_adapter() {
         );
         assert_eq!(info.kind, BackendKind::Cpu, "{info:?}");
         assert!(info.adapter.is_none());
+    }
+}
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+fn a_discrete_gpus_budget_defaults_to_most_of_its_memory_and_others_keep_the_fixed_one() {
+    use crowdmorph::engine::gpu::{
+        DISCRETE_GPU_MEMORY_SHARE, default_gpu_memory, device_local_heap, discrete_gpu_memory,
+    };
+    let instance =
+        wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+    let adapters = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::VULKAN));
+    assert!(!adapters.is_empty(), "a Vulkan adapter (lavapipe at least)");
+    for a in &adapters {
+        let info = a.get_info();
+        // Every Vulkan device has a device-local heap; lavapipe's is the host's memory.
+        let heap = device_local_heap(a).expect("a Vulkan adapter reports its heaps");
+        assert!(heap >= 64 << 20, "{}: {heap} bytes", info.name);
+        match discrete_gpu_memory(a) {
+            Some(budget) => {
+                assert_eq!(info.device_type, wgpu::DeviceType::DiscreteGpu);
+                let share = (heap as f64 * DISCRETE_GPU_MEMORY_SHARE) as u64;
+                assert_eq!(budget, share.max(default_gpu_memory(&a.limits())));
+            }
+            None => assert_ne!(info.device_type, wgpu::DeviceType::DiscreteGpu, "{info:?}"),
+        }
     }
 }
 
@@ -596,9 +686,14 @@ fn the_gpu_memory_budget_refuses_rigs_over_it_and_gets_back_a_dropped_rigs_memor
         BackendChoice::Gpu,
     );
     let resident = tight.prepare(rig.clone()).expect("the rig fits");
+    assert_eq!(tight.cpu_fallbacks(), 0);
     let got = tight.evaluate(&resident, &jobs, spec).expect("evaluated");
     assert_eq!(got.kind, Some(BackendKind::Cpu), "the batch ran on the CPU");
     assert!(!tight.info().degraded, "{:?}", tight.info().degraded_reason);
+    // Counted (for crowdmorph_gpu_fallbacks_total), each time.
+    assert_eq!(tight.cpu_fallbacks(), 1);
+    tight.evaluate(&resident, &jobs, spec).expect("again");
+    assert_eq!(tight.cpu_fallbacks(), 2);
     let cpu = Engine::cpu();
     let want = cpu
         .evaluate(&cpu.prepare(rig.clone()).expect("prepare"), &jobs, spec)

@@ -46,6 +46,7 @@ fn each_pass_has_the_entry_point_its_cpu_mirror_names() {
         ("face_normals.wgsl", &["face_normals"][..]),
         ("vertex_normals.wgsl", &["vertex_normals"][..]),
         ("pack_f16.wgsl", &["pack_f16"][..]),
+        ("pack_q16.wgsl", &["pack_q16"][..]),
         ("render.wgsl", &["vs_main", "fs_main"][..]),
     ] {
         let src = std::fs::read_to_string(dir.join(file)).expect("read shader");

@@ -120,8 +120,8 @@ pub fn load_rig(path: Option<&Path>) -> Result<Rig> {
 #[derive(clap::Args, Clone, Copy, Debug)]
 pub struct GpuMemoryArgs {
     /// Most GPU memory resident rigs, batch buffers and render targets may hold on each device,
-    /// bytes (a rig or frame over it is refused, naming the flag; default: 2 GiB, or the
-    /// device's largest buffer if larger).
+    /// bytes (a rig or frame over it is refused, naming the flag; default: ¾ of a discrete GPU's
+    /// memory, else 2 GiB or the device's largest buffer if larger).
     #[arg(long, env = "CROWDMORPH_MAX_GPU_MEMORY")]
     pub max_gpu_memory: Option<u64>,
 }

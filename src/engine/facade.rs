@@ -221,6 +221,9 @@ pub struct Timings {
     pub wall_ns: u64,
     /// Time the GPU spent on the batch's passes, from timestamp queries (GPU backend only).
     pub gpu_ns: Option<u64>,
+    /// Host time after the GPU's results were mapped: copying them into host arrays and
+    /// encoding what the device did not (GPU backend only).
+    pub host_ns: Option<u64>,
 }
 
 /// A batch result with its timings.
@@ -240,6 +243,43 @@ pub struct Engine {
     gpu: Option<Arc<GpuContext>>,
     degraded: AtomicBool,
     degraded_reason: std::sync::Mutex<Option<String>>,
+    fallbacks: Fallbacks,
+}
+
+/// Batches a healthy GPU engine ran on the CPU because the device's memory budget was full:
+/// counted for `/metrics`, and warned about at most once per [`Fallbacks::WARN_EVERY`] (a CPU
+/// batch is about a hundred times slower on a big device, so an operator must hear of it, but
+/// a log line per batch would flood the log).
+#[derive(Default)]
+struct Fallbacks {
+    count: std::sync::atomic::AtomicU64,
+    /// When the last WARN was written, and the count then.
+    warned: std::sync::Mutex<Option<(Instant, u64)>>,
+}
+
+impl Fallbacks {
+    const WARN_EVERY: std::time::Duration = std::time::Duration::from_secs(10);
+
+    fn record(&self, what: &str, e: &crate::budget::BudgetError) {
+        let n = self.count.fetch_add(1, Ordering::Relaxed) + 1;
+        let Ok(mut w) = self.warned.lock() else {
+            return;
+        };
+        let (since, before) = match *w {
+            Some((t, _)) if t.elapsed() < Self::WARN_EVERY => return,
+            Some((t, c)) => (Some(t.elapsed()), c),
+            None => (None, 0),
+        };
+        *w = Some((Instant::now(), n));
+        drop(w);
+        tracing::warn!(
+            fallbacks = n - before,
+            seconds = since.map(|d| d.as_secs()),
+            error = %e,
+            "GPU memory budget full: {what} ran on the CPU engine (raise --max-gpu-memory; \
+             crowdmorph_gpu_fallbacks_total counts them)"
+        );
+    }
 }
 
 impl std::fmt::Debug for Engine {
@@ -284,26 +324,48 @@ impl PendingEvaluation<'_> {
     /// Waits for the batch. A GPU fault while it ran degrades the engine and the batch is
     /// computed on the CPU instead, so the caller still gets a correct result.
     pub fn wait(self) -> Result<Evaluation, EngineError> {
+        let mut output = BlendOutput::default();
+        let (timings, kind) = self.wait_into(&mut output)?;
+        Ok(Evaluation {
+            output,
+            timings,
+            kind: Some(kind),
+        })
+    }
+
+    /// Waits for the batch and writes its buffers into `out`, reusing `out`'s arrays where
+    /// they fit (a GPU batch is copied out of its mapped staging memory on every core; the
+    /// device already wrote f16 and q16). A GPU fault degrades the engine and the batch is
+    /// computed on the CPU into `out` instead.
+    pub fn wait_into(self, out: &mut BlendOutput) -> Result<(Timings, BackendKind), EngineError> {
         match self.state {
-            PendingState::Ready(r) => r,
-            PendingState::Gpu(pending) => match pending.wait() {
-                Ok((mut output, gpu_ns)) => Ok(Evaluation {
-                    output: {
-                        // The GPU produces f32 and f16; q16 is encoded here, on the host,
-                        // with the CPU kernels' arithmetic.
-                        output.encode_as(self.spec);
-                        output
-                    },
-                    timings: Timings {
-                        wall_ns: self.start.elapsed().as_nanos() as u64,
-                        gpu_ns,
-                    },
-                    kind: Some(BackendKind::Gpu),
-                }),
+            PendingState::Ready(r) => {
+                let e = r?;
+                *out = e.output;
+                Ok((e.timings, e.kind.unwrap_or(BackendKind::Cpu)))
+            }
+            PendingState::Gpu(pending) => match pending.wait_into(out) {
+                Ok(r) => {
+                    // Anything the device did not encode (it encodes every format today) is
+                    // encoded here with the CPU kernels' arithmetic.
+                    let encode = Instant::now();
+                    out.encode_as(self.spec);
+                    Ok((
+                        Timings {
+                            wall_ns: self.start.elapsed().as_nanos() as u64,
+                            gpu_ns: r.gpu_ns,
+                            host_ns: Some(r.host_ns + encode.elapsed().as_nanos() as u64),
+                        },
+                        BackendKind::Gpu,
+                    ))
+                }
                 Err(e) => {
                     self.engine.degrade(&e);
-                    self.engine
-                        .evaluate_cpu(&self.rig, &self.jobs, self.spec, self.start)
+                    let e = self
+                        .engine
+                        .evaluate_cpu(&self.rig, &self.jobs, self.spec, self.start)?;
+                    *out = e.output;
+                    Ok((e.timings, e.kind.unwrap_or(BackendKind::Cpu)))
                 }
             },
         }
@@ -311,6 +373,12 @@ impl PendingEvaluation<'_> {
 }
 
 impl Engine {
+    /// Batches (and renders' jobs) a healthy GPU engine ran on the CPU because the device's
+    /// memory budget was full, since the engine started.
+    pub fn cpu_fallbacks(&self) -> u64 {
+        self.fallbacks.count.load(Ordering::Relaxed)
+    }
+
     /// The CPU engine.
     pub fn cpu() -> Engine {
         Engine {
@@ -318,6 +386,7 @@ impl Engine {
             gpu: None,
             degraded: AtomicBool::new(false),
             degraded_reason: std::sync::Mutex::new(None),
+            fallbacks: Fallbacks::default(),
         }
     }
 
@@ -353,6 +422,7 @@ impl Engine {
             gpu: Some(Arc::new(ctx)),
             degraded: AtomicBool::new(false),
             degraded_reason: std::sync::Mutex::new(None),
+            fallbacks: Fallbacks::default(),
         }
     }
 
@@ -601,6 +671,7 @@ impl Engine {
             timings: Timings {
                 wall_ns: start.elapsed().as_nanos() as u64,
                 gpu_ns: None,
+                host_ns: None,
             },
             kind: Some(BackendKind::Cpu),
         })
@@ -628,7 +699,7 @@ impl Engine {
                     // The device's memory budget is full now: this batch runs on the CPU,
                     // which holds every rig too; the device is fine.
                     Err(GpuError::Memory(e)) => {
-                        tracing::debug!(error = %e, "GPU memory budget full; batch on the CPU");
+                        self.fallbacks.record("a batch", &e);
                         PendingState::Ready(self.evaluate_cpu(rig, jobs, spec, start))
                     }
                     Err(e) => {
@@ -697,9 +768,7 @@ impl Engine {
         out: &mut BlendOutput,
     ) -> Result<(Timings, BackendKind), EngineError> {
         if let Some(pending) = begun.gpu {
-            let e = pending.wait()?;
-            *out = e.output;
-            return Ok((e.timings, e.kind.unwrap_or(BackendKind::Gpu)));
+            return pending.wait_into(out);
         }
         let (target, jobs) = rig.route(jobs)?;
         let batch = WeightBatch::gather(&target.rig, &jobs)?;
@@ -708,6 +777,7 @@ impl Engine {
             Timings {
                 wall_ns: begun.start.elapsed().as_nanos() as u64,
                 gpu_ns: None,
+                host_ns: None,
             },
             BackendKind::Cpu,
         ))
@@ -739,15 +809,14 @@ impl Engine {
                     let timings = Timings {
                         wall_ns: start.elapsed().as_nanos() as u64,
                         gpu_ns,
+                        host_ns: None,
                     };
                     return Ok((RenderBuffers::Device(out), timings));
                 }
                 Err(e @ GpuError::DoesNotFit(_)) => return Err(gpu_to_engine(e)),
                 // The device's memory budget is full now: these jobs are evaluated on the CPU
                 // and drawn from host arrays; the device is fine.
-                Err(GpuError::Memory(e)) => {
-                    tracing::debug!(error = %e, "GPU memory budget full; render jobs on the CPU");
-                }
+                Err(GpuError::Memory(e)) => self.fallbacks.record("a render's jobs", &e),
                 Err(e) => self.degrade(&e),
             }
         }

@@ -51,8 +51,8 @@ pub struct ServerConfig {
     #[arg(long, env = "CROWDMORPH_MAX_RIG_MEMORY")]
     pub max_rig_memory: Option<u64>,
     /// Most GPU memory resident rigs, batch buffers and render targets may hold on each
-    /// device, bytes (a rig over it gets 413, one that does not fit now 503; default: 2 GiB, or
-    /// the device's largest buffer if larger).
+    /// device, bytes (a rig over it gets 413, one that does not fit now 503; default: ¾ of a
+    /// discrete GPU's memory, else 2 GiB or the device's largest buffer if larger).
     #[arg(long = "max-gpu-memory", env = "CROWDMORPH_MAX_GPU_MEMORY")]
     pub gpu_memory: Option<u64>,
     /// Crowd requests that may wait for the batcher at once (more get 503).

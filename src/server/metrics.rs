@@ -207,6 +207,9 @@ pub struct Metrics {
     pub batches_pipelined: Counter,
     /// GPU time of evaluations, seconds.
     pub gpu_seconds: F64Counter,
+    /// Batches a healthy GPU engine ran on the CPU because its memory budget was full (the
+    /// engine counts them; brought up to its count at each scrape).
+    gpu_fallbacks: Counter,
     /// LOD builds computing now (background jobs and PUTs).
     pub lod_builds_running: U64Gauge,
     /// LOD builds that stopped early because they were cancelled (a newer PUT, a delete,
@@ -385,6 +388,11 @@ impl Default for Metrics {
             "crowdmorph_lod_builds_cancelled",
             "LOD builds stopped early by a newer PUT, a delete or shutdown",
         );
+        let gpu_fallbacks = counter(
+            "crowdmorph_gpu_fallbacks",
+            "Batches the GPU engine ran on the CPU because the GPU memory budget \
+             (--max-gpu-memory) was full",
+        );
         let session_panics = counter(
             "crowdmorph_session_panics",
             "Session tick tasks that panicked; each ended its session (a bug: the log has it)",
@@ -529,6 +537,7 @@ impl Default for Metrics {
             dispatches,
             batches_pipelined,
             gpu_seconds,
+            gpu_fallbacks,
             lod_builds_running,
             lod_builds_cancelled,
             rejected,
@@ -620,6 +629,8 @@ pub struct Gauges {
     pub gpu_memory_bytes: u64,
     /// The sum of those budgets (`--max-gpu-memory` per device).
     pub gpu_memory_limit: u64,
+    /// Batches the GPU engine ran on the CPU because its budget was full, since it started.
+    pub gpu_fallbacks: u64,
     /// Crowd sessions that exist now.
     pub sessions: u64,
     /// Viewers connected to sessions now.
@@ -740,6 +751,11 @@ impl Metrics {
         s.render_work_limit_seconds.set(g.render_work_limit_seconds);
         s.gpu_memory_bytes.set(g.gpu_memory_bytes);
         s.gpu_memory_limit.set(g.gpu_memory_limit);
+        // Under the scrape lock: two scrapes cannot both add the same difference.
+        let counted = self.gpu_fallbacks.get();
+        if g.gpu_fallbacks > counted {
+            self.gpu_fallbacks.inc_by(g.gpu_fallbacks - counted);
+        }
         s.rigs.set(g.rigs);
         s.host_bytes.set(g.host_bytes);
         s.device_bytes.set(g.device_bytes);

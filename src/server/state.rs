@@ -511,6 +511,7 @@ impl AppState {
             render_work_limit_seconds: self.render_budget.work_seconds().1,
             gpu_memory_bytes: gpu_pools.iter().map(|p| p.used()).sum(),
             gpu_memory_limit: gpu_pools.iter().map(|p| p.limit()).sum(),
+            gpu_fallbacks: self.engine.cpu_fallbacks(),
             sessions,
             session_viewers,
         }

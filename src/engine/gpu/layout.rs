@@ -118,6 +118,44 @@ pub struct PackParams {
     pub _pad1: u32,
 }
 
+/// Uniforms of `pack_q16`: the arithmetic of [`crate::engine::Q16Params`].
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct Q16PackParams {
+    /// f32 values to pack.
+    pub count: u32,
+    /// Invocations per dispatch row.
+    pub row: u32,
+    /// Lower clamp of the scaled value.
+    pub lo: f32,
+    /// Upper clamp of the scaled value.
+    pub hi: f32,
+    /// Subtracted per axis (xyz; the fourth unused).
+    pub sub: [f32; 4],
+    /// Scale per axis (xyz; the fourth unused).
+    pub mul: [f32; 4],
+    /// Added to the rounded integer.
+    pub add: i32,
+    /// Padding.
+    pub _pad: [u32; 3],
+}
+
+impl Q16PackParams {
+    /// The uniforms that quantize `count` values with `q`.
+    pub fn new(q: &crate::engine::Q16Params, count: u32, row: u32) -> Q16PackParams {
+        Q16PackParams {
+            count,
+            row,
+            lo: q.lo,
+            hi: q.hi,
+            sub: [q.sub[0], q.sub[1], q.sub[2], 0.0],
+            mul: [q.mul[0], q.mul[1], q.mul[2], 0.0],
+            add: q.add,
+            _pad: [0; 3],
+        }
+    }
+}
+
 /// One chunk of tiles with everything its blend dispatch reads.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Chunk {
@@ -262,6 +300,11 @@ mod tests {
         assert_eq!(size_of::<NormalParams>(), 16);
         assert_eq!(std::mem::offset_of!(NormalParams, jobs), 12);
         assert_eq!(size_of::<PackParams>(), 16);
+        assert_eq!(size_of::<Q16PackParams>(), 64);
+        assert_eq!(std::mem::offset_of!(Q16PackParams, lo), 8);
+        assert_eq!(std::mem::offset_of!(Q16PackParams, sub), 16);
+        assert_eq!(std::mem::offset_of!(Q16PackParams, mul), 32);
+        assert_eq!(std::mem::offset_of!(Q16PackParams, add), 48);
     }
 
     #[test]

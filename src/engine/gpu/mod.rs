@@ -14,7 +14,8 @@
 //! 2. `blend` — per (tile of 64 vertices, group of 4 jobs), Eq. 1 over the active list;
 //! 3. `face_normals` + `vertex_normals` — normals recomputed from blended positions where the
 //!    rig has no normal deltas (or `blend` again on normal deltas where it has them);
-//! 4. `pack_f16` — binary16 output on request.
+//! 4. `pack_f16` or `pack_q16` — binary16 or int16 (q16) output on request, so that half the
+//!    bytes cross the bus and the host does not encode.
 //!
 //! Results are copied to a mappable staging buffer only when the caller wants vertex buffers;
 //! staging buffers live in a small pool, so a batch can be recorded and submitted while the
@@ -30,16 +31,14 @@ mod map;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, Weak};
 
-use half::f16;
-
 pub use self::map::MapResults;
 
 use self::layout::{
     ActiveParams, Attribute, BlendParams, GpuJob, GpuTerm, JOBS_PER_GROUP, NO_LIVE, NormalParams,
-    PackParams, build_chunks,
+    PackParams, Q16PackParams, build_chunks,
 };
 use super::cpu::NormalTopology;
-use super::{BlendJob, BlendOutput, OutputSpec, Precision, VertexData};
+use super::{BlendJob, BlendOutput, OutputSpec, Precision, Q16Scale, VertexData};
 use crate::budget::{BudgetError, Charge, MemoryPool};
 use crate::rig::{LIVE_STEP, Pose, Rig};
 
@@ -70,14 +69,52 @@ pub enum GpuError {
     Memory(#[from] BudgetError),
 }
 
-/// Default of [`GpuOptions::memory`]: 2 GiB, or the device's largest buffer when that is
-/// larger (capped at 16 GiB), so that one buffer the device allows can always be charged. wgpu
-/// does not report how much memory a device has; a server that knows sets `--max-gpu-memory`.
+/// Default of [`GpuOptions::memory`] where the device's memory is not known (software and
+/// integrated adapters, non-Vulkan backends): 2 GiB, or the device's largest buffer when that
+/// is larger (capped at 16 GiB), so that one buffer the device allows can always be charged.
+/// A discrete GPU gets [`DISCRETE_GPU_MEMORY_SHARE`] of its memory instead.
 pub const DEFAULT_GPU_MEMORY: u64 = 2 << 30;
 
-/// The GPU memory cap of a device with `limits` when none is configured.
+/// The share of a discrete GPU's largest device-local memory heap that the budget defaults
+/// to: the rest is left to the driver, other processes and what the budget does not count
+/// (pipelines, small uniforms, the renderer's fixed buffers).
+pub const DISCRETE_GPU_MEMORY_SHARE: f64 = 0.75;
+
+/// The GPU memory cap of a device with `limits` when none is configured and its memory is
+/// unknown.
 pub fn default_gpu_memory(limits: &wgpu::Limits) -> u64 {
     DEFAULT_GPU_MEMORY.max(limits.max_buffer_size.min(16 << 30))
+}
+
+/// The budget a discrete GPU gets when none is configured: [`DISCRETE_GPU_MEMORY_SHARE`] of its
+/// largest device-local heap, as Vulkan reports it (wgpu itself does not report memory), but
+/// never less than [`default_gpu_memory`]. `None` for other adapters and backends.
+pub fn discrete_gpu_memory(adapter: &wgpu::Adapter) -> Option<u64> {
+    if adapter.get_info().device_type != wgpu::DeviceType::DiscreteGpu {
+        return None;
+    }
+    let heap = device_local_heap(adapter)?;
+    let share = (heap as f64 * DISCRETE_GPU_MEMORY_SHARE) as u64;
+    Some(share.max(default_gpu_memory(&adapter.limits())))
+}
+
+/// The largest device-local memory heap of a Vulkan adapter, bytes (`None` on other backends).
+pub fn device_local_heap(adapter: &wgpu::Adapter) -> Option<u64> {
+    // SAFETY: the hal adapter is only read (a memory-properties query on its physical device,
+    // through the instance that owns it); nothing is created or destroyed, and the guard
+    // outlives the call.
+    unsafe {
+        let hal = adapter.as_hal::<wgpu::hal::api::Vulkan>()?;
+        let instance = hal.shared_instance().raw_instance();
+        let props = instance.get_physical_device_memory_properties(hal.raw_physical_device());
+        let n = (props.memory_heap_count as usize).min(props.memory_heaps.len());
+        // VK_MEMORY_HEAP_DEVICE_LOCAL_BIT is 0x1.
+        props.memory_heaps[..n]
+            .iter()
+            .filter(|h| h.flags.as_raw() & 1 != 0)
+            .map(|h| h.size)
+            .max()
+    }
 }
 
 /// Options of a GPU context.
@@ -142,6 +179,7 @@ struct Pipelines {
     face: wgpu::ComputePipeline,
     vertex: wgpu::ComputePipeline,
     pack: wgpu::ComputePipeline,
+    pack_q16: wgpu::ComputePipeline,
 }
 
 /// An open device with the engine's pipelines.
@@ -270,6 +308,10 @@ impl GpuContext {
             trace: wgpu::Trace::Off,
         }))
         .map_err(|e| GpuError::Device(e.to_string()))?;
+        let options = GpuOptions {
+            memory: options.memory.or_else(|| discrete_gpu_memory(&adapter)),
+            ..options
+        };
         Ok(Self::from_device(
             device,
             queue,
@@ -320,12 +362,18 @@ impl GpuContext {
             "pack_f16.wgsl",
             include_str!("../../../shaders/pack_f16.wgsl"),
         );
+        let pack_q16 = shader(
+            &device,
+            "pack_q16.wgsl",
+            include_str!("../../../shaders/pack_q16.wgsl"),
+        );
         let pipelines = Pipelines {
             active: pipeline(&device, &active, "build_active"),
             blend: pipeline(&device, &blend, "blend"),
             face: pipeline(&device, &face, "face_normals"),
             vertex: pipeline(&device, &vertex, "vertex_normals"),
             pack: pipeline(&device, &pack, "pack_f16"),
+            pack_q16: pipeline(&device, &pack_q16, "pack_q16"),
         };
         let limits = device.limits();
         let mut max_binding = limits.max_storage_buffer_binding_size;
@@ -1045,6 +1093,8 @@ pub struct Pending<'a> {
     mapped: MapResults,
     /// Without readback: the batch's outputs, copied out of the slot so they outlive it.
     resident: Option<DeviceOutput>,
+    /// Host time spent copying the batch out of mapped memory (set by `finish`).
+    host_ns: u64,
 }
 
 /// A batch's outputs left on the device (`submit(.., readback: false)`): f32 x, y, z per
@@ -1108,11 +1158,9 @@ impl GpuContext {
         let sub =
             ((sub.min(65_535) as usize) / JOBS_PER_GROUP * JOBS_PER_GROUP).max(JOBS_PER_GROUP);
         let subs = n.div_ceil(sub).max(1);
-        let elem = if spec.precision == Precision::F16 {
-            2
-        } else {
-            4
-        };
+        // 16-bit formats are packed on the device: half the bytes are copied and read back.
+        let packed16 = matches!(spec.precision, Precision::F16 | Precision::Q16(_));
+        let elem = if packed16 { 2 } else { 4 };
         let mut regions = Vec::with_capacity(subs);
         let mut staging = 0u64;
         for k in 0..subs {
@@ -1142,7 +1190,7 @@ impl GpuContext {
         // a small rig may be thousands of jobs), and only for the outputs it asks for.
         let widest = sub.min(n.max(1).next_multiple_of(JOBS_PER_GROUP)) as u64;
         let output = widest * per_job_out;
-        let f16 = spec.precision == Precision::F16;
+        let f16 = packed16;
         let needs = SlotNeeds {
             jobs: live_at + live_bytes,
             active: widest / JOBS_PER_GROUP as u64 * u64::from(rig.slots.max(1)) * 4,
@@ -1233,7 +1281,7 @@ impl GpuContext {
             self.record(&mut encoder, rig, &slot, r, spec, k as u32);
             if readback {
                 let bytes = (r.jobs as u64 * v * 3 * elem).next_multiple_of(4);
-                let (pos_src, nrm_src) = if spec.precision == Precision::F16 {
+                let (pos_src, nrm_src) = if packed16 {
                     (&slot.packed_positions, &slot.packed_normals)
                 } else {
                     (&slot.positions, &slot.normals)
@@ -1281,6 +1329,7 @@ impl GpuContext {
             staged: staging.max(4),
             mapped,
             resident,
+            host_ns: 0,
         })
     }
 
@@ -1422,43 +1471,45 @@ impl GpuContext {
             }
             _ => None,
         };
-        let pack_groups = (spec.precision == Precision::F16).then(|| {
-            let count = jobs * rig.vertices * 3;
-            let pairs = count.div_ceil(2);
+        // 16-bit output: positions and normals packed by `pack_f16`, or by `pack_q16` with the
+        // box's parameters for positions and the unit scale for normals.
+        let count = jobs * rig.vertices * 3;
+        let pairs = count.div_ceil(2);
+        let (px, py) = {
             let x = pairs.div_ceil(64).clamp(1, 65_535);
-            let y = pairs.div_ceil(x * 64).max(1);
-            let params = self.uniform(&PackParams {
+            (x, pairs.div_ceil(x * 64).max(1))
+        };
+        let pack_uniform = |normals: bool| match spec.precision {
+            Precision::Q16(b) => Some(self.uniform(&Q16PackParams::new(
+                &crate::engine::Q16Params::new(b, normals),
                 count,
-                row: x * 64,
+                px * 64,
+            ))),
+            Precision::F16 => Some(self.uniform(&PackParams {
+                count,
+                row: px * 64,
                 _pad0: 0,
                 _pad1: 0,
-            });
-            let mut v = vec![(
-                bind(
-                    &p.pack,
-                    &[
-                        entry(0, &params),
-                        entry(1, &slot.positions),
-                        entry(2, &slot.packed_positions),
-                    ],
-                ),
-                [x, y],
-            )];
-            if spec.normals {
-                v.push((
-                    bind(
-                        &p.pack,
-                        &[
-                            entry(0, &params),
-                            entry(1, &slot.normals),
-                            entry(2, &slot.packed_normals),
-                        ],
-                    ),
-                    [x, y],
+            })),
+            Precision::F32 => None,
+        };
+        let pack_pipeline = match spec.precision {
+            Precision::Q16(_) => &p.pack_q16,
+            _ => &p.pack,
+        };
+        let mut pack_groups = Vec::new();
+        let mut buffers = vec![(false, &slot.positions, &slot.packed_positions)];
+        if spec.normals {
+            buffers.push((true, &slot.normals, &slot.packed_normals));
+        }
+        for (normals, src, dst) in buffers {
+            if let Some(params) = pack_uniform(normals) {
+                pack_groups.push(bind(
+                    pack_pipeline,
+                    &[entry(0, &params), entry(1, src), entry(2, dst)],
                 ));
             }
-            v
-        });
+        }
 
         let timestamp_writes =
             slot.queries
@@ -1488,11 +1539,11 @@ impl GpuContext {
             pass.set_bind_group(0, vertex, &[]);
             pass.dispatch_workgroups(*vx, jobs, 1);
         }
-        if let Some(packs) = &pack_groups {
-            pass.set_pipeline(&p.pack);
-            for (bg, [x, y]) in packs {
+        if !pack_groups.is_empty() {
+            pass.set_pipeline(pack_pipeline);
+            for bg in &pack_groups {
                 pass.set_bind_group(0, bg, &[]);
-                pass.dispatch_workgroups(*x, *y, 1);
+                pass.dispatch_workgroups(px, py, 1);
             }
         }
     }
@@ -1500,18 +1551,31 @@ impl GpuContext {
 
 impl Pending<'_> {
     /// Waits for the batch and returns its buffers (empty without readback) and GPU time.
-    pub fn wait(mut self) -> Result<(BlendOutput, Option<u64>), GpuError> {
-        let result = self.finish();
+    pub fn wait(self) -> Result<(BlendOutput, Option<u64>), GpuError> {
+        let mut out = BlendOutput::default();
+        let r = self.wait_into(&mut out)?;
+        Ok((out, r.gpu_ns))
+    }
+
+    /// Waits for the batch and reads its buffers into `out`, reusing `out`'s arrays (a warm
+    /// buffer of the same length is overwritten, not zeroed or reallocated), copied from the
+    /// mapped staging memory on every core; returns the GPU time and the host's copy time.
+    pub fn wait_into(mut self, out: &mut BlendOutput) -> Result<Readback, GpuError> {
+        let result = self.finish(Some(out));
         self.release(result.is_ok());
-        result
+        let gpu_ns = result?;
+        Ok(Readback {
+            gpu_ns,
+            host_ns: self.host_ns,
+        })
     }
 
     /// Waits for a batch submitted without readback and returns its outputs where they are,
     /// on the device, with the GPU time.
     pub fn wait_resident(mut self) -> Result<(DeviceOutput, Option<u64>), GpuError> {
-        let result = self.finish();
+        let result = self.finish(None);
         self.release(result.is_ok());
-        let (_, gpu_ns) = result?;
+        let gpu_ns = result?;
         let out = self
             .resident
             .take()
@@ -1530,7 +1594,8 @@ impl Pending<'_> {
         }
     }
 
-    fn finish(&mut self) -> Result<(BlendOutput, Option<u64>), GpuError> {
+    /// Waits for the batch; with readback, reads its buffers into `out`. Returns the GPU time.
+    fn finish(&mut self, out: Option<&mut BlendOutput>) -> Result<Option<u64>, GpuError> {
         let ctx = self.ctx;
         let expected = usize::from(self.readback)
             + usize::from(self.slot.as_ref().is_some_and(|s| s.queries.is_some()));
@@ -1563,50 +1628,97 @@ impl Pending<'_> {
             }
             _ => None,
         };
-        let mut out = BlendOutput {
-            vertices: self.vertices,
-            jobs: self.jobs,
-            ..BlendOutput::default()
+        let Some(out) = out else {
+            return Ok(gpu_ns);
         };
+        out.vertices = self.vertices;
+        out.jobs = self.jobs;
         if !self.readback {
-            return Ok((out, gpu_ns));
+            out.positions = VertexData::default();
+            out.normals = None;
+            return Ok(gpu_ns);
         }
+        let copy_start = std::time::Instant::now();
         let comps = self.jobs * self.vertices * 3;
-        let per_job = self.vertices * 3;
         let view = slot
             .staging
             .get_mapped_range(0..self.staged)
             .map_err(|e| GpuError::Internal(e.to_string()))?;
-        let read = |region_of: &dyn Fn(&Region) -> u64| -> VertexData {
-            // q16 is read back in f32: the engine facade encodes it on the host.
-            match self.spec.precision {
-                Precision::F32 | Precision::Q16(_) => {
-                    let mut v = vec![0f32; comps];
-                    for r in &self.regions {
-                        let dst = &mut v[r.job * per_job..(r.job + r.jobs) * per_job];
-                        let (at, len) = (region_of(r) as usize, dst.len() * 4);
-                        bytemuck::cast_slice_mut::<f32, u8>(dst)
-                            .copy_from_slice(&view[at..at + len]);
-                    }
-                    VertexData::F32(v)
+        let staged: &[u8] = &view;
+        let read = |into: &mut VertexData, region_of: &dyn Fn(&Region) -> u64, normals: bool| {
+            // The device wrote the wire format: f32, or 16-bit values packed by `pack_f16` /
+            // `pack_q16`.
+            // A warm array of the same kind is taken out of `into`, overwritten, put back.
+            match (self.spec.precision, std::mem::take(into)) {
+                (Precision::F32, old) => {
+                    let mut v = match old {
+                        VertexData::F32(v) => v,
+                        _ => Vec::new(),
+                    };
+                    self.copy_regions(&mut v, comps, staged, region_of);
+                    *into = VertexData::F32(v);
                 }
-                Precision::F16 => {
-                    let mut v = vec![f16::ZERO; comps];
-                    for r in &self.regions {
-                        let dst = &mut v[r.job * per_job..(r.job + r.jobs) * per_job];
-                        let (at, len) = (region_of(r) as usize, dst.len() * 2);
-                        bytemuck::cast_slice_mut::<f16, u8>(dst)
-                            .copy_from_slice(&view[at..at + len]);
-                    }
-                    VertexData::F16(v)
+                (Precision::F16, old) => {
+                    let mut v = match old {
+                        VertexData::F16(v) => v,
+                        _ => Vec::new(),
+                    };
+                    self.copy_regions(&mut v, comps, staged, region_of);
+                    *into = VertexData::F16(v);
+                }
+                (Precision::Q16(b), old) => {
+                    let mut v = match old {
+                        VertexData::Q16(v, _) => v,
+                        _ => Vec::new(),
+                    };
+                    self.copy_regions(&mut v, comps, staged, region_of);
+                    let scale = if normals {
+                        Q16Scale::Unit
+                    } else {
+                        Q16Scale::Box(b)
+                    };
+                    *into = VertexData::Q16(v, scale);
                 }
             }
         };
-        out.positions = read(&|r| r.positions);
+        read(&mut out.positions, &|r| r.positions, false);
         if self.spec.normals {
-            out.normals = Some(read(&|r| r.normals));
+            let mut n = out.normals.take().unwrap_or_default();
+            read(&mut n, &|r| r.normals, true);
+            out.normals = Some(n);
+        } else {
+            out.normals = None;
         }
-        Ok((out, gpu_ns))
+        self.host_ns = copy_start.elapsed().as_nanos() as u64;
+        Ok(gpu_ns)
+    }
+
+    /// Copies each region of `staged` into its jobs' place in `v` (resized to `comps`), in
+    /// parts of about a megabyte on every core: at ICT FaceKit's size a batch is hundreds of
+    /// megabytes, which one thread copies at a fraction of the bus's rate.
+    fn copy_regions<T: bytemuck::Pod + Default + Send>(
+        &self,
+        v: &mut Vec<T>,
+        comps: usize,
+        staged: &[u8],
+        region_of: &dyn Fn(&Region) -> u64,
+    ) {
+        use rayon::prelude::*;
+        const PART: usize = 1 << 20;
+        if v.len() != comps {
+            v.resize(comps, T::default());
+        }
+        let per_job = self.vertices * 3;
+        let size = size_of::<T>();
+        let part = (PART / size).max(1);
+        for r in &self.regions {
+            let dst = &mut v[r.job * per_job..(r.job + r.jobs) * per_job];
+            let at = region_of(r) as usize;
+            let src = &staged[at..at + size_of_val(dst)];
+            dst.par_chunks_mut(part)
+                .zip(src.par_chunks(part * size))
+                .for_each(|(d, s)| bytemuck::cast_slice_mut::<T, u8>(d).copy_from_slice(s));
+        }
     }
 }
 
@@ -1624,6 +1736,15 @@ impl Drop for Pending<'_> {
             }
         }
     }
+}
+
+/// What [`Pending::wait_into`] measured.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Readback {
+    /// GPU time of the batch's passes, from timestamp queries.
+    pub gpu_ns: Option<u64>,
+    /// Host time copying the batch out of mapped staging memory into the caller's arrays.
+    pub host_ns: u64,
 }
 
 /// Unmaps the buffers a batch mapped: the staging buffer only when it read back (unmapping a
