@@ -4,6 +4,10 @@
 //! timestamp queries and the CPU round-trip time (submit to vertex buffers in host memory).
 //!
 //! The same table with `--backend cpu` gives the CPU engine's round trip (no GPU time).
+//! `--unique 1,100,4096,16384` measures crowds of that many unique heads instead (a batch the
+//! size of a busy server's), with the round trip split into the passes, the copy to staging
+//! memory and its mapping, and the host's copy out of it; `--format q16` has the device write
+//! the wire's 16-bit format.
 
 use std::path::Path;
 use std::time::Instant;
@@ -12,7 +16,9 @@ use anyhow::{Context, Result};
 use serde::Serialize;
 
 use super::sample::Samples;
-use crate::engine::{BackendInfo, BlendJob, BlendOutput, Engine, OutputSpec, PreparedRig};
+use crate::engine::{
+    BackendInfo, BlendJob, BlendOutput, Engine, OutputSpec, Precision, PreparedRig,
+};
 use crate::lod::plot::{Plot, Series};
 use crate::plan::{JobKey, Plan};
 use crate::rig::Rig;
@@ -34,14 +40,42 @@ pub struct SceneResult {
     pub shapes: u32,
     /// Percentage of the rig's shapes.
     pub shape_percent: f64,
-    /// Median GPU time of the batch, from timestamp queries.
+    /// Output format of the batch (`f32`, `f16`, `q16`).
+    pub format: String,
+    /// Bytes of the batch's output (positions) in that format.
+    pub output_bytes: u64,
+    /// Median GPU time of the batch's passes, from timestamp queries.
     pub gpu_ms: Option<f64>,
+    /// Median time between the passes and the host copy: the device's copy to staging memory,
+    /// its mapping, and the submission (round trip − passes − host copy).
+    pub copy_map_ms: Option<f64>,
+    /// Median host time after mapping: the copy into host arrays (and any host encoding).
+    pub host_ms: Option<f64>,
     /// Median round trip: submit to buffers in host memory.
     pub round_trip_ms: f64,
     /// Unique head evaluations per second of GPU time.
     pub unique_heads_per_gpu_s: Option<f64>,
     /// Heads per second of round trip.
     pub heads_per_s: f64,
+    /// Output bytes per second of host copy time.
+    pub host_bytes_per_s: Option<f64>,
+}
+
+/// The device's limits that bound a batch.
+#[derive(Clone, Debug, Serialize)]
+pub struct DeviceLimits {
+    /// Largest buffer.
+    pub max_buffer_size: u64,
+    /// Largest storage binding (a sub-batch's output fits one).
+    pub max_storage_buffer_binding_size: u64,
+    /// Workgroups per dispatch dimension.
+    pub max_compute_workgroups_per_dimension: u32,
+    /// Invocations per workgroup.
+    pub max_compute_invocations_per_workgroup: u32,
+    /// The engine's `--max-gpu-memory` budget.
+    pub memory_budget: u64,
+    /// Whether the GPU time comes from timestamp queries.
+    pub timestamps: bool,
 }
 
 /// The whole table.
@@ -49,6 +83,8 @@ pub struct SceneResult {
 pub struct GpuBenchReport {
     /// The engine that ran it.
     pub backend: BackendInfo,
+    /// The device's limits (GPU engine only).
+    pub limits: Option<DeviceLimits>,
     /// One row per (rig, scene, LOD).
     pub scenes: Vec<SceneResult>,
 }
@@ -60,52 +96,114 @@ pub const SCENES: [(&str, usize, usize); 3] = [
     ("100 heads, 10 animations", 100, 10),
 ];
 
-/// Runs every scene on `engine` for each rig at LOD levels 0, 1 and 2 (100/50/25 % by
-/// default), about `seconds` per measurement (at least 3 runs).
-pub fn bench_gpu(engine: &Engine, rigs: &[Rig], seconds: f64) -> Result<GpuBenchReport> {
+/// What to measure.
+#[derive(Clone, Debug, Default)]
+pub struct GpuBenchOptions {
+    /// Seconds per measurement (at least 3 runs).
+    pub seconds: f64,
+    /// Instead of the paper's scenes: one scene of this many unique heads each, at LOD 0, on a
+    /// clip long enough that every head is a different frame.
+    pub unique: Vec<usize>,
+    /// Output format: `f32`, `f16` or `q16` (in each rig's quantization box).
+    pub format: crowdmorph_proto::Format,
+}
+
+/// Runs every scene on `engine` for each rig: the paper's three at LOD levels 0, 1 and 2
+/// (100/50/25 % by default), or `opt.unique`'s at LOD 0.
+pub fn bench_gpu(engine: &Engine, rigs: &[Rig], opt: &GpuBenchOptions) -> Result<GpuBenchReport> {
     let mut scenes = Vec::new();
-    let bar = super::progress_bar((rigs.len() * SCENES.len() * 3) as u64, "bench gpu");
+    let plan: Vec<(String, usize, usize, u32)> = if opt.unique.is_empty() {
+        SCENES
+            .iter()
+            .flat_map(|&(name, heads, unique)| {
+                (0..3u32).map(move |lod| (name.to_string(), heads, unique, lod))
+            })
+            .collect()
+    } else {
+        opt.unique
+            .iter()
+            .map(|&n| (format!("{n} unique"), n, n, 0))
+            .collect()
+    };
+    let frames = plan.iter().map(|p| p.2).max().unwrap_or(1).max(128);
+    let bar = super::progress_bar((rigs.len() * plan.len()) as u64, "bench gpu");
     for rig in rigs {
-        // A clip of its own with more frames than heads, so "100 unique" is 100 unique jobs.
-        let rig = crate::synthetic::with_random_clip_of(rig.clone(), "bench", 128, 1);
+        // A clip of its own with more frames than heads, so "N unique" is N unique jobs.
+        let rig = crate::synthetic::with_random_clip_of(rig.clone(), "bench", frames, 1);
         let clip = (rig.clips.len() - 1) as u32;
+        let precision = match opt.format {
+            crowdmorph_proto::Format::F16 => Precision::F16,
+            crowdmorph_proto::Format::Q16 | crowdmorph_proto::Format::Q16R => {
+                Precision::Q16(crate::server::registry::quantization_box(&rig))
+            }
+            crowdmorph_proto::Format::F32 => Precision::F32,
+        };
         let prepared = engine
             .prepare(std::sync::Arc::new(rig.clone()))
             .with_context(|| format!("preparing {}", rig.name))?;
-        for (name, heads, unique) in SCENES {
-            for lod in 0..3u32.min(rig.lod.levels.len() as u32) {
-                bar.set_message(format!("{} {name} LOD {lod}", rig.name));
-                scenes.push(measure(
-                    engine, &prepared, name, heads, unique, clip, lod, seconds,
-                )?);
-                bar.inc(1);
+        for (name, heads, unique, lod) in &plan {
+            if *lod >= rig.lod.levels.len() as u32 {
+                continue;
             }
+            bar.set_message(format!("{} {name} LOD {lod}", rig.name));
+            let scene = Scene {
+                name,
+                heads: *heads,
+                unique: *unique,
+                clip,
+                lod: *lod,
+                precision,
+            };
+            scenes.push(measure(engine, &prepared, &scene, opt.seconds)?);
+            bar.inc(1);
         }
     }
     bar.finish_and_clear();
+    let limits = engine.gpu().map(|ctx| {
+        let l = ctx.device().limits();
+        DeviceLimits {
+            max_buffer_size: l.max_buffer_size,
+            max_storage_buffer_binding_size: l.max_storage_buffer_binding_size,
+            max_compute_workgroups_per_dimension: l.max_compute_workgroups_per_dimension,
+            max_compute_invocations_per_workgroup: l.max_compute_invocations_per_workgroup,
+            memory_budget: ctx.memory().limit(),
+            timestamps: ctx.has_timestamps(),
+        }
+    });
     Ok(GpuBenchReport {
         backend: engine.info(),
+        limits,
         scenes,
     })
 }
 
-#[allow(clippy::too_many_arguments)]
-fn measure(
-    engine: &Engine,
-    prepared: &PreparedRig,
-    scene: &str,
+/// One scene to measure.
+struct Scene<'a> {
+    name: &'a str,
     heads: usize,
     unique: usize,
     clip: u32,
     lod: u32,
+    precision: Precision,
+}
+
+fn measure(
+    engine: &Engine,
+    prepared: &PreparedRig,
+    scene: &Scene<'_>,
     seconds: f64,
 ) -> Result<SceneResult> {
     let rig = prepared.rig();
+    let lod = scene.lod;
     // Heads play `unique` different frames; clones share them (the planner dedupes).
-    let keys = (0..heads).map(|h| JobKey::frame(0, clip, (h % unique) as u32, lod));
+    let keys =
+        (0..scene.heads).map(|h| JobKey::frame(0, scene.clip, (h % scene.unique) as u32, lod));
     let plan = Plan::new(keys);
     let jobs: Vec<BlendJob> = plan.jobs.iter().map(BlendJob::from).collect();
-    let spec = OutputSpec::default();
+    let spec = OutputSpec {
+        normals: false,
+        precision: scene.precision,
+    };
     // One output reused across runs, as the server's buffer pool does: a fresh 50 MB buffer
     // per run would time its page faults, not the engine. The first run warms it, and the
     // GPU's pipelines and slot buffers.
@@ -113,30 +211,52 @@ fn measure(
     engine.evaluate_into(prepared, &jobs, spec, &mut out)?;
     let mut round = Vec::new();
     let mut gpu = Vec::new();
+    let mut host = Vec::new();
+    let mut between = Vec::new();
     let start = Instant::now();
     while round.len() < 3 || (start.elapsed().as_secs_f64() < seconds && round.len() < 100) {
         let t = Instant::now();
         let (timings, _) = engine.evaluate_into(prepared, &jobs, spec, &mut out)?;
-        round.push(t.elapsed().as_secs_f64() * 1e3);
-        if let Some(ns) = timings.gpu_ns {
-            gpu.push(ns as f64 / 1e6);
+        let ms = t.elapsed().as_secs_f64() * 1e3;
+        round.push(ms);
+        let g = timings.gpu_ns.map(|ns| ns as f64 / 1e6);
+        let h = timings.host_ns.map(|ns| ns as f64 / 1e6);
+        if let Some(g) = g {
+            gpu.push(g);
+        }
+        if let Some(h) = h {
+            host.push(h);
+            between.push((ms - h - g.unwrap_or(0.0)).max(0.0));
         }
     }
+    let median = |v: Vec<f64>| (!v.is_empty()).then(|| Samples::new(v).median());
     let round_trip_ms = Samples::new(round).median();
-    let gpu_ms = (!gpu.is_empty()).then(|| Samples::new(gpu).median());
+    let gpu_ms = median(gpu);
+    let host_ms = median(host);
     let shapes = rig.lod.shapes_at(lod)?;
+    let output_bytes = out.positions.as_bytes().len() as u64;
     Ok(SceneResult {
         rig: rig.name.clone(),
-        scene: scene.to_string(),
-        heads,
+        scene: scene.name.to_string(),
+        heads: scene.heads,
         unique: plan.jobs.len(),
         lod,
         shapes,
         shape_percent: 100.0 * f64::from(shapes) / rig.targets.len().max(1) as f64,
+        format: match scene.precision {
+            Precision::F32 => "f32",
+            Precision::F16 => "f16",
+            Precision::Q16(_) => "q16",
+        }
+        .to_string(),
+        output_bytes,
         gpu_ms,
+        copy_map_ms: median(between),
+        host_ms,
         round_trip_ms,
         unique_heads_per_gpu_s: gpu_ms.map(|ms| plan.jobs.len() as f64 / (ms / 1e3)),
-        heads_per_s: heads as f64 / (round_trip_ms / 1e3),
+        heads_per_s: scene.heads as f64 / (round_trip_ms / 1e3),
+        host_bytes_per_s: host_ms.map(|ms| output_bytes as f64 / (ms / 1e3).max(1e-12)),
     })
 }
 
@@ -159,21 +279,48 @@ pub fn report_text(r: &GpuBenchReport) -> String {
             ""
         }
     );
+    if let Some(l) = &r.limits {
+        s += &format!(
+            "limits: largest buffer {} MiB, storage binding {} MiB, {} workgroups per dimension, {} invocations per workgroup; memory budget {} MiB; timestamps {}\n",
+            l.max_buffer_size >> 20,
+            l.max_storage_buffer_binding_size >> 20,
+            l.max_compute_workgroups_per_dimension,
+            l.max_compute_invocations_per_workgroup,
+            l.memory_budget >> 20,
+            if l.timestamps { "yes" } else { "no" },
+        );
+    }
+    let ms = |v: Option<f64>| v.map_or("-".into(), |v| format!("{v:.3}"));
     s += &format!(
-        "{:<16} {:<26} {:>6} {:>6} {:>10} {:>12} {:>16}\n",
-        "rig", "scene", "unique", "shapes", "GPU ms", "round-trip ms", "unique heads/GPU s"
+        "{:<16} {:<26} {:>6} {:>6} {:>4} {:>10} {:>10} {:>9} {:>12} {:>16} {:>10}\n",
+        "rig",
+        "scene",
+        "unique",
+        "shapes",
+        "fmt",
+        "GPU ms",
+        "copy+map",
+        "host ms",
+        "round-trip ms",
+        "unique heads/GPU s",
+        "host MB/s"
     );
     for sc in &r.scenes {
         s += &format!(
-            "{:<16} {:<26} {:>6} {:>5.0}% {:>10} {:>12.3} {:>16}\n",
+            "{:<16} {:<26} {:>6} {:>5.0}% {:>4} {:>10} {:>10} {:>9} {:>12.3} {:>16} {:>10}\n",
             sc.rig,
             sc.scene,
             sc.unique,
             sc.shape_percent,
-            sc.gpu_ms.map_or("-".into(), |v| format!("{v:.3}")),
+            sc.format,
+            ms(sc.gpu_ms),
+            ms(sc.copy_map_ms),
+            ms(sc.host_ms),
             sc.round_trip_ms,
             sc.unique_heads_per_gpu_s
                 .map_or("-".into(), |v| format!("{v:.0}")),
+            sc.host_bytes_per_s
+                .map_or("-".into(), |v| format!("{:.0}", v / 1e6)),
         );
     }
     s

@@ -37,6 +37,13 @@ pub enum Command {
         /// Also run the same scenes on the CPU engine (a second table, same plot).
         #[arg(long)]
         with_cpu: bool,
+        /// Instead of the paper's scenes: crowds of this many unique heads each
+        /// (comma-separated, e.g. 1,100,4096,16384), at LOD 0.
+        #[arg(long, value_delimiter = ',')]
+        unique: Vec<usize>,
+        /// Output format of every batch.
+        #[arg(long, value_enum, default_value_t = WireFormat::F32)]
+        format: WireFormat,
         #[command(flatten)]
         gpu: GpuMemoryArgs,
         /// Print JSON.
@@ -314,10 +321,20 @@ pub fn run(which: Command) -> Result<()> {
             seconds,
             plot,
             with_cpu,
+            unique,
+            format,
             gpu,
             json,
         } => {
+            if unique.contains(&0) {
+                anyhow::bail!("--unique counts must be at least 1");
+            }
             let engine = Engine::with_options(backend, gpu.options())?;
+            let opt = bench::gpu::GpuBenchOptions {
+                seconds,
+                unique,
+                format: format.into(),
+            };
             let mut rigs = Vec::new();
             if !no_paper {
                 rigs.push(crowdmorph::synthetic::paper_scale_rig());
@@ -325,9 +342,9 @@ pub fn run(which: Command) -> Result<()> {
             for p in &rig {
                 rigs.push(load_rig(Some(p))?);
             }
-            let mut reports = vec![bench::gpu::bench_gpu(&engine, &rigs, seconds)?];
+            let mut reports = vec![bench::gpu::bench_gpu(&engine, &rigs, &opt)?];
             if with_cpu {
-                reports.push(bench::gpu::bench_gpu(&Engine::cpu(), &rigs, seconds)?);
+                reports.push(bench::gpu::bench_gpu(&Engine::cpu(), &rigs, &opt)?);
             }
             if let Some(path) = &plot {
                 bench::gpu::write_plot(&reports, path)?;
