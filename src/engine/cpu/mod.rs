@@ -6,7 +6,8 @@
 //!   per Eq. 1 over the active slots of each job's LOD;
 //! - [`CpuRig::recompute_normals`] (`face_normals.wgsl`, `vertex_normals.wgsl`): area-weighted normals from the blended
 //!   positions for primitives whose targets carry no normal deltas;
-//! - the output stage of `blend` (`pack_f16.wgsl` on the GPU): binary16 or q16 output.
+//! - the output stage of `blend` (`pack_f16.wgsl` and `pack_q16.wgsl` on the GPU): binary16 or
+//!   q16 output.
 //!
 //! # Layout
 //! Vertices (all primitives concatenated) are cut into tiles of [`LANES`] = 16. For each tile
