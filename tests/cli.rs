@@ -1037,6 +1037,33 @@ fn bench_sessions_reports_shared_blends_and_the_bytes_viewers_got() {
     assert!(f64_of(&r, "cpu_ms_per_tick") > 0.0);
 }
 
+#[test]
+fn bench_sessions_long_clip_offers_more_unique_heads_than_the_rigs_clips() {
+    // The embedded head's clips hold 465 frames in all: 480 animations of them could not all
+    // be distinct, 480 offsets into one 600-frame clip are.
+    let r = json(&[
+        "bench",
+        "sessions",
+        "--long-clip",
+        "600",
+        "--heads",
+        "480",
+        "--animations",
+        "480",
+        "--viewers",
+        "1",
+        "--fps",
+        "5",
+        "--seconds",
+        "1",
+        "--backend",
+        "cpu",
+        "--json",
+    ]);
+    assert!(usize_of(&r, "ticks") >= 2, "{r}");
+    assert_eq!(f64_of(&r, "jobs_per_tick"), 480.0);
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn lod_set_changes_the_lod_a_running_server_serves() {
     let server = TestServer::start(ServerConfig {

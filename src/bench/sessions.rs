@@ -62,6 +62,38 @@ pub struct SessionBenchOptions {
     pub links: Vec<super::link::LinkSpec>,
     /// The viewer modes [`bench_session_links`] measures (empty: all of [`VIEWER_MODES`]).
     pub modes: Vec<ViewerMode>,
+    /// Upload a smooth synthetic clip of this many frames over every target of the rig and
+    /// play it (after `clips`, if any): a rig without clips gets one, and a session can offer
+    /// more unique heads a tick than the rig's clips have frames.
+    pub long_clip: Option<usize>,
+}
+
+/// Name of the clip `--long-clip` uploads.
+const LONG_CLIP: &str = "bench-long";
+
+/// A smooth synthetic clip as CSV: every target of `targets` a sine between 0 and 1 with its
+/// own period (20–120 frames) and phase, from a fixed seed, so that consecutive frames differ
+/// as an animation's do and any prefix of heads plays distinct frames.
+fn long_clip_csv(targets: &[String], frames: usize) -> Result<Vec<u8>> {
+    let mut rng = crate::rng::SplitMix64(0x10_c1_1b);
+    let waves: Vec<(f32, f32)> = targets
+        .iter()
+        .map(|_| {
+            (
+                20.0 + 100.0 * rng.unit(),
+                std::f32::consts::TAU * rng.unit(),
+            )
+        })
+        .collect();
+    let mut w = csv::Writer::from_writer(Vec::new());
+    w.write_record(targets)?;
+    for f in 0..frames {
+        w.write_record(waves.iter().map(|&(period, phase)| {
+            let x = 0.5 + 0.5 * (std::f32::consts::TAU * f as f32 / period + phase).sin();
+            format!("{x:.4}")
+        }))?;
+    }
+    Ok(w.into_inner().map_err(|e| anyhow::anyhow!("{e}"))?)
 }
 
 /// A viewer mode of `bench sessions --link`, by its name in the report (`q16 + zstd`, spaces
@@ -196,11 +228,27 @@ async fn create_session(
     rig_id: &str,
     opt: &SessionBenchOptions,
 ) -> Result<(SessionInfo, crowdmorph_proto::RigInfo)> {
-    let uploaded = match &opt.clips {
+    let mut uploaded = match &opt.clips {
         Some(dir) => Some(super::server::upload_clips(client, rig_id, dir).await?),
         None => None,
     };
-    let info = client.rig(rig_id).await.context("reading the rig")?;
+    let mut info = client.rig(rig_id).await.context("reading the rig")?;
+    if let Some(frames) = opt.long_clip {
+        let csv = long_clip_csv(&info.targets, frames)?;
+        client
+            .upload_clip(
+                rig_id,
+                &format!("name={LONG_CLIP}"),
+                "text/csv",
+                Bytes::from(csv),
+            )
+            .await
+            .context("uploading the long clip")?;
+        uploaded
+            .get_or_insert_with(Vec::new)
+            .push(LONG_CLIP.to_string());
+        info = client.rig(rig_id).await.context("reading the rig")?;
+    }
     let clips: Vec<crowdmorph_proto::ClipInfo> = info
         .clips
         .iter()

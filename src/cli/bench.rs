@@ -142,6 +142,15 @@ pub enum Command {
         /// temporal, temporal+deflate, temporal+zstd; default all).
         #[arg(long, value_delimiter = ',', value_name = "MODES")]
         modes: Vec<bench::sessions::ViewerMode>,
+        /// Upload a smooth synthetic clip of this many frames over every target and play it
+        /// (a rig without clips, such as ICT FaceKit, or more unique heads a tick than the
+        /// rig's clips have frames).
+        #[arg(
+            long,
+            value_name = "FRAMES",
+            value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=100_000)
+        )]
+        long_clip: Option<usize>,
         /// Print JSON.
         #[arg(long)]
         json: bool,
@@ -415,6 +424,7 @@ pub fn run(which: Command) -> Result<()> {
             clips,
             link,
             modes,
+            long_clip,
             json,
         } => {
             let bytes = server_rig(rig.as_deref())?;
@@ -431,6 +441,7 @@ pub fn run(which: Command) -> Result<()> {
                 clips,
                 links: link,
                 modes,
+                long_clip,
             };
             if !opt.links.is_empty() {
                 let report = with_spinner("bench sessions --link", || {
