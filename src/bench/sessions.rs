@@ -93,7 +93,7 @@ fn long_clip_csv(targets: &[String], frames: usize) -> Result<Vec<u8>> {
             format!("{x:.4}")
         }))?;
     }
-    Ok(w.into_inner().map_err(|e| anyhow::anyhow!("{e}"))?)
+    w.into_inner().map_err(|e| anyhow::anyhow!("{e}"))
 }
 
 /// A viewer mode of `bench sessions --link`, by its name in the report (`q16 + zstd`, spaces
