@@ -22,9 +22,10 @@
 //!   one class only. So a client request waits behind at most the one low batch already
 //!   computing, never behind queued synthetic work. A normal job that coalesces with a queued
 //!   low slot promotes it to the normal queue.
-//! - Room is one batch on the CPU engine, two on the GPU: the compute thread submits batch
-//!   N + 1 to the GPU before it waits for batch N, so upload, compute and readback of
-//!   consecutive batches overlap (the GPU engine's pooled slots are the ring of buffers).
+//! - Room is one batch on the CPU engine, three on the GPU: the compute thread submits every
+//!   batch it has to the GPU before it waits for the oldest, so upload, compute and readback of
+//!   consecutive batches overlap and the device has work queued while the host copies a
+//!   finished batch out (the GPU engine's pooled slots are the ring of buffers).
 //! - A slot whose waiting requests have all gone (client disconnected, deadline passed) is
 //!   dropped before it is computed; a slot that some live request still needs is computed even
 //!   if others gave up on it, so a client that disconnects never cancels shared work.
@@ -150,13 +151,13 @@ impl Scheduler {
         let (done_tx, done_rx) = mpsc::unbounded_channel::<BatchDone>();
         let worker_metrics = metrics.clone();
         let depth = if engine.info().kind == crate::engine::BackendKind::Gpu {
-            2
+            GPU_DEPTH
         } else {
             1
         };
         let spawned = std::thread::Builder::new()
             .name("crowdmorph-compute".into())
-            .spawn(move || compute_thread(&engine, &worker_metrics, &work_rx, &done_tx));
+            .spawn(move || compute_thread(&engine, &worker_metrics, &work_rx, &done_tx, depth));
         if let Err(e) = &spawned {
             tracing::error!(error = %e, "cannot start the compute thread");
         }
@@ -851,37 +852,53 @@ struct Started<'a> {
     groups: Vec<(WorkGroup, std::thread::Result<Result<Begun<'a>, String>>)>,
 }
 
+/// Batches the scheduler lets be in flight on a GPU engine, and the compute thread keeps
+/// begun at once: while the host copies batch k out of mapped memory, batches k + 1 and k + 2
+/// are already on the device, so the GPU never waits for the host between batches (with two,
+/// it idled whenever batch k + 2 had not arrived before batch k + 1 was waited for).
+const GPU_DEPTH: usize = 3;
+
+/// The compute thread: begins every batch it has (up to `depth`; on the GPU that submits it)
+/// before it waits for the oldest, blocking for a new one only when nothing is in flight.
 fn compute_thread(
     engine: &Engine,
     metrics: &Metrics,
     rx: &std::sync::mpsc::Receiver<WorkBatch>,
     done: &mpsc::UnboundedSender<BatchDone>,
+    depth: usize,
 ) {
     let pool = Arc::new(BufferPool::default());
-    let mut in_flight: Option<Started<'_>> = None;
+    let mut in_flight: VecDeque<Started<'_>> = VecDeque::new();
+    let mut open = true;
     loop {
-        // With a batch computing, take the next one only if it is already here, so that it is
-        // submitted before the first is waited for; with none, wait for one.
-        let next = if in_flight.is_some() {
-            rx.try_recv().ok()
-        } else {
-            match rx.recv() {
-                Ok(batch) => Some(batch),
-                Err(_) => break,
+        while open && in_flight.len() < depth.max(1) {
+            let next = if in_flight.is_empty() {
+                rx.recv().ok()
+            } else {
+                match rx.try_recv() {
+                    Ok(batch) => Some(batch),
+                    Err(std::sync::mpsc::TryRecvError::Empty) => break,
+                    Err(std::sync::mpsc::TryRecvError::Disconnected) => None,
+                }
+            };
+            let Some(batch) = next else {
+                open = false;
+                break;
+            };
+            if !in_flight.is_empty() {
+                metrics.batches_pipelined.inc();
             }
-        };
-        let started = next.map(|batch| begin_batch(engine, batch));
-        if started.is_some() && in_flight.is_some() {
-            metrics.batches_pipelined.inc();
+            in_flight.push_back(begin_batch(engine, batch));
         }
-        if let Some(current) = in_flight.take()
-            && done
-                .send(finish_batch(engine, metrics, &pool, current))
-                .is_err()
+        let Some(oldest) = in_flight.pop_front() else {
+            break;
+        };
+        if done
+            .send(finish_batch(engine, metrics, &pool, oldest))
+            .is_err()
         {
             break;
         }
-        in_flight = started;
     }
 }
 
