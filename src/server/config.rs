@@ -62,9 +62,11 @@ pub struct ServerConfig {
     /// (more get 503; one request larger than it, 413).
     #[arg(long, env = "CROWDMORPH_QUEUE_MEMORY_BYTES", default_value_t = 2 << 30)]
     pub queue_memory_bytes: usize,
-    /// A batch closes at this cost (vertices × active shapes over its unique jobs)...
-    #[arg(long, env = "CROWDMORPH_BATCH_COST", default_value_t = 200_000_000)]
-    pub batch_cost: u64,
+    /// A batch closes at this cost (vertices × active shapes over its unique jobs; default
+    /// 2e8 on the CPU engine, about 100 ICT FaceKit heads, and 3.2e9 on a GPU, about 2,200,
+    /// so that a 10,000-head tick is a few engine calls, not fifty)...
+    #[arg(long, env = "CROWDMORPH_BATCH_COST")]
+    pub batch_cost: Option<u64>,
     /// ...or when its oldest job has waited this many microseconds, while the engine is busy
     /// (an idle engine takes work at once).
     #[arg(
@@ -243,7 +245,27 @@ impl ServerConfig {
     pub fn rig_memory(&self) -> u64 {
         self.max_rig_memory.unwrap_or_else(default_rig_memory)
     }
+
+    /// The batch cost of an engine of `kind`: `--batch-cost`, else [`CPU_BATCH_COST`] or
+    /// [`GPU_BATCH_COST`].
+    pub fn batch_cost(&self, kind: crate::engine::BackendKind) -> u64 {
+        self.batch_cost
+            .unwrap_or(match kind {
+                crate::engine::BackendKind::Gpu => GPU_BATCH_COST,
+                crate::engine::BackendKind::Cpu => CPU_BATCH_COST,
+            })
+            .max(1)
+    }
 }
+
+/// Default batch cost on the CPU engine: about 100 ICT FaceKit heads (3–4 ms on two cores).
+pub const CPU_BATCH_COST: u64 = 200_000_000;
+
+/// Default batch cost on a GPU: 16 times the CPU's, about 2,200 ICT FaceKit or 1,000
+/// paper-scale heads a batch — one sub-batch of a large device and, at the rates issue 26
+/// estimates for an H200 (1–2 M heads/s), about a millisecond of GPU time, so a 10,000-head
+/// tick is a handful of engine calls. An idle engine still takes a lone request at once.
+pub const GPU_BATCH_COST: u64 = 16 * CPU_BATCH_COST;
 
 /// The default data directory: `<user data dir>/crowdmorph` (e.g.
 /// `~/.local/share/crowdmorph` on Linux), else `./crowdmorph-data`.
@@ -407,6 +429,19 @@ fn non_empty(s: &str) -> Result<String, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_batch_cost_defaults_to_the_engines_and_the_flag_wins() {
+        use crate::engine::BackendKind;
+        let mut c = ServerConfig::default();
+        assert_eq!(c.batch_cost, None);
+        assert_eq!(c.batch_cost(BackendKind::Cpu), CPU_BATCH_COST);
+        assert_eq!(c.batch_cost(BackendKind::Gpu), GPU_BATCH_COST);
+        c.batch_cost = Some(5);
+        assert_eq!(c.batch_cost(BackendKind::Gpu), 5);
+        c.batch_cost = Some(0);
+        assert_eq!(c.batch_cost(BackendKind::Cpu), 1, "a batch always closes");
+    }
 
     #[test]
     fn the_defaults_are_the_flags_defaults_and_every_flag_says_what_it_does() {

@@ -169,7 +169,7 @@ impl AppState {
             metrics.clone(),
             BatchConfig {
                 queue_requests: config.queue_requests,
-                batch_cost: config.batch_cost.max(1),
+                batch_cost: config.batch_cost(info.kind),
                 batch_delay: config.batch_delay,
                 hold_when_idle: config.batch_hold_when_idle,
             },

@@ -573,7 +573,7 @@ async fn gpu_batches_overlap_under_load_and_every_response_is_right() {
     // thread submits each next batch before it waits for the one computing.
     let server = TestServer::start(ServerConfig {
         backend: crowdmorph::engine::BackendChoice::Gpu,
-        batch_cost: 1,
+        batch_cost: Some(1),
         ..ServerConfig::default()
     })
     .await;

@@ -289,7 +289,7 @@ async fn a_request_in_progress_is_never_evicted() {
         // Crowd requests wait in the batcher this long: "in progress" for the whole test.
         batch_delay: Duration::from_millis(2500),
         batch_hold_when_idle: true,
-        batch_cost: u64::MAX,
+        batch_cost: Some(u64::MAX),
         ..ServerConfig::default()
     })
     .await;

@@ -322,7 +322,7 @@ async fn client_requests_go_ahead_of_a_saturating_load_test() {
     let server = TestServer::start(ServerConfig {
         // One job per batch: a synthetic request of 200 unique heads takes 200 batches, and a
         // client's job goes in the first batch after it arrives.
-        batch_cost: 1,
+        batch_cost: Some(1),
         ..ServerConfig::default()
     })
     .await;

@@ -54,7 +54,7 @@ async fn a_full_queue_answers_503_then_recovers() {
         queue_requests: 4,
         batch_delay: Duration::from_secs(2),
         batch_hold_when_idle: true,
-        batch_cost: u64::MAX,
+        batch_cost: Some(u64::MAX),
         ..ServerConfig::default()
     })
     .await;
@@ -110,7 +110,7 @@ async fn output_memory_is_bounded_and_oversized_responses_are_413() {
         queue_memory_bytes: 200 << 10,
         batch_delay: Duration::from_secs(1),
         batch_hold_when_idle: true,
-        batch_cost: u64::MAX,
+        batch_cost: Some(u64::MAX),
         ..ServerConfig::default()
     })
     .await;
@@ -161,7 +161,7 @@ async fn past_the_deadline_is_504_and_abandoned_jobs_are_not_computed() {
         request_timeout: Duration::from_millis(100),
         batch_delay: Duration::from_millis(600),
         batch_hold_when_idle: true,
-        batch_cost: u64::MAX,
+        batch_cost: Some(u64::MAX),
         ..ServerConfig::default()
     })
     .await;
@@ -198,7 +198,7 @@ async fn too_many_requests_at_once_are_shed_with_503() {
         max_concurrency: 2,
         batch_delay: Duration::from_millis(800),
         batch_hold_when_idle: true,
-        batch_cost: u64::MAX,
+        batch_cost: Some(u64::MAX),
         ..ServerConfig::default()
     })
     .await;
@@ -234,7 +234,7 @@ async fn shutdown_lets_requests_in_flight_complete() {
     let mut server = TestServer::start(ServerConfig {
         batch_delay: Duration::from_millis(500),
         batch_hold_when_idle: true,
-        batch_cost: u64::MAX,
+        batch_cost: Some(u64::MAX),
         ..ServerConfig::default()
     })
     .await;
@@ -270,7 +270,7 @@ async fn a_client_that_disconnects_does_not_cancel_shared_work() {
     let server = TestServer::start(ServerConfig {
         batch_delay: Duration::from_millis(600),
         batch_hold_when_idle: true,
-        batch_cost: u64::MAX,
+        batch_cost: Some(u64::MAX),
         ..ServerConfig::default()
     })
     .await;
