@@ -293,6 +293,7 @@ fn resources() -> Router<AppState> {
         .route(
             "/v1/sessions/{id}",
             get(routes::sessions::get_session)
+                .put(routes::sessions::put_session)
                 .patch(routes::sessions::patch_session)
                 .delete(routes::sessions::delete_session),
         )

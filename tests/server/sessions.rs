@@ -1156,3 +1156,89 @@ async fn a_patchs_answer_is_charged_before_the_patch_applies() {
     assert_eq!(body["heads"][1]["clip"], "talk");
     server.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_session_can_have_the_clients_id_once_and_posts_skip_it() {
+    let server = TestServer::start(config()).await;
+    let body = json!({"fps": 10, "heads": [head(1, "talk", 0, [0.0, 0.0, 0.0])]});
+    // The Rust client's PUT: the session is named as asked, and its viewer path works.
+    let req: crowdmorph_proto::SessionRequest =
+        serde_json::from_value(body.clone()).expect("request");
+    let made = server
+        .client
+        .create_session(
+            &req,
+            Some("lobby-1.a_b"),
+            crowdmorph_client::Encoding::Bincode,
+        )
+        .await
+        .expect("PUT");
+    assert_eq!(made.id, "lobby-1.a_b");
+    assert_eq!(info(&server, "lobby-1.a_b").await.heads.len(), 1);
+    // Taken: 409 naming it, and the running session is untouched.
+    let (status, v) = call(
+        &server,
+        Method::PUT,
+        "/v1/sessions/lobby-1.a_b",
+        body.clone(),
+    )
+    .await;
+    assert_eq!(
+        (status, v["error"]["code"].as_str()),
+        (409, Some("session_exists")),
+        "{v}"
+    );
+    assert!(
+        v["error"]["message"]
+            .as_str()
+            .is_some_and(|m| m.contains("lobby-1.a_b")),
+        "{v}"
+    );
+    // Ids that are not path- and log-safe, or too long, are refused before anything is made.
+    for bad in ["has%20space", "star*", &"x".repeat(65)] {
+        let (status, v) = call(
+            &server,
+            Method::PUT,
+            &format!("/v1/sessions/{bad}"),
+            body.clone(),
+        )
+        .await;
+        assert_eq!(
+            (status, v["error"]["code"].as_str()),
+            (400, Some("invalid_session")),
+            "{bad}: {v}"
+        );
+    }
+    // A client that takes "s1" and "s2" leaves POST the next free name.
+    for id in ["s1", "s2"] {
+        let (status, v) = call(
+            &server,
+            Method::PUT,
+            &format!("/v1/sessions/{id}"),
+            body.clone(),
+        )
+        .await;
+        assert_eq!(status, 201, "{v}");
+    }
+    let posted = create(&server, body.clone()).await;
+    assert_eq!(posted.id, "s3");
+    let (status, v) = call(&server, Method::GET, "/v1/sessions", Value::Null).await;
+    assert_eq!(status, 200);
+    let ids: Vec<&str> = v["sessions"]
+        .as_array()
+        .expect("list")
+        .iter()
+        .filter_map(|s| s["id"].as_str())
+        .collect();
+    assert_eq!(ids.len(), 4, "{ids:?}");
+    // A chosen id is deleted like any other.
+    let (status, _) = call(
+        &server,
+        Method::DELETE,
+        "/v1/sessions/lobby-1.a_b",
+        Value::Null,
+    )
+    .await;
+    assert_eq!(status, 204);
+    server.stop().await;
+}

@@ -98,6 +98,29 @@ def test_sessions_are_created_listed_patched_and_deleted(client, anonymous, sess
         assert e.value.code == "unknown_session"
 
 
+def test_a_session_gets_the_clients_id_once(client, sessions):
+    # PUT /v1/sessions/{id}: what a load balancer hashing on the id needs.
+    info = _create(client, sessions, [(1, RIG, "talk")], id="py-lobby.7")
+    assert info.id == "py-lobby.7"
+    assert client.session("py-lobby.7").heads[0].clip == "talk"
+    with pytest.raises(crowdmorph.Conflict) as e:
+        client.create_session([(1, RIG, "idle")], id="py-lobby.7")
+    assert e.value.code == "session_exists" and "py-lobby.7" in e.value.message
+    assert client.session("py-lobby.7").heads[0].clip == "talk", "not replaced"
+    with pytest.raises(crowdmorph.BadRequest) as e:
+        client.create_session([(1, RIG, "talk")], id="no spaces")
+    assert e.value.code == "invalid_session"
+
+
+def test_crowd_requests_carry_their_first_heads_rig_as_a_routing_hint():
+    from crowdmorph.client import _rig_hint
+
+    assert _rig_hint([]) == ""
+    assert _rig_hint([(1, "ict face", "talk", 0)]) == "?rig=ict%20face"
+    assert _rig_hint([{"head": 1, "rig": RIG, "clip": "talk"}]) == f"?rig={RIG}"
+    assert _rig_hint([crowdmorph.Head(1, RIG, "talk", 3)]) == f"?rig={RIG}"
+
+
 @needs_websockets
 def test_a_stream_of_an_unknown_session_raises_the_servers_404(client, sessions):
     info = _create(client, sessions, [(1, RIG, "talk")])

@@ -9,7 +9,7 @@ use bytes::Bytes;
 use crowdmorph_proto::{
     CONTENT_TYPE_BINCODE, CONTENT_TYPE_JSON, ClipList, ClipUpload, CrowdFrameRequest,
     CrowdFrameResponse, ErrorBody, LodInfo, LodRequest, MeshResponse, RenderRequest, RigInfo,
-    RigList,
+    RigList, SessionInfo, SessionRequest,
 };
 use http_body_util::{BodyExt, Full};
 use hyper::{Request, StatusCode};
@@ -474,13 +474,23 @@ impl Client {
         Ok((status, len))
     }
 
-    /// `POST /v1/crowd/frame`: the response and its body size in bytes.
+    /// `POST /v1/crowd/frame?rig=...`: the response and its body size in bytes. The query
+    /// is the routing hint (the first head's rig), which load balancers hash on.
     pub async fn crowd_frame(
         &self,
         req: &CrowdFrameRequest,
         enc: Encoding,
     ) -> Result<(CrowdFrameResponse, usize), ClientError> {
-        let reply = self.crowd_frame_raw(Self::encode(req, enc)?, enc).await?;
+        let path = with_rig_hint("/v1/crowd/frame", req.heads.first().map(|h| h.rig.as_str()));
+        let reply = self
+            .send(
+                Method::POST,
+                &path,
+                Some(enc.content_type()),
+                Some(enc.content_type()),
+                Self::encode(req, enc)?,
+            )
+            .await?;
         let len = reply.body.len();
         Ok((Self::decode(reply, enc)?, len))
     }
@@ -563,14 +573,52 @@ impl Client {
         .await
     }
 
-    /// `POST /v1/crowd/render`: the image (PNG, JPEG or raw RGBA8 as the request asks) and its
-    /// headers; an error status is [`ClientError::Api`].
+    /// `POST /v1/crowd/render?rig=...`: the image (PNG, JPEG or raw RGBA8 as the request
+    /// asks) and its headers; an error status is [`ClientError::Api`]. The query is the
+    /// routing hint, as for [`Client::crowd_frame`].
     pub async fn render(&self, req: &RenderRequest, enc: Encoding) -> Result<Reply, ClientError> {
-        let reply = self.render_raw(Self::encode(req, enc)?, enc).await?;
+        let path = with_rig_hint(
+            "/v1/crowd/render",
+            req.heads.first().map(|h| h.rig.as_str()),
+        );
+        let reply = self
+            .send(
+                Method::POST,
+                &path,
+                Some(enc.content_type()),
+                None,
+                Self::encode(req, enc)?,
+            )
+            .await?;
         if !(200..300).contains(&reply.status) {
             return Err(reply.into_error());
         }
         Ok(reply)
+    }
+
+    /// Creates a session: `POST /v1/sessions` (the server names it), or with `id`
+    /// `PUT /v1/sessions/{id}` (a balancer hashing on the id then sends every viewer of it to
+    /// the same replica; a taken id is a 409 `session_exists`).
+    pub async fn create_session(
+        &self,
+        req: &SessionRequest,
+        id: Option<&str>,
+        enc: Encoding,
+    ) -> Result<SessionInfo, ClientError> {
+        let (method, path) = match id {
+            None => (Method::POST, "/v1/sessions".to_string()),
+            Some(id) => (Method::PUT, format!("/v1/sessions/{}", percent_encode(id))),
+        };
+        let reply = self
+            .send(
+                method,
+                &path,
+                Some(enc.content_type()),
+                Some(enc.content_type()),
+                Self::encode(req, enc)?,
+            )
+            .await?;
+        Self::decode(reply, enc)
     }
 
     /// `GET /metrics` as text.
@@ -583,6 +631,29 @@ impl Client {
         }
         Ok(String::from_utf8_lossy(&reply.body).into_owned())
     }
+}
+
+/// `path?rig=RIG` (percent-encoded) when there is a rig: the routing hint of a crowd, which
+/// the server ignores and a load balancer hashes on.
+pub fn with_rig_hint(path: &str, rig: Option<&str>) -> String {
+    match rig {
+        Some(r) if !r.is_empty() => format!("{path}?rig={}", percent_encode(r)),
+        _ => path.to_string(),
+    }
+}
+
+/// `s` with every byte but ASCII letters, digits and `-._~` as `%XX` (RFC 3986's unreserved
+/// characters): safe as a path segment or a query value.
+fn percent_encode(s: &str) -> String {
+    let mut out = String::with_capacity(s.len());
+    for b in s.bytes() {
+        if b.is_ascii_alphanumeric() || matches!(b, b'-' | b'.' | b'_' | b'~') {
+            out.push(b as char);
+        } else {
+            out.push_str(&format!("%{b:02X}"));
+        }
+    }
+    out
 }
 
 /// The value of a sample (first line starting with `name` followed by a space or `{`) in a
@@ -602,7 +673,24 @@ pub fn metric(page: &str, name: &str) -> Option<f64> {
 
 #[cfg(test)]
 mod tests {
-    use super::metric;
+    use super::{metric, with_rig_hint};
+
+    #[test]
+    fn the_rig_hint_is_a_percent_encoded_query_only_when_there_is_a_rig() {
+        assert_eq!(with_rig_hint("/v1/crowd/frame", None), "/v1/crowd/frame");
+        assert_eq!(
+            with_rig_hint("/v1/crowd/frame", Some("")),
+            "/v1/crowd/frame"
+        );
+        assert_eq!(
+            with_rig_hint("/v1/crowd/frame", Some("default-head")),
+            "/v1/crowd/frame?rig=default-head"
+        );
+        assert_eq!(
+            with_rig_hint("/v1/crowd/render", Some("a b&c/é")),
+            "/v1/crowd/render?rig=a%20b%26c%2F%C3%A9"
+        );
+    }
 
     /// What `prometheus-client` writes: counters with `_total` on their samples only, labels
     /// in declaration order, real numbers with a decimal point, `# EOF` last.

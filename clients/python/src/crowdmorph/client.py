@@ -236,6 +236,21 @@ def _seg(s: str) -> str:
     return urllib.parse.quote(s, safe="")
 
 
+def _rig_hint(heads: Sequence[Any]) -> str:
+    """The ``?rig=`` routing hint of a crowd: its first head's rig ("" without heads). The
+    server ignores it; a load balancer hashing on it keeps each rig on one replica."""
+    if not heads:
+        return ""
+    h = heads[0]
+    if isinstance(h, Mapping):
+        rig = h.get("rig")
+    elif isinstance(h, (tuple, list)):
+        rig = h[1] if len(h) > 1 else None
+    else:
+        rig = getattr(h, "rig", None)
+    return f"?rig={_seg(rig)}" if isinstance(rig, str) and rig else ""
+
+
 class Client:
     """A client of one crowdmorph server.
 
@@ -637,7 +652,8 @@ class Client:
             output=OutputOptions(normals=bool(normals), format=format),
             wrap=bool(wrap),
         )
-        resp = self.request("POST", "/v1/crowd/frame", encode(req), BINCODE)
+        path = "/v1/crowd/frame" + _rig_hint(req.heads)
+        resp = self.request("POST", path, encode(req), BINCODE)
         frame = self._decode(CrowdFrameResponse, resp)
         if not decode:
             return frame
@@ -768,7 +784,8 @@ class Client:
             camera=_of(CameraSpec, camera),
             image=opts,
         )
-        resp = self.request("POST", "/v1/crowd/render", encode(req), BINCODE, accept="image/*, */*")
+        path = "/v1/crowd/render" + _rig_hint(req.heads)
+        resp = self.request("POST", path, encode(req), BINCODE, accept="image/*, */*")
         img = Image(resp.body)
         img.content_type = resp.content_type
         try:
@@ -787,9 +804,13 @@ class Client:
         fps: float = 30.0,
         wrap: bool = True,
         idle_timeout_s: int = 60,
+        id: Optional[str] = None,
     ) -> SessionInfo:
         """``POST /v1/sessions``: a crowd the server advances ``fps`` times a second and
         streams to viewers (:meth:`stream`). Needs the admin token when the server has one.
+        With ``id`` (1-64 of ``A-Z a-z 0-9 . _ -``) it is ``PUT /v1/sessions/{id}``: the
+        session gets that id, so a load balancer hashing on it sends every viewer to the same
+        replica; an id that is taken raises ``Conflict`` (``session_exists``).
 
         ``heads`` are :class:`~crowdmorph.messages.SessionHead` objects, dicts with its keys,
         or ``(head, rig, clip[, offset[, position[, yaw[, scale]]]])`` tuples. At tick ``t``
@@ -803,7 +824,10 @@ class Client:
             idle_timeout_s=int(idle_timeout_s),
             heads=[_session_head(h) for h in heads],
         )
-        resp = self.request("POST", "/v1/sessions", encode(req), BINCODE, ok=(201,))
+        if id is None:
+            resp = self.request("POST", "/v1/sessions", encode(req), BINCODE, ok=(201,))
+        else:
+            resp = self.request("PUT", f"/v1/sessions/{_seg(id)}", encode(req), BINCODE, ok=(201,))
         return self._decode(SessionInfo, resp)
 
     def sessions(self) -> List[SessionInfo]:

@@ -75,7 +75,7 @@ class NotFound(CrowdmorphError):
 
 
 class Conflict(CrowdmorphError):
-    """409: ``rig_exists``, ``clip_exists``, ``rig_changed``."""
+    """409: ``rig_exists``, ``clip_exists``, ``rig_changed``, ``head_exists``, ``session_exists``."""
 
 
 class TooLarge(CrowdmorphError):

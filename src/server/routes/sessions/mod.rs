@@ -311,6 +311,51 @@ pub async fn create_session(
     accept: Accept,
     Decoded(req): Decoded<SessionRequest>,
 ) -> ApiResult {
+    create(&state, None, accept, req)
+}
+
+/// `PUT /v1/sessions/{id}`: a session with the client's id (1–64 of `A–Z a–z 0–9 . _ -`), so
+/// that a load balancer hashing on the id sends its creation and every viewer of it to one
+/// replica; 409 `session_exists` when the id is taken (a running session is never replaced).
+pub async fn put_session(
+    State(state): State<AppState>,
+    _admin: Admin,
+    _ready: Ready,
+    accept: Accept,
+    Path(id): Path<String>,
+    Decoded(req): Decoded<SessionRequest>,
+) -> ApiResult {
+    check_session_id(&id)?;
+    create(&state, Some(id), accept, req)
+}
+
+/// Longest client-chosen session id.
+pub const MAX_SESSION_ID: usize = 64;
+
+/// A client-chosen session id: 1–[`MAX_SESSION_ID`] bytes of ASCII letters, digits, `.`, `_`
+/// and `-` (safe in a path, a log line and a balancer's hash key).
+fn check_session_id(id: &str) -> Result<(), ApiError> {
+    let ok = (1..=MAX_SESSION_ID).contains(&id.len())
+        && id
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || matches!(b, b'.' | b'_' | b'-'));
+    if ok {
+        Ok(())
+    } else {
+        Err(invalid(format!(
+            "a session id is 1-{MAX_SESSION_ID} of A-Z a-z 0-9 . _ - (got {} bytes)",
+            id.len()
+        )))
+    }
+}
+
+/// Creates a session: with the client's `id`, or the next free `s<n>` the server picks.
+fn create(
+    state: &AppState,
+    id: Option<String>,
+    accept: Accept,
+    req: crate::server::admission::Held<SessionRequest>,
+) -> ApiResult {
     let (req, _decoded) = req.into_parts();
     if !(MIN_FPS..=MAX_FPS).contains(&req.fps) {
         return Err(invalid(format!(
@@ -332,8 +377,42 @@ pub async fn create_session(
         }
         state.check_session_head(h)?;
     }
-    let n = state.sessions.next_id.fetch_add(1, Ordering::Relaxed) + 1;
-    let id = format!("s{n}");
+    let chosen = id.is_some();
+    let mut map = state
+        .sessions
+        .map
+        .lock()
+        .map_err(|_| ApiError::internal("session map poisoned"))?;
+    let id = match id {
+        Some(id) => {
+            if map.contains_key(&id) {
+                return Err(ApiError::new(
+                    StatusCode::CONFLICT,
+                    "session_exists",
+                    format!("a session {id:?} exists; delete it first, or pick another id"),
+                ));
+            }
+            id
+        }
+        // Skipping ids that clients chose.
+        None => loop {
+            let n = state.sessions.next_id.fetch_add(1, Ordering::Relaxed) + 1;
+            let id = format!("s{n}");
+            if !map.contains_key(&id) {
+                break id;
+            }
+        },
+    };
+    if map.len() >= state.config.sessions.max_sessions {
+        return Err(ApiError::unavailable(
+            "too_many_sessions",
+            format!(
+                "{} sessions exist, the most this server keeps (--max-sessions); delete one",
+                map.len()
+            ),
+            5,
+        ));
+    }
     let answer = state.queue_memory.reserve(info_bytes(&id, &req.heads))?;
     let session = Arc::new(Session {
         id: id.clone(),
@@ -356,27 +435,11 @@ pub async fn create_session(
         viewers_changed: Notify::new(),
         panic_next_tick: AtomicBool::new(false),
     });
-    {
-        let mut map = state
-            .sessions
-            .map
-            .lock()
-            .map_err(|_| ApiError::internal("session map poisoned"))?;
-        if map.len() >= state.config.sessions.max_sessions {
-            return Err(ApiError::unavailable(
-                "too_many_sessions",
-                format!(
-                    "{} sessions exist, the most this server keeps (--max-sessions); delete one",
-                    map.len()
-                ),
-                5,
-            ));
-        }
-        map.insert(id.clone(), session.clone());
-    }
+    map.insert(id.clone(), session.clone());
+    drop(map);
     tick::supervise(session.clone(), Arc::downgrade(&state.0));
     let info = session.info();
-    tracing::info!(session = %id, heads = info.heads.len(), fps = req.fps, "session created");
+    tracing::info!(session = %id, heads = info.heads.len(), fps = req.fps, chosen, "session created");
     // Charged before the session existed (`answer`): a 503 now would tell a client that
     // retries to make a second one.
     respond_held(accept, StatusCode::CREATED, &info, answer)
