@@ -41,6 +41,8 @@ fn main() {
     println!("cargo::rustc-check-cfg=cfg(crowdmorph_python)");
     println!("cargo::rustc-check-cfg=cfg(crowdmorph_python_peer)");
     println!("cargo::rustc-check-cfg=cfg(crowdmorph_shaped_links)");
+    println!("cargo::rustc-check-cfg=cfg(crowdmorph_nginx)");
+    println!("cargo::rustc-check-cfg=cfg(crowdmorph_haproxy)");
 
     if test_data_present() {
         println!("cargo::rustc-cfg=crowdmorph_test_data");
@@ -64,6 +66,27 @@ fn main() {
     if shaped_links_possible() {
         println!("cargo::rustc-cfg=crowdmorph_shaped_links");
     }
+    // The balancers of deploy/ (tests/server/balancer.rs).
+    for (name, cfg, env) in [
+        ("nginx", "crowdmorph_nginx", "CROWDMORPH_NGINX_PATH"),
+        ("haproxy", "crowdmorph_haproxy", "CROWDMORPH_HAPROXY_PATH"),
+    ] {
+        if let Some(path) = system_binary(name) {
+            println!("cargo::rustc-cfg={cfg}");
+            println!("cargo::rustc-env={env}={}", path.display());
+        }
+    }
+}
+
+/// A system binary at one of the usual fixed paths (not a `PATH` search, so that a different
+/// `PATH` does not rebuild).
+fn system_binary(name: &str) -> Option<PathBuf> {
+    let found = ["/usr/sbin", "/usr/bin", "/usr/local/sbin", "/usr/local/bin"]
+        .iter()
+        .map(|d| Path::new(d).join(name))
+        .find(|p| p.is_file())?;
+    watch(&found);
+    Some(found)
 }
 
 /// Root, iproute2, and a kernel (or container) that lets this process make a network

@@ -6,6 +6,7 @@ mod animation;
 mod api;
 mod attack;
 mod bad_input;
+mod balancer;
 mod concurrency;
 mod connections;
 mod encoding;
