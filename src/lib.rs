@@ -21,7 +21,7 @@
 //! | [`render`] | rendered frames: scene layout, cost, the wgpu renderer, encoding, offline renders |
 //! | [`lod`] | level of detail: importance metrics and orders, reports, feature-preserving mesh levels, PCA levels of the deltas, the reference rasterizer |
 //! | [`codec`] | the one module that touches bincode: wire messages and stored records |
-//! | [`store`] | persistence: checksummed, atomically replaced files under the data dir, one per rig and one per later batch of its clips |
+//! | [`store`] | persistence: checksummed, atomically replaced files under the data dir, one per rig and one per later batch of its clips; `store::objects`, the shared store of several replicas (a directory or S3, generations by manifest) |
 //! | [`load`] | the load generator: open loop, latency corrected for coordinated omission, HdrHistogram reports |
 //! | [`server`] | the HTTP server: routes, the HTTP layer, admission, the batcher, sessions, metrics |
 //! | [`bench`] | benchmarks, their peers and harness (feature `bench`) |

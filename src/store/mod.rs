@@ -37,6 +37,8 @@
 //! build wrote, a segment damaged before the checksum was taken) is skipped and reported,
 //! and the rest of its file loads.
 
+pub mod objects;
+
 use std::fs::{self, File};
 use std::io::{Seek, Write};
 use std::path::{Path, PathBuf};

@@ -1,0 +1,935 @@
+//! The shared rig store of replicas (`serve --store URL`): several `crowdmorph serve`
+//! processes keep their rigs in one object store through the `object_store` crate, an
+//! S3-compatible bucket (`s3://bucket/prefix`; endpoint and credentials from the standard
+//! `AWS_*` environment variables, so MinIO, SeaweedFS, R2 and Ceph work) or a directory they
+//! all reach (`file:///dir`).
+//!
+//! **Layout.** A rig's history is a chain of generations. Generation `g` of rig `id` is one
+//! small JSON manifest, `manifests/<id>/<g:020>.json` ([`Manifest`]), which names every object
+//! the rig is made of, each with its size and CRC-32: the rig's record (`<id>.cmrig`), its clip
+//! files (`<id>@<seq>.cmclips`) and its motion graphs (`graphs.json`), in the data dir's own
+//! checksummed formats ([`super::Store`] writes and reads them). Objects are immutable and
+//! written under a name no other writer uses (`objects/<id>/<g:020>-<writer>/<file>`) before
+//! the manifest that names them; a change that keeps an object names the old one again.
+//!
+//! **The pointer is the manifest's conditional create.** A replica writes generation `g + 1`
+//! of a rig it holds at `g` with `PutMode::Create` (S3's `If-None-Match: *`, an exclusive
+//! create on a directory): of two replicas writing the same rig at once exactly one succeeds;
+//! the other gets [`SharedError::Conflict`] naming the store's newest generation, uploads
+//! nothing visible, and changes nothing. A delete is a tombstone generation (`deleted`).
+//!
+//! **Reading.** A generation is used only when its manifest parses, names only objects of its
+//! rig, and every object reads back with its stated size and checksum and decodes as a record:
+//! a half-written or corrupt object makes that generation unusable (reported, never served),
+//! and a reader keeps or falls back to the newest generation that does read back.
+
+use std::collections::{BTreeMap, HashMap, HashSet};
+use std::path::{Path as FsPath, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use bytes::Bytes;
+use futures_util::StreamExt;
+use object_store::path::Path;
+use object_store::{ObjectStore, ObjectStoreExt, PutMode, PutOptions, PutPayload};
+use serde::{Deserialize, Serialize};
+
+use super::{Record, RecordRef, Store, StoreError, StoredGraphs};
+
+/// Name of the graphs object in a manifest.
+pub const GRAPHS: &str = "graphs.json";
+/// Largest manifest read: a manifest names a rig's files, a few hundred bytes each.
+const MAX_MANIFEST: u64 = 16 << 20;
+/// Largest graphs object read (a graph is a few kilobytes; the data dir has the same bound).
+const MAX_GRAPHS: u64 = 64 << 20;
+/// Objects are uploaded in parts of this size (and read back in the store's chunks), so a
+/// transfer holds a few parts, never a whole record.
+const PART: usize = 8 << 20;
+
+/// One generation of a rig in the shared store.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Manifest {
+    /// The rig's id.
+    pub rig: String,
+    /// This generation's number (1, 2, ...; its key says the same).
+    pub generation: u64,
+    /// The replica that wrote it.
+    pub writer: String,
+    /// A tombstone: the rig was deleted in this generation.
+    #[serde(default)]
+    pub deleted: bool,
+    /// The rig's objects by file name.
+    pub objects: BTreeMap<String, ObjectRef>,
+}
+
+/// An object a manifest names.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ObjectRef {
+    /// Its key in the store.
+    pub key: String,
+    /// Its length, bytes.
+    pub size: u64,
+    /// CRC-32 (IEEE) of its bytes.
+    pub crc32: u32,
+}
+
+/// Why the shared store failed.
+#[derive(Debug, thiserror::Error)]
+pub enum SharedError {
+    /// The URL names no store this build can open.
+    #[error("store {url:?}: {problem}")]
+    Url {
+        /// The URL as given.
+        url: String,
+        /// What is wrong with it.
+        problem: String,
+    },
+    /// The store did not answer, or refused an operation.
+    #[error("the rig store {url} is unavailable: {problem}")]
+    Unavailable {
+        /// The store.
+        url: String,
+        /// What failed.
+        problem: String,
+    },
+    /// Another replica wrote the rig since this one read it: nothing was changed.
+    #[error(
+        "rig {rig:?} changed in the store {url}: its newest generation is {newest}, this \
+         replica holds {held}; retry once it has refreshed"
+    )]
+    Conflict {
+        /// The store.
+        url: String,
+        /// The rig.
+        rig: String,
+        /// The generation the write was based on.
+        held: u64,
+        /// The store's newest generation.
+        newest: u64,
+    },
+    /// A record could not be staged locally.
+    #[error(transparent)]
+    Local(#[from] StoreError),
+}
+
+/// A change to one rig, staged and ready to commit with [`SharedStore::commit`].
+#[derive(Debug)]
+pub enum Change {
+    /// An object (a record or a clip file) written to a local staging file.
+    File {
+        /// Its file name in the manifest.
+        name: String,
+        /// The staged file (removed by the commit).
+        path: PathBuf,
+    },
+    /// The rig's motion graphs; none removes the object.
+    Graphs(Vec<u8>),
+    /// An object dropped from the rig (a clip file emptied).
+    Remove(String),
+    /// The rig deleted.
+    Delete,
+}
+
+/// A generation read back: its manifest and its decoded objects.
+#[derive(Debug)]
+pub struct Fetched {
+    /// The manifest.
+    pub manifest: Manifest,
+    /// The records: the rig's (or built-in rig's) first, then clip files by sequence number.
+    pub records: Vec<Record>,
+    /// The motion graphs, when the rig has some.
+    pub graphs: Option<StoredGraphs>,
+    /// Compressed clips left out of the records (as [`Store::read_reporting`] says).
+    pub dropped: Vec<String>,
+}
+
+/// Whether `name` is a file name a manifest of rig `id` may hold.
+fn valid_name(id: &str, name: &str) -> bool {
+    if name == GRAPHS || name == format!("{id}.{}", super::EXT) {
+        return true;
+    }
+    name.strip_prefix(id)
+        .and_then(|r| r.strip_prefix('@'))
+        .and_then(|r| r.strip_suffix(&format!(".{}", super::CLIPS_EXT)))
+        .is_some_and(|seq| seq.len() == 10 && seq.bytes().all(|b| b.is_ascii_digit()))
+}
+
+/// A rig store shared by replicas.
+#[derive(Debug)]
+pub struct SharedStore {
+    objects: Arc<dyn ObjectStore>,
+    url: String,
+    /// The directory of a `file://` store: its writes are flushed to disk (object_store's
+    /// local backend renames into place but does not `fsync`).
+    local_root: Option<PathBuf>,
+    /// This replica's name in the objects it writes (unique per process).
+    writer: String,
+    /// Where records are staged before upload and objects land before they are decoded.
+    work: PathBuf,
+    clip_error: Option<f32>,
+    counter: AtomicU64,
+    /// The generation of each rig this replica holds.
+    held: Mutex<HashMap<String, Manifest>>,
+    /// The newest generation of each rig this replica passed over (it did not read back): a
+    /// change made here is committed after it, or it would conflict with it forever.
+    passed: Mutex<HashMap<String, u64>>,
+}
+
+/// The parts of an object store URL.
+fn open_url(
+    url: &str,
+    timeout: Duration,
+) -> Result<(Arc<dyn ObjectStore>, Option<PathBuf>), SharedError> {
+    let bad = |problem: String| SharedError::Url {
+        url: url.to_string(),
+        problem,
+    };
+    if let Some(rest) = url.strip_prefix("s3://") {
+        let (bucket, prefix) = rest.split_once('/').unwrap_or((rest, ""));
+        if bucket.is_empty() {
+            return Err(bad("an s3:// URL names a bucket: s3://bucket/prefix".into()));
+        }
+        let retry = object_store::RetryConfig {
+            max_retries: 2,
+            retry_timeout: timeout,
+            ..Default::default()
+        };
+        // Timeouts set key by key: `with_client_options` would replace the client options
+        // `from_env` read (AWS_ALLOW_HTTP among them).
+        use object_store::ClientConfigKey as C;
+        use object_store::aws::AmazonS3ConfigKey as K;
+        let connect = timeout.min(Duration::from_secs(2));
+        let s3 = object_store::aws::AmazonS3Builder::from_env()
+            .with_bucket_name(bucket)
+            .with_retry(retry)
+            .with_config(K::Client(C::Timeout), format!("{}ms", timeout.as_millis()))
+            .with_config(
+                K::Client(C::ConnectTimeout),
+                format!("{}ms", connect.as_millis()),
+            )
+            .build()
+            .map_err(|e| bad(e.to_string()))?;
+        let store: Arc<dyn ObjectStore> = if prefix.trim_matches('/').is_empty() {
+            Arc::new(s3)
+        } else {
+            Arc::new(object_store::prefix::PrefixStore::new(
+                s3,
+                prefix.trim_matches('/'),
+            ))
+        };
+        return Ok((store, None));
+    }
+    let dir = match url.strip_prefix("file://") {
+        Some(path) if path.starts_with('/') => PathBuf::from(path),
+        Some(_) => return Err(bad("a file:// URL has an absolute path: file:///dir".into())),
+        None if url.contains("://") => {
+            return Err(bad(
+                "the store is a path, file:///dir or s3://bucket/prefix".into(),
+            ));
+        }
+        None => PathBuf::from(url),
+    };
+    std::fs::create_dir_all(&dir)
+        .map_err(|e| bad(format!("cannot create directory {}: {e}", dir.display())))?;
+    let dir = dir
+        .canonicalize()
+        .map_err(|e| bad(format!("{}: {e}", dir.display())))?;
+    let local = object_store::local::LocalFileSystem::new_with_prefix(&dir)
+        .map_err(|e| bad(e.to_string()))?;
+    Ok((Arc::new(local), Some(dir)))
+}
+
+impl SharedStore {
+    /// Opens the store at `url` (nothing is read or written yet: [`SharedStore::check`] does),
+    /// staging under `work` (created), with operations that give up after `timeout`.
+    pub fn open(
+        url: &str,
+        work: &FsPath,
+        timeout: Duration,
+        clip_error: Option<f32>,
+    ) -> Result<SharedStore, SharedError> {
+        let (objects, local_root) = open_url(url, timeout)?;
+        let writer = format!(
+            "{}-{:08x}",
+            std::process::id(),
+            std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map(|d| d.subsec_nanos() ^ (d.as_secs() as u32))
+                .unwrap_or(0)
+        );
+        let work = work.join(format!("store-{writer}"));
+        std::fs::create_dir_all(&work).map_err(|e| SharedError::Url {
+            url: url.to_string(),
+            problem: format!(
+                "cannot create the staging directory {}: {e}",
+                work.display()
+            ),
+        })?;
+        Ok(SharedStore {
+            objects,
+            url: url.to_string(),
+            local_root,
+            writer,
+            work,
+            clip_error,
+            counter: AtomicU64::new(0),
+            held: Mutex::new(HashMap::new()),
+            passed: Mutex::new(HashMap::new()),
+        })
+    }
+
+    /// The store's URL.
+    pub fn url(&self) -> &str {
+        &self.url
+    }
+
+    /// The error budget clips are stored within, when they are compressed.
+    pub fn clip_error(&self) -> Option<f32> {
+        self.clip_error
+    }
+
+    fn unavailable(&self, e: impl std::fmt::Display) -> SharedError {
+        SharedError::Unavailable {
+            url: self.url.clone(),
+            problem: e.to_string(),
+        }
+    }
+
+    /// Checks that the store answers and takes writes: lists it and writes, then deletes, a
+    /// small object of this replica's own.
+    pub async fn check(&self) -> Result<(), SharedError> {
+        let mut listing = self.objects.list(Some(&Path::from("manifests")));
+        if let Some(Err(e)) = listing.next().await {
+            return Err(self.unavailable(format!("cannot list it: {e}")));
+        }
+        let probe = Path::from(format!("writers/{}", self.writer));
+        self.objects
+            .put(&probe, PutPayload::from_static(b"crowdmorph"))
+            .await
+            .map_err(|e| self.unavailable(format!("cannot write to it: {e}")))?;
+        let _ = self.objects.delete(&probe).await;
+        Ok(())
+    }
+
+    /// Every rig in the store and its generations, ascending (one listing).
+    pub async fn list(&self) -> Result<BTreeMap<String, Vec<u64>>, SharedError> {
+        self.list_under("manifests").await
+    }
+
+    /// Generations of rig `id`, ascending (one listing); empty when the store has none.
+    pub async fn generations(&self, id: &str) -> Result<Vec<u64>, SharedError> {
+        Ok(self
+            .list_under(&format!("manifests/{id}"))
+            .await?
+            .remove(id)
+            .unwrap_or_default())
+    }
+
+    async fn list_under(&self, prefix: &str) -> Result<BTreeMap<String, Vec<u64>>, SharedError> {
+        let mut rigs: BTreeMap<String, Vec<u64>> = BTreeMap::new();
+        let mut listing = self.objects.list(Some(&Path::from(prefix)));
+        while let Some(meta) = listing.next().await {
+            let meta = meta.map_err(|e| self.unavailable(format!("cannot list it: {e}")))?;
+            let mut parts = meta.location.parts();
+            let (Some(_), Some(id), Some(file), None) =
+                (parts.next(), parts.next(), parts.next(), parts.next())
+            else {
+                continue;
+            };
+            let Some(generation) = file
+                .as_ref()
+                .strip_suffix(".json")
+                .and_then(|g| g.parse::<u64>().ok())
+            else {
+                continue;
+            };
+            rigs.entry(id.as_ref().to_string())
+                .or_default()
+                .push(generation);
+        }
+        for g in rigs.values_mut() {
+            g.sort_unstable();
+        }
+        Ok(rigs)
+    }
+
+    /// The generation of rig `id` this replica holds (0: none).
+    pub fn held(&self, id: &str) -> u64 {
+        self.held
+            .lock()
+            .ok()
+            .and_then(|h| h.get(id).map(|m| m.generation))
+            .unwrap_or(0)
+    }
+
+    /// Every rig this replica holds a generation of, with it.
+    pub fn held_all(&self) -> Vec<(String, u64)> {
+        self.held
+            .lock()
+            .map(|h| h.iter().map(|(k, m)| (k.clone(), m.generation)).collect())
+            .unwrap_or_default()
+    }
+
+    /// Remembers that generation `g` of rig `id` was passed over: the next change of the rig
+    /// made here is committed as a later one (on the content this replica holds).
+    pub fn pass_over(&self, id: &str, g: u64) {
+        if let Ok(mut p) = self.passed.lock() {
+            let e = p.entry(id.to_string()).or_insert(g);
+            *e = (*e).max(g);
+        }
+    }
+
+    /// Records that this replica now holds `manifest`'s generation of its rig.
+    pub fn set_held(&self, manifest: Manifest) {
+        if let Ok(mut h) = self.held.lock() {
+            h.insert(manifest.rig.clone(), manifest);
+        }
+    }
+
+    fn scratch(&self, what: &str) -> PathBuf {
+        let n = self.counter.fetch_add(1, Ordering::Relaxed);
+        self.work.join(format!("{what}-{n}"))
+    }
+
+    /// Writes `record` to a staging file in the data dir's format (blocking: call it off the
+    /// runtime), ready to commit.
+    pub fn stage(&self, record: RecordRef<'_>) -> Result<Change, SharedError> {
+        let dir = self.scratch("stage");
+        let store = Store::open(&dir)?.compress_clips(self.clip_error);
+        store.put(record)?;
+        let path = match record {
+            RecordRef::Rig { id, .. } | RecordRef::Builtin { id, .. } => store.path_of(id),
+            RecordRef::Clips { id, seq, .. } => store.clips_path(id, seq),
+        };
+        let name = path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        Ok(Change::File { name, path })
+    }
+
+    /// The change that removes clip file `seq` of rig `id`.
+    pub fn clips_removed(id: &str, seq: u64) -> Change {
+        Change::Remove(format!("{id}@{seq:010}.{}", super::CLIPS_EXT))
+    }
+
+    /// The change that stores rig `id`'s motion graphs (or removes them when there are none).
+    pub fn graphs_change(
+        id: &str,
+        graphs: &BTreeMap<String, crowdmorph_proto::MotionGraph>,
+    ) -> Result<Change, SharedError> {
+        if graphs.is_empty() {
+            return Ok(Change::Remove(GRAPHS.to_string()));
+        }
+        serde_json::to_vec(&StoredGraphs {
+            rig: id.to_string(),
+            graphs: graphs.clone(),
+        })
+        .map(Change::Graphs)
+        .map_err(|e| SharedError::Local(StoreError::Encode(e.to_string())))
+    }
+
+    /// Writes the next generation of rig `id` with `change`: its new object first, then the
+    /// manifest, created only if no other replica has written that generation. Returns the
+    /// generation written; on [`SharedError::Conflict`] nothing is visible.
+    pub async fn commit(&self, id: &str, change: Change) -> Result<u64, SharedError> {
+        let base = self.held.lock().ok().and_then(|h| h.get(id).cloned());
+        let held = base.as_ref().map_or(0, |m| m.generation);
+        let passed = self
+            .passed
+            .lock()
+            .ok()
+            .and_then(|p| p.get(id).copied())
+            .unwrap_or(0);
+        let generation = held.max(passed) + 1;
+        let mut objects = base
+            .filter(|m| !m.deleted)
+            .map(|m| m.objects)
+            .unwrap_or_default();
+        let dir = format!("objects/{id}/{generation:020}-{}", self.writer);
+        let mut deleted = false;
+        let mut uploaded = None;
+        let staged = match &change {
+            Change::File { path, .. } => path.parent().and_then(|p| p.parent()).map(PathBuf::from),
+            _ => None,
+        };
+        let result = async {
+            match change {
+                Change::File { name, path } => {
+                    let key = format!("{dir}/{name}");
+                    let object = self.upload_file(&path, &key).await?;
+                    uploaded = Some(key);
+                    objects.insert(name, object);
+                }
+                Change::Graphs(bytes) => {
+                    let key = format!("{dir}/{GRAPHS}");
+                    let object = self.upload_bytes(Bytes::from(bytes), &key).await?;
+                    uploaded = Some(key);
+                    objects.insert(GRAPHS.to_string(), object);
+                }
+                Change::Remove(name) => {
+                    objects.remove(&name);
+                }
+                Change::Delete => {
+                    objects.clear();
+                    deleted = true;
+                }
+            }
+            let manifest = Manifest {
+                rig: id.to_string(),
+                generation,
+                writer: self.writer.clone(),
+                deleted,
+                objects,
+            };
+            let json = serde_json::to_vec_pretty(&manifest)
+                .map_err(|e| SharedError::Local(StoreError::Encode(e.to_string())))?;
+            let key = Path::from(format!("manifests/{id}/{generation:020}.json"));
+            let put = self
+                .objects
+                .put_opts(
+                    &key,
+                    PutPayload::from(json),
+                    PutOptions::from(PutMode::Create),
+                )
+                .await;
+            match put {
+                Ok(_) => {}
+                Err(
+                    object_store::Error::AlreadyExists { .. }
+                    | object_store::Error::Precondition { .. },
+                ) => {
+                    let newest = self
+                        .generations(id)
+                        .await
+                        .ok()
+                        .and_then(|g| g.last().copied())
+                        .unwrap_or(generation);
+                    return Err(SharedError::Conflict {
+                        url: self.url.clone(),
+                        rig: id.to_string(),
+                        held,
+                        newest,
+                    });
+                }
+                Err(e) => return Err(self.unavailable(format!("cannot write {key}: {e}"))),
+            }
+            self.sync_local(key.as_ref());
+            Ok(manifest)
+        }
+        .await;
+        if let Some(dir) = staged {
+            let _ = std::fs::remove_dir_all(dir);
+        }
+        match result {
+            Ok(manifest) => {
+                self.set_held(manifest);
+                Ok(generation)
+            }
+            Err(e) => {
+                // The object nobody will name: removed, best effort (a leftover is harmless).
+                if let Some(key) = uploaded {
+                    let _ = self.objects.delete(&Path::from(key)).await;
+                }
+                Err(e)
+            }
+        }
+    }
+
+    /// Flushes a file a `file://` store just wrote, and its directory, to disk.
+    fn sync_local(&self, key: &str) {
+        let Some(root) = &self.local_root else {
+            return;
+        };
+        let path = root.join(key);
+        let synced = std::fs::File::open(&path)
+            .and_then(|f| f.sync_all())
+            .and_then(|()| match path.parent() {
+                Some(d) => std::fs::File::open(d).and_then(|d| d.sync_all()),
+                None => Ok(()),
+            });
+        if let Err(e) = synced {
+            tracing::warn!(file = %path.display(), error = %e, "cannot flush a stored object");
+        }
+    }
+
+    /// Uploads a staged file in parts, checksumming it as it goes.
+    async fn upload_file(&self, path: &FsPath, key: &str) -> Result<ObjectRef, SharedError> {
+        use tokio::io::AsyncReadExt;
+        let local = |e: std::io::Error| {
+            SharedError::Local(StoreError::Io {
+                op: "read",
+                path: path.display().to_string(),
+                source: e,
+            })
+        };
+        let mut file = tokio::fs::File::open(path).await.map_err(local)?;
+        let size = file.metadata().await.map_err(local)?.len();
+        if size <= PART as u64 {
+            let mut bytes = Vec::with_capacity(size as usize);
+            file.read_to_end(&mut bytes).await.map_err(local)?;
+            return self.upload_bytes(Bytes::from(bytes), key).await;
+        }
+        let location = Path::from(key);
+        let upload = self
+            .objects
+            .put_multipart(&location)
+            .await
+            .map_err(|e| self.unavailable(format!("cannot write {key}: {e}")))?;
+        let mut writer = object_store::WriteMultipart::new_with_chunk_size(upload, PART);
+        let mut crc = crc32fast::Hasher::new();
+        let mut buf = vec![0u8; PART];
+        loop {
+            let n = file.read(&mut buf).await.map_err(local)?;
+            if n == 0 {
+                break;
+            }
+            crc.update(&buf[..n]);
+            writer
+                .wait_for_capacity(2)
+                .await
+                .map_err(|e| self.unavailable(format!("cannot write {key}: {e}")))?;
+            writer.write(&buf[..n]);
+        }
+        writer
+            .finish()
+            .await
+            .map_err(|e| self.unavailable(format!("cannot write {key}: {e}")))?;
+        self.sync_local(key);
+        Ok(ObjectRef {
+            key: key.to_string(),
+            size,
+            crc32: crc.finalize(),
+        })
+    }
+
+    async fn upload_bytes(&self, bytes: Bytes, key: &str) -> Result<ObjectRef, SharedError> {
+        let object = ObjectRef {
+            key: key.to_string(),
+            size: bytes.len() as u64,
+            crc32: crc32fast::hash(&bytes),
+        };
+        self.objects
+            .put(&Path::from(key), PutPayload::from(bytes))
+            .await
+            .map_err(|e| self.unavailable(format!("cannot write {key}: {e}")))?;
+        self.sync_local(key);
+        Ok(object)
+    }
+
+    /// Reads generation `generation` of rig `id` back: its manifest, then each object, whose
+    /// memory `charge` is asked for first (twice its size: its bytes and what they decode
+    /// to). `Err` says why the generation cannot be used; a store that does not answer is
+    /// [`SharedError::Unavailable`], anything wrong with what it holds a `Corrupt` reason.
+    pub async fn fetch(
+        &self,
+        id: &str,
+        generation: u64,
+        charge: &(dyn Fn(u64, &str) -> Result<(), String> + Sync),
+    ) -> Result<Result<Fetched, String>, SharedError> {
+        let key = format!("manifests/{id}/{generation:020}.json");
+        let Some(bytes) = self.read_small(&key, MAX_MANIFEST).await? else {
+            return Ok(Err(format!("{}: {key} is missing", self.url)));
+        };
+        let manifest: Manifest = match serde_json::from_slice(&bytes) {
+            Ok(m) => m,
+            Err(e) => return Ok(Err(format!("{}: {key}: not a manifest: {e}", self.url))),
+        };
+        if manifest.rig != id || manifest.generation != generation {
+            return Ok(Err(format!(
+                "{}: {key} is for rig {:?} generation {}",
+                self.url, manifest.rig, manifest.generation
+            )));
+        }
+        let prefix = format!("objects/{id}/");
+        if let Some((name, o)) = manifest
+            .objects
+            .iter()
+            .find(|(name, o)| !valid_name(id, name) || !o.key.starts_with(&prefix))
+        {
+            return Ok(Err(format!(
+                "{}: {key} names an object that is not rig {id:?}'s: {name:?} at {:?}",
+                self.url, o.key
+            )));
+        }
+        let mut fetched = Fetched {
+            manifest: manifest.clone(),
+            records: Vec::new(),
+            graphs: None,
+            dropped: Vec::new(),
+        };
+        for (name, object) in &manifest.objects {
+            let limit = if name == GRAPHS { MAX_GRAPHS } else { u64::MAX };
+            if object.size > limit {
+                return Ok(Err(format!(
+                    "{}: {} is {} bytes, more than a graphs object may be",
+                    self.url, object.key, object.size
+                )));
+            }
+            if let Err(why) = charge(2 * object.size, &object.key) {
+                return Ok(Err(why));
+            }
+            let dir = self.scratch("fetch");
+            let path = dir.join("rigs").join(name);
+            let got = self.download(object, &path).await;
+            let outcome = match got {
+                Ok(Ok(())) if name == GRAPHS => std::fs::read(&path)
+                    .map_err(|e| e.to_string())
+                    .and_then(|b| {
+                        serde_json::from_slice::<StoredGraphs>(&b).map_err(|e| e.to_string())
+                    })
+                    .map(|g| fetched.graphs = Some(g))
+                    .map_err(|e| format!("{}: {}: {e}", self.url, object.key)),
+                Ok(Ok(())) => {
+                    let path = path.clone();
+                    match tokio::task::spawn_blocking(move || Store::read_reporting(&path)).await {
+                        Ok(Ok((record, dropped))) => {
+                            fetched.records.push(record);
+                            fetched.dropped.extend(dropped);
+                            Ok(())
+                        }
+                        Ok(Err(e)) => Err(format!("{}: {}: {e}", self.url, object.key)),
+                        Err(e) => Err(e.to_string()),
+                    }
+                }
+                Ok(Err(why)) => Err(why),
+                Err(e) => {
+                    let _ = std::fs::remove_dir_all(&dir);
+                    return Err(e);
+                }
+            };
+            let _ = std::fs::remove_dir_all(&dir);
+            if let Err(why) = outcome {
+                return Ok(Err(why));
+            }
+        }
+        Ok(Ok(fetched))
+    }
+
+    /// A small object's bytes, at most `limit` of them; `None` when it is not there.
+    async fn read_small(&self, key: &str, limit: u64) -> Result<Option<Bytes>, SharedError> {
+        let got = match self.objects.get(&Path::from(key)).await {
+            Ok(g) => g,
+            Err(object_store::Error::NotFound { .. }) => return Ok(None),
+            Err(e) => return Err(self.unavailable(format!("cannot read {key}: {e}"))),
+        };
+        if got.meta.size > limit {
+            return Err(self.unavailable(format!("{key} is {} bytes", got.meta.size)));
+        }
+        got.bytes()
+            .await
+            .map(Some)
+            .map_err(|e| self.unavailable(format!("cannot read {key}: {e}")))
+    }
+
+    /// Streams `object` into `path`, checking its length and checksum against the manifest;
+    /// `Ok(Err)` for an object that is missing, longer or shorter, or damaged.
+    async fn download(
+        &self,
+        object: &ObjectRef,
+        path: &FsPath,
+    ) -> Result<Result<(), String>, SharedError> {
+        use tokio::io::AsyncWriteExt;
+        let key = &object.key;
+        let got = match self.objects.get(&Path::from(key.as_str())).await {
+            Ok(g) => g,
+            Err(object_store::Error::NotFound { .. }) => {
+                return Ok(Err(format!("{}: {key} is missing", self.url)));
+            }
+            Err(e) => return Err(self.unavailable(format!("cannot read {key}: {e}"))),
+        };
+        if got.meta.size != object.size {
+            return Ok(Err(format!(
+                "{}: {key} is {} bytes, its manifest says {} (half-written or replaced)",
+                self.url, got.meta.size, object.size
+            )));
+        }
+        let local = |e: std::io::Error| {
+            SharedError::Local(StoreError::Io {
+                op: "write",
+                path: path.display().to_string(),
+                source: e,
+            })
+        };
+        if let Some(dir) = path.parent() {
+            tokio::fs::create_dir_all(dir).await.map_err(local)?;
+        }
+        let mut file = tokio::fs::File::create(path).await.map_err(local)?;
+        let mut crc = crc32fast::Hasher::new();
+        let mut len = 0u64;
+        let mut stream = got.into_stream();
+        while let Some(chunk) = stream.next().await {
+            let chunk = chunk.map_err(|e| self.unavailable(format!("cannot read {key}: {e}")))?;
+            len += chunk.len() as u64;
+            if len > object.size {
+                return Ok(Err(format!(
+                    "{}: {key} is longer than its manifest says",
+                    self.url
+                )));
+            }
+            crc.update(&chunk);
+            file.write_all(&chunk).await.map_err(local)?;
+        }
+        file.flush().await.map_err(local)?;
+        if len != object.size {
+            return Ok(Err(format!(
+                "{}: {key} ended after {len} of {} bytes",
+                self.url, object.size
+            )));
+        }
+        if crc.finalize() != object.crc32 {
+            return Ok(Err(format!(
+                "{}: {key} does not match its checksum (damaged)",
+                self.url
+            )));
+        }
+        Ok(Ok(()))
+    }
+
+    /// Deletes this replica's staging directory (at exit; leftovers of a killed process are
+    /// under the data dir, named by their process).
+    pub fn clean_up(&self) {
+        let _ = std::fs::remove_dir_all(&self.work);
+    }
+}
+
+/// Generations the replicas could not use, remembered so that each is reported once.
+#[derive(Debug, Default)]
+pub struct Unusable(Mutex<HashSet<(String, u64)>>);
+
+impl Unusable {
+    /// Whether generation `g` of `id` is known to be unusable.
+    pub fn contains(&self, id: &str, g: u64) -> bool {
+        self.0
+            .lock()
+            .map(|s| s.contains(&(id.to_string(), g)))
+            .unwrap_or(false)
+    }
+
+    /// Remembers that generation `g` of `id` is unusable; `true` the first time.
+    pub fn insert(&self, id: &str, g: u64) -> bool {
+        self.0
+            .lock()
+            .map(|mut s| s.insert((id.to_string(), g)))
+            .unwrap_or(false)
+    }
+}
+
+/// Most remembered misses (rig ids the store did not have, until the next refresh).
+const MAX_MISSES: usize = 4096;
+
+/// Rig ids the store did not have when last asked, with when.
+#[derive(Debug, Default)]
+pub struct Misses(Mutex<HashMap<String, Instant>>);
+
+impl Misses {
+    /// Whether `id` was a miss less than `within` ago.
+    pub fn recent(&self, id: &str, within: Duration) -> bool {
+        self.0
+            .lock()
+            .map(|m| m.get(id).is_some_and(|t| t.elapsed() < within))
+            .unwrap_or(false)
+    }
+
+    /// Remembers that the store has no rig `id` now.
+    pub fn insert(&self, id: &str) {
+        if let Ok(mut m) = self.0.lock() {
+            if m.len() >= MAX_MISSES {
+                m.clear();
+            }
+            m.insert(id.to_string(), Instant::now());
+        }
+    }
+
+    /// Forgets a miss (the rig was written or found).
+    pub fn forget(&self, id: &str) {
+        if let Ok(mut m) = self.0.lock() {
+            m.remove(id);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_a_manifest_may_hold() {
+        assert!(valid_name("a", "a.cmrig"));
+        assert!(valid_name("a", "a@0000000003.cmclips"));
+        assert!(valid_name("a", GRAPHS));
+        for bad in [
+            "b.cmrig",
+            "a@3.cmclips",
+            "a@000000000x.cmclips",
+            "../a.cmrig",
+            "a.cmrig/..",
+            "ab@0000000003.cmclips",
+        ] {
+            assert!(!valid_name("a", bad), "{bad}");
+        }
+    }
+
+    fn temp(tag: &str) -> PathBuf {
+        let d = std::env::temp_dir().join(format!(
+            "crowdmorph-objects-{tag}-{}-{:?}",
+            std::process::id(),
+            std::time::SystemTime::now()
+        ));
+        std::fs::create_dir_all(&d).expect("temp dir");
+        d
+    }
+
+    /// Two replicas writing the next generation of one rig: one commit wins, the other is a
+    /// conflict that names the newest generation; once the loser has passed over a
+    /// generation it could not use, its next change goes after it.
+    #[tokio::test]
+    async fn one_of_two_writers_wins_and_a_passed_generation_is_skipped() {
+        let (root, work) = (temp("root"), temp("work"));
+        let url = root.display().to_string();
+        let open = || SharedStore::open(&url, &work, Duration::from_secs(5), None).expect("open");
+        let (a, b) = (open(), open());
+        a.check().await.expect("the store answers");
+        let graphs = |n: u8| {
+            Change::Graphs(format!("{{\"rig\":\"r\",\"graphs\":[],\"n\":{n}}}").into_bytes())
+        };
+        let (ra, rb) = tokio::join!(a.commit("r", graphs(1)), b.commit("r", graphs(2)));
+        let won = [ra.is_ok(), rb.is_ok()];
+        assert_eq!(won.iter().filter(|&&w| w).count(), 1, "{ra:?} {rb:?}");
+        let (winner, loser, lost) = if ra.is_ok() {
+            (&a, &b, rb)
+        } else {
+            (&b, &a, ra)
+        };
+        match lost {
+            Err(SharedError::Conflict {
+                held: 0, newest: 1, ..
+            }) => {}
+            other => panic!("not a conflict at generation 1: {other:?}"),
+        }
+        assert_eq!(a.generations("r").await.expect("list"), vec![1]);
+        assert_eq!(winner.held("r"), 1);
+        assert_eq!(loser.held("r"), 0, "the loser changed nothing");
+
+        // The winner writes 2; the loser cannot use 1 or 2 (say): it passes them over and
+        // commits 3, on what it holds.
+        winner.commit("r", graphs(3)).await.expect("generation 2");
+        loser.pass_over("r", 2);
+        assert_eq!(loser.commit("r", Change::Delete).await.expect("after"), 3);
+        assert_eq!(winner.list().await.expect("list")["r"], vec![1, 2, 3]);
+        let _ = std::fs::remove_dir_all(&root);
+        let _ = std::fs::remove_dir_all(&work);
+    }
+
+    #[test]
+    fn urls_that_open_nothing_say_why() {
+        let work = std::env::temp_dir();
+        for url in ["s3://", "file://relative/dir", "gs://bucket"] {
+            let e = SharedStore::open(url, &work, Duration::from_secs(1), None)
+                .expect_err(url)
+                .to_string();
+            assert!(e.contains(url), "{e}");
+        }
+    }
+}
