@@ -193,6 +193,12 @@ pub fn app(state: AppState) -> Router {
     let cfg = &state.config;
     let routes = resources()
         .fallback(routes::health::not_found)
+        // A rig the path or `?rig=` names that another replica wrote is read from the shared
+        // store before the handler looks for it.
+        .layer(middleware::from_fn_with_state(
+            state.clone(),
+            routes::replicas::look_up_rigs,
+        ))
         // Bodies are read with explicit per-route limits (see http::body::read_body), after
         // a compressed one is inflated: the limits bound the inflated bytes.
         .layer(DefaultBodyLimit::disable())
@@ -371,6 +377,11 @@ pub async fn run(
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), ServerError> {
     let state = AppState::new(config)?;
+    // A shared store that does not answer or refuses writes stops the start, naming it.
+    if let Some(shared) = state.shared_store() {
+        shared.check().await?;
+        tracing::info!(store = %shared.url(), "rig store reachable");
+    }
     serve(listener, state, shutdown).await
 }
 
@@ -414,7 +425,10 @@ pub async fn serve(
         tracing::info!(%addr, "listening");
     }
     let loader = state.clone();
-    tokio::spawn(async move { loader.load_stored().await });
+    tokio::spawn(async move {
+        loader.load_stored().await;
+        routes::replicas::spawn_refresh(&loader);
+    });
     // Background LOD jobs are not requests in flight: stop them at once, or the runtime
     // would wait for their blocking work before the process can exit.
     let jobs = state.clone();

@@ -177,6 +177,22 @@ pub struct ServerConfig {
     /// restart (default: stored exactly).
     #[arg(long, env = "CROWDMORPH_COMPRESS_CLIPS", value_parser = clip_error)]
     pub compress_clips: Option<f32>,
+    /// A rig store shared by replicas, in place of the data dir: `file:///dir` (a directory
+    /// they all reach) or `s3://bucket/prefix` (any S3-compatible store; endpoint and
+    /// credentials from the AWS_* environment variables, e.g. AWS_ENDPOINT_URL,
+    /// AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY, AWS_REGION, AWS_ALLOW_HTTP). Every change
+    /// is a new generation of its rig, written with a conditional put.
+    #[arg(long, env = "CROWDMORPH_STORE", value_parser = store_url)]
+    pub store: Option<String>,
+    /// How often a replica reads what other replicas changed in the shared store,
+    /// milliseconds: the longest a delete or a new clip takes to reach it.
+    #[arg(
+        long = "store-refresh-ms",
+        env = "CROWDMORPH_STORE_REFRESH_MS",
+        default_value = "2000",
+        value_parser = millis_positive
+    )]
+    pub store_refresh: Duration,
     /// Limits of crowd sessions.
     #[command(flatten)]
     pub sessions: SessionLimits,
@@ -414,6 +430,16 @@ pub fn share(s: &str) -> Result<f64, String> {
     match s.trim().parse::<f64>() {
         Ok(v) if (0.0..=1.0).contains(&v) => Ok(v),
         _ => Err(format!("{s:?} is not a number in [0, 1]")),
+    }
+}
+
+/// A store URL that is not empty (an empty one set in the environment would silently mean
+/// "no shared store").
+fn store_url(s: &str) -> Result<String, String> {
+    if s.trim().is_empty() {
+        Err("the store URL is empty: a path, file:///dir or s3://bucket/prefix".into())
+    } else {
+        Ok(s.trim().to_string())
     }
 }
 

@@ -222,6 +222,14 @@ pub struct Metrics {
     cancelled: Family<CancelledLabels, Counter>,
     /// Session tick tasks that panicked (each ended its session).
     pub session_panics: Counter,
+    /// Rigs looked up in the shared store because a request named one this replica did not
+    /// hold, and those the store had.
+    store_lookups: Counter,
+    store_lookups_found: Counter,
+    /// Time those lookups took (the listing, and the read of a rig found).
+    store_lookup_seconds: Histogram,
+    /// Refreshes from the shared store that failed (the store did not answer).
+    store_refresh_failures: Counter,
     /// Connections admitted and not yet closed.
     pub connections_open: U64Gauge,
     /// Connections accepted from the listener, refused ones included.
@@ -397,6 +405,25 @@ impl Default for Metrics {
             "crowdmorph_session_panics",
             "Session tick tasks that panicked; each ended its session (a bug: the log has it)",
         );
+        let store_lookups = counter(
+            "crowdmorph_store_lookups",
+            "Rigs looked up in the shared store (--store) because a request named one this \
+             replica did not hold",
+        );
+        let store_lookups_found = counter(
+            "crowdmorph_store_lookups_found",
+            "Store lookups that found the rig and loaded it",
+        );
+        let store_refresh_failures = counter(
+            "crowdmorph_store_refresh_failures",
+            "Refreshes from the shared store that failed because it did not answer",
+        );
+        let store_lookup_seconds = Histogram::new(SECONDS.iter().copied());
+        r.register(
+            "crowdmorph_store_lookup_seconds",
+            "Time a store lookup took: one listing, and the read of a rig found",
+            store_lookup_seconds.clone(),
+        );
         let lod_builds_running = U64Gauge::default();
         r.register(
             "crowdmorph_lod_builds_running",
@@ -543,6 +570,10 @@ impl Default for Metrics {
             rejected,
             cancelled,
             session_panics,
+            store_lookups,
+            store_lookups_found,
+            store_lookup_seconds,
+            store_refresh_failures,
             connections_open,
             connections_accepted,
             connections_closed,
@@ -652,6 +683,20 @@ impl Metrics {
                 status,
             })
             .inc();
+    }
+
+    /// Counts a lookup in the shared store of a rig a request named, found or not.
+    pub fn store_lookup(&self, found: bool, took: Duration) {
+        self.store_lookups.inc();
+        if found {
+            self.store_lookups_found.inc();
+        }
+        self.store_lookup_seconds.observe(took.as_secs_f64());
+    }
+
+    /// Counts a refresh from the shared store that failed.
+    pub fn store_refresh_failed(&self) {
+        self.store_refresh_failures.inc();
     }
 
     /// Counts a refused request.

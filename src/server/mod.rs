@@ -14,7 +14,7 @@
 //! | module | what it is |
 //! |---|---|
 //! | `app` | [`app`]: the router and its layers; [`serve`] and [`run`] |
-//! | `routes` | the handlers: `health`, `rigs`, `clips`, `frames`, `render`, `lod` (with the background job), `graphs`, `loadtest`, `viewer`, and `sessions` (its REST handlers, `sessions::viewer` the viewer socket, `sessions::tick` the tick) |
+//! | `routes` | the handlers: `health`, `rigs`, `clips`, `frames`, `render`, `lod` (with the background job), `graphs`, `loadtest`, `viewer`, `replicas` (the shared store: changes committed as generations, refreshes, lookups before a 404), and `sessions` (its REST handlers, `sessions::viewer` the viewer socket, `sessions::tick` the tick) |
 //! | [`state`] | [`AppState`]: engine, batcher, registry, budgets, each resource's state |
 //! | [`config`] | every limit, timeout and default, the session limits included; the `serve` command's flags |
 //! | [`admission`] | the queue memory and its charges ([`admission::memory`]), the render budgets ([`admission::render`]), heads resolved into jobs ([`admission::resolve`]) |
@@ -70,6 +70,9 @@ pub enum ServerError {
     /// The data directory is unusable.
     #[error("data directory: {0}")]
     Store(#[from] StoreError),
+    /// The shared rig store (`--store`) cannot be opened or used.
+    #[error("{0}")]
+    SharedStore(#[from] crate::store::objects::SharedError),
     /// Serving failed.
     #[error("serving: {0}")]
     Io(#[from] std::io::Error),

@@ -23,9 +23,14 @@ use super::topologies::RenderState;
 use crate::budget::{Budget, MemoryPool};
 use crate::engine::Engine;
 use crate::rig::RigShape;
+use crate::store::objects::{Misses, SharedStore, Unusable};
 use crate::store::{
     Record, Store, StoreError, StoredBuiltin, StoredClips, StoredRig, geometry_fingerprint,
 };
+
+/// How long one operation on the shared store may take, retries included, before it is
+/// reported unavailable.
+const STORE_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(5);
 
 /// Shared state of every handler.
 #[derive(Clone, Debug)]
@@ -44,8 +49,14 @@ pub struct Inner {
     pub scheduler: Scheduler,
     /// Metrics.
     pub metrics: Arc<Metrics>,
-    /// Persistence, when a data dir is configured.
+    /// Persistence, when a data dir is configured (and no shared store).
     pub store: Option<Store>,
+    /// The rig store shared with other replicas (`--store`), in place of the data dir.
+    pub(crate) shared: Option<Arc<SharedStore>>,
+    /// Rig ids the shared store did not have when last asked.
+    pub(crate) store_misses: Misses,
+    /// Generations of the shared store that could not be used (each reported once).
+    pub(crate) store_unusable: Unusable,
     pub(crate) ready: AtomicBool,
     pub(crate) load_started: AtomicBool,
     pub(crate) skipped: Mutex<Vec<String>>,
@@ -84,9 +95,12 @@ pub struct Inner {
 impl Drop for Inner {
     /// The state's owner is gone (the server stopped, a test ended): LOD builds still
     /// computing for it are cancelled rather than left running on the blocking pool, which
-    /// would also hold up the runtime's shutdown.
+    /// would also hold up the runtime's shutdown; the shared store's staging files go.
     fn drop(&mut self) {
         self.lod_jobs.cancel_all();
+        if let Some(s) = &self.shared {
+            s.clean_up();
+        }
     }
 }
 
@@ -155,9 +169,19 @@ impl AppState {
             "engine ready"
         );
         let render = open_renderer(&engine, &config, gpu_options);
-        let store = match &config.data_dir {
-            Some(dir) => Some(Store::open(dir)?.compress_clips(config.compress_clips)),
+        // A shared store replaces the data dir, which then only holds its staging files.
+        let shared = match &config.store {
+            Some(url) => Some(Arc::new(SharedStore::open(
+                url,
+                &config.data_dir.clone().unwrap_or_else(std::env::temp_dir),
+                STORE_TIMEOUT,
+                config.compress_clips,
+            )?)),
             None => None,
+        };
+        let store = match (&config.data_dir, &shared) {
+            (Some(dir), None) => Some(Store::open(dir)?.compress_clips(config.compress_clips)),
+            _ => None,
         };
         // The session counters are registered with the server's registry before it is shared.
         let sessions = Sessions::default();
@@ -189,6 +213,9 @@ impl AppState {
             scheduler,
             metrics,
             store,
+            shared,
+            store_misses: Default::default(),
+            store_unusable: Default::default(),
             ready: AtomicBool::new(false),
             load_started: AtomicBool::new(false),
             skipped: Mutex::new(Vec::new()),
@@ -218,6 +245,9 @@ impl AppState {
         if self.load_started.swap(true, Ordering::AcqRel) {
             return;
         }
+        if let Some(shared) = self.shared.clone() {
+            self.load_shared(&shared).await;
+        }
         if let Some(store_dir) = self.store.as_ref().map(|s| s.dir().to_path_buf()) {
             let state = self.clone();
             let loaded = tokio::task::spawn_blocking(move || state.load_blocking()).await;
@@ -242,7 +272,7 @@ impl AppState {
         }
     }
 
-    fn skip(&self, why: String) {
+    pub(crate) fn skip(&self, why: String) {
         if let Ok(mut s) = self.skipped.lock() {
             s.push(why);
         }
@@ -339,7 +369,11 @@ impl AppState {
     }
 
     /// Charges what preparing `rig` takes to the loading's budget.
-    fn charge_preparing(&self, rig: &crate::rig::Rig, budget: &Budget) -> Result<(), String> {
+    pub(crate) fn charge_preparing(
+        &self,
+        rig: &crate::rig::Rig,
+        budget: &Budget,
+    ) -> Result<(), String> {
         let c = RigShape::of(rig).cost(self.on_gpu());
         budget
             .charge(c.layout + c.transient, || {

@@ -108,17 +108,7 @@ async fn store(
     let all = state
         .graphs
         .insert(entry, name, spec.clone(), Arc::new(checked));
-    if state.store.is_some() {
-        let s = state.clone();
-        let rid = id.to_string();
-        blocking(move || {
-            s.store
-                .as_ref()
-                .map_or(Ok(()), |st| st.put_graphs(&rid, &all))
-                .map_err(ApiError::internal)
-        })
-        .await?;
-    }
+    state.persist_graphs(id, all).await?;
     Ok(GraphInfo {
         rig: id.to_string(),
         name: name.to_string(),
@@ -269,15 +259,6 @@ pub async fn delete_graph(
         .graphs
         .remove(&id, &name)
         .ok_or_else(|| unknown_graph(&id, &name, &state.graphs.names(&id)))?;
-    if state.store.is_some() {
-        let s = state.clone();
-        blocking(move || {
-            s.store
-                .as_ref()
-                .map_or(Ok(()), |st| st.put_graphs(&id, &all))
-                .map_err(ApiError::internal)
-        })
-        .await?;
-    }
+    state.persist_graphs(&id, all).await?;
     Ok(StatusCode::NO_CONTENT.into_response())
 }

@@ -1,6 +1,6 @@
 //! The handlers, one file per resource, each in short named phases: `health` (`/healthz`,
 //! `/readyz`, `/metrics`), `rigs`, `clips`, `frames` (`POST /v1/crowd/frame`), `render`
-//! (`POST /v1/crowd/render`), `lod`, `graphs` (motion graphs), `loadtest`, `sessions` (handlers, the viewer protocol,
+//! (`POST /v1/crowd/render`), `lod`, `graphs` (motion graphs), `loadtest`, `replicas` (a rig store shared by replicas: commits, refreshes, lookups), `sessions` (handlers, the viewer protocol,
 //! the tick) and `viewer` (the browser viewer's files). They use the HTTP layer and admission;
 //! nothing below them imports them.
 
@@ -11,6 +11,7 @@ pub mod health;
 pub mod loadtest;
 pub mod lod;
 pub mod render;
+pub mod replicas;
 pub mod rigs;
 pub mod sessions;
 pub mod viewer;

@@ -494,6 +494,9 @@ pub async fn crowd_render(
     // The guard lives in this future: a 504 below, or the client hanging up (the future is
     // dropped), raises the cancellation and the drawing stops at its next stage.
     let (cancel, _guard) = Cancel::new(Some(Instant::now() + deadline));
+    state
+        .find_missing(state.missing(req.heads.iter().map(|h| h.rig.as_str())))
+        .await?;
     let (req, held) = req.into_parts();
     let s = state.clone();
     // Admission too runs on the blocking pool: it resolves every head and reads each rig's

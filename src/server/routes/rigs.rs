@@ -26,11 +26,15 @@ use crate::server::registry::{
 };
 use crate::server::state::AppState;
 use crate::store::RecordRef;
+use crate::store::objects::{Change, SharedStore};
 
 impl AppState {
     /// The error budget clips are stored within, when the store compresses them.
     pub fn clip_error(&self) -> Option<f32> {
-        self.store.as_ref().and_then(|s| s.clip_error())
+        match &self.shared {
+            Some(s) => s.clip_error(),
+            None => self.store.as_ref().and_then(|s| s.clip_error()),
+        }
     }
 
     /// Rig `id`, or 404 `unknown_rig` listing the rigs there are.
@@ -49,16 +53,14 @@ impl AppState {
         builtin: bool,
         layout: &ClipLayout,
     ) -> Result<(), ApiError> {
-        if self.store.is_none() {
+        if self.store.is_none() && self.shared.is_none() {
             return Ok(());
         }
         let state = self.clone();
-        let id = id.to_string();
+        let rid = id.to_string();
         let names = layout.record.clone();
-        blocking(move || {
-            let Some(store) = &state.store else {
-                return Ok(());
-            };
+        let staged = blocking(move || {
+            let id = rid;
             let clips = clips_named(&rig, &names);
             let record = if builtin {
                 RecordRef::Builtin {
@@ -73,7 +75,66 @@ impl AppState {
                     clips: &clips,
                 }
             };
-            store.put(record).map_err(ApiError::internal)
+            match (&state.shared, &state.store) {
+                (Some(shared), _) => shared.stage(record).map(Some).map_err(ApiError::internal),
+                (None, Some(store)) => store.put(record).map(|()| None).map_err(ApiError::internal),
+                (None, None) => Ok(None),
+            }
+        })
+        .await?;
+        self.commit_staged(id, staged).await
+    }
+
+    /// Commits a change staged for the shared store (none for the data dir, written already).
+    async fn commit_staged(&self, id: &str, staged: Option<Change>) -> Result<(), ApiError> {
+        match (&self.shared, staged) {
+            (Some(shared), Some(change)) => self.commit_shared(shared, id, change).await,
+            _ => Ok(()),
+        }
+    }
+
+    /// Persists rig `id`'s motion graphs, all of them (none removes them).
+    pub async fn persist_graphs(
+        &self,
+        id: &str,
+        graphs: std::collections::BTreeMap<String, crowdmorph_proto::MotionGraph>,
+    ) -> Result<(), ApiError> {
+        if let Some(shared) = &self.shared {
+            let change = SharedStore::graphs_change(id, &graphs).map_err(ApiError::internal)?;
+            return self.commit_shared(shared, id, change).await;
+        }
+        if self.store.is_none() {
+            return Ok(());
+        }
+        let state = self.clone();
+        let id = id.to_string();
+        blocking(move || {
+            state
+                .store
+                .as_ref()
+                .map_or(Ok(()), |st| st.put_graphs(&id, &graphs))
+                .map_err(ApiError::internal)
+        })
+        .await
+    }
+
+    /// Removes rig `id` from the store: its record, clip files and graphs (a tombstone
+    /// generation in a shared store).
+    pub async fn persist_delete(&self, id: &str) -> Result<(), ApiError> {
+        if let Some(shared) = &self.shared {
+            return self.commit_shared(shared, id, Change::Delete).await;
+        }
+        if self.store.is_none() {
+            return Ok(());
+        }
+        let state = self.clone();
+        let id = id.to_string();
+        blocking(move || {
+            state
+                .store
+                .as_ref()
+                .map_or(Ok(()), |st| st.remove(&id))
+                .map_err(ApiError::internal)
         })
         .await
     }
@@ -86,28 +147,32 @@ impl AppState {
         rig: Arc<Rig>,
         clips: Vec<crate::rig::Clip>,
     ) -> Result<(), ApiError> {
-        if self.store.is_none() {
+        if self.store.is_none() && self.shared.is_none() {
             return Ok(());
         }
         let state = self.clone();
-        let id = id.to_string();
-        blocking(move || {
-            let Some(store) = &state.store else {
-                return Ok(());
+        let rid = id.to_string();
+        let staged = blocking(move || {
+            let id = rid;
+            let record = RecordRef::Clips {
+                id: &id,
+                seq,
+                clips: &clips,
+                rig: &rig,
             };
-            if clips.is_empty() {
-                store.remove_clips(&id, seq)
-            } else {
-                store.put(RecordRef::Clips {
-                    id: &id,
-                    seq,
-                    clips: &clips,
-                    rig: &rig,
-                })
+            match (&state.shared, &state.store) {
+                (Some(_), _) if clips.is_empty() => Ok(Some(SharedStore::clips_removed(&id, seq))),
+                (Some(shared), _) => shared.stage(record).map(Some).map_err(ApiError::internal),
+                (None, Some(store)) if clips.is_empty() => store
+                    .remove_clips(&id, seq)
+                    .map(|()| None)
+                    .map_err(ApiError::internal),
+                (None, Some(store)) => store.put(record).map(|()| None).map_err(ApiError::internal),
+                (None, None) => Ok(None),
             }
-            .map_err(ApiError::internal)
         })
-        .await
+        .await?;
+        self.commit_staged(id, staged).await
     }
 }
 
@@ -424,23 +489,8 @@ pub async fn delete_rig(
             format!("rig {id:?} is built in and cannot be deleted"),
         ));
     }
-    if state.store.is_some() {
-        let s = state.clone();
-        let rid = id.clone();
-        blocking(move || {
-            s.store
-                .as_ref()
-                .map_or(Ok(()), |st| st.remove(&rid))
-                .map_err(ApiError::internal)
-        })
-        .await?;
-    }
-    state.lod_jobs.cancel(&id);
-    state.registry.remove(&id);
-    state.graphs.drop_rig(&id);
-    if let Ok(mut t) = state.render.topologies.lock() {
-        t.purge(&id);
-    }
+    state.persist_delete(&id).await?;
+    state.forget_rig(&id);
     drop(entry);
     // The rig's memory is freed when the last request using it is done; hand what is free
     // now back to the OS, so that deleting a large rig lowers the resident size.

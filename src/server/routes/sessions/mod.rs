@@ -311,6 +311,9 @@ pub async fn create_session(
     accept: Accept,
     Decoded(req): Decoded<SessionRequest>,
 ) -> ApiResult {
+    state
+        .find_missing(state.missing(req.heads.iter().map(|h| h.rig.as_str())))
+        .await?;
     create(&state, None, accept, req)
 }
 
@@ -326,6 +329,9 @@ pub async fn put_session(
     Decoded(req): Decoded<SessionRequest>,
 ) -> ApiResult {
     check_session_id(&id)?;
+    state
+        .find_missing(state.missing(req.heads.iter().map(|h| h.rig.as_str())))
+        .await?;
     create(&state, Some(id), accept, req)
 }
 
