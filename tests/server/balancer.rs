@@ -4,8 +4,9 @@
 //! request about a session (its `PUT`, its WebSocket stream, its delete) to one replica by
 //! consistent hashing; HAProxy's file is checked by `haproxy -c`.
 //!
-//! The replicas do not share a store here (issue 27's object store is not built yet), so a rig
-//! lives only where its upload landed: a routing mistake is a 404.
+//! The replicas do not share a store here (each has its own data directory), so a rig lives
+//! only where its upload landed: a routing mistake is a 404. Replicas over one shared store
+//! behind nginx are `replicas.rs`.
 
 use std::io::Write;
 use std::net::TcpListener;
@@ -30,7 +31,7 @@ fn deploy(file: &str) -> PathBuf {
 }
 
 /// A port nothing listens on now.
-fn free_port() -> u16 {
+pub(super) fn free_port() -> u16 {
     TcpListener::bind("127.0.0.1:0")
         .and_then(|l| l.local_addr())
         .map(|a| a.port())
@@ -39,9 +40,9 @@ fn free_port() -> u16 {
 
 /// nginx in the foreground with the shipped `crowdmorph.conf`, its listen port and its
 /// upstream list swapped for this test's; killed when dropped.
-struct Nginx {
+pub(super) struct Nginx {
     child: Child,
-    port: u16,
+    pub(super) port: u16,
 }
 
 impl Drop for Nginx {
@@ -51,7 +52,7 @@ impl Drop for Nginx {
     }
 }
 
-fn nginx(replicas: &[String]) -> Nginx {
+pub(super) fn nginx(replicas: &[String]) -> Nginx {
     let dir = temp_dir("nginx");
     let port = free_port();
     let shipped = std::fs::read_to_string(deploy("nginx/crowdmorph.conf")).expect("read");

