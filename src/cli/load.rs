@@ -265,8 +265,8 @@ async fn run_command(cmd: &LoadCommand) -> Result<LoadOutcome> {
         return Ok(LoadOutcome::Fixed(run_session(cmd, mode).await?));
     }
     let rigs = describe_rigs(&cmd.url, &cmd.crowd).await?;
-    let bodies = cmd.crowd.bodies(&rigs, RING)?;
-    let target = HttpTarget::new(&cmd.url, bodies, cmd.crowd.encoding)?;
+    let bodies = cmd.crowd.bodies_with_rigs(&rigs, RING)?;
+    let target = HttpTarget::with_rig_hints(&cmd.url, bodies, cmd.crowd.encoding)?;
     let opts = |rate: f64| RunOptions {
         rate,
         duration: Duration::from_secs_f64(cmd.duration.max(0.0)),

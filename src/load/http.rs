@@ -22,6 +22,8 @@ pub struct HttpTarget {
     /// `host:port`.
     authority: String,
     bodies: Arc<Vec<Bytes>>,
+    /// The path of each body: `/v1/crowd/frame`, with the `?rig=` hint when it has one.
+    paths: Arc<Vec<String>>,
     encoding: WireEncoding,
 }
 
@@ -57,12 +59,35 @@ impl HttpTarget {
         bodies: Vec<Bytes>,
         encoding: WireEncoding,
     ) -> Result<Arc<HttpTarget>, LoadError> {
+        let bodies = bodies.into_iter().map(|b| (b, String::new())).collect();
+        Self::with_rig_hints(url, bodies, encoding)
+    }
+
+    /// [`HttpTarget::new`] with each body's rig sent as `?rig=` (the clients' routing hint,
+    /// so that a balancer keeps each rig on one replica); an empty rig sends none.
+    pub fn with_rig_hints(
+        url: &str,
+        bodies: Vec<(Bytes, String)>,
+        encoding: WireEncoding,
+    ) -> Result<Arc<HttpTarget>, LoadError> {
         if bodies.is_empty() {
             return Err(LoadError::Invalid("no request bodies".into()));
         }
+        let (bodies, paths): (Vec<Bytes>, Vec<String>) = bodies
+            .into_iter()
+            .map(|(b, rig)| {
+                let path = if rig.is_empty() {
+                    "/v1/crowd/frame".to_string()
+                } else {
+                    format!("/v1/crowd/frame?rig={}", hint(&rig))
+                };
+                (b, path)
+            })
+            .unzip();
         Ok(Arc::new(HttpTarget {
             authority: authority_of(url)?,
             bodies: Arc::new(bodies),
+            paths: Arc::new(paths),
             encoding,
         }))
     }
@@ -113,6 +138,19 @@ pub struct HttpLane {
     sender: Option<SendRequest<Full<Bytes>>>,
 }
 
+/// `rig` as a query value: every byte but ASCII letters, digits and `-._~` as `%XX`.
+fn hint(rig: &str) -> String {
+    let mut out = String::with_capacity(rig.len());
+    for b in rig.bytes() {
+        if b.is_ascii_alphanumeric() || matches!(b, b'-' | b'.' | b'_' | b'~') {
+            out.push(b as char);
+        } else {
+            out.push_str(&format!("%{b:02X}"));
+        }
+    }
+    out
+}
+
 fn failed(code: &str) -> Reply {
     Reply {
         status: 0,
@@ -134,9 +172,10 @@ impl HttpLane {
         if sender.ready().await.is_err() {
             return failed("transport");
         }
-        let body = t.bodies[(i % t.bodies.len() as u64) as usize].clone();
+        let at = (i % t.bodies.len() as u64) as usize;
+        let body = t.bodies[at].clone();
         let ct = t.encoding.content_type();
-        let Ok(req) = hyper::Request::post("/v1/crowd/frame")
+        let Ok(req) = hyper::Request::post(t.paths[at].as_str())
             .header(HOST, &t.authority)
             .header(CONTENT_TYPE, ct)
             .header(ACCEPT, ct)
@@ -169,6 +208,28 @@ mod tests {
     #![allow(clippy::unwrap_used)]
 
     use super::*;
+
+    #[test]
+    fn each_body_carries_its_rig_as_a_hint() {
+        let t = HttpTarget::with_rig_hints(
+            "http://127.0.0.1:1",
+            vec![
+                (Bytes::new(), "ict0".into()),
+                (Bytes::new(), "a b/c".into()),
+                (Bytes::new(), String::new()),
+            ],
+            WireEncoding::Bincode,
+        )
+        .unwrap();
+        assert_eq!(
+            *t.paths,
+            [
+                "/v1/crowd/frame?rig=ict0",
+                "/v1/crowd/frame?rig=a%20b%2Fc",
+                "/v1/crowd/frame"
+            ]
+        );
+    }
 
     #[test]
     fn urls_become_authorities() {

@@ -320,9 +320,24 @@ impl CrowdShape {
 
     /// `count` request bodies in the shape's encoding, made one request at a time.
     pub fn bodies(&self, rigs: &[RigClips], count: usize) -> Result<Vec<Bytes>, LoadError> {
+        Ok(self
+            .bodies_with_rigs(rigs, count)?
+            .into_iter()
+            .map(|(b, _)| b)
+            .collect())
+    }
+
+    /// [`CrowdShape::bodies`], each with the rig of its first head: the `?rig=` routing hint
+    /// a balancer in front of several replicas hashes on (the clients send the same).
+    pub fn bodies_with_rigs(
+        &self,
+        rigs: &[RigClips],
+        count: usize,
+    ) -> Result<Vec<(Bytes, String)>, LoadError> {
         let mut out = Vec::with_capacity(count);
         self.each_request(rigs, count, |r| {
-            out.push(Bytes::from(self.encode(&r)?));
+            let rig = r.heads.first().map(|h| h.rig.clone()).unwrap_or_default();
+            out.push((Bytes::from(self.encode(&r)?), rig));
             Ok(())
         })?;
         Ok(out)
