@@ -525,8 +525,9 @@ async fn replicas_behind_nginx_lose_only_requests_in_flight_to_a_sigkill() {
         );
     }
 
-    // `crowdmorph load` through nginx for 3 s; after 1 s the replica taking the load is
-    // SIGKILLed. Only requests in flight to it may fail: nginx passes the rest on.
+    // `crowdmorph load` of the uploaded rig through nginx for 3 s; after 1 s the replica
+    // taking the load (the rig's by the hash) is SIGKILLed. Only requests in flight to it may
+    // fail: nginx passes the rest on to the next replica, which has the rig from the store.
     let connections = 4;
     let bin = env!("CARGO_BIN_EXE_crowdmorph");
     let load = std::thread::spawn({
@@ -534,6 +535,7 @@ async fn replicas_behind_nginx_lose_only_requests_in_flight_to_a_sigkill() {
         move || {
             Command::new(bin)
                 .args(["load", "--url", &lb_url, "--rate", "100", "--duration", "3"])
+                .args(["--rig", "tri", "--clip", "wave"])
                 .args([
                     "--connections",
                     &connections.to_string(),
