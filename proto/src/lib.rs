@@ -997,6 +997,30 @@ pub fn q16r_decode(planes: &[u8], reference: &[i16]) -> Result<Vec<i16>, String>
         .collect())
 }
 
+/// `path?rig=RIG` (percent-encoded) when there is a rig: the routing hint of a crowd frame or
+/// render, which the server reads only to find a rig it does not hold, and a load balancer
+/// hashes on (README, "Running more than one").
+pub fn with_rig_hint(path: &str, rig: Option<&str>) -> String {
+    match rig {
+        Some(r) if !r.is_empty() => format!("{path}?rig={}", percent_encode(r)),
+        _ => path.to_string(),
+    }
+}
+
+/// `s` with every byte but ASCII letters, digits and `-._~` as `%XX` (RFC 3986's unreserved
+/// characters): safe as a path segment or a query value.
+pub fn percent_encode(s: &str) -> String {
+    let mut out = String::with_capacity(s.len());
+    for b in s.bytes() {
+        if b.is_ascii_alphanumeric() || matches!(b, b'-' | b'.' | b'_' | b'~') {
+            out.push(b as char);
+        } else {
+            out.push_str(&format!("%{b:02X}"));
+        }
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

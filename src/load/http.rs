@@ -76,12 +76,10 @@ impl HttpTarget {
         let (bodies, paths): (Vec<Bytes>, Vec<String>) = bodies
             .into_iter()
             .map(|(b, rig)| {
-                let path = if rig.is_empty() {
-                    "/v1/crowd/frame".to_string()
-                } else {
-                    format!("/v1/crowd/frame?rig={}", hint(&rig))
-                };
-                (b, path)
+                (
+                    b,
+                    crowdmorph_proto::with_rig_hint("/v1/crowd/frame", Some(&rig)),
+                )
             })
             .unzip();
         Ok(Arc::new(HttpTarget {
@@ -136,19 +134,6 @@ impl HttpTarget {
 pub struct HttpLane {
     target: Arc<HttpTarget>,
     sender: Option<SendRequest<Full<Bytes>>>,
-}
-
-/// `rig` as a query value: every byte but ASCII letters, digits and `-._~` as `%XX`.
-fn hint(rig: &str) -> String {
-    let mut out = String::with_capacity(rig.len());
-    for b in rig.bytes() {
-        if b.is_ascii_alphanumeric() || matches!(b, b'-' | b'.' | b'_' | b'~') {
-            out.push(b as char);
-        } else {
-            out.push_str(&format!("%{b:02X}"));
-        }
-    }
-    out
 }
 
 fn failed(code: &str) -> Reply {

@@ -20,6 +20,9 @@ use serde::Serialize;
 use serde::de::DeserializeOwned;
 
 pub use crowdmorph_proto as proto;
+use crowdmorph_proto::percent_encode;
+/// The routing hint of a crowd (`path?rig=RIG`), as the wire crate writes it.
+pub use crowdmorph_proto::with_rig_hint;
 pub use hyper::Method;
 
 /// Encoding of request and response bodies.
@@ -631,29 +634,6 @@ impl Client {
         }
         Ok(String::from_utf8_lossy(&reply.body).into_owned())
     }
-}
-
-/// `path?rig=RIG` (percent-encoded) when there is a rig: the routing hint of a crowd, which
-/// the server ignores and a load balancer hashes on.
-pub fn with_rig_hint(path: &str, rig: Option<&str>) -> String {
-    match rig {
-        Some(r) if !r.is_empty() => format!("{path}?rig={}", percent_encode(r)),
-        _ => path.to_string(),
-    }
-}
-
-/// `s` with every byte but ASCII letters, digits and `-._~` as `%XX` (RFC 3986's unreserved
-/// characters): safe as a path segment or a query value.
-fn percent_encode(s: &str) -> String {
-    let mut out = String::with_capacity(s.len());
-    for b in s.bytes() {
-        if b.is_ascii_alphanumeric() || matches!(b, b'-' | b'.' | b'_' | b'~') {
-            out.push(b as char);
-        } else {
-            out.push_str(&format!("%{b:02X}"));
-        }
-    }
-    out
 }
 
 /// The value of a sample (first line starting with `name` followed by a space or `{`) in a
