@@ -25,8 +25,8 @@ use crate::server::registry::{
     valid_id,
 };
 use crate::server::state::AppState;
-use crate::store::RecordRef;
 use crate::store::objects::{Change, SharedStore};
+use crate::store::{RecordRef, Store, StoreError};
 
 impl AppState {
     /// The error budget clips are stored within, when the store compresses them.
@@ -103,19 +103,9 @@ impl AppState {
             let change = SharedStore::graphs_change(id, &graphs).map_err(ApiError::internal)?;
             return self.commit_shared(shared, id, change).await;
         }
-        if self.store.is_none() {
-            return Ok(());
-        }
-        let state = self.clone();
         let id = id.to_string();
-        blocking(move || {
-            state
-                .store
-                .as_ref()
-                .map_or(Ok(()), |st| st.put_graphs(&id, &graphs))
-                .map_err(ApiError::internal)
-        })
-        .await
+        self.on_data_dir(move |st| st.put_graphs(&id, &graphs))
+            .await
     }
 
     /// Removes rig `id` from the store: its record, clip files and graphs (a tombstone
@@ -124,16 +114,24 @@ impl AppState {
         if let Some(shared) = &self.shared {
             return self.commit_shared(shared, id, Change::Delete).await;
         }
+        let id = id.to_string();
+        self.on_data_dir(move |st| st.remove(&id)).await
+    }
+
+    /// Runs `f` on the data dir's store on a blocking thread; nothing without one.
+    async fn on_data_dir(
+        &self,
+        f: impl FnOnce(&Store) -> Result<(), StoreError> + Send + 'static,
+    ) -> Result<(), ApiError> {
         if self.store.is_none() {
             return Ok(());
         }
         let state = self.clone();
-        let id = id.to_string();
         blocking(move || {
             state
                 .store
                 .as_ref()
-                .map_or(Ok(()), |st| st.remove(&id))
+                .map_or(Ok(()), f)
                 .map_err(ApiError::internal)
         })
         .await
