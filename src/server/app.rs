@@ -193,8 +193,8 @@ pub fn app(state: AppState) -> Router {
     let cfg = &state.config;
     let routes = resources()
         .fallback(routes::health::not_found)
-        // A rig the path or `?rig=` names that another replica wrote is read from the shared
-        // store before the handler looks for it.
+        // A rig the path names that another replica wrote is read from the shared store
+        // before the handler looks for it (crowds look up their heads' rigs themselves).
         .layer(middleware::from_fn_with_state(
             state.clone(),
             routes::replicas::look_up_rigs,

@@ -93,6 +93,9 @@ pub enum SharedError {
         /// What failed.
         problem: String,
     },
+    /// The memory to read or prepare a generation is short now (it is tried again later).
+    #[error("not enough rig memory now: {0}")]
+    Memory(String),
     /// Another replica wrote the rig since this one read it: nothing was changed.
     #[error(
         "rig {rig:?} changed in the store {url}: its newest generation is {newest}, this \
@@ -160,9 +163,6 @@ fn valid_name(id: &str, name: &str) -> bool {
 pub struct SharedStore {
     objects: Arc<dyn ObjectStore>,
     url: String,
-    /// The directory of a `file://` store: its writes are flushed to disk (object_store's
-    /// local backend renames into place but does not `fsync`).
-    local_root: Option<PathBuf>,
     /// This replica's name in the objects it writes (unique per process).
     writer: String,
     /// Where records are staged before upload and objects land before they are decoded.
@@ -177,10 +177,7 @@ pub struct SharedStore {
 }
 
 /// The parts of an object store URL.
-fn open_url(
-    url: &str,
-    timeout: Duration,
-) -> Result<(Arc<dyn ObjectStore>, Option<PathBuf>), SharedError> {
+fn open_url(url: &str, timeout: Duration) -> Result<Arc<dyn ObjectStore>, SharedError> {
     let bad = |problem: String| SharedError::Url {
         url: url.to_string(),
         problem,
@@ -203,7 +200,12 @@ fn open_url(
         let s3 = object_store::aws::AmazonS3Builder::from_env()
             .with_bucket_name(bucket)
             .with_retry(retry)
-            .with_config(K::Client(C::Timeout), format!("{}ms", timeout.as_millis()))
+            // A stall of `timeout` fails a request; a large object may take longer in all.
+            .with_config(
+                K::Client(C::ReadTimeout),
+                format!("{}ms", timeout.as_millis()),
+            )
+            .with_config(K::Client(C::Timeout), "1h")
             .with_config(
                 K::Client(C::ConnectTimeout),
                 format!("{}ms", connect.as_millis()),
@@ -218,7 +220,7 @@ fn open_url(
                 prefix.trim_matches('/'),
             ))
         };
-        return Ok((store, None));
+        return Ok(store);
     }
     let dir = match url.strip_prefix("file://") {
         Some(path) if path.starts_with('/') => PathBuf::from(path),
@@ -235,9 +237,12 @@ fn open_url(
     let dir = dir
         .canonicalize()
         .map_err(|e| bad(format!("{}: {e}", dir.display())))?;
+    // Durable like the data dir: written files and their directories are fsynced before a
+    // write returns.
     let local = object_store::local::LocalFileSystem::new_with_prefix(&dir)
-        .map_err(|e| bad(e.to_string()))?;
-    Ok((Arc::new(local), Some(dir)))
+        .map_err(|e| bad(e.to_string()))?
+        .with_fsync(true);
+    Ok(Arc::new(local))
 }
 
 impl SharedStore {
@@ -249,7 +254,7 @@ impl SharedStore {
         timeout: Duration,
         clip_error: Option<f32>,
     ) -> Result<SharedStore, SharedError> {
-        let (objects, local_root) = open_url(url, timeout)?;
+        let objects = open_url(url, timeout)?;
         let writer = format!(
             "{}-{:08x}",
             std::process::id(),
@@ -269,7 +274,6 @@ impl SharedStore {
         Ok(SharedStore {
             objects,
             url: url.to_string(),
-            local_root,
             writer,
             work,
             clip_error,
@@ -303,13 +307,32 @@ impl SharedStore {
         if let Some(Err(e)) = listing.next().await {
             return Err(self.unavailable(format!("cannot list it: {e}")));
         }
+        // The probe is created twice only-if-absent: a store that lets the second create
+        // succeed would let two replicas both win one generation.
         let probe = Path::from(format!("writers/{}", self.writer));
-        self.objects
-            .put(&probe, PutPayload::from_static(b"crowdmorph"))
+        let create = || {
+            self.objects.put_opts(
+                &probe,
+                PutPayload::from_static(b"crowdmorph"),
+                PutOptions::from(PutMode::Create),
+            )
+        };
+        create()
             .await
             .map_err(|e| self.unavailable(format!("cannot write to it: {e}")))?;
+        let second = create().await;
         let _ = self.objects.delete(&probe).await;
-        Ok(())
+        match second {
+            Err(
+                object_store::Error::AlreadyExists { .. }
+                | object_store::Error::Precondition { .. },
+            ) => Ok(()),
+            Ok(_) => Err(self.unavailable(
+                "it ignores conditional creates (If-None-Match: *), which replicas need to \
+                 agree on a rig's next generation",
+            )),
+            Err(e) => Err(self.unavailable(format!("a conditional create failed: {e}"))),
+        }
     }
 
     /// Every rig in the store and its generations, ascending (one listing).
@@ -515,7 +538,6 @@ impl SharedStore {
                 }
                 Err(e) => return Err(self.unavailable(format!("cannot write {key}: {e}"))),
             }
-            self.sync_local(key.as_ref());
             Ok(manifest)
         }
         .await;
@@ -534,23 +556,6 @@ impl SharedStore {
                 }
                 Err(e)
             }
-        }
-    }
-
-    /// Flushes a file a `file://` store just wrote, and its directory, to disk.
-    fn sync_local(&self, key: &str) {
-        let Some(root) = &self.local_root else {
-            return;
-        };
-        let path = root.join(key);
-        let synced = std::fs::File::open(&path)
-            .and_then(|f| f.sync_all())
-            .and_then(|()| match path.parent() {
-                Some(d) => std::fs::File::open(d).and_then(|d| d.sync_all()),
-                None => Ok(()),
-            });
-        if let Err(e) = synced {
-            tracing::warn!(file = %path.display(), error = %e, "cannot flush a stored object");
         }
     }
 
@@ -596,7 +601,6 @@ impl SharedStore {
             .finish()
             .await
             .map_err(|e| self.unavailable(format!("cannot write {key}: {e}")))?;
-        self.sync_local(key);
         Ok(ObjectRef {
             key: key.to_string(),
             size,
@@ -614,7 +618,6 @@ impl SharedStore {
             .put(&Path::from(key), PutPayload::from(bytes))
             .await
             .map_err(|e| self.unavailable(format!("cannot write {key}: {e}")))?;
-        self.sync_local(key);
         Ok(object)
     }
 
@@ -629,8 +632,9 @@ impl SharedStore {
         charge: &(dyn Fn(u64, &str) -> Result<(), String> + Sync),
     ) -> Result<Result<Fetched, String>, SharedError> {
         let key = format!("manifests/{id}/{generation:020}.json");
-        let Some(bytes) = self.read_small(&key, MAX_MANIFEST).await? else {
-            return Ok(Err(format!("{}: {key} is missing", self.url)));
+        let bytes = match self.read_manifest(&key, charge).await? {
+            Ok(b) => b,
+            Err(why) => return Ok(Err(why)),
         };
         let manifest: Manifest = match serde_json::from_slice(&bytes) {
             Ok(m) => m,
@@ -667,7 +671,7 @@ impl SharedStore {
                     self.url, object.key, object.size
                 )));
             }
-            if let Err(why) = charge(2 * object.size, &object.key) {
+            if let Err(why) = charge(object.size.saturating_mul(2), &object.key) {
                 return Ok(Err(why));
             }
             let dir = self.scratch("fetch");
@@ -707,19 +711,33 @@ impl SharedStore {
         Ok(Ok(fetched))
     }
 
-    /// A small object's bytes, at most `limit` of them; `None` when it is not there.
-    async fn read_small(&self, key: &str, limit: u64) -> Result<Option<Bytes>, SharedError> {
+    /// Manifest `key`'s bytes, charged to `charge` before they are read; `Ok(Err)` when it is
+    /// missing or larger than [`MAX_MANIFEST`] (a generation that cannot be used, not a store
+    /// that does not answer).
+    async fn read_manifest(
+        &self,
+        key: &str,
+        charge: &(dyn Fn(u64, &str) -> Result<(), String> + Sync),
+    ) -> Result<Result<Bytes, String>, SharedError> {
         let got = match self.objects.get(&Path::from(key)).await {
             Ok(g) => g,
-            Err(object_store::Error::NotFound { .. }) => return Ok(None),
+            Err(object_store::Error::NotFound { .. }) => {
+                return Ok(Err(format!("{}: {key} is missing", self.url)));
+            }
             Err(e) => return Err(self.unavailable(format!("cannot read {key}: {e}"))),
         };
-        if got.meta.size > limit {
-            return Err(self.unavailable(format!("{key} is {} bytes", got.meta.size)));
+        if got.meta.size > MAX_MANIFEST {
+            return Ok(Err(format!(
+                "{}: {key} is {} bytes, more than a manifest may be ({MAX_MANIFEST})",
+                self.url, got.meta.size
+            )));
+        }
+        if let Err(why) = charge(got.meta.size, key) {
+            return Ok(Err(why));
         }
         got.bytes()
             .await
-            .map(Some)
+            .map(Ok)
             .map_err(|e| self.unavailable(format!("cannot read {key}: {e}")))
     }
 

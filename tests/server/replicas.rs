@@ -13,6 +13,7 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use bytes::Bytes;
+use crowdmorph::server::ServerConfig;
 use crowdmorph_client::{Client, ClientError, Encoding, Method};
 use crowdmorph_proto::{
     CrowdFrameRequest, Format, Head, LiveWeights, OutputOptions, Readiness, RenderRequest, RigInfo,
@@ -20,7 +21,7 @@ use crowdmorph_proto::{
 
 use super::balancer::{free_port, nginx};
 use super::persistence::{Proc, ready, spawn_with};
-use super::temp_dir;
+use super::{TestServer, temp_dir};
 use crate::util::builder::{Builder, TRIANGLE, triangle_rig, triangle_targets};
 
 /// How often the replicas here refresh from the store.
@@ -626,4 +627,128 @@ fn a_store_that_cannot_be_used_stops_the_start() {
         );
         let _ = std::fs::remove_dir_all(&dir);
     }
+}
+
+/// A crowd naming many rigs nobody has costs at most four store lookups a request, and each id
+/// at most one per refresh interval; manifests that are not JSON or too large are reported and
+/// passed over (404 for their rig, never a 500). In-process, on a directory store.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn lookups_are_bounded_and_bad_manifests_are_reported() {
+    let store = temp_dir("lookups-store");
+    let staging = temp_dir("lookups-staging");
+    let s = TestServer::start(ServerConfig {
+        store: Some(format!("file://{}", store.display())),
+        store_refresh: Duration::from_secs(600),
+        data_dir: Some(staging.clone()),
+        ..ServerConfig::default()
+    })
+    .await;
+    let lookups = |page: &str| {
+        crowdmorph_client::metric(page, "crowdmorph_store_lookups_total").unwrap_or(0.0)
+    };
+    let unknown: Vec<String> = (0..10).map(|i| format!("nobody{i}")).collect();
+    let req = CrowdFrameRequest {
+        heads: unknown
+            .iter()
+            .enumerate()
+            .map(|(i, rig)| Head {
+                head: i as u64,
+                rig: rig.clone(),
+                weights: Some(Box::new(LiveWeights::Named(Vec::new()))),
+                ..Default::default()
+            })
+            .collect(),
+        output: OutputOptions::default(),
+        wrap: true,
+    };
+    let mut seen = Vec::new();
+    for _ in 0..4 {
+        let r = s.client.crowd_frame(&req, Encoding::Json).await;
+        assert_eq!(outcome(&r), (404, "unknown_rig".to_string()));
+        seen.push(lookups(&s.client.metrics().await.expect("metrics")));
+    }
+    assert_eq!(
+        seen,
+        [4.0, 8.0, 10.0, 10.0],
+        "four lookups a request, each id once an interval"
+    );
+
+    // Generation 1 of `bad` is not JSON, generation 2 is larger than a manifest may be.
+    let dir = store.join("manifests").join("bad");
+    std::fs::create_dir_all(&dir).expect("mkdir");
+    std::fs::write(dir.join(format!("{:020}.json", 1)), b"not a manifest").expect("write");
+    std::fs::write(
+        dir.join(format!("{:020}.json", 2)),
+        vec![b' '; (16 << 20) + 1],
+    )
+    .expect("write");
+    assert_eq!(status(&s.client, Method::GET, "/v1/rigs/bad").await, 404);
+    let skipped = readiness(&s.client).await.skipped_files;
+    for (g, why) in [(1, "not a manifest"), (2, "more than a manifest may be")] {
+        assert!(
+            skipped.iter().any(|l| l.contains("\"bad\"")
+                && l.contains(&format!("generation {g}"))
+                && l.contains(why)),
+            "generation {g} ({why}) in {skipped:?}"
+        );
+    }
+    // A new upload of the id commits after them, and is served.
+    s.client
+        .upload_rig("bad", Bytes::from(triangle_rig().to_glb()))
+        .await
+        .expect("an upload past the unusable generations");
+    assert_eq!(status(&s.client, Method::GET, "/v1/rigs/bad").await, 200);
+    s.stop().await;
+    let _ = std::fs::remove_dir_all(&store);
+    let _ = std::fs::remove_dir_all(&staging);
+}
+
+/// A replica whose rig memory cannot hold a rig another replica wrote answers 503 `memory_full`
+/// for it, retryable: the generation is not reported as damaged, and it loads once the
+/// memory is there (here: never, so it stays 503, never 404).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_test_data),
+    ignore = "needs the shared test rigs (../shared/data or CROWDMORPH_TEST_DATA)"
+)]
+async fn a_rig_too_big_for_a_replica_now_is_503_not_damage() {
+    let store = temp_dir("short-store");
+    let url = format!("file://{}", store.display());
+    let config = |max_rig_memory: Option<u64>| ServerConfig {
+        store: Some(url.clone()),
+        store_refresh: Duration::from_secs(600),
+        data_dir: Some(temp_dir("short-staging")),
+        max_rig_memory,
+        ..ServerConfig::default()
+    };
+    let a = TestServer::start(config(None)).await;
+    let ict = crate::util::data_dir().join("ict-facekit/ict_facekit_53.glb");
+    a.client
+        .upload_rig("ict", super::upload_bytes(&ict))
+        .await
+        .expect("upload ICT FaceKit");
+    // Room for the built-in head and 1 MiB more: not for ICT FaceKit's 6 MB record.
+    let head = a.client.rig("default-head").await.expect("the head");
+    let b = TestServer::start(config(Some(head.memory.host_bytes + (1 << 20)))).await;
+    for _ in 0..2 {
+        let r = b
+            .client
+            .send(Method::GET, "/v1/rigs/ict", None, None, Bytes::new())
+            .await
+            .expect("a reply");
+        let body: serde_json::Value = serde_json::from_slice(&r.body).expect("JSON");
+        assert_eq!(
+            (r.status, body["error"]["code"].as_str()),
+            (503, Some("memory_full")),
+            "{body}"
+        );
+    }
+    let skipped = readiness(&b.client).await.skipped_files;
+    assert!(
+        skipped.iter().all(|s| !s.contains("\"ict\"")),
+        "memory short now is not damage: {skipped:?}"
+    );
+    b.stop().await;
+    a.stop().await;
+    let _ = std::fs::remove_dir_all(&store);
 }

@@ -101,10 +101,9 @@ async fn frame(
     Ready::check(state.is_ready())?;
     let accept = Accept::of(headers);
     let req = decode(state, headers, body).await?;
-    state
-        .find_missing(state.missing(req.heads.iter().map(|h| h.rig.as_str())))
+    let planned = state
+        .after_lookups(&req.heads, || plan(state, &req))
         .await?;
-    let planned = plan(state, &req)?;
     let mut admitted = admit(state, &req, planned, accept)?;
     let outcome = compute(state, arrived, &req, &mut admitted, source).await?;
     state.metrics.served_to(source, req.heads.len() as u64);

@@ -24,6 +24,14 @@ use crate::server::state::{AppState, Inner};
 use crate::store::objects::{Change, Fetched, SharedError, SharedStore};
 use crate::store::{Record, geometry_fingerprint};
 
+/// Why a fetched generation was not installed.
+enum Install {
+    /// Its contents cannot be used (reported once, passed over).
+    Unusable(String),
+    /// The memory to prepare it is short now (tried again later).
+    Short(String),
+}
+
 /// Most rigs one request may make this replica look up in the store.
 pub const MAX_LOOKUPS: usize = 4;
 
@@ -36,6 +44,7 @@ impl From<SharedError> for ApiError {
             SharedError::Unavailable { .. } => {
                 ApiError::unavailable("store_unavailable", e.to_string(), 2)
             }
+            SharedError::Memory(_) => ApiError::unavailable("memory_full", e.to_string(), 1),
             SharedError::Url { .. } | SharedError::Local(_) => ApiError::internal(e),
         }
     }
@@ -115,8 +124,15 @@ impl AppState {
         let listed = shared.list().await?;
         let mut changed = 0;
         for (id, generations) in &listed {
-            if self.sync_rig(shared, id, generations).await? {
-                changed += 1;
+            match self.sync_rig(shared, id, generations).await {
+                Ok(true) => changed += 1,
+                Ok(false) => {}
+                // One rig that does not fit now does not hold up the others; it is tried
+                // again at the next refresh or lookup.
+                Err(SharedError::Memory(why)) => {
+                    tracing::warn!(rig = %id, error = %why, "a stored rig waits for memory");
+                }
+                Err(e) => return Err(e),
             }
         }
         Ok(changed)
@@ -140,13 +156,24 @@ impl AppState {
                 "--max-rig-memory",
                 Some(self.pool.clone()),
             ));
+            // A charge refused is memory that is short now, not a damaged generation: it is
+            // retried later, never passed over (a later change here would undo it).
+            let short = std::sync::atomic::AtomicBool::new(false);
             let charge = |bytes: u64, key: &str| {
                 budget
                     .charge(bytes, || format!("stored object {key}"))
-                    .map(drop)
-                    .map_err(|e| e.to_string())
+                    .map_err(|e| {
+                        short.store(true, std::sync::atomic::Ordering::Relaxed);
+                        e.to_string()
+                    })
             };
             let fetched = shared.fetch(id, g, &charge).await?;
+            if short.load(std::sync::atomic::Ordering::Relaxed) {
+                let why = fetched.err().unwrap_or_default();
+                return Err(SharedError::Memory(format!(
+                    "rig {id:?} generation {g}: {why}"
+                )));
+            }
             let installed = match fetched {
                 Ok(f) => {
                     // Under the lock local changes take: a change being made here is either
@@ -159,16 +186,21 @@ impl AppState {
                     let b = budget.clone();
                     tokio::task::spawn_blocking(move || state.install(f, &b))
                         .await
-                        .unwrap_or_else(|e| Err(e.to_string()))
+                        .unwrap_or_else(|e| Err(Install::Unusable(e.to_string())))
                 }
-                Err(why) => Err(why),
+                Err(why) => Err(Install::Unusable(why)),
             };
             match installed {
                 Ok(()) => {
                     self.store_misses.forget(id);
                     return Ok(true);
                 }
-                Err(why) => {
+                Err(Install::Short(why)) => {
+                    return Err(SharedError::Memory(format!(
+                        "rig {id:?} generation {g}: {why}"
+                    )));
+                }
+                Err(Install::Unusable(why)) => {
                     shared.pass_over(id, g);
                     if self.store_unusable.insert(id, g) {
                         let why = format!("rig {id:?} generation {g} is not used: {why}");
@@ -182,7 +214,7 @@ impl AppState {
     }
 
     /// Makes `fetched` the rig's current generation (blocking: it prepares the rig).
-    fn install(&self, fetched: Fetched, budget: &Budget) -> Result<(), String> {
+    fn install(&self, fetched: Fetched, budget: &Budget) -> Result<(), Install> {
         let Fetched {
             manifest,
             records,
@@ -214,7 +246,9 @@ impl AppState {
                     .registry
                     .get(&id)
                     .filter(|e| e.builtin)
-                    .ok_or_else(|| format!("stored clips for unknown built-in rig {id:?}"))?;
+                    .ok_or_else(|| {
+                        Install::Unusable(format!("stored clips for unknown built-in rig {id:?}"))
+                    })?;
                 let mut rig = crate::embedded::default_rig();
                 rig.clips.truncate(base.builtin_clips);
                 let layout = ClipLayout {
@@ -229,14 +263,21 @@ impl AppState {
                 }
                 (rig, true, layout)
             }
-            _ => return Err("its first object is not the rig's record".into()),
+            _ => {
+                return Err(Install::Unusable(
+                    "its first object is not the rig's record".into(),
+                ));
+            }
         };
         for record in records {
             let Record::Clips(c) = record else {
-                return Err("it holds two records".into());
+                return Err(Install::Unusable("it holds two records".into()));
             };
             if c.id != id {
-                return Err(format!("a clip file is for rig {:?}", c.id));
+                return Err(Install::Unusable(format!(
+                    "a clip file is for rig {:?}",
+                    c.id
+                )));
             }
             let names: Vec<String> = c.clips.iter().map(|c| c.name.clone()).collect();
             layout.files.push((c.seq, names));
@@ -244,15 +285,17 @@ impl AppState {
         }
         let mut seen = std::collections::HashSet::new();
         if let Some(dup) = rig.clips.iter().find(|c| !seen.insert(c.name.as_str())) {
-            return Err(format!("it repeats clip {:?}", dup.name));
+            return Err(Install::Unusable(format!("it repeats clip {:?}", dup.name)));
         }
-        rig.validate().map_err(|e| e.to_string())?;
+        rig.validate()
+            .map_err(|e| Install::Unusable(e.to_string()))?;
         let rig = Arc::new(rig);
-        self.charge_preparing(&rig, budget)?;
+        self.charge_preparing(&rig, budget)
+            .map_err(Install::Short)?;
         let prepared = self
             .engine
             .prepare(rig.clone())
-            .map_err(|e| e.to_string())?;
+            .map_err(|e| Install::Unusable(e.to_string()))?;
         let qbox = quantization_box(&rig);
         let generation = self.registry.generation();
         let entry = match self.registry.get(&id) {
@@ -260,8 +303,14 @@ impl AppState {
                 let extra = budget.keep(prepared.memory().host_bytes as u64);
                 old.successor(prepared, qbox, layout, generation, Some(extra))
             }
-            Some(old) if old.builtin => return Err(format!("{id:?} is a built-in rig's id")),
-            _ if builtin => return Err(format!("stored clips for unknown built-in rig {id:?}")),
+            Some(old) if old.builtin => {
+                return Err(Install::Unusable(format!("{id:?} is a built-in rig's id")));
+            }
+            _ if builtin => {
+                return Err(Install::Unusable(format!(
+                    "stored clips for unknown built-in rig {id:?}"
+                )));
+            }
             _ => RigEntry::new(NewEntry {
                 id: id.clone(),
                 builtin: None,
@@ -314,6 +363,27 @@ impl AppState {
             out.push(id.to_string());
         }
         out
+    }
+
+    /// `attempt`, and once more after looking up the rigs of `heads` this replica does not
+    /// hold when it failed with 404 `unknown_rig` and there is a shared store: a request
+    /// whose rigs are all held costs nothing more (crowd frames, the hot path).
+    pub async fn after_lookups<T>(
+        &self,
+        heads: &[crowdmorph_proto::Head],
+        attempt: impl Fn() -> Result<T, ApiError>,
+    ) -> Result<T, ApiError> {
+        match attempt() {
+            Err(e) if e.code == "unknown_rig" && self.shared_store().is_some() => {
+                let ids = self.missing(heads.iter().map(|h| h.rig.as_str()));
+                if ids.is_empty() {
+                    return Err(e);
+                }
+                self.find_missing(ids).await?;
+                attempt()
+            }
+            other => other,
+        }
     }
 
     /// Looks up in the shared store the rigs among `ids` ([`AppState::missing`] picks them):
@@ -387,20 +457,18 @@ pub(crate) fn spawn_refresh(state: &AppState) {
     });
 }
 
-/// Middleware: a request about a rig this replica does not hold (`/v1/rigs/{id}...`, or a
-/// `?rig=` routing hint) looks it up in the shared store first, so that a replica a balancer
-/// sends it to after another one failed serves it rather than 404.
+/// Middleware: a request about a rig this replica does not hold (`/v1/rigs/{id}...`) looks it
+/// up in the shared store first, so that a replica a balancer sends it to after another one
+/// failed serves it rather than 404. (Crowd frames, renders and sessions look up their heads'
+/// rigs in their handlers, the `?rig=` hint among them: one bound of lookups per request.)
 pub async fn look_up_rigs(State(state): State<AppState>, request: Request, next: Next) -> Response {
     if state.shared_store().is_some() && state.is_ready() {
-        let path = request.uri().path();
-        let from_path = path
+        let from_path = request
+            .uri()
+            .path()
             .strip_prefix("/v1/rigs/")
             .map(|rest| rest.split('/').next().unwrap_or_default());
-        let hint = request
-            .uri()
-            .query()
-            .and_then(|q| q.split('&').find_map(|kv| kv.strip_prefix("rig=")));
-        let ids = state.missing(from_path.into_iter().chain(hint));
+        let ids = state.missing(from_path);
         if let Err(e) = state.find_missing(ids).await {
             return e.into_response();
         }
