@@ -266,9 +266,13 @@ impl AppState {
             }
         }
         self.ready.store(true, Ordering::Release);
-        // Rigs that still have the import's quick order get the metric-based one.
+        // Rigs that still have the import's quick order get the metric-based one. With a
+        // shared store only the built-in rig (which no upload computes it for): a stored rig's
+        // order is computed where it was uploaded and arrives as its next generation.
         for entry in self.registry.all() {
-            self.start_auto_lod(&entry);
+            if self.shared.is_none() || entry.builtin {
+                self.start_auto_lod(&entry);
+            }
         }
     }
 
