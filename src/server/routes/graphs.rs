@@ -104,11 +104,14 @@ async fn store(
         let (entry, spec) = (entry.clone(), spec.clone());
         blocking(move || resolve_and_measure(&entry, &spec).map_err(graph_error)).await?
     };
+    // Stored first, then served: a write the store refuses (409, 503) changes nothing here.
     let _admin = state.admin.lock().await;
-    let all = state
+    let mut all = state.graphs.specs(id);
+    all.insert(name.to_string(), spec.clone());
+    state.persist_graphs(id, all).await?;
+    state
         .graphs
         .insert(entry, name, spec.clone(), Arc::new(checked));
-    state.persist_graphs(id, all).await?;
     Ok(GraphInfo {
         rig: id.to_string(),
         name: name.to_string(),
@@ -255,10 +258,12 @@ pub async fn delete_graph(
 ) -> ApiResult {
     let _entry = state.rig(&id)?;
     let _admin = state.admin.lock().await;
-    let all = state
-        .graphs
-        .remove(&id, &name)
-        .ok_or_else(|| unknown_graph(&id, &name, &state.graphs.names(&id)))?;
+    let mut all = state.graphs.specs(&id);
+    if all.remove(&name).is_none() {
+        return Err(unknown_graph(&id, &name, &state.graphs.names(&id)));
+    }
+    // Stored first, then removed here: a delete the store refuses changes nothing.
     state.persist_graphs(&id, all).await?;
+    state.graphs.remove(&id, &name);
     Ok(StatusCode::NO_CONTENT.into_response())
 }
