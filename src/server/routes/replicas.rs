@@ -235,6 +235,19 @@ impl AppState {
         for why in dropped {
             self.skip(why);
         }
+        // The built-in rig with nothing stored but its graphs (no clips or LOD of its own
+        // yet): its geometry and clips stay the embedded ones, only the graphs change.
+        if records.is_empty() && self.registry.get(&id).is_some_and(|e| e.builtin) {
+            match graphs {
+                Some(g) if g.rig == id => self.graphs.load(id.clone(), g.graphs),
+                _ => self.graphs.drop_rig(&id),
+            }
+            tracing::info!(rig = %id, generation = manifest.generation, "built-in rig's graphs loaded from the store");
+            if let Some(s) = self.shared_store() {
+                s.set_held(manifest);
+            }
+            return Ok(());
+        }
         let mut records = records.into_iter();
         let (mut rig, builtin, mut layout) = match records.next() {
             Some(Record::Rig(r)) if r.id == id => {
