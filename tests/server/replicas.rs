@@ -16,7 +16,8 @@ use bytes::Bytes;
 use crowdmorph::server::ServerConfig;
 use crowdmorph_client::{Client, ClientError, Encoding, Method};
 use crowdmorph_proto::{
-    CrowdFrameRequest, Format, Head, LiveWeights, OutputOptions, Readiness, RenderRequest, RigInfo,
+    CrowdFrameRequest, Format, Head, LiveWeights, LodRequest, OutputOptions, Readiness,
+    RenderRequest, RigInfo,
 };
 
 use super::balancer::{free_port, nginx};
@@ -203,6 +204,48 @@ async fn shares_changes(c: &[Client]) {
         frames.iter().all(|f| *f == frames[0]),
         "the clip's frame differs between replicas"
     );
+
+    // A LOD set on replica 0 and a motion graph put on replica 1 (on the built-in head, whose
+    // changes are stored as its own record) reach every replica.
+    let lod = LodRequest {
+        method: Some("file-order".into()),
+        pinned: vec!["b".into()],
+        ..LodRequest::default()
+    };
+    let set = c[0]
+        .set_lod("tri", &lod)
+        .await
+        .expect("PUT lod on replica 0");
+    let method = set.lod.method.clone();
+    until_all(c, "the LOD on every replica", |c| {
+        let method = method.clone();
+        async move { c.rig("tri").await.is_ok_and(|r| r.lod.method == method) }
+    })
+    .await;
+    let graph = serde_json::json!({
+        "nodes": [{"name": "a", "clip": "talk"}, {"name": "b", "clip": "smile"}],
+        "edges": [
+            {"from": "a", "to": "b", "fade": 10, "window": null},
+            {"from": "b", "to": "a", "fade": 10, "window": null}
+        ]
+    });
+    let put = c[1]
+        .send(
+            Method::PUT,
+            "/v1/rigs/default-head/graphs/chat",
+            Some("application/json"),
+            None,
+            Bytes::from(graph.to_string()),
+        )
+        .await
+        .expect("PUT graph");
+    assert_eq!(put.status, 200, "{}", String::from_utf8_lossy(&put.body));
+    until_all(c, "the graph on every replica", |c| async move {
+        c.rig("default-head")
+            .await
+            .is_ok_and(|r| r.graphs == ["chat".to_string()])
+    })
+    .await;
 
     // Two replicas write one new rig at the same time: the store takes one, the other is
     // told so (409) and changes nothing, and every replica ends up with the winner's rig.
@@ -598,6 +641,8 @@ fn a_store_that_cannot_be_used_stops_the_start() {
     let cases: Vec<(&str, Vec<(&str, String)>)> = vec![
         ("ftp://example.com/rigs", vec![]),
         ("s3://", vec![]),
+        // A directory that cannot be made (nothing can be created in /proc, root or not).
+        ("file:///proc/crowdmorph-store", vec![]),
         ("s3://crowdmorph/rigs", s3_env(free_port())),
     ];
     for (url, env) in cases {
