@@ -114,6 +114,8 @@ pub fn default_rig() -> Rig {
         primitives: std::sync::Arc::new(primitives),
         clips: clips(n_targets),
         lod,
+        skeleton: None,
+        import_notes: Vec::new(),
     }
 }
 
@@ -139,6 +141,7 @@ fn primitive(
         indices,
         targets,
         base_color,
+        skin: None,
     }
 }
 

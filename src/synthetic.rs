@@ -66,6 +66,7 @@ pub fn paper_scale_rig() -> Rig {
         indices,
         targets,
         base_color: Primitive::default_base_color(),
+        skin: None,
     }];
     let frames = 60;
     let weights: Vec<f32> = (0..PAPER_TARGETS * frames)
@@ -83,8 +84,11 @@ pub fn paper_scale_rig() -> Rig {
             frames: frames as u32,
             targets: PAPER_TARGETS as u32,
             weights: std::sync::Arc::new(weights),
+            joints: None,
         }],
         lod,
+        skeleton: None,
+        import_notes: Vec::new(),
     }
 }
 
@@ -113,6 +117,7 @@ pub fn with_random_clip_of(mut rig: Rig, name: &str, frames: usize, seed: u64) -
             frames: frames as u32,
             targets: t as u32,
             weights: std::sync::Arc::new(weights),
+            joints: None,
         });
     }
     rig

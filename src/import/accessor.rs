@@ -323,6 +323,44 @@ impl<'a> Source<'a> {
         Ok(out)
     }
 
+    /// Decodes a MAT4 float accessor (a skin's inverse bind matrices), column-major as glTF
+    /// stores them. Sparse matrices are refused: no exporter writes them.
+    pub(crate) fn read_mat4s(
+        &self,
+        acc: &gltf::Accessor<'_>,
+    ) -> Result<Vec<glam::Mat4>, ImportError> {
+        let index = acc.index();
+        let bad = |problem: String| ImportError::Accessor { index, problem };
+        if acc.dimensions() != Dimensions::Mat4 || acc.data_type() != DataType::F32 {
+            return Err(bad("inverse bind matrices must be MAT4 of FLOAT".into()));
+        }
+        if acc.sparse().is_some() {
+            return Err(bad("sparse inverse bind matrices are not supported".into()));
+        }
+        let view = acc
+            .view()
+            .ok_or_else(|| bad("inverse bind matrices have no buffer view".into()))?;
+        let count = acc.count();
+        let stride = view.stride().unwrap_or(64);
+        if stride < 64 {
+            return Err(bad(format!(
+                "byte stride {stride} is smaller than a MAT4 (64)"
+            )));
+        }
+        let bytes = self.view_bytes(index, &view, acc.offset(), span(count, stride, 64))?;
+        self.charge(index, (count as u64).saturating_mul(64))?;
+        let mut out = Vec::with_capacity(count);
+        for i in 0..count {
+            let b = &bytes[i * stride..i * stride + 64];
+            let mut m = [0f32; 16];
+            for (c, v) in m.iter_mut().enumerate() {
+                *v = decode(&b[c * 4..], DataType::F32, false);
+            }
+            out.push(glam::Mat4::from_cols_array(&m));
+        }
+        Ok(out)
+    }
+
     /// Decodes every element of `acc` (which must have `comps` components) into `out`, as
     /// `push` makes them (`per_element` items each), then applies the accessor's sparse
     /// substitution. `out` is charged to the budget before it is allocated.

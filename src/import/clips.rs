@@ -562,6 +562,7 @@ pub fn clips_from_gltf(
             &rig.default_weights,
             options.fps,
             budget,
+            0.0,
         )?;
         budget.release(tracks_bytes(&tracks));
         out.push(ClipImport {

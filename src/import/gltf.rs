@@ -23,7 +23,7 @@ use super::scene::{
     scene_instances, tracks_bytes,
 };
 use super::{ImportError, ImportOptions};
-use super::{extensions, meshopt};
+use super::{extensions, meshopt, skin};
 use crate::budget::Budget;
 use crate::rig::{
     Clip, Lod, MAX_FRAMES, MAX_TARGETS, MAX_VERTICES, PrimShape, Primitive, Rig, RigError,
@@ -768,6 +768,9 @@ fn build_rig(
     // The clips first: baking releases the keyframes the plan decoded before the geometry's
     // decodes need the memory.
     let n_targets = plan.len();
+    let instances = scene_instances(doc)?;
+    let skeleton = skin::plan(doc, source, &instances)?;
+    let mut report = skin::SkinReport::default();
     let clips = bake_animations(
         doc,
         source,
@@ -776,8 +779,9 @@ fn build_rig(
         n_targets,
         &plan.defaults,
         options.fps,
+        skeleton.as_ref(),
+        &mut report,
     )?;
-    let instances = scene_instances(doc)?;
     let mut primitives = Vec::new();
 
     for inst in &instances {
@@ -794,7 +798,16 @@ fn build_rig(
                 ))
             })?;
 
-        let linear = Mat3::from_mat4(inst.world);
+        let attach = skeleton
+            .as_ref()
+            .and_then(|p| p.attach.get(&inst.node.index()));
+        // A skinned mesh ignores its node's transform (glTF 2.0 §3.7.3.3): its vertices go to
+        // rig space by its skin's bind pose instead (`src/rig/skin.rs`).
+        let world = match attach {
+            Some(skin::Attach::Skinned { world, .. }) => *world,
+            _ => inst.world,
+        };
+        let linear = Mat3::from_mat4(world);
         let normal_m = if linear.determinant().abs() > f32::MIN_POSITIVE {
             linear.inverse().transpose()
         } else {
@@ -815,7 +828,7 @@ fn build_rig(
             // Rig space, transformed in place: the decoded arrays become the rig's.
             let mut positions = read_vec3(source, &pos_acc, n, "POSITION")?;
             for p in &mut positions {
-                *p = inst.world.transform_point3(*p);
+                *p = world.transform_point3(*p);
             }
             let file_normals = prim.get(&Semantic::Normals).is_some();
             // Per-vertex length of each transformed file normal (and tangent): their deltas
@@ -936,6 +949,10 @@ fn build_rig(
             // glTF 2.0 §3.9.2: a primitive without a material, or a material without a
             // factor, has base colour white.
             let base_color = prim.material().pbr_metallic_roughness().base_color_factor();
+            let skin = match attach {
+                Some(a) => Some(skin::influences(source, &prim, a, n, &mut report)?),
+                None => None,
+            };
             primitives.push(Primitive {
                 name: label,
                 positions,
@@ -945,6 +962,7 @@ fn build_rig(
                 indices,
                 targets: sparse,
                 base_color,
+                skin,
             });
         }
     }
@@ -958,8 +976,21 @@ fn build_rig(
         primitives: Arc::new(primitives),
         clips,
         lod,
+        skeleton: skeleton.map(|p| {
+            source.budget().release(p.charged);
+            Arc::new(p.skeleton)
+        }),
+        import_notes: report.notes(),
     };
     rig.validate()?;
+    if report.largest_dropped_weight > 0.0 || report.channels_on_unused_nodes > 0 {
+        tracing::info!(
+            joint_channels = report.joint_channels,
+            unused = report.channels_on_unused_nodes,
+            dropped = report.largest_dropped_weight,
+            "skin import"
+        );
+    }
     Ok(rig)
 }
 
@@ -979,7 +1010,9 @@ fn declared_last(times: &gltf::Accessor<'_>) -> Option<f32> {
 ///
 /// Frame `f` samples `t = f / fps` on the glTF timeline; the clip has
 /// `floor(last_key_time × fps) + 1` frames. Targets no track drives hold `defaults`. Scalar `k`
-/// of a track on node `n` writes the weight channels `channels(n, k)`.
+/// of a track on node `n` writes the weight channels `channels(n, k)`. `other_last` is the last
+/// key time of the animation's other channels (its joints), so both tables get equal frames.
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn bake<'c>(
     name: &str,
     tracks: &[WeightTrack],
@@ -988,11 +1021,12 @@ pub(crate) fn bake<'c>(
     defaults: &[f32],
     fps: f32,
     budget: &Budget,
+    other_last: f32,
 ) -> Result<Clip, ImportError> {
     let last = tracks
         .iter()
         .map(|t| t.track.last_time())
-        .fold(0.0f32, f32::max);
+        .fold(other_last, f32::max);
     let frames = baked_frames(last, fps).ok_or_else(|| ImportError::Animation {
         animation: name.to_string(),
         problem: format!("lasts {last} s: more than {MAX_FRAMES} frames at {fps} fps"),
@@ -1085,7 +1119,9 @@ impl Drop for UniqueNames<'_> {
 }
 
 /// Bakes the animations the plan decoded, one at a time, releasing each one's keyframes once
-/// its table is made.
+/// its table is made. With a skeleton, each animation's joint channels are baked beside its
+/// weights (an animation with only joint channels is a clip too).
+#[allow(clippy::too_many_arguments)]
 fn bake_animations(
     doc: &gltf::Document,
     source: &Source<'_>,
@@ -1094,6 +1130,8 @@ fn bake_animations(
     n_targets: usize,
     defaults: &[f32],
     fps: f32,
+    skeleton: Option<&skin::SkeletonPlan>,
+    report: &mut skin::SkinReport,
 ) -> Result<Vec<Clip>, ImportError> {
     let channels = |node: usize, k: usize| -> &[TargetId] {
         node_channels
@@ -1101,21 +1139,36 @@ fn bake_animations(
             .and_then(|ids| ids.get(k))
             .map_or(&[], std::slice::from_ref)
     };
+    let mut weights: HashMap<usize, Vec<WeightTrack>> = animations
+        .into_iter()
+        .map(|a| (a.index, a.tracks))
+        .collect();
     let mut clips: Vec<Clip> = Vec::new();
     let mut taken = UniqueNames::new(source.budget());
-    for decoded in animations {
-        let tracks = decoded.tracks;
-        if tracks.is_empty() {
+    for anim in doc.animations() {
+        let tracks = weights.remove(&anim.index()).unwrap_or_default();
+        let joints = match skeleton {
+            Some(plan) => Some(skin::joint_tracks(source, &anim, plan, report)?),
+            None => {
+                // No mesh follows any node: such channels move nothing the rig has.
+                report.channels_on_unused_nodes += anim
+                    .channels()
+                    .filter(|c| c.target().property() != Property::MorphTargetWeights)
+                    .count();
+                None
+            }
+        };
+        if tracks.is_empty() && joints.as_ref().is_none_or(skin::JointTracks::is_empty) {
             continue;
         }
-        let name = doc
-            .animations()
-            .nth(decoded.index)
-            .and_then(|a| a.name().map(str::to_string))
+        let name = anim
+            .name()
+            .map(str::to_string)
             .filter(|n| !n.is_empty())
-            .unwrap_or_else(|| format!("anim{}", decoded.index));
+            .unwrap_or_else(|| format!("anim{}", anim.index()));
         let name = taken.take(name)?;
-        clips.push(bake(
+        let joint_last = joints.as_ref().map_or(0.0, skin::JointTracks::last_time);
+        let mut clip = bake(
             &name,
             &tracks,
             channels,
@@ -1123,8 +1176,21 @@ fn bake_animations(
             defaults,
             fps,
             source.budget(),
-        )?);
+            joint_last,
+        )?;
         source.budget().release(tracks_bytes(&tracks));
+        if let (Some(j), Some(plan)) = (joints, skeleton) {
+            clip.joints = skin::bake_joints(
+                &name,
+                j,
+                &plan.skeleton,
+                clip.frames as usize,
+                fps,
+                source.budget(),
+            )?
+            .map(Arc::new);
+        }
+        clips.push(clip);
     }
     Ok(clips)
 }

@@ -16,6 +16,7 @@ pub mod extensions;
 pub mod gltf;
 mod meshopt;
 mod scene;
+mod skin;
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;

@@ -199,6 +199,7 @@ fn playable(rig: &Rig, opt: &RenderOptions) -> Rig {
                 frames: 1,
                 targets: r.targets.len() as u32,
                 weights: Arc::new(vec![0.0; r.targets.len()]),
+                joints: None,
             });
             r
         }

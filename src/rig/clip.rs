@@ -30,6 +30,10 @@ pub struct Clip {
     /// `weights[t * frames + f]`. Shared, not copied, by every version of a rig and every
     /// mesh level derived from it: a clip table is often the largest array a rig has.
     pub weights: Arc<Vec<f32>>,
+    /// The clip's node transforms, for a rig with a skeleton whose nodes it animates
+    /// (skipped by serde: the store keeps it beside the clip).
+    #[serde(skip)]
+    pub joints: Option<Arc<super::JointTable>>,
 }
 
 /// What to do with a frame number past the end of a clip.
@@ -83,6 +87,7 @@ impl Clip {
             frames: u32::try_from(frames).unwrap_or(u32::MAX),
             targets: u32::try_from(targets).unwrap_or(u32::MAX),
             weights: Arc::new(weights),
+            joints: None,
         };
         clip.validate(targets)?;
         Ok(clip)

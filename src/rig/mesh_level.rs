@@ -84,6 +84,10 @@ impl MeshLevel {
                 indices: l.indices.clone(),
                 targets,
                 base_color: p.base_color,
+                skin: p.skin.as_ref().map(|s| super::Influences {
+                    joints: l.vertices.iter().map(|&v| s.joints[v as usize]).collect(),
+                    weights: l.vertices.iter().map(|&v| s.weights[v as usize]).collect(),
+                }),
             });
         }
         let lod = Lod {
@@ -108,6 +112,8 @@ impl MeshLevel {
             primitives: Arc::new(primitives),
             clips: rig.clips.clone(),
             lod,
+            skeleton: rig.skeleton.clone(),
+            import_notes: rig.import_notes.clone(),
         };
         derived.validate()?;
         Ok(derived)

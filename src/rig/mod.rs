@@ -26,6 +26,7 @@ mod mesh_level;
 mod pca;
 mod pose;
 mod sample;
+mod skin;
 
 pub use clip::{Clip, ClipError, ClipIndex, DEFAULT_FPS, FrameMode, MAX_FRAMES};
 pub use cost::{PrimShape, RigCost, RigShape};
@@ -38,7 +39,11 @@ pub use pose::{
     ARKIT_NAMES, LIVE_STEP, MAX_BLEND_LAYERS, MAX_LIVE_WEIGHT, MAX_TERMS, Pose, PoseError, T_ONE,
     Term, quantize_live,
 };
-pub use sample::{Interpolation, KeyTrack, sample_track};
+pub use sample::{Interpolation, KeyTrack, sample_rotation, sample_track};
+pub use skin::{
+    Bone, BoneMatrix, BoneScratch, INFLUENCES, Influences, JointTable, MAX_BONES, NO_PARENT,
+    SkelNode, Skeleton, SkinPoses, SkinTerm, Trs, WEIGHT_SUM_TOLERANCE, top_influences,
+};
 
 use std::sync::Arc;
 
@@ -75,6 +80,16 @@ pub struct Rig {
     pub clips: Vec<Clip>,
     /// Importance order of the targets and the LOD table.
     pub lod: Lod,
+    /// The node hierarchy its vertices follow, when some primitive is skinned or hangs from
+    /// an animated node (`src/rig/skin.rs`). Skipped by serde: the store keeps it beside the
+    /// primitives (its records are positional).
+    #[serde(skip)]
+    pub skeleton: Option<Arc<Skeleton>>,
+    /// What the import approximated or left out of the file, one sentence each (the upload's
+    /// answer and `inspect` show them). Stored with the skeleton of a skinned rig; others
+    /// report them at upload only.
+    #[serde(skip)]
+    pub import_notes: Vec<String>,
 }
 
 /// A rig's weight channels by target name, for operations that look up many names (the
@@ -217,6 +232,10 @@ pub struct Primitive {
     /// primitives, since its records are positional (bincode) and this came after the first.
     #[serde(skip, default = "Primitive::default_base_color")]
     pub base_color: [f32; 4],
+    /// Per vertex, the bones of [`Rig::skeleton`] that pose it after its morph targets, when
+    /// it follows any (skipped by serde like `base_color`).
+    #[serde(skip)]
+    pub skin: Option<Influences>,
 }
 
 /// A morph target restricted to the vertices it moves.
@@ -537,7 +556,88 @@ impl Rig {
         self.lod.validate(n_targets)?;
         let counts: Vec<usize> = self.primitives.iter().map(|p| p.positions.len()).collect();
         self.lod.validate_meshes(&counts)?;
-        Ok(())
+        self.validate_skeleton()
+    }
+
+    /// The skeleton's part of [`Rig::validate`]: influences only with a skeleton, bones and
+    /// parents in range, weights summing to one, joint tables that fit their clips.
+    fn validate_skeleton(&self) -> Result<(), RigError> {
+        let skinned = |p: &Primitive| p.skin.is_some();
+        let tables = self.clips.iter().any(|c| c.joints.is_some());
+        let Some(sk) = &self.skeleton else {
+            if self.primitives.iter().any(skinned) || tables {
+                return Err(RigError::Inconsistent {
+                    primitive: String::new(),
+                    problem: "joint influences or joint tables without a skeleton".into(),
+                });
+            }
+            return Ok(());
+        };
+        let influences: Vec<(&str, usize, &Influences)> = self
+            .primitives
+            .iter()
+            .filter_map(|p| {
+                p.skin
+                    .as_ref()
+                    .map(|s| (p.name.as_str(), p.positions.len(), s))
+            })
+            .collect();
+        let tables: Vec<(&str, u32, &JointTable)> = self
+            .clips
+            .iter()
+            .filter_map(|c| c.joints.as_deref().map(|t| (c.name.as_str(), c.frames, t)))
+            .collect();
+        skin::check(sk, &influences, &tables).map_err(|problem| RigError::Inconsistent {
+            primitive: String::new(),
+            problem: format!("skeleton: {problem}"),
+        })
+    }
+
+    /// Whether the rig's vertices follow a skeleton (evaluation skins after blending).
+    pub fn is_skinned(&self) -> bool {
+        self.skeleton.is_some()
+    }
+
+    /// Vertices that follow several bones or a bone of their own (a skin), and vertices of
+    /// primitives whose every vertex follows one same bone (a rigid mesh under a node).
+    pub fn skinned_and_rigid_vertices(&self) -> (usize, usize) {
+        let (mut skinned, mut rigid) = (0, 0);
+        for p in self.primitives.iter() {
+            let Some(s) = &p.skin else { continue };
+            let first = s.joints.first().map(|j| j[0]);
+            let one_bone = s
+                .joints
+                .iter()
+                .zip(&s.weights)
+                .all(|(j, w)| Some(j[0]) == first && w[0] == 1.0);
+            if one_bone {
+                rigid += s.joints.len();
+            } else {
+                skinned += s.joints.len();
+            }
+        }
+        (skinned, rigid)
+    }
+
+    /// Names of the skeleton nodes some clip animates, in skeleton order.
+    pub fn animated_node_names(&self) -> Vec<&str> {
+        let Some(sk) = &self.skeleton else {
+            return Vec::new();
+        };
+        let mut animated = vec![false; sk.nodes.len()];
+        for t in self.clips.iter().filter_map(|c| c.joints.as_deref()) {
+            for &n in &t.nodes {
+                if let Some(a) = animated.get_mut(n as usize) {
+                    *a = true;
+                }
+            }
+        }
+        sk.nodes
+            .iter()
+            .zip(animated)
+            .filter(|(_, a)| *a)
+            .map(|(n, _)| n.name.as_str())
+            .collect()
     }
 }
 

@@ -150,10 +150,15 @@ impl DeltaPca {
                 indices: p.indices.clone(),
                 targets,
                 base_color: p.base_color,
+                skin: p.skin.clone(),
             });
         }
         let c = self.components();
-        let clips = self.map_clips(&rig.clips)?;
+        let mut clips = self.map_clips(&rig.clips)?;
+        // The joint tables do not depend on the deltas' basis: shared as they are.
+        for (c, o) in clips.iter_mut().zip(&rig.clips) {
+            c.joints.clone_from(&o.joints);
+        }
         let derived = Rig {
             name: format!("{}@pca{:.0e}", rig.name, self.max_error),
             targets: (0..c).map(|i| format!("pca{i}")).collect(),
@@ -173,6 +178,8 @@ impl DeltaPca {
                 meshes: Vec::new(),
                 pca: Vec::new(),
             },
+            skeleton: rig.skeleton.clone(),
+            import_notes: rig.import_notes.clone(),
         };
         derived.validate()?;
         Ok(derived)

@@ -22,7 +22,7 @@
 
 use std::sync::Arc;
 
-use super::{ClipError, Rig};
+use super::{ClipError, Rig, SkinTerm};
 
 /// Blend fractions are multiples of `1 / T_ONE`.
 pub const T_ONE: u32 = 4096;
@@ -276,6 +276,29 @@ impl Pose {
                 .max_by_key(|t| t.t)
                 .map(|t| (t.clip, t.frame)),
             Pose::Live(_) => None,
+        }
+    }
+
+    /// The joint terms of this pose on a rig with a skeleton (`SkinPoses`): a clip frame is
+    /// one term, a blend one per clip term (nlerp of their transforms), live weights none
+    /// (the rest pose: a weight vector names no joint).
+    pub fn skin_terms(&self, rig: &Rig) -> Vec<SkinTerm> {
+        let table = |clip: u32| rig.clips.get(clip as usize).and_then(|c| c.joints.clone());
+        match self {
+            Pose::Frame { clip, frame } => vec![SkinTerm {
+                fraction: 1.0,
+                table: table(*clip),
+                frame: *frame,
+            }],
+            Pose::Blend(terms) => terms
+                .iter()
+                .map(|t| SkinTerm {
+                    fraction: t.fraction(),
+                    table: table(t.clip),
+                    frame: t.frame,
+                })
+                .collect(),
+            Pose::Live(_) => Vec::new(),
         }
     }
 

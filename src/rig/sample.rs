@@ -128,6 +128,34 @@ pub fn sample_track(track: &KeyTrack, t: f32, out: &mut [f32]) {
     }
 }
 
+/// Samples a rotation track (width 4, quaternions x, y, z, w) at time `t` as glTF asks:
+/// spherical linear interpolation (shortest path) for LINEAR, the key for STEP, and the
+/// cubic Hermite spline normalized for CUBICSPLINE. `out` gets a unit quaternion.
+pub fn sample_rotation(track: &KeyTrack, t: f32, out: &mut [f32; 4]) {
+    let times = &track.times;
+    let n = times.len();
+    let next = times.partition_point(|&k| k <= t);
+    if track.interpolation == Interpolation::Linear && next > 0 && next < n {
+        let k = next - 1;
+        let td = times[next] - times[k];
+        let q = |key: usize| {
+            glam::Quat::from_xyzw(
+                track.value(key, 0),
+                track.value(key, 1),
+                track.value(key, 2),
+                track.value(key, 3),
+            )
+            .normalize()
+        };
+        let s = if td > 0.0 { (t - times[k]) / td } else { 0.0 };
+        *out = q(k).slerp(q(next), s).normalize().to_array();
+        return;
+    }
+    sample_track(track, t, out);
+    let q = glam::Vec4::from(*out);
+    *out = q.try_normalize().unwrap_or(glam::Vec4::W).to_array();
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

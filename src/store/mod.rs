@@ -47,7 +47,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use serde::{Deserialize, Serialize};
 
 use crate::codec;
-use crate::rig::{Clip, Lod, Rig};
+use crate::rig::{Clip, Influences, JointTable, Lod, Rig, Skeleton};
 
 const MAGIC: &[u8; 8] = b"CMSTORE1";
 const HEADER: usize = 8 + 4 + 8 + 4;
@@ -63,6 +63,8 @@ const KIND_RIG_V6: u32 = 6;
 const KIND_BUILTIN_V7: u32 = 7;
 /// Kind 4 with each clip as a [`ClipRecord`].
 const KIND_CLIPS_V8: u32 = 8;
+/// Kind 6 followed by a [`SkinRecord`]: a rig with a skeleton (others are still kind 6).
+const KIND_RIG_SKINNED_V9: u32 = 9;
 /// Extension of record files.
 const EXT: &str = "cmrig";
 /// Extension of clip files.
@@ -153,6 +155,65 @@ pub enum RecordRef<'a> {
 struct StoredRigRef<'a> {
     id: &'a str,
     rig: RigRecordRef<'a>,
+}
+
+/// Kind 9: kind 6 and what a rig with a skeleton adds (serde skips it inside the rig).
+#[derive(Serialize)]
+struct StoredSkinnedRef<'a> {
+    id: &'a str,
+    rig: RigRecordRef<'a>,
+    skin: SkinRecordRef<'a>,
+}
+
+/// The skeleton, each primitive's influences, and the joint tables of the record's clips by
+/// clip name (a compressed clip that does not decode is skipped alone, so not by position).
+#[derive(Serialize)]
+struct SkinRecordRef<'a> {
+    skeleton: &'a Skeleton,
+    influences: Vec<Option<&'a Influences>>,
+    clip_joints: Vec<(&'a str, &'a JointTable)>,
+    notes: &'a [String],
+}
+
+#[derive(Deserialize)]
+struct SkinRecord {
+    skeleton: Skeleton,
+    influences: Vec<Option<Influences>>,
+    clip_joints: Vec<(String, JointTable)>,
+    notes: Vec<String>,
+}
+
+impl SkinRecord {
+    /// Puts the skeleton back into `rig` (validated by the caller).
+    fn apply(self, rig: &mut Rig) -> Result<(), String> {
+        if self.influences.len() != rig.primitives.len() {
+            return Err(format!(
+                "{} influence sets for {} primitives",
+                self.influences.len(),
+                rig.primitives.len()
+            ));
+        }
+        let mut prims = rig.primitives.as_ref().clone();
+        for (p, i) in prims.iter_mut().zip(self.influences) {
+            p.skin = i;
+        }
+        rig.primitives = std::sync::Arc::new(prims);
+        let mut tables: std::collections::HashMap<String, JointTable> =
+            self.clip_joints.into_iter().collect();
+        for c in &mut rig.clips {
+            c.joints = tables.remove(&c.name).map(std::sync::Arc::new);
+        }
+        rig.skeleton = Some(std::sync::Arc::new(self.skeleton));
+        rig.import_notes = self.notes;
+        Ok(())
+    }
+}
+
+#[derive(Deserialize)]
+struct StoredSkinnedOwned {
+    id: String,
+    rig: RigRecordV6,
+    skin: SkinRecord,
 }
 
 /// One clip in a kind 6–8 record.
@@ -324,6 +385,9 @@ impl<'a> RigRecordRef<'a> {
             primitives,
             clips: _,
             lod,
+            // Kind 9's `SkinRecordRef`.
+            skeleton: _,
+            import_notes: _,
         } = rig;
         Ok(RigRecordRef {
             name,
@@ -355,6 +419,8 @@ impl RigRecord {
             primitives: std::sync::Arc::new(self.primitives),
             clips: self.clips,
             lod: lod_from_json(&self.lod_json)?,
+            skeleton: None,
+            import_notes: Vec::new(),
         })
     }
 }
@@ -588,13 +654,31 @@ impl Store {
                 .map_err(io("write", &tmp))?;
             let kind = match record {
                 RecordRef::Rig { id, rig, clips } => {
-                    let r = StoredRigRef {
-                        id,
-                        rig: RigRecordRef::new(rig, clips, self.clip_error)?,
-                    };
-                    codec::to_stored_writer(&r, &mut w)
-                        .map_err(|e| StoreError::Encode(e.to_string()))?;
-                    KIND_RIG_V6
+                    let record = RigRecordRef::new(rig, clips, self.clip_error)?;
+                    if let Some(skeleton) = rig.skeleton.as_deref() {
+                        let skin = SkinRecordRef {
+                            skeleton,
+                            influences: rig.primitives.iter().map(|p| p.skin.as_ref()).collect(),
+                            clip_joints: clips
+                                .iter()
+                                .filter_map(|c| c.joints.as_deref().map(|t| (c.name.as_str(), t)))
+                                .collect(),
+                            notes: &rig.import_notes,
+                        };
+                        let r = StoredSkinnedRef {
+                            id,
+                            rig: record,
+                            skin,
+                        };
+                        codec::to_stored_writer(&r, &mut w)
+                            .map_err(|e| StoreError::Encode(e.to_string()))?;
+                        KIND_RIG_SKINNED_V9
+                    } else {
+                        let r = StoredRigRef { id, rig: record };
+                        codec::to_stored_writer(&r, &mut w)
+                            .map_err(|e| StoreError::Encode(e.to_string()))?;
+                        KIND_RIG_V6
+                    }
                 }
                 RecordRef::Builtin { id, clips, rig } => {
                     let r = StoredBuiltinRef {
@@ -852,8 +936,25 @@ impl Store {
                     clips: c.clips,
                 }))
             }
-            KIND_RIG | KIND_RIG_COLORS | KIND_RIG_V6 => {
-                let r = if kind == KIND_RIG {
+            KIND_RIG | KIND_RIG_COLORS | KIND_RIG_V6 | KIND_RIG_SKINNED_V9 => {
+                let r = if kind == KIND_RIG_SKINNED_V9 {
+                    let StoredSkinnedOwned { id, rig: r, skin } =
+                        codec::from_stored(payload).map_err(|e| corrupt(e.to_string()))?;
+                    let clips = decode_clips(r.clips, Some(r.targets.len()), path, skipped);
+                    let mut rig = RigRecordColors {
+                        name: r.name,
+                        targets: r.targets,
+                        default_weights: r.default_weights,
+                        primitives: r.primitives,
+                        clips,
+                        lod_json: r.lod_json,
+                        base_colors: r.base_colors,
+                    }
+                    .into_rig()
+                    .map_err(corrupt)?;
+                    skin.apply(&mut rig).map_err(corrupt)?;
+                    StoredRig { id, rig }
+                } else if kind == KIND_RIG {
                     let r: StoredRigOwned =
                         codec::from_stored(payload).map_err(|e| corrupt(e.to_string()))?;
                     StoredRig {
