@@ -62,6 +62,7 @@ fn workload(rig: &Rig, seed: u64, n: usize) -> (Vec<(Vec<f64>, u32)>, WeightBatc
             slots: rig.targets.len(),
             weights: Vec::new(),
             shapes: Vec::new(),
+            skin: None,
         };
         for (w, lod) in &per_job {
             let w32: Vec<f32> = w.iter().map(|&x| x as f32).collect();
@@ -493,6 +494,7 @@ fn a_job_alone_equals_the_same_job_in_any_batch() {
                     slots: batch.slots,
                     weights: batch.weights[..n * batch.slots].to_vec(),
                     shapes: batch.shapes[..n].to_vec(),
+                    skin: None,
                 };
                 let some = cpu.evaluate(&part, spec).expect("part");
                 for j in 0..n {
@@ -583,6 +585,7 @@ fn interleaved_rig(sizes: &[usize], stride: usize, grouped: bool) -> (Rig, Vec<u
             indices,
             targets,
             base_color: Primitive::default_base_color(),
+            skin: None,
         });
     }
     let name = format!("interleaved-{}", if grouped { "grouped" } else { "raw" });

@@ -553,12 +553,16 @@ impl Engine {
     /// Prepares a rig: builds the CPU layout and, on a GPU, uploads geometry, deltas, clip
     /// tables and LOD order; the same for each of its mesh levels, which share its clip
     /// tables. A rig the GPU cannot hold is refused with `DoesNotFit`.
+    ///
+    /// A skinned rig stays on the CPU engine on every backend: the WGSL `skin` pass is not
+    /// written yet (issue 28), and the CPU engine evaluates it exactly (blend, then skin).
     pub fn prepare(&self, rig: Arc<Rig>) -> Result<PreparedRig, EngineError> {
         let derived =
             crate::rig::mesh_level_rigs(&rig).map_err(|e| EngineError::Mesh(e.to_string()))?;
+        let gpu = self.gpu_active().filter(|_| !rig.is_skinned());
         // The geometry is checked before the clip tables go up, so a rig the device cannot
         // hold is refused for what it is.
-        let tables = match self.gpu_active() {
+        let tables = match gpu {
             Some(ctx) => {
                 self.resident(GpuRig::check_fits(ctx, &rig))?;
                 self.resident(ClipTables::upload(ctx, &rig))?
@@ -574,7 +578,7 @@ impl Engine {
             crate::rig::pca_level_rigs(&rig).map_err(|e| EngineError::Mesh(e.to_string()))?;
         for (form, derived) in rig.lod.pca.iter().zip(pcas) {
             let derived = Arc::new(derived);
-            let own = match self.gpu_active() {
+            let own = match gpu {
                 Some(ctx) => self.resident(ClipTables::upload(ctx, &derived))?,
                 None => None,
             };

@@ -22,7 +22,7 @@ pub use crowdmorph_proto::Quantization;
 use half::f16;
 use rayon::prelude::*;
 
-use crate::rig::{ACTIVE_WEIGHT_EPSILON, LodError, Pose, PoseError, Rig};
+use crate::rig::{ACTIVE_WEIGHT_EPSILON, LodError, Pose, PoseError, Rig, SkinPoses};
 
 /// One unique job of a rig: which pose (a clip frame, a blend, live weights) at which LOD level.
 #[derive(Clone, Debug, PartialEq, Eq, Hash)]
@@ -119,6 +119,9 @@ pub enum EngineError {
         /// Slots in the rig.
         want: usize,
     },
+    /// A batch carries joint poses for a rig without a skeleton, or none for a rig with one.
+    #[error("the batch's joint poses do not fit the rig's skeleton")]
+    SkinMismatch,
     /// The output would be larger than the engine allows in one batch.
     #[error("batch output of {0} bytes is too large")]
     TooLarge(usize),
@@ -150,6 +153,8 @@ pub struct WeightBatch {
     pub weights: Vec<f32>,
     /// Per job, how many slots its LOD level evaluates.
     pub shapes: Vec<u32>,
+    /// On a skinned rig, each job's pose for the skin pass (after the blend); `None` else.
+    pub skin: Option<SkinPoses>,
 }
 
 impl WeightBatch {
@@ -171,6 +176,10 @@ impl WeightBatch {
             slots,
             weights: vec![0.0; jobs.len() * slots],
             shapes: Vec::with_capacity(jobs.len()),
+            skin: rig.skeleton.as_ref().map(|sk| SkinPoses {
+                skeleton: sk.clone(),
+                jobs: Vec::with_capacity(jobs.len()),
+            }),
         };
         for (j, job) in jobs.iter().enumerate() {
             let shapes = job.check(rig)?;
@@ -191,6 +200,9 @@ impl WeightBatch {
                 }
             }
             batch.shapes.push(shapes);
+            if let Some(skin) = &mut batch.skin {
+                skin.jobs.push(job.pose.skin_terms(rig));
+            }
         }
         Ok(batch)
     }
@@ -208,6 +220,11 @@ impl WeightBatch {
             slots,
             weights: vec![0.0; weights.len() * slots],
             shapes: vec![shapes; weights.len()],
+            // Synthesised weights name no clip: a skinned rig stands at rest.
+            skin: rig.skeleton.as_ref().map(|sk| SkinPoses {
+                skeleton: sk.clone(),
+                jobs: vec![Vec::new(); weights.len()],
+            }),
         };
         for (j, w) in weights.iter().enumerate() {
             let row = &mut batch.weights[j * slots..(j + 1) * slots];

@@ -285,6 +285,8 @@ impl RigEntry {
                 })
                 .collect(),
             graphs: Vec::new(),
+            skeleton: skeleton_info(rig),
+            import_notes: rig.import_notes.clone(),
         }
     }
 
@@ -381,6 +383,29 @@ pub fn clip_infos(rig: &Rig) -> Vec<ClipInfo> {
     rig.clips.iter().map(clip_info).collect()
 }
 
+/// What the API (and `inspect`) reports about a skinned rig's skeleton.
+pub fn skeleton_info(rig: &Rig) -> Option<crowdmorph_proto::SkeletonInfo> {
+    let sk = rig.skeleton.as_ref()?;
+    let (skinned, rigid) = rig.skinned_and_rigid_vertices();
+    Some(crowdmorph_proto::SkeletonInfo {
+        nodes: sk.nodes.len() as u32,
+        bones: sk.bones.len() as u32,
+        skinned_vertices: skinned as u32,
+        rigid_vertices: rigid as u32,
+        animated_nodes: rig
+            .animated_node_names()
+            .into_iter()
+            .map(str::to_string)
+            .collect(),
+        clips_with_joints: rig
+            .clips
+            .iter()
+            .filter(|c| c.joints.is_some())
+            .map(|c| c.name.clone())
+            .collect(),
+    })
+}
+
 /// What the API reports about one clip.
 pub fn clip_info(c: &crate::rig::Clip) -> ClipInfo {
     ClipInfo {
@@ -431,6 +456,9 @@ fn reachable_box_in_chunks(rig: &Rig, chunk: usize) -> (DVec3, DVec3) {
     let mut bmax = DVec3::splat(f64::NEG_INFINITY);
     let mut vmin: Vec<DVec3> = Vec::new();
     let mut vmax: Vec<DVec3> = Vec::new();
+    // On a skinned rig, per bone the box of the blended intervals of the vertices it moves.
+    let bones = rig.skeleton.as_ref().map_or(0, |s| s.bones.len());
+    let mut bone_box = vec![(DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)); bones];
     for p in rig.primitives.iter() {
         let mut cursor = vec![0usize; p.targets.len()];
         for start in (0..p.positions.len()).step_by(chunk) {
@@ -453,6 +481,16 @@ fn reachable_box_in_chunks(rig: &Rig, chunk: usize) -> (DVec3, DVec3) {
                     *c += 1;
                 }
             }
+            if let Some(skin) = &p.skin {
+                for (i, (&lo, &hi)) in vmin.iter().zip(&vmax).enumerate() {
+                    let (j, w) = (&skin.joints[start + i], &skin.weights[start + i]);
+                    for k in (0..j.len()).filter(|&k| w[k] != 0.0) {
+                        let b = &mut bone_box[j[k] as usize];
+                        *b = (b.0.min(lo), b.1.max(hi));
+                    }
+                }
+                continue;
+            }
             for &v in &vmin {
                 bmin = bmin.min(v);
             }
@@ -461,11 +499,77 @@ fn reachable_box_in_chunks(rig: &Rig, chunk: usize) -> (DVec3, DVec3) {
             }
         }
     }
+    if let Some(sk) = &rig.skeleton {
+        let reach = skinned_reach(rig, sk, &bone_box);
+        bmin = bmin.min(DVec3::splat(-reach));
+        bmax = bmax.max(DVec3::splat(reach));
+    }
     if bmin.x > bmax.x {
         bmin = DVec3::ZERO;
         bmax = DVec3::ZERO;
     }
     (bmin, bmax)
+}
+
+/// How far from the origin a skinned vertex can be in any pose: `max_b |G_b × bind_b × q|`
+/// over every bone `b` and every blended position `q` of a vertex it moves (`bone_box`).
+///
+/// A skinned vertex is a convex combination of its bones' images, so the largest image
+/// bounds it. A node's local transform moves a point `x` to `T + R S x`, of length at most
+/// `|T| + s |x|` with `s` its largest absolute scale component; down the chain from the root,
+/// `|G x| ≤ A + B |x|` with `A = A_parent + B_parent |T|` and `B = B_parent s`. Poses blend
+/// translations and scales convexly and rotations keep lengths, so the largest `|T|` and `s`
+/// over the rest pose and every clip frame bound every pose a request can ask for (a blend,
+/// live weights at rest). The bound is a sphere about the origin, looser than the exact box
+/// of each frame, but it holds for blends, whose nlerped rotations no frame has.
+fn skinned_reach(rig: &Rig, sk: &crate::rig::Skeleton, bone_box: &[(DVec3, DVec3)]) -> f64 {
+    let mut t_max: Vec<f64> = sk
+        .nodes
+        .iter()
+        .map(|n| DVec3::from(n.rest.translation.map(f64::from)).length())
+        .collect();
+    let scale = |s: [f32; 3]| s.iter().fold(0f64, |m, &v| m.max(f64::from(v).abs()));
+    let mut s_max: Vec<f64> = sk.nodes.iter().map(|n| scale(n.rest.scale)).collect();
+    for table in rig.clips.iter().filter_map(|c| c.joints.as_deref()) {
+        for f in 0..table.frames {
+            for (k, &node) in table.nodes.iter().enumerate() {
+                let trs = table.at(f, k);
+                let n = node as usize;
+                t_max[n] = t_max[n].max(DVec3::from(trs.translation.map(f64::from)).length());
+                s_max[n] = s_max[n].max(scale(trs.scale));
+            }
+        }
+    }
+    let mut a = vec![0f64; sk.nodes.len()];
+    let mut b = vec![1f64; sk.nodes.len()];
+    for (i, n) in sk.nodes.iter().enumerate() {
+        let (pa, pb) = match n.parent as usize {
+            p if p < i => (a[p], b[p]),
+            _ => (0.0, 1.0),
+        };
+        a[i] = pa + pb * t_max[i];
+        b[i] = pb * s_max[i];
+    }
+    let mut reach = 0f64;
+    for (bone, &(lo, hi)) in sk.bones.iter().zip(bone_box) {
+        if lo.x > hi.x {
+            continue;
+        }
+        let bind = glam::DMat4::from_cols_array(&bone.bind.map(f64::from));
+        let corners = (0..8).map(|c| {
+            DVec3::new(
+                if c & 1 == 0 { lo.x } else { hi.x },
+                if c & 2 == 0 { lo.y } else { hi.y },
+                if c & 4 == 0 { lo.z } else { hi.z },
+            )
+        });
+        let r = corners
+            .map(|q| bind.transform_point3(q).length())
+            .fold(0f64, f64::max);
+        let n = bone.node as usize;
+        reach = reach.max(a[n] + b[n] * r);
+    }
+    reach
 }
 
 /// Refuses a rig (or a rig with new clips) whose reachable positions exceed

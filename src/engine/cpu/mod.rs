@@ -52,7 +52,7 @@ use self::simd::{Lanes, Portable, Q16Pattern};
 use super::{
     BlendOutput, EngineError, OutputSpec, Precision, Q16Params, Q16Scale, VertexData, WeightBatch,
 };
-use crate::rig::Rig;
+use crate::rig::{BoneScratch, INFLUENCES, Influences, Rig, SkinPoses};
 
 /// Jobs whose weights are stored together; kernels take them `Q` at a time (Q divides 8).
 pub const GROUP: usize = 8;
@@ -426,6 +426,9 @@ pub struct CpuRig {
     permuted: Vec<bool>,
     /// Position and normal blocks the layout would have in vertex order.
     vertex_order_blocks: [usize; 2],
+    /// On a skinned rig, every vertex's bones (all primitives concatenated, in vertex order);
+    /// a vertex of a primitive that follows no bone has weights 0 and is left as blended.
+    skin: Option<Influences>,
 }
 
 /// Where a blend pass writes: `jobs × V × 3` components of `elem` bytes each, in the
@@ -574,6 +577,27 @@ impl CpuRig {
             }
         }
         let topology = NormalTopology::of(rig);
+        let skin = rig.is_skinned().then(|| {
+            let mut all = Influences {
+                joints: Vec::with_capacity(vertices),
+                weights: Vec::with_capacity(vertices),
+            };
+            for prim in rig.primitives.iter() {
+                match &prim.skin {
+                    Some(s) => {
+                        all.joints.extend_from_slice(&s.joints);
+                        all.weights.extend_from_slice(&s.weights);
+                    }
+                    None => {
+                        let n = prim.positions.len();
+                        all.joints.extend(std::iter::repeat_n([0; INFLUENCES], n));
+                        all.weights
+                            .extend(std::iter::repeat_n([0.0; INFLUENCES], n));
+                    }
+                }
+            }
+            all
+        });
 
         CpuRig {
             vertices,
@@ -589,6 +613,7 @@ impl CpuRig {
             unperm: order.unperm,
             permuted: order.permuted,
             vertex_order_blocks: order.natural_blocks,
+            skin,
         }
     }
 
@@ -617,6 +642,7 @@ impl CpuRig {
             + self.topology.triangles.len() * 12
             + (self.topology.vertices.len() + self.topology.incident_start.len()) * 4
             + self.topology.incident.len() * 4
+            + self.skin.as_ref().map_or(0, |s| s.bytes() as usize)
     }
 
     /// Position blocks of the slots below `shapes`: what the kernel loads per job when every
@@ -694,8 +720,13 @@ impl CpuRig {
         out.vertices = self.vertices;
         out.jobs = jobs;
         let recompute = spec.normals && !self.topology.vertices.is_empty();
+        let skin = match (&self.skin, &batch.skin) {
+            (Some(influences), Some(poses)) => Some((influences, poses)),
+            (None, None) => None,
+            _ => return Err(EngineError::SkinMismatch),
+        };
 
-        if recompute {
+        if recompute || skin.is_some() {
             // Normals come from the blended f32 positions: blend in f32 (kept in cache for
             // the normals pass), recompute, then encode both in the wire format.
             let mut positions = take_f32(&mut out.positions, len);
@@ -708,7 +739,7 @@ impl CpuRig {
             };
             self.blend(&groups, pos, OutPtr::of_f32(&mut positions), Format::F32);
             // Vertices whose normals are all recomputed need no blended normals first.
-            if self.topology.vertices.len() < self.vertices {
+            if spec.normals && self.topology.vertices.len() < self.vertices {
                 let nrm = Pass {
                     base: &self.base_normals,
                     blocks: &self.normals,
@@ -717,9 +748,24 @@ impl CpuRig {
                 };
                 self.blend(&groups, nrm, OutPtr::of_f32(&mut normals), Format::F32);
             }
-            self.recompute_normals(&positions, &mut normals, jobs);
+            if let Some((influences, poses)) = skin {
+                // Recomputed normals are taken from the skinned positions below, so only
+                // blended normals are skinned.
+                let skin_normals = spec.normals && self.topology.vertices.len() < self.vertices;
+                self.skin(
+                    influences,
+                    poses,
+                    &mut positions,
+                    skin_normals.then_some(&mut normals[..]),
+                );
+            }
+            if spec.normals {
+                self.recompute_normals(&positions, &mut normals, jobs);
+                out.normals = Some(VertexData::F32(normals));
+            } else {
+                out.normals = None;
+            }
             out.positions = VertexData::F32(positions);
-            out.normals = Some(VertexData::F32(normals));
             out.encode_as(spec);
             return Ok(());
         }
@@ -868,6 +914,63 @@ impl CpuRig {
             run(0);
         } else {
             (0..items).into_par_iter().for_each(run);
+        }
+    }
+
+    /// The `skin` pass (glTF §3.7.3, after the blend): each vertex becomes `Σ w M p` over its
+    /// bones' matrices in its job's pose, its normal `normalize(Σ w N n)`. A job's bones are
+    /// resolved once, in the thread that skins it, and serve every vertex of the job; jobs
+    /// are the unit of parallel work (a job is a few thousand vertices, a batch many jobs).
+    fn skin(
+        &self,
+        influences: &Influences,
+        poses: &SkinPoses,
+        positions: &mut [f32],
+        normals: Option<&mut [f32]>,
+    ) {
+        let stride = self.vertices * 3;
+        if stride == 0 {
+            return;
+        }
+        let apply =
+            |scratch: &mut BoneScratch, j: usize, pos: &mut [f32], nrm: Option<&mut [f32]>| {
+                poses.bones(j, scratch);
+                let bones = &scratch.bones;
+                let p: &mut [Vec3] = bytemuck::cast_slice_mut(pos);
+                match nrm {
+                    Some(nrm) => {
+                        let n: &mut [Vec3] = bytemuck::cast_slice_mut(nrm);
+                        for (v, (p, n)) in p.iter_mut().zip(n.iter_mut()).enumerate() {
+                            if influences.weights[v][0] != 0.0 {
+                                let (sp, sn) = influences.skin(v, bones, *p, Some(*n));
+                                *p = sp;
+                                *n = sn.unwrap_or(*n);
+                            }
+                        }
+                    }
+                    None => {
+                        for (v, p) in p.iter_mut().enumerate() {
+                            if influences.weights[v][0] != 0.0 {
+                                *p = influences.skin(v, bones, *p, None).0;
+                            }
+                        }
+                    }
+                }
+            };
+        match normals {
+            Some(normals) => positions
+                .par_chunks_mut(stride)
+                .zip(normals.par_chunks_mut(stride))
+                .enumerate()
+                .for_each_init(BoneScratch::default, |scratch, (j, (pos, nrm))| {
+                    apply(scratch, j, pos, Some(nrm))
+                }),
+            None => positions
+                .par_chunks_mut(stride)
+                .enumerate()
+                .for_each_init(BoneScratch::default, |scratch, (j, pos)| {
+                    apply(scratch, j, pos, None)
+                }),
         }
     }
 
