@@ -584,6 +584,31 @@ pub struct RigInfo {
     /// a missing field as empty.
     #[serde(default)]
     pub graphs: Vec<String>,
+    /// The skeleton its vertices follow after the morph targets, for a skinned rig (null
+    /// otherwise). Added after `graphs`; JSON readers should treat a missing field as null.
+    #[serde(default)]
+    pub skeleton: Option<SkeletonInfo>,
+    /// What the import approximated or left out of the file, a sentence each (empty when
+    /// nothing was). JSON readers should treat a missing field as empty.
+    #[serde(default)]
+    pub import_notes: Vec<String>,
+}
+
+/// A skinned rig's skeleton (see [`RigInfo::skeleton`]).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SkeletonInfo {
+    /// Nodes of the hierarchy its bones hang from.
+    pub nodes: u32,
+    /// Bones: a skin's joints, and one per node a rigid mesh hangs from.
+    pub bones: u32,
+    /// Vertices moved by a skin's joints.
+    pub skinned_vertices: u32,
+    /// Vertices of meshes that hang rigidly from an animated node.
+    pub rigid_vertices: u32,
+    /// Names of the nodes some clip animates.
+    pub animated_nodes: Vec<String>,
+    /// Clips that animate nodes (the others leave the skeleton at rest).
+    pub clips_with_joints: Vec<String>,
 }
 
 /// A target name with several weight channels (see [`RigInfo::split_targets`]).

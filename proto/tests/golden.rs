@@ -265,6 +265,15 @@ fn rig_info() -> RigInfo {
             channels: 2,
         }],
         graphs: vec!["moods".into()],
+        skeleton: Some(SkeletonInfo {
+            nodes: 3,
+            bones: 2,
+            skinned_vertices: 2,
+            rigid_vertices: 1,
+            animated_nodes: vec!["Jaw".into()],
+            clips_with_joints: vec!["wave".into()],
+        }),
+        import_notes: vec!["2 translation/rotation/scale animation channels target nodes that move no mesh (no skin uses them and no mesh hangs from them): left out".into()],
     }
 }
 

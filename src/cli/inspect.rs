@@ -67,6 +67,10 @@ pub struct RigSummary {
     /// The glTF extensions the file uses and how the importer treated each (empty for the
     /// embedded rig); see [`file_extensions`].
     pub extensions: Vec<crowdmorph::import::extensions::ExtensionUse>,
+    /// The skeleton of a skinned rig.
+    pub skeleton: Option<crowdmorph_proto::SkeletonInfo>,
+    /// What the import approximated or left out.
+    pub import_notes: Vec<String>,
 }
 
 /// The glTF extensions a rig file uses or requires and how the importer treats each: read
@@ -182,6 +186,8 @@ pub fn summarize(rig: &Rig) -> RigSummary {
             .map(|(n, c)| (n.to_string(), c))
             .collect(),
         extensions: Vec::new(),
+        skeleton: crowdmorph::server::registry::skeleton_info(rig),
+        import_notes: rig.import_notes.clone(),
     }
 }
 
@@ -271,6 +277,23 @@ fn inspect_text(s: &RigSummary) -> String {
             "  {:<24} {:>6} frames at {} fps ({:.2} s)",
             c.name, c.frames, c.fps, c.duration
         );
+    }
+    if let Some(k) = &s.skeleton {
+        let _ = writeln!(
+            o,
+            "skeleton: {} nodes, {} bones; {} skinned vertices, {} rigid under a node; \
+             {} of {} clips animate nodes (morph targets first, then skinning)",
+            k.nodes,
+            k.bones,
+            k.skinned_vertices,
+            k.rigid_vertices,
+            k.clips_with_joints.len(),
+            s.clips.len()
+        );
+        let _ = writeln!(o, "  animated nodes: {}", k.animated_nodes.join(", "));
+    }
+    for n in &s.import_notes {
+        let _ = writeln!(o, "import note: {n}");
     }
     let _ = writeln!(o, "LOD levels (shapes): {:?}", s.lod_levels);
     if let (Some(b), Some(m)) = (&s.backend, &s.memory) {
