@@ -26,4 +26,5 @@ mod rigs;
 mod sampling;
 mod server;
 mod shaders;
+mod skin;
 mod tidy;

@@ -23,6 +23,7 @@ mod python_peer;
 mod render;
 mod replicas;
 mod sessions;
+mod skin;
 mod temporal;
 mod viewer;
 

@@ -541,3 +541,102 @@ pub fn triangle_rig() -> Builder {
     b.scene(&[node]);
     b
 }
+
+/// Node indices of [`skinned_triangle_rig`].
+pub struct SkinnedTriangle {
+    /// The mesh node (it carries the skin).
+    pub mesh_node: usize,
+    /// The root joint.
+    pub root: usize,
+    /// The child joint, rotated by the `open` animation.
+    pub jaw: usize,
+    /// The JOINTS_0 accessor.
+    pub joints: usize,
+    /// The WEIGHTS_0 accessor.
+    pub weights: usize,
+    /// The inverse bind matrices accessor.
+    pub ibm: usize,
+}
+
+/// [`TRIANGLE`] with targets `a` and `b`, skinned to two joints: `Root` at the origin and its
+/// child `Jaw` at (0, 1, 0) (vertex 0 follows `Root`, vertex 1 `Jaw`, vertex 2 both half);
+/// animation `open` turns `Jaw` about +X by up to 0.8 rad over one second (LINEAR) and
+/// moves `Root` by +Z (STEP), `wag` turns `Jaw` about +Z (CUBICSPLINE). Tests edit the
+/// returned accessors and nodes to make it hostile.
+pub fn skinned_triangle_rig() -> (Builder, SkinnedTriangle) {
+    let mut b = Builder::new();
+    let prim = b.primitive(&TRIANGLE, Some(&[0, 1, 2]), &triangle_targets());
+    let joints = b.accessor_ints(
+        Component::U8,
+        &[0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0],
+        "VEC4",
+        false,
+    );
+    let weights = b.accessor_f32(
+        &[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.5, 0.5, 0.0, 0.0],
+        "VEC4",
+    );
+    let mut prim = prim;
+    prim["attributes"]["JOINTS_0"] = json!(joints);
+    prim["attributes"]["WEIGHTS_0"] = json!(weights);
+    let mesh = b.mesh(vec![prim], Some(&["a", "b"]));
+    let mesh_node = b.node(Some(mesh));
+    let root = b.node(None);
+    let jaw = b.node(None);
+    b.json_mut()["nodes"][root]["name"] = json!("Root");
+    b.json_mut()["nodes"][root]["children"] = json!([jaw]);
+    b.json_mut()["nodes"][jaw]["name"] = json!("Jaw");
+    b.json_mut()["nodes"][jaw]["translation"] = json!([0.0, 1.0, 0.0]);
+    // Inverse binds: Root is the identity, Jaw's bind is at (0, 1, 0).
+    #[rustfmt::skip]
+    let ibm_values: [f32; 32] = [
+        1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0,
+        1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, -1.0, 0.0, 1.0,
+    ];
+    let ibm = b.accessor_f32(&ibm_values, "MAT4");
+    b.json_mut()["skins"] = json!([{ "joints": [root, jaw], "inverseBindMatrices": ibm }]);
+    b.json_mut()["nodes"][mesh_node]["skin"] = json!(0);
+    b.scene(&[mesh_node, root]);
+    let (s, c) = (0.4f32.sin(), 0.4f32.cos());
+    let times = b.accessor_scalar(&[0.0, 1.0]);
+    let rot = b.accessor_f32(&[0.0, 0.0, 0.0, 1.0, s, 0.0, 0.0, c], "VEC4");
+    let step_times = b.accessor_scalar(&[0.0, 0.5]);
+    let lift = b.accessor_f32(&[0.0, 0.0, 0.0, 0.0, 0.0, 0.25], "VEC3");
+    // CUBICSPLINE: (in-tangent, value, out-tangent) per key.
+    let (s2, c2) = (0.3f32.sin(), 0.3f32.cos());
+    #[rustfmt::skip]
+    let wag = b.accessor_f32(&[
+        0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.5, 0.0,
+        0.0, 0.0, -0.5, 0.0, 0.0, 0.0, s2, c2, 0.0, 0.0, 0.0, 0.0,
+    ], "VEC4");
+    let anims = json!([
+        {
+            "name": "open",
+            "samplers": [
+                { "input": times, "output": rot, "interpolation": "LINEAR" },
+                { "input": step_times, "output": lift, "interpolation": "STEP" },
+            ],
+            "channels": [
+                { "sampler": 0, "target": { "node": jaw, "path": "rotation" } },
+                { "sampler": 1, "target": { "node": root, "path": "translation" } },
+            ],
+        },
+        {
+            "name": "wag",
+            "samplers": [{ "input": times, "output": wag, "interpolation": "CUBICSPLINE" }],
+            "channels": [{ "sampler": 0, "target": { "node": jaw, "path": "rotation" } }],
+        },
+    ]);
+    b.json_mut()["animations"] = anims;
+    (
+        b,
+        SkinnedTriangle {
+            mesh_node,
+            root,
+            jaw,
+            joints,
+            weights,
+            ibm,
+        },
+    )
+}

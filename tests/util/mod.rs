@@ -9,6 +9,7 @@
 
 pub mod builder;
 pub mod image;
+pub mod skin;
 
 use std::path::{Path, PathBuf};
 
@@ -166,6 +167,8 @@ impl RefDoc {
             "VEC2" => 2,
             "VEC3" => 3,
             "VEC4" => 4,
+            // Float MAT4 only (inverse bind matrices): no column padding.
+            "MAT4" => 16,
             t => panic!("unexpected accessor type {t}"),
         };
         let ct = u(&a["componentType"]);
@@ -250,7 +253,7 @@ impl RefDoc {
             .collect()
     }
 
-    fn local_matrix(node: &Value) -> DMat4 {
+    pub fn local_matrix(node: &Value) -> DMat4 {
         if let Some(m) = node["matrix"].as_array() {
             let m: Vec<f64> = m.iter().map(|x| x.as_f64().unwrap()).collect();
             return DMat4::from_cols_slice(&m);
@@ -608,6 +611,7 @@ pub fn random_rig(seed: u64, sizes: &[usize], n_targets: usize) -> crowdmorph::r
             indices,
             targets,
             base_color: Primitive::default_base_color(),
+            skin: None,
         });
     }
     let mut rig = rig_with_random_clip(
@@ -655,6 +659,8 @@ pub fn rig_with_random_clip(
         primitives: std::sync::Arc::new(primitives),
         clips: vec![Clip::new("random", 30.0, n_targets, frames, weights).expect("clip")],
         lod,
+        skeleton: None,
+        import_notes: Vec::new(),
     }
 }
 
