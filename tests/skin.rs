@@ -251,3 +251,130 @@ fn the_gpu_backend_evaluates_a_skinned_rig_on_the_cpu_engine_and_says_so() {
         assert_eq!(out.job_positions(j), want.job_positions(j), "job {j}");
     }
 }
+
+/// The f64 pose of `rig`'s clip `clip` at `frame` from the rig's own arrays: morph targets
+/// (`util::rig_oracle`), then each vertex by its bones, with node transforms composed in f64
+/// from the joint table; normals recomputed from the posed mesh where the rig recomputes them.
+fn rig_pose_f64(rig: &Rig, clip: usize, frame: u32) -> (Vec<DVec3>, Vec<DVec3>) {
+    use glam::{DMat4, DQuat};
+    let c = &rig.clips[clip];
+    let w: Vec<f64> = (0..rig.targets.len())
+        .map(|t| f64::from(c.weight(t, frame)))
+        .collect();
+    let w = crate::util::effective_weights(rig, &w, 0);
+    let (morphed, _) = crate::util::rig_oracle(rig, &w);
+    let sk = rig.skeleton.as_ref().expect("skinned");
+    let table = c.joints.as_ref().expect("joint table");
+    let mut globals: Vec<DMat4> = Vec::new();
+    for (i, n) in sk.nodes.iter().enumerate() {
+        let mut trs = n.rest;
+        if let Some(k) = table.nodes.iter().position(|&x| x as usize == i) {
+            trs = table.at(frame, k);
+        }
+        let local = DMat4::from_scale_rotation_translation(
+            DVec3::from(trs.scale.map(f64::from)),
+            DQuat::from_array(trs.rotation.map(f64::from)).normalize(),
+            DVec3::from(trs.translation.map(f64::from)),
+        );
+        let g = match globals.get(n.parent as usize) {
+            Some(p) => *p * local,
+            None => local,
+        };
+        globals.push(g);
+    }
+    let bones: Vec<DMat4> = sk
+        .bones
+        .iter()
+        .map(|b| globals[b.node as usize] * DMat4::from_cols_array(&b.bind.map(f64::from)))
+        .collect();
+    let mut posed = Vec::with_capacity(morphed.len());
+    let mut normals = Vec::with_capacity(morphed.len());
+    let mut v0 = 0;
+    for p in rig.primitives.iter() {
+        let skin = p.skin.as_ref().expect("every primitive skinned");
+        let part: Vec<DVec3> = (0..p.positions.len())
+            .map(|i| {
+                let x = morphed[v0 + i];
+                (0..4)
+                    .map(|k| {
+                        f64::from(skin.weights[i][k])
+                            * bones[skin.joints[i][k] as usize].transform_point3(x)
+                    })
+                    .sum()
+            })
+            .collect();
+        normals.extend(crate::util::ref_vertex_normals(&part, &p.indices));
+        posed.extend(part);
+        v0 += p.positions.len();
+    }
+    (posed, normals)
+}
+
+#[test]
+fn a_skinned_face_turns_its_eyes_and_opens_its_jaw() {
+    let rig = crowdmorph::synthetic::skinned_head();
+    let diag = f64::from(rig.bbox().diagonal());
+    let talk = rig.clip_index("talk").expect("talk");
+    let idle = rig.clip_index("idle").expect("idle");
+    let asked = [(talk, 0), (talk, 10), (talk, 25), (talk, 77), (idle, 50)];
+    let jobs: Vec<BlendJob> = asked
+        .iter()
+        .map(|&(c, f)| BlendJob::frame(c as u32, f, 0))
+        .collect();
+    let out = evaluate(&rig, &jobs);
+    let mut unskinned = rig.clone();
+    unskinned.skeleton = None;
+    unskinned.primitives = std::sync::Arc::new(
+        rig.primitives
+            .iter()
+            .map(|p| crowdmorph::rig::Primitive {
+                skin: None,
+                ..p.clone()
+            })
+            .collect(),
+    );
+    for c in &mut unskinned.clips {
+        c.joints = None;
+    }
+    let morph_only = evaluate(&unskinned, &jobs);
+    let eyes = rig.vertex_offsets()[1]..rig.vertex_count();
+    for (j, &(c, f)) in asked.iter().enumerate() {
+        let (want_p, want_n) = rig_pose_f64(&rig, c, f);
+        let got = out.job_positions(j);
+        let got_n = out.job_normals(j).expect("normals");
+        let (mut dp, mut dn, mut eye_move, mut moved) = (0f64, 0f64, 0f64, 0f64);
+        let m = morph_only.job_positions(j);
+        for v in 0..want_p.len() {
+            let g = DVec3::new(
+                f64::from(got[3 * v]),
+                f64::from(got[3 * v + 1]),
+                f64::from(got[3 * v + 2]),
+            );
+            let gn = DVec3::new(
+                f64::from(got_n[3 * v]),
+                f64::from(got_n[3 * v + 1]),
+                f64::from(got_n[3 * v + 2]),
+            );
+            let mv = DVec3::new(
+                f64::from(m[3 * v]),
+                f64::from(m[3 * v + 1]),
+                f64::from(m[3 * v + 2]),
+            );
+            dp = dp.max((g - want_p[v]).length());
+            dn = dn.max((gn - want_n[v]).length());
+            moved = moved.max((g - mv).length());
+            if eyes.contains(&v) {
+                eye_move = eye_move.max((g - mv).length());
+            }
+        }
+        assert!(
+            dp <= 1e-5 * diag,
+            "clip {c} frame {f}: position off by {dp:e}"
+        );
+        assert!(dn <= 1e-3, "clip {c} frame {f}: normal off by {dn:e}");
+        assert!(
+            moved > 1e-3 * diag && eye_move > 1e-3 * diag,
+            "clip {c} frame {f}: the joints move the face ({moved}) and the eyes ({eye_move})"
+        );
+    }
+}

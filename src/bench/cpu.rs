@@ -13,6 +13,8 @@
 //!   bytes between warm buffers);
 //! - the wire formats (f32, f16, q16) written by the kernel's output stage;
 //! - a clip's frames against four-layer blends of them (what a blend adds to the gather);
+//! - on a skinned rig, the blend and skin passes against the blend alone (`--skinned-head` for
+//!   the embedded head with five joints);
 //! - batches of 1, 10, 100 and 1,000 unique jobs per engine call, against the dense peer at
 //!   each size, and the per-call overhead of one job;
 //! - LOD: the cost of each level against the deltas it keeps (a least-squares line whose
@@ -297,6 +299,113 @@ pub struct BenchReport {
     pub mesh_levels: Vec<MeshRow>,
     /// Each full-mesh LOD level against the PCA form within its error.
     pub pca: Vec<PcaRow>,
+    /// On a skinned rig, what the skin pass adds to the blend.
+    pub skin: Option<SkinRow>,
+}
+
+/// What skinning adds on a skinned rig (issue 28's goal: at most 30 % on top of the blend for
+/// a five-joint face): `unique` jobs of the rig's clip frames (real poses) evaluated by the
+/// rig, and by the same rig with its skeleton removed (the blend alone), alternating in one
+/// loop.
+#[derive(Clone, Debug, Serialize)]
+pub struct SkinRow {
+    /// Bones of the skeleton.
+    pub bones: usize,
+    /// Non-zero influences per vertex, on average.
+    pub influences_per_vertex: f64,
+    /// Median ms: the blend alone.
+    pub blend_ms: f64,
+    /// Median ms: blend, then skin.
+    pub skinned_ms: f64,
+    /// `skinned_ms / blend_ms − 1`.
+    pub overhead: f64,
+}
+
+/// `rig` without its skeleton: the same blend, no skin pass.
+fn without_skeleton(rig: &Rig) -> Rig {
+    let mut r = rig.clone();
+    r.skeleton = None;
+    r.primitives = std::sync::Arc::new(
+        rig.primitives
+            .iter()
+            .map(|p| crate::rig::Primitive {
+                skin: None,
+                ..p.clone()
+            })
+            .collect(),
+    );
+    for c in &mut r.clips {
+        c.joints = None;
+    }
+    r
+}
+
+/// Measures [`SkinRow`] on a skinned rig with clips (`None` otherwise).
+fn skin_row(
+    rig: &Rig,
+    cpu: &CpuRig,
+    opt: &BenchOptions,
+    spec: OutputSpec,
+    bar: Option<&ProgressBar>,
+) -> Result<Option<SkinRow>> {
+    let Some(sk) = &rig.skeleton else {
+        return Ok(None);
+    };
+    let poses: Vec<(u32, u32)> = rig
+        .clips
+        .iter()
+        .enumerate()
+        .filter(|(_, c)| c.joints.is_some())
+        .flat_map(|(ci, c)| (0..c.frames).map(move |f| (ci as u32, f)))
+        .collect();
+    if poses.is_empty() {
+        return Ok(None);
+    }
+    let jobs: Vec<BlendJob> = (0..opt.unique)
+        .map(|i| {
+            let (c, f) = poses[i * poses.len().max(1) / opt.unique.max(1) % poses.len()];
+            BlendJob::frame(c, f, opt.lod)
+        })
+        .collect();
+    let plain = without_skeleton(rig);
+    let plain_cpu = CpuRig::new(&plain);
+    let mut outs = [BlendOutput::default(), BlendOutput::default()];
+    let mut times = [Vec::new(), Vec::new()];
+    let start = Instant::now();
+    for round in 0.. {
+        if round >= 7 && (start.elapsed().as_secs_f64() >= 2.0 * opt.seconds || round >= 2000) {
+            break;
+        }
+        for (i, out) in outs.iter_mut().enumerate() {
+            let t = Instant::now();
+            if i == 0 {
+                plain_cpu.evaluate_into(&WeightBatch::gather(&plain, &jobs)?, spec, out)?;
+            } else {
+                cpu.evaluate_into(&WeightBatch::gather(rig, &jobs)?, spec, out)?;
+            }
+            if round >= 2 {
+                times[i].push(t.elapsed().as_secs_f64() * 1e3);
+            }
+        }
+    }
+    if let Some(b) = bar {
+        b.inc(2);
+    }
+    let [blend_ms, skinned_ms] = times.map(|t| Samples::new(t).median());
+    let (mut used, mut vertices) = (0usize, 0usize);
+    for p in rig.primitives.iter() {
+        if let Some(s) = &p.skin {
+            used += s.weights.iter().flatten().filter(|&&w| w != 0.0).count();
+            vertices += s.weights.len();
+        }
+    }
+    Ok(Some(SkinRow {
+        bones: sk.bones.len(),
+        influences_per_vertex: used as f64 / vertices.max(1) as f64,
+        blend_ms,
+        skinned_ms,
+        overhead: skinned_ms / blend_ms - 1.0,
+    }))
 }
 
 /// A LOD level against the variable-PCA form of the deltas built within its error.
@@ -622,7 +731,7 @@ pub fn bench_cpu(rig: &Rig, opt: &BenchOptions) -> Result<BenchReport> {
     };
     let spec = spec_of(Precision::F32);
     let levels = rig.lod.levels.len() as u32;
-    let steps = 2 * u64::from(levels) + 2 * opt.batches.len() as u64 + 14;
+    let steps = 2 * u64::from(levels) + 2 * opt.batches.len() as u64 + 16;
     let bar = opt.progress.then(|| super::progress_bar(steps, "bench"));
     let bar = bar.as_ref();
 
@@ -701,6 +810,7 @@ pub fn bench_cpu(rig: &Rig, opt: &BenchOptions) -> Result<BenchReport> {
     }
 
     let blend = blend_row(rig, &cpu, &weights[..opt.unique], opt, spec, bar)?;
+    let skin = skin_row(rig, &cpu, opt, spec, bar)?;
 
     let layout_ms = layout_ab(
         rig,
@@ -909,6 +1019,7 @@ pub fn bench_cpu(rig: &Rig, opt: &BenchOptions) -> Result<BenchReport> {
         fraction_of_memcpy: memcpy_ms / eval_ms,
         formats,
         blend,
+        skin,
         batches,
         one_head_ms,
         one_head_overhead_ms: one_head_ms - base_ms / jobs,
@@ -1046,6 +1157,17 @@ pub fn report_text(r: &BenchReport) -> String {
         r.blend.blends_ms,
         r.blend.overhead * 100.0
     );
+    if let Some(k) = &r.skin {
+        s += &format!(
+            "  skin         {} bones, {:.2} influences/vertex: blend {:.3} ms, blend + skin {:.3} ms for {} clip frames: {:+.1} %\n",
+            k.bones,
+            k.influences_per_vertex,
+            k.blend_ms,
+            k.skinned_ms,
+            r.unique,
+            k.overhead * 100.0
+        );
+    }
     for b in &r.batches {
         s += &format!(
             "  {:>5} per call {:>9.3} ms  {:>8.2} µs/head  dense {:>9.3} ms  → {:.2}×\n",

@@ -200,8 +200,12 @@ pub enum Command {
     /// copy bandwidth), the wire formats, batch sizes and LOD levels, measured in the same run.
     Cpu {
         /// glTF/GLB rig (default: the embedded head).
-        #[arg(long)]
+        #[arg(long, conflicts_with = "skinned_head")]
         rig: Option<PathBuf>,
+        /// The embedded head with five joints (neck, head, jaw, eyes) instead: what skinning
+        /// costs on a face.
+        #[arg(long)]
+        skinned_head: bool,
         /// Heads in the crowd.
         #[arg(long, default_value_t = 100)]
         heads: usize,
@@ -290,6 +294,7 @@ pub fn run(which: Command) -> Result<()> {
     match which {
         Command::Cpu {
             rig,
+            skinned_head,
             heads,
             unique,
             lod,
@@ -300,7 +305,11 @@ pub fn run(which: Command) -> Result<()> {
             numpy,
             json,
         } => {
-            let rig = load_rig(rig.as_deref())?;
+            let rig = if skinned_head {
+                crowdmorph::synthetic::skinned_head()
+            } else {
+                load_rig(rig.as_deref())?
+            };
             let mesh_fractions = if mesh_fractions == "none" {
                 Vec::new()
             } else {

@@ -209,7 +209,7 @@ impl BoneMatrix {
     }
 
     /// `M p` (the affine transform of a point).
-    #[inline]
+    #[inline(always)]
     pub fn point(&self, p: Vec3) -> Vec3 {
         let r = &self.position;
         Vec3::new(
@@ -220,7 +220,7 @@ impl BoneMatrix {
     }
 
     /// The normal transform of `n` (not normalized).
-    #[inline]
+    #[inline(always)]
     pub fn normal(&self, n: Vec3) -> Vec3 {
         let r = &self.normal;
         Vec3::new(
@@ -488,7 +488,7 @@ impl Influences {
     }
 
     /// Skins one vertex: `Σ w M p`, and the normal `normalize(Σ w N n)` when given.
-    #[inline]
+    #[inline(always)]
     pub fn skin(
         &self,
         v: usize,
