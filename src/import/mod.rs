@@ -1,7 +1,8 @@
 //! Readers that turn files into validated rigs and clips.
 //!
 //! - [`gltf`]: `.gltf` (embedded or external buffers) and `.glb` rigs, with every animation that
-//!   drives morph weights baked into a clip;
+//!   drives morph weights or moves a skin's joints (or a mesh's node) baked into a clip; skins
+//!   and node hierarchies are read by `skin`;
 //! - [`clips`]: clip sources on their own — CSV (ARKit face-capture style) and JSON tables, and
 //!   the animations of another glTF file — mapped onto an existing rig by target name.
 //!

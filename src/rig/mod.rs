@@ -18,6 +18,10 @@
 //!   write every channel of the name; glTF animations write each node's own channel.
 //! - The evaluation vertex space is all primitives concatenated in order; [`Rig::vertex_offsets`]
 //!   maps a primitive to its first vertex there. Output buffers use this order.
+//! - A skinned rig ([`Rig::skeleton`]) is posed as glTF does: morph targets first, then each
+//!   vertex by its bones ([`Primitive::skin`]) in the job's pose; clips carry the joint
+//!   transforms beside their weights ([`Clip::joints`]). Rig space holds the rest pose
+//!   (`skin.rs`).
 
 mod clip;
 mod cost;
