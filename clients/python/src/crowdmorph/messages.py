@@ -523,6 +523,26 @@ class SplitTarget:
     channels: int
 
 
+@wire(
+    ("nodes", U32),
+    ("bones", U32),
+    ("skinned_vertices", U32),
+    ("rigid_vertices", U32),
+    ("animated_nodes", Vec(STR)),
+    ("clips_with_joints", Vec(STR)),
+)
+@dataclass
+class SkeletonInfo:
+    """A skinned rig's skeleton: its vertices follow these bones after the morph targets."""
+
+    nodes: int
+    bones: int
+    skinned_vertices: int
+    rigid_vertices: int
+    animated_nodes: List[str]
+    clips_with_joints: List[str]
+
+
 @wire(("shapes", U32), ("mesh", Opt(U32)), ("vertices", U32), ("triangles", U32))
 @dataclass
 class LodLevelInfo:
@@ -570,6 +590,8 @@ class LodInfo:
     ("memory", Msg(Memory)),
     ("split_targets", Vec(Msg(SplitTarget))),
     ("graphs", Vec(STR)),
+    ("skeleton", Opt(Msg(SkeletonInfo))),
+    ("import_notes", Vec(STR)),
 )
 @dataclass
 class RigInfo:
@@ -588,6 +610,8 @@ class RigInfo:
     memory: Memory
     split_targets: List[SplitTarget] = field(default_factory=list)
     graphs: List[str] = field(default_factory=list)
+    skeleton: Optional[SkeletonInfo] = None
+    import_notes: List[str] = field(default_factory=list)
 
 
 @wire(("rigs", Vec(Msg(RigInfo))))
