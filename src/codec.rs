@@ -401,6 +401,7 @@ mod tests {
             yaw: 45.0,
             scale: 2.0,
             graph: None,
+            joints: Default::default(),
         }];
         let mut prefix = Vec::new();
         put_varint(&mut prefix, 0);

@@ -7,10 +7,10 @@
 
 use std::collections::HashMap;
 
-use crate::rig::Pose;
+use crate::rig::{JointPose, Pose};
 
 /// What makes two heads clones: same rig, pose (clip and resolved frame, or a canonical blend,
-/// or quantized live weights) and level of detail.
+/// or quantized live weights), level of detail and joint overrides.
 #[derive(Clone, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct JobKey {
     /// Rig index in the caller's registry.
@@ -19,6 +19,9 @@ pub struct JobKey {
     pub pose: Pose,
     /// LOD level.
     pub lod: u32,
+    /// Joint overrides (quantized, canonical; only on skinned rigs, only of joints the LOD
+    /// level keeps).
+    pub joints: JointPose,
 }
 
 impl JobKey {
@@ -28,6 +31,7 @@ impl JobKey {
             rig,
             pose: Pose::Frame { clip, frame },
             lod,
+            joints: JointPose::NONE,
         }
     }
 }

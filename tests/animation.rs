@@ -88,6 +88,7 @@ fn blends_match_the_f64_blend_of_their_frames() {
             .map(|(base, layers)| BlendJob {
                 pose: Pose::blend(*base, layers),
                 lod: 0,
+                joints: Default::default(),
             })
             .collect();
         let engine = Engine::cpu();
@@ -162,10 +163,7 @@ fn live_weights_equal_the_clip_frame_that_has_them() {
             let mut w = vec![0.0; rig.targets.len()];
             rig.clips[c].frame_weights(f, &mut w);
             let frame = BlendJob::frame(c as u32, f, 0);
-            let live = BlendJob {
-                pose: Pose::live(&w),
-                lod: 0,
-            };
+            let live = BlendJob::posed(Pose::live(&w), 0);
             let out = engine
                 .evaluate(&prepared, &[frame, live], OutputSpec::default())
                 .expect("evaluate");
@@ -191,11 +189,8 @@ fn blends_gather_the_same_weights_in_any_order() {
     let a = Pose::blend((0, 10), &[(1, 5, 0.25), (2, 7, 0.125)]);
     let b = Pose::blend((0, 10), &[(2, 7, 0.125 + 1e-7), (1, 5, 0.25 - 1e-7)]);
     assert_eq!(a, b);
-    let batch = WeightBatch::gather(
-        &rig,
-        &[BlendJob { pose: a, lod: 0 }, BlendJob { pose: b, lod: 0 }],
-    )
-    .expect("gather");
+    let batch =
+        WeightBatch::gather(&rig, &[BlendJob::posed(a, 0), BlendJob::posed(b, 0)]).expect("gather");
     assert_eq!(batch.job(0), batch.job(1));
     assert!(batch.active_pairs() > 0);
 }

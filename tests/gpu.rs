@@ -53,7 +53,7 @@ fn random_jobs(rig: &Rig, seed: u64, n: usize) -> Vec<BlendJob> {
                     Pose::live(&w)
                 }
             };
-            BlendJob { pose, lod }
+            BlendJob::posed(pose, lod)
         })
         .collect();
     let clones = jobs[..n / 4].to_vec();

@@ -806,14 +806,7 @@ fn pca_levels_are_used_where_they_pay_and_stay_within_their_budget() {
             .collect();
         poses.push((Pose::blend((0, 3), &[(1, 5, t)]), wt));
         for (pose, w) in poses {
-            let got = engine_positions(
-                &engine,
-                &prepared,
-                BlendJob {
-                    pose,
-                    lod: level as u32,
-                },
-            );
+            let got = engine_positions(&engine, &prepared, BlendJob::posed(pose, level as u32));
             // Against the derived rig's f64 oracle: the engine evaluates the form exactly.
             let err = max_abs_diff(&got, &form_oracle(form, &derived, &w));
             assert!(
@@ -889,10 +882,7 @@ fn pca_levels_pay_on_ict_facekits_coarse_levels() {
         let got = engine_positions(
             &engine,
             &prepared,
-            BlendJob {
-                pose: crowdmorph::rig::Pose::live(&w),
-                lod: l as u32,
-            },
+            BlendJob::posed(crowdmorph::rig::Pose::live(&w), l as u32),
         );
         let w64: Vec<f64> = w.iter().map(|&x| f64::from(x)).collect();
         let (exact, _) = rig_oracle(&rig, &w64);

@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use crowdmorph::engine::cpu::CpuRig;
 use crowdmorph::engine::{BlendJob, BlendOutput, OutputSpec, Precision, WeightBatch};
 use crowdmorph::import::{ImportOptions, load_path};
-use crowdmorph::rig::{Pose, Rig};
+use crowdmorph::rig::{JointPose, JointSet, Pose, Rig};
 use glam::DVec3;
 
 use crate::util::RefDoc;
@@ -116,10 +116,7 @@ fn a_blend_of_two_clips_nlerps_their_joints() {
     let (rig, doc) = robot();
     let wave = rig.clip_index("Wave").expect("Wave") as u32;
     let run = rig.clip_index("Running").expect("Running") as u32;
-    let job = BlendJob {
-        pose: Pose::blend((wave, 20), &[(run, 9, 0.375)]),
-        lod: 0,
-    };
+    let job = BlendJob::posed(Pose::blend((wave, 20), &[(run, 9, 0.375)]), 0);
     let out = evaluate(&rig, &[job]);
     let fps = f64::from(rig.clips[wave as usize].fps);
     let terms = vec![
@@ -153,10 +150,10 @@ fn the_q16_box_holds_every_frame_and_blend_of_a_skinned_rig() {
             jobs.push(BlendJob::frame(ci as u32, f, 0));
             let other = (ci + 5) % rig.clips.len();
             let g = f % rig.clips[other].frames;
-            jobs.push(BlendJob {
-                pose: Pose::blend((ci as u32, f), &[(other as u32, g, 0.5)]),
-                lod: 0,
-            });
+            jobs.push(BlendJob::posed(
+                Pose::blend((ci as u32, f), &[(other as u32, g, 0.5)]),
+                0,
+            ));
         }
     }
     let out = evaluate(&rig, &jobs);
@@ -212,50 +209,203 @@ fn clones_share_joint_matrices_and_batches_do_not_mix_poses() {
     }
 }
 
+/// Jobs of `rig` with joint overrides: `(node name, rotation)` pairs set on a clip frame.
+fn with_joints(rig: &Rig, job: BlendJob, sets: &[(&str, glam::Quat)]) -> BlendJob {
+    let sk = rig.skeleton.as_ref().expect("skinned");
+    let node = |name: &str| {
+        sk.nodes
+            .iter()
+            .position(|n| n.name == name)
+            .unwrap_or_else(|| panic!("no node {name}")) as u32
+    };
+    BlendJob {
+        joints: JointPose::new(
+            sets.iter()
+                .map(|&(n, q)| JointSet::new(node(n), None, Some(q.to_array()), None))
+                .collect(),
+        ),
+        ..job
+    }
+}
+
+/// The GPU engine (lavapipe) against the CPU engine on `jobs` of `rig`, in f32 with normals
+/// and in q16: positions within 1e-5 of the diagonal, normals within 1e-3, and the device's
+/// q16 the scalar encoding of its own f32 bit for bit; the answer says the GPU computed it.
+fn gpu_agrees_with_cpu(rig: &Rig, jobs: &[BlendJob]) {
+    use crowdmorph::engine::gpu::GpuOptions;
+    use crowdmorph::engine::{BackendChoice, BackendKind, Engine};
+    let engine = Engine::with_gpu(
+        crate::util::open_gpu(GpuOptions::default()),
+        BackendChoice::Gpu,
+    );
+    let prepared = engine
+        .prepare(std::sync::Arc::new(rig.clone()))
+        .expect("prepare");
+    assert!(
+        prepared.memory().device_bytes > 0,
+        "the skinned rig is resident on the device"
+    );
+    let f32_spec = OutputSpec {
+        normals: true,
+        precision: Precision::F32,
+    };
+    let mut gpu = BlendOutput::default();
+    let (_, kind) = engine
+        .evaluate_into(&prepared, jobs, f32_spec, &mut gpu)
+        .expect("evaluate");
+    assert_eq!(kind, BackendKind::Gpu, "the skin pass runs on the device");
+    let cpu = evaluate(rig, jobs);
+    let diag = rig.bbox().diagonal();
+    for j in 0..jobs.len() {
+        let dp = gpu
+            .job_positions(j)
+            .iter()
+            .zip(cpu.job_positions(j))
+            .map(|(a, b)| (a - b).abs())
+            .fold(0f32, f32::max);
+        assert!(dp <= 1e-5 * diag, "job {j}: GPU position off by {dp:e}");
+        let dn = gpu
+            .job_normals(j)
+            .expect("normals")
+            .iter()
+            .zip(cpu.job_normals(j).expect("normals"))
+            .map(|(a, b)| (a - b).abs())
+            .fold(0f32, f32::max);
+        assert!(dn <= 1e-3, "job {j}: GPU normal off by {dn:e}");
+    }
+    let qbox = crowdmorph::server::registry::quantization_box(rig);
+    let q16 = OutputSpec {
+        normals: false,
+        precision: Precision::Q16(qbox),
+    };
+    let mut packed = BlendOutput::default();
+    engine
+        .evaluate_into(&prepared, jobs, q16, &mut packed)
+        .expect("q16");
+    let mut plain = BlendOutput::default();
+    let f32_only = OutputSpec {
+        normals: false,
+        precision: Precision::F32,
+    };
+    engine
+        .evaluate_into(&prepared, jobs, f32_only, &mut plain)
+        .expect("f32");
+    let want =
+        crowdmorph::engine::VertexData::encode(&plain.positions.to_f32(), q16.precision, false);
+    assert_eq!(
+        packed.positions, want,
+        "the device's q16 is its f32 encoded"
+    );
+}
+
 #[test]
 #[cfg_attr(
     not(all(crowdmorph_test_data, crowdmorph_gpu_driver)),
     ignore = "needs ../shared/data and a Vulkan adapter (apt-get install mesa-vulkan-drivers)"
 )]
-fn the_gpu_backend_evaluates_a_skinned_rig_on_the_cpu_engine_and_says_so() {
-    use crowdmorph::engine::gpu::GpuOptions;
-    use crowdmorph::engine::{BackendChoice, BackendKind, Engine};
-    // The WGSL skin pass is not written: a skinned rig is not uploaded, and its jobs are
-    // computed by the CPU engine, which answers exactly as it does alone.
-    let engine = Engine::with_gpu(
-        crate::util::open_gpu(GpuOptions::default()),
-        BackendChoice::Gpu,
-    );
+fn the_gpu_skin_pass_matches_the_cpu_engine_on_the_robot() {
     let (rig, _) = robot();
     let wave = rig.clip_index("Wave").expect("Wave") as u32;
-    let jobs: Vec<BlendJob> = (0..8).map(|f| BlendJob::frame(wave, f * 7, 0)).collect();
-    let prepared = engine
-        .prepare(std::sync::Arc::new(rig.clone()))
-        .expect("prepare");
-    assert_eq!(prepared.memory().device_bytes, 0, "nothing uploaded");
-    let spec = OutputSpec {
-        normals: true,
-        precision: Precision::F32,
-    };
-    let mut out = BlendOutput::default();
-    let (_, kind) = engine
-        .evaluate_into(&prepared, &jobs, spec, &mut out)
-        .expect("evaluate");
-    assert_eq!(
-        kind,
-        BackendKind::Cpu,
-        "the answer names the engine that computed it"
+    let run = rig.clip_index("Running").expect("Running") as u32;
+    let mut jobs: Vec<BlendJob> = (0..6).map(|f| BlendJob::frame(wave, f * 7, 0)).collect();
+    jobs.push(BlendJob::posed(
+        Pose::blend((wave, 20), &[(run, 9, 0.375)]),
+        0,
+    ));
+    jobs.push(with_joints(
+        &rig,
+        BlendJob::frame(run, 4, 0),
+        &[("Head", glam::Quat::from_rotation_y(0.6))],
+    ));
+    gpu_agrees_with_cpu(&rig, &jobs);
+}
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter (apt-get install mesa-vulkan-drivers)"
+)]
+fn the_gpu_skin_pass_matches_the_cpu_engine_on_a_face_with_overrides() {
+    let rig = crowdmorph::synthetic::skinned_head();
+    let talk = rig.clip_index("talk").expect("talk") as u32;
+    let jobs = vec![
+        BlendJob::frame(talk, 10, 0),
+        with_joints(
+            &rig,
+            BlendJob::frame(talk, 10, 0),
+            &[
+                ("LeftEye", glam::Quat::from_rotation_y(0.4)),
+                ("RightEye", glam::Quat::from_rotation_y(0.4)),
+                ("Jaw", glam::Quat::from_rotation_x(0.2)),
+            ],
+        ),
+        BlendJob::frame(talk, 77, 2),
+    ];
+    gpu_agrees_with_cpu(&rig, &jobs);
+}
+
+#[test]
+fn a_face_turns_its_eyes_by_joint_override() {
+    // Overrides replace the clip's rotation of the named nodes, as an animation channel
+    // would: the engine matches the f64 evaluator given the same local transforms, and the
+    // eyes, only they, move against the clip's own pose.
+    let rig = crowdmorph::synthetic::skinned_head();
+    let diag = f64::from(rig.bbox().diagonal());
+    let talk = rig.clip_index("talk").expect("talk");
+    let look = glam::Quat::from_rotation_y(0.45) * glam::Quat::from_rotation_x(-0.2);
+    let plain = BlendJob::frame(talk as u32, 25, 0);
+    let turned = with_joints(
+        &rig,
+        plain.clone(),
+        &[("LeftEye", look), ("RightEye", look)],
     );
-    let want = evaluate(&rig, &jobs);
-    for j in 0..jobs.len() {
-        assert_eq!(out.job_positions(j), want.job_positions(j), "job {j}");
+    let out = evaluate(&rig, &[plain, turned]);
+    let (want, _) = rig_pose_f64_with(&rig, talk, 25, &|name, trs| {
+        if name == "LeftEye" || name == "RightEye" {
+            trs.rotation = look.to_array();
+        }
+    });
+    let eyes = rig.vertex_offsets()[1]..rig.vertex_count();
+    let (a, b) = (out.job_positions(0), out.job_positions(1));
+    let (mut dp, mut eye_move, mut face_move) = (0f64, 0f64, 0f64);
+    for (v, w) in want.iter().enumerate() {
+        let g = DVec3::new(
+            f64::from(b[3 * v]),
+            f64::from(b[3 * v + 1]),
+            f64::from(b[3 * v + 2]),
+        );
+        let before = DVec3::new(
+            f64::from(a[3 * v]),
+            f64::from(a[3 * v + 1]),
+            f64::from(a[3 * v + 2]),
+        );
+        dp = dp.max((g - *w).length());
+        if eyes.contains(&v) {
+            eye_move = eye_move.max((g - before).length());
+        } else {
+            face_move = face_move.max((g - before).length());
+        }
     }
+    assert!(dp <= 1e-5 * diag, "position off by {dp:e}");
+    assert!(eye_move > 2e-3 * diag, "the eyes turn ({eye_move})");
+    assert_eq!(face_move, 0.0, "nothing else moves");
 }
 
 /// The f64 pose of `rig`'s clip `clip` at `frame` from the rig's own arrays: morph targets
 /// (`util::rig_oracle`), then each vertex by its bones, with node transforms composed in f64
 /// from the joint table; normals recomputed from the posed mesh where the rig recomputes them.
 fn rig_pose_f64(rig: &Rig, clip: usize, frame: u32) -> (Vec<DVec3>, Vec<DVec3>) {
+    rig_pose_f64_with(rig, clip, frame, &|_, _| {})
+}
+
+/// [`rig_pose_f64`] with each node's local transform first given to `set` (by node name),
+/// which may replace parts of it: a request's joint overrides.
+fn rig_pose_f64_with(
+    rig: &Rig,
+    clip: usize,
+    frame: u32,
+    set: &dyn Fn(&str, &mut crowdmorph::rig::Trs),
+) -> (Vec<DVec3>, Vec<DVec3>) {
     use glam::{DMat4, DQuat};
     let c = &rig.clips[clip];
     let w: Vec<f64> = (0..rig.targets.len())
@@ -271,6 +421,7 @@ fn rig_pose_f64(rig: &Rig, clip: usize, frame: u32) -> (Vec<DVec3>, Vec<DVec3>) 
         if let Some(k) = table.nodes.iter().position(|&x| x as usize == i) {
             trs = table.at(frame, k);
         }
+        set(&n.name, &mut trs);
         let local = DMat4::from_scale_rotation_translation(
             DVec3::from(trs.scale.map(f64::from)),
             DQuat::from_array(trs.rotation.map(f64::from)).normalize(),

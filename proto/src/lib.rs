@@ -260,6 +260,10 @@ pub struct Head {
     /// Boxed: a head without them stays small (the server reserves memory per body byte).
     #[serde(default)]
     pub weights: Option<Box<LiveWeights>>,
+    /// On a rig with a skeleton: local transforms of named nodes set for this head, over what
+    /// its clip, blend or weights pose (`{"LeftEye": {"rotation": [x, y, z, w]}}`).
+    #[serde(default)]
+    pub joints: JointOverrides,
 }
 
 impl Head {
@@ -282,6 +286,93 @@ impl Head {
             weights: Some(Box::new(weights)),
             ..Head::default()
         }
+    }
+}
+
+/// Local transforms of named skeleton nodes that a request sets for one head, replacing what
+/// its clip (or blend, or rest pose) gives those nodes; components left out keep it. In JSON an
+/// object by node name (`{"LeftEye": {"rotation": [0, 0.17, 0, 0.985]}}`); in bincode a
+/// `Vec<(String, JointTransform)>`.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct JointOverrides(pub Vec<(String, JointTransform)>);
+
+impl JointOverrides {
+    /// How many nodes it sets.
+    pub fn len(&self) -> usize {
+        self.0.len()
+    }
+
+    /// True when it sets none.
+    pub fn is_empty(&self) -> bool {
+        self.0.is_empty()
+    }
+
+    /// One node's rotation (x, y, z, w).
+    pub fn rotation(node: &str, rotation: [f32; 4]) -> JointOverrides {
+        JointOverrides(vec![(
+            node.into(),
+            JointTransform {
+                rotation: Some(rotation),
+                ..JointTransform::default()
+            },
+        )])
+    }
+}
+
+/// A node's local transform, or part of it: what glTF's animation channels set.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct JointTransform {
+    /// Translation, rig units.
+    #[serde(default)]
+    pub translation: Option<[f32; 3]>,
+    /// Rotation quaternion x, y, z, w (normalized by the server; not zero).
+    #[serde(default)]
+    pub rotation: Option<[f32; 4]>,
+    /// Scale per axis.
+    #[serde(default)]
+    pub scale: Option<[f32; 3]>,
+}
+
+impl Serialize for JointOverrides {
+    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        use serde::ser::SerializeMap;
+        if s.is_human_readable() {
+            let mut m = s.serialize_map(Some(self.0.len()))?;
+            for (k, t) in &self.0 {
+                m.serialize_entry(k, t)?;
+            }
+            m.end()
+        } else {
+            self.0.serialize(s)
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for JointOverrides {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<JointOverrides, D::Error> {
+        if !d.is_human_readable() {
+            return Vec::<(String, JointTransform)>::deserialize(d).map(JointOverrides);
+        }
+        struct V;
+        impl<'de> Visitor<'de> for V {
+            type Value = JointOverrides;
+            fn expecting(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+                f.write_str("an object of joint transforms by node name")
+            }
+            fn visit_map<A: de::MapAccess<'de>>(
+                self,
+                mut m: A,
+            ) -> Result<JointOverrides, A::Error> {
+                // Capped while decoding: the server charges the body before it decodes it.
+                let mut v = Vec::with_capacity(m.size_hint().unwrap_or(0).min(256));
+                while let Some((k, t)) = m.next_entry::<String, JointTransform>()? {
+                    v.push((k, t));
+                }
+                Ok(JointOverrides(v))
+            }
+        }
+        d.deserialize_map(V)
     }
 }
 

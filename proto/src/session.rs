@@ -64,6 +64,10 @@ pub struct SessionHead {
     /// A motion graph to play instead of `clip` (`proto/README.md`, "Motion graphs").
     #[serde(default)]
     pub graph: Option<crate::GraphPlay>,
+    /// On a rig with a skeleton: local transforms of named nodes set for this head, over its
+    /// clip's or graph's pose (as a crowd frame's `Head::joints`).
+    #[serde(default)]
+    pub joints: crate::JointOverrides,
 }
 
 /// `POST /v1/sessions` request.
@@ -156,6 +160,9 @@ pub struct HeadChange {
     /// shows (also in the middle of a transition) into the node's first frame.
     #[serde(default)]
     pub node: Option<String>,
+    /// New joint overrides (replacing the head's; an empty object clears them).
+    #[serde(default)]
+    pub joints: Option<crate::JointOverrides>,
 }
 
 /// `PATCH /v1/sessions/{id}` request: applied together, at the next tick, in the order

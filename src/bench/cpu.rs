@@ -513,6 +513,7 @@ fn blend_row(
                 ],
             ),
             lod: opt.lod,
+            joints: crate::rig::JointPose::NONE,
         })
         .collect();
     // Alternating in one loop, as `layout_ab` does: the two differ by a few per cent, less

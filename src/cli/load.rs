@@ -387,6 +387,7 @@ fn session_heads(crowd: &CrowdShape, rigs: &[RigClips]) -> Result<Vec<SessionHea
             yaw: 0.0,
             scale: 1.0,
             graph: None,
+            joints: h.joints,
         })
         .collect())
 }

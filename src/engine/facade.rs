@@ -165,6 +165,7 @@ impl PreparedRig {
                     BlendJob {
                         pose: crate::rig::Pose::live(&form.coefficients(&w)),
                         lod: j.lod,
+                        joints: j.joints.clone(),
                     }
                 }
                 _ => j.clone(),
@@ -553,13 +554,10 @@ impl Engine {
     /// Prepares a rig: builds the CPU layout and, on a GPU, uploads geometry, deltas, clip
     /// tables and LOD order; the same for each of its mesh levels, which share its clip
     /// tables. A rig the GPU cannot hold is refused with `DoesNotFit`.
-    ///
-    /// A skinned rig stays on the CPU engine on every backend: the WGSL `skin` pass is not
-    /// written yet (issue 28), and the CPU engine evaluates it exactly (blend, then skin).
     pub fn prepare(&self, rig: Arc<Rig>) -> Result<PreparedRig, EngineError> {
         let derived =
             crate::rig::mesh_level_rigs(&rig).map_err(|e| EngineError::Mesh(e.to_string()))?;
-        let gpu = self.gpu_active().filter(|_| !rig.is_skinned());
+        let gpu = self.gpu_active();
         // The geometry is checked before the clip tables go up, so a rig the device cannot
         // hold is refused for what it is.
         let tables = match gpu {
@@ -696,8 +694,8 @@ impl Engine {
         let jobs: &[BlendJob] = &jobs;
         let state = match (self.gpu_active(), &rig.gpu) {
             (Some(ctx), Some(g)) => {
-                let (gpu_jobs, live) = gpu_records(&rig.rig, g, jobs)?;
-                match ctx.submit(g, &gpu_jobs, &live, spec, readback) {
+                let (gpu_jobs, live, bones) = gpu_records(&rig.rig, g, jobs)?;
+                match ctx.submit(g, &gpu_jobs, &live, &bones, spec, readback) {
                     Ok(p) => PendingState::Gpu(Box::new(p)),
                     Err(e @ GpuError::DoesNotFit(_)) => return Err(gpu_to_engine(e)),
                     // The device's memory budget is full now: this batch runs on the CPU,
@@ -804,9 +802,9 @@ impl Engine {
         let (target, jobs) = rig.route(jobs)?;
         let jobs: &[BlendJob] = &jobs;
         if let (Some(ctx), Some(g)) = (self.gpu_active(), &target.gpu) {
-            let (gpu_jobs, live) = gpu_records(&target.rig, g, jobs)?;
+            let (gpu_jobs, live, bones) = gpu_records(&target.rig, g, jobs)?;
             match ctx
-                .submit(g, &gpu_jobs, &live, spec, false)
+                .submit(g, &gpu_jobs, &live, &bones, spec, false)
                 .and_then(Pending::wait_resident)
             {
                 Ok((out, gpu_ns)) => {
@@ -839,13 +837,22 @@ impl Engine {
     }
 }
 
-/// The GPU records of `jobs` and the live weights they point at, each job checked against the
-/// rig first so that a bad one is the same error on both engines.
+/// The GPU records of `jobs`, the live weights they point at and, on a skinned rig, each job's
+/// bone matrices; each job checked against the rig first so that a bad one is the same error
+/// on both engines.
+#[allow(clippy::type_complexity)]
 fn gpu_records(
     rig: &Rig,
     g: &GpuRig,
     jobs: &[BlendJob],
-) -> Result<(Vec<crate::engine::gpu::layout::GpuJob>, Vec<f32>), EngineError> {
+) -> Result<
+    (
+        Vec<crate::engine::gpu::layout::GpuJob>,
+        Vec<f32>,
+        Vec<crate::rig::BoneMatrix>,
+    ),
+    EngineError,
+> {
     let mut live = Vec::new();
     let mut records = Vec::with_capacity(jobs.len());
     for job in jobs {
@@ -857,5 +864,10 @@ fn gpu_records(
         })?;
         records.push(record);
     }
-    Ok((records, live))
+    let bones = if g.bones() > 0 {
+        super::bone_matrices(rig, jobs)?
+    } else {
+        Vec::new()
+    };
+    Ok((records, live, bones))
 }

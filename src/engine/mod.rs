@@ -22,15 +22,18 @@ pub use crowdmorph_proto::Quantization;
 use half::f16;
 use rayon::prelude::*;
 
-use crate::rig::{ACTIVE_WEIGHT_EPSILON, LodError, Pose, PoseError, Rig, SkinPoses};
+use crate::rig::{ACTIVE_WEIGHT_EPSILON, JointPose, LodError, Pose, PoseError, Rig, SkinPoses};
 
-/// One unique job of a rig: which pose (a clip frame, a blend, live weights) at which LOD level.
+/// One unique job of a rig: which pose (a clip frame, a blend, live weights) at which LOD
+/// level, with the joint overrides a request set (on a skinned rig).
 #[derive(Clone, Debug, PartialEq, Eq, Hash)]
 pub struct BlendJob {
     /// The weights to evaluate.
     pub pose: Pose,
     /// LOD level.
     pub lod: u32,
+    /// Nodes whose local transforms a request set, applied after the pose's.
+    pub joints: JointPose,
 }
 
 impl BlendJob {
@@ -39,6 +42,16 @@ impl BlendJob {
         BlendJob {
             pose: Pose::Frame { clip, frame },
             lod,
+            joints: JointPose::NONE,
+        }
+    }
+
+    /// A job evaluating `pose` at `lod`, without joint overrides.
+    pub fn posed(pose: Pose, lod: u32) -> BlendJob {
+        BlendJob {
+            pose,
+            lod,
+            joints: JointPose::NONE,
         }
     }
 
@@ -56,6 +69,7 @@ impl From<&crate::plan::JobKey> for BlendJob {
         BlendJob {
             pose: k.pose.clone(),
             lod: k.lod,
+            joints: k.joints.clone(),
         }
     }
 }
@@ -179,6 +193,7 @@ impl WeightBatch {
             skin: rig.skeleton.as_ref().map(|sk| SkinPoses {
                 skeleton: sk.clone(),
                 jobs: Vec::with_capacity(jobs.len()),
+                overrides: Vec::with_capacity(jobs.len()),
             }),
         };
         for (j, job) in jobs.iter().enumerate() {
@@ -202,6 +217,7 @@ impl WeightBatch {
             batch.shapes.push(shapes);
             if let Some(skin) = &mut batch.skin {
                 skin.jobs.push(job.pose.skin_terms(rig));
+                skin.overrides.push(job.joints.clone());
             }
         }
         Ok(batch)
@@ -224,6 +240,7 @@ impl WeightBatch {
             skin: rig.skeleton.as_ref().map(|sk| SkinPoses {
                 skeleton: sk.clone(),
                 jobs: vec![Vec::new(); weights.len()],
+                overrides: vec![JointPose::NONE; weights.len()],
             }),
         };
         for (j, w) in weights.iter().enumerate() {
@@ -239,6 +256,36 @@ impl WeightBatch {
     pub fn active_pairs(&self) -> usize {
         self.weights.iter().filter(|w| **w != 0.0).count()
     }
+}
+
+/// Every job's bone matrices on a skinned rig, job-major (`jobs × bones`): what the GPU's
+/// `skin` pass reads. The terms are those [`WeightBatch::gather`] gives the CPU's `skin`,
+/// resolved by the same [`SkinPoses::bones`], on every core; a rig without a skeleton has
+/// none.
+pub fn bone_matrices(
+    rig: &Rig,
+    jobs: &[BlendJob],
+) -> Result<Vec<crate::rig::BoneMatrix>, EngineError> {
+    let Some(sk) = &rig.skeleton else {
+        return Ok(Vec::new());
+    };
+    let bones = sk.bones.len();
+    let poses = SkinPoses {
+        skeleton: sk.clone(),
+        jobs: jobs.iter().map(|j| j.pose.skin_terms(rig)).collect(),
+        overrides: jobs.iter().map(|j| j.joints.clone()).collect(),
+    };
+    let mut out = vec![crate::rig::BoneMatrix::IDENTITY; jobs.len() * bones];
+    if bones > 0 {
+        out.par_chunks_mut(bones).enumerate().for_each_init(
+            crate::rig::BoneScratch::default,
+            |scratch, (j, dst)| {
+                poses.bones(j, scratch);
+                dst.copy_from_slice(&scratch.bones);
+            },
+        );
+    }
+    Ok(out)
 }
 
 /// Zeroes weights too small to matter, so engines can skip them exactly.

@@ -258,6 +258,16 @@ pub fn skim(message: &[u8]) -> Result<TickSummary, LoadError> {
                             s.skip_bytes("graph script node")?;
                         }
                     }
+                    // Joint overrides: a name, then translation, rotation and scale, each an
+                    // `Option` of 3, 4 and 3 fixed 4-byte floats.
+                    for _ in 0..s.varint("joints")? {
+                        s.skip_bytes("joint name")?;
+                        for (what, floats) in [("translation", 3), ("rotation", 4), ("scale", 3)] {
+                            if s.some(what)? {
+                                s.skip(4 * floats, what)?;
+                            }
+                        }
+                    }
                 }
             }
             if variant == 2 {
@@ -679,6 +689,12 @@ mod tests {
                     seed: u64::MAX,
                     script: vec!["smile".into(), "talk".into()],
                 }),
+                // And one sets a joint, so it passes over joint overrides.
+                joints: if h == 1 {
+                    crowdmorph_proto::JointOverrides::rotation("LeftEye", [0.0, 0.1, 0.0, 1.0])
+                } else {
+                    Default::default()
+                },
             })
             .collect();
         let m = StreamMessage::Vertices(TickVertices {

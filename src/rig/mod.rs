@@ -25,6 +25,7 @@
 
 mod clip;
 mod cost;
+mod joint_lod;
 mod lod;
 mod mesh_level;
 mod pca;
@@ -34,6 +35,7 @@ mod skin;
 
 pub use clip::{Clip, ClipError, ClipIndex, DEFAULT_FPS, FrameMode, MAX_FRAMES};
 pub use cost::{PrimShape, RigCost, RigShape};
+pub use joint_lod::{JointLevel, JointLod, REFERENCE_TURN, drop_fraction};
 pub use lod::{
     IMPORT_LOD_METHOD, Lod, LodError, LodLevel, MeshLevel, MeshLevelPrimitive, default_lod_levels,
 };
@@ -45,7 +47,8 @@ pub use pose::{
 };
 pub use sample::{Interpolation, KeyTrack, sample_rotation, sample_track};
 pub use skin::{
-    Bone, BoneMatrix, BoneScratch, INFLUENCES, Influences, JointTable, MAX_BONES, NO_PARENT,
+    Bone, BoneMatrix, BoneScratch, INFLUENCES, Influences, JOINT_STEP, JointIndex, JointLookup,
+    JointPose, JointSet, JointTable, MAX_BONES, MAX_JOINT_OVERRIDES, MAX_JOINT_VALUE, NO_PARENT,
     SkelNode, Skeleton, SkinPoses, SkinTerm, Trs, WEIGHT_SUM_TOLERANCE, top_influences,
 };
 

@@ -409,6 +409,31 @@ impl Skeleton {
         }));
     }
 
+    /// Per node, the largest translation length and the largest absolute scale component it
+    /// has at rest or in any of `clips`' frames: what bounds where a pose can put a vertex
+    /// (rotations keep lengths), so joint overrides are held to them.
+    pub fn extents(&self, clips: &[super::Clip]) -> (Vec<f64>, Vec<f64>) {
+        let length = |t: [f32; 3]| t.iter().map(|&v| f64::from(v).powi(2)).sum::<f64>().sqrt();
+        let scale = |s: [f32; 3]| s.iter().fold(0f64, |m, &v| m.max(f64::from(v).abs()));
+        let mut t_max: Vec<f64> = self
+            .nodes
+            .iter()
+            .map(|n| length(n.rest.translation))
+            .collect();
+        let mut s_max: Vec<f64> = self.nodes.iter().map(|n| scale(n.rest.scale)).collect();
+        for table in clips.iter().filter_map(|c| c.joints.as_deref()) {
+            for f in 0..table.frames {
+                for (k, &node) in table.nodes.iter().enumerate() {
+                    let trs = table.at(f, k);
+                    let n = node as usize;
+                    t_max[n] = t_max[n].max(length(trs.translation));
+                    s_max[n] = s_max[n].max(scale(trs.scale));
+                }
+            }
+        }
+        (t_max, s_max)
+    }
+
     /// Bytes the skeleton holds.
     pub fn bytes(&self) -> u64 {
         self.nodes
@@ -416,6 +441,209 @@ impl Skeleton {
             .map(|n| n.name.len() as u64 + 72)
             .sum::<u64>()
             + self.bones.len() as u64 * 68
+    }
+}
+
+/// Step of a quantized joint override component (2^-20): a rotation moves by at most about
+/// 2 × 2^-21 rad, a translation or scale by 2^-21 of a unit, so float noise does not split
+/// clones and no pose a client can see is lost.
+pub const JOINT_STEP: f64 = 1.0 / 1_048_576.0;
+
+/// Largest magnitude of an override's translation, in rig units, and of its scale.
+pub const MAX_JOINT_VALUE: f32 = 1.0e6;
+
+/// Most joint overrides one head may carry.
+pub const MAX_JOINT_OVERRIDES: usize = 256;
+
+/// A node's local transform set by a request instead of its clip (`"joints"` in a head),
+/// quantized to multiples of [`JOINT_STEP`] so that it can be part of a dedupe key. Each
+/// component present replaces the clip's value (an animation channel's meaning in glTF); a
+/// component absent keeps it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct JointSet {
+    /// Index in [`Skeleton::nodes`].
+    pub node: u32,
+    /// The node is held at its rest transform (a LOD level that drops it), before any
+    /// component below.
+    pub rest: bool,
+    /// Translation, in steps.
+    pub translation: Option<[i64; 3]>,
+    /// Unit rotation (x, y, z, w), in steps, in the hemisphere `w ≥ 0`.
+    pub rotation: Option<[i32; 4]>,
+    /// Scale, in steps.
+    pub scale: Option<[i64; 3]>,
+}
+
+fn quantize(v: f32) -> i64 {
+    let v = v.clamp(-MAX_JOINT_VALUE, MAX_JOINT_VALUE);
+    (f64::from(v) / JOINT_STEP).round() as i64
+}
+
+fn dequantize(q: i64) -> f32 {
+    (q as f64 * JOINT_STEP) as f32
+}
+
+impl JointSet {
+    /// The override of `node` by the given components (finite; a rotation of non-zero
+    /// length, normalized here; callers check and say which field is wrong).
+    pub fn new(
+        node: u32,
+        translation: Option<[f32; 3]>,
+        rotation: Option<[f32; 4]>,
+        scale: Option<[f32; 3]>,
+    ) -> JointSet {
+        let rotation = rotation.map(|r| {
+            let mut q = Vec4::from(r).try_normalize().unwrap_or(Vec4::W);
+            // q and −q are one rotation: one of them is the key.
+            let first = q.to_array().into_iter().rev().find(|c| *c != 0.0);
+            if first.is_some_and(|c| c < 0.0) {
+                q = -q;
+            }
+            q.to_array().map(|c| quantize(c) as i32)
+        });
+        JointSet {
+            node,
+            rest: false,
+            translation: translation.map(|t| t.map(quantize)),
+            rotation,
+            scale: scale.map(|s| s.map(quantize)),
+        }
+    }
+
+    /// Holds `node` at its rest transform.
+    pub fn rest(node: u32) -> JointSet {
+        JointSet {
+            node,
+            rest: true,
+            translation: None,
+            rotation: None,
+            scale: None,
+        }
+    }
+
+    /// `local` with this override's components in place of its own (`rest`: the node's rest
+    /// transform).
+    pub fn apply(&self, rest: &Trs, local: &mut Trs) {
+        if self.rest {
+            *local = *rest;
+        }
+        if let Some(t) = self.translation {
+            local.translation = t.map(dequantize);
+        }
+        if let Some(r) = self.rotation {
+            let q = Vec4::from(r.map(|c| dequantize(i64::from(c))));
+            local.rotation = q.try_normalize().unwrap_or(Vec4::W).to_array();
+        }
+        if let Some(s) = self.scale {
+            local.scale = s.map(dequantize);
+        }
+    }
+}
+
+/// A job's joint overrides: none, or one [`JointSet`] per overridden node, sorted by node
+/// (one per node), so that heads asking for the same overrides share a job.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct JointPose(Option<Arc<[JointSet]>>);
+
+impl JointPose {
+    /// No overrides: every node as its pose says.
+    pub const NONE: JointPose = JointPose(None);
+
+    /// The canonical pose of `sets` (sorted by node; a node given twice keeps its last set).
+    pub fn new(mut sets: Vec<JointSet>) -> JointPose {
+        sets.retain(|s| {
+            s.rest || s.translation.is_some() || s.rotation.is_some() || s.scale.is_some()
+        });
+        if sets.is_empty() {
+            return JointPose(None);
+        }
+        sets.sort_by_key(|s| s.node);
+        let mut out: Vec<JointSet> = Vec::with_capacity(sets.len());
+        for s in sets {
+            match out.last_mut() {
+                Some(last) if last.node == s.node => *last = s,
+                _ => out.push(s),
+            }
+        }
+        JointPose(Some(out.into()))
+    }
+
+    /// The overrides, by node.
+    pub fn sets(&self) -> &[JointSet] {
+        self.0.as_deref().unwrap_or(&[])
+    }
+
+    /// Whether there are none.
+    pub fn is_none(&self) -> bool {
+        self.0.is_none()
+    }
+
+    /// Applies the overrides to one local transform per node of `skeleton`.
+    pub fn apply(&self, skeleton: &Skeleton, locals: &mut [Trs]) {
+        for s in self.sets() {
+            if let (Some(l), Some(n)) = (
+                locals.get_mut(s.node as usize),
+                skeleton.nodes.get(s.node as usize),
+            ) {
+                s.apply(&n.rest, l);
+            }
+        }
+    }
+
+    /// Heap bytes it holds (for queue-memory charges).
+    pub fn heap_bytes(&self) -> u64 {
+        self.0
+            .as_ref()
+            .map_or(0, |s| 16 + size_of_val(&s[..]) as u64)
+    }
+}
+
+/// A skeleton's nodes by name, for requests that name joints: node indices sorted by name
+/// (four bytes a node), searched by bisection.
+#[derive(Clone, Debug, Default)]
+pub struct JointIndex {
+    order: Vec<u32>,
+}
+
+/// Why a joint name does not name one node.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum JointLookup {
+    /// No node has the name.
+    Missing,
+    /// Several nodes have it.
+    Ambiguous(usize),
+}
+
+impl JointIndex {
+    /// The index of `skeleton`'s nodes.
+    pub fn new(skeleton: &Skeleton) -> JointIndex {
+        let mut order: Vec<u32> = (0..skeleton.nodes.len() as u32).collect();
+        order.sort_by(|&a, &b| {
+            skeleton.nodes[a as usize]
+                .name
+                .cmp(&skeleton.nodes[b as usize].name)
+        });
+        JointIndex { order }
+    }
+
+    /// The one node of `skeleton` (the one the index was built from) named `name`.
+    pub fn find(&self, skeleton: &Skeleton, name: &str) -> Result<u32, JointLookup> {
+        let name_of = |i: u32| {
+            skeleton
+                .nodes
+                .get(i as usize)
+                .map_or("", |n| n.name.as_str())
+        };
+        let k = self.order.partition_point(|&i| name_of(i) < name);
+        let same = self.order[k..]
+            .iter()
+            .take_while(|&&i| name_of(i) == name)
+            .count();
+        match same {
+            0 => Err(JointLookup::Missing),
+            1 => Ok(self.order[k]),
+            n => Err(JointLookup::Ambiguous(n)),
+        }
     }
 }
 
@@ -431,15 +659,17 @@ pub struct SkinTerm {
     pub frame: u32,
 }
 
-/// What the skin pass needs of a batch: the skeleton and, per job, the terms of its pose.
-/// The bones are resolved per job inside the pass (a few hundred matrices in a thread's
-/// scratch), so a batch holds no `jobs × bones` array.
+/// What the skin pass needs of a batch: the skeleton and, per job, the terms of its pose and
+/// its joint overrides. The CPU engine resolves the bones per job inside the pass (a few
+/// hundred matrices in a thread's scratch), so a batch holds no `jobs × bones` array there.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SkinPoses {
     /// The rig's skeleton.
     pub skeleton: Arc<Skeleton>,
     /// Per job, its terms; empty is the rest pose.
     pub jobs: Vec<Vec<SkinTerm>>,
+    /// Per job, the nodes a request set (applied after the terms).
+    pub overrides: Vec<JointPose>,
 }
 
 /// Scratch for resolving one job's bones.
@@ -468,6 +698,9 @@ impl SkinPoses {
                 sk.locals_blend(&terms, &mut scratch.locals);
             }
         }
+        if let Some(o) = self.overrides.get(j) {
+            o.apply(sk, &mut scratch.locals);
+        }
         scratch.bones.clear();
         sk.bone_matrices(&scratch.locals, &mut scratch.globals, &mut scratch.bones);
     }
@@ -477,7 +710,12 @@ impl SkinPoses {
         self.jobs
             .iter()
             .map(|t| 24 + (t.len() * size_of::<SkinTerm>()) as u64)
-            .sum()
+            .sum::<u64>()
+            + self
+                .overrides
+                .iter()
+                .map(|o| size_of::<JointPose>() as u64 + o.heap_bytes())
+                .sum::<u64>()
     }
 }
 

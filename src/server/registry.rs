@@ -48,6 +48,11 @@ pub struct RigEntry {
     pub charge: Mutex<Charge>,
     /// The rig's clips by name, built on the first lookup (see [`RigEntry::clip_index`]).
     pub clip_names: std::sync::OnceLock<crate::rig::ClipIndex>,
+    /// The skeleton's nodes by name, built on the first lookup (see [`RigEntry::joint_node`]).
+    joint_names: std::sync::OnceLock<crate::rig::JointIndex>,
+    /// What each joint moves and which each LOD level holds at rest, measured on first use
+    /// (see [`RigEntry::joint_lod`]).
+    joint_lod: std::sync::OnceLock<crate::rig::JointLod>,
     /// The q16 references of [`Format::Q16R`](crowdmorph_proto::Format::Q16R) buffers, one
     /// per mesh level asked for, by the level's address (see [`RigEntry::q16_reference`]).
     q16_references: Mutex<Vec<(usize, Arc<[i16]>)>>,
@@ -154,6 +159,8 @@ impl RigEntry {
             layout: e.layout,
             charge: Mutex::new(e.charge),
             clip_names: Default::default(),
+            joint_names: Default::default(),
+            joint_lod: Default::default(),
             q16_references: Default::default(),
         }
     }
@@ -170,6 +177,26 @@ impl RigEntry {
         self.clip_names
             .get_or_init(|| crate::rig::ClipIndex::new(clips))
             .find(clips, name)
+    }
+
+    /// The skeleton node named `name` (joint overrides name nodes): a bisection over the
+    /// nodes sorted by name, built once per generation. `Missing` too on a rig without a
+    /// skeleton.
+    pub fn joint_node(&self, name: &str) -> Result<u32, crate::rig::JointLookup> {
+        let Some(sk) = &self.rig().skeleton else {
+            return Err(crate::rig::JointLookup::Missing);
+        };
+        self.joint_names
+            .get_or_init(|| crate::rig::JointIndex::new(sk))
+            .find(sk, name)
+    }
+
+    /// The rig's joint LOD and extents (empty without a skeleton), measured once per
+    /// generation: a walk of every skinned vertex's bones and every clip's joint table. Its
+    /// few arrays (per node and per level) are not charged, like the clip index.
+    pub fn joint_lod(&self) -> &crate::rig::JointLod {
+        self.joint_lod
+            .get_or_init(|| crate::rig::JointLod::of(self.rig()))
     }
 
     /// The next generation of this rig: `prepared` (new clips or LOD) with its q16 box and
@@ -199,6 +226,8 @@ impl RigEntry {
             layout,
             charge: Mutex::new(charge),
             clip_names: Default::default(),
+            joint_names: Default::default(),
+            joint_lod: Default::default(),
             q16_references: Default::default(),
         }
     }
@@ -523,23 +552,7 @@ fn reachable_box_in_chunks(rig: &Rig, chunk: usize) -> (DVec3, DVec3) {
 /// live weights at rest). The bound is a sphere about the origin, looser than the exact box
 /// of each frame, but it holds for blends, whose nlerped rotations no frame has.
 fn skinned_reach(rig: &Rig, sk: &crate::rig::Skeleton, bone_box: &[(DVec3, DVec3)]) -> f64 {
-    let mut t_max: Vec<f64> = sk
-        .nodes
-        .iter()
-        .map(|n| DVec3::from(n.rest.translation.map(f64::from)).length())
-        .collect();
-    let scale = |s: [f32; 3]| s.iter().fold(0f64, |m, &v| m.max(f64::from(v).abs()));
-    let mut s_max: Vec<f64> = sk.nodes.iter().map(|n| scale(n.rest.scale)).collect();
-    for table in rig.clips.iter().filter_map(|c| c.joints.as_deref()) {
-        for f in 0..table.frames {
-            for (k, &node) in table.nodes.iter().enumerate() {
-                let trs = table.at(f, k);
-                let n = node as usize;
-                t_max[n] = t_max[n].max(DVec3::from(trs.translation.map(f64::from)).length());
-                s_max[n] = s_max[n].max(scale(trs.scale));
-            }
-        }
-    }
+    let (t_max, s_max) = sk.extents(&rig.clips);
     let mut a = vec![0f64; sk.nodes.len()];
     let mut b = vec![1f64; sk.nodes.len()];
     for (i, n) in sk.nodes.iter().enumerate() {

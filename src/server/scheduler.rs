@@ -44,7 +44,7 @@ use super::metrics::Metrics;
 use super::pool::{Pool, Reusable};
 use super::registry::RigEntry;
 use crate::engine::{Begun, BlendJob, BlendOutput, Engine, OutputSpec, Precision, VertexData};
-use crate::rig::Pose;
+use crate::rig::{JointPose, Pose};
 
 /// One unique job of a crowd request, resolved against a rig entry.
 #[derive(Clone, Debug)]
@@ -55,6 +55,8 @@ pub struct JobRequest {
     pub pose: Pose,
     /// LOD level.
     pub lod: u32,
+    /// Joint overrides (skinned rigs).
+    pub joints: JointPose,
     /// Cost: vertices × (active shapes + 1).
     pub cost: u64,
 }
@@ -239,6 +241,7 @@ struct SlotKey {
     generation: u64,
     pose: Pose,
     lod: u32,
+    joints: JointPose,
     format: Format,
     normals: bool,
 }
@@ -321,6 +324,7 @@ impl BatchGroups {
         let job = BlendJob {
             pose: slot.key.pose.clone(),
             lod: slot.key.lod,
+            joints: slot.key.joints.clone(),
         };
         let j = match group.job_at.get(&job) {
             Some(&j) => j,
@@ -505,6 +509,7 @@ impl State {
                 generation: job.entry.generation,
                 pose: job.pose.clone(),
                 lod: job.lod,
+                joints: job.joints.clone(),
                 format: sub.format,
                 normals: sub.normals,
             };
@@ -1144,6 +1149,7 @@ mod tests {
                     entry: e.clone(),
                     pose: Pose::Frame { clip: 0, frame },
                     lod: 0,
+                    joints: JointPose::NONE,
                     cost: 1,
                 })
                 .collect(),

@@ -242,12 +242,14 @@ pub(crate) struct HeadKey {
     pub(crate) generation: u64,
     pub(crate) pose: crate::rig::Pose,
     pub(crate) lod: u32,
+    pub(crate) joints: crate::rig::JointPose,
 }
 
 pub(crate) const MISSING_KEY: HeadKey = HeadKey {
     generation: u64::MAX,
     pose: crate::rig::Pose::Frame { clip: 0, frame: 0 },
     lod: 0,
+    joints: crate::rig::JointPose::NONE,
 };
 
 /// What a viewer last received: "unchanged" is relative to this.

@@ -685,7 +685,7 @@ pub fn pose_positions(
     engine
         .evaluate(
             prepared,
-            &[crowdmorph::engine::BlendJob { pose, lod: 0 }],
+            &[crowdmorph::engine::BlendJob::posed(pose, 0)],
             crowdmorph::engine::OutputSpec::default(),
         )
         .expect("evaluate")

@@ -7,7 +7,10 @@
 //! - [`CpuRig::recompute_normals`] (`face_normals.wgsl`, `vertex_normals.wgsl`): area-weighted normals from the blended
 //!   positions for primitives whose targets carry no normal deltas;
 //! - the output stage of `blend` (`pack_f16.wgsl` and `pack_q16.wgsl` on the GPU): binary16 or
-//!   q16 output.
+//!   q16 output;
+//! - on a skinned rig, [`skin_lanes`] in the same output stage (`skin.wgsl`): each vertex by
+//!   its bones' matrices in its job's pose (glTF: morph targets first, then skinning), so the
+//!   blended mesh is skinned while it is still in registers.
 //!
 //! # Layout
 //! Vertices (all primitives concatenated) are cut into tiles of [`LANES`] = 16. For each tile
@@ -52,7 +55,7 @@ use self::simd::{Lanes, Portable, Q16Pattern};
 use super::{
     BlendOutput, EngineError, OutputSpec, Precision, Q16Params, Q16Scale, VertexData, WeightBatch,
 };
-use crate::rig::{BoneScratch, INFLUENCES, Influences, Rig, SkinPoses};
+use crate::rig::{BoneMatrix, BoneScratch, Rig, SkinPoses};
 
 /// Jobs whose weights are stored together; kernels take them `Q` at a time (Q divides 8).
 pub const GROUP: usize = 8;
@@ -426,9 +429,92 @@ pub struct CpuRig {
     permuted: Vec<bool>,
     /// Position and normal blocks the layout would have in vertex order.
     vertex_order_blocks: [usize; 2],
-    /// On a skinned rig, every vertex's bones (all primitives concatenated, in vertex order);
-    /// a vertex of a primitive that follows no bone has weights 0 and is left as blended.
-    skin: Option<Influences>,
+    /// On a skinned rig, each tile's bones with their weights per lane.
+    skin: Option<SkinTiles>,
+}
+
+/// A skinned rig's influences as the output stage reads them: per tile of sixteen consecutive
+/// vertices (the rig's order), the bones any of its vertices follows, each with its weight in
+/// every lane (0 where the lane's vertex does not follow it). A vertex then becomes
+/// `Σ_b W_b ⊙ (M_b p)` with each bone's matrix broadcast, not gathered per lane: a face's tile
+/// follows one to three bones, so this is a few dozen multiply-adds per tile and job.
+#[derive(Clone, Debug)]
+struct SkinTiles {
+    /// Tile `t`'s entries are `start[t]..start[t + 1]`.
+    start: Vec<u32>,
+    /// Per entry, its bone; [`NO_BONE`] for the vertices that follow none (kept as blended,
+    /// weight 1).
+    bone: Vec<u16>,
+    /// Per entry, each lane's weight.
+    weight: Vec<LaneWeights>,
+}
+
+/// An entry of [`SkinTiles`] for the vertices of primitives that follow no bone.
+const NO_BONE: u16 = u16::MAX;
+
+/// Sixteen lane weights, aligned for a vector load.
+#[repr(C, align(64))]
+#[derive(Clone, Copy, Debug, Default)]
+struct LaneWeights([f32; LANES]);
+
+impl SkinTiles {
+    fn build(rig: &Rig, tiles: usize) -> SkinTiles {
+        let mut lanes: Vec<([u16; 4], [f32; 4])> = Vec::with_capacity(tiles * LANES);
+        for p in rig.primitives.iter() {
+            match &p.skin {
+                Some(s) => lanes.extend(s.joints.iter().copied().zip(s.weights.iter().copied())),
+                None => lanes.extend(std::iter::repeat_n(([0; 4], [0.0; 4]), p.positions.len())),
+            }
+        }
+        let mut t = SkinTiles {
+            start: Vec::with_capacity(tiles + 1),
+            bone: Vec::new(),
+            weight: Vec::new(),
+        };
+        t.start.push(0);
+        for tile in 0..tiles {
+            let first = t.bone.len();
+            for l in 0..LANES {
+                let Some(&(j, w)) = lanes.get(tile * LANES + l) else {
+                    continue;
+                };
+                let mut add = |bone: u16, w: f32| {
+                    let e = match t.bone[first..].iter().position(|&b| b == bone) {
+                        Some(e) => first + e,
+                        None => {
+                            t.bone.push(bone);
+                            t.weight.push(LaneWeights::default());
+                            t.bone.len() - 1
+                        }
+                    };
+                    t.weight[e].0[l] += w;
+                };
+                if w[0] == 0.0 {
+                    add(NO_BONE, 1.0);
+                }
+                for k in (0..4).filter(|&k| w[k] != 0.0) {
+                    add(j[k], w[k]);
+                }
+            }
+            t.start.push(t.bone.len() as u32);
+        }
+        t
+    }
+
+    fn bytes(&self) -> usize {
+        self.start.len() * 4 + self.bone.len() * 2 + self.weight.len() * size_of::<LaneWeights>()
+    }
+}
+
+/// What the output stage skins with: the rig's tiles and each job's bone matrices
+/// (`jobs × bones`), positions or normals.
+#[derive(Clone, Copy)]
+struct SkinCtx<'a> {
+    tiles: &'a SkinTiles,
+    matrices: &'a [BoneMatrix],
+    bones: usize,
+    /// The normal transforms (blended normals) rather than the position transforms.
+    normals: bool,
 }
 
 /// Where a blend pass writes: `jobs × V × 3` components of `elem` bytes each, in the
@@ -577,27 +663,7 @@ impl CpuRig {
             }
         }
         let topology = NormalTopology::of(rig);
-        let skin = rig.is_skinned().then(|| {
-            let mut all = Influences {
-                joints: Vec::with_capacity(vertices),
-                weights: Vec::with_capacity(vertices),
-            };
-            for prim in rig.primitives.iter() {
-                match &prim.skin {
-                    Some(s) => {
-                        all.joints.extend_from_slice(&s.joints);
-                        all.weights.extend_from_slice(&s.weights);
-                    }
-                    None => {
-                        let n = prim.positions.len();
-                        all.joints.extend(std::iter::repeat_n([0; INFLUENCES], n));
-                        all.weights
-                            .extend(std::iter::repeat_n([0.0; INFLUENCES], n));
-                    }
-                }
-            }
-            all
-        });
+        let skin = rig.is_skinned().then(|| SkinTiles::build(rig, tiles));
 
         CpuRig {
             vertices,
@@ -642,7 +708,7 @@ impl CpuRig {
             + self.topology.triangles.len() * 12
             + (self.topology.vertices.len() + self.topology.incident_start.len()) * 4
             + self.topology.incident.len() * 4
-            + self.skin.as_ref().map_or(0, |s| s.bytes() as usize)
+            + self.skin.as_ref().map_or(0, SkinTiles::bytes)
     }
 
     /// Position blocks of the slots below `shapes`: what the kernel loads per job when every
@@ -720,15 +786,26 @@ impl CpuRig {
         out.vertices = self.vertices;
         out.jobs = jobs;
         let recompute = spec.normals && !self.topology.vertices.is_empty();
-        let skin = match (&self.skin, &batch.skin) {
-            (Some(influences), Some(poses)) => Some((influences, poses)),
+        let matrices = match (&self.skin, &batch.skin) {
+            (Some(_), Some(poses)) if poses.jobs.len() == jobs => Some(bone_matrices(poses)),
             (None, None) => None,
             _ => return Err(EngineError::SkinMismatch),
         };
+        // The output stage skins (positions by the bones' affine transforms, blended normals
+        // by their normal transforms) before it encodes.
+        let skin = |normals: bool| {
+            let (tiles, m) = (self.skin.as_ref()?, matrices.as_ref()?);
+            Some(SkinCtx {
+                tiles,
+                matrices: &m.0,
+                bones: m.1,
+                normals,
+            })
+        };
 
-        if recompute || skin.is_some() {
-            // Normals come from the blended f32 positions: blend in f32 (kept in cache for
-            // the normals pass), recompute, then encode both in the wire format.
+        if recompute {
+            // Normals come from the blended (and skinned) f32 positions: blend in f32 (kept
+            // in cache for the normals pass), recompute, then encode both in the wire format.
             let mut positions = take_f32(&mut out.positions, len);
             let mut normals = take_f32(out.normals.get_or_insert_with(VertexData::default), len);
             let pos = Pass {
@@ -736,28 +813,19 @@ impl CpuRig {
                 blocks: &self.positions,
                 normalize: false,
                 read_next: true,
+                skin: skin(false),
             };
             self.blend(&groups, pos, OutPtr::of_f32(&mut positions), Format::F32);
             // Vertices whose normals are all recomputed need no blended normals first.
-            if spec.normals && self.topology.vertices.len() < self.vertices {
+            if self.topology.vertices.len() < self.vertices {
                 let nrm = Pass {
                     base: &self.base_normals,
                     blocks: &self.normals,
                     normalize: true,
                     read_next: true,
+                    skin: skin(true),
                 };
                 self.blend(&groups, nrm, OutPtr::of_f32(&mut normals), Format::F32);
-            }
-            if let Some((influences, poses)) = skin {
-                // Recomputed normals are taken from the skinned positions below, so only
-                // blended normals are skinned.
-                let skin_normals = spec.normals && self.topology.vertices.len() < self.vertices;
-                self.skin(
-                    influences,
-                    poses,
-                    &mut positions,
-                    skin_normals.then_some(&mut normals[..]),
-                );
             }
             if spec.normals {
                 self.recompute_normals(&positions, &mut normals, jobs);
@@ -776,6 +844,7 @@ impl CpuRig {
             blocks: &self.positions,
             normalize: false,
             read_next: false,
+            skin: skin(false),
         };
         out.positions = self.blend_into(&groups, pos, spec.precision, false, &mut out.positions);
         out.normals = if spec.normals {
@@ -784,6 +853,7 @@ impl CpuRig {
                 blocks: &self.normals,
                 normalize: true,
                 read_next: false,
+                skin: skin(true),
             };
             let mut n = out.normals.take().unwrap_or_default();
             Some(self.blend_into(&groups, nrm, spec.precision, true, &mut n))
@@ -892,6 +962,7 @@ impl CpuRig {
             format,
             normalize: pass.normalize,
             stream: !pass.read_next && bytes > STREAM_BYTES,
+            skin: pass.skin,
         };
         let run = |item: usize| {
             let (tc, gc) = (item % tile_chunks, item / tile_chunks);
@@ -914,63 +985,6 @@ impl CpuRig {
             run(0);
         } else {
             (0..items).into_par_iter().for_each(run);
-        }
-    }
-
-    /// The `skin` pass (glTF §3.7.3, after the blend): each vertex becomes `Σ w M p` over its
-    /// bones' matrices in its job's pose, its normal `normalize(Σ w N n)`. A job's bones are
-    /// resolved once, in the thread that skins it, and serve every vertex of the job; jobs
-    /// are the unit of parallel work (a job is a few thousand vertices, a batch many jobs).
-    fn skin(
-        &self,
-        influences: &Influences,
-        poses: &SkinPoses,
-        positions: &mut [f32],
-        normals: Option<&mut [f32]>,
-    ) {
-        let stride = self.vertices * 3;
-        if stride == 0 {
-            return;
-        }
-        let apply =
-            |scratch: &mut BoneScratch, j: usize, pos: &mut [f32], nrm: Option<&mut [f32]>| {
-                poses.bones(j, scratch);
-                let bones = &scratch.bones;
-                let p: &mut [Vec3] = bytemuck::cast_slice_mut(pos);
-                match nrm {
-                    Some(nrm) => {
-                        let n: &mut [Vec3] = bytemuck::cast_slice_mut(nrm);
-                        for (v, (p, n)) in p.iter_mut().zip(n.iter_mut()).enumerate() {
-                            if influences.weights[v][0] != 0.0 {
-                                let (sp, sn) = influences.skin(v, bones, *p, Some(*n));
-                                *p = sp;
-                                *n = sn.unwrap_or(*n);
-                            }
-                        }
-                    }
-                    None => {
-                        for (v, p) in p.iter_mut().enumerate() {
-                            if influences.weights[v][0] != 0.0 {
-                                *p = influences.skin(v, bones, *p, None).0;
-                            }
-                        }
-                    }
-                }
-            };
-        match normals {
-            Some(normals) => positions
-                .par_chunks_mut(stride)
-                .zip(normals.par_chunks_mut(stride))
-                .enumerate()
-                .for_each_init(BoneScratch::default, |scratch, (j, (pos, nrm))| {
-                    apply(scratch, j, pos, Some(nrm))
-                }),
-            None => positions
-                .par_chunks_mut(stride)
-                .enumerate()
-                .for_each_init(BoneScratch::default, |scratch, (j, pos)| {
-                    apply(scratch, j, pos, None)
-                }),
         }
     }
 
@@ -1012,6 +1026,8 @@ struct Pass<'a> {
     normalize: bool,
     /// Another pass reads the output right away: keep it in cache.
     read_next: bool,
+    /// On a skinned rig, what the output stage skins with.
+    skin: Option<SkinCtx<'a>>,
 }
 
 impl OutPtr {
@@ -1033,6 +1049,7 @@ struct Ctx<'a> {
     format: Format<'a>,
     normalize: bool,
     stream: bool,
+    skin: Option<SkinCtx<'a>>,
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -1207,6 +1224,13 @@ unsafe fn blend_sub<L: Lanes, const Q: usize>(
                 if ctx.normalize {
                     (x, y, z) = L::normalize(x, y, z);
                 }
+                if let Some(sk) = &ctx.skin {
+                    (x, y, z) =
+                        skin_lanes::<L>(sk, job as usize, first_vertex / LANES + o, x, y, z);
+                    if ctx.normalize {
+                        (x, y, z) = L::normalize(x, y, z);
+                    }
+                }
                 let r = L::interleave(x, y, z);
                 let at = o * LANES * 3;
                 match ctx.format {
@@ -1246,6 +1270,86 @@ unsafe fn blend_sub<L: Lanes, const Q: usize>(
         }
     }
     Q
+}
+
+/// Each job's bone matrices (`jobs × bones`, job-major) and the bones per job: resolved once
+/// per unique job, on every core, before the blend's output stage reads them.
+fn bone_matrices(poses: &SkinPoses) -> (Vec<BoneMatrix>, usize) {
+    let bones = poses.skeleton.bones.len();
+    let mut m = vec![BoneMatrix::IDENTITY; poses.jobs.len() * bones];
+    if bones > 0 {
+        m.par_chunks_mut(bones).enumerate().for_each_init(
+            BoneScratch::default,
+            |scratch, (j, dst)| {
+                poses.bones(j, scratch);
+                dst.copy_from_slice(&scratch.bones);
+            },
+        );
+    }
+    (m, bones)
+}
+
+/// The `skin` pass (`skin.wgsl`), in the output stage of `blend`: the sixteen vertices of
+/// `tile` (x, y, z lanes, blended) of job `job` become `Σ_b W_b ⊙ (M_b p)` over the bones the
+/// tile's vertices follow, each matrix broadcast to every lane (`W_b` is 0 in lanes whose
+/// vertex does not follow `b`); lanes that follow no bone keep `p`. Normals use the bones'
+/// normal transforms (the caller normalizes).
+///
+/// # Safety
+/// `L`'s CPU features must be present; `tile` and `job` must be in range of `sk`.
+#[inline(always)]
+unsafe fn skin_lanes<L: Lanes>(
+    sk: &SkinCtx<'_>,
+    job: usize,
+    tile: usize,
+    x: L,
+    y: L,
+    z: L,
+) -> (L, L, L) {
+    let t = sk.tiles;
+    let entries = t.start[tile] as usize..t.start[tile + 1] as usize;
+    let mats = &sk.matrices[job * sk.bones..(job + 1) * sk.bones];
+    // SAFETY (whole block): `L`'s features are present (caller); every weight row is 64-byte
+    // aligned and sixteen floats long.
+    unsafe {
+        let zero = L::splat(0.0);
+        let (mut ax, mut ay, mut az) = (zero, zero, zero);
+        for (&bone, w) in t.bone[entries.clone()].iter().zip(&t.weight[entries]) {
+            let w = L::load(w.0.as_ptr());
+            if bone == NO_BONE {
+                ax = L::mul_add(w, x, ax);
+                ay = L::mul_add(w, y, ay);
+                az = L::mul_add(w, z, az);
+                continue;
+            }
+            let m = &mats[bone as usize];
+            let rows = if sk.normals { &m.normal } else { &m.position };
+            ax = L::mul_add(w, skin_row::<L>(&rows[0], x, y, z), ax);
+            ay = L::mul_add(w, skin_row::<L>(&rows[1], x, y, z), ay);
+            az = L::mul_add(w, skin_row::<L>(&rows[2], x, y, z), az);
+        }
+        (ax, ay, az)
+    }
+}
+
+/// One row of a bone's transform applied to every lane: `r0 x + r1 y + r2 z + r3`.
+///
+/// # Safety
+/// `L`'s CPU features must be present.
+#[inline(always)]
+unsafe fn skin_row<L: Lanes>(r: &[f32; 4], x: L, y: L, z: L) -> L {
+    // SAFETY: forwarded from the caller.
+    unsafe {
+        L::mul_add(
+            L::splat(r[0]),
+            x,
+            L::mul_add(
+                L::splat(r[1]),
+                y,
+                L::mul_add(L::splat(r[2]), z, L::splat(r[3])),
+            ),
+        )
+    }
 }
 
 /// Runs `iterations` rounds of independent multiply-adds in registers with `isa`'s kernels on

@@ -104,6 +104,47 @@ pub struct NormalParams {
     pub jobs: u32,
 }
 
+/// Uniforms of `skin`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct SkinParams {
+    /// Vertices of the rig.
+    pub vertices: u32,
+    /// Jobs in the dispatch.
+    pub jobs: u32,
+    /// Bones of the rig (matrices per job).
+    pub bones: u32,
+    /// 1 when blended normals are skinned too.
+    pub normals: u32,
+    /// Invocations along x per row of vertices.
+    pub row: u32,
+    /// Padding.
+    pub _pad: [u32; 3],
+}
+
+/// Words per vertex of the `skin` pass's influences: four 16-bit bone ids in two words, then
+/// four f32 weights.
+pub const INFLUENCE_WORDS: usize = 6;
+
+/// Every vertex's influences as `skin` reads them (vertices of primitives that follow no bone
+/// get weight 0 and are left as blended), all primitives concatenated in evaluation order.
+pub fn pack_influences(rig: &Rig) -> Vec<u32> {
+    let mut words = Vec::with_capacity(rig.vertex_count() * INFLUENCE_WORDS);
+    for p in rig.primitives.iter() {
+        match &p.skin {
+            Some(s) => {
+                for (j, w) in s.joints.iter().zip(&s.weights) {
+                    words.push(u32::from(j[0]) | u32::from(j[1]) << 16);
+                    words.push(u32::from(j[2]) | u32::from(j[3]) << 16);
+                    words.extend(w.iter().map(|x| x.to_bits()));
+                }
+            }
+            None => words.extend(std::iter::repeat_n(0, p.positions.len() * INFLUENCE_WORDS)),
+        }
+    }
+    words
+}
+
 /// Uniforms of `pack_f16`.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
@@ -299,6 +340,10 @@ mod tests {
         assert_eq!(std::mem::offset_of!(BlendParams, tiles_x), 28);
         assert_eq!(size_of::<NormalParams>(), 16);
         assert_eq!(std::mem::offset_of!(NormalParams, jobs), 12);
+        assert_eq!(size_of::<SkinParams>(), 32);
+        assert_eq!(std::mem::offset_of!(SkinParams, normals), 12);
+        assert_eq!(std::mem::offset_of!(SkinParams, row), 16);
+        assert_eq!(size_of::<crate::rig::BoneMatrix>(), 96);
         assert_eq!(size_of::<PackParams>(), 16);
         assert_eq!(size_of::<Q16PackParams>(), 64);
         assert_eq!(std::mem::offset_of!(Q16PackParams, lo), 8);

@@ -12,9 +12,13 @@
 //!    building it on the CPU would mean keeping a second copy of every clip host-side per batch
 //!    and uploading `slots × jobs` weights instead of one small record per job);
 //! 2. `blend` — per (tile of 64 vertices, group of 4 jobs), Eq. 1 over the active list;
-//! 3. `face_normals` + `vertex_normals` — normals recomputed from blended positions where the
-//!    rig has no normal deltas (or `blend` again on normal deltas where it has them);
-//! 4. `pack_f16` or `pack_q16` — binary16 or int16 (q16) output on request, so that half the
+//! 3. `face_normals` + `vertex_normals` — normals recomputed from blended (and skinned)
+//!    positions where the rig has no normal deltas (or `blend` again on normal deltas where it
+//!    has them, run before `skin`);
+//! 4. `skin` — on a skinned rig, after the blend (glTF's order): each vertex by its bones'
+//!    matrices in its job's pose, resolved on the host once per unique job and uploaded with
+//!    the batch (96 bytes a bone);
+//! 5. `pack_f16` or `pack_q16` — binary16 or int16 (q16) output on request, so that half the
 //!    bytes cross the bus and the host does not encode.
 //!
 //! Results are copied to a mappable staging buffer only when the caller wants vertex buffers;
@@ -35,12 +39,12 @@ pub use self::map::MapResults;
 
 use self::layout::{
     ActiveParams, Attribute, BlendParams, GpuJob, GpuTerm, JOBS_PER_GROUP, NO_LIVE, NormalParams,
-    PackParams, Q16PackParams, build_chunks,
+    PackParams, Q16PackParams, SkinParams, build_chunks, pack_influences,
 };
 use super::cpu::NormalTopology;
 use super::{BlendJob, BlendOutput, OutputSpec, Precision, Q16Scale, VertexData};
 use crate::budget::{BudgetError, Charge, MemoryPool};
-use crate::rig::{LIVE_STEP, Pose, Rig};
+use crate::rig::{BoneMatrix, LIVE_STEP, Pose, Rig};
 
 /// Why the GPU engine could not do something.
 #[derive(Debug, thiserror::Error, Clone, PartialEq)]
@@ -180,6 +184,7 @@ struct Pipelines {
     vertex: wgpu::ComputePipeline,
     pack: wgpu::ComputePipeline,
     pack_q16: wgpu::ComputePipeline,
+    skin: wgpu::ComputePipeline,
 }
 
 /// An open device with the engine's pipelines.
@@ -367,6 +372,11 @@ impl GpuContext {
             "pack_q16.wgsl",
             include_str!("../../../shaders/pack_q16.wgsl"),
         );
+        let skin = shader(
+            &device,
+            "skin.wgsl",
+            include_str!("../../../shaders/skin.wgsl"),
+        );
         let pipelines = Pipelines {
             active: pipeline(&device, &active, "build_active"),
             blend: pipeline(&device, &blend, "blend"),
@@ -374,6 +384,7 @@ impl GpuContext {
             vertex: pipeline(&device, &vertex, "vertex_normals"),
             pack: pipeline(&device, &pack, "pack_f16"),
             pack_q16: pipeline(&device, &pack_q16, "pack_q16"),
+            skin: pipeline(&device, &skin, "skin"),
         };
         let limits = device.limits();
         let mut max_binding = limits.max_storage_buffer_binding_size;
@@ -564,6 +575,14 @@ struct GpuTopology {
     n_recomputed: u32,
 }
 
+/// A skinned rig's influences on the device.
+struct GpuSkin {
+    /// [`layout::INFLUENCE_WORDS`] words per vertex.
+    influences: wgpu::Buffer,
+    /// Bones of the rig: matrices per job in a batch.
+    bones: u32,
+}
+
 /// Bytes of a buffer `GpuContext::buffer` or `init` makes for `size` bytes: bindings may not
 /// be empty, so tiny arrays are padded to 16 bytes, and sizes to whole words.
 fn padded(size: u64) -> u64 {
@@ -582,6 +601,8 @@ pub struct GpuRig {
     /// The clip tables, shared by every mesh level of the rig.
     tables: Arc<ClipTables>,
     topology: Option<GpuTopology>,
+    /// On a skinned rig, every vertex's bones for the `skin` pass.
+    skin: Option<GpuSkin>,
     /// LOD shape counts per level.
     lod_shapes: Vec<u32>,
     geometry_bytes: u64,
@@ -677,6 +698,17 @@ impl GpuRig {
                 ctx.max_binding
             )));
         }
+        let bones = rig.skeleton.as_ref().map_or(0, |s| s.bones.len()) as u64;
+        let bone_bytes = bones * size_of::<BoneMatrix>() as u64;
+        if bone_bytes * JOBS_PER_GROUP as u64 > ctx.max_binding
+            || (vertices * layout::INFLUENCE_WORDS * 4) as u64 > ctx.max_binding
+        {
+            return Err(GpuError::DoesNotFit(format!(
+                "{bones} bones: four jobs' bone matrices or the influences exceed the \
+                 {}-byte storage binding",
+                ctx.max_binding
+            )));
+        }
         Ok(())
     }
 
@@ -741,8 +773,10 @@ impl GpuRig {
                 + GpuContext::init_bytes(&topology.incident_start)
                 + GpuContext::init_bytes(&topology.incident)
         };
+        let influences = rig.is_skinned().then(|| pack_influences(rig));
+        let skin_bytes = influences.as_deref().map_or(0, GpuContext::init_bytes);
         let charge = Arc::new(ctx.charge(
-            chunk_bytes + topology_bytes + GpuContext::init_bytes(&rig.lod.order),
+            chunk_bytes + topology_bytes + skin_bytes + GpuContext::init_bytes(&rig.lod.order),
             || {
                 format!(
                     "a rig of {vertices} vertices and {} targets on the GPU",
@@ -799,6 +833,11 @@ impl GpuRig {
         let topo_bytes = topo.as_ref().map_or(0, |t| {
             t.triangles.size() + t.recomputed.size() + t.incident_start.size() + t.incident.size()
         });
+        let skin = influences.map(|words| GpuSkin {
+            influences: ctx.init("influences", bytemuck::cast_slice(&words), storage),
+            bones: rig.skeleton.as_ref().map_or(0, |s| s.bones.len()) as u32,
+        });
+        let skin_bytes = skin.as_ref().map_or(0, |s| s.influences.size());
         let gpu = GpuRig {
             vertices: vertices as u32,
             slots: rig.targets.len() as u32,
@@ -806,12 +845,14 @@ impl GpuRig {
             geometry_bytes: chunk_bytes(&positions)
                 + chunk_bytes(&normals)
                 + topo_bytes
+                + skin_bytes
                 + order.len() as u64 * 4,
             positions,
             normals,
             order: ctx.init("order", bytemuck::cast_slice(&order), storage),
             tables,
             topology: topo,
+            skin,
             lod_shapes: rig.lod.levels.iter().map(|l| l.shapes).collect(),
             charge,
         };
@@ -845,6 +886,10 @@ impl GpuRig {
                 n_triangles: t.n_triangles,
                 n_recomputed: t.n_recomputed,
             }),
+            skin: self.skin.as_ref().map(|s| GpuSkin {
+                influences: s.influences.clone(),
+                bones: s.bones,
+            }),
             lod_shapes: self.lod_shapes.clone(),
             charge: self.charge.clone(),
             geometry_bytes: self.geometry_bytes,
@@ -869,6 +914,12 @@ impl GpuRig {
     /// Storage-binding chunks the rig was split into.
     pub fn chunks(&self) -> usize {
         self.positions.len()
+    }
+
+    /// Bones per job of a skinned rig (0 otherwise): how many matrices
+    /// [`GpuContext::submit`] takes per job.
+    pub fn bones(&self) -> usize {
+        self.skin.as_ref().map_or(0, |s| s.bones as usize)
     }
 
     /// The job record for `job`; `None` if its clips, frames or LOD level are out of range.
@@ -940,6 +991,8 @@ struct Slot {
     packed_positions: wgpu::Buffer,
     packed_normals: wgpu::Buffer,
     staging: wgpu::Buffer,
+    /// A skinned rig's bone matrices, every sub-batch's at its own aligned offset.
+    bones: wgpu::Buffer,
     queries: Option<(wgpu::QuerySet, wgpu::Buffer, wgpu::Buffer)>,
     /// Its buffers' bytes in the device's memory budget.
     _charge: Charge,
@@ -958,6 +1011,7 @@ struct SlotNeeds {
     packed_normals: u64,
     faces: u64,
     staging: u64,
+    bones: u64,
     queries: u32,
 }
 
@@ -973,6 +1027,7 @@ impl SlotNeeds {
             packed_normals: self.packed_normals.max(o.packed_normals),
             faces: self.faces.max(o.faces),
             staging: self.staging.max(o.staging),
+            bones: self.bones.max(o.bones),
             queries: self.queries.max(o.queries),
         }
     }
@@ -996,6 +1051,7 @@ impl Slot {
             n.packed,
             n.packed_normals,
             n.staging,
+            n.bones,
         ]
         .into_iter()
         .map(padded)
@@ -1038,6 +1094,7 @@ impl Slot {
             packed_positions: ctx.buffer("packed positions", n.packed, storage),
             packed_normals: ctx.buffer("packed normals", n.packed_normals, storage),
             staging: ctx.buffer("staging", n.staging, U::MAP_READ | U::COPY_DST),
+            bones: ctx.buffer("bones", n.bones, storage),
             queries,
             _charge: charge,
         })
@@ -1054,6 +1111,7 @@ impl Slot {
             packed_normals: self.packed_normals.size(),
             faces: self.faces.size(),
             staging: self.staging.size(),
+            bones: self.bones.size(),
             queries: self.queries.as_ref().map_or(0, |q| q.0.count()),
         }
     }
@@ -1076,6 +1134,8 @@ struct Region {
     /// Byte offset and length of the live weights in the jobs buffer (the same for every
     /// sub-batch).
     live: (u64, u64),
+    /// Byte offset and length of the sub-batch's bone matrices in the slot's bones buffer.
+    bones: (u64, u64),
 }
 
 /// A submitted batch whose results are not read yet.
@@ -1124,20 +1184,30 @@ impl DeviceOutput {
 
 impl GpuContext {
     /// Records and submits a batch of jobs of one rig (records from [`GpuRig::job`], with the
-    /// live weights it gathered). With `readback`, results are copied to staging memory for
-    /// [`Pending::wait`]; without, they stay on the device (for a renderer) and `wait` returns
-    /// only the timing.
+    /// live weights it gathered and, on a skinned rig, [`GpuRig::bones`] bone matrices per
+    /// job). With `readback`, results are copied to staging memory for [`Pending::wait`];
+    /// without, they stay on the device (for a renderer) and `wait` returns only the timing.
     pub fn submit<'a>(
         &'a self,
         rig: &GpuRig,
         jobs: &[GpuJob],
         live: &[f32],
+        bones: &[BoneMatrix],
         spec: OutputSpec,
         readback: bool,
     ) -> Result<Pending<'a>, GpuError> {
         self.health()?;
         let v = rig.vertices as u64;
         let n = jobs.len();
+        let per_job_bones = rig.bones();
+        if bones.len() != n * per_job_bones {
+            return Err(GpuError::Internal(format!(
+                "{} bone matrices for {n} jobs of a rig with {per_job_bones} bones",
+                bones.len()
+            )));
+        }
+        let bone_bytes = (per_job_bones * size_of::<BoneMatrix>()) as u64;
+        let align = u64::from(self.device.limits().min_storage_buffer_offset_alignment);
         // The live weights follow the job records in the same buffer, at the first offset a
         // storage binding may start at.
         let live_at = ((n.max(1) * size_of::<GpuJob>()) as u64).next_multiple_of(u64::from(
@@ -1155,6 +1225,9 @@ impl GpuContext {
         if recompute && tris > 0 {
             sub = sub.min(self.max_binding / (tris * 12));
         }
+        if let Some(fit) = self.max_binding.checked_div(bone_bytes) {
+            sub = sub.min(fit);
+        }
         let sub =
             ((sub.min(65_535) as usize) / JOBS_PER_GROUP * JOBS_PER_GROUP).max(JOBS_PER_GROUP);
         let subs = n.div_ceil(sub).max(1);
@@ -1163,6 +1236,7 @@ impl GpuContext {
         let elem = if packed16 { 2 } else { 4 };
         let mut regions = Vec::with_capacity(subs);
         let mut staging = 0u64;
+        let mut bones_at = 0u64;
         for k in 0..subs {
             let job = k * sub;
             let count = sub.min(n - job);
@@ -1173,13 +1247,21 @@ impl GpuContext {
             if spec.normals {
                 staging += bytes;
             }
+            let bones = (bones_at, (count as u64 * bone_bytes).max(16));
+            bones_at = (bones_at + bones.1).next_multiple_of(align);
             regions.push(Region {
                 job,
                 jobs: count,
                 positions,
                 normals,
                 live: (live_at, live_bytes),
+                bones,
             });
+        }
+        if bones_at > self.max_buffer {
+            return Err(GpuError::DoesNotFit(format!(
+                "a batch's bone matrices ({bones_at} bytes) exceed the device's largest buffer"
+            )));
         }
         if staging > self.max_buffer {
             return Err(GpuError::DoesNotFit(format!(
@@ -1204,6 +1286,7 @@ impl GpuContext {
             },
             faces: if recompute { widest * tris * 12 } else { 4 },
             staging: if readback { staging } else { 4 },
+            bones: if bone_bytes > 0 { bones_at } else { 4 },
             // Timestamp queries only where the device has them.
             queries: if self.timestamp_period.is_some() {
                 2 * subs as u32
@@ -1271,6 +1354,13 @@ impl GpuContext {
         if !live.is_empty() {
             self.queue
                 .write_buffer(&slot.jobs, live_at, bytemuck::cast_slice(live));
+        }
+        if per_job_bones > 0 {
+            for r in &regions {
+                let matrices = &bones[r.job * per_job_bones..(r.job + r.jobs) * per_job_bones];
+                self.queue
+                    .write_buffer(&slot.bones, r.bones.0, bytemuck::cast_slice(matrices));
+            }
         }
         let mut encoder = self
             .device
@@ -1434,6 +1524,38 @@ impl GpuContext {
         } else {
             Vec::new()
         };
+        let skin_group = rig.skin.as_ref().map(|sk| {
+            let tiles = rig.vertices.div_ceil(64);
+            let x = tiles.clamp(1, 65_535);
+            let params = self.uniform(&SkinParams {
+                vertices: rig.vertices,
+                jobs,
+                bones: sk.bones,
+                normals: u32::from(spec.normals && !rig.normals.is_empty()),
+                row: x * 64,
+                _pad: [0; 3],
+            });
+            let bones = wgpu::BufferBinding {
+                buffer: &slot.bones,
+                offset: r.bones.0,
+                size: std::num::NonZeroU64::new(r.bones.1),
+            };
+            let bg = d.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("skin"),
+                layout: &p.skin.get_bind_group_layout(0),
+                entries: &[
+                    entry(0, &params),
+                    entry(1, &sk.influences),
+                    wgpu::BindGroupEntry {
+                        binding: 2,
+                        resource: wgpu::BindingResource::Buffer(bones),
+                    },
+                    entry(3, &slot.positions),
+                    entry(4, &slot.normals),
+                ],
+            });
+            (bg, [x, jobs, tiles.div_ceil(x)])
+        });
         let normal_groups = match (&rig.topology, spec.normals) {
             (Some(t), true) => {
                 let params = self.uniform(&NormalParams {
@@ -1528,6 +1650,11 @@ impl GpuContext {
         pass.dispatch_workgroups(groups.div_ceil(64), 1, 1);
         pass.set_pipeline(&p.blend);
         for (bg, [x, y, z]) in pos_groups.iter().chain(&nrm_groups) {
+            pass.set_bind_group(0, bg, &[]);
+            pass.dispatch_workgroups(*x, *y, *z);
+        }
+        if let Some((bg, [x, y, z])) = &skin_group {
+            pass.set_pipeline(&p.skin);
             pass.set_bind_group(0, bg, &[]);
             pass.dispatch_workgroups(*x, *y, *z);
         }

@@ -282,6 +282,7 @@ fn a_session_and_its_patch_are_charged_while_decoded() {
                 yaw: 0.0,
                 scale: 1.0,
                 graph: None,
+                joints: Default::default(),
             })
             .collect::<Vec<_>>()
     };
@@ -306,6 +307,7 @@ fn a_session_and_its_patch_are_charged_while_decoded() {
                 yaw: None,
                 scale: None,
                 node: None,
+                joints: None,
             })
             .collect(),
         add: session_heads(300),

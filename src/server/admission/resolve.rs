@@ -5,14 +5,14 @@
 use std::collections::HashMap;
 use std::sync::Arc;
 
-use crowdmorph_proto::{BlendLayer, Format, Head, LiveWeights};
+use crowdmorph_proto::{BlendLayer, Format, Head, JointOverrides, JointTransform, LiveWeights};
 
 use crate::import::clips::loose;
 use crate::plan::{JobKey, Plan};
 use crate::rig::quoted_name;
 use crate::rig::{
-    ACTIVE_WEIGHT_EPSILON, ARKIT_NAMES, FrameMode, MAX_BLEND_LAYERS, MAX_LIVE_WEIGHT, Pose, Rig,
-    TargetId,
+    ACTIVE_WEIGHT_EPSILON, ARKIT_NAMES, FrameMode, JointLookup, JointPose, JointSet,
+    MAX_BLEND_LAYERS, MAX_JOINT_OVERRIDES, MAX_JOINT_VALUE, MAX_LIVE_WEIGHT, Pose, Rig, TargetId,
 };
 use crate::server::admission::memory::{Charge, QueueMemory};
 use crate::server::http::ApiError;
@@ -92,7 +92,12 @@ pub fn job_output_bytes(rig: &Rig, format: Format, normals: bool, json: bool, gp
     // q16 residuals are coded after the engine with a reference and planes of one job each
     // (per batch group; charged per job, which bounds it).
     let residual = if format == Format::Q16R { 4 * v3 } else { 0 };
-    wire + if f32_first { v3 * 4 * outputs } else { 0 } + weights + residual
+    // A skinned rig's jobs are blended in f32 before the skin pass, and the GPU engine
+    // uploads each job's bone matrices (96 bytes a bone), resolved on the host.
+    let skin = rig.skeleton.as_ref().map_or(0, |s| {
+        s.bones.len() as u64 * 96 + if comp < 4 { v3 * 4 * outputs } else { 0 }
+    });
+    wire + if f32_first { v3 * 4 * outputs } else { 0 } + weights + residual + skin
 }
 
 /// What a batch holds per job and rig target besides the outputs: the job's row of the
@@ -131,7 +136,153 @@ fn animation_bytes(h: &Head) -> u64 {
                 + w.iter().map(|(n, _)| n.capacity() as u64).sum::<u64>()
         }
     };
-    layers + weights
+    layers + weights + joints_bytes(&h.joints)
+}
+
+/// Bytes a head's joint overrides hold decoded (by capacity, with their names).
+pub fn joints_bytes(j: &JointOverrides) -> u64 {
+    j.0.capacity() as u64 * size_of::<(String, JointTransform)>() as u64
+        + j.0.iter().map(|(n, _)| n.capacity() as u64).sum::<u64>()
+}
+
+/// Bytes the [`JointPose`] of `n` overrides holds.
+pub fn joint_pose_bytes(n: usize) -> u64 {
+    if n == 0 {
+        0
+    } else {
+        16 + (n * size_of::<JointSet>()) as u64
+    }
+}
+
+/// A head's joint overrides resolved against its rig's skeleton: names to nodes, values
+/// checked and quantized, nodes the LOD level `lod` does not animate dropped (heads that differ
+/// only there are clones). The error is (code, message): 400 `unknown_joints` for a name no
+/// node has (or several have), 400 `invalid_joints` for a rig without a skeleton, too many
+/// overrides, a node named twice or a value that is not finite, out of range or a zero
+/// rotation. The caller charges [`joint_pose_bytes`] first.
+pub fn joint_pose(
+    entry: &RigEntry,
+    lod: u32,
+    joints: &JointOverrides,
+) -> Result<JointPose, (&'static str, String)> {
+    let requested = requested_joints(entry, joints)?;
+    Ok(entry.joint_lod().level(lod).joints(&requested))
+}
+
+/// [`joint_pose`] before a LOD level drops any node: what a session head keeps and each
+/// viewer's level then cuts.
+pub fn requested_joints(
+    entry: &RigEntry,
+    joints: &JointOverrides,
+) -> Result<JointPose, (&'static str, String)> {
+    if joints.is_empty() {
+        return Ok(JointPose::NONE);
+    }
+    let rig = entry.rig();
+    let Some(sk) = &rig.skeleton else {
+        return Err((
+            "invalid_joints",
+            format!(
+                "rig {:?} has no skeleton (no skins and no animated nodes): joints cannot pose it",
+                entry.id
+            ),
+        ));
+    };
+    let most = MAX_JOINT_OVERRIDES.min(sk.nodes.len());
+    if joints.len() > most {
+        return Err((
+            "invalid_joints",
+            format!(
+                "{} joint overrides; rig {:?} takes at most {most}",
+                joints.len(),
+                entry.id
+            ),
+        ));
+    }
+    let invalid = |m: String| ("invalid_joints", m);
+    let facts = entry.joint_lod();
+    let mut sets = Vec::with_capacity(joints.len());
+    for (name, t) in &joints.0 {
+        let node = entry.joint_node(name).map_err(|e| {
+            let why = match e {
+                JointLookup::Missing => "which it does not have".to_string(),
+                JointLookup::Ambiguous(n) => format!("which {n} of its nodes share"),
+            };
+            (
+                "unknown_joints",
+                format!(
+                    "joints name {}, {why} (GET /v1/rigs/{} lists its skeleton's animated nodes;                      any node a bone hangs from can be set)",
+                    quoted_name(name),
+                    entry.id
+                ),
+            )
+        })?;
+        let field = |what: &str| format!("joints[{}].{what}", quoted_name(name));
+        let bounded = |v: &[f32]| {
+            v.iter()
+                .all(|x| x.is_finite() && x.abs() <= MAX_JOINT_VALUE)
+        };
+        if let Some(v) = &t.translation
+            && !bounded(v)
+        {
+            return Err(invalid(format!(
+                "{} is {v:?}; each must be finite, within ±{MAX_JOINT_VALUE:e}",
+                field("translation")
+            )));
+        }
+        if let Some(v) = &t.scale
+            && !bounded(v)
+        {
+            return Err(invalid(format!(
+                "{} is {v:?}; each must be finite, within ±{MAX_JOINT_VALUE:e}",
+                field("scale")
+            )));
+        }
+        // The q16 box holds every pose whose nodes stay within the translations and scales
+        // they have at rest or in a clip (rotations keep lengths): an override may not leave
+        // it.
+        let (t_max, s_max) = &facts.extents;
+        let slack = |m: f64| m * (1.0 + 1e-6) + 1e-9;
+        if let Some(v) = &t.translation {
+            let len = v.iter().map(|&c| f64::from(c).powi(2)).sum::<f64>().sqrt();
+            if len > slack(t_max[node as usize]) {
+                return Err(invalid(format!(
+                    "{} has length {len}, more than node {} reaches at rest or in any clip                      ({}): the rig's output range (its q16 box) is sized for those",
+                    field("translation"),
+                    quoted_name(name),
+                    t_max[node as usize]
+                )));
+            }
+        }
+        if let Some(v) = &t.scale {
+            let big = v.iter().fold(0f64, |m, &c| m.max(f64::from(c).abs()));
+            if big > slack(s_max[node as usize]) {
+                return Err(invalid(format!(
+                    "{} is {v:?}, larger than node {} is scaled at rest or in any clip ({}):                      the rig's output range (its q16 box) is sized for those",
+                    field("scale"),
+                    quoted_name(name),
+                    s_max[node as usize]
+                )));
+            }
+        }
+        if let Some(q) = &t.rotation {
+            let len2: f64 = q.iter().map(|&c| f64::from(c) * f64::from(c)).sum();
+            if !q.iter().all(|c| c.is_finite()) || len2 < 1e-12 {
+                return Err(invalid(format!(
+                    "{} is {q:?}; a rotation is a quaternion x, y, z, w of finite, not all zero                      components",
+                    field("rotation")
+                )));
+            }
+        }
+        if sets.iter().any(|s: &JointSet| s.node == node) {
+            return Err(invalid(format!(
+                "joints set node {} twice",
+                quoted_name(name)
+            )));
+        }
+        sets.push(JointSet::new(node, t.translation, t.rotation, t.scale));
+    }
+    Ok(JointPose::new(sets))
 }
 
 /// Resolves every head against one snapshot of each rig it names (a rig changed or
@@ -198,10 +349,12 @@ pub fn resolve_heads(
                 ),
             ));
         }
+        let joints = lookups.joints(h, head, ri)?;
         keys.push(JobKey {
             rig: ri,
             pose,
             lod: head.lod,
+            joints,
         });
     }
     let Lookups { rigs, charge, .. } = lookups;
@@ -390,6 +543,31 @@ impl<'h> Lookups<'h> {
         Ok(Pose::blend((ci, frame), &layers[..head.blend.len()]))
     }
 
+    /// Head `h`'s joint overrides, their bytes charged before they are built.
+    fn joints(&mut self, h: usize, head: &Head, ri: u32) -> Result<JointPose, ApiError> {
+        if !head.joints.is_empty() {
+            let entry = &self.rigs[ri as usize];
+            let dropped = entry
+                .joint_lod()
+                .dropped
+                .get(head.lod as usize)
+                .map_or(0, Vec::len);
+            self.charge_more(joint_pose_bytes(head.joints.len() + dropped))?;
+        }
+        joint_pose(&self.rigs[ri as usize], head.lod, &head.joints)
+            .map_err(|(code, m)| at_head(h, head, ApiError::bad_request(code, m)))
+    }
+
+    /// Adds `bytes` to what the request's poses hold.
+    fn charge_more(&mut self, bytes: u64) -> Result<(), ApiError> {
+        let more = self.memory.reserve(bytes)?;
+        match &mut self.charge {
+            Some(c) => c.merge(more),
+            None => self.charge = Some(more),
+        }
+        Ok(())
+    }
+
     /// Head `h`'s live weights as a pose, its bytes charged before it is built.
     fn live_pose(
         &mut self,
@@ -408,11 +586,7 @@ impl<'h> Lookups<'h> {
         if self.row.capacity() < channels {
             bytes += channels as u64 * 4;
         }
-        let more = self.memory.reserve(bytes)?;
-        match &mut self.charge {
-            Some(c) => c.merge(more),
-            None => self.charge = Some(more),
-        }
+        self.charge_more(bytes)?;
         let names = self.live.entry(ri).or_insert_with(|| LiveNames::new(rig));
         // Channels not named keep the rig's default weight, as in a CSV clip.
         self.row.clear();
@@ -514,6 +688,34 @@ fn is_arkit_name(name: &str) -> bool {
     LOOSE.contains(&loose(name))
 }
 
+/// Joint overrides by node name that [`requested_joints`] resolves back to `joints` (rest
+/// holds as the rest values): how a session asks the renderer for the pose its viewers see.
+pub fn joint_overrides(rig: &Rig, joints: &JointPose) -> JointOverrides {
+    let Some(sk) = &rig.skeleton else {
+        return JointOverrides::default();
+    };
+    JointOverrides(
+        joints
+            .sets()
+            .iter()
+            .filter_map(|s| {
+                let node = sk.nodes.get(s.node as usize)?;
+                let mut t = node.rest;
+                s.apply(&node.rest, &mut t);
+                let full = s.rest;
+                Some((
+                    node.name.clone(),
+                    JointTransform {
+                        translation: (full || s.translation.is_some()).then_some(t.translation),
+                        rotation: (full || s.rotation.is_some()).then_some(t.rotation),
+                        scale: (full || s.scale.is_some()).then_some(t.scale),
+                    },
+                ))
+            })
+            .collect(),
+    )
+}
+
 /// 400 `invalid_blend` about head `h`.
 fn invalid_blend(h: usize, head: &Head, message: String) -> ApiError {
     at_head(h, head, ApiError::bad_request("invalid_blend", message))
@@ -534,7 +736,7 @@ fn at_head(h: usize, head: &Head, e: ApiError) -> ApiError {
 
 /// One unique job for the batcher, with its cost: vertices × (active shapes + 1) at the job's
 /// pose and level of detail.
-pub fn job_request(entry: &Arc<RigEntry>, pose: &Pose, lod: u32) -> JobRequest {
+pub fn job_request(entry: &Arc<RigEntry>, pose: &Pose, lod: u32, joints: &JointPose) -> JobRequest {
     let rig = entry.rig();
     let shapes = rig.lod.shapes_at(lod).unwrap_or(0) as usize;
     let active = rig.lod.order[..shapes.min(rig.lod.order.len())]
@@ -542,10 +744,13 @@ pub fn job_request(entry: &Arc<RigEntry>, pose: &Pose, lod: u32) -> JobRequest {
         .filter(|&&t| pose.weight(rig, t as usize).abs() > ACTIVE_WEIGHT_EPSILON)
         .count() as u64;
     let v = entry.prepared.at_level(lod).rig().vertex_count() as u64;
+    // The skin pass after the blend costs about what two shapes do per vertex.
+    let skin = if rig.is_skinned() { 2 } else { 0 };
     JobRequest {
         entry: entry.clone(),
         pose: pose.clone(),
         lod,
-        cost: v * (active + 1),
+        joints: joints.clone(),
+        cost: v * (active + 1 + skin),
     }
 }

@@ -195,7 +195,7 @@ fn admit(
     let jobs: Vec<JobRequest> = plan
         .jobs
         .iter()
-        .map(|k| job_request(&rigs[k.rig as usize], &k.pose, k.lod))
+        .map(|k| job_request(&rigs[k.rig as usize], &k.pose, k.lod, &k.joints))
         .collect();
     Ok(Admitted {
         resolved,

@@ -96,7 +96,7 @@ impl AppState {
                 let rig = entry.prepared.at_level(k.lod).rig();
                 (rig.vertex_count() as u64, rig.triangle_count() as u64)
             });
-            let blend = job_request(entry, &k.pose, k.lod).cost;
+            let blend = job_request(entry, &k.pose, k.lod, &k.joints).cost;
             cost.add_job(blend, n, v, t);
         }
         let rates = Rates::new(

@@ -40,7 +40,7 @@ use tokio::sync::Notify;
 use tokio::time::Instant;
 
 use crate::render::scene;
-use crate::server::admission::resolve::unknown_clip;
+use crate::server::admission::resolve::{requested_joints, unknown_clip};
 use crate::server::admission::{Admission, Charge, Decoded, Priced, decode_held};
 use crate::server::http::body::hold;
 use crate::server::http::{Accept, Admin, ApiError, ApiResult, Ready};
@@ -131,6 +131,8 @@ impl AppState {
         }
         scene::placement_matrix(&placement(h))
             .map_err(|e| invalid(format!("head {}: {e}", h.head)))?;
+        requested_joints(&entry, &h.joints)
+            .map_err(|(code, m)| ApiError::bad_request(code, format!("head {}: {m}", h.head)))?;
         Ok(())
     }
 
@@ -216,6 +218,7 @@ fn patched(
         yaw,
         scale,
         node,
+        joints,
     } in &patch.change
     {
         let h = at
@@ -237,6 +240,9 @@ fn patched(
         }
         if let Some(s) = scale {
             h.scale = *s;
+        }
+        if let Some(j) = joints {
+            h.joints.clone_from(j);
         }
         state.check_session_head(h)?;
         if let Some(n) = node {
@@ -562,6 +568,7 @@ mod tests {
             yaw: -1.1754942e-38,
             scale: -1.1754942e-38,
             graph: None,
+            joints: Default::default(),
         }
     }
 
@@ -579,6 +586,7 @@ mod tests {
                 yaw: 90.0,
                 scale: 1.0,
                 graph: None,
+                joints: Default::default(),
             },
         ];
         let stats = SessionStats {

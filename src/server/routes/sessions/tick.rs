@@ -20,8 +20,10 @@ use tokio::time::Instant;
 
 use crate::codec::{FrameBufferParts, FrameResponseEncoder};
 use crate::graph::{Graph, Player};
-use crate::rig::{FrameMode, Pose};
-use crate::server::admission::resolve::{head_reach, job_output_bytes, job_request};
+use crate::rig::{FrameMode, JointPose, Pose};
+use crate::server::admission::resolve::{
+    head_reach, job_output_bytes, job_request, joint_overrides, requested_joints,
+};
 use crate::server::registry::{MAX_F16, RigEntry};
 use crate::server::scheduler::{JobRequest, ScheduleError};
 use crate::server::sessions::{
@@ -160,12 +162,14 @@ struct HeadAt {
     rig: u32,
     /// What it shows: its clip's frame, or a graph head's pose.
     pose: Pose,
+    /// Its joint overrides, before a viewer's LOD level drops any.
+    joints: JointPose,
     levels: u32,
     f16_ok: bool,
 }
 
-/// A group's job: rig (index into the tick's rigs), pose, LOD.
-type Key = (u32, Pose, u32);
+/// A group's job: rig (index into the tick's rigs), pose, LOD, joint overrides at that LOD.
+type Key = (u32, Pose, u32, JointPose);
 
 /// The vertex viewers that share a format and normals: their jobs go to the batcher as one
 /// submission.
@@ -184,7 +188,11 @@ struct Group {
 /// room for the vectors' and the map's growth. At the session limits (10,000 heads, dozens of
 /// viewers) this is tens of megabytes per tick, so it is charged to the queue memory before
 /// any of it is built.
-fn tick_bookkeeping_bytes(heads: usize, viewers: usize) -> u64 {
+///
+/// Heads with joint overrides also get, per group, their overrides merged with what each LOD
+/// level holds at rest: `joint_sets` is the most sets those merges can hold over all heads
+/// (each head's own plus every node of its rig).
+fn tick_bookkeeping_bytes(heads: usize, viewers: usize, joint_sets: usize) -> u64 {
     let groups = viewers.min(6);
     // A temporal viewer also builds its next baseline's map of references (the last one is
     // alive until the socket takes the message): two map entries per head.
@@ -195,7 +203,10 @@ fn tick_bookkeeping_bytes(heads: usize, viewers: usize) -> u64 {
     let per_group = 2 * (size_of::<JobRequest>() + size_of::<Key>())
         + 3 * (size_of::<Key>() + size_of::<u32>() + 1);
     let per_head = size_of::<Option<HeadAt>>() + viewers * per_viewer + groups * per_group;
-    (heads as u64).saturating_mul(per_head as u64)
+    let joints = (groups * joint_sets * size_of::<crate::rig::JointSet>()) as u64;
+    (heads as u64)
+        .saturating_mul(per_head as u64)
+        .saturating_add(joints)
 }
 
 fn level_for(lod: &LodChoice, camera: Option<&CameraSpec>, position: [f32; 3]) -> u32 {
@@ -248,10 +259,11 @@ async fn tick_once(
         return Ticked::NoViewers;
     }
     // What this tick builds per head is charged first, as every request's memory is.
-    let Ok(bookkeeping) = state
-        .queue_memory
-        .reserve(tick_bookkeeping_bytes(heads.len(), viewers.len()))
-    else {
+    let Ok(bookkeeping) = state.queue_memory.reserve(tick_bookkeeping_bytes(
+        heads.len(),
+        viewers.len(),
+        resolved.joint_sets(),
+    )) else {
         return Ticked::Skipped;
     };
     let mut grouped = group(&resolved, &heads, &viewers);
@@ -378,6 +390,26 @@ struct Resolved {
     at: Vec<Option<HeadAt>>,
 }
 
+impl Resolved {
+    /// The most joint sets the heads with overrides can hold merged with a LOD level's rest
+    /// holds: their own plus every node of their rig, summed.
+    fn joint_sets(&self) -> usize {
+        self.at
+            .iter()
+            .flatten()
+            .filter(|a| !a.joints.is_none())
+            .map(|a| {
+                let nodes = self.rigs[a.rig as usize]
+                    .rig()
+                    .skeleton
+                    .as_ref()
+                    .map_or(0, |s| s.nodes.len());
+                a.joints.sets().len() + nodes
+            })
+            .sum()
+    }
+}
+
 /// Resolve: each head's rig at this tick's generation and what it shows — its clip's frame,
 /// or for a graph head the pose its player reaches this tick (jumps applied first).
 fn resolve(
@@ -433,9 +465,13 @@ fn resolve(
                     }
                 }
             };
+            // Checked when the head was added or changed; a rig changed since then leaves out
+            // a head whose overrides no longer fit it, as it does a head whose clip is gone.
+            let joints = requested_joints(entry, &h.joints).ok()?;
             Some(HeadAt {
                 rig: ri,
                 pose,
+                joints,
                 levels: rig.lod.levels.len() as u32,
                 f16_ok: head_reach(entry) <= MAX_F16,
             })
@@ -591,12 +627,13 @@ impl Group {
                     return None;
                 }
                 let lod = level_for(&s.lod, s.camera.as_ref(), h.position).min(a.levels - 1);
-                let key = (a.rig, a.pose.clone(), lod);
+                let entry = &resolved.rigs[a.rig as usize];
+                let joints = entry.joint_lod().level(lod).joints(&a.joints);
+                let key = (a.rig, a.pose.clone(), lod, joints);
                 if let Some(&j) = self.index.get(&key) {
                     return Some(j);
                 }
-                self.jobs
-                    .push(job_request(&resolved.rigs[a.rig as usize], &a.pose, lod));
+                self.jobs.push(job_request(entry, &a.pose, lod, &key.3));
                 self.keys.push(key.clone());
                 let j = (self.jobs.len() - 1) as u32;
                 self.index.insert(key, j);
@@ -851,11 +888,12 @@ fn head_keys(group: &Group, jobs: &[Option<u32>], rigs: &[Arc<RigEntry>]) -> Vec
         .map(|j| match j {
             None => MISSING_KEY,
             Some(j) => {
-                let (r, pose, l) = &group.keys[*j as usize];
+                let (r, pose, l, joints) = &group.keys[*j as usize];
                 HeadKey {
                     generation: rigs[*r as usize].generation,
                     pose: pose.clone(),
                     lod: *l,
+                    joints: joints.clone(),
                 }
             }
         })
@@ -941,7 +979,7 @@ impl MessageContent<'_> {
 
     /// A buffer's parts for job `e` of the group, with these payloads.
     fn part(&self, e: u32, positions: Bytes, normals: Option<Bytes>) -> FrameBufferParts<'_> {
-        let (r, pose, l) = &self.group.keys[e as usize];
+        let (r, pose, l, _) = &self.group.keys[e as usize];
         let entry = &self.rigs[*r as usize];
         let (clip, frame) = entry.shown(pose);
         FrameBufferParts {
@@ -1168,6 +1206,7 @@ fn frame_request(heads: &[SessionHead], resolved: &Resolved, s: &ViewerSettings)
             head: h.head,
             rig: entry.id.clone(),
             lod,
+            joints: joint_overrides(entry.rig(), &a.joints),
             ..pose_head(entry.rig(), &a.pose)
         });
         placements.push(super::placement(h));
