@@ -172,6 +172,26 @@ export class Reader {
   }
 }
 
+/** A JointTransform: three options of fixed 4-byte floats (translation, rotation x y z w,
+ * scale), each null when absent. */
+function jointTransform(r) {
+  return {
+    translation: r.option(() => r.vec3()),
+    rotation: r.option(() => [r.f32(), r.f32(), r.f32(), r.f32()]),
+    scale: r.option(() => r.vec3()),
+  };
+}
+
+/** JointOverrides (a `Vec<(String, JointTransform)>` in bincode) as the JSON form: an object
+ * by node name. Object.fromEntries defines own properties, so a node named `__proto__` stays a
+ * node; a node named twice (which no server sends) is refused rather than merged. */
+function jointOverrides(r) {
+  const pairs = r.vec(() => [r.string(), jointTransform(r)]);
+  const joints = Object.fromEntries(pairs);
+  if (Object.keys(joints).length !== pairs.length) throw new DecodeError('a joint override names a node twice');
+  return joints;
+}
+
 function sessionHead(r) {
   return {
     head: r.varint(),
@@ -187,6 +207,7 @@ function sessionHead(r) {
       seed: r.varintLossy(),
       script: r.vec(() => r.string()),
     })),
+    joints: jointOverrides(r),
   };
 }
 

@@ -93,6 +93,13 @@ fn animated_request() -> CrowdFrameRequest {
                     frame: 3,
                     t: 0.25,
                 }],
+                joints: JointOverrides(vec![(
+                    "LeftEye".into(),
+                    JointTransform {
+                        rotation: Some([0.0, 0.5, 0.0, 1.0]),
+                        ..JointTransform::default()
+                    },
+                )]),
                 ..Head::playing(8, "default-head", "talk", 40)
             },
             Head::live(
@@ -122,7 +129,8 @@ fn animated_crowd_frame_request() {
     // Humans leave out what a head does not use.
     let short: CrowdFrameRequest = serde_json::from_str(
         r#"{"heads":[{"head":8,"rig":"default-head","clip":"talk","frame":40,
-            "blend":[{"clip":"smile","frame":3,"t":0.25}]},
+            "blend":[{"clip":"smile","frame":3,"t":0.25}],
+            "joints":{"LeftEye":{"rotation":[0,0.5,0,1]}}},
             {"head":9,"rig":"default-head","weights":{"jawOpen":0.5,"eyeBlinkLeft":1}},
             {"head":10,"rig":"default-head","weights":[0,0.5]}]}"#,
     )
@@ -495,6 +503,7 @@ fn session_head(head: u64, clip: &str, offset: i64, x: f32) -> SessionHead {
         yaw: 15.0,
         scale: 1.0,
         graph: None,
+        joints: JointOverrides::default(),
     }
 }
 
@@ -511,6 +520,14 @@ fn session_messages() {
                 seed: 7,
                 script: vec!["smile".into()],
             }),
+            joints: JointOverrides(vec![(
+                "LeftEye".into(),
+                JointTransform {
+                    translation: Some([0.0, 0.0, 0.25]),
+                    rotation: Some([0.0, 0.5, 0.0, 1.0]),
+                    scale: None,
+                },
+            )]),
             ..session_head(4, "", 0, 1.5)
         },
     ];
@@ -536,6 +553,7 @@ fn session_messages() {
                     yaw: Some(-30.0),
                     scale: None,
                     node: None,
+                    joints: Some(JointOverrides::rotation("Head", [0.0, 0.5, 0.0, 1.0])),
                 },
                 HeadChange {
                     head: 4,
@@ -545,6 +563,7 @@ fn session_messages() {
                     yaw: None,
                     scale: None,
                     node: Some("surprise".into()),
+                    joints: None,
                 },
             ],
             add: vec![session_head(9, "idle", 7, 2.0)],
@@ -720,6 +739,7 @@ fn temporal_stream_messages_and_q16r() {
             yaw: 0.0,
             scale: 1.0,
             graph: None,
+            joints: JointOverrides::default(),
         },
         SessionHead {
             head: 2,
@@ -730,6 +750,7 @@ fn temporal_stream_messages_and_q16r() {
             yaw: 0.0,
             scale: 1.0,
             graph: None,
+            joints: JointOverrides::default(),
         },
     ];
     let timings = FrameTimings {

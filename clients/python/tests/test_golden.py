@@ -87,8 +87,119 @@ def test_the_worked_example_request_is_built_from_python_values():
         wrap=True,
     )
     raw = (PROTO_GOLDEN / "crowd_frame_request.bincode").read_bytes()
-    assert len(raw) == 52
+    assert len(raw) == 54
     assert wire.encode(req) == raw
+    # Each head ends in 00 00 00: blend = [], weights = None, joints = [].
+    assert raw[: 1 + 1 + 13 + 5 + 1 + 1 + 3].endswith(b"\x18\x00\x00\x00\x00")
+    # The fast writer takes tuples and dicts to the same bytes.
+    tuples = messages.CrowdFrameRequest(
+        heads=[(7, "default-head", "talk", 12), {"head": 300, "rig": "default-head",
+                                                 "clip": "talk", "frame": -1, "lod": 2}],
+        output=messages.OutputOptions(normals=False, format="f16"),
+    )
+    assert wire.encode(tuples) == raw
+
+
+LEFT_EYE = {"LeftEye": messages.JointTransform(rotation=[0.0, 0.5, 0.0, 1.0])}
+
+
+def test_joint_overrides_of_a_crowd_head_decode_and_encode_like_the_rust_types():
+    raw = (PROTO_GOLDEN / "crowd_frame_request_animated.bincode").read_bytes()
+    req = wire.decode(messages.CrowdFrameRequest, raw)
+    assert [h.head for h in req.heads] == [8, 9, 10]
+    assert req.heads[0].joints == LEFT_EYE
+    assert [h.joints for h in req.heads[1:]] == [{}, {}]
+    # The same request from Python values, joints given as a dict of dicts (what JSON
+    # spells), gives the same bytes, through the Head objects and through plain dicts.
+    joints = {"LeftEye": {"rotation": [0, 0.5, 0, 1]}}
+    heads = [
+        messages.Head(8, "default-head", "talk", 40, blend=[("smile", 3, 0.25)], joints=joints),
+        messages.Head(9, "default-head", weights={"jawOpen": 0.5, "eyeBlinkLeft": 1.0}),
+        messages.Head(10, "default-head", weights=[0.0, 0.5]),
+    ]
+    assert heads[0].joints == LEFT_EYE
+    assert wire.encode(messages.CrowdFrameRequest(heads)) == raw
+    as_dicts = [
+        {"head": 8, "rig": "default-head", "clip": "talk", "frame": 40,
+         "blend": [{"clip": "smile", "frame": 3, "t": 0.25}], "joints": joints},
+        {"head": 9, "rig": "default-head", "weights": {"jawOpen": 0.5, "eyeBlinkLeft": 1.0}},
+        {"head": 10, "rig": "default-head", "weights": [0.0, 0.5]},
+    ]
+    assert wire.encode(messages.CrowdFrameRequest(as_dicts)) == raw
+    # The joints' bytes: one entry, "LeftEye", None, Some([0, 0.5, 0, 1]), None.
+    entry = b"\x01\x07LeftEye\x00\x01" + struct.pack("<4f", 0, 0.5, 0, 1) + b"\x00"
+    assert entry in raw
+    # JSON: an object by node name with all three keys, as the server writes it.
+    want = json.loads((PROTO_GOLDEN / "crowd_frame_request_animated.json").read_bytes())
+    assert messages.as_dict(heads[0])["joints"] == want["heads"][0]["joints"]
+    assert messages.as_dict(heads[1])["joints"] == {}
+
+
+def test_joint_overrides_of_session_heads_and_changes_decode_and_encode_like_the_rust_types():
+    def session_head(head, clip, offset, x, **kw):
+        return messages.SessionHead(head, "default-head", clip, offset, [x, 0.0, -1.5], 15.0,
+                                    1.0, **kw)
+
+    raw = (PROTO_GOLDEN / "session_request.bincode").read_bytes()
+    req = wire.decode(messages.SessionRequest, raw)
+    assert [h.joints for h in req.heads[:3]] == [{}, {}, {}]
+    eye = messages.JointTransform(translation=[0.0, 0.0, 0.25], rotation=[0.0, 0.5, 0.0, 1.0])
+    assert req.heads[3].joints == {"LeftEye": eye}
+    graph = messages.GraphPlay("moods", "talk", 7, ["smile"])
+    mine = messages.SessionRequest(
+        heads=[
+            session_head(1, "talk", 0, 0.0),
+            session_head(2, "talk", 0, 0.5),
+            session_head(3, "smile", -4, 1.0),
+            session_head(4, "", 0, 1.5, graph=graph,
+                         joints=[("LeftEye", {"translation": [0, 0, 0.25],
+                                              "rotation": [0, 0.5, 0, 1]})]),
+        ]
+    )
+    assert mine == req
+    assert wire.encode(mine) == raw
+
+    raw = (PROTO_GOLDEN / "session_patch.bincode").read_bytes()
+    patch = wire.decode(messages.SessionPatch, raw)
+    head_turn = {"Head": messages.JointTransform(rotation=[0.0, 0.5, 0.0, 1.0])}
+    assert patch.change[0].joints == head_turn
+    assert patch.change[1].joints is None  # unchanged
+    assert patch.add[0].joints == {}
+    mine = messages.SessionPatch(
+        remove=[2],
+        change=[
+            messages.HeadChange(3, clip="talk", yaw=-30.0,
+                                joints={"Head": {"rotation": [0, 0.5, 0, 1]}}),
+            messages.HeadChange(4, node="surprise"),
+        ],
+        add=[session_head(9, "idle", 7, 2.0)],
+    )
+    assert mine == patch
+    assert wire.encode(mine) == raw
+    # None leaves a head's overrides; {} clears them: Some(empty).
+    w = wire.Writer()
+    wire.Msg(messages.HeadChange).write(w, messages.HeadChange(4, joints={}))
+    assert bytes(w.out) == b"\x04" + b"\x00" * 6 + b"\x01\x00"
+    assert messages.as_dict(messages.HeadChange(4, joints={}))["joints"] == {}
+    assert messages.as_dict(messages.HeadChange(4))["joints"] is None
+
+
+def test_bad_joint_overrides_are_refused_before_sending():
+    with pytest.raises(ValueError, match="twice"):
+        messages.Head(1, "r", joints=[("Jaw", {}), ("Jaw", {})])
+    with pytest.raises(TypeError):
+        messages.Head(1, "r", joints={"Jaw": {"rotate": [0, 0, 0, 1]}})
+    short = messages.Head(1, "r", joints={"Jaw": {"rotation": [0, 1]}})
+    with pytest.raises(ValueError, match="expected 4 numbers"):
+        wire.encode(messages.CrowdFrameRequest([short]))
+    # A node twice in a body is a decode error (a dict holds each name once).
+    w = wire.Writer()
+    w.varint(2)
+    for _ in range(2):
+        w.string("Jaw")
+        w.out += b"\x00\x00\x00"
+    with pytest.raises(wire.DecodeError, match="twice"):
+        wire.decode_as(messages.JOINTS, bytes(w.out))
 
 
 def test_the_worked_example_response_decodes_field_by_field():

@@ -172,6 +172,7 @@ def test_session_messages_decode_to_the_servers_json(client, sessions):
             "yaw": -10.0,
             "scale": 2.0,
             "graph": None,
+            "joints": {},
         }
     ]
     listed = json.loads(client.request("GET", "/v1/sessions", accept="application/json").body)

@@ -636,7 +636,9 @@ class Client:
         """``POST /v1/crowd/frame``: blends a crowd.
 
         ``heads`` are :class:`~crowdmorph.messages.Head` objects, dicts with the same keys, or
-        ``(head, rig, clip, frame[, lod])`` tuples. ``format`` is ``"f32"`` (exact),
+        ``(head, rig, clip, frame[, lod])`` tuples; on a rig with a skeleton a head's
+        ``joints`` (``{"LeftEye": JointTransform(rotation=[0, 0.17, 0, 0.985])}``) sets named
+        nodes' local transforms over its clip's pose. ``format`` is ``"f32"`` (exact),
         ``"f16"`` or ``"q16"`` (half the bytes; q16 is dequantized with the box each buffer
         carries), or ``"q16r"``: q16 positions as residuals against the rig's neutral (the
         same values, bytes that compress well: ask for ``compression`` too); the client fetches
@@ -812,7 +814,9 @@ class Client:
         session gets that id, so a load balancer hashing on it sends every viewer to the same
         replica; an id that is taken raises ``Conflict`` (``session_exists``).
 
-        ``heads`` are :class:`~crowdmorph.messages.SessionHead` objects, dicts with its keys,
+        ``heads`` are :class:`~crowdmorph.messages.SessionHead` objects, dicts with its keys
+        (``graph`` and ``joints`` included: a :class:`~crowdmorph.messages.GraphPlay` or its
+        dict, and joint overrides as for crowd frames),
         or ``(head, rig, clip[, offset[, position[, yaw[, scale]]]])`` tuples. At tick ``t``
         a head plays frame ``offset + floor((t - 1) * clip_fps / fps)``, looping when
         ``wrap`` (else holding the last frame). The session ends ``idle_timeout_s`` seconds
@@ -847,7 +851,8 @@ class Client:
     ) -> SessionInfo:
         """``PATCH /v1/sessions/{id}``: removes, changes and adds heads, together, at the next
         tick (in that order). ``change`` items are :class:`~crowdmorph.messages.HeadChange`
-        objects or dicts (``{"head": 2, "clip": "smile", "yaw": 90}``; absent fields stay).
+        objects or dicts (``{"head": 2, "clip": "smile", "yaw": 90}``; absent fields stay;
+        ``"joints"`` replaces the head's joint overrides, ``{}`` clears them).
         Returns the session with its heads as they will be at the next tick."""
         patch = SessionPatch(
             remove=[int(h) for h in remove],
@@ -939,6 +944,7 @@ def _session_head(h: SessionHeadLike) -> SessionHead:
         h = dict(h)
         if h.get("graph") is not None:
             h["graph"] = _of(GraphPlay, h["graph"])
+        # "joints" (dicts by node name) become JointTransform objects in SessionHead itself.
         return SessionHead(**h)
     if isinstance(h, (tuple, list)) and 3 <= len(h) <= 7:
         fields = list(h)

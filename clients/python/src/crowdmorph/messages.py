@@ -17,13 +17,14 @@ import operator
 from array import array
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Iterable, Iterator, List, Optional, Sequence, Union, overload
+from typing import Any, Dict, Iterable, Iterator, List, Optional, Sequence, Union, overload
 
 from .wire import (
     BLOB,
     BOOL,
     F32,
     F32X3,
+    F32X4,
     I64,
     STR,
     U8,
@@ -49,6 +50,7 @@ __all__ = [
     "IMAGE_FORMATS",
     "Head",
     "BlendLayer",
+    "JointTransform",
     "OutputOptions",
     "CrowdFrameRequest",
     "Quantization",
@@ -164,6 +166,85 @@ _BLEND = Vec(Msg(BlendLayer))
 _WEIGHTS = Opt(LIVE_WEIGHTS)
 
 
+@wire(("translation", Opt(F32X3)), ("rotation", Opt(F32X4)), ("scale", Opt(F32X3)))
+@dataclass
+class JointTransform:
+    """A skeleton node's local transform, or part of it (what a glTF animation channel sets):
+    ``translation`` (rig units), ``rotation`` (quaternion x, y, z, w; normalized by the server,
+    not zero) and ``scale`` per axis. Each component given replaces what the head's clip, blend
+    or rest pose gives the node; ``None`` keeps it."""
+
+    translation: Optional[Sequence[float]] = None
+    rotation: Optional[Sequence[float]] = None
+    scale: Optional[Sequence[float]] = None
+
+
+#: What ``joints`` accepts: a dict by node name of :class:`JointTransform` objects or dicts
+#: with their keys (``{"LeftEye": {"rotation": [0, 0.17, 0, 0.985]}}``), or ``(name,
+#: transform)`` pairs.
+JointsLike = Union[
+    Mapping[str, Union[JointTransform, Mapping[str, Any]]],
+    Iterable[Sequence[Any]],
+]
+
+
+def _joint_transform(t: Any) -> JointTransform:
+    """A :class:`JointTransform` from itself or a dict with its keys (missing ones are
+    ``None``, as the server reads them; others are an error, as there)."""
+    if isinstance(t, JointTransform):
+        return t
+    if isinstance(t, Mapping):
+        return JointTransform(**t)
+    raise TypeError(f"a joint transform is a JointTransform or a dict, not {type(t).__name__}")
+
+
+def joint_overrides(joints: Optional[JointsLike]) -> Dict[str, JointTransform]:
+    """``JointOverrides`` as the client holds them: a dict of :class:`JointTransform` by node
+    name, in the order given (the wire order). ``None`` is no overrides; a node named twice is
+    a :class:`ValueError` (the server refuses it too)."""
+    if joints is None:
+        return {}
+    if type(joints) is dict and all(type(t) is JointTransform for t in joints.values()):
+        return joints
+    items = joints.items() if isinstance(joints, Mapping) else joints
+    out: Dict[str, JointTransform] = {}
+    for name, t in items:
+        if not isinstance(name, str):
+            raise TypeError(f"a joint override's node name is a string, not {name!r}")
+        if name in out:
+            raise ValueError(f"node {name!r} is overridden twice")
+        out[name] = _joint_transform(t)
+    return out
+
+
+class _JointOverrides:
+    """``JointOverrides``: in JSON an object by node name; in bincode ``Vec<(String,
+    JointTransform)>`` (a varint count, then each node's name and transform). Python sees a
+    dict of :class:`JointTransform` by node name."""
+
+    def read(self, r: Reader) -> Dict[str, JointTransform]:
+        out: Dict[str, JointTransform] = {}
+        for _ in range(r.length()):
+            at = r.pos
+            name = r.string()
+            if name in out:
+                # A dict cannot hold it, and no server sends it (it refuses such requests).
+                raise DecodeError(f"joint override of node {name!r} twice", at)
+            out[name] = _JOINT_TRANSFORM.read(r)
+        return out
+
+    def write(self, w: Writer, v: Optional[JointsLike]) -> None:
+        joints = joint_overrides(v)
+        w.varint(len(joints))
+        for name, t in joints.items():
+            w.string(name)
+            _JOINT_TRANSFORM.write(w, t)
+
+
+_JOINT_TRANSFORM = Msg(JointTransform)
+JOINTS = _JointOverrides()
+
+
 @wire(
     ("head", U64),
     ("rig", STR),
@@ -172,6 +253,7 @@ _WEIGHTS = Opt(LIVE_WEIGHTS)
     ("lod", U32),
     ("blend", _BLEND),
     ("weights", _WEIGHTS),
+    ("joints", JOINTS),
 )
 @dataclass
 class Head:
@@ -179,7 +261,9 @@ class Head:
     (wrapping past the end when the request's ``wrap`` is true) and level of detail; optionally
     up to four ``blend`` layers over that frame (weights = (1 − Σt)·clip[frame] + Σ tᵢ·layerᵢ),
     or live ``weights`` instead of a clip (a dict by target name, or one per
-    ``RigInfo.targets`` name)."""
+    ``RigInfo.targets`` name); and, on a rig with a skeleton, ``joints``: local transforms of
+    named nodes over that pose (``{"LeftEye": JointTransform(rotation=[0, 0.17, 0, 0.985])}``;
+    dicts with :class:`JointTransform`'s keys work too)."""
 
     head: int
     rig: str
@@ -188,6 +272,12 @@ class Head:
     lod: int = 0
     blend: List[BlendLayer] = field(default_factory=list)
     weights: Optional[Union[Mapping[str, float], Sequence[float]]] = None
+    joints: Dict[str, JointTransform] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        j = self.joints
+        if type(j) is not dict or j:
+            self.joints = joint_overrides(j)
 
 
 @wire(("normals", BOOL), ("format", FORMAT))
@@ -202,7 +292,8 @@ class OutputOptions:
 class _HeadVec:
     """``Vec<Head>`` with a fast writer: a crowd request can carry 100,000 heads, and the
     generic per-field path spends microseconds on each. Items may be :class:`Head` objects,
-    ``(head, rig, clip, frame[, lod])`` tuples or dicts with those keys."""
+    ``(head, rig, clip, frame[, lod])`` tuples or dicts with those keys (and optionally
+    ``blend``, ``weights`` and ``joints``)."""
 
     def read(self, r: Reader) -> List[Head]:
         return Vec(Msg(Head)).read(r)
@@ -219,9 +310,10 @@ class _HeadVec:
         for h in items:
             blend: Any = ()
             weights: Any = None
+            joints: Any = None
             if type(h) is Head:
                 hid, rig, clip, frame, lod = h.head, h.rig, h.clip, h.frame, h.lod
-                blend, weights = h.blend, h.weights
+                blend, weights, joints = h.blend, h.weights, h.joints
             elif isinstance(h, (tuple, list)):
                 if len(h) == 4:
                     hid, rig, clip, frame = h
@@ -232,9 +324,10 @@ class _HeadVec:
                 hid, rig = h["head"], h["rig"]
                 clip, frame, lod = h.get("clip", ""), h.get("frame", 0), h.get("lod", 0)
                 blend, weights = h.get("blend", ()), h.get("weights")
+                joints = h.get("joints")
             elif isinstance(h, Head):
                 hid, rig, clip, frame, lod = h.head, h.rig, h.clip, h.frame, h.lod
-                blend, weights = h.blend, h.weights
+                blend, weights, joints = h.blend, h.weights, h.joints
             else:
                 raise TypeError(
                     "a head is a Head, a dict or a (head, rig, clip, frame[, lod]) tuple, "
@@ -271,11 +364,12 @@ class _HeadVec:
                 out.append(lod)
             else:
                 w.u32(operator.index(lod))
-            if not blend and weights is None:
-                out += b"\x00\x00"
+            if not blend and weights is None and not joints:
+                out += b"\x00\x00\x00"  # blend = [], weights = None, joints = []
             else:
                 _BLEND.write(w, [_of_layer(b) for b in blend])
                 _WEIGHTS.write(w, weights)
+                JOINTS.write(w, joints)
 
 
 def _of_layer(b: Any) -> BlendLayer:
@@ -838,12 +932,15 @@ class GraphPlay:
     ("yaw", F32),
     ("scale", F32),
     ("graph", Opt(Msg(GraphPlay))),
+    ("joints", JOINTS),
 )
 @dataclass
 class SessionHead:
     """One head of a session: at tick ``t`` it plays frame
-    ``offset + floor((t - 1) * clip_fps / session_fps)`` of its clip, standing at ``position``
-    turned ``yaw`` degrees about +Y and scaled by ``scale``."""
+    ``offset + floor((t - 1) * clip_fps / session_fps)`` of its clip (or its ``graph``),
+    standing at ``position`` turned ``yaw`` degrees about +Y and scaled by ``scale``; on a rig
+    with a skeleton, ``joints`` sets named nodes' local transforms over that pose at every tick
+    (as :attr:`Head.joints`)."""
 
     head: int
     rig: str
@@ -853,6 +950,12 @@ class SessionHead:
     yaw: float = 0.0
     scale: float = 1.0
     graph: Optional[GraphPlay] = None
+    joints: Dict[str, JointTransform] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        j = self.joints
+        if type(j) is not dict or j:
+            self.joints = joint_overrides(j)
 
 
 @wire(("fps", F32), ("wrap", BOOL), ("idle_timeout_s", U32), ("heads", Vec(Msg(SessionHead))))
@@ -931,10 +1034,12 @@ class SessionList:
     ("yaw", Opt(F32)),
     ("scale", Opt(F32)),
     ("node", Opt(STR)),
+    ("joints", Opt(JOINTS)),
 )
 @dataclass
 class HeadChange:
-    """A change to one session head; ``None`` fields stay as they are."""
+    """A change to one session head; ``None`` fields stay as they are. ``joints`` replaces the
+    head's joint overrides (``{}`` clears them)."""
 
     head: int
     clip: Optional[str] = None
@@ -943,6 +1048,12 @@ class HeadChange:
     yaw: Optional[float] = None
     scale: Optional[float] = None
     node: Optional[str] = None
+    joints: Optional[Dict[str, JointTransform]] = None
+
+    def __post_init__(self) -> None:
+        j = self.joints
+        if j is not None and (type(j) is not dict or j):
+            self.joints = joint_overrides(j)
 
 
 class _U32Pair:
@@ -1216,14 +1327,17 @@ def unpack_stream_message(data: Any) -> Union[TickVertices, TickFrame, TickDelta
 
 def as_dict(message: Any) -> Any:
     """The protocol's JSON form of a message: field names as keys, ``Blob`` payloads as
-    base64 strings, ``None`` as ``null``. Handy for printing and for comparing with the
-    server's JSON."""
+    base64 strings, ``None`` as ``null``, joint overrides as an object by node name. Handy for
+    printing and for comparing with the server's JSON."""
     if dataclasses.is_dataclass(message) and not isinstance(message, type):
         # A field named after a Python keyword has a trailing underscore (``GraphEdge.from_``).
         return {
             f.name.rstrip("_"): as_dict(getattr(message, f.name))
             for f in dataclasses.fields(message)
         }
+    if isinstance(message, Mapping):
+        # Live weights, joint overrides: objects by name.
+        return {k: as_dict(v) for k, v in message.items()}
     if isinstance(message, (list, tuple, HeadBuffers)):
         return [as_dict(v) for v in message]
     if isinstance(message, (memoryview, bytes, bytearray)):

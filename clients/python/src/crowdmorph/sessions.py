@@ -66,8 +66,8 @@ class Tick:
     - ``tick``: the session's tick number (from 1; later ticks may be skipped for a slow
       viewer), ``format`` and ``normals`` of the buffers, ``timings`` (microseconds).
     - ``layout``: the session's heads (:class:`~crowdmorph.messages.SessionHead`: rig, clip,
-      offset, position, yaw, scale) in stream order; ``layout_changed`` is true when this
-      message carried a new one (always for the first).
+      offset, position, yaw, scale, graph, joints) in stream order; ``layout_changed`` is true
+      when this message carried a new one (always for the first).
     - ``positions`` / ``normals``: head id → its current array (numpy ``(vertices, 3)``
       float32, or a flat ``array('f')``), for every head that has something to draw; clones
       share one array. ``normals`` is empty unless the viewer asked for them.

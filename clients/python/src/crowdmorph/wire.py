@@ -30,6 +30,7 @@ __all__ = [
 
 _F32 = struct.Struct("<f")
 _F32X3 = struct.Struct("<3f")
+_F32X4 = struct.Struct("<4f")
 _U16 = struct.Struct("<H")
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
@@ -122,6 +123,9 @@ class Reader:
     def f32x3(self) -> List[float]:
         return list(_F32X3.unpack(self._take(12)))
 
+    def f32x4(self) -> List[float]:
+        return list(_F32X4.unpack(self._take(16)))
+
     def u8x3(self) -> List[int]:
         return list(self._take(3))
 
@@ -206,6 +210,11 @@ class Writer:
             raise ValueError(f"expected 3 numbers, got {len(v)}")
         self.out += _F32X3.pack(*v)
 
+    def f32x4(self, v: Sequence[float]) -> None:
+        if len(v) != 4:
+            raise ValueError(f"expected 4 numbers, got {len(v)}")
+        self.out += _F32X4.pack(*v)
+
     def u8x3(self, v: Sequence[int]) -> None:
         if len(v) != 3:
             raise ValueError(f"expected 3 bytes, got {len(v)}")
@@ -250,6 +259,7 @@ U64 = _Prim("u64")
 I64 = _Prim("i64")
 F32 = _Prim("f32")
 F32X3 = _Prim("f32x3")
+F32X4 = _Prim("f32x4")
 U8X3 = _Prim("u8x3")
 STR = _Prim("string")
 BYTES = _Prim("bytes")
