@@ -19,7 +19,7 @@ use std::sync::Arc;
 
 use crowdmorph_proto::{GraphPlay, MotionGraph};
 
-use crate::rig::{Pose, Rig};
+use crate::rig::{JointPose, JointSet, Pose, Rig, Trs};
 use crate::rng::SplitMix64;
 
 /// Most nodes a graph may have.
@@ -275,8 +275,13 @@ impl Graph {
 enum Source {
     /// A node still playing (an edge's source).
     Node { node: u32, t: f64 },
-    /// The pose a jump froze, and the motion of the nodes it came from.
-    Frozen { weights: Arc<[f32]>, motion: f32 },
+    /// The pose a jump froze (its weights and, on a skinned rig, every skeleton node's local
+    /// transform), and the motion of the nodes it came from.
+    Frozen {
+        weights: Arc<[f32]>,
+        locals: Option<Arc<[Trs]>>,
+        motion: f32,
+    },
 }
 
 #[derive(Clone, Debug, PartialEq)]
@@ -402,6 +407,83 @@ impl Player {
         }
     }
 
+    /// Every skeleton node's local transform in the pose shown now (`None` without a
+    /// skeleton): the clip frame's, a fading edge's two frames nlerped, or a jump's frozen
+    /// transforms faded into the target frame's the same way.
+    pub fn locals(&self, g: &Graph, rig: &Rig) -> Option<Vec<Trs>> {
+        let sk = rig.skeleton.as_ref()?;
+        let table = |(clip, _): (u32, u32)| rig.clips[clip as usize].joints.as_deref();
+        let here = Self::frame(g, self.node, self.t);
+        let mut out = Vec::with_capacity(sk.nodes.len());
+        match &self.fade {
+            None => sk.locals_at(table(here), here.1, &mut out),
+            Some(Fade {
+                source: Source::Node { node, t },
+                alpha,
+                ..
+            }) => {
+                let from = Self::frame(g, *node, *t);
+                let a = *alpha as f32;
+                sk.locals_blend(
+                    &[(1.0 - a, table(from), from.1), (a, table(here), here.1)],
+                    &mut out,
+                );
+            }
+            Some(Fade {
+                source: Source::Frozen { locals, .. },
+                alpha,
+                ..
+            }) => {
+                sk.locals_at(table(here), here.1, &mut out);
+                if let Some(from) = locals {
+                    let a = *alpha as f32;
+                    for (o, f) in out.iter_mut().zip(from.iter()) {
+                        *o = Trs::nlerp(f, o, a);
+                    }
+                }
+            }
+        }
+        Some(out)
+    }
+
+    /// The joint transforms a pose of [`Player::pose`] cannot carry: while a jump fades from
+    /// a frozen pose (shown as live weights, which leave the skeleton at rest), every node
+    /// whose faded transform is not its rest, as overrides. Nothing otherwise: a clip frame
+    /// or an edge's blend carries its joints itself.
+    pub fn joints(&self, g: &Graph, rig: &Rig) -> JointPose {
+        let (Some(sk), Some(Fade { source, .. })) = (&rig.skeleton, &self.fade) else {
+            return JointPose::NONE;
+        };
+        if !matches!(
+            source,
+            Source::Frozen {
+                locals: Some(_),
+                ..
+            }
+        ) {
+            return JointPose::NONE;
+        }
+        let Some(locals) = self.locals(g, rig) else {
+            return JointPose::NONE;
+        };
+        JointPose::new(
+            locals
+                .iter()
+                .zip(&sk.nodes)
+                .enumerate()
+                .filter(|(_, (l, n))| **l != n.rest)
+                .map(|(i, (l, _))| {
+                    JointSet::new(
+                        i as u32,
+                        Some(l.translation),
+                        Some(l.rotation),
+                        Some(l.scale),
+                    )
+                })
+                .collect(),
+        )
+    }
+
     fn weights_with(&self, g: &Graph, rig: &Rig, f: &Fade) -> Vec<f32> {
         let here = Self::frame_weights(rig, Self::frame(g, self.node, self.t));
         let from = Self::source_weights(g, rig, &f.source);
@@ -474,6 +556,7 @@ impl Player {
     /// [`DEFAULT_JUMP_FADE`] frames (at most the node's length).
     pub fn jump(&mut self, g: &Graph, rig: &Rig, to: u32) {
         let weights: Arc<[f32]> = self.weights(g, rig).into();
+        let locals = self.locals(g, rig).map(Arc::from);
         let motion = match &self.fade {
             Some(Fade {
                 source: Source::Node { node, .. },
@@ -492,7 +575,11 @@ impl Player {
             .min(g.nodes[to as usize].len)
             .max(1);
         self.fade = Some(Fade {
-            source: Source::Frozen { weights, motion },
+            source: Source::Frozen {
+                weights,
+                locals,
+                motion,
+            },
             alpha: 0.0,
             rate: 1.0 / f64::from(fade),
         });

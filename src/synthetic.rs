@@ -194,7 +194,11 @@ pub fn skinned_head() -> Rig {
         p.skin = Some(inf);
     }
     rig.primitives = std::sync::Arc::new(prims);
-    let skeleton = Skeleton { nodes, bones };
+    let skeleton = Skeleton {
+        nodes,
+        bones,
+        map: None,
+    };
     for (ci, clip) in rig.clips.iter_mut().enumerate() {
         let frames = clip.frames as usize;
         let mut values = Vec::with_capacity(frames * 5 * Trs::FLOATS);

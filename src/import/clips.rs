@@ -26,7 +26,10 @@ use super::gltf::{UniqueNames, bake, parse};
 use super::scene::{Instance, MeshNames, scene_instances, tracks_bytes, weight_tracks};
 use super::{ImportError, ImportOptions};
 use crate::budget::Budget;
-use crate::rig::{Clip, DEFAULT_FPS, MAX_FRAMES, Rig, TargetId, TargetIndex, map_bytes};
+use crate::rig::{
+    Clip, DEFAULT_FPS, JointMap, JointTable, LIVE_LINK_COLUMNS, MAX_FRAMES, Rig, TargetId,
+    TargetIndex, Trs, map_bytes, rest_rotations,
+};
 
 /// Options for reading a clip source.
 #[derive(Clone, Debug)]
@@ -169,32 +172,103 @@ impl<'r> Matcher<'r> {
     }
 }
 
-/// Maps source column names to the weight channels they write, collecting the unknown ones.
-/// The rig's names are indexed once per source (charged to `budget` while they are).
+/// What a source's columns write: per column the weight channels, the columns that turn
+/// joints instead (by the rig's [`JointMap`]), and the names that matched neither.
+struct Columns {
+    ids: Vec<Vec<TargetId>>,
+    unknown: Vec<String>,
+    /// (column, channel of `map`) of each column that turns a joint.
+    joints: Vec<(usize, usize)>,
+    map: Option<JointMap>,
+}
+
+/// Maps source column names to the weight channels they write, collecting the unknown ones;
+/// on a rig with a skeleton, names its joint map has (Live Link's `HeadYaw`, ... by default)
+/// turn joints. The rig's names are indexed once per source (charged to `budget` while they
+/// are).
 fn map_names(
     rig: &Rig,
     names: &[String],
     options: &ClipOptions,
     budget: &Budget,
-) -> Result<(Vec<Vec<TargetId>>, Vec<String>), ImportError> {
+) -> Result<Columns, ImportError> {
     let bytes = Matcher::bytes(rig);
     budget.charge(bytes, || format!("the target names of rig {:?}", rig.name))?;
     let matcher = Matcher::new(rig);
-    let mapped = map_with(&matcher, names, options, budget);
+    let map = rig.skeleton.as_ref().map(|s| s.joint_map().into_owned());
+    let mapped = map_with(&matcher, map.as_ref(), names, options, budget);
     drop(matcher);
     budget.release(bytes);
-    mapped
+    let (ids, unknown, joints) = mapped?;
+    Ok(Columns {
+        ids,
+        unknown,
+        joints,
+        map,
+    })
+}
+
+/// Whether `name` is one of Live Link Face's head and eye angle columns.
+fn is_live_link_angle(name: &str) -> bool {
+    let l = loose(name);
+    LIVE_LINK_COLUMNS.iter().any(|(c, _, _)| loose(c) == l)
+}
+
+/// A clip's joint table from its joint columns (`Columns::joints`) and rows: each turned
+/// node's local transform per frame ([`JointMap::local`]). Its size is charged first.
+fn joint_table(
+    rig: &Rig,
+    map: &JointMap,
+    joints: &[(usize, usize)],
+    rows: &[Vec<f32>],
+    budget: &Budget,
+) -> Result<Option<JointTable>, ImportError> {
+    let Some(sk) = &rig.skeleton else {
+        return Ok(None);
+    };
+    if joints.is_empty() {
+        return Ok(None);
+    }
+    let channels: Vec<usize> = joints.iter().map(|j| j.1).collect();
+    let nodes = map.nodes(&channels);
+    let floats = rows.len() * nodes.len() * Trs::FLOATS;
+    budget.charge(floats as u64 * 4, || {
+        format!(
+            "joint table of {} nodes × {} frames",
+            nodes.len(),
+            rows.len()
+        )
+    })?;
+    let rest = rest_rotations(sk);
+    let mut values = Vec::with_capacity(floats);
+    let mut row_values = vec![0f32; joints.len()];
+    for row in rows {
+        for (v, &(c, _)) in row_values.iter_mut().zip(joints) {
+            *v = row.get(c).copied().unwrap_or(0.0);
+        }
+        for &n in &nodes {
+            let trs = map.local(sk, &rest, n, &channels, &row_values);
+            values.extend_from_slice(&trs.floats());
+        }
+    }
+    Ok(Some(JointTable {
+        nodes,
+        frames: rows.len() as u32,
+        values,
+    }))
 }
 
 /// [`map_names`] with the rig's names already indexed. The id lists (a vector per column)
 /// and the unknown names are sized by the source, so they are charged to `budget` first; they
 /// are held until the import ends, so the charge is not given back before.
+#[allow(clippy::type_complexity)]
 fn map_with(
     matcher: &Matcher<'_>,
+    map: Option<&JointMap>,
     names: &[String],
     options: &ClipOptions,
     budget: &Budget,
-) -> Result<(Vec<Vec<TargetId>>, Vec<String>), ImportError> {
+) -> Result<(Vec<Vec<TargetId>>, Vec<String>, Vec<(usize, usize)>), ImportError> {
     let vec_bytes = size_of::<Vec<TargetId>>() as u64;
     let bytes: u64 = names
         .iter()
@@ -208,17 +282,30 @@ fn map_with(
     })?;
     let mut ids = Vec::with_capacity(names.len());
     let mut unknown = Vec::new();
-    for n in names {
+    let mut joints = Vec::new();
+    // Live Link's angle columns that turn no joint of this rig: reported, not an error (every
+    // Live Link recording has them, and a rig without those joints cannot show them).
+    let mut angles = Vec::new();
+    for (c, n) in names.iter().enumerate() {
         let id = matcher.ids(n);
         if id.is_empty() {
-            unknown.push(n.clone());
+            let channel = map.and_then(|m| {
+                let l = loose(n);
+                m.channels.iter().position(|ch| loose(&ch.column) == l)
+            });
+            match channel {
+                Some(ch) => joints.push((c, ch)),
+                None if is_live_link_angle(n) => angles.push(n.clone()),
+                None => unknown.push(n.clone()),
+            }
         }
         ids.push(id.to_vec());
     }
     if !unknown.is_empty() && !options.ignore_unknown {
         return Err(ImportError::UnknownTargets(unknown));
     }
-    Ok((ids, unknown))
+    unknown.extend(angles);
+    Ok((ids, unknown, joints))
 }
 
 /// Builds a clip over all rig channels from frame-major source rows; column `c` writes every
@@ -312,8 +399,8 @@ pub fn clip_from_csv(
             "CSV header names no targets".into(),
         ));
     }
-    let (ids, ignored) = map_names(rig, &names, options, &budget)?;
-    let ignored = ignored.into();
+    let columns = map_names(rig, &names, options, &budget)?;
+    let ignored = columns.unknown.clone().into();
     // A parsed row: its vector header and weights.
     let row_bytes = 24 + 4 * keep.len() as u64;
     let mut rows = Vec::new();
@@ -340,7 +427,10 @@ pub fn clip_from_csv(
         }
         rows.push(row);
     }
-    let clip = clip_from_rows(rig, name, options.fps, &ids, &rows, &budget)?;
+    let mut clip = clip_from_rows(rig, name, options.fps, &columns.ids, &rows, &budget)?;
+    if let Some(map) = &columns.map {
+        clip.joints = joint_table(rig, map, &columns.joints, &rows, &budget)?.map(Arc::new);
+    }
     budget.release(rows.len() as u64 * row_bytes);
     Ok(ClipImport { clip, ignored })
 }
@@ -367,8 +457,8 @@ pub fn clip_from_json(
     budget.charge(parsed, || "the JSON clip".into())?;
     let src: JsonClip =
         serde_json::from_slice(bytes).map_err(|e| ImportError::ClipSource(format!("JSON: {e}")))?;
-    let (ids, ignored) = map_names(rig, &src.targets, options, &budget)?;
-    let ignored = ignored.into();
+    let columns = map_names(rig, &src.targets, options, &budget)?;
+    let ignored = columns.unknown.clone().into();
     if let Some((f, row)) = src
         .frames
         .iter()
@@ -382,7 +472,10 @@ pub fn clip_from_json(
         )));
     }
     let fps = src.fps.unwrap_or(options.fps);
-    let clip = clip_from_rows(rig, name, fps, &ids, &src.frames, &budget)?;
+    let mut clip = clip_from_rows(rig, name, fps, &columns.ids, &src.frames, &budget)?;
+    if let Some(map) = &columns.map {
+        clip.joints = joint_table(rig, map, &columns.joints, &src.frames, &budget)?.map(Arc::new);
+    }
     drop(src);
     budget.release(parsed);
     Ok(ClipImport { clip, ignored })
@@ -499,7 +592,8 @@ pub fn clips_from_gltf(
     )?;
     for inst in &instances {
         if let Entry::Vacant(e) = by_mesh.entry(inst.mesh.index()) {
-            let (ids, unknown) = map_with(&matcher, names.of(&inst.mesh), options, budget)?;
+            let (ids, unknown, _) =
+                map_with(&matcher, None, names.of(&inst.mesh), options, budget)?;
             for u in unknown {
                 if !ignored_set.contains(u.as_str()) {
                     // Held twice (the set and the list) for the rest of the import.

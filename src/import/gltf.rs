@@ -691,6 +691,8 @@ fn document_shape(
             clip_cells: n_targets * clip_frames,
             mesh_levels: Vec::new(),
             pca_levels: Vec::new(),
+            // The skin's arrays are charged as they are read (`import::skin`).
+            skin: Default::default(),
         },
         transient,
         plan,

@@ -287,7 +287,11 @@ pub(crate) fn plan(
         }
     }
     Ok(Some(SkeletonPlan {
-        skeleton: Skeleton { nodes, bones },
+        skeleton: Skeleton {
+            nodes,
+            bones,
+            map: None,
+        },
         node_ids,
         attach,
         charged,

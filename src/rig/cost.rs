@@ -147,6 +147,23 @@ pub struct RigShape {
     /// The shapes of the rigs of its PCA levels (`DeltaPca::derive_rig`), with their clip
     /// table cells (the clips in coefficients) and the bytes of the form itself.
     pub pca_levels: Vec<(Vec<PrimShape>, u64, u64)>,
+    /// On a skinned rig, what its skeleton adds (zero otherwise).
+    pub skin: SkinShape,
+}
+
+/// What a skinned rig adds to its cost: the influences (24 bytes a vertex: four bone ids and
+/// weights, in the rig, and as six words on the GPU), the skeleton and joint tables, and the
+/// CPU engine's per-tile bone entries (a 64-byte weight row and a bone id each).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
+pub struct SkinShape {
+    /// Vertices that carry influences (every vertex of a skinned rig), in the full mesh and in
+    /// every mesh level and PCA level (each derived rig has its own copy).
+    pub vertices: u64,
+    /// The CPU layout's bone entries over the full mesh and its levels (at most four per
+    /// vertex; exact for the full mesh, bounded for levels).
+    pub tile_entries: u64,
+    /// Bytes of the skeleton and of every clip's joint table.
+    pub joints: u64,
 }
 
 /// Bytes a rig costs, by where they live and when.
@@ -190,6 +207,7 @@ impl RigShape {
                 .collect()
         };
         RigShape {
+            skin: SkinShape::of(rig),
             primitives: shapes(rig),
             targets: rig.targets.len() as u64,
             clip_cells: rig.clips.iter().map(|c| c.weights.len() as u64).sum(),
@@ -352,6 +370,18 @@ impl RigShape {
 
     /// What the rig costs, on a GPU or not.
     pub fn cost(&self, gpu: bool) -> RigCost {
+        let mut cost = self.cost_unskinned(gpu);
+        let s = &self.skin;
+        cost.rig += s.vertices * 24 + s.joints;
+        cost.layout += s.tile_entries * (64 + 2) + s.vertices.div_ceil(16) * 4;
+        if gpu {
+            cost.device += s.vertices * 24;
+        }
+        cost.stored += s.vertices * 30 + s.joints;
+        cost
+    }
+
+    fn cost_unskinned(&self, gpu: bool) -> RigCost {
         let geometry = |prims: &[PrimShape]| prims.iter().map(PrimShape::rig_bytes).sum::<u64>();
         let clips = self.clip_cells * 4;
         let lod = self.targets * 4
@@ -411,6 +441,63 @@ impl RigShape {
             device,
             transient: staging.max(upload).max(range_check).max(1 << 20),
             stored,
+        }
+    }
+}
+
+impl SkinShape {
+    /// The exact counts of `rig` (zero without a skeleton).
+    pub fn of(rig: &Rig) -> SkinShape {
+        let Some(sk) = &rig.skeleton else {
+            return SkinShape::default();
+        };
+        let full = rig.vertex_count() as u64;
+        let levels: u64 = rig
+            .lod
+            .meshes
+            .iter()
+            .map(|m| m.vertex_count() as u64)
+            .sum::<u64>()
+            + rig.lod.pca.len() as u64 * full;
+        // The full mesh's entries, counted as `SkinTiles` builds them: per tile of sixteen
+        // consecutive vertices, its distinct bones (and one entry for vertices that follow
+        // none).
+        let mut entries = 0u64;
+        let mut tile: Vec<u16> = Vec::with_capacity(64);
+        let mut lane = 0usize;
+        for p in rig.primitives.iter() {
+            for v in 0..p.positions.len() {
+                if lane == 16 {
+                    entries += tile.len() as u64;
+                    tile.clear();
+                    lane = 0;
+                }
+                match &p.skin {
+                    Some(s) if s.weights[v][0] != 0.0 => {
+                        for k in (0..4).filter(|&k| s.weights[v][k] != 0.0) {
+                            if !tile.contains(&s.joints[v][k]) {
+                                tile.push(s.joints[v][k]);
+                            }
+                        }
+                    }
+                    _ if !tile.contains(&u16::MAX) => tile.push(u16::MAX),
+                    _ => {}
+                }
+                lane += 1;
+            }
+        }
+        entries += tile.len() as u64;
+        let joints = sk.bytes()
+            + rig
+                .clips
+                .iter()
+                .filter_map(|c| c.joints.as_deref())
+                .map(|t| t.bytes())
+                .sum::<u64>();
+        SkinShape {
+            vertices: full + levels,
+            tile_entries: entries + 4 * levels,
+            joints,
         }
     }
 }

@@ -4,9 +4,9 @@
 //! node's *effect* is the farthest it can carry a vertex away from where its parent puts it:
 //! the largest `w × |p − pivot|` over the vertices it moves (`w` the share of the vertex's bone
 //! weights on bones at or under the node, `p` the vertex at rest, `pivot` the node's rest
-//! origin), times the largest angle it turns through — the largest turn from rest any clip
-//! gives it, and never less than [`REFERENCE_TURN`], since a request may turn it too — plus
-//! the largest distance a clip translates it from rest. An eye moves its eyeball by about its
+//! origin), times the chord `2 sin(θ/2)` of the largest angle θ it turns through — the largest
+//! turn from rest any clip gives it, and never less than [`REFERENCE_TURN`], since a request
+//! may turn it too — plus the largest distance a clip translates it from rest. An eye moves its eyeball by about its
 //! radius times its turn; a head or a jaw moves half the face.
 //!
 //! Level `l ≥ 1` holds at rest the nodes whose effect is at most [`drop_fraction`]`(l)` of the
@@ -29,12 +29,12 @@ pub const REFERENCE_TURN: f32 = 0.35;
 pub const MAX_EFFECT_STEPS: usize = 1 << 26;
 
 /// Share of the diagonal under which level `l` drops a node: 0 at level 0, then 0.25 %,
-/// 1 %, 4 %, 16 %, ... (× 4 a level).
+/// 0.5 %, 1 %, 2 %, ... (× 2 a level).
 pub fn drop_fraction(level: usize) -> f32 {
     if level == 0 {
         0.0
     } else {
-        0.0025 * 4f32.powi(level as i32 - 1).min(400.0)
+        0.0025 * 2f32.powi((level as i32 - 1).min(8))
     }
 }
 
@@ -190,7 +190,10 @@ fn effects(rig: &Rig, sk: &Skeleton) -> Vec<f32> {
             }
         }
     }
-    // Lever arms: per vertex, its weight at or under each ancestor of its bones.
+    // Lever arms: per vertex (where the rest pose puts it: a skin's bind pose need not be its
+    // skeleton's rest), its weight at or under each ancestor of its bones.
+    let mut rest_bones = Vec::with_capacity(sk.bones.len());
+    sk.bone_matrices(&sk.rest(), &mut Vec::new(), &mut rest_bones);
     let mut lever = vec![0f32; nodes];
     let mut unmeasured = false;
     let mut steps = 0usize;
@@ -221,8 +224,12 @@ fn effects(rig: &Rig, sk: &Skeleton) -> Vec<f32> {
                     break 'outer;
                 }
             }
+            let at: Vec3 = (0..4)
+                .filter(|&k| w[k] != 0.0)
+                .map(|k| w[k] * rest_bones[j[k] as usize].point(*pos))
+                .sum();
             for &(n, wsum) in &under {
-                let l = wsum.min(1.0) * (*pos - pivots[n as usize]).length();
+                let l = wsum.min(1.0) * (at - pivots[n as usize]).length();
                 lever[n as usize] = lever[n as usize].max(l);
             }
         }
@@ -232,7 +239,7 @@ fn effects(rig: &Rig, sk: &Skeleton) -> Vec<f32> {
             if unmeasured {
                 f32::INFINITY
             } else {
-                lever[n] * turn[n] + shift[n]
+                lever[n] * 2.0 * (turn[n].min(std::f32::consts::PI) / 2.0).sin() + shift[n]
             }
         })
         .collect()

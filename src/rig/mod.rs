@@ -26,6 +26,7 @@
 mod clip;
 mod cost;
 mod joint_lod;
+mod joint_map;
 mod lod;
 mod mesh_level;
 mod pca;
@@ -34,8 +35,11 @@ mod sample;
 mod skin;
 
 pub use clip::{Clip, ClipError, ClipIndex, DEFAULT_FPS, FrameMode, MAX_FRAMES};
-pub use cost::{PrimShape, RigCost, RigShape};
+pub use cost::{PrimShape, RigCost, RigShape, SkinShape};
 pub use joint_lod::{JointLevel, JointLod, REFERENCE_TURN, drop_fraction};
+pub use joint_map::{
+    JointChannel, JointMap, LIVE_LINK_COLUMNS, MAX_JOINT_CHANNELS, rest_rotations,
+};
 pub use lod::{
     IMPORT_LOD_METHOD, Lod, LodError, LodLevel, MeshLevel, MeshLevelPrimitive, default_lod_levels,
 };
@@ -597,7 +601,14 @@ impl Rig {
         skin::check(sk, &influences, &tables).map_err(|problem| RigError::Inconsistent {
             primitive: String::new(),
             problem: format!("skeleton: {problem}"),
-        })
+        })?;
+        if let Some(map) = &sk.map {
+            map.check(sk).map_err(|problem| RigError::Inconsistent {
+                primitive: String::new(),
+                problem: format!("joint map: {problem}"),
+            })?;
+        }
+        Ok(())
     }
 
     /// Whether the rig's vertices follow a skeleton (evaluation skins after blending).

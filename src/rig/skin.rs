@@ -26,6 +26,8 @@ use std::sync::Arc;
 use glam::{Mat3, Mat4, Quat, Vec3, Vec4};
 use serde::{Deserialize, Serialize};
 
+use super::JointMap;
+
 /// `SkelNode::parent` of a root.
 pub const NO_PARENT: u32 = u32::MAX;
 
@@ -86,6 +88,33 @@ impl Trs {
         }
     }
 
+    /// `(1 − a) × from + a × to`: translations and scales by fraction, rotations by nlerp (the
+    /// second flipped into the first's hemisphere), as a blend of two terms
+    /// ([`Skeleton::locals_blend`]).
+    pub fn nlerp(from: &Trs, to: &Trs, a: f32) -> Trs {
+        let (f, t) = (from.floats(), to.floats());
+        let flip = if Vec4::from(from.rotation).dot(Vec4::from(to.rotation)) < 0.0 {
+            -1.0
+        } else {
+            1.0
+        };
+        let mut v = [0f32; 10];
+        for k in 0..10 {
+            let tk = if (3..7).contains(&k) {
+                flip * t[k]
+            } else {
+                t[k]
+            };
+            v[k] = (1.0 - a) * f[k] + a * tk;
+        }
+        let mut out = Trs::from_floats(&v);
+        out.rotation = Vec4::from(out.rotation)
+            .try_normalize()
+            .unwrap_or(Vec4::W)
+            .to_array();
+        out
+    }
+
     /// The ten floats of a table row.
     pub fn floats(&self) -> [f32; 10] {
         let (t, r, s) = (self.translation, self.rotation, self.scale);
@@ -125,6 +154,11 @@ pub struct Skeleton {
     pub nodes: Vec<SkelNode>,
     /// The bones vertices name in [`Influences::joints`].
     pub bones: Vec<Bone>,
+    /// The clip columns that turn its nodes, when the rig was given its own
+    /// (`PUT /v1/rigs/{id}/joint-map`); `None` is [`JointMap::defaults`]. Skipped by serde:
+    /// the store keeps it beside the skin record.
+    #[serde(skip)]
+    pub map: Option<JointMap>,
 }
 
 /// Per vertex of one primitive: up to four bones and their weights (summing to one).
@@ -434,6 +468,14 @@ impl Skeleton {
         (t_max, s_max)
     }
 
+    /// The map of clip columns to joints in force: the rig's own, else the defaults.
+    pub fn joint_map(&self) -> std::borrow::Cow<'_, JointMap> {
+        match &self.map {
+            Some(m) => std::borrow::Cow::Borrowed(m),
+            None => std::borrow::Cow::Owned(JointMap::defaults(self)),
+        }
+    }
+
     /// Bytes the skeleton holds.
     pub fn bytes(&self) -> u64 {
         self.nodes
@@ -576,6 +618,33 @@ impl JointPose {
     /// Whether there are none.
     pub fn is_none(&self) -> bool {
         self.0.is_none()
+    }
+
+    /// These overrides with `top`'s on top: per node, `top`'s components replace these (a
+    /// request's overrides over a graph fade's joints).
+    pub fn overlay(&self, top: &JointPose) -> JointPose {
+        if top.is_none() {
+            return self.clone();
+        }
+        if self.is_none() {
+            return top.clone();
+        }
+        let mut sets: Vec<JointSet> = self.sets().to_vec();
+        for t in top.sets() {
+            match sets.iter_mut().find(|s| s.node == t.node) {
+                Some(s) => {
+                    if t.rest {
+                        *s = *t;
+                    } else {
+                        s.translation = t.translation.or(s.translation);
+                        s.rotation = t.rotation.or(s.rotation);
+                        s.scale = t.scale.or(s.scale);
+                    }
+                }
+                None => sets.push(*t),
+            }
+        }
+        JointPose::new(sets)
     }
 
     /// Applies the overrides to one local transform per node of `skeleton`.
@@ -772,6 +841,7 @@ mod tests {
                 node: 0,
                 bind: rest.matrix().inverse().to_cols_array(),
             }],
+            map: None,
         };
         let (mut g, mut out) = (Vec::new(), Vec::new());
         sk.bone_matrices(&sk.rest(), &mut g, &mut out);
@@ -816,6 +886,7 @@ mod tests {
                 rest: Trs::default(),
             }],
             bones: vec![],
+            map: None,
         };
         let mut out = Vec::new();
         sk.locals_blend(&[(0.5, Some(&t), 1), (0.5, Some(&t), 1)], &mut out);

@@ -17,7 +17,7 @@
 //! | bytes | what |
 //! |---|---|
 //! | 8 | magic `CMSTORE1` |
-//! | 4 | record kind: 6 = a whole rig, 7 = extra clips and the LOD of a built-in rig, 8 = clips added to a rig; read but no longer written: 5 and 1 (a rig with and without base colours), 3 and 2 (a built-in rig's clips with and without its LOD), 4 (clips added to a rig), which hold their clips as plain tables |
+//! | 4 | record kind: 6 = a whole rig, 9 = a whole rig with a skeleton, 10 = the same with its own joint map, 7 = extra clips and the LOD of a built-in rig, 8 = clips added to a rig, 11 = clips with joint tables added to a rig; read but no longer written: 5 and 1 (a rig with and without base colours), 3 and 2 (a built-in rig's clips with and without its LOD), 4 (clips added to a rig), which hold their clips as plain tables |
 //! | 8 | payload length `n` |
 //! | 4 | CRC-32 (IEEE) of the payload |
 //! | n | payload: the record encoded by [`crate::codec`] |
@@ -47,7 +47,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use serde::{Deserialize, Serialize};
 
 use crate::codec;
-use crate::rig::{Clip, Influences, JointTable, Lod, Rig, Skeleton};
+use crate::rig::{Clip, Influences, JointMap, JointTable, Lod, Rig, Skeleton};
 
 const MAGIC: &[u8; 8] = b"CMSTORE1";
 const HEADER: usize = 8 + 4 + 8 + 4;
@@ -65,6 +65,10 @@ const KIND_BUILTIN_V7: u32 = 7;
 const KIND_CLIPS_V8: u32 = 8;
 /// Kind 6 followed by a [`SkinRecord`]: a rig with a skeleton (others are still kind 6).
 const KIND_RIG_SKINNED_V9: u32 = 9;
+/// Kind 9 followed by the rig's own [`JointMap`] (rigs with the default map are still kind 9).
+const KIND_RIG_SKINNED_MAP_V10: u32 = 10;
+/// Kind 8 followed by the clips' joint tables by name (clips without any are still kind 8).
+const KIND_CLIPS_JOINTS_V11: u32 = 11;
 /// Extension of record files.
 const EXT: &str = "cmrig";
 /// Extension of clip files.
@@ -184,8 +188,9 @@ struct SkinRecord {
 }
 
 impl SkinRecord {
-    /// Puts the skeleton back into `rig` (validated by the caller).
-    fn apply(self, rig: &mut Rig) -> Result<(), String> {
+    /// Puts the skeleton, and its own joint map if it had one, back into `rig` (validated by
+    /// the caller).
+    fn apply(self, rig: &mut Rig, map: Option<JointMap>) -> Result<(), String> {
         if self.influences.len() != rig.primitives.len() {
             return Err(format!(
                 "{} influence sets for {} primitives",
@@ -203,7 +208,9 @@ impl SkinRecord {
         for c in &mut rig.clips {
             c.joints = tables.remove(&c.name).map(std::sync::Arc::new);
         }
-        rig.skeleton = Some(std::sync::Arc::new(self.skeleton));
+        let mut skeleton = self.skeleton;
+        skeleton.map = map;
+        rig.skeleton = Some(std::sync::Arc::new(skeleton));
         rig.import_notes = self.notes;
         Ok(())
     }
@@ -214,6 +221,23 @@ struct StoredSkinnedOwned {
     id: String,
     rig: RigRecordV6,
     skin: SkinRecord,
+}
+
+/// Kind 10: kind 9 and the rig's own joint map.
+#[derive(Serialize)]
+struct StoredSkinnedMapRef<'a> {
+    id: &'a str,
+    rig: RigRecordRef<'a>,
+    skin: SkinRecordRef<'a>,
+    map: &'a JointMap,
+}
+
+#[derive(Deserialize)]
+struct StoredSkinnedMapOwned {
+    id: String,
+    rig: RigRecordV6,
+    skin: SkinRecord,
+    map: JointMap,
 }
 
 /// One clip in a kind 6–8 record.
@@ -481,6 +505,23 @@ struct StoredClipsV8Owned {
     clips: Vec<ClipRecord>,
 }
 
+/// Kind 11: kind 8 and its clips' joint tables by clip name.
+#[derive(Serialize)]
+struct StoredClipsJointsRef<'a> {
+    id: &'a str,
+    seq: u64,
+    clips: Vec<ClipRecordRef<'a>>,
+    clip_joints: Vec<(&'a str, &'a JointTable)>,
+}
+
+#[derive(Deserialize)]
+struct StoredClipsJointsOwned {
+    id: String,
+    seq: u64,
+    clips: Vec<ClipRecord>,
+    clip_joints: Vec<(String, JointTable)>,
+}
+
 /// Clips added to a rig after its record was written, as loaded.
 #[derive(Clone, Debug, PartialEq)]
 pub struct StoredClips {
@@ -665,14 +706,26 @@ impl Store {
                                 .collect(),
                             notes: &rig.import_notes,
                         };
-                        let r = StoredSkinnedRef {
-                            id,
-                            rig: record,
-                            skin,
-                        };
-                        codec::to_stored_writer(&r, &mut w)
-                            .map_err(|e| StoreError::Encode(e.to_string()))?;
-                        KIND_RIG_SKINNED_V9
+                        if let Some(map) = &skeleton.map {
+                            let r = StoredSkinnedMapRef {
+                                id,
+                                rig: record,
+                                skin,
+                                map,
+                            };
+                            codec::to_stored_writer(&r, &mut w)
+                                .map_err(|e| StoreError::Encode(e.to_string()))?;
+                            KIND_RIG_SKINNED_MAP_V10
+                        } else {
+                            let r = StoredSkinnedRef {
+                                id,
+                                rig: record,
+                                skin,
+                            };
+                            codec::to_stored_writer(&r, &mut w)
+                                .map_err(|e| StoreError::Encode(e.to_string()))?;
+                            KIND_RIG_SKINNED_V9
+                        }
                     } else {
                         let r = StoredRigRef { id, rig: record };
                         codec::to_stored_writer(&r, &mut w)
@@ -697,10 +750,26 @@ impl Store {
                     clips,
                     rig,
                 } => {
+                    let clip_joints: Vec<(&str, &JointTable)> = clips
+                        .iter()
+                        .filter_map(|c| c.joints.as_deref().map(|t| (c.name.as_str(), t)))
+                        .collect();
                     let clips = clip_records(clips, rig, self.clip_error)?;
-                    codec::to_stored_writer(&StoredClipsRef { id, seq, clips }, &mut w)
-                        .map_err(|e| StoreError::Encode(e.to_string()))?;
-                    KIND_CLIPS_V8
+                    if clip_joints.is_empty() {
+                        codec::to_stored_writer(&StoredClipsRef { id, seq, clips }, &mut w)
+                            .map_err(|e| StoreError::Encode(e.to_string()))?;
+                        KIND_CLIPS_V8
+                    } else {
+                        let r = StoredClipsJointsRef {
+                            id,
+                            seq,
+                            clips,
+                            clip_joints,
+                        };
+                        codec::to_stored_writer(&r, &mut w)
+                            .map_err(|e| StoreError::Encode(e.to_string()))?;
+                        KIND_CLIPS_JOINTS_V11
+                    }
                 }
             };
             let mut header = Vec::with_capacity(HEADER);
@@ -907,9 +976,23 @@ impl Store {
             .unwrap_or_default()
             .to_string();
         match kind {
-            KIND_CLIPS | KIND_CLIPS_V8 => {
+            KIND_CLIPS | KIND_CLIPS_V8 | KIND_CLIPS_JOINTS_V11 => {
                 let c: StoredClipsOwned = if kind == KIND_CLIPS {
                     codec::from_stored(payload).map_err(|e| corrupt(e.to_string()))?
+                } else if kind == KIND_CLIPS_JOINTS_V11 {
+                    let c: StoredClipsJointsOwned =
+                        codec::from_stored(payload).map_err(|e| corrupt(e.to_string()))?;
+                    let mut tables: std::collections::HashMap<String, JointTable> =
+                        c.clip_joints.into_iter().collect();
+                    let mut clips = decode_clips(c.clips, None, path, skipped);
+                    for clip in &mut clips {
+                        clip.joints = tables.remove(&clip.name).map(std::sync::Arc::new);
+                    }
+                    StoredClipsOwned {
+                        id: c.id,
+                        seq: c.seq,
+                        clips,
+                    }
                 } else {
                     let c: StoredClipsV8Owned =
                         codec::from_stored(payload).map_err(|e| corrupt(e.to_string()))?;
@@ -936,10 +1019,21 @@ impl Store {
                     clips: c.clips,
                 }))
             }
-            KIND_RIG | KIND_RIG_COLORS | KIND_RIG_V6 | KIND_RIG_SKINNED_V9 => {
-                let r = if kind == KIND_RIG_SKINNED_V9 {
-                    let StoredSkinnedOwned { id, rig: r, skin } =
-                        codec::from_stored(payload).map_err(|e| corrupt(e.to_string()))?;
+            KIND_RIG
+            | KIND_RIG_COLORS
+            | KIND_RIG_V6
+            | KIND_RIG_SKINNED_V9
+            | KIND_RIG_SKINNED_MAP_V10 => {
+                let r = if kind == KIND_RIG_SKINNED_V9 || kind == KIND_RIG_SKINNED_MAP_V10 {
+                    let (id, r, skin, map) = if kind == KIND_RIG_SKINNED_MAP_V10 {
+                        let StoredSkinnedMapOwned { id, rig, skin, map } =
+                            codec::from_stored(payload).map_err(|e| corrupt(e.to_string()))?;
+                        (id, rig, skin, Some(map))
+                    } else {
+                        let StoredSkinnedOwned { id, rig, skin } =
+                            codec::from_stored(payload).map_err(|e| corrupt(e.to_string()))?;
+                        (id, rig, skin, None)
+                    };
                     let clips = decode_clips(r.clips, Some(r.targets.len()), path, skipped);
                     let mut rig = RigRecordColors {
                         name: r.name,
@@ -952,7 +1046,7 @@ impl Store {
                     }
                     .into_rig()
                     .map_err(corrupt)?;
-                    skin.apply(&mut rig).map_err(corrupt)?;
+                    skin.apply(&mut rig, map).map_err(corrupt)?;
                     StoredRig { id, rig }
                 } else if kind == KIND_RIG {
                     let r: StoredRigOwned =

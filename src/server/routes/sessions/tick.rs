@@ -444,7 +444,7 @@ fn resolve(
             let ri = ri?;
             let entry = &rigs[ri as usize];
             let rig = entry.rig();
-            let pose = match &h.graph {
+            let (pose, graph_joints) = match &h.graph {
                 Some(play) => {
                     let graph = state
                         .graphs
@@ -459,15 +459,18 @@ fn resolve(
                     let frame = clip
                         .resolve_frame(h.offset.saturating_add(elapsed as i64), mode)
                         .ok()?;
-                    Pose::Frame {
-                        clip: ci as u32,
-                        frame,
-                    }
+                    (
+                        Pose::Frame {
+                            clip: ci as u32,
+                            frame,
+                        },
+                        JointPose::NONE,
+                    )
                 }
             };
             // Checked when the head was added or changed; a rig changed since then leaves out
             // a head whose overrides no longer fit it, as it does a head whose clip is gone.
-            let joints = requested_joints(entry, &h.joints).ok()?;
+            let joints = graph_joints.overlay(&requested_joints(entry, &h.joints).ok()?);
             Some(HeadAt {
                 rig: ri,
                 pose,
@@ -506,8 +509,9 @@ impl Players {
         (n.min(limit), 1.0 / f64::from(fps.max(MIN_FPS)))
     }
 
-    /// Head `id`'s pose after this tick: its player (new if the head is new, its play changed
-    /// or its graph was replaced), sent through `jumps`, advanced `steps`.
+    /// Head `id`'s pose after this tick, and the joint transforms a jump's fade adds to it
+    /// (`Player::joints`): its player (new if the head is new, its play changed or its graph
+    /// was replaced), sent through `jumps`, advanced `steps`.
     fn pose(
         &mut self,
         id: u64,
@@ -516,7 +520,7 @@ impl Players {
         rig: &crate::rig::Rig,
         jumps: &[String],
         (steps, dt): (u64, f64),
-    ) -> Option<Pose> {
+    ) -> Option<(Pose, JointPose)> {
         let same_graph = |p: &PlayerOf| {
             Arc::ptr_eq(&p.graph, graph)
                 || (p.graph.nodes.len() == graph.nodes.len()
@@ -551,7 +555,7 @@ impl Players {
         for _ in 0..steps {
             p.player.advance(graph, rig, dt);
         }
-        Some(p.player.pose(graph, rig))
+        Some((p.player.pose(graph, rig), p.player.joints(graph, rig)))
     }
 
     /// Forgets the players of heads no longer in the session.
