@@ -376,6 +376,53 @@ impl<'de> Deserialize<'de> for JointOverrides {
     }
 }
 
+/// `PUT /v1/rigs/{id}/joint-map` request, and what `GET` answers (in [`JointMapInfo`]): the
+/// clip columns that turn a skinned rig's joints — Live Link Face's `HeadYaw`, ...,
+/// `RightEyeRoll` by default (`proto/README.md`, "Joint channels in clips").
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct JointMapSpec {
+    /// The channels, in the order their rotations compose per node.
+    pub channels: Vec<JointChannelSpec>,
+}
+
+fn y_axis() -> [f32; 3] {
+    [0.0, 1.0, 0.0]
+}
+
+fn one_radian() -> f32 {
+    1.0
+}
+
+/// One column that turns a node: by `value × scale` radians about `axis` (rig space: +Y up,
+/// +Z out of the face, +X to the character's left), about the node's origin.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct JointChannelSpec {
+    /// Clip column (matched in any loose spelling, as target names are).
+    pub column: String,
+    /// Skeleton node name.
+    pub node: String,
+    /// Unit axis in rig space (default +Y).
+    #[serde(default = "y_axis")]
+    pub axis: [f32; 3],
+    /// Radians per unit (default 1).
+    #[serde(default = "one_radian")]
+    pub scale: f32,
+}
+
+/// `GET /v1/rigs/{id}/joint-map` response (also the answer to `PUT` and `DELETE`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct JointMapInfo {
+    /// Rig id.
+    pub rig: String,
+    /// True when the rig has no map of its own and these are the defaults (Ready Player Me
+    /// and VRM humanoid names).
+    pub default: bool,
+    /// The channels in force.
+    pub channels: Vec<JointChannelSpec>,
+}
+
 /// One blend layer of a head: fraction `t` of frame `frame` of clip `clip` (same rig).
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]

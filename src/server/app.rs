@@ -272,6 +272,12 @@ fn resources() -> Router<AppState> {
             "/v1/rigs/{id}/lod",
             get(routes::lod::get_lod).put(routes::lod::put_lod),
         )
+        .route(
+            "/v1/rigs/{id}/joint-map",
+            get(routes::joints::get_joint_map)
+                .put(routes::joints::put_joint_map)
+                .delete(routes::joints::delete_joint_map),
+        )
         .route("/v1/rigs/{id}/graphs", get(routes::graphs::list_graphs))
         .route(
             "/v1/rigs/{id}/graphs/{name}",

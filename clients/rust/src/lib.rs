@@ -8,8 +8,8 @@
 use bytes::Bytes;
 use crowdmorph_proto::{
     CONTENT_TYPE_BINCODE, CONTENT_TYPE_JSON, ClipList, ClipUpload, CrowdFrameRequest,
-    CrowdFrameResponse, ErrorBody, LodInfo, LodRequest, MeshResponse, RenderRequest, RigInfo,
-    RigList, SessionInfo, SessionRequest,
+    CrowdFrameResponse, ErrorBody, JointMapInfo, JointMapSpec, LodInfo, LodRequest, MeshResponse,
+    RenderRequest, RigInfo, RigList, SessionInfo, SessionRequest,
 };
 use http_body_util::{BodyExt, Full};
 use hyper::{Request, StatusCode};
@@ -382,6 +382,45 @@ impl Client {
                 Some(CONTENT_TYPE_JSON),
                 Some(CONTENT_TYPE_JSON),
                 body,
+            )
+            .await?;
+        Self::decode(reply, Encoding::Json)
+    }
+
+    /// `GET /v1/rigs/{id}/joint-map`: the clip columns that turn the rig's joints.
+    pub async fn joint_map(&self, id: &str) -> Result<JointMapInfo, ClientError> {
+        self.get(&format!("/v1/rigs/{id}/joint-map"), Encoding::Json)
+            .await
+    }
+
+    /// `PUT /v1/rigs/{id}/joint-map`: gives the rig its own map of columns to joints.
+    pub async fn set_joint_map(
+        &self,
+        id: &str,
+        map: &JointMapSpec,
+    ) -> Result<JointMapInfo, ClientError> {
+        let body = Self::encode(map, Encoding::Json)?;
+        let reply = self
+            .send(
+                Method::PUT,
+                &format!("/v1/rigs/{id}/joint-map"),
+                Some(CONTENT_TYPE_JSON),
+                Some(CONTENT_TYPE_JSON),
+                body,
+            )
+            .await?;
+        Self::decode(reply, Encoding::Json)
+    }
+
+    /// `DELETE /v1/rigs/{id}/joint-map`: back to the default map.
+    pub async fn reset_joint_map(&self, id: &str) -> Result<JointMapInfo, ClientError> {
+        let reply = self
+            .send(
+                Method::DELETE,
+                &format!("/v1/rigs/{id}/joint-map"),
+                None,
+                Some(CONTENT_TYPE_JSON),
+                Bytes::new(),
             )
             .await?;
         Self::decode(reply, Encoding::Json)

@@ -1,6 +1,6 @@
 //! The handlers, one file per resource, each in short named phases: `health` (`/healthz`,
 //! `/readyz`, `/metrics`), `rigs`, `clips`, `frames` (`POST /v1/crowd/frame`), `render`
-//! (`POST /v1/crowd/render`), `lod`, `graphs` (motion graphs), `loadtest`, `replicas` (a rig store shared by replicas: commits, refreshes, lookups), `sessions` (handlers, the viewer protocol,
+//! (`POST /v1/crowd/render`), `lod`, `graphs` (motion graphs), `joints` (a skinned rig's joint map), `loadtest`, `replicas` (a rig store shared by replicas: commits, refreshes, lookups), `sessions` (handlers, the viewer protocol,
 //! the tick) and `viewer` (the browser viewer's files). They use the HTTP layer and admission;
 //! nothing below them imports them.
 
@@ -8,6 +8,7 @@ pub mod clips;
 pub mod frames;
 pub mod graphs;
 pub mod health;
+pub mod joints;
 pub mod loadtest;
 pub mod lod;
 pub mod render;
