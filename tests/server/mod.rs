@@ -14,6 +14,7 @@ mod encoding;
 mod golden;
 mod graphs;
 mod hostile;
+mod joints;
 mod loadtest;
 mod lod;
 mod metrics;
