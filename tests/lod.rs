@@ -891,3 +891,44 @@ fn pca_levels_pay_on_ict_facekits_coarse_levels() {
         assert!(err <= allowed, "level {l}: {err} > {allowed}");
     }
 }
+
+#[test]
+fn the_lod_report_states_the_joints_each_level_holds_at_rest() {
+    // The skinned face: its far levels hold the eyes at rest. What that costs is measured
+    // over a clip with the CPU engine and stays within the bound the levels were cut by.
+    let rig = crowdmorph::synthetic::skinned_head();
+    let talk = rig.clip_index("talk").expect("talk");
+    let levels = crowdmorph::lod::report::joint_levels(&rig, talk).expect("joint levels");
+    assert_eq!(levels.len(), rig.lod.levels.len());
+    assert!(levels[0].dropped.is_empty() && levels[0].measured == 0.0);
+    let last = levels.last().expect("a level");
+    assert!(
+        last.dropped.contains(&"LeftEye".to_string())
+            && last.dropped.contains(&"RightEye".to_string()),
+        "{last:?}"
+    );
+    for l in &levels {
+        assert!(!l.dropped.contains(&"Head".to_string()), "{l:?}");
+        assert!(
+            l.measured <= l.bound * 1.001 + 1e-9,
+            "level {}: measured {} over its bound {}",
+            l.level,
+            l.measured,
+            l.bound
+        );
+        if !l.dropped.is_empty() {
+            assert!(l.measured > 0.0, "the eyes move in `talk`: {l:?}");
+        }
+    }
+    // The report's text says so.
+    let pins: Vec<u32> = Vec::new();
+    let opts = ScoreOptions {
+        image_size: 48,
+        ..Default::default()
+    };
+    let scores = score_targets(&rig, &opts, None).expect("scores");
+    let report = lod_report(&rig, talk, &scores, &pins).expect("report");
+    let text = report.to_string();
+    assert!(text.contains("joints held at rest"), "{text}");
+    assert!(text.contains("LeftEye"), "{text}");
+}

@@ -68,6 +68,91 @@ pub struct LodReport {
     pub orders: Vec<OrderReport>,
     /// Scores the orders came from.
     pub scores: Scores,
+    /// On a skinned rig, what each LOD level does to its joints (empty otherwise).
+    #[serde(default)]
+    pub joints: Vec<JointLevelReport>,
+}
+
+/// The joints one LOD level holds at rest (`crate::rig::JointLod`) and what that costs.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct JointLevelReport {
+    /// Level index.
+    pub level: u32,
+    /// Nodes held at rest, by name.
+    pub dropped: Vec<String>,
+    /// The sum of their effects, / bbox diagonal: the most holding them can move a vertex in
+    /// a pose within their ranges (estimated from the rest pose's lever arms).
+    pub bound: f64,
+    /// Measured over the report's clip: the largest vertex distance between the level's
+    /// joints and every joint (all shapes both times), / bbox diagonal.
+    pub measured: f64,
+}
+
+/// Frames of a clip the joint measurement evaluates at most (evenly spread).
+const JOINT_FRAMES: u32 = 64;
+
+/// What each LOD level of `rig` does to its joints over clip `clip` (none without a
+/// skeleton): the dropped nodes, their bound, and the error measured with the CPU engine.
+pub fn joint_levels(rig: &Rig, clip: usize) -> Result<Vec<JointLevelReport>, ReportError> {
+    use crate::engine::cpu::CpuRig;
+    use crate::engine::{BlendJob, OutputSpec, WeightBatch};
+    let Some(sk) = &rig.skeleton else {
+        return Ok(Vec::new());
+    };
+    let c = rig.clips.get(clip).ok_or(ReportError::NoSuchClip(clip))?;
+    let joint_lod = crate::rig::JointLod::of(rig);
+    let diag = f64::from(rig.bbox().diagonal()).max(1e-30);
+    let step = c.frames.div_ceil(JOINT_FRAMES).max(1);
+    let frames: Vec<u32> = (0..c.frames).step_by(step as usize).collect();
+    let cpu = CpuRig::new(rig);
+    let evaluate = |level: Option<u32>| -> Result<Vec<f32>, ReportError> {
+        let jobs: Vec<BlendJob> = frames
+            .iter()
+            .map(|&f| BlendJob {
+                joints: level.map_or(crate::rig::JointPose::NONE, |l| {
+                    joint_lod.level(l).joints(&crate::rig::JointPose::NONE)
+                }),
+                ..BlendJob::frame(clip as u32, f, 0)
+            })
+            .collect();
+        let batch =
+            WeightBatch::gather(rig, &jobs).map_err(|e| ReportError::Engine(e.to_string()))?;
+        let out = cpu
+            .evaluate(&batch, OutputSpec::default())
+            .map_err(|e| ReportError::Engine(e.to_string()))?;
+        Ok(out.positions.to_f32())
+    };
+    let full = evaluate(None)?;
+    let mut out = Vec::with_capacity(rig.lod.levels.len());
+    for l in 0..rig.lod.levels.len() as u32 {
+        let dropped = joint_lod
+            .dropped
+            .get(l as usize)
+            .cloned()
+            .unwrap_or_default();
+        let measured = if dropped.is_empty() {
+            0.0
+        } else {
+            let cut = evaluate(Some(l))?;
+            full.chunks_exact(3)
+                .zip(cut.chunks_exact(3))
+                .map(|(a, b)| {
+                    let d: f64 = (0..3).map(|k| f64::from(a[k] - b[k]).powi(2)).sum();
+                    d.sqrt()
+                })
+                .fold(0f64, f64::max)
+        };
+        out.push(JointLevelReport {
+            level: l,
+            dropped: dropped
+                .iter()
+                .map(|&n| sk.nodes[n as usize].name.clone())
+                .collect(),
+            bound: f64::from(joint_lod.error(l)) / diag,
+            measured: measured / diag,
+        });
+    }
+    Ok(out)
 }
 
 impl LodReport {
@@ -112,6 +197,9 @@ pub enum ReportError {
     /// The order or the levels are not valid for the rig.
     #[error(transparent)]
     Lod(#[from] LodError),
+    /// The engine could not evaluate the clip (joint measurement).
+    #[error("evaluating the clip: {0}")]
+    Engine(String),
 }
 
 /// Every target's displacement over the whole rig, sparse (global vertex ids), prepared once
@@ -249,6 +337,7 @@ pub fn lod_report(
         pinned: labels.of(pins),
         orders,
         scores: scores.clone(),
+        joints: joint_levels(rig, clip)?,
     })
 }
 
@@ -308,6 +397,26 @@ pub fn report_text(r: &LodReport) -> String {
             "combined order vs unordered truncation: no worse (max and rms) at {wins} of {} levels",
             best.levels.len()
         );
+    }
+    if !r.joints.is_empty() {
+        let _ = writeln!(
+            o,
+            "joints held at rest (error bound / measured over the clip, % of the bbox diagonal):"
+        );
+        for j in &r.joints {
+            let _ = writeln!(
+                o,
+                "  level {}: {:>8.4} / {:<8.4} {}",
+                j.level,
+                j.bound * 100.0,
+                j.measured * 100.0,
+                if j.dropped.is_empty() {
+                    "none".to_string()
+                } else {
+                    j.dropped.join(" ")
+                }
+            );
+        }
     }
     let _ = writeln!(
         o,
