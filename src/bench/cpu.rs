@@ -322,7 +322,7 @@ pub struct SkinRow {
 }
 
 /// `rig` without its skeleton: the same blend, no skin pass.
-fn without_skeleton(rig: &Rig) -> Rig {
+pub(crate) fn without_skeleton(rig: &Rig) -> Rig {
     let mut r = rig.clone();
     r.skeleton = None;
     r.primitives = std::sync::Arc::new(

@@ -126,10 +126,25 @@ pub fn bench_gpu(engine: &Engine, rigs: &[Rig], opt: &GpuBenchOptions) -> Result
             .collect()
     };
     let frames = plan.iter().map(|p| p.2).max().unwrap_or(1).max(128);
+    // A skinned rig is measured twice: as it is, and without its skeleton (the blend alone),
+    // so the table shows what the skin pass adds on this device.
+    let rigs: Vec<Rig> = rigs
+        .iter()
+        .flat_map(|r| {
+            let twin = r.is_skinned().then(|| {
+                let mut plain = super::cpu::without_skeleton(r);
+                plain.name = format!("{} without skin", r.name);
+                plain
+            });
+            std::iter::once(r.clone()).chain(twin)
+        })
+        .collect();
     let bar = super::progress_bar((rigs.len() * plan.len()) as u64, "bench gpu");
-    for rig in rigs {
-        // A clip of its own with more frames than heads, so "N unique" is N unique jobs.
+    for rig in &rigs {
+        // A clip of its own with more frames than heads, so "N unique" is N unique jobs; on a
+        // skinned rig its frames take the joints of the rig's clips' frames in turn.
         let rig = crate::synthetic::with_random_clip_of(rig.clone(), "bench", frames, 1);
+        let rig = with_joint_frames(rig);
         let clip = (rig.clips.len() - 1) as u32;
         let precision = match opt.format {
             crowdmorph_proto::Format::F16 => Precision::F16,
@@ -175,6 +190,43 @@ pub fn bench_gpu(engine: &Engine, rigs: &[Rig], opt: &GpuBenchOptions) -> Result
         limits,
         scenes,
     })
+}
+
+/// `rig` whose last clip (the bench's) takes, frame by frame, the joint transforms of its
+/// other clips' frames in turn, so that skinned heads are posed, not at rest.
+fn with_joint_frames(mut rig: Rig) -> Rig {
+    let Some(sk) = rig.skeleton.clone() else {
+        return rig;
+    };
+    let Some((last, others)) = rig.clips.split_last_mut() else {
+        return rig;
+    };
+    let poses: Vec<Vec<crate::rig::Trs>> = others
+        .iter()
+        .filter(|c| c.joints.is_some())
+        .flat_map(|c| {
+            let sk = &sk;
+            (0..c.frames).map(move |f| {
+                let mut l = Vec::new();
+                sk.locals_at(c.joints.as_deref(), f, &mut l);
+                l
+            })
+        })
+        .take(last.frames as usize)
+        .collect();
+    if poses.is_empty() {
+        return rig;
+    }
+    let nodes: Vec<u32> = (0..sk.nodes.len() as u32).collect();
+    let values = (0..last.frames as usize)
+        .flat_map(|f| poses[f % poses.len()].iter().flat_map(|t| t.floats()))
+        .collect();
+    last.joints = Some(std::sync::Arc::new(crate::rig::JointTable {
+        nodes,
+        frames: last.frames,
+        values,
+    }));
+    rig
 }
 
 /// One scene to measure.
@@ -291,8 +343,15 @@ pub fn report_text(r: &GpuBenchReport) -> String {
         );
     }
     let ms = |v: Option<f64>| v.map_or("-".into(), |v| format!("{v:.3}"));
+    let w = r
+        .scenes
+        .iter()
+        .map(|sc| sc.rig.len())
+        .max()
+        .unwrap_or(0)
+        .max(16);
     s += &format!(
-        "{:<16} {:<26} {:>6} {:>6} {:>4} {:>10} {:>10} {:>9} {:>12} {:>16} {:>10}\n",
+        "{:<w$} {:<26} {:>6} {:>6} {:>4} {:>10} {:>10} {:>9} {:>12} {:>16} {:>10}\n",
         "rig",
         "scene",
         "unique",
@@ -307,7 +366,7 @@ pub fn report_text(r: &GpuBenchReport) -> String {
     );
     for sc in &r.scenes {
         s += &format!(
-            "{:<16} {:<26} {:>6} {:>5.0}% {:>4} {:>10} {:>10} {:>9} {:>12.3} {:>16} {:>10}\n",
+            "{:<w$} {:<26} {:>6} {:>5.0}% {:>4} {:>10} {:>10} {:>9} {:>12.3} {:>16} {:>10}\n",
             sc.rig,
             sc.scene,
             sc.unique,

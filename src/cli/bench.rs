@@ -25,6 +25,10 @@ pub enum Command {
         /// Leave out the paper-scale synthetic rig.
         #[arg(long)]
         no_paper: bool,
+        /// Also the embedded head with five joints (measured with and without its skeleton:
+        /// what the skin pass costs on the device).
+        #[arg(long)]
+        skinned_head: bool,
         /// Engine (gpu includes software adapters such as lavapipe).
         #[arg(long, default_value = "gpu")]
         backend: BackendChoice,
@@ -335,6 +339,7 @@ pub fn run(which: Command) -> Result<()> {
         Command::Gpu {
             rig,
             no_paper,
+            skinned_head,
             backend,
             seconds,
             plot,
@@ -356,6 +361,9 @@ pub fn run(which: Command) -> Result<()> {
             let mut rigs = Vec::new();
             if !no_paper {
                 rigs.push(crowdmorph::synthetic::paper_scale_rig());
+            }
+            if skinned_head {
+                rigs.push(crowdmorph::synthetic::skinned_head());
             }
             for p in &rig {
                 rigs.push(load_rig(Some(p))?);
