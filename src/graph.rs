@@ -1026,4 +1026,51 @@ mod tests {
         }
         assert!(seen_fade, "the walk took an edge");
     }
+
+    #[test]
+    fn a_jump_fades_a_skinned_heads_joints_from_where_they_were() {
+        // The skinned face's clips turn its head and eyes. A jump fades from frozen weights,
+        // shown as live weights (which leave the skeleton at rest), so the joints it froze go
+        // along as overrides: the skeleton does not snap to rest, it fades into the target.
+        let rig = crate::synthetic::skinned_head();
+        let mut g = Graph::resolve(&spec(), &rig, |n| rig.clip_index(n)).expect("graph");
+        g.set_motion(vec![0.01, 0.01]);
+        let mut p = Player::new(&g, 0, Vec::new(), 3);
+        for _ in 0..17 {
+            p.advance(&g, &rig, 1.0 / 30.0);
+        }
+        let before = p.locals(&g, &rig).expect("skinned");
+        p.jump(&g, &rig, 1);
+        assert!(
+            matches!(p.pose(&g, &rig), Pose::Live(_)),
+            "a jump fades from weights"
+        );
+        let sk = rig.skeleton.as_ref().expect("skinned");
+        // Right after the jump the overrides are the frozen transforms.
+        let mut shown = Vec::new();
+        sk.locals_at(None, 0, &mut shown);
+        p.joints(&g, &rig).apply(sk, &mut shown);
+        for (a, b) in shown.iter().zip(&before) {
+            let qa = glam::Quat::from_array(a.rotation);
+            let qb = glam::Quat::from_array(b.rotation);
+            assert!(qa.angle_between(qb) < 1e-4, "{a:?} vs {b:?}");
+        }
+        assert!(
+            before.iter().zip(&sk.nodes).any(|(l, n)| *l != n.rest),
+            "the clip had turned some joint"
+        );
+        // The fade ends in the target node's frames, carried by its pose again (a clip frame,
+        // or an edge's blend).
+        let mut steps = 0;
+        while matches!(p.pose(&g, &rig), Pose::Live(_)) {
+            assert!(
+                !p.joints(&g, &rig).is_none(),
+                "joints go along the whole fade"
+            );
+            p.advance(&g, &rig, 1.0 / 30.0);
+            steps += 1;
+            assert!(steps < 2000, "the jump's fade ends");
+        }
+        assert!(p.joints(&g, &rig).is_none());
+    }
 }

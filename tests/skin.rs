@@ -529,3 +529,76 @@ fn a_skinned_face_turns_its_eyes_and_opens_its_jaw() {
         );
     }
 }
+
+#[test]
+fn live_link_eye_and_head_columns_turn_the_faces_joints() {
+    // A Live Link Face CSV (its metadata columns, ARKit weights, then the head's and eyes'
+    // angles) on the skinned face: through the default joint map the angles turn `Head`,
+    // `LeftEye` and `RightEye` about rig axes (their rest rotations are the identity, so the
+    // local rotation is yaw about +Y, then pitch about +X, then roll about +Z), checked against
+    // the f64 evaluator given those local rotations.
+    use crowdmorph::import::clips::{ClipOptions, clip_from_csv};
+    let mut rig = crowdmorph::synthetic::skinned_head();
+    let csv = "Timecode,BlendShapeCount,JawOpen,EyeBlinkLeft,HeadYaw,HeadPitch,HeadRoll,\
+               LeftEyeYaw,LeftEyePitch,LeftEyeRoll,RightEyeYaw,RightEyePitch,RightEyeRoll\n\
+               00:00:00:00.000,61,0.1,0.0,0,0,0,0,0,0,0,0,0\n\
+               00:00:00:01.000,61,0.3,0.5,0.2,-0.1,0.05,0.35,0.1,0,0.3,0.12,0\n";
+    let imported = clip_from_csv(&rig, "live", csv.as_bytes(), &ClipOptions::default())
+        .expect("a Live Link CSV on a rig with head and eye joints");
+    assert!(imported.ignored.is_empty(), "{:?}", imported.ignored);
+    let table = imported
+        .clip
+        .joints
+        .clone()
+        .expect("the angles became a joint table");
+    let sk = rig.skeleton.clone().expect("skinned");
+    let names: Vec<&str> = table
+        .nodes
+        .iter()
+        .map(|&n| sk.nodes[n as usize].name.as_str())
+        .collect();
+    assert_eq!(names, ["Head", "LeftEye", "RightEye"]);
+    rig.clips.push(imported.clip);
+    rig.validate().expect("valid with the new clip");
+    let clip = rig.clips.len() - 1;
+    let out = evaluate(&rig, &[BlendJob::frame(clip as u32, 1, 0)]);
+    let turn = |yaw: f32, pitch: f32, roll: f32| {
+        (glam::Quat::from_rotation_y(yaw)
+            * glam::Quat::from_rotation_x(pitch)
+            * glam::Quat::from_rotation_z(roll))
+        .to_array()
+    };
+    let (want, _) = rig_pose_f64_with(&rig, clip, 1, &|name, trs| match name {
+        "Head" => trs.rotation = turn(0.2, -0.1, 0.05),
+        "LeftEye" => trs.rotation = turn(0.35, 0.1, 0.0),
+        "RightEye" => trs.rotation = turn(0.3, 0.12, 0.0),
+        _ => {}
+    });
+    let diag = f64::from(rig.bbox().diagonal());
+    let got = out.job_positions(0);
+    let d = want
+        .iter()
+        .enumerate()
+        .map(|(v, w)| {
+            (DVec3::new(
+                f64::from(got[3 * v]),
+                f64::from(got[3 * v + 1]),
+                f64::from(got[3 * v + 2]),
+            ) - *w)
+                .length()
+        })
+        .fold(0f64, f64::max);
+    assert!(d <= 1e-5 * diag, "off by {d:e}");
+    // Frame 0 has every angle at 0: the skeleton at rest.
+    let rest = evaluate(&rig, &[BlendJob::frame(clip as u32, 0, 0)]);
+    let (want0, _) = rig_pose_f64_with(&rig, clip, 0, &|_, _| {});
+    let p0 = rest.job_positions(0);
+    for (v, w) in want0.iter().enumerate() {
+        let g = DVec3::new(
+            f64::from(p0[3 * v]),
+            f64::from(p0[3 * v + 1]),
+            f64::from(p0[3 * v + 2]),
+        );
+        assert!((g - *w).length() <= 1e-5 * diag);
+    }
+}

@@ -209,7 +209,7 @@ fn map_names(
 }
 
 /// Whether `name` is one of Live Link Face's head and eye angle columns.
-fn is_live_link_angle(name: &str) -> bool {
+pub fn is_live_link_angle(name: &str) -> bool {
     let l = loose(name);
     LIVE_LINK_COLUMNS.iter().any(|(c, _, _)| loose(c) == l)
 }

@@ -664,6 +664,19 @@ async fn live_link_columns_turn_the_head_and_a_rigs_own_map_is_kept() {
         .collect();
     let d = max_distance(&nod[0], &want);
     assert!(d <= 1e-5 * diag, "the rig's map: off by {d:e}");
+    // A live head's weights may carry the same angles: they turn the joints the same way
+    // (here by the rig's own map: HeadYaw turns the neck).
+    let live = request(vec![Head::live(
+        5,
+        "robot",
+        crowdmorph_proto::LiveWeights::Named(vec![
+            ("HeadYaw".into(), -0.5),
+            ("LeftEyeYaw".into(), 0.2),
+        ]),
+    )]);
+    let (live_got, _) = frame(&s1, &live).await;
+    let d = max_distance(&live_got[0], &want);
+    assert!(d <= 1e-5 * diag, "live angles: off by {d:e}");
     let (look_before, _) = frame(&s1, &req).await;
     s1.stop().await;
 

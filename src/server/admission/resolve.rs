@@ -7,7 +7,7 @@ use std::sync::Arc;
 
 use crowdmorph_proto::{BlendLayer, Format, Head, JointOverrides, JointTransform, LiveWeights};
 
-use crate::import::clips::loose;
+use crate::import::clips::{is_live_link_angle, loose};
 use crate::plan::{JobKey, Plan};
 use crate::rig::quoted_name;
 use crate::rig::{
@@ -155,22 +155,11 @@ pub fn joint_pose_bytes(n: usize) -> u64 {
 }
 
 /// A head's joint overrides resolved against its rig's skeleton: names to nodes, values
-/// checked and quantized, nodes the LOD level `lod` does not animate dropped (heads that differ
-/// only there are clones). The error is (code, message): 400 `unknown_joints` for a name no
-/// node has (or several have), 400 `invalid_joints` for a rig without a skeleton, too many
+/// checked and quantized (a job's LOD level then drops the nodes it does not animate, through
+/// `JointLod::level`). The error is (code, message): 400 `unknown_joints` for a name no node
+/// has (or several have), 400 `invalid_joints` for a rig without a skeleton, too many
 /// overrides, a node named twice or a value that is not finite, out of range or a zero
 /// rotation. The caller charges [`joint_pose_bytes`] first.
-pub fn joint_pose(
-    entry: &RigEntry,
-    lod: u32,
-    joints: &JointOverrides,
-) -> Result<JointPose, (&'static str, String)> {
-    let requested = requested_joints(entry, joints)?;
-    Ok(entry.joint_lod().level(lod).joints(&requested))
-}
-
-/// [`joint_pose`] before a LOD level drops any node: what a session head keeps and each
-/// viewer's level then cuts.
 pub fn requested_joints(
     entry: &RigEntry,
     joints: &JointOverrides,
@@ -316,6 +305,8 @@ pub fn resolve_heads(
         live: HashMap::new(),
         charge: None,
         row: Vec::new(),
+        angles: HashMap::new(),
+        live_joints: JointPose::NONE,
     };
     let mut keys = Vec::with_capacity(n_heads);
     for (h, head) in heads.iter().enumerate() {
@@ -380,6 +371,67 @@ struct Lookups<'h> {
     charge: Option<Charge>,
     /// One head's channel weights, reused.
     row: Vec<f32>,
+    /// Per skinned rig with live heads, its joint map's columns (built once).
+    angles: HashMap<u32, LiveAngles>,
+    /// The joint transforms the current live head's angle weights (Live Link's `HeadYaw`, ...)
+    /// set, taken by [`Lookups::joints`].
+    live_joints: JointPose,
+}
+
+/// A skinned rig's joint map, as live weights use it: a live head's weights may carry Live Link
+/// Face's head and eye angles beside its blendshapes, which turn joints as they do in a CSV
+/// clip.
+struct LiveAngles {
+    map: crate::rig::JointMap,
+    /// Every node's global rotation at rest.
+    rest: Vec<glam::Quat>,
+    /// Loose column spelling → channel of `map`.
+    columns: HashMap<String, usize>,
+}
+
+impl LiveAngles {
+    fn new(rig: &Rig) -> Option<LiveAngles> {
+        let sk = rig.skeleton.as_ref()?;
+        let map = sk.joint_map().into_owned();
+        let columns = map
+            .channels
+            .iter()
+            .enumerate()
+            .map(|(i, c)| (loose(&c.column), i))
+            .collect();
+        Some(LiveAngles {
+            rest: crate::rig::rest_rotations(sk),
+            map,
+            columns,
+        })
+    }
+
+    /// Bytes [`LiveAngles::new`] holds for `rig`, at most.
+    fn bytes(rig: &Rig) -> u64 {
+        rig.skeleton.as_ref().map_or(0, |sk| {
+            sk.nodes.len() as u64 * 16
+                + sk.map.as_ref().map_or(9, |m| m.channels.len() as u64) * 200
+        })
+    }
+
+    /// The joint transforms of `values` (channel, value): each turned node's local rotation.
+    fn joints(&self, rig: &Rig, values: &[(usize, f32)]) -> JointPose {
+        let Some(sk) = &rig.skeleton else {
+            return JointPose::NONE;
+        };
+        let of: Vec<usize> = values.iter().map(|v| v.0).collect();
+        let v: Vec<f32> = values.iter().map(|v| v.1).collect();
+        JointPose::new(
+            self.map
+                .nodes(&of)
+                .into_iter()
+                .map(|n| {
+                    let t = self.map.local(sk, &self.rest, n, &of, &v);
+                    JointSet::new(n, None, Some(t.rotation), None)
+                })
+                .collect(),
+        )
+    }
 }
 
 /// A rig's names for live weights, owned (a request's lookups outlive no rig snapshot but
@@ -543,19 +595,28 @@ impl<'h> Lookups<'h> {
         Ok(Pose::blend((ci, frame), &layers[..head.blend.len()]))
     }
 
-    /// Head `h`'s joint overrides, their bytes charged before they are built.
+    /// Head `h`'s joint overrides (over what its live angles set), their bytes charged before
+    /// they are built.
     fn joints(&mut self, h: usize, head: &Head, ri: u32) -> Result<JointPose, ApiError> {
+        let from_weights = std::mem::take(&mut self.live_joints);
+        let entry = self.rigs[ri as usize].clone();
         if !head.joints.is_empty() {
-            let entry = &self.rigs[ri as usize];
             let dropped = entry
                 .joint_lod()
                 .dropped
                 .get(head.lod as usize)
                 .map_or(0, Vec::len);
-            self.charge_more(joint_pose_bytes(head.joints.len() + dropped))?;
+            self.charge_more(
+                joint_pose_bytes(head.joints.len() + dropped)
+                    + joint_pose_bytes(from_weights.sets().len()),
+            )?;
         }
-        joint_pose(&self.rigs[ri as usize], head.lod, &head.joints)
-            .map_err(|(code, m)| at_head(h, head, ApiError::bad_request(code, m)))
+        let requested = requested_joints(&entry, &head.joints)
+            .map_err(|(code, m)| at_head(h, head, ApiError::bad_request(code, m)))?;
+        Ok(entry
+            .joint_lod()
+            .level(head.lod)
+            .joints(&from_weights.overlay(&requested)))
     }
 
     /// Adds `bytes` to what the request's poses hold.
@@ -587,6 +648,14 @@ impl<'h> Lookups<'h> {
             bytes += channels as u64 * 4;
         }
         self.charge_more(bytes)?;
+        if rig.is_skinned() && !self.angles.contains_key(&ri) {
+            self.charge_more(LiveAngles::bytes(rig))?;
+            if let Some(a) = LiveAngles::new(rig) {
+                self.angles.insert(ri, a);
+            }
+        }
+        // Live Link's head and eye angles among named weights: (channel of the joint map, value).
+        let mut angles: Vec<(usize, f32)> = Vec::new();
         let names = self.live.entry(ri).or_insert_with(|| LiveNames::new(rig));
         // Channels not named keep the rig's default weight, as in a CSV clip.
         self.row.clear();
@@ -645,8 +714,26 @@ impl<'h> Lookups<'h> {
                 for (name, w) in pairs {
                     check(&quoted_name(name), *w)?;
                     let ids = names.ids(name);
-                    if ids.is_empty() && is_arkit_name(name) {
-                        // A tracker sends all 52 every frame; this rig cannot show this one.
+                    if ids.is_empty()
+                        && let Some(&c) = self
+                            .angles
+                            .get(&ri)
+                            .and_then(|a| a.columns.get(&loose(name)))
+                    {
+                        // A head or eye angle the rig's joint map turns a joint by.
+                        if angles.iter().any(|a| a.0 == c) {
+                            return Err(invalid_weights(
+                                h,
+                                head,
+                                format!("weights name {} twice", quoted_name(name)),
+                            ));
+                        }
+                        angles.push((c, *w));
+                        continue;
+                    }
+                    if ids.is_empty() && (is_arkit_name(name) || is_live_link_angle(name)) {
+                        // A tracker sends all 52 every frame (and Live Link its head and eye
+                        // angles); this rig cannot show this one.
                         continue;
                     }
                     if ids.is_empty() {
@@ -676,6 +763,11 @@ impl<'h> Lookups<'h> {
                     }
                 }
             }
+        }
+        if let Some(a) = self.angles.get(&ri)
+            && !angles.is_empty()
+        {
+            self.live_joints = a.joints(rig, &angles);
         }
         Ok(Pose::live(&self.row))
     }
