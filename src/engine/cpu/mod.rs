@@ -8,7 +8,7 @@
 //!   positions for primitives whose targets carry no normal deltas;
 //! - the output stage of `blend` (`pack_f16.wgsl` and `pack_q16.wgsl` on the GPU): binary16 or
 //!   q16 output;
-//! - on a skinned rig, [`skin_lanes`] in the same output stage (`skin.wgsl`): each vertex by
+//! - on a skinned rig, `skin_lanes` in the same output stage (`skin.wgsl`): each vertex by
 //!   its bones' matrices in its job's pose (glTF: morph targets first, then skinning), so the
 //!   blended mesh is skinned while it is still in registers.
 //!
