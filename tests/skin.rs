@@ -231,7 +231,8 @@ fn with_joints(rig: &Rig, job: BlendJob, sets: &[(&str, glam::Quat)]) -> BlendJo
 /// The GPU engine (lavapipe) against the CPU engine on `jobs` of `rig`, in f32 with normals
 /// and in q16: positions within 1e-5 of the diagonal, normals within 1e-3, and the device's
 /// q16 the scalar encoding of its own f32 bit for bit; the answer says the GPU computed it.
-fn gpu_agrees_with_cpu(rig: &Rig, jobs: &[BlendJob]) {
+/// Returns the GPU's f32 output (with normals).
+fn gpu_agrees_with_cpu(rig: &Rig, jobs: &[BlendJob]) -> BlendOutput {
     use crowdmorph::engine::gpu::GpuOptions;
     use crowdmorph::engine::{BackendChoice, BackendKind, Engine};
     let engine = Engine::with_gpu(
@@ -296,6 +297,7 @@ fn gpu_agrees_with_cpu(rig: &Rig, jobs: &[BlendJob]) {
         packed.positions, want,
         "the device's q16 is its f32 encoded"
     );
+    gpu
 }
 
 #[test]
@@ -304,7 +306,7 @@ fn gpu_agrees_with_cpu(rig: &Rig, jobs: &[BlendJob]) {
     ignore = "needs ../shared/data and a Vulkan adapter (apt-get install mesa-vulkan-drivers)"
 )]
 fn the_gpu_skin_pass_matches_the_cpu_engine_on_the_robot() {
-    let (rig, _) = robot();
+    let (rig, doc) = robot();
     let wave = rig.clip_index("Wave").expect("Wave") as u32;
     let run = rig.clip_index("Running").expect("Running") as u32;
     let mut jobs: Vec<BlendJob> = (0..6).map(|f| BlendJob::frame(wave, f * 7, 0)).collect();
@@ -317,7 +319,19 @@ fn the_gpu_skin_pass_matches_the_cpu_engine_on_the_robot() {
         BlendJob::frame(run, 4, 0),
         &[("Head", glam::Quat::from_rotation_y(0.6))],
     ));
-    gpu_agrees_with_cpu(&rig, &jobs);
+    let gpu = gpu_agrees_with_cpu(&rig, &jobs);
+    // And against the independent evaluator directly, frame by frame.
+    let diag = f64::from(rig.bbox().diagonal());
+    let fps = f64::from(rig.clips[wave as usize].fps);
+    for f in 0..6u32 {
+        let want = doc.pose(&doc.locals_at("Wave", f64::from(f * 7) / fps));
+        let (dp, _) = distance(&gpu, f as usize, &want);
+        assert!(
+            dp <= 1e-5 * diag,
+            "GPU, Wave frame {}: off by {dp:e}",
+            f * 7
+        );
+    }
 }
 
 #[test]
@@ -341,7 +355,7 @@ fn the_gpu_skin_pass_matches_the_cpu_engine_on_a_face_with_overrides() {
         ),
         BlendJob::frame(talk, 77, 2),
     ];
-    gpu_agrees_with_cpu(&rig, &jobs);
+    let _ = gpu_agrees_with_cpu(&rig, &jobs);
 }
 
 #[test]
