@@ -23,7 +23,7 @@ import pytest
 import crowdmorph
 from crowdmorph import wire
 from conftest import PACKAGE, TOKEN, run_server
-from _util import diagonal, f32, flat
+from _util import diagonal, f32, flat, norm_floats
 
 RIG = "default-head"
 BUILTIN_CLIPS = {"idle", "talk", "smile", "surprise"}
@@ -472,3 +472,191 @@ def test_q16_residuals_decode_to_the_q16_values(client, backend):
         got = c.crowd_frame(heads, format="q16r", normals=True)
         for i in range(len(heads)):
             assert flat(got.positions(i)) == flat(want.positions(i))
+
+
+def _skinned_triangle_glb():
+    """A tiny skinned rig as GLB bytes, standard library only (as the Rust tests'
+    ``skinned_triangle_rig``): the triangle (0,0,0), (1,0,0), (0,1,0) with one morph target
+    ``a`` (lifts vertex 1 along +Z), skinned to ``Root`` at the origin and its child ``Jaw`` at
+    (0, 1, 0): vertex 0 follows Root, vertex 1 Jaw, vertex 2 both by half."""
+    chunks = []
+    views = []
+    accessors = []
+
+    def add(data, count, kind, component, **extra):
+        offset = sum(len(c) for c in chunks)
+        chunks.append(data + b"\0" * (-len(data) % 4))
+        views.append({"buffer": 0, "byteOffset": offset, "byteLength": len(data)})
+        accessors.append(
+            dict(bufferView=len(views) - 1, componentType=component, count=count, type=kind)
+        )
+        accessors[-1].update(extra)
+        return len(accessors) - 1
+
+    f32s = lambda *v: struct.pack(f"<{len(v)}f", *v)  # noqa: E731
+    position = add(
+        f32s(0, 0, 0, 1, 0, 0, 0, 1, 0), 3, "VEC3", 5126, min=[0, 0, 0], max=[1, 1, 0]
+    )
+    indices = add(struct.pack("<3H", 0, 1, 2), 3, "SCALAR", 5123)
+    lift = add(f32s(0, 0, 0, 0, 0, 1, 0, 0, 0), 3, "VEC3", 5126, min=[0, 0, 0], max=[0, 0, 1])
+    joints = add(bytes([0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0]), 3, "VEC4", 5121)
+    weights = add(f32s(1, 0, 0, 0, 1, 0, 0, 0, 0.5, 0.5, 0, 0), 3, "VEC4", 5126)
+    identity = [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]
+    jaw_bind = identity[:12] + [0, -1, 0, 1]  # column-major: the inverse of a (0, 1, 0) shift
+    ibm = add(f32s(*identity, *jaw_bind), 2, "MAT4", 5126)
+    blob = b"".join(chunks)
+    doc = {
+        "asset": {"version": "2.0"},
+        "scene": 0,
+        "scenes": [{"nodes": [0, 1]}],
+        "nodes": [
+            {"mesh": 0, "skin": 0},
+            {"name": "Root", "children": [2]},
+            {"name": "Jaw", "translation": [0, 1, 0]},
+        ],
+        "meshes": [
+            {
+                "primitives": [
+                    {
+                        "attributes": {
+                            "POSITION": position,
+                            "JOINTS_0": joints,
+                            "WEIGHTS_0": weights,
+                        },
+                        "indices": indices,
+                        "targets": [{"POSITION": lift}],
+                    }
+                ],
+                "extras": {"targetNames": ["a"]},
+            }
+        ],
+        "skins": [{"joints": [1, 2], "inverseBindMatrices": ibm}],
+        "accessors": accessors,
+        "bufferViews": views,
+        "buffers": [{"byteLength": len(blob)}],
+    }
+    text = json.dumps(doc).encode()
+    text += b" " * (-len(text) % 4)
+    return b"".join(
+        [
+            struct.pack("<4sII", b"glTF", 2, 12 + 8 + len(text) + 8 + len(blob)),
+            struct.pack("<I4s", len(text), b"JSON"),
+            text,
+            struct.pack("<I4s", len(blob), b"BIN\0"),
+            blob,
+        ]
+    )
+
+
+def _vertices(frame, i):
+    """Head ``i``'s positions as a list of (x, y, z) tuples."""
+    p = flat(frame.positions(i))
+    return [tuple(p[k : k + 3]) for k in range(0, len(p), 3)]
+
+
+def _close(got, want, tol=1e-5):
+    return len(got) == len(want) and all(
+        abs(a - b) <= tol for u, v in zip(got, want) for a, b in zip(u, v)
+    )
+
+
+def test_a_rigs_joint_map_turns_joints_by_clip_columns(client, anonymous):
+    rig = "py-skinned"
+    info = client.upload_rig(_skinned_triangle_glb(), name=rig, replace=True)
+    try:
+        assert info.skeleton is not None and info.targets == ["a"]
+        rest = _vertices(client.crowd_frame([crowdmorph.Head(0, rig, weights={})]), 0)
+        assert _close(rest, [(0, 0, 0), (1, 0, 0), (0, 1, 0)])
+
+        # The defaults: no Head/head/J_Bip_C_Head and no eye joints here, so no channel.
+        default = client.joint_map(rig)
+        assert isinstance(default, crowdmorph.JointMapInfo)
+        assert (default.rig, default.default, default.channels) == (rig, True, [])
+
+        # The rig's own map: HeadYaw turns the jaw about +X, half a radian per unit. The axis
+        # comes back normalized; dicts, objects and the spec all make the same map.
+        own = client.set_joint_map(
+            rig, [{"column": "HeadYaw", "node": "Jaw", "axis": [2, 0, 0], "scale": 0.5}]
+        )
+        want = crowdmorph.JointChannelSpec("HeadYaw", "Jaw", [1.0, 0.0, 0.0], 0.5)
+        assert (own.rig, own.default, own.channels) == (rig, False, [want])
+        assert client.joint_map(rig) == own
+        spec = crowdmorph.JointMapSpec(
+            [crowdmorph.JointChannelSpec("HeadYaw", "Jaw", [1, 0, 0], 0.5)]
+        )
+        assert client.set_joint_map(rig, spec) == own
+        assert client.set_joint_map(rig, spec.channels) == own
+        # The bincode answer decodes to what the server's JSON says.
+        resp = client.request("GET", f"/v1/rigs/{rig}/joint-map", accept="application/json")
+        assert norm_floats(json.loads(resp.body)) == crowdmorph.as_dict(own)
+        # The spec's bincode layout is the server's too.
+        resp = client.request(
+            "PUT", f"/v1/rigs/{rig}/joint-map", crowdmorph.encode(spec), crowdmorph.BINCODE
+        )
+        assert crowdmorph.decode(crowdmorph.JointMapInfo, resp.body) == own
+        # Defaults of a dict channel: +Y, one radian per unit.
+        yaw = client.set_joint_map(rig, {"channels": [{"column": "HeadYaw", "node": "Jaw"}]})
+        assert yaw.channels == [crowdmorph.JointChannelSpec("HeadYaw", "Jaw", [0, 1, 0], 1.0)]
+
+        with pytest.raises(crowdmorph.BadRequest) as e:
+            client.set_joint_map(rig, [crowdmorph.JointChannelSpec("HeadYaw", "Tail")])
+        assert e.value.code == "unknown_joints" and "Tail" in e.value.message
+        with pytest.raises(crowdmorph.BadRequest) as e:
+            client.set_joint_map(rig, [{"column": "HeadYaw", "node": "Jaw", "axis": [0, 0, 0]}])
+        assert e.value.code == "invalid_joint_map"
+        with pytest.raises(crowdmorph.Unauthorized) as e:
+            anonymous.set_joint_map(rig, spec)
+        assert e.value.code == "token_required"
+        with pytest.raises(crowdmorph.Unauthorized):
+            anonymous.reset_joint_map(rig)
+        with pytest.raises(crowdmorph.BadRequest) as e:
+            client.set_joint_map(RIG, spec)  # the embedded head has no skeleton
+        assert e.value.code == "invalid_joint_map"
+        assert client.joint_map(rig) == yaw, "refused maps change nothing"
+        assert anonymous.joint_map(rig) == yaw, "reading is open without the token"
+
+        # A clip uploaded under the rig's own map: HeadYaw 0.5 turns the jaw 0.25 rad about +X,
+        # carrying vertex 1 ((1, -1, 0) from the jaw) and leaving the others.
+        client.set_joint_map(rig, spec)
+        up = client.upload_clip(rig, _csv(["a", "HeadYaw"], [[0, 0], [0, 0.5]]), name="yaw")
+        assert [(c.name, c.frames) for c in up.added] == [("yaw", 2)] and up.ignored == []
+        frame = client.crowd_frame([(1, rig, "yaw", 0), (2, rig, "yaw", 1)], format="f32")
+        assert len(frame.buffers) == 2
+        c, s = math.cos(0.25), math.sin(0.25)
+        assert _close(_vertices(frame, 0), rest)
+        assert _close(_vertices(frame, 1), [(0, 0, 0), (1, 1 - c, -s), (0, 1, 0)])
+
+        # A head's joint override turns the jaw 45° about +Y over its clip's pose.
+        turn = {"Jaw": crowdmorph.JointTransform(rotation=[0, 0.38268343, 0, 0.9238795])}
+        heads = [crowdmorph.Head(1, rig, "yaw", 0), crowdmorph.Head(2, rig, "yaw", 0, joints=turn)]
+        frame = client.crowd_frame(heads, format="f32")
+        assert list(frame.heads.buffer_indices) == [0, 1]
+        r = math.sqrt(0.5)
+        assert _close(_vertices(frame, 0), rest)
+        assert _close(_vertices(frame, 1), [(0, 0, 0), (r, 0, -r), (0, 1, 0)])
+
+        # Back to the defaults: the clip keeps its joint table, and a new upload's HeadYaw,
+        # which no joint of this rig takes now, is reported, not refused.
+        reset = client.reset_joint_map(rig)
+        assert (reset.rig, reset.default, reset.channels) == (rig, True, [])
+        assert client.joint_map(rig) == reset
+        frame = client.crowd_frame([(2, rig, "yaw", 1)], format="f32")
+        assert _close(_vertices(frame, 0), [(0, 0, 0), (1, 1 - c, -s), (0, 1, 0)])
+        up = client.upload_clip(rig, _csv(["a", "HeadYaw"], [[0, 0.5]]), name="after")
+        assert up.ignored == ["HeadYaw"]
+    finally:
+        client.delete_rig(rig)
+    with pytest.raises(crowdmorph.NotFound) as e:
+        client.joint_map(rig)
+    assert e.value.code == "unknown_rig"
+
+
+def test_joint_map_arguments_are_checked_before_sending(client):
+    with pytest.raises(TypeError):
+        client.set_joint_map(RIG, [{"column": "HeadYaw", "node": "Head", "axes": [1, 0, 0]}])
+    with pytest.raises(ValueError):
+        client.set_joint_map(RIG, [{"column": "HeadYaw", "node": "Head", "axis": [1, 0]}])
+    with pytest.raises(ValueError):
+        client.set_joint_map(RIG, {"channel": []})
+    with pytest.raises(TypeError):
+        client.set_joint_map(RIG, "HeadYaw")

@@ -2,7 +2,8 @@
 
 :class:`Client` has one method per endpoint of ``proto/README.md``. Requests and responses are
 bincode (``application/x-bincode``), never JSON, except where the protocol only has JSON
-(``/healthz``, ``/readyz``) or the body is a file (rig and clip uploads) or an image (renders).
+(``/healthz``, ``/readyz``) or the body is a file (rig and clip uploads) or an image (renders);
+motion graphs and joint maps are sent as JSON (their answers are bincode).
 Crowd frames and meshes come back with their payloads decoded into arrays
 (:mod:`crowdmorph.results`); the raw message stays reachable as ``.response``.
 
@@ -41,6 +42,9 @@ from .messages import (
     Head,
     HeadChange,
     ImageOptions,
+    JointChannelSpec,
+    JointMapInfo,
+    JointMapSpec,
     LodInfo,
     LodLevelRequest,
     LodRequest,
@@ -255,14 +259,14 @@ class Client:
     """A client of one crowdmorph server.
 
     ``Client("http://127.0.0.1:8080", token=None, timeout=300.0, arrays="auto")``. ``token`` is
-    the admin token (sent as ``Authorization: Bearer``) that uploads, deletes and LOD changes
-    need when the server has one. ``arrays``: ``"auto"`` (numpy when installed), ``"numpy"``
-    or ``"python"`` (``array.array``). The client keeps one HTTP/1.1 connection alive across
-    calls and reconnects when the server has closed it; calls from several threads take turns
-    on it (use one client per thread for parallel requests). Use it as a context manager, or
-    call :meth:`close`. ``timeout`` is the socket timeout in seconds (per send or receive);
-    its default matches the server's deadline for uploads and LOD builds (``serve
-    --admin-timeout-s``), which can take minutes for large rigs.
+    the admin token (sent as ``Authorization: Bearer``) that uploads, deletes, LOD changes and
+    joint maps need when the server has one. ``arrays``: ``"auto"`` (numpy when installed),
+    ``"numpy"`` or ``"python"`` (``array.array``). The client keeps one HTTP/1.1 connection
+    alive across calls and reconnects when the server has closed it; calls from several
+    threads take turns on it (use one client per thread for parallel requests). Use it as a
+    context manager, or call :meth:`close`. ``timeout`` is the socket timeout in seconds (per
+    send or receive); its default matches the server's deadline for uploads and LOD builds
+    (``serve --admin-timeout-s``), which can take minutes for large rigs.
 
     Error answers raise :class:`~crowdmorph.errors.CrowdmorphError` subclasses; a server that
     cannot be reached raises the :class:`OSError` of the socket.
@@ -622,6 +626,61 @@ class Client:
         """``DELETE /v1/rigs/{id}/clips/{name}`` (the embedded rig's own clips: 403)."""
         self.request("DELETE", f"/v1/rigs/{_seg(rig)}/clips/{_seg(name)}", ok=(204,))
 
+    # -- joint maps ---------------------------------------------------------------------------
+
+    def joint_map(self, rig: str) -> JointMapInfo:
+        """``GET /v1/rigs/{id}/joint-map``: which clip columns turn which joints of the rig
+        (its own map, or with ``default`` true the defaults: Live Link Face's ``HeadYaw``, ...,
+        ``RightEyeRoll`` onto the head and eye joints it has)."""
+        return self._decode(JointMapInfo, self.request("GET", f"/v1/rigs/{_seg(rig)}/joint-map"))
+
+    def set_joint_map(
+        self,
+        rig: str,
+        channels: Union[
+            JointMapSpec,
+            Mapping[str, Any],
+            Iterable[Union[JointChannelSpec, Mapping[str, Any]]],
+        ],
+    ) -> JointMapInfo:
+        """``PUT /v1/rigs/{id}/joint-map``: makes ``channels`` the rig's own map (stored with
+        the rig; clips uploaded afterwards are read with it, clips already there keep their
+        joint tables). ``channels`` is a :class:`~crowdmorph.messages.JointMapSpec`, its JSON
+        form (``{"channels": [...]}``), or a list of
+        :class:`~crowdmorph.messages.JointChannelSpec` objects or dicts with its keys
+        (``{"column": "HeadYaw", "node": "Neck", "axis": [1, 0, 0], "scale": 0.5}``; ``axis``
+        defaults to +Y, ``scale`` to 1 radian per unit). Returns the map in force, axes
+        normalized. Needs the admin token when the server has one; a node the skeleton lacks
+        raises :class:`~crowdmorph.errors.BadRequest` ``unknown_joints``, a bad axis, scale or
+        column (or a rig without a skeleton) ``invalid_joint_map``."""
+        if isinstance(channels, JointMapSpec):
+            items: Iterable[Any] = channels.channels
+        elif isinstance(channels, Mapping):
+            if set(channels) != {"channels"}:
+                raise ValueError(
+                    "a joint map as a dict is its JSON form, {\"channels\": [...]}, not "
+                    f"{sorted(channels)!r}"
+                )
+            items = channels["channels"]
+        elif isinstance(channels, (str, bytes)):
+            raise TypeError("a joint map is a JointMapSpec or a list of channels, not a string")
+        else:
+            items = channels
+        spec = JointMapSpec(channels=[_joint_channel(c) for c in items])
+        resp = self.request(
+            "PUT",
+            f"/v1/rigs/{_seg(rig)}/joint-map",
+            json.dumps(as_dict(spec)).encode(),
+            "application/json",
+        )
+        return self._decode(JointMapInfo, resp)
+
+    def reset_joint_map(self, rig: str) -> JointMapInfo:
+        """``DELETE /v1/rigs/{id}/joint-map``: back to the default map; returns it. Needs the
+        admin token when the server has one."""
+        resp = self.request("DELETE", f"/v1/rigs/{_seg(rig)}/joint-map")
+        return self._decode(JointMapInfo, resp)
+
     # -- crowds -------------------------------------------------------------------------------
 
     def crowd_frame(
@@ -934,6 +993,21 @@ class Client:
             timeout=self.timeout if timeout is None else timeout,
             max_message=max_message,
         )
+
+
+def _joint_channel(c: Union[JointChannelSpec, Mapping[str, Any]]) -> JointChannelSpec:
+    """A joint map channel from a :class:`JointChannelSpec` or a dict with its keys (``axis``
+    and ``scale`` optional; other keys are an error, as on the server)."""
+    if isinstance(c, JointChannelSpec):
+        ch = c
+    elif isinstance(c, Mapping):
+        ch = JointChannelSpec(**c)
+    else:
+        raise TypeError(f"a joint channel is a JointChannelSpec or a dict, not {c!r}")
+    axis = [float(x) for x in ch.axis]
+    if len(axis) != 3:
+        raise ValueError(f"channel {ch.column!r}: an axis has 3 components, not {len(axis)}")
+    return JointChannelSpec(ch.column, ch.node, axis, float(ch.scale))
 
 
 def _session_head(h: SessionHeadLike) -> SessionHead:

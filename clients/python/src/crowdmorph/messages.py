@@ -73,6 +73,9 @@ __all__ = [
     "MeshResponse",
     "ClipUpload",
     "ClipList",
+    "JointChannelSpec",
+    "JointMapSpec",
+    "JointMapInfo",
     "Readiness",
     "Placement",
     "CameraSpec",
@@ -804,6 +807,42 @@ class ClipList:
 
     rig: str
     clips: List[ClipInfo]
+
+
+@wire(("column", STR), ("node", STR), ("axis", F32X3), ("scale", F32))
+@dataclass
+class JointChannelSpec:
+    """One clip column that turns a skeleton node: a value ``v`` turns ``node`` by
+    ``v * scale`` radians about ``axis``, an axis of rig space (+Y up, +Z out of the face, +X
+    to the character's left; normalized by the server), about the node's origin. ``column``
+    matches clip columns loosely, as target names do."""
+
+    column: str
+    node: str
+    axis: List[float] = field(default_factory=lambda: [0.0, 1.0, 0.0])
+    scale: float = 1.0
+
+
+@wire(("channels", Vec(Msg(JointChannelSpec))))
+@dataclass
+class JointMapSpec:
+    """``PUT /v1/rigs/{id}/joint-map`` request: the columns that turn the rig's joints, in the
+    order their rotations compose per node (at most 256, each column once)."""
+
+    channels: List[JointChannelSpec] = field(default_factory=list)
+
+
+@wire(("rig", STR), ("default", BOOL), ("channels", Vec(Msg(JointChannelSpec))))
+@dataclass
+class JointMapInfo:
+    """A rig's joint map in force (``GET``, ``PUT`` and ``DELETE /v1/rigs/{id}/joint-map``):
+    ``default`` is true when the rig has no map of its own and ``channels`` are the defaults
+    (Live Link Face's head and eye angles onto ``Head``/``head``/``J_Bip_C_Head`` and the eye
+    joints, whichever the skeleton has; none for a rig without a skeleton)."""
+
+    rig: str
+    default: bool
+    channels: List[JointChannelSpec] = field(default_factory=list)
 
 
 @dataclass
