@@ -1,4 +1,5 @@
-// Pass `skin` (CPU mirror: `engine::cpu::CpuRig::skin`), after `blend` and before the normals
+// Pass `skin` (CPU mirror: `engine::cpu::skin_lanes`, in the output stage of `blend`), after
+// `blend` and before the normals
 // are recomputed: glTF §3.7.3 poses a skinned mesh as morph targets first, then linear blend
 // skinning.
 //

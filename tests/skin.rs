@@ -572,6 +572,16 @@ fn live_link_eye_and_head_columns_turn_the_faces_joints() {
         .map(|&n| sk.nodes[n as usize].name.as_str())
         .collect();
     assert_eq!(names, ["Head", "LeftEye", "RightEye"]);
+    // Rotations do not commute: the map's order composes them, not the file's.
+    let swapped = "HeadPitch,HeadRoll,HeadYaw\n0,0,0\n-0.1,0.05,0.2\n";
+    let other = clip_from_csv(&rig, "swapped", swapped.as_bytes(), &ClipOptions::default())
+        .expect("the same angles, other column order");
+    let head = |t: &crowdmorph::rig::JointTable| t.at(1, 0).rotation;
+    assert_eq!(
+        head(other.clip.joints.as_deref().expect("a table")),
+        head(&table),
+        "column order does not change the turn"
+    );
     rig.clips.push(imported.clip);
     rig.validate().expect("valid with the new clip");
     let clip = rig.clips.len() - 1;

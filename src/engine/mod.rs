@@ -269,13 +269,19 @@ pub fn bone_matrices(
     let Some(sk) = &rig.skeleton else {
         return Ok(Vec::new());
     };
-    let bones = sk.bones.len();
     let poses = SkinPoses {
         skeleton: sk.clone(),
         jobs: jobs.iter().map(|j| j.pose.skin_terms(rig)).collect(),
         overrides: jobs.iter().map(|j| j.joints.clone()).collect(),
     };
-    let mut out = vec![crate::rig::BoneMatrix::IDENTITY; jobs.len() * bones];
+    Ok(resolve_bones(&poses))
+}
+
+/// Every job's bone matrices of `poses` (`jobs × bones`, job-major), each job's resolved once
+/// ([`SkinPoses::bones`]), on every core.
+pub(crate) fn resolve_bones(poses: &SkinPoses) -> Vec<crate::rig::BoneMatrix> {
+    let bones = poses.skeleton.bones.len();
+    let mut out = vec![crate::rig::BoneMatrix::IDENTITY; poses.jobs.len() * bones];
     if bones > 0 {
         out.par_chunks_mut(bones).enumerate().for_each_init(
             crate::rig::BoneScratch::default,
@@ -285,7 +291,7 @@ pub fn bone_matrices(
             },
         );
     }
-    Ok(out)
+    out
 }
 
 /// Zeroes weights too small to matter, so engines can skip them exactly.

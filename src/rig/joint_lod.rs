@@ -23,10 +23,10 @@ use super::{JointPose, JointSet, Rig, Skeleton};
 /// head's usual range, which a request's override may give it.
 pub const REFERENCE_TURN: f32 = 0.35;
 
-/// Most (vertex influence, ancestor) steps the effect measure takes; past it, the nodes not
-/// reached count as moving everything (never dropped), so a hostile chain of 65,535 nodes
-/// costs no more than this.
-pub const MAX_EFFECT_STEPS: usize = 1 << 26;
+/// Most (vertex influence, ancestor) steps the effect measure takes, each O(1); past it, every
+/// node counts as moving everything (never dropped), so a hostile chain of 65,535 nodes under
+/// many vertices costs no more than this.
+pub const MAX_EFFECT_STEPS: usize = 1 << 24;
 
 /// Share of the diagonal under which level `l` drops a node: 0 at level 0, then 0.25 %,
 /// 0.5 %, 1 %, 2 %, ... (× 2 a level).
@@ -137,11 +137,9 @@ impl JointLod {
     /// The largest effect among level `lod`'s dropped nodes: how far, at most, holding them
     /// at rest moves a vertex from where the full skeleton would put it (rig units).
     pub fn error(&self, lod: u32) -> f32 {
-        self.dropped.get(lod as usize).map_or(0.0, |d| {
-            d.iter()
-                .map(|&n| self.effect[n as usize])
-                .fold(0.0, f32::max)
-        })
+        self.dropped
+            .get(lod as usize)
+            .map_or(0.0, |d| d.iter().map(|&n| self.effect[n as usize]).sum())
     }
 
     /// Bytes it holds.
@@ -197,11 +195,16 @@ fn effects(rig: &Rig, sk: &Skeleton) -> Vec<f32> {
     let mut lever = vec![0f32; nodes];
     let mut unmeasured = false;
     let mut steps = 0usize;
-    let mut under: Vec<(u32, f32)> = Vec::new();
+    // Per node, the current vertex's weight at or under it; `touched` lists the nodes to reset.
+    let mut weight_under = vec![0f32; nodes];
+    let mut touched: Vec<u32> = Vec::new();
     'outer: for p in rig.primitives.iter() {
         let Some(s) = &p.skin else { continue };
         for ((j, w), pos) in s.joints.iter().zip(&s.weights).zip(&p.positions) {
-            under.clear();
+            for &n in &touched {
+                weight_under[n as usize] = 0.0;
+            }
+            touched.clear();
             for (&b, &wb) in j.iter().zip(w) {
                 if wb == 0.0 {
                     continue;
@@ -209,27 +212,27 @@ fn effects(rig: &Rig, sk: &Skeleton) -> Vec<f32> {
                 let mut n = sk.bones[b as usize].node;
                 loop {
                     steps += 1;
-                    match under.iter_mut().find(|e| e.0 == n) {
-                        Some(e) => e.1 += wb,
-                        None => under.push((n, wb)),
+                    if steps > MAX_EFFECT_STEPS {
+                        unmeasured = true;
+                        break 'outer;
                     }
+                    if weight_under[n as usize] == 0.0 {
+                        touched.push(n);
+                    }
+                    weight_under[n as usize] += wb;
                     let parent = sk.nodes[n as usize].parent;
                     if parent as usize >= nodes {
                         break;
                     }
                     n = parent;
                 }
-                if steps > MAX_EFFECT_STEPS {
-                    unmeasured = true;
-                    break 'outer;
-                }
             }
             let at: Vec3 = (0..4)
                 .filter(|&k| w[k] != 0.0)
                 .map(|k| w[k] * rest_bones[j[k] as usize].point(*pos))
                 .sum();
-            for &(n, wsum) in &under {
-                let l = wsum.min(1.0) * (at - pivots[n as usize]).length();
+            for &n in &touched {
+                let l = weight_under[n as usize].min(1.0) * (at - pivots[n as usize]).length();
                 lever[n as usize] = lever[n as usize].max(l);
             }
         }

@@ -13,7 +13,8 @@
 //! origin, so the same map serves bones whatever their local axes are: the node's local
 //! rotation becomes `rest × G⁻¹ Δ G`, with `G` its global rotation at rest and `Δ` the
 //! rotations of its columns composed in the map's order (yaw, then pitch, then roll in the
-//! defaults). Then its global orientation is `Δ G`: the rest pose turned in rig axes.
+//! defaults). Then, with its ancestors at rest, its global orientation is `Δ G`: the rest pose
+//! turned in rig axes.
 
 use glam::{Quat, Vec3};
 use serde::{Deserialize, Serialize};
@@ -153,12 +154,16 @@ impl JointMap {
         values: &[f32],
     ) -> Trs {
         let n = &skeleton.nodes[node as usize];
+        // In the map's order, whatever order the source gives the columns in: rotations do
+        // not commute.
         let mut delta = Quat::IDENTITY;
-        for (&c, &v) in of.iter().zip(values) {
-            let ch = &self.channels[c];
-            if ch.node == node {
-                let turn = Quat::from_axis_angle(Vec3::from(ch.axis).normalize(), v * ch.scale);
-                delta *= turn;
+        for (c, ch) in self.channels.iter().enumerate() {
+            if ch.node != node {
+                continue;
+            }
+            if let Some(k) = of.iter().position(|&o| o == c) {
+                let v = values.get(k).copied().unwrap_or(0.0);
+                delta *= Quat::from_axis_angle(Vec3::from(ch.axis).normalize(), v * ch.scale);
             }
         }
         let g = rest_globals[node as usize];

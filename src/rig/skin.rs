@@ -486,16 +486,18 @@ impl Skeleton {
     }
 }
 
-/// Step of a quantized joint override component (2^-20): a rotation moves by at most about
-/// 2 × 2^-21 rad, a translation or scale by 2^-21 of a unit, so float noise does not split
-/// clones and no pose a client can see is lost.
+/// Step of a quantized joint override component (2^-20): a rotation moves by under 2^-19 rad,
+/// a translation or scale component by 2^-21 of a unit, so float noise does not split clones
+/// and no pose a client can see is lost.
 pub const JOINT_STEP: f64 = 1.0 / 1_048_576.0;
 
 /// Largest magnitude of an override's translation, in rig units, and of its scale.
 pub const MAX_JOINT_VALUE: f32 = 1.0e6;
 
-/// Most joint overrides one head may carry.
-pub const MAX_JOINT_OVERRIDES: usize = 256;
+/// Most joint overrides one head may carry (and never more than its rig's skeleton has nodes):
+/// as many as the skeleton format allows, so that any pose of any rig, a motion graph's fade
+/// included, can be sent to the renderer as overrides.
+pub const MAX_JOINT_OVERRIDES: usize = MAX_SKELETON_NODES;
 
 /// A node's local transform set by a request instead of its clip (`"joints"` in a head),
 /// quantized to multiples of [`JOINT_STEP`] so that it can be part of a dedupe key. Each

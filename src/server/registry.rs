@@ -53,9 +53,69 @@ pub struct RigEntry {
     /// What each joint moves and which each LOD level holds at rest, measured on first use
     /// (see [`RigEntry::joint_lod`]).
     joint_lod: std::sync::OnceLock<crate::rig::JointLod>,
+    /// The joint map as live weights read it, built on first use (see
+    /// [`RigEntry::live_angles`]).
+    live_angles: std::sync::OnceLock<Option<Arc<LiveAngles>>>,
     /// The q16 references of [`Format::Q16R`](crowdmorph_proto::Format::Q16R) buffers, one
     /// per mesh level asked for, by the level's address (see [`RigEntry::q16_reference`]).
     q16_references: Mutex<Vec<(usize, Arc<[i16]>)>>,
+}
+
+/// A skinned rig's joint map, as live weights read it: a live head's weights may carry Live Link
+/// Face's head and eye angles beside its blendshapes, which turn joints as they do in a CSV
+/// clip (`rig::JointMap::local`).
+#[derive(Debug)]
+pub struct LiveAngles {
+    map: crate::rig::JointMap,
+    /// Every node's global rotation at rest.
+    rest: Vec<glam::Quat>,
+    /// Loose column spelling → channel of `map`.
+    pub columns: std::collections::HashMap<String, usize>,
+}
+
+impl LiveAngles {
+    fn new(rig: &Rig) -> Option<LiveAngles> {
+        let sk = rig.skeleton.as_ref()?;
+        let map = sk.joint_map().into_owned();
+        let columns = map
+            .channels
+            .iter()
+            .enumerate()
+            .map(|(i, c)| (crate::import::clips::loose(&c.column), i))
+            .collect();
+        Some(LiveAngles {
+            rest: crate::rig::rest_rotations(sk),
+            map,
+            columns,
+        })
+    }
+
+    /// Bytes it holds.
+    fn bytes(&self) -> u64 {
+        self.rest.len() as u64 * 16
+            + self.map.bytes()
+            + crate::rig::map_bytes(self.columns.len(), 32)
+            + self.columns.keys().map(|k| k.len() as u64).sum::<u64>()
+    }
+
+    /// The joint transforms of `values` (channel, value): each turned node's local rotation.
+    pub fn joints(&self, rig: &Rig, values: &[(usize, f32)]) -> crate::rig::JointPose {
+        let Some(sk) = &rig.skeleton else {
+            return crate::rig::JointPose::NONE;
+        };
+        let of: Vec<usize> = values.iter().map(|v| v.0).collect();
+        let v: Vec<f32> = values.iter().map(|v| v.1).collect();
+        crate::rig::JointPose::new(
+            self.map
+                .nodes(&of)
+                .into_iter()
+                .map(|n| {
+                    let t = self.map.local(sk, &self.rest, n, &of, &v);
+                    crate::rig::JointSet::new(n, None, Some(t.rotation), None)
+                })
+                .collect(),
+        )
+    }
 }
 
 /// Where a rig's clips are stored (see [`crate::store`]): some in the rig's record (for the
@@ -161,6 +221,7 @@ impl RigEntry {
             clip_names: Default::default(),
             joint_names: Default::default(),
             joint_lod: Default::default(),
+            live_angles: Default::default(),
             q16_references: Default::default(),
         }
     }
@@ -192,11 +253,36 @@ impl RigEntry {
     }
 
     /// The rig's joint LOD and extents (empty without a skeleton), measured once per
-    /// generation: a walk of every skinned vertex's bones and every clip's joint table. Its
-    /// few arrays (per node and per level) are not charged, like the clip index.
+    /// generation (a walk of every skinned vertex's bones, bounded by
+    /// `rig::joint_lod::MAX_EFFECT_STEPS`, and of every clip's joint table), then added to the
+    /// generation's memory charge as a q16 reference is.
     pub fn joint_lod(&self) -> &crate::rig::JointLod {
-        self.joint_lod
-            .get_or_init(|| crate::rig::JointLod::of(self.rig()))
+        self.joint_lod.get_or_init(|| {
+            let lod = crate::rig::JointLod::of(self.rig());
+            self.grow_charge(lod.bytes());
+            lod
+        })
+    }
+
+    /// The rig's joint map as live weights read it (`None` without a skeleton): built once per
+    /// generation and charged with it.
+    pub fn live_angles(&self) -> Option<Arc<LiveAngles>> {
+        self.live_angles
+            .get_or_init(|| {
+                let a = LiveAngles::new(self.rig())?;
+                self.grow_charge(a.bytes());
+                Some(Arc::new(a))
+            })
+            .clone()
+    }
+
+    /// Adds `bytes` the generation now holds to its charge (allocated already, so taken from
+    /// the pool even past its limit).
+    fn grow_charge(&self, bytes: u64) {
+        if let Ok(mut c) = self.charge.lock() {
+            let now = c.bytes() + bytes;
+            c.set(now);
+        }
     }
 
     /// The next generation of this rig: `prepared` (new clips or LOD) with its q16 box and
@@ -228,6 +314,7 @@ impl RigEntry {
             clip_names: Default::default(),
             joint_names: Default::default(),
             joint_lod: Default::default(),
+            live_angles: Default::default(),
             q16_references: Default::default(),
         }
     }
@@ -257,10 +344,7 @@ impl RigEntry {
             return Ok(other);
         }
         refs.push((key, r.clone()));
-        if let Ok(mut c) = self.charge.lock() {
-            let bytes = c.bytes() + size_of_val(&*r) as u64;
-            c.set(bytes);
-        }
+        self.grow_charge(size_of_val(&*r) as u64);
         Ok(r)
     }
 

@@ -55,7 +55,7 @@ use self::simd::{Lanes, Portable, Q16Pattern};
 use super::{
     BlendOutput, EngineError, OutputSpec, Precision, Q16Params, Q16Scale, VertexData, WeightBatch,
 };
-use crate::rig::{BoneMatrix, BoneScratch, Rig, SkinPoses};
+use crate::rig::{BoneMatrix, Rig, SkinPoses};
 
 /// Jobs whose weights are stored together; kernels take them `Q` at a time (Q divides 8).
 pub const GROUP: usize = 8;
@@ -490,7 +490,9 @@ impl SkinTiles {
                     t.weight[e].0[l] += w;
                 };
                 if w[0] == 0.0 {
+                    // As the GPU's `skin`: a first weight of 0 follows no bone.
                     add(NO_BONE, 1.0);
+                    continue;
                 }
                 for k in (0..4).filter(|&k| w[k] != 0.0) {
                     add(j[k], w[k]);
@@ -1275,18 +1277,7 @@ unsafe fn blend_sub<L: Lanes, const Q: usize>(
 /// Each job's bone matrices (`jobs × bones`, job-major) and the bones per job: resolved once
 /// per unique job, on every core, before the blend's output stage reads them.
 fn bone_matrices(poses: &SkinPoses) -> (Vec<BoneMatrix>, usize) {
-    let bones = poses.skeleton.bones.len();
-    let mut m = vec![BoneMatrix::IDENTITY; poses.jobs.len() * bones];
-    if bones > 0 {
-        m.par_chunks_mut(bones).enumerate().for_each_init(
-            BoneScratch::default,
-            |scratch, (j, dst)| {
-                poses.bones(j, scratch);
-                dst.copy_from_slice(&scratch.bones);
-            },
-        );
-    }
-    (m, bones)
+    (super::resolve_bones(poses), poses.skeleton.bones.len())
 }
 
 /// The `skin` pass (`skin.wgsl`), in the output stage of `blend`: the sixteen vertices of

@@ -92,11 +92,12 @@ pub fn job_output_bytes(rig: &Rig, format: Format, normals: bool, json: bool, gp
     // q16 residuals are coded after the engine with a reference and planes of one job each
     // (per batch group; charged per job, which bounds it).
     let residual = if format == Format::Q16R { 4 * v3 } else { 0 };
-    // A skinned rig's jobs are blended in f32 before the skin pass, and the GPU engine
-    // uploads each job's bone matrices (96 bytes a bone), resolved on the host.
-    let skin = rig.skeleton.as_ref().map_or(0, |s| {
-        s.bones.len() as u64 * 96 + if comp < 4 { v3 * 4 * outputs } else { 0 }
-    });
+    // A skinned rig's jobs hold their bone matrices (96 bytes a bone), resolved on the host
+    // for both engines (the skin itself is in the output stage, no second f32 buffer).
+    let skin = rig
+        .skeleton
+        .as_ref()
+        .map_or(0, |s| s.bones.len() as u64 * 96);
     wire + if f32_first { v3 * 4 * outputs } else { 0 } + weights + residual + skin
 }
 
@@ -177,7 +178,7 @@ pub fn requested_joints(
             ),
         ));
     };
-    let most = MAX_JOINT_OVERRIDES.min(sk.nodes.len());
+    let most = sk.nodes.len().min(MAX_JOINT_OVERRIDES);
     if joints.len() > most {
         return Err((
             "invalid_joints",
@@ -200,7 +201,7 @@ pub fn requested_joints(
             (
                 "unknown_joints",
                 format!(
-                    "joints name {}, {why} (GET /v1/rigs/{} lists its skeleton's animated nodes;                      any node a bone hangs from can be set)",
+                    "joints name {}, {why} (GET /v1/rigs/{} lists its skeleton's animated nodes; any node a bone hangs from can be set)",
                     quoted_name(name),
                     entry.id
                 ),
@@ -231,12 +232,14 @@ pub fn requested_joints(
         // they have at rest or in a clip (rotations keep lengths): an override may not leave
         // it.
         let (t_max, s_max) = &facts.extents;
-        let slack = |m: f64| m * (1.0 + 1e-6) + 1e-9;
+        // Room for f32 rounding and for a value that went through the 2^-20 quantization once
+        // already (a session's pose sent to the renderer as overrides).
+        let slack = |m: f64| m * (1.0 + 1e-6) + 4.0 * crate::rig::JOINT_STEP;
         if let Some(v) = &t.translation {
             let len = v.iter().map(|&c| f64::from(c).powi(2)).sum::<f64>().sqrt();
             if len > slack(t_max[node as usize]) {
                 return Err(invalid(format!(
-                    "{} has length {len}, more than node {} reaches at rest or in any clip                      ({}): the rig's output range (its q16 box) is sized for those",
+                    "{} has length {len}, more than node {} reaches at rest or in any clip ({}): the rig's output range (its q16 box) is sized for those",
                     field("translation"),
                     quoted_name(name),
                     t_max[node as usize]
@@ -247,7 +250,7 @@ pub fn requested_joints(
             let big = v.iter().fold(0f64, |m, &c| m.max(f64::from(c).abs()));
             if big > slack(s_max[node as usize]) {
                 return Err(invalid(format!(
-                    "{} is {v:?}, larger than node {} is scaled at rest or in any clip ({}):                      the rig's output range (its q16 box) is sized for those",
+                    "{} is {v:?}, larger than node {} is scaled at rest or in any clip ({}): the rig's output range (its q16 box) is sized for those",
                     field("scale"),
                     quoted_name(name),
                     s_max[node as usize]
@@ -256,9 +259,13 @@ pub fn requested_joints(
         }
         if let Some(q) = &t.rotation {
             let len2: f64 = q.iter().map(|&c| f64::from(c) * f64::from(c)).sum();
-            if !q.iter().all(|c| c.is_finite()) || len2 < 1e-12 {
+            if !q
+                .iter()
+                .all(|c| c.is_finite() && c.abs() <= MAX_JOINT_VALUE)
+                || len2 < 1e-12
+            {
                 return Err(invalid(format!(
-                    "{} is {q:?}; a rotation is a quaternion x, y, z, w of finite, not all zero                      components",
+                    "{} is {q:?}; a rotation is a quaternion x, y, z, w of finite, not all zero components",
                     field("rotation")
                 )));
             }
@@ -305,7 +312,6 @@ pub fn resolve_heads(
         live: HashMap::new(),
         charge: None,
         row: Vec::new(),
-        angles: HashMap::new(),
         live_joints: JointPose::NONE,
     };
     let mut keys = Vec::with_capacity(n_heads);
@@ -371,67 +377,9 @@ struct Lookups<'h> {
     charge: Option<Charge>,
     /// One head's channel weights, reused.
     row: Vec<f32>,
-    /// Per skinned rig with live heads, its joint map's columns (built once).
-    angles: HashMap<u32, LiveAngles>,
     /// The joint transforms the current live head's angle weights (Live Link's `HeadYaw`, ...)
     /// set, taken by [`Lookups::joints`].
     live_joints: JointPose,
-}
-
-/// A skinned rig's joint map, as live weights use it: a live head's weights may carry Live Link
-/// Face's head and eye angles beside its blendshapes, which turn joints as they do in a CSV
-/// clip.
-struct LiveAngles {
-    map: crate::rig::JointMap,
-    /// Every node's global rotation at rest.
-    rest: Vec<glam::Quat>,
-    /// Loose column spelling → channel of `map`.
-    columns: HashMap<String, usize>,
-}
-
-impl LiveAngles {
-    fn new(rig: &Rig) -> Option<LiveAngles> {
-        let sk = rig.skeleton.as_ref()?;
-        let map = sk.joint_map().into_owned();
-        let columns = map
-            .channels
-            .iter()
-            .enumerate()
-            .map(|(i, c)| (loose(&c.column), i))
-            .collect();
-        Some(LiveAngles {
-            rest: crate::rig::rest_rotations(sk),
-            map,
-            columns,
-        })
-    }
-
-    /// Bytes [`LiveAngles::new`] holds for `rig`, at most.
-    fn bytes(rig: &Rig) -> u64 {
-        rig.skeleton.as_ref().map_or(0, |sk| {
-            sk.nodes.len() as u64 * 16
-                + sk.map.as_ref().map_or(9, |m| m.channels.len() as u64) * 200
-        })
-    }
-
-    /// The joint transforms of `values` (channel, value): each turned node's local rotation.
-    fn joints(&self, rig: &Rig, values: &[(usize, f32)]) -> JointPose {
-        let Some(sk) = &rig.skeleton else {
-            return JointPose::NONE;
-        };
-        let of: Vec<usize> = values.iter().map(|v| v.0).collect();
-        let v: Vec<f32> = values.iter().map(|v| v.1).collect();
-        JointPose::new(
-            self.map
-                .nodes(&of)
-                .into_iter()
-                .map(|n| {
-                    let t = self.map.local(sk, &self.rest, n, &of, &v);
-                    JointSet::new(n, None, Some(t.rotation), None)
-                })
-                .collect(),
-        )
-    }
 }
 
 /// A rig's names for live weights, owned (a request's lookups outlive no rig snapshot but
@@ -648,12 +596,9 @@ impl<'h> Lookups<'h> {
             bytes += channels as u64 * 4;
         }
         self.charge_more(bytes)?;
-        if rig.is_skinned() && !self.angles.contains_key(&ri) {
-            self.charge_more(LiveAngles::bytes(rig))?;
-            if let Some(a) = LiveAngles::new(rig) {
-                self.angles.insert(ri, a);
-            }
-        }
+        // The rig's joint map as live weights read it (built once per generation, charged to
+        // the rig).
+        let live_angles = entry.live_angles();
         // Live Link's head and eye angles among named weights: (channel of the joint map, value).
         let mut angles: Vec<(usize, f32)> = Vec::new();
         let names = self.live.entry(ri).or_insert_with(|| LiveNames::new(rig));
@@ -715,9 +660,8 @@ impl<'h> Lookups<'h> {
                     check(&quoted_name(name), *w)?;
                     let ids = names.ids(name);
                     if ids.is_empty()
-                        && let Some(&c) = self
-                            .angles
-                            .get(&ri)
+                        && let Some(&c) = live_angles
+                            .as_deref()
                             .and_then(|a| a.columns.get(&loose(name)))
                     {
                         // A head or eye angle the rig's joint map turns a joint by.
@@ -764,9 +708,10 @@ impl<'h> Lookups<'h> {
                 }
             }
         }
-        if let Some(a) = self.angles.get(&ri)
+        if let Some(a) = live_angles.as_deref()
             && !angles.is_empty()
         {
+            self.charge_more(joint_pose_bytes(angles.len()))?;
             self.live_joints = a.joints(rig, &angles);
         }
         Ok(Pose::live(&self.row))

@@ -114,6 +114,16 @@ fn resolve(entry: &RigEntry, spec: &JointMapSpec) -> Result<JointMap, ApiError> 
             scale: c.scale,
         });
     }
+    // Columns are matched in any loose spelling, so two that spell alike would be one column.
+    let mut seen = std::collections::HashSet::with_capacity(channels.len());
+    for c in &channels {
+        if !seen.insert(crate::import::clips::loose(&c.column)) {
+            return Err(invalid(format!(
+                "column {:?} is mapped twice (columns match in any loose spelling)",
+                c.column
+            )));
+        }
+    }
     let map = JointMap { channels };
     map.check(sk).map_err(invalid)?;
     Ok(map)
@@ -141,9 +151,7 @@ pub async fn put_joint_map(
     Decoded(req): Decoded<JointMapSpec>,
 ) -> ApiResult {
     let (spec, _decoded) = req.into_parts();
-    let entry = state.rig(&id)?;
-    let map = resolve(&entry, &spec)?;
-    let entry = install(&state, &id, Some(map)).await?;
+    let entry = install(&state, &id, Some(&spec)).await?;
     accept.reply(StatusCode::OK, &info(&id, entry.rig()))
 }
 
@@ -156,22 +164,29 @@ pub async fn delete_joint_map(
     Path(id): Path<String>,
 ) -> ApiResult {
     let entry = state.rig(&id)?;
-    if entry.rig().skeleton.is_none() {
+    let Some(sk) = &entry.rig().skeleton else {
         return Err(invalid(format!("rig {id:?} has no skeleton")));
-    }
-    let entry = install(&state, &id, None).await?;
+    };
+    // Already the defaults: nothing to change, no new generation.
+    let entry = if sk.map.is_none() {
+        entry
+    } else {
+        install(&state, &id, None).await?
+    };
     accept.reply(StatusCode::OK, &info(&id, entry.rig()))
 }
 
-/// Makes `map` rig `id`'s (under the lock that serializes rig changes): the rig with its
-/// skeleton's map replaced, prepared, stored, then served.
+/// Makes the map `spec` names (`None`: the defaults) rig `id`'s, under the lock that
+/// serializes rig changes: the names resolved against the generation the lock found, then the
+/// rig with its skeleton's map replaced, prepared, stored, then served.
 async fn install(
     state: &AppState,
     id: &str,
-    map: Option<JointMap>,
+    spec: Option<&JointMapSpec>,
 ) -> Result<Arc<RigEntry>, ApiError> {
     let _admin = state.admin.lock().await;
     let entry = state.rig(id)?;
+    let map = spec.map(|s| resolve(&entry, s)).transpose()?;
     let current = entry.prepared.rig().clone();
     let engine = state.engine.clone();
     let gpu = state.on_gpu();

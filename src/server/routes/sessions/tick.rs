@@ -190,8 +190,8 @@ struct Group {
 /// any of it is built.
 ///
 /// Heads with joint overrides also get, per group, their overrides merged with what each LOD
-/// level holds at rest: `joint_sets` is the most sets those merges can hold over all heads
-/// (each head's own plus every node of its rig).
+/// level holds at rest: `joint_sets` is the most sets those merges and the heads' own resolved
+/// overrides hold over all heads (see `Resolved::joint_sets`).
 fn tick_bookkeeping_bytes(heads: usize, viewers: usize, joint_sets: usize) -> u64 {
     let groups = viewers.min(6);
     // A temporal viewer also builds its next baseline's map of references (the last one is
@@ -392,19 +392,24 @@ struct Resolved {
 
 impl Resolved {
     /// The most joint sets the heads with overrides can hold merged with a LOD level's rest
-    /// holds: their own plus every node of their rig, summed.
+    /// holds: their own plus the most nodes any level of their rig drops, summed. (Heads
+    /// without overrides share each level's rest holds.)
     fn joint_sets(&self) -> usize {
         self.at
             .iter()
             .flatten()
             .filter(|a| !a.joints.is_none())
             .map(|a| {
-                let nodes = self.rigs[a.rig as usize]
-                    .rig()
-                    .skeleton
-                    .as_ref()
-                    .map_or(0, |s| s.nodes.len());
-                a.joints.sets().len() + nodes
+                let dropped = self.rigs[a.rig as usize]
+                    .joint_lod()
+                    .dropped
+                    .iter()
+                    .map(Vec::len)
+                    .max()
+                    .unwrap_or(0);
+                // The head's own (resolved from the session's heads, which the session limits
+                // bound), and the merge.
+                2 * a.joints.sets().len() + dropped
             })
             .sum()
     }
