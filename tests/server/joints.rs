@@ -61,6 +61,19 @@ async fn frame(server: &TestServer, req: &CrowdFrameRequest) -> (Vec<Vec<f32>>, 
     (positions, resp.heads.iter().map(|h| h.buffer).collect())
 }
 
+/// A server holding the skinned triangle (nodes `Root` and `Jaw`, clips `open` and `wag`) as
+/// rig `jaw`.
+async fn jaw_server() -> TestServer {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let (b, _) = skinned_triangle_rig();
+    server
+        .client
+        .upload_rig("jaw", Bytes::from(b.to_glb()))
+        .await
+        .expect("upload");
+    server
+}
+
 fn max_distance(got: &[f32], want: &[DVec3]) -> f64 {
     assert_eq!(got.len(), want.len() * 3);
     got.chunks_exact(3)
@@ -292,13 +305,7 @@ async fn far_levels_hold_small_joints_at_rest_so_heads_that_differ_there_are_clo
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn hostile_joint_overrides_are_refused_naming_the_problem() {
-    let server = TestServer::start(ServerConfig::default()).await;
-    let (b, _) = skinned_triangle_rig();
-    server
-        .client
-        .upload_rig("jaw", Bytes::from(b.to_glb()))
-        .await
-        .expect("upload");
+    let server = jaw_server().await;
     let many: serde_json::Map<String, serde_json::Value> = (0..300)
         .map(|i| (format!("n{i}"), json!({"rotation": [0, 0, 0, 1]})))
         .collect();
@@ -424,13 +431,7 @@ async fn hostile_joint_overrides_are_refused_naming_the_problem() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn session_heads_keep_their_overrides_and_patches_change_them() {
-    let server = TestServer::start(ServerConfig::default()).await;
-    let (b, _) = skinned_triangle_rig();
-    server
-        .client
-        .upload_rig("jaw", Bytes::from(b.to_glb()))
-        .await
-        .expect("upload");
+    let server = jaw_server().await;
     let open = [0.0, 0.0, 0.38268343, 0.9238795];
     let s = create(
         &server,

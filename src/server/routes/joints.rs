@@ -191,7 +191,7 @@ async fn install(
     let engine = state.engine.clone();
     let gpu = state.on_gpu();
     let budget = state.op_budget();
-    let (rig, prepared) = blocking(move || {
+    let prepared = blocking(move || {
         let mut rig = (*current).clone();
         let mut sk = rig
             .skeleton
@@ -204,16 +204,5 @@ async fn install(
         prepare_charged(&engine, &budget, Arc::new(rig), gpu)
     })
     .await?;
-    state
-        .persist_record(id, rig, entry.builtin, &entry.layout)
-        .await?;
-    let next = Arc::new(entry.successor(
-        prepared,
-        entry.qbox,
-        entry.layout.clone(),
-        state.registry.generation(),
-        None,
-    ));
-    state.registry.insert(next.clone());
-    Ok(next)
+    state.next_generation(id, &entry, prepared).await
 }

@@ -257,7 +257,7 @@ async fn apply(
     let rid = id.to_string();
     // Comparing and cloning a big rig, validating and preparing it are CPU work: off the
     // async threads.
-    let (rig, prepared) = blocking(move || {
+    let prepared = blocking(move || {
         if !Arc::ptr_eq(&current, &scored)
             && (current.primitives != scored.primitives || current.targets != scored.targets)
         {
@@ -271,24 +271,12 @@ async fn apply(
         rig.lod = lod;
         rig.validate()
             .map_err(|e| ApiError::bad_request("invalid_lod", e.to_string()))?;
-        let (rig, prepared) = prepare_charged(&engine, &b, Arc::new(rig), gpu)?;
-        Ok((rig, prepared))
+        prepare_charged(&engine, &b, Arc::new(rig), gpu)
     })
     .await?;
-    state
-        .persist_record(id, rig, entry.builtin, &entry.layout)
-        .await?;
     // The new generation takes over the rig's charge, set to what it now holds (its mesh
     // levels included).
-    let next = Arc::new(entry.successor(
-        prepared,
-        entry.qbox,
-        entry.layout.clone(),
-        state.registry.generation(),
-        None,
-    ));
-    state.registry.insert(next.clone());
-    Ok(next)
+    state.next_generation(id, &entry, prepared).await
 }
 
 impl Priced for LodRequest {

@@ -44,6 +44,28 @@ impl AppState {
             .ok_or_else(|| unknown_rig(&self.registry, id))
     }
 
+    /// Makes `rig` (prepared as `prepared`, same geometry and clips as `entry`'s generation)
+    /// rig `id`'s next generation: stored first, then served; it takes over `entry`'s memory
+    /// charge, set to what it now holds. The caller holds the admin lock.
+    pub async fn next_generation(
+        &self,
+        id: &str,
+        entry: &RigEntry,
+        (rig, prepared): Prepared,
+    ) -> Result<Arc<RigEntry>, ApiError> {
+        self.persist_record(id, rig, entry.builtin, &entry.layout)
+            .await?;
+        let next = Arc::new(entry.successor(
+            prepared,
+            entry.qbox,
+            entry.layout.clone(),
+            self.registry.generation(),
+            None,
+        ));
+        self.registry.insert(next.clone());
+        Ok(next)
+    }
+
     /// Persists a rig's record: its geometry and LOD with the clips `layout` keeps in the
     /// record (for the built-in rig: its extra clips and LOD).
     pub async fn persist_record(
