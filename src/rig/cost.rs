@@ -464,28 +464,17 @@ impl SkinShape {
         // none).
         let mut entries = 0u64;
         let mut tile: Vec<u16> = Vec::with_capacity(64);
-        let mut lane = 0usize;
-        for p in rig.primitives.iter() {
-            for v in 0..p.positions.len() {
-                if lane == 16 {
-                    entries += tile.len() as u64;
-                    tile.clear();
-                    lane = 0;
-                }
-                match &p.skin {
-                    Some(s) if s.weights[v][0] != 0.0 => {
-                        for k in (0..4).filter(|&k| s.weights[v][k] != 0.0) {
-                            if !tile.contains(&s.joints[v][k]) {
-                                tile.push(s.joints[v][k]);
-                            }
-                        }
-                    }
-                    _ if !tile.contains(&u16::MAX) => tile.push(u16::MAX),
-                    _ => {}
-                }
-                lane += 1;
+        let mut at = 0;
+        super::for_each_influence(rig, |v, bone, _| {
+            if v / 16 != at {
+                entries += tile.len() as u64;
+                tile.clear();
+                at = v / 16;
             }
-        }
+            if !tile.contains(&bone) {
+                tile.push(bone);
+            }
+        });
         entries += tile.len() as u64;
         let joints = sk.bytes()
             + rig

@@ -52,8 +52,9 @@ pub use pose::{
 pub use sample::{Interpolation, KeyTrack, sample_rotation, sample_track};
 pub use skin::{
     Bone, BoneMatrix, BoneScratch, INFLUENCES, Influences, JOINT_STEP, JointIndex, JointLookup,
-    JointPose, JointSet, JointTable, MAX_BONES, MAX_JOINT_OVERRIDES, MAX_JOINT_VALUE, NO_PARENT,
-    SkelNode, Skeleton, SkinPoses, SkinTerm, Trs, WEIGHT_SUM_TOLERANCE, top_influences,
+    JointPose, JointSet, JointTable, MAX_BONES, MAX_JOINT_OVERRIDES, MAX_JOINT_VALUE, NO_BONE,
+    NO_PARENT, SkelNode, Skeleton, SkinPoses, SkinTerm, Trs, WEIGHT_SUM_TOLERANCE,
+    for_each_influence, top_influences,
 };
 
 use std::sync::Arc;

@@ -685,6 +685,16 @@ pub enum JointLookup {
     Ambiguous(usize),
 }
 
+impl std::fmt::Display for JointLookup {
+    /// The end of a sentence "... names `X`, ...": why `X` is not one node of the rig.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            JointLookup::Missing => f.write_str("which the rig's skeleton does not have"),
+            JointLookup::Ambiguous(n) => write!(f, "which {n} nodes of the rig's skeleton share"),
+        }
+    }
+}
+
 impl JointIndex {
     /// The index of `skeleton`'s nodes.
     pub fn new(skeleton: &Skeleton) -> JointIndex {
@@ -787,6 +797,31 @@ impl SkinPoses {
                 .iter()
                 .map(|o| size_of::<JointPose>() as u64 + o.heap_bytes())
                 .sum::<u64>()
+    }
+}
+
+/// The bone of a vertex that follows none (a primitive neither skinned nor under an animated
+/// node, or a first weight of 0): it is left as blended.
+pub const NO_BONE: u16 = u16::MAX;
+
+/// Calls `f(vertex, bone, weight)` for every vertex of `rig` in evaluation order (primitives
+/// concatenated) and each bone it follows with a non-zero weight, as both skin passes read the
+/// influences; a vertex that follows none gives one `(NO_BONE, 1.0)`. The CPU engine's tiles
+/// and the cost model that charges them both walk the influences through this.
+pub fn for_each_influence(rig: &super::Rig, mut f: impl FnMut(usize, u16, f32)) {
+    let mut v = 0;
+    for p in rig.primitives.iter() {
+        for i in 0..p.positions.len() {
+            match &p.skin {
+                Some(s) if s.weights[i][0] != 0.0 => {
+                    for k in (0..INFLUENCES).filter(|&k| s.weights[i][k] != 0.0) {
+                        f(v, s.joints[i][k], s.weights[i][k]);
+                    }
+                }
+                _ => f(v, NO_BONE, 1.0),
+            }
+            v += 1;
+        }
     }
 }
 

@@ -14,7 +14,9 @@ use glam::{DMat4, DQuat, DVec3};
 use serde_json::json;
 
 use super::sessions::{View, call, connect, create, next_tick};
-use super::{TestServer, api_error, positions_f32, stored_config, temp_dir, upload_bytes};
+use super::{
+    TestServer, api_error, max_distance, positions_f32, stored_config, temp_dir, upload_bytes,
+};
 use crate::util::RefDoc;
 use crate::util::builder::skinned_triangle_rig;
 use crate::util::skin::Local;
@@ -72,14 +74,6 @@ async fn jaw_server() -> TestServer {
         .await
         .expect("upload");
     server
-}
-
-fn max_distance(got: &[f32], want: &[DVec3]) -> f64 {
-    assert_eq!(got.len(), want.len() * 3);
-    got.chunks_exact(3)
-        .zip(want)
-        .map(|(g, w)| (DVec3::new(f64::from(g[0]), f64::from(g[1]), f64::from(g[2])) - *w).length())
-        .fold(0.0, f64::max)
 }
 
 fn diff(a: &[f32], b: &[f32]) -> f32 {
@@ -142,40 +136,13 @@ async fn joint_overrides_turn_the_robots_head_and_clones_stay_one_job() {
     let noisy = q.map(|c| c * (1.0 + 3e-8));
     let flipped = q.map(|c| -c);
     let other = DQuat::from_rotation_y(-0.4).as_quat().to_array();
+    let wave = |id: u64, joints: JointOverrides| head(id, "robot", "Wave", 20, 0, joints);
     let req = request(vec![
-        head(0, "robot", "Wave", 20, 0, JointOverrides::default()),
-        head(
-            1,
-            "robot",
-            "Wave",
-            20,
-            0,
-            JointOverrides::rotation("Head", q),
-        ),
-        head(
-            2,
-            "robot",
-            "Wave",
-            20,
-            0,
-            JointOverrides::rotation("Head", noisy),
-        ),
-        head(
-            3,
-            "robot",
-            "Wave",
-            20,
-            0,
-            JointOverrides::rotation("Head", flipped),
-        ),
-        head(
-            4,
-            "robot",
-            "Wave",
-            20,
-            0,
-            JointOverrides::rotation("Head", other),
-        ),
+        wave(0, JointOverrides::default()),
+        wave(1, JointOverrides::rotation("Head", q)),
+        wave(2, JointOverrides::rotation("Head", noisy)),
+        wave(3, JointOverrides::rotation("Head", flipped)),
+        wave(4, JointOverrides::rotation("Head", other)),
     ]);
     let (got, buffers) = frame(&server, &req).await;
     assert_eq!(

@@ -136,6 +136,17 @@ pub fn upload_bytes(path: &Path) -> Bytes {
 }
 
 /// Positions of a buffer as f32, whatever the format.
+/// Largest distance between the vertices `got` (x, y, z f32 each) and `want`.
+pub fn max_distance(got: &[f32], want: &[glam::DVec3]) -> f64 {
+    assert_eq!(got.len(), want.len() * 3);
+    got.chunks_exact(3)
+        .zip(want)
+        .map(|(g, w)| {
+            (glam::DVec3::new(f64::from(g[0]), f64::from(g[1]), f64::from(g[2])) - *w).length()
+        })
+        .fold(0.0, f64::max)
+}
+
 pub fn positions_f32(format: Format, b: &FrameBuffer) -> Vec<f32> {
     decode(format, &b.positions, b.quantization.as_ref(), false)
 }

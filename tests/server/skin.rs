@@ -9,7 +9,9 @@ use crowdmorph_proto::{CrowdFrameRequest, Format, Head, OutputOptions};
 use glam::DVec3;
 use serde_json::json;
 
-use super::{TestServer, api_error, normals_f32, positions_f32, stored_config, temp_dir};
+use super::{
+    TestServer, api_error, max_distance, normals_f32, positions_f32, stored_config, temp_dir,
+};
 use crate::util::RefDoc;
 use crate::util::builder::skinned_triangle_rig;
 
@@ -52,14 +54,6 @@ async fn frames(server: &TestServer, req: &CrowdFrameRequest) -> Vec<(Vec<f32>, 
             )
         })
         .collect()
-}
-
-fn max_distance(got: &[f32], want: &[DVec3]) -> f64 {
-    assert_eq!(got.len(), want.len() * 3);
-    got.chunks_exact(3)
-        .zip(want)
-        .map(|(g, w)| (DVec3::new(f64::from(g[0]), f64::from(g[1]), f64::from(g[2])) - *w).length())
-        .fold(0.0, f64::max)
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

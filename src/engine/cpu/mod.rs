@@ -55,7 +55,7 @@ use self::simd::{Lanes, Portable, Q16Pattern};
 use super::{
     BlendOutput, EngineError, OutputSpec, Precision, Q16Params, Q16Scale, VertexData, WeightBatch,
 };
-use crate::rig::{BoneMatrix, Rig, SkinPoses};
+use crate::rig::{BoneMatrix, NO_BONE, Rig, SkinPoses, for_each_influence};
 
 /// Jobs whose weights are stored together; kernels take them `Q` at a time (Q divides 8).
 pub const GROUP: usize = 8;
@@ -449,9 +449,6 @@ struct SkinTiles {
     weight: Vec<LaneWeights>,
 }
 
-/// An entry of [`SkinTiles`] for the vertices of primitives that follow no bone.
-const NO_BONE: u16 = u16::MAX;
-
 /// Sixteen lane weights, aligned for a vector load.
 #[repr(C, align(64))]
 #[derive(Clone, Copy, Debug, Default)]
@@ -459,45 +456,31 @@ struct LaneWeights([f32; LANES]);
 
 impl SkinTiles {
     fn build(rig: &Rig, tiles: usize) -> SkinTiles {
-        let mut lanes: Vec<([u16; 4], [f32; 4])> = Vec::with_capacity(tiles * LANES);
-        for p in rig.primitives.iter() {
-            match &p.skin {
-                Some(s) => lanes.extend(s.joints.iter().copied().zip(s.weights.iter().copied())),
-                None => lanes.extend(std::iter::repeat_n(([0; 4], [0.0; 4]), p.positions.len())),
-            }
-        }
         let mut t = SkinTiles {
             start: Vec::with_capacity(tiles + 1),
             bone: Vec::new(),
             weight: Vec::new(),
         };
         t.start.push(0);
-        for tile in 0..tiles {
-            let first = t.bone.len();
-            for l in 0..LANES {
-                let Some(&(j, w)) = lanes.get(tile * LANES + l) else {
-                    continue;
-                };
-                let mut add = |bone: u16, w: f32| {
-                    let e = match t.bone[first..].iter().position(|&b| b == bone) {
-                        Some(e) => first + e,
-                        None => {
-                            t.bone.push(bone);
-                            t.weight.push(LaneWeights::default());
-                            t.bone.len() - 1
-                        }
-                    };
-                    t.weight[e].0[l] += w;
-                };
-                if w[0] == 0.0 {
-                    // As the GPU's `skin`: a first weight of 0 follows no bone.
-                    add(NO_BONE, 1.0);
-                    continue;
-                }
-                for k in (0..4).filter(|&k| w[k] != 0.0) {
-                    add(j[k], w[k]);
-                }
+        let mut first = 0;
+        for_each_influence(rig, |v, bone, w| {
+            let (tile, lane) = (v / LANES, v % LANES);
+            // A new tile: close the ones before it (tiles without vertices have no entries).
+            while t.start.len() <= tile {
+                t.start.push(t.bone.len() as u32);
+                first = t.bone.len();
             }
+            let e = match t.bone[first..].iter().position(|&b| b == bone) {
+                Some(e) => first + e,
+                None => {
+                    t.bone.push(bone);
+                    t.weight.push(LaneWeights::default());
+                    t.bone.len() - 1
+                }
+            };
+            t.weight[e].0[lane] += w;
+        });
+        while t.start.len() <= tiles {
             t.start.push(t.bone.len() as u32);
         }
         t
@@ -1416,4 +1399,29 @@ fn take_f32(data: &mut VertexData, len: usize) -> Vec<f32> {
     };
     v.resize(len, 0.0);
     v
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_cost_model_counts_the_skin_tiles_the_layout_builds() {
+        let rig = crate::synthetic::skinned_head();
+        assert!(rig.lod.meshes.is_empty() && rig.lod.pca.is_empty());
+        let tiles = SkinTiles::build(&rig, rig.vertex_count().div_ceil(LANES));
+        assert_eq!(tiles.start.len(), rig.vertex_count().div_ceil(LANES) + 1);
+        assert_eq!(
+            tiles.bone.len() as u64,
+            crate::rig::SkinShape::of(&rig).tile_entries
+        );
+        // Every lane's weights sum to one: its bones', or the blended vertex kept.
+        for t in 0..tiles.start.len() - 1 {
+            let e = tiles.start[t] as usize..tiles.start[t + 1] as usize;
+            for lane in 0..LANES.min(rig.vertex_count() - t * LANES) {
+                let sum: f32 = tiles.weight[e.clone()].iter().map(|w| w.0[lane]).sum();
+                assert!((sum - 1.0).abs() < 1e-5, "tile {t} lane {lane}: {sum}");
+            }
+        }
+    }
 }

@@ -11,8 +11,8 @@ use crate::import::clips::{is_live_link_angle, loose};
 use crate::plan::{JobKey, Plan};
 use crate::rig::quoted_name;
 use crate::rig::{
-    ACTIVE_WEIGHT_EPSILON, ARKIT_NAMES, FrameMode, JointLookup, JointPose, JointSet,
-    MAX_BLEND_LAYERS, MAX_JOINT_OVERRIDES, MAX_JOINT_VALUE, MAX_LIVE_WEIGHT, Pose, Rig, TargetId,
+    ACTIVE_WEIGHT_EPSILON, ARKIT_NAMES, FrameMode, JointPose, JointSet, MAX_BLEND_LAYERS,
+    MAX_JOINT_OVERRIDES, MAX_JOINT_VALUE, MAX_LIVE_WEIGHT, Pose, Rig, TargetId,
 };
 use crate::server::admission::memory::{Charge, QueueMemory};
 use crate::server::http::ApiError;
@@ -193,11 +193,7 @@ pub fn requested_joints(
     let facts = entry.joint_lod();
     let mut sets = Vec::with_capacity(joints.len());
     for (name, t) in &joints.0 {
-        let node = entry.joint_node(name).map_err(|e| {
-            let why = match e {
-                JointLookup::Missing => "which it does not have".to_string(),
-                JointLookup::Ambiguous(n) => format!("which {n} of its nodes share"),
-            };
+        let node = entry.joint_node(name).map_err(|why| {
             (
                 "unknown_joints",
                 format!(

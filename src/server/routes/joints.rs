@@ -12,7 +12,7 @@ use axum::http::StatusCode;
 use crowdmorph_proto::{JointChannelSpec, JointMapInfo, JointMapSpec};
 
 use super::rigs::prepare_charged;
-use crate::rig::{JointChannel, JointLookup, JointMap, MAX_JOINT_CHANNELS, Rig};
+use crate::rig::{JointChannel, JointMap, MAX_JOINT_CHANNELS, Rig};
 use crate::server::admission::{Decoded, Priced};
 use crate::server::http::{Accept, Admin, ApiError, ApiResult, Ready, blocking};
 use crate::server::registry::RigEntry;
@@ -85,11 +85,7 @@ fn resolve(entry: &RigEntry, spec: &JointMapSpec) -> Result<JointMap, ApiError> 
                 "channels[{i}].column must be 1–{MAX_COLUMN} characters"
             )));
         }
-        let node = entry.joint_node(&c.node).map_err(|e| {
-            let why = match e {
-                JointLookup::Missing => "which it does not have".to_string(),
-                JointLookup::Ambiguous(n) => format!("which {n} of its nodes share"),
-            };
+        let node = entry.joint_node(&c.node).map_err(|why| {
             ApiError::bad_request(
                 "unknown_joints",
                 format!(
