@@ -603,6 +603,33 @@ async fn live_link_columns_turn_the_head_and_a_rigs_own_map_is_kept() {
         400,
         "invalid_joint_map",
     );
+    // Too many channels, and two columns that spell alike (columns match loosely).
+    let channel = |column: String| JointChannelSpec {
+        column,
+        ..own.channels[0].clone()
+    };
+    let many = JointMapSpec {
+        channels: (0..300).map(|i| channel(format!("c{i}"))).collect(),
+    };
+    let m = api_error(
+        s1.client.set_joint_map("robot", &many).await,
+        400,
+        "invalid_joint_map",
+    );
+    assert!(m.contains("at most 256"), "{m}");
+    let alike = JointMapSpec {
+        channels: vec![channel("HeadYaw".into()), channel("head_yaw".into())],
+    };
+    let m = api_error(
+        s1.client.set_joint_map("robot", &alike).await,
+        400,
+        "invalid_joint_map",
+    );
+    assert!(m.contains("twice"), "{m}");
+    assert!(
+        !s1.client.joint_map("robot").await.expect("map").default,
+        "a refused map changes nothing"
+    );
     s1.client
         .upload_clip(
             "robot",
