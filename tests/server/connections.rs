@@ -282,25 +282,32 @@ async fn the_header_timeout_is_not_extended_by_trickling_and_differs_from_idle()
 
 /// At the cap, the idle connection is evicted, never the one with a request in progress; with
 /// every connection busy, the new one is refused with a 503 and both requests complete.
+///
+/// A request is held in progress by its unfinished body, which the test sends when it chooses:
+/// a hold by time (a long batch delay) raced the test's own steps on a loaded CI machine.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_request_in_progress_is_never_evicted() {
     let server = TestServer::start(ServerConfig {
         max_connections: Some(2),
-        // Crowd requests wait in the batcher this long: "in progress" for the whole test.
-        batch_delay: Duration::from_millis(2500),
-        batch_hold_when_idle: true,
-        batch_cost: Some(u64::MAX),
+        // The bodies may take this long to arrive: far longer than the test.
+        request_timeout: Duration::from_secs(120),
         ..ServerConfig::default()
     })
     .await;
     let m = server.state.metrics.clone();
+    let state = server.state.clone();
     let open = |n: u64| {
         let m = m.clone();
         move || m.connections_open.get() == n
     };
+    // A request whose head and half of whose body have been sent: the server has begun it
+    // once it has reserved the memory to read the body.
+    let queued = |s: &crowdmorph::server::AppState| s.queue_memory.used();
+    let (a_head, a_tail) = split_body(crowd_post(3));
     let mut a = TcpStream::connect(server.addr).await.unwrap();
-    a.write_all(&crowd_post(3)).await.unwrap();
-    assert!(eventually(|| m.queue_depth.get() == 1).await);
+    a.write_all(&a_head).await.unwrap();
+    assert!(eventually(|| queued(&state) > 0).await);
+    let one_request = queued(&state);
     let mut b = TcpStream::connect(server.addr).await.unwrap();
     assert!(eventually(open(2)).await);
     // Past the cap: B (idle) makes room, not A.
@@ -312,8 +319,9 @@ async fn a_request_in_progress_is_never_evicted() {
         "the idle connection was evicted"
     );
     assert_eq!(m.connections_closed_with("evicted"), 1);
-    c.write_all(&crowd_post(4)).await.unwrap();
-    assert!(eventually(|| m.queue_depth.get() == 2).await);
+    let (c_head, c_tail) = split_body(crowd_post(4));
+    c.write_all(&c_head).await.unwrap();
+    assert!(eventually(|| queued(&state) >= 2 * one_request).await);
     // Both busy: D is refused, and told why.
     let mut d = TcpStream::connect(server.addr).await.unwrap();
     d.write_all(b"GET /healthz HTTP/1.1\r\nhost: t\r\n\r\n")
@@ -336,8 +344,9 @@ async fn a_request_in_progress_is_never_evicted() {
             .await
             .is_some()
     );
-    // The requests in progress complete.
-    for s in [&mut a, &mut c] {
+    // The requests in progress complete once their bodies do.
+    for (s, tail) in [(&mut a, a_tail), (&mut c, c_tail)] {
+        s.write_all(&tail).await.unwrap();
         let r = read_response(s).await;
         assert_eq!(r.status, 200, "{}", r.head);
         let resp: crowdmorph_proto::CrowdFrameResponse = serde_json::from_slice(&r.body).unwrap();
@@ -348,6 +357,18 @@ async fn a_request_in_progress_is_never_evicted() {
     drop((a, c));
     assert!(eventually(open(0)).await);
     server.stop().await;
+}
+
+/// A request cut in two inside its body: the head and half the body, then the rest.
+fn split_body(mut request: Vec<u8>) -> (Vec<u8>, Vec<u8>) {
+    let body_at = request
+        .windows(4)
+        .position(|w| w == b"\r\n\r\n")
+        .expect("a request has a head")
+        + 4;
+    let cut = body_at + (request.len() - body_at) / 2;
+    let tail = request.split_off(cut);
+    (request, tail)
 }
 
 /// Kills the server if the test fails before stopping it.

@@ -196,7 +196,8 @@ async fn past_the_deadline_is_504_and_abandoned_jobs_are_not_computed() {
 async fn too_many_requests_at_once_are_shed_with_503() {
     let server = TestServer::start(ServerConfig {
         max_concurrency: 2,
-        batch_delay: Duration::from_millis(800),
+        // Long enough for all eight to arrive on a loaded machine while two are held.
+        batch_delay: Duration::from_secs(3),
         batch_hold_when_idle: true,
         batch_cost: Some(u64::MAX),
         ..ServerConfig::default()
@@ -232,7 +233,8 @@ async fn too_many_requests_at_once_are_shed_with_503() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn shutdown_lets_requests_in_flight_complete() {
     let mut server = TestServer::start(ServerConfig {
-        batch_delay: Duration::from_millis(500),
+        // All ten must be queued before the batch closes, on a loaded machine too.
+        batch_delay: Duration::from_secs(3),
         batch_hold_when_idle: true,
         batch_cost: Some(u64::MAX),
         ..ServerConfig::default()
@@ -268,7 +270,8 @@ async fn shutdown_lets_requests_in_flight_complete() {
 async fn a_client_that_disconnects_does_not_cancel_shared_work() {
     use tokio::io::AsyncWriteExt;
     let server = TestServer::start(ServerConfig {
-        batch_delay: Duration::from_millis(600),
+        // A queues, B joins it and A hangs up, all before the batch closes.
+        batch_delay: Duration::from_secs(3),
         batch_hold_when_idle: true,
         batch_cost: Some(u64::MAX),
         ..ServerConfig::default()
