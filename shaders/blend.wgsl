@@ -1,11 +1,16 @@
 // Pass `blend` (CPU mirror: `engine::cpu::CpuRig::blend`).
 //
 // Eq. 1 of Costigan et al. 2016, v = base + sum_k w_k * delta_k, for every vertex of a tile and
-// four jobs at once. One workgroup is one tile of 64 vertices and one group of four jobs; each
-// invocation owns one vertex and keeps x, y, z accumulators for the four jobs in vec4s, so every
-// delta it loads serves four jobs. The loop visits only the group's active slots (Lorach's
-// index + weight list from `build_active`); a slot that does not move this tile costs one mask
-// lookup and no loads.
+// eight jobs at once (the CPU engine's group). One workgroup is one tile of 64 vertices and one
+// group of eight jobs; each invocation owns one vertex and keeps x, y, z accumulators for the
+// eight jobs in two vec4s each, so every delta it loads serves eight jobs. The loop visits only
+// the group's active slots that move this tile (Lorach's index + weight list from
+// `build_active`, compacted per tile here): a slot without a block in the tile costs nothing in
+// the loop.
+//
+// Workgroups are numbered group first (x) and tile second (y, z), so the workgroups the device
+// runs side by side are the groups of one tile, which read the same deltas while they are in
+// the cache.
 //
 // Deltas are stored per (tile, slot) as a 64-lane structure-of-arrays block: x[64], y[64],
 // z[64], so the 64 invocations of a tile read consecutive floats (coalesced). Which slots have a
@@ -30,8 +35,8 @@ struct Params {
     jobs: u32,
     // 1: scale each result to unit length (normal blending).
     normalize: u32,
-    // Workgroups along x; the tile is workgroup_id.x + workgroup_id.z * tiles_x.
-    tiles_x: u32,
+    // Workgroups along y; the tile is workgroup_id.y + workgroup_id.z * tiles_y.
+    tiles_y: u32,
 }
 
 @group(0) @binding(0) var<uniform> params: Params;
@@ -42,6 +47,7 @@ struct Params {
 // Per (chunk tile, word): .x the slots of the word that have a block, .y the index of the first
 // of them in `blocks`.
 @group(0) @binding(3) var<storage, read> masks: array<vec2<u32>>;
+// Per group and active slot, two vec4s: the weights of jobs 0-3, then of jobs 4-7.
 @group(0) @binding(4) var<storage, read> active_weights: array<vec4<f32>>;
 @group(0) @binding(5) var<storage, read> active_slots: array<u32>;
 @group(0) @binding(6) var<storage, read> active_count: array<u32>;
@@ -49,12 +55,19 @@ struct Params {
 @group(0) @binding(7) var<storage, read_write> out: array<f32>;
 
 const TILE: u32 = 64u;
+const GROUP: u32 = 8u;
+// Active-list entries staged at a time, four per invocation.
 const BATCH: u32 = 256u;
+const PER_LANE: u32 = BATCH / TILE;
 const NONE: u32 = 0xffffffffu;
 
-var<workgroup> sh_weights: array<vec4<f32>, BATCH>;
+var<workgroup> sh_lo: array<vec4<f32>, BATCH>;
+var<workgroup> sh_hi: array<vec4<f32>, BATCH>;
 var<workgroup> sh_blocks: array<u32, BATCH>;
+var<workgroup> sh_scan: array<u32, TILE>;
+var<workgroup> sh_part: array<u32, 8>;
 var<workgroup> sh_count: u32;
+var<workgroup> sh_total: u32;
 
 fn block_of(tile: u32, s: u32) -> u32 {
     let m = masks[tile * params.words + s / 32u];
@@ -65,49 +78,116 @@ fn block_of(tile: u32, s: u32) -> u32 {
     return m.y + countOneBits(m.x & (bit - 1u));
 }
 
+// Where the first of `mine` items of invocation `lane` goes when every invocation's items are
+// laid out in invocation order (an exclusive scan over the workgroup); the total is left in
+// `sh_total`. Eight partial sums rather than a 64-wide Hillis-Steele scan: three barriers
+// instead of thirteen, which is what a workgroup with a short list pays for.
+fn place(lane: u32, mine: u32) -> u32 {
+    sh_scan[lane] = mine;
+    workgroupBarrier();
+    if lane < 8u {
+        var t = 0u;
+        for (var k = 0u; k < 8u; k++) {
+            t += sh_scan[lane * 8u + k];
+        }
+        sh_part[lane] = t;
+    }
+    workgroupBarrier();
+    if lane == 0u {
+        var t = 0u;
+        for (var k = 0u; k < 8u; k++) {
+            let x = sh_part[k];
+            sh_part[k] = t;
+            t += x;
+        }
+        sh_total = t;
+    }
+    workgroupBarrier();
+    var at = sh_part[lane / 8u];
+    for (var k = lane & ~7u; k < lane; k++) {
+        at += sh_scan[k];
+    }
+    return at;
+}
+
 @compute @workgroup_size(64)
 fn blend(
     @builtin(workgroup_id) wid: vec3<u32>,
     @builtin(local_invocation_index) lane: u32,
 ) {
-    let tile = wid.x + wid.z * params.tiles_x;
-    let g = wid.y;
+    let g = wid.x;
+    let tile = wid.y + wid.z * params.tiles_y;
     let tile_ok = tile < params.tiles;
     let v = (params.tile_begin + tile) * TILE + lane;
     let has_vertex = tile_ok && v < params.vertices;
 
-    var ax = vec4<f32>(0.0);
-    var ay = vec4<f32>(0.0);
-    var az = vec4<f32>(0.0);
+    var x0 = vec4<f32>(0.0);
+    var y0 = vec4<f32>(0.0);
+    var z0 = vec4<f32>(0.0);
     if has_vertex {
         let lv = tile * TILE + lane;
-        ax = vec4<f32>(base[lv * 3u]);
-        ay = vec4<f32>(base[lv * 3u + 1u]);
-        az = vec4<f32>(base[lv * 3u + 2u]);
+        x0 = vec4<f32>(base[lv * 3u]);
+        y0 = vec4<f32>(base[lv * 3u + 1u]);
+        z0 = vec4<f32>(base[lv * 3u + 2u]);
     }
+    var x1 = x0;
+    var y1 = y0;
+    var z1 = z0;
 
     if lane == 0u {
         sh_count = active_count[g];
     }
     let n = workgroupUniformLoad(&sh_count);
+    let eight = params.jobs > g * GROUP + 4u;
     for (var start = 0u; start < n; start += BATCH) {
         let m = min(BATCH, n - start);
-        // Stage this batch of the active list in workgroup memory, with this tile's block for
-        // each slot, so the inner loop reads nothing from global memory but deltas.
-        for (var i = lane; i < m; i += TILE) {
-            let e = g * params.slots + start + i;
-            sh_weights[i] = active_weights[e];
-            sh_blocks[i] = select(NONE, block_of(tile, active_slots[e]), tile_ok);
+        // Stage this batch of the active list in workgroup memory, keeping only the slots with a
+        // block in this tile, in list order: each invocation looks up four consecutive entries,
+        // and a scan of the counts over the workgroup says where its survivors go.
+        let first = lane * PER_LANE;
+        var found = array<u32, PER_LANE>(NONE, NONE, NONE, NONE);
+        var mine = 0u;
+        for (var k = 0u; k < PER_LANE; k++) {
+            let i = first + k;
+            if tile_ok && i < m {
+                found[k] = block_of(tile, active_slots[g * params.slots + start + i]);
+                mine += u32(found[k] != NONE);
+            }
         }
-        workgroupBarrier();
-        for (var i = 0u; i < m; i++) {
-            let b = sh_blocks[i];
-            if b != NONE {
-                let w = sh_weights[i];
-                let o = b * 192u + lane;
-                ax += w * blocks[o];
-                ay += w * blocks[o + 64u];
-                az += w * blocks[o + 128u];
+        var at = place(lane, mine);
+        for (var k = 0u; k < PER_LANE; k++) {
+            if found[k] != NONE {
+                let e = g * params.slots + start + first + k;
+                sh_lo[at] = active_weights[2u * e];
+                sh_hi[at] = active_weights[2u * e + 1u];
+                sh_blocks[at] = found[k];
+                at++;
+            }
+        }
+        let kept = workgroupUniformLoad(&sh_total);
+        if eight {
+            for (var i = 0u; i < kept; i++) {
+                let o = sh_blocks[i] * 192u + lane;
+                let dx = blocks[o];
+                let dy = blocks[o + 64u];
+                let dz = blocks[o + 128u];
+                let lo = sh_lo[i];
+                let hi = sh_hi[i];
+                x0 += lo * dx;
+                y0 += lo * dy;
+                z0 += lo * dz;
+                x1 += hi * dx;
+                y1 += hi * dy;
+                z1 += hi * dz;
+            }
+        } else {
+            // A group of at most four jobs (a batch's last, or a batch of one): half the work.
+            for (var i = 0u; i < kept; i++) {
+                let o = sh_blocks[i] * 192u + lane;
+                let lo = sh_lo[i];
+                x0 += lo * blocks[o];
+                y0 += lo * blocks[o + 64u];
+                z0 += lo * blocks[o + 128u];
             }
         }
         workgroupBarrier();
@@ -117,12 +197,17 @@ fn blend(
         return;
     }
     let stride = params.vertices * 3u;
-    for (var q = 0u; q < 4u; q++) {
-        let job = g * 4u + q;
+    for (var q = 0u; q < GROUP; q++) {
+        let job = g * GROUP + q;
         if job >= params.jobs {
             break;
         }
-        var r = vec3<f32>(ax[q], ay[q], az[q]);
+        var r: vec3<f32>;
+        if q < 4u {
+            r = vec3<f32>(x0[q], y0[q], z0[q]);
+        } else {
+            r = vec3<f32>(x1[q - 4u], y1[q - 4u], z1[q - 4u]);
+        }
         if params.normalize == 1u {
             let l2 = dot(r, r);
             r = select(vec3<f32>(0.0), r * inverseSqrt(l2), l2 > 0.0);

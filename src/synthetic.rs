@@ -21,8 +21,14 @@ pub const PAPER_TARGETS: usize = 72;
 /// A 72-target, 43,788-vertex rig with localized deltas and one 60-frame clip ("anim") whose
 /// weights are active about three times in four.
 pub fn paper_scale_rig() -> Rig {
-    let n = PAPER_VERTICES;
-    let side = 209;
+    banded_rig("paper-scale", PAPER_VERTICES, 209, PAPER_TARGETS)
+}
+
+/// A rig of `n` vertices on a sphere (rows of `side`) and `n_targets` targets, each moving a
+/// contiguous band of at most 1/20 of the vertices, with one 60-frame clip ("anim") whose
+/// weights are active about three times in four. Many targets on few vertices give long
+/// active lists of which each tile of vertices sees only a part. Deterministic.
+pub fn banded_rig(name: &str, n: usize, side: usize, n_targets: usize) -> Rig {
     let positions: Vec<Vec3> = (0..n)
         .map(|i| {
             let (u, v) = (
@@ -43,10 +49,11 @@ pub fn paper_scale_rig() -> Rig {
     }
     let normals = vertex_normals(&positions, &indices);
     let mut rng = SplitMix64(72);
-    let targets = (0..PAPER_TARGETS as u32)
+    let targets = (0..n_targets as u32)
         .map(|t| {
             let center = rng.below(n);
-            let radius = 200 + rng.below(n / 20 - 200);
+            let shortest = 200.min(n / 40);
+            let radius = shortest + rng.below(n / 20 - shortest);
             let dir = Vec3::new(rng.unit() - 0.5, rng.unit() - 0.5, rng.unit() - 0.5);
             let dp: Vec<Vec3> = (0..n)
                 .map(|v| {
@@ -73,20 +80,20 @@ pub fn paper_scale_rig() -> Rig {
         skin: None,
     }];
     let frames = 60;
-    let weights: Vec<f32> = (0..PAPER_TARGETS * frames)
+    let weights: Vec<f32> = (0..n_targets * frames)
         .map(|_| if rng.below(4) == 0 { 0.0 } else { rng.unit() })
         .collect();
-    let lod = Lod::by_delta_energy(&primitives, PAPER_TARGETS);
+    let lod = Lod::by_delta_energy(&primitives, n_targets);
     Rig {
-        name: "paper-scale".into(),
-        targets: (0..PAPER_TARGETS).map(|t| format!("shape{t}")).collect(),
-        default_weights: vec![0.0; PAPER_TARGETS],
+        name: name.into(),
+        targets: (0..n_targets).map(|t| format!("shape{t}")).collect(),
+        default_weights: vec![0.0; n_targets],
         primitives: std::sync::Arc::new(primitives),
         clips: vec![Clip {
             name: "anim".into(),
             fps: 30.0,
             frames: frames as u32,
-            targets: PAPER_TARGETS as u32,
+            targets: n_targets as u32,
             weights: std::sync::Arc::new(weights),
             joints: None,
         }],

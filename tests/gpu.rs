@@ -235,11 +235,30 @@ fn gpu_matches_cpu_on_every_real_rig() {
     not(crowdmorph_gpu_driver),
     ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
 )]
+fn long_active_lists_compacted_per_tile_match() {
+    // 600 targets on 4,096 vertices: a group's active list runs past one staging batch of 256
+    // entries, and each tile of 64 vertices keeps only the few slots that move it, so the
+    // blend's per-tile compaction and the active-list scan are exercised across batches.
+    let engine = Engine::with_gpu(open_gpu(GpuOptions::default()), BackendChoice::Gpu);
+    let rig = crowdmorph::synthetic::banded_rig("banded", 4096, 64, 600);
+    let mut jobs = random_jobs(&rig, 600, 19);
+    // Live weights (two thirds of them non-zero at any LOD) over every slot of LOD 0.
+    let w: Vec<f32> = (0..600).map(|t| (t % 3) as f32 * 0.25).collect();
+    jobs.insert(3, BlendJob::posed(Pose::live(&w), 0));
+    assert!(rig.lod.levels[0].shapes > 300);
+    check_parity(&engine, rig, &jobs);
+}
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
 fn paper_scale_rig_over_the_binding_limit_is_chunked_and_matches() {
-    // Chunks of at most 256 KiB split the rig's delta blocks several ways, and 4 MiB bindings
-    // split a batch's output into sub-batches of four jobs.
+    // Chunks of at most 256 KiB split the rig's delta blocks several ways, and 8 MiB bindings
+    // split a batch's output (525 KB a job) into sub-batches of eight jobs.
     let ctx = open_gpu(GpuOptions {
-        max_binding: Some(4 << 20),
+        max_binding: Some(8 << 20),
         max_chunk: Some(256 << 10),
         ..GpuOptions::default()
     });
@@ -261,7 +280,7 @@ fn paper_scale_rig_over_the_binding_limit_is_chunked_and_matches() {
     ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
 )]
 fn a_rig_the_device_cannot_hold_is_refused_clearly() {
-    // With 64 KiB bindings four jobs' output of the embedded head (7,262 vertices) cannot fit.
+    // With 64 KiB bindings eight jobs' output of the embedded head (7,262 vertices) cannot fit.
     let ctx = open_gpu(GpuOptions {
         max_binding: Some(64 << 10),
         ..GpuOptions::default()
@@ -524,10 +543,11 @@ fn read_back(
     ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
 )]
 fn outputs_left_on_the_device_are_the_blend_and_the_engine_stays_healthy() {
-    // Small bindings split 20 jobs into sub-batches that reuse the slot's output buffers: the
-    // resident outputs must hold every job, not only the last sub-batch's.
+    // Small bindings split 20 jobs into sub-batches (of eight: 2 MiB holds eight jobs' face
+    // normals, 14,512 triangles each) that reuse the slot's output buffers: the resident outputs
+    // must hold every job, not only the last sub-batch's.
     let ctx = open_gpu(GpuOptions {
-        max_binding: Some(1 << 20),
+        max_binding: Some(2 << 20),
         ..GpuOptions::default()
     });
     let engine = Engine::with_gpu(ctx, BackendChoice::Gpu);

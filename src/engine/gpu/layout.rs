@@ -14,8 +14,9 @@ use crate::rig::Rig;
 /// Vertices per tile = invocations per workgroup of the blend pass.
 pub const TILE: usize = 64;
 
-/// Jobs per invocation of the blend pass (one vec4 of accumulators per component).
-pub const JOBS_PER_GROUP: usize = 4;
+/// Jobs per invocation of the blend pass (two vec4s of accumulators per component), as the CPU
+/// engine's [`crate::engine::cpu::GROUP`]: each delta loaded serves this many jobs.
+pub const JOBS_PER_GROUP: usize = 8;
 
 /// Floats per delta block: x, y, z for 64 vertices.
 pub const BLOCK_FLOATS: usize = 3 * TILE;
@@ -60,7 +61,7 @@ pub struct GpuJob {
 pub struct ActiveParams {
     /// Jobs in the dispatch.
     pub jobs: u32,
-    /// Groups of four jobs.
+    /// Groups of [`JOBS_PER_GROUP`] jobs (one workgroup each).
     pub groups: u32,
     /// Slots of the rig.
     pub slots: u32,
@@ -86,8 +87,8 @@ pub struct BlendParams {
     pub jobs: u32,
     /// 1 to normalize results (normals).
     pub normalize: u32,
-    /// Workgroups along x.
-    pub tiles_x: u32,
+    /// Workgroups along y (tiles; x is the group of jobs).
+    pub tiles_y: u32,
 }
 
 /// Uniforms of `face_normals` and `vertex_normals`.
@@ -337,7 +338,7 @@ mod tests {
         assert_eq!(size_of::<ActiveParams>(), 16);
         assert_eq!(size_of::<BlendParams>(), 32);
         assert_eq!(std::mem::offset_of!(BlendParams, normalize), 24);
-        assert_eq!(std::mem::offset_of!(BlendParams, tiles_x), 28);
+        assert_eq!(std::mem::offset_of!(BlendParams, tiles_y), 28);
         assert_eq!(size_of::<NormalParams>(), 16);
         assert_eq!(std::mem::offset_of!(NormalParams, jobs), 12);
         assert_eq!(size_of::<SkinParams>(), 32);

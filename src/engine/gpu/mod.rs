@@ -7,11 +7,11 @@
 //! only its job list (16 bytes per unique job). Passes per batch, each a WGSL file in
 //! `shaders/` mirrored by a CPU function of the same name:
 //!
-//! 1. `build_active` — per group of four jobs, Lorach's list of active slots and weights, read
+//! 1. `build_active` — per group of eight jobs, Lorach's list of active slots and weights, read
 //!    from the resident clip tables (built on the GPU: the tables already live there, so
 //!    building it on the CPU would mean keeping a second copy of every clip host-side per batch
 //!    and uploading `slots × jobs` weights instead of one small record per job);
-//! 2. `blend` — per (tile of 64 vertices, group of 4 jobs), Eq. 1 over the active list;
+//! 2. `blend` — per (group of 8 jobs, tile of 64 vertices), Eq. 1 over the active list;
 //! 3. `face_normals` + `vertex_normals` — normals recomputed from blended (and skinned)
 //!    positions where the rig has no normal deltas (or `blend` again on normal deltas where it
 //!    has them, run before `skin`);
@@ -684,8 +684,8 @@ impl std::fmt::Debug for GpuRig {
 }
 
 impl GpuRig {
-    /// Refuses (`DoesNotFit`) a rig with more vertices than four jobs' output binding holds,
-    /// before anything is uploaded. It costs nothing; [`GpuRig::upload`] also checks the
+    /// Refuses (`DoesNotFit`) a rig with more vertices than one group's (eight jobs') output
+    /// binding holds, before anything is uploaded. It costs nothing; [`GpuRig::upload`] also checks the
     /// triangles of recomputed normals, once it has built their topology.
     pub fn check_fits(ctx: &GpuContext, rig: &Rig) -> Result<(), GpuError> {
         ctx.health()?;
@@ -693,8 +693,8 @@ impl GpuRig {
         let per_job = (vertices * 3 * 4) as u64;
         if per_job * JOBS_PER_GROUP as u64 > ctx.max_binding {
             return Err(GpuError::DoesNotFit(format!(
-                "{vertices} vertices: four jobs' output ({} bytes) exceed the {}-byte storage binding",
-                per_job * 4,
+                "{vertices} vertices: eight jobs' output ({} bytes) exceed the {}-byte storage binding",
+                per_job * JOBS_PER_GROUP as u64,
                 ctx.max_binding
             )));
         }
@@ -704,7 +704,7 @@ impl GpuRig {
             || (vertices * layout::INFLUENCE_WORDS * 4) as u64 > ctx.max_binding
         {
             return Err(GpuError::DoesNotFit(format!(
-                "{bones} bones: four jobs' bone matrices or the influences exceed the \
+                "{bones} bones: eight jobs' bone matrices or the influences exceed the \
                  {}-byte storage binding",
                 ctx.max_binding
             )));
@@ -1042,7 +1042,7 @@ impl Slot {
             .map_or(0, |_| 2 * padded(u64::from(n.queries.max(2)) * 8));
         let bytes = [
             n.jobs,
-            n.active * 4,
+            n.active * JOBS_PER_GROUP as u64,
             n.active,
             n.active,
             n.output,
@@ -1085,7 +1085,7 @@ impl Slot {
         });
         Ok(Slot {
             jobs: ctx.buffer("jobs", n.jobs, storage),
-            active_weights: ctx.buffer("active weights", n.active * 4, storage),
+            active_weights: ctx.buffer("active weights", n.active * JOBS_PER_GROUP as u64, storage),
             active_slots: ctx.buffer("active slots", n.active, storage),
             active_count: ctx.buffer("active count", n.active, storage),
             positions: ctx.buffer("positions", n.output, storage),
@@ -1220,7 +1220,7 @@ impl GpuContext {
             .as_ref()
             .map_or(0, |t| u64::from(t.n_triangles));
         let recompute = spec.normals && rig.topology.is_some();
-        // Jobs per sub-batch: what one binding holds, in whole groups of four.
+        // Jobs per sub-batch: what one binding holds, in whole groups.
         let mut sub = self.max_binding / per_job_out;
         if recompute && tris > 0 {
             sub = sub.min(self.max_binding / (tris * 12));
@@ -1270,12 +1270,14 @@ impl GpuContext {
         }
         // Buffers are sized for the largest sub-batch this batch has (not for `sub`, which for
         // a small rig may be thousands of jobs), and only for the outputs it asks for.
-        let widest = sub.min(n.max(1).next_multiple_of(JOBS_PER_GROUP)) as u64;
+        // Every pass writes only the jobs it was given, so outputs hold exactly those; the
+        // active lists are per group of eight.
+        let widest = sub.min(n.max(1)) as u64;
         let output = widest * per_job_out;
         let f16 = packed16;
         let needs = SlotNeeds {
             jobs: live_at + live_bytes,
-            active: widest / JOBS_PER_GROUP as u64 * u64::from(rig.slots.max(1)) * 4,
+            active: widest.div_ceil(JOBS_PER_GROUP as u64) * u64::from(rig.slots.max(1)) * 4,
             output,
             normals: if spec.normals { output } else { 4 },
             packed: if f16 { output / 2 + 4 } else { 4 },
@@ -1489,8 +1491,10 @@ impl GpuContext {
             chunks
                 .iter()
                 .map(|c| {
-                    let tiles_x = c.tiles.min(65_535);
-                    let tiles_z = c.tiles.div_ceil(tiles_x.max(1));
+                    // Group first, so that the workgroups running side by side share a tile's
+                    // deltas in the cache.
+                    let tiles_y = c.tiles.min(65_535);
+                    let tiles_z = c.tiles.div_ceil(tiles_y.max(1));
                     let params = self.uniform(&BlendParams {
                         vertices: rig.vertices,
                         tile_begin: c.tile_begin,
@@ -1499,7 +1503,7 @@ impl GpuContext {
                         words: rig.words,
                         jobs,
                         normalize,
-                        tiles_x,
+                        tiles_y,
                     });
                     let bg = bind(
                         &p.blend,
@@ -1514,7 +1518,7 @@ impl GpuContext {
                             entry(7, out),
                         ],
                     );
-                    (bg, [tiles_x, groups, tiles_z])
+                    (bg, [groups, tiles_y, tiles_z])
                 })
                 .collect()
         };
@@ -1647,7 +1651,7 @@ impl GpuContext {
         });
         pass.set_pipeline(&p.active);
         pass.set_bind_group(0, &active_bg, &[]);
-        pass.dispatch_workgroups(groups.div_ceil(64), 1, 1);
+        pass.dispatch_workgroups(groups, 1, 1);
         pass.set_pipeline(&p.blend);
         for (bg, [x, y, z]) in pos_groups.iter().chain(&nrm_groups) {
             pass.set_bind_group(0, bg, &[]);
