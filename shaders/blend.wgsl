@@ -13,7 +13,10 @@
 // the cache.
 //
 // Deltas are stored per (tile, slot) as a 64-lane structure-of-arrays block: x[64], y[64],
-// z[64], so the 64 invocations of a tile read consecutive floats (coalesced). Which slots have a
+// z[64], so the 64 invocations of a tile read consecutive floats (coalesced). With
+// `F16_DELTAS` (`--gpu-deltas f16`) a block is half the words: x and y of a lane as two
+// binary16 in one word, then the z of two neighbouring lanes in one word (the host's
+// `layout::DeltaFormat::F16`). Which slots have a
 // block in a tile is a bitmask per 32 slots with the running block count, so finding slot s's
 // block is one load and a popcount.
 //
@@ -42,8 +45,8 @@ struct Params {
 @group(0) @binding(0) var<uniform> params: Params;
 // Neutral values of the chunk's vertices, x y z per vertex.
 @group(0) @binding(1) var<storage, read> base: array<f32>;
-// Delta blocks of the chunk, 192 floats each.
-@group(0) @binding(2) var<storage, read> blocks: array<f32>;
+// Delta blocks of the chunk: 192 f32 words each, or 96 words of binary16 pairs.
+@group(0) @binding(2) var<storage, read> blocks: array<u32>;
 // Per (chunk tile, word): .x the slots of the word that have a block, .y the index of the first
 // of them in `blocks`.
 @group(0) @binding(3) var<storage, read> masks: array<vec2<u32>>;
@@ -53,6 +56,9 @@ struct Params {
 @group(0) @binding(6) var<storage, read> active_count: array<u32>;
 // jobs × vertices × 3 floats.
 @group(0) @binding(7) var<storage, read_write> out: array<f32>;
+
+// Set for rigs uploaded with binary16 deltas.
+override F16_DELTAS: bool = false;
 
 const TILE: u32 = 64u;
 const GROUP: u32 = 8u;
@@ -68,6 +74,22 @@ var<workgroup> sh_scan: array<u32, TILE>;
 var<workgroup> sh_part: array<u32, 8>;
 var<workgroup> sh_count: u32;
 var<workgroup> sh_total: u32;
+
+// Lane `lane`'s delta in block `b`.
+fn delta(b: u32, lane: u32) -> vec3<f32> {
+    if F16_DELTAS {
+        let o = b * 96u;
+        let xy = unpack2x16float(blocks[o + lane]);
+        let zz = unpack2x16float(blocks[o + 64u + lane / 2u]);
+        return vec3<f32>(xy, select(zz.x, zz.y, (lane & 1u) == 1u));
+    }
+    let o = b * 192u + lane;
+    return vec3<f32>(
+        bitcast<f32>(blocks[o]),
+        bitcast<f32>(blocks[o + 64u]),
+        bitcast<f32>(blocks[o + 128u]),
+    );
+}
 
 fn block_of(tile: u32, s: u32) -> u32 {
     let m = masks[tile * params.words + s / 32u];
@@ -167,27 +189,24 @@ fn blend(
         let kept = workgroupUniformLoad(&sh_total);
         if eight {
             for (var i = 0u; i < kept; i++) {
-                let o = sh_blocks[i] * 192u + lane;
-                let dx = blocks[o];
-                let dy = blocks[o + 64u];
-                let dz = blocks[o + 128u];
+                let d = delta(sh_blocks[i], lane);
                 let lo = sh_lo[i];
                 let hi = sh_hi[i];
-                x0 += lo * dx;
-                y0 += lo * dy;
-                z0 += lo * dz;
-                x1 += hi * dx;
-                y1 += hi * dy;
-                z1 += hi * dz;
+                x0 += lo * d.x;
+                y0 += lo * d.y;
+                z0 += lo * d.z;
+                x1 += hi * d.x;
+                y1 += hi * d.y;
+                z1 += hi * d.z;
             }
         } else {
             // A group of at most four jobs (a batch's last, or a batch of one): half the work.
             for (var i = 0u; i < kept; i++) {
-                let o = sh_blocks[i] * 192u + lane;
+                let d = delta(sh_blocks[i], lane);
                 let lo = sh_lo[i];
-                x0 += lo * blocks[o];
-                y0 += lo * blocks[o + 64u];
-                z0 += lo * blocks[o + 128u];
+                x0 += lo * d.x;
+                y0 += lo * d.y;
+                z0 += lo * d.z;
             }
         }
         workgroupBarrier();

@@ -10,7 +10,7 @@
 
 use std::sync::Arc;
 
-use crowdmorph::engine::gpu::GpuOptions;
+use crowdmorph::engine::gpu::{DeltaFormat, GpuOptions};
 use crowdmorph::engine::{BackendChoice, BackendKind, BlendJob, Engine, OutputSpec, Precision};
 use crowdmorph::import::{ImportOptions, load_path};
 use crowdmorph::rig::{MAX_BLEND_LAYERS, Pose, Rig};
@@ -71,10 +71,16 @@ fn max_diff(a: &[f32], b: &[f32]) -> f32 {
 
 /// Evaluates `jobs` on the GPU engine and on the CPU engine and compares every buffer.
 fn check_parity(gpu_engine: &Engine, rig: Rig, jobs: &[BlendJob]) {
+    check_parity_with(gpu_engine, rig.clone(), rig, jobs);
+}
+
+/// As [`check_parity`], with the CPU engine evaluating `cpu_rig` (the GPU's rig with its deltas
+/// as the device stores them).
+fn check_parity_with(gpu_engine: &Engine, rig: Rig, cpu_rig: Rig, jobs: &[BlendJob]) {
     let rig = Arc::new(rig);
     let cpu_engine = Engine::cpu();
     let g = gpu_engine.prepare(rig.clone()).expect("upload");
-    let c = cpu_engine.prepare(rig.clone()).expect("prepare");
+    let c = cpu_engine.prepare(Arc::new(cpu_rig)).expect("prepare");
     assert!(
         g.gpu().is_some() && g.memory().device_bytes > 0,
         "{}: rig is resident",
@@ -227,6 +233,85 @@ fn gpu_matches_cpu_on_every_real_rig() {
         let n = if rig.vertex_count() > 10_000 { 10 } else { 33 };
         let jobs = random_jobs(&rig, 100 + i, n);
         check_parity(&engine, rig, &jobs);
+    }
+}
+
+/// `rig` with every position and normal delta as `format` stores it on the device.
+fn with_deltas_as(rig: &Rig, format: DeltaFormat) -> Rig {
+    let mut primitives = (*rig.primitives).clone();
+    for t in primitives.iter_mut().flat_map(|p| p.targets.iter_mut()) {
+        let round =
+            |v: &mut glam::Vec3| *v = glam::Vec3::from_array(v.to_array().map(|x| format.round(x)));
+        t.positions.iter_mut().for_each(round);
+        t.normals.iter_mut().flatten().for_each(round);
+    }
+    Rig {
+        primitives: Arc::new(primitives),
+        ..rig.clone()
+    }
+}
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+fn f16_deltas_blend_as_the_cpu_engine_does_with_the_deltas_rounded() {
+    // `--gpu-deltas f16`: the device holds each delta as the nearest binary16, its delta blocks
+    // at half the bytes; the CPU engine on a rig whose deltas were rounded the same way is its oracle, and
+    // the CPU engine on the exact rig differs by the rounding (more than zero, far less than
+    // the rig).
+    let f16 = Engine::with_gpu(
+        open_gpu(GpuOptions {
+            deltas: DeltaFormat::F16,
+            ..GpuOptions::default()
+        }),
+        BackendChoice::Gpu,
+    );
+    let f32 = Engine::with_gpu(open_gpu(GpuOptions::default()), BackendChoice::Gpu);
+    let mut rigs = vec![crowdmorph::embedded::default_rig(), paper_scale_rig()];
+    rigs.extend(
+        rig_files()
+            .into_iter()
+            .take(1)
+            .map(|f| with_random_clip(load_path(&f, &ImportOptions::default()).expect("load"), 3)),
+    );
+    for (i, rig) in rigs.into_iter().enumerate() {
+        let half = f16.prepare(Arc::new(rig.clone())).expect("upload");
+        let full = f32.prepare(Arc::new(rig.clone())).expect("upload");
+        let (h, w) = (half.gpu().expect("resident"), full.gpu().expect("resident"));
+        assert_eq!(
+            (h.deltas(), w.deltas()),
+            (DeltaFormat::F16, DeltaFormat::F32)
+        );
+        assert!(
+            h.geometry_bytes() < w.geometry_bytes(),
+            "{}: {} bytes with f16 deltas, {} with f32",
+            rig.name,
+            h.geometry_bytes(),
+            w.geometry_bytes()
+        );
+        let jobs = random_jobs(&rig, 700 + i as u64, 12);
+        let spec = OutputSpec {
+            normals: false,
+            precision: Precision::F32,
+        };
+        let cpu = Engine::cpu();
+        let exact = cpu.prepare(Arc::new(rig.clone())).expect("prepare");
+        let got = f16.evaluate(&half, &jobs, spec).expect("gpu");
+        let want = cpu.evaluate(&exact, &jobs, spec).expect("cpu");
+        let d = max_diff(
+            &got.output.positions.to_f32(),
+            &want.output.positions.to_f32(),
+        );
+        let diag = rig.bbox().diagonal();
+        assert!(
+            d > 0.0 && d < 1e-3 * diag,
+            "{}: f16 deltas move positions by {d:e} (diagonal {diag})",
+            rig.name
+        );
+        let rounded = with_deltas_as(&rig, DeltaFormat::F16);
+        check_parity_with(&f16, rig, rounded, &jobs);
     }
 }
 

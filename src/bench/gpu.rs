@@ -78,6 +78,17 @@ pub struct DeviceLimits {
     pub timestamps: bool,
 }
 
+/// What one rig holds on the device.
+#[derive(Clone, Debug, Serialize)]
+pub struct Resident {
+    /// Rig name.
+    pub rig: String,
+    /// Bytes resident on the device (geometry and clip tables; 0 on the CPU engine).
+    pub device_bytes: u64,
+    /// How its deltas are stored there (`f32`, `f16`; `None` on the CPU engine).
+    pub deltas: Option<String>,
+}
+
 /// The whole table.
 #[derive(Clone, Debug, Serialize)]
 pub struct GpuBenchReport {
@@ -85,6 +96,8 @@ pub struct GpuBenchReport {
     pub backend: BackendInfo,
     /// The device's limits (GPU engine only).
     pub limits: Option<DeviceLimits>,
+    /// Each rig measured, as resident.
+    pub rigs: Vec<Resident>,
     /// One row per (rig, scene, LOD).
     pub scenes: Vec<SceneResult>,
 }
@@ -140,6 +153,7 @@ pub fn bench_gpu(engine: &Engine, rigs: &[Rig], opt: &GpuBenchOptions) -> Result
         })
         .collect();
     let bar = super::progress_bar((rigs.len() * plan.len()) as u64, "bench gpu");
+    let mut resident = Vec::new();
     for rig in &rigs {
         // A clip of its own with more frames than heads, so "N unique" is N unique jobs; on a
         // skinned rig its frames take the joints of the rig's clips' frames in turn.
@@ -156,6 +170,11 @@ pub fn bench_gpu(engine: &Engine, rigs: &[Rig], opt: &GpuBenchOptions) -> Result
         let prepared = engine
             .prepare(std::sync::Arc::new(rig.clone()))
             .with_context(|| format!("preparing {}", rig.name))?;
+        resident.push(Resident {
+            rig: rig.name.clone(),
+            device_bytes: prepared.memory().device_bytes as u64,
+            deltas: prepared.gpu().map(|g| g.deltas().to_string()),
+        });
         for (name, heads, unique, lod) in &plan {
             if *lod >= rig.lod.levels.len() as u32 {
                 continue;
@@ -188,6 +207,7 @@ pub fn bench_gpu(engine: &Engine, rigs: &[Rig], opt: &GpuBenchOptions) -> Result
     Ok(GpuBenchReport {
         backend: engine.info(),
         limits,
+        rigs: resident,
         scenes,
     })
 }
@@ -341,6 +361,14 @@ pub fn report_text(r: &GpuBenchReport) -> String {
             l.memory_budget >> 20,
             if l.timestamps { "yes" } else { "no" },
         );
+    }
+    for rig in &r.rigs {
+        if let Some(d) = &rig.deltas {
+            s += &format!(
+                "resident: {} {} bytes on the device, {d} deltas\n",
+                rig.rig, rig.device_bytes
+            );
+        }
     }
     let ms = |v: Option<f64>| v.map_or("-".into(), |v| format!("{v:.3}"));
     let w = r

@@ -73,6 +73,8 @@ pub struct HttpBenchOptions {
     pub python_compute: String,
     /// The server's `--max-gpu-memory` (`None`: the default), also the in-process engine's.
     pub gpu_memory: Option<u64>,
+    /// The server's `--gpu-deltas`, also the in-process engine's.
+    pub gpu_deltas: crate::engine::gpu::DeltaFormat,
     /// Clips to upload to the rig first (`.csv` or `.json` files, named by file stem); the
     /// link benchmark plays these instead of the rig's own.
     pub clips: Option<std::path::PathBuf>,
@@ -92,6 +94,7 @@ impl Default for HttpBenchOptions {
             python_peer: None,
             python_compute: "thread".to_string(),
             gpu_memory: None,
+            gpu_deltas: Default::default(),
             clips: None,
             links: Vec::new(),
         }
@@ -568,6 +571,7 @@ fn bench_config(opt: &HttpBenchOptions) -> ServerConfig {
         request_timeout: Duration::from_secs(60),
         backend: opt.backend,
         gpu_memory: opt.gpu_memory,
+        gpu_deltas: opt.gpu_deltas,
         // The background LOD job would score the embedded head (seconds of CPU) during the
         // measurement, on the same cores.
         no_auto_lod: true,
@@ -657,6 +661,7 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
         opt.backend,
         crate::engine::gpu::GpuOptions {
             memory: opt.gpu_memory,
+            deltas: opt.gpu_deltas,
             ..Default::default()
         },
     )?;

@@ -52,6 +52,8 @@ pub struct SessionBenchOptions {
     pub backend: BackendChoice,
     /// The server's `--max-gpu-memory` (`None`: the default).
     pub gpu_memory: Option<u64>,
+    /// The server's `--gpu-deltas`.
+    pub gpu_deltas: crate::engine::gpu::DeltaFormat,
     /// Heads walk a motion graph over every clip (random walks, one seed per animation)
     /// instead of playing clips.
     pub graph: bool,
@@ -208,6 +210,7 @@ fn bench_config(opt: &SessionBenchOptions) -> ServerConfig {
     ServerConfig {
         backend: opt.backend,
         gpu_memory: opt.gpu_memory,
+        gpu_deltas: opt.gpu_deltas,
         no_auto_lod: true,
         render_backend: crate::server::RenderBackend::Off,
         sessions: crate::server::sessions::SessionLimits {

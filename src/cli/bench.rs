@@ -454,6 +454,7 @@ pub fn run(which: Command) -> Result<()> {
                 seconds,
                 backend,
                 gpu_memory: gpu.max_gpu_memory,
+                gpu_deltas: gpu.gpu_deltas,
                 graph,
                 clips,
                 links: link,
@@ -497,6 +498,7 @@ pub fn run(which: Command) -> Result<()> {
                 python_peer,
                 python_compute: python_peer_compute,
                 gpu_memory: gpu.max_gpu_memory,
+                gpu_deltas: gpu.gpu_deltas,
                 clips,
                 links: link,
             };

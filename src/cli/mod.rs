@@ -116,7 +116,8 @@ pub fn load_rig(path: Option<&Path>) -> Result<Rig> {
     }
 }
 
-/// `--max-gpu-memory` of the commands that open GPU devices besides `serve` (same meaning).
+/// `--max-gpu-memory` and `--gpu-deltas` of the commands that open GPU devices besides `serve`
+/// (same meaning).
 #[derive(clap::Args, Clone, Copy, Debug)]
 pub struct GpuMemoryArgs {
     /// Most GPU memory resident rigs, batch buffers and render targets may hold on each device,
@@ -124,6 +125,10 @@ pub struct GpuMemoryArgs {
     /// memory, else 2 GiB or the device's largest buffer if larger).
     #[arg(long, env = "CROWDMORPH_MAX_GPU_MEMORY")]
     pub max_gpu_memory: Option<u64>,
+    /// How rigs keep their blendshape deltas on the GPU: f32, or f16 (half the memory and
+    /// traffic, each delta rounded to binary16), as `serve --gpu-deltas`.
+    #[arg(long, env = "CROWDMORPH_GPU_DELTAS", default_value = "f32")]
+    pub gpu_deltas: crowdmorph::engine::gpu::DeltaFormat,
 }
 
 impl GpuMemoryArgs {
@@ -131,6 +136,7 @@ impl GpuMemoryArgs {
     pub fn options(self) -> crowdmorph::engine::gpu::GpuOptions {
         crowdmorph::engine::gpu::GpuOptions {
             memory: self.max_gpu_memory,
+            deltas: self.gpu_deltas,
             ..Default::default()
         }
     }
@@ -284,6 +290,42 @@ mod tests {
             args.extend_from_slice(&["--max-gpu-memory", "67108864"]);
             assert_eq!(memory(&args), Some(64 << 20), "{cmd:?}");
         }
+    }
+
+    #[test]
+    fn serve_render_and_every_bench_command_with_a_gpu_take_gpu_deltas() {
+        use crowdmorph::engine::gpu::DeltaFormat;
+        let deltas = |args: &[&str]| match Cli::try_parse_from(args).expect("parses").command {
+            Command::Serve(a) => a.gpu_deltas(),
+            Command::Render(a) => a.gpu.gpu_deltas,
+            Command::Bench {
+                which:
+                    BenchCommand::Gpu { gpu, .. }
+                    | BenchCommand::Render { gpu, .. }
+                    | BenchCommand::Sessions { gpu, .. }
+                    | BenchCommand::Http { gpu, .. },
+            } => gpu.gpu_deltas,
+            _ => panic!("parsed as another command"),
+        };
+        for cmd in [
+            &["serve"][..],
+            &["render"],
+            &["bench", "gpu"],
+            &["bench", "render"],
+            &["bench", "sessions"],
+            &["bench", "http"],
+        ] {
+            let mut args = vec!["crowdmorph"];
+            args.extend_from_slice(cmd);
+            assert_eq!(deltas(&args), DeltaFormat::F32, "{cmd:?}: the default");
+            args.extend_from_slice(&["--gpu-deltas", "f16"]);
+            assert_eq!(deltas(&args), DeltaFormat::F16, "{cmd:?}");
+        }
+        let err = Cli::try_parse_from(["crowdmorph", "serve", "--gpu-deltas", "f8"])
+            .err()
+            .expect("f8 is refused")
+            .to_string();
+        assert!(err.contains("f32 or f16"), "{err}");
     }
 
     #[test]

@@ -19,6 +19,14 @@ pub struct Args {
     config: ServerConfig,
 }
 
+impl Args {
+    /// `--gpu-deltas`, as the server will use it.
+    #[cfg(test)]
+    pub fn gpu_deltas(&self) -> crowdmorph::engine::gpu::DeltaFormat {
+        self.config.gpu_deltas
+    }
+}
+
 /// Runs the server until SIGINT or SIGTERM.
 pub fn run(a: Args) -> Result<()> {
     let open_files = raise_open_file_limit();

@@ -55,6 +55,15 @@ pub struct ServerConfig {
     /// discrete GPU's memory, else 2 GiB or the device's largest buffer if larger).
     #[arg(long = "max-gpu-memory", env = "CROWDMORPH_MAX_GPU_MEMORY")]
     pub gpu_memory: Option<u64>,
+    /// How rigs keep their blendshape deltas on the GPU: f32 (as imported), or f16 (half the
+    /// memory and the traffic of the blend; each delta rounded to binary16, about 1/2048 of
+    /// itself; a rig with a delta past 65,504 keeps f32). No effect on the CPU engine.
+    #[arg(
+        long = "gpu-deltas",
+        env = "CROWDMORPH_GPU_DELTAS",
+        default_value = "f32"
+    )]
+    pub gpu_deltas: crate::engine::gpu::DeltaFormat,
     /// Crowd requests that may wait for the batcher at once (more get 503).
     #[arg(long, env = "CROWDMORPH_QUEUE_REQUESTS", default_value_t = 1024)]
     pub queue_requests: usize,

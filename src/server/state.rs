@@ -158,6 +158,7 @@ impl AppState {
         let config_concurrency = config.max_concurrency;
         let gpu_options = crate::engine::gpu::GpuOptions {
             memory: config.gpu_memory,
+            deltas: config.gpu_deltas,
             ..Default::default()
         };
         let engine = Arc::new(Engine::with_options(config.backend, gpu_options)?);

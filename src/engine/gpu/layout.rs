@@ -198,6 +198,111 @@ impl Q16PackParams {
     }
 }
 
+/// How a rig's delta blocks are stored on the device (`--gpu-deltas`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum DeltaFormat {
+    /// IEEE binary32, as imported: [`BLOCK_FLOATS`] words a block.
+    #[default]
+    F32,
+    /// IEEE binary16, half the bytes and the memory traffic: x and y of a lane in one word
+    /// (64 words), then the z of two neighbouring lanes in one word (32 words). Subnormal
+    /// halves are flushed to zero on the host, so a device that flushes them reads the same.
+    F16,
+}
+
+impl DeltaFormat {
+    /// 32-bit words per block.
+    pub fn block_words(self) -> usize {
+        match self {
+            DeltaFormat::F32 => BLOCK_FLOATS,
+            DeltaFormat::F16 => BLOCK_FLOATS / 2,
+        }
+    }
+
+    /// `x` as the device reads it back: itself, or rounded to the nearest binary16 (ties to
+    /// even, subnormals to a signed zero). The CPU engine on a rig rounded this way is the
+    /// GPU's oracle for f16 deltas.
+    pub fn round(self, x: f32) -> f32 {
+        match self {
+            DeltaFormat::F32 => x,
+            DeltaFormat::F16 => half::f16::from_bits(f16_bits(x)).to_f32(),
+        }
+    }
+
+    /// Whether every delta of `rig` survives this format (binary16 ends at 65,504).
+    pub fn holds(self, rig: &Rig) -> bool {
+        self == DeltaFormat::F32
+            || rig.primitives.iter().all(|p| {
+                p.targets.iter().all(|t| {
+                    t.positions
+                        .iter()
+                        .chain(t.normals.iter().flatten())
+                        .all(|d| d.abs().max_element() <= f32::from(half::f16::MAX))
+                })
+            })
+    }
+}
+
+impl std::str::FromStr for DeltaFormat {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "f32" => Ok(DeltaFormat::F32),
+            "f16" => Ok(DeltaFormat::F16),
+            _ => Err(format!("unknown delta format {s:?} (f32 or f16)")),
+        }
+    }
+}
+
+impl std::fmt::Display for DeltaFormat {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            DeltaFormat::F32 => "f32",
+            DeltaFormat::F16 => "f16",
+        })
+    }
+}
+
+/// The binary16 bits of `x`, nearest, a subnormal result flushed to a zero of its sign.
+fn f16_bits(x: f32) -> u16 {
+    let h = half::f16::from_f32(x).to_bits();
+    // Exponent field zero: zero or subnormal.
+    if h & 0x7c00 == 0 { h & 0x8000 } else { h }
+}
+
+/// Appends one block (x[64], y[64], z[64]) in `format`'s words, as `blend` reads them.
+fn push_block(block: &[f32; BLOCK_FLOATS], format: DeltaFormat, out: &mut Vec<u32>) {
+    match format {
+        DeltaFormat::F32 => out.extend(block.iter().map(|x| x.to_bits())),
+        DeltaFormat::F16 => {
+            let h = |i: usize| u32::from(f16_bits(block[i]));
+            out.extend((0..TILE).map(|l| h(l) | h(TILE + l) << 16));
+            out.extend((0..TILE / 2).map(|k| h(2 * TILE + 2 * k) | h(2 * TILE + 2 * k + 1) << 16));
+        }
+    }
+}
+
+/// Lane `lane`'s delta in block `b` of `words` laid out in `format`: what `blend` reads.
+pub fn read_block(words: &[u32], format: DeltaFormat, b: usize, lane: usize) -> Vec3 {
+    let o = b * format.block_words();
+    match format {
+        DeltaFormat::F32 => Vec3::new(
+            f32::from_bits(words[o + lane]),
+            f32::from_bits(words[o + TILE + lane]),
+            f32::from_bits(words[o + 2 * TILE + lane]),
+        ),
+        DeltaFormat::F16 => {
+            let half = |w: u32, hi: bool| {
+                half::f16::from_bits(if hi { (w >> 16) as u16 } else { w as u16 }).to_f32()
+            };
+            let xy = words[o + lane];
+            let z = words[o + TILE + lane / 2];
+            Vec3::new(half(xy, false), half(xy, true), half(z, lane % 2 == 1))
+        }
+    }
+}
+
 /// One chunk of tiles with everything its blend dispatch reads.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Chunk {
@@ -207,8 +312,8 @@ pub struct Chunk {
     pub tiles: u32,
     /// Neutral values of the chunk's vertices, x y z per vertex.
     pub base: Vec<f32>,
-    /// Delta blocks, [`BLOCK_FLOATS`] each.
-    pub blocks: Vec<f32>,
+    /// Delta blocks, [`DeltaFormat::block_words`] words each.
+    pub blocks: Vec<u32>,
     /// Per (tile, word): slot bits and index of the word's first block.
     pub masks: Vec<[u32; 2]>,
 }
@@ -229,9 +334,14 @@ pub enum Attribute {
     Normals,
 }
 
-/// Builds the chunked tile layout of one attribute. Each chunk's buffers stay at or below
-/// `max_binding` bytes (a chunk holds at least one tile).
-pub fn build_chunks(rig: &Rig, attribute: Attribute, max_binding: u64) -> Vec<Chunk> {
+/// Builds the chunked tile layout of one attribute with deltas in `format`. Each chunk's
+/// buffers stay at or below `max_binding` bytes (a chunk holds at least one tile).
+pub fn build_chunks(
+    rig: &Rig,
+    attribute: Attribute,
+    max_binding: u64,
+    format: DeltaFormat,
+) -> Vec<Chunk> {
     let vertices = rig.vertex_count();
     let tiles = vertices.div_ceil(TILE);
     let slots = rig.targets.len();
@@ -272,7 +382,7 @@ pub fn build_chunks(rig: &Rig, attribute: Attribute, max_binding: u64) -> Vec<Ch
     for tile in 0..tiles as u32 {
         // Gather this tile's blocks first, then decide whether they fit in the current chunk.
         let mut masks = vec![[0u32; 2]; words];
-        let mut blocks: Vec<f32> = Vec::new();
+        let mut blocks: Vec<u32> = Vec::new();
         let mut slots_here: Vec<u32> = Vec::new();
         while e < entries.len() && entries[e].0 == tile {
             let slot = entries[e].1;
@@ -286,7 +396,7 @@ pub fn build_chunks(rig: &Rig, attribute: Attribute, max_binding: u64) -> Vec<Ch
                 e += 1;
             }
             slots_here.push(slot);
-            blocks.extend_from_slice(&block);
+            push_block(&block, format, &mut blocks);
         }
         let first_v = tile as usize * TILE;
         let last_v = (first_v + TILE).min(vertices);
@@ -297,7 +407,7 @@ pub fn build_chunks(rig: &Rig, attribute: Attribute, max_binding: u64) -> Vec<Ch
         if chunk.tiles == 0 {
             chunk.tile_begin = tile;
         }
-        let first_block = (chunk.blocks.len() / BLOCK_FLOATS) as u32;
+        let first_block = (chunk.blocks.len() / format.block_words()) as u32;
         // Running count: blocks of this tile in earlier words.
         let mut before = 0u32;
         for (w, m) in masks.iter_mut().enumerate() {
@@ -354,12 +464,47 @@ mod tests {
     }
 
     #[test]
-    fn masks_find_every_block_and_chunks_respect_the_limit() {
+    fn f16_deltas_round_to_nearest_and_flush_subnormals() {
+        let f = DeltaFormat::F16;
+        assert_eq!(f.round(1.0), 1.0);
+        assert_eq!(f.round(1.0 + 1.0 / 4096.0), 1.0);
+        assert_eq!(f.round(1.0 + 2.0 / 4096.0), 1.0);
+        assert_eq!(f.round(1.0 + 3.0 / 4096.0), 1.0 + 1.0 / 1024.0);
+        assert_eq!(f.round(-0.1), -0.099_975_586);
+        // Below 2^-14 binary16 is subnormal: flushed, keeping the sign.
+        assert_eq!(f.round(3e-5).to_bits(), 0.0f32.to_bits());
+        assert_eq!(f.round(-3e-5).to_bits(), (-0.0f32).to_bits());
+        assert_eq!(f.round(65_504.0), 65_504.0);
+        assert_eq!(DeltaFormat::F32.round(3e-5), 3e-5);
+    }
+
+    #[test]
+    fn a_rig_with_a_delta_past_binary16_is_not_held_in_f16() {
         let rig = crate::embedded::default_rig();
-        let whole = build_chunks(&rig, Attribute::Positions, u64::MAX);
+        assert!(DeltaFormat::F16.holds(&rig));
+        let mut primitives = (*rig.primitives).clone();
+        primitives[0].targets[0].positions[0].y = 70_000.0;
+        let far = Rig {
+            primitives: std::sync::Arc::new(primitives),
+            ..rig
+        };
+        assert!(!DeltaFormat::F16.holds(&far));
+        assert!(DeltaFormat::F32.holds(&far));
+    }
+
+    #[test]
+    fn masks_find_every_block_and_chunks_respect_the_limit() {
+        for format in [DeltaFormat::F32, DeltaFormat::F16] {
+            masks_find_every_block(format);
+        }
+    }
+
+    fn masks_find_every_block(format: DeltaFormat) {
+        let rig = crate::embedded::default_rig();
+        let whole = build_chunks(&rig, Attribute::Positions, u64::MAX, format);
         assert_eq!(whole.len(), 1);
         let limit = whole[0].bytes() / 5;
-        let chunks = build_chunks(&rig, Attribute::Positions, limit);
+        let chunks = build_chunks(&rig, Attribute::Positions, limit, format);
         assert!(chunks.len() >= 5, "{} chunks", chunks.len());
         assert!(chunks.iter().all(|c| c.bytes() <= limit));
         assert_eq!(
@@ -385,11 +530,9 @@ mod tests {
                     assert_ne!(m[0] & bit, 0, "slot {s} missing from tile {tile}");
                     let b = (m[1] + (m[0] & (bit - 1)).count_ones()) as usize;
                     let lane = g % TILE;
-                    assert_eq!(c.blocks[b * BLOCK_FLOATS + lane], t.positions[k].x);
-                    assert_eq!(
-                        c.blocks[b * BLOCK_FLOATS + 2 * TILE + lane],
-                        t.positions[k].z
-                    );
+                    let want = t.positions[k].to_array().map(|x| format.round(x));
+                    let got = read_block(&c.blocks, format, b, lane).to_array();
+                    assert_eq!(got.map(f32::to_bits), want.map(f32::to_bits));
                 }
             }
         }

@@ -37,6 +37,7 @@ use std::sync::{Arc, Mutex, Weak};
 
 pub use self::map::MapResults;
 
+pub use self::layout::DeltaFormat;
 use self::layout::{
     ActiveParams, Attribute, BlendParams, GpuJob, GpuTerm, JOBS_PER_GROUP, NO_LIVE, NormalParams,
     PackParams, Q16PackParams, SkinParams, build_chunks, pack_influences,
@@ -132,6 +133,8 @@ pub struct GpuOptions {
     /// Bytes of buffers and textures whose size an input decides that the device may hold at
     /// once (`--max-gpu-memory`; default [`default_gpu_memory`]).
     pub memory: Option<u64>,
+    /// How rigs uploaded from now on store their deltas (`--gpu-deltas`).
+    pub deltas: DeltaFormat,
 }
 
 /// The flag that sets the GPU memory cap, for error messages.
@@ -180,6 +183,8 @@ impl Health {
 struct Pipelines {
     active: wgpu::ComputePipeline,
     blend: wgpu::ComputePipeline,
+    /// `blend` reading binary16 deltas (its `F16_DELTAS` override set).
+    blend_f16: wgpu::ComputePipeline,
     face: wgpu::ComputePipeline,
     vertex: wgpu::ComputePipeline,
     pack: wgpu::ComputePipeline,
@@ -198,6 +203,7 @@ pub struct GpuContext {
     max_binding: u64,
     max_chunk: u64,
     max_buffer: u64,
+    deltas: DeltaFormat,
     health: Arc<Health>,
     pool: Mutex<Vec<Slot>>,
     /// The device memory budget every input-sized buffer (rigs, batch slots, outputs kept for
@@ -251,12 +257,25 @@ fn pipeline(
     module: &wgpu::ShaderModule,
     entry: &str,
 ) -> wgpu::ComputePipeline {
+    pipeline_with(device, module, entry, &[])
+}
+
+/// A pipeline with its pipeline-overridable constants set.
+fn pipeline_with(
+    device: &wgpu::Device,
+    module: &wgpu::ShaderModule,
+    entry: &str,
+    constants: &[(&str, f64)],
+) -> wgpu::ComputePipeline {
     device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
         label: Some(entry),
         layout: None,
         module,
         entry_point: Some(entry),
-        compilation_options: wgpu::PipelineCompilationOptions::default(),
+        compilation_options: wgpu::PipelineCompilationOptions {
+            constants,
+            ..Default::default()
+        },
         cache: None,
     })
 }
@@ -380,6 +399,7 @@ impl GpuContext {
         let pipelines = Pipelines {
             active: pipeline(&device, &active, "build_active"),
             blend: pipeline(&device, &blend, "blend"),
+            blend_f16: pipeline_with(&device, &blend, "blend", &[("F16_DELTAS", 1.0)]),
             face: pipeline(&device, &face, "face_normals"),
             vertex: pipeline(&device, &vertex, "vertex_normals"),
             pack: pipeline(&device, &pack, "pack_f16"),
@@ -406,6 +426,7 @@ impl GpuContext {
                 .max_chunk
                 .map_or(max_binding, |c| c.min(max_binding)),
             max_buffer: limits.max_buffer_size,
+            deltas: options.deltas,
             health,
             pool: Mutex::new(Vec::new()),
             memory: MemoryPool::new(
@@ -592,6 +613,8 @@ fn padded(size: u64) -> u64 {
 /// A rig resident on the GPU.
 pub struct GpuRig {
     vertices: u32,
+    /// How its delta blocks are stored (both attributes alike).
+    deltas: DeltaFormat,
     slots: u32,
     words: u32,
     positions: Vec<GpuChunk>,
@@ -750,9 +773,18 @@ impl GpuRig {
         }
         // Laid out on the host first, so that everything the device will hold is charged to
         // its memory budget before any buffer is created.
-        let position_chunks = build_chunks(rig, Attribute::Positions, ctx.max_chunk);
+        let deltas = if ctx.deltas.holds(rig) {
+            ctx.deltas
+        } else {
+            tracing::warn!(
+                rig = %rig.name,
+                "a delta exceeds binary16's range (65,504): this rig keeps f32 deltas on the GPU"
+            );
+            DeltaFormat::F32
+        };
+        let position_chunks = build_chunks(rig, Attribute::Positions, ctx.max_chunk, deltas);
         let normal_chunks = if topology.vertices.len() < vertices {
-            build_chunks(rig, Attribute::Normals, ctx.max_chunk)
+            build_chunks(rig, Attribute::Normals, ctx.max_chunk, deltas)
         } else {
             Vec::new()
         };
@@ -840,6 +872,7 @@ impl GpuRig {
         let skin_bytes = skin.as_ref().map_or(0, |s| s.influences.size());
         let gpu = GpuRig {
             vertices: vertices as u32,
+            deltas,
             slots: rig.targets.len() as u32,
             words: rig.targets.len().div_ceil(32).max(1) as u32,
             geometry_bytes: chunk_bytes(&positions)
@@ -872,6 +905,7 @@ impl GpuRig {
         ctx.health()?;
         Ok(GpuRig {
             vertices: self.vertices,
+            deltas: self.deltas,
             slots: self.slots,
             words: self.words,
             positions: self.positions.iter().map(GpuChunk::share).collect(),
@@ -904,6 +938,11 @@ impl GpuRig {
     /// Bytes of the geometry alone (what a mesh level adds: it shares the clip tables).
     pub fn geometry_bytes(&self) -> u64 {
         self.geometry_bytes
+    }
+
+    /// How its deltas are stored on the device.
+    pub fn deltas(&self) -> DeltaFormat {
+        self.deltas
     }
 
     /// The clip tables this rig reads.
@@ -1484,6 +1523,10 @@ impl GpuContext {
                 },
             ],
         });
+        let blend = match rig.deltas {
+            DeltaFormat::F32 => &p.blend,
+            DeltaFormat::F16 => &p.blend_f16,
+        };
         let blend_groups = |chunks: &[GpuChunk],
                             out: &wgpu::Buffer,
                             normalize: u32|
@@ -1506,7 +1549,7 @@ impl GpuContext {
                         tiles_y,
                     });
                     let bg = bind(
-                        &p.blend,
+                        blend,
                         &[
                             entry(0, &params),
                             entry(1, &c.base),
@@ -1652,7 +1695,7 @@ impl GpuContext {
         pass.set_pipeline(&p.active);
         pass.set_bind_group(0, &active_bg, &[]);
         pass.dispatch_workgroups(groups, 1, 1);
-        pass.set_pipeline(&p.blend);
+        pass.set_pipeline(blend);
         for (bg, [x, y, z]) in pos_groups.iter().chain(&nrm_groups) {
             pass.set_bind_group(0, bg, &[]);
             pass.dispatch_workgroups(*x, *y, *z);
