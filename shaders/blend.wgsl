@@ -20,6 +20,9 @@
 // block in a tile is a bitmask per 32 slots with the running block count, so finding slot s's
 // block is one load and a popcount.
 //
+// Each term is one fused multiply-add, as the CPU engine's `mul_add`, in the same slot order,
+// so both round alike.
+//
 // The same pass blends normals (base normals + normal deltas, then normalized) when
 // `params.normalize` is 1.
 
@@ -192,21 +195,21 @@ fn blend(
                 let d = delta(sh_blocks[i], lane);
                 let lo = sh_lo[i];
                 let hi = sh_hi[i];
-                x0 += lo * d.x;
-                y0 += lo * d.y;
-                z0 += lo * d.z;
-                x1 += hi * d.x;
-                y1 += hi * d.y;
-                z1 += hi * d.z;
+                x0 = fma(lo, vec4<f32>(d.x), x0);
+                y0 = fma(lo, vec4<f32>(d.y), y0);
+                z0 = fma(lo, vec4<f32>(d.z), z0);
+                x1 = fma(hi, vec4<f32>(d.x), x1);
+                y1 = fma(hi, vec4<f32>(d.y), y1);
+                z1 = fma(hi, vec4<f32>(d.z), z1);
             }
         } else {
             // A group of at most four jobs (a batch's last, or a batch of one): half the work.
             for (var i = 0u; i < kept; i++) {
                 let d = delta(sh_blocks[i], lane);
                 let lo = sh_lo[i];
-                x0 += lo * d.x;
-                y0 += lo * d.y;
-                z0 += lo * d.z;
+                x0 = fma(lo, vec4<f32>(d.x), x0);
+                y0 = fma(lo, vec4<f32>(d.y), y0);
+                z0 = fma(lo, vec4<f32>(d.z), z0);
             }
         }
         workgroupBarrier();

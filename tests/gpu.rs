@@ -304,13 +304,21 @@ fn f16_deltas_blend_as_the_cpu_engine_does_with_the_deltas_rounded() {
             &got.output.positions.to_f32(),
             &want.output.positions.to_f32(),
         );
+        let rounded = with_deltas_as(&rig, DeltaFormat::F16);
+        let oracle = cpu.prepare(Arc::new(rounded.clone())).expect("prepare");
+        let near = cpu.evaluate(&oracle, &jobs, spec).expect("cpu");
+        let e = max_diff(
+            &got.output.positions.to_f32(),
+            &near.output.positions.to_f32(),
+        );
         let diag = rig.bbox().diagonal();
+        // The rounding, not float noise, is what separates the GPU from the exact blend.
         assert!(
-            d > 0.0 && d < 1e-3 * diag,
-            "{}: f16 deltas move positions by {d:e} (diagonal {diag})",
+            d > 10.0 * e && d < 1e-3 * diag,
+            "{}: f16 deltas move positions by {d:e} from the exact blend, {e:e} from the \
+             rounded one (diagonal {diag})",
             rig.name
         );
-        let rounded = with_deltas_as(&rig, DeltaFormat::F16);
         check_parity_with(&f16, rig, rounded, &jobs);
     }
 }
@@ -326,11 +334,15 @@ fn long_active_lists_compacted_per_tile_match() {
     // blend's per-tile compaction and the active-list scan are exercised across batches.
     let engine = Engine::with_gpu(open_gpu(GpuOptions::default()), BackendChoice::Gpu);
     let rig = crowdmorph::synthetic::banded_rig("banded", 4096, 64, 600);
-    let mut jobs = random_jobs(&rig, 600, 19);
-    // Live weights (two thirds of them non-zero at any LOD) over every slot of LOD 0.
+    let mut jobs = random_jobs(&rig, 600, 20);
+    // Live weights over every slot of LOD 0, two thirds of them non-zero: lists of 400 entries,
+    // in the first group and in the last, which has three jobs (the half-work loop).
     let w: Vec<f32> = (0..600).map(|t| (t % 3) as f32 * 0.25).collect();
+    assert_eq!(rig.lod.levels[0].shapes, 600);
+    assert!(w.iter().filter(|&&x| x != 0.0).count() > 256);
     jobs.insert(3, BlendJob::posed(Pose::live(&w), 0));
-    assert!(rig.lod.levels[0].shapes > 300);
+    jobs.push(BlendJob::posed(Pose::live(&w), 0));
+    assert_eq!(jobs.len() % 8, 3);
     check_parity(&engine, rig, &jobs);
 }
 
@@ -340,10 +352,11 @@ fn long_active_lists_compacted_per_tile_match() {
     ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
 )]
 fn paper_scale_rig_over_the_binding_limit_is_chunked_and_matches() {
-    // Chunks of at most 256 KiB split the rig's delta blocks several ways, and 8 MiB bindings
-    // split a batch's output (525 KB a job) into sub-batches of eight jobs.
+    // Chunks of at most 256 KiB split the rig's delta blocks several ways, and 4 MiB bindings
+    // split a batch's output (525 KB a job) into sub-batches of seven jobs, which start in the
+    // middle of the blend's groups of eight.
     let ctx = open_gpu(GpuOptions {
-        max_binding: Some(8 << 20),
+        max_binding: Some(4 << 20),
         max_chunk: Some(256 << 10),
         ..GpuOptions::default()
     });
@@ -365,7 +378,8 @@ fn paper_scale_rig_over_the_binding_limit_is_chunked_and_matches() {
     ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
 )]
 fn a_rig_the_device_cannot_hold_is_refused_clearly() {
-    // With 64 KiB bindings eight jobs' output of the embedded head (7,262 vertices) cannot fit.
+    // With 64 KiB bindings one job's output of the embedded head (7,262 vertices, 87 KB) cannot
+    // fit.
     let ctx = open_gpu(GpuOptions {
         max_binding: Some(64 << 10),
         ..GpuOptions::default()

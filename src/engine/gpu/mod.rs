@@ -707,27 +707,27 @@ impl std::fmt::Debug for GpuRig {
 }
 
 impl GpuRig {
-    /// Refuses (`DoesNotFit`) a rig with more vertices than one group's (eight jobs') output
-    /// binding holds, before anything is uploaded. It costs nothing; [`GpuRig::upload`] also checks the
+    /// Refuses (`DoesNotFit`) a rig with more vertices than one job's output binding holds,
+    /// before anything is uploaded. It costs nothing; [`GpuRig::upload`] also checks the
     /// triangles of recomputed normals, once it has built their topology.
     pub fn check_fits(ctx: &GpuContext, rig: &Rig) -> Result<(), GpuError> {
         ctx.health()?;
         let vertices = rig.vertex_count();
         let per_job = (vertices * 3 * 4) as u64;
-        if per_job * JOBS_PER_GROUP as u64 > ctx.max_binding {
+        if per_job > ctx.max_binding {
             return Err(GpuError::DoesNotFit(format!(
-                "{vertices} vertices: eight jobs' output ({} bytes) exceed the {}-byte storage binding",
-                per_job * JOBS_PER_GROUP as u64,
+                "{vertices} vertices: one job's output ({per_job} bytes) exceeds the {}-byte \
+                 storage binding",
                 ctx.max_binding
             )));
         }
         let bones = rig.skeleton.as_ref().map_or(0, |s| s.bones.len()) as u64;
         let bone_bytes = bones * size_of::<BoneMatrix>() as u64;
-        if bone_bytes * JOBS_PER_GROUP as u64 > ctx.max_binding
+        if bone_bytes > ctx.max_binding
             || (vertices * layout::INFLUENCE_WORDS * 4) as u64 > ctx.max_binding
         {
             return Err(GpuError::DoesNotFit(format!(
-                "{bones} bones: eight jobs' bone matrices or the influences exceed the \
+                "{bones} bones: one job's bone matrices or the influences exceed the \
                  {}-byte storage binding",
                 ctx.max_binding
             )));
@@ -739,7 +739,7 @@ impl GpuRig {
         Self::check_fits(ctx, rig)?;
         let vertices = rig.vertex_count();
         let tri_bytes = topology.triangles.len() as u64 * 12;
-        if tri_bytes * JOBS_PER_GROUP as u64 > ctx.max_binding
+        if tri_bytes > ctx.max_binding
             || topology.triangles.len() > 65_535 * 64
             || topology.vertices.len() > 65_535 * 64
             || vertices > 65_535 * 64 * 65_535
@@ -1259,16 +1259,23 @@ impl GpuContext {
             .as_ref()
             .map_or(0, |t| u64::from(t.n_triangles));
         let recompute = spec.normals && rig.topology.is_some();
-        // Jobs per sub-batch: what one binding holds, in whole groups.
+        // Jobs per sub-batch: what one binding holds (outputs, face normals, bone matrices and
+        // the active lists' eight weights per slot and group), in whole groups where that is at
+        // least one group; a sub-batch may start mid-group, the passes do not mind.
         let mut sub = self.max_binding / per_job_out;
+        sub = sub.min(self.max_binding / (u64::from(rig.slots.max(1)) * 4));
         if recompute && tris > 0 {
             sub = sub.min(self.max_binding / (tris * 12));
         }
         if let Some(fit) = self.max_binding.checked_div(bone_bytes) {
             sub = sub.min(fit);
         }
-        let sub =
-            ((sub.min(65_535) as usize) / JOBS_PER_GROUP * JOBS_PER_GROUP).max(JOBS_PER_GROUP);
+        let sub = sub.min(65_535) as usize;
+        let sub = if sub >= JOBS_PER_GROUP {
+            sub / JOBS_PER_GROUP * JOBS_PER_GROUP
+        } else {
+            sub.max(1)
+        };
         let subs = n.div_ceil(sub).max(1);
         // 16-bit formats are packed on the device: half the bytes are copied and read back.
         let packed16 = matches!(spec.precision, Precision::F16 | Precision::Q16(_));
