@@ -265,46 +265,18 @@ mod tests {
     }
 
     #[test]
-    fn render_and_every_bench_command_with_a_gpu_take_max_gpu_memory() {
-        let memory = |args: &[&str]| match Cli::try_parse_from(args).expect("parses").command {
-            Command::Render(a) => a.gpu.max_gpu_memory,
-            Command::Bench {
-                which:
-                    BenchCommand::Gpu { gpu, .. }
-                    | BenchCommand::Render { gpu, .. }
-                    | BenchCommand::Sessions { gpu, .. }
-                    | BenchCommand::Http { gpu, .. },
-            } => gpu.max_gpu_memory,
-            _ => panic!("parsed as another command"),
-        };
-        for cmd in [
-            &["render"][..],
-            &["bench", "gpu"],
-            &["bench", "render"],
-            &["bench", "sessions"],
-            &["bench", "http"],
-        ] {
-            let mut args = vec!["crowdmorph"];
-            args.extend_from_slice(cmd);
-            assert_eq!(memory(&args), None, "{cmd:?}: the default");
-            args.extend_from_slice(&["--max-gpu-memory", "67108864"]);
-            assert_eq!(memory(&args), Some(64 << 20), "{cmd:?}");
-        }
-    }
-
-    #[test]
-    fn serve_render_and_every_bench_command_with_a_gpu_take_gpu_deltas() {
+    fn serve_render_and_every_bench_command_with_a_gpu_take_the_gpu_flags() {
         use crowdmorph::engine::gpu::DeltaFormat;
-        let deltas = |args: &[&str]| match Cli::try_parse_from(args).expect("parses").command {
-            Command::Serve(a) => a.gpu_deltas(),
-            Command::Render(a) => a.gpu.gpu_deltas,
+        let flags = |args: &[&str]| match Cli::try_parse_from(args).expect("parses").command {
+            Command::Serve(a) => (a.config().gpu_memory, a.config().gpu_deltas),
+            Command::Render(a) => (a.gpu.max_gpu_memory, a.gpu.gpu_deltas),
             Command::Bench {
                 which:
                     BenchCommand::Gpu { gpu, .. }
                     | BenchCommand::Render { gpu, .. }
                     | BenchCommand::Sessions { gpu, .. }
                     | BenchCommand::Http { gpu, .. },
-            } => gpu.gpu_deltas,
+            } => (gpu.max_gpu_memory, gpu.gpu_deltas),
             _ => panic!("parsed as another command"),
         };
         for cmd in [
@@ -317,9 +289,13 @@ mod tests {
         ] {
             let mut args = vec!["crowdmorph"];
             args.extend_from_slice(cmd);
-            assert_eq!(deltas(&args), DeltaFormat::F32, "{cmd:?}: the default");
-            args.extend_from_slice(&["--gpu-deltas", "f16"]);
-            assert_eq!(deltas(&args), DeltaFormat::F16, "{cmd:?}");
+            assert_eq!(
+                flags(&args),
+                (None, DeltaFormat::F32),
+                "{cmd:?}: the defaults"
+            );
+            args.extend_from_slice(&["--max-gpu-memory", "67108864", "--gpu-deltas", "f16"]);
+            assert_eq!(flags(&args), (Some(64 << 20), DeltaFormat::F16), "{cmd:?}");
         }
         let err = Cli::try_parse_from(["crowdmorph", "serve", "--gpu-deltas", "f8"])
             .err()

@@ -20,10 +20,10 @@ pub struct Args {
 }
 
 impl Args {
-    /// `--gpu-deltas`, as the server will use it.
+    /// The server's configuration, as parsed.
     #[cfg(test)]
-    pub fn gpu_deltas(&self) -> crowdmorph::engine::gpu::DeltaFormat {
-        self.config.gpu_deltas
+    pub fn config(&self) -> &ServerConfig {
+        &self.config
     }
 }
 
