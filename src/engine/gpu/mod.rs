@@ -183,8 +183,9 @@ impl Health {
 struct Pipelines {
     active: wgpu::ComputePipeline,
     blend: wgpu::ComputePipeline,
-    /// `blend` reading binary16 deltas (its `F16_DELTAS` override set).
-    blend_f16: wgpu::ComputePipeline,
+    /// `blend` reading binary16 deltas (its `F16_DELTAS` override set), made only on a
+    /// context whose rigs store them ([`GpuOptions::deltas`]).
+    blend_f16: Option<wgpu::ComputePipeline>,
     face: wgpu::ComputePipeline,
     vertex: wgpu::ComputePipeline,
     pack: wgpu::ComputePipeline,
@@ -399,7 +400,8 @@ impl GpuContext {
         let pipelines = Pipelines {
             active: pipeline(&device, &active, "build_active"),
             blend: pipeline(&device, &blend, "blend"),
-            blend_f16: pipeline_with(&device, &blend, "blend", &[("F16_DELTAS", 1.0)]),
+            blend_f16: (options.deltas == DeltaFormat::F16)
+                .then(|| pipeline_with(&device, &blend, "blend", &[("F16_DELTAS", 1.0)])),
             face: pipeline(&device, &face, "face_normals"),
             vertex: pipeline(&device, &vertex, "vertex_normals"),
             pack: pipeline(&device, &pack, "pack_f16"),
@@ -1530,9 +1532,10 @@ impl GpuContext {
                 },
             ],
         });
-        let blend = match rig.deltas {
-            DeltaFormat::F32 => &p.blend,
-            DeltaFormat::F16 => &p.blend_f16,
+        // A rig has f16 deltas only on a context made for them, which has this pipeline.
+        let blend = match (rig.deltas, &p.blend_f16) {
+            (DeltaFormat::F16, Some(f16)) => f16,
+            _ => &p.blend,
         };
         let blend_groups = |chunks: &[GpuChunk],
                             out: &wgpu::Buffer,
