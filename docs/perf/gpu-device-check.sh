@@ -70,7 +70,7 @@ MEM=$((60 << 30))
 } >"$OUT/bench-http.txt" 2>>"$OUT/log.txt"
 
 kill "$DMON" 2>/dev/null
-# CPU fallbacks would be WARN lines naming --max-gpu-memory.
-grep -c "runs on the CPU\|fallback" "$OUT/log.txt" >"$OUT/fallbacks.txt" || true
+# CPU fallbacks are WARN lines: "GPU memory budget full: ... ran on the CPU engine".
+grep -c "ran on the CPU engine" "$OUT/log.txt" >"$OUT/fallbacks.txt" || true
 tail -c 200000 "$OUT/log.txt" >"$OUT/log-tail.txt" && rm -f "$OUT/log.txt"
 ls -la "$OUT"

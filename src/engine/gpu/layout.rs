@@ -283,26 +283,6 @@ fn push_block(block: &[f32; BLOCK_FLOATS], format: DeltaFormat, out: &mut Vec<u3
     }
 }
 
-/// Lane `lane`'s delta in block `b` of `words` laid out in `format`: what `blend` reads.
-pub fn read_block(words: &[u32], format: DeltaFormat, b: usize, lane: usize) -> Vec3 {
-    let o = b * format.block_words();
-    match format {
-        DeltaFormat::F32 => Vec3::new(
-            f32::from_bits(words[o + lane]),
-            f32::from_bits(words[o + TILE + lane]),
-            f32::from_bits(words[o + 2 * TILE + lane]),
-        ),
-        DeltaFormat::F16 => {
-            let half = |w: u32, hi: bool| {
-                half::f16::from_bits(if hi { (w >> 16) as u16 } else { w as u16 }).to_f32()
-            };
-            let xy = words[o + lane];
-            let z = words[o + TILE + lane / 2];
-            Vec3::new(half(xy, false), half(xy, true), half(z, lane % 2 == 1))
-        }
-    }
-}
-
 /// One chunk of tiles with everything its blend dispatch reads.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Chunk {
@@ -461,6 +441,26 @@ mod tests {
         assert_eq!(std::mem::offset_of!(Q16PackParams, sub), 16);
         assert_eq!(std::mem::offset_of!(Q16PackParams, mul), 32);
         assert_eq!(std::mem::offset_of!(Q16PackParams, add), 48);
+    }
+
+    /// Lane `lane`'s delta in block `b` of `words` laid out in `format`: what `blend` reads.
+    fn read_block(words: &[u32], format: DeltaFormat, b: usize, lane: usize) -> Vec3 {
+        let o = b * format.block_words();
+        match format {
+            DeltaFormat::F32 => Vec3::new(
+                f32::from_bits(words[o + lane]),
+                f32::from_bits(words[o + TILE + lane]),
+                f32::from_bits(words[o + 2 * TILE + lane]),
+            ),
+            DeltaFormat::F16 => {
+                let half = |w: u32, hi: bool| {
+                    half::f16::from_bits(if hi { (w >> 16) as u16 } else { w as u16 }).to_f32()
+                };
+                let xy = words[o + lane];
+                let z = words[o + TILE + lane / 2];
+                Vec3::new(half(xy, false), half(xy, true), half(z, lane % 2 == 1))
+            }
+        }
     }
 
     #[test]
