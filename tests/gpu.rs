@@ -498,6 +498,77 @@ fn consecutive_batches_overlap_and_results_stay_on_the_device_without_readback()
     not(crowdmorph_gpu_driver),
     ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
 )]
+fn the_device_codes_q16_residuals_as_the_host_does_across_sub_batches() {
+    use crowdmorph::engine::{EngineError, Q16Reference, VertexData, code_residuals};
+    // 256 KiB bindings hold three of the embedded head's jobs (87 KB of f32 each): the batch
+    // runs in sub-batches, each coding its jobs into its own staging region.
+    let engine = Engine::with_gpu(
+        open_gpu(GpuOptions {
+            max_binding: Some(256 << 10),
+            ..GpuOptions::default()
+        }),
+        BackendChoice::Gpu,
+    );
+    let rig = with_random_clip(crowdmorph::embedded::default_rig(), 7);
+    let jobs = random_jobs(&rig, 5, 13);
+    let qbox = crowdmorph::server::registry::quantization_box(&rig);
+    let prepared = engine.prepare(Arc::new(rig)).expect("upload");
+    let spec = OutputSpec {
+        normals: true,
+        precision: Precision::Q16(qbox),
+    };
+    let plain = engine.evaluate(&prepared, &jobs, spec).expect("q16");
+    let v3 = plain.output.vertices * 3;
+    // Planes of a job start mid-word (the device works out each byte on its own).
+    assert_ne!(
+        v3 % 4,
+        0,
+        "the embedded head no longer has an odd component count"
+    );
+    // A reference of random values, so that differences wrap and every zigzag case occurs;
+    // the server's (the neutral) gives small residuals only.
+    let mut rng = Rng(3);
+    let reference: Q16Reference = (0..v3).map(|_| rng.next_u64() as i16).collect();
+    let coded = engine
+        .submit_coded(&prepared, &jobs, spec, true, Some(reference.clone()))
+        .expect("submit")
+        .wait()
+        .expect("wait");
+    assert_eq!(coded.kind, Some(BackendKind::Gpu));
+    let mut expected = plain.output.positions.clone();
+    code_residuals(&mut expected, &reference).expect("host coding");
+    assert_eq!(coded.output.positions, expected, "residual planes");
+    assert_eq!(
+        coded.output.normals, plain.output.normals,
+        "normals stay q16"
+    );
+    // And a client decodes them to the q16 values, job by job.
+    let VertexData::Q16(q, _) = &plain.output.positions else {
+        panic!("q16 positions")
+    };
+    let planes = coded.output.positions.as_bytes();
+    for j in 0..jobs.len() {
+        let decoded =
+            crowdmorph_proto::q16r_decode(&planes[2 * j * v3..2 * (j + 1) * v3], &reference)
+                .expect("decodes");
+        assert_eq!(decoded, q[j * v3..(j + 1) * v3], "job {j}");
+    }
+    // A reference of the wrong size is refused before anything is submitted, and the device
+    // stays in use.
+    let short: Q16Reference = reference[..v3 - 1].into();
+    let refused = engine.submit_coded(&prepared, &jobs, spec, true, Some(short));
+    assert!(
+        matches!(refused, Err(EngineError::Residuals(_))),
+        "a short reference was not refused"
+    );
+    assert!(!engine.info().degraded);
+}
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
 fn the_device_packs_q16_and_f16_bit_for_bit_and_reads_back_into_warm_buffers() {
     use crowdmorph::engine::{BlendOutput, VertexData};
     let engine = Engine::with_gpu(open_gpu(GpuOptions::default()), BackendChoice::Gpu);

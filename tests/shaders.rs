@@ -45,8 +45,9 @@ fn each_pass_has_the_entry_point_its_cpu_mirror_names() {
         ("blend.wgsl", &["blend"][..]),
         ("face_normals.wgsl", &["face_normals"][..]),
         ("vertex_normals.wgsl", &["vertex_normals"][..]),
+        ("skin.wgsl", &["skin"][..]),
         ("pack_f16.wgsl", &["pack_f16"][..]),
-        ("pack_q16.wgsl", &["pack_q16"][..]),
+        ("pack_q16.wgsl", &["pack_q16", "pack_q16r"][..]),
         ("render.wgsl", &["vs_main", "fs_main"][..]),
     ] {
         let src = std::fs::read_to_string(dir.join(file)).expect("read shader");

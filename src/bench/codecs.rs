@@ -144,11 +144,7 @@ fn frames(rig: Rig, opt: &CodecBenchOptions) -> Result<Frames> {
             q16.push((all[j * v3..(j + 1) * v3].to_vec(), !f));
         }
     }
-    let zero = vec![vec![0f32; rig.targets.len()]];
-    let batch = WeightBatch::from_target_weights(&rig, &zero, 0)?;
-    let VertexData::Q16(neutral, _) = prepared.cpu().evaluate(&batch, spec)?.positions else {
-        bail!("the engine did not write q16");
-    };
+    let neutral = prepared.q16_reference(qbox)?;
     Ok(Frames {
         q16,
         neutral,

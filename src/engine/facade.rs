@@ -12,8 +12,13 @@ use std::time::Instant;
 use serde::Serialize;
 
 use super::cpu::CpuRig;
-use super::gpu::{ClipTables, DeviceOutput, GpuContext, GpuError, GpuOptions, GpuRig, Pending};
-use super::{BlendJob, BlendOutput, EngineError, OutputSpec, WeightBatch};
+use super::gpu::{
+    ClipTables, DeviceOutput, GpuContext, GpuError, GpuOptions, GpuRig, Pending, Readout,
+};
+use super::{
+    BlendJob, BlendOutput, EngineError, OutputSpec, Precision, Q16Reference, WeightBatch,
+    code_residuals,
+};
 use crate::rig::Rig;
 
 /// Which engine to use, as asked on the command line.
@@ -143,6 +148,25 @@ impl PreparedRig {
     /// vertices and triangles as this rig).
     pub fn mesh_levels(&self) -> &[PreparedRig] {
         &self.meshes
+    }
+
+    /// The reference `q16r` residuals of this rig (or level: [`PreparedRig::at_level`]) are
+    /// coded against in box `b`: its q16 positions with every weight 0, computed by the CPU
+    /// engine (the neutral, quantized as any q16 output is, which the GPU reproduces; a client
+    /// fetches it as that frame).
+    pub fn q16_reference(&self, b: super::Quantization) -> Result<Vec<i16>, EngineError> {
+        let zero = [vec![0f32; self.rig.targets.len()]];
+        let batch = WeightBatch::from_target_weights(&self.rig, &zero, 0)?;
+        let spec = OutputSpec {
+            normals: false,
+            precision: Precision::Q16(b),
+        };
+        match self.cpu.evaluate(&batch, spec)?.positions {
+            super::VertexData::Q16(r, _) => Ok(r),
+            _ => Err(EngineError::Residuals(
+                "the CPU engine's q16 reference is not q16".into(),
+            )),
+        }
     }
 
     /// Checks every job and picks the rig they run on, with the jobs as that rig reads them
@@ -304,6 +328,8 @@ fn gpu_to_engine(e: GpuError) -> EngineError {
 pub struct Begun<'a> {
     start: Instant,
     gpu: Option<PendingEvaluation<'a>>,
+    /// What the CPU engine codes the positions against (the GPU batch carries its own).
+    reference: Option<Q16Reference>,
 }
 
 /// A batch submitted with [`Engine::submit`], not yet collected.
@@ -312,6 +338,9 @@ pub struct PendingEvaluation<'a> {
     rig: PreparedRig,
     jobs: Vec<BlendJob>,
     spec: OutputSpec,
+    /// Positions coded as residual planes against this: by the device on a GPU batch, on the
+    /// host where the batch ran on the CPU.
+    reference: Option<Q16Reference>,
     start: Instant,
     state: PendingState<'a>,
 }
@@ -339,16 +368,19 @@ impl PendingEvaluation<'_> {
     /// device already wrote f16 and q16). A GPU fault degrades the engine and the batch is
     /// computed on the CPU into `out` instead.
     pub fn wait_into(self, out: &mut BlendOutput) -> Result<(Timings, BackendKind), EngineError> {
-        match self.state {
-            PendingState::Ready(r) => {
-                let e = r?;
-                *out = e.output;
-                Ok((e.timings, e.kind.unwrap_or(BackendKind::Cpu)))
+        let on_cpu = |e: Evaluation, out: &mut BlendOutput| {
+            *out = e.output;
+            if let Some(r) = &self.reference {
+                code_residuals(&mut out.positions, r)?;
             }
+            Ok((e.timings, e.kind.unwrap_or(BackendKind::Cpu)))
+        };
+        match self.state {
+            PendingState::Ready(r) => on_cpu(r?, out),
             PendingState::Gpu(pending) => match pending.wait_into(out) {
                 Ok(r) => {
-                    // Anything the device did not encode (it encodes every format today) is
-                    // encoded here with the CPU kernels' arithmetic.
+                    // Anything the device did not encode (it encodes every format and codes
+                    // residuals today) is encoded here with the CPU kernels' arithmetic.
                     let encode = Instant::now();
                     out.encode_as(self.spec);
                     Ok((
@@ -365,8 +397,7 @@ impl PendingEvaluation<'_> {
                     let e = self
                         .engine
                         .evaluate_cpu(&self.rig, &self.jobs, self.spec, self.start)?;
-                    *out = e.output;
-                    Ok((e.timings, e.kind.unwrap_or(BackendKind::Cpu)))
+                    on_cpu(e, out)
                 }
             },
         }
@@ -689,13 +720,35 @@ impl Engine {
         spec: OutputSpec,
         readback: bool,
     ) -> Result<PendingEvaluation<'_>, EngineError> {
+        self.submit_coded(rig, jobs, spec, readback, None)
+    }
+
+    /// [`Engine::submit`], the q16 positions read back coded as residual planes against
+    /// `reference` where there is one (wire format `q16r`; the device codes them, or the host
+    /// where the batch runs on the CPU).
+    pub fn submit_coded(
+        &self,
+        rig: &PreparedRig,
+        jobs: &[BlendJob],
+        spec: OutputSpec,
+        readback: bool,
+        reference: Option<Q16Reference>,
+    ) -> Result<PendingEvaluation<'_>, EngineError> {
         let start = Instant::now();
         let (rig, jobs) = rig.route(jobs)?;
         let jobs: &[BlendJob] = &jobs;
+        if let Some(r) = &reference {
+            check_reference(&rig.rig, spec, readback, r)?;
+        }
+        let readout = match (&reference, readback) {
+            (_, false) => Readout::Device,
+            (None, true) => Readout::Host,
+            (Some(r), true) => Readout::Residuals(r),
+        };
         let state = match (self.gpu_active(), &rig.gpu) {
             (Some(ctx), Some(g)) => {
                 let (gpu_jobs, live, bones) = gpu_records(&rig.rig, g, jobs)?;
-                match ctx.submit(g, &gpu_jobs, &live, &bones, spec, readback) {
+                match ctx.submit(g, &gpu_jobs, &live, &bones, spec, readout) {
                     Ok(p) => PendingState::Gpu(Box::new(p)),
                     Err(e @ GpuError::DoesNotFit(_)) => return Err(gpu_to_engine(e)),
                     // The device's memory budget is full now: this batch runs on the CPU,
@@ -717,6 +770,7 @@ impl Engine {
             rig: rig.clone(),
             jobs: jobs.to_vec(),
             spec,
+            reference,
             start,
             state,
         })
@@ -733,19 +787,21 @@ impl Engine {
         spec: OutputSpec,
         out: &mut BlendOutput,
     ) -> Result<(Timings, BackendKind), EngineError> {
-        let begun = self.begin(rig, jobs, spec)?;
+        let begun = self.begin(rig, jobs, spec, None)?;
         self.finish_into(begun, rig, jobs, spec, out)
     }
 
     /// Starts an evaluation for [`Engine::finish_into`]: on the GPU the batch is submitted
     /// now and computes while the caller does other work (finishes an earlier batch, begins
     /// another rig's), which is how the server overlaps consecutive batches; the CPU engine
-    /// does all its work in `finish_into`.
+    /// does all its work in `finish_into`. With a `reference`, the q16 positions come out
+    /// coded as residual planes against it (wire format `q16r`), on the device or the host.
     pub fn begin(
         &self,
         rig: &PreparedRig,
         jobs: &[BlendJob],
         spec: OutputSpec,
+        reference: Option<Q16Reference>,
     ) -> Result<Begun<'_>, EngineError> {
         let start = Instant::now();
         // Only which rig: `submit` maps the jobs for it.
@@ -753,10 +809,18 @@ impl Engine {
         if self.gpu_active().is_some() && target.gpu.is_some() {
             return Ok(Begun {
                 start,
-                gpu: Some(self.submit(rig, jobs, spec, true)?),
+                gpu: Some(self.submit_coded(rig, jobs, spec, true, reference)?),
+                reference: None,
             });
         }
-        Ok(Begun { start, gpu: None })
+        if let Some(r) = &reference {
+            check_reference(&target.rig, spec, true, r)?;
+        }
+        Ok(Begun {
+            start,
+            gpu: None,
+            reference,
+        })
     }
 
     /// Completes what [`Engine::begin`] started (with the same rig, jobs and spec) into
@@ -775,6 +839,9 @@ impl Engine {
         let (target, jobs) = rig.route(jobs)?;
         let batch = WeightBatch::gather(&target.rig, &jobs)?;
         target.cpu.evaluate_into(&batch, spec, out)?;
+        if let Some(r) = &begun.reference {
+            code_residuals(&mut out.positions, r)?;
+        }
         Ok((
             Timings {
                 wall_ns: begun.start.elapsed().as_nanos() as u64,
@@ -797,14 +864,14 @@ impl Engine {
         let start = Instant::now();
         let spec = OutputSpec {
             normals: true,
-            precision: super::Precision::F32,
+            precision: Precision::F32,
         };
         let (target, jobs) = rig.route(jobs)?;
         let jobs: &[BlendJob] = &jobs;
         if let (Some(ctx), Some(g)) = (self.gpu_active(), &target.gpu) {
             let (gpu_jobs, live, bones) = gpu_records(&target.rig, g, jobs)?;
             match ctx
-                .submit(g, &gpu_jobs, &live, &bones, spec, false)
+                .submit(g, &gpu_jobs, &live, &bones, spec, Readout::Device)
                 .and_then(Pending::wait_resident)
             {
                 Ok((out, gpu_ns)) => {
@@ -835,6 +902,35 @@ impl Engine {
     ) -> Result<Evaluation, EngineError> {
         self.submit(rig, jobs, spec, true)?.wait()
     }
+}
+
+/// Refuses residual coding that cannot be done: only read-back q16 positions are coded, and
+/// the reference must be one job's components of `rig`.
+fn check_reference(
+    rig: &Rig,
+    spec: OutputSpec,
+    readback: bool,
+    reference: &[i16],
+) -> Result<(), EngineError> {
+    let per_job = rig.vertex_count() * 3;
+    if !readback || !matches!(spec.precision, Precision::Q16(_)) {
+        return Err(EngineError::Residuals(format!(
+            "{} outputs {} are not coded",
+            spec.precision.name(),
+            if readback {
+                "read back"
+            } else {
+                "left on the device"
+            }
+        )));
+    }
+    if reference.len() != per_job {
+        return Err(EngineError::Residuals(format!(
+            "a reference of {} components for jobs of {per_job}",
+            reference.len()
+        )));
+    }
+    Ok(())
 }
 
 /// The GPU records of `jobs`, the live weights they point at and, on a skinned rig, each job's

@@ -156,6 +156,10 @@ pub enum EngineError {
     /// budget: 413 or 503).
     #[error("rig does not fit the GPU memory budget: {0}")]
     GpuMemory(crate::budget::BudgetError),
+    /// Residual coding was asked for outputs it cannot code: not q16, or a reference that is
+    /// not one job's components.
+    #[error("q16 residuals: {0}")]
+    Residuals(String),
 }
 
 /// Weights of a batch of jobs, in LOD slot order, zero where inactive or past the LOD.
@@ -485,6 +489,50 @@ impl Q16Params {
         let u = if u < self.hi { u } else { self.hi };
         (u.round_ties_even() as i32 + self.add) as i16
     }
+}
+
+/// The q16 values a batch's positions are coded against as residual planes (wire format
+/// `q16r`, `crowdmorph_proto::q16r_encode`): one job's components, the q16 positions of the
+/// batch's rig level with every weight 0, in the batch's box. Shared, since the server keeps
+/// one per rig level and every batch of that level uses it.
+pub type Q16Reference = std::sync::Arc<[i16]>;
+
+/// Codes q16 positions in place as residual planes against `reference`, job by job (each job
+/// `reference.len()` components): what the GPU's `pack_q16r` pass writes, done on the host
+/// for the CPU engine and for a GPU batch that ran on the CPU.
+pub fn code_residuals(positions: &mut VertexData, reference: &[i16]) -> Result<(), EngineError> {
+    let v3 = reference.len();
+    let VertexData::Q16(q, _) = positions else {
+        let kind = match positions {
+            VertexData::F32(_) => "f32",
+            _ => "f16",
+        };
+        return Err(EngineError::Residuals(format!(
+            "residuals of {kind} positions"
+        )));
+    };
+    if v3 == 0 || q.len() % v3 != 0 {
+        return Err(EngineError::Residuals(format!(
+            "a reference of {v3} components for {} components of jobs",
+            q.len()
+        )));
+    }
+    // On every core, as the blend was: on the compute thread alone the coding took as long as
+    // the blend of the whole group and cost a third of q16's heads/s over loopback. Each
+    // worker codes a job into its own scratch (the planes interleave, so not in place), kept
+    // between batches (a fresh one per job was page faults), then copies the planes over the
+    // job's components.
+    thread_local! {
+        static PLANES: std::cell::RefCell<Vec<u8>> = const { std::cell::RefCell::new(Vec::new()) };
+    }
+    q.par_chunks_exact_mut(v3).for_each(|job| {
+        PLANES.with_borrow_mut(|planes| {
+            planes.resize(2 * v3, 0);
+            crowdmorph_proto::q16r_encode(job, reference, planes);
+            bytemuck::cast_slice_mut::<i16, u8>(job).copy_from_slice(planes);
+        });
+    });
+    Ok(())
 }
 
 /// Result of a batch: job `j` owns components `[j·V·3, (j+1)·V·3)` of each buffer.

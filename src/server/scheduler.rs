@@ -43,7 +43,9 @@ use tokio::sync::{mpsc, oneshot};
 use super::metrics::Metrics;
 use super::pool::{Pool, Reusable};
 use super::registry::RigEntry;
-use crate::engine::{Begun, BlendJob, BlendOutput, Engine, OutputSpec, Precision, VertexData};
+use crate::engine::{
+    Begun, BlendJob, BlendOutput, Engine, OutputSpec, Precision, Q16Reference, VertexData,
+};
 use crate::rig::{JointPose, Pose};
 
 /// One unique job of a crowd request, resolved against a rig entry.
@@ -271,7 +273,8 @@ struct ReqState {
 
 struct WorkGroup {
     entry: Arc<RigEntry>,
-    /// The group's wire format (q16 residuals are coded after the engine's q16).
+    /// The group's wire format (q16 residuals: the engine's q16, coded by the engine against
+    /// the rig level's reference).
     format: Format,
     spec: OutputSpec,
     /// Unique engine jobs of the group.
@@ -296,7 +299,7 @@ impl BatchGroups {
         let precision = match slot.key.format {
             Format::F32 => Precision::F32,
             Format::F16 => Precision::F16,
-            // q16 residuals are q16 from the engine, coded against the reference after it.
+            // q16 residuals are q16 from the engine, coded against the reference by it.
             Format::Q16 | Format::Q16R => Precision::Q16(slot.entry.qbox),
         };
         let gkey = (
@@ -915,8 +918,12 @@ fn begin_batch(engine: &Engine, batch: WorkBatch) -> Started<'_> {
         .into_iter()
         .map(|group| {
             let begun = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                let reference = match group.format {
+                    Format::Q16R => Some(residual_reference(&group)?),
+                    _ => None,
+                };
                 engine
-                    .begin(&group.entry.prepared, &group.jobs, group.spec)
+                    .begin(&group.entry.prepared, &group.jobs, group.spec, reference)
                     .map_err(|e| e.to_string())
             }));
             (group, begun)
@@ -985,57 +992,22 @@ fn finish_batch(
 
 type GroupResult = Result<(Vec<JobOutput>, Option<u64>), String>;
 
-/// Codes a group's q16 positions as [`Format::Q16R`] in place: per job, the residual planes
-/// against the reference — the q16 positions of the group's rig (its mesh or PCA level) with
-/// every weight 0, which both engines compute exactly (the neutral, quantized as any q16 output
-/// is); clients fetch it as that frame. Normals stay q16: recomputed normals differ between the
-/// engines in their last bits, so a reference for them would not be the same everywhere.
-fn to_residuals(group: &WorkGroup, positions: &mut VertexData, v3: usize) -> Result<(), String> {
+/// The reference a group's [`Format::Q16R`] positions are coded against: the q16 positions
+/// of the group's rig (its mesh or PCA level) with every weight 0, which both engines compute
+/// exactly (the neutral, quantized as any q16 output is), kept with the rig; clients fetch it
+/// as that frame. Normals stay q16: recomputed normals differ between the engines in their
+/// last bits, so a reference for them would not be the same everywhere.
+fn residual_reference(group: &WorkGroup) -> Result<Q16Reference, String> {
     let Some(first) = group.jobs.first() else {
-        return Ok(());
+        return Err("q16 residuals of a group without jobs".into());
+    };
+    let Precision::Q16(b) = group.spec.precision else {
+        return Err("q16 residuals of a group that is not q16".into());
     };
     let target = group.entry.prepared.at_level(first.lod);
-    let precision = group.spec.precision;
-    let r = group.entry.q16_reference(target, || {
-        let zero = vec![vec![0f32; target.rig().targets.len()]];
-        let batch = crate::engine::WeightBatch::from_target_weights(target.rig(), &zero, 0)
-            .map_err(|e| e.to_string())?;
-        let spec = OutputSpec {
-            normals: false,
-            precision,
-        };
-        match target.cpu().evaluate(&batch, spec) {
-            Ok(out) => match out.positions {
-                VertexData::Q16(r, _) => Ok(r),
-                _ => Err("a q16 reference that is not q16".to_string()),
-            },
-            Err(e) => Err(e.to_string()),
-        }
-    })?;
-    let r = &*r;
-    let VertexData::Q16(q, _) = positions else {
-        return Err("q16 residuals of a buffer that is not q16".into());
-    };
-    if r.len() != v3 {
-        return Err(format!("a reference of {} components for {v3}", r.len()));
-    }
-    // On every core, as the blend was: on the compute thread alone the coding took as long as
-    // the blend of the whole group and cost a third of q16's heads/s over loopback. Each
-    // worker codes a job into its own scratch (the planes interleave, so not in place), kept
-    // between batches (a fresh one per job was page faults), then copies the planes over the
-    // job's components.
-    use rayon::prelude::*;
-    thread_local! {
-        static PLANES: std::cell::RefCell<Vec<u8>> = const { std::cell::RefCell::new(Vec::new()) };
-    }
-    q.par_chunks_exact_mut(v3).for_each(|job| {
-        PLANES.with_borrow_mut(|planes| {
-            planes.resize(2 * v3, 0);
-            crowdmorph_proto::q16r_encode(job, r, planes);
-            bytemuck::cast_slice_mut::<i16, u8>(job).copy_from_slice(planes);
-        });
-    });
-    Ok(())
+    group.entry.q16_reference(target, || {
+        target.q16_reference(b).map_err(|e| e.to_string())
+    })
 }
 
 fn finish_group(
@@ -1075,9 +1047,6 @@ fn finish_group(
             out.positions.len(),
             group.spec.precision.name()
         ));
-    }
-    if group.format == Format::Q16R {
-        to_residuals(group, &mut out.positions, v3)?;
     }
     let share = |d: VertexData| {
         Bytes::from_owner(VertexBytes {

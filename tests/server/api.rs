@@ -447,6 +447,51 @@ async fn reqwest_like_preflight(server: &TestServer) -> HashMap<String, String> 
         .collect()
 }
 
+/// Asks for the same crowd in q16 and in q16r and decodes the residuals against the reference
+/// the client fetches: the q16 values, bit for bit, head by head.
+async fn q16r_decodes_to_q16(client: &crowdmorph_client::Client, rig: &Rig) {
+    let (plain, _) = client
+        .crowd_frame(
+            &crowd("default-head", rig, Format::Q16, true),
+            Encoding::Bincode,
+        )
+        .await
+        .expect("q16");
+    let (coded, _) = client
+        .crowd_frame(
+            &crowd("default-head", rig, Format::Q16R, true),
+            Encoding::Bincode,
+        )
+        .await
+        .expect("q16r");
+    assert_eq!(coded.format, Format::Q16R);
+    let mut refs = HashMap::new();
+    for (a, b) in plain.buffers.iter().zip(&coded.buffers) {
+        assert_eq!(
+            (a.clip.as_str(), a.frame, a.lod),
+            (b.clip.as_str(), b.frame, b.lod)
+        );
+        if let std::collections::hash_map::Entry::Vacant(e) = refs.entry(b.lod) {
+            let (r, q) = client
+                .q16_reference("default-head", b.lod)
+                .await
+                .expect("reference");
+            assert_eq!(Some(q), a.quantization, "the reference's box");
+            e.insert(r);
+        }
+        let decoded =
+            crowdmorph_proto::q16r_decode(&b.positions.0, &refs[&b.lod]).expect("decodes");
+        let q16: Vec<i16> = a
+            .positions
+            .0
+            .chunks_exact(2)
+            .map(|c| i16::from_le_bytes([c[0], c[1]]))
+            .collect();
+        assert_eq!(decoded, q16, "{} frame {} lod {}", b.clip, b.frame, b.lod);
+        assert_eq!(a.normals, b.normals, "normals travel as q16");
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 #[cfg_attr(
     not(crowdmorph_gpu_driver),
@@ -537,6 +582,9 @@ async fn frames_on_the_gpu_backend_match_the_cpu_engine() {
             }
         }
     }
+    // q16r, coded on the device, is the q16 answer once decoded against the reference.
+    q16r_decodes_to_q16(&server.client, &rig).await;
+    assert!(!server.state.engine.info().degraded);
     let metrics = server.client.metrics().await.expect("metrics");
     assert!(
         crowdmorph_client::metric(&metrics, "crowdmorph_gpu_seconds_total")
@@ -545,6 +593,8 @@ async fn frames_on_the_gpu_backend_match_the_cpu_engine() {
     );
     // The device goes away: frames keep coming (from the CPU engine) and /readyz says degraded.
     server.state.engine.gpu().expect("gpu").device().destroy();
+    // The CPU engine codes q16r on the host now; a client decodes it as before.
+    q16r_decodes_to_q16(&server.client, &rig).await;
     let req = crowd("default-head", &rig, Format::F32, false);
     let (resp, _) = server
         .client

@@ -178,13 +178,15 @@ pub struct Q16PackParams {
     pub mul: [f32; 4],
     /// Added to the rounded integer.
     pub add: i32,
+    /// Components per job, where `pack_q16r` codes residual planes per job.
+    pub per_job: u32,
     /// Padding.
-    pub _pad: [u32; 3],
+    pub _pad: [u32; 2],
 }
 
 impl Q16PackParams {
-    /// The uniforms that quantize `count` values with `q`.
-    pub fn new(q: &crate::engine::Q16Params, count: u32, row: u32) -> Q16PackParams {
+    /// The uniforms that quantize `count` values with `q`, jobs of `per_job` components.
+    pub fn new(q: &crate::engine::Q16Params, count: u32, row: u32, per_job: u32) -> Q16PackParams {
         Q16PackParams {
             count,
             row,
@@ -193,7 +195,8 @@ impl Q16PackParams {
             sub: [q.sub[0], q.sub[1], q.sub[2], 0.0],
             mul: [q.mul[0], q.mul[1], q.mul[2], 0.0],
             add: q.add,
-            _pad: [0; 3],
+            per_job,
+            _pad: [0; 2],
         }
     }
 }
@@ -441,6 +444,7 @@ mod tests {
         assert_eq!(std::mem::offset_of!(Q16PackParams, sub), 16);
         assert_eq!(std::mem::offset_of!(Q16PackParams, mul), 32);
         assert_eq!(std::mem::offset_of!(Q16PackParams, add), 48);
+        assert_eq!(std::mem::offset_of!(Q16PackParams, per_job), 52);
     }
 
     /// Lane `lane`'s delta in block `b` of `words` laid out in `format`: what `blend` reads.

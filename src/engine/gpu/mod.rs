@@ -19,7 +19,9 @@
 //!    matrices in its job's pose, resolved on the host once per unique job and uploaded with
 //!    the batch (96 bytes a bone);
 //! 5. `pack_f16` or `pack_q16` — binary16 or int16 (q16) output on request, so that half the
-//!    bytes cross the bus and the host does not encode.
+//!    bytes cross the bus and the host does not encode; `pack_q16r` writes q16 positions as
+//!    the wire's residual planes against a reference ([`Readout::Residuals`]), so the host
+//!    does not code them either.
 //!
 //! Results are copied to a mappable staging buffer only when the caller wants vertex buffers;
 //! staging buffers live in a small pool, so a batch can be recorded and submitted while the
@@ -190,6 +192,7 @@ struct Pipelines {
     vertex: wgpu::ComputePipeline,
     pack: wgpu::ComputePipeline,
     pack_q16: wgpu::ComputePipeline,
+    pack_q16r: wgpu::ComputePipeline,
     skin: wgpu::ComputePipeline,
 }
 
@@ -406,6 +409,7 @@ impl GpuContext {
             vertex: pipeline(&device, &vertex, "vertex_normals"),
             pack: pipeline(&device, &pack, "pack_f16"),
             pack_q16: pipeline(&device, &pack_q16, "pack_q16"),
+            pack_q16r: pipeline(&device, &pack_q16, "pack_q16r"),
             skin: pipeline(&device, &skin, "skin"),
         };
         let limits = device.limits();
@@ -1177,6 +1181,22 @@ struct Region {
     live: (u64, u64),
     /// Byte offset and length of the sub-batch's bone matrices in the slot's bones buffer.
     bones: (u64, u64),
+    /// Byte offset and length of the residual reference in the jobs buffer, when the
+    /// positions are coded against one (the same for every sub-batch).
+    reference: Option<(u64, u64)>,
+}
+
+/// Where a batch's results go ([`GpuContext::submit`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Readout<'r> {
+    /// They stay on the device, in f32, for a renderer ([`Pending::wait_resident`]).
+    Device,
+    /// They are read back in the spec's format ([`Pending::wait_into`]).
+    Host,
+    /// They are read back, the q16 positions coded on the device as residual planes against
+    /// this reference (one job's components: `crowdmorph_proto::q16r_encode`'s `reference`);
+    /// normals stay q16.
+    Residuals(&'r [i16]),
 }
 
 /// A submitted batch whose results are not read yet.
@@ -1198,7 +1218,7 @@ pub struct Pending<'a> {
     host_ns: u64,
 }
 
-/// A batch's outputs left on the device (`submit(.., readback: false)`): f32 x, y, z per
+/// A batch's outputs left on the device (`submit(.., Readout::Device)`): f32 x, y, z per
 /// vertex, job `j` from byte `j · vertices · 12`, in buffers usable as vertex buffers. They
 /// are the batch's own, not the pooled slot's, so they live as long as a renderer holds them.
 #[derive(Clone, Debug)]
@@ -1226,8 +1246,9 @@ impl DeviceOutput {
 impl GpuContext {
     /// Records and submits a batch of jobs of one rig (records from [`GpuRig::job`], with the
     /// live weights it gathered and, on a skinned rig, [`GpuRig::bones`] bone matrices per
-    /// job). With `readback`, results are copied to staging memory for [`Pending::wait`];
-    /// without, they stay on the device (for a renderer) and `wait` returns only the timing.
+    /// job). Read back ([`Readout::Host`], [`Readout::Residuals`]), results are copied to
+    /// staging memory for [`Pending::wait`]; left on the device ([`Readout::Device`]) they are
+    /// for a renderer and `wait` returns only the timing.
     pub fn submit<'a>(
         &'a self,
         rig: &GpuRig,
@@ -1235,11 +1256,27 @@ impl GpuContext {
         live: &[f32],
         bones: &[BoneMatrix],
         spec: OutputSpec,
-        readback: bool,
+        readout: Readout<'_>,
     ) -> Result<Pending<'a>, GpuError> {
         self.health()?;
         let v = rig.vertices as u64;
         let n = jobs.len();
+        let readback = readout != Readout::Device;
+        let reference = match readout {
+            Readout::Residuals(r) => {
+                if !matches!(spec.precision, Precision::Q16(_)) || r.len() as u64 != 3 * v {
+                    return Err(GpuError::Internal(format!(
+                        "residuals of {} positions against a reference of {} components for \
+                         {} per job",
+                        spec.precision.name(),
+                        r.len(),
+                        3 * v
+                    )));
+                }
+                Some(r)
+            }
+            _ => None,
+        };
         let per_job_bones = rig.bones();
         if bones.len() != n * per_job_bones {
             return Err(GpuError::Internal(format!(
@@ -1255,6 +1292,10 @@ impl GpuContext {
             self.device.limits().min_storage_buffer_offset_alignment,
         ));
         let live_bytes = (live.len().max(1) * 4) as u64;
+        // Then the residual reference, two q16 values a word.
+        let reference_at = (live_at + live_bytes).next_multiple_of(align);
+        let reference_range =
+            reference.map(|r| (reference_at, (r.len() as u64 * 2).next_multiple_of(4)));
         let per_job_out = v * 12;
         let tris = rig
             .topology
@@ -1304,6 +1345,7 @@ impl GpuContext {
                 normals,
                 live: (live_at, live_bytes),
                 bones,
+                reference: reference_range,
             });
         }
         if bones_at > self.max_buffer {
@@ -1324,7 +1366,7 @@ impl GpuContext {
         let output = widest * per_job_out;
         let f16 = packed16;
         let needs = SlotNeeds {
-            jobs: live_at + live_bytes,
+            jobs: reference_range.map_or(live_at + live_bytes, |(at, len)| at + len),
             active: widest.div_ceil(JOBS_PER_GROUP as u64) * u64::from(rig.slots.max(1)) * 4,
             output,
             normals: if spec.normals { output } else { 4 },
@@ -1404,6 +1446,19 @@ impl GpuContext {
         if !live.is_empty() {
             self.queue
                 .write_buffer(&slot.jobs, live_at, bytemuck::cast_slice(live));
+        }
+        if let Some(r) = reference {
+            // Writes are whole words: an odd count gets a padding value.
+            if r.len() % 2 == 0 {
+                self.queue
+                    .write_buffer(&slot.jobs, reference_at, bytemuck::cast_slice(r));
+            } else {
+                let mut padded = Vec::with_capacity(r.len() + 1);
+                padded.extend_from_slice(r);
+                padded.push(0i16);
+                self.queue
+                    .write_buffer(&slot.jobs, reference_at, bytemuck::cast_slice(&padded));
+            }
         }
         if per_job_bones > 0 {
             for r in &regions {
@@ -1651,7 +1706,8 @@ impl GpuContext {
             _ => None,
         };
         // 16-bit output: positions and normals packed by `pack_f16`, or by `pack_q16` with the
-        // box's parameters for positions and the unit scale for normals.
+        // box's parameters for positions and the unit scale for normals; positions coded
+        // against a reference by `pack_q16r` (the same words: two bytes a component).
         let count = jobs * rig.vertices * 3;
         let pairs = count.div_ceil(2);
         let (px, py) = {
@@ -1663,6 +1719,7 @@ impl GpuContext {
                 &crate::engine::Q16Params::new(b, normals),
                 count,
                 px * 64,
+                rig.vertices * 3,
             ))),
             Precision::F16 => Some(self.uniform(&PackParams {
                 count,
@@ -1682,12 +1739,25 @@ impl GpuContext {
             buffers.push((true, &slot.normals, &slot.packed_normals));
         }
         for (normals, src, dst) in buffers {
-            if let Some(params) = pack_uniform(normals) {
-                pack_groups.push(bind(
-                    pack_pipeline,
-                    &[entry(0, &params), entry(1, src), entry(2, dst)],
-                ));
-            }
+            let Some(params) = pack_uniform(normals) else {
+                continue;
+            };
+            let mut entries = vec![entry(0, &params), entry(1, src), entry(2, dst)];
+            let pipeline = match r.reference {
+                Some((at, len)) if !normals => {
+                    entries.push(wgpu::BindGroupEntry {
+                        binding: 3,
+                        resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                            buffer: &slot.jobs,
+                            offset: at,
+                            size: std::num::NonZeroU64::new(len),
+                        }),
+                    });
+                    &p.pack_q16r
+                }
+                _ => pack_pipeline,
+            };
+            pack_groups.push((pipeline, bind(pipeline, &entries)));
         }
 
         let timestamp_writes =
@@ -1723,12 +1793,10 @@ impl GpuContext {
             pass.set_bind_group(0, vertex, &[]);
             pass.dispatch_workgroups(*vx, jobs, 1);
         }
-        if !pack_groups.is_empty() {
-            pass.set_pipeline(pack_pipeline);
-            for bg in &pack_groups {
-                pass.set_bind_group(0, bg, &[]);
-                pass.dispatch_workgroups(px, py, 1);
-            }
+        for (pipeline, bg) in &pack_groups {
+            pass.set_pipeline(pipeline);
+            pass.set_bind_group(0, bg, &[]);
+            pass.dispatch_workgroups(px, py, 1);
         }
     }
 }

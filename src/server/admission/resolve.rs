@@ -89,8 +89,9 @@ pub fn job_output_bytes(rig: &Rig, format: Format, normals: bool, json: bool, gp
     let f32_first =
         (normals && comp < 4 && rig.recomputes_normals()) || (gpu && format.quantized());
     let weights = rig.targets.len() as u64 * JOB_WEIGHT_BYTES_PER_TARGET + 16;
-    // q16 residuals are coded after the engine with a reference and planes of one job each
-    // (per batch group; charged per job, which bounds it).
+    // q16 residuals are coded against a reference (one job's components), on the host with
+    // planes of one job per worker, for the device from a copy padded to whole words (per
+    // batch group; charged per job, which bounds it).
     let residual = if format == Format::Q16R { 4 * v3 } else { 0 };
     // A skinned rig's jobs hold their bone matrices (96 bytes a bone), resolved on the host
     // for both engines (the skin itself is in the output stage, no second f32 buffer).
