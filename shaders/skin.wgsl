@@ -8,7 +8,9 @@
 // normal deltas), the normal becomes normalize(Σ w N n). A vertex whose first weight is 0
 // follows no bone (a primitive that is neither skinned nor under an animated node) and is left
 // as blended. The host resolves each unique job's bone matrices once (clones share the job),
-// so this pass is a gather and twelve multiply-adds per influence.
+// so this pass is a gather and twelve multiply-adds per influence. The influences come in the
+// CPU's order (`layout::pack_influences`) and are summed with the same fused multiply-adds, so
+// skinned positions are the CPU engine's bit for bit.
 
 struct Params {
     // Vertices of the rig: the stride per job is vertices * 3.
@@ -35,6 +37,11 @@ struct Params {
 @group(0) @binding(2) var<storage, read> bones: array<vec4<f32>>;
 @group(0) @binding(3) var<storage, read_write> positions: array<f32>;
 @group(0) @binding(4) var<storage, read_write> normals: array<f32>;
+
+// One row of a bone's transform: r.x x + r.y y + r.z z + r.w, as the CPU's `skin_row`.
+fn row(r: vec4<f32>, p: vec4<f32>) -> f32 {
+    return fma(r.x, p.x, fma(r.y, p.y, fma(r.z, p.z, r.w)));
+}
 
 @compute @workgroup_size(64)
 fn skin(@builtin(global_invocation_id) gid: vec3<u32>) {
@@ -74,12 +81,15 @@ fn skin(@builtin(global_invocation_id) gid: vec3<u32>) {
             continue;
         }
         let b = (job * params.bones + ids[k]) * 6u;
-        sp += ws[k] * vec3<f32>(dot(bones[b], p), dot(bones[b + 1u], p), dot(bones[b + 2u], p));
+        // Fused multiply-adds in the CPU's order (`skin_lanes`, `skin_row`), so that the sum
+        // is its bit for bit (the influences come in its order too).
+        let w = vec3<f32>(ws[k]);
+        sp = fma(w, vec3<f32>(row(bones[b], p), row(bones[b + 1u], p), row(bones[b + 2u], p)), sp);
         if skin_normals {
-            sn += ws[k] * vec3<f32>(
-                dot(bones[b + 3u], n),
-                dot(bones[b + 4u], n),
-                dot(bones[b + 5u], n),
+            sn = fma(
+                w,
+                vec3<f32>(row(bones[b + 3u], n), row(bones[b + 4u], n), row(bones[b + 5u], n)),
+                sn,
             );
         }
     }

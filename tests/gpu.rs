@@ -564,6 +564,64 @@ fn the_device_codes_q16_residuals_as_the_host_does_across_sub_batches() {
     assert!(!engine.info().degraded);
 }
 
+/// What `q16r` relies on (proto/README.md): the reference a client fetches from a server, its
+/// engine's q16 frame of the neutral (every weight 0), is the CPU engine's, which the server
+/// codes against, bit for bit, at every LOD level.
+fn neutral_is_the_cpu_engines(engine: &Engine, rig: Rig) {
+    let qbox = crowdmorph::server::registry::quantization_box(&rig);
+    let name = rig.name.clone();
+    let levels = rig.lod.levels.len() as u32;
+    let zero = Pose::live(&vec![0.0; rig.targets.len()]);
+    let prepared = engine.prepare(Arc::new(rig)).expect("upload");
+    let spec = OutputSpec {
+        normals: false,
+        precision: Precision::Q16(qbox),
+    };
+    for lod in 0..levels {
+        let job = BlendJob::posed(zero.clone(), lod);
+        let got = engine.evaluate(&prepared, &[job], spec).expect("neutral");
+        assert_eq!(got.kind, Some(BackendKind::Gpu));
+        let crowdmorph::engine::VertexData::Q16(q, _) = got.output.positions else {
+            panic!("q16")
+        };
+        let cpu = prepared
+            .at_level(lod)
+            .q16_reference(qbox)
+            .expect("reference");
+        let differ = q.iter().zip(&cpu).filter(|(a, b)| a != b).count();
+        assert_eq!(differ, 0, "{name} LOD {lod}: {differ} components differ");
+    }
+}
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+fn the_neutral_is_the_same_on_both_engines_skinned_or_not() {
+    let engine = Engine::with_gpu(open_gpu(GpuOptions::default()), BackendChoice::Gpu);
+    neutral_is_the_cpu_engines(&engine, crowdmorph::embedded::default_rig());
+    // The skinned face stands at rest: each vertex by its bones' rest matrices, which are
+    // the identity only up to rounding.
+    neutral_is_the_cpu_engines(&engine, crowdmorph::synthetic::skinned_head());
+}
+
+#[test]
+#[cfg_attr(
+    not(all(crowdmorph_gpu_driver, crowdmorph_test_data)),
+    ignore = "needs a Vulkan adapter and ../shared/data (the shared test rigs)"
+)]
+fn the_neutral_is_the_same_on_both_engines_on_every_real_rig() {
+    let engine = Engine::with_gpu(open_gpu(GpuOptions::default()), BackendChoice::Gpu);
+    let mut files = rig_files();
+    files.push(crate::util::data_dir().join("robot-expressive/RobotExpressive.glb"));
+    for path in files {
+        let rig = load_path(&path, &ImportOptions::default())
+            .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        neutral_is_the_cpu_engines(&engine, rig);
+    }
+}
+
 #[test]
 #[cfg_attr(
     not(crowdmorph_gpu_driver),

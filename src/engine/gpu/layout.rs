@@ -127,22 +127,64 @@ pub struct SkinParams {
 /// four f32 weights.
 pub const INFLUENCE_WORDS: usize = 6;
 
-/// Every vertex's influences as `skin` reads them (vertices of primitives that follow no bone
-/// get weight 0 and are left as blended), all primitives concatenated in evaluation order.
+/// Every vertex's influences as `skin` reads them, all primitives concatenated in evaluation
+/// order, in the order and with the weights the CPU engine sums them (its skin tiles,
+/// `SkinTiles`): per tile of [`crate::engine::cpu::LANES`] vertices, the bones by first
+/// appearance in the tile, a bone a vertex names twice once with the weights summed. With
+/// `skin.wgsl`'s fused multiply-adds in the CPU's order, the device's skin is the CPU's bit for
+/// bit: a skinned rig's neutral, the reference of `q16r` residuals, is the same on both engines.
+/// Vertices that follow no bone get weight 0 and are left as blended (the CPU multiplies them
+/// by 1).
 pub fn pack_influences(rig: &Rig) -> Vec<u32> {
-    let mut words = Vec::with_capacity(rig.vertex_count() * INFLUENCE_WORDS);
-    for p in rig.primitives.iter() {
-        match &p.skin {
-            Some(s) => {
-                for (j, w) in s.joints.iter().zip(&s.weights) {
-                    words.push(u32::from(j[0]) | u32::from(j[1]) << 16);
-                    words.push(u32::from(j[2]) | u32::from(j[3]) << 16);
-                    words.extend(w.iter().map(|x| x.to_bits()));
-                }
-            }
-            None => words.extend(std::iter::repeat_n(0, p.positions.len() * INFLUENCE_WORDS)),
+    use crate::engine::cpu::LANES;
+    use crate::rig::{NO_BONE, for_each_influence};
+    let mut words = vec![0u32; rig.vertex_count() * INFLUENCE_WORDS];
+    // The current tile's bones; the current vertex's (place in the tile, bone, summed weight).
+    let mut tile = (usize::MAX, Vec::<u16>::new());
+    let mut vertex: (usize, Vec<(usize, u16, f32)>) = (usize::MAX, Vec::new());
+    let write = |words: &mut [u32], (v, infl): &mut (usize, Vec<(usize, u16, f32)>)| {
+        if *v == usize::MAX {
+            return;
         }
-    }
+        infl.sort_by_key(|&(at, _, _)| at);
+        let mut ids = [0u16; 4];
+        let mut ws = [0f32; 4];
+        for (k, &(_, bone, w)) in infl.iter().take(4).enumerate() {
+            ids[k] = bone;
+            ws[k] = w;
+        }
+        let o = *v * INFLUENCE_WORDS;
+        words[o] = u32::from(ids[0]) | u32::from(ids[1]) << 16;
+        words[o + 1] = u32::from(ids[2]) | u32::from(ids[3]) << 16;
+        for k in 0..4 {
+            words[o + 2 + k] = ws[k].to_bits();
+        }
+        infl.clear();
+    };
+    for_each_influence(rig, |v, bone, w| {
+        if v != vertex.0 {
+            write(&mut words, &mut vertex);
+            vertex.0 = v;
+        }
+        if v / LANES != tile.0 {
+            tile = (v / LANES, Vec::new());
+        }
+        let at = match tile.1.iter().position(|&b| b == bone) {
+            Some(at) => at,
+            None => {
+                tile.1.push(bone);
+                tile.1.len() - 1
+            }
+        };
+        if bone == NO_BONE {
+            return;
+        }
+        match vertex.1.iter_mut().find(|(_, b, _)| *b == bone) {
+            Some((_, _, sum)) => *sum += w,
+            None => vertex.1.push((at, bone, w)),
+        }
+    });
+    write(&mut words, &mut vertex);
     words
 }
 
