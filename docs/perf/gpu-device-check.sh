@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # The hardware GPU check of issue 26, as one prepared command for a lent device machine (an
 # NVIDIA H100 or H200; see the device tool's README): GPU time at paper scale and on ICT FaceKit
-# up to 16,384 unique heads, f32 and f16 deltas, f32 and q16 output, the HTTP path with the GPU
-# engine, and what the card reported while it ran. About 4 minutes on the device.
+# up to 16,384 unique heads, f32 and f16 deltas, f32, q16 and q16r output (residuals coded on the
+# device), the HTTP path with the GPU engine, and what the card reported while it ran. About 5
+# minutes on the device.
 #
 # Prepare here (the device has neither ../shared nor, perhaps, Rust):
 #
@@ -12,7 +13,7 @@
 #   cp ../shared/data/ict-facekit/ict_facekit_53.glb .device/
 #   # and the Vulkan loader, as the device README says (.gl, carried too)
 #
-# Then one `run`, carry [".device", ".gl"], timeout_s 420:
+# Then one `run`, carry [".device", ".gl"], timeout_s 480:
 #
 #   for f in .gl/*.deb; do dpkg -x $f /; done; ldconfig; bash docs/perf/gpu-device-check.sh
 #
@@ -49,10 +50,10 @@ DMON=$!
 "$BIN" inspect "$ICT" --backend auto --json >"$OUT/inspect.json" 2>"$OUT/log.txt"
 
 # GPU time, copy+map and host apart, up to 16,384 unique heads: paper scale and ICT, with f32
-# deltas (q16 and f32 output) and f16 deltas (q16 output). Memory: most of the card.
+# deltas (q16, q16r and f32 output) and f16 deltas (q16 output). Memory: most of the card.
 MEM=$((60 << 30))
 {
-  for run in "--format q16" "--format f32" "--format q16 --gpu-deltas f16"; do
+  for run in "--format q16" "--format q16r" "--format f32" "--format q16 --gpu-deltas f16"; do
     echo "== bench gpu $run"
     # shellcheck disable=SC2086
     timeout 150 "$BIN" bench gpu --backend gpu --rig "$ICT" --unique "$UNIQUE" \
@@ -62,7 +63,7 @@ MEM=$((60 << 30))
 
 # End to end through HTTP with the GPU engine: 1,024 unique ICT heads a request, 8 connections.
 {
-  for fmt in q16 f32; do
+  for fmt in q16 q16r f32; do
     echo "== bench http --format $fmt"
     timeout 60 "$BIN" bench http --rig "$ICT" --heads "$HEADS" --unique "$HEADS" --format $fmt \
       --clients 8 --backend gpu --max-gpu-memory $MEM --seconds "$HTTP_SECONDS"

@@ -7,7 +7,8 @@
 //! `--unique 1,100,4096,16384` measures crowds of that many unique heads instead (a batch the
 //! size of a busy server's), with the round trip split into the passes, the copy to staging
 //! memory and its mapping, and the host's copy out of it; `--format q16` has the device write
-//! the wire's 16-bit format.
+//! the wire's 16-bit format, `--format q16r` the residual planes too (the row then also times
+//! what coding them on the host would cost, as the CPU engine does).
 
 use std::path::Path;
 use std::time::Instant;
@@ -17,7 +18,8 @@ use serde::Serialize;
 
 use super::sample::Samples;
 use crate::engine::{
-    BackendInfo, BlendJob, BlendOutput, Engine, OutputSpec, Precision, PreparedRig,
+    BackendInfo, BlendJob, BlendOutput, Engine, OutputSpec, Precision, PreparedRig, Q16Reference,
+    code_residuals,
 };
 use crate::lod::plot::{Plot, Series};
 use crate::plan::{JobKey, Plan};
@@ -40,7 +42,7 @@ pub struct SceneResult {
     pub shapes: u32,
     /// Percentage of the rig's shapes.
     pub shape_percent: f64,
-    /// Output format of the batch (`f32`, `f16`, `q16`).
+    /// Output format of the batch (`f32`, `f16`, `q16`, `q16r`).
     pub format: String,
     /// Bytes of the batch's output (positions) in that format.
     pub output_bytes: u64,
@@ -59,6 +61,9 @@ pub struct SceneResult {
     pub heads_per_s: f64,
     /// Output bytes per second of host copy time.
     pub host_bytes_per_s: Option<f64>,
+    /// `q16r`: median host time to code the batch's q16 positions as residual planes, on
+    /// every core (what the CPU engine spends, and the GPU engine did before `pack_q16r`).
+    pub host_coding_ms: Option<f64>,
 }
 
 /// The device's limits that bound a batch.
@@ -117,7 +122,8 @@ pub struct GpuBenchOptions {
     /// Instead of the paper's scenes: one scene of this many unique heads each, at LOD 0, on a
     /// clip long enough that every head is a different frame.
     pub unique: Vec<usize>,
-    /// Output format: `f32`, `f16` or `q16` (in each rig's quantization box).
+    /// Output format: `f32`, `f16`, `q16` (in each rig's quantization box) or `q16r` (its
+    /// positions as residual planes against the neutral).
     pub format: crowdmorph_proto::Format,
 }
 
@@ -170,6 +176,7 @@ pub fn bench_gpu(engine: &Engine, rigs: &[Rig], opt: &GpuBenchOptions) -> Result
         let prepared = engine
             .prepare(std::sync::Arc::new(rig.clone()))
             .with_context(|| format!("preparing {}", rig.name))?;
+        let residuals = opt.format == crowdmorph_proto::Format::Q16R;
         resident.push(Resident {
             rig: rig.name.clone(),
             device_bytes: prepared.memory().device_bytes as u64,
@@ -180,6 +187,12 @@ pub fn bench_gpu(engine: &Engine, rigs: &[Rig], opt: &GpuBenchOptions) -> Result
                 continue;
             }
             bar.set_message(format!("{} {name} LOD {lod}", rig.name));
+            let reference = match precision {
+                Precision::Q16(b) if residuals => {
+                    Some(prepared.at_level(*lod).q16_reference(b)?.into())
+                }
+                _ => None,
+            };
             let scene = Scene {
                 name,
                 heads: *heads,
@@ -187,6 +200,7 @@ pub fn bench_gpu(engine: &Engine, rigs: &[Rig], opt: &GpuBenchOptions) -> Result
                 clip,
                 lod: *lod,
                 precision,
+                reference,
             };
             scenes.push(measure(engine, &prepared, &scene, opt.seconds)?);
             bar.inc(1);
@@ -257,6 +271,8 @@ struct Scene<'a> {
     clip: u32,
     lod: u32,
     precision: Precision,
+    /// `q16r`'s reference.
+    reference: Option<Q16Reference>,
 }
 
 fn measure(
@@ -280,7 +296,15 @@ fn measure(
     // per run would time its page faults, not the engine. The first run warms it, and the
     // GPU's pipelines and slot buffers.
     let mut out = BlendOutput::default();
-    engine.evaluate_into(prepared, &jobs, spec, &mut out)?;
+    let evaluate = |out: &mut BlendOutput| {
+        let begun = engine.begin(prepared, &jobs, spec, scene.reference.clone())?;
+        engine.finish_into(begun, prepared, &jobs, spec, out)
+    };
+    evaluate(&mut out)?;
+    let host_coding_ms = match &scene.reference {
+        Some(r) => Some(host_coding(engine, prepared, &jobs, spec, r)?),
+        None => None,
+    };
     let mut round = Vec::new();
     let mut gpu = Vec::new();
     let mut host = Vec::new();
@@ -288,7 +312,7 @@ fn measure(
     let start = Instant::now();
     while round.len() < 3 || (start.elapsed().as_secs_f64() < seconds && round.len() < 100) {
         let t = Instant::now();
-        let (timings, _) = engine.evaluate_into(prepared, &jobs, spec, &mut out)?;
+        let (timings, _) = evaluate(&mut out)?;
         let ms = t.elapsed().as_secs_f64() * 1e3;
         round.push(ms);
         let g = timings.gpu_ns.map(|ns| ns as f64 / 1e6);
@@ -315,10 +339,11 @@ fn measure(
         lod,
         shapes,
         shape_percent: 100.0 * f64::from(shapes) / rig.targets.len().max(1) as f64,
-        format: match scene.precision {
-            Precision::F32 => "f32",
-            Precision::F16 => "f16",
-            Precision::Q16(_) => "q16",
+        format: match (scene.precision, &scene.reference) {
+            (Precision::F32, _) => "f32",
+            (Precision::F16, _) => "f16",
+            (Precision::Q16(_), None) => "q16",
+            (Precision::Q16(_), Some(_)) => "q16r",
         }
         .to_string(),
         output_bytes,
@@ -329,7 +354,30 @@ fn measure(
         unique_heads_per_gpu_s: gpu_ms.map(|ms| plan.jobs.len() as f64 / (ms / 1e3)),
         heads_per_s: scene.heads as f64 / (round_trip_ms / 1e3),
         host_bytes_per_s: host_ms.map(|ms| output_bytes as f64 / (ms / 1e3).max(1e-12)),
+        host_coding_ms,
     })
+}
+
+/// Median host time to code `jobs`' q16 positions as residual planes against `reference`
+/// (each run codes a fresh copy of the same q16 output, copied outside the timing).
+fn host_coding(
+    engine: &Engine,
+    prepared: &PreparedRig,
+    jobs: &[BlendJob],
+    spec: OutputSpec,
+    reference: &[i16],
+) -> Result<f64> {
+    let mut q16 = BlendOutput::default();
+    engine.evaluate_into(prepared, jobs, spec, &mut q16)?;
+    let mut work = q16.positions.clone();
+    let mut times = Vec::new();
+    for _ in 0..7 {
+        work.clone_from(&q16.positions);
+        let t = Instant::now();
+        code_residuals(&mut work, reference)?;
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    Ok(Samples::new(times).median())
 }
 
 /// The table as text.
@@ -379,7 +427,7 @@ pub fn report_text(r: &GpuBenchReport) -> String {
         .unwrap_or(0)
         .max(16);
     s += &format!(
-        "{:<w$} {:<26} {:>6} {:>6} {:>4} {:>10} {:>10} {:>9} {:>12} {:>16} {:>10}\n",
+        "{:<w$} {:<26} {:>6} {:>6} {:>4} {:>10} {:>10} {:>9} {:>12} {:>16} {:>10}{}\n",
         "rig",
         "scene",
         "unique",
@@ -390,11 +438,16 @@ pub fn report_text(r: &GpuBenchReport) -> String {
         "host ms",
         "round-trip ms",
         "unique heads/GPU s",
-        "host MB/s"
+        "host MB/s",
+        if r.scenes.iter().any(|sc| sc.host_coding_ms.is_some()) {
+            "  host coding ms"
+        } else {
+            ""
+        }
     );
     for sc in &r.scenes {
         s += &format!(
-            "{:<w$} {:<26} {:>6} {:>5.0}% {:>4} {:>10} {:>10} {:>9} {:>12.3} {:>16} {:>10}\n",
+            "{:<w$} {:<26} {:>6} {:>5.0}% {:>4} {:>10} {:>10} {:>9} {:>12.3} {:>16} {:>10}{}\n",
             sc.rig,
             sc.scene,
             sc.unique,
@@ -408,6 +461,8 @@ pub fn report_text(r: &GpuBenchReport) -> String {
                 .map_or("-".into(), |v| format!("{v:.0}")),
             sc.host_bytes_per_s
                 .map_or("-".into(), |v| format!("{:.0}", v / 1e6)),
+            sc.host_coding_ms
+                .map_or(String::new(), |v| format!(" {v:>15.3}")),
         );
     }
     s
