@@ -145,9 +145,15 @@ unsafe impl Lanes for Portable {
     }
     #[inline(always)]
     unsafe fn mul_add(a: Self, b: Self, c: Self) -> Self {
+        // Fused, as the AVX kernels' and the GPU's `fma()`: every kernel family then rounds
+        // alike, and a skinned rig's neutral (the reference of q16r residuals) is the GPU's
+        // bit for bit. Native on aarch64. On x86 this family runs only without AVX2 (no FMA
+        // instruction since 2013's CPUs lacks it) or when forced: there each lane is a call to
+        // libm's fmaf, about 10× slower (`CROWDMORPH_SIMD=portable bench cpu` on an AVX-512
+        // VM), which correctness is worth on a fallback.
         let mut r = c.0;
         for ((r, a), b) in r.iter_mut().zip(a.0).zip(b.0) {
-            *r += a * b;
+            *r = a.mul_add(b, *r);
         }
         Portable(r)
     }
