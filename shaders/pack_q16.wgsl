@@ -84,8 +84,8 @@ fn pack_q16r(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let per_job = params.per_job;
     let bytes = 2u * params.count;
-    // Where the word's first byte is (one division a word: integer division is slow on
-    // GPUs and on lavapipe alike), then byte by byte onwards: the next component, the next plane, the
+    // Where the word's first byte is (one division and one remainder a word: integer
+    // division is slow on GPUs and on lavapipe alike), then byte by byte onwards: the next component, the next plane, the
     // next job. A job's components start at an x, so the axis restarts at 0 with each plane.
     let b = 4u * i;
     var job = b / (2u * per_job);

@@ -10,7 +10,9 @@
 // as blended. The host resolves each unique job's bone matrices once (clones share the job),
 // so this pass is a gather and twelve multiply-adds per influence. The influences come in the
 // CPU's order (`layout::pack_influences`) and are summed with the same fused multiply-adds, so
-// skinned positions are the CPU engine's bit for bit.
+// the same blended positions skin to the CPU engine's bit for bit where the driver fuses
+// `fma()` (NVIDIA's and lavapipe do; WGSL allows an unfused one): a skinned rig's neutral, the
+// reference of q16r residuals, is then the same on both engines.
 
 struct Params {
     // Vertices of the rig: the stride per job is vertices * 3.
@@ -81,8 +83,8 @@ fn skin(@builtin(global_invocation_id) gid: vec3<u32>) {
             continue;
         }
         let b = (job * params.bones + ids[k]) * 6u;
-        // Fused multiply-adds in the CPU's order (`skin_lanes`, `skin_row`), so that the sum
-        // is its bit for bit (the influences come in its order too).
+        // Fused multiply-adds in the CPU's order (`skin_lanes`, `skin_row`), the influences in
+        // its order too.
         let w = vec3<f32>(ws[k]);
         sp = fma(w, vec3<f32>(row(bones[b], p), row(bones[b + 1u], p), row(bones[b + 2u], p)), sp);
         if skin_normals {

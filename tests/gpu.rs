@@ -493,56 +493,36 @@ fn consecutive_batches_overlap_and_results_stay_on_the_device_without_readback()
     assert_eq!(again.kind, Some(BackendKind::Gpu));
 }
 
-#[test]
-#[cfg_attr(
-    not(crowdmorph_gpu_driver),
-    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
-)]
-fn the_device_codes_q16_residuals_as_the_host_does_across_sub_batches() {
-    use crowdmorph::engine::{EngineError, Q16Reference, VertexData, code_residuals};
-    // 256 KiB bindings hold three of the embedded head's jobs (87 KB of f32 each): the batch
-    // runs in sub-batches, each coding its jobs into its own staging region.
-    let engine = Engine::with_gpu(
-        open_gpu(GpuOptions {
-            max_binding: Some(256 << 10),
-            ..GpuOptions::default()
-        }),
-        BackendChoice::Gpu,
-    );
-    let rig = with_random_clip(crowdmorph::embedded::default_rig(), 7);
-    let jobs = random_jobs(&rig, 5, 13);
+/// Codes `jobs` of `rig` as q16r on `engine`'s device against a random reference (so that
+/// differences wrap and every zigzag case occurs; the server's, the neutral, gives small
+/// residuals only) and checks the planes against the host's coding of the device's own q16,
+/// bit for bit, and a client's decoding, job by job.
+fn device_codes_residuals(engine: &Engine, rig: Rig, jobs: &[BlendJob], normals: bool) {
+    use crowdmorph::engine::{Q16Reference, VertexData, code_residuals};
     let qbox = crowdmorph::server::registry::quantization_box(&rig);
+    let name = rig.name.clone();
     let prepared = engine.prepare(Arc::new(rig)).expect("upload");
     let spec = OutputSpec {
-        normals: true,
+        normals,
         precision: Precision::Q16(qbox),
     };
-    let plain = engine.evaluate(&prepared, &jobs, spec).expect("q16");
+    let plain = engine.evaluate(&prepared, jobs, spec).expect("q16");
     let v3 = plain.output.vertices * 3;
-    // Planes of a job start mid-word (the device works out each byte on its own).
-    assert_ne!(
-        v3 % 4,
-        0,
-        "the embedded head no longer has an odd component count"
-    );
-    // A reference of random values, so that differences wrap and every zigzag case occurs;
-    // the server's (the neutral) gives small residuals only.
     let mut rng = Rng(3);
     let reference: Q16Reference = (0..v3).map(|_| rng.next_u64() as i16).collect();
     let coded = engine
-        .submit_coded(&prepared, &jobs, spec, true, Some(reference.clone()))
+        .submit_coded(&prepared, jobs, spec, true, Some(reference.clone()))
         .expect("submit")
         .wait()
         .expect("wait");
     assert_eq!(coded.kind, Some(BackendKind::Gpu));
     let mut expected = plain.output.positions.clone();
     code_residuals(&mut expected, &reference).expect("host coding");
-    assert_eq!(coded.output.positions, expected, "residual planes");
+    assert_eq!(coded.output.positions, expected, "{name}: residual planes");
     assert_eq!(
         coded.output.normals, plain.output.normals,
-        "normals stay q16"
+        "{name}: normals stay q16"
     );
-    // And a client decodes them to the q16 values, job by job.
     let VertexData::Q16(q, _) = &plain.output.positions else {
         panic!("q16 positions")
     };
@@ -551,11 +531,48 @@ fn the_device_codes_q16_residuals_as_the_host_does_across_sub_batches() {
         let decoded =
             crowdmorph_proto::q16r_decode(&planes[2 * j * v3..2 * (j + 1) * v3], &reference)
                 .expect("decodes");
-        assert_eq!(decoded, q[j * v3..(j + 1) * v3], "job {j}");
+        assert_eq!(decoded, q[j * v3..(j + 1) * v3], "{name}: job {j}");
     }
+}
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+fn the_device_codes_q16_residuals_as_the_host_does_across_sub_batches() {
+    use crowdmorph::engine::{EngineError, Q16Reference};
+    // 128 KiB bindings hold five jobs (24 KB of f32 each) of a rig of 2,001 vertices: the 16
+    // jobs run in sub-batches of 5, 5, 5 and 1. With 6,003 components a job (odd), every odd
+    // job's planes start in the middle of a word, a word holds the end of one job's high plane
+    // and the start of the next job's low plane, and each sub-batch ends in half a word.
+    let engine = Engine::with_gpu(
+        open_gpu(GpuOptions {
+            max_binding: Some(128 << 10),
+            ..GpuOptions::default()
+        }),
+        BackendChoice::Gpu,
+    );
+    let odd = crowdmorph::synthetic::banded_rig("odd", 2001, 50, 40);
+    assert_eq!(odd.vertex_count() % 2, 1);
+    let jobs = random_jobs(&odd, 5, 13);
+    assert_eq!(jobs.len(), 16);
+    device_codes_residuals(&engine, odd.clone(), &jobs, false);
+    // With recomputed normals (which stay q16) on the embedded head, in one batch: 21,786
+    // components a job, so each job's high plane starts in the middle of a word.
+    let head = with_random_clip(crowdmorph::embedded::default_rig(), 7);
+    let head_jobs = random_jobs(&head, 11, 9);
+    let whole = Engine::with_gpu(open_gpu(GpuOptions::default()), BackendChoice::Gpu);
+    device_codes_residuals(&whole, head, &head_jobs, true);
     // A reference of the wrong size is refused before anything is submitted, and the device
     // stays in use.
-    let short: Q16Reference = reference[..v3 - 1].into();
+    let qbox = crowdmorph::server::registry::quantization_box(&odd);
+    let prepared = engine.prepare(Arc::new(odd)).expect("upload");
+    let spec = OutputSpec {
+        normals: false,
+        precision: Precision::Q16(qbox),
+    };
+    let short: Q16Reference = vec![0i16; 6002].into();
     let refused = engine.submit_coded(&prepared, &jobs, spec, true, Some(short));
     assert!(
         matches!(refused, Err(EngineError::Residuals(_))),

@@ -13,7 +13,8 @@
 #   cp ../shared/data/ict-facekit/ict_facekit_53.glb .device/
 #   # and the Vulkan loader, as the device README says (.gl, carried too)
 #
-# Then one `run`, carry [".device", ".gl"], timeout_s 480:
+# Then one `run`, carry [".device", ".gl"], timeout_s 600 (its steps' own timeouts add up to
+# 590 s; a normal run takes about 5 minutes):
 #
 #   for f in .gl/*.deb; do dpkg -x $f /; done; ldconfig; bash docs/perf/gpu-device-check.sh
 #
@@ -56,7 +57,7 @@ MEM=$((60 << 30))
   for run in "--format q16" "--format q16r" "--format f32" "--format q16 --gpu-deltas f16"; do
     echo "== bench gpu $run"
     # shellcheck disable=SC2086
-    timeout 150 "$BIN" bench gpu --backend gpu --rig "$ICT" --unique "$UNIQUE" \
+    timeout 110 "$BIN" bench gpu --backend gpu --rig "$ICT" --unique "$UNIQUE" \
       --max-gpu-memory $MEM $run --seconds "$SECONDS_EACH"
   done
 } >"$OUT/bench-gpu.txt" 2>>"$OUT/log.txt"
@@ -65,7 +66,7 @@ MEM=$((60 << 30))
 {
   for fmt in q16 q16r f32; do
     echo "== bench http --format $fmt"
-    timeout 60 "$BIN" bench http --rig "$ICT" --heads "$HEADS" --unique "$HEADS" --format $fmt \
+    timeout 50 "$BIN" bench http --rig "$ICT" --heads "$HEADS" --unique "$HEADS" --format $fmt \
       --clients 8 --backend gpu --max-gpu-memory $MEM --seconds "$HTTP_SECONDS"
   done
 } >"$OUT/bench-http.txt" 2>>"$OUT/log.txt"

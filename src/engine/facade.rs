@@ -924,6 +924,9 @@ fn check_reference(
             }
         )));
     }
+    if per_job == 0 {
+        return Err(EngineError::Residuals("a rig without vertices".into()));
+    }
     if reference.len() != per_job {
         return Err(EngineError::Residuals(format!(
             "a reference of {} components for jobs of {per_job}",

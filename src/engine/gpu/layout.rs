@@ -130,11 +130,11 @@ pub const INFLUENCE_WORDS: usize = 6;
 /// Every vertex's influences as `skin` reads them, all primitives concatenated in evaluation
 /// order, in the order and with the weights the CPU engine sums them (its skin tiles,
 /// `SkinTiles`): per tile of [`crate::engine::cpu::LANES`] vertices, the bones by first
-/// appearance in the tile, a bone a vertex names twice once with the weights summed. With
-/// `skin.wgsl`'s fused multiply-adds in the CPU's order, the device's skin is the CPU's bit for
-/// bit: a skinned rig's neutral, the reference of `q16r` residuals, is the same on both engines.
-/// Vertices that follow no bone get weight 0 and are left as blended (the CPU multiplies them
-/// by 1).
+/// appearance in the tile, a bone a vertex names twice once with the weights summed (and left
+/// out where they cancel, as the CPU's zero-weight terms change nothing). With `skin.wgsl`'s
+/// fused multiply-adds in the CPU's order, a skinned rig's neutral, the reference of `q16r`
+/// residuals, is the same on both engines. Vertices that follow no bone get weight 0 and are
+/// left as blended (the CPU multiplies them by 1).
 pub fn pack_influences(rig: &Rig) -> Vec<u32> {
     use crate::engine::cpu::LANES;
     use crate::rig::{NO_BONE, for_each_influence};
@@ -146,6 +146,7 @@ pub fn pack_influences(rig: &Rig) -> Vec<u32> {
         if *v == usize::MAX {
             return;
         }
+        infl.retain(|&(_, _, w)| w != 0.0);
         infl.sort_by_key(|&(at, _, _)| at);
         let mut ids = [0u16; 4];
         let mut ws = [0f32; 4];
