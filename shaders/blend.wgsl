@@ -25,6 +25,14 @@
 //
 // The same pass blends normals (base normals + normal deltas, then normalized) when
 // `params.normalize` is 1.
+//
+// With `PACK` set the pass writes the batch's wire format itself, q16 in the box (`pack_q16`'s
+// arithmetic) or binary16 (`pack_f16`'s), into `packed` instead of f32 into `out`: the host
+// does this where nothing reads the f32 positions after the blend (no skin, no normals), which
+// saves writing 12 bytes a vertex and a pass reading them back. Component `i` of the batch is
+// half `i % 2` of word `i / 2`; a word whose halves belong to two invocations (neighbouring
+// vertices, or the last vertex of a job and the first of the next) is or-ed into a word the
+// host cleared, the others are stored whole.
 
 struct Params {
     // Vertices of the whole rig: the output stride per job is vertices * 3.
@@ -59,9 +67,30 @@ struct Params {
 @group(0) @binding(6) var<storage, read> active_count: array<u32>;
 // jobs × vertices × 3 floats.
 @group(0) @binding(7) var<storage, read_write> out: array<f32>;
+// With `PACK`: jobs × vertices × 3 halves, two a word, cleared by the host.
+@group(0) @binding(8) var<storage, read_write> packed: array<atomic<u32>>;
+// With `PACK` 1: the box's quantization, as `pack_q16` takes it.
+@group(0) @binding(9) var<uniform> q16: Q16Params;
 
 // Set for rigs uploaded with binary16 deltas.
 override F16_DELTAS: bool = false;
+// What the pass writes: 0 f32 into `out`, 1 q16 into `packed`, 2 binary16 into `packed`.
+override PACK: u32 = 0u;
+
+// `pack_q16.wgsl`'s parameters (WGSL has no include; `tests/shaders.rs` holds both copies to
+// `layout::Q16PackParams`).
+struct Q16Params {
+    count: u32,
+    row: u32,
+    lo: f32,
+    hi: f32,
+    sub: vec4<f32>,
+    mul: vec4<f32>,
+    add: i32,
+    per_job: u32,
+    _pad1: u32,
+    _pad2: u32,
+}
 
 const TILE: u32 = 64u;
 const GROUP: u32 = 8u;
@@ -77,6 +106,32 @@ var<workgroup> sh_scan: array<u32, TILE>;
 var<workgroup> sh_part: array<u32, 8>;
 var<workgroup> sh_count: u32;
 var<workgroup> sh_total: u32;
+
+// Component `x` on axis `a` as a 16-bit half of the wire format: `pack_q16`'s `quantize`
+// (the same arithmetic, so the same bits) or `pack_f16`'s rounding.
+fn half(x: f32, a: u32) -> u32 {
+    if PACK == 1u {
+        var u = (x - q16.sub[a]) * q16.mul[a];
+        u = select(q16.lo, u, u > q16.lo);
+        u = select(q16.hi, u, u < q16.hi);
+        return bitcast<u32>(i32(round(u)) + q16.add) & 0xffffu;
+    }
+    return pack2x16float(vec2<f32>(x, 0.0)) & 0xffffu;
+}
+
+// Writes components `g`, `g + 1`, `g + 2` of the batch (one vertex of one job) as halves.
+fn write_halves(g: u32, r: vec3<f32>) {
+    let h = array<u32, 3>(half(r.x, 0u), half(r.y, 1u), half(r.z, 2u));
+    if (g & 1u) == 0u {
+        // x and y fill a word; z shares the next with the following vertex's x.
+        atomicStore(&packed[g / 2u], h[0] | (h[1] << 16u));
+        atomicOr(&packed[g / 2u + 1u], h[2]);
+    } else {
+        // x shares a word with the previous vertex's z; y and z fill the next.
+        atomicOr(&packed[g / 2u], h[0] << 16u);
+        atomicStore(&packed[g / 2u + 1u], h[1] | (h[2] << 16u));
+    }
+}
 
 // Lane `lane`'s delta in block `b`.
 fn delta(b: u32, lane: u32) -> vec3<f32> {
@@ -235,6 +290,10 @@ fn blend(
             r = select(vec3<f32>(0.0), r * inverseSqrt(l2), l2 > 0.0);
         }
         let o = job * stride + v * 3u;
+        if PACK != 0u {
+            write_halves(o, r);
+            continue;
+        }
         out[o] = r.x;
         out[o + 1u] = r.y;
         out[o + 2u] = r.z;

@@ -581,6 +581,60 @@ fn the_device_codes_q16_residuals_as_the_host_does_across_sub_batches() {
     assert!(!engine.info().degraded);
 }
 
+#[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+fn the_blend_writes_q16_and_f16_itself_bit_for_bit() {
+    use crowdmorph::engine::VertexData;
+    // Positions only, on an unskinned rig: the blend writes the 16-bit format itself. The odd
+    // rig (2,001 vertices) has words shared by two vertices and by two jobs; 128 KiB bindings
+    // run its 16 jobs in sub-batches of 5, 5, 5 and 1, the last groups of eight short.
+    let engine = Engine::with_gpu(
+        open_gpu(GpuOptions {
+            max_binding: Some(128 << 10),
+            ..GpuOptions::default()
+        }),
+        BackendChoice::Gpu,
+    );
+    let whole = Engine::with_gpu(open_gpu(GpuOptions::default()), BackendChoice::Gpu);
+    let odd = crowdmorph::synthetic::banded_rig("odd", 2001, 50, 40);
+    let head = with_random_clip(crowdmorph::embedded::default_rig(), 7);
+    let paper = paper_scale_rig();
+    for (engine, rig, n) in [(&engine, odd, 13), (&whole, head, 13), (&whole, paper, 19)] {
+        let jobs = random_jobs(&rig, 17, n);
+        let qbox = crowdmorph::server::registry::quantization_box(&rig);
+        let name = rig.name.clone();
+        let prepared = engine.prepare(Arc::new(rig)).expect("upload");
+        let f32_spec = OutputSpec {
+            normals: false,
+            precision: Precision::F32,
+        };
+        let blended = engine.evaluate(&prepared, &jobs, f32_spec).expect("f32");
+        let VertexData::F32(pos) = &blended.output.positions else {
+            panic!("f32 positions")
+        };
+        for precision in [Precision::Q16(qbox), Precision::F16] {
+            let spec = OutputSpec {
+                normals: false,
+                precision,
+            };
+            // Twice: the second batch finds the words of the first in the pooled buffer.
+            for _ in 0..2 {
+                let got = engine.evaluate(&prepared, &jobs, spec).expect("16-bit");
+                assert_eq!(got.kind, Some(BackendKind::Gpu));
+                assert_eq!(
+                    got.output.positions,
+                    VertexData::encode(pos, precision, false),
+                    "{name} {precision:?}: the device's encoding of its own f32 blend"
+                );
+            }
+        }
+    }
+    assert!(!engine.info().degraded && !whole.info().degraded);
+}
+
 /// What `q16r` relies on (proto/README.md): the reference a client fetches from a server, its
 /// engine's q16 frame of the neutral (every weight 0), is the CPU engine's, which the server
 /// codes against, bit for bit, at every LOD level.

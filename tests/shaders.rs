@@ -60,3 +60,56 @@ fn each_pass_has_the_entry_point_its_cpu_mirror_names() {
         }
     }
 }
+
+/// Member offsets and size of the WGSL struct `name` in `file`, as naga lays it out.
+fn wgsl_struct(file: &str, name: &str) -> (Vec<(String, u32)>, u32) {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("shaders")
+        .join(file);
+    let src = std::fs::read_to_string(&path).expect("read shader");
+    let module = naga::front::wgsl::parse_str(&src).expect("parse");
+    module
+        .types
+        .iter()
+        .find_map(|(_, t)| match &t.inner {
+            naga::TypeInner::Struct { members, span } if t.name.as_deref() == Some(name) => Some((
+                members
+                    .iter()
+                    .map(|m| (m.name.clone().unwrap_or_default(), m.offset))
+                    .collect(),
+                *span,
+            )),
+            _ => None,
+        })
+        .unwrap_or_else(|| panic!("{file} has no struct {name}"))
+}
+
+#[test]
+fn both_copies_of_the_q16_parameters_are_the_hosts_layout() {
+    // `pack_q16.wgsl` and `blend.wgsl` each declare the uniform `layout::Q16PackParams` fills
+    // (WGSL has no include): both must be its layout, member by member.
+    use crowdmorph::engine::gpu::layout::Q16PackParams;
+    use std::mem::offset_of;
+    let host = [
+        ("count", offset_of!(Q16PackParams, count)),
+        ("row", offset_of!(Q16PackParams, row)),
+        ("lo", offset_of!(Q16PackParams, lo)),
+        ("hi", offset_of!(Q16PackParams, hi)),
+        ("sub", offset_of!(Q16PackParams, sub)),
+        ("mul", offset_of!(Q16PackParams, mul)),
+        ("add", offset_of!(Q16PackParams, add)),
+        ("per_job", offset_of!(Q16PackParams, per_job)),
+    ];
+    for (file, name) in [("pack_q16.wgsl", "Params"), ("blend.wgsl", "Q16Params")] {
+        let (members, span) = wgsl_struct(file, name);
+        assert_eq!(
+            span as usize,
+            size_of::<Q16PackParams>(),
+            "{file} {name}: size"
+        );
+        for (field, at) in host {
+            let wgsl = members.iter().find(|(m, _)| m == field).map(|(_, o)| *o);
+            assert_eq!(wgsl, Some(at as u32), "{file} {name}.{field}");
+        }
+    }
+}

@@ -21,7 +21,9 @@
 //! 5. `pack_f16` or `pack_q16` — binary16 or int16 (q16) output on request, so that half the
 //!    bytes cross the bus and the host does not encode; `pack_q16r` writes q16 positions as
 //!    the wire's residual planes against a reference ([`Readout::Residuals`]), so the host
-//!    does not code them either.
+//!    does not code them either. Where nothing reads f32 positions after the blend (no skin,
+//!    no normals, no residuals) `blend` writes q16 or binary16 itself (its `PACK` override)
+//!    and there is no pack pass: 6 bytes a vertex written instead of 12 + 12 + 6.
 //!
 //! Results are copied to a mappable staging buffer only when the caller wants vertex buffers;
 //! staging buffers live in a small pool, so a batch can be recorded and submitted while the
@@ -184,16 +186,52 @@ impl Health {
 
 struct Pipelines {
     active: wgpu::ComputePipeline,
-    blend: wgpu::ComputePipeline,
+    blend: BlendPipelines,
     /// `blend` reading binary16 deltas (its `F16_DELTAS` override set), made only on a
     /// context whose rigs store them ([`GpuOptions::deltas`]).
-    blend_f16: Option<wgpu::ComputePipeline>,
+    blend_f16: Option<BlendPipelines>,
     face: wgpu::ComputePipeline,
     vertex: wgpu::ComputePipeline,
     pack: wgpu::ComputePipeline,
     pack_q16: wgpu::ComputePipeline,
     pack_q16r: wgpu::ComputePipeline,
     skin: wgpu::ComputePipeline,
+}
+
+/// `blend` for each output it writes (its `PACK` override): f32, or the 16-bit wire formats
+/// written by the blend itself where nothing reads f32 positions after it.
+struct BlendPipelines {
+    f32: wgpu::ComputePipeline,
+    q16: wgpu::ComputePipeline,
+    f16: wgpu::ComputePipeline,
+}
+
+impl BlendPipelines {
+    fn new(device: &wgpu::Device, module: &wgpu::ShaderModule, f16_deltas: bool) -> Self {
+        let deltas = f64::from(u8::from(f16_deltas));
+        let make = |pack: f64| {
+            pipeline_with(
+                device,
+                module,
+                "blend",
+                &[("F16_DELTAS", deltas), ("PACK", pack)],
+            )
+        };
+        BlendPipelines {
+            f32: make(0.0),
+            q16: make(1.0),
+            f16: make(2.0),
+        }
+    }
+
+    /// The pipeline writing `precision` itself, or f32 (`fused` false).
+    fn writing(&self, precision: Precision, fused: bool) -> &wgpu::ComputePipeline {
+        match (precision, fused) {
+            (Precision::Q16(_), true) => &self.q16,
+            (Precision::F16, true) => &self.f16,
+            _ => &self.f32,
+        }
+    }
 }
 
 /// An open device with the engine's pipelines.
@@ -402,9 +440,9 @@ impl GpuContext {
         );
         let pipelines = Pipelines {
             active: pipeline(&device, &active, "build_active"),
-            blend: pipeline(&device, &blend, "blend"),
+            blend: BlendPipelines::new(&device, &blend, false),
             blend_f16: (options.deltas == DeltaFormat::F16)
-                .then(|| pipeline_with(&device, &blend, "blend", &[("F16_DELTAS", 1.0)])),
+                .then(|| BlendPipelines::new(&device, &blend, true)),
             face: pipeline(&device, &face, "face_normals"),
             vertex: pipeline(&device, &vertex, "vertex_normals"),
             pack: pipeline(&device, &pack, "pack_f16"),
@@ -1587,13 +1625,32 @@ impl GpuContext {
                 },
             ],
         });
-        // A rig has f16 deltas only on a context made for them, which has this pipeline.
-        let blend = match (rig.deltas, &p.blend_f16) {
+        // A rig has f16 deltas only on a context made for them, which has these pipelines.
+        let blends = match (rig.deltas, &p.blend_f16) {
             (DeltaFormat::F16, Some(f16)) => f16,
             _ => &p.blend,
         };
+        // The blend writes the 16-bit wire format of the positions itself where nothing reads
+        // them in f32 after it: no skin, no normals (recomputed from them, or blended by a
+        // second dispatch whose output the pack pass would then read), no residual coding.
+        let fused = matches!(spec.precision, Precision::Q16(_) | Precision::F16)
+            && !spec.normals
+            && rig.skin.is_none()
+            && r.reference.is_none();
+        let blend = blends.writing(spec.precision, fused);
+        // Its quantization (unused unless it writes q16; the binding is there either way).
+        let blend_q16 = self.uniform(&match spec.precision {
+            Precision::Q16(b) => Q16PackParams::new(
+                &crate::engine::Q16Params::new(b, false),
+                jobs * rig.vertices * 3,
+                0,
+                rig.vertices * 3,
+            ),
+            _ => Q16PackParams::default(),
+        });
         let blend_groups = |chunks: &[GpuChunk],
                             out: &wgpu::Buffer,
+                            packed: &wgpu::Buffer,
                             normalize: u32|
          -> Vec<(wgpu::BindGroup, [u32; 3])> {
             chunks
@@ -1624,15 +1681,17 @@ impl GpuContext {
                             entry(5, &slot.active_slots),
                             entry(6, &slot.active_count),
                             entry(7, out),
+                            entry(8, packed),
+                            entry(9, &blend_q16),
                         ],
                     );
                     (bg, [groups, tiles_y, tiles_z])
                 })
                 .collect()
         };
-        let pos_groups = blend_groups(&rig.positions, &slot.positions, 0);
+        let pos_groups = blend_groups(&rig.positions, &slot.positions, &slot.packed_positions, 0);
         let nrm_groups = if spec.normals {
-            blend_groups(&rig.normals, &slot.normals, 1)
+            blend_groups(&rig.normals, &slot.normals, &slot.packed_normals, 1)
         } else {
             Vec::new()
         };
@@ -1734,7 +1793,14 @@ impl GpuContext {
             _ => &p.pack,
         };
         let mut pack_groups = Vec::new();
-        let mut buffers = vec![(false, &slot.positions, &slot.packed_positions)];
+        let mut buffers = Vec::new();
+        if !fused {
+            buffers.push((false, &slot.positions, &slot.packed_positions));
+        } else {
+            // The blend or-s the halves that two invocations share into cleared words.
+            let bytes = (u64::from(count) * 2).next_multiple_of(4);
+            encoder.clear_buffer(&slot.packed_positions, 0, Some(bytes));
+        }
         if spec.normals {
             buffers.push((true, &slot.normals, &slot.packed_normals));
         }
