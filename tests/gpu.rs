@@ -599,10 +599,23 @@ fn the_blend_writes_q16_and_f16_itself_bit_for_bit() {
         BackendChoice::Gpu,
     );
     let whole = Engine::with_gpu(open_gpu(GpuOptions::default()), BackendChoice::Gpu);
+    // And the pipelines that read binary16 deltas.
+    let halves = Engine::with_gpu(
+        open_gpu(GpuOptions {
+            deltas: DeltaFormat::F16,
+            ..GpuOptions::default()
+        }),
+        BackendChoice::Gpu,
+    );
     let odd = crowdmorph::synthetic::banded_rig("odd", 2001, 50, 40);
     let head = with_random_clip(crowdmorph::embedded::default_rig(), 7);
     let paper = paper_scale_rig();
-    for (engine, rig, n) in [(&engine, odd, 13), (&whole, head, 13), (&whole, paper, 19)] {
+    for (engine, rig, n) in [
+        (&engine, odd.clone(), 13),
+        (&whole, head, 13),
+        (&whole, paper, 19),
+        (&halves, odd, 13),
+    ] {
         let jobs = random_jobs(&rig, 17, n);
         let qbox = crowdmorph::server::registry::quantization_box(&rig);
         let name = rig.name.clone();
@@ -632,7 +645,9 @@ fn the_blend_writes_q16_and_f16_itself_bit_for_bit() {
             }
         }
     }
-    assert!(!engine.info().degraded && !whole.info().degraded);
+    for e in [&engine, &whole, &halves] {
+        assert!(!e.info().degraded, "{:?}", e.info().degraded_reason);
+    }
 }
 
 /// What `q16r` relies on (proto/README.md): the reference a client fetches from a server, its
