@@ -32,7 +32,9 @@
 // saves writing 12 bytes a vertex and a pass reading them back. Component `i` of the batch is
 // half `i % 2` of word `i / 2`; a word whose halves belong to two invocations (neighbouring
 // vertices, or the last vertex of a job and the first of the next) is or-ed into a word the
-// host cleared, the others are stored whole.
+// host cleared, the others are stored whole. `PACK` 3 writes q16r's residual planes against
+// `reference` (`pack_q16r`'s bytes): a vertex's three bytes of each plane start at any byte, so
+// they are or-ed in, and a word of zero bytes is skipped (the buffer is cleared).
 
 struct Params {
     // Vertices of the whole rig: the output stride per job is vertices * 3.
@@ -69,12 +71,15 @@ struct Params {
 @group(0) @binding(7) var<storage, read_write> out: array<f32>;
 // With `PACK`: jobs × vertices × 3 halves, two a word, cleared by the host.
 @group(0) @binding(8) var<storage, read_write> packed: array<atomic<u32>>;
-// With `PACK` 1: the box's quantization, as `pack_q16` takes it.
+// With `PACK` 1 or 3: the box's quantization, as `pack_q16` takes it.
 @group(0) @binding(9) var<uniform> q16: Q16Params;
+// With `PACK` 3: one job's reference q16 values, two a word.
+@group(0) @binding(10) var<storage, read> reference: array<u32>;
 
 // Set for rigs uploaded with binary16 deltas.
 override F16_DELTAS: bool = false;
-// What the pass writes: 0 f32 into `out`, 1 q16 into `packed`, 2 binary16 into `packed`.
+// What the pass writes: 0 f32 into `out`, 1 q16 into `packed`, 2 binary16 into `packed`, 3
+// q16r's residual planes into `packed`.
 override PACK: u32 = 0u;
 
 // `pack_q16.wgsl`'s parameters (WGSL has no include; `tests/shaders.rs` holds both copies to
@@ -110,7 +115,7 @@ var<workgroup> sh_total: u32;
 // Component `x` on axis `a` as a 16-bit half of the wire format: `pack_q16`'s `quantize`
 // (the same arithmetic, so the same bits) or `pack_f16`'s rounding.
 fn half(x: f32, a: u32) -> u32 {
-    if PACK == 1u {
+    if PACK == 1u || PACK == 3u {
         var u = (x - q16.sub[a]) * q16.mul[a];
         u = select(q16.lo, u, u > q16.lo);
         u = select(q16.hi, u, u < q16.hi);
@@ -131,6 +136,40 @@ fn write_halves(g: u32, r: vec3<f32>) {
         atomicOr(&packed[g / 2u], h[0] << 16u);
         atomicStore(&packed[g / 2u + 1u], h[1] | (h[2] << 16u));
     }
+}
+
+// Ors bytes `v` into bytes `b`, `b + 1`, `b + 2` of `packed`: one word, or two.
+fn or_bytes(b: u32, v: array<u32, 3>) {
+    var w = array<u32, 2>(0u, 0u);
+    for (var k = 0u; k < 3u; k++) {
+        let at = b + k;
+        w[at / 4u - b / 4u] |= v[k] << (8u * (at % 4u));
+    }
+    for (var k = 0u; k < 2u; k++) {
+        if w[k] != 0u {
+            atomicOr(&packed[b / 4u + k], w[k]);
+        }
+    }
+}
+
+// Writes component `c` to `c + 2` of job `job` (one vertex) as q16r residual bytes: low bytes
+// into the job's first plane, high bytes into its second (`pack_q16r`'s zigzag).
+fn write_residuals(job: u32, c: u32, r: vec3<f32>) {
+    let per_job = q16.per_job;
+    var lo = array<u32, 3>(0u, 0u, 0u);
+    var hi = array<u32, 3>(0u, 0u, 0u);
+    let q = array<u32, 3>(half(r.x, 0u), half(r.y, 1u), half(r.z, 2u));
+    for (var k = 0u; k < 3u; k++) {
+        let i = c + k;
+        let refq = (reference[i >> 1u] >> (16u * (i & 1u))) & 0xffffu;
+        let d = bitcast<i32>(((q[k] - refq) & 0xffffu) << 16u) >> 16u;
+        let z = bitcast<u32>((d << 1u) ^ (d >> 15u)) & 0xffffu;
+        lo[k] = z & 0xffu;
+        hi[k] = z >> 8u;
+    }
+    let b = 2u * job * per_job + c;
+    or_bytes(b, lo);
+    or_bytes(b + per_job, hi);
 }
 
 // Lane `lane`'s delta in block `b`.
@@ -290,6 +329,10 @@ fn blend(
             r = select(vec3<f32>(0.0), r * inverseSqrt(l2), l2 > 0.0);
         }
         let o = job * stride + v * 3u;
+        if PACK == 3u {
+            write_residuals(job, v * 3u, r);
+            continue;
+        }
         if PACK != 0u {
             write_halves(o, r);
             continue;

@@ -546,6 +546,7 @@ fn the_device_codes_q16_residuals_as_the_host_does_across_sub_batches() {
     // jobs run in sub-batches of 5, 5, 5 and 1. With 6,003 components a job (odd), every odd
     // job's planes start in the middle of a word, a word holds the end of one job's high plane
     // and the start of the next job's low plane, and each sub-batch ends in half a word.
+    // Positions only: the blend codes them itself (`PACK` 3).
     let engine = Engine::with_gpu(
         open_gpu(GpuOptions {
             max_binding: Some(128 << 10),
@@ -559,7 +560,8 @@ fn the_device_codes_q16_residuals_as_the_host_does_across_sub_batches() {
     assert_eq!(jobs.len(), 16);
     device_codes_residuals(&engine, odd.clone(), &jobs, false);
     // With recomputed normals (which stay q16) on the embedded head, in one batch: 21,786
-    // components a job, so each job's high plane starts in the middle of a word.
+    // components a job, so each job's high plane starts in the middle of a word. The blend
+    // writes f32 here and `pack_q16r` codes them.
     let head = with_random_clip(crowdmorph::embedded::default_rig(), 7);
     let head_jobs = random_jobs(&head, 11, 9);
     let whole = Engine::with_gpu(open_gpu(GpuOptions::default()), BackendChoice::Gpu);

@@ -204,6 +204,7 @@ struct BlendPipelines {
     f32: wgpu::ComputePipeline,
     q16: wgpu::ComputePipeline,
     f16: wgpu::ComputePipeline,
+    q16r: wgpu::ComputePipeline,
 }
 
 impl BlendPipelines {
@@ -221,14 +222,22 @@ impl BlendPipelines {
             f32: make(0.0),
             q16: make(1.0),
             f16: make(2.0),
+            q16r: make(3.0),
         }
     }
 
-    /// The pipeline writing `precision` itself, or f32 (`fused` false).
-    fn writing(&self, precision: Precision, fused: bool) -> &wgpu::ComputePipeline {
-        match (precision, fused) {
-            (Precision::Q16(_), true) => &self.q16,
-            (Precision::F16, true) => &self.f16,
+    /// The pipeline writing `precision` itself (q16 as residual planes with `residuals`), or
+    /// f32 (`fused` false).
+    fn writing(
+        &self,
+        precision: Precision,
+        fused: bool,
+        residuals: bool,
+    ) -> &wgpu::ComputePipeline {
+        match (precision, fused, residuals) {
+            (Precision::Q16(_), true, true) => &self.q16r,
+            (Precision::Q16(_), true, false) => &self.q16,
+            (Precision::F16, true, _) => &self.f16,
             _ => &self.f32,
         }
     }
@@ -1630,14 +1639,21 @@ impl GpuContext {
             (DeltaFormat::F16, Some(f16)) => f16,
             _ => &p.blend,
         };
-        // The blend writes the 16-bit wire format of the positions itself where nothing reads
-        // them in f32 after it: no skin, no normals (recomputed from them, or blended by a
-        // second dispatch whose output the pack pass would then read), no residual coding.
+        // The blend writes the 16-bit wire format of the positions (q16r's planes too) itself
+        // where nothing reads them in f32 after it: no skin, no normals (recomputed from them,
+        // or blended by a second dispatch whose output the pack pass would then read).
         let fused = matches!(spec.precision, Precision::Q16(_) | Precision::F16)
             && !spec.normals
-            && rig.skin.is_none()
-            && r.reference.is_none();
-        let blend = blends.writing(spec.precision, fused);
+            && rig.skin.is_none();
+        let blend = blends.writing(spec.precision, fused, r.reference.is_some());
+        // The residual reference, or any small range where there is none (the binding is
+        // there either way).
+        let (reference_at, reference_len) = r.reference.unwrap_or((0, 4));
+        let reference = wgpu::BufferBinding {
+            buffer: &slot.jobs,
+            offset: reference_at,
+            size: std::num::NonZeroU64::new(reference_len),
+        };
         // Its quantization (unused unless it writes q16; the binding is there either way).
         let blend_q16 = self.uniform(&match spec.precision {
             Precision::Q16(b) => Q16PackParams::new(
@@ -1683,6 +1699,10 @@ impl GpuContext {
                             entry(7, out),
                             entry(8, packed),
                             entry(9, &blend_q16),
+                            wgpu::BindGroupEntry {
+                                binding: 10,
+                                resource: wgpu::BindingResource::Buffer(reference.clone()),
+                            },
                         ],
                     );
                     (bg, [groups, tiles_y, tiles_z])
