@@ -22,7 +22,7 @@
 //!    bytes cross the bus and the host does not encode; `pack_q16r` writes q16 positions as
 //!    the wire's residual planes against a reference ([`Readout::Residuals`]), so the host
 //!    does not code them either. Where nothing reads f32 positions after the blend (no skin,
-//!    no normals, no residuals) `blend` writes q16 or binary16 itself (its `PACK` override)
+//!    no normals) `blend` writes q16, binary16 or q16r's planes itself (its `PACK` override)
 //!    and there is no pack pass: 6 bytes a vertex written instead of 12 + 12 + 6.
 //!
 //! Results are copied to a mappable staging buffer only when the caller wants vertex buffers;
@@ -199,7 +199,7 @@ struct Pipelines {
 }
 
 /// `blend` for each output it writes (its `PACK` override): f32, or the 16-bit wire formats
-/// written by the blend itself where nothing reads f32 positions after it.
+/// (q16r's planes too) written by the blend itself where nothing reads f32 positions after it.
 struct BlendPipelines {
     f32: wgpu::ComputePipeline,
     q16: wgpu::ComputePipeline,
