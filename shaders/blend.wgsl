@@ -78,9 +78,8 @@ struct Params {
 
 // Set for rigs uploaded with binary16 deltas.
 override F16_DELTAS: bool = false;
-// What the pass writes: 0 f32 into `out`, 1 q16 into `packed`, 2 binary16 into `packed`, 3
-// q16r's residual planes into `packed`.
-override PACK: u32 = 0u;
+// What `blend_packed` writes into `packed`: 1 q16, 2 binary16, 3 q16r's residual planes.
+override PACK: u32 = 1u;
 
 // `pack_q16.wgsl`'s parameters (WGSL has no include; `tests/shaders.rs` holds both copies to
 // `layout::Q16PackParams`).
@@ -229,17 +228,19 @@ fn place(lane: u32, mine: u32) -> u32 {
     return at;
 }
 
-@compute @workgroup_size(64)
-fn blend(
-    @builtin(workgroup_id) wid: vec3<u32>,
-    @builtin(local_invocation_index) lane: u32,
-) {
-    let g = wid.x;
-    let tile = wid.y + wid.z * params.tiles_y;
-    let tile_ok = tile < params.tiles;
-    let v = (params.tile_begin + tile) * TILE + lane;
-    let has_vertex = tile_ok && v < params.vertices;
+// Eight jobs' blended x, y, z of one vertex: jobs 0-3 in the `0` vectors, 4-7 in the `1`s.
+struct Sums {
+    x0: vec4<f32>,
+    y0: vec4<f32>,
+    z0: vec4<f32>,
+    x1: vec4<f32>,
+    y1: vec4<f32>,
+    z1: vec4<f32>,
+}
 
+// Eq. 1 for vertex `v` (lane `lane` of tile `tile`, `tile_ok` when the tile is in the chunk) and
+// the eight jobs of group `g`. Every invocation of the workgroup calls it (it has barriers).
+fn accumulate(g: u32, tile: u32, tile_ok: bool, lane: u32, has_vertex: bool) -> Sums {
     var x0 = vec4<f32>(0.0);
     var y0 = vec4<f32>(0.0);
     var z0 = vec4<f32>(0.0);
@@ -308,7 +309,37 @@ fn blend(
         }
         workgroupBarrier();
     }
+    return Sums(x0, y0, z0, x1, y1, z1);
+}
 
+// Job `q` of the group (0-7) from `s`, scaled to unit length when blending normals.
+fn job_result(s: Sums, q: u32) -> vec3<f32> {
+    var r: vec3<f32>;
+    if q < 4u {
+        r = vec3<f32>(s.x0[q], s.y0[q], s.z0[q]);
+    } else {
+        r = vec3<f32>(s.x1[q - 4u], s.y1[q - 4u], s.z1[q - 4u]);
+    }
+    if params.normalize == 1u {
+        let l2 = dot(r, r);
+        r = select(vec3<f32>(0.0), r * inverseSqrt(l2), l2 > 0.0);
+    }
+    return r;
+}
+
+// f32 output into `out`. Two entry points rather than one with every binding: each stays
+// within WebGPU's eight storage buffers a stage (this one uses seven, `blend_packed` eight).
+@compute @workgroup_size(64)
+fn blend(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(local_invocation_index) lane: u32,
+) {
+    let g = wid.x;
+    let tile = wid.y + wid.z * params.tiles_y;
+    let tile_ok = tile < params.tiles;
+    let v = (params.tile_begin + tile) * TILE + lane;
+    let has_vertex = tile_ok && v < params.vertices;
+    let s = accumulate(g, tile, tile_ok, lane, has_vertex);
     if !has_vertex {
         return;
     }
@@ -318,27 +349,40 @@ fn blend(
         if job >= params.jobs {
             break;
         }
-        var r: vec3<f32>;
-        if q < 4u {
-            r = vec3<f32>(x0[q], y0[q], z0[q]);
-        } else {
-            r = vec3<f32>(x1[q - 4u], y1[q - 4u], z1[q - 4u]);
-        }
-        if params.normalize == 1u {
-            let l2 = dot(r, r);
-            r = select(vec3<f32>(0.0), r * inverseSqrt(l2), l2 > 0.0);
-        }
+        let r = job_result(s, q);
         let o = job * stride + v * 3u;
-        if PACK == 3u {
-            write_residuals(job, v * 3u, r);
-            continue;
-        }
-        if PACK != 0u {
-            write_halves(o, r);
-            continue;
-        }
         out[o] = r.x;
         out[o + 1u] = r.y;
         out[o + 2u] = r.z;
+    }
+}
+
+// The wire format (`PACK` 1, 2 or 3) into `packed`.
+@compute @workgroup_size(64)
+fn blend_packed(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(local_invocation_index) lane: u32,
+) {
+    let g = wid.x;
+    let tile = wid.y + wid.z * params.tiles_y;
+    let tile_ok = tile < params.tiles;
+    let v = (params.tile_begin + tile) * TILE + lane;
+    let has_vertex = tile_ok && v < params.vertices;
+    let s = accumulate(g, tile, tile_ok, lane, has_vertex);
+    if !has_vertex {
+        return;
+    }
+    let stride = params.vertices * 3u;
+    for (var q = 0u; q < GROUP; q++) {
+        let job = g * GROUP + q;
+        if job >= params.jobs {
+            break;
+        }
+        let r = job_result(s, q);
+        if PACK == 3u {
+            write_residuals(job, v * 3u, r);
+        } else {
+            write_halves(job * stride + v * 3u, r);
+        }
     }
 }

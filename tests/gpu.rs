@@ -826,6 +826,73 @@ fn a_discrete_gpus_budget_defaults_to_most_of_its_memory_and_others_keep_the_fix
     }
 }
 
+#[test]
+#[cfg_attr(
+    not(crowdmorph_gpu_driver),
+    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+)]
+fn every_pass_runs_within_webgpus_default_limits() {
+    // A device that grants only WebGPU's default limits (eight storage buffers a stage among
+    // them), as GL and downlevel adapters may: every pipeline the engine builds must fit, and
+    // every output path must give what an unlimited device gives, bit for bit.
+    use crowdmorph::engine::Q16Reference;
+    use crowdmorph::engine::gpu::GpuContext;
+    let instance =
+        wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+    let adapter = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::VULKAN))
+        .into_iter()
+        .next()
+        .expect("a Vulkan adapter (lavapipe at least)");
+    let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+        label: Some("webgpu defaults"),
+        required_features: adapter.features() & wgpu::Features::TIMESTAMP_QUERY,
+        required_limits: wgpu::Limits::default(),
+        ..Default::default()
+    }))
+    .expect("a device with the default limits");
+    assert_eq!(device.limits().max_storage_buffers_per_shader_stage, 8);
+    let deltas = DeltaFormat::F16;
+    let options = GpuOptions {
+        deltas,
+        ..GpuOptions::default()
+    };
+    let limited = Engine::with_gpu(
+        GpuContext::from_device(device, queue, adapter.get_info(), options),
+        BackendChoice::Gpu,
+    );
+    let full = Engine::with_gpu(open_gpu(options), BackendChoice::Gpu);
+    let odd = crowdmorph::synthetic::banded_rig("odd", 2001, 50, 40);
+    let head = with_random_clip(crowdmorph::embedded::default_rig(), 7);
+    let skinned = crowdmorph::synthetic::skinned_head();
+    for rig in [odd, head, skinned] {
+        let jobs = random_jobs(&rig, 23, 11);
+        let qbox = crowdmorph::server::registry::quantization_box(&rig);
+        let a = limited.prepare(Arc::new(rig.clone())).expect("upload");
+        let b = full.prepare(Arc::new(rig.clone())).expect("upload");
+        let neutral: Q16Reference = a.q16_reference(qbox).expect("reference").into();
+        for precision in [Precision::F32, Precision::F16, Precision::Q16(qbox)] {
+            for normals in [false, true] {
+                let spec = OutputSpec { normals, precision };
+                let reference = matches!(precision, Precision::Q16(_)).then(|| neutral.clone());
+                let run = |e: &Engine, p| {
+                    e.submit_coded(p, &jobs, spec, true, reference.clone())
+                        .expect("submit")
+                        .wait()
+                        .expect("wait")
+                };
+                let (x, y) = (run(&limited, &a), run(&full, &b));
+                assert_eq!(x.kind, Some(BackendKind::Gpu), "{}", rig.name);
+                assert_eq!(x.output, y.output, "{} {spec:?}", rig.name);
+            }
+        }
+    }
+    assert!(
+        !limited.info().degraded,
+        "{:?}",
+        limited.info().degraded_reason
+    );
+}
+
 /// Reads `len` f32 of `buffer` from byte `offset` back to the host (tests only).
 fn read_back(
     ctx: &crowdmorph::engine::gpu::GpuContext,

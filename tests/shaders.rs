@@ -42,7 +42,7 @@ fn each_pass_has_the_entry_point_its_cpu_mirror_names() {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("shaders");
     for (file, entries) in [
         ("active.wgsl", &["build_active"][..]),
-        ("blend.wgsl", &["blend"][..]),
+        ("blend.wgsl", &["blend", "blend_packed"][..]),
         ("face_normals.wgsl", &["face_normals"][..]),
         ("vertex_normals.wgsl", &["vertex_normals"][..]),
         ("skin.wgsl", &["skin"][..]),

@@ -214,12 +214,12 @@ impl BlendPipelines {
             pipeline_with(
                 device,
                 module,
-                "blend",
+                "blend_packed",
                 &[("F16_DELTAS", deltas), ("PACK", pack)],
             )
         };
         BlendPipelines {
-            f32: make(0.0),
+            f32: pipeline_with(device, module, "blend", &[("F16_DELTAS", deltas)]),
             q16: make(1.0),
             f16: make(2.0),
             q16r: make(3.0),
@@ -1646,23 +1646,20 @@ impl GpuContext {
             && !spec.normals
             && rig.skin.is_none();
         let blend = blends.writing(spec.precision, fused, r.reference.is_some());
-        // The residual reference, or any small range where there is none (the binding is
-        // there either way).
-        let (reference_at, reference_len) = r.reference.unwrap_or((0, 4));
-        let reference = wgpu::BufferBinding {
-            buffer: &slot.jobs,
-            offset: reference_at,
-            size: std::num::NonZeroU64::new(reference_len),
-        };
-        // Its quantization (unused unless it writes q16; the binding is there either way).
-        let blend_q16 = self.uniform(&match spec.precision {
-            Precision::Q16(b) => Q16PackParams::new(
-                &crate::engine::Q16Params::new(b, false),
-                jobs * rig.vertices * 3,
-                0,
-                rig.vertices * 3,
-            ),
-            _ => Q16PackParams::default(),
+        // What `blend_packed` reads besides the blend's own bindings: the box (used unless it
+        // writes binary16) and the residual reference (a small range where there is none).
+        let packing = fused.then(|| {
+            let q16 = self.uniform(&match spec.precision {
+                Precision::Q16(b) => Q16PackParams::new(
+                    &crate::engine::Q16Params::new(b, false),
+                    jobs * rig.vertices * 3,
+                    0,
+                    rig.vertices * 3,
+                ),
+                _ => Q16PackParams::default(),
+            });
+            let (at, len) = r.reference.unwrap_or((0, 4));
+            (q16, at, len)
         });
         let blend_groups = |chunks: &[GpuChunk],
                             out: &wgpu::Buffer,
@@ -1686,25 +1683,33 @@ impl GpuContext {
                         normalize,
                         tiles_y,
                     });
-                    let bg = bind(
-                        blend,
-                        &[
-                            entry(0, &params),
-                            entry(1, &c.base),
-                            entry(2, &c.blocks),
-                            entry(3, &c.masks),
-                            entry(4, &slot.active_weights),
-                            entry(5, &slot.active_slots),
-                            entry(6, &slot.active_count),
-                            entry(7, out),
-                            entry(8, packed),
-                            entry(9, &blend_q16),
-                            wgpu::BindGroupEntry {
+                    let mut entries = vec![
+                        entry(0, &params),
+                        entry(1, &c.base),
+                        entry(2, &c.blocks),
+                        entry(3, &c.masks),
+                        entry(4, &slot.active_weights),
+                        entry(5, &slot.active_slots),
+                        entry(6, &slot.active_count),
+                    ];
+                    // `blend` writes f32 into `out`; `blend_packed` the wire format into
+                    // `packed`, with the box and (q16r) the reference.
+                    match &packing {
+                        Some((q16, at, len)) => {
+                            entries.push(entry(8, packed));
+                            entries.push(entry(9, q16));
+                            entries.push(wgpu::BindGroupEntry {
                                 binding: 10,
-                                resource: wgpu::BindingResource::Buffer(reference.clone()),
-                            },
-                        ],
-                    );
+                                resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                                    buffer: &slot.jobs,
+                                    offset: *at,
+                                    size: std::num::NonZeroU64::new(*len),
+                                }),
+                            });
+                        }
+                        None => entries.push(entry(7, out)),
+                    }
+                    let bg = bind(blend, &entries);
                     (bg, [groups, tiles_y, tiles_z])
                 })
                 .collect()
