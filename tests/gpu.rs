@@ -592,10 +592,12 @@ fn the_blend_writes_q16_and_f16_itself_bit_for_bit() {
     use crowdmorph::engine::VertexData;
     // Positions only, on an unskinned rig: the blend writes the 16-bit format itself. The odd
     // rig (2,001 vertices) has words shared by two vertices and by two jobs; 128 KiB bindings
-    // run its 16 jobs in sub-batches of 5, 5, 5 and 1, the last groups of eight short.
+    // run its 16 jobs in sub-batches of 5, 5, 5 and 1, the last groups of eight short, and
+    // 16 KiB chunks split its deltas into dispatches whose tiles share words at their edges.
     let engine = Engine::with_gpu(
         open_gpu(GpuOptions {
             max_binding: Some(128 << 10),
+            max_chunk: Some(16 << 10),
             ..GpuOptions::default()
         }),
         BackendChoice::Gpu,
@@ -610,6 +612,13 @@ fn the_blend_writes_q16_and_f16_itself_bit_for_bit() {
         BackendChoice::Gpu,
     );
     let odd = crowdmorph::synthetic::banded_rig("odd", 2001, 50, 40);
+    let chunks = engine
+        .prepare(Arc::new(odd.clone()))
+        .expect("upload")
+        .gpu()
+        .expect("resident")
+        .chunks();
+    assert!(chunks >= 3, "the odd rig in {chunks} chunks");
     let head = with_random_clip(crowdmorph::embedded::default_rig(), 7);
     let paper = paper_scale_rig();
     for (engine, rig, n) in [

@@ -760,6 +760,16 @@ impl std::fmt::Debug for GpuRig {
 }
 
 impl GpuRig {
+    /// Whether `blend_packed` writes a batch's output in `spec`'s 16-bit format (q16r's planes
+    /// too) itself: where nothing reads f32 positions after the blend, that is no skin and no
+    /// normals (recomputed from them, or blended by a second dispatch whose output the pack
+    /// pass would then read). Its slot then needs no f32 output buffer.
+    fn blend_packs(&self, spec: OutputSpec) -> bool {
+        matches!(spec.precision, Precision::Q16(_) | Precision::F16)
+            && !spec.normals
+            && self.skin.is_none()
+    }
+
     /// Refuses (`DoesNotFit`) a rig with more vertices than one job's output binding holds,
     /// before anything is uploaded. It costs nothing; [`GpuRig::upload`] also checks the
     /// triangles of recomputed normals, once it has built their topology.
@@ -1415,7 +1425,8 @@ impl GpuContext {
         let needs = SlotNeeds {
             jobs: reference_range.map_or(live_at + live_bytes, |(at, len)| at + len),
             active: widest.div_ceil(JOBS_PER_GROUP as u64) * u64::from(rig.slots.max(1)) * 4,
-            output,
+            // The blend writes the 16-bit output itself: no f32 stage.
+            output: if rig.blend_packs(spec) { 4 } else { output },
             normals: if spec.normals { output } else { 4 },
             packed: if f16 { output / 2 + 4 } else { 4 },
             packed_normals: if f16 && spec.normals {
@@ -1639,12 +1650,7 @@ impl GpuContext {
             (DeltaFormat::F16, Some(f16)) => f16,
             _ => &p.blend,
         };
-        // The blend writes the 16-bit wire format of the positions (q16r's planes too) itself
-        // where nothing reads them in f32 after it: no skin, no normals (recomputed from them,
-        // or blended by a second dispatch whose output the pack pass would then read).
-        let fused = matches!(spec.precision, Precision::Q16(_) | Precision::F16)
-            && !spec.normals
-            && rig.skin.is_none();
+        let fused = rig.blend_packs(spec);
         let blend = blends.writing(spec.precision, fused, r.reference.is_some());
         // What `blend_packed` reads besides the blend's own bindings: the box (used unless it
         // writes binary16) and the residual reference (a small range where there is none).
