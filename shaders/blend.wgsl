@@ -327,6 +327,28 @@ fn job_result(s: Sums, q: u32) -> vec3<f32> {
     return r;
 }
 
+// What one invocation blended: its group `g`, its vertex `v` (when it has one) and the sums.
+struct Blended {
+    g: u32,
+    v: u32,
+    has_vertex: bool,
+    s: Sums,
+}
+
+fn blend_here(wid: vec3<u32>, lane: u32) -> Blended {
+    let g = wid.x;
+    let tile = wid.y + wid.z * params.tiles_y;
+    let tile_ok = tile < params.tiles;
+    let v = (params.tile_begin + tile) * TILE + lane;
+    let has_vertex = tile_ok && v < params.vertices;
+    return Blended(g, v, has_vertex, accumulate(g, tile, tile_ok, lane, has_vertex));
+}
+
+// Jobs in group `g` (eight but in a batch's last group; the dispatch has no empty group).
+fn group_jobs(g: u32) -> u32 {
+    return min(GROUP, params.jobs - g * GROUP);
+}
+
 // f32 output into `out`. Two entry points rather than one with every binding: each stays
 // within WebGPU's eight storage buffers a stage (this one uses seven, `blend_packed` eight).
 @compute @workgroup_size(64)
@@ -334,23 +356,13 @@ fn blend(
     @builtin(workgroup_id) wid: vec3<u32>,
     @builtin(local_invocation_index) lane: u32,
 ) {
-    let g = wid.x;
-    let tile = wid.y + wid.z * params.tiles_y;
-    let tile_ok = tile < params.tiles;
-    let v = (params.tile_begin + tile) * TILE + lane;
-    let has_vertex = tile_ok && v < params.vertices;
-    let s = accumulate(g, tile, tile_ok, lane, has_vertex);
-    if !has_vertex {
+    let b = blend_here(wid, lane);
+    if !b.has_vertex {
         return;
     }
-    let stride = params.vertices * 3u;
-    for (var q = 0u; q < GROUP; q++) {
-        let job = g * GROUP + q;
-        if job >= params.jobs {
-            break;
-        }
-        let r = job_result(s, q);
-        let o = job * stride + v * 3u;
+    for (var q = 0u; q < group_jobs(b.g); q++) {
+        let r = job_result(b.s, q);
+        let o = (b.g * GROUP + q) * params.vertices * 3u + b.v * 3u;
         out[o] = r.x;
         out[o + 1u] = r.y;
         out[o + 2u] = r.z;
@@ -363,26 +375,17 @@ fn blend_packed(
     @builtin(workgroup_id) wid: vec3<u32>,
     @builtin(local_invocation_index) lane: u32,
 ) {
-    let g = wid.x;
-    let tile = wid.y + wid.z * params.tiles_y;
-    let tile_ok = tile < params.tiles;
-    let v = (params.tile_begin + tile) * TILE + lane;
-    let has_vertex = tile_ok && v < params.vertices;
-    let s = accumulate(g, tile, tile_ok, lane, has_vertex);
-    if !has_vertex {
+    let b = blend_here(wid, lane);
+    if !b.has_vertex {
         return;
     }
-    let stride = params.vertices * 3u;
-    for (var q = 0u; q < GROUP; q++) {
-        let job = g * GROUP + q;
-        if job >= params.jobs {
-            break;
-        }
-        let r = job_result(s, q);
+    for (var q = 0u; q < group_jobs(b.g); q++) {
+        let r = job_result(b.s, q);
+        let job = b.g * GROUP + q;
         if PACK == 3u {
-            write_residuals(job, v * 3u, r);
+            write_residuals(job, b.v * 3u, r);
         } else {
-            write_halves(job * stride + v * 3u, r);
+            write_halves(job * params.vertices * 3u + b.v * 3u, r);
         }
     }
 }
