@@ -68,9 +68,6 @@ const GROUP: u32 = 8u;
 
 // The group's jobs, read once per workgroup rather than once per slot and job.
 var<workgroup> sh_jobs: array<Job, GROUP>;
-var<workgroup> sh_scan: array<u32, LANES>;
-var<workgroup> sh_part: array<u32, 8>;
-var<workgroup> sh_total: u32;
 
 fn weight(q: u32, j: u32, s: u32) -> f32 {
     if j >= params.jobs {
@@ -93,36 +90,6 @@ fn weight(q: u32, j: u32, s: u32) -> f32 {
     return select(0.0, w, abs(w) > EPS);
 }
 
-// Where invocation `lane`'s `mine` items go among the workgroup's, in invocation order (an
-// exclusive scan); the total is left in `sh_total`. As `place` in blend.wgsl: eight partial
-// sums, three barriers.
-fn place(lane: u32, mine: u32) -> u32 {
-    sh_scan[lane] = mine;
-    workgroupBarrier();
-    if lane < 8u {
-        var t = 0u;
-        for (var k = 0u; k < 8u; k++) {
-            t += sh_scan[lane * 8u + k];
-        }
-        sh_part[lane] = t;
-    }
-    workgroupBarrier();
-    if lane == 0u {
-        var t = 0u;
-        for (var k = 0u; k < 8u; k++) {
-            let x = sh_part[k];
-            sh_part[k] = t;
-            t += x;
-        }
-        sh_total = t;
-    }
-    workgroupBarrier();
-    var at = sh_part[lane / 8u];
-    for (var k = lane & ~7u; k < lane; k++) {
-        at += sh_scan[k];
-    }
-    return at;
-}
 
 @compute @workgroup_size(64)
 fn build_active(

@@ -81,20 +81,6 @@ override F16_DELTAS: bool = false;
 // What `blend_packed` writes into `packed`: 1 q16, 2 binary16, 3 q16r's residual planes.
 override PACK: u32 = 1u;
 
-// `pack_q16.wgsl`'s parameters (WGSL has no include; `tests/shaders.rs` holds both copies to
-// `layout::Q16PackParams`).
-struct Q16Params {
-    count: u32,
-    row: u32,
-    lo: f32,
-    hi: f32,
-    sub: vec4<f32>,
-    mul: vec4<f32>,
-    add: i32,
-    per_job: u32,
-    _pad1: u32,
-    _pad2: u32,
-}
 
 const TILE: u32 = 64u;
 const GROUP: u32 = 8u;
@@ -106,19 +92,13 @@ const NONE: u32 = 0xffffffffu;
 var<workgroup> sh_lo: array<vec4<f32>, BATCH>;
 var<workgroup> sh_hi: array<vec4<f32>, BATCH>;
 var<workgroup> sh_blocks: array<u32, BATCH>;
-var<workgroup> sh_scan: array<u32, TILE>;
-var<workgroup> sh_part: array<u32, 8>;
 var<workgroup> sh_count: u32;
-var<workgroup> sh_total: u32;
 
-// Component `x` on axis `a` as a 16-bit half of the wire format: `pack_q16`'s `quantize`
-// (the same arithmetic, so the same bits) or `pack_f16`'s rounding.
+// Component `x` on axis `a` as a 16-bit half of the wire format: `lib/q16.wgsl`'s `quantize`
+// (as `pack_q16`, so the same bits) or `pack_f16`'s rounding.
 fn half(x: f32, a: u32) -> u32 {
     if PACK == 1u || PACK == 3u {
-        var u = (x - q16.sub[a]) * q16.mul[a];
-        u = select(q16.lo, u, u > q16.lo);
-        u = select(q16.hi, u, u < q16.hi);
-        return bitcast<u32>(i32(round(u)) + q16.add) & 0xffffu;
+        return quantize(q16, x, a);
     }
     return pack2x16float(vec2<f32>(x, 0.0)) & 0xffffu;
 }
@@ -160,9 +140,7 @@ fn write_residuals(job: u32, c: u32, r: vec3<f32>) {
     let q = array<u32, 3>(half(r.x, 0u), half(r.y, 1u), half(r.z, 2u));
     for (var k = 0u; k < 3u; k++) {
         let i = c + k;
-        let refq = (reference[i >> 1u] >> (16u * (i & 1u))) & 0xffffu;
-        let d = bitcast<i32>(((q[k] - refq) & 0xffffu) << 16u) >> 16u;
-        let z = bitcast<u32>((d << 1u) ^ (d >> 15u)) & 0xffffu;
+        let z = residual_code(q[k], (reference[i >> 1u] >> (16u * (i & 1u))) & 0xffffu);
         lo[k] = z & 0xffu;
         hi[k] = z >> 8u;
     }
@@ -196,37 +174,6 @@ fn block_of(tile: u32, s: u32) -> u32 {
     return m.y + countOneBits(m.x & (bit - 1u));
 }
 
-// Where the first of `mine` items of invocation `lane` goes when every invocation's items are
-// laid out in invocation order (an exclusive scan over the workgroup); the total is left in
-// `sh_total`. Eight partial sums rather than a 64-wide Hillis-Steele scan: three barriers
-// instead of thirteen, which is what a workgroup with a short list pays for.
-fn place(lane: u32, mine: u32) -> u32 {
-    sh_scan[lane] = mine;
-    workgroupBarrier();
-    if lane < 8u {
-        var t = 0u;
-        for (var k = 0u; k < 8u; k++) {
-            t += sh_scan[lane * 8u + k];
-        }
-        sh_part[lane] = t;
-    }
-    workgroupBarrier();
-    if lane == 0u {
-        var t = 0u;
-        for (var k = 0u; k < 8u; k++) {
-            let x = sh_part[k];
-            sh_part[k] = t;
-            t += x;
-        }
-        sh_total = t;
-    }
-    workgroupBarrier();
-    var at = sh_part[lane / 8u];
-    for (var k = lane & ~7u; k < lane; k++) {
-        at += sh_scan[k];
-    }
-    return at;
-}
 
 // Eight jobs' blended x, y, z of one vertex: jobs 0-3 in the `0` vectors, 4-7 in the `1`s.
 struct Sums {

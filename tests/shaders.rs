@@ -1,25 +1,50 @@
-//! Every WGSL file in `shaders/` parses and validates with naga — no GPU needed, so this runs
-//! everywhere and catches shader errors before any device sees them.
+//! Every WGSL module the engine compiles (each pass's file after the shared pieces of
+//! `shaders/lib/` it uses, `engine::gpu::SHADERS`) and the renderer's parses and validates with
+//! naga — no GPU needed, so this runs everywhere and catches shader errors before any device
+//! sees them.
 
 use std::path::Path;
 
+use crowdmorph::engine::gpu::SHADERS;
+
+/// Each compiled module by its file name: the engine's passes as joined, and the renderer's.
+fn modules() -> Vec<(String, String)> {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("shaders");
+    let mut v: Vec<(String, String)> = SHADERS
+        .iter()
+        .map(|(n, s)| (n.to_string(), s.to_string()))
+        .collect();
+    let render = std::fs::read_to_string(dir.join("render.wgsl")).expect("render.wgsl");
+    v.push(("render.wgsl".into(), render));
+    v
+}
+
+/// The `.wgsl` files under `dir`, with their paths relative to `shaders/`.
+fn wgsl_files(dir: &Path, under: &str) -> Vec<(String, String)> {
+    let mut files = Vec::new();
+    for e in std::fs::read_dir(dir).expect("shaders folder") {
+        let path = e.expect("dir entry").path();
+        let name = path
+            .file_name()
+            .expect("name")
+            .to_string_lossy()
+            .into_owned();
+        if path.is_dir() {
+            files.extend(wgsl_files(&path, &format!("{under}{name}/")));
+        } else if path.extension().is_some_and(|e| e == "wgsl") {
+            let src = std::fs::read_to_string(&path).expect("read shader");
+            files.push((format!("{under}{name}"), src));
+        }
+    }
+    files
+}
+
 #[test]
 fn every_wgsl_file_validates_with_naga() {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("shaders");
-    let mut files: Vec<_> = std::fs::read_dir(&dir)
-        .expect("shaders folder")
-        .map(|e| e.expect("dir entry").path())
-        .filter(|p| p.extension().is_some_and(|e| e == "wgsl"))
-        .collect();
-    files.sort();
-    assert!(
-        files.len() >= 4,
-        "expected the engine's passes, found {files:?}"
-    );
-    for path in files {
-        let src = std::fs::read_to_string(&path).expect("read shader");
-        let module = naga::front::wgsl::parse_str(&src)
-            .unwrap_or_else(|e| panic!("{}: {}", path.display(), e.emit_to_string(&src)));
+    let modules = modules();
+    for (name, src) in &modules {
+        let module = naga::front::wgsl::parse_str(src)
+            .unwrap_or_else(|e| panic!("{name}: {}", e.emit_to_string(src)));
         // pack2x16float needs f16 conversion in f32 shaders, which every WebGPU-compliant
         // device (and wgpu's Vulkan, Metal and DX12 backends) has; nothing else is assumed.
         let mut validator = naga::valid::Validator::new(
@@ -28,18 +53,31 @@ fn every_wgsl_file_validates_with_naga() {
         );
         validator
             .validate(&module)
-            .unwrap_or_else(|e| panic!("{}: {}", path.display(), e.emit_to_string(&src)));
+            .unwrap_or_else(|e| panic!("{name}: {}", e.emit_to_string(src)));
+        assert!(!module.entry_points.is_empty(), "{name}: no entry point");
+    }
+    // Every file in `shaders/` is compiled: a pass's file as its module's end, a shared piece
+    // inside some module.
+    let files = wgsl_files(&Path::new(env!("CARGO_MANIFEST_DIR")).join("shaders"), "");
+    assert!(
+        files.len() >= 4,
+        "expected the engine's passes, found {files:?}"
+    );
+    for (path, src) in files {
+        let used = match path.strip_prefix("lib/") {
+            Some(_) => modules.iter().any(|(_, m)| m.contains(&src)),
+            None => modules.iter().any(|(n, m)| *n == path && m.ends_with(&src)),
+        };
         assert!(
-            !module.entry_points.is_empty(),
-            "{}: no entry point",
-            path.display()
+            used,
+            "shaders/{path} is in no module the engine or renderer compiles"
         );
     }
 }
 
 #[test]
 fn each_pass_has_the_entry_point_its_cpu_mirror_names() {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("shaders");
+    let modules = modules();
     for (file, entries) in [
         ("active.wgsl", &["build_active"][..]),
         ("blend.wgsl", &["blend", "blend_packed"][..]),
@@ -50,8 +88,11 @@ fn each_pass_has_the_entry_point_its_cpu_mirror_names() {
         ("pack_q16.wgsl", &["pack_q16", "pack_q16r"][..]),
         ("render.wgsl", &["vs_main", "fs_main"][..]),
     ] {
-        let src = std::fs::read_to_string(dir.join(file)).expect("read shader");
-        let module = naga::front::wgsl::parse_str(&src).expect("parse");
+        let (_, src) = modules
+            .iter()
+            .find(|(n, _)| n == file)
+            .unwrap_or_else(|| panic!("no module {file}"));
+        let module = naga::front::wgsl::parse_str(src).expect("parse");
         for e in entries {
             assert!(
                 module.entry_points.iter().any(|p| p.name == *e),
@@ -61,13 +102,14 @@ fn each_pass_has_the_entry_point_its_cpu_mirror_names() {
     }
 }
 
-/// Member offsets and size of the WGSL struct `name` in `file`, as naga lays it out.
+/// Member offsets and size of the WGSL struct `name` in the compiled module `file`, as naga
+/// lays it out.
 fn wgsl_struct(file: &str, name: &str) -> (Vec<(String, u32)>, u32) {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("shaders")
-        .join(file);
-    let src = std::fs::read_to_string(&path).expect("read shader");
-    let module = naga::front::wgsl::parse_str(&src).expect("parse");
+    let (_, src) = SHADERS
+        .iter()
+        .find(|(n, _)| *n == file)
+        .unwrap_or_else(|| panic!("no module {file}"));
+    let module = naga::front::wgsl::parse_str(src).expect("parse");
     module
         .types
         .iter()
@@ -85,9 +127,10 @@ fn wgsl_struct(file: &str, name: &str) -> (Vec<(String, u32)>, u32) {
 }
 
 #[test]
-fn both_copies_of_the_q16_parameters_are_the_hosts_layout() {
-    // `pack_q16.wgsl` and `blend.wgsl` each declare the uniform `layout::Q16PackParams` fills
-    // (WGSL has no include): both must be its layout, member by member.
+fn both_users_of_the_q16_parameters_see_the_hosts_layout() {
+    // `pack_q16` and `blend` read the uniform `layout::Q16PackParams` fills through
+    // `lib/q16.wgsl`'s `Q16Params`: as each module lays it out, member by member, it must be
+    // the host's layout.
     use crowdmorph::engine::gpu::layout::Q16PackParams;
     use std::mem::offset_of;
     let host = [
@@ -100,16 +143,16 @@ fn both_copies_of_the_q16_parameters_are_the_hosts_layout() {
         ("add", offset_of!(Q16PackParams, add)),
         ("per_job", offset_of!(Q16PackParams, per_job)),
     ];
-    for (file, name) in [("pack_q16.wgsl", "Params"), ("blend.wgsl", "Q16Params")] {
-        let (members, span) = wgsl_struct(file, name);
+    for file in ["pack_q16.wgsl", "blend.wgsl"] {
+        let (members, span) = wgsl_struct(file, "Q16Params");
         assert_eq!(
             span as usize,
             size_of::<Q16PackParams>(),
-            "{file} {name}: size"
+            "{file} Q16Params: size"
         );
         for (field, at) in host {
             let wgsl = members.iter().find(|(m, _)| m == field).map(|(_, o)| *o);
-            assert_eq!(wgsl, Some(at as u32), "{file} {name}.{field}");
+            assert_eq!(wgsl, Some(at as u32), "{file} Q16Params.{field}");
         }
     }
 }

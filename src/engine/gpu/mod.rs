@@ -296,6 +296,47 @@ fn rank(info: &wgpu::AdapterInfo) -> u8 {
     }
 }
 
+/// The WGSL source of each compute pass's module, by its file in `shaders/`: the file after
+/// the shared pieces of `shaders/lib/` it uses, joined at compile time (WGSL has no include).
+/// The engine compiles exactly these, and `tests/shaders.rs` validates exactly these.
+pub const SHADERS: [(&str, &str); 7] = [
+    (
+        "active.wgsl",
+        concat!(
+            include_str!("../../../shaders/lib/scan.wgsl"),
+            include_str!("../../../shaders/active.wgsl")
+        ),
+    ),
+    (
+        "blend.wgsl",
+        concat!(
+            include_str!("../../../shaders/lib/scan.wgsl"),
+            include_str!("../../../shaders/lib/q16.wgsl"),
+            include_str!("../../../shaders/blend.wgsl")
+        ),
+    ),
+    (
+        "face_normals.wgsl",
+        include_str!("../../../shaders/face_normals.wgsl"),
+    ),
+    (
+        "vertex_normals.wgsl",
+        include_str!("../../../shaders/vertex_normals.wgsl"),
+    ),
+    (
+        "pack_f16.wgsl",
+        include_str!("../../../shaders/pack_f16.wgsl"),
+    ),
+    (
+        "pack_q16.wgsl",
+        concat!(
+            include_str!("../../../shaders/lib/q16.wgsl"),
+            include_str!("../../../shaders/pack_q16.wgsl")
+        ),
+    ),
+    ("skin.wgsl", include_str!("../../../shaders/skin.wgsl")),
+];
+
 fn shader(device: &wgpu::Device, label: &str, source: &str) -> wgpu::ShaderModule {
     device.create_shader_module(wgpu::ShaderModuleDescriptor {
         label: Some(label),
@@ -412,41 +453,8 @@ impl GpuContext {
             tracing::error!(%error, "uncaptured GPU error; the GPU engine stops and the CPU engine takes over");
             h.fail(error.to_string());
         }));
-        let active = shader(
-            &device,
-            "active.wgsl",
-            include_str!("../../../shaders/active.wgsl"),
-        );
-        let blend = shader(
-            &device,
-            "blend.wgsl",
-            include_str!("../../../shaders/blend.wgsl"),
-        );
-        let face = shader(
-            &device,
-            "face_normals.wgsl",
-            include_str!("../../../shaders/face_normals.wgsl"),
-        );
-        let vertex = shader(
-            &device,
-            "vertex_normals.wgsl",
-            include_str!("../../../shaders/vertex_normals.wgsl"),
-        );
-        let pack = shader(
-            &device,
-            "pack_f16.wgsl",
-            include_str!("../../../shaders/pack_f16.wgsl"),
-        );
-        let pack_q16 = shader(
-            &device,
-            "pack_q16.wgsl",
-            include_str!("../../../shaders/pack_q16.wgsl"),
-        );
-        let skin = shader(
-            &device,
-            "skin.wgsl",
-            include_str!("../../../shaders/skin.wgsl"),
-        );
+        let [active, blend, face, vertex, pack, pack_q16, skin] =
+            SHADERS.map(|(name, source)| shader(&device, name, source));
         let pipelines = Pipelines {
             active: pipeline(&device, &active, "build_active"),
             blend: BlendPipelines::new(&device, &blend, false),
