@@ -536,6 +536,14 @@ async fn replicas_behind_nginx_lose_only_requests_in_flight_to_a_sigkill() {
         .crowd_frame(&one_head("tri", "wave", 1), Encoding::Bincode)
         .await
         .expect("frame through nginx");
+    // A replica that loaded the rig before the clip came sees the clip at its next refresh
+    // (README: within `--store-refresh-ms`), not at once.
+    until_all(&direct, "the clip on every replica", |c| async move {
+        c.rig("tri")
+            .await
+            .is_ok_and(|r| r.clips.iter().any(|k| k.name == "wave"))
+    })
+    .await;
     for d in &direct {
         let (f, _) = d
             .crowd_frame(&one_head("tri", "wave", 1), Encoding::Bincode)
