@@ -635,3 +635,107 @@ fn no_module_of_the_python_client_imports_one_that_imports_it_back() {
         panic!("import cycle in the Python client: {}", cycle.join(" → "));
     }
 }
+
+/// The names of the compile-time variables `build.rs` hands the crate with
+/// `cargo::rustc-env=NAME=...`: every one only where it found a program (nginx, HAProxy,
+/// SeaweedFS, Chromium, ...), so each may be unset on a fresh machine.
+fn build_script_variables() -> Vec<String> {
+    let src = code_only(&read(&root().join("build.rs")));
+    let mut names: Vec<String> = src
+        .split('"')
+        .skip(1)
+        .step_by(2)
+        .filter_map(|lit| {
+            let name = lit.strip_prefix("cargo::rustc-env=").unwrap_or(lit);
+            let name = name.split('=').next().unwrap_or(name);
+            let is_name = name.starts_with("CROWDMORPH_")
+                && name.len() > "CROWDMORPH_".len()
+                && name
+                    .bytes()
+                    .all(|b| b.is_ascii_uppercase() || b.is_ascii_digit() || b == b'_');
+            is_name.then(|| name.to_string())
+        })
+        .collect();
+    names.sort();
+    names.dedup();
+    names
+}
+
+/// Every `.rs` file of the repository (the crate, its tests, the clients, build.rs), build
+/// outputs and dependencies left out.
+fn repository_rust_files() -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    let mut stack = vec![root().to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).expect("read_dir") {
+            let p = e.expect("entry").path();
+            let name = p.file_name().and_then(|n| n.to_str()).unwrap_or("");
+            if p.is_dir() {
+                if !matches!(name, "target" | "node_modules" | ".git" | ".venv") {
+                    stack.push(p);
+                }
+            } else if name.ends_with(".rs") {
+                out.push(p);
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+/// Issue 49: `env!` is evaluated when the crate compiles, so a test reading a variable that
+/// `build.rs` sets only where it found a program stopped the whole suite from building on a
+/// machine without that program, instead of listing the test as ignored with its reason.
+/// Such a variable is read with `option_env!`; `env!` is left to what cargo always sets.
+#[test]
+fn no_code_reads_a_variable_the_build_may_leave_unset_with_env() {
+    let conditional = build_script_variables();
+    for expected in [
+        "CROWDMORPH_NGINX_PATH",
+        "CROWDMORPH_HAPROXY_PATH",
+        "CROWDMORPH_WEED_PATH",
+        "CROWDMORPH_CHROMIUM_PATH",
+    ] {
+        assert!(
+            conditional.iter().any(|n| n == expected),
+            "the scan of build.rs finds {expected}: {conditional:?}"
+        );
+    }
+    // Spelled in two pieces so that this file's own literal is not a use.
+    let mac = concat!("env", "!(");
+    let mut offenders = Vec::new();
+    let files = repository_rust_files();
+    assert!(
+        files.len() > 100,
+        "the scan finds the sources ({})",
+        files.len()
+    );
+    for f in files {
+        let code = code_only(&read(&f));
+        for (at, _) in code.match_indices(mac) {
+            // `option_env!(` ends in the same bytes: only a bare `env!` is a compile-time must.
+            let before = code[..at].chars().next_back();
+            if before.is_some_and(|c| c.is_alphanumeric() || c == '_') {
+                continue;
+            }
+            let args = code[at + mac.len()..].trim_start();
+            let Some(name) = args
+                .strip_prefix('"')
+                .and_then(|rest| rest.split('"').next())
+            else {
+                continue;
+            };
+            // Cargo sets these for every compilation of a package.
+            let always = name.starts_with("CARGO_") || name == "OUT_DIR";
+            if !always || conditional.iter().any(|n| n == name) {
+                let line = code[..at].lines().count();
+                offenders.push(format!("{}:{line}: env!(\"{name}\")", f.display()));
+            }
+        }
+    }
+    assert!(
+        offenders.is_empty(),
+        "read these with option_env! (build.rs sets them only where it finds the program, \
+         and env! stops the whole suite from compiling without it): {offenders:#?}"
+    );
+}

@@ -21,6 +21,13 @@ use futures_util::{SinkExt, StreamExt};
 use serde_json::json;
 use tokio_tungstenite::tungstenite::Message;
 
+/// Debian's nginx as `build.rs` found it. `option_env!`, not `env!`: where build.rs found none
+/// the variable is unset, the tests that use it are ignored, and the suite must still compile.
+const NGINX: &str = match option_env!("CROWDMORPH_NGINX_PATH") {
+    Some(path) => path,
+    None => "nginx",
+};
+
 use super::persistence::{Proc, ready, spawn_with};
 use super::temp_dir;
 
@@ -88,7 +95,7 @@ pub(super) fn nginx(replicas: &[String]) -> Nginx {
     .expect("write");
     let prefix = format!("{}/", dir.display());
     let conf = dir.join("nginx.conf");
-    let check = Command::new(env!("CROWDMORPH_NGINX_PATH"))
+    let check = Command::new(NGINX)
         .args(["-t", "-p", &prefix, "-c"])
         .arg(&conf)
         .output()
@@ -98,7 +105,7 @@ pub(super) fn nginx(replicas: &[String]) -> Nginx {
         "nginx -t: {}",
         String::from_utf8_lossy(&check.stderr)
     );
-    let child = Command::new(env!("CROWDMORPH_NGINX_PATH"))
+    let child = Command::new(NGINX)
         .args(["-p", &prefix, "-c"])
         .arg(&conf)
         .stdout(Stdio::null())
@@ -244,7 +251,7 @@ async fn nginx_keeps_each_rig_and_session_on_one_replica() {
     ignore = "needs HAProxy: apt-get install haproxy (then touch build.rs)"
 )]
 fn the_haproxy_configuration_is_valid() {
-    let out = Command::new(env!("CROWDMORPH_HAPROXY_PATH"))
+    let out = Command::new(option_env!("CROWDMORPH_HAPROXY_PATH").unwrap_or("haproxy"))
         .arg("-c")
         .arg("-f")
         .arg(deploy("haproxy/haproxy.cfg"))

@@ -412,7 +412,7 @@ async fn weed() -> Weed {
     let dir = temp_dir("seaweedfs");
     let [master, volume, filer, s3] = [free_pair(), free_pair(), free_pair(), free_pair()];
     let log = std::fs::File::create(dir.join("weed.log")).expect("log");
-    let child = Command::new(env!("CROWDMORPH_WEED_PATH"))
+    let child = Command::new(option_env!("CROWDMORPH_WEED_PATH").unwrap_or("weed"))
         .arg("server")
         .arg(format!("-dir={}", dir.display()))
         .args([
