@@ -112,6 +112,12 @@ impl ReasonLabel {
     }
 }
 
+/// The `how` label of store repairs.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct HowLabel {
+    how: &'static str,
+}
+
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 struct RouteLabels {
     route: String,
@@ -230,6 +236,9 @@ pub struct Metrics {
     store_lookup_seconds: Histogram,
     /// Refreshes from the shared store that failed (the store did not answer).
     store_refresh_failures: Counter,
+    /// Damaged objects of the shared store repaired, by how (`restored` from this replica's
+    /// copy, or from an `earlier_copy` or dropped).
+    store_repairs: Family<HowLabel, Counter>,
     /// Connections admitted and not yet closed.
     pub connections_open: U64Gauge,
     /// Connections accepted from the listener, refused ones included.
@@ -418,6 +427,17 @@ impl Default for Metrics {
             "crowdmorph_store_refresh_failures",
             "Refreshes from the shared store that failed because it did not answer",
         );
+        let store_repairs = Family::<HowLabel, Counter>::default();
+        r.register(
+            "crowdmorph_store_repairs",
+            "Generations of the shared store written to repair damaged objects (missing, \
+             short or failing their checksum), by how: restored from this replica's copy of \
+             the very objects, or from an earlier intact copy (objects without one dropped)",
+            store_repairs.clone(),
+        );
+        for how in ["restored", "earlier_copy"] {
+            let _ = store_repairs.get_or_create(&HowLabel { how });
+        }
         let store_lookup_seconds = Histogram::new(SECONDS.iter().copied());
         r.register(
             "crowdmorph_store_lookup_seconds",
@@ -574,6 +594,7 @@ impl Default for Metrics {
             store_lookups_found,
             store_lookup_seconds,
             store_refresh_failures,
+            store_repairs,
             connections_open,
             connections_accepted,
             connections_closed,
@@ -692,6 +713,11 @@ impl Metrics {
             self.store_lookups_found.inc();
         }
         self.store_lookup_seconds.observe(took.as_secs_f64());
+    }
+
+    /// Counts a repair of damaged objects in the shared store (`restored` or `earlier_copy`).
+    pub fn store_repaired(&self, how: &'static str) {
+        self.store_repairs.get_or_create(&HowLabel { how }).inc();
     }
 
     /// Counts a refresh from the shared store that failed.

@@ -36,6 +36,20 @@ const STORE_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(5);
 #[derive(Clone, Debug)]
 pub struct AppState(pub(crate) Arc<Inner>);
 
+/// Most entries `/readyz` lists as skipped (the oldest go first).
+const MAX_SKIPPED: usize = 256;
+
+/// A stored file or generation that was not used, and why.
+#[derive(Debug, PartialEq, Eq)]
+pub(crate) struct Skipped {
+    /// The rig it is about, when known: cleared once a later generation of it is held.
+    pub(crate) rig: Option<String>,
+    /// The generation it is about (0 in the data dir: any later write supersedes it).
+    pub(crate) generation: u64,
+    /// The report.
+    pub(crate) why: String,
+}
+
 /// What [`AppState`] holds.
 #[derive(Debug)]
 pub struct Inner {
@@ -59,7 +73,8 @@ pub struct Inner {
     pub(crate) store_unusable: Unusable,
     pub(crate) ready: AtomicBool,
     pub(crate) load_started: AtomicBool,
-    pub(crate) skipped: Mutex<Vec<String>>,
+    /// What `/readyz` reports as skipped, each until what it is about is superseded.
+    pub(crate) skipped: Mutex<Vec<Skipped>>,
     /// Serializes rig and clip changes (and their writes to disk).
     pub(crate) admin: tokio::sync::Mutex<()>,
     /// Host memory of rigs and of the work that makes them (`--max-rig-memory`).
@@ -277,9 +292,43 @@ impl AppState {
         }
     }
 
+    /// Reports `why` in `/readyz` for as long as the server runs.
     pub(crate) fn skip(&self, why: String) {
+        self.push_skipped(Skipped {
+            rig: None,
+            generation: 0,
+            why,
+        });
+    }
+
+    /// Reports `why`, about generation `generation` of rig `id` (0 in the data dir), in
+    /// `/readyz` until a later generation of the rig is held or the rig is deleted
+    /// ([`AppState::clear_skipped`]).
+    pub(crate) fn skip_rig(&self, id: &str, generation: u64, why: String) {
+        self.push_skipped(Skipped {
+            rig: Some(id.to_string()),
+            generation,
+            why,
+        });
+    }
+
+    fn push_skipped(&self, entry: Skipped) {
+        if let Ok(mut s) = self.skipped.lock()
+            && !s.contains(&entry)
+        {
+            // A report per file or generation; a bound on what a flood of damage could add.
+            if s.len() >= MAX_SKIPPED {
+                s.remove(0);
+            }
+            s.push(entry);
+        }
+    }
+
+    /// Forgets what was reported about generations of rig `id` before `below`: a newer one
+    /// is held now, or the rig is gone.
+    pub(crate) fn clear_skipped(&self, id: &str, below: u64) {
         if let Ok(mut s) = self.skipped.lock() {
-            s.push(why);
+            s.retain(|e| e.rig.as_deref() != Some(id) || e.generation >= below);
         }
     }
 
@@ -314,28 +363,37 @@ impl AppState {
                 Some(self.pool.clone()),
             ));
             let file = path.display().to_string();
+            // Reports about a rig's record are cleared when the rig is written or deleted.
+            let rig = path
+                .file_stem()
+                .and_then(|s| s.to_str())
+                .map(|s| s.split('@').next().unwrap_or(s).to_string());
+            let skip = |why: String| match &rig {
+                Some(id) => self.skip_rig(id, 0, why),
+                None => self.skip(why),
+            };
             if let Err(e) = budget.reserve(2 * size, || format!("stored record {file}")) {
                 tracing::error!(error = %e, "skipping a stored rig that does not fit in memory");
-                self.skip(e.to_string());
+                skip(e.to_string());
                 continue;
             }
             let record = match Store::read_reporting(&path) {
                 Ok((r, dropped)) => {
                     for why in dropped {
-                        self.skip(why);
+                        skip(why);
                     }
                     r
                 }
                 Err(e) => {
                     tracing::error!(error = %e, "skipping a stored rig that cannot be loaded");
-                    self.skip(e.to_string());
+                    skip(e.to_string());
                     continue;
                 }
             };
             match self.load_record(record, &budget) {
                 Ok(true) => n += 1,
                 Ok(false) => {}
-                Err(why) => self.skip(why),
+                Err(why) => skip(why),
             }
         }
         // Motion graphs come after the rigs they belong to; a graph file that does not parse
@@ -507,9 +565,12 @@ impl AppState {
         self.ready.load(Ordering::Acquire)
     }
 
-    /// Files skipped at load, with reasons.
+    /// Files and generations skipped, with reasons, that nothing has superseded yet.
     pub fn skipped(&self) -> Vec<String> {
-        self.skipped.lock().map(|s| s.clone()).unwrap_or_default()
+        self.skipped
+            .lock()
+            .map(|s| s.iter().map(|e| e.why.clone()).collect())
+            .unwrap_or_default()
     }
 
     /// Current values of the gauges.

@@ -70,7 +70,7 @@ const KIND_RIG_SKINNED_MAP_V10: u32 = 10;
 /// Kind 8 followed by the clips' joint tables by name (clips without any are still kind 8).
 const KIND_CLIPS_JOINTS_V11: u32 = 11;
 /// Extension of record files.
-const EXT: &str = "cmrig";
+pub const EXT: &str = "cmrig";
 /// Extension of clip files.
 const CLIPS_EXT: &str = "cmclips";
 /// Prefix of temporary files. Rig ids never start with a dot (`registry::valid_id`), so no

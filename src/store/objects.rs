@@ -22,6 +22,14 @@
 //! rig, and every object reads back with its stated size and checksum and decodes as a record:
 //! a half-written or corrupt object makes that generation unusable (reported, never served),
 //! and a reader keeps or falls back to the newest generation that does read back.
+//!
+//! **Damage is repaired, never built on.** A writer checks the size and CRC of every object
+//! it carries into its next generation ([`SharedStore::check_objects`]) and restores a damaged
+//! one from what it holds before it commits; a reader that meets a damaged generation leaves a
+//! marker (`damaged/<id>/<g:020>.json`, [`SharedStore::report_damage`]) so that a replica
+//! holding the damaged objects restores them as the next generation ([`SharedStore::salvage`]);
+//! nobody commits past a damaged generation except that repair (or a delete), so a write whose
+//! objects are intact is never dropped by a fork.
 
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::path::{Path as FsPath, PathBuf};
@@ -43,6 +51,8 @@ pub const GRAPHS: &str = "graphs.json";
 const MAX_MANIFEST: u64 = 16 << 20;
 /// Largest graphs object read (a graph is a few kilobytes; the data dir has the same bound).
 const MAX_GRAPHS: u64 = 64 << 20;
+/// Most manifests read looking for an earlier intact copy of a damaged object.
+pub const MAX_WALK: usize = 64;
 /// Objects are uploaded in parts of this size (and read back in the store's chunks), so a
 /// transfer holds a few parts, never a whole record.
 const PART: usize = 8 << 20;
@@ -111,6 +121,22 @@ pub enum SharedError {
         /// The store's newest generation.
         newest: u64,
     },
+    /// The rig's newest generation names a damaged object that is not repaired yet (or an
+    /// object this replica would carry is damaged and it holds no copy): nothing was written.
+    #[error(
+        "rig {rig:?} in the store {url}: generation {generation} is damaged ({why}); nothing \
+         is committed on top of it until it is repaired"
+    )]
+    Damaged {
+        /// The store.
+        url: String,
+        /// The rig.
+        rig: String,
+        /// The damaged generation.
+        generation: u64,
+        /// What is damaged.
+        why: String,
+    },
     /// A record could not be staged locally.
     #[error(transparent)]
     Local(#[from] StoreError),
@@ -128,8 +154,15 @@ pub enum Change {
     },
     /// The rig's motion graphs; none removes the object.
     Graphs(Vec<u8>),
-    /// An object dropped from the rig (a clip file emptied).
+    /// An object dropped from the rig (a clip file emptied, or a damaged one nobody holds).
     Remove(String),
+    /// An object already in the store named again (a repair by an earlier intact copy).
+    Keep {
+        /// Its file name in the manifest.
+        name: String,
+        /// The object.
+        object: ObjectRef,
+    },
     /// The rig deleted.
     Delete,
 }
@@ -158,6 +191,46 @@ fn valid_name(id: &str, name: &str) -> bool {
         .is_some_and(|seq| seq.len() == 10 && seq.bytes().all(|b| b.is_ascii_digit()))
 }
 
+/// The staging directories of `changes`' files (removed once they are committed or not).
+fn staged_dirs(changes: &[Change]) -> Vec<PathBuf> {
+    changes
+        .iter()
+        .filter_map(|c| match c {
+            Change::File { path, .. } => path.parent().and_then(|p| p.parent()).map(PathBuf::from),
+            _ => None,
+        })
+        .collect()
+}
+
+/// Removes the staging directories of changes that will not be committed.
+fn remove_staged(changes: &[Change]) {
+    for dir in staged_dirs(changes) {
+        let _ = std::fs::remove_dir_all(dir);
+    }
+}
+
+/// Why a generation could not be read back.
+#[derive(Debug)]
+pub struct Unreadable {
+    /// What is wrong, for the report.
+    pub why: String,
+    /// Its manifest, when that read back.
+    pub manifest: Option<Manifest>,
+    /// Whether an object it names is damaged: missing, of another length, or failing its
+    /// checksum (a generation a repair can mend), rather than wrong in what it holds.
+    pub damaged: bool,
+}
+
+impl Unreadable {
+    fn manifest(why: String) -> Unreadable {
+        Unreadable {
+            why,
+            manifest: None,
+            damaged: false,
+        }
+    }
+}
+
 /// A rig store shared by replicas.
 #[derive(Debug)]
 pub struct SharedStore {
@@ -174,6 +247,11 @@ pub struct SharedStore {
     /// The newest generation of each rig this replica passed over (it did not read back): a
     /// change made here is committed after it, or it would conflict with it forever.
     passed: Mutex<HashMap<String, u64>>,
+    /// Per rig, the newest generation found damaged (objects missing, short or failing their
+    /// checksum) and why: nothing but its repair or a delete is committed after it.
+    damaged: Mutex<HashMap<String, (u64, String)>>,
+    /// Rigs whose held generation is to be installed again from the store.
+    stale: Mutex<HashSet<String>>,
 }
 
 /// The parts of an object store URL.
@@ -280,6 +358,8 @@ impl SharedStore {
             counter: AtomicU64::new(0),
             held: Mutex::new(HashMap::new()),
             passed: Mutex::new(HashMap::new()),
+            damaged: Mutex::new(HashMap::new()),
+            stale: Mutex::new(HashSet::new()),
         })
     }
 
@@ -403,8 +483,18 @@ impl SharedStore {
         }
     }
 
-    /// Records that this replica now holds `manifest`'s generation of its rig.
+    /// Records that this replica now holds `manifest`'s generation of its rig, as it is in
+    /// the store: a damaged generation it supersedes no longer holds changes up.
     pub fn set_held(&self, manifest: Manifest) {
+        if let Ok(mut d) = self.damaged.lock()
+            && d.get(&manifest.rig)
+                .is_some_and(|(g, _)| *g <= manifest.generation)
+        {
+            d.remove(&manifest.rig);
+        }
+        if let Ok(mut s) = self.stale.lock() {
+            s.remove(&manifest.rig);
+        }
         if let Ok(mut h) = self.held.lock() {
             h.insert(manifest.rig.clone(), manifest);
         }
@@ -453,10 +543,14 @@ impl SharedStore {
         .map_err(|e| SharedError::Local(StoreError::Encode(e.to_string())))
     }
 
-    /// Writes the next generation of rig `id` with `change`: its new object first, then the
-    /// manifest, created only if no other replica has written that generation. Returns the
-    /// generation written; on [`SharedError::Conflict`] nothing is visible.
-    pub async fn commit(&self, id: &str, change: Change) -> Result<u64, SharedError> {
+    /// Writes the next generation of rig `id` with `changes` on top of the generation this
+    /// replica holds: new objects first, then the manifest, created only if no other replica
+    /// has written that generation. Returns the generation written; on
+    /// [`SharedError::Conflict`] nothing is visible. While the rig's newest generation is
+    /// damaged and not yet repaired ([`SharedStore::mark_damaged`]), every change but a delete
+    /// is refused with [`SharedError::Damaged`]: committing past it on an older generation
+    /// would drop its intact objects, the writes of another replica.
+    pub async fn commit(&self, id: &str, changes: Vec<Change>) -> Result<u64, SharedError> {
         let base = self.held.lock().ok().and_then(|h| h.get(id).cloned());
         let held = base.as_ref().map_or(0, |m| m.generation);
         let passed = self
@@ -465,38 +559,81 @@ impl SharedStore {
             .ok()
             .and_then(|p| p.get(id).copied())
             .unwrap_or(0);
-        let generation = held.max(passed) + 1;
+        let deleting = changes.iter().any(|c| matches!(c, Change::Delete));
+        if !deleting && let Some((generation, why)) = self.damaged_after(id, held) {
+            remove_staged(&changes);
+            return Err(SharedError::Damaged {
+                url: self.url.clone(),
+                rig: id.to_string(),
+                generation,
+                why,
+            });
+        }
+        let manifest = self
+            .write_generation(id, base, held.max(passed) + 1, changes, held)
+            .await?;
+        let generation = manifest.generation;
+        self.set_held(manifest);
+        Ok(generation)
+    }
+
+    /// Writes generation `g + 1` of `damaged`'s rig (generation `g`) with `repairs` in place
+    /// of its damaged objects, created only if absent; this replica's held generation is not
+    /// changed (it installs the repair like any other generation, from the store).
+    pub async fn salvage(
+        &self,
+        damaged: Manifest,
+        repairs: Vec<Change>,
+    ) -> Result<u64, SharedError> {
+        let (id, g) = (damaged.rig.clone(), damaged.generation);
+        self.write_generation(&id, Some(damaged), g + 1, repairs, g)
+            .await
+            .map(|m| m.generation)
+    }
+
+    /// Writes `generation` of rig `id`: `base`'s objects with `changes` applied. `held` is the
+    /// generation a conflict names as the one the write was based on.
+    async fn write_generation(
+        &self,
+        id: &str,
+        base: Option<Manifest>,
+        generation: u64,
+        changes: Vec<Change>,
+        held: u64,
+    ) -> Result<Manifest, SharedError> {
         let mut objects = base
             .filter(|m| !m.deleted)
             .map(|m| m.objects)
             .unwrap_or_default();
         let dir = format!("objects/{id}/{generation:020}-{}", self.writer);
         let mut deleted = false;
-        let mut uploaded = None;
-        let staged = match &change {
-            Change::File { path, .. } => path.parent().and_then(|p| p.parent()).map(PathBuf::from),
-            _ => None,
-        };
+        let mut uploaded = Vec::new();
+        let staged = staged_dirs(&changes);
         let result = async {
-            match change {
-                Change::File { name, path } => {
-                    let key = format!("{dir}/{name}");
-                    let object = self.upload_file(&path, &key).await?;
-                    uploaded = Some(key);
-                    objects.insert(name, object);
-                }
-                Change::Graphs(bytes) => {
-                    let key = format!("{dir}/{GRAPHS}");
-                    let object = self.upload_bytes(Bytes::from(bytes), &key).await?;
-                    uploaded = Some(key);
-                    objects.insert(GRAPHS.to_string(), object);
-                }
-                Change::Remove(name) => {
-                    objects.remove(&name);
-                }
-                Change::Delete => {
-                    objects.clear();
-                    deleted = true;
+            for change in changes {
+                match change {
+                    Change::File { name, path } => {
+                        let key = format!("{dir}/{name}");
+                        let object = self.upload_file(&path, &key).await?;
+                        uploaded.push(key);
+                        objects.insert(name, object);
+                    }
+                    Change::Graphs(bytes) => {
+                        let key = format!("{dir}/{GRAPHS}");
+                        let object = self.upload_bytes(Bytes::from(bytes), &key).await?;
+                        uploaded.push(key);
+                        objects.insert(GRAPHS.to_string(), object);
+                    }
+                    Change::Keep { name, object } => {
+                        objects.insert(name, object);
+                    }
+                    Change::Remove(name) => {
+                        objects.remove(&name);
+                    }
+                    Change::Delete => {
+                        objects.clear();
+                        deleted = true;
+                    }
                 }
             }
             let manifest = Manifest {
@@ -541,22 +678,189 @@ impl SharedStore {
             Ok(manifest)
         }
         .await;
-        if let Some(dir) = staged {
+        for dir in staged {
             let _ = std::fs::remove_dir_all(dir);
         }
-        match result {
-            Ok(manifest) => {
-                self.set_held(manifest);
-                Ok(generation)
-            }
-            Err(e) => {
-                // The object nobody will name: removed, best effort (a leftover is harmless).
-                if let Some(key) = uploaded {
-                    let _ = self.objects.delete(&Path::from(key)).await;
-                }
-                Err(e)
+        if result.is_err() {
+            // The objects nobody will name: removed, best effort (a leftover is harmless).
+            for key in uploaded {
+                let _ = self.objects.delete(&Path::from(key)).await;
             }
         }
+        result
+    }
+
+    /// The objects of the generation this replica holds of rig `id` that a commit of
+    /// `changes` would name again (those the changes replace or remove left out): what a
+    /// writer checks before it builds on them.
+    pub fn carried(&self, id: &str, changes: &[Change]) -> Vec<(String, ObjectRef)> {
+        if changes.iter().any(|c| matches!(c, Change::Delete)) {
+            return Vec::new();
+        }
+        let touched: HashSet<&str> = changes
+            .iter()
+            .filter_map(|c| match c {
+                Change::File { name, .. } | Change::Keep { name, .. } | Change::Remove(name) => {
+                    Some(name.as_str())
+                }
+                Change::Graphs(_) => Some(GRAPHS),
+                Change::Delete => None,
+            })
+            .collect();
+        self.held
+            .lock()
+            .ok()
+            .and_then(|h| h.get(id).cloned())
+            .filter(|m| !m.deleted)
+            .map(|m| {
+                m.objects
+                    .into_iter()
+                    .filter(|(name, _)| !touched.contains(name.as_str()))
+                    .collect()
+            })
+            .unwrap_or_default()
+    }
+
+    /// The key under which the generation this replica holds names object `name` of rig `id`:
+    /// when it is the key of a damaged object, this replica has that object's content.
+    pub fn held_key(&self, id: &str, name: &str) -> Option<String> {
+        self.held.lock().ok().and_then(|h| {
+            h.get(id)
+                .filter(|m| !m.deleted)
+                .and_then(|m| m.objects.get(name).map(|o| o.key.clone()))
+        })
+    }
+
+    /// Reads every one of `objects` back (streamed, nothing kept) and returns those whose
+    /// bytes are missing, of another length or fail their checksum, each with why. A store
+    /// that does not answer is an `Err`.
+    pub async fn check_objects(
+        &self,
+        objects: &[(String, ObjectRef)],
+    ) -> Result<Vec<(String, ObjectRef, String)>, SharedError> {
+        let mut damaged = Vec::new();
+        for (name, object) in objects {
+            if let Err(why) = self.read_checked(object, None).await? {
+                damaged.push((name.clone(), object.clone(), why));
+            }
+        }
+        Ok(damaged)
+    }
+
+    /// The newest intact copy of object `name` of rig `id` in a generation before `below`
+    /// under a key other than `not_keys` (the damaged one), if the rig named `name` in every
+    /// generation from there on: a copy from before a generation that removed the object, or
+    /// before a delete, would bring back what was removed, so the walk stops there. At most
+    /// [`MAX_WALK`] manifests are read, each charged to `charge` first.
+    pub async fn earlier_copy(
+        &self,
+        id: &str,
+        below: u64,
+        name: &str,
+        not_key: &str,
+        charge: &(dyn Fn(u64, &str) -> Result<(), String> + Sync),
+    ) -> Result<Option<(u64, ObjectRef)>, SharedError> {
+        let generations = self.generations(id).await?;
+        let mut bad: HashSet<String> = HashSet::from([not_key.to_string()]);
+        for &g in generations
+            .iter()
+            .rev()
+            .filter(|&&g| g < below)
+            .take(MAX_WALK)
+        {
+            let Ok(manifest) = self.manifest(id, g, charge).await? else {
+                // A manifest that does not read says nothing about the object: look further.
+                continue;
+            };
+            let Some(object) = manifest.objects.get(name).filter(|_| !manifest.deleted) else {
+                return Ok(None);
+            };
+            if bad.contains(&object.key) {
+                continue;
+            }
+            match self.read_checked(object, None).await? {
+                Ok(()) => return Ok(Some((g, object.clone()))),
+                Err(_) => {
+                    bad.insert(object.key.clone());
+                }
+            }
+        }
+        Ok(None)
+    }
+
+    /// Leaves a marker saying that generation `g` of rig `id` is damaged
+    /// (`damaged/<id>/<g:020>.json`), so that a replica holding the damaged objects, which
+    /// never reads back a generation it holds, restores them.
+    pub async fn report_damage(&self, id: &str, g: u64, why: &str) -> Result<(), SharedError> {
+        let body = serde_json::json!({
+            "rig": id,
+            "generation": g,
+            "reporter": self.writer,
+            "why": why,
+        });
+        let key = format!("damaged/{id}/{g:020}.json");
+        self.objects
+            .put(
+                &Path::from(key.as_str()),
+                PutPayload::from(body.to_string()),
+            )
+            .await
+            .map(drop)
+            .map_err(|e| self.unavailable(format!("cannot write {key}: {e}")))
+    }
+
+    /// Every damage marker in the store: (rig, generation), one listing.
+    pub async fn damage_reports(&self) -> Result<Vec<(String, u64)>, SharedError> {
+        Ok(self
+            .list_under("damaged")
+            .await?
+            .into_iter()
+            .flat_map(|(id, gs)| gs.into_iter().map(move |g| (id.clone(), g)))
+            .collect())
+    }
+
+    /// Removes the damage marker of generation `g` of rig `id` (repaired or superseded).
+    pub async fn clear_damage(&self, id: &str, g: u64) {
+        let key = format!("damaged/{id}/{g:020}.json");
+        if let Err(e) = self.objects.delete(&Path::from(key.as_str())).await
+            && !matches!(e, object_store::Error::NotFound { .. })
+        {
+            tracing::warn!(error = %e, key, "cannot remove a damage marker");
+        }
+    }
+
+    /// Remembers that generation `g` of rig `id`, its newest, is damaged (`why`): changes
+    /// other than a delete wait for its repair.
+    pub fn mark_damaged(&self, id: &str, g: u64, why: &str) {
+        if let Ok(mut d) = self.damaged.lock() {
+            let e = d.entry(id.to_string()).or_insert((g, why.to_string()));
+            if g >= e.0 {
+                *e = (g, why.to_string());
+            }
+        }
+    }
+
+    /// The damaged generation of rig `id` newer than `held`, with why, if there is one.
+    fn damaged_after(&self, id: &str, held: u64) -> Option<(u64, String)> {
+        self.damaged
+            .lock()
+            .ok()
+            .and_then(|d| d.get(id).cloned())
+            .filter(|(g, _)| *g > held)
+    }
+
+    /// Remembers that the generation held of rig `id` is not what this replica serves (a
+    /// commit restored a damaged object from an earlier copy, or dropped it): the next
+    /// refresh installs it from the store.
+    pub fn mark_stale(&self, id: &str) {
+        if let Ok(mut s) = self.stale.lock() {
+            s.insert(id.to_string());
+        }
+    }
+
+    /// Whether the generation held of rig `id` is to be installed again ([`Self::mark_stale`]).
+    pub fn is_stale(&self, id: &str) -> bool {
+        self.stale.lock().is_ok_and(|s| s.contains(id))
     }
 
     /// Uploads a staged file in parts, checksumming it as it goes.
@@ -621,16 +925,14 @@ impl SharedStore {
         Ok(object)
     }
 
-    /// Reads generation `generation` of rig `id` back: its manifest, then each object, whose
-    /// memory `charge` is asked for first (twice its size: its bytes and what they decode
-    /// to). `Err` says why the generation cannot be used; a store that does not answer is
-    /// [`SharedError::Unavailable`], anything wrong with what it holds a `Corrupt` reason.
-    pub async fn fetch(
+    /// Manifest `generation` of rig `id`, parsed and checked (its rig, its number, names and
+    /// keys that are the rig's own); `Ok(Err)` says why it cannot be used.
+    pub async fn manifest(
         &self,
         id: &str,
         generation: u64,
         charge: &(dyn Fn(u64, &str) -> Result<(), String> + Sync),
-    ) -> Result<Result<Fetched, String>, SharedError> {
+    ) -> Result<Result<Manifest, String>, SharedError> {
         let key = format!("manifests/{id}/{generation:020}.json");
         let bytes = match self.read_manifest(&key, charge).await? {
             Ok(b) => b,
@@ -657,6 +959,28 @@ impl SharedStore {
                 self.url, o.key
             )));
         }
+        Ok(Ok(manifest))
+    }
+
+    /// Reads generation `generation` of rig `id` back: its manifest, then each object, whose
+    /// memory `charge` is asked for first (twice its size: its bytes and what they decode
+    /// to). `Err` says why the generation cannot be used; a store that does not answer is
+    /// [`SharedError::Unavailable`], anything wrong with what it holds an [`Unreadable`].
+    pub async fn fetch(
+        &self,
+        id: &str,
+        generation: u64,
+        charge: &(dyn Fn(u64, &str) -> Result<(), String> + Sync),
+    ) -> Result<Result<Fetched, Unreadable>, SharedError> {
+        let manifest = match self.manifest(id, generation, charge).await? {
+            Ok(m) => m,
+            Err(why) => return Ok(Err(Unreadable::manifest(why))),
+        };
+        let unreadable = |why: String, damaged: bool| Unreadable {
+            why,
+            manifest: Some(manifest.clone()),
+            damaged,
+        };
         let mut fetched = Fetched {
             manifest: manifest.clone(),
             records: Vec::new(),
@@ -666,17 +990,20 @@ impl SharedStore {
         for (name, object) in &manifest.objects {
             let limit = if name == GRAPHS { MAX_GRAPHS } else { u64::MAX };
             if object.size > limit {
-                return Ok(Err(format!(
-                    "{}: {} is {} bytes, more than a graphs object may be",
-                    self.url, object.key, object.size
+                return Ok(Err(unreadable(
+                    format!(
+                        "{}: {} is {} bytes, more than a graphs object may be",
+                        self.url, object.key, object.size
+                    ),
+                    false,
                 )));
             }
             if let Err(why) = charge(object.size.saturating_mul(2), &object.key) {
-                return Ok(Err(why));
+                return Ok(Err(unreadable(why, false)));
             }
             let dir = self.scratch("fetch");
             let path = dir.join("rigs").join(name);
-            let got = self.download(object, &path).await;
+            let got = self.read_checked(object, Some(&path)).await;
             let outcome = match got {
                 Ok(Ok(())) if name == GRAPHS => std::fs::read(&path)
                     .map_err(|e| e.to_string())
@@ -684,7 +1011,7 @@ impl SharedStore {
                         serde_json::from_slice::<StoredGraphs>(&b).map_err(|e| e.to_string())
                     })
                     .map(|g| fetched.graphs = Some(g))
-                    .map_err(|e| format!("{}: {}: {e}", self.url, object.key)),
+                    .map_err(|e| (format!("{}: {}: {e}", self.url, object.key), false)),
                 Ok(Ok(())) => {
                     let path = path.clone();
                     match tokio::task::spawn_blocking(move || Store::read_reporting(&path)).await {
@@ -693,19 +1020,19 @@ impl SharedStore {
                             fetched.dropped.extend(dropped);
                             Ok(())
                         }
-                        Ok(Err(e)) => Err(format!("{}: {}: {e}", self.url, object.key)),
-                        Err(e) => Err(e.to_string()),
+                        Ok(Err(e)) => Err((format!("{}: {}: {e}", self.url, object.key), false)),
+                        Err(e) => Err((e.to_string(), false)),
                     }
                 }
-                Ok(Err(why)) => Err(why),
+                Ok(Err(why)) => Err((why, true)),
                 Err(e) => {
                     let _ = std::fs::remove_dir_all(&dir);
                     return Err(e);
                 }
             };
             let _ = std::fs::remove_dir_all(&dir);
-            if let Err(why) = outcome {
-                return Ok(Err(why));
+            if let Err((why, damaged)) = outcome {
+                return Ok(Err(unreadable(why, damaged)));
             }
         }
         Ok(Ok(fetched))
@@ -741,12 +1068,13 @@ impl SharedStore {
             .map_err(|e| self.unavailable(format!("cannot read {key}: {e}")))
     }
 
-    /// Streams `object` into `path`, checking its length and checksum against the manifest;
-    /// `Ok(Err)` for an object that is missing, longer or shorter, or damaged.
-    async fn download(
+    /// Streams `object` into `path` (or only through the checksum, without a path), checking
+    /// its length and checksum against the manifest; `Ok(Err)` for an object that is
+    /// missing, longer or shorter, or damaged.
+    async fn read_checked(
         &self,
         object: &ObjectRef,
-        path: &FsPath,
+        path: Option<&FsPath>,
     ) -> Result<Result<(), String>, SharedError> {
         use tokio::io::AsyncWriteExt;
         let key = &object.key;
@@ -766,14 +1094,19 @@ impl SharedStore {
         let local = |e: std::io::Error| {
             SharedError::Local(StoreError::Io {
                 op: "write",
-                path: path.display().to_string(),
+                path: path.map(|p| p.display().to_string()).unwrap_or_default(),
                 source: e,
             })
         };
-        if let Some(dir) = path.parent() {
-            tokio::fs::create_dir_all(dir).await.map_err(local)?;
-        }
-        let mut file = tokio::fs::File::create(path).await.map_err(local)?;
+        let mut file = match path {
+            Some(path) => {
+                if let Some(dir) = path.parent() {
+                    tokio::fs::create_dir_all(dir).await.map_err(local)?;
+                }
+                Some(tokio::fs::File::create(path).await.map_err(local)?)
+            }
+            None => None,
+        };
         let mut crc = crc32fast::Hasher::new();
         let mut len = 0u64;
         let mut stream = got.into_stream();
@@ -787,9 +1120,13 @@ impl SharedStore {
                 )));
             }
             crc.update(&chunk);
-            file.write_all(&chunk).await.map_err(local)?;
+            if let Some(file) = &mut file {
+                file.write_all(&chunk).await.map_err(local)?;
+            }
         }
-        file.flush().await.map_err(local)?;
+        if let Some(file) = &mut file {
+            file.flush().await.map_err(local)?;
+        }
         if len != object.size {
             return Ok(Err(format!(
                 "{}: {key} ended after {len} of {} bytes",
@@ -812,16 +1149,25 @@ impl SharedStore {
     }
 }
 
-/// Generations the replicas could not use, remembered so that each is reported once.
+/// Generations the replica could not use, each reported once, and when it first knew of
+/// damage to a generation (unusable here, or marked by another replica): a repair from
+/// whatever copy is left waits a grace period from then for a replica holding the exact
+/// objects.
 #[derive(Debug, Default)]
-pub struct Unusable(Mutex<HashSet<(String, u64)>>);
+pub struct Unusable(Mutex<UnusableSets>);
+
+#[derive(Debug, Default)]
+struct UnusableSets {
+    unusable: HashSet<(String, u64)>,
+    damage_seen: HashMap<(String, u64), Instant>,
+}
 
 impl Unusable {
     /// Whether generation `g` of `id` is known to be unusable.
     pub fn contains(&self, id: &str, g: u64) -> bool {
         self.0
             .lock()
-            .map(|s| s.contains(&(id.to_string(), g)))
+            .map(|s| s.unusable.contains(&(id.to_string(), g)))
             .unwrap_or(false)
     }
 
@@ -829,8 +1175,30 @@ impl Unusable {
     pub fn insert(&self, id: &str, g: u64) -> bool {
         self.0
             .lock()
-            .map(|mut s| s.insert((id.to_string(), g)))
+            .map(|mut s| s.unusable.insert((id.to_string(), g)))
             .unwrap_or(false)
+    }
+
+    /// When generation `g` of `id` was first known to be damaged here (now, the first time).
+    pub fn damage_seen(&self, id: &str, g: u64) -> Instant {
+        self.0
+            .lock()
+            .map(|mut s| {
+                *s.damage_seen
+                    .entry((id.to_string(), g))
+                    .or_insert_with(Instant::now)
+            })
+            .unwrap_or_else(|_| Instant::now())
+    }
+
+    /// Forgets the generations of `id` before `g` (superseded: never read again).
+    pub fn forget_below(&self, id: &str, g: u64) {
+        if let Ok(mut s) = self.0.lock() {
+            s.unusable
+                .retain(|(rig, generation)| rig != id || *generation >= g);
+            s.damage_seen
+                .retain(|(rig, generation), _| rig != id || *generation >= g);
+        }
     }
 }
 
@@ -912,7 +1280,10 @@ mod tests {
         let graphs = |n: u8| {
             Change::Graphs(format!("{{\"rig\":\"r\",\"graphs\":[],\"n\":{n}}}").into_bytes())
         };
-        let (ra, rb) = tokio::join!(a.commit("r", graphs(1)), b.commit("r", graphs(2)));
+        let (ra, rb) = tokio::join!(
+            a.commit("r", vec![graphs(1)]),
+            b.commit("r", vec![graphs(2)])
+        );
         let won = [ra.is_ok(), rb.is_ok()];
         assert_eq!(won.iter().filter(|&&w| w).count(), 1, "{ra:?} {rb:?}");
         let (winner, loser, lost) = if ra.is_ok() {
@@ -932,9 +1303,18 @@ mod tests {
 
         // The winner writes 2; the loser cannot use 1 or 2 (say): it passes them over and
         // commits 3, on what it holds.
-        winner.commit("r", graphs(3)).await.expect("generation 2");
+        winner
+            .commit("r", vec![graphs(3)])
+            .await
+            .expect("generation 2");
         loser.pass_over("r", 2);
-        assert_eq!(loser.commit("r", Change::Delete).await.expect("after"), 3);
+        assert_eq!(
+            loser
+                .commit("r", vec![Change::Delete])
+                .await
+                .expect("after"),
+            3
+        );
         assert_eq!(winner.list().await.expect("list")["r"], vec![1, 2, 3]);
         let _ = std::fs::remove_dir_all(&root);
         let _ = std::fs::remove_dir_all(&work);

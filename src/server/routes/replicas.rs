@@ -8,9 +8,20 @@
 //! generations or overwrites a change it is making; a generation that does not read back is
 //! reported once and passed over, and the replica keeps (or falls back to) the newest one
 //! that does; what a replica acknowledged is in the store.
+//!
+//! Damage (an object missing, short or failing its checksum) is repaired, never built on: a
+//! commit first reads back every object it carries over and restores a damaged one from this
+//! replica's copy ([`AppState::commit_shared`]); a replica that cannot use a damaged
+//! generation marks it in the store, refuses changes on top of it (503 `store_damaged`) and
+//! reports it until it is superseded; the repair ([`AppState::salvage`]) is the next
+//! generation, written by a replica that holds the damaged objects' exact content at once, or,
+//! after a grace period in which none did, by any replica from the newest intact earlier copy
+//! (an object with none is dropped and reported; a rig record with none is left for a delete
+//! or a new upload).
 
+use std::collections::BTreeMap;
 use std::sync::{Arc, Weak};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use axum::extract::{Request, State};
 use axum::http::StatusCode;
@@ -19,10 +30,14 @@ use axum::response::{IntoResponse, Response};
 
 use crate::budget::Budget;
 use crate::server::http::ApiError;
-use crate::server::registry::{ClipLayout, NewEntry, RigEntry, quantization_box, valid_id};
+use crate::server::registry::{
+    ClipLayout, NewEntry, RigEntry, clips_named, quantization_box, valid_id,
+};
 use crate::server::state::{AppState, Inner};
-use crate::store::objects::{Change, Fetched, SharedError, SharedStore};
-use crate::store::{Record, geometry_fingerprint};
+use crate::store::objects::{
+    Change, Fetched, GRAPHS, Manifest, ObjectRef, SharedError, SharedStore,
+};
+use crate::store::{Record, RecordRef, geometry_fingerprint};
 
 /// Why a fetched generation was not installed.
 enum Install {
@@ -30,6 +45,28 @@ enum Install {
     Unusable(String),
     /// The memory to prepare it is short now (tried again later).
     Short(String),
+}
+
+/// The repairs of a generation's damaged objects ([`AppState::repairs`]).
+#[derive(Default)]
+struct Repairs {
+    /// The changes that replace or drop them.
+    changes: Vec<Change>,
+    /// What was done with each, for the log.
+    notes: Vec<String>,
+    /// Whether one came from an earlier copy or was dropped (not this replica's exact copy).
+    inexact: bool,
+}
+
+/// Removes the staging files of changes that will not be committed.
+fn drop_staged(changes: Vec<Change>) {
+    for change in changes {
+        if let Change::File { path, .. } = change
+            && let Some(dir) = path.parent().and_then(|p| p.parent())
+        {
+            let _ = std::fs::remove_dir_all(dir);
+        }
+    }
 }
 
 /// Most rigs one request may make this replica look up in the store.
@@ -45,6 +82,7 @@ impl From<SharedError> for ApiError {
                 ApiError::unavailable("store_unavailable", e.to_string(), 2)
             }
             SharedError::Memory(_) => ApiError::unavailable("memory_full", e.to_string(), 1),
+            SharedError::Damaged { .. } => ApiError::unavailable("store_damaged", e.to_string(), 2),
             SharedError::Url { .. } | SharedError::Local(_) => ApiError::internal(e),
         }
     }
@@ -53,14 +91,54 @@ impl From<SharedError> for ApiError {
 impl AppState {
     /// Commits one change of rig `id` to the shared store: 409 `store_conflict` when another
     /// replica wrote the rig since this one read it, 503 `store_unavailable` when the store
-    /// does not answer. Nothing is changed here on either.
+    /// does not answer, 503 `store_damaged` while the rig's newest generation is damaged and
+    /// not repaired yet. Nothing is changed here on any of them.
+    ///
+    /// Every object the new generation carries over is read back first: one that is damaged
+    /// is restored from this replica's copy (it holds that very object), so a change is never
+    /// acknowledged on top of damage. (Cost: one read of the rig's stored objects per change.)
     pub(crate) async fn commit_shared(
         &self,
         shared: &Arc<SharedStore>,
         id: &str,
         change: Change,
     ) -> Result<(), ApiError> {
-        let generation = match shared.commit(id, change).await {
+        let mut changes = vec![change];
+        let carried = shared.carried(id, &changes);
+        let damaged = match shared.check_objects(&carried).await {
+            Ok(d) => d,
+            Err(e) => {
+                drop_staged(changes);
+                return Err(e.into());
+            }
+        };
+        let mut inexact = false;
+        if !damaged.is_empty() {
+            let held = shared.held(id);
+            // Not waiting for a holder: this replica holds every object it carries over.
+            match self.repairs(shared, id, held, damaged, false).await {
+                Ok(r) => {
+                    let r = r.unwrap_or_default();
+                    inexact = r.inexact;
+                    for note in &r.notes {
+                        tracing::error!(rig = %id, generation = held, "{note}");
+                    }
+                    if !r.changes.is_empty() {
+                        self.metrics.store_repaired(if inexact {
+                            "earlier_copy"
+                        } else {
+                            "restored"
+                        });
+                    }
+                    changes.extend(r.changes);
+                }
+                Err(e) => {
+                    drop_staged(changes);
+                    return Err(e.into());
+                }
+            }
+        }
+        let generation = match shared.commit(id, changes).await {
             Ok(g) => g,
             Err(e) => {
                 tracing::warn!(rig = %id, error = %e, "store write refused");
@@ -72,9 +150,276 @@ impl AppState {
                 return Err(e.into());
             }
         };
+        if inexact {
+            // A damaged object came back from an earlier copy, or went: what this replica
+            // serves is not the generation it wrote, which it installs from the store.
+            shared.mark_stale(id);
+            self.spawn_sync(id);
+        }
+        self.superseded(id, generation);
         self.store_misses.forget(id);
         tracing::debug!(rig = %id, generation, "store generation written");
         Ok(())
+    }
+
+    /// What was reported about generations of rig `id` before `generation` is over.
+    fn superseded(&self, id: &str, generation: u64) {
+        self.clear_skipped(id, generation);
+        self.store_unusable.forget_below(id, generation);
+    }
+
+    /// The repairs of generation `generation` of rig `id`'s `damaged` objects: each restored
+    /// from this replica's copy where it holds that very object, else (unless
+    /// `wait_for_holder`, which then answers `None`) from the newest intact earlier copy,
+    /// else dropped. A rig record with neither is [`SharedError::Damaged`]: a generation
+    /// without it cannot be used.
+    async fn repairs(
+        &self,
+        shared: &Arc<SharedStore>,
+        id: &str,
+        generation: u64,
+        damaged: Vec<(String, ObjectRef, String)>,
+        wait_for_holder: bool,
+    ) -> Result<Option<Repairs>, SharedError> {
+        let held: Vec<bool> = damaged
+            .iter()
+            .map(|(name, object, _)| shared.held_key(id, name).as_deref() == Some(&object.key))
+            .collect();
+        let names: Vec<String> = damaged
+            .iter()
+            .zip(&held)
+            .filter(|(_, held)| **held)
+            .map(|((name, ..), _)| name.clone())
+            .collect();
+        let mut restored = {
+            let state = self.clone();
+            let id = id.to_string();
+            tokio::task::spawn_blocking(move || state.restage(&id, &names))
+                .await
+                .map_err(|e| SharedError::Local(crate::store::StoreError::Encode(e.to_string())))?
+        };
+        let mut out = Repairs::default();
+        let budget = Budget::new(
+            self.config.max_upload_memory,
+            "--max-upload-memory",
+            Some(self.pool.clone()),
+        );
+        let charge = |bytes: u64, key: &str| {
+            budget
+                .charge(bytes, || format!("manifest {key}"))
+                .map(drop)
+                .map_err(|e| e.to_string())
+        };
+        for (name, object, why) in damaged {
+            if let Some(change) = restored.remove(&name) {
+                out.notes.push(format!(
+                    "{why}: restored from this replica's copy of {name}"
+                ));
+                out.changes.push(change);
+                continue;
+            }
+            if wait_for_holder {
+                drop_staged(out.changes);
+                drop_staged(restored.into_values().collect());
+                return Ok(None);
+            }
+            out.inexact = true;
+            match shared
+                .earlier_copy(id, generation + 1, &name, &object.key, &charge)
+                .await?
+            {
+                Some((g, earlier)) => {
+                    out.notes.push(format!(
+                        "{why}: no replica holds it; generation {g}'s intact copy of {name} \
+                         ({}) takes its place",
+                        earlier.key
+                    ));
+                    out.changes.push(Change::Keep {
+                        name,
+                        object: earlier,
+                    });
+                }
+                None if name.ends_with(&format!(".{}", crate::store::EXT)) => {
+                    drop_staged(out.changes);
+                    drop_staged(restored.into_values().collect());
+                    return Err(SharedError::Damaged {
+                        url: shared.url().to_string(),
+                        rig: id.to_string(),
+                        generation,
+                        why: format!(
+                            "{why}; no replica holds the rig's record and the store has no \
+                             intact earlier copy: delete the rig or upload it again"
+                        ),
+                    });
+                }
+                None => {
+                    out.notes.push(format!(
+                        "{why}: no replica holds it and the store has no intact earlier \
+                         copy; {name} is dropped from the rig"
+                    ));
+                    out.changes.push(Change::Remove(name));
+                }
+            }
+        }
+        Ok(Some(out))
+    }
+
+    /// Stages again, from the rig this replica serves, each of `names` (objects of rig `id`:
+    /// its record, a clip file, its graphs) that it can; blocking. A clip file whose clips are
+    /// not all held (a compressed clip that did not decode) is left out.
+    fn restage(&self, id: &str, names: &[String]) -> BTreeMap<String, Change> {
+        let mut out = BTreeMap::new();
+        let (Some(shared), Some(entry)) = (self.shared_store(), self.registry.get(id)) else {
+            return out;
+        };
+        let rig = entry.rig();
+        for name in names {
+            let staged = if name == GRAPHS {
+                SharedStore::graphs_change(id, &self.graphs.specs(id)).ok()
+            } else if name == &format!("{id}.{}", crate::store::EXT) {
+                let clips = clips_named(rig, &entry.layout.record);
+                let record = if entry.builtin {
+                    RecordRef::Builtin {
+                        id,
+                        clips: &clips,
+                        rig,
+                    }
+                } else {
+                    RecordRef::Rig {
+                        id,
+                        rig,
+                        clips: &clips,
+                    }
+                };
+                shared.stage(record).ok()
+            } else {
+                let seq = name
+                    .strip_prefix(id)
+                    .and_then(|r| r.strip_prefix('@'))
+                    .and_then(|r| r.split('.').next())
+                    .and_then(|r| r.parse::<u64>().ok());
+                let file = seq.and_then(|seq| entry.layout.files.iter().find(|f| f.0 == seq));
+                file.and_then(|(seq, names)| {
+                    let clips = clips_named(rig, names);
+                    (clips.len() == names.len())
+                        .then(|| {
+                            shared
+                                .stage(RecordRef::Clips {
+                                    id,
+                                    seq: *seq,
+                                    clips: &clips,
+                                    rig,
+                                })
+                                .ok()
+                        })
+                        .flatten()
+                })
+            };
+            if let Some(change) = staged {
+                out.insert(name.clone(), change);
+            }
+        }
+        out
+    }
+
+    /// How long a damaged generation waits for a replica holding its exact objects before
+    /// any replica repairs it from earlier copies: ten refreshes, at least two seconds.
+    fn repair_grace(&self) -> Duration {
+        (self.config.store_refresh * 10).max(Duration::from_secs(2))
+    }
+
+    /// Repairs the damaged generations the store's markers name that this replica can: at
+    /// once where it holds every damaged object's exact content, else once the grace period
+    /// has passed; a marker of a generation that a later one superseded is removed.
+    async fn tend_damage(
+        &self,
+        shared: &Arc<SharedStore>,
+        listed: &BTreeMap<String, Vec<u64>>,
+    ) -> Result<(), SharedError> {
+        for (id, g) in shared.damage_reports().await? {
+            let newest = listed.get(&id).and_then(|v| v.last().copied()).unwrap_or(0);
+            if newest != g {
+                // Repaired, written over or deleted since (or a marker of nothing).
+                shared.clear_damage(&id, g).await;
+                continue;
+            }
+            let waited = self.store_unusable.damage_seen(&id, g).elapsed() >= self.repair_grace();
+            if let Err(e) = self.salvage(shared, &id, g, !waited).await {
+                tracing::warn!(rig = %id, generation = g, error = %e, "cannot repair a damaged generation now");
+            }
+        }
+        Ok(())
+    }
+
+    /// Writes the repair of damaged generation `g` of rig `id` as generation `g + 1`
+    /// ([`AppState::repairs`]; with `wait_for_holder`, only if this replica holds every
+    /// damaged object's content). The repair is installed like any other generation.
+    pub(crate) async fn salvage(
+        &self,
+        shared: &Arc<SharedStore>,
+        id: &str,
+        g: u64,
+        wait_for_holder: bool,
+    ) -> Result<(), SharedError> {
+        let _admin = self.admin.lock().await;
+        if shared.held(id) > g {
+            return Ok(());
+        }
+        let budget = Budget::new(
+            self.config.max_upload_memory,
+            "--max-upload-memory",
+            Some(self.pool.clone()),
+        );
+        let charge = |bytes: u64, key: &str| {
+            budget
+                .charge(bytes, || format!("manifest {key}"))
+                .map(drop)
+                .map_err(|e| e.to_string())
+        };
+        let manifest: Manifest = match shared.manifest(id, g, &charge).await? {
+            Ok(m) if !m.deleted => m,
+            _ => return Ok(()),
+        };
+        let objects: Vec<(String, ObjectRef)> = manifest
+            .objects
+            .iter()
+            .map(|(n, o)| (n.clone(), o.clone()))
+            .collect();
+        let damaged = shared.check_objects(&objects).await?;
+        if damaged.is_empty() {
+            return Ok(());
+        }
+        let repairs = match self.repairs(shared, id, g, damaged, wait_for_holder).await {
+            Ok(Some(r)) => r,
+            Ok(None) => return Ok(()),
+            Err(e) => {
+                let why = e.to_string();
+                if self.store_unusable.insert(id, g) {
+                    tracing::error!(rig = %id, generation = g, error = %why, "a damaged generation cannot be repaired");
+                }
+                self.skip_rig(id, g, why);
+                return Err(e);
+            }
+        };
+        let how = if repairs.inexact {
+            "earlier_copy"
+        } else {
+            "restored"
+        };
+        match shared.salvage(manifest, repairs.changes).await {
+            Ok(repaired) => {
+                for note in &repairs.notes {
+                    tracing::error!(rig = %id, generation = g, repaired, "{note}");
+                }
+                self.metrics.store_repaired(how);
+                shared.clear_damage(id, g).await;
+                Ok(())
+            }
+            // Another replica repaired it (or wrote the rig) first: its generation is read
+            // at the next refresh.
+            Err(SharedError::Conflict { .. }) => Ok(()),
+            Err(e) => Err(e),
+        }
     }
 
     /// Brings rig `id` up to the store's newest generation in the background (after this
@@ -135,6 +480,7 @@ impl AppState {
                 Err(e) => return Err(e),
             }
         }
+        self.tend_damage(shared, &listed).await?;
         Ok(changed)
     }
 
@@ -147,7 +493,14 @@ impl AppState {
         generations: &[u64],
     ) -> Result<bool, SharedError> {
         let held = shared.held(id);
-        for &g in generations.iter().rev().take_while(|&&g| g > held) {
+        // The held generation itself too when it is stale (a commit here repaired it from
+        // earlier copies, so it is not what this replica serves).
+        let stale = shared.is_stale(id);
+        for &g in generations
+            .iter()
+            .rev()
+            .take_while(|&&g| g > held || (g == held && stale))
+        {
             if self.store_unusable.contains(id, g) {
                 continue;
             }
@@ -169,17 +522,19 @@ impl AppState {
             };
             let fetched = shared.fetch(id, g, &charge).await?;
             if short.load(std::sync::atomic::Ordering::Relaxed) {
-                let why = fetched.err().unwrap_or_default();
+                let why = fetched.err().map(|u| u.why).unwrap_or_default();
                 return Err(SharedError::Memory(format!(
                     "rig {id:?} generation {g}: {why}"
                 )));
             }
+            let mut damaged = false;
             let installed = match fetched {
                 Ok(f) => {
                     // Under the lock local changes take: a change being made here is either
                     // before this generation (and then in the store, and held) or after.
                     let _admin = self.admin.lock().await;
-                    if shared.held(id) >= g {
+                    let now = shared.held(id);
+                    if now > g || (now == g && !shared.is_stale(id)) {
                         return Ok(false);
                     }
                     let state = self.clone();
@@ -188,7 +543,13 @@ impl AppState {
                         .await
                         .unwrap_or_else(|e| Err(Install::Unusable(e.to_string())))
                 }
-                Err(why) => Err(Install::Unusable(why)),
+                Err(u) => {
+                    // Damaged objects under a manifest that reads: a repair can mend it, and
+                    // nothing is committed past it until then (that would drop its intact
+                    // objects).
+                    damaged = u.damaged && u.manifest.is_some() && generations.last() == Some(&g);
+                    Err(Install::Unusable(u.why))
+                }
             };
             match installed {
                 Ok(()) => {
@@ -202,10 +563,17 @@ impl AppState {
                 }
                 Err(Install::Unusable(why)) => {
                     shared.pass_over(id, g);
+                    if damaged {
+                        shared.mark_damaged(id, g, &why);
+                        self.store_unusable.damage_seen(id, g);
+                    }
                     if self.store_unusable.insert(id, g) {
                         let why = format!("rig {id:?} generation {g} is not used: {why}");
                         tracing::error!(error = %why, "skipping a stored generation");
-                        self.skip(why);
+                        self.skip_rig(id, g, why.clone());
+                        if damaged && let Err(e) = shared.report_damage(id, g, &why).await {
+                            tracing::warn!(rig = %id, generation = g, error = %e, "cannot mark a damaged generation");
+                        }
                     }
                 }
             }
@@ -227,13 +595,14 @@ impl AppState {
                 self.forget_rig(&id);
                 tracing::info!(rig = %id, generation = manifest.generation, "rig deleted in the store");
             }
+            self.superseded(&id, manifest.generation);
             if let Some(s) = self.shared_store() {
                 s.set_held(manifest);
             }
             return Ok(());
         }
         for why in dropped {
-            self.skip(why);
+            self.skip_rig(&id, manifest.generation, why);
         }
         // The built-in rig with nothing stored but its graphs (no clips or LOD of its own
         // yet): its geometry and clips stay the embedded ones, only the graphs change.
@@ -243,6 +612,7 @@ impl AppState {
                 _ => self.graphs.drop_rig(&id),
             }
             tracing::info!(rig = %id, generation = manifest.generation, "built-in rig's graphs loaded from the store");
+            self.superseded(&id, manifest.generation);
             if let Some(s) = self.shared_store() {
                 s.set_held(manifest);
             }
@@ -344,6 +714,7 @@ impl AppState {
             t.purge(&id);
         }
         tracing::info!(rig = %id, generation = manifest.generation, "rig loaded from the store");
+        self.superseded(&id, manifest.generation);
         if let Some(s) = self.shared_store() {
             s.set_held(manifest);
         }

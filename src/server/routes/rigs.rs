@@ -104,6 +104,11 @@ impl AppState {
             }
         })
         .await?;
+        if self.shared.is_none() {
+            // The data dir's record of the rig is written anew: what was reported about the
+            // one before is superseded.
+            self.clear_skipped(id, u64::MAX);
+        }
         self.commit_staged(id, staged).await
     }
 
@@ -136,6 +141,7 @@ impl AppState {
         if let Some(shared) = &self.shared {
             return self.commit_shared(shared, id, Change::Delete).await;
         }
+        self.clear_skipped(id, u64::MAX);
         let id = id.to_string();
         self.on_data_dir(move |st| st.remove(&id)).await
     }
