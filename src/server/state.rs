@@ -4,6 +4,7 @@
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
+use std::time::Instant;
 
 use tokio::sync::Semaphore;
 
@@ -23,7 +24,7 @@ use super::topologies::RenderState;
 use crate::budget::{Budget, MemoryPool};
 use crate::engine::Engine;
 use crate::rig::RigShape;
-use crate::store::objects::{Misses, SharedStore, Unusable};
+use crate::store::objects::{LodClaim, Misses, SharedStore, Unusable};
 use crate::store::{
     Record, Store, StoreError, StoredBuiltin, StoredClips, StoredRig, geometry_fingerprint,
 };
@@ -71,6 +72,10 @@ pub struct Inner {
     pub(crate) store_misses: Misses,
     /// Generations of the shared store that could not be used (each reported once).
     pub(crate) store_unusable: Unusable,
+    /// Other replicas' LOD claims as last seen, with when their heartbeat last moved.
+    pub(crate) lod_claims_seen: Mutex<std::collections::HashMap<String, (LodClaim, Instant)>>,
+    /// This replica's LOD claim heartbeat.
+    pub(crate) lod_beat: std::sync::atomic::AtomicU64,
     pub(crate) ready: AtomicBool,
     pub(crate) load_started: AtomicBool,
     /// What `/readyz` reports as skipped, each until what it is about is superseded.
@@ -232,6 +237,8 @@ impl AppState {
             shared,
             store_misses: Default::default(),
             store_unusable: Default::default(),
+            lod_claims_seen: Mutex::new(Default::default()),
+            lod_beat: Default::default(),
             ready: AtomicBool::new(false),
             load_started: AtomicBool::new(false),
             skipped: Mutex::new(Vec::new()),
@@ -284,7 +291,8 @@ impl AppState {
         self.ready.store(true, Ordering::Release);
         // Rigs that still have the import's quick order get the metric-based one. With a
         // shared store only the built-in rig (which no upload computes it for): a stored rig's
-        // order is computed where it was uploaded and arrives as its next generation.
+        // order is computed where it was uploaded, or, if that replica died first, by the one
+        // that takes its claim over (`tend_lod`), and arrives as its next generation.
         for entry in self.registry.all() {
             if self.shared.is_none() || entry.builtin {
                 self.start_auto_lod(&entry);

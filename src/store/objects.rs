@@ -209,6 +209,20 @@ fn remove_staged(changes: &[Change]) {
     }
 }
 
+/// Who computes a rig's LOD: the replica that claimed it and its heartbeat, which grows at
+/// each of its refreshes while the build runs (or has failed); a claim whose heartbeat stops
+/// for a lease is taken over.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct LodClaim {
+    /// The claiming replica's name.
+    pub writer: String,
+    /// Its heartbeat.
+    pub beat: u64,
+    /// Its build failed (the claim is kept so that no other replica retries it).
+    #[serde(default)]
+    pub failed: bool,
+}
+
 /// Why a generation could not be read back.
 #[derive(Debug)]
 pub struct Unreadable {
@@ -1140,6 +1154,59 @@ impl SharedStore {
             )));
         }
         Ok(Ok(()))
+    }
+
+    /// The LOD claim of rig `id` (`lod/<id>.json`): which replica computes the rig's LOD
+    /// and its heartbeat; `None` when nobody claims it. A claim that does not parse is one of
+    /// nobody's (its writer is empty).
+    pub async fn lod_claim(&self, id: &str) -> Result<Option<LodClaim>, SharedError> {
+        let key = Path::from(format!("lod/{id}.json"));
+        let got = match self.objects.get(&key).await {
+            Ok(g) => g,
+            Err(object_store::Error::NotFound { .. }) => return Ok(None),
+            Err(e) => return Err(self.unavailable(format!("cannot read {key}: {e}"))),
+        };
+        if got.meta.size > 4096 {
+            return Ok(Some(LodClaim::default()));
+        }
+        let bytes = got
+            .bytes()
+            .await
+            .map_err(|e| self.unavailable(format!("cannot read {key}: {e}")))?;
+        Ok(Some(serde_json::from_slice(&bytes).unwrap_or_default()))
+    }
+
+    /// Claims (or keeps claiming: `beat` grows with each heartbeat) the LOD build of rig
+    /// `id` for this replica; `failed` says its build failed (it is not retried elsewhere).
+    pub async fn claim_lod(&self, id: &str, beat: u64, failed: bool) -> Result<(), SharedError> {
+        let claim = LodClaim {
+            writer: self.writer.clone(),
+            beat,
+            failed,
+        };
+        let key = Path::from(format!("lod/{id}.json"));
+        let json = serde_json::to_vec(&claim)
+            .map_err(|e| SharedError::Local(StoreError::Encode(e.to_string())))?;
+        self.objects
+            .put(&key, PutPayload::from(json))
+            .await
+            .map(drop)
+            .map_err(|e| self.unavailable(format!("cannot write {key}: {e}")))
+    }
+
+    /// Removes rig `id`'s LOD claim (its LOD is in the store, or the rig is gone).
+    pub async fn release_lod(&self, id: &str) {
+        let key = Path::from(format!("lod/{id}.json"));
+        if let Err(e) = self.objects.delete(&key).await
+            && !matches!(e, object_store::Error::NotFound { .. })
+        {
+            tracing::warn!(error = %e, %key, "cannot remove a LOD claim");
+        }
+    }
+
+    /// This replica's name in what it writes.
+    pub fn writer(&self) -> &str {
+        &self.writer
     }
 
     /// Deletes this replica's staging directory (at exit; leftovers of a killed process are

@@ -20,8 +20,8 @@ use crowdmorph_proto::{
     RenderRequest, RigInfo,
 };
 use futures_util::StreamExt;
-use object_store::{ObjectStore, ObjectStoreExt};
 use object_store::path::Path as ObjectPath;
+use object_store::{ObjectStore, ObjectStoreExt};
 
 use super::balancer::{free_port, nginx};
 use super::persistence::{Proc, ready, spawn_with};
@@ -1043,5 +1043,71 @@ async fn a_rig_too_big_for_a_replica_now_is_503_not_damage() {
     );
     b.stop().await;
     a.stop().await;
+    let _ = std::fs::remove_dir_all(&store);
+}
+
+/// Issue 44: with a shared store only the uploading replica computes a rig's LOD; when it is
+/// SIGKILLed right after the upload's 201, another replica takes the build over once the
+/// claim's heartbeat has stopped for its lease, commits it, and every replica, the
+/// restarted one included, serves the rig with its metric order and mesh levels.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_test_data),
+    ignore = "needs the shared test rigs (../shared/data or CROWDMORPH_TEST_DATA)"
+)]
+async fn a_lod_build_whose_replica_dies_is_taken_over() {
+    let store = temp_dir("orphan-lod-store");
+    let url = format!("file://{}", store.display());
+    let auto_lod = [("CROWDMORPH_NO_AUTO_LOD", "false")];
+    let (mut procs, mut c) = replicas(&url, 2, &auto_lod).await;
+    let ict = crate::util::data_dir().join("ict-facekit/ict_facekit_53.glb");
+    let info = c[0]
+        .upload_rig("ict", super::upload_bytes(&ict))
+        .await
+        .expect("upload ICT FaceKit");
+    // Killed within milliseconds of the 201: its build (seconds of work) never commits.
+    let _ = procs[0].child.kill();
+    let _ = procs[0].child.wait();
+    assert_ne!(info.lod.status, "ready", "{:?}", info.lod);
+    // A replica started after the kill sees the dead one's claim too.
+    let (more, added) = replicas(&url, 1, &auto_lod).await;
+    procs.extend(more);
+    c.extend(added);
+    let alive = &c[1..];
+    let started = Instant::now();
+    loop {
+        let mut done = true;
+        for r in alive {
+            let lod = r.rig("ict").await.expect("ICT on the replica").lod;
+            done &= lod.status == "ready" && lod.levels.iter().any(|l| l.mesh.is_some());
+        }
+        if done {
+            break;
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(240),
+            "the orphaned LOD build was never finished: {:?}",
+            c[1].rig("ict").await.map(|r| r.lod)
+        );
+        tokio::time::sleep(Duration::from_millis(250)).await;
+    }
+    eprintln!(
+        "the orphaned LOD build was finished in {:?}",
+        started.elapsed()
+    );
+    let took_over = procs[1..].iter().filter(|p| {
+        p.log
+            .lock()
+            .expect("log")
+            .iter()
+            .any(|l| l.contains("claiming the rig's unfinished LOD build"))
+    });
+    assert_eq!(
+        took_over.count(),
+        1,
+        "exactly one replica took the build over"
+    );
+    drop(c);
+    drop(procs);
     let _ = std::fs::remove_dir_all(&store);
 }

@@ -107,6 +107,17 @@ impl AppState {
         let weak = Arc::downgrade(&self.0);
         let id = entry.id.clone();
         tokio::spawn(async move {
+            // With a shared store the build is claimed first, so that other replicas leave it
+            // to this one while its heartbeat (each refresh) goes on, and take it over if this
+            // replica dies before the result is committed.
+            if let Ok(state) = upgrade(&weak)
+                && let Some(shared) = state.shared_store().cloned()
+            {
+                drop(state);
+                if let Err(e) = shared.claim_lod(&id, 0, false).await {
+                    tracing::warn!(rig = %id, error = %e, "cannot claim the LOD build in the store");
+                }
+            }
             let outcome = async {
                 let (lod, budget) = build_with(&weak, rig.clone(), spec, &job).await?;
                 let state = upgrade(&weak)?;
@@ -120,6 +131,10 @@ impl AppState {
                 Ok(_) => {
                     tracing::info!(rig = %id, "metric-ordered LOD and mesh levels ready");
                     state.lod_jobs.finish(&id, &job);
+                    // Its result is the rig's newest generation: nobody needs the claim.
+                    if let Some(shared) = state.shared_store() {
+                        shared.release_lod(&id).await;
+                    }
                 }
                 Err(_) if job.progress.is_cancelled() => {
                     tracing::debug!(rig = %id, "background LOD cancelled");

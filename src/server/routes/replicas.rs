@@ -481,6 +481,7 @@ impl AppState {
             }
         }
         self.tend_damage(shared, &listed).await?;
+        self.tend_lod(shared).await?;
         Ok(changed)
     }
 
@@ -579,6 +580,67 @@ impl AppState {
             }
         }
         Ok(false)
+    }
+
+    /// How long another replica's LOD claim may go without a heartbeat before this one takes
+    /// the build over: twenty refreshes, at least five seconds.
+    fn lod_lease(&self) -> Duration {
+        (self.config.store_refresh * 20).max(Duration::from_secs(5))
+    }
+
+    /// Keeps the LOD of every rig held here moving while it has only the import's quick
+    /// order: a build running here (or failed here) beats its claim in the store; a rig
+    /// nobody claims, or whose claim's heartbeat has not moved for a lease (its replica died
+    /// after the upload's 201), is claimed and built here. The build commits its result as
+    /// the rig's next generation, like the uploader's would have.
+    async fn tend_lod(&self, shared: &Arc<SharedStore>) -> Result<(), SharedError> {
+        if !self.config.auto_lod() {
+            return Ok(());
+        }
+        let beat = self
+            .lod_beat
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed)
+            + 1;
+        for entry in self.registry.all() {
+            if entry.builtin || entry.rig().lod.method != crate::rig::IMPORT_LOD_METHOD {
+                continue;
+            }
+            let id = entry.id.clone();
+            if let Some(job) = self.lod_jobs.get(&id) {
+                let failed = job.failed.lock().map(|f| f.is_some()).unwrap_or(false);
+                shared.claim_lod(&id, beat, failed).await?;
+                continue;
+            }
+            let take = match shared.lod_claim(&id).await? {
+                None => true,
+                // This replica's own claim without a job here: its build ended unapplied.
+                Some(c) if c.writer == shared.writer() => true,
+                Some(c) => {
+                    let mut seen = self
+                        .lod_claims_seen
+                        .lock()
+                        .map_err(|_| SharedError::Memory("a lock was poisoned".into()))?;
+                    let (last, since) = seen
+                        .entry(id.clone())
+                        .or_insert_with(|| (c.clone(), Instant::now()));
+                    if *last != c {
+                        (*last, *since) = (c, Instant::now());
+                        false
+                    } else {
+                        since.elapsed() >= self.lod_lease()
+                    }
+                }
+            };
+            if take {
+                if let Ok(mut seen) = self.lod_claims_seen.lock() {
+                    seen.remove(&id);
+                }
+                tracing::info!(rig = %id, "claiming the rig's unfinished LOD build");
+                shared.claim_lod(&id, beat, false).await?;
+                self.start_auto_lod(&entry);
+            }
+        }
+        Ok(())
     }
 
     /// Makes `fetched` the rig's current generation (blocking: it prepares the rig).
@@ -720,7 +782,8 @@ impl AppState {
         }
         // No background LOD here: the replica that uploaded the rig runs it and commits the
         // result as the next generation, which reaches this one like any other change (every
-        // replica computing it would be N times the work and N-1 conflicts).
+        // replica computing it would be N times the work and N-1 conflicts); if that replica
+        // dies first, its claim's heartbeat stops and one replica takes it over (`tend_lod`).
         Ok(())
     }
 

@@ -139,7 +139,9 @@ impl AppState {
     /// generation in a shared store).
     pub async fn persist_delete(&self, id: &str) -> Result<(), ApiError> {
         if let Some(shared) = &self.shared {
-            return self.commit_shared(shared, id, Change::Delete).await;
+            self.commit_shared(shared, id, Change::Delete).await?;
+            shared.release_lod(id).await;
+            return Ok(());
         }
         self.clear_skipped(id, u64::MAX);
         let id = id.to_string();
