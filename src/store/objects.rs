@@ -1227,6 +1227,7 @@ pub struct Unusable(Mutex<UnusableSets>);
 struct UnusableSets {
     unusable: HashSet<(String, u64)>,
     damage_seen: HashMap<(String, u64), Instant>,
+    repair_tried: HashMap<(String, u64), Instant>,
 }
 
 impl Unusable {
@@ -1258,12 +1259,33 @@ impl Unusable {
             .unwrap_or_else(|_| Instant::now())
     }
 
+    /// Whether a repair of generation `g` of `id` may be tried now: not tried within
+    /// `every` (a repair reads the whole generation back). Counts this try.
+    pub fn may_try_repair(&self, id: &str, g: u64, every: Duration) -> bool {
+        self.0
+            .lock()
+            .map(|mut s| {
+                let key = (id.to_string(), g);
+                if s.repair_tried
+                    .get(&key)
+                    .is_some_and(|t| t.elapsed() < every)
+                {
+                    return false;
+                }
+                s.repair_tried.insert(key, Instant::now());
+                true
+            })
+            .unwrap_or(false)
+    }
+
     /// Forgets the generations of `id` before `g` (superseded: never read again).
     pub fn forget_below(&self, id: &str, g: u64) {
         if let Ok(mut s) = self.0.lock() {
             s.unusable
                 .retain(|(rig, generation)| rig != id || *generation >= g);
             s.damage_seen
+                .retain(|(rig, generation), _| rig != id || *generation >= g);
+            s.repair_tried
                 .retain(|(rig, generation), _| rig != id || *generation >= g);
         }
     }

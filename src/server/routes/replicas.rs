@@ -343,7 +343,15 @@ impl AppState {
                 shared.clear_damage(&id, g).await;
                 continue;
             }
-            let waited = self.store_unusable.damage_seen(&id, g).elapsed() >= self.repair_grace();
+            // The replica that holds generation `g` can restore it at once; any other waits
+            // the grace period for it, then repairs from earlier copies. Either reads the
+            // generation back, so it tries at most once per grace period.
+            let grace = self.repair_grace();
+            let waited = self.store_unusable.damage_seen(&id, g).elapsed() >= grace;
+            let holder = shared.held(&id) == g;
+            if !(holder || waited) || !self.store_unusable.may_try_repair(&id, g, grace) {
+                continue;
+            }
             if let Err(e) = self.salvage(shared, &id, g, !waited).await {
                 tracing::warn!(rig = %id, generation = g, error = %e, "cannot repair a damaged generation now");
             }
