@@ -14,11 +14,12 @@
 //! for the 1/4096 quantization of blend fractions. A fade between poses far apart takes longer
 //! than its edge's nominal `fade` frames.
 
-use std::collections::HashMap;
+use std::collections::{BTreeSet, HashMap};
 use std::sync::Arc;
 
 use crowdmorph_proto::{GraphPlay, MotionGraph};
 
+use crate::cancel::{Cancel, Cancelled};
 use crate::rig::{JointPose, JointSet, Pose, Rig, Trs};
 use crate::rng::SplitMix64;
 
@@ -628,14 +629,14 @@ impl Default for BuildOptions {
 }
 
 /// Most (source frame, target frame) pairs [`build`] compares for one pair of clips: the
-/// distance grid it keeps (8 bytes a pair) and the work (K operations a pair times the window)
-/// grow with it, so larger clips are refused ([`build_bytes`] returns `None`).
+/// distance grid it keeps (8 bytes a pair) grows with it, so larger clips are refused
+/// ([`build_bytes`] returns `None`).
 pub const MAX_BUILD_PAIRS: u64 = 1 << 22;
 
-/// Bytes [`build`] holds at most for `rig` (for the caller's charge): the projected frames, the
-/// largest pair of clips' distance grid, the Gram matrix and its factor. `None` when two clips
-/// are too long to compare ([`MAX_BUILD_PAIRS`]).
-pub fn build_bytes(rig: &Rig) -> Option<u64> {
+/// Bytes [`build`] holds at most for `rig` (for the caller's charge): the projected frames,
+/// the largest pair of clips' distance grid, the Gram matrix and its factor, the candidate
+/// transitions. `None` when two clips are too long to compare ([`MAX_BUILD_PAIRS`]).
+pub fn build_bytes(rig: &Rig, opt: BuildOptions) -> Option<u64> {
     let k = rig.targets.len() as u64;
     let frames: u64 = rig.clips.iter().map(|c| u64::from(c.frames)).sum();
     let longest = rig
@@ -645,63 +646,113 @@ pub fn build_bytes(rig: &Rig) -> Option<u64> {
         .max()
         .unwrap_or(0);
     let pairs = longest * longest;
-    (pairs <= MAX_BUILD_PAIRS).then(|| frames * k * 8 + pairs * 8 + k * k * 16 + 4096)
+    let clips = rig.clips.len() as u64;
+    (pairs <= MAX_BUILD_PAIRS).then(|| {
+        frames * k * 8 + pairs * 8 + k * k * 16 + clips * clips * opt.per_pair as u64 * 64 + 4096
+    })
+}
+
+/// What [`build`] costs, in the unit of the server's `--max-graph-work` (about one multiply-add
+/// each): every frame of every clip compared with every frame of every clip (the grid of each
+/// ordered pair of clips, a clip with itself included, is frames × frames comparisons of K
+/// numbers, then the window's sums), plus the Gram matrix, its factor and one projection per
+/// frame, and sorting the candidate transitions.
+pub fn build_work(rig: &Rig, opt: BuildOptions) -> u64 {
+    let k = rig.targets.len() as u64;
+    let frames: u64 = rig.clips.iter().map(|c| u64::from(c.frames)).sum();
+    let grid = frames
+        .saturating_mul(frames)
+        .saturating_mul(k + u64::from(opt.window.max(1)));
+    let deltas: u64 = rig
+        .primitives
+        .iter()
+        .flat_map(|p| p.targets.iter())
+        .map(|t| t.vertices.len() as u64)
+        .sum();
+    let features = deltas * k + k * k * k + frames * k * k;
+    let clips = rig.clips.len() as u64;
+    grid.saturating_add(features)
+        .saturating_add(clips * clips * opt.per_pair as u64 * 64)
+}
+
+/// Per clip, every frame's `Lᵀw` ([`projector`]; `frames × K` numbers, frame-major), K, and
+/// the root of the vertex count a distance sums over.
+fn features(rig: &Rig, cancel: &Cancel) -> Result<(Vec<Vec<f64>>, usize, f64), Cancelled> {
+    let mut wf = vec![0f32; rig.targets.len()];
+    let mut out = Vec::with_capacity(rig.clips.len());
+    let project = projector(rig);
+    cancel.check()?;
+    for c in &rig.clips {
+        let mut flat = Vec::with_capacity(c.frames as usize * rig.targets.len());
+        for f in 0..c.frames {
+            c.frame_weights(f, &mut wf);
+            flat.extend(project(&wf));
+        }
+        cancel.check()?;
+        out.push(flat);
+    }
+    Ok((
+        out,
+        rig.targets.len(),
+        (rig.vertex_count().max(1) as f64).sqrt(),
+    ))
 }
 
 /// Builds a motion graph from the rig's clips the way Kovar et al. (2002) do: frame distances
 /// in vertex space, `‖Dᵀ(w_a − w_b)‖` over the rig's deltas (computed as `‖Lᵀ(w_a − w_b)‖`
 /// with `L` the Cholesky factor of the Gram matrix `DDᵀ`, so a pair costs K operations, not a
-/// mesh), summed over a window of frames; the local minima under the threshold become
-/// transitions; clips are cut into nodes where transitions land, nodes of one clip play on
-/// into each other, and the graph is pruned to its largest strongly connected component (so
-/// every node can reach every other). `None` when no clip has a window's frames.
-pub fn build(rig: &Rig, opt: BuildOptions) -> Option<Built> {
-    build_bytes(rig)?;
+/// mesh), averaged over a window of frames; the local minima under the threshold become transitions; clips
+/// are cut into nodes where transitions land, nodes of one clip play on into each other, and
+/// the graph is pruned to its largest strongly connected component (so every node can reach
+/// every other). `Ok(None)` when no clip has a window's frames; `Err` when `cancel` stops it
+/// (checked after every row of a grid, a few milliseconds apart at most).
+pub fn build(rig: &Rig, opt: BuildOptions, cancel: &Cancel) -> Result<Option<Built>, Cancelled> {
+    if build_bytes(rig, opt).is_none() {
+        return Ok(None);
+    }
     let w = opt.window.max(1) as usize;
-    let project = projector(rig);
-    let v = rig.vertex_count().max(1) as f64;
     let diag = f64::from(rig.bbox().diagonal()).max(1e-12);
-    // Per clip, per frame: Lᵀ w, so that a distance is a difference of these.
-    let frames: Vec<Vec<Vec<f64>>> = rig
-        .clips
-        .iter()
-        .map(|c| {
-            let mut wf = vec![0f32; rig.targets.len()];
-            (0..c.frames)
-                .map(|f| {
-                    c.frame_weights(f, &mut wf);
-                    project(&wf)
-                })
-                .collect()
-        })
-        .collect();
-    let dist = |a: &[f64], b: &[f64]| -> f64 {
-        a.iter()
-            .zip(b)
-            .map(|(x, y)| (x - y) * (x - y))
-            .sum::<f64>()
-            .sqrt()
-    };
+    let (frames, dims, norm) = features(rig, cancel)?;
+    let count = |c: usize| frames[c].len() / dims.max(1);
     // Candidate transitions (source clip, source frame, target clip, target frame, cost).
     let mut candidates: Vec<(usize, u32, usize, u32, f64)> = Vec::new();
-    for (a, fa) in frames.iter().enumerate() {
-        for (b, fb) in frames.iter().enumerate() {
-            if fa.len() < w || fb.len() < w {
+    let mut grid: Vec<f64> = Vec::new();
+    for a in 0..frames.len() {
+        for b in 0..frames.len() {
+            let (fa, fb) = (count(a), count(b));
+            if fa < w || fb < w {
                 continue;
             }
-            let (ni, nj) = (fa.len() - w + 1, fb.len() - w + 1);
-            let cost = |i: usize, j: usize| -> f64 {
-                (0..w).map(|k| dist(&fa[i + k], &fb[j + k])).sum::<f64>()
-                    / w as f64
-                    / v.sqrt()
-                    / diag
-            };
-            let grid: Vec<f64> = (0..ni * nj).map(|x| cost(x / nj, x % nj)).collect();
+            // Every frame pair's distance, then in place each window's mean along the
+            // diagonal: cell (i, j) reads cells (i + k, j + k), which later rows still hold.
+            grid.clear();
+            grid.resize(fa * fb, 0.0);
+            for i in 0..fa {
+                cancel.check()?;
+                let x = &frames[a][i * dims..(i + 1) * dims];
+                for j in 0..fb {
+                    let y = &frames[b][j * dims..(j + 1) * dims];
+                    grid[i * fb + j] = x
+                        .iter()
+                        .zip(y)
+                        .map(|(p, q)| (p - q) * (p - q))
+                        .sum::<f64>()
+                        .sqrt();
+                }
+            }
+            let (ni, nj) = (fa - w + 1, fb - w + 1);
+            let scale = 1.0 / w as f64 / norm / diag;
+            for i in 0..ni {
+                for j in 0..nj {
+                    let sum: f64 = (0..w).map(|k| grid[(i + k) * fb + j + k]).sum();
+                    grid[i * fb + j] = sum * scale;
+                }
+            }
             let at = |i: isize, j: isize| -> f64 {
                 if i < 0 || j < 0 || i as usize >= ni || j as usize >= nj {
                     f64::INFINITY
                 } else {
-                    grid[i as usize * nj + j as usize]
+                    grid[i as usize * fb + j as usize]
                 }
             };
             let mut found = Vec::new();
@@ -711,7 +762,7 @@ pub fn build(rig: &Rig, opt: BuildOptions) -> Option<Built> {
                     if a == b && i.abs_diff(j) <= w {
                         continue;
                     }
-                    let c = grid[i * nj + j];
+                    let c = grid[i * fb + j];
                     if c > f64::from(opt.threshold) {
                         continue;
                     }
@@ -729,32 +780,39 @@ pub fn build(rig: &Rig, opt: BuildOptions) -> Option<Built> {
             candidates.extend(found);
         }
     }
+    drop(grid);
+    cancel.check()?;
     // Transitions landing a few frames apart in one clip would cut it into slivers: the
-    // cheapest lands, and others land on the same frame or at least a window away.
+    // cheapest lands, and others land on the same frame or at least a window away. (Sets and
+    // maps, not scans: a rig with many clips has many candidates.)
     candidates.sort_by(|x, y| x.4.total_cmp(&y.4));
-    let mut landed: Vec<Vec<u32>> = rig.clips.iter().map(|_| Vec::new()).collect();
-    let mut taken: Vec<(usize, u32, usize, u32)> = Vec::new();
+    let wu = w as u32;
+    let mut landed: Vec<BTreeSet<u32>> = rig.clips.iter().map(|_| BTreeSet::new()).collect();
+    let mut taken: HashMap<(usize, usize, u32), Vec<u32>> = HashMap::new();
     candidates.retain(|&(a, i, b, j, _)| {
         // The same landing from a few frames earlier or later of the same source is the same
         // transition.
         if taken
-            .iter()
-            .any(|&(ta, ti, tb, tj)| (ta, tb, tj) == (a, b, j) && ti.abs_diff(i) < w as u32)
+            .get(&(a, b, j))
+            .is_some_and(|from| from.iter().any(|&ti| ti.abs_diff(i) < wu))
         {
             return false;
         }
         let here = &mut landed[b];
-        if here.contains(&j) {
-            taken.push((a, i, b, j));
-            return true;
+        if !here.contains(&j) {
+            let near = here
+                .range(j.saturating_sub(wu - 1)..=j.saturating_add(wu - 1))
+                .next()
+                .is_some();
+            if near || (j < wu && j != 0) {
+                return false;
+            }
+            here.insert(j);
         }
-        if here.iter().any(|&x| x.abs_diff(j) < w as u32) || j.abs_diff(0) < w as u32 && j != 0 {
-            return false;
-        }
-        here.push(j);
-        taken.push((a, i, b, j));
+        taken.entry((a, b, j)).or_default().push(i);
         true
     });
+    drop(taken);
     // Nodes: each clip cut where a transition lands.
     let mut cuts: Vec<Vec<u32>> = rig.clips.iter().map(|_| vec![0]).collect();
     for &(_, _, b, j, _) in &candidates {
@@ -764,22 +822,27 @@ pub fn build(rig: &Rig, opt: BuildOptions) -> Option<Built> {
         c.sort_unstable();
         c.dedup();
     }
-    // (clip, first, last) per node.
+    // (clip, first, last) per node, and per clip the index of its first node.
     let mut nodes: Vec<(usize, u32, u32)> = Vec::new();
+    let mut first_node: Vec<Option<usize>> = vec![None; rig.clips.len()];
     for (ci, c) in cuts.iter().enumerate() {
         let n = rig.clips[ci].frames;
         if (n as usize) < w {
             continue;
         }
+        first_node[ci] = Some(nodes.len());
         for (k, &first) in c.iter().enumerate() {
             let last = c.get(k + 1).map_or(n - 1, |&x| x - 1);
             nodes.push((ci, first, last));
         }
     }
-    let node_of = |clip: usize, frame: u32| {
-        nodes
-            .iter()
-            .position(|&(c, f, l)| c == clip && f <= frame && frame <= l)
+    let node_of = |clip: usize, frame: u32| -> Option<usize> {
+        let start = first_node[clip]?;
+        if frame >= rig.clips[clip].frames {
+            return None;
+        }
+        let k = cuts[clip].partition_point(|&x| x <= frame).checked_sub(1)?;
+        Some(start + k)
     };
     // Edges (from, to, fade, window start, cost).
     let mut edges: Vec<(usize, usize, u32, u32, f64)> = Vec::new();
@@ -794,15 +857,13 @@ pub fn build(rig: &Rig, opt: BuildOptions) -> Option<Built> {
             continue;
         };
         let (first, last) = (nodes[from].1, nodes[from].2);
-        let fade = (w as u32)
-            .min(last - first + 1)
-            .min(nodes[to].2 - nodes[to].1 + 1);
+        let fade = wu.min(last - first + 1).min(nodes[to].2 - nodes[to].1 + 1);
         edges.push((from, to, fade, i - first, cost));
     }
     let keep = largest_scc(nodes.len(), &edges);
     let kept: Vec<usize> = (0..nodes.len()).filter(|&n| keep[n]).collect();
     if kept.is_empty() {
-        return None;
+        return Ok(None);
     }
     let name = |n: usize| {
         let (c, f, l) = nodes[n];
@@ -829,12 +890,12 @@ pub fn build(rig: &Rig, opt: BuildOptions) -> Option<Built> {
             costs.push(cost as f32);
         }
     }
-    Some(Built {
+    Ok(Some(Built {
         graph,
         costs,
         candidates: candidates.len(),
         dropped_nodes: nodes.len() - kept.len(),
-    })
+    }))
 }
 
 /// `w ↦ Lᵀw` with `LLᵀ = DDᵀ` (the Gram matrix of the rig's position deltas over all
@@ -979,6 +1040,23 @@ mod tests {
     }
 
     #[test]
+    fn a_build_stops_at_its_cancellation() {
+        let rig = crate::embedded::default_rig();
+        let (cancel, guard) = Cancel::new(None);
+        drop(guard);
+        assert_eq!(
+            build(&rig, BuildOptions::default(), &cancel),
+            Err(Cancelled::Dropped)
+        );
+        let (late, _guard) = Cancel::new(Some(std::time::Instant::now()));
+        assert_eq!(
+            build(&rig, BuildOptions::default(), &late),
+            Err(Cancelled::Deadline)
+        );
+        assert!(build_work(&rig, BuildOptions::default()) > 0);
+    }
+
+    #[test]
     fn malformed_graphs_name_the_field() {
         assert!(graph(&spec()).is_ok());
         let mut s = spec();
@@ -1004,10 +1082,11 @@ mod tests {
     #[test]
     fn clips_too_long_to_compare_are_refused_before_any_work() {
         let rig = crate::embedded::default_rig();
-        assert!(build_bytes(&rig).is_some());
+        let opt = BuildOptions::default();
+        assert!(build_bytes(&rig, opt).is_some());
         let long = crate::synthetic::with_random_clip_of(rig, "long", 3000, 1);
-        assert_eq!(build_bytes(&long), None);
-        assert_eq!(build(&long, BuildOptions::default()), None);
+        assert_eq!(build_bytes(&long, opt), None);
+        assert_eq!(build(&long, opt, &Cancel::never()), Ok(None));
     }
 
     #[test]

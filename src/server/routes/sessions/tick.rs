@@ -451,9 +451,12 @@ fn resolve(
             let rig = entry.rig();
             let (pose, graph_joints) = match &h.graph {
                 Some(play) => {
-                    let graph = state
-                        .graphs
-                        .resolved(entry, &play.name, &state.queue_memory)?;
+                    let graph = state.graphs.resolved(
+                        entry,
+                        &play.name,
+                        &state.queue_memory,
+                        state.config.max_graph_work,
+                    )?;
                     let jumps = jumps_by_head.remove(&h.head).unwrap_or_default();
                     players.pose(h.head, play, &graph, rig, &jumps, steps)?
                 }
