@@ -35,6 +35,15 @@ pub struct ServerConfig {
     /// Most heads per crowd request.
     #[arg(long, env = "CROWDMORPH_MAX_HEADS", default_value_t = 100_000)]
     pub max_heads: usize,
+    /// Most clips one rig may have (a clip upload past it gets 413 too_many_clips): a graph
+    /// built from the clips compares every pair of them.
+    #[arg(
+        long,
+        env = "CROWDMORPH_MAX_CLIPS",
+        default_value_t = 256,
+        value_parser = at_least_one
+    )]
+    pub max_clips: usize,
     /// Most work one motion graph may take before it is stored, priced before it starts:
     /// for `?auto=1`, frame pairs compared times the numbers per frame compared (about
     /// (frames of all clips)² × targets), plus the measurement; for

@@ -9,8 +9,9 @@ use crowdmorph_proto::{CONTENT_TYPE_BINCODE, GraphEdge, MotionGraph};
 use serde_json::{Value, json};
 
 use super::attack::{binary, cores_used, cpu_seconds, metric};
+use super::joints::robot_path;
 use super::sessions::{View, call, connect, create, next_tick};
-use super::{TestServer, stored_config, temp_dir};
+use super::{TestServer, stored_config, temp_dir, upload_bytes};
 
 /// Three nodes `n[0]` ⇄ `n[1]` → `n[2]` → `n[0]`, and `n[0]` again from `n[0]`, playing `clips`
 /// (the middle one frames `mid`), with the edges' start windows `w` (absent: the default).
@@ -581,6 +582,106 @@ async fn graph_work_is_priced_before_it_starts_and_the_name_checked_first() {
             assert!(got > 0.0);
         }
     }
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_rig_holds_at_most_max_clips_clips() {
+    let server = TestServer::start(ServerConfig {
+        max_clips: 6,
+        ..ServerConfig::default()
+    })
+    .await;
+    let have = server
+        .state
+        .registry
+        .get("default-head")
+        .unwrap()
+        .rig()
+        .clips
+        .len();
+    assert_eq!(have, 4, "the embedded head's own clips");
+    upload_long_clip(&server.client, "five", 10).await;
+    upload_long_clip(&server.client, "six", 10).await;
+    let body = json!({"fps": 30, "targets": ["jawOpen"], "frames": [[0.5], [0.6]]}).to_string();
+    let reply = server
+        .client
+        .send(
+            Method::POST,
+            "/v1/rigs/default-head/clips?name=seven",
+            Some("application/json"),
+            None,
+            Bytes::from(body),
+        )
+        .await
+        .unwrap();
+    assert_eq!(
+        reply.status,
+        413,
+        "{}",
+        String::from_utf8_lossy(&reply.body)
+    );
+    let e = reply.error().expect("a JSON error");
+    assert_eq!(e.error.code, "too_many_clips");
+    assert!(
+        e.error.message.contains("--max-clips"),
+        "{}",
+        e.error.message
+    );
+    assert_eq!(
+        server
+            .state
+            .registry
+            .get("default-head")
+            .unwrap()
+            .rig()
+            .clips
+            .len(),
+        6
+    );
+    // After a delete there is room again.
+    let (status, _) = bodiless(&server, Method::DELETE, "/v1/rigs/default-head/clips/five").await;
+    assert_eq!(status, 204);
+    upload_long_clip(&server.client, "seven", 10).await;
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_test_data),
+    ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+)]
+async fn a_rig_file_with_more_animations_than_max_clips_is_refused() {
+    let server = TestServer::start(ServerConfig {
+        max_clips: 6,
+        ..ServerConfig::default()
+    })
+    .await;
+    let reply = server
+        .client
+        .send(
+            Method::POST,
+            "/v1/rigs?name=robot",
+            Some("model/gltf-binary"),
+            None,
+            upload_bytes(&robot_path()),
+        )
+        .await
+        .unwrap();
+    assert_eq!(
+        reply.status,
+        413,
+        "{}",
+        String::from_utf8_lossy(&reply.body)
+    );
+    let e = reply.error().expect("a JSON error");
+    assert_eq!(e.error.code, "too_many_clips");
+    assert!(
+        e.error.message.contains("--max-clips"),
+        "{}",
+        e.error.message
+    );
+    assert!(server.state.registry.get("robot").is_none());
     server.stop().await;
 }
 
