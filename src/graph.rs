@@ -18,6 +18,7 @@ use std::collections::{BTreeSet, HashMap};
 use std::sync::Arc;
 
 use crowdmorph_proto::{GraphPlay, MotionGraph};
+use glam::Vec3;
 
 use crate::cancel::{Cancel, Cancelled};
 use crate::rig::{JointPose, JointSet, Pose, Rig, Trs};
@@ -633,7 +634,19 @@ impl Default for BuildOptions {
 /// ([`build_bytes`] returns `None`).
 pub const MAX_BUILD_PAIRS: u64 = 1 << 22;
 
-/// Bytes [`build`] holds at most for `rig` (for the caller's charge): the projected frames,
+/// Vertices at which [`build`] compares the frames of a skinned rig.
+pub const BUILD_SAMPLES: usize = 256;
+
+/// Numbers per frame that [`build`] compares: the rig's channels (a rig without a skeleton),
+/// or three coordinates per sampled vertex.
+fn feature_len(rig: &Rig) -> u64 {
+    match rig.skeleton {
+        None => rig.targets.len() as u64,
+        Some(_) => 3 * rig.vertex_count().min(BUILD_SAMPLES) as u64,
+    }
+}
+
+/// Bytes [`build`] holds at most for `rig` (for the caller's charge): the frames' features,
 /// the largest pair of clips' distance grid, the Gram matrix and its factor, the candidate
 /// transitions. `None` when two clips are too long to compare ([`MAX_BUILD_PAIRS`]).
 pub fn build_bytes(rig: &Rig, opt: BuildOptions) -> Option<u64> {
@@ -648,60 +661,192 @@ pub fn build_bytes(rig: &Rig, opt: BuildOptions) -> Option<u64> {
     let pairs = longest * longest;
     let clips = rig.clips.len() as u64;
     (pairs <= MAX_BUILD_PAIRS).then(|| {
-        frames * k * 8 + pairs * 8 + k * k * 16 + clips * clips * opt.per_pair as u64 * 64 + 4096
+        frames * feature_len(rig) * 8
+            + pairs * 8
+            + k * k * 16
+            + clips * clips * opt.per_pair as u64 * 64
+            + rig.vertex_count().min(16 * BUILD_SAMPLES) as u64 * 24
+            + 4096
     })
 }
 
 /// What [`build`] costs, in the unit of the server's `--max-graph-work` (about one multiply-add
 /// each): every frame of every clip compared with every frame of every clip (the grid of each
-/// ordered pair of clips, a clip with itself included, is frames × frames comparisons of K
-/// numbers, then the window's sums), plus the Gram matrix, its factor and one projection per
-/// frame, and sorting the candidate transitions.
+/// ordered pair of clips, a clip with itself included, is frames × frames comparisons of
+/// [`feature_len`] numbers, then the window's sums), plus turning the frames into features
+/// (the Gram matrix, its factor and one projection per frame; or posing the sampled vertices)
+/// and sorting the candidate transitions.
 pub fn build_work(rig: &Rig, opt: BuildOptions) -> u64 {
     let k = rig.targets.len() as u64;
     let frames: u64 = rig.clips.iter().map(|c| u64::from(c.frames)).sum();
+    let dims = feature_len(rig);
     let grid = frames
         .saturating_mul(frames)
-        .saturating_mul(k + u64::from(opt.window.max(1)));
-    let deltas: u64 = rig
-        .primitives
-        .iter()
-        .flat_map(|p| p.targets.iter())
-        .map(|t| t.vertices.len() as u64)
-        .sum();
-    let features = deltas * k + k * k * k + frames * k * k;
+        .saturating_mul(dims + u64::from(opt.window.max(1)));
+    let features = match &rig.skeleton {
+        None => {
+            let deltas: u64 = rig
+                .primitives
+                .iter()
+                .flat_map(|p| p.targets.iter())
+                .map(|t| t.vertices.len() as u64)
+                .sum();
+            deltas * k + k * k * k + frames * k * k
+        }
+        Some(sk) => {
+            let samples = rig.vertex_count().min(BUILD_SAMPLES) as u64;
+            16 * samples * samples * 16
+                + samples * k * 32
+                + frames * (64 * (sk.nodes.len() + sk.bones.len()) as u64 + samples * (k + 64))
+        }
+    };
     let clips = rig.clips.len() as u64;
     grid.saturating_add(features)
         .saturating_add(clips * clips * opt.per_pair as u64 * 64)
 }
 
-/// Per clip, every frame's `Lᵀw` ([`projector`]; `frames × K` numbers, frame-major), K, and
-/// the root of the vertex count a distance sums over.
+/// Per clip, every frame's features (`frames × len` numbers, frame-major), the length, and the
+/// root of how many vertices a distance sums over: on a rig without a skeleton `Lᵀw` over all
+/// vertices ([`projector`]); on a skinned rig the posed positions of [`BUILD_SAMPLES`]
+/// vertices ([`Samples`]), where the joints move vertices as much as the weights do.
 fn features(rig: &Rig, cancel: &Cancel) -> Result<(Vec<Vec<f64>>, usize, f64), Cancelled> {
     let mut wf = vec![0f32; rig.targets.len()];
     let mut out = Vec::with_capacity(rig.clips.len());
-    let project = projector(rig);
-    cancel.check()?;
-    for c in &rig.clips {
-        let mut flat = Vec::with_capacity(c.frames as usize * rig.targets.len());
-        for f in 0..c.frames {
-            c.frame_weights(f, &mut wf);
-            flat.extend(project(&wf));
+    match &rig.skeleton {
+        None => {
+            let project = projector(rig);
+            cancel.check()?;
+            for c in &rig.clips {
+                let mut flat = Vec::with_capacity(c.frames as usize * rig.targets.len());
+                for f in 0..c.frames {
+                    c.frame_weights(f, &mut wf);
+                    flat.extend(project(&wf));
+                }
+                cancel.check()?;
+                out.push(flat);
+            }
+            Ok((
+                out,
+                rig.targets.len(),
+                (rig.vertex_count().max(1) as f64).sqrt(),
+            ))
         }
-        cancel.check()?;
-        out.push(flat);
+        Some(sk) => {
+            let samples = Samples::of(rig);
+            cancel.check()?;
+            let (mut locals, mut globals, mut bones) = (Vec::new(), Vec::new(), Vec::new());
+            for c in &rig.clips {
+                let mut flat = Vec::with_capacity(c.frames as usize * samples.len() * 3);
+                for f in 0..c.frames {
+                    c.frame_weights(f, &mut wf);
+                    sk.locals_at(c.joints.as_deref(), f, &mut locals);
+                    bones.clear();
+                    sk.bone_matrices(&locals, &mut globals, &mut bones);
+                    samples.pose(rig, &wf, &bones, &mut flat);
+                }
+                cancel.check()?;
+                out.push(flat);
+            }
+            Ok((out, samples.len() * 3, (samples.len().max(1) as f64).sqrt()))
+        }
     }
-    Ok((
-        out,
-        rig.targets.len(),
-        (rig.vertex_count().max(1) as f64).sqrt(),
-    ))
+}
+
+/// The vertices a skinned rig's frames are compared at: [`BUILD_SAMPLES`] of them spread over
+/// the mesh (farthest-point sampling of the bind positions, among at most 16 times as many
+/// candidates taken evenly through the vertex order), each with the deltas that move it.
+struct Samples {
+    at: Vec<Sample>,
+}
+
+/// One sampled vertex: its primitive, its index there, and the (channel, delta) pairs that
+/// move it.
+type Sample = (usize, usize, Vec<(usize, Vec3)>);
+
+impl Samples {
+    fn of(rig: &Rig) -> Samples {
+        let total = rig.vertex_count();
+        let want = total.min(BUILD_SAMPLES);
+        let stride = total.div_ceil((16 * BUILD_SAMPLES).max(1)).max(1);
+        // (primitive, vertex, bind position) of the candidates.
+        let mut candidates: Vec<(usize, usize, Vec3)> = Vec::new();
+        let mut v = 0usize;
+        for (pi, p) in rig.primitives.iter().enumerate() {
+            for (i, x) in p.positions.iter().enumerate() {
+                if v.is_multiple_of(stride) {
+                    candidates.push((pi, i, *x));
+                }
+                v += 1;
+            }
+        }
+        let mut chosen: Vec<usize> = Vec::with_capacity(want);
+        let mut nearest = vec![f32::INFINITY; candidates.len()];
+        let mut next = 0usize;
+        while chosen.len() < want && next < candidates.len() {
+            chosen.push(next);
+            let c = candidates[next].2;
+            let mut far = (0usize, -1f32);
+            for (k, (d, cand)) in nearest.iter_mut().zip(&candidates).enumerate() {
+                *d = d.min(cand.2.distance_squared(c));
+                if *d > far.1 {
+                    far = (k, *d);
+                }
+            }
+            if far.1 <= 0.0 {
+                // Every candidate left sits on a chosen one.
+                break;
+            }
+            next = far.0;
+        }
+        chosen.sort_unstable();
+        let at = chosen
+            .into_iter()
+            .map(|k| {
+                let (pi, i, _) = candidates[k];
+                let deltas = rig.primitives[pi]
+                    .targets
+                    .iter()
+                    .filter_map(|t| {
+                        let at = t.vertices.binary_search(&(i as u32)).ok()?;
+                        Some((t.target as usize, *t.positions.get(at)?))
+                    })
+                    .collect();
+                (pi, i, deltas)
+            })
+            .collect();
+        Samples { at }
+    }
+
+    fn len(&self) -> usize {
+        self.at.len()
+    }
+
+    /// Appends each sample's position with weights `w` and bones `bones`: morph targets, then
+    /// skinning, as the engines pose it (a vertex that follows no bone stays as blended).
+    fn pose(&self, rig: &Rig, w: &[f32], bones: &[crate::rig::BoneMatrix], out: &mut Vec<f64>) {
+        for (pi, i, deltas) in &self.at {
+            let p = &rig.primitives[*pi];
+            let mut x = p.positions[*i];
+            for &(t, d) in deltas {
+                x += w.get(t).copied().unwrap_or(0.0) * d;
+            }
+            let posed = match &p.skin {
+                Some(s) if s.weights.get(*i).is_some_and(|w| w[0] != 0.0) => {
+                    s.skin(*i, bones, x, None).0
+                }
+                _ => x,
+            };
+            out.extend([posed.x, posed.y, posed.z].map(f64::from));
+        }
+    }
 }
 
 /// Builds a motion graph from the rig's clips the way Kovar et al. (2002) do: frame distances
-/// in vertex space, `‖Dᵀ(w_a − w_b)‖` over the rig's deltas (computed as `‖Lᵀ(w_a − w_b)‖`
-/// with `L` the Cholesky factor of the Gram matrix `DDᵀ`, so a pair costs K operations, not a
-/// mesh), averaged over a window of frames; the local minima under the threshold become transitions; clips
+/// in vertex space — on a rig without a skeleton `‖Dᵀ(w_a − w_b)‖` over the rig's deltas
+/// (computed as `‖Lᵀ(w_a − w_b)‖` with `L` the Cholesky factor of the Gram matrix `DDᵀ`, so a
+/// pair costs K operations, not a mesh), on a skinned rig the posed positions of
+/// [`BUILD_SAMPLES`] vertices spread over it, so that what the joints move counts — averaged
+/// over a window of frames; the local minima under the threshold become transitions; clips
 /// are cut into nodes where transitions land, nodes of one clip play on into each other, and
 /// the graph is pruned to its largest strongly connected component (so every node can reach
 /// every other). `Ok(None)` when no clip has a window's frames; `Err` when `cancel` stops it
@@ -907,7 +1052,7 @@ fn projector(rig: &Rig) -> impl Fn(&[f32]) -> Vec<f64> {
     let mut g = vec![0f64; k * k];
     for p in rig.primitives.iter() {
         // Per vertex, the (channel, delta) pairs that move it.
-        let mut by_vertex: HashMap<u32, Vec<(usize, glam::Vec3)>> = HashMap::new();
+        let mut by_vertex: HashMap<u32, Vec<(usize, Vec3)>> = HashMap::new();
         for t in &p.targets {
             for (&vtx, d) in t.vertices.iter().zip(&t.positions) {
                 by_vertex
@@ -1054,6 +1199,36 @@ mod tests {
             Err(Cancelled::Deadline)
         );
         assert!(build_work(&rig, BuildOptions::default()) > 0);
+    }
+
+    #[test]
+    fn a_skinned_rigs_build_compares_what_the_joints_move() {
+        // Only the joints move the skinned face (its clips' weights removed): a distance of
+        // weights alone would make every transition free.
+        let mut rig = crate::synthetic::skinned_head();
+        for c in &mut rig.clips {
+            c.weights = Arc::new(vec![0.0; c.weights.len()]);
+        }
+        let opt = BuildOptions {
+            threshold: 1.0,
+            ..BuildOptions::default()
+        };
+        let built = build(&rig, opt, &Cancel::never())
+            .expect("not cancelled")
+            .expect("a graph");
+        let transitions: Vec<f32> = built
+            .graph
+            .edges
+            .iter()
+            .zip(&built.costs)
+            .filter(|(e, _)| e.fade > 1)
+            .map(|(_, &c)| c)
+            .collect();
+        assert!(!transitions.is_empty(), "{built:?}");
+        assert!(
+            transitions.iter().all(|&c| c > 0.0),
+            "every transition between different poses costs something: {transitions:?}"
+        );
     }
 
     #[test]

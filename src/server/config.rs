@@ -46,7 +46,7 @@ pub struct ServerConfig {
     pub max_clips: usize,
     /// Most work one motion graph may take before it is stored, priced before it starts:
     /// for `?auto=1`, frame pairs compared times the numbers per frame compared (about
-    /// (frames of all clips)² × targets), plus the measurement; for
+    /// (frames of all clips)² × (targets, or 768 on a skinned rig)), plus the measurement; for
     /// a PUT, each frame its nodes play (once) times the deltas and vertices blended per frame.
     /// Past it: 413 graph_too_costly. The default is a few seconds of one core.
     #[arg(

@@ -9,7 +9,7 @@ use crowdmorph_proto::{CONTENT_TYPE_BINCODE, GraphEdge, MotionGraph};
 use serde_json::{Value, json};
 
 use super::attack::{binary, cores_used, cpu_seconds, metric};
-use super::joints::robot_path;
+use super::joints::{robot_path, robot_pose};
 use super::sessions::{View, call, connect, create, next_tick};
 use super::{TestServer, stored_config, temp_dir, upload_bytes};
 
@@ -437,6 +437,118 @@ async fn a_graph_built_from_the_clips_is_stored_and_played() {
             "{v}"
         );
     }
+    server.stop().await;
+}
+
+/// A server holding RobotExpressive as rig `robot`.
+async fn robot_server(config: ServerConfig) -> TestServer {
+    let server = TestServer::start(config).await;
+    server
+        .client
+        .upload_rig("robot", upload_bytes(&robot_path()))
+        .await
+        .expect("upload");
+    server
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_test_data),
+    ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+)]
+async fn a_graph_built_from_a_skinned_rigs_clips_weighs_what_the_joints_move() {
+    // RobotExpressive's clips move joints only: a frame distance of weights alone made every
+    // transition free, cut every clip after its first window and dropped most nodes.
+    let server = robot_server(ServerConfig::default()).await;
+    let (status, v) = bodiless(&server, Method::POST, "/v1/rigs/robot/graphs/auto?auto=1").await;
+    assert_eq!(status, 200, "{v}");
+    let built: crowdmorph_proto::BuiltGraph = serde_json::from_value(v).expect("BuiltGraph");
+    let g = &built.info.graph;
+    let rig = server.client.rig("robot").await.expect("rig");
+    let diag = glam::DVec3::from(rig.bbox.max.map(f64::from))
+        .distance(glam::DVec3::from(rig.bbox.min.map(f64::from)));
+    let frames_of = |clip: &str| rig.clips.iter().find(|c| c.name == clip).unwrap().frames;
+    let doc = crate::util::RefDoc::load(&robot_path());
+    let node = |name: &str| g.nodes.iter().find(|n| n.name == name).unwrap();
+    // Each transition's cost against the independent evaluator: the mean over its window of
+    // the RMS distance over all the robot's vertices between the frames it joins, as a
+    // fraction of the diagonal (the build samples 256 vertices; the tolerance is for that).
+    let (window, threshold) = (5u32, 0.02f64);
+    let mut transitions = 0;
+    let mut positive = 0;
+    for (e, &cost) in g.edges.iter().zip(&built.costs).filter(|(e, _)| e.fade > 1) {
+        let (from, to) = (node(&e.from), node(&e.to));
+        let i = from.frames.unwrap()[0] + e.window.unwrap()[0];
+        let j = to.frames.unwrap()[0];
+        let mut sum = 0.0;
+        for k in 0..window {
+            let a = robot_pose(&doc, &from.clip, i64::from(i + k), &|_| {});
+            let b = robot_pose(&doc, &to.clip, i64::from(j + k), &|_| {});
+            let ms = a
+                .iter()
+                .zip(&b)
+                .map(|(p, q)| p.distance_squared(*q))
+                .sum::<f64>()
+                / a.len() as f64;
+            sum += ms.sqrt();
+        }
+        let oracle = sum / f64::from(window) / diag;
+        let cost = f64::from(cost);
+        eprintln!(
+            "{} -> {}: cost {cost:.5}, all vertices {oracle:.5}",
+            e.from, e.to
+        );
+        assert!(
+            oracle <= 2.0 * threshold,
+            "{} -> {}: the frames it joins are {oracle} apart",
+            e.from,
+            e.to
+        );
+        assert!(
+            (cost - oracle).abs() <= 0.5 * oracle.max(cost) + 1e-4,
+            "{} -> {}: cost {cost}, all vertices {oracle}",
+            e.from,
+            e.to
+        );
+        transitions += 1;
+        positive += usize::from(cost > 0.0);
+    }
+    assert!(transitions >= 10, "{transitions} transitions");
+    assert!(
+        positive * 4 >= transitions * 3,
+        "transitions between different poses cost something: {positive} of {transitions}"
+    );
+    // Clips are kept whole: the nodes of a clip the walk plays cover it from its first frame
+    // to its last, not just its first window.
+    let mut covered: std::collections::BTreeMap<&str, Vec<bool>> = Default::default();
+    for n in &g.nodes {
+        let f = frames_of(&n.clip);
+        let c = covered
+            .entry(n.clip.as_str())
+            .or_insert_with(|| vec![false; f as usize]);
+        let [a, b] = n.frames.unwrap();
+        for x in a..=b {
+            c[x as usize] = true;
+        }
+    }
+    let whole: Vec<&str> = covered
+        .iter()
+        .filter(|(_, c)| c.len() > 2 * window as usize && c.iter().all(|&x| x))
+        .map(|(n, _)| *n)
+        .collect();
+    eprintln!(
+        "{} nodes, {} edges, {} dropped; whole clips {whole:?}",
+        g.nodes.len(),
+        g.edges.len(),
+        built.dropped_nodes
+    );
+    assert!(whole.len() >= 3, "clips played whole: {whole:?}");
+    assert!(
+        g.nodes.len() > built.dropped_nodes as usize,
+        "most nodes are kept: {} kept, {} dropped",
+        g.nodes.len(),
+        built.dropped_nodes
+    );
     server.stop().await;
 }
 
