@@ -440,6 +440,24 @@ async fn a_graph_built_from_the_clips_is_stored_and_played() {
     server.stop().await;
 }
 
+/// The largest distance a vertex of the robot moves between consecutive frames of `clip`
+/// (`frames` of them), as the independent evaluator poses it.
+fn robot_clip_step(doc: &crate::util::RefDoc, clip: &str, frames: i64) -> f64 {
+    let mut prev = robot_pose(doc, clip, 0, &|_| {});
+    let mut largest = 0f64;
+    for f in 1..frames {
+        let p = robot_pose(doc, clip, f, &|_| {});
+        let d = prev
+            .iter()
+            .zip(&p)
+            .map(|(a, b)| a.distance(*b))
+            .fold(0.0, f64::max);
+        largest = largest.max(d);
+        prev = p;
+    }
+    largest
+}
+
 /// A server holding RobotExpressive as rig `robot`.
 async fn robot_server(config: ServerConfig) -> TestServer {
     let server = TestServer::start(config).await;
@@ -449,6 +467,99 @@ async fn robot_server(config: ServerConfig) -> TestServer {
         .await
         .expect("upload");
     server
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_test_data),
+    ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+)]
+async fn a_skinned_heads_transitions_and_joint_changes_do_not_pop() {
+    // The issue's reproduction: RobotExpressive (its clips move joints only), a graph Sitting
+    // ⇄ Idle with fade 1, one head, an f32 viewer; a PATCH sends it to `sit`, later turns its
+    // head by a joint override and then takes the override away.
+    let server = robot_server(ServerConfig::default()).await;
+    let doc = crate::util::RefDoc::load(&robot_path());
+    let largest_step = robot_clip_step(&doc, "Sitting", 13).max(robot_clip_step(&doc, "Idle", 101));
+    let bound = 1.5 * largest_step as f32;
+    let graph = json!({
+        "nodes": [{"name": "sit", "clip": "Sitting"}, {"name": "idle", "clip": "Idle"}],
+        "edges": [{"from": "sit", "to": "idle", "fade": 1},
+                  {"from": "idle", "to": "sit", "fade": 1}],
+    });
+    let (status, v) = call(&server, Method::PUT, "/v1/rigs/robot/graphs/rest", graph).await;
+    assert_eq!(status, 200, "{v}");
+    let info = create(
+        &server,
+        json!({"fps": 30, "heads": [{"head": 1, "rig": "robot",
+               "graph": {"name": "rest", "start": "idle", "seed": 3}}]}),
+    )
+    .await;
+    let mut ws = connect(&server, &info.id, json!({"format": "f32"})).await;
+    let turn = glam::Quat::from_rotation_y(0.8).to_array();
+    let patches: Vec<(u64, Value)> = vec![
+        (10, json!({"head": 1, "node": "sit"})),
+        (
+            400,
+            json!({"head": 1, "joints": {"Head": {"rotation": turn}}}),
+        ),
+        (700, json!({"head": 1, "joints": {}})),
+    ];
+    let mut patched_at = 0;
+    let mut view = View::default();
+    let mut last: Option<(u64, Vec<f32>)> = None;
+    let (mut largest, mut compared) = (0f32, 0);
+    // Per patch, the ticks its fade showed live weights (a frozen pose fading).
+    let mut fading = vec![0u32; patches.len()];
+    let mut clips = std::collections::BTreeSet::new();
+    for _ in 0..1000 {
+        let t = next_tick(&mut ws).await;
+        view.apply(&t);
+        if let Some(b) = t.heads.first().map(|h| h.buffer)
+            && let Some(buf) = t.buffers.get(b as usize)
+        {
+            if buf.clip.is_empty() && patched_at > 0 {
+                fading[patched_at - 1] += 1;
+            }
+            clips.insert(buf.clip.clone());
+        }
+        let now = view.heads.get(&1).cloned().expect("the head is shown");
+        if let Some((tick, prev)) = &last
+            && *tick + 1 == t.tick
+        {
+            let d = max_step(prev, &now);
+            largest = largest.max(d);
+            compared += 1;
+            assert!(
+                d <= bound,
+                "tick {}: a vertex moved {d} in one tick, more than 1.5 × the clips' largest \
+                 step ({bound})",
+                t.tick
+            );
+        }
+        last = Some((t.tick, now));
+        while patched_at < patches.len() && t.tick >= patches[patched_at].0 {
+            let (status, v) = call(
+                &server,
+                Method::PATCH,
+                &format!("/v1/sessions/{}", info.id),
+                json!({"change": [patches[patched_at].1]}),
+            )
+            .await;
+            assert_eq!(status, 200, "{v}");
+            patched_at += 1;
+        }
+    }
+    eprintln!(
+        "largest per-tick step {largest} (bound {bound}, clips' largest step {largest_step}); \
+         ticks fading per patch {fading:?}; clips shown {clips:?}; {compared} ticks compared"
+    );
+    assert_eq!(patched_at, patches.len());
+    assert!(compared > 500, "{compared} consecutive ticks compared");
+    for (k, n) in fading.iter().enumerate() {
+        assert!(*n > 1, "patch {k} faded over more than one tick ({n})");
+    }
+    server.stop().await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
