@@ -4,21 +4,28 @@
 //!
 //! **No pops.** Every change of what a head plays is a fade from the pose it shows: an edge
 //! fades the target node in while the source keeps playing; a jump (a session `PATCH` sending
-//! the head to a node, also in the middle of a fade) freezes the pose shown and fades from it.
-//! So weights are continuous. Their change per tick is bounded too: a fade's progress per tick
-//! is capped so that `Δα × U ≤ 0.45 × D`, where `U = Σₖ |w_src,k − w_dst,k| × Lₖ` bounds the
-//! vertex distance between the two poses (`Lₖ`: channel k's longest delta) and `D` is the
-//! largest per-frame vertex displacement inside the nodes involved (measured by the server on
-//! the CPU engine, [`Graph::set_motion`]). A vertex then moves per tick by at most
-//! `(1 − α)·D_src + α·D_dst + Δα·U ≤ 1.45 × D` — within 1.5× the clips' own motion, with room
-//! for the 1/4096 quantization of blend fractions. A fade between poses far apart takes longer
-//! than its edge's nominal `fade` frames.
+//! the head to a node, also in the middle of a fade) or a change of the head's own joint
+//! overrides freezes the pose shown and fades from it. So weights and joints are continuous.
+//! Their change per tick is bounded too: a fade's progress per tick is capped so that
+//! `Δα × U ≤ 0.45 × D`, where `U` bounds how far a vertex moves per unit of `α` between the
+//! two poses ([`Reach`]: `Σₖ |w_src,k − w_dst,k| × Lₖ` with `Lₖ` channel k's longest delta, and
+//! on a skinned rig what each joint's change carries a vertex, skinning included) and `D` is
+//! the largest per-frame vertex displacement inside the nodes involved (measured by the server
+//! on the CPU engine, [`Graph::set_motion`]). Without a skeleton a vertex then moves per tick
+//! by at most `(1 − α)·D_src + α·D_dst + Δα·U ≤ 1.45 × D` — within 1.5× the clips' own
+//! motion, with room for the 1/4096 quantization of blend fractions. With one, the fade's
+//! share is bounded the same way, while the frames' own motion inside a mix of two skeleton
+//! poses is the clips' up to what the nlerp stretches (RobotExpressive's Sitting ⇄ Idle: at
+//! most 0.78× of the clips' largest step per tick). A fade between poses far apart takes
+//! longer than its edge's nominal `fade` frames.
 
-use std::collections::HashMap;
+use std::collections::{BTreeSet, HashMap};
 use std::sync::Arc;
 
 use crowdmorph_proto::{GraphPlay, MotionGraph};
+use glam::{DMat4, Quat, Vec3};
 
+use crate::cancel::{Cancel, Cancelled};
 use crate::rig::{JointPose, JointSet, Pose, Rig, Trs};
 use crate::rng::SplitMix64;
 
@@ -87,8 +94,8 @@ pub struct Graph {
     by_name: HashMap<String, u32>,
     /// Per node, the largest per-frame vertex displacement of its frames.
     motion: Vec<f32>,
-    /// Per weight channel, its longest delta.
-    reach: Vec<f32>,
+    /// What bounds the vertex speed of a fade.
+    reach: Reach,
 }
 
 impl Graph {
@@ -99,6 +106,7 @@ impl Graph {
             + spec.nodes.len() as u64 * (size_of::<Node>() as u64 + 8)
             + spec.edges.len() as u64 * (size_of::<Edge>() as u64 + 4)
             + rig.targets.len() as u64 * 4
+            + Reach::bytes(rig)
     }
 
     /// Checks `spec` against `rig` (`clip_index` finds a clip by name) and resolves it. Motion
@@ -193,20 +201,12 @@ impl Graph {
                 n.name
             ));
         }
-        let mut reach = vec![0f32; rig.targets.len()];
-        for p in rig.primitives.iter() {
-            for t in &p.targets {
-                let longest = t.positions.iter().map(|d| d.length()).fold(0.0, f32::max);
-                let r = &mut reach[t.target as usize];
-                *r = r.max(longest);
-            }
-        }
         Ok(Graph {
             motion: vec![0.0; nodes.len()],
             nodes,
             edges,
             by_name,
-            reach,
+            reach: Reach::of(rig),
         })
     }
 
@@ -259,14 +259,234 @@ impl Graph {
         }
         Ok((start, script, p.seed))
     }
+}
 
-    /// `U`: a bound on the vertex distance between two weight vectors.
-    fn distance(&self, a: &[f32], b: &[f32]) -> f64 {
-        a.iter()
-            .zip(b)
-            .zip(&self.reach)
+/// What bounds how fast a vertex moves while a head fades from one pose to another (`U` of the
+/// module doc), measured once per rig generation.
+///
+/// A pose is weights and, on a skinned rig, each skeleton node's local transform. A fade moves
+/// the weights linearly and nlerps the transforms; per unit of progress `α`:
+///
+/// - the weights move a vertex by at most `Σₖ |Δwₖ| × Lₖ` (channel k's longest delta) in the
+///   space the morph targets live in, which skinning stretches by at most
+///   [`Reach::morph_gain`];
+/// - node `n`'s transform `T + R S x` moves a point `x` of its own space by at most
+///   `|ΔT| + max|ΔS| × r + 4 tan(θ/4) × s × r`, where θ is the angle between the two
+///   rotations (an nlerp turns at most `4 tan(θ/4)` radians per unit of `α`), `s` the node's
+///   largest scale and `r` how far from its origin a vertex it moves can be in its own space,
+///   in any pose ([`SkeletonReach::radius`]); its ancestors stretch that by at most the product
+///   of their largest scales ([`SkeletonReach::gain`]).
+///
+/// A skinned vertex is a convex combination of its bones' images, and a bone's image changes by
+/// at most the sum of what each node of its chain adds, so the largest chain sum bounds every
+/// vertex. Both parts are exact for a rig without a skeleton (the sum of `|Δwₖ| × Lₖ`), and
+/// upper bounds otherwise: a fade is slowed by as much as they overestimate.
+#[derive(Clone, Debug, Default, PartialEq)]
+struct Reach {
+    /// Per weight channel, its longest delta.
+    channel: Vec<f32>,
+    /// The most skinning stretches a morph delta: 1 without a skeleton.
+    morph_gain: f64,
+    /// On a skinned rig, what each node carries.
+    skeleton: Option<SkeletonReach>,
+}
+
+/// Per skeleton node, what bounds how far changing its transform moves a vertex.
+#[derive(Clone, Debug, PartialEq)]
+struct SkeletonReach {
+    /// Parent index, or `u32::MAX` for a root (parents come first).
+    parent: Vec<u32>,
+    /// Product of the ancestors' largest absolute scales: how much the node's parent space is
+    /// stretched in the rig's space.
+    gain: Vec<f64>,
+    /// Largest absolute scale component of the node, at rest or in any clip.
+    scale: Vec<f64>,
+    /// The farthest from the node's origin, in its own space, that a vertex of a bone at or
+    /// under it can be in any pose: a bone's vertices (with every morph its clips can apply) in
+    /// bone space, then up the chain `|T + R S x| ≤ |T| + s |x|` with each node's largest
+    /// translation and scale (at rest or in a clip; overrides may not exceed them).
+    radius: Vec<f64>,
+    /// The nodes bones hang from, where a vertex's chain ends.
+    ends: Vec<u32>,
+}
+
+impl Reach {
+    /// Bytes [`Reach::of`] holds while it measures `rig`, and keeps.
+    fn bytes(rig: &Rig) -> u64 {
+        let nodes = rig.skeleton.as_ref().map_or(0, |s| s.nodes.len() as u64);
+        let longest_primitive = rig
+            .primitives
+            .iter()
+            .map(|p| p.positions.len() as u64)
+            .max()
+            .unwrap_or(0);
+        rig.targets.len() as u64 * 20 + nodes * 48 + longest_primitive * 8
+    }
+
+    /// Measures `rig`.
+    fn of(rig: &Rig) -> Reach {
+        let mut channel = vec![0f32; rig.targets.len()];
+        for p in rig.primitives.iter() {
+            for t in &p.targets {
+                let longest = t.positions.iter().map(|d| d.length()).fold(0.0, f32::max);
+                if let Some(r) = channel.get_mut(t.target as usize) {
+                    *r = r.max(longest);
+                }
+            }
+        }
+        let Some(sk) = &rig.skeleton else {
+            return Reach {
+                channel,
+                morph_gain: 1.0,
+                skeleton: None,
+            };
+        };
+        let n = sk.nodes.len();
+        let (t_max, s_max) = sk.extents(&rig.clips);
+        let parent: Vec<u32> = sk
+            .nodes
+            .iter()
+            .enumerate()
+            .map(|(i, node)| {
+                if (node.parent as usize) < i {
+                    node.parent
+                } else {
+                    u32::MAX
+                }
+            })
+            .collect();
+        let mut gain = vec![1f64; n];
+        for i in 0..n {
+            if let Some(&p) = parent.get(i).filter(|&&p| p != u32::MAX) {
+                gain[i] = gain[p as usize] * s_max[p as usize];
+            }
+        }
+        // The largest weight magnitude each channel has in any clip: a fade's weights stay
+        // between clip frames'.
+        let mut extreme = vec![0f64; rig.targets.len()];
+        for c in &rig.clips {
+            for (t, e) in extreme.iter_mut().enumerate().take(c.targets as usize) {
+                for f in 0..c.frames {
+                    *e = e.max(f64::from(c.weight(t, f)).abs());
+                }
+            }
+        }
+        // Per bone, the farthest its vertices (morphed as far as any clip morphs them) are from
+        // its origin in bone space.
+        let mut bone_radius = vec![0f64; sk.bones.len()];
+        let mut used = vec![false; sk.bones.len()];
+        let binds: Vec<DMat4> = sk
+            .bones
+            .iter()
+            .map(|b| DMat4::from_cols_array(&b.bind.map(f64::from)))
+            .collect();
+        let norm = |m: &DMat4| {
+            // The Frobenius norm of the linear part bounds its operator norm.
+            (m.x_axis.truncate().length_squared()
+                + m.y_axis.truncate().length_squared()
+                + m.z_axis.truncate().length_squared())
+            .sqrt()
+        };
+        let mut morphed = Vec::new();
+        for p in rig.primitives.iter() {
+            let Some(skin) = &p.skin else { continue };
+            morphed.clear();
+            morphed.resize(p.positions.len(), 0f64);
+            for t in &p.targets {
+                let w = extreme.get(t.target as usize).copied().unwrap_or(0.0);
+                for (&v, d) in t.vertices.iter().zip(&t.positions) {
+                    if let Some(m) = morphed.get_mut(v as usize) {
+                        *m += w * f64::from(d.length());
+                    }
+                }
+            }
+            for (v, x) in p.positions.iter().enumerate() {
+                let (Some(j), Some(w)) = (skin.joints.get(v), skin.weights.get(v)) else {
+                    continue;
+                };
+                for (&b, &wb) in j.iter().zip(w) {
+                    let b = b as usize;
+                    if wb == 0.0 || b >= binds.len() {
+                        continue;
+                    }
+                    let r = binds[b].transform_point3(x.as_dvec3()).length()
+                        + norm(&binds[b]) * morphed[v];
+                    bone_radius[b] = bone_radius[b].max(r);
+                    used[b] = true;
+                }
+            }
+        }
+        let mut radius = vec![0f64; n];
+        let mut morph_gain = 1f64;
+        let mut ends = Vec::new();
+        for (b, bone) in sk.bones.iter().enumerate() {
+            let node = bone.node as usize;
+            if !used[b] || node >= n {
+                continue;
+            }
+            radius[node] = radius[node].max(bone_radius[b]);
+            morph_gain = morph_gain.max(gain[node] * s_max[node] * norm(&binds[b]));
+            ends.push(bone.node);
+        }
+        ends.sort_unstable();
+        ends.dedup();
+        for i in (0..n).rev() {
+            if let Some(&p) = parent.get(i).filter(|&&p| p != u32::MAX) {
+                let up = t_max[i] + s_max[i] * radius[i];
+                radius[p as usize] = radius[p as usize].max(up);
+            }
+        }
+        Reach {
+            channel,
+            morph_gain,
+            skeleton: Some(SkeletonReach {
+                parent,
+                gain,
+                scale: s_max,
+                radius,
+                ends,
+            }),
+        }
+    }
+
+    /// `U`: a bound on how far a vertex moves per unit of fade progress from pose `a` to pose
+    /// `b` (weights, and on a skinned rig every node's local transform).
+    fn speed(&self, wa: &[f32], wb: &[f32], joints: Option<(&[Trs], &[Trs])>) -> f64 {
+        let morph: f64 = wa
+            .iter()
+            .zip(wb)
+            .zip(&self.channel)
             .map(|((x, y), r)| f64::from((x - y).abs() * r))
-            .sum()
+            .sum();
+        let mut u = morph * self.morph_gain;
+        if let (Some(s), Some((la, lb))) = (&self.skeleton, joints) {
+            let mut chain = vec![0f64; s.parent.len()];
+            for (i, (a, b)) in la.iter().zip(lb).enumerate().take(chain.len()) {
+                let dt = (Vec3::from(a.translation) - Vec3::from(b.translation)).length();
+                let ds = (Vec3::from(a.scale) - Vec3::from(b.scale))
+                    .abs()
+                    .max_element();
+                let qa = Quat::from_array(a.rotation).normalize();
+                let qb = Quat::from_array(b.rotation).normalize();
+                let theta = f64::from(qa.angle_between(qb)).clamp(0.0, std::f64::consts::PI);
+                let turn = 4.0 * (theta / 4.0).tan();
+                let here = s.gain[i]
+                    * (f64::from(dt)
+                        + f64::from(ds) * s.radius[i]
+                        + turn * s.scale[i] * s.radius[i]);
+                let above = match s.parent[i] {
+                    u32::MAX => 0.0,
+                    p => chain[p as usize],
+                };
+                chain[i] = above + here;
+            }
+            u += s
+                .ends
+                .iter()
+                .map(|&e| chain.get(e as usize).copied().unwrap_or(0.0))
+                .fold(0.0, f64::max);
+        }
+        u
     }
 }
 
@@ -294,7 +514,8 @@ struct Fade {
 }
 
 /// One head walking a graph: the node it plays (the fade's target while fading), the frames
-/// played in it, its next edge and where that starts, the fade in progress.
+/// played in it, its next edge and where that starts, the fade in progress, and the head's own
+/// joint overrides on top of what the graph plays.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Player {
     node: u32,
@@ -304,6 +525,7 @@ pub struct Player {
     script_at: usize,
     next: Option<(u32, f64)>,
     fade: Option<Fade>,
+    overrides: JointPose,
 }
 
 impl Player {
@@ -326,9 +548,72 @@ impl Player {
             script_at: 0,
             next: None,
             fade: None,
+            overrides: JointPose::NONE,
         };
         p.plan(g);
         p
+    }
+
+    /// The same player with the head's own joint overrides from the start (no fade: a new
+    /// head has shown nothing yet).
+    pub fn with_overrides(mut self, overrides: JointPose) -> Player {
+        self.overrides = overrides;
+        self
+    }
+
+    /// Changes the head's own joint overrides (a session `PATCH` of its `joints`) the way a
+    /// jump changes what it plays: the pose shown is frozen and faded from, to the same node
+    /// and frames with the new overrides, under the same bound on the vertices' speed. The
+    /// walk goes on where it was.
+    pub fn set_overrides(&mut self, g: &Graph, rig: &Rig, overrides: JointPose) {
+        if overrides == self.overrides {
+            return;
+        }
+        if rig.skeleton.is_none() {
+            // Overrides need a skeleton (the session checks it): nothing is shown of them.
+            self.overrides = overrides;
+            return;
+        }
+        let rate = match &self.fade {
+            Some(f) => f.rate,
+            None => {
+                1.0 / f64::from(
+                    DEFAULT_JUMP_FADE
+                        .min(g.nodes[self.node as usize].len)
+                        .max(1),
+                )
+            }
+        };
+        self.fade = Some(Fade {
+            source: self.freeze(g, rig),
+            alpha: 0.0,
+            rate,
+        });
+        self.overrides = overrides;
+    }
+
+    /// The pose shown now as a fade's source: its weights, joints and the motion of the nodes
+    /// it came from.
+    fn freeze(&self, g: &Graph, rig: &Rig) -> Source {
+        let weights: Arc<[f32]> = self.weights(g, rig).into();
+        let locals = self.locals(g, rig).map(Arc::from);
+        let motion = match &self.fade {
+            Some(Fade {
+                source: Source::Node { node, .. },
+                ..
+            }) => g.motion(*node),
+            Some(Fade {
+                source: Source::Frozen { motion, .. },
+                ..
+            }) => *motion,
+            None => 0.0,
+        }
+        .max(g.motion(self.node));
+        Source::Frozen {
+            weights,
+            locals,
+            motion,
+        }
     }
 
     /// Picks the next edge out of the current node and the frame it starts at.
@@ -386,6 +671,23 @@ impl Player {
         }
     }
 
+    /// Every skeleton node's local transform at a clip frame, with the head's overrides
+    /// (`None` without a skeleton).
+    fn frame_locals(&self, rig: &Rig, (clip, frame): (u32, u32)) -> Option<Vec<Trs>> {
+        let sk = rig.skeleton.as_ref()?;
+        let mut out = Vec::with_capacity(sk.nodes.len());
+        sk.locals_at(rig.clips[clip as usize].joints.as_deref(), frame, &mut out);
+        self.overrides.apply(sk, &mut out);
+        Some(out)
+    }
+
+    fn source_locals(&self, g: &Graph, rig: &Rig, s: &Source) -> Option<Vec<Trs>> {
+        match s {
+            Source::Node { node, t } => self.frame_locals(rig, Self::frame(g, *node, *t)),
+            Source::Frozen { locals, .. } => locals.as_deref().map(<[Trs]>::to_vec),
+        }
+    }
+
     /// The pose shown now: a clip frame, a two-frame blend while an edge fades, live weights
     /// while a jump fades from a frozen pose.
     pub fn pose(&self, g: &Graph, rig: &Rig) -> Pose {
@@ -409,14 +711,18 @@ impl Player {
 
     /// Every skeleton node's local transform in the pose shown now (`None` without a
     /// skeleton): the clip frame's, a fading edge's two frames nlerped, or a jump's frozen
-    /// transforms faded into the target frame's the same way.
+    /// transforms faded into the target frame's the same way; the head's own overrides on
+    /// top of the frames (an edge's two frames both carry them, so its blend does too).
     pub fn locals(&self, g: &Graph, rig: &Rig) -> Option<Vec<Trs>> {
         let sk = rig.skeleton.as_ref()?;
         let table = |(clip, _): (u32, u32)| rig.clips[clip as usize].joints.as_deref();
         let here = Self::frame(g, self.node, self.t);
         let mut out = Vec::with_capacity(sk.nodes.len());
         match &self.fade {
-            None => sk.locals_at(table(here), here.1, &mut out),
+            None => {
+                sk.locals_at(table(here), here.1, &mut out);
+                self.overrides.apply(sk, &mut out);
+            }
             Some(Fade {
                 source: Source::Node { node, t },
                 alpha,
@@ -428,6 +734,7 @@ impl Player {
                     &[(1.0 - a, table(from), from.1), (a, table(here), here.1)],
                     &mut out,
                 );
+                self.overrides.apply(sk, &mut out);
             }
             Some(Fade {
                 source: Source::Frozen { locals, .. },
@@ -435,6 +742,7 @@ impl Player {
                 ..
             }) => {
                 sk.locals_at(table(here), here.1, &mut out);
+                self.overrides.apply(sk, &mut out);
                 if let Some(from) = locals {
                     let a = *alpha as f32;
                     for (o, f) in out.iter_mut().zip(from.iter()) {
@@ -448,11 +756,11 @@ impl Player {
 
     /// The joint transforms a pose of [`Player::pose`] cannot carry: while a jump fades from
     /// a frozen pose (shown as live weights, which leave the skeleton at rest), every node
-    /// whose faded transform is not its rest, as overrides. Nothing otherwise: a clip frame
-    /// or an edge's blend carries its joints itself.
+    /// whose faded transform is not its rest, as overrides. Otherwise a clip frame or an
+    /// edge's blend carries its joints itself, and this is the head's own overrides.
     pub fn joints(&self, g: &Graph, rig: &Rig) -> JointPose {
         let (Some(sk), Some(Fade { source, .. })) = (&rig.skeleton, &self.fade) else {
-            return JointPose::NONE;
+            return self.overrides.clone();
         };
         if !matches!(
             source,
@@ -461,7 +769,7 @@ impl Player {
                 ..
             }
         ) {
-            return JointPose::NONE;
+            return self.overrides.clone();
         }
         let Some(locals) = self.locals(g, rig) else {
             return JointPose::NONE;
@@ -518,10 +826,20 @@ impl Player {
                 Source::Frozen { motion, .. } => *motion,
             }
             .max(g.motion(self.node));
-            let here = Self::frame_weights(rig, Self::frame(g, self.node, self.t));
-            let u = g.distance(&Self::source_weights(g, rig, &f.source), &here);
+            let target = Self::frame(g, self.node, self.t);
+            let here = Self::frame_weights(rig, target);
+            let from = Self::source_weights(g, rig, &f.source);
+            let u = match (
+                self.source_locals(g, rig, &f.source),
+                self.frame_locals(rig, target),
+            ) {
+                (Some(a), Some(b)) => g.reach.speed(&from, &here, Some((&a, &b))),
+                _ => g.reach.speed(&from, &here, None),
+            };
             let mut da = f.rate * step;
-            if u > 0.0 && d > 0.0 {
+            // An unbounded speed (a skeleton whose scales overflow the measure) cannot be
+            // slowed into any bound: such a fade keeps its nominal rate.
+            if u.is_finite() && u > 0.0 && d > 0.0 {
                 da = da.min(STEP_SHARE * f64::from(d) / u);
             }
             f.alpha = (f.alpha + da).min(1.0);
@@ -555,31 +873,14 @@ impl Player {
     /// fade of an edge from the current node to `to` if there is one, else
     /// [`DEFAULT_JUMP_FADE`] frames (at most the node's length).
     pub fn jump(&mut self, g: &Graph, rig: &Rig, to: u32) {
-        let weights: Arc<[f32]> = self.weights(g, rig).into();
-        let locals = self.locals(g, rig).map(Arc::from);
-        let motion = match &self.fade {
-            Some(Fade {
-                source: Source::Node { node, .. },
-                ..
-            }) => g.motion(*node),
-            Some(Fade {
-                source: Source::Frozen { motion, .. },
-                ..
-            }) => *motion,
-            None => 0.0,
-        }
-        .max(g.motion(self.node));
+        let source = self.freeze(g, rig);
         let fade = g
             .edge(self.node, to)
             .map_or(DEFAULT_JUMP_FADE, |e| g.edges[e as usize].fade)
             .min(g.nodes[to as usize].len)
             .max(1);
         self.fade = Some(Fade {
-            source: Source::Frozen {
-                weights,
-                locals,
-                motion,
-            },
+            source,
             alpha: 0.0,
             rate: 1.0 / f64::from(fade),
         });
@@ -628,14 +929,26 @@ impl Default for BuildOptions {
 }
 
 /// Most (source frame, target frame) pairs [`build`] compares for one pair of clips: the
-/// distance grid it keeps (8 bytes a pair) and the work (K operations a pair times the window)
-/// grow with it, so larger clips are refused ([`build_bytes`] returns `None`).
+/// distance grid it keeps (8 bytes a pair) grows with it, so larger clips are refused
+/// ([`build_bytes`] returns `None`).
 pub const MAX_BUILD_PAIRS: u64 = 1 << 22;
 
-/// Bytes [`build`] holds at most for `rig` (for the caller's charge): the projected frames, the
-/// largest pair of clips' distance grid, the Gram matrix and its factor. `None` when two clips
-/// are too long to compare ([`MAX_BUILD_PAIRS`]).
-pub fn build_bytes(rig: &Rig) -> Option<u64> {
+/// Vertices at which [`build`] compares the frames of a skinned rig.
+pub const BUILD_SAMPLES: usize = 256;
+
+/// Numbers per frame that [`build`] compares: the rig's channels (a rig without a skeleton),
+/// or three coordinates per sampled vertex.
+fn feature_len(rig: &Rig) -> u64 {
+    match rig.skeleton {
+        None => rig.targets.len() as u64,
+        Some(_) => 3 * rig.vertex_count().min(BUILD_SAMPLES) as u64,
+    }
+}
+
+/// Bytes [`build`] holds at most for `rig` (for the caller's charge): the frames' features,
+/// the largest pair of clips' distance grid, the Gram matrix and its factor, the candidate
+/// transitions. `None` when two clips are too long to compare ([`MAX_BUILD_PAIRS`]).
+pub fn build_bytes(rig: &Rig, opt: BuildOptions) -> Option<u64> {
     let k = rig.targets.len() as u64;
     let frames: u64 = rig.clips.iter().map(|c| u64::from(c.frames)).sum();
     let longest = rig
@@ -645,63 +958,245 @@ pub fn build_bytes(rig: &Rig) -> Option<u64> {
         .max()
         .unwrap_or(0);
     let pairs = longest * longest;
-    (pairs <= MAX_BUILD_PAIRS).then(|| frames * k * 8 + pairs * 8 + k * k * 16 + 4096)
+    let clips = rig.clips.len() as u64;
+    (pairs <= MAX_BUILD_PAIRS).then(|| {
+        frames * feature_len(rig) * 8
+            + pairs * 8
+            + k * k * 16
+            + clips * clips * opt.per_pair as u64 * 64
+            + rig.vertex_count().min(16 * BUILD_SAMPLES) as u64 * 24
+            + 4096
+    })
+}
+
+/// What [`build`] costs, in the unit of the server's `--max-graph-work` (about one multiply-add
+/// each): every frame of every clip compared with every frame of every clip (the grid of each
+/// ordered pair of clips, a clip with itself included, is frames × frames comparisons of
+/// [`feature_len`] numbers, then the window's sums), plus turning the frames into features
+/// (the Gram matrix, its factor and one projection per frame; or posing the sampled vertices)
+/// and sorting the candidate transitions.
+pub fn build_work(rig: &Rig, opt: BuildOptions) -> u64 {
+    let k = rig.targets.len() as u64;
+    let frames: u64 = rig.clips.iter().map(|c| u64::from(c.frames)).sum();
+    let dims = feature_len(rig);
+    let grid = frames
+        .saturating_mul(frames)
+        .saturating_mul(dims + u64::from(opt.window.max(1)));
+    let features = match &rig.skeleton {
+        None => {
+            let deltas: u64 = rig
+                .primitives
+                .iter()
+                .flat_map(|p| p.targets.iter())
+                .map(|t| t.vertices.len() as u64)
+                .sum();
+            deltas * k + k * k * k + frames * k * k
+        }
+        Some(sk) => {
+            let samples = rig.vertex_count().min(BUILD_SAMPLES) as u64;
+            16 * samples * samples * 16
+                + samples * k * 32
+                + frames * (64 * (sk.nodes.len() + sk.bones.len()) as u64 + samples * (k + 64))
+        }
+    };
+    let clips = rig.clips.len() as u64;
+    grid.saturating_add(features)
+        .saturating_add(clips * clips * opt.per_pair as u64 * 64)
+}
+
+/// Per clip, every frame's features (`frames × len` numbers, frame-major), the length, and the
+/// root of how many vertices a distance sums over: on a rig without a skeleton `Lᵀw` over all
+/// vertices ([`projector`]); on a skinned rig the posed positions of [`BUILD_SAMPLES`]
+/// vertices ([`Samples`]), where the joints move vertices as much as the weights do.
+fn features(rig: &Rig, cancel: &Cancel) -> Result<(Vec<Vec<f64>>, usize, f64), Cancelled> {
+    let mut wf = vec![0f32; rig.targets.len()];
+    let mut out = Vec::with_capacity(rig.clips.len());
+    match &rig.skeleton {
+        None => {
+            let project = projector(rig);
+            cancel.check()?;
+            for c in &rig.clips {
+                let mut flat = Vec::with_capacity(c.frames as usize * rig.targets.len());
+                for f in 0..c.frames {
+                    c.frame_weights(f, &mut wf);
+                    flat.extend(project(&wf));
+                }
+                cancel.check()?;
+                out.push(flat);
+            }
+            Ok((
+                out,
+                rig.targets.len(),
+                (rig.vertex_count().max(1) as f64).sqrt(),
+            ))
+        }
+        Some(sk) => {
+            let samples = Samples::of(rig);
+            cancel.check()?;
+            let (mut locals, mut globals, mut bones) = (Vec::new(), Vec::new(), Vec::new());
+            for c in &rig.clips {
+                let mut flat = Vec::with_capacity(c.frames as usize * samples.len() * 3);
+                for f in 0..c.frames {
+                    c.frame_weights(f, &mut wf);
+                    sk.locals_at(c.joints.as_deref(), f, &mut locals);
+                    bones.clear();
+                    sk.bone_matrices(&locals, &mut globals, &mut bones);
+                    samples.pose(rig, &wf, &bones, &mut flat);
+                }
+                cancel.check()?;
+                out.push(flat);
+            }
+            Ok((out, samples.len() * 3, (samples.len().max(1) as f64).sqrt()))
+        }
+    }
+}
+
+/// The vertices a skinned rig's frames are compared at: [`BUILD_SAMPLES`] of them spread over
+/// the mesh (farthest-point sampling of the bind positions, among at most 16 times as many
+/// candidates taken evenly through the vertex order), each with the deltas that move it.
+struct Samples {
+    at: Vec<Sample>,
+}
+
+/// One sampled vertex: its primitive, its index there, and the (channel, delta) pairs that
+/// move it.
+type Sample = (usize, usize, Vec<(usize, Vec3)>);
+
+impl Samples {
+    fn of(rig: &Rig) -> Samples {
+        let total = rig.vertex_count();
+        let want = total.min(BUILD_SAMPLES);
+        let stride = total.div_ceil((16 * BUILD_SAMPLES).max(1)).max(1);
+        // (primitive, vertex, bind position) of the candidates.
+        let mut candidates: Vec<(usize, usize, Vec3)> = Vec::new();
+        let mut v = 0usize;
+        for (pi, p) in rig.primitives.iter().enumerate() {
+            for (i, x) in p.positions.iter().enumerate() {
+                if v.is_multiple_of(stride) {
+                    candidates.push((pi, i, *x));
+                }
+                v += 1;
+            }
+        }
+        let mut chosen: Vec<usize> = Vec::with_capacity(want);
+        let mut nearest = vec![f32::INFINITY; candidates.len()];
+        let mut next = 0usize;
+        while chosen.len() < want && next < candidates.len() {
+            chosen.push(next);
+            let c = candidates[next].2;
+            let mut far = (0usize, -1f32);
+            for (k, (d, cand)) in nearest.iter_mut().zip(&candidates).enumerate() {
+                *d = d.min(cand.2.distance_squared(c));
+                if *d > far.1 {
+                    far = (k, *d);
+                }
+            }
+            if far.1 <= 0.0 {
+                // Every candidate left sits on a chosen one.
+                break;
+            }
+            next = far.0;
+        }
+        chosen.sort_unstable();
+        let at = chosen
+            .into_iter()
+            .map(|k| {
+                let (pi, i, _) = candidates[k];
+                let deltas = rig.primitives[pi]
+                    .targets
+                    .iter()
+                    .filter_map(|t| {
+                        let at = t.vertices.binary_search(&(i as u32)).ok()?;
+                        Some((t.target as usize, *t.positions.get(at)?))
+                    })
+                    .collect();
+                (pi, i, deltas)
+            })
+            .collect();
+        Samples { at }
+    }
+
+    fn len(&self) -> usize {
+        self.at.len()
+    }
+
+    /// Appends each sample's position with weights `w` and bones `bones`: morph targets, then
+    /// skinning, as the engines pose it (a vertex that follows no bone stays as blended).
+    fn pose(&self, rig: &Rig, w: &[f32], bones: &[crate::rig::BoneMatrix], out: &mut Vec<f64>) {
+        for (pi, i, deltas) in &self.at {
+            let p = &rig.primitives[*pi];
+            let mut x = p.positions[*i];
+            for &(t, d) in deltas {
+                x += w.get(t).copied().unwrap_or(0.0) * d;
+            }
+            let posed = match &p.skin {
+                Some(s) if s.weights.get(*i).is_some_and(|w| w[0] != 0.0) => {
+                    s.skin(*i, bones, x, None).0
+                }
+                _ => x,
+            };
+            out.extend([posed.x, posed.y, posed.z].map(f64::from));
+        }
+    }
 }
 
 /// Builds a motion graph from the rig's clips the way Kovar et al. (2002) do: frame distances
-/// in vertex space, `‖Dᵀ(w_a − w_b)‖` over the rig's deltas (computed as `‖Lᵀ(w_a − w_b)‖`
-/// with `L` the Cholesky factor of the Gram matrix `DDᵀ`, so a pair costs K operations, not a
-/// mesh), summed over a window of frames; the local minima under the threshold become
-/// transitions; clips are cut into nodes where transitions land, nodes of one clip play on
-/// into each other, and the graph is pruned to its largest strongly connected component (so
-/// every node can reach every other). `None` when no clip has a window's frames.
-pub fn build(rig: &Rig, opt: BuildOptions) -> Option<Built> {
-    build_bytes(rig)?;
+/// in vertex space — on a rig without a skeleton `‖Dᵀ(w_a − w_b)‖` over the rig's deltas
+/// (computed as `‖Lᵀ(w_a − w_b)‖` with `L` the Cholesky factor of the Gram matrix `DDᵀ`, so a
+/// pair costs K operations, not a mesh), on a skinned rig the posed positions of
+/// [`BUILD_SAMPLES`] vertices spread over it, so that what the joints move counts — averaged
+/// over a window of frames; the local minima under the threshold become transitions; clips
+/// are cut into nodes where transitions land, nodes of one clip play on into each other, and
+/// the graph is pruned to its largest strongly connected component (so every node can reach
+/// every other). `Ok(None)` when no clip has a window's frames; `Err` when `cancel` stops it
+/// (checked after every row of a grid, a few milliseconds apart at most).
+pub fn build(rig: &Rig, opt: BuildOptions, cancel: &Cancel) -> Result<Option<Built>, Cancelled> {
+    if build_bytes(rig, opt).is_none() {
+        return Ok(None);
+    }
     let w = opt.window.max(1) as usize;
-    let project = projector(rig);
-    let v = rig.vertex_count().max(1) as f64;
     let diag = f64::from(rig.bbox().diagonal()).max(1e-12);
-    // Per clip, per frame: Lᵀ w, so that a distance is a difference of these.
-    let frames: Vec<Vec<Vec<f64>>> = rig
-        .clips
-        .iter()
-        .map(|c| {
-            let mut wf = vec![0f32; rig.targets.len()];
-            (0..c.frames)
-                .map(|f| {
-                    c.frame_weights(f, &mut wf);
-                    project(&wf)
-                })
-                .collect()
-        })
-        .collect();
-    let dist = |a: &[f64], b: &[f64]| -> f64 {
-        a.iter()
-            .zip(b)
-            .map(|(x, y)| (x - y) * (x - y))
-            .sum::<f64>()
-            .sqrt()
-    };
+    let (frames, dims, norm) = features(rig, cancel)?;
+    let count = |c: usize| frames[c].len() / dims.max(1);
     // Candidate transitions (source clip, source frame, target clip, target frame, cost).
     let mut candidates: Vec<(usize, u32, usize, u32, f64)> = Vec::new();
-    for (a, fa) in frames.iter().enumerate() {
-        for (b, fb) in frames.iter().enumerate() {
-            if fa.len() < w || fb.len() < w {
+    let mut grid: Vec<f64> = Vec::new();
+    for a in 0..frames.len() {
+        for b in 0..frames.len() {
+            let (fa, fb) = (count(a), count(b));
+            if fa < w || fb < w {
                 continue;
             }
-            let (ni, nj) = (fa.len() - w + 1, fb.len() - w + 1);
-            let cost = |i: usize, j: usize| -> f64 {
-                (0..w).map(|k| dist(&fa[i + k], &fb[j + k])).sum::<f64>()
-                    / w as f64
-                    / v.sqrt()
-                    / diag
-            };
-            let grid: Vec<f64> = (0..ni * nj).map(|x| cost(x / nj, x % nj)).collect();
+            // Every frame pair's distance, then in place each window's mean along the
+            // diagonal: cell (i, j) reads cells (i + k, j + k), which later rows still hold.
+            grid.clear();
+            grid.resize(fa * fb, 0.0);
+            for i in 0..fa {
+                cancel.check()?;
+                let x = &frames[a][i * dims..(i + 1) * dims];
+                for j in 0..fb {
+                    let y = &frames[b][j * dims..(j + 1) * dims];
+                    grid[i * fb + j] = x
+                        .iter()
+                        .zip(y)
+                        .map(|(p, q)| (p - q) * (p - q))
+                        .sum::<f64>()
+                        .sqrt();
+                }
+            }
+            let (ni, nj) = (fa - w + 1, fb - w + 1);
+            let scale = 1.0 / w as f64 / norm / diag;
+            for i in 0..ni {
+                for j in 0..nj {
+                    let sum: f64 = (0..w).map(|k| grid[(i + k) * fb + j + k]).sum();
+                    grid[i * fb + j] = sum * scale;
+                }
+            }
             let at = |i: isize, j: isize| -> f64 {
                 if i < 0 || j < 0 || i as usize >= ni || j as usize >= nj {
                     f64::INFINITY
                 } else {
-                    grid[i as usize * nj + j as usize]
+                    grid[i as usize * fb + j as usize]
                 }
             };
             let mut found = Vec::new();
@@ -711,7 +1206,7 @@ pub fn build(rig: &Rig, opt: BuildOptions) -> Option<Built> {
                     if a == b && i.abs_diff(j) <= w {
                         continue;
                     }
-                    let c = grid[i * nj + j];
+                    let c = grid[i * fb + j];
                     if c > f64::from(opt.threshold) {
                         continue;
                     }
@@ -729,32 +1224,39 @@ pub fn build(rig: &Rig, opt: BuildOptions) -> Option<Built> {
             candidates.extend(found);
         }
     }
+    drop(grid);
+    cancel.check()?;
     // Transitions landing a few frames apart in one clip would cut it into slivers: the
-    // cheapest lands, and others land on the same frame or at least a window away.
+    // cheapest lands, and others land on the same frame or at least a window away. (Sets and
+    // maps, not scans: a rig with many clips has many candidates.)
     candidates.sort_by(|x, y| x.4.total_cmp(&y.4));
-    let mut landed: Vec<Vec<u32>> = rig.clips.iter().map(|_| Vec::new()).collect();
-    let mut taken: Vec<(usize, u32, usize, u32)> = Vec::new();
+    let wu = w as u32;
+    let mut landed: Vec<BTreeSet<u32>> = rig.clips.iter().map(|_| BTreeSet::new()).collect();
+    let mut taken: HashMap<(usize, usize, u32), Vec<u32>> = HashMap::new();
     candidates.retain(|&(a, i, b, j, _)| {
         // The same landing from a few frames earlier or later of the same source is the same
         // transition.
         if taken
-            .iter()
-            .any(|&(ta, ti, tb, tj)| (ta, tb, tj) == (a, b, j) && ti.abs_diff(i) < w as u32)
+            .get(&(a, b, j))
+            .is_some_and(|from| from.iter().any(|&ti| ti.abs_diff(i) < wu))
         {
             return false;
         }
         let here = &mut landed[b];
-        if here.contains(&j) {
-            taken.push((a, i, b, j));
-            return true;
+        if !here.contains(&j) {
+            let near = here
+                .range(j.saturating_sub(wu - 1)..=j.saturating_add(wu - 1))
+                .next()
+                .is_some();
+            if near || (j < wu && j != 0) {
+                return false;
+            }
+            here.insert(j);
         }
-        if here.iter().any(|&x| x.abs_diff(j) < w as u32) || j.abs_diff(0) < w as u32 && j != 0 {
-            return false;
-        }
-        here.push(j);
-        taken.push((a, i, b, j));
+        taken.entry((a, b, j)).or_default().push(i);
         true
     });
+    drop(taken);
     // Nodes: each clip cut where a transition lands.
     let mut cuts: Vec<Vec<u32>> = rig.clips.iter().map(|_| vec![0]).collect();
     for &(_, _, b, j, _) in &candidates {
@@ -764,22 +1266,27 @@ pub fn build(rig: &Rig, opt: BuildOptions) -> Option<Built> {
         c.sort_unstable();
         c.dedup();
     }
-    // (clip, first, last) per node.
+    // (clip, first, last) per node, and per clip the index of its first node.
     let mut nodes: Vec<(usize, u32, u32)> = Vec::new();
+    let mut first_node: Vec<Option<usize>> = vec![None; rig.clips.len()];
     for (ci, c) in cuts.iter().enumerate() {
         let n = rig.clips[ci].frames;
         if (n as usize) < w {
             continue;
         }
+        first_node[ci] = Some(nodes.len());
         for (k, &first) in c.iter().enumerate() {
             let last = c.get(k + 1).map_or(n - 1, |&x| x - 1);
             nodes.push((ci, first, last));
         }
     }
-    let node_of = |clip: usize, frame: u32| {
-        nodes
-            .iter()
-            .position(|&(c, f, l)| c == clip && f <= frame && frame <= l)
+    let node_of = |clip: usize, frame: u32| -> Option<usize> {
+        let start = first_node[clip]?;
+        if frame >= rig.clips[clip].frames {
+            return None;
+        }
+        let k = cuts[clip].partition_point(|&x| x <= frame).checked_sub(1)?;
+        Some(start + k)
     };
     // Edges (from, to, fade, window start, cost).
     let mut edges: Vec<(usize, usize, u32, u32, f64)> = Vec::new();
@@ -794,15 +1301,13 @@ pub fn build(rig: &Rig, opt: BuildOptions) -> Option<Built> {
             continue;
         };
         let (first, last) = (nodes[from].1, nodes[from].2);
-        let fade = (w as u32)
-            .min(last - first + 1)
-            .min(nodes[to].2 - nodes[to].1 + 1);
+        let fade = wu.min(last - first + 1).min(nodes[to].2 - nodes[to].1 + 1);
         edges.push((from, to, fade, i - first, cost));
     }
     let keep = largest_scc(nodes.len(), &edges);
     let kept: Vec<usize> = (0..nodes.len()).filter(|&n| keep[n]).collect();
     if kept.is_empty() {
-        return None;
+        return Ok(None);
     }
     let name = |n: usize| {
         let (c, f, l) = nodes[n];
@@ -829,12 +1334,12 @@ pub fn build(rig: &Rig, opt: BuildOptions) -> Option<Built> {
             costs.push(cost as f32);
         }
     }
-    Some(Built {
+    Ok(Some(Built {
         graph,
         costs,
         candidates: candidates.len(),
         dropped_nodes: nodes.len() - kept.len(),
-    })
+    }))
 }
 
 /// `w ↦ Lᵀw` with `LLᵀ = DDᵀ` (the Gram matrix of the rig's position deltas over all
@@ -846,7 +1351,7 @@ fn projector(rig: &Rig) -> impl Fn(&[f32]) -> Vec<f64> {
     let mut g = vec![0f64; k * k];
     for p in rig.primitives.iter() {
         // Per vertex, the (channel, delta) pairs that move it.
-        let mut by_vertex: HashMap<u32, Vec<(usize, glam::Vec3)>> = HashMap::new();
+        let mut by_vertex: HashMap<u32, Vec<(usize, Vec3)>> = HashMap::new();
         for t in &p.targets {
             for (&vtx, d) in t.vertices.iter().zip(&t.positions) {
                 by_vertex
@@ -978,6 +1483,180 @@ mod tests {
         Graph::resolve(spec, &rig, |n| rig.clip_index(n))
     }
 
+    /// Every vertex of `rig` posed with weights `w` and node transforms `locals`: morph
+    /// targets, then skinning, written out here from the glTF rule rather than taken from an
+    /// engine.
+    fn posed(rig: &Rig, w: &[f32], locals: &[Trs]) -> Vec<Vec3> {
+        let sk = rig.skeleton.as_ref().expect("skinned");
+        let mut bones = Vec::new();
+        sk.bone_matrices(locals, &mut Vec::new(), &mut bones);
+        let mut out = Vec::new();
+        for p in rig.primitives.iter() {
+            let mut x = p.positions.clone();
+            for t in &p.targets {
+                for (&v, d) in t.vertices.iter().zip(&t.positions) {
+                    x[v as usize] += w[t.target as usize] * *d;
+                }
+            }
+            for (i, x) in x.into_iter().enumerate() {
+                out.push(match &p.skin {
+                    Some(s) if s.weights[i][0] != 0.0 => {
+                        let mut sum = Vec3::ZERO;
+                        for k in 0..4 {
+                            let b = &bones[s.joints[i][k] as usize];
+                            sum += s.weights[i][k] * b.point(x);
+                        }
+                        sum
+                    }
+                    _ => x,
+                });
+            }
+        }
+        out
+    }
+
+    fn largest_step(a: &[Vec3], b: &[Vec3]) -> f32 {
+        a.iter()
+            .zip(b)
+            .map(|(p, q)| p.distance(*q))
+            .fold(0.0, f32::max)
+    }
+
+    #[test]
+    fn a_skinned_heads_fades_and_override_changes_stay_within_the_bound() {
+        // The skinned face with its clips' weights removed: only the joints move it, as on
+        // RobotExpressive, whose clips animate no weights. A bound that counts weights alone
+        // lets every fade and every change of overrides through in one tick.
+        let mut rig = crate::synthetic::skinned_head();
+        for c in &mut rig.clips {
+            c.weights = Arc::new(vec![0.0; c.weights.len()]);
+        }
+        let sk = rig.skeleton.clone().expect("skinned");
+        let mut g = Graph::resolve(&spec(), &rig, |n| rig.clip_index(n)).expect("graph");
+        // Each node's motion as the server measures it (its largest per-frame step), here from
+        // the rule above.
+        let mut motion = Vec::new();
+        for n in &g.nodes {
+            let clip = &rig.clips[n.clip as usize];
+            let frame = |f: u32| {
+                let mut l = Vec::new();
+                sk.locals_at(clip.joints.as_deref(), f, &mut l);
+                let mut w = vec![0.0; rig.targets.len()];
+                clip.frame_weights(f, &mut w);
+                posed(&rig, &w, &l)
+            };
+            let mut largest = 0f32;
+            for f in n.first + 1..n.first + n.len {
+                largest = largest.max(largest_step(&frame(f - 1), &frame(f)));
+            }
+            motion.push(largest);
+        }
+        let bound = 1.5 * motion.iter().copied().fold(0.0, f32::max);
+        assert!(bound > 0.0, "the clips move the joints");
+        g.set_motion(motion);
+        let mut p = Player::new(&g, 0, Vec::new(), 11);
+        let shown = |p: &Player| {
+            posed(
+                &rig,
+                &p.weights(&g, &rig),
+                &p.locals(&g, &rig).expect("skinned"),
+            )
+        };
+        let mut prev = shown(&p);
+        let head = sk
+            .nodes
+            .iter()
+            .position(|n| n.name == "Head")
+            .expect("a Head joint") as u32;
+        let turn = JointPose::new(vec![JointSet::new(
+            head,
+            None,
+            Some(Quat::from_rotation_y(0.8).to_array()),
+            None,
+        )]);
+        let (mut largest, mut fades) = (0f32, 0);
+        for tick in 0..900 {
+            match tick {
+                100 => p.jump(&g, &rig, 1),
+                103 => p.jump(&g, &rig, 0),
+                300 => p.set_overrides(&g, &rig, turn.clone()),
+                500 => {
+                    p.set_overrides(&g, &rig, JointPose::NONE);
+                    p.jump(&g, &rig, 1);
+                }
+                _ => {}
+            }
+            p.advance(&g, &rig, 1.0 / 30.0);
+            fades += usize::from(p.fading());
+            let now = shown(&p);
+            let d = largest_step(&prev, &now);
+            largest = largest.max(d);
+            assert!(d <= bound, "tick {tick}: a vertex moved {d}, past {bound}");
+            prev = now;
+        }
+        assert!(fades > 20, "the walk faded ({fades} ticks)");
+        assert!(!p.fading() || p.overrides.is_none());
+        eprintln!("largest per-tick step {largest}, bound {bound}");
+        // The override change was shown in full once its fade ended.
+        let mut p = Player::new(&g, 0, Vec::new(), 11);
+        p.set_overrides(&g, &rig, turn.clone());
+        for _ in 0..2000 {
+            if !p.fading() {
+                break;
+            }
+            p.advance(&g, &rig, 1.0 / 30.0);
+        }
+        assert!(!p.fading(), "the change's fade ends");
+        assert_eq!(p.joints(&g, &rig), turn);
+    }
+
+    #[test]
+    fn a_build_stops_at_its_cancellation() {
+        let rig = crate::embedded::default_rig();
+        let (cancel, guard) = Cancel::new(None);
+        drop(guard);
+        assert_eq!(
+            build(&rig, BuildOptions::default(), &cancel),
+            Err(Cancelled::Dropped)
+        );
+        let (late, _guard) = Cancel::new(Some(std::time::Instant::now()));
+        assert_eq!(
+            build(&rig, BuildOptions::default(), &late),
+            Err(Cancelled::Deadline)
+        );
+        assert!(build_work(&rig, BuildOptions::default()) > 0);
+    }
+
+    #[test]
+    fn a_skinned_rigs_build_compares_what_the_joints_move() {
+        // Only the joints move the skinned face (its clips' weights removed): a distance of
+        // weights alone would make every transition free.
+        let mut rig = crate::synthetic::skinned_head();
+        for c in &mut rig.clips {
+            c.weights = Arc::new(vec![0.0; c.weights.len()]);
+        }
+        let opt = BuildOptions {
+            threshold: 1.0,
+            ..BuildOptions::default()
+        };
+        let built = build(&rig, opt, &Cancel::never())
+            .expect("not cancelled")
+            .expect("a graph");
+        let transitions: Vec<f32> = built
+            .graph
+            .edges
+            .iter()
+            .zip(&built.costs)
+            .filter(|(e, _)| e.fade > 1)
+            .map(|(_, &c)| c)
+            .collect();
+        assert!(!transitions.is_empty(), "{built:?}");
+        assert!(
+            transitions.iter().all(|&c| c > 0.0),
+            "every transition between different poses costs something: {transitions:?}"
+        );
+    }
+
     #[test]
     fn malformed_graphs_name_the_field() {
         assert!(graph(&spec()).is_ok());
@@ -1004,10 +1683,11 @@ mod tests {
     #[test]
     fn clips_too_long_to_compare_are_refused_before_any_work() {
         let rig = crate::embedded::default_rig();
-        assert!(build_bytes(&rig).is_some());
+        let opt = BuildOptions::default();
+        assert!(build_bytes(&rig, opt).is_some());
         let long = crate::synthetic::with_random_clip_of(rig, "long", 3000, 1);
-        assert_eq!(build_bytes(&long), None);
-        assert_eq!(build(&long, BuildOptions::default()), None);
+        assert_eq!(build_bytes(&long, opt), None);
+        assert_eq!(build(&long, opt, &Cancel::never()), Ok(None));
     }
 
     #[test]
@@ -1051,8 +1731,8 @@ mod tests {
         sk.locals_at(None, 0, &mut shown);
         p.joints(&g, &rig).apply(sk, &mut shown);
         for (a, b) in shown.iter().zip(&before) {
-            let qa = glam::Quat::from_array(a.rotation);
-            let qb = glam::Quat::from_array(b.rotation);
+            let qa = Quat::from_array(a.rotation);
+            let qb = Quat::from_array(b.rotation);
             assert!(qa.angle_between(qb) < 1e-4, "{a:?} vs {b:?}");
         }
         assert!(

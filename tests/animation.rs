@@ -228,7 +228,9 @@ fn graphs_built_from_clips_check_are_strongly_connected_and_cost_under_the_thres
     }
     for rig in rigs {
         let opt = crowdmorph::graph::BuildOptions::default();
-        let built = crowdmorph::graph::build(&rig, opt).expect("a graph");
+        let built = crowdmorph::graph::build(&rig, opt, &crowdmorph::cancel::Cancel::never())
+            .expect("never cancelled")
+            .expect("a graph");
         let g = &built.graph;
         eprintln!(
             "{}: {} candidates, {} nodes, {} edges, {} dropped",

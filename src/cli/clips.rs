@@ -329,7 +329,9 @@ pub fn run(which: Command) -> Result<()> {
                     threshold,
                     per_pair,
                 },
+                &crowdmorph::cancel::Cancel::never(),
             )
+            .context("the build was cancelled")?
             .with_context(|| {
                 format!(
                     "rig {:?}: no cycle of transitions under the threshold {threshold} (raise \

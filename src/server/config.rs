@@ -35,6 +35,27 @@ pub struct ServerConfig {
     /// Most heads per crowd request.
     #[arg(long, env = "CROWDMORPH_MAX_HEADS", default_value_t = 100_000)]
     pub max_heads: usize,
+    /// Most clips one rig may have (a clip upload past it gets 413 too_many_clips): a graph
+    /// built from the clips compares every pair of them.
+    #[arg(
+        long,
+        env = "CROWDMORPH_MAX_CLIPS",
+        default_value_t = 256,
+        value_parser = at_least_one
+    )]
+    pub max_clips: usize,
+    /// Most work one motion graph may take before it is stored, priced before it starts:
+    /// for `?auto=1`, frame pairs compared times the numbers per frame compared (about
+    /// (frames of all clips)² × (targets, or 768 on a skinned rig)), plus the measurement; for
+    /// a PUT, each frame its nodes play (once) times the deltas and vertices blended per frame.
+    /// Past it: 413 graph_too_costly. The default is a few seconds of one core.
+    #[arg(
+        long,
+        env = "CROWDMORPH_MAX_GRAPH_WORK",
+        default_value_t = DEFAULT_MAX_GRAPH_WORK,
+        value_parser = clap::value_parser!(u64).range(1..)
+    )]
+    pub max_graph_work: u64,
     /// Most memory one upload (rig or clips) or LOD build may hold, bytes: what its file's
     /// headers say it will cost (decoded arrays, baked clip tables, engine layouts, the stored
     /// record) is checked against this before any work, then every allocation is charged as
@@ -230,6 +251,13 @@ pub struct ServerConfig {
 /// depth, the resolved and staging copies on the device — host memory on lavapipe — the
 /// pixels read back and the encoded image), so the default bounds renders to about 3 GiB.
 pub const DEFAULT_RENDER_PIXELS: u64 = 64 << 20;
+
+/// Default of [`ServerConfig::max_graph_work`]: 10^10 units, a few seconds of one core (the
+/// frame comparisons of a build run at about 1 ns a unit in an optimized build: RobotExpressive's
+/// 14 clips, 2.7 × 10^8 units, build in 0.24 s with the rig's import). The eight ICT
+/// clips of 2,048 frames (1.6 × 10^10) are past it; a thousand nodes on one such clip (3 × 10^9,
+/// each frame measured once) are within it.
+pub const DEFAULT_MAX_GRAPH_WORK: u64 = 10_000_000_000;
 
 /// Connections [`ServerConfig::connection_cap`] allows when neither the flag nor `serve` set
 /// them.

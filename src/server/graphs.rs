@@ -1,14 +1,20 @@
 //! Motion graphs by rig: the specs as stored (`PUT /v1/rigs/{id}/graphs/{name}`), and each
 //! resolved against the rig generation that last used it, with its nodes' motion measured on
 //! the CPU engine (what bounds a session head's cross-fades, `crate::graph`).
+//!
+//! A measurement evaluates every frame the graph's nodes play once, however many nodes share
+//! it: per clip, the union of the nodes' frame ranges is walked and each frame's step from the
+//! one before is kept, and a node's motion is the largest step inside its range. Its price
+//! ([`measure_work`]) is known before it starts, and it stops at its cancellation.
 
 use std::collections::{BTreeMap, HashMap};
 use std::sync::{Arc, Mutex};
 
 use crowdmorph_proto::MotionGraph;
 
+use crate::cancel::{Cancel, Cancelled};
 use crate::engine::{BlendJob, OutputSpec, WeightBatch};
-use crate::graph::{Graph, GraphError};
+use crate::graph::Graph;
 use crate::server::registry::RigEntry;
 
 /// Most graphs one rig may have.
@@ -162,13 +168,15 @@ impl Graphs {
     /// generation when what it depends on is unchanged (the geometry and the nodes' clip
     /// tables, shared by generations that keep them: a clip added or deleted elsewhere, a new
     /// LOD); else measured now, its memory charged to `memory` first. `None` when the rig has
-    /// no such graph, it no longer fits the rig (a clip it plays was deleted), or the
-    /// measurement's memory is not available now.
+    /// no such graph, it no longer fits the rig (a clip it plays was deleted), the
+    /// measurement would cost more than `max_work` (a graph stored under a larger
+    /// `--max-graph-work`), or its memory is not available now.
     pub fn resolved(
         &self,
         entry: &RigEntry,
         name: &str,
         memory: &crate::server::admission::QueueMemory,
+        max_work: u64,
     ) -> Option<Arc<Graph>> {
         enum Found {
             Current(Arc<Graph>),
@@ -202,8 +210,11 @@ impl Graphs {
                     .collect(),
             ),
             None => {
-                let _charge = memory.reserve(measure_bytes(entry)).ok()?;
-                graph.set_motion(measure(entry, &graph));
+                if measure_work(entry, &graph) > max_work {
+                    return None;
+                }
+                let _charge = memory.reserve(measure_bytes(entry, &graph)).ok()?;
+                graph.set_motion(measure(entry, &graph, &Cancel::never()).ok()?);
             }
         }
         let graph = Arc::new(graph);
@@ -223,63 +234,131 @@ impl Graphs {
     }
 }
 
-/// Queue memory that measuring a graph's motion holds: [`MEASURE_FRAMES`] frames of the rig's
-/// vertices (positions in f32) and their weights.
-pub fn measure_bytes(entry: &RigEntry) -> u64 {
+/// Per clip, the frames a graph's nodes play: their ranges merged where they overlap or
+/// touch, as `(clip, first, last)` sorted by clip and first frame.
+fn played(graph: &Graph) -> Vec<(u32, u32, u32)> {
+    let mut ranges: Vec<(u32, u32, u32)> = graph
+        .nodes
+        .iter()
+        .map(|n| (n.clip, n.first, n.first + n.len - 1))
+        .collect();
+    ranges.sort_unstable();
+    let mut merged: Vec<(u32, u32, u32)> = Vec::with_capacity(ranges.len());
+    for (c, a, b) in ranges {
+        match merged.last_mut() {
+            Some(m) if m.0 == c && a <= m.2.saturating_add(1) => m.2 = m.2.max(b),
+            _ => merged.push((c, a, b)),
+        }
+    }
+    merged
+}
+
+/// Frames a measurement of `graph` evaluates: each frame its nodes play, once.
+fn played_frames(graph: &Graph) -> u64 {
+    played(graph)
+        .iter()
+        .map(|&(_, a, b)| u64::from(b - a) + 1)
+        .sum()
+}
+
+/// Work of evaluating one frame of `rig` on the CPU engine, in the unit of
+/// `--max-graph-work`: each stored delta blended, each vertex written (and skinned by up to four
+/// bones) and compared with the frame before.
+pub fn frame_work(rig: &crate::rig::Rig) -> u64 {
+    let deltas: u64 = rig
+        .primitives
+        .iter()
+        .flat_map(|p| p.targets.iter())
+        .map(|t| t.vertices.len() as u64)
+        .sum();
+    let vertices = rig.vertex_count() as u64;
+    let skinned = if rig.skeleton.is_some() { 4 } else { 0 };
+    deltas + vertices * (2 + skinned)
+}
+
+/// What measuring `graph`'s motion costs, in the unit of `--max-graph-work`: the frames its
+/// nodes play (each once, [`played`]) times [`frame_work`].
+pub fn measure_work(entry: &RigEntry, graph: &Graph) -> u64 {
+    played_frames(graph).saturating_mul(frame_work(entry.rig()))
+}
+
+/// Queue memory that measuring `graph`'s motion holds: [`MEASURE_FRAMES`] frames of the rig's
+/// vertices (positions in f32) and their weights, and a step per frame played.
+pub fn measure_bytes(entry: &RigEntry, graph: &Graph) -> u64 {
     let rig = entry.rig();
     (MEASURE_FRAMES as u64 + 1)
         * (rig.vertex_count() as u64 * 12 + rig.targets.len() as u64 * 9 + 64)
+        + played_frames(graph) * 4
+        + graph.nodes.len() as u64 * 12
 }
 
-/// `spec` resolved against `entry`'s rig, with each node's largest per-frame vertex
-/// displacement measured on the CPU engine (the caller has charged [`measure_bytes`]).
-pub fn resolve_and_measure(entry: &RigEntry, spec: &MotionGraph) -> Result<Graph, GraphError> {
-    let mut graph = Graph::resolve(spec, entry.rig(), |n| entry.clip_index(n))?;
-    graph.set_motion(measure(entry, &graph));
-    Ok(graph)
-}
-
-/// Each node's largest per-frame vertex displacement, on the CPU engine at LOD 0.
-fn measure(entry: &RigEntry, graph: &Graph) -> Vec<f32> {
+/// Each node's largest per-frame vertex displacement, on the CPU engine at LOD 0 (the caller
+/// has charged [`measure_bytes`]). Every frame the nodes play is evaluated once ([`played`]);
+/// the work stops at `cancel`, checked every [`MEASURE_FRAMES`] frames.
+pub fn measure(entry: &RigEntry, graph: &Graph, cancel: &Cancel) -> Result<Vec<f32>, Cancelled> {
     let rig = entry.rig();
     let cpu = entry.prepared.cpu();
-    graph
+    let ranges = played(graph);
+    // Per merged range, the step into each of its frames from the one before (0 for its first).
+    let mut steps: Vec<Vec<f32>> = Vec::with_capacity(ranges.len());
+    for &(clip, first, last) in &ranges {
+        let mut step = Vec::with_capacity((last - first) as usize + 1);
+        let mut prev: Option<Vec<f32>> = None;
+        let mut at = first;
+        while at <= last {
+            cancel.check()?;
+            let end = last.min(at.saturating_add(MEASURE_FRAMES as u32 - 1));
+            let jobs: Vec<BlendJob> = (at..=end).map(|f| BlendJob::frame(clip, f, 0)).collect();
+            let out = WeightBatch::gather(rig, &jobs)
+                .ok()
+                .and_then(|batch| cpu.evaluate(&batch, OutputSpec::default()).ok());
+            for j in 0..jobs.len() {
+                // A frame the engine could not evaluate (it evaluated each when the rig was
+                // prepared) counts as no step, as before.
+                let Some(p) = out.as_ref().map(|o| o.job_positions(j)) else {
+                    step.push(0.0);
+                    prev = None;
+                    continue;
+                };
+                let d = prev.as_ref().map_or(0.0, |q| {
+                    p.chunks_exact(3)
+                        .zip(q.chunks_exact(3))
+                        .map(|(a, b)| {
+                            ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2))
+                                .sqrt()
+                        })
+                        .fold(0.0, f32::max)
+                });
+                step.push(d);
+                prev = Some(p);
+            }
+            if end == u32::MAX {
+                break;
+            }
+            at = end + 1;
+        }
+        steps.push(step);
+    }
+    Ok(graph
         .nodes
         .iter()
         .map(|n| {
-            let mut largest = 0f32;
-            let mut prev: Option<Vec<f32>> = None;
-            let frames: Vec<u32> = (n.first..n.first + n.len).collect();
-            for chunk in frames.chunks(MEASURE_FRAMES) {
-                let jobs: Vec<BlendJob> = chunk
-                    .iter()
-                    .map(|&f| BlendJob::frame(n.clip, f, 0))
-                    .collect();
-                let Ok(batch) = WeightBatch::gather(rig, &jobs) else {
-                    continue;
-                };
-                let Ok(out) = cpu.evaluate(&batch, OutputSpec::default()) else {
-                    continue;
-                };
-                for j in 0..jobs.len() {
-                    let p = out.job_positions(j);
-                    if let Some(q) = &prev {
-                        let d = p
-                            .chunks_exact(3)
-                            .zip(q.chunks_exact(3))
-                            .map(|(a, b)| {
-                                ((a[0] - b[0]).powi(2)
-                                    + (a[1] - b[1]).powi(2)
-                                    + (a[2] - b[2]).powi(2))
-                                .sqrt()
-                            })
-                            .fold(0.0, f32::max);
-                        largest = largest.max(d);
-                    }
-                    prev = Some(p);
-                }
+            let last = n.first + n.len - 1;
+            // The merged range that holds the node: the last one of its clip starting at or
+            // before its first frame.
+            let k = ranges.partition_point(|&(c, a, _)| (c, a) <= (n.clip, n.first));
+            let Some(r) = k.checked_sub(1) else {
+                return 0.0;
+            };
+            let (_, start, _) = ranges[r];
+            // Steps between the node's own frames: into its second through its last.
+            let (a, b) = ((n.first - start) as usize + 1, (last - start) as usize);
+            if a > b {
+                return 0.0;
             }
-            largest
+            steps[r]
+                .get(a..=b)
+                .map_or(0.0, |s| s.iter().copied().fold(0.0, f32::max))
         })
-        .collect()
+        .collect())
 }

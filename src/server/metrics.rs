@@ -56,6 +56,8 @@ const CANCELLED: &[(&str, &str)] = &[
     ("session_frame", "dropped"),
     ("session_frame", "deadline"),
     ("lod", "dropped"),
+    ("graph", "dropped"),
+    ("graph", "deadline"),
 ];
 
 /// Every reason a connection is closed for (`crowdmorph_connections_closed_total{reason}`).

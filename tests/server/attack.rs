@@ -60,7 +60,7 @@ fn error_message(r: &Reply) -> String {
 }
 
 /// CPU seconds (user + system) the process has used, from `/proc/<pid>/stat`.
-fn cpu_seconds(pid: u32) -> f64 {
+pub(super) fn cpu_seconds(pid: u32) -> f64 {
     let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).expect("stat");
     // Fields after the command name (which is in parentheses and may hold spaces).
     let rest = &stat[stat.rfind(')').expect("comm") + 2..];
@@ -73,14 +73,14 @@ fn cpu_seconds(pid: u32) -> f64 {
 }
 
 /// The share of one core the process used over `window`.
-async fn cores_used(pid: u32, window: Duration) -> f64 {
+pub(super) async fn cores_used(pid: u32, window: Duration) -> f64 {
     let before = cpu_seconds(pid);
     tokio::time::sleep(window).await;
     (cpu_seconds(pid) - before) / window.as_secs_f64()
 }
 
 /// The real binary with `env`, on the CPU engine and without the background LOD job.
-async fn binary(tag: &str, env: &[(&str, &str)]) -> (Proc, Client) {
+pub(super) async fn binary(tag: &str, env: &[(&str, &str)]) -> (Proc, Client) {
     let dir = temp_dir(tag);
     let mut all = vec![
         ("CROWDMORPH_BACKEND", "cpu"),
@@ -95,7 +95,7 @@ async fn binary(tag: &str, env: &[(&str, &str)]) -> (Proc, Client) {
 
 /// A sample's value; NaN when the page lacks it, so that no comparison passes on a series that
 /// is not exported.
-fn metric(page: &str, name: &str) -> f64 {
+pub(super) fn metric(page: &str, name: &str) -> f64 {
     crowdmorph_client::metric(page, name).unwrap_or(f64::NAN)
 }
 

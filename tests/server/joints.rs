@@ -21,7 +21,7 @@ use crate::util::RefDoc;
 use crate::util::builder::skinned_triangle_rig;
 use crate::util::skin::Local;
 
-fn robot_path() -> std::path::PathBuf {
+pub(super) fn robot_path() -> std::path::PathBuf {
     crate::util::data_dir().join("robot-expressive/RobotExpressive.glb")
 }
 
@@ -95,7 +95,12 @@ fn node(doc: &RefDoc, name: &str) -> usize {
 
 /// The robot's posed positions, all primitives concatenated, with `set` applied to its
 /// locals first.
-fn robot_pose(doc: &RefDoc, clip: &str, frame: i64, set: &dyn Fn(&mut Vec<Local>)) -> Vec<DVec3> {
+pub(super) fn robot_pose(
+    doc: &RefDoc,
+    clip: &str,
+    frame: i64,
+    set: &dyn Fn(&mut Vec<Local>),
+) -> Vec<DVec3> {
     let mut locals = doc.locals_at(clip, frame as f64 / 30.0);
     set(&mut locals);
     doc.pose(&locals)

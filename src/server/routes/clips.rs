@@ -69,7 +69,8 @@ pub async fn upload_clips(
     body: Body,
 ) -> ApiResult {
     query.check()?;
-    state.rig(&id)?;
+    // A rig at its clip limit is refused before its body is read.
+    check_clip_count(&*state.rig(&id)?, 1, state.config.max_clips)?;
     let ct = checked_content_type(&headers, "text/csv, application/json or model/gltf-binary")?;
     let _slot = state.uploads.acquire().await.map_err(ApiError::internal)?;
     let budget = state.op_budget();
@@ -122,6 +123,7 @@ pub async fn upload_clips(
     // Re-read under the lock: another change may have landed since.
     let entry = state.rig(&id)?;
     same_rig(&entry, &base)?;
+    check_clip_count(&entry, imports.len(), state.config.max_clips)?;
     let engine = state.engine.clone();
     let current = entry.clone();
     let merged = blocking(move || merge_clips(&engine, &current, imports)).await?;
@@ -211,6 +213,28 @@ fn gltf_clips(
         };
     }
     Ok(clips)
+}
+
+/// 413 `too_many_clips` when adding `adding` clips would give the rig more than `max`
+/// (`--max-clips`): a graph built from the clips compares every pair of them.
+pub(crate) fn check_clip_count(
+    entry: &RigEntry,
+    adding: usize,
+    max: usize,
+) -> Result<(), ApiError> {
+    let have = entry.rig().clips.len();
+    if have.saturating_add(adding) <= max {
+        return Ok(());
+    }
+    Err(ApiError::new(
+        StatusCode::PAYLOAD_TOO_LARGE,
+        "too_many_clips",
+        format!(
+            "rig {:?} has {have} clips; {adding} more would pass --max-clips ({max}); DELETE \
+             some first",
+            entry.id
+        ),
+    ))
 }
 
 /// A 409 unless `entry` is still the rig the clips were imported against (not deleted and

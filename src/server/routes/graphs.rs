@@ -1,17 +1,28 @@
 //! `/v1/rigs/{id}/graphs`: a rig's motion graphs — [`put_graph`] checks a graph against the
-//! rig and measures its nodes' motion before it is stored and listed; [`list_graphs`],
-//! [`get_graph`] and [`delete_graph`]. Session heads play them (`sessions/tick.rs`).
+//! rig and measures its nodes' motion before it is stored and listed; [`build_graph`] builds
+//! one from the clips; [`list_graphs`], [`get_graph`] and [`delete_graph`]. Session heads play
+//! them (`sessions/tick.rs`).
+//!
+//! The work of a graph is bounded before it starts: the name, the query and the graph's shape
+//! are checked first, then its work is priced (`crate::graph::build_work`,
+//! `crate::server::graphs::measure_work`) and refused past `--max-graph-work` (413
+//! `graph_too_costly`); the work then runs on the blocking pool with a [`Cancel`] whose
+//! deadline is the request's admin deadline and whose guard this handler holds, so that it
+//! stops a few milliseconds after the 504, or after the client hangs up.
 
 use std::sync::Arc;
+use std::time::{Duration, Instant};
 
 use axum::extract::{Path, State};
 use axum::http::StatusCode;
 use axum::response::IntoResponse;
 use crowdmorph_proto::{BuiltGraph, GraphInfo, GraphList, MotionGraph};
 
-use crate::graph::GraphError;
+use crate::cancel::{Cancel, CancelOnDrop, Cancelled};
+use crate::graph::{Graph, GraphError};
 use crate::server::admission::{Decoded, Priced};
-use crate::server::graphs::{MAX_GRAPHS_PER_RIG, measure_bytes, resolve_and_measure};
+use crate::server::graphs::{MAX_GRAPHS_PER_RIG, measure, measure_bytes, measure_work};
+use crate::server::http::timing::Arrived;
 use crate::server::http::{Accept, Admin, ApiError, ApiResult, Query, Ready, blocking};
 use crate::server::registry::{RigEntry, valid_id};
 use crate::server::state::AppState;
@@ -54,11 +65,67 @@ fn graph_error(e: GraphError) -> ApiError {
     }
 }
 
-/// `PUT /v1/rigs/{id}/graphs/{name}`: checks the graph against the rig (every clip, range,
-/// edge and window; every node has a way out), measures each node's motion, stores it with the
-/// rig and answers with it.
+/// 413 `graph_too_costly`: `what` would take `work` units, more than `--max-graph-work`.
+fn too_costly(state: &AppState, what: &str, work: u64) -> ApiError {
+    ApiError::new(
+        StatusCode::PAYLOAD_TOO_LARGE,
+        "graph_too_costly",
+        format!(
+            "{what} would take {work} units of work, more than --max-graph-work ({}); use fewer \
+             or shorter clips or nodes, or raise the flag",
+            state.config.max_graph_work
+        ),
+    )
+}
+
+/// The answer to graph work stopped by its cancellation: 504 past the admin deadline, 503
+/// `cancelled` when the client went away (no one reads it).
+fn cancelled(c: Cancelled) -> ApiError {
+    match c {
+        Cancelled::Deadline => ApiError::new(
+            StatusCode::GATEWAY_TIMEOUT,
+            "deadline_exceeded",
+            "the graph was not ready within the admin deadline (--admin-timeout-s)",
+        ),
+        Cancelled::Dropped => ApiError::unavailable("cancelled", "the request was cancelled", 1),
+    }
+}
+
+/// The cancellation of one graph request: its admin deadline counted from its arrival, and
+/// the guard that raises it when the handler's future is dropped.
+fn cancel_for(state: &AppState, arrived: Instant) -> (Cancel, CancelOnDrop) {
+    let left = state
+        .config
+        .admin_timeout
+        .saturating_sub(arrived.elapsed())
+        .max(Duration::from_millis(1));
+    Cancel::new(Some(Instant::now() + left))
+}
+
+/// Runs graph work on the blocking pool and answers its cancellation. The work counts its
+/// own cancellation: after a hang-up no one awaits its answer.
+async fn graph_work<T: Send + 'static>(
+    state: &AppState,
+    f: impl FnOnce() -> Result<Result<T, Cancelled>, ApiError> + Send + 'static,
+) -> Result<T, ApiError> {
+    let metrics = state.metrics.clone();
+    blocking(move || {
+        let done = f()?;
+        if let Err(c) = &done {
+            metrics.cancelled("graph", *c);
+        }
+        Ok(done)
+    })
+    .await?
+    .map_err(cancelled)
+}
+
+/// `PUT /v1/rigs/{id}/graphs/{name}`: checks the name, then the graph against the rig (every
+/// clip, range, edge and window; every node has a way out), prices and measures each node's
+/// motion, stores it with the rig and answers with it.
 pub async fn put_graph(
     State(state): State<AppState>,
+    Arrived(arrived): Arrived,
     _admin: Admin,
     _ready: Ready,
     accept: Accept,
@@ -67,19 +134,15 @@ pub async fn put_graph(
 ) -> ApiResult {
     let (spec, _decoded) = req.into_parts();
     let entry = state.rig(&id)?;
-    let info = store(&state, &entry, &id, &name, spec).await?;
+    check_name(&state, &id, &name)?;
+    let (cancel, _guard) = cancel_for(&state, arrived);
+    let info = store(&state, &entry, &id, &name, spec, cancel).await?;
     accept.reply(StatusCode::OK, &info)
 }
 
-/// Checks `spec` against the rig, measures its nodes' motion and stores it as graph `name`
-/// of rig `id`, in memory and on disk.
-async fn store(
-    state: &AppState,
-    entry: &Arc<RigEntry>,
-    id: &str,
-    name: &str,
-    spec: MotionGraph,
-) -> Result<GraphInfo, ApiError> {
+/// 400 `invalid_name` for a malformed graph name, 400 `invalid_graph` for a new graph past
+/// the rig's limit: checked before any work.
+fn check_name(state: &AppState, id: &str, name: &str) -> Result<(), ApiError> {
     if !valid_id(name) {
         return Err(ApiError::bad_request(
             "invalid_name",
@@ -96,13 +159,50 @@ async fn store(
             format!("rig {id:?} has {count} graphs, the most a rig may have"),
         ));
     }
-    // Resolving holds the graph a second time; measuring holds a few frames of vertices.
-    let _work = state
+    Ok(())
+}
+
+/// Checks `spec` against the rig, prices and measures its nodes' motion (stopping at
+/// `cancel`) and stores it as graph `name` of rig `id`, in memory and on disk. The caller
+/// has checked the name ([`check_name`]).
+async fn store(
+    state: &AppState,
+    entry: &Arc<RigEntry>,
+    id: &str,
+    name: &str,
+    spec: MotionGraph,
+    cancel: Cancel,
+) -> Result<GraphInfo, ApiError> {
+    // Resolving holds the graph a second time.
+    let _resolved = state
         .queue_memory
-        .reserve(crate::graph::Graph::bytes(&spec, entry.rig()) + measure_bytes(entry))?;
-    let checked = {
+        .reserve(Graph::bytes(&spec, entry.rig()))?;
+    let mut graph = {
         let (entry, spec) = (entry.clone(), spec.clone());
-        blocking(move || resolve_and_measure(&entry, &spec).map_err(graph_error)).await?
+        blocking(move || {
+            Graph::resolve(&spec, entry.rig(), |n| entry.clip_index(n)).map_err(graph_error)
+        })
+        .await?
+    };
+    let work = measure_work(entry, &graph);
+    if work > state.config.max_graph_work {
+        return Err(too_costly(
+            state,
+            &format!("measuring the motion of the frames its nodes play ({name:?})"),
+            work,
+        ));
+    }
+    // Measuring holds a few frames of vertices and a step per frame played.
+    let _measuring = state.queue_memory.reserve(measure_bytes(entry, &graph))?;
+    let checked = {
+        let entry = entry.clone();
+        graph_work(state, move || {
+            Ok(measure(&entry, &graph, &cancel).map(|motion| {
+                graph.set_motion(motion);
+                graph
+            }))
+        })
+        .await?
     };
     // Stored first, then served: a write the store refuses (409, 503) changes nothing here.
     let _admin = state.admin.lock().await;
@@ -139,6 +239,7 @@ pub struct AutoQuery {
 /// answers with it and its edges' costs.
 pub async fn build_graph(
     State(state): State<AppState>,
+    Arrived(arrived): Arrived,
     _admin: Admin,
     _ready: Ready,
     accept: Accept,
@@ -171,7 +272,8 @@ pub async fn build_graph(
         opt.threshold = t;
     }
     let entry = state.rig(&id)?;
-    let bytes = crate::graph::build_bytes(entry.rig()).ok_or_else(|| {
+    check_name(&state, &id, &name)?;
+    let bytes = crate::graph::build_bytes(entry.rig(), opt).ok_or_else(|| {
         ApiError::bad_request(
             "invalid_graph",
             format!(
@@ -181,10 +283,30 @@ pub async fn build_graph(
             ),
         )
     })?;
+    // The build and the measurement of what it builds (its nodes play each frame at most
+    // once, so at most every frame), priced together before either starts.
+    let rig = entry.rig();
+    let frames: u64 = rig.clips.iter().map(|c| u64::from(c.frames)).sum();
+    let work = crate::graph::build_work(rig, opt)
+        .saturating_add(frames.saturating_mul(crate::server::graphs::frame_work(rig)));
+    if work > state.config.max_graph_work {
+        return Err(too_costly(
+            &state,
+            &format!(
+                "building a graph from rig {id:?}'s {} clips ({frames} frames)",
+                rig.clips.len()
+            ),
+            work,
+        ));
+    }
     let _work = state.queue_memory.reserve(bytes)?;
+    let (cancel, _guard) = cancel_for(&state, arrived);
     let built = {
-        let entry = entry.clone();
-        blocking(move || Ok::<_, ApiError>(crate::graph::build(entry.rig(), opt))).await?
+        let (entry, cancel) = (entry.clone(), cancel.clone());
+        graph_work(&state, move || {
+            Ok(crate::graph::build(entry.rig(), opt, &cancel))
+        })
+        .await?
     }
     .ok_or_else(|| {
         ApiError::bad_request(
@@ -196,7 +318,7 @@ pub async fn build_graph(
             ),
         )
     })?;
-    let info = store(&state, &entry, &id, &name, built.graph).await?;
+    let info = store(&state, &entry, &id, &name, built.graph, cancel).await?;
     accept.reply(
         StatusCode::OK,
         &BuiltGraph {

@@ -361,6 +361,17 @@ pub async fn upload_rig(
     let (rig, prepared, qbox) =
         blocking(move || import_rig(&engine, &b, bytes, &options, gpu, clip_error)).await?;
     let id = query.name.unwrap_or_else(|| sanitize_id(&rig.name));
+    if rig.clips.len() > state.config.max_clips {
+        return Err(ApiError::new(
+            StatusCode::PAYLOAD_TOO_LARGE,
+            "too_many_clips",
+            format!(
+                "the file has {} animations, more than --max-clips ({}) a rig may have",
+                rig.clips.len(),
+                state.config.max_clips
+            ),
+        ));
+    }
     let _admin = state.admin.lock().await;
     if state.registry.get(&id).is_some() {
         return Err(ApiError::new(

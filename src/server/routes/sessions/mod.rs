@@ -106,7 +106,12 @@ impl AppState {
         if let Some(play) = &h.graph {
             let graph = self
                 .graphs
-                .resolved(&entry, &play.name, &self.queue_memory)
+                .resolved(
+                    &entry,
+                    &play.name,
+                    &self.queue_memory,
+                    self.config.max_graph_work,
+                )
                 .ok_or_else(|| {
                     let e = crate::server::routes::graphs::unknown_graph(
                         &entry.id,

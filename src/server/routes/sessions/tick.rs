@@ -449,13 +449,20 @@ fn resolve(
             let ri = ri?;
             let entry = &rigs[ri as usize];
             let rig = entry.rig();
-            let (pose, graph_joints) = match &h.graph {
+            // Checked when the head was added or changed; a rig changed since then leaves out
+            // a head whose overrides no longer fit it, as it does a head whose clip is gone.
+            let requested = requested_joints(entry, &h.joints).ok()?;
+            let (pose, joints) = match &h.graph {
+                // A graph head's player fades its overrides in, as it fades its jumps.
                 Some(play) => {
-                    let graph = state
-                        .graphs
-                        .resolved(entry, &play.name, &state.queue_memory)?;
+                    let graph = state.graphs.resolved(
+                        entry,
+                        &play.name,
+                        &state.queue_memory,
+                        state.config.max_graph_work,
+                    )?;
                     let jumps = jumps_by_head.remove(&h.head).unwrap_or_default();
-                    players.pose(h.head, play, &graph, rig, &jumps, steps)?
+                    players.pose(h.head, play, &graph, rig, &jumps, requested, steps)?
                 }
                 None => {
                     let ci = entry.clip_index(&h.clip)?;
@@ -469,13 +476,10 @@ fn resolve(
                             clip: ci as u32,
                             frame,
                         },
-                        JointPose::NONE,
+                        requested,
                     )
                 }
             };
-            // Checked when the head was added or changed; a rig changed since then leaves out
-            // a head whose overrides no longer fit it, as it does a head whose clip is gone.
-            let joints = graph_joints.overlay(&requested_joints(entry, &h.joints).ok()?);
             Some(HeadAt {
                 rig: ri,
                 pose,
@@ -514,9 +518,11 @@ impl Players {
         (n.min(limit), 1.0 / f64::from(fps.max(MIN_FPS)))
     }
 
-    /// Head `id`'s pose after this tick, and the joint transforms a jump's fade adds to it
-    /// (`Player::joints`): its player (new if the head is new, its play changed or its graph
-    /// was replaced), sent through `jumps`, advanced `steps`.
+    /// Head `id`'s pose after this tick, and its joint overrides (`Player::joints`: the head's
+    /// own, or while a jump or a change of them fades, every node's faded transform): its
+    /// player (new if the head is new, its play changed or its graph was replaced), given
+    /// the head's `requested` overrides, sent through `jumps`, advanced `steps`.
+    #[allow(clippy::too_many_arguments)]
     fn pose(
         &mut self,
         id: u64,
@@ -524,6 +530,7 @@ impl Players {
         graph: &Arc<Graph>,
         rig: &crate::rig::Rig,
         jumps: &[String],
+        requested: JointPose,
         (steps, dt): (u64, f64),
     ) -> Option<(Pose, JointPose)> {
         let same_graph = |p: &PlayerOf| {
@@ -546,12 +553,16 @@ impl Players {
                 PlayerOf {
                     play: play.clone(),
                     graph: graph.clone(),
-                    player: Player::new(graph, start, script, seed),
+                    player: Player::new(graph, start, script, seed)
+                        .with_overrides(requested.clone()),
                 },
             );
         }
         let p = self.by_head.get_mut(&id)?;
         p.graph = graph.clone();
+        // Before the jumps: a patch that changes both fades once, from the pose shown with
+        // the old overrides to the node with the new ones.
+        p.player.set_overrides(graph, rig, requested);
         for node in jumps {
             if let Some(n) = graph.node(node) {
                 p.player.jump(graph, rig, n);
