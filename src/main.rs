@@ -18,11 +18,19 @@ fn main() -> anyhow::Result<()> {
         // other thread exists that could read the environment while it is written.
         unsafe { std::env::set_var("NODEVICE_SELECT", "1") };
     }
+    let mut filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    // wgpu's GL backend logs its EGL probe at ERROR ("DRI2: failed to load driver") on every
+    // machine that has Mesa's libEGL but no GL driver for its device: a server without a GPU
+    // that probes GL as the last fallback (`GpuContext::adapters`) would log an error at each
+    // start and first render. What matters is reported by crowdmorph itself (`/readyz`'s
+    // renderer, `render_unavailable` naming what to install); `RUST_LOG` naming `wgpu_hal`
+    // shows the probe again.
+    if !std::env::var("RUST_LOG").is_ok_and(|v| v.contains("wgpu_hal")) {
+        filter = filter.add_directive("wgpu_hal::gles::egl=off".parse()?);
+    }
     tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
-        )
+        .with_env_filter(filter)
         .with_writer(std::io::stderr)
         // Colour only on a terminal, and never with NO_COLOR set (https://no-color.org): logs
         // written to a file or a pipe carry no escape codes.
