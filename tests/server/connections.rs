@@ -318,7 +318,12 @@ async fn a_request_in_progress_is_never_evicted() {
             .is_some(),
         "the idle connection was evicted"
     );
-    assert_eq!(m.connections_closed_with("evicted"), 1);
+    // Counted when the connection's task ends, which may be just after its socket closed.
+    assert!(
+        eventually(|| m.connections_closed_with("evicted") == 1).await,
+        "the eviction is counted once: {}",
+        m.connections_closed_with("evicted")
+    );
     let (c_head, c_tail) = split_body(crowd_post(4));
     c.write_all(&c_head).await.unwrap();
     assert!(eventually(|| queued(&state) >= 2 * one_request).await);
