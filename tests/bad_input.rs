@@ -653,7 +653,7 @@ fn csv_unknown_targets() {
         ImportError::UnknownTargets(names) => assert_eq!(names, &["fooBar", "tongueOut"]),
         other => panic!("expected UnknownTargets, got {other:?}"),
     }
-    assert_mentions(&e, "fooBar, tongueOut");
+    assert_mentions(&e, "\"fooBar\", \"tongueOut\"");
 
     let options = ClipOptions {
         ignore_unknown: true,
@@ -666,6 +666,45 @@ fn csv_unknown_targets() {
     let jaw = rig.target_id("jawOpen").expect("jawOpen") as usize;
     assert_eq!(imported.clip.weight(jaw, 0), 0.5);
     assert_eq!(imported.clip.weight(jaw, 1), 0.25);
+}
+
+/// A header of many unknown names is named in a bounded message: the first few, quoted (each
+/// cut to 64 characters, as live weights quote a name), and how many more there are.
+#[test]
+fn csv_unknown_targets_are_listed_within_a_bounded_message() {
+    let n = 20_000;
+    let mut header: Vec<String> = (0..n).map(|i| format!("noSuchShape{i:05}")).collect();
+    header.push("x".repeat(10_000));
+    header.push("jawOpen".into());
+    let row = vec!["0"; header.len()].join(",");
+    let text = format!("{}\n{row}\n", header.join(","));
+    let e = csv(&text, &ClipOptions::default()).expect_err("unknown targets");
+    match &e {
+        ImportError::UnknownTargets(names) => assert_eq!(names.len(), n + 1),
+        other => panic!("expected UnknownTargets, got {other:?}"),
+    }
+    let message = e.to_string();
+    assert!(message.len() < 2_000, "{} bytes", message.len());
+    assert!(
+        message.contains("\"noSuchShape00000\", \"noSuchShape00001\""),
+        "{message}"
+    );
+    assert!(!message.contains("noSuchShape00016"), "{message}");
+    assert!(
+        message.ends_with(&format!("and {} more", n + 1 - 16)),
+        "{message}"
+    );
+    // Fewer than the cap: every one, and no count.
+    let e = csv(
+        &format!(
+            "{},jawOpen\n{}\n",
+            header[..3].join(","),
+            ["0"; 4].join(",")
+        ),
+        &ClipOptions::default(),
+    )
+    .expect_err("unknown targets");
+    assert!(e.to_string().ends_with("\"noSuchShape00002\""), "{e}");
 }
 
 #[test]

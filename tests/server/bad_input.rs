@@ -429,3 +429,39 @@ async fn clip_weights_that_would_overflow_the_output_are_refused() {
     assert!(clips.clips.is_empty(), "nothing was added");
     server.stop().await;
 }
+
+/// A CSV clip naming a million unknown columns (the hostile run's: its error body was 8.9 MB)
+/// is answered with a short error that quotes a few and counts the rest.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_million_unknown_clip_columns_get_a_short_error() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let s = &server;
+    let n = 1_000_000;
+    let mut csv = String::with_capacity(12 * n);
+    for i in 0..n {
+        csv.push_str(&format!("u{i},"));
+    }
+    csv.push_str("jawOpen\n");
+    for _ in 0..n {
+        csv.push_str("0,");
+    }
+    csv.push_str("0.5\n");
+    let r = post(s, "/v1/rigs/default-head/clips?name=wide", "text/csv", csv).await;
+    assert!(r.body.len() < 4096, "a {}-byte error body", r.body.len());
+    expect(
+        s,
+        r,
+        400,
+        "unknown_targets",
+        &format!(
+            "not in the rig: {} and {} more",
+            (0..16)
+                .map(|i| format!("\"u{i}\""))
+                .collect::<Vec<_>>()
+                .join(", "),
+            n - 16
+        ),
+    )
+    .await;
+    server.stop().await;
+}
