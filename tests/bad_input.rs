@@ -707,6 +707,52 @@ fn csv_unknown_targets_are_listed_within_a_bounded_message() {
     assert!(e.to_string().ends_with("\"noSuchShape00002\""), "{e}");
 }
 
+/// Two columns that write one target — the same name twice, or two spellings that match it
+/// loosely — are refused naming both, in CSV and JSON alike: one of them would be dropped.
+#[test]
+fn clip_columns_that_write_one_target_twice_are_refused() {
+    let rig = default_rig();
+    for (header, a, b) in [
+        ("jawOpen,JawOpen", "\"jawOpen\"", "\"JawOpen\""),
+        (
+            "eyeBlink_L,jawOpen,EyeBlinkLeft",
+            "\"eyeBlink_L\"",
+            "\"EyeBlinkLeft\"",
+        ),
+        (
+            "Timecode,jawOpen,jawOpen",
+            "\"jawOpen\" and \"jawOpen\"",
+            "jawOpen",
+        ),
+    ] {
+        let cols = header.split(',').count();
+        let text = format!("{header}\n{}\n", vec!["0.5"; cols].join(","));
+        let e = csv(&text, &ClipOptions::default()).expect_err(header);
+        assert_clip_source(&e, a);
+        assert_mentions(&e, b);
+        assert_mentions(&e, "both write target");
+        // Ignoring unknown names does not let a duplicate through.
+        let options = ClipOptions {
+            ignore_unknown: true,
+            ..Default::default()
+        };
+        let e = csv(&text, &options).expect_err(header);
+        assert_clip_source(&e, b);
+        let names: Vec<&str> = header.split(',').filter(|n| *n != "Timecode").collect();
+        let json = json!({ "targets": names, "frames": [vec![0.5; names.len()]] });
+        let e = clip_from_json(&rig, "j", json.to_string().as_bytes(), &options).expect_err(header);
+        assert_clip_source(&e, b);
+    }
+    // Distinct targets, and an unknown name twice (it writes nothing): accepted.
+    let options = ClipOptions {
+        ignore_unknown: true,
+        ..Default::default()
+    };
+    let imported = csv("jawOpen,eyeBlink_L,fooBar,fooBar\n0.5,0.25,1,1\n", &options)
+        .expect("distinct targets");
+    assert_eq!(*imported.ignored, ["fooBar", "fooBar"]);
+}
+
 #[test]
 fn json_clip_problems() {
     let rig = default_rig();

@@ -28,7 +28,7 @@ use super::{ImportError, ImportOptions};
 use crate::budget::Budget;
 use crate::rig::{
     Clip, DEFAULT_FPS, JointMap, JointTable, LIVE_LINK_COLUMNS, MAX_FRAMES, Rig, TargetId,
-    TargetIndex, Trs, map_bytes, rest_rotations,
+    TargetIndex, Trs, map_bytes, quoted_name, rest_rotations,
 };
 
 /// Options for reading a clip source.
@@ -200,12 +200,75 @@ fn map_names(
     drop(matcher);
     budget.release(bytes);
     let (ids, unknown, joints) = mapped?;
-    Ok(Columns {
+    let columns = Columns {
         ids,
         unknown,
         joints,
         map,
-    })
+    };
+    columns.each_once(rig, names, budget)?;
+    Ok(columns)
+}
+
+impl Columns {
+    /// Refuses two columns that write the same thing: the same target (two spellings that
+    /// match one name, `eyeBlink_L` and `EyeBlinkLeft`, or one name twice) or the same joint
+    /// channel (`HeadYaw` and `head_yaw`). One of them would otherwise be dropped silently;
+    /// live weights and joint maps refuse the same. Unknown columns write nothing and are
+    /// reported, not checked. The index this builds is charged to `budget` while it lives.
+    fn each_once(&self, rig: &Rig, names: &[String], budget: &Budget) -> Result<(), ImportError> {
+        let writers = self.ids.iter().filter(|i| !i.is_empty()).count() + self.joints.len();
+        let bytes = map_bytes(writers, 16);
+        budget.charge(bytes, || {
+            format!("the index of {writers} columns that write the rig")
+        })?;
+        // What a column writes, as one key: its target's first channel, or past every channel
+        // its joint channel.
+        let mut seen: HashMap<u64, usize> = HashMap::with_capacity(writers);
+        let n = rig.targets.len() as u64;
+        let keyed = self
+            .ids
+            .iter()
+            .enumerate()
+            .filter_map(|(c, ids)| ids.first().map(|&t| (c, u64::from(t))))
+            .chain(self.joints.iter().map(|&(c, ch)| (c, n + ch as u64)));
+        let mut twice = None;
+        for (c, key) in keyed {
+            if let Some(&first) = seen.get(&key) {
+                twice = Some((first, c, key));
+                break;
+            }
+            seen.insert(key, c);
+        }
+        drop(seen);
+        budget.release(bytes);
+        let Some((a, b, key)) = twice else {
+            return Ok(());
+        };
+        // By name: `names` leaves out metadata columns, so its positions are not the file's.
+        let (a, b) = (a.min(b), a.max(b));
+        let what = match key.checked_sub(n) {
+            None => format!(
+                "target {}",
+                quoted_name(rig.targets.get(key as usize).map_or("?", String::as_str))
+            ),
+            Some(ch) => format!(
+                "joint channel {}",
+                quoted_name(
+                    self.map
+                        .as_ref()
+                        .and_then(|m| m.channels.get(ch as usize))
+                        .map_or("?", |c| c.column.as_str())
+                )
+            ),
+        };
+        Err(ImportError::ClipSource(format!(
+            "columns {} and {} both write {what}: each may appear once (names match exactly or \
+             in any loose spelling)",
+            quoted_name(&names[a]),
+            quoted_name(&names[b]),
+        )))
+    }
 }
 
 /// Whether `name` is one of Live Link Face's head and eye angle columns.

@@ -465,3 +465,33 @@ async fn a_million_unknown_clip_columns_get_a_short_error() {
     .await;
     server.stop().await;
 }
+
+/// Two CSV columns that write one target, loose spellings included, are refused naming both
+/// (one of them was dropped silently), and nothing is added.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn clip_columns_that_write_one_target_twice_are_refused_naming_both() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let s = &server;
+    for (body, named) in [
+        ("jawOpen,JawOpen\n0.5,0.5\n", "\"jawOpen\" and \"JawOpen\""),
+        (
+            "Timecode,eyeBlink_L,EyeBlinkLeft\n0,0.5,0.5\n",
+            "\"eyeBlink_L\" and \"EyeBlinkLeft\"",
+        ),
+    ] {
+        let r = post(
+            s,
+            "/v1/rigs/default-head/clips?name=twice",
+            "text/csv",
+            body,
+        )
+        .await;
+        expect(s, r, 400, "invalid_clip", named).await;
+    }
+    let list = s.client.clips("default-head").await.expect("clips");
+    assert!(
+        list.clips.iter().all(|c| c.name != "twice"),
+        "nothing added"
+    );
+    server.stop().await;
+}

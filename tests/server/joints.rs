@@ -690,3 +690,53 @@ async fn live_link_columns_turn_the_head_and_a_rigs_own_map_is_kept() {
     s2.stop().await;
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// The jaw rig with a map of its own: `HeadYaw` and `HeadPitch` turn `Jaw`.
+async fn jaw_with_head_columns() -> TestServer {
+    let server = jaw_server().await;
+    let channel = |column: &str, axis: [f32; 3]| JointChannelSpec {
+        column: column.into(),
+        node: "Jaw".into(),
+        axis,
+        scale: 1.0,
+    };
+    let map = JointMapSpec {
+        channels: vec![
+            channel("HeadYaw", [0.0, 1.0, 0.0]),
+            channel("HeadPitch", [1.0, 0.0, 0.0]),
+        ],
+    };
+    server.client.set_joint_map("jaw", &map).await.expect("map");
+    server
+}
+
+/// Uploads `csv` as clip `name` of the jaw rig.
+async fn jaw_csv(
+    server: &TestServer,
+    name: &str,
+    csv: String,
+) -> Result<crowdmorph_proto::ClipUpload, crowdmorph_client::ClientError> {
+    server
+        .client
+        .upload_clip(
+            "jaw",
+            &format!("name={name}&ignore_unknown=true"),
+            "text/csv",
+            Bytes::from(csv),
+        )
+        .await
+}
+
+/// Two spellings of one joint column are refused naming both, as two of one target are (one
+/// of them was dropped silently).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_joint_column_spelled_twice_is_refused_naming_both() {
+    let server = jaw_with_head_columns().await;
+    let m = api_error(
+        jaw_csv(&server, "twice", "HeadYaw,head_yaw\n0.1,0.2\n".into()).await,
+        400,
+        "invalid_clip",
+    );
+    assert!(m.contains("\"HeadYaw\" and \"head_yaw\""), "{m}");
+    server.stop().await;
+}
