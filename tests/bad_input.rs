@@ -753,6 +753,27 @@ fn clip_columns_that_write_one_target_twice_are_refused() {
     assert_eq!(*imported.ignored, ["fooBar", "fooBar"]);
 }
 
+/// A column name with a control character is refused: its loose spelling drops the character,
+/// so `jaw\0Open` would otherwise write `jawOpen`.
+#[test]
+fn clip_column_names_with_control_characters_are_refused() {
+    let rig = default_rig();
+    for name in ["jaw\u{0}Open", "jaw\u{1}Open", "eye\u{7f}Blink_L"] {
+        let text = format!("{name}\n0.5\n");
+        let e = csv(&text, &ClipOptions::default()).expect_err(name);
+        assert_clip_source(&e, "control character");
+        let json = json!({ "targets": [name], "frames": [[0.5]] });
+        let e = clip_from_json(
+            &rig,
+            "j",
+            json.to_string().as_bytes(),
+            &ClipOptions::default(),
+        )
+        .expect_err(name);
+        assert_clip_source(&e, "control character");
+    }
+}
+
 #[test]
 fn json_clip_problems() {
     let rig = default_rig();

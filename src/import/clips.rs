@@ -192,6 +192,10 @@ fn map_names(
     options: &ClipOptions,
     budget: &Budget,
 ) -> Result<Columns, ImportError> {
+    for n in names {
+        checked_name(n)
+            .map_err(|why| ImportError::ClipSource(format!("column {}: {why}", quoted_name(n))))?;
+    }
     let bytes = Matcher::bytes(rig);
     budget.charge(bytes, || format!("the target names of rig {:?}", rig.name))?;
     let matcher = Matcher::new(rig);
@@ -268,6 +272,18 @@ impl Columns {
             quoted_name(&names[a]),
             quoted_name(&names[b]),
         )))
+    }
+}
+
+/// Why `name` cannot be a column or weight name, if it cannot: a control character (a NUL, a
+/// newline, ...) would vanish in the loose spelling and match a name it does not spell.
+pub fn checked_name(name: &str) -> Result<(), String> {
+    match name.chars().find(|c| c.is_control()) {
+        Some(c) => Err(format!(
+            "the name has the control character {c:?}; names are matched by their letters and \
+             digits, so one with control characters is refused rather than matched loosely"
+        )),
+        None => Ok(()),
     }
 }
 

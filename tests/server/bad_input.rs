@@ -495,3 +495,20 @@ async fn clip_columns_that_write_one_target_twice_are_refused_naming_both() {
     );
     server.stop().await;
 }
+
+/// A live weight whose name has a NUL (which the loose spelling would drop, matching
+/// `jawOpen`) is refused, not matched.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_weight_name_with_a_nul_is_refused_not_matched_loosely() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let s = &server;
+    let weights =
+        |name: &str| json!({"heads": [{"head": 0, "rig": "default-head", "weights": {name: 1.0}}]});
+    let r = post_json(s, weights("jawOpen")).await;
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    for name in ["jaw\u{0}Open", "jaw\nOpen", "\u{1b}jawOpen"] {
+        let r = post_json(s, weights(name)).await;
+        expect(s, r, 400, "invalid_weights", "control character").await;
+    }
+    server.stop().await;
+}

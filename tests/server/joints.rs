@@ -740,3 +740,26 @@ async fn a_joint_column_spelled_twice_is_refused_naming_both() {
     assert!(m.contains("\"HeadYaw\" and \"head_yaw\""), "{m}");
     server.stop().await;
 }
+
+/// A joint map's column with a control character is refused: columns are matched loosely,
+/// which would drop the character (`Head\0Yaw` would take `HeadYaw`'s values).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_joint_map_column_with_a_control_character_is_refused() {
+    let server = jaw_server().await;
+    let map = JointMapSpec {
+        channels: vec![JointChannelSpec {
+            column: "Head\u{0}Yaw".into(),
+            node: "Jaw".into(),
+            axis: [0.0, 1.0, 0.0],
+            scale: 1.0,
+        }],
+    };
+    let m = api_error(
+        server.client.set_joint_map("jaw", &map).await,
+        400,
+        "invalid_joint_map",
+    );
+    assert!(m.contains("control character"), "{m}");
+    assert!(server.client.joint_map("jaw").await.expect("map").default);
+    server.stop().await;
+}

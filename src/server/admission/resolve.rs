@@ -7,7 +7,7 @@ use std::sync::Arc;
 
 use crowdmorph_proto::{BlendLayer, Format, Head, JointOverrides, JointTransform, LiveWeights};
 
-use crate::import::clips::{is_live_link_angle, loose};
+use crate::import::clips::{checked_name, is_live_link_angle, loose};
 use crate::plan::{JobKey, Plan};
 use crate::rig::quoted_name;
 use crate::rig::{
@@ -655,6 +655,11 @@ impl<'h> Lookups<'h> {
                 let mut seen = std::collections::HashSet::with_capacity(pairs.len());
                 for (name, w) in pairs {
                     check(&quoted_name(name), *w)?;
+                    // A NUL or another control character would vanish in the loose spelling
+                    // and match a target the name does not spell.
+                    checked_name(name).map_err(|why| {
+                        invalid_weights(h, head, format!("weights[{}]: {why}", quoted_name(name)))
+                    })?;
                     let ids = names.ids(name);
                     if ids.is_empty()
                         && let Some(&c) = live_angles
