@@ -27,8 +27,8 @@ use super::scene::{Instance, MeshNames, scene_instances, tracks_bytes, weight_tr
 use super::{ImportError, ImportOptions};
 use crate::budget::Budget;
 use crate::rig::{
-    Clip, DEFAULT_FPS, JointMap, JointTable, LIVE_LINK_COLUMNS, MAX_FRAMES, Rig, TargetId,
-    TargetIndex, Trs, map_bytes, quoted_name, rest_rotations,
+    Clip, DEFAULT_FPS, JointMap, JointTable, LIVE_LINK_COLUMNS, MAX_FRAMES, MAX_LIVE_WEIGHT, Rig,
+    TargetId, TargetIndex, Trs, map_bytes, quoted_name, rest_rotations,
 };
 
 /// Options for reading a clip source.
@@ -294,12 +294,16 @@ pub fn is_live_link_angle(name: &str) -> bool {
 }
 
 /// A clip's joint table from its joint columns (`Columns::joints`) and rows: each turned
-/// node's local transform per frame ([`JointMap::local`]). Its size is charged first.
+/// node's local transform per frame ([`JointMap::local`]). Its size is charged first. A value
+/// past ±[`MAX_LIVE_WEIGHT`] is refused, naming its column (of `names`) and its row (as
+/// `row_label` names row `r`), as the same angle sent as a live weight is.
 fn joint_table(
     rig: &Rig,
     map: &JointMap,
     joints: &[(usize, usize)],
     rows: &[Vec<f32>],
+    names: &[String],
+    row_label: &dyn Fn(usize) -> String,
     budget: &Budget,
 ) -> Result<Option<JointTable>, ImportError> {
     let Some(sk) = &rig.skeleton else {
@@ -307,6 +311,21 @@ fn joint_table(
     };
     if joints.is_empty() {
         return Ok(None);
+    }
+    // Checked before anything is charged or built: an angle of 1e30 radians turns the head
+    // by an arbitrary amount (f32 cannot tell its multiples of 2π apart).
+    for (r, row) in rows.iter().enumerate() {
+        for &(c, _) in joints {
+            let v = row.get(c).copied().unwrap_or(0.0);
+            if v.is_nan() || v.abs() > MAX_LIVE_WEIGHT {
+                return Err(ImportError::ClipSource(format!(
+                    "{}, column {}: {v} is past ±{MAX_LIVE_WEIGHT}, the most a joint angle \
+                     column may hold (as a live weight)",
+                    row_label(r),
+                    quoted_name(names.get(c).map_or("?", String::as_str))
+                )));
+            }
+        }
     }
     let channels: Vec<usize> = joints.iter().map(|j| j.1).collect();
     let nodes = map.nodes(&channels);
@@ -508,7 +527,18 @@ pub fn clip_from_csv(
     }
     let mut clip = clip_from_rows(rig, name, options.fps, &columns.ids, &rows, &budget)?;
     if let Some(map) = &columns.map {
-        clip.joints = joint_table(rig, map, &columns.joints, &rows, &budget)?.map(Arc::new);
+        // Rows counted from 1 with the header, as the other CSV errors count them.
+        let row_label = |r: usize| format!("row {}", r + 2);
+        clip.joints = joint_table(
+            rig,
+            map,
+            &columns.joints,
+            &rows,
+            &names,
+            &row_label,
+            &budget,
+        )?
+        .map(Arc::new);
     }
     budget.release(rows.len() as u64 * row_bytes);
     Ok(ClipImport { clip, ignored })
@@ -553,7 +583,17 @@ pub fn clip_from_json(
     let fps = src.fps.unwrap_or(options.fps);
     let mut clip = clip_from_rows(rig, name, fps, &columns.ids, &src.frames, &budget)?;
     if let Some(map) = &columns.map {
-        clip.joints = joint_table(rig, map, &columns.joints, &src.frames, &budget)?.map(Arc::new);
+        let row_label = |f: usize| format!("frame {f}");
+        clip.joints = joint_table(
+            rig,
+            map,
+            &columns.joints,
+            &src.frames,
+            &src.targets,
+            &row_label,
+            &budget,
+        )?
+        .map(Arc::new);
     }
     drop(src);
     budget.release(parsed);

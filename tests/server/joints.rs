@@ -763,3 +763,24 @@ async fn a_joint_map_column_with_a_control_character_is_refused() {
     assert!(server.client.joint_map("jaw").await.expect("map").default);
     server.stop().await;
 }
+
+/// An angle column's values are capped as the same angle sent as a live weight is (±64): past
+/// it, refused naming the row and column (1e30 was taken).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn angle_columns_past_64_are_refused_naming_row_and_column() {
+    let server = jaw_with_head_columns().await;
+    for (i, (angle, ok)) in [(64.0f32, true), (-64.0, true), (64.5, false), (1e30, false)]
+        .into_iter()
+        .enumerate()
+    {
+        let csv = format!("HeadPitch,HeadYaw\n0,0\n0.25,{angle}\n");
+        let got = jaw_csv(&server, &format!("angle{i}"), csv).await;
+        if ok {
+            got.expect("an angle of ±64 is taken");
+        } else {
+            let m = api_error(got, 400, "invalid_clip");
+            assert!(m.contains("row 3, column \"HeadYaw\""), "{angle}: {m}");
+        }
+    }
+    server.stop().await;
+}
