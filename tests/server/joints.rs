@@ -784,3 +784,40 @@ async fn angle_columns_past_64_are_refused_naming_row_and_column() {
     }
     server.stop().await;
 }
+
+/// A rotation of tiny but finite, non-zero components is that rotation, normalized (in f32
+/// their squares vanish); only all-zero or non-finite ones are refused.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn tiny_rotations_are_normalized_and_only_zero_ones_refused() {
+    let server = jaw_server().await;
+    let at = |q: [f32; 4]| {
+        request(vec![head(
+            1,
+            "jaw",
+            "open",
+            3,
+            0,
+            JointOverrides::rotation("Jaw", q),
+        )])
+    };
+    let (unit, _) = frame(&server, &at([0.0, 0.0, 0.6, 0.8])).await;
+    let (rest, _) = frame(&server, &at([0.0, 0.0, 0.0, 1.0])).await;
+    assert!(diff(&unit[0], &rest[0]) > 1e-2, "the rotation shows");
+    for q in [
+        [0.0, 0.0, 6e-21, 8e-21],
+        [0.0, 0.0, 6e-39, 8e-39],
+        [0.0, 0.0, 6e5, 8e5],
+    ] {
+        let (got, _) = frame(&server, &at(q)).await;
+        assert!(diff(&got[0], &unit[0]) <= 1e-6, "{q:?}");
+    }
+    for q in [[0.0, 0.0, 0.0, 0.0], [0.0, 0.0, f32::INFINITY, 1.0]] {
+        let m = api_error(
+            server.client.crowd_frame(&at(q), Encoding::Bincode).await,
+            400,
+            "invalid_joints",
+        );
+        assert!(m.contains("not all zero"), "{q:?}: {m}");
+    }
+    server.stop().await;
+}

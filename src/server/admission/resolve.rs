@@ -254,26 +254,35 @@ pub fn requested_joints(
                 )));
             }
         }
-        if let Some(q) = &t.rotation {
-            let len2: f64 = q.iter().map(|&c| f64::from(c) * f64::from(c)).sum();
-            if !q
-                .iter()
-                .all(|c| c.is_finite() && c.abs() <= MAX_JOINT_VALUE)
-                || len2 < 1e-12
-            {
-                return Err(invalid(format!(
-                    "{} is {q:?}; a rotation is a quaternion x, y, z, w of finite, not all zero components",
-                    field("rotation")
-                )));
+        // A rotation of any finite, non-zero length is that rotation: normalized here in f64,
+        // where the squares of f32 components cannot underflow (in f32, components of 1e-30
+        // square to zero and the rotation would become the identity).
+        let rotation = match &t.rotation {
+            None => None,
+            Some(q) => {
+                let len2: f64 = q.iter().map(|&c| f64::from(c) * f64::from(c)).sum();
+                let bounded = q
+                    .iter()
+                    .all(|c| c.is_finite() && c.abs() <= MAX_JOINT_VALUE);
+                // Bounded components have a finite length; only all zeros have none.
+                if !bounded || len2 == 0.0 {
+                    return Err(invalid(format!(
+                        "{} is {q:?}; a rotation is a quaternion x, y, z, w of finite components, \
+                         not all zero (any non-zero length is normalized)",
+                        field("rotation")
+                    )));
+                }
+                let len = len2.sqrt();
+                Some(q.map(|c| (f64::from(c) / len) as f32))
             }
-        }
+        };
         if sets.iter().any(|s: &JointSet| s.node == node) {
             return Err(invalid(format!(
                 "joints set node {} twice",
                 quoted_name(name)
             )));
         }
-        sets.push(JointSet::new(node, t.translation, t.rotation, t.scale));
+        sets.push(JointSet::new(node, t.translation, rotation, t.scale));
     }
     Ok(JointPose::new(sets))
 }
