@@ -147,6 +147,35 @@ fn inspect_describes_the_embedded_head_as_text_and_json() {
     }
 }
 
+/// `inspect` of a skinned rig lists every node of its skeleton (what joint overrides may name)
+/// and counts each bone once: the robot's four skins list the same 43 joints.
+#[test]
+#[cfg_attr(
+    not(crowdmorph_test_data),
+    ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+)]
+fn inspect_lists_a_skeletons_nodes_and_counts_each_bone_once() {
+    let path = crate::util::data_dir().join("robot-expressive/RobotExpressive.glb");
+    let doc = crate::util::RefDoc::load(&path);
+    let followed = crate::util::skin::followed_nodes(&doc.json);
+    let s = json(&["inspect", path_str(&path), "--json", "--backend", "cpu"]);
+    let k = &s["skeleton"];
+    assert_eq!(usize_of(k, "bones"), followed.len(), "{k}");
+    let names = strings(&k["node_names"]);
+    assert_eq!(names.len(), usize_of(k, "nodes"));
+    for n in &followed {
+        let name = doc.json["nodes"][*n]["name"].as_str().expect("named");
+        assert!(names.iter().any(|x| x == name), "{name}: {names:?}");
+    }
+    let text = String::from_utf8(success(crowdmorph(&["inspect", path_str(&path)])).stdout)
+        .expect("UTF-8");
+    let line = text
+        .lines()
+        .find(|l| l.trim_start().starts_with("nodes: "))
+        .expect("a nodes line");
+    assert_eq!(line.trim_start()["nodes: ".len()..], names.join(", "));
+}
+
 #[test]
 fn eval_writes_obj_and_bin_files_of_the_frame_the_library_computes() {
     let dir = temp_dir("cli-eval");

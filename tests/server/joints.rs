@@ -691,6 +691,83 @@ async fn live_link_columns_turn_the_head_and_a_rigs_own_map_is_kept() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// The robot's `RigInfo` lists every node a joint override or joint map may name, and counts
+/// each bone once (its four skins list the same 43 joints, and rigid meshes hang from 15 more
+/// nodes); `unknown_joints` says where the names are.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_test_data),
+    ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+)]
+async fn the_robots_nodes_are_listed_and_its_bones_counted_once() {
+    let path = robot_path();
+    let doc = RefDoc::load(&path);
+    let server = TestServer::start(ServerConfig::default()).await;
+    server
+        .client
+        .upload_rig("robot", upload_bytes(&path))
+        .await
+        .expect("upload");
+    let info = server.client.rig("robot").await.expect("rig");
+    let sk = info.skeleton.expect("a skeleton");
+    let followed = crate::util::skin::followed_nodes(&doc.json);
+    let skin_entries: usize = doc.json["skins"]
+        .as_array()
+        .expect("skins")
+        .iter()
+        .map(|s| s["joints"].as_array().map_or(0, Vec::len))
+        .sum();
+    assert!(
+        followed.len() < skin_entries,
+        "the skins share joints: {} nodes, {skin_entries} entries",
+        followed.len()
+    );
+    assert_eq!(sk.bones as usize, followed.len());
+    assert_eq!(sk.node_names.len(), sk.nodes as usize);
+    let name = |n: usize| doc.json["nodes"][n]["name"].as_str().expect("named");
+    for &n in &followed {
+        assert!(sk.node_names.iter().any(|x| x == name(n)), "{}", name(n));
+    }
+    for a in &sk.animated_nodes {
+        assert!(sk.node_names.contains(a), "{a}");
+    }
+    // The bincode form is the pinned layout: no names there.
+    let bin = server
+        .client
+        .send(
+            Method::GET,
+            "/v1/rigs/robot",
+            None,
+            Some("application/x-bincode"),
+            Bytes::new(),
+        )
+        .await
+        .expect("bincode");
+    let decoded: crowdmorph_proto::RigInfo =
+        crowdmorph_proto::wire::response_from_bincode(&bin.body).expect("decodes");
+    let k = decoded.skeleton.expect("a skeleton");
+    assert!(k.node_names.is_empty());
+    assert_eq!(k.bones, sk.bones);
+
+    // A name no node has: the message says where the names are.
+    let wrong = request(vec![head(
+        1,
+        "robot",
+        "Idle",
+        0,
+        0,
+        JointOverrides::rotation("Nose", [0.0, 0.0, 0.0, 1.0]),
+    )]);
+    let m = api_error(
+        server.client.crowd_frame(&wrong, Encoding::Bincode).await,
+        400,
+        "unknown_joints",
+    );
+    assert!(m.contains("skeleton.node_names"), "{m}");
+
+    server.stop().await;
+}
+
 /// The jaw rig with a map of its own: `HeadYaw` and `HeadPitch` turn `Jaw`.
 async fn jaw_with_head_columns() -> TestServer {
     let server = jaw_server().await;
@@ -819,5 +896,79 @@ async fn tiny_rotations_are_normalized_and_only_zero_ones_refused() {
         );
         assert!(m.contains("not all zero"), "{q:?}: {m}");
     }
+    server.stop().await;
+}
+
+/// Two skinned meshes on the same two joints, the second skin binding `Jaw` elsewhere (skins
+/// of one avatar whose bind poses differ, as VRoid exports have them): the rig has a bone per
+/// (joint, bind pose), but `bones` counts the nodes vertices follow, each once, and
+/// `node_names` lists the skeleton's nodes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_joint_two_skins_share_is_one_bone_and_every_node_is_listed() {
+    let (mut b, t) = skinned_triangle_rig();
+    // Root bound where the first skin binds it, Jaw at (0, 1.5, 0) rather than (0, 1, 0).
+    #[rustfmt::skip]
+    let ibm2 = b.accessor_f32(&[
+        1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0,
+        1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, -1.5, 0.0, 1.0,
+    ], "MAT4");
+    let mesh = b.json_mut()["nodes"][t.mesh_node]["mesh"].clone();
+    let twin = b.node(None);
+    let json = b.json_mut();
+    json["nodes"][twin]["mesh"] = mesh;
+    json["nodes"][twin]["skin"] = json!(1);
+    let skins = json["skins"].as_array_mut().expect("skins");
+    skins.push(json!({ "joints": [t.root, t.jaw], "inverseBindMatrices": ibm2 }));
+    json["scenes"][0]["nodes"]
+        .as_array_mut()
+        .expect("scene nodes")
+        .push(json!(twin));
+    let followed = crate::util::skin::followed_nodes(json);
+    assert_eq!(followed.len(), 2, "Root and Jaw");
+
+    let server = TestServer::start(ServerConfig::default()).await;
+    server
+        .client
+        .upload_rig("twins", Bytes::from(b.to_glb()))
+        .await
+        .expect("upload");
+    let sk = server
+        .client
+        .rig("twins")
+        .await
+        .expect("rig")
+        .skeleton
+        .expect("a skeleton");
+    assert_eq!(sk.bones as usize, followed.len(), "{sk:?}");
+    assert_eq!(sk.node_names, ["Root", "Jaw"]);
+    assert_eq!(sk.nodes, 2);
+    // Both meshes follow the joints: a turned jaw moves both copies of its vertex.
+    let (rest, _) = frame(
+        &server,
+        &request(vec![head(
+            1,
+            "twins",
+            "open",
+            0,
+            0,
+            JointOverrides::default(),
+        )]),
+    )
+    .await;
+    let (turned, _) = frame(
+        &server,
+        &request(vec![head(
+            1,
+            "twins",
+            "open",
+            0,
+            0,
+            JointOverrides::rotation("Jaw", [0.0, 0.0, 0.38, 0.92]),
+        )]),
+    )
+    .await;
+    assert_eq!(rest[0].len(), 2 * 3 * 3, "two triangles");
+    let moved = |v: usize| (0..3).any(|c| (rest[0][3 * v + c] - turned[0][3 * v + c]).abs() > 1e-3);
+    assert!(moved(1) && moved(4), "{rest:?} {turned:?}");
     server.stop().await;
 }

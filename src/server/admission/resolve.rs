@@ -198,7 +198,7 @@ pub fn requested_joints(
             (
                 "unknown_joints",
                 format!(
-                    "joints name {}, {why} (GET /v1/rigs/{} lists its skeleton's animated nodes; any node a bone hangs from can be set)",
+                    "joints name {}, {why} (GET /v1/rigs/{} with Accept: application/json lists every node that can be set in skeleton.node_names)",
                     quoted_name(name),
                     entry.id
                 ),

@@ -92,8 +92,10 @@ fn resolve(entry: &RigEntry, spec: &JointMapSpec) -> Result<JointMap, ApiError> 
             ApiError::bad_request(
                 "unknown_joints",
                 format!(
-                    "channels[{i}].node is {}, {why}",
-                    crate::rig::quoted_name(&c.node)
+                    "channels[{i}].node is {}, {why} (GET /v1/rigs/{} with Accept: \
+                     application/json lists every node in skeleton.node_names)",
+                    crate::rig::quoted_name(&c.node),
+                    entry.id
                 ),
             )
         })?;
