@@ -58,6 +58,9 @@ async fn charge_compression(
     next: Next,
 ) -> Response {
     let Some(e) = encoding::accepted(req.headers()) else {
+        // Nothing compressed is acceptable: the identity encoding it is, whatever the header
+        // says of identity (`encoding`'s doc), never the compression layer's 406.
+        req.headers_mut().remove(header::ACCEPT_ENCODING);
         return next.run(req).await;
     };
     if req.headers().contains_key(header::UPGRADE) {

@@ -268,3 +268,63 @@ async fn q16_residuals_decode_bit_for_bit_to_q16_and_compress_better() {
     );
     s.stop().await;
 }
+
+/// GETs `path` with `Accept-Encoding: accept_encoding` and JSON.
+async fn get_with(base: &str, path: &str, accept_encoding: &str) -> crowdmorph_client::Reply {
+    Client::new(base)
+        .send_with(
+            Method::GET,
+            path,
+            &[
+                ("accept", "application/json"),
+                ("accept-encoding", accept_encoding),
+            ],
+            Bytes::new(),
+        )
+        .await
+        .unwrap()
+}
+
+/// A client that accepts no encoding the server has (`identity;q=0`, `*;q=0`, `br` alone) gets
+/// the identity encoding, with the status and body it would get otherwise (not a 406 around
+/// the success body); `*` accepts zstd, and is charged as zstd is.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn accept_encodings_the_server_cannot_meet_get_the_plain_answer() {
+    let s = TestServer::start(crowdmorph::server::ServerConfig::default()).await;
+    let base = format!("http://{}", s.addr);
+    let plain = get_with(&base, "/v1/rigs/default-head", "identity").await;
+    assert_eq!(plain.status, 200);
+    assert!(plain.body.len() > 1400, "large enough to be compressed");
+    let want: serde_json::Value = serde_json::from_slice(&plain.body).unwrap();
+    for refused in [
+        "identity;q=0",
+        "*;q=0",
+        "*;q=0, identity;q=0",
+        "br",
+        "br, identity;q=0",
+        "zstd;q=0, gzip;q=0, identity;q=0",
+    ] {
+        let r = get_with(&base, "/v1/rigs/default-head", refused).await;
+        assert_eq!(
+            r.status,
+            200,
+            "{refused}: {}",
+            String::from_utf8_lossy(&r.body)
+        );
+        assert_eq!(r.header("content-encoding"), None, "{refused}");
+        let got: serde_json::Value = serde_json::from_slice(&r.body).unwrap();
+        assert_eq!(got, want, "{refused}");
+        // An error is the error, as JSON.
+        let r = get_with(&base, "/v1/rigs/nope", refused).await;
+        assert_eq!(r.status, 404, "{refused}");
+        assert_eq!(r.error().expect("JSON error").error.code, "unknown_rig");
+    }
+    for (accepted, token) in [("*", "zstd"), ("*, zstd;q=0", "gzip"), ("GZIP", "gzip")] {
+        let r = get_with(&base, "/v1/rigs/default-head", accepted).await;
+        assert_eq!(r.status, 200, "{accepted}");
+        assert_eq!(r.header("content-encoding"), Some(token), "{accepted}");
+        let got: serde_json::Value = serde_json::from_slice(&r.body).unwrap();
+        assert_eq!(got, want, "{accepted}");
+    }
+    s.stop().await;
+}

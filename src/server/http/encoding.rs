@@ -1,10 +1,16 @@
-//! HTTP `Content-Encoding` both ways, with tower-http's layers: a response large enough to gain
-//! is compressed with zstd (preferred) or gzip when the request's `Accept-Encoding` asks for it,
-//! at the fastest level (zstd 1, gzip 1: the server compresses every response once, and vertex
-//! buffers gain most from the residual formats, not from a slower level); a request body sent
-//! with `Content-Encoding: zstd` or `gzip` is inflated as it is read, so the body limits apply
-//! to the inflated bytes and a bomb stops at the limit (413) without being inflated further.
-//! Any other request encoding is 415. A client that asks for nothing gets the plain bytes.
+//! HTTP `Content-Encoding` both ways. A response large enough to gain is compressed, with
+//! tower-http's layer, with zstd (preferred) or gzip when the request's `Accept-Encoding` asks
+//! for it, at the fastest level (zstd 1, gzip 1: the server compresses every response once, and
+//! vertex buffers gain most from the residual formats, not from a slower level). A request
+//! whose `Accept-Encoding` accepts neither (`identity;q=0`, `*;q=0`, `br`) gets the identity
+//! encoding: RFC 9110 (§12.1, §12.5.3) lets a server disregard a preference it cannot meet, and
+//! the plain bytes serve such a client better than a 406 on every route (tower-http answered
+//! one carrying the success body).
+//!
+//! A request body sent with `Content-Encoding: zstd` or `gzip` is inflated as it is read, so the
+//! body limits apply to the inflated bytes and a bomb stops at the limit (413) without being
+//! inflated further. Any other request encoding is 415. A client that asks for nothing gets the
+//! plain bytes.
 //!
 //! What an encoder holds while it compresses one response ([`encoder_bytes`]) is charged by the
 //! router before the response is made (`app.rs`); when it cannot be, the response goes out
@@ -38,11 +44,14 @@ pub fn encoder_bytes(e: Encoding) -> u64 {
     }
 }
 
-/// The encoding the compression layer will pick for a request: the first of zstd, gzip that
-/// its `Accept-Encoding` names with a non-zero quality.
+/// The encoding the compression layer may pick for a request: the first of zstd, gzip that
+/// its `Accept-Encoding` accepts, by name (`x-gzip` is gzip; names are case-insensitive) or
+/// through `*`, with a non-zero quality. `None`: neither, and the response is not compressed
+/// (the router then drops the header, so that the layer answers with the identity encoding
+/// rather than a 406).
 pub fn accepted(headers: &HeaderMap) -> Option<Encoding> {
-    let mut zstd = false;
-    let mut gzip = false;
+    // Per coding: the quality its own entry gives it, else the wildcard's.
+    let (mut zstd, mut gzip, mut any) = (None, None, None);
     for value in headers.get_all(header::ACCEPT_ENCODING) {
         let Ok(value) = value.to_str() else { continue };
         for item in value.split(',') {
@@ -54,19 +63,18 @@ pub fn accepted(headers: &HeaderMap) -> Option<Encoding> {
                     .and_then(|q| q.trim().parse::<f32>().ok())
                     .is_some_and(|q| q <= 0.0)
             });
-            if zero {
-                continue;
-            }
             match name.as_str() {
-                "zstd" => zstd = true,
-                "gzip" | "x-gzip" => gzip = true,
+                "zstd" => zstd = Some(!zero),
+                "gzip" | "x-gzip" => gzip = Some(!zero),
+                "*" => any = Some(!zero),
                 _ => {}
             }
         }
     }
-    if zstd {
+    let any = any.unwrap_or(false);
+    if zstd.unwrap_or(any) {
         Some(Encoding::Zstd)
-    } else if gzip {
+    } else if gzip.unwrap_or(any) {
         Some(Encoding::Gzip)
     } else {
         None
@@ -113,6 +121,15 @@ mod tests {
         assert_eq!(accepted(&h("zstd;q=0, gzip")), Some(Encoding::Gzip));
         assert_eq!(accepted(&h("identity")), None);
         assert_eq!(accepted(&HeaderMap::new()), None);
+        // The wildcard stands for every coding not named; names are case-insensitive.
+        assert_eq!(accepted(&h("*")), Some(Encoding::Zstd));
+        assert_eq!(accepted(&h("*, zstd;q=0")), Some(Encoding::Gzip));
+        assert_eq!(accepted(&h("zstd;q=0, *;q=0.5")), Some(Encoding::Gzip));
+        assert_eq!(accepted(&h("*;q=0, GZIP")), Some(Encoding::Gzip));
+        assert_eq!(accepted(&h("x-gzip")), Some(Encoding::Gzip));
+        for none in ["*;q=0", "identity;q=0", "br", "*;q=0, zstd;q=0"] {
+            assert_eq!(accepted(&h(none)), None, "{none}");
+        }
     }
 
     #[test]
