@@ -205,7 +205,7 @@ pub fn app(state: AppState) -> Router {
         // Bodies are read with explicit per-route limits (see http::body::read_body), after
         // a compressed one is inflated: the limits bound the inflated bytes.
         .layer(DefaultBodyLimit::disable())
-        .layer(encoding::decompress_layer())
+        .layer(middleware::from_fn(encoding::inflate_request))
         .layer(middleware::from_fn(json_errors))
         .layer(encoding::compress_layer())
         .layer(middleware::from_fn_with_state(
