@@ -28,11 +28,67 @@ pub struct QueueMemory {
     semaphore: Arc<Semaphore>,
     units: u32,
     metrics: Arc<Metrics>,
+    drain: Arc<Drain>,
 }
 
-/// A piece of the queue memory, given back when dropped.
+/// A piece of the queue memory, given back when dropped (its permit first, then its
+/// [`Drain`] looks at what is left).
 #[derive(Debug)]
-pub struct Charge(OwnedSemaphorePermit);
+pub struct Charge(OwnedSemaphorePermit, DrainOnDrop);
+
+/// Least high-water mark of the queue memory after which its draining hands the freed memory
+/// back to the operating system: an overload (a few dozen 16 MiB bodies decoding at once)
+/// leaves the process a gigabyte larger than it needs until the allocator is trimmed, while a
+/// session's ticks (tens of MiB each) stay below it and never ask for a trim.
+const DRAINED_PEAK: u64 = 4 * crate::budget::TRIM_AFTER_BYTES;
+
+/// How far below its high-water mark the queue memory must fall to count as drained.
+const DRAINED_FRACTION: u64 = 4;
+
+/// The queue memory's high-water mark since it last drained, and the check made as each
+/// charge is given back.
+#[derive(Debug)]
+struct Drain {
+    semaphore: Arc<Semaphore>,
+    units: u32,
+    /// Most bytes charged at once since the last drain.
+    peak: std::sync::atomic::AtomicU64,
+}
+
+impl Drain {
+    fn used(&self) -> u64 {
+        let free = self.semaphore.available_permits() as u64;
+        u64::from(self.units).saturating_sub(free) * UNIT
+    }
+
+    /// After a charge is given back: once what is charged falls to a quarter of a high-water
+    /// mark of at least [`DRAINED_PEAK`], the memory the requests held is free, and goes back
+    /// to the operating system ([`crate::budget::return_freed_memory_soon`]).
+    fn released(&self) {
+        use std::sync::atomic::Ordering;
+        let used = self.used();
+        let peak = self.peak.load(Ordering::Acquire);
+        if peak >= DRAINED_PEAK
+            && used <= peak / DRAINED_FRACTION
+            && self
+                .peak
+                .compare_exchange(peak, used, Ordering::AcqRel, Ordering::Acquire)
+                .is_ok()
+        {
+            crate::budget::return_freed_memory_soon();
+        }
+    }
+}
+
+/// Runs [`Drain::released`] when the charge holding it is dropped, after its permit.
+#[derive(Debug)]
+struct DrainOnDrop(Arc<Drain>);
+
+impl Drop for DrainOnDrop {
+    fn drop(&mut self) {
+        self.0.released();
+    }
+}
 
 impl Charge {
     /// Bytes it holds (whole KiB).
@@ -42,7 +98,8 @@ impl Charge {
 
     /// Takes `other` into this charge: both are given back together.
     pub fn merge(&mut self, other: Charge) {
-        self.0.merge(other.0);
+        let Charge(permit, _drain) = other;
+        self.0.merge(permit);
     }
 
     /// Gives back all but `bytes` of it now.
@@ -61,8 +118,14 @@ impl QueueMemory {
         let units = u32::try_from((bytes as u64 / UNIT).max(1))
             .unwrap_or(u32::MAX)
             .min(Semaphore::MAX_PERMITS as u32);
+        let semaphore = Arc::new(Semaphore::new(units as usize));
         QueueMemory {
-            semaphore: Arc::new(Semaphore::new(units as usize)),
+            drain: Arc::new(Drain {
+                semaphore: semaphore.clone(),
+                units,
+                peak: std::sync::atomic::AtomicU64::new(0),
+            }),
+            semaphore,
             units,
             metrics,
         }
@@ -75,8 +138,7 @@ impl QueueMemory {
 
     /// Bytes charged now.
     pub fn used(&self) -> u64 {
-        let free = self.semaphore.available_permits() as u64;
-        u64::from(self.units).saturating_sub(free) * UNIT
+        self.drain.used()
     }
 
     /// Takes `bytes`: 503 `queue_full` when the queue memory is full now, 413
@@ -90,7 +152,12 @@ impl QueueMemory {
         self.semaphore
             .clone()
             .try_acquire_many_owned(units as u32)
-            .map(Charge)
+            .map(|permit| {
+                self.drain
+                    .peak
+                    .fetch_max(self.drain.used(), std::sync::atomic::Ordering::AcqRel);
+                Charge(permit, DrainOnDrop(self.drain.clone()))
+            })
             .map_err(|_| {
                 self.metrics.reject("queue_memory");
                 ApiError::unavailable(
