@@ -1496,6 +1496,58 @@ fn serve_help_lists_every_flag_with_its_environment_variable() {
     );
 }
 
+/// The subcommands a `--help` lists under "Commands:" (without `help`).
+fn subcommands(args: &[&str]) -> Vec<String> {
+    let mut a = args.to_vec();
+    a.push("--help");
+    let help = String::from_utf8(success(crowdmorph(&a)).stdout).expect("UTF-8");
+    help.lines()
+        .skip_while(|l| !l.starts_with("Commands:"))
+        .skip(1)
+        .take_while(|l| !l.trim().is_empty())
+        .filter_map(|l| l.split_whitespace().next())
+        .filter(|c| *c != "help")
+        .map(str::to_string)
+        .collect()
+}
+
+/// README's "Command line" lists every subcommand the binary has, nested ones too (`lod
+/// order|report|mesh` lists three), so none is left for users to find by chance.
+#[test]
+fn the_readme_command_list_has_every_subcommand() {
+    let readme =
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/README.md")).expect("README");
+    let start = readme.find("## Command line").expect("the section");
+    let section = &readme[start..start + readme[start..].find("\n## ").expect("its end")];
+    // What each `crowdmorph X Y...` line names: (X, the alternatives of Y).
+    let listed: Vec<(&str, Vec<&str>)> = section
+        .lines()
+        .filter_map(|l| l.trim().strip_prefix("crowdmorph "))
+        .map(|l| {
+            let mut words = l.split_whitespace();
+            let top = words.next().unwrap_or("");
+            let sub = words.next().unwrap_or("").split('|').collect();
+            (top, sub)
+        })
+        .collect();
+    let top = subcommands(&[]);
+    assert!(top.len() >= 8, "{top:?}");
+    for t in &top {
+        assert!(
+            listed.iter().any(|(x, _)| x == t),
+            "README's command list lacks `crowdmorph {t}`"
+        );
+        for sub in subcommands(&[t.as_str()]) {
+            assert!(
+                listed
+                    .iter()
+                    .any(|(x, subs)| x == t && subs.contains(&sub.as_str())),
+                "README's command list lacks `crowdmorph {t} {sub}`"
+            );
+        }
+    }
+}
+
 #[test]
 fn a_bad_argument_exits_with_status_2_and_says_why() {
     let out = crowdmorph(&["bench", "http", "--no-such-flag"])
