@@ -368,15 +368,17 @@ pub fn return_freed_memory() {
 /// the process that much larger until the allocator is trimmed.
 pub const TRIM_AFTER_BYTES: u64 = 64 << 20;
 
-/// Least time between two trims that [`return_freed_memory_soon`] asks for.
-const TRIM_INTERVAL: std::time::Duration = std::time::Duration::from_secs(1);
+/// Least time between two trims that [`return_freed_memory_soon`] asks for: a server under
+/// steady heavy load asks often, and a trim is cheap but not free (it walks the arenas, and
+/// what it hands back is faulted in again when reused).
+const TRIM_INTERVAL: std::time::Duration = std::time::Duration::from_secs(2);
 
 /// [`return_freed_memory`] on a thread of its own, soon: for the end of a request that held a
 /// lot (at least [`TRIM_AFTER_BYTES`]) and freed it. A trim walks every allocator arena under
 /// its lock and can take milliseconds on a large heap, so it never runs on the caller's (an
 /// async worker's) thread, and asks coalesce: one trim runs at a time, at most one waits, and
-/// trims are at least [`TRIM_INTERVAL`] apart, so a flood of refused requests costs one trim a
-/// second at most. The last ask is always followed by a trim.
+/// trims are at least [`TRIM_INTERVAL`] apart, so a flood of refused requests costs one trim
+/// every two seconds at most. The last ask is always followed by a trim.
 pub fn return_freed_memory_soon() {
     static ASKS: std::sync::OnceLock<Option<std::sync::mpsc::SyncSender<()>>> =
         std::sync::OnceLock::new();

