@@ -363,6 +363,44 @@ pub fn return_freed_memory() {
     }
 }
 
+/// Freed memory worth handing back to the operating system after a request ends: a request
+/// that held this much (a refused upload bomb read to its limit, a drained overload) leaves
+/// the process that much larger until the allocator is trimmed.
+pub const TRIM_AFTER_BYTES: u64 = 64 << 20;
+
+/// Least time between two trims that [`return_freed_memory_soon`] asks for: a server under
+/// steady heavy load asks often, and a trim is cheap but not free (it walks the arenas, and
+/// what it hands back is faulted in again when reused).
+const TRIM_INTERVAL: std::time::Duration = std::time::Duration::from_secs(2);
+
+/// [`return_freed_memory`] on a thread of its own, soon: for the end of a request that held a
+/// lot (at least [`TRIM_AFTER_BYTES`]) and freed it. A trim walks every allocator arena under
+/// its lock and can take milliseconds on a large heap, so it never runs on the caller's (an
+/// async worker's) thread, and asks coalesce: one trim runs at a time, at most one waits, and
+/// trims are at least [`TRIM_INTERVAL`] apart, so a flood of refused requests costs one trim
+/// every two seconds at most. The last ask is always followed by a trim.
+pub fn return_freed_memory_soon() {
+    static ASKS: std::sync::OnceLock<Option<std::sync::mpsc::SyncSender<()>>> =
+        std::sync::OnceLock::new();
+    let asks = ASKS.get_or_init(|| {
+        let (tx, rx) = std::sync::mpsc::sync_channel::<()>(1);
+        std::thread::Builder::new()
+            .name("crowdmorph-trim".into())
+            .spawn(move || {
+                while rx.recv().is_ok() {
+                    return_freed_memory();
+                    std::thread::sleep(TRIM_INTERVAL);
+                }
+            })
+            .ok()
+            .map(|_| tx)
+    });
+    if let Some(tx) = asks {
+        // Full: a trim is already waiting, and it runs after what was freed so far.
+        let _ = tx.try_send(());
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -653,7 +653,7 @@ fn csv_unknown_targets() {
         ImportError::UnknownTargets(names) => assert_eq!(names, &["fooBar", "tongueOut"]),
         other => panic!("expected UnknownTargets, got {other:?}"),
     }
-    assert_mentions(&e, "fooBar, tongueOut");
+    assert_mentions(&e, "\"fooBar\", \"tongueOut\"");
 
     let options = ClipOptions {
         ignore_unknown: true,
@@ -666,6 +666,112 @@ fn csv_unknown_targets() {
     let jaw = rig.target_id("jawOpen").expect("jawOpen") as usize;
     assert_eq!(imported.clip.weight(jaw, 0), 0.5);
     assert_eq!(imported.clip.weight(jaw, 1), 0.25);
+}
+
+/// A header of many unknown names is named in a bounded message: the first few, quoted (each
+/// cut to 64 characters, as live weights quote a name), and how many more there are.
+#[test]
+fn csv_unknown_targets_are_listed_within_a_bounded_message() {
+    let n = 20_000;
+    let mut header: Vec<String> = (0..n).map(|i| format!("noSuchShape{i:05}")).collect();
+    header.push("x".repeat(10_000));
+    header.push("jawOpen".into());
+    let row = vec!["0"; header.len()].join(",");
+    let text = format!("{}\n{row}\n", header.join(","));
+    let e = csv(&text, &ClipOptions::default()).expect_err("unknown targets");
+    match &e {
+        ImportError::UnknownTargets(names) => assert_eq!(names.len(), n + 1),
+        other => panic!("expected UnknownTargets, got {other:?}"),
+    }
+    let message = e.to_string();
+    assert!(message.len() < 2_000, "{} bytes", message.len());
+    assert!(
+        message.contains("\"noSuchShape00000\", \"noSuchShape00001\""),
+        "{message}"
+    );
+    assert!(!message.contains("noSuchShape00016"), "{message}");
+    assert!(
+        message.ends_with(&format!("and {} more", n + 1 - 16)),
+        "{message}"
+    );
+    // Fewer than the cap: every one, and no count.
+    let e = csv(
+        &format!(
+            "{},jawOpen\n{}\n",
+            header[..3].join(","),
+            ["0"; 4].join(",")
+        ),
+        &ClipOptions::default(),
+    )
+    .expect_err("unknown targets");
+    assert!(e.to_string().ends_with("\"noSuchShape00002\""), "{e}");
+}
+
+/// Two columns that write one target — the same name twice, or two spellings that match it
+/// loosely — are refused naming both, in CSV and JSON alike: one of them would be dropped.
+#[test]
+fn clip_columns_that_write_one_target_twice_are_refused() {
+    let rig = default_rig();
+    for (header, a, b) in [
+        ("jawOpen,JawOpen", "\"jawOpen\"", "\"JawOpen\""),
+        (
+            "eyeBlink_L,jawOpen,EyeBlinkLeft",
+            "\"eyeBlink_L\"",
+            "\"EyeBlinkLeft\"",
+        ),
+        (
+            "Timecode,jawOpen,jawOpen",
+            "\"jawOpen\" and \"jawOpen\"",
+            "jawOpen",
+        ),
+    ] {
+        let cols = header.split(',').count();
+        let text = format!("{header}\n{}\n", vec!["0.5"; cols].join(","));
+        let e = csv(&text, &ClipOptions::default()).expect_err(header);
+        assert_clip_source(&e, a);
+        assert_mentions(&e, b);
+        assert_mentions(&e, "both write target");
+        // Ignoring unknown names does not let a duplicate through.
+        let options = ClipOptions {
+            ignore_unknown: true,
+            ..Default::default()
+        };
+        let e = csv(&text, &options).expect_err(header);
+        assert_clip_source(&e, b);
+        let names: Vec<&str> = header.split(',').filter(|n| *n != "Timecode").collect();
+        let json = json!({ "targets": names, "frames": [vec![0.5; names.len()]] });
+        let e = clip_from_json(&rig, "j", json.to_string().as_bytes(), &options).expect_err(header);
+        assert_clip_source(&e, b);
+    }
+    // Distinct targets, and an unknown name twice (it writes nothing): accepted.
+    let options = ClipOptions {
+        ignore_unknown: true,
+        ..Default::default()
+    };
+    let imported = csv("jawOpen,eyeBlink_L,fooBar,fooBar\n0.5,0.25,1,1\n", &options)
+        .expect("distinct targets");
+    assert_eq!(*imported.ignored, ["fooBar", "fooBar"]);
+}
+
+/// A column name with a control character is refused: its loose spelling drops the character,
+/// so `jaw\0Open` would otherwise write `jawOpen`.
+#[test]
+fn clip_column_names_with_control_characters_are_refused() {
+    let rig = default_rig();
+    for name in ["jaw\u{0}Open", "jaw\u{1}Open", "eye\u{7f}Blink_L"] {
+        let text = format!("{name}\n0.5\n");
+        let e = csv(&text, &ClipOptions::default()).expect_err(name);
+        assert_clip_source(&e, "control character");
+        let json = json!({ "targets": [name], "frames": [[0.5]] });
+        let e = clip_from_json(
+            &rig,
+            "j",
+            json.to_string().as_bytes(),
+            &ClipOptions::default(),
+        )
+        .expect_err(name);
+        assert_clip_source(&e, "control character");
+    }
 }
 
 #[test]

@@ -147,6 +147,35 @@ fn inspect_describes_the_embedded_head_as_text_and_json() {
     }
 }
 
+/// `inspect` of a skinned rig lists every node of its skeleton (what joint overrides may name)
+/// and counts each bone once: the robot's four skins list the same 43 joints.
+#[test]
+#[cfg_attr(
+    not(crowdmorph_test_data),
+    ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+)]
+fn inspect_lists_a_skeletons_nodes_and_counts_each_bone_once() {
+    let path = crate::util::data_dir().join("robot-expressive/RobotExpressive.glb");
+    let doc = crate::util::RefDoc::load(&path);
+    let followed = crate::util::skin::followed_nodes(&doc.json);
+    let s = json(&["inspect", path_str(&path), "--json", "--backend", "cpu"]);
+    let k = &s["skeleton"];
+    assert_eq!(usize_of(k, "bones"), followed.len(), "{k}");
+    let names = strings(&k["node_names"]);
+    assert_eq!(names.len(), usize_of(k, "nodes"));
+    for n in &followed {
+        let name = doc.json["nodes"][*n]["name"].as_str().expect("named");
+        assert!(names.iter().any(|x| x == name), "{name}: {names:?}");
+    }
+    let text = String::from_utf8(success(crowdmorph(&["inspect", path_str(&path)])).stdout)
+        .expect("UTF-8");
+    let line = text
+        .lines()
+        .find(|l| l.trim_start().starts_with("nodes: "))
+        .expect("a nodes line");
+    assert_eq!(line.trim_start()["nodes: ".len()..], names.join(", "));
+}
+
 #[test]
 fn eval_writes_obj_and_bin_files_of_the_frame_the_library_computes() {
     let dir = temp_dir("cli-eval");
@@ -1465,6 +1494,58 @@ fn serve_help_lists_every_flag_with_its_environment_variable() {
         !help.contains("do-not-print-me"),
         "the token's value is hidden"
     );
+}
+
+/// The subcommands a `--help` lists under "Commands:" (without `help`).
+fn subcommands(args: &[&str]) -> Vec<String> {
+    let mut a = args.to_vec();
+    a.push("--help");
+    let help = String::from_utf8(success(crowdmorph(&a)).stdout).expect("UTF-8");
+    help.lines()
+        .skip_while(|l| !l.starts_with("Commands:"))
+        .skip(1)
+        .take_while(|l| !l.trim().is_empty())
+        .filter_map(|l| l.split_whitespace().next())
+        .filter(|c| *c != "help")
+        .map(str::to_string)
+        .collect()
+}
+
+/// README's "Command line" lists every subcommand the binary has, nested ones too (`lod
+/// order|report|mesh` lists three), so none is left for users to find by chance.
+#[test]
+fn the_readme_command_list_has_every_subcommand() {
+    let readme =
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/README.md")).expect("README");
+    let start = readme.find("## Command line").expect("the section");
+    let section = &readme[start..start + readme[start..].find("\n## ").expect("its end")];
+    // What each `crowdmorph X Y...` line names: (X, the alternatives of Y).
+    let listed: Vec<(&str, Vec<&str>)> = section
+        .lines()
+        .filter_map(|l| l.trim().strip_prefix("crowdmorph "))
+        .map(|l| {
+            let mut words = l.split_whitespace();
+            let top = words.next().unwrap_or("");
+            let sub = words.next().unwrap_or("").split('|').collect();
+            (top, sub)
+        })
+        .collect();
+    let top = subcommands(&[]);
+    assert!(top.len() >= 8, "{top:?}");
+    for t in &top {
+        assert!(
+            listed.iter().any(|(x, _)| x == t),
+            "README's command list lacks `crowdmorph {t}`"
+        );
+        for sub in subcommands(&[t.as_str()]) {
+            assert!(
+                listed
+                    .iter()
+                    .any(|(x, subs)| x == t && subs.contains(&sub.as_str())),
+                "README's command list lacks `crowdmorph {t} {sub}`"
+            );
+        }
+    }
 }
 
 #[test]

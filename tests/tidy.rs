@@ -127,6 +127,118 @@ fn readme_examples_do_not_hard_code_a_session_id() {
     }
 }
 
+/// Every (method, path, handler) of the router in `src/server/app.rs`: each `.route("PATH",
+/// get(routes::x::handler).post(...))` read by its literals.
+fn routes() -> Vec<(String, String, String)> {
+    let app = read(&root().join("src/server/app.rs"));
+    let mut out = Vec::new();
+    for (at, _) in app.match_indices(".route(") {
+        let open = at + ".route".len();
+        let Some(path) = literal_args(&app, open).into_iter().next() else {
+            continue;
+        };
+        // The call's extent: up to its closing parenthesis.
+        let mut depth = 0;
+        let mut end = open;
+        for (i, c) in app[open..].char_indices() {
+            match c {
+                '(' => depth += 1,
+                ')' => {
+                    depth -= 1;
+                    if depth == 0 {
+                        end = open + i;
+                        break;
+                    }
+                }
+                _ => {}
+            }
+        }
+        let call = &app[open..end];
+        for method in ["get", "post", "put", "patch", "delete"] {
+            for (m, _) in call.match_indices(&format!("{method}(")) {
+                let before = call[..m].chars().next_back();
+                if before.is_some_and(|c| c.is_alphanumeric() || c == '_') {
+                    continue;
+                }
+                let rest = &call[m + method.len() + 1..];
+                let handler = &rest[..rest.find(')').expect("handler's end")];
+                let name = handler.rsplit("::").next().unwrap_or(handler).trim();
+                out.push((method.to_uppercase(), path.clone(), name.to_string()));
+            }
+        }
+    }
+    out
+}
+
+/// The handlers in `src/server/routes/` that take the `Admin` extractor.
+fn admin_handlers() -> Vec<String> {
+    let mut out = Vec::new();
+    for file in rust_files(&root().join("src/server/routes")) {
+        let src = read(&file);
+        for (at, _) in src.match_indices("pub async fn ") {
+            let rest = &src[at + "pub async fn ".len()..];
+            let name = &rest[..rest.find('(').expect("parameters")];
+            let params = &rest[..rest.find(") ->").unwrap_or(rest.len())];
+            if params.contains(": Admin,") || params.contains(": Admin)") {
+                out.push(name.to_string());
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn the_admin_token_help_names_every_route_that_needs_it() {
+    let config = read(&root().join("src/server/config.rs"));
+    let field = config
+        .find("pub admin_token")
+        .expect("the admin token flag");
+    // The doc comment above the field (past its attributes), as `serve --help` prints it.
+    let help = config[..field]
+        .lines()
+        .rev()
+        .skip(1)
+        .skip_while(|l| l.trim_start().starts_with("#["))
+        .take_while(|l| l.trim_start().starts_with("///"))
+        .map(|l| l.trim_start().trim_start_matches("///").trim())
+        .collect::<Vec<_>>()
+        .into_iter()
+        .rev()
+        .collect::<Vec<_>>()
+        .join(" ");
+    let routes = routes();
+    let admin = admin_handlers();
+    assert!(
+        routes.len() > 20 && admin.len() > 10,
+        "{routes:?} {admin:?}"
+    );
+    let guarded: Vec<String> = routes
+        .iter()
+        .filter(|(_, _, h)| admin.contains(h))
+        .map(|(m, p, _)| format!("{m} {p}"))
+        .collect();
+    for h in &admin {
+        assert!(
+            routes.iter().any(|(_, _, r)| r == h),
+            "{h} takes Admin but no route in app.rs names it"
+        );
+    }
+    let missing: Vec<&String> = guarded.iter().filter(|r| !help.contains(*r)).collect();
+    assert!(
+        missing.is_empty(),
+        "--admin-token's help does not name {missing:?}: {help}"
+    );
+    // And it names no route that does not need the token.
+    let words: Vec<&str> = help.split_whitespace().collect();
+    for pair in words.windows(2) {
+        let path = pair[1].trim_end_matches([',', '.', ';']);
+        if ["GET", "POST", "PUT", "PATCH", "DELETE"].contains(&pair[0]) && path.starts_with('/') {
+            let named = format!("{} {path}", pair[0]);
+            assert!(guarded.contains(&named), "{named} is open: {help}");
+        }
+    }
+}
+
 /// The module names a `//!` table of `file` lists in its first column (`` [`x`] `` or `` `x` ``).
 fn mapped_modules(file: &Path) -> Vec<String> {
     read(file)

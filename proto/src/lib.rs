@@ -737,7 +737,8 @@ pub struct RigInfo {
 pub struct SkeletonInfo {
     /// Nodes of the hierarchy its bones hang from.
     pub nodes: u32,
-    /// Bones: a skin's joints, and one per node a rigid mesh hangs from.
+    /// Distinct nodes vertices follow: the joints of its skins (a node several skins list
+    /// counts once), and each node a rigid mesh hangs from.
     pub bones: u32,
     /// Vertices moved by a skin's joints.
     pub skinned_vertices: u32,
@@ -747,6 +748,38 @@ pub struct SkeletonInfo {
     pub animated_nodes: Vec<String>,
     /// Clips that animate nodes (the others leave the skeleton at rest).
     pub clips_with_joints: Vec<String>,
+    /// Every node's name, parents before children: the names joint overrides and joint maps
+    /// may use. In JSON only (absent when empty): the bincode layout of `RigInfo` is pinned,
+    /// so in bincode this field takes no bytes and reads as empty ([`json_only`]).
+    #[serde(default, skip_serializing_if = "Vec::is_empty", with = "json_only")]
+    pub node_names: Vec<String>,
+}
+
+/// A field that only human-readable encodings (JSON) carry: bincode writes it as `()`, which is
+/// no bytes, and reads it back as the type's default. For fields added to a message whose
+/// bincode layout is pinned by golden files.
+mod json_only {
+    use serde::{Deserialize, Deserializer, Serialize, Serializer};
+
+    pub fn serialize<T: Serialize, S: Serializer>(value: &T, s: S) -> Result<S::Ok, S::Error> {
+        if s.is_human_readable() {
+            value.serialize(s)
+        } else {
+            s.serialize_unit()
+        }
+    }
+
+    pub fn deserialize<'de, T, D>(d: D) -> Result<T, D::Error>
+    where
+        T: Deserialize<'de> + Default,
+        D: Deserializer<'de>,
+    {
+        if d.is_human_readable() {
+            T::deserialize(d)
+        } else {
+            <()>::deserialize(d).map(|()| T::default())
+        }
+    }
 }
 
 /// A target name with several weight channels (see [`RigInfo::split_targets`]).

@@ -90,7 +90,8 @@ pub struct SessionRequest {
 /// Counters of a session since it started.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct SessionStats {
-    /// Ticks computed and delivered to the viewers' outboxes.
+    /// Ticks computed and delivered to the viewers' outboxes (a tick without viewers is not
+    /// computed; [`SessionInfo::tick`] counts every tick).
     pub ticks: u64,
     /// Of those, ticks whose blends finished after the next tick was due.
     pub ticks_late: u64,
@@ -118,7 +119,9 @@ pub struct SessionInfo {
     pub wrap: bool,
     /// Seconds without viewers before the session ends.
     pub idle_timeout_s: u32,
-    /// The last tick computed (0 before the first).
+    /// The session's clock: the last tick whose time has come (tick n is due (n − 1)/fps s
+    /// after the start), computed or not: ticks without viewers and skipped ticks count here,
+    /// not in [`SessionStats::ticks`] (0 before the first).
     pub tick: u64,
     /// The heads, in the order tick messages list them.
     pub heads: Vec<SessionHead>,

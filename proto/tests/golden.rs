@@ -280,6 +280,7 @@ fn rig_info() -> RigInfo {
             rigid_vertices: 1,
             animated_nodes: vec!["Jaw".into()],
             clips_with_joints: vec!["wave".into()],
+            node_names: Vec::new(),
         }),
         import_notes: vec!["2 translation/rotation/scale animation channels target nodes that move no mesh (no skin uses them and no mesh hangs from them): left out".into()],
     }
@@ -309,6 +310,42 @@ fn rig_messages() {
             rig: "tri".into(),
             clips: vec![clip_info("wave", 31), clip_info("chat", 3)],
         },
+    );
+}
+
+/// The skeleton's node names, added after the layout was pinned, travel in JSON only: a
+/// `RigInfo` that has them is, in bincode, byte for byte the pinned message (which reads back
+/// without them), and in JSON the pinned message (which has none) reads back as empty.
+#[test]
+fn skeleton_node_names_travel_in_json_only() {
+    let mut named = rig_info();
+    if let Some(k) = named.skeleton.as_mut() {
+        k.node_names = vec!["Root".into(), "Jaw".into(), "Head".into()];
+    }
+    let pinned = std::fs::read(golden("rig_info.bincode")).unwrap();
+    assert_eq!(to_bincode(&named).unwrap(), pinned);
+    assert_eq!(
+        response_from_bincode::<RigInfo>(&pinned).unwrap(),
+        rig_info()
+    );
+    let list = RigList {
+        rigs: vec![named.clone(), rig_info()],
+    };
+    let bin = to_bincode(&list).unwrap();
+    assert_eq!(
+        response_from_bincode::<RigList>(&bin).unwrap().rigs,
+        vec![rig_info(), rig_info()]
+    );
+    let json = serde_json::to_value(&named).unwrap();
+    assert_eq!(
+        json["skeleton"]["node_names"],
+        serde_json::json!(["Root", "Jaw", "Head"])
+    );
+    assert_eq!(serde_json::from_value::<RigInfo>(json).unwrap(), named);
+    let pinned = std::fs::read(golden("rig_info.json")).unwrap();
+    assert_eq!(
+        serde_json::from_slice::<RigInfo>(&pinned).unwrap(),
+        rig_info()
     );
 }
 

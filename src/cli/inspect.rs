@@ -291,6 +291,8 @@ fn inspect_text(s: &RigSummary) -> String {
             s.clips.len()
         );
         let _ = writeln!(o, "  animated nodes: {}", k.animated_nodes.join(", "));
+        // What joint overrides and joint maps may name: every node, not only the animated ones.
+        let _ = writeln!(o, "  nodes: {}", k.node_names.join(", "));
     }
     for n in &s.import_notes {
         let _ = writeln!(o, "import note: {n}");

@@ -27,8 +27,8 @@ use super::scene::{Instance, MeshNames, scene_instances, tracks_bytes, weight_tr
 use super::{ImportError, ImportOptions};
 use crate::budget::Budget;
 use crate::rig::{
-    Clip, DEFAULT_FPS, JointMap, JointTable, LIVE_LINK_COLUMNS, MAX_FRAMES, Rig, TargetId,
-    TargetIndex, Trs, map_bytes, rest_rotations,
+    Clip, DEFAULT_FPS, JointMap, JointTable, LIVE_LINK_COLUMNS, MAX_FRAMES, MAX_LIVE_WEIGHT, Rig,
+    TargetId, TargetIndex, Trs, map_bytes, quoted_name, rest_rotations,
 };
 
 /// Options for reading a clip source.
@@ -192,6 +192,10 @@ fn map_names(
     options: &ClipOptions,
     budget: &Budget,
 ) -> Result<Columns, ImportError> {
+    for n in names {
+        checked_name(n)
+            .map_err(|why| ImportError::ClipSource(format!("column {}: {why}", quoted_name(n))))?;
+    }
     let bytes = Matcher::bytes(rig);
     budget.charge(bytes, || format!("the target names of rig {:?}", rig.name))?;
     let matcher = Matcher::new(rig);
@@ -200,12 +204,87 @@ fn map_names(
     drop(matcher);
     budget.release(bytes);
     let (ids, unknown, joints) = mapped?;
-    Ok(Columns {
+    let columns = Columns {
         ids,
         unknown,
         joints,
         map,
-    })
+    };
+    columns.each_once(rig, names, budget)?;
+    Ok(columns)
+}
+
+impl Columns {
+    /// Refuses two columns that write the same thing: the same target (two spellings that
+    /// match one name, `eyeBlink_L` and `EyeBlinkLeft`, or one name twice) or the same joint
+    /// channel (`HeadYaw` and `head_yaw`). One of them would otherwise be dropped silently;
+    /// live weights and joint maps refuse the same. Unknown columns write nothing and are
+    /// reported, not checked. The index this builds is charged to `budget` while it lives.
+    fn each_once(&self, rig: &Rig, names: &[String], budget: &Budget) -> Result<(), ImportError> {
+        let writers = self.ids.iter().filter(|i| !i.is_empty()).count() + self.joints.len();
+        let bytes = map_bytes(writers, 16);
+        budget.charge(bytes, || {
+            format!("the index of {writers} columns that write the rig")
+        })?;
+        // What a column writes, as one key: its target's first channel, or past every channel
+        // its joint channel.
+        let mut seen: HashMap<u64, usize> = HashMap::with_capacity(writers);
+        let n = rig.targets.len() as u64;
+        let keyed = self
+            .ids
+            .iter()
+            .enumerate()
+            .filter_map(|(c, ids)| ids.first().map(|&t| (c, u64::from(t))))
+            .chain(self.joints.iter().map(|&(c, ch)| (c, n + ch as u64)));
+        let mut twice = None;
+        for (c, key) in keyed {
+            if let Some(&first) = seen.get(&key) {
+                twice = Some((first, c, key));
+                break;
+            }
+            seen.insert(key, c);
+        }
+        drop(seen);
+        budget.release(bytes);
+        let Some((a, b, key)) = twice else {
+            return Ok(());
+        };
+        // By name: `names` leaves out metadata columns, so its positions are not the file's.
+        let (a, b) = (a.min(b), a.max(b));
+        let what = match key.checked_sub(n) {
+            None => format!(
+                "target {}",
+                quoted_name(rig.targets.get(key as usize).map_or("?", String::as_str))
+            ),
+            Some(ch) => format!(
+                "joint channel {}",
+                quoted_name(
+                    self.map
+                        .as_ref()
+                        .and_then(|m| m.channels.get(ch as usize))
+                        .map_or("?", |c| c.column.as_str())
+                )
+            ),
+        };
+        Err(ImportError::ClipSource(format!(
+            "columns {} and {} both write {what}: each may appear once (names match exactly or \
+             in any loose spelling)",
+            quoted_name(&names[a]),
+            quoted_name(&names[b]),
+        )))
+    }
+}
+
+/// Why `name` cannot be a column or weight name, if it cannot: a control character (a NUL, a
+/// newline, ...) would vanish in the loose spelling and match a name it does not spell.
+pub fn checked_name(name: &str) -> Result<(), String> {
+    match name.chars().find(|c| c.is_control()) {
+        Some(c) => Err(format!(
+            "the name has the control character {c:?}; names are matched by their letters and \
+             digits, so one with control characters is refused rather than matched loosely"
+        )),
+        None => Ok(()),
+    }
 }
 
 /// Whether `name` is one of Live Link Face's head and eye angle columns.
@@ -215,12 +294,16 @@ pub fn is_live_link_angle(name: &str) -> bool {
 }
 
 /// A clip's joint table from its joint columns (`Columns::joints`) and rows: each turned
-/// node's local transform per frame ([`JointMap::local`]). Its size is charged first.
+/// node's local transform per frame ([`JointMap::local`]). Its size is charged first. A value
+/// past ±[`MAX_LIVE_WEIGHT`] is refused, naming its column (of `names`) and its row (as
+/// `row_label` names row `r`), as the same angle sent as a live weight is.
 fn joint_table(
     rig: &Rig,
     map: &JointMap,
     joints: &[(usize, usize)],
     rows: &[Vec<f32>],
+    names: &[String],
+    row_label: &dyn Fn(usize) -> String,
     budget: &Budget,
 ) -> Result<Option<JointTable>, ImportError> {
     let Some(sk) = &rig.skeleton else {
@@ -228,6 +311,21 @@ fn joint_table(
     };
     if joints.is_empty() {
         return Ok(None);
+    }
+    // Checked before anything is charged or built: an angle of 1e30 radians turns the head
+    // by an arbitrary amount (f32 cannot tell its multiples of 2π apart).
+    for (r, row) in rows.iter().enumerate() {
+        for &(c, _) in joints {
+            let v = row.get(c).copied().unwrap_or(0.0);
+            if v.is_nan() || v.abs() > MAX_LIVE_WEIGHT {
+                return Err(ImportError::ClipSource(format!(
+                    "{}, column {}: {v} is past ±{MAX_LIVE_WEIGHT}, the most a joint angle \
+                     column may hold (as a live weight)",
+                    row_label(r),
+                    quoted_name(names.get(c).map_or("?", String::as_str))
+                )));
+            }
+        }
     }
     let channels: Vec<usize> = joints.iter().map(|j| j.1).collect();
     let nodes = map.nodes(&channels);
@@ -429,7 +527,18 @@ pub fn clip_from_csv(
     }
     let mut clip = clip_from_rows(rig, name, options.fps, &columns.ids, &rows, &budget)?;
     if let Some(map) = &columns.map {
-        clip.joints = joint_table(rig, map, &columns.joints, &rows, &budget)?.map(Arc::new);
+        // Rows counted from 1 with the header, as the other CSV errors count them.
+        let row_label = |r: usize| format!("row {}", r + 2);
+        clip.joints = joint_table(
+            rig,
+            map,
+            &columns.joints,
+            &rows,
+            &names,
+            &row_label,
+            &budget,
+        )?
+        .map(Arc::new);
     }
     budget.release(rows.len() as u64 * row_bytes);
     Ok(ClipImport { clip, ignored })
@@ -474,7 +583,17 @@ pub fn clip_from_json(
     let fps = src.fps.unwrap_or(options.fps);
     let mut clip = clip_from_rows(rig, name, fps, &columns.ids, &src.frames, &budget)?;
     if let Some(map) = &columns.map {
-        clip.joints = joint_table(rig, map, &columns.joints, &src.frames, &budget)?.map(Arc::new);
+        let row_label = |f: usize| format!("frame {f}");
+        clip.joints = joint_table(
+            rig,
+            map,
+            &columns.joints,
+            &src.frames,
+            &src.targets,
+            &row_label,
+            &budget,
+        )?
+        .map(Arc::new);
     }
     drop(src);
     budget.release(parsed);

@@ -27,6 +27,25 @@ use crate::rig::{ClipError, DEFAULT_DELTA_THRESHOLD, Rig, RigError};
 
 pub use self::clips::{clip_from_csv, clip_from_json, clips_from_gltf};
 
+/// Most names an error message quotes (the live-weights path names one; a clip source's list
+/// names a few, so that a file with several misspellings is fixed in one round).
+pub const LISTED_NAMES: usize = 16;
+
+/// `names` as an error message lists them: the first [`LISTED_NAMES`], quoted and cut to
+/// [`crate::rig::QUOTED_NAME_CHARS`] characters each, then how many more there are.
+pub fn listed(names: &[String]) -> String {
+    let mut out = names
+        .iter()
+        .take(LISTED_NAMES)
+        .map(|n| crate::rig::quoted_name(n))
+        .collect::<Vec<_>>()
+        .join(", ");
+    if names.len() > LISTED_NAMES {
+        out.push_str(&format!(" and {} more", names.len() - LISTED_NAMES));
+    }
+    out
+}
+
 /// Options of an import.
 #[derive(Clone, Debug)]
 pub struct ImportOptions {
@@ -137,8 +156,10 @@ pub enum ImportError {
     /// A clip table is unusable (CSV/JSON shape, ragged rows, bad numbers).
     #[error("clip: {0}")]
     ClipSource(String),
-    /// A clip source names targets the rig does not have.
-    #[error("unknown target(s) not in the rig: {}", .0.join(", "))]
+    /// A clip source names targets the rig does not have. The message quotes at most
+    /// [`LISTED_NAMES`] of them, each cut as [`crate::rig::quoted_name`] cuts it, and counts
+    /// the rest: a header of a million unknown columns is not echoed back whole.
+    #[error("unknown target(s) not in the rig: {}", listed(.0))]
     UnknownTargets(Vec<String>),
     /// The imported data breaks a rig invariant (NaN, no vertices, ...).
     #[error(transparent)]

@@ -58,6 +58,9 @@ async fn charge_compression(
     next: Next,
 ) -> Response {
     let Some(e) = encoding::accepted(req.headers()) else {
+        // Nothing compressed is acceptable: the identity encoding it is, whatever the header
+        // says of identity (`encoding`'s doc), never the compression layer's 406.
+        req.headers_mut().remove(header::ACCEPT_ENCODING);
         return next.run(req).await;
     };
     if req.headers().contains_key(header::UPGRADE) {
@@ -202,7 +205,7 @@ pub fn app(state: AppState) -> Router {
         // Bodies are read with explicit per-route limits (see http::body::read_body), after
         // a compressed one is inflated: the limits bound the inflated bytes.
         .layer(DefaultBodyLimit::disable())
-        .layer(encoding::decompress_layer())
+        .layer(middleware::from_fn(encoding::inflate_request))
         .layer(middleware::from_fn(json_errors))
         .layer(encoding::compress_layer())
         .layer(middleware::from_fn_with_state(

@@ -21,9 +21,14 @@ pub struct ServerConfig {
     /// Engine: auto (a hardware GPU if there is one, else the CPU engine), cpu or gpu.
     #[arg(long, env = "CROWDMORPH_BACKEND", default_value = "auto")]
     pub backend: BackendChoice,
-    /// Bearer token required for every change: rig and clip uploads and deletes, LOD changes,
-    /// creating, changing and deleting crowd sessions, and load tests (open when unset; crowd
-    /// frames, renders, GETs and session streams never need it).
+    /// Bearer token (`Authorization: Bearer T`) required by every change and by load tests:
+    /// POST /v1/rigs, DELETE /v1/rigs/{id}, PUT /v1/rigs/{id}/lod, PUT /v1/rigs/{id}/joint-map,
+    /// DELETE /v1/rigs/{id}/joint-map, PUT /v1/rigs/{id}/graphs/{name}, POST
+    /// /v1/rigs/{id}/graphs/{name}, DELETE /v1/rigs/{id}/graphs/{name}, POST
+    /// /v1/rigs/{id}/clips, DELETE /v1/rigs/{id}/clips/{clip}, POST /v1/sessions, PUT
+    /// /v1/sessions/{id}, PATCH /v1/sessions/{id}, DELETE /v1/sessions/{id}, POST /v1/loadtest
+    /// and GET /v1/loadtest/{id}. Open when unset; crowd frames, renders, the other GETs and
+    /// session streams never need it.
     #[arg(long, env = "CROWDMORPH_ADMIN_TOKEN", hide_env_values = true, value_parser = non_empty)]
     pub admin_token: Option<String>,
     /// Largest rig or clip upload, bytes.

@@ -500,9 +500,14 @@ pub fn clip_infos(rig: &Rig) -> Vec<ClipInfo> {
 pub fn skeleton_info(rig: &Rig) -> Option<crowdmorph_proto::SkeletonInfo> {
     let sk = rig.skeleton.as_ref()?;
     let (skinned, rigid) = rig.skinned_and_rigid_vertices();
+    // A node that several skins list as a joint is one bone to a user (each skin has its own
+    // bind matrix for it, hence its own entry in `sk.bones`).
+    let mut followed: Vec<u32> = sk.bones.iter().map(|b| b.node).collect();
+    followed.sort_unstable();
+    followed.dedup();
     Some(crowdmorph_proto::SkeletonInfo {
         nodes: sk.nodes.len() as u32,
-        bones: sk.bones.len() as u32,
+        bones: followed.len() as u32,
         skinned_vertices: skinned as u32,
         rigid_vertices: rigid as u32,
         animated_nodes: rig
@@ -516,6 +521,7 @@ pub fn skeleton_info(rig: &Rig) -> Option<crowdmorph_proto::SkeletonInfo> {
             .filter(|c| c.joints.is_some())
             .map(|c| c.name.clone())
             .collect(),
+        node_names: sk.nodes.iter().map(|n| n.name.clone()).collect(),
     })
 }
 

@@ -429,3 +429,86 @@ async fn clip_weights_that_would_overflow_the_output_are_refused() {
     assert!(clips.clips.is_empty(), "nothing was added");
     server.stop().await;
 }
+
+/// A CSV clip naming a million unknown columns (the hostile run's: its error body was 8.9 MB)
+/// is answered with a short error that quotes a few and counts the rest.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_million_unknown_clip_columns_get_a_short_error() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let s = &server;
+    let n = 1_000_000;
+    let mut csv = String::with_capacity(12 * n);
+    for i in 0..n {
+        csv.push_str(&format!("u{i},"));
+    }
+    csv.push_str("jawOpen\n");
+    for _ in 0..n {
+        csv.push_str("0,");
+    }
+    csv.push_str("0.5\n");
+    let r = post(s, "/v1/rigs/default-head/clips?name=wide", "text/csv", csv).await;
+    assert!(r.body.len() < 4096, "a {}-byte error body", r.body.len());
+    expect(
+        s,
+        r,
+        400,
+        "unknown_targets",
+        &format!(
+            "not in the rig: {} and {} more",
+            (0..16)
+                .map(|i| format!("\"u{i}\""))
+                .collect::<Vec<_>>()
+                .join(", "),
+            n - 16
+        ),
+    )
+    .await;
+    server.stop().await;
+}
+
+/// Two CSV columns that write one target, loose spellings included, are refused naming both
+/// (one of them was dropped silently), and nothing is added.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn clip_columns_that_write_one_target_twice_are_refused_naming_both() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let s = &server;
+    for (body, named) in [
+        ("jawOpen,JawOpen\n0.5,0.5\n", "\"jawOpen\" and \"JawOpen\""),
+        (
+            "Timecode,eyeBlink_L,EyeBlinkLeft\n0,0.5,0.5\n",
+            "\"eyeBlink_L\" and \"EyeBlinkLeft\"",
+        ),
+    ] {
+        let r = post(
+            s,
+            "/v1/rigs/default-head/clips?name=twice",
+            "text/csv",
+            body,
+        )
+        .await;
+        expect(s, r, 400, "invalid_clip", named).await;
+    }
+    let list = s.client.clips("default-head").await.expect("clips");
+    assert!(
+        list.clips.iter().all(|c| c.name != "twice"),
+        "nothing added"
+    );
+    server.stop().await;
+}
+
+/// A live weight whose name has a NUL (which the loose spelling would drop, matching
+/// `jawOpen`) is refused, not matched.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_weight_name_with_a_nul_is_refused_not_matched_loosely() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let s = &server;
+    let weights =
+        |name: &str| json!({"heads": [{"head": 0, "rig": "default-head", "weights": {name: 1.0}}]});
+    let r = post_json(s, weights("jawOpen")).await;
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    for name in ["jaw\u{0}Open", "jaw\nOpen", "\u{1b}jawOpen"] {
+        let r = post_json(s, weights(name)).await;
+        expect(s, r, 400, "invalid_weights", "control character").await;
+    }
+    server.stop().await;
+}

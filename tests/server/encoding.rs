@@ -268,3 +268,125 @@ async fn q16_residuals_decode_bit_for_bit_to_q16_and_compress_better() {
     );
     s.stop().await;
 }
+
+/// GETs `path` with `Accept-Encoding: accept_encoding` and JSON.
+async fn get_with(base: &str, path: &str, accept_encoding: &str) -> crowdmorph_client::Reply {
+    Client::new(base)
+        .send_with(
+            Method::GET,
+            path,
+            &[
+                ("accept", "application/json"),
+                ("accept-encoding", accept_encoding),
+            ],
+            Bytes::new(),
+        )
+        .await
+        .unwrap()
+}
+
+/// A client that accepts no encoding the server has (`identity;q=0`, `*;q=0`, `br` alone) gets
+/// the identity encoding, with the status and body it would get otherwise (not a 406 around
+/// the success body); `*` accepts zstd, and is charged as zstd is.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn accept_encodings_the_server_cannot_meet_get_the_plain_answer() {
+    let s = TestServer::start(crowdmorph::server::ServerConfig::default()).await;
+    let base = format!("http://{}", s.addr);
+    let plain = get_with(&base, "/v1/rigs/default-head", "identity").await;
+    assert_eq!(plain.status, 200);
+    assert!(plain.body.len() > 1400, "large enough to be compressed");
+    let want: serde_json::Value = serde_json::from_slice(&plain.body).unwrap();
+    for refused in [
+        "identity;q=0",
+        "*;q=0",
+        "*;q=0, identity;q=0",
+        "br",
+        "br, identity;q=0",
+        "zstd;q=0, gzip;q=0, identity;q=0",
+    ] {
+        let r = get_with(&base, "/v1/rigs/default-head", refused).await;
+        assert_eq!(
+            r.status,
+            200,
+            "{refused}: {}",
+            String::from_utf8_lossy(&r.body)
+        );
+        assert_eq!(r.header("content-encoding"), None, "{refused}");
+        let got: serde_json::Value = serde_json::from_slice(&r.body).unwrap();
+        assert_eq!(got, want, "{refused}");
+        // An error is the error, as JSON.
+        let r = get_with(&base, "/v1/rigs/nope", refused).await;
+        assert_eq!(r.status, 404, "{refused}");
+        assert_eq!(r.error().expect("JSON error").error.code, "unknown_rig");
+    }
+    for (accepted, token) in [("*", "zstd"), ("*, zstd;q=0", "gzip"), ("GZIP", "gzip")] {
+        let r = get_with(&base, "/v1/rigs/default-head", accepted).await;
+        assert_eq!(r.status, 200, "{accepted}");
+        assert_eq!(r.header("content-encoding"), Some(token), "{accepted}");
+        let got: serde_json::Value = serde_json::from_slice(&r.body).unwrap();
+        assert_eq!(got, want, "{accepted}");
+    }
+    s.stop().await;
+}
+
+/// Gzip with one member per part (`cat a.gz b.gz`, which RFC 1952 allows).
+fn gzip_members(parts: &[&[u8]]) -> Bytes {
+    let mut out = Vec::new();
+    for p in parts {
+        out.extend_from_slice(&gzip_bytes(p));
+    }
+    Bytes::from(out)
+}
+
+/// A request body in several gzip members or zstd frames is read whole (every member, every
+/// frame), `GZIP` and `x-gzip` are gzip (codings are case-insensitive), a cut-off stream is a
+/// 400, and an encoding the server does not take is a 415 that names it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_member_of_a_compressed_request_is_read_and_refusals_name_the_encoding() {
+    let s = TestServer::start(crowdmorph::server::ServerConfig::default()).await;
+    let base = format!("http://{}", s.addr);
+    let json = serde_json::to_vec(&crowd(Format::Q16)).unwrap();
+    let (status, plain) = post_encoded(&base, "identity", Bytes::from(json.clone())).await;
+    assert_eq!(status, 200);
+    let plain: serde_json::Value = serde_json::from_slice(&plain).unwrap();
+    // Cut inside a string and inside a number: a reader of the first member alone sees
+    // malformed JSON.
+    let (a, rest) = json.split_at(json.len() / 3);
+    let (b, c) = rest.split_at(rest.len() / 2);
+    let mut zstd_frames = zstd_bytes(a).to_vec();
+    zstd_frames.extend_from_slice(&zstd_bytes(b));
+    zstd_frames.extend_from_slice(&zstd_bytes(c));
+    let cases = [
+        ("gzip", gzip_members(&[a, b, c])),
+        ("x-gzip", gzip_members(&[a, b, c])),
+        ("GZIP", gzip_bytes(&json)),
+        ("Zstd", zstd_bytes(&json)),
+        ("zstd", Bytes::from(zstd_frames)),
+        // An empty member between two others.
+        ("gzip", gzip_members(&[a, b"", rest])),
+    ];
+    for (coding, body) in cases {
+        let (status, reply) = post_encoded(&base, coding, body).await;
+        assert_eq!(status, 200, "{coding}: {}", String::from_utf8_lossy(&reply));
+        let got: serde_json::Value = serde_json::from_slice(&reply).unwrap();
+        assert_eq!(got["buffers"], plain["buffers"], "{coding}");
+        assert_eq!(got["heads"], plain["heads"], "{coding}");
+    }
+    // Cut short: the body cannot be read.
+    for (coding, whole) in [("gzip", gzip_bytes(&json)), ("zstd", zstd_bytes(&json))] {
+        let cut = whole.slice(..whole.len() - 5);
+        let (status, reply) = post_encoded(&base, coding, cut).await;
+        assert_eq!(status, 400, "{coding}: {}", String::from_utf8_lossy(&reply));
+        let e: serde_json::Value = serde_json::from_slice(&reply).unwrap();
+        assert_eq!(e["error"]["code"], "body_unreadable", "{e}");
+    }
+    for refused in ["br", "deflate", "gzip, zstd", "compress"] {
+        let (status, reply) = post_encoded(&base, refused, Bytes::from(json.clone())).await;
+        assert_eq!(status, 415, "{refused}");
+        let e: serde_json::Value = serde_json::from_slice(&reply).unwrap();
+        assert_eq!(e["error"]["code"], "unsupported_media_type", "{e}");
+        let message = e["error"]["message"].as_str().unwrap();
+        assert!(message.contains(&format!("{refused:?}")), "{message}");
+    }
+    s.stop().await;
+}

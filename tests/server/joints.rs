@@ -695,3 +695,285 @@ async fn live_link_columns_turn_the_head_and_a_rigs_own_map_is_kept() {
     s2.stop().await;
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// The robot's `RigInfo` lists every node a joint override or joint map may name, and counts
+/// each bone once (its four skins list the same 43 joints, and rigid meshes hang from 15 more
+/// nodes); `unknown_joints` says where the names are.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_test_data),
+    ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+)]
+async fn the_robots_nodes_are_listed_and_its_bones_counted_once() {
+    let path = robot_path();
+    let doc = RefDoc::load(&path);
+    let server = TestServer::start(ServerConfig::default()).await;
+    server
+        .client
+        .upload_rig("robot", upload_bytes(&path))
+        .await
+        .expect("upload");
+    let info = server.client.rig("robot").await.expect("rig");
+    let sk = info.skeleton.expect("a skeleton");
+    let followed = crate::util::skin::followed_nodes(&doc.json);
+    let skin_entries: usize = doc.json["skins"]
+        .as_array()
+        .expect("skins")
+        .iter()
+        .map(|s| s["joints"].as_array().map_or(0, Vec::len))
+        .sum();
+    assert!(
+        followed.len() < skin_entries,
+        "the skins share joints: {} nodes, {skin_entries} entries",
+        followed.len()
+    );
+    assert_eq!(sk.bones as usize, followed.len());
+    assert_eq!(sk.node_names.len(), sk.nodes as usize);
+    let name = |n: usize| doc.json["nodes"][n]["name"].as_str().expect("named");
+    for &n in &followed {
+        assert!(sk.node_names.iter().any(|x| x == name(n)), "{}", name(n));
+    }
+    for a in &sk.animated_nodes {
+        assert!(sk.node_names.contains(a), "{a}");
+    }
+    // The bincode form is the pinned layout: no names there.
+    let bin = server
+        .client
+        .send(
+            Method::GET,
+            "/v1/rigs/robot",
+            None,
+            Some("application/x-bincode"),
+            Bytes::new(),
+        )
+        .await
+        .expect("bincode");
+    let decoded: crowdmorph_proto::RigInfo =
+        crowdmorph_proto::wire::response_from_bincode(&bin.body).expect("decodes");
+    let k = decoded.skeleton.expect("a skeleton");
+    assert!(k.node_names.is_empty());
+    assert_eq!(k.bones, sk.bones);
+
+    // A name no node has: the message says where the names are.
+    let wrong = request(vec![head(
+        1,
+        "robot",
+        "Idle",
+        0,
+        0,
+        JointOverrides::rotation("Nose", [0.0, 0.0, 0.0, 1.0]),
+    )]);
+    let m = api_error(
+        server.client.crowd_frame(&wrong, Encoding::Bincode).await,
+        400,
+        "unknown_joints",
+    );
+    assert!(m.contains("skeleton.node_names"), "{m}");
+
+    server.stop().await;
+}
+
+/// The jaw rig with a map of its own: `HeadYaw` and `HeadPitch` turn `Jaw`.
+async fn jaw_with_head_columns() -> TestServer {
+    let server = jaw_server().await;
+    let channel = |column: &str, axis: [f32; 3]| JointChannelSpec {
+        column: column.into(),
+        node: "Jaw".into(),
+        axis,
+        scale: 1.0,
+    };
+    let map = JointMapSpec {
+        channels: vec![
+            channel("HeadYaw", [0.0, 1.0, 0.0]),
+            channel("HeadPitch", [1.0, 0.0, 0.0]),
+        ],
+    };
+    server.client.set_joint_map("jaw", &map).await.expect("map");
+    server
+}
+
+/// Uploads `csv` as clip `name` of the jaw rig.
+async fn jaw_csv(
+    server: &TestServer,
+    name: &str,
+    csv: String,
+) -> Result<crowdmorph_proto::ClipUpload, crowdmorph_client::ClientError> {
+    server
+        .client
+        .upload_clip(
+            "jaw",
+            &format!("name={name}&ignore_unknown=true"),
+            "text/csv",
+            Bytes::from(csv),
+        )
+        .await
+}
+
+/// Two spellings of one joint column are refused naming both, as two of one target are (one
+/// of them was dropped silently).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_joint_column_spelled_twice_is_refused_naming_both() {
+    let server = jaw_with_head_columns().await;
+    let m = api_error(
+        jaw_csv(&server, "twice", "HeadYaw,head_yaw\n0.1,0.2\n".into()).await,
+        400,
+        "invalid_clip",
+    );
+    assert!(m.contains("\"HeadYaw\" and \"head_yaw\""), "{m}");
+    server.stop().await;
+}
+
+/// A joint map's column with a control character is refused: columns are matched loosely,
+/// which would drop the character (`Head\0Yaw` would take `HeadYaw`'s values).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_joint_map_column_with_a_control_character_is_refused() {
+    let server = jaw_server().await;
+    let map = JointMapSpec {
+        channels: vec![JointChannelSpec {
+            column: "Head\u{0}Yaw".into(),
+            node: "Jaw".into(),
+            axis: [0.0, 1.0, 0.0],
+            scale: 1.0,
+        }],
+    };
+    let m = api_error(
+        server.client.set_joint_map("jaw", &map).await,
+        400,
+        "invalid_joint_map",
+    );
+    assert!(m.contains("control character"), "{m}");
+    assert!(server.client.joint_map("jaw").await.expect("map").default);
+    server.stop().await;
+}
+
+/// An angle column's values are capped as the same angle sent as a live weight is (±64): past
+/// it, refused naming the row and column (1e30 was taken).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn angle_columns_past_64_are_refused_naming_row_and_column() {
+    let server = jaw_with_head_columns().await;
+    for (i, (angle, ok)) in [(64.0f32, true), (-64.0, true), (64.5, false), (1e30, false)]
+        .into_iter()
+        .enumerate()
+    {
+        let csv = format!("HeadPitch,HeadYaw\n0,0\n0.25,{angle}\n");
+        let got = jaw_csv(&server, &format!("angle{i}"), csv).await;
+        if ok {
+            got.expect("an angle of ±64 is taken");
+        } else {
+            let m = api_error(got, 400, "invalid_clip");
+            assert!(m.contains("row 3, column \"HeadYaw\""), "{angle}: {m}");
+        }
+    }
+    server.stop().await;
+}
+
+/// A rotation of tiny but finite, non-zero components is that rotation, normalized (in f32
+/// their squares vanish); only all-zero or non-finite ones are refused.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn tiny_rotations_are_normalized_and_only_zero_ones_refused() {
+    let server = jaw_server().await;
+    let at = |q: [f32; 4]| {
+        request(vec![head(
+            1,
+            "jaw",
+            "open",
+            3,
+            0,
+            JointOverrides::rotation("Jaw", q),
+        )])
+    };
+    let (unit, _) = frame(&server, &at([0.0, 0.0, 0.6, 0.8])).await;
+    let (rest, _) = frame(&server, &at([0.0, 0.0, 0.0, 1.0])).await;
+    assert!(diff(&unit[0], &rest[0]) > 1e-2, "the rotation shows");
+    for q in [
+        [0.0, 0.0, 6e-21, 8e-21],
+        [0.0, 0.0, 6e-39, 8e-39],
+        [0.0, 0.0, 6e5, 8e5],
+    ] {
+        let (got, _) = frame(&server, &at(q)).await;
+        assert!(diff(&got[0], &unit[0]) <= 1e-6, "{q:?}");
+    }
+    for q in [[0.0, 0.0, 0.0, 0.0], [0.0, 0.0, f32::INFINITY, 1.0]] {
+        let m = api_error(
+            server.client.crowd_frame(&at(q), Encoding::Bincode).await,
+            400,
+            "invalid_joints",
+        );
+        assert!(m.contains("not all zero"), "{q:?}: {m}");
+    }
+    server.stop().await;
+}
+
+/// Two skinned meshes on the same two joints, the second skin binding `Jaw` elsewhere (skins
+/// of one avatar whose bind poses differ, as VRoid exports have them): the rig has a bone per
+/// (joint, bind pose), but `bones` counts the nodes vertices follow, each once, and
+/// `node_names` lists the skeleton's nodes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_joint_two_skins_share_is_one_bone_and_every_node_is_listed() {
+    let (mut b, t) = skinned_triangle_rig();
+    // Root bound where the first skin binds it, Jaw at (0, 1.5, 0) rather than (0, 1, 0).
+    #[rustfmt::skip]
+    let ibm2 = b.accessor_f32(&[
+        1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0,
+        1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, -1.5, 0.0, 1.0,
+    ], "MAT4");
+    let mesh = b.json_mut()["nodes"][t.mesh_node]["mesh"].clone();
+    let twin = b.node(None);
+    let json = b.json_mut();
+    json["nodes"][twin]["mesh"] = mesh;
+    json["nodes"][twin]["skin"] = json!(1);
+    let skins = json["skins"].as_array_mut().expect("skins");
+    skins.push(json!({ "joints": [t.root, t.jaw], "inverseBindMatrices": ibm2 }));
+    json["scenes"][0]["nodes"]
+        .as_array_mut()
+        .expect("scene nodes")
+        .push(json!(twin));
+    let followed = crate::util::skin::followed_nodes(json);
+    assert_eq!(followed.len(), 2, "Root and Jaw");
+
+    let server = TestServer::start(ServerConfig::default()).await;
+    server
+        .client
+        .upload_rig("twins", Bytes::from(b.to_glb()))
+        .await
+        .expect("upload");
+    let sk = server
+        .client
+        .rig("twins")
+        .await
+        .expect("rig")
+        .skeleton
+        .expect("a skeleton");
+    assert_eq!(sk.bones as usize, followed.len(), "{sk:?}");
+    assert_eq!(sk.node_names, ["Root", "Jaw"]);
+    assert_eq!(sk.nodes, 2);
+    // Both meshes follow the joints: a turned jaw moves both copies of its vertex.
+    let (rest, _) = frame(
+        &server,
+        &request(vec![head(
+            1,
+            "twins",
+            "open",
+            0,
+            0,
+            JointOverrides::default(),
+        )]),
+    )
+    .await;
+    let (turned, _) = frame(
+        &server,
+        &request(vec![head(
+            1,
+            "twins",
+            "open",
+            0,
+            0,
+            JointOverrides::rotation("Jaw", [0.0, 0.0, 0.38, 0.92]),
+        )]),
+    )
+    .await;
+    assert_eq!(rest[0].len(), 2 * 3 * 3, "two triangles");
+    let moved = |v: usize| (0..3).any(|c| (rest[0][3 * v + c] - turned[0][3 * v + c]).abs() > 1e-3);
+    assert!(moved(1) && moved(4), "{rest:?} {turned:?}");
+    server.stop().await;
+}

@@ -475,6 +475,49 @@ async fn idle_sessions_end() {
     server.stop().await;
 }
 
+/// What README says of `tick` and `stats.ticks`: the clock counts every tick whose time came,
+/// the stats only the ticks computed for viewers; so without a viewer `tick` runs and
+/// `stats.ticks` stays 0, and later the ticks without a viewer stay the difference (at least).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn tick_counts_every_tick_and_stats_ticks_only_those_computed_for_viewers() {
+    let server = TestServer::start(config()).await;
+    let s = create(
+        &server,
+        json!({"fps": 20, "heads": [head(1, "talk", 0, [0.0, 0.0, 0.0])]}),
+    )
+    .await;
+    let mut idle = info(&server, &s.id).await;
+    for _ in 0..500 {
+        if idle.tick >= 10 {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+        idle = info(&server, &s.id).await;
+    }
+    assert!(idle.tick >= 10, "the clock runs without viewers: {idle:?}");
+    // (A tick that came late on a busy machine would count as skipped: not checked here.)
+    assert_eq!(
+        (idle.stats.ticks, idle.stats.jobs),
+        (0, 0),
+        "nothing is computed without viewers"
+    );
+    let mut ws = connect(&server, &s.id, json!({})).await;
+    for _ in 0..3 {
+        next_tick(&mut ws).await;
+    }
+    let watched = info(&server, &s.id).await;
+    assert!(watched.stats.ticks >= 3, "{:?}", watched.stats);
+    // tick = ticks + skipped + ticks without viewers, less skipped ticks counted ahead.
+    assert!(
+        watched.tick >= watched.stats.ticks + idle.tick,
+        "{} < {} + {}",
+        watched.tick,
+        watched.stats.ticks,
+        idle.tick
+    );
+    server.stop().await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bad_hellos_and_updates_close_with_1008_and_a_reason() {
     let server = TestServer::start(config()).await;

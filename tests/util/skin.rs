@@ -367,3 +367,45 @@ impl super::RefPrim {
         prims[0]["attributes"].clone()
     }
 }
+
+/// The nodes vertices follow in a glTF document, read from its JSON alone: every skin's joints
+/// (a node several skins list, once) and each mesh node without a skin that an animation
+/// moves, itself or through an ancestor (it hangs rigidly from itself).
+pub fn followed_nodes(json: &Value) -> std::collections::BTreeSet<usize> {
+    let nodes = json["nodes"].as_array().expect("nodes");
+    let mut parent = vec![None; nodes.len()];
+    for (i, n) in nodes.iter().enumerate() {
+        for c in n["children"].as_array().into_iter().flatten() {
+            parent[c.as_u64().expect("child") as usize] = Some(i);
+        }
+    }
+    let animated: std::collections::BTreeSet<usize> = json["animations"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .flat_map(|a| a["channels"].as_array().into_iter().flatten())
+        .filter(|c| c["target"]["path"] != "weights")
+        .filter_map(|c| c["target"]["node"].as_u64().map(|n| n as usize))
+        .collect();
+    let mut out: std::collections::BTreeSet<usize> = json["skins"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .flat_map(|s| s["joints"].as_array().into_iter().flatten())
+        .map(|j| j.as_u64().expect("joint") as usize)
+        .collect();
+    for (i, n) in nodes.iter().enumerate() {
+        if n.get("mesh").is_none() || n.get("skin").is_some() {
+            continue;
+        }
+        let mut at = Some(i);
+        while let Some(k) = at {
+            if animated.contains(&k) {
+                out.insert(i);
+                break;
+            }
+            at = parent[k];
+        }
+    }
+    out
+}

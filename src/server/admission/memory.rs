@@ -28,11 +28,67 @@ pub struct QueueMemory {
     semaphore: Arc<Semaphore>,
     units: u32,
     metrics: Arc<Metrics>,
+    drain: Arc<Drain>,
 }
 
-/// A piece of the queue memory, given back when dropped.
+/// A piece of the queue memory, given back when dropped (its permit first, then its
+/// [`Drain`] looks at what is left).
 #[derive(Debug)]
-pub struct Charge(OwnedSemaphorePermit);
+pub struct Charge(OwnedSemaphorePermit, DrainOnDrop);
+
+/// Queue memory charged and given back since the last trim after which the queue draining
+/// hands the freed memory back to the operating system: an overload (dozens of 16 MiB bodies
+/// decoding, some at once, some one after another) leaves the process hundreds of MB larger
+/// than it needs until the allocator is trimmed, whether or not the requests overlapped.
+const DRAINED_VOLUME: u64 = 4 * crate::budget::TRIM_AFTER_BYTES;
+
+/// What may still be charged for the queue to count as drained.
+const DRAINED_USE: u64 = crate::budget::TRIM_AFTER_BYTES;
+
+/// The queue memory's volume since the last trim it asked for, and the check made as each
+/// charge is given back.
+#[derive(Debug)]
+struct Drain {
+    semaphore: Arc<Semaphore>,
+    units: u32,
+    /// Bytes charged since the last trim this asked for.
+    volume: std::sync::atomic::AtomicU64,
+}
+
+impl Drain {
+    fn used(&self) -> u64 {
+        let free = self.semaphore.available_permits() as u64;
+        u64::from(self.units).saturating_sub(free) * UNIT
+    }
+
+    /// After a charge is given back: once at least [`DRAINED_VOLUME`] has gone through the
+    /// queue and at most [`DRAINED_USE`] is still charged, the requests that held it are over:
+    /// their memory goes back to the operating system
+    /// ([`crate::budget::return_freed_memory_soon`], at most one trim every two seconds).
+    fn released(&self) {
+        use std::sync::atomic::Ordering;
+        let volume = self.volume.load(Ordering::Acquire);
+        if volume >= DRAINED_VOLUME
+            && self.used() <= DRAINED_USE
+            && self
+                .volume
+                .compare_exchange(volume, 0, Ordering::AcqRel, Ordering::Acquire)
+                .is_ok()
+        {
+            crate::budget::return_freed_memory_soon();
+        }
+    }
+}
+
+/// Runs [`Drain::released`] when the charge holding it is dropped, after its permit.
+#[derive(Debug)]
+struct DrainOnDrop(Arc<Drain>);
+
+impl Drop for DrainOnDrop {
+    fn drop(&mut self) {
+        self.0.released();
+    }
+}
 
 impl Charge {
     /// Bytes it holds (whole KiB).
@@ -42,7 +98,8 @@ impl Charge {
 
     /// Takes `other` into this charge: both are given back together.
     pub fn merge(&mut self, other: Charge) {
-        self.0.merge(other.0);
+        let Charge(permit, _drain) = other;
+        self.0.merge(permit);
     }
 
     /// Gives back all but `bytes` of it now.
@@ -61,8 +118,14 @@ impl QueueMemory {
         let units = u32::try_from((bytes as u64 / UNIT).max(1))
             .unwrap_or(u32::MAX)
             .min(Semaphore::MAX_PERMITS as u32);
+        let semaphore = Arc::new(Semaphore::new(units as usize));
         QueueMemory {
-            semaphore: Arc::new(Semaphore::new(units as usize)),
+            drain: Arc::new(Drain {
+                semaphore: semaphore.clone(),
+                units,
+                volume: std::sync::atomic::AtomicU64::new(0),
+            }),
+            semaphore,
             units,
             metrics,
         }
@@ -75,8 +138,7 @@ impl QueueMemory {
 
     /// Bytes charged now.
     pub fn used(&self) -> u64 {
-        let free = self.semaphore.available_permits() as u64;
-        u64::from(self.units).saturating_sub(free) * UNIT
+        self.drain.used()
     }
 
     /// Takes `bytes`: 503 `queue_full` when the queue memory is full now, 413
@@ -90,7 +152,12 @@ impl QueueMemory {
         self.semaphore
             .clone()
             .try_acquire_many_owned(units as u32)
-            .map(Charge)
+            .map(|permit| {
+                self.drain
+                    .volume
+                    .fetch_add(units * UNIT, std::sync::atomic::Ordering::AcqRel);
+                Charge(permit, DrainOnDrop(self.drain.clone()))
+            })
             .map_err(|_| {
                 self.metrics.reject("queue_memory");
                 ApiError::unavailable(

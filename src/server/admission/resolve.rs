@@ -7,7 +7,7 @@ use std::sync::Arc;
 
 use crowdmorph_proto::{BlendLayer, Format, Head, JointOverrides, JointTransform, LiveWeights};
 
-use crate::import::clips::{is_live_link_angle, loose};
+use crate::import::clips::{checked_name, is_live_link_angle, loose};
 use crate::plan::{JobKey, Plan};
 use crate::rig::quoted_name;
 use crate::rig::{
@@ -198,7 +198,7 @@ pub fn requested_joints(
             (
                 "unknown_joints",
                 format!(
-                    "joints name {}, {why} (GET /v1/rigs/{} lists its skeleton's animated nodes; any node a bone hangs from can be set)",
+                    "joints name {}, {why} (GET /v1/rigs/{} with Accept: application/json lists every node that can be set in skeleton.node_names)",
                     quoted_name(name),
                     entry.id
                 ),
@@ -254,26 +254,35 @@ pub fn requested_joints(
                 )));
             }
         }
-        if let Some(q) = &t.rotation {
-            let len2: f64 = q.iter().map(|&c| f64::from(c) * f64::from(c)).sum();
-            if !q
-                .iter()
-                .all(|c| c.is_finite() && c.abs() <= MAX_JOINT_VALUE)
-                || len2 < 1e-12
-            {
-                return Err(invalid(format!(
-                    "{} is {q:?}; a rotation is a quaternion x, y, z, w of finite, not all zero components",
-                    field("rotation")
-                )));
+        // A rotation of any finite, non-zero length is that rotation: normalized here in f64,
+        // where the squares of f32 components cannot underflow (in f32, components of 1e-30
+        // square to zero and the rotation would become the identity).
+        let rotation = match &t.rotation {
+            None => None,
+            Some(q) => {
+                let len2: f64 = q.iter().map(|&c| f64::from(c) * f64::from(c)).sum();
+                let bounded = q
+                    .iter()
+                    .all(|c| c.is_finite() && c.abs() <= MAX_JOINT_VALUE);
+                // Bounded components have a finite length; only all zeros have none.
+                if !bounded || len2 == 0.0 {
+                    return Err(invalid(format!(
+                        "{} is {q:?}; a rotation is a quaternion x, y, z, w of finite components, \
+                         not all zero (any non-zero length is normalized)",
+                        field("rotation")
+                    )));
+                }
+                let len = len2.sqrt();
+                Some(q.map(|c| (f64::from(c) / len) as f32))
             }
-        }
+        };
         if sets.iter().any(|s: &JointSet| s.node == node) {
             return Err(invalid(format!(
                 "joints set node {} twice",
                 quoted_name(name)
             )));
         }
-        sets.push(JointSet::new(node, t.translation, t.rotation, t.scale));
+        sets.push(JointSet::new(node, t.translation, rotation, t.scale));
     }
     Ok(JointPose::new(sets))
 }
@@ -655,6 +664,11 @@ impl<'h> Lookups<'h> {
                 let mut seen = std::collections::HashSet::with_capacity(pairs.len());
                 for (name, w) in pairs {
                     check(&quoted_name(name), *w)?;
+                    // A NUL or another control character would vanish in the loose spelling
+                    // and match a target the name does not spell.
+                    checked_name(name).map_err(|why| {
+                        invalid_weights(h, head, format!("weights[{}]: {why}", quoted_name(name)))
+                    })?;
                     let ids = names.ids(name);
                     if ids.is_empty()
                         && let Some(&c) = live_angles

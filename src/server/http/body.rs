@@ -72,7 +72,14 @@ pub async fn read_body(
     })?;
     match collected {
         Ok(c) => Ok(c.to_bytes()),
-        Err(e) if e.is::<http_body_util::LengthLimitError>() => Err(too_large()),
+        Err(e) if e.is::<http_body_util::LengthLimitError>() => {
+            // `limit` bytes were read (a bomb inflates to the limit) and are free again: hand
+            // them back, or a refused 256 MiB bomb leaves the process ~500 MB larger.
+            if limit as u64 >= crate::budget::TRIM_AFTER_BYTES {
+                crate::budget::return_freed_memory_soon();
+            }
+            Err(too_large())
+        }
         Err(e) => Err(ApiError::bad_request(
             "body_unreadable",
             format!("could not read the request body: {e}"),

@@ -85,12 +85,17 @@ fn resolve(entry: &RigEntry, spec: &JointMapSpec) -> Result<JointMap, ApiError> 
                 "channels[{i}].column must be 1–{MAX_COLUMN} characters"
             )));
         }
+        // Columns are matched loosely, which a control character would vanish from.
+        crate::import::clips::checked_name(&c.column)
+            .map_err(|why| invalid(format!("channels[{i}].column: {why}")))?;
         let node = entry.joint_node(&c.node).map_err(|why| {
             ApiError::bad_request(
                 "unknown_joints",
                 format!(
-                    "channels[{i}].node is {}, {why}",
-                    crate::rig::quoted_name(&c.node)
+                    "channels[{i}].node is {}, {why} (GET /v1/rigs/{} with Accept: \
+                     application/json lists every node in skeleton.node_names)",
+                    crate::rig::quoted_name(&c.node),
+                    entry.id
                 ),
             )
         })?;
