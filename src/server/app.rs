@@ -75,6 +75,20 @@ async fn charge_compression(
     }
 }
 
+/// Charges what inflating a compressed request body holds (its decoder,
+/// [`encoding::decoder_bytes`]) to the queue memory before the body is read, kept until the
+/// response has been sent; without room, a 503 `queue_full` (413 when it exceeds the whole
+/// queue memory), as for any other request memory.
+async fn charge_inflation(State(state): State<AppState>, req: Request, next: Next) -> Response {
+    let Some(bytes) = encoding::decoder_bytes(req.headers()) else {
+        return next.run(req).await;
+    };
+    match state.queue_memory.reserve(bytes) {
+        Ok(charge) => super::http::body::hold(next.run(req).await, charge),
+        Err(e) => e.into_response(),
+    }
+}
+
 /// Counts every response by route and status.
 async fn count_requests(State(state): State<AppState>, req: Request, next: Next) -> Response {
     let route = req
@@ -206,6 +220,10 @@ pub fn app(state: AppState) -> Router {
         // a compressed one is inflated: the limits bound the inflated bytes.
         .layer(DefaultBodyLimit::disable())
         .layer(middleware::from_fn(encoding::inflate_request))
+        .layer(middleware::from_fn_with_state(
+            state.clone(),
+            charge_inflation,
+        ))
         .layer(middleware::from_fn(json_errors))
         .layer(encoding::compress_layer())
         .layer(middleware::from_fn_with_state(

@@ -390,3 +390,49 @@ async fn every_member_of_a_compressed_request_is_read_and_refusals_name_the_enco
     }
     s.stop().await;
 }
+
+/// A zstd frame's header says how large a window its decoder must hold: up to 128 MiB by
+/// libzstd's default, from a body of a few bytes. The server takes at most RFC 9659's 8 MiB
+/// (a frame that asks for more is a 400 before anything is allocated for it), and charges its
+/// decoder to the queue memory before it reads the body: a decoder larger than the whole queue
+/// memory is a 413 naming the flag.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_zstd_body_cannot_ask_for_a_large_window_and_its_decoder_is_charged() {
+    let s = TestServer::start(crowdmorph::server::ServerConfig::default()).await;
+    let base = format!("http://{}", s.addr);
+    let json = serde_json::to_vec(&crowd(Format::Q16)).unwrap();
+    // The same body with a 128 MiB window (long-distance matching keeps the frame from
+    // shrinking it to the content's size).
+    let mut e = zstd::stream::Encoder::new(Vec::new(), 1).unwrap();
+    e.window_log(27).unwrap();
+    e.long_distance_matching(true).unwrap();
+    e.include_contentsize(false).unwrap();
+    e.write_all(&json).unwrap();
+    let wide = Bytes::from(e.finish().unwrap());
+    let (status, reply) = post_encoded(&base, "zstd", wide).await;
+    assert_eq!(status, 400, "{}", String::from_utf8_lossy(&reply));
+    let err: serde_json::Value = serde_json::from_slice(&reply).unwrap();
+    assert_eq!(err["error"]["code"], "body_unreadable", "{err}");
+    let (status, _) = post_encoded(&base, "zstd", zstd_bytes(&json)).await;
+    assert_eq!(status, 200, "an ordinary zstd body");
+    s.stop().await;
+
+    // 8 MiB of queue memory: never room for zstd's decoder, which is refused as larger than
+    // the whole budget before the body is read (413), while the same body sent plain only
+    // waits for room (the body's own reservation takes what is free: 503).
+    let s = TestServer::start(crowdmorph::server::ServerConfig {
+        queue_memory_bytes: 8 << 20,
+        ..crowdmorph::server::ServerConfig::default()
+    })
+    .await;
+    let base = format!("http://{}", s.addr);
+    let (status, reply) = post_encoded(&base, "zstd", zstd_bytes(&json)).await;
+    assert_eq!(status, 413, "{}", String::from_utf8_lossy(&reply));
+    let err: serde_json::Value = serde_json::from_slice(&reply).unwrap();
+    assert_eq!(err["error"]["code"], "queue_memory_exceeded", "{err}");
+    let message = err["error"]["message"].as_str().unwrap();
+    assert!(message.contains("--queue-memory-bytes"), "{message}");
+    let (status, reply) = post_encoded(&base, "identity", Bytes::from(json.clone())).await;
+    assert_ne!(status, 413, "{}", String::from_utf8_lossy(&reply));
+    s.stop().await;
+}

@@ -15,7 +15,9 @@
 //!
 //! What an encoder holds while it compresses one response ([`encoder_bytes`]) is charged by the
 //! router before the response is made (`app.rs`); when it cannot be, the response goes out
-//! plain.
+//! plain. What a decoder holds ([`decoder_bytes`]) is charged by the router before the body is
+//! read: a zstd frame's window is whatever its header asks for, so the decoder takes at most
+//! RFC 9659's 8 MiB ([`ZSTD_WINDOW_LOG_MAX`]) and refuses a frame that wants more.
 
 use std::io::Write;
 use std::pin::Pin;
@@ -109,6 +111,22 @@ pub fn compress_layer() -> CompressionLayer<impl Predicate> {
         .compress_when(predicate)
 }
 
+/// The largest zstd window a request body may use, as a power of two: 8 MiB, the limit RFC
+/// 9659 sets for zstd in HTTP (libzstd would otherwise allocate up to 128 MiB for a frame
+/// whose header asks for it).
+pub const ZSTD_WINDOW_LOG_MAX: u32 = 23;
+
+/// Memory a decoder of a request body with these headers holds while the body is read, for
+/// the router's charge: zstd's window at its cap plus its context (about 160 KiB), deflate's
+/// 32 KiB window and state; `None` for a body sent plain (or with a refused coding).
+pub fn decoder_bytes(headers: &HeaderMap) -> Option<u64> {
+    match request_coding(headers) {
+        Ok(Coding::Zstd) => Some((1 << ZSTD_WINDOW_LOG_MAX) + (256 << 10)),
+        Ok(Coding::Gzip) => Some(64 << 10),
+        Ok(Coding::Identity) | Err(_) => None,
+    }
+}
+
 /// A request body's content coding.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum Coding {
@@ -163,10 +181,18 @@ pub async fn inflate_request(req: Request, next: Next) -> Response {
         Coding::Identity => return next.run(req).await,
         Coding::Gzip => Decoder::Gzip(Box::new(flate2::write::MultiGzDecoder::new(Vec::new()))),
         // Not `whole` before any input: an empty body is no zstd stream.
-        Coding::Zstd => match zstd::stream::raw::Decoder::new() {
-            Ok(d) => Decoder::Zstd { d, whole: false },
-            Err(e) => return ApiError::internal(e).into_response(),
-        },
+        Coding::Zstd => {
+            let made = zstd::stream::raw::Decoder::new().and_then(|mut d| {
+                d.set_parameter(zstd::stream::raw::DParameter::WindowLogMax(
+                    ZSTD_WINDOW_LOG_MAX,
+                ))
+                .map(|()| d)
+            });
+            match made {
+                Ok(d) => Decoder::Zstd { d, whole: false },
+                Err(e) => return ApiError::internal(e).into_response(),
+            }
+        }
     };
     let (mut parts, body) = req.into_parts();
     parts.headers.remove(header::CONTENT_ENCODING);
