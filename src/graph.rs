@@ -984,12 +984,7 @@ pub fn build_work(rig: &Rig, opt: BuildOptions) -> u64 {
         .saturating_mul(dims + u64::from(opt.window.max(1)));
     let features = match &rig.skeleton {
         None => {
-            let deltas: u64 = rig
-                .primitives
-                .iter()
-                .flat_map(|p| p.targets.iter())
-                .map(|t| t.vertices.len() as u64)
-                .sum();
+            let deltas = rig.delta_count();
             deltas * k + k * k * k + frames * k * k
         }
         Some(sk) => {

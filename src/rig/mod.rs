@@ -326,6 +326,16 @@ impl Rig {
         self.primitives.iter().map(|p| p.positions.len()).sum()
     }
 
+    /// Vertex deltas stored over every target of every primitive (the sparse entries a blend of
+    /// all shapes visits).
+    pub fn delta_count(&self) -> u64 {
+        self.primitives
+            .iter()
+            .flat_map(|p| p.targets.iter())
+            .map(|t| t.vertices.len() as u64)
+            .sum()
+    }
+
     /// First vertex of each primitive in the concatenated evaluation vertex space, plus the total.
     pub fn vertex_offsets(&self) -> Vec<usize> {
         let mut offsets = Vec::with_capacity(self.primitives.len() + 1);

@@ -265,12 +265,7 @@ fn played_frames(graph: &Graph) -> u64 {
 /// `--max-graph-work`: each stored delta blended, each vertex written (and skinned by up to four
 /// bones) and compared with the frame before.
 pub fn frame_work(rig: &crate::rig::Rig) -> u64 {
-    let deltas: u64 = rig
-        .primitives
-        .iter()
-        .flat_map(|p| p.targets.iter())
-        .map(|t| t.vertices.len() as u64)
-        .sum();
+    let deltas = rig.delta_count();
     let vertices = rig.vertex_count() as u64;
     let skinned = if rig.skeleton.is_some() { 4 } else { 0 };
     deltas + vertices * (2 + skinned)

@@ -58,6 +58,14 @@ struct Repairs {
     inexact: bool,
 }
 
+/// Charges manifest `key`'s `bytes` to `budget`, as [`SharedStore::manifest`] asks.
+fn charge_manifest(budget: &Budget, bytes: u64, key: &str) -> Result<(), String> {
+    budget
+        .charge(bytes, || format!("manifest {key}"))
+        .map(drop)
+        .map_err(|e| e.to_string())
+}
+
 /// Removes the staging files of changes that will not be committed.
 fn drop_staged(changes: Vec<Change>) {
     for change in changes {
@@ -199,17 +207,8 @@ impl AppState {
                 .map_err(|e| SharedError::Local(crate::store::StoreError::Encode(e.to_string())))?
         };
         let mut out = Repairs::default();
-        let budget = Budget::new(
-            self.config.max_upload_memory,
-            "--max-upload-memory",
-            Some(self.pool.clone()),
-        );
-        let charge = |bytes: u64, key: &str| {
-            budget
-                .charge(bytes, || format!("manifest {key}"))
-                .map(drop)
-                .map_err(|e| e.to_string())
-        };
+        let budget = self.manifest_budget();
+        let charge = |bytes: u64, key: &str| charge_manifest(&budget, bytes, key);
         for (name, object, why) in damaged {
             if let Some(change) = restored.remove(&name) {
                 out.notes.push(format!(
@@ -322,6 +321,16 @@ impl AppState {
         out
     }
 
+    /// The budget manifests read for a repair are charged to (`--max-upload-memory`, drawing
+    /// from the rig memory pool), with [`charge_manifest`].
+    fn manifest_budget(&self) -> Budget {
+        Budget::new(
+            self.config.max_upload_memory,
+            "--max-upload-memory",
+            Some(self.pool.clone()),
+        )
+    }
+
     /// How long a damaged generation waits for a replica holding its exact objects before
     /// any replica repairs it from earlier copies: ten refreshes, at least two seconds.
     fn repair_grace(&self) -> Duration {
@@ -373,17 +382,8 @@ impl AppState {
         if shared.held(id) > g {
             return Ok(());
         }
-        let budget = Budget::new(
-            self.config.max_upload_memory,
-            "--max-upload-memory",
-            Some(self.pool.clone()),
-        );
-        let charge = |bytes: u64, key: &str| {
-            budget
-                .charge(bytes, || format!("manifest {key}"))
-                .map(drop)
-                .map_err(|e| e.to_string())
-        };
+        let budget = self.manifest_budget();
+        let charge = |bytes: u64, key: &str| charge_manifest(&budget, bytes, key);
         let manifest: Manifest = match shared.manifest(id, g, &charge).await? {
             Ok(m) if !m.deleted => m,
             _ => return Ok(()),
