@@ -67,7 +67,7 @@ fn literal_args(src: &str, open: usize) -> Vec<String> {
 /// constructor that takes a code (`new` takes the status first).
 fn server_error_codes() -> Vec<(String, String)> {
     let mut codes = Vec::new();
-    for file in rust_files(&root().join("src")) {
+    for file in rust_files(&root().join("crates/server/src")) {
         let src = read(&file);
         for ctor in [
             "ApiError::new(",
@@ -127,10 +127,10 @@ fn readme_examples_do_not_hard_code_a_session_id() {
     }
 }
 
-/// Every (method, path, handler) of the router in `src/server/app.rs`: each `.route("PATH",
+/// Every (method, path, handler) of the router in `crates/server/src/app.rs`: each `.route("PATH",
 /// get(routes::x::handler).post(...))` read by its literals.
 fn routes() -> Vec<(String, String, String)> {
-    let app = read(&root().join("src/server/app.rs"));
+    let app = read(&root().join("crates/server/src/app.rs"));
     let mut out = Vec::new();
     for (at, _) in app.match_indices(".route(") {
         let open = at + ".route".len();
@@ -170,10 +170,10 @@ fn routes() -> Vec<(String, String, String)> {
     out
 }
 
-/// The handlers in `src/server/routes/` that take the `Admin` extractor.
+/// The handlers in `crates/server/src/routes/` that take the `Admin` extractor.
 fn admin_handlers() -> Vec<String> {
     let mut out = Vec::new();
-    for file in rust_files(&root().join("src/server/routes")) {
+    for file in rust_files(&root().join("crates/server/src/routes")) {
         let src = read(&file);
         for (at, _) in src.match_indices("pub async fn ") {
             let rest = &src[at + "pub async fn ".len()..];
@@ -189,7 +189,7 @@ fn admin_handlers() -> Vec<String> {
 
 #[test]
 fn the_admin_token_help_names_every_route_that_needs_it() {
-    let config = read(&root().join("src/server/config.rs"));
+    let config = read(&root().join("crates/server/src/config.rs"));
     let field = config
         .find("pub admin_token")
         .expect("the admin token flag");
@@ -241,15 +241,24 @@ fn the_admin_token_help_names_every_route_that_needs_it() {
 
 /// The module names a `//!` table of `file` lists in its first column (`` [`x`] `` or `` `x` ``).
 fn mapped_modules(file: &Path) -> Vec<String> {
-    read(file)
-        .lines()
+    let text = read(file);
+    let mut in_map = false;
+    text.lines()
+        .filter(|l| {
+            if l.starts_with("//! | module |") {
+                in_map = true;
+            } else if !l.starts_with("//! |") {
+                in_map = false;
+            }
+            in_map
+        })
         .filter_map(|l| l.strip_prefix("//! | "))
         .filter_map(|row| row.split(" | ").next())
         .map(|cell| {
             cell.trim_matches(|c| matches!(c, '[' | ']' | '`' | ' '))
                 .to_string()
         })
-        .filter(|m| m != "module" && !m.starts_with("---"))
+        .filter(|m| m != "module" && m != "the crate root" && !m.starts_with("---"))
         .collect()
 }
 
@@ -280,27 +289,152 @@ fn declared_modules(file: &Path) -> Vec<String> {
     out
 }
 
+/// The workspace's crates: each folder under `crates/` with its `Cargo.toml`.
+fn crate_dirs() -> Vec<PathBuf> {
+    let mut dirs: Vec<PathBuf> = std::fs::read_dir(root().join("crates"))
+        .expect("crates/")
+        .map(|e| e.expect("entry").path())
+        .filter(|p| p.join("Cargo.toml").exists())
+        .collect();
+    dirs.sort();
+    dirs
+}
+
 #[test]
-fn every_module_is_in_its_parents_map() {
-    for parent in ["src/lib.rs", "src/server/mod.rs"] {
-        let path = root().join(parent);
-        let mapped = mapped_modules(&path);
-        let declared = declared_modules(&path);
+fn every_module_is_in_its_crates_map() {
+    let dirs = crate_dirs();
+    assert!(dirs.len() >= 8, "the scan finds the crates: {dirs:?}");
+    let mut total = 0;
+    for dir in dirs {
+        let lib = dir.join("src/lib.rs");
+        let mapped = mapped_modules(&lib);
+        let declared = declared_modules(&lib);
+        total += declared.len();
         assert!(
-            declared.len() > 10,
-            "{parent}: the scan finds its modules: {declared:?}"
+            !declared.is_empty(),
+            "{}: the scan finds its modules",
+            lib.display()
         );
         let missing: Vec<&String> = declared.iter().filter(|m| !mapped.contains(m)).collect();
         assert!(
             missing.is_empty(),
-            "{parent}'s `//!` map does not list {missing:?}"
+            "{}'s `//!` map does not list {missing:?}",
+            lib.display()
         );
         let stale: Vec<&String> = mapped.iter().filter(|m| !declared.contains(m)).collect();
         assert!(
             stale.is_empty(),
-            "{parent}'s `//!` map lists modules it lacks: {stale:?}"
+            "{}'s `//!` map lists modules it lacks: {stale:?}",
+            lib.display()
         );
     }
+    assert!(total > 40, "the scan finds the modules ({total})");
+}
+
+/// The `crowdmorph-*` crates a manifest depends on (normal dependencies, not dev ones), by
+/// short name (`crowdmorph-core` → `core`).
+fn workspace_deps(manifest: &Path) -> Vec<String> {
+    let text = read(manifest);
+    let mut out = Vec::new();
+    let mut in_deps = false;
+    for line in text.lines().map(str::trim) {
+        if line.starts_with('[') {
+            in_deps = line.ends_with("dependencies]") && !line.contains("dev-dependencies");
+            continue;
+        }
+        if in_deps && let Some(rest) = line.strip_prefix("crowdmorph-") {
+            let name: String = rest
+                .chars()
+                .take_while(|c| c.is_ascii_alphanumeric() || *c == '-')
+                .collect();
+            if !matches!(name.as_str(), "proto" | "client") {
+                out.push(name);
+            }
+        }
+    }
+    out.sort();
+    out.dedup();
+    out
+}
+
+/// The crate map of ARCHITECTURE.md: each row's crate folder and the crates its "uses" column
+/// names.
+fn architecture_crate_map() -> Vec<(String, Vec<String>)> {
+    let text = read(&root().join("ARCHITECTURE.md"));
+    let section = text
+        .split("## Crate map")
+        .nth(1)
+        .expect("ARCHITECTURE.md has a crate map")
+        .split("\n## ")
+        .next()
+        .unwrap_or("");
+    let mut rows = Vec::new();
+    for line in section.lines() {
+        let cells: Vec<&str> = line.split(" | ").map(str::trim).collect();
+        if cells.len() < 3 || !cells[0].starts_with("| `crates/") {
+            continue;
+        }
+        let path = cells[0]
+            .trim_start_matches("| ")
+            .trim_matches('`')
+            .to_string();
+        let mut uses: Vec<String> = cells[1]
+            .split(',')
+            .map(|s| s.trim().trim_matches('`').to_string())
+            .filter(|s| !s.is_empty() && s != "—")
+            .collect();
+        uses.sort();
+        rows.push((path, uses));
+    }
+    rows
+}
+
+#[test]
+fn architecture_md_maps_every_crate_and_what_it_uses() {
+    let map = architecture_crate_map();
+    let dirs = crate_dirs();
+    assert_eq!(
+        map.iter().map(|(p, _)| p.clone()).collect::<Vec<_>>(),
+        dirs.iter()
+            .map(|d| d.strip_prefix(root()).unwrap_or(d).display().to_string())
+            .collect::<Vec<_>>(),
+        "ARCHITECTURE.md's crate map has one row per crate, in folder order"
+    );
+    for (path, uses) in map {
+        let deps = workspace_deps(&root().join(&path).join("Cargo.toml"));
+        assert_eq!(
+            uses, deps,
+            "{path}: ARCHITECTURE.md says it uses {uses:?}, its Cargo.toml {deps:?}"
+        );
+    }
+}
+
+#[test]
+fn the_data_crate_builds_without_the_servers_dependencies() {
+    let manifest = read(&root().join("crates/core/Cargo.toml"));
+    let deps: Vec<&str> = manifest
+        .lines()
+        .filter_map(|l| l.split(['.', ' ', '=']).next())
+        .filter(|n| !n.is_empty() && !n.starts_with('[') && !n.starts_with('#'))
+        .collect();
+    for forbidden in [
+        "tokio",
+        "axum",
+        "wgpu",
+        "object_store",
+        "hyper",
+        "rayon",
+        "gltf",
+    ] {
+        assert!(
+            !deps.contains(&forbidden),
+            "crates/core depends on {forbidden}: it is the data layer (ARCHITECTURE.md)"
+        );
+    }
+    assert!(
+        deps.contains(&"glam"),
+        "the scan reads the manifest: {deps:?}"
+    );
 }
 
 /// Backticked words of a Markdown text that name files or folders of the repository: they
@@ -399,19 +533,12 @@ fn code_only(src: &str) -> String {
 
 #[test]
 fn rig_is_pure_data() {
-    let files = rust_files(&root().join("src/rig"));
+    let files = rust_files(&root().join("crates/core/src/rig"));
     assert!(files.len() >= 5, "the scan finds rig/: {files:?}");
     for f in files {
         let src = read(&f);
         let code = code_only(&product_code(&src));
-        for forbidden in [
-            "tokio",
-            "wgpu",
-            "axum",
-            "std::fs",
-            "crate::server",
-            "crate::engine",
-        ] {
+        for forbidden in ["tokio", "wgpu", "axum", "std::fs", "std::io"] {
             assert!(
                 !code.contains(forbidden),
                 "{} uses {forbidden}: rig/ is pure data (ARCHITECTURE.md)",
@@ -421,17 +548,18 @@ fn rig_is_pure_data() {
     }
 }
 
-/// The library's module path of a file under `src/` (`src/server/http/mod.rs` →
-/// `["server", "http"]`); `None` for the binary's files.
+/// The module path of a file of a workspace crate, the crate's short name first
+/// (`crates/server/src/http/mod.rs` → `["server", "http"]`); `None` for the umbrella library
+/// and the binary under `src/`.
 fn module_of(file: &Path) -> Option<Vec<String>> {
-    let rel = file.strip_prefix(root().join("src")).ok()?;
-    let mut parts: Vec<String> = rel
-        .iter()
-        .map(|p| p.to_string_lossy().trim_end_matches(".rs").to_string())
-        .collect();
-    if parts.first().is_some_and(|p| p == "main" || p == "cli") {
+    let rel = file.strip_prefix(root().join("crates")).ok()?;
+    let mut it = rel.iter();
+    let krate = it.next()?.to_string_lossy().to_string();
+    if it.next()? != "src" {
         return None;
     }
+    let mut parts = vec![krate];
+    parts.extend(it.map(|p| p.to_string_lossy().trim_end_matches(".rs").to_string()));
     if parts.last().is_some_and(|p| p == "mod" || p == "lib") {
         parts.pop();
     }
@@ -473,13 +601,18 @@ fn expand(tree: &str, prefix: &[String], out: &mut Vec<Vec<String>>) {
     }
 }
 
-/// `path` (starting with `crate`, `super` or `self`) as absolute segments, seen from `base`.
+/// `path` (starting with `crate`, `super`, `self` or a workspace crate `crowdmorph_x`) as
+/// absolute segments, seen from `base` (whose first segment is its crate).
 fn absolute(path: &[String], base: &[String]) -> Vec<String> {
     let mut abs = base.to_vec();
     let mut segs = path;
     match segs.first().map(String::as_str) {
         Some("crate") => {
-            abs.clear();
+            abs.truncate(1);
+            segs = &segs[1..];
+        }
+        Some(other) if other.starts_with("crowdmorph_") => {
+            abs = vec![other["crowdmorph_".len()..].to_string()];
             segs = &segs[1..];
         }
         Some("self") => segs = &segs[1..],
@@ -514,7 +647,7 @@ fn crate_paths(code: &str, module: &[String]) -> Vec<Vec<String>> {
             pending_use = Some(rest.to_string());
         } else {
             // Inline paths.
-            for start in ["crate::", "super::"] {
+            for start in ["crate::", "super::", "crowdmorph_"] {
                 let mut from = 0;
                 while let Some(i) = t[from..].find(start) {
                     let at = from + i;
@@ -540,9 +673,9 @@ fn crate_paths(code: &str, module: &[String]) -> Vec<Vec<String>> {
             expand(stmt.split(';').next().unwrap_or(""), &[], &mut relative);
         }
         for p in relative {
-            if p.first()
-                .is_some_and(|s| s == "crate" || s == "super" || s == "self")
-            {
+            if p.first().is_some_and(|s| {
+                s == "crate" || s == "super" || s == "self" || s.starts_with("crowdmorph_")
+            }) {
                 out.push(absolute(&p, &base));
             }
         }
@@ -614,12 +747,13 @@ fn find_cycle(
     None
 }
 
-/// The library's file-level import graph: an edge from each file to every other file whose
-/// module (or an item of it) its product code names through `crate::`, `super::` or `self::`.
+/// The workspace's file-level import graph: an edge from each file of a crate to every other
+/// file whose module (or an item of it) its product code names through `crate::`, `super::`,
+/// `self::` or another crate's name (`crowdmorph_core::rig::...`).
 /// Re-exports (`pub use`) are not edges, and a path through one ends at the re-exporting
 /// module; test modules and files ending in `tests.rs` are left out.
 fn import_graph() -> std::collections::BTreeMap<String, std::collections::BTreeSet<String>> {
-    let files: Vec<(PathBuf, Vec<String>)> = rust_files(&root().join("src"))
+    let files: Vec<(PathBuf, Vec<String>)> = rust_files(&root().join("crates"))
         .into_iter()
         .filter(|f| !f.to_string_lossy().ends_with("tests.rs"))
         .filter_map(|f| module_of(&f).map(|m| (f, m)))
@@ -660,13 +794,17 @@ fn import_graph() -> std::collections::BTreeMap<String, std::collections::BTreeS
 fn no_file_of_the_library_imports_one_that_imports_it_back() {
     let edges = import_graph();
     let n: usize = edges.values().map(|t| t.len()).sum();
-    assert!(n > 200, "the scan finds the imports ({n})");
+    assert!(n > 300, "the scan finds the imports ({n})");
     assert!(
-        edges["src/server/routes/frames.rs"].contains("src/server/scheduler.rs"),
-        "the scan resolves `use crate::server::scheduler::...`"
+        edges["crates/engine/src/facade.rs"].contains("crates/core/src/rig/mod.rs"),
+        "the scan resolves `use crowdmorph_core::rig::...`"
     );
     assert!(
-        edges["src/import/gltf.rs"].contains("src/import/channels.rs"),
+        edges["crates/server/src/routes/frames.rs"].contains("crates/server/src/scheduler.rs"),
+        "the scan resolves `use crate::scheduler::...`"
+    );
+    assert!(
+        edges["crates/import/src/gltf.rs"].contains("crates/import/src/channels.rs"),
         "the scan resolves `use super::channels::...`"
     );
     // The search finds a cycle where there is one.
@@ -686,12 +824,168 @@ fn no_file_of_the_library_imports_one_that_imports_it_back() {
     }
     // Routes are the top layer: only the router and other routes name them.
     for (file, targets) in &edges {
-        let top = file.starts_with("src/server/routes/") || file == "src/server/app.rs";
+        let top =
+            file.starts_with("crates/server/src/routes/") || file == "crates/server/src/app.rs";
         assert!(
-            top || !targets.iter().any(|t| t.starts_with("src/server/routes/")),
+            top || !targets
+                .iter()
+                .any(|t| t.starts_with("crates/server/src/routes/")),
             "{file} imports a route module: {targets:?}"
         );
     }
+}
+
+/// The server's layer of one of its files: app → routes → state → admission → http, and the
+/// server's core (batcher, registry, metrics, sessions, ...) beside them.
+fn server_layer(file: &str) -> Option<&'static str> {
+    let rel = file.strip_prefix("crates/server/src/")?;
+    Some(match rel.split('/').next().unwrap_or(rel) {
+        "app.rs" => "app",
+        "routes" => "routes",
+        "state.rs" => "state",
+        "admission" => "admission",
+        "http" => "http",
+        "lib.rs" => "lib",
+        _ => "core",
+    })
+}
+
+#[test]
+fn the_servers_imports_run_one_way() {
+    let edges = import_graph();
+    let mut checked = 0;
+    for (file, targets) in &edges {
+        let Some(layer) = server_layer(file) else {
+            continue;
+        };
+        // What each layer may not name (ARCHITECTURE.md, "Server imports run one way").
+        let forbidden: &[&str] = match layer {
+            "app" | "lib" => &[],
+            "routes" => &["app"],
+            "state" => &["app", "routes"],
+            "admission" => &["app", "routes", "state"],
+            "http" => &["app", "routes", "state", "admission", "core"],
+            _ => &["app", "routes", "state", "admission"],
+        };
+        for target in targets {
+            let Some(to) = server_layer(target) else {
+                continue;
+            };
+            checked += 1;
+            // The core holds charges of the queue memory (a session's stream): that one file
+            // of admission it may name.
+            let queue_memory = target == "crates/server/src/admission/memory.rs";
+            assert!(
+                !forbidden.contains(&to) || (layer == "core" && queue_memory),
+                "{file} ({layer}) imports {target} ({to}): server imports run \
+                 app → routes → state → admission → http"
+            );
+            // Of the core, only the accept loop answers errors itself.
+            assert!(
+                layer != "core"
+                    || to != "http"
+                    || file.ends_with("/conn.rs")
+                    || !target.contains("/http/error"),
+                "{file} uses the HTTP layer's errors: only conn.rs of the core does"
+            );
+        }
+    }
+    assert!(
+        checked > 100,
+        "the scan finds the server's imports ({checked})"
+    );
+}
+
+/// The CPU mirrors a shader's header names (`// Pass `x` (CPU mirror: `engine::cpu::f`) ...`):
+/// each `engine::...` path in backticks after "CPU mirror" in the file's first comment block.
+fn shader_mirrors(src: &str) -> Vec<String> {
+    let header: String = src
+        .lines()
+        .take_while(|l| l.starts_with("//"))
+        .map(|l| l.trim_start_matches('/').trim())
+        .collect::<Vec<_>>()
+        .join(" ");
+    let mut out = Vec::new();
+    for part in header.split("CPU mirror").skip(1) {
+        // The names up to the closing parenthesis or sentence.
+        let scope = part.split([')', '.']).next().unwrap_or("");
+        for (i, piece) in scope.split('`').enumerate() {
+            if i % 2 == 1 && piece.starts_with("engine::") {
+                out.push(piece.to_string());
+            }
+        }
+    }
+    out
+}
+
+/// Whether the engine crate defines what `path` (`engine::cpu::CpuRig::blend`) names: the
+/// module's file exists, and it (or, for a method, an impl of its type) defines the last name.
+fn engine_item_exists(path: &str) -> bool {
+    let segs: Vec<&str> = path.split("::").skip(1).collect();
+    let src = root().join("crates/engine/src");
+    let mut dir = src.clone();
+    let mut file = src.join("lib.rs");
+    let mut rest = &segs[..];
+    while let Some((first, tail)) = rest.split_first() {
+        let as_dir = dir.join(first).join("mod.rs");
+        let as_file = dir.join(format!("{first}.rs"));
+        if as_dir.exists() {
+            file = as_dir;
+            dir = dir.join(first);
+        } else if as_file.exists() {
+            file = as_file;
+            dir = dir.join(first);
+        } else {
+            break;
+        }
+        rest = tail;
+    }
+    let code = code_only(&read(&file));
+    match rest {
+        [item] => [
+            "fn ", "struct ", "enum ", "const ", "static ", "type ", "trait ",
+        ]
+        .iter()
+        .any(|kw| code.contains(&format!("{kw}{item}"))),
+        [ty, method] => {
+            (code.contains(&format!("struct {ty}")) || code.contains(&format!("enum {ty}")))
+                && code.contains(&format!("fn {method}"))
+        }
+        _ => false,
+    }
+}
+
+#[test]
+fn every_shader_headers_cpu_mirror_exists() {
+    let dir = root().join("crates/engine/shaders");
+    let mut checked = 0;
+    let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
+        .expect("shaders/")
+        .map(|e| e.expect("entry").path())
+        .collect();
+    files.extend(
+        std::fs::read_dir(dir.join("lib"))
+            .expect("shaders/lib/")
+            .map(|e| e.expect("entry").path()),
+    );
+    for f in files
+        .iter()
+        .filter(|f| f.extension().is_some_and(|x| x == "wgsl"))
+    {
+        for mirror in shader_mirrors(&read(f)) {
+            checked += 1;
+            assert!(
+                engine_item_exists(&mirror),
+                "{}: its header names the CPU mirror `{mirror}`, which the engine crate does not define",
+                f.display()
+            );
+        }
+    }
+    assert!(checked >= 7, "the scan finds the mirrors ({checked})");
+    assert!(
+        !engine_item_exists("engine::cpu::no_such_pass"),
+        "the check can fail"
+    );
 }
 
 #[test]

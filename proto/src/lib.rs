@@ -16,6 +16,8 @@
 
 pub mod graph;
 pub mod session;
+#[cfg(feature = "unpack")]
+pub mod skim;
 pub mod stream;
 pub mod wire;
 
@@ -1171,6 +1173,48 @@ pub fn q16r_encode(q: &[i16], reference: &[i16], out: &mut [u8]) {
     }
 }
 
+/// The residual planes of q16 components `cur` against `reference` (both little-endian int16
+/// bytes of one length): the n low bytes of `zigzag(cur − reference)` (wrapping), then the n
+/// high bytes: [`q16r_encode`] on the bytes a q16 buffer travels as (a session's temporal
+/// residuals code each viewer's buffers this way, without copying them into `i16`s first).
+pub fn q16r_encode_le(cur: &[u8], reference: &[u8]) -> Vec<u8> {
+    let n = cur.len().min(reference.len()) / 2;
+    let mut out = vec![0u8; 2 * n];
+    let (lo, hi) = out.split_at_mut(n);
+    let zigzag = |c: &[u8], r: &[u8]| {
+        let d = i16::from_le_bytes([c[0], c[1]]).wrapping_sub(i16::from_le_bytes([r[0], r[1]]));
+        ((d << 1) ^ (d >> 15)) as u16
+    };
+    // Fixed-size chunks without index checks, as in [`q16r_encode`], so that the
+    // compiler vectorizes it: a session runs it per viewer over every changed buffer of every
+    // tick.
+    const CHUNK: usize = 64;
+    let mut cc = cur[..2 * n].chunks_exact(2 * CHUNK);
+    let mut rc = reference[..2 * n].chunks_exact(2 * CHUNK);
+    let mut lc = lo.chunks_exact_mut(CHUNK);
+    let mut hc = hi.chunks_exact_mut(CHUNK);
+    for (((c, r), l), h) in (&mut cc).zip(&mut rc).zip(&mut lc).zip(&mut hc) {
+        let mut z = [0u16; CHUNK];
+        for (k, z) in z.iter_mut().enumerate() {
+            *z = zigzag(&c[2 * k..2 * k + 2], &r[2 * k..2 * k + 2]);
+        }
+        for k in 0..CHUNK {
+            l[k] = z[k] as u8;
+            h[k] = (z[k] >> 8) as u8;
+        }
+    }
+    let tail = cc
+        .remainder()
+        .chunks_exact(2)
+        .zip(rc.remainder().chunks_exact(2));
+    for (((c, r), l), h) in tail.zip(lc.into_remainder()).zip(hc.into_remainder()) {
+        let z = zigzag(c, r);
+        *l = z as u8;
+        *h = (z >> 8) as u8;
+    }
+    out
+}
+
 /// The q16 components that [`q16r_encode`] coded as `planes` against `reference`.
 pub fn q16r_decode(planes: &[u8], reference: &[i16]) -> Result<Vec<i16>, String> {
     let n = reference.len();
@@ -1232,6 +1276,34 @@ mod tests {
             out[n + i] = (z >> 8) as u8;
         }
         out
+    }
+
+    #[test]
+    fn q16r_on_little_endian_bytes_is_q16r_encode() {
+        let cur: Vec<i16> = vec![0, 1, -1, i16::MAX, i16::MIN, 1234, -32000, 7];
+        let reference: Vec<i16> = vec![0, 0, 0, i16::MIN, i16::MAX, 1000, 32000, 7];
+        let bytes = |v: &[i16]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
+        let got = q16r_encode_le(&bytes(&cur), &bytes(&reference));
+        let mut want = vec![0u8; 2 * cur.len()];
+        q16r_encode(&cur, &reference, &mut want);
+        assert_eq!(got, want);
+        assert_eq!(q16r_decode(&got, &reference).expect("decodes"), cur);
+        // Across the chunk edges of the vectorized loop.
+        for n in [63, 64, 65, 128, 200] {
+            let cur: Vec<i16> = (0..n)
+                .map(|i| (i * 7919 % 65_536 - 32_768) as i16)
+                .collect();
+            let reference: Vec<i16> = (0..n)
+                .map(|i| (i * 104_729 % 65_536 - 32_768) as i16)
+                .collect();
+            let mut want = vec![0u8; 2 * n as usize];
+            q16r_encode(&cur, &reference, &mut want);
+            assert_eq!(
+                q16r_encode_le(&bytes(&cur), &bytes(&reference)),
+                want,
+                "n = {n}"
+            );
+        }
     }
 
     #[test]

@@ -821,6 +821,11 @@ fn temporal_stream_messages_and_q16r() {
         [4, 3, 6, 2, 1, 0, 0, 0, 0, 0, 0, 0],
         "differences 2, −2, 3, 1 and −1 (both wrapping), 0; zigzag; low bytes then high"
     );
+    // The same coding on the little-endian bytes a session's buffers travel as.
+    assert_eq!(
+        q16r_encode_le(&q16_bytes(&next_q).0, &q16_bytes(&first_q).0),
+        planes
+    );
     let second = StreamMessage::Delta(TickDelta {
         tick: 11,
         format: Format::Q16,
@@ -912,4 +917,60 @@ fn temporal_stream_messages_and_q16r() {
         q16r_decode(&q16r.buffers[0].positions.0, &first_q).unwrap(),
         next_q
     );
+}
+
+/// Every stream message pinned above, skimmed (`crowdmorph_proto::skim`, what load generators
+/// and benchmarks read of a stream) as it decodes: tick, heads, changed heads, buffers,
+/// timings; a packed one is skimmed through its unpacked bytes.
+#[cfg(feature = "unpack")]
+#[test]
+fn every_golden_stream_message_skims_as_it_decodes() {
+    use crowdmorph_proto::skim::{TickSummary, skim};
+    fn summary(m: &StreamMessage) -> TickSummary {
+        let count = |heads: &[HeadBuffer]| {
+            heads
+                .iter()
+                .filter(|h| h.buffer != HEAD_MISSING && h.buffer != HEAD_UNCHANGED)
+                .count() as u64
+        };
+        match m {
+            StreamMessage::Vertices(v) => TickSummary {
+                tick: v.tick,
+                heads: v.heads.len() as u64,
+                changed: count(&v.heads),
+                buffers: v.buffers.len() as u64,
+                timings: Some(v.timings),
+            },
+            StreamMessage::Delta(d) => TickSummary {
+                tick: d.tick,
+                heads: d.heads.len() as u64,
+                changed: count(&d.heads),
+                buffers: d.buffers.len() as u64,
+                timings: Some(d.timings),
+            },
+            StreamMessage::Frame(f) => TickSummary {
+                tick: f.tick,
+                ..TickSummary::default()
+            },
+            StreamMessage::Packed(p) => {
+                summary(&response_from_bincode::<StreamMessage>(&p.unpack().unwrap()).unwrap())
+            }
+        }
+    }
+    let mut skimmed = 0;
+    for name in [
+        "stream_vertices",
+        "stream_frame",
+        "stream_delta_keyframes",
+        "stream_delta_residuals",
+        "stream_packed_deflate",
+    ] {
+        let bytes = std::fs::read(golden(&format!("{name}.bincode"))).unwrap();
+        let message: StreamMessage = response_from_bincode(&bytes).unwrap();
+        assert_eq!(skim(&bytes).unwrap(), summary(&message), "{name}");
+        // A message cut short is refused, not misread.
+        assert!(skim(&bytes[..bytes.len() - 1]).is_err(), "{name}");
+        skimmed += 1;
+    }
+    assert_eq!(skimmed, 5);
 }

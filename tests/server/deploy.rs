@@ -30,7 +30,7 @@ fn read(path: &Path) -> String {
     std::fs::read_to_string(path).unwrap_or_else(|e| panic!("read {}: {e}", path.display()))
 }
 
-/// The text of every `.rs` file under `src/`, for checking that a flag or an environment
+/// The text of every `.rs` file under `src/` and `crates/`, for checking that a flag or an environment
 /// variable the deployment files use is one `serve` has.
 fn sources() -> String {
     fn walk(dir: &Path, into: &mut String) {
@@ -50,6 +50,7 @@ fn sources() -> String {
     }
     let mut all = String::new();
     walk(&repo("src"), &mut all);
+    walk(&repo("crates"), &mut all);
     all
 }
 

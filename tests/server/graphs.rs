@@ -774,7 +774,12 @@ async fn graph_work_is_priced_before_it_starts_and_the_name_checked_first() {
     let graph = server
         .state
         .graphs
-        .resolved(&entry, "overlap", &server.state.queue_memory, limit)
+        .resolved(
+            &entry,
+            "overlap",
+            |b| server.state.queue_memory.reserve(b).ok(),
+            limit,
+        )
         .expect("resolved");
     let engine = crowdmorph::engine::Engine::cpu();
     let prepared = engine

@@ -159,3 +159,36 @@ async fn the_python_peer_serves_ict_facekits_vertices() {
     same_vertices(&server, "ict", heads).await;
     server.stop().await;
 }
+
+// Moved from `crates/bench/src/peers.rs` with the split into crates: it needs the
+// `crowdmorph_python_peer` cfg that the root package's build.rs sets.
+#[test]
+#[cfg_attr(
+    not(crowdmorph_python_peer),
+    ignore = "needs /usr/bin/python3 with numpy and aiohttp"
+)]
+fn a_missing_package_is_named_in_the_error() {
+    for missing in ["numpy", "aiohttp"] {
+        let dir = pypeer::temp_dir("crowdmorph-missing-").unwrap();
+        let scripts = pypeer::write_scripts(dir.path()).unwrap();
+        // The script's own folder comes first on sys.path: this module shadows the real one.
+        std::fs::write(
+            scripts.join(format!("bench/{missing}.py")),
+            format!("raise ImportError('No module named {missing}')\n"),
+        )
+        .unwrap();
+        let err = PythonPeer::start(
+            std::path::Path::new(pypeer::DEFAULT_PYTHON),
+            &scripts,
+            dir.path(),
+            "thread",
+        )
+        .err()
+        .expect("the peer cannot start");
+        let text = format!("{err:#}");
+        assert!(
+            text.contains(&format!("needs {missing}")) && text.contains("apt-get install"),
+            "{text}"
+        );
+    }
+}

@@ -8,7 +8,7 @@
 //! or the animation's weights) and is placed: a skinned mesh by `Σ w_k · global(joint_k) ·
 //! inverseBind_k` (its own node transform ignored, as the spec says), any other mesh by its
 //! node's global transform. Normals go through each joint's inverse transpose, weighted, then
-//! normalized; that per-joint rule is the one crowdmorph documents (`src/rig/skin.rs`).
+//! normalized; that per-joint rule is the one crowdmorph documents (`crates/core/src/rig/skin.rs`).
 //!
 //! A blend is the engines' documented rule too: per node, translations and scales summed by
 //! fraction and rotations nlerped (each flipped into the first term's hemisphere).

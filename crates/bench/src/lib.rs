@@ -1,0 +1,42 @@
+//! Benchmarks, their peers and their harness (feature `bench`, on by default): what
+//! `crowdmorph bench cpu|gpu|http|render|sessions|codecs` run, kept out of the product modules.
+//!
+//! | module | what it is |
+//! |---|---|
+//! | [`sample`] | [`sample::Samples`] and [`sample::sample`]: the one timing helper (median, percentiles) |
+//! | [`server`] | a server in this process on a loopback port with the rig to measure; process CPU time |
+//! | [`cpu`] | `bench cpu`: the CPU engine against dense peers (`gemm`, `matrixmultiply`, warm numpy) and the roofline |
+//! | [`gpu`] | `bench gpu`: the paper's scenes on any backend, with a plot |
+//! | [`http`] | `bench http`: loopback HTTP against in-process work, half load through [`crowdmorph_load`], the socket ceiling |
+//! | [`sessions`] | `bench sessions`: one session streamed to several viewers |
+//! | [`link`] | `--link`: the server also behind shaped veth links in namespaces of its own |
+//! | [`render`] | `bench render`: the offline crowd drawn repeatedly |
+//! | [`codecs`] | `bench codecs`: each way a head's q16 buffer can travel (references, byte planes or meshopt, zstd levels, zlib) on real frames |
+//! | [`peers`] | the Python peers: the rig as `.npy`, warm numpy, the dense aiohttp + numpy server |
+//!
+//! Harness code reports errors with `anyhow`, as the binary does: nothing here is on a request
+//! path, and the product never calls it.
+
+pub mod codecs;
+pub mod cpu;
+pub mod gpu;
+pub mod http;
+pub mod link;
+pub mod peers;
+pub mod render;
+pub mod sample;
+pub mod server;
+pub mod sessions;
+
+/// A progress bar on standard error for a benchmark of `len` steps (hidden when standard error
+/// is not a terminal, so JSON on standard output stays clean).
+pub fn progress_bar(len: u64, label: &str) -> indicatif::ProgressBar {
+    let b = indicatif::ProgressBar::new(len);
+    b.set_style(
+        indicatif::ProgressStyle::with_template(&format!(
+            "{{spinner}} {label} {{pos}}/{{len}} {{msg}}"
+        ))
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_spinner()),
+    );
+    b
+}

@@ -1,0 +1,424 @@
+//! Clips of a rig: `POST /v1/rigs/{id}/clips` (CSV, JSON or glTF animations, matched to the
+//! rig's targets, each source kind by its own import), `GET` a list or one, `DELETE` one.
+
+use std::sync::Arc;
+
+use axum::body::Body;
+use axum::extract::{Path, State};
+use axum::http::{HeaderMap, StatusCode};
+use axum::response::IntoResponse;
+use crowdmorph_proto::{CONTENT_TYPE_JSON, ClipInfo, ClipList, ClipUpload, Quantization};
+
+use super::rigs::{check_name, clip_import_error, prepare_error, upload_body};
+use crate::admission::resolve::unknown_clip;
+use crate::http::{
+    Accept, Admin, ApiError, ApiResult, Query, Ready, blocking, checked_content_type,
+};
+use crate::registry::{
+    RigEntry, check_output_range, clip_info, clip_infos, clips_named, quantization_box, sanitize_id,
+};
+use crate::state::AppState;
+use crowdmorph_core::rig::Rig;
+use crowdmorph_engine::{Engine, PreparedRig};
+use crowdmorph_import::ImportError;
+use crowdmorph_import::clips::{ClipImport, ClipOptions};
+
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ClipQuery {
+    name: Option<String>,
+    fps: Option<f32>,
+    #[serde(default)]
+    ignore_unknown: bool,
+}
+
+enum ClipSource {
+    Csv,
+    Json,
+    Gltf,
+}
+
+fn clip_source(ct: &str, body: &[u8]) -> ClipSource {
+    match ct {
+        "text/csv" | "application/csv" => ClipSource::Csv,
+        "model/gltf-binary" | "model/gltf+json" => ClipSource::Gltf,
+        CONTENT_TYPE_JSON => {
+            // A glTF document is JSON too; it is the one with an "asset" object.
+            if body.windows(8).take(4096).any(|w| w == b"\"asset\":") {
+                ClipSource::Gltf
+            } else {
+                ClipSource::Json
+            }
+        }
+        _ if body.starts_with(b"glTF") => ClipSource::Gltf,
+        _ if body.iter().find(|b| !b.is_ascii_whitespace()) == Some(&b'{') => ClipSource::Json,
+        _ => ClipSource::Csv,
+    }
+}
+
+/// `POST /v1/rigs/{id}/clips`: check the query, read the body under the upload's budget,
+/// import it against a snapshot of the rig (one function per source kind), then, under the
+/// lock that serializes rig changes, merge the clips into a new generation, store it, publish.
+pub async fn upload_clips(
+    State(state): State<AppState>,
+    _admin: Admin,
+    _ready: Ready,
+    Path(id): Path<String>,
+    Query(query): Query<ClipQuery>,
+    headers: HeaderMap,
+    body: Body,
+) -> ApiResult {
+    query.check()?;
+    // A rig at its clip limit is refused before its body is read.
+    check_clip_count(&*state.rig(&id)?, 1, state.config.max_clips)?;
+    let ct = checked_content_type(&headers, "text/csv, application/json or model/gltf-binary")?;
+    let _slot = state.uploads.acquire().await.map_err(ApiError::internal)?;
+    let budget = state.op_budget();
+    let bytes = upload_body(&state, &headers, body, &budget).await?;
+    let source = clip_source(&ct, &bytes);
+    if !matches!(source, ClipSource::Gltf) && query.name.is_none() {
+        return Err(ApiError::bad_request(
+            "missing_name",
+            "CSV and JSON clips need a name: POST /v1/rigs/{id}/clips?name=NAME",
+        ));
+    }
+    // Clips are imported against a snapshot, outside the lock that serializes rig changes:
+    // they depend only on the rig's target names, which no change of the same rig alters.
+    let base = state.rig(&id)?;
+    let options = ClipOptions {
+        fps: query.fps.unwrap_or(crowdmorph_core::rig::DEFAULT_FPS),
+        ignore_unknown: query.ignore_unknown,
+        budget: Some(budget.clone()),
+    };
+    let name = query.name;
+    let snapshot = base.clone();
+    let clip_error = state.clip_error();
+    let imports = blocking(move || {
+        let rig = snapshot.rig();
+        let mut imports = match source {
+            ClipSource::Csv => named_clip(
+                crowdmorph_import::clip_from_csv,
+                rig,
+                name,
+                &bytes,
+                &options,
+            ),
+            ClipSource::Json => named_clip(
+                crowdmorph_import::clip_from_json,
+                rig,
+                name,
+                &bytes,
+                &options,
+            ),
+            ClipSource::Gltf => gltf_clips(rig, name, &bytes, &options),
+        }?;
+        let budget = options
+            .budget
+            .as_deref()
+            .ok_or_else(|| ApiError::internal("a clip upload without its budget"))?;
+        for import in &mut imports {
+            super::rigs::stored_form(
+                rig,
+                std::slice::from_mut(&mut import.clip),
+                clip_error,
+                budget,
+            )?;
+        }
+        Ok(imports)
+    })
+    .await?;
+    let _admin = state.admin.lock().await;
+    // Re-read under the lock: another change may have landed since.
+    let entry = state.rig(&id)?;
+    same_rig(&entry, &base)?;
+    check_clip_count(&entry, imports.len(), state.config.max_clips)?;
+    let engine = state.engine.clone();
+    let current = entry.clone();
+    let merged = blocking(move || merge_clips(&engine, &current, imports)).await?;
+    // The new clips go to a clip file of their own: the rig's record is not rewritten.
+    let names: Vec<String> = merged.added.iter().map(|c| c.name.clone()).collect();
+    let seq = entry.layout.next_seq();
+    state
+        .persist_clips(
+            &id,
+            seq,
+            merged.rig.clone(),
+            clips_named(&merged.rig, &names),
+        )
+        .await?;
+    let mut layout = entry.layout.clone();
+    layout.files.push((seq, names));
+    // The new generation holds the old one's charge plus the new tables.
+    state.registry.insert(Arc::new(entry.successor(
+        merged.prepared,
+        merged.qbox,
+        layout,
+        state.registry.generation(),
+        Some(budget.keep(merged.table_bytes)),
+    )));
+    drop(budget);
+    crowdmorph_core::budget::return_freed_memory();
+    tracing::info!(rig = %id, clips = merged.added.len(), ignored = merged.ignored.len(), "clips added");
+    Accept::of(&headers).reply(
+        StatusCode::CREATED,
+        &ClipUpload {
+            rig: id,
+            added: merged.added,
+            ignored: merged.ignored,
+        },
+    )
+}
+
+impl ClipQuery {
+    /// A 400 for a malformed `?name=` or `?fps=`, before any of the body is read.
+    fn check(&self) -> Result<(), ApiError> {
+        check_name("clip", self.name.as_deref())?;
+        if let Some(fps) = self.fps
+            && !(fps.is_finite() && fps > 0.0 && fps <= 1000.0)
+        {
+            return Err(ApiError::bad_request(
+                "invalid_fps",
+                format!("fps {fps} must be in (0, 1000]"),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// An importer of one named clip: CSV (a frame a row, a target a column) or JSON
+/// (`{"fps", "targets", "weights"}`).
+type ClipReader = fn(&Rig, &str, &[u8], &ClipOptions) -> Result<ClipImport, ImportError>;
+
+/// The one clip of a CSV or JSON body, named by `?name=`.
+fn named_clip(
+    read: ClipReader,
+    rig: &Rig,
+    name: Option<String>,
+    bytes: &[u8],
+    options: &ClipOptions,
+) -> Result<Vec<ClipImport>, ApiError> {
+    let name = name.as_deref().unwrap_or("clip");
+    let clip = read(rig, name, bytes, options).map_err(clip_import_error)?;
+    Ok(vec![clip])
+}
+
+/// Every animation of a glTF file: named after the animation, or `?name=` for a file with
+/// one, `NAME.<animation>` for several.
+fn gltf_clips(
+    rig: &Rig,
+    name: Option<String>,
+    bytes: &[u8],
+    options: &ClipOptions,
+) -> Result<Vec<ClipImport>, ApiError> {
+    let mut clips =
+        crowdmorph_import::clips_from_gltf(rig, bytes, options).map_err(clip_import_error)?;
+    let single = clips.len() == 1;
+    for c in &mut clips {
+        c.clip.name = match (&name, single) {
+            (Some(n), true) => n.clone(),
+            (Some(n), false) => format!("{n}.{}", sanitize_id(&c.clip.name)),
+            (None, _) => sanitize_id(&c.clip.name),
+        };
+    }
+    Ok(clips)
+}
+
+/// 413 `too_many_clips` when adding `adding` clips would give the rig more than `max`
+/// (`--max-clips`): a graph built from the clips compares every pair of them.
+pub(crate) fn check_clip_count(
+    entry: &RigEntry,
+    adding: usize,
+    max: usize,
+) -> Result<(), ApiError> {
+    let have = entry.rig().clips.len();
+    if have.saturating_add(adding) <= max {
+        return Ok(());
+    }
+    Err(ApiError::new(
+        StatusCode::PAYLOAD_TOO_LARGE,
+        "too_many_clips",
+        format!(
+            "rig {:?} has {have} clips; {adding} more would pass --max-clips ({max}); DELETE \
+             some first",
+            entry.id
+        ),
+    ))
+}
+
+/// A 409 unless `entry` is still the rig the clips were imported against (not deleted and
+/// uploaded again with other targets).
+fn same_rig(entry: &RigEntry, base: &RigEntry) -> Result<(), ApiError> {
+    if Arc::ptr_eq(&entry.rig().primitives, &base.rig().primitives)
+        && entry.rig().targets == base.rig().targets
+    {
+        return Ok(());
+    }
+    Err(ApiError::new(
+        StatusCode::CONFLICT,
+        "rig_changed",
+        format!(
+            "rig {:?} was replaced while its clips were imported; upload them again",
+            entry.id
+        ),
+    ))
+}
+
+/// A rig generation with new clips, prepared for the engine.
+struct Merged {
+    rig: Arc<Rig>,
+    prepared: PreparedRig,
+    qbox: Quantization,
+    added: Vec<ClipInfo>,
+    ignored: Vec<String>,
+    /// Bytes of the new weight tables, kept in the rig's charge.
+    table_bytes: u64,
+}
+
+/// `current` with `imports` appended: a 409 for a name taken, a 400 for a table the rig
+/// cannot take; the unknown target names, each once.
+fn merge_clips(
+    engine: &Engine,
+    current: &RigEntry,
+    imports: Vec<ClipImport>,
+) -> Result<Merged, ApiError> {
+    let mut new = current.rig().clone();
+    let mut ignored: Vec<String> = Vec::new();
+    // Hash sets, not scans of what came before: a file may hold thousands of clips and
+    // name thousands of unknown targets.
+    let mut seen_ignored = std::collections::HashSet::new();
+    let mut added_names = std::collections::HashSet::new();
+    let mut added = Vec::new();
+    let mut table_bytes = 0u64;
+    for imp in imports {
+        if current.clip_index(&imp.clip.name).is_some()
+            || !added_names.insert(imp.clip.name.clone())
+        {
+            return Err(ApiError::new(
+                StatusCode::CONFLICT,
+                "clip_exists",
+                format!(
+                    "rig {:?} has a clip {:?} already; DELETE it first or choose another ?name=",
+                    current.id, imp.clip.name
+                ),
+            ));
+        }
+        for i in imp.ignored.iter() {
+            if seen_ignored.insert(i.clone()) {
+                ignored.push(i.clone());
+            }
+        }
+        added.push(ClipInfo {
+            name: imp.clip.name.clone(),
+            frames: imp.clip.frames,
+            fps: imp.clip.fps,
+        });
+        table_bytes += imp.clip.weights.len() as u64 * 4;
+        new.clips.push(imp.clip);
+    }
+    new.validate()
+        .map_err(|e| ApiError::bad_request("invalid_clip", e.to_string()))?;
+    check_output_range(&new).map_err(|m| ApiError::bad_request("invalid_clip", m))?;
+    let rig = Arc::new(new);
+    let prepared = engine
+        .update_clips(&current.prepared, rig.clone())
+        .map_err(|e| prepare_error(e, "clip_too_large"))?;
+    let qbox = quantization_box(&rig);
+    Ok(Merged {
+        rig,
+        prepared,
+        qbox,
+        added,
+        ignored,
+        table_bytes,
+    })
+}
+
+pub async fn list_clips(
+    State(state): State<AppState>,
+    _ready: Ready,
+    Path(id): Path<String>,
+    accept: Accept,
+) -> ApiResult {
+    let entry = state.rig(&id)?;
+    accept.reply(
+        StatusCode::OK,
+        &ClipList {
+            rig: id,
+            clips: clip_infos(entry.rig()),
+        },
+    )
+}
+
+pub async fn get_clip(
+    State(state): State<AppState>,
+    _ready: Ready,
+    Path((id, clip)): Path<(String, String)>,
+    accept: Accept,
+) -> ApiResult {
+    let entry = state.rig(&id)?;
+    let ci = entry
+        .clip_index(&clip)
+        .ok_or_else(|| unknown_clip(&entry, &clip))?;
+    accept.reply(StatusCode::OK, &clip_info(&entry.rig().clips[ci]))
+}
+
+pub async fn delete_clip(
+    State(state): State<AppState>,
+    _admin: Admin,
+    _ready: Ready,
+    Path((id, clip)): Path<(String, String)>,
+) -> ApiResult {
+    let _admin = state.admin.lock().await;
+    let entry = state.rig(&id)?;
+    let ci = entry
+        .clip_index(&clip)
+        .ok_or_else(|| unknown_clip(&entry, &clip))?;
+    if entry.builtin && ci < entry.builtin_clips {
+        return Err(ApiError::new(
+            StatusCode::FORBIDDEN,
+            "builtin_clip",
+            format!("clip {clip:?} is part of the built-in rig and cannot be deleted"),
+        ));
+    }
+    let engine = state.engine.clone();
+    let base = entry.clone();
+    let (rig, prepared, qbox) = blocking(move || {
+        let mut new = base.rig().clone();
+        new.clips.remove(ci);
+        let new = Arc::new(new);
+        let prepared = engine
+            .update_clips(&base.prepared, new.clone())
+            .map_err(|e| prepare_error(e, "clip_too_large"))?;
+        let qbox = quantization_box(&new);
+        Ok((new, prepared, qbox))
+    })
+    .await?;
+    // Only the file that held the clip is rewritten: its clip file, or the rig's record.
+    let layout = entry.layout.without(&clip);
+    match entry.layout.file_of(&clip) {
+        Some(seq) => {
+            let rest = layout
+                .files
+                .iter()
+                .find(|f| f.0 == seq)
+                .map(|f| clips_named(&rig, &f.1))
+                .unwrap_or_default();
+            state.persist_clips(&id, seq, rig.clone(), rest).await?;
+        }
+        None => {
+            state
+                .persist_record(&id, rig.clone(), entry.builtin, &layout)
+                .await?;
+        }
+    }
+    state.registry.insert(Arc::new(entry.successor(
+        prepared,
+        qbox,
+        layout,
+        state.registry.generation(),
+        None,
+    )));
+    crowdmorph_core::budget::return_freed_memory();
+    tracing::info!(rig = %id, clip = %clip, "clip deleted");
+    Ok(StatusCode::NO_CONTENT.into_response())
+}

@@ -1,0 +1,1418 @@
+//! A session's tick: every head resolved once, each viewer's jobs per head grouped by what
+//! their buffers hold, one submission to the batcher per group, and the fan-out of messages
+//! relative to what each viewer last received. The fan-out of tick N runs on a blocking thread
+//! while tick N + 1 is resolved and blended (one in flight, so outboxes get messages in tick
+//! order). The tick task is supervised: a panic, in it or in its fan-out, ends its session.
+
+use std::collections::HashMap;
+use std::sync::atomic::Ordering;
+use std::sync::{Arc, Weak};
+use std::time::Duration;
+
+use bytes::Bytes;
+use crowdmorph_proto::{
+    CameraSpec, Format, FrameTimings, HEAD_MISSING, HEAD_UNCHANGED, HeadBuffer, LodChoice,
+    MessageEncoding, RenderRequest, SessionHead, ViewerOutput,
+};
+use glam::Vec3;
+use rayon::prelude::*;
+use tokio::time::Instant;
+
+use crate::admission::resolve::{
+    head_reach, job_output_bytes, job_request, joint_overrides, requested_joints,
+};
+use crate::registry::{MAX_F16, RigEntry};
+use crate::scheduler::{JobRequest, ScheduleError};
+use crate::sessions::{
+    Baseline, Encoded, HeadKey, MIN_FPS, MISSING_KEY, Outgoing, Retained, Session, Viewer,
+    ViewerSettings, bump, close,
+};
+use crate::state::{AppState, Inner};
+use crowdmorph_anim::graph::{Graph, Player};
+use crowdmorph_core::rig::{FrameMode, JointPose, Pose};
+use crowdmorph_store::codec::{FrameBufferParts, FrameResponseEncoder};
+
+use super::delta;
+
+/// Starts the tick task of `session`, supervised: if it panics (a bug), the session ends —
+/// removed from the server, its viewers closed with 1011 — and the panic is logged once and
+/// counted (`crowdmorph_session_panics_total`), rather than leaving a session registered that
+/// never ticks, never idles out and counts toward `--max-sessions`.
+pub(super) fn supervise(session: Arc<Session>, app: Weak<Inner>) {
+    let task = tokio::spawn(run_session(session.clone(), app.clone()));
+    tokio::spawn(async move {
+        let Err(e) = task.await else { return };
+        if !e.is_panic() {
+            return;
+        }
+        let payload = e.into_panic();
+        let why = payload
+            .downcast_ref::<&str>()
+            .map(|s| (*s).to_string())
+            .or_else(|| payload.downcast_ref::<String>().cloned())
+            .unwrap_or_else(|| "a panic".into());
+        tracing::error!(session = %session.id, panic = %why, "a session's tick task panicked; the session ends");
+        if let Some(inner) = app.upgrade() {
+            let state = AppState(inner);
+            bump_panic(&state);
+            state.sessions.remove(&session.id);
+        }
+        session.stop(close::INTERNAL, "session ended: internal error");
+    });
+}
+
+fn bump_panic(state: &AppState) {
+    state.metrics.session_panics.inc();
+}
+
+/// The tick task of one session.
+async fn run_session(session: Arc<Session>, app: Weak<Inner>) {
+    // `fps` is at least MIN_FPS (checked at creation): a period of at most ten seconds.
+    let period = Duration::from_secs_f64(1.0 / f64::from(session.fps.max(MIN_FPS)));
+    let start = Instant::now();
+    let mut slot: u64 = 0;
+    // The graph heads' state lives with the task that advances it.
+    let mut players = Players::default();
+    // The previous tick's fan-out, still encoding on a blocking thread while this tick's
+    // heads are blended: fan-outs run one at a time and in tick order.
+    let mut fanning = FanOuts::default();
+    loop {
+        let due = start + period.mul_f64(slot as f64);
+        // Woken for the tick, for the idle timeout (whichever comes first: a slow session
+        // still ends on time), when its viewers change, or when it stops.
+        let idle_at = session.idle_deadline();
+        let wake = idle_at.map_or(due, |t| t.min(due));
+        tokio::select! {
+            () = tokio::time::sleep_until(wake) => {}
+            () = session.stopping.notified() => {}
+            () = session.viewers_changed.notified() => {}
+        }
+        if session.stopped.load(Ordering::Acquire) {
+            break;
+        }
+        let Some(inner) = app.upgrade() else { break };
+        let state = AppState(inner);
+        if session.idle_deadline().is_some_and(|t| Instant::now() >= t) {
+            tracing::info!(session = %session.id, "session ended: no viewer for its idle timeout");
+            state.sessions.remove(&session.id);
+            session.stop(close::AWAY, "session ended (idle)");
+            break;
+        }
+        if Instant::now() < due {
+            continue;
+        }
+        if session.panic_next_tick.swap(false, Ordering::AcqRel) {
+            panic!("test hook: a session tick panics");
+        }
+        let tick = slot + 1;
+        let computed = tick_once(&state, &session, tick, &mut players, &mut fanning).await;
+        let done = Instant::now();
+        let next_due = start + period.mul_f64((slot + 1) as f64);
+        let m = &state.sessions.metrics;
+        let mut next = slot + 1;
+        if done > next_due {
+            // Ticks whose time passed while this one ran are skipped, not queued: the next is
+            // the latest whose time has come.
+            let behind = (done.duration_since(start).as_secs_f64() / period.as_secs_f64()) as u64;
+            if behind > next {
+                let skipped = behind - next;
+                bump(&m.ticks_skipped, skipped);
+                session.with_stats(|s| s.ticks_skipped += skipped);
+                next = behind;
+            }
+        }
+        match computed {
+            Ticked::Delivered(jobs) => {
+                let late = done > next_due;
+                bump(
+                    if late {
+                        &m.ticks_late
+                    } else {
+                        &m.ticks_on_time
+                    },
+                    1,
+                );
+                bump(&m.jobs, jobs);
+                session.with_stats(|s| {
+                    s.ticks += 1;
+                    s.ticks_late += u64::from(late);
+                    s.jobs += jobs;
+                });
+            }
+            Ticked::Skipped => {
+                bump(&m.ticks_skipped, 1);
+                session.with_stats(|s| s.ticks_skipped += 1);
+            }
+            Ticked::NoViewers => {}
+        }
+        slot = next;
+    }
+}
+
+enum Ticked {
+    /// Computed and handed to the outboxes, with the unique jobs it submitted.
+    Delivered(u64),
+    Skipped,
+    NoViewers,
+}
+
+/// One head resolved for this tick.
+#[derive(Clone)]
+struct HeadAt {
+    rig: u32,
+    /// What it shows: its clip's frame, or a graph head's pose.
+    pose: Pose,
+    /// Its joint overrides, before a viewer's LOD level drops any.
+    joints: JointPose,
+    levels: u32,
+    f16_ok: bool,
+}
+
+/// A group's job: rig (index into the tick's rigs), pose, LOD, joint overrides at that LOD.
+type Key = (u32, Pose, u32, JointPose);
+
+/// The vertex viewers that share a format and normals: their jobs go to the batcher as one
+/// submission.
+struct Group {
+    format: Format,
+    normals: bool,
+    jobs: Vec<JobRequest>,
+    keys: Vec<Key>,
+    index: HashMap<Key, u32>,
+}
+
+/// Most bytes a tick's bookkeeping holds at once for `heads` heads and `viewers` viewers:
+/// each head's resolved rig, clip and frame; per viewer its job per head, the keys it is sent,
+/// the entries of its message and the fan-out cache's copy of them; per group (viewers that
+/// share a format and normals: at most six) the jobs, their keys and the index over them, with
+/// room for the vectors' and the map's growth. At the session limits (10,000 heads, dozens of
+/// viewers) this is tens of megabytes per tick, so it is charged to the queue memory before
+/// any of it is built.
+///
+/// Heads with joint overrides also get, per group, their overrides merged with what each LOD
+/// level holds at rest: `joint_sets` is the most sets those merges and the heads' own resolved
+/// overrides hold over all heads (see `Resolved::joint_sets`).
+fn tick_bookkeeping_bytes(heads: usize, viewers: usize, joint_sets: usize) -> u64 {
+    let groups = viewers.min(6);
+    // A temporal viewer also builds its next baseline's map of references (the last one is
+    // alive until the socket takes the message): two map entries per head.
+    let per_viewer = size_of::<Option<u32>>()
+        + size_of::<HeadKey>()
+        + 2 * size_of::<u32>()
+        + 2 * (size_of::<(u64, crate::sessions::HeadPrev)>() + 16);
+    let per_group = 2 * (size_of::<JobRequest>() + size_of::<Key>())
+        + 3 * (size_of::<Key>() + size_of::<u32>() + 1);
+    let per_head = size_of::<Option<HeadAt>>() + viewers * per_viewer + groups * per_group;
+    let joints = (groups * joint_sets * size_of::<crowdmorph_core::rig::JointSet>()) as u64;
+    (heads as u64)
+        .saturating_mul(per_head as u64)
+        .saturating_add(joints)
+}
+
+fn level_for(lod: &LodChoice, camera: Option<&CameraSpec>, position: [f32; 3]) -> u32 {
+    match lod {
+        LodChoice::Fixed(l) => *l,
+        LodChoice::ByDistance { by_distance } => {
+            let Some(c) = camera else {
+                return 0;
+            };
+            let d = Vec3::from(position).distance(Vec3::from(c.position));
+            level_at(by_distance, d)
+        }
+    }
+}
+
+/// The level of the last entry whose metres ≤ `d` (0 nearer than the first). The table is
+/// ascending (`check_lod` refuses any other), so the entries at or below `d` are a prefix and
+/// a binary search finds its end: this runs per head, per viewer, per tick.
+fn level_at(by_distance: &[[f32; 2]], d: f32) -> u32 {
+    match by_distance.partition_point(|[m, _]| *m <= d) {
+        0 => 0,
+        n => by_distance.get(n - 1).map_or(0, |[_, l]| *l as u32),
+    }
+}
+
+/// One tick: the four phases of the module doc — [`resolve`] every head once, [`group`] each
+/// viewer's jobs by what its buffers hold (image viewers' frames start on the blocking pool),
+/// [`submit`] each group to the batcher, [`fan_out`] the messages.
+async fn tick_once(
+    state: &AppState,
+    session: &Arc<Session>,
+    tick: u64,
+    players: &mut Players,
+    fanning: &mut FanOuts,
+) -> Ticked {
+    let arrived = std::time::Instant::now();
+    let Some(TickInput {
+        heads,
+        layout_rev,
+        viewers,
+        jumps,
+    }) = take_heads(session, tick)
+    else {
+        return Ticked::Skipped;
+    };
+    // Graph heads move on every tick, watched or not, so that what a viewer joining later
+    // sees does not depend on when others watched.
+    let resolved = resolve(state, session, &heads, tick, players, jumps);
+    if viewers.is_empty() {
+        return Ticked::NoViewers;
+    }
+    // What this tick builds per head is charged first, as every request's memory is.
+    let Ok(bookkeeping) = state.queue_memory.reserve(tick_bookkeeping_bytes(
+        heads.len(),
+        viewers.len(),
+        resolved.joint_sets(),
+    )) else {
+        return Ticked::Skipped;
+    };
+    let mut grouped = group(&resolved, &heads, &viewers);
+    for (v, s) in std::mem::take(&mut grouped.frames) {
+        start_frame(state, session, &heads, &resolved, tick, v, s);
+    }
+    if grouped.groups.iter().all(|g| g.jobs.is_empty()) && grouped.plans.is_empty() {
+        return Ticked::Delivered(0);
+    }
+    let jobs: u64 = grouped.groups.iter().map(|g| g.jobs.len() as u64).sum();
+    let Some(submitted) = submit(state, &mut grouped.groups).await else {
+        return Ticked::Skipped;
+    };
+    let work = FanOutWork {
+        state: state.clone(),
+        session: session.clone(),
+        tick,
+        heads,
+        layout_rev,
+        rigs: resolved.rigs,
+        arrived,
+        grouped,
+        submitted,
+        _bookkeeping: bookkeeping,
+    };
+    fanning.start(work).await;
+    Ticked::Delivered(jobs)
+}
+
+/// A tick's fan-out, owned, so that it runs on a blocking thread while the next tick blends:
+/// on two cores the engine and the encoding of messages (residual planes, compression) then
+/// overlap instead of taking turns. It holds the tick's outputs and bookkeeping charges until
+/// every message is in its outbox.
+struct FanOutWork {
+    state: AppState,
+    session: Arc<Session>,
+    tick: u64,
+    heads: Arc<Vec<SessionHead>>,
+    layout_rev: u64,
+    rigs: Vec<Arc<RigEntry>>,
+    arrived: std::time::Instant,
+    grouped: Grouped,
+    submitted: Submitted,
+    _bookkeeping: crate::admission::Charge,
+}
+
+impl FanOutWork {
+    fn run(self) {
+        // Temporal viewers' references are by head id: collected once a tick for all of them.
+        let head_ids: Vec<u64> = self.heads.iter().map(|h| h.head).collect();
+        let tick_heads = TickHeads {
+            tick: self.tick,
+            heads: &self.heads,
+            head_ids: &head_ids,
+            layout_rev: self.layout_rev,
+            rigs: &self.rigs,
+            arrived: self.arrived,
+        };
+        fan_out(
+            &self.state,
+            &self.session,
+            &tick_heads,
+            &self.grouped,
+            &self.submitted.outcomes,
+        );
+    }
+}
+
+/// The session's fan-out in flight: at most one, so that a viewer's messages are put in its
+/// outbox in tick order ("unchanged" and residuals refer to the message before).
+#[derive(Default)]
+struct FanOuts(Option<tokio::task::JoinHandle<()>>);
+
+impl FanOuts {
+    /// Waits for the previous fan-out (a panic in it is the tick task's panic, so the
+    /// supervisor ends the session), then starts `work`'s.
+    async fn start(&mut self, work: FanOutWork) {
+        self.finish().await;
+        self.0 = Some(tokio::task::spawn_blocking(move || work.run()));
+    }
+
+    /// Waits for the fan-out in flight, if any.
+    async fn finish(&mut self) {
+        if let Some(h) = self.0.take()
+            && let Err(e) = h.await
+            && e.is_panic()
+        {
+            std::panic::resume_unwind(e.into_panic());
+        }
+    }
+}
+
+/// Applies the patches received since the last tick (the layout changes at a tick, never
+/// inside one) and takes what this tick works on: the heads, the layout's revision, the
+/// viewers. `None` when the session's lock is poisoned.
+fn take_heads(session: &Session, tick: u64) -> Option<TickInput> {
+    let mut i = session.inner.lock().ok()?;
+    if let Some(n) = i.next_heads.take() {
+        i.heads = n;
+        i.layout_rev += 1;
+    }
+    i.tick = tick;
+    Some(TickInput {
+        heads: i.heads.clone(),
+        layout_rev: i.layout_rev,
+        viewers: i.viewers.clone(),
+        jumps: std::mem::take(&mut i.jumps),
+    })
+}
+
+/// What a tick works on, taken under the session's lock.
+struct TickInput {
+    heads: Arc<Vec<SessionHead>>,
+    layout_rev: u64,
+    viewers: Vec<Arc<Viewer>>,
+    /// Graph heads sent to a node since the last tick.
+    jumps: Vec<(u64, String)>,
+}
+
+/// Every head of a tick resolved once: the rigs it names (at this tick's generation), and per
+/// head its rig, clip and frame (`None`: its rig or clip is gone).
+struct Resolved {
+    rigs: Vec<Arc<RigEntry>>,
+    at: Vec<Option<HeadAt>>,
+}
+
+impl Resolved {
+    /// The most joint sets the heads with overrides can hold merged with a LOD level's rest
+    /// holds: their own plus the most nodes any level of their rig drops, summed. (Heads
+    /// without overrides share each level's rest holds.)
+    fn joint_sets(&self) -> usize {
+        self.at
+            .iter()
+            .flatten()
+            .filter(|a| !a.joints.is_none())
+            .map(|a| {
+                let dropped = self.rigs[a.rig as usize]
+                    .joint_lod()
+                    .dropped
+                    .iter()
+                    .map(Vec::len)
+                    .max()
+                    .unwrap_or(0);
+                // The head's own (resolved from the session's heads, which the session limits
+                // bound), and the merge.
+                2 * a.joints.sets().len() + dropped
+            })
+            .sum()
+    }
+}
+
+/// Resolve: each head's rig at this tick's generation and what it shows — its clip's frame,
+/// or for a graph head the pose its player reaches this tick (jumps applied first).
+fn resolve(
+    state: &AppState,
+    session: &Session,
+    heads: &[SessionHead],
+    tick: u64,
+    players: &mut Players,
+    jumps: Vec<(u64, String)>,
+) -> Resolved {
+    let mode = if session.wrap {
+        FrameMode::Wrap
+    } else {
+        FrameMode::Clamp
+    };
+    let steps = players.steps_to(tick, session.fps);
+    let mut jumps_by_head: HashMap<u64, Vec<String>> = HashMap::new();
+    for (h, node) in jumps {
+        jumps_by_head.entry(h).or_default().push(node);
+    }
+    let mut rigs: Vec<Arc<RigEntry>> = Vec::new();
+    let mut rig_at: HashMap<&str, Option<u32>> = HashMap::new();
+    let at = heads
+        .iter()
+        .map(|h| {
+            let ri = *rig_at.entry(h.rig.as_str()).or_insert_with(|| {
+                state.registry.get(&h.rig).map(|e| {
+                    rigs.push(e);
+                    (rigs.len() - 1) as u32
+                })
+            });
+            let ri = ri?;
+            let entry = &rigs[ri as usize];
+            let rig = entry.rig();
+            // Checked when the head was added or changed; a rig changed since then leaves out
+            // a head whose overrides no longer fit it, as it does a head whose clip is gone.
+            let requested = requested_joints(entry, &h.joints).ok()?;
+            let (pose, joints) = match &h.graph {
+                // A graph head's player fades its overrides in, as it fades its jumps.
+                Some(play) => {
+                    let graph = state.graphs.resolved(
+                        entry,
+                        &play.name,
+                        |bytes| state.queue_memory.reserve(bytes).ok(),
+                        state.config.max_graph_work,
+                    )?;
+                    let jumps = jumps_by_head.remove(&h.head).unwrap_or_default();
+                    players.pose(h.head, play, &graph, rig, &jumps, requested, steps)?
+                }
+                None => {
+                    let ci = entry.clip_index(&h.clip)?;
+                    let clip = &rig.clips[ci];
+                    let elapsed = (tick - 1) as f64 * f64::from(clip.fps) / f64::from(session.fps);
+                    let frame = clip
+                        .resolve_frame(h.offset.saturating_add(elapsed as i64), mode)
+                        .ok()?;
+                    (
+                        Pose::Frame {
+                            clip: ci as u32,
+                            frame,
+                        },
+                        requested,
+                    )
+                }
+            };
+            Some(HeadAt {
+                rig: ri,
+                pose,
+                joints,
+                levels: rig.lod.levels.len() as u32,
+                f16_ok: head_reach(entry) <= MAX_F16,
+            })
+        })
+        .collect();
+    players.keep(heads);
+    Resolved { rigs, at }
+}
+
+/// The graph heads of one session, each with the player that walks its graph, owned by the
+/// session's tick task.
+#[derive(Default)]
+pub(super) struct Players {
+    by_head: HashMap<u64, PlayerOf>,
+    /// The tick the players last advanced to.
+    tick: u64,
+}
+
+struct PlayerOf {
+    play: crowdmorph_proto::GraphPlay,
+    graph: Arc<Graph>,
+    player: Player,
+}
+
+impl Players {
+    /// Seconds to advance each player by, once per tick since the last (a skipped tick still
+    /// moves the graph heads, as it moves every clip head); at most ten seconds' worth.
+    fn steps_to(&mut self, tick: u64, fps: f32) -> (u64, f64) {
+        let n = tick.saturating_sub(self.tick).max(1);
+        self.tick = tick;
+        let limit = (10.0 * f64::from(fps)).ceil().max(1.0) as u64;
+        (n.min(limit), 1.0 / f64::from(fps.max(MIN_FPS)))
+    }
+
+    /// Head `id`'s pose after this tick, and its joint overrides (`Player::joints`: the head's
+    /// own, or while a jump or a change of them fades, every node's faded transform): its
+    /// player (new if the head is new, its play changed or its graph was replaced), given
+    /// the head's `requested` overrides, sent through `jumps`, advanced `steps`.
+    #[allow(clippy::too_many_arguments)]
+    fn pose(
+        &mut self,
+        id: u64,
+        play: &crowdmorph_proto::GraphPlay,
+        graph: &Arc<Graph>,
+        rig: &crowdmorph_core::rig::Rig,
+        jumps: &[String],
+        requested: JointPose,
+        (steps, dt): (u64, f64),
+    ) -> Option<(Pose, JointPose)> {
+        let same_graph = |p: &PlayerOf| {
+            Arc::ptr_eq(&p.graph, graph)
+                || (p.graph.nodes.len() == graph.nodes.len()
+                    && p.graph
+                        .nodes
+                        .iter()
+                        .zip(&graph.nodes)
+                        .all(|(a, b)| a.name == b.name))
+        };
+        let fresh = match self.by_head.get(&id) {
+            Some(p) => p.play != *play || !same_graph(p),
+            None => true,
+        };
+        if fresh {
+            let (start, script, seed) = graph.play(play).ok()?;
+            self.by_head.insert(
+                id,
+                PlayerOf {
+                    play: play.clone(),
+                    graph: graph.clone(),
+                    player: Player::new(graph, start, script, seed)
+                        .with_overrides(requested.clone()),
+                },
+            );
+        }
+        let p = self.by_head.get_mut(&id)?;
+        p.graph = graph.clone();
+        // Before the jumps: a patch that changes both fades once, from the pose shown with
+        // the old overrides to the node with the new ones.
+        p.player.set_overrides(graph, rig, requested);
+        for node in jumps {
+            if let Some(n) = graph.node(node) {
+                p.player.jump(graph, rig, n);
+            }
+        }
+        for _ in 0..steps {
+            p.player.advance(graph, rig, dt);
+        }
+        Some((p.player.pose(graph, rig), p.player.joints(graph, rig)))
+    }
+
+    /// Forgets the players of heads no longer in the session.
+    fn keep(&mut self, heads: &[SessionHead]) {
+        if self.by_head.len() > heads.iter().filter(|h| h.graph.is_some()).count() {
+            let ids: std::collections::HashSet<u64> = heads.iter().map(|h| h.head).collect();
+            self.by_head.retain(|id, _| ids.contains(id));
+        }
+    }
+}
+
+/// The viewers of a tick sorted by what they get: vertex viewers' jobs per head, grouped by
+/// format and normals, and the image viewers with their settings.
+struct Grouped {
+    groups: Vec<Group>,
+    /// Per vertex viewer: its group and its job (an index into the group's) per head.
+    plans: Vec<(Arc<Viewer>, usize, Vec<Option<u32>>)>,
+    frames: Vec<(Arc<Viewer>, ViewerSettings)>,
+}
+
+/// Group: each vertex viewer's job per head (its LOD fixed or by distance from its camera),
+/// deduplicated within the group of viewers that share a format and normals.
+fn group(resolved: &Resolved, heads: &[SessionHead], viewers: &[Arc<Viewer>]) -> Grouped {
+    let mut groups: Vec<Group> = Vec::new();
+    let mut plans = Vec::new();
+    let mut frames = Vec::new();
+    for v in viewers {
+        let Some(s) = v.settings() else { continue };
+        if s.output == ViewerOutput::Frames {
+            frames.push((v.clone(), s));
+            continue;
+        }
+        let g = match groups
+            .iter()
+            .position(|g| g.format == s.format && g.normals == s.normals)
+        {
+            Some(g) => g,
+            None => {
+                groups.push(Group {
+                    format: s.format,
+                    normals: s.normals,
+                    jobs: Vec::new(),
+                    keys: Vec::new(),
+                    index: HashMap::new(),
+                });
+                groups.len() - 1
+            }
+        };
+        let jobs = groups[g].jobs_of(resolved, heads, &s);
+        plans.push((v.clone(), g, jobs));
+    }
+    Grouped {
+        groups,
+        plans,
+        frames,
+    }
+}
+
+impl Group {
+    /// A viewer's job per head in this group, adding the jobs the group does not have yet.
+    fn jobs_of(
+        &mut self,
+        resolved: &Resolved,
+        heads: &[SessionHead],
+        s: &ViewerSettings,
+    ) -> Vec<Option<u32>> {
+        heads
+            .iter()
+            .zip(&resolved.at)
+            .map(|(h, a)| {
+                let a = a.as_ref()?;
+                if self.format == Format::F16 && !a.f16_ok {
+                    return None;
+                }
+                let lod = level_for(&s.lod, s.camera.as_ref(), h.position).min(a.levels - 1);
+                let entry = &resolved.rigs[a.rig as usize];
+                let joints = entry.joint_lod().level(lod).joints(&a.joints);
+                let key = (a.rig, a.pose.clone(), lod, joints);
+                if let Some(&j) = self.index.get(&key) {
+                    return Some(j);
+                }
+                self.jobs.push(job_request(entry, &a.pose, lod, &key.3));
+                self.keys.push(key.clone());
+                let j = (self.jobs.len() - 1) as u32;
+                self.index.insert(key, j);
+                Some(j)
+            })
+            .collect()
+    }
+}
+
+/// What [`submit`] got back: each group's outcome, and the queue memory their outputs hold.
+struct Submitted {
+    outcomes: Vec<crate::scheduler::Outcome>,
+    _memory: crate::admission::Charge,
+}
+
+/// Submit: the blended outputs charged to the queue memory, then one submission per group to
+/// the batcher (so session jobs coalesce with HTTP traffic), waited for within the request
+/// deadline. `None`: the tick is skipped (memory or queue full, a deadline, shutting down).
+async fn submit(state: &AppState, groups: &mut [Group]) -> Option<Submitted> {
+    let gpu = state.engine.gpu_memory().is_some();
+    let out_bytes: u64 = groups
+        .iter()
+        .flat_map(|g| {
+            g.jobs.iter().map(move |j| {
+                let rig = j.entry.prepared.at_level(j.lod).rig();
+                job_output_bytes(rig, g.format, g.normals, false, gpu)
+            })
+        })
+        .sum();
+    let memory = state.queue_memory.reserve(out_bytes).ok()?;
+    let mut tickets = Vec::with_capacity(groups.len());
+    for g in groups {
+        state.metrics.jobs_requested.inc_by(g.jobs.len() as u64);
+        // Moved, not cloned: the fan-out reads the plans, not the jobs.
+        match state
+            .scheduler
+            .submit(std::mem::take(&mut g.jobs), g.format, g.normals)
+        {
+            Ok(t) => tickets.push(t),
+            Err(ScheduleError::QueueFull) => {
+                state.metrics.reject("queue_full");
+                return None;
+            }
+            Err(_) => return None,
+        }
+    }
+    let mut outcomes = Vec::with_capacity(tickets.len());
+    for t in tickets {
+        match tokio::time::timeout(state.config.request_timeout, t).await {
+            Ok(Ok(Ok(o))) => outcomes.push(o),
+            _ => return None,
+        }
+    }
+    Some(Submitted {
+        outcomes,
+        _memory: memory,
+    })
+}
+
+/// What every viewer's message of a tick shares.
+struct TickHeads<'a> {
+    tick: u64,
+    heads: &'a [SessionHead],
+    /// Each head's id, in order.
+    head_ids: &'a [u64],
+    layout_rev: u64,
+    rigs: &'a [Arc<RigEntry>],
+    arrived: std::time::Instant,
+}
+
+/// Fan out: each vertex viewer gets the buffers of the heads whose job changed since the last
+/// message it received (the others "unchanged"); identical messages (same group, same head
+/// vector) are encoded once and shared. Viewers are planned one by one (their references are
+/// shared copies), then their distinct messages are encoded on every core — with several
+/// temporal or compressed viewers, that encoding is most of a tick's work — and put in the
+/// outboxes in viewer order.
+fn fan_out(
+    state: &AppState,
+    session: &Session,
+    t: &TickHeads<'_>,
+    grouped: &Grouped,
+    outcomes: &[crate::scheduler::Outcome],
+) {
+    let mut cache = Caches::default();
+    let mut viewers = Vec::with_capacity(grouped.plans.len());
+    for (v, g, jobs) in &grouped.plans {
+        let group = &grouped.groups[*g];
+        let keys = Arc::new(head_keys(group, jobs, t.rigs));
+        let target = Target {
+            viewer: v,
+            group: (*g, group),
+            outcome: &outcomes[*g],
+            jobs,
+            keys,
+        };
+        let first = prepare(state, session, t, &target, &mut cache);
+        viewers.push((target, first));
+    }
+    // Each distinct message once, in parallel.
+    let mut distinct: Vec<(&Target<'_>, &Prepared)> = Vec::new();
+    let mut seen = std::collections::HashSet::new();
+    for (target, p) in &viewers {
+        if let Some(p) = p
+            && !cache.messages.contains_key(&p.key)
+            && seen.insert(&p.key)
+        {
+            distinct.push((target, p));
+        }
+    }
+    let encoded: Vec<Option<Arc<Encoded>>> = distinct
+        .par_iter()
+        .map(|(target, p)| encode(state, t, target, p).map(Arc::new))
+        .collect();
+    for ((_, p), m) in distinct.iter().zip(encoded) {
+        if let Some(m) = m {
+            cache.messages.insert(p.key.clone(), m);
+        }
+    }
+    for (target, first) in viewers {
+        deliver(state, session, t, &target, first, &mut cache);
+    }
+}
+
+/// One vertex viewer of a tick: its group, that group's outcome, its job per head and the key
+/// of each head's buffer.
+struct Target<'a> {
+    viewer: &'a Arc<Viewer>,
+    group: (usize, &'a Group),
+    outcome: &'a crate::scheduler::Outcome,
+    jobs: &'a [Option<u32>],
+    keys: Arc<Vec<HeadKey>>,
+}
+
+/// A viewer's message planned against the baseline it had when planned.
+struct Prepared {
+    settings: ViewerSettings,
+    base: Baseline,
+    plan: Option<delta::DeltaPlan>,
+    key: MessageKey,
+}
+
+/// Plans a viewer's message against what its socket last took: each head's entry, and for a
+/// temporal viewer what each buffer is coded against. `None` when the viewer is gone or its
+/// plan did not fit the queue memory (counted as a dropped message).
+fn prepare(
+    state: &AppState,
+    session: &Session,
+    t: &TickHeads<'_>,
+    target: &Target<'_>,
+    cache: &mut Caches,
+) -> Option<Prepared> {
+    let settings = target.viewer.settings()?;
+    let base = target.viewer.outbox.lock().ok()?.sent.clone();
+    let keys = &target.keys;
+    let with_layout = base.layout_rev != t.layout_rev || base.keys.len() != keys.len();
+    let entries: Vec<u32> = target
+        .jobs
+        .iter()
+        .enumerate()
+        .map(|(i, j)| match j {
+            _ if !with_layout && base.keys[i] == keys[i] => HEAD_UNCHANGED,
+            None => HEAD_MISSING,
+            Some(j) => *j,
+        })
+        .collect();
+    let (g, _) = target.group;
+    let plan = match settings.temporal {
+        None => None,
+        Some(every) => {
+            let input = delta::PlanInput {
+                tick: t.tick,
+                head_ids: t.head_ids,
+                entries: &entries,
+                keys,
+                every,
+                group: g,
+                outputs: &target.outcome.outputs,
+            };
+            match delta::plan(state, &base, &input, &mut cache.retained) {
+                Some(p) => Some(p),
+                None => {
+                    dropped_memory(state, session);
+                    return None;
+                }
+            }
+        }
+    };
+    let key = MessageKey {
+        group: g,
+        with_layout,
+        entries,
+        bases: plan.as_ref().map(|p| p.bases.clone()),
+        compression: settings.compression,
+    };
+    Some(Prepared {
+        settings,
+        base,
+        plan,
+        key,
+    })
+}
+
+/// Encodes a prepared message. `None`: out of queue memory.
+fn encode(
+    state: &AppState,
+    t: &TickHeads<'_>,
+    target: &Target<'_>,
+    p: &Prepared,
+) -> Option<Encoded> {
+    let content = MessageContent {
+        tick: t.tick,
+        layout: p.key.with_layout.then_some(t.heads),
+        group: target.group.1,
+        outcome: target.outcome,
+        rigs: t.rigs,
+        heads: t.heads,
+        entries: &p.key.entries,
+        arrived: t.arrived,
+    };
+    match &p.plan {
+        None => encode_vertices(state, &content, p.settings.compression),
+        Some(plan) => encode_delta(state, &content, plan, p.settings.compression),
+    }
+}
+
+fn dropped_memory(state: &AppState, session: &Session) {
+    bump(&state.sessions.metrics.dropped_memory, 1);
+    session.with_stats(|s| s.messages_dropped += 1);
+}
+
+/// What identifies a viewer's message within a tick: the same key, the same bytes.
+#[derive(Clone, PartialEq, Eq, Hash)]
+struct MessageKey {
+    group: usize,
+    with_layout: bool,
+    entries: Vec<u32>,
+    /// Temporal viewers: per head, what its buffer is coded against.
+    bases: Option<delta::Bases>,
+    compression: Option<MessageEncoding>,
+}
+
+/// The fan-out's shared work: messages encoded once per key, references copied once per job.
+#[derive(Default)]
+struct Caches {
+    messages: HashMap<MessageKey, Arc<Encoded>>,
+    retained: delta::RetainedCache,
+}
+
+/// Each head's key for a viewer (what its buffer is: rig generation, clip, frame, LOD).
+fn head_keys(group: &Group, jobs: &[Option<u32>], rigs: &[Arc<RigEntry>]) -> Vec<HeadKey> {
+    jobs.iter()
+        .map(|j| match j {
+            None => MISSING_KEY,
+            Some(j) => {
+                let (r, pose, l, joints) = &group.keys[*j as usize];
+                HeadKey {
+                    generation: rigs[*r as usize].generation,
+                    pose: pose.clone(),
+                    lod: *l,
+                    joints: joints.clone(),
+                }
+            }
+        })
+        .collect()
+}
+
+/// Puts one viewer's message in its outbox: its entries relative to what it last received,
+/// the message from `cache` (encoded by the fan-out, or here when another viewer did not
+/// need the same one). Planned again when the viewer's socket took a message since `first`
+/// was planned: "unchanged" must refer to what it last received.
+fn deliver(
+    state: &AppState,
+    session: &Session,
+    t: &TickHeads<'_>,
+    target: &Target<'_>,
+    first: Option<Prepared>,
+    cache: &mut Caches,
+) {
+    let mut next = first;
+    for _attempt in 0..4 {
+        let Some(p) = next.take() else { return };
+        let message = match cache.messages.get(&p.key) {
+            Some(m) => m.clone(),
+            None => {
+                let Some(m) = encode(state, t, target, &p) else {
+                    return dropped_memory(state, session);
+                };
+                let m = Arc::new(m);
+                cache.messages.insert(p.key.clone(), m.clone());
+                m
+            }
+        };
+        let Ok(mut o) = target.viewer.outbox.lock() else {
+            return;
+        };
+        if o.sent.version != p.base.version {
+            drop(o);
+            next = prepare(state, session, t, target, cache);
+            continue;
+        }
+        if o.pending.is_some() {
+            bump(&state.sessions.metrics.dropped_slow, 1);
+            session.with_stats(|s| s.messages_dropped += 1);
+        }
+        o.pending = Some(Outgoing {
+            message,
+            after: Baseline {
+                version: p.base.version + 1,
+                layout_rev: t.layout_rev,
+                keys: target.keys.clone(),
+                prev: p
+                    .plan
+                    .map_or_else(|| p.base.prev.clone(), |plan| plan.after),
+            },
+        });
+        drop(o);
+        target.viewer.ready.notify_one();
+        return;
+    }
+}
+
+/// What a viewer's vertex message is made of.
+struct MessageContent<'a> {
+    tick: u64,
+    layout: Option<&'a [SessionHead]>,
+    group: &'a Group,
+    outcome: &'a crate::scheduler::Outcome,
+    rigs: &'a [Arc<RigEntry>],
+    heads: &'a [SessionHead],
+    entries: &'a [u32],
+    arrived: std::time::Instant,
+}
+
+impl MessageContent<'_> {
+    fn timings(&self) -> FrameTimings {
+        FrameTimings {
+            queue_us: self.outcome.queue.as_micros() as u64,
+            compute_us: self.outcome.compute_ns / 1000,
+            total_us: self.arrived.elapsed().as_micros() as u64,
+            gpu_us: self.outcome.gpu_ns.map(|g| g / 1000),
+        }
+    }
+
+    /// A buffer's parts for job `e` of the group, with these payloads.
+    fn part(&self, e: u32, positions: Bytes, normals: Option<Bytes>) -> FrameBufferParts<'_> {
+        let (r, pose, l, _) = &self.group.keys[e as usize];
+        let entry = &self.rigs[*r as usize];
+        let (clip, frame) = entry.shown(pose);
+        FrameBufferParts {
+            rig: &entry.id,
+            clip,
+            frame,
+            lod: *l,
+            vertices: entry.prepared.at_level(*l).rig().vertex_count() as u32,
+            quantization: self.group.format.quantized().then_some(entry.qbox),
+            positions,
+            normals: if self.group.normals { normals } else { None },
+        }
+    }
+}
+
+/// The buffers of a viewer's message (in order of first appearance among the heads) and each
+/// head's entry: a buffer index, or `HEAD_UNCHANGED` / `HEAD_MISSING`.
+fn message_buffers<'a>(c: &'a MessageContent<'a>) -> (Vec<FrameBufferParts<'a>>, Vec<HeadBuffer>) {
+    let mut local: HashMap<u32, u32> = HashMap::new();
+    let mut parts: Vec<FrameBufferParts<'a>> = Vec::new();
+    let head_buffers: Vec<HeadBuffer> = c
+        .heads
+        .iter()
+        .zip(c.entries)
+        .map(|(h, &e)| {
+            let buffer = if e == HEAD_UNCHANGED || e == HEAD_MISSING {
+                e
+            } else {
+                *local.entry(e).or_insert_with(|| {
+                    let out = &c.outcome.outputs[e as usize];
+                    parts.push(c.part(e, out.positions.clone(), out.normals.clone()));
+                    (parts.len() - 1) as u32
+                })
+            };
+            HeadBuffer {
+                head: h.head,
+                buffer,
+            }
+        })
+        .collect();
+    (parts, head_buffers)
+}
+
+/// Encodes a [`crowdmorph_proto::TickVertices`] stream message: the variant, the tick and the
+/// layout, then the same fields as a crowd-frame response, with payloads aligned to 16 bytes
+/// from the start of the message. Its length is computed first and charged to the queue
+/// memory before anything of its size is allocated; `None` when the queue memory is full.
+fn encode_vertices(
+    state: &AppState,
+    c: &MessageContent<'_>,
+    compression: Option<MessageEncoding>,
+) -> Option<Encoded> {
+    let (parts, head_buffers) = message_buffers(c);
+    encode_message(state, c, 0, &[], &parts, &head_buffers, compression)
+}
+
+/// Encodes a [`crowdmorph_proto::TickDelta`]: as [`encode_vertices`], with each buffer a
+/// keyframe or residual planes against the head's reference, and a flag per buffer. Heads
+/// share a buffer when they share the job and the reference. The residuals are charged before
+/// they are computed.
+fn encode_delta(
+    state: &AppState,
+    c: &MessageContent<'_>,
+    plan: &delta::DeltaPlan,
+    compression: Option<MessageEncoding>,
+) -> Option<Encoded> {
+    let residual_bytes: u64 = (0..c.entries.len())
+        .filter_map(|i| Some((plan.refs[i].as_ref()?, plan.cur[i].as_ref()?)))
+        .map(|(_, cur)| (cur.positions.len() + cur.normals.as_ref().map_or(0, |n| n.len())) as u64)
+        .sum();
+    let _residual_memory = state.queue_memory.reserve(residual_bytes).ok()?;
+    // Each distinct (job, reference) is one buffer: numbered in order of first appearance,
+    // then coded on every core (the residual planes are the viewer's per-head work).
+    let mut local: HashMap<(u32, usize), u32> = HashMap::new();
+    let mut todo: Vec<(u32, &Retained, Option<&Retained>)> = Vec::new();
+    let mut head_buffers = Vec::with_capacity(c.heads.len());
+    for (i, (h, &e)) in c.heads.iter().zip(c.entries).enumerate() {
+        let buffer = match (e, &plan.cur[i]) {
+            (HEAD_UNCHANGED | HEAD_MISSING, _) | (_, None) => e,
+            (e, Some(cur)) => *local.entry((e, plan.bases[i])).or_insert_with(|| {
+                todo.push((e, cur, plan.refs[i].as_deref()));
+                (todo.len() - 1) as u32
+            }),
+        };
+        head_buffers.push(HeadBuffer {
+            head: h.head,
+            buffer,
+        });
+    }
+    let payloads: Vec<(Bytes, Option<Bytes>)> = todo
+        .par_iter()
+        .map(|&(_, cur, reference)| match reference {
+            None => (cur.positions.clone(), cur.normals.clone()),
+            Some(r) => {
+                let p = crowdmorph_proto::q16r_encode_le(&cur.positions, &r.positions);
+                let n = cur.normals.as_ref().zip(r.normals.as_ref());
+                let n = n.map(|(n, rn)| Bytes::from(crowdmorph_proto::q16r_encode_le(n, rn)));
+                (Bytes::from(p), n)
+            }
+        })
+        .collect();
+    let residual: Vec<bool> = todo.iter().map(|t| t.2.is_some()).collect();
+    let parts: Vec<FrameBufferParts<'_>> = todo
+        .iter()
+        .zip(payloads)
+        .map(|(&(e, _, _), (p, n))| c.part(e, p, n))
+        .collect();
+    let residual_len = crowdmorph_store::codec::wire_len(&residual).unwrap_or(0);
+    let residual = crowdmorph_store::codec::to_wire(&residual).ok()?;
+    debug_assert_eq!(residual.len(), residual_len);
+    encode_message(state, c, 2, &residual, &parts, &head_buffers, compression)
+}
+
+/// The variant, the tick, the format and normals, the layout, `after_layout` (more encoded
+/// fields), then buffers, heads and timings; charged before it is allocated. With
+/// `compression`, the pieces go through the compressor as they are encoded, into a
+/// `StreamMessage::Packed` ([`delta::pack`]): the whole message is never written out.
+fn encode_message(
+    state: &AppState,
+    c: &MessageContent<'_>,
+    variant: u64,
+    after_layout: &[u8],
+    parts: &[FrameBufferParts<'_>],
+    head_buffers: &[HeadBuffer],
+    compression: Option<MessageEncoding>,
+) -> Option<Encoded> {
+    let mut prefix = Vec::with_capacity(64);
+    crowdmorph_store::codec::put_varint(&mut prefix, variant);
+    crowdmorph_store::codec::put_varint(&mut prefix, c.tick);
+    let timings = c.timings();
+    // The layout's length (bincode, without encoding it; `None` is one byte), then the
+    // message's: charged before either is allocated.
+    let middle_len = crowdmorph_store::codec::wire_len(&c.layout).unwrap_or(1) + after_layout.len();
+    let total = FrameResponseEncoder::encoded_len_within(
+        prefix.len(),
+        middle_len,
+        c.group.format,
+        c.group.normals,
+        parts,
+        head_buffers,
+        &timings,
+    );
+    // Packed, the message's bytes only pass through the compressor, which `pack` charges.
+    let unpacked = if compression.is_some() { 0 } else { total };
+    let memory = state
+        .queue_memory
+        .reserve((unpacked + middle_len) as u64)
+        .ok()?;
+    let mut middle = crowdmorph_store::codec::to_wire(&c.layout).unwrap_or_else(|_| vec![0]);
+    middle.extend_from_slice(after_layout);
+    let chunks = FrameResponseEncoder::encode_within(
+        prefix,
+        &middle,
+        c.group.format,
+        c.group.normals,
+        parts,
+        head_buffers,
+        &timings,
+    );
+    drop(middle);
+    if let Some(e) = compression {
+        let packed = delta::pack(state, &chunks, total, e);
+        drop(chunks);
+        drop(memory);
+        return packed;
+    }
+    let mut out = Vec::with_capacity(total);
+    for c in &chunks {
+        out.extend_from_slice(c);
+    }
+    debug_assert_eq!(out.len(), total, "the counted length is the encoding's");
+    drop(chunks);
+    let mut memory = memory;
+    // The layout's encoding and the chunks are gone; the message keeps only its bytes.
+    memory.keep(total as u64);
+    Some(Encoded {
+        bytes: Bytes::from(out),
+        _memory: Box::new(memory),
+    })
+}
+
+/// Starts drawing this tick for a viewer that wants images, unless its previous image is
+/// still being drawn.
+#[allow(clippy::too_many_arguments)]
+fn start_frame(
+    state: &AppState,
+    session: &Arc<Session>,
+    heads: &[SessionHead],
+    resolved: &Resolved,
+    tick: u64,
+    viewer: Arc<Viewer>,
+    s: ViewerSettings,
+) {
+    if viewer.rendering.swap(true, Ordering::AcqRel) {
+        bump(&state.sessions.metrics.dropped_rendering, 1);
+        session.with_stats(|st| st.messages_dropped += 1);
+        return;
+    }
+    let req = frame_request(heads, resolved, &s);
+    let state = state.clone();
+    let session = session.clone();
+    let cancel = viewer
+        .gone
+        .with_deadline(std::time::Instant::now() + state.config.request_timeout);
+    tokio::spawn(async move {
+        let rendered = state.render_for_session(req, cancel).await;
+        if let Some(message) = frame_message(&state, &viewer, tick, rendered) {
+            put_frame(&state, &session, &viewer, message);
+        }
+        viewer.rendering.store(false, Ordering::Release);
+    });
+}
+
+/// The request that draws a tick for a viewer: every resolved head at its LOD for the
+/// viewer's camera, in its placement.
+fn frame_request(heads: &[SessionHead], resolved: &Resolved, s: &ViewerSettings) -> RenderRequest {
+    let mut req_heads = Vec::new();
+    let mut placements = Vec::new();
+    for (h, a) in heads.iter().zip(&resolved.at) {
+        let Some(a) = a else { continue };
+        let entry = &resolved.rigs[a.rig as usize];
+        let lod = level_for(&s.lod, s.camera.as_ref(), h.position).min(a.levels - 1);
+        req_heads.push(crowdmorph_proto::Head {
+            head: h.head,
+            rig: entry.id.clone(),
+            lod,
+            joints: joint_overrides(entry.rig(), &a.joints),
+            ..pose_head(entry.rig(), &a.pose)
+        });
+        placements.push(super::placement(h));
+    }
+    RenderRequest {
+        heads: req_heads,
+        wrap: true,
+        placements: Some(placements),
+        camera: s.camera,
+        image: Some(s.image),
+    }
+}
+
+/// A head of a render request that shows `pose`: a clip frame, a blend (its first term as
+/// the base, the others as layers: the same canonical blend), or live weights by name (each
+/// name takes its first channel's weight: a rig with split targets draws them alike).
+fn pose_head(rig: &crowdmorph_core::rig::Rig, pose: &Pose) -> crowdmorph_proto::Head {
+    let name = |c: u32| rig.clips[c as usize].name.clone();
+    match pose {
+        Pose::Frame { clip, frame } => crowdmorph_proto::Head {
+            clip: name(*clip),
+            frame: i64::from(*frame),
+            ..Default::default()
+        },
+        Pose::Blend(terms) => crowdmorph_proto::Head {
+            clip: name(terms[0].clip),
+            frame: i64::from(terms[0].frame),
+            blend: terms[1..]
+                .iter()
+                .map(|t| crowdmorph_proto::BlendLayer {
+                    clip: name(t.clip),
+                    frame: i64::from(t.frame),
+                    t: t.fraction(),
+                })
+                .collect(),
+            ..Default::default()
+        },
+        Pose::Live(q) => {
+            let index = rig.target_index();
+            let dense = rig
+                .target_names()
+                .iter()
+                .map(|n| {
+                    index.ids(n).first().map_or(0.0, |&c| {
+                        q[c as usize] as f32 * crowdmorph_core::rig::LIVE_STEP
+                    })
+                })
+                .collect();
+            crowdmorph_proto::Head {
+                weights: Some(Box::new(crowdmorph_proto::LiveWeights::Dense(dense))),
+                ..Default::default()
+            }
+        }
+    }
+}
+
+/// A drawn image as a stream message, charged to the queue memory (its length is known
+/// without encoding it); `None` when it was not drawn or does not fit. An image the viewer's
+/// own choice can never draw (over the viewers' share, too costly at its size) closes the
+/// viewer with the reason, once, rather than failing at every tick.
+fn frame_message(
+    state: &AppState,
+    viewer: &Viewer,
+    tick: u64,
+    rendered: Result<(Vec<u8>, u32, u32, crowdmorph_proto::ImageFormat), crate::http::ApiError>,
+) -> Option<Arc<Encoded>> {
+    match rendered {
+        Ok((image, width, height, format)) => {
+            let message = crowdmorph_proto::StreamMessage::Frame(crowdmorph_proto::TickFrame {
+                tick,
+                format,
+                width,
+                height,
+                image: crowdmorph_proto::Blob(image),
+            });
+            let len = crowdmorph_store::codec::wire_len(&message).ok()?;
+            let Ok(charge) = state.queue_memory.reserve(len as u64) else {
+                bump(&state.sessions.metrics.dropped_memory, 1);
+                return None;
+            };
+            crowdmorph_store::codec::to_wire(&message)
+                .ok()
+                .map(|bytes| {
+                    Arc::new(Encoded {
+                        bytes: Bytes::from(bytes),
+                        _memory: Box::new(charge),
+                    })
+                })
+        }
+        Err(e) if e.status.is_client_error() => {
+            tracing::debug!(error = %e.message, "session frame cannot be drawn; closing the viewer");
+            bump(&state.sessions.metrics.viewers_closed_policy, 1);
+            viewer.ask_close(close::POLICY, &super::viewer::truncate(e.message));
+            None
+        }
+        Err(e) => {
+            // Busy (503), cancelled: this tick's image is skipped.
+            tracing::debug!(error = %e.message, "session frame not drawn");
+            bump(&state.sessions.metrics.dropped_rendering, 1);
+            None
+        }
+    }
+}
+
+/// Puts an image message in the viewer's outbox (replacing an unsent one, counted).
+fn put_frame(state: &AppState, session: &Session, viewer: &Viewer, message: Arc<Encoded>) {
+    let Ok(mut o) = viewer.outbox.lock() else {
+        return;
+    };
+    if o.pending.is_some() {
+        bump(&state.sessions.metrics.dropped_slow, 1);
+        session.with_stats(|st| st.messages_dropped += 1);
+    }
+    let after = Baseline {
+        version: o.sent.version + 1,
+        ..Baseline::empty()
+    };
+    o.pending = Some(Outgoing { message, after });
+    drop(o);
+    viewer.ready.notify_one();
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The linear search `level_at` replaced: the last entry whose metres ≤ `d`.
+    fn level_by_scan(by_distance: &[[f32; 2]], d: f32) -> u32 {
+        by_distance
+            .iter()
+            .rev()
+            .find(|[m, _]| *m <= d)
+            .map_or(0, |[_, l]| *l as u32)
+    }
+
+    #[test]
+    fn the_binary_search_finds_the_level_the_scan_did() {
+        let tables: Vec<Vec<[f32; 2]>> = vec![
+            vec![],
+            vec![[5.0, 3.0]],
+            vec![[0.0, 1.0], [2.0, 2.0], [4.0, 3.0]],
+            // Repeated thresholds: the last of them counts, as the scan's.
+            vec![[1.0, 1.0], [3.0, 2.0], [3.0, 5.0], [3.0, 4.0], [6.0, 6.0]],
+            // Negative thresholds, and the 64 entries `check_lod` allows.
+            vec![[-2.0, 7.0], [-1.0, 0.0], [10.0, 2.0]],
+            (0..64).map(|k| [k as f32 * 0.5, (k % 7) as f32]).collect(),
+        ];
+        for table in &tables {
+            assert!(
+                super::super::viewer::check_lod(&LodChoice::ByDistance {
+                    by_distance: table.clone()
+                })
+                .is_ok(),
+                "{table:?} is a table viewers may send"
+            );
+            // On every threshold, just either side of it, between, below and above them all.
+            let mut ds = vec![-1e30, -3.0, 0.0, 1e30, f32::INFINITY, f32::NAN];
+            for [m, _] in table {
+                ds.extend([*m, m.next_down(), m.next_up(), m + 0.25]);
+            }
+            for d in ds {
+                assert_eq!(
+                    level_at(table, d),
+                    level_by_scan(table, d),
+                    "{table:?} at {d}"
+                );
+            }
+        }
+        // Spot values, so the test does not only compare two searches with each other.
+        let t = &tables[3];
+        assert_eq!(
+            [0.5, 1.0, 2.9, 3.0, 5.0, 6.0, 9.0].map(|d| level_at(t, d)),
+            [0, 1, 1, 4, 4, 6, 6]
+        );
+        let camera = CameraSpec {
+            position: [0.0, 0.0, 10.0],
+            target: [0.0; 3],
+            fov_y: 30.0,
+            near: None,
+            far: None,
+        };
+        let lod = LodChoice::ByDistance {
+            by_distance: t.clone(),
+        };
+        assert_eq!(level_for(&lod, Some(&camera), [0.0, 0.0, 7.0]), 4);
+        assert_eq!(level_for(&lod, None, [0.0, 0.0, 7.0]), 0);
+        assert_eq!(level_for(&LodChoice::Fixed(3), Some(&camera), [0.0; 3]), 3);
+    }
+}
