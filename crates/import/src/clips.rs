@@ -111,11 +111,6 @@ pub fn match_name<'r>(rig: &'r Rig, name: &str) -> Option<&'r str> {
     }
 }
 
-/// The first weight channel of the rig target a source name refers to, if any.
-pub fn match_target(rig: &Rig, name: &str) -> Option<TargetId> {
-    match_name(rig, name).and_then(|n| rig.target_id(n))
-}
-
 /// Every weight channel of the rig target a source name refers to (empty: none).
 pub fn match_targets(rig: &Rig, name: &str) -> Vec<TargetId> {
     match_name(rig, name).map_or_else(Vec::new, |n| rig.target_ids(n))

@@ -785,16 +785,6 @@ impl Metrics {
             .inc();
     }
 
-    /// Requests counted so far with this route and status (for tests and the benchmark).
-    pub fn requests_with(&self, route: &str, status: u16) -> u64 {
-        self.requests
-            .get(&RouteLabels {
-                route: route.to_string(),
-                status,
-            })
-            .map_or(0, |c| c.get())
-    }
-
     /// Every metric as OpenMetrics text (ending in `# EOF`; [`CONTENT_TYPE`]), with the
     /// gauges `g` read from the rest of the server just before.
     pub fn encode(&self, g: Gauges) -> Result<String, std::fmt::Error> {

@@ -497,14 +497,6 @@ impl SharedStore {
             .unwrap_or(0)
     }
 
-    /// Every rig this replica holds a generation of, with it.
-    pub fn held_all(&self) -> Vec<(String, u64)> {
-        self.held
-            .lock()
-            .map(|h| h.iter().map(|(k, m)| (k.clone(), m.generation)).collect())
-            .unwrap_or_default()
-    }
-
     /// Remembers that generation `g` of rig `id` was passed over: the next change of the rig
     /// made here is committed as a later one (on the content this replica holds).
     pub fn pass_over(&self, id: &str, g: u64) {

@@ -69,16 +69,6 @@ impl DeltaPca {
         self.map.len() + self.basis.len()
     }
 
-    /// The region of each vertex.
-    pub fn vertex_regions(&self) -> Vec<u32> {
-        let mut out = vec![0u32; self.vertices as usize];
-        for (i, r) in self.regions.iter().enumerate() {
-            let (a, b) = (r.first as usize, (r.first + r.count) as usize);
-            out[a..b].fill(i as u32);
-        }
-        out
-    }
-
     /// Pass `pca_coefficients`: each component's coefficient `map_c · w` (only the channels
     /// with a non-zero weight are visited).
     pub fn coefficients(&self, weights: &[f32]) -> Vec<f32> {

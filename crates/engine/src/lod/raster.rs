@@ -73,14 +73,6 @@ impl Camera {
             (self.center.y - p.y) / self.units_per_pixel + self.height as f32 * 0.5,
         )
     }
-
-    /// Rig-space (x, y) of the centre of pixel (`px`, `py`).
-    pub fn unproject(&self, px: u32, py: u32) -> Vec2 {
-        Vec2::new(
-            self.center.x + (px as f32 + 0.5 - self.width as f32 * 0.5) * self.units_per_pixel,
-            self.center.y - (py as f32 + 0.5 - self.height as f32 * 0.5) * self.units_per_pixel,
-        )
-    }
 }
 
 /// A grayscale image, row-major, top row first.
