@@ -19,7 +19,7 @@ use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::family::Family;
 use prometheus_client::metrics::gauge::Gauge;
 use prometheus_client::metrics::histogram::Histogram;
-use prometheus_client::registry::Registry;
+use prometheus_client::registry::{Metric, Registry};
 
 /// The `Content-Type` of [`Metrics::encode`]'s text: OpenMetrics 1.0.0, which Prometheus
 /// scrapes (it asks for it first).
@@ -259,6 +259,13 @@ pub struct Metrics {
     scraped: Mutex<ScrapeGauges>,
 }
 
+/// Registers `metric` as family `name` with `help`, and returns it: the handle the server
+/// records through shares its series with the registry.
+fn registered<M: Metric + Clone>(r: &mut Registry, name: &str, help: &str, metric: M) -> M {
+    r.register(name, help, metric.clone());
+    metric
+}
+
 impl Default for Metrics {
     // Long on purpose: the one table of every family the server registers, with its name and
     // help text, in the order README.md's metrics table lists them; split into pieces, a
@@ -266,30 +273,30 @@ impl Default for Metrics {
     fn default() -> Self {
         // Help texts go without their final period: the registry adds one.
         let mut r = Registry::default();
-        let requests = Family::<RouteLabels, Counter>::default();
-        r.register(
+        let requests = registered(
+            &mut r,
             "crowdmorph_http_requests",
             "HTTP requests by route and status",
-            requests.clone(),
+            Family::<RouteLabels, Counter>::default(),
         );
-        let rejected = Family::<ReasonLabel, Counter>::default();
-        r.register(
+        let rejected = registered(
+            &mut r,
             "crowdmorph_rejected",
             "Requests refused or abandoned, by reason",
-            rejected.clone(),
+            Family::<ReasonLabel, Counter>::default(),
         );
-        let cancelled = Family::<CancelledLabels, Counter>::default();
-        r.register(
+        let cancelled = registered(
+            &mut r,
             "crowdmorph_cancelled",
             "Work stopped at a stage boundary because its request was gone or past its \
              deadline, by kind of work and reason",
-            cancelled.clone(),
+            Family::<CancelledLabels, Counter>::default(),
         );
-        let connections_closed = Family::<ReasonLabel, Counter>::default();
-        r.register(
+        let connections_closed = registered(
+            &mut r,
             "crowdmorph_connections_closed",
             "Connections closed, by reason",
-            connections_closed.clone(),
+            Family::<ReasonLabel, Counter>::default(),
         );
         // The series of a known label value are made at 0 from the start, as `heads` and the
         // session counters are: the encoder writes no family that has no series yet, and a
@@ -305,9 +312,7 @@ impl Default for Metrics {
             let _ = connections_closed.get_or_create(&ReasonLabel::new(*reason));
         }
         let mut histogram = |name: &str, help: &str, bounds: &[f64]| {
-            let h = Histogram::new(bounds.iter().copied());
-            r.register(name, help, h.clone());
-            h
+            registered(&mut r, name, help, Histogram::new(bounds.iter().copied()))
         };
         let queue_seconds = histogram(
             "crowdmorph_queue_seconds",
@@ -331,11 +336,8 @@ impl Default for Metrics {
             COUNTS,
         );
         // Counters are registered without `_total`: the encoder appends it to their samples.
-        let mut counter = |name: &str, help: &str| {
-            let c = Counter::default();
-            r.register(name, help, c.clone());
-            c
-        };
+        let mut counter =
+            |name: &str, help: &str| registered(&mut r, name, help, Counter::default());
         let connections_accepted = counter(
             "crowdmorph_connections_accepted",
             "Connections accepted, refused ones included",
@@ -344,11 +346,11 @@ impl Default for Metrics {
             "crowdmorph_accept_errors",
             "Failed accepts (e.g. the open-file limit reached)",
         );
-        let connections_open = U64Gauge::default();
-        r.register(
+        let connections_open = registered(
+            &mut r,
             "crowdmorph_connections_open",
             "Connections open now",
-            connections_open.clone(),
+            U64Gauge::default(),
         );
         let s = ScrapeGauges::default();
         r.register(
@@ -356,11 +358,11 @@ impl Default for Metrics {
             "Most connections open at once; past it the longest-idle one is closed",
             s.connections_limit.clone(),
         );
-        let heads_by_source = Family::<SourceLabel, Counter>::default();
-        r.register(
+        let heads_by_source = registered(
+            &mut r,
             "crowdmorph_heads",
             "Heads served, by source (api: clients; loadtest: POST /v1/loadtest)",
-            heads_by_source.clone(),
+            Family::<SourceLabel, Counter>::default(),
         );
         // Both series exist from the start, at 0, as they always have.
         let heads = heads_by_source.get_or_create_owned(&SourceLabel {
@@ -369,18 +371,15 @@ impl Default for Metrics {
         let loadtest_heads = heads_by_source.get_or_create_owned(&SourceLabel {
             source: Source::Loadtest.label(),
         });
-        let crowd_frames = Family::<SourceStatusLabels, Counter>::default();
-        r.register(
+        let crowd_frames = registered(
+            &mut r,
             "crowdmorph_crowd_frames",
             "Crowd-frame requests answered, by source and status, each once (a client's is \
              also in crowdmorph_http_requests_total under its route: do not add the two)",
-            crowd_frames.clone(),
+            Family::<SourceStatusLabels, Counter>::default(),
         );
-        let mut counter = |name: &str, help: &str| {
-            let c = Counter::default();
-            r.register(name, help, c.clone());
-            c
-        };
+        let mut counter =
+            |name: &str, help: &str| registered(&mut r, name, help, Counter::default());
         let jobs_requested = counter(
             "crowdmorph_jobs_requested",
             "Unique jobs asked for, summed over requests",
@@ -429,34 +428,34 @@ impl Default for Metrics {
             "crowdmorph_store_refresh_failures",
             "Refreshes from the shared store that failed because it did not answer",
         );
-        let store_repairs = Family::<HowLabel, Counter>::default();
-        r.register(
+        let store_repairs = registered(
+            &mut r,
             "crowdmorph_store_repairs",
             "Generations of the shared store written to repair damaged objects (missing, \
              short or failing their checksum), by how: restored from this replica's copy of \
              the very objects, or from an earlier intact copy (objects without one dropped)",
-            store_repairs.clone(),
+            Family::<HowLabel, Counter>::default(),
         );
         for how in ["restored", "earlier_copy"] {
             let _ = store_repairs.get_or_create(&HowLabel { how });
         }
-        let store_lookup_seconds = Histogram::new(SECONDS.iter().copied());
-        r.register(
+        let store_lookup_seconds = registered(
+            &mut r,
             "crowdmorph_store_lookup_seconds",
             "Time a store lookup took: one listing, and the read of a rig found",
-            store_lookup_seconds.clone(),
+            Histogram::new(SECONDS.iter().copied()),
         );
-        let lod_builds_running = U64Gauge::default();
-        r.register(
+        let lod_builds_running = registered(
+            &mut r,
             "crowdmorph_lod_builds_running",
             "LOD builds computing now",
-            lod_builds_running.clone(),
+            U64Gauge::default(),
         );
-        let gpu_seconds = F64Counter::default();
-        r.register(
+        let gpu_seconds = registered(
+            &mut r,
             "crowdmorph_gpu_seconds",
             "GPU time of evaluations",
-            gpu_seconds.clone(),
+            F64Counter::default(),
         );
         r.register(
             "crowdmorph_unique_job_ratio",
@@ -468,11 +467,11 @@ impl Default for Metrics {
             "Heads served during the last complete second",
             s.heads_per_second.clone(),
         );
-        let queue_depth = U64Gauge::default();
-        r.register(
+        let queue_depth = registered(
+            &mut r,
             "crowdmorph_queue_depth",
             "Crowd requests in the batcher",
-            queue_depth.clone(),
+            U64Gauge::default(),
         );
         let gauges: [(&str, &str, &U64Gauge); 4] = [
             (
