@@ -25,6 +25,7 @@
 //! | `conn` | the accept loop: header and idle timeouts, the connection cap |
 //! | `json` | JSON crowd frames written straight into reused buffers |
 //! | `pool` | reused output buffers, bounded in count and bytes |
+//! | `session_stream` | what a session viewer is sent: temporal residuals, packed messages, the encoded messages (taking the queue memory, not the state) |
 //! | `shed` | the rate-limited log of shed and timed-out requests |
 //! | [`sessions`] | crowd sessions' state: sessions, viewers, outboxes, limits |
 //! | [`graphs`] | motion graphs by rig: as stored, and resolved and measured per rig generation |
@@ -48,6 +49,7 @@ mod pool;
 pub mod registry;
 mod routes;
 pub mod scheduler;
+mod session_stream;
 pub mod sessions;
 mod shed;
 pub mod state;

@@ -50,7 +50,6 @@ use crate::sessions::{
 use crate::state::AppState;
 use crowdmorph_engine::render::scene;
 
-mod delta;
 mod tick;
 mod viewer;
 

@@ -11,8 +11,8 @@ use std::time::Duration;
 
 use bytes::Bytes;
 use crowdmorph_proto::{
-    CameraSpec, Format, FrameTimings, HEAD_MISSING, HEAD_UNCHANGED, HeadBuffer, LodChoice,
-    MessageEncoding, RenderRequest, SessionHead, ViewerOutput,
+    CameraSpec, Format, HEAD_MISSING, HEAD_UNCHANGED, LodChoice, MessageEncoding, RenderRequest,
+    SessionHead, ViewerOutput,
 };
 use glam::Vec3;
 use rayon::prelude::*;
@@ -24,15 +24,15 @@ use crate::admission::resolve::{
 use crate::registry::{MAX_F16, RigEntry};
 use crate::scheduler::{JobRequest, ScheduleError};
 use crate::sessions::{
-    Baseline, Encoded, HeadKey, MIN_FPS, MISSING_KEY, Outgoing, Retained, Session, Viewer,
-    ViewerSettings, bump, close,
+    Baseline, Encoded, HeadKey, MIN_FPS, MISSING_KEY, Outgoing, Session, Viewer, ViewerSettings,
+    bump, close,
 };
 use crate::state::{AppState, Inner};
 use crowdmorph_anim::graph::{Graph, Player};
 use crowdmorph_core::rig::{FrameMode, JointPose, Pose};
-use crowdmorph_store::codec::{FrameBufferParts, FrameResponseEncoder};
 
-use super::delta;
+use crate::session_stream::delta;
+use crate::session_stream::encode::{JobKey as Key, MessageContent, encode_delta, encode_vertices};
 
 /// Starts the tick task of `session`, supervised: if it panics (a bug), the session ends —
 /// removed from the server, its viewers closed with 1011 — and the panic is logged once and
@@ -167,9 +167,6 @@ struct HeadAt {
     levels: u32,
     f16_ok: bool,
 }
-
-/// A group's job: rig (index into the tick's rigs), pose, LOD, joint overrides at that LOD.
-type Key = (u32, Pose, u32, JointPose);
 
 /// The vertex viewers that share a format and normals: their jobs go to the batcher as one
 /// submission.
@@ -832,7 +829,7 @@ fn prepare(
                 group: g,
                 outputs: &target.outcome.outputs,
             };
-            match delta::plan(state, &base, &input, &mut cache.retained) {
+            match delta::plan(&state.queue_memory, &base, &input, &mut cache.retained) {
                 Some(p) => Some(p),
                 None => {
                     dropped_memory(state, session);
@@ -866,7 +863,9 @@ fn encode(
     let content = MessageContent {
         tick: t.tick,
         layout: p.key.with_layout.then_some(t.heads),
-        group: target.group.1,
+        keys: &target.group.1.keys,
+        format: target.group.1.format,
+        normals: target.group.1.normals,
         outcome: target.outcome,
         rigs: t.rigs,
         heads: t.heads,
@@ -874,8 +873,8 @@ fn encode(
         arrived: t.arrived,
     };
     match &p.plan {
-        None => encode_vertices(state, &content, p.settings.compression),
-        Some(plan) => encode_delta(state, &content, plan, p.settings.compression),
+        None => encode_vertices(&state.queue_memory, &content, p.settings.compression),
+        Some(plan) => encode_delta(&state.queue_memory, &content, plan, p.settings.compression),
     }
 }
 
@@ -973,212 +972,6 @@ fn deliver(
         target.viewer.ready.notify_one();
         return;
     }
-}
-
-/// What a viewer's vertex message is made of.
-struct MessageContent<'a> {
-    tick: u64,
-    layout: Option<&'a [SessionHead]>,
-    group: &'a Group,
-    outcome: &'a crate::scheduler::Outcome,
-    rigs: &'a [Arc<RigEntry>],
-    heads: &'a [SessionHead],
-    entries: &'a [u32],
-    arrived: std::time::Instant,
-}
-
-impl MessageContent<'_> {
-    fn timings(&self) -> FrameTimings {
-        FrameTimings {
-            queue_us: self.outcome.queue.as_micros() as u64,
-            compute_us: self.outcome.compute_ns / 1000,
-            total_us: self.arrived.elapsed().as_micros() as u64,
-            gpu_us: self.outcome.gpu_ns.map(|g| g / 1000),
-        }
-    }
-
-    /// A buffer's parts for job `e` of the group, with these payloads.
-    fn part(&self, e: u32, positions: Bytes, normals: Option<Bytes>) -> FrameBufferParts<'_> {
-        let (r, pose, l, _) = &self.group.keys[e as usize];
-        let entry = &self.rigs[*r as usize];
-        let (clip, frame) = entry.shown(pose);
-        FrameBufferParts {
-            rig: &entry.id,
-            clip,
-            frame,
-            lod: *l,
-            vertices: entry.prepared.at_level(*l).rig().vertex_count() as u32,
-            quantization: self.group.format.quantized().then_some(entry.qbox),
-            positions,
-            normals: if self.group.normals { normals } else { None },
-        }
-    }
-}
-
-/// The buffers of a viewer's message (in order of first appearance among the heads) and each
-/// head's entry: a buffer index, or `HEAD_UNCHANGED` / `HEAD_MISSING`.
-fn message_buffers<'a>(c: &'a MessageContent<'a>) -> (Vec<FrameBufferParts<'a>>, Vec<HeadBuffer>) {
-    let mut local: HashMap<u32, u32> = HashMap::new();
-    let mut parts: Vec<FrameBufferParts<'a>> = Vec::new();
-    let head_buffers: Vec<HeadBuffer> = c
-        .heads
-        .iter()
-        .zip(c.entries)
-        .map(|(h, &e)| {
-            let buffer = if e == HEAD_UNCHANGED || e == HEAD_MISSING {
-                e
-            } else {
-                *local.entry(e).or_insert_with(|| {
-                    let out = &c.outcome.outputs[e as usize];
-                    parts.push(c.part(e, out.positions.clone(), out.normals.clone()));
-                    (parts.len() - 1) as u32
-                })
-            };
-            HeadBuffer {
-                head: h.head,
-                buffer,
-            }
-        })
-        .collect();
-    (parts, head_buffers)
-}
-
-/// Encodes a [`crowdmorph_proto::TickVertices`] stream message: the variant, the tick and the
-/// layout, then the same fields as a crowd-frame response, with payloads aligned to 16 bytes
-/// from the start of the message. Its length is computed first and charged to the queue
-/// memory before anything of its size is allocated; `None` when the queue memory is full.
-fn encode_vertices(
-    state: &AppState,
-    c: &MessageContent<'_>,
-    compression: Option<MessageEncoding>,
-) -> Option<Encoded> {
-    let (parts, head_buffers) = message_buffers(c);
-    encode_message(state, c, 0, &[], &parts, &head_buffers, compression)
-}
-
-/// Encodes a [`crowdmorph_proto::TickDelta`]: as [`encode_vertices`], with each buffer a
-/// keyframe or residual planes against the head's reference, and a flag per buffer. Heads
-/// share a buffer when they share the job and the reference. The residuals are charged before
-/// they are computed.
-fn encode_delta(
-    state: &AppState,
-    c: &MessageContent<'_>,
-    plan: &delta::DeltaPlan,
-    compression: Option<MessageEncoding>,
-) -> Option<Encoded> {
-    let residual_bytes: u64 = (0..c.entries.len())
-        .filter_map(|i| Some((plan.refs[i].as_ref()?, plan.cur[i].as_ref()?)))
-        .map(|(_, cur)| (cur.positions.len() + cur.normals.as_ref().map_or(0, |n| n.len())) as u64)
-        .sum();
-    let _residual_memory = state.queue_memory.reserve(residual_bytes).ok()?;
-    // Each distinct (job, reference) is one buffer: numbered in order of first appearance,
-    // then coded on every core (the residual planes are the viewer's per-head work).
-    let mut local: HashMap<(u32, usize), u32> = HashMap::new();
-    let mut todo: Vec<(u32, &Retained, Option<&Retained>)> = Vec::new();
-    let mut head_buffers = Vec::with_capacity(c.heads.len());
-    for (i, (h, &e)) in c.heads.iter().zip(c.entries).enumerate() {
-        let buffer = match (e, &plan.cur[i]) {
-            (HEAD_UNCHANGED | HEAD_MISSING, _) | (_, None) => e,
-            (e, Some(cur)) => *local.entry((e, plan.bases[i])).or_insert_with(|| {
-                todo.push((e, cur, plan.refs[i].as_deref()));
-                (todo.len() - 1) as u32
-            }),
-        };
-        head_buffers.push(HeadBuffer {
-            head: h.head,
-            buffer,
-        });
-    }
-    let payloads: Vec<(Bytes, Option<Bytes>)> = todo
-        .par_iter()
-        .map(|&(_, cur, reference)| match reference {
-            None => (cur.positions.clone(), cur.normals.clone()),
-            Some(r) => {
-                let p = crowdmorph_proto::q16r_encode_le(&cur.positions, &r.positions);
-                let n = cur.normals.as_ref().zip(r.normals.as_ref());
-                let n = n.map(|(n, rn)| Bytes::from(crowdmorph_proto::q16r_encode_le(n, rn)));
-                (Bytes::from(p), n)
-            }
-        })
-        .collect();
-    let residual: Vec<bool> = todo.iter().map(|t| t.2.is_some()).collect();
-    let parts: Vec<FrameBufferParts<'_>> = todo
-        .iter()
-        .zip(payloads)
-        .map(|(&(e, _, _), (p, n))| c.part(e, p, n))
-        .collect();
-    let residual_len = crowdmorph_store::codec::wire_len(&residual).unwrap_or(0);
-    let residual = crowdmorph_store::codec::to_wire(&residual).ok()?;
-    debug_assert_eq!(residual.len(), residual_len);
-    encode_message(state, c, 2, &residual, &parts, &head_buffers, compression)
-}
-
-/// The variant, the tick, the format and normals, the layout, `after_layout` (more encoded
-/// fields), then buffers, heads and timings; charged before it is allocated. With
-/// `compression`, the pieces go through the compressor as they are encoded, into a
-/// `StreamMessage::Packed` ([`delta::pack`]): the whole message is never written out.
-fn encode_message(
-    state: &AppState,
-    c: &MessageContent<'_>,
-    variant: u64,
-    after_layout: &[u8],
-    parts: &[FrameBufferParts<'_>],
-    head_buffers: &[HeadBuffer],
-    compression: Option<MessageEncoding>,
-) -> Option<Encoded> {
-    let mut prefix = Vec::with_capacity(64);
-    crowdmorph_store::codec::put_varint(&mut prefix, variant);
-    crowdmorph_store::codec::put_varint(&mut prefix, c.tick);
-    let timings = c.timings();
-    // The layout's length (bincode, without encoding it; `None` is one byte), then the
-    // message's: charged before either is allocated.
-    let middle_len = crowdmorph_store::codec::wire_len(&c.layout).unwrap_or(1) + after_layout.len();
-    let total = FrameResponseEncoder::encoded_len_within(
-        prefix.len(),
-        middle_len,
-        c.group.format,
-        c.group.normals,
-        parts,
-        head_buffers,
-        &timings,
-    );
-    // Packed, the message's bytes only pass through the compressor, which `pack` charges.
-    let unpacked = if compression.is_some() { 0 } else { total };
-    let memory = state
-        .queue_memory
-        .reserve((unpacked + middle_len) as u64)
-        .ok()?;
-    let mut middle = crowdmorph_store::codec::to_wire(&c.layout).unwrap_or_else(|_| vec![0]);
-    middle.extend_from_slice(after_layout);
-    let chunks = FrameResponseEncoder::encode_within(
-        prefix,
-        &middle,
-        c.group.format,
-        c.group.normals,
-        parts,
-        head_buffers,
-        &timings,
-    );
-    drop(middle);
-    if let Some(e) = compression {
-        let packed = delta::pack(state, &chunks, total, e);
-        drop(chunks);
-        drop(memory);
-        return packed;
-    }
-    let mut out = Vec::with_capacity(total);
-    for c in &chunks {
-        out.extend_from_slice(c);
-    }
-    debug_assert_eq!(out.len(), total, "the counted length is the encoding's");
-    drop(chunks);
-    let mut memory = memory;
-    // The layout's encoding and the chunks are gone; the message keeps only its bytes.
-    memory.keep(total as u64);
-    Some(Encoded {
-        bytes: Bytes::from(out),
-        _memory: Box::new(memory),
-    })
 }
 
 /// Starts drawing this tick for a viewer that wants images, unless its previous image is

@@ -15,25 +15,24 @@ use bytes::Bytes;
 use crowdmorph_proto::{HEAD_MISSING, HEAD_UNCHANGED, MessageEncoding};
 use rayon::prelude::*;
 
-use crate::admission::Charge;
+use crate::admission::memory::{Charge, QueueMemory};
 use crate::sessions::{Baseline, Encoded, HeadKey, HeadPrev, Retained};
-use crate::state::AppState;
 
 /// Each temporal viewer's message, per head: `0` for a keyframe, else the address of the
 /// reference it is coded against (two viewers whose heads have the same references get the
 /// same bytes, so the fan-out's cache shares them).
-pub(super) type Bases = Vec<usize>;
+pub(crate) type Bases = Vec<usize>;
 
 /// The copies of a tick's outputs that temporal viewers keep, one per (group, job).
 #[derive(Default)]
-pub(super) struct RetainedCache(HashMap<(usize, u32), Arc<Retained>>);
+pub(crate) struct RetainedCache(HashMap<(usize, u32), Arc<Retained>>);
 
 impl RetainedCache {
     /// Copies the outputs of the jobs in `jobs` (of group `g`) that are not kept yet, each
     /// charged first, on every core. `None` when the queue memory is full.
     fn fill(
         &mut self,
-        state: &AppState,
+        memory: &QueueMemory,
         g: usize,
         jobs: impl Iterator<Item = u32>,
         outputs: &[Arc<crate::scheduler::JobOutput>],
@@ -47,16 +46,16 @@ impl RetainedCache {
                 continue;
             }
             let bytes = out.positions.len() + out.normals.as_ref().map_or(0, |n| n.len());
-            todo.push((j, state.queue_memory.reserve(bytes as u64).ok()?));
+            todo.push((j, memory.reserve(bytes as u64).ok()?));
         }
         let copies: Vec<(u32, Arc<Retained>)> = todo
             .into_par_iter()
-            .map(|(j, memory)| {
+            .map(|(j, charge)| {
                 let out = &outputs[j as usize];
                 let r = Retained {
                     positions: Bytes::copy_from_slice(&out.positions),
                     normals: out.normals.as_ref().map(|n| Bytes::copy_from_slice(n)),
-                    _memory: memory,
+                    _memory: charge,
                 };
                 (j, Arc::new(r))
             })
@@ -75,30 +74,30 @@ impl RetainedCache {
 
 /// A temporal viewer's plan for one message: per head its base (see [`Bases`]) and the
 /// reference a residual head is coded against, and the baseline's references once it is sent.
-pub(super) struct DeltaPlan {
-    pub(super) bases: Bases,
-    pub(super) refs: Vec<Option<Arc<Retained>>>,
-    pub(super) cur: Vec<Option<Arc<Retained>>>,
-    pub(super) after: Arc<HashMap<u64, HeadPrev>>,
+pub(crate) struct DeltaPlan {
+    pub(crate) bases: Bases,
+    pub(crate) refs: Vec<Option<Arc<Retained>>>,
+    pub(crate) cur: Vec<Option<Arc<Retained>>>,
+    pub(crate) after: Arc<HashMap<u64, HeadPrev>>,
 }
 
 /// What [`plan`] reads of the tick.
-pub(super) struct PlanInput<'a> {
-    pub(super) tick: u64,
-    pub(super) head_ids: &'a [u64],
-    pub(super) entries: &'a [u32],
-    pub(super) keys: &'a [HeadKey],
-    pub(super) every: u32,
-    pub(super) group: usize,
-    pub(super) outputs: &'a [Arc<crate::scheduler::JobOutput>],
+pub(crate) struct PlanInput<'a> {
+    pub(crate) tick: u64,
+    pub(crate) head_ids: &'a [u64],
+    pub(crate) entries: &'a [u32],
+    pub(crate) keys: &'a [HeadKey],
+    pub(crate) every: u32,
+    pub(crate) group: usize,
+    pub(crate) outputs: &'a [Arc<crate::scheduler::JobOutput>],
 }
 
 /// Plans a temporal viewer's message against its baseline: a head is a keyframe when it has
 /// no reference (the viewer's first message, a new head, one back from missing), when its LOD,
 /// rig generation or length changed, or when its last keyframe is `every` ticks old. First
 /// keyframes are staggered over the interval by head position. `None`: out of queue memory.
-pub(super) fn plan(
-    state: &AppState,
+pub(crate) fn plan(
+    memory: &QueueMemory,
     base: &Baseline,
     input: &PlanInput<'_>,
     retained: &mut RetainedCache,
@@ -117,7 +116,7 @@ pub(super) fn plan(
         .iter()
         .copied()
         .filter(|&e| e != HEAD_MISSING && e != HEAD_UNCHANGED);
-    retained.fill(state, input.group, sent, input.outputs)?;
+    retained.fill(memory, input.group, sent, input.outputs)?;
     for i in 0..n {
         let id = input.head_ids[i];
         let prev = base.prev.get(&id);
@@ -222,24 +221,23 @@ fn packed_bound(n: usize) -> usize {
 /// `PackedMessage` (`StreamMessage` variant 3) as the pieces stream through the encoder: the
 /// encoder's memory and the output's bound are charged first, the output kept. `None`: out of
 /// queue memory, or the codec failed.
-pub(super) fn pack(
-    state: &AppState,
+pub(crate) fn pack(
+    memory: &QueueMemory,
     pieces: &[Bytes],
     raw_len: usize,
     e: MessageEncoding,
 ) -> Option<Encoded> {
     let bound = packed_bound(raw_len);
-    let mut memory: Charge = state
-        .queue_memory
+    let mut charge: Charge = memory
         .reserve(encoder_bytes(e, bound) + 2 * bound as u64 + 32)
         .ok()?;
     let data = compress(pieces, bound, e)?;
     let out = packed_bytes(e, raw_len, &data);
     drop(data);
-    memory.keep(out.len() as u64);
+    charge.keep(out.len() as u64);
     Some(Encoded {
         bytes: Bytes::from(out),
-        _memory: Box::new(memory),
+        _memory: Box::new(charge),
     })
 }
 
