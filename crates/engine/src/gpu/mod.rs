@@ -298,7 +298,7 @@ fn rank(info: &wgpu::AdapterInfo) -> u8 {
 
 /// The WGSL source of each compute pass's module, by its file in `crates/engine/shaders/`: the file after
 /// the shared pieces of `crates/engine/shaders/lib/` it uses, joined at compile time (WGSL has no include).
-/// The engine compiles exactly these, and `tests/shaders.rs` validates exactly these.
+/// The engine compiles exactly these, and `crates/engine/tests/shaders.rs` validates exactly these.
 pub const SHADERS: [(&str, &str); 7] = [
     (
         "active.wgsl",
@@ -1230,7 +1230,7 @@ impl Slot {
 }
 
 /// Where each sub-batch's results sit in the staging buffer.
-#[derive(Clone, Copy)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
 struct Region {
     /// First job of the sub-batch.
     job: usize,
@@ -1347,69 +1347,40 @@ impl GpuContext {
             )));
         }
         let bone_bytes = (per_job_bones * size_of::<BoneMatrix>()) as u64;
-        let align = u64::from(self.device.limits().min_storage_buffer_offset_alignment);
-        // The live weights follow the job records in the same buffer, at the first offset a
-        // storage binding may start at.
-        let live_at = ((n.max(1) * size_of::<GpuJob>()) as u64).next_multiple_of(u64::from(
-            self.device.limits().min_storage_buffer_offset_alignment,
-        ));
-        let live_bytes = (live.len().max(1) * 4) as u64;
-        // Then the residual reference, two q16 values a word.
-        let reference_at = (live_at + live_bytes).next_multiple_of(align);
-        let reference_range =
-            reference.map(|r| (reference_at, (r.len() as u64 * 2).next_multiple_of(4)));
+        let recompute = spec.normals && rig.topology.is_some();
+        // 16-bit formats are packed on the device: half the bytes are copied and read back.
+        let packed16 = matches!(spec.precision, Precision::F16 | Precision::Q16(_));
         let per_job_out = v * 12;
         let tris = rig
             .topology
             .as_ref()
             .map_or(0, |t| u64::from(t.n_triangles));
-        let recompute = spec.normals && rig.topology.is_some();
-        // Jobs per sub-batch: what one binding holds (outputs, face normals, bone matrices and
-        // the active lists' eight weights per slot and group), in whole groups where that is at
-        // least one group; a sub-batch may start mid-group, the passes do not mind.
-        let mut sub = self.max_binding / per_job_out;
-        sub = sub.min(self.max_binding / (u64::from(rig.slots.max(1)) * 4));
-        if recompute && tris > 0 {
-            sub = sub.min(self.max_binding / (tris * 12));
-        }
-        if let Some(fit) = self.max_binding.checked_div(bone_bytes) {
-            sub = sub.min(fit);
-        }
-        let sub = sub.min(65_535) as usize;
-        let sub = if sub >= JOBS_PER_GROUP {
-            sub / JOBS_PER_GROUP * JOBS_PER_GROUP
-        } else {
-            sub.max(1)
-        };
-        let subs = n.div_ceil(sub).max(1);
-        // 16-bit formats are packed on the device: half the bytes are copied and read back.
-        let packed16 = matches!(spec.precision, Precision::F16 | Precision::Q16(_));
+        let BatchPlan {
+            sub,
+            regions,
+            live_at,
+            live_bytes,
+            reference_at,
+            staging,
+            bones_at,
+        } = plan_batch(
+            &BatchCounts {
+                jobs: n,
+                vertices: v,
+                slots: rig.slots,
+                triangles: if recompute { tris } else { 0 },
+                bone_bytes,
+                live: live.len(),
+                reference: reference.map(<[i16]>::len),
+                normals: spec.normals,
+                packed16,
+            },
+            self.max_binding,
+            u64::from(self.device.limits().min_storage_buffer_offset_alignment),
+        );
+        let subs = regions.len();
+        let reference_range = regions.first().and_then(|r| r.reference);
         let elem = if packed16 { 2 } else { 4 };
-        let mut regions = Vec::with_capacity(subs);
-        let mut staging = 0u64;
-        let mut bones_at = 0u64;
-        for k in 0..subs {
-            let job = k * sub;
-            let count = sub.min(n - job);
-            let bytes = (count as u64 * v * 3 * elem).next_multiple_of(4);
-            let positions = staging;
-            staging += bytes;
-            let normals = staging;
-            if spec.normals {
-                staging += bytes;
-            }
-            let bones = (bones_at, (count as u64 * bone_bytes).max(16));
-            bones_at = (bones_at + bones.1).next_multiple_of(align);
-            regions.push(Region {
-                job,
-                jobs: count,
-                positions,
-                normals,
-                live: (live_at, live_bytes),
-                bones,
-                reference: reference_range,
-            });
-        }
         if bones_at > self.max_buffer {
             return Err(GpuError::DoesNotFit(format!(
                 "a batch's bone matrices ({bones_at} bytes) exceed the device's largest buffer"
@@ -2110,5 +2081,218 @@ fn unmap(slot: &Slot, readback: bool) {
     }
     if let Some((_, _, read)) = &slot.queries {
         read.unmap();
+    }
+}
+
+/// What decides how a batch is cut into sub-batches ([`plan_batch`]).
+#[derive(Clone, Copy, Debug)]
+struct BatchCounts {
+    /// Jobs in the batch.
+    jobs: usize,
+    /// Vertices per job.
+    vertices: u64,
+    /// The rig's LOD slots (the active lists hold eight weights per slot and group).
+    slots: u32,
+    /// Triangles whose face normals are recomputed (0: none are).
+    triangles: u64,
+    /// Bytes of one job's bone matrices (0 on a rig without a skeleton).
+    bone_bytes: u64,
+    /// Live weights uploaded with the batch.
+    live: usize,
+    /// Components of the residual reference, when positions are coded against one.
+    reference: Option<usize>,
+    /// Whether normals are read back too.
+    normals: bool,
+    /// Whether outputs are 16-bit (packed on the device).
+    packed16: bool,
+}
+
+/// A batch's layout on the device: jobs per sub-batch, each sub-batch's [`Region`], where the
+/// live weights and the reference follow the job records, and the staging and bone bytes.
+#[derive(Debug, PartialEq)]
+struct BatchPlan {
+    /// Jobs per sub-batch (the last may hold fewer).
+    sub: usize,
+    /// One region per sub-batch, in job order.
+    regions: Vec<Region>,
+    /// Byte offset of the live weights in the jobs buffer.
+    live_at: u64,
+    /// Their bytes (at least one weight's).
+    live_bytes: u64,
+    /// Byte offset of the residual reference in the jobs buffer.
+    reference_at: u64,
+    /// Bytes of staging memory the read-back outputs take.
+    staging: u64,
+    /// Bytes of the bone matrices' buffer.
+    bones_at: u64,
+}
+
+/// Cuts a batch into sub-batches that each fit one binding of `max_binding` bytes (outputs,
+/// face normals, bone matrices, the active lists), in whole groups of eight jobs where that is
+/// at least one group, and lays out each sub-batch's staging and bone ranges (bone ranges at
+/// `align`, the device's storage offset alignment). A pure function of the counts, so that
+/// the cut is tested without a device.
+fn plan_batch(c: &BatchCounts, max_binding: u64, align: u64) -> BatchPlan {
+    let n = c.jobs;
+    let v = c.vertices;
+    // The live weights follow the job records in the same buffer, at the first offset a
+    // storage binding may start at.
+    let live_at = ((n.max(1) * size_of::<GpuJob>()) as u64).next_multiple_of(align);
+    let live_bytes = (c.live.max(1) * 4) as u64;
+    // Then the residual reference, two q16 values a word.
+    let reference_at = (live_at + live_bytes).next_multiple_of(align);
+    let reference_range = c
+        .reference
+        .map(|r| (reference_at, (r as u64 * 2).next_multiple_of(4)));
+    let per_job_out = v * 12;
+    // Jobs per sub-batch: what one binding holds (outputs, face normals, bone matrices and
+    // the active lists' eight weights per slot and group), in whole groups where that is at
+    // least one group; a sub-batch may start mid-group, the passes do not mind.
+    let mut sub = max_binding / per_job_out.max(1);
+    sub = sub.min(max_binding / (u64::from(c.slots.max(1)) * 4));
+    if c.triangles > 0 {
+        sub = sub.min(max_binding / (c.triangles * 12));
+    }
+    if let Some(fit) = max_binding.checked_div(c.bone_bytes) {
+        sub = sub.min(fit);
+    }
+    let sub = sub.min(65_535) as usize;
+    let sub = if sub >= JOBS_PER_GROUP {
+        sub / JOBS_PER_GROUP * JOBS_PER_GROUP
+    } else {
+        sub.max(1)
+    };
+    let subs = n.div_ceil(sub).max(1);
+    let elem = if c.packed16 { 2 } else { 4 };
+    let mut regions = Vec::with_capacity(subs);
+    let mut staging = 0u64;
+    let mut bones_at = 0u64;
+    for k in 0..subs {
+        let job = k * sub;
+        let count = sub.min(n - job);
+        let bytes = (count as u64 * v * 3 * elem).next_multiple_of(4);
+        let positions = staging;
+        staging += bytes;
+        let normals = staging;
+        if c.normals {
+            staging += bytes;
+        }
+        let bones = (bones_at, (count as u64 * c.bone_bytes).max(16));
+        bones_at = (bones_at + bones.1).next_multiple_of(align);
+        regions.push(Region {
+            job,
+            jobs: count,
+            positions,
+            normals,
+            live: (live_at, live_bytes),
+            bones,
+            reference: reference_range,
+        });
+    }
+    BatchPlan {
+        sub,
+        regions,
+        live_at,
+        live_bytes,
+        reference_at,
+        staging,
+        bones_at,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn counts(jobs: usize) -> BatchCounts {
+        BatchCounts {
+            jobs,
+            vertices: 1000,
+            slots: 51,
+            triangles: 0,
+            bone_bytes: 0,
+            live: 0,
+            reference: None,
+            normals: false,
+            packed16: false,
+        }
+    }
+
+    /// Every job is in exactly one region, in order; the regions' staging ranges follow each
+    /// other and each sub-batch's outputs fit one binding.
+    fn check(c: &BatchCounts, max_binding: u64, align: u64) -> BatchPlan {
+        let p = plan_batch(c, max_binding, align);
+        let mut next_job = 0;
+        let mut next_staging = 0;
+        let elem = if c.packed16 { 2 } else { 4 };
+        for r in &p.regions {
+            assert_eq!(r.job, next_job, "{c:?}");
+            assert!(r.jobs >= 1 && r.jobs <= p.sub);
+            assert!(r.jobs as u64 * c.vertices * 12 <= max_binding.max(c.vertices * 12));
+            assert_eq!(r.positions, next_staging);
+            let bytes = (r.jobs as u64 * c.vertices * 3 * elem).next_multiple_of(4);
+            next_staging = r.positions + bytes * if c.normals { 2 } else { 1 };
+            assert_eq!(r.bones.0 % align, 0, "bone ranges start aligned");
+            next_job += r.jobs;
+        }
+        assert_eq!(next_job, c.jobs);
+        assert_eq!(p.staging, next_staging);
+        assert_eq!(p.live_at % align, 0);
+        assert_eq!(p.reference_at % align, 0);
+        assert!(p.reference_at >= p.live_at + p.live_bytes);
+        p
+    }
+
+    #[test]
+    fn a_batch_that_fits_one_binding_is_one_sub_batch() {
+        let p = check(&counts(100), 128 << 20, 256);
+        assert_eq!(p.regions.len(), 1);
+        assert_eq!(p.regions[0].jobs, 100);
+        assert_eq!(p.staging, 100 * 1000 * 12);
+    }
+
+    #[test]
+    fn a_batch_past_the_binding_is_cut_in_whole_groups() {
+        // 12,000 bytes a job: a 1 MiB binding holds 87 jobs, cut to 80 (ten groups of eight).
+        let p = check(&counts(1000), 1 << 20, 256);
+        assert_eq!(p.sub, 80);
+        assert_eq!(p.regions.len(), 13);
+        assert_eq!(p.regions.last().map(|r| r.jobs), Some(1000 - 12 * 80));
+        // 16-bit outputs with normals: half the bytes per output, two outputs each.
+        let c = BatchCounts {
+            packed16: true,
+            normals: true,
+            ..counts(1000)
+        };
+        let p = check(&c, 1 << 20, 256);
+        assert_eq!(p.staging, 2 * (1000 * 1000 * 3 * 2));
+    }
+
+    #[test]
+    fn face_normals_bones_and_small_bindings_bound_the_cut() {
+        // Recomputed face normals of 50,000 triangles: 600,000 bytes a job, one job a binding.
+        let c = BatchCounts {
+            triangles: 50_000,
+            ..counts(20)
+        };
+        let p = check(&c, 1 << 20, 256);
+        assert_eq!((p.sub, p.regions.len()), (1, 20));
+        // Bone matrices: each sub-batch's range aligned, and the buffer holds them all.
+        let c = BatchCounts {
+            bone_bytes: 5 * 48,
+            ..counts(300)
+        };
+        let p = check(&c, 1 << 20, 256);
+        let last = p.regions.last().expect("regions");
+        assert!(p.bones_at >= last.bones.0 + last.bones.1);
+        // A live row and a reference follow the job records, each at the alignment.
+        let c = BatchCounts {
+            live: 51 * 300,
+            reference: Some(3000),
+            ..counts(300)
+        };
+        let p = check(&c, 1 << 20, 256);
+        assert_eq!(p.live_bytes, 51 * 300 * 4);
+        assert_eq!(p.regions[0].reference, Some((p.reference_at, 6000)));
     }
 }
