@@ -7,6 +7,7 @@
 //! a small generated rig, and small sizes and durations, so that it takes a few seconds on two
 //! cores. Outputs are checked against the library evaluating the same thing in this process.
 
+use crate::util::gpu_test;
 use std::path::Path;
 use std::process::{Command, Output};
 
@@ -470,62 +471,60 @@ fn bench_cpu_reports_plausible_json() {
     assert_eq!(f64_of(&scaling[0], "delta_fraction"), 1.0);
 }
 
-#[test]
-#[cfg_attr(
-    not(crowdmorph_gpu_driver),
-    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
-)]
-fn bench_gpu_measures_the_scenes_on_a_gpu_and_the_cpu() {
-    // `bench gpu` always includes the paper-scale rig unless told not to, and that takes
-    // seconds per scene on lavapipe: a tiny generated rig keeps this fast. `--backend gpu`
-    // (the default) takes software adapters such as lavapipe; auto would not.
-    let dir = temp_dir("cli-bench-gpu");
-    let rig = dir.join("triangle.glb");
-    std::fs::write(&rig, crate::util::builder::triangle_rig().to_glb()).expect("write rig");
-    let plot = dir.join("gpu.png");
-    let reports = json(&[
-        "bench",
-        "gpu",
-        "--backend",
-        "gpu",
-        "--no-paper",
-        "--rig",
-        path_str(&rig),
-        "--seconds",
-        "0.01",
-        "--with-cpu",
-        "--plot",
-        path_str(&plot),
-        "--json",
-    ]);
-    let reports = reports.as_array().expect("one report per engine");
-    assert_eq!(reports.len(), 2);
-    assert_eq!(
-        reports[0]["backend"]["kind"], "gpu",
-        "{}",
-        reports[0]["backend"]
-    );
-    assert_eq!(reports[0]["backend"]["degraded"], false);
-    assert_eq!(reports[1]["backend"]["kind"], "cpu");
-    for r in reports {
-        let scenes = r["scenes"].as_array().expect("scenes");
-        let names: Vec<&str> = scenes
-            .iter()
-            .map(|s| s["scene"].as_str().expect("scene"))
-            .collect();
-        for (scene, _, _) in crowdmorph::bench::gpu::SCENES {
-            assert!(names.contains(&scene), "{scene} missing: {names:?}");
+gpu_test!(
+    #[test]
+    fn bench_gpu_measures_the_scenes_on_a_gpu_and_the_cpu() {
+        // `bench gpu` always includes the paper-scale rig unless told not to, and that takes
+        // seconds per scene on lavapipe: a tiny generated rig keeps this fast. `--backend gpu`
+        // (the default) takes software adapters such as lavapipe; auto would not.
+        let dir = temp_dir("cli-bench-gpu");
+        let rig = dir.join("triangle.glb");
+        std::fs::write(&rig, crate::util::builder::triangle_rig().to_glb()).expect("write rig");
+        let plot = dir.join("gpu.png");
+        let reports = json(&[
+            "bench",
+            "gpu",
+            "--backend",
+            "gpu",
+            "--no-paper",
+            "--rig",
+            path_str(&rig),
+            "--seconds",
+            "0.01",
+            "--with-cpu",
+            "--plot",
+            path_str(&plot),
+            "--json",
+        ]);
+        let reports = reports.as_array().expect("one report per engine");
+        assert_eq!(reports.len(), 2);
+        assert_eq!(
+            reports[0]["backend"]["kind"], "gpu",
+            "{}",
+            reports[0]["backend"]
+        );
+        assert_eq!(reports[0]["backend"]["degraded"], false);
+        assert_eq!(reports[1]["backend"]["kind"], "cpu");
+        for r in reports {
+            let scenes = r["scenes"].as_array().expect("scenes");
+            let names: Vec<&str> = scenes
+                .iter()
+                .map(|s| s["scene"].as_str().expect("scene"))
+                .collect();
+            for (scene, _, _) in crowdmorph::bench::gpu::SCENES {
+                assert!(names.contains(&scene), "{scene} missing: {names:?}");
+            }
+            for s in scenes {
+                assert!(
+                    f64_of(s, "round_trip_ms") > 0.0 && f64_of(s, "heads_per_s") > 0.0,
+                    "{s}"
+                );
+            }
         }
-        for s in scenes {
-            assert!(
-                f64_of(s, "round_trip_ms") > 0.0 && f64_of(s, "heads_per_s") > 0.0,
-                "{s}"
-            );
-        }
+        assert!(std::fs::read(&plot).expect("plot").starts_with(b"\x89PNG"));
+        let _ = std::fs::remove_dir_all(dir);
     }
-    assert!(std::fs::read(&plot).expect("plot").starts_with(b"\x89PNG"));
-    let _ = std::fs::remove_dir_all(dir);
-}
+);
 
 /// Counts pixels of a PNG that are not the default background.
 fn drawn_pixels(img: &crate::util::image::Image) -> usize {
@@ -536,71 +535,69 @@ fn drawn_pixels(img: &crate::util::image::Image) -> usize {
         .count()
 }
 
-#[test]
-#[cfg_attr(
-    not(crowdmorph_gpu_driver),
-    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
-)]
-fn render_writes_a_picture_of_a_crowd_of_the_embedded_head() {
-    let dir = temp_dir("cli-render");
-    let out = dir.join("crowd.png");
-    let report = json(&[
-        "render",
-        "--clip",
-        "talk",
-        "--frame",
-        "12",
-        "--heads",
-        "4",
-        "--spread",
-        "--width",
-        "160",
-        "--height",
-        "120",
-        "--out",
-        path_str(&out),
-        "--json",
-    ]);
-    assert_eq!(usize_of(&report, "heads"), 4);
-    assert_eq!(
-        usize_of(&report, "unique"),
-        4,
-        "--spread: one frame per head"
-    );
-    assert!(report["adapter"].as_str().is_some_and(|a| !a.is_empty()));
-    let img = crate::util::image::Image::read_png(&out).expect("a PNG");
-    assert_eq!((img.width, img.height), (160, 120));
-    let drawn = drawn_pixels(&img);
-    assert!(
-        drawn > 160 * 120 / 10,
-        "only {drawn} pixels are not background"
-    );
-    // The corner is background: the crowd is framed, not cut.
-    let bg = crowdmorph_proto::DEFAULT_BACKGROUND;
-    assert_eq!(img.pixel(0, 0), [bg[0], bg[1], bg[2], 255]);
-    // Clones by default; the format follows the extension.
-    let jpeg = dir.join("crowd.jpg");
-    let report = json(&[
-        "render",
-        "--heads",
-        "3",
-        "--width",
-        "64",
-        "--height",
-        "48",
-        "--out",
-        path_str(&jpeg),
-        "--json",
-    ]);
-    assert_eq!(usize_of(&report, "unique"), 1);
-    assert_eq!(report["format"], "jpeg");
-    assert!(
-        std::fs::read(&jpeg)
-            .expect("jpeg")
-            .starts_with(&[0xFF, 0xD8])
-    );
-    let _ = std::fs::remove_dir_all(dir);
-}
+gpu_test!(
+    #[test]
+    fn render_writes_a_picture_of_a_crowd_of_the_embedded_head() {
+        let dir = temp_dir("cli-render");
+        let out = dir.join("crowd.png");
+        let report = json(&[
+            "render",
+            "--clip",
+            "talk",
+            "--frame",
+            "12",
+            "--heads",
+            "4",
+            "--spread",
+            "--width",
+            "160",
+            "--height",
+            "120",
+            "--out",
+            path_str(&out),
+            "--json",
+        ]);
+        assert_eq!(usize_of(&report, "heads"), 4);
+        assert_eq!(
+            usize_of(&report, "unique"),
+            4,
+            "--spread: one frame per head"
+        );
+        assert!(report["adapter"].as_str().is_some_and(|a| !a.is_empty()));
+        let img = crate::util::image::Image::read_png(&out).expect("a PNG");
+        assert_eq!((img.width, img.height), (160, 120));
+        let drawn = drawn_pixels(&img);
+        assert!(
+            drawn > 160 * 120 / 10,
+            "only {drawn} pixels are not background"
+        );
+        // The corner is background: the crowd is framed, not cut.
+        let bg = crowdmorph_proto::DEFAULT_BACKGROUND;
+        assert_eq!(img.pixel(0, 0), [bg[0], bg[1], bg[2], 255]);
+        // Clones by default; the format follows the extension.
+        let jpeg = dir.join("crowd.jpg");
+        let report = json(&[
+            "render",
+            "--heads",
+            "3",
+            "--width",
+            "64",
+            "--height",
+            "48",
+            "--out",
+            path_str(&jpeg),
+            "--json",
+        ]);
+        assert_eq!(usize_of(&report, "unique"), 1);
+        assert_eq!(report["format"], "jpeg");
+        assert!(
+            std::fs::read(&jpeg)
+                .expect("jpeg")
+                .starts_with(&[0xFF, 0xD8])
+        );
+        let _ = std::fs::remove_dir_all(dir);
+    }
+);
 
 #[test]
 fn render_without_a_vulkan_driver_says_what_to_install() {
@@ -620,38 +617,36 @@ fn render_without_a_vulkan_driver_says_what_to_install() {
     let _ = std::fs::remove_dir_all(dir);
 }
 
-#[test]
-#[cfg_attr(
-    not(crowdmorph_gpu_driver),
-    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
-)]
-fn bench_render_reports_each_stage() {
-    let r = json(&[
-        "bench",
-        "render",
-        "--heads",
-        "4",
-        "--width",
-        "64",
-        "--height",
-        "48",
-        "--seconds",
-        "0",
-        "--json",
-    ]);
-    assert_eq!(usize_of(&r, "heads"), 4);
-    assert_eq!(usize_of(&r, "unique"), 4, "every head a different frame");
-    assert!(usize_of(&r, "runs") >= 5);
-    assert!(usize_of(&r, "bytes") > 0);
-    let t = &r["times"];
-    for stage in ["compute_ms", "render_ms", "readback_ms", "encode_ms"] {
-        assert!(f64_of(t, stage) >= 0.0, "{stage}: {t}");
+gpu_test!(
+    #[test]
+    fn bench_render_reports_each_stage() {
+        let r = json(&[
+            "bench",
+            "render",
+            "--heads",
+            "4",
+            "--width",
+            "64",
+            "--height",
+            "48",
+            "--seconds",
+            "0",
+            "--json",
+        ]);
+        assert_eq!(usize_of(&r, "heads"), 4);
+        assert_eq!(usize_of(&r, "unique"), 4, "every head a different frame");
+        assert!(usize_of(&r, "runs") >= 5);
+        assert!(usize_of(&r, "bytes") > 0);
+        let t = &r["times"];
+        for stage in ["compute_ms", "render_ms", "readback_ms", "encode_ms"] {
+            assert!(f64_of(t, stage) >= 0.0, "{stage}: {t}");
+        }
+        assert!(
+            f64_of(t, "render_ms") > 0.0 && f64_of(t, "total_ms") > 0.0,
+            "{t}"
+        );
     }
-    assert!(
-        f64_of(t, "render_ms") > 0.0 && f64_of(t, "total_ms") > 0.0,
-        "{t}"
-    );
-}
+);
 
 #[test]
 fn bench_http_reports_plausible_json() {

@@ -4,6 +4,7 @@
 //! are near mirror images) and MorphStressTest; the embedded head has exact mirror twins. ICT is
 //! scored once per test run and shared.
 
+use crate::util::gpu_test;
 use std::sync::{Arc, OnceLock};
 
 use crowdmorph::engine::cpu::CpuRig;
@@ -537,30 +538,26 @@ fn check_mesh_levels_on_the_gpu(rig: &Rig, fractions: &[f32]) {
     }
 }
 
-#[test]
-#[cfg_attr(
-    not(crowdmorph_gpu_driver),
-    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
-)]
-fn mesh_levels_match_on_the_gpu_and_cpu_engines_on_the_embedded_head() {
-    check_mesh_levels_on_the_gpu(&crowdmorph::embedded::default_rig(), &[0.5, 0.1]);
-}
+gpu_test!(
+    #[test]
+    fn mesh_levels_match_on_the_gpu_and_cpu_engines_on_the_embedded_head() {
+        check_mesh_levels_on_the_gpu(&crowdmorph::embedded::default_rig(), &[0.5, 0.1]);
+    }
+);
 
-#[test]
-#[cfg_attr(
-    not(crowdmorph_gpu_driver),
-    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
-)]
-#[cfg_attr(
-    all(crowdmorph_gpu_driver, not(crowdmorph_test_data)),
-    ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
-)]
-fn mesh_levels_match_on_the_gpu_and_cpu_engines_on_ict_facekit() {
-    let mut rig = ict().clone();
-    rig.clips
-        .push(synthetic_clip(&rig, "random", 20, 3).expect("synthetic clip"));
-    check_mesh_levels_on_the_gpu(&rig, &[0.1]);
-}
+gpu_test!(
+    #[test]
+    #[cfg_attr(
+        all(crowdmorph_gpu_driver, not(crowdmorph_test_data)),
+        ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+    )]
+    fn mesh_levels_match_on_the_gpu_and_cpu_engines_on_ict_facekit() {
+        let mut rig = ict().clone();
+        rig.clips
+            .push(synthetic_clip(&rig, "random", 20, 3).expect("synthetic clip"));
+        check_mesh_levels_on_the_gpu(&rig, &[0.1]);
+    }
+);
 
 #[test]
 fn a_built_lod_persists_with_the_rig() {
@@ -642,27 +639,25 @@ fn mesh_levels_share_the_clip_tables_and_count_them_once() {
     assert!(rig.clip_bytes() > 0);
 }
 
-#[test]
-#[cfg_attr(
-    not(crowdmorph_gpu_driver),
-    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
-)]
-fn mesh_levels_share_one_device_buffer_of_clip_tables() {
-    let rig = head_with_mesh_levels();
-    let engine = Engine::with_gpu(open_gpu(GpuOptions::default()), BackendChoice::Gpu);
-    let prepared = engine.prepare(rig).expect("prepare");
-    let full = prepared.gpu().expect("resident");
-    let mut expected = full.device_bytes();
-    for level in prepared.mesh_levels() {
-        let g = level.gpu().expect("resident");
-        assert!(
-            Arc::ptr_eq(g.tables(), full.tables()),
-            "a level has its own tables"
-        );
-        expected += g.geometry_bytes();
+gpu_test!(
+    #[test]
+    fn mesh_levels_share_one_device_buffer_of_clip_tables() {
+        let rig = head_with_mesh_levels();
+        let engine = Engine::with_gpu(open_gpu(GpuOptions::default()), BackendChoice::Gpu);
+        let prepared = engine.prepare(rig).expect("prepare");
+        let full = prepared.gpu().expect("resident");
+        let mut expected = full.device_bytes();
+        for level in prepared.mesh_levels() {
+            let g = level.gpu().expect("resident");
+            assert!(
+                Arc::ptr_eq(g.tables(), full.tables()),
+                "a level has its own tables"
+            );
+            expected += g.geometry_bytes();
+        }
+        assert_eq!(prepared.memory().device_bytes as u64, expected);
     }
-    assert_eq!(prepared.memory().device_bytes as u64, expected);
-}
+);
 
 #[test]
 #[cfg_attr(

@@ -2,6 +2,7 @@
 //! 14 node-animated clips) evaluated by the engines against the independent f64 evaluator in
 //! `util::skin`, with tolerances relative to the rig's diagonal; blends; the q16 box.
 
+use crate::util::gpu_test;
 use std::path::PathBuf;
 
 use crowdmorph::engine::cpu::CpuRig;
@@ -334,29 +335,27 @@ fn the_gpu_skin_pass_matches_the_cpu_engine_on_the_robot() {
     }
 }
 
-#[test]
-#[cfg_attr(
-    not(crowdmorph_gpu_driver),
-    ignore = "needs a Vulkan adapter (apt-get install mesa-vulkan-drivers)"
-)]
-fn the_gpu_skin_pass_matches_the_cpu_engine_on_a_face_with_overrides() {
-    let rig = crowdmorph::synthetic::skinned_head();
-    let talk = rig.clip_index("talk").expect("talk") as u32;
-    let jobs = vec![
-        BlendJob::frame(talk, 10, 0),
-        with_joints(
-            &rig,
+gpu_test!(
+    #[test]
+    fn the_gpu_skin_pass_matches_the_cpu_engine_on_a_face_with_overrides() {
+        let rig = crowdmorph::synthetic::skinned_head();
+        let talk = rig.clip_index("talk").expect("talk") as u32;
+        let jobs = vec![
             BlendJob::frame(talk, 10, 0),
-            &[
-                ("LeftEye", glam::Quat::from_rotation_y(0.4)),
-                ("RightEye", glam::Quat::from_rotation_y(0.4)),
-                ("Jaw", glam::Quat::from_rotation_x(0.2)),
-            ],
-        ),
-        BlendJob::frame(talk, 77, 2),
-    ];
-    let _ = gpu_agrees_with_cpu(&rig, &jobs);
-}
+            with_joints(
+                &rig,
+                BlendJob::frame(talk, 10, 0),
+                &[
+                    ("LeftEye", glam::Quat::from_rotation_y(0.4)),
+                    ("RightEye", glam::Quat::from_rotation_y(0.4)),
+                    ("Jaw", glam::Quat::from_rotation_x(0.2)),
+                ],
+            ),
+            BlendJob::frame(talk, 77, 2),
+        ];
+        let _ = gpu_agrees_with_cpu(&rig, &jobs);
+    }
+);
 
 #[test]
 fn a_face_turns_its_eyes_by_joint_override() {

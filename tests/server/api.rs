@@ -6,6 +6,7 @@
 //! stated `max_error` per axis. Normals are unit vectors: 2e-3 in f32 (recomputed normals
 //! come from blended f32 positions), plus 2^-11 in f16 and 1/65534 in q16.
 
+use crate::util::gpu_test;
 use std::collections::HashMap;
 
 use bytes::Bytes;
@@ -492,218 +493,214 @@ async fn q16r_decodes_to_q16(client: &crowdmorph_client::Client, rig: &Rig) {
     }
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[cfg_attr(
-    not(crowdmorph_gpu_driver),
-    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
-)]
-async fn frames_on_the_gpu_backend_match_the_cpu_engine() {
-    // `--backend gpu` takes software adapters too; in CI that is lavapipe. Without an adapter
-    // the server does not start, and the test fails (it runs only where a driver is installed).
-    let server = TestServer::start(ServerConfig {
-        backend: crowdmorph::engine::BackendChoice::Gpu,
-        ..ServerConfig::default()
-    })
-    .await;
-    assert_eq!(
-        server.state.engine.info().kind,
-        crowdmorph::engine::BackendKind::Gpu
-    );
-    let rig = server
-        .state
-        .registry
-        .get("default-head")
-        .expect("rig")
-        .rig()
-        .clone();
-    let cpu = crowdmorph::engine::Engine::cpu();
-    let prepared = cpu
-        .prepare(std::sync::Arc::new(rig.clone()))
-        .expect("prepare");
-    let diag = rig.bbox().diagonal();
-    for (format, normals) in [
-        (Format::F32, true),
-        (Format::F16, false),
-        (Format::Q16, true),
-    ] {
-        let req = crowd("default-head", &rig, format, normals);
+gpu_test!(
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn frames_on_the_gpu_backend_match_the_cpu_engine() {
+        // `--backend gpu` takes software adapters too; in CI that is lavapipe. Without an adapter
+        // the server does not start, and the test fails (it runs only where a driver is installed).
+        let server = TestServer::start(ServerConfig {
+            backend: crowdmorph::engine::BackendChoice::Gpu,
+            ..ServerConfig::default()
+        })
+        .await;
+        assert_eq!(
+            server.state.engine.info().kind,
+            crowdmorph::engine::BackendKind::Gpu
+        );
+        let rig = server
+            .state
+            .registry
+            .get("default-head")
+            .expect("rig")
+            .rig()
+            .clone();
+        let cpu = crowdmorph::engine::Engine::cpu();
+        let prepared = cpu
+            .prepare(std::sync::Arc::new(rig.clone()))
+            .expect("prepare");
+        let diag = rig.bbox().diagonal();
+        for (format, normals) in [
+            (Format::F32, true),
+            (Format::F16, false),
+            (Format::Q16, true),
+        ] {
+            let req = crowd("default-head", &rig, format, normals);
+            let (resp, _) = server
+                .client
+                .crowd_frame(&req, Encoding::Bincode)
+                .await
+                .expect("frame");
+            assert!(
+                !server.state.engine.info().degraded,
+                "{:?}",
+                server.state.engine.info().degraded_reason
+            );
+            for (h, head) in req.heads.iter().zip(&resp.heads) {
+                let b = &resp.buffers[head.buffer as usize];
+                let ci = rig.clip_index(&h.clip).expect("clip") as u32;
+                let job = crowdmorph::engine::BlendJob::frame(ci, b.frame, h.lod);
+                let want = cpu
+                    .evaluate(
+                        &prepared,
+                        &[job],
+                        crowdmorph::engine::OutputSpec {
+                            normals,
+                            ..Default::default()
+                        },
+                    )
+                    .expect("cpu");
+                let got = positions_f32(format, b);
+                let exp = want.output.job_positions(0);
+                let max_coord = exp.iter().map(|x| x.abs()).fold(0.0, f32::max);
+                let q = b
+                    .quantization
+                    .map_or(0.0, |q| q.max_error.iter().copied().fold(0.0, f32::max));
+                let tol = 1e-5 * diag
+                    + q
+                    + if format == Format::F16 {
+                        max_coord / 1024.0
+                    } else {
+                        0.0
+                    };
+                let d = got
+                    .iter()
+                    .zip(&exp)
+                    .map(|(a, b)| (a - b).abs())
+                    .fold(0.0, f32::max);
+                assert!(d <= tol, "{format:?} head {}: {d} > {tol}", h.head);
+                if normals {
+                    let n = normals_f32(format, b).expect("normals");
+                    let en = want.output.job_normals(0).expect("normals");
+                    let d = n
+                        .iter()
+                        .zip(&en)
+                        .map(|(a, b)| (a - b).abs())
+                        .fold(0.0, f32::max);
+                    assert!(d <= 2e-3, "{format:?} head {} normals: {d}", h.head);
+                }
+            }
+        }
+        // q16r, coded on the device, is the q16 answer once decoded against the reference.
+        q16r_decodes_to_q16(&server.client, &rig).await;
+        assert!(!server.state.engine.info().degraded);
+        let metrics = server.client.metrics().await.expect("metrics");
+        assert!(
+            crowdmorph_client::metric(&metrics, "crowdmorph_gpu_seconds_total")
+                .is_some_and(|v| v > 0.0),
+            "GPU time is reported in metrics"
+        );
+        // The device goes away: frames keep coming (from the CPU engine) and /readyz says degraded.
+        server.state.engine.gpu().expect("gpu").device().destroy();
+        // The CPU engine codes q16r on the host now; a client decodes it as before.
+        q16r_decodes_to_q16(&server.client, &rig).await;
+        let req = crowd("default-head", &rig, Format::F32, false);
         let (resp, _) = server
             .client
             .crowd_frame(&req, Encoding::Bincode)
             .await
-            .expect("frame");
-        assert!(
-            !server.state.engine.info().degraded,
-            "{:?}",
-            server.state.engine.info().degraded_reason
-        );
-        for (h, head) in req.heads.iter().zip(&resp.heads) {
-            let b = &resp.buffers[head.buffer as usize];
-            let ci = rig.clip_index(&h.clip).expect("clip") as u32;
-            let job = crowdmorph::engine::BlendJob::frame(ci, b.frame, h.lod);
-            let want = cpu
-                .evaluate(
-                    &prepared,
-                    &[job],
-                    crowdmorph::engine::OutputSpec {
-                        normals,
+            .expect("frames after the device loss");
+        assert_eq!(resp.heads.len(), req.heads.len());
+        let ready = server
+            .client
+            .send(Method::GET, "/readyz", None, None, Bytes::new())
+            .await
+            .expect("readyz");
+        assert_eq!(ready.status, 200);
+        let r: crowdmorph_proto::Readiness = serde_json::from_slice(&ready.body).expect("JSON");
+        assert_eq!(r.status, "degraded");
+        assert_eq!(r.backend, "cpu");
+        assert!(r.degraded_reason.is_some());
+        server.stop().await;
+    }
+);
+
+gpu_test!(
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn gpu_batches_overlap_under_load_and_every_response_is_right() {
+        // One job per batch, so 32 concurrent requests make a stream of batches: the compute
+        // thread submits each next batch before it waits for the one computing.
+        let server = TestServer::start(ServerConfig {
+            backend: crowdmorph::engine::BackendChoice::Gpu,
+            batch_cost: Some(1),
+            ..ServerConfig::default()
+        })
+        .await;
+        let rig = server
+            .state
+            .registry
+            .get("default-head")
+            .expect("rig")
+            .rig()
+            .clone();
+        let cpu = crowdmorph::engine::Engine::cpu();
+        let prepared = cpu
+            .prepare(std::sync::Arc::new(rig.clone()))
+            .expect("prepare");
+        let talk = rig.clip_index("talk").expect("talk") as u32;
+        let frames = i64::from(rig.clips[talk as usize].frames);
+        let tasks: Vec<_> = (0..32i64)
+            .map(|r| {
+                let client = server.client.clone();
+                let heads: Vec<Head> = (0..4)
+                    .map(|k| Head {
+                        head: (r * 4 + k) as u64,
+                        rig: "default-head".into(),
+                        clip: "talk".into(),
+                        frame: (r * 3 + k) % frames,
+                        lod: (k % 2) as u32,
                         ..Default::default()
-                    },
-                )
-                .expect("cpu");
-            let got = positions_f32(format, b);
-            let exp = want.output.job_positions(0);
-            let max_coord = exp.iter().map(|x| x.abs()).fold(0.0, f32::max);
-            let q = b
-                .quantization
-                .map_or(0.0, |q| q.max_error.iter().copied().fold(0.0, f32::max));
-            let tol = 1e-5 * diag
-                + q
-                + if format == Format::F16 {
-                    max_coord / 1024.0
-                } else {
-                    0.0
-                };
-            let d = got
-                .iter()
-                .zip(&exp)
-                .map(|(a, b)| (a - b).abs())
-                .fold(0.0, f32::max);
-            assert!(d <= tol, "{format:?} head {}: {d} > {tol}", h.head);
-            if normals {
-                let n = normals_f32(format, b).expect("normals");
-                let en = want.output.job_normals(0).expect("normals");
-                let d = n
+                    })
+                    .collect();
+                tokio::spawn(async move {
+                    let req = CrowdFrameRequest {
+                        heads,
+                        output: OutputOptions {
+                            normals: false,
+                            format: Format::F32,
+                        },
+                        wrap: true,
+                    };
+                    let (resp, _) = client
+                        .crowd_frame(&req, Encoding::Bincode)
+                        .await
+                        .expect("frame");
+                    (req, resp)
+                })
+            })
+            .collect();
+        let diag = rig.bbox().diagonal();
+        for t in tasks {
+            let (req, resp) = t.await.expect("join");
+            for (h, head) in req.heads.iter().zip(&resp.heads) {
+                let b = &resp.buffers[head.buffer as usize];
+                let want = cpu
+                    .evaluate(
+                        &prepared,
+                        &[crowdmorph::engine::BlendJob::frame(talk, b.frame, h.lod)],
+                        crowdmorph::engine::OutputSpec::default(),
+                    )
+                    .expect("cpu");
+                assert_eq!(b.frame as i64, h.frame, "head {} got another frame", h.head);
+                let d = positions_f32(Format::F32, b)
                     .iter()
-                    .zip(&en)
+                    .zip(want.output.job_positions(0))
                     .map(|(a, b)| (a - b).abs())
                     .fold(0.0, f32::max);
-                assert!(d <= 2e-3, "{format:?} head {} normals: {d}", h.head);
+                assert!(d <= 1e-5 * diag, "head {}: {d}", h.head);
             }
         }
+        assert!(!server.state.engine.info().degraded);
+        let metrics = server.client.metrics().await.expect("metrics");
+        let pipelined = crowdmorph_client::metric(&metrics, "crowdmorph_batches_pipelined_total");
+        let batches = crowdmorph_client::metric(&metrics, "crowdmorph_batches_total");
+        eprintln!("{batches:?} batches, {pipelined:?} begun while another computed");
+        assert!(
+            pipelined.is_some_and(|v| v >= 1.0),
+            "consecutive batches overlapped on the GPU: {pipelined:?} of {batches:?}"
+        );
+        server.stop().await;
     }
-    // q16r, coded on the device, is the q16 answer once decoded against the reference.
-    q16r_decodes_to_q16(&server.client, &rig).await;
-    assert!(!server.state.engine.info().degraded);
-    let metrics = server.client.metrics().await.expect("metrics");
-    assert!(
-        crowdmorph_client::metric(&metrics, "crowdmorph_gpu_seconds_total")
-            .is_some_and(|v| v > 0.0),
-        "GPU time is reported in metrics"
-    );
-    // The device goes away: frames keep coming (from the CPU engine) and /readyz says degraded.
-    server.state.engine.gpu().expect("gpu").device().destroy();
-    // The CPU engine codes q16r on the host now; a client decodes it as before.
-    q16r_decodes_to_q16(&server.client, &rig).await;
-    let req = crowd("default-head", &rig, Format::F32, false);
-    let (resp, _) = server
-        .client
-        .crowd_frame(&req, Encoding::Bincode)
-        .await
-        .expect("frames after the device loss");
-    assert_eq!(resp.heads.len(), req.heads.len());
-    let ready = server
-        .client
-        .send(Method::GET, "/readyz", None, None, Bytes::new())
-        .await
-        .expect("readyz");
-    assert_eq!(ready.status, 200);
-    let r: crowdmorph_proto::Readiness = serde_json::from_slice(&ready.body).expect("JSON");
-    assert_eq!(r.status, "degraded");
-    assert_eq!(r.backend, "cpu");
-    assert!(r.degraded_reason.is_some());
-    server.stop().await;
-}
-
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[cfg_attr(
-    not(crowdmorph_gpu_driver),
-    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
-)]
-async fn gpu_batches_overlap_under_load_and_every_response_is_right() {
-    // One job per batch, so 32 concurrent requests make a stream of batches: the compute
-    // thread submits each next batch before it waits for the one computing.
-    let server = TestServer::start(ServerConfig {
-        backend: crowdmorph::engine::BackendChoice::Gpu,
-        batch_cost: Some(1),
-        ..ServerConfig::default()
-    })
-    .await;
-    let rig = server
-        .state
-        .registry
-        .get("default-head")
-        .expect("rig")
-        .rig()
-        .clone();
-    let cpu = crowdmorph::engine::Engine::cpu();
-    let prepared = cpu
-        .prepare(std::sync::Arc::new(rig.clone()))
-        .expect("prepare");
-    let talk = rig.clip_index("talk").expect("talk") as u32;
-    let frames = i64::from(rig.clips[talk as usize].frames);
-    let tasks: Vec<_> = (0..32i64)
-        .map(|r| {
-            let client = server.client.clone();
-            let heads: Vec<Head> = (0..4)
-                .map(|k| Head {
-                    head: (r * 4 + k) as u64,
-                    rig: "default-head".into(),
-                    clip: "talk".into(),
-                    frame: (r * 3 + k) % frames,
-                    lod: (k % 2) as u32,
-                    ..Default::default()
-                })
-                .collect();
-            tokio::spawn(async move {
-                let req = CrowdFrameRequest {
-                    heads,
-                    output: OutputOptions {
-                        normals: false,
-                        format: Format::F32,
-                    },
-                    wrap: true,
-                };
-                let (resp, _) = client
-                    .crowd_frame(&req, Encoding::Bincode)
-                    .await
-                    .expect("frame");
-                (req, resp)
-            })
-        })
-        .collect();
-    let diag = rig.bbox().diagonal();
-    for t in tasks {
-        let (req, resp) = t.await.expect("join");
-        for (h, head) in req.heads.iter().zip(&resp.heads) {
-            let b = &resp.buffers[head.buffer as usize];
-            let want = cpu
-                .evaluate(
-                    &prepared,
-                    &[crowdmorph::engine::BlendJob::frame(talk, b.frame, h.lod)],
-                    crowdmorph::engine::OutputSpec::default(),
-                )
-                .expect("cpu");
-            assert_eq!(b.frame as i64, h.frame, "head {} got another frame", h.head);
-            let d = positions_f32(Format::F32, b)
-                .iter()
-                .zip(want.output.job_positions(0))
-                .map(|(a, b)| (a - b).abs())
-                .fold(0.0, f32::max);
-            assert!(d <= 1e-5 * diag, "head {}: {d}", h.head);
-        }
-    }
-    assert!(!server.state.engine.info().degraded);
-    let metrics = server.client.metrics().await.expect("metrics");
-    let pipelined = crowdmorph_client::metric(&metrics, "crowdmorph_batches_pipelined_total");
-    let batches = crowdmorph_client::metric(&metrics, "crowdmorph_batches_total");
-    eprintln!("{batches:?} batches, {pipelined:?} begun while another computed");
-    assert!(
-        pipelined.is_some_and(|v| v >= 1.0),
-        "consecutive batches overlapped on the GPU: {pipelined:?} of {batches:?}"
-    );
-    server.stop().await;
-}
+);
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn readyz_says_loading_until_stored_rigs_are_loaded() {

@@ -13,6 +13,7 @@
 //! | frames viewers hold the whole render budget | [`viewers_images_are_capped_and_http_renders_are_served_while_viewers_stream`] |
 //! | none of it may reach an ERROR log line | [`hostile_renders_and_sessions_log_no_error`] |
 
+use crate::util::gpu_test;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
@@ -99,187 +100,179 @@ pub(super) fn metric(page: &str, name: &str) -> f64 {
     crowdmorph_client::metric(page, name).unwrap_or(f64::NAN)
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[cfg_attr(
-    not(crowdmorph_gpu_driver),
-    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
-)]
-async fn a_render_of_ten_thousand_clones_is_refused_before_any_work() {
-    let server = TestServer::start(ServerConfig::default()).await;
-    // The issue's body: 6.8 MB, under --max-heads and --max-request-bytes.
-    let started = Instant::now();
-    let r = post_json(&server.client, "/v1/crowd/render", &clones(10_000, 64, 48)).await;
-    assert_eq!(r.status, 413, "{}", String::from_utf8_lossy(&r.body));
-    assert_eq!(error_code(&r), "render_too_costly");
-    let m = error_message(&r);
-    assert!(
-        m.contains("--render-work-ms") && m.contains("triangles"),
-        "the message names the limit and what was priced: {m}"
-    );
-    // Refused at admission: nothing was blended or drawn, so nothing holds the budgets.
-    let page = server.client.metrics().await.expect("metrics");
-    assert_eq!(metric(&page, "crowdmorph_render_work_seconds"), 0.0);
-    assert_eq!(metric(&page, "crowdmorph_render_pixels"), 0.0);
-    assert_eq!(
-        metric(
-            &page,
-            "crowdmorph_rejected_total{reason=\"render_too_costly\"}"
-        ),
-        1.0
-    );
-    eprintln!(
-        "10,000 clones refused in {:.0} ms",
-        started.elapsed().as_secs_f64() * 1e3
-    );
-    // A normal render is served as before.
-    let r = post_json(&server.client, "/v1/crowd/render", &clones(3, 64, 48)).await;
-    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
-    server.stop().await;
-}
-
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[cfg_attr(
-    not(crowdmorph_gpu_driver),
-    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
-)]
-async fn big_renders_in_flight_make_others_wait_with_a_503_not_a_504() {
-    let server = TestServer::start(ServerConfig::default()).await;
-    // Eight big renders and a normal one at once: what fits the work budget is drawn, the rest
-    // is told to come back (503 with Retry-After) at once; nothing runs past its deadline. (The
-    // issue's 1,000-head renders are estimated past the whole default budget on lavapipe, a
-    // 413; 300 heads, about 1.5 s each there, fit one at a time.)
-    let big = clones(300, 64, 48);
-    let mut tasks = Vec::new();
-    for _ in 0..8 {
-        let c = server.client.clone();
-        let body = big.clone();
-        tasks.push(tokio::spawn(async move {
-            post_json(&c, "/v1/crowd/render", &body).await
-        }));
+gpu_test!(
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_render_of_ten_thousand_clones_is_refused_before_any_work() {
+        let server = TestServer::start(ServerConfig::default()).await;
+        // The issue's body: 6.8 MB, under --max-heads and --max-request-bytes.
+        let started = Instant::now();
+        let r = post_json(&server.client, "/v1/crowd/render", &clones(10_000, 64, 48)).await;
+        assert_eq!(r.status, 413, "{}", String::from_utf8_lossy(&r.body));
+        assert_eq!(error_code(&r), "render_too_costly");
+        let m = error_message(&r);
+        assert!(
+            m.contains("--render-work-ms") && m.contains("triangles"),
+            "the message names the limit and what was priced: {m}"
+        );
+        // Refused at admission: nothing was blended or drawn, so nothing holds the budgets.
+        let page = server.client.metrics().await.expect("metrics");
+        assert_eq!(metric(&page, "crowdmorph_render_work_seconds"), 0.0);
+        assert_eq!(metric(&page, "crowdmorph_render_pixels"), 0.0);
+        assert_eq!(
+            metric(
+                &page,
+                "crowdmorph_rejected_total{reason=\"render_too_costly\"}"
+            ),
+            1.0
+        );
+        eprintln!(
+            "10,000 clones refused in {:.0} ms",
+            started.elapsed().as_secs_f64() * 1e3
+        );
+        // A normal render is served as before.
+        let r = post_json(&server.client, "/v1/crowd/render", &clones(3, 64, 48)).await;
+        assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+        server.stop().await;
     }
-    let normal = {
-        let c = server.client.clone();
-        tokio::spawn(async move { post_json(&c, "/v1/crowd/render", &clones(2, 64, 48)).await })
-    };
-    let (mut served, mut busy) = (0, 0);
-    for t in tasks.into_iter().chain([normal]) {
-        let r = t.await.expect("join");
-        match r.status {
-            200 => served += 1,
-            503 => {
-                busy += 1;
-                assert_eq!(error_code(&r), "render_busy");
-                assert!(
-                    r.header("retry-after")
-                        .and_then(|v| v.parse::<u32>().ok())
-                        .is_some_and(|s| (1..=60).contains(&s)),
-                    "a 503 says when to retry"
-                );
-            }
-            s => panic!("{s}: {}", String::from_utf8_lossy(&r.body)),
+);
+
+gpu_test!(
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn big_renders_in_flight_make_others_wait_with_a_503_not_a_504() {
+        let server = TestServer::start(ServerConfig::default()).await;
+        // Eight big renders and a normal one at once: what fits the work budget is drawn, the rest
+        // is told to come back (503 with Retry-After) at once; nothing runs past its deadline. (The
+        // issue's 1,000-head renders are estimated past the whole default budget on lavapipe, a
+        // 413; 300 heads, about 1.5 s each there, fit one at a time.)
+        let big = clones(300, 64, 48);
+        let mut tasks = Vec::new();
+        for _ in 0..8 {
+            let c = server.client.clone();
+            let body = big.clone();
+            tasks.push(tokio::spawn(async move {
+                post_json(&c, "/v1/crowd/render", &body).await
+            }));
         }
+        let normal = {
+            let c = server.client.clone();
+            tokio::spawn(async move { post_json(&c, "/v1/crowd/render", &clones(2, 64, 48)).await })
+        };
+        let (mut served, mut busy) = (0, 0);
+        for t in tasks.into_iter().chain([normal]) {
+            let r = t.await.expect("join");
+            match r.status {
+                200 => served += 1,
+                503 => {
+                    busy += 1;
+                    assert_eq!(error_code(&r), "render_busy");
+                    assert!(
+                        r.header("retry-after")
+                            .and_then(|v| v.parse::<u32>().ok())
+                            .is_some_and(|s| (1..=60).contains(&s)),
+                        "a 503 says when to retry"
+                    );
+                }
+                s => panic!("{s}: {}", String::from_utf8_lossy(&r.body)),
+            }
+        }
+        assert!(served >= 1, "what fits is drawn");
+        assert!(
+            busy >= 1,
+            "renders that do not fit beside those in flight are refused with 503"
+        );
+        // Once they are done, the normal render is served.
+        let r = post_json(&server.client, "/v1/crowd/render", &clones(2, 64, 48)).await;
+        assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+        server.stop().await;
     }
-    assert!(served >= 1, "what fits is drawn");
-    assert!(
-        busy >= 1,
-        "renders that do not fit beside those in flight are refused with 503"
-    );
-    // Once they are done, the normal render is served.
-    let r = post_json(&server.client, "/v1/crowd/render", &clones(2, 64, 48)).await;
-    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
-    server.stop().await;
-}
+);
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[cfg_attr(
-    not(crowdmorph_gpu_driver),
-    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
-)]
-async fn after_a_504_the_render_stops_and_the_process_goes_idle() {
-    // A work budget large enough to admit 10,000 clones (estimated at tens of seconds on
-    // lavapipe) and a one-second deadline: the client gets its 504, and the work stops at
-    // its next stage boundary instead of running on for minutes.
-    let (mut proc, client) = binary(
-        "render-504",
-        &[
-            ("CROWDMORPH_REQUEST_TIMEOUT_MS", "1000"),
-            ("CROWDMORPH_RENDER_WORK_MS", "600000"),
-        ],
-    )
-    .await;
-    let pid = proc.child.id();
-    let before = cpu_seconds(pid);
-    let r = post_json(&client, "/v1/crowd/render", &clones(10_000, 64, 48)).await;
-    assert_eq!(r.status, 504, "{}", String::from_utf8_lossy(&r.body));
-    assert!(
-        cpu_seconds(pid) - before > 0.5,
-        "the render was drawing until its 504"
-    );
-    // Within a second or two the process is idle: measured over the second after that.
-    tokio::time::sleep(Duration::from_millis(1500)).await;
-    let used = cores_used(pid, Duration::from_secs(1)).await;
-    assert!(
-        used < 0.25,
-        "the process still uses {used:.2} cores after the 504"
-    );
-    let page = client.metrics().await.expect("metrics");
-    assert_eq!(
-        metric(
-            &page,
-            "crowdmorph_cancelled_total{work=\"render\",reason=\"deadline\"}"
-        ),
-        1.0,
-        "the render stopped by its deadline is counted"
-    );
-    assert_eq!(metric(&page, "crowdmorph_render_work_seconds"), 0.0);
-    let _ = proc.child.kill();
-    let _ = proc.child.wait();
-}
+gpu_test!(
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn after_a_504_the_render_stops_and_the_process_goes_idle() {
+        // A work budget large enough to admit 10,000 clones (estimated at tens of seconds on
+        // lavapipe) and a one-second deadline: the client gets its 504, and the work stops at
+        // its next stage boundary instead of running on for minutes.
+        let (mut proc, client) = binary(
+            "render-504",
+            &[
+                ("CROWDMORPH_REQUEST_TIMEOUT_MS", "1000"),
+                ("CROWDMORPH_RENDER_WORK_MS", "600000"),
+            ],
+        )
+        .await;
+        let pid = proc.child.id();
+        let before = cpu_seconds(pid);
+        let r = post_json(&client, "/v1/crowd/render", &clones(10_000, 64, 48)).await;
+        assert_eq!(r.status, 504, "{}", String::from_utf8_lossy(&r.body));
+        assert!(
+            cpu_seconds(pid) - before > 0.5,
+            "the render was drawing until its 504"
+        );
+        // Within a second or two the process is idle: measured over the second after that.
+        tokio::time::sleep(Duration::from_millis(1500)).await;
+        let used = cores_used(pid, Duration::from_secs(1)).await;
+        assert!(
+            used < 0.25,
+            "the process still uses {used:.2} cores after the 504"
+        );
+        let page = client.metrics().await.expect("metrics");
+        assert_eq!(
+            metric(
+                &page,
+                "crowdmorph_cancelled_total{work=\"render\",reason=\"deadline\"}"
+            ),
+            1.0,
+            "the render stopped by its deadline is counted"
+        );
+        assert_eq!(metric(&page, "crowdmorph_render_work_seconds"), 0.0);
+        let _ = proc.child.kill();
+        let _ = proc.child.wait();
+    }
+);
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[cfg_attr(
-    not(crowdmorph_gpu_driver),
-    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
-)]
-async fn a_render_whose_client_hangs_up_stops() {
-    let (mut proc, client) =
-        binary("render-gone", &[("CROWDMORPH_RENDER_WORK_MS", "600000")]).await;
-    let pid = proc.child.id();
-    // The request by hand, and the socket closed while the server draws.
-    let body = clones(10_000, 64, 48).to_string();
-    let addr = proc.base.trim_start_matches("http://").to_string();
-    let mut tcp = tokio::net::TcpStream::connect(&addr)
-        .await
-        .expect("connect");
-    let head = format!(
-        "POST /v1/crowd/render HTTP/1.1\r\nhost: {addr}\r\ncontent-type: application/json\r\n\
-         content-length: {}\r\n\r\n",
-        body.len()
-    );
-    tcp.write_all(head.as_bytes()).await.expect("write");
-    tcp.write_all(body.as_bytes()).await.expect("write");
-    tokio::time::sleep(Duration::from_millis(1000)).await;
-    let busy = cores_used(pid, Duration::from_millis(500)).await;
-    assert!(busy > 0.5, "the render was drawing: {busy:.2} cores");
-    drop(tcp);
-    tokio::time::sleep(Duration::from_millis(1500)).await;
-    let used = cores_used(pid, Duration::from_secs(1)).await;
-    assert!(
-        used < 0.25,
-        "drawing for a client that left: {used:.2} cores (while it was there: {busy:.2})"
-    );
-    let page = client.metrics().await.expect("metrics");
-    assert_eq!(
-        metric(
-            &page,
-            "crowdmorph_cancelled_total{work=\"render\",reason=\"dropped\"}"
-        ),
-        1.0,
-        "{page}"
-    );
-    let _ = proc.child.kill();
-    let _ = proc.child.wait();
-}
+gpu_test!(
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_render_whose_client_hangs_up_stops() {
+        let (mut proc, client) =
+            binary("render-gone", &[("CROWDMORPH_RENDER_WORK_MS", "600000")]).await;
+        let pid = proc.child.id();
+        // The request by hand, and the socket closed while the server draws.
+        let body = clones(10_000, 64, 48).to_string();
+        let addr = proc.base.trim_start_matches("http://").to_string();
+        let mut tcp = tokio::net::TcpStream::connect(&addr)
+            .await
+            .expect("connect");
+        let head = format!(
+            "POST /v1/crowd/render HTTP/1.1\r\nhost: {addr}\r\ncontent-type: application/json\r\n\
+             content-length: {}\r\n\r\n",
+            body.len()
+        );
+        tcp.write_all(head.as_bytes()).await.expect("write");
+        tcp.write_all(body.as_bytes()).await.expect("write");
+        tokio::time::sleep(Duration::from_millis(1000)).await;
+        let busy = cores_used(pid, Duration::from_millis(500)).await;
+        assert!(busy > 0.5, "the render was drawing: {busy:.2} cores");
+        drop(tcp);
+        tokio::time::sleep(Duration::from_millis(1500)).await;
+        let used = cores_used(pid, Duration::from_secs(1)).await;
+        assert!(
+            used < 0.25,
+            "drawing for a client that left: {used:.2} cores (while it was there: {busy:.2})"
+        );
+        let page = client.metrics().await.expect("metrics");
+        assert_eq!(
+            metric(
+                &page,
+                "crowdmorph_cancelled_total{work=\"render\",reason=\"dropped\"}"
+            ),
+            1.0,
+            "{page}"
+        );
+        let _ = proc.child.kill();
+        let _ = proc.child.wait();
+    }
+);
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_lod_put_whose_client_hangs_up_stops_and_is_counted() {
@@ -395,52 +388,50 @@ fn with_heads(extra: &Value) -> Value {
     v
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[cfg_attr(
-    not(crowdmorph_gpu_driver),
-    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
-)]
-async fn absurd_cameras_and_placements_are_400s_naming_the_field() {
-    let server = TestServer::start(ServerConfig::default()).await;
-    for (extra, code, field) in absurd_scenes() {
-        let r = post_json(&server.client, "/v1/crowd/render", &with_heads(&extra)).await;
-        assert_eq!(
-            r.status,
-            400,
-            "{extra}: {}",
-            String::from_utf8_lossy(&r.body)
-        );
-        assert_eq!(error_code(&r), code, "{extra}");
-        let m = error_message(&r);
-        assert!(m.contains(field), "{extra}: {m:?} names {field:?}");
+gpu_test!(
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn absurd_cameras_and_placements_are_400s_naming_the_field() {
+        let server = TestServer::start(ServerConfig::default()).await;
+        for (extra, code, field) in absurd_scenes() {
+            let r = post_json(&server.client, "/v1/crowd/render", &with_heads(&extra)).await;
+            assert_eq!(
+                r.status,
+                400,
+                "{extra}: {}",
+                String::from_utf8_lossy(&r.body)
+            );
+            assert_eq!(error_code(&r), code, "{extra}");
+            let m = error_message(&r);
+            assert!(m.contains(field), "{extra}: {m:?} names {field:?}");
+        }
+        // Huge but meaningful numbers are drawn: a yaw of 1e30 degrees is an angle, a camera a
+        // million units away with a narrow lens sees the crowd.
+        for extra in [
+            json!({"placements": [{"head": 1, "position": [0, 0, 0], "yaw": 1e30}]}),
+            json!({"camera": {"position": [0, 0, 1e6], "target": [0, 0, 0], "fov_y": 0.1}}),
+            json!({"placements": [{"head": 2, "position": [1e6, -1e6, 1e6], "scale": 1e4}]}),
+        ] {
+            let r = post_json(&server.client, "/v1/crowd/render", &with_heads(&extra)).await;
+            assert_eq!(
+                r.status,
+                200,
+                "{extra}: {}",
+                String::from_utf8_lossy(&r.body)
+            );
+        }
+        // The same placements in a session are refused when the session is made.
+        let (status, v) = call(
+            &server,
+            Method::POST,
+            "/v1/sessions",
+            json!({"heads": [{"head": 1, "rig": "default-head", "clip": "talk", "position": [1e20, 0, 0]}]}),
+        )
+        .await;
+        assert_eq!(status, 400, "{v}");
+        assert!(v.to_string().contains("position"), "{v}");
+        server.stop().await;
     }
-    // Huge but meaningful numbers are drawn: a yaw of 1e30 degrees is an angle, a camera a
-    // million units away with a narrow lens sees the crowd.
-    for extra in [
-        json!({"placements": [{"head": 1, "position": [0, 0, 0], "yaw": 1e30}]}),
-        json!({"camera": {"position": [0, 0, 1e6], "target": [0, 0, 0], "fov_y": 0.1}}),
-        json!({"placements": [{"head": 2, "position": [1e6, -1e6, 1e6], "scale": 1e4}]}),
-    ] {
-        let r = post_json(&server.client, "/v1/crowd/render", &with_heads(&extra)).await;
-        assert_eq!(
-            r.status,
-            200,
-            "{extra}: {}",
-            String::from_utf8_lossy(&r.body)
-        );
-    }
-    // The same placements in a session are refused when the session is made.
-    let (status, v) = call(
-        &server,
-        Method::POST,
-        "/v1/sessions",
-        json!({"heads": [{"head": 1, "rig": "default-head", "clip": "talk", "position": [1e20, 0, 0]}]}),
-    )
-    .await;
-    assert_eq!(status, 400, "{v}");
-    assert!(v.to_string().contains("position"), "{v}");
-    server.stop().await;
-}
+);
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_viewer_with_an_absurd_camera_is_closed_with_1008() {
@@ -591,82 +582,80 @@ async fn a_panicking_tick_ends_its_session() {
     server.stop().await;
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[cfg_attr(
-    not(crowdmorph_gpu_driver),
-    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
-)]
-async fn viewers_images_are_capped_and_http_renders_are_served_while_viewers_stream() {
-    // The issue's 16 viewers of 4096² are refused at their hello by --max-viewer-pixels.
-    let server = TestServer::start(ServerConfig::default()).await;
-    let s = create(
-        &server,
-        json!({"fps": 30, "heads": [sessions::head(1, "talk", 0, [0.0, 0.0, 0.0])]}),
-    )
-    .await;
-    for _ in 0..16 {
-        let mut ws = connect(
+gpu_test!(
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn viewers_images_are_capped_and_http_renders_are_served_while_viewers_stream() {
+        // The issue's 16 viewers of 4096² are refused at their hello by --max-viewer-pixels.
+        let server = TestServer::start(ServerConfig::default()).await;
+        let s = create(
             &server,
-            &s.id,
-            json!({"output": "frames", "image": {"width": 4096, "height": 4096}}),
+            json!({"fps": 30, "heads": [sessions::head(1, "talk", 0, [0.0, 0.0, 0.0])]}),
         )
         .await;
-        let (code, reason) = next_close(&mut ws).await;
-        assert_eq!(code, 1008, "{reason}");
-        assert!(reason.contains("--max-viewer-pixels"), "{reason}");
-    }
-    server.stop().await;
-
-    // Within the cap, viewers that would fill the pixel budget hold at most their share: a
-    // budget of four 256² images, eight viewers of 256² each at 30 fps (together at most two
-    // images), and HTTP renders of 256² keep being served (one, and the previous one's
-    // pixels until its body is sent).
-    let side = 256u32;
-    let server = TestServer::start(ServerConfig {
-        render_pixels: 4 * u64::from(side * side),
-        sessions: SessionLimits {
-            max_viewer_pixels: u64::from(side * side),
-            ..SessionLimits::default()
-        },
-        ..ServerConfig::default()
-    })
-    .await;
-    let s = create(
-        &server,
-        json!({"fps": 30, "heads": [sessions::head(1, "talk", 0, [0.0, 0.0, 0.0]),
-                                    sessions::head(2, "smile", 0, [0.3, 0.0, 0.0])]}),
-    )
-    .await;
-    let mut viewers = Vec::new();
-    for _ in 0..8 {
-        viewers.push(
-            connect(
+        for _ in 0..16 {
+            let mut ws = connect(
                 &server,
                 &s.id,
-                json!({"output": "frames", "image": {"width": side, "height": side, "format": "png"}}),
+                json!({"output": "frames", "image": {"width": 4096, "height": 4096}}),
             )
-            .await,
+            .await;
+            let (code, reason) = next_close(&mut ws).await;
+            assert_eq!(code, 1008, "{reason}");
+            assert!(reason.contains("--max-viewer-pixels"), "{reason}");
+        }
+        server.stop().await;
+
+        // Within the cap, viewers that would fill the pixel budget hold at most their share: a
+        // budget of four 256² images, eight viewers of 256² each at 30 fps (together at most two
+        // images), and HTTP renders of 256² keep being served (one, and the previous one's
+        // pixels until its body is sent).
+        let side = 256u32;
+        let server = TestServer::start(ServerConfig {
+            render_pixels: 4 * u64::from(side * side),
+            sessions: SessionLimits {
+                max_viewer_pixels: u64::from(side * side),
+                ..SessionLimits::default()
+            },
+            ..ServerConfig::default()
+        })
+        .await;
+        let s = create(
+            &server,
+            json!({"fps": 30, "heads": [sessions::head(1, "talk", 0, [0.0, 0.0, 0.0]),
+                                        sessions::head(2, "smile", 0, [0.3, 0.0, 0.0])]}),
+        )
+        .await;
+        let mut viewers = Vec::new();
+        for _ in 0..8 {
+            viewers.push(
+                connect(
+                    &server,
+                    &s.id,
+                    json!({"output": "frames", "image": {"width": side, "height": side, "format": "png"}}),
+                )
+                .await,
+            );
+        }
+        // Let them stream.
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        let mut statuses = Vec::new();
+        for _ in 0..10 {
+            let r = post_json(&server.client, "/v1/crowd/render", &clones(2, side, side)).await;
+            statuses.push((r.status, error_code(&r)));
+        }
+        assert!(
+            statuses.iter().all(|(s, _)| *s == 200),
+            "HTTP renders while 8 viewers stream: {statuses:?}"
         );
+        let page = server.client.metrics().await.expect("metrics");
+        assert!(
+            metric(&page, "crowdmorph_session_messages_total{result=\"sent\"}") > 0.0,
+            "the viewers were served too"
+        );
+        drop(viewers);
+        server.stop().await;
     }
-    // Let them stream.
-    tokio::time::sleep(Duration::from_millis(500)).await;
-    let mut statuses = Vec::new();
-    for _ in 0..10 {
-        let r = post_json(&server.client, "/v1/crowd/render", &clones(2, side, side)).await;
-        statuses.push((r.status, error_code(&r)));
-    }
-    assert!(
-        statuses.iter().all(|(s, _)| *s == 200),
-        "HTTP renders while 8 viewers stream: {statuses:?}"
-    );
-    let page = server.client.metrics().await.expect("metrics");
-    assert!(
-        metric(&page, "crowdmorph_session_messages_total{result=\"sent\"}") > 0.0,
-        "the viewers were served too"
-    );
-    drop(viewers);
-    server.stop().await;
-}
+);
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn hostile_renders_and_sessions_log_no_error() {

@@ -5,6 +5,7 @@
 //! budget (cached topologies give way to uploads), a render racing a rig delete, and bad input — which is checked before anything is drawn, so those tests run
 //! without a GPU too.
 
+use crate::util::gpu_test;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
@@ -138,205 +139,199 @@ fn differing(a: &Image, b: &Image, rect: (u32, u32, u32, u32), inside: bool, thr
     d as f64 / n.max(1) as f64
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[cfg_attr(
-    not(crowdmorph_gpu_driver),
-    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
-)]
-async fn a_head_a_crowd_and_placed_clones_match_their_golden_images() {
-    let server = TestServer::start(ServerConfig::default()).await;
-    let s = &server;
-    // /readyz names the adapter that renders.
-    let ready = s
-        .client
-        .send(Method::GET, "/readyz", None, None, Bytes::new())
-        .await
-        .expect("readyz");
-    let r: crowdmorph_proto::Readiness = serde_json::from_slice(&ready.body).expect("JSON");
-    let adapter = r.renderer.expect("a renderer");
-    eprintln!("rendering on {adapter}");
+gpu_test!(
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_head_a_crowd_and_placed_clones_match_their_golden_images() {
+        let server = TestServer::start(ServerConfig::default()).await;
+        let s = &server;
+        // /readyz names the adapter that renders.
+        let ready = s
+            .client
+            .send(Method::GET, "/readyz", None, None, Bytes::new())
+            .await
+            .expect("readyz");
+        let r: crowdmorph_proto::Readiness = serde_json::from_slice(&ready.body).expect("JSON");
+        let adapter = r.renderer.expect("a renderer");
+        eprintln!("rendering on {adapter}");
 
-    let one = request(vec![head(1, "talk", 12, 0)], 320, 240);
-    let reply = s.client.render(&one, Encoding::Json).await.expect("render");
-    let img = decode_png(&reply, &one);
-    check_golden(&golden("http_head.png"), &img, GOLDEN);
-    let stages: Vec<String> = server_timing(&reply).into_iter().map(|s| s.0).collect();
-    assert_eq!(stages, ["compute", "render", "readback", "encode"]);
-    // The same request in bincode draws the same picture.
-    let bin = s
-        .client
-        .render(&one, Encoding::Bincode)
-        .await
-        .expect("render");
-    assert_eq!(decode_png(&bin, &one), img);
+        let one = request(vec![head(1, "talk", 12, 0)], 320, 240);
+        let reply = s.client.render(&one, Encoding::Json).await.expect("render");
+        let img = decode_png(&reply, &one);
+        check_golden(&golden("http_head.png"), &img, GOLDEN);
+        let stages: Vec<String> = server_timing(&reply).into_iter().map(|s| s.0).collect();
+        assert_eq!(stages, ["compute", "render", "readback", "encode"]);
+        // The same request in bincode draws the same picture.
+        let bin = s
+            .client
+            .render(&one, Encoding::Bincode)
+            .await
+            .expect("render");
+        assert_eq!(decode_png(&bin, &one), img);
 
-    let crowd: Vec<Head> = (0..9)
-        .map(|i| {
-            let clip = ["talk", "smile", "surprise"][i % 3];
-            head(i as u64, clip, 10 * i as i64, 0)
-        })
-        .collect();
-    let img = png(s, &request(crowd, 320, 240)).await;
-    check_golden(&golden("http_crowd_3x3.png"), &img, GOLDEN);
+        let crowd: Vec<Head> = (0..9)
+            .map(|i| {
+                let clip = ["talk", "smile", "surprise"][i % 3];
+                head(i as u64, clip, 10 * i as i64, 0)
+            })
+            .collect();
+        let img = png(s, &request(crowd, 320, 240)).await;
+        check_golden(&golden("http_crowd_3x3.png"), &img, GOLDEN);
 
-    // Three clones of one job, placed, turned and scaled, seen from a raised camera.
-    let mut clones = request(
-        vec![
-            head(1, "smile", 30, 0),
-            head(2, "smile", 30, 0),
-            head(3, "smile", 30, 0),
-        ],
-        320,
-        240,
-    );
-    clones.placements = Some(vec![
-        Placement {
-            head: 1,
-            position: [-20.0, 0.0, 0.0],
-            yaw: 30.0,
-            scale: 1.0,
-        },
-        Placement {
-            head: 2,
-            position: [0.0, 0.0, -10.0],
-            yaw: 0.0,
-            scale: 1.4,
-        },
-        Placement {
-            head: 3,
-            position: [20.0, 0.0, 0.0],
-            yaw: -30.0,
-            scale: 1.0,
-        },
-    ]);
-    clones.camera = Some(CameraSpec {
-        position: [0.0, 15.0, 80.0],
-        target: [0.0, 0.0, 0.0],
-        fov_y: 40.0,
-        near: None,
-        far: None,
-    });
-    let img = png(s, &clones).await;
-    check_golden(&golden("http_clones.png"), &img, GOLDEN);
-    server.stop().await;
-}
-
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[cfg_attr(
-    not(crowdmorph_gpu_driver),
-    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
-)]
-async fn no_heads_render_the_background_exactly_and_formats_agree() {
-    let server = TestServer::start(ServerConfig::default()).await;
-    let s = &server;
-    let bg = [12u8, 200, 99];
-    let mut empty = with_format(request(Vec::new(), 70, 33), ImageFormat::Rgba);
-    if let Some(i) = empty.image.as_mut() {
-        i.background = bg;
-    }
-    let reply = s
-        .client
-        .render(&empty, Encoding::Json)
-        .await
-        .expect("render");
-    assert_eq!(
-        reply.content_type.as_deref(),
-        Some("application/octet-stream")
-    );
-    assert_eq!(size_headers(&reply), (70, 33));
-    assert_eq!(reply.body.len(), 70 * 33 * 4);
-    assert!(
-        reply
-            .body
-            .chunks_exact(4)
-            .all(|p| is_colour([p[0], p[1], p[2], p[3]], bg)),
-        "every pixel is the background {bg:?}"
-    );
-
-    // One head as PNG, raw RGBA and JPEG: the same picture.
-    let one = request(vec![head(1, "talk", 20, 0)], 160, 120);
-    let png_img = png(s, &one).await;
-    let raw = s
-        .client
-        .render(&with_format(one.clone(), ImageFormat::Rgba), Encoding::Json)
-        .await
-        .expect("render");
-    assert_eq!(size_headers(&raw), (160, 120));
-    assert_eq!(Image::new(160, 120, raw.body.to_vec()), png_img);
-    let jpeg = s
-        .client
-        .render(&with_format(one, ImageFormat::Jpeg), Encoding::Json)
-        .await
-        .expect("render");
-    assert_eq!(jpeg.content_type.as_deref(), Some("image/jpeg"));
-    assert_eq!(size_headers(&jpeg), (160, 120));
-    let j = &jpeg.body;
-    assert_eq!(&j[..2], &[0xFF, 0xD8], "JPEG start of image");
-    assert_eq!(&j[j.len() - 2..], &[0xFF, 0xD9], "JPEG end of image");
-    assert_eq!(crowdmorph::render::encode::jpeg_size(j), Some((160, 120)));
-    // The head is drawn: not every pixel is the default background.
-    let bg = crowdmorph_proto::DEFAULT_BACKGROUND;
-    let drawn = png_img
-        .rgba
-        .chunks_exact(4)
-        .filter(|p| !is_colour([p[0], p[1], p[2], p[3]], bg))
-        .count();
-    assert!(drawn > 160 * 120 / 10, "{drawn} pixels drawn");
-    server.stop().await;
-}
-
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[cfg_attr(
-    not(crowdmorph_gpu_driver),
-    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
-)]
-async fn a_lod_level_on_a_simplified_mesh_changes_the_picture_little() {
-    let server = TestServer::start(ServerConfig::default()).await;
-    let s = &server;
-    // Level 1 keeps every shape but draws the half-resolution mesh with its own triangles.
-    let info = s
-        .client
-        .set_lod(
-            "default-head",
-            &LodRequest {
-                method: Some("file-order".into()),
-                levels: Some(vec![
-                    LodLevelRequest {
-                        shapes: 51,
-                        mesh: None,
-                    },
-                    LodLevelRequest {
-                        shapes: 51,
-                        mesh: Some(0),
-                    },
-                ]),
-                mesh_fractions: vec![0.5],
-                ..LodRequest::default()
+        // Three clones of one job, placed, turned and scaled, seen from a raised camera.
+        let mut clones = request(
+            vec![
+                head(1, "smile", 30, 0),
+                head(2, "smile", 30, 0),
+                head(3, "smile", 30, 0),
+            ],
+            320,
+            240,
+        );
+        clones.placements = Some(vec![
+            Placement {
+                head: 1,
+                position: [-20.0, 0.0, 0.0],
+                yaw: 30.0,
+                scale: 1.0,
             },
-        )
-        .await
-        .expect("set the LOD");
-    let levels = &info.lod.levels;
-    assert_eq!(levels[1].mesh, Some(0));
-    assert!(levels[1].triangles < levels[0].triangles / 3 * 2);
-    let full = png(s, &request(vec![head(1, "talk", 40, 0)], 320, 240)).await;
-    let coarse = png(s, &request(vec![head(1, "talk", 40, 1)], 320, 240)).await;
-    let c = compare(&coarse, &full, 32).expect("same size");
-    let any = compare(&coarse, &full, 0).expect("same size");
-    eprintln!(
-        "LOD 1 against LOD 0: {c}; {} pixels differ at all",
-        any.differing
-    );
-    assert!(
-        any.differing > 100,
-        "the simplified mesh draws its own triangles: {any}"
-    );
-    assert!(
-        c.fraction() < 0.03,
-        "half the triangles should change the picture little: {c}"
-    );
-    server.stop().await;
-}
+            Placement {
+                head: 2,
+                position: [0.0, 0.0, -10.0],
+                yaw: 0.0,
+                scale: 1.4,
+            },
+            Placement {
+                head: 3,
+                position: [20.0, 0.0, 0.0],
+                yaw: -30.0,
+                scale: 1.0,
+            },
+        ]);
+        clones.camera = Some(CameraSpec {
+            position: [0.0, 15.0, 80.0],
+            target: [0.0, 0.0, 0.0],
+            fov_y: 40.0,
+            near: None,
+            far: None,
+        });
+        let img = png(s, &clones).await;
+        check_golden(&golden("http_clones.png"), &img, GOLDEN);
+        server.stop().await;
+    }
+);
+
+gpu_test!(
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn no_heads_render_the_background_exactly_and_formats_agree() {
+        let server = TestServer::start(ServerConfig::default()).await;
+        let s = &server;
+        let bg = [12u8, 200, 99];
+        let mut empty = with_format(request(Vec::new(), 70, 33), ImageFormat::Rgba);
+        if let Some(i) = empty.image.as_mut() {
+            i.background = bg;
+        }
+        let reply = s
+            .client
+            .render(&empty, Encoding::Json)
+            .await
+            .expect("render");
+        assert_eq!(
+            reply.content_type.as_deref(),
+            Some("application/octet-stream")
+        );
+        assert_eq!(size_headers(&reply), (70, 33));
+        assert_eq!(reply.body.len(), 70 * 33 * 4);
+        assert!(
+            reply
+                .body
+                .chunks_exact(4)
+                .all(|p| is_colour([p[0], p[1], p[2], p[3]], bg)),
+            "every pixel is the background {bg:?}"
+        );
+
+        // One head as PNG, raw RGBA and JPEG: the same picture.
+        let one = request(vec![head(1, "talk", 20, 0)], 160, 120);
+        let png_img = png(s, &one).await;
+        let raw = s
+            .client
+            .render(&with_format(one.clone(), ImageFormat::Rgba), Encoding::Json)
+            .await
+            .expect("render");
+        assert_eq!(size_headers(&raw), (160, 120));
+        assert_eq!(Image::new(160, 120, raw.body.to_vec()), png_img);
+        let jpeg = s
+            .client
+            .render(&with_format(one, ImageFormat::Jpeg), Encoding::Json)
+            .await
+            .expect("render");
+        assert_eq!(jpeg.content_type.as_deref(), Some("image/jpeg"));
+        assert_eq!(size_headers(&jpeg), (160, 120));
+        let j = &jpeg.body;
+        assert_eq!(&j[..2], &[0xFF, 0xD8], "JPEG start of image");
+        assert_eq!(&j[j.len() - 2..], &[0xFF, 0xD9], "JPEG end of image");
+        assert_eq!(crowdmorph::render::encode::jpeg_size(j), Some((160, 120)));
+        // The head is drawn: not every pixel is the default background.
+        let bg = crowdmorph_proto::DEFAULT_BACKGROUND;
+        let drawn = png_img
+            .rgba
+            .chunks_exact(4)
+            .filter(|p| !is_colour([p[0], p[1], p[2], p[3]], bg))
+            .count();
+        assert!(drawn > 160 * 120 / 10, "{drawn} pixels drawn");
+        server.stop().await;
+    }
+);
+
+gpu_test!(
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_lod_level_on_a_simplified_mesh_changes_the_picture_little() {
+        let server = TestServer::start(ServerConfig::default()).await;
+        let s = &server;
+        // Level 1 keeps every shape but draws the half-resolution mesh with its own triangles.
+        let info = s
+            .client
+            .set_lod(
+                "default-head",
+                &LodRequest {
+                    method: Some("file-order".into()),
+                    levels: Some(vec![
+                        LodLevelRequest {
+                            shapes: 51,
+                            mesh: None,
+                        },
+                        LodLevelRequest {
+                            shapes: 51,
+                            mesh: Some(0),
+                        },
+                    ]),
+                    mesh_fractions: vec![0.5],
+                    ..LodRequest::default()
+                },
+            )
+            .await
+            .expect("set the LOD");
+        let levels = &info.lod.levels;
+        assert_eq!(levels[1].mesh, Some(0));
+        assert!(levels[1].triangles < levels[0].triangles / 3 * 2);
+        let full = png(s, &request(vec![head(1, "talk", 40, 0)], 320, 240)).await;
+        let coarse = png(s, &request(vec![head(1, "talk", 40, 1)], 320, 240)).await;
+        let c = compare(&coarse, &full, 32).expect("same size");
+        let any = compare(&coarse, &full, 0).expect("same size");
+        eprintln!(
+            "LOD 1 against LOD 0: {c}; {} pixels differ at all",
+            any.differing
+        );
+        assert!(
+            any.differing > 100,
+            "the simplified mesh draws its own triangles: {any}"
+        );
+        assert!(
+            c.fraction() < 0.03,
+            "half the triangles should change the picture little: {c}"
+        );
+        server.stop().await;
+    }
+);
 
 /// Frames of `talk` where `jawOpen` is smallest and largest.
 fn jaw_extremes(rig: &crowdmorph::rig::Rig) -> (u32, u32) {
@@ -400,104 +395,102 @@ fn mouth_rect(rig: &crowdmorph::rig::Rig, width: u32, height: u32) -> (u32, u32,
     )
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[cfg_attr(
-    not(crowdmorph_gpu_driver),
-    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
-)]
-async fn the_mouth_visibly_moves_between_two_frames_of_talk() {
-    let server = TestServer::start(ServerConfig::default()).await;
-    let rig = crowdmorph::embedded::default_rig();
-    let (closed, open) = jaw_extremes(&rig);
-    let (w, h) = (320, 240);
-    let rect = mouth_rect(&rig, w, h);
-    let a = png(
-        &server,
-        &request(vec![head(1, "talk", closed.into(), 0)], w, h),
-    )
-    .await;
-    let b = png(
-        &server,
-        &request(vec![head(1, "talk", open.into(), 0)], w, h),
-    )
-    .await;
-    let mouth = differing(&a, &b, rect, true, 24);
-    let rest = differing(&a, &b, rect, false, 24);
-    eprintln!("frames {closed} and {open}: mouth {rect:?} differs {mouth:.3}, the rest {rest:.4}");
-    assert!(mouth > 0.15, "the mouth region barely changed: {mouth}");
-    assert!(
-        mouth > 5.0 * rest,
-        "the change is not concentrated at the mouth: mouth {mouth}, elsewhere {rest}"
-    );
-    server.stop().await;
-}
-
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[cfg_attr(
-    not(crowdmorph_gpu_driver),
-    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
-)]
-async fn a_full_pixel_budget_is_503_render_busy_with_retry_after() {
-    // The budget holds one 2048 × 2048 image. Its permit goes with the response body, so a
-    // client that does not read a 16 MiB raw image keeps the budget full for as long as it
-    // likes: no timing involved.
-    let side = 2048u32;
-    let server = TestServer::start(ServerConfig {
-        render_pixels: u64::from(side * side),
-        ..ServerConfig::default()
-    })
-    .await;
-    let big = with_format(request(Vec::new(), side, side), ImageFormat::Rgba);
-    let body = serde_json::to_vec(&big).expect("JSON");
-    let socket = tokio::net::TcpSocket::new_v4().expect("socket");
-    // A small receive window, so that the server's writes block after a few MiB.
-    socket.set_recv_buffer_size(4096).expect("SO_RCVBUF");
-    let mut stream = socket.connect(server.addr).await.expect("connect");
-    let head = format!(
-        "POST /v1/crowd/render HTTP/1.1\r\nhost: x\r\ncontent-type: application/json\r\n\
-         content-length: {}\r\n\r\n",
-        body.len()
-    );
-    stream.write_all(head.as_bytes()).await.expect("send");
-    stream.write_all(&body).await.expect("send");
-    let mut first = [0u8; 12];
-    stream.read_exact(&mut first).await.expect("status line");
-    assert_eq!(&first, b"HTTP/1.1 200", "the big render is served");
-
-    let small = request(Vec::new(), 8, 8);
-    let r = s_render_raw(&server, &small).await;
-    assert_eq!(r.status, 503, "{}", String::from_utf8_lossy(&r.body));
-    assert_eq!(r.error().expect("JSON error").error.code, "render_busy");
-    assert_eq!(r.retry_after.as_deref(), Some("1"));
-    let page = server.client.metrics().await.expect("metrics");
-    assert_eq!(
-        crowdmorph_client::metric(&page, "crowdmorph_render_pixels"),
-        Some(f64::from(side * side))
-    );
-
-    // Reading the image (or dropping the connection) gives the budget back.
-    drop(stream);
-    let mut ok = false;
-    for _ in 0..500 {
-        let r = s_render_raw(&server, &small).await;
-        if r.status == 200 {
-            ok = true;
-            break;
-        }
-        assert_eq!(r.status, 503);
-        tokio::time::sleep(Duration::from_millis(20)).await;
+gpu_test!(
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn the_mouth_visibly_moves_between_two_frames_of_talk() {
+        let server = TestServer::start(ServerConfig::default()).await;
+        let rig = crowdmorph::embedded::default_rig();
+        let (closed, open) = jaw_extremes(&rig);
+        let (w, h) = (320, 240);
+        let rect = mouth_rect(&rig, w, h);
+        let a = png(
+            &server,
+            &request(vec![head(1, "talk", closed.into(), 0)], w, h),
+        )
+        .await;
+        let b = png(
+            &server,
+            &request(vec![head(1, "talk", open.into(), 0)], w, h),
+        )
+        .await;
+        let mouth = differing(&a, &b, rect, true, 24);
+        let rest = differing(&a, &b, rect, false, 24);
+        eprintln!(
+            "frames {closed} and {open}: mouth {rect:?} differs {mouth:.3}, the rest {rest:.4}"
+        );
+        assert!(mouth > 0.15, "the mouth region barely changed: {mouth}");
+        assert!(
+            mouth > 5.0 * rest,
+            "the change is not concentrated at the mouth: mouth {mouth}, elsewhere {rest}"
+        );
+        server.stop().await;
     }
-    assert!(
-        ok,
-        "the budget came back after the big response's connection closed"
-    );
-    // An image larger than the whole budget can never be served: 413, not 503.
-    let too_big = request(Vec::new(), side, side + 1);
-    let r = s_render_raw(&server, &too_big).await;
-    assert_eq!(r.status, 413);
-    assert_eq!(r.error().expect("JSON").error.code, "image_too_large");
-    server.stop().await;
-}
+);
+
+gpu_test!(
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_full_pixel_budget_is_503_render_busy_with_retry_after() {
+        // The budget holds one 2048 × 2048 image. Its permit goes with the response body, so a
+        // client that does not read a 16 MiB raw image keeps the budget full for as long as it
+        // likes: no timing involved.
+        let side = 2048u32;
+        let server = TestServer::start(ServerConfig {
+            render_pixels: u64::from(side * side),
+            ..ServerConfig::default()
+        })
+        .await;
+        let big = with_format(request(Vec::new(), side, side), ImageFormat::Rgba);
+        let body = serde_json::to_vec(&big).expect("JSON");
+        let socket = tokio::net::TcpSocket::new_v4().expect("socket");
+        // A small receive window, so that the server's writes block after a few MiB.
+        socket.set_recv_buffer_size(4096).expect("SO_RCVBUF");
+        let mut stream = socket.connect(server.addr).await.expect("connect");
+        let head = format!(
+            "POST /v1/crowd/render HTTP/1.1\r\nhost: x\r\ncontent-type: application/json\r\n\
+             content-length: {}\r\n\r\n",
+            body.len()
+        );
+        stream.write_all(head.as_bytes()).await.expect("send");
+        stream.write_all(&body).await.expect("send");
+        let mut first = [0u8; 12];
+        stream.read_exact(&mut first).await.expect("status line");
+        assert_eq!(&first, b"HTTP/1.1 200", "the big render is served");
+
+        let small = request(Vec::new(), 8, 8);
+        let r = s_render_raw(&server, &small).await;
+        assert_eq!(r.status, 503, "{}", String::from_utf8_lossy(&r.body));
+        assert_eq!(r.error().expect("JSON error").error.code, "render_busy");
+        assert_eq!(r.retry_after.as_deref(), Some("1"));
+        let page = server.client.metrics().await.expect("metrics");
+        assert_eq!(
+            crowdmorph_client::metric(&page, "crowdmorph_render_pixels"),
+            Some(f64::from(side * side))
+        );
+
+        // Reading the image (or dropping the connection) gives the budget back.
+        drop(stream);
+        let mut ok = false;
+        for _ in 0..500 {
+            let r = s_render_raw(&server, &small).await;
+            if r.status == 200 {
+                ok = true;
+                break;
+            }
+            assert_eq!(r.status, 503);
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        assert!(
+            ok,
+            "the budget came back after the big response's connection closed"
+        );
+        // An image larger than the whole budget can never be served: 413, not 503.
+        let too_big = request(Vec::new(), side, side + 1);
+        let r = s_render_raw(&server, &too_big).await;
+        assert_eq!(r.status, 413);
+        assert_eq!(r.error().expect("JSON").error.code, "image_too_large");
+        server.stop().await;
+    }
+);
 
 async fn s_render_raw(server: &TestServer, req: &RenderRequest) -> Reply {
     server
@@ -521,74 +514,72 @@ fn triangle_glb() -> Bytes {
     Bytes::from(b.to_glb())
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[cfg_attr(
-    not(crowdmorph_gpu_driver),
-    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
-)]
-async fn renders_racing_a_rig_delete_get_the_old_generation_or_404_never_500() {
-    let server = TestServer::start(ServerConfig::default()).await;
-    let glb = triangle_glb();
-    // First the race made to happen every time, then the races left to chance.
-    a_delete_and_another_poll_inside_the_race_window(&server, glb.clone()).await;
-    let mut seen = (0, 0);
-    for round in 0..6 {
-        server
-            .client
-            .upload_rig("tri", glb.clone())
-            .await
-            .expect("upload");
-        let renders: Vec<_> = (0..6)
-            .map(|i| {
-                let client = server.client.clone();
-                let req = request(
-                    vec![
-                        Head {
-                            head: 1,
-                            rig: "tri".into(),
-                            clip: "wave".into(),
-                            frame: i,
-                            lod: 0,
-                            ..Default::default()
-                        },
-                        head(2, "talk", i, 0),
-                    ],
-                    96,
-                    64,
-                );
-                tokio::spawn(async move {
-                    let body = Bytes::from(serde_json::to_vec(&req).expect("JSON"));
-                    client.render_raw(body, Encoding::Json).await
+gpu_test!(
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn renders_racing_a_rig_delete_get_the_old_generation_or_404_never_500() {
+        let server = TestServer::start(ServerConfig::default()).await;
+        let glb = triangle_glb();
+        // First the race made to happen every time, then the races left to chance.
+        a_delete_and_another_poll_inside_the_race_window(&server, glb.clone()).await;
+        let mut seen = (0, 0);
+        for round in 0..6 {
+            server
+                .client
+                .upload_rig("tri", glb.clone())
+                .await
+                .expect("upload");
+            let renders: Vec<_> = (0..6)
+                .map(|i| {
+                    let client = server.client.clone();
+                    let req = request(
+                        vec![
+                            Head {
+                                head: 1,
+                                rig: "tri".into(),
+                                clip: "wave".into(),
+                                frame: i,
+                                lod: 0,
+                                ..Default::default()
+                            },
+                            head(2, "talk", i, 0),
+                        ],
+                        96,
+                        64,
+                    );
+                    tokio::spawn(async move {
+                        let body = Bytes::from(serde_json::to_vec(&req).expect("JSON"));
+                        client.render_raw(body, Encoding::Json).await
+                    })
                 })
-            })
-            .collect();
-        // Delete while the renders are in flight (some resolved the rig, some not yet).
-        if round % 2 == 1 {
-            tokio::task::yield_now().await;
-        }
-        server.client.delete_rig("tri").await.expect("delete");
-        for r in renders {
-            let r = r.await.expect("join").expect("transport");
-            match r.status {
-                200 => {
-                    assert_eq!(r.content_type.as_deref(), Some("image/png"));
-                    Image::decode_png(&r.body).expect("a PNG");
-                    seen.0 += 1;
+                .collect();
+            // Delete while the renders are in flight (some resolved the rig, some not yet).
+            if round % 2 == 1 {
+                tokio::task::yield_now().await;
+            }
+            server.client.delete_rig("tri").await.expect("delete");
+            for r in renders {
+                let r = r.await.expect("join").expect("transport");
+                match r.status {
+                    200 => {
+                        assert_eq!(r.content_type.as_deref(), Some("image/png"));
+                        Image::decode_png(&r.body).expect("a PNG");
+                        seen.0 += 1;
+                    }
+                    404 => {
+                        assert_eq!(r.error().expect("JSON").error.code, "unknown_rig");
+                        seen.1 += 1;
+                    }
+                    other => panic!(
+                        "a render racing a delete got {other}: {}",
+                        String::from_utf8_lossy(&r.body)
+                    ),
                 }
-                404 => {
-                    assert_eq!(r.error().expect("JSON").error.code, "unknown_rig");
-                    seen.1 += 1;
-                }
-                other => panic!(
-                    "a render racing a delete got {other}: {}",
-                    String::from_utf8_lossy(&r.body)
-                ),
             }
         }
+        eprintln!("served {} old-generation renders, {} 404s", seen.0, seen.1);
+        server.stop().await;
     }
-    eprintln!("served {} old-generation renders, {} 404s", seen.0, seen.1);
-    server.stop().await;
-}
+);
 
 /// One render whose race window (its work submitted, its frame's mapping requested, not yet
 /// waited for) holds both a delete of its rig and another thread taking the frame's mapping
@@ -927,143 +918,141 @@ async fn bad_render_requests_are_named_4xx_and_without_a_renderer_503() {
     server.stop().await;
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[cfg_attr(
-    not(crowdmorph_gpu_driver),
-    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
-)]
-async fn the_gpu_engine_draws_its_outputs_where_they_are() {
-    // With the GPU engine the renderer shares its device and draws the blended buffers
-    // without a readback: the picture is the CPU engine's golden, within its tolerance.
-    let server = TestServer::start(ServerConfig {
-        backend: crowdmorph::engine::BackendChoice::Gpu,
-        ..ServerConfig::default()
-    })
-    .await;
-    let ready = server
-        .client
-        .send(Method::GET, "/readyz", None, None, Bytes::new())
-        .await
-        .expect("readyz");
-    let r: crowdmorph_proto::Readiness = serde_json::from_slice(&ready.body).expect("JSON");
-    assert_eq!(r.backend, "gpu");
-    let info = server.state.engine.info();
-    assert_eq!(
-        r.renderer, info.adapter,
-        "the renderer is the engine's adapter"
-    );
-    let device =
-        crowdmorph::render::crowd::RenderDevice::open(&server.state.engine, RenderBackend::Auto)
-            .expect("a renderer");
-    assert!(
-        device.shared,
-        "on the engine's own device, not a second one"
-    );
-    let one = request(vec![head(1, "talk", 12, 0)], 320, 240);
-    let img = png(&server, &one).await;
-    let expected = Image::read_png(&golden("http_head.png")).expect("golden");
-    let c = compare(&img, &expected, GOLDEN.per_pixel).expect("same size");
-    assert!(
-        c.fraction() <= GOLDEN.max_fraction,
-        "GPU engine against the CPU golden: {c}"
-    );
-    assert!(
-        !server.state.engine.info().degraded,
-        "no device fault on the way"
-    );
-    server.stop().await;
-}
+gpu_test!(
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn the_gpu_engine_draws_its_outputs_where_they_are() {
+        // With the GPU engine the renderer shares its device and draws the blended buffers
+        // without a readback: the picture is the CPU engine's golden, within its tolerance.
+        let server = TestServer::start(ServerConfig {
+            backend: crowdmorph::engine::BackendChoice::Gpu,
+            ..ServerConfig::default()
+        })
+        .await;
+        let ready = server
+            .client
+            .send(Method::GET, "/readyz", None, None, Bytes::new())
+            .await
+            .expect("readyz");
+        let r: crowdmorph_proto::Readiness = serde_json::from_slice(&ready.body).expect("JSON");
+        assert_eq!(r.backend, "gpu");
+        let info = server.state.engine.info();
+        assert_eq!(
+            r.renderer, info.adapter,
+            "the renderer is the engine's adapter"
+        );
+        let device = crowdmorph::render::crowd::RenderDevice::open(
+            &server.state.engine,
+            RenderBackend::Auto,
+        )
+        .expect("a renderer");
+        assert!(
+            device.shared,
+            "on the engine's own device, not a second one"
+        );
+        let one = request(vec![head(1, "talk", 12, 0)], 320, 240);
+        let img = png(&server, &one).await;
+        let expected = Image::read_png(&golden("http_head.png")).expect("golden");
+        let c = compare(&img, &expected, GOLDEN.per_pixel).expect("same size");
+        assert!(
+            c.fraction() <= GOLDEN.max_fraction,
+            "GPU engine against the CPU golden: {c}"
+        );
+        assert!(
+            !server.state.engine.info().degraded,
+            "no device fault on the way"
+        );
+        server.stop().await;
+    }
+);
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[cfg_attr(
-    not(crowdmorph_gpu_driver),
-    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
-)]
-#[cfg_attr(
-    not(crowdmorph_test_data),
-    ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
-)]
-async fn the_gpu_memory_budget_refuses_rigs_and_renders_over_it_and_a_delete_gives_it_back() {
-    use crowdmorph::engine::BackendChoice;
-    use crowdmorph_client::ClientError;
-    let glb = Bytes::from(
-        std::fs::read(crate::util::data_dir().join("ict-facekit/ict_facekit_53.glb"))
-            .expect("ICT FaceKit"),
-    );
-    // The GPU engine (lavapipe here) with the renderer on its device.
-    let gpu = || ServerConfig {
-        backend: BackendChoice::Gpu,
-        ..ServerConfig::default()
-    };
-    // Under the default budget: what the built-in head and ICT FaceKit hold on the device, and
-    // a delete gives the rig's share back.
-    let server = TestServer::start(gpu()).await;
-    let memory = gpu_pool(&server);
-    let builtin = memory.used();
-    let ict = upload_charged(&server, &memory, "ict", glb.clone()).await;
-    assert!(ict > 0, "the rig is charged to the GPU budget");
-    // /metrics reports the budget once: the renderer shares the engine's device and pool.
-    let page = server.client.metrics().await.expect("metrics");
-    let gauge = |name: &str| crowdmorph_client::metric(&page, name);
-    assert_eq!(
-        gauge("crowdmorph_gpu_memory_bytes"),
-        Some(memory.used() as f64)
-    );
-    assert_eq!(
-        gauge("crowdmorph_gpu_memory_limit_bytes"),
-        Some(memory.limit() as f64)
-    );
-    server.client.delete_rig("ict").await.expect("delete");
-    assert_eq!(
-        memory.used(),
-        builtin,
-        "a delete gives the rig's GPU memory back"
-    );
-    server.stop().await;
+gpu_test!(
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    #[cfg_attr(
+        not(crowdmorph_test_data),
+        ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+    )]
+    async fn the_gpu_memory_budget_refuses_rigs_and_renders_over_it_and_a_delete_gives_it_back() {
+        use crowdmorph::engine::BackendChoice;
+        use crowdmorph_client::ClientError;
+        let glb = Bytes::from(
+            std::fs::read(crate::util::data_dir().join("ict-facekit/ict_facekit_53.glb"))
+                .expect("ICT FaceKit"),
+        );
+        // The GPU engine (lavapipe here) with the renderer on its device.
+        let gpu = || ServerConfig {
+            backend: BackendChoice::Gpu,
+            ..ServerConfig::default()
+        };
+        // Under the default budget: what the built-in head and ICT FaceKit hold on the device, and
+        // a delete gives the rig's share back.
+        let server = TestServer::start(gpu()).await;
+        let memory = gpu_pool(&server);
+        let builtin = memory.used();
+        let ict = upload_charged(&server, &memory, "ict", glb.clone()).await;
+        assert!(ict > 0, "the rig is charged to the GPU budget");
+        // /metrics reports the budget once: the renderer shares the engine's device and pool.
+        let page = server.client.metrics().await.expect("metrics");
+        let gauge = |name: &str| crowdmorph_client::metric(&page, name);
+        assert_eq!(
+            gauge("crowdmorph_gpu_memory_bytes"),
+            Some(memory.used() as f64)
+        );
+        assert_eq!(
+            gauge("crowdmorph_gpu_memory_limit_bytes"),
+            Some(memory.limit() as f64)
+        );
+        server.client.delete_rig("ict").await.expect("delete");
+        assert_eq!(
+            memory.used(),
+            builtin,
+            "a delete gives the rig's GPU memory back"
+        );
+        server.stop().await;
 
-    // A budget with room for the built-in head and half of ICT FaceKit: the upload is refused
-    // with the JSON error naming the flag, as the host budget refuses (413 when the rig alone
-    // is over it, 503 when it does not fit next to what is there), and leaves nothing charged.
-    let cap = builtin + ict / 2;
-    let server = TestServer::start(ServerConfig {
-        gpu_memory: Some(cap),
-        ..gpu()
-    })
-    .await;
-    let memory = gpu_pool(&server);
-    let at_start = memory.used();
-    let e = server
-        .client
-        .upload_rig("ict", glb)
-        .await
-        .expect_err("over the GPU budget");
-    let ClientError::Api {
-        status,
-        code,
-        message,
-    } = e
-    else {
-        panic!("not a JSON error: {e}");
-    };
-    assert!(
-        (status, code.as_str()) == (413, "rig_too_large")
-            || (status, code.as_str()) == (503, "memory_full"),
-        "{status} {code}: {message}"
-    );
-    assert!(message.contains("--max-gpu-memory"), "{message}");
-    assert_eq!(memory.used(), at_start, "a refused upload holds nothing");
+        // A budget with room for the built-in head and half of ICT FaceKit: the upload is refused
+        // with the JSON error naming the flag, as the host budget refuses (413 when the rig alone
+        // is over it, 503 when it does not fit next to what is there), and leaves nothing charged.
+        let cap = builtin + ict / 2;
+        let server = TestServer::start(ServerConfig {
+            gpu_memory: Some(cap),
+            ..gpu()
+        })
+        .await;
+        let memory = gpu_pool(&server);
+        let at_start = memory.used();
+        let e = server
+            .client
+            .upload_rig("ict", glb)
+            .await
+            .expect_err("over the GPU budget");
+        let ClientError::Api {
+            status,
+            code,
+            message,
+        } = e
+        else {
+            panic!("not a JSON error: {e}");
+        };
+        assert!(
+            (status, code.as_str()) == (413, "rig_too_large")
+                || (status, code.as_str()) == (503, "memory_full"),
+            "{status} {code}: {message}"
+        );
+        assert!(message.contains("--max-gpu-memory"), "{message}");
+        assert_eq!(memory.used(), at_start, "a refused upload holds nothing");
 
-    // A render whose targets alone (4× MSAA colour and depth: 32 bytes a pixel) exceed the
-    // budget: 413 naming the flag. A small one still renders.
-    let side = ((cap / 32) as f64).sqrt().ceil() as u32 + 16;
-    let r = s_render_raw(&server, &request(vec![head(1, "talk", 0, 0)], side, side)).await;
-    assert_eq!(r.status, 413, "{}", String::from_utf8_lossy(&r.body));
-    let err = r.error().expect("JSON").error;
-    assert_eq!(err.code, "image_too_large");
-    assert!(err.message.contains("--max-gpu-memory"), "{}", err.message);
-    png(&server, &request(vec![head(1, "talk", 0, 0)], 96, 64)).await;
-    server.stop().await;
-}
+        // A render whose targets alone (4× MSAA colour and depth: 32 bytes a pixel) exceed the
+        // budget: 413 naming the flag. A small one still renders.
+        let side = ((cap / 32) as f64).sqrt().ceil() as u32 + 16;
+        let r = s_render_raw(&server, &request(vec![head(1, "talk", 0, 0)], side, side)).await;
+        assert_eq!(r.status, 413, "{}", String::from_utf8_lossy(&r.body));
+        let err = r.error().expect("JSON").error;
+        assert_eq!(err.code, "image_too_large");
+        assert!(err.message.contains("--max-gpu-memory"), "{}", err.message);
+        png(&server, &request(vec![head(1, "talk", 0, 0)], 96, 64)).await;
+        server.stop().await;
+    }
+);
 
 /// A flat grid rig of `side` × `side` vertices (two triangles a cell) with `targets` targets
 /// that each move every vertex, and a two-key clip `wave` driving them all: many triangles, so
@@ -1095,94 +1084,92 @@ fn grid_glb(side: u32, targets: usize) -> (Bytes, u64) {
     (Bytes::from(b.to_glb()), indices.len() as u64 / 3)
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[cfg_attr(
-    not(crowdmorph_gpu_driver),
-    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
-)]
-async fn a_cached_topology_gives_way_to_a_rig_upload_and_the_next_render_uploads_it_again() {
-    // The server keeps each rendered rig's index buffer for the next render, on the engine's
-    // device. With a GPU budget that has room for two copies of a rig and half that index
-    // buffer, a second upload after a render frees it (with the render's kept targets and the
-    // engine's idle batch buffers) instead of being refused with 503 forever.
-    use crowdmorph::engine::BackendChoice;
-    let (glb, triangles) = grid_glb(96, 32);
-    let topology = triangles * 12;
-    let gpu = || ServerConfig {
-        backend: BackendChoice::Gpu,
-        ..ServerConfig::default()
-    };
-    let grid = |rig: &str| {
-        request(
-            vec![Head {
-                head: 1,
-                rig: rig.into(),
-                clip: "wave".into(),
-                frame: 0,
-                lod: 0,
-                ..Default::default()
-            }],
-            96,
-            64,
-        )
-    };
+gpu_test!(
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_cached_topology_gives_way_to_a_rig_upload_and_the_next_render_uploads_it_again() {
+        // The server keeps each rendered rig's index buffer for the next render, on the engine's
+        // device. With a GPU budget that has room for two copies of a rig and half that index
+        // buffer, a second upload after a render frees it (with the render's kept targets and the
+        // engine's idle batch buffers) instead of being refused with 503 forever.
+        use crowdmorph::engine::BackendChoice;
+        let (glb, triangles) = grid_glb(96, 32);
+        let topology = triangles * 12;
+        let gpu = || ServerConfig {
+            backend: BackendChoice::Gpu,
+            ..ServerConfig::default()
+        };
+        let grid = |rig: &str| {
+            request(
+                vec![Head {
+                    head: 1,
+                    rig: rig.into(),
+                    clip: "wave".into(),
+                    frame: 0,
+                    lod: 0,
+                    ..Default::default()
+                }],
+                96,
+                64,
+            )
+        };
 
-    // Under the default budget: what the rig holds, and what a render of it leaves kept.
-    let server = TestServer::start(gpu()).await;
-    let memory = gpu_pool(&server);
-    let base = memory.used();
-    let rig = upload_charged(&server, &memory, "a", glb.clone()).await;
-    let want = png(&server, &grid("a")).await;
-    let kept = memory.used() - base - rig;
-    // Less than the rig: the render fits next to one copy under the budget below.
-    assert!(
-        kept > topology && kept < rig,
-        "a render keeps {kept} bytes: more than the index buffer ({topology}), less than the \
-         rig ({rig})"
-    );
-    server.stop().await;
+        // Under the default budget: what the rig holds, and what a render of it leaves kept.
+        let server = TestServer::start(gpu()).await;
+        let memory = gpu_pool(&server);
+        let base = memory.used();
+        let rig = upload_charged(&server, &memory, "a", glb.clone()).await;
+        let want = png(&server, &grid("a")).await;
+        let kept = memory.used() - base - rig;
+        // Less than the rig: the render fits next to one copy under the budget below.
+        assert!(
+            kept > topology && kept < rig,
+            "a render keeps {kept} bytes: more than the index buffer ({topology}), less than the \
+             rig ({rig})"
+        );
+        server.stop().await;
 
-    let server = TestServer::start(ServerConfig {
-        gpu_memory: Some(base + 2 * rig + topology / 2),
-        ..gpu()
-    })
-    .await;
-    let memory = gpu_pool(&server);
-    assert_eq!(memory.used(), base);
-    server
-        .client
-        .upload_rig("a", glb.clone())
-        .await
-        .expect("upload");
-    png(&server, &grid("a")).await;
-    assert_eq!(
-        memory.used(),
-        base + rig + kept,
-        "the render's memory is kept"
-    );
-    server
-        .client
-        .upload_rig("b", glb)
-        .await
-        .expect("what is kept for reuse makes room for a second copy");
-    assert_eq!(
-        memory.used(),
-        base + 2 * rig,
-        "the cached topology, kept targets and idle batch buffers were given back"
-    );
+        let server = TestServer::start(ServerConfig {
+            gpu_memory: Some(base + 2 * rig + topology / 2),
+            ..gpu()
+        })
+        .await;
+        let memory = gpu_pool(&server);
+        assert_eq!(memory.used(), base);
+        server
+            .client
+            .upload_rig("a", glb.clone())
+            .await
+            .expect("upload");
+        png(&server, &grid("a")).await;
+        assert_eq!(
+            memory.used(),
+            base + rig + kept,
+            "the render's memory is kept"
+        );
+        server
+            .client
+            .upload_rig("b", glb)
+            .await
+            .expect("what is kept for reuse makes room for a second copy");
+        assert_eq!(
+            memory.used(),
+            base + 2 * rig,
+            "the cached topology, kept targets and idle batch buffers were given back"
+        );
 
-    // Renders still work: with the first copy deleted, the second draws the same picture,
-    // uploading its topology and making new targets.
-    server.client.delete_rig("a").await.expect("delete");
-    let again = png(&server, &grid("b")).await;
-    assert!(again == want, "the picture after the reclaim differs");
-    assert_eq!(
-        memory.used(),
-        base + rig + kept,
-        "kept again for the next render"
-    );
-    server.stop().await;
-}
+        // Renders still work: with the first copy deleted, the second draws the same picture,
+        // uploading its topology and making new targets.
+        server.client.delete_rig("a").await.expect("delete");
+        let again = png(&server, &grid("b")).await;
+        assert!(again == want, "the picture after the reclaim differs");
+        assert_eq!(
+            memory.used(),
+            base + rig + kept,
+            "kept again for the next render"
+        );
+        server.stop().await;
+    }
+);
 
 /// The GPU memory budget of a server running the GPU engine.
 fn gpu_pool(server: &TestServer) -> std::sync::Arc<crowdmorph::budget::MemoryPool> {

@@ -3,6 +3,7 @@
 //! and keep every head's vertices as a viewer would (applying "unchanged" and layouts), so the
 //! tests check what a viewer ends up drawing, not just message counts.
 
+use crate::util::gpu_test;
 use std::collections::HashMap;
 use std::time::Duration;
 
@@ -977,51 +978,49 @@ async fn session_changes_need_the_admin_token_and_streams_do_not() {
     server.stop().await;
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[cfg_attr(
-    not(crowdmorph_gpu_driver),
-    ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
-)]
-async fn a_viewer_that_asks_for_frames_gets_images() {
-    let server = TestServer::start(config()).await;
-    let s = create(&server, json!({"fps": 10, "heads": [head(1, "talk", 0, [0.0, 0.0, 0.0]), head(2, "smile", 0, [0.3, 0.0, 0.0])]})).await;
-    // No camera: the front view framing every head.
-    let hello =
-        json!({"output": "frames", "image": {"width": 160, "height": 120, "format": "png"}});
-    let mut ws = connect(&server, &s.id, hello).await;
-    let mut ticks = Vec::new();
-    while ticks.len() < 3 {
-        let msg = tokio::time::timeout(READ, ws.next())
-            .await
-            .expect("a frame")
-            .expect("open")
-            .expect("message");
-        if let Message::Binary(b) = msg {
-            let m: StreamMessage =
-                crowdmorph_proto::wire::response_from_bincode(&b).expect("decode");
-            let StreamMessage::Frame(f) = m else {
-                panic!("asked for frames")
-            };
-            assert_eq!((f.width, f.height), (160, 120));
-            let img = crate::util::image::Image::decode_png(&f.image.0).expect("a PNG");
-            assert_eq!((img.width, img.height), (160, 120));
-            let background = img.pixel(0, 0);
-            let mut drawn = 0;
-            for y in 0..img.height {
-                for x in 0..img.width {
-                    drawn += usize::from(img.pixel(x, y) != background);
+gpu_test!(
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_viewer_that_asks_for_frames_gets_images() {
+        let server = TestServer::start(config()).await;
+        let s = create(&server, json!({"fps": 10, "heads": [head(1, "talk", 0, [0.0, 0.0, 0.0]), head(2, "smile", 0, [0.3, 0.0, 0.0])]})).await;
+        // No camera: the front view framing every head.
+        let hello =
+            json!({"output": "frames", "image": {"width": 160, "height": 120, "format": "png"}});
+        let mut ws = connect(&server, &s.id, hello).await;
+        let mut ticks = Vec::new();
+        while ticks.len() < 3 {
+            let msg = tokio::time::timeout(READ, ws.next())
+                .await
+                .expect("a frame")
+                .expect("open")
+                .expect("message");
+            if let Message::Binary(b) = msg {
+                let m: StreamMessage =
+                    crowdmorph_proto::wire::response_from_bincode(&b).expect("decode");
+                let StreamMessage::Frame(f) = m else {
+                    panic!("asked for frames")
+                };
+                assert_eq!((f.width, f.height), (160, 120));
+                let img = crate::util::image::Image::decode_png(&f.image.0).expect("a PNG");
+                assert_eq!((img.width, img.height), (160, 120));
+                let background = img.pixel(0, 0);
+                let mut drawn = 0;
+                for y in 0..img.height {
+                    for x in 0..img.width {
+                        drawn += usize::from(img.pixel(x, y) != background);
+                    }
                 }
+                assert!(
+                    drawn > 160 * 120 / 50,
+                    "the heads are drawn: {drawn} pixels"
+                );
+                ticks.push(f.tick);
             }
-            assert!(
-                drawn > 160 * 120 / 50,
-                "the heads are drawn: {drawn} pixels"
-            );
-            ticks.push(f.tick);
         }
+        assert!(ticks.windows(2).all(|w| w[1] > w[0]), "{ticks:?}");
+        server.stop().await;
     }
-    assert!(ticks.windows(2).all(|w| w[1] > w[0]), "{ticks:?}");
-    server.stop().await;
-}
+);
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_silent_viewer_and_a_chatty_one_are_closed_with_the_rule_they_broke() {

@@ -49,9 +49,26 @@ pub fn rig_files() -> Vec<PathBuf> {
     files
 }
 
+/// Declares a test that needs a GPU adapter: `gpu_test!(#[test] fn name() { ... });` (or
+/// `#[tokio::test(...)] async fn`). Where `build.rs` found no Vulkan driver
+/// (`crowdmorph_gpu_driver` unset) the test is listed as ignored with the line that installs
+/// one; where it found one, the test runs and an adapter that does not open fails it. The
+/// parentheses keep rustfmt formatting the test inside.
+macro_rules! gpu_test {
+    (#[$test:meta] $($item:tt)*) => {
+        #[$test]
+        #[cfg_attr(
+            not(crowdmorph_gpu_driver),
+            ignore = "needs a Vulkan adapter: apt-get install mesa-vulkan-drivers"
+        )]
+        $($item)*
+    };
+}
+pub(crate) use gpu_test;
+
 /// Opens a GPU context on any adapter, software ones (lavapipe) included. Tests that call this
-/// carry `#[cfg_attr(not(crowdmorph_gpu_driver), ignore = "...")]`: `build.rs` found a Vulkan
-/// driver, so an adapter that cannot be opened is a broken GPU, and the test fails.
+/// are declared with [`gpu_test!`]: `build.rs` found a Vulkan driver, so an adapter that cannot
+/// be opened is a broken GPU, and the test fails.
 pub fn open_gpu(
     options: crowdmorph::engine::gpu::GpuOptions,
 ) -> crowdmorph::engine::gpu::GpuContext {
