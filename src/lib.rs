@@ -15,7 +15,7 @@
 //! | [`codec`], [`store`] | `crowdmorph-store` | the record codec; the data dir and the shared store |
 //! | [`load`] | `crowdmorph-load` | the load generator |
 //! | [`server`] | `crowdmorph-server` | the HTTP server |
-//! | [`bench`] | `crowdmorph-bench` | benchmarks, their peers and harness |
+//! | [`bench`](mod@bench) | `crowdmorph-bench` | benchmarks, their peers and harness |
 
 pub use crowdmorph_core::{budget, cancel, embedded, linalg, plan, rig, rng, synthetic};
 
