@@ -223,23 +223,7 @@ async fn upload_smooth_clips(server: &TestServer) {
             })
             .collect();
         let body = json!({"fps": 30, "targets": targets, "frames": frames}).to_string();
-        let reply = server
-            .client
-            .send(
-                Method::POST,
-                &format!("/v1/rigs/default-head/clips?name={name}"),
-                Some("application/json"),
-                None,
-                Bytes::from(body),
-            )
-            .await
-            .unwrap();
-        assert_eq!(
-            reply.status,
-            201,
-            "{}",
-            String::from_utf8_lossy(&reply.body)
-        );
+        post_clip(&server.client, name, body).await;
     }
 }
 
@@ -670,6 +654,11 @@ async fn upload_long_clip(client: &crowdmorph_client::Client, name: &str, frames
         .map(|f| [0.5 - 0.5 * (std::f32::consts::TAU * f as f32 / 300.0).cos()])
         .collect();
     let body = json!({"fps": 30, "targets": ["jawOpen"], "frames": rows}).to_string();
+    post_clip(client, name, body).await;
+}
+
+/// Posts the JSON clip `body` to the embedded head as clip `name`, expecting 201.
+async fn post_clip(client: &crowdmorph_client::Client, name: &str, body: String) {
     let reply = client
         .send(
             Method::POST,
