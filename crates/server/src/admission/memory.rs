@@ -25,9 +25,8 @@ const UNIT: u64 = 1024;
 /// The queue memory (`--queue-memory-bytes`), in KiB permits.
 #[derive(Debug)]
 pub struct QueueMemory {
-    semaphore: Arc<Semaphore>,
-    units: u32,
     metrics: Arc<Metrics>,
+    /// The permits and their count, shared with the charges that give them back.
     drain: Arc<Drain>,
 }
 
@@ -121,19 +120,17 @@ impl QueueMemory {
         let semaphore = Arc::new(Semaphore::new(units as usize));
         QueueMemory {
             drain: Arc::new(Drain {
-                semaphore: semaphore.clone(),
+                semaphore,
                 units,
                 volume: std::sync::atomic::AtomicU64::new(0),
             }),
-            semaphore,
-            units,
             metrics,
         }
     }
 
     /// The whole queue memory, bytes.
     pub fn limit(&self) -> u64 {
-        u64::from(self.units) * UNIT
+        u64::from(self.drain.units) * UNIT
     }
 
     /// Bytes charged now.
@@ -146,10 +143,10 @@ impl QueueMemory {
     /// the holder allocate past the limit).
     pub fn reserve(&self, bytes: u64) -> Result<Charge, ApiError> {
         let units = bytes.div_ceil(UNIT).max(1);
-        if units > u64::from(self.units) {
+        if units > u64::from(self.drain.units) {
             return Err(self.exceeded(bytes));
         }
-        self.semaphore
+        self.drain.semaphore
             .clone()
             .try_acquire_many_owned(units as u32)
             .map(|permit| {
@@ -170,7 +167,7 @@ impl QueueMemory {
 
     /// Whether `bytes` can ever be charged (not more than the whole queue memory).
     pub fn fits(&self, bytes: u64) -> bool {
-        bytes.div_ceil(UNIT) <= u64::from(self.units)
+        bytes.div_ceil(UNIT) <= u64::from(self.drain.units)
     }
 
     /// 413 for something that needs `bytes`, more than all of the queue memory: it could
