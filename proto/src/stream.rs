@@ -3,12 +3,14 @@
 //! "unchanged" entries and temporal residuals ([`TickDelta`]) resolve to plain buffers.
 //!
 //! With the `unpack` feature, [`StreamState::receive`] also takes compressed messages
-//! ([`PackedMessage`], zstd or zlib) straight from the socket.
+//! ([`PackedMessage`](crate::session::PackedMessage), zstd or zlib) straight from the socket.
 
 use std::collections::HashMap;
 use std::sync::Arc;
 
-use crate::session::{PackedMessage, TickDelta};
+#[cfg(feature = "unpack")]
+use crate::session::PackedMessage;
+use crate::session::TickDelta;
 use crate::{
     Blob, Format, FrameBuffer, HEAD_MISSING, HEAD_UNCHANGED, HeadBuffer, SessionHead,
     StreamMessage, TickFrame, TickVertices, q16r_decode,

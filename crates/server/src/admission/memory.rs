@@ -146,7 +146,8 @@ impl QueueMemory {
         if units > u64::from(self.drain.units) {
             return Err(self.exceeded(bytes));
         }
-        self.drain.semaphore
+        self.drain
+            .semaphore
             .clone()
             .try_acquire_many_owned(units as u32)
             .map(|permit| {
