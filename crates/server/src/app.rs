@@ -28,10 +28,8 @@ use super::config::ServerConfig;
 use super::conn;
 use super::http::{ApiError, SERVER_TIMING, encoding};
 use super::metrics::Metrics;
-use super::routes::{
-    self,
-    render::{IMAGE_HEIGHT, IMAGE_WIDTH},
-};
+use super::routes;
+use super::services::render::{IMAGE_HEIGHT, IMAGE_WIDTH};
 use super::shed::SHED_LOG_EVERY;
 use super::state::AppState;
 

@@ -3,18 +3,22 @@
 //!
 //! Layers, each importing only the ones below it: `app` (the router) → `routes` (one file
 //! per resource: the handlers, in named phases) → [`state`] (the composition root: the
-//! [`AppState`] every handler gets) → [`admission`] (what a request costs, charged before its
+//! [`AppState`] every handler gets, which implements each service's context) → `services` (the
+//! jobs that are more than a handler, each seeing the state only through its own narrow
+//! trait) → [`admission`] (what a request costs, charged before its
 //! work: the queue memory, the render budgets, heads resolved into priced jobs) → [`http`]
 //! (what every handler shares: bodies, negotiation, extractors, the JSON error) and the core
 //! (the batcher, the registry, the connections, each resource's state). [`http`] imports
-//! nothing of the server; no core module imports `routes`, [`state`] or [`admission`], and
+//! nothing of the server; no service imports `routes` or [`state`]; no core module imports
+//! `routes`, [`state`], `services` or [`admission`], and
 //! the only one that uses [`http`] is `conn` (its 503 is an [`ApiError`]). No two files
 //! import each other (`tests/tidy.rs` checks the whole crate).
 //!
 //! | module | what it is |
 //! |---|---|
 //! | `app` | [`app`]: the router and its layers; [`serve`] and [`run`] |
-//! | `routes` | the handlers: `health`, `rigs`, `clips`, `frames`, `render`, `lod` (with the background job), `graphs`, `loadtest`, `viewer`, `replicas` (the shared store: changes committed as generations, refreshes, lookups before a 404), and `sessions` (its REST handlers, `sessions::viewer` the viewer socket, `sessions::tick` the tick) |
+//! | `routes` | the handlers: `health`, `rigs`, `clips`, `frames`, `render`, `lod` (with the background job), `graphs`, `loadtest`, `viewer`, `replicas` (the shared store: changes committed as generations, refreshes, lookups before a 404), and `sessions` (its REST handlers, `sessions::viewer` the viewer socket) |
+//! | `services` | the jobs beyond a handler, one per module, each behind its context trait: `render` (render admission and drawing), `tick` (a session's tick and fan-out) |
 //! | [`state`] | [`AppState`]: engine, batcher, registry, budgets, each resource's state |
 //! | [`config`] | every limit, timeout and default, the session limits included; the `serve` command's flags |
 //! | [`admission`] | the queue memory and its charges ([`admission::memory`]), the render budgets ([`admission::render`]), heads resolved into jobs ([`admission::resolve`]) |
@@ -49,6 +53,7 @@ mod pool;
 pub mod registry;
 mod routes;
 pub mod scheduler;
+mod services;
 mod session_stream;
 pub mod sessions;
 mod shed;

@@ -10,7 +10,7 @@ use std::time::Duration;
 
 use bytes::Bytes;
 use crowdmorph_proto::{
-    CameraSpec, Format, ImageOptions, LodChoice, SessionHead, SessionStats, ViewerOutput,
+    CameraSpec, Format, ImageOptions, LodChoice, Placement, SessionHead, SessionStats, ViewerOutput,
 };
 use prometheus_client::encoding::EncodeLabelSet;
 use prometheus_client::metrics::counter::Counter;
@@ -48,6 +48,29 @@ pub(crate) mod close {
     pub const INTERNAL: u16 = 1011;
     /// Try again later: the session is full.
     pub const AGAIN: u16 = 1013;
+
+    /// A close reason cut to at most 123 bytes (RFC 6455 §5.5).
+    pub fn truncate(mut s: String) -> String {
+        if s.len() > 123 {
+            let mut end = 120;
+            while !s.is_char_boundary(end) {
+                end -= 1;
+            }
+            s.truncate(end);
+            s.push_str("...");
+        }
+        s
+    }
+}
+
+/// Where head `h` stands in the crowd, as the renderer places it.
+pub(crate) fn placement(h: &SessionHead) -> Placement {
+    Placement {
+        head: h.head,
+        position: h.position,
+        yaw: h.yaw,
+        scale: h.scale,
+    }
 }
 
 /// Counters over all sessions, for `/metrics`: handles on series of the server's registry

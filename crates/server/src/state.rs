@@ -18,6 +18,9 @@ use super::lod_jobs::LodJobs;
 use super::metrics::{Gauges, Metrics};
 use super::registry::{BUILTIN_ID, ClipLayout, NewEntry, Registry, RigEntry, quantization_box};
 use super::scheduler::{BatchConfig, Scheduler};
+use super::services::Parts;
+use super::services::render::Rendering;
+use super::services::tick::Ticking;
 use super::sessions::Sessions;
 use super::shed::ShedLog;
 use super::topologies::RenderState;
@@ -647,6 +650,62 @@ impl Admission for AppState {
             bytes: self.config.max_request_bytes,
             timeout: self.config.request_timeout,
         }
+    }
+}
+
+impl Parts for AppState {
+    type Owner = Inner;
+
+    fn registry(&self) -> &Registry {
+        &self.registry
+    }
+
+    fn engine(&self) -> &Arc<Engine> {
+        &self.engine
+    }
+
+    fn metrics(&self) -> &Arc<Metrics> {
+        &self.metrics
+    }
+
+    fn config(&self) -> &ServerConfig {
+        &self.config
+    }
+
+    fn downgrade(&self) -> std::sync::Weak<Inner> {
+        Arc::downgrade(&self.0)
+    }
+
+    fn upgrade(weak: &std::sync::Weak<Inner>) -> Option<AppState> {
+        weak.upgrade().map(AppState)
+    }
+}
+
+impl Rendering for AppState {
+    fn render_state(&self) -> &RenderState {
+        &self.render
+    }
+
+    fn render_budget(&self) -> &RenderBudget {
+        &self.render_budget
+    }
+
+    fn on_gpu(&self) -> bool {
+        AppState::on_gpu(self)
+    }
+}
+
+impl Ticking for AppState {
+    fn sessions(&self) -> &Sessions {
+        &self.sessions
+    }
+
+    fn scheduler(&self) -> &Scheduler {
+        &self.scheduler
+    }
+
+    fn graphs(&self) -> &crate::graphs::Graphs {
+        &self.graphs
     }
 }
 

@@ -1,7 +1,7 @@
 //! A viewer's vertex message encoded: a [`crowdmorph_proto::TickVertices`] or, for a
 //! temporal viewer, a [`crowdmorph_proto::TickDelta`] of residuals planned by
 //! [`super::delta`], optionally packed; every byte charged to the queue memory before it is
-//! allocated. The tick (`crate::routes::sessions::tick`) decides what each viewer gets; this
+//! allocated. The tick (`crate::services::tick`) decides what each viewer gets; this
 //! module only writes it, given the queue memory and nothing else of the server.
 
 use std::collections::HashMap;

@@ -33,9 +33,7 @@ use axum::extract::ws::WebSocketUpgrade;
 use axum::extract::{Path, State};
 use axum::http::{HeaderMap, StatusCode};
 use axum::response::{IntoResponse, Response};
-use crowdmorph_proto::{
-    HeadChange, Placement, SessionHead, SessionPatch, SessionRequest, SessionStats,
-};
+use crowdmorph_proto::{HeadChange, SessionHead, SessionPatch, SessionRequest, SessionStats};
 use tokio::sync::Notify;
 use tokio::time::Instant;
 
@@ -43,6 +41,7 @@ use crate::admission::resolve::{requested_joints, unknown_clip};
 use crate::admission::{Admission, Charge, Decoded, Priced, decode_held};
 use crate::http::body::hold;
 use crate::http::{Accept, Admin, ApiError, ApiResult, Ready};
+use crate::services::Parts;
 use crate::sessions::{
     InfoNow, ListNow, MAX_FPS, MAX_IDLE_TIMEOUT_S, MAX_VIEWER_MESSAGE_BYTES, MIN_FPS, Session,
     SessionInner, close, info_bytes,
@@ -50,7 +49,6 @@ use crate::sessions::{
 use crate::state::AppState;
 use crowdmorph_engine::render::scene;
 
-mod tick;
 mod viewer;
 
 /// Answers a GET with session infos, their largest serialized size charged to the queue
@@ -133,7 +131,7 @@ impl AppState {
                 ..e
             });
         }
-        scene::placement_matrix(&placement(h))
+        scene::placement_matrix(&crate::sessions::placement(h))
             .map_err(|e| invalid(format!("head {}: {e}", h.head)))?;
         requested_joints(&entry, &h.joints)
             .map_err(|(code, m)| ApiError::bad_request(code, format!("head {}: {m}", h.head)))?;
@@ -152,15 +150,6 @@ impl AppState {
             ));
         }
         Ok(())
-    }
-}
-
-pub(super) fn placement(h: &SessionHead) -> Placement {
-    Placement {
-        head: h.head,
-        position: h.position,
-        yaw: h.yaw,
-        scale: h.scale,
     }
 }
 
@@ -453,7 +442,7 @@ fn create(
     });
     map.insert(id.clone(), session.clone());
     drop(map);
-    tick::supervise(session.clone(), Arc::downgrade(&state.0));
+    crate::services::tick::supervise::<AppState>(session.clone(), state.downgrade());
     let info = session.info();
     tracing::info!(session = %id, heads = info.heads.len(), fps = req.fps, chosen, "session created");
     // Charged before the session existed (`answer`): a 503 now would tell a client that

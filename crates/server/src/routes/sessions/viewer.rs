@@ -64,12 +64,12 @@ async fn read_hello(
         ..ImageOptions::default()
     });
     crowdmorph_engine::render::encode::check_image(&image, crowdmorph_proto::MAX_IMAGE_SIDE)
-        .map_err(|e| (close::POLICY, truncate(format!("bad image: {e}"))))?;
+        .map_err(|e| (close::POLICY, close::truncate(format!("bad image: {e}"))))?;
     let pixels = u64::from(image.width) * u64::from(image.height);
     if hello.output == ViewerOutput::Frames && pixels > limits.max_viewer_pixels {
         return Err((
             close::POLICY,
-            truncate(format!(
+            close::truncate(format!(
                 "bad image: {}x{} is more than {} pixels (--max-viewer-pixels)",
                 image.width, image.height, limits.max_viewer_pixels
             )),
@@ -94,7 +94,7 @@ async fn read_hello(
 /// send is told why, not given something else. `Ok` is the keyframe interval of a temporal
 /// viewer.
 fn check_modes(hello: &ViewerHello) -> Result<Option<u32>, (u16, String)> {
-    let refuse = |why: &str| Err((close::POLICY, truncate(format!("bad hello: {why}"))));
+    let refuse = |why: &str| Err((close::POLICY, close::truncate(format!("bad hello: {why}"))));
     if hello.format == Format::Q16R {
         return refuse(
             "format q16r is for crowd frames; sessions send residuals with \"temporal\": \
@@ -132,21 +132,8 @@ fn socket_error(e: &axum::Error) -> (u16, String) {
             format!("messages are limited to {MAX_VIEWER_MESSAGE_BYTES} bytes"),
         )
     } else {
-        (close::POLICY, truncate(text))
+        (close::POLICY, close::truncate(text))
     }
-}
-
-/// Close reasons are at most 123 bytes (RFC 6455 §5.5).
-pub(super) fn truncate(mut s: String) -> String {
-    if s.len() > 123 {
-        let mut end = 120;
-        while !s.is_char_boundary(end) {
-            end -= 1;
-        }
-        s.truncate(end);
-        s.push_str("...");
-    }
-    s
 }
 
 fn parse_json<T: serde::de::DeserializeOwned>(text: &str, what: &str) -> Result<T, (u16, String)> {
@@ -155,11 +142,11 @@ fn parse_json<T: serde::de::DeserializeOwned>(text: &str, what: &str) -> Result<
         let path = e.path().to_string();
         (
             close::POLICY,
-            truncate(format!("bad {what} at {path}: {}", e.into_inner())),
+            close::truncate(format!("bad {what} at {path}: {}", e.into_inner())),
         )
     })?;
     de.end()
-        .map_err(|e| (close::POLICY, truncate(format!("bad {what}: {e}"))))?;
+        .map_err(|e| (close::POLICY, close::truncate(format!("bad {what}: {e}"))))?;
     Ok(value)
 }
 
@@ -170,7 +157,7 @@ fn check_camera(c: &CameraSpec, image: &ImageOptions) -> Result<(), (u16, String
     let aspect = image.width.max(1) as f32 / image.height.max(1) as f32;
     scene::layout(&[], &[], None, Some(c), aspect)
         .map(|_| ())
-        .map_err(|e| (close::POLICY, truncate(format!("bad camera: {e}"))))
+        .map_err(|e| (close::POLICY, close::truncate(format!("bad camera: {e}"))))
 }
 
 pub(super) fn check_lod(l: &LodChoice) -> Result<(), (u16, String)> {

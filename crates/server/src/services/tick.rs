@@ -18,28 +18,42 @@ use glam::Vec3;
 use rayon::prelude::*;
 use tokio::time::Instant;
 
+use super::render::Rendering;
 use crate::admission::resolve::{
     head_reach, job_output_bytes, job_request, joint_overrides, requested_joints,
 };
+use crate::graphs::Graphs;
 use crate::registry::{MAX_F16, RigEntry};
+use crate::scheduler::Scheduler;
 use crate::scheduler::{JobRequest, ScheduleError};
+use crate::sessions::Sessions;
 use crate::sessions::{
     Baseline, Encoded, HeadKey, MIN_FPS, MISSING_KEY, Outgoing, Session, Viewer, ViewerSettings,
     bump, close,
 };
-use crate::state::{AppState, Inner};
 use crowdmorph_anim::graph::{Graph, Player};
 use crowdmorph_core::rig::{FrameMode, JointPose, Pose};
 
 use crate::session_stream::delta;
 use crate::session_stream::encode::{JobKey as Key, MessageContent, encode_delta, encode_vertices};
 
+/// What a session's tick needs of the server beside rendering ([`Rendering`], for viewers
+/// that want images): the sessions, the batcher and the motion graphs.
+pub trait Ticking: Rendering {
+    /// The crowd sessions.
+    fn sessions(&self) -> &Sessions;
+    /// The batcher the tick submits its jobs to.
+    fn scheduler(&self) -> &Scheduler;
+    /// Motion graphs by rig.
+    fn graphs(&self) -> &Graphs;
+}
+
 /// Starts the tick task of `session`, supervised: if it panics (a bug), the session ends —
 /// removed from the server, its viewers closed with 1011 — and the panic is logged once and
 /// counted (`crowdmorph_session_panics_total`), rather than leaving a session registered that
 /// never ticks, never idles out and counts toward `--max-sessions`.
-pub(super) fn supervise(session: Arc<Session>, app: Weak<Inner>) {
-    let task = tokio::spawn(run_session(session.clone(), app.clone()));
+pub fn supervise<S: Ticking>(session: Arc<Session>, app: Weak<S::Owner>) {
+    let task = tokio::spawn(run_session::<S>(session.clone(), app.clone()));
     tokio::spawn(async move {
         let Err(e) = task.await else { return };
         if !e.is_panic() {
@@ -52,21 +66,20 @@ pub(super) fn supervise(session: Arc<Session>, app: Weak<Inner>) {
             .or_else(|| payload.downcast_ref::<String>().cloned())
             .unwrap_or_else(|| "a panic".into());
         tracing::error!(session = %session.id, panic = %why, "a session's tick task panicked; the session ends");
-        if let Some(inner) = app.upgrade() {
-            let state = AppState(inner);
+        if let Some(state) = S::upgrade(&app) {
             bump_panic(&state);
-            state.sessions.remove(&session.id);
+            state.sessions().remove(&session.id);
         }
         session.stop(close::INTERNAL, "session ended: internal error");
     });
 }
 
-fn bump_panic(state: &AppState) {
-    state.metrics.session_panics.inc();
+fn bump_panic<S: Ticking>(state: &S) {
+    state.metrics().session_panics.inc();
 }
 
 /// The tick task of one session.
-async fn run_session(session: Arc<Session>, app: Weak<Inner>) {
+async fn run_session<S: Ticking>(session: Arc<Session>, app: Weak<S::Owner>) {
     // `fps` is at least MIN_FPS (checked at creation): a period of at most ten seconds.
     let period = Duration::from_secs_f64(1.0 / f64::from(session.fps.max(MIN_FPS)));
     let start = Instant::now();
@@ -90,11 +103,10 @@ async fn run_session(session: Arc<Session>, app: Weak<Inner>) {
         if session.stopped.load(Ordering::Acquire) {
             break;
         }
-        let Some(inner) = app.upgrade() else { break };
-        let state = AppState(inner);
+        let Some(state) = S::upgrade(&app) else { break };
         if session.idle_deadline().is_some_and(|t| Instant::now() >= t) {
             tracing::info!(session = %session.id, "session ended: no viewer for its idle timeout");
-            state.sessions.remove(&session.id);
+            state.sessions().remove(&session.id);
             session.stop(close::AWAY, "session ended (idle)");
             break;
         }
@@ -108,7 +120,7 @@ async fn run_session(session: Arc<Session>, app: Weak<Inner>) {
         let computed = tick_once(&state, &session, tick, &mut players, &mut fanning).await;
         let done = Instant::now();
         let next_due = start + period.mul_f64((slot + 1) as f64);
-        let m = &state.sessions.metrics;
+        let m = &state.sessions().metrics;
         let mut next = slot + 1;
         if done > next_due {
             // Ticks whose time passed while this one ran are skipped, not queued: the next is
@@ -232,8 +244,8 @@ fn level_at(by_distance: &[[f32; 2]], d: f32) -> u32 {
 /// One tick: the four phases of the module doc — [`resolve`] every head once, [`group`] each
 /// viewer's jobs by what its buffers hold (image viewers' frames start on the blocking pool),
 /// [`submit`] each group to the batcher, [`fan_out`] the messages.
-async fn tick_once(
-    state: &AppState,
+async fn tick_once<S: Ticking>(
+    state: &S,
     session: &Arc<Session>,
     tick: u64,
     players: &mut Players,
@@ -256,7 +268,7 @@ async fn tick_once(
         return Ticked::NoViewers;
     }
     // What this tick builds per head is charged first, as every request's memory is.
-    let Ok(bookkeeping) = state.queue_memory.reserve(tick_bookkeeping_bytes(
+    let Ok(bookkeeping) = state.queue_memory().reserve(tick_bookkeeping_bytes(
         heads.len(),
         viewers.len(),
         resolved.joint_sets(),
@@ -294,8 +306,8 @@ async fn tick_once(
 /// on two cores the engine and the encoding of messages (residual planes, compression) then
 /// overlap instead of taking turns. It holds the tick's outputs and bookkeeping charges until
 /// every message is in its outbox.
-struct FanOutWork {
-    state: AppState,
+struct FanOutWork<S> {
+    state: S,
     session: Arc<Session>,
     tick: u64,
     heads: Arc<Vec<SessionHead>>,
@@ -307,7 +319,7 @@ struct FanOutWork {
     _bookkeeping: crate::admission::Charge,
 }
 
-impl FanOutWork {
+impl<S: Ticking> FanOutWork<S> {
     fn run(self) {
         // Temporal viewers' references are by head id: collected once a tick for all of them.
         let head_ids: Vec<u64> = self.heads.iter().map(|h| h.head).collect();
@@ -337,7 +349,7 @@ struct FanOuts(Option<tokio::task::JoinHandle<()>>);
 impl FanOuts {
     /// Waits for the previous fan-out (a panic in it is the tick task's panic, so the
     /// supervisor ends the session), then starts `work`'s.
-    async fn start(&mut self, work: FanOutWork) {
+    async fn start<S: Ticking>(&mut self, work: FanOutWork<S>) {
         self.finish().await;
         self.0 = Some(tokio::task::spawn_blocking(move || work.run()));
     }
@@ -414,8 +426,8 @@ impl Resolved {
 
 /// Resolve: each head's rig at this tick's generation and what it shows — its clip's frame,
 /// or for a graph head the pose its player reaches this tick (jumps applied first).
-fn resolve(
-    state: &AppState,
+fn resolve<S: Ticking>(
+    state: &S,
     session: &Session,
     heads: &[SessionHead],
     tick: u64,
@@ -438,7 +450,7 @@ fn resolve(
         .iter()
         .map(|h| {
             let ri = *rig_at.entry(h.rig.as_str()).or_insert_with(|| {
-                state.registry.get(&h.rig).map(|e| {
+                state.registry().get(&h.rig).map(|e| {
                     rigs.push(e);
                     (rigs.len() - 1) as u32
                 })
@@ -452,11 +464,11 @@ fn resolve(
             let (pose, joints) = match &h.graph {
                 // A graph head's player fades its overrides in, as it fades its jumps.
                 Some(play) => {
-                    let graph = state.graphs.resolved(
+                    let graph = state.graphs().resolved(
                         entry,
                         &play.name,
-                        |bytes| state.queue_memory.reserve(bytes).ok(),
-                        state.config.max_graph_work,
+                        |bytes| state.queue_memory().reserve(bytes).ok(),
+                        state.config().max_graph_work,
                     )?;
                     let jumps = jumps_by_head.remove(&h.head).unwrap_or_default();
                     players.pose(h.head, play, &graph, rig, &jumps, requested, steps)?
@@ -669,8 +681,8 @@ struct Submitted {
 /// Submit: the blended outputs charged to the queue memory, then one submission per group to
 /// the batcher (so session jobs coalesce with HTTP traffic), waited for within the request
 /// deadline. `None`: the tick is skipped (memory or queue full, a deadline, shutting down).
-async fn submit(state: &AppState, groups: &mut [Group]) -> Option<Submitted> {
-    let gpu = state.engine.gpu_memory().is_some();
+async fn submit<S: Ticking>(state: &S, groups: &mut [Group]) -> Option<Submitted> {
+    let gpu = state.engine().gpu_memory().is_some();
     let out_bytes: u64 = groups
         .iter()
         .flat_map(|g| {
@@ -680,18 +692,18 @@ async fn submit(state: &AppState, groups: &mut [Group]) -> Option<Submitted> {
             })
         })
         .sum();
-    let memory = state.queue_memory.reserve(out_bytes).ok()?;
+    let memory = state.queue_memory().reserve(out_bytes).ok()?;
     let mut tickets = Vec::with_capacity(groups.len());
     for g in groups {
-        state.metrics.jobs_requested.inc_by(g.jobs.len() as u64);
+        state.metrics().jobs_requested.inc_by(g.jobs.len() as u64);
         // Moved, not cloned: the fan-out reads the plans, not the jobs.
         match state
-            .scheduler
+            .scheduler()
             .submit(std::mem::take(&mut g.jobs), g.format, g.normals)
         {
             Ok(t) => tickets.push(t),
             Err(ScheduleError::QueueFull) => {
-                state.metrics.reject("queue_full");
+                state.metrics().reject("queue_full");
                 return None;
             }
             Err(_) => return None,
@@ -699,7 +711,7 @@ async fn submit(state: &AppState, groups: &mut [Group]) -> Option<Submitted> {
     }
     let mut outcomes = Vec::with_capacity(tickets.len());
     for t in tickets {
-        match tokio::time::timeout(state.config.request_timeout, t).await {
+        match tokio::time::timeout(state.config().request_timeout, t).await {
             Ok(Ok(Ok(o))) => outcomes.push(o),
             _ => return None,
         }
@@ -727,8 +739,8 @@ struct TickHeads<'a> {
 /// shared copies), then their distinct messages are encoded on every core — with several
 /// temporal or compressed viewers, that encoding is most of a tick's work — and put in the
 /// outboxes in viewer order.
-fn fan_out(
-    state: &AppState,
+fn fan_out<S: Ticking>(
+    state: &S,
     session: &Session,
     t: &TickHeads<'_>,
     grouped: &Grouped,
@@ -795,8 +807,8 @@ struct Prepared {
 /// Plans a viewer's message against what its socket last took: each head's entry, and for a
 /// temporal viewer what each buffer is coded against. `None` when the viewer is gone or its
 /// plan did not fit the queue memory (counted as a dropped message).
-fn prepare(
-    state: &AppState,
+fn prepare<S: Ticking>(
+    state: &S,
     session: &Session,
     t: &TickHeads<'_>,
     target: &Target<'_>,
@@ -829,7 +841,7 @@ fn prepare(
                 group: g,
                 outputs: &target.outcome.outputs,
             };
-            match delta::plan(&state.queue_memory, &base, &input, &mut cache.retained) {
+            match delta::plan(state.queue_memory(), &base, &input, &mut cache.retained) {
                 Some(p) => Some(p),
                 None => {
                     dropped_memory(state, session);
@@ -854,8 +866,8 @@ fn prepare(
 }
 
 /// Encodes a prepared message. `None`: out of queue memory.
-fn encode(
-    state: &AppState,
+fn encode<S: Ticking>(
+    state: &S,
     t: &TickHeads<'_>,
     target: &Target<'_>,
     p: &Prepared,
@@ -873,13 +885,13 @@ fn encode(
         arrived: t.arrived,
     };
     match &p.plan {
-        None => encode_vertices(&state.queue_memory, &content, p.settings.compression),
-        Some(plan) => encode_delta(&state.queue_memory, &content, plan, p.settings.compression),
+        None => encode_vertices(state.queue_memory(), &content, p.settings.compression),
+        Some(plan) => encode_delta(state.queue_memory(), &content, plan, p.settings.compression),
     }
 }
 
-fn dropped_memory(state: &AppState, session: &Session) {
-    bump(&state.sessions.metrics.dropped_memory, 1);
+fn dropped_memory<S: Ticking>(state: &S, session: &Session) {
+    bump(&state.sessions().metrics.dropped_memory, 1);
     session.with_stats(|s| s.messages_dropped += 1);
 }
 
@@ -923,8 +935,8 @@ fn head_keys(group: &Group, jobs: &[Option<u32>], rigs: &[Arc<RigEntry>]) -> Vec
 /// the message from `cache` (encoded by the fan-out, or here when another viewer did not
 /// need the same one). Planned again when the viewer's socket took a message since `first`
 /// was planned: "unchanged" must refer to what it last received.
-fn deliver(
-    state: &AppState,
+fn deliver<S: Ticking>(
+    state: &S,
     session: &Session,
     t: &TickHeads<'_>,
     target: &Target<'_>,
@@ -954,7 +966,7 @@ fn deliver(
             continue;
         }
         if o.pending.is_some() {
-            bump(&state.sessions.metrics.dropped_slow, 1);
+            bump(&state.sessions().metrics.dropped_slow, 1);
             session.with_stats(|s| s.messages_dropped += 1);
         }
         o.pending = Some(Outgoing {
@@ -977,8 +989,8 @@ fn deliver(
 /// Starts drawing this tick for a viewer that wants images, unless its previous image is
 /// still being drawn.
 #[allow(clippy::too_many_arguments)]
-fn start_frame(
-    state: &AppState,
+fn start_frame<S: Ticking>(
+    state: &S,
     session: &Arc<Session>,
     heads: &[SessionHead],
     resolved: &Resolved,
@@ -987,7 +999,7 @@ fn start_frame(
     s: ViewerSettings,
 ) {
     if viewer.rendering.swap(true, Ordering::AcqRel) {
-        bump(&state.sessions.metrics.dropped_rendering, 1);
+        bump(&state.sessions().metrics.dropped_rendering, 1);
         session.with_stats(|st| st.messages_dropped += 1);
         return;
     }
@@ -996,7 +1008,7 @@ fn start_frame(
     let session = session.clone();
     let cancel = viewer
         .gone
-        .with_deadline(std::time::Instant::now() + state.config.request_timeout);
+        .with_deadline(std::time::Instant::now() + state.config().request_timeout);
     tokio::spawn(async move {
         let rendered = state.render_for_session(req, cancel).await;
         if let Some(message) = frame_message(&state, &viewer, tick, rendered) {
@@ -1022,7 +1034,7 @@ fn frame_request(heads: &[SessionHead], resolved: &Resolved, s: &ViewerSettings)
             joints: joint_overrides(entry.rig(), &a.joints),
             ..pose_head(entry.rig(), &a.pose)
         });
-        placements.push(super::placement(h));
+        placements.push(crate::sessions::placement(h));
     }
     RenderRequest {
         heads: req_heads,
@@ -1080,8 +1092,8 @@ fn pose_head(rig: &crowdmorph_core::rig::Rig, pose: &Pose) -> crowdmorph_proto::
 /// without encoding it); `None` when it was not drawn or does not fit. An image the viewer's
 /// own choice can never draw (over the viewers' share, too costly at its size) closes the
 /// viewer with the reason, once, rather than failing at every tick.
-fn frame_message(
-    state: &AppState,
+fn frame_message<S: Ticking>(
+    state: &S,
     viewer: &Viewer,
     tick: u64,
     rendered: Result<(Vec<u8>, u32, u32, crowdmorph_proto::ImageFormat), crate::http::ApiError>,
@@ -1096,8 +1108,8 @@ fn frame_message(
                 image: crowdmorph_proto::Blob(image),
             });
             let len = crowdmorph_store::codec::wire_len(&message).ok()?;
-            let Ok(charge) = state.queue_memory.reserve(len as u64) else {
-                bump(&state.sessions.metrics.dropped_memory, 1);
+            let Ok(charge) = state.queue_memory().reserve(len as u64) else {
+                bump(&state.sessions().metrics.dropped_memory, 1);
                 return None;
             };
             crowdmorph_store::codec::to_wire(&message)
@@ -1111,26 +1123,26 @@ fn frame_message(
         }
         Err(e) if e.status.is_client_error() => {
             tracing::debug!(error = %e.message, "session frame cannot be drawn; closing the viewer");
-            bump(&state.sessions.metrics.viewers_closed_policy, 1);
-            viewer.ask_close(close::POLICY, &super::viewer::truncate(e.message));
+            bump(&state.sessions().metrics.viewers_closed_policy, 1);
+            viewer.ask_close(close::POLICY, &close::truncate(e.message));
             None
         }
         Err(e) => {
             // Busy (503), cancelled: this tick's image is skipped.
             tracing::debug!(error = %e.message, "session frame not drawn");
-            bump(&state.sessions.metrics.dropped_rendering, 1);
+            bump(&state.sessions().metrics.dropped_rendering, 1);
             None
         }
     }
 }
 
 /// Puts an image message in the viewer's outbox (replacing an unsent one, counted).
-fn put_frame(state: &AppState, session: &Session, viewer: &Viewer, message: Arc<Encoded>) {
+fn put_frame<S: Ticking>(state: &S, session: &Session, viewer: &Viewer, message: Arc<Encoded>) {
     let Ok(mut o) = viewer.outbox.lock() else {
         return;
     };
     if o.pending.is_some() {
-        bump(&state.sessions.metrics.dropped_slow, 1);
+        bump(&state.sessions().metrics.dropped_slow, 1);
         session.with_stats(|st| st.messages_dropped += 1);
     }
     let after = Baseline {
