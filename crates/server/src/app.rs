@@ -30,6 +30,7 @@ use super::http::{ApiError, SERVER_TIMING, encoding};
 use super::metrics::Metrics;
 use super::routes;
 use super::services::render::{IMAGE_HEIGHT, IMAGE_WIDTH};
+use super::services::replicas::Replicating;
 use super::shed::SHED_LOG_EVERY;
 use super::state::AppState;
 
@@ -450,7 +451,7 @@ pub async fn serve(
     let loader = state.clone();
     tokio::spawn(async move {
         loader.load_stored().await;
-        routes::replicas::spawn_refresh(&loader);
+        crate::services::replicas::spawn_refresh(&loader);
     });
     // Background LOD jobs are not requests in flight: stop them at once, or the runtime
     // would wait for their blocking work before the process can exit.

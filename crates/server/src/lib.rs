@@ -17,8 +17,8 @@
 //! | module | what it is |
 //! |---|---|
 //! | `app` | [`app`]: the router and its layers; [`serve`] and [`run`] |
-//! | `routes` | the handlers: `health`, `rigs`, `clips`, `frames`, `render`, `lod` (with the background job), `graphs`, `loadtest`, `viewer`, `replicas` (the shared store: changes committed as generations, refreshes, lookups before a 404), and `sessions` (its REST handlers, `sessions::viewer` the viewer socket) |
-//! | `services` | the jobs beyond a handler, one per module, each behind its context trait: `render` (render admission and drawing), `tick` (a session's tick and fan-out) |
+//! | `routes` | the handlers: `health`, `rigs`, `clips`, `frames`, `render`, `lod`, `graphs`, `loadtest`, `viewer`, `replicas` (the lookup before a 404, as middleware), and `sessions` (its REST handlers, `sessions::viewer` the viewer socket) |
+//! | `services` | the jobs beyond a handler, one per module, each behind its context trait (`services::Parts` and what each adds): `persist` (a change prepared within a budget and persisted), `replicas` (the shared store: commits and repairs, refreshes, LOD claims, lookups), `lod` (LOD builds), `render` (render admission and drawing), `tick` (a session's tick and fan-out) |
 //! | [`state`] | [`AppState`]: engine, batcher, registry, budgets, each resource's state |
 //! | [`config`] | every limit, timeout and default, the session limits included; the `serve` command's flags |
 //! | [`admission`] | the queue memory and its charges ([`admission::memory`]), the render budgets ([`admission::render`]), heads resolved into jobs ([`admission::resolve`]) |
@@ -31,6 +31,7 @@
 //! | `pool` | reused output buffers, bounded in count and bytes |
 //! | `session_stream` | what a session viewer is sent: temporal residuals, packed messages, the encoded messages (taking the queue memory, not the state) |
 //! | `shed` | the rate-limited log of shed and timed-out requests |
+//! | `skipped` | what `/readyz` reports as skipped, until superseded |
 //! | [`sessions`] | crowd sessions' state: sessions, viewers, outboxes, limits |
 //! | [`graphs`] | motion graphs by rig: as stored, and resolved and measured per rig generation |
 //! | [`loadtests`] | the load tests running and done |
@@ -57,6 +58,7 @@ mod services;
 mod session_stream;
 pub mod sessions;
 mod shed;
+mod skipped;
 pub mod state;
 mod topologies;
 

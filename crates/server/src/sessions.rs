@@ -63,6 +63,33 @@ pub(crate) mod close {
     }
 }
 
+/// Checks a viewer's LOD choice: at most 64 distances, finite and ascending (the tick's
+/// binary search relies on it), whole levels ≥ 0; a close code and reason otherwise.
+pub(crate) fn check_lod(l: &LodChoice) -> Result<(), (u16, String)> {
+    if let LodChoice::ByDistance { by_distance } = l {
+        if by_distance.len() > 64 {
+            return Err((close::POLICY, "bad lod: at most 64 distances".into()));
+        }
+        let mut last = f32::NEG_INFINITY;
+        for [m, level] in by_distance {
+            if !m.is_finite() || *m < last {
+                return Err((
+                    close::POLICY,
+                    "bad lod: distances must be finite and ascending".into(),
+                ));
+            }
+            if !(level.is_finite() && *level >= 0.0 && level.fract() == 0.0) {
+                return Err((
+                    close::POLICY,
+                    "bad lod: levels must be whole numbers ≥ 0".into(),
+                ));
+            }
+            last = *m;
+        }
+    }
+    Ok(())
+}
+
 /// Where head `h` stands in the crowd, as the renderer places it.
 pub(crate) fn placement(h: &SessionHead) -> Placement {
     Placement {

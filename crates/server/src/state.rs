@@ -2,9 +2,8 @@
 //! by every request. It is the composition root: it holds the engine, the batcher, the
 //! registry, the budgets and each resource's state, and imports no handler.
 
+use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex};
-use std::time::Instant;
 
 use tokio::sync::Semaphore;
 
@@ -19,18 +18,21 @@ use super::metrics::{Gauges, Metrics};
 use super::registry::{BUILTIN_ID, ClipLayout, NewEntry, Registry, RigEntry, quantization_box};
 use super::scheduler::{BatchConfig, Scheduler};
 use super::services::Parts;
+use super::services::lod::{self, Building};
+use super::services::persist::{self, Persisting};
 use super::services::render::Rendering;
+use super::services::replicas::{Replica, Replicating, load_shared};
 use super::services::tick::Ticking;
 use super::sessions::Sessions;
 use super::shed::ShedLog;
+use super::skipped::Skipped;
 use super::topologies::RenderState;
+use super::topologies::SharedTopologies;
 use crowdmorph_core::budget::{Budget, MemoryPool};
-use crowdmorph_core::rig::RigShape;
 use crowdmorph_engine::Engine;
-use crowdmorph_store::objects::{LodClaim, Misses, SharedStore, Unusable};
-use crowdmorph_store::{
-    Record, Store, StoreError, StoredBuiltin, StoredClips, StoredRig, geometry_fingerprint,
-};
+use crowdmorph_engine::render::gpu::Renderer;
+use crowdmorph_store::Store;
+use crowdmorph_store::objects::SharedStore;
 
 /// How long one operation on the shared store may take, retries included, before it is
 /// reported unavailable.
@@ -39,20 +41,6 @@ const STORE_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(5);
 /// Shared state of every handler.
 #[derive(Clone, Debug)]
 pub struct AppState(pub(crate) Arc<Inner>);
-
-/// Most entries `/readyz` lists as skipped (the oldest go first).
-const MAX_SKIPPED: usize = 256;
-
-/// A stored file or generation that was not used, and why.
-#[derive(Debug, PartialEq, Eq)]
-pub(crate) struct Skipped {
-    /// The rig it is about, when known: cleared once a later generation of it is held.
-    pub(crate) rig: Option<String>,
-    /// The generation it is about (0 in the data dir: any later write supersedes it).
-    pub(crate) generation: u64,
-    /// The report.
-    pub(crate) why: String,
-}
 
 /// What [`AppState`] holds.
 #[derive(Debug)]
@@ -69,20 +57,13 @@ pub struct Inner {
     pub metrics: Arc<Metrics>,
     /// Persistence, when a data dir is configured (and no shared store).
     pub store: Option<Store>,
-    /// The rig store shared with other replicas (`--store`), in place of the data dir.
-    pub(crate) shared: Option<Arc<SharedStore>>,
-    /// Rig ids the shared store did not have when last asked.
-    pub(crate) store_misses: Misses,
-    /// Generations of the shared store that could not be used (each reported once).
-    pub(crate) store_unusable: Unusable,
-    /// Other replicas' LOD claims as last seen, with when their heartbeat last moved.
-    pub(crate) lod_claims_seen: Mutex<std::collections::HashMap<String, (LodClaim, Instant)>>,
-    /// This replica's LOD claim heartbeat.
-    pub(crate) lod_beat: std::sync::atomic::AtomicU64,
+    /// The rig store shared with other replicas (`--store`, in place of the data dir) and what
+    /// this replica keeps of it.
+    pub(crate) replica: Replica,
     pub(crate) ready: AtomicBool,
     pub(crate) load_started: AtomicBool,
     /// What `/readyz` reports as skipped, each until what it is about is superseded.
-    pub(crate) skipped: Mutex<Vec<Skipped>>,
+    pub(crate) skipped: Skipped,
     /// Serializes rig and clip changes (and their writes to disk).
     pub(crate) admin: tokio::sync::Mutex<()>,
     /// Host memory of rigs and of the work that makes them (`--max-rig-memory`).
@@ -121,7 +102,7 @@ impl Drop for Inner {
     /// would also hold up the runtime's shutdown; the shared store's staging files go.
     fn drop(&mut self) {
         self.lod_jobs.cancel_all();
-        if let Some(s) = &self.shared {
+        if let Some(s) = &self.replica.store {
             s.clean_up();
         }
     }
@@ -237,14 +218,13 @@ impl AppState {
             scheduler,
             metrics,
             store,
-            shared,
-            store_misses: Default::default(),
-            store_unusable: Default::default(),
-            lod_claims_seen: Mutex::new(Default::default()),
-            lod_beat: Default::default(),
+            replica: Replica {
+                store: shared,
+                ..Replica::default()
+            },
             ready: AtomicBool::new(false),
             load_started: AtomicBool::new(false),
-            skipped: Mutex::new(Vec::new()),
+            skipped: Skipped::default(),
             admin: tokio::sync::Mutex::new(()),
             pool,
             queue_memory,
@@ -271,23 +251,23 @@ impl AppState {
         if self.load_started.swap(true, Ordering::AcqRel) {
             return;
         }
-        if let Some(shared) = self.shared.clone() {
-            self.load_shared(&shared).await;
+        if let Some(shared) = self.replica.store.clone() {
+            load_shared(self, &shared).await;
         }
         if let Some(store_dir) = self.store.as_ref().map(|s| s.dir().to_path_buf()) {
             let state = self.clone();
-            let loaded = tokio::task::spawn_blocking(move || state.load_blocking()).await;
+            let loaded = tokio::task::spawn_blocking(move || persist::load_blocking(&state)).await;
             match loaded {
                 Ok(Ok(n)) => {
                     tracing::info!(rigs = n, dir = %store_dir.display(), "stored rigs loaded")
                 }
                 Ok(Err(e)) => {
                     tracing::error!(error = %e, "cannot read the data directory");
-                    self.skip(e.to_string());
+                    self.skipped.skip(e.to_string());
                 }
                 Err(e) => {
                     tracing::error!(error = %e, "loading stored rigs failed");
-                    self.skip(format!("loading failed: {e}"));
+                    self.skipped.skip(format!("loading failed: {e}"));
                 }
             }
         }
@@ -297,49 +277,9 @@ impl AppState {
         // order is computed where it was uploaded, or, if that replica died first, by the one
         // that takes its claim over (`tend_lod`), and arrives as its next generation.
         for entry in self.registry.all() {
-            if self.shared.is_none() || entry.builtin {
-                self.start_auto_lod(&entry);
+            if self.replica.store.is_none() || entry.builtin {
+                lod::start_auto_lod(self, &entry);
             }
-        }
-    }
-
-    /// Reports `why` in `/readyz` for as long as the server runs.
-    pub(crate) fn skip(&self, why: String) {
-        self.push_skipped(Skipped {
-            rig: None,
-            generation: 0,
-            why,
-        });
-    }
-
-    /// Reports `why`, about generation `generation` of rig `id` (0 in the data dir), in
-    /// `/readyz` until a later generation of the rig is held or the rig is deleted
-    /// ([`AppState::clear_skipped`]).
-    pub(crate) fn skip_rig(&self, id: &str, generation: u64, why: String) {
-        self.push_skipped(Skipped {
-            rig: Some(id.to_string()),
-            generation,
-            why,
-        });
-    }
-
-    fn push_skipped(&self, entry: Skipped) {
-        if let Ok(mut s) = self.skipped.lock()
-            && !s.contains(&entry)
-        {
-            // A report per file or generation; a bound on what a flood of damage could add.
-            if s.len() >= MAX_SKIPPED {
-                s.remove(0);
-            }
-            s.push(entry);
-        }
-    }
-
-    /// Forgets what was reported about generations of rig `id` before `below`: a newer one
-    /// is held now, or the rig is gone.
-    pub(crate) fn clear_skipped(&self, id: &str, below: u64) {
-        if let Ok(mut s) = self.skipped.lock() {
-            s.retain(|e| e.rig.as_deref() != Some(id) || e.generation >= below);
         }
     }
 
@@ -353,222 +293,17 @@ impl AppState {
         ))
     }
 
-    /// Whether the engine keeps rigs on a GPU (their layouts are then uploaded too).
-    pub(crate) fn on_gpu(&self) -> bool {
-        self.engine.info().kind == crowdmorph_engine::BackendKind::Gpu
+    /// The status of load test `id` (running, or one of the last few done), as
+    /// `GET /v1/loadtest/{id}` answers it.
+    pub fn loadtest(&self, id: &str) -> Option<crate::loadtests::LoadtestStatus> {
+        self.loadtests.find(id).map(|r| r.status())
     }
 
-    /// Loads the stored records one at a time, each charged to the memory pool before it is
-    /// read (about twice its file: the bytes read and the rig decoded from them) and then
-    /// holding what its prepared rig occupies. A record that does not fit is skipped and
-    /// reported, never deleted.
-    fn load_blocking(&self) -> Result<usize, StoreError> {
-        let Some(store) = &self.store else {
-            return Ok(0);
-        };
-        let mut n = 0;
-        for (path, size) in store.record_files()? {
-            let budget = Arc::new(Budget::new(
-                self.pool.limit(),
-                "--max-rig-memory",
-                Some(self.pool.clone()),
-            ));
-            let file = path.display().to_string();
-            // Reports about a rig's record are cleared when the rig is written or deleted.
-            let rig = path
-                .file_stem()
-                .and_then(|s| s.to_str())
-                .map(|s| s.split('@').next().unwrap_or(s).to_string());
-            let skip = |why: String| match &rig {
-                Some(id) => self.skip_rig(id, 0, why),
-                None => self.skip(why),
-            };
-            if let Err(e) = budget.reserve(2 * size, || format!("stored record {file}")) {
-                tracing::error!(error = %e, "skipping a stored rig that does not fit in memory");
-                skip(e.to_string());
-                continue;
-            }
-            let record = match Store::read_reporting(&path) {
-                Ok((r, dropped)) => {
-                    for why in dropped {
-                        skip(why);
-                    }
-                    r
-                }
-                Err(e) => {
-                    tracing::error!(error = %e, "skipping a stored rig that cannot be loaded");
-                    skip(e.to_string());
-                    continue;
-                }
-            };
-            match self.load_record(record, &budget) {
-                Ok(true) => n += 1,
-                Ok(false) => {}
-                Err(why) => skip(why),
-            }
-        }
-        // Motion graphs come after the rigs they belong to; a graph file that does not parse
-        // is skipped and reported, and graphs of a rig that is gone are left unused.
-        let budget = Arc::new(Budget::new(
-            self.pool.limit(),
-            "--max-rig-memory",
-            Some(self.pool.clone()),
-        ));
-        let (graphs, skipped) = store.load_graphs(|bytes, path| {
-            budget
-                .charge(bytes, || format!("stored graph file {}", path.display()))
-                .map(drop)
-                .map_err(|e| e.to_string())
-        });
-        for why in skipped {
-            tracing::error!(error = %why, "skipping a stored graph file that cannot be read");
-            self.skip(why);
-        }
-        for g in graphs {
-            if self.registry.get(&g.rig).is_some() {
-                self.graphs.load(g.rig, g.graphs);
-            }
-        }
-        Ok(n)
-    }
-
-    /// Registers one stored record; `Ok(true)` for an uploaded rig, `Ok(false)` for the
-    /// built-in rig's clips and LOD.
-    fn load_record(&self, record: Record, budget: &Budget) -> Result<bool, String> {
-        match record {
-            Record::Rig(r) => self.load_rig(*r, budget).map(|()| true),
-            Record::Clips(c) => self.load_clips(c, budget).map(|()| false),
-            Record::Builtin(c) => self.load_builtin(c, budget).map(|()| false),
-        }
-    }
-
-    /// Charges what preparing `rig` takes to the loading's budget.
-    pub(crate) fn charge_preparing(
-        &self,
-        rig: &crowdmorph_core::rig::Rig,
-        budget: &Budget,
-    ) -> Result<(), String> {
-        let c = RigShape::of(rig).cost(self.on_gpu());
-        budget
-            .charge(c.layout + c.transient, || {
-                format!("preparing stored rig {:?}", rig.name)
-            })
-            .map_err(|e| e.to_string())
-    }
-
-    /// An uploaded rig's record: a new entry.
-    fn load_rig(&self, r: StoredRig, budget: &Budget) -> Result<(), String> {
-        if self.registry.get(&r.id).is_some() {
-            return Err(format!("stored rig {:?} clashes with a built-in id", r.id));
-        }
-        let rig = Arc::new(r.rig);
-        self.charge_preparing(&rig, budget)?;
-        let prepared = self
-            .engine
-            .prepare(rig.clone())
-            .map_err(|e| format!("stored rig {:?}: {e}", r.id))?;
-        let charge = budget.keep(prepared.memory().host_bytes as u64);
-        self.registry.insert(Arc::new(RigEntry::new(NewEntry {
-            id: r.id,
-            builtin: None,
-            prepared,
-            generation: self.registry.generation(),
-            layout: ClipLayout::in_record(&rig.clips),
-            charge,
-            qbox: quantization_box(&rig),
-        })));
-        Ok(())
-    }
-
-    /// A clip file: a new generation of its rig with the clips appended.
-    fn load_clips(&self, c: StoredClips, budget: &Budget) -> Result<(), String> {
-        let Some(entry) = self.registry.get(&c.id) else {
-            // The rig's record was deleted and the process stopped before its clip
-            // files were: leftovers of a delete, not data anyone can reach.
-            if let Some(store) = &self.store {
-                tracing::warn!(rig = %c.id, seq = c.seq, "removing clips of a deleted rig");
-                let _ = store.remove_clips(&c.id, c.seq);
-            }
-            return Ok(());
-        };
-        let mut rig = entry.rig().clone();
-        let names: Vec<String> = c.clips.iter().map(|c| c.name.clone()).collect();
-        let mut seen = std::collections::HashSet::new();
-        if let Some(dup) = names
-            .iter()
-            .find(|n| entry.clip_index(n).is_some() || !seen.insert(n.as_str()))
-        {
-            return Err(format!(
-                "clip file {} of rig {:?} repeats clip {dup:?}",
-                c.seq, c.id
-            ));
-        }
-        rig.clips.extend(c.clips);
-        rig.validate()
-            .map_err(|e| format!("clip file {} of rig {:?}: {e}", c.seq, c.id))?;
-        let rig = Arc::new(rig);
-        self.charge_preparing(&rig, budget)?;
-        let prepared = self
-            .engine
-            .update_clips(&entry.prepared, rig.clone())
-            .map_err(|e| format!("clip file {} of rig {:?}: {e}", c.seq, c.id))?;
-        let mut layout = entry.layout.clone();
-        layout.files.push((c.seq, names));
-        self.publish_successor(&entry, prepared, &rig, layout);
-        Ok(())
-    }
-
-    /// Registers the next generation of `entry`: `rig` prepared, with its clips in `layout`.
-    fn publish_successor(
-        &self,
-        entry: &RigEntry,
-        prepared: crowdmorph_engine::PreparedRig,
-        rig: &crowdmorph_core::rig::Rig,
-        layout: ClipLayout,
-    ) {
-        self.registry.insert(Arc::new(entry.successor(
-            prepared,
-            quantization_box(rig),
-            layout,
-            self.registry.generation(),
-            None,
-        )));
-    }
-
-    /// The built-in rig's stored clips and LOD: a new generation of it.
-    fn load_builtin(&self, c: StoredBuiltin, budget: &Budget) -> Result<(), String> {
-        let Some(entry) = self.registry.get(&c.id).filter(|e| e.builtin) else {
-            return Err(format!("stored clips for unknown built-in rig {:?}", c.id));
-        };
-        let mut rig = entry.rig().clone();
-        let layout = ClipLayout {
-            record: c.clips.iter().map(|c| c.name.clone()).collect(),
-            files: entry.layout.files.clone(),
-        };
-        rig.clips.extend(c.clips);
-        let mut lod_changed = false;
-        if let Some((lod, geometry)) = c.lod {
-            if geometry == geometry_fingerprint(&rig) {
-                lod_changed = lod != rig.lod;
-                rig.lod = lod;
-            } else {
-                // This build's built-in rig is not the one the LOD was made for;
-                // the clips still apply, and the background job makes a new LOD.
-                tracing::warn!(rig = %c.id, "stored LOD is for another version of the built-in rig; recomputing it");
-            }
-        }
-        rig.validate()
-            .map_err(|e| format!("stored clips and LOD of {:?}: {e}", c.id))?;
-        let rig = Arc::new(rig);
-        self.charge_preparing(&rig, budget)?;
-        let prepared = if lod_changed {
-            self.engine.prepare(rig.clone())
-        } else {
-            self.engine.update_clips(&entry.prepared, rig.clone())
-        }
-        .map_err(|e| format!("stored clips and LOD of {:?}: {e}", c.id))?;
-        self.publish_successor(&entry, prepared, &rig, layout);
-        Ok(())
+    /// The renderer, when the server has one (tests reach its race-window hook,
+    /// [`Renderer::set_after_submit`], through it).
+    #[doc(hidden)]
+    pub fn renderer(&self) -> Option<&Renderer> {
+        self.render.device.as_ref().ok().map(|d| &d.renderer)
     }
 
     /// Whether stored rigs have been loaded.
@@ -578,10 +313,7 @@ impl AppState {
 
     /// Files and generations skipped, with reasons, that nothing has superseded yet.
     pub fn skipped(&self) -> Vec<String> {
-        self.skipped
-            .lock()
-            .map(|s| s.iter().map(|e| e.why.clone()).collect())
-            .unwrap_or_default()
+        self.skipped.list()
     }
 
     /// Current values of the gauges.
@@ -596,8 +328,7 @@ impl AppState {
         let mut gpu_pools: Vec<&Arc<MemoryPool>> = Vec::new();
         for p in [
             self.engine.gpu_memory(),
-            self.renderer()
-                .map(crowdmorph_engine::render::gpu::Renderer::memory),
+            self.renderer().map(Renderer::memory),
         ]
         .into_iter()
         .flatten()
@@ -672,6 +403,10 @@ impl Parts for AppState {
         &self.config
     }
 
+    fn graphs(&self) -> &crate::graphs::Graphs {
+        &self.graphs
+    }
+
     fn downgrade(&self) -> std::sync::Weak<Inner> {
         Arc::downgrade(&self.0)
     }
@@ -689,10 +424,6 @@ impl Rendering for AppState {
     fn render_budget(&self) -> &RenderBudget {
         &self.render_budget
     }
-
-    fn on_gpu(&self) -> bool {
-        AppState::on_gpu(self)
-    }
 }
 
 impl Ticking for AppState {
@@ -703,9 +434,51 @@ impl Ticking for AppState {
     fn scheduler(&self) -> &Scheduler {
         &self.scheduler
     }
+}
 
-    fn graphs(&self) -> &crate::graphs::Graphs {
-        &self.graphs
+impl Replicating for AppState {
+    fn replica(&self) -> &Replica {
+        &self.replica
+    }
+
+    fn admin(&self) -> &tokio::sync::Mutex<()> {
+        &self.admin
+    }
+
+    fn lod_jobs(&self) -> &LodJobs {
+        &self.lod_jobs
+    }
+
+    fn pool(&self) -> &Arc<MemoryPool> {
+        &self.pool
+    }
+
+    fn topologies(&self) -> &SharedTopologies {
+        &self.render.topologies
+    }
+
+    fn skips(&self) -> &Skipped {
+        &self.skipped
+    }
+
+    fn start_auto_lod(&self, entry: &RigEntry) {
+        lod::start_auto_lod(self, entry);
+    }
+}
+
+impl Persisting for AppState {
+    fn store(&self) -> Option<&Store> {
+        self.store.as_ref()
+    }
+}
+
+impl Building for AppState {
+    fn lod_builds(&self) -> &Arc<Semaphore> {
+        &self.lod_builds
+    }
+
+    fn op_budget(&self) -> Arc<Budget> {
+        AppState::op_budget(self)
     }
 }
 

@@ -9,7 +9,7 @@ use axum::http::{HeaderMap, StatusCode};
 use axum::response::IntoResponse;
 use crowdmorph_proto::{CONTENT_TYPE_JSON, ClipInfo, ClipList, ClipUpload, Quantization};
 
-use super::rigs::{check_name, clip_import_error, prepare_error, upload_body};
+use super::rigs::{check_name, clip_import_error, upload_body};
 use crate::admission::resolve::unknown_clip;
 use crate::http::{
     Accept, Admin, ApiError, ApiResult, Query, Ready, blocking, checked_content_type,
@@ -17,6 +17,9 @@ use crate::http::{
 use crate::registry::{
     RigEntry, check_output_range, clip_info, clip_infos, clips_named, quantization_box, sanitize_id,
 };
+use crate::services::Parts;
+use crate::services::persist::prepare_error;
+use crate::services::persist::{clip_error, persist_clips, persist_record};
 use crate::state::AppState;
 use crowdmorph_core::rig::Rig;
 use crowdmorph_engine::{Engine, PreparedRig};
@@ -92,7 +95,7 @@ pub async fn upload_clips(
     };
     let name = query.name;
     let snapshot = base.clone();
-    let clip_error = state.clip_error();
+    let clip_error = clip_error(&state);
     let imports = blocking(move || {
         let rig = snapshot.rig();
         let mut imports = match source {
@@ -138,14 +141,14 @@ pub async fn upload_clips(
     // The new clips go to a clip file of their own: the rig's record is not rewritten.
     let names: Vec<String> = merged.added.iter().map(|c| c.name.clone()).collect();
     let seq = entry.layout.next_seq();
-    state
-        .persist_clips(
-            &id,
-            seq,
-            merged.rig.clone(),
-            clips_named(&merged.rig, &names),
-        )
-        .await?;
+    persist_clips(
+        &state,
+        &id,
+        seq,
+        merged.rig.clone(),
+        clips_named(&merged.rig, &names),
+    )
+    .await?;
     let mut layout = entry.layout.clone();
     layout.files.push((seq, names));
     // The new generation holds the old one's charge plus the new tables.
@@ -403,12 +406,10 @@ pub async fn delete_clip(
                 .find(|f| f.0 == seq)
                 .map(|f| clips_named(&rig, &f.1))
                 .unwrap_or_default();
-            state.persist_clips(&id, seq, rig.clone(), rest).await?;
+            persist_clips(&state, &id, seq, rig.clone(), rest).await?;
         }
         None => {
-            state
-                .persist_record(&id, rig.clone(), entry.builtin, &layout)
-                .await?;
+            persist_record(&state, &id, rig.clone(), entry.builtin, &layout).await?;
         }
     }
     state.registry.insert(Arc::new(entry.successor(

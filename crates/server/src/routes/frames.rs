@@ -28,6 +28,7 @@ use crate::http::{
 use crate::json;
 use crate::metrics::{DropCounter, Source};
 use crate::scheduler::{JobRequest, Outcome, Priority, ScheduleError};
+use crate::services::replicas::after_lookups;
 use crate::state::AppState;
 use crowdmorph_core::cancel::Cancelled;
 use crowdmorph_core::rig::FrameMode;
@@ -101,9 +102,7 @@ async fn frame(
     Ready::check(state.is_ready())?;
     let accept = Accept::of(headers);
     let req = decode(state, headers, body).await?;
-    let planned = state
-        .after_lookups(&req.heads, || plan(state, &req))
-        .await?;
+    let planned = after_lookups(state, &req.heads, || plan(state, &req)).await?;
     let mut admitted = admit(state, &req, planned, accept)?;
     let outcome = compute(state, arrived, &req, &mut admitted, source).await?;
     state.metrics.served_to(source, req.heads.len() as u64);

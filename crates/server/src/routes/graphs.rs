@@ -23,6 +23,8 @@ use crate::graphs::{MAX_GRAPHS_PER_RIG, measure, measure_bytes, measure_work};
 use crate::http::timing::Arrived;
 use crate::http::{Accept, Admin, ApiError, ApiResult, Query, Ready, blocking};
 use crate::registry::{RigEntry, valid_id};
+use crate::services::Parts;
+use crate::services::persist::persist_graphs;
 use crate::state::AppState;
 use crowdmorph_anim::graph::{Graph, GraphError};
 use crowdmorph_core::cancel::{Cancel, CancelOnDrop, Cancelled};
@@ -208,7 +210,7 @@ async fn store(
     let _admin = state.admin.lock().await;
     let mut all = state.graphs.specs(id);
     all.insert(name.to_string(), spec.clone());
-    state.persist_graphs(id, all).await?;
+    persist_graphs(state, id, all).await?;
     state
         .graphs
         .insert(entry, name, spec.clone(), Arc::new(checked));
@@ -385,7 +387,7 @@ pub async fn delete_graph(
         return Err(unknown_graph(&id, &name, &state.graphs.names(&id)));
     }
     // Stored first, then removed here: a delete the store refuses changes nothing.
-    state.persist_graphs(&id, all).await?;
+    persist_graphs(&state, &id, all).await?;
     state.graphs.remove(&id, &name);
     Ok(StatusCode::NO_CONTENT.into_response())
 }

@@ -11,10 +11,12 @@ use axum::extract::{Path, State};
 use axum::http::StatusCode;
 use crowdmorph_proto::{JointChannelSpec, JointMapInfo, JointMapSpec};
 
-use super::rigs::prepare_charged;
 use crate::admission::{Decoded, Priced};
 use crate::http::{Accept, Admin, ApiError, ApiResult, Ready, blocking};
 use crate::registry::RigEntry;
+use crate::services::Parts;
+use crate::services::persist::next_generation;
+use crate::services::persist::prepare_charged;
 use crate::state::AppState;
 use crowdmorph_core::rig::{JointChannel, JointMap, MAX_JOINT_CHANNELS, Rig};
 
@@ -205,5 +207,5 @@ async fn install(
         prepare_charged(&engine, &budget, Arc::new(rig), gpu)
     })
     .await?;
-    state.next_generation(id, &entry, prepared).await
+    next_generation(state, id, &entry, prepared).await
 }

@@ -38,7 +38,7 @@ use crate::admission::{
 use crate::config::ServerConfig;
 use crate::http::timing::Arrived;
 use crate::http::{Accept, Admin, ApiError, ApiResult, Query, Ready, blocking};
-use crate::loadtests::{KEEP_DONE, LoadtestRequest, LoadtestStatus, Run};
+use crate::loadtests::{KEEP_DONE, LoadtestRequest, Run};
 use crate::metrics::Source;
 use crate::state::AppState;
 use crowdmorph_load::{self as load, CrowdShape, Lane, Live, Reply, RigClips, RunOptions};
@@ -102,14 +102,6 @@ async fn read_reply(resp: Response) -> Reply {
     load::read_reply(resp).await.0
 }
 
-impl AppState {
-    /// The status of load test `id` (running, or one of the last few done), as
-    /// `GET /v1/loadtest/{id}` answers it.
-    pub fn loadtest(&self, id: &str) -> Option<LoadtestStatus> {
-        self.loadtests.find(id).map(|r| r.status())
-    }
-}
-
 impl Priced for LoadtestRequest {
     /// The crowd's lists, held until the load is planned (and capped at `load::MAX_MIX`): the
     /// rig names, and the clip and LOD maps as B-tree nodes (see [`btree_bytes`]) plus the
@@ -141,121 +133,119 @@ fn invalid(message: impl Into<String>) -> ApiError {
     ApiError::bad_request("invalid_loadtest", message)
 }
 
-impl AppState {
-    /// Checks a load against the caps and the registry, its memory included, before anything
-    /// is made.
-    fn plan_loadtest(&self, req: &LoadtestRequest) -> Result<Plan, ApiError> {
-        let cfg = &self.config;
-        check_pace(cfg, req)?;
-        let crowd = &req.crowd;
-        if crowd.heads as usize > cfg.max_heads {
-            return Err(ApiError::bad_request(
-                "too_many_heads",
-                format!(
-                    "{} heads is more than the limit of {} per request",
-                    crowd.heads, cfg.max_heads
-                ),
-            ));
-        }
-        // The lists are checked (and capped at `load::MAX_MIX`) before any rig is looked up.
-        crowd.check().map_err(|e| invalid(e.to_string()))?;
-        let (rigs, max_job_bytes) = self.rig_mix(crowd)?;
-        let sizes = crowd
-            .body_sizes(&rigs, RING)
-            .map_err(|e| invalid(e.to_string()))?;
-        check_held(cfg, req, &sizes, max_job_bytes)?;
-        let opts = RunOptions {
-            rate: req.rate,
-            duration: Duration::from_secs_f64(req.duration_s),
-            warmup: Duration::from_secs_f64(req.warmup_s),
-            // A synthetic request gets the deadline of any crowd request, then 504.
-            grace: cfg.request_timeout + Duration::from_secs(1),
-            heads_per_request: u64::from(crowd.heads),
-        };
-        opts.check().map_err(|e| invalid(e.to_string()))?;
-        Ok(Plan {
-            rigs: Arc::new(rigs),
-            sizes,
-            opts,
-        })
+/// Checks a load against the caps and the registry, its memory included, before anything
+/// is made.
+fn plan_loadtest(state: &AppState, req: &LoadtestRequest) -> Result<Plan, ApiError> {
+    let cfg = &state.config;
+    check_pace(cfg, req)?;
+    let crowd = &req.crowd;
+    if crowd.heads as usize > cfg.max_heads {
+        return Err(ApiError::bad_request(
+            "too_many_heads",
+            format!(
+                "{} heads is more than the limit of {} per request",
+                crowd.heads, cfg.max_heads
+            ),
+        ));
     }
+    // The lists are checked (and capped at `load::MAX_MIX`) before any rig is looked up.
+    crowd.check().map_err(|e| invalid(e.to_string()))?;
+    let (rigs, max_job_bytes) = rig_mix(state, crowd)?;
+    let sizes = crowd
+        .body_sizes(&rigs, RING)
+        .map_err(|e| invalid(e.to_string()))?;
+    check_held(cfg, req, &sizes, max_job_bytes)?;
+    let opts = RunOptions {
+        rate: req.rate,
+        duration: Duration::from_secs_f64(req.duration_s),
+        warmup: Duration::from_secs_f64(req.warmup_s),
+        // A synthetic request gets the deadline of any crowd request, then 504.
+        grace: cfg.request_timeout + Duration::from_secs(1),
+        heads_per_request: u64::from(crowd.heads),
+    };
+    opts.check().map_err(|e| invalid(e.to_string()))?;
+    Ok(Plan {
+        rigs: Arc::new(rigs),
+        sizes,
+        opts,
+    })
+}
 
-    /// The distinct rigs a load plays, each looked up and described once (a rig listed many
-    /// times, to weight it, costs one copy of its clip names), and the largest output of one
-    /// of their jobs.
-    fn rig_mix(&self, crowd: &CrowdShape) -> Result<(Vec<RigClips>, u64), ApiError> {
-        let mut rigs: Vec<RigClips> = Vec::new();
-        let json = crowd.encoding == load::WireEncoding::Json;
-        let gpu = self.engine.gpu_memory().is_some();
-        let mut max_job_bytes = 0u64;
-        for id in &crowd.rigs {
-            if rigs.iter().any(|r| &r.id == id) {
-                continue;
-            }
-            let entry = self.rig(id)?;
-            let rig = entry.rig();
-            max_job_bytes = max_job_bytes.max(job_output_bytes(
-                rig,
-                crowd.format,
-                crowd.normals,
-                json,
-                gpu,
-            ));
-            rigs.push(RigClips {
-                id: id.clone(),
-                clips: rig.clips.iter().map(|c| c.name.clone()).collect(),
-                lod_levels: rig.lod.levels.len() as u32,
-            });
+/// The distinct rigs a load plays, each looked up and described once (a rig listed many
+/// times, to weight it, costs one copy of its clip names), and the largest output of one
+/// of their jobs.
+fn rig_mix(state: &AppState, crowd: &CrowdShape) -> Result<(Vec<RigClips>, u64), ApiError> {
+    let mut rigs: Vec<RigClips> = Vec::new();
+    let json = crowd.encoding == load::WireEncoding::Json;
+    let gpu = state.engine.gpu_memory().is_some();
+    let mut max_job_bytes = 0u64;
+    for id in &crowd.rigs {
+        if rigs.iter().any(|r| &r.id == id) {
+            continue;
         }
-        Ok((rigs, max_job_bytes))
+        let entry = crate::services::Parts::rig(state, id)?;
+        let rig = entry.rig();
+        max_job_bytes = max_job_bytes.max(job_output_bytes(
+            rig,
+            crowd.format,
+            crowd.normals,
+            json,
+            gpu,
+        ));
+        rigs.push(RigClips {
+            id: id.clone(),
+            clips: rig.clips.iter().map(|c| c.name.clone()).collect(),
+            lod_levels: rig.lod.levels.len() as u32,
+        });
     }
+    Ok((rigs, max_job_bytes))
+}
 
-    /// Charges the bodies of a planned load to the queue memory (503 when it is too full
-    /// now), then makes them, on the blocking pool when they are large. Keeps the charge of
-    /// the bodies made, which the load holds until it ends; 400 when a body is longer than
-    /// the handler accepts.
-    async fn loadtest_bodies(
-        &self,
-        crowd: &CrowdShape,
-        plan: &Plan,
-    ) -> Result<(Vec<Bytes>, Charge), ApiError> {
-        let bound = plan.sizes.body.saturating_mul(RING as u64);
-        let mut memory = self
-            .queue_memory
-            .reserve(bound.saturating_add(plan.sizes.building))?;
-        let make = {
-            let crowd = crowd.clone();
-            let rigs = plan.rigs.clone();
-            move || {
-                crowd
-                    .bodies(&rigs, RING)
-                    .map_err(|e| invalid(e.to_string()))
-            }
-        };
-        let bodies = if bound > BUILD_INLINE_BYTES {
-            blocking(make).await?
-        } else {
-            make()?
-        };
-        let limit = self.config.max_request_bytes;
-        if let Some(longest) = bodies.iter().map(Bytes::len).max()
-            && longest > limit
-        {
-            return Err(ApiError::bad_request(
-                "loadtest_too_large",
-                format!(
-                    "the load's requests would be {longest} bytes long, more than the server \
-                     accepts (--max-request-bytes {limit}), and each would be refused with \
-                     413; use fewer heads"
-                ),
-            ));
+/// Charges the bodies of a planned load to the queue memory (503 when it is too full
+/// now), then makes them, on the blocking pool when they are large. Keeps the charge of
+/// the bodies made, which the load holds until it ends; 400 when a body is longer than
+/// the handler accepts.
+async fn loadtest_bodies(
+    state: &AppState,
+    crowd: &CrowdShape,
+    plan: &Plan,
+) -> Result<(Vec<Bytes>, Charge), ApiError> {
+    let bound = plan.sizes.body.saturating_mul(RING as u64);
+    let mut memory = state
+        .queue_memory
+        .reserve(bound.saturating_add(plan.sizes.building))?;
+    let make = {
+        let crowd = crowd.clone();
+        let rigs = plan.rigs.clone();
+        move || {
+            crowd
+                .bodies(&rigs, RING)
+                .map_err(|e| invalid(e.to_string()))
         }
-        // Keep what the bodies take; the estimate's slack and the building's transient memory
-        // go back now.
-        let made: u64 = bodies.iter().map(|b| b.len() as u64).sum();
-        memory.keep(made);
-        Ok((bodies, memory))
+    };
+    let bodies = if bound > BUILD_INLINE_BYTES {
+        blocking(make).await?
+    } else {
+        make()?
+    };
+    let limit = state.config.max_request_bytes;
+    if let Some(longest) = bodies.iter().map(Bytes::len).max()
+        && longest > limit
+    {
+        return Err(ApiError::bad_request(
+            "loadtest_too_large",
+            format!(
+                "the load's requests would be {longest} bytes long, more than the server \
+                 accepts (--max-request-bytes {limit}), and each would be refused with \
+                 413; use fewer heads"
+            ),
+        ));
     }
+    // Keep what the bodies take; the estimate's slack and the building's transient memory
+    // go back now.
+    let made: u64 = bodies.iter().map(|b| b.len() as u64).sum();
+    memory.keep(made);
+    Ok((bodies, memory))
 }
 
 /// The load's duration, rate and lanes against the server's caps.
@@ -381,10 +371,10 @@ pub async fn start_loadtest(
     if let Some(id) = state.loadtests.running() {
         return Err(already_running(&id));
     }
-    let plan = state.plan_loadtest(&req)?;
+    let plan = plan_loadtest(&state, &req)?;
     // Planned: its rig, clip and LOD lists are capped (`load::MAX_MIX` entries each).
     drop(decoded);
-    let (bodies, bodies_memory) = state.loadtest_bodies(&req.crowd, &plan).await?;
+    let (bodies, bodies_memory) = loadtest_bodies(&state, &req.crowd, &plan).await?;
     let lanes = req.concurrency as usize;
     let live = Live::new(plan.opts);
     let run = state

@@ -14,6 +14,7 @@ use crate::admission::{Decoded, Priced, Renderee};
 use crate::http::timing::Arrived;
 use crate::http::{Accept, ApiError, ApiResult, Ready, blocking};
 use crate::services::render::Rendering;
+use crate::services::replicas::{find_missing, missing};
 use crate::state::AppState;
 use crowdmorph_core::cancel::Cancel;
 use crowdmorph_engine::render::scene;
@@ -34,9 +35,11 @@ pub async fn crowd_render(
     // The guard lives in this future: a 504 below, or the client hanging up (the future is
     // dropped), raises the cancellation and the drawing stops at its next stage.
     let (cancel, _guard) = Cancel::new(Some(Instant::now() + deadline));
-    state
-        .find_missing(state.missing(req.heads.iter().map(|h| h.rig.as_str())))
-        .await?;
+    find_missing(
+        &state,
+        missing(&state, req.heads.iter().map(|h| h.rig.as_str())),
+    )
+    .await?;
     let (req, held) = req.into_parts();
     let s = state.clone();
     // Admission too runs on the blocking pool: it resolves every head and reads each rig's

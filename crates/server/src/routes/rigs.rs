@@ -1,6 +1,7 @@
 //! Rigs: `POST /v1/rigs` (a glTF/GLB imported within its budget, prepared, persisted, then
-//! visible), `GET /v1/rigs[/{id}]`, `DELETE /v1/rigs/{id}` and `GET /v1/rigs/{id}/mesh`; and
-//! what changing a rig takes, shared with clips and LOD: preparing within a budget, persisting.
+//! visible), `GET /v1/rigs[/{id}]`, `DELETE /v1/rigs/{id}` and `GET /v1/rigs/{id}/mesh`, and the import's phases
+//! that clips share (the upload body, the import's errors). Preparing within a budget and
+//! persisting are [`crate::services::persist`]'s.
 
 use std::sync::Arc;
 
@@ -11,198 +12,22 @@ use axum::response::IntoResponse;
 use bytes::Bytes;
 use crowdmorph_proto::{CONTENT_TYPE_JSON, RigList};
 
-use crate::admission::resolve::unknown_rig;
 use crate::http::{
     self, Accept, Admin, ApiError, ApiResult, Query, Ready, blocking, checked_content_type,
     read_body,
 };
 use crate::registry::{
-    ClipLayout, NewEntry, RigEntry, check_output_range, clips_named, quantization_box, sanitize_id,
-    valid_id,
+    ClipLayout, NewEntry, RigEntry, check_output_range, quantization_box, sanitize_id, valid_id,
 };
+use crate::services::Parts;
+use crate::services::lod::{rig_info, start_auto_lod};
+use crate::services::persist::{clip_error, persist_delete, persist_record, prepare_charged};
+use crate::services::replicas::forget_rig;
 use crate::state::AppState;
-use crowdmorph_core::budget::{Budget, BudgetError};
-use crowdmorph_core::rig::{Rig, RigShape, quoted_name};
+use crowdmorph_core::budget::Budget;
+use crowdmorph_core::rig::{Rig, quoted_name};
 use crowdmorph_import::gltf::GltfImport;
 use crowdmorph_import::{ImportError, ImportOptions};
-use crowdmorph_store::objects::{Change, SharedStore};
-use crowdmorph_store::{RecordRef, Store, StoreError};
-
-impl AppState {
-    /// The error budget clips are stored within, when the store compresses them.
-    pub fn clip_error(&self) -> Option<f32> {
-        match &self.shared {
-            Some(s) => s.clip_error(),
-            None => self.store.as_ref().and_then(|s| s.clip_error()),
-        }
-    }
-
-    /// Rig `id`, or 404 `unknown_rig` listing the rigs there are.
-    pub fn rig(&self, id: &str) -> Result<Arc<RigEntry>, ApiError> {
-        self.registry
-            .get(id)
-            .ok_or_else(|| unknown_rig(&self.registry, id))
-    }
-
-    /// Makes `rig` (prepared as `prepared`, same geometry and clips as `entry`'s generation)
-    /// rig `id`'s next generation: stored first, then served; it takes over `entry`'s memory
-    /// charge, set to what it now holds. The caller holds the admin lock.
-    pub async fn next_generation(
-        &self,
-        id: &str,
-        entry: &RigEntry,
-        (rig, prepared): Prepared,
-    ) -> Result<Arc<RigEntry>, ApiError> {
-        self.persist_record(id, rig, entry.builtin, &entry.layout)
-            .await?;
-        let next = Arc::new(entry.successor(
-            prepared,
-            entry.qbox,
-            entry.layout.clone(),
-            self.registry.generation(),
-            None,
-        ));
-        self.registry.insert(next.clone());
-        Ok(next)
-    }
-
-    /// Persists a rig's record: its geometry and LOD with the clips `layout` keeps in the
-    /// record (for the built-in rig: its extra clips and LOD).
-    pub async fn persist_record(
-        &self,
-        id: &str,
-        rig: Arc<Rig>,
-        builtin: bool,
-        layout: &ClipLayout,
-    ) -> Result<(), ApiError> {
-        if self.store.is_none() && self.shared.is_none() {
-            return Ok(());
-        }
-        let state = self.clone();
-        let rid = id.to_string();
-        let names = layout.record.clone();
-        let staged = blocking(move || {
-            let id = rid;
-            let clips = clips_named(&rig, &names);
-            let record = if builtin {
-                RecordRef::Builtin {
-                    id: &id,
-                    clips: &clips,
-                    rig: &rig,
-                }
-            } else {
-                RecordRef::Rig {
-                    id: &id,
-                    rig: &rig,
-                    clips: &clips,
-                }
-            };
-            match (&state.shared, &state.store) {
-                (Some(shared), _) => shared.stage(record).map(Some).map_err(ApiError::internal),
-                (None, Some(store)) => store.put(record).map(|()| None).map_err(ApiError::internal),
-                (None, None) => Ok(None),
-            }
-        })
-        .await?;
-        if self.shared.is_none() {
-            // The data dir's record of the rig is written anew: what was reported about the
-            // one before is superseded.
-            self.clear_skipped(id, u64::MAX);
-        }
-        self.commit_staged(id, staged).await
-    }
-
-    /// Commits a change staged for the shared store (none for the data dir, written already).
-    async fn commit_staged(&self, id: &str, staged: Option<Change>) -> Result<(), ApiError> {
-        match (&self.shared, staged) {
-            (Some(shared), Some(change)) => self.commit_shared(shared, id, change).await,
-            _ => Ok(()),
-        }
-    }
-
-    /// Persists rig `id`'s motion graphs, all of them (none removes them).
-    pub async fn persist_graphs(
-        &self,
-        id: &str,
-        graphs: std::collections::BTreeMap<String, crowdmorph_proto::MotionGraph>,
-    ) -> Result<(), ApiError> {
-        if let Some(shared) = &self.shared {
-            let change = SharedStore::graphs_change(id, &graphs).map_err(ApiError::internal)?;
-            return self.commit_shared(shared, id, change).await;
-        }
-        let id = id.to_string();
-        self.on_data_dir(move |st| st.put_graphs(&id, &graphs))
-            .await
-    }
-
-    /// Removes rig `id` from the store: its record, clip files and graphs (a tombstone
-    /// generation in a shared store).
-    pub async fn persist_delete(&self, id: &str) -> Result<(), ApiError> {
-        if let Some(shared) = &self.shared {
-            self.commit_shared(shared, id, Change::Delete).await?;
-            shared.release_lod(id).await;
-            return Ok(());
-        }
-        self.clear_skipped(id, u64::MAX);
-        let id = id.to_string();
-        self.on_data_dir(move |st| st.remove(&id)).await
-    }
-
-    /// Runs `f` on the data dir's store on a blocking thread; nothing without one.
-    async fn on_data_dir(
-        &self,
-        f: impl FnOnce(&Store) -> Result<(), StoreError> + Send + 'static,
-    ) -> Result<(), ApiError> {
-        if self.store.is_none() {
-            return Ok(());
-        }
-        let state = self.clone();
-        blocking(move || {
-            state
-                .store
-                .as_ref()
-                .map_or(Ok(()), f)
-                .map_err(ApiError::internal)
-        })
-        .await
-    }
-
-    /// Persists clip file `seq` of `rig` with `clips`, or deletes it when there are none.
-    pub async fn persist_clips(
-        &self,
-        id: &str,
-        seq: u64,
-        rig: Arc<Rig>,
-        clips: Vec<crowdmorph_core::rig::Clip>,
-    ) -> Result<(), ApiError> {
-        if self.store.is_none() && self.shared.is_none() {
-            return Ok(());
-        }
-        let state = self.clone();
-        let rid = id.to_string();
-        let staged = blocking(move || {
-            let id = rid;
-            let record = RecordRef::Clips {
-                id: &id,
-                seq,
-                clips: &clips,
-                rig: &rig,
-            };
-            match (&state.shared, &state.store) {
-                (Some(_), _) if clips.is_empty() => Ok(Some(SharedStore::clips_removed(&id, seq))),
-                (Some(shared), _) => shared.stage(record).map(Some).map_err(ApiError::internal),
-                (None, Some(store)) if clips.is_empty() => store
-                    .remove_clips(&id, seq)
-                    .map(|()| None)
-                    .map_err(ApiError::internal),
-                (None, Some(store)) => store.put(record).map(|()| None).map_err(ApiError::internal),
-                (None, None) => Ok(None),
-            }
-        })
-        .await?;
-        self.commit_staged(id, staged).await
-    }
-}
 
 /// Puts arriving clips into the form a compressing store keeps (`serve --compress-clips`):
 /// the server then plays the clip its record decodes to, before and after a restart. Each
@@ -245,20 +70,6 @@ pub async fn upload_body(
     read_body(headers, body, limits).await
 }
 
-/// A rig the engine could not prepare: over the GPU memory budget, answered as the host
-/// budget answers (413 `too_large`, 503 `memory_full`, naming `--max-gpu-memory`); anything
-/// else the device cannot hold, 422 `cannot_prepare`.
-pub fn prepare_error(e: crowdmorph_engine::EngineError, too_large: &'static str) -> ApiError {
-    match e {
-        crowdmorph_engine::EngineError::GpuMemory(b) => ApiError::budget(b, too_large),
-        e => ApiError::new(
-            StatusCode::UNPROCESSABLE_ENTITY,
-            "cannot_prepare",
-            e.to_string(),
-        ),
-    }
-}
-
 /// Errors of a clip import: like a rig's, with the clip's code for a clip too large.
 pub fn clip_import_error(e: ImportError) -> ApiError {
     match e {
@@ -279,49 +90,6 @@ pub fn import_error(e: ImportError) -> ApiError {
         }
         _ => ApiError::bad_request("invalid_rig", e.to_string()),
     }
-}
-
-/// A rig and its preparation for the engine.
-pub type Prepared = (Arc<Rig>, crowdmorph_engine::PreparedRig);
-
-/// Prepares `rig` for the engine after charging what that adds (the CPU layout and, on a GPU,
-/// the upload's staging copies, or the stored record, whichever is larger) to `budget`.
-pub fn prepare_charged(
-    engine: &crowdmorph_engine::Engine,
-    budget: &Budget,
-    rig: Arc<Rig>,
-    gpu: bool,
-) -> Result<Prepared, ApiError> {
-    let cost = RigShape::of(&rig).cost(gpu);
-    // A rig whose resident GPU copy alone exceeds the GPU memory budget is refused up front,
-    // as one over the host budget is; one that does not fit next to the rigs already there is
-    // refused by the engine's charges (503, or 413 for one buffer over the whole budget).
-    if let Some(pool) = engine.gpu_memory().filter(|_| gpu)
-        && cost.device > pool.limit()
-    {
-        return Err(ApiError::budget(
-            BudgetError::TooLarge {
-                what: format!(
-                    "a rig of {} vertices and {} targets on the GPU",
-                    rig.vertex_count(),
-                    rig.targets.len()
-                ),
-                needed: cost.device,
-                limit: pool.limit(),
-                flag: crowdmorph_engine::gpu::GPU_MEMORY_FLAG,
-            },
-            "rig_too_large",
-        ));
-    }
-    budget
-        .charge(cost.layout + cost.transient, || {
-            format!("preparing a rig of {} vertices", rig.vertex_count())
-        })
-        .map_err(|e| ApiError::budget(e, "rig_too_large"))?;
-    let prepared = engine
-        .prepare(rig.clone())
-        .map_err(|e| prepare_error(e, "rig_too_large"))?;
-    Ok((rig, prepared))
 }
 
 #[derive(serde::Deserialize)]
@@ -357,7 +125,7 @@ pub async fn upload_rig(
     let engine = state.engine.clone();
     let gpu = state.on_gpu();
     let b = budget.clone();
-    let clip_error = state.clip_error();
+    let clip_error = clip_error(&state);
     let (rig, prepared, qbox) =
         blocking(move || import_rig(&engine, &b, bytes, &options, gpu, clip_error)).await?;
     let id = query.name.unwrap_or_else(|| sanitize_id(&rig.name));
@@ -384,9 +152,7 @@ pub async fn upload_rig(
     }
     // On disk before it is visible: a crash after this point loses nothing acknowledged.
     let layout = ClipLayout::in_record(&rig.clips);
-    state
-        .persist_record(&id, rig.clone(), false, &layout)
-        .await?;
+    persist_record(&state, &id, rig.clone(), false, &layout).await?;
     let charge = budget.keep(prepared.memory().host_bytes as u64);
     let entry = Arc::new(RigEntry::new(NewEntry {
         id: id.clone(),
@@ -401,8 +167,8 @@ pub async fn upload_rig(
     drop(budget);
     crowdmorph_core::budget::return_freed_memory();
     tracing::info!(rig = %id, vertices = entry.vertices, channels = rig.targets.len(), "rig registered");
-    state.start_auto_lod(&entry);
-    Accept::of(&headers).reply(StatusCode::CREATED, &state.rig_info(&entry))
+    start_auto_lod(&state, &entry);
+    Accept::of(&headers).reply(StatusCode::CREATED, &rig_info(&state, &entry))
 }
 
 impl RigQuery {
@@ -499,7 +265,7 @@ pub async fn list_rigs(State(state): State<AppState>, _ready: Ready, accept: Acc
         .registry
         .all()
         .iter()
-        .map(|e| state.rig_info(e))
+        .map(|e| rig_info(&state, e))
         .collect();
     accept.reply(StatusCode::OK, &RigList { rigs })
 }
@@ -510,7 +276,7 @@ pub async fn get_rig(
     Path(id): Path<String>,
     accept: Accept,
 ) -> ApiResult {
-    accept.reply(StatusCode::OK, &state.rig_info(&*state.rig(&id)?))
+    accept.reply(StatusCode::OK, &rig_info(&state, &*state.rig(&id)?))
 }
 
 pub async fn delete_rig(
@@ -528,8 +294,8 @@ pub async fn delete_rig(
             format!("rig {id:?} is built in and cannot be deleted"),
         ));
     }
-    state.persist_delete(&id).await?;
-    state.forget_rig(&id);
+    persist_delete(&state, &id).await?;
+    forget_rig(&state, &id);
     drop(entry);
     // The rig's memory is freed when the last request using it is done; hand what is free
     // now back to the OS, so that deleting a large rig lowers the resident size.

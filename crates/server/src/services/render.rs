@@ -43,7 +43,7 @@ use crowdmorph_engine::EngineError;
 use crowdmorph_engine::render::cost::{Rates, RenderCost};
 use crowdmorph_engine::render::crowd::{self, CrowdError, CrowdGroup, PlannedGroup, RenderDevice};
 use crowdmorph_engine::render::encode::{self, ImageError};
-use crowdmorph_engine::render::gpu::{Frame, MeshTopology, RenderError, Renderer, View};
+use crowdmorph_engine::render::gpu::{Frame, MeshTopology, RenderError, View};
 use crowdmorph_engine::render::scene::{self, SceneError};
 
 /// Header with the image's width in pixels.
@@ -178,26 +178,13 @@ fn lay_out(
 }
 
 /// What rendering needs of the server: the renderer and its topologies, the render budgets,
-/// and whether the engine blends on the GPU (beside [`Parts`]). The provided methods are the
+/// (beside [`Parts`]). The provided methods are the
 /// service.
 pub trait Rendering: Parts {
     /// The renderer (or why there is none) and its topologies.
     fn render_state(&self) -> &RenderState;
     /// The pixels and work renders in flight hold.
     fn render_budget(&self) -> &RenderBudget;
-    /// Whether the engine blends on the GPU.
-    fn on_gpu(&self) -> bool;
-
-    /// The renderer, when the server has one (tests reach its race-window hook,
-    /// [`Renderer::set_after_submit`], through it).
-    #[doc(hidden)]
-    fn renderer(&self) -> Option<&Renderer> {
-        self.render_state()
-            .device
-            .as_ref()
-            .ok()
-            .map(|d| &d.renderer)
-    }
 
     /// The renderer; 503 `render_unavailable` naming why (and what to install) without one.
     fn render_device(&self) -> Result<&RenderDevice, ApiError> {

@@ -22,7 +22,6 @@ use super::render::Rendering;
 use crate::admission::resolve::{
     head_reach, job_output_bytes, job_request, joint_overrides, requested_joints,
 };
-use crate::graphs::Graphs;
 use crate::registry::{MAX_F16, RigEntry};
 use crate::scheduler::Scheduler;
 use crate::scheduler::{JobRequest, ScheduleError};
@@ -38,14 +37,12 @@ use crate::session_stream::delta;
 use crate::session_stream::encode::{JobKey as Key, MessageContent, encode_delta, encode_vertices};
 
 /// What a session's tick needs of the server beside rendering ([`Rendering`], for viewers
-/// that want images): the sessions, the batcher and the motion graphs.
+/// that want images): the sessions and the batcher.
 pub trait Ticking: Rendering {
     /// The crowd sessions.
     fn sessions(&self) -> &Sessions;
     /// The batcher the tick submits its jobs to.
     fn scheduler(&self) -> &Scheduler;
-    /// Motion graphs by rig.
-    fn graphs(&self) -> &Graphs;
 }
 
 /// Starts the tick task of `session`, supervised: if it panics (a bug), the session ends —
@@ -1181,7 +1178,7 @@ mod tests {
         ];
         for table in &tables {
             assert!(
-                super::super::viewer::check_lod(&LodChoice::ByDistance {
+                crate::sessions::check_lod(&LodChoice::ByDistance {
                     by_distance: table.clone()
                 })
                 .is_ok(),

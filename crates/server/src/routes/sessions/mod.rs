@@ -42,6 +42,7 @@ use crate::admission::{Admission, Charge, Decoded, Priced, decode_held};
 use crate::http::body::hold;
 use crate::http::{Accept, Admin, ApiError, ApiResult, Ready};
 use crate::services::Parts;
+use crate::services::replicas::{find_missing, missing};
 use crate::sessions::{
     InfoNow, ListNow, MAX_FPS, MAX_IDLE_TIMEOUT_S, MAX_VIEWER_MESSAGE_BYTES, MIN_FPS, Session,
     SessionInner, close, info_bytes,
@@ -93,64 +94,60 @@ fn invalid(message: String) -> ApiError {
     ApiError::bad_request("invalid_session", message)
 }
 
-impl AppState {
-    /// Checks one head: its rig and clip exist, its placement is drawable.
-    fn check_session_head(&self, h: &SessionHead) -> Result<(), ApiError> {
-        let entry = self.rig(&h.rig).map_err(|e| ApiError {
+/// Checks one head: its rig and clip exist, its placement is drawable.
+fn check_session_head(state: &AppState, h: &SessionHead) -> Result<(), ApiError> {
+    let entry = state.rig(&h.rig).map_err(|e| ApiError {
+        message: format!("head {}: {}", h.head, e.message),
+        ..e
+    })?;
+    if let Some(play) = &h.graph {
+        let graph = state
+            .graphs
+            .resolved(
+                &entry,
+                &play.name,
+                |bytes| state.queue_memory.reserve(bytes).ok(),
+                state.config.max_graph_work,
+            )
+            .ok_or_else(|| {
+                let e = crate::routes::graphs::unknown_graph(
+                    &entry.id,
+                    &play.name,
+                    &state.graphs.names(&entry.id),
+                );
+                ApiError {
+                    message: format!("head {}: {}", h.head, e.message),
+                    ..e
+                }
+            })?;
+        graph
+            .play(play)
+            .map_err(|m| ApiError::not_found("unknown_node", format!("head {}: {m}", h.head)))?;
+    } else if entry.clip_index(&h.clip).is_none() {
+        // The same message as a crowd frame's (at most 20 names, whatever the rig holds).
+        let e = unknown_clip(&entry, &h.clip);
+        return Err(ApiError {
             message: format!("head {}: {}", h.head, e.message),
             ..e
-        })?;
-        if let Some(play) = &h.graph {
-            let graph = self
-                .graphs
-                .resolved(
-                    &entry,
-                    &play.name,
-                    |bytes| self.queue_memory.reserve(bytes).ok(),
-                    self.config.max_graph_work,
-                )
-                .ok_or_else(|| {
-                    let e = crate::routes::graphs::unknown_graph(
-                        &entry.id,
-                        &play.name,
-                        &self.graphs.names(&entry.id),
-                    );
-                    ApiError {
-                        message: format!("head {}: {}", h.head, e.message),
-                        ..e
-                    }
-                })?;
-            graph.play(play).map_err(|m| {
-                ApiError::not_found("unknown_node", format!("head {}: {m}", h.head))
-            })?;
-        } else if entry.clip_index(&h.clip).is_none() {
-            // The same message as a crowd frame's (at most 20 names, whatever the rig holds).
-            let e = unknown_clip(&entry, &h.clip);
-            return Err(ApiError {
-                message: format!("head {}: {}", h.head, e.message),
-                ..e
-            });
-        }
-        scene::placement_matrix(&crate::sessions::placement(h))
-            .map_err(|e| invalid(format!("head {}: {e}", h.head)))?;
-        requested_joints(&entry, &h.joints)
-            .map_err(|(code, m)| ApiError::bad_request(code, format!("head {}: {m}", h.head)))?;
-        Ok(())
+        });
     }
+    scene::placement_matrix(&crate::sessions::placement(h))
+        .map_err(|e| invalid(format!("head {}: {e}", h.head)))?;
+    requested_joints(&entry, &h.joints)
+        .map_err(|(code, m)| ApiError::bad_request(code, format!("head {}: {m}", h.head)))?;
+    Ok(())
+}
 
-    fn check_head_count(&self, n: usize) -> Result<(), ApiError> {
-        let max = self.config.sessions.max_heads;
-        if n > max {
-            return Err(ApiError::new(
-                StatusCode::PAYLOAD_TOO_LARGE,
-                "too_many_heads",
-                format!(
-                    "{n} heads is more than the limit of {max} per session (--max-session-heads)"
-                ),
-            ));
-        }
-        Ok(())
+fn check_head_count(state: &AppState, n: usize) -> Result<(), ApiError> {
+    let max = state.config.sessions.max_heads;
+    if n > max {
+        return Err(ApiError::new(
+            StatusCode::PAYLOAD_TOO_LARGE,
+            "too_many_heads",
+            format!("{n} heads is more than the limit of {max} per session (--max-session-heads)"),
+        ));
     }
+    Ok(())
 }
 
 /// Refuses a patch whose `remove` or `change` list is longer than a session may hold heads:
@@ -237,7 +234,7 @@ fn patched(
         if let Some(j) = joints {
             h.joints.clone_from(j);
         }
-        state.check_session_head(h)?;
+        check_session_head(state, h)?;
         if let Some(n) = node {
             let play = h.graph.as_ref().ok_or_else(|| {
                 invalid(format!(
@@ -249,17 +246,20 @@ fn patched(
                 script: Vec::new(),
                 ..play.clone()
             };
-            state.check_session_head(&SessionHead {
-                graph: Some(to),
-                ..h.clone()
-            })?;
+            check_session_head(
+                state,
+                &SessionHead {
+                    graph: Some(to),
+                    ..h.clone()
+                },
+            )?;
             jumps.push((*head, n.clone()));
         }
     }
     if !removed.is_empty() {
         out.retain(|h| !removed.contains(&h.head));
     }
-    state.check_head_count(out.len() + patch.add.len())?;
+    check_head_count(state, out.len() + patch.add.len())?;
     let mut ids: HashSet<u64> = out.iter().map(|h| h.head).collect();
     for h in &patch.add {
         if !ids.insert(h.head) {
@@ -269,7 +269,7 @@ fn patched(
                 format!("the session already has a head {}", h.head),
             ));
         }
-        state.check_session_head(h)?;
+        check_session_head(state, h)?;
         out.push(h.clone());
     }
     Ok((out, jumps))
@@ -310,9 +310,11 @@ pub async fn create_session(
     accept: Accept,
     Decoded(req): Decoded<SessionRequest>,
 ) -> ApiResult {
-    state
-        .find_missing(state.missing(req.heads.iter().map(|h| h.rig.as_str())))
-        .await?;
+    find_missing(
+        &state,
+        missing(&state, req.heads.iter().map(|h| h.rig.as_str())),
+    )
+    .await?;
     create(&state, None, accept, req)
 }
 
@@ -328,9 +330,11 @@ pub async fn put_session(
     Decoded(req): Decoded<SessionRequest>,
 ) -> ApiResult {
     check_session_id(&id)?;
-    state
-        .find_missing(state.missing(req.heads.iter().map(|h| h.rig.as_str())))
-        .await?;
+    find_missing(
+        &state,
+        missing(&state, req.heads.iter().map(|h| h.rig.as_str())),
+    )
+    .await?;
     create(&state, Some(id), accept, req)
 }
 
@@ -374,13 +378,13 @@ fn create(
             req.idle_timeout_s
         )));
     }
-    state.check_head_count(req.heads.len())?;
+    check_head_count(state, req.heads.len())?;
     let mut ids = HashSet::new();
     for h in &req.heads {
         if !ids.insert(h.head) {
             return Err(invalid(format!("head id {} appears twice", h.head)));
         }
-        state.check_session_head(h)?;
+        check_session_head(state, h)?;
     }
     let chosen = id.is_some();
     let mut map = state

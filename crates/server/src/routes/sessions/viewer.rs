@@ -8,8 +8,8 @@ use std::time::Duration;
 
 use axum::extract::ws::{CloseFrame, Message, WebSocket};
 use crowdmorph_proto::{
-    CameraSpec, DEFAULT_KEYFRAME_EVERY, Format, ImageFormat, ImageOptions, LodChoice,
-    MAX_KEYFRAME_EVERY, ViewerHello, ViewerOutput, ViewerUpdate,
+    CameraSpec, DEFAULT_KEYFRAME_EVERY, Format, ImageFormat, ImageOptions, MAX_KEYFRAME_EVERY,
+    ViewerHello, ViewerOutput, ViewerUpdate,
 };
 use tokio::time::Instant;
 
@@ -56,7 +56,7 @@ async fn read_hello(
         }
     };
     let hello: ViewerHello = parse_json(text.as_str(), "hello")?;
-    check_lod(&hello.lod)?;
+    crate::sessions::check_lod(&hello.lod)?;
     let temporal = check_modes(&hello)?;
     let image = hello.image.unwrap_or(ImageOptions {
         format: ImageFormat::Jpeg,
@@ -160,31 +160,6 @@ fn check_camera(c: &CameraSpec, image: &ImageOptions) -> Result<(), (u16, String
         .map_err(|e| (close::POLICY, close::truncate(format!("bad camera: {e}"))))
 }
 
-pub(super) fn check_lod(l: &LodChoice) -> Result<(), (u16, String)> {
-    if let LodChoice::ByDistance { by_distance } = l {
-        if by_distance.len() > 64 {
-            return Err((close::POLICY, "bad lod: at most 64 distances".into()));
-        }
-        let mut last = f32::NEG_INFINITY;
-        for [m, level] in by_distance {
-            if !m.is_finite() || *m < last {
-                return Err((
-                    close::POLICY,
-                    "bad lod: distances must be finite and ascending".into(),
-                ));
-            }
-            if !(level.is_finite() && *level >= 0.0 && level.fract() == 0.0) {
-                return Err((
-                    close::POLICY,
-                    "bad lod: levels must be whole numbers ≥ 0".into(),
-                ));
-            }
-            last = *m;
-        }
-    }
-    Ok(())
-}
-
 /// Runs one viewer until it leaves, breaks a rule or the session ends.
 pub(super) async fn serve_viewer(state: AppState, session: Arc<Session>, mut socket: WebSocket) {
     let settings = match read_hello(&mut socket, &state.config.sessions).await {
@@ -263,7 +238,7 @@ fn apply_update(viewer: &Viewer, text: &str) -> Result<(), (u16, String)> {
         check_camera(c, &s.image)?;
     }
     if let Some(l) = &update.lod {
-        check_lod(l)?;
+        crate::sessions::check_lod(l)?;
     }
     if let Ok(mut s) = viewer.settings.lock() {
         if let Some(c) = update.camera {
