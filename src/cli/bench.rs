@@ -10,9 +10,10 @@ use crowdmorph::engine::{BackendChoice, Engine};
 use crowdmorph::render::crowd::RenderBackend;
 use serde::Serialize;
 
-use super::{GpuMemoryArgs, WireFormat, load_rig, with_spinner};
+use super::{GpuMemoryArgs, load_rig, with_spinner};
 
-/// `crowdmorph bench ...`.
+/// `crowdmorph bench ...`. Each benchmark's own flags are its options struct's
+/// (`#[command(flatten)]`); what is here picks the rig, the engine and the output.
 #[derive(Subcommand)]
 pub enum Command {
     /// The scenes of Costigan et al. 2016 (1 head, 100 unique, 100 sharing 10 animations) at
@@ -32,22 +33,14 @@ pub enum Command {
         /// Engine (gpu includes software adapters such as lavapipe).
         #[arg(long, default_value = "gpu")]
         backend: BackendChoice,
-        /// Seconds per measurement.
-        #[arg(long, default_value_t = 1.0)]
-        seconds: f64,
         /// Write the table as a PNG plot (like the paper's Figures 5 and 6).
         #[arg(long)]
         plot: Option<PathBuf>,
         /// Also run the same scenes on the CPU engine (a second table, same plot).
         #[arg(long)]
         with_cpu: bool,
-        /// Instead of the paper's scenes: crowds of this many unique heads each
-        /// (comma-separated, e.g. 1,100,4096,16384), at LOD 0.
-        #[arg(long, value_delimiter = ',')]
-        unique: Vec<usize>,
-        /// Output format of every batch.
-        #[arg(long, value_enum, default_value_t = WireFormat::F32)]
-        format: WireFormat,
+        #[command(flatten)]
+        opt: bench::gpu::GpuBenchOptions,
         #[command(flatten)]
         gpu: GpuMemoryArgs,
         /// Print JSON.
@@ -60,43 +53,10 @@ pub enum Command {
         /// glTF/GLB rig (default: the embedded head).
         #[arg(long)]
         rig: Option<PathBuf>,
-        /// Heads per request.
-        #[arg(long, default_value_t = 100)]
-        heads: usize,
-        /// Unique jobs per request.
-        #[arg(long, default_value_t = 100)]
-        unique: usize,
-        /// Format of the throughput runs.
-        #[arg(long, value_enum, default_value_t = WireFormat::F32)]
-        format: WireFormat,
-        /// Concurrent connections at saturation.
-        #[arg(long, default_value_t = 4)]
-        clients: usize,
-        /// Seconds per measurement.
-        #[arg(long, default_value_t = 3.0)]
-        seconds: f64,
-        /// Engine of the server and of the in-process comparison.
-        #[arg(long, default_value = "auto")]
-        backend: BackendChoice,
-        /// Also measure the dense Python server (aiohttp + numpy,
-        /// clients/python/bench/dense_server.py) on the same requests, with this Python
-        /// (default /usr/bin/python3).
-        #[arg(long, value_name = "PYTHON", num_args = 0..=1, default_missing_value = "/usr/bin/python3")]
-        python_peer: Option<PathBuf>,
-        /// Where the Python peer runs numpy: off its event loop (thread) or on it (inline).
-        #[arg(long, default_value = "thread", value_parser = ["thread", "inline"])]
-        python_peer_compute: String,
+        #[command(flatten)]
+        opt: bench::http::HttpBenchOptions,
         #[command(flatten)]
         gpu: GpuMemoryArgs,
-        /// Upload these clips first (`.csv`/`.json` files in a folder, named by file stem)
-        /// and play them.
-        #[arg(long, value_name = "DIR")]
-        clips: Option<PathBuf>,
-        /// Instead: measure each encoding on loopback and over shaped links at these rates
-        /// (comma-separated, e.g. 1gbit,100mbit; a network namespace and a tbf-shaped veth
-        /// pair each, removed at the end; needs root and iproute2, else only loopback).
-        #[arg(long, value_delimiter = ',', value_name = "RATES")]
-        link: Vec<bench::link::LinkSpec>,
         /// Print JSON.
         #[arg(long)]
         json: bool,
@@ -107,54 +67,10 @@ pub enum Command {
         /// glTF/GLB rig (default: the embedded head).
         #[arg(long)]
         rig: Option<PathBuf>,
-        /// Heads in the session.
-        #[arg(long, default_value_t = 1000)]
-        heads: usize,
-        /// Distinct animations (clip and offset pairs) among the heads.
-        #[arg(long, default_value_t = 100)]
-        animations: usize,
-        /// Viewers.
-        #[arg(long, default_value_t = 8)]
-        viewers: usize,
-        /// Ticks per second.
-        #[arg(long, default_value_t = 30.0)]
-        fps: f32,
-        /// Buffer format of every viewer.
-        #[arg(long, value_enum, default_value_t = WireFormat::Q16)]
-        format: WireFormat,
-        /// Seconds to measure.
-        #[arg(long, default_value_t = 10.0)]
-        seconds: f64,
-        /// Engine.
-        #[arg(long, default_value = "auto")]
-        backend: BackendChoice,
+        #[command(flatten)]
+        opt: bench::sessions::SessionBenchOptions,
         #[command(flatten)]
         gpu: GpuMemoryArgs,
-        /// Heads walk a motion graph over every clip (one random walk per animation).
-        #[arg(long)]
-        graph: bool,
-        /// Upload these clips first (`.csv`/`.json` files in a folder, named by file stem)
-        /// and play them.
-        #[arg(long, value_name = "DIR")]
-        clips: Option<PathBuf>,
-        /// Instead: one viewer at a time per mode (f32, q16, temporal, compressed) on loopback and over shaped links at these rates
-        /// (comma-separated, e.g. 1gbit,100mbit; a network namespace and a tbf-shaped veth
-        /// pair each, removed at the end; needs root and iproute2, else only loopback).
-        #[arg(long, value_delimiter = ',', value_name = "RATES")]
-        link: Vec<bench::link::LinkSpec>,
-        /// With --link: only these viewer modes (comma-separated: f32, q16, q16+zstd,
-        /// temporal, temporal+deflate, temporal+zstd; default all).
-        #[arg(long, value_delimiter = ',', value_name = "MODES")]
-        modes: Vec<bench::sessions::ViewerMode>,
-        /// Upload a smooth synthetic clip of this many frames over every target and play it
-        /// (a rig without clips, such as ICT FaceKit, or more unique heads a tick than the
-        /// rig's clips have frames).
-        #[arg(
-            long,
-            value_name = "FRAMES",
-            value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=100_000)
-        )]
-        long_clip: Option<usize>,
         /// Print JSON.
         #[arg(long)]
         json: bool,
@@ -210,32 +126,8 @@ pub enum Command {
         /// costs on a face.
         #[arg(long)]
         skinned_head: bool,
-        /// Heads in the crowd.
-        #[arg(long, default_value_t = 100)]
-        heads: usize,
-        /// Unique jobs among the heads.
-        #[arg(long, default_value_t = 100)]
-        unique: usize,
-        /// LOD level.
-        #[arg(long, default_value_t = 0)]
-        lod: u32,
-        /// Compute normals too.
-        #[arg(long)]
-        normals: bool,
-        /// Unique jobs per engine call of the batch-size table.
-        #[arg(long, value_delimiter = ',', default_value = "1,10,100,1000")]
-        batches: Vec<usize>,
-        /// Simplified meshes to build and time when the rig has none (fractions of the
-        /// triangles; `none` for none).
-        #[arg(long, default_value = "0.5,0.25,0.1")]
-        mesh_fractions: String,
-        /// Seconds per measurement.
-        #[arg(long, default_value_t = 1.0)]
-        seconds: f64,
-        /// Also time the warm numpy blend (`np.matmul(W, D, out=OUT); OUT += neutral`) on the
-        /// same jobs with this Python (default /usr/bin/python3).
-        #[arg(long, value_name = "PYTHON", num_args = 0..=1, default_missing_value = "/usr/bin/python3")]
-        numpy: Option<PathBuf>,
+        #[command(flatten)]
+        opt: bench::cpu::BenchOptions,
         /// Print JSON.
         #[arg(long)]
         json: bool,
@@ -247,21 +139,8 @@ pub enum Command {
         /// glTF/GLB rig (default: the embedded head).
         #[arg(long)]
         rig: Option<PathBuf>,
-        /// Play these clips (`.csv`/`.json` files in a folder, named by file stem) instead of
-        /// the rig's own.
-        #[arg(long, value_name = "DIR")]
-        clips: Option<PathBuf>,
-        /// Frames in all, consecutive runs from every clip.
-        #[arg(long, default_value_t = 240)]
-        frames: usize,
-        /// zstd levels of the residual rows (negative: its fast modes).
-        #[arg(
-            long,
-            value_delimiter = ',',
-            allow_hyphen_values = true,
-            default_value = "-5,-1,1,3"
-        )]
-        zstd_levels: Vec<i32>,
+        #[command(flatten)]
+        opt: bench::codecs::CodecBenchOptions,
         /// Print JSON.
         #[arg(long)]
         json: bool,
@@ -299,14 +178,7 @@ pub fn run(which: Command) -> Result<()> {
         Command::Cpu {
             rig,
             skinned_head,
-            heads,
-            unique,
-            lod,
-            normals,
-            batches,
-            mesh_fractions,
-            seconds,
-            numpy,
+            mut opt,
             json,
         } => {
             let rig = if skinned_head {
@@ -314,26 +186,7 @@ pub fn run(which: Command) -> Result<()> {
             } else {
                 load_rig(rig.as_deref())?
             };
-            let mesh_fractions = if mesh_fractions == "none" {
-                Vec::new()
-            } else {
-                mesh_fractions
-                    .split(',')
-                    .map(|f| f.trim().parse::<f32>())
-                    .collect::<Result<Vec<_>, _>>()
-                    .map_err(|e| anyhow::anyhow!("--mesh-fractions: {e}"))?
-            };
-            let opt = bench::cpu::BenchOptions {
-                heads,
-                unique,
-                lod,
-                normals,
-                batches,
-                mesh_fractions,
-                seconds,
-                progress: !json,
-                numpy,
-            };
+            opt.progress = !json;
             super::emit(&bench::cpu::bench_cpu(&rig, &opt)?, json)
         }
         Command::Gpu {
@@ -341,23 +194,16 @@ pub fn run(which: Command) -> Result<()> {
             no_paper,
             skinned_head,
             backend,
-            seconds,
             plot,
             with_cpu,
-            unique,
-            format,
+            opt,
             gpu,
             json,
         } => {
-            if unique.contains(&0) {
+            if opt.unique.contains(&0) {
                 anyhow::bail!("--unique counts must be at least 1");
             }
             let engine = Engine::with_options(backend, gpu.options())?;
-            let opt = bench::gpu::GpuBenchOptions {
-                seconds,
-                unique,
-                format: format.into(),
-            };
             let mut rigs = Vec::new();
             if !no_paper {
                 rigs.push(crowdmorph::synthetic::paper_scale_rig());
@@ -411,55 +257,22 @@ pub fn run(which: Command) -> Result<()> {
             });
             super::emit(&report?, json)
         }
-        Command::Codecs {
-            rig,
-            clips,
-            frames,
-            zstd_levels,
-            json,
-        } => {
+        Command::Codecs { rig, opt, json } => {
             let rig = load_rig(rig.as_deref())?;
-            let opt = bench::codecs::CodecBenchOptions {
-                clips,
-                frames,
-                zstd_levels,
-            };
             let report = with_spinner("bench codecs", || bench::codecs::bench_codecs(rig, &opt));
             super::emit(&report?, json)
         }
         Command::Sessions {
             rig,
-            heads,
-            animations,
-            viewers,
-            fps,
-            format,
-            seconds,
-            backend,
+            opt,
             gpu,
-            graph,
-            clips,
-            link,
-            modes,
-            long_clip,
             json,
         } => {
             let bytes = server_rig(rig.as_deref())?;
             let opt = bench::sessions::SessionBenchOptions {
-                heads,
-                animations,
-                viewers,
-                fps,
-                format: format.into(),
-                seconds,
-                backend,
                 gpu_memory: gpu.max_gpu_memory,
                 gpu_deltas: gpu.gpu_deltas,
-                graph,
-                clips,
-                links: link,
-                modes,
-                long_clip,
+                ..opt
             };
             if !opt.links.is_empty() {
                 let report = with_spinner("bench sessions --link", || {
@@ -474,33 +287,15 @@ pub fn run(which: Command) -> Result<()> {
         }
         Command::Http {
             rig,
-            heads,
-            unique,
-            format,
-            clients,
-            seconds,
-            backend,
-            python_peer,
-            python_peer_compute,
+            opt,
             gpu,
-            clips,
-            link,
             json,
         } => {
             let bytes = server_rig(rig.as_deref())?;
             let opt = bench::http::HttpBenchOptions {
-                heads,
-                unique,
-                format: format.into(),
-                clients,
-                seconds,
-                backend,
-                python_peer,
-                python_compute: python_peer_compute,
                 gpu_memory: gpu.max_gpu_memory,
                 gpu_deltas: gpu.gpu_deltas,
-                clips,
-                links: link,
+                ..opt
             };
             if !opt.links.is_empty() {
                 let report = with_spinner("bench http --link", || {

@@ -234,8 +234,8 @@ mod tests {
             .command
         {
             Command::Bench {
-                which: BenchCommand::Http { python_peer, .. },
-            } => python_peer,
+                which: BenchCommand::Http { opt, .. },
+            } => opt.python_peer,
             _ => panic!("parsed as another command"),
         };
         assert_eq!(peer(&["crowdmorph", "bench", "http"]), None);
@@ -258,8 +258,11 @@ mod tests {
             .command
         {
             Command::Bench {
-                which: BenchCommand::Cpu { numpy, .. },
-            } => assert_eq!(numpy, Some(std::path::PathBuf::from("/usr/bin/python3"))),
+                which: BenchCommand::Cpu { opt, .. },
+            } => assert_eq!(
+                opt.numpy,
+                Some(std::path::PathBuf::from("/usr/bin/python3"))
+            ),
             _ => panic!("parsed as another command"),
         }
     }
@@ -311,10 +314,10 @@ mod tests {
                 .expect("bench http --json --backend cpu parses");
         match cli.command {
             Command::Bench {
-                which: BenchCommand::Http { json, backend, .. },
+                which: BenchCommand::Http { json, opt, .. },
             } => {
                 assert!(json);
-                assert_eq!(backend, crowdmorph::engine::BackendChoice::Cpu);
+                assert_eq!(opt.backend, crowdmorph::engine::BackendChoice::Cpu);
             }
             _ => panic!("parsed as another command"),
         }

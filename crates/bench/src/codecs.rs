@@ -23,15 +23,23 @@ use crowdmorph_core::rig::Rig;
 use crowdmorph_engine::{BlendJob, OutputSpec, Precision, VertexData, WeightBatch};
 use crowdmorph_import::clips::{ClipOptions, clip_from_csv, clip_from_json};
 
-/// What to measure.
-#[derive(Clone, Debug, Default)]
+/// What to measure (also `crowdmorph bench codecs`' flags).
+#[derive(Clone, Debug, Default, clap::Args)]
 pub struct CodecBenchOptions {
-    /// Clips to play instead of the rig's own (`.csv`/`.json` files, named by file stem; names
-    /// the rig lacks are ignored, as `bench http --clips` uploads them).
+    /// Play these clips (`.csv`/`.json` files in a folder, named by file stem) instead of the
+    /// rig's own (names the rig lacks are ignored, as `bench http --clips` uploads them).
+    #[arg(long, value_name = "DIR")]
     pub clips: Option<std::path::PathBuf>,
-    /// At most this many frames in all, taken as consecutive runs from every clip.
+    /// Frames in all, consecutive runs from every clip.
+    #[arg(long, default_value_t = 240)]
     pub frames: usize,
-    /// zstd levels to try (negative: zstd's fast modes).
+    /// zstd levels of the residual rows (negative: its fast modes).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        allow_hyphen_values = true,
+        default_value = "-5,-1,1,3"
+    )]
     pub zstd_levels: Vec<i32>,
 }
 

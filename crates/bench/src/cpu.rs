@@ -42,27 +42,37 @@ use crowdmorph_core::rng::SplitMix64;
 use crowdmorph_engine::cpu::{CpuRig, fma_probe};
 use crowdmorph_engine::{BlendJob, BlendOutput, OutputSpec, Precision, WeightBatch};
 
-/// What to measure.
-#[derive(Clone, Debug)]
+/// What to measure (also `crowdmorph bench cpu`'s flags).
+#[derive(Clone, Debug, clap::Args)]
 pub struct BenchOptions {
     /// Heads in the crowd.
+    #[arg(long, default_value_t = 100)]
     pub heads: usize,
-    /// Unique jobs among them.
+    /// Unique jobs among the heads.
+    #[arg(long, default_value_t = 100)]
     pub unique: usize,
-    /// LOD level of every head.
+    /// LOD level.
+    #[arg(long, default_value_t = 0)]
     pub lod: u32,
-    /// Also compute normals.
+    /// Compute normals too.
+    #[arg(long)]
     pub normals: bool,
     /// Unique jobs per engine call of the batch-size table.
+    #[arg(long, value_delimiter = ',', default_value = "1,10,100,1000")]
     pub batches: Vec<usize>,
-    /// Simplified meshes to build and measure when the rig has none (fractions of the
-    /// triangles); empty for none.
-    pub mesh_fractions: Vec<f32>,
-    /// Seconds to spend per measurement (at least 5 runs each).
+    /// Simplified meshes to build and time when the rig has none (fractions of the
+    /// triangles; `none` for none).
+    #[arg(long, default_value = "0.5,0.25,0.1", value_parser = super::fractions_arg)]
+    pub mesh_fractions: ::std::vec::Vec<f32>,
+    /// Seconds per measurement (at least 5 runs each).
+    #[arg(long, default_value_t = 1.0)]
     pub seconds: f64,
-    /// Show progress bars.
+    /// Show progress bars (the CLI's: unless `--json`).
+    #[arg(skip = true)]
     pub progress: bool,
-    /// Also time the warm numpy blend with this Python (a subprocess, same jobs).
+    /// Also time the warm numpy blend (`np.matmul(W, D, out=OUT); OUT += neutral`) on the
+    /// same jobs with this Python (default /usr/bin/python3).
+    #[arg(long, value_name = "PYTHON", num_args = 0..=1, default_missing_value = "/usr/bin/python3")]
     pub numpy: Option<std::path::PathBuf>,
 }
 

@@ -114,16 +114,20 @@ pub const SCENES: [(&str, usize, usize); 3] = [
     ("100 heads, 10 animations", 100, 10),
 ];
 
-/// What to measure.
-#[derive(Clone, Debug, Default)]
+/// What to measure (also `crowdmorph bench gpu`'s flags).
+#[derive(Clone, Debug, Default, clap::Args)]
 pub struct GpuBenchOptions {
     /// Seconds per measurement (at least 3 runs).
+    #[arg(long, default_value_t = 1.0)]
     pub seconds: f64,
-    /// Instead of the paper's scenes: one scene of this many unique heads each, at LOD 0, on a
-    /// clip long enough that every head is a different frame.
+    /// Instead of the paper's scenes: crowds of this many unique heads each (comma-separated,
+    /// e.g. 1,100,4096,16384), at LOD 0, on a clip long enough that every head is a different
+    /// frame.
+    #[arg(long, value_delimiter = ',')]
     pub unique: Vec<usize>,
-    /// Output format: `f32`, `f16`, `q16` (in each rig's quantization box) or `q16r` (its
-    /// positions as residual planes against the neutral).
+    /// Output format of every batch: `f32`, `f16`, `q16` (in each rig's quantization box) or
+    /// `q16r` (its positions as residual planes against the neutral).
+    #[arg(long, default_value = "f32", value_parser = super::format_arg())]
     pub format: crowdmorph_proto::Format,
 }
 

@@ -51,34 +51,50 @@ const CLIP_FRAMES: usize = 1024;
 /// Name of the benchmark clip.
 const CLIP: &str = "bench-random";
 
-/// What to measure.
-#[derive(Clone, Debug)]
+/// What to measure (also `crowdmorph bench http`'s flags).
+#[derive(Clone, Debug, clap::Args)]
 pub struct HttpBenchOptions {
     /// Heads per request.
+    #[arg(long, default_value_t = 100)]
     pub heads: usize,
     /// Unique jobs per request.
+    #[arg(long, default_value_t = 100)]
     pub unique: usize,
     /// Format of the throughput runs.
+    #[arg(long, default_value = "f32", value_parser = super::format_arg())]
     pub format: Format,
     /// Concurrent connections at saturation.
+    #[arg(long, default_value_t = 4)]
     pub clients: usize,
     /// Seconds per measurement.
+    #[arg(long, default_value_t = 3.0)]
     pub seconds: f64,
     /// Engine of the server and of the in-process comparison (the same one for both).
+    #[arg(long, default_value = "auto")]
     pub backend: crowdmorph_engine::BackendChoice,
-    /// Also measure the dense Python peer (`clients/python/bench/dense_server.py`) with this
-    /// interpreter.
+    /// Also measure the dense Python server (aiohttp + numpy,
+    /// clients/python/bench/dense_server.py) on the same requests, with this Python
+    /// (default /usr/bin/python3).
+    #[arg(long, value_name = "PYTHON", num_args = 0..=1, default_missing_value = "/usr/bin/python3")]
     pub python_peer: Option<std::path::PathBuf>,
-    /// Where the peer runs numpy: `thread` (off the event loop) or `inline`.
+    /// Where the Python peer runs numpy: off its event loop (thread) or on it (inline).
+    #[arg(long = "python-peer-compute", default_value = "thread", value_parser = ["thread", "inline"])]
     pub python_compute: String,
-    /// The server's `--max-gpu-memory` (`None`: the default), also the in-process engine's.
+    /// The server's `--max-gpu-memory` (`None`: the default), also the in-process engine's
+    /// (the CLI's `--max-gpu-memory`).
+    #[arg(skip)]
     pub gpu_memory: Option<u64>,
-    /// The server's `--gpu-deltas`, also the in-process engine's.
+    /// The server's `--gpu-deltas`, also the in-process engine's (the CLI's `--gpu-deltas`).
+    #[arg(skip)]
     pub gpu_deltas: crowdmorph_engine::gpu::DeltaFormat,
-    /// Clips to upload to the rig first (`.csv` or `.json` files, named by file stem); the
-    /// link benchmark plays these instead of the rig's own.
+    /// Upload these clips first (`.csv`/`.json` files in a folder, named by file stem) and
+    /// play them (the link benchmark plays these instead of the rig's own).
+    #[arg(long, value_name = "DIR")]
     pub clips: Option<std::path::PathBuf>,
-    /// Shaped links for [`bench_http_links`].
+    /// Instead: measure each encoding on loopback and over shaped links at these rates
+    /// (comma-separated, e.g. 1gbit,100mbit; a network namespace and a tbf-shaped veth
+    /// pair each, removed at the end; needs root and iproute2, else only loopback).
+    #[arg(long = "link", value_delimiter = ',', value_name = "RATES")]
     pub links: Vec<super::link::LinkSpec>,
 }
 

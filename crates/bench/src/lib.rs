@@ -28,6 +28,23 @@ pub mod sample;
 pub mod server;
 pub mod sessions;
 
+/// The parser of a `--format` flag: `f32`, `f16`, `q16` or `q16r` (listed in `--help`).
+pub fn format_arg() -> impl clap::builder::TypedValueParser<Value = crowdmorph_proto::Format> {
+    use clap::builder::TypedValueParser;
+    clap::builder::PossibleValuesParser::new(["f32", "f16", "q16", "q16r"])
+        .try_map(|s| s.parse::<crowdmorph_proto::Format>())
+}
+
+/// The parser of `--mesh-fractions`: fractions of the triangles, comma-separated, or `none`.
+pub fn fractions_arg(s: &str) -> Result<Vec<f32>, String> {
+    if s == "none" {
+        return Ok(Vec::new());
+    }
+    s.split(',')
+        .map(|f| f.trim().parse::<f32>().map_err(|e| format!("{f:?}: {e}")))
+        .collect()
+}
+
 /// A progress bar on standard error for a benchmark of `len` steps (hidden when standard error
 /// is not a terminal, so JSON on standard output stays clean).
 pub fn progress_bar(len: u64, label: &str) -> indicatif::ProgressBar {

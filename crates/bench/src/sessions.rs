@@ -33,40 +33,62 @@ use super::server::{BenchServer, process_cpu};
 use crowdmorph_engine::BackendChoice;
 use crowdmorph_server::ServerConfig;
 
-/// What to measure.
-#[derive(Clone, Debug)]
+/// What to measure (also `crowdmorph bench sessions`' flags).
+#[derive(Clone, Debug, clap::Args)]
 pub struct SessionBenchOptions {
     /// Heads in the session.
+    #[arg(long, default_value_t = 1000)]
     pub heads: usize,
-    /// Distinct animations (clip and offset pairs) among them.
+    /// Distinct animations (clip and offset pairs) among the heads.
+    #[arg(long, default_value_t = 100)]
     pub animations: usize,
-    /// Viewers connected.
+    /// Viewers.
+    #[arg(long, default_value_t = 8)]
     pub viewers: usize,
     /// Ticks per second.
+    #[arg(long, default_value_t = 30.0)]
     pub fps: f32,
     /// Buffer format of every viewer.
+    #[arg(long, default_value = "q16", value_parser = super::format_arg())]
     pub format: Format,
     /// Seconds to measure (after one second of warm-up).
+    #[arg(long, default_value_t = 10.0)]
     pub seconds: f64,
     /// Engine.
+    #[arg(long, default_value = "auto")]
     pub backend: BackendChoice,
-    /// The server's `--max-gpu-memory` (`None`: the default).
+    /// The server's `--max-gpu-memory` (`None`: the default; the CLI's `--max-gpu-memory`).
+    #[arg(skip)]
     pub gpu_memory: Option<u64>,
-    /// The server's `--gpu-deltas`.
+    /// The server's `--gpu-deltas` (the CLI's `--gpu-deltas`).
+    #[arg(skip)]
     pub gpu_deltas: crowdmorph_engine::gpu::DeltaFormat,
-    /// Heads walk a motion graph over every clip (random walks, one seed per animation)
-    /// instead of playing clips.
+    /// Heads walk a motion graph over every clip (one random walk per animation) instead of
+    /// playing clips.
+    #[arg(long)]
     pub graph: bool,
-    /// Clips to upload to the rig first (`.csv` or `.json` files, named by file stem); the
-    /// heads then play these instead of the rig's own.
+    /// Upload these clips first (`.csv`/`.json` files in a folder, named by file stem) and
+    /// play them instead of the rig's own.
+    #[arg(long, value_name = "DIR")]
     pub clips: Option<std::path::PathBuf>,
-    /// Shaped links for [`bench_session_links`].
+    /// Instead: one viewer at a time per mode (f32, q16, temporal, compressed) on loopback
+    /// and over shaped links at these rates (comma-separated, e.g. 1gbit,100mbit; a network
+    /// namespace and a tbf-shaped veth pair each, removed at the end; needs root and
+    /// iproute2, else only loopback).
+    #[arg(long = "link", value_delimiter = ',', value_name = "RATES")]
     pub links: Vec<super::link::LinkSpec>,
-    /// The viewer modes [`bench_session_links`] measures (empty: all of [`VIEWER_MODES`]).
+    /// With --link: only these viewer modes (comma-separated: f32, q16, q16+zstd, temporal,
+    /// temporal+deflate, temporal+zstd; default all of [`VIEWER_MODES`]).
+    #[arg(long, value_delimiter = ',', value_name = "MODES")]
     pub modes: Vec<ViewerMode>,
-    /// Upload a smooth synthetic clip of this many frames over every target of the rig and
-    /// play it (after `clips`, if any): a rig without clips gets one, and a session can offer
-    /// more unique heads a tick than the rig's clips have frames.
+    /// Upload a smooth synthetic clip of this many frames over every target and play it
+    /// (after `clips`, if any): a rig without clips, such as ICT FaceKit, gets one, and a
+    /// session can offer more unique heads a tick than the rig's clips have frames.
+    #[arg(
+        long,
+        value_name = "FRAMES",
+        value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=100_000)
+    )]
     pub long_clip: Option<usize>,
 }
 
