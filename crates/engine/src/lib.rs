@@ -5,7 +5,7 @@
 //! | the crate root | what engines share ([`WeightBatch`], [`OutputSpec`], [`VertexData::encode`], [`code_residuals`]) |
 //! | `facade` | [`Engine`]: picks the backend, prepares rigs with their mesh and PCA levels, routes and pipelines batches, falls back to the CPU |
 //! | [`cpu`] | the CPU engine: the oracle and the no-GPU production engine |
-//! | [`gpu`] | the wgpu engine; its WGSL passes are in `shaders/` |
+//! | [`gpu`] | the wgpu engine, one file per job (context, rig upload, slots, batch plan, submit, passes, readback: its own map); its WGSL passes are in `shaders/` |
 //! | [`export`] | one blended frame written as OBJ or raw f32 (`crowdmorph eval`) |
 //! | [`render`] | rendered frames: scene layout, cost, the wgpu renderer, encoding, offline renders |
 //! | [`lod`] | level of detail: importance metrics and orders, reports, feature-preserving mesh levels, PCA levels of the deltas, the reference rasterizer |

@@ -1,0 +1,242 @@
+//! A batch cut into sub-batches and laid out on the device: jobs per sub-batch and each one's
+//! [`Region`] ([`plan_batch`]). A pure function of the batch's counts and the device's limits,
+//! so that the cut is tested without a device.
+//!
+//! Invariants: every job is in exactly one sub-batch, in order; each sub-batch's outputs, face
+//! normals, bone matrices and active lists fit one storage binding; ranges that a binding
+//! starts at (live weights, the reference, each sub-batch's bone matrices) are aligned to the
+//! device's storage offset alignment.
+
+use super::layout::{GpuJob, JOBS_PER_GROUP};
+
+/// Where each sub-batch's results sit in the staging buffer.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) struct Region {
+    /// First job of the sub-batch.
+    pub(super) job: usize,
+    /// Jobs in it.
+    pub(super) jobs: usize,
+    pub(super) positions: u64,
+    pub(super) normals: u64,
+    /// Byte offset and length of the live weights in the jobs buffer (the same for every
+    /// sub-batch).
+    pub(super) live: (u64, u64),
+    /// Byte offset and length of the sub-batch's bone matrices in the slot's bones buffer.
+    pub(super) bones: (u64, u64),
+    /// Byte offset and length of the residual reference in the jobs buffer, when the
+    /// positions are coded against one (the same for every sub-batch).
+    pub(super) reference: Option<(u64, u64)>,
+}
+
+/// What decides how a batch is cut into sub-batches ([`plan_batch`]).
+#[derive(Clone, Copy, Debug)]
+pub(super) struct BatchCounts {
+    /// Jobs in the batch.
+    pub(super) jobs: usize,
+    /// Vertices per job.
+    pub(super) vertices: u64,
+    /// The rig's LOD slots (the active lists hold eight weights per slot and group).
+    pub(super) slots: u32,
+    /// Triangles whose face normals are recomputed (0: none are).
+    pub(super) triangles: u64,
+    /// Bytes of one job's bone matrices (0 on a rig without a skeleton).
+    pub(super) bone_bytes: u64,
+    /// Live weights uploaded with the batch.
+    pub(super) live: usize,
+    /// Components of the residual reference, when positions are coded against one.
+    pub(super) reference: Option<usize>,
+    /// Whether normals are read back too.
+    pub(super) normals: bool,
+    /// Whether outputs are 16-bit (packed on the device).
+    pub(super) packed16: bool,
+}
+
+/// A batch's layout on the device: jobs per sub-batch, each sub-batch's [`Region`], where the
+/// live weights and the reference follow the job records, and the staging and bone bytes.
+#[derive(Debug, PartialEq)]
+pub(super) struct BatchPlan {
+    /// Jobs per sub-batch (the last may hold fewer).
+    pub(super) sub: usize,
+    /// One region per sub-batch, in job order.
+    pub(super) regions: Vec<Region>,
+    /// Byte offset of the live weights in the jobs buffer.
+    pub(super) live_at: u64,
+    /// Their bytes (at least one weight's).
+    pub(super) live_bytes: u64,
+    /// Byte offset of the residual reference in the jobs buffer.
+    pub(super) reference_at: u64,
+    /// Bytes of staging memory the read-back outputs take.
+    pub(super) staging: u64,
+    /// Bytes of the bone matrices' buffer.
+    pub(super) bones_at: u64,
+}
+
+/// Cuts a batch into sub-batches that each fit one binding of `max_binding` bytes (outputs,
+/// face normals, bone matrices, the active lists), in whole groups of eight jobs where that is
+/// at least one group, and lays out each sub-batch's staging and bone ranges (bone ranges at
+/// `align`, the device's storage offset alignment). A pure function of the counts, so that
+/// the cut is tested without a device.
+pub(super) fn plan_batch(c: &BatchCounts, max_binding: u64, align: u64) -> BatchPlan {
+    let n = c.jobs;
+    let v = c.vertices;
+    // The live weights follow the job records in the same buffer, at the first offset a
+    // storage binding may start at.
+    let live_at = ((n.max(1) * size_of::<GpuJob>()) as u64).next_multiple_of(align);
+    let live_bytes = (c.live.max(1) * 4) as u64;
+    // Then the residual reference, two q16 values a word.
+    let reference_at = (live_at + live_bytes).next_multiple_of(align);
+    let reference_range = c
+        .reference
+        .map(|r| (reference_at, (r as u64 * 2).next_multiple_of(4)));
+    let per_job_out = v * 12;
+    // Jobs per sub-batch: what one binding holds (outputs, face normals, bone matrices and
+    // the active lists' eight weights per slot and group), in whole groups where that is at
+    // least one group; a sub-batch may start mid-group, the passes do not mind.
+    let mut sub = max_binding / per_job_out.max(1);
+    sub = sub.min(max_binding / (u64::from(c.slots.max(1)) * 4));
+    if c.triangles > 0 {
+        sub = sub.min(max_binding / (c.triangles * 12));
+    }
+    if let Some(fit) = max_binding.checked_div(c.bone_bytes) {
+        sub = sub.min(fit);
+    }
+    let sub = sub.min(65_535) as usize;
+    let sub = if sub >= JOBS_PER_GROUP {
+        sub / JOBS_PER_GROUP * JOBS_PER_GROUP
+    } else {
+        sub.max(1)
+    };
+    let subs = n.div_ceil(sub).max(1);
+    let elem = if c.packed16 { 2 } else { 4 };
+    let mut regions = Vec::with_capacity(subs);
+    let mut staging = 0u64;
+    let mut bones_at = 0u64;
+    for k in 0..subs {
+        let job = k * sub;
+        let count = sub.min(n - job);
+        let bytes = (count as u64 * v * 3 * elem).next_multiple_of(4);
+        let positions = staging;
+        staging += bytes;
+        let normals = staging;
+        if c.normals {
+            staging += bytes;
+        }
+        let bones = (bones_at, (count as u64 * c.bone_bytes).max(16));
+        bones_at = (bones_at + bones.1).next_multiple_of(align);
+        regions.push(Region {
+            job,
+            jobs: count,
+            positions,
+            normals,
+            live: (live_at, live_bytes),
+            bones,
+            reference: reference_range,
+        });
+    }
+    BatchPlan {
+        sub,
+        regions,
+        live_at,
+        live_bytes,
+        reference_at,
+        staging,
+        bones_at,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn counts(jobs: usize) -> BatchCounts {
+        BatchCounts {
+            jobs,
+            vertices: 1000,
+            slots: 51,
+            triangles: 0,
+            bone_bytes: 0,
+            live: 0,
+            reference: None,
+            normals: false,
+            packed16: false,
+        }
+    }
+
+    /// Every job is in exactly one region, in order; the regions' staging ranges follow each
+    /// other and each sub-batch's outputs fit one binding.
+    fn check(c: &BatchCounts, max_binding: u64, align: u64) -> BatchPlan {
+        let p = plan_batch(c, max_binding, align);
+        let mut next_job = 0;
+        let mut next_staging = 0;
+        let elem = if c.packed16 { 2 } else { 4 };
+        for r in &p.regions {
+            assert_eq!(r.job, next_job, "{c:?}");
+            assert!(r.jobs >= 1 && r.jobs <= p.sub);
+            assert!(r.jobs as u64 * c.vertices * 12 <= max_binding.max(c.vertices * 12));
+            assert_eq!(r.positions, next_staging);
+            let bytes = (r.jobs as u64 * c.vertices * 3 * elem).next_multiple_of(4);
+            next_staging = r.positions + bytes * if c.normals { 2 } else { 1 };
+            assert_eq!(r.bones.0 % align, 0, "bone ranges start aligned");
+            next_job += r.jobs;
+        }
+        assert_eq!(next_job, c.jobs);
+        assert_eq!(p.staging, next_staging);
+        assert_eq!(p.live_at % align, 0);
+        assert_eq!(p.reference_at % align, 0);
+        assert!(p.reference_at >= p.live_at + p.live_bytes);
+        p
+    }
+
+    #[test]
+    fn a_batch_that_fits_one_binding_is_one_sub_batch() {
+        let p = check(&counts(100), 128 << 20, 256);
+        assert_eq!(p.regions.len(), 1);
+        assert_eq!(p.regions[0].jobs, 100);
+        assert_eq!(p.staging, 100 * 1000 * 12);
+    }
+
+    #[test]
+    fn a_batch_past_the_binding_is_cut_in_whole_groups() {
+        // 12,000 bytes a job: a 1 MiB binding holds 87 jobs, cut to 80 (ten groups of eight).
+        let p = check(&counts(1000), 1 << 20, 256);
+        assert_eq!(p.sub, 80);
+        assert_eq!(p.regions.len(), 13);
+        assert_eq!(p.regions.last().map(|r| r.jobs), Some(1000 - 12 * 80));
+        // 16-bit outputs with normals: half the bytes per output, two outputs each.
+        let c = BatchCounts {
+            packed16: true,
+            normals: true,
+            ..counts(1000)
+        };
+        let p = check(&c, 1 << 20, 256);
+        assert_eq!(p.staging, 2 * (1000 * 1000 * 3 * 2));
+    }
+
+    #[test]
+    fn face_normals_bones_and_small_bindings_bound_the_cut() {
+        // Recomputed face normals of 50,000 triangles: 600,000 bytes a job, one job a binding.
+        let c = BatchCounts {
+            triangles: 50_000,
+            ..counts(20)
+        };
+        let p = check(&c, 1 << 20, 256);
+        assert_eq!((p.sub, p.regions.len()), (1, 20));
+        // Bone matrices: each sub-batch's range aligned, and the buffer holds them all.
+        let c = BatchCounts {
+            bone_bytes: 5 * 48,
+            ..counts(300)
+        };
+        let p = check(&c, 1 << 20, 256);
+        let last = p.regions.last().expect("regions");
+        assert!(p.bones_at >= last.bones.0 + last.bones.1);
+        // A live row and a reference follow the job records, each at the alignment.
+        let c = BatchCounts {
+            live: 51 * 300,
+            reference: Some(3000),
+            ..counts(300)
+        };
+        let p = check(&c, 1 << 20, 256);
+        assert_eq!(p.live_bytes, 51 * 300 * 4);
+        assert_eq!(p.regions[0].reference, Some((p.reference_at, 6000)));
+    }
+}
