@@ -43,7 +43,7 @@
 //! | `rig` | the upload: [`GpuRig`] (geometry, topology, influences, LOD order) and [`ClipTables`] |
 //! | `batch` | a batch cut into sub-batches and laid out on the device (`plan_batch`, a pure function with unit tests) |
 //! | `submit` | [`GpuContext::submit`]: a batch's slot, uploads and commands |
-//! | `passes` | one sub-batch's compute passes (`GpuContext::record`) |
+//! | `passes` | one sub-batch's compute passes, one function per WGSL entry point |
 //! | `readback` | [`Readout`], [`Pending`]: waiting for a batch and reading it back ([`Readback`]), or keeping it on the device ([`DeviceOutput`]) |
 //! | [`layout`] | host-side layout of the delta blocks and the `#[repr(C)]` structs the shaders read |
 //! | `map` | [`MapResults`]: a batch's buffer mappings, collected whichever thread polls |
