@@ -1,6 +1,7 @@
 //! A batch cut into sub-batches and laid out on the device: jobs per sub-batch and each one's
-//! [`Region`] ([`plan_batch`]). A pure function of the batch's counts and the device's limits,
-//! so that the cut is tested without a device.
+//! [`Region`] ([`plan_batch`]), and what the batch needs of a slot ([`slot_needs`]). Pure
+//! functions of the batch's counts and the device's limits, so that the cut and the sizes are
+//! tested without a device.
 //!
 //! Invariants: every job is in exactly one sub-batch, in order; each sub-batch's outputs, face
 //! normals, bone matrices and active lists fit one storage binding; ranges that a binding
@@ -8,6 +9,7 @@
 //! device's storage offset alignment.
 
 use super::layout::{GpuJob, JOBS_PER_GROUP};
+use super::slot::SlotNeeds;
 
 /// Where each sub-batch's results sit in the staging buffer.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -144,6 +146,46 @@ pub(super) fn plan_batch(c: &BatchCounts, max_binding: u64, align: u64) -> Batch
     }
 }
 
+/// What a batch of `c`, cut as `plan` says, needs of a slot: buffers sized for the largest
+/// sub-batch it has (not for `sub`, which for a small rig may be thousands of jobs), and only
+/// for the outputs it asks for — no f32 stage where the blend writes the 16-bit output itself
+/// (`fused`), no staging without `readback`, timestamp queries only where the device has
+/// them (`timestamps`). Every pass writes only the jobs it was given, so outputs hold exactly
+/// those; the active lists are per group of eight. A pure function, as [`plan_batch`].
+pub(super) fn slot_needs(
+    c: &BatchCounts,
+    plan: &BatchPlan,
+    fused: bool,
+    readback: bool,
+    timestamps: bool,
+) -> SlotNeeds {
+    let widest = plan.sub.min(c.jobs.max(1)) as u64;
+    let output = widest * c.vertices * 12;
+    let f16 = c.packed16;
+    let reference_range = plan.regions.first().and_then(|r| r.reference);
+    SlotNeeds {
+        jobs: reference_range.map_or(plan.live_at + plan.live_bytes, |(at, len)| at + len),
+        active: widest.div_ceil(JOBS_PER_GROUP as u64) * u64::from(c.slots.max(1)) * 4,
+        // The blend writes the 16-bit output itself: no f32 stage.
+        output: if fused { 4 } else { output },
+        normals: if c.normals { output } else { 4 },
+        packed: if f16 { output / 2 + 4 } else { 4 },
+        packed_normals: if f16 && c.normals { output / 2 + 4 } else { 4 },
+        faces: if c.triangles > 0 {
+            widest * c.triangles * 12
+        } else {
+            4
+        },
+        staging: if readback { plan.staging } else { 4 },
+        bones: if c.bone_bytes > 0 { plan.bones_at } else { 4 },
+        queries: if timestamps {
+            2 * plan.regions.len() as u32
+        } else {
+            0
+        },
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -238,5 +280,52 @@ mod tests {
         let p = check(&c, 1 << 20, 256);
         assert_eq!(p.live_bytes, 51 * 300 * 4);
         assert_eq!(p.regions[0].reference, Some((p.reference_at, 6000)));
+    }
+
+    #[test]
+    fn a_slot_is_sized_for_the_widest_sub_batch_and_the_outputs_asked_for() {
+        // 20 jobs of a small rig: `sub` is thousands of jobs, the slot holds 20.
+        let c = counts(20);
+        let p = check(&c, 128 << 20, 256);
+        assert!(p.sub > 20);
+        let n = slot_needs(&c, &p, false, true, false);
+        assert_eq!(n.output, 20 * 1000 * 12);
+        assert_eq!(
+            (n.normals, n.packed, n.packed_normals, n.faces),
+            (4, 4, 4, 4)
+        );
+        assert_eq!((n.staging, n.bones, n.queries), (p.staging, 4, 0));
+        assert_eq!(n.jobs, p.live_at + p.live_bytes);
+        assert_eq!(n.active, 3 * 51 * 4, "three groups of eight jobs");
+        // Cut in sub-batches: the widest one, with timestamps two queries each.
+        let c = counts(1000);
+        let p = check(&c, 1 << 20, 256);
+        let n = slot_needs(&c, &p, false, true, true);
+        assert_eq!(n.output, 80 * 1000 * 12);
+        assert_eq!(n.queries, 2 * 13);
+    }
+
+    #[test]
+    fn a_slot_has_no_stage_a_batch_does_not_use() {
+        // 16-bit outputs the blend writes itself, with normals, recomputed, left on the device.
+        let c = BatchCounts {
+            packed16: true,
+            normals: true,
+            triangles: 2000,
+            reference: Some(3000),
+            ..counts(20)
+        };
+        let p = check(&c, 128 << 20, 256);
+        let n = slot_needs(&c, &p, true, false, false);
+        let output = 20 * 1000 * 12;
+        assert_eq!((n.output, n.normals), (4, output));
+        assert_eq!(
+            (n.packed, n.packed_normals),
+            (output / 2 + 4, output / 2 + 4)
+        );
+        assert_eq!(n.faces, 20 * 2000 * 12);
+        assert_eq!(n.staging, 4);
+        // The jobs buffer ends with the reference, after the live weights.
+        assert_eq!(n.jobs, p.reference_at + 6000);
     }
 }

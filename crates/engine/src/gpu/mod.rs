@@ -41,7 +41,7 @@
 //! | `context` | [`GpuContext`]: adapter choice, the device, its pipelines, memory budget and reclaimers, buffer helpers |
 //! | `slot` | a batch's buffers (`Slot`), what a batch needs of one, and their pool |
 //! | `rig` | the upload: [`GpuRig`] (geometry, topology, influences, LOD order) and [`ClipTables`] |
-//! | `batch` | a batch cut into sub-batches and laid out on the device (`plan_batch`, a pure function with unit tests) |
+//! | `batch` | a batch cut into sub-batches, laid out on the device and sized (`plan_batch`, `slot_needs`: pure functions with unit tests) |
 //! | `submit` | [`GpuContext::submit`]: a batch's slot, uploads and commands |
 //! | `passes` | one sub-batch's compute passes, one function per WGSL entry point |
 //! | `readback` | [`Readout`], [`Pending`]: waiting for a batch and reading it back ([`Readback`]), or keeping it on the device ([`DeviceOutput`]) |

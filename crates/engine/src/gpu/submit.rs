@@ -10,14 +10,13 @@
 use std::sync::Arc;
 
 use super::GpuError;
-use super::batch::{BatchCounts, BatchPlan, plan_batch};
+use super::batch::{BatchCounts, BatchPlan, plan_batch, slot_needs};
 use super::context::GpuContext;
 use super::device::padded;
-use super::layout::{GpuJob, JOBS_PER_GROUP};
+use super::layout::GpuJob;
 use super::map::MapResults;
 use super::readback::{DeviceOutput, Pending, Readout};
 use super::rig::GpuRig;
-use super::slot::SlotNeeds;
 use crate::{OutputSpec, Precision};
 use crowdmorph_core::rig::BoneMatrix;
 
@@ -71,31 +70,38 @@ impl GpuContext {
             .topology
             .as_ref()
             .map_or(0, |t| u64::from(t.n_triangles));
-        let BatchPlan {
-            sub,
-            regions,
-            live_at,
-            live_bytes,
-            reference_at,
-            staging,
-            bones_at,
-        } = plan_batch(
-            &BatchCounts {
-                jobs: n,
-                vertices: v,
-                slots: rig.slots,
-                triangles: if recompute { tris } else { 0 },
-                bone_bytes,
-                live: live.len(),
-                reference: reference.map(<[i16]>::len),
-                normals: spec.normals,
-                packed16,
-            },
+        let counts = BatchCounts {
+            jobs: n,
+            vertices: v,
+            slots: rig.slots,
+            triangles: if recompute { tris } else { 0 },
+            bone_bytes,
+            live: live.len(),
+            reference: reference.map(<[i16]>::len),
+            normals: spec.normals,
+            packed16,
+        };
+        let plan = plan_batch(
+            &counts,
             self.max_binding,
             u64::from(self.device.limits().min_storage_buffer_offset_alignment),
         );
+        let needs = slot_needs(
+            &counts,
+            &plan,
+            rig.blend_packs(spec),
+            readback,
+            self.timestamp_period.is_some(),
+        );
+        let BatchPlan {
+            regions,
+            live_at,
+            reference_at,
+            staging,
+            bones_at,
+            ..
+        } = plan;
         let subs = regions.len();
-        let reference_range = regions.first().and_then(|r| r.reference);
         let elem = if packed16 { 2 } else { 4 };
         if bones_at > self.max_buffer {
             return Err(GpuError::DoesNotFit(format!(
@@ -107,35 +113,6 @@ impl GpuContext {
                 "batch output of {staging} bytes exceeds the device's largest buffer"
             )));
         }
-        // Buffers are sized for the largest sub-batch this batch has (not for `sub`, which for
-        // a small rig may be thousands of jobs), and only for the outputs it asks for.
-        // Every pass writes only the jobs it was given, so outputs hold exactly those; the
-        // active lists are per group of eight.
-        let widest = sub.min(n.max(1)) as u64;
-        let output = widest * per_job_out;
-        let f16 = packed16;
-        let needs = SlotNeeds {
-            jobs: reference_range.map_or(live_at + live_bytes, |(at, len)| at + len),
-            active: widest.div_ceil(JOBS_PER_GROUP as u64) * u64::from(rig.slots.max(1)) * 4,
-            // The blend writes the 16-bit output itself: no f32 stage.
-            output: if rig.blend_packs(spec) { 4 } else { output },
-            normals: if spec.normals { output } else { 4 },
-            packed: if f16 { output / 2 + 4 } else { 4 },
-            packed_normals: if f16 && spec.normals {
-                output / 2 + 4
-            } else {
-                4
-            },
-            faces: if recompute { widest * tris * 12 } else { 4 },
-            staging: if readback { staging } else { 4 },
-            bones: if bone_bytes > 0 { bones_at } else { 4 },
-            // Timestamp queries only where the device has them.
-            queries: if self.timestamp_period.is_some() {
-                2 * subs as u32
-            } else {
-                0
-            },
-        };
         // Slot buffers are the big allocations of a batch: an out-of-memory error here is
         // reported as such (the engine then falls back to the CPU), not as a bug.
         let oom = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
@@ -145,7 +122,7 @@ impl GpuContext {
         let resident = if readback {
             None
         } else {
-            if f16 {
+            if packed16 {
                 return Err(GpuError::Internal(
                     "device-resident outputs are f32 (they are drawn as vertex buffers)".into(),
                 ));
