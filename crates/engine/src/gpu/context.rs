@@ -251,11 +251,6 @@ impl GpuContext {
         &self.device
     }
 
-    /// Largest storage binding the engine uses.
-    pub fn max_binding(&self) -> u64 {
-        self.max_binding
-    }
-
     /// Whether GPU times are measured.
     pub fn has_timestamps(&self) -> bool {
         self.timestamp_period.is_some()
