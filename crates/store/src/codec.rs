@@ -69,11 +69,54 @@ pub fn to_stored_writer<T: Serialize, W: std::io::Write>(
         .map_err(|e| CodecError::Stored(e.to_string()))
 }
 
+/// Length of [`to_stored`]'s encoding of `value`, without holding it: the value is encoded
+/// into a counter (a section's length is written before its bytes, and a rig's section is
+/// too big to encode twice into memory).
+pub fn stored_len<T: Serialize>(value: &T) -> Result<u64, CodecError> {
+    struct Count(u64);
+    impl std::io::Write for Count {
+        fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+            self.0 += buf.len() as u64;
+            Ok(buf.len())
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+    let mut count = Count(0);
+    to_stored_writer(value, &mut count)?;
+    Ok(count.0)
+}
+
+/// [`from_stored`] with decode limit `LIMIT`.
+fn decode_stored<T: DeserializeOwned, const LIMIT: usize>(
+    bytes: &[u8],
+) -> Result<(T, usize), bincode::error::DecodeError> {
+    let cfg = bincode::config::standard().with_limit::<LIMIT>();
+    bincode::serde::decode_from_slice(bytes, cfg)
+}
+
 /// Decodes a record read from the store; the whole slice must be one record.
+///
+/// bincode allocates a string or byte buffer of the length it reads before it reads the bytes,
+/// up to its decode limit; through serde nothing else claims memory, and a string's bytes are
+/// in the record, so a limit of the record's length rounded up to a power of 16 (at least
+/// 1 MiB, at most [`STORED_DECODE_LIMIT`]) refuses no valid record, and a damaged length
+/// allocates no more than that limit, not gigabytes.
 pub fn from_stored<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, CodecError> {
-    let cfg = bincode::config::standard().with_limit::<STORED_DECODE_LIMIT>();
-    let (value, used) = bincode::serde::decode_from_slice(bytes, cfg)
-        .map_err(|e| CodecError::Stored(e.to_string()))?;
+    let n = bytes.len();
+    let decoded = if n <= 1 << 20 {
+        decode_stored::<T, { 1 << 20 }>(bytes)
+    } else if n <= 1 << 24 {
+        decode_stored::<T, { 1 << 24 }>(bytes)
+    } else if n <= 1 << 28 {
+        decode_stored::<T, { 1 << 28 }>(bytes)
+    } else if n <= 1 << 32 {
+        decode_stored::<T, { 1 << 32 }>(bytes)
+    } else {
+        decode_stored::<T, STORED_DECODE_LIMIT>(bytes)
+    };
+    let (value, used) = decoded.map_err(|e| CodecError::Stored(e.to_string()))?;
     if used != bytes.len() {
         return Err(CodecError::Stored(format!(
             "{} bytes after the record",
@@ -513,5 +556,21 @@ mod tests {
         longer.push(0);
         assert!(from_stored::<Vec<crowdmorph_core::rig::Clip>>(&longer).is_err());
         assert!(from_stored::<Vec<crowdmorph_core::rig::Clip>>(&bytes[..bytes.len() / 2]).is_err());
+        assert_eq!(stored_len(&clips).expect("count"), bytes.len() as u64);
+    }
+
+    /// A length that claims more than the record could hold is refused before it is
+    /// allocated; one that fits is read.
+    #[test]
+    fn stored_lengths_past_the_limit_are_refused_before_allocating() {
+        let name = "x".repeat(300);
+        let bytes = to_stored(&name).expect("encode");
+        assert_eq!(from_stored::<String>(&bytes).expect("decode"), name);
+        // A string of 2^32 - 1 bytes in a record of 5: refused as over the limit, where an
+        // allocation of 4 GiB would otherwise come first.
+        let mut huge = vec![252u8];
+        huge.extend_from_slice(&u32::MAX.to_le_bytes());
+        let e = from_stored::<String>(&huge).expect_err("refused");
+        assert!(e.to_string().to_lowercase().contains("limit"), "{e}");
     }
 }
