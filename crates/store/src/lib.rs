@@ -7,6 +7,7 @@
 //! | [`codec`] | the one bincode user: wire messages, stored records, `FrameResponseEncoder` |
 //! | the crate root | the data dir: one checksummed, atomically replaced record per rig, plus clip files |
 //! | [`objects`] | the shared store of `serve --store`: immutable objects and a manifest per generation, repairs, LOD claims |
+//! | `sections` | the payload of records since kind 12: tagged sections (`tag, length, bytes`), checked before anything is decoded |
 //!
 //! # The data dir
 //!
@@ -29,18 +30,42 @@
 //! | bytes | what |
 //! |---|---|
 //! | 8 | magic `CMSTORE1` |
-//! | 4 | record kind: 6 = a whole rig, 9 = a whole rig with a skeleton, 10 = the same with its own joint map, 7 = extra clips and the LOD of a built-in rig, 8 = clips added to a rig, 11 = clips with joint tables added to a rig; read but no longer written: 5 and 1 (a rig with and without base colours), 3 and 2 (a built-in rig's clips with and without its LOD), 4 (clips added to a rig), which hold their clips as plain tables |
+//! | 4 | record kind: 12 = a rig, 13 = the extra clips and LOD of a built-in rig, 14 = clips added to a rig, each a payload of sections (below); read but no longer written (the legacy kinds, one whole value each): 6 = a rig, 9 = a rig with a skeleton, 10 = the same with its own joint map, 7 = a built-in rig's clips and LOD, 8 = clips added to a rig, 11 = the same with joint tables, and, with their clips as plain tables, 5 and 1 (a rig with and without base colours), 3 and 2 (a built-in rig's clips with and without its LOD), 4 (clips added to a rig) |
 //! | 8 | payload length `n` |
 //! | 4 | CRC-32 (IEEE) of the payload |
-//! | n | payload: the record encoded by [`crate::codec`] |
+//! | n | payload: kinds 12–14, sections; legacy kinds, the record encoded by [`crate::codec`] |
+//!
+//! **Sections** (kinds 12–14). Each kind of record was once a new kind per feature (a rig,
+//! then a rig with a skeleton, then with its own joint map...); the payload is now a sequence
+//! of sections, `tag: u32, length: u64, bytes` (little-endian), each section's bytes one value
+//! encoded by [`crate::codec`], in any order, each tag at most once. A record holds the
+//! required sections of its kind and the others its rig has; the next feature is a new
+//! section, not a new kind. The kind still says what the record is (a rig, a built-in rig's
+//! clips, a clip file), as in the legacy kinds. Bit 31 of a tag marks a section that a reader
+//! which does not know it may skip (a later build's addition that an older build can do
+//! without); an unknown tag without it makes the record unreadable, and so does a missing
+//! required section, a tag seen twice, a known tag of another kind of record, or a length
+//! past the payload's end (checked before anything is decoded or allocated). Every tag
+//! below has bit 31 clear, as this build knows them all:
+//!
+//! | tag | section | in kinds | present |
+//! |---|---|---|---|
+//! | 1 | the registry id | 12, 13, 14 | always (required) |
+//! | 2 | the clip file's sequence number | 14 | always (required) |
+//! | 3 | the rig: name, targets, default weights, primitives, their base colours, LOD table (JSON) | 12 | always (required) |
+//! | 4 | the record's clips, each its plain table or compressed (below) | 12, 13, 14 | always (required; may be empty) |
+//! | 5 | the joint tables of the record's clips, by clip name | 12, 13, 14 | when one of its clips has a table |
+//! | 6 | the skin: skeleton, each primitive's influences, the import's notes | 12 | when the rig has a skeleton |
+//! | 7 | the rig's own joint map | 12 | when its skeleton has one (never without 6) |
+//! | 8 | a built-in rig's LOD (JSON) and the [`geometry_fingerprint`] it was built for | 13 | always written; a record without it has no LOD (as kind 2) |
 //!
 //! A file whose magic, length, checksum or payload is wrong is reported and skipped by
 //! [`Store::load_all`]; nothing of it is loaded. Loaded rigs are re-validated with
 //! [`Rig::validate`] so that a record from an older build that no longer satisfies the
 //! invariants is skipped too.
 //!
-//! **Compressed clips** (`serve --compress-clips E`, [`Store::compress_clips`]). Kinds 6–8 hold
-//! each clip either as its plain table or curve-coded by [`crowdmorph_anim::compress`] within `E ×` the
+//! **Compressed clips** (`serve --compress-clips E`, [`Store::compress_clips`]). Kinds 6–11
+//! and section 4 hold each clip either as its plain table or curve-coded by [`crowdmorph_anim::compress`] within `E ×` the
 //! rig's diagonal. The server puts a clip into that form as it arrives
 //! ([`crowdmorph_anim::compress::stored_form`]), so the clip it plays is the one the record decodes to,
 //! before and after a restart; the writer compresses only a clip that is already in that form
@@ -51,6 +76,7 @@
 
 pub mod codec;
 pub mod objects;
+mod sections;
 
 use std::fs::{self, File};
 use std::io::{Seek, Write};
@@ -60,6 +86,8 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use serde::{Deserialize, Serialize};
 
 use crowdmorph_core::rig::{Clip, Influences, JointMap, JointTable, Lod, Rig, Skeleton};
+
+use sections::{Known, Sections};
 
 const MAGIC: &[u8; 8] = b"CMSTORE1";
 const HEADER: usize = 8 + 4 + 8 + 4;
@@ -81,6 +109,67 @@ const KIND_RIG_SKINNED_V9: u32 = 9;
 const KIND_RIG_SKINNED_MAP_V10: u32 = 10;
 /// Kind 8 followed by the clips' joint tables by name (clips without any are still kind 8).
 const KIND_CLIPS_JOINTS_V11: u32 = 11;
+/// A rig as sections: [`RIG_SECTIONS`] (written for every rig since; replaces 6, 9 and 10).
+const KIND_RIG_SECTIONS: u32 = 12;
+/// A built-in rig's clips and LOD as sections: [`BUILTIN_SECTIONS`] (replaces 7).
+const KIND_BUILTIN_SECTIONS: u32 = 13;
+/// Clips added to a rig as sections: [`CLIPS_SECTIONS`] (replaces 8 and 11).
+const KIND_CLIPS_SECTIONS: u32 = 14;
+
+/// The registry id (`String`).
+const S_ID: Known = Known {
+    tag: 1,
+    name: "id",
+    required: true,
+};
+/// A clip file's sequence number (`u64`).
+const S_SEQ: Known = Known {
+    tag: 2,
+    name: "sequence number",
+    required: true,
+};
+/// The rig without its clips and skeleton: [`RigSectionRef`].
+const S_RIG: Known = Known {
+    tag: 3,
+    name: "rig",
+    required: true,
+};
+/// The record's clips, each a [`ClipRecord`] (an empty list when it holds none).
+const S_CLIPS: Known = Known {
+    tag: 4,
+    name: "clips",
+    required: true,
+};
+/// The joint tables of the record's clips by clip name, when one has a table.
+const S_CLIP_JOINTS: Known = Known {
+    tag: 5,
+    name: "joint tables",
+    required: false,
+};
+/// The skeleton of a rig that has one: [`SkinSectionRef`].
+const S_SKIN: Known = Known {
+    tag: 6,
+    name: "skin",
+    required: false,
+};
+/// The rig's own [`JointMap`], when its skeleton has one (only beside [`S_SKIN`]).
+const S_JOINT_MAP: Known = Known {
+    tag: 7,
+    name: "joint map",
+    required: false,
+};
+/// A built-in rig's LOD and the geometry it was built for: [`LodSection`].
+const S_LOD: Known = Known {
+    tag: 8,
+    name: "LOD",
+    required: false,
+};
+/// The sections of kind 12.
+const RIG_SECTIONS: &[Known] = &[S_ID, S_RIG, S_CLIPS, S_CLIP_JOINTS, S_SKIN, S_JOINT_MAP];
+/// The sections of kind 13.
+const BUILTIN_SECTIONS: &[Known] = &[S_ID, S_CLIPS, S_CLIP_JOINTS, S_LOD];
+/// The sections of kind 14.
+const CLIPS_SECTIONS: &[Known] = &[S_ID, S_SEQ, S_CLIPS, S_CLIP_JOINTS];
 /// Extension of record files.
 pub const EXT: &str = "cmrig";
 /// Extension of clip files.
@@ -166,31 +255,6 @@ pub enum RecordRef<'a> {
     },
 }
 
-/// Borrowed mirrors of the stored records: same fields in the same order, so the same bytes.
-#[derive(Serialize)]
-struct StoredRigRef<'a> {
-    id: &'a str,
-    rig: RigRecordRef<'a>,
-}
-
-/// Kind 9: kind 6 and what a rig with a skeleton adds (serde skips it inside the rig).
-#[derive(Serialize)]
-struct StoredSkinnedRef<'a> {
-    id: &'a str,
-    rig: RigRecordRef<'a>,
-    skin: SkinRecordRef<'a>,
-}
-
-/// The skeleton, each primitive's influences, and the joint tables of the record's clips by
-/// clip name (a compressed clip that does not decode is skipped alone, so not by position).
-#[derive(Serialize)]
-struct SkinRecordRef<'a> {
-    skeleton: &'a Skeleton,
-    influences: Vec<Option<&'a Influences>>,
-    clip_joints: Vec<(&'a str, &'a JointTable)>,
-    notes: &'a [String],
-}
-
 #[derive(Deserialize)]
 struct SkinRecord {
     skeleton: Skeleton,
@@ -200,6 +264,45 @@ struct SkinRecord {
 }
 
 impl SkinRecord {
+    /// Puts the skeleton, the clips' joint tables, and its own joint map if it had one, back
+    /// into `rig` (validated by the caller).
+    fn apply(self, rig: &mut Rig, map: Option<JointMap>) -> Result<(), String> {
+        let SkinRecord {
+            skeleton,
+            influences,
+            clip_joints,
+            notes,
+        } = self;
+        SkinSection {
+            skeleton,
+            influences,
+            notes,
+        }
+        .apply(rig, map)?;
+        attach_joint_tables(&mut rig.clips, clip_joints);
+        Ok(())
+    }
+}
+
+/// Section [`S_SKIN`]: the skeleton, each primitive's influences (serde skips them inside the
+/// rig) and the import's notes, which are stored with a skeleton only (as [`Rig::import_notes`]
+/// says).
+#[derive(Serialize)]
+struct SkinSectionRef<'a> {
+    skeleton: &'a Skeleton,
+    influences: Vec<Option<&'a Influences>>,
+    notes: &'a [String],
+}
+
+/// Owned mirror of [`SkinSectionRef`].
+#[derive(Deserialize)]
+struct SkinSection {
+    skeleton: Skeleton,
+    influences: Vec<Option<Influences>>,
+    notes: Vec<String>,
+}
+
+impl SkinSection {
     /// Puts the skeleton, and its own joint map if it had one, back into `rig` (validated by
     /// the caller).
     fn apply(self, rig: &mut Rig, map: Option<JointMap>) -> Result<(), String> {
@@ -215,17 +318,29 @@ impl SkinRecord {
             p.skin = i;
         }
         rig.primitives = std::sync::Arc::new(prims);
-        let mut tables: std::collections::HashMap<String, JointTable> =
-            self.clip_joints.into_iter().collect();
-        for c in &mut rig.clips {
-            c.joints = tables.remove(&c.name).map(std::sync::Arc::new);
-        }
         let mut skeleton = self.skeleton;
         skeleton.map = map;
         rig.skeleton = Some(std::sync::Arc::new(skeleton));
         rig.import_notes = self.notes;
         Ok(())
     }
+}
+
+/// Gives each of `clips` its joint table from `tables` (by clip name: a compressed clip that
+/// does not decode is skipped alone, so not by position).
+fn attach_joint_tables(clips: &mut [Clip], tables: Vec<(String, JointTable)>) {
+    let mut tables: std::collections::HashMap<String, JointTable> = tables.into_iter().collect();
+    for c in clips {
+        c.joints = tables.remove(&c.name).map(std::sync::Arc::new);
+    }
+}
+
+/// The joint tables of `clips` by clip name (section [`S_CLIP_JOINTS`], and kinds 9–11).
+fn joint_tables(clips: &[Clip]) -> Vec<(&str, &JointTable)> {
+    clips
+        .iter()
+        .filter_map(|c| c.joints.as_deref().map(|t| (c.name.as_str(), t)))
+        .collect()
 }
 
 #[derive(Deserialize)]
@@ -236,14 +351,6 @@ struct StoredSkinnedOwned {
 }
 
 /// Kind 10: kind 9 and the rig's own joint map.
-#[derive(Serialize)]
-struct StoredSkinnedMapRef<'a> {
-    id: &'a str,
-    rig: RigRecordRef<'a>,
-    skin: SkinRecordRef<'a>,
-    map: &'a JointMap,
-}
-
 #[derive(Deserialize)]
 struct StoredSkinnedMapOwned {
     id: String,
@@ -252,7 +359,7 @@ struct StoredSkinnedMapOwned {
     map: JointMap,
 }
 
-/// One clip in a kind 6–8 record.
+/// One clip in a kind 6–8 record, and in section [`S_CLIPS`].
 #[derive(Deserialize)]
 enum ClipRecord {
     /// The table as it is.
@@ -292,7 +399,7 @@ fn clip_records<'a>(
         .collect()
 }
 
-/// The clips of a kind 6–8 record, decoded; a compressed one that does not decode is left out
+/// The clips of a kind 6–8 record or of section [`S_CLIPS`], decoded; a compressed one that does not decode is left out
 /// and its reason added to `skipped`.
 fn decode_clips(
     records: Vec<ClipRecord>,
@@ -334,19 +441,6 @@ struct RigRecord {
     primitives: Vec<crowdmorph_core::rig::Primitive>,
     clips: Vec<Clip>,
     lod_json: String,
-}
-
-/// The borrowed mirror of [`RigRecordV6`] used for writing.
-#[derive(Serialize)]
-struct RigRecordRef<'a> {
-    name: &'a str,
-    targets: &'a [String],
-    default_weights: &'a [f32],
-    primitives: &'a [crowdmorph_core::rig::Primitive],
-    clips: Vec<ClipRecordRef<'a>>,
-    lod_json: String,
-    /// Per primitive (kind 5 on): serde skips it inside [`crowdmorph_core::rig::Primitive`].
-    base_colors: Vec<[f32; 4]>,
 }
 
 /// Kind 6: kind 5 with [`ClipRecord`]s.
@@ -410,31 +504,201 @@ struct StoredRigColorsOwned {
     rig: RigRecordColors,
 }
 
-impl<'a> RigRecordRef<'a> {
-    /// The record of `rig` holding `clips` (the rest of its clips are in clip files).
-    fn new(rig: &'a Rig, clips: &'a [Clip], max_error: Option<f32>) -> Result<Self, StoreError> {
-        // Exhaustive on purpose: a new Rig field must be added to the stored record.
+/// Section [`S_RIG`]: a rig without its clips ([`S_CLIPS`]) and skeleton ([`S_SKIN`]). The
+/// LOD table goes as JSON for the reason given at [`RigRecord`].
+#[derive(Serialize)]
+struct RigSectionRef<'a> {
+    name: &'a str,
+    targets: &'a [String],
+    default_weights: &'a [f32],
+    primitives: &'a [crowdmorph_core::rig::Primitive],
+    lod_json: String,
+    /// Per primitive: serde skips it inside [`crowdmorph_core::rig::Primitive`].
+    base_colors: Vec<[f32; 4]>,
+}
+
+/// Owned mirror of [`RigSectionRef`].
+#[derive(Deserialize)]
+struct RigSection {
+    name: String,
+    targets: Vec<String>,
+    default_weights: Vec<f32>,
+    primitives: Vec<crowdmorph_core::rig::Primitive>,
+    lod_json: String,
+    base_colors: Vec<[f32; 4]>,
+}
+
+impl<'a> RigSectionRef<'a> {
+    fn new(rig: &'a Rig) -> Result<Self, StoreError> {
+        // Exhaustive on purpose: a new Rig field must be added to the stored record (as a
+        // field here or, better, a section of its own).
         let Rig {
             name,
             targets,
             default_weights,
             primitives,
+            // Section `S_CLIPS` (and clip files).
             clips: _,
             lod,
-            // Kind 9's `SkinRecordRef`.
+            // Sections `S_SKIN` and `S_JOINT_MAP`.
             skeleton: _,
+            // In `S_SKIN`.
             import_notes: _,
         } = rig;
-        Ok(RigRecordRef {
+        Ok(RigSectionRef {
             name,
             targets,
             default_weights,
             primitives: primitives.as_slice(),
-            clips: clip_records(clips, rig, max_error)?,
             lod_json: lod_to_json(lod)?,
             base_colors: primitives.iter().map(|p| p.base_color).collect(),
         })
     }
+}
+
+/// Section [`S_LOD`]: a built-in rig's LOD (JSON, see [`RigRecord`]) and the
+/// [`geometry_fingerprint`] of the rig it was built for.
+#[derive(Serialize, Deserialize)]
+struct LodSection {
+    lod_json: String,
+    geometry: u32,
+}
+
+/// Writes section [`S_CLIPS`] of `clips` (as a store with `max_error` does), and
+/// [`S_CLIP_JOINTS`] when one of them has a joint table.
+fn write_clip_sections(
+    w: &mut impl Write,
+    clips: &[Clip],
+    rig: &Rig,
+    max_error: Option<f32>,
+) -> Result<(), StoreError> {
+    sections::write(w, S_CLIPS.tag, &clip_records(clips, rig, max_error)?)
+        .map_err(StoreError::Encode)?;
+    let tables = joint_tables(clips);
+    if !tables.is_empty() {
+        sections::write(w, S_CLIP_JOINTS.tag, &tables).map_err(StoreError::Encode)?;
+    }
+    Ok(())
+}
+
+/// Writes the sections of `record` (kinds 12–14) and says which kind it is.
+fn write_sections(
+    w: &mut impl Write,
+    record: RecordRef<'_>,
+    max_error: Option<f32>,
+) -> Result<u32, StoreError> {
+    let enc = StoreError::Encode;
+    Ok(match record {
+        RecordRef::Rig { id, rig, clips } => {
+            sections::write(w, S_ID.tag, &id).map_err(enc)?;
+            sections::write(w, S_RIG.tag, &RigSectionRef::new(rig)?).map_err(enc)?;
+            write_clip_sections(w, clips, rig, max_error)?;
+            if let Some(skeleton) = rig.skeleton.as_deref() {
+                let skin = SkinSectionRef {
+                    skeleton,
+                    influences: rig.primitives.iter().map(|p| p.skin.as_ref()).collect(),
+                    notes: &rig.import_notes,
+                };
+                sections::write(w, S_SKIN.tag, &skin).map_err(enc)?;
+                if let Some(map) = &skeleton.map {
+                    sections::write(w, S_JOINT_MAP.tag, map).map_err(enc)?;
+                }
+            }
+            KIND_RIG_SECTIONS
+        }
+        RecordRef::Builtin { id, clips, rig } => {
+            sections::write(w, S_ID.tag, &id).map_err(enc)?;
+            write_clip_sections(w, clips, rig, max_error)?;
+            let lod = LodSection {
+                lod_json: lod_to_json(&rig.lod)?,
+                geometry: geometry_fingerprint(rig),
+            };
+            sections::write(w, S_LOD.tag, &lod).map_err(enc)?;
+            KIND_BUILTIN_SECTIONS
+        }
+        RecordRef::Clips {
+            id,
+            seq,
+            clips,
+            rig,
+        } => {
+            sections::write(w, S_ID.tag, &id).map_err(enc)?;
+            sections::write(w, S_SEQ.tag, &seq).map_err(enc)?;
+            write_clip_sections(w, clips, rig, max_error)?;
+            KIND_CLIPS_SECTIONS
+        }
+    })
+}
+
+/// Reads a kind 12 payload: a rig (its id and invariants are checked by the caller).
+fn read_rig_sections(
+    payload: &[u8],
+    file: &Path,
+    skipped: &mut Vec<String>,
+) -> Result<StoredRig, String> {
+    let mut s = Sections::parse(payload, "rig record", RIG_SECTIONS)?;
+    let id: String = s.require(S_ID)?;
+    let r: RigSection = s.require(S_RIG)?;
+    let clips: Vec<ClipRecord> = s.require(S_CLIPS)?;
+    let tables: Option<Vec<(String, JointTable)>> = s.take(S_CLIP_JOINTS)?;
+    let skin: Option<SkinSection> = s.take(S_SKIN)?;
+    let map: Option<JointMap> = s.take(S_JOINT_MAP)?;
+    let clips = decode_clips(clips, Some(r.targets.len()), file, skipped);
+    let mut rig = RigRecordColors {
+        name: r.name,
+        targets: r.targets,
+        default_weights: r.default_weights,
+        primitives: r.primitives,
+        clips,
+        lod_json: r.lod_json,
+        base_colors: r.base_colors,
+    }
+    .into_rig()?;
+    attach_joint_tables(&mut rig.clips, tables.unwrap_or_default());
+    match skin {
+        Some(skin) => skin.apply(&mut rig, map)?,
+        None if map.is_some() => {
+            return Err("rig record: a joint map section without a skin section".into());
+        }
+        None => {}
+    }
+    Ok(StoredRig { id, rig })
+}
+
+/// Reads a kind 13 payload: a built-in rig's clips and LOD.
+fn read_builtin_sections(
+    payload: &[u8],
+    file: &Path,
+    skipped: &mut Vec<String>,
+) -> Result<StoredBuiltin, String> {
+    let mut s = Sections::parse(payload, "built-in rig record", BUILTIN_SECTIONS)?;
+    let id: String = s.require(S_ID)?;
+    let clips: Vec<ClipRecord> = s.require(S_CLIPS)?;
+    let tables: Option<Vec<(String, JointTable)>> = s.take(S_CLIP_JOINTS)?;
+    let lod: Option<LodSection> = s.take(S_LOD)?;
+    let mut clips = decode_clips(clips, None, file, skipped);
+    attach_joint_tables(&mut clips, tables.unwrap_or_default());
+    let lod = match lod {
+        Some(l) => Some((lod_from_json(&l.lod_json)?, l.geometry)),
+        None => None,
+    };
+    Ok(StoredBuiltin { id, clips, lod })
+}
+
+/// Reads a kind 14 payload: clips added to a rig.
+fn read_clips_sections(
+    payload: &[u8],
+    file: &Path,
+    skipped: &mut Vec<String>,
+) -> Result<StoredClipsOwned, String> {
+    let mut s = Sections::parse(payload, "clip file", CLIPS_SECTIONS)?;
+    let id: String = s.require(S_ID)?;
+    let seq: u64 = s.require(S_SEQ)?;
+    let clips: Vec<ClipRecord> = s.require(S_CLIPS)?;
+    let tables: Option<Vec<(String, JointTable)>> = s.take(S_CLIP_JOINTS)?;
+    let mut clips = decode_clips(clips, None, file, skipped);
+    attach_joint_tables(&mut clips, tables.unwrap_or_default());
+    Ok(StoredClipsOwned { id, seq, clips })
 }
 
 /// The LOD table as stored (JSON, see [`RigRecord`]).
@@ -476,15 +740,6 @@ struct StoredClipsV2 {
 
 /// Kind 7 (kind 3 with [`ClipRecord`]s). The LOD goes as JSON for the reason given at
 /// [`RigRecord`].
-#[derive(Serialize)]
-struct StoredBuiltinRef<'a> {
-    id: &'a str,
-    clips: Vec<ClipRecordRef<'a>>,
-    lod_json: String,
-    geometry: u32,
-}
-
-/// Owned mirror of [`StoredBuiltinRef`].
 #[derive(Deserialize)]
 struct StoredBuiltinV7Owned {
     id: String,
@@ -503,13 +758,6 @@ struct StoredBuiltinOwned {
 }
 
 /// Kind 8: clips added to a rig.
-#[derive(Serialize)]
-struct StoredClipsRef<'a> {
-    id: &'a str,
-    seq: u64,
-    clips: Vec<ClipRecordRef<'a>>,
-}
-
 #[derive(Deserialize)]
 struct StoredClipsV8Owned {
     id: String,
@@ -518,14 +766,6 @@ struct StoredClipsV8Owned {
 }
 
 /// Kind 11: kind 8 and its clips' joint tables by clip name.
-#[derive(Serialize)]
-struct StoredClipsJointsRef<'a> {
-    id: &'a str,
-    seq: u64,
-    clips: Vec<ClipRecordRef<'a>>,
-    clip_joints: Vec<(&'a str, &'a JointTable)>,
-}
-
 #[derive(Deserialize)]
 struct StoredClipsJointsOwned {
     id: String,
@@ -705,85 +945,7 @@ impl Store {
             w.inner
                 .write_all(&[0u8; HEADER])
                 .map_err(io("write", &tmp))?;
-            let kind = match record {
-                RecordRef::Rig { id, rig, clips } => {
-                    let record = RigRecordRef::new(rig, clips, self.clip_error)?;
-                    if let Some(skeleton) = rig.skeleton.as_deref() {
-                        let skin = SkinRecordRef {
-                            skeleton,
-                            influences: rig.primitives.iter().map(|p| p.skin.as_ref()).collect(),
-                            clip_joints: clips
-                                .iter()
-                                .filter_map(|c| c.joints.as_deref().map(|t| (c.name.as_str(), t)))
-                                .collect(),
-                            notes: &rig.import_notes,
-                        };
-                        if let Some(map) = &skeleton.map {
-                            let r = StoredSkinnedMapRef {
-                                id,
-                                rig: record,
-                                skin,
-                                map,
-                            };
-                            codec::to_stored_writer(&r, &mut w)
-                                .map_err(|e| StoreError::Encode(e.to_string()))?;
-                            KIND_RIG_SKINNED_MAP_V10
-                        } else {
-                            let r = StoredSkinnedRef {
-                                id,
-                                rig: record,
-                                skin,
-                            };
-                            codec::to_stored_writer(&r, &mut w)
-                                .map_err(|e| StoreError::Encode(e.to_string()))?;
-                            KIND_RIG_SKINNED_V9
-                        }
-                    } else {
-                        let r = StoredRigRef { id, rig: record };
-                        codec::to_stored_writer(&r, &mut w)
-                            .map_err(|e| StoreError::Encode(e.to_string()))?;
-                        KIND_RIG_V6
-                    }
-                }
-                RecordRef::Builtin { id, clips, rig } => {
-                    let r = StoredBuiltinRef {
-                        id,
-                        clips: clip_records(clips, rig, self.clip_error)?,
-                        lod_json: lod_to_json(&rig.lod)?,
-                        geometry: geometry_fingerprint(rig),
-                    };
-                    codec::to_stored_writer(&r, &mut w)
-                        .map_err(|e| StoreError::Encode(e.to_string()))?;
-                    KIND_BUILTIN_V7
-                }
-                RecordRef::Clips {
-                    id,
-                    seq,
-                    clips,
-                    rig,
-                } => {
-                    let clip_joints: Vec<(&str, &JointTable)> = clips
-                        .iter()
-                        .filter_map(|c| c.joints.as_deref().map(|t| (c.name.as_str(), t)))
-                        .collect();
-                    let clips = clip_records(clips, rig, self.clip_error)?;
-                    if clip_joints.is_empty() {
-                        codec::to_stored_writer(&StoredClipsRef { id, seq, clips }, &mut w)
-                            .map_err(|e| StoreError::Encode(e.to_string()))?;
-                        KIND_CLIPS_V8
-                    } else {
-                        let r = StoredClipsJointsRef {
-                            id,
-                            seq,
-                            clips,
-                            clip_joints,
-                        };
-                        codec::to_stored_writer(&r, &mut w)
-                            .map_err(|e| StoreError::Encode(e.to_string()))?;
-                        KIND_CLIPS_JOINTS_V11
-                    }
-                }
-            };
+            let kind = write_sections(&mut w, record, self.clip_error)?;
             let mut header = Vec::with_capacity(HEADER);
             header.extend_from_slice(MAGIC);
             header.extend_from_slice(&kind.to_le_bytes());
@@ -955,11 +1117,20 @@ impl Store {
     }
 
     fn read_into(path: &Path, skipped: &mut Vec<String>) -> Result<Record, StoreError> {
+        let bytes = fs::read(path).map_err(io("read", path))?;
+        Store::decode_file(path, &bytes, skipped)
+    }
+
+    /// The record in `bytes`, the contents of file `path` (whose name it must match).
+    fn decode_file(
+        path: &Path,
+        bytes: &[u8],
+        skipped: &mut Vec<String>,
+    ) -> Result<Record, StoreError> {
         let corrupt = |problem: String| StoreError::Corrupt {
             path: path.display().to_string(),
             problem,
         };
-        let bytes = fs::read(path).map_err(io("read", path))?;
         if bytes.len() < HEADER || &bytes[..8] != MAGIC {
             return Err(corrupt("not a crowdmorph store file (bad magic)".into()));
         }
@@ -988,8 +1159,10 @@ impl Store {
             .unwrap_or_default()
             .to_string();
         match kind {
-            KIND_CLIPS | KIND_CLIPS_V8 | KIND_CLIPS_JOINTS_V11 => {
-                let c: StoredClipsOwned = if kind == KIND_CLIPS {
+            KIND_CLIPS | KIND_CLIPS_V8 | KIND_CLIPS_JOINTS_V11 | KIND_CLIPS_SECTIONS => {
+                let c: StoredClipsOwned = if kind == KIND_CLIPS_SECTIONS {
+                    read_clips_sections(payload, path, skipped).map_err(corrupt)?
+                } else if kind == KIND_CLIPS {
                     codec::from_stored(payload).map_err(|e| corrupt(e.to_string()))?
                 } else if kind == KIND_CLIPS_JOINTS_V11 {
                     let c: StoredClipsJointsOwned =
@@ -1035,8 +1208,11 @@ impl Store {
             | KIND_RIG_COLORS
             | KIND_RIG_V6
             | KIND_RIG_SKINNED_V9
-            | KIND_RIG_SKINNED_MAP_V10 => {
-                let r = if kind == KIND_RIG_SKINNED_V9 || kind == KIND_RIG_SKINNED_MAP_V10 {
+            | KIND_RIG_SKINNED_MAP_V10
+            | KIND_RIG_SECTIONS => {
+                let r = if kind == KIND_RIG_SECTIONS {
+                    read_rig_sections(payload, path, skipped).map_err(corrupt)?
+                } else if kind == KIND_RIG_SKINNED_V9 || kind == KIND_RIG_SKINNED_MAP_V10 {
                     let (id, r, skin, map) = if kind == KIND_RIG_SKINNED_MAP_V10 {
                         let StoredSkinnedMapOwned { id, rig, skin, map } =
                             codec::from_stored(payload).map_err(|e| corrupt(e.to_string()))?;
@@ -1103,8 +1279,10 @@ impl Store {
                     .map_err(|e| corrupt(format!("invalid rig: {e}")))?;
                 Ok(Record::Rig(Box::new(r)))
             }
-            KIND_BUILTIN_CLIPS | KIND_BUILTIN | KIND_BUILTIN_V7 => {
-                let c = if kind == KIND_BUILTIN_V7 {
+            KIND_BUILTIN_CLIPS | KIND_BUILTIN | KIND_BUILTIN_V7 | KIND_BUILTIN_SECTIONS => {
+                let c = if kind == KIND_BUILTIN_SECTIONS {
+                    read_builtin_sections(payload, path, skipped).map_err(corrupt)?
+                } else if kind == KIND_BUILTIN_V7 {
                     let c: StoredBuiltinV7Owned =
                         codec::from_stored(payload).map_err(|e| corrupt(e.to_string()))?;
                     StoredBuiltin {
@@ -1192,6 +1370,9 @@ impl Store {
         Ok(loaded)
     }
 }
+
+#[cfg(test)]
+mod format_tests;
 
 #[cfg(test)]
 mod tests {
