@@ -46,7 +46,10 @@
 //! without); an unknown tag without it makes the record unreadable, and so does a missing
 //! required section, a tag seen twice, a known tag of another kind of record, or a length
 //! past the payload's end (checked before anything is decoded or allocated). Every tag
-//! below has bit 31 clear, as this build knows them all:
+//! below has bit 31 clear, as this build knows them all. Builds from before kind 12 read none
+//! of kinds 12–14 (unknown record kind): replicas sharing a store run this build or a later
+//! one before any of them writes; an older replica finds such a generation unusable (a record
+//! it cannot decode, which is not damage to repair) rather than rewriting it.
 //!
 //! | tag | section | in kinds | present |
 //! |---|---|---|---|
