@@ -10,6 +10,11 @@
 #       crates/server/src/routes/frames.rs crates/engine/src/cpu/mod.rs \
 #       crates/core/src/rig/clip.rs crates/core/src/rig/pose.rs "cargo test --locked -p crowdmorph-core"
 # Writes OUT/<label>/times.txt (seconds per step) and a log per step.
+# The runtime rows of "one job per home" are by hand: `cargo build --release --locked` at each
+# commit, the binaries copied to /tmp/cm-old and /tmp/cm-new, then A B A B:
+#   for run in 1 2; do for v in old new; do
+#     /tmp/cm-$v bench sessions --seconds 5 --json; /tmp/cm-$v bench http --backend cpu --seconds 3 --json
+#   done; done
 set -u
 dir=$1; label=$2; route=$3; engine=$4; rigf=$5; datafile=$6; datatest=$7
 out=${OUT:-/tmp/ws-perf}/$label; mkdir -p "$out"
