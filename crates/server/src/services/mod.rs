@@ -7,7 +7,7 @@
 //! | module | what it is |
 //! |---|---|
 //! | [`lod`] | LOD builds: the background job that orders a new rig's blendshapes by the five metrics and builds its mesh levels, and a `PUT`'s build, applied as the rig's next generation |
-//! | [`persist`] | rig persistence: a rig's record, clip files, motion graphs or delete written to the data dir or committed to the shared store before the change is served |
+//! | [`persist`] | rig persistence: a rig's record, clip files, motion graphs or delete written to the data dir or committed to the shared store before the change is served; the data dir's load at start |
 //! | [`render`] | render admission and drawing: a request checked, resolved, laid out and priced against the render budgets, then drawn and encoded (`POST /v1/crowd/render` and the session viewers' frames) |
 //! | [`replicas`] | one replica of a shared store: commits (409 `store_conflict`, 503 `store_unavailable` or `store_damaged`) with the repair of damaged objects, the start's load, the periodic refresh, LOD claims, and the lookup of a rig a request names that this replica does not hold |
 //! | [`tick`] | a session's tick: heads resolved, jobs grouped and submitted to the batcher, the fan-out of each viewer's message (encoded by `session_stream`), supervised |
