@@ -610,6 +610,7 @@ fn interleaved_rig(sizes: &[usize], stride: usize, grouped: bool) -> (Rig, Vec<u
             targets,
             base_color: Primitive::default_base_color(),
             skin: None,
+            look: Default::default(),
         });
     }
     let name = format!("interleaved-{}", if grouped { "grouped" } else { "raw" });

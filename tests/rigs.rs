@@ -384,3 +384,195 @@ fn base_colour_factors_come_from_the_materials_and_survive_the_store() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// The file's `TEXCOORD_0` of each primitive of the default scene, in scene order, decoded by
+/// the test's own reader (normalized integers per the spec); `None` for a primitive without.
+fn file_uvs(doc: &RefDoc) -> Vec<Option<Vec<[f64; 2]>>> {
+    let mut out = Vec::new();
+    let mut at: Option<(usize, usize)> = None;
+    let mut k = 0;
+    for p in doc.scene_primitives() {
+        // Consecutive primitives of one node's mesh are its primitives in order.
+        k = if at == Some((p.node, p.mesh)) {
+            k + 1
+        } else {
+            0
+        };
+        at = Some((p.node, p.mesh));
+        let uv = doc.json["meshes"][p.mesh]["primitives"][k]["attributes"]["TEXCOORD_0"]
+            .as_u64()
+            .map(|a| {
+                let (v, comps) = doc.accessor(a as usize);
+                assert_eq!(comps, 2, "TEXCOORD_0 is VEC2");
+                v.chunks(2).map(|c| [c[0], c[1]]).collect()
+            });
+        out.push(uv);
+    }
+    out
+}
+
+/// `got` equals the file's texture coordinates to f32 rounding.
+fn assert_uvs(got: Option<&Vec<glam::Vec2>>, want: Option<&Vec<[f64; 2]>>, ctx: &str) {
+    match (got, want) {
+        (None, None) => {}
+        (Some(g), Some(w)) => {
+            assert_eq!(g.len(), w.len(), "{ctx}: texture coordinate count");
+            for (v, (g, w)) in g.iter().zip(w).enumerate() {
+                let err = (f64::from(g.x) - w[0])
+                    .abs()
+                    .max((f64::from(g.y) - w[1]).abs());
+                assert!(
+                    err <= 1e-6 * w[0].abs().max(w[1].abs()).max(1.0),
+                    "{ctx}: vertex {v}: {g} vs {w:?}"
+                );
+            }
+        }
+        (g, w) => panic!(
+            "{ctx}: texture coordinates {} in the rig, {} in the file",
+            if g.is_some() { "present" } else { "absent" },
+            if w.is_some() { "present" } else { "absent" }
+        ),
+    }
+}
+
+/// Puts `rig` in a fresh data dir and reads its record back.
+fn stored_and_read(rig: &Rig, tag: &str) -> Rig {
+    let dir = std::env::temp_dir().join(format!("crowdmorph-uvs-{tag}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let store = crowdmorph::store::Store::open(&dir).expect("store");
+    store
+        .put(crowdmorph::store::RecordRef::Rig {
+            id: "uv",
+            rig,
+            clips: &rig.clips,
+        })
+        .expect("put");
+    let back = match crowdmorph::store::Store::read(&store.path_of("uv")).expect("read") {
+        crowdmorph::store::Record::Rig(r) => r.rig,
+        _ => panic!("a rig record"),
+    };
+    let _ = std::fs::remove_dir_all(&dir);
+    back.validate().expect("valid after the store");
+    back
+}
+
+#[test]
+fn texture_coordinates_come_from_the_file_and_survive_the_store() {
+    // A quad whose TEXCOORD_0 is normalized UNSIGNED_SHORT (as gltfpack and VRoid quantize
+    // it), beside a triangle without texture coordinates.
+    let mut b = Builder::new();
+    let quad = [
+        [0.0, 0.0, 0.0],
+        [1.0, 0.0, 0.0],
+        [1.0, 1.0, 0.0],
+        [0.0, 1.0, 0.0],
+    ];
+    let mut p0 = b.primitive(&quad, Some(&[0, 1, 2, 0, 2, 3]), &[]);
+    let uv = b.accessor_ints(
+        Component::U16,
+        &[0, 65535, 65535, 65535, 32768, 12345, 1, 0],
+        "VEC2",
+        true,
+    );
+    p0["attributes"]["TEXCOORD_0"] = json!(uv);
+    let tri = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
+    let p1 = b.primitive(&tri, None, &[]);
+    let mesh = b.mesh(vec![p0, p1], None);
+    let node = b.node(Some(mesh));
+    b.scene(&[node]);
+    let glb = b.to_glb();
+    let rig = rig_from_slice(&glb, &ImportOptions::default()).expect("rig");
+    let want = file_uvs(&RefDoc::from_bytes(&glb, std::path::Path::new(".")));
+    for (i, (p, w)) in rig.primitives.iter().zip(&want).enumerate() {
+        assert_uvs(p.look.uv0.as_ref(), w.as_ref(), &format!("primitive {i}"));
+    }
+    assert!(rig.primitives[0].look.uv0.is_some() && rig.primitives[1].look.uv0.is_none());
+    let back = stored_and_read(&rig, "quad");
+    assert_eq!(
+        back, rig,
+        "the record keeps every primitive's texture coordinates"
+    );
+
+    // A TEXCOORD_0 with fewer elements than the primitive has vertices is refused, naming it.
+    let mut b = Builder::new();
+    let mut p = b.primitive(&quad, Some(&[0, 1, 2, 0, 2, 3]), &[]);
+    p["attributes"]["TEXCOORD_0"] = json!(b.accessor_f32(&[0.0, 0.0, 1.0, 0.0], "VEC2"));
+    let mesh = b.mesh(vec![p], None);
+    let node = b.node(Some(mesh));
+    b.scene(&[node]);
+    let e = rig_from_slice(&b.to_glb(), &ImportOptions::default())
+        .expect_err("two texture coordinates for four vertices")
+        .to_string();
+    assert!(e.contains("TEXCOORD_0"), "{e}");
+}
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_test_data),
+    ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+)]
+fn shared_rigs_texture_coordinates_equal_the_files_through_store_and_mesh_levels() {
+    let dir = crate::util::data_dir().join("khronos");
+    let mut with_uvs = 0;
+    for path in rig_files() {
+        let name = path.file_name().unwrap().to_string_lossy().to_string();
+        let rig = load(&path);
+        let want = file_uvs(&RefDoc::load(&path));
+        assert_eq!(rig.primitives.len(), want.len(), "{name}: primitives");
+        for (i, (p, w)) in rig.primitives.iter().zip(&want).enumerate() {
+            assert_uvs(
+                p.look.uv0.as_ref(),
+                w.as_ref(),
+                &format!("{name} primitive {i}"),
+            );
+            with_uvs += usize::from(w.is_some());
+        }
+    }
+    // MorphStressTest and MorphPrimitivesTest carry texture coordinates (they are textured).
+    assert!(
+        with_uvs >= 4,
+        "{with_uvs} primitives with TEXCOORD_0 among the shared rigs"
+    );
+
+    for file in [
+        "MorphPrimitivesTest/glTF/MorphPrimitivesTest.gltf",
+        "MorphStressTest/glTF/MorphStressTest.gltf",
+    ] {
+        let mut rig = load(&dir.join(file));
+        // Mesh levels at half and a quarter of the triangles: each kept vertex keeps its
+        // source vertex's texture coordinates.
+        let spec = crowdmorph::engine::lod::LodSpec {
+            method: crowdmorph::engine::lod::OrderMethod::FileOrder,
+            mesh_fractions: vec![0.5, 0.25],
+            ..Default::default()
+        };
+        rig.lod = crowdmorph::engine::lod::build_lod(&rig, &spec, None, None).expect("lod");
+        rig.validate().expect("valid with mesh levels");
+        let levels = crowdmorph::rig::mesh_level_rigs(&rig).expect("mesh levels");
+        assert_eq!(levels.len(), 2);
+        for (m, level) in levels.iter().enumerate() {
+            for (i, (lp, src)) in level
+                .primitives
+                .iter()
+                .zip(rig.primitives.iter())
+                .enumerate()
+            {
+                let kept = &rig.lod.meshes[m].primitives[i].vertices;
+                let want: Option<Vec<glam::Vec2>> = src
+                    .look
+                    .uv0
+                    .as_ref()
+                    .map(|uv| kept.iter().map(|&v| uv[v as usize]).collect());
+                assert_eq!(lp.look.uv0, want, "{file} mesh level {m} primitive {i}");
+                assert_eq!(
+                    lp.look.uv0.as_ref().map(Vec::len),
+                    src.look.uv0.as_ref().map(|_| lp.positions.len()),
+                    "{file} mesh level {m} primitive {i}: one per kept vertex"
+                );
+            }
+        }
+        // The store keeps them with the mesh levels.
+        let back = stored_and_read(&rig, "shared");
+        assert_eq!(back, rig, "{file}: the store round trip");
+    }
+}

@@ -629,6 +629,7 @@ pub fn random_rig(seed: u64, sizes: &[usize], n_targets: usize) -> crowdmorph::r
             targets,
             base_color: Primitive::default_base_color(),
             skin: None,
+            look: Default::default(),
         });
     }
     let mut rig = rig_with_random_clip(

@@ -142,6 +142,7 @@ fn primitive(
         targets,
         base_color,
         skin: None,
+        look: Default::default(),
     }
 }
 

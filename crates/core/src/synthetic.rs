@@ -78,6 +78,7 @@ pub fn banded_rig(name: &str, n: usize, side: usize, n_targets: usize) -> Rig {
         targets,
         base_color: Primitive::default_base_color(),
         skin: None,
+        look: Default::default(),
     }];
     let frames = 60;
     let weights: Vec<f32> = (0..n_targets * frames)

@@ -9,7 +9,7 @@ use std::borrow::Cow;
 use std::collections::HashMap;
 use std::sync::{Arc, OnceLock};
 
-use glam::{Vec3, Vec4};
+use glam::{Vec2, Vec3, Vec4};
 use gltf::accessor::sparse::IndexType;
 use gltf::accessor::{DataType, Dimensions};
 
@@ -310,6 +310,15 @@ impl<'a> Source<'a> {
         let mut out = Vec::new();
         self.read_elements(acc, 3, 1, &mut out, |e, out: &mut Vec<Vec3>| {
             out.push(Vec3::new(e[0], e[1], e[2]))
+        })?;
+        Ok(out)
+    }
+
+    /// Decodes a VEC2 accessor straight into vectors (texture coordinates).
+    pub(crate) fn read_vec2s(&self, acc: &gltf::Accessor<'_>) -> Result<Vec<Vec2>, ImportError> {
+        let mut out = Vec::new();
+        self.read_elements(acc, 2, 1, &mut out, |e, out: &mut Vec<Vec2>| {
+            out.push(Vec2::new(e[0], e[1]))
         })?;
         Ok(out)
     }

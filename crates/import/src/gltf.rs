@@ -27,7 +27,8 @@ use super::{extensions, meshopt, skin};
 use crowdmorph_core::budget::Budget;
 use crowdmorph_core::rig::{
     Clip, Lod, MAX_FRAMES, MAX_TARGETS, MAX_VERTICES, PrimShape, Primitive, Rig, RigError,
-    RigShape, SparseTarget, TargetId, sample_track, sparse_len, sparsify, vertex_normals,
+    RigShape, SparseTarget, TargetId, VertexLook, sample_track, sparse_len, sparsify,
+    vertex_normals,
 };
 
 /// glTF extensions a file may require that we read correctly.
@@ -496,6 +497,27 @@ fn read_vec3(
     source.read_vec3s(acc)
 }
 
+/// Reads a VEC2 accessor of one element per vertex (texture coordinates; normalized integer
+/// ones are decoded to floats, as glTF's `KHR_mesh_quantization` stores them).
+fn read_vec2(
+    source: &Source<'_>,
+    acc: &gltf::Accessor<'_>,
+    n: usize,
+    what: &str,
+) -> Result<Vec<glam::Vec2>, ImportError> {
+    if acc.dimensions() != gltf::accessor::Dimensions::Vec2 || acc.count() != n {
+        return Err(ImportError::Accessor {
+            index: acc.index(),
+            problem: format!(
+                "{what} must be VEC2 with one element per vertex ({n}), not {} of {:?}",
+                acc.count(),
+                acc.dimensions()
+            ),
+        });
+    }
+    source.read_vec2s(acc)
+}
+
 /// Triangle-list indices a primitive will have: its index (or vertex) count as a list.
 fn list_len(prim: &gltf::Primitive<'_>, vertices: usize) -> u64 {
     let raw = prim.indices().map_or(vertices, |a| a.count()) as u64;
@@ -581,6 +603,7 @@ fn document_shape(
                 .into());
             }
             let tangents = prim.get(&Semantic::Tangents).is_some();
+            let uvs = prim.get(&Semantic::TexCoords(0)).is_some();
             let (mut k, mut kn, mut kt) = (0u64, 0u64, 0u64);
             for t in prim.morph_targets() {
                 k += 1;
@@ -594,7 +617,7 @@ fn document_shape(
             transient = transient
                 .max(n * (12 + 12 + 12 + 8))
                 .max(raw_indices * 4 + indices * 4);
-            primitives.push(PrimShape::upper_bound(n, indices, tangents, k, kn, kt));
+            primitives.push(PrimShape::upper_bound(n, indices, tangents, uvs, k, kn, kt));
         }
     }
     // Clip lengths from the declared key times first, so that a clip too long on its
@@ -955,6 +978,12 @@ fn build_rig(
                 Some(a) => Some(skin::influences(source, &prim, a, n, &mut report)?),
                 None => None,
             };
+            let look = VertexLook {
+                uv0: match prim.get(&Semantic::TexCoords(0)) {
+                    Some(a) => Some(read_vec2(source, &a, n, "TEXCOORD_0")?),
+                    None => None,
+                },
+            };
             primitives.push(Primitive {
                 name: label,
                 positions,
@@ -965,6 +994,7 @@ fn build_rig(
                 targets: sparse,
                 base_color,
                 skin,
+                look,
             });
         }
     }

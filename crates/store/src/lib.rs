@@ -61,6 +61,7 @@
 //! | 6 | the skin: skeleton, each primitive's influences, the import's notes | 12 | when the rig has a skeleton |
 //! | 7 | the rig's own joint map | 12 | when its skeleton has one (never without 6) |
 //! | 8 | a built-in rig's LOD (JSON) and the [`geometry_fingerprint`] it was built for | 13 | always written; a record without it has no LOD (as kind 2) |
+//! | 9 | each primitive's per-vertex appearance data ([`crowdmorph_core::rig::VertexLook`]: texture coordinates) | 12 | when a primitive has some |
 //!
 //! A file whose magic, length, checksum or payload is wrong is reported and skipped by
 //! [`Store::load_all`]; nothing of it is loaded. Loaded rigs are re-validated with
@@ -88,7 +89,9 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 use serde::{Deserialize, Serialize};
 
-use crowdmorph_core::rig::{Clip, Influences, JointMap, JointTable, Lod, Rig, Skeleton};
+use crowdmorph_core::rig::{
+    Clip, Influences, JointMap, JointTable, Lod, Rig, Skeleton, VertexLook,
+};
 
 use sections::{Known, Sections};
 
@@ -167,8 +170,24 @@ const S_LOD: Known = Known {
     name: "LOD",
     required: false,
 };
+/// Each primitive's [`VertexLook`] (texture coordinates): [`LookSectionRef`]. Bit 31 clear
+/// on purpose: a build that does not know it must not load the rig without it (and then
+/// write it back without its texture coordinates).
+const S_LOOK: Known = Known {
+    tag: 9,
+    name: "vertex appearance",
+    required: false,
+};
 /// The sections of kind 12.
-const RIG_SECTIONS: &[Known] = &[S_ID, S_RIG, S_CLIPS, S_CLIP_JOINTS, S_SKIN, S_JOINT_MAP];
+const RIG_SECTIONS: &[Known] = &[
+    S_ID,
+    S_RIG,
+    S_CLIPS,
+    S_CLIP_JOINTS,
+    S_SKIN,
+    S_JOINT_MAP,
+    S_LOOK,
+];
 /// The sections of kind 13.
 const BUILTIN_SECTIONS: &[Known] = &[S_ID, S_CLIPS, S_CLIP_JOINTS, S_LOD];
 /// The sections of kind 14.
@@ -325,6 +344,53 @@ impl SkinSection {
         skeleton.map = map;
         rig.skeleton = Some(std::sync::Arc::new(skeleton));
         rig.import_notes = self.notes;
+        Ok(())
+    }
+}
+
+/// Section [`S_LOOK`]: per primitive, its texture coordinates of set 0 (serde skips
+/// [`VertexLook`] inside the rig).
+#[derive(Serialize)]
+struct LookSectionRef<'a> {
+    uv0: Vec<Option<&'a [glam::Vec2]>>,
+}
+
+/// Owned mirror of [`LookSectionRef`].
+#[derive(Deserialize)]
+struct LookSection {
+    uv0: Vec<Option<Vec<glam::Vec2>>>,
+}
+
+impl<'a> LookSectionRef<'a> {
+    /// The section of `rig`, when one of its primitives has something to keep.
+    fn of(rig: &'a Rig) -> Option<Self> {
+        let uv0: Vec<Option<&[glam::Vec2]>> = rig
+            .primitives
+            .iter()
+            .map(|p| p.look.uv0.as_deref())
+            .collect();
+        uv0.iter()
+            .any(Option::is_some)
+            .then_some(LookSectionRef { uv0 })
+    }
+}
+
+impl LookSection {
+    /// Puts each primitive's data back into `rig` (lengths are checked by the caller's
+    /// [`Rig::validate`]).
+    fn apply(self, rig: &mut Rig) -> Result<(), String> {
+        if self.uv0.len() != rig.primitives.len() {
+            return Err(format!(
+                "vertex appearance of {} primitives for {}",
+                self.uv0.len(),
+                rig.primitives.len()
+            ));
+        }
+        let mut prims = rig.primitives.as_ref().clone();
+        for (p, uv) in prims.iter_mut().zip(self.uv0) {
+            p.look = VertexLook { uv0: uv };
+        }
+        rig.primitives = std::sync::Arc::new(prims);
         Ok(())
     }
 }
@@ -596,6 +662,9 @@ fn write_sections(
             sections::write(w, S_ID.tag, &id).map_err(enc)?;
             sections::write(w, S_RIG.tag, &RigSectionRef::new(rig)?).map_err(enc)?;
             write_clip_sections(w, clips, rig, max_error)?;
+            if let Some(look) = LookSectionRef::of(rig) {
+                sections::write(w, S_LOOK.tag, &look).map_err(enc)?;
+            }
             if let Some(skeleton) = rig.skeleton.as_deref() {
                 let skin = SkinSectionRef {
                     skeleton,
@@ -646,6 +715,7 @@ fn read_rig_sections(
     let tables: Option<Vec<(String, JointTable)>> = s.take(S_CLIP_JOINTS)?;
     let skin: Option<SkinSection> = s.take(S_SKIN)?;
     let map: Option<JointMap> = s.take(S_JOINT_MAP)?;
+    let look: Option<LookSection> = s.take(S_LOOK)?;
     let clips = decode_clips(clips, Some(r.targets.len()), file, skipped);
     let mut rig = RigRecordColors {
         name: r.name,
@@ -658,6 +728,9 @@ fn read_rig_sections(
     }
     .into_rig()?;
     attach_joint_tables(&mut rig.clips, tables.unwrap_or_default());
+    if let Some(look) = look {
+        look.apply(&mut rig)?;
+    }
     match skin {
         Some(skin) => skin.apply(&mut rig, map)?,
         None if map.is_some() => {

@@ -33,6 +33,8 @@ pub struct PrimShape {
     pub indices: u64,
     /// Whether it has tangents.
     pub tangents: bool,
+    /// Whether it has texture coordinates (set 0).
+    pub uvs: bool,
     /// Morph targets it has.
     pub targets: u64,
     /// Stored position deltas over its targets (an upper bound: `targets × vertices`).
@@ -71,6 +73,7 @@ impl PrimShape {
         vertices: u64,
         indices: u64,
         tangents: bool,
+        uvs: bool,
         targets: u64,
         normal_targets: u64,
         tangent_targets: u64,
@@ -80,6 +83,7 @@ impl PrimShape {
             vertices,
             indices,
             tangents,
+            uvs,
             targets,
             deltas: targets.saturating_mul(vertices),
             normal_deltas: normal_targets.saturating_mul(vertices),
@@ -107,6 +111,7 @@ impl PrimShape {
             vertices: p.positions.len() as u64,
             indices: p.indices.len() as u64,
             tangents: p.tangents.is_some(),
+            uvs: p.look.uv0.is_some(),
             targets: p.targets.len() as u64,
             deltas: p.targets.iter().map(|t| t.vertices.len() as u64).sum(),
             normal_deltas: p
@@ -126,7 +131,8 @@ impl PrimShape {
 
     /// Bytes of the primitive's arrays in a [`Rig`].
     pub fn rig_bytes(&self) -> u64 {
-        let base = self.vertices * (12 + 12 + if self.tangents { 16 } else { 0 });
+        let base = self.vertices
+            * (12 + 12 + if self.tangents { 16 } else { 0 } + if self.uvs { 8 } else { 0 });
         base + self.indices * 4
             + self.deltas * (4 + 12)
             + self.normal_deltas * 12

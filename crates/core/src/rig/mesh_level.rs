@@ -88,6 +88,7 @@ impl MeshLevel {
                     joints: l.vertices.iter().map(|&v| s.joints[v as usize]).collect(),
                     weights: l.vertices.iter().map(|&v| s.weights[v as usize]).collect(),
                 }),
+                look: p.look.pick(&l.vertices),
             });
         }
         let lod = Lod {

@@ -59,7 +59,7 @@ pub use skin::{
 
 use std::sync::Arc;
 
-use glam::{Vec3, Vec4};
+use glam::{Vec2, Vec3, Vec4};
 use serde::{Deserialize, Serialize};
 
 /// Index of a target in [`Rig::targets`].
@@ -248,6 +248,37 @@ pub struct Primitive {
     /// it follows any (skipped by serde like `base_color`).
     #[serde(skip)]
     pub skin: Option<Influences>,
+    /// What the vertices carry for the primitive's appearance (texture coordinates), parallel
+    /// to [`Primitive::positions`]; skipped by serde like `base_color` (the store keeps it in
+    /// a section of its own).
+    #[serde(skip)]
+    pub look: VertexLook,
+}
+
+/// Per-vertex appearance data of a primitive, parallel to its positions. Nothing here moves
+/// with a morph target: it is what a mesh level keeps of each source vertex it keeps.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct VertexLook {
+    /// Texture coordinates of set 0 (glTF `TEXCOORD_0`), as the file has them (normalized
+    /// integers decoded to floats).
+    pub uv0: Option<Vec<Vec2>>,
+}
+
+impl VertexLook {
+    /// The data of vertices `vertices` of a primitive (a mesh level's kept source vertices).
+    pub fn pick(&self, vertices: &[u32]) -> VertexLook {
+        VertexLook {
+            uv0: self
+                .uv0
+                .as_ref()
+                .map(|uv| vertices.iter().map(|&v| uv[v as usize]).collect()),
+        }
+    }
+
+    /// Bytes of its arrays.
+    pub fn bytes(&self) -> usize {
+        self.uv0.as_ref().map_or(0, |uv| uv.len() * 8)
+    }
 }
 
 /// A morph target restricted to the vertices it moves.
@@ -680,6 +711,7 @@ impl Primitive {
     pub fn bytes(&self) -> usize {
         let mut b = self.positions.len() * 12 + self.normals.len() * 12 + self.indices.len() * 4;
         b += self.tangents.as_ref().map_or(0, |t| t.len() * 16);
+        b += self.look.bytes();
         for t in &self.targets {
             b += t.vertices.len() * 4 + t.positions.len() * 12;
             b += t.normals.as_ref().map_or(0, |n| n.len() * 12);
@@ -710,6 +742,14 @@ impl Primitive {
         {
             return Err(bad(format!("{} tangents for {n} positions", t.len())));
         }
+        if let Some(uv) = &self.look.uv0
+            && uv.len() != n
+        {
+            return Err(bad(format!(
+                "{} texture coordinates for {n} positions",
+                uv.len()
+            )));
+        }
         if !self.indices.len().is_multiple_of(3) {
             return Err(bad(format!(
                 "{} indices is not a triangle list",
@@ -730,6 +770,12 @@ impl Primitive {
         )?;
         if let Some(t) = &self.tangents {
             check_finite(&what("tangents"), t.iter().flat_map(|v| v.to_array()))?;
+        }
+        if let Some(uv) = &self.look.uv0 {
+            check_finite(
+                &what("texture coordinates"),
+                uv.iter().flat_map(|v| v.to_array()),
+            )?;
         }
         let mut seen = vec![false; n_targets];
         for t in &self.targets {

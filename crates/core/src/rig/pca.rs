@@ -141,6 +141,7 @@ impl DeltaPca {
                 targets,
                 base_color: p.base_color,
                 skin: p.skin.clone(),
+                look: p.look.clone(),
             });
         }
         let c = self.components();
