@@ -8,7 +8,6 @@ use std::time::Duration;
 
 use anyhow::{Context, Result, bail};
 
-use super::WireFormat;
 use bytes::Bytes;
 use crowdmorph_proto::{CameraSpec, LodChoice, SessionHead, SessionInfo, ViewerHello};
 use serde::Serialize;
@@ -60,8 +59,8 @@ pub struct Args {
     #[arg(long = "lod", value_parser = parse_weighted_lod)]
     pub(super) lods: Vec<(u32, f64)>,
     /// Vertex format.
-    #[arg(long, value_enum, default_value_t = WireFormat::F32)]
-    pub(super) format: WireFormat,
+    #[arg(long, default_value = "f32", value_parser = crowdmorph::bench::format_arg())]
+    pub(super) format: crowdmorph_proto::Format,
     /// Ask for normals too.
     #[arg(long)]
     pub(super) normals: bool,
@@ -122,7 +121,7 @@ pub fn run(a: Args) -> Result<()> {
         } else {
             a.lods.into_iter().collect()
         },
-        format: a.format.into(),
+        format: a.format,
         normals: a.normals,
         encoding: match a.encoding {
             Encoding::Bincode => WireEncoding::Bincode,

@@ -15,7 +15,7 @@ mod serve;
 use std::path::Path;
 
 use anyhow::{Context, Result};
-use clap::{Parser, Subcommand, ValueEnum};
+use clap::{Parser, Subcommand};
 use crowdmorph::import::{ImportOptions, load_path};
 use crowdmorph::rig::Rig;
 
@@ -138,30 +138,6 @@ impl GpuMemoryArgs {
             memory: self.max_gpu_memory,
             deltas: self.gpu_deltas,
             ..Default::default()
-        }
-    }
-}
-
-/// A wire format of vertex buffers.
-#[derive(Clone, Copy, ValueEnum)]
-pub enum WireFormat {
-    /// IEEE binary32.
-    F32,
-    /// IEEE binary16.
-    F16,
-    /// int16 quantized in the rig's box.
-    Q16,
-    /// q16 as residuals against the neutral, in byte planes (compresses well).
-    Q16r,
-}
-
-impl From<WireFormat> for crowdmorph_proto::Format {
-    fn from(f: WireFormat) -> Self {
-        match f {
-            WireFormat::F32 => crowdmorph_proto::Format::F32,
-            WireFormat::F16 => crowdmorph_proto::Format::F16,
-            WireFormat::Q16 => crowdmorph_proto::Format::Q16,
-            WireFormat::Q16r => crowdmorph_proto::Format::Q16R,
         }
     }
 }

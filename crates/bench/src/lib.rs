@@ -28,11 +28,18 @@ pub mod sample;
 pub mod server;
 pub mod sessions;
 
-/// The parser of a `--format` flag: `f32`, `f16`, `q16` or `q16r` (listed in `--help`).
+/// The parser of every `--format` flag of the CLI (the benchmarks' and `load`'s): `f32`,
+/// `f16`, `q16` or `q16r`, each listed with what it is in `--help`.
 pub fn format_arg() -> impl clap::builder::TypedValueParser<Value = crowdmorph_proto::Format> {
-    use clap::builder::TypedValueParser;
-    clap::builder::PossibleValuesParser::new(["f32", "f16", "q16", "q16r"])
-        .try_map(|s| s.parse::<crowdmorph_proto::Format>())
+    use clap::builder::{PossibleValue, TypedValueParser};
+    clap::builder::PossibleValuesParser::new([
+        PossibleValue::new("f32").help("IEEE binary32"),
+        PossibleValue::new("f16").help("IEEE binary16"),
+        PossibleValue::new("q16").help("int16 quantized in the rig's box"),
+        PossibleValue::new("q16r")
+            .help("q16 as residuals against the neutral, in byte planes (compresses well)"),
+    ])
+    .try_map(|s| s.parse::<crowdmorph_proto::Format>())
 }
 
 /// The parser of `--mesh-fractions`: fractions of the triangles, comma-separated, or `none`.
