@@ -504,6 +504,33 @@ fn texture_coordinates_come_from_the_file_and_survive_the_store() {
         .expect_err("two texture coordinates for four vertices")
         .to_string();
     assert!(e.contains("TEXCOORD_0"), "{e}");
+    // So is one of another shape (VEC3), and one whose count is absurd: refused from the
+    // header, before anything is decoded or allocated.
+    for (values, count) in [
+        (vec![0.0f32; 12], None),
+        (vec![0.0f32; 8], Some(1u64 << 40)),
+    ] {
+        let mut b = Builder::new();
+        let mut p = b.primitive(&quad, Some(&[0, 1, 2, 0, 2, 3]), &[]);
+        let ty = if count.is_some() { "VEC2" } else { "VEC3" };
+        let a = b.accessor_f32(&values, ty);
+        if let Some(c) = count {
+            b.accessor_mut(a)["count"] = json!(c);
+        }
+        p["attributes"]["TEXCOORD_0"] = json!(a);
+        let mesh = b.mesh(vec![p], None);
+        let node = b.node(Some(mesh));
+        b.scene(&[node]);
+        let e = rig_from_slice(&b.to_glb(), &ImportOptions::default())
+            .expect_err("a bad TEXCOORD_0")
+            .to_string();
+        let named = if count.is_some() {
+            "ends at" // the header's bounds check, before any decoding
+        } else {
+            "TEXCOORD_0 must be VEC2"
+        };
+        assert!(e.contains(named), "{ty}: {e}");
+    }
 }
 
 #[test]
