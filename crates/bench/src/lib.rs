@@ -1,4 +1,4 @@
-//! Benchmarks, their peers and their harness (feature `bench`, on by default): what
+//! Benchmarks, their peers and their harness (the crate that replaced the old `bench` feature): what
 //! `crowdmorph bench cpu|gpu|http|render|sessions|codecs` run, kept out of the product modules.
 //!
 //! | module | what it is |
