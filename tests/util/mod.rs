@@ -679,6 +679,7 @@ pub fn rig_with_random_clip(
         lod,
         skeleton: None,
         import_notes: Vec::new(),
+        appearance: None,
     }
 }
 

@@ -116,6 +116,7 @@ pub fn default_rig() -> Rig {
         lod,
         skeleton: None,
         import_notes: Vec::new(),
+        appearance: None,
     }
 }
 

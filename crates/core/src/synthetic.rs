@@ -101,6 +101,7 @@ pub fn banded_rig(name: &str, n: usize, side: usize, n_targets: usize) -> Rig {
         lod,
         skeleton: None,
         import_notes: Vec::new(),
+        appearance: None,
     }
 }
 

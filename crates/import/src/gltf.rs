@@ -983,6 +983,7 @@ fn build_rig(
                     Some(a) => Some(read_vec2(source, &a, n, "TEXCOORD_0")?),
                     None => None,
                 },
+                ..VertexLook::default()
             };
             primitives.push(Primitive {
                 name: label,
@@ -1013,6 +1014,7 @@ fn build_rig(
             Arc::new(p.skeleton)
         }),
         import_notes: report.notes(),
+        appearance: None,
     };
     rig.validate()?;
     if report.largest_dropped_weight > 0.0 || report.channels_on_unused_nodes > 0 {

@@ -70,6 +70,8 @@ impl<'a> RigRecordRef<'a> {
             // Kind 9's `SkinRecordRef`.
             skeleton: _,
             import_notes: _,
+            // Section 10 only: no legacy kind stores it.
+            appearance: _,
         } = rig;
         Ok(RigRecordRef {
             name,
@@ -313,6 +315,86 @@ fn clips_record(id: &str, seq: u64, clips: &[Clip]) -> Record {
     })
 }
 
+/// The embedded head with every part of an appearance: both texture coordinate sets and
+/// colours on one primitive, a material with a transformed texture on each, an image.
+fn dressed() -> Rig {
+    use crowdmorph_core::rig::{
+        AlphaMode, Filter, ImageData, ImageMime, Material, Sampler, TexRef, Texture, UvTransform,
+        Wrap,
+    };
+    let mut rig = crowdmorph_core::embedded::default_rig();
+    let mut prims = rig.primitives.as_ref().clone();
+    for (i, p) in prims.iter_mut().enumerate() {
+        let n = p.positions.len();
+        p.look.uv0 = Some(
+            (0..n)
+                .map(|v| glam::Vec2::new(v as f32 / n as f32, 0.5))
+                .collect(),
+        );
+        p.look.material = Some((i % 2) as u32);
+        if i == 0 {
+            p.look.uv1 = Some(vec![glam::Vec2::new(0.25, 0.75); n]);
+            p.look.colors = Some(vec![glam::Vec4::new(1.0, 0.5, 0.25, 1.0); n]);
+        }
+    }
+    rig.primitives = std::sync::Arc::new(prims);
+    let tex = |texture, tex_coord| TexRef {
+        texture,
+        tex_coord,
+        transform: Some(UvTransform {
+            offset: [0.5, 0.0],
+            rotation: 0.25,
+            scale: [2.0, 1.0],
+        }),
+    };
+    rig.appearance = Some(std::sync::Arc::new(Appearance {
+        materials: vec![
+            Material {
+                name: Some("skin".into()),
+                base_color_texture: Some(tex(0, 0)),
+                occlusion_texture: Some(tex(1, 1)),
+                alpha_mode: AlphaMode::Mask,
+                alpha_cutoff: 0.3,
+                ..Material::untextured([0.9, 0.7, 0.6, 1.0])
+            },
+            Material {
+                unlit: true,
+                double_sided: true,
+                emissive_strength: 4.0,
+                ..Material::default()
+            },
+        ],
+        textures: vec![
+            Texture {
+                sampler: Some(0),
+                image: Some(0),
+            },
+            Texture {
+                sampler: None,
+                image: None,
+            },
+        ],
+        samplers: vec![Sampler {
+            mag: Filter::Nearest,
+            min: Filter::Linear,
+            mipmap: None,
+            wrap_s: Wrap::ClampToEdge,
+            wrap_t: Wrap::MirroredRepeat,
+        }],
+        images: vec![ImageData {
+            mime: ImageMime::Png,
+            bytes: std::sync::Arc::from(&b"not decoded by the store"[..]),
+            width: 3,
+            height: 2,
+            downscaled_from: Some([6, 4]),
+            pixels: None,
+        }],
+        notes: vec!["material 1: KHR_materials_sheen not drawn".into()],
+    }));
+    rig.validate().expect("a valid dressed rig");
+    rig
+}
+
 #[test]
 fn every_record_type_round_trips_with_and_without_each_optional_section() {
     let plain = crowdmorph_core::embedded::default_rig();
@@ -325,6 +407,7 @@ fn every_record_type_round_trips_with_and_without_each_optional_section() {
         c.joints = None;
     }
     no_tables.validate().expect("valid without tables");
+    let dressed = dressed();
     let rig = |id, rig| RecordRef::Rig {
         id,
         rig,
@@ -367,6 +450,13 @@ fn every_record_type_round_trips_with_and_without_each_optional_section() {
             rig_record("e", &no_tables),
             12,
             vec![1, 3, 4, 6],
+        ),
+        (
+            rig("l", &dressed),
+            None,
+            rig_record("l", &dressed),
+            12,
+            vec![1, 3, 4, 9, 10],
         ),
         (
             RecordRef::Builtin {

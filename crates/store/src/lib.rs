@@ -61,7 +61,8 @@
 //! | 6 | the skin: skeleton, each primitive's influences, the import's notes | 12 | when the rig has a skeleton |
 //! | 7 | the rig's own joint map | 12 | when its skeleton has one (never without 6) |
 //! | 8 | a built-in rig's LOD (JSON) and the [`geometry_fingerprint`] it was built for | 13 | always written; a record without it has no LOD (as kind 2) |
-//! | 9 | each primitive's per-vertex appearance data ([`crowdmorph_core::rig::VertexLook`]: texture coordinates) | 12 | when a primitive has some |
+//! | 9 | each primitive's texture coordinates of set 0 ([`crowdmorph_core::rig::VertexLook::uv0`]) | 12 | when a primitive has some |
+//! | 10 | the rest of each primitive's [`crowdmorph_core::rig::VertexLook`] (set 1, colours, material) and the rig's [`crowdmorph_core::rig::Appearance`]: materials, textures, samplers and notes as JSON, images as their encoded bytes | 12 | when the rig has materials or one of those arrays |
 //!
 //! A file whose magic, length, checksum or payload is wrong is reported and skipped by
 //! [`Store::load_all`]; nothing of it is loaded. Loaded rigs are re-validated with
@@ -90,7 +91,8 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use serde::{Deserialize, Serialize};
 
 use crowdmorph_core::rig::{
-    Clip, Influences, JointMap, JointTable, Lod, Rig, Skeleton, VertexLook,
+    Appearance, Clip, ImageData, ImageMime, Influences, JointMap, JointTable, Lod, Material, Rig,
+    Sampler, Skeleton, Texture, VertexLook,
 };
 
 use sections::{Known, Sections};
@@ -178,6 +180,13 @@ const S_LOOK: Known = Known {
     name: "vertex appearance",
     required: false,
 };
+/// The rest of each primitive's [`VertexLook`] and the rig's [`Appearance`]:
+/// [`AppearanceSectionRef`]. Bit 31 clear for the reason given at [`S_LOOK`].
+const S_APPEARANCE: Known = Known {
+    tag: 10,
+    name: "appearance",
+    required: false,
+};
 /// The sections of kind 12.
 const RIG_SECTIONS: &[Known] = &[
     S_ID,
@@ -187,6 +196,7 @@ const RIG_SECTIONS: &[Known] = &[
     S_SKIN,
     S_JOINT_MAP,
     S_LOOK,
+    S_APPEARANCE,
 ];
 /// The sections of kind 13.
 const BUILTIN_SECTIONS: &[Known] = &[S_ID, S_CLIPS, S_CLIP_JOINTS, S_LOD];
@@ -388,9 +398,169 @@ impl LookSection {
         }
         let mut prims = rig.primitives.as_ref().clone();
         for (p, uv) in prims.iter_mut().zip(self.uv0) {
-            p.look = VertexLook { uv0: uv };
+            p.look = VertexLook {
+                uv0: uv,
+                ..VertexLook::default()
+            };
         }
         rig.primitives = std::sync::Arc::new(prims);
+        Ok(())
+    }
+}
+
+/// Section [`S_APPEARANCE`]: per primitive, the rest of its [`VertexLook`]; the rig's
+/// [`Appearance`] tables as JSON (so a later field with a default still reads this one:
+/// bincode is positional), and its images' encoded bytes. Decoded pixels are never stored.
+#[derive(Serialize)]
+struct AppearanceSectionRef<'a> {
+    prims: Vec<PrimLookRef<'a>>,
+    tables_json: String,
+    images: Vec<&'a [u8]>,
+}
+
+/// One primitive's part of [`AppearanceSectionRef`].
+#[derive(Serialize)]
+struct PrimLookRef<'a> {
+    uv1: Option<&'a [glam::Vec2]>,
+    colors: Option<&'a [glam::Vec4]>,
+    material: Option<u32>,
+}
+
+/// Owned mirror of [`AppearanceSectionRef`].
+#[derive(Deserialize)]
+struct AppearanceSection {
+    prims: Vec<PrimLook>,
+    tables_json: String,
+    images: Vec<Vec<u8>>,
+}
+
+/// Owned mirror of [`PrimLookRef`].
+#[derive(Deserialize)]
+struct PrimLook {
+    uv1: Option<Vec<glam::Vec2>>,
+    colors: Option<Vec<glam::Vec4>>,
+    material: Option<u32>,
+}
+
+/// The JSON part of [`AppearanceSectionRef`]: everything but the image bytes.
+#[derive(Serialize, Deserialize)]
+struct AppearanceTables {
+    materials: Vec<Material>,
+    textures: Vec<Texture>,
+    samplers: Vec<Sampler>,
+    images: Vec<ImageMeta>,
+    notes: Vec<String>,
+}
+
+/// An image of [`AppearanceTables`] without its bytes.
+#[derive(Serialize, Deserialize)]
+struct ImageMeta {
+    mime: ImageMime,
+    width: u32,
+    height: u32,
+    downscaled_from: Option<[u32; 2]>,
+}
+
+impl<'a> AppearanceSectionRef<'a> {
+    /// The section of `rig`, when it has an appearance or a primitive has any of the data.
+    fn of(rig: &'a Rig) -> Result<Option<Self>, StoreError> {
+        let prims: Vec<PrimLookRef<'a>> = rig
+            .primitives
+            .iter()
+            .map(|p| PrimLookRef {
+                uv1: p.look.uv1.as_deref(),
+                colors: p.look.colors.as_deref(),
+                material: p.look.material,
+            })
+            .collect();
+        let any_prim = prims
+            .iter()
+            .any(|p| p.uv1.is_some() || p.colors.is_some() || p.material.is_some());
+        if rig.appearance.is_none() && !any_prim {
+            return Ok(None);
+        }
+        static EMPTY: Appearance = Appearance {
+            materials: Vec::new(),
+            textures: Vec::new(),
+            samplers: Vec::new(),
+            images: Vec::new(),
+            notes: Vec::new(),
+        };
+        let a = rig.appearance.as_deref().unwrap_or(&EMPTY);
+        let tables = AppearanceTables {
+            materials: a.materials.clone(),
+            textures: a.textures.clone(),
+            samplers: a.samplers.clone(),
+            images: a
+                .images
+                .iter()
+                .map(|i| ImageMeta {
+                    mime: i.mime,
+                    width: i.width,
+                    height: i.height,
+                    downscaled_from: i.downscaled_from,
+                })
+                .collect(),
+            notes: a.notes.clone(),
+        };
+        Ok(Some(AppearanceSectionRef {
+            prims,
+            tables_json: serde_json::to_string(&tables)
+                .map_err(|e| StoreError::Encode(e.to_string()))?,
+            images: a.images.iter().map(|i| &*i.bytes).collect(),
+        }))
+    }
+}
+
+impl AppearanceSection {
+    /// Puts the data back into `rig` (indices and lengths are checked by the caller's
+    /// [`Rig::validate`]). The images come back encoded: the server decodes them, charged,
+    /// before the rig is served.
+    fn apply(self, rig: &mut Rig) -> Result<(), String> {
+        if self.prims.len() != rig.primitives.len() {
+            return Err(format!(
+                "appearance of {} primitives for {}",
+                self.prims.len(),
+                rig.primitives.len()
+            ));
+        }
+        let t: AppearanceTables = serde_json::from_str(&self.tables_json)
+            .map_err(|e| format!("appearance tables: {e}"))?;
+        if t.images.len() != self.images.len() {
+            return Err(format!(
+                "appearance: {} images described, {} stored",
+                t.images.len(),
+                self.images.len()
+            ));
+        }
+        let mut prims = rig.primitives.as_ref().clone();
+        for (p, l) in prims.iter_mut().zip(self.prims) {
+            p.look.uv1 = l.uv1;
+            p.look.colors = l.colors;
+            p.look.material = l.material;
+        }
+        rig.primitives = std::sync::Arc::new(prims);
+        let images = t
+            .images
+            .into_iter()
+            .zip(self.images)
+            .map(|(m, bytes)| ImageData {
+                mime: m.mime,
+                bytes: bytes.into(),
+                width: m.width,
+                height: m.height,
+                downscaled_from: m.downscaled_from,
+                pixels: None,
+            })
+            .collect();
+        let a = Appearance {
+            materials: t.materials,
+            textures: t.textures,
+            samplers: t.samplers,
+            images,
+            notes: t.notes,
+        };
+        rig.appearance = (a != Appearance::default()).then(|| std::sync::Arc::new(a));
         Ok(())
     }
 }
@@ -613,6 +783,8 @@ impl<'a> RigSectionRef<'a> {
             skeleton: _,
             // In `S_SKIN`.
             import_notes: _,
+            // Section `S_APPEARANCE`.
+            appearance: _,
         } = rig;
         Ok(RigSectionRef {
             name,
@@ -665,6 +837,9 @@ fn write_sections(
             if let Some(look) = LookSectionRef::of(rig) {
                 sections::write(w, S_LOOK.tag, &look).map_err(enc)?;
             }
+            if let Some(a) = AppearanceSectionRef::of(rig)? {
+                sections::write(w, S_APPEARANCE.tag, &a).map_err(enc)?;
+            }
             if let Some(skeleton) = rig.skeleton.as_deref() {
                 let skin = SkinSectionRef {
                     skeleton,
@@ -716,6 +891,7 @@ fn read_rig_sections(
     let skin: Option<SkinSection> = s.take(S_SKIN)?;
     let map: Option<JointMap> = s.take(S_JOINT_MAP)?;
     let look: Option<LookSection> = s.take(S_LOOK)?;
+    let appearance: Option<AppearanceSection> = s.take(S_APPEARANCE)?;
     let clips = decode_clips(clips, Some(r.targets.len()), file, skipped);
     let mut rig = RigRecordColors {
         name: r.name,
@@ -730,6 +906,9 @@ fn read_rig_sections(
     attach_joint_tables(&mut rig.clips, tables.unwrap_or_default());
     if let Some(look) = look {
         look.apply(&mut rig)?;
+    }
+    if let Some(a) = appearance {
+        a.apply(&mut rig)?;
     }
     match skin {
         Some(skin) => skin.apply(&mut rig, map)?,
@@ -797,6 +976,7 @@ impl RigRecord {
             lod: lod_from_json(&self.lod_json)?,
             skeleton: None,
             import_notes: Vec::new(),
+            appearance: None,
         })
     }
 }

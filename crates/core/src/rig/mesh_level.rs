@@ -115,6 +115,7 @@ impl MeshLevel {
             lod,
             skeleton: rig.skeleton.clone(),
             import_notes: rig.import_notes.clone(),
+            appearance: rig.appearance.clone(),
         };
         derived.validate()?;
         Ok(derived)

@@ -23,6 +23,7 @@
 //!   transforms beside their weights ([`Clip::joints`]). Rig space holds the rest pose
 //!   (`skin.rs`).
 
+mod appearance;
 mod clip;
 mod cost;
 mod joint_lod;
@@ -34,6 +35,10 @@ mod pose;
 mod sample;
 mod skin;
 
+pub use appearance::{
+    AlphaMode, Appearance, Filter, ImageData, ImageMime, Material, MipLevel, Mips, Sampler, Slot,
+    TexRef, Texture, UvTransform, Wrap,
+};
 pub use clip::{Clip, ClipError, ClipIndex, DEFAULT_FPS, FrameMode, MAX_FRAMES};
 pub use cost::{CPU_BLOCK, PrimShape, RigCost, RigShape, SkinShape};
 pub use joint_lod::{JointLevel, JointLod, REFERENCE_TURN, drop_fraction};
@@ -102,6 +107,11 @@ pub struct Rig {
     /// report them at upload only.
     #[serde(skip)]
     pub import_notes: Vec<String>,
+    /// Materials, textures, samplers and images ([`Appearance`]), when the file has any;
+    /// shared by every version and clone of the rig. Skipped by serde: the store keeps it in
+    /// a section of its own.
+    #[serde(skip)]
+    pub appearance: Option<Arc<Appearance>>,
 }
 
 /// A rig's weight channels by target name, for operations that look up many names (the
@@ -255,29 +265,49 @@ pub struct Primitive {
     pub look: VertexLook,
 }
 
-/// Per-vertex appearance data of a primitive, parallel to its positions. Nothing here moves
-/// with a morph target: it is what a mesh level keeps of each source vertex it keeps.
+/// Per-vertex appearance data of a primitive, parallel to its positions, and the material it
+/// is drawn with. Nothing here moves with a morph target: it is what a mesh level keeps of
+/// each source vertex it keeps.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct VertexLook {
     /// Texture coordinates of set 0 (glTF `TEXCOORD_0`), as the file has them (normalized
     /// integers decoded to floats).
     pub uv0: Option<Vec<Vec2>>,
+    /// Texture coordinates of set 1 (`TEXCOORD_1`), kept when the primitive's material
+    /// reads set 1.
+    pub uv1: Option<Vec<Vec2>>,
+    /// Vertex colours (`COLOR_0`), linear RGBA (RGB files get alpha 1).
+    pub colors: Option<Vec<Vec4>>,
+    /// Index of its material in [`Rig::appearance`]; `None`: drawn with
+    /// [`Material::untextured`] of its base colour.
+    pub material: Option<u32>,
 }
 
 impl VertexLook {
     /// The data of vertices `vertices` of a primitive (a mesh level's kept source vertices).
     pub fn pick(&self, vertices: &[u32]) -> VertexLook {
+        fn pick<T: Copy>(a: &Option<Vec<T>>, vertices: &[u32]) -> Option<Vec<T>> {
+            a.as_ref()
+                .map(|a| vertices.iter().map(|&v| a[v as usize]).collect())
+        }
         VertexLook {
-            uv0: self
-                .uv0
-                .as_ref()
-                .map(|uv| vertices.iter().map(|&v| uv[v as usize]).collect()),
+            uv0: pick(&self.uv0, vertices),
+            uv1: pick(&self.uv1, vertices),
+            colors: pick(&self.colors, vertices),
+            material: self.material,
         }
     }
 
     /// Bytes of its arrays.
     pub fn bytes(&self) -> usize {
         self.uv0.as_ref().map_or(0, |uv| uv.len() * 8)
+            + self.uv1.as_ref().map_or(0, |uv| uv.len() * 8)
+            + self.colors.as_ref().map_or(0, |c| c.len() * 16)
+    }
+
+    /// Whether it carries nothing (what the store leaves out).
+    pub fn is_empty(&self) -> bool {
+        *self == VertexLook::default()
     }
 }
 
@@ -545,7 +575,10 @@ impl Rig {
 
     /// Host memory held by the rig's arrays, in bytes: geometry, clip tables and LOD.
     pub fn host_bytes(&self) -> usize {
-        self.geometry_bytes() + self.clip_bytes() + self.lod_bytes()
+        self.geometry_bytes()
+            + self.clip_bytes()
+            + self.lod_bytes()
+            + self.appearance.as_ref().map_or(0, |a| a.bytes())
     }
 
     /// Bytes of the primitives' arrays (neutral mesh, indices, sparse deltas).
@@ -603,6 +636,7 @@ impl Rig {
         for p in self.primitives.iter() {
             p.validate(n_targets)?;
         }
+        self.validate_appearance()?;
         for c in &self.clips {
             c.validate(n_targets)?;
         }
@@ -610,6 +644,31 @@ impl Rig {
         let counts: Vec<usize> = self.primitives.iter().map(|p| p.positions.len()).collect();
         self.lod.validate_meshes(&counts)?;
         self.validate_skeleton()
+    }
+
+    /// The appearance's part of [`Rig::validate`]: its own indices, and every primitive's
+    /// material inside it (a primitive naming a material needs an appearance).
+    fn validate_appearance(&self) -> Result<(), RigError> {
+        let bad = |primitive: &str, problem: String| RigError::Inconsistent {
+            primitive: primitive.to_string(),
+            problem,
+        };
+        let materials = self.appearance.as_ref().map_or(0, |a| a.materials.len());
+        if let Some(a) = &self.appearance {
+            a.validate()
+                .map_err(|p| bad("", format!("appearance: {p}")))?;
+        }
+        for p in self.primitives.iter() {
+            if let Some(m) = p.look.material
+                && m as usize >= materials
+            {
+                return Err(bad(
+                    &p.name,
+                    format!("material {m} out of range ({materials} materials)"),
+                ));
+            }
+        }
+        Ok(())
     }
 
     /// The skeleton's part of [`Rig::validate`]: influences only with a skeleton, bones and
@@ -742,13 +801,19 @@ impl Primitive {
         {
             return Err(bad(format!("{} tangents for {n} positions", t.len())));
         }
-        if let Some(uv) = &self.look.uv0
-            && uv.len() != n
-        {
-            return Err(bad(format!(
-                "{} texture coordinates for {n} positions",
-                uv.len()
-            )));
+        for (what, len) in [
+            ("texture coordinates", self.look.uv0.as_ref().map(Vec::len)),
+            (
+                "texture coordinates of set 1",
+                self.look.uv1.as_ref().map(Vec::len),
+            ),
+            ("vertex colours", self.look.colors.as_ref().map(Vec::len)),
+        ] {
+            if let Some(len) = len
+                && len != n
+            {
+                return Err(bad(format!("{len} {what} for {n} positions")));
+            }
         }
         if !self.indices.len().is_multiple_of(3) {
             return Err(bad(format!(
@@ -771,11 +836,16 @@ impl Primitive {
         if let Some(t) = &self.tangents {
             check_finite(&what("tangents"), t.iter().flat_map(|v| v.to_array()))?;
         }
-        if let Some(uv) = &self.look.uv0 {
-            check_finite(
-                &what("texture coordinates"),
-                uv.iter().flat_map(|v| v.to_array()),
-            )?;
+        for (name, uv) in [
+            ("texture coordinates", &self.look.uv0),
+            ("texture coordinates of set 1", &self.look.uv1),
+        ] {
+            if let Some(uv) = uv {
+                check_finite(&what(name), uv.iter().flat_map(|v| v.to_array()))?;
+            }
+        }
+        if let Some(c) = &self.look.colors {
+            check_finite(&what("vertex colours"), c.iter().flat_map(|v| v.to_array()))?;
         }
         let mut seen = vec![false; n_targets];
         for t in &self.targets {

@@ -171,6 +171,7 @@ impl DeltaPca {
             },
             skeleton: rig.skeleton.clone(),
             import_notes: rig.import_notes.clone(),
+            appearance: rig.appearance.clone(),
         };
         derived.validate()?;
         Ok(derived)

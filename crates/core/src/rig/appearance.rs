@@ -1,0 +1,542 @@
+//! What a rig looks like: its glTF materials, textures, samplers and images.
+//!
+//! The geometry side (texture coordinates, vertex colours, a primitive's material index) is
+//! per vertex and lives in [`super::VertexLook`]; this module holds what primitives share, once
+//! per rig ([`super::Rig::appearance`]), so clones and mesh levels share it too (an `Arc`).
+//!
+//! The model mirrors glTF 2.0's metallic-roughness material (the spec's section 3.9) with the
+//! extensions the renderer draws (`KHR_texture_transform`, `KHR_materials_emissive_strength`,
+//! `KHR_materials_unlit`, `EXT_texture_webp`); anything a file asks for that is not drawn is a
+//! sentence in [`Appearance::notes`], never silent. Images keep their encoded bytes (what the
+//! store persists and `GET /v1/rigs/{id}/textures/{i}` serves); their decoded pixels with the
+//! mip chain ([`Mips`]) are rebuilt from those bytes on every load and charged to the rig pool,
+//! so the store never holds pixels.
+
+use std::sync::Arc;
+
+use glam::Vec2;
+use serde::{Deserialize, Serialize};
+
+/// A rig's materials and what they sample. Indices follow the file's arrays after import
+/// (a texture's `image`, a material's texture references), so the JSON clients get is
+/// glTF-shaped.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Appearance {
+    /// glTF materials, by index ([`super::VertexLook::material`] names one).
+    pub materials: Vec<Material>,
+    /// glTF textures: an image and a sampler each.
+    pub textures: Vec<Texture>,
+    /// glTF samplers.
+    pub samplers: Vec<Sampler>,
+    /// The images, encoded as uploaded (or re-encoded after a downscale).
+    pub images: Vec<ImageData>,
+    /// What the import did not draw or changed, one sentence each (an unsupported material
+    /// extension, a KTX2 texture without a fallback, a downscaled image).
+    pub notes: Vec<String>,
+}
+
+/// glTF's `material`, as the renderer draws it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Material {
+    /// The file's name of the material.
+    pub name: Option<String>,
+    /// `pbrMetallicRoughness.baseColorFactor`, linear RGBA.
+    pub base_color_factor: [f32; 4],
+    /// `pbrMetallicRoughness.baseColorTexture` (sRGB).
+    pub base_color_texture: Option<TexRef>,
+    /// `pbrMetallicRoughness.metallicFactor`.
+    pub metallic_factor: f32,
+    /// `pbrMetallicRoughness.roughnessFactor`.
+    pub roughness_factor: f32,
+    /// `pbrMetallicRoughness.metallicRoughnessTexture` (B metallic, G roughness; linear).
+    pub metallic_roughness_texture: Option<TexRef>,
+    /// `normalTexture` (tangent space, linear).
+    pub normal_texture: Option<TexRef>,
+    /// `normalTexture.scale`.
+    pub normal_scale: f32,
+    /// `occlusionTexture` (R channel, linear).
+    pub occlusion_texture: Option<TexRef>,
+    /// `occlusionTexture.strength`.
+    pub occlusion_strength: f32,
+    /// `emissiveFactor`, linear RGB.
+    pub emissive_factor: [f32; 3],
+    /// `KHR_materials_emissive_strength.emissiveStrength` (1 without the extension).
+    pub emissive_strength: f32,
+    /// `emissiveTexture` (sRGB).
+    pub emissive_texture: Option<TexRef>,
+    /// `alphaMode`.
+    pub alpha_mode: AlphaMode,
+    /// `alphaCutoff` (used with [`AlphaMode::Mask`]).
+    pub alpha_cutoff: f32,
+    /// `doubleSided`.
+    pub double_sided: bool,
+    /// `KHR_materials_unlit`: drawn with its base colour only.
+    pub unlit: bool,
+}
+
+impl Default for Material {
+    /// glTF's default material (spec 3.9.6): white, metallic 1, roughness 1, opaque.
+    fn default() -> Self {
+        Material {
+            name: None,
+            base_color_factor: [1.0; 4],
+            base_color_texture: None,
+            metallic_factor: 1.0,
+            roughness_factor: 1.0,
+            metallic_roughness_texture: None,
+            normal_texture: None,
+            normal_scale: 1.0,
+            occlusion_texture: None,
+            occlusion_strength: 1.0,
+            emissive_factor: [0.0; 3],
+            emissive_strength: 1.0,
+            emissive_texture: None,
+            alpha_mode: AlphaMode::Opaque,
+            alpha_cutoff: 0.5,
+            double_sided: false,
+            unlit: false,
+        }
+    }
+}
+
+impl Material {
+    /// What a primitive without a material is drawn with: its base colour, dielectric and
+    /// half rough. glTF's default material (metallic 1, roughness 1) is black without an
+    /// environment map, which no user wants from a head without a material.
+    pub fn untextured(base_color: [f32; 4]) -> Material {
+        Material {
+            base_color_factor: base_color,
+            metallic_factor: 0.0,
+            roughness_factor: 0.5,
+            ..Material::default()
+        }
+    }
+
+    /// Every texture reference of the material with the slot it fills.
+    pub fn texture_refs(&self) -> impl Iterator<Item = (Slot, &TexRef)> {
+        [
+            (Slot::BaseColor, &self.base_color_texture),
+            (Slot::MetallicRoughness, &self.metallic_roughness_texture),
+            (Slot::Normal, &self.normal_texture),
+            (Slot::Occlusion, &self.occlusion_texture),
+            (Slot::Emissive, &self.emissive_texture),
+        ]
+        .into_iter()
+        .filter_map(|(s, r)| r.as_ref().map(|r| (s, r)))
+    }
+}
+
+/// A texture slot of a material.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum Slot {
+    /// Base colour (sRGB).
+    BaseColor,
+    /// Metallic (B) and roughness (G), linear.
+    MetallicRoughness,
+    /// Tangent-space normals, linear.
+    Normal,
+    /// Ambient occlusion (R), linear.
+    Occlusion,
+    /// Emissive colour (sRGB).
+    Emissive,
+}
+
+impl Slot {
+    /// Whether the slot holds colours (sampled through an sRGB view) rather than data.
+    pub fn is_srgb(self) -> bool {
+        matches!(self, Slot::BaseColor | Slot::Emissive)
+    }
+}
+
+/// glTF's `alphaMode`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum AlphaMode {
+    /// Alpha ignored.
+    #[default]
+    Opaque,
+    /// Drawn where alpha ≥ the cutoff, a hole elsewhere.
+    Mask,
+    /// Blended over what is behind it.
+    Blend,
+}
+
+impl AlphaMode {
+    /// The glTF spelling.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            AlphaMode::Opaque => "OPAQUE",
+            AlphaMode::Mask => "MASK",
+            AlphaMode::Blend => "BLEND",
+        }
+    }
+}
+
+/// A material's reference to a texture (glTF `textureInfo`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TexRef {
+    /// Index into [`Appearance::textures`].
+    pub texture: u32,
+    /// Which texture coordinate set it reads (0 or 1).
+    pub tex_coord: u8,
+    /// `KHR_texture_transform`, when the reference has one.
+    pub transform: Option<UvTransform>,
+}
+
+/// `KHR_texture_transform`: `uv' = T(offset) · R(rotation) · S(scale) · uv`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct UvTransform {
+    /// Translation.
+    pub offset: [f32; 2],
+    /// Rotation in radians, counter-clockwise in UV space.
+    pub rotation: f32,
+    /// Scale.
+    pub scale: [f32; 2],
+}
+
+impl Default for UvTransform {
+    fn default() -> Self {
+        UvTransform {
+            offset: [0.0; 2],
+            rotation: 0.0,
+            scale: [1.0; 2],
+        }
+    }
+}
+
+impl UvTransform {
+    /// The transform as the rows of a 2×3 matrix (`uv' = M · (u, v, 1)`): the extension's
+    /// GLSL `translation * rotation * scale`, whose column-major `rotation` has columns
+    /// `(cos, sin)` and `(-sin, cos)`.
+    pub fn rows(&self) -> [[f32; 3]; 2] {
+        let (s, c) = self.rotation.sin_cos();
+        let [sx, sy] = self.scale;
+        let [ox, oy] = self.offset;
+        [[c * sx, -s * sy, ox], [s * sx, c * sy, oy]]
+    }
+
+    /// Applies the transform to one coordinate.
+    pub fn apply(&self, uv: Vec2) -> Vec2 {
+        let [r0, r1] = self.rows();
+        Vec2::new(
+            r0[0] * uv.x + r0[1] * uv.y + r0[2],
+            r1[0] * uv.x + r1[1] * uv.y + r1[2],
+        )
+    }
+}
+
+/// glTF's `texture`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Texture {
+    /// Index into [`Appearance::samplers`]; glTF's default sampler without one.
+    pub sampler: Option<u32>,
+    /// Index into [`Appearance::images`]; `None` when the texture's only source is one the
+    /// import cannot decode (a KTX2 image without a fallback): drawn with its factors.
+    pub image: Option<u32>,
+}
+
+/// glTF's `sampler`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Sampler {
+    /// Magnification filter.
+    pub mag: Filter,
+    /// Minification filter within a mip level.
+    pub min: Filter,
+    /// Filter between mip levels; `None`: the base level only.
+    pub mipmap: Option<Filter>,
+    /// Wrap along u.
+    pub wrap_s: Wrap,
+    /// Wrap along v.
+    pub wrap_t: Wrap,
+}
+
+impl Default for Sampler {
+    /// What glTF leaves to the implementation when a texture has no sampler: trilinear,
+    /// repeating (three.js's choice too).
+    fn default() -> Self {
+        Sampler {
+            mag: Filter::Linear,
+            min: Filter::Linear,
+            mipmap: Some(Filter::Linear),
+            wrap_s: Wrap::Repeat,
+            wrap_t: Wrap::Repeat,
+        }
+    }
+}
+
+/// A texture filter.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Filter {
+    /// Nearest texel.
+    Nearest,
+    /// Bilinear.
+    Linear,
+}
+
+/// A texture wrap mode.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Wrap {
+    /// glTF 33071.
+    ClampToEdge,
+    /// glTF 33648.
+    MirroredRepeat,
+    /// glTF 10497.
+    Repeat,
+}
+
+/// How an image's bytes are encoded.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum ImageMime {
+    /// `image/png`.
+    Png,
+    /// `image/jpeg`.
+    Jpeg,
+    /// `image/webp` (`EXT_texture_webp`).
+    Webp,
+}
+
+impl ImageMime {
+    /// The MIME type.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ImageMime::Png => "image/png",
+            ImageMime::Jpeg => "image/jpeg",
+            ImageMime::Webp => "image/webp",
+        }
+    }
+
+    /// The type a MIME string names, if it is one the import reads.
+    pub fn parse(mime: &str) -> Option<ImageMime> {
+        match mime {
+            "image/png" => Some(ImageMime::Png),
+            "image/jpeg" | "image/jpg" => Some(ImageMime::Jpeg),
+            "image/webp" => Some(ImageMime::Webp),
+            _ => None,
+        }
+    }
+
+    /// The usual file extension.
+    pub fn extension(self) -> &'static str {
+        match self {
+            ImageMime::Png => "png",
+            ImageMime::Jpeg => "jpg",
+            ImageMime::Webp => "webp",
+        }
+    }
+}
+
+/// One image of the rig: its encoded bytes and, once decoded, its pixels.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct ImageData {
+    /// How [`ImageData::bytes`] is encoded.
+    pub mime: ImageMime,
+    /// The encoded image.
+    pub bytes: Arc<[u8]>,
+    /// Width in pixels of the encoded image.
+    pub width: u32,
+    /// Height in pixels of the encoded image.
+    pub height: u32,
+    /// The file's size when the import downscaled it to `--max-texture-size`.
+    pub downscaled_from: Option<[u32; 2]>,
+    /// The decoded pixels with their mip chain; never serialized (rebuilt on load).
+    #[serde(skip)]
+    pub pixels: Option<Arc<Mips>>,
+}
+
+impl PartialEq for ImageData {
+    /// Images are equal when their encodings are: pixels are a function of the bytes.
+    fn eq(&self, other: &Self) -> bool {
+        self.mime == other.mime
+            && self.bytes == other.bytes
+            && self.width == other.width
+            && self.height == other.height
+            && self.downscaled_from == other.downscaled_from
+    }
+}
+
+/// Decoded RGBA8 pixels (straight alpha, as encoded: sRGB or linear is the sampling slot's
+/// business), the full mip chain from the base level down to 1 × 1.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Mips {
+    /// Level 0 first; each `(width, height, rgba)`.
+    pub levels: Vec<MipLevel>,
+}
+
+/// One level of a [`Mips`] chain.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MipLevel {
+    /// Width in pixels.
+    pub width: u32,
+    /// Height in pixels.
+    pub height: u32,
+    /// `width × height × 4` bytes, rows top to bottom.
+    pub rgba: Vec<u8>,
+}
+
+impl Mips {
+    /// Bytes of every level.
+    pub fn bytes(&self) -> usize {
+        self.levels.iter().map(|l| l.rgba.len()).sum()
+    }
+
+    /// Bytes a full RGBA8 chain of a `width × height` image holds, without making it (what
+    /// is charged before decoding).
+    pub fn chain_bytes(width: u32, height: u32) -> u64 {
+        let (mut w, mut h, mut total) = (width.max(1) as u64, height.max(1) as u64, 0u64);
+        loop {
+            total += w * h * 4;
+            if w == 1 && h == 1 {
+                return total;
+            }
+            w = (w / 2).max(1);
+            h = (h / 2).max(1);
+        }
+    }
+}
+
+impl Appearance {
+    /// Host bytes held: encoded images, decoded chains and the small tables.
+    pub fn bytes(&self) -> usize {
+        let images: usize = self
+            .images
+            .iter()
+            .map(|i| i.bytes.len() + i.pixels.as_ref().map_or(0, |p| p.bytes()))
+            .sum();
+        images
+            + self.materials.len() * size_of::<Material>()
+            + self.textures.len() * size_of::<Texture>()
+            + self.samplers.len() * size_of::<Sampler>()
+            + self.notes.iter().map(String::len).sum::<usize>()
+    }
+
+    /// Bytes of the decoded chains of every image (what a load charges before decoding).
+    pub fn decoded_bytes(&self) -> u64 {
+        self.images
+            .iter()
+            .map(|i| Mips::chain_bytes(i.width, i.height))
+            .sum()
+    }
+
+    /// The image a material slot samples, when it has one the import could decode.
+    pub fn image_of(&self, r: &TexRef) -> Option<&ImageData> {
+        let t = self.textures.get(r.texture as usize)?;
+        self.images.get(t.image? as usize)
+    }
+
+    /// The sampler of a texture reference (glTF's default when none is named).
+    pub fn sampler_of(&self, r: &TexRef) -> Sampler {
+        self.textures
+            .get(r.texture as usize)
+            .and_then(|t| t.sampler)
+            .and_then(|s| self.samplers.get(s as usize).copied())
+            .unwrap_or_default()
+    }
+
+    /// Checks that every index points inside its array, for records read from a store or
+    /// built by hand: the renderer and the endpoints index without checking again.
+    pub fn validate(&self) -> Result<(), String> {
+        for (i, m) in self.materials.iter().enumerate() {
+            for (slot, r) in m.texture_refs() {
+                if r.texture as usize >= self.textures.len() {
+                    return Err(format!(
+                        "material {i}: {slot:?} texture {} of {}",
+                        r.texture,
+                        self.textures.len()
+                    ));
+                }
+                if r.tex_coord > 1 {
+                    return Err(format!(
+                        "material {i}: {slot:?} reads texture coordinate set {}",
+                        r.tex_coord
+                    ));
+                }
+            }
+            let finite = m
+                .base_color_factor
+                .iter()
+                .chain(&m.emissive_factor)
+                .chain(&[
+                    m.metallic_factor,
+                    m.roughness_factor,
+                    m.normal_scale,
+                    m.occlusion_strength,
+                    m.emissive_strength,
+                    m.alpha_cutoff,
+                ])
+                .all(|v| v.is_finite());
+            if !finite {
+                return Err(format!("material {i}: a factor is not finite"));
+            }
+        }
+        for (i, t) in self.textures.iter().enumerate() {
+            if t.sampler.is_some_and(|s| s as usize >= self.samplers.len()) {
+                return Err(format!("texture {i}: no sampler {:?}", t.sampler));
+            }
+            if t.image.is_some_and(|s| s as usize >= self.images.len()) {
+                return Err(format!("texture {i}: no image {:?}", t.image));
+            }
+        }
+        for (i, im) in self.images.iter().enumerate() {
+            if im.width == 0 || im.height == 0 {
+                return Err(format!("image {i} is {} × {}", im.width, im.height));
+            }
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_chain_counts_every_level_down_to_one_pixel() {
+        // 4×2: 32 + 2×1: 8 + 1×1: 4.
+        assert_eq!(Mips::chain_bytes(4, 2), 44);
+        assert_eq!(Mips::chain_bytes(1, 1), 4);
+        // A square power of two approaches 4/3 of the base level.
+        let base = 1024u64 * 1024 * 4;
+        let chain = Mips::chain_bytes(1024, 1024);
+        assert!(chain > base * 4 / 3 - 8 && chain <= base * 4 / 3 + 4);
+    }
+
+    #[test]
+    fn a_texture_transform_is_the_extensions_matrix() {
+        // Offset (0, 1), rotation π/2, scale (0.5, 0.5) sends (1, 0) to
+        // T·R·S·(1,0) = (0, 1) + R·(0.5, 0) = (0, 1) + (0, 0.5).
+        let t = UvTransform {
+            offset: [0.0, 1.0],
+            rotation: std::f32::consts::FRAC_PI_2,
+            scale: [0.5, 0.5],
+        };
+        let p = t.apply(Vec2::new(1.0, 0.0));
+        assert!((p - Vec2::new(0.0, 1.5)).length() < 1e-6, "{p}");
+        assert_eq!(
+            UvTransform::default().apply(Vec2::new(0.3, 0.7)),
+            Vec2::new(0.3, 0.7)
+        );
+    }
+
+    #[test]
+    fn validate_names_a_dangling_index() {
+        let mut a = Appearance {
+            materials: vec![Material {
+                base_color_texture: Some(TexRef {
+                    texture: 0,
+                    tex_coord: 0,
+                    transform: None,
+                }),
+                ..Material::default()
+            }],
+            textures: vec![Texture {
+                sampler: None,
+                image: Some(0),
+            }],
+            ..Appearance::default()
+        };
+        assert!(a.validate().unwrap_err().contains("texture 0: no image"));
+        a.textures[0].image = None;
+        assert_eq!(a.validate(), Ok(()));
+        a.materials[0].base_color_texture.as_mut().unwrap().texture = 3;
+        assert!(a.validate().unwrap_err().contains("material 0"));
+    }
+}
