@@ -533,10 +533,16 @@ mod tests {
             }],
             ..Appearance::default()
         };
-        assert!(a.validate().unwrap_err().contains("texture 0: no image"));
+        assert!(
+            a.validate()
+                .expect_err("dangling")
+                .contains("texture 0: no image")
+        );
         a.textures[0].image = None;
         assert_eq!(a.validate(), Ok(()));
-        a.materials[0].base_color_texture.as_mut().unwrap().texture = 3;
-        assert!(a.validate().unwrap_err().contains("material 0"));
+        if let Some(r) = a.materials[0].base_color_texture.as_mut() {
+            r.texture = 3;
+        }
+        assert!(a.validate().expect_err("dangling").contains("material 0"));
     }
 }
