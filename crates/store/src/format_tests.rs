@@ -337,7 +337,7 @@ fn dressed() -> Rig {
             p.look.colors = Some(vec![glam::Vec4::new(1.0, 0.5, 0.25, 1.0); n]);
         }
     }
-    rig.primitives = std::sync::Arc::new(prims);
+    rig.primitives = Arc::new(prims);
     let tex = |texture, tex_coord| TexRef {
         texture,
         tex_coord,
@@ -347,7 +347,7 @@ fn dressed() -> Rig {
             scale: [2.0, 1.0],
         }),
     };
-    rig.appearance = Some(std::sync::Arc::new(Appearance {
+    rig.appearance = Some(Arc::new(Appearance {
         materials: vec![
             Material {
                 name: Some("skin".into()),
@@ -383,7 +383,7 @@ fn dressed() -> Rig {
         }],
         images: vec![ImageData {
             mime: ImageMime::Png,
-            bytes: std::sync::Arc::from(&b"not decoded by the store"[..]),
+            bytes: Arc::from(&b"not decoded by the store"[..]),
             width: 3,
             height: 2,
             downscaled_from: Some([6, 4]),
