@@ -10,7 +10,7 @@ use crowdmorph_client::Client;
 use crowdmorph_server::{AppState, ServerConfig};
 
 /// The bytes to upload for a rig file: a `.glb` as it is, a `.gltf` with its external buffers
-/// inlined as base64 data URIs (the server accepts only self-contained files).
+/// and images inlined as base64 data URIs (the server accepts only self-contained files).
 pub fn self_contained_bytes(path: &std::path::Path) -> Result<Vec<u8>> {
     use base64::Engine as _;
     let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
@@ -32,6 +32,32 @@ pub fn self_contained_bytes(path: &std::path::Path) -> Result<Vec<u8>> {
                 .with_context(|| format!("reading buffer {uri} of {}", path.display()))?;
             b["uri"] = serde_json::Value::String(format!(
                 "data:application/octet-stream;base64,{}",
+                base64::engine::general_purpose::STANDARD.encode(data)
+            ));
+        }
+    }
+    // Images too, so the server draws the rig's textures.
+    if let Some(images) = doc.get_mut("images").and_then(|b| b.as_array_mut()) {
+        for im in images {
+            let Some(uri) = im.get("uri").and_then(|u| u.as_str()).map(str::to_string) else {
+                continue;
+            };
+            if uri.starts_with("data:") {
+                continue;
+            }
+            let data = std::fs::read(dir.join(&uri))
+                .with_context(|| format!("reading image {uri} of {}", path.display()))?;
+            let mime = im
+                .get("mimeType")
+                .and_then(|m| m.as_str())
+                .unwrap_or(if uri.ends_with(".png") {
+                    "image/png"
+                } else {
+                    "image/jpeg"
+                })
+                .to_string();
+            im["uri"] = serde_json::Value::String(format!(
+                "data:{mime};base64,{}",
                 base64::engine::general_purpose::STANDARD.encode(data)
             ));
         }

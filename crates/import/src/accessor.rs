@@ -223,6 +223,42 @@ impl<'a> Source<'a> {
         Ok(&buffer[start as usize..end as usize])
     }
 
+    /// The bytes of buffer view `view`, which image `image` is stored in. A compressed view
+    /// is refused: meshopt compression is for vertex and index data.
+    pub(crate) fn image_view(
+        &self,
+        image: usize,
+        view: &gltf::buffer::View<'_>,
+    ) -> Result<&[u8], ImportError> {
+        let bad = |problem: String| ImportError::Image {
+            index: image,
+            problem,
+        };
+        if self.compressed.contains_key(&view.index()) {
+            return Err(bad(format!(
+                "is stored in the meshopt-compressed buffer view {}",
+                view.index()
+            )));
+        }
+        let buffer = self.buffers.get(view.buffer().index()).ok_or_else(|| {
+            bad(format!(
+                "buffer {} of its view is not loaded",
+                view.buffer().index()
+            ))
+        })?;
+        let start = view.offset() as u64;
+        let end = start + view.length() as u64;
+        if end > buffer.len() as u64 {
+            return Err(bad(format!(
+                "buffer view {} ends at byte {end}, past the {} bytes of buffer {}",
+                view.index(),
+                buffer.len(),
+                view.buffer().index()
+            )));
+        }
+        Ok(&buffer[start as usize..end as usize])
+    }
+
     /// Checks that `[offset, offset + len)` lies within a view and its buffer, without
     /// decoding a compressed view (its declared length is what it will have).
     fn check_range(

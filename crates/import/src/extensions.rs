@@ -1,14 +1,16 @@
 //! Which glTF extensions a file uses, and what the importer does with each.
 //!
-//! A rig needs geometry, morph targets, node transforms and weight animations; textures and
-//! materials matter only to how a rendered frame is coloured. So an extension is:
+//! A rig needs geometry, morph targets, node transforms and weight animations; materials and
+//! textures decide how it looks (`super::material`). So an extension is:
 //! - *read* when it changes how that data is stored: `KHR_mesh_quantization` (integer
 //!   attributes) and `EXT_meshopt_compression` / `KHR_meshopt_compression` (compressed buffer
-//!   views, see [`super::meshopt`]);
-//! - *ignored* when it only touches textures and images (`KHR_texture_basisu`,
-//!   `EXT_texture_webp`, `KHR_texture_transform`, ...) — even when the file lists it as
-//!   required, since a viewer that cannot decode a KTX2 texture still has the mesh — or when
-//!   the file does not require it;
+//!   views, see [`super::meshopt`]); or when the renderer draws it: `KHR_texture_transform`,
+//!   `EXT_texture_webp`, `KHR_materials_emissive_strength`, `KHR_materials_unlit`;
+//! - *ignored* when it only touches textures and images and is not drawn
+//!   (`KHR_texture_basisu`: KTX2 is not decoded, the fallback image is drawn) — even when the
+//!   file lists it as required, since a viewer that cannot decode a KTX2 texture still has the
+//!   mesh — or when the file does not require it (a material extension not drawn is also
+//!   named in the import's notes, per material);
 //! - *unsupported* otherwise, when required: `KHR_draco_mesh_compression` (with how to convert
 //!   the file) and anything unknown whose meaning could change the geometry.
 //!
@@ -79,7 +81,8 @@ fn uses_of(root: &Value, names: &[&str]) -> Vec<Uses> {
     let mut uses = vec![Uses::default(); names.len()];
     if let Some(map) = root.as_object() {
         for (k, v) in map {
-            let texture = matches!(k.as_str(), "textures" | "images" | "samplers");
+            // Materials too: no material extension changes the geometry.
+            let texture = matches!(k.as_str(), "textures" | "images" | "samplers" | "materials");
             scan(v, &index, texture, &mut uses);
         }
     }
@@ -131,6 +134,17 @@ pub(crate) fn texture_only(root: &Value, names: &[&str]) -> Vec<bool> {
         .collect()
 }
 
+/// What the renderer does with an appearance extension it draws.
+fn drawn(name: &str) -> Option<&'static str> {
+    Some(match name {
+        "KHR_texture_transform" => "texture coordinate offset, rotation and scale are applied",
+        "EXT_texture_webp" => "WebP images are decoded and drawn",
+        "KHR_materials_emissive_strength" => "emissive strength is drawn",
+        "KHR_materials_unlit" => "unlit materials are drawn with their base colour",
+        _ => return None,
+    })
+}
+
 /// How one extension is handled (see the module documentation); `uses` says where the
 /// document uses it.
 fn classify(name: &str, required: bool, uses: Uses) -> ExtensionUse {
@@ -145,11 +159,18 @@ fn classify(name: &str, required: bool, uses: Uses) -> ExtensionUse {
             "compressed buffer views are decompressed (attributes, indices; octahedral, quaternion and exponential filters)".to_string(),
         )
     } else if uses.texture_only() {
-        (
-            "ignored",
-            "used only by textures and images, which crowdmorph does not use for blending"
-                .to_string(),
-        )
+        match drawn(name) {
+            Some(note) => ("read", note.to_string()),
+            None if name == "KHR_texture_basisu" => (
+                "ignored",
+                "KTX2 images are not decoded; a texture's fallback image is drawn when it names one, else its material's factors".to_string(),
+            ),
+            None => (
+                "ignored",
+                "used only by materials, textures and images, and not drawn (the import's notes name each use)"
+                    .to_string(),
+            ),
+        }
     } else if !required {
         (
             "ignored",

@@ -18,6 +18,7 @@ use gltf::mesh::{Mode, Semantic};
 
 use super::accessor::{CompressedView, Source};
 use super::channels::{ChannelPlan, plan_channels};
+use super::material::Pending;
 use super::scene::{
     AnimationTracks, MeshNames, WeightTrack, json_nodes, mesh_label, mesh_target_count,
     scene_instances, tracks_bytes,
@@ -40,6 +41,8 @@ const SUPPORTED_REQUIRED: &[&str] = &[
 
 /// A parsed document with its buffers loaded.
 pub(crate) struct Parsed<'a> {
+    /// The document's JSON, for what the `gltf` crate does not read safely (materials).
+    pub(crate) json: &'a [u8],
     pub(crate) doc: gltf::Document,
     pub(crate) source: Source<'a>,
 }
@@ -64,6 +67,8 @@ pub struct GltfImport<'a> {
     /// the budget) until [`GltfImport::build`] bakes them.
     animations: Vec<AnimationTracks>,
     shape: RigShape,
+    /// Materials and images, fetched and sized, decoded by the build.
+    appearance: Option<Pending>,
     /// Largest transient decode of one primitive (dense target deltas, raw indices), plus the
     /// compressed views the geometry reads, decoded during the build and kept until its end,
     /// beyond the rig's own arrays.
@@ -76,12 +81,24 @@ impl<'a> GltfImport<'a> {
     /// counts alone break (targets, vertices, frames) are refused here, before any decoding.
     pub fn open(bytes: &'a [u8], options: &ImportOptions) -> Result<GltfImport<'a>, ImportError> {
         let parsed = parse(bytes, options)?;
-        let (shape, transient, plan, animations) = document_shape(&parsed, options)?;
+        let (mut shape, transient, plan, animations) = document_shape(&parsed, options)?;
+        let appearance = Pending::read(
+            parsed.json,
+            &parsed.source,
+            &parsed.doc,
+            options.base_dir.as_deref(),
+            options.max_texture_size,
+        )?;
+        // What the rig keeps of its images, and the largest one's decode on top of the
+        // geometry's transient peak (images are decoded after the geometry is built).
+        let transient = transient + appearance.as_ref().map_or(0, Pending::peak_decode);
+        shape.appearance = appearance.as_ref().map_or(0, Pending::kept_bytes);
         Ok(GltfImport {
             parsed,
             plan,
             animations,
             shape,
+            appearance,
             transient,
         })
     }
@@ -99,7 +116,13 @@ impl<'a> GltfImport<'a> {
 
     /// Decodes and builds the rig, charging every allocation to the budget.
     pub fn build(self, options: &ImportOptions) -> Result<Rig, ImportError> {
-        build_rig(&self.parsed, self.plan, self.animations, options)
+        build_rig(
+            &self.parsed,
+            self.plan,
+            self.animations,
+            self.appearance,
+            options,
+        )
     }
 }
 
@@ -262,6 +285,7 @@ pub(crate) fn parse<'a>(
         compressed.insert(view.index(), CompressedView::new(name, ext, view.length()));
     }
     Ok(Parsed {
+        json,
         doc,
         source: Source::new(buffers, compressed, budget),
     })
@@ -403,6 +427,22 @@ impl From<String> for UriError {
 
 /// Loads a buffer URI: a base64 data URI, or a relative file under `options.base_dir`; the
 /// bytes are charged to `budget` before they are allocated.
+/// The file a relative URI names beside a `.gltf` in `base`, refused when it is absolute or
+/// climbs out of that folder.
+pub(crate) fn resolve_relative(base: &Path, uri: &str) -> Result<std::path::PathBuf, String> {
+    let decoded = percent_decode(uri);
+    let rel = Path::new(&decoded);
+    if rel
+        .components()
+        .any(|c| !matches!(c, Component::Normal(_) | Component::CurDir))
+    {
+        return Err(format!(
+            "external path {uri:?} must be relative and stay in the file's folder"
+        ));
+    }
+    Ok(base.join(rel))
+}
+
 fn load_uri(uri: &str, options: &ImportOptions, budget: &Budget) -> Result<Vec<u8>, UriError> {
     if let Some(rest) = uri.strip_prefix("data:") {
         let (meta, data) = rest
@@ -424,18 +464,7 @@ fn load_uri(uri: &str, options: &ImportOptions, budget: &Budget) -> Result<Vec<u
         )
         .into());
     };
-    let decoded = percent_decode(uri);
-    let rel = Path::new(&decoded);
-    if rel
-        .components()
-        .any(|c| !matches!(c, Component::Normal(_) | Component::CurDir))
-    {
-        return Err(format!(
-            "external buffer path {uri:?} must be relative and stay in the file's folder"
-        )
-        .into());
-    }
-    let path = base.join(rel);
+    let path = resolve_relative(base, uri)?;
     let len = std::fs::metadata(&path)
         .map_err(|e| format!("cannot read {}: {e}", path.display()))?
         .len();
@@ -516,6 +545,36 @@ fn read_vec2(
         });
     }
     source.read_vec2s(acc)
+}
+
+/// A primitive's `COLOR_0`: VEC3 (alpha 1) or VEC4, float or normalized integers.
+fn read_colors(
+    source: &Source<'_>,
+    acc: &gltf::Accessor<'_>,
+    n: usize,
+) -> Result<Vec<glam::Vec4>, ImportError> {
+    use gltf::accessor::Dimensions;
+    if acc.count() != n {
+        return Err(ImportError::Accessor {
+            index: acc.index(),
+            problem: format!(
+                "COLOR_0 must have one element per vertex ({n}), not {}",
+                acc.count()
+            ),
+        });
+    }
+    match acc.dimensions() {
+        Dimensions::Vec4 => source.read_vec4s(acc),
+        Dimensions::Vec3 => Ok(source
+            .read_vec3s(acc)?
+            .into_iter()
+            .map(|c| c.extend(1.0))
+            .collect()),
+        d => Err(ImportError::Accessor {
+            index: acc.index(),
+            problem: format!("COLOR_0 must be VEC3 or VEC4, not {d:?}"),
+        }),
+    }
 }
 
 /// Triangle-list indices a primitive will have: its index (or vertex) count as a list.
@@ -603,7 +662,10 @@ fn document_shape(
                 .into());
             }
             let tangents = prim.get(&Semantic::Tangents).is_some();
-            let uvs = prim.get(&Semantic::TexCoords(0)).is_some();
+            let has = |s: Semantic| u64::from(prim.get(&s).is_some());
+            let look = 8 * has(Semantic::TexCoords(0))
+                + 8 * has(Semantic::TexCoords(1))
+                + 16 * has(Semantic::Colors(0));
             let (mut k, mut kn, mut kt) = (0u64, 0u64, 0u64);
             for t in prim.morph_targets() {
                 k += 1;
@@ -617,7 +679,9 @@ fn document_shape(
             transient = transient
                 .max(n * (12 + 12 + 12 + 8))
                 .max(raw_indices * 4 + indices * 4);
-            primitives.push(PrimShape::upper_bound(n, indices, tangents, uvs, k, kn, kt));
+            primitives.push(PrimShape::upper_bound(
+                n, indices, tangents, look, k, kn, kt,
+            ));
         }
     }
     // Clip lengths from the declared key times first, so that a clip too long on its
@@ -716,6 +780,8 @@ fn document_shape(
             pca_levels: Vec::new(),
             // The skin's arrays are charged as they are read (`import::skin`).
             skin: Default::default(),
+            // Added by the caller from the materials (`material::Pending`).
+            appearance: 0,
         },
         transient,
         plan,
@@ -786,6 +852,7 @@ fn build_rig(
     parsed: &Parsed<'_>,
     plan: ChannelPlan,
     animations: Vec<AnimationTracks>,
+    appearance: Option<Pending>,
     options: &ImportOptions,
 ) -> Result<Rig, ImportError> {
     let doc = &parsed.doc;
@@ -983,7 +1050,18 @@ fn build_rig(
                     Some(a) => Some(read_vec2(source, &a, n, "TEXCOORD_0")?),
                     None => None,
                 },
-                ..VertexLook::default()
+                uv1: match prim.get(&Semantic::TexCoords(1)) {
+                    Some(a) => Some(read_vec2(source, &a, n, "TEXCOORD_1")?),
+                    None => None,
+                },
+                colors: match prim.get(&Semantic::Colors(0)) {
+                    Some(a) => Some(read_colors(source, &a, n)?),
+                    None => None,
+                },
+                material: appearance
+                    .as_ref()
+                    .and_then(|_| prim.material().index())
+                    .map(|m| m as u32),
             };
             primitives.push(Primitive {
                 name: label,
@@ -1000,6 +1078,13 @@ fn build_rig(
         }
     }
 
+    // Images last: the geometry's transient decodes are released by now.
+    let appearance = match appearance {
+        Some(pending) => Some(Arc::new(pending.decode(source.budget())?)),
+        None => None,
+    };
+    let mut notes = report.notes();
+    notes.extend(appearance.iter().flat_map(|a| a.notes.iter().cloned()));
     let lod = Lod::by_delta_energy(&primitives, n_targets);
     let rig = Rig {
         name: options.name.clone().unwrap_or_else(|| "rig".into()),
@@ -1013,8 +1098,8 @@ fn build_rig(
             source.budget().release(p.charged);
             Arc::new(p.skeleton)
         }),
-        import_notes: report.notes(),
-        appearance: None,
+        import_notes: notes,
+        appearance,
     };
     rig.validate()?;
     if report.largest_dropped_weight > 0.0 || report.channels_on_unused_nodes > 0 {

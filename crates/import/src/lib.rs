@@ -26,6 +26,8 @@ mod channels;
 pub mod clips;
 pub mod extensions;
 pub mod gltf;
+pub mod image;
+mod material;
 mod meshopt;
 mod scene;
 mod skin;
@@ -37,6 +39,7 @@ use crowdmorph_core::budget::{Budget, BudgetError};
 use crowdmorph_core::rig::{ClipError, DEFAULT_DELTA_THRESHOLD, Rig, RigError};
 
 pub use self::clips::{clip_from_csv, clip_from_json, clips_from_gltf};
+pub use self::material::decode_stored_images;
 
 /// Most names an error message quotes (the live-weights path names one; a clip source's list
 /// names a few, so that a file with several misspellings is fixed in one round).
@@ -57,6 +60,10 @@ pub fn listed(names: &[String]) -> String {
     out
 }
 
+/// Default of [`ImportOptions::max_texture_size`]: what every desktop GPU samples and a
+/// 4K avatar atlas needs.
+pub const DEFAULT_MAX_TEXTURE_SIZE: u32 = 4096;
+
 /// Options of an import.
 #[derive(Clone, Debug)]
 pub struct ImportOptions {
@@ -76,6 +83,9 @@ pub struct ImportOptions {
     /// The budget every allocation of the import is charged to (the server's per-upload
     /// budget, drawing from its memory pool); `None` makes one of `max_decoded_bytes`.
     pub budget: Option<Arc<Budget>>,
+    /// Largest side of a kept texture (`--max-texture-size`): a larger image is halved until
+    /// it fits, and the import's notes say so.
+    pub max_texture_size: u32,
 }
 
 impl ImportOptions {
@@ -100,6 +110,7 @@ impl Default for ImportOptions {
             name: None,
             max_decoded_bytes: 1 << 30,
             budget: None,
+            max_texture_size: DEFAULT_MAX_TEXTURE_SIZE,
         }
     }
 }
@@ -157,6 +168,14 @@ pub enum ImportError {
     Animation {
         /// Animation name or index.
         animation: String,
+        /// What is wrong.
+        problem: String,
+    },
+    /// An image is unusable (corrupt, truncated, of an unknown format, 0 × 0).
+    #[error("image {index}: {problem}")]
+    Image {
+        /// Index in the file's `images`.
+        index: usize,
         /// What is wrong.
         problem: String,
     },

@@ -484,6 +484,146 @@ impl Appearance {
     }
 }
 
+/// glTF's JSON of a texture reference (`textureInfo`, with `scale` or `strength` where the
+/// slot has one).
+fn tex_json(r: &TexRef, extra: Option<(&str, f32)>) -> serde_json::Value {
+    let mut o = serde_json::json!({ "index": r.texture, "texCoord": r.tex_coord });
+    if let Some((k, v)) = extra {
+        o[k] = v.into();
+    }
+    if let Some(t) = &r.transform {
+        o["extensions"] = serde_json::json!({ "KHR_texture_transform": {
+            "offset": t.offset, "rotation": t.rotation, "scale": t.scale } });
+    }
+    o
+}
+
+impl Material {
+    /// The material as glTF 2.0 JSON (what `GET /v1/rigs/{id}/materials` and `model.glb`
+    /// carry), with the extensions it uses.
+    pub fn gltf_json(&self) -> serde_json::Value {
+        let mut pbr = serde_json::json!({
+            "baseColorFactor": self.base_color_factor,
+            "metallicFactor": self.metallic_factor,
+            "roughnessFactor": self.roughness_factor,
+        });
+        if let Some(r) = &self.base_color_texture {
+            pbr["baseColorTexture"] = tex_json(r, None);
+        }
+        if let Some(r) = &self.metallic_roughness_texture {
+            pbr["metallicRoughnessTexture"] = tex_json(r, None);
+        }
+        let mut m = serde_json::json!({
+            "pbrMetallicRoughness": pbr,
+            "emissiveFactor": self.emissive_factor,
+            "alphaMode": self.alpha_mode.as_str(),
+            "doubleSided": self.double_sided,
+        });
+        if let Some(n) = &self.name {
+            m["name"] = n.as_str().into();
+        }
+        if self.alpha_mode == AlphaMode::Mask {
+            m["alphaCutoff"] = self.alpha_cutoff.into();
+        }
+        if let Some(r) = &self.normal_texture {
+            m["normalTexture"] = tex_json(r, Some(("scale", self.normal_scale)));
+        }
+        if let Some(r) = &self.occlusion_texture {
+            m["occlusionTexture"] = tex_json(r, Some(("strength", self.occlusion_strength)));
+        }
+        if let Some(r) = &self.emissive_texture {
+            m["emissiveTexture"] = tex_json(r, None);
+        }
+        let mut ext = serde_json::Map::new();
+        if self.emissive_strength != 1.0 {
+            ext.insert(
+                "KHR_materials_emissive_strength".into(),
+                serde_json::json!({ "emissiveStrength": self.emissive_strength }),
+            );
+        }
+        if self.unlit {
+            ext.insert("KHR_materials_unlit".into(), serde_json::json!({}));
+        }
+        if !ext.is_empty() {
+            m["extensions"] = ext.into();
+        }
+        m
+    }
+}
+
+impl Sampler {
+    /// The sampler as glTF 2.0 JSON (its enum codes).
+    pub fn gltf_json(&self) -> serde_json::Value {
+        let wrap = |w: Wrap| match w {
+            Wrap::ClampToEdge => 33071,
+            Wrap::MirroredRepeat => 33648,
+            Wrap::Repeat => 10497,
+        };
+        let min = match (self.min, self.mipmap) {
+            (Filter::Nearest, None) => 9728,
+            (Filter::Linear, None) => 9729,
+            (Filter::Nearest, Some(Filter::Nearest)) => 9984,
+            (Filter::Linear, Some(Filter::Nearest)) => 9985,
+            (Filter::Nearest, Some(Filter::Linear)) => 9986,
+            (Filter::Linear, Some(Filter::Linear)) => 9987,
+        };
+        serde_json::json!({
+            "magFilter": if self.mag == Filter::Nearest { 9728 } else { 9729 },
+            "minFilter": min,
+            "wrapS": wrap(self.wrap_s),
+            "wrapT": wrap(self.wrap_t),
+        })
+    }
+}
+
+impl Appearance {
+    /// glTF 2.0's `materials`, `textures` and `samplers` arrays of the appearance, and
+    /// `images` made by `image` from each image's index (a URI for clients, a buffer view in
+    /// a GLB). A texture without a decodable image gets no `source` (glTF allows that when an
+    /// extension provides one; a client draws it with the factors).
+    pub fn gltf_json(
+        &self,
+        mut image: impl FnMut(usize, &ImageData) -> serde_json::Value,
+    ) -> serde_json::Value {
+        let textures: Vec<serde_json::Value> = self
+            .textures
+            .iter()
+            .map(|t| {
+                let mut o = serde_json::json!({});
+                if let Some(s) = t.sampler {
+                    o["sampler"] = s.into();
+                }
+                if let Some(i) = t.image {
+                    o["source"] = i.into();
+                }
+                o
+            })
+            .collect();
+        serde_json::json!({
+            "materials": self.materials.iter().map(Material::gltf_json).collect::<Vec<_>>(),
+            "textures": textures,
+            "samplers": self.samplers.iter().map(Sampler::gltf_json).collect::<Vec<_>>(),
+            "images": self.images.iter().enumerate().map(|(i, d)| image(i, d)).collect::<Vec<_>>(),
+        })
+    }
+
+    /// The glTF extensions [`Appearance::gltf_json`] uses.
+    pub fn extensions_used(&self) -> Vec<&'static str> {
+        let mut out = Vec::new();
+        let refs = || self.materials.iter().flat_map(|m| m.texture_refs());
+        if refs().any(|(_, r)| r.transform.is_some()) {
+            out.push("KHR_texture_transform");
+        }
+        if self.materials.iter().any(|m| m.emissive_strength != 1.0) {
+            out.push("KHR_materials_emissive_strength");
+        }
+        if self.materials.iter().any(|m| m.unlit) {
+            out.push("KHR_materials_unlit");
+        }
+        out
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -514,6 +654,38 @@ mod tests {
             UvTransform::default().apply(Vec2::new(0.3, 0.7)),
             Vec2::new(0.3, 0.7)
         );
+    }
+
+    #[test]
+    fn the_gltf_json_round_trips_the_codes_and_omits_defaults() {
+        let s = Sampler {
+            mag: Filter::Nearest,
+            min: Filter::Linear,
+            mipmap: Some(Filter::Nearest),
+            wrap_s: Wrap::ClampToEdge,
+            wrap_t: Wrap::MirroredRepeat,
+        };
+        assert_eq!(
+            s.gltf_json(),
+            serde_json::json!({"magFilter": 9728, "minFilter": 9985, "wrapS": 33071, "wrapT": 33648})
+        );
+        let m = Material {
+            alpha_mode: AlphaMode::Mask,
+            unlit: true,
+            base_color_texture: Some(TexRef {
+                texture: 2,
+                tex_coord: 1,
+                transform: None,
+            }),
+            ..Material::default()
+        };
+        let j = m.gltf_json();
+        assert_eq!(j["alphaMode"], "MASK");
+        assert_eq!(j["alphaCutoff"], 0.5);
+        assert_eq!(j["pbrMetallicRoughness"]["baseColorTexture"]["index"], 2);
+        assert_eq!(j["pbrMetallicRoughness"]["baseColorTexture"]["texCoord"], 1);
+        assert!(j["extensions"]["KHR_materials_unlit"].is_object());
+        assert!(j.get("normalTexture").is_none());
     }
 
     #[test]

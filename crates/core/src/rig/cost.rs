@@ -33,8 +33,9 @@ pub struct PrimShape {
     pub indices: u64,
     /// Whether it has tangents.
     pub tangents: bool,
-    /// Whether it has texture coordinates (set 0).
-    pub uvs: bool,
+    /// Bytes per vertex of its appearance arrays ([`super::VertexLook`]: 8 per texture
+    /// coordinate set, 16 for colours).
+    pub look: u64,
     /// Morph targets it has.
     pub targets: u64,
     /// Stored position deltas over its targets (an upper bound: `targets × vertices`).
@@ -48,6 +49,12 @@ pub struct PrimShape {
     pub cpu_blocks: u64,
     /// Delta blocks of the GPU engine's 64-vertex tiles (position and normal deltas).
     pub gpu_blocks: u64,
+}
+
+/// Bytes per vertex of a primitive's [`super::VertexLook`] arrays.
+fn look_per_vertex(l: &super::VertexLook) -> u64 {
+    let set = |a: bool| if a { 8 } else { 0 };
+    set(l.uv0.is_some()) + set(l.uv1.is_some()) + if l.colors.is_some() { 16 } else { 0 }
 }
 
 /// Distinct tiles of `lanes` vertices that `vertices` (ascending, offset by `first`) touch.
@@ -73,7 +80,7 @@ impl PrimShape {
         vertices: u64,
         indices: u64,
         tangents: bool,
-        uvs: bool,
+        look: u64,
         targets: u64,
         normal_targets: u64,
         tangent_targets: u64,
@@ -83,7 +90,7 @@ impl PrimShape {
             vertices,
             indices,
             tangents,
-            uvs,
+            look,
             targets,
             deltas: targets.saturating_mul(vertices),
             normal_deltas: normal_targets.saturating_mul(vertices),
@@ -111,7 +118,7 @@ impl PrimShape {
             vertices: p.positions.len() as u64,
             indices: p.indices.len() as u64,
             tangents: p.tangents.is_some(),
-            uvs: p.look.uv0.is_some(),
+            look: look_per_vertex(&p.look),
             targets: p.targets.len() as u64,
             deltas: p.targets.iter().map(|t| t.vertices.len() as u64).sum(),
             normal_deltas: p
@@ -131,8 +138,7 @@ impl PrimShape {
 
     /// Bytes of the primitive's arrays in a [`Rig`].
     pub fn rig_bytes(&self) -> u64 {
-        let base = self.vertices
-            * (12 + 12 + if self.tangents { 16 } else { 0 } + if self.uvs { 8 } else { 0 });
+        let base = self.vertices * (12 + 12 + if self.tangents { 16 } else { 0 } + self.look);
         base + self.indices * 4
             + self.deltas * (4 + 12)
             + self.normal_deltas * 12
@@ -156,6 +162,9 @@ pub struct RigShape {
     pub pca_levels: Vec<(Vec<PrimShape>, u64, u64)>,
     /// On a skinned rig, what its skeleton adds (zero otherwise).
     pub skin: SkinShape,
+    /// Bytes of its [`super::Appearance`]: encoded images, their decoded mip chains and the
+    /// tables (shared by its levels; zero without one).
+    pub appearance: u64,
 }
 
 /// What a skinned rig adds to its cost: the influences (24 bytes a vertex: four bone ids and
@@ -214,6 +223,14 @@ impl RigShape {
                 .collect()
         };
         RigShape {
+            appearance: rig.appearance.as_ref().map_or(0, |a| {
+                a.bytes() as u64 + a.decoded_bytes()
+                    - a.images
+                        .iter()
+                        .filter_map(|i| i.pixels.as_ref())
+                        .map(|p| p.bytes() as u64)
+                        .sum::<u64>()
+            }),
             skin: SkinShape::of(rig),
             primitives: shapes(rig),
             targets: rig.targets.len() as u64,
@@ -247,6 +264,7 @@ impl RigShape {
                     vertices: p.positions.len() as u64,
                     indices: p.indices.len() as u64,
                     tangents: p.tangents.is_some(),
+                    look: look_per_vertex(&p.look),
                     ..PrimShape::default()
                 };
                 for r in form
@@ -294,6 +312,7 @@ impl RigShape {
                 vertices: l.vertices.len() as u64,
                 indices: l.indices.len() as u64,
                 tangents: p.tangents.is_some(),
+                look: look_per_vertex(&p.look),
                 ..PrimShape::default()
             };
             let mut kept = Vec::new();
@@ -402,6 +421,7 @@ impl RigShape {
         let pca_clips: u64 = self.pca_levels.iter().map(|l| l.1 * 4).sum();
         let lod = lod + self.pca_levels.iter().map(|l| l.2).sum::<u64>();
         let rig = geometry(&self.primitives)
+            + self.appearance
             + self.mesh_levels.iter().map(|l| geometry(l)).sum::<u64>()
             + self.pca_levels.iter().map(|l| geometry(&l.0)).sum::<u64>()
             + clips
@@ -438,7 +458,8 @@ impl RigShape {
         let upload = if gpu { 2 * device } else { 0 };
         // The stored record: bincode writes f32 in 4 bytes and integers in at most 5 (varint),
         // so never more than 5/4 of the arrays, plus names and headers.
-        let stored = geometry(&self.primitives) * 5 / 4 + clips + lod * 5 / 4 + 64 * 1024;
+        let stored =
+            geometry(&self.primitives) * 5 / 4 + self.appearance + clips + lod * 5 / 4 + 64 * 1024;
         // The server's range check keeps per-vertex f64 bounds (two DVec3 per vertex); the
         // store encodes records straight into the file through a 1 MiB buffer.
         let range_check = 48 * self.vertices();
