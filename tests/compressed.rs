@@ -600,6 +600,18 @@ fn texture_only_required_extensions_load_and_draco_says_how_to_convert() {
     j["extensionsRequired"] = json!(["KHR_texture_basisu"]);
     let rig = import(&b.to_glb()).expect("a required texture extension does not stop a rig");
     assert_eq!(rig.primitives[0].base_color, [1.0, 0.5, 0.5, 1.0]);
+    // Drawn with its factors, and the answer says why the texture is not.
+    let a = rig.appearance.as_deref().expect("the material is kept");
+    assert_eq!(a.materials[0].base_color_factor, [1.0, 0.5, 0.5, 1.0]);
+    assert_eq!(a.textures[0].image, None);
+    assert!(a.images.is_empty());
+    assert!(
+        rig.import_notes
+            .iter()
+            .any(|n| n.contains("texture 0") && n.contains("KTX2")),
+        "{:?}",
+        rig.import_notes
+    );
     let report = crowdmorph::import::gltf::extension_report(&b.to_glb()).unwrap();
     assert_eq!(report.len(), 1);
     assert_eq!(
@@ -615,7 +627,11 @@ fn texture_only_required_extensions_load_and_draco_says_how_to_convert() {
     let mut several = crate::util::builder::triangle_rig();
     *several.json_mut() = b.json_mut().clone();
     let j = several.json_mut();
-    j["textures"][0]["extensions"]["EXT_texture_webp"] = json!({ "source": 0 });
+    // (On a texture no material draws: the KTX2 bytes are not a WebP image, and a drawn one
+    // would be a 400 naming the image.)
+    if let Some(t) = j["textures"].as_array_mut() {
+        t.push(json!({ "extensions": { "EXT_texture_webp": { "source": 0 } } }));
+    }
     j["extensionsUsed"] = json!(["KHR_texture_basisu", "EXT_texture_webp"]);
     j["extensionsRequired"] = json!(["EXT_texture_webp", "KHR_texture_basisu", "EXT_texture_webp"]);
     import(&several.to_glb()).expect("required texture-only extensions do not stop a rig");

@@ -880,6 +880,9 @@ pub struct MeshPrimitive {
     pub first_index: u32,
     /// Indices of the primitive (3 per triangle).
     pub indices: u32,
+    /// Index of its material in `GET /v1/rigs/{id}/materials`; `None`: the rig has no
+    /// materials, or the file gave this primitive none.
+    pub material: Option<u32>,
 }
 
 /// `GET /v1/rigs/{id}/mesh` response: what a client fetches once to draw a rig's heads.
@@ -903,6 +906,9 @@ pub struct MeshResponse {
     pub positions: Blob,
     /// Neutral unit normals, f32 little-endian x, y, z per vertex.
     pub normals: Blob,
+    /// Texture coordinates of set 0, f32 little-endian u, v per vertex in the positions'
+    /// order (zeros for a primitive without); empty when no primitive has any.
+    pub uvs: Blob,
 }
 
 /// `POST /v1/rigs/{id}/clips` response.

@@ -395,6 +395,7 @@ fn mesh_response() {
                 vertices: 3,
                 first_index: 0,
                 indices: 3,
+                material: Some(0),
             }],
             bbox: Aabb {
                 min: [0.0, 0.0, 0.0],
@@ -408,6 +409,7 @@ fn mesh_response() {
             indices: Blob([0u32, 1, 2].iter().flat_map(|i| i.to_le_bytes()).collect()),
             positions: f32s(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]),
             normals: f32s(&[0.0, 0.0, 1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 1.0]),
+            uvs: f32s(&[0.0, 1.0, 1.0, 1.0, 0.0, 0.0]),
         },
     );
 }

@@ -4,6 +4,7 @@
 
 mod animation;
 mod api;
+mod appearance;
 mod attack;
 mod bad_input;
 mod balancer;

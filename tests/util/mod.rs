@@ -9,6 +9,7 @@
 
 pub mod builder;
 pub mod image;
+pub mod pack;
 pub mod skin;
 
 use std::path::{Path, PathBuf};

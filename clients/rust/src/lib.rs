@@ -366,6 +366,33 @@ impl Client {
             .await
     }
 
+    /// `GET /v1/rigs/{id}/materials`: the rig's glTF `materials`, `textures`, `samplers`
+    /// and `images` (each with a `uri` to fetch with [`Client::texture_at`]), its
+    /// `extensionsUsed` and the import's `notes` (glTF-shaped JSON, kept as a value).
+    pub async fn materials(&self, id: &str) -> Result<serde_json::Value, ClientError> {
+        self.get(&format!("/v1/rigs/{id}/materials"), Encoding::Json)
+            .await
+    }
+
+    /// `GET /v1/rigs/{id}/textures/{i}`: image `i`'s bytes and their content type.
+    pub async fn texture(&self, id: &str, image: usize) -> Result<(Bytes, String), ClientError> {
+        self.texture_at(&format!("/v1/rigs/{id}/textures/{image}"))
+            .await
+    }
+
+    /// An image by the `uri` [`Client::materials`] gives it (its `?v=` makes the answer
+    /// cacheable forever): its bytes and content type.
+    pub async fn texture_at(&self, uri: &str) -> Result<(Bytes, String), ClientError> {
+        let reply = self
+            .send(Method::GET, uri, None, None, Bytes::new())
+            .await?;
+        if reply.status != 200 {
+            return Err(reply.into_error());
+        }
+        let ct = reply.content_type.clone().unwrap_or_default();
+        Ok((reply.body, ct))
+    }
+
     /// `GET /v1/rigs/{id}/lod`.
     pub async fn lod(&self, id: &str) -> Result<LodInfo, ClientError> {
         self.get(&format!("/v1/rigs/{id}/lod"), Encoding::Json)

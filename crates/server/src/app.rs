@@ -287,6 +287,14 @@ fn resources() -> Router<AppState> {
         )
         .route("/v1/rigs/{id}/mesh", get(routes::rigs::get_mesh))
         .route(
+            "/v1/rigs/{id}/materials",
+            get(routes::appearance::get_materials),
+        )
+        .route(
+            "/v1/rigs/{id}/textures/{i}",
+            get(routes::appearance::get_texture),
+        )
+        .route(
             "/v1/rigs/{id}/lod",
             get(routes::lod::get_lod).put(routes::lod::put_lod),
         )

@@ -72,6 +72,16 @@ pub struct ServerConfig {
         default_value_t = 1 << 30
     )]
     pub max_upload_memory: u64,
+    /// Largest side of a kept texture, pixels: an uploaded image larger than this is halved
+    /// until it fits (the upload's notes say so). Decoding still needs the full image within
+    /// `--max-upload-memory`.
+    #[arg(
+        long,
+        env = "CROWDMORPH_MAX_TEXTURE_SIZE",
+        default_value_t = crowdmorph_import::DEFAULT_MAX_TEXTURE_SIZE,
+        value_parser = clap::value_parser!(u32).range(1..=16384)
+    )]
+    pub max_texture_size: u32,
     /// Most memory all rigs together may hold, with uploads and LOD builds in progress, bytes
     /// (503 past it; default: half the machine's memory).
     #[arg(long, env = "CROWDMORPH_MAX_RIG_MEMORY")]

@@ -447,6 +447,8 @@ impl RigEntry {
         let mut indices = Vec::with_capacity(rig.triangle_count() * 12);
         let mut positions = Vec::with_capacity(vertices * 12);
         let mut normals = Vec::with_capacity(vertices * 12);
+        let any_uvs = rig.primitives.iter().any(|p| p.look.uv0.is_some());
+        let mut uvs = Vec::with_capacity(if any_uvs { vertices * 8 } else { 0 });
         let mut prims = Vec::with_capacity(rig.primitives.len());
         let mut first_vertex = 0u32;
         let mut first_index = 0u32;
@@ -464,12 +466,23 @@ impl RigEntry {
                     normals.extend_from_slice(&c.to_le_bytes());
                 }
             }
+            if any_uvs {
+                match &p.look.uv0 {
+                    Some(uv) => {
+                        for c in uv.iter().flat_map(|v| v.to_array()) {
+                            uvs.extend_from_slice(&c.to_le_bytes());
+                        }
+                    }
+                    None => uvs.resize(uvs.len() + p.positions.len() * 8, 0),
+                }
+            }
             prims.push(MeshPrimitive {
                 name: p.name.clone(),
                 first_vertex,
                 vertices: p.positions.len() as u32,
                 first_index,
                 indices: p.indices.len() as u32,
+                material: p.look.material,
             });
             first_vertex += p.positions.len() as u32;
             first_index += p.indices.len() as u32;
@@ -487,6 +500,7 @@ impl RigEntry {
             indices: Blob(indices),
             positions: Blob(positions),
             normals: Blob(normals),
+            uvs: Blob(uvs),
         }
     }
 }

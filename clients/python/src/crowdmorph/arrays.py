@@ -74,12 +74,17 @@ def component_bytes(fmt: str) -> int:
     raise ValueError(f"unknown vertex format {fmt!r} (f32, f16 or q16)")
 
 
-def _check_len(data: Any, vertices: Optional[int], width: int, what: str) -> None:
+def _check_len(
+    data: Any, vertices: Optional[int], width: int, what: str, components: int = 3
+) -> None:
     n = len(data)
-    if n % (3 * width):
-        raise ValueError(f"{what}: {n} bytes is not a whole number of {3 * width}-byte vertices")
-    if vertices is not None and n != vertices * 3 * width:
-        raise ValueError(f"{what}: {n} bytes, expected {vertices} vertices × 3 × {width}")
+    per = components * width
+    if n % per:
+        raise ValueError(f"{what}: {n} bytes is not a whole number of {per}-byte vertices")
+    if vertices is not None and n != vertices * per:
+        raise ValueError(
+            f"{what}: {n} bytes, expected {vertices} vertices × {components} × {width}"
+        )
 
 
 def _flat(typecode: str, data: Any) -> array:
@@ -90,11 +95,13 @@ def _flat(typecode: str, data: Any) -> array:
     return a
 
 
-def decode_f32(data: Any, backend: str, vertices: Optional[int] = None) -> Any:
-    """Little-endian float32 x, y, z per vertex."""
-    _check_len(data, vertices, 4, "f32 payload")
+def decode_f32(
+    data: Any, backend: str, vertices: Optional[int] = None, components: int = 3
+) -> Any:
+    """Little-endian float32, ``components`` per vertex (x, y, z; or u, v with 2)."""
+    _check_len(data, vertices, 4, "f32 payload", components)
     if backend == "numpy":
-        return _np.frombuffer(data, dtype="<f4").reshape(-1, 3)
+        return _np.frombuffer(data, dtype="<f4").reshape(-1, components)
     return _flat("f", data)
 
 

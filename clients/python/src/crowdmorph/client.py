@@ -518,6 +518,24 @@ class Client:
         resp = self.request("GET", f"/v1/rigs/{_seg(rig)}/mesh", query={"lod": lod})
         return Mesh(self._decode(MeshResponse, resp), self.arrays)
 
+    def materials(self, rig: str) -> Dict[str, Any]:
+        """``GET /v1/rigs/{id}/materials``: the rig's glTF ``materials``, ``textures``,
+        ``samplers`` and ``images`` (each with a ``uri`` for :meth:`texture_at`), its
+        ``extensionsUsed`` and the import's ``notes``, as a dict (empty lists without)."""
+        resp = self.request("GET", f"/v1/rigs/{_seg(rig)}/materials", accept="application/json")
+        return json.loads(resp.body)
+
+    def texture(self, rig: str, image: int) -> Tuple[bytes, str]:
+        """``GET /v1/rigs/{id}/textures/{i}``: image ``i``'s bytes and content type."""
+        return self.texture_at(f"/v1/rigs/{_seg(rig)}/textures/{int(image)}")
+
+    def texture_at(self, uri: str) -> Tuple[bytes, str]:
+        """An image by the ``uri`` :meth:`materials` gives it: bytes and content type."""
+        path, _, query = uri.partition("?")
+        q = dict(p.split("=", 1) for p in query.split("&") if "=" in p)
+        resp = self.request("GET", path, accept="*/*", query=q or None)
+        return resp.body, resp.headers.get("content-type", "")
+
     def lod(self, rig: str) -> LodInfo:
         """``GET /v1/rigs/{id}/lod``."""
         return self._decode(LodInfo, self.request("GET", f"/v1/rigs/{_seg(rig)}/lod"))

@@ -752,16 +752,19 @@ class LodRequest:
     ("vertices", U32),
     ("first_index", U32),
     ("indices", U32),
+    ("material", Opt(U32)),
 )
 @dataclass
 class MeshPrimitive:
-    """A primitive's vertex and index ranges in a :class:`MeshResponse`."""
+    """A primitive's vertex and index ranges in a :class:`MeshResponse`, and its material
+    (an index into ``Client.materials(rig)["materials"]``, or None)."""
 
     name: str
     first_vertex: int
     vertices: int
     first_index: int
     indices: int
+    material: Optional[int] = None
 
 
 @wire(
@@ -774,6 +777,7 @@ class MeshPrimitive:
     ("indices", BLOB),
     ("positions", BLOB),
     ("normals", BLOB),
+    ("uvs", BLOB),
 )
 @dataclass
 class MeshResponse:
@@ -788,6 +792,7 @@ class MeshResponse:
     indices: Any
     positions: Any
     normals: Any
+    uvs: Any = b""
 
 
 @wire(("rig", STR), ("added", Vec(Msg(ClipInfo))), ("ignored", Vec(STR)))

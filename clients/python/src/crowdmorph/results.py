@@ -130,6 +130,7 @@ class Mesh:
         "indices",
         "positions",
         "normals",
+        "uvs",
         "response",
     )
 
@@ -144,6 +145,12 @@ class Mesh:
         self.indices = _arrays.decode_u32(response.indices, backend)
         self.positions = _arrays.decode_f32(response.positions, backend, response.vertices)
         self.normals = _arrays.decode_f32(response.normals, backend, response.vertices)
+        # Texture coordinates of set 0, (vertices, 2), or None when the rig has none.
+        self.uvs = (
+            _arrays.decode_f32(response.uvs, backend, response.vertices, components=2)
+            if len(response.uvs)
+            else None
+        )
 
     @property
     def triangles(self) -> int:

@@ -88,6 +88,7 @@ pub fn import_error(e: ImportError) -> ApiError {
         ImportError::ClipSource(_) | ImportError::Clip(_) => {
             ApiError::bad_request("invalid_clip", e.to_string())
         }
+        ImportError::Image { .. } => ApiError::bad_request("invalid_image", e.to_string()),
         _ => ApiError::bad_request("invalid_rig", e.to_string()),
     }
 }
@@ -120,6 +121,7 @@ pub async fn upload_rig(
         base_dir: None,
         name: query.name.clone(),
         budget: Some(budget.clone()),
+        max_texture_size: state.config.max_texture_size,
         ..ImportOptions::default()
     };
     let engine = state.engine.clone();

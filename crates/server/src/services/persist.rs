@@ -339,7 +339,11 @@ fn load_rig<S: Persisting>(state: &S, r: StoredRig, budget: &Budget) -> Result<(
     if state.registry().get(&r.id).is_some() {
         return Err(format!("stored rig {:?} clashes with a built-in id", r.id));
     }
-    let rig = Arc::new(r.rig);
+    let mut rig = r.rig;
+    // The store keeps images encoded: decode them (charged) before the rig is served.
+    crowdmorph_import::decode_stored_images(&mut rig, budget)
+        .map_err(|e| format!("stored rig {:?}: {e}", r.id))?;
+    let rig = Arc::new(rig);
     charge_preparing(state, &rig, budget)?;
     let prepared = state
         .engine()

@@ -798,6 +798,11 @@ fn install<S: Replicating>(state: &S, fetched: Fetched, budget: &Budget) -> Resu
     }
     rig.validate()
         .map_err(|e| Install::Unusable(e.to_string()))?;
+    // The store keeps images encoded: decode them (charged) before the rig is served.
+    crowdmorph_import::decode_stored_images(&mut rig, budget).map_err(|e| match e {
+        crowdmorph_import::ImportError::Budget(b) => Install::Short(b.to_string()),
+        e => Install::Unusable(e.to_string()),
+    })?;
     let rig = Arc::new(rig);
     charge_preparing(state, &rig, budget).map_err(Install::Short)?;
     let prepared = state

@@ -1,0 +1,155 @@
+//! What a rig looks like, for clients that draw it themselves: `GET /v1/rigs/{id}/materials`
+//! (glTF-shaped JSON: materials, textures, samplers, and images as URIs) and
+//! `GET /v1/rigs/{id}/textures/{i}` (an image's bytes as uploaded, or as downscaled to
+//! `--max-texture-size`).
+//!
+//! An image's `ETag` is a checksum of its bytes, so it is the same across generations,
+//! restarts and replicas: the URIs `/materials` gives carry it as `?v=`, and a request with a
+//! matching `v` is answered `Cache-Control: immutable` (a viewer fetches each image once per
+//! rig, however many ticks and generations follow); without it, `no-cache` with the `ETag`
+//! (and a 304 to `If-None-Match`).
+
+use axum::body::Body;
+use axum::extract::{Path, State};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+
+use crate::http::{self, ApiError, ApiResult, Query, Ready};
+use crate::services::Parts;
+use crate::state::AppState;
+use crowdmorph_core::rig::ImageData;
+
+/// The `ETag` token of an image: CRC-32 and length of its bytes.
+fn etag(image: &ImageData) -> String {
+    format!(
+        "{:08x}-{}",
+        crc32fast::hash(&image.bytes),
+        image.bytes.len()
+    )
+}
+
+/// `GET /v1/rigs/{id}/materials`: glTF 2.0's `materials`, `textures`, `samplers` and `images`
+/// of the rig (empty arrays when it has none), each image a `uri` to fetch with its size and
+/// checksum, and the import's notes on what is not drawn.
+pub async fn get_materials(
+    State(state): State<AppState>,
+    _ready: Ready,
+    Path(id): Path<String>,
+) -> ApiResult {
+    let entry = state.rig(&id)?;
+    let rig = entry.rig();
+    let body = match rig.appearance.as_deref() {
+        None => serde_json::json!({
+            "rig": id, "materials": [], "textures": [], "samplers": [], "images": [],
+            "extensionsUsed": [], "notes": [],
+        }),
+        Some(a) => {
+            let mut tables = a.gltf_json(|i, image| {
+                let tag = etag(image);
+                let mut o = serde_json::json!({
+                    "uri": format!("/v1/rigs/{id}/textures/{i}?v={tag}"),
+                    "mimeType": image.mime.as_str(),
+                    "width": image.width,
+                    "height": image.height,
+                    "etag": tag,
+                });
+                if let Some(d) = image.downscaled_from {
+                    o["downscaledFrom"] = d.to_vec().into();
+                }
+                o
+            });
+            tables["rig"] = id.as_str().into();
+            tables["extensionsUsed"] = a.extensions_used().into();
+            tables["notes"] = a.notes.clone().into();
+            tables
+        }
+    };
+    Ok((
+        StatusCode::OK,
+        [(
+            header::CONTENT_TYPE,
+            HeaderValue::from_static(crowdmorph_proto::CONTENT_TYPE_JSON),
+        )],
+        body.to_string(),
+    )
+        .into_response())
+}
+
+/// `?v=` of a texture request: the `ETag` token `/materials` gave.
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TextureQuery {
+    v: Option<String>,
+}
+
+/// `GET /v1/rigs/{id}/textures/{i}`: image `i`'s bytes with their content type.
+pub async fn get_texture(
+    State(state): State<AppState>,
+    _ready: Ready,
+    Path((id, index)): Path<(String, String)>,
+    Query(query): Query<TextureQuery>,
+    headers: HeaderMap,
+) -> ApiResult {
+    let entry = state.rig(&id)?;
+    let rig = entry.rig();
+    let images = rig.appearance.as_deref().map_or(&[][..], |a| &a.images[..]);
+    let image = index
+        .parse::<usize>()
+        .ok()
+        .and_then(|i| images.get(i))
+        .ok_or_else(|| {
+            ApiError::not_found(
+                "unknown_texture",
+                format!(
+                    "rig {id:?} has no image {index:?} (it has {}; GET /v1/rigs/{id}/materials lists them)",
+                    images.len()
+                ),
+            )
+        })?;
+    let tag = etag(image);
+    let quoted = format!("\"{tag}\"");
+    let etag_value = HeaderValue::from_str(&quoted).map_err(ApiError::internal)?;
+    let cache = if query.v.as_deref() == Some(tag.as_str()) {
+        "public, max-age=31536000, immutable"
+    } else {
+        "no-cache"
+    };
+    let matches = headers
+        .get(header::IF_NONE_MATCH)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.split(',').any(|t| t.trim() == quoted || t.trim() == "*"));
+    let cache = HeaderValue::from_static(cache);
+    if matches {
+        return Ok((
+            StatusCode::NOT_MODIFIED,
+            [(header::ETAG, etag_value), (header::CACHE_CONTROL, cache)],
+        )
+            .into_response());
+    }
+    // The body shares the image's bytes (no copy); the response holds the rig's entry, so
+    // they stay charged to the rig until sent.
+    let bytes = bytes::Bytes::from_owner(ArcBytes(image.bytes.clone()));
+    let response: Response = (
+        StatusCode::OK,
+        [
+            (
+                header::CONTENT_TYPE,
+                HeaderValue::from_static(image.mime.as_str()),
+            ),
+            (header::ETAG, etag_value),
+            (header::CACHE_CONTROL, cache),
+        ],
+        Body::from(bytes),
+    )
+        .into_response();
+    Ok(http::body::hold(response, entry))
+}
+
+/// An image's shared bytes as a `Bytes` owner.
+struct ArcBytes(std::sync::Arc<[u8]>);
+
+impl AsRef<[u8]> for ArcBytes {
+    fn as_ref(&self) -> &[u8] {
+        &self.0
+    }
+}
