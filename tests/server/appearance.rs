@@ -195,6 +195,57 @@ async fn check_appearance(server: &TestServer, id: &str, path: &Path, doc: &RefD
     assert!(missing.to_string().contains("unknown_texture"), "{missing}");
 }
 
+/// `model.glb` read back by the importer (which runs the `gltf` crate's validation): the
+/// mesh endpoint's vertices, triangles and texture coordinates, one material per file
+/// material, and the images' bytes.
+async fn check_model(server: &TestServer, id: &str) {
+    let client = &server.client;
+    let glb = client.model_glb(id, 0).await.expect("model.glb");
+    let rig = crowdmorph::import::gltf::rig_from_slice(
+        &glb,
+        &crowdmorph::import::ImportOptions::default(),
+    )
+    .expect("the GLB imports");
+    assert!(rig.targets.is_empty() && rig.clips.is_empty(), "no morph targets or clips");
+    let mesh = client.mesh(id, Encoding::Bincode).await.expect("mesh");
+    assert_eq!(rig.vertex_count(), mesh.vertices as usize, "{id}: vertices");
+    let positions: Vec<f32> = rig
+        .primitives
+        .iter()
+        .flat_map(|p| p.positions.iter().flat_map(|v| v.to_array()))
+        .collect();
+    assert_eq!(positions, f32s(&mesh.positions.0), "{id}: the mesh's vertex order");
+    let uvs: Vec<f32> = rig
+        .primitives
+        .iter()
+        .flat_map(|p| p.look.uv0.iter().flatten().flat_map(|v| v.to_array()))
+        .collect();
+    assert_eq!(uvs, f32s(&mesh.uvs.0), "{id}: texture coordinates");
+    let indices: Vec<u32> = rig
+        .primitives
+        .iter()
+        .zip(&mesh.primitives)
+        .flat_map(|(p, m)| p.indices.iter().map(move |i| i + m.first_vertex))
+        .collect();
+    let want: Vec<u32> = mesh
+        .indices
+        .0
+        .chunks_exact(4)
+        .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect();
+    assert_eq!(indices, want, "{id}: triangles");
+    let a = rig.appearance.as_deref().expect("materials in the GLB");
+    let m = client.materials(id).await.expect("materials");
+    assert_eq!(a.materials.len(), m["materials"].as_array().map_or(0, Vec::len));
+    for (i, im) in a.images.iter().enumerate() {
+        let (bytes, _) = client.texture(id, i).await.expect("texture");
+        assert_eq!(&im.bytes[..], &bytes[..], "{id}: image {i} in the GLB");
+    }
+    for (p, mp) in rig.primitives.iter().zip(&mesh.primitives) {
+        assert_eq!(p.look.material, mp.material, "{id}: material of {}", mp.name);
+    }
+}
+
 /// An image's size from its header, read here without the server's code: PNG's IHDR, or the
 /// first JPEG start-of-frame marker.
 fn header_size(b: &[u8]) -> (u64, u64) {
@@ -245,6 +296,7 @@ async fn textured_rigs_give_clients_their_uvs_materials_and_images_across_a_rest
             check_mesh(&mesh, &doc, &format!("{id} {enc:?}"));
         }
         check_appearance(&server, &id, &path, &doc).await;
+        check_model(&server, &id).await;
         ids.push((id, path, doc));
     }
     server.stop().await;

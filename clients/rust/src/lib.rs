@@ -380,6 +380,24 @@ impl Client {
             .await
     }
 
+    /// `GET /v1/rigs/{id}/model.glb?lod=L`: the rig's mesh at level `lod` as a GLB with its
+    /// materials and images, no morph targets (load it once; write each frame's positions).
+    pub async fn model_glb(&self, id: &str, lod: u32) -> Result<Bytes, ClientError> {
+        let reply = self
+            .send(
+                Method::GET,
+                &format!("/v1/rigs/{id}/model.glb?lod={lod}"),
+                None,
+                None,
+                Bytes::new(),
+            )
+            .await?;
+        if reply.status != 200 {
+            return Err(reply.into_error());
+        }
+        Ok(reply.body)
+    }
+
     /// An image by the `uri` [`Client::materials`] gives it (its `?v=` makes the answer
     /// cacheable forever): its bytes and content type.
     pub async fn texture_at(&self, uri: &str) -> Result<(Bytes, String), ClientError> {

@@ -23,6 +23,7 @@
 
 pub mod cpu;
 pub mod export;
+pub mod glb;
 mod facade;
 pub mod gpu;
 pub mod lod;

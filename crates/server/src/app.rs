@@ -295,6 +295,10 @@ fn resources() -> Router<AppState> {
             get(routes::appearance::get_texture),
         )
         .route(
+            "/v1/rigs/{id}/model.glb",
+            get(routes::appearance::get_model),
+        )
+        .route(
             "/v1/rigs/{id}/lod",
             get(routes::lod::get_lod).put(routes::lod::put_lod),
         )

@@ -529,6 +529,14 @@ class Client:
         """``GET /v1/rigs/{id}/textures/{i}``: image ``i``'s bytes and content type."""
         return self.texture_at(f"/v1/rigs/{_seg(rig)}/textures/{int(image)}")
 
+    def model_glb(self, rig: str, lod: int = 0) -> bytes:
+        """``GET /v1/rigs/{id}/model.glb?lod=L``: level ``lod``'s mesh as a GLB with its
+        materials and images, no morph targets (what an engine loads once)."""
+        resp = self.request(
+            "GET", f"/v1/rigs/{_seg(rig)}/model.glb", accept="*/*", query={"lod": lod}
+        )
+        return resp.body
+
     def texture_at(self, uri: str) -> Tuple[bytes, str]:
         """An image by the ``uri`` :meth:`materials` gives it: bytes and content type."""
         path, _, query = uri.partition("?")

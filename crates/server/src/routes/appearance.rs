@@ -3,6 +3,10 @@
 //! `GET /v1/rigs/{id}/textures/{i}` (an image's bytes as uploaded, or as downscaled to
 //! `--max-texture-size`).
 //!
+//! `GET /v1/rigs/{id}/model.glb?lod=L` is the rig's mesh at one level as a GLB with its
+//! materials and images and no morph targets, for engines that load a model once and write
+//! each frame's positions into it.
+//!
 //! An image's `ETag` is a checksum of its bytes, so it is the same across generations,
 //! restarts and replicas: the URIs `/materials` gives carry it as `?v=`, and a request with a
 //! matching `v` is answered `Cache-Control: immutable` (a viewer fetches each image once per
@@ -152,4 +156,56 @@ impl AsRef<[u8]> for ArcBytes {
     fn as_ref(&self) -> &[u8] {
         &self.0
     }
+}
+
+/// `?lod=` of a model request.
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ModelQuery {
+    lod: Option<u32>,
+}
+
+/// `GET /v1/rigs/{id}/model.glb?lod=L`: level `L`'s mesh (default 0) as a self-contained GLB.
+pub async fn get_model(
+    State(state): State<AppState>,
+    _ready: Ready,
+    Path(id): Path<String>,
+    Query(query): Query<ModelQuery>,
+) -> ApiResult {
+    let entry = state.rig(&id)?;
+    let lod = query.lod.unwrap_or(0);
+    let levels = entry.rig().lod.levels.len();
+    if lod as usize >= levels {
+        return Err(ApiError::bad_request(
+            "lod_out_of_range",
+            format!("LOD level {lod} out of range (rig {id:?} has {levels} levels)"),
+        ));
+    }
+    // The file copies the level's arrays and the images: charged to the queue memory (twice:
+    // the JSON values and the bytes) until it is sent.
+    let level = entry.prepared.at_level(lod).rig().clone();
+    let held = state
+        .queue_memory
+        .reserve(2 * crowdmorph_engine::glb::model_glb_bytes(&level))?;
+    let generation = entry.generation;
+    let glb = http::blocking(move || {
+        crowdmorph_engine::glb::model_glb(&level).map_err(ApiError::internal)
+    })
+    .await?;
+    let etag = HeaderValue::from_str(&format!("\"g{generation}-l{lod}\""))
+        .map_err(ApiError::internal)?;
+    let response = (
+        StatusCode::OK,
+        [
+            (
+                header::CONTENT_TYPE,
+                HeaderValue::from_static("model/gltf-binary"),
+            ),
+            (header::ETAG, etag),
+            (header::CACHE_CONTROL, HeaderValue::from_static("no-cache")),
+        ],
+        Body::from(glb),
+    )
+        .into_response();
+    Ok(http::body::hold(response, held))
 }
