@@ -8,6 +8,7 @@
 //! | `scene` | what the scene instances and its weight channels hold, read once and charged |
 //! | `meshopt` | `EXT_meshopt_compression` buffer views |
 //! | [`extensions`] | the extension policy: which are read, ignored, or refused by name |
+//! | [`image`] | texture images: headers sniffed and charged before decoding, downscale, mips |
 //! | [`clips`] | CSV, JSON and glTF clips mapped onto an existing rig; joint-map columns become joint tables |
 //! | `skin` | skins, meshes under animated nodes, node animation baked into joint tables |
 //!
@@ -26,6 +27,7 @@ mod channels;
 pub mod clips;
 pub mod extensions;
 pub mod gltf;
+pub mod image;
 mod meshopt;
 mod scene;
 mod skin;
