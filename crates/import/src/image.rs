@@ -40,11 +40,11 @@
 //! each); they are zeroed by the allocator and filled only as far as the file goes.
 //!
 //! What hostile images get: unknown magic, an empty slice, 0 × 0, a truncated or corrupt
-//! file (any decoder error, a JPEG without its end marker) and a decoder panic are
-//! [`ImageError::Invalid`] naming the index; a header declaring more pixels than the budget
-//! allows is [`ImageError::Budget`] before anything is allocated; a declared MIME type the
-//! magic contradicts, an animated WebP or PNG (first frame or default image drawn) and a
-//! downscale are decoded with a note.
+//! file (any decoder error, a JPEG without its end marker, a still WebP whose canvas is not
+//! its image) and a decoder panic are [`ImageError::Invalid`] naming the index; a header
+//! declaring more pixels than the budget allows is [`ImageError::Budget`] before anything is
+//! allocated; a declared MIME type the magic contradicts, an animated WebP or PNG (first frame
+//! or default image drawn) and a downscale are decoded with a note.
 //!
 //! Above `--max-texture-size` an image is halved with the mip filter until both sides fit
 //! (so a non-power-of-two side may end below the maximum), then re-encoded: PNG for PNG and
@@ -329,6 +329,16 @@ fn sniff_webp(b: &[u8]) -> Result<(u32, u32, WebpKind), String> {
             let w = le24(b, 24).ok_or_else(short)? + 1;
             let h = le24(b, 27).ok_or_else(short)? + 1;
             let animated = flags & 0x02 != 0;
+            // A still image's canvas is its image: a canvas larger than the image it holds
+            // would be charged and allocated for nothing, so it is refused from the header.
+            if !animated
+                && let Some((iw, ih)) = extended_image_size(b)?
+                && (iw, ih) != (w, h)
+            {
+                return Err(format!(
+                    "the WebP's canvas is {w} × {h} but its image is {iw} × {ih}"
+                ));
+            }
             Ok((w, h, WebpKind::Extended { animated }))
         }
         other => Err(format!(
@@ -366,6 +376,30 @@ fn vp8l_size(b: &[u8], at: usize) -> Result<Option<(u32, u32)>, String> {
         return Err("the WebP's VP8L stream has no signature".into());
     }
     Ok(Some(((bits & 0x3FFF) + 1, ((bits >> 14) & 0x3FFF) + 1)))
+}
+
+/// The size of the image of an extended (`VP8X`) still WebP: its `VP8 ` or `VP8L` chunk, found
+/// by walking the chunks after the header; `None` when the slice ends first.
+fn extended_image_size(b: &[u8]) -> Result<Option<(u32, u32)>, String> {
+    let mut at = 12usize;
+    while let (Some(kind), Some(size)) = (
+        bytes_at::<4>(b, at),
+        at.checked_add(4).and_then(|p| le32(b, p)),
+    ) {
+        let data = at + 8;
+        match &kind {
+            b"VP8 " => return vp8_size(b, data),
+            b"VP8L" => return vp8l_size(b, data),
+            _ => {}
+        }
+        // Chunks are padded to an even size.
+        let next = data as u64 + u64::from(size) + u64::from(size & 1);
+        let Ok(next) = usize::try_from(next) else {
+            break;
+        };
+        at = next;
+    }
+    Ok(None)
 }
 
 // ------------------------------------------------------------------------------------------
@@ -1786,6 +1820,14 @@ mod tests {
         assert_eq!(
             refusal(&zero_high),
             "image 7: the JPEG declares 32 × 0 pixels"
+        );
+
+        // An extended WebP whose canvas is not the size of the image it holds.
+        let mut canvas = LOSSY_ALPHA_WEBP.to_vec();
+        canvas[24..27].copy_from_slice(&9999u32.to_le_bytes()[..3]);
+        assert_eq!(
+            refusal(&canvas),
+            "image 7: the WebP's canvas is 10000 × 16 but its image is 24 × 16"
         );
 
         // Cut short: a PNG inside its image data, a JPEG half way, a WebP before its end.
