@@ -47,9 +47,9 @@
 //! or default image drawn) and a downscale are decoded with a note.
 //!
 //! Above `--max-texture-size` an image is halved with the mip filter until both sides fit
-//! (so a non-power-of-two side may end below the maximum), then re-encoded: PNG for PNG and
-//! WebP sources, JPEG q92 for JPEG sources. Mips run down to 1 × 1 with a box filter that
-//! averages the encoded values (`halve` says why not in linear light).
+//! (so a non-power-of-two side may end below the maximum), then re-encoded: PNG at zlib
+//! level 1 for PNG and WebP sources, JPEG q92 for JPEG sources. Mips run down to 1 × 1 with
+//! a box filter that averages the encoded values (`halve` says why not in linear light).
 //!
 //! Colour: pixels stay in the space they were encoded in (ICC profiles and EXIF orientation
 //! are ignored, as glTF viewers do); sRGB or linear is the sampling slot's business.
@@ -1217,6 +1217,9 @@ fn encode(
                 let mut encoder = png::Encoder::new(&mut out, w, h);
                 encoder.set_color(png::ColorType::Rgba);
                 encoder.set_depth(png::BitDepth::Eight);
+                // zlib level 1: on a grainy 1024² texture about 25% larger than level 6 but
+                // some 30 times faster (level 6 took a second on the import's path).
+                encoder.set_deflate_compression(png::DeflateCompression::Level(1));
                 encoder
                     .write_header()
                     .and_then(|mut writer| {
@@ -2077,5 +2080,80 @@ mod tests {
             other => panic!("expected a refusal, got {other:?}"),
         }
         assert_eq!(budget.used(), 0);
+    }
+
+    /// Decode times and peak charges of 2048² images, for commit messages (the fastest of 5
+    /// runs, so a busy machine disturbs them less):
+    /// `cargo test --release -p crowdmorph-import --lib image::tests::timings -- --ignored --nocapture`.
+    #[test]
+    #[ignore = "a measurement, run in release mode"]
+    fn timings() {
+        let (w, h) = (2048, 2048);
+        // Smooth content with a little grain, as photographed textures have.
+        let grain = noise(7, (w * h) as usize);
+        let rgba = rgba_of(w, h, |x, y| {
+            let g = grain[(y * w + x) as usize] / 32;
+            let s = smooth(x, y);
+            [s[0].wrapping_add(g), s[1].wrapping_add(g), s[2], 255]
+        });
+        let images = [
+            ("JPEG q92", {
+                let mut out = Vec::new();
+                jpeg_encoder::Encoder::new(&mut out, 92)
+                    .encode(&rgba, w as u16, h as u16, jpeg_encoder::ColorType::Rgba)
+                    .expect("JPEG");
+                out
+            }),
+            ("progressive JPEG q92", {
+                let mut out = Vec::new();
+                let mut encoder = jpeg_encoder::Encoder::new(&mut out, 92);
+                encoder.set_progressive(true);
+                encoder
+                    .encode(&rgba, w as u16, h as u16, jpeg_encoder::ColorType::Rgba)
+                    .expect("JPEG");
+                out
+            }),
+            (
+                "PNG RGBA",
+                png_of(w, h, png::ColorType::Rgba, png::BitDepth::Eight, &rgba),
+            ),
+            (
+                "WebP lossless",
+                lossless_webp_of(w, h, &rgba, ::image::ExtendedColorType::Rgba8),
+            ),
+        ];
+        let fastest = |f: &mut dyn FnMut()| {
+            (0..5)
+                .map(|_| {
+                    let start = std::time::Instant::now();
+                    f();
+                    start.elapsed().as_secs_f64() * 1e3
+                })
+                .fold(f64::INFINITY, f64::min)
+        };
+        for (what, bytes) in &images {
+            let (header, layout) = super::sniff_layout(bytes).expect("a header");
+            let pixels_ms = fastest(&mut || {
+                let _ = super::decode_rgba(0, bytes, &header, &layout).expect("decodes");
+            });
+            for max in [4096, 1024] {
+                let mut peak = 0;
+                let mut kept = 0;
+                let ms = fastest(&mut || {
+                    let budget = budget();
+                    let (image, _) =
+                        decode(0, Arc::from(&bytes[..]), None, max, &budget).expect("decodes");
+                    (peak, kept) = (budget.peak(), kept_bytes(&image));
+                });
+                println!(
+                    "{what} {w}² ({} KB) max {max}: pixels {pixels_ms:.1} ms, decode {ms:.1} ms, \
+                     peak {:.1} MB (decode_cost {:.1} MB), kept {:.1} MB",
+                    bytes.len() / 1024,
+                    peak as f64 / 1e6,
+                    decode_cost(&header, max) as f64 / 1e6,
+                    kept as f64 / 1e6,
+                );
+            }
+        }
     }
 }
