@@ -8,6 +8,8 @@
 //! | `scene` | what the scene instances and its weight channels hold, read once and charged |
 //! | `meshopt` | `EXT_meshopt_compression` buffer views |
 //! | [`extensions`] | the extension policy: which are read, ignored, or refused by name |
+//! | [`image`] | texture images: headers sniffed and charged before decoding, downscale, mips |
+//! | `material` | materials, textures, samplers and the images they reach ([`crowdmorph_core::rig::Appearance`]) |
 //! | [`clips`] | CSV, JSON and glTF clips mapped onto an existing rig; joint-map columns become joint tables |
 //! | `skin` | skins, meshes under animated nodes, node animation baked into joint tables |
 //!

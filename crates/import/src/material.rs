@@ -254,7 +254,15 @@ impl Pending {
     pub(crate) fn peak_decode(&self) -> u64 {
         self.images
             .iter()
-            .map(|i| image::decode_cost(&i.header, self.max_texture_size))
+            .map(|i| {
+                // The WebP decoder copies the compressed stream besides (see `image::decode`).
+                let copy = if i.header.mime == ImageMime::Webp {
+                    2 * i.bytes.len() as u64
+                } else {
+                    0
+                };
+                image::decode_cost(&i.header, self.max_texture_size) + copy
+            })
             .max()
             .unwrap_or(0)
     }
