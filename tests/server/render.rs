@@ -208,11 +208,8 @@ gpu_test!(
             },
         ]);
         clones.camera = Some(CameraSpec {
-            position: [0.0, 15.0, 80.0],
-            target: [0.0, 0.0, 0.0],
             fov_y: 40.0,
-            near: None,
-            far: None,
+            ..CameraSpec::looking([0.0, 15.0, 80.0], [0.0, 0.0, 0.0])
         });
         let img = png(s, &clones).await;
         check_golden(&golden("http_clones.png"), &img, GOLDEN);

@@ -426,35 +426,74 @@ pub fn default_view(bounds: Option<Aabb>, fov_y_deg: f32, aspect: f32) -> View {
 /// `bounds` so that every head lies between them.
 pub fn camera_view(spec: &CameraSpec, bounds: Option<Aabb>) -> Result<View, SceneError> {
     let bad = |m: String| SceneError::Camera(format!("camera: {m}"));
-    if !finite3(spec.position) || !finite3(spec.target) {
+    if let Some(f) = spec.frame {
         return Err(bad(format!(
-            "position {:?} and target {:?} must be finite numbers",
-            spec.position, spec.target
+            "frame {:?} places the camera itself; a camera that looks from a position is \
+             one without frame",
+            f.name()
         )));
     }
-    if !in_range3(spec.position) || !in_range3(spec.target) {
+    let (Some(position), Some(target)) = (spec.position, spec.target) else {
+        return Err(bad(
+            "position and target are required, unless frame (\"faces\" or \"bodies\") \
+             places the camera"
+                .into(),
+        ));
+    };
+    if !finite3(position) || !finite3(target) {
         return Err(bad(format!(
-            "position {:?} and target {:?} must be within ±{MAX_COORDINATE}",
-            spec.position, spec.target
+            "position {position:?} and target {target:?} must be finite numbers"
         )));
     }
-    let eye = Vec3::from_array(spec.position);
-    let target = Vec3::from_array(spec.target);
-    let forward = target - eye;
-    let reach = eye.abs().max(target.abs()).max_element().max(1.0);
+    if !in_range3(position) || !in_range3(target) {
+        return Err(bad(format!(
+            "position {position:?} and target {target:?} must be within ±{MAX_COORDINATE}"
+        )));
+    }
+    let eye = Vec3::from_array(position);
+    let target_point = Vec3::from_array(target);
+    let forward = target_point - eye;
+    let reach = eye.abs().max(target_point.abs()).max_element().max(1.0);
     if forward.length() <= reach * 1e-6 {
         return Err(bad(format!(
-            "target {:?} is the camera's position; it must be a point to look at",
-            spec.target
+            "target {target:?} is the camera's position; it must be a point to look at"
         )));
     }
+    check_fov(spec)?;
+    let forward = forward.normalize();
+    let (near, far) = clip_planes(spec, derived_planes(eye, forward, bounds))?;
+    // Looking straight up or down, +Y cannot be up: the image's top is then the direction
+    // away from the heads' faces (−Z looking down, +Z looking up).
+    let up = if forward.cross(Vec3::Y).length() < 1e-3 {
+        if forward.y < 0.0 { -Vec3::Z } else { Vec3::Z }
+    } else {
+        Vec3::Y
+    };
+    Ok(View {
+        eye,
+        target: target_point,
+        up,
+        fov_y_deg: spec.fov_y,
+        near,
+        far,
+    })
+}
+
+fn check_fov(spec: &CameraSpec) -> Result<(), SceneError> {
     if !(spec.fov_y.is_finite() && (MIN_FOV_Y..=MAX_FOV_Y).contains(&spec.fov_y)) {
-        return Err(bad(format!(
-            "fov_y {} must be in [{MIN_FOV_Y}, {MAX_FOV_Y}] degrees",
+        return Err(SceneError::Camera(format!(
+            "camera: fov_y {} must be in [{MIN_FOV_Y}, {MAX_FOV_Y}] degrees",
             spec.fov_y
         )));
     }
-    let forward = forward.normalize();
+    Ok(())
+}
+
+/// The clip planes of a camera: those it gives, checked, and for those it leaves out the
+/// `derived` ones (near, far), kept within [`MAX_DEPTH_RATIO`] of the one it gives so that
+/// only the client's own numbers can be refused.
+fn clip_planes(spec: &CameraSpec, derived: (f32, f32)) -> Result<(f32, f32), SceneError> {
+    let bad = |m: String| SceneError::Camera(format!("camera: {m}"));
     for (name, v) in [("near", spec.near), ("far", spec.far)] {
         if let Some(v) = v
             && !(v.is_finite() && v > 0.0)
@@ -467,9 +506,7 @@ pub fn camera_view(spec: &CameraSpec, bounds: Option<Aabb>) -> Result<View, Scen
     {
         return Err(bad(format!("near {n} must be at least {MIN_NEAR}")));
     }
-    let (near_d, far_d) = derived_planes(eye, forward, bounds);
-    // A plane the camera leaves out is derived, and kept within MAX_DEPTH_RATIO of the one it
-    // gives, so that only the client's own numbers can be refused.
+    let (near_d, far_d) = derived;
     let (near, far) = match (spec.near, spec.far) {
         (Some(n), Some(f)) => (n, f),
         (Some(n), None) => (n, far_d.max(n * 2.0).min(n * MAX_DEPTH_RATIO)),
@@ -487,21 +524,7 @@ pub fn camera_view(spec: &CameraSpec, bounds: Option<Aabb>) -> Result<View, Scen
             "far {far} is more than {MAX_DEPTH_RATIO} times near {near}"
         )));
     }
-    // Looking straight up or down, +Y cannot be up: the image's top is then the direction
-    // away from the heads' faces (−Z looking down, +Z looking up).
-    let up = if forward.cross(Vec3::Y).length() < 1e-3 {
-        if forward.y < 0.0 { -Vec3::Z } else { Vec3::Z }
-    } else {
-        Vec3::Y
-    };
-    Ok(View {
-        eye,
-        target,
-        up,
-        fov_y_deg: spec.fov_y,
-        near,
-        far,
-    })
+    Ok((near, far))
 }
 
 /// Near and far distances along `forward` that hold `bounds` (a little inside and beyond); a
@@ -775,11 +798,8 @@ mod tests {
 
     fn camera(position: [f32; 3], target: [f32; 3], fov_y: f32) -> CameraSpec {
         CameraSpec {
-            position,
-            target,
             fov_y,
-            near: None,
-            far: None,
+            ..CameraSpec::looking(position, target)
         }
     }
 
@@ -801,7 +821,7 @@ mod tests {
             for c in corners(&placed) {
                 let d = (c - v.eye).dot(forward);
                 assert!(d <= v.far, "{c} beyond far in {v:?}");
-                if spec.position != [0.0; 3] {
+                if spec.position != Some([0.0; 3]) {
                     assert!(d >= v.near, "{c} before near in {v:?}");
                 }
             }
