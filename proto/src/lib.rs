@@ -989,14 +989,20 @@ fn one() -> f32 {
     1.0
 }
 
-/// A perspective camera of a rendered crowd, in world units.
+/// A perspective camera of a rendered crowd, in world units: where it stands and what it looks
+/// at, or a framing preset ([`CameraSpec::frame`]) that places it in front of the crowd.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct CameraSpec {
-    /// Where the eye is.
-    pub position: [f32; 3],
-    /// The point at the centre of the image (not equal to `position`).
-    pub target: [f32; 3],
+    /// Where the eye is: required without [`CameraSpec::frame`], absent (or `null`) with one.
+    /// Bincode carries it bare, as it always has, so a camera without it has no bincode form
+    /// ([`bincode_required`]).
+    #[serde(default, with = "bincode_required")]
+    pub position: Option<[f32; 3]>,
+    /// The point at the centre of the image (not equal to `position`); required and absent as
+    /// `position` is.
+    #[serde(default, with = "bincode_required")]
+    pub target: Option<[f32; 3]>,
     /// Vertical field of view in degrees, in (0, 180).
     #[serde(default = "default_fov")]
     pub fov_y: f32,
@@ -1006,6 +1012,89 @@ pub struct CameraSpec {
     /// Far clip distance (> near); derived from the scene's bounds when absent.
     #[serde(default)]
     pub far: Option<f32>,
+    /// A framing preset instead of a position and target: the front view that fits the heads'
+    /// faces or their whole figures (see [`CameraFrame`]); `fov_y`, `near` and `far` still
+    /// apply. In JSON only (absent when `None`): the bincode layout of `CameraSpec` is pinned,
+    /// so in bincode this field takes no bytes and reads as `None` ([`json_only`]).
+    #[serde(default, skip_serializing_if = "Option::is_none", with = "json_only")]
+    pub frame: Option<CameraFrame>,
+}
+
+impl CameraSpec {
+    /// A camera at `position` looking at `target`, with the default field of view and clip
+    /// planes derived from the scene.
+    pub fn looking(position: [f32; 3], target: [f32; 3]) -> CameraSpec {
+        CameraSpec {
+            position: Some(position),
+            target: Some(target),
+            fov_y: DEFAULT_FOV_Y,
+            near: None,
+            far: None,
+            frame: None,
+        }
+    }
+
+    /// The framing preset `frame`, with the default field of view and derived clip planes (a
+    /// JSON-only camera: see [`CameraSpec::frame`]).
+    pub fn framing(frame: CameraFrame) -> CameraSpec {
+        CameraSpec {
+            position: None,
+            target: None,
+            frame: Some(frame),
+            ..CameraSpec::looking([0.0; 3], [0.0; 3])
+        }
+    }
+}
+
+/// What a framing camera ([`CameraSpec::frame`]) fits in the image: a front view (looking down
+/// −Z, as the default camera) at the distance where the box of what it frames fills the image
+/// but for a margin.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum CameraFrame {
+    /// Every head's face region: the vertices its head joint carries, else those its morph
+    /// targets move, else the whole rig.
+    Faces,
+    /// Every head's whole figure: the view a request without a camera gets.
+    Bodies,
+}
+
+impl CameraFrame {
+    /// The lowercase name used in JSON.
+    pub fn name(self) -> &'static str {
+        match self {
+            CameraFrame::Faces => "faces",
+            CameraFrame::Bodies => "bodies",
+        }
+    }
+}
+
+/// A camera point that bincode carries bare (`[f32; 3]`, as before framing cameras existed)
+/// and JSON as an optional array: JSON reads an absent or `null` point as `None`; bincode
+/// reads one always, and cannot write `None` (a framing camera is JSON-only).
+mod bincode_required {
+    use serde::{Deserialize, Deserializer, Serialize, Serializer, ser::Error};
+
+    pub fn serialize<S: Serializer>(value: &Option<[f32; 3]>, s: S) -> Result<S::Ok, S::Error> {
+        if s.is_human_readable() {
+            return value.serialize(s);
+        }
+        match value {
+            Some(p) => p.serialize(s),
+            None => Err(S::Error::custom(
+                "a camera without a position or target (a framing camera) has no bincode \
+                 form: send the request as JSON",
+            )),
+        }
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Option<[f32; 3]>, D::Error> {
+        if d.is_human_readable() {
+            Option::<[f32; 3]>::deserialize(d)
+        } else {
+            <[f32; 3]>::deserialize(d).map(Some)
+        }
+    }
 }
 
 /// Default vertical field of view of a rendered crowd, degrees.

@@ -459,11 +459,9 @@ fn render_request() -> RenderRequest {
             scale: 1.5,
         }]),
         camera: Some(CameraSpec {
-            position: [0.0, 0.1, 1.0],
-            target: [0.0, 0.0, 0.0],
             fov_y: 35.0,
-            near: None,
             far: Some(10.0),
+            ..CameraSpec::looking([0.0, 0.1, 1.0], [0.0, 0.0, 0.0])
         }),
         image: Some(ImageOptions {
             width: 320,
@@ -514,6 +512,59 @@ fn render_request_encodings() {
     );
     // Unknown fields are errors, as in every request.
     assert!(serde_json::from_str::<RenderRequest>(r#"{"heads":[],"image":{"widht":10}}"#).is_err());
+}
+
+#[test]
+fn a_framing_camera_is_json_only_and_leaves_the_pinned_bincode_alone() {
+    // In JSON a frame replaces position and target, which may then be left out.
+    let framed: CameraSpec = serde_json::from_str(r#"{"frame":"faces"}"#).unwrap();
+    assert_eq!(framed, CameraSpec::framing(CameraFrame::Faces));
+    let json = serde_json::to_string(&framed).unwrap();
+    assert_eq!(
+        json,
+        r#"{"position":null,"target":null,"fov_y":30.0,"near":null,"far":null,"frame":"faces"}"#
+    );
+    assert_eq!(serde_json::from_str::<CameraSpec>(&json).unwrap(), framed);
+    let bodies: CameraSpec = serde_json::from_str(r#"{"frame":"bodies","fov_y":20}"#).unwrap();
+    assert_eq!(
+        (bodies.frame, bodies.fov_y),
+        (Some(CameraFrame::Bodies), 20.0)
+    );
+    assert!(serde_json::from_str::<CameraSpec>(r#"{"frame":"Faces"}"#).is_err());
+    assert!(serde_json::from_str::<CameraSpec>(r#"{"frame":"heads"}"#).is_err());
+    // Reading keeps what was given; whether a frame and a position go together is the
+    // server's check (a 400 invalid_camera), and so is a camera with neither.
+    let both: CameraSpec = serde_json::from_str(r#"{"frame":"faces","position":[0,0,5]}"#).unwrap();
+    assert_eq!(
+        (both.frame, both.position, both.target),
+        (Some(CameraFrame::Faces), Some([0.0, 0.0, 5.0]), None)
+    );
+    let neither: CameraSpec = serde_json::from_str(r#"{"fov_y":40}"#).unwrap();
+    assert_eq!(
+        (neither.position, neither.target, neither.frame),
+        (None, None, None)
+    );
+    // A camera without a frame writes the JSON it always has.
+    let looking = CameraSpec::looking([0.0, 0.0, 5.0], [0.0; 3]);
+    assert_eq!(
+        serde_json::to_string(&looking).unwrap(),
+        r#"{"position":[0.0,0.0,5.0],"target":[0.0,0.0,0.0],"fov_y":30.0,"near":null,"far":null}"#
+    );
+    // Bincode: the frame takes no bytes and reads as none (the golden render request pins
+    // the rest), and a camera without a position cannot be written.
+    let bin = to_bincode(&looking).unwrap();
+    assert_eq!(
+        bin.len(),
+        4 * 7 + 2,
+        "three floats, three floats, fov, two Nones"
+    );
+    let with_frame = CameraSpec {
+        frame: Some(CameraFrame::Bodies),
+        ..looking
+    };
+    assert_eq!(to_bincode(&with_frame).unwrap(), bin);
+    assert_eq!(request_from_bincode::<CameraSpec>(&bin).unwrap(), looking);
+    assert!(to_bincode(&framed).is_err());
 }
 
 #[test]

@@ -395,13 +395,7 @@ fn session_heads(crowd: &CrowdShape, rigs: &[RigClips]) -> Result<Vec<SessionHea
 fn grid_camera(heads: usize) -> CameraSpec {
     let side = (heads as f64).sqrt().ceil().max(1.0) as f32;
     let middle = (side - 1.0) * GRID / 2.0;
-    CameraSpec {
-        position: [middle, 1.6, 3.0],
-        target: [middle, 1.6, -middle],
-        fov_y: crowdmorph_proto::DEFAULT_FOV_Y,
-        near: None,
-        far: None,
-    }
+    CameraSpec::looking([middle, 1.6, 3.0], [middle, 1.6, -middle])
 }
 
 /// One hello per viewer: the shape's format and normals, and the LOD by distance or from

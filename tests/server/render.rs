@@ -208,11 +208,8 @@ gpu_test!(
             },
         ]);
         clones.camera = Some(CameraSpec {
-            position: [0.0, 15.0, 80.0],
-            target: [0.0, 0.0, 0.0],
             fov_y: 40.0,
-            near: None,
-            far: None,
+            ..CameraSpec::looking([0.0, 15.0, 80.0], [0.0, 0.0, 0.0])
         });
         let img = png(s, &clones).await;
         check_golden(&golden("http_clones.png"), &img, GOLDEN);
@@ -348,7 +345,7 @@ fn jaw_extremes(rig: &crowdmorph::rig::Rig) -> (u32, u32) {
 /// default camera.
 fn mouth_rect(rig: &crowdmorph::rig::Rig, width: u32, height: u32) -> (u32, u32, u32, u32) {
     let aspect = width as f32 / height as f32;
-    let layout = scene::layout(&[rig.bbox()], &[1], None, None, aspect).expect("layout");
+    let layout = scene::layout(&[rig.bbox()], None, &[1], None, None, aspect).expect("layout");
     let vp = layout.view.view_projection(aspect);
     let jaw = rig.target_id("jawOpen").expect("jawOpen");
     // (neutral position, length of the jawOpen delta) of every vertex the target moves.
@@ -423,6 +420,270 @@ gpu_test!(
             mouth > 5.0 * rest,
             "the change is not concentrated at the mouth: mouth {mouth}, elsewhere {rest}"
         );
+        server.stop().await;
+    }
+);
+
+/// Pixel rectangle `(x0, x1, y0, y1)` (unclamped; `x1`, `y1` past the last pixel) of the
+/// corners of `b`, placed by `m` and seen by `view`, in a `width` × `height` image.
+fn projected(
+    view: &scene::View,
+    m: glam::Mat4,
+    b: &crowdmorph::rig::Aabb,
+    width: u32,
+    height: u32,
+) -> (f32, f32, f32, f32) {
+    let vp = view.view_projection(width as f32 / height as f32);
+    let (mut x0, mut x1, mut y0, mut y1) = (f32::MAX, f32::MIN, f32::MAX, f32::MIN);
+    for i in 0..8 {
+        let c = Vec3::new(
+            if i & 1 == 0 { b.min.x } else { b.max.x },
+            if i & 2 == 0 { b.min.y } else { b.max.y },
+            if i & 4 == 0 { b.min.z } else { b.max.z },
+        );
+        let n = vp.project_point3(m.transform_point3(c));
+        let (x, y) = (
+            (n.x + 1.0) * 0.5 * width as f32,
+            (1.0 - n.y) * 0.5 * height as f32,
+        );
+        (x0, x1, y0, y1) = (x0.min(x), x1.max(x), y0.min(y), y1.max(y));
+    }
+    (x0, x1, y0, y1)
+}
+
+/// Rectangle `(x0, x1, y0, y1)` (`x1`, `y1` exclusive) of the pixels that are not `bg`, and
+/// how many there are.
+fn drawn(img: &Image, bg: [u8; 3]) -> ((u32, u32, u32, u32), usize) {
+    let (mut x0, mut x1, mut y0, mut y1, mut n) = (u32::MAX, 0, u32::MAX, 0, 0);
+    for y in 0..img.height {
+        for x in 0..img.width {
+            if !is_colour(img.pixel(x, y), bg) {
+                (x0, x1, y0, y1) = (x0.min(x), x1.max(x + 1), y0.min(y), y1.max(y + 1));
+                n += 1;
+            }
+        }
+    }
+    ((x0, x1, y0, y1), n)
+}
+
+/// A rig at rest (live weights, none given) alone in a 320 × 240 PNG on `bg`, seen by `camera`.
+async fn alone(server: &TestServer, rig: &str, camera: Option<CameraSpec>, bg: [u8; 3]) -> Image {
+    alone_as(server, rig, camera, bg, Encoding::Json).await
+}
+
+/// [`alone`], asked for in the encoding `enc`.
+async fn alone_as(
+    server: &TestServer,
+    rig: &str,
+    camera: Option<CameraSpec>,
+    bg: [u8; 3],
+    enc: Encoding,
+) -> Image {
+    let mut req = request(
+        vec![Head {
+            head: 1,
+            rig: rig.into(),
+            weights: Some(Box::new(crowdmorph_proto::LiveWeights::Named(Vec::new()))),
+            ..Default::default()
+        }],
+        320,
+        240,
+    );
+    req.camera = camera;
+    if let Some(i) = req.image.as_mut() {
+        i.background = bg;
+    }
+    let reply = server.client.render(&req, enc).await.expect("render");
+    decode_png(&reply, &req)
+}
+
+gpu_test!(
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    #[cfg_attr(
+        not(crowdmorph_test_data),
+        ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+    )]
+    async fn a_camera_framing_faces_fills_the_picture_with_the_head_and_leaves_the_feet_out() {
+        use crowdmorph::rig::RegionSource;
+        use crowdmorph_proto::CameraFrame;
+        let server = TestServer::start(ServerConfig::default()).await;
+        let s = &server;
+        let data = crate::util::data_dir();
+        for (id, file) in [
+            ("robot", "robot-expressive/RobotExpressive.glb"),
+            ("ict", "ict-facekit/ict_facekit_53.glb"),
+        ] {
+            s.client
+                .upload_rig(id, super::upload_bytes(&data.join(file)))
+                .await
+                .expect("upload");
+        }
+        let (w, h) = (320u32, 240u32);
+        let (wf, hf) = (w as f32, h as f32);
+        let aspect = wf / hf;
+        let bg = [255u8, 0, 255];
+        let faces = CameraSpec::framing(CameraFrame::Faces);
+        let bodies = CameraSpec::framing(CameraFrame::Bodies);
+
+        // RobotExpressive: skinned, its face region is what its `Head` joint carries.
+        let entry = s.state.registry.get("robot").expect("robot");
+        let rig = entry.rig();
+        let region = rig.face_region();
+        let sk = rig.skeleton.as_ref().expect("skinned");
+        let RegionSource::HeadJoint { node } = region.source else {
+            panic!("the robot's face region should come from its head joint: {region:?}");
+        };
+        assert_eq!(sk.nodes[node as usize].name, "Head");
+        assert_eq!(
+            entry.face_region(),
+            region.bbox,
+            "the registry keeps the same box"
+        );
+        let whole = rig.bbox();
+        eprintln!("robot: whole {whole:?}, head {region:?}");
+        // Where the server's layout puts the head box and the feet, and what it draws.
+        let laid = scene::layout(
+            &[whole],
+            Some(&[region.bbox]),
+            &[1],
+            None,
+            Some(&faces),
+            aspect,
+        )
+        .expect("layout");
+        let head_px = projected(&laid.view, laid.transforms[0], &region.bbox, w, h);
+        let body_px = projected(&laid.view, laid.transforms[0], &whole, w, h);
+        eprintln!("robot, faces: head at {head_px:?}, body at {body_px:?}");
+        let (x0, x1, y0, y1) = head_px;
+        assert!(
+            x0 >= -0.5 && y0 >= -0.5 && x1 <= wf + 0.5 && y1 <= hf + 0.5,
+            "the head box is in the picture: {head_px:?}"
+        );
+        assert!(
+            ((x1 - x0) / wf).max((y1 - y0) / hf) >= 0.85,
+            "the head box fills the picture: {head_px:?}"
+        );
+        assert!(
+            body_px.3 > hf * 1.5,
+            "the feet are well below it: {body_px:?}"
+        );
+        let face_img = alone(s, "robot", Some(faces), bg).await;
+        // The Rust client sends a framing camera as JSON whatever it is asked to use.
+        assert!(
+            alone_as(s, "robot", Some(faces), bg, Encoding::Bincode).await == face_img,
+            "the same picture asked for in bincode"
+        );
+        let ((dx0, dx1, dy0, dy1), n) = drawn(&face_img, bg);
+        eprintln!("robot, faces: drawn {:?}", (dx0, dx1, dy0, dy1));
+        assert!(n > 0, "the robot is drawn");
+        // The top of the figure is the top of its head, drawn inside the box's projection: a
+        // little below its top, as the box's front face is what fits the picture and the
+        // round head is widest further back. The body goes on out of the picture.
+        assert!(
+            dy0 as f32 >= y0 - 2.0 && (dy0 as f32) <= y0 + 0.15 * hf,
+            "the head's top is drawn at {dy0}, its box's at {y0}"
+        );
+        assert_eq!(dy1, h, "the body leaves the picture at the bottom");
+        // Most of the head box is head.
+        let (hx0, hx1, hy0, hy1) = (
+            x0.max(0.0) as u32,
+            x1.min(wf) as u32,
+            y0.max(0.0) as u32,
+            y1.min(hf) as u32,
+        );
+        let inside = (hy0..hy1)
+            .flat_map(|y| (hx0..hx1).map(move |x| (x, y)))
+            .filter(|&(x, y)| !is_colour(face_img.pixel(x, y), bg))
+            .count();
+        let area = ((hx1 - hx0) * (hy1 - hy0)) as usize;
+        assert!(
+            inside * 2 > area,
+            "only {inside} of the head box's {area} pixels are drawn"
+        );
+        // Framing bodies is the view without a camera, pixel for pixel, and it holds the whole
+        // robot, feet too, inside the margins.
+        let body_img = alone(s, "robot", Some(bodies), bg).await;
+        assert!(
+            body_img == alone(s, "robot", None, bg).await,
+            "bodies is the default view"
+        );
+        assert!(body_img != face_img);
+        let ((bx0, bx1, by0, by1), _) = drawn(&body_img, bg);
+        eprintln!("robot, bodies: drawn {:?}", (bx0, bx1, by0, by1));
+        assert!(
+            bx0 > 0 && by0 > 0 && bx1 < w && by1 < h,
+            "the whole robot is in the picture: {:?}",
+            (bx0, bx1, by0, by1)
+        );
+        // The head is drawn more than twice as large framed alone.
+        let default_head = projected(
+            &scene::layout(&[whole], None, &[1], None, None, aspect)
+                .expect("layout")
+                .view,
+            laid.transforms[0],
+            &region.bbox,
+            w,
+            h,
+        );
+        assert!(
+            (y1 - y0) > 2.0 * (default_head.3 - default_head.2),
+            "faces {head_px:?} against bodies {default_head:?}"
+        );
+
+        // ICT FaceKit: no skeleton, so the region is what its expressions move, which leaves
+        // out the top of the scalp and the back of the head; faces frames that box, bodies the
+        // whole head.
+        let entry = s.state.registry.get("ict").expect("ict");
+        let rig = entry.rig();
+        let region = rig.face_region();
+        let whole = rig.bbox();
+        eprintln!("ict: whole {whole:?}, targets {region:?}");
+        assert_eq!(region.source, RegionSource::Targets);
+        assert_eq!(entry.face_region(), region.bbox);
+        assert!(
+            region.bbox.max.y < whole.max.y - 0.02 * (whole.max.y - whole.min.y)
+                && region.bbox.min.z > whole.min.z,
+            "the scalp and the back of the head are still: {region:?} in {whole:?}"
+        );
+        let laid = scene::layout(
+            &[whole],
+            Some(&[region.bbox]),
+            &[1],
+            None,
+            Some(&faces),
+            aspect,
+        )
+        .expect("layout");
+        let (x0, x1, y0, y1) = projected(&laid.view, laid.transforms[0], &region.bbox, w, h);
+        assert!(
+            ((x1 - x0) / wf).max((y1 - y0) / hf) >= 0.85,
+            "the region fills the picture: {:?}",
+            (x0, x1, y0, y1)
+        );
+        let face_img = alone(s, "ict", Some(faces), bg).await;
+        let body_img = alone(s, "ict", Some(bodies), bg).await;
+        assert!(
+            body_img == alone(s, "ict", None, bg).await,
+            "bodies is the default view"
+        );
+        let ((fx0, fx1, fy0, fy1), _) = drawn(&face_img, bg);
+        let ((bx0, bx1, by0, by1), _) = drawn(&body_img, bg);
+        eprintln!(
+            "ict: region at {:?}, drawn framing faces {:?}, bodies {:?}",
+            (x0, x1, y0, y1),
+            (fx0, fx1, fy0, fy1),
+            (bx0, bx1, by0, by1)
+        );
+        // Its expressions move the neck too, so the region is most of the head: framed, the
+        // head is drawn a little larger (5 % here), its neck still at the picture's bottom.
+        assert!(face_img != body_img);
+        assert!(
+            fy1 - fy0 >= by1 - by0 + 4 && fx1 - fx0 >= bx1 - bx0 + 4,
+            "faces draws the head larger: {:?} against {:?}",
+            (fx0, fx1, fy0, fy1),
+            (bx0, bx1, by0, by1)
+        );
+        assert!(fy1 >= by1 && fy1 < h, "the neck ends at {fy1}, not {by1}");
         server.stop().await;
     }
 );
@@ -739,6 +1000,38 @@ async fn bad_render_requests_are_named_4xx_and_without_a_renderer_503() {
         "near",
     )
     .await;
+    // A framing camera places itself: a position or target beside its frame is refused, and
+    // without a frame both are required. Its field of view is checked as any camera's.
+    for (c, needle) in [
+        (
+            json!({"frame": "faces", "position": [0, 0, 5]}),
+            "position [0.0, 0.0, 5.0]",
+        ),
+        (
+            json!({"frame": "bodies", "target": [0, 0, 0]}),
+            "target [0.0, 0.0, 0.0]",
+        ),
+        (
+            json!({"frame": "faces", "position": [0, 0, 5], "target": [0, 0, 0]}),
+            "must be absent",
+        ),
+        (
+            json!({"position": [0, 0, 5]}),
+            "position and target are required",
+        ),
+        (json!({"fov_y": 40}), "position and target are required"),
+        (json!({"frame": "faces", "fov_y": 0}), "fov_y"),
+    ] {
+        expect_error(s, cam(c), 400, "invalid_camera", needle).await;
+    }
+    expect_error(
+        s,
+        cam(json!({"frame": "face"})),
+        400,
+        "malformed_json",
+        "frame",
+    )
+    .await;
     // The image.
     let img = |i| with(json!({"image": i}));
     expect_error(s, img(json!({"width": 0})), 400, "invalid_image", "width").await;
@@ -886,7 +1179,15 @@ async fn bad_render_requests_are_named_4xx_and_without_a_renderer_503() {
     assert_eq!(r.error().expect("JSON").error.code, "malformed_bincode");
 
     // A valid request: 503 render_unavailable, no Retry-After (waiting does not help), and the
-    // message says why; /readyz says nothing renders; frames still work.
+    // message says why; /readyz says nothing renders; frames still work. Framing cameras are
+    // valid too.
+    for c in [
+        json!({"frame": "faces"}),
+        json!({"frame": "bodies", "fov_y": 20}),
+    ] {
+        let r = post_json(s, cam(c.clone())).await;
+        assert_eq!(r.status, 503, "{c}: {}", String::from_utf8_lossy(&r.body));
+    }
     let r = post_json(s, with(json!({}))).await;
     assert_eq!(r.status, 503);
     let e = r.error().expect("JSON");

@@ -76,6 +76,36 @@ def test_golden_stream_messages_decode_to_their_json_and_encode_back(name):
     assert wire.encode_as(messages.STREAM_MESSAGE, msg) == raw
 
 
+def test_a_framing_camera_is_json_only():
+    # JSON: as the server writes it, the frame in place of position and target; absent when
+    # there is none, so the other cameras' JSON (and the golden files) stay as they were.
+    framed = messages.CameraSpec(frame="faces")
+    assert messages.as_dict(framed) == {
+        "position": None,
+        "target": None,
+        "fov_y": 30.0,
+        "near": None,
+        "far": None,
+        "frame": "faces",
+    }
+    looking = messages.CameraSpec([0, 0, 5], [0, 0, 0])
+    assert "frame" not in messages.as_dict(looking)
+    # Bincode: the frame takes no bytes (the layout is pinned), and a camera without a
+    # position cannot be written.
+    raw = wire.encode(looking)
+    assert len(raw) == 4 * 7 + 2
+    assert wire.encode(messages.CameraSpec([0, 0, 5], [0, 0, 0], frame="bodies")) == raw
+    assert wire.decode(messages.CameraSpec, raw) == looking
+    with pytest.raises(ValueError, match="JSON"):
+        wire.encode(framed)
+    # Heads in every form a crowd takes become Head objects for a JSON body.
+    h = messages.as_head((1, "r", "talk", 3))
+    assert (h.head, h.rig, h.clip, h.frame, h.lod) == (1, "r", "talk", 3, 0)
+    h = messages.as_head({"head": 2, "rig": "r", "blend": [("talk", 1, 0.5)]})
+    assert h.blend == [messages.BlendLayer("talk", 1, 0.5)]
+    assert messages.as_dict(h)["blend"] == [{"clip": "talk", "frame": 1, "t": 0.5}]
+
+
 def test_the_worked_example_request_is_built_from_python_values():
     # proto/README.md's worked example: two heads of talk, f16, wrap.
     req = messages.CrowdFrameRequest(

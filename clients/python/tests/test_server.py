@@ -353,6 +353,10 @@ def test_render_returns_an_image_or_says_why_not(client):
     with pytest.raises(crowdmorph.BadRequest) as e:
         client.render(heads, width=0, height=10)
     assert e.value.code == "invalid_image"
+    # A framing camera goes as JSON; a position beside its frame is refused there.
+    with pytest.raises(crowdmorph.BadRequest) as e:
+        client.render(heads, camera={"frame": "faces", "position": [0, 0, 5]})
+    assert e.value.code == "invalid_camera" and "position" in e.value.message
     if client.readyz().renderer is None:
         with pytest.raises(crowdmorph.Unavailable) as e:
             client.render(heads)
@@ -380,6 +384,25 @@ def test_render_returns_an_image_or_says_why_not(client):
     with pytest.raises(crowdmorph.BadRequest) as e:
         client.render(heads, placements=[{"head": 99, "position": [0, 0, 0]}])
     assert e.value.code == "invalid_placement"
+    # Framing the faces: the same picture from heads in any form (the request goes as JSON),
+    # nearer than the default view (more of the image is head, less is background);
+    # framing the bodies is the default view.
+    bg = [10, 200, 30]
+
+    def background(img):
+        return sum(1 for i in range(0, len(img), 4) if tuple(img[i : i + 4]) == (*bg, 255))
+
+    size = {"width": 80, "height": 60, "format": "rgba", "background": bg}
+    faces = client.render(heads, camera=crowdmorph.CameraSpec(frame="faces"), **size)
+    assert faces.content_type == "application/octet-stream" and len(faces) == 80 * 60 * 4
+    as_objects = [
+        crowdmorph.Head(1, RIG, "talk", 0),
+        {"head": 2, "rig": RIG, "clip": "smile", "frame": 30},
+    ]
+    assert bytes(client.render(as_objects, camera={"frame": "faces"}, **size)) == bytes(faces)
+    default = client.render(heads, **size)
+    assert bytes(client.render(heads, camera={"frame": "bodies"}, **size)) == bytes(default)
+    assert background(faces) < background(default)
 
 
 def test_the_save_obj_example_writes_the_posed_head(server, client, tmp_path):

@@ -662,8 +662,15 @@ impl Client {
 
     /// `POST /v1/crowd/render?rig=...`: the image (PNG, JPEG or raw RGBA8 as the request
     /// asks) and its headers; an error status is [`ClientError::Api`]. The query is the
-    /// routing hint, as for [`Client::crowd_frame`].
+    /// routing hint, as for [`Client::crowd_frame`]. A framing camera
+    /// ([`CameraSpec::frame`](crowdmorph_proto::CameraSpec::frame)) has no bincode form (that
+    /// layout is pinned), so a request with one goes as JSON whatever `enc` says.
     pub async fn render(&self, req: &RenderRequest, enc: Encoding) -> Result<Reply, ClientError> {
+        let enc = if req.camera.is_some_and(|c| c.frame.is_some()) {
+            Encoding::Json
+        } else {
+            enc
+        };
         let path = with_rig_hint(
             "/v1/crowd/render",
             req.heads.first().map(|h| h.rig.as_str()),

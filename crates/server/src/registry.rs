@@ -56,6 +56,8 @@ pub struct RigEntry {
     /// The joint map as live weights read it, built on first use (see
     /// [`RigEntry::live_angles`]).
     live_angles: std::sync::OnceLock<Option<Arc<LiveAngles>>>,
+    /// The rig's face region, found on first use (see [`RigEntry::face_region`]).
+    face_region: std::sync::OnceLock<crowdmorph_core::rig::Aabb>,
     /// The q16 references of [`Format::Q16R`](crowdmorph_proto::Format::Q16R) buffers, one
     /// per mesh level asked for, by the level's address (see [`RigEntry::q16_reference`]).
     q16_references: Mutex<Vec<(usize, Arc<[i16]>)>>,
@@ -222,6 +224,7 @@ impl RigEntry {
             joint_names: Default::default(),
             joint_lod: Default::default(),
             live_angles: Default::default(),
+            face_region: Default::default(),
             q16_references: Default::default(),
         }
     }
@@ -276,6 +279,15 @@ impl RigEntry {
             .clone()
     }
 
+    /// The box a camera framing faces fits for this rig ([`Rig::face_region`]): found once per
+    /// generation, by a walk of the skin weights or the stored deltas, and kept inline (no
+    /// heap, so nothing is added to the charge).
+    pub fn face_region(&self) -> crowdmorph_core::rig::Aabb {
+        *self
+            .face_region
+            .get_or_init(|| self.rig().face_region().bbox)
+    }
+
     /// Adds `bytes` the generation now holds to its charge (allocated already, so taken from
     /// the pool even past its limit).
     fn grow_charge(&self, bytes: u64) {
@@ -315,6 +327,7 @@ impl RigEntry {
             joint_names: Default::default(),
             joint_lod: Default::default(),
             live_angles: Default::default(),
+            face_region: Default::default(),
             q16_references: Default::default(),
         }
     }

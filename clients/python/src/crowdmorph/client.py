@@ -61,6 +61,7 @@ from .messages import (
     SessionPatch,
     SessionRequest,
     as_dict,
+    as_head,
 )
 # The decoded results live in crowdmorph.results (crowdmorph.sessions makes them too); they are
 # imported here as well, so that crowdmorph.client.Buffer and the like keep working.
@@ -872,7 +873,14 @@ class Client:
             image=opts,
         )
         path = "/v1/crowd/render" + _rig_hint(req.heads)
-        resp = self.request("POST", path, encode(req), BINCODE, accept="image/*, */*")
+        if req.camera is not None and req.camera.frame is not None:
+            # A framing camera is JSON-only (bincode's CameraSpec is pinned): the whole
+            # request goes as JSON.
+            req.heads = [as_head(h) for h in req.heads]
+            body, content_type = json.dumps(as_dict(req)).encode(), "application/json"
+        else:
+            body, content_type = encode(req), BINCODE
+        resp = self.request("POST", path, body, content_type, accept="image/*, */*")
         img = Image(resp.body)
         img.content_type = resp.content_type
         try:

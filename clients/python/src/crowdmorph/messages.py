@@ -48,7 +48,9 @@ from .wire import (
 __all__ = [
     "FORMATS",
     "IMAGE_FORMATS",
+    "CAMERA_FRAMES",
     "Head",
+    "as_head",
     "BlendLayer",
     "JointTransform",
     "OutputOptions",
@@ -386,6 +388,26 @@ def _of_layer(b: Any) -> BlendLayer:
 
 
 HEADS = _HeadVec()
+
+
+def as_head(h: Any) -> Head:
+    """A :class:`Head` from any form a crowd accepts (a :class:`Head`, a dict with its keys or
+    a ``(head, rig, clip, frame[, lod])`` tuple), its blend layers made :class:`BlendLayer`
+    objects: what a JSON body needs, where the bincode writer reads the forms directly."""
+    if isinstance(h, Head):
+        head = h
+    elif isinstance(h, (tuple, list)):
+        head = Head(*h)
+    elif isinstance(h, Mapping):
+        head = Head(**h)
+    else:
+        raise TypeError(
+            "a head is a Head, a dict or a (head, rig, clip, frame[, lod]) tuple, "
+            f"not {type(h).__name__}"
+        )
+    if any(not isinstance(b, BlendLayer) for b in head.blend):
+        head = dataclasses.replace(head, blend=[_of_layer(b) for b in head.blend])
+    return head
 
 
 @wire(("heads", HEADS), ("output", Msg(OutputOptions)), ("wrap", BOOL))
@@ -891,22 +913,59 @@ class Placement:
     scale: float = 1.0
 
 
+class _CameraPoint:
+    """A camera's ``position`` or ``target``: bincode's ``[f32; 3]``, always there. A framing
+    camera (``frame``) has neither and is JSON-only: writing it as bincode is an error."""
+
+    def read(self, r: Reader) -> List[float]:
+        return F32X3.read(r)
+
+    def write(self, w: Writer, v: Optional[Sequence[float]]) -> None:
+        if v is None:
+            raise ValueError(
+                "a camera without position and target (a framing camera) has no bincode form; "
+                "it is sent as JSON"
+            )
+        F32X3.write(w, v)
+
+
+class _JsonOnly:
+    """A field only JSON carries (its bincode layout is pinned): no bytes in bincode, ``None``
+    when read; :func:`as_dict` leaves it out while it is ``None``."""
+
+    def read(self, r: Reader) -> None:
+        return None
+
+    def write(self, w: Writer, v: Any) -> None:
+        pass
+
+
+_CAMERA_POINT = _CameraPoint()
+#: Framing presets of :class:`CameraSpec`.
+CAMERA_FRAMES = ("faces", "bodies")
+
+
 @wire(
-    ("position", F32X3),
-    ("target", F32X3),
+    ("position", _CAMERA_POINT),
+    ("target", _CAMERA_POINT),
     ("fov_y", F32),
     ("near", Opt(F32)),
     ("far", Opt(F32)),
+    ("frame", _JsonOnly()),
 )
 @dataclass
 class CameraSpec:
-    """A perspective camera; +Y is up."""
+    """A perspective camera; +Y is up. Either ``position`` and ``target``, or ``frame``:
+    ``"faces"`` (the front view fitted to every head's face) or ``"bodies"`` (fitted to the
+    whole figures, as without a camera). A framing camera is JSON-only: ``Client.render``
+    sends a request with one as JSON."""
 
-    position: List[float]
-    target: List[float]
+    position: Optional[List[float]] = None
+    target: Optional[List[float]] = None
     fov_y: float = 30.0
     near: Optional[float] = None
     far: Optional[float] = None
+    frame: Optional[str] = field(default=None, metadata={"json_only": True})
 
 
 @wire(
@@ -1375,9 +1434,11 @@ def as_dict(message: Any) -> Any:
     printing and for comparing with the server's JSON."""
     if dataclasses.is_dataclass(message) and not isinstance(message, type):
         # A field named after a Python keyword has a trailing underscore (``GraphEdge.from_``).
+        # A JSON-only field is absent while None, as the server writes it.
         return {
             f.name.rstrip("_"): as_dict(getattr(message, f.name))
             for f in dataclasses.fields(message)
+            if not (f.metadata.get("json_only") and getattr(message, f.name) is None)
         }
     if isinstance(message, Mapping):
         # Live weights, joint overrides: objects by name.

@@ -32,6 +32,7 @@ mod lod;
 mod mesh_level;
 mod pca;
 mod pose;
+mod regions;
 mod sample;
 mod skin;
 
@@ -54,6 +55,7 @@ pub use pose::{
     ARKIT_NAMES, LIVE_STEP, MAX_BLEND_LAYERS, MAX_LIVE_WEIGHT, MAX_TERMS, Pose, PoseError, T_ONE,
     Term, quantize_live,
 };
+pub use regions::{HEAD_WEIGHT, MOVED_FRACTION, Region, RegionSource, head_node, is_head_name};
 pub use sample::{Interpolation, KeyTrack, sample_rotation, sample_track};
 pub use skin::{
     Bone, BoneMatrix, BoneScratch, INFLUENCES, Influences, JOINT_STEP, JointIndex, JointLookup,

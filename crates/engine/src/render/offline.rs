@@ -258,7 +258,7 @@ pub fn build(
     let boxes = vec![rig.bbox(); opt.heads];
     let ids: Vec<u64> = (0..opt.heads as u64).collect();
     let aspect = opt.image.width as f32 / opt.image.height as f32;
-    let layout = scene::layout(&boxes, &ids, None, None, aspect)?;
+    let layout = scene::layout(&boxes, None, &ids, None, None, aspect)?;
     let prepared = engine.prepare(rig.clone())?;
     let groups = crowd::plan_groups(&plan, &layout.transforms, |k| prepared.mesh_of(k.lod));
     let topologies = groups

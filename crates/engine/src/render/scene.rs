@@ -12,6 +12,11 @@
 //!   [`GRID_GAP`], each box centred in its cell at z = 0, the grid centred on the origin.
 //! - Without a camera, [`default_view`] frames the box holding every drawn head from the front.
 //!   With one, near and far planes it does not give are derived from the same box.
+//! - A framing camera ([`CameraSpec::frame`]) is that front view fitted to another box:
+//!   `bodies` to the same box as without a camera, `faces` to the box holding every head's
+//!   face region (its rig's [`Rig::face_region`](crowdmorph_core::rig::Rig::face_region),
+//!   placed as the head is). Its far plane still holds every head, so the bodies behind the
+//!   faces are drawn, not cut.
 //!
 //! Validation errors name the field, so the server can answer a 400 that says what to fix.
 //! "Finite" is not enough for a renderer: a camera at 3e38, a field of view of 1e-40° or clip
@@ -24,7 +29,7 @@
 use glam::{Mat4, Quat, Vec3};
 
 use crowdmorph_core::rig::Aabb;
-use crowdmorph_proto::{CameraSpec, Placement};
+use crowdmorph_proto::{CameraFrame, CameraSpec, Placement};
 
 /// Space between grid cells, as a fraction of a cell.
 pub const GRID_GAP: f32 = 0.15;
@@ -177,9 +182,12 @@ pub struct Scene {
 }
 
 /// Lays out a crowd: `boxes[h]` is head `h`'s neutral bounding box and `ids[h]` its request id;
-/// `aspect` is the image's width over its height.
+/// `aspect` is the image's width over its height. `faces[h]`, when given, is head `h`'s face
+/// region in its rig's space, what a camera framing faces fits; without it (a caller whose
+/// camera does not frame faces need not compute them) such a camera fits `boxes`.
 pub fn layout(
     boxes: &[Aabb],
+    faces: Option<&[Aabb]>,
     ids: &[u64],
     placements: Option<&[Placement]>,
     camera: Option<&CameraSpec>,
@@ -200,6 +208,13 @@ pub fn layout(
         )));
     }
     let view = match camera {
+        Some(c @ CameraSpec { frame: Some(f), .. }) => {
+            let fitted = match (f, faces) {
+                (CameraFrame::Faces, Some(faces)) => world_bounds(faces, &transforms),
+                _ => bounds,
+            };
+            framed_view(c, *f, fitted, bounds, aspect)?
+        }
         Some(c) => camera_view(c, bounds)?,
         None => default_view(bounds, crowdmorph_proto::DEFAULT_FOV_Y, aspect),
     };
@@ -426,35 +441,115 @@ pub fn default_view(bounds: Option<Aabb>, fov_y_deg: f32, aspect: f32) -> View {
 /// `bounds` so that every head lies between them.
 pub fn camera_view(spec: &CameraSpec, bounds: Option<Aabb>) -> Result<View, SceneError> {
     let bad = |m: String| SceneError::Camera(format!("camera: {m}"));
-    if !finite3(spec.position) || !finite3(spec.target) {
+    if let Some(f) = spec.frame {
         return Err(bad(format!(
-            "position {:?} and target {:?} must be finite numbers",
-            spec.position, spec.target
+            "frame {:?} places the camera itself; a camera that looks from a position is \
+             one without frame",
+            f.name()
         )));
     }
-    if !in_range3(spec.position) || !in_range3(spec.target) {
+    let (Some(position), Some(target)) = (spec.position, spec.target) else {
+        return Err(bad(
+            "position and target are required, unless frame (\"faces\" or \"bodies\") \
+             places the camera"
+                .into(),
+        ));
+    };
+    if !finite3(position) || !finite3(target) {
         return Err(bad(format!(
-            "position {:?} and target {:?} must be within ±{MAX_COORDINATE}",
-            spec.position, spec.target
+            "position {position:?} and target {target:?} must be finite numbers"
         )));
     }
-    let eye = Vec3::from_array(spec.position);
-    let target = Vec3::from_array(spec.target);
-    let forward = target - eye;
-    let reach = eye.abs().max(target.abs()).max_element().max(1.0);
+    if !in_range3(position) || !in_range3(target) {
+        return Err(bad(format!(
+            "position {position:?} and target {target:?} must be within ±{MAX_COORDINATE}"
+        )));
+    }
+    let eye = Vec3::from_array(position);
+    let target_point = Vec3::from_array(target);
+    let forward = target_point - eye;
+    let reach = eye.abs().max(target_point.abs()).max_element().max(1.0);
     if forward.length() <= reach * 1e-6 {
         return Err(bad(format!(
-            "target {:?} is the camera's position; it must be a point to look at",
-            spec.target
+            "target {target:?} is the camera's position; it must be a point to look at"
         )));
     }
+    check_fov(spec)?;
+    let forward = forward.normalize();
+    let (near, far) = clip_planes(spec, derived_planes(eye, forward, bounds))?;
+    // Looking straight up or down, +Y cannot be up: the image's top is then the direction
+    // away from the heads' faces (−Z looking down, +Z looking up).
+    let up = if forward.cross(Vec3::Y).length() < 1e-3 {
+        if forward.y < 0.0 { -Vec3::Z } else { Vec3::Z }
+    } else {
+        Vec3::Y
+    };
+    Ok(View {
+        eye,
+        target: target_point,
+        up,
+        fov_y_deg: spec.fov_y,
+        near,
+        far,
+    })
+}
+
+/// The view of a framing camera: [`default_view`] of `fitted` (the box of what `frame` fits:
+/// the faces or the whole crowd), with its far plane pushed back to hold `crowd` (every head)
+/// and the camera's own field of view and planes.
+pub fn framed_view(
+    spec: &CameraSpec,
+    frame: CameraFrame,
+    fitted: Option<Aabb>,
+    crowd: Option<Aabb>,
+    aspect: f32,
+) -> Result<View, SceneError> {
+    let given: Vec<String> = [("position", spec.position), ("target", spec.target)]
+        .into_iter()
+        .filter_map(|(name, v)| v.map(|v| format!("{name} {v:?}")))
+        .collect();
+    if !given.is_empty() {
+        return Err(SceneError::Camera(format!(
+            "camera: frame {:?} places the camera itself, so position and target must be \
+             absent, not {}",
+            frame.name(),
+            given.join(" and ")
+        )));
+    }
+    check_fov(spec)?;
+    let mut view = default_view(fitted, spec.fov_y, aspect);
+    // Faces are a part of each figure: what lies behind them (a body, a row further back)
+    // is drawn to the crowd's end, not cut at the faces' far side. The depth ratio is kept,
+    // so a tiny face in a vast crowd loses the far heads, not the picture.
+    let forward = (view.target - view.eye).normalize_or_zero();
+    if crowd.is_some() && forward != Vec3::ZERO {
+        let (_, crowd_far) = derived_planes(view.eye, forward, crowd);
+        view.far = view
+            .far
+            .max(crowd_far)
+            .min(view.near * MAX_DEPTH_RATIO * 0.5);
+    }
+    let (near, far) = clip_planes(spec, (view.near, view.far))?;
+    view.near = near;
+    view.far = far;
+    Ok(view)
+}
+
+fn check_fov(spec: &CameraSpec) -> Result<(), SceneError> {
     if !(spec.fov_y.is_finite() && (MIN_FOV_Y..=MAX_FOV_Y).contains(&spec.fov_y)) {
-        return Err(bad(format!(
-            "fov_y {} must be in [{MIN_FOV_Y}, {MAX_FOV_Y}] degrees",
+        return Err(SceneError::Camera(format!(
+            "camera: fov_y {} must be in [{MIN_FOV_Y}, {MAX_FOV_Y}] degrees",
             spec.fov_y
         )));
     }
-    let forward = forward.normalize();
+    Ok(())
+}
+
+/// The clip planes of a camera: those it gives, checked, and for those it leaves out the
+/// `derived` ones (near, far), kept within [`MAX_DEPTH_RATIO`] of the one it gives so that
+/// only the client's own numbers can be refused.
+fn clip_planes(spec: &CameraSpec, derived: (f32, f32)) -> Result<(f32, f32), SceneError> {
+    let bad = |m: String| SceneError::Camera(format!("camera: {m}"));
     for (name, v) in [("near", spec.near), ("far", spec.far)] {
         if let Some(v) = v
             && !(v.is_finite() && v > 0.0)
@@ -467,9 +562,7 @@ pub fn camera_view(spec: &CameraSpec, bounds: Option<Aabb>) -> Result<View, Scen
     {
         return Err(bad(format!("near {n} must be at least {MIN_NEAR}")));
     }
-    let (near_d, far_d) = derived_planes(eye, forward, bounds);
-    // A plane the camera leaves out is derived, and kept within MAX_DEPTH_RATIO of the one it
-    // gives, so that only the client's own numbers can be refused.
+    let (near_d, far_d) = derived;
     let (near, far) = match (spec.near, spec.far) {
         (Some(n), Some(f)) => (n, f),
         (Some(n), None) => (n, far_d.max(n * 2.0).min(n * MAX_DEPTH_RATIO)),
@@ -487,21 +580,7 @@ pub fn camera_view(spec: &CameraSpec, bounds: Option<Aabb>) -> Result<View, Scen
             "far {far} is more than {MAX_DEPTH_RATIO} times near {near}"
         )));
     }
-    // Looking straight up or down, +Y cannot be up: the image's top is then the direction
-    // away from the heads' faces (−Z looking down, +Z looking up).
-    let up = if forward.cross(Vec3::Y).length() < 1e-3 {
-        if forward.y < 0.0 { -Vec3::Z } else { Vec3::Z }
-    } else {
-        Vec3::Y
-    };
-    Ok(View {
-        eye,
-        target,
-        up,
-        fov_y_deg: spec.fov_y,
-        near,
-        far,
-    })
+    Ok((near, far))
 }
 
 /// Near and far distances along `forward` that hold `bounds` (a little inside and beyond); a
@@ -740,7 +819,7 @@ mod tests {
         ] {
             let boxes = vec![unit_box(); n];
             let ids: Vec<u64> = (0..n as u64).collect();
-            let scene = layout(&boxes, &ids, None, None, aspect).expect("a valid scene");
+            let scene = layout(&boxes, None, &ids, None, None, aspect).expect("a valid scene");
             let v = &scene.view;
             assert!(
                 (v.target - v.eye).normalize().dot(-Vec3::Z) > 0.9999,
@@ -767,7 +846,7 @@ mod tests {
 
     #[test]
     fn a_scene_without_heads_still_has_a_valid_view() {
-        let scene = layout(&[], &[], None, None, 1.0).expect("a valid scene");
+        let scene = layout(&[], None, &[], None, None, 1.0).expect("a valid scene");
         assert!(scene.transforms.is_empty());
         assert!(scene.view.near > 0.0 && scene.view.near < scene.view.far);
         assert!(scene.view.view_projection(1.0).is_finite());
@@ -775,11 +854,8 @@ mod tests {
 
     fn camera(position: [f32; 3], target: [f32; 3], fov_y: f32) -> CameraSpec {
         CameraSpec {
-            position,
-            target,
             fov_y,
-            near: None,
-            far: None,
+            ..CameraSpec::looking(position, target)
         }
     }
 
@@ -793,7 +869,7 @@ mod tests {
             // Inside the crowd.
             camera([0.0, 0.0, 0.0], [0.0, 0.0, -1.0], 90.0),
         ] {
-            let scene = layout(&boxes, &ids, None, Some(&spec), 1.0).expect("a valid scene");
+            let scene = layout(&boxes, None, &ids, None, Some(&spec), 1.0).expect("a valid scene");
             let v = scene.view;
             assert!(v.near > 0.0 && v.near < v.far, "{v:?}");
             let forward = (v.target - v.eye).normalize();
@@ -801,7 +877,7 @@ mod tests {
             for c in corners(&placed) {
                 let d = (c - v.eye).dot(forward);
                 assert!(d <= v.far, "{c} beyond far in {v:?}");
-                if spec.position != [0.0; 3] {
+                if spec.position != Some([0.0; 3]) {
                     assert!(d >= v.near, "{c} before near in {v:?}");
                 }
             }
@@ -893,7 +969,201 @@ mod tests {
             ),
             placement(2, [-MAX_COORDINATE, 0.0, MAX_COORDINATE], 0.0, MIN_SCALE),
         ];
-        let scene = layout(&boxes, &[1, 2], Some(&far), None, 16.0 / 9.0).expect("a scene");
+        let scene = layout(&boxes, None, &[1, 2], Some(&far), None, 16.0 / 9.0).expect("a scene");
         assert_eq!(scene.view.check(16.0 / 9.0), Ok(()));
+    }
+
+    /// A standing figure 1.8 tall, feet at y = 0, with a pack on its back, and its face near
+    /// the top, at the front.
+    fn figure() -> (Aabb, Aabb) {
+        (
+            Aabb {
+                min: Vec3::new(-0.4, 0.0, -0.6),
+                max: Vec3::new(0.4, 1.8, 0.25),
+            },
+            Aabb {
+                min: Vec3::new(-0.1, 1.5, 0.0),
+                max: Vec3::new(0.1, 1.75, 0.2),
+            },
+        )
+    }
+
+    /// The smallest and largest normalized device coordinates of `boxes` placed by `scene`.
+    fn ndc_range(scene: &Scene, boxes: &[Aabb], aspect: f32) -> (Vec3, Vec3) {
+        ndc(scene, boxes, aspect)
+            .into_iter()
+            .fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(lo, hi), p| {
+                (lo.min(p), hi.max(p))
+            })
+    }
+
+    #[test]
+    fn framing_bodies_is_the_default_view() {
+        let (body, _) = figure();
+        for (n, aspect) in [(1usize, 4.0 / 3.0), (5, 16.0 / 9.0), (9, 0.5)] {
+            let boxes = vec![body; n];
+            let ids: Vec<u64> = (0..n as u64).collect();
+            let default = layout(&boxes, None, &ids, None, None, aspect).expect("a scene");
+            let bodies = CameraSpec::framing(CameraFrame::Bodies);
+            let framed = layout(&boxes, None, &ids, None, Some(&bodies), aspect).expect("a scene");
+            assert_eq!(framed, default, "{n} heads at {aspect}");
+        }
+    }
+
+    #[test]
+    fn framing_faces_fits_every_placed_face_and_leaves_the_feet_out() {
+        let (body, face) = figure();
+        let faces = CameraSpec::framing(CameraFrame::Faces);
+        let aspect = 4.0 / 3.0;
+        // One figure: its face fills the image but for the margin; its feet are below it.
+        let scene =
+            layout(&[body], Some(&[face]), &[1], None, Some(&faces), aspect).expect("a scene");
+        let (lo, hi) = ndc_range(&scene, &[face], aspect);
+        assert!(
+            lo.x >= -1.0 && lo.y >= -1.0 && hi.x <= 1.0 && hi.y <= 1.0,
+            "{lo} {hi}"
+        );
+        assert!(
+            (hi.y - lo.y).max(hi.x - lo.x) > 2.0 * 0.85,
+            "the face fills the image: {lo} {hi}"
+        );
+        let feet = scene
+            .view
+            .view_projection(aspect)
+            .project_point3(scene.transforms[0].transform_point3(Vec3::ZERO));
+        assert!(feet.y < -1.0, "the feet are out of the picture: {feet}");
+        // The far plane holds the whole figure behind the face (nothing is cut), the near
+        // plane is in front of it.
+        let forward = (scene.view.target - scene.view.eye).normalize();
+        for c in corners(&body) {
+            let d = (scene.transforms[0].transform_point3(c) - scene.view.eye).dot(forward);
+            assert!(
+                d > scene.view.near && d < scene.view.far,
+                "{c} at {d} outside {:?}",
+                scene.view
+            );
+        }
+        // Looking at the face from the front, not at the figure's middle.
+        let face_centre = scene.transforms[0].transform_point3((face.min + face.max) * 0.5);
+        assert!(
+            (scene.view.target - face_centre).length() < 1e-4,
+            "{face_centre} {:?}",
+            scene.view
+        );
+        assert!(
+            (scene.view.target - scene.view.eye)
+                .normalize()
+                .dot(-Vec3::Z)
+                > 0.9999
+        );
+
+        // A gridded crowd and a placed, turned and scaled one: every face inside, and drawn
+        // larger than in the view of the bodies.
+        let boxes = vec![body; 4];
+        let face_boxes = vec![face; 4];
+        let ids = [1, 2, 3, 4];
+        let placements = [
+            placement(1, [-3.0, 0.0, 0.0], 30.0, 1.0),
+            placement(2, [2.0, 0.5, -4.0], -20.0, 2.0),
+        ];
+        for placed in [None, Some(&placements[..])] {
+            let scene = layout(
+                &boxes,
+                Some(&face_boxes),
+                &ids,
+                placed,
+                Some(&faces),
+                aspect,
+            )
+            .expect("a scene");
+            let (lo, hi) = ndc_range(&scene, &face_boxes, aspect);
+            assert!(
+                lo.x >= -1.0 && lo.y >= -1.0 && hi.x <= 1.0 && hi.y <= 1.0,
+                "{placed:?}: {lo} {hi}"
+            );
+            // The front of the faces' box fits the image; faces placed further back look
+            // smaller, so only the grid (every face at one depth) fills it.
+            assert!(
+                placed.is_some() || (hi.y - lo.y).max(hi.x - lo.x) > 2.0 * 0.85,
+                "the faces fill the image: {lo} {hi}"
+            );
+            let bodies =
+                layout(&boxes, Some(&face_boxes), &ids, placed, None, aspect).expect("a scene");
+            let (blo, bhi) = ndc_range(&bodies, &face_boxes, aspect);
+            assert!(
+                (hi.y - lo.y) > 1.2 * (bhi.y - blo.y),
+                "{placed:?}: faces {lo} {hi} against the default view's {blo} {bhi}"
+            );
+        }
+        // Without face boxes (a caller that has none), the full boxes stand in.
+        let stand_in = layout(&[body], None, &[1], None, Some(&faces), aspect).expect("a scene");
+        let bodies = layout(&[body], None, &[1], None, None, aspect).expect("a scene");
+        assert_eq!(stand_in, bodies);
+    }
+
+    #[test]
+    fn a_framing_camera_keeps_its_field_of_view_and_planes_and_refuses_a_position() {
+        let (body, face) = figure();
+        let spec = CameraSpec {
+            fov_y: 50.0,
+            near: Some(0.01),
+            far: Some(100.0),
+            ..CameraSpec::framing(CameraFrame::Faces)
+        };
+        let scene = layout(&[body], Some(&[face]), &[1], None, Some(&spec), 1.0).expect("a scene");
+        assert_eq!(
+            (scene.view.fov_y_deg, scene.view.near, scene.view.far),
+            (50.0, 0.01, 100.0)
+        );
+        let msg =
+            |spec: CameraSpec| match layout(&[body], Some(&[face]), &[1], None, Some(&spec), 1.0) {
+                Err(SceneError::Camera(m)) => m,
+                other => panic!("expected a camera error for {spec:?}, got {other:?}"),
+            };
+        let framing = CameraSpec::framing(CameraFrame::Faces);
+        let m = msg(CameraSpec {
+            position: Some([0.0, 0.0, 5.0]),
+            ..framing
+        });
+        assert!(
+            m.contains("frame \"faces\"") && m.contains("position [0.0, 0.0, 5.0]"),
+            "{m}"
+        );
+        let m = msg(CameraSpec {
+            target: Some([0.0; 3]),
+            ..CameraSpec::framing(CameraFrame::Bodies)
+        });
+        assert!(
+            m.contains("bodies") && m.contains("target") && !m.contains("position ["),
+            "{m}"
+        );
+        for fov in [0.0, 180.0, f32::NAN] {
+            assert!(
+                msg(CameraSpec {
+                    fov_y: fov,
+                    ..framing
+                })
+                .contains("fov_y")
+            );
+        }
+        assert!(
+            msg(CameraSpec {
+                near: Some(2.0),
+                far: Some(1.0),
+                ..framing
+            })
+            .contains("near 2")
+        );
+        // Without a frame, position and target are required.
+        let m = msg(CameraSpec {
+            frame: None,
+            ..framing
+        });
+        assert!(m.contains("position and target are required"), "{m}");
+        let m = msg(CameraSpec {
+            target: None,
+            ..CameraSpec::looking([0.0, 0.0, 5.0], [0.0; 3])
+        });
+        assert!(m.contains("position and target are required"), "{m}");
     }
 }

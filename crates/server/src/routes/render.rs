@@ -66,9 +66,9 @@ pub async fn crowd_render(
 
 /// What a render request holds per head and placement from its decoding until its frame is
 /// drawn: the decoded head and its names, its placement, what admission builds per head (its
-/// box, 24 bytes; id, 8; job index, 4; transform, 64; the instance matrix its group keeps, 64;
-/// the instance record the renderer uploads, 112; and the per-job instance count, 8: 384 bytes
-/// cover them), and the map the scene layout builds of the placements before it checks them
+/// box, 24 bytes; its face box when the camera frames faces, 24; id, 8; job index, 4;
+/// transform, 64; the instance matrix its group keeps, 64; the instance record the renderer
+/// uploads, 112; and the per-job instance count, 8: 384 bytes cover them), and the map the scene layout builds of the placements before it checks them
 /// against the heads ([`crowdmorph_engine::render::scene::placement_bytes`]: up to seven times a decoded
 /// placement).
 impl Priced for RenderRequest {

@@ -25,7 +25,7 @@ use std::time::{Duration, Instant};
 use axum::http::{HeaderName, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use bytes::Bytes;
-use crowdmorph_proto::{ImageFormat, ImageOptions, MAX_IMAGE_SIDE, RenderRequest};
+use crowdmorph_proto::{CameraFrame, ImageFormat, ImageOptions, MAX_IMAGE_SIDE, RenderRequest};
 use tokio::sync::OwnedSemaphorePermit;
 
 use super::Parts;
@@ -153,7 +153,8 @@ fn cancelled(c: Cancelled) -> ApiError {
 }
 
 /// The scene of a render: each head's box placed (by the request's placements or the grid)
-/// and the camera (the request's, checked, or one that frames the crowd).
+/// and the camera (the request's, checked, or one that frames the crowd). A camera framing
+/// faces also gets each head's face region (its rig's, found once per rig generation).
 fn lay_out(
     req: &RenderRequest,
     image: &ImageOptions,
@@ -166,9 +167,21 @@ fn lay_out(
         .iter()
         .map(|&j| rig_boxes[plan.jobs[j as usize].rig as usize])
         .collect();
+    let faces: Option<Vec<Aabb>> = req
+        .camera
+        .as_ref()
+        .is_some_and(|c| c.frame == Some(CameraFrame::Faces))
+        .then(|| {
+            let rig_faces: Vec<Aabb> = rigs.iter().map(|e| e.face_region()).collect();
+            plan.head_job
+                .iter()
+                .map(|&j| rig_faces[plan.jobs[j as usize].rig as usize])
+                .collect()
+        });
     let ids: Vec<u64> = req.heads.iter().map(|h| h.head).collect();
     scene::layout(
         &boxes,
+        faces.as_deref(),
         &ids,
         req.placements.as_deref(),
         req.camera.as_ref(),

@@ -215,14 +215,17 @@ fn tick_bookkeeping_bytes(heads: usize, viewers: usize, joint_sets: usize) -> u6
         .saturating_add(joints)
 }
 
+/// A head's LOD level for a viewer. By distance, it needs the camera's eye: without a camera,
+/// or with a framing one (whose eye the render's layout places, after the levels are chosen),
+/// every head gets level 0.
 fn level_for(lod: &LodChoice, camera: Option<&CameraSpec>, position: [f32; 3]) -> u32 {
     match lod {
         LodChoice::Fixed(l) => *l,
         LodChoice::ByDistance { by_distance } => {
-            let Some(c) = camera else {
+            let Some(eye) = camera.and_then(|c| c.position) else {
                 return 0;
             };
-            let d = Vec3::from(position).distance(Vec3::from(c.position));
+            let d = Vec3::from(position).distance(Vec3::from(eye));
             level_at(by_distance, d)
         }
     }
@@ -1203,18 +1206,14 @@ mod tests {
             [0.5, 1.0, 2.9, 3.0, 5.0, 6.0, 9.0].map(|d| level_at(t, d)),
             [0, 1, 1, 4, 4, 6, 6]
         );
-        let camera = CameraSpec {
-            position: [0.0, 0.0, 10.0],
-            target: [0.0; 3],
-            fov_y: 30.0,
-            near: None,
-            far: None,
-        };
+        let camera = CameraSpec::looking([0.0, 0.0, 10.0], [0.0; 3]);
         let lod = LodChoice::ByDistance {
             by_distance: t.clone(),
         };
         assert_eq!(level_for(&lod, Some(&camera), [0.0, 0.0, 7.0]), 4);
         assert_eq!(level_for(&lod, None, [0.0, 0.0, 7.0]), 0);
+        let framing = CameraSpec::framing(crowdmorph_proto::CameraFrame::Faces);
+        assert_eq!(level_for(&lod, Some(&framing), [0.0, 0.0, 7.0]), 0);
         assert_eq!(level_for(&LodChoice::Fixed(3), Some(&camera), [0.0; 3]), 3);
     }
 }

@@ -155,7 +155,7 @@ fn parse_json<T: serde::de::DeserializeOwned>(text: &str, what: &str) -> Result<
 /// could never draw is refused at the hello or update, not found out at every tick.
 fn check_camera(c: &CameraSpec, image: &ImageOptions) -> Result<(), (u16, String)> {
     let aspect = image.width.max(1) as f32 / image.height.max(1) as f32;
-    scene::layout(&[], &[], None, Some(c), aspect)
+    scene::layout(&[], None, &[], None, Some(c), aspect)
         .map(|_| ())
         .map_err(|e| (close::POLICY, close::truncate(format!("bad camera: {e}"))))
 }
