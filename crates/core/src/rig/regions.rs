@@ -284,6 +284,7 @@ mod tests {
                 map: None,
             })),
             import_notes: Vec::new(),
+            appearance: None,
         }
     }
 
