@@ -336,3 +336,116 @@ async fn a_rig_without_materials_has_empty_appearance() {
     assert!(mesh.primitives.iter().all(|p| p.material.is_none()));
     server.stop().await;
 }
+
+/// A PNG of `w × h` RGBA pixels, each `(x, y, 0, 255)`.
+fn png_of(w: u32, h: u32) -> Vec<u8> {
+    let mut out = Vec::new();
+    let mut e = png::Encoder::new(&mut out, w, h);
+    e.set_color(png::ColorType::Rgba);
+    e.set_depth(png::BitDepth::Eight);
+    let mut writer = e.write_header().expect("header");
+    let data: Vec<u8> = (0..h)
+        .flat_map(|y| (0..w).flat_map(move |x| [x as u8, y as u8, 0, 255]))
+        .collect();
+    writer.write_image_data(&data).expect("pixels");
+    drop(writer);
+    out
+}
+
+/// A PNG that is only a signature, a header declaring `w × h` and an end: what a bomb sends.
+fn png_header_only(w: u32, h: u32) -> Vec<u8> {
+    let chunk = |kind: &[u8], data: &[u8]| {
+        let mut c = (data.len() as u32).to_be_bytes().to_vec();
+        c.extend_from_slice(kind);
+        c.extend_from_slice(data);
+        let crc = crc32fast::hash(&c[4..]);
+        c.extend_from_slice(&crc.to_be_bytes());
+        c
+    };
+    let mut ihdr = w.to_be_bytes().to_vec();
+    ihdr.extend_from_slice(&h.to_be_bytes());
+    ihdr.extend_from_slice(&[8, 6, 0, 0, 0]);
+    let mut out = b"\x89PNG\r\n\x1a\n".to_vec();
+    out.extend(chunk(b"IHDR", &ihdr));
+    out.extend(chunk(b"IEND", &[]));
+    out
+}
+
+/// The triangle rig with one material whose base colour texture is `image` (a data URI).
+fn triangle_with_image(image: &[u8], mime: &str) -> Bytes {
+    use base64::Engine as _;
+    let mut b = crate::util::builder::triangle_rig();
+    let j = b.json_mut();
+    let data = base64::engine::general_purpose::STANDARD.encode(image);
+    j["images"] = serde_json::json!([{ "uri": format!("data:{mime};base64,{data}") }]);
+    j["textures"] = serde_json::json!([{ "source": 0 }]);
+    j["materials"] =
+        serde_json::json!([{ "pbrMetallicRoughness": { "baseColorTexture": { "index": 0 } } }]);
+    j["meshes"][0]["primitives"][0]["material"] = serde_json::json!(0);
+    Bytes::from(b.to_glb())
+}
+
+#[tokio::test]
+async fn hostile_images_are_named_4xx_and_large_ones_are_downscaled() {
+    let server = TestServer::start(ServerConfig {
+        max_texture_size: 8,
+        ..ServerConfig::default()
+    })
+    .await;
+    let client = &server.client;
+    let refused = |e: crowdmorph_client::ClientError| match e {
+        crowdmorph_client::ClientError::Api { status, code, message, .. } => (status, code, message),
+        other => panic!("expected an API error, got {other}"),
+    };
+    // A 69-byte PNG declaring 50,000 × 50,000: refused on its header, before decoding.
+    let bomb = png_header_only(50_000, 50_000);
+    assert!(bomb.len() < 100);
+    let (status, code, message) =
+        refused(client.upload_rig("bomb", triangle_with_image(&bomb, "image/png")).await.expect_err("a bomb"));
+    assert_eq!((status, code.as_str()), (413, "rig_too_large"), "{message}");
+    assert!(message.contains("--max-upload-memory"), "{message}");
+    // Corrupt, truncated, empty, unknown: a 400 naming the image.
+    let good = png_of(32, 16);
+    let mut corrupt = good.clone();
+    let n = corrupt.len();
+    corrupt[n / 2] ^= 0xff;
+    for (what, bytes) in [
+        ("corrupt", corrupt),
+        ("truncated", good[..good.len() / 2].to_vec()),
+        ("empty", Vec::new()),
+        ("unknown", b"GIF89a not really".to_vec()),
+        ("zero", png_header_only(0, 0)),
+    ] {
+        let (status, code, message) = refused(
+            client
+                .upload_rig("bad", triangle_with_image(&bytes, "image/png"))
+                .await
+                .expect_err(what),
+        );
+        assert_eq!((status, code.as_str()), (400, "invalid_image"), "{what}: {message}");
+        assert!(message.contains("image 0"), "{what}: {message}");
+        // Nothing half-stored.
+        assert!(client.rig("bad").await.is_err(), "{what}: no rig left behind");
+    }
+    // 32 × 16 over --max-texture-size 8: halved twice, said so, served as the smaller PNG.
+    let info = client
+        .upload_rig("big", triangle_with_image(&good, "image/png"))
+        .await
+        .expect("a large image is downscaled");
+    let m = client.materials(&info.id).await.expect("materials");
+    let im = &m["images"][0];
+    assert_eq!((im["width"].as_u64(), im["height"].as_u64()), (Some(8), Some(4)));
+    assert_eq!(im["downscaledFrom"], serde_json::json!([32, 16]));
+    assert!(
+        m["notes"].as_array().expect("notes").iter().any(|n| n
+            .as_str()
+            .is_some_and(|n| n.contains("32 × 16 → 8 × 4") && n.contains("--max-texture-size"))),
+        "{m}"
+    );
+    let (bytes, ct) = client.texture(&info.id, 0).await.expect("texture");
+    assert_eq!(ct, "image/png");
+    let decoder = png::Decoder::new(std::io::Cursor::new(&bytes[..]));
+    let reader = decoder.read_info().expect("a PNG");
+    assert_eq!((reader.info().width, reader.info().height), (8, 4));
+    server.stop().await;
+}

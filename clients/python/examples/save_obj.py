@@ -4,12 +4,15 @@
     python3 save_obj.py --url http://127.0.0.1:8080 --rig default-head --clip talk --frame 12 \\
         --out head.obj
 
-The topology (triangles) comes from ``GET /v1/rigs/{id}/mesh?lod=L`` once; the posed vertices
-and normals from ``POST /v1/crowd/frame`` for a crowd of one head, in the format asked for
-(``f32`` is exact; ``f16`` and ``q16`` are decoded to float). Open the file in any 3D viewer.
+The topology (triangles) and texture coordinates come from ``GET /v1/rigs/{id}/mesh?lod=L``
+once; the posed vertices and normals from ``POST /v1/crowd/frame`` for a crowd of one head, in
+the format asked for (``f32`` is exact; ``f16`` and ``q16`` are decoded to float). When the rig
+has materials, they go in an MTL file beside the OBJ and its textures in files beside that
+(``GET /v1/rigs/{id}/materials`` and ``/textures/{i}``). Open the file in any 3D viewer.
 """
 
 import argparse
+import os
 import sys
 
 import crowdmorph
@@ -35,10 +38,33 @@ def main(argv=None) -> int:
                 format=args.format,
                 normals=True,
             )
+            looks = client.materials(args.rig)
+            stem = os.path.splitext(args.out)[0]
+            folder = os.path.dirname(args.out)
+            # Each image in a file beside the OBJ, named after it.
+            image_files = []
+            for i, image in enumerate(looks["images"]):
+                data, content_type = client.texture_at(image["uri"])
+                ext = {"image/png": "png", "image/jpeg": "jpg", "image/webp": "webp"}.get(
+                    content_type, "bin"
+                )
+                name = f"{os.path.basename(stem)}_{i}.{ext}"
+                with open(os.path.join(folder, name), "wb") as f:
+                    f.write(data)
+                image_files.append(name)
         except crowdmorph.CrowdmorphError as e:
             print(f"error: {e.code}: {e.message}", file=sys.stderr)
             return 1
     head = frame.buffer(0)
+    mtllib = None
+    names = []
+    if looks["materials"]:
+        mtllib = os.path.basename(stem) + ".mtl"
+        names = crowdmorph.write_mtl(stem + ".mtl", looks, image_files)
+    groups = [
+        (p.name.replace(" ", "_"), p.first_index, p.indices, names[p.material] if p.material is not None and p.material < len(names) else None)
+        for p in mesh.primitives
+    ]
     verts, tris = crowdmorph.write_obj(
         args.out,
         head.positions,
@@ -48,8 +74,12 @@ def main(argv=None) -> int:
             f"crowdmorph {args.rig} clip {head.clip} frame {head.frame} lod {head.lod} "
             f"({frame.format}) from {args.url}"
         ),
+        uvs=mesh.uvs,
+        groups=groups,
+        mtllib=mtllib,
     )
-    print(f"wrote {args.out}: {verts} vertices, {tris} triangles")
+    extra = f", {mtllib} and {len(image_files)} images" if mtllib else ""
+    print(f"wrote {args.out}: {verts} vertices, {tris} triangles{extra}")
     return 0
 
 

@@ -110,3 +110,52 @@ def test_khronos_samples_upload_from_gltf_files_with_external_buffers(client, sh
                 assert len(flat(frame.buffer(i).normals)) == 3 * rig.vertices
     finally:
         client.delete_rig(rig_id)
+
+
+def test_a_textured_rig_saves_as_obj_with_its_materials_and_textures(
+    client, shared_data, tmp_path
+):
+    """MorphPrimitivesTest (a JPEG base colour on two materials) through ``save_obj.py``: the
+    OBJ names an MTL file whose ``map_Kd`` is the file's own JPEG, byte for byte, and carries
+    one ``vt`` per vertex equal to the file's TEXCOORD_0 with ``v`` flipped."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    folder = shared_data / "khronos" / "MorphPrimitivesTest" / "glTF"
+    path = folder / "MorphPrimitivesTest.gltf"
+    rig_id = "py-textured"
+    client.upload_rig(path, name=rig_id, replace=True)
+    try:
+        looks = client.materials(rig_id)
+        assert [m["name"] for m in looks["materials"]] == ["red", "green"]
+        mesh = client.mesh(rig_id)
+        assert [p.material for p in mesh.primitives] == [0, 1]
+        out = tmp_path / "prims.obj"
+        package = Path(crowdmorph.__file__).resolve().parent.parent
+        env = {"PYTHONPATH": str(package), "PATH": "/usr/bin:/bin"}
+        examples = Path(__file__).resolve().parent.parent / "examples"
+        # The file has no animation: a one-frame clip of its first target at half weight.
+        target = client.rig(rig_id).targets[0]
+        client.upload_clip(rig_id, f"{target}\n0.5\n".encode(), name="half")
+        subprocess.run(
+            [sys.executable, str(examples / "save_obj.py"), "--url", client.url,
+             "--rig", rig_id, "--clip", "half", "--frame", "0", "--out", str(out)],
+            check=True, env=env, timeout=120,
+        )
+        lines = out.read_text().splitlines()
+        assert "mtllib prims.mtl" in lines
+        vts = [tuple(float(x) for x in l.split()[1:]) for l in lines if l.startswith("vt ")]
+        assert len(vts) == mesh.vertices
+        uvs = flat(mesh.uvs)
+        for i, (u, v) in enumerate(vts):
+            assert abs(u - uvs[2 * i]) < 1e-6 and abs(v - (1.0 - uvs[2 * i + 1])) < 1e-6
+        assert sum(1 for l in lines if l.startswith("usemtl ")) == 2
+        mtl = (tmp_path / "prims.mtl").read_text().splitlines()
+        maps = [l.split()[1] for l in mtl if l.startswith("map_Kd ")]
+        assert len(maps) == 2 and maps[0] == maps[1]
+        assert (tmp_path / maps[0]).read_bytes() == (folder / "uv_texture.jpg").read_bytes()
+        # Kd is each material's base colour factor.
+        assert "Kd 1 0 0" in mtl and "Kd 0 1 0" in mtl
+    finally:
+        client.delete_rig(rig_id)

@@ -95,7 +95,7 @@ from .messages import (
     decode_stream_message,
     unpack_stream_message,
 )
-from .obj import write_obj
+from .obj import write_mtl, write_obj
 from .results import Buffer, CrowdFrame, Image, Mesh
 from .sessions import StreamFrame, Tick, Viewer
 from .wire import DecodeError, decode, encode
@@ -116,6 +116,7 @@ __all__ = [
     "Image",
     "Response",
     "self_contained_gltf",
+    "write_mtl",
     "write_obj",
     "CrowdmorphError",
     "BadRequest",

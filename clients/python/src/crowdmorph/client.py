@@ -162,7 +162,8 @@ def _server_timing(value: Optional[str]) -> Dict[str, float]:
 
 def self_contained_gltf(path: Union[str, "os.PathLike[str]"]) -> bytes:
     """The bytes of a rig file as the server takes them: a GLB as it is, a ``.gltf`` with its
-    external buffers inlined as base64 data URIs (the server reads no other files)."""
+    external buffers and images inlined as base64 data URIs (the server reads no other
+    files)."""
     with open(path, "rb") as f:
         data = f.read()
     if data[:4] == b"glTF":
@@ -180,6 +181,15 @@ def self_contained_gltf(path: Union[str, "os.PathLike[str]"]) -> bytes:
         buf["uri"] = "data:application/octet-stream;base64," + base64.b64encode(payload).decode(
             "ascii"
         )
+        changed = True
+    for image in doc.get("images", []):
+        uri = image.get("uri")
+        if not isinstance(uri, str) or uri.startswith("data:"):
+            continue
+        with open(os.path.join(base, urllib.parse.unquote(uri)), "rb") as f:
+            payload = f.read()
+        mime = image.get("mimeType") or ("image/png" if uri.lower().endswith(".png") else "image/jpeg")
+        image["uri"] = f"data:{mime};base64," + base64.b64encode(payload).decode("ascii")
         changed = True
     return json.dumps(doc).encode("utf-8") if changed else data
 
