@@ -19,9 +19,10 @@
 //!    would flatten motion — not only shape — cost more. Writing our own QEM would duplicate a
 //!    well-kept library and still need all of this.
 //! 3. **Appearance.** Texture coordinates are attributes too (within meshoptimizer's 32 floats,
-//!    which caps the motion targets), and UV seams are never collapsed across (no
-//!    `Permissive`: equal-position vertices stay wedges of one point). Feature points stay
-//!    locked whatever the UVs say: a lock outranks every attribute cost.
+//!    which caps the motion targets), UV seams are never collapsed across (no `Permissive`:
+//!    equal-position vertices stay wedges of one point), and where primitives — materials —
+//!    meet, their shared open-border vertices are locked. Feature points stay locked whatever
+//!    the UVs say: a lock outranks every attribute cost.
 //! 4. **Delta transfer.** Every vertex of a level is an original vertex, so it takes its deltas
 //!    (and neutral normal, tangent, texture coordinates) directly; [`mesh_level_rig`] builds
 //!    the derived [`Rig`] (fewer vertices, same targets, clips and LOD order) that any engine
@@ -81,11 +82,20 @@ pub struct SimplifyOptions {
     /// kept regardless (see [`simplify_level`]).
     #[serde(default = "default_uv_weight")]
     pub uv_weight: f32,
+    /// Locks the vertices on a primitive's open border that another primitive also has (same
+    /// position): a material boundary then neither opens a crack nor shifts at any level.
+    #[serde(default = "default_true")]
+    pub lock_material_borders: bool,
 }
 
 /// Options recorded before `uv_weight` existed read back with this value.
 fn default_uv_weight() -> f32 {
     0.5
+}
+
+/// Options recorded before `lock_material_borders` existed lock material borders too.
+fn default_true() -> bool {
+    true
 }
 
 impl Default for SimplifyOptions {
@@ -99,6 +109,7 @@ impl Default for SimplifyOptions {
             motion_targets: 10,
             motion_weight: 1.0,
             uv_weight: default_uv_weight(),
+            lock_material_borders: true,
         }
     }
 }
@@ -574,8 +585,9 @@ const SEAM_SAFE: MeshoptOptions = MeshoptOptions::None;
 /// (global vertex ids). Deterministic.
 ///
 /// Feature points are locked and their rings get priority; UV seams are kept by meshoptimizer
-/// itself ([`SEAM_SAFE`]). Texture coordinates and the deltas of the most energetic targets are
-/// attributes of the quadric.
+/// itself ([`SEAM_SAFE`]); with [`SimplifyOptions::lock_material_borders`] the vertices a
+/// primitive shares with another along its open border are locked too. Texture coordinates and
+/// the deltas of the most energetic targets are attributes of the quadric.
 pub fn simplify_level(
     rig: &Rig,
     features: &[u32],
@@ -596,6 +608,11 @@ pub fn simplify_level(
     } else {
         Vec::new()
     };
+    let shared = if opts.lock_material_borders && rig.primitives.len() > 1 {
+        material_border_vertices(&rig.primitives)
+    } else {
+        Vec::new()
+    };
     let mut primitives = Vec::with_capacity(rig.primitives.len());
     for (pi, p) in rig.primitives.iter().enumerate() {
         let n = p.positions.len();
@@ -607,6 +624,13 @@ pub fn simplify_level(
             }
         }
         mark_priority_rings(p, &mut flags, opts.priority_rings);
+        // After the rings: only feature points widen their neighbourhood's priority; a
+        // material border is held in place, not made denser around.
+        if let Some(border) = shared.get(pi) {
+            for &v in border {
+                flags[v as usize] |= SimplifyVertex::Lock;
+            }
+        }
         let tris = p.indices.len() / 3;
         let target_tris = ((tris as f64 * f64::from(fraction)).round() as usize).max(1);
         let positions: Vec<[f32; 3]> = p.positions.iter().map(|v| v.to_array()).collect();
@@ -695,6 +719,49 @@ fn attributes(
     let mut weights = vec![opts.motion_weight; here.len() * 3];
     weights.resize(k, opts.uv_weight);
     (attrs, weights)
+}
+
+/// Per primitive, its open-border vertices (on an edge of one triangle only) that some other
+/// primitive also has a vertex at (bit-equal position, −0 = +0): where two materials meet. An
+/// exporter writes such a boundary's vertices once per primitive with the same coordinates, and
+/// each primitive is simplified alone, so without a lock either side may slide along it.
+fn material_border_vertices(primitives: &[Primitive]) -> Vec<Vec<u32>> {
+    use std::collections::HashMap;
+    let key = |v: Vec3| (v + Vec3::ZERO).to_array().map(f32::to_bits);
+    // Position → the lowest and highest primitive with a vertex there.
+    let mut owners: HashMap<[u32; 3], (usize, usize)> = HashMap::new();
+    for (pi, p) in primitives.iter().enumerate() {
+        for &v in &p.positions {
+            let e = owners.entry(key(v)).or_insert((pi, pi));
+            e.0 = e.0.min(pi);
+            e.1 = e.1.max(pi);
+        }
+    }
+    primitives
+        .iter()
+        .enumerate()
+        .map(|(pi, p)| {
+            let mut edges: HashMap<(u32, u32), u32> = HashMap::new();
+            for t in p.indices.chunks_exact(3) {
+                for (a, b) in [(t[0], t[1]), (t[1], t[2]), (t[2], t[0])] {
+                    *edges.entry((a.min(b), a.max(b))).or_insert(0) += 1;
+                }
+            }
+            let mut out: Vec<u32> = edges
+                .iter()
+                .filter(|&(_, &uses)| uses == 1)
+                .flat_map(|(&(a, b), _)| [a, b])
+                .filter(|&v| {
+                    owners
+                        .get(&key(p.positions[v as usize]))
+                        .is_some_and(|&(lo, hi)| lo != pi || hi != pi)
+                })
+                .collect();
+            out.sort_unstable();
+            out.dedup();
+            out
+        })
+        .collect()
 }
 
 /// Removes degenerate triangles and folds from a simplified triangle list: a triangle that
@@ -896,6 +963,37 @@ mod tests {
         let (attrs, weights) = attributes(&p, &[], 2.0, &opts);
         assert_eq!(weights, vec![opts.uv_weight; 2]);
         assert_eq!(attrs, vec![0.25, 0.5, 1.0, 1.0, 0.0, 0.0]);
+    }
+
+    #[test]
+    fn material_borders_are_the_open_border_another_primitive_shares() {
+        let quad = |x: f32| {
+            primitive(
+                vec![
+                    Vec3::new(x, 0.0, 0.0),
+                    Vec3::new(x + 1.0, 0.0, 0.0),
+                    Vec3::new(x + 1.0, 1.0, 0.0),
+                    Vec3::new(x, 1.0, 0.0),
+                ],
+                vec![0, 1, 2, 0, 2, 3],
+            )
+        };
+        let mut right = quad(1.0);
+        // −0 and +0 are one position.
+        right.positions[0].y = -0.0;
+        // A fan whose centre (inner, on no open edge) sits on a corner of the right quad.
+        let fan = primitive(
+            vec![
+                Vec3::new(2.0, 1.0, 0.0),
+                Vec3::new(3.0, 1.0, 0.0),
+                Vec3::new(2.0, 2.0, 0.0),
+                Vec3::new(1.5, 1.5, 5.0),
+            ],
+            vec![0, 1, 2, 0, 2, 3, 0, 3, 1],
+        );
+        let far = quad(10.0);
+        let got = material_border_vertices(&[quad(0.0), right, fan, far]);
+        assert_eq!(got, vec![vec![1, 2], vec![0, 2, 3], vec![], vec![]]);
     }
 
     #[test]
