@@ -23,8 +23,10 @@ use crowdmorph::lod::{
     LodBuildError, LodSpec, Metric, OrderMethod, Progress, ScoreOptions, Scores, SimplifyOptions,
     build_lod, build_mesh_levels, mesh_level_rig, score_targets,
 };
-use crowdmorph::rig::{Rig, default_lod_levels};
-use glam::Vec3;
+use crowdmorph::rig::{
+    MeshLevel, Primitive, Rig, VertexLook, default_lod_levels, sparsify, vertex_normals,
+};
+use glam::{Vec2, Vec3};
 
 use crate::util::{max_abs_diff, open_gpu, rig_files, rig_oracle};
 
@@ -926,4 +928,376 @@ fn the_lod_report_states_the_joints_each_level_holds_at_rest() {
     let text = report.to_string();
     assert!(text.contains("joints held at rest"), "{text}");
     assert!(text.contains("LeftEye"), "{text}");
+}
+
+/// MorphPrimitivesTest (from ../shared/data): two primitives, two materials, one border.
+fn morph_primitives_test() -> Rig {
+    load_path(
+        &rig_file("MorphPrimitivesTest.gltf"),
+        &ImportOptions::default(),
+    )
+    .expect("MorphPrimitivesTest loads")
+}
+
+/// The mesh levels the project's LOD builder makes for `rig`: the 50/25/10 % meshes an upload
+/// gets (file order: no scoring, which the meshes do not depend on).
+fn built_mesh_levels(rig: &Rig) -> Vec<MeshLevel> {
+    let spec = LodSpec {
+        method: OrderMethod::FileOrder,
+        mesh_fractions: vec![0.5, 0.25, 0.1],
+        ..LodSpec::default()
+    };
+    let meshes = build_lod(rig, &spec, None, None).expect("lod").meshes;
+    assert_eq!(meshes.len(), 3, "{}", rig.name);
+    meshes
+}
+
+/// One primitive: positions, texture coordinates (set 0), triangles.
+type TexturedMesh = (Vec<Vec3>, Vec<Vec2>, Vec<u32>);
+
+/// A rig of one primitive per mesh, each with one target that lifts its upper half (so motion
+/// attributes take part beside the UVs) and a random clip.
+fn textured_rig(name: &str, meshes: Vec<TexturedMesh>) -> Rig {
+    let primitives = meshes
+        .into_iter()
+        .enumerate()
+        .map(|(i, (positions, uv, indices))| {
+            let lift: Vec<Vec3> = positions
+                .iter()
+                .map(|p| Vec3::Y * 0.2 * p.y.max(0.0))
+                .collect();
+            let target = sparsify(0, &lift, None, None, 1e-6);
+            Primitive {
+                name: format!("p{i}"),
+                normals: vertex_normals(&positions, &indices),
+                positions,
+                normals_from_file: false,
+                tangents: None,
+                indices,
+                targets: if target.vertices.is_empty() {
+                    Vec::new()
+                } else {
+                    vec![target]
+                },
+                base_color: Primitive::default_base_color(),
+                skin: None,
+                look: VertexLook { uv0: Some(uv) },
+            }
+        })
+        .collect();
+    let mut rng = crate::util::Rng(46);
+    let rig = crate::util::rig_with_random_clip(name.into(), primitives, 1, 4, 3, &mut rng);
+    rig.validate().expect("valid textured rig");
+    rig
+}
+
+/// A UV sphere cut into `charts` charts along meridians, like a texture atlas: each chart has
+/// its own vertices (its own poles too), so where two charts meet the positions are the same,
+/// bit for bit, and the texture coordinates are not (the charts lie apart in UV space).
+fn seamed_sphere(rings: u32, columns: u32, charts: u32) -> TexturedMesh {
+    let m = columns * charts;
+    let at = |i: u32, j: u32| {
+        let th = std::f32::consts::PI * j as f32 / rings as f32;
+        let ph = std::f32::consts::TAU * (i % m) as f32 / m as f32;
+        Vec3::new(th.sin() * ph.cos(), th.cos(), th.sin() * ph.sin())
+    };
+    let (mut positions, mut uv, mut indices) = (Vec::new(), Vec::new(), Vec::new());
+    for c in 0..charts {
+        let base = positions.len() as u32;
+        // Chart c spans columns c·columns ..= (c+1)·columns, with a gap in u to the next one.
+        let u = |k: u32| (c as f32 * 1.25 + k as f32 / columns as f32) / (charts as f32 * 1.25);
+        let v = |j: u32| j as f32 / rings as f32;
+        positions.push(at(0, 0));
+        uv.push(Vec2::new(u(columns / 2), 0.0));
+        for j in 1..rings {
+            for k in 0..=columns {
+                positions.push(at(c * columns + k, j));
+                uv.push(Vec2::new(u(k), v(j)));
+            }
+        }
+        let south = positions.len() as u32;
+        positions.push(at(0, rings));
+        uv.push(Vec2::new(u(columns / 2), 1.0));
+        let idx = |k: u32, j: u32| base + 1 + (j - 1) * (columns + 1) + k;
+        for k in 0..columns {
+            indices.extend([base, idx(k + 1, 1), idx(k, 1)]);
+            for j in 1..rings - 1 {
+                let (a, b) = (idx(k, j), idx(k + 1, j));
+                let (c2, d) = (idx(k + 1, j + 1), idx(k, j + 1));
+                indices.extend([a, b, c2, a, c2, d]);
+            }
+            indices.extend([south, idx(k, rings - 1), idx(k + 1, rings - 1)]);
+        }
+    }
+    (positions, uv, indices)
+}
+
+/// A gently waved grid of `n × n` quads over [0, 1]², split at column `n / 2` into two
+/// primitives (two materials) that both have that column's vertices, at bit-equal positions.
+fn split_grid(n: u32) -> Vec<TexturedMesh> {
+    let at = |i: u32, j: u32| {
+        let (x, y) = (i as f32 / n as f32, j as f32 / n as f32);
+        Vec3::new(x, y, 0.02 * (3.0 * x).sin() * (2.0 * y).cos())
+    };
+    [(0, n / 2), (n / 2, n)]
+        .into_iter()
+        .map(|(i0, i1)| {
+            let w = i1 - i0 + 1;
+            let (mut positions, mut uv, mut indices) = (Vec::new(), Vec::new(), Vec::new());
+            for j in 0..=n {
+                for i in i0..=i1 {
+                    positions.push(at(i, j));
+                    uv.push(Vec2::new(i as f32 / n as f32, j as f32 / n as f32));
+                }
+            }
+            for j in 0..n {
+                for k in 0..w - 1 {
+                    let a = j * w + k;
+                    indices.extend([a, a + 1, a + w + 1, a, a + w + 1, a + w]);
+                }
+            }
+            (positions, uv, indices)
+        })
+        .collect()
+}
+
+/// UV charts of a primitive: connected components of its triangles, joined where they share a
+/// vertex index. A seam's two sides are different vertices at one position, so charts part
+/// there. Returns each vertex's chart (its component's smallest vertex) and the chart count.
+fn uv_charts(p: &Primitive) -> (Vec<u32>, usize) {
+    let mut parent: Vec<u32> = (0..p.positions.len() as u32).collect();
+    fn find(parent: &mut [u32], mut x: u32) -> u32 {
+        while parent[x as usize] != x {
+            parent[x as usize] = parent[parent[x as usize] as usize];
+            x = parent[x as usize];
+        }
+        x
+    }
+    for t in p.indices.chunks_exact(3) {
+        for (a, b) in [(t[0], t[1]), (t[1], t[2])] {
+            let (ra, rb) = (find(&mut parent, a), find(&mut parent, b));
+            parent[ra.max(rb) as usize] = ra.min(rb);
+        }
+    }
+    let roots: Vec<u32> = (0..parent.len() as u32)
+        .map(|v| find(&mut parent, v))
+        .collect();
+    let used: std::collections::HashSet<u32> =
+        p.indices.iter().map(|&v| roots[v as usize]).collect();
+    (roots, used.len())
+}
+
+/// Every level's texture coordinates are its source vertices' own, exactly: `look.uv0[k]` of
+/// the derived rig is the full primitive's `uv0[vertices[k]]`, bit for bit. Returns the
+/// largest difference seen (0) and the level vertices checked.
+fn check_level_uvs(rig: &Rig, levels: &[MeshLevel]) -> (f32, usize) {
+    let (mut worst, mut checked) = (0.0f32, 0);
+    for level in levels {
+        let derived = level.derive_rig(rig).expect("derived rig");
+        for ((full, l), d) in rig
+            .primitives
+            .iter()
+            .zip(&level.primitives)
+            .zip(derived.primitives.iter())
+        {
+            let src = full.look.uv0.as_ref().expect("the source has TEXCOORD_0");
+            let got = d.look.uv0.as_ref().expect("the level keeps TEXCOORD_0");
+            assert_eq!(got.len(), l.vertices.len(), "{}", derived.name);
+            for (k, &v) in l.vertices.iter().enumerate() {
+                let want = src[v as usize];
+                assert_eq!(
+                    got[k].to_array().map(f32::to_bits),
+                    want.to_array().map(f32::to_bits),
+                    "{}: level vertex {k} (source {v})",
+                    derived.name
+                );
+                worst = worst.max((got[k] - want).abs().max_element());
+                checked += 1;
+            }
+        }
+    }
+    (worst, checked)
+}
+
+/// No level triangle joins two UV charts of the full mesh. Returns the triangles checked.
+fn check_level_charts(rig: &Rig, levels: &[MeshLevel]) -> usize {
+    let charts: Vec<Vec<u32>> = rig.primitives.iter().map(|p| uv_charts(p).0).collect();
+    let mut checked = 0;
+    for level in levels {
+        for (pi, l) in level.primitives.iter().enumerate() {
+            for t in l.indices.chunks_exact(3) {
+                let t = [t[0], t[1], t[2]];
+                let c = t.map(|k| charts[pi][l.vertices[k as usize] as usize]);
+                assert!(
+                    c[0] == c[1] && c[1] == c[2],
+                    "{} at {} %: primitive {pi} triangle {:?} spans charts {c:?}",
+                    rig.name,
+                    level.triangle_fraction * 100.0,
+                    t.map(|k| l.vertices[k as usize])
+                );
+                checked += 1;
+            }
+        }
+    }
+    checked
+}
+
+/// Per primitive, the vertices on its open border (an edge of one triangle) at a position some
+/// other primitive also has: where two materials meet. Computed here on its own, not with the
+/// library's helper.
+fn shared_border(rig: &Rig) -> Vec<Vec<u32>> {
+    use std::collections::HashMap;
+    let key = |v: Vec3| (v + Vec3::ZERO).to_array().map(f32::to_bits);
+    rig.primitives
+        .iter()
+        .enumerate()
+        .map(|(pi, p)| {
+            let mut uses: HashMap<(u32, u32), u32> = HashMap::new();
+            for t in p.indices.chunks_exact(3) {
+                for (a, b) in [(t[0], t[1]), (t[1], t[2]), (t[2], t[0])] {
+                    *uses.entry((a.min(b), a.max(b))).or_default() += 1;
+                }
+            }
+            let mut open: Vec<u32> = uses
+                .iter()
+                .filter(|&(_, &n)| n == 1)
+                .flat_map(|(&(a, b), _)| [a, b])
+                .collect();
+            open.sort_unstable();
+            open.dedup();
+            open.retain(|&v| {
+                let k = key(p.positions[v as usize]);
+                rig.primitives
+                    .iter()
+                    .enumerate()
+                    .any(|(qi, q)| qi != pi && q.positions.iter().any(|&w| key(w) == k))
+            });
+            open
+        })
+        .collect()
+}
+
+/// Every shared border vertex is kept (so it does not move) at every level. Returns how many
+/// were checked.
+fn check_level_borders(rig: &Rig, levels: &[MeshLevel]) -> usize {
+    let border = shared_border(rig);
+    let mut checked = 0;
+    for level in levels {
+        for (pi, (l, b)) in level.primitives.iter().zip(&border).enumerate() {
+            for &v in b {
+                assert!(
+                    l.vertices.binary_search(&v).is_ok(),
+                    "{} at {} %: primitive {pi} lost border vertex {v} (of {})",
+                    rig.name,
+                    level.triangle_fraction * 100.0,
+                    b.len()
+                );
+                checked += 1;
+            }
+        }
+    }
+    checked
+}
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_test_data),
+    ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+)]
+fn mesh_levels_keep_each_vertex_s_texture_coordinates_on_real_rigs() {
+    for rig in [morph_stress_test(), morph_primitives_test()] {
+        let levels = built_mesh_levels(&rig);
+        assert!(
+            levels[2].vertex_count() < rig.vertex_count(),
+            "{} simplifies",
+            rig.name
+        );
+        let (worst, checked) = check_level_uvs(&rig, &levels);
+        assert_eq!(worst, 0.0, "{}", rig.name);
+        assert!(checked > 0, "{}", rig.name);
+    }
+}
+
+#[test]
+fn mesh_levels_never_collapse_across_a_uv_seam_of_a_sphere() {
+    let rig = textured_rig("seamed-sphere", vec![seamed_sphere(16, 8, 4)]);
+    assert_eq!(uv_charts(&rig.primitives[0]).1, 4, "four charts");
+    let levels = built_mesh_levels(&rig);
+    assert!(levels[2].triangle_count() * 5 < rig.triangle_count());
+    assert!(check_level_charts(&rig, &levels) > 0);
+    check_level_uvs(&rig, &levels);
+    // A seam is topology, not a cost: it holds with no UVs in the quadric, down to a few
+    // triangles per chart.
+    check_level_charts(&rig, &levels_without_uv_cost(&rig, &[0.25, 0.1, 0.05]));
+}
+
+/// Mesh levels of `rig` simplified with texture coordinates left out of the quadric.
+fn levels_without_uv_cost(rig: &Rig, fractions: &[f32]) -> Vec<MeshLevel> {
+    let opts = SimplifyOptions {
+        uv_weight: 0.0,
+        ..SimplifyOptions::default()
+    };
+    build_mesh_levels(rig, fractions, &opts, None)
+        .expect("levels")
+        .0
+}
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_test_data),
+    ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+)]
+fn mesh_levels_never_collapse_across_a_uv_seam_on_morph_stress_test() {
+    let rig = morph_stress_test();
+    let charts = uv_charts(&rig.primitives[1]).1;
+    assert!(charts > 1, "{charts} charts: the test would prove nothing");
+    let levels = built_mesh_levels(&rig);
+    assert!(check_level_charts(&rig, &levels) > 0);
+    check_level_charts(&rig, &levels_without_uv_cost(&rig, &[0.25, 0.1, 0.05]));
+}
+
+#[test]
+fn mesh_levels_keep_the_border_between_two_materials() {
+    let rig = textured_rig("split-grid", split_grid(16));
+    let (levels, features) =
+        build_mesh_levels(&rig, &[0.5, 0.25, 0.1], &SimplifyOptions::default(), None)
+            .expect("levels");
+    assert_eq!(levels, built_mesh_levels(&rig), "the LOD builder's meshes");
+    let border = shared_border(&rig);
+    assert_eq!(
+        border.iter().map(Vec::len).collect::<Vec<_>>(),
+        vec![17, 17]
+    );
+    assert!(levels[2].triangle_count() * 5 < rig.triangle_count());
+    assert_eq!(check_level_borders(&rig, &levels), 3 * 2 * 17);
+    check_level_charts(&rig, &levels);
+    // Feature points still win: every one is on every level.
+    let map = levels[2].vertex_map(&rig.vertex_offsets());
+    assert!(!features.vertices().is_empty());
+    for v in features.vertices() {
+        assert!(map.binary_search(&v).is_ok(), "feature vertex {v} removed");
+    }
+}
+
+#[test]
+#[cfg_attr(
+    not(crowdmorph_test_data),
+    ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+)]
+fn mesh_levels_keep_the_border_between_two_materials_on_morph_primitives_test() {
+    let rig = morph_primitives_test();
+    let levels = built_mesh_levels(&rig);
+    assert!(levels[2].vertex_count() < rig.vertex_count());
+    assert!(check_level_borders(&rig, &levels) > 0);
+    check_level_charts(&rig, &levels);
+}
+
+#[test]
+fn simplify_options_recorded_before_appearance_still_load() {
+    let old = r#"{"facial_landmarks":true,"feature_image_size":512,"peak_fraction":0.95,
+        "peaks_per_target":2,"priority_rings":2,"motion_targets":10,"motion_weight":1.0}"#;
+    let opts: SimplifyOptions = serde_json::from_str(old).expect("an older record loads");
+    assert_eq!(opts, SimplifyOptions::default());
+    assert_eq!(opts.uv_weight, 0.5);
+    assert!(opts.lock_material_borders);
 }

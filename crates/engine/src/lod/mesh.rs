@@ -18,9 +18,15 @@
 //!    the deltas of the most energetic targets are attributes of the quadric, so collapses that
 //!    would flatten motion — not only shape — cost more. Writing our own QEM would duplicate a
 //!    well-kept library and still need all of this.
-//! 3. **Delta transfer.** Every vertex of a level is an original vertex, so it takes its deltas
-//!    (and neutral normal, tangent) directly; [`mesh_level_rig`] builds the derived [`Rig`]
-//!    (fewer vertices, same targets, clips and LOD order) that any engine evaluates unchanged.
+//! 3. **Appearance.** Texture coordinates are attributes too (within meshoptimizer's 32 floats,
+//!    which caps the motion targets), UV seams are never collapsed across (no `Permissive`:
+//!    equal-position vertices stay wedges of one point), and where primitives — materials —
+//!    meet, their shared open-border vertices are locked. Feature points stay locked whatever
+//!    the UVs say: a lock outranks every attribute cost.
+//! 4. **Delta transfer.** Every vertex of a level is an original vertex, so it takes its deltas
+//!    (and neutral normal, tangent, texture coordinates) directly; [`mesh_level_rig`] builds
+//!    the derived [`Rig`] (fewer vertices, same targets, clips and LOD order) that any engine
+//!    evaluates unchanged.
 
 use std::collections::VecDeque;
 
@@ -65,11 +71,31 @@ pub struct SimplifyOptions {
     pub peaks_per_target: usize,
     /// Rings of neighbours around feature points that get simplification priority.
     pub priority_rings: u32,
-    /// How many of the most energetic targets steer collapses through their deltas (≤ 10).
+    /// How many of the most energetic targets steer collapses through their deltas (≤ 10:
+    /// their 3 floats each and a primitive's u, v share meshoptimizer's 32 attribute floats).
     pub motion_targets: usize,
     /// Weight of those deltas against position error (deltas are scaled by the rig extent,
     /// as positions are).
     pub motion_weight: f32,
+    /// Weight of texture coordinates (set 0) against position error, where a primitive has
+    /// them; 0 leaves them out of the quadric. UVs steer which collapses are cheap; seams are
+    /// kept regardless (see [`simplify_level`]).
+    #[serde(default = "default_uv_weight")]
+    pub uv_weight: f32,
+    /// Locks the vertices on a primitive's open border that another primitive also has (same
+    /// position): a material boundary then neither opens a crack nor shifts at any level.
+    #[serde(default = "default_true")]
+    pub lock_material_borders: bool,
+}
+
+/// Options recorded before `uv_weight` existed read back with this value.
+fn default_uv_weight() -> f32 {
+    0.5
+}
+
+/// Options recorded before `lock_material_borders` existed lock material borders too.
+fn default_true() -> bool {
+    true
 }
 
 impl Default for SimplifyOptions {
@@ -82,6 +108,8 @@ impl Default for SimplifyOptions {
             priority_rings: 2,
             motion_targets: 10,
             motion_weight: 1.0,
+            uv_weight: default_uv_weight(),
+            lock_material_borders: true,
         }
     }
 }
@@ -539,8 +567,27 @@ fn landmarks_from_tip(
     *lip_line = line;
 }
 
+/// meshoptimizer's limit on attribute floats per vertex (`kMaxAttributes` in the vendored
+/// simplifier.cpp; more is an assertion failure in C, not an error).
+const MAX_ATTRIBUTES: usize = 32;
+
+/// The options every level is simplified with. Never `Permissive`: without it meshoptimizer
+/// treats vertices that share a position (a UV seam's two sides) as wedges of one point, and
+/// a seam vertex only collapses along the seam together with its twin, onto a vertex that
+/// shares a triangle with it; a point with more than two wedges is locked. So every collapse
+/// stays inside one UV chart and the seam stays closed. `Permissive` turns seam vertices into
+/// "complex" ones whose wedges may be sent to the target vertex itself, across the seam.
+/// (Read in the vendored simplifier.cpp: `classifyVertices`, `kCanCollapse`,
+/// `getComplexTarget`.)
+const SEAM_SAFE: MeshoptOptions = MeshoptOptions::None;
+
 /// Simplifies every primitive of `rig` to about `fraction` of its triangles, keeping `features`
 /// (global vertex ids). Deterministic.
+///
+/// Feature points are locked and their rings get priority; UV seams are kept by meshoptimizer
+/// itself ([`SEAM_SAFE`]); with [`SimplifyOptions::lock_material_borders`] the vertices a
+/// primitive shares with another along its open border are locked too. Texture coordinates and
+/// the deltas of the most energetic targets are attributes of the quadric.
 pub fn simplify_level(
     rig: &Rig,
     features: &[u32],
@@ -552,11 +599,20 @@ pub fn simplify_level(
     }
     let offsets = rig.vertex_offsets();
     let extent = rig.bbox().diagonal().max(1e-12);
-    let motion: Vec<TargetId> = Lod::by_delta_energy(&rig.primitives, rig.targets.len())
-        .order
-        .into_iter()
-        .take(opts.motion_targets.min(10))
-        .collect();
+    let motion: Vec<TargetId> = if opts.motion_weight > 0.0 {
+        Lod::by_delta_energy(&rig.primitives, rig.targets.len())
+            .order
+            .into_iter()
+            .take(opts.motion_targets.min(MAX_ATTRIBUTES / 3))
+            .collect()
+    } else {
+        Vec::new()
+    };
+    let shared = if opts.lock_material_borders && rig.primitives.len() > 1 {
+        material_border_vertices(&rig.primitives)
+    } else {
+        Vec::new()
+    };
     let mut primitives = Vec::with_capacity(rig.primitives.len());
     for (pi, p) in rig.primitives.iter().enumerate() {
         let n = p.positions.len();
@@ -568,47 +624,41 @@ pub fn simplify_level(
             }
         }
         mark_priority_rings(p, &mut flags, opts.priority_rings);
+        // After the rings: only feature points widen their neighbourhood's priority; a
+        // material border is held in place, not made denser around.
+        if let Some(border) = shared.get(pi) {
+            for &v in border {
+                flags[v as usize] |= SimplifyVertex::Lock;
+            }
+        }
         let tris = p.indices.len() / 3;
         let target_tris = ((tris as f64 * f64::from(fraction)).round() as usize).max(1);
         let positions: Vec<[f32; 3]> = p.positions.iter().map(|v| v.to_array()).collect();
         let indices = if target_tris >= tris {
             p.indices.clone()
         } else {
-            // Attributes: the deltas of the most energetic targets, scaled as positions are.
-            let here: Vec<&SparseTarget> = motion
-                .iter()
-                .filter_map(|&t| p.targets.iter().find(|s| s.target == t))
-                .collect();
-            if here.is_empty() || opts.motion_weight <= 0.0 {
+            let (attrs, weights) = attributes(p, &motion, extent, opts);
+            if weights.is_empty() {
                 meshopt::simplify::simplify_with_locks_decoder(
                     &p.indices,
                     &positions,
                     &flags,
                     target_tris * 3,
                     f32::MAX,
-                    MeshoptOptions::None,
+                    SEAM_SAFE,
                     None,
                 )
             } else {
-                let k = here.len() * 3;
-                let mut attrs = vec![0f32; n * k];
-                for (j, s) in here.iter().enumerate() {
-                    for (&v, d) in s.vertices.iter().zip(&s.positions) {
-                        let a = &mut attrs[v as usize * k + j * 3..v as usize * k + j * 3 + 3];
-                        a.copy_from_slice(&(*d / extent).to_array());
-                    }
-                }
-                let weights = vec![opts.motion_weight; k];
                 meshopt::simplify::simplify_with_attributes_and_locks_decoder(
                     &p.indices,
                     &positions,
                     &attrs,
                     &weights,
-                    k * size_of::<f32>(),
+                    weights.len() * size_of::<f32>(),
                     &flags,
                     target_tris * 3,
                     f32::MAX,
-                    MeshoptOptions::None,
+                    SEAM_SAFE,
                     None,
                 )
             }
@@ -630,6 +680,88 @@ pub fn simplify_level(
         triangle_fraction: fraction,
         primitives,
     })
+}
+
+/// The quadric's attributes of primitive `p`, interleaved per vertex, and their weights (empty:
+/// none). The deltas of the `motion` targets that move `p` come first, scaled by the rig's
+/// `extent` as positions are; then u, v of set 0 when `p` has them. Targets are dropped from
+/// the end of `motion` until everything fits meshoptimizer's [`MAX_ATTRIBUTES`].
+fn attributes(
+    p: &Primitive,
+    motion: &[TargetId],
+    extent: f32,
+    opts: &SimplifyOptions,
+) -> (Vec<f32>, Vec<f32>) {
+    let uv = p.look.uv0.as_deref().filter(|_| opts.uv_weight > 0.0);
+    let uv_floats = if uv.is_some() { 2 } else { 0 };
+    let here: Vec<&SparseTarget> = motion
+        .iter()
+        .filter_map(|&t| p.targets.iter().find(|s| s.target == t))
+        .take((MAX_ATTRIBUTES - uv_floats) / 3)
+        .collect();
+    let k = here.len() * 3 + uv_floats;
+    if k == 0 {
+        return (Vec::new(), Vec::new());
+    }
+    let mut attrs = vec![0f32; p.positions.len() * k];
+    for (j, s) in here.iter().enumerate() {
+        for (&v, d) in s.vertices.iter().zip(&s.positions) {
+            let at = v as usize * k + j * 3;
+            attrs[at..at + 3].copy_from_slice(&(*d / extent).to_array());
+        }
+    }
+    if let Some(uv) = uv {
+        let at = here.len() * 3;
+        for (a, t) in attrs.chunks_exact_mut(k).zip(uv) {
+            a[at..at + 2].copy_from_slice(&t.to_array());
+        }
+    }
+    let mut weights = vec![opts.motion_weight; here.len() * 3];
+    weights.resize(k, opts.uv_weight);
+    (attrs, weights)
+}
+
+/// Per primitive, its open-border vertices (on an edge of one triangle only) that some other
+/// primitive also has a vertex at (bit-equal position, −0 = +0): where two materials meet. An
+/// exporter writes such a boundary's vertices once per primitive with the same coordinates, and
+/// each primitive is simplified alone, so without a lock either side may slide along it.
+fn material_border_vertices(primitives: &[Primitive]) -> Vec<Vec<u32>> {
+    use std::collections::HashMap;
+    let key = |v: Vec3| (v + Vec3::ZERO).to_array().map(f32::to_bits);
+    // Position → the lowest and highest primitive with a vertex there.
+    let mut owners: HashMap<[u32; 3], (usize, usize)> = HashMap::new();
+    for (pi, p) in primitives.iter().enumerate() {
+        for &v in &p.positions {
+            let e = owners.entry(key(v)).or_insert((pi, pi));
+            e.0 = e.0.min(pi);
+            e.1 = e.1.max(pi);
+        }
+    }
+    primitives
+        .iter()
+        .enumerate()
+        .map(|(pi, p)| {
+            let mut edges: HashMap<(u32, u32), u32> = HashMap::new();
+            for t in p.indices.chunks_exact(3) {
+                for (a, b) in [(t[0], t[1]), (t[1], t[2]), (t[2], t[0])] {
+                    *edges.entry((a.min(b), a.max(b))).or_insert(0) += 1;
+                }
+            }
+            let mut out: Vec<u32> = edges
+                .iter()
+                .filter(|&(_, &uses)| uses == 1)
+                .flat_map(|(&(a, b), _)| [a, b])
+                .filter(|&v| {
+                    owners
+                        .get(&key(p.positions[v as usize]))
+                        .is_some_and(|&(lo, hi)| lo != pi || hi != pi)
+                })
+                .collect();
+            out.sort_unstable();
+            out.dedup();
+            out
+        })
+        .collect()
 }
 
 /// Removes degenerate triangles and folds from a simplified triangle list: a triangle that
@@ -769,6 +901,99 @@ mod tests {
             2, 1, 8, // kept
         ];
         assert_eq!(drop_folds(&tris), vec![0, 1, 2, 2, 1, 8]);
+    }
+
+    /// A primitive of `positions` and `indices` with no targets, normals +Z.
+    fn primitive(positions: Vec<Vec3>, indices: Vec<u32>) -> Primitive {
+        Primitive {
+            name: String::new(),
+            normals: vec![Vec3::Z; positions.len()],
+            positions,
+            normals_from_file: false,
+            tangents: None,
+            indices,
+            targets: Vec::new(),
+            base_color: Primitive::default_base_color(),
+            skin: None,
+            look: Default::default(),
+        }
+    }
+
+    #[test]
+    fn attributes_fit_meshoptimizer_with_texture_coordinates() {
+        let mut p = primitive(vec![Vec3::ZERO, Vec3::X, Vec3::Y], vec![0, 1, 2]);
+        p.targets = (0..12)
+            .map(|t| SparseTarget {
+                target: t,
+                vertices: vec![0],
+                positions: vec![Vec3::X * (t + 1) as f32],
+                normals: None,
+                tangents: None,
+            })
+            .collect();
+        let motion: Vec<TargetId> = (0..12).collect();
+        let opts = SimplifyOptions::default();
+        // No UVs: ten targets' deltas, 30 floats.
+        let (attrs, weights) = attributes(&p, &motion, 2.0, &opts);
+        assert_eq!(weights, vec![opts.motion_weight; 30]);
+        assert_eq!(attrs.len(), 3 * 30);
+        assert_eq!(
+            attrs[27..30],
+            [5.0, 0.0, 0.0],
+            "target 9 moves vertex 0 by 10 / 2"
+        );
+        // UVs take the last two of meshoptimizer's 32 floats.
+        let uv = [
+            glam::Vec2::new(0.25, 0.5),
+            glam::Vec2::ONE,
+            glam::Vec2::ZERO,
+        ];
+        p.look.uv0 = Some(uv.to_vec());
+        let (attrs, weights) = attributes(&p, &motion, 2.0, &opts);
+        assert_eq!(weights.len(), MAX_ATTRIBUTES);
+        assert_eq!(weights[30..], [opts.uv_weight; 2]);
+        assert_eq!(attrs[30..32], [0.25, 0.5]);
+        assert_eq!(attrs[32 + 30..32 + 32], [1.0, 1.0]);
+        // A UV weight of 0 leaves them out; UVs alone are still attributes.
+        let off = SimplifyOptions {
+            uv_weight: 0.0,
+            ..opts.clone()
+        };
+        assert_eq!(attributes(&p, &motion, 2.0, &off).1.len(), 30);
+        let (attrs, weights) = attributes(&p, &[], 2.0, &opts);
+        assert_eq!(weights, vec![opts.uv_weight; 2]);
+        assert_eq!(attrs, vec![0.25, 0.5, 1.0, 1.0, 0.0, 0.0]);
+    }
+
+    #[test]
+    fn material_borders_are_the_open_border_another_primitive_shares() {
+        let quad = |x: f32| {
+            primitive(
+                vec![
+                    Vec3::new(x, 0.0, 0.0),
+                    Vec3::new(x + 1.0, 0.0, 0.0),
+                    Vec3::new(x + 1.0, 1.0, 0.0),
+                    Vec3::new(x, 1.0, 0.0),
+                ],
+                vec![0, 1, 2, 0, 2, 3],
+            )
+        };
+        let mut right = quad(1.0);
+        // −0 and +0 are one position.
+        right.positions[0].y = -0.0;
+        // A fan whose centre (inner, on no open edge) sits on a corner of the right quad.
+        let fan = primitive(
+            vec![
+                Vec3::new(2.0, 1.0, 0.0),
+                Vec3::new(3.0, 1.0, 0.0),
+                Vec3::new(2.0, 2.0, 0.0),
+                Vec3::new(1.5, 1.5, 5.0),
+            ],
+            vec![0, 1, 2, 0, 2, 3, 0, 3, 1],
+        );
+        let far = quad(10.0);
+        let got = material_border_vertices(&[quad(0.0), right, fan, far]);
+        assert_eq!(got, vec![vec![1, 2], vec![0, 2, 3], vec![], vec![]]);
     }
 
     #[test]
