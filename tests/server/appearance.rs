@@ -206,7 +206,10 @@ async fn check_model(server: &TestServer, id: &str) {
         &crowdmorph::import::ImportOptions::default(),
     )
     .expect("the GLB imports");
-    assert!(rig.targets.is_empty() && rig.clips.is_empty(), "no morph targets or clips");
+    assert!(
+        rig.targets.is_empty() && rig.clips.is_empty(),
+        "no morph targets or clips"
+    );
     let mesh = client.mesh(id, Encoding::Bincode).await.expect("mesh");
     assert_eq!(rig.vertex_count(), mesh.vertices as usize, "{id}: vertices");
     let positions: Vec<f32> = rig
@@ -214,7 +217,11 @@ async fn check_model(server: &TestServer, id: &str) {
         .iter()
         .flat_map(|p| p.positions.iter().flat_map(|v| v.to_array()))
         .collect();
-    assert_eq!(positions, f32s(&mesh.positions.0), "{id}: the mesh's vertex order");
+    assert_eq!(
+        positions,
+        f32s(&mesh.positions.0),
+        "{id}: the mesh's vertex order"
+    );
     let uvs: Vec<f32> = rig
         .primitives
         .iter()
@@ -236,13 +243,20 @@ async fn check_model(server: &TestServer, id: &str) {
     assert_eq!(indices, want, "{id}: triangles");
     let a = rig.appearance.as_deref().expect("materials in the GLB");
     let m = client.materials(id).await.expect("materials");
-    assert_eq!(a.materials.len(), m["materials"].as_array().map_or(0, Vec::len));
+    assert_eq!(
+        a.materials.len(),
+        m["materials"].as_array().map_or(0, Vec::len)
+    );
     for (i, im) in a.images.iter().enumerate() {
         let (bytes, _) = client.texture(id, i).await.expect("texture");
         assert_eq!(&im.bytes[..], &bytes[..], "{id}: image {i} in the GLB");
     }
     for (p, mp) in rig.primitives.iter().zip(&mesh.primitives) {
-        assert_eq!(p.look.material, mp.material, "{id}: material of {}", mp.name);
+        assert_eq!(
+            p.look.material, mp.material,
+            "{id}: material of {}",
+            mp.name
+        );
     }
 }
 
@@ -394,14 +408,23 @@ async fn hostile_images_are_named_4xx_and_large_ones_are_downscaled() {
     .await;
     let client = &server.client;
     let refused = |e: crowdmorph_client::ClientError| match e {
-        crowdmorph_client::ClientError::Api { status, code, message, .. } => (status, code, message),
+        crowdmorph_client::ClientError::Api {
+            status,
+            code,
+            message,
+            ..
+        } => (status, code, message),
         other => panic!("expected an API error, got {other}"),
     };
     // A 69-byte PNG declaring 50,000 × 50,000: refused on its header, before decoding.
     let bomb = png_header_only(50_000, 50_000);
     assert!(bomb.len() < 100);
-    let (status, code, message) =
-        refused(client.upload_rig("bomb", triangle_with_image(&bomb, "image/png")).await.expect_err("a bomb"));
+    let (status, code, message) = refused(
+        client
+            .upload_rig("bomb", triangle_with_image(&bomb, "image/png"))
+            .await
+            .expect_err("a bomb"),
+    );
     assert_eq!((status, code.as_str()), (413, "rig_too_large"), "{message}");
     assert!(message.contains("--max-upload-memory"), "{message}");
     // Corrupt, truncated, empty, unknown: a 400 naming the image.
@@ -422,10 +445,17 @@ async fn hostile_images_are_named_4xx_and_large_ones_are_downscaled() {
                 .await
                 .expect_err(what),
         );
-        assert_eq!((status, code.as_str()), (400, "invalid_image"), "{what}: {message}");
+        assert_eq!(
+            (status, code.as_str()),
+            (400, "invalid_image"),
+            "{what}: {message}"
+        );
         assert!(message.contains("image 0"), "{what}: {message}");
         // Nothing half-stored.
-        assert!(client.rig("bad").await.is_err(), "{what}: no rig left behind");
+        assert!(
+            client.rig("bad").await.is_err(),
+            "{what}: no rig left behind"
+        );
     }
     // 32 × 16 over --max-texture-size 8: halved twice, said so, served as the smaller PNG.
     let info = client
@@ -434,7 +464,10 @@ async fn hostile_images_are_named_4xx_and_large_ones_are_downscaled() {
         .expect("a large image is downscaled");
     let m = client.materials(&info.id).await.expect("materials");
     let im = &m["images"][0];
-    assert_eq!((im["width"].as_u64(), im["height"].as_u64()), (Some(8), Some(4)));
+    assert_eq!(
+        (im["width"].as_u64(), im["height"].as_u64()),
+        (Some(8), Some(4))
+    );
     assert_eq!(im["downscaledFrom"], serde_json::json!([32, 16]));
     assert!(
         m["notes"].as_array().expect("notes").iter().any(|n| n

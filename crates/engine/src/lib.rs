@@ -7,6 +7,7 @@
 //! | [`cpu`] | the CPU engine: the oracle and the no-GPU production engine |
 //! | [`gpu`] | the wgpu engine, one file per job (context, rig upload, slots, batch plan, submit, passes, readback: its own map); its WGSL passes are in `shaders/` |
 //! | [`export`] | one blended frame written as OBJ or raw f32 (`crowdmorph eval`) |
+//! | [`glb`] | a rig's mesh at one level with its materials and images as one GLB (`model.glb`) |
 //! | [`render`] | rendered frames: scene layout, cost, the wgpu renderer, encoding, offline renders |
 //! | [`lod`] | level of detail: importance metrics and orders, reports, feature-preserving mesh levels, PCA levels of the deltas, the reference rasterizer |
 //!
@@ -23,8 +24,8 @@
 
 pub mod cpu;
 pub mod export;
-pub mod glb;
 mod facade;
+pub mod glb;
 pub mod gpu;
 pub mod lod;
 pub mod render;

@@ -8,7 +8,7 @@
 
 use std::borrow::Cow;
 use std::collections::HashMap;
-use std::path::{Component, Path};
+use std::path::Path;
 use std::sync::Arc;
 
 use base64::Engine as _;
@@ -23,6 +23,7 @@ use super::scene::{
     AnimationTracks, MeshNames, WeightTrack, json_nodes, mesh_label, mesh_target_count,
     scene_instances, tracks_bytes,
 };
+use super::uri::resolve_relative;
 use super::{ImportError, ImportOptions};
 use super::{extensions, meshopt, skin};
 use crowdmorph_core::budget::Budget;
@@ -427,22 +428,6 @@ impl From<String> for UriError {
 
 /// Loads a buffer URI: a base64 data URI, or a relative file under `options.base_dir`; the
 /// bytes are charged to `budget` before they are allocated.
-/// The file a relative URI names beside a `.gltf` in `base`, refused when it is absolute or
-/// climbs out of that folder.
-pub(crate) fn resolve_relative(base: &Path, uri: &str) -> Result<std::path::PathBuf, String> {
-    let decoded = percent_decode(uri);
-    let rel = Path::new(&decoded);
-    if rel
-        .components()
-        .any(|c| !matches!(c, Component::Normal(_) | Component::CurDir))
-    {
-        return Err(format!(
-            "external path {uri:?} must be relative and stay in the file's folder"
-        ));
-    }
-    Ok(base.join(rel))
-}
-
 fn load_uri(uri: &str, options: &ImportOptions, budget: &Budget) -> Result<Vec<u8>, UriError> {
     if let Some(rest) = uri.strip_prefix("data:") {
         let (meta, data) = rest
@@ -480,26 +465,6 @@ fn load_uri(uri: &str, options: &ImportOptions, budget: &Budget) -> Result<Vec<u
 /// parser allocate gigabytes unnoticed.
 pub(crate) fn document_cost(json: &[u8]) -> u64 {
     json.len() as u64 + 256 * json_nodes(json)
-}
-
-fn percent_decode(s: &str) -> String {
-    let b = s.as_bytes();
-    let hex = |c: u8| (c as char).to_digit(16);
-    let mut out = Vec::with_capacity(b.len());
-    let mut i = 0;
-    while i < b.len() {
-        if b[i] == b'%'
-            && i + 2 < b.len()
-            && let (Some(h), Some(l)) = (hex(b[i + 1]), hex(b[i + 2]))
-        {
-            out.push((h * 16 + l) as u8);
-            i += 3;
-            continue;
-        }
-        out.push(b[i]);
-        i += 1;
-    }
-    String::from_utf8_lossy(&out).into_owned()
 }
 
 fn read_vec3(

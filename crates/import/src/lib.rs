@@ -9,6 +9,7 @@
 //! | `meshopt` | `EXT_meshopt_compression` buffer views |
 //! | [`extensions`] | the extension policy: which are read, ignored, or refused by name |
 //! | [`image`] | texture images: headers sniffed and charged before decoding, downscale, mips |
+//! | `uri` | files a `.gltf` names beside itself: percent-decoded, kept inside its folder |
 //! | `material` | materials, textures, samplers and the images they reach ([`crowdmorph_core::rig::Appearance`]) |
 //! | [`clips`] | CSV, JSON and glTF clips mapped onto an existing rig; joint-map columns become joint tables |
 //! | `skin` | skins, meshes under animated nodes, node animation baked into joint tables |
@@ -33,6 +34,7 @@ mod material;
 mod meshopt;
 mod scene;
 mod skin;
+mod uri;
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;

@@ -576,7 +576,7 @@ fn fetch(
         ));
         return Ok(None);
     };
-    let path = super::gltf::resolve_relative(base, uri).map_err(bad)?;
+    let path = super::uri::resolve_relative(base, uri).map_err(bad)?;
     let len = std::fs::metadata(&path)
         .map_err(|e| bad(format!("cannot read {}: {e}", path.display())))?
         .len();
