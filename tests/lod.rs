@@ -981,7 +981,10 @@ fn textured_rig(name: &str, meshes: Vec<TexturedMesh>) -> Rig {
                 },
                 base_color: Primitive::default_base_color(),
                 skin: None,
-                look: VertexLook { uv0: Some(uv) },
+                look: VertexLook {
+                    uv0: Some(uv),
+                    ..VertexLook::default()
+                },
             }
         })
         .collect();
