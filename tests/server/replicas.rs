@@ -1111,3 +1111,41 @@ async fn a_lod_build_whose_replica_dies_is_taken_over() {
     drop(procs);
     let _ = std::fs::remove_dir_all(&store);
 }
+
+/// A textured rig uploaded to one replica is drawn the same by another: its materials, its
+/// images' bytes and its mesh's texture coordinates come through the shared store.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_test_data),
+    ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+)]
+async fn a_textured_rig_reaches_every_replica_with_its_appearance() {
+    let store = temp_dir("shared-store-appearance");
+    let url = format!("file://{}", store.display());
+    let (_procs, c) = replicas(&url, 2, &[]).await;
+    let path = crate::util::data_dir()
+        .join("khronos/MorphPrimitivesTest/glTF/MorphPrimitivesTest.gltf");
+    let glb = Bytes::from(crate::util::pack::self_contained_glb(&path));
+    c[0].upload_rig("prims", glb).await.expect("upload");
+    let here = c[0].materials("prims").await.expect("materials");
+    // The other replica finds it in the store on the first request that names it.
+    let mut there = None;
+    for _ in 0..100 {
+        if let Ok(m) = c[1].materials("prims").await {
+            there = Some(m);
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let there = there.expect("the rig reaches the other replica");
+    assert_eq!(there, here, "the same materials, images and URIs");
+    let images = here["images"].as_array().expect("images");
+    assert_eq!(images.len(), 1);
+    let (a, _) = c[0].texture("prims", 0).await.expect("texture here");
+    let (b, ct) = c[1].texture("prims", 0).await.expect("texture there");
+    assert_eq!((a, ct.as_str()), (b, "image/jpeg"));
+    let ma = c[0].mesh("prims", Encoding::Bincode).await.expect("mesh");
+    let mb = c[1].mesh("prims", Encoding::Bincode).await.expect("mesh");
+    assert!(!mb.uvs.0.is_empty());
+    assert_eq!((ma.uvs, ma.primitives), (mb.uvs, mb.primitives));
+}
