@@ -2,11 +2,13 @@
 //!
 //! What it draws: each [`SceneMesh`] is one blended vertex buffer (positions and per-vertex
 //! normals, evaluation order) with its rig's — or mesh level's — triangles ([`MeshTopology`]),
-//! drawn once per instance with the instance's model matrix. Shading is Lambert from a key light
-//! at the camera's upper left and a dimmer fill from its lower right, plus ambient, times each
-//! primitive's glTF base colour (linear), with a modest Blinn-Phong highlight from the key light
-//! (skin is not shiny). Lights are fixed relative to the camera, and nothing depends on time or
-//! randomness, so the same input gives the same picture. The frame is drawn with 4× MSAA and a
+//! drawn once per instance with the instance's model matrix. Shading is glTF 2.0's
+//! metallic-roughness BRDF (Appendix B) of each primitive's material — or, for a primitive
+//! without one, its base colour as a half-rough dielectric — under a key light at the camera's
+//! upper left, a dimmer fill from its lower right and a hemisphere ambient ([`brdf`], the
+//! shader's CPU mirror, which also gives reference renderers the same lights). Lights are
+//! fixed relative to the camera, and nothing depends on time or randomness, so the same input
+//! gives the same picture. The frame is drawn with 4× MSAA and a
 //! reversed-Z depth buffer (depth 1 at `near`, 0 at `far`, in f32: precision where the heads
 //! are, whatever near/far the caller gives), resolved into an `Rgba8UnormSrgb` texture — the
 //! shader works in linear colour and the target encodes sRGB — and read back as tightly packed
@@ -44,10 +46,11 @@ use std::time::Instant;
 
 use glam::{Mat3, Mat4, Vec3};
 
+use super::brdf;
 use crate::gpu::{GpuContext, MapResults, Reclaim};
 use crowdmorph_core::budget::{BudgetError, Charge};
 use crowdmorph_core::cancel::{Cancel, Cancelled};
-use crowdmorph_core::rig::Rig;
+use crowdmorph_core::rig::{AlphaMode, Material, Rig};
 
 /// MSAA samples per pixel.
 pub const SAMPLES: u32 = 4;
@@ -92,16 +95,6 @@ pub fn fixed_bytes(adapter: &wgpu::AdapterInfo) -> u64 {
     }
 }
 
-/// Key light: from the camera's upper left and a little in front (view space: x right, y up,
-/// z toward the viewer), unit direction toward the light, and its intensity.
-const KEY: (Vec3, f32) = (Vec3::new(-0.5, 0.6, 0.8), 0.75);
-/// Fill light: dimmer, from the lower right, so the key's shadow side is not flat.
-const FILL: (Vec3, f32) = (Vec3::new(0.7, -0.2, 0.6), 0.25);
-/// Ambient term.
-const AMBIENT: f32 = 0.18;
-/// Strength and exponent of the Blinn-Phong highlight (modest: skin is not shiny).
-const SPECULAR: (f32, f32) = (0.12, 32.0);
-
 /// Where a mesh's vertex attribute lives.
 #[derive(Clone, Copy, Debug)]
 pub enum VertexSource<'a> {
@@ -133,12 +126,12 @@ pub struct MeshTopology {
     _charge: Charge,
 }
 
-/// One primitive's slice of a topology's index buffer.
+/// One primitive's slice of a topology's index buffer, and what it is drawn with.
 #[derive(Clone, Debug)]
 struct TopologyPrimitive {
     indices: Range<u32>,
-    /// Linear RGBA, clamped to [0, 1].
-    color: [f32; 4],
+    /// Its material's uniform slot, made once at upload.
+    material: MaterialUniform,
 }
 
 impl std::fmt::Debug for MeshTopology {
@@ -232,15 +225,72 @@ pub enum RenderError {
     Cancelled(#[from] Cancelled),
 }
 
-/// The per-render uniform block the shader's `Camera` mirrors.
+/// The per-render uniform block the shader's `Camera` mirrors: the view and the lights
+/// ([`brdf::reference_lights`]).
 #[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+#[derive(Clone, Copy, Debug, bytemuck::Pod, bytemuck::Zeroable)]
 struct CameraUniform {
     view_proj: [f32; 16],
     eye: [f32; 4],
     key: [f32; 4],
     fill: [f32; 4],
-    shading: [f32; 4],
+    up: [f32; 4],
+    sky: [f32; 4],
+    ground: [f32; 4],
+}
+
+/// One primitive draw's material, the shader's `Material`: a glTF metallic-roughness
+/// material's factors and flags.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+struct MaterialUniform {
+    /// Linear RGBA base colour factor.
+    base: [f32; 4],
+    /// Emissive factor × strength (rgb).
+    emissive: [f32; 4],
+    /// Metallic, roughness, normal scale, occlusion strength.
+    pbr: [f32; 4],
+    /// Alpha cutoff, alpha mode (0 opaque, 1 mask, 2 blend), unlit, double-sided.
+    alpha: [f32; 4],
+}
+
+impl MaterialUniform {
+    /// The uniform of `m`, every factor clamped to its range (a NaN to the factor's default),
+    /// so that no input reaches the shader as a NaN.
+    fn of(m: &Material) -> MaterialUniform {
+        let unit = |v: f32, default: f32| {
+            if v.is_finite() {
+                v.clamp(0.0, 1.0)
+            } else {
+                default
+            }
+        };
+        let finite = |v: f32, default: f32| if v.is_finite() { v } else { default };
+        let strength = finite(m.emissive_strength, 1.0).max(0.0);
+        let e = m.emissive_factor.map(|c| unit(c, 0.0) * strength);
+        let mode = match m.alpha_mode {
+            AlphaMode::Opaque => 0.0,
+            AlphaMode::Mask => 1.0,
+            AlphaMode::Blend => 2.0,
+        };
+        let flag = |b: bool| if b { 1.0 } else { 0.0 };
+        MaterialUniform {
+            base: m.base_color_factor.map(|c| unit(c, 1.0)),
+            emissive: [e[0], e[1], e[2], 0.0],
+            pbr: [
+                unit(m.metallic_factor, 1.0),
+                unit(m.roughness_factor, 1.0),
+                finite(m.normal_scale, 1.0),
+                unit(m.occlusion_strength, 1.0),
+            ],
+            alpha: [
+                finite(m.alpha_cutoff, 0.5),
+                mode,
+                flag(m.unlit),
+                flag(m.double_sided),
+            ],
+        }
+    }
 }
 
 /// One instance in the per-instance vertex buffer: model matrix and normal matrix by columns.
@@ -509,8 +559,12 @@ impl Renderer {
             false,
             size_of::<CameraUniform>(),
         );
-        let material_layout =
-            uniform_layout("render material", wgpu::ShaderStages::FRAGMENT, true, 16);
+        let material_layout = uniform_layout(
+            "render material",
+            wgpu::ShaderStages::FRAGMENT,
+            true,
+            size_of::<MaterialUniform>(),
+        );
         let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some("render"),
             bind_group_layouts: &[Some(&camera_layout), Some(&material_layout)],
@@ -596,6 +650,7 @@ impl Renderer {
             material_layout,
             uniform_align: u64::from(limits.min_uniform_buffer_offset_alignment)
                 .max(size_of::<CameraUniform>() as u64)
+                .max(size_of::<MaterialUniform>() as u64)
                 .next_power_of_two(),
             max_size: limits.max_texture_dimension_2d,
             max_buffer: limits.max_buffer_size,
@@ -701,17 +756,19 @@ impl Renderer {
             }
             let start = indices.len() as u32;
             indices.extend(p.indices.iter().map(|&i| i + first_vertex));
-            let color = p.base_color.map(|c| {
-                if c.is_finite() {
-                    c.clamp(0.0, 1.0)
-                } else {
-                    1.0
-                }
-            });
+            // A primitive without a material draws its base colour, dielectric and half rough
+            // (`Material::untextured`): glTF's default material is black without an
+            // environment map. The rig's validation keeps the index in range; one that is not
+            // falls back the same way rather than failing the upload.
+            let material = p
+                .look
+                .material
+                .and_then(|m| rig.appearance.as_ref()?.materials.get(m as usize).cloned())
+                .unwrap_or_else(|| Material::untextured(p.base_color));
             if indices.len() as u32 > start {
                 primitives.push(TopologyPrimitive {
                     indices: start..indices.len() as u32,
-                    color,
+                    material: MaterialUniform::of(&material),
                 });
             }
             first_vertex += n;
@@ -908,7 +965,8 @@ impl Renderer {
         for draw in &layout.draws {
             for (k, p) in draw.topology.primitives.iter().enumerate() {
                 let at = ((draw.first_material + k as u64) * self.uniform_align) as usize;
-                uniforms[at..at + 16].copy_from_slice(bytemuck::cast_slice(&p.color));
+                uniforms[at..at + size_of::<MaterialUniform>()]
+                    .copy_from_slice(bytemuck::bytes_of(&p.material));
             }
         }
         queue.write_buffer(&scratch.uniforms, 0, &uniforms);
@@ -945,7 +1003,7 @@ impl Renderer {
                 resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
                     buffer: &scratch.uniforms,
                     offset: 0,
-                    size: NonZeroU64::new(16),
+                    size: NonZeroU64::new(size_of::<MaterialUniform>() as u64),
                 }),
             }],
         });
@@ -1535,7 +1593,6 @@ fn camera(view: &View, frame: &Frame) -> Result<CameraUniform, RenderError> {
             "the eye is at the target, or up is parallel to the view direction".into(),
         ));
     }
-    let up = right.cross(forward);
     // Depth 1 at the near plane and 0 at the far plane (reversed Z); the scene layout checked
     // this same matrix, so a request's view never fails here.
     let view_proj = view.clip_from_world(frame.width as f32 / frame.height as f32);
@@ -1544,15 +1601,17 @@ fn camera(view: &View, frame: &Frame) -> Result<CameraUniform, RenderError> {
             "the view gives a non-finite projection: {view:?}"
         )));
     }
-    let to_world = |v: Vec3| (right * v.x + up * v.y - forward * v.z).normalize();
-    let key = to_world(KEY.0);
-    let fill = to_world(FILL.0);
+    let lights = brdf::reference_lights(view)
+        .ok_or_else(|| RenderError::Invalid("a view without a direction has no lights".into()))?;
+    let light = |l: brdf::DirectionalLight| l.direction.extend(l.intensity).to_array();
     Ok(CameraUniform {
         view_proj: view_proj.to_cols_array(),
         eye: view.eye.extend(1.0).to_array(),
-        key: key.extend(KEY.1).to_array(),
-        fill: fill.extend(FILL.1).to_array(),
-        shading: [AMBIENT, SPECULAR.0, SPECULAR.1, 0.0],
+        key: light(lights.key),
+        fill: light(lights.fill),
+        up: lights.up.extend(0.0).to_array(),
+        sky: lights.sky.extend(0.0).to_array(),
+        ground: lights.ground.extend(0.0).to_array(),
     })
 }
 
@@ -1585,6 +1644,87 @@ mod tests {
                 assert!((a - b).length() < 1e-5, "{m:?} {v:?}: {a:?} vs {b:?}");
             }
         }
+    }
+
+    /// The size and member offsets naga computes for the WGSL struct `name` of render.wgsl.
+    fn wgsl_layout(name: &str) -> (u32, Vec<(String, u32)>) {
+        let src = include_str!("../../shaders/render.wgsl");
+        let module = naga::front::wgsl::parse_str(src).expect("render.wgsl parses");
+        for (_, ty) in module.types.iter() {
+            if ty.name.as_deref() != Some(name) {
+                continue;
+            }
+            if let naga::TypeInner::Struct { members, span } = &ty.inner {
+                let offsets = members
+                    .iter()
+                    .map(|m| (m.name.clone().unwrap_or_default(), m.offset))
+                    .collect();
+                return (*span, offsets);
+            }
+        }
+        panic!("render.wgsl has no struct {name}");
+    }
+
+    #[test]
+    fn uniform_structs_match_the_shaders_layout() {
+        use std::mem::offset_of;
+        let check = |name: &str, size: usize, fields: &[(&str, usize)]| {
+            let (span, members) = wgsl_layout(name);
+            assert_eq!(span as usize, size, "{name}: size");
+            let got: Vec<(&str, usize)> = members
+                .iter()
+                .map(|(n, o)| (n.as_str(), *o as usize))
+                .collect();
+            assert_eq!(got, fields, "{name}: members and offsets");
+        };
+        check(
+            "Camera",
+            size_of::<CameraUniform>(),
+            &[
+                ("view_proj", offset_of!(CameraUniform, view_proj)),
+                ("eye", offset_of!(CameraUniform, eye)),
+                ("key", offset_of!(CameraUniform, key)),
+                ("fill", offset_of!(CameraUniform, fill)),
+                ("up", offset_of!(CameraUniform, up)),
+                ("sky", offset_of!(CameraUniform, sky)),
+                ("ground", offset_of!(CameraUniform, ground)),
+            ],
+        );
+        check(
+            "Material",
+            size_of::<MaterialUniform>(),
+            &[
+                ("base", offset_of!(MaterialUniform, base)),
+                ("emissive", offset_of!(MaterialUniform, emissive)),
+                ("pbr", offset_of!(MaterialUniform, pbr)),
+                ("alpha", offset_of!(MaterialUniform, alpha)),
+            ],
+        );
+    }
+
+    #[test]
+    fn material_uniforms_keep_nans_and_out_of_range_factors_out_of_the_shader() {
+        let m = Material {
+            base_color_factor: [f32::NAN, 2.0, -1.0, 0.5],
+            metallic_factor: f32::INFINITY,
+            roughness_factor: -3.0,
+            emissive_factor: [0.5, f32::NAN, 1.0],
+            emissive_strength: 4.0,
+            alpha_mode: AlphaMode::Mask,
+            alpha_cutoff: f32::NAN,
+            double_sided: true,
+            ..Material::default()
+        };
+        let u = MaterialUniform::of(&m);
+        assert_eq!(u.base, [1.0, 1.0, 0.0, 0.5]);
+        assert_eq!(u.pbr, [1.0, 0.0, 1.0, 1.0]);
+        assert_eq!(u.emissive, [2.0, 0.0, 4.0, 0.0]);
+        assert_eq!(u.alpha, [0.5, 1.0, 0.0, 1.0]);
+        assert!(
+            bytemuck::cast_slice::<MaterialUniform, f32>(&[u])
+                .iter()
+                .all(|v| v.is_finite())
+        );
     }
 
     #[test]
