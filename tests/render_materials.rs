@@ -732,3 +732,109 @@ gpu_test!(
         assert_eq!(t.texture_slots(), 0);
     }
 );
+
+// ---------------------------------------------------------------------------------------------
+// Normal maps
+// ---------------------------------------------------------------------------------------------
+
+gpu_test!(
+    #[test]
+    fn a_normal_mapped_flat_quad_shades_as_its_perturbed_normal() {
+        let r = renderer();
+        let view = view();
+        let size = 65;
+        // One tangent-space normal everywhere, (0.65, −0.53, 0.57) before normalization:
+        // linear data (sampled through the linear view).
+        let texel = [210u8, 60, 200, 255];
+        let decode = |c: u8| f32::from(c) / 255.0 * 2.0 - 1.0;
+        let tn = Vec3::new(decode(texel[0]), decode(texel[1]), decode(texel[2]));
+        let material = Material {
+            base_color_factor: [0.6, 0.6, 0.6, 1.0],
+            metallic_factor: 0.0,
+            roughness_factor: 0.4,
+            normal_texture: tex(0, None),
+            normal_scale: 0.8,
+            ..Material::default()
+        };
+        let s = surface(&material);
+        let appearance = with_image(vec![material], mips(4, 4, |_, _| texel), Sampler::default());
+        // glTF tangent space: t along u, bitangent up the image (against v), n out of the
+        // surface; the map's xy are scaled by normal_scale.
+        let scaled = Vec3::new(tn.x * 0.8, tn.y * 0.8, tn.z);
+        // (layout, tangents from the file?, world t, world b): u to the right (generated, and
+        // from the file), and u up the quad with v to the right (generated).
+        let rotated_uv = vec![
+            Vec2::new(1.0, 0.0),
+            Vec2::new(1.0, 1.0),
+            Vec2::new(0.0, 1.0),
+            Vec2::new(0.0, 0.0),
+        ];
+        let cases: [(Option<Vec<Vec2>>, bool, Vec3, Vec3); 3] = [
+            (None, false, Vec3::X, Vec3::Y),
+            (None, true, Vec3::X, Vec3::Y),
+            (Some(rotated_uv), false, Vec3::Y, -Vec3::X),
+        ];
+        for (k, (uv, file_tangents, t, b)) in cases.into_iter().enumerate() {
+            let mut q = quad("quad", 1.0, Some(0));
+            if let Some(uv) = uv {
+                q.look.uv0 = Some(uv);
+            }
+            if file_tangents {
+                q.tangents = Some(vec![Vec4::new(1.0, 0.0, 0.0, 1.0); 4]);
+            }
+            let rig = rig(vec![q], Some(appearance.clone()));
+            let rgba = render(&r, &rig, &[Mat4::IDENTITY], &view, size);
+            let n = (t * scaled.x + b * scaled.y + Vec3::Z * scaled.z).normalize();
+            for (x, y) in [(32, 32), (26, 28), (38, 37)] {
+                let p = hit(&view, size, x, y, Vec3::ZERO, Vec3::Z);
+                let want = expected(&view, &s, p, n);
+                let got = pixel(&rgba, size, x, y);
+                assert!(
+                    max_delta(got, want) <= 3,
+                    "case {k}, pixel ({x}, {y}): {got:?}, the perturbed normal's {want:?}"
+                );
+                // And it is not the flat quad's colour.
+                let flat = expected(&view, &s, p, Vec3::Z);
+                let apart = (0..3).map(|i| want[i].abs_diff(flat[i])).max();
+                assert!(apart > Some(8), "the map must change the picture");
+            }
+        }
+    }
+);
+
+gpu_test!(
+    #[test]
+    fn occlusion_and_emissive_textures_scale_by_their_strengths() {
+        let r = renderer();
+        let view = view();
+        let size = 65;
+        // R = 0.4 occlusion, and an sRGB emissive colour, from one image (channels apart).
+        let texel = [102u8, 200, 60, 255];
+        let material = Material {
+            base_color_factor: [0.5, 0.5, 0.5, 1.0],
+            metallic_factor: 0.0,
+            roughness_factor: 0.7,
+            occlusion_texture: tex(0, None),
+            occlusion_strength: 0.5,
+            emissive_texture: tex(0, None),
+            emissive_factor: [0.5, 0.25, 1.0],
+            emissive_strength: 2.0,
+            ..Material::default()
+        };
+        let ao = 1.0 + 0.5 * (f32::from(texel[0]) / 255.0 - 1.0);
+        let emissive = Vec3::new(0.5, 0.25, 1.0)
+            * 2.0
+            * Vec3::from_array([texel[0], texel[1], texel[2]].map(brdf::srgb8_to_linear));
+        let s = Surface {
+            occlusion: ao,
+            emissive,
+            ..surface(&material)
+        };
+        let appearance = with_image(vec![material], mips(4, 4, |_, _| texel), Sampler::default());
+        let rig = rig(vec![quad("quad", 1.0, Some(0))], Some(appearance));
+        let rgba = render(&r, &rig, &[Mat4::IDENTITY], &view, size);
+        let want = expected(&view, &s, Vec3::ZERO, Vec3::Z);
+        let got = pixel(&rgba, size, 32, 32);
+        assert!(max_delta(got, want) <= 3, "{got:?} vs {want:?}");
+    }
+);

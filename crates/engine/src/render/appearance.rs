@@ -124,6 +124,55 @@ pub(super) fn push_attrs(
     }));
 }
 
+/// Rest tangents for a primitive without any, from its positions, normals and the texture
+/// coordinates `uv` its normal map reads: meshoptimizer's MikkTSpace-compatible generator
+/// (per triangle corner), reduced to one per vertex by averaging the corners of the
+/// handedness most of them have (a vertex on a mirror seam keeps its majority side). The
+/// generator's handedness is turned round: glTF's v runs down the image, MikkTSpace's up, so
+/// glTF's bitangent `cross(n, t) · w` points the other way (three.js negates it too). `None`
+/// when the arrays do not match the vertices.
+pub(super) fn generate_tangents(p: &Primitive, uv: &[glam::Vec2]) -> Option<Vec<glam::Vec4>> {
+    let n = p.positions.len();
+    if uv.len() != n || p.normals.len() != n || p.indices.is_empty() {
+        return None;
+    }
+    let positions: &[[f32; 3]] = bytemuck::cast_slice(&p.positions);
+    let normals: &[[f32; 3]] = bytemuck::cast_slice(&p.normals);
+    let uvs: &[[f32; 2]] = bytemuck::cast_slice(uv);
+    let corners = meshopt::generate_tangents(
+        Some(&p.indices),
+        positions,
+        normals,
+        uvs,
+        meshopt::TangentOptions::Compatible,
+    );
+    // Per vertex: the sums and counts of its corners' tangents by handedness.
+    let mut sums = vec![[glam::Vec3::ZERO; 2]; n];
+    let mut counts = vec![[0u32; 2]; n];
+    for (&v, t) in p.indices.iter().zip(&corners) {
+        let side = usize::from(t[3] < 0.0);
+        if t[3] == 0.0 {
+            continue;
+        }
+        sums[v as usize][side] += glam::Vec3::new(t[0], t[1], t[2]);
+        counts[v as usize][side] += 1;
+    }
+    Some(
+        sums.iter()
+            .zip(&counts)
+            .map(|(s, c)| {
+                let side = usize::from(c[1] > c[0]);
+                // MikkTSpace's +1 is glTF's −1 (see above).
+                let w = if side == 0 { -1.0 } else { 1.0 };
+                match s[side].try_normalize() {
+                    Some(t) => t.extend(w),
+                    None => glam::Vec4::ZERO,
+                }
+            })
+            .collect(),
+    )
+}
+
 /// The bind group layout of group 2: five 2D float textures, then their five samplers.
 pub(super) fn texture_layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
     let mut entries = Vec::with_capacity(2 * SLOTS.len());
@@ -591,6 +640,49 @@ mod tests {
             materials: vec![Material::default()],
             ..none
         }));
+    }
+
+    #[test]
+    fn generated_tangents_follow_u_with_gltfs_handedness() {
+        use glam::{Vec2, Vec3, Vec4};
+        // A square facing +Z, u to the right and v down (glTF's image convention): the
+        // tangent is +X, and the bitangent cross(n, t)·w must be +Y, "up" in the image.
+        let p = Primitive {
+            name: "quad".into(),
+            positions: vec![
+                Vec3::new(-1.0, 1.0, 0.0),
+                Vec3::new(1.0, 1.0, 0.0),
+                Vec3::new(1.0, -1.0, 0.0),
+                Vec3::new(-1.0, -1.0, 0.0),
+            ],
+            normals: vec![Vec3::Z; 4],
+            normals_from_file: true,
+            tangents: None,
+            indices: vec![0, 3, 2, 0, 2, 1],
+            targets: Vec::new(),
+            base_color: [1.0; 4],
+            skin: None,
+            look: Default::default(),
+        };
+        let uv = [
+            Vec2::new(0.0, 0.0),
+            Vec2::new(1.0, 0.0),
+            Vec2::new(1.0, 1.0),
+            Vec2::new(0.0, 1.0),
+        ];
+        let t = generate_tangents(&p, &uv).expect("tangents");
+        for t in &t {
+            assert!((*t - Vec4::new(1.0, 0.0, 0.0, 1.0)).length() < 1e-5, "{t}");
+            let b = Vec3::Z.cross(t.truncate()) * t.w;
+            assert!((b - Vec3::Y).length() < 1e-5);
+        }
+        // Mirrored along u (u to the left): the tangent turns round and so does w, so the
+        // bitangent still points up the image.
+        let mirrored: Vec<Vec2> = uv.iter().map(|c| Vec2::new(1.0 - c.x, c.y)).collect();
+        for t in generate_tangents(&p, &mirrored).expect("tangents") {
+            assert!((t - Vec4::new(-1.0, 0.0, 0.0, -1.0)).length() < 1e-5, "{t}");
+        }
+        assert!(generate_tangents(&p, &uv[..3]).is_none());
     }
 
     #[test]

@@ -964,7 +964,17 @@ impl Renderer {
         for p in rig.primitives.iter() {
             let start = indices.len() as u32;
             indices.extend(p.indices.iter().map(|&i| i + first_vertex));
-            appearance::push_attrs(&mut attrs, p, p.tangents.as_deref());
+            // Tangents only matter under a normal map; without the file's, they are made here
+            // from the texture coordinates the map reads.
+            let generated = match (&p.tangents, normal_map_set(rig, p)) {
+                (None, Some(uv)) => appearance::generate_tangents(p, uv),
+                _ => None,
+            };
+            appearance::push_attrs(
+                &mut attrs,
+                p,
+                generated.as_deref().or(p.tangents.as_deref()),
+            );
             // A primitive without a material draws its base colour, dielectric and half rough
             // (`Material::untextured`): glTF's default material is black without an
             // environment map. The rig's validation keeps the index in range; one that is not
@@ -1811,6 +1821,20 @@ fn pass_pieces(layout: &Layout<'_>, budget: u64) -> Vec<Vec<Piece>> {
         .map(|i| (i.triangles, i.instances.end - i.instances.start))
         .collect();
     cut_passes(&sizes, budget)
+}
+
+/// The texture coordinates primitive `p`'s normal map reads, when its material has a normal
+/// texture with decoded pixels and the primitive has that coordinate set.
+fn normal_map_set<'a>(rig: &Rig, p: &'a Primitive) -> Option<&'a [glam::Vec2]> {
+    let a = rig.appearance.as_ref()?;
+    let m = a.materials.get(p.look.material? as usize)?;
+    let r = m.normal_texture.as_ref()?;
+    a.image_of(r)?.pixels.as_ref()?;
+    match r.tex_coord {
+        0 => p.look.uv0.as_deref(),
+        1 => p.look.uv1.as_deref(),
+        _ => None,
+    }
 }
 
 /// Whether a model matrix mirrors (its 3×3 has a negative determinant).
