@@ -1123,8 +1123,8 @@ async fn a_textured_rig_reaches_every_replica_with_its_appearance() {
     let store = temp_dir("shared-store-appearance");
     let url = format!("file://{}", store.display());
     let (_procs, c) = replicas(&url, 2, &[]).await;
-    let path = crate::util::data_dir()
-        .join("khronos/MorphPrimitivesTest/glTF/MorphPrimitivesTest.gltf");
+    let path =
+        crate::util::data_dir().join("khronos/MorphPrimitivesTest/glTF/MorphPrimitivesTest.gltf");
     let glb = Bytes::from(crate::util::pack::self_contained_glb(&path));
     c[0].upload_rig("prims", glb).await.expect("upload");
     let here = c[0].materials("prims").await.expect("materials");

@@ -364,6 +364,18 @@ pub(super) fn has_textures(a: &Appearance) -> bool {
     })
 }
 
+/// Why a rig's textures were not uploaded (the renderer's `RenderError` wraps it; this
+/// module does not name the renderer, which uses it).
+#[derive(Debug, thiserror::Error)]
+pub enum UploadError {
+    /// An image does not fit the device's limits.
+    #[error("{0}")]
+    Invalid(String),
+    /// `--max-gpu-memory` refused the textures.
+    #[error(transparent)]
+    Memory(#[from] crowdmorph_core::budget::BudgetError),
+}
+
 /// Uploads `a`'s textures to `ctx`'s device (charged first) and makes the materials' bind
 /// groups. Errors of the device are left to the caller's error scope.
 pub(super) fn upload(
@@ -372,9 +384,8 @@ pub(super) fn upload(
     fallback: &Fallback,
     a: &Appearance,
     max_size: u32,
-) -> Result<GpuAppearance, super::gpu::RenderError> {
-    let (bytes, chains) =
-        plan(a, max_size).map_err(|e| super::gpu::RenderError::Invalid(e.to_string()))?;
+) -> Result<GpuAppearance, UploadError> {
+    let (bytes, chains) = plan(a, max_size).map_err(|e| UploadError::Invalid(e.to_string()))?;
     let charge = ctx.charge(bytes, || {
         format!(
             "{} images' textures on the GPU ({bytes} bytes)",

@@ -1081,7 +1081,10 @@ impl Renderer {
             self.max_size,
         );
         scopes.pop("uploading a rig's textures")?;
-        let g = Arc::new(uploaded?);
+        let g = Arc::new(uploaded.map_err(|e| match e {
+            appearance::UploadError::Invalid(m) => RenderError::Invalid(m),
+            appearance::UploadError::Memory(b) => RenderError::Memory(b),
+        })?);
         if let Ok(mut c) = self.appearances.lock() {
             live(&mut c);
             c.push((Arc::downgrade(a), Arc::downgrade(&g)));
