@@ -206,7 +206,10 @@ async fn check_model(server: &TestServer, id: &str) {
         &crowdmorph::import::ImportOptions::default(),
     )
     .expect("the GLB imports");
-    assert!(rig.targets.is_empty() && rig.clips.is_empty(), "no morph targets or clips");
+    assert!(
+        rig.targets.is_empty() && rig.clips.is_empty(),
+        "no morph targets or clips"
+    );
     let mesh = client.mesh(id, Encoding::Bincode).await.expect("mesh");
     assert_eq!(rig.vertex_count(), mesh.vertices as usize, "{id}: vertices");
     let positions: Vec<f32> = rig
@@ -214,7 +217,11 @@ async fn check_model(server: &TestServer, id: &str) {
         .iter()
         .flat_map(|p| p.positions.iter().flat_map(|v| v.to_array()))
         .collect();
-    assert_eq!(positions, f32s(&mesh.positions.0), "{id}: the mesh's vertex order");
+    assert_eq!(
+        positions,
+        f32s(&mesh.positions.0),
+        "{id}: the mesh's vertex order"
+    );
     let uvs: Vec<f32> = rig
         .primitives
         .iter()
@@ -236,13 +243,20 @@ async fn check_model(server: &TestServer, id: &str) {
     assert_eq!(indices, want, "{id}: triangles");
     let a = rig.appearance.as_deref().expect("materials in the GLB");
     let m = client.materials(id).await.expect("materials");
-    assert_eq!(a.materials.len(), m["materials"].as_array().map_or(0, Vec::len));
+    assert_eq!(
+        a.materials.len(),
+        m["materials"].as_array().map_or(0, Vec::len)
+    );
     for (i, im) in a.images.iter().enumerate() {
         let (bytes, _) = client.texture(id, i).await.expect("texture");
         assert_eq!(&im.bytes[..], &bytes[..], "{id}: image {i} in the GLB");
     }
     for (p, mp) in rig.primitives.iter().zip(&mesh.primitives) {
-        assert_eq!(p.look.material, mp.material, "{id}: material of {}", mp.name);
+        assert_eq!(
+            p.look.material, mp.material,
+            "{id}: material of {}",
+            mp.name
+        );
     }
 }
 

@@ -98,7 +98,8 @@ pub fn model_glb(rig: &Rig) -> Result<Vec<u8>, GlbError> {
     };
     let mut primitives = Vec::with_capacity(rig.primitives.len());
     for p in rig.primitives.iter() {
-        let flat3 = |v: &[glam::Vec3]| -> Vec<f32> { v.iter().flat_map(|v| v.to_array()).collect() };
+        let flat3 =
+            |v: &[glam::Vec3]| -> Vec<f32> { v.iter().flat_map(|v| v.to_array()).collect() };
         let mut attributes = serde_json::Map::new();
         attributes.insert(
             "POSITION".into(),

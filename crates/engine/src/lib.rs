@@ -23,8 +23,8 @@
 
 pub mod cpu;
 pub mod export;
-pub mod glb;
 mod facade;
+pub mod glb;
 pub mod gpu;
 pub mod lod;
 pub mod render;

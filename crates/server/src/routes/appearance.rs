@@ -192,8 +192,8 @@ pub async fn get_model(
         crowdmorph_engine::glb::model_glb(&level).map_err(ApiError::internal)
     })
     .await?;
-    let etag = HeaderValue::from_str(&format!("\"g{generation}-l{lod}\""))
-        .map_err(ApiError::internal)?;
+    let etag =
+        HeaderValue::from_str(&format!("\"g{generation}-l{lod}\"")).map_err(ApiError::internal)?;
     let response = (
         StatusCode::OK,
         [
