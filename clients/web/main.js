@@ -246,7 +246,9 @@ function frameCrowd(heads) {
 // The stream.
 
 function defaultLodTable(info) {
-  const h = info.bbox.max[1] - info.bbox.min[1];
+  // The rig's largest extent, not its height: a flat rig (a floor, a card) would otherwise
+  // get every level at 0 m and be drawn at its coarsest however close.
+  const h = Math.max(...[0, 1, 2].map((a) => info.bbox.max[a] - info.bbox.min[a]));
   const levels = Math.max(info.lod.levels.length, 1);
   const rows = [];
   for (let l = 0; l < levels; l++) rows.push(`${Math.round(l * 8 * h)}:${l}`);
