@@ -54,6 +54,11 @@ export class Api {
     return this.request('GET', `/v1/rigs/${encodeURIComponent(id)}/mesh?lod=${lod}`);
   }
 
+  /** The rig's glTF materials, textures, samplers and images (always JSON). */
+  materials(id) {
+    return this.request('GET', `/v1/rigs/${encodeURIComponent(id)}/materials`);
+  }
+
   createSession(req) {
     return this.request('POST', '/v1/sessions', req);
   }

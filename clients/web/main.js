@@ -12,6 +12,11 @@
 // browser's DecompressionStream. Messages are applied strictly in arrival order, one after the
 // other, whatever the time each takes to inflate: a residual needs the buffer before it.
 //
+// What a rig looks like is fetched once per rig, beside its mesh: `GET /v1/rigs/{id}/materials`,
+// then each image the materials sample by its versioned URI with a plain fetch (so the
+// browser's HTTP cache keeps it: the server marks versioned textures immutable), decoded with
+// createImageBitmap and kept on the GPU. The stream carries none of it: 0 bytes per tick.
+//
 // For tests and for anyone inspecting the page, `window.crowdmorphViewer` tells what arrived and
 // what the heads hold (the last tick applied, message counts, a checksum of the decoded q16
 // values).
@@ -58,6 +63,11 @@ const state = {
   sessionId: null,
   rigs: new Map(), // rig id → RigInfo (or a pending promise)
   pendingTopologies: new Map(), // topology key → promise
+  appearance: new Map(), // rig id → promise of its materials, fetched once
+  images: new Map(), // "URI colour spaces" → promise of the image on the GPU
+  // Since the page opened: materials and image requests, images on the GPU, failures.
+  appearanceStats: { materialFetches: 0, imageFetches: 0, imagesReady: 0, imageFailures: 0 },
+  lastView: null, // What the last frame was drawn with, for tests.
   refetchAt: new Map(), // topology key → time of the last refetch for a vertex-count mismatch
   layout: [], // per layout head: {spec, entry, model}
   planned: [], // the heads as the server will have them at the next tick
@@ -146,14 +156,18 @@ function ensureTopology(key, rig, lod, vertices) {
   if (have && have.vertices === vertices) return;
   if (state.pendingTopologies.has(key)) return;
   if (have) {
-    // The rig's mesh levels changed under us (a new LOD was computed): fetch it again, at
-    // most every two seconds, and meanwhile skip heads whose buffers do not fit.
+    // The rig's mesh levels changed under us (a new LOD was computed, or the rig was uploaded
+    // again): fetch it again, at most every two seconds, and meanwhile skip heads whose
+    // buffers do not fit. Its materials may have changed too; images whose URI (which names
+    // their checksum) did not change are not fetched again.
     const last = state.refetchAt.get(key) || 0;
     if (performance.now() - last < 2000) return;
     state.refetchAt.set(key, performance.now());
     state.rigs.delete(rig);
+    state.appearance.delete(rig);
     rigInfo(rig).catch((e) => showError(`rig ${rig}: ${describe(e)}`));
   }
+  ensureAppearance(rig);
   const p = state.api
     .mesh(rig, lod)
     .then((mesh) => {
@@ -161,12 +175,87 @@ function ensureTopology(key, rig, lod, vertices) {
       for (let i = 0; i < indices.length; i++) {
         if (indices[i] >= mesh.vertices) throw new DecodeError(`mesh of ${rig}: index ${indices[i]} past ${mesh.vertices} vertices`);
       }
-      renderer.setTopology(key, mesh, indices);
+      // Texture coordinates: u, v per vertex, or nothing for a rig without any (and from a
+      // server older than them).
+      const uvBytes = mesh.uvs ? base64Bytes(mesh.uvs) : new ArrayBuffer(0);
+      if (uvBytes.byteLength !== 0 && uvBytes.byteLength !== mesh.vertices * 8) {
+        throw new DecodeError(`mesh of ${rig}: ${uvBytes.byteLength} texture coordinate bytes for ${mesh.vertices} vertices`);
+      }
+      const uvs = uvBytes.byteLength ? new Float32Array(uvBytes) : null;
+      renderer.setTopology(key, rig, mesh, indices, uvs);
       state.dirty = true;
     })
     .catch((e) => showError(`topology of ${rig} at LOD ${lod}: ${describe(e)}`))
     .finally(() => state.pendingTopologies.delete(key));
   state.pendingTopologies.set(key, p);
+}
+
+/** Fetches a rig's materials once, then the images they sample that the GPU lacks. */
+function ensureAppearance(rig) {
+  if (state.appearance.has(rig)) return;
+  state.appearanceStats.materialFetches++;
+  const p = state.api
+    .materials(rig)
+    .then((doc) => {
+      const wanted = renderer.setMaterials(rig, doc);
+      state.dirty = true;
+      for (const image of wanted) loadImage(image);
+    })
+    .catch((e) => showError(`materials of ${rig}: ${describe(e)}`));
+  state.appearance.set(rig, p);
+}
+
+/** The ImageBitmap option that keeps the image's rows as they are (older browsers say 'none'). */
+let imageOrientation = 'from-image';
+
+/**
+ * Decodes image bytes as glTF wants them: no colour space conversion (glTF ignores embedded
+ * profiles and gamma), no premultiplication (alpha is its own channel), rows top to bottom
+ * as stored (glTF's v = 0 is the top row; render.js uploads row 0 at t = 0). Larger than the
+ * GPU takes, it is scaled down while decoding.
+ */
+async function decodeImage(blob, width, height) {
+  const options = { colorSpaceConversion: 'none', premultiplyAlpha: 'none', imageOrientation };
+  const max = renderer.maxTextureSize;
+  if (width > max || height > max) {
+    const k = max / Math.max(width, height);
+    Object.assign(options, {
+      resizeWidth: Math.max(1, Math.floor(width * k)),
+      resizeHeight: Math.max(1, Math.floor(height * k)),
+      resizeQuality: 'high',
+    });
+  }
+  try {
+    return await createImageBitmap(blob, options);
+  } catch (e) {
+    if (!(e instanceof TypeError) || imageOrientation === 'none') throw e;
+    imageOrientation = 'none';
+    return createImageBitmap(blob, { ...options, imageOrientation });
+  }
+}
+
+/** Fetches one image (once per URI and colour spaces) and puts it on the GPU. */
+function loadImage({ uri, width, height, srgb, linear }) {
+  const key = `${uri} ${srgb} ${linear}`;
+  if (state.images.has(key)) return;
+  state.appearanceStats.imageFetches++;
+  const p = fetch(uri)
+    .then((resp) => {
+      if (!resp.ok) throw new ApiError(resp.status, 'http', `GET ${uri}`);
+      return resp.blob();
+    })
+    .then((blob) => decodeImage(blob, width, height))
+    .then((bitmap) => {
+      renderer.setImage(uri, bitmap, { srgb, linear });
+      bitmap.close();
+      state.appearanceStats.imagesReady++;
+      state.dirty = true;
+    })
+    .catch((e) => {
+      state.appearanceStats.imageFailures++;
+      showError(`texture ${uri}: ${describe(e)}`);
+    });
+  state.images.set(key, p);
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -246,7 +335,9 @@ function frameCrowd(heads) {
 // The stream.
 
 function defaultLodTable(info) {
-  const h = info.bbox.max[1] - info.bbox.min[1];
+  // The rig's largest extent, not its height: a flat rig (a floor, a card) would otherwise
+  // get every level at 0 m and be drawn at its coarsest however close.
+  const h = Math.max(...[0, 1, 2].map((a) => info.bbox.max[a] - info.bbox.min[a]));
   const levels = Math.max(info.lod.levels.length, 1);
   const rows = [];
   for (let l = 0; l < levels; l++) rows.push(`${Math.round(l * 8 * h)}:${l}`);
@@ -630,8 +721,10 @@ function frame() {
     const panel = $('panel').getBoundingClientRect();
     const width = renderer.canvas.clientWidth;
     if (width > 2.5 * panel.right) projection[8] -= panel.right / width;
-    const view = { viewProj: multiply(projection, camera.view()), eye: camera.eye() };
+    const viewMatrix = camera.view();
+    const view = { viewProj: multiply(projection, viewMatrix), view: viewMatrix, eye: camera.eye() };
     const drawn = renderer.draw(view, state.layout);
+    state.lastView = { viewProj: view.viewProj, eye: view.eye, layout: state.layout };
     // What was drawn, for tests and for anyone inspecting the page.
     const lods = new Set(state.layout.filter((h) => h.entry).map((h) => h.entry.lod));
     Object.assign(renderer.canvas.dataset, {
@@ -720,6 +813,23 @@ window.crowdmorphViewer = Object.freeze({
     return { ...state.received, variants: [...state.received.variants] };
   },
   q16Checksum,
+  /** Appearance requests since the page opened, and the textures on the GPU. */
+  get appearance() {
+    return { ...state.appearanceStats, textures: renderer ? renderer.textureCount : 0 };
+  },
+  /** What the last frame was drawn with: the view-projection matrix (column-major), the
+   * drawing buffer's size, the eye, and each drawn head's model matrix. */
+  get view() {
+    const v = state.lastView;
+    if (!v) return null;
+    return {
+      viewProj: Array.from(v.viewProj),
+      eye: v.eye.slice(),
+      width: renderer.canvas.width,
+      height: renderer.canvas.height,
+      heads: v.layout.filter((h) => h.entry).map((h) => ({ head: h.spec.head, rig: h.spec.rig, model: Array.from(h.model) })),
+    };
+  },
   /** Tick, checksum and counters at one instant (messages are applied between tasks). */
   snapshot() {
     return { tick: state.tick, checksum: q16Checksum(), received: this.received };

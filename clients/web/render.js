@@ -1,12 +1,24 @@
-// The WebGL2 renderer: one index buffer per (rig, mesh level), one pair of vertex buffers per
-// unique blended buffer the heads show (uploaded when first drawn), and one draw per head and
-// primitive with the head's placement. q16 positions stay 16-bit on the GPU: the vertex shader dequantizes them
-// with the buffer's box (x = min + (q + 32768) × step), and q16 normals are read as normalized
-// shorts. Lighting is Lambert plus a Blinn highlight from a headlight at the eye.
+// The WebGL2 renderer: one index buffer (and, for a textured rig, one texture coordinate
+// buffer) per (rig, mesh level), one pair of vertex buffers per unique blended buffer the heads
+// show (uploaded when first drawn), and one draw per head and primitive with the head's
+// placement. q16 positions stay 16-bit on the GPU: the vertex shader dequantizes them with the
+// buffer's box (x = min + (q + 32768) × step), and q16 normals are read as normalized shorts.
+// Texture coordinates never change with the weights, so they are static per topology and bound
+// beside the streamed buffers in each head's vertex array: appearance costs no byte per tick.
+//
+// Primitives with a glTF material (GET /v1/rigs/{id}/materials) are shaded as glTF 2.0's
+// Appendix B has it: metallic-roughness with GGX, height-correlated Smith and Schlick, under a
+// key and a fill light that turn with the camera and a sky/ground hemisphere, sRGB out and no
+// tone mapping; base colour and emissive textures are sRGB, the others linear, each with the
+// file's sampler and KHR_texture_transform. MASK discards, BLEND is drawn after everything
+// opaque, far heads first, without writing depth; single-sided materials cull back faces.
+// Primitives without a material keep the plaster look: Lambert plus a Blinn highlight from a
+// headlight, coloured by primitive name.
 
 const VERTEX_SHADER = `#version 300 es
 layout(location = 0) in vec3 a_position;
 layout(location = 1) in vec3 a_normal;
+layout(location = 2) in vec2 a_uv;
 uniform mat4 u_view_proj;
 uniform mat4 u_model;
 uniform vec3 u_qmin;
@@ -14,17 +26,19 @@ uniform vec3 u_qstep;
 uniform float u_qbias;
 out vec3 v_world;
 out vec3 v_normal;
+out vec2 v_uv;
 void main() {
   vec3 p = u_qmin + (a_position + u_qbias) * u_qstep;
   vec4 world = u_model * vec4(p, 1.0);
   v_world = world.xyz;
   // Placements are rotation times uniform scale, so the model matrix turns normals too.
   v_normal = mat3(u_model) * a_normal;
+  v_uv = a_uv;
   gl_Position = u_view_proj * world;
 }
 `;
 
-const FRAGMENT_SHADER = `#version 300 es
+const PLASTER_SHADER = `#version 300 es
 precision highp float;
 in vec3 v_world;
 in vec3 v_normal;
@@ -43,6 +57,151 @@ void main() {
 }
 `;
 
+/** Texture units, one per material slot; u_uv[] has the same order. */
+const BASE = 0;
+const METALLIC_ROUGHNESS = 1;
+const NORMAL = 2;
+const OCCLUSION = 3;
+const EMISSIVE = 4;
+const SLOTS = 5;
+
+const PBR_SHADER = `#version 300 es
+precision highp float;
+in vec3 v_world;
+in vec3 v_normal;
+in vec2 v_uv;
+uniform vec3 u_eye;
+// World-space unit directions toward the key and fill lights, their irradiance in w.
+uniform vec4 u_key;
+uniform vec4 u_fill;
+// The ambient hemisphere's radiance straight up and straight down.
+uniform vec3 u_sky;
+uniform vec3 u_ground;
+uniform vec4 u_base_factor;
+// emissiveFactor × KHR_materials_emissive_strength.
+uniform vec3 u_emissive;
+// metallicFactor, roughnessFactor, normalTexture.scale, occlusionTexture.strength.
+uniform vec4 u_pbr;
+// Alpha cutoff (-1 unless MASK), unlit, normal map bound, blended: the last three 0 or 1.
+uniform vec4 u_mode;
+// KHR_texture_transform per slot (base, metallic-roughness, normal, occlusion, emissive).
+uniform mat3 u_uv[${SLOTS}];
+uniform sampler2D u_textures[${SLOTS}];
+out vec4 o_color;
+
+const float PI = 3.141592653589793;
+
+vec4 slot(int i) {
+  vec2 uv = (u_uv[i] * vec3(v_uv, 1.0)).xy;
+  switch (i) {
+    case ${BASE}: return texture(u_textures[${BASE}], uv);
+    case ${METALLIC_ROUGHNESS}: return texture(u_textures[${METALLIC_ROUGHNESS}], uv);
+    case ${NORMAL}: return texture(u_textures[${NORMAL}], uv);
+    case ${OCCLUSION}: return texture(u_textures[${OCCLUSION}], uv);
+    default: return texture(u_textures[${EMISSIVE}], uv);
+  }
+}
+
+// The exact sRGB encoding: the canvas is composited as sRGB.
+vec3 encode_srgb(vec3 c) {
+  c = clamp(c, 0.0, 1.0);
+  return mix(c * 12.92, 1.055 * pow(c, vec3(1.0 / 2.4)) - 0.055, step(vec3(0.0031308), c));
+}
+
+// The normal map's normal. No tangents come from the server, so the frame is the cotangent
+// frame of the screen-space derivatives of position and texture coordinate (Schüler): t along
+// +u, b along +v. glTF's tangent space has +Y up the image, which is -v.
+vec3 mapped_normal(vec3 n) {
+  vec2 uv = (u_uv[${NORMAL}] * vec3(v_uv, 1.0)).xy;
+  vec3 dpx = dFdx(v_world);
+  vec3 dpy = dFdy(v_world);
+  vec2 dux = dFdx(uv);
+  vec2 duy = dFdy(uv);
+  vec3 dpy_perp = cross(dpy, n);
+  vec3 dpx_perp = cross(n, dpx);
+  vec3 t = dpy_perp * dux.x + dpx_perp * duy.x;
+  vec3 b = dpy_perp * dux.y + dpx_perp * duy.y;
+  float len2 = max(dot(t, t), dot(b, b));
+  if (len2 < 1e-24) return n; // No texture coordinates to speak of here.
+  float k = inversesqrt(len2);
+  vec3 tn = slot(${NORMAL}).xyz * 2.0 - 1.0;
+  tn.xy *= u_pbr.z;
+  return normalize(mat3(t * k, -b * k, n) * tn);
+}
+
+// One directional light through glTF's BRDF: (1 - F) c_diff / π + F D V.
+vec3 direct(vec3 n, vec3 v, vec4 light, vec3 c_diff, vec3 f0, float alpha) {
+  vec3 l = light.xyz;
+  float nl = dot(n, l);
+  if (nl <= 0.0) return vec3(0.0);
+  vec3 h = normalize(l + v);
+  float nv = max(dot(n, v), 1e-4);
+  float nh = max(dot(n, h), 0.0);
+  float vh = max(dot(v, h), 0.0);
+  vec3 f = f0 + (1.0 - f0) * pow(1.0 - vh, 5.0);
+  float a2 = alpha * alpha;
+  float dd = nh * nh * (a2 - 1.0) + 1.0;
+  float d = a2 / (PI * dd * dd);
+  float vis = 0.5 / (nl * sqrt(nv * nv * (1.0 - a2) + a2) + nv * sqrt(nl * nl * (1.0 - a2) + a2));
+  return light.w * nl * ((1.0 - f) * c_diff / PI + f * d * vis);
+}
+
+// The split-sum environment BRDF's scale and bias, Karis' analytic fit ("Physically Based
+// Shading on Mobile"), so that the hemisphere gives metals a reflection rather than black.
+vec2 env_brdf(float roughness, float nv) {
+  const vec4 c0 = vec4(-1.0, -0.0275, -0.572, 0.022);
+  const vec4 c1 = vec4(1.0, 0.0425, 1.04, -0.04);
+  vec4 r = roughness * c0 + c1;
+  float a004 = min(r.x * r.x, exp2(-9.28 * nv)) * r.x + r.y;
+  return vec2(-1.04, 1.04) * a004 + r.zw;
+}
+
+void main() {
+  vec4 base = u_base_factor * slot(${BASE});
+  if (base.a < u_mode.x) discard;
+  float alpha_out = u_mode.w > 0.5 ? base.a : 1.0;
+  vec3 emissive = u_emissive * slot(${EMISSIVE}).rgb;
+  if (u_mode.y > 0.5) {
+    // KHR_materials_unlit: the base colour as it is.
+    o_color = vec4(encode_srgb(base.rgb), alpha_out);
+    return;
+  }
+  vec3 n = normalize(v_normal);
+  if (!gl_FrontFacing) n = -n;
+  if (u_mode.z > 0.5) n = mapped_normal(n);
+  vec4 mr = slot(${METALLIC_ROUGHNESS});
+  float metallic = clamp(u_pbr.x * mr.b, 0.0, 1.0);
+  float roughness = clamp(u_pbr.y * mr.g, 0.0, 1.0);
+  // A floor on α keeps a mirror's highlight from a delta light finite.
+  float alpha = max(roughness * roughness, 2e-3);
+  vec3 c_diff = mix(base.rgb, vec3(0.0), metallic);
+  vec3 f0 = mix(vec3(0.04), base.rgb, metallic);
+  vec3 v = normalize(u_eye - v_world);
+  vec3 color = direct(n, v, u_key, c_diff, f0, alpha) + direct(n, v, u_fill, c_diff, f0, alpha);
+  float occlusion = 1.0 + u_pbr.w * (slot(${OCCLUSION}).r - 1.0);
+  float nv = max(dot(n, v), 0.0);
+  vec2 env = env_brdf(roughness, nv);
+  vec3 r = reflect(-v, n);
+  vec3 diffuse_sky = mix(u_ground, u_sky, 0.5 + 0.5 * n.y);
+  vec3 specular_sky = mix(u_ground, u_sky, 0.5 + 0.5 * r.y);
+  color += occlusion * (c_diff * diffuse_sky + (f0 * env.x + env.y) * specular_sky);
+  o_color = vec4(encode_srgb(color + emissive), alpha_out);
+}
+`;
+
+/**
+ * The lights of textured rigs, in view space (x right, y up, z toward the viewer) so that they
+ * turn with the camera as the server's renderer's do: a key from the upper left and in front,
+ * a dimmer fill from the right, and a hemisphere of sky above and ground below (world up).
+ * Irradiances and radiances: a white rough surface comes out at most about 0.92 (facing the
+ * key light) and about 0.7 facing the camera, so that without tone mapping even a white
+ * albedo does not clip.
+ */
+const KEY = { dir: [-0.5, 0.6, 0.8], irradiance: 1.8 };
+const FILL = { dir: [0.7, -0.2, 0.6], irradiance: 0.5 };
+const SKY = [0.3, 0.3, 0.3];
+const GROUND = [0.1, 0.1, 0.1];
+
 /** The background, sRGB: the server's default render background. */
 export const BACKGROUND = [46, 50, 56];
 
@@ -52,6 +211,40 @@ function primitiveColor(name) {
   if (/teeth|tooth/i.test(name)) return [0.8, 0.78, 0.7];
   if (/tongue|mouth|lip/i.test(name)) return [0.55, 0.2, 0.2];
   return [0.72, 0.48, 0.36];
+}
+
+/** glTF sampler codes, which are WebGL's own enums. */
+const FILTERS = new Set([0x2600, 0x2601, 0x2700, 0x2701, 0x2702, 0x2703]);
+const WRAPS = new Set([0x812f, 0x8370, 0x2901]);
+const MIPMAPPED = new Set([0x2700, 0x2701, 0x2702, 0x2703]);
+
+const IDENTITY3 = [1, 0, 0, 0, 1, 0, 0, 0, 1];
+
+function finite(x, fallback) {
+  return typeof x === 'number' && Number.isFinite(x) ? x : fallback;
+}
+
+function numbers(a, n, fallback) {
+  return Array.isArray(a) && a.length === n && a.every((x) => Number.isFinite(x)) ? a : fallback;
+}
+
+/**
+ * KHR_texture_transform as a column-major mat3: T · R · S, with the rows the server's
+ * UvTransform uses (u' = c·sx·u − s·sy·v + ox, v' = s·sx·u + c·sy·v + oy).
+ */
+function uvTransform(t) {
+  if (!t) return IDENTITY3;
+  const [ox, oy] = numbers(t.offset, 2, [0, 0]);
+  const [sx, sy] = numbers(t.scale, 2, [1, 1]);
+  const r = finite(t.rotation, 0);
+  const c = Math.cos(r);
+  const s = Math.sin(r);
+  return [c * sx, s * sx, 0, -s * sy, c * sy, 0, ox, oy, 1];
+}
+
+function normalize3(a) {
+  const l = Math.hypot(a[0], a[1], a[2]) || 1;
+  return [a[0] / l, a[1] / l, a[2] / l];
 }
 
 export class RenderError extends Error {
@@ -68,22 +261,52 @@ export class Renderer {
     const gl = canvas.getContext('webgl2', { antialias: true, preserveDrawingBuffer: false });
     if (!gl) throw new RenderError('this browser cannot create a WebGL2 context');
     this.gl = gl;
-    this.program = link(gl, VERTEX_SHADER, FRAGMENT_SHADER);
-    this.uniforms = {};
-    for (const name of ['u_view_proj', 'u_model', 'u_qmin', 'u_qstep', 'u_qbias', 'u_eye', 'u_color']) {
-      this.uniforms[name] = gl.getUniformLocation(this.program, name);
-    }
+    this.plaster = program(gl, VERTEX_SHADER, PLASTER_SHADER, ['u_color']);
+    this.pbr = program(gl, VERTEX_SHADER, PBR_SHADER, [
+      'u_key',
+      'u_fill',
+      'u_sky',
+      'u_ground',
+      'u_base_factor',
+      'u_emissive',
+      'u_pbr',
+      'u_mode',
+      'u_uv',
+      'u_textures',
+    ]);
+    gl.useProgram(this.pbr.program);
+    gl.uniform1iv(this.pbr.u.u_textures, [0, 1, 2, 3, 4]);
     this.topologies = new Map();
     this.free = [];
     this.live = 0;
+    // Appearance: materials by rig, textures by (URI, colour space), samplers by their codes.
+    this.materials = new Map();
+    this.textures = new Map();
+    this.samplers = new Map();
+    this.maxTextureSize = gl.getParameter(gl.MAX_TEXTURE_SIZE);
+    const aniso = gl.getExtension('EXT_texture_filter_anisotropic');
+    this.anisotropy = aniso ? [aniso.TEXTURE_MAX_ANISOTROPY_EXT, Math.min(8, gl.getParameter(aniso.MAX_TEXTURE_MAX_ANISOTROPY_EXT))] : null;
+    // What a slot samples while its texture loads, or when it has none: white multiplies the
+    // factors by one; the flat normal is never read (u_mode.z is 0 without a normal map).
+    this.white = solidTexture(gl, [255, 255, 255, 255]);
+    // Heads whose topology has no texture coordinates read (0, 0).
+    gl.vertexAttrib2f(2, 0, 0);
     gl.enable(gl.DEPTH_TEST);
+    gl.cullFace(gl.BACK);
   }
 
-  /** Keeps the index buffer and primitive ranges of a MeshResponse under `key`. */
-  setTopology(key, mesh, indices) {
+  /**
+   * Keeps the index buffer, texture coordinates and primitive ranges of a MeshResponse under
+   * `key`, for heads of rig `rig`.
+   * @param {Float32Array|null} uvs u, v per vertex, or null when the mesh has none
+   */
+  setTopology(key, rig, mesh, indices, uvs) {
     const gl = this.gl;
     const old = this.topologies.get(key);
-    if (old) gl.deleteBuffer(old.ibo);
+    if (old) {
+      gl.deleteBuffer(old.ibo);
+      if (old.uvs) gl.deleteBuffer(old.uvs);
+    }
     const ibo = gl.createBuffer();
     // An index buffer is bound to a vertex array object when drawn; binding it to
     // ELEMENT_ARRAY_BUFFER here without one would change whichever VAO is current.
@@ -91,19 +314,155 @@ export class Renderer {
     gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, ibo);
     gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, indices, gl.STATIC_DRAW);
     gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, null);
+    let uvBuffer = null;
+    if (uvs) {
+      uvBuffer = gl.createBuffer();
+      gl.bindBuffer(gl.ARRAY_BUFFER, uvBuffer);
+      gl.bufferData(gl.ARRAY_BUFFER, uvs, gl.STATIC_DRAW);
+      gl.bindBuffer(gl.ARRAY_BUFFER, null);
+    }
+    const { min, max } = mesh.bbox;
     this.topologies.set(key, {
+      rig,
       ibo,
+      uvs: uvBuffer,
       vertices: mesh.vertices,
+      center: [0, 1, 2].map((a) => (min[a] + max[a]) / 2),
       primitives: mesh.primitives.map((p) => ({
         first: p.first_index,
         count: p.indices,
         color: primitiveColor(p.name),
+        material: Number.isInteger(p.material) ? p.material : null,
       })),
     });
   }
 
   topology(key) {
     return this.topologies.get(key) || null;
+  }
+
+  /**
+   * Takes a rig's `GET /v1/rigs/{id}/materials` and returns the images its materials sample
+   * that are not on the GPU yet, each with the colour spaces it is needed in:
+   * `[{uri, width, height, srgb, linear}]`. Until setImage() brings one, its slots sample white.
+   */
+  setMaterials(rig, doc) {
+    const textures = Array.isArray(doc.textures) ? doc.textures : [];
+    const images = Array.isArray(doc.images) ? doc.images : [];
+    const samplers = Array.isArray(doc.samplers) ? doc.samplers : [];
+    const wanted = new Map();
+    const slot = (ref, srgb) => {
+      if (!ref || !Number.isInteger(ref.index)) return null;
+      const transform = ref.extensions && ref.extensions.KHR_texture_transform;
+      const set = transform && Number.isInteger(transform.texCoord) ? transform.texCoord : ref.texCoord || 0;
+      // The server sends texture coordinates of set 0 only: a slot on another set is drawn
+      // with its factors alone.
+      if (set !== 0) return null;
+      const texture = textures[ref.index];
+      const image = texture && images[texture.source];
+      if (!image || typeof image.uri !== 'string') return null;
+      const key = `${srgb ? 'srgb' : 'linear'} ${image.uri}`;
+      if (!this.textures.has(key)) {
+        const w = wanted.get(image.uri) || { uri: image.uri, width: image.width, height: image.height, srgb: false, linear: false };
+        w[srgb ? 'srgb' : 'linear'] = true;
+        wanted.set(image.uri, w);
+      }
+      return { key, sampler: this.sampler(Number.isInteger(texture.sampler) ? samplers[texture.sampler] : null), uv: uvTransform(transform) };
+    };
+    const materials = (Array.isArray(doc.materials) ? doc.materials : []).map((m) => {
+      const pbr = m.pbrMetallicRoughness || {};
+      const ext = m.extensions || {};
+      const strength = ext.KHR_materials_emissive_strength ? finite(ext.KHR_materials_emissive_strength.emissiveStrength, 1) : 1;
+      const emissive = numbers(m.emissiveFactor, 3, [0, 0, 0]).map((x) => x * strength);
+      const slots = new Array(SLOTS).fill(null);
+      slots[BASE] = slot(pbr.baseColorTexture, true);
+      slots[METALLIC_ROUGHNESS] = slot(pbr.metallicRoughnessTexture, false);
+      slots[NORMAL] = slot(m.normalTexture, false);
+      slots[OCCLUSION] = slot(m.occlusionTexture, false);
+      slots[EMISSIVE] = slot(m.emissiveTexture, true);
+      const uv = new Float32Array(9 * SLOTS);
+      slots.forEach((s, i) => uv.set(s ? s.uv : IDENTITY3, 9 * i));
+      return {
+        base: numbers(pbr.baseColorFactor, 4, [1, 1, 1, 1]),
+        emissive,
+        pbr: [
+          finite(pbr.metallicFactor, 1),
+          finite(pbr.roughnessFactor, 1),
+          finite(m.normalTexture && m.normalTexture.scale, 1),
+          finite(m.occlusionTexture && m.occlusionTexture.strength, 1),
+        ],
+        cutoff: m.alphaMode === 'MASK' ? finite(m.alphaCutoff, 0.5) : -1,
+        blend: m.alphaMode === 'BLEND',
+        unlit: !!ext.KHR_materials_unlit,
+        doubleSided: !!m.doubleSided,
+        slots,
+        uv,
+      };
+    });
+    this.materials.set(rig, materials);
+    return [...wanted.values()];
+  }
+
+  /** A WebGL sampler for a glTF sampler (or glTF's default, repeat and trilinear, for null). */
+  sampler(s) {
+    const pick = (v, allowed, fallback) => (allowed.has(v) ? v : fallback);
+    const gl = this.gl;
+    const mag = pick(s && s.magFilter, new Set([gl.NEAREST, gl.LINEAR]), gl.LINEAR);
+    const min = pick(s && s.minFilter, FILTERS, gl.LINEAR_MIPMAP_LINEAR);
+    const wrapS = pick(s && s.wrapS, WRAPS, gl.REPEAT);
+    const wrapT = pick(s && s.wrapT, WRAPS, gl.REPEAT);
+    const id = `${mag} ${min} ${wrapS} ${wrapT}`;
+    let out = this.samplers.get(id);
+    if (!out) {
+      out = gl.createSampler();
+      gl.samplerParameteri(out, gl.TEXTURE_MAG_FILTER, mag);
+      gl.samplerParameteri(out, gl.TEXTURE_MIN_FILTER, min);
+      gl.samplerParameteri(out, gl.TEXTURE_WRAP_S, wrapS);
+      gl.samplerParameteri(out, gl.TEXTURE_WRAP_T, wrapT);
+      // Faces seen at a slant stay sharp where the file asks for mipmaps.
+      if (this.anisotropy && MIPMAPPED.has(min)) gl.samplerParameterf(out, this.anisotropy[0], this.anisotropy[1]);
+      this.samplers.set(id, out);
+    }
+    return out;
+  }
+
+  /**
+   * Uploads a decoded image in the colour spaces it is wanted in (SRGB8_ALPHA8 for base colour
+   * and emissive, RGBA8 for the rest) with a full mip chain. Row 0 of the bitmap, the image's
+   * top, becomes t = 0: glTF's v = 0 is the image's top, so v is t as it is.
+   * @param {ImageBitmap} bitmap
+   */
+  setImage(uri, bitmap, { srgb, linear }) {
+    const gl = this.gl;
+    // Ignored for ImageBitmaps by the WebGL spec (the bitmap's own options decide); set anyway
+    // so that no browser that does honour them flips or premultiplies.
+    gl.pixelStorei(gl.UNPACK_FLIP_Y_WEBGL, false);
+    gl.pixelStorei(gl.UNPACK_PREMULTIPLY_ALPHA_WEBGL, false);
+    gl.pixelStorei(gl.UNPACK_COLORSPACE_CONVERSION_WEBGL, gl.NONE);
+    const w = bitmap.width;
+    const h = bitmap.height;
+    const levels = Math.floor(Math.log2(Math.max(w, h, 1))) + 1;
+    for (const [wanted, space, format] of [
+      [srgb, 'srgb', gl.SRGB8_ALPHA8],
+      [linear, 'linear', gl.RGBA8],
+    ]) {
+      if (!wanted) continue;
+      const key = `${space} ${uri}`;
+      const old = this.textures.get(key);
+      if (old) gl.deleteTexture(old);
+      const tex = gl.createTexture();
+      gl.bindTexture(gl.TEXTURE_2D, tex);
+      gl.texStorage2D(gl.TEXTURE_2D, levels, format, w, h);
+      gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, gl.RGBA, gl.UNSIGNED_BYTE, bitmap);
+      gl.generateMipmap(gl.TEXTURE_2D);
+      this.textures.set(key, tex);
+    }
+    gl.bindTexture(gl.TEXTURE_2D, null);
+  }
+
+  /** Textures on the GPU (one per image and colour space). */
+  get textureCount() {
+    return this.textures.size;
   }
 
   /**
@@ -129,7 +488,7 @@ export class Renderer {
       qstep: q16 ? quantization.step : [1, 1, 1],
       qbias: q16 ? 32768 : 0,
       gl: null,
-      ibo: null,
+      topo: null,
     };
   }
 
@@ -162,7 +521,8 @@ export class Renderer {
     gl.bindVertexArray(null);
     gl.bindBuffer(gl.ARRAY_BUFFER, null);
     entry.gl = objects;
-    entry.ibo = null; // The pooled vertex array may hold another topology's index buffer.
+    // The pooled vertex array may hold another topology's index and UV buffers.
+    entry.topo = null;
     entry.positions = null;
     entry.normals = null;
   }
@@ -198,51 +558,188 @@ export class Renderer {
     return false;
   }
 
+  /** Binds a head's vertex array (with its topology's index and UV buffers) for `prog`. */
+  bindHead(prog, h, e, topo) {
+    const gl = this.gl;
+    gl.bindVertexArray(e.gl.vao);
+    if (e.topo !== topo) {
+      gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, topo.ibo);
+      if (topo.uvs) {
+        gl.bindBuffer(gl.ARRAY_BUFFER, topo.uvs);
+        gl.enableVertexAttribArray(2);
+        gl.vertexAttribPointer(2, 2, gl.FLOAT, false, 0, 0);
+        gl.bindBuffer(gl.ARRAY_BUFFER, null);
+      } else {
+        gl.disableVertexAttribArray(2);
+      }
+      e.topo = topo;
+    }
+    const u = prog.u;
+    gl.uniform3fv(u.u_qmin, e.qmin);
+    gl.uniform3fv(u.u_qstep, e.qstep);
+    gl.uniform1f(u.u_qbias, e.qbias);
+    gl.uniformMatrix4fv(u.u_model, false, h.model);
+  }
+
+  /** Sets a material's uniforms, textures and samplers, and its culling. */
+  bindMaterial(m, textured) {
+    const gl = this.gl;
+    const u = this.pbr.u;
+    gl.uniform4fv(u.u_base_factor, m.base);
+    gl.uniform3fv(u.u_emissive, m.emissive);
+    gl.uniform4fv(u.u_pbr, m.pbr);
+    let normalMap = 0;
+    for (let i = 0; i < SLOTS; i++) {
+      const s = textured ? m.slots[i] : null;
+      const tex = s && this.textures.get(s.key);
+      gl.activeTexture(gl.TEXTURE0 + i);
+      gl.bindTexture(gl.TEXTURE_2D, tex || this.white);
+      gl.bindSampler(i, tex ? s.sampler : null);
+      if (tex && i === NORMAL) normalMap = 1;
+    }
+    gl.uniform4f(u.u_mode, m.cutoff, m.unlit ? 1 : 0, normalMap, m.blend ? 1 : 0);
+    gl.uniformMatrix3fv(u.u_uv, false, m.uv);
+    if (m.doubleSided) gl.disable(gl.CULL_FACE);
+    else gl.enable(gl.CULL_FACE);
+  }
+
   /**
    * Draws the crowd.
-   * @param {{viewProj: Float32Array, eye: number[]}} view
+   * @param {{viewProj: Float32Array, view: Float32Array, eye: number[]}} view
    * @param {{entry: object, model: Float32Array}[]} heads
    * @returns {number} heads drawn
    */
   draw(view, heads) {
     const gl = this.gl;
-    const u = this.uniforms;
     gl.viewport(0, 0, this.canvas.width, this.canvas.height);
     gl.clearColor(BACKGROUND[0] / 255, BACKGROUND[1] / 255, BACKGROUND[2] / 255, 1);
+    gl.depthMask(true);
     gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
-    gl.useProgram(this.program);
-    gl.uniformMatrix4fv(u.u_view_proj, false, view.viewProj);
-    gl.uniform3fv(u.u_eye, view.eye);
-    let drawn = 0;
-    let bound = null;
+
+    // Heads that can be drawn, and their primitives by how they are drawn.
+    const shown = [];
     for (const h of heads) {
       const e = h.entry;
       const topo = e && this.topologies.get(e.key);
       // A buffer whose vertex count is not its topology's (the rig's mesh levels changed
       // since the topology was fetched) is not drawn: its indices would not fit.
       if (!topo || topo.vertices !== e.vertices) continue;
-      if (bound !== e) {
-        if (!e.gl) this.realize(e);
-        gl.bindVertexArray(e.gl.vao);
-        if (e.ibo !== topo.ibo) {
-          gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, topo.ibo);
-          e.ibo = topo.ibo;
-        }
-        gl.uniform3fv(u.u_qmin, e.qmin);
-        gl.uniform3fv(u.u_qstep, e.qstep);
-        gl.uniform1f(u.u_qbias, e.qbias);
-        bound = e;
-      }
-      gl.uniformMatrix4fv(u.u_model, false, h.model);
+      if (!e.gl) this.realize(e);
+      shown.push({ h, e, topo });
+    }
+    const groups = (topo) => {
+      const materials = this.materials.get(topo.rig);
+      if (topo.groups && topo.groups.materials === materials) return topo.groups;
+      const g = { materials, plaster: [], solid: [], blend: [] };
       for (const p of topo.primitives) {
-        gl.uniform3fv(u.u_color, p.color);
+        const m = materials && p.material !== null ? materials[p.material] : null;
+        if (!m) g.plaster.push(p);
+        else (m.blend ? g.blend : g.solid).push({ p, m });
+      }
+      topo.groups = g;
+      return g;
+    };
+
+    // Without a material: the plaster look, both sides drawn.
+    let prog = this.plaster;
+    gl.useProgram(prog.program);
+    gl.uniformMatrix4fv(prog.u.u_view_proj, false, view.viewProj);
+    gl.uniform3fv(prog.u.u_eye, view.eye);
+    gl.disable(gl.CULL_FACE);
+    for (const s of shown) {
+      const list = groups(s.topo).plaster;
+      if (!list.length) continue;
+      this.bindHead(prog, s.h, s.e, s.topo);
+      for (const p of list) {
+        gl.uniform3fv(prog.u.u_color, p.color);
         gl.drawElements(gl.TRIANGLES, p.count, gl.UNSIGNED_INT, p.first * 4);
       }
-      drawn++;
     }
+
+    // With one: opaque and masked first, then blended ones far to near over them.
+    prog = this.pbr;
+    gl.useProgram(prog.program);
+    gl.uniformMatrix4fv(prog.u.u_view_proj, false, view.viewProj);
+    gl.uniform3fv(prog.u.u_eye, view.eye);
+    this.setLights(view.view);
+    let bound = null;
+    let boundTextured = false;
+    const blended = [];
+    for (const s of shown) {
+      const g = groups(s.topo);
+      if (g.blend.length) {
+        const m = s.h.model;
+        const c = s.topo.center;
+        const d = [0, 1, 2].map((a) => m[a] * c[0] + m[4 + a] * c[1] + m[8 + a] * c[2] + m[12 + a] - view.eye[a]);
+        for (const pm of g.blend) blended.push({ s, pm, depth: d[0] * d[0] + d[1] * d[1] + d[2] * d[2] });
+      }
+      if (!g.solid.length) continue;
+      this.bindHead(prog, s.h, s.e, s.topo);
+      const textured = !!s.topo.uvs;
+      for (const { p, m } of g.solid) {
+        if (bound !== m || boundTextured !== textured) {
+          this.bindMaterial(m, textured);
+          bound = m;
+          boundTextured = textured;
+        }
+        gl.drawElements(gl.TRIANGLES, p.count, gl.UNSIGNED_INT, p.first * 4);
+      }
+    }
+    if (blended.length) {
+      blended.sort((a, b) => b.depth - a.depth);
+      gl.enable(gl.BLEND);
+      // Colour over what is behind; alpha stays 1 (the canvas is composited with the page).
+      gl.blendFuncSeparate(gl.SRC_ALPHA, gl.ONE_MINUS_SRC_ALPHA, gl.ONE, gl.ONE_MINUS_SRC_ALPHA);
+      gl.depthMask(false);
+      let head = null;
+      for (const { s, pm } of blended) {
+        if (head !== s) {
+          this.bindHead(prog, s.h, s.e, s.topo);
+          head = s;
+        }
+        this.bindMaterial(pm.m, !!s.topo.uvs);
+        gl.drawElements(gl.TRIANGLES, pm.p.count, gl.UNSIGNED_INT, pm.p.first * 4);
+      }
+      gl.depthMask(true);
+      gl.disable(gl.BLEND);
+    }
+    gl.disable(gl.CULL_FACE);
     gl.bindVertexArray(null);
-    return drawn;
+    return shown.length;
   }
+
+  /** The lights in world space from the view matrix (rows: the camera's right, up, back). */
+  setLights(v) {
+    const gl = this.gl;
+    const u = this.pbr.u;
+    const world = (d) => normalize3([0, 1, 2].map((a) => v[a * 4] * d[0] + v[a * 4 + 1] * d[1] + v[a * 4 + 2] * d[2]));
+    gl.uniform4fv(u.u_key, [...world(normalize3(KEY.dir)), KEY.irradiance]);
+    gl.uniform4fv(u.u_fill, [...world(normalize3(FILL.dir)), FILL.irradiance]);
+    gl.uniform3fv(u.u_sky, SKY);
+    gl.uniform3fv(u.u_ground, GROUND);
+  }
+}
+
+/** A 1×1 texture of one RGBA8 colour. */
+function solidTexture(gl, rgba) {
+  const tex = gl.createTexture();
+  gl.bindTexture(gl.TEXTURE_2D, tex);
+  gl.texStorage2D(gl.TEXTURE_2D, 1, gl.RGBA8, 1, 1);
+  gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array(rgba));
+  gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
+  gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+  gl.bindTexture(gl.TEXTURE_2D, null);
+  return tex;
+}
+
+/** A linked program and the locations of the uniforms every draw sets plus `extra`. */
+function program(gl, vs, fs, extra) {
+  const p = link(gl, vs, fs);
+  const u = {};
+  for (const name of ['u_view_proj', 'u_model', 'u_qmin', 'u_qstep', 'u_qbias', 'u_eye', ...extra]) {
+    u[name] = gl.getUniformLocation(p, name);
+  }
+  return { program: p, u };
 }
 
 function compile(gl, type, source) {

@@ -18,8 +18,8 @@ use std::time::{Duration, Instant};
 
 use bytes::Bytes;
 use crowdmorph::server::ServerConfig;
-use crowdmorph_client::Method;
-use crowdmorph_proto::{Received, SessionInfo, StreamState};
+use crowdmorph_client::{Encoding, Method};
+use crowdmorph_proto::{MeshResponse, Received, SessionInfo, StreamState};
 use futures_util::{SinkExt, StreamExt};
 use serde_json::{Value, json};
 use tokio_tungstenite::tungstenite::Message;
@@ -279,7 +279,12 @@ impl Cdp {
                 }
                 return v["result"].clone();
             }
-            if v.get("method").is_some() {
+            // Every stream message is a WebSocket frame event once Network is on, its bytes in
+            // base64: not kept, as no test reads them.
+            if v.get("method")
+                .and_then(Value::as_str)
+                .is_some_and(|m| !m.starts_with("Network.webSocketFrame"))
+            {
                 self.events.push(v);
             }
         }
@@ -326,6 +331,48 @@ impl Cdp {
             .collect()
     }
 
+    /// The page's HTTP requests so far, in the order they were sent (from `Network` events;
+    /// the stream's WebSocket is not one).
+    fn requests(&self) -> Vec<Request> {
+        let mut out: Vec<Request> = Vec::new();
+        let mut at: BTreeMap<String, usize> = BTreeMap::new();
+        for e in &self.events {
+            let p = &e["params"];
+            let id = p["requestId"].as_str().unwrap_or_default().to_string();
+            match e["method"].as_str().unwrap_or_default() {
+                "Network.requestWillBeSent" => {
+                    at.insert(id, out.len());
+                    out.push(Request {
+                        url: p["request"]["url"].as_str().unwrap_or_default().to_string(),
+                        status: None,
+                        body_bytes: None,
+                        wire_bytes: None,
+                    });
+                }
+                "Network.responseReceived" => {
+                    if let Some(&i) = at.get(&id) {
+                        let r = &p["response"];
+                        out[i].status = r["status"].as_u64();
+                        out[i].body_bytes = r["headers"]
+                            .as_object()
+                            .and_then(|h| {
+                                h.iter()
+                                    .find(|(k, _)| k.eq_ignore_ascii_case("content-length"))
+                            })
+                            .and_then(|(_, v)| v.as_str()?.parse().ok());
+                    }
+                }
+                "Network.loadingFinished" => {
+                    if let Some(&i) = at.get(&id) {
+                        out[i].wire_bytes = p["encodedDataLength"].as_f64().map(|b| b as u64);
+                    }
+                }
+                _ => {}
+            }
+        }
+        out
+    }
+
     /// Polls `expression` every 250 ms until `done` accepts its value (then returns it), or
     /// fails after `within`, or as soon as the page shows an error or logs one.
     async fn wait_for(
@@ -359,28 +406,49 @@ impl Cdp {
     }
 }
 
+/// One HTTP request of the page: its URL, the response's status and `Content-Length`, and the
+/// bytes it took on the wire (headers included) once loaded.
+#[derive(Clone, Debug)]
+struct Request {
+    url: String,
+    status: Option<u64>,
+    body_bytes: Option<u64>,
+    wire_bytes: Option<u64>,
+}
+
 /// The page's error box, empty while hidden (or while the page is still loading).
 const ERROR_TEXT: &str =
     "(e => e && !e.hidden ? e.textContent : '')(document.getElementById('error'))";
 
-fn screenshot_path() -> PathBuf {
-    std::env::var_os("CROWDMORPH_VIEWER_SCREENSHOT")
+/// Where a test's screenshot is kept: `$CROWDMORPH_VIEWER_SCREENSHOT`, else
+/// `target/viewer-screenshot.png`, with `suffix` added to the file's stem.
+fn screenshot_path(suffix: &str) -> PathBuf {
+    let path = std::env::var_os("CROWDMORPH_VIEWER_SCREENSHOT")
         .map(PathBuf::from)
         .unwrap_or_else(|| {
             Path::new(env!("CARGO_MANIFEST_DIR")).join("target/viewer-screenshot.png")
-        })
+        });
+    let stem = path.file_stem().unwrap_or_default().to_string_lossy();
+    path.with_file_name(format!("{stem}{suffix}.png"))
 }
 
-/// The viewer's background, sRGB (`BACKGROUND` in clients/web/render.js).
-const BACKGROUND: [u8; 3] = [46, 50, 56];
+/// A screenshot of the page, written to `path` first (for whoever looks into a failure).
+async fn screenshot(cdp: &mut Cdp, path: &Path) -> Image {
+    let shot = cdp
+        .call("Page.captureScreenshot", json!({"format": "png"}))
+        .await;
+    let png = base64_decode(shot["data"].as_str().unwrap());
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir).unwrap();
+    }
+    std::fs::write(path, &png).unwrap();
+    println!("viewer screenshot: {}", path.display());
+    Image::decode_png(&png).unwrap()
+}
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[cfg_attr(
-    not(crowdmorph_chromium),
-    ignore = "no Chromium (apt-get install chromium, or set CROWDMORPH_CHROMIUM and touch build.rs)"
-)]
-async fn the_viewer_streams_and_draws_a_lit_crowd_in_headless_chromium() {
-    let server = TestServer::start(ServerConfig::default()).await;
+/// Chromium with one blank page attached over the DevTools protocol, its console, log and page
+/// events on, and the `extra` domains (`Network.enable`, ...).
+async fn open_page(extra: &[&str]) -> (Browser, Cdp) {
     let mut browser = Browser::launch();
     let url = browser.devtools_url().await;
     let mut cdp = Cdp::connect(&url).await;
@@ -395,9 +463,26 @@ async fn the_viewer_streams_and_draws_a_lit_crowd_in_headless_chromium() {
         .await;
     cdp.session = Some(attached["sessionId"].as_str().unwrap().to_string());
     // Console and log events are only reported after these, so they come before loading.
-    for domain in ["Runtime.enable", "Log.enable", "Page.enable"] {
+    for domain in ["Runtime.enable", "Log.enable", "Page.enable"]
+        .iter()
+        .chain(extra)
+    {
         cdp.call(domain, json!({})).await;
     }
+    (browser, cdp)
+}
+
+/// The viewer's background, sRGB (`BACKGROUND` in clients/web/render.js).
+const BACKGROUND: [u8; 3] = [46, 50, 56];
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_chromium),
+    ignore = "no Chromium (apt-get install chromium, or set CROWDMORPH_CHROMIUM and touch build.rs)"
+)]
+async fn the_viewer_streams_and_draws_a_lit_crowd_in_headless_chromium() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let (browser, mut cdp) = open_page(&[]).await;
     cdp.call(
         "Page.navigate",
         json!({"url": format!("http://{}/viewer", server.addr)}),
@@ -451,17 +536,8 @@ async fn the_viewer_streams_and_draws_a_lit_crowd_in_headless_chromium() {
         )
         .await;
     let layout: Value = serde_json::from_str(layout.as_str().unwrap()).unwrap();
-    let shot = cdp
-        .call("Page.captureScreenshot", json!({"format": "png"}))
-        .await;
-    let png = base64_decode(shot["data"].as_str().unwrap());
-    let path = screenshot_path();
-    if let Some(dir) = path.parent() {
-        std::fs::create_dir_all(dir).unwrap();
-    }
-    std::fs::write(&path, &png).unwrap();
-    println!("viewer screenshot: {}", path.display());
-    let image = Image::decode_png(&png).unwrap();
+    let path = screenshot_path("");
+    let image = screenshot(&mut cdp, &path).await;
     let scale = f64::from(image.width) / layout["w"].as_f64().unwrap();
     let panel = &layout["panel"];
     let px = |k: &str| (panel[k].as_f64().unwrap() * scale) as u32;
@@ -666,6 +742,465 @@ async fn the_viewer_streams_and_draws_a_lit_crowd_in_headless_chromium() {
     drop(cdp);
     drop(browser);
     server.stop().await;
+}
+
+/// The shared MorphPrimitivesTest rig: a flat 1 m × 1 m grid in two primitives, one with a red
+/// and one with a green material, both multiplying `uv_texture.jpg` by their factor. The image
+/// is a checker of 16 × 16 grey and white labelled cells: upside down, grey and white swap (15
+/// is odd), so a flipped texture is as wrong as a missing one.
+fn textured_rig() -> PathBuf {
+    crate::util::data_dir().join("khronos/MorphPrimitivesTest/glTF/MorphPrimitivesTest.gltf")
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(all(crowdmorph_chromium, crowdmorph_test_data)),
+    ignore = "needs Chromium and ../shared/data (see the lit crowd test and util::data_dir)"
+)]
+async fn the_viewer_draws_textures_fetched_once_in_headless_chromium() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let glb = crate::util::pack::self_contained_glb(&textured_rig());
+    let info = server
+        .client
+        .upload_rig("prims", Bytes::from(glb.clone()))
+        .await
+        .expect("upload");
+    // One clip that holds the target at 0: the grid stays flat, where the mesh endpoint's
+    // neutral positions have it, so this test knows which texel lands on each pixel.
+    let csv = format!("{}\n0\n0\n", info.targets[0]);
+    server
+        .client
+        .upload_clip("prims", "name=still", "text/csv", Bytes::from(csv))
+        .await
+        .expect("clip");
+    let mesh = server
+        .client
+        .mesh("prims", Encoding::Json)
+        .await
+        .expect("mesh");
+    let materials = server.client.materials("prims").await.expect("materials");
+    let images = materials["images"].as_array().expect("images").len();
+    assert_eq!(images, 1, "{materials}");
+    // The texture as the importer decodes it on the CPU (not the browser's decoder).
+    let rig = crowdmorph::import::gltf::rig_from_slice(
+        &glb,
+        &crowdmorph::import::ImportOptions::default(),
+    )
+    .expect("the GLB imports");
+    let appearance = rig.appearance.as_deref().expect("materials");
+    let mips = appearance.images[0].pixels.as_deref().expect("pixels");
+    let texture = &mips.levels[0];
+
+    let (browser, mut cdp) = open_page(&["Network.enable"]).await;
+    cdp.call(
+        "Page.navigate",
+        json!({"url": format!("http://{}/viewer?rig=prims&heads=1", server.addr)}),
+    )
+    .await;
+    let tick = "window.crowdmorphViewer?.tick ?? 0";
+    cdp.wait_for("the first tick", tick, Duration::from_secs(120), |v| {
+        v.as_u64().unwrap_or(0) > 0
+    })
+    .await;
+    cdp.wait_for(
+        "the texture on the GPU",
+        "window.crowdmorphViewer.appearance.imagesReady",
+        Duration::from_secs(60),
+        |v| v.as_u64() == Some(1),
+    )
+    .await;
+    let drawn = "Number(document.getElementById('view').dataset.drawn || 0)";
+    cdp.wait_for("the head drawn", drawn, Duration::from_secs(60), |v| {
+        v.as_u64() == Some(1)
+    })
+    .await;
+    // The page frames the grid from 20° above it, edge on; a drag 120 px down turns the camera
+    // to 56°, where the checker's cells are tens of pixels.
+    for (kind, y, buttons) in [
+        ("mousePressed", 250, 1),
+        ("mouseMoved", 310, 1),
+        ("mouseMoved", 370, 1),
+        ("mouseReleased", 370, 0),
+    ] {
+        cdp.call(
+            "Input.dispatchMouseEvent",
+            json!({"type": kind, "x": 640, "y": y, "button": "left", "buttons": buttons,
+                   "clickCount": 1}),
+        )
+        .await;
+    }
+    let now = cdp.eval(tick).await.as_u64().unwrap();
+    cdp.wait_for("ticks after turning", tick, Duration::from_secs(90), |v| {
+        v.as_u64().unwrap_or(0) >= now + 10
+    })
+    .await;
+
+    // The picture against the CPU's expectation.
+    let view = cdp.eval("window.crowdmorphViewer.view").await;
+    let path = screenshot_path("-textured");
+    let image = screenshot(&mut cdp, &path).await;
+    assert_eq!(
+        cdp.eval("window.crowdmorphViewer.view").await,
+        view,
+        "the view changed while the screenshot was taken"
+    );
+    let panel = cdp
+        .eval(
+            "JSON.parse(JSON.stringify(document.getElementById('panel').getBoundingClientRect()))",
+        )
+        .await;
+    let scene = Scene::new(&view, &mesh, &materials, &panel, f64::from(image.width));
+    let fit = scene.fit(&image, texture, false);
+    println!("textured page: {fit:?}");
+    fit.check(&path);
+    // The samples tell an upside-down texture apart: read with v flipped, the same picture
+    // fits nothing (a self-check of the test rather than of the page).
+    let flipped = scene.fit(&image, texture, true);
+    println!("read upside down: {flipped:?}");
+    assert!(
+        flipped.within < 0.8,
+        "the samples cannot tell a flipped texture from the right one: {flipped:?}"
+    );
+
+    // Appearance was fetched once: the materials, and each image by its versioned URI; then,
+    // while the stream ticks, the page asks for nothing more (0 bytes of appearance per tick).
+    let requests = cdp.requests();
+    let matching = |part: &str| -> Vec<Request> {
+        requests
+            .iter()
+            .filter(|r| r.url.contains(part))
+            .cloned()
+            .collect()
+    };
+    let textures = matching("/v1/rigs/prims/textures/");
+    let material_requests = matching("/v1/rigs/prims/materials");
+    let meshes = matching("/v1/rigs/prims/mesh");
+    assert_eq!(textures.len(), images, "{requests:#?}");
+    assert_eq!(material_requests.len(), 1, "{requests:#?}");
+    assert_eq!(meshes.len(), 1, "{requests:#?}");
+    for r in textures.iter().chain(&material_requests) {
+        assert_eq!(r.status, Some(200), "{r:?}");
+    }
+    let uri = materials["images"][0]["uri"].as_str().unwrap();
+    assert!(textures[0].url.ends_with(uri), "{textures:?} vs {uri}");
+    let before = requests.len();
+    let now = cdp.eval(tick).await.as_u64().unwrap();
+    cdp.wait_for("30 more ticks", tick, Duration::from_secs(90), |v| {
+        v.as_u64().unwrap_or(0) >= now + 30
+    })
+    .await;
+    let _ = cdp.eval("0").await; // Reads the events that came meanwhile.
+    let later = cdp.requests();
+    assert_eq!(
+        later.len(),
+        before,
+        "HTTP requests while the stream ticked: {:#?}",
+        &later[before..]
+    );
+    let stats = cdp.eval("window.crowdmorphViewer.appearance").await;
+    assert_eq!(stats["materialFetches"], json!(1), "{stats}");
+    assert_eq!(stats["imageFetches"], json!(images), "{stats}");
+    assert_eq!(stats["imageFailures"], json!(0), "{stats}");
+    let bytes = |rs: &[Request]| -> u64 { rs.iter().map(|r| r.body_bytes.unwrap_or(0)).sum() };
+    let wire = |rs: &[Request]| -> u64 { rs.iter().map(|r| r.wire_bytes.unwrap_or(0)).sum() };
+    let received = cdp.eval("window.crowdmorphViewer.received").await;
+    // A packed message counts once as itself and once as the message it holds.
+    let variants: Vec<u64> = received["variants"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_u64().unwrap())
+        .collect();
+    let messages = variants.iter().sum::<u64>() - variants[3];
+    println!(
+        "appearance, fetched once per rig: materials {} B ({} B on the wire), textures {} B ({} \
+         B on the wire), texture coordinates {} B in the mesh ({} B on the wire with its \
+         positions, normals and indices); per tick 0 B (the stream's messages average {} B on \
+         the wire, vertices only)",
+        bytes(&material_requests),
+        wire(&material_requests),
+        bytes(&textures),
+        wire(&textures),
+        mesh.uvs.0.len(),
+        wire(&meshes),
+        received["wireBytes"].as_u64().unwrap() / messages.max(1),
+    );
+    let errors = cdp.errors();
+    assert!(errors.is_empty(), "the page logged errors: {errors:#?}");
+    assert_eq!(cdp.eval(ERROR_TEXT).await, json!(""));
+    drop(cdp);
+    drop(browser);
+    server.stop().await;
+}
+
+/// One drawn head of a textured rig as the page drew it (its `crowdmorphViewer.view`): each
+/// mesh triangle on screen, for finding which primitive and texture coordinate a pixel shows.
+struct Scene {
+    /// Per vertex: screen x, y (drawing-buffer pixels, y down) and clip w.
+    screen: Vec<[f64; 3]>,
+    uvs: Vec<[f64; 2]>,
+    /// Per triangle: its vertices and its primitive's base colour factor.
+    triangles: Vec<([usize; 3], [f64; 4])>,
+    /// The panel's box in drawing-buffer pixels (the page draws under it).
+    panel: [f64; 4],
+    width: f64,
+    height: f64,
+    /// Screenshot pixels per drawing-buffer pixel.
+    scale: f64,
+}
+
+/// How well a screenshot fits `factor × texel × D`: per sample, the channel the factor keeps
+/// minus the one it removes (which cancels the grey specular) is the texel's, times one
+/// diffuse light `D` for the whole flat grid, fitted as the median over the samples.
+#[derive(Debug)]
+struct Fit {
+    samples: usize,
+    /// Samples on white (≥ 0.6 linear) and on grey (≤ 0.3) texels, per material factor.
+    light: [usize; 2],
+    dark: [usize; 2],
+    diffuse: f64,
+    /// The share of samples within tolerance of the fitted picture.
+    within: f64,
+    /// The largest |green − blue| where the factor is red (both are the grey specular alone).
+    grey_specular: f64,
+}
+
+fn srgb_to_linear(c: u8) -> f64 {
+    let c = f64::from(c) / 255.0;
+    if c <= 0.04045 {
+        c / 12.92
+    } else {
+        ((c + 0.055) / 1.055).powf(2.4)
+    }
+}
+
+/// `m · p` for a column-major 4 × 4 matrix.
+fn transform(m: &[f64], p: [f64; 4]) -> [f64; 4] {
+    let mut out = [0.0; 4];
+    for (r, o) in out.iter_mut().enumerate() {
+        *o = (0..4).map(|c| m[c * 4 + r] * p[c]).sum();
+    }
+    out
+}
+
+impl Scene {
+    fn new(
+        view: &Value,
+        mesh: &MeshResponse,
+        materials: &Value,
+        panel: &Value,
+        shot_width: f64,
+    ) -> Scene {
+        let nums = |v: &Value| -> Vec<f64> {
+            v.as_array()
+                .expect("an array")
+                .iter()
+                .map(|x| x.as_f64().expect("a number"))
+                .collect()
+        };
+        let view_proj = nums(&view["viewProj"]);
+        let heads = view["heads"].as_array().expect("heads");
+        assert_eq!(heads.len(), 1, "{view}");
+        let model = nums(&heads[0]["model"]);
+        let width = view["width"].as_f64().unwrap();
+        let height = view["height"].as_f64().unwrap();
+        let f32s = |b: &[u8]| -> Vec<f64> {
+            b.chunks_exact(4)
+                .map(|c| f64::from(f32::from_le_bytes([c[0], c[1], c[2], c[3]])))
+                .collect()
+        };
+        let positions = f32s(&mesh.positions.0);
+        let screen = positions
+            .chunks_exact(3)
+            .map(|p| {
+                let world = transform(&model, [p[0], p[1], p[2], 1.0]);
+                let clip = transform(&view_proj, world);
+                [
+                    (clip[0] / clip[3] + 1.0) / 2.0 * width,
+                    (1.0 - clip[1] / clip[3]) / 2.0 * height,
+                    clip[3],
+                ]
+            })
+            .collect();
+        let uvs = f32s(&mesh.uvs.0)
+            .chunks_exact(2)
+            .map(|c| [c[0], c[1]])
+            .collect();
+        let indices: Vec<usize> = mesh
+            .indices
+            .0
+            .chunks_exact(4)
+            .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]) as usize)
+            .collect();
+        let mut triangles = Vec::new();
+        for p in &mesh.primitives {
+            let m = p.material.expect("every primitive has a material") as usize;
+            let factor: Vec<f64> =
+                nums(&materials["materials"][m]["pbrMetallicRoughness"]["baseColorFactor"]);
+            let first = p.first_index as usize;
+            for t in indices[first..first + p.indices as usize].chunks_exact(3) {
+                triangles.push((
+                    [t[0], t[1], t[2]],
+                    [factor[0], factor[1], factor[2], factor[3]],
+                ));
+            }
+        }
+        // CSS pixels to drawing-buffer pixels (the canvas fills the window).
+        let scale = shot_width / width;
+        let css = |k: &str| panel[k].as_f64().unwrap() / scale;
+        Scene {
+            screen,
+            uvs,
+            triangles,
+            panel: [css("left"), css("top"), css("right"), css("bottom")],
+            width,
+            height,
+            scale,
+        }
+    }
+
+    /// The triangle under a point of the drawing buffer and the texture coordinate there
+    /// (perspective-correct, as the GPU interpolates it).
+    fn locate(&self, x: f64, y: f64) -> Option<(usize, [f64; 2])> {
+        for (i, (t, _)) in self.triangles.iter().enumerate() {
+            let [a, b, c] = t.map(|k| self.screen[k]);
+            let det = (b[0] - a[0]) * (c[1] - a[1]) - (c[0] - a[0]) * (b[1] - a[1]);
+            if det.abs() < 1e-9 {
+                continue;
+            }
+            let l1 = ((x - a[0]) * (c[1] - a[1]) - (c[0] - a[0]) * (y - a[1])) / det;
+            let l2 = ((b[0] - a[0]) * (y - a[1]) - (x - a[0]) * (b[1] - a[1])) / det;
+            let l = [1.0 - l1 - l2, l1, l2];
+            if l.iter().any(|&w| w < 0.0) {
+                continue;
+            }
+            let q: Vec<f64> = (0..3).map(|k| l[k] / self.screen[t[k]][2]).collect();
+            let sum: f64 = q.iter().sum();
+            let mut uv = [0.0; 2];
+            for k in 0..3 {
+                for (d, u) in uv.iter_mut().enumerate() {
+                    *u += q[k] * self.uvs[t[k]][d] / sum;
+                }
+            }
+            return Some((i, uv));
+        }
+        None
+    }
+
+    /// Samples pixels whose neighbourhood shows one primitive and one texel colour (away from
+    /// cell borders, labels and triangle-crossing primitive borders), compares each with
+    /// `factor × texel × D`, and fits D. With `flip`, the texture is read upside down.
+    fn fit(&self, shot: &Image, texture: &crowdmorph::rig::MipLevel, flip: bool) -> Fit {
+        let texel = |uv: [f64; 2]| -> [u8; 4] {
+            let v = if flip { 1.0 - uv[1] } else { uv[1] };
+            // glTF: v = 0 is the image's top row; the sampler repeats.
+            let x = (uv[0].rem_euclid(1.0) * f64::from(texture.width)) as u32;
+            let y = (v.rem_euclid(1.0) * f64::from(texture.height)) as u32;
+            let (x, y) = (x.min(texture.width - 1), y.min(texture.height - 1));
+            let at = (y * texture.width + x) as usize * 4;
+            let p = &texture.rgba[at..at + 4];
+            [p[0], p[1], p[2], p[3]]
+        };
+        const STEPS: [f64; 5] = [-3.0, -1.5, 0.0, 1.5, 3.0];
+        let mut rows = Vec::new(); // (observed, expected, which factor, texel value)
+        let mut grey_specular: f64 = 0.0;
+        let mut y = 0.5;
+        while y < self.height {
+            let mut x = 0.5;
+            while x < self.width {
+                let p = self.panel;
+                let under_panel =
+                    x > p[0] - 6.0 && x < p[2] + 6.0 && y > p[1] - 6.0 && y < p[3] + 6.0;
+                let here = if under_panel { None } else { self.locate(x, y) };
+                if let Some((tri, uv)) = here {
+                    let factor = self.triangles[tri].1;
+                    let centre = texel(uv);
+                    let uniform = STEPS.iter().all(|&dy| {
+                        STEPS.iter().all(|&dx| {
+                            self.locate(x + dx, y + dy).is_some_and(|(t, uv)| {
+                                self.triangles[t].1 == factor
+                                    && (0..3).all(|c| texel(uv)[c].abs_diff(centre[c]) <= 8)
+                            })
+                        })
+                    });
+                    let px = shot.pixel(
+                        ((x - 0.5) * self.scale) as u32,
+                        ((y - 0.5) * self.scale) as u32,
+                    );
+                    // A clipped channel says nothing about D.
+                    if uniform && px[..3].iter().all(|&c| c < 250) {
+                        let keep = (0..3)
+                            .max_by(|&a, &b| factor[a].total_cmp(&factor[b]))
+                            .unwrap();
+                        let drop = (0..3)
+                            .min_by(|&a, &b| factor[a].total_cmp(&factor[b]))
+                            .unwrap();
+                        let lin = |c: usize| srgb_to_linear(px[c]);
+                        let observed = lin(keep) - lin(drop);
+                        let t = |c: usize| factor[c] * srgb_to_linear(centre[c]);
+                        let expected = t(keep) - t(drop);
+                        if factor[0] > factor[1] {
+                            grey_specular = grey_specular.max((lin(1) - lin(2)).abs());
+                        }
+                        rows.push((observed, expected, keep, srgb_to_linear(centre[keep])));
+                    }
+                }
+                x += 4.0;
+            }
+            y += 4.0;
+        }
+        let mut ratios: Vec<f64> = rows
+            .iter()
+            .filter(|r| r.1 > 0.05)
+            .map(|r| r.0 / r.1)
+            .collect();
+        ratios.sort_by(f64::total_cmp);
+        let diffuse = ratios.get(ratios.len() / 2).copied().unwrap_or(0.0);
+        let within = rows
+            .iter()
+            .filter(|r| (r.0 - diffuse * r.1).abs() <= 0.02 + 0.08 * diffuse * r.1)
+            .count();
+        let count = |keep: usize, test: &dyn Fn(f64) -> bool| {
+            rows.iter().filter(|r| r.2 == keep && test(r.3)).count()
+        };
+        Fit {
+            samples: rows.len(),
+            light: [count(0, &|t| t >= 0.6), count(1, &|t| t >= 0.6)],
+            dark: [count(0, &|t| t <= 0.3), count(1, &|t| t <= 0.3)],
+            diffuse,
+            within: within as f64 / rows.len().max(1) as f64,
+            grey_specular,
+        }
+    }
+}
+
+impl Fit {
+    fn check(&self, path: &Path) {
+        let shot = path.display();
+        assert!(
+            self.samples >= 200,
+            "too few pixels to judge: {self:?} (see {shot})"
+        );
+        // Both materials show both texel colours, enough to judge.
+        for k in 0..2 {
+            assert!(
+                self.light[k] >= 20 && self.dark[k] >= 20,
+                "too few samples on white and grey texels: {self:?} (see {shot})"
+            );
+        }
+        assert!(
+            (0.3..1.5).contains(&self.diffuse),
+            "the lighting is implausible: {self:?} (see {shot})"
+        );
+        assert!(
+            self.within >= 0.95,
+            "the canvas does not show factor × texture: {self:?} (see {shot})"
+        );
+        assert!(
+            self.grey_specular <= 0.03,
+            "a red material shows green or blue beyond its grey highlight: {self:?} (see {shot})"
+        );
+    }
 }
 
 /// FNV-1a 32 over what a viewer's heads hold, as `q16Checksum` in clients/web/main.js: for each
