@@ -19,6 +19,7 @@ use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 
 use crate::http::{self, ApiError, ApiResult, Query, Ready};
+use crate::routes::rigs::MeshQuery;
 use crate::services::Parts;
 use crate::state::AppState;
 use crowdmorph_core::rig::ImageData;
@@ -158,29 +159,15 @@ impl AsRef<[u8]> for ArcBytes {
     }
 }
 
-/// `?lod=` of a model request.
-#[derive(serde::Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ModelQuery {
-    lod: Option<u32>,
-}
-
 /// `GET /v1/rigs/{id}/model.glb?lod=L`: level `L`'s mesh (default 0) as a self-contained GLB.
 pub async fn get_model(
     State(state): State<AppState>,
     _ready: Ready,
     Path(id): Path<String>,
-    Query(query): Query<ModelQuery>,
+    Query(query): Query<MeshQuery>,
 ) -> ApiResult {
     let entry = state.rig(&id)?;
-    let lod = query.lod.unwrap_or(0);
-    let levels = entry.rig().lod.levels.len();
-    if lod as usize >= levels {
-        return Err(ApiError::bad_request(
-            "lod_out_of_range",
-            format!("LOD level {lod} out of range (rig {id:?} has {levels} levels)"),
-        ));
-    }
+    let lod = query.level(&entry, &id)?;
     // The file copies the level's arrays and the images: charged to the queue memory (twice:
     // the JSON values and the bytes) until it is sent.
     let level = entry.prepared.at_level(lod).rig().clone();

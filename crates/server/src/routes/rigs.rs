@@ -306,11 +306,27 @@ pub async fn delete_rig(
     Ok(StatusCode::NO_CONTENT.into_response())
 }
 
+/// `?lod=L` of a mesh or model request.
 #[derive(serde::Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct MeshQuery {
     /// LOD level whose (possibly simplified) mesh to return; default 0, the full mesh.
     lod: Option<u32>,
+}
+
+impl MeshQuery {
+    /// The level asked for (default 0), a 400 `lod_out_of_range` past the rig's levels.
+    pub fn level(&self, entry: &RigEntry, id: &str) -> Result<u32, ApiError> {
+        let lod = self.lod.unwrap_or(0);
+        let levels = entry.rig().lod.levels.len();
+        if lod as usize >= levels {
+            return Err(ApiError::bad_request(
+                "lod_out_of_range",
+                format!("LOD level {lod} out of range (rig {id:?} has {levels} levels)"),
+            ));
+        }
+        Ok(lod)
+    }
 }
 
 pub async fn get_mesh(
@@ -321,18 +337,11 @@ pub async fn get_mesh(
     accept: Accept,
 ) -> ApiResult {
     let entry = state.rig(&id)?;
-    let lod = query.lod.unwrap_or(0);
-    let levels = entry.rig().lod.levels.len();
-    if lod as usize >= levels {
-        return Err(ApiError::bad_request(
-            "lod_out_of_range",
-            format!("LOD level {lod} out of range (rig {id:?} has {levels} levels)"),
-        ));
-    }
-    // The response copies the level's positions, normals and indices (and JSON triples them
-    // in base64 and digits): charged to the queue memory until it is sent.
+    let lod = query.level(&entry, &id)?;
+    // The response copies the level's positions, normals, texture coordinates and indices
+    // (and JSON triples them in base64 and digits): charged to the queue memory until sent.
     let at = entry.prepared.at_level(lod).rig();
-    let bytes = (at.vertex_count() * 24 + at.triangle_count() * 12) as u64;
+    let bytes = (at.vertex_count() * 32 + at.triangle_count() * 12) as u64;
     let factor = if accept.bincode { 2 } else { 4 };
     let held = state.queue_memory.reserve(bytes * factor)?;
     // Built and encoded off the runtime; the charge goes with the body until it is sent.
