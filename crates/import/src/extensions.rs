@@ -247,7 +247,9 @@ mod tests {
         let get = |n: &str| r.iter().find(|e| e.name == n).expect("listed");
         assert_eq!(get("KHR_texture_basisu").handling, "ignored");
         assert!(get("KHR_texture_basisu").required);
-        assert_eq!(get("KHR_texture_transform").handling, "ignored");
+        // Drawn since issue 46: read, as materials and textures are.
+        assert_eq!(get("KHR_texture_transform").handling, "read");
+        assert!(get("KHR_texture_basisu").note.contains("fallback image"));
         assert_eq!(get("EXT_weird").handling, "unsupported");
         assert_eq!(get("KHR_draco_mesh_compression").handling, "unsupported");
         assert!(
