@@ -22,7 +22,7 @@
 use std::sync::Arc;
 
 use crowdmorph_core::budget::Charge;
-use crowdmorph_core::rig::{Appearance, Filter, MipLevel, Primitive, Sampler, Slot, Wrap};
+use crowdmorph_core::rig::{Appearance, Filter, MipLevel, Primitive, Rig, Sampler, Slot, Wrap};
 
 use crate::gpu::GpuContext;
 
@@ -354,6 +354,35 @@ fn plan(a: &Appearance, max_size: u32) -> Result<(u64, Chains<'_>), AppearanceEr
         levels.push(chain);
     }
     Ok((bytes, levels))
+}
+
+/// The most texture slots one of `rig`'s primitives samples (an image with pixels, read
+/// through a coordinate set the primitive has): what the render cost model prices per pixel,
+/// without uploading anything.
+pub fn texture_slots(rig: &Rig) -> u32 {
+    let Some(a) = &rig.appearance else {
+        return 0;
+    };
+    rig.primitives
+        .iter()
+        .filter_map(|p| {
+            let m = a.materials.get(p.look.material? as usize)?;
+            let n = p.positions.len();
+            let has_set = |set: u8| match set {
+                0 => p.look.uv0.as_ref().is_some_and(|u| u.len() == n),
+                1 => p.look.uv1.as_ref().is_some_and(|u| u.len() == n),
+                _ => false,
+            };
+            Some(
+                m.texture_refs()
+                    .filter(|(_, r)| {
+                        has_set(r.tex_coord) && a.image_of(r).is_some_and(|i| i.pixels.is_some())
+                    })
+                    .count() as u32,
+            )
+        })
+        .max()
+        .unwrap_or(0)
 }
 
 /// Whether `a` has anything to upload: some material samples an image with pixels.
