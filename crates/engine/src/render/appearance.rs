@@ -21,7 +21,7 @@
 
 use std::sync::Arc;
 
-use crowdmorph_core::budget::Charge;
+use crowdmorph_core::budget::{BudgetError, Charge};
 use crowdmorph_core::rig::{Appearance, Filter, MipLevel, Primitive, Rig, Sampler, Slot, Wrap};
 
 use crate::gpu::GpuContext;
@@ -52,6 +52,9 @@ pub enum AppearanceError {
         /// What is wrong.
         problem: String,
     },
+    /// The device's memory budget (`--max-gpu-memory`) refused the textures.
+    #[error("GPU memory: {0}")]
+    Memory(#[from] BudgetError),
 }
 
 /// One vertex's static attributes (vertex buffer slot 3): texture coordinates of sets 0 and 1,
@@ -401,9 +404,8 @@ pub(super) fn upload(
     fallback: &Fallback,
     a: &Appearance,
     max_size: u32,
-) -> Result<GpuAppearance, super::gpu::RenderError> {
-    let (bytes, chains) =
-        plan(a, max_size).map_err(|e| super::gpu::RenderError::Invalid(e.to_string()))?;
+) -> Result<GpuAppearance, AppearanceError> {
+    let (bytes, chains) = plan(a, max_size)?;
     let charge = ctx.charge(bytes, || {
         format!(
             "{} images' textures on the GPU ({bytes} bytes)",
