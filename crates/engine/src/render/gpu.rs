@@ -2047,6 +2047,11 @@ mod tests {
                 ("emissive", offset_of!(MaterialUniform, emissive)),
                 ("pbr", offset_of!(MaterialUniform, pbr)),
                 ("alpha", offset_of!(MaterialUniform, alpha)),
+                // `sets` is two vec4<u32> in WGSL (an array of u32 would be padded to 16
+                // bytes an element in a uniform).
+                ("sets", offset_of!(MaterialUniform, sets)),
+                ("sets2", offset_of!(MaterialUniform, sets) + 16),
+                ("transforms", offset_of!(MaterialUniform, transforms)),
             ],
         );
     }
