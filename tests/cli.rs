@@ -648,6 +648,33 @@ gpu_test!(
     }
 );
 
+gpu_test!(
+    #[test]
+    fn bench_render_compares_the_crowd_without_and_with_textures() {
+        let r = json(&[
+            "bench",
+            "render",
+            "--heads",
+            "2",
+            "--width",
+            "64",
+            "--height",
+            "48",
+            "--seconds",
+            "0",
+            "--textures",
+            "both",
+            "--json",
+        ]);
+        // The embedded head has no textures: "on" generates four slots' worth.
+        assert_eq!(usize_of(&r["untextured"], "texture_slots"), 0);
+        assert_eq!(usize_of(&r["textured"], "texture_slots"), 4);
+        assert!(usize_of(&r["textured"], "texture_bytes") > 3 * 512 * 512 * 4);
+        assert!(f64_of(&r, "render_ratio") > 0.0, "{r}");
+        assert!(f64_of(&r["textured"]["times"], "render_ms") > 0.0);
+    }
+);
+
 #[test]
 fn bench_http_reports_plausible_json() {
     let r = json(&[

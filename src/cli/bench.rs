@@ -110,6 +110,10 @@ pub enum Command {
         /// Adapter that draws (auto or gpu).
         #[arg(long, default_value = "auto")]
         render_backend: RenderBackend,
+        /// Textures: `rig` (as the rig has them), `on` (generated ones when it has none),
+        /// `off` (its materials' factors only), or `both` (off, then on, and their ratio).
+        #[arg(long, default_value = "rig")]
+        textures: bench::render::TextureChoice,
         #[command(flatten)]
         gpu: GpuMemoryArgs,
         /// Print JSON.
@@ -165,6 +169,7 @@ impl super::Report for bench::sessions::SessionBenchReport {}
 impl super::Report for bench::sessions::SessionLinkReport {}
 impl super::Report for bench::http::LinkBenchReport {}
 impl super::Report for crowdmorph::render::offline::RenderReport {}
+impl super::Report for bench::render::TextureComparison {}
 impl super::Report for bench::codecs::CodecReport {}
 
 /// The rig file a benchmark server uploads (its glTF with every buffer embedded), if any.
@@ -233,9 +238,11 @@ pub fn run(which: Command) -> Result<()> {
             seconds,
             backend,
             render_backend,
+            textures,
             gpu,
             json,
         } => {
+            use bench::render::TextureChoice;
             let rig = load_rig(rig.as_deref())?;
             let engine = Engine::with_options(backend, gpu.options())?;
             let opt = crowdmorph::render::offline::RenderOptions {
@@ -250,8 +257,19 @@ pub fn run(which: Command) -> Result<()> {
                 },
                 backend: render_backend,
                 gpu_memory: gpu.max_gpu_memory,
+                textures: match textures {
+                    TextureChoice::Rig | TextureChoice::Both => None,
+                    TextureChoice::On => Some(true),
+                    TextureChoice::Off => Some(false),
+                },
                 ..crowdmorph::render::offline::RenderOptions::default()
             };
+            if textures == TextureChoice::Both {
+                let report = with_spinner("bench render --textures both", || {
+                    bench::render::bench_render_textures(&engine, &rig, &opt, seconds, 5)
+                });
+                return super::emit(&report?, json);
+            }
             let report = with_spinner("bench render", || {
                 bench::render::bench_render(&engine, &rig, &opt, seconds, 5)
             });

@@ -115,6 +115,8 @@ pub fn run(a: Args) -> Result<()> {
         },
         backend: a.render_backend,
         gpu_memory: a.gpu.max_gpu_memory,
+        // The rig as it is: its textures, if the import gave it any.
+        textures: None,
     };
     let report = r::render_to_file(&engine, &rig, &opt, &a.out)?;
     super::emit(&Wrote { report, out: a.out }, a.json)

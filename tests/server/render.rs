@@ -1586,3 +1586,71 @@ async fn a_renders_heads_are_charged_until_its_frame_is_drawn() {
     );
     server.stop().await;
 }
+
+gpu_test!(
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_textured_rigs_textures_are_charged_to_the_gpu_budget_and_freed_by_its_delete() {
+        use crowdmorph::budget::Budget;
+        use crowdmorph::engine::BackendChoice;
+        use crowdmorph::rig::Mips;
+        use crowdmorph::server::registry::{ClipLayout, NewEntry, RigEntry, quantization_box};
+        use std::sync::Arc;
+        // The GPU engine (lavapipe) with the renderer on its device, so one pool holds both.
+        let server = TestServer::start(ServerConfig {
+            backend: BackendChoice::Gpu,
+            ..ServerConfig::default()
+        })
+        .await;
+        let memory = gpu_pool(&server);
+        // A frame of the built-in head first: the renderer's kept targets are then in `before`.
+        let req = |rig: &str| {
+            let mut h = head(1, "talk", 3, 0);
+            h.rig = rig.into();
+            request(vec![h], 96, 64)
+        };
+        png(&server, &req("default-head")).await;
+        let before = memory.used();
+        // No import fills textures yet: the embedded head with generated ones (three 64²
+        // images, full chains), registered as an upload would register it.
+        let rig = Arc::new(crowdmorph::render::offline::with_generated_textures(
+            &crowdmorph::embedded::default_rig(),
+            64,
+        ));
+        let texture_bytes = 3 * Mips::chain_bytes(64, 64);
+        let prepared = server.state.engine.prepare(rig.clone()).expect("prepare");
+        server
+            .state
+            .registry
+            .insert(Arc::new(RigEntry::new(NewEntry {
+                id: "textured".into(),
+                builtin: None,
+                prepared,
+                generation: server.state.registry.generation(),
+                layout: ClipLayout::default(),
+                charge: Budget::new(u64::MAX, "", None).keep(0),
+                qbox: quantization_box(&rig),
+            })));
+        let registered = memory.used();
+        let img = png(&server, &req("textured")).await;
+        let drawn = memory.used();
+        assert!(
+            drawn - registered >= texture_bytes,
+            "the first frame uploads the textures: {} bytes more, {texture_bytes} of textures",
+            drawn - registered
+        );
+        // Drawn with them: not the untextured head.
+        let plain = png(&server, &req("default-head")).await;
+        let diff = compare(&img, &plain, 8).expect("same size");
+        assert!(diff.differing > 100, "{} pixels differ", diff.differing);
+        // A second frame reuses the cached topology and its textures.
+        png(&server, &req("textured")).await;
+        assert_eq!(memory.used(), drawn);
+        server.client.delete_rig("textured").await.expect("delete");
+        assert_eq!(
+            memory.used(),
+            before,
+            "the delete frees the rig, its topology and its textures"
+        );
+        server.stop().await;
+    }
+);

@@ -21,8 +21,8 @@
 
 use std::sync::Arc;
 
-use crowdmorph_core::budget::Charge;
-use crowdmorph_core::rig::{Appearance, Filter, MipLevel, Primitive, Sampler, Slot, Wrap};
+use crowdmorph_core::budget::{BudgetError, Charge};
+use crowdmorph_core::rig::{Appearance, Filter, MipLevel, Primitive, Rig, Sampler, Slot, Wrap};
 
 use crate::gpu::GpuContext;
 
@@ -52,6 +52,9 @@ pub enum AppearanceError {
         /// What is wrong.
         problem: String,
     },
+    /// The device's memory budget (`--max-gpu-memory`) refused the textures.
+    #[error("GPU memory: {0}")]
+    Memory(#[from] BudgetError),
 }
 
 /// One vertex's static attributes (vertex buffer slot 3): texture coordinates of sets 0 and 1,
@@ -356,24 +359,41 @@ fn plan(a: &Appearance, max_size: u32) -> Result<(u64, Chains<'_>), AppearanceEr
     Ok((bytes, levels))
 }
 
+/// The most texture slots one of `rig`'s primitives samples (an image with pixels, read
+/// through a coordinate set the primitive has): what the render cost model prices per pixel,
+/// without uploading anything.
+pub fn texture_slots(rig: &Rig) -> u32 {
+    let Some(a) = &rig.appearance else {
+        return 0;
+    };
+    rig.primitives
+        .iter()
+        .filter_map(|p| {
+            let m = a.materials.get(p.look.material? as usize)?;
+            let n = p.positions.len();
+            let has_set = |set: u8| match set {
+                0 => p.look.uv0.as_ref().is_some_and(|u| u.len() == n),
+                1 => p.look.uv1.as_ref().is_some_and(|u| u.len() == n),
+                _ => false,
+            };
+            Some(
+                m.texture_refs()
+                    .filter(|(_, r)| {
+                        has_set(r.tex_coord) && a.image_of(r).is_some_and(|i| i.pixels.is_some())
+                    })
+                    .count() as u32,
+            )
+        })
+        .max()
+        .unwrap_or(0)
+}
+
 /// Whether `a` has anything to upload: some material samples an image with pixels.
 pub(super) fn has_textures(a: &Appearance) -> bool {
     a.materials.iter().any(|m| {
         m.texture_refs()
             .any(|(_, r)| a.image_of(r).is_some_and(|i| i.pixels.is_some()))
     })
-}
-
-/// Why a rig's textures were not uploaded (the renderer's `RenderError` wraps it; this
-/// module does not name the renderer, which uses it).
-#[derive(Debug, thiserror::Error)]
-pub enum UploadError {
-    /// An image does not fit the device's limits.
-    #[error("{0}")]
-    Invalid(String),
-    /// `--max-gpu-memory` refused the textures.
-    #[error(transparent)]
-    Memory(#[from] crowdmorph_core::budget::BudgetError),
 }
 
 /// Uploads `a`'s textures to `ctx`'s device (charged first) and makes the materials' bind
@@ -384,8 +404,8 @@ pub(super) fn upload(
     fallback: &Fallback,
     a: &Appearance,
     max_size: u32,
-) -> Result<GpuAppearance, UploadError> {
-    let (bytes, chains) = plan(a, max_size).map_err(|e| UploadError::Invalid(e.to_string()))?;
+) -> Result<GpuAppearance, AppearanceError> {
+    let (bytes, chains) = plan(a, max_size)?;
     let charge = ctx.charge(bytes, || {
         format!(
             "{} images' textures on the GPU ({bytes} bytes)",

@@ -16,6 +16,15 @@
 //!   three.js's `HemisphereLight` adds without an environment map), plus emission;
 //! - no tone mapping: the linear result is clamped by the sRGB target.
 //!
+//! For three.js (r155 and later, physically correct lights, `NoToneMapping`): two
+//! `DirectionalLight`s of the intensities and directions [`reference_lights`] gives and a
+//! `HemisphereLight` of the sky and ground colours at intensity 1 with its position along
+//! `up`, the colours set as linear values (`Color.setRGB(r, g, b, LinearSRGBColorSpace)`; a hex
+//! colour would be decoded from sRGB). Known differences remain: three.js does not weigh its
+//! direct diffuse term by `1 − F`, so a dielectric's diffuse is up to 4 % brighter there at
+//! normal incidence (more at grazing angles), and it widens roughness by the normal's
+//! screen-space derivatives (specular anti-aliasing), which shows on curved, smooth surfaces.
+//!
 //! The lights are fixed relative to the camera (so every view of a head is lit alike) and
 //! tuned so the embedded head looks as it did under the earlier Lambert + Blinn-Phong shading:
 //! a key from the camera's upper left, a dimmer fill from its lower right, and a sky brighter

@@ -26,6 +26,10 @@ pub struct RenderCost {
     pub triangles: u64,
     /// Pixels of the image (each shaded at 4× MSAA, resolved, read back and encoded).
     pub pixels: u64,
+    /// Texture fetches: the pixels times the most texture slots a drawn primitive samples
+    /// (`render::appearance::texture_slots`). Like `pixels`, an upper bound that ignores how
+    /// much of the frame the heads cover.
+    pub texture_fetches: u64,
 }
 
 impl RenderCost {
@@ -48,7 +52,8 @@ impl RenderCost {
             + self.vertices as f64 / rates.vertices
             + self.triangles as f64 / rates.triangles
             + self.pixels as f64
-                * (f64::from(super::gpu::SAMPLES) / rates.samples + 1.0 / rates.encode);
+                * (f64::from(super::gpu::SAMPLES) / rates.samples + 1.0 / rates.encode)
+            + self.texture_fetches as f64 / rates.texture_fetches;
         Duration::from_secs_f64(secs.min(1e9))
     }
 }
@@ -66,6 +71,9 @@ pub struct Rates {
     pub samples: f64,
     /// Pixels encoded (PNG or JPEG on the host).
     pub encode: f64,
+    /// Texture fetches of textured pixels (a filtered sample of one slot, and its share of
+    /// the normal-map and material arithmetic).
+    pub texture_fetches: f64,
     /// Seconds every render costs whatever it draws (submissions, targets, the readback).
     pub per_render: f64,
 }
@@ -77,13 +85,18 @@ impl Rates {
     /// 578–611 ms and 1,000 in 4.97–5.19 s (about 5 ms an instance), one head at 1920 × 1080
     /// in 77 ms warm (142 ms when the targets are new) against 11 ms at 64 × 48, 100 unique
     /// jobs blend in 12–24 ms, a 1080p PNG encodes in 7–9 ms. Set about 35 % slower than that,
-    /// so that estimates err long: 6.9 ms an instance, 35 ms a full-HD frame.
+    /// so that estimates err long: 6.9 ms an instance, 35 ms a full-HD frame. Texture fetches:
+    /// `bench render --textures both` (2026-12-07, same machine under a load of 6–8 from other
+    /// builds, 100 unique embedded heads at 1280 × 720, four slots: 3.7 M fetches) drew
+    /// 120–1,120 ms slower textured, 4–28 % of a frame; at the unloaded frame time above that
+    /// is at least 19 M fetches/s, set at 15 M.
     pub const SOFTWARE: Rates = Rates {
         blend: 500.0e6,
         vertices: 3.5e6,
         triangles: 3.0e6,
         samples: 60.0e6,
         encode: 30.0e6,
+        texture_fetches: 15.0e6,
         per_render: 0.02,
     };
 
@@ -95,6 +108,7 @@ impl Rates {
         triangles: 500.0e6,
         samples: 5.0e9,
         encode: 30.0e6,
+        texture_fetches: 5.0e9,
         per_render: 0.002,
     };
 
@@ -147,5 +161,25 @@ mod tests {
         huge.add_job(u64::MAX, u64::MAX, u64::MAX, u64::MAX);
         assert_eq!(huge.triangles, u64::MAX);
         assert!(huge.estimate(&Rates::SOFTWARE) > Duration::from_secs(1_000_000));
+    }
+
+    #[test]
+    fn textures_cost_per_pixel_and_slot() {
+        let plain = RenderCost {
+            pixels: 1280 * 720,
+            ..RenderCost::default()
+        };
+        let textured = RenderCost {
+            texture_fetches: 1280 * 720 * 4,
+            ..plain
+        };
+        let (a, b) = (
+            plain.estimate(&Rates::SOFTWARE),
+            textured.estimate(&Rates::SOFTWARE),
+        );
+        assert!(b > a, "{a:?} vs {b:?}");
+        let fetches = b - a;
+        let expected = 1280.0 * 720.0 * 4.0 / Rates::SOFTWARE.texture_fetches;
+        assert!((fetches.as_secs_f64() - expected).abs() < 1e-6);
     }
 }

@@ -22,7 +22,15 @@
 //!   two matrix products and stays correct under non-uniform scale.
 //! - Topology is per rig or mesh level: a LOD mesh level is an ordinary rig with fewer vertices
 //!   and triangles of its own, so its heads draw with its own index buffer, uploaded once by
-//!   [`Renderer::topology`] and kept by the caller next to the prepared rig.
+//!   [`Renderer::topology`] and kept by the caller next to the prepared rig. The topology
+//!   also carries what does not move with morph targets — texture coordinates, vertex colours,
+//!   tangents — and the rig's textures ([`super::appearance`]), uploaded once per rig however
+//!   many mesh levels draw with them.
+//! - Draw order: every mesh's opaque and masked primitives first, instanced; then each
+//!   alpha-blended primitive of each instance, from the farthest to the nearest, depth-tested
+//!   without writing depth (blending is not commutative). Single-sided primitives cull back
+//!   faces unless an instance of the draw mirrors; double-sided ones light their back faces
+//!   as the surface's other side.
 //! - Vertex data comes from wherever it is ([`VertexSource`]): host slices (CPU engine output)
 //!   are uploaded once per mesh per render with `queue.write_buffer`; buffers already on the
 //!   renderer's device (the GPU engine's outputs) are bound where they are, with no readback.
@@ -260,6 +268,15 @@ pub enum RenderError {
     /// The render's request was cancelled or passed its deadline between two passes.
     #[error("render stopped: {0}")]
     Cancelled(#[from] Cancelled),
+}
+
+impl From<appearance::AppearanceError> for RenderError {
+    fn from(e: appearance::AppearanceError) -> RenderError {
+        match e {
+            appearance::AppearanceError::Memory(b) => RenderError::Memory(b),
+            other => RenderError::Invalid(other.to_string()),
+        }
+    }
 }
 
 /// The per-render uniform block the shader's `Camera` mirrors: the view and the lights
@@ -673,8 +690,8 @@ impl Renderer {
         self.ctx.register_reclaim(reclaimer);
     }
 
-    /// Builds the pipeline on the context's device (the device the GPU engine uses, so its
-    /// outputs can be drawn where they are).
+    /// Builds the pipelines (back faces culled or not × opaque or blended) on the context's
+    /// device (the device the GPU engine uses, so its outputs can be drawn where they are).
     pub fn new(ctx: Arc<GpuContext>) -> Result<Renderer, RenderError> {
         ctx.health().map_err(lost)?;
         let software = !crate::gpu::is_hardware(ctx.adapter());
@@ -1081,10 +1098,7 @@ impl Renderer {
             self.max_size,
         );
         scopes.pop("uploading a rig's textures")?;
-        let g = Arc::new(uploaded.map_err(|e| match e {
-            appearance::UploadError::Invalid(m) => RenderError::Invalid(m),
-            appearance::UploadError::Memory(b) => RenderError::Memory(b),
-        })?);
+        let g = Arc::new(uploaded?);
         if let Ok(mut c) = self.appearances.lock() {
             live(&mut c);
             c.push((Arc::downgrade(a), Arc::downgrade(&g)));

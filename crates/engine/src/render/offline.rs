@@ -4,7 +4,10 @@
 //!
 //! The crowd is `heads` heads of one clip at one LOD on the default grid and camera; with
 //! `spread`, head `i` plays frame `frame + i` (every head unique), otherwise every head is a
-//! clone of one job.
+//! clone of one job. [`RenderOptions::textures`] draws the same crowd with or without
+//! textures: a rig without any gets generated ones ([`with_generated_textures`]: base colour,
+//! packed occlusion-roughness-metallic and a normal map on planar texture coordinates), so
+//! `bench render` can price texture sampling on any rig.
 
 use std::path::Path;
 use std::sync::Arc;
@@ -109,6 +112,9 @@ pub struct RenderOptions {
     /// `--max-gpu-memory` of a device opened for rendering only (on the engine's device, the
     /// engine's budget applies); `None`: the default.
     pub gpu_memory: Option<u64>,
+    /// `None`: the rig as it is; `Some(true)`: with textures (generated ones when the rig has
+    /// none); `Some(false)`: its materials' factors without their textures.
+    pub textures: Option<bool>,
 }
 
 impl Default for RenderOptions {
@@ -122,6 +128,7 @@ impl Default for RenderOptions {
             image: ImageOptions::default(),
             backend: RenderBackend::Auto,
             gpu_memory: None,
+            textures: None,
         }
     }
 }
@@ -166,6 +173,10 @@ pub struct RenderReport {
     pub format: String,
     /// Encoded bytes.
     pub bytes: usize,
+    /// The most texture slots a primitive samples (0: drawn without textures).
+    pub texture_slots: u32,
+    /// Bytes of textures on the device.
+    pub texture_bytes: u64,
     /// Times of the (last, or median) frame.
     pub times: StageTimes,
     /// Frames measured (1 for `render`).
@@ -182,6 +193,7 @@ pub struct Crowd {
     view: View,
     frame: Frame,
     unique: usize,
+    texture_slots: u32,
 }
 
 /// The rig with the clip `opt` asks for added when it is a synthetic one (`random`, or the
@@ -221,7 +233,15 @@ pub fn build(
 ) -> Result<Crowd> {
     encode::check_image(&opt.image, device.renderer.max_size())?;
     // One copy of the rig: the engine's preparation shares it.
-    let rig = Arc::new(playable(rig, opt));
+    let mut rig = playable(rig, opt);
+    match opt.textures {
+        Some(true) if super::appearance::texture_slots(&rig) == 0 => {
+            rig = with_generated_textures(&rig, GENERATED_TEXTURE_SIZE);
+        }
+        Some(false) => strip_textures(&mut rig),
+        _ => {}
+    }
+    let rig = Arc::new(rig);
     let clip = match &opt.clip {
         Some(c) => rig.clip_index(c).ok_or_else(|| OfflineError::UnknownClip {
             rig: rig.name.clone(),
@@ -279,8 +299,169 @@ pub fn build(
         view: layout.view,
         frame: crowd::to_frame(opt.image.width, opt.image.height, opt.image.background),
         unique: plan.jobs.len(),
+        texture_slots: super::appearance::texture_slots(&rig),
         prepared,
     })
+}
+
+/// Side of the images [`with_generated_textures`] makes.
+pub const GENERATED_TEXTURE_SIZE: u32 = 512;
+
+/// `rig` with generated textures: every primitive gets planar texture coordinates over the
+/// rig's front (x, y) box when it has none, and a material of its base colour that samples
+/// three `size`² images with full mip chains — a light pattern for base colour, a packed
+/// occlusion (R), roughness (G) and metallic (B) image read by two slots, and a normal map of
+/// gentle bumps (the renderer generates the tangents). Four of the five slots: what a typical
+/// PBR head samples.
+pub fn with_generated_textures(rig: &Rig, size: u32) -> Rig {
+    use crowdmorph_core::rig::{
+        Appearance, ImageData, ImageMime, Material, Sampler, TexRef, Texture,
+    };
+    let size = size.max(1);
+    let b = rig.bbox();
+    let extent = (b.max - b.min).max(glam::Vec3::splat(1e-12));
+    let mut primitives: Vec<_> = rig.primitives.iter().cloned().collect();
+    let mut materials = Vec::with_capacity(primitives.len());
+    let r = |texture| {
+        Some(TexRef {
+            texture,
+            tex_coord: 0,
+            transform: None,
+        })
+    };
+    for (k, p) in primitives.iter_mut().enumerate() {
+        if p.look
+            .uv0
+            .as_ref()
+            .is_none_or(|u| u.len() != p.positions.len())
+        {
+            p.look.uv0 = Some(
+                p.positions
+                    .iter()
+                    .map(|v| {
+                        glam::Vec2::new(
+                            (v.x - b.min.x) / extent.x,
+                            1.0 - (v.y - b.min.y) / extent.y,
+                        )
+                    })
+                    .collect(),
+            );
+        }
+        p.look.material = Some(k as u32);
+        materials.push(Material {
+            name: Some(format!("generated {k}")),
+            base_color_texture: r(0),
+            metallic_roughness_texture: r(1),
+            occlusion_texture: r(1),
+            normal_texture: r(2),
+            ..Material::untextured(p.base_color)
+        });
+    }
+    let pattern = |f: &dyn Fn(f32, f32) -> [u8; 4]| {
+        let mut rgba = Vec::with_capacity((size * size * 4) as usize);
+        for y in 0..size {
+            for x in 0..size {
+                let (u, v) = (
+                    (x as f32 + 0.5) / size as f32,
+                    (y as f32 + 0.5) / size as f32,
+                );
+                rgba.extend_from_slice(&f(u, v));
+            }
+        }
+        let pixels = box_mips(size, size, rgba);
+        ImageData {
+            mime: ImageMime::Png,
+            bytes: Arc::from(&[][..]),
+            width: size,
+            height: size,
+            downscaled_from: None,
+            pixels: Some(Arc::new(pixels)),
+        }
+    };
+    let wave = |u: f32, v: f32| {
+        let tau = std::f32::consts::TAU;
+        ((u * 24.0 * tau).sin() * (v * 24.0 * tau).sin()) * 0.5 + 0.5
+    };
+    let base = pattern(&|u, v| {
+        let c = (225.0 + 30.0 * wave(u * 0.37, v * 0.41)) as u8;
+        [c, c, c, 255]
+    });
+    let orm = pattern(&|u, v| {
+        let w = wave(u, v);
+        [(205.0 + 50.0 * w) as u8, (150.0 + 60.0 * w) as u8, 0, 255]
+    });
+    let normal = pattern(&|u, v| {
+        let tau = std::f32::consts::TAU;
+        let (dx, dy) = ((u * 24.0 * tau).cos() * 0.25, (v * 24.0 * tau).cos() * 0.25);
+        let n = glam::Vec3::new(dx, dy, 1.0).normalize();
+        let enc = |c: f32| ((c * 0.5 + 0.5) * 255.0).round() as u8;
+        [enc(n.x), enc(n.y), enc(n.z), 255]
+    });
+    let texture = |image| Texture {
+        sampler: Some(0),
+        image: Some(image),
+    };
+    let mut out = rig.clone();
+    out.primitives = Arc::new(primitives);
+    out.appearance = Some(Arc::new(Appearance {
+        materials,
+        textures: vec![texture(0), texture(1), texture(2)],
+        samplers: vec![Sampler::default()],
+        images: vec![base, orm, normal],
+        notes: vec!["textures generated for a benchmark".into()],
+    }));
+    out
+}
+
+/// A full mip chain of an RGBA8 image by 2×2 box means of the bytes (generated test images
+/// only: a real import averages colour in linear light).
+fn box_mips(width: u32, height: u32, rgba: Vec<u8>) -> crowdmorph_core::rig::Mips {
+    use crowdmorph_core::rig::{MipLevel, Mips};
+    let mut levels = vec![MipLevel {
+        width,
+        height,
+        rgba,
+    }];
+    while let Some(l) = levels.last().filter(|l| l.width > 1 || l.height > 1) {
+        let (w, h) = ((l.width / 2).max(1), (l.height / 2).max(1));
+        let mut next = Vec::with_capacity((w * h * 4) as usize);
+        for y in 0..h {
+            for x in 0..w {
+                for c in 0..4 {
+                    let at = |dx: u32, dy: u32| {
+                        let (sx, sy) = (
+                            (2 * x + dx).min(l.width - 1),
+                            (2 * y + dy).min(l.height - 1),
+                        );
+                        u32::from(l.rgba[((sy * l.width + sx) * 4 + c) as usize])
+                    };
+                    next.push(((at(0, 0) + at(1, 0) + at(0, 1) + at(1, 1) + 2) / 4) as u8);
+                }
+            }
+        }
+        levels.push(MipLevel {
+            width: w,
+            height: h,
+            rgba: next,
+        });
+    }
+    Mips { levels }
+}
+
+/// Drops every texture reference of `rig`'s materials (their factors stay): the same crowd
+/// drawn untextured.
+fn strip_textures(rig: &mut Rig) {
+    if let Some(a) = &rig.appearance {
+        let mut a = (**a).clone();
+        for m in &mut a.materials {
+            m.base_color_texture = None;
+            m.metallic_roughness_texture = None;
+            m.normal_texture = None;
+            m.occlusion_texture = None;
+            m.emissive_texture = None;
+        }
+        rig.appearance = Some(Arc::new(a));
+    }
 }
 
 /// Draws and encodes the crowd once.
@@ -339,6 +520,8 @@ pub fn report(
         height: opt.image.height,
         format: opt.image.format.name().to_string(),
         bytes,
+        texture_slots: c.texture_slots,
+        texture_bytes: c.topologies.first().map_or(0, |t| t.texture_bytes()),
         times,
         runs,
     }
@@ -398,7 +581,8 @@ impl std::fmt::Display for RenderReport {
         let t = &r.times;
         write!(
             f,
-            "{} heads ({} unique) of {:?}, {} vertices each, {}×{} {} ({} bytes)\n\
+            "{} heads ({} unique) of {:?}, {} vertices each, {} texture slots ({} bytes), \
+             {}×{} {} ({} bytes)\n\
          engine {:?}, renderer {}{}\n\
          ms per frame (median of {}): compute {:.2}, render {:.2}, readback {:.2}, encode {:.2}, \
          total {:.2} ({:.1} frames/s)\n",
@@ -406,6 +590,8 @@ impl std::fmt::Display for RenderReport {
             r.unique,
             r.rig,
             r.vertices,
+            r.texture_slots,
+            r.texture_bytes,
             r.width,
             r.height,
             r.format,

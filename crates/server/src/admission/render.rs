@@ -133,13 +133,14 @@ fn too_costly(estimate: Duration, cost: &RenderCost, viewer: bool, limit_us: u64
         "render_too_costly",
         format!(
             "drawing this crowd is estimated at {:.0} ms on this server's renderer \
-             ({} blend work, {} vertices and {} triangles drawn, {} pixels), more than \
-             {flag}; ask for fewer heads, a coarser lod or a smaller image",
+             ({} blend work, {} vertices and {} triangles drawn, {} pixels, {} texture \
+             fetches), more than {flag}; ask for fewer heads, a coarser lod or a smaller image",
             estimate.as_secs_f64() * 1e3,
             cost.blend,
             cost.vertices,
             cost.triangles,
-            cost.pixels
+            cost.pixels,
+            cost.texture_fetches
         ),
     )
 }

@@ -40,6 +40,7 @@ use crate::topologies::{RenderState, TopologyKey};
 use crowdmorph_core::cancel::{Cancel, Cancelled};
 use crowdmorph_core::rig::{Aabb, FrameMode};
 use crowdmorph_engine::EngineError;
+use crowdmorph_engine::render::appearance::texture_slots;
 use crowdmorph_engine::render::cost::{Rates, RenderCost};
 use crowdmorph_engine::render::crowd::{self, CrowdError, CrowdGroup, PlannedGroup, RenderDevice};
 use crowdmorph_engine::render::encode::{self, ImageError};
@@ -222,22 +223,30 @@ pub trait Rendering: Parts {
         for &j in &plan.head_job {
             instances[j as usize] += 1;
         }
-        // (vertices, triangles) of each rig level, looked up once.
-        let mut sizes: std::collections::HashMap<(u32, u32), (u64, u64)> =
+        // (vertices, triangles, texture slots) of each rig level, looked up once.
+        let mut sizes: std::collections::HashMap<(u32, u32), (u64, u64, u32)> =
             std::collections::HashMap::new();
         let mut cost = RenderCost {
             pixels,
             ..RenderCost::default()
         };
+        let mut slots = 0u32;
         for (k, &n) in plan.jobs.iter().zip(&instances) {
             let entry = &rigs[k.rig as usize];
-            let (v, t) = *sizes.entry((k.rig, k.lod)).or_insert_with(|| {
+            let (v, t, s) = *sizes.entry((k.rig, k.lod)).or_insert_with(|| {
                 let rig = entry.prepared.at_level(k.lod).rig();
-                (rig.vertex_count() as u64, rig.triangle_count() as u64)
+                (
+                    rig.vertex_count() as u64,
+                    rig.triangle_count() as u64,
+                    texture_slots(rig),
+                )
             });
             let blend = job_request(entry, &k.pose, k.lod, &k.joints).cost;
             cost.add_job(blend, n, v, t);
+            slots = slots.max(s);
         }
+        // Every pixel priced as if the most textured head covered it, as `pixels` is.
+        cost.texture_fetches = pixels.saturating_mul(u64::from(slots));
         let rates = Rates::new(
             self.on_gpu() && device.shared,
             device.renderer.is_software(),
