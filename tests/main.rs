@@ -30,6 +30,7 @@ mod lod;
 mod planner;
 mod python_client;
 mod render;
+mod render_materials;
 mod rigs;
 mod sampling;
 mod server;

@@ -2,11 +2,13 @@
 //!
 //! What it draws: each [`SceneMesh`] is one blended vertex buffer (positions and per-vertex
 //! normals, evaluation order) with its rig's — or mesh level's — triangles ([`MeshTopology`]),
-//! drawn once per instance with the instance's model matrix. Shading is Lambert from a key light
-//! at the camera's upper left and a dimmer fill from its lower right, plus ambient, times each
-//! primitive's glTF base colour (linear), with a modest Blinn-Phong highlight from the key light
-//! (skin is not shiny). Lights are fixed relative to the camera, and nothing depends on time or
-//! randomness, so the same input gives the same picture. The frame is drawn with 4× MSAA and a
+//! drawn once per instance with the instance's model matrix. Shading is glTF 2.0's
+//! metallic-roughness BRDF (Appendix B) of each primitive's material — or, for a primitive
+//! without one, its base colour as a half-rough dielectric — under a key light at the camera's
+//! upper left, a dimmer fill from its lower right and a hemisphere ambient ([`brdf`], the
+//! shader's CPU mirror, which also gives reference renderers the same lights). Lights are
+//! fixed relative to the camera, and nothing depends on time or randomness, so the same input
+//! gives the same picture. The frame is drawn with 4× MSAA and a
 //! reversed-Z depth buffer (depth 1 at `near`, 0 at `far`, in f32: precision where the heads
 //! are, whatever near/far the caller gives), resolved into an `Rgba8UnormSrgb` texture — the
 //! shader works in linear colour and the target encodes sRGB — and read back as tightly packed
@@ -44,10 +46,14 @@ use std::time::Instant;
 
 use glam::{Mat3, Mat4, Vec3};
 
+use super::appearance::{
+    self, ATTR_FORMATS, ATTR_STRIDE, Fallback, GpuAppearance, NO_TEXTURE, SLOTS,
+};
+use super::brdf;
 use crate::gpu::{GpuContext, MapResults, Reclaim};
 use crowdmorph_core::budget::{BudgetError, Charge};
 use crowdmorph_core::cancel::{Cancel, Cancelled};
-use crowdmorph_core::rig::Rig;
+use crowdmorph_core::rig::{AlphaMode, Appearance, Material, Primitive, Rig};
 
 /// MSAA samples per pixel.
 pub const SAMPLES: u32 = 4;
@@ -92,16 +98,6 @@ pub fn fixed_bytes(adapter: &wgpu::AdapterInfo) -> u64 {
     }
 }
 
-/// Key light: from the camera's upper left and a little in front (view space: x right, y up,
-/// z toward the viewer), unit direction toward the light, and its intensity.
-const KEY: (Vec3, f32) = (Vec3::new(-0.5, 0.6, 0.8), 0.75);
-/// Fill light: dimmer, from the lower right, so the key's shadow side is not flat.
-const FILL: (Vec3, f32) = (Vec3::new(0.7, -0.2, 0.6), 0.25);
-/// Ambient term.
-const AMBIENT: f32 = 0.18;
-/// Strength and exponent of the Blinn-Phong highlight (modest: skin is not shiny).
-const SPECULAR: (f32, f32) = (0.12, 32.0);
-
 /// Where a mesh's vertex attribute lives.
 #[derive(Clone, Copy, Debug)]
 pub enum VertexSource<'a> {
@@ -119,26 +115,39 @@ pub enum VertexSource<'a> {
 }
 
 /// A rig's (or mesh level's) triangles uploaded once: one index buffer over the evaluation
-/// vertex order, and each primitive's index range with its base colour.
+/// vertex order, the static per-vertex attributes (texture coordinates, colours, tangents),
+/// the rig's textures, and each primitive's index range with its material.
 pub struct MeshTopology {
     /// The context (so the device) the index buffer lives on; a render on another context
     /// refuses it. Compared by pointer: `wgpu::Device`'s equality compares ids, which devices
     /// of different wgpu instances can share.
     ctx: Arc<GpuContext>,
     indices: wgpu::Buffer,
+    /// [`appearance::VertexAttrs`] per vertex (vertex buffer slot 3).
+    attrs: wgpu::Buffer,
+    /// The rig's textures and material bind groups, shared with its other topologies.
+    appearance: Option<Arc<GpuAppearance>>,
     primitives: Vec<TopologyPrimitive>,
     vertices: u32,
     triangles: u32,
-    /// The index buffer's bytes in the device's memory budget.
+    /// The index and attribute buffers' bytes in the device's memory budget.
     _charge: Charge,
 }
 
-/// One primitive's slice of a topology's index buffer.
+/// One primitive's slice of a topology's index buffer, and what it is drawn with.
 #[derive(Clone, Debug)]
 struct TopologyPrimitive {
     indices: Range<u32>,
-    /// Linear RGBA, clamped to [0, 1].
-    color: [f32; 4],
+    /// Its material's uniform slot, made once at upload.
+    material: MaterialUniform,
+    /// The material whose texture bind group it draws with (`None`: the untextured one).
+    textures: Option<usize>,
+    /// Alpha-blended: drawn after everything opaque, sorted far to near.
+    blend: bool,
+    /// Both sides drawn (else back faces are culled where that is safe).
+    double_sided: bool,
+    /// Centre of its neutral vertices in rig space: where a blended primitive sorts.
+    centroid: Vec3,
 }
 
 impl std::fmt::Debug for MeshTopology {
@@ -162,9 +171,30 @@ impl MeshTopology {
         self.triangles
     }
 
-    /// Bytes it occupies on the device.
+    /// Bytes it occupies on the device: indices, attributes, and the rig's textures (which
+    /// its other topologies share: counted in each, so a cache that bounds them errs high).
     pub fn bytes(&self) -> u64 {
-        self.indices.size()
+        self.indices.size() + self.attrs.size() + self.appearance.as_ref().map_or(0, |a| a.bytes())
+    }
+
+    /// Bytes of the rig's textures on the device (part of [`MeshTopology::bytes`]).
+    pub fn texture_bytes(&self) -> u64 {
+        self.appearance.as_ref().map_or(0, |a| a.bytes())
+    }
+
+    /// How many texture slots (of 5) the primitive that samples the most reads: what a pixel
+    /// of this mesh costs in texture fetches at most.
+    pub fn texture_slots(&self) -> u32 {
+        self.primitives
+            .iter()
+            .map(|p| {
+                p.material.sets[..SLOTS.len()]
+                    .iter()
+                    .filter(|&&s| s != NO_TEXTURE)
+                    .count() as u32
+            })
+            .max()
+            .unwrap_or(0)
     }
 }
 
@@ -232,15 +262,114 @@ pub enum RenderError {
     Cancelled(#[from] Cancelled),
 }
 
-/// The per-render uniform block the shader's `Camera` mirrors.
+/// The per-render uniform block the shader's `Camera` mirrors: the view and the lights
+/// ([`brdf::reference_lights`]).
 #[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+#[derive(Clone, Copy, Debug, bytemuck::Pod, bytemuck::Zeroable)]
 struct CameraUniform {
     view_proj: [f32; 16],
     eye: [f32; 4],
     key: [f32; 4],
     fill: [f32; 4],
-    shading: [f32; 4],
+    up: [f32; 4],
+    sky: [f32; 4],
+    ground: [f32; 4],
+}
+
+/// One primitive draw's material, the shader's `Material`: a glTF metallic-roughness
+/// material's factors and flags.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+struct MaterialUniform {
+    /// Linear RGBA base colour factor.
+    base: [f32; 4],
+    /// Emissive factor × strength (rgb).
+    emissive: [f32; 4],
+    /// Metallic, roughness, normal scale, occlusion strength.
+    pbr: [f32; 4],
+    /// Alpha cutoff, alpha mode (0 opaque, 1 mask, 2 blend), unlit, double-sided.
+    alpha: [f32; 4],
+    /// Texture coordinate set per slot of [`SLOTS`] (then three unused), [`NO_TEXTURE`] for
+    /// an empty one (the shader's `sets` and `sets2`).
+    sets: [u32; 8],
+    /// Per slot, the two rows of its `KHR_texture_transform` (xyz; w unused).
+    transforms: [[f32; 4]; 10],
+}
+
+impl MaterialUniform {
+    /// The uniform of `m`, every factor clamped to its range (a NaN to the factor's default),
+    /// so that no input reaches the shader as a NaN.
+    fn of(m: &Material) -> MaterialUniform {
+        let unit = |v: f32, default: f32| {
+            if v.is_finite() {
+                v.clamp(0.0, 1.0)
+            } else {
+                default
+            }
+        };
+        let finite = |v: f32, default: f32| if v.is_finite() { v } else { default };
+        let strength = finite(m.emissive_strength, 1.0).max(0.0);
+        let e = m.emissive_factor.map(|c| unit(c, 0.0) * strength);
+        let mode = match m.alpha_mode {
+            AlphaMode::Opaque => 0.0,
+            AlphaMode::Mask => 1.0,
+            AlphaMode::Blend => 2.0,
+        };
+        let flag = |b: bool| if b { 1.0 } else { 0.0 };
+        let mut transforms = [[0.0; 4]; 10];
+        for k in 0..SLOTS.len() {
+            transforms[2 * k] = [1.0, 0.0, 0.0, 0.0];
+            transforms[2 * k + 1] = [0.0, 1.0, 0.0, 0.0];
+        }
+        MaterialUniform {
+            sets: [NO_TEXTURE; 8],
+            transforms,
+            base: m.base_color_factor.map(|c| unit(c, 1.0)),
+            emissive: [e[0], e[1], e[2], 0.0],
+            pbr: [
+                unit(m.metallic_factor, 1.0),
+                unit(m.roughness_factor, 1.0),
+                finite(m.normal_scale, 1.0),
+                unit(m.occlusion_strength, 1.0),
+            ],
+            alpha: [
+                finite(m.alpha_cutoff, 0.5),
+                mode,
+                flag(m.unlit),
+                flag(m.double_sided),
+            ],
+        }
+    }
+
+    /// The uniform of material `index` of `a` as drawn by primitive `p`: [`MaterialUniform::of`]
+    /// with a texture coordinate set and transform for each slot that has a texture uploaded
+    /// (`gpu`) and whose set the primitive has; other slots draw as if empty.
+    fn textured(m: &Material, index: usize, gpu: &GpuAppearance, p: &Primitive) -> MaterialUniform {
+        let mut u = MaterialUniform::of(m);
+        let n = p.positions.len();
+        let has_set = |set: u8| match set {
+            0 => p.look.uv0.as_ref().is_some_and(|a| a.len() == n),
+            1 => p.look.uv1.as_ref().is_some_and(|a| a.len() == n),
+            _ => false,
+        };
+        for (k, slot) in SLOTS.iter().enumerate() {
+            let Some((_, r)) = m.texture_refs().find(|(s, _)| s == slot) else {
+                continue;
+            };
+            if !gpu.has(index, k) || !has_set(r.tex_coord) {
+                continue;
+            }
+            u.sets[k] = u32::from(r.tex_coord);
+            if let Some(t) = r.transform {
+                let [r0, r1] = t.rows();
+                if r0.iter().chain(&r1).all(|v| v.is_finite()) {
+                    u.transforms[2 * k] = [r0[0], r0[1], r0[2], 0.0];
+                    u.transforms[2 * k + 1] = [r1[0], r1[1], r1[2], 0.0];
+                }
+            }
+        }
+        u
+    }
 }
 
 /// One instance in the per-instance vertex buffer: model matrix and normal matrix by columns.
@@ -303,9 +432,16 @@ impl Scratch {
 /// The offscreen renderer. `Send + Sync`: renders from several threads may run at once.
 pub struct Renderer {
     ctx: Arc<GpuContext>,
-    pipeline: wgpu::RenderPipeline,
+    /// By [`pipeline_index`]: back faces culled or not, opaque or alpha-blended.
+    pipelines: Vec<wgpu::RenderPipeline>,
     camera_layout: wgpu::BindGroupLayout,
     material_layout: wgpu::BindGroupLayout,
+    texture_layout: wgpu::BindGroupLayout,
+    /// What slots without a texture are bound to.
+    fallback: Fallback,
+    /// The appearances uploaded, by the rig appearance they were made of, while some topology
+    /// holds them: every mesh level and generation of a rig shares one upload.
+    appearances: Mutex<Vec<(Weak<Appearance>, Weak<GpuAppearance>)>>,
     /// Stride of material slots in the uniform buffer (the device's dynamic-offset alignment).
     uniform_align: u64,
     max_size: u32,
@@ -445,13 +581,82 @@ struct Draw<'a> {
     instances: u32,
     /// Material slot of its first primitive (slot 0 is the camera).
     first_material: u64,
+    /// Whether back faces of its single-sided primitives may be culled: no instance mirrors
+    /// (a mirror turns the triangles' winding round).
+    cull: bool,
 }
 
-/// A checked render: what is drawn, and the sizes of the buffers it needs.
+/// What one entry of a render's draw order draws: a mesh's opaque and masked primitives, all
+/// instanced, or one blended primitive of one instance.
+#[derive(Clone, Debug, PartialEq)]
+struct Item {
+    draw: usize,
+    /// `None`: every primitive of the draw that is not blended; `Some(k)`: blended primitive
+    /// `k` alone.
+    primitive: Option<usize>,
+    /// The draw's instances this item draws.
+    instances: Range<u32>,
+    /// Triangles per instance.
+    triangles: u64,
+}
+
+/// A checked render: what is drawn in which order, and the sizes of the buffers it needs.
 struct Layout<'a> {
     draws: Vec<Draw<'a>>,
+    /// The draw order: every mesh's opaque primitives, then each blended primitive of each
+    /// instance from the farthest to the nearest (alpha blending is not commutative, and the
+    /// depth of what is behind must be final).
+    items: Vec<Item>,
     scene_bytes: u64,
     uniform_bytes: u64,
+}
+
+/// Index into [`Renderer::pipelines`] of the pipeline that culls back faces or not and blends
+/// or not.
+fn pipeline_index(cull: bool, blend: bool) -> usize {
+    usize::from(cull) + 2 * usize::from(blend)
+}
+
+/// The draw order of `draws` seen from `view` (see [`Layout::items`]).
+fn draw_order(draws: &[Draw<'_>], view: &View) -> Vec<Item> {
+    let mut items = Vec::with_capacity(draws.len());
+    let mut blended: Vec<(f32, Item)> = Vec::new();
+    let forward = (view.target - view.eye).normalize_or_zero();
+    for (d, draw) in draws.iter().enumerate() {
+        let prims = &draw.topology.primitives;
+        let opaque: u64 = prims
+            .iter()
+            .filter(|p| !p.blend)
+            .map(|p| u64::from(p.indices.end - p.indices.start) / 3)
+            .sum();
+        if prims.iter().any(|p| !p.blend) {
+            items.push(Item {
+                draw: d,
+                primitive: None,
+                instances: 0..draw.instances,
+                triangles: opaque,
+            });
+        }
+        for (k, p) in prims.iter().enumerate().filter(|(_, p)| p.blend) {
+            for (i, model) in draw.models.iter().enumerate() {
+                let depth = (model.transform_point3(p.centroid) - view.eye).dot(forward);
+                blended.push((
+                    depth,
+                    Item {
+                        draw: d,
+                        primitive: Some(k),
+                        instances: i as u32..i as u32 + 1,
+                        triangles: u64::from(p.indices.end - p.indices.start) / 3,
+                    },
+                ));
+            }
+        }
+    }
+    // Far to near; equal depths keep the request's order (a stable sort). NaN depths (not
+    // reachable: instances are finite) would sort last rather than panic.
+    blended.sort_by(|a, b| b.0.total_cmp(&a.0));
+    items.extend(blended.into_iter().map(|(_, item)| item));
+    items
 }
 
 impl Renderer {
@@ -509,11 +714,20 @@ impl Renderer {
             false,
             size_of::<CameraUniform>(),
         );
-        let material_layout =
-            uniform_layout("render material", wgpu::ShaderStages::FRAGMENT, true, 16);
+        let material_layout = uniform_layout(
+            "render material",
+            wgpu::ShaderStages::FRAGMENT,
+            true,
+            size_of::<MaterialUniform>(),
+        );
+        let texture_layout = appearance::texture_layout(device);
         let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some("render"),
-            bind_group_layouts: &[Some(&camera_layout), Some(&material_layout)],
+            bind_group_layouts: &[
+                Some(&camera_layout),
+                Some(&material_layout),
+                Some(&texture_layout),
+            ],
             immediate_size: 0,
         });
         let position_attrs = wgpu::vertex_attr_array![0 => Float32x3];
@@ -538,51 +752,76 @@ impl Renderer {
                 step_mode: wgpu::VertexStepMode::Instance,
                 attributes: &instance_attrs,
             }),
+            Some(wgpu::VertexBufferLayout {
+                array_stride: ATTR_STRIDE,
+                step_mode: wgpu::VertexStepMode::Vertex,
+                attributes: &ATTR_FORMATS,
+            }),
         ];
-        let pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-            label: Some("render"),
-            layout: Some(&layout),
-            vertex: wgpu::VertexState {
-                module: &module,
-                entry_point: Some("vs_main"),
-                compilation_options: wgpu::PipelineCompilationOptions::default(),
-                buffers: &buffers,
-            },
-            primitive: wgpu::PrimitiveState {
-                topology: wgpu::PrimitiveTopology::TriangleList,
-                front_face: wgpu::FrontFace::Ccw,
-                // No culling: rig files do not promise closed or consistently wound meshes (and
-                // a mirroring model matrix flips the winding); the depth test hides back faces.
-                cull_mode: None,
-                ..wgpu::PrimitiveState::default()
-            },
-            depth_stencil: Some(wgpu::DepthStencilState {
-                format: DEPTH_FORMAT,
-                depth_write_enabled: Some(true),
-                // Reversed Z: nearer is larger.
-                depth_compare: Some(wgpu::CompareFunction::Greater),
-                stencil: wgpu::StencilState::default(),
-                bias: wgpu::DepthBiasState::default(),
-            }),
-            multisample: wgpu::MultisampleState {
-                count: SAMPLES,
-                mask: !0,
-                alpha_to_coverage_enabled: false,
-            },
-            fragment: Some(wgpu::FragmentState {
-                module: &module,
-                entry_point: Some("fs_main"),
-                compilation_options: wgpu::PipelineCompilationOptions::default(),
-                targets: &[Some(wgpu::ColorTargetState {
-                    format: COLOR_FORMAT,
-                    // Opaque: heads are drawn in any order, so blending would need sorting.
-                    blend: None,
-                    write_mask: wgpu::ColorWrites::ALL,
-                })],
-            }),
-            multiview_mask: None,
-            cache: None,
-        });
+        let pipeline = |cull: bool, blend: bool| {
+            device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+                label: Some("render"),
+                layout: Some(&layout),
+                vertex: wgpu::VertexState {
+                    module: &module,
+                    entry_point: Some("vs_main"),
+                    compilation_options: wgpu::PipelineCompilationOptions::default(),
+                    buffers: &buffers,
+                },
+                primitive: wgpu::PrimitiveState {
+                    topology: wgpu::PrimitiveTopology::TriangleList,
+                    // glTF's front faces are counter-clockwise; the import turns the triangles
+                    // of mirrored nodes round, and draws whose instances mirror are never culled.
+                    front_face: wgpu::FrontFace::Ccw,
+                    cull_mode: cull.then_some(wgpu::Face::Back),
+                    ..wgpu::PrimitiveState::default()
+                },
+                depth_stencil: Some(wgpu::DepthStencilState {
+                    format: DEPTH_FORMAT,
+                    // Blended surfaces are tested against what is opaque but do not hide each
+                    // other: they are drawn far to near.
+                    depth_write_enabled: Some(!blend),
+                    // Reversed Z: nearer is larger.
+                    depth_compare: Some(wgpu::CompareFunction::Greater),
+                    stencil: wgpu::StencilState::default(),
+                    bias: wgpu::DepthBiasState::default(),
+                }),
+                multisample: wgpu::MultisampleState {
+                    count: SAMPLES,
+                    mask: !0,
+                    alpha_to_coverage_enabled: false,
+                },
+                fragment: Some(wgpu::FragmentState {
+                    module: &module,
+                    entry_point: Some("fs_main"),
+                    compilation_options: wgpu::PipelineCompilationOptions::default(),
+                    targets: &[Some(wgpu::ColorTargetState {
+                        format: COLOR_FORMAT,
+                        // Straight alpha over what is behind; the frame's alpha stays 1.
+                        blend: blend.then_some(wgpu::BlendState {
+                            color: wgpu::BlendComponent {
+                                src_factor: wgpu::BlendFactor::SrcAlpha,
+                                dst_factor: wgpu::BlendFactor::OneMinusSrcAlpha,
+                                operation: wgpu::BlendOperation::Add,
+                            },
+                            alpha: wgpu::BlendComponent {
+                                src_factor: wgpu::BlendFactor::One,
+                                dst_factor: wgpu::BlendFactor::OneMinusSrcAlpha,
+                                operation: wgpu::BlendOperation::Add,
+                            },
+                        }),
+                        write_mask: wgpu::ColorWrites::ALL,
+                    })],
+                }),
+                multiview_mask: None,
+                cache: None,
+            })
+        };
+        let pipelines = [(false, false), (true, false), (false, true), (true, true)]
+            .map(|(cull, blend)| pipeline(cull, blend))
+            .into_iter()
+            .collect();
+        let fallback = Fallback::new(device, ctx.queue(), &texture_layout);
         scopes.pop("building the render pipeline")?;
         let limits = device.limits();
         let timestamp_period = ctx
@@ -591,11 +830,15 @@ impl Renderer {
         let kept = Arc::new(Kept::default());
         ctx.register_reclaim(Arc::downgrade(&kept) as Weak<dyn Reclaim>);
         Ok(Renderer {
-            pipeline,
+            pipelines,
             camera_layout,
             material_layout,
+            texture_layout,
+            fallback,
+            appearances: Mutex::new(Vec::new()),
             uniform_align: u64::from(limits.min_uniform_buffer_offset_alignment)
                 .max(size_of::<CameraUniform>() as u64)
+                .max(size_of::<MaterialUniform>() as u64)
                 .next_power_of_two(),
             max_size: limits.max_texture_dimension_2d,
             max_buffer: limits.max_buffer_size,
@@ -662,9 +905,10 @@ impl Renderer {
     }
 
     /// Uploads a rig's (or mesh level's) triangles: one index buffer over the evaluation vertex
-    /// order (each primitive's indices offset by its first vertex), and per primitive its index
-    /// range and base colour. Keep it as long as the rig: it is what every render of the rig's
-    /// heads draws with.
+    /// order (each primitive's indices offset by its first vertex), the static attributes of
+    /// every vertex, the rig's textures (once per rig appearance: its other topologies share
+    /// them), and per primitive its index range and material. Keep it as long as the rig: it is
+    /// what every render of the rig's heads draws with.
     pub fn topology(&self, rig: &Rig) -> Result<MeshTopology, RenderError> {
         self.ctx.health().map_err(lost)?;
         let vertices = rig.vertex_count();
@@ -673,17 +917,19 @@ impl Renderer {
         })?;
         let total_indices: usize = rig.primitives.iter().map(|p| p.indices.len()).sum();
         let bytes = total_indices as u64 * 4;
+        let attr_bytes = vertices as u64 * ATTR_STRIDE;
         // Index ranges are u32 in draw calls.
-        if bytes > self.max_buffer || u32::try_from(total_indices).is_err() {
+        if bytes > self.max_buffer
+            || attr_bytes > self.max_buffer
+            || u32::try_from(total_indices).is_err()
+        {
             return Err(RenderError::TooLarge(format!(
-                "{total_indices} indices ({bytes} bytes) exceed the device's largest buffer \
-                 ({} bytes) or 32-bit draw ranges",
+                "{total_indices} indices ({bytes} bytes) or {vertices} vertices' attributes \
+                 ({attr_bytes} bytes) exceed the device's largest buffer ({} bytes) or 32-bit \
+                 draw ranges",
                 self.max_buffer
             )));
         }
-        let mut indices = Vec::with_capacity(total_indices);
-        let mut primitives = Vec::with_capacity(rig.primitives.len());
-        let mut first_vertex = 0u32;
         for p in rig.primitives.iter() {
             let n = p.positions.len() as u32;
             if !p.indices.len().is_multiple_of(3) {
@@ -699,51 +945,138 @@ impl Renderer {
                     p.name
                 )));
             }
+        }
+        // The textures first: they are the largest part, and charged on their own.
+        let gpu = match &rig.appearance {
+            Some(a) if appearance::has_textures(a) => Some(self.gpu_appearance(a)?),
+            _ => None,
+        };
+        let charge = self.ctx.charge(bytes.max(4) + attr_bytes.max(4), || {
+            format!(
+                "{} triangles' indices and {vertices} vertices' attributes on the GPU",
+                total_indices / 3
+            )
+        })?;
+        let mut indices = Vec::with_capacity(total_indices);
+        let mut attrs = Vec::with_capacity(vertices);
+        let mut primitives = Vec::with_capacity(rig.primitives.len());
+        let mut first_vertex = 0u32;
+        for p in rig.primitives.iter() {
             let start = indices.len() as u32;
             indices.extend(p.indices.iter().map(|&i| i + first_vertex));
-            let color = p.base_color.map(|c| {
-                if c.is_finite() {
-                    c.clamp(0.0, 1.0)
-                } else {
-                    1.0
-                }
+            appearance::push_attrs(&mut attrs, p, p.tangents.as_deref());
+            // A primitive without a material draws its base colour, dielectric and half rough
+            // (`Material::untextured`): glTF's default material is black without an
+            // environment map. The rig's validation keeps the index in range; one that is not
+            // falls back the same way rather than failing the upload.
+            let named = p.look.material.and_then(|m| {
+                let a = rig.appearance.as_ref()?;
+                Some((m as usize, a.materials.get(m as usize)?))
             });
+            let (material, textures) = match named {
+                Some((index, m)) => match &gpu {
+                    Some(g) => {
+                        let u = MaterialUniform::textured(m, index, g, p);
+                        let sampled = u.sets[..SLOTS.len()].iter().any(|&s| s != NO_TEXTURE);
+                        (u, (sampled && g.group(index).is_some()).then_some(index))
+                    }
+                    None => (MaterialUniform::of(m), None),
+                },
+                None => (
+                    MaterialUniform::of(&Material::untextured(p.base_color)),
+                    None,
+                ),
+            };
+            let (blend, double_sided) = match named {
+                Some((_, m)) => (m.alpha_mode == AlphaMode::Blend, m.double_sided),
+                None => (false, false),
+            };
+            let centroid =
+                p.positions.iter().copied().sum::<Vec3>() / p.positions.len().max(1) as f32;
             if indices.len() as u32 > start {
                 primitives.push(TopologyPrimitive {
                     indices: start..indices.len() as u32,
-                    color,
+                    material,
+                    textures,
+                    blend,
+                    double_sided,
+                    centroid: if centroid.is_finite() {
+                        centroid
+                    } else {
+                        Vec3::ZERO
+                    },
                 });
             }
-            first_vertex += n;
+            first_vertex += p.positions.len() as u32;
         }
-        let charge = self.ctx.charge(bytes.max(4), || {
-            format!("{} triangles' indices on the GPU", total_indices / 3)
-        })?;
         let device = self.ctx.device();
         let scopes = Scopes::push(device);
         // Not `create_buffer_init`: it maps the buffer and panics if the device is gone, while a
         // queued write reports the loss through the error scope.
-        let buffer = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("render indices"),
-            size: bytes.max(4),
-            usage: wgpu::BufferUsages::INDEX | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
+        let buffer = |label: &str, size: u64, usage: wgpu::BufferUsages| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size: size.max(4),
+                usage: usage | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            })
+        };
+        let index_buffer = buffer("render indices", bytes, wgpu::BufferUsages::INDEX);
+        let attr_buffer = buffer("render attributes", attr_bytes, wgpu::BufferUsages::VERTEX);
         if !indices.is_empty() {
             self.ctx
                 .queue()
-                .write_buffer(&buffer, 0, bytemuck::cast_slice(&indices));
+                .write_buffer(&index_buffer, 0, bytemuck::cast_slice(&indices));
+        }
+        if !attrs.is_empty() {
+            self.ctx
+                .queue()
+                .write_buffer(&attr_buffer, 0, bytemuck::cast_slice(&attrs));
         }
         scopes.pop("uploading a topology")?;
         self.ctx.health().map_err(lost)?;
         Ok(MeshTopology {
             ctx: self.ctx.clone(),
-            indices: buffer,
+            indices: index_buffer,
+            attrs: attr_buffer,
+            appearance: gpu,
             primitives,
             vertices: vertex_count,
             triangles: (total_indices / 3) as u32,
             _charge: charge,
         })
+    }
+
+    /// The textures of `a` on this device: the upload another topology of the same rig
+    /// appearance made while it is alive, else a new one.
+    fn gpu_appearance(&self, a: &Arc<Appearance>) -> Result<Arc<GpuAppearance>, RenderError> {
+        let live = |cache: &mut Vec<(Weak<Appearance>, Weak<GpuAppearance>)>| {
+            cache.retain(|(_, g)| g.strong_count() > 0);
+            cache
+                .iter()
+                .find(|(k, _)| std::ptr::eq(k.as_ptr(), Arc::as_ptr(a)))
+                .and_then(|(_, g)| g.upgrade())
+        };
+        if let Some(g) = self.appearances.lock().ok().and_then(|mut c| live(&mut c)) {
+            return Ok(g);
+        }
+        // Uploaded with no lock held: the charge may free what is kept for reuse. Two
+        // topologies of one rig made at once may both upload; the later is kept in the cache.
+        let scopes = Scopes::push(self.ctx.device());
+        let uploaded = appearance::upload(
+            &self.ctx,
+            &self.texture_layout,
+            &self.fallback,
+            a,
+            self.max_size,
+        );
+        scopes.pop("uploading a rig's textures")?;
+        let g = Arc::new(uploaded?);
+        if let Ok(mut c) = self.appearances.lock() {
+            live(&mut c);
+            c.push((Arc::downgrade(a), Arc::downgrade(&g)));
+        }
+        Ok(g)
     }
 
     /// Draws `meshes` (each once per instance) seen from `view` into a `frame`-sized picture
@@ -771,7 +1104,7 @@ impl Renderer {
         let row = self.check_frame(frame)?;
         let camera = camera(view, frame)?;
         // Everything the input decides is checked and laid out before the device sees it.
-        let layout = self.layout(meshes)?;
+        let layout = self.layout(meshes, view)?;
 
         let scopes = Scopes::push(self.ctx.device());
         let targets = self.take_targets(frame, row)?;
@@ -844,7 +1177,7 @@ impl Renderer {
 
     /// Checks every mesh and places its instances and host vertex data in the scene buffer
     /// and its primitives' materials in the uniform buffer.
-    fn layout<'a>(&self, meshes: &[SceneMesh<'a>]) -> Result<Layout<'a>, RenderError> {
+    fn layout<'a>(&self, meshes: &[SceneMesh<'a>], view: &View) -> Result<Layout<'a>, RenderError> {
         let mut draws = Vec::with_capacity(meshes.len());
         let mut scene_bytes = 0u64;
         let mut materials = 0u64;
@@ -866,8 +1199,10 @@ impl Renderer {
                 )));
             }
         }
+        let items = draw_order(&draws, view);
         Ok(Layout {
             draws,
+            items,
             scene_bytes,
             uniform_bytes,
         })
@@ -883,10 +1218,12 @@ impl Renderer {
                 .iter()
                 .map(|m| {
                     let n = normal_matrix(m);
+                    // The shader's `mirror`: a mirroring model turns front faces round.
+                    let mirror = if mirrors(m) { -1.0 } else { 1.0 };
                     InstanceData {
                         model: m.to_cols_array(),
                         normal: [
-                            n.x_axis.x, n.x_axis.y, n.x_axis.z, 0.0, n.y_axis.x, n.y_axis.y,
+                            n.x_axis.x, n.x_axis.y, n.x_axis.z, mirror, n.y_axis.x, n.y_axis.y,
                             n.y_axis.z, 0.0, n.z_axis.x, n.z_axis.y, n.z_axis.z, 0.0,
                         ],
                     }
@@ -908,7 +1245,8 @@ impl Renderer {
         for draw in &layout.draws {
             for (k, p) in draw.topology.primitives.iter().enumerate() {
                 let at = ((draw.first_material + k as u64) * self.uniform_align) as usize;
-                uniforms[at..at + 16].copy_from_slice(bytemuck::cast_slice(&p.color));
+                uniforms[at..at + size_of::<MaterialUniform>()]
+                    .copy_from_slice(bytemuck::bytes_of(&p.material));
             }
         }
         queue.write_buffer(&scratch.uniforms, 0, &uniforms);
@@ -945,7 +1283,7 @@ impl Renderer {
                 resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
                     buffer: &scratch.uniforms,
                     offset: 0,
-                    size: NonZeroU64::new(16),
+                    size: NonZeroU64::new(size_of::<MaterialUniform>() as u64),
                 }),
             }],
         });
@@ -1017,13 +1355,16 @@ impl Renderer {
                         occlusion_query_set: None,
                         multiview_mask: None,
                     });
-                    pass.set_pipeline(&self.pipeline);
                     pass.set_bind_group(0, &camera_bg, &[]);
                     for piece in pieces {
+                        let item = &layout.items[piece.draw];
+                        // Piece ranges count from the item's first instance.
+                        let first = item.instances.start;
                         self.draw_piece(
                             &mut pass,
-                            &layout.draws[piece.draw],
-                            piece.instances,
+                            &layout.draws[item.draw],
+                            item.primitive,
+                            first + piece.instances.start..first + piece.instances.end,
                             scratch,
                             &material_bg,
                         );
@@ -1034,11 +1375,13 @@ impl Renderer {
             .collect()
     }
 
-    /// Records one mesh's instances `instances` (one instanced draw per primitive).
+    /// Records one mesh's instances `instances`: one instanced draw per opaque primitive
+    /// (`primitive` `None`), or of blended primitive `primitive` alone.
     fn draw_piece(
         &self,
         pass: &mut wgpu::RenderPass<'_>,
         draw: &Draw<'_>,
+        primitive: Option<usize>,
         instances: Range<u32>,
         scratch: &Scratch,
         material_bg: &wgpu::BindGroup,
@@ -1060,11 +1403,26 @@ impl Renderer {
                 .scene
                 .slice(draw.instance_offset..draw.instance_offset + inst),
         );
+        pass.set_vertex_buffer(3, t.attrs.slice(..));
         for (k, p) in t.primitives.iter().enumerate() {
+            let wanted = match primitive {
+                None => !p.blend,
+                Some(only) => k == only,
+            };
+            if !wanted {
+                continue;
+            }
+            let cull = draw.cull && !p.double_sided;
+            pass.set_pipeline(&self.pipelines[pipeline_index(cull, p.blend)]);
             let offset = (draw.first_material + k as u64) * self.uniform_align;
             // Below `uniform_bytes`, checked to fit u32 above.
             let offset = u32::try_from(offset).unwrap_or(u32::MAX);
             pass.set_bind_group(1, material_bg, &[offset]);
+            let textures = p
+                .textures
+                .and_then(|m| t.appearance.as_ref()?.group(m))
+                .unwrap_or(&self.fallback.group);
+            pass.set_bind_group(2, textures, &[]);
             pass.draw_indexed(p.indices.clone(), 0, instances.clone());
         }
     }
@@ -1254,6 +1612,7 @@ impl Renderer {
             instance_offset,
             instances,
             first_material,
+            cull: !mesh.instances.iter().any(mirrors),
         }))
     }
 
@@ -1440,16 +1799,23 @@ struct Piece {
     instances: Range<u32>,
 }
 
-/// The draws cut into passes of at most `budget` triangles (instances × the draw's triangles);
-/// a draw with more is split by instance ranges, and one instance larger than `budget` is a
-/// pass of its own. Always at least one pass, so the frame is cleared and resolved.
+/// The draw order's items cut into passes of at most `budget` triangles (instances × the
+/// item's triangles); an item with more is split by instance ranges, and one instance larger
+/// than `budget` is a pass of its own. Always at least one pass, so the frame is cleared and
+/// resolved. (A [`Piece`]'s `draw` is an index into [`Layout::items`], its instances relative
+/// to the item's first.)
 fn pass_pieces(layout: &Layout<'_>, budget: u64) -> Vec<Vec<Piece>> {
     let sizes: Vec<(u64, u32)> = layout
-        .draws
+        .items
         .iter()
-        .map(|d| (u64::from(d.topology.triangles), d.instances))
+        .map(|i| (i.triangles, i.instances.end - i.instances.start))
         .collect();
     cut_passes(&sizes, budget)
+}
+
+/// Whether a model matrix mirrors (its 3×3 has a negative determinant).
+fn mirrors(m: &Mat4) -> bool {
+    Mat3::from_mat4(*m).determinant() < 0.0
 }
 
 /// [`pass_pieces`] over (triangles per instance, instances) per draw.
@@ -1535,7 +1901,6 @@ fn camera(view: &View, frame: &Frame) -> Result<CameraUniform, RenderError> {
             "the eye is at the target, or up is parallel to the view direction".into(),
         ));
     }
-    let up = right.cross(forward);
     // Depth 1 at the near plane and 0 at the far plane (reversed Z); the scene layout checked
     // this same matrix, so a request's view never fails here.
     let view_proj = view.clip_from_world(frame.width as f32 / frame.height as f32);
@@ -1544,15 +1909,17 @@ fn camera(view: &View, frame: &Frame) -> Result<CameraUniform, RenderError> {
             "the view gives a non-finite projection: {view:?}"
         )));
     }
-    let to_world = |v: Vec3| (right * v.x + up * v.y - forward * v.z).normalize();
-    let key = to_world(KEY.0);
-    let fill = to_world(FILL.0);
+    let lights = brdf::reference_lights(view)
+        .ok_or_else(|| RenderError::Invalid("a view without a direction has no lights".into()))?;
+    let light = |l: brdf::DirectionalLight| l.direction.extend(l.intensity).to_array();
     Ok(CameraUniform {
         view_proj: view_proj.to_cols_array(),
         eye: view.eye.extend(1.0).to_array(),
-        key: key.extend(KEY.1).to_array(),
-        fill: fill.extend(FILL.1).to_array(),
-        shading: [AMBIENT, SPECULAR.0, SPECULAR.1, 0.0],
+        key: light(lights.key),
+        fill: light(lights.fill),
+        up: lights.up.extend(0.0).to_array(),
+        sky: lights.sky.extend(0.0).to_array(),
+        ground: lights.ground.extend(0.0).to_array(),
     })
 }
 
@@ -1585,6 +1952,87 @@ mod tests {
                 assert!((a - b).length() < 1e-5, "{m:?} {v:?}: {a:?} vs {b:?}");
             }
         }
+    }
+
+    /// The size and member offsets naga computes for the WGSL struct `name` of render.wgsl.
+    fn wgsl_layout(name: &str) -> (u32, Vec<(String, u32)>) {
+        let src = include_str!("../../shaders/render.wgsl");
+        let module = naga::front::wgsl::parse_str(src).expect("render.wgsl parses");
+        for (_, ty) in module.types.iter() {
+            if ty.name.as_deref() != Some(name) {
+                continue;
+            }
+            if let naga::TypeInner::Struct { members, span } = &ty.inner {
+                let offsets = members
+                    .iter()
+                    .map(|m| (m.name.clone().unwrap_or_default(), m.offset))
+                    .collect();
+                return (*span, offsets);
+            }
+        }
+        panic!("render.wgsl has no struct {name}");
+    }
+
+    #[test]
+    fn uniform_structs_match_the_shaders_layout() {
+        use std::mem::offset_of;
+        let check = |name: &str, size: usize, fields: &[(&str, usize)]| {
+            let (span, members) = wgsl_layout(name);
+            assert_eq!(span as usize, size, "{name}: size");
+            let got: Vec<(&str, usize)> = members
+                .iter()
+                .map(|(n, o)| (n.as_str(), *o as usize))
+                .collect();
+            assert_eq!(got, fields, "{name}: members and offsets");
+        };
+        check(
+            "Camera",
+            size_of::<CameraUniform>(),
+            &[
+                ("view_proj", offset_of!(CameraUniform, view_proj)),
+                ("eye", offset_of!(CameraUniform, eye)),
+                ("key", offset_of!(CameraUniform, key)),
+                ("fill", offset_of!(CameraUniform, fill)),
+                ("up", offset_of!(CameraUniform, up)),
+                ("sky", offset_of!(CameraUniform, sky)),
+                ("ground", offset_of!(CameraUniform, ground)),
+            ],
+        );
+        check(
+            "Material",
+            size_of::<MaterialUniform>(),
+            &[
+                ("base", offset_of!(MaterialUniform, base)),
+                ("emissive", offset_of!(MaterialUniform, emissive)),
+                ("pbr", offset_of!(MaterialUniform, pbr)),
+                ("alpha", offset_of!(MaterialUniform, alpha)),
+            ],
+        );
+    }
+
+    #[test]
+    fn material_uniforms_keep_nans_and_out_of_range_factors_out_of_the_shader() {
+        let m = Material {
+            base_color_factor: [f32::NAN, 2.0, -1.0, 0.5],
+            metallic_factor: f32::INFINITY,
+            roughness_factor: -3.0,
+            emissive_factor: [0.5, f32::NAN, 1.0],
+            emissive_strength: 4.0,
+            alpha_mode: AlphaMode::Mask,
+            alpha_cutoff: f32::NAN,
+            double_sided: true,
+            ..Material::default()
+        };
+        let u = MaterialUniform::of(&m);
+        assert_eq!(u.base, [1.0, 1.0, 0.0, 0.5]);
+        assert_eq!(u.pbr, [1.0, 0.0, 1.0, 1.0]);
+        assert_eq!(u.emissive, [2.0, 0.0, 4.0, 0.0]);
+        assert_eq!(u.alpha, [0.5, 1.0, 0.0, 1.0]);
+        assert!(
+            bytemuck::cast_slice::<MaterialUniform, f32>(&[u])
+                .iter()
+                .all(|v| v.is_finite())
+        );
     }
 
     #[test]

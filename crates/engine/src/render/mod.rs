@@ -7,12 +7,16 @@
 //! | [`cost`] | what a render costs, estimated before any work, for the render budgets |
 //! | [`crowd`] | the rendering device, and drawing a planned crowd (clones as instances) |
 //! | [`gpu`] | the wgpu renderer: instanced draws in passes, MSAA, reversed-Z, readback |
+//! | [`appearance`] | a rig's textures, samplers and static vertex attributes on the renderer's device |
+//! | [`brdf`] | the shading model and its lights on the CPU: the shader's mirror, for tests and reference renderers |
 //! | [`encode`] | PNG, JPEG or raw RGBA from the read-back pixels |
 //! | [`offline`] | a crowd of a rig drawn to a file, outside the server (`crowdmorph render`) |
 //!
 //! The deterministic CPU rasterizer of LOD's image metrics is not here: it is
 //! [`crate::lod::raster`].
 
+pub mod appearance;
+pub mod brdf;
 pub mod cost;
 pub mod crowd;
 pub mod encode;
