@@ -12,7 +12,6 @@
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -24,7 +23,8 @@ use futures_util::{SinkExt, StreamExt};
 use serde_json::{Value, json};
 use tokio_tungstenite::tungstenite::Message;
 
-use super::{TestServer, temp_dir};
+use super::TestServer;
+use crate::util::browser::{Browser, Cdp, base64_decode};
 use crate::util::image::Image;
 
 /// The files the page loads, with the types browsers insist on for them.
@@ -107,258 +107,6 @@ async fn viewer_files_are_served_with_their_types_and_nothing_else_is() {
     server.stop().await;
 }
 
-/// Chromium in the background, killed and its profile removed when dropped.
-struct Browser {
-    child: Child,
-    profile: PathBuf,
-}
-
-impl Browser {
-    fn launch() -> Browser {
-        let binary = option_env!("CROWDMORPH_CHROMIUM_PATH").unwrap_or("chromium");
-        let profile = temp_dir("chromium");
-        let log = std::fs::File::create(profile.join("stderr.log")).unwrap();
-        let mut command = Command::new(binary);
-        // Software WebGL keeps Chromium's processes busy the whole time the page streams (and
-        // Chromium sets its own priorities, so `nice` does not hold): on Linux it runs on one of
-        // this process's CPUs only, inherited by every process it starts, so that tests running
-        // beside this one keep the others for their own deadlines.
-        #[cfg(target_os = "linux")]
-        if let Some(one_cpu) = last_cpu_of_several() {
-            use std::os::unix::process::CommandExt;
-            // SAFETY: the closure runs in the forked child before exec and makes one
-            // async-signal-safe system call about that child, with a set built beforehand.
-            unsafe {
-                command.pre_exec(move || {
-                    libc::sched_setaffinity(0, size_of::<libc::cpu_set_t>(), &one_cpu);
-                    Ok(())
-                });
-            }
-        }
-        let child = command
-            .args([
-                "--headless",
-                "--no-sandbox",
-                // WebGL2 without a GPU: SwiftShader through ANGLE, which recent Chromium
-                // refuses without the "unsafe" flag.
-                "--use-gl=angle",
-                "--use-angle=swiftshader",
-                "--enable-unsafe-swiftshader",
-                "--disable-background-networking",
-                "--disable-component-update",
-                "--disable-default-apps",
-                "--disable-extensions",
-                "--disable-sync",
-                "--no-first-run",
-                "--no-default-browser-check",
-                "--mute-audio",
-                "--window-size=960,640",
-                "--remote-debugging-port=0",
-                "about:blank",
-            ])
-            .arg(format!("--user-data-dir={}", profile.display()))
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(log)
-            .spawn()
-            .unwrap_or_else(|e| panic!("cannot start {binary}: {e}"));
-        Browser { child, profile }
-    }
-
-    /// The browser's DevTools WebSocket URL, from the file Chromium writes once it listens.
-    async fn devtools_url(&mut self) -> String {
-        let file = self.profile.join("DevToolsActivePort");
-        let deadline = Instant::now() + Duration::from_secs(90);
-        loop {
-            if let Ok(text) = std::fs::read_to_string(&file) {
-                let mut lines = text.lines();
-                if let (Some(port), Some(path)) = (lines.next(), lines.next()) {
-                    return format!("ws://127.0.0.1:{port}{path}");
-                }
-            }
-            if let Ok(Some(status)) = self.child.try_wait() {
-                panic!("chromium exited with {status}: {}", self.stderr());
-            }
-            assert!(
-                Instant::now() < deadline,
-                "chromium did not open its DevTools port in 60 s: {}",
-                self.stderr()
-            );
-            tokio::time::sleep(Duration::from_millis(100)).await;
-        }
-    }
-
-    fn stderr(&self) -> String {
-        std::fs::read_to_string(self.profile.join("stderr.log")).unwrap_or_default()
-    }
-}
-
-/// The highest-numbered CPU this process may run on, as a set, when it may run on more than one.
-#[cfg(target_os = "linux")]
-fn last_cpu_of_several() -> Option<libc::cpu_set_t> {
-    // SAFETY: a zeroed cpu_set_t is the empty set; sched_getaffinity writes at most its size,
-    // and CPU_ISSET/CPU_SET index within it.
-    unsafe {
-        let mut mine: libc::cpu_set_t = std::mem::zeroed();
-        if libc::sched_getaffinity(0, size_of::<libc::cpu_set_t>(), &mut mine) != 0 {
-            return None;
-        }
-        let allowed: Vec<usize> = (0..libc::CPU_SETSIZE as usize)
-            .filter(|&c| libc::CPU_ISSET(c, &mine))
-            .collect();
-        let &last = allowed.last()?;
-        if allowed.len() < 2 {
-            return None;
-        }
-        let mut one: libc::cpu_set_t = std::mem::zeroed();
-        libc::CPU_SET(last, &mut one);
-        Some(one)
-    }
-}
-
-impl Drop for Browser {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-        let _ = std::fs::remove_dir_all(&self.profile);
-    }
-}
-
-type Socket =
-    tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>>;
-
-/// A DevTools protocol client: JSON-RPC over one WebSocket, one page session (flat mode), and
-/// every event kept so that console errors can be read at the end.
-struct Cdp {
-    socket: Socket,
-    next_id: u64,
-    session: Option<String>,
-    events: Vec<Value>,
-}
-
-impl Cdp {
-    async fn connect(url: &str) -> Cdp {
-        let (socket, _) = tokio_tungstenite::connect_async(url)
-            .await
-            .expect("DevTools WebSocket");
-        Cdp {
-            socket,
-            next_id: 0,
-            session: None,
-            events: Vec::new(),
-        }
-    }
-
-    /// Sends a command (to the page session once attached) and waits for its result.
-    async fn call(&mut self, method: &str, params: Value) -> Value {
-        self.next_id += 1;
-        let id = self.next_id;
-        let mut msg = json!({"id": id, "method": method, "params": params});
-        if let Some(s) = &self.session {
-            msg["sessionId"] = json!(s);
-        }
-        self.socket
-            .send(Message::text(msg.to_string()))
-            .await
-            .expect("DevTools send");
-        let deadline = Instant::now() + Duration::from_secs(90);
-        loop {
-            let left = deadline.saturating_duration_since(Instant::now());
-            let next = tokio::time::timeout(left, self.socket.next())
-                .await
-                .unwrap_or_else(|_| panic!("{method}: no answer in 60 s"));
-            let text = match next {
-                Some(Ok(Message::Text(t))) => t.to_string(),
-                Some(Ok(_)) => continue,
-                other => panic!("DevTools connection ended during {method}: {other:?}"),
-            };
-            let v: Value = serde_json::from_str(&text).expect("DevTools JSON");
-            if v["id"] == json!(id) {
-                if let Some(err) = v.get("error") {
-                    panic!("{method}: {err}");
-                }
-                return v["result"].clone();
-            }
-            if v.get("method").is_some() {
-                self.events.push(v);
-            }
-        }
-    }
-
-    /// Evaluates an expression in the page and returns its value.
-    async fn eval(&mut self, expression: &str) -> Value {
-        let r = self
-            .call(
-                "Runtime.evaluate",
-                json!({"expression": expression, "returnByValue": true, "awaitPromise": true}),
-            )
-            .await;
-        if let Some(e) = r.get("exceptionDetails") {
-            panic!("evaluating {expression}: {e}");
-        }
-        r["result"]["value"].clone()
-    }
-
-    /// Console errors, uncaught exceptions and error log entries (failed loads included).
-    fn errors(&self) -> Vec<String> {
-        self.events
-            .iter()
-            .filter_map(|e| {
-                let p = &e["params"];
-                match e["method"].as_str()? {
-                    "Runtime.consoleAPICalled"
-                        if matches!(p["type"].as_str(), Some("error" | "assert")) =>
-                    {
-                        Some(format!("console.error: {}", p["args"]))
-                    }
-                    "Runtime.exceptionThrown" => Some(format!(
-                        "exception: {}",
-                        p["exceptionDetails"]["exception"]["description"]
-                            .as_str()
-                            .unwrap_or(&p["exceptionDetails"]["text"].to_string())
-                    )),
-                    "Log.entryAdded" if p["entry"]["level"] == "error" => {
-                        Some(format!("log: {} {}", p["entry"]["text"], p["entry"]["url"]))
-                    }
-                    _ => None,
-                }
-            })
-            .collect()
-    }
-
-    /// Polls `expression` every 250 ms until `done` accepts its value (then returns it), or
-    /// fails after `within`, or as soon as the page shows an error or logs one.
-    async fn wait_for(
-        &mut self,
-        what: &str,
-        expression: &str,
-        within: Duration,
-        mut done: impl FnMut(&Value) -> bool,
-    ) -> Value {
-        let start = Instant::now();
-        let deadline = start + within;
-        loop {
-            let v = self.eval(expression).await;
-            if done(&v) {
-                // Where the time goes, for `--nocapture` readers of a slow run.
-                println!("{what}: {:.1} s", start.elapsed().as_secs_f64());
-                return v;
-            }
-            let shown = self.eval(ERROR_TEXT).await;
-            let errors = self.errors();
-            assert!(
-                shown.as_str().unwrap_or("").is_empty() && errors.is_empty(),
-                "waiting for {what}: the page shows {shown} and logged {errors:#?}"
-            );
-            assert!(
-                Instant::now() < deadline,
-                "waiting for {what}: still {v} after {within:?}"
-            );
-            tokio::time::sleep(Duration::from_millis(250)).await;
-        }
-    }
-}
-
 /// The page's error box, empty while hidden (or while the page is still loading).
 const ERROR_TEXT: &str =
     "(e => e && !e.hidden ? e.textContent : '')(document.getElementById('error'))";
@@ -382,22 +130,8 @@ const BACKGROUND: [u8; 3] = [46, 50, 56];
 async fn the_viewer_streams_and_draws_a_lit_crowd_in_headless_chromium() {
     let server = TestServer::start(ServerConfig::default()).await;
     let mut browser = Browser::launch();
-    let url = browser.devtools_url().await;
-    let mut cdp = Cdp::connect(&url).await;
-    let target = cdp
-        .call("Target.createTarget", json!({"url": "about:blank"}))
-        .await;
-    let attached = cdp
-        .call(
-            "Target.attachToTarget",
-            json!({"targetId": target["targetId"], "flatten": true}),
-        )
-        .await;
-    cdp.session = Some(attached["sessionId"].as_str().unwrap().to_string());
-    // Console and log events are only reported after these, so they come before loading.
-    for domain in ["Runtime.enable", "Log.enable", "Page.enable"] {
-        cdp.call(domain, json!({})).await;
-    }
+    let mut cdp = browser.page().await;
+    cdp.shown_error = Some(ERROR_TEXT);
     cdp.call(
         "Page.navigate",
         json!({"url": format!("http://{}/viewer", server.addr)}),
@@ -807,11 +541,4 @@ async fn session_info(server: &TestServer, id: &str) -> SessionInfo {
         .unwrap();
     assert_eq!(reply.status, 200, "{:?}", reply.error());
     serde_json::from_slice(&reply.body).unwrap()
-}
-
-fn base64_decode(s: &str) -> Vec<u8> {
-    use base64::Engine as _;
-    base64::engine::general_purpose::STANDARD
-        .decode(s)
-        .expect("base64 screenshot")
 }
