@@ -10,6 +10,13 @@
 //! - `crowdmorph_chromium`: a Chromium to drive the browser viewer's end-to-end test with —
 //!   `$CROWDMORPH_CHROMIUM`, else Debian's `/usr/bin/chromium` or another usual path. Its path
 //!   reaches the test as the compile-time variable `CROWDMORPH_CHROMIUM_PATH`.
+//! - `crowdmorph_threejs`: three.js from npm, to compare the server's render with what the most
+//!   used web glTF renderer draws of the same file (`tests/server/threejs.rs`) —
+//!   `$CROWDMORPH_THREEJS` (the package's `build/three.module.js`), else
+//!   `target/threejs/node_modules/three/build/three.module.js` in the checkout, where
+//!   `npm install --prefix target/threejs three@0.170.0` puts it (`.ci/run` does). Its package
+//!   folder reaches the test as `CROWDMORPH_THREEJS_DIR`; it must hold the GLTFLoader of
+//!   `examples/jsm` too.
 //! - `crowdmorph_python`: `/usr/bin/python3` can `import pytest`, so the Python client's suite
 //!   (`clients/python/tests`, run by `tests/python_client.rs`) can run. The system's Python,
 //!   not whatever `python3` comes first on `PATH`, so that the test runs the same interpreter
@@ -38,6 +45,7 @@ fn main() {
     println!("cargo::rustc-check-cfg=cfg(crowdmorph_test_data)");
     println!("cargo::rustc-check-cfg=cfg(crowdmorph_gpu_driver)");
     println!("cargo::rustc-check-cfg=cfg(crowdmorph_chromium)");
+    println!("cargo::rustc-check-cfg=cfg(crowdmorph_threejs)");
     println!("cargo::rustc-check-cfg=cfg(crowdmorph_python)");
     println!("cargo::rustc-check-cfg=cfg(crowdmorph_python_peer)");
     println!("cargo::rustc-check-cfg=cfg(crowdmorph_shaped_links)");
@@ -57,6 +65,13 @@ fn main() {
         println!(
             "cargo::rustc-env=CROWDMORPH_CHROMIUM_PATH={}",
             chromium.display()
+        );
+    }
+    if let Some(three) = threejs() {
+        println!("cargo::rustc-cfg=crowdmorph_threejs");
+        println!(
+            "cargo::rustc-env=CROWDMORPH_THREEJS_DIR={}",
+            three.display()
         );
     }
     if python_with_pytest() {
@@ -157,6 +172,29 @@ fn chromium() -> Option<PathBuf> {
     let found = candidates.into_iter().find(|p| p.is_file())?;
     watch(&found);
     Some(found)
+}
+
+/// three.js's package folder (the one holding `build/three.module.js` and
+/// `examples/jsm/loaders/GLTFLoader.js`): the environment's choice, else the copy npm installs
+/// under `target/threejs` of this checkout.
+fn threejs() -> Option<PathBuf> {
+    println!("cargo::rerun-if-env-changed=CROWDMORPH_THREEJS");
+    let module = match env::var_os("CROWDMORPH_THREEJS") {
+        Some(path) if !path.is_empty() => PathBuf::from(path),
+        _ => Path::new(&manifest_dir())
+            .join("target/threejs/node_modules/three/build/three.module.js"),
+    };
+    if !module.is_file() {
+        return None;
+    }
+    let package = module.parent()?.parent()?.to_path_buf();
+    let loader = package.join("examples/jsm/loaders/GLTFLoader.js");
+    if !loader.is_file() {
+        return None;
+    }
+    watch(&module);
+    watch(&loader);
+    Some(package)
 }
 
 /// The interpreter `tests/python_client.rs` runs the Python client's tests with.

@@ -7,11 +7,12 @@
 //! `#[cfg_attr(not(<cfg>), ignore = "<reason>")]` with the cfg `build.rs` sets when it finds
 //! it: the shared rigs in `../shared/data` or `$CROWDMORPH_TEST_DATA` (`crowdmorph_test_data`),
 //! a Vulkan driver (`crowdmorph_gpu_driver`, through `util::gpu_test!`), Chromium
-//! (`crowdmorph_chromium`), Python with pytest, or numpy and aiohttp (`crowdmorph_python`,
-//! `crowdmorph_python_peer`), nginx, HAProxy, SeaweedFS, kubernetes-validate, and root with
-//! network namespaces (`crowdmorph_nginx`, `crowdmorph_haproxy`, `crowdmorph_seaweedfs`,
-//! `crowdmorph_kubernetes_validate`, `crowdmorph_shaped_links`). Without it the test is listed
-//! as ignored with the reason; with it, it must pass.
+//! (`crowdmorph_chromium`), three.js from npm (`crowdmorph_threejs`), Python with pytest, or
+//! numpy and aiohttp (`crowdmorph_python`, `crowdmorph_python_peer`), nginx, HAProxy,
+//! SeaweedFS, kubernetes-validate, and root with network namespaces (`crowdmorph_nginx`,
+//! `crowdmorph_haproxy`, `crowdmorph_seaweedfs`, `crowdmorph_kubernetes_validate`,
+//! `crowdmorph_shaped_links`). Without it the test is listed as ignored with the reason; with
+//! it, it must pass.
 
 // A test that meets an unexpected error should fail loudly, which is what unwrap does.
 #![allow(clippy::unwrap_used)]

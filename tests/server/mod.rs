@@ -27,6 +27,7 @@ mod replicas;
 mod sessions;
 mod skin;
 mod temporal;
+mod threejs;
 mod viewer;
 
 use std::net::SocketAddr;

@@ -257,6 +257,159 @@ pub fn check_golden(path: &Path, actual: &Image, tolerance: Tolerance) {
     );
 }
 
+/// Side of the windows of [`ssim_masked`], in pixels.
+pub const SSIM_WINDOW: u32 = 8;
+
+/// How far (0..=255, in any channel) a pixel must be from the background to count as drawn in
+/// [`ssim_masked`]: a renderer's clear colour goes through its own sRGB round trip, and may land
+/// a step away from the requested one.
+pub const DRAWN_THRESHOLD: u8 = 2;
+
+/// The outcome of [`ssim_masked`].
+#[derive(Clone, Debug)]
+pub struct MaskedSsim {
+    /// Mean SSIM over the drawn pixels whose window fits in the image (1: identical).
+    pub mean: f64,
+    /// How many pixels the mean is over.
+    pub pixels: usize,
+    /// The SSIM map: each pixel of the mean in grey (black ≤ 0, white 1), the rest dark blue.
+    pub map: Image,
+}
+
+/// Structural similarity (Wang et al. 2004) of the luminance of two pictures of one scene,
+/// over the pixels either of them draws: those further than [`DRAWN_THRESHOLD`] from
+/// `background` in `a` or in `b`.
+///
+/// Why this form: two renderers' pictures of one file are compared where something is drawn —
+/// a picture that is mostly background would score near 1 whatever the model looked like, and
+/// a pixel that only one of them draws (a silhouette that disagrees) must count. Luminance
+/// (Rec. 709 weights of the sRGB-encoded values, the values a viewer sees) carries the
+/// structure SSIM measures; colour differences show in it too, as a shift of the mean.
+///
+/// Each counted pixel `(x, y)` contributes the SSIM of the [`SSIM_WINDOW`]² window
+/// `[x − 4, x + 4) × [y − 4, y + 4)` (uniform weights, K1 = 0.01, K2 = 0.03, dynamic range 1);
+/// pixels whose window leaves the image are not counted. `Err` when the sizes differ or
+/// nothing is drawn.
+pub fn ssim_masked(a: &Image, b: &Image, background: [u8; 3]) -> Result<MaskedSsim, String> {
+    if (a.width, a.height) != (b.width, b.height) {
+        return Err(format!(
+            "sizes differ: {}×{} and {}×{}",
+            a.width, a.height, b.width, b.height
+        ));
+    }
+    let (w, h) = (a.width as usize, a.height as usize);
+    let luma = |img: &Image| -> Vec<f64> {
+        img.rgba
+            .chunks_exact(4)
+            .map(|p| {
+                (0.2126 * f64::from(p[0]) + 0.7152 * f64::from(p[1]) + 0.0722 * f64::from(p[2]))
+                    / 255.0
+            })
+            .collect()
+    };
+    let drawn = |img: &Image, i: usize| {
+        (0..3).any(|c| img.rgba[i * 4 + c].abs_diff(background[c]) > DRAWN_THRESHOLD)
+    };
+    let (la, lb) = (luma(a), luma(b));
+    let c1 = 0.01f64.powi(2);
+    let c2 = 0.03f64.powi(2);
+    let half = SSIM_WINDOW as usize / 2;
+    let n = (SSIM_WINDOW * SSIM_WINDOW) as f64;
+    let mut map = Vec::with_capacity(w * h * 4);
+    let (mut total, mut pixels) = (0f64, 0usize);
+    for y in 0..h {
+        for x in 0..w {
+            let i = y * w + x;
+            let fits = x >= half && y >= half && x + half <= w && y + half <= h;
+            if !fits || !(drawn(a, i) || drawn(b, i)) {
+                map.extend_from_slice(&[0, 0, 64, 255]);
+                continue;
+            }
+            let mut m = [0f64; 5];
+            for wy in y - half..y + half {
+                for wx in x - half..x + half {
+                    let (p, q) = (la[wy * w + wx], lb[wy * w + wx]);
+                    m[0] += p;
+                    m[1] += q;
+                    m[2] += p * p;
+                    m[3] += q * q;
+                    m[4] += p * q;
+                }
+            }
+            let (mu_a, mu_b) = (m[0] / n, m[1] / n);
+            let var_a = m[2] / n - mu_a * mu_a;
+            let var_b = m[3] / n - mu_b * mu_b;
+            let cov = m[4] / n - mu_a * mu_b;
+            let s = ((2.0 * mu_a * mu_b + c1) * (2.0 * cov + c2))
+                / ((mu_a * mu_a + mu_b * mu_b + c1) * (var_a + var_b + c2));
+            total += s;
+            pixels += 1;
+            let g = (s.clamp(0.0, 1.0) * 255.0).round() as u8;
+            map.extend_from_slice(&[g, g, g, 255]);
+        }
+    }
+    if pixels == 0 {
+        return Err("nothing is drawn in either image".into());
+    }
+    Ok(MaskedSsim {
+        mean: total / pixels as f64,
+        pixels,
+        map: Image::new(a.width, a.height, map),
+    })
+}
+
+#[test]
+fn masked_ssim_is_one_for_equal_pictures_and_lower_for_shifted_or_noisy_ones() {
+    const BG: [u8; 3] = [30, 40, 50];
+    // A textured disc on a plain background, optionally moved right by `dx` pixels.
+    let picture = |dx: i32| {
+        let mut rgba = Vec::new();
+        for y in 0..64i32 {
+            for x in 0..64i32 {
+                let (u, v) = (x - dx - 32, y - 32);
+                if u * u + v * v < 24 * 24 {
+                    let checker = ((u + 64) / 4 + (v + 64) / 4) % 2 == 0;
+                    let g = if checker { 220 } else { 90 } as u8;
+                    rgba.extend_from_slice(&[g, g / 2, 255 - g, 255]);
+                } else {
+                    rgba.extend_from_slice(&[BG[0], BG[1], BG[2], 255]);
+                }
+            }
+        }
+        Image::new(64, 64, rgba)
+    };
+    let base = picture(0);
+    let same = ssim_masked(&base, &base, BG).expect("same size");
+    assert_eq!(same.mean, 1.0);
+    assert!(same.pixels > 1500, "{} pixels", same.pixels);
+    assert_eq!(same.map.pixel(32, 32), [255, 255, 255, 255]);
+    assert_eq!(same.map.pixel(1, 1), [0, 0, 64, 255]);
+
+    let shifted = ssim_masked(&picture(3), &base, BG).expect("same size");
+    assert!(shifted.mean < 0.6, "shifted by 3 pixels: {}", shifted.mean);
+    // The pixels either picture draws: more than one alone.
+    assert!(shifted.pixels > same.pixels);
+
+    let mut rng = crate::util::Rng(7);
+    let mut noisy = base.clone();
+    for (i, c) in noisy.rgba.iter_mut().enumerate() {
+        if i % 4 != 3 && base.rgba[i - i % 4..i - i % 4 + 3] != BG {
+            let d = (rng.next_u64() % 61) as i32 - 30;
+            *c = (i32::from(*c) + d).clamp(0, 255) as u8;
+        }
+    }
+    let noised = ssim_masked(&noisy, &base, BG).expect("same size");
+    assert!(
+        noised.mean < 0.99 && noised.mean > shifted.mean,
+        "noise ±30: {} (shifted: {})",
+        noised.mean,
+        shifted.mean
+    );
+    assert!(ssim_masked(&Image::new(1, 1, vec![0; 4]), &base, BG).is_err());
+    let blank = picture(1000);
+    assert!(ssim_masked(&blank, &blank, BG).is_err());
+}
+
 #[test]
 fn png_round_trip_and_comparison() {
     let mut rgba = Vec::new();
