@@ -18,6 +18,11 @@
 //! upside down must score below [`MIN_SSIM`], or the comparison could not see a flipped texture
 //! coordinate; on lavapipe against SwiftShader it scores 0.36 and −0.15).
 //!
+//! The second test draws what a three.js client of the server draws: `model.glb` (the rig's
+//! mesh, materials and textures, no morph targets) loaded once, then one crowd frame's vertex
+//! buffers (f32 positions and normals, cut per primitive as the mesh endpoint lists them)
+//! written into its meshes. It must match the server's render of the same head as closely.
+//!
 //! The server's light set is fixed (no request field changes it), so the issue's "one
 //! directional + ambient" is met by giving three exactly the server's lights instead.
 //!
@@ -35,11 +40,14 @@ use axum::response::{IntoResponse, Response};
 use crowdmorph::render::{brdf, scene};
 use crowdmorph::server::ServerConfig;
 use crowdmorph_client::Encoding;
-use crowdmorph_proto::{CameraSpec, Head, ImageOptions, LiveWeights, Placement, RenderRequest};
+use crowdmorph_proto::{
+    CameraSpec, CrowdFrameRequest, Format, Head, ImageOptions, LiveWeights, OutputOptions,
+    Placement, RenderRequest,
+};
 use serde_json::{Value, json};
 
 use super::TestServer;
-use crate::util::browser::{Browser, base64_decode};
+use crate::util::browser::{Browser, Cdp, base64_decode};
 use crate::util::gpu_test;
 use crate::util::image::{Image, failure_dir, ssim_masked};
 
@@ -137,6 +145,7 @@ async fn file_server(
             Some("gltf") => "model/gltf+json",
             Some("png") => "image/png",
             Some("jpg" | "jpeg") => "image/jpeg",
+            Some("glb") => "model/gltf-binary",
             _ => "application/octet-stream",
         };
         match tokio::fs::read(dir.join(rest)).await {
@@ -280,6 +289,133 @@ fn drawn_fraction(img: &Image) -> f64 {
     drawn as f64 / (img.width * img.height) as f64
 }
 
+/// One comparison's outcome, asserted once the browser and servers are down.
+struct Outcome {
+    name: String,
+    ssim: f64,
+    luma: f64,
+    drawn: (f64, f64),
+    pass: bool,
+}
+
+impl Outcome {
+    fn assert(&self) {
+        let Outcome {
+            name, ssim, luma, ..
+        } = self;
+        assert!(
+            self.pass,
+            "{name}: SSIM {ssim:.4} (at least {MIN_SSIM}), luminance difference \
+             {luma:+.2}/255 (at most ±{MAX_LUMA_DIFFERENCE}), drawn {:.1} % by the server \
+             and {:.1} % by three.js (at least 10 % each); pictures in {}",
+            self.drawn.0 * 100.0,
+            self.drawn.1 * 100.0,
+            failure_dir().display()
+        );
+    }
+}
+
+/// Draws `config` with three.js on the page `cdp` shows and compares it with `server_img`
+/// (`name` names the failure files); also draws the flipped-texture control, which must fail.
+async fn compare(cdp: &mut Cdp, name: &str, server_img: &Image, config: &Value) -> Outcome {
+    let drawn = cdp.eval(&format!("window.renderReference({config})")).await;
+    println!("{name}: three.js {}", drawn["info"]);
+    let three_img = data_url_image(&drawn["png"]);
+    assert_eq!(
+        (three_img.width, three_img.height),
+        (server_img.width, server_img.height)
+    );
+    let ssim = ssim_masked(server_img, &three_img, BACKGROUND).expect("drawn pixels");
+    let (fs, ft) = (drawn_fraction(server_img), drawn_fraction(&three_img));
+    let luma = mean_luma_difference(server_img, &three_img);
+    // The control: three's picture with every texture upside down must fail, or the
+    // comparison could not tell a flipped texture coordinate from a right one.
+    let mut flipped = config.clone();
+    flipped["flipV"] = json!(true);
+    let flipped = cdp
+        .eval(&format!("window.renderReference({flipped})"))
+        .await;
+    let control = ssim_masked(server_img, &data_url_image(&flipped["png"]), BACKGROUND)
+        .expect("drawn pixels")
+        .mean;
+    println!(
+        "{name}: SSIM {:.4} over {} pixels (drawn: server {:.1} %, three.js {:.1} %), \
+         server − three.js luminance {luma:+.2}/255; with three's textures flipped: \
+         SSIM {control:.4}",
+        ssim.mean,
+        ssim.pixels,
+        fs * 100.0,
+        ft * 100.0
+    );
+    assert!(
+        control < MIN_SSIM,
+        "{name}: three's picture with flipped textures still scores {control:.4}"
+    );
+    // Not a trivial comparison: the rig fills a good part of both pictures.
+    let enough = fs > 0.1 && ft > 0.1;
+    let pass = enough && ssim.mean >= MIN_SSIM && luma.abs() <= MAX_LUMA_DIFFERENCE;
+    if !pass {
+        let dir = failure_dir();
+        for (what, img) in [
+            ("server", server_img),
+            ("three", &three_img),
+            ("ssim", &ssim.map),
+        ] {
+            img.write_png(&dir.join(format!("threejs-{name}-{what}.png")))
+                .expect("write a failure image");
+        }
+        println!("{name}: pictures in {}", dir.display());
+    }
+    Outcome {
+        name: name.to_string(),
+        ssim: ssim.mean,
+        luma,
+        drawn: (fs, ft),
+        pass,
+    }
+}
+
+/// A server with every case's rig uploaded (as a self-contained GLB), and the page loaded
+/// from a loopback file server that also serves `extra` (a prefix and a folder).
+async fn start(
+    extra: Option<(&'static str, PathBuf)>,
+) -> (TestServer, Browser, Cdp, tokio::task::JoinHandle<()>) {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let khronos = crate::util::data_dir().join("khronos");
+    for case in &CASES {
+        let glb = crate::util::pack::self_contained_glb(&khronos.join(case.file));
+        server
+            .client
+            .upload_rig(case.name, glb.into())
+            .await
+            .expect("upload");
+    }
+    let page_dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/threejs");
+    let mut roots = vec![
+        ("/page/", page_dir),
+        ("/three/", three_dir()),
+        ("/data/", khronos),
+    ];
+    roots.extend(extra);
+    let (addr, files) = file_server(roots).await;
+
+    let mut browser = Browser::launch();
+    let mut cdp = browser.page().await;
+    cdp.call(
+        "Page.navigate",
+        json!({"url": format!("http://{addr}/page/page.html")}),
+    )
+    .await;
+    cdp.wait_for(
+        "the page's module",
+        "typeof window.renderReference",
+        Duration::from_secs(60),
+        |v| v == "function",
+    )
+    .await;
+    (server, browser, cdp, files)
+}
+
 gpu_test!(
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     #[cfg_attr(
@@ -295,92 +431,11 @@ gpu_test!(
         ignore = "needs three.js: npm install --prefix target/threejs three@0.170.0, then touch build.rs"
     )]
     async fn textured_morphed_rigs_render_as_three_js_draws_them() {
-        let server = TestServer::start(ServerConfig::default()).await;
-        let khronos = crate::util::data_dir().join("khronos");
-        for case in &CASES {
-            let glb = crate::util::pack::self_contained_glb(&khronos.join(case.file));
-            server
-                .client
-                .upload_rig(case.name, glb.into())
-                .await
-                .expect("upload");
-        }
-        let page_dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/threejs");
-        let (addr, files) = file_server(vec![
-            ("/page/", page_dir),
-            ("/three/", three_dir()),
-            ("/data/", khronos),
-        ])
-        .await;
-
-        let mut browser = Browser::launch();
-        let mut cdp = browser.page().await;
-        cdp.call(
-            "Page.navigate",
-            json!({"url": format!("http://{addr}/page/page.html")}),
-        )
-        .await;
-        cdp.wait_for(
-            "the page's module",
-            "typeof window.renderReference",
-            Duration::from_secs(60),
-            |v| v == "function",
-        )
-        .await;
-
+        let (server, browser, mut cdp, files) = start(None).await;
         let mut results = Vec::new();
         for case in &CASES {
             let server_img = server_picture(&server, case).await;
-            let drawn = cdp
-                .eval(&format!("window.renderReference({})", page_config(case)))
-                .await;
-            println!("{}: three.js {}", case.name, drawn["info"]);
-            let three_img = data_url_image(&drawn["png"]);
-            assert_eq!((three_img.width, three_img.height), case.size);
-            let ssim = ssim_masked(&server_img, &three_img, BACKGROUND).expect("drawn pixels");
-            let (fs, ft) = (drawn_fraction(&server_img), drawn_fraction(&three_img));
-            let luma = mean_luma_difference(&server_img, &three_img);
-            // The control: three's picture with every texture upside down must fail, or the
-            // comparison could not tell a flipped texture coordinate from a right one.
-            let mut flipped = page_config(case);
-            flipped["flipV"] = json!(true);
-            let flipped = cdp
-                .eval(&format!("window.renderReference({flipped})"))
-                .await;
-            let control = ssim_masked(&server_img, &data_url_image(&flipped["png"]), BACKGROUND)
-                .expect("drawn pixels")
-                .mean;
-            println!(
-                "{}: SSIM {:.4} over {} pixels (drawn: server {:.1} %, three.js {:.1} %), \
-                 server − three.js luminance {luma:+.2}/255; with three's textures flipped: \
-                 SSIM {control:.4}",
-                case.name,
-                ssim.mean,
-                ssim.pixels,
-                fs * 100.0,
-                ft * 100.0
-            );
-            assert!(
-                control < MIN_SSIM,
-                "{}: three's picture with flipped textures still scores {control:.4}",
-                case.name
-            );
-            // Not a trivial comparison: the rig fills a good part of both pictures.
-            let enough = fs > 0.1 && ft > 0.1;
-            let pass = enough && ssim.mean >= MIN_SSIM && luma.abs() <= MAX_LUMA_DIFFERENCE;
-            if !pass {
-                let dir = failure_dir();
-                for (what, img) in [
-                    ("server", &server_img),
-                    ("three", &three_img),
-                    ("ssim", &ssim.map),
-                ] {
-                    img.write_png(&dir.join(format!("threejs-{}-{what}.png", case.name)))
-                        .expect("write a failure image");
-                }
-                println!("{}: pictures in {}", case.name, dir.display());
-            }
-            results.push((case.name, ssim.mean, luma, fs, ft, pass));
+            results.push(compare(&mut cdp, case.name, &server_img, &page_config(case)).await);
         }
         let errors = cdp.errors();
         assert!(errors.is_empty(), "the page logged errors: {errors:#?}");
@@ -388,16 +443,98 @@ gpu_test!(
         drop(browser);
         files.abort();
         server.stop().await;
-        for (name, ssim, luma, fs, ft, pass) in results {
-            assert!(
-                pass,
-                "{name}: SSIM {ssim:.4} (at least {MIN_SSIM}), luminance difference \
-                 {luma:+.2}/255 (at most ±{MAX_LUMA_DIFFERENCE}), drawn {:.1} % by the server \
-                 and {:.1} % by three.js (at least 10 % each); pictures in {}",
-                fs * 100.0,
-                ft * 100.0,
-                failure_dir().display()
-            );
+        results.iter().for_each(Outcome::assert);
+    }
+);
+
+/// The vertex buffers of one crowd frame of `case` (f32 with normals, the case's weights),
+/// cut per primitive as `GET /v1/rigs/{id}/mesh` lists them: what a three.js client writes
+/// into the meshes of `model.glb`.
+async fn frame_buffers(server: &TestServer, case: &Case) -> Value {
+    let req = CrowdFrameRequest {
+        heads: vec![Head::live(
+            1,
+            case.name,
+            LiveWeights::Named(
+                case.weights
+                    .iter()
+                    .map(|&(n, w)| (n.to_string(), w))
+                    .collect(),
+            ),
+        )],
+        output: OutputOptions {
+            normals: true,
+            format: Format::F32,
+        },
+        wrap: true,
+    };
+    let (frame, _) = server
+        .client
+        .crowd_frame(&req, Encoding::Bincode)
+        .await
+        .expect("a crowd frame");
+    let buffer = &frame.buffers[frame.heads[0].buffer as usize];
+    let positions = buffer.positions.to_f32();
+    let normals = buffer.normals.as_ref().expect("normals asked for").to_f32();
+    let mesh = server
+        .client
+        .mesh(case.name, Encoding::Bincode)
+        .await
+        .expect("the mesh");
+    let cut = |all: &[f32]| -> Vec<Value> {
+        mesh.primitives
+            .iter()
+            .map(|p| {
+                let (a, n) = (p.first_vertex as usize * 3, p.vertices as usize * 3);
+                json!(all[a..a + n])
+            })
+            .collect()
+    };
+    json!({"positions": cut(&positions), "normals": cut(&normals)})
+}
+
+gpu_test!(
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    #[cfg_attr(
+        not(crowdmorph_test_data),
+        ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+    )]
+    #[cfg_attr(
+        not(crowdmorph_chromium),
+        ignore = "no Chromium (apt-get install chromium, or set CROWDMORPH_CHROMIUM and touch build.rs)"
+    )]
+    #[cfg_attr(
+        not(crowdmorph_threejs),
+        ignore = "needs three.js: npm install --prefix target/threejs three@0.170.0, then touch build.rs"
+    )]
+    async fn three_js_draws_the_servers_vertex_buffers_textured_from_model_glb() {
+        // What a three.js client does: load `model.glb` once (no morph targets), then write
+        // each crowd frame's positions and normals into its meshes. Drawn so, it must look as
+        // the server's own render of the same head.
+        let models = crate::server::temp_dir("threejs-models");
+        let (server, browser, mut cdp, files) = start(Some(("/model/", models.clone()))).await;
+        let mut results = Vec::new();
+        for case in &CASES {
+            let glb = server
+                .client
+                .model_glb(case.name, 0)
+                .await
+                .expect("model.glb");
+            std::fs::write(models.join(format!("{}.glb", case.name)), &glb).expect("write");
+            let mut config = page_config(case);
+            config["model"] = json!(format!("/model/{}.glb", case.name));
+            config["weights"] = json!({});
+            config["frame"] = frame_buffers(&server, case).await;
+            let server_img = server_picture(&server, case).await;
+            let name = format!("{}-model-glb", case.name);
+            results.push(compare(&mut cdp, &name, &server_img, &config).await);
         }
+        let errors = cdp.errors();
+        assert!(errors.is_empty(), "the page logged errors: {errors:#?}");
+        drop(cdp);
+        drop(browser);
+        files.abort();
+        server.stop().await;
+        results.iter().for_each(Outcome::assert);
     }
 );

@@ -15,6 +15,10 @@
 //                       the server (the importer's name), and index i here.
 //   flipV               optional: every texture read upside down (v -> 1 - v), the control the
 //                       test draws to show that its comparison sees a flipped texture.
+//   frame               optional: {positions, normals}, one flat x,y,z array per mesh in
+//                       traversal order: the vertex buffers of a crowd frame, written into the
+//                       loaded model's geometry before drawing (how a three.js client animates
+//                       the server's model.glb, which has no morph targets).
 //
 // Why these settings: the server shades with glTF's metallic-roughness BRDF into an sRGB
 // target with no tone mapping, under two directional lights and a hemisphere ambient with no
@@ -57,6 +61,27 @@ async function renderReference(config) {
       applied[name] = (applied[name] ?? 0) + 1;
     }
   });
+  if (config.frame) {
+    const { positions, normals } = config.frame;
+    let i = 0;
+    gltf.scene.traverse((o) => {
+      if (!o.isMesh) return;
+      const g = o.geometry;
+      if (i >= positions.length) throw new Error(`the frame has ${positions.length} meshes, the model more`);
+      for (const [name, data] of [['position', positions[i]], ['normal', normals[i]]]) {
+        const attr = g.getAttribute(name);
+        if (!attr || attr.array.length !== data.length) {
+          throw new Error(`mesh ${i}: ${name} has ${attr?.array.length} components, the frame ${data.length}`);
+        }
+        attr.array.set(data);
+        attr.needsUpdate = true;
+      }
+      g.computeBoundingBox();
+      g.computeBoundingSphere();
+      i += 1;
+    });
+    if (i !== positions.length) throw new Error(`the frame has ${positions.length} meshes, the model ${i}`);
+  }
   for (const name of Object.keys(config.weights)) {
     if (!applied[name]) throw new Error(`no mesh of ${config.model} has a target ${name}`);
   }
