@@ -482,3 +482,96 @@ async fn hostile_images_are_named_4xx_and_large_ones_are_downscaled() {
     assert_eq!((reader.info().width, reader.info().height), (8, 4));
     server.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_test_data),
+    ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+)]
+async fn model_glb_and_materials_are_charged_to_the_queue_memory() {
+    // What the route charges for MorphStressTest's model (its arrays and both PNGs, twice:
+    // the JSON values and the bytes), from the rig the importer makes of the same file.
+    let path = textured()[0].0.clone();
+    let rig = crowdmorph::import::load_path(&path, &crowdmorph::import::ImportOptions::default())
+        .expect("import");
+    let charge = 2 * crowdmorph::engine::glb::model_glb_bytes(&rig);
+    let upload = bytes_of(&path, true);
+
+    // A queue memory smaller than one model: a 413 naming the flag, never a 5xx; the small
+    // `/materials` still answers.
+    let small = (charge / 2) as usize;
+    let server = TestServer::start(ServerConfig {
+        queue_memory_bytes: small,
+        ..ServerConfig::default()
+    })
+    .await;
+    server
+        .client
+        .upload_rig("stress", upload.clone())
+        .await
+        .expect("upload");
+    let reply = server
+        .client
+        .send(
+            Method::GET,
+            "/v1/rigs/stress/model.glb",
+            None,
+            None,
+            Bytes::new(),
+        )
+        .await
+        .expect("reply");
+    assert_eq!(reply.status, 413, "{:?}", reply.error());
+    let err = reply.error().expect("a JSON error");
+    assert_eq!(err.error.code, "queue_memory_exceeded", "{err:?}");
+    assert!(
+        err.error.message.contains("--queue-memory-bytes"),
+        "{err:?}"
+    );
+    server.client.materials("stress").await.expect("materials");
+    assert_eq!(server.state.queue_memory.used(), 0);
+    server.stop().await;
+
+    // Room for two models at once, sixteen asked for together: each is the same 200, or a
+    // 503 `queue_full` to retry; and once all are answered nothing stays charged.
+    let server = TestServer::start(ServerConfig {
+        queue_memory_bytes: (charge * 5 / 2) as usize,
+        ..ServerConfig::default()
+    })
+    .await;
+    server
+        .client
+        .upload_rig("stress", upload)
+        .await
+        .expect("upload");
+    let want = server.client.model_glb("stress", 0).await.expect("model");
+    let replies = futures_util::future::join_all((0..16).map(|_| {
+        server.client.send(
+            Method::GET,
+            "/v1/rigs/stress/model.glb",
+            None,
+            None,
+            Bytes::new(),
+        )
+    }))
+    .await;
+    let (mut ok, mut busy) = (0, 0);
+    for r in replies {
+        let r = r.expect("reply");
+        match r.status {
+            200 => {
+                assert_eq!(r.body, want, "every model is the same bytes");
+                ok += 1;
+            }
+            503 => {
+                assert_eq!(r.error().expect("JSON").error.code, "queue_full");
+                busy += 1;
+            }
+            s => panic!("status {s}: {:?}", r.error()),
+        }
+    }
+    println!("16 model.glb at once under room for 2: {ok} answered, {busy} told to retry");
+    assert!(ok >= 2, "{ok} answered");
+    assert_eq!(server.state.queue_memory.used(), 0);
+    server.stop().await;
+}

@@ -576,6 +576,12 @@ impl Sampler {
     }
 }
 
+/// Most bytes one material, texture or sampler takes in [`Appearance::gltf_json`], its
+/// name aside, as a `serde_json::Value` or as text: every slot of a material filled, each with a
+/// transform and every number at its longest, is 1,822 bytes of text, and a `Value` is allowed
+/// four times its text (`a_full_material_fits_its_json_allowance`).
+pub const JSON_ENTRY_BYTES: u64 = 8192;
+
 impl Appearance {
     /// glTF 2.0's `materials`, `textures` and `samplers` arrays of the appearance, and
     /// `images` made by `image` from each image's index (a URI for clients, a buffer view in
@@ -607,6 +613,23 @@ impl Appearance {
         })
     }
 
+    /// Bytes [`Appearance::gltf_json`]'s value and its text take at most, given `per_image`
+    /// bytes for what the caller writes of each image: what a server charges before making
+    /// them. Each table entry's keys and numbers fit [`JSON_ENTRY_BYTES`]; the strings the
+    /// file chose (material names, notes) count 6 bytes a byte, as JSON may escape a byte as
+    /// `\u00XX`.
+    pub fn gltf_json_bytes(&self, per_image: u64) -> u64 {
+        let entries = (self.materials.len() + self.textures.len() + self.samplers.len()) as u64;
+        let names: u64 = self
+            .materials
+            .iter()
+            .map(|m| m.name.as_ref().map_or(0, |n| n.len() as u64))
+            .chain(self.notes.iter().map(|n| n.len() as u64))
+            .sum();
+        let images = self.images.len() as u64 * (per_image + JSON_ENTRY_BYTES);
+        entries * JSON_ENTRY_BYTES + 6 * names + images + JSON_ENTRY_BYTES
+    }
+
     /// The glTF extensions [`Appearance::gltf_json`] uses.
     pub fn extensions_used(&self) -> Vec<&'static str> {
         let mut out = Vec::new();
@@ -627,6 +650,46 @@ impl Appearance {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_full_material_fits_its_json_allowance() {
+        // Every number at its longest JSON spelling (a negative subnormal f32 prints ~16
+        // characters), every slot filled with a transform, an unnamed material.
+        let long = -1.234_567_8e-38_f32;
+        let r = Some(TexRef {
+            texture: u32::MAX,
+            tex_coord: u8::MAX,
+            transform: Some(UvTransform {
+                offset: [long; 2],
+                rotation: long,
+                scale: [long; 2],
+            }),
+        });
+        let m = Material {
+            name: None,
+            base_color_factor: [long; 4],
+            base_color_texture: r.clone(),
+            metallic_factor: long,
+            roughness_factor: long,
+            metallic_roughness_texture: r.clone(),
+            normal_texture: r.clone(),
+            normal_scale: long,
+            occlusion_texture: r.clone(),
+            occlusion_strength: long,
+            emissive_factor: [long; 3],
+            emissive_strength: long,
+            emissive_texture: r,
+            alpha_mode: AlphaMode::Mask,
+            alpha_cutoff: long,
+            double_sided: true,
+            unlit: true,
+        };
+        let text = m.gltf_json().to_string().len() as u64;
+        // A Value holds more than its text (map nodes, strings' capacity): allowed four times.
+        assert!(4 * text < JSON_ENTRY_BYTES, "{text} bytes of JSON");
+        let s = Sampler::default().gltf_json().to_string().len() as u64;
+        assert!(4 * s < JSON_ENTRY_BYTES, "{s}");
+    }
 
     #[test]
     fn a_chain_counts_every_level_down_to_one_pixel() {

@@ -43,6 +43,13 @@ pub async fn get_materials(
 ) -> ApiResult {
     let entry = state.rig(&id)?;
     let rig = entry.rig();
+    // The JSON grows with the file's tables and names: charged to the queue memory (the
+    // value and its text) until it is sent. An image's entry is its URI and numbers.
+    let held = state
+        .queue_memory
+        .reserve(rig.appearance.as_deref().map_or(0, |a| {
+            a.gltf_json_bytes(IMAGE_ENTRY_BYTES + 2 * id.len() as u64)
+        }))?;
     let body = match rig.appearance.as_deref() {
         None => serde_json::json!({
             "rig": id, "materials": [], "textures": [], "samplers": [], "images": [],
@@ -69,7 +76,7 @@ pub async fn get_materials(
             tables
         }
     };
-    Ok((
+    let response = (
         StatusCode::OK,
         [(
             header::CONTENT_TYPE,
@@ -77,8 +84,13 @@ pub async fn get_materials(
         )],
         body.to_string(),
     )
-        .into_response())
+        .into_response();
+    Ok(http::body::hold(response, held))
 }
+
+/// Bytes of one image's entry in `/materials` besides its rig id (twice, in the URI and
+/// `rig`): a URI, a MIME type, two sizes, a checksum, a downscale.
+const IMAGE_ENTRY_BYTES: u64 = 512;
 
 /// `?v=` of a texture request: the `ETag` token `/materials` gave.
 #[derive(serde::Deserialize)]
