@@ -175,14 +175,19 @@ function ensureTopology(key, rig, lod, vertices) {
       for (let i = 0; i < indices.length; i++) {
         if (indices[i] >= mesh.vertices) throw new DecodeError(`mesh of ${rig}: index ${indices[i]} past ${mesh.vertices} vertices`);
       }
-      // Texture coordinates: u, v per vertex, or nothing for a rig without any (and from a
-      // server older than them).
-      const uvBytes = mesh.uvs ? base64Bytes(mesh.uvs) : new ArrayBuffer(0);
-      if (uvBytes.byteLength !== 0 && uvBytes.byteLength !== mesh.vertices * 8) {
-        throw new DecodeError(`mesh of ${rig}: ${uvBytes.byteLength} texture coordinate bytes for ${mesh.vertices} vertices`);
-      }
-      const uvs = uvBytes.byteLength ? new Float32Array(uvBytes) : null;
-      renderer.setTopology(key, rig, mesh, indices, uvs);
+      // Texture coordinates (sets 0 and 1: u, v per vertex) and colours (r, g, b, a), or
+      // nothing for a rig without them (and from a server older than them).
+      const column = (blob, components, what) => {
+        const bytes = blob ? base64Bytes(blob) : new ArrayBuffer(0);
+        if (bytes.byteLength !== 0 && bytes.byteLength !== mesh.vertices * components * 4) {
+          throw new DecodeError(`mesh of ${rig}: ${bytes.byteLength} ${what} bytes for ${mesh.vertices} vertices`);
+        }
+        return bytes.byteLength ? new Float32Array(bytes) : null;
+      };
+      const uvs = column(mesh.uvs, 2, 'texture coordinate');
+      const uvs1 = column(mesh.uvs1, 2, 'texture coordinate (set 1)');
+      const colors = column(mesh.colors, 4, 'vertex colour');
+      renderer.setTopology(key, rig, mesh, indices, uvs, uvs1, colors);
       state.dirty = true;
     })
     .catch((e) => showError(`topology of ${rig} at LOD ${lod}: ${describe(e)}`))

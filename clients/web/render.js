@@ -19,6 +19,8 @@ const VERTEX_SHADER = `#version 300 es
 layout(location = 0) in vec3 a_position;
 layout(location = 1) in vec3 a_normal;
 layout(location = 2) in vec2 a_uv;
+layout(location = 3) in vec2 a_uv1;
+layout(location = 4) in vec4 a_color;
 uniform mat4 u_view_proj;
 uniform mat4 u_model;
 uniform vec3 u_qmin;
@@ -27,6 +29,8 @@ uniform float u_qbias;
 out vec3 v_world;
 out vec3 v_normal;
 out vec2 v_uv;
+out vec2 v_uv1;
+out vec4 v_color;
 void main() {
   vec3 p = u_qmin + (a_position + u_qbias) * u_qstep;
   vec4 world = u_model * vec4(p, 1.0);
@@ -34,6 +38,8 @@ void main() {
   // Placements are rotation times uniform scale, so the model matrix turns normals too.
   v_normal = mat3(u_model) * a_normal;
   v_uv = a_uv;
+  v_uv1 = a_uv1;
+  v_color = a_color;
   gl_Position = u_view_proj * world;
 }
 `;
@@ -70,6 +76,9 @@ precision highp float;
 in vec3 v_world;
 in vec3 v_normal;
 in vec2 v_uv;
+in vec2 v_uv1;
+// COLOR_0 (white without): it multiplies the base colour.
+in vec4 v_color;
 uniform vec3 u_eye;
 // World-space unit directions toward the key and fill lights, their irradiance in w.
 uniform vec4 u_key;
@@ -86,13 +95,19 @@ uniform vec4 u_pbr;
 uniform vec4 u_mode;
 // KHR_texture_transform per slot (base, metallic-roughness, normal, occlusion, emissive).
 uniform mat3 u_uv[${SLOTS}];
+// The texture coordinate set (0 or 1) per slot.
+uniform int u_set[${SLOTS}];
 uniform sampler2D u_textures[${SLOTS}];
 out vec4 o_color;
 
 const float PI = 3.141592653589793;
 
+vec2 slot_uv(int i) {
+  return (u_uv[i] * vec3(u_set[i] == 1 ? v_uv1 : v_uv, 1.0)).xy;
+}
+
 vec4 slot(int i) {
-  vec2 uv = (u_uv[i] * vec3(v_uv, 1.0)).xy;
+  vec2 uv = slot_uv(i);
   switch (i) {
     case ${BASE}: return texture(u_textures[${BASE}], uv);
     case ${METALLIC_ROUGHNESS}: return texture(u_textures[${METALLIC_ROUGHNESS}], uv);
@@ -112,7 +127,7 @@ vec3 encode_srgb(vec3 c) {
 // frame of the screen-space derivatives of position and texture coordinate (Schüler): t along
 // +u, b along +v. glTF's tangent space has +Y up the image, which is -v.
 vec3 mapped_normal(vec3 n) {
-  vec2 uv = (u_uv[${NORMAL}] * vec3(v_uv, 1.0)).xy;
+  vec2 uv = slot_uv(${NORMAL});
   vec3 dpx = dFdx(v_world);
   vec3 dpy = dFdy(v_world);
   vec2 dux = dFdx(uv);
@@ -157,7 +172,7 @@ vec2 env_brdf(float roughness, float nv) {
 }
 
 void main() {
-  vec4 base = u_base_factor * slot(${BASE});
+  vec4 base = u_base_factor * v_color * slot(${BASE});
   if (base.a < u_mode.x) discard;
   float alpha_out = u_mode.w > 0.5 ? base.a : 1.0;
   vec3 emissive = u_emissive * slot(${EMISSIVE}).rgb;
@@ -272,6 +287,7 @@ export class Renderer {
       'u_pbr',
       'u_mode',
       'u_uv',
+      'u_set',
       'u_textures',
     ]);
     gl.useProgram(this.pbr.program);
@@ -289,8 +305,10 @@ export class Renderer {
     // What a slot samples while its texture loads, or when it has none: white multiplies the
     // factors by one; the flat normal is never read (u_mode.z is 0 without a normal map).
     this.white = solidTexture(gl, [255, 255, 255, 255]);
-    // Heads whose topology has no texture coordinates read (0, 0).
+    // Heads whose topology has no texture coordinates read (0, 0), no colours white.
     gl.vertexAttrib2f(2, 0, 0);
+    gl.vertexAttrib2f(3, 0, 0);
+    gl.vertexAttrib4f(4, 1, 1, 1, 1);
     gl.enable(gl.DEPTH_TEST);
     gl.cullFace(gl.BACK);
   }
@@ -300,12 +318,12 @@ export class Renderer {
    * `key`, for heads of rig `rig`.
    * @param {Float32Array|null} uvs u, v per vertex, or null when the mesh has none
    */
-  setTopology(key, rig, mesh, indices, uvs) {
+  setTopology(key, rig, mesh, indices, uvs, uvs1, colors) {
     const gl = this.gl;
     const old = this.topologies.get(key);
     if (old) {
       gl.deleteBuffer(old.ibo);
-      if (old.uvs) gl.deleteBuffer(old.uvs);
+      for (const b of [old.uvs, old.uvs1, old.colors]) if (b) gl.deleteBuffer(b);
     }
     const ibo = gl.createBuffer();
     // An index buffer is bound to a vertex array object when drawn; binding it to
@@ -314,18 +332,21 @@ export class Renderer {
     gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, ibo);
     gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, indices, gl.STATIC_DRAW);
     gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, null);
-    let uvBuffer = null;
-    if (uvs) {
-      uvBuffer = gl.createBuffer();
-      gl.bindBuffer(gl.ARRAY_BUFFER, uvBuffer);
-      gl.bufferData(gl.ARRAY_BUFFER, uvs, gl.STATIC_DRAW);
+    const buffer = (data) => {
+      if (!data) return null;
+      const b = gl.createBuffer();
+      gl.bindBuffer(gl.ARRAY_BUFFER, b);
+      gl.bufferData(gl.ARRAY_BUFFER, data, gl.STATIC_DRAW);
       gl.bindBuffer(gl.ARRAY_BUFFER, null);
-    }
+      return b;
+    };
     const { min, max } = mesh.bbox;
     this.topologies.set(key, {
       rig,
       ibo,
-      uvs: uvBuffer,
+      uvs: buffer(uvs),
+      uvs1: buffer(uvs1),
+      colors: buffer(colors),
       vertices: mesh.vertices,
       center: [0, 1, 2].map((a) => (min[a] + max[a]) / 2),
       primitives: mesh.primitives.map((p) => ({
@@ -355,9 +376,9 @@ export class Renderer {
       if (!ref || !Number.isInteger(ref.index)) return null;
       const transform = ref.extensions && ref.extensions.KHR_texture_transform;
       const set = transform && Number.isInteger(transform.texCoord) ? transform.texCoord : ref.texCoord || 0;
-      // The server sends texture coordinates of set 0 only: a slot on another set is drawn
+      // The server sends texture coordinate sets 0 and 1: a slot on another set is drawn
       // with its factors alone.
-      if (set !== 0) return null;
+      if (set !== 0 && set !== 1) return null;
       const texture = textures[ref.index];
       const image = texture && images[texture.source];
       if (!image || typeof image.uri !== 'string') return null;
@@ -367,7 +388,7 @@ export class Renderer {
         w[srgb ? 'srgb' : 'linear'] = true;
         wanted.set(image.uri, w);
       }
-      return { key, sampler: this.sampler(Number.isInteger(texture.sampler) ? samplers[texture.sampler] : null), uv: uvTransform(transform) };
+      return { key, set, sampler: this.sampler(Number.isInteger(texture.sampler) ? samplers[texture.sampler] : null), uv: uvTransform(transform) };
     };
     const materials = (Array.isArray(doc.materials) ? doc.materials : []).map((m) => {
       const pbr = m.pbrMetallicRoughness || {};
@@ -382,6 +403,7 @@ export class Renderer {
       slots[EMISSIVE] = slot(m.emissiveTexture, true);
       const uv = new Float32Array(9 * SLOTS);
       slots.forEach((s, i) => uv.set(s ? s.uv : IDENTITY3, 9 * i));
+      const sets = new Int32Array(slots.map((s) => (s ? s.set : 0)));
       return {
         base: numbers(pbr.baseColorFactor, 4, [1, 1, 1, 1]),
         emissive,
@@ -397,6 +419,7 @@ export class Renderer {
         doubleSided: !!m.doubleSided,
         slots,
         uv,
+        sets,
       };
     });
     this.materials.set(rig, materials);
@@ -564,13 +587,15 @@ export class Renderer {
     gl.bindVertexArray(e.gl.vao);
     if (e.topo !== topo) {
       gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, topo.ibo);
-      if (topo.uvs) {
-        gl.bindBuffer(gl.ARRAY_BUFFER, topo.uvs);
-        gl.enableVertexAttribArray(2);
-        gl.vertexAttribPointer(2, 2, gl.FLOAT, false, 0, 0);
-        gl.bindBuffer(gl.ARRAY_BUFFER, null);
-      } else {
-        gl.disableVertexAttribArray(2);
+      for (const [location, b, size] of [[2, topo.uvs, 2], [3, topo.uvs1, 2], [4, topo.colors, 4]]) {
+        if (b) {
+          gl.bindBuffer(gl.ARRAY_BUFFER, b);
+          gl.enableVertexAttribArray(location);
+          gl.vertexAttribPointer(location, size, gl.FLOAT, false, 0, 0);
+          gl.bindBuffer(gl.ARRAY_BUFFER, null);
+        } else {
+          gl.disableVertexAttribArray(location);
+        }
       }
       e.topo = topo;
     }
@@ -599,6 +624,7 @@ export class Renderer {
     }
     gl.uniform4f(u.u_mode, m.cutoff, m.unlit ? 1 : 0, normalMap, m.blend ? 1 : 0);
     gl.uniformMatrix3fv(u.u_uv, false, m.uv);
+    gl.uniform1iv(u.u_set, m.sets);
     if (m.doubleSided) gl.disable(gl.CULL_FACE);
     else gl.enable(gl.CULL_FACE);
   }
@@ -675,7 +701,7 @@ export class Renderer {
       }
       if (!g.solid.length) continue;
       this.bindHead(prog, s.h, s.e, s.topo);
-      const textured = !!s.topo.uvs;
+      const textured = !!(s.topo.uvs || s.topo.uvs1);
       for (const { p, m } of g.solid) {
         if (bound !== m || boundTextured !== textured) {
           this.bindMaterial(m, textured);
@@ -697,7 +723,7 @@ export class Renderer {
           this.bindHead(prog, s.h, s.e, s.topo);
           head = s;
         }
-        this.bindMaterial(pm.m, !!s.topo.uvs);
+        this.bindMaterial(pm.m, !!(s.topo.uvs || s.topo.uvs1));
         gl.drawElements(gl.TRIANGLES, pm.p.count, gl.UNSIGNED_INT, pm.p.first * 4);
       }
       gl.depthMask(true);

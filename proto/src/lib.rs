@@ -909,6 +909,13 @@ pub struct MeshResponse {
     /// Texture coordinates of set 0, f32 little-endian u, v per vertex in the positions'
     /// order (zeros for a primitive without); empty when no primitive has any.
     pub uvs: Blob,
+    /// Texture coordinates of set 1 (what a material's `texCoord: 1` reads, often an
+    /// occlusion map), as [`MeshResponse::uvs`]; empty when no primitive has any.
+    pub uvs1: Blob,
+    /// Vertex colours (glTF `COLOR_0`, which multiplies the base colour), f32 little-endian
+    /// linear r, g, b, a per vertex (1, 1, 1, 1 for a primitive without); empty when no
+    /// primitive has any.
+    pub colors: Blob,
 }
 
 /// `POST /v1/rigs/{id}/clips` response.

@@ -35,8 +35,17 @@ fn bytes_of(path: &Path, glb: bool) -> Bytes {
     }
 }
 
-/// Each primitive's `(TEXCOORD_0, material)` as the file has them, in the rig's order.
-fn file_primitives(doc: &RefDoc) -> Vec<(Option<Vec<f64>>, Option<u64>)> {
+/// One primitive as the file has it: `TEXCOORD_0`, `TEXCOORD_1`, `COLOR_0` (as read, VEC3 or
+/// VEC4) with its component count, and the material.
+struct FilePrimitive {
+    uv0: Option<Vec<f64>>,
+    uv1: Option<Vec<f64>>,
+    color: Option<(Vec<f64>, usize)>,
+    material: Option<u64>,
+}
+
+/// Each primitive of the file, in the rig's order.
+fn file_primitives(doc: &RefDoc) -> Vec<FilePrimitive> {
     let mut out = Vec::new();
     let mut at = None;
     let mut k = 0;
@@ -48,10 +57,17 @@ fn file_primitives(doc: &RefDoc) -> Vec<(Option<Vec<f64>>, Option<u64>)> {
         };
         at = Some((p.node, p.mesh));
         let prim = &doc.json["meshes"][p.mesh]["primitives"][k];
-        let uv = prim["attributes"]["TEXCOORD_0"]
-            .as_u64()
-            .map(|a| doc.accessor(a as usize).0);
-        out.push((uv, prim["material"].as_u64()));
+        let attribute = |name: &str| {
+            prim["attributes"][name]
+                .as_u64()
+                .map(|a| doc.accessor(a as usize))
+        };
+        out.push(FilePrimitive {
+            uv0: attribute("TEXCOORD_0").map(|a| a.0),
+            uv1: attribute("TEXCOORD_1").map(|a| a.0),
+            color: attribute("COLOR_0").map(|(v, n)| (v, n)),
+            material: prim["material"].as_u64(),
+        });
     }
     out
 }
@@ -62,25 +78,31 @@ fn f32s(b: &[u8]) -> Vec<f32> {
         .collect()
 }
 
-/// The mesh's texture coordinates and materials equal the file's.
-fn check_mesh(mesh: &MeshResponse, doc: &RefDoc, ctx: &str) {
-    let want = file_primitives(doc);
-    assert_eq!(mesh.primitives.len(), want.len(), "{ctx}: primitives");
-    let uvs = f32s(&mesh.uvs.0);
+/// A per-vertex column of the mesh (`width` floats a vertex) against the file's, per
+/// primitive: the file's values where it has them, else `missing`; an empty column when no
+/// primitive has any.
+fn check_column(
+    mesh: &MeshResponse,
+    blob: &[u8],
+    width: usize,
+    file: &[Option<Vec<f64>>],
+    missing: &[f32],
+    ctx: &str,
+) {
+    let got = f32s(blob);
+    if file.iter().all(Option::is_none) {
+        assert!(got.is_empty(), "{ctx}: a column no primitive has is empty");
+        return;
+    }
     assert_eq!(
-        uvs.len(),
-        mesh.vertices as usize * 2,
-        "{ctx}: one u, v per vertex"
+        got.len(),
+        mesh.vertices as usize * width,
+        "{ctx}: per vertex"
     );
-    for (p, (uv, material)) in mesh.primitives.iter().zip(&want) {
-        assert_eq!(
-            p.material.map(u64::from),
-            *material,
-            "{ctx}: {} material",
-            p.name
-        );
-        let got = &uvs[p.first_vertex as usize * 2..(p.first_vertex + p.vertices) as usize * 2];
-        match uv {
+    for (p, want) in mesh.primitives.iter().zip(file) {
+        let got =
+            &got[p.first_vertex as usize * width..(p.first_vertex + p.vertices) as usize * width];
+        match want {
             Some(w) => {
                 assert_eq!(got.len(), w.len(), "{ctx}: {}", p.name);
                 for (g, w) in got.iter().zip(w) {
@@ -91,9 +113,63 @@ fn check_mesh(mesh: &MeshResponse, doc: &RefDoc, ctx: &str) {
                     );
                 }
             }
-            None => assert!(got.iter().all(|&g| g == 0.0), "{ctx}: zeros without"),
+            None => assert!(
+                got.chunks_exact(width).all(|v| v == missing),
+                "{ctx}: {} without",
+                p.name
+            ),
         }
     }
+}
+
+/// The mesh's texture coordinates (both sets), colours and materials equal the file's.
+fn check_mesh(mesh: &MeshResponse, doc: &RefDoc, ctx: &str) {
+    let want = file_primitives(doc);
+    assert_eq!(mesh.primitives.len(), want.len(), "{ctx}: primitives");
+    for (p, w) in mesh.primitives.iter().zip(&want) {
+        assert_eq!(
+            p.material.map(u64::from),
+            w.material,
+            "{ctx}: {} material",
+            p.name
+        );
+    }
+    let uv0: Vec<_> = want.iter().map(|w| w.uv0.clone()).collect();
+    check_column(mesh, &mesh.uvs.0, 2, &uv0, &[0.0; 2], &format!("{ctx} uvs"));
+    let uv1: Vec<_> = want.iter().map(|w| w.uv1.clone()).collect();
+    assert!(
+        !ctx.starts_with("morphstresstest") || uv1.iter().any(Option::is_some),
+        "{ctx}: MorphStressTest has set 1 (its occlusion map reads it)"
+    );
+    check_column(
+        mesh,
+        &mesh.uvs1.0,
+        2,
+        &uv1,
+        &[0.0; 2],
+        &format!("{ctx} uvs1"),
+    );
+    // RGB colours get alpha 1.
+    let colors: Vec<_> = want
+        .iter()
+        .map(|w| {
+            w.color.as_ref().map(|(v, n)| match n {
+                3 => v
+                    .chunks_exact(3)
+                    .flat_map(|c| [c[0], c[1], c[2], 1.0])
+                    .collect(),
+                _ => v.clone(),
+            })
+        })
+        .collect();
+    check_column(
+        mesh,
+        &mesh.colors.0,
+        4,
+        &colors,
+        &[1.0; 4],
+        &format!("{ctx} colors"),
+    );
 }
 
 /// `/materials` and every `/textures/{i}` against the file: material names and factors, and
@@ -573,5 +649,62 @@ async fn model_glb_and_materials_are_charged_to_the_queue_memory() {
     println!("16 model.glb at once under room for 2: {ok} answered, {busy} told to retry");
     assert!(ok >= 2, "{ok} answered");
     assert_eq!(server.state.queue_memory.used(), 0);
+    server.stop().await;
+}
+
+#[tokio::test]
+async fn vertex_colours_reach_the_mesh_in_linear_rgba() {
+    // COLOR_0 as the exporters write it: normalized u8 RGBA (a VRoid-style vertex tint) and
+    // float RGB (alpha 1 is implied). The mesh gives both as f32 linear RGBA.
+    let cases: [(&str, Vec<f64>); 2] = [
+        (
+            "rgba8",
+            vec![
+                255.0, 0.0, 0.0, 255.0, 0.0, 128.0, 0.0, 64.0, 51.0, 102.0, 204.0, 0.0,
+            ],
+        ),
+        (
+            "rgb32",
+            vec![0.25, 0.5, 1.0, 0.0, 0.125, 0.75, 1.0, 1.0, 1.0],
+        ),
+    ];
+    let server = TestServer::start(ServerConfig::default()).await;
+    for (name, values) in cases {
+        let mut b = crate::util::builder::triangle_rig();
+        let acc = if name == "rgba8" {
+            let ints: Vec<i64> = values.iter().map(|&v| v as i64).collect();
+            b.accessor_ints(crate::util::builder::Component::U8, &ints, "VEC4", true)
+        } else {
+            let floats: Vec<f32> = values.iter().map(|&v| v as f32).collect();
+            b.accessor_f32(&floats, "VEC3")
+        };
+        b.mesh_mut(0)["primitives"][0]["attributes"]["COLOR_0"] = acc.into();
+        server
+            .client
+            .upload_rig(name, Bytes::from(b.to_glb()))
+            .await
+            .expect("upload");
+        // The file's colours as linear RGBA, decoded independently of the importer.
+        let want: Vec<f64> = if name == "rgba8" {
+            values.iter().map(|v| v / 255.0).collect()
+        } else {
+            values
+                .chunks_exact(3)
+                .flat_map(|c| [c[0], c[1], c[2], 1.0])
+                .collect()
+        };
+        for enc in [Encoding::Bincode, Encoding::Json] {
+            let mesh = server.client.mesh(name, enc).await.expect("mesh");
+            let got = f32s(&mesh.colors.0);
+            assert_eq!(got.len(), want.len(), "{name} {enc:?}");
+            for (g, w) in got.iter().zip(&want) {
+                assert!(
+                    (f64::from(*g) - w).abs() <= 1e-6,
+                    "{name} {enc:?}: {g} vs {w}"
+                );
+            }
+            assert!(mesh.uvs1.0.is_empty(), "{name}: no set 1");
+        }
+    }
     server.stop().await;
 }

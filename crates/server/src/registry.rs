@@ -460,8 +460,9 @@ impl RigEntry {
         let mut indices = Vec::with_capacity(rig.triangle_count() * 12);
         let mut positions = Vec::with_capacity(vertices * 12);
         let mut normals = Vec::with_capacity(vertices * 12);
-        let any_uvs = rig.primitives.iter().any(|p| p.look.uv0.is_some());
-        let mut uvs = Vec::with_capacity(if any_uvs { vertices * 8 } else { 0 });
+        let mut uvs = LookColumn::new(rig, |p| p.look.uv0.as_deref(), [0.0; 2]);
+        let mut uvs1 = LookColumn::new(rig, |p| p.look.uv1.as_deref(), [0.0; 2]);
+        let mut colors = LookColumn::new(rig, |p| p.look.colors.as_deref(), [1.0; 4]);
         let mut prims = Vec::with_capacity(rig.primitives.len());
         let mut first_vertex = 0u32;
         let mut first_index = 0u32;
@@ -479,16 +480,9 @@ impl RigEntry {
                     normals.extend_from_slice(&c.to_le_bytes());
                 }
             }
-            if any_uvs {
-                match &p.look.uv0 {
-                    Some(uv) => {
-                        for c in uv.iter().flat_map(|v| v.to_array()) {
-                            uvs.extend_from_slice(&c.to_le_bytes());
-                        }
-                    }
-                    None => uvs.resize(uvs.len() + p.positions.len() * 8, 0),
-                }
-            }
+            uvs.push(p, |p| p.look.uv0.as_deref());
+            uvs1.push(p, |p| p.look.uv1.as_deref());
+            colors.push(p, |p| p.look.colors.as_deref());
             prims.push(MeshPrimitive {
                 name: p.name.clone(),
                 first_vertex,
@@ -513,7 +507,9 @@ impl RigEntry {
             indices: Blob(indices),
             positions: Blob(positions),
             normals: Blob(normals),
-            uvs: Blob(uvs),
+            uvs: Blob(uvs.bytes),
+            uvs1: Blob(uvs1.bytes),
+            colors: Blob(colors.bytes),
         }
     }
 }
@@ -895,5 +891,57 @@ mod tests {
         assert!(!valid_id(""));
         assert_eq!(sanitize_id("My Rig/1"), "My-Rig-1");
         assert_eq!(sanitize_id("..."), "rig");
+    }
+}
+
+/// One optional per-vertex column of a mesh response (texture coordinates, colours) as f32
+/// little-endian bytes over every primitive: empty when no primitive has it, else `missing`
+/// for the vertices of a primitive without.
+struct LookColumn<const N: usize> {
+    any: bool,
+    missing: [f32; N],
+    bytes: Vec<u8>,
+}
+
+impl<const N: usize> LookColumn<N> {
+    fn new<T>(
+        rig: &Rig,
+        column: impl Fn(&crowdmorph_core::rig::Primitive) -> Option<&[T]>,
+        missing: [f32; N],
+    ) -> Self {
+        let any = rig.primitives.iter().any(|p| column(p).is_some());
+        let n = if any { rig.vertex_count() * N * 4 } else { 0 };
+        LookColumn {
+            any,
+            missing,
+            bytes: Vec::with_capacity(n),
+        }
+    }
+
+    fn push<T: Copy + Into<[f32; N]>>(
+        &mut self,
+        p: &crowdmorph_core::rig::Primitive,
+        column: impl Fn(&crowdmorph_core::rig::Primitive) -> Option<&[T]>,
+    ) {
+        if !self.any {
+            return;
+        }
+        match column(p) {
+            Some(values) => {
+                for v in values {
+                    let a: [f32; N] = (*v).into();
+                    for c in a {
+                        self.bytes.extend_from_slice(&c.to_le_bytes());
+                    }
+                }
+            }
+            None => {
+                for _ in 0..p.positions.len() {
+                    for c in self.missing {
+                        self.bytes.extend_from_slice(&c.to_le_bytes());
+                    }
+                }
+            }
+        }
     }
 }

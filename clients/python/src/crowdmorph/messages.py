@@ -800,6 +800,8 @@ class MeshPrimitive:
     ("positions", BLOB),
     ("normals", BLOB),
     ("uvs", BLOB),
+    ("uvs1", BLOB),
+    ("colors", BLOB),
 )
 @dataclass
 class MeshResponse:
@@ -815,6 +817,8 @@ class MeshResponse:
     positions: Any
     normals: Any
     uvs: Any = b""
+    uvs1: Any = b""
+    colors: Any = b""
 
 
 @wire(("rig", STR), ("added", Vec(Msg(ClipInfo))), ("ignored", Vec(STR)))

@@ -131,6 +131,8 @@ class Mesh:
         "positions",
         "normals",
         "uvs",
+        "uvs1",
+        "colors",
         "response",
     )
 
@@ -149,6 +151,18 @@ class Mesh:
         self.uvs = (
             _arrays.decode_f32(response.uvs, backend, response.vertices, components=2)
             if len(response.uvs)
+            else None
+        )
+        # Texture coordinates of set 1, (vertices, 2), or None.
+        self.uvs1 = (
+            _arrays.decode_f32(response.uvs1, backend, response.vertices, components=2)
+            if len(response.uvs1)
+            else None
+        )
+        # Vertex colours (COLOR_0, linear RGBA), (vertices, 4), or None.
+        self.colors = (
+            _arrays.decode_f32(response.colors, backend, response.vertices, components=4)
+            if len(response.colors)
             else None
         )
 

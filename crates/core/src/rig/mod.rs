@@ -275,8 +275,8 @@ pub struct VertexLook {
     /// Texture coordinates of set 0 (glTF `TEXCOORD_0`), as the file has them (normalized
     /// integers decoded to floats).
     pub uv0: Option<Vec<Vec2>>,
-    /// Texture coordinates of set 1 (`TEXCOORD_1`), kept when the primitive's material
-    /// reads set 1.
+    /// Texture coordinates of set 1 (`TEXCOORD_1`), as the file has them (a material may read
+    /// them for any slot; an occlusion map often does).
     pub uv1: Option<Vec<Vec2>>,
     /// Vertex colours (`COLOR_0`), linear RGBA (RGB files get alpha 1).
     pub colors: Option<Vec<Vec4>>,

@@ -329,6 +329,10 @@ impl MeshQuery {
     }
 }
 
+/// Bytes of one vertex in a mesh response: positions and normals (12 each), two texture
+/// coordinate sets (8 each) and a colour (16).
+const MESH_VERTEX_BYTES: usize = 12 + 12 + 8 + 8 + 16;
+
 pub async fn get_mesh(
     State(state): State<AppState>,
     _ready: Ready,
@@ -338,10 +342,11 @@ pub async fn get_mesh(
 ) -> ApiResult {
     let entry = state.rig(&id)?;
     let lod = query.level(&entry, &id)?;
-    // The response copies the level's positions, normals, texture coordinates and indices
-    // (and JSON triples them in base64 and digits): charged to the queue memory until sent.
+    // The response copies the level's positions, normals, both texture coordinate sets,
+    // colours and indices (and JSON triples them in base64 and digits): charged to the queue
+    // memory until sent.
     let at = entry.prepared.at_level(lod).rig();
-    let bytes = (at.vertex_count() * 32 + at.triangle_count() * 12) as u64;
+    let bytes = (at.vertex_count() * MESH_VERTEX_BYTES + at.triangle_count() * 12) as u64;
     let factor = if accept.bincode { 2 } else { 4 };
     let held = state.queue_memory.reserve(bytes * factor)?;
     // Built and encoded off the runtime; the charge goes with the body until it is sent.
