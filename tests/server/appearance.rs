@@ -65,7 +65,7 @@ fn file_primitives(doc: &RefDoc) -> Vec<FilePrimitive> {
         out.push(FilePrimitive {
             uv0: attribute("TEXCOORD_0").map(|a| a.0),
             uv1: attribute("TEXCOORD_1").map(|a| a.0),
-            color: attribute("COLOR_0").map(|(v, n)| (v, n)),
+            color: attribute("COLOR_0"),
             material: prim["material"].as_u64(),
         });
     }

@@ -821,6 +821,58 @@ pub fn sanitize_id(name: &str) -> String {
     if s.is_empty() { "rig".to_string() } else { s }
 }
 
+/// One optional per-vertex column of a mesh response (texture coordinates, colours) as f32
+/// little-endian bytes over every primitive: empty when no primitive has it, else `missing`
+/// for the vertices of a primitive without.
+struct LookColumn<const N: usize> {
+    any: bool,
+    missing: [f32; N],
+    bytes: Vec<u8>,
+}
+
+impl<const N: usize> LookColumn<N> {
+    fn new<T>(
+        rig: &Rig,
+        column: impl Fn(&crowdmorph_core::rig::Primitive) -> Option<&[T]>,
+        missing: [f32; N],
+    ) -> Self {
+        let any = rig.primitives.iter().any(|p| column(p).is_some());
+        let n = if any { rig.vertex_count() * N * 4 } else { 0 };
+        LookColumn {
+            any,
+            missing,
+            bytes: Vec::with_capacity(n),
+        }
+    }
+
+    fn push<T: Copy + Into<[f32; N]>>(
+        &mut self,
+        p: &crowdmorph_core::rig::Primitive,
+        column: impl Fn(&crowdmorph_core::rig::Primitive) -> Option<&[T]>,
+    ) {
+        if !self.any {
+            return;
+        }
+        match column(p) {
+            Some(values) => {
+                for v in values {
+                    let a: [f32; N] = (*v).into();
+                    for c in a {
+                        self.bytes.extend_from_slice(&c.to_le_bytes());
+                    }
+                }
+            }
+            None => {
+                for _ in 0..p.positions.len() {
+                    for c in self.missing {
+                        self.bytes.extend_from_slice(&c.to_le_bytes());
+                    }
+                }
+            }
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -891,57 +943,5 @@ mod tests {
         assert!(!valid_id(""));
         assert_eq!(sanitize_id("My Rig/1"), "My-Rig-1");
         assert_eq!(sanitize_id("..."), "rig");
-    }
-}
-
-/// One optional per-vertex column of a mesh response (texture coordinates, colours) as f32
-/// little-endian bytes over every primitive: empty when no primitive has it, else `missing`
-/// for the vertices of a primitive without.
-struct LookColumn<const N: usize> {
-    any: bool,
-    missing: [f32; N],
-    bytes: Vec<u8>,
-}
-
-impl<const N: usize> LookColumn<N> {
-    fn new<T>(
-        rig: &Rig,
-        column: impl Fn(&crowdmorph_core::rig::Primitive) -> Option<&[T]>,
-        missing: [f32; N],
-    ) -> Self {
-        let any = rig.primitives.iter().any(|p| column(p).is_some());
-        let n = if any { rig.vertex_count() * N * 4 } else { 0 };
-        LookColumn {
-            any,
-            missing,
-            bytes: Vec::with_capacity(n),
-        }
-    }
-
-    fn push<T: Copy + Into<[f32; N]>>(
-        &mut self,
-        p: &crowdmorph_core::rig::Primitive,
-        column: impl Fn(&crowdmorph_core::rig::Primitive) -> Option<&[T]>,
-    ) {
-        if !self.any {
-            return;
-        }
-        match column(p) {
-            Some(values) => {
-                for v in values {
-                    let a: [f32; N] = (*v).into();
-                    for c in a {
-                        self.bytes.extend_from_slice(&c.to_le_bytes());
-                    }
-                }
-            }
-            None => {
-                for _ in 0..p.positions.len() {
-                    for c in self.missing {
-                        self.bytes.extend_from_slice(&c.to_le_bytes());
-                    }
-                }
-            }
-        }
     }
 }
