@@ -416,6 +416,24 @@ async fn start(
     (server, browser, cdp, files)
 }
 
+/// Checks the page logged no error, stops everything, then asserts each outcome (so a failure
+/// leaves no browser or server behind).
+async fn finish(
+    server: TestServer,
+    browser: Browser,
+    cdp: Cdp,
+    files: tokio::task::JoinHandle<()>,
+    results: &[Outcome],
+) {
+    let errors = cdp.errors();
+    drop(cdp);
+    drop(browser);
+    files.abort();
+    server.stop().await;
+    assert!(errors.is_empty(), "the page logged errors: {errors:#?}");
+    results.iter().for_each(Outcome::assert);
+}
+
 gpu_test!(
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     #[cfg_attr(
@@ -437,13 +455,7 @@ gpu_test!(
             let server_img = server_picture(&server, case).await;
             results.push(compare(&mut cdp, case.name, &server_img, &page_config(case)).await);
         }
-        let errors = cdp.errors();
-        assert!(errors.is_empty(), "the page logged errors: {errors:#?}");
-        drop(cdp);
-        drop(browser);
-        files.abort();
-        server.stop().await;
-        results.iter().for_each(Outcome::assert);
+        finish(server, browser, cdp, files, &results).await;
     }
 );
 
@@ -529,12 +541,6 @@ gpu_test!(
             let name = format!("{}-model-glb", case.name);
             results.push(compare(&mut cdp, &name, &server_img, &config).await);
         }
-        let errors = cdp.errors();
-        assert!(errors.is_empty(), "the page logged errors: {errors:#?}");
-        drop(cdp);
-        drop(browser);
-        files.abort();
-        server.stop().await;
-        results.iter().for_each(Outcome::assert);
+        finish(server, browser, cdp, files, &results).await;
     }
 );
