@@ -105,9 +105,15 @@ export class OrbitCamera {
     return lookAt(this.eye(), this.target, [0, 1, 0]);
   }
 
-  projection(aspect) {
+  /** The near and far clip distances the projection uses. */
+  clip() {
     const near = Math.max(this.distance * 0.01, 1e-4);
-    return perspective(this.fovY, aspect, near, this.distance * 50 + 100 * near);
+    return { near, far: this.distance * 50 + 100 * near };
+  }
+
+  projection(aspect) {
+    const { near, far } = this.clip();
+    return perspective(this.fovY, aspect, near, far);
   }
 
   /** The camera as the server's CameraSpec. */

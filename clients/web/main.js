@@ -729,7 +729,14 @@ function frame() {
     const viewMatrix = camera.view();
     const view = { viewProj: multiply(projection, viewMatrix), view: viewMatrix, eye: camera.eye() };
     const drawn = renderer.draw(view, state.layout);
-    state.lastView = { viewProj: view.viewProj, eye: view.eye, layout: state.layout };
+    state.lastView = {
+      viewProj: view.viewProj,
+      eye: view.eye,
+      camera: { ...camera.spec(), ...camera.clip() },
+      // How far the picture is moved right beside the panel, in NDC (a CameraSpec cannot say).
+      ndcShiftX: -projection[8],
+      layout: state.layout,
+    };
     // What was drawn, for tests and for anyone inspecting the page.
     const lods = new Set(state.layout.filter((h) => h.entry).map((h) => h.entry.lod));
     Object.assign(renderer.canvas.dataset, {
@@ -823,13 +830,16 @@ window.crowdmorphViewer = Object.freeze({
     return { ...state.appearanceStats, textures: renderer ? renderer.textureCount : 0 };
   },
   /** What the last frame was drawn with: the view-projection matrix (column-major), the
-   * drawing buffer's size, the eye, and each drawn head's model matrix. */
+   * camera, the drawing buffer's size, the eye, and each drawn head's model matrix. */
   get view() {
     const v = state.lastView;
     if (!v) return null;
     return {
       viewProj: Array.from(v.viewProj),
       eye: v.eye.slice(),
+      // The camera as the server's CameraSpec, clip planes included.
+      camera: { ...v.camera },
+      ndcShiftX: v.ndcShiftX,
       width: renderer.canvas.width,
       height: renderer.canvas.height,
       heads: v.layout.filter((h) => h.entry).map((h) => ({ head: h.spec.head, rig: h.spec.rig, model: Array.from(h.model) })),

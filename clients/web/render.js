@@ -8,7 +8,8 @@
 //
 // Primitives with a glTF material (GET /v1/rigs/{id}/materials) are shaded as glTF 2.0's
 // Appendix B has it: metallic-roughness with GGX, height-correlated Smith and Schlick, under a
-// key and a fill light that turn with the camera and a sky/ground hemisphere, sRGB out and no
+// key and a fill light that turn with the camera and a sky/ground hemisphere (the server's
+// renderer's lights), sRGB out and no
 // tone mapping; base colour and emissive textures are sRGB, the others linear, each with the
 // file's sampler and KHR_texture_transform. MASK discards, BLEND is drawn after everything
 // opaque, far heads first, without writing depth; single-sided materials cull back faces.
@@ -83,7 +84,8 @@ uniform vec3 u_eye;
 // World-space unit directions toward the key and fill lights, their irradiance in w.
 uniform vec4 u_key;
 uniform vec4 u_fill;
-// The ambient hemisphere's radiance straight up and straight down.
+// The ambient hemisphere's irradiance along the camera's up (u_up) and opposite it.
+uniform vec3 u_up;
 uniform vec3 u_sky;
 uniform vec3 u_ground;
 uniform vec4 u_base_factor;
@@ -161,16 +163,6 @@ vec3 direct(vec3 n, vec3 v, vec4 light, vec3 c_diff, vec3 f0, float alpha) {
   return light.w * nl * ((1.0 - f) * c_diff / PI + f * d * vis);
 }
 
-// The split-sum environment BRDF's scale and bias, Karis' analytic fit ("Physically Based
-// Shading on Mobile"), so that the hemisphere gives metals a reflection rather than black.
-vec2 env_brdf(float roughness, float nv) {
-  const vec4 c0 = vec4(-1.0, -0.0275, -0.572, 0.022);
-  const vec4 c1 = vec4(1.0, 0.0425, 1.04, -0.04);
-  vec4 r = roughness * c0 + c1;
-  float a004 = min(r.x * r.x, exp2(-9.28 * nv)) * r.x + r.y;
-  return vec2(-1.04, 1.04) * a004 + r.zw;
-}
-
 void main() {
   vec4 base = u_base_factor * v_color * slot(${BASE});
   if (base.a < u_mode.x) discard;
@@ -186,36 +178,35 @@ void main() {
   if (u_mode.z > 0.5) n = mapped_normal(n);
   vec4 mr = slot(${METALLIC_ROUGHNESS});
   float metallic = clamp(u_pbr.x * mr.b, 0.0, 1.0);
-  float roughness = clamp(u_pbr.y * mr.g, 0.0, 1.0);
-  // A floor on α keeps a mirror's highlight from a delta light finite.
-  float alpha = max(roughness * roughness, 2e-3);
+  // A floor on roughness (brdf::MIN_ROUGHNESS) keeps a mirror's highlight from a delta light
+  // finite.
+  float roughness = clamp(u_pbr.y * mr.g, 0.0525, 1.0);
+  float alpha = roughness * roughness;
   vec3 c_diff = mix(base.rgb, vec3(0.0), metallic);
   vec3 f0 = mix(vec3(0.04), base.rgb, metallic);
   vec3 v = normalize(u_eye - v_world);
   vec3 color = direct(n, v, u_key, c_diff, f0, alpha) + direct(n, v, u_fill, c_diff, f0, alpha);
   float occlusion = 1.0 + u_pbr.w * (slot(${OCCLUSION}).r - 1.0);
-  float nv = max(dot(n, v), 0.0);
-  vec2 env = env_brdf(roughness, nv);
-  vec3 r = reflect(-v, n);
-  vec3 diffuse_sky = mix(u_ground, u_sky, 0.5 + 0.5 * n.y);
-  vec3 specular_sky = mix(u_ground, u_sky, 0.5 + 0.5 * r.y);
-  color += occlusion * (c_diff * diffuse_sky + (f0 * env.x + env.y) * specular_sky);
+  // The server's hemisphere ambient (render.wgsl): diffuse only, irradiance by the normal's
+  // side of the camera's up.
+  vec3 ambient = mix(u_ground, u_sky, 0.5 + 0.5 * dot(n, u_up));
+  color += ambient * c_diff / PI * occlusion;
   o_color = vec4(encode_srgb(color + emissive), alpha_out);
 }
 `;
 
 /**
- * The lights of textured rigs, in view space (x right, y up, z toward the viewer) so that they
- * turn with the camera as the server's renderer's do: a key from the upper left and in front,
- * a dimmer fill from the right, and a hemisphere of sky above and ground below (world up).
- * Irradiances and radiances: a white rough surface comes out at most about 0.92 (facing the
- * key light) and about 0.7 facing the camera, so that without tone mapping even a white
- * albedo does not clip.
+ * The lights of textured rigs: the server renderer's (crates/engine/src/render/brdf.rs,
+ * KEY_LIGHT, FILL_LIGHT, SKY, GROUND), in view space (x right, y up, z toward the viewer) so
+ * that they turn with the camera as the server's do: a key from the upper left and in front, a
+ * dimmer fill from the lower right, and a hemisphere of sky along the camera's up and ground
+ * opposite. The viewer's end-to-end test compares its screenshot with the server's render of
+ * the same camera, so a change there must come here too.
  */
-const KEY = { dir: [-0.5, 0.6, 0.8], irradiance: 1.8 };
-const FILL = { dir: [0.7, -0.2, 0.6], irradiance: 0.5 };
-const SKY = [0.3, 0.3, 0.3];
-const GROUND = [0.1, 0.1, 0.1];
+const KEY = { dir: [-0.5, 0.6, 0.8], irradiance: 2.4 };
+const FILL = { dir: [0.7, -0.2, 0.6], irradiance: 0.85 };
+const SKY = [0.7, 0.7, 0.7];
+const GROUND = [0.42, 0.42, 0.42];
 
 /** The background, sRGB: the server's default render background. */
 export const BACKGROUND = [46, 50, 56];
@@ -280,6 +271,7 @@ export class Renderer {
     this.pbr = program(gl, VERTEX_SHADER, PBR_SHADER, [
       'u_key',
       'u_fill',
+      'u_up',
       'u_sky',
       'u_ground',
       'u_base_factor',
@@ -741,6 +733,7 @@ export class Renderer {
     const world = (d) => normalize3([0, 1, 2].map((a) => v[a * 4] * d[0] + v[a * 4 + 1] * d[1] + v[a * 4 + 2] * d[2]));
     gl.uniform4fv(u.u_key, [...world(normalize3(KEY.dir)), KEY.irradiance]);
     gl.uniform4fv(u.u_fill, [...world(normalize3(FILL.dir)), FILL.irradiance]);
+    gl.uniform3fv(u.u_up, world([0, 1, 0]));
     gl.uniform3fv(u.u_sky, SKY);
     gl.uniform3fv(u.u_ground, GROUND);
   }
