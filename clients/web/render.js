@@ -236,7 +236,8 @@ function numbers(a, n, fallback) {
 
 /**
  * KHR_texture_transform as a column-major mat3: T · R · S, with the rows the server's
- * UvTransform uses (u' = c·sx·u − s·sy·v + ox, v' = s·sx·u + c·sy·v + oy).
+ * UvTransform uses (u' = c·sx·u + s·sy·v + ox, v' = −s·sx·u + c·sy·v + oy): counter-clockwise
+ * with v down, as three.js and the Khronos TextureTransformTest have it.
  */
 function uvTransform(t) {
   if (!t) return IDENTITY3;
@@ -245,7 +246,7 @@ function uvTransform(t) {
   const r = finite(t.rotation, 0);
   const c = Math.cos(r);
   const s = Math.sin(r);
-  return [c * sx, s * sx, 0, -s * sy, c * sy, 0, ox, oy, 1];
+  return [c * sx, -s * sx, 0, s * sy, c * sy, 0, ox, oy, 1];
 }
 
 function normalize3(a) {

@@ -187,7 +187,8 @@ pub struct TexRef {
 pub struct UvTransform {
     /// Translation.
     pub offset: [f32; 2],
-    /// Rotation in radians, counter-clockwise in UV space.
+    /// Rotation in radians, counter-clockwise as the UVs are seen with glTF's origin at the
+    /// image's top left (v down): the image turns clockwise on the surface.
     pub rotation: f32,
     /// Scale.
     pub scale: [f32; 2],
@@ -204,14 +205,16 @@ impl Default for UvTransform {
 }
 
 impl UvTransform {
-    /// The transform as the rows of a 2×3 matrix (`uv' = M · (u, v, 1)`): the extension's
-    /// GLSL `translation * rotation * scale`, whose column-major `rotation` has columns
-    /// `(cos, sin)` and `(-sin, cos)`.
+    /// The transform as the rows of a 2×3 matrix (`uv' = M · (u, v, 1)`): `translation *
+    /// rotation * scale` with `rotation` the rows `(cos, sin)` and `(-sin, cos)`, as three.js,
+    /// Babylon.js, Blender and the Khronos sample `TextureTransformTest` have it. The
+    /// extension's GLSL listing, read column-major, is the transpose (counter-clockwise with v
+    /// up): it contradicts the extension's own example and sample (KhronosGroup/glTF#1563).
     pub fn rows(&self) -> [[f32; 3]; 2] {
         let (s, c) = self.rotation.sin_cos();
         let [sx, sy] = self.scale;
         let [ox, oy] = self.offset;
-        [[c * sx, -s * sy, ox], [s * sx, c * sy, oy]]
+        [[c * sx, s * sy, ox], [-s * sx, c * sy, oy]]
     }
 
     /// Applies the transform to one coordinate.
@@ -704,19 +707,66 @@ mod tests {
 
     #[test]
     fn a_texture_transform_is_the_extensions_matrix() {
-        // Offset (0, 1), rotation π/2, scale (0.5, 0.5) sends (1, 0) to
-        // T·R·S·(1,0) = (0, 1) + R·(0.5, 0) = (0, 1) + (0, 0.5).
+        // The extension's example: offset (0, 1), rotation π/2, scale (0.5, 0.5) "utilizes
+        // only the lower left quadrant of the source image, rotated clockwise 90°": the unit
+        // square's corners land on the corners of u ∈ [0, 0.5], v ∈ [0.5, 1] (v down), the
+        // top left (0, 0) at the quadrant's bottom left (0, 1), the top right (1, 0) at its
+        // top left (0, 0.5).
         let t = UvTransform {
             offset: [0.0, 1.0],
             rotation: std::f32::consts::FRAC_PI_2,
             scale: [0.5, 0.5],
         };
-        let p = t.apply(Vec2::new(1.0, 0.0));
-        assert!((p - Vec2::new(0.0, 1.5)).length() < 1e-6, "{p}");
+        for (uv, want) in [
+            ((0.0, 0.0), (0.0, 1.0)),
+            ((1.0, 0.0), (0.0, 0.5)),
+            ((1.0, 1.0), (0.5, 0.5)),
+            ((0.0, 1.0), (0.5, 1.0)),
+        ] {
+            let p = t.apply(Vec2::new(uv.0, uv.1));
+            assert!(
+                (p - Vec2::new(want.0, want.1)).length() < 1e-6,
+                "{uv:?}: {p}"
+            );
+        }
         assert_eq!(
             UvTransform::default().apply(Vec2::new(0.3, 0.7)),
             Vec2::new(0.3, 0.7)
         );
+    }
+
+    #[test]
+    fn a_rotation_turns_the_texture_as_the_khronos_sample_expects() {
+        // TextureTransformTest's rotation quad (UVs 0..1, rotation 22.5°): the arrow's tip,
+        // texel (0.69, 0.69) of Arrow.png, must be drawn towards the green marker at the
+        // bottom (below the unrotated tip), not the red one to its right. The point of the
+        // quad that shows texel t is M⁻¹ · t.
+        let t = UvTransform {
+            rotation: std::f32::consts::FRAC_PI_8,
+            ..UvTransform::default()
+        };
+        let tip = Vec2::new(0.69, 0.69);
+        // Invert the 2×2 (a rotation, offset 0): the transpose.
+        let [r0, r1] = t.rows();
+        let at = Vec2::new(r0[0] * tip.x + r1[0] * tip.y, r0[1] * tip.x + r1[1] * tip.y);
+        assert!((t.apply(at) - tip).length() < 1e-6);
+        assert!(
+            at.y > tip.y && at.x < tip.x,
+            "the tip moves down and left: {at}"
+        );
+        // The sample's "All" quad against three.js' Matrix3::setUvTransform(ox, oy, s, s,
+        // r, 0, 0), row-major (three.js scales after rotating, the same with one scale).
+        let t = UvTransform {
+            offset: [-0.2, -0.1],
+            rotation: 0.3,
+            scale: [1.5, 1.5],
+        };
+        let (s, c) = 0.3f32.sin_cos();
+        let three = [[1.5 * c, 1.5 * s, -0.2], [-1.5 * s, 1.5 * c, -0.1]];
+        let rows = t.rows();
+        for (got, want) in rows.iter().flatten().zip(three.iter().flatten()) {
+            assert!((got - want).abs() < 1e-6, "{rows:?} vs {three:?}");
+        }
     }
 
     #[test]
