@@ -6,6 +6,7 @@ mod animation;
 mod api;
 mod appearance;
 mod attack;
+mod avatar;
 mod bad_input;
 mod balancer;
 mod concurrency;
