@@ -165,7 +165,10 @@ gpu_test!(
         );
         assert!(fill > 0.4, "the figure fills {:.0} %", fill * 100.0);
         assert!(colours.len() > 500, "{} colours", colours.len());
-        assert!(skin > 0.08, "{:.1} % skin-toned", skin * 100.0);
+        // Framed on the face (its chin, where the targets stop moving, not the wig's ends at
+        // the shoulders), skin is a fifth of the picture; framed on the head joint's whole
+        // box it was 12 %.
+        assert!(skin > 0.15, "{:.1} % skin-toned", skin * 100.0);
 
         // A wink: the left eye's target closes one eye. The picture changes, in a small part
         // of it (an eye, not the whole face), and in its upper half.

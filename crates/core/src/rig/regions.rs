@@ -5,7 +5,11 @@
 //! these that gives one:
 //! 1. a skeleton's head joint ([`head_node`]): the box of the vertices whose skin weights on
 //!    that node and its descendants sum to at least [`HEAD_WEIGHT`] — the head and what hangs
-//!    from it (jaw, eyes), without the neck and body that follow it only partly or not at all;
+//!    from it (jaw, eyes), without the neck and body that follow it only partly or not at all.
+//!    Long hair and some collars hang from the head joint to the shoulders, so where targets
+//!    move part of that box (a face kit's do: the chin is the lowest point they move), its
+//!    bottom is raised to that point less [`CHIN_MARGIN`] of what is left (the top of the head
+//!    and the sides stay);
 //! 2. the box of the vertices that some morph target moves by more than [`MOVED_FRACTION`] of
 //!    that target's largest displacement: blendshapes are made for faces, and a face kit's
 //!    targets leave the back of the head, the neck and the shoulders still (the threshold is
@@ -23,6 +27,10 @@ use super::{Aabb, NO_PARENT, Rig, Skeleton};
 /// Least share of a vertex's skin weights on the head joint and its descendants for the vertex
 /// to be part of the face region.
 pub const HEAD_WEIGHT: f32 = 0.5;
+
+/// Room left below the lowest vertex the targets move, when it trims a head joint's box, as a
+/// fraction of the trimmed box's height: the chin's underside and a little neck.
+pub const CHIN_MARGIN: f32 = 0.08;
 
 /// A vertex is in the target region when some target moves it by more than this fraction of
 /// the largest displacement of that target.
@@ -76,8 +84,14 @@ impl Rig {
     pub fn face_region(&self) -> Region {
         if let Some(sk) = &self.skeleton
             && let Some(node) = head_node(sk)
-            && let Some(bbox) = head_box(self, sk, node)
+            && let Some(mut bbox) = head_box(self, sk, node)
         {
+            if let Some(moved) = moved_box(self) {
+                let chin = moved.min.y;
+                if chin > bbox.min.y && chin < bbox.max.y {
+                    bbox.min.y = (chin - CHIN_MARGIN * (bbox.max.y - chin)).max(bbox.min.y);
+                }
+            }
             return Region {
                 bbox,
                 source: RegionSource::HeadJoint { node },
@@ -325,6 +339,43 @@ mod tests {
         let r = rig.face_region();
         assert_eq!(r.source, RegionSource::HeadJoint { node: 4 });
         assert_eq!(r.bbox, box_of(&[5, 6, 8, 9], 10));
+    }
+
+    #[test]
+    fn targets_moving_the_face_raise_the_head_boxs_bottom_to_the_chin() {
+        // Head → everything: five vertices on the head at y = 7i mod 5 (0, 2, 4, 1, 3); a
+        // target moves vertices 1 and 2 (y 2 and 4), so the chin is at 2 and hair hanging to
+        // y = 0 is left out, bar the margin.
+        let mut rig = column(
+            vec![node("Hips", NO_PARENT), node("Head", 0)],
+            &[&[(1u16, 1.0f32)][..]; 5],
+        );
+        let head = rig.face_region().bbox;
+        assert_eq!(head, box_of(&[0, 1, 2, 3, 4], 5));
+        let mut prims = rig.primitives.as_ref().clone();
+        prims[0].targets = vec![SparseTarget {
+            target: 0,
+            vertices: vec![1, 2],
+            positions: vec![Vec3::Z * 0.1; 2],
+            normals: None,
+            tangents: None,
+        }];
+        rig.primitives = Arc::new(prims);
+        rig.targets = vec!["smile".into()];
+        rig.default_weights = vec![0.0];
+        let r = rig.face_region();
+        assert_eq!(r.source, RegionSource::HeadJoint { node: 1 });
+        let want_min_y = 2.0 - CHIN_MARGIN * (4.0 - 2.0);
+        assert!((r.bbox.min.y - want_min_y).abs() < 1e-6, "{r:?}");
+        assert_eq!(
+            (r.bbox.max, r.bbox.min.x, r.bbox.min.z),
+            (head.max, head.min.x, head.min.z)
+        );
+        // Targets that move below the head box (a body's) leave it as it is.
+        let mut prims = rig.primitives.as_ref().clone();
+        prims[0].targets[0].vertices = vec![0, 2];
+        rig.primitives = Arc::new(prims);
+        assert_eq!(rig.face_region().bbox, head);
     }
 
     #[test]
