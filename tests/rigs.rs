@@ -388,27 +388,15 @@ fn base_colour_factors_come_from_the_materials_and_survive_the_store() {
 /// The file's `TEXCOORD_0` of each primitive of the default scene, in scene order, decoded by
 /// the test's own reader (normalized integers per the spec); `None` for a primitive without.
 fn file_uvs(doc: &RefDoc) -> Vec<Option<Vec<[f64; 2]>>> {
-    let mut out = Vec::new();
-    let mut at: Option<(usize, usize)> = None;
-    let mut k = 0;
-    for p in doc.scene_primitives() {
-        // Consecutive primitives of one node's mesh are its primitives in order.
-        k = if at == Some((p.node, p.mesh)) {
-            k + 1
-        } else {
-            0
-        };
-        at = Some((p.node, p.mesh));
-        let uv = doc.json["meshes"][p.mesh]["primitives"][k]["attributes"]["TEXCOORD_0"]
-            .as_u64()
-            .map(|a| {
-                let (v, comps) = doc.accessor(a as usize);
+    doc.scene_attribute("TEXCOORD_0")
+        .into_iter()
+        .map(|(uv, _)| {
+            uv.map(|(v, comps)| {
                 assert_eq!(comps, 2, "TEXCOORD_0 is VEC2");
                 v.chunks(2).map(|c| [c[0], c[1]]).collect()
-            });
-        out.push(uv);
-    }
-    out
+            })
+        })
+        .collect()
 }
 
 /// `got` equals the file's texture coordinates to f32 rounding.

@@ -46,30 +46,19 @@ struct FilePrimitive {
 
 /// Each primitive of the file, in the rig's order.
 fn file_primitives(doc: &RefDoc) -> Vec<FilePrimitive> {
-    let mut out = Vec::new();
-    let mut at = None;
-    let mut k = 0;
-    for p in doc.scene_primitives() {
-        k = if at == Some((p.node, p.mesh)) {
-            k + 1
-        } else {
-            0
-        };
-        at = Some((p.node, p.mesh));
-        let prim = &doc.json["meshes"][p.mesh]["primitives"][k];
-        let attribute = |name: &str| {
-            prim["attributes"][name]
-                .as_u64()
-                .map(|a| doc.accessor(a as usize))
-        };
-        out.push(FilePrimitive {
-            uv0: attribute("TEXCOORD_0").map(|a| a.0),
-            uv1: attribute("TEXCOORD_1").map(|a| a.0),
-            color: attribute("COLOR_0"),
-            material: prim["material"].as_u64(),
-        });
-    }
-    out
+    let uv0 = doc.scene_attribute("TEXCOORD_0");
+    let uv1 = doc.scene_attribute("TEXCOORD_1");
+    let color = doc.scene_attribute("COLOR_0");
+    uv0.into_iter()
+        .zip(uv1)
+        .zip(color)
+        .map(|(((uv0, material), (uv1, _)), (color, _))| FilePrimitive {
+            uv0: uv0.map(|a| a.0),
+            uv1: uv1.map(|a| a.0),
+            color,
+            material,
+        })
+        .collect()
 }
 
 fn f32s(b: &[u8]) -> Vec<f32> {

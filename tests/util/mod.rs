@@ -138,6 +138,9 @@ fn u(v: &Value) -> usize {
     v.as_u64().expect("non-negative integer") as usize
 }
 
+/// An accessor's values, decoded per the spec, and its component count.
+pub type Accessor = (Vec<f64>, usize);
+
 impl RefDoc {
     pub fn load(path: &Path) -> RefDoc {
         let bytes = std::fs::read(path).expect("read rig file");
@@ -290,6 +293,30 @@ impl RefDoc {
             DQuat::from_xyzw(r[0], r[1], r[2], r[3]).normalize(),
             DVec3::new(t[0], t[1], t[2]),
         )
+    }
+
+    /// Each scene primitive's attribute `name` as the file has it (values decoded per the
+    /// spec, and the component count), in [`RefDoc::scene_primitives`]' order; `None` for a
+    /// primitive without. Also each primitive's material index.
+    pub fn scene_attribute(&self, name: &str) -> Vec<(Option<Accessor>, Option<u64>)> {
+        let mut out = Vec::new();
+        let mut at = None;
+        let mut k = 0;
+        for p in self.scene_primitives() {
+            // Consecutive primitives of one node's mesh are its primitives in order.
+            k = if at == Some((p.node, p.mesh)) {
+                k + 1
+            } else {
+                0
+            };
+            at = Some((p.node, p.mesh));
+            let prim = &self.json["meshes"][p.mesh]["primitives"][k];
+            let values = prim["attributes"][name]
+                .as_u64()
+                .map(|a| self.accessor(a as usize));
+            out.push((values, prim["material"].as_u64()));
+        }
+        out
     }
 
     /// Primitive instances of the default scene, depth-first in child order.
