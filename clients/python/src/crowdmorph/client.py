@@ -171,26 +171,26 @@ def self_contained_gltf(path: Union[str, "os.PathLike[str]"]) -> bytes:
     doc = json.loads(data)
     base = os.path.dirname(os.fspath(path))
     changed = False
-    for buf in doc.get("buffers", []):
-        uri = buf.get("uri")
-        if not isinstance(uri, str) or uri.startswith("data:"):
-            continue
-        # glTF URIs are percent-encoded relative references.
-        with open(os.path.join(base, urllib.parse.unquote(uri)), "rb") as f:
-            payload = f.read()
-        buf["uri"] = "data:application/octet-stream;base64," + base64.b64encode(payload).decode(
-            "ascii"
-        )
-        changed = True
-    for image in doc.get("images", []):
-        uri = image.get("uri")
-        if not isinstance(uri, str) or uri.startswith("data:"):
-            continue
-        with open(os.path.join(base, urllib.parse.unquote(uri)), "rb") as f:
-            payload = f.read()
-        mime = image.get("mimeType") or ("image/png" if uri.lower().endswith(".png") else "image/jpeg")
-        image["uri"] = f"data:{mime};base64," + base64.b64encode(payload).decode("ascii")
-        changed = True
+
+    def image_mime(uri: str, entry: dict) -> str:
+        named = "image/png" if uri.lower().endswith(".png") else "image/jpeg"
+        return entry.get("mimeType") or named
+
+    # Buffers are octet streams; an image keeps its MIME type (or one its name implies).
+    for key, mime in (
+        ("buffers", lambda uri, entry: "application/octet-stream"),
+        ("images", image_mime),
+    ):
+        for entry in doc.get(key, []):
+            uri = entry.get("uri")
+            if not isinstance(uri, str) or uri.startswith("data:"):
+                continue
+            # glTF URIs are percent-encoded relative references.
+            with open(os.path.join(base, urllib.parse.unquote(uri)), "rb") as f:
+                payload = f.read()
+            encoded = base64.b64encode(payload).decode("ascii")
+            entry["uri"] = f"data:{mime(uri, entry)};base64,{encoded}"
+            changed = True
     return json.dumps(doc).encode("utf-8") if changed else data
 
 
