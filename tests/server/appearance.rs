@@ -645,12 +645,24 @@ async fn a_clips_animated_texture_is_kept_across_a_restart() {
     let dir = temp_dir("clip-texture");
     let server = TestServer::start(stored_config(&dir)).await;
     rig_with_clip(&server, "tri").await;
-    let before = server.client.rig("tri").await.expect("rig").memory.host_bytes;
+    let before = server
+        .client
+        .rig("tri")
+        .await
+        .expect("rig")
+        .memory
+        .host_bytes;
     let body = texture_bytes(32, 32, 3, 0);
     let (status, v) = put_texture(&server, "tri", "talk", body.clone()).await;
     assert_eq!(status, 200, "{v}");
     let texture = v["bytes"].as_u64().expect("bytes");
-    let with = server.client.rig("tri").await.expect("rig").memory.host_bytes;
+    let with = server
+        .client
+        .rig("tri")
+        .await
+        .expect("rig")
+        .memory
+        .host_bytes;
     // The texture's arrays are the rig's memory now.
     assert!(with >= before + texture, "{before} + {texture} > {with}");
     server.stop().await;
@@ -658,12 +670,30 @@ async fn a_clips_animated_texture_is_kept_across_a_restart() {
     // The record's section 11 brings it back: the same memory, and a second texture for the
     // clip replaces it rather than adding to it.
     let server = TestServer::start(stored_config(&dir)).await;
-    let after = server.client.rig("tri").await.expect("rig").memory.host_bytes;
-    assert!(after >= before + texture, "{before} + {texture} > {after} after a restart");
+    let after = server
+        .client
+        .rig("tri")
+        .await
+        .expect("rig")
+        .memory
+        .host_bytes;
+    assert!(
+        after >= before + texture,
+        "{before} + {texture} > {after} after a restart"
+    );
     let (status, _) = put_texture(&server, "tri", "talk", body).await;
     assert_eq!(status, 200);
-    let again = server.client.rig("tri").await.expect("rig").memory.host_bytes;
-    assert!(again < after + texture, "replaced, not added: {after} → {again}");
+    let again = server
+        .client
+        .rig("tri")
+        .await
+        .expect("rig")
+        .memory
+        .host_bytes;
+    assert!(
+        again < after + texture,
+        "replaced, not added: {after} → {again}"
+    );
     server.stop().await;
     let _ = std::fs::remove_dir_all(&dir);
 }
