@@ -405,7 +405,13 @@ pub fn layer_inputs(rig: &Rig, pose: &Pose, lod: u32) -> Vec<f32> {
         let at = out.len();
         out.resize(at + 1 + ct.layers(), 0.0);
         for &(clip, frame, share) in &terms {
-            if rig.clips.get(clip as usize).map(|c| c.name.as_str()) != Some(ct.clip.as_str()) {
+            // Its clip, with the frames it was made for (the upload checks both): a texture a
+            // deleted clip left behind never reads past its coefficients on a later clip of
+            // its name with another length.
+            let Some(c) = rig.clips.get(clip as usize) else {
+                continue;
+            };
+            if c.name != ct.clip || c.frames != ct.frames {
                 continue;
             }
             out[at] += share;
