@@ -1647,3 +1647,88 @@ fn clips_compress_meets_its_budget_checked_from_the_decoded_csv() {
     assert!(checked > 10);
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// `clips compress-texture`: a PNG sequence in, the byte form of the animated texture out, and
+/// each region's reported error equal to the error of the file's decode, measured here.
+#[test]
+fn clips_compress_texture_writes_a_texture_whose_error_it_reports() {
+    use crowdmorph::render::brdf::{linear_to_srgb8, srgb8_to_linear};
+    let dir = temp_dir("cli-compress-texture");
+    let frames_dir = dir.join("frames");
+    std::fs::create_dir_all(&frames_dir).unwrap();
+    let (w, h, n) = (16u32, 20u32, 6u32);
+    let mut frames: Vec<Vec<u8>> = Vec::new();
+    for f in 0..n {
+        // A blink in the eye band (rows 4–8 of 20) and a changing mouth below it.
+        let rgb: Vec<u8> = (0..h)
+            .flat_map(|y| (0..w).map(move |x| (x, y)))
+            .flat_map(|(x, y)| {
+                let eye = (4..9).contains(&y) && (f % 3 == 0) && x % 4 < 2;
+                let mouth = y >= 14 && (x + f) % 5 == 0;
+                let base = [180u8, 120, 100];
+                base.map(|c| {
+                    if eye {
+                        c / 3
+                    } else if mouth {
+                        c.saturating_add(40)
+                    } else {
+                        c.saturating_add((x + y) as u8)
+                    }
+                })
+            })
+            .collect();
+        let path = frames_dir.join(format!("frame{f:03}.png"));
+        let file = std::fs::File::create(&path).unwrap();
+        let mut e = png::Encoder::new(std::io::BufWriter::new(file), w, h);
+        e.set_color(png::ColorType::Rgb);
+        e.set_depth(png::BitDepth::Eight);
+        e.write_header().unwrap().write_image_data(&rgb).unwrap();
+        frames.push(rgb);
+    }
+    let out = dir.join("talk.cmat");
+    let report = json(&[
+        "clips",
+        "compress-texture",
+        "--frames",
+        path_str(&frames_dir),
+        "--clip",
+        "talk",
+        "-o",
+        path_str(&out),
+        "--json",
+    ]);
+    assert_eq!(usize_of(&report, "frames"), n as usize);
+    let bytes = std::fs::read(&out).unwrap();
+    assert_eq!(usize_of(&report, "bytes"), bytes.len());
+    let t = crowdmorph::rig::AnimatedTexture::from_bytes("talk", &bytes).expect("the byte form");
+    assert_eq!((t.width, t.height, t.frames), (w, h, n));
+    let regions = report["regions"].as_array().unwrap();
+    let names: Vec<&str> = regions.iter().filter_map(|r| r["name"].as_str()).collect();
+    assert_eq!(names, ["eyes", "rest"], "the default regions");
+    // The eyes' and the rest's RMS error over all frames, in linear, from the file.
+    let mut sq = [0f64; 2];
+    let mut count = [0f64; 2];
+    let mut worst8 = 0u8;
+    for (f, rgb) in frames.iter().enumerate() {
+        let d = t.decode(f as u32);
+        for (i, &c) in rgb.iter().enumerate() {
+            let p = (i / 3) as u32;
+            let (x, y) = (p % w, p / w);
+            let r = crowdmorph::rig::AnimatedTexture::region_of(&t.regions, x, y).unwrap();
+            let e = d[i] - f64::from(srgb8_to_linear(c));
+            sq[r] += e * e;
+            count[r] += 1.0;
+            worst8 = worst8.max(linear_to_srgb8(d[i] as f32).abs_diff(c));
+        }
+    }
+    for (r, row) in regions.iter().enumerate() {
+        let rms = (sq[r] / count[r]).sqrt();
+        let reported = f64_of(row, "rms_linear");
+        assert!(
+            (rms - reported).abs() <= 1e-6 + 1e-3 * rms,
+            "{row}: measured {rms}"
+        );
+    }
+    // Six frames, at most five directions per region, and 8 + 4 components: near exact.
+    assert!(worst8 <= 1, "worst 8-bit error {worst8}");
+}

@@ -120,6 +120,7 @@ fn host<'a>(
         positions: VertexSource::Host(&data.0),
         normals: VertexSource::Host(&data.1),
         instances,
+        layers: &[],
     }
 }
 
@@ -371,6 +372,7 @@ gpu_test!(
                         offset: 256 + bytes,
                     },
                     instances: &instances,
+                    layers: &[],
                 }],
                 &view,
                 &frame(200, 100),
@@ -393,6 +395,7 @@ gpu_test!(
                     },
                     normals: VertexSource::Host(&data.1),
                     instances: &instances,
+                    layers: &[],
                 }],
                 &view,
                 &frame(200, 100),
@@ -718,6 +721,7 @@ gpu_test!(
                     offset: out.offset(j),
                 },
                 instances: &instances[j],
+                layers: &[],
             })
             .collect();
         let b = rig.bbox();

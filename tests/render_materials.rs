@@ -111,6 +111,7 @@ fn render(r: &Renderer, rig: &Rig, instances: &[Mat4], view: &View, size: u32) -
         positions: VertexSource::Host(&data.0),
         normals: VertexSource::Host(&data.1),
         instances,
+        layers: &[],
     };
     r.render(&[mesh], view, &frame(size)).expect("render").rgba
 }
@@ -341,6 +342,8 @@ fn with_image(materials: Vec<Material>, pixels: Mips, sampler: Sampler) -> Appea
             pixels: Some(Arc::new(pixels)),
         }],
         notes: Vec::new(),
+        target_textures: Vec::new(),
+        clip_textures: Vec::new(),
     }
 }
 
@@ -631,6 +634,7 @@ gpu_test!(
                     positions: VertexSource::Host(&data[k].0),
                     normals: VertexSource::Host(&data[k].1),
                     instances: &placed[k].1,
+                    layers: &[],
                 })
                 .collect();
             r.render(&meshes, &view, &frame(size)).expect("render").rgba
@@ -836,5 +840,312 @@ gpu_test!(
         let want = expected(&view, &s, Vec3::ZERO, Vec3::Z);
         let got = pixel(&rgba, size, 32, 32);
         assert!(max_delta(got, want) <= 3, "{got:?} vs {want:?}");
+    }
+);
+
+/// Renders `rig` once at `size`² with the layer inputs of `pose` at LOD 0 (what the crowd
+/// path gives each job's draw).
+fn render_posed(r: &Renderer, rig: &Rig, pose: &crowdmorph::rig::Pose, size: u32) -> Vec<u8> {
+    let topology = r.topology(rig).expect("topology");
+    let data = neutral(rig);
+    let layers = crowdmorph::rig::layer_inputs(rig, pose, 0);
+    let mesh = SceneMesh {
+        topology: &topology,
+        positions: VertexSource::Host(&data.0),
+        normals: VertexSource::Host(&data.1),
+        instances: &[Mat4::IDENTITY],
+        layers: &layers,
+    };
+    r.render(&[mesh], &view(), &frame(size))
+        .expect("render")
+        .rgba
+}
+
+/// The quad rig of [`rig`] with weight channels `targets` and clips `clips`.
+fn layered_rig(appearance: Appearance, targets: &[&str], clips: Vec<crowdmorph::rig::Clip>) -> Rig {
+    let mut r = rig(vec![quad("quad", 1.0, Some(0))], Some(appearance));
+    r.targets = targets.iter().map(|t| t.to_string()).collect();
+    r.default_weights = vec![0.0; targets.len()];
+    r.lod = Lod::file_order(targets.len());
+    r.clips = clips;
+    r.validate().expect("a valid layered rig");
+    r
+}
+
+/// The wrinkle texture's colours: unlike the checker's, so a layer that is not summed shows.
+fn wrinkle_checker(x: u32, y: u32) -> [u8; 4] {
+    if (x / 4 + y / 4).is_multiple_of(2) {
+        [90, 200, 120, 255]
+    } else {
+        [240, 230, 40, 255]
+    }
+}
+
+gpu_test!(
+    #[test]
+    fn a_wrinkle_map_fades_in_with_its_targets_weight() {
+        use crowdmorph::rig::{Pose, TargetTexture};
+        let r = renderer();
+        let size = 129;
+        let mut appearance = with_image(
+            vec![Material {
+                base_color_texture: tex(0, None),
+                unlit: true,
+                ..Material::default()
+            }],
+            mips(16, 16, checker),
+            Sampler::default(),
+        );
+        appearance.textures.push(Texture {
+            sampler: Some(0),
+            image: Some(1),
+        });
+        let mut wrinkle = appearance.images[0].clone();
+        wrinkle.pixels = Some(Arc::new(mips(16, 16, wrinkle_checker)));
+        appearance.images.push(wrinkle);
+        appearance.target_textures.push(TargetTexture {
+            material: 0,
+            target: "browInnerUp".into(),
+            texture: TexRef {
+                texture: 1,
+                tex_coord: 0,
+                transform: None,
+            },
+        });
+        let rig = layered_rig(appearance, &["jawOpen", "browInnerUp"], Vec::new());
+        for w in [0.0f32, 0.5, 1.0] {
+            // The other channel's weight must not move the layer.
+            let rgba = render_posed(&r, &rig, &Pose::live(&[0.7, w]), size);
+            for (i, j) in (0..4).flat_map(|i| (0..4).map(move |j| (i, j))) {
+                let uv = Vec2::new((4 * i + 2) as f32 / 16.0, (4 * j + 2) as f32 / 16.0);
+                let (x, y) = pixel_at_uv(size, uv);
+                let (b, k) = (checker(4 * i, 4 * j), wrinkle_checker(4 * i, 4 * j));
+                // The reference: linear interpolation of the two textures' linear colours,
+                // which is what base + w·(wrinkle − base) is.
+                let want = [0, 1, 2].map(|c| {
+                    let (b, k) = (brdf::srgb8_to_linear(b[c]), brdf::srgb8_to_linear(k[c]));
+                    brdf::linear_to_srgb8(b + w * (k - b))
+                });
+                let got = pixel(&rgba, size, x, y);
+                // The layer is stored in binary16 (within 2^-11 of its value) and the target
+                // rounds once: 2 units of 8 bits covers both at any brightness here.
+                assert!(
+                    max_delta(got, want) <= 2,
+                    "weight {w}, cell ({i}, {j}): {got:?}, want {want:?}"
+                );
+            }
+        }
+    }
+);
+
+/// An image sequence that is constant over each 4 × 4 cell of a 16 × 16 texture (so a
+/// pixel at a cell's centre samples one value whatever the filter): a static colour per cell,
+/// the top row of cells blinking and the third changing with a second rhythm.
+fn cell_frames(frames: u32) -> Vec<Vec<f32>> {
+    (0..frames)
+        .map(|f| {
+            let blink = ((f as f32) * 0.9).sin().abs();
+            let talk = 0.5 + 0.5 * ((f as f32) * 0.37).cos();
+            let mut out = Vec::with_capacity(16 * 16 * 3);
+            for y in 0..16u32 {
+                for x in 0..16u32 {
+                    let (i, j) = (x / 4, y / 4);
+                    for c in 0..3u32 {
+                        let base = 0.1 + 0.05 * (i + 2 * j + c) as f32;
+                        let v = match j {
+                            0 => base + 0.5 * blink * ((i + c) % 2) as f32,
+                            2 => base + 0.4 * talk * ((i * 3 + c) % 3) as f32 / 2.0,
+                            _ => base,
+                        };
+                        out.push(v);
+                    }
+                }
+            }
+            out
+        })
+        .collect()
+}
+
+gpu_test!(
+    #[test]
+    fn a_clips_animated_texture_draws_its_pca_decode_at_each_frame() {
+        use crowdmorph::rig::{Clip, Pose, TextureRegion};
+        let r = renderer();
+        let size = 129;
+        let frames = 12;
+        let seq = cell_frames(frames);
+        let regions = vec![
+            TextureRegion {
+                name: "eyes".into(),
+                rect: [0, 0, 16, 4],
+                components: 3,
+            },
+            TextureRegion {
+                name: "rest".into(),
+                rect: [0, 0, 16, 16],
+                components: 2,
+            },
+        ];
+        let t = crowdmorph::texture::compress("talk", 0, 16, 16, &seq, &regions).expect("compress");
+        // The base colour texture the mean replaces: the checker, so the mean's layer is a
+        // real difference.
+        let mut appearance = with_image(
+            vec![Material {
+                base_color_texture: tex(0, None),
+                unlit: true,
+                ..Material::default()
+            }],
+            mips(16, 16, checker),
+            Sampler::default(),
+        );
+        appearance.clip_textures.push(Arc::new(t.clone()));
+        let clip = Clip {
+            name: "talk".into(),
+            fps: 30.0,
+            frames,
+            targets: 1,
+            weights: Arc::new(vec![0.0; frames as usize]),
+            joints: None,
+        };
+        let rig = layered_rig(appearance, &["jawOpen"], vec![clip]);
+        for f in [0, 5, 11] {
+            let rgba = render_posed(&r, &rig, &Pose::Frame { clip: 0, frame: f }, size);
+            let decoded = t.decode(f);
+            for (i, j) in (0..4).flat_map(|i| (0..4).map(move |j| (i, j))) {
+                let uv = Vec2::new((4 * i + 2) as f32 / 16.0, (4 * j + 2) as f32 / 16.0);
+                let (x, y) = pixel_at_uv(size, uv);
+                let texel = ((4 * j + 2) * 16 + 4 * i + 2) as usize;
+                let want = [0, 1, 2].map(|c| brdf::linear_to_srgb8(decoded[3 * texel + c] as f32));
+                let got = pixel(&rgba, size, x, y);
+                // Mean − base and each component are binary16 (2^-11 relative); the
+                // coefficients are f32: a few thousandths in linear at most, 2 units of 8 bits.
+                assert!(
+                    max_delta(got, want) <= 2,
+                    "frame {f}, cell ({i}, {j}): {got:?}, want {want:?}"
+                );
+            }
+        }
+        // A blend of two frames draws the blend of their decodes (the same fractions as the
+        // weights).
+        let pose = Pose::blend((0, 2), &[(0, 9, 0.25)]);
+        let rgba = render_posed(&r, &rig, &pose, size);
+        let (a, b) = (t.decode(2), t.decode(9));
+        let (x, y) = pixel_at_uv(size, Vec2::new(2.0 / 16.0, 2.0 / 16.0));
+        let texel = (2 * 16 + 2) as usize;
+        let want = [0, 1, 2].map(|c| {
+            brdf::linear_to_srgb8((0.75 * a[3 * texel + c] + 0.25 * b[3 * texel + c]) as f32)
+        });
+        assert!(max_delta(pixel(&rgba, size, x, y), want) <= 2);
+    }
+);
+
+/// A PNG of `w × h` pixels of one colour.
+fn solid_png(w: u32, h: u32, rgb: [u8; 3]) -> Vec<u8> {
+    let mut out = Vec::new();
+    let mut e = png::Encoder::new(&mut out, w, h);
+    e.set_color(png::ColorType::Rgb);
+    e.set_depth(png::BitDepth::Eight);
+    let data: Vec<u8> = (0..w * h).flat_map(|_| rgb).collect();
+    e.write_header()
+        .expect("header")
+        .write_image_data(&data)
+        .expect("pixels");
+    out
+}
+
+gpu_test!(
+    #[test]
+    fn a_wrinkle_map_from_gltf_extras_is_imported_and_drawn_end_to_end() {
+        use crate::util::builder::Builder;
+        use base64::Engine as _;
+        use crowdmorph::import::ImportOptions;
+        use crowdmorph::import::gltf::rig_from_slice;
+        use crowdmorph::rig::Pose;
+        use serde_json::json;
+        let (base, wrinkle) = ([200u8, 60, 30], [20u8, 120, 230]);
+        // The quad of `quad` as a glTF primitive with TEXCOORD_0 and a target `brow` that
+        // barely moves it (toward the camera).
+        let mut b = Builder::new();
+        let positions = [
+            [-1.0, 1.0, 0.0],
+            [1.0, 1.0, 0.0],
+            [1.0, -1.0, 0.0],
+            [-1.0, -1.0, 0.0],
+        ];
+        let mut p = b.primitive(
+            &positions,
+            Some(&[0, 3, 2, 0, 2, 1]),
+            &[vec![[0.0, 0.0, 0.01]; 4]],
+        );
+        p["attributes"]["TEXCOORD_0"] =
+            json!(b.accessor_f32(&[0.0, 0.0, 1.0, 0.0, 1.0, 1.0, 0.0, 1.0], "VEC2"));
+        p["material"] = json!(0);
+        let mesh = b.mesh(vec![p], Some(&["brow"]));
+        let node = b.node(Some(mesh));
+        b.scene(&[node]);
+        let uri = |rgb| {
+            format!(
+                "data:image/png;base64,{}",
+                base64::engine::general_purpose::STANDARD.encode(solid_png(4, 4, rgb))
+            )
+        };
+        let j = b.json_mut();
+        j["images"] = json!([{ "uri": uri(base) }, { "uri": uri(wrinkle) }]);
+        j["textures"] = json!([{ "source": 0 }, { "source": 1 }]);
+        j["extensionsUsed"] = json!(["KHR_materials_unlit"]);
+        j["materials"] = json!([{
+            "pbrMetallicRoughness": { "baseColorTexture": { "index": 0 } },
+            "extensions": { "KHR_materials_unlit": {} },
+            "extras": { "crowdmorph": { "targetTextures": [
+                { "target": "brow", "baseColorTexture": { "index": 1, "texCoord": 0 } },
+                { "target": "noSuchTarget", "baseColorTexture": { "index": 1 } }
+            ] } }
+        }]);
+        let rig = rig_from_slice(&b.to_glb(), &ImportOptions::default()).expect("import");
+        let a = rig.appearance.as_deref().expect("an appearance");
+        assert_eq!(a.target_textures.len(), 2);
+        assert_eq!(a.target_textures[0].target, "brow");
+        assert!(
+            rig.import_notes
+                .iter()
+                .any(|n| n.contains("noSuchTarget") && n.contains("not drawn")),
+            "{:?}",
+            rig.import_notes
+        );
+        assert!(a.images.iter().all(|i| i.pixels.is_some()), "both decoded");
+        // The convention goes back out in the materials' JSON.
+        let j = a.gltf_json(|_, _| json!({}));
+        assert_eq!(
+            j["materials"][0]["extras"]["crowdmorph"]["targetTextures"][0]["target"],
+            "brow"
+        );
+        let r = renderer();
+        let size = 65;
+        for w in [0.0f32, 0.5, 1.0] {
+            let rgba = render_posed(&r, &rig, &Pose::live(&[w]), size);
+            let got = pixel(&rgba, size, size / 2, size / 2);
+            for c in 0..3 {
+                let (b, k) = (
+                    brdf::srgb8_to_linear(base[c]),
+                    brdf::srgb8_to_linear(wrinkle[c]),
+                );
+                let want = b + w * (k - b);
+                // The base is decoded by the sampler's sRGB view, the layer (wrinkle − base)
+                // on the host, so the sum carries any difference between the two decodes of
+                // the base, plus the layer's binary16 rounding (≤ 2.4e-4 at 0.57): measured on
+                // lavapipe, red went 200 → 20 as 17, 1.4e-3 in linear, which at a dark result
+                // (the curve is steep there) is 3 units of 8 bits. Allowed: 2 units, or what
+                // ±1.5e-3 linear spans around the value.
+                let span = brdf::linear_to_srgb8(want + 1.5e-3)
+                    .abs_diff(brdf::linear_to_srgb8((want - 1.5e-3).max(0.0)));
+                let tolerance = 2.max(span / 2 + 1);
+                let diff = got[c].abs_diff(brdf::linear_to_srgb8(want));
+                assert!(
+                    diff <= tolerance,
+                    "weight {w}, channel {c}: {got:?}, want {} ± {tolerance}",
+                    brdf::linear_to_srgb8(want)
+                );
+            }
+        }
     }
 );

@@ -64,6 +64,132 @@ pub enum Command {
         #[arg(long)]
         out: PathBuf,
     },
+    /// Compress an animated texture (an image sequence, one image per clip frame) with PCA per
+    /// region (GPU Gems 3 ch. 15: a mean, each region's leading components, one coefficient per
+    /// frame each) into the body of `PUT /v1/rigs/{id}/clips/{clip}/texture`, and report each
+    /// region's reconstruction error in 8-bit sRGB units.
+    CompressTexture {
+        /// A folder of PNG, JPEG or WebP frames, played in file-name order, all one size.
+        #[arg(long)]
+        frames: PathBuf,
+        /// Regions as JSON, `[{"name": "eyes", "rect": [x, y, w, h], "components": 8}, ...]`;
+        /// a pixel belongs to the first region that holds it (default: an eye band across rows
+        /// 20–45 % with 8 components, the rest with 4).
+        #[arg(long)]
+        regions: Option<PathBuf>,
+        /// The clip it plays with.
+        #[arg(long)]
+        clip: String,
+        /// The material whose base colour it animates.
+        #[arg(long, default_value_t = 0)]
+        material: u32,
+        /// Where to write the compressed texture.
+        #[arg(short, long)]
+        out: PathBuf,
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+/// What `clips compress-texture` reports.
+#[derive(Serialize)]
+pub struct TextureReport {
+    /// Frames read.
+    pub frames: u32,
+    /// Their size.
+    pub width: u32,
+    /// Their size.
+    pub height: u32,
+    /// Bytes written.
+    pub bytes: usize,
+    /// Per region (and `(none)` for pixels no region holds).
+    pub regions: Vec<crowdmorph::texture::RegionError>,
+}
+
+impl super::Report for TextureReport {}
+
+impl std::fmt::Display for TextureReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        writeln!(
+            f,
+            "{} frames of {} × {} → {} bytes",
+            self.frames, self.width, self.height, self.bytes
+        )?;
+        for r in &self.regions {
+            writeln!(
+                f,
+                "  {:>12} {:>2} components {:>8} pixels  RMS {:.3}  max {:.2} (8-bit sRGB)",
+                r.name, r.components, r.pixels, r.rms_8bit, r.max_8bit
+            )?;
+        }
+        Ok(())
+    }
+}
+
+/// The frames in `dir` (file-name order) as linear RGB, with their size.
+fn read_frames(dir: &std::path::Path) -> Result<(u32, u32, Vec<Vec<f32>>)> {
+    let mut paths: Vec<PathBuf> = std::fs::read_dir(dir)
+        .with_context(|| format!("reading {}", dir.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| {
+            p.extension().and_then(|e| e.to_str()).is_some_and(|e| {
+                ["png", "jpg", "jpeg", "webp"].contains(&e.to_ascii_lowercase().as_str())
+            })
+        })
+        .collect();
+    paths.sort();
+    anyhow::ensure!(
+        !paths.is_empty(),
+        "no PNG, JPEG or WebP frames in {}",
+        dir.display()
+    );
+    anyhow::ensure!(
+        paths.len() <= crowdmorph::rig::MAX_FRAMES,
+        "{} frames; a clip holds at most {}",
+        paths.len(),
+        crowdmorph::rig::MAX_FRAMES
+    );
+    // The command line's own memory: frames are decoded one at a time, and the frames kept
+    // (f32 RGB) are the input of the PCA.
+    let budget = crowdmorph::budget::Budget::new(u64::MAX, "the command line", None);
+    let mut size = None;
+    let mut out = Vec::with_capacity(paths.len());
+    for (i, p) in paths.iter().enumerate() {
+        let bytes = std::fs::read(p).with_context(|| format!("reading {}", p.display()))?;
+        let (image, _) = crowdmorph::import::image::decode(
+            i,
+            bytes.into(),
+            None,
+            crowdmorph::rig::MAX_ANIMATED_SIZE,
+            &budget,
+        )
+        .map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
+        let level = image
+            .pixels
+            .as_ref()
+            .and_then(|m| m.levels.first())
+            .with_context(|| format!("{}: no pixels", p.display()))?;
+        let dims = (level.width, level.height);
+        anyhow::ensure!(
+            *size.get_or_insert(dims) == dims,
+            "{} is {} × {}, the first frame {:?}",
+            p.display(),
+            dims.0,
+            dims.1,
+            size
+        );
+        out.push(
+            level
+                .rgba
+                .chunks_exact(4)
+                .flat_map(|px| [px[0], px[1], px[2]])
+                .map(crowdmorph::render::brdf::srgb8_to_linear)
+                .collect(),
+        );
+    }
+    let (w, h) = size.unwrap_or((1, 1));
+    Ok((w, h, out))
 }
 
 /// One clip of `clips compress`.
@@ -181,6 +307,39 @@ impl std::fmt::Display for GraphReport {
 /// Runs `crowdmorph clips ...`.
 pub fn run(which: Command) -> Result<()> {
     match which {
+        Command::CompressTexture {
+            frames,
+            regions,
+            clip,
+            material,
+            out,
+            json,
+        } => {
+            let (w, h, seq) = read_frames(&frames)?;
+            let regions: Vec<crowdmorph::rig::TextureRegion> = match regions {
+                Some(p) => {
+                    let text =
+                        std::fs::read(&p).with_context(|| format!("reading {}", p.display()))?;
+                    serde_json::from_slice(&text)
+                        .with_context(|| format!("{}: regions", p.display()))?
+                }
+                None => crowdmorph::texture::default_regions(w, h),
+            };
+            let t = crowdmorph::texture::compress(&clip, material, w, h, &seq, &regions)?;
+            let errors = crowdmorph::texture::measure(&t, &seq);
+            let bytes = t.to_bytes();
+            std::fs::write(&out, &bytes).with_context(|| format!("writing {}", out.display()))?;
+            super::emit(
+                &TextureReport {
+                    frames: t.frames,
+                    width: w,
+                    height: h,
+                    bytes: bytes.len(),
+                    regions: errors,
+                },
+                json,
+            )
+        }
         Command::Export { rig, out } => {
             let rig = super::load_rig(rig.as_deref())?;
             std::fs::create_dir_all(&out).with_context(|| format!("making {}", out.display()))?;

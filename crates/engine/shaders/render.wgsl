@@ -10,6 +10,13 @@
 // data slots (metallic-roughness, normal, occlusion) through linear ones. A slot the material
 // leaves empty is bound to a 1×1 white texture and flagged NO_TEXTURE, so its branch is skipped
 // (the branch is on a uniform, so sampling inside it stays in uniform control flow).
+//
+// Layers (crates/core/src/rig/animated_texture.rs): the base colour texture becomes
+// clamp(base(uv) + Σ_k c_k · layer_k(uv), 0, 1) in linear RGBA before the factor, with up to 16
+// signed layers in one 2D array texture read through the base colour's sampler, set and
+// transform. Wrinkle maps (c_k a target's weight) and a clip's PCA texture (the mean's and the
+// components' coefficients of the frame) are both this sum; the coefficients are the draw's,
+// since a draw's instances are clones of one job. CPU mirror: brdf::layered_base.
 
 const PI: f32 = 3.14159265358979;
 // brdf::MIN_ROUGHNESS: GGX's D is a Dirac pulse at roughness 0.
@@ -52,6 +59,10 @@ struct Material {
     // Per slot, in the order above, the two rows of its KHR_texture_transform (a 2×3 matrix:
     // uv' = (dot(row0.xyz, (u, v, 1)), dot(row1.xyz, (u, v, 1)))).
     transforms: array<vec4<f32>, 10>,
+    // Layers summed (x; 0 none) and their texture coordinate set (y).
+    layers: vec4<u32>,
+    // Each layer's coefficient for this draw, four to a vec4.
+    coefficients: array<vec4<f32>, 4>,
 }
 
 @group(0) @binding(0) var<uniform> camera: Camera;
@@ -66,6 +77,7 @@ struct Material {
 @group(2) @binding(7) var normal_smp: sampler;
 @group(2) @binding(8) var occlusion_smp: sampler;
 @group(2) @binding(9) var emissive_smp: sampler;
+@group(2) @binding(10) var layer_tex: texture_2d_array<f32>;
 
 struct VertexIn {
     @location(0) position: vec3<f32>,
@@ -153,9 +165,18 @@ fn direct(n: vec3<f32>, v: vec3<f32>, l: vec3<f32>, c_diff: vec3<f32>, f0: vec3<
 @fragment
 fn fs_main(in: VertexOut, @builtin(front_facing) front_facing: bool) -> @location(0) vec4<f32> {
     var base = material.base * in.color;
+    var tex = vec4<f32>(1.0);
     if material.sets.x != NO_TEXTURE {
-        base *= textureSample(base_tex, base_smp, slot_uv(0u, material.sets.x, in.uv0, in.uv1));
+        tex = textureSample(base_tex, base_smp, slot_uv(0u, material.sets.x, in.uv0, in.uv1));
     }
+    if material.layers.x > 0u {
+        let luv = slot_uv(0u, material.layers.y, in.uv0, in.uv1);
+        for (var k = 0u; k < material.layers.x; k++) {
+            tex += material.coefficients[k / 4u][k % 4u] * textureSample(layer_tex, base_smp, luv, k);
+        }
+        tex = clamp(tex, vec4<f32>(0.0), vec4<f32>(1.0));
+    }
+    base *= tex;
     let mode = material.alpha.y;
     // MASK: a hole below the cutoff (each MSAA sample of the pixel alike); BLEND keeps alpha,
     // everything else is opaque.

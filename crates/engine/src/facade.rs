@@ -666,8 +666,10 @@ impl Engine {
             .iter()
             .map(|old| match &old.pca {
                 None => {
+                    // The appearance too: a clip's animated texture comes with its clips.
                     let level = Rig {
                         clips: rig.clips.clone(),
+                        appearance: rig.appearance.clone(),
                         ..(*old.rig).clone()
                     };
                     with_clips(old, Arc::new(level), &tables)
@@ -677,6 +679,7 @@ impl Engine {
                         clips: form
                             .map_clips(&rig.clips)
                             .map_err(|e| EngineError::Mesh(e.to_string()))?,
+                        appearance: rig.appearance.clone(),
                         ..(*old.rig).clone()
                     };
                     let own = upload(&level)?;

@@ -1049,6 +1049,19 @@ fn build_rig(
     };
     let mut notes = report.notes();
     notes.extend(appearance.iter().flat_map(|a| a.notes.iter().cloned()));
+    // A target texture naming no target of the rig is kept (a later clip or a renamed export
+    // may still mean it) but never drawn: said once, not refused.
+    let names: std::collections::HashSet<&str> = plan.names.iter().map(String::as_str).collect();
+    for t in appearance.iter().flat_map(|a| a.target_textures.iter()) {
+        if !names.contains(t.target.as_str()) {
+            notes.push(format!(
+                "material {}: target texture for {} names no morph target of the rig; not drawn",
+                t.material,
+                crowdmorph_core::rig::quoted_name(&t.target)
+            ));
+        }
+    }
+    drop(names);
     let lod = Lod::by_delta_energy(&primitives, n_targets);
     let rig = Rig {
         name: options.name.clone().unwrap_or_else(|| "rig".into()),

@@ -30,8 +30,8 @@ use super::accessor::Source;
 use super::image::{self, ImageError, ImageHeader};
 use crowdmorph_core::budget::Budget;
 use crowdmorph_core::rig::{
-    AlphaMode, Appearance, Filter, ImageData, ImageMime, Material, Sampler, TexRef, Texture,
-    UvTransform, Wrap,
+    AlphaMode, Appearance, Filter, ImageData, ImageMime, MAX_LAYERS, Material, Sampler,
+    TargetTexture, TexRef, Texture, UvTransform, Wrap,
 };
 
 /// Material extensions the renderer draws.
@@ -61,6 +61,24 @@ struct JMaterial {
     alpha_cutoff: Option<f32>,
     double_sided: bool,
     extensions: Map<String, Value>,
+    extras: Option<Value>,
+}
+
+/// `extras.crowdmorph` of a material: our convention for textures that fade in with a morph
+/// target's weight (README "Appearance"). Extras are free-form, so a shape that does not
+/// parse is a note, never a refusal.
+#[derive(Deserialize, Default)]
+#[serde(default, rename_all = "camelCase")]
+struct JCrowdmorphExtras {
+    target_textures: Vec<JTargetTexture>,
+}
+
+/// One entry of `targetTextures`: a morph target's name and the base colour at its weight 1.
+#[derive(Deserialize)]
+#[serde(rename_all = "camelCase")]
+struct JTargetTexture {
+    target: String,
+    base_color_texture: JInfo,
 }
 
 #[derive(Deserialize, Default)]
@@ -131,6 +149,8 @@ struct FetchedImage {
 /// The appearance of a document between its two phases (see the module documentation).
 pub(crate) struct Pending {
     materials: Vec<Material>,
+    /// The materials' `extras.crowdmorph.targetTextures`.
+    target_textures: Vec<TargetTexture>,
     textures: Vec<Texture>,
     samplers: Vec<Sampler>,
     /// Fetched images, in the order [`Texture::image`] indexes them.
@@ -188,13 +208,21 @@ impl Pending {
             });
         }
         let mut materials = Vec::with_capacity(d.materials.len());
+        let mut target_textures = Vec::new();
         for (m, jm) in d.materials.iter().enumerate() {
-            materials.push(material(m, jm, textures.len(), &mut notes)?);
+            let (mat, targets) = material(m, jm, textures.len(), &mut notes)?;
+            materials.push(mat);
+            target_textures.extend(targets.into_iter().map(|(target, texture)| TargetTexture {
+                material: m as u32,
+                target,
+                texture,
+            }));
         }
         // Fetch only what a material reaches.
         let reached: std::collections::HashSet<u32> = materials
             .iter()
             .flat_map(|m| m.texture_refs().map(|(_, r)| r.texture))
+            .chain(target_textures.iter().map(|t| t.texture.texture))
             .collect();
         let mut images = Vec::new();
         let mut fetched_bytes = 0;
@@ -229,6 +257,7 @@ impl Pending {
         }
         Ok(Some(Pending {
             materials,
+            target_textures,
             textures,
             samplers,
             images,
@@ -295,6 +324,8 @@ impl Pending {
             samplers: self.samplers,
             images,
             notes,
+            target_textures: self.target_textures,
+            clip_textures: Vec::new(),
         })
     }
 }
@@ -385,12 +416,13 @@ fn sampler(s: &JSampler) -> Sampler {
 }
 
 /// Material `m` of the file, every texture index checked against `textures`.
+/// Material `m` of the file, and its target textures (target name, texture reference).
 fn material(
     m: usize,
     j: &JMaterial,
     textures: usize,
     notes: &mut Vec<String>,
-) -> Result<Material, ImportError> {
+) -> Result<(Material, Vec<(String, TexRef)>), ImportError> {
     let label = match &j.name {
         Some(n) => format!("material {m} {}", crowdmorph_core::rig::quoted_name(n)),
         None => format!("material {m}"),
@@ -494,6 +526,30 @@ fn material(
         double_sided: j.double_sided,
         unlit: j.extensions.contains_key("KHR_materials_unlit"),
     };
+    // Parsed while `tex` (which holds `notes`) is alive: its notes are added after.
+    let mut later = Vec::new();
+    let mut targets = Vec::new();
+    if let Some(v) = j.extras.as_ref().and_then(|e| e.get("crowdmorph")) {
+        match serde_json::from_value::<JCrowdmorphExtras>(v.clone()) {
+            Ok(x) => {
+                for (k, t) in x.target_textures.iter().enumerate() {
+                    if targets.len() == MAX_LAYERS {
+                        later.push(format!(
+                            "{label}: target textures past the first {MAX_LAYERS} not drawn"
+                        ));
+                        break;
+                    }
+                    let what = format!("extras.crowdmorph.targetTextures[{k}].baseColorTexture");
+                    if let Some(r) = tex(&what, &Some(clone_info(&t.base_color_texture)))? {
+                        targets.push((t.target.clone(), r));
+                    }
+                }
+            }
+            Err(e) => later.push(format!(
+                "{label}: extras.crowdmorph not read ({e}); drawn without target textures"
+            )),
+        }
+    }
     let finite = out
         .base_color_factor
         .iter()
@@ -519,7 +575,8 @@ fn material(
             ));
         }
     }
-    Ok(out)
+    notes.extend(later);
+    Ok((out, targets))
 }
 
 /// A copy of a texture info (the closure above takes `&Option<JInfo>`).

@@ -13,7 +13,7 @@ use axum::extract::{DefaultBodyLimit, MatchedPath, Request, State};
 use axum::http::{HeaderName, HeaderValue, Method, StatusCode, header};
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
-use axum::routing::{get, post};
+use axum::routing::{get, post, put};
 use tokio::net::TcpListener;
 use tower::ServiceBuilder;
 use tower_http::classify::ServerErrorsFailureClass;
@@ -323,6 +323,10 @@ fn resources() -> Router<AppState> {
         .route(
             "/v1/rigs/{id}/clips/{clip}",
             get(routes::clips::get_clip).delete(routes::clips::delete_clip),
+        )
+        .route(
+            "/v1/rigs/{id}/clips/{clip}/texture",
+            put(routes::clips::put_clip_texture),
         )
         .route("/v1/crowd/frame", post(routes::frames::crowd_frame))
         .route("/v1/crowd/render", post(routes::render::crowd_render))

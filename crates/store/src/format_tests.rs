@@ -390,8 +390,46 @@ fn dressed() -> Rig {
             pixels: None,
         }],
         notes: vec!["material 1: KHR_materials_sheen not drawn".into()],
+        ..Appearance::default()
     }));
     rig.validate().expect("a valid dressed rig");
+    rig
+}
+
+/// [`dressed`] with a wrinkle map on material 0 and an animated texture on its first clip.
+fn dressed_layers() -> Rig {
+    use crowdmorph_core::rig::{AnimatedTexture, TargetTexture, TexRef, TextureRegion};
+    let mut rig = dressed();
+    let mut a = rig.appearance.as_deref().cloned().expect("an appearance");
+    a.target_textures.push(TargetTexture {
+        material: 0,
+        target: rig.targets[0].clone(),
+        texture: TexRef {
+            texture: 0,
+            tex_coord: 0,
+            transform: None,
+        },
+    });
+    let clip = &rig.clips[0];
+    let frames = clip.frames;
+    a.clip_textures.push(Arc::new(AnimatedTexture {
+        clip: clip.name.clone(),
+        material: 1,
+        width: 2,
+        height: 1,
+        frames,
+        regions: vec![TextureRegion {
+            name: "all".into(),
+            rect: [0, 0, 2, 1],
+            components: 1,
+        }],
+        mean: vec![0.25, 0.5, 0.75, 0.125, 0.0, 1.0],
+        components: vec![vec![0.5, 0.0, -0.5, 0.0, 0.25, 0.0]],
+        component_region: vec![0],
+        coefficients: (0..frames).map(|f| f as f32 * 0.01).collect(),
+    }));
+    rig.appearance = Some(Arc::new(a));
+    rig.validate().expect("a valid rig with layers");
     rig
 }
 
@@ -408,6 +446,7 @@ fn every_record_type_round_trips_with_and_without_each_optional_section() {
     }
     no_tables.validate().expect("valid without tables");
     let dressed = dressed();
+    let layered = dressed_layers();
     let rig = |id, rig| RecordRef::Rig {
         id,
         rig,
@@ -457,6 +496,13 @@ fn every_record_type_round_trips_with_and_without_each_optional_section() {
             rig_record("l", &dressed),
             12,
             vec![1, 3, 4, 9, 10],
+        ),
+        (
+            rig("m", &layered),
+            None,
+            rig_record("m", &layered),
+            12,
+            vec![1, 3, 4, 9, 10, 11],
         ),
         (
             RecordRef::Builtin {

@@ -62,7 +62,8 @@
 //! | 7 | the rig's own joint map | 12 | when its skeleton has one (never without 6) |
 //! | 8 | a built-in rig's LOD (JSON) and the [`geometry_fingerprint`] it was built for | 13 | always written; a record without it has no LOD (as kind 2) |
 //! | 9 | each primitive's texture coordinates of set 0 ([`crowdmorph_core::rig::VertexLook::uv0`]) | 12 | when a primitive has some |
-//! | 10 | the rest of each primitive's [`crowdmorph_core::rig::VertexLook`] (set 1, colours, material) and the rig's [`crowdmorph_core::rig::Appearance`]: materials, textures, samplers and notes as JSON, images as their encoded bytes | 12 | when the rig has materials or one of those arrays |
+//! | 10 | the rest of each primitive's [`crowdmorph_core::rig::VertexLook`] (set 1, colours, material) and the rig's [`crowdmorph_core::rig::Appearance`]: materials, textures, samplers, notes and wrinkle maps (`target_textures`) as JSON, images as their encoded bytes | 12 | when the rig has materials or one of those arrays |
+//! | 11 | the clips' animated textures, by clip name, each in its byte form (`AnimatedTexture::to_bytes`) | 12 | when a clip has one |
 //!
 //! A file whose magic, length, checksum or payload is wrong is reported and skipped by
 //! [`Store::load_all`]; nothing of it is loaded. Loaded rigs are re-validated with
@@ -92,7 +93,7 @@ use serde::{Deserialize, Serialize};
 
 use crowdmorph_core::rig::{
     Appearance, Clip, ImageData, ImageMime, Influences, JointMap, JointTable, Lod, Material, Rig,
-    Sampler, Skeleton, Texture, VertexLook,
+    Sampler, Skeleton, TargetTexture, Texture, VertexLook,
 };
 
 use sections::{Known, Sections};
@@ -187,6 +188,14 @@ const S_APPEARANCE: Known = Known {
     name: "appearance",
     required: false,
 };
+/// The clips' animated textures ([`crowdmorph_core::rig::AnimatedTexture`]), each by clip
+/// name in its byte form (`AnimatedTexture::to_bytes`, the body of `PUT
+/// /v1/rigs/{id}/clips/{clip}/texture`). Bit 31 clear for the reason given at [`S_LOOK`].
+const S_CLIP_TEXTURES: Known = Known {
+    tag: 11,
+    name: "clip textures",
+    required: false,
+};
 /// The sections of kind 12.
 const RIG_SECTIONS: &[Known] = &[
     S_ID,
@@ -197,6 +206,7 @@ const RIG_SECTIONS: &[Known] = &[
     S_JOINT_MAP,
     S_LOOK,
     S_APPEARANCE,
+    S_CLIP_TEXTURES,
 ];
 /// The sections of kind 13.
 const BUILTIN_SECTIONS: &[Known] = &[S_ID, S_CLIPS, S_CLIP_JOINTS, S_LOD];
@@ -450,6 +460,9 @@ struct AppearanceTables {
     samplers: Vec<Sampler>,
     images: Vec<ImageMeta>,
     notes: Vec<String>,
+    /// Wrinkle maps; absent from records written before they existed (hence the default).
+    #[serde(default)]
+    target_textures: Vec<TargetTexture>,
 }
 
 /// An image of [`AppearanceTables`] without its bytes.
@@ -485,6 +498,8 @@ impl<'a> AppearanceSectionRef<'a> {
             samplers: Vec::new(),
             images: Vec::new(),
             notes: Vec::new(),
+            target_textures: Vec::new(),
+            clip_textures: Vec::new(),
         };
         let a = rig.appearance.as_deref().unwrap_or(&EMPTY);
         let tables = AppearanceTables {
@@ -502,6 +517,7 @@ impl<'a> AppearanceSectionRef<'a> {
                 })
                 .collect(),
             notes: a.notes.clone(),
+            target_textures: a.target_textures.clone(),
         };
         Ok(Some(AppearanceSectionRef {
             prims,
@@ -559,6 +575,8 @@ impl AppearanceSection {
             samplers: t.samplers,
             images,
             notes: t.notes,
+            target_textures: t.target_textures,
+            clip_textures: Vec::new(),
         };
         rig.appearance = (a != Appearance::default()).then(|| std::sync::Arc::new(a));
         Ok(())
@@ -840,6 +858,15 @@ fn write_sections(
             if let Some(a) = AppearanceSectionRef::of(rig)? {
                 sections::write(w, S_APPEARANCE.tag, &a).map_err(enc)?;
             }
+            let textures: Vec<(&str, Vec<u8>)> = rig
+                .appearance
+                .iter()
+                .flat_map(|a| a.clip_textures.iter())
+                .map(|t| (t.clip.as_str(), t.to_bytes()))
+                .collect();
+            if !textures.is_empty() {
+                sections::write(w, S_CLIP_TEXTURES.tag, &textures).map_err(enc)?;
+            }
             if let Some(skeleton) = rig.skeleton.as_deref() {
                 let skin = SkinSectionRef {
                     skeleton,
@@ -892,6 +919,7 @@ fn read_rig_sections(
     let map: Option<JointMap> = s.take(S_JOINT_MAP)?;
     let look: Option<LookSection> = s.take(S_LOOK)?;
     let appearance: Option<AppearanceSection> = s.take(S_APPEARANCE)?;
+    let textures: Option<Vec<(String, Vec<u8>)>> = s.take(S_CLIP_TEXTURES)?;
     let clips = decode_clips(clips, Some(r.targets.len()), file, skipped);
     let mut rig = RigRecordColors {
         name: r.name,
@@ -909,6 +937,15 @@ fn read_rig_sections(
     }
     if let Some(a) = appearance {
         a.apply(&mut rig)?;
+    }
+    if let Some(textures) = textures.filter(|t| !t.is_empty()) {
+        let mut a = rig.appearance.as_deref().cloned().unwrap_or_default();
+        for (clip, bytes) in textures {
+            let t = crowdmorph_core::rig::AnimatedTexture::from_bytes(&clip, &bytes)
+                .map_err(|e| format!("clip {clip:?}: {e}"))?;
+            a.clip_textures.push(std::sync::Arc::new(t));
+        }
+        rig.appearance = Some(std::sync::Arc::new(a));
     }
     match skin {
         Some(skin) => skin.apply(&mut rig, map)?,

@@ -17,6 +17,8 @@ use std::sync::Arc;
 use glam::Vec2;
 use serde::{Deserialize, Serialize};
 
+use super::animated_texture::{AnimatedTexture, MAX_LAYERS};
+
 /// A rig's materials and what they sample. Indices follow the file's arrays after import
 /// (a texture's `image`, a material's texture references), so the JSON clients get is
 /// glTF-shaped.
@@ -33,6 +35,14 @@ pub struct Appearance {
     /// What the import did not draw or changed, one sentence each (an unsupported material
     /// extension, a KTX2 texture without a fallback, a downscaled image).
     pub notes: Vec<String>,
+    /// Textures that fade in with a morph target's weight (wrinkle maps), from the materials'
+    /// `extras.crowdmorph.targetTextures` ([`super::animated_texture`]).
+    #[serde(default)]
+    pub target_textures: Vec<TargetTexture>,
+    /// Clips' animated base colours (PCA), uploaded beside their clips; not in the JSON
+    /// tables (their arrays are stored as their own section).
+    #[serde(skip)]
+    pub clip_textures: Vec<Arc<AnimatedTexture>>,
 }
 
 /// glTF's `material`, as the renderer draws it.
@@ -169,6 +179,18 @@ impl AlphaMode {
             AlphaMode::Blend => "BLEND",
         }
     }
+}
+
+/// A texture that fades in with a morph target's weight (a wrinkle map).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TargetTexture {
+    /// The material (index into [`super::Appearance::materials`]) whose base colour it changes.
+    pub material: u32,
+    /// The morph target's name ([`Rig::targets`]); a name the rig does not have is an import
+    /// note and the layer stays at zero.
+    pub target: String,
+    /// The base colour texture at weight 1 (sRGB, as `baseColorTexture`).
+    pub texture: TexRef,
 }
 
 /// A material's reference to a texture (glTF `textureInfo`).
@@ -405,6 +427,16 @@ impl Appearance {
             .map(|i| i.bytes.len() + i.pixels.as_ref().map_or(0, |p| p.bytes()))
             .sum();
         images
+            + self
+                .clip_textures
+                .iter()
+                .map(|t| t.bytes() as usize)
+                .sum::<usize>()
+            + self
+                .target_textures
+                .iter()
+                .map(|t| size_of::<TargetTexture>() + t.target.len())
+                .sum::<usize>()
             + self.materials.len() * size_of::<Material>()
             + self.textures.len() * size_of::<Texture>()
             + self.samplers.len() * size_of::<Sampler>()
@@ -483,7 +515,58 @@ impl Appearance {
                 return Err(format!("image {i} is {} × {}", im.width, im.height));
             }
         }
+        for (i, t) in self.target_textures.iter().enumerate() {
+            if t.material as usize >= self.materials.len()
+                || t.texture.texture as usize >= self.textures.len()
+                || t.texture.tex_coord > 1
+            {
+                return Err(format!(
+                    "target texture {i} ({:?}): material {} of {}, texture {} of {}",
+                    t.target,
+                    t.material,
+                    self.materials.len(),
+                    t.texture.texture,
+                    self.textures.len()
+                ));
+            }
+        }
+        for t in &self.clip_textures {
+            t.validate()
+                .map_err(|e| format!("clip {:?}: {e}", t.clip))?;
+            if t.material as usize >= self.materials.len() {
+                return Err(format!(
+                    "clip {:?}: animated texture of material {} of {}",
+                    t.clip,
+                    t.material,
+                    self.materials.len()
+                ));
+            }
+        }
+        for m in 0..self.materials.len() {
+            let n = self.layer_count(m);
+            if n > MAX_LAYERS {
+                return Err(format!(
+                    "material {m}: {n} texture layers (target textures, and each animated \
+                     texture's mean and components); at most {MAX_LAYERS}"
+                ));
+            }
+        }
         Ok(())
+    }
+
+    /// Layers material `m` sums: its target textures, then each clip texture's mean and
+    /// components.
+    pub fn layer_count(&self, m: usize) -> usize {
+        self.target_textures
+            .iter()
+            .filter(|t| t.material as usize == m)
+            .count()
+            + self
+                .clip_textures
+                .iter()
+                .filter(|t| t.material as usize == m)
+                .map(|t| 1 + t.layers())
+                .sum::<usize>()
     }
 }
 
@@ -608,8 +691,32 @@ impl Appearance {
                 o
             })
             .collect();
+        let materials: Vec<serde_json::Value> = self
+            .materials
+            .iter()
+            .enumerate()
+            .map(|(i, m)| {
+                let mut j = m.gltf_json();
+                let targets: Vec<serde_json::Value> = self
+                    .target_textures
+                    .iter()
+                    .filter(|t| t.material as usize == i)
+                    .map(|t| {
+                        serde_json::json!({
+                            "target": t.target,
+                            "baseColorTexture": tex_json(&t.texture, None),
+                        })
+                    })
+                    .collect();
+                if !targets.is_empty() {
+                    j["extras"] =
+                        serde_json::json!({ "crowdmorph": { "targetTextures": targets } });
+                }
+                j
+            })
+            .collect();
         serde_json::json!({
-            "materials": self.materials.iter().map(Material::gltf_json).collect::<Vec<_>>(),
+            "materials": materials,
             "textures": textures,
             "samplers": self.samplers.iter().map(Sampler::gltf_json).collect::<Vec<_>>(),
             "images": self.images.iter().enumerate().map(|(i, d)| image(i, d)).collect::<Vec<_>>(),

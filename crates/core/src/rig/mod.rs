@@ -23,6 +23,7 @@
 //!   transforms beside their weights ([`Clip::joints`]). Rig space holds the rest pose
 //!   (`skin.rs`).
 
+mod animated_texture;
 mod appearance;
 mod clip;
 mod cost;
@@ -36,9 +37,13 @@ mod regions;
 mod sample;
 mod skin;
 
+pub use animated_texture::{
+    AnimatedTexture, AnimatedTextureError, MAX_ANIMATED_SIZE, MAX_LAYERS, TEXTURE_MAGIC,
+    TextureRegion, layer_inputs,
+};
 pub use appearance::{
     AlphaMode, Appearance, Filter, ImageData, ImageMime, Material, MipLevel, Mips, Sampler, Slot,
-    TexRef, Texture, UvTransform, Wrap,
+    TargetTexture, TexRef, Texture, UvTransform, Wrap,
 };
 pub use clip::{Clip, ClipError, ClipIndex, DEFAULT_FPS, FrameMode, MAX_FRAMES};
 pub use cost::{CPU_BLOCK, PrimShape, RigCost, RigShape, SkinShape};

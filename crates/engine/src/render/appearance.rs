@@ -22,8 +22,11 @@
 use std::sync::Arc;
 
 use crowdmorph_core::budget::{BudgetError, Charge};
-use crowdmorph_core::rig::{Appearance, Filter, MipLevel, Primitive, Rig, Sampler, Slot, Wrap};
+use crowdmorph_core::rig::{
+    Appearance, Filter, MAX_LAYERS, MipLevel, Primitive, Rig, Sampler, Slot, Wrap,
+};
 
+use super::brdf::srgb8_to_linear;
 use crate::gpu::GpuContext;
 
 /// Texture slots of a material, in binding order: base colour, metallic-roughness, normal,
@@ -39,6 +42,166 @@ pub(super) const SLOTS: [Slot; 5] = [
 /// The texture coordinate set of a slot the material leaves empty (the shader's
 /// `NO_TEXTURE`).
 pub(super) const NO_TEXTURE: u32 = 255;
+
+/// Binding of a material's layers (`layer_tex`, a 2D array of signed linear RGBA).
+const LAYER_BINDING: u32 = 2 * SLOTS.len() as u32;
+
+/// The format of layers: signed (a wrinkle darkens as often as it lightens), linear, and
+/// filterable everywhere; 11 bits of mantissa keep a layer within 1/2048 of its value.
+const LAYER_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
+
+/// Bytes of one layer texel.
+const LAYER_TEXEL: u64 = 8;
+
+/// What one layer of a material is made of, in the order the material sums them (see
+/// `crowdmorph_core::rig::animated_texture`): its target textures, then each clip texture's
+/// mean and components.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum LayerKind {
+    /// `Appearance::target_textures[i]` − the base.
+    Target(usize),
+    /// `Appearance::clip_textures[i]`'s mean − the base.
+    ClipMean(usize),
+    /// Component `k` of `Appearance::clip_textures[i]`.
+    ClipComponent(usize, usize),
+}
+
+/// The layers material `m` of `a` sums, at most [`MAX_LAYERS`] (validation refuses more).
+pub(super) fn material_layers(a: &Appearance, m: usize) -> Vec<LayerKind> {
+    let mut out: Vec<LayerKind> = a
+        .target_textures
+        .iter()
+        .enumerate()
+        .filter(|(_, t)| t.material as usize == m)
+        .map(|(i, _)| LayerKind::Target(i))
+        .collect();
+    for (i, t) in a.clip_textures.iter().enumerate() {
+        if t.material as usize == m {
+            out.push(LayerKind::ClipMean(i));
+            out.extend((0..t.layers()).map(|k| LayerKind::ClipComponent(i, k)));
+        }
+    }
+    out.truncate(MAX_LAYERS);
+    out
+}
+
+/// Where layer `kind` of a rig reads its coefficient in the job's
+/// `crowdmorph_core::rig::layer_inputs` vector, and whether it is clamped to [0, 1] (a
+/// target's weight is; PCA coefficients are signed). `None`: never drawn (a target name the
+/// rig does not have).
+pub(super) fn layer_source(rig: &Rig, a: &Appearance, kind: LayerKind) -> Option<(u32, bool)> {
+    let clip_at = |i: usize| -> usize {
+        rig.targets.len()
+            + a.clip_textures[..i.min(a.clip_textures.len())]
+                .iter()
+                .map(|t| 1 + t.layers())
+                .sum::<usize>()
+    };
+    match kind {
+        LayerKind::Target(i) => {
+            let name = &a.target_textures.get(i)?.target;
+            let t = *rig.target_ids(name).first()?;
+            Some((t, true))
+        }
+        LayerKind::ClipMean(i) => Some((clip_at(i) as u32, false)),
+        LayerKind::ClipComponent(i, k) => Some((clip_at(i) as u32 + 1 + k as u32, false)),
+    }
+}
+
+/// An RGBA8 sRGB level as linear RGBA f32 (alpha is linear already).
+fn linear_level(l: &MipLevel) -> Vec<[f32; 4]> {
+    l.rgba
+        .chunks_exact(4)
+        .map(|p| {
+            [
+                srgb8_to_linear(p[0]),
+                srgb8_to_linear(p[1]),
+                srgb8_to_linear(p[2]),
+                f32::from(p[3]) / 255.0,
+            ]
+        })
+        .collect()
+}
+
+/// `src` (`sw × sh`) resampled to `w × h` by the nearest texel (the identity when the sizes
+/// agree).
+fn resample(src: &[[f32; 4]], sw: u32, sh: u32, w: u32, h: u32) -> Vec<[f32; 4]> {
+    if (sw, sh) == (w, h) {
+        return src.to_vec();
+    }
+    let mut out = Vec::with_capacity(w as usize * h as usize);
+    for y in 0..h {
+        let sy = ((u64::from(y) * 2 + 1) * u64::from(sh) / (2 * u64::from(h))) as usize;
+        for x in 0..w {
+            let sx = ((u64::from(x) * 2 + 1) * u64::from(sw) / (2 * u64::from(w))) as usize;
+            out.push(src[sy.min(sh as usize - 1) * sw as usize + sx.min(sw as usize - 1)]);
+        }
+    }
+    out
+}
+
+/// The next mip level of `src` (`w × h`): the mean of each 2×2 block (of what exists at an
+/// odd edge), in linear values, as a mip of a linear quantity should be.
+fn halve(src: &[[f32; 4]], w: u32, h: u32) -> Vec<[f32; 4]> {
+    let (nw, nh) = ((w / 2).max(1), (h / 2).max(1));
+    let mut out = Vec::with_capacity(nw as usize * nh as usize);
+    for y in 0..nh {
+        for x in 0..nw {
+            let mut sum = [0f32; 4];
+            let mut n = 0f32;
+            for dy in 0..2 {
+                for dx in 0..2 {
+                    let (sx, sy) = (x * 2 + dx, y * 2 + dy);
+                    if sx < w && sy < h {
+                        let p = src[(sy * w + sx) as usize];
+                        for c in 0..4 {
+                            sum[c] += p[c];
+                        }
+                        n += 1.0;
+                    }
+                }
+            }
+            out.push(sum.map(|v| v / n.max(1.0)));
+        }
+    }
+    out
+}
+
+/// A source of layer texels: an image's linear levels, or a float array at its own size.
+enum LayerSource<'a> {
+    Image(&'a [MipLevel]),
+    Float { rgb: &'a [f32], w: u32, h: u32 },
+}
+
+impl LayerSource<'_> {
+    /// Level 0 as linear RGBA at `w × h`.
+    fn level0(&self, w: u32, h: u32) -> Vec<[f32; 4]> {
+        match self {
+            LayerSource::Image(levels) => match levels.first() {
+                Some(l) => resample(&linear_level(l), l.width, l.height, w, h),
+                None => vec![[0.0; 4]; w as usize * h as usize],
+            },
+            LayerSource::Float { rgb, w: sw, h: sh } => {
+                let px: Vec<[f32; 4]> = rgb
+                    .chunks_exact(3)
+                    .map(|c| [c[0], c[1], c[2], 0.0])
+                    .collect();
+                resample(&px, *sw, *sh, w, h)
+            }
+        }
+    }
+
+    /// Level `k` of an image whose own chain has it at exactly `w × h`.
+    fn own_level(&self, k: usize, w: u32, h: u32) -> Option<Vec<[f32; 4]>> {
+        match self {
+            LayerSource::Image(levels) => levels
+                .get(k)
+                .filter(|l| (l.width, l.height) == (w, h))
+                .map(linear_level),
+            LayerSource::Float { .. } => None,
+        }
+    }
+}
 
 /// Why an appearance could not be uploaded.
 #[derive(Debug, thiserror::Error, Clone, PartialEq)]
@@ -199,6 +362,16 @@ pub(super) fn texture_layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
             count: None,
         });
     }
+    entries.push(wgpu::BindGroupLayoutEntry {
+        binding: LAYER_BINDING,
+        visibility: wgpu::ShaderStages::FRAGMENT,
+        ty: wgpu::BindingType::Texture {
+            sample_type: wgpu::TextureSampleType::Float { filterable: true },
+            view_dimension: wgpu::TextureViewDimension::D2Array,
+            multisampled: false,
+        },
+        count: None,
+    });
     device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
         label: Some("render textures"),
         entries: &entries,
@@ -210,6 +383,8 @@ pub(super) fn texture_layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
 /// something in every binding), and the bind group of a material without textures.
 pub(super) struct Fallback {
     view: wgpu::TextureView,
+    /// A 1×1, one-layer array of zeros: the layers of a material without any.
+    layers: wgpu::TextureView,
     sampler: wgpu::Sampler,
     /// Group 2 for a primitive whose material samples no texture.
     pub(super) group: wgpu::BindGroup,
@@ -238,12 +413,50 @@ impl Fallback {
         });
         write_level(queue, &texture, 0, 1, 1, &[255; 4]);
         let view = texture.create_view(&wgpu::TextureViewDescriptor::default());
+        let zeros = device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("render no layers"),
+            size: wgpu::Extent3d {
+                width: 1,
+                height: 1,
+                depth_or_array_layers: 1,
+            },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: LAYER_FORMAT,
+            usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+            view_formats: &[],
+        });
+        queue.write_texture(
+            wgpu::TexelCopyTextureInfo {
+                texture: &zeros,
+                mip_level: 0,
+                origin: wgpu::Origin3d::ZERO,
+                aspect: wgpu::TextureAspect::All,
+            },
+            &[0u8; LAYER_TEXEL as usize],
+            wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some(LAYER_TEXEL as u32),
+                rows_per_image: Some(1),
+            },
+            wgpu::Extent3d {
+                width: 1,
+                height: 1,
+                depth_or_array_layers: 1,
+            },
+        );
+        let layers = zeros.create_view(&wgpu::TextureViewDescriptor {
+            dimension: Some(wgpu::TextureViewDimension::D2Array),
+            ..wgpu::TextureViewDescriptor::default()
+        });
         let sampler = device.create_sampler(&sampler_descriptor(&Sampler::default()));
         let views = [&view; SLOTS.len()];
         let samplers = [&sampler; SLOTS.len()];
-        let group = bind_group(device, layout, &views, &samplers);
+        let group = bind_group(device, layout, &views, &samplers, &layers);
         Fallback {
             view,
+            layers,
             sampler,
             group,
         }
@@ -257,6 +470,8 @@ pub struct GpuAppearance {
     groups: Vec<Option<wgpu::BindGroup>>,
     /// Per material, which of its [`SLOTS`] have a texture uploaded.
     textured: Vec<[bool; SLOTS.len()]>,
+    /// Per material, the layers uploaded ([`material_layers`], in that order).
+    layers: Vec<usize>,
     bytes: u64,
     /// The textures' bytes in the device's memory budget.
     _charge: Charge,
@@ -285,6 +500,11 @@ impl GpuAppearance {
     /// Whether material `m` has a texture uploaded in slot `k` of [`SLOTS`].
     pub(super) fn has(&self, m: usize, k: usize) -> bool {
         self.textured.get(m).is_some_and(|t| t[k])
+    }
+
+    /// Layers material `m` has uploaded.
+    pub(super) fn layers(&self, m: usize) -> usize {
+        self.layers.get(m).copied().unwrap_or(0)
     }
 }
 
@@ -334,16 +554,20 @@ type Chains<'a> = Vec<Option<&'a [MipLevel]>>;
 /// (what [`upload`] charges), and per image the levels it would upload.
 fn plan(a: &Appearance, max_size: u32) -> Result<(u64, Chains<'_>), AppearanceError> {
     let mut used = vec![false; a.images.len()];
-    for m in &a.materials {
-        for (_, r) in m.texture_refs() {
-            if let Some(i) = a
-                .textures
-                .get(r.texture as usize)
-                .and_then(|t| t.image)
-                .filter(|&i| (i as usize) < used.len())
-            {
-                used[i as usize] = true;
-            }
+    let layer_refs = a.target_textures.iter().map(|t| &t.texture);
+    for r in a
+        .materials
+        .iter()
+        .flat_map(|m| m.texture_refs().map(|(_, r)| r))
+        .chain(layer_refs)
+    {
+        if let Some(i) = a
+            .textures
+            .get(r.texture as usize)
+            .and_then(|t| t.image)
+            .filter(|&i| (i as usize) < used.len())
+        {
+            used[i as usize] = true;
         }
     }
     let mut bytes = 0u64;
@@ -356,12 +580,203 @@ fn plan(a: &Appearance, max_size: u32) -> Result<(u64, Chains<'_>), AppearanceEr
         bytes += chain.map_or(0, |c| c.iter().map(|l| l.rgba.len() as u64).sum());
         levels.push(chain);
     }
+    for m in 0..a.materials.len() {
+        let k = material_layers(a, m).len() as u64;
+        if k > 0 {
+            let dims = layer_dims(a, m, &levels, max_size)?;
+            bytes += dims
+                .iter()
+                .map(|&(w, h)| u64::from(w) * u64::from(h))
+                .sum::<u64>()
+                * k
+                * LAYER_TEXEL;
+        }
+    }
     Ok((bytes, levels))
 }
 
-/// The most texture slots one of `rig`'s primitives samples (an image with pixels, read
-/// through a coordinate set the primitive has): what the render cost model prices per pixel,
-/// without uploading anything.
+/// The usable chain of the image texture reference `r` reaches, from [`plan`]'s chains.
+fn chain_of<'a>(
+    a: &Appearance,
+    r: &crowdmorph_core::rig::TexRef,
+    chains: &Chains<'a>,
+) -> Option<&'a [MipLevel]> {
+    let i = a.textures.get(r.texture as usize)?.image? as usize;
+    *chains.get(i)?
+}
+
+/// The sizes of material `m`'s layer levels: its base colour texture's (so a layer texel is
+/// the base texel it changes, and the two filter alike), else the first layer's size halved
+/// down to 1 × 1.
+fn layer_dims(
+    a: &Appearance,
+    m: usize,
+    chains: &Chains<'_>,
+    max_size: u32,
+) -> Result<Vec<(u32, u32)>, AppearanceError> {
+    let base = a.materials[m]
+        .base_color_texture
+        .as_ref()
+        .and_then(|r| chain_of(a, r, chains));
+    if let Some(c) = base {
+        return Ok(c.iter().map(|l| (l.width, l.height)).collect());
+    }
+    let first = material_layers(a, m).into_iter().find_map(|k| match k {
+        LayerKind::Target(i) => {
+            let c = chain_of(a, &a.target_textures[i].texture, chains)?;
+            c.first().map(|l| (l.width, l.height))
+        }
+        LayerKind::ClipMean(i) | LayerKind::ClipComponent(i, _) => {
+            let t = &a.clip_textures[i];
+            Some((t.width, t.height))
+        }
+    });
+    let (mut w, mut h) = first.unwrap_or((1, 1));
+    if w > max_size || h > max_size {
+        return Err(AppearanceError::Pixels {
+            image: m,
+            problem: format!("material {m}'s layers are {w}×{h}, past {max_size} a side"),
+        });
+    }
+    let mut out = vec![(w, h)];
+    while (w, h) != (1, 1) {
+        w = (w / 2).max(1);
+        h = (h / 2).max(1);
+        out.push((w, h));
+    }
+    Ok(out)
+}
+
+/// Uploads material `m`'s layers (see the module documentation of
+/// `crowdmorph_core::rig::animated_texture`) as one 2D array texture of [`LAYER_FORMAT`], level
+/// by level and layer by layer (the host holds one level of one layer at a time).
+fn upload_layers(
+    device: &wgpu::Device,
+    queue: &wgpu::Queue,
+    a: &Appearance,
+    m: usize,
+    chains: &Chains<'_>,
+    max_size: u32,
+) -> Result<Option<wgpu::TextureView>, AppearanceError> {
+    let kinds = material_layers(a, m);
+    if kinds.is_empty() {
+        return Ok(None);
+    }
+    let dims = layer_dims(a, m, chains, max_size)?;
+    let base = a.materials[m]
+        .base_color_texture
+        .as_ref()
+        .and_then(|r| chain_of(a, r, chains));
+    let (w0, h0) = dims[0];
+    let texture = device.create_texture(&wgpu::TextureDescriptor {
+        label: Some("render layers"),
+        size: wgpu::Extent3d {
+            width: w0,
+            height: h0,
+            depth_or_array_layers: kinds.len() as u32,
+        },
+        mip_level_count: dims.len() as u32,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D2,
+        format: LAYER_FORMAT,
+        usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+        view_formats: &[],
+    });
+    let base_at = |k: usize, w: u32, h: u32| -> Vec<[f32; 4]> {
+        match base.and_then(|c| c.get(k)) {
+            Some(l) if (l.width, l.height) == (w, h) => linear_level(l),
+            _ => vec![[1.0; 4]; w as usize * h as usize],
+        }
+    };
+    for (layer, kind) in kinds.iter().enumerate() {
+        let source = match *kind {
+            LayerKind::Target(i) => LayerSource::Image(
+                chain_of(a, &a.target_textures[i].texture, chains).unwrap_or(&[]),
+            ),
+            LayerKind::ClipMean(i) => {
+                let t = &a.clip_textures[i];
+                LayerSource::Float {
+                    rgb: &t.mean,
+                    w: t.width,
+                    h: t.height,
+                }
+            }
+            LayerKind::ClipComponent(i, k) => {
+                let t = &a.clip_textures[i];
+                LayerSource::Float {
+                    rgb: t.components.get(k).map_or(&[][..], Vec::as_slice),
+                    w: t.width,
+                    h: t.height,
+                }
+            }
+        };
+        let mut cur = source.level0(w0, h0);
+        for (k, &(w, h)) in dims.iter().enumerate() {
+            if k > 0 {
+                let (pw, ph) = dims[k - 1];
+                cur = halve(&cur, pw, ph);
+            }
+            let target = source.own_level(k, w, h).unwrap_or_else(|| cur.clone());
+            let texels: Vec<half::f16> = match kind {
+                LayerKind::Target(_) => {
+                    let b = base_at(k, w, h);
+                    target
+                        .iter()
+                        .zip(&b)
+                        .flat_map(|(t, b)| [0, 1, 2, 3].map(|c| t[c] - b[c]))
+                        .map(half::f16::from_f32)
+                        .collect()
+                }
+                // The mean replaces the base's colour and keeps its alpha.
+                LayerKind::ClipMean(_) => {
+                    let b = base_at(k, w, h);
+                    target
+                        .iter()
+                        .zip(&b)
+                        .flat_map(|(t, b)| [t[0] - b[0], t[1] - b[1], t[2] - b[2], 0.0])
+                        .map(half::f16::from_f32)
+                        .collect()
+                }
+                LayerKind::ClipComponent(..) => target
+                    .iter()
+                    .flat_map(|t| [t[0], t[1], t[2], 0.0])
+                    .map(half::f16::from_f32)
+                    .collect(),
+            };
+            queue.write_texture(
+                wgpu::TexelCopyTextureInfo {
+                    texture: &texture,
+                    mip_level: k as u32,
+                    origin: wgpu::Origin3d {
+                        x: 0,
+                        y: 0,
+                        z: layer as u32,
+                    },
+                    aspect: wgpu::TextureAspect::All,
+                },
+                bytemuck::cast_slice(&texels),
+                wgpu::TexelCopyBufferLayout {
+                    offset: 0,
+                    bytes_per_row: Some(w * LAYER_TEXEL as u32),
+                    rows_per_image: Some(h),
+                },
+                wgpu::Extent3d {
+                    width: w,
+                    height: h,
+                    depth_or_array_layers: 1,
+                },
+            );
+        }
+    }
+    Ok(Some(texture.create_view(&wgpu::TextureViewDescriptor {
+        dimension: Some(wgpu::TextureViewDimension::D2Array),
+        ..wgpu::TextureViewDescriptor::default()
+    })))
+}
+
+/// The most texture fetches one of `rig`'s primitives makes (slots with an image with
+/// pixels, read through a coordinate set the primitive has, and its material's layers): what
+/// the render cost model prices per pixel, without uploading anything.
 pub fn texture_slots(rig: &Rig) -> u32 {
     let Some(a) = &rig.appearance else {
         return 0;
@@ -376,24 +791,29 @@ pub fn texture_slots(rig: &Rig) -> u32 {
                 1 => p.look.uv1.as_ref().is_some_and(|u| u.len() == n),
                 _ => false,
             };
+            let layers = a.layer_count(p.look.material? as usize).min(MAX_LAYERS) as u32;
             Some(
                 m.texture_refs()
                     .filter(|(_, r)| {
                         has_set(r.tex_coord) && a.image_of(r).is_some_and(|i| i.pixels.is_some())
                     })
-                    .count() as u32,
+                    .count() as u32
+                    + layers,
             )
         })
         .max()
         .unwrap_or(0)
 }
 
-/// Whether `a` has anything to upload: some material samples an image with pixels.
+/// Whether `a` has anything to upload: some material samples an image with pixels, or sums
+/// layers.
 pub(super) fn has_textures(a: &Appearance) -> bool {
-    a.materials.iter().any(|m| {
-        m.texture_refs()
-            .any(|(_, r)| a.image_of(r).is_some_and(|i| i.pixels.is_some()))
-    })
+    !a.target_textures.is_empty()
+        || !a.clip_textures.is_empty()
+        || a.materials.iter().any(|m| {
+            m.texture_refs()
+                .any(|(_, r)| a.image_of(r).is_some_and(|i| i.pixels.is_some()))
+        })
 }
 
 /// Uploads `a`'s textures to `ctx`'s device (charged first) and makes the materials' bind
@@ -451,7 +871,14 @@ pub(super) fn upload(
     let mut samplers: Vec<(Sampler, wgpu::Sampler)> = Vec::new();
     let mut groups = Vec::with_capacity(a.materials.len());
     let mut textured = Vec::with_capacity(a.materials.len());
-    for m in &a.materials {
+    let mut layer_counts = Vec::with_capacity(a.materials.len());
+    for (mi, m) in a.materials.iter().enumerate() {
+        let layer_view = upload_layers(device, queue, a, mi, &chains, max_size)?;
+        layer_counts.push(if layer_view.is_some() {
+            material_layers(a, mi).len()
+        } else {
+            0
+        });
         let mut slot_views: [&wgpu::TextureView; SLOTS.len()] = [&fallback.view; SLOTS.len()];
         let mut slot_samplers = [&fallback.sampler; SLOTS.len()];
         let mut has = [false; SLOTS.len()];
@@ -480,16 +907,21 @@ pub(super) fn upload(
                 }
             }
         }
-        groups.push(
-            has.iter()
-                .any(|&h| h)
-                .then(|| bind_group(device, layout, &slot_views, &slot_samplers)),
-        );
+        groups.push((has.iter().any(|&h| h) || layer_view.is_some()).then(|| {
+            bind_group(
+                device,
+                layout,
+                &slot_views,
+                &slot_samplers,
+                layer_view.as_ref().unwrap_or(&fallback.layers),
+            )
+        }));
         textured.push(has);
     }
     Ok(GpuAppearance {
         groups,
         textured,
+        layers: layer_counts,
         bytes,
         _charge: charge,
     })
@@ -531,6 +963,7 @@ fn bind_group(
     layout: &wgpu::BindGroupLayout,
     views: &[&wgpu::TextureView; SLOTS.len()],
     samplers: &[&wgpu::Sampler; SLOTS.len()],
+    layers: &wgpu::TextureView,
 ) -> wgpu::BindGroup {
     let mut entries = Vec::with_capacity(2 * SLOTS.len());
     for (k, v) in views.iter().enumerate() {
@@ -545,6 +978,10 @@ fn bind_group(
             resource: wgpu::BindingResource::Sampler(s),
         });
     }
+    entries.push(wgpu::BindGroupEntry {
+        binding: LAYER_BINDING,
+        resource: wgpu::BindingResource::TextureView(layers),
+    });
     device.create_bind_group(&wgpu::BindGroupDescriptor {
         label: Some("render material textures"),
         layout,

@@ -182,6 +182,19 @@ pub fn srgb8_to_linear(c: u8) -> f32 {
     }
 }
 
+/// The base colour texture's value after its layers, as the shader's `fs_main` sums them:
+/// `clamp(tex + Σ_k c_k · layer_k, 0, 1)` per linear channel (before the material factor and
+/// the vertex colour multiply it). `tex` is the sampled base texture (white without one).
+pub fn layered_base(tex: [f32; 4], layers: &[[f32; 4]], coefficients: &[f32]) -> [f32; 4] {
+    let mut out = tex;
+    for (layer, &c) in layers.iter().zip(coefficients) {
+        for (o, v) in out.iter_mut().zip(layer) {
+            *o += c * v;
+        }
+    }
+    out.map(|v| v.clamp(0.0, 1.0))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

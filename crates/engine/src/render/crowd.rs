@@ -24,6 +24,7 @@ use crate::gpu::{GpuContext, GpuOptions, is_hardware};
 use crate::{BlendJob, Engine, EngineError, OutputSpec, PreparedRig, RenderBuffers, VertexData};
 use crowdmorph_core::cancel::{Cancel, Cancelled};
 use crowdmorph_core::plan::{JobKey, Plan};
+use crowdmorph_core::rig::layer_inputs;
 
 /// What to install when no adapter can render.
 pub const INSTALL_HINT: &str = "install a Vulkan driver: on Debian and Ubuntu, \
@@ -285,6 +286,18 @@ pub fn draw_until(
             outputs.push((gi, ci * per_call, buffers));
         }
     }
+    // Per job its layer inputs (wrinkle weights, clip texture coefficients): a function of
+    // the pose, so of the job, which every instance shares. Empty for a rig without layers;
+    // otherwise about the rig's channel count of floats per job, like its weights.
+    let layers: Vec<Vec<Vec<f32>>> = groups
+        .iter()
+        .map(|g| {
+            g.jobs
+                .iter()
+                .map(|job| layer_inputs(g.prepared.rig(), &job.pose, job.lod))
+                .collect()
+        })
+        .collect();
     let compute_ns = start.elapsed().as_nanos() as u64;
     cancel.check()?;
     let mut meshes = Vec::new();
@@ -301,6 +314,7 @@ pub fn draw_until(
                 positions,
                 normals,
                 instances,
+                layers: layers[*gi].get(first + j).map_or(&[][..], Vec::as_slice),
             });
         }
     }

@@ -61,6 +61,7 @@ use super::brdf;
 use crate::gpu::{GpuContext, MapResults, Reclaim};
 use crowdmorph_core::budget::{BudgetError, Charge};
 use crowdmorph_core::cancel::{Cancel, Cancelled};
+use crowdmorph_core::rig::MAX_LAYERS;
 use crowdmorph_core::rig::{AlphaMode, Appearance, Material, Primitive, Rig};
 
 /// MSAA samples per pixel.
@@ -150,6 +151,9 @@ struct TopologyPrimitive {
     material: MaterialUniform,
     /// The material whose texture bind group it draws with (`None`: the untextured one).
     textures: Option<usize>,
+    /// Per layer its material sums, where its coefficient is in a job's layer inputs and
+    /// whether it is clamped to [0, 1] (`None`: a target the rig does not have; stays zero).
+    layer_sources: Vec<Option<(u32, bool)>>,
     /// Alpha-blended: drawn after everything opaque, sorted far to near.
     blend: bool,
     /// Both sides drawn (else back faces are culled where that is safe).
@@ -190,16 +194,18 @@ impl MeshTopology {
         self.appearance.as_ref().map_or(0, |a| a.bytes())
     }
 
-    /// How many texture slots (of 5) the primitive that samples the most reads: what a pixel
-    /// of this mesh costs in texture fetches at most.
+    /// How many texture fetches (5 slots and up to 16 layers) the primitive that samples the
+    /// most makes: what a pixel of this mesh costs in texture fetches at most.
     pub fn texture_slots(&self) -> u32 {
         self.primitives
             .iter()
             .map(|p| {
+                // Each layer is one more fetch.
                 p.material.sets[..SLOTS.len()]
                     .iter()
                     .filter(|&&s| s != NO_TEXTURE)
                     .count() as u32
+                    + p.material.layers[0]
             })
             .max()
             .unwrap_or(0)
@@ -217,6 +223,10 @@ pub struct SceneMesh<'a> {
     pub normals: VertexSource<'a>,
     /// One model matrix (rig space → world) per head drawing this buffer.
     pub instances: &'a [Mat4],
+    /// The job's layer inputs (`crowdmorph_core::rig::layer_inputs`: final target weights,
+    /// then clip textures' coefficients), which every instance shares: instances are clones
+    /// of one job, so one pose. Empty: every layer at zero.
+    pub layers: &'a [f32],
 }
 
 /// The camera: the scene layout's view type (right-handed, Y up).
@@ -311,6 +321,11 @@ struct MaterialUniform {
     sets: [u32; 8],
     /// Per slot, the two rows of its `KHR_texture_transform` (xyz; w unused).
     transforms: [[f32; 4]; 10],
+    /// Layers summed (0: none), their texture coordinate set (they read through the base
+    /// colour's transform), two unused.
+    layers: [u32; 4],
+    /// Each layer's coefficient for this draw (filled per draw from its job's layer inputs).
+    coefficients: [[f32; 4]; MAX_LAYERS / 4],
 }
 
 impl MaterialUniform {
@@ -341,6 +356,8 @@ impl MaterialUniform {
         MaterialUniform {
             sets: [NO_TEXTURE; 8],
             transforms,
+            layers: [0; 4],
+            coefficients: [[0.0; 4]; MAX_LAYERS / 4],
             base: m.base_color_factor.map(|c| unit(c, 1.0)),
             emissive: [e[0], e[1], e[2], 0.0],
             pbr: [
@@ -384,6 +401,33 @@ impl MaterialUniform {
                     u.transforms[2 * k + 1] = [r1[0], r1[1], r1[2], 0.0];
                 }
             }
+        }
+        // Layers are texel for texel the base colour's: read through its set and transform,
+        // or set 0 untransformed when the material has no base colour texture.
+        let set = if u.sets[0] == NO_TEXTURE {
+            0
+        } else {
+            u.sets[0]
+        };
+        let layers = gpu.layers(index).min(MAX_LAYERS);
+        if layers > 0 && has_set(set as u8) {
+            u.layers = [layers as u32, set, 0, 0];
+        }
+        u
+    }
+
+    /// This uniform with the coefficients of a draw whose job's layer inputs are `inputs`.
+    fn with_coefficients(&self, sources: &[Option<(u32, bool)>], inputs: &[f32]) -> Self {
+        let mut u = *self;
+        for (k, source) in sources.iter().enumerate().take(u.layers[0] as usize) {
+            let c = source
+                .and_then(|(at, clamp)| {
+                    let v = *inputs.get(at as usize)?;
+                    Some(if clamp { v.clamp(0.0, 1.0) } else { v })
+                })
+                .filter(|v| v.is_finite())
+                .unwrap_or(0.0);
+            u.coefficients[k / 4][k % 4] = c;
         }
         u
     }
@@ -593,6 +637,8 @@ struct Draw<'a> {
     normals: Bound<'a>,
     /// Its instances' model matrices.
     models: &'a [Mat4],
+    /// Its job's layer inputs ([`SceneMesh::layers`]).
+    layers: &'a [f32],
     /// Offset of its instances in the scene buffer, and their count.
     instance_offset: u64,
     instances: u32,
@@ -1018,6 +1064,15 @@ impl Renderer {
                 Some((_, m)) => (m.alpha_mode == AlphaMode::Blend, m.double_sided),
                 None => (false, false),
             };
+            let layer_sources = match (named, &rig.appearance) {
+                (Some((index, _)), Some(a)) if material.layers[0] > 0 => {
+                    appearance::material_layers(a, index)
+                        .into_iter()
+                        .map(|k| appearance::layer_source(rig, a, k))
+                        .collect()
+                }
+                _ => Vec::new(),
+            };
             let centroid =
                 p.positions.iter().copied().sum::<Vec3>() / p.positions.len().max(1) as f32;
             if indices.len() as u32 > start {
@@ -1025,6 +1080,7 @@ impl Renderer {
                     indices: start..indices.len() as u32,
                     material,
                     textures,
+                    layer_sources,
                     blend,
                     double_sided,
                     centroid: if centroid.is_finite() {
@@ -1272,8 +1328,9 @@ impl Renderer {
         for draw in &layout.draws {
             for (k, p) in draw.topology.primitives.iter().enumerate() {
                 let at = ((draw.first_material + k as u64) * self.uniform_align) as usize;
+                let material = p.material.with_coefficients(&p.layer_sources, draw.layers);
                 uniforms[at..at + size_of::<MaterialUniform>()]
-                    .copy_from_slice(bytemuck::bytes_of(&p.material));
+                    .copy_from_slice(bytemuck::bytes_of(&material));
             }
         }
         queue.write_buffer(&scratch.uniforms, 0, &uniforms);
@@ -1636,6 +1693,7 @@ impl Renderer {
             positions,
             normals,
             models: mesh.instances,
+            layers: mesh.layers,
             instance_offset,
             instances,
             first_material,
@@ -2052,8 +2110,23 @@ mod tests {
                 ("sets", offset_of!(MaterialUniform, sets)),
                 ("sets2", offset_of!(MaterialUniform, sets) + 16),
                 ("transforms", offset_of!(MaterialUniform, transforms)),
+                ("layers", offset_of!(MaterialUniform, layers)),
+                ("coefficients", offset_of!(MaterialUniform, coefficients)),
             ],
         );
+    }
+
+    #[test]
+    fn a_draws_coefficients_come_from_its_jobs_inputs_clamped_where_asked() {
+        let mut u = MaterialUniform::of(&Material::default());
+        u.layers[0] = 3;
+        let sources = [Some((1, true)), None, Some((0, false)), Some((2, true))];
+        let c = u.with_coefficients(&sources, &[-2.5, 1.7, 0.3]);
+        // Layer 0 reads input 1 clamped, layer 1 has no source, layer 2 input 0 signed; the
+        // fourth source is past the material's three layers.
+        assert_eq!(c.coefficients[0], [1.0, 0.0, -2.5, 0.0]);
+        // Inputs shorter than a source (a rig without layers sends none): zero.
+        assert_eq!(u.with_coefficients(&sources, &[]).coefficients[0], [0.0; 4]);
     }
 
     #[test]

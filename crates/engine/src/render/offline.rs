@@ -409,6 +409,7 @@ pub fn with_generated_textures(rig: &Rig, size: u32) -> Rig {
         samplers: vec![Sampler::default()],
         images: vec![base, orm, normal],
         notes: vec!["textures generated for a benchmark".into()],
+        ..Appearance::default()
     }));
     out
 }

@@ -1,5 +1,6 @@
 //! Clips of a rig: `POST /v1/rigs/{id}/clips` (CSV, JSON or glTF animations, matched to the
-//! rig's targets, each source kind by its own import), `GET` a list or one, `DELETE` one.
+//! rig's targets, each source kind by its own import), `GET` a list or one, `DELETE` one, and
+//! `PUT /v1/rigs/{id}/clips/{clip}/texture`: the clip's animated texture (PCA, beside it).
 
 use std::sync::Arc;
 
@@ -21,7 +22,7 @@ use crate::services::Parts;
 use crate::services::persist::prepare_error;
 use crate::services::persist::{clip_error, persist_clips, persist_record};
 use crate::state::AppState;
-use crowdmorph_core::rig::Rig;
+use crowdmorph_core::rig::{AnimatedTexture, Rig};
 use crowdmorph_engine::{Engine, PreparedRig};
 use crowdmorph_import::ImportError;
 use crowdmorph_import::clips::{ClipImport, ClipOptions};
@@ -422,4 +423,117 @@ pub async fn delete_clip(
     crowdmorph_core::budget::return_freed_memory();
     tracing::info!(rig = %id, clip = %clip, "clip deleted");
     Ok(StatusCode::NO_CONTENT.into_response())
+}
+
+/// What `PUT /v1/rigs/{id}/clips/{clip}/texture` answers.
+#[derive(serde::Serialize)]
+struct TextureUpload {
+    rig: String,
+    clip: String,
+    material: u32,
+    width: u32,
+    height: u32,
+    components: usize,
+    /// Host bytes the texture holds (charged to the rig).
+    bytes: u64,
+}
+
+/// A 400 `invalid_texture`.
+fn invalid_texture(message: impl std::fmt::Display) -> ApiError {
+    ApiError::bad_request("invalid_texture", message.to_string())
+}
+
+/// `PUT /v1/rigs/{id}/clips/{clip}/texture`: a clip's animated base colour in the byte form
+/// of `crowdmorph clips compress-texture` (`AnimatedTexture::to_bytes`, proto/README.md). The
+/// body is read under the upload's budget, its header checked and its decoded size charged
+/// before anything is allocated (a header that declares more than the body holds is a 400,
+/// more than `--max-upload-memory` a 413 `texture_too_large`); then, under the lock that
+/// serializes rig changes, the rig's next generation carries it (replacing the clip's earlier
+/// one), is stored and published. Its arrays stay charged to the rig until the rig drops it.
+pub async fn put_clip_texture(
+    State(state): State<AppState>,
+    _admin: Admin,
+    _ready: Ready,
+    Path((id, clip)): Path<(String, String)>,
+    headers: HeaderMap,
+    body: Body,
+) -> ApiResult {
+    {
+        let entry = state.rig(&id)?;
+        entry
+            .clip_index(&clip)
+            .ok_or_else(|| unknown_clip(&entry, &clip))?;
+    }
+    checked_content_type(&headers, "application/octet-stream")?;
+    let _slot = state.uploads.acquire().await.map_err(ApiError::internal)?;
+    let budget = state.op_budget();
+    let bytes = upload_body(&state, &headers, body, &budget).await?;
+    let declared = AnimatedTexture::declared_bytes(&bytes).map_err(invalid_texture)?;
+    budget
+        .charge(declared, || {
+            format!("an animated texture of {declared} bytes")
+        })
+        .map_err(|e| ApiError::budget(e, "texture_too_large"))?;
+    let name = clip.clone();
+    let texture =
+        blocking(move || AnimatedTexture::from_bytes(&name, &bytes).map_err(invalid_texture))
+            .await?;
+    let _admin = state.admin.lock().await;
+    // Re-read under the lock: another change may have landed since.
+    let entry = state.rig(&id)?;
+    let ci = entry
+        .clip_index(&clip)
+        .ok_or_else(|| unknown_clip(&entry, &clip))?;
+    let frames = entry.rig().clips[ci].frames;
+    if texture.frames != frames {
+        return Err(invalid_texture(format!(
+            "{} frames of coefficients for clip {clip:?} of {frames} frames",
+            texture.frames
+        )));
+    }
+    let reply = TextureUpload {
+        rig: id.clone(),
+        clip: clip.clone(),
+        material: texture.material,
+        width: texture.width,
+        height: texture.height,
+        components: texture.layers(),
+        bytes: texture.bytes(),
+    };
+    let engine = state.engine.clone();
+    let current = entry.clone();
+    let (rig, prepared, qbox) = blocking(move || {
+        let mut new = current.rig().clone();
+        let mut a = new.appearance.as_deref().cloned().unwrap_or_default();
+        if texture.material as usize >= a.materials.len() {
+            return Err(invalid_texture(format!(
+                "material {} of a rig with {} materials",
+                texture.material,
+                a.materials.len()
+            )));
+        }
+        a.clip_textures.retain(|t| t.clip != texture.clip);
+        a.clip_textures.push(Arc::new(texture));
+        new.appearance = Some(Arc::new(a));
+        new.validate().map_err(invalid_texture)?;
+        let new = Arc::new(new);
+        let prepared = engine
+            .update_clips(&current.prepared, new.clone())
+            .map_err(|e| prepare_error(e, "texture_too_large"))?;
+        let qbox = quantization_box(&new);
+        Ok((new, prepared, qbox))
+    })
+    .await?;
+    persist_record(&state, &id, rig, entry.builtin, &entry.layout).await?;
+    state.registry.insert(Arc::new(entry.successor(
+        prepared,
+        qbox,
+        entry.layout.clone(),
+        state.registry.generation(),
+        Some(budget.keep(declared)),
+    )));
+    drop(budget);
+    crowdmorph_core::budget::return_freed_memory();
+    tracing::info!(rig = %id, clip = %clip, components = reply.components, "clip texture set");
+    Accept::of(&headers).reply(StatusCode::OK, &reply)
 }
