@@ -9,10 +9,11 @@
 // Primitives with a glTF material (GET /v1/rigs/{id}/materials) are shaded as glTF 2.0's
 // Appendix B has it: metallic-roughness with GGX, height-correlated Smith and Schlick, under a
 // key and a fill light that turn with the camera and a sky/ground hemisphere (the server's
-// renderer's lights), sRGB out and no
-// tone mapping; base colour and emissive textures are sRGB, the others linear, each with the
-// file's sampler and KHR_texture_transform. MASK discards, BLEND is drawn after everything
-// opaque, far heads first, without writing depth; single-sided materials cull back faces.
+// renderer's lights), sRGB out and no tone mapping; base colour and emissive textures are
+// sRGB, the others linear, each with the file's sampler, texture coordinate set and
+// KHR_texture_transform, and COLOR_0 multiplies the base colour. MASK discards, BLEND is
+// drawn after everything opaque, far heads first, without writing depth; single-sided
+// materials cull back faces.
 // Primitives without a material keep the plaster look: Lambert plus a Blinn highlight from a
 // headlight, coloured by primitive name.
 
