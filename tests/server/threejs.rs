@@ -434,20 +434,30 @@ async fn finish(
     results.iter().for_each(Outcome::assert);
 }
 
-gpu_test!(
-    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-    #[cfg_attr(
-        not(crowdmorph_test_data),
-        ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
-    )]
-    #[cfg_attr(
-        not(crowdmorph_chromium),
-        ignore = "no Chromium (apt-get install chromium, or set CROWDMORPH_CHROMIUM and touch build.rs)"
-    )]
-    #[cfg_attr(
-        not(crowdmorph_threejs),
-        ignore = "needs three.js: npm install --prefix target/threejs three@0.170.0, then touch build.rs"
-    )]
+/// A test of this file: it needs a Vulkan adapter, the shared rigs, Chromium and three.js,
+/// and says which is missing when skipped.
+macro_rules! threejs_test {
+    ($($item:tt)*) => {
+        gpu_test!(
+            #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+            #[cfg_attr(
+                not(crowdmorph_test_data),
+                ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
+            )]
+            #[cfg_attr(
+                not(crowdmorph_chromium),
+                ignore = "no Chromium (apt-get install chromium, or set CROWDMORPH_CHROMIUM and touch build.rs)"
+            )]
+            #[cfg_attr(
+                not(crowdmorph_threejs),
+                ignore = "needs three.js: npm install --prefix target/threejs three@0.170.0, then touch build.rs"
+            )]
+            $($item)*
+        );
+    };
+}
+
+threejs_test!(
     async fn textured_morphed_rigs_render_as_three_js_draws_them() {
         let (server, browser, mut cdp, files) = start(None).await;
         let mut results = Vec::new();
@@ -505,20 +515,7 @@ async fn frame_buffers(server: &TestServer, case: &Case) -> Value {
     json!({"positions": cut(&positions), "normals": cut(&normals)})
 }
 
-gpu_test!(
-    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-    #[cfg_attr(
-        not(crowdmorph_test_data),
-        ignore = "needs ../shared/data (the shared test rigs; set CROWDMORPH_TEST_DATA)"
-    )]
-    #[cfg_attr(
-        not(crowdmorph_chromium),
-        ignore = "no Chromium (apt-get install chromium, or set CROWDMORPH_CHROMIUM and touch build.rs)"
-    )]
-    #[cfg_attr(
-        not(crowdmorph_threejs),
-        ignore = "needs three.js: npm install --prefix target/threejs three@0.170.0, then touch build.rs"
-    )]
+threejs_test!(
     async fn three_js_draws_the_servers_vertex_buffers_textured_from_model_glb() {
         // What a three.js client does: load `model.glb` once (no morph targets), then write
         // each crowd frame's positions and normals into its meshes. Drawn so, it must look as
