@@ -339,39 +339,30 @@ pub(super) fn generate_tangents(p: &Primitive, uv: &[glam::Vec2]) -> Option<Vec<
     )
 }
 
-/// The bind group layout of group 2: five 2D float textures, then their five samplers.
+/// The bind group layout of group 2: five 2D float textures, then their five samplers, then
+/// the expression layers' 2D array.
 pub(super) fn texture_layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
-    let mut entries = Vec::with_capacity(2 * SLOTS.len());
-    for k in 0..SLOTS.len() as u32 {
-        entries.push(wgpu::BindGroupLayoutEntry {
-            binding: k,
-            visibility: wgpu::ShaderStages::FRAGMENT,
-            ty: wgpu::BindingType::Texture {
-                sample_type: wgpu::TextureSampleType::Float { filterable: true },
-                view_dimension: wgpu::TextureViewDimension::D2,
-                multisampled: false,
-            },
-            count: None,
-        });
-    }
-    for k in 0..SLOTS.len() as u32 {
-        entries.push(wgpu::BindGroupLayoutEntry {
-            binding: SLOTS.len() as u32 + k,
-            visibility: wgpu::ShaderStages::FRAGMENT,
-            ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
-            count: None,
-        });
-    }
-    entries.push(wgpu::BindGroupLayoutEntry {
-        binding: LAYER_BINDING,
+    let texture = |binding: u32, view_dimension| wgpu::BindGroupLayoutEntry {
+        binding,
         visibility: wgpu::ShaderStages::FRAGMENT,
         ty: wgpu::BindingType::Texture {
             sample_type: wgpu::TextureSampleType::Float { filterable: true },
-            view_dimension: wgpu::TextureViewDimension::D2Array,
+            view_dimension,
             multisampled: false,
         },
         count: None,
-    });
+    };
+    let slots = SLOTS.len() as u32;
+    let mut entries: Vec<_> = (0..slots)
+        .map(|k| texture(k, wgpu::TextureViewDimension::D2))
+        .collect();
+    entries.extend((0..slots).map(|k| wgpu::BindGroupLayoutEntry {
+        binding: slots + k,
+        visibility: wgpu::ShaderStages::FRAGMENT,
+        ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
+        count: None,
+    }));
+    entries.push(texture(LAYER_BINDING, wgpu::TextureViewDimension::D2Array));
     device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
         label: Some("render textures"),
         entries: &entries,
