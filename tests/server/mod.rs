@@ -133,6 +133,49 @@ pub fn stored_config(dir: &Path) -> ServerConfig {
     }
 }
 
+/// One head of rig `rig` with the named live `weights` (the rest 0, or the file's defaults
+/// for names not given), at `placement` (position, yaw in degrees, scale), rendered by the
+/// server as a `width × height` PNG with `camera` on `background`: the picture tests compare
+/// with another renderer's.
+pub async fn render_one(
+    server: &TestServer,
+    rig: &str,
+    weights: &[(String, f32)],
+    placement: ([f32; 3], f32, f32),
+    camera: crowdmorph_proto::CameraSpec,
+    (width, height): (u32, u32),
+    background: [u8; 3],
+) -> crate::util::image::Image {
+    use crowdmorph_proto::{Head, ImageOptions, LiveWeights, Placement, RenderRequest};
+    let (position, yaw, scale) = placement;
+    let req = RenderRequest {
+        heads: vec![Head::live(1, rig, LiveWeights::Named(weights.to_vec()))],
+        wrap: true,
+        placements: Some(vec![Placement {
+            head: 1,
+            position,
+            yaw,
+            scale,
+        }]),
+        camera: Some(camera),
+        image: Some(ImageOptions {
+            width,
+            height,
+            background,
+            ..ImageOptions::default()
+        }),
+    };
+    let reply = server
+        .client
+        .render(&req, crowdmorph_client::Encoding::Json)
+        .await
+        .expect("render");
+    assert_eq!(reply.status, 200, "{:?}", reply.error());
+    let img = crate::util::image::Image::decode_png(&reply.body).expect("a PNG");
+    assert_eq!((img.width, img.height), (width, height));
+    img
+}
+
 /// The upload bytes of a rig file (external glTF buffers inlined).
 pub fn upload_bytes(path: &Path) -> Bytes {
     Bytes::from(crowdmorph::bench::server::self_contained_bytes(path).expect("rig bytes"))

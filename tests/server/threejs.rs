@@ -40,10 +40,7 @@ use axum::response::{IntoResponse, Response};
 use crowdmorph::render::{brdf, scene};
 use crowdmorph::server::ServerConfig;
 use crowdmorph_client::Encoding;
-use crowdmorph_proto::{
-    CameraSpec, CrowdFrameRequest, Format, Head, ImageOptions, LiveWeights, OutputOptions,
-    Placement, RenderRequest,
-};
+use crowdmorph_proto::{CameraSpec, CrowdFrameRequest, Format, Head, LiveWeights, OutputOptions};
 use serde_json::{Value, json};
 
 use super::TestServer;
@@ -176,42 +173,22 @@ async fn file_server(
 /// The server's picture of `case`: one head at the origin (a placement, so the rig is not
 /// moved to a grid cell), with the case's weights and camera.
 async fn server_picture(server: &TestServer, case: &Case) -> Image {
-    let (width, height) = case.size;
-    let req = RenderRequest {
-        heads: vec![Head::live(
-            1,
-            case.name,
-            LiveWeights::Named(
-                case.weights
-                    .iter()
-                    .map(|&(n, w)| (n.to_string(), w))
-                    .collect(),
-            ),
-        )],
-        wrap: true,
-        placements: Some(vec![Placement {
-            head: 1,
-            position: [0.0; 3],
-            yaw: 0.0,
-            scale: 1.0,
-        }]),
-        camera: Some(camera_spec(case)),
-        image: Some(ImageOptions {
-            width,
-            height,
-            background: BACKGROUND,
-            ..ImageOptions::default()
-        }),
-    };
-    let reply = server
-        .client
-        .render(&req, Encoding::Json)
-        .await
-        .expect("render");
-    assert_eq!(reply.status, 200, "{:?}", reply.error());
-    let img = Image::decode_png(&reply.body).expect("a PNG");
-    assert_eq!((img.width, img.height), case.size);
-    img
+    let weights: Vec<(String, f32)> = case
+        .weights
+        .iter()
+        .map(|&(n, w)| (n.to_string(), w))
+        .collect();
+    let origin = ([0.0; 3], 0.0, 1.0);
+    super::render_one(
+        server,
+        case.name,
+        &weights,
+        origin,
+        camera_spec(case),
+        case.size,
+        BACKGROUND,
+    )
+    .await
 }
 
 /// The image of a PNG data URL (a canvas's `toDataURL`).

@@ -18,10 +18,7 @@ use std::time::{Duration, Instant};
 use bytes::Bytes;
 use crowdmorph::server::ServerConfig;
 use crowdmorph_client::{Encoding, Method};
-use crowdmorph_proto::{
-    CameraSpec, Head, ImageOptions, LiveWeights, MeshResponse, Placement, Received, RenderRequest,
-    SessionInfo, StreamState,
-};
+use crowdmorph_proto::{CameraSpec, MeshResponse, Received, SessionInfo, StreamState};
 use futures_util::{SinkExt, StreamExt};
 use serde_json::{Value, json};
 use tokio_tungstenite::tungstenite::Message;
@@ -651,39 +648,29 @@ async fn compare_with_the_servers_render(
     let scale = (model[0] * model[0] + model[1] * model[1] + model[2] * model[2]).sqrt();
     let yaw = (-model[2]).atan2(model[0]).to_degrees();
     let v3 = |v: &Value| -> [f32; 3] { [0, 1, 2].map(|i| num(&v[i]) as f32) };
-    let req = RenderRequest {
-        heads: vec![Head::live(
-            1,
-            head["rig"].as_str().expect("rig"),
-            LiveWeights::Named(targets.iter().map(|t| (t.clone(), 0.0)).collect()),
-        )],
-        wrap: true,
-        placements: Some(vec![Placement {
-            head: 1,
-            position: [model[12] as f32, model[13] as f32, model[14] as f32],
-            yaw: yaw as f32,
-            scale: scale as f32,
-        }]),
-        camera: Some(CameraSpec {
-            fov_y: num(&cam["fov_y"]) as f32,
-            near: Some(num(&cam["near"]) as f32),
-            far: Some(num(&cam["far"]) as f32),
-            ..CameraSpec::looking(v3(&cam["position"]), v3(&cam["target"]))
-        }),
-        image: Some(ImageOptions {
-            width,
-            height,
-            background: BACKGROUND,
-            ..ImageOptions::default()
-        }),
+    let zeros: Vec<(String, f32)> = targets.iter().map(|t| (t.clone(), 0.0)).collect();
+    let placement = (
+        [model[12] as f32, model[13] as f32, model[14] as f32],
+        yaw as f32,
+        scale as f32,
+    );
+    let camera = CameraSpec {
+        fov_y: num(&cam["fov_y"]) as f32,
+        near: Some(num(&cam["near"]) as f32),
+        far: Some(num(&cam["far"]) as f32),
+        ..CameraSpec::looking(v3(&cam["position"]), v3(&cam["target"]))
     };
-    let reply = server
-        .client
-        .render(&req, Encoding::Json)
-        .await
-        .expect("render");
-    assert_eq!(reply.status, 200, "{:?}", reply.error());
-    let server_img = Image::decode_png(&reply.body).expect("a PNG");
+    let rig = head["rig"].as_str().expect("rig");
+    let server_img = super::render_one(
+        server,
+        rig,
+        &zeros,
+        placement,
+        camera,
+        (width, height),
+        BACKGROUND,
+    )
+    .await;
     // Both in drawing-buffer pixels, the server's moved as the page's projection moves, the
     // panel and what the move uncovers painted background in both.
     let shift = (num(&view["ndcShiftX"]) * f64::from(width) / 2.0).round() as i64;
