@@ -26,7 +26,7 @@ use crowdmorph_proto::{GraphPlay, MotionGraph};
 use glam::{DMat4, Quat, Vec3};
 
 use crowdmorph_core::cancel::{Cancel, Cancelled};
-use crowdmorph_core::rig::{JointPose, JointSet, Pose, Rig, Trs};
+use crowdmorph_core::rig::{JointPose, JointSet, MAX_TERMS, Pose, Rig, T_ONE, Term, Trs};
 use crowdmorph_core::rng::SplitMix64;
 
 /// Most nodes a graph may have.
@@ -495,10 +495,12 @@ impl Reach {
 enum Source {
     /// A node still playing (an edge's source).
     Node { node: u32, t: f64 },
-    /// The pose a jump froze (its weights and, on a skinned rig, every skeleton node's local
-    /// transform), and the motion of the nodes it came from.
+    /// The pose a jump froze (its weights, the clip terms that gave them when it played
+    /// clips — a frame, an edge's blend or an earlier jump's fade — and, on a skinned rig,
+    /// every skeleton node's local transform), and the motion of the nodes it came from.
     Frozen {
         weights: Arc<[f32]>,
+        terms: Option<Arc<[Term]>>,
         locals: Option<Arc<[Trs]>>,
         motion: f32,
     },
@@ -595,7 +597,23 @@ impl Player {
     /// The pose shown now as a fade's source: its weights, joints and the motion of the nodes
     /// it came from.
     fn freeze(&self, g: &Graph, rig: &Rig) -> Source {
-        let weights: Arc<[f32]> = self.weights(g, rig).into();
+        // Its clip terms carry what weights alone lose: which clip frames are shown, and so
+        // their animated textures' coefficients (a fade from them blends those too). The
+        // weights are then the terms' own, so that the fade starts exactly where it was.
+        let pose = self.pose(g, rig);
+        let terms: Option<Arc<[Term]>> = match &pose {
+            Pose::Frame { clip, frame } => Some(Arc::from([Term {
+                clip: *clip,
+                frame: *frame,
+                t: T_ONE,
+            }])),
+            Pose::Blend(t) => Some(t.clone()),
+            Pose::Live(_) => None,
+        };
+        let weights: Arc<[f32]> = match terms {
+            Some(_) => pose.weights(rig).into(),
+            None => self.weights(g, rig).into(),
+        };
         let locals = self.locals(g, rig).map(Arc::from);
         let motion = match &self.fade {
             Some(Fade {
@@ -611,6 +629,7 @@ impl Player {
         .max(g.motion(self.node));
         Source::Frozen {
             weights,
+            terms,
             locals,
             motion,
         }
@@ -648,6 +667,18 @@ impl Player {
     /// Whether a fade is in progress.
     pub fn fading(&self) -> bool {
         self.fade.is_some()
+    }
+
+    /// Whether a jump's fade (from a frozen pose) is in progress.
+    #[cfg(test)]
+    fn fading_from_frozen(&self) -> bool {
+        matches!(
+            self.fade,
+            Some(Fade {
+                source: Source::Frozen { .. },
+                ..
+            })
+        )
     }
 
     fn frame(g: &Graph, node: u32, t: f64) -> (u32, u32) {
@@ -688,8 +719,10 @@ impl Player {
         }
     }
 
-    /// The pose shown now: a clip frame, a two-frame blend while an edge fades, live weights
-    /// while a jump fades from a frozen pose.
+    /// The pose shown now: a clip frame, a two-frame blend while an edge fades, and while a
+    /// jump fades from a frozen pose the blend of its clip terms (× `1 − α`) and the target
+    /// frame (× `α`) — live weights only when the frozen pose had no clip terms or the blend
+    /// would need more than [`MAX_TERMS`] (jumps in quick succession).
     pub fn pose(&self, g: &Graph, rig: &Rig) -> Pose {
         let here = Self::frame(g, self.node, self.t);
         match &self.fade {
@@ -705,6 +738,28 @@ impl Player {
                 Self::frame(g, *node, *t),
                 &[(here.0, here.1, *alpha as f32)],
             ),
+            Some(
+                f @ Fade {
+                    source:
+                        Source::Frozen {
+                            terms: Some(terms), ..
+                        },
+                    alpha,
+                    ..
+                },
+            ) => {
+                let keep = 1.0 - *alpha as f32;
+                let layers: Vec<(u32, u32, f32)> = terms
+                    .iter()
+                    .map(|t| (t.clip, t.frame, t.fraction() * keep))
+                    .collect();
+                match Pose::blend(here, &layers) {
+                    Pose::Blend(t) if t.len() > MAX_TERMS => {
+                        Pose::live(&self.weights_with(g, rig, f))
+                    }
+                    p => p,
+                }
+            }
             Some(f) => Pose::live(&self.weights_with(g, rig, f)),
         }
     }
@@ -755,8 +810,9 @@ impl Player {
     }
 
     /// The joint transforms a pose of [`Player::pose`] cannot carry: while a jump fades from
-    /// a frozen pose (shown as live weights, which leave the skeleton at rest), every node
-    /// whose faded transform is not its rest, as overrides. Otherwise a clip frame or an
+    /// a frozen pose (its transforms nlerped into the target frame's, which neither live
+    /// weights — the skeleton at rest — nor a blend of the frozen clip terms gives), every
+    /// node whose faded transform is not what the pose's terms give, as overrides. Otherwise a clip frame or an
     /// edge's blend carries its joints itself, and this is the head's own overrides.
     pub fn joints(&self, g: &Graph, rig: &Rig) -> JointPose {
         let (Some(sk), Some(Fade { source, .. })) = (&rig.skeleton, &self.fade) else {
@@ -774,12 +830,16 @@ impl Player {
         let Some(locals) = self.locals(g, rig) else {
             return JointPose::NONE;
         };
+        // What the pose's own terms give each node (the rest pose for live weights): only the
+        // nodes where the fade shows something else need an override.
+        let mut given = Vec::with_capacity(sk.nodes.len());
+        sk.locals_of(&self.pose(g, rig).skin_terms(rig), &mut given);
         JointPose::new(
             locals
                 .iter()
-                .zip(&sk.nodes)
+                .zip(&given)
                 .enumerate()
-                .filter(|(_, (l, n))| **l != n.rest)
+                .filter(|(_, (l, g))| l != g)
                 .map(|(i, (l, _))| {
                     JointSet::new(
                         i as u32,
@@ -1710,9 +1770,10 @@ mod tests {
 
     #[test]
     fn a_jump_fades_a_skinned_heads_joints_from_where_they_were() {
-        // The skinned face's clips turn its head and eyes. A jump fades from frozen weights,
-        // shown as live weights (which leave the skeleton at rest), so the joints it froze go
-        // along as overrides: the skeleton does not snap to rest, it fades into the target.
+        // The skinned face's clips turn its head and eyes. A jump fades from the frozen pose,
+        // shown as a blend of its clip terms into the target's frames; the joints it froze go
+        // along as overrides wherever that blend's terms would show something else: the
+        // skeleton does not snap, it fades into the target.
         let rig = crowdmorph_core::synthetic::skinned_head();
         let mut g = Graph::resolve(&spec(), &rig, |n| rig.clip_index(n)).expect("graph");
         g.set_motion(vec![0.01, 0.01]);
@@ -1723,15 +1784,19 @@ mod tests {
         let before = p.locals(&g, &rig).expect("skinned");
         p.jump(&g, &rig, 1);
         assert!(
-            matches!(p.pose(&g, &rig), Pose::Live(_)),
-            "a jump fades from weights"
+            !matches!(p.pose(&g, &rig), Pose::Live(_)),
+            "a jump fades from the clip terms shown"
         );
         let sk = rig.skeleton.as_ref().expect("skinned");
-        // Right after the jump the overrides are the frozen transforms.
-        let mut shown = Vec::new();
-        sk.locals_at(None, 0, &mut shown);
-        p.joints(&g, &rig).apply(sk, &mut shown);
-        for (a, b) in shown.iter().zip(&before) {
+        // What the engine draws: the pose's joint terms, then the overrides.
+        let shown = |p: &Player| {
+            let mut out = Vec::new();
+            sk.locals_of(&p.pose(&g, &rig).skin_terms(&rig), &mut out);
+            p.joints(&g, &rig).apply(sk, &mut out);
+            out
+        };
+        // Right after the jump the drawn joints are the frozen transforms.
+        for (a, b) in shown(&p).iter().zip(&before) {
             let qa = Quat::from_array(a.rotation);
             let qb = Quat::from_array(b.rotation);
             assert!(qa.angle_between(qb) < 1e-4, "{a:?} vs {b:?}");
@@ -1740,18 +1805,111 @@ mod tests {
             before.iter().zip(&sk.nodes).any(|(l, n)| *l != n.rest),
             "the clip had turned some joint"
         );
-        // The fade ends in the target node's frames, carried by its pose again (a clip frame,
-        // or an edge's blend).
+        // Through the fade the drawn joints are the player's own nlerp of the two.
         let mut steps = 0;
-        while matches!(p.pose(&g, &rig), Pose::Live(_)) {
-            assert!(
-                !p.joints(&g, &rig).is_none(),
-                "joints go along the whole fade"
-            );
+        while p.fading_from_frozen() {
+            let want = p.locals(&g, &rig).expect("skinned");
+            for (a, b) in shown(&p).iter().zip(&want) {
+                // Overrides are quantized: equal to their step, in any hemisphere.
+                let d = Quat::from_array(a.rotation).dot(Quat::from_array(b.rotation));
+                assert!(d.abs() > 1.0 - 1e-6, "step {steps}: {a:?} vs {b:?}");
+                let t = Vec3::from(a.translation).distance(Vec3::from(b.translation));
+                assert!(t < 1e-3, "step {steps}: {a:?} vs {b:?}");
+            }
             p.advance(&g, &rig, 1.0 / 30.0);
             steps += 1;
             assert!(steps < 2000, "the jump's fade ends");
         }
+        assert!(steps > 1, "the jump faded");
         assert!(p.joints(&g, &rig).is_none());
+    }
+
+    /// A two-pixel animated texture of `frames` frames for clip `clip`, one component whose
+    /// coefficient is the frame number (so a blend of frames shows as a blend of numbers).
+    fn frame_texture(clip: &str, frames: u32) -> crowdmorph_core::rig::AnimatedTexture {
+        crowdmorph_core::rig::AnimatedTexture {
+            clip: clip.into(),
+            material: 0,
+            width: 2,
+            height: 1,
+            frames,
+            regions: vec![crowdmorph_core::rig::TextureRegion {
+                name: "all".into(),
+                rect: [0, 0, 2, 1],
+                components: 1,
+            }],
+            mean: vec![0.5; 6],
+            components: vec![vec![0.01; 6]],
+            component_region: vec![0],
+            coefficients: (0..frames).map(|f| f as f32).collect(),
+        }
+    }
+
+    #[test]
+    fn a_jump_fades_the_clips_animated_textures_with_their_weights() {
+        // A clip's animated texture reads its coefficients from the clip terms of the pose
+        // (`layer_inputs`): a jump's fade must keep the frozen pose's clip terms, or the
+        // texture would drop to the base colour for the whole fade while the weights fade.
+        use crowdmorph_core::rig::{Appearance, Material, layer_inputs};
+        let mut rig = crowdmorph_core::embedded::default_rig();
+        let frames = |name: &str| rig.clips[rig.clip_index(name).expect("clip")].frames;
+        let (talk, smile) = (frames("talk"), frames("smile"));
+        rig.appearance = Some(Arc::new(Appearance {
+            materials: vec![Material::default()],
+            clip_textures: vec![
+                Arc::new(frame_texture("talk", talk)),
+                Arc::new(frame_texture("smile", smile)),
+            ],
+            ..Appearance::default()
+        }));
+        let g = graph(&spec()).expect("graph");
+        let mut p = Player::new(&g, 0, Vec::new(), 5);
+        for _ in 0..3 {
+            p.advance(&g, &rig, 1.0 / 30.0);
+        }
+        let t = rig.targets.len();
+        // Per clip texture: the clip's share, then its one coefficient.
+        let shares = |p: &Player| {
+            let v = layer_inputs(&rig, &p.pose(&g, &rig), 0);
+            (v[t], v[t + 1], v[t + 2], v[t + 3])
+        };
+        let (talk_share, talk_c, ..) = shares(&p);
+        assert!(!p.fading() && talk_share == 1.0, "plays talk: {talk_share}");
+        p.jump(&g, &rig, 1);
+        // The first frame of the fade still shows talk's texture where it was.
+        assert_eq!(shares(&p), (1.0, talk_c, 0.0, 0.0));
+        let mut seen_mixed = false;
+        let mut steps = 0;
+        while p.fading_from_frozen() {
+            p.advance(&g, &rig, 1.0 / 30.0);
+            let (ts, tc, ss, sc) = shares(&p);
+            // The shares fade as the weights do, and always sum to one: the surface never
+            // falls back to the base colour.
+            assert!((ts + ss - 1.0).abs() < 1e-6, "shares {ts} + {ss}");
+            assert!(
+                (tc - ts * talk_c).abs() < 1e-3,
+                "talk's coefficient stays frozen"
+            );
+            let w = p.weights(&g, &rig);
+            let drawn = p.pose(&g, &rig).weights(&rig);
+            for (a, b) in w.iter().zip(&drawn) {
+                assert!((a - b).abs() < 2e-3, "the pose draws the fade's weights");
+            }
+            let _ = sc;
+            seen_mixed |= ts > 0.1 && ss > 0.1;
+            steps += 1;
+            assert!(steps < 2000, "the fade ends");
+        }
+        assert!(seen_mixed, "the fade blended the two textures");
+        assert_eq!(shares(&p).2, 1.0, "ends on smile's texture");
+        // A jump in the middle of a jump's fade keeps all the clip terms it shows.
+        p.jump(&g, &rig, 0);
+        p.advance(&g, &rig, 1.0 / 30.0);
+        p.jump(&g, &rig, 1);
+        let (ts, _, ss, _) = shares(&p);
+        assert!(
+            (ts + ss - 1.0).abs() < 1e-6 && ts > 0.0,
+            "the second jump froze a blend: {ts} + {ss}"
+        );
     }
 }

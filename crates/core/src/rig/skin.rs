@@ -388,6 +388,22 @@ impl Skeleton {
         }
     }
 
+    /// The local transforms a job's joint terms give, before its overrides: the rest pose
+    /// without terms, one clip frame's, or their blend ([`Skeleton::locals_blend`]).
+    pub fn locals_of(&self, terms: &[SkinTerm], out: &mut Vec<Trs>) {
+        match terms {
+            [] => self.locals_at(None, 0, out),
+            [one] if one.fraction == 1.0 => self.locals_at(one.table.as_deref(), one.frame, out),
+            terms => {
+                let terms: Vec<_> = terms
+                    .iter()
+                    .map(|t| (t.fraction, t.table.as_deref(), t.frame))
+                    .collect();
+                self.locals_blend(&terms, out);
+            }
+        }
+    }
+
     /// The local transforms of a blend: `terms` are (fraction, table, frame), fractions
     /// summing to one. Translations and scales are summed by fraction; rotations by nlerp
     /// (each term's quaternion flipped into the first term's hemisphere, summed, normalized).
@@ -766,19 +782,7 @@ impl SkinPoses {
     /// Resolves job `j`'s bone matrices into `scratch.bones`.
     pub fn bones(&self, j: usize, scratch: &mut BoneScratch) {
         let sk = &self.skeleton;
-        match self.jobs[j].as_slice() {
-            [] => sk.locals_at(None, 0, &mut scratch.locals),
-            [one] if one.fraction == 1.0 => {
-                sk.locals_at(one.table.as_deref(), one.frame, &mut scratch.locals)
-            }
-            terms => {
-                let terms: Vec<_> = terms
-                    .iter()
-                    .map(|t| (t.fraction, t.table.as_deref(), t.frame))
-                    .collect();
-                sk.locals_blend(&terms, &mut scratch.locals);
-            }
-        }
+        sk.locals_of(&self.jobs[j], &mut scratch.locals);
         if let Some(o) = self.overrides.get(j) {
             o.apply(sk, &mut scratch.locals);
         }
