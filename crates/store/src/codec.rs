@@ -16,8 +16,8 @@ use bytes::Bytes;
 pub use crowdmorph_proto::wire::put_varint;
 use crowdmorph_proto::wire::{self, WireError};
 use crowdmorph_proto::{BLOB_ALIGN, Format, FrameTimings, HeadBuffer, Quantization};
-use serde::Serialize;
 use serde::de::DeserializeOwned;
+use serde::{Deserialize, Serialize};
 
 /// Why a value could not be encoded or decoded.
 #[derive(Debug, thiserror::Error)]
@@ -96,6 +96,42 @@ fn decode_stored<T: DeserializeOwned, const LIMIT: usize>(
     bincode::serde::decode_from_slice(bytes, cfg)
 }
 
+/// [`from_stored_borrowed`] with decode limit `LIMIT`.
+fn borrow_stored<'a, T: Deserialize<'a>, const LIMIT: usize>(
+    bytes: &'a [u8],
+) -> Result<(T, usize), bincode::error::DecodeError> {
+    let cfg = bincode::config::standard().with_limit::<LIMIT>();
+    bincode::serde::borrow_decode_from_slice(bytes, cfg)
+}
+
+/// Calls `$decode::<_, LIMIT>($bytes)` with the decode limit for a record of `$bytes`' length
+/// (see [`from_stored`]), and checks that the record used every byte.
+macro_rules! stored_by_limit {
+    ($decode:ident, $bytes:expr) => {{
+        let bytes = $bytes;
+        let n = bytes.len();
+        let decoded = if n <= 1 << 20 {
+            $decode::<_, { 1 << 20 }>(bytes)
+        } else if n <= 1 << 24 {
+            $decode::<_, { 1 << 24 }>(bytes)
+        } else if n <= 1 << 28 {
+            $decode::<_, { 1 << 28 }>(bytes)
+        } else if n <= 1 << 32 {
+            $decode::<_, { 1 << 32 }>(bytes)
+        } else {
+            $decode::<_, STORED_DECODE_LIMIT>(bytes)
+        };
+        let (value, used) = decoded.map_err(|e| CodecError::Stored(e.to_string()))?;
+        if used != bytes.len() {
+            return Err(CodecError::Stored(format!(
+                "{} bytes after the record",
+                bytes.len() - used
+            )));
+        }
+        Ok(value)
+    }};
+}
+
 /// Decodes a record read from the store; the whole slice must be one record.
 ///
 /// bincode allocates a string or byte buffer of the length it reads before it reads the bytes,
@@ -104,26 +140,14 @@ fn decode_stored<T: DeserializeOwned, const LIMIT: usize>(
 /// 1 MiB, at most [`STORED_DECODE_LIMIT`]) refuses no valid record, and a damaged length
 /// allocates no more than that limit, not gigabytes.
 pub fn from_stored<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, CodecError> {
-    let n = bytes.len();
-    let decoded = if n <= 1 << 20 {
-        decode_stored::<T, { 1 << 20 }>(bytes)
-    } else if n <= 1 << 24 {
-        decode_stored::<T, { 1 << 24 }>(bytes)
-    } else if n <= 1 << 28 {
-        decode_stored::<T, { 1 << 28 }>(bytes)
-    } else if n <= 1 << 32 {
-        decode_stored::<T, { 1 << 32 }>(bytes)
-    } else {
-        decode_stored::<T, STORED_DECODE_LIMIT>(bytes)
-    };
-    let (value, used) = decoded.map_err(|e| CodecError::Stored(e.to_string()))?;
-    if used != bytes.len() {
-        return Err(CodecError::Stored(format!(
-            "{} bytes after the record",
-            bytes.len() - used
-        )));
-    }
-    Ok(value)
+    stored_by_limit!(decode_stored, bytes)
+}
+
+/// [`from_stored`] for a value that borrows its strings and byte strings from `bytes`
+/// (`&str`, `&[u8]`): a large byte section is read where it lies instead of being copied, so
+/// that decoding it from the record holds it once, not twice.
+pub fn from_stored_borrowed<'a, T: Deserialize<'a>>(bytes: &'a [u8]) -> Result<T, CodecError> {
+    stored_by_limit!(borrow_stored, bytes)
 }
 
 /// One unique buffer of a crowd-frame response, with its payloads as shared bytes.

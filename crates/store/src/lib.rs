@@ -919,7 +919,11 @@ fn read_rig_sections(
     let map: Option<JointMap> = s.take(S_JOINT_MAP)?;
     let look: Option<LookSection> = s.take(S_LOOK)?;
     let appearance: Option<AppearanceSection> = s.take(S_APPEARANCE)?;
-    let textures: Option<Vec<(String, Vec<u8>)>> = s.take(S_CLIP_TEXTURES)?;
+    // Borrowed from the payload: a texture's arrays are its floats verbatim, and its header's
+    // declared size is checked against the bytes it has before anything is allocated
+    // (`AnimatedTexture::from_bytes`), so decoding it holds its floats once beside the record
+    // — within the twice-the-file the loader charged before reading it.
+    let textures: Option<Vec<(&str, &[u8])>> = s.take_borrowed(S_CLIP_TEXTURES)?;
     let clips = decode_clips(clips, Some(r.targets.len()), file, skipped);
     let mut rig = RigRecordColors {
         name: r.name,
@@ -941,7 +945,7 @@ fn read_rig_sections(
     if let Some(textures) = textures.filter(|t| !t.is_empty()) {
         let mut a = rig.appearance.as_deref().cloned().unwrap_or_default();
         for (clip, bytes) in textures {
-            let t = crowdmorph_core::rig::AnimatedTexture::from_bytes(&clip, &bytes)
+            let t = crowdmorph_core::rig::AnimatedTexture::from_bytes(clip, bytes)
                 .map_err(|e| format!("clip {clip:?}: {e}"))?;
             a.clip_textures.push(std::sync::Arc::new(t));
         }

@@ -141,6 +141,20 @@ impl<'a> Sections<'a> {
             .map_err(|e| format!("{}: {} section: {e}", self.what, k.name))
     }
 
+    /// [`Sections::take`] for a value that borrows from the payload ([`codec::from_stored_borrowed`]).
+    pub fn take_borrowed<T: serde::Deserialize<'a>>(
+        &mut self,
+        k: Known,
+    ) -> Result<Option<T>, String> {
+        let Some(i) = self.found.iter().position(|(f, _)| f.tag == k.tag) else {
+            return Ok(None);
+        };
+        let (_, bytes) = self.found.swap_remove(i);
+        codec::from_stored_borrowed(bytes)
+            .map(Some)
+            .map_err(|e| format!("{}: {} section: {e}", self.what, k.name))
+    }
+
     /// Decodes section `k`, which the payload must have.
     pub fn require<T: DeserializeOwned>(&mut self, k: Known) -> Result<T, String> {
         self.take(k)?
