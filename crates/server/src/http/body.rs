@@ -87,6 +87,62 @@ pub async fn read_body(
     }
 }
 
+/// Reads a body that declares no length (chunked) within `limits`, asking `charge` for each
+/// piece's memory before keeping it: twice its length, the piece and its copy in the joined
+/// body. So an upload is charged for what arrives rather than for the most it could be, and an
+/// empty one costs nothing and reaches its route's own check. 413 past the size, 408 past the
+/// deadline, or `charge`'s error.
+pub async fn read_body_charged(
+    body: Body,
+    limits: BodyLimits,
+    mut charge: impl FnMut(u64) -> Result<(), ApiError>,
+) -> Result<Bytes, ApiError> {
+    let limit = limits.bytes;
+    let read = async {
+        let mut body = body;
+        let mut pieces: Vec<Bytes> = Vec::new();
+        let mut total = 0usize;
+        while let Some(frame) = body.frame().await {
+            let frame = frame.map_err(|e| {
+                ApiError::bad_request(
+                    "body_unreadable",
+                    format!("could not read the request body: {e}"),
+                )
+            })?;
+            let Ok(data) = frame.into_data() else {
+                continue;
+            };
+            total += data.len();
+            if total > limit {
+                return Err(ApiError::new(
+                    StatusCode::PAYLOAD_TOO_LARGE,
+                    "body_too_large",
+                    format!("request body is larger than the limit of {limit} bytes"),
+                ));
+            }
+            charge(2 * data.len() as u64)?;
+            pieces.push(data);
+        }
+        Ok(match pieces.len() {
+            0 => Bytes::new(),
+            1 => pieces.swap_remove(0),
+            _ => pieces.concat().into(),
+        })
+    };
+    tokio::time::timeout(limits.timeout, read)
+        .await
+        .map_err(|_| {
+            ApiError::new(
+                StatusCode::REQUEST_TIMEOUT,
+                "body_timeout",
+                format!(
+                    "the request body did not arrive within {} s",
+                    limits.timeout.as_secs_f32()
+                ),
+            )
+        })?
+}
+
 /// Keeps what a response holds (its memory charge) alive until its last byte has been sent.
 struct Owned<K> {
     bytes: Bytes,

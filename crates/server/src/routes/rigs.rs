@@ -7,7 +7,7 @@ use std::sync::Arc;
 
 use axum::body::Body;
 use axum::extract::{Path, State};
-use axum::http::{HeaderMap, StatusCode};
+use axum::http::{HeaderMap, StatusCode, header};
 use axum::response::IntoResponse;
 use bytes::Bytes;
 use crowdmorph_proto::{CONTENT_TYPE_JSON, RigList};
@@ -54,8 +54,9 @@ pub fn stored_form(
 }
 
 /// Reads a rig or clip upload: the upload size limit, the admin timeout. The body is charged
-/// to the upload's budget before it is read (its Content-Length, else the most an upload may
-/// send).
+/// to the upload's budget before it is read: its Content-Length up front, or without one
+/// (chunked) each piece before it is kept, so that a short or empty chunked upload is not
+/// refused for what it might have sent.
 pub async fn upload_body(
     state: &AppState,
     headers: &HeaderMap,
@@ -63,6 +64,18 @@ pub async fn upload_body(
     budget: &Budget,
 ) -> Result<Bytes, ApiError> {
     let limits = state.upload_limits();
+    if headers.get(header::CONTENT_LENGTH).is_none() {
+        // Chunked: charged as it arrives, not for the most it could be.
+        let mut read = 0u64;
+        return http::body::read_body_charged(body, limits, |n| {
+            read += n / 2;
+            budget
+                .charge(n, || format!("an upload body of {read} bytes so far"))
+                .map(drop)
+                .map_err(|e| ApiError::budget(e, "upload_too_large"))
+        })
+        .await;
+    }
     let declared = http::body::declared_length(headers, limits.bytes);
     budget
         .charge(declared, || format!("an upload body of {declared} bytes"))
