@@ -699,12 +699,18 @@ async fn vertex_colours_reach_the_mesh_in_linear_rgba() {
 
 /// The triangle rig with a textured material and a 3-frame clip `talk`, uploaded as `id`.
 async fn rig_with_clip(server: &TestServer, id: &str) {
-    let client = &server.client;
-    client
+    server
+        .client
         .upload_rig(id, triangle_with_image(&png_of(8, 8), "image/png"))
         .await
         .expect("rig");
-    client
+    add_talk_clip(server, id).await;
+}
+
+/// Clip `talk` of three frames on rig `id`.
+async fn add_talk_clip(server: &TestServer, id: &str) {
+    server
+        .client
         .upload_clip(
             id,
             "name=talk",
@@ -769,6 +775,48 @@ async fn refused_texture(
     let code = v["error"]["code"].as_str().unwrap_or("").to_string();
     let message = v["error"]["message"].as_str().unwrap_or("").to_string();
     (status, code, message)
+}
+
+/// `PUT`s a texture as an HTTP/1.1 chunked body of `body` in two pieces (none when empty),
+/// over a raw socket: the status, error code and message.
+async fn chunked_texture(
+    server: &TestServer,
+    id: &str,
+    clip: &str,
+    body: &[u8],
+) -> (u16, String, String) {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut req = format!(
+        "PUT /v1/rigs/{id}/clips/{clip}/texture HTTP/1.1\r\nHost: x\r\n\
+         Content-Type: application/octet-stream\r\nAccept: application/json\r\n\
+         Transfer-Encoding: chunked\r\nConnection: close\r\n\r\n"
+    )
+    .into_bytes();
+    let (a, b) = body.split_at(body.len() / 2);
+    for piece in [a, b].into_iter().filter(|p| !p.is_empty()) {
+        req.extend(format!("{:x}\r\n", piece.len()).bytes());
+        req.extend(piece);
+        req.extend(b"\r\n");
+    }
+    req.extend(b"0\r\n\r\n");
+    let mut sock = tokio::net::TcpStream::connect(server.addr)
+        .await
+        .expect("connect");
+    sock.write_all(&req).await.expect("send");
+    let mut out = Vec::new();
+    sock.read_to_end(&mut out).await.expect("answer");
+    let text = String::from_utf8_lossy(&out).into_owned();
+    let status = text
+        .get(9..12)
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_default();
+    let json = text
+        .find("\r\n\r\n")
+        .and_then(|at| text.get(at + 4..))
+        .and_then(|b| serde_json::from_str::<serde_json::Value>(b).ok())
+        .unwrap_or_default();
+    let code = json["error"]["code"].as_str().unwrap_or("").to_string();
+    (status, code, text)
 }
 
 #[tokio::test]
@@ -846,6 +894,17 @@ async fn a_clips_animated_texture_is_accepted_and_hostile_ones_are_named_4xx() {
         "{message}"
     );
     assert!(message.contains("--max-upload-memory"), "{message}");
+    // Chunked bodies (no Content-Length) are charged as they arrive, not for the most an
+    // upload may send (which is past this server's upload memory): an empty one reaches the
+    // texture's own check, a good one is taken.
+    let (status, code, message) = chunked_texture(&server, "tri", "talk", &[]).await;
+    assert_eq!(
+        (status, code.as_str()),
+        (400, "invalid_texture"),
+        "an empty chunked body: {message}"
+    );
+    let (status, _, message) = chunked_texture(&server, "tri", "talk", &good).await;
+    assert_eq!(status, 200, "a chunked texture: {message}");
     // Unknown rig and clip: 404 before the body is read.
     let (status, code, _) = refused_texture(&server, "tri", "nope", good.clone()).await;
     assert_eq!((status, code.as_str()), (404, "unknown_clip"));
@@ -896,7 +955,13 @@ async fn a_clips_animated_texture_is_kept_across_a_restart() {
         after >= before + texture,
         "{before} + {texture} > {after} after a restart"
     );
-    let (status, _) = put_texture(&server, "tri", "talk", body).await;
+    // It comes back byte for byte in the form it was put, with an ETag and a 304.
+    let got = get_texture(&server, "tri", "talk", None).await;
+    assert_eq!((got.status, &got.body[..]), (200, &body[..]));
+    let etag = got.etag.expect("an ETag");
+    let again = get_texture(&server, "tri", "talk", Some(&etag)).await;
+    assert_eq!(again.status, 304);
+    let (status, _) = put_texture(&server, "tri", "talk", body.clone()).await;
     assert_eq!(status, 200);
     let again = server
         .client
@@ -909,6 +974,97 @@ async fn a_clips_animated_texture_is_kept_across_a_restart() {
         again < after + texture,
         "replaced, not added: {after} → {again}"
     );
+    // DELETE of the texture: the clip stays, its texture and memory go.
+    let r = delete(&server, "/v1/rigs/tri/clips/talk/texture").await;
+    assert_eq!(r, 204);
+    let gone = get_texture(&server, "tri", "talk", None).await;
+    assert_eq!(gone.status, 404);
+    assert!(gone.text.contains("unknown_texture"), "{}", gone.text);
+    let without = server
+        .client
+        .rig("tri")
+        .await
+        .expect("rig")
+        .memory
+        .host_bytes;
+    assert!(
+        without + texture <= again,
+        "the texture's {texture} B were released: {again} → {without}"
+    );
+    assert_eq!(
+        delete(&server, "/v1/rigs/tri/clips/talk/texture").await,
+        404
+    );
+    // Deleting the clip takes its texture along: a later clip of the same name and length
+    // does not inherit it, before or after a restart.
+    let (status, _) = put_texture(&server, "tri", "talk", body.clone()).await;
+    assert_eq!(status, 200);
+    assert_eq!(delete(&server, "/v1/rigs/tri/clips/talk").await, 204);
+    let gone = get_texture(&server, "tri", "talk", None).await;
+    assert!(gone.text.contains("unknown_clip"), "{}", gone.text);
+    server.stop().await;
+    let server = TestServer::start(stored_config(&dir)).await;
+    add_talk_clip(&server, "tri").await;
+    let gone = get_texture(&server, "tri", "talk", None).await;
+    assert_eq!(gone.status, 404);
+    assert!(gone.text.contains("unknown_texture"), "{}", gone.text);
+    let fresh = server
+        .client
+        .rig("tri")
+        .await
+        .expect("rig")
+        .memory
+        .host_bytes;
+    assert!(
+        fresh < before + texture,
+        "no texture came back: {before} + {texture} vs {fresh}"
+    );
     server.stop().await;
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A `GET` of a clip's texture: status, body, `ETag` and the body as text.
+struct GotTexture {
+    status: u16,
+    body: Bytes,
+    etag: Option<String>,
+    text: String,
+}
+
+async fn get_texture(
+    server: &TestServer,
+    id: &str,
+    clip: &str,
+    if_none_match: Option<&str>,
+) -> GotTexture {
+    let mut headers = vec![("accept", "application/octet-stream, application/json")];
+    if let Some(tag) = if_none_match {
+        headers.push(("if-none-match", tag));
+    }
+    let reply = server
+        .client
+        .send_with(
+            Method::GET,
+            &format!("/v1/rigs/{id}/clips/{clip}/texture"),
+            &headers,
+            Bytes::new(),
+        )
+        .await
+        .expect("an answer");
+    GotTexture {
+        status: reply.status,
+        text: String::from_utf8_lossy(&reply.body).into_owned(),
+        etag: reply.header("etag").map(str::to_string),
+        body: reply.body,
+    }
+}
+
+/// The status of a `DELETE` of `path`.
+async fn delete(server: &TestServer, path: &str) -> u16 {
+    server
+        .client
+        .send(Method::DELETE, path, None, None, Bytes::new())
+        .await
+        .expect("an answer")
+        .status
 }

@@ -326,7 +326,9 @@ fn resources() -> Router<AppState> {
         )
         .route(
             "/v1/rigs/{id}/clips/{clip}/texture",
-            put(routes::clips::put_clip_texture),
+            put(routes::clips::put_clip_texture)
+                .get(routes::clips::get_clip_texture)
+                .delete(routes::clips::delete_clip_texture),
         )
         .route("/v1/crowd/frame", post(routes::frames::crowd_frame))
         .route("/v1/crowd/render", post(routes::render::crowd_render))

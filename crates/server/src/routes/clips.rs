@@ -1,12 +1,13 @@
 //! Clips of a rig: `POST /v1/rigs/{id}/clips` (CSV, JSON or glTF animations, matched to the
-//! rig's targets, each source kind by its own import), `GET` a list or one, `DELETE` one, and
-//! `PUT /v1/rigs/{id}/clips/{clip}/texture`: the clip's animated texture (PCA, beside it).
+//! rig's targets, each source kind by its own import), `GET` a list or one, `DELETE` one (with
+//! its texture), and `PUT`/`GET`/`DELETE /v1/rigs/{id}/clips/{clip}/texture`: the clip's
+//! animated texture (PCA, beside it).
 
 use std::sync::Arc;
 
 use axum::body::Body;
 use axum::extract::{Path, State};
-use axum::http::{HeaderMap, StatusCode};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::IntoResponse;
 use crowdmorph_proto::{CONTENT_TYPE_JSON, ClipInfo, ClipList, ClipUpload, Quantization};
 
@@ -386,21 +387,30 @@ pub async fn delete_clip(
     }
     let engine = state.engine.clone();
     let base = entry.clone();
-    let (rig, prepared, qbox) = blocking(move || {
+    let name = clip.clone();
+    let (rig, prepared, qbox, had_texture) = blocking(move || {
         let mut new = base.rig().clone();
         new.clips.remove(ci);
+        // Its animated texture goes with it: nothing plays it any more, and a later clip of
+        // the same name must not inherit it.
+        let had_texture = without_clip_texture(&mut new, &name);
         let new = Arc::new(new);
         let prepared = engine
             .update_clips(&base.prepared, new.clone())
             .map_err(|e| prepare_error(e, "clip_too_large"))?;
         let qbox = quantization_box(&new);
-        Ok((new, prepared, qbox))
+        Ok((new, prepared, qbox, had_texture))
     })
     .await?;
-    // Only the file that held the clip is rewritten: its clip file, or the rig's record.
+    // Only the file that held the clip is rewritten: its clip file, or the rig's record — and
+    // the record first when it held the clip's texture (a stop between the two leaves the
+    // clip without its texture, never a texture whose clip is gone).
     let layout = entry.layout.without(&clip);
     match entry.layout.file_of(&clip) {
         Some(seq) => {
+            if had_texture {
+                persist_record(&state, &id, rig.clone(), entry.builtin, &layout).await?;
+            }
             let rest = layout
                 .files
                 .iter()
@@ -536,4 +546,124 @@ pub async fn put_clip_texture(
     crowdmorph_core::budget::return_freed_memory();
     tracing::info!(rig = %id, clip = %clip, components = reply.components, "clip texture set");
     Accept::of(&headers).reply(StatusCode::OK, &reply)
+}
+
+/// Removes clip `clip`'s animated texture from `rig`'s appearance; whether it had one.
+fn without_clip_texture(rig: &mut Rig, clip: &str) -> bool {
+    let Some(a) = rig.appearance.as_deref() else {
+        return false;
+    };
+    if !a.clip_textures.iter().any(|t| t.clip == clip) {
+        return false;
+    }
+    let mut a = a.clone();
+    a.clip_textures.retain(|t| t.clip != clip);
+    rig.appearance = Some(Arc::new(a));
+    true
+}
+
+/// Clip `clip`'s animated texture in `entry`, or the 404 that names what exists.
+fn clip_texture(entry: &RigEntry, id: &str, clip: &str) -> Result<Arc<AnimatedTexture>, ApiError> {
+    entry
+        .clip_index(clip)
+        .ok_or_else(|| unknown_clip(entry, clip))?;
+    entry
+        .rig()
+        .appearance
+        .as_deref()
+        .and_then(|a| a.clip_textures.iter().find(|t| t.clip == clip))
+        .cloned()
+        .ok_or_else(|| {
+            ApiError::not_found(
+                "unknown_texture",
+                format!(
+                    "clip {clip:?} of rig {id:?} has no animated texture \
+                     (PUT /v1/rigs/{id}/clips/{clip}/texture sets one)"
+                ),
+            )
+        })
+}
+
+/// `GET /v1/rigs/{id}/clips/{clip}/texture`: the clip's animated texture in the byte form
+/// `PUT` takes (`AnimatedTexture::to_bytes`, proto/README.md), so that a texture can be
+/// fetched, kept and put back or onto another rig. Its bytes are charged to the queue memory
+/// before they are written; the `ETag` is their checksum (a 304 to `If-None-Match`).
+pub async fn get_clip_texture(
+    State(state): State<AppState>,
+    _ready: Ready,
+    Path((id, clip)): Path<(String, String)>,
+    headers: HeaderMap,
+) -> ApiResult {
+    let entry = state.rig(&id)?;
+    let texture = clip_texture(&entry, &id, &clip)?;
+    let names: u64 = texture.regions.iter().map(|r| r.name.len() as u64).sum();
+    let held = state.queue_memory.reserve(texture.bytes() + 64 + names)?;
+    let bytes = blocking(move || Ok(texture.to_bytes())).await?;
+    let quoted = format!("\"{:08x}-{}\"", crc32fast::hash(&bytes), bytes.len());
+    let etag = HeaderValue::from_str(&quoted).map_err(ApiError::internal)?;
+    let no_cache = HeaderValue::from_static("no-cache");
+    let matches = headers
+        .get(header::IF_NONE_MATCH)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.split(',').any(|t| t.trim() == quoted || t.trim() == "*"));
+    if matches {
+        return Ok((
+            StatusCode::NOT_MODIFIED,
+            [(header::ETAG, etag), (header::CACHE_CONTROL, no_cache)],
+        )
+            .into_response());
+    }
+    let response = (
+        StatusCode::OK,
+        [
+            (
+                header::CONTENT_TYPE,
+                HeaderValue::from_static("application/octet-stream"),
+            ),
+            (header::ETAG, etag),
+            (header::CACHE_CONTROL, no_cache),
+        ],
+        Body::from(bytes),
+    )
+        .into_response();
+    Ok(crate::http::body::hold(response, held))
+}
+
+/// `DELETE /v1/rigs/{id}/clips/{clip}/texture`: the clip plays with its material's own base
+/// colour again; the rig's next generation is stored and published without the texture, and
+/// its arrays are released with the earlier generation.
+pub async fn delete_clip_texture(
+    State(state): State<AppState>,
+    _admin: Admin,
+    _ready: Ready,
+    Path((id, clip)): Path<(String, String)>,
+) -> ApiResult {
+    let _admin = state.admin.lock().await;
+    let entry = state.rig(&id)?;
+    clip_texture(&entry, &id, &clip)?;
+    let engine = state.engine.clone();
+    let current = entry.clone();
+    let name = clip.clone();
+    let (rig, prepared, qbox) = blocking(move || {
+        let mut new = current.rig().clone();
+        without_clip_texture(&mut new, &name);
+        let new = Arc::new(new);
+        let prepared = engine
+            .update_clips(&current.prepared, new.clone())
+            .map_err(|e| prepare_error(e, "texture_too_large"))?;
+        let qbox = quantization_box(&new);
+        Ok((new, prepared, qbox))
+    })
+    .await?;
+    persist_record(&state, &id, rig, entry.builtin, &entry.layout).await?;
+    state.registry.insert(Arc::new(entry.successor(
+        prepared,
+        qbox,
+        entry.layout.clone(),
+        state.registry.generation(),
+        None,
+    )));
+    crowdmorph_core::budget::return_freed_memory();
+    tracing::info!(rig = %id, clip = %clip, "clip texture deleted");
+    Ok(StatusCode::NO_CONTENT.into_response())
 }
