@@ -26,7 +26,8 @@ pub struct ServerConfig {
     /// DELETE /v1/rigs/{id}/joint-map, PUT /v1/rigs/{id}/graphs/{name}, POST
     /// /v1/rigs/{id}/graphs/{name}, DELETE /v1/rigs/{id}/graphs/{name}, POST
     /// /v1/rigs/{id}/clips, DELETE /v1/rigs/{id}/clips/{clip}, PUT
-    /// /v1/rigs/{id}/clips/{clip}/texture, POST /v1/sessions, PUT
+    /// /v1/rigs/{id}/clips/{clip}/texture, DELETE /v1/rigs/{id}/clips/{clip}/texture, POST
+    /// /v1/sessions, PUT
     /// /v1/sessions/{id}, PATCH /v1/sessions/{id}, DELETE /v1/sessions/{id}, POST /v1/loadtest
     /// and GET /v1/loadtest/{id}. Open when unset; crowd frames, renders, the other GETs and
     /// session streams never need it.
