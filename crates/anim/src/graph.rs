@@ -26,7 +26,7 @@ use crowdmorph_proto::{GraphPlay, MotionGraph};
 use glam::{DMat4, Quat, Vec3};
 
 use crowdmorph_core::cancel::{Cancel, Cancelled};
-use crowdmorph_core::rig::{JointPose, JointSet, MAX_TERMS, Pose, Rig, T_ONE, Term, Trs};
+use crowdmorph_core::rig::{JointPose, MAX_TERMS, Pose, Rig, T_ONE, Term, Trs};
 use crowdmorph_core::rng::SplitMix64;
 
 /// Most nodes a graph may have.
@@ -834,22 +834,7 @@ impl Player {
         // nodes where the fade shows something else need an override.
         let mut given = Vec::with_capacity(sk.nodes.len());
         sk.locals_of(&self.pose(g, rig).skin_terms(rig), &mut given);
-        JointPose::new(
-            locals
-                .iter()
-                .zip(&given)
-                .enumerate()
-                .filter(|(_, (l, g))| l != g)
-                .map(|(i, (l, _))| {
-                    JointSet::new(
-                        i as u32,
-                        Some(l.translation),
-                        Some(l.rotation),
-                        Some(l.scale),
-                    )
-                })
-                .collect(),
-        )
+        JointPose::from_locals(&locals, &given)
     }
 
     fn weights_with(&self, g: &Graph, rig: &Rig, f: &Fade) -> Vec<f32> {
@@ -1629,7 +1614,7 @@ mod tests {
             .iter()
             .position(|n| n.name == "Head")
             .expect("a Head joint") as u32;
-        let turn = JointPose::new(vec![JointSet::new(
+        let turn = JointPose::new(vec![crowdmorph_core::rig::JointSet::new(
             head,
             None,
             Some(Quat::from_rotation_y(0.8).to_array()),

@@ -29,6 +29,7 @@ mod clip;
 mod cost;
 mod joint_lod;
 mod joint_map;
+mod layer;
 mod lod;
 mod mesh_level;
 mod pca;
@@ -50,6 +51,10 @@ pub use cost::{CPU_BLOCK, PrimShape, RigCost, RigShape, SkinShape};
 pub use joint_lod::{JointLevel, JointLod, REFERENCE_TURN, drop_fraction};
 pub use joint_map::{
     JointChannel, JointMap, LIVE_LINK_COLUMNS, MAX_JOINT_CHANNELS, rest_rotations,
+};
+pub use layer::{
+    LayerMode, MAX_POSE_LAYERS, PoseLayer, Selection, builtin_mask, clamp_weights, layer_locals,
+    layer_weights,
 };
 pub use lod::{
     IMPORT_LOD_METHOD, Lod, LodError, LodLevel, MeshLevel, MeshLevelPrimitive, default_lod_levels,

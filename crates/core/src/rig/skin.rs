@@ -677,6 +677,27 @@ impl JointPose {
         }
     }
 
+    /// Overrides that make `given` (what a job's pose gives each node) into `locals`: every
+    /// node whose transform differs, set whole.
+    pub fn from_locals(locals: &[Trs], given: &[Trs]) -> JointPose {
+        JointPose::new(
+            locals
+                .iter()
+                .zip(given)
+                .enumerate()
+                .filter(|(_, (l, g))| l != g)
+                .map(|(i, (l, _))| {
+                    JointSet::new(
+                        i as u32,
+                        Some(l.translation),
+                        Some(l.rotation),
+                        Some(l.scale),
+                    )
+                })
+                .collect(),
+        )
+    }
+
     /// Heap bytes it holds (for queue-memory charges).
     pub fn heap_bytes(&self) -> u64 {
         self.0
