@@ -266,6 +266,169 @@ pub struct Head {
     /// its clip, blend or weights pose (`{"LeftEye": {"rotation": [x, y, z, w]}}`).
     #[serde(default)]
     pub joints: JointOverrides,
+    /// Up to [`MAX_HEAD_LAYERS`] layers applied in order over the head's base (its clip frame
+    /// with its blend, or its live weights): see [`Layer`].
+    #[serde(default)]
+    pub layers: Vec<Layer>,
+    /// With `weights` and a `clip`: whether the weights replace the targets they name (an
+    /// override layer masked to those names, the default) or are added to them. They apply
+    /// after the layers: live input is on top.
+    #[serde(default)]
+    pub weights_mode: LayerMode,
+    /// Every final weight clamped into `[lo, hi]`, after layers and weights.
+    #[serde(default)]
+    pub clamp: Option<[f32; 2]>,
+}
+
+/// Most layers one head may have.
+pub const MAX_HEAD_LAYERS: usize = 8;
+
+/// One layer over a head's base pose: frame `frame` of clip `clip` applied to the targets its
+/// `mask` selects (every target without one) by `weight`, by override
+/// (`w ← (1 − a)·w + a·layer`, `a = weight × mask`) or by addition
+/// (`w ← w + a·(layer − reference)`, the reference frame `reference` of the same clip or, absent,
+/// the neutral). On a skinned rig the clip's joints are layered too (rotations by slerp; an
+/// additive layer adds its rotation relative to the reference), on the nodes `joint_mask`
+/// names (every node the clip animates without one).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Layer {
+    /// Clip name within the head's rig.
+    pub clip: String,
+    /// Frame, wrapped or clamped like the head's own (session heads: frames from the session
+    /// clock's frame).
+    #[serde(default)]
+    pub frame: i64,
+    /// Weight in [0, 1] (default 1).
+    #[serde(default = "one")]
+    pub weight: f32,
+    /// Override (default) or additive.
+    #[serde(default)]
+    pub mode: LayerMode,
+    /// Which targets, and how much of each.
+    #[serde(default)]
+    pub mask: Option<Mask>,
+    /// Additive layers: the frame of the layer's clip it is measured from (absent: the
+    /// neutral, every weight 0).
+    #[serde(default)]
+    pub reference: Option<i64>,
+    /// Skeleton nodes the layer may move (absent: every node its clip animates).
+    #[serde(default)]
+    pub joint_mask: Option<Vec<String>>,
+}
+
+impl Layer {
+    /// A layer of `weight` × frame `frame` of `clip`, override, unmasked.
+    pub fn over(clip: &str, frame: i64, weight: f32) -> Layer {
+        Layer {
+            clip: clip.into(),
+            frame,
+            weight,
+            mode: LayerMode::Override,
+            mask: None,
+            reference: None,
+            joint_mask: None,
+        }
+    }
+}
+
+/// How a layer (or a head's weights over its clip) combines with what is below it.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LayerMode {
+    /// Replace, by the layer's weight (variant 0).
+    #[default]
+    Override,
+    /// Add the difference from the reference (variant 1).
+    Additive,
+}
+
+/// A layer's targets. In JSON: an array of target names (each at 1), an object of names to
+/// weights in [0, 1], or a string: a built-in mask (`upper_face`, `lower_face`, `eyes`,
+/// `brows`, `mouth`, over ARKit's names in any loose spelling). In bincode an enum: variant 0
+/// `Names(Vec<String>)`, 1 `Weights(Vec<(String, f32)>)`, 2 `Named(String)`.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Mask {
+    /// These targets, each at 1.
+    Names(Vec<String>),
+    /// These targets, each at its weight.
+    Weights(Vec<(String, f32)>),
+    /// A built-in mask by name.
+    Named(String),
+}
+
+/// [`Mask`] as bincode carries it.
+#[derive(Serialize, Deserialize)]
+enum MaskWire {
+    Names(Vec<String>),
+    Weights(Vec<(String, f32)>),
+    Named(String),
+}
+
+impl Serialize for Mask {
+    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        use serde::ser::SerializeMap;
+        if !s.is_human_readable() {
+            let wire = match self.clone() {
+                Mask::Names(n) => MaskWire::Names(n),
+                Mask::Weights(w) => MaskWire::Weights(w),
+                Mask::Named(n) => MaskWire::Named(n),
+            };
+            return wire.serialize(s);
+        }
+        match self {
+            Mask::Names(n) => n.serialize(s),
+            Mask::Named(n) => n.serialize(s),
+            Mask::Weights(w) => {
+                let mut m = s.serialize_map(Some(w.len()))?;
+                for (k, v) in w {
+                    m.serialize_entry(k, v)?;
+                }
+                m.end()
+            }
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for Mask {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Mask, D::Error> {
+        if !d.is_human_readable() {
+            return MaskWire::deserialize(d).map(|w| match w {
+                MaskWire::Names(n) => Mask::Names(n),
+                MaskWire::Weights(w) => Mask::Weights(w),
+                MaskWire::Named(n) => Mask::Named(n),
+            });
+        }
+        struct V;
+        impl<'de> Visitor<'de> for V {
+            type Value = Mask;
+            fn expecting(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+                f.write_str(
+                    "a mask: an array of target names, an object of names to weights, or a \
+                     built-in mask's name",
+                )
+            }
+            fn visit_str<E: de::Error>(self, v: &str) -> Result<Mask, E> {
+                Ok(Mask::Named(v.to_string()))
+            }
+            fn visit_seq<A: SeqAccess<'de>>(self, mut a: A) -> Result<Mask, A::Error> {
+                // Capped while decoding: the server charges the body before it decodes it.
+                let mut v = Vec::with_capacity(a.size_hint().unwrap_or(0).min(256));
+                while let Some(n) = a.next_element::<String>()? {
+                    v.push(n);
+                }
+                Ok(Mask::Names(v))
+            }
+            fn visit_map<A: de::MapAccess<'de>>(self, mut m: A) -> Result<Mask, A::Error> {
+                let mut v = Vec::with_capacity(m.size_hint().unwrap_or(0).min(256));
+                while let Some((k, w)) = m.next_entry::<String, f32>()? {
+                    v.push((k, w));
+                }
+                Ok(Mask::Weights(v))
+            }
+        }
+        d.deserialize_any(V)
+    }
 }
 
 impl Head {

@@ -138,6 +138,63 @@ fn animated_crowd_frame_request() {
     assert_eq!(short, r);
 }
 
+fn layered_request() -> CrowdFrameRequest {
+    CrowdFrameRequest {
+        heads: vec![Head {
+            layers: vec![
+                Layer {
+                    mask: Some(Mask::Named("lower_face".into())),
+                    ..Layer::over("smile", 5, 0.5)
+                },
+                Layer {
+                    mode: LayerMode::Additive,
+                    reference: Some(0),
+                    mask: Some(Mask::Weights(vec![("eyeBlinkLeft".into(), 0.75)])),
+                    ..Layer::over("surprise", 20, 1.0)
+                },
+                Layer {
+                    mask: Some(Mask::Names(vec!["jawOpen".into()])),
+                    joint_mask: Some(vec!["Head".into()]),
+                    ..Layer::over("talk", -1, 0.25)
+                },
+            ],
+            weights: Some(Box::new(LiveWeights::Named(vec![("jawOpen".into(), 0.5)]))),
+            weights_mode: LayerMode::Additive,
+            clamp: Some([0.0, 1.0]),
+            ..Head::playing(11, "default-head", "talk", 3)
+        }],
+        output: OutputOptions::default(),
+        wrap: true,
+    }
+}
+
+#[test]
+fn layered_crowd_frame_request() {
+    let r = layered_request();
+    let bin = to_bincode(&r).unwrap();
+    check("crowd_frame_request_layered.bincode", &bin);
+    assert_eq!(request_from_bincode::<CrowdFrameRequest>(&bin).unwrap(), r);
+    let json = serde_json::to_vec(&r).unwrap();
+    check("crowd_frame_request_layered.json", &json);
+    assert_eq!(
+        serde_json::from_slice::<CrowdFrameRequest>(&json).unwrap(),
+        r
+    );
+    // Humans leave out the defaults (weight 1, override) and spell masks three ways.
+    let short: CrowdFrameRequest = serde_json::from_str(
+        r#"{"heads":[{"head":11,"rig":"default-head","clip":"talk","frame":3,
+            "layers":[
+                {"clip":"smile","frame":5,"weight":0.5,"mask":"lower_face"},
+                {"clip":"surprise","frame":20,"mode":"additive","reference":0,
+                 "mask":{"eyeBlinkLeft":0.75}},
+                {"clip":"talk","frame":-1,"weight":0.25,"mask":["jawOpen"],
+                 "joint_mask":["Head"]}],
+            "weights":{"jawOpen":0.5},"weights_mode":"additive","clamp":[0,1]}]}"#,
+    )
+    .unwrap();
+    assert_eq!(short, r);
+}
+
 #[test]
 fn crowd_frame_request() {
     let r = request();

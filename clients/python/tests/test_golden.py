@@ -24,6 +24,7 @@ from _util import f32, flat, norm_floats
 GOLDEN = {
     "crowd_frame_request": messages.CrowdFrameRequest,
     "crowd_frame_request_animated": messages.CrowdFrameRequest,
+    "crowd_frame_request_layered": messages.CrowdFrameRequest,
     "crowd_frame_response": messages.CrowdFrameResponse,
     "crowd_frame_response_q16r": messages.CrowdFrameResponse,
     "rig_info": messages.RigInfo,
@@ -117,10 +118,11 @@ def test_the_worked_example_request_is_built_from_python_values():
         wrap=True,
     )
     raw = (PROTO_GOLDEN / "crowd_frame_request.bincode").read_bytes()
-    assert len(raw) == 54
+    assert len(raw) == 60
     assert wire.encode(req) == raw
-    # Each head ends in 00 00 00: blend = [], weights = None, joints = [].
-    assert raw[: 1 + 1 + 13 + 5 + 1 + 1 + 3].endswith(b"\x18\x00\x00\x00\x00")
+    # Each head ends in six zero bytes: blend = [], weights = None, joints = [], layers = [],
+    # weights_mode = override, clamp = None.
+    assert raw[: 1 + 1 + 13 + 5 + 1 + 1 + 6].endswith(b"\x18\x00" + b"\x00" * 6)
     # The fast writer takes tuples and dicts to the same bytes.
     tuples = messages.CrowdFrameRequest(
         heads=[(7, "default-head", "talk", 12), {"head": 300, "rig": "default-head",
@@ -128,6 +130,33 @@ def test_the_worked_example_request_is_built_from_python_values():
         output=messages.OutputOptions(normals=False, format="f16"),
     )
     assert wire.encode(tuples) == raw
+
+
+def test_layers_of_a_crowd_head_decode_and_encode_like_the_rust_types():
+    raw = (PROTO_GOLDEN / "crowd_frame_request_layered.bincode").read_bytes()
+    req = wire.decode(messages.CrowdFrameRequest, raw)
+    (h,) = req.heads
+    assert [x.clip for x in h.layers] == ["smile", "surprise", "talk"]
+    assert h.layers[0].mask == "lower_face"
+    assert h.layers[1].mask == {"eyeBlinkLeft": 0.75} and h.layers[1].reference == 0
+    assert h.layers[1].mode == "additive"
+    assert h.layers[2].mask == ["jawOpen"] and h.layers[2].joint_mask == ["Head"]
+    assert (h.weights_mode, h.clamp) == ("additive", [0.0, 1.0])
+    layers = [
+        {"clip": "smile", "frame": 5, "weight": 0.5, "mask": "lower_face"},
+        {"clip": "surprise", "frame": 20, "mode": "additive", "reference": 0,
+         "mask": {"eyeBlinkLeft": 0.75}},
+        messages.Layer("talk", -1, 0.25, mask=["jawOpen"], joint_mask=["Head"]),
+    ]
+    head = messages.Head(11, "default-head", "talk", 3, weights={"jawOpen": 0.5},
+                         layers=layers, weights_mode="additive", clamp=[0, 1])
+    assert wire.encode(messages.CrowdFrameRequest([head])) == raw
+    as_dict = {"head": 11, "rig": "default-head", "clip": "talk", "frame": 3,
+               "weights": {"jawOpen": 0.5}, "layers": layers, "weights_mode": "additive",
+               "clamp": [0, 1]}
+    assert wire.encode(messages.CrowdFrameRequest([as_dict])) == raw
+    want = json.loads((PROTO_GOLDEN / "crowd_frame_request_layered.json").read_bytes())
+    assert messages.as_dict(head)["layers"] == want["heads"][0]["layers"]
 
 
 LEFT_EYE = {"LeftEye": messages.JointTransform(rotation=[0.0, 0.5, 0.0, 1.0])}

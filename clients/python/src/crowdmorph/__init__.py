@@ -39,6 +39,7 @@ from .errors import (
 from .messages import (
     Aabb,
     BlendLayer,
+    Layer,
     CameraSpec,
     ClipInfo,
     ClipList,
@@ -138,6 +139,7 @@ __all__ = [
     "StreamFrame",
     "Head",
     "BlendLayer",
+    "Layer",
     "JointTransform",
     "JointChannelSpec",
     "JointMapSpec",

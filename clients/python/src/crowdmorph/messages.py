@@ -250,6 +250,104 @@ _JOINT_TRANSFORM = Msg(JointTransform)
 JOINTS = _JointOverrides()
 
 
+class _Mask:
+    """A layer's ``Mask``: a list of target names (bincode variant 0), a dict of names to
+    weights in [0, 1] (variant 1), or a built-in mask's name such as ``"lower_face"`` (variant
+    2)."""
+
+    def read(self, r: Reader) -> Any:
+        at = r.pos
+        i = r.u32()
+        if i == 0:
+            return [r.string() for _ in range(r.length())]
+        if i == 1:
+            return {r.string(): r.f32() for _ in range(r.length())}
+        if i == 2:
+            return r.string()
+        raise DecodeError(f"variant {i} of Mask does not exist", at)
+
+    def write(self, w: Writer, v: Any) -> None:
+        if isinstance(v, str):
+            w.varint(2)
+            w.string(v)
+        elif isinstance(v, Mapping):
+            w.varint(1)
+            w.varint(len(v))
+            for name, x in v.items():
+                w.string(name)
+                w.f32(float(x))
+        else:
+            names = list(v)
+            w.varint(0)
+            w.varint(len(names))
+            for name in names:
+                w.string(name)
+
+
+LAYER_MODE = Enum("override", "additive")
+
+
+@wire(
+    ("clip", STR),
+    ("frame", I64),
+    ("weight", F32),
+    ("mode", LAYER_MODE),
+    ("mask", Opt(_Mask())),
+    ("reference", Opt(I64)),
+    ("joint_mask", Opt(Vec(STR))),
+)
+@dataclass
+class Layer:
+    """One layer over a head's base pose: ``frame`` of ``clip`` applied by ``weight`` to the
+    targets ``mask`` selects (all without one), by ``mode`` ``"override"`` (w ← (1 − a)·w +
+    a·layer) or ``"additive"`` (w ← w + a·(layer − reference), the reference a frame of the
+    same clip or the neutral); on a skinned rig also to the joints ``joint_mask`` names (all
+    the clip animates without one). ``proto/README.md``, "Layers and masks"."""
+
+    clip: str
+    frame: int = 0
+    weight: float = 1.0
+    mode: str = "override"
+    mask: Optional[Union[Sequence[str], Mapping[str, float], str]] = None
+    reference: Optional[int] = None
+    joint_mask: Optional[Sequence[str]] = None
+
+
+_LAYERS = Vec(Msg(Layer))
+class _Clamp:
+    """``Option<[f32; 2]>``: a fixed pair, no length."""
+
+    def read(self, r: Reader) -> Any:
+        at = r.pos
+        tag = r.u8()
+        if tag == 0:
+            return None
+        if tag == 1:
+            return [r.f32(), r.f32()]
+        raise DecodeError(f"option tag is {tag}, not 0 or 1", at)
+
+    def write(self, w: Writer, v: Any) -> None:
+        if v is None:
+            w.out.append(0)
+            return
+        lo, hi = v
+        w.out.append(1)
+        w.f32(float(lo))
+        w.f32(float(hi))
+
+
+CLAMP = _Clamp()
+
+
+def _of_head_layer(x: Any) -> Layer:
+    """A :class:`Layer` from itself or a dict with its keys."""
+    if isinstance(x, Layer):
+        return x
+    if isinstance(x, Mapping):
+        return Layer(**x)
+    raise TypeError(f"a layer is a Layer or a dict, not {type(x).__name__}")
+
+
 @wire(
     ("head", U64),
     ("rig", STR),
@@ -259,6 +357,9 @@ JOINTS = _JointOverrides()
     ("blend", _BLEND),
     ("weights", _WEIGHTS),
     ("joints", JOINTS),
+    ("layers", _LAYERS),
+    ("weights_mode", LAYER_MODE),
+    ("clamp", CLAMP),
 )
 @dataclass
 class Head:
@@ -268,7 +369,10 @@ class Head:
     or live ``weights`` instead of a clip (a dict by target name, or one per
     ``RigInfo.targets`` name); and, on a rig with a skeleton, ``joints``: local transforms of
     named nodes over that pose (``{"LeftEye": JointTransform(rotation=[0, 0.17, 0, 0.985])}``;
-    dicts with :class:`JointTransform`'s keys work too)."""
+    dicts with :class:`JointTransform`'s keys work too). Up to eight ``layers``
+    (:class:`Layer` or dicts) go over that pose in order; ``weights`` sent with a ``clip``
+    replace the targets they name (``weights_mode="additive"``: are added), after the layers;
+    ``clamp`` (``[lo, hi]``) bounds every final weight."""
 
     head: int
     rig: str
@@ -278,11 +382,16 @@ class Head:
     blend: List[BlendLayer] = field(default_factory=list)
     weights: Optional[Union[Mapping[str, float], Sequence[float]]] = None
     joints: Dict[str, JointTransform] = field(default_factory=dict)
+    layers: List[Layer] = field(default_factory=list)
+    weights_mode: str = "override"
+    clamp: Optional[Sequence[float]] = None
 
     def __post_init__(self) -> None:
         j = self.joints
         if type(j) is not dict or j:
             self.joints = joint_overrides(j)
+        if self.layers and any(type(x) is not Layer for x in self.layers):
+            self.layers = [_of_head_layer(x) for x in self.layers]
 
 
 @wire(("normals", BOOL), ("format", FORMAT))
@@ -316,9 +425,13 @@ class _HeadVec:
             blend: Any = ()
             weights: Any = None
             joints: Any = None
+            layers: Any = ()
+            weights_mode: Any = "override"
+            clamp: Any = None
             if type(h) is Head:
                 hid, rig, clip, frame, lod = h.head, h.rig, h.clip, h.frame, h.lod
                 blend, weights, joints = h.blend, h.weights, h.joints
+                layers, weights_mode, clamp = h.layers, h.weights_mode, h.clamp
             elif isinstance(h, (tuple, list)):
                 if len(h) == 4:
                     hid, rig, clip, frame = h
@@ -330,9 +443,12 @@ class _HeadVec:
                 clip, frame, lod = h.get("clip", ""), h.get("frame", 0), h.get("lod", 0)
                 blend, weights = h.get("blend", ()), h.get("weights")
                 joints = h.get("joints")
+                layers, clamp = h.get("layers", ()), h.get("clamp")
+                weights_mode = h.get("weights_mode", "override")
             elif isinstance(h, Head):
                 hid, rig, clip, frame, lod = h.head, h.rig, h.clip, h.frame, h.lod
                 blend, weights, joints = h.blend, h.weights, h.joints
+                layers, weights_mode, clamp = h.layers, h.weights_mode, h.clamp
             else:
                 raise TypeError(
                     "a head is a Head, a dict or a (head, rig, clip, frame[, lod]) tuple, "
@@ -375,6 +491,12 @@ class _HeadVec:
                 _BLEND.write(w, [_of_layer(b) for b in blend])
                 _WEIGHTS.write(w, weights)
                 JOINTS.write(w, joints)
+            if not layers and weights_mode == "override" and clamp is None:
+                out += b"\x00\x00\x00"  # layers = [], weights_mode = override, clamp = None
+            else:
+                _LAYERS.write(w, [_of_head_layer(x) for x in layers])
+                LAYER_MODE.write(w, weights_mode)
+                CLAMP.write(w, clamp)
 
 
 def _of_layer(b: Any) -> BlendLayer:
