@@ -251,10 +251,13 @@ async fn bad_blends_and_weights_are_400s_naming_the_field() {
             "dense weights",
         ),
         (
-            head(json!({"weights": {"jawOpen": 1}})),
+            // Weights over a clip are a layer (tests/server/layers.rs); a blend without a
+            // clip has nothing to blend.
+            json!({"head": 5, "rig": "default-head", "weights": {"jawOpen": 1},
+                   "blend": [{"clip": "smile", "frame": 0, "t": 0.5}]}),
             400,
             "invalid_weights",
-            "not both",
+            "need a clip",
         ),
     ];
     for (h, status, code, needle) in cases {

@@ -17,6 +17,7 @@ mod golden;
 mod graphs;
 mod hostile;
 mod joints;
+mod layers;
 mod loadtest;
 mod lod;
 mod metrics;

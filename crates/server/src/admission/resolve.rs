@@ -5,7 +5,10 @@
 use std::collections::HashMap;
 use std::sync::Arc;
 
-use crowdmorph_proto::{BlendLayer, Format, Head, JointOverrides, JointTransform, LiveWeights};
+use crowdmorph_proto::{
+    BlendLayer, Format, Head, JointOverrides, JointTransform, Layer, LayerMode, LiveWeights,
+    MAX_HEAD_LAYERS, Mask,
+};
 
 use crate::admission::memory::{Charge, QueueMemory};
 use crate::http::ApiError;
@@ -15,7 +18,8 @@ use crowdmorph_core::plan::{JobKey, Plan};
 use crowdmorph_core::rig::quoted_name;
 use crowdmorph_core::rig::{
     ACTIVE_WEIGHT_EPSILON, ARKIT_NAMES, FrameMode, JointPose, JointSet, MAX_BLEND_LAYERS,
-    MAX_JOINT_OVERRIDES, MAX_JOINT_VALUE, MAX_LIVE_WEIGHT, Pose, Rig, TargetId,
+    MAX_JOINT_OVERRIDES, MAX_JOINT_VALUE, MAX_LIVE_WEIGHT, Pose, PoseLayer, Rig, Selection,
+    TargetId, Trs, builtin_mask, clamp_weights, layer_locals, layer_weights,
 };
 use crowdmorph_import::clips::{checked_name, is_live_link_angle, loose};
 
@@ -138,7 +142,35 @@ fn animation_bytes(h: &Head) -> u64 {
                 + w.iter().map(|(n, _)| n.capacity() as u64).sum::<u64>()
         }
     };
-    layers + weights + joints_bytes(&h.joints)
+    layers + weights + joints_bytes(&h.joints) + head_layer_bytes(&h.layers)
+}
+
+/// Bytes a head's `layers` hold decoded (by capacity, with their names).
+fn head_layer_bytes(layers: &Vec<Layer>) -> u64 {
+    let text = |v: &String| v.capacity() as u64;
+    layers.capacity() as u64 * size_of::<Layer>() as u64
+        + layers
+            .iter()
+            .map(|l| {
+                let mask = match &l.mask {
+                    None => 0,
+                    Some(Mask::Names(n)) => {
+                        n.capacity() as u64 * size_of::<String>() as u64
+                            + n.iter().map(text).sum::<u64>()
+                    }
+                    Some(Mask::Weights(w)) => {
+                        w.capacity() as u64 * size_of::<(String, f32)>() as u64
+                            + w.iter().map(|(n, _)| text(n)).sum::<u64>()
+                    }
+                    Some(Mask::Named(n)) => text(n),
+                };
+                let joints = l.joint_mask.as_ref().map_or(0, |j| {
+                    j.capacity() as u64 * size_of::<String>() as u64
+                        + j.iter().map(text).sum::<u64>()
+                });
+                text(&l.clip) + mask + joints
+            })
+            .sum::<u64>()
 }
 
 /// Bytes a head's joint overrides hold decoded (by capacity, with their names).
@@ -489,7 +521,8 @@ impl<'h> Lookups<'h> {
             })
     }
 
-    /// Head `h`'s pose: its clip frame, blended with its layers, or its live weights.
+    /// Head `h`'s pose: its clip frame with its blend, or its live weights; with layers, live
+    /// weights over a clip or a clamp, the final weights those give, as live weights.
     fn pose(
         &mut self,
         h: usize,
@@ -497,18 +530,35 @@ impl<'h> Lookups<'h> {
         ri: u32,
         mode: FrameMode,
     ) -> Result<Pose, ApiError> {
-        if let Some(weights) = &head.weights {
-            if !head.clip.is_empty() || !head.blend.is_empty() {
-                return Err(invalid_weights(
-                    h,
-                    head,
-                    "weights drive the head instead of a clip: send weights, or clip and blend, \
-                     not both"
-                        .into(),
-                ));
-            }
-            return self.live_pose(h, head, ri, weights);
+        let over_clip = head.weights.is_some() && !head.clip.is_empty();
+        if head.layers.is_empty() && head.clamp.is_none() && !over_clip {
+            return match &head.weights {
+                Some(weights) => {
+                    if !head.blend.is_empty() {
+                        return Err(invalid_weights(
+                            h,
+                            head,
+                            "blend layers need a clip to blend: send weights with a clip (they \
+                             then apply over it), or a clip and blend"
+                                .into(),
+                        ));
+                    }
+                    self.live_pose(h, head, ri, weights)
+                }
+                None => self.clip_pose(h, head, ri, mode),
+            };
         }
+        self.layered_pose(h, head, ri, mode)
+    }
+
+    /// Head `h`'s clip frame, blended with its blend layers.
+    fn clip_pose(
+        &mut self,
+        h: usize,
+        head: &'h Head,
+        ri: u32,
+        mode: FrameMode,
+    ) -> Result<Pose, ApiError> {
         let ci = self.clip(h, head, &head.clip, ri)?;
         let frame = self.frame(h, head, ri, ci, head.frame, mode)?;
         if head.blend.is_empty() {
@@ -581,6 +631,288 @@ impl<'h> Lookups<'h> {
             None => self.charge = Some(more),
         }
         Ok(())
+    }
+
+    /// Head `h`'s final weights with its layers (`crowdmorph_core::rig::layer`): its base (its
+    /// clip frame with blend, else its live weights), its layers in order, then its weights
+    /// over the clip (replacing or adding to the channels they name), then its clamp; on a
+    /// skinned rig the base's joints are layered the same way and go along as overrides
+    /// (live weights pose no joint), taken by [`Lookups::joints`].
+    fn layered_pose(
+        &mut self,
+        h: usize,
+        head: &'h Head,
+        ri: u32,
+        mode: FrameMode,
+    ) -> Result<Pose, ApiError> {
+        let entry = self.rigs[ri as usize].clone();
+        let rig = entry.rig();
+        let channels = rig.targets.len();
+        let (base, live_angles) = match (&head.weights, head.clip.is_empty()) {
+            (Some(weights), true) => {
+                let p = self.live_pose(h, head, ri, weights)?;
+                (p, std::mem::take(&mut self.live_joints))
+            }
+            _ => (self.clip_pose(h, head, ri, mode)?, JointPose::NONE),
+        };
+        let layers = self.resolve_layers(h, head, ri, mode)?;
+        // The final weights, and the live pose built of them.
+        self.charge_more(2 * (16 + channels as u64 * 4))?;
+        let mut w = base.weights(rig);
+        layer_weights(rig, &mut w, &layers);
+        if let (Some(weights), false) = (&head.weights, head.clip.is_empty()) {
+            let named = self.live_values(h, head, ri, weights)?;
+            for &k in &named {
+                let k = k as usize;
+                match head.weights_mode {
+                    LayerMode::Override => w[k] = self.row[k],
+                    LayerMode::Additive => w[k] += self.row[k],
+                }
+            }
+            // Angles sent with the weights (left in `live_joints`) turn joints as they do
+            // without a clip: applied over the base's joints below.
+        }
+        if let Some([lo, hi]) = head.clamp {
+            if !(lo.is_finite() && hi.is_finite() && lo <= hi) {
+                return Err(invalid_layer(
+                    h,
+                    head,
+                    format!("clamp is [{lo}, {hi}]; it must be two finite numbers, lo ≤ hi"),
+                ));
+            }
+            clamp_weights(&mut w, [lo, hi]);
+        }
+        if let Some((k, v)) = w
+            .iter()
+            .enumerate()
+            .find(|(_, v)| !(v.is_finite() && v.abs() <= MAX_LIVE_WEIGHT))
+        {
+            return Err(invalid_layer(
+                h,
+                head,
+                format!(
+                    "the layers give target {} a weight of {v}; a weight must be finite, within \
+                     ±{MAX_LIVE_WEIGHT}",
+                    quoted_name(&rig.targets[k])
+                ),
+            ));
+        }
+        if let Some(sk) = &rig.skeleton {
+            // What the base pose gives each node, then its live angles, then the layers.
+            self.charge_more(3 * (16 + (sk.nodes.len() * size_of::<Trs>()) as u64))?;
+            let mut given = Vec::with_capacity(sk.nodes.len());
+            sk.locals_at(None, 0, &mut given);
+            let mut locals = Vec::with_capacity(sk.nodes.len());
+            sk.locals_of(&base.skin_terms(rig), &mut locals);
+            let angles = std::mem::take(&mut self.live_joints).overlay(&live_angles);
+            angles.apply(sk, &mut locals);
+            layer_locals(rig, sk, &mut locals, &layers);
+            let joints = JointPose::from_locals(&locals, &given);
+            self.charge_more(joint_pose_bytes(joints.sets().len()))?;
+            self.live_joints = joints;
+        }
+        Ok(Pose::live(&w))
+    }
+
+    /// Head `h`'s layers resolved against rig `ri`: clips, frames, weights, masks and joint
+    /// masks checked (400 `invalid_layer`, 404 `unknown_clip`, 400 `unknown_targets` or
+    /// `unknown_joints` naming the layer), their bytes charged before they are built.
+    fn resolve_layers(
+        &mut self,
+        h: usize,
+        head: &'h Head,
+        ri: u32,
+        mode: FrameMode,
+    ) -> Result<Vec<PoseLayer>, ApiError> {
+        if head.layers.len() > MAX_HEAD_LAYERS {
+            return Err(invalid_layer(
+                h,
+                head,
+                format!(
+                    "{} layers; a head has at most {MAX_HEAD_LAYERS}",
+                    head.layers.len()
+                ),
+            ));
+        }
+        let entry = self.rigs[ri as usize].clone();
+        let rig = entry.rig();
+        let mut bytes = (head.layers.len() * size_of::<PoseLayer>()) as u64;
+        for l in &head.layers {
+            let names = match &l.mask {
+                None => 0,
+                Some(Mask::Names(n)) => n.len(),
+                Some(Mask::Weights(w)) => w.len(),
+                // A built-in mask is ARKit's names at most, each up to a few channels.
+                Some(Mask::Named(_)) => ARKIT_NAMES.len(),
+            };
+            let joints = l.joint_mask.as_ref().map_or(0, Vec::len);
+            bytes += 32 + 8 * (names * 4 + joints) as u64;
+        }
+        if !head.layers.iter().all(|l| l.mask.is_none()) && !self.live.contains_key(&ri) {
+            bytes += LiveNames::bytes(rig);
+        }
+        self.charge_more(bytes)?;
+        let mut out = Vec::with_capacity(head.layers.len());
+        for (i, l) in head.layers.iter().enumerate() {
+            let bad = |m: String| invalid_layer(h, head, format!("layers[{i}]: {m}"));
+            if !(l.weight.is_finite() && (0.0..=1.0).contains(&l.weight)) {
+                return Err(bad(format!("weight is {}; it must be in [0, 1]", l.weight)));
+            }
+            let clip = self.clip(h, head, &l.clip, ri)?;
+            let frame = self.frame(h, head, ri, clip, l.frame, mode)?;
+            let reference = match (l.reference, l.mode) {
+                (None, _) => None,
+                (Some(r), LayerMode::Additive) => Some(self.frame(h, head, ri, clip, r, mode)?),
+                (Some(_), LayerMode::Override) => {
+                    return Err(bad(
+                        "reference applies to additive layers only (\"mode\": \"additive\")".into(),
+                    ));
+                }
+            };
+            let mask = match &l.mask {
+                None => None,
+                Some(m) => Some(self.mask(rig, ri, m).map_err(|(code, m)| {
+                    at_head(
+                        h,
+                        head,
+                        ApiError::bad_request(code, format!("layers[{i}].mask: {m}")),
+                    )
+                })?),
+            };
+            let joint_mask = match &l.joint_mask {
+                None => None,
+                Some(names) => {
+                    if rig.skeleton.is_none() {
+                        return Err(bad(format!(
+                            "joint_mask on rig {:?}, which has no skeleton",
+                            entry.id
+                        )));
+                    }
+                    let mut nodes = Vec::with_capacity(names.len());
+                    for n in names {
+                        let node = entry.joint_node(n).map_err(|why| {
+                            at_head(
+                                h,
+                                head,
+                                ApiError::bad_request(
+                                    "unknown_joints",
+                                    format!(
+                                        "layers[{i}].joint_mask names {}, {why}",
+                                        quoted_name(n)
+                                    ),
+                                ),
+                            )
+                        })?;
+                        nodes.push((node, 1.0));
+                    }
+                    nodes.sort_by_key(|n| n.0);
+                    nodes.dedup_by_key(|n| n.0);
+                    Some(Arc::from(nodes))
+                }
+            };
+            out.push(PoseLayer {
+                clip,
+                frame,
+                weight: l.weight,
+                mode: match l.mode {
+                    LayerMode::Override => crowdmorph_core::rig::LayerMode::Override,
+                    LayerMode::Additive => crowdmorph_core::rig::LayerMode::Additive,
+                },
+                mask,
+                reference,
+                joint_mask,
+            });
+        }
+        Ok(out)
+    }
+
+    /// A layer's mask as channels with their weights, ascending: names matched as live
+    /// weights match them (ARKit names the rig lacks are skipped: it cannot show them), a
+    /// built-in mask by name. The error is (code, message).
+    fn mask(
+        &mut self,
+        rig: &Rig,
+        ri: u32,
+        mask: &Mask,
+    ) -> Result<Selection, (&'static str, String)> {
+        let names = self.live.entry(ri).or_insert_with(|| LiveNames::new(rig));
+        let mut out: Vec<(u32, f32)> = Vec::new();
+        let mut add = |name: &str, w: f32, strict: bool| -> Result<(), (&'static str, String)> {
+            if !(w.is_finite() && (0.0..=1.0).contains(&w)) {
+                return Err((
+                    "invalid_layer",
+                    format!(
+                        "{} has weight {w}; a mask weight must be in [0, 1]",
+                        quoted_name(name)
+                    ),
+                ));
+            }
+            checked_name(name)
+                .map_err(|why| ("invalid_layer", format!("{}: {why}", quoted_name(name))))?;
+            let ids = names.ids(name);
+            if ids.is_empty() && strict && !is_arkit_name(name) {
+                return Err((
+                    "unknown_targets",
+                    format!("names {}, which the rig does not have", quoted_name(name)),
+                ));
+            }
+            out.extend(ids.iter().map(|&k| (k, w)));
+            Ok(())
+        };
+        match mask {
+            Mask::Names(list) => list.iter().try_for_each(|n| add(n, 1.0, true))?,
+            Mask::Weights(list) => list.iter().try_for_each(|(n, w)| add(n, *w, true))?,
+            Mask::Named(name) => match builtin_mask(name) {
+                Some(list) => list.iter().try_for_each(|n| add(n, 1.0, false))?,
+                None => {
+                    return Err((
+                        "invalid_layer",
+                        format!(
+                            "no mask named {}; the built-in masks are upper_face, lower_face, \
+                             eyes, brows and mouth",
+                            quoted_name(name)
+                        ),
+                    ));
+                }
+            },
+        }
+        out.sort_by_key(|m| m.0);
+        // A channel named twice keeps its last weight.
+        let mut merged: Vec<(u32, f32)> = Vec::with_capacity(out.len());
+        for m in out {
+            match merged.last_mut() {
+                Some(last) if last.0 == m.0 => *last = m,
+                _ => merged.push(m),
+            }
+        }
+        Ok(merged.into())
+    }
+
+    /// Head `h`'s live weights over its clip: `self.row` holds them, and the channels they
+    /// set are returned (every channel for dense weights).
+    fn live_values(
+        &mut self,
+        h: usize,
+        head: &Head,
+        ri: u32,
+        weights: &LiveWeights,
+    ) -> Result<Vec<u32>, ApiError> {
+        self.live_pose(h, head, ri, weights)?;
+        let entry = self.rigs[ri as usize].clone();
+        let rig = entry.rig();
+        Ok(match weights {
+            LiveWeights::Dense(_) => (0..rig.targets.len() as u32).collect(),
+            LiveWeights::Named(pairs) => {
+                let names = self.live.entry(ri).or_insert_with(|| LiveNames::new(rig));
+                let mut out: Vec<u32> = pairs
+                    .iter()
+                    .flat_map(|(n, _)| names.ids(n).iter().copied())
+                    .collect();
+                out.sort_unstable();
+                out.dedup();
+                out
+            }
+        })
     }
 
     /// Head `h`'s live weights as a pose, its bytes charged before it is built.
@@ -762,6 +1094,11 @@ pub fn joint_overrides(rig: &Rig, joints: &JointPose) -> JointOverrides {
             })
             .collect(),
     )
+}
+
+/// 400 `invalid_layer` about head `h`.
+fn invalid_layer(h: usize, head: &Head, message: String) -> ApiError {
+    at_head(h, head, ApiError::bad_request("invalid_layer", message))
 }
 
 /// 400 `invalid_blend` about head `h`.
