@@ -1063,6 +1063,7 @@ impl PlainViewer {
                             }
                         }
                         Ok(Received::Frame(_)) => panic!("the plain viewer got a frame"),
+                        Ok(Received::Layers(_)) => panic!("the plain viewer got layers"),
                         Err(e) => panic!("the plain viewer: {e}"),
                     },
                     Message::Close(c) => panic!("the plain viewer was closed: {c:?}"),
