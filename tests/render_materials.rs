@@ -1039,69 +1039,19 @@ gpu_test!(
     }
 );
 
-/// A PNG of `w × h` pixels of one colour.
-fn solid_png(w: u32, h: u32, rgb: [u8; 3]) -> Vec<u8> {
-    let mut out = Vec::new();
-    let mut e = png::Encoder::new(&mut out, w, h);
-    e.set_color(png::ColorType::Rgb);
-    e.set_depth(png::BitDepth::Eight);
-    let data: Vec<u8> = (0..w * h).flat_map(|_| rgb).collect();
-    e.write_header()
-        .expect("header")
-        .write_image_data(&data)
-        .expect("pixels");
-    out
-}
-
 gpu_test!(
     #[test]
     fn a_wrinkle_map_from_gltf_extras_is_imported_and_drawn_end_to_end() {
-        use crate::util::builder::Builder;
-        use base64::Engine as _;
+        use crate::util::wrinkle::{png, wrinkle_glb};
         use crowdmorph::import::ImportOptions;
         use crowdmorph::import::gltf::rig_from_slice;
         use crowdmorph::rig::Pose;
         use serde_json::json;
         let (base, wrinkle) = ([200u8, 60, 30], [20u8, 120, 230]);
-        // The quad of `quad` as a glTF primitive with TEXCOORD_0 and a target `brow` that
-        // barely moves it (toward the camera).
-        let mut b = Builder::new();
-        let positions = [
-            [-1.0, 1.0, 0.0],
-            [1.0, 1.0, 0.0],
-            [1.0, -1.0, 0.0],
-            [-1.0, -1.0, 0.0],
-        ];
-        let mut p = b.primitive(
-            &positions,
-            Some(&[0, 3, 2, 0, 2, 1]),
-            &[vec![[0.0, 0.0, 0.01]; 4]],
-        );
-        p["attributes"]["TEXCOORD_0"] =
-            json!(b.accessor_f32(&[0.0, 0.0, 1.0, 0.0, 1.0, 1.0, 0.0, 1.0], "VEC2"));
-        p["material"] = json!(0);
-        let mesh = b.mesh(vec![p], Some(&["brow"]));
-        let node = b.node(Some(mesh));
-        b.scene(&[node]);
-        let uri = |rgb| {
-            format!(
-                "data:image/png;base64,{}",
-                base64::engine::general_purpose::STANDARD.encode(solid_png(4, 4, rgb))
-            )
-        };
-        let j = b.json_mut();
-        j["images"] = json!([{ "uri": uri(base) }, { "uri": uri(wrinkle) }]);
-        j["textures"] = json!([{ "source": 0 }, { "source": 1 }]);
-        j["extensionsUsed"] = json!(["KHR_materials_unlit"]);
-        j["materials"] = json!([{
-            "pbrMetallicRoughness": { "baseColorTexture": { "index": 0 } },
-            "extensions": { "KHR_materials_unlit": {} },
-            "extras": { "crowdmorph": { "targetTextures": [
-                { "target": "brow", "baseColorTexture": { "index": 1, "texCoord": 0 } },
-                { "target": "noSuchTarget", "baseColorTexture": { "index": 1 } }
-            ] } }
-        }]);
-        let rig = rig_from_slice(&b.to_glb(), &ImportOptions::default()).expect("import");
+        // A quad with TEXCOORD_0 and a target `brow` that barely moves it (toward the
+        // camera).
+        let glb = wrinkle_glb(&png(4, 4, |_, _| base), &png(4, 4, |_, _| wrinkle), 0.01);
+        let rig = rig_from_slice(&glb, &ImportOptions::default()).expect("import");
         let a = rig.appearance.as_deref().expect("an appearance");
         assert_eq!(a.target_textures.len(), 2);
         assert_eq!(a.target_textures[0].target, "brow");

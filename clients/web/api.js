@@ -59,6 +59,11 @@ export class Api {
     return this.request('GET', `/v1/rigs/${encodeURIComponent(id)}/materials`);
   }
 
+  /** The rig's expression layers: per material its layers and the URI of its texels. */
+  layers(id) {
+    return this.request('GET', `/v1/rigs/${encodeURIComponent(id)}/layers`);
+  }
+
   createSession(req) {
     return this.request('POST', '/v1/sessions', req);
   }

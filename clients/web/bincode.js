@@ -2,7 +2,7 @@
 // "Crowd sessions"): bincode 2, standard configuration (little-endian, varint integers).
 //
 // Only what the viewer receives is decoded: the stream's StreamMessage (proto/README.md, "The
-// stream": variants 0 TickVertices, 1 TickFrame, 2 TickDelta, 3 PackedMessage). Vertex payloads
+// stream": variants 0 TickVertices, 1 TickFrame, 2 TickDelta, 3 PackedMessage, 4 TickLayers). Vertex payloads
 // are not copied: a Blob is returned as its byte offset and length in the message's ArrayBuffer,
 // and typedView() views it in place (the server pads each payload to a 16-byte offset), copying
 // only when an odd offset makes a view impossible. unpack() inflates a PackedMessage into the
@@ -255,7 +255,8 @@ function timings(r) {
  *   | {kind: 'frame', variant: 1, tick: number, format: string, width: number, height: number,
  *   image: {offset: number, length: number}}
  *   | {kind: 'packed', variant: 3, encoding: string, length: number,
- *   data: {offset: number, length: number}}}
+ *   data: {offset: number, length: number}}
+ *   | {kind: 'layers', variant: 4, tick: number, heads: {head: number, inputs: Float32Array}[]}}
  */
 export function decodeStreamMessage(buffer) {
   const r = new Reader(buffer);
@@ -299,6 +300,14 @@ export function decodeStreamMessage(buffer) {
       encoding: r.enumIndex(MESSAGE_ENCODINGS, 'MessageEncoding'),
       length: r.varint(),
       data: r.blob(),
+    };
+  } else if (variant === 4) {
+    // TickLayers: per head whose inputs changed, its expression-layer inputs.
+    msg = {
+      kind: 'layers',
+      variant,
+      tick: r.varint(),
+      heads: r.vec(() => ({ head: r.varint(), inputs: Float32Array.from(r.vec(() => r.f32())) })),
     };
   } else {
     throw new DecodeError(`StreamMessage variant ${variant}`);

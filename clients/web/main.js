@@ -54,6 +54,10 @@ const COMPRESSION =
     ? 'deflate'
     : null;
 
+/** Expression layers (wrinkle maps, clip textures) drawn as the server draws them; `?layers=0`
+ * draws base colours alone (a comparison, or a GPU without RGBA16F arrays). */
+const LAYERS = !['0', 'false', 'no'].includes(params.get('layers'));
+
 const state = {
   api: new Api(params.get('token')),
   format: FORMAT,
@@ -66,7 +70,21 @@ const state = {
   appearance: new Map(), // rig id → promise of its materials, fetched once
   images: new Map(), // "URI colour spaces" → promise of the image on the GPU
   // Since the page opened: materials and image requests, images on the GPU, failures.
-  appearanceStats: { materialFetches: 0, imageFetches: 0, imagesReady: 0, imageFailures: 0 },
+  appearanceStats: {
+    materialFetches: 0,
+    imageFetches: 0,
+    imagesReady: 0,
+    imageFailures: 0,
+    layerFetches: 0,
+    texelFetches: 0,
+    layersReady: 0,
+    layerFailures: 0,
+  },
+  layers: LAYERS,
+  layerDocs: new Map(), // rig id → promise of its GET /layers, fetched once
+  layerTexels: new Map(), // texels URI (with its ETag) → promise of them on the GPU
+  // Per head id, its expression-layer inputs as last received (StreamMessage variant 4).
+  layerInputs: new Map(),
   lastView: null, // What the last frame was drawn with, for tests.
   refetchAt: new Map(), // topology key → time of the last refetch for a vertex-count mismatch
   layout: [], // per layout head: {spec, entry, model}
@@ -91,7 +109,7 @@ const state = {
   // Since the page opened: messages by StreamMessage variant (a packed message counts as 3 and
   // again as what it held), heads given a new buffer decoded from residuals or as keyframes,
   // and bytes on the wire and once inflated.
-  received: { variants: [0, 0, 0, 0], fromResiduals: 0, keyframes: 0, wireBytes: 0, bytes: 0 },
+  received: { variants: [0, 0, 0, 0, 0], fromResiduals: 0, keyframes: 0, wireBytes: 0, bytes: 0, layerBytes: 0 },
 };
 
 let renderer;
@@ -165,6 +183,7 @@ function ensureTopology(key, rig, lod, vertices) {
     state.refetchAt.set(key, performance.now());
     state.rigs.delete(rig);
     state.appearance.delete(rig);
+    state.layerDocs.delete(rig);
     rigInfo(rig).catch((e) => showError(`rig ${rig}: ${describe(e)}`));
   }
   ensureAppearance(rig);
@@ -205,9 +224,48 @@ function ensureAppearance(rig) {
       const wanted = renderer.setMaterials(rig, doc);
       state.dirty = true;
       for (const image of wanted) loadImage(image);
+      ensureLayers(rig);
     })
     .catch((e) => showError(`materials of ${rig}: ${describe(e)}`));
   state.appearance.set(rig, p);
+}
+
+/**
+ * Fetches a rig's expression layers once (`GET /v1/rigs/{id}/layers`), then each material's
+ * texels by their versioned URI, once per rig generation, onto the GPU.
+ */
+function ensureLayers(rig) {
+  if (!state.layers || state.layerDocs.has(rig)) return;
+  state.appearanceStats.layerFetches++;
+  const p = state.api
+    .layers(rig)
+    .then((doc) => {
+      for (const m of doc.materials || []) loadLayerTexels(rig, m);
+    })
+    .catch((e) => showError(`layers of ${rig}: ${describe(e)}`));
+  state.layerDocs.set(rig, p);
+}
+
+/** Fetches one material's layer texels and puts them on the GPU. */
+function loadLayerTexels(rig, desc) {
+  const uri = desc.texels;
+  if (typeof uri !== 'string' || state.layerTexels.has(uri)) return;
+  state.appearanceStats.texelFetches++;
+  const p = fetch(uri)
+    .then((resp) => {
+      if (!resp.ok) throw new ApiError(resp.status, 'http', `GET ${uri}`);
+      return resp.arrayBuffer();
+    })
+    .then((texels) => {
+      renderer.setLayers(rig, desc.material, desc, texels);
+      state.appearanceStats.layersReady++;
+      state.dirty = true;
+    })
+    .catch((e) => {
+      state.appearanceStats.layerFailures++;
+      showError(`layers ${uri}: ${describe(e)}`);
+    });
+  state.layerTexels.set(uri, p);
 }
 
 /** The ImageBitmap option that keeps the image's rows as they are (older browsers say 'none'). */
@@ -388,12 +446,14 @@ function openStream() {
     const hello = { output: 'vertices', format: state.format, normals: true, camera: camera.spec(), lod };
     if (state.temporal) hello.temporal = true;
     if (state.compression) hello.compression = state.compression;
+    if (state.layers) hello.layers = true;
     ws.send(JSON.stringify(hello));
     state.helloSent = true;
     state.cameraSent = camera.version;
     setStatus('streaming');
   });
   state.decoded = new Map(); // Residuals refer to what this socket delivered only.
+  state.layerInputs = new Map(); // So do layer inputs.
   ws.addEventListener('message', (ev) => {
     if (typeof ev.data === 'string') return; // The server sends no text; nothing to do.
     const data = ev.data;
@@ -442,7 +502,11 @@ function setLayout(layout) {
     h.model = placement(spec.position, spec.yaw, spec.scale);
     return h;
   });
-  for (const gone of old.values()) setEntry(gone, null);
+  for (const gone of old.values()) {
+    setEntry(gone, null);
+    // The server forgets it too: back in a later layout, it is sent its inputs again.
+    state.layerInputs.delete(gone.spec.head);
+  }
   state.layout = next;
   if (state.patchesInFlight === 0 && !state.sliderMoving) {
     // Another viewer may have changed the crowd: the slider follows.
@@ -467,6 +531,13 @@ async function receive(data) {
     state.received.variants[msg.variant]++;
   }
   state.received.bytes += buffer.byteLength;
+  if (msg.kind === 'layers') {
+    // Sent just before the tick's vertices: the heads draw them together.
+    state.received.layerBytes += buffer.byteLength;
+    for (const h of msg.heads) state.layerInputs.set(h.head, h.inputs);
+    state.dirty = true;
+    return;
+  }
   applyTick(msg, buffer);
 }
 
@@ -728,7 +799,7 @@ function frame() {
     if (width > 2.5 * panel.right) projection[8] -= panel.right / width;
     const viewMatrix = camera.view();
     const view = { viewProj: multiply(projection, viewMatrix), view: viewMatrix, eye: camera.eye() };
-    const drawn = renderer.draw(view, state.layout);
+    const drawn = renderer.draw(view, state.layout, state.layerInputs);
     state.lastView = {
       viewProj: view.viewProj,
       eye: view.eye,
@@ -814,7 +885,7 @@ function q16Checksum() {
 window.crowdmorphViewer = Object.freeze({
   /** The hello's modes. */
   get mode() {
-    return { format: state.format, temporal: state.temporal, compression: state.compression };
+    return { format: state.format, temporal: state.temporal, compression: state.compression, layers: state.layers };
   },
   /** The last tick applied (0 before the first). */
   get tick() {
@@ -827,7 +898,15 @@ window.crowdmorphViewer = Object.freeze({
   q16Checksum,
   /** Appearance requests since the page opened, and the textures on the GPU. */
   get appearance() {
-    return { ...state.appearanceStats, textures: renderer ? renderer.textureCount : 0 };
+    return {
+      ...state.appearanceStats,
+      textures: renderer ? renderer.textureCount : 0,
+      layerMaterials: renderer ? renderer.layerCount : 0,
+    };
+  },
+  /** Each head's expression-layer inputs as last received. */
+  get layerInputs() {
+    return Object.fromEntries([...state.layerInputs].map(([h, v]) => [h, Array.from(v)]));
   },
   /** What the last frame was drawn with: the view-projection matrix (column-major), the
    * camera, the drawing buffer's size, the eye, and each drawn head's model matrix. */

@@ -13,7 +13,9 @@
 // sRGB, the others linear, each with the file's sampler, texture coordinate set and
 // KHR_texture_transform, and COLOR_0 multiplies the base colour. MASK discards, BLEND is
 // drawn after everything opaque, far heads first, without writing depth; single-sided
-// materials cull back faces.
+// materials cull back faces. A material's expression layers (GET /v1/rigs/{id}/layers: wrinkle
+// maps, a clip's PCA texture) are one RGBA16F 2D array with the server's texels and mips, summed
+// onto the base colour with each head's coefficients as the server's render.wgsl sums them.
 // Primitives without a material keep the plaster look: Lambert plus a Blinn highlight from a
 // headlight, coloured by primitive name.
 
@@ -72,6 +74,10 @@ const NORMAL = 2;
 const OCCLUSION = 3;
 const EMISSIVE = 4;
 const SLOTS = 5;
+/** The texture unit of a material's expression layers (a TEXTURE_2D_ARRAY). */
+const LAYER_UNIT = SLOTS;
+/** Most layers a material sums (crowdmorph_core::rig::MAX_LAYERS, the server's shader's). */
+export const MAX_LAYERS = 16;
 
 const PBR_SHADER = `#version 300 es
 precision highp float;
@@ -101,6 +107,11 @@ uniform mat3 u_uv[${SLOTS}];
 // The texture coordinate set (0 or 1) per slot.
 uniform int u_set[${SLOTS}];
 uniform sampler2D u_textures[${SLOTS}];
+// Expression layers (signed linear RGBA, RGBA16F), read through the base colour's sampler,
+// set and transform, and each one's coefficient for this head; u_layer_count is 0 without.
+uniform highp sampler2DArray u_layers;
+uniform int u_layer_count;
+uniform float u_coefficients[${MAX_LAYERS}];
 out vec4 o_color;
 
 const float PI = 3.141592653589793;
@@ -165,7 +176,17 @@ vec3 direct(vec3 n, vec3 v, vec4 light, vec3 c_diff, vec3 f0, float alpha) {
 }
 
 void main() {
-  vec4 base = u_base_factor * v_color * slot(${BASE});
+  // The server's render.wgsl: base(uv) + Σ c_k · layer_k(uv) in linear RGBA, clamped to
+  // [0, 1], then the factor and the vertex colour.
+  vec4 tex = slot(${BASE});
+  if (u_layer_count > 0) {
+    vec2 luv = slot_uv(${BASE});
+    for (int k = 0; k < u_layer_count; k++) {
+      tex += u_coefficients[k] * texture(u_layers, vec3(luv, float(k)));
+    }
+    tex = clamp(tex, 0.0, 1.0);
+  }
+  vec4 base = u_base_factor * v_color * tex;
   if (base.a < u_mode.x) discard;
   float alpha_out = u_mode.w > 0.5 ? base.a : 1.0;
   vec3 emissive = u_emissive * slot(${EMISSIVE}).rgb;
@@ -283,9 +304,24 @@ export class Renderer {
       'u_uv',
       'u_set',
       'u_textures',
+      'u_layers',
+      'u_layer_count',
+      'u_coefficients',
     ]);
     gl.useProgram(this.pbr.program);
     gl.uniform1iv(this.pbr.u.u_textures, [0, 1, 2, 3, 4]);
+    gl.uniform1i(this.pbr.u.u_layers, LAYER_UNIT);
+    // Expression layers by "rig NUL material": {tex, count, sources: [{input, clamp}]}.
+    this.layers = new Map();
+    this.coefficients = new Float32Array(MAX_LAYERS);
+    // What the layer unit samples when a material has none: one layer of zeros.
+    this.noLayers = gl.createTexture();
+    gl.bindTexture(gl.TEXTURE_2D_ARRAY, this.noLayers);
+    gl.texStorage3D(gl.TEXTURE_2D_ARRAY, 1, gl.RGBA16F, 1, 1, 1);
+    gl.texSubImage3D(gl.TEXTURE_2D_ARRAY, 0, 0, 0, 0, 1, 1, 1, gl.RGBA, gl.HALF_FLOAT, new Uint16Array(4));
+    gl.texParameteri(gl.TEXTURE_2D_ARRAY, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
+    gl.texParameteri(gl.TEXTURE_2D_ARRAY, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+    gl.bindTexture(gl.TEXTURE_2D_ARRAY, null);
     this.topologies = new Map();
     this.free = [];
     this.live = 0;
@@ -384,7 +420,7 @@ export class Renderer {
       }
       return { key, set, sampler: this.sampler(Number.isInteger(texture.sampler) ? samplers[texture.sampler] : null), uv: uvTransform(transform) };
     };
-    const materials = (Array.isArray(doc.materials) ? doc.materials : []).map((m) => {
+    const materials = (Array.isArray(doc.materials) ? doc.materials : []).map((m, index) => {
       const pbr = m.pbrMetallicRoughness || {};
       const ext = m.extensions || {};
       const strength = ext.KHR_materials_emissive_strength ? finite(ext.KHR_materials_emissive_strength.emissiveStrength, 1) : 1;
@@ -399,6 +435,8 @@ export class Renderer {
       slots.forEach((s, i) => uv.set(s ? s.uv : IDENTITY3, 9 * i));
       const sets = new Int32Array(slots.map((s) => (s ? s.set : 0)));
       return {
+        rig,
+        index,
         base: numbers(pbr.baseColorFactor, 4, [1, 1, 1, 1]),
         emissive,
         pbr: [
@@ -475,6 +513,81 @@ export class Renderer {
       this.textures.set(key, tex);
     }
     gl.bindTexture(gl.TEXTURE_2D, null);
+  }
+
+  /**
+   * Uploads material `material` of `rig`'s expression layers, as `GET /v1/rigs/{id}/layers`
+   * describes them (`desc`: its `levels` and `layers`) and `GET /v1/rigs/{id}/layers/{m}` gives
+   * their texels (`texels`: little-endian binary16 RGBA, layer by layer, each layer's levels
+   * largest first, rows top to bottom), as one RGBA16F TEXTURE_2D_ARRAY with the server's mip
+   * chain. Row 0 is t = 0, as for images.
+   */
+  setLayers(rig, material, desc, texels) {
+    const gl = this.gl;
+    const levels = desc.levels;
+    const count = Math.min(desc.layers.length, MAX_LAYERS);
+    const [w0, h0] = levels[0];
+    if (w0 > this.maxTextureSize || h0 > this.maxTextureSize || desc.layers.length > gl.getParameter(gl.MAX_ARRAY_TEXTURE_LAYERS)) {
+      throw new RenderError(`layers of ${w0}×${h0}×${desc.layers.length} are past this GPU's textures`);
+    }
+    const perLayer = levels.reduce((n, [w, h]) => n + w * h * 8, 0);
+    if (texels.byteLength !== perLayer * desc.layers.length) {
+      throw new RenderError(`layer texels of ${texels.byteLength} bytes, want ${perLayer * desc.layers.length}`);
+    }
+    const key = `${rig}\u0000${material}`;
+    const old = this.layers.get(key);
+    if (old) gl.deleteTexture(old.tex);
+    const tex = gl.createTexture();
+    gl.bindTexture(gl.TEXTURE_2D_ARRAY, tex);
+    gl.pixelStorei(gl.UNPACK_FLIP_Y_WEBGL, false);
+    gl.pixelStorei(gl.UNPACK_ALIGNMENT, 4);
+    gl.texStorage3D(gl.TEXTURE_2D_ARRAY, levels.length, gl.RGBA16F, w0, h0, count);
+    for (let layer = 0; layer < count; layer++) {
+      let at = layer * perLayer;
+      levels.forEach(([w, h], level) => {
+        const data = new Uint16Array(texels, at, w * h * 4);
+        gl.texSubImage3D(gl.TEXTURE_2D_ARRAY, level, 0, 0, layer, w, h, 1, gl.RGBA, gl.HALF_FLOAT, data);
+        at += w * h * 8;
+      });
+    }
+    // Used when the material has no base colour sampler (glTF's default: repeat, trilinear).
+    gl.texParameteri(gl.TEXTURE_2D_ARRAY, gl.TEXTURE_MIN_FILTER, gl.LINEAR_MIPMAP_LINEAR);
+    gl.texParameteri(gl.TEXTURE_2D_ARRAY, gl.TEXTURE_MAG_FILTER, gl.LINEAR);
+    gl.texParameteri(gl.TEXTURE_2D_ARRAY, gl.TEXTURE_WRAP_S, gl.REPEAT);
+    gl.texParameteri(gl.TEXTURE_2D_ARRAY, gl.TEXTURE_WRAP_T, gl.REPEAT);
+    gl.bindTexture(gl.TEXTURE_2D_ARRAY, null);
+    const sources = desc.layers.slice(0, count).map((l) => ({ input: Number.isInteger(l.input) ? l.input : -1, clamp: !!l.clamp }));
+    this.layers.set(key, { tex, count, sources });
+  }
+
+  /** Materials with expression layers on the GPU. */
+  get layerCount() {
+    return this.layers.size;
+  }
+
+  /**
+   * Binds material `m`'s layers, if it has any, with their coefficients for a head whose
+   * layer inputs are `inputs` (a layer reading no input, or an input not received yet,
+   * counts 0; a clamped one is clamped to [0, 1], as the server's renderer does).
+   */
+  bindLayers(m, textured, inputs) {
+    const gl = this.gl;
+    const u = this.pbr.u;
+    const l = textured ? this.layers.get(`${m.rig}\u0000${m.index}`) : null;
+    gl.activeTexture(gl.TEXTURE0 + LAYER_UNIT);
+    gl.bindTexture(gl.TEXTURE_2D_ARRAY, l ? l.tex : this.noLayers);
+    const base = m.slots[BASE];
+    gl.bindSampler(LAYER_UNIT, l && base && this.textures.has(base.key) ? base.sampler : null);
+    gl.uniform1i(u.u_layer_count, l ? l.count : 0);
+    if (!l) return;
+    const c = this.coefficients;
+    c.fill(0);
+    l.sources.forEach((s, k) => {
+      let v = inputs && s.input >= 0 && s.input < inputs.length ? inputs[s.input] : 0;
+      if (!Number.isFinite(v)) v = 0;
+      c[k] = s.clamp ? Math.min(1, Math.max(0, v)) : v;
+    });
+    gl.uniform1fv(u.u_coefficients, c);
   }
 
   /** Textures on the GPU (one per image and colour space). */
@@ -627,9 +740,10 @@ export class Renderer {
    * Draws the crowd.
    * @param {{viewProj: Float32Array, view: Float32Array, eye: number[]}} view
    * @param {{entry: object, model: Float32Array}[]} heads
+   * @param {Map<number, Float32Array>} [layerInputs] each head id's expression-layer inputs
    * @returns {number} heads drawn
    */
-  draw(view, heads) {
+  draw(view, heads, layerInputs = new Map()) {
     const gl = this.gl;
     gl.viewport(0, 0, this.canvas.width, this.canvas.height);
     gl.clearColor(BACKGROUND[0] / 255, BACKGROUND[1] / 255, BACKGROUND[2] / 255, 1);
@@ -696,12 +810,15 @@ export class Renderer {
       if (!g.solid.length) continue;
       this.bindHead(prog, s.h, s.e, s.topo);
       const textured = !!(s.topo.uvs || s.topo.uvs1);
+      const inputs = layerInputs.get(s.h.spec.head);
       for (const { p, m } of g.solid) {
         if (bound !== m || boundTextured !== textured) {
           this.bindMaterial(m, textured);
           bound = m;
           boundTextured = textured;
         }
+        // Per head: its coefficients are its own.
+        this.bindLayers(m, textured, inputs);
         gl.drawElements(gl.TRIANGLES, p.count, gl.UNSIGNED_INT, p.first * 4);
       }
     }
@@ -717,7 +834,9 @@ export class Renderer {
           this.bindHead(prog, s.h, s.e, s.topo);
           head = s;
         }
-        this.bindMaterial(pm.m, !!(s.topo.uvs || s.topo.uvs1));
+        const textured = !!(s.topo.uvs || s.topo.uvs1);
+        this.bindMaterial(pm.m, textured);
+        this.bindLayers(pm.m, textured, layerInputs.get(s.h.spec.head));
         gl.drawElements(gl.TRIANGLES, pm.p.count, gl.UNSIGNED_INT, pm.p.first * 4);
       }
       gl.depthMask(true);

@@ -250,6 +250,10 @@ pub struct ViewerHello {
     /// Compress each binary message ([`PackedMessage`]); absent, messages go as they are.
     #[serde(default)]
     pub compression: Option<MessageEncoding>,
+    /// Also send each head's expression-layer inputs ([`TickLayers`], variant 4) when they
+    /// change, for a viewer that sums a rig's layers itself (`GET /v1/rigs/{id}/layers`).
+    #[serde(default)]
+    pub layers: bool,
 }
 
 /// Default [`ViewerHello::keyframe_every`]: two seconds at the default 30 ticks/s.
@@ -336,6 +340,28 @@ pub struct TickDelta {
     pub timings: FrameTimings,
 }
 
+/// The expression-layer inputs of the heads whose inputs changed since the viewer last
+/// received them, sent before the tick's vertex message (a viewer that asked for `layers`).
+/// Only heads whose rig has layers are listed; a tick where none changed sends nothing.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TickLayers {
+    /// Tick number (the vertex message that follows has the same).
+    pub tick: u64,
+    /// The heads whose inputs changed.
+    pub heads: Vec<HeadLayers>,
+}
+
+/// One head's expression-layer inputs: the entries of its job's layer inputs that some layer
+/// of its rig reads, in the order `GET /v1/rigs/{id}/layers` numbers them (its `inputs`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct HeadLayers {
+    /// The head's id.
+    pub head: u64,
+    /// Its inputs: a layer's coefficient is `inputs[input]`, clamped to [0, 1] where the
+    /// layer says `clamp`.
+    pub inputs: Vec<f32>,
+}
+
 /// A compressed stream message: `data` decompresses (by `encoding`) to `length` bytes, the
 /// bincode of a [`StreamMessage`] that is not itself packed.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -374,4 +400,6 @@ pub enum StreamMessage {
     Delta(TickDelta),
     /// Variant 3: a compressed message (a viewer that asked for `compression`).
     Packed(PackedMessage),
+    /// Variant 4: expression-layer inputs (a viewer that asked for `layers`).
+    Layers(TickLayers),
 }

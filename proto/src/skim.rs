@@ -199,6 +199,14 @@ pub fn skim(message: &[u8]) -> Result<TickSummary, StreamError> {
             s.varint("height")?;
             s.skip_blob("image")?;
         }
+        4 => {
+            // Expression-layer inputs: no buffers, only the tick counts.
+            for _ in 0..s.varint("layer heads")? {
+                s.varint("head id")?;
+                let n = s.varint("inputs")?;
+                s.skip(n.saturating_mul(4), "inputs")?;
+            }
+        }
         _ => return Err(malformed("unknown variant")),
     }
     if !s.bytes.is_empty() {

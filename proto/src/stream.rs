@@ -52,6 +52,9 @@ pub enum Received {
     Vertices(Applied),
     /// An image.
     Frame(TickFrame),
+    /// Expression-layer inputs ([`crate::TickLayers`]), kept per head: this many heads got new
+    /// ones ([`StreamState::layer_inputs`]).
+    Layers(usize),
 }
 
 /// The viewer's picture of the session: the layout and each head's buffer, decoded.
@@ -60,6 +63,7 @@ pub struct StreamState {
     tick: u64,
     layout: Vec<SessionHead>,
     heads: HashMap<u64, Arc<FrameBuffer>>,
+    layers: HashMap<u64, Vec<f32>>,
 }
 
 impl StreamState {
@@ -82,6 +86,11 @@ impl StreamState {
     /// residuals already resolved), or `None` when it has nothing to draw.
     pub fn buffer(&self, head: u64) -> Option<&FrameBuffer> {
         self.heads.get(&head).map(|b| &**b)
+    }
+
+    /// A head's expression-layer inputs as last sent (variant 4), or `None` when none came.
+    pub fn layer_inputs(&self, head: u64) -> Option<&[f32]> {
+        self.layers.get(&head).map(Vec::as_slice)
     }
 
     /// Applies a decoded message. A message that does not fit what came before (an
@@ -130,6 +139,13 @@ impl StreamState {
             }
             StreamMessage::Packed(_) => {
                 err("a packed message: decompress it first (StreamState::receive)")
+            }
+            StreamMessage::Layers(l) => {
+                let n = l.heads.len();
+                for h in l.heads {
+                    self.layers.insert(h.head, h.inputs);
+                }
+                Ok(Received::Layers(n))
             }
         }
     }

@@ -763,6 +763,17 @@ fn session_messages() {
             timings: frame.timings,
         }),
     );
+    // A layers viewer's tick: head 3's wrinkle weight and clip texture coefficients changed.
+    pin(
+        "stream_layers",
+        &StreamMessage::Layers(TickLayers {
+            tick: 452,
+            heads: vec![HeadLayers {
+                head: 3,
+                inputs: vec![0.5, 1.0, -0.25],
+            }],
+        }),
+    );
     pin(
         "stream_frame",
         &StreamMessage::Frame(TickFrame {
@@ -1064,6 +1075,10 @@ fn every_golden_stream_message_skims_as_it_decodes() {
                 tick: f.tick,
                 ..TickSummary::default()
             },
+            StreamMessage::Layers(l) => TickSummary {
+                tick: l.tick,
+                ..TickSummary::default()
+            },
             StreamMessage::Packed(p) => {
                 summary(&response_from_bincode::<StreamMessage>(&p.unpack().unwrap()).unwrap())
             }
@@ -1073,6 +1088,7 @@ fn every_golden_stream_message_skims_as_it_decodes() {
     for name in [
         "stream_vertices",
         "stream_frame",
+        "stream_layers",
         "stream_delta_keyframes",
         "stream_delta_residuals",
         "stream_packed_deflate",
@@ -1084,5 +1100,5 @@ fn every_golden_stream_message_skims_as_it_decodes() {
         assert!(skim(&bytes[..bytes.len() - 1]).is_err(), "{name}");
         skimmed += 1;
     }
-    assert_eq!(skimmed, 5);
+    assert_eq!(skimmed, 6);
 }

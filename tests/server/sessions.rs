@@ -115,7 +115,7 @@ pub(super) async fn next_tick(ws: &mut Ws) -> TickVertices {
     match m {
         StreamMessage::Vertices(v) => v,
         StreamMessage::Frame(_) => panic!("asked for vertices, got a frame"),
-        StreamMessage::Delta(_) | StreamMessage::Packed(_) => {
+        StreamMessage::Delta(_) | StreamMessage::Packed(_) | StreamMessage::Layers(_) => {
             panic!("asked for plain vertices, got residuals or a packed message")
         }
     }

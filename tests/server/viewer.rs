@@ -298,7 +298,7 @@ async fn the_viewer_streams_and_draws_a_lit_crowd_in_headless_chromium() {
     let mode = cdp.eval("window.crowdmorphViewer.mode").await;
     assert_eq!(
         mode,
-        json!({"format": "q16", "temporal": true, "compression": "deflate"}),
+        json!({"format": "q16", "temporal": true, "compression": "deflate", "layers": true}),
         "the page's hello"
     );
     let plain = PlainViewer::start(
@@ -376,7 +376,7 @@ async fn the_viewer_streams_and_draws_a_lit_crowd_in_headless_chromium() {
     let mode = cdp.eval("window.crowdmorphViewer.mode").await;
     assert_eq!(
         mode,
-        json!({"format": "q16", "temporal": false, "compression": null}),
+        json!({"format": "q16", "temporal": false, "compression": null, "layers": true}),
         "the page's hello with ?temporal=0"
     );
     // A page that joins chooses LOD by distance: make it LOD 2 for every head, as the plain
@@ -529,7 +529,8 @@ async fn the_viewer_draws_textures_fetched_once_in_headless_chromium() {
     fit.check(&path);
     // The server's render of the same camera: the page shades with the renderer's BRDF and
     // lights, so the two pictures agree wherever the page's panel leaves the canvas free.
-    compare_with_the_servers_render(&server, &view, &info.targets, &image, &scene, &path).await;
+    let zeros: Vec<(String, f32)> = info.targets.iter().map(|t| (t.clone(), 0.0)).collect();
+    compare_with_the_servers_render(&server, &view, &zeros, &image, &scene.frame(), &path).await;
     // The samples tell an upside-down texture apart: read with v flipped, the same picture
     // fits nothing (a self-check of the test rather than of the page).
     let flipped = scene.fit(&image, texture, true);
@@ -620,20 +621,46 @@ const MIN_VIEWER_SSIM: f64 = 0.9;
 /// light of another strength or a missed sRGB step is tens.
 const MAX_VIEWER_LUMA_DIFFERENCE: f64 = 6.0;
 
+/// Where the page draws: the panel's box in drawing-buffer pixels (the page draws under it)
+/// and screenshot pixels per drawing-buffer pixel.
+struct PageFrame {
+    panel: [f64; 4],
+    scale: f64,
+}
+
+impl PageFrame {
+    /// From the page's panel (`getBoundingClientRect()`, CSS pixels) and its drawing buffer's
+    /// width: the canvas fills the window.
+    fn new(view: &Value, panel: &Value, shot_width: f64) -> PageFrame {
+        let scale = shot_width / view["width"].as_f64().expect("width");
+        let css = |k: &str| panel[k].as_f64().expect("a number") / scale;
+        PageFrame {
+            panel: [css("left"), css("top"), css("right"), css("bottom")],
+            scale,
+        }
+    }
+}
+
+/// The page's screenshot and the server's render of its camera, side by side in drawing-buffer
+/// pixels (see [`compare_with_the_servers_render`]).
+struct Pictures {
+    /// The server's, moved as the page's projection is.
+    server: Image,
+    page: Image,
+}
+
 /// Asks the server to render the head the page shows (`view`: its camera, clip planes, head
-/// placement and drawing-buffer size), every one of `targets` at 0 as the page's `still` clip
-/// has them (not the file's default weights), and compares that with the page's screenshot `shot`,
-/// leaving out what the panel covers. The page moves its picture right of the panel by
-/// `ndcShiftX` (an off-centre projection no `CameraSpec` gives), so the server's picture is
-/// moved by as much before comparing.
-async fn compare_with_the_servers_render(
+/// placement and drawing-buffer size) with `weights` (as the page's clip has them, not the
+/// file's default weights), and lays that beside the page's screenshot `shot`, leaving out
+/// what the panel covers. The page moves its picture right of the panel by `ndcShiftX` (an
+/// off-centre projection no `CameraSpec` gives), so the server's picture is moved by as much.
+async fn the_servers_render_of_the_page(
     server: &TestServer,
     view: &Value,
-    targets: &[String],
+    weights: &[(String, f32)],
     shot: &Image,
-    scene: &Scene,
-    path: &Path,
-) {
+    frame: &PageFrame,
+) -> Pictures {
     let num = |v: &Value| v.as_f64().expect("a number");
     let (width, height) = (num(&view["width"]) as u32, num(&view["height"]) as u32);
     let cam = &view["camera"];
@@ -648,7 +675,6 @@ async fn compare_with_the_servers_render(
     let scale = (model[0] * model[0] + model[1] * model[1] + model[2] * model[2]).sqrt();
     let yaw = (-model[2]).atan2(model[0]).to_degrees();
     let v3 = |v: &Value| -> [f32; 3] { [0, 1, 2].map(|i| num(&v[i]) as f32) };
-    let zeros: Vec<(String, f32)> = targets.iter().map(|t| (t.clone(), 0.0)).collect();
     let placement = (
         [model[12] as f32, model[13] as f32, model[14] as f32],
         yaw as f32,
@@ -664,7 +690,7 @@ async fn compare_with_the_servers_render(
     let server_img = super::render_one(
         server,
         rig,
-        &zeros,
+        weights,
         placement,
         camera,
         (width, height),
@@ -676,7 +702,7 @@ async fn compare_with_the_servers_render(
     let shift = (num(&view["ndcShiftX"]) * f64::from(width) / 2.0).round() as i64;
     let mut page = Image::new(width, height, vec![0; (width * height * 4) as usize]);
     let mut moved = Image::new(width, height, vec![0; (width * height * 4) as usize]);
-    let [pl, pt, pr, pb] = scene.panel;
+    let [pl, pt, pr, pb] = frame.panel;
     for y in 0..height {
         for x in 0..width {
             let at = ((y * width + x) * 4) as usize;
@@ -696,18 +722,41 @@ async fn compare_with_the_servers_render(
             }
             let from = ((y * width + sx as u32) * 4) as usize;
             moved.rgba[at..at + 4].copy_from_slice(&server_img.rgba[from..from + 4]);
-            let (qx, qy) = ((fx * scene.scale) as u32, (fy * scene.scale) as u32);
+            let (qx, qy) = ((fx * frame.scale) as u32, (fy * frame.scale) as u32);
             let q = ((qy.min(shot.height - 1) * shot.width + qx.min(shot.width - 1)) * 4) as usize;
             page.rgba[at..at + 4].copy_from_slice(&shot.rgba[q..q + 4]);
         }
     }
-    let ssim = ssim_masked(&moved, &page, BACKGROUND).expect("drawn pixels");
+    Pictures {
+        server: moved,
+        page,
+    }
+}
+
+/// Whether a pixel is drawn (not the background).
+fn is_drawn(p: &[u8]) -> bool {
+    (0..3).any(|c| p[c].abs_diff(BACKGROUND[c]) > 2)
+}
+
+/// Compares the page's screenshot `shot` with the server's render of its camera
+/// ([`the_servers_render_of_the_page`]): the least SSIM and the largest luminance difference
+/// allowed, over the pixels either draws. Returns the two pictures.
+async fn compare_with_the_servers_render(
+    server: &TestServer,
+    view: &Value,
+    weights: &[(String, f32)],
+    shot: &Image,
+    frame: &PageFrame,
+    path: &Path,
+) -> Pictures {
+    let pictures = the_servers_render_of_the_page(server, view, weights, shot, frame).await;
+    let (moved, page) = (&pictures.server, &pictures.page);
+    let ssim = ssim_masked(moved, page, BACKGROUND).expect("drawn pixels");
     let luma =
         |p: &[u8]| 0.2126 * f64::from(p[0]) + 0.7152 * f64::from(p[1]) + 0.0722 * f64::from(p[2]);
-    let drawn = |p: &[u8]| (0..3).any(|c| p[c].abs_diff(BACKGROUND[c]) > 2);
     let (mut sum, mut n) = (0.0, 0usize);
     for (a, b) in moved.rgba.chunks_exact(4).zip(page.rgba.chunks_exact(4)) {
-        if drawn(a) && drawn(b) {
+        if is_drawn(a) && is_drawn(b) {
             sum += luma(a) - luma(b);
             n += 1;
         }
@@ -715,12 +764,12 @@ async fn compare_with_the_servers_render(
     let difference = sum / n.max(1) as f64;
     println!(
         "the page against the server's render of its camera: SSIM {:.4} over {} pixels, \
-         server − page luminance {difference:+.2}/255 (moved {shift} px)",
+         server − page luminance {difference:+.2}/255",
         ssim.mean, ssim.pixels
     );
     let pass = ssim.mean >= MIN_VIEWER_SSIM && difference.abs() <= MAX_VIEWER_LUMA_DIFFERENCE;
     if !pass {
-        for (what, img) in [("server", &moved), ("page", &page), ("ssim", &ssim.map)] {
+        for (what, img) in [("server", moved), ("page", page), ("ssim", &ssim.map)] {
             let file = path.with_file_name(format!("viewer-vs-server-{what}.png"));
             img.write_png(&file).expect("write");
             println!("{what}: {}", file.display());
@@ -733,6 +782,7 @@ async fn compare_with_the_servers_render(
          ±{MAX_VIEWER_LUMA_DIFFERENCE})",
         ssim.mean
     );
+    pictures
 }
 
 /// One drawn head of a textured rig as the page drew it (its `crowdmorphViewer.view`): each
@@ -858,6 +908,14 @@ impl Scene {
             width,
             height,
             scale,
+        }
+    }
+
+    /// Where the page draws, for [`compare_with_the_servers_render`].
+    fn frame(&self) -> PageFrame {
+        PageFrame {
+            panel: self.panel,
+            scale: self.scale,
         }
     }
 
@@ -1063,6 +1121,7 @@ impl PlainViewer {
                             }
                         }
                         Ok(Received::Frame(_)) => panic!("the plain viewer got a frame"),
+                        Ok(Received::Layers(_)) => panic!("the plain viewer got layers"),
                         Err(e) => panic!("the plain viewer: {e}"),
                     },
                     Message::Close(c) => panic!("the plain viewer was closed: {c:?}"),
@@ -1146,4 +1205,532 @@ async fn session_info(server: &TestServer, id: &str) -> SessionInfo {
         .unwrap();
     assert_eq!(reply.status, 200, "{:?}", reply.error());
     serde_json::from_slice(&reply.body).unwrap()
+}
+
+// ---------------------------------------------------------------------------------------------
+// Expression layers: the wrinkle map rig of `util::wrinkle`, its layers served as the renderer
+// uploads them, each head's inputs streamed when they change, and the page's sum.
+
+/// The wrinkle rig's base colour: a checker of 4-pixel cells, 32 × 32.
+fn wrinkle_base(x: u32, y: u32) -> [u8; 3] {
+    if (x / 4 + y / 4).is_multiple_of(2) {
+        [200, 170, 140]
+    } else {
+        [70, 60, 50]
+    }
+}
+
+/// Its wrinkle texture: bands 8 pixels tall, blue and red, unlike the checker everywhere.
+fn wrinkle_texture(_x: u32, y: u32) -> [u8; 3] {
+    if (y / 8).is_multiple_of(2) {
+        [30, 60, 210]
+    } else {
+        [230, 50, 40]
+    }
+}
+
+/// The wrinkle rig's GLB: `brow` moves the quad 1 mm, so what changes with it is the colour.
+fn wrinkle_rig() -> Vec<u8> {
+    use crate::util::wrinkle::{png, wrinkle_glb};
+    wrinkle_glb(
+        &png(32, 32, wrinkle_base),
+        &png(32, 32, wrinkle_texture),
+        0.001,
+    )
+}
+
+/// Uploads the wrinkle rig as `id` with clip `clip` holding `brow` at `weights`, frame by frame.
+async fn upload_wrinkle_rig(server: &TestServer, id: &str, clip: &str, weights: &[f32]) -> Vec<u8> {
+    let glb = wrinkle_rig();
+    server
+        .client
+        .upload_rig(id, Bytes::from(glb.clone()))
+        .await
+        .expect("upload");
+    let csv: String = std::iter::once("brow".to_string())
+        .chain(weights.iter().map(|w| w.to_string()))
+        .collect::<Vec<_>>()
+        .join("\n");
+    server
+        .client
+        .upload_clip(id, &format!("name={clip}"), "text/csv", Bytes::from(csv))
+        .await
+        .expect("clip");
+    glb
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn layers_are_served_as_the_renderer_uploads_them_once_per_generation() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let glb = upload_wrinkle_rig(&server, "wrinkled", "still", &[0.8, 0.8]).await;
+    let get = |path: String, headers: Vec<(&'static str, String)>| {
+        let client = server.client.clone();
+        async move {
+            let h: Vec<(&str, &str)> = headers.iter().map(|(k, v)| (*k, v.as_str())).collect();
+            client
+                .send_with(Method::GET, &path, &h, Bytes::new())
+                .await
+                .unwrap()
+        }
+    };
+    let reply = get("/v1/rigs/wrinkled/layers".into(), vec![]).await;
+    assert_eq!(reply.status, 200);
+    let doc: Value = serde_json::from_slice(&reply.body).expect("JSON");
+    // The engine's plan of the same file, imported here.
+    let rig = crowdmorph::import::gltf::rig_from_slice(
+        &glb,
+        &crowdmorph::import::ImportOptions::default(),
+    )
+    .expect("the GLB imports");
+    use crowdmorph::engine::render::appearance::{layer_plan, layer_texels};
+    let plan = layer_plan(&rig, 0, 4096)
+        .expect("plan")
+        .expect("material 0 has layers");
+    assert_eq!(doc["inputs"], json!(1), "{doc}");
+    let materials = doc["materials"].as_array().expect("materials");
+    assert_eq!(materials.len(), 1, "{doc}");
+    let m = &materials[0];
+    assert_eq!(m["material"], json!(0));
+    assert_eq!(
+        (m["width"].as_u64(), m["height"].as_u64()),
+        (Some(32), Some(32))
+    );
+    let levels: Vec<(u32, u32)> = plan.levels.clone();
+    assert_eq!(
+        m["levels"],
+        json!(levels.iter().map(|&(w, h)| [w, h]).collect::<Vec<_>>())
+    );
+    // `brow`'s wrinkle reads input 0, clamped; the one for a target the rig lacks reads none.
+    assert_eq!(
+        m["layers"],
+        json!([
+            {"kind": "target", "input": 0, "clamp": true},
+            {"kind": "target", "input": null, "clamp": false},
+        ])
+    );
+    assert_eq!(m["bytes"].as_u64(), Some(plan.bytes()));
+    let mut want = Vec::new();
+    layer_texels(&rig, 0, 4096, |l| {
+        for t in l.texels {
+            want.extend_from_slice(&t.to_le_bytes());
+        }
+    })
+    .expect("texels");
+    assert_eq!(want.len() as u64, plan.bytes());
+    // The texels, by the URI /layers gives: immutable, and exactly the engine's.
+    let uri = m["texels"].as_str().expect("texels URI").to_string();
+    let texels = get(uri.clone(), vec![]).await;
+    assert_eq!(texels.status, 200);
+    assert_eq!(
+        texels.content_type.as_deref(),
+        Some("application/octet-stream")
+    );
+    assert!(
+        texels
+            .header("cache-control")
+            .is_some_and(|c| c.contains("immutable")),
+        "{:?}",
+        texels.header("cache-control")
+    );
+    assert!(
+        texels.body == want[..],
+        "the served texels are not the engine's"
+    );
+    // A layer is the wrinkle minus the base in linear RGBA: at texel (0, 0) of level 0, the
+    // checker's light cell and the blue band.
+    let texel0: Vec<f32> = want[..8]
+        .chunks_exact(2)
+        .map(|c| half::f16::from_le_bytes([c[0], c[1]]).to_f32())
+        .collect();
+    let lin = crowdmorph::engine::render::brdf::srgb8_to_linear;
+    for c in 0..3 {
+        let d = lin(wrinkle_texture(0, 0)[c]) - lin(wrinkle_base(0, 0)[c]);
+        assert!(
+            (texel0[c] - d).abs() < 2e-3,
+            "{texel0:?}: channel {c} should be {d}"
+        );
+    }
+    // Without the version: revalidated, 304 to its ETag, no body.
+    let plain = get("/v1/rigs/wrinkled/layers/0".into(), vec![]).await;
+    assert_eq!(plain.status, 200);
+    assert_eq!(plain.header("cache-control"), Some("no-cache"));
+    let etag = plain.header("etag").expect("an ETag").to_string();
+    assert_eq!(Some(etag.as_str()), texels.header("etag"));
+    let again = get(
+        "/v1/rigs/wrinkled/layers/0".into(),
+        vec![("if-none-match", etag.clone())],
+    )
+    .await;
+    assert_eq!(again.status, 304);
+    assert!(again.body.is_empty());
+    // A new generation of the rig (a clip added): a new ETag, so a viewer fetches the texels
+    // of the new generation once.
+    server
+        .client
+        .upload_clip(
+            "wrinkled",
+            "name=other",
+            "text/csv",
+            Bytes::from(
+                "brow
+0
+1",
+            ),
+        )
+        .await
+        .expect("clip");
+    let after = get(
+        "/v1/rigs/wrinkled/layers/0".into(),
+        vec![("if-none-match", etag.clone())],
+    )
+    .await;
+    assert_eq!(after.status, 200);
+    assert_ne!(after.header("etag"), Some(etag.as_str()));
+    // Unknown material, rig, or a material without layers: 404 with a JSON error.
+    for (path, code) in [
+        ("/v1/rigs/wrinkled/layers/1", "unknown_layers"),
+        ("/v1/rigs/wrinkled/layers/x", "unknown_layers"),
+        ("/v1/rigs/nope/layers/0", "unknown_rig"),
+        ("/v1/rigs/nope/layers", "unknown_rig"),
+        ("/v1/rigs/default-head/layers/0", "unknown_layers"),
+    ] {
+        let r = get(path.into(), vec![]).await;
+        assert_eq!(r.status, 404, "{path}");
+        assert_eq!(r.error().expect("a JSON error").error.code, code, "{path}");
+    }
+    // A rig without layers.
+    let none = get("/v1/rigs/default-head/layers".into(), vec![]).await;
+    let none: Value = serde_json::from_slice(&none.body).expect("JSON");
+    assert_eq!(none, json!({"materials": [], "inputs": 0}));
+    server.stop().await;
+}
+
+/// What a layers viewer received: per tick, its layer message's heads and bytes, and whether
+/// that came just before the tick's vertices.
+#[derive(Default)]
+struct LayerLog {
+    /// Per tick with a layer message: (heads listed, bytes on the wire).
+    messages: BTreeMap<u64, (Vec<u64>, usize)>,
+    /// Vertex messages received.
+    ticks: u64,
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_layers_viewer_is_sent_each_heads_inputs_when_they_change_before_its_vertices() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let ramp: Vec<f32> = (0..8).map(|f| f as f32 / 7.0 * 1.4 - 0.2).collect();
+    upload_wrinkle_rig(&server, "wrinkled", "ramp", &ramp).await;
+    let still = [0.6f32; 8];
+    let csv: String = std::iter::once("brow".to_string())
+        .chain(still.iter().map(|w| w.to_string()))
+        .collect::<Vec<_>>()
+        .join("\n");
+    server
+        .client
+        .upload_clip("wrinkled", "name=still", "text/csv", Bytes::from(csv))
+        .await
+        .expect("clip");
+    // Heads 0..8 play the ramp at different offsets, head 8 holds still, head 9 is a rig
+    // without layers.
+    let ramps = 8u64;
+    let mut heads: Vec<Value> = (0..ramps)
+        .map(|h| json!({"head": h, "rig": "wrinkled", "clip": "ramp", "offset": h, "position": [h as f32 * 3.0, 0, 0]}))
+        .collect();
+    heads.push(
+        json!({"head": 8, "rig": "wrinkled", "clip": "still", "offset": 0, "position": [0, 0, 3]}),
+    );
+    heads.push(json!({"head": 9, "rig": "default-head", "clip": "talk", "offset": 0, "position": [0, 0, 6]}));
+    let req: crowdmorph_proto::SessionRequest =
+        serde_json::from_value(json!({"fps": 20, "wrap": true, "heads": heads})).expect("request");
+    let session = server
+        .client
+        .create_session(&req, None, Encoding::Json)
+        .await
+        .expect("session");
+    let url = format!("ws://{}/v1/sessions/{}/stream", server.addr, session.id);
+    // A layers viewer, the same packed, and one that did not ask.
+    let mut viewers = Vec::new();
+    for hello in [
+        json!({"format": "q16", "layers": true}),
+        json!({"format": "q16", "layers": true, "temporal": true, "compression": "deflate"}),
+        json!({"format": "q16"}),
+    ] {
+        let (mut ws, _) = tokio_tungstenite::connect_async(&url)
+            .await
+            .expect("connect");
+        ws.send(Message::text(hello.to_string()))
+            .await
+            .expect("hello");
+        viewers.push(ws);
+    }
+    let mut logs = Vec::new();
+    for (v, ws) in viewers.iter_mut().enumerate() {
+        let mut state = StreamState::new();
+        let mut log = LayerLog::default();
+        let mut pending: Option<u64> = None;
+        let deadline = Instant::now() + Duration::from_secs(60);
+        while log.ticks < 30 {
+            let msg = tokio::time::timeout_at(tokio::time::Instant::from_std(deadline), ws.next())
+                .await
+                .expect("30 ticks in time")
+                .expect("open")
+                .expect("a message");
+            let Message::Binary(b) = msg else { continue };
+            match state.receive(&b).expect("decodes") {
+                Received::Layers(n) => {
+                    assert!(pending.is_none(), "two layer messages in a row");
+                    let tick = crowdmorph_proto::skim::skim(&b).expect("skims").tick;
+                    let m: crowdmorph_proto::StreamMessage = if b[0] == 3 {
+                        let crowdmorph_proto::StreamMessage::Packed(p) =
+                            crowdmorph_proto::wire::response_from_bincode(&b).unwrap()
+                        else {
+                            unreachable!()
+                        };
+                        crowdmorph_proto::wire::response_from_bincode(&p.unpack().unwrap()).unwrap()
+                    } else {
+                        crowdmorph_proto::wire::response_from_bincode(&b).unwrap()
+                    };
+                    let crowdmorph_proto::StreamMessage::Layers(l) = m else {
+                        panic!("not a layer message")
+                    };
+                    assert_eq!(l.heads.len(), n);
+                    let ids = l.heads.iter().map(|h| h.head).collect();
+                    log.messages.insert(tick, (ids, b.len()));
+                    pending = Some(tick);
+                }
+                Received::Vertices(a) => {
+                    if let Some(t) = pending.take() {
+                        assert_eq!(t, a.tick, "the layers come just before their tick");
+                    }
+                    log.ticks += 1;
+                    // Every wrinkled head that has a buffer draws its frame's weight.
+                    for h in 0..=8u64 {
+                        let Some(buffer) = state.buffer(h) else {
+                            continue;
+                        };
+                        let clip: &[f32] = if h == 8 { &still } else { &ramp };
+                        let inputs = state.layer_inputs(h);
+                        if v == 2 {
+                            assert_eq!(inputs, None, "viewer {v} did not ask for layers");
+                            continue;
+                        }
+                        let want = clip[buffer.frame as usize];
+                        let got = inputs.expect("a wrinkled head has inputs");
+                        assert_eq!(got.len(), 1);
+                        assert!(
+                            (got[0] - want).abs() < 1e-6,
+                            "viewer {v}, head {h} at frame {}: {got:?}, want {want}",
+                            buffer.frame
+                        );
+                    }
+                    assert_eq!(state.layer_inputs(9), None, "a rig without layers");
+                }
+                Received::Frame(_) => panic!("a frame"),
+            }
+        }
+        logs.push(log);
+    }
+    for (v, log) in logs.iter().enumerate().take(2) {
+        // The still head is sent its inputs once; ramp heads when their frame's weight changed.
+        let sent_still = log
+            .messages
+            .values()
+            .filter(|(ids, _)| ids.contains(&8))
+            .count();
+        assert_eq!(sent_still, 1, "viewer {v}: {:?}", log.messages);
+        assert!(log.messages.values().all(|(ids, _)| !ids.contains(&9)));
+        let per_tick =
+            log.messages.values().map(|(_, b)| b).sum::<usize>() as f64 / log.ticks as f64;
+        let listed = log
+            .messages
+            .values()
+            .map(|(ids, _)| ids.len())
+            .sum::<usize>() as f64
+            / log.ticks as f64;
+        println!(
+            "viewer {v}: variant 4 averages {per_tick:.1} B per tick for {} heads with layers \
+             ({listed:.1} listed per tick, {} ticks)",
+            ramps + 1,
+            log.ticks
+        );
+    }
+    assert!(logs[2].messages.is_empty());
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_chromium),
+    ignore = "no Chromium (apt-get install chromium, or set CROWDMORPH_CHROMIUM and touch build.rs)"
+)]
+async fn the_viewer_draws_expression_layers_as_the_server_does_in_headless_chromium() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    // The head holds `brow` at 0.8: the quad shows 80 % of the way from the checker to the
+    // bands.
+    let brow = 0.8f32;
+    upload_wrinkle_rig(&server, "wrinkled", "still", &[brow, brow]).await;
+    let (browser, mut cdp) = open_page(&["Network.enable"]).await;
+    cdp.call(
+        "Page.navigate",
+        json!({"url": format!("http://{}/viewer?rig=wrinkled&heads=1", server.addr)}),
+    )
+    .await;
+    let tick = "window.crowdmorphViewer?.tick ?? 0";
+    cdp.wait_for("the first tick", tick, Duration::from_secs(120), |v| {
+        v.as_u64().unwrap_or(0) > 0
+    })
+    .await;
+    let appearance = "window.crowdmorphViewer.appearance";
+    cdp.wait_for(
+        "the base texture and the layers on the GPU",
+        appearance,
+        Duration::from_secs(60),
+        |v| v["imagesReady"].as_u64() == Some(1) && v["layersReady"].as_u64() == Some(1),
+    )
+    .await;
+    cdp.wait_for(
+        "head 0's layer inputs",
+        "window.crowdmorphViewer.layerInputs",
+        Duration::from_secs(60),
+        |v| v["0"].is_array(),
+    )
+    .await;
+    let drawn = "Number(document.getElementById('view').dataset.drawn || 0)";
+    cdp.wait_for("the head drawn", drawn, Duration::from_secs(60), |v| {
+        v.as_u64() == Some(1)
+    })
+    .await;
+    let now = cdp.eval(tick).await.as_u64().unwrap();
+    cdp.wait_for("ten more ticks", tick, Duration::from_secs(90), |v| {
+        v.as_u64().unwrap_or(0) >= now + 10
+    })
+    .await;
+    let inputs = cdp.eval("window.crowdmorphViewer.layerInputs").await;
+    assert_eq!(inputs, json!({"0": [brow]}), "the page's inputs");
+
+    let view = cdp.eval("window.crowdmorphViewer.view").await;
+    let path = screenshot_path("-layers");
+    let image = screenshot(&mut cdp, &path).await;
+    assert_eq!(
+        cdp.eval("window.crowdmorphViewer.view").await,
+        view,
+        "the view changed while the screenshot was taken"
+    );
+    let panel = cdp
+        .eval(
+            "JSON.parse(JSON.stringify(document.getElementById('panel').getBoundingClientRect()))",
+        )
+        .await;
+    let frame = PageFrame::new(&view, &panel, f64::from(image.width));
+    let with = compare_with_the_servers_render(
+        &server,
+        &view,
+        &[("brow".to_string(), brow)],
+        &image,
+        &frame,
+        &path,
+    )
+    .await;
+    // The control: the server's render without the wrinkle (`brow` at 0). Where the wrinkle
+    // shows (the two renders differ), the page is the render with it, and far from the one
+    // without: a page that drew base colours alone would fail here.
+    let without = the_servers_render_of_the_page(
+        &server,
+        &view,
+        &[("brow".to_string(), 0.0)],
+        &image,
+        &frame,
+    )
+    .await;
+    let channel_diff =
+        |a: &[u8], b: &[u8]| (0..3).map(|c| a[c].abs_diff(b[c])).max().unwrap_or(0) as f64;
+    let (mut shown, mut to_with, mut to_without) = (0usize, 0.0, 0.0);
+    for ((w, o), p) in with
+        .server
+        .rgba
+        .chunks_exact(4)
+        .zip(without.server.rgba.chunks_exact(4))
+        .zip(with.page.rgba.chunks_exact(4))
+    {
+        if is_drawn(w) && is_drawn(o) && is_drawn(p) && channel_diff(w, o) > 40.0 {
+            shown += 1;
+            to_with += channel_diff(p, w);
+            to_without += channel_diff(p, o);
+        }
+    }
+    let (to_with, to_without) = (
+        to_with / shown.max(1) as f64,
+        to_without / shown.max(1) as f64,
+    );
+    println!(
+        "where the wrinkle shows ({shown} pixels), the page is {to_with:.1}/255 from the \
+         server's render with it and {to_without:.1}/255 from the one without"
+    );
+    assert!(shown > 2000, "the wrinkle shows on {shown} pixels only");
+    assert!(
+        to_without > 60.0 && to_with < to_without / 4.0,
+        "the page does not show the wrinkle as the server does: {to_with:.1} from the render \
+         with it, {to_without:.1} from the one without"
+    );
+
+    // Layers fetched once, the texels by their versioned URI; nothing more while ticking.
+    let requests = cdp.requests();
+    let matching = |part: &str| -> Vec<Request> {
+        requests
+            .iter()
+            .filter(|r| r.url.contains(part))
+            .cloned()
+            .collect()
+    };
+    let docs: Vec<Request> = matching("/v1/rigs/wrinkled/layers")
+        .into_iter()
+        .filter(|r| r.url.ends_with("/layers"))
+        .collect();
+    let texels = matching("/v1/rigs/wrinkled/layers/0?v=");
+    assert_eq!(docs.len(), 1, "{requests:#?}");
+    assert_eq!(texels.len(), 1, "{requests:#?}");
+    let before = requests.len();
+    let now = cdp.eval(tick).await.as_u64().unwrap();
+    cdp.wait_for("30 more ticks", tick, Duration::from_secs(90), |v| {
+        v.as_u64().unwrap_or(0) >= now + 30
+    })
+    .await;
+    let _ = cdp.eval("0").await; // Reads the events that came meanwhile.
+    let later = cdp.requests();
+    assert_eq!(
+        later.len(),
+        before,
+        "HTTP requests while the stream ticked: {:#?}",
+        &later[before..]
+    );
+    let stats = cdp.eval(appearance).await;
+    assert_eq!(stats["layerFetches"], json!(1), "{stats}");
+    assert_eq!(stats["texelFetches"], json!(1), "{stats}");
+    assert_eq!(stats["layerFailures"], json!(0), "{stats}");
+    let received = cdp.eval("window.crowdmorphViewer.received").await;
+    let variants = received["variants"].as_array().unwrap();
+    let bytes = |rs: &[Request]| -> u64 { rs.iter().map(|r| r.body_bytes.unwrap_or(0)).sum() };
+    let wire = |rs: &[Request]| -> u64 { rs.iter().map(|r| r.wire_bytes.unwrap_or(0)).sum() };
+    println!(
+        "layers, fetched once per rig: /layers {} B ({} B on the wire), texels {} B ({} B on \
+         the wire); variant 4: {} messages, {} B inflated in all (a still head is sent its \
+         inputs once)",
+        bytes(&docs),
+        wire(&docs),
+        bytes(&texels),
+        wire(&texels),
+        variants[4],
+        received["layerBytes"],
+    );
+    assert_eq!(
+        variants[4],
+        json!(1),
+        "a still head's inputs are sent once: {received}"
+    );
+    let errors = cdp.errors();
+    assert!(errors.is_empty(), "the page logged errors: {errors:#?}");
+    assert_eq!(cdp.eval(ERROR_TEXT).await, json!(""));
+    drop(cdp);
+    drop(browser);
+    server.stop().await;
 }

@@ -12,6 +12,7 @@ pub mod builder;
 pub mod image;
 pub mod pack;
 pub mod skin;
+pub mod wrinkle;
 
 use std::path::{Path, PathBuf};
 

@@ -50,6 +50,7 @@ STREAM_GOLDEN = {
     "stream_delta_keyframes": "Delta",
     "stream_delta_residuals": "Delta",
     "stream_packed_deflate": "Packed",
+    "stream_layers": "Layers",
 }
 
 

@@ -294,6 +294,11 @@ fn resources() -> Router<AppState> {
             "/v1/rigs/{id}/textures/{i}",
             get(routes::appearance::get_texture),
         )
+        .route("/v1/rigs/{id}/layers", get(routes::layers::get_layers))
+        .route(
+            "/v1/rigs/{id}/layers/{m}",
+            get(routes::layers::get_layer_texels),
+        )
         .route(
             "/v1/rigs/{id}/model.glb",
             get(routes::appearance::get_model),

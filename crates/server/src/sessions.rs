@@ -312,6 +312,17 @@ pub(crate) struct Baseline {
     /// For a temporal viewer: per head id, the buffer it last received (what residuals are
     /// against). Empty for other viewers.
     pub(crate) prev: Arc<HashMap<u64, HeadPrev>>,
+    /// For a viewer that asked for `layers`: per head id, the compact layer inputs it last
+    /// received (a head is sent its inputs when they differ). Empty for other viewers.
+    pub(crate) layers: Arc<SentLayers>,
+}
+
+/// What a viewer that asked for `layers` last received: per head id, its compact layer inputs
+/// (shared with the tick that computed them), holding their queue memory.
+#[derive(Debug, Default)]
+pub(crate) struct SentLayers {
+    pub(crate) inputs: HashMap<u64, Arc<[f32]>>,
+    pub(crate) _memory: Option<crate::admission::memory::Charge>,
 }
 
 impl Baseline {
@@ -322,6 +333,7 @@ impl Baseline {
             layout_rev: u64::MAX,
             keys: Arc::new(Vec::new()),
             prev: Arc::new(HashMap::new()),
+            layers: Arc::new(SentLayers::default()),
         }
     }
 }
@@ -356,6 +368,9 @@ pub(crate) struct Encoded {
 
 #[derive(Debug)]
 pub(crate) struct Outgoing {
+    /// The tick's expression-layer inputs (`StreamMessage` variant 4), sent just before
+    /// `message` so that a head draws its new layers with its new vertices.
+    pub(crate) layers: Option<Encoded>,
     pub(crate) message: Arc<Encoded>,
     /// The viewer's baseline once this is sent.
     pub(crate) after: Baseline,
@@ -380,6 +395,8 @@ pub(crate) struct ViewerSettings {
     pub(crate) temporal: Option<u32>,
     /// Messages compressed with this.
     pub(crate) compression: Option<crowdmorph_proto::MessageEncoding>,
+    /// Also send each head's expression-layer inputs when they change.
+    pub(crate) layers: bool,
 }
 
 #[derive(Debug)]

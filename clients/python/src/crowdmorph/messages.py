@@ -1530,10 +1530,30 @@ def _inflate_zstd(data: Any, n: int) -> bytes:
     return b"".join(parts)
 
 
-#: ``StreamMessage``: the binary messages of a session stream, by variant index.
-STREAM_MESSAGE = Tagged(TickVertices, TickFrame, TickDelta, PackedMessage)
+@wire(("head", U64), ("inputs", Vec(F32)))
+@dataclass
+class HeadLayers:
+    """One head's expression-layer inputs, in the order ``GET /v1/rigs/{id}/layers`` numbers
+    them."""
 
-StreamMessage = Union[TickVertices, TickFrame, TickDelta, PackedMessage]
+    head: int
+    inputs: List[float]
+
+
+@wire(("tick", U64), ("heads", Vec(Msg(HeadLayers))))
+@dataclass
+class TickLayers:
+    """Stream message variant 4, only for a viewer whose hello asked for ``layers`` (this
+    client never does): the heads whose expression-layer inputs changed."""
+
+    tick: int
+    heads: List[HeadLayers]
+
+
+#: ``StreamMessage``: the binary messages of a session stream, by variant index.
+STREAM_MESSAGE = Tagged(TickVertices, TickFrame, TickDelta, PackedMessage, TickLayers)
+
+StreamMessage = Union[TickVertices, TickFrame, TickDelta, PackedMessage, TickLayers]
 
 
 def decode_stream_message(data: Any) -> StreamMessage:

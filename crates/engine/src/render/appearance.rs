@@ -57,7 +57,7 @@ const LAYER_TEXEL: u64 = 8;
 /// `crowdmorph_core::rig::animated_texture`): its target textures, then each clip texture's
 /// mean and components.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(super) enum LayerKind {
+pub enum LayerKind {
     /// `Appearance::target_textures[i]` − the base.
     Target(usize),
     /// `Appearance::clip_textures[i]`'s mean − the base.
@@ -66,8 +66,19 @@ pub(super) enum LayerKind {
     ClipComponent(usize, usize),
 }
 
+impl LayerKind {
+    /// Its name in `GET /v1/rigs/{id}/layers`.
+    pub fn name(self) -> &'static str {
+        match self {
+            LayerKind::Target(_) => "target",
+            LayerKind::ClipMean(_) => "clip_mean",
+            LayerKind::ClipComponent(..) => "clip_component",
+        }
+    }
+}
+
 /// The layers material `m` of `a` sums, at most [`MAX_LAYERS`] (validation refuses more).
-pub(super) fn material_layers(a: &Appearance, m: usize) -> Vec<LayerKind> {
+pub fn material_layers(a: &Appearance, m: usize) -> Vec<LayerKind> {
     let mut out: Vec<LayerKind> = a
         .target_textures
         .iter()
@@ -89,7 +100,7 @@ pub(super) fn material_layers(a: &Appearance, m: usize) -> Vec<LayerKind> {
 /// `crowdmorph_core::rig::layer_inputs` vector, and whether it is clamped to [0, 1] (a
 /// target's weight is; PCA coefficients are signed). `None`: never drawn (a target name the
 /// rig does not have).
-pub(super) fn layer_source(rig: &Rig, a: &Appearance, kind: LayerKind) -> Option<(u32, bool)> {
+pub fn layer_source(rig: &Rig, a: &Appearance, kind: LayerKind) -> Option<(u32, bool)> {
     let clip_at = |i: usize| -> usize {
         rig.targets.len()
             + a.clip_textures[..i.min(a.clip_textures.len())]
@@ -638,41 +649,42 @@ fn layer_dims(
     Ok(out)
 }
 
-/// Uploads material `m`'s layers (see the module documentation of
-/// `crowdmorph_core::rig::animated_texture`) as one 2D array texture of [`LAYER_FORMAT`], level
-/// by level and layer by layer (the host holds one level of one layer at a time).
-fn upload_layers(
-    device: &wgpu::Device,
-    queue: &wgpu::Queue,
+/// One level of one layer of a material, as [`build_layers`] hands it out.
+#[derive(Debug)]
+pub struct LayerLevel<'a> {
+    /// The layer (its index in [`material_layers`]).
+    pub layer: usize,
+    /// The mip level (0: the largest).
+    pub level: usize,
+    /// Width in texels.
+    pub width: u32,
+    /// Height in texels.
+    pub height: u32,
+    /// Signed linear RGBA as binary16, rows top to bottom (`width × height × 4` values).
+    pub texels: &'a [half::f16],
+}
+
+/// Material `m`'s layers (see the module documentation of
+/// `crowdmorph_core::rig::animated_texture`) texel by texel, as the renderer uploads them and
+/// `GET /v1/rigs/{id}/layers/{m}` serves them: `f` gets each level of each layer, layer by
+/// layer, each layer's levels largest first. The one place layer texels are made, so the
+/// device and a browser sum the same values. The host holds one level of one layer at a time
+/// (and the level it halves).
+fn build_layers(
     a: &Appearance,
     m: usize,
     chains: &Chains<'_>,
-    max_size: u32,
-) -> Result<Option<wgpu::TextureView>, AppearanceError> {
+    dims: &[(u32, u32)],
+    mut f: impl FnMut(LayerLevel<'_>),
+) {
     let kinds = material_layers(a, m);
-    if kinds.is_empty() {
-        return Ok(None);
-    }
-    let dims = layer_dims(a, m, chains, max_size)?;
     let base = a.materials[m]
         .base_color_texture
         .as_ref()
         .and_then(|r| chain_of(a, r, chains));
-    let (w0, h0) = dims[0];
-    let texture = device.create_texture(&wgpu::TextureDescriptor {
-        label: Some("render layers"),
-        size: wgpu::Extent3d {
-            width: w0,
-            height: h0,
-            depth_or_array_layers: kinds.len() as u32,
-        },
-        mip_level_count: dims.len() as u32,
-        sample_count: 1,
-        dimension: wgpu::TextureDimension::D2,
-        format: LAYER_FORMAT,
-        usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
-        view_formats: &[],
-    });
+    let Some(&(w0, h0)) = dims.first() else {
+        return;
+    };
     let base_at = |k: usize, w: u32, h: u32| -> Vec<[f32; 4]> {
         match base.and_then(|c| c.get(k)) {
             Some(l) if (l.width, l.height) == (w, h) => linear_level(l),
@@ -734,31 +746,158 @@ fn upload_layers(
                     .map(half::f16::from_f32)
                     .collect(),
             };
-            queue.write_texture(
-                wgpu::TexelCopyTextureInfo {
-                    texture: &texture,
-                    mip_level: k as u32,
-                    origin: wgpu::Origin3d {
-                        x: 0,
-                        y: 0,
-                        z: layer as u32,
-                    },
-                    aspect: wgpu::TextureAspect::All,
-                },
-                bytemuck::cast_slice(&texels),
-                wgpu::TexelCopyBufferLayout {
-                    offset: 0,
-                    bytes_per_row: Some(w * LAYER_TEXEL as u32),
-                    rows_per_image: Some(h),
-                },
-                wgpu::Extent3d {
-                    width: w,
-                    height: h,
-                    depth_or_array_layers: 1,
-                },
-            );
+            f(LayerLevel {
+                layer,
+                level: k,
+                width: w,
+                height: h,
+                texels: &texels,
+            });
         }
     }
+}
+
+/// What material `m`'s layers are, for a client that sums them itself: each layer's kind and
+/// where its coefficient comes from, and the sizes of its levels.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LayerPlan {
+    /// The layers, in the order the material sums them.
+    pub kinds: Vec<LayerKind>,
+    /// Per layer, its coefficient's index in `crowdmorph_core::rig::layer_inputs` and whether
+    /// it is clamped to [0, 1] ([`layer_source`]); `None`: its coefficient is always 0.
+    pub sources: Vec<Option<(u32, bool)>>,
+    /// Each level's width and height, largest first (the renderer's mip chain).
+    pub levels: Vec<(u32, u32)>,
+}
+
+impl LayerPlan {
+    /// Bytes of every level of every layer as binary16 RGBA: what [`layer_texels`] hands out.
+    pub fn bytes(&self) -> u64 {
+        self.levels
+            .iter()
+            .map(|&(w, h)| u64::from(w) * u64::from(h))
+            .sum::<u64>()
+            * self.kinds.len() as u64
+            * LAYER_TEXEL
+    }
+}
+
+/// Material `m`'s layers as a renderer whose largest texture is `max_size` would upload them;
+/// `None` when it has none (or `m` is not a material of `rig`).
+pub fn layer_plan(
+    rig: &Rig,
+    m: usize,
+    max_size: u32,
+) -> Result<Option<LayerPlan>, AppearanceError> {
+    let Some(a) = rig.appearance.as_deref() else {
+        return Ok(None);
+    };
+    if m >= a.materials.len() {
+        return Ok(None);
+    }
+    let kinds = material_layers(a, m);
+    if kinds.is_empty() {
+        return Ok(None);
+    }
+    let (_, chains) = plan(a, max_size)?;
+    Ok(Some(LayerPlan {
+        sources: kinds.iter().map(|&k| layer_source(rig, a, k)).collect(),
+        levels: layer_dims(a, m, &chains, max_size)?,
+        kinds,
+    }))
+}
+
+/// Material `m`'s layer texels ([`build_layers`]) as a renderer whose largest texture is
+/// `max_size` uploads them; nothing when it has none. The caller charges
+/// [`LayerPlan::bytes`] for whatever it keeps.
+pub fn layer_texels(
+    rig: &Rig,
+    m: usize,
+    max_size: u32,
+    f: impl FnMut(LayerLevel<'_>),
+) -> Result<(), AppearanceError> {
+    let Some(a) = rig.appearance.as_deref() else {
+        return Ok(());
+    };
+    if m >= a.materials.len() || material_layers(a, m).is_empty() {
+        return Ok(());
+    }
+    let (_, chains) = plan(a, max_size)?;
+    let dims = layer_dims(a, m, &chains, max_size)?;
+    build_layers(a, m, &chains, &dims, f);
+    Ok(())
+}
+
+/// Every index of `crowdmorph_core::rig::layer_inputs` that a layer of `rig` reads, ascending:
+/// the compact vector a session viewer is sent per head holds these entries in this order.
+pub fn layer_input_indices(rig: &Rig) -> Vec<u32> {
+    let Some(a) = rig.appearance.as_deref() else {
+        return Vec::new();
+    };
+    let mut out: Vec<u32> = (0..a.materials.len())
+        .flat_map(|m| material_layers(a, m))
+        .filter_map(|k| layer_source(rig, a, k).map(|(at, _)| at))
+        .collect();
+    out.sort_unstable();
+    out.dedup();
+    out
+}
+
+/// Uploads material `m`'s layers ([`build_layers`]) as one 2D array texture of
+/// [`LAYER_FORMAT`], level by level and layer by layer.
+fn upload_layers(
+    device: &wgpu::Device,
+    queue: &wgpu::Queue,
+    a: &Appearance,
+    m: usize,
+    chains: &Chains<'_>,
+    max_size: u32,
+) -> Result<Option<wgpu::TextureView>, AppearanceError> {
+    let kinds = material_layers(a, m);
+    if kinds.is_empty() {
+        return Ok(None);
+    }
+    let dims = layer_dims(a, m, chains, max_size)?;
+    let (w0, h0) = dims[0];
+    let texture = device.create_texture(&wgpu::TextureDescriptor {
+        label: Some("render layers"),
+        size: wgpu::Extent3d {
+            width: w0,
+            height: h0,
+            depth_or_array_layers: kinds.len() as u32,
+        },
+        mip_level_count: dims.len() as u32,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D2,
+        format: LAYER_FORMAT,
+        usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+        view_formats: &[],
+    });
+    build_layers(a, m, chains, &dims, |l| {
+        queue.write_texture(
+            wgpu::TexelCopyTextureInfo {
+                texture: &texture,
+                mip_level: l.level as u32,
+                origin: wgpu::Origin3d {
+                    x: 0,
+                    y: 0,
+                    z: l.layer as u32,
+                },
+                aspect: wgpu::TextureAspect::All,
+            },
+            bytemuck::cast_slice(l.texels),
+            wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some(l.width * LAYER_TEXEL as u32),
+                rows_per_image: Some(l.height),
+            },
+            wgpu::Extent3d {
+                width: l.width,
+                height: l.height,
+                depth_or_array_layers: 1,
+            },
+        );
+    });
     Ok(Some(texture.create_view(&wgpu::TextureViewDescriptor {
         dimension: Some(wgpu::TextureViewDimension::D2Array),
         ..wgpu::TextureViewDescriptor::default()

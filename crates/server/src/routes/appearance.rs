@@ -96,7 +96,8 @@ const IMAGE_ENTRY_BYTES: u64 = 512;
 #[derive(serde::Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TextureQuery {
-    v: Option<String>,
+    /// The `ETag` token, when the URI carries it.
+    pub v: Option<String>,
 }
 
 /// `GET /v1/rigs/{id}/textures/{i}`: image `i`'s bytes with their content type.

@@ -27,14 +27,16 @@ use crate::scheduler::Scheduler;
 use crate::scheduler::{JobRequest, ScheduleError};
 use crate::sessions::Sessions;
 use crate::sessions::{
-    Baseline, Encoded, HeadKey, MIN_FPS, MISSING_KEY, Outgoing, Session, Viewer, ViewerSettings,
-    bump, close,
+    Baseline, Encoded, HeadKey, MIN_FPS, MISSING_KEY, Outgoing, SentLayers, Session, Viewer,
+    ViewerSettings, bump, close,
 };
 use crowdmorph_anim::graph::{Graph, Player};
 use crowdmorph_core::rig::{FrameMode, JointPose, Pose};
 
 use crate::session_stream::delta;
-use crate::session_stream::encode::{JobKey as Key, MessageContent, encode_delta, encode_vertices};
+use crate::session_stream::encode::{
+    JobKey as Key, MessageContent, encode_delta, encode_layers, encode_vertices,
+};
 
 /// What a session's tick needs of the server beside rendering ([`Rendering`], for viewers
 /// that want images): the sessions and the batcher.
@@ -802,6 +804,9 @@ struct Prepared {
     base: Baseline,
     plan: Option<delta::DeltaPlan>,
     key: MessageKey,
+    /// For a viewer that asked for `layers`: the tick's layer message (`None`: no head's inputs
+    /// changed) and what the viewer will have received once it is sent.
+    layers: Option<(Option<Encoded>, Arc<SentLayers>)>,
 }
 
 /// Plans a viewer's message against what its socket last took: each head's entry, and for a
@@ -850,6 +855,15 @@ fn prepare<S: Ticking>(
             }
         }
     };
+    let layers = if settings.layers {
+        let Some(l) = plan_layers(state, t, target, &base, cache, settings.compression) else {
+            dropped_memory(state, session);
+            return None;
+        };
+        Some(l)
+    } else {
+        None
+    };
     let key = MessageKey {
         group: g,
         with_layout,
@@ -862,7 +876,77 @@ fn prepare<S: Ticking>(
         base,
         plan,
         key,
+        layers,
     })
+}
+
+/// A layers viewer's [`crowdmorph_proto::TickLayers`]: the compact layer inputs of each head
+/// whose rig has layers and whose inputs differ from what the viewer last received (`None`
+/// when none do: a rig without layers, or a still head, costs nothing), and the viewer's
+/// record of what it has once the message is sent. Each job's inputs are computed once per
+/// tick and shared by its heads and viewers. `None`: out of queue memory.
+fn plan_layers<S: Ticking>(
+    state: &S,
+    t: &TickHeads<'_>,
+    target: &Target<'_>,
+    base: &Baseline,
+    cache: &mut Caches,
+    compression: Option<MessageEncoding>,
+) -> Option<(Option<Encoded>, Arc<SentLayers>)> {
+    let (g, group) = target.group;
+    // Per head with layers: its entry in the record and its inputs (held by the record), and
+    // while a job's inputs are computed, its full `layer_inputs`: charged first.
+    let mut bytes = 0u64;
+    for j in target.jobs.iter().flatten() {
+        let r = group.keys[*j as usize].0;
+        let (indices, full) = cache.rig_layers(t.rigs, r);
+        if !indices.is_empty() {
+            bytes += 4 * (indices.len() + full) as u64 + 64;
+        }
+    }
+    if bytes == 0 {
+        let unchanged = base.layers.inputs.is_empty();
+        return Some((
+            None,
+            if unchanged {
+                base.layers.clone()
+            } else {
+                Arc::default()
+            },
+        ));
+    }
+    let memory = state.queue_memory().reserve(bytes).ok()?;
+    let mut inputs = HashMap::with_capacity(target.jobs.len());
+    let mut changed: Vec<(u64, Arc<[f32]>)> = Vec::new();
+    for (i, job) in target.jobs.iter().enumerate() {
+        let Some(j) = *job else { continue };
+        let Some(v) = cache.job_layers(t.rigs, g, group, j) else {
+            continue;
+        };
+        let head = t.head_ids[i];
+        if base.layers.inputs.get(&head) != Some(&v) {
+            changed.push((head, v.clone()));
+        }
+        inputs.insert(head, v);
+    }
+    if changed.is_empty() && inputs.len() == base.layers.inputs.len() {
+        return Some((None, base.layers.clone()));
+    }
+    let message = if changed.is_empty() {
+        None
+    } else {
+        Some(encode_layers(
+            state.queue_memory(),
+            t.tick,
+            &changed,
+            compression,
+        )?)
+    };
+    let sent = SentLayers {
+        inputs,
+        _memory: Some(memory),
+    };
+    Some((message, Arc::new(sent)))
 }
 
 /// Encodes a prepared message. `None`: out of queue memory.
@@ -906,11 +990,62 @@ struct MessageKey {
     compression: Option<MessageEncoding>,
 }
 
-/// The fan-out's shared work: messages encoded once per key, references copied once per job.
+/// The fan-out's shared work: messages encoded once per key, references copied once per job,
+/// layer inputs computed once per job.
 #[derive(Default)]
 struct Caches {
     messages: HashMap<MessageKey, Arc<Encoded>>,
     retained: delta::RetainedCache,
+    /// Per rig of the tick: the `layer_inputs` entries its layers read, and that vector's
+    /// length.
+    rig_layers: HashMap<u32, (Arc<[u32]>, usize)>,
+    /// Per (group, job): its compact layer inputs, `None` for a rig without layers.
+    job_layers: HashMap<(usize, u32), Option<Arc<[f32]>>>,
+}
+
+impl Caches {
+    /// Rig `r`'s layer input indices and the length of its `layer_inputs`.
+    fn rig_layers(&mut self, rigs: &[Arc<RigEntry>], r: u32) -> (Arc<[u32]>, usize) {
+        self.rig_layers
+            .entry(r)
+            .or_insert_with(|| {
+                let rig = rigs[r as usize].prepared.rig();
+                let indices = crowdmorph_engine::render::appearance::layer_input_indices(rig);
+                let clips = rig.appearance.as_deref().map_or(0, |a| {
+                    a.clip_textures
+                        .iter()
+                        .map(|c| 1 + c.layers())
+                        .sum::<usize>()
+                });
+                (indices.into(), rig.targets.len() + clips)
+            })
+            .clone()
+    }
+
+    /// Job `j` of group `g`'s compact layer inputs (`None`: its rig has no layers).
+    fn job_layers(
+        &mut self,
+        rigs: &[Arc<RigEntry>],
+        g: usize,
+        group: &Group,
+        j: u32,
+    ) -> Option<Arc<[f32]>> {
+        if let Some(v) = self.job_layers.get(&(g, j)) {
+            return v.clone();
+        }
+        let (r, pose, lod, _) = &group.keys[j as usize];
+        let (indices, _) = self.rig_layers(rigs, *r);
+        let v = (!indices.is_empty()).then(|| {
+            let all =
+                crowdmorph_core::rig::layer_inputs(rigs[*r as usize].prepared.rig(), pose, *lod);
+            indices
+                .iter()
+                .map(|&k| all.get(k as usize).copied().unwrap_or(0.0))
+                .collect::<Arc<[f32]>>()
+        });
+        self.job_layers.insert((g, j), v.clone());
+        v
+    }
 }
 
 /// Each head's key for a viewer (what its buffer is: rig generation, clip, frame, LOD).
@@ -969,7 +1104,12 @@ fn deliver<S: Ticking>(
             bump(&state.sessions().metrics.dropped_slow, 1);
             session.with_stats(|s| s.messages_dropped += 1);
         }
+        let (layers, sent_layers) = match p.layers {
+            Some((m, sent)) => (m, sent),
+            None => (None, p.base.layers.clone()),
+        };
         o.pending = Some(Outgoing {
+            layers,
             message,
             after: Baseline {
                 version: p.base.version + 1,
@@ -978,6 +1118,7 @@ fn deliver<S: Ticking>(
                 prev: p
                     .plan
                     .map_or_else(|| p.base.prev.clone(), |plan| plan.after),
+                layers: sent_layers,
             },
         });
         drop(o);
@@ -1149,7 +1290,11 @@ fn put_frame<S: Ticking>(state: &S, session: &Session, viewer: &Viewer, message:
         version: o.sent.version + 1,
         ..Baseline::empty()
     };
-    o.pending = Some(Outgoing { message, after });
+    o.pending = Some(Outgoing {
+        layers: None,
+        message,
+        after,
+    });
     drop(o);
     viewer.ready.notify_one();
 }

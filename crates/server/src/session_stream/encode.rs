@@ -1,7 +1,7 @@
 //! A viewer's vertex message encoded: a [`crowdmorph_proto::TickVertices`] or, for a
 //! temporal viewer, a [`crowdmorph_proto::TickDelta`] of residuals planned by
-//! [`super::delta`], optionally packed; every byte charged to the queue memory before it is
-//! allocated. The tick (`crate::services::tick`) decides what each viewer gets; this
+//! [`super::delta`], and a layers viewer's [`crowdmorph_proto::TickLayers`], optionally
+//! packed; every byte charged to the queue memory before it is allocated. The tick (`crate::services::tick`) decides what each viewer gets; this
 //! module only writes it, given the queue memory and nothing else of the server.
 
 use std::collections::HashMap;
@@ -233,6 +233,45 @@ fn encode_message(
     let mut charge = charge;
     // The layout's encoding and the chunks are gone; the message keeps only its bytes.
     charge.keep(total as u64);
+    Some(Encoded {
+        bytes: Bytes::from(out),
+        _memory: Box::new(charge),
+    })
+}
+
+/// Encodes a [`crowdmorph_proto::TickLayers`] (`StreamMessage` variant 4) of `heads`' compact
+/// layer inputs, written field by field (the bincode of the type: `tests/server/sessions.rs`
+/// decodes it), optionally packed. Its bound is charged to the queue memory before it is
+/// allocated; `None` when the queue memory is full.
+pub(crate) fn encode_layers(
+    memory: &QueueMemory,
+    tick: u64,
+    heads: &[(u64, Arc<[f32]>)],
+    compression: Option<MessageEncoding>,
+) -> Option<Encoded> {
+    // A varint is at most 9 bytes: the variant, the tick and the count, then per head its id,
+    // its length and its floats.
+    let bound = 27 + heads.iter().map(|(_, v)| 18 + 4 * v.len()).sum::<usize>();
+    let mut charge = memory.reserve(bound as u64).ok()?;
+    let mut out = Vec::with_capacity(bound);
+    let put = crowdmorph_store::codec::put_varint;
+    put(&mut out, 4);
+    put(&mut out, tick);
+    put(&mut out, heads.len() as u64);
+    for (head, inputs) in heads {
+        put(&mut out, *head);
+        put(&mut out, inputs.len() as u64);
+        for v in inputs.iter() {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    if let Some(e) = compression {
+        let len = out.len();
+        let packed = delta::pack(memory, &[Bytes::from(out)], len, e);
+        drop(charge);
+        return packed;
+    }
+    charge.keep(out.len() as u64);
     Some(Encoded {
         bytes: Bytes::from(out),
         _memory: Box::new(charge),

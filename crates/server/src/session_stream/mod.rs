@@ -6,7 +6,7 @@
 //! | module | what it is |
 //! |---|---|
 //! | [`delta`] | temporal residuals against each viewer's baseline, and packed (zstd, zlib) messages |
-//! | [`encode`] | vertex and delta messages encoded, their bytes charged before they are allocated |
+//! | [`encode`] | vertex, delta and layer messages encoded, their bytes charged before they are allocated |
 
 pub(crate) mod delta;
 pub(crate) mod encode;

@@ -87,6 +87,7 @@ async fn read_hello(
         image,
         temporal,
         compression: hello.compression,
+        layers: hello.layers,
     })
 }
 
@@ -104,6 +105,9 @@ fn check_modes(hello: &ViewerHello) -> Result<Option<u32>, (u16, String)> {
     let frames = hello.output == ViewerOutput::Frames;
     if frames && hello.temporal {
         return refuse("temporal residuals are for vertex buffers, not output frames");
+    }
+    if frames && hello.layers {
+        return refuse("layers are for vertex buffers; images already show them");
     }
     if frames && hello.compression.is_some() {
         return refuse("compression is for vertex buffers; images are already compressed");
@@ -272,27 +276,32 @@ async fn viewer_loop(
                 let out = match viewer.outbox.lock() {
                     Ok(mut o) => o.pending.take().map(|p| {
                         o.sent = p.after;
-                        p.message
+                        (p.layers, p.message)
                     }),
                     Err(_) => return (close::AWAY, "internal error".into()),
                 };
-                let Some(message) = out else { continue };
-                let len = message.bytes.len() as u64;
-                let send = socket.send(Message::Binary(message.bytes.clone()));
-                tokio::select! {
-                    r = send => if r.is_err() { return (0, String::new()) },
-                    () = viewer.closing.notified() => {
-                        return viewer.close_asked().unwrap_or((close::AWAY, String::new()));
+                let Some((layers, message)) = out else { continue };
+                // The layer inputs first: the head's new vertices draw with them.
+                let sends = [layers.as_ref().map(|l| &l.bytes), Some(&message.bytes)];
+                for bytes in sends.into_iter().flatten().cloned() {
+                    let len = bytes.len() as u64;
+                    let send = socket.send(Message::Binary(bytes));
+                    tokio::select! {
+                        r = send => if r.is_err() { return (0, String::new()) },
+                        () = viewer.closing.notified() => {
+                            return viewer.close_asked().unwrap_or((close::AWAY, String::new()));
+                        }
                     }
+                    let m = &state.sessions.metrics;
+                    bump(&m.sent, 1);
+                    bump(&m.bytes_sent, len);
+                    session.with_stats(|s| {
+                        s.messages_sent += 1;
+                        s.bytes_sent += len;
+                    });
                 }
-                drop(message);
-                let m = &state.sessions.metrics;
-                bump(&m.sent, 1);
-                bump(&m.bytes_sent, len);
-                session.with_stats(|s| {
-                    s.messages_sent += 1;
-                    s.bytes_sent += len;
-                });
+                // Their queue memory goes back once they are sent.
+                drop((layers, message));
             }
             msg = socket.recv() => {
                 let msg = match msg {
