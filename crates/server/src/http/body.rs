@@ -8,6 +8,8 @@ use axum::http::{HeaderMap, StatusCode, header};
 use bytes::Bytes;
 use http_body_util::BodyExt;
 
+use crowdmorph_core::budget::{Budget, BudgetError};
+
 use super::error::ApiError;
 
 /// How large a body may be and how long it may take to arrive.
@@ -87,15 +89,17 @@ pub async fn read_body(
     }
 }
 
-/// Reads a body that declares no length (chunked) within `limits`, asking `charge` for each
-/// piece's memory before keeping it: twice its length, the piece and its copy in the joined
-/// body. So an upload is charged for what arrives rather than for the most it could be, and an
-/// empty one costs nothing and reaches its route's own check. 413 past the size, 408 past the
-/// deadline, or `charge`'s error.
+/// Reads a body that declares no length (chunked, or inflated by a `Content-Encoding`) within
+/// `limits`, charging each piece to `budget` before keeping it, so that an upload is charged
+/// for what arrives rather than for the most it could be, and an empty one costs nothing and
+/// reaches its route's own check. Pieces are joined into one buffer at the end: that copy is
+/// charged before it is made and the pieces' charge released once they are dropped. 413
+/// `body_too_large` past the size, 408 past the deadline, or `refused` of the budget's error.
 pub async fn read_body_charged(
     body: Body,
     limits: BodyLimits,
-    mut charge: impl FnMut(u64) -> Result<(), ApiError>,
+    budget: &Budget,
+    refused: impl Fn(BudgetError) -> ApiError,
 ) -> Result<Bytes, ApiError> {
     let limit = limits.bytes;
     let read = async {
@@ -114,19 +118,39 @@ pub async fn read_body_charged(
             };
             total += data.len();
             if total > limit {
+                // What was read is free again: hand it back, as `read_body` does for a bomb.
+                drop(pieces);
+                budget.release((total - data.len()) as u64);
+                if limit as u64 >= crowdmorph_core::budget::TRIM_AFTER_BYTES {
+                    crowdmorph_core::budget::return_freed_memory_soon();
+                }
                 return Err(ApiError::new(
                     StatusCode::PAYLOAD_TOO_LARGE,
                     "body_too_large",
                     format!("request body is larger than the limit of {limit} bytes"),
                 ));
             }
-            charge(2 * data.len() as u64)?;
+            budget
+                .charge(data.len() as u64, || {
+                    format!("an upload body of {total} bytes so far")
+                })
+                .map_err(&refused)?;
             pieces.push(data);
         }
         Ok(match pieces.len() {
             0 => Bytes::new(),
             1 => pieces.swap_remove(0),
-            _ => pieces.concat().into(),
+            _ => {
+                budget
+                    .charge(total as u64, || {
+                        format!("joining an upload body of {total} bytes")
+                    })
+                    .map_err(&refused)?;
+                let joined: Bytes = pieces.concat().into();
+                drop(pieces);
+                budget.release(total as u64);
+                joined
+            }
         })
     };
     tokio::time::timeout(limits.timeout, read)

@@ -65,14 +65,9 @@ pub async fn upload_body(
 ) -> Result<Bytes, ApiError> {
     let limits = state.upload_limits();
     if headers.get(header::CONTENT_LENGTH).is_none() {
-        // Chunked: charged as it arrives, not for the most it could be.
-        let mut read = 0u64;
-        return http::body::read_body_charged(body, limits, |n| {
-            read += n / 2;
-            budget
-                .charge(n, || format!("an upload body of {read} bytes so far"))
-                .map(drop)
-                .map_err(|e| ApiError::budget(e, "upload_too_large"))
+        // Chunked (or inflated): charged as it arrives, not for the most it could be.
+        return http::body::read_body_charged(body, limits, budget, |e| {
+            ApiError::budget(e, "upload_too_large")
         })
         .await;
     }
