@@ -553,9 +553,33 @@ impl InfoNow {
 pub(crate) fn info_bytes(id: &str, heads: &[SessionHead]) -> u64 {
     let heads: u64 = heads
         .iter()
-        .map(|h| HEAD_JSON_BYTES + json_str_bytes(&h.rig) + json_str_bytes(&h.clip))
+        .map(|h| {
+            HEAD_JSON_BYTES
+                + json_str_bytes(&h.rig)
+                + json_str_bytes(&h.clip)
+                + extras_json_bytes(h)
+        })
         .sum();
     INFO_JSON_BYTES + json_str_bytes(id) + heads
+}
+
+/// Most bytes a field takes in JSON besides its strings: its name, an `f32` triple or
+/// quadruple at its widest (15 characters a number), separators.
+const FIELD_JSON_BYTES: u64 = 100;
+
+/// Most bytes a head's graph and joint overrides take in JSON.
+fn extras_json_bytes(h: &SessionHead) -> u64 {
+    let names = |v: &[String]| v.iter().map(|n| json_str_bytes(n) + 1).sum::<u64>();
+    let graph = h.graph.as_ref().map_or(0, |g| {
+        2 * FIELD_JSON_BYTES + json_str_bytes(&g.name) + json_str_bytes(&g.start) + names(&g.script)
+    });
+    let joints: u64 = h
+        .joints
+        .0
+        .iter()
+        .map(|(n, _)| json_str_bytes(n) + 3 * FIELD_JSON_BYTES)
+        .sum::<u64>();
+    graph + joints
 }
 
 impl Session {

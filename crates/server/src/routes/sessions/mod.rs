@@ -582,8 +582,23 @@ mod tests {
                 position: [1.0, 2.0, 3.0],
                 yaw: 90.0,
                 scale: 1.0,
-                graph: None,
-                joints: Default::default(),
+                graph: Some(crowdmorph_proto::GraphPlay {
+                    name: "\u{1}\"".repeat(40),
+                    start: "\\".repeat(30),
+                    seed: u64::MAX,
+                    script: vec!["\u{2}".repeat(20); 5],
+                }),
+                joints: crowdmorph_proto::JointOverrides(vec![
+                    (
+                        "\u{3}".repeat(50),
+                        crowdmorph_proto::JointTransform {
+                            translation: Some([-1.1754942e-38, -3.4028235e38, -1.4e-45]),
+                            rotation: Some([-1.1754942e-38; 4]),
+                            scale: Some([-3.4028235e38; 3]),
+                        },
+                    );
+                    3
+                ]),
             },
         ];
         let stats = SessionStats {
