@@ -493,18 +493,27 @@ async fn a_skinned_heads_transitions_and_joint_changes_do_not_pop() {
     let mut view = View::default();
     let mut last: Option<(u64, Vec<f32>)> = None;
     let (mut largest, mut compared) = (0f32, 0);
-    // Per patch, the ticks its fade showed live weights (a frozen pose fading).
+    // Per patch, the ticks its fade showed the frozen pose as the larger share: a jump fades
+    // from the clip terms it froze, and a blend's buffer names its largest term, so the same
+    // clip frame is named on consecutive ticks while the clock moves the clips (30 fps, one
+    // frame a tick) on.
     let mut fading = vec![0u32; patches.len()];
     let mut clips = std::collections::BTreeSet::new();
+    let mut named: Option<(u64, String, u32)> = None;
     for _ in 0..1000 {
         let t = next_tick(&mut ws).await;
         view.apply(&t);
         if let Some(b) = t.heads.first().map(|h| h.buffer)
             && let Some(buf) = t.buffers.get(b as usize)
         {
-            if buf.clip.is_empty() && patched_at > 0 {
+            if let Some((tick, clip, frame)) = &named
+                && *tick + 1 == t.tick
+                && (clip.as_str(), *frame) == (buf.clip.as_str(), buf.frame)
+                && patched_at > 0
+            {
                 fading[patched_at - 1] += 1;
             }
+            named = Some((t.tick, buf.clip.clone(), buf.frame));
             clips.insert(buf.clip.clone());
         }
         let now = view.heads.get(&1).cloned().expect("the head is shown");

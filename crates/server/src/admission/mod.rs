@@ -1,9 +1,12 @@
 //! Admission: what a request costs, charged before any of its work — the queue memory and its
-//! charges ([`memory`]), the render budgets ([`render`]) and heads resolved into priced jobs
-//! ([`resolve`]). [`Decoded`] is the extractor of a request body: it hands a handler the
+//! charges ([`memory`]), the render budgets ([`render`]), heads resolved into priced jobs
+//! ([`resolve`]), the names they match ([`names`]) and their layers ([`layers`], shared with
+//! session ticks). [`Decoded`] is the extractor of a request body: it hands a handler the
 //! decoded value only together with its charge.
 
+pub mod layers;
 pub mod memory;
+pub mod names;
 pub mod render;
 pub mod resolve;
 

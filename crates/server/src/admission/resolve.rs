@@ -6,9 +6,16 @@ use std::collections::HashMap;
 use std::sync::Arc;
 
 use crowdmorph_proto::{
-    BlendLayer, Format, Head, JointOverrides, JointTransform, Layer, LayerMode, LiveWeights,
-    MAX_HEAD_LAYERS, Mask,
+    BlendLayer, Format, Head, JointOverrides, JointTransform, LayerMode, LiveWeights,
+    MAX_HEAD_LAYERS,
 };
+
+use crate::admission::layers::{
+    decoded_layers_bytes, finish_weights, layered_joints, layered_joints_bytes, layers_bytes,
+    resolve_layers,
+};
+use crate::admission::names::{LiveNames, is_arkit_name};
+pub use crate::admission::names::{unknown_clip, unknown_rig};
 
 use crate::admission::memory::{Charge, QueueMemory};
 use crate::http::ApiError;
@@ -18,40 +25,9 @@ use crowdmorph_core::plan::{JobKey, Plan};
 use crowdmorph_core::rig::quoted_name;
 use crowdmorph_core::rig::{
     ACTIVE_WEIGHT_EPSILON, ARKIT_NAMES, FrameMode, JointPose, JointSet, MAX_BLEND_LAYERS,
-    MAX_JOINT_OVERRIDES, MAX_JOINT_VALUE, MAX_LIVE_WEIGHT, Pose, PoseLayer, Rig, Selection,
-    TargetId, Trs, builtin_mask, clamp_weights, layer_locals, layer_weights,
+    MAX_JOINT_OVERRIDES, MAX_JOINT_VALUE, MAX_LIVE_WEIGHT, Pose, Rig, layer_weights,
 };
 use crowdmorph_import::clips::{checked_name, is_live_link_angle, loose};
-
-/// 404 for a rig id the registry does not have, listing (at most 20 of) the ones it has.
-pub fn unknown_rig(registry: &Registry, id: &str) -> ApiError {
-    let mut ids: Vec<String> = registry.all().iter().map(|e| e.id.clone()).collect();
-    ids.truncate(20);
-    ApiError::not_found(
-        "unknown_rig",
-        format!("no rig {} (rigs: {})", quoted_name(id), ids.join(", ")),
-    )
-}
-
-/// 404 for a clip the rig does not have, listing at most 20 of its clips.
-pub fn unknown_clip(entry: &RigEntry, clip: &str) -> ApiError {
-    let names: Vec<&str> = entry
-        .rig()
-        .clips
-        .iter()
-        .take(20)
-        .map(|c| c.name.as_str())
-        .collect();
-    ApiError::not_found(
-        "unknown_clip",
-        format!(
-            "rig {:?} has no clip {} (clips: {})",
-            entry.id,
-            quoted_name(clip),
-            names.join(", ")
-        ),
-    )
-}
 
 /// Largest coordinate (in absolute value) a rig's positions can reach, from its q16 box.
 pub fn head_reach(entry: &RigEntry) -> f64 {
@@ -142,35 +118,7 @@ fn animation_bytes(h: &Head) -> u64 {
                 + w.iter().map(|(n, _)| n.capacity() as u64).sum::<u64>()
         }
     };
-    layers + weights + joints_bytes(&h.joints) + head_layer_bytes(&h.layers)
-}
-
-/// Bytes a head's `layers` hold decoded (by capacity, with their names).
-fn head_layer_bytes(layers: &Vec<Layer>) -> u64 {
-    let text = |v: &String| v.capacity() as u64;
-    layers.capacity() as u64 * size_of::<Layer>() as u64
-        + layers
-            .iter()
-            .map(|l| {
-                let mask = match &l.mask {
-                    None => 0,
-                    Some(Mask::Names(n)) => {
-                        n.capacity() as u64 * size_of::<String>() as u64
-                            + n.iter().map(text).sum::<u64>()
-                    }
-                    Some(Mask::Weights(w)) => {
-                        w.capacity() as u64 * size_of::<(String, f32)>() as u64
-                            + w.iter().map(|(n, _)| text(n)).sum::<u64>()
-                    }
-                    Some(Mask::Named(n)) => text(n),
-                };
-                let joints = l.joint_mask.as_ref().map_or(0, |j| {
-                    j.capacity() as u64 * size_of::<String>() as u64
-                        + j.iter().map(text).sum::<u64>()
-                });
-                text(&l.clip) + mask + joints
-            })
-            .sum::<u64>()
+    layers + weights + joints_bytes(&h.joints) + decoded_layers_bytes(&h.layers)
 }
 
 /// Bytes a head's joint overrides hold decoded (by capacity, with their names).
@@ -420,58 +368,6 @@ struct Lookups<'h> {
     live_joints: JointPose,
 }
 
-/// A rig's names for live weights, owned (a request's lookups outlive no rig snapshot but
-/// borrow none): channels by exact name, else by the one name with that loose spelling, as
-/// `import::clips::Matcher` matches a clip's columns; and, for dense weights, by position in
-/// `RigInfo::targets`.
-struct LiveNames {
-    /// Per name, in `RigInfo::targets` order, its channels.
-    by_position: Vec<Vec<TargetId>>,
-    /// Exact name → index into `by_position`.
-    exact: HashMap<String, u32>,
-    /// Loose spelling → the one name with it (`None` when several share it).
-    loose: HashMap<String, Option<u32>>,
-}
-
-impl LiveNames {
-    /// Bytes [`LiveNames::new`] holds for `rig`, at most: per channel an id, per name a list,
-    /// two spellings of its text and two map entries.
-    fn bytes(rig: &Rig) -> u64 {
-        let n = rig.targets.len() as u64;
-        let text: u64 = rig.targets.iter().map(|t| t.len() as u64).sum();
-        n * (size_of::<Vec<TargetId>>() as u64 + 4 + 2 * 64) + 2 * text
-    }
-
-    fn new(rig: &Rig) -> LiveNames {
-        let names = rig.target_names();
-        let index = rig.target_index();
-        let mut exact = HashMap::with_capacity(names.len());
-        let mut loose_names: HashMap<String, Option<u32>> = HashMap::with_capacity(names.len());
-        let by_position = names.iter().map(|n| index.ids(n).to_vec()).collect();
-        for (i, name) in names.iter().enumerate() {
-            exact.insert((*name).to_string(), i as u32);
-            loose_names
-                .entry(loose(name))
-                .and_modify(|m| *m = None)
-                .or_insert(Some(i as u32));
-        }
-        LiveNames {
-            by_position,
-            exact,
-            loose: loose_names,
-        }
-    }
-
-    /// The channels the name refers to (empty: none, or several names loosely).
-    fn ids(&self, name: &str) -> &[TargetId] {
-        let found = match self.exact.get(name) {
-            Some(&i) => Some(i),
-            None => self.loose.get(&loose(name)).copied().flatten(),
-        };
-        found.map_or(&[], |i| &self.by_position[i as usize])
-    }
-}
-
 impl<'h> Lookups<'h> {
     /// The index of head `h`'s rig in `rigs`, or 404 naming the head.
     fn rig(&mut self, h: usize, head: &'h Head) -> Result<u32, ApiError> {
@@ -655,7 +551,29 @@ impl<'h> Lookups<'h> {
             }
             _ => (self.clip_pose(h, head, ri, mode)?, JointPose::NONE),
         };
-        let layers = self.resolve_layers(h, head, ri, mode)?;
+        if head.layers.len() > MAX_HEAD_LAYERS {
+            return Err(invalid_layer(
+                h,
+                head,
+                format!(
+                    "{} layers; a head has at most {MAX_HEAD_LAYERS}",
+                    head.layers.len()
+                ),
+            ));
+        }
+        let mut bytes = layers_bytes(&head.layers);
+        if !self.live.contains_key(&ri) {
+            bytes += LiveNames::bytes(rig);
+        }
+        self.charge_more(bytes)?;
+        let names = self.live.entry(ri).or_insert_with(|| LiveNames::new(rig));
+        let rigs = &self.rigs;
+        let layers = resolve_layers(&entry, names, &head.layers, |clip, frame| {
+            rigs[ri as usize].rig().clips[clip as usize]
+                .resolve_frame(frame, mode)
+                .map_err(|e| ApiError::bad_request("frame_out_of_range", e.to_string()))
+        })
+        .map_err(|e| at_head(h, head, e))?;
         // The final weights, and the live pose built of them.
         self.charge_more(2 * (16 + channels as u64 * 4))?;
         let mut w = base.weights(rig);
@@ -672,220 +590,13 @@ impl<'h> Lookups<'h> {
             // Angles sent with the weights (left in `live_joints`) turn joints as they do
             // without a clip: applied over the base's joints below.
         }
-        if let Some([lo, hi]) = head.clamp {
-            if !(lo.is_finite() && hi.is_finite() && lo <= hi) {
-                return Err(invalid_layer(
-                    h,
-                    head,
-                    format!("clamp is [{lo}, {hi}]; it must be two finite numbers, lo ≤ hi"),
-                ));
-            }
-            clamp_weights(&mut w, [lo, hi]);
-        }
-        if let Some((k, v)) = w
-            .iter()
-            .enumerate()
-            .find(|(_, v)| !(v.is_finite() && v.abs() <= MAX_LIVE_WEIGHT))
-        {
-            return Err(invalid_layer(
-                h,
-                head,
-                format!(
-                    "the layers give target {} a weight of {v}; a weight must be finite, within \
-                     ±{MAX_LIVE_WEIGHT}",
-                    quoted_name(&rig.targets[k])
-                ),
-            ));
-        }
+        finish_weights(rig, &mut w, head.clamp).map_err(|e| at_head(h, head, e))?;
         if let Some(sk) = &rig.skeleton {
-            // What the base pose gives each node, then its live angles, then the layers.
-            self.charge_more(3 * (16 + (sk.nodes.len() * size_of::<Trs>()) as u64))?;
-            let mut given = Vec::with_capacity(sk.nodes.len());
-            sk.locals_at(None, 0, &mut given);
-            let mut locals = Vec::with_capacity(sk.nodes.len());
-            sk.locals_of(&base.skin_terms(rig), &mut locals);
+            self.charge_more(layered_joints_bytes(sk))?;
             let angles = std::mem::take(&mut self.live_joints).overlay(&live_angles);
-            angles.apply(sk, &mut locals);
-            layer_locals(rig, sk, &mut locals, &layers);
-            let joints = JointPose::from_locals(&locals, &given);
-            self.charge_more(joint_pose_bytes(joints.sets().len()))?;
-            self.live_joints = joints;
+            self.live_joints = layered_joints(rig, &base, &angles, &layers);
         }
         Ok(Pose::live(&w))
-    }
-
-    /// Head `h`'s layers resolved against rig `ri`: clips, frames, weights, masks and joint
-    /// masks checked (400 `invalid_layer`, 404 `unknown_clip`, 400 `unknown_targets` or
-    /// `unknown_joints` naming the layer), their bytes charged before they are built.
-    fn resolve_layers(
-        &mut self,
-        h: usize,
-        head: &'h Head,
-        ri: u32,
-        mode: FrameMode,
-    ) -> Result<Vec<PoseLayer>, ApiError> {
-        if head.layers.len() > MAX_HEAD_LAYERS {
-            return Err(invalid_layer(
-                h,
-                head,
-                format!(
-                    "{} layers; a head has at most {MAX_HEAD_LAYERS}",
-                    head.layers.len()
-                ),
-            ));
-        }
-        let entry = self.rigs[ri as usize].clone();
-        let rig = entry.rig();
-        let mut bytes = (head.layers.len() * size_of::<PoseLayer>()) as u64;
-        for l in &head.layers {
-            let names = match &l.mask {
-                None => 0,
-                Some(Mask::Names(n)) => n.len(),
-                Some(Mask::Weights(w)) => w.len(),
-                // A built-in mask is ARKit's names at most, each up to a few channels.
-                Some(Mask::Named(_)) => ARKIT_NAMES.len(),
-            };
-            let joints = l.joint_mask.as_ref().map_or(0, Vec::len);
-            bytes += 32 + 8 * (names * 4 + joints) as u64;
-        }
-        if !head.layers.iter().all(|l| l.mask.is_none()) && !self.live.contains_key(&ri) {
-            bytes += LiveNames::bytes(rig);
-        }
-        self.charge_more(bytes)?;
-        let mut out = Vec::with_capacity(head.layers.len());
-        for (i, l) in head.layers.iter().enumerate() {
-            let bad = |m: String| invalid_layer(h, head, format!("layers[{i}]: {m}"));
-            if !(l.weight.is_finite() && (0.0..=1.0).contains(&l.weight)) {
-                return Err(bad(format!("weight is {}; it must be in [0, 1]", l.weight)));
-            }
-            let clip = self.clip(h, head, &l.clip, ri)?;
-            let frame = self.frame(h, head, ri, clip, l.frame, mode)?;
-            let reference = match (l.reference, l.mode) {
-                (None, _) => None,
-                (Some(r), LayerMode::Additive) => Some(self.frame(h, head, ri, clip, r, mode)?),
-                (Some(_), LayerMode::Override) => {
-                    return Err(bad(
-                        "reference applies to additive layers only (\"mode\": \"additive\")".into(),
-                    ));
-                }
-            };
-            let mask = match &l.mask {
-                None => None,
-                Some(m) => Some(self.mask(rig, ri, m).map_err(|(code, m)| {
-                    at_head(
-                        h,
-                        head,
-                        ApiError::bad_request(code, format!("layers[{i}].mask: {m}")),
-                    )
-                })?),
-            };
-            let joint_mask = match &l.joint_mask {
-                None => None,
-                Some(names) => {
-                    if rig.skeleton.is_none() {
-                        return Err(bad(format!(
-                            "joint_mask on rig {:?}, which has no skeleton",
-                            entry.id
-                        )));
-                    }
-                    let mut nodes = Vec::with_capacity(names.len());
-                    for n in names {
-                        let node = entry.joint_node(n).map_err(|why| {
-                            at_head(
-                                h,
-                                head,
-                                ApiError::bad_request(
-                                    "unknown_joints",
-                                    format!(
-                                        "layers[{i}].joint_mask names {}, {why}",
-                                        quoted_name(n)
-                                    ),
-                                ),
-                            )
-                        })?;
-                        nodes.push((node, 1.0));
-                    }
-                    nodes.sort_by_key(|n| n.0);
-                    nodes.dedup_by_key(|n| n.0);
-                    Some(Arc::from(nodes))
-                }
-            };
-            out.push(PoseLayer {
-                clip,
-                frame,
-                weight: l.weight,
-                mode: match l.mode {
-                    LayerMode::Override => crowdmorph_core::rig::LayerMode::Override,
-                    LayerMode::Additive => crowdmorph_core::rig::LayerMode::Additive,
-                },
-                mask,
-                reference,
-                joint_mask,
-            });
-        }
-        Ok(out)
-    }
-
-    /// A layer's mask as channels with their weights, ascending: names matched as live
-    /// weights match them (ARKit names the rig lacks are skipped: it cannot show them), a
-    /// built-in mask by name. The error is (code, message).
-    fn mask(
-        &mut self,
-        rig: &Rig,
-        ri: u32,
-        mask: &Mask,
-    ) -> Result<Selection, (&'static str, String)> {
-        let names = self.live.entry(ri).or_insert_with(|| LiveNames::new(rig));
-        let mut out: Vec<(u32, f32)> = Vec::new();
-        let mut add = |name: &str, w: f32, strict: bool| -> Result<(), (&'static str, String)> {
-            if !(w.is_finite() && (0.0..=1.0).contains(&w)) {
-                return Err((
-                    "invalid_layer",
-                    format!(
-                        "{} has weight {w}; a mask weight must be in [0, 1]",
-                        quoted_name(name)
-                    ),
-                ));
-            }
-            checked_name(name)
-                .map_err(|why| ("invalid_layer", format!("{}: {why}", quoted_name(name))))?;
-            let ids = names.ids(name);
-            if ids.is_empty() && strict && !is_arkit_name(name) {
-                return Err((
-                    "unknown_targets",
-                    format!("names {}, which the rig does not have", quoted_name(name)),
-                ));
-            }
-            out.extend(ids.iter().map(|&k| (k, w)));
-            Ok(())
-        };
-        match mask {
-            Mask::Names(list) => list.iter().try_for_each(|n| add(n, 1.0, true))?,
-            Mask::Weights(list) => list.iter().try_for_each(|(n, w)| add(n, *w, true))?,
-            Mask::Named(name) => match builtin_mask(name) {
-                Some(list) => list.iter().try_for_each(|n| add(n, 1.0, false))?,
-                None => {
-                    return Err((
-                        "invalid_layer",
-                        format!(
-                            "no mask named {}; the built-in masks are upper_face, lower_face, \
-                             eyes, brows and mouth",
-                            quoted_name(name)
-                        ),
-                    ));
-                }
-            },
-        }
-        out.sort_by_key(|m| m.0);
-        // A channel named twice keeps its last weight.
-        let mut merged: Vec<(u32, f32)> = Vec::with_capacity(out.len());
-        for m in out {
-            match merged.last_mut() {
-                Some(last) if last.0 == m.0 => *last = m,
-                _ => merged.push(m),
-            }
-        }
-        Ok(merged.into())
     }
 
     /// Head `h`'s live weights over its clip: `self.row` holds them, and the channels they
@@ -1059,13 +770,6 @@ impl<'h> Lookups<'h> {
         }
         Ok(Pose::live(&self.row))
     }
-}
-
-/// Whether `name` is one of ARKit's 52 blendshape names, in any loose spelling.
-fn is_arkit_name(name: &str) -> bool {
-    static LOOSE: std::sync::LazyLock<std::collections::HashSet<String>> =
-        std::sync::LazyLock::new(|| ARKIT_NAMES.iter().map(|n| loose(n)).collect());
-    LOOSE.contains(&loose(name))
 }
 
 /// Joint overrides by node name that [`requested_joints`] resolves back to `joints` (rest
