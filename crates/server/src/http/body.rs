@@ -32,6 +32,18 @@ pub fn declared_length(headers: &HeaderMap, limit: usize) -> u64 {
         .min(limit as u64)
 }
 
+/// 408: a body that did not arrive within its time.
+fn timed_out(limits: BodyLimits) -> ApiError {
+    ApiError::new(
+        StatusCode::REQUEST_TIMEOUT,
+        "body_timeout",
+        format!(
+            "the request body did not arrive within {} s",
+            limits.timeout.as_secs_f32()
+        ),
+    )
+}
+
 /// Reads a body within `limits`: 413 past the size (checked from Content-Length first, so an
 /// oversized upload is refused before it is read), 408 past the deadline.
 pub async fn read_body(
@@ -62,16 +74,7 @@ pub async fn read_body(
         http_body_util::Limited::new(body, limit).collect(),
     )
     .await
-    .map_err(|_| {
-        ApiError::new(
-            StatusCode::REQUEST_TIMEOUT,
-            "body_timeout",
-            format!(
-                "the request body did not arrive within {} s",
-                limits.timeout.as_secs_f32()
-            ),
-        )
-    })?;
+    .map_err(|_| timed_out(limits))?;
     match collected {
         Ok(c) => Ok(c.to_bytes()),
         Err(e) if e.is::<http_body_util::LengthLimitError>() => {
@@ -155,16 +158,7 @@ pub async fn read_body_charged(
     };
     tokio::time::timeout(limits.timeout, read)
         .await
-        .map_err(|_| {
-            ApiError::new(
-                StatusCode::REQUEST_TIMEOUT,
-                "body_timeout",
-                format!(
-                    "the request body did not arrive within {} s",
-                    limits.timeout.as_secs_f32()
-                ),
-            )
-        })?
+        .map_err(|_| timed_out(limits))?
 }
 
 /// Keeps what a response holds (its memory charge) alive until its last byte has been sent.

@@ -1,11 +1,12 @@
 //! What every handler shares, and nothing of any one resource: the JSON error
 //! ([`error::ApiError`]), bodies read within limits and responses that keep their charge until
-//! sent ([`body`]), content negotiation ([`negotiate`]), `Content-Encoding` both ways
+//! sent ([`body`]), validators of cached bodies ([`cache`]), content negotiation ([`negotiate`]), `Content-Encoding` both ways
 //! ([`encoding`]), the `Admin`, `Ready` and `Query`
 //! extractors ([`extract`]) and `Server-Timing` ([`timing`]). It imports nothing of the
 //! server above it.
 
 pub mod body;
+pub mod cache;
 pub mod encoding;
 pub mod error;
 pub mod extract;

@@ -18,6 +18,7 @@ use axum::extract::{Path, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 
+use crate::http::cache::Validator;
 use crate::http::{self, ApiError, ApiResult, Query, Ready};
 use crate::routes::rigs::MeshQuery;
 use crate::services::Parts;
@@ -124,39 +125,20 @@ pub async fn get_texture(
                 ),
             )
         })?;
-    let tag = etag(image);
-    let quoted = format!("\"{tag}\"");
-    let etag_value = HeaderValue::from_str(&quoted).map_err(ApiError::internal)?;
-    let cache = if query.v.as_deref() == Some(tag.as_str()) {
-        "public, max-age=31536000, immutable"
-    } else {
-        "no-cache"
-    };
-    let matches = headers
-        .get(header::IF_NONE_MATCH)
-        .and_then(|v| v.to_str().ok())
-        .is_some_and(|v| v.split(',').any(|t| t.trim() == quoted || t.trim() == "*"));
-    let cache = HeaderValue::from_static(cache);
-    if matches {
-        return Ok((
-            StatusCode::NOT_MODIFIED,
-            [(header::ETAG, etag_value), (header::CACHE_CONTROL, cache)],
-        )
-            .into_response());
+    let validator = Validator::new(&etag(image), query.v.as_deref())?;
+    if let Some(not_modified) = validator.not_modified(&headers) {
+        return Ok(not_modified);
     }
     // The body shares the image's bytes (no copy); the response holds the rig's entry, so
     // they stay charged to the rig until sent.
     let bytes = bytes::Bytes::from_owner(ArcBytes(image.bytes.clone()));
     let response: Response = (
         StatusCode::OK,
-        [
-            (
-                header::CONTENT_TYPE,
-                HeaderValue::from_static(image.mime.as_str()),
-            ),
-            (header::ETAG, etag_value),
-            (header::CACHE_CONTROL, cache),
-        ],
+        [(
+            header::CONTENT_TYPE,
+            HeaderValue::from_static(image.mime.as_str()),
+        )],
+        validator.headers(),
         Body::from(bytes),
     )
         .into_response();

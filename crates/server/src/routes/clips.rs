@@ -13,6 +13,7 @@ use crowdmorph_proto::{CONTENT_TYPE_JSON, ClipInfo, ClipList, ClipUpload, Quanti
 
 use super::rigs::{check_name, clip_import_error, upload_body};
 use crate::admission::resolve::unknown_clip;
+use crate::http::cache::Validator;
 use crate::http::{
     Accept, Admin, ApiError, ApiResult, Query, Ready, blocking, checked_content_type,
 };
@@ -510,22 +511,48 @@ pub async fn put_clip_texture(
         components: texture.layers(),
         bytes: texture.bytes(),
     };
+    let kept = budget.keep(declared);
+    publish_appearance(
+        &state,
+        &entry,
+        move |new| {
+            let mut a = new.appearance.as_deref().cloned().unwrap_or_default();
+            if texture.material as usize >= a.materials.len() {
+                return Err(invalid_texture(format!(
+                    "material {} of a rig with {} materials",
+                    texture.material,
+                    a.materials.len()
+                )));
+            }
+            a.clip_textures.retain(|t| t.clip != texture.clip);
+            a.clip_textures.push(Arc::new(texture));
+            new.appearance = Some(Arc::new(a));
+            new.validate().map_err(invalid_texture)
+        },
+        Some(kept),
+    )
+    .await?;
+    drop(budget);
+    crowdmorph_core::budget::return_freed_memory();
+    tracing::info!(rig = %id, clip = %clip, components = reply.components, "clip texture set");
+    Accept::of(&headers).reply(StatusCode::OK, &reply)
+}
+
+/// Publishes `entry`'s next generation with `change` made to a copy of its rig's appearance
+/// (under the rig lock the caller holds): prepared again (the engine re-uses what did not
+/// change), stored in the rig's record and registered, taking over `extra` (what the change
+/// reserved). A change the engine cannot fit is a 413 `texture_too_large`.
+async fn publish_appearance(
+    state: &AppState,
+    entry: &Arc<RigEntry>,
+    change: impl FnOnce(&mut Rig) -> Result<(), ApiError> + Send + 'static,
+    extra: Option<crowdmorph_core::budget::Charge>,
+) -> Result<(), ApiError> {
     let engine = state.engine.clone();
     let current = entry.clone();
     let (rig, prepared, qbox) = blocking(move || {
         let mut new = current.rig().clone();
-        let mut a = new.appearance.as_deref().cloned().unwrap_or_default();
-        if texture.material as usize >= a.materials.len() {
-            return Err(invalid_texture(format!(
-                "material {} of a rig with {} materials",
-                texture.material,
-                a.materials.len()
-            )));
-        }
-        a.clip_textures.retain(|t| t.clip != texture.clip);
-        a.clip_textures.push(Arc::new(texture));
-        new.appearance = Some(Arc::new(a));
-        new.validate().map_err(invalid_texture)?;
+        change(&mut new)?;
         let new = Arc::new(new);
         let prepared = engine
             .update_clips(&current.prepared, new.clone())
@@ -534,18 +561,15 @@ pub async fn put_clip_texture(
         Ok((new, prepared, qbox))
     })
     .await?;
-    persist_record(&state, &id, rig, entry.builtin, &entry.layout).await?;
+    persist_record(state, &entry.id, rig, entry.builtin, &entry.layout).await?;
     state.registry.insert(Arc::new(entry.successor(
         prepared,
         qbox,
         entry.layout.clone(),
         state.registry.generation(),
-        Some(budget.keep(declared)),
+        extra,
     )));
-    drop(budget);
-    crowdmorph_core::budget::return_freed_memory();
-    tracing::info!(rig = %id, clip = %clip, components = reply.components, "clip texture set");
-    Accept::of(&headers).reply(StatusCode::OK, &reply)
+    Ok(())
 }
 
 /// Removes clip `clip`'s animated texture from `rig`'s appearance; whether it had one.
@@ -599,30 +623,18 @@ pub async fn get_clip_texture(
     let names: u64 = texture.regions.iter().map(|r| r.name.len() as u64).sum();
     let held = state.queue_memory.reserve(texture.bytes() + 64 + names)?;
     let bytes = blocking(move || Ok(texture.to_bytes())).await?;
-    let quoted = format!("\"{:08x}-{}\"", crc32fast::hash(&bytes), bytes.len());
-    let etag = HeaderValue::from_str(&quoted).map_err(ApiError::internal)?;
-    let no_cache = HeaderValue::from_static("no-cache");
-    let matches = headers
-        .get(header::IF_NONE_MATCH)
-        .and_then(|v| v.to_str().ok())
-        .is_some_and(|v| v.split(',').any(|t| t.trim() == quoted || t.trim() == "*"));
-    if matches {
-        return Ok((
-            StatusCode::NOT_MODIFIED,
-            [(header::ETAG, etag), (header::CACHE_CONTROL, no_cache)],
-        )
-            .into_response());
+    let tag = format!("{:08x}-{}", crc32fast::hash(&bytes), bytes.len());
+    let validator = Validator::new(&tag, None)?;
+    if let Some(not_modified) = validator.not_modified(&headers) {
+        return Ok(not_modified);
     }
     let response = (
         StatusCode::OK,
-        [
-            (
-                header::CONTENT_TYPE,
-                HeaderValue::from_static("application/octet-stream"),
-            ),
-            (header::ETAG, etag),
-            (header::CACHE_CONTROL, no_cache),
-        ],
+        [(
+            header::CONTENT_TYPE,
+            HeaderValue::from_static("application/octet-stream"),
+        )],
+        validator.headers(),
         Body::from(bytes),
     )
         .into_response();
@@ -641,28 +653,17 @@ pub async fn delete_clip_texture(
     let _admin = state.admin.lock().await;
     let entry = state.rig(&id)?;
     clip_texture(&entry, &id, &clip)?;
-    let engine = state.engine.clone();
-    let current = entry.clone();
     let name = clip.clone();
-    let (rig, prepared, qbox) = blocking(move || {
-        let mut new = current.rig().clone();
-        without_clip_texture(&mut new, &name);
-        let new = Arc::new(new);
-        let prepared = engine
-            .update_clips(&current.prepared, new.clone())
-            .map_err(|e| prepare_error(e, "texture_too_large"))?;
-        let qbox = quantization_box(&new);
-        Ok((new, prepared, qbox))
-    })
-    .await?;
-    persist_record(&state, &id, rig, entry.builtin, &entry.layout).await?;
-    state.registry.insert(Arc::new(entry.successor(
-        prepared,
-        qbox,
-        entry.layout.clone(),
-        state.registry.generation(),
+    publish_appearance(
+        &state,
+        &entry,
+        move |new| {
+            without_clip_texture(new, &name);
+            Ok(())
+        },
         None,
-    )));
+    )
+    .await?;
     crowdmorph_core::budget::return_freed_memory();
     tracing::info!(rig = %id, clip = %clip, "clip texture deleted");
     Ok(StatusCode::NO_CONTENT.into_response())

@@ -25,6 +25,7 @@ use crowdmorph_engine::render::appearance::{
     LayerPlan, layer_input_indices, layer_plan, layer_texels,
 };
 
+use crate::http::cache::Validator;
 use crate::http::{self, ApiError, ApiResult, Query, Ready};
 use crate::routes::appearance::TextureQuery;
 use crate::services::Parts;
@@ -149,24 +150,9 @@ pub async fn get_layer_texels(
     let plan = layer_plan(entry.rig(), m, max_size)
         .map_err(ApiError::internal)?
         .ok_or_else(unknown)?;
-    let tag = etag(entry.generation, m);
-    let quoted = format!("\"{tag}\"");
-    let etag_value = HeaderValue::from_str(&quoted).map_err(ApiError::internal)?;
-    let cache = HeaderValue::from_static(if query.v.as_deref() == Some(tag.as_str()) {
-        "public, max-age=31536000, immutable"
-    } else {
-        "no-cache"
-    });
-    let matches = headers
-        .get(header::IF_NONE_MATCH)
-        .and_then(|v| v.to_str().ok())
-        .is_some_and(|v| v.split(',').any(|t| t.trim() == quoted || t.trim() == "*"));
-    if matches {
-        return Ok((
-            StatusCode::NOT_MODIFIED,
-            [(header::ETAG, etag_value), (header::CACHE_CONTROL, cache)],
-        )
-            .into_response());
+    let validator = Validator::new(&etag(entry.generation, m), query.v.as_deref())?;
+    if let Some(not_modified) = validator.not_modified(&headers) {
+        return Ok(not_modified);
     }
     // The body, and while it is built one level of one layer in f32 four times over (the
     // level, the level it halves, the base it is against, the source's own level) plus its
@@ -195,14 +181,11 @@ pub async fn get_layer_texels(
     held.keep(bytes);
     let response: Response = (
         StatusCode::OK,
-        [
-            (
-                header::CONTENT_TYPE,
-                HeaderValue::from_static("application/octet-stream"),
-            ),
-            (header::ETAG, etag_value),
-            (header::CACHE_CONTROL, cache),
-        ],
+        [(
+            header::CONTENT_TYPE,
+            HeaderValue::from_static("application/octet-stream"),
+        )],
+        validator.headers(),
         Body::from(body),
     )
         .into_response();
