@@ -208,6 +208,36 @@ function sessionHead(r) {
       script: r.vec(() => r.string()),
     })),
     joints: jointOverrides(r),
+    layers: r.vec(() => layer(r)),
+    clamp: r.option(() => [r.f32(), r.f32()]),
+  };
+}
+
+/** A layer's mask as its JSON form: an array of names (variant 0), an object of names to
+ * weights (1), or a built-in mask's name (2). */
+function mask(r) {
+  const variant = r.varint();
+  if (variant === 0) return r.vec(() => r.string());
+  if (variant === 1) return Object.fromEntries(r.vec(() => [r.string(), r.f32()]));
+  if (variant === 2) return r.string();
+  throw new DecodeError(`mask variant ${variant}`);
+}
+
+/** One layer of a session head (proto/README.md, "Layers and masks"). */
+function layer(r) {
+  const clip = r.string();
+  const frame = r.i64();
+  const weight = r.f32();
+  const mode = r.varint();
+  if (mode > 1) throw new DecodeError(`layer mode ${mode}`);
+  return {
+    clip,
+    frame,
+    weight,
+    mode: mode === 0 ? 'override' : 'additive',
+    mask: r.option(() => mask(r)),
+    reference: r.option(() => r.i64()),
+    joint_mask: r.option(() => r.vec(() => r.string())),
   };
 }
 

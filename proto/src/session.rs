@@ -68,6 +68,13 @@ pub struct SessionHead {
     /// clip's or graph's pose (as a crowd frame's `Head::joints`).
     #[serde(default)]
     pub joints: crate::JointOverrides,
+    /// Layers over the head's clip or graph pose, as a crowd frame's `Head::layers`; a layer's
+    /// `frame` (and `reference`) count from the session clock, as `offset` does.
+    #[serde(default)]
+    pub layers: Vec<crate::Layer>,
+    /// Every final weight clamped into `[lo, hi]`, as a crowd frame's `Head::clamp`.
+    #[serde(default)]
+    pub clamp: Option<[f32; 2]>,
 }
 
 /// `POST /v1/sessions` request.
@@ -166,6 +173,12 @@ pub struct HeadChange {
     /// New joint overrides (replacing the head's; an empty object clears them).
     #[serde(default)]
     pub joints: Option<crate::JointOverrides>,
+    /// New layers (replacing the head's; an empty array clears them).
+    #[serde(default)]
+    pub layers: Option<Vec<crate::Layer>>,
+    /// New clamp (`[lo, hi]`); absent keeps the head's, and `[-64, 64]` lifts it.
+    #[serde(default)]
+    pub clamp: Option<[f32; 2]>,
 }
 
 /// `PATCH /v1/sessions/{id}` request: applied together, at the next tick, in the order

@@ -32,6 +32,40 @@ fn malformed(what: &str) -> StreamError {
 }
 
 impl Skim<'_> {
+    /// Passes over one `Layer`: clip, frame, weight, mode, mask, reference, joint mask.
+    fn skip_layer(&mut self) -> Result<(), StreamError> {
+        self.skip_bytes("layer clip")?;
+        self.varint("layer frame")?;
+        self.skip(4, "layer weight")?;
+        self.varint("layer mode")?;
+        if self.some("layer mask")? {
+            match self.varint("mask variant")? {
+                0 => {
+                    for _ in 0..self.varint("mask names")? {
+                        self.skip_bytes("mask name")?;
+                    }
+                }
+                1 => {
+                    for _ in 0..self.varint("mask weights")? {
+                        self.skip_bytes("mask name")?;
+                        self.skip(4, "mask weight")?;
+                    }
+                }
+                2 => self.skip_bytes("mask name")?,
+                _ => return Err(malformed("mask variant")),
+            }
+        }
+        if self.some("layer reference")? {
+            self.varint("layer reference")?;
+        }
+        if self.some("joint mask")? {
+            for _ in 0..self.varint("joint mask")? {
+                self.skip_bytes("joint mask node")?;
+            }
+        }
+        Ok(())
+    }
+
     fn skip(&mut self, n: u64, what: &str) -> Result<(), StreamError> {
         let n = usize::try_from(n).map_err(|_| malformed(what))?;
         self.bytes = self.bytes.get(n..).ok_or_else(|| malformed(what))?;
@@ -147,6 +181,12 @@ pub fn skim(message: &[u8]) -> Result<TickSummary, StreamError> {
                                 s.skip(4 * floats, what)?;
                             }
                         }
+                    }
+                    for _ in 0..s.varint("layers")? {
+                        s.skip_layer()?;
+                    }
+                    if s.some("clamp")? {
+                        s.skip(8, "clamp")?;
                     }
                 }
             }
@@ -277,6 +317,29 @@ mod tests {
                 } else {
                     Default::default()
                 },
+                // And one has layers of every mask kind and a clamp.
+                layers: if h == 3 {
+                    vec![
+                        crate::Layer {
+                            mask: Some(crate::Mask::Names(vec!["jawOpen".into()])),
+                            joint_mask: Some(vec!["Head".into()]),
+                            ..crate::Layer::over("talk", 2, 0.5)
+                        },
+                        crate::Layer {
+                            mask: Some(crate::Mask::Weights(vec![("eyeBlinkLeft".into(), 0.5)])),
+                            mode: crate::LayerMode::Additive,
+                            reference: Some(-1),
+                            ..crate::Layer::over("smile", -7, 1.0)
+                        },
+                        crate::Layer {
+                            mask: Some(crate::Mask::Named("upper_face".into())),
+                            ..crate::Layer::over("talk", 0, 0.25)
+                        },
+                    ]
+                } else {
+                    Vec::new()
+                },
+                clamp: (h == 3).then_some([0.0, 1.0]),
             })
             .collect();
         let m = StreamMessage::Vertices(TickVertices {

@@ -653,6 +653,8 @@ fn session_head(head: u64, clip: &str, offset: i64, x: f32) -> SessionHead {
         scale: 1.0,
         graph: None,
         joints: JointOverrides::default(),
+        layers: Vec::new(),
+        clamp: None,
     }
 }
 
@@ -661,7 +663,14 @@ fn session_messages() {
     let heads = vec![
         session_head(1, "talk", 0, 0.0),
         session_head(2, "talk", 0, 0.5),
-        session_head(3, "smile", -4, 1.0),
+        SessionHead {
+            layers: vec![Layer {
+                mask: Some(Mask::Named("lower_face".into())),
+                ..Layer::over("talk", 2, 0.5)
+            }],
+            clamp: Some([0.0, 1.0]),
+            ..session_head(3, "smile", -4, 1.0)
+        },
         SessionHead {
             graph: Some(GraphPlay {
                 name: "moods".into(),
@@ -703,6 +712,8 @@ fn session_messages() {
                     scale: None,
                     node: None,
                     joints: Some(JointOverrides::rotation("Head", [0.0, 0.5, 0.0, 1.0])),
+                    layers: Some(Vec::new()),
+                    clamp: Some([-1.0, 2.0]),
                 },
                 HeadChange {
                     head: 4,
@@ -713,6 +724,8 @@ fn session_messages() {
                     scale: None,
                     node: Some("surprise".into()),
                     joints: None,
+                    layers: None,
+                    clamp: None,
                 },
             ],
             add: vec![session_head(9, "idle", 7, 2.0)],
@@ -900,6 +913,8 @@ fn temporal_stream_messages_and_q16r() {
             scale: 1.0,
             graph: None,
             joints: JointOverrides::default(),
+            layers: Vec::new(),
+            clamp: None,
         },
         SessionHead {
             head: 2,
@@ -911,6 +926,8 @@ fn temporal_stream_messages_and_q16r() {
             scale: 1.0,
             graph: None,
             joints: JointOverrides::default(),
+            layers: Vec::new(),
+            clamp: None,
         },
     ];
     let timings = FrameTimings {

@@ -387,6 +387,8 @@ fn session_heads(crowd: &CrowdShape, rigs: &[RigClips]) -> Result<Vec<SessionHea
             scale: 1.0,
             graph: None,
             joints: h.joints,
+            layers: h.layers,
+            clamp: h.clamp,
         })
         .collect())
 }

@@ -536,3 +536,128 @@ async fn a_skinned_heads_joints_layer_against_the_skinning_oracle() {
     assert!(moved > 1e-2 * diag, "the wave moved the arms by {moved:e}");
     server.stop().await;
 }
+
+/// A session head's layers play their frames from the session clock, as its `offset` does,
+/// while an additive layer's reference stays where it is; a patch replaces them. Each tick's
+/// vertices are the f64 sum written here, evaluated by the oracle.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_session_heads_layers_play_from_the_session_clock() {
+    use super::sessions::{View, call, connect, create, next_tick};
+    use serde_json::json;
+    let server = TestServer::start(ServerConfig::default()).await;
+    let rig = crowdmorph::embedded::default_rig();
+    let info = create(
+        &server,
+        json!({"fps": 30, "heads": [
+            {"head": 1, "rig": "default-head", "clip": "talk", "offset": 3,
+             "layers": [
+                {"clip": "smile", "frame": 5, "weight": 0.6, "mask": "lower_face"},
+                {"clip": "surprise", "frame": 20, "weight": 0.5, "mode": "additive",
+                 "reference": 0, "mask": {"eyeBlink_L": 1, "eyeBlink_R": 0.5}}],
+             "clamp": [0, 1]},
+            {"head": 2, "rig": "default-head", "clip": "talk", "offset": 3}]}),
+    )
+    .await;
+    let mut ws = connect(&server, &info.id, json!({"format": "f32"})).await;
+    let lower = channels(
+        &rig,
+        &crowdmorph::rig::builtin_mask("lower_face").expect("mask"),
+    );
+    let blinks = channels(&rig, &["eyeBlinkLeft", "eyeBlinkRight"]);
+    let at = |clip: &str, f: u64| {
+        let c = &rig.clips[rig.clip_index(clip).expect("clip")];
+        frame_weights(&rig, clip, (f % u64::from(c.frames)) as u32)
+    };
+    let want = |tick: u64| {
+        // Clips and session at 30 fps: one frame a tick from each layer's frame.
+        let e = tick - 1;
+        let (smile, s, s0) = (
+            at("smile", 5 + e),
+            at("surprise", 20 + e),
+            at("surprise", 0),
+        );
+        let mut w = at("talk", 3 + e);
+        for &k in &lower {
+            w[k] = 0.4 * w[k] + 0.6 * smile[k];
+        }
+        for (&k, m) in blinks.iter().zip([1.0, 0.5]) {
+            w[k] += 0.5 * m * (s[k] - s0[k]);
+        }
+        w.iter_mut().for_each(|v| *v = v.clamp(0.0, 1.0));
+        w
+    };
+    let b = rig.bbox();
+    let diag = f64::from((b.max - b.min).length());
+    let mut view = View::default();
+    let mut checked = 0;
+    let mut patched = false;
+    while checked < 12 {
+        let t = next_tick(&mut ws).await;
+        view.apply(&t);
+        let got = view.heads.get(&1).expect("head 1 is shown");
+        let plain = view.heads.get(&2).expect("head 2 is shown");
+        let expect = if patched {
+            // The patch cleared the layers: head 1 is head 2 again.
+            let e = t.tick - 1;
+            at("talk", 3 + e)
+        } else {
+            want(t.tick)
+        };
+        let (pos, _) = rig_oracle(&rig, &expect);
+        let d = crate::util::max_abs_diff(got, &pos);
+        if d > 1e-4 * diag && patched {
+            // The patch lands at a tick boundary; until it does, the layers still show.
+            let (pos, _) = rig_oracle(&rig, &want(t.tick));
+            let d = crate::util::max_abs_diff(got, &pos);
+            assert!(d <= 1e-4 * diag, "tick {}: off by {d:e}", t.tick);
+            continue;
+        }
+        assert!(d <= 1e-4 * diag, "tick {}: off by {d:e} of {diag}", t.tick);
+        if !patched {
+            let moved = crate::util::max_abs_diff(plain, &pos);
+            assert!(
+                moved > 1e-3 * diag,
+                "tick {}: the layers moved it {moved:e}",
+                t.tick
+            );
+        }
+        checked += 1;
+        if checked == 6 && !patched {
+            let (status, v) = call(
+                &server,
+                crowdmorph_client::Method::PATCH,
+                &format!("/v1/sessions/{}", info.id),
+                json!({"change": [{"head": 1, "layers": []}]}),
+            )
+            .await;
+            assert_eq!(status, 200, "{v}");
+            // A cleared layer list still has the head's clamp, which talk's weights are within.
+            patched = true;
+        }
+    }
+    // Malformed layers are refused when the head is added, naming it.
+    for (layer, code) in [
+        (json!({"clip": "nope"}), "unknown_clip"),
+        (json!({"clip": "smile", "weight": 2}), "invalid_layer"),
+        (json!({"clip": "smile", "mask": "knees"}), "invalid_layer"),
+    ] {
+        let (status, v) = call(
+            &server,
+            crowdmorph_client::Method::PATCH,
+            &format!("/v1/sessions/{}", info.id),
+            json!({"add": [{"head": 9, "rig": "default-head", "clip": "talk",
+                            "layers": [layer]}]}),
+        )
+        .await;
+        assert!(status == 400 || status == 404, "{v}");
+        assert_eq!(v["error"]["code"], code, "{v}");
+        assert!(
+            v["error"]["message"]
+                .as_str()
+                .unwrap_or("")
+                .contains("head 9"),
+            "{v}"
+        );
+    }
+    server.stop().await;
+}

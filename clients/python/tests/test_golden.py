@@ -210,7 +210,10 @@ def test_joint_overrides_of_session_heads_and_changes_decode_and_encode_like_the
         heads=[
             session_head(1, "talk", 0, 0.0),
             session_head(2, "talk", 0, 0.5),
-            session_head(3, "smile", -4, 1.0),
+            session_head(3, "smile", -4, 1.0,
+                         layers=[{"clip": "talk", "frame": 2, "weight": 0.5,
+                                  "mask": "lower_face"}],
+                         clamp=[0.0, 1.0]),
             session_head(4, "", 0, 1.5, graph=graph,
                          joints=[("LeftEye", {"translation": [0, 0, 0.25],
                                               "rotation": [0, 0.5, 0, 1]})]),
@@ -229,7 +232,8 @@ def test_joint_overrides_of_session_heads_and_changes_decode_and_encode_like_the
         remove=[2],
         change=[
             messages.HeadChange(3, clip="talk", yaw=-30.0,
-                                joints={"Head": {"rotation": [0, 0.5, 0, 1]}}),
+                                joints={"Head": {"rotation": [0, 0.5, 0, 1]}},
+                                layers=[], clamp=[-1.0, 2.0]),
             messages.HeadChange(4, node="surprise"),
         ],
         add=[session_head(9, "idle", 7, 2.0)],
@@ -239,7 +243,8 @@ def test_joint_overrides_of_session_heads_and_changes_decode_and_encode_like_the
     # None leaves a head's overrides; {} clears them: Some(empty).
     w = wire.Writer()
     wire.Msg(messages.HeadChange).write(w, messages.HeadChange(4, joints={}))
-    assert bytes(w.out) == b"\x04" + b"\x00" * 6 + b"\x01\x00"
+    # (then layers = None, clamp = None)
+    assert bytes(w.out) == b"\x04" + b"\x00" * 6 + b"\x01\x00" + b"\x00\x00"
     assert messages.as_dict(messages.HeadChange(4, joints={}))["joints"] == {}
     assert messages.as_dict(messages.HeadChange(4))["joints"] is None
 

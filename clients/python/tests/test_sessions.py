@@ -173,6 +173,8 @@ def test_session_messages_decode_to_the_servers_json(client, sessions):
             "scale": 2.0,
             "graph": None,
             "joints": {},
+            "layers": [],
+            "clamp": None,
         }
     ]
     listed = json.loads(client.request("GET", "/v1/sessions", accept="application/json").body)

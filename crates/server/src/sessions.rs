@@ -567,7 +567,7 @@ pub(crate) fn info_bytes(id: &str, heads: &[SessionHead]) -> u64 {
 /// quadruple at its widest (15 characters a number), separators.
 const FIELD_JSON_BYTES: u64 = 100;
 
-/// Most bytes a head's graph and joint overrides take in JSON.
+/// Most bytes a head's graph, joint overrides, layers and clamp take in JSON.
 fn extras_json_bytes(h: &SessionHead) -> u64 {
     let names = |v: &[String]| v.iter().map(|n| json_str_bytes(n) + 1).sum::<u64>();
     let graph = h.graph.as_ref().map_or(0, |g| {
@@ -579,7 +579,27 @@ fn extras_json_bytes(h: &SessionHead) -> u64 {
         .iter()
         .map(|(n, _)| json_str_bytes(n) + 3 * FIELD_JSON_BYTES)
         .sum::<u64>();
-    graph + joints
+    let layers: u64 = h
+        .layers
+        .iter()
+        .map(|l| {
+            let mask = match &l.mask {
+                None => 0,
+                Some(crowdmorph_proto::Mask::Names(n)) => names(n),
+                Some(crowdmorph_proto::Mask::Weights(w)) => {
+                    w.iter().map(|(n, _)| json_str_bytes(n) + 17).sum::<u64>()
+                }
+                Some(crowdmorph_proto::Mask::Named(n)) => json_str_bytes(n),
+            };
+            3 * FIELD_JSON_BYTES
+                + json_str_bytes(&l.clip)
+                + mask
+                + l.joint_mask.as_deref().map_or(0, names)
+        })
+        .sum();
+    // `"layers":[],"clamp":null` and a clamp's two numbers when it has one.
+    let clamp = 32 + h.clamp.map_or(0, |_| 32);
+    graph + joints + layers + clamp
 }
 
 impl Session {

@@ -469,6 +469,8 @@ mod tests {
             scale: 2.0,
             graph: None,
             joints: Default::default(),
+            layers: Vec::new(),
+            clamp: None,
         }];
         let mut prefix = Vec::new();
         put_varint(&mut prefix, 0);

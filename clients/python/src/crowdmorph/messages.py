@@ -1162,6 +1162,8 @@ class GraphPlay:
     ("scale", F32),
     ("graph", Opt(Msg(GraphPlay))),
     ("joints", JOINTS),
+    ("layers", _LAYERS),
+    ("clamp", CLAMP),
 )
 @dataclass
 class SessionHead:
@@ -1169,7 +1171,8 @@ class SessionHead:
     ``offset + floor((t - 1) * clip_fps / session_fps)`` of its clip (or its ``graph``),
     standing at ``position`` turned ``yaw`` degrees about +Y and scaled by ``scale``; on a rig
     with a skeleton, ``joints`` sets named nodes' local transforms over that pose at every tick
-    (as :attr:`Head.joints`)."""
+    (as :attr:`Head.joints`). ``layers`` go over that pose as :attr:`Head.layers` do, their
+    frames counted from the session clock as ``offset`` is; ``clamp`` bounds the final weights."""
 
     head: int
     rig: str
@@ -1180,11 +1183,15 @@ class SessionHead:
     scale: float = 1.0
     graph: Optional[GraphPlay] = None
     joints: Dict[str, JointTransform] = field(default_factory=dict)
+    layers: List[Layer] = field(default_factory=list)
+    clamp: Optional[Sequence[float]] = None
 
     def __post_init__(self) -> None:
         j = self.joints
         if type(j) is not dict or j:
             self.joints = joint_overrides(j)
+        if self.layers and any(type(x) is not Layer for x in self.layers):
+            self.layers = [_of_head_layer(x) for x in self.layers]
 
 
 @wire(("fps", F32), ("wrap", BOOL), ("idle_timeout_s", U32), ("heads", Vec(Msg(SessionHead))))
@@ -1264,11 +1271,13 @@ class SessionList:
     ("scale", Opt(F32)),
     ("node", Opt(STR)),
     ("joints", Opt(JOINTS)),
+    ("layers", Opt(_LAYERS)),
+    ("clamp", CLAMP),
 )
 @dataclass
 class HeadChange:
     """A change to one session head; ``None`` fields stay as they are. ``joints`` replaces the
-    head's joint overrides (``{}`` clears them)."""
+    head's joint overrides (``{}`` clears them), ``layers`` its layers (``[]`` clears them)."""
 
     head: int
     clip: Optional[str] = None
@@ -1278,11 +1287,15 @@ class HeadChange:
     scale: Optional[float] = None
     node: Optional[str] = None
     joints: Optional[Dict[str, JointTransform]] = None
+    layers: Optional[List[Layer]] = None
+    clamp: Optional[Sequence[float]] = None
 
     def __post_init__(self) -> None:
         j = self.joints
         if j is not None and (type(j) is not dict or j):
             self.joints = joint_overrides(j)
+        if self.layers and any(type(x) is not Layer for x in self.layers):
+            self.layers = [_of_head_layer(x) for x in self.layers]
 
 
 class _U32Pair:

@@ -68,14 +68,15 @@ pub fn layers_bytes(layers: &[Layer]) -> u64 {
 }
 
 /// `layers` resolved against `entry`'s rig: each clip (404 `unknown_clip`), its frame and
-/// reference frame through `frame(clip, frame)`, its weight, mask (400 `unknown_targets` for a
+/// reference frame through `frame(clip, frame, is_reference)` (a session plays a layer's
+/// frames from its clock but keeps its reference where it is), its weight, mask (400 `unknown_targets` for a
 /// non-ARKit name the rig lacks) and joint mask (400 `unknown_joints`); anything else wrong is
 /// a 400 `invalid_layer` naming `layers[i]`. The caller charges [`layers_bytes`] first.
 pub(crate) fn resolve_layers(
     entry: &RigEntry,
     names: &LiveNames,
     layers: &[Layer],
-    mut frame: impl FnMut(u32, i64) -> Result<u32, ApiError>,
+    mut frame: impl FnMut(u32, i64, bool) -> Result<u32, ApiError>,
 ) -> Result<Vec<PoseLayer>, ApiError> {
     let mut out = Vec::with_capacity(layers.len());
     for (i, l) in layers.iter().enumerate() {
@@ -92,10 +93,12 @@ pub(crate) fn resolve_layers(
         let clip = entry
             .clip_index(&l.clip)
             .ok_or_else(|| at(unknown_clip(entry, &l.clip)))? as u32;
-        let f = frame(clip, l.frame).map_err(at)?;
+        let f = frame(clip, l.frame, false).map_err(at)?;
         let reference = match (l.reference, l.mode) {
             (None, _) => None,
-            (Some(r), crowdmorph_proto::LayerMode::Additive) => Some(frame(clip, r).map_err(at)?),
+            (Some(r), crowdmorph_proto::LayerMode::Additive) => {
+                Some(frame(clip, r, true).map_err(at)?)
+            }
             (Some(_), crowdmorph_proto::LayerMode::Override) => {
                 return Err(at(invalid(
                     "reference applies to additive layers only (\"mode\": \"additive\")".into(),

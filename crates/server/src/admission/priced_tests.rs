@@ -283,6 +283,8 @@ fn a_session_and_its_patch_are_charged_while_decoded() {
                 scale: 1.0,
                 graph: None,
                 joints: Default::default(),
+                layers: Vec::new(),
+                clamp: None,
             })
             .collect::<Vec<_>>()
     };
@@ -308,6 +310,8 @@ fn a_session_and_its_patch_are_charged_while_decoded() {
                 scale: None,
                 node: None,
                 joints: None,
+                layers: None,
+                clamp: None,
             })
             .collect(),
         add: session_heads(300),

@@ -568,7 +568,7 @@ impl<'h> Lookups<'h> {
         self.charge_more(bytes)?;
         let names = self.live.entry(ri).or_insert_with(|| LiveNames::new(rig));
         let rigs = &self.rigs;
-        let layers = resolve_layers(&entry, names, &head.layers, |clip, frame| {
+        let layers = resolve_layers(&entry, names, &head.layers, |clip, frame, _| {
             rigs[ri as usize].rig().clips[clip as usize]
                 .resolve_frame(frame, mode)
                 .map_err(|e| ApiError::bad_request("frame_out_of_range", e.to_string()))

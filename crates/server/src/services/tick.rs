@@ -31,7 +31,13 @@ use crate::sessions::{
     ViewerSettings, bump, close,
 };
 use crowdmorph_anim::graph::{Graph, Player};
-use crowdmorph_core::rig::{FrameMode, JointPose, Pose};
+use crowdmorph_core::rig::{FrameMode, JointPose, Pose, layer_weights};
+
+use crate::admission::layers::{
+    finish_weights, layered_joints, layered_joints_bytes, layers_bytes, resolve_layers,
+};
+use crate::admission::names::LiveNames;
+use crate::http::ApiError;
 
 use crate::session_stream::delta;
 use crate::session_stream::encode::{
@@ -399,6 +405,8 @@ struct TickInput {
 struct Resolved {
     rigs: Vec<Arc<RigEntry>>,
     at: Vec<Option<HeadAt>>,
+    /// What the layered heads' resolved layers, final weights and joints hold this tick.
+    _layered: Option<crate::admission::Charge>,
 }
 
 impl Resolved {
@@ -448,6 +456,8 @@ fn resolve<S: Ticking>(
     }
     let mut rigs: Vec<Arc<RigEntry>> = Vec::new();
     let mut rig_at: HashMap<&str, Option<u32>> = HashMap::new();
+    let mut names: HashMap<u32, LiveNames> = HashMap::new();
+    let mut layered: Option<crate::admission::Charge> = None;
     let at = heads
         .iter()
         .map(|h| {
@@ -463,6 +473,7 @@ fn resolve<S: Ticking>(
             // Checked when the head was added or changed; a rig changed since then leaves out
             // a head whose overrides no longer fit it, as it does a head whose clip is gone.
             let requested = requested_joints(entry, &h.joints).ok()?;
+            let own = requested.clone();
             let (pose, joints) = match &h.graph {
                 // A graph head's player fades its overrides in, as it fades its jumps.
                 Some(play) => {
@@ -491,6 +502,44 @@ fn resolve<S: Ticking>(
                     )
                 }
             };
+            let (pose, joints) = if h.layers.is_empty() && h.clamp.is_none() {
+                (pose, joints)
+            } else {
+                // Checked when the head was added or changed, as its overrides are; charged
+                // for the tick (its layers, the rig's names once, the final weights, joints).
+                let mut bytes = layers_bytes(&h.layers) + 8 * (16 + 4 * rig.targets.len() as u64);
+                if !names.contains_key(&ri) {
+                    bytes += LiveNames::bytes(rig);
+                }
+                if let Some(sk) = &rig.skeleton {
+                    bytes += layered_joints_bytes(sk);
+                }
+                let more = state.queue_memory().reserve(bytes).ok()?;
+                match &mut layered {
+                    Some(c) => c.merge(more),
+                    None => layered = Some(more),
+                }
+                let names = names.entry(ri).or_insert_with(|| LiveNames::new(rig));
+                let layers = resolve_layers(entry, names, &h.layers, |clip, frame, reference| {
+                    // A layer's frames play from the clock, as the head's offset does; its
+                    // additive reference is a fixed frame.
+                    let c = &rig.clips[clip as usize];
+                    let elapsed = if reference {
+                        0
+                    } else {
+                        ((tick - 1) as f64 * f64::from(c.fps) / f64::from(session.fps)) as i64
+                    };
+                    c.resolve_frame(frame.saturating_add(elapsed), mode)
+                        .map_err(|e| ApiError::bad_request("frame_out_of_range", e.to_string()))
+                })
+                .ok()?;
+                let mut w = pose.weights(rig);
+                layer_weights(rig, &mut w, &layers);
+                finish_weights(rig, &mut w, h.clamp).ok()?;
+                // The head's own overrides stay on top of its layers' joints.
+                let joints = layered_joints(rig, &pose, &joints, &layers).overlay(&own);
+                (Pose::live(&w), joints)
+            };
             Some(HeadAt {
                 rig: ri,
                 pose,
@@ -501,7 +550,11 @@ fn resolve<S: Ticking>(
         })
         .collect();
     players.keep(heads);
-    Resolved { rigs, at }
+    Resolved {
+        rigs,
+        at,
+        _layered: layered,
+    }
 }
 
 /// The graph heads of one session, each with the player that walks its graph, owned by the
@@ -1237,7 +1290,7 @@ fn frame_message<S: Ticking>(
     state: &S,
     viewer: &Viewer,
     tick: u64,
-    rendered: Result<(Vec<u8>, u32, u32, crowdmorph_proto::ImageFormat), crate::http::ApiError>,
+    rendered: Result<(Vec<u8>, u32, u32, crowdmorph_proto::ImageFormat), ApiError>,
 ) -> Option<Arc<Encoded>> {
     match rendered {
         Ok((image, width, height, format)) => {

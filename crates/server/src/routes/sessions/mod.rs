@@ -135,7 +135,47 @@ fn check_session_head(state: &AppState, h: &SessionHead) -> Result<(), ApiError>
         .map_err(|e| invalid(format!("head {}: {e}", h.head)))?;
     requested_joints(&entry, &h.joints)
         .map_err(|(code, m)| ApiError::bad_request(code, format!("head {}: {m}", h.head)))?;
+    check_session_layers(state, &entry, h).map_err(|e| ApiError {
+        message: format!("head {}: {}", h.head, e.message),
+        ..e
+    })?;
     Ok(())
+}
+
+/// A head's layers and clamp resolve against its rig (their frames as the head's offset is,
+/// at the session clock's start), charged while they are checked.
+fn check_session_layers(
+    state: &AppState,
+    entry: &crate::registry::RigEntry,
+    h: &SessionHead,
+) -> Result<(), ApiError> {
+    if h.layers.is_empty() && h.clamp.is_none() {
+        return Ok(());
+    }
+    if h.layers.len() > crowdmorph_proto::MAX_HEAD_LAYERS {
+        return Err(ApiError::bad_request(
+            "invalid_layer",
+            format!(
+                "{} layers; a head has at most {}",
+                h.layers.len(),
+                crowdmorph_proto::MAX_HEAD_LAYERS
+            ),
+        ));
+    }
+    let rig = entry.rig();
+    let _held = state.queue_memory.reserve(
+        crate::admission::layers::layers_bytes(&h.layers)
+            + crate::admission::names::LiveNames::bytes(rig)
+            + 4 * rig.targets.len() as u64,
+    )?;
+    let names = crate::admission::names::LiveNames::new(rig);
+    crate::admission::layers::resolve_layers(entry, &names, &h.layers, |clip, frame, _| {
+        rig.clips[clip as usize]
+            .resolve_frame(frame, crowdmorph_core::rig::FrameMode::Wrap)
+            .map_err(|e| ApiError::bad_request("frame_out_of_range", e.to_string()))
+    })?;
+    let mut w = vec![0.0; rig.targets.len()];
+    crate::admission::layers::finish_weights(rig, &mut w, h.clamp)
 }
 
 fn check_head_count(state: &AppState, n: usize) -> Result<(), ApiError> {
@@ -209,6 +249,8 @@ fn patched(
         scale,
         node,
         joints,
+        layers,
+        clamp,
     } in &patch.change
     {
         let h = at
@@ -233,6 +275,12 @@ fn patched(
         }
         if let Some(j) = joints {
             h.joints.clone_from(j);
+        }
+        if let Some(l) = layers {
+            h.layers.clone_from(l);
+        }
+        if let Some(c) = clamp {
+            h.clamp = Some(*c);
         }
         check_session_head(state, h)?;
         if let Some(n) = node {
@@ -566,6 +614,8 @@ mod tests {
             scale: -1.1754942e-38,
             graph: None,
             joints: Default::default(),
+            layers: Vec::new(),
+            clamp: None,
         }
     }
 
@@ -599,6 +649,16 @@ mod tests {
                     );
                     3
                 ]),
+                layers: vec![crowdmorph_proto::Layer {
+                    mask: Some(crowdmorph_proto::Mask::Weights(vec![(
+                        "a\"b\u{1}".repeat(9),
+                        -1.1754942e-38,
+                    )])),
+                    joint_mask: Some(vec!["\u{2}\u{3}".repeat(11); 2]),
+                    reference: Some(i64::MIN),
+                    ..crowdmorph_proto::Layer::over("\"\\", i64::MIN, -1.1754942e-38)
+                }],
+                clamp: Some([-1.1754942e-38, -3.4028235e38]),
             },
         ];
         let stats = SessionStats {
