@@ -69,7 +69,8 @@ pub struct SessionHead {
     #[serde(default)]
     pub joints: crate::JointOverrides,
     /// Layers over the head's clip or graph pose, as a crowd frame's `Head::layers`; a layer's
-    /// `frame` (and `reference`) count from the session clock, as `offset` does.
+    /// `frame` counts from the session clock, as `offset` does (an additive `reference` is a
+    /// fixed frame).
     #[serde(default)]
     pub layers: Vec<crate::Layer>,
     /// Every final weight clamped into `[lo, hi]`, as a crowd frame's `Head::clamp`.

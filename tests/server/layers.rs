@@ -385,6 +385,33 @@ async fn malformed_layers_are_named_4xx() {
             "invalid_layer",
         ),
         (
+            "a mask naming more than the rig and ARKit have",
+            head(Layer {
+                mask: Some(Mask::Names(vec!["jawOpen".into(); 200])),
+                ..Layer::over("smile", 1, 0.5)
+            }),
+            400,
+            "invalid_layer",
+        ),
+        (
+            "a blend without a clip, under layers",
+            Head {
+                layers: vec![Layer::over("smile", 1, 0.5)],
+                blend: vec![crowdmorph_proto::BlendLayer {
+                    clip: "smile".into(),
+                    frame: 0,
+                    t: 0.5,
+                }],
+                ..Head::live(
+                    7,
+                    "default-head",
+                    LiveWeights::Named(vec![("jawOpen".into(), 0.5)]),
+                )
+            },
+            400,
+            "invalid_weights",
+        ),
+        (
             "an upside-down clamp",
             Head {
                 clamp: Some([1.0, 0.0]),
@@ -490,10 +517,30 @@ async fn a_skinned_heads_joints_layer_against_the_skinning_oracle() {
             bs + (ls - rs),
         );
     }
+    // The joint mask also names a node the run animates and the wave does not: a mask
+    // narrows what the layer's clip moves, so that node keeps the run's transform.
+    let animated = |name: &str| -> std::collections::BTreeSet<usize> {
+        doc.json["animations"]
+            .as_array()
+            .expect("animations")
+            .iter()
+            .filter(|a| a["name"] == name)
+            .flat_map(|a| a["channels"].as_array().expect("channels").iter())
+            .filter_map(|c| c["target"]["node"].as_u64())
+            .map(|n| n as usize)
+            .collect()
+    };
+    let run_only = animated("Running")
+        .difference(&animated("Wave"))
+        .map(|&i| names[i].clone())
+        .find(|n| !n.is_empty() && names.iter().filter(|m| *m == n).count() == 1)
+        .expect("a node the run animates and the wave does not");
+    let mut joint_mask = arm.clone();
+    joint_mask.push(run_only);
     let layered = |mode, weight, reference| Layer {
         mode,
         reference,
-        joint_mask: Some(arm.clone()),
+        joint_mask: Some(joint_mask.clone()),
         // The robot's clips move no morph target: the mask keeps the weights as they are.
         mask: Some(Mask::Names(Vec::new())),
         ..Layer::over("Wave", 20, weight)

@@ -757,6 +757,9 @@ impl Player {
                     Pose::Blend(t) if t.len() > MAX_TERMS => {
                         Pose::live(&self.weights_with(g, rig, f))
                     }
+                    // Frozen terms name clips of the rig they were frozen on: after the rig
+                    // changed under a fade (a clip deleted or replaced), they may not fit it.
+                    p if p.check(rig).is_err() => Pose::live(&self.weights_with(g, rig, f)),
                     p => p,
                 }
             }
@@ -1887,6 +1890,29 @@ mod tests {
         }
         assert!(seen_mixed, "the fade blended the two textures");
         assert_eq!(shares(&p).2, 1.0, "ends on smile's texture");
+        // A rig changed under a fade (talk replaced by a one-frame clip): the frozen terms no
+        // longer fit it, and the fade goes on as live weights instead of reading past the
+        // clip's end.
+        p.jump(&g, &rig, 0);
+        for _ in 0..5 {
+            p.advance(&g, &rig, 1.0 / 30.0);
+        }
+        let mut shorter = rig.clone();
+        let ti = shorter.clip_index("talk").expect("talk");
+        let one = crowdmorph_core::rig::Clip::from_frames(
+            "talk",
+            30.0,
+            shorter.targets.len(),
+            &[vec![0.0; shorter.targets.len()]],
+        )
+        .expect("clip");
+        shorter.clips[ti] = one;
+        p.jump(&g, &rig, 1);
+        assert!(matches!(p.pose(&g, &shorter), Pose::Live(_)));
+        p.advance(&g, &rig, 1.0 / 30.0);
+        while p.fading_from_frozen() {
+            p.advance(&g, &rig, 1.0 / 30.0);
+        }
         // A jump in the middle of a jump's fade keeps all the clip terms it shows.
         p.jump(&g, &rig, 0);
         p.advance(&g, &rig, 1.0 / 30.0);

@@ -97,7 +97,7 @@ pub fn layer_weights(rig: &Rig, w: &mut [f32], layers: &[PoseLayer]) {
 
 /// Applies `layers` in order to a skeleton's local transforms `locals` (one per node): each
 /// layer's clip moves the nodes of its joint table (a clip without one moves none), narrowed
-/// by the joint mask.
+/// by the joint mask (a masked node the table does not animate is left alone).
 pub fn layer_locals(rig: &Rig, sk: &Skeleton, locals: &mut [Trs], layers: &[PoseLayer]) {
     let mut layer = Vec::new();
     let mut reference = Vec::new();
@@ -124,7 +124,12 @@ pub fn layer_locals(rig: &Rig, sk: &Skeleton, locals: &mut [Trs], layers: &[Pose
         };
         match &l.joint_mask {
             None => table.nodes.iter().for_each(|&n| apply(n as usize, 1.0)),
-            Some(mask) => mask.iter().for_each(|&(n, m)| apply(n as usize, m)),
+            // A mask narrows what the clip animates: a node its table does not hold keeps
+            // what is below (its rest would otherwise pull it back).
+            Some(mask) => mask
+                .iter()
+                .filter(|(n, _)| table.nodes.binary_search(n).is_ok())
+                .for_each(|&(n, m)| apply(n as usize, m)),
         }
     }
 }

@@ -50,19 +50,20 @@ pub fn decoded_layers_bytes(layers: &Vec<Layer>) -> u64 {
             .sum::<u64>()
 }
 
-/// Bytes [`resolve_layers`] builds for `layers`, at most: each layer, and per mask entry a
-/// few channels (a name may drive several), a built-in mask ARKit's names' worth.
-pub fn layers_bytes(layers: &[Layer]) -> u64 {
+/// Bytes [`resolve_layers`] builds for `layers` on `rig`, at most: each layer, and per mask a
+/// dense row of the rig's channels and the sparse list made of it (twice: built, then shared),
+/// per joint mask the same of the skeleton's nodes.
+pub fn layers_bytes(rig: &Rig, layers: &[Layer]) -> u64 {
+    let channels = rig.targets.len() as u64;
+    let nodes = rig.skeleton.as_ref().map_or(0, |s| s.nodes.len()) as u64;
     let mut bytes = (layers.len() * size_of::<PoseLayer>()) as u64;
     for l in layers {
-        let names = match &l.mask {
-            None => 0,
-            Some(Mask::Names(n)) => n.len(),
-            Some(Mask::Weights(w)) => w.len(),
-            Some(Mask::Named(_)) => crowdmorph_core::rig::ARKIT_NAMES.len(),
-        };
-        let joints = l.joint_mask.as_ref().map_or(0, Vec::len);
-        bytes += 32 + 8 * (names * 4 + joints) as u64;
+        if l.mask.is_some() {
+            bytes += 32 + 4 * channels + 2 * 8 * channels;
+        }
+        if l.joint_mask.is_some() {
+            bytes += 32 + 2 * 8 * nodes;
+        }
     }
     bytes
 }
@@ -137,9 +138,24 @@ pub(crate) fn resolve_layers(
 
 /// A layer's mask as channels with their weights, ascending: names matched as live weights
 /// match them (ARKit names the rig lacks are skipped: it cannot show them), a built-in mask by
-/// name; a channel named twice keeps its last weight.
+/// name; a channel named twice keeps its last weight. A list longer than the rig's names and
+/// ARKit's together names something twice or nothing: a 400.
 fn mask(names: &LiveNames, mask: &Mask) -> Result<Selection, ApiError> {
-    let mut out: Vec<(u32, f32)> = Vec::new();
+    let channels = names.by_position.iter().map(Vec::len).sum::<usize>();
+    let most = names.by_position.len() + crowdmorph_core::rig::ARKIT_NAMES.len();
+    let listed = match mask {
+        Mask::Names(n) => n.len(),
+        Mask::Weights(w) => w.len(),
+        Mask::Named(_) => 0,
+    };
+    if listed > most {
+        return Err(invalid(format!(
+            "{listed} names for a rig of {} targets",
+            names.by_position.len()
+        )));
+    }
+    // One slot per channel (NaN: not in the mask), so repeats cost nothing.
+    let mut dense = vec![f32::NAN; channels];
     let mut add = |name: &str, w: f32, strict: bool| -> Result<(), ApiError> {
         if !(w.is_finite() && (0.0..=1.0).contains(&w)) {
             return Err(invalid(format!(
@@ -155,7 +171,11 @@ fn mask(names: &LiveNames, mask: &Mask) -> Result<Selection, ApiError> {
                 format!("names {}, which the rig does not have", quoted_name(name)),
             ));
         }
-        out.extend(ids.iter().map(|&k| (k, w)));
+        for &k in ids {
+            if let Some(slot) = dense.get_mut(k as usize) {
+                *slot = w;
+            }
+        }
         Ok(())
     };
     match mask {
@@ -172,23 +192,28 @@ fn mask(names: &LiveNames, mask: &Mask) -> Result<Selection, ApiError> {
             }
         },
     }
-    out.sort_by_key(|m| m.0);
-    let mut merged: Vec<(u32, f32)> = Vec::with_capacity(out.len());
-    for m in out {
-        match merged.last_mut() {
-            Some(last) if last.0 == m.0 => *last = m,
-            _ => merged.push(m),
-        }
-    }
-    Ok(merged.into())
+    let list: Vec<(u32, f32)> = dense
+        .iter()
+        .enumerate()
+        .filter(|(_, w)| !w.is_nan())
+        .map(|(k, &w)| (k as u32, w))
+        .collect();
+    Ok(list.into())
 }
 
-/// Skeleton nodes by name, ascending, each at 1.
+/// Skeleton nodes by name, ascending, each at 1 (at most the skeleton's node count).
 fn joint_mask(entry: &RigEntry, nodes: &[String]) -> Result<Selection, ApiError> {
-    if entry.rig().skeleton.is_none() {
+    let Some(sk) = &entry.rig().skeleton else {
         return Err(invalid(format!(
             "on rig {:?}, which has no skeleton",
             entry.id
+        )));
+    };
+    if nodes.len() > sk.nodes.len() {
+        return Err(invalid(format!(
+            "names {} nodes of a skeleton of {}",
+            nodes.len(),
+            sk.nodes.len()
         )));
     }
     let mut out = Vec::with_capacity(nodes.len());
@@ -228,25 +253,27 @@ pub fn finish_weights(rig: &Rig, w: &mut [f32], clamp: Option<[f32; 2]>) -> Resu
     Ok(())
 }
 
-/// Bytes [`layered_joints`] builds on skeleton `sk`, at most: three node arrays and the
-/// overrides.
+/// Bytes [`layered_joints`] builds on skeleton `sk`, at most.
 pub fn layered_joints_bytes(sk: &Skeleton) -> u64 {
-    // Three node arrays, and the overrides (a `JointSet` per node at most).
-    3 * (16 + (sk.nodes.len() * size_of::<Trs>()) as u64)
-        + 16
-        + (sk.nodes.len() * size_of::<crowdmorph_core::rig::JointSet>()) as u64
+    // Node arrays: rest, the locals, a blend's three and a layer's two; and the overrides (a
+    // `JointSet` per node at most) with the copies their overlays make.
+    7 * (16 + (sk.nodes.len() * size_of::<Trs>()) as u64)
+        + 3 * (16 + (sk.nodes.len() * size_of::<crowdmorph_core::rig::JointSet>()) as u64)
 }
 
 /// The joint overrides of a layered head on a skinned rig: what `base`'s clip terms give each
 /// node, with `base_joints` applied, then `layers`, as overrides of every node not at rest
-/// (the head's final pose is live weights, which pose no joint). [`JointPose::NONE`] without
-/// a skeleton.
+/// (the head's final pose is live weights, which pose no joint). Additive layers may carry a
+/// node past the translations and scales it has at rest or in any clip, which the rig's q16
+/// box is sized for (and a request's own overrides may not leave): each node is brought back
+/// within them. [`JointPose::NONE`] without a skeleton.
 pub fn layered_joints(
-    rig: &Rig,
+    entry: &RigEntry,
     base: &Pose,
     base_joints: &JointPose,
     layers: &[PoseLayer],
 ) -> JointPose {
+    let rig = entry.rig();
     let Some(sk) = &rig.skeleton else {
         return JointPose::NONE;
     };
@@ -256,5 +283,14 @@ pub fn layered_joints(
     sk.locals_of(&base.skin_terms(rig), &mut locals);
     base_joints.apply(sk, &mut locals);
     layer_locals(rig, sk, &mut locals, layers);
+    let (t_max, s_max) = &entry.joint_lod().extents;
+    for ((l, &t), &sc) in locals.iter_mut().zip(t_max).zip(s_max) {
+        let v = glam::Vec3::from(l.translation);
+        let len = f64::from(v.length());
+        if len > t {
+            l.translation = (v * (t / len) as f32).to_array();
+        }
+        l.scale = l.scale.map(|c| c.clamp(-(sc as f32), sc as f32));
+    }
     JointPose::from_locals(&locals, &rest)
 }

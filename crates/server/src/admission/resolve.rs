@@ -427,20 +427,18 @@ impl<'h> Lookups<'h> {
         mode: FrameMode,
     ) -> Result<Pose, ApiError> {
         let over_clip = head.weights.is_some() && !head.clip.is_empty();
+        if head.weights.is_some() && head.clip.is_empty() && !head.blend.is_empty() {
+            return Err(invalid_weights(
+                h,
+                head,
+                "blend layers need a clip to blend: send weights with a clip (they then apply \
+                 over it), or a clip and blend"
+                    .into(),
+            ));
+        }
         if head.layers.is_empty() && head.clamp.is_none() && !over_clip {
             return match &head.weights {
-                Some(weights) => {
-                    if !head.blend.is_empty() {
-                        return Err(invalid_weights(
-                            h,
-                            head,
-                            "blend layers need a clip to blend: send weights with a clip (they \
-                             then apply over it), or a clip and blend"
-                                .into(),
-                        ));
-                    }
-                    self.live_pose(h, head, ri, weights)
-                }
+                Some(weights) => self.live_pose(h, head, ri, weights),
                 None => self.clip_pose(h, head, ri, mode),
             };
         }
@@ -561,7 +559,7 @@ impl<'h> Lookups<'h> {
                 ),
             ));
         }
-        let mut bytes = layers_bytes(&head.layers);
+        let mut bytes = layers_bytes(rig, &head.layers);
         if !self.live.contains_key(&ri) {
             bytes += LiveNames::bytes(rig);
         }
@@ -588,13 +586,15 @@ impl<'h> Lookups<'h> {
                 }
             }
             // Angles sent with the weights (left in `live_joints`) turn joints as they do
-            // without a clip: applied over the base's joints below.
+            // without a clip: on top of the layers' joints below, as live input is.
         }
         finish_weights(rig, &mut w, head.clamp).map_err(|e| at_head(h, head, e))?;
         if let Some(sk) = &rig.skeleton {
             self.charge_more(layered_joints_bytes(sk))?;
-            let angles = std::mem::take(&mut self.live_joints).overlay(&live_angles);
-            self.live_joints = layered_joints(rig, &base, &angles, &layers);
+            // A live base's angles are under the layers; weights over a clip, on top.
+            let on_top = std::mem::take(&mut self.live_joints);
+            self.live_joints =
+                layered_joints(&entry, &base, &live_angles, &layers).overlay(&on_top);
         }
         Ok(Pose::live(&w))
     }

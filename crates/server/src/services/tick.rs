@@ -31,10 +31,10 @@ use crate::sessions::{
     ViewerSettings, bump, close,
 };
 use crowdmorph_anim::graph::{Graph, Player};
-use crowdmorph_core::rig::{FrameMode, JointPose, Pose, layer_weights};
+use crowdmorph_core::rig::{FrameMode, JointPose, Pose, clamp_weights, layer_weights};
 
 use crate::admission::layers::{
-    finish_weights, layered_joints, layered_joints_bytes, layers_bytes, resolve_layers,
+    layered_joints, layered_joints_bytes, layers_bytes, resolve_layers,
 };
 use crate::admission::names::LiveNames;
 use crate::http::ApiError;
@@ -507,7 +507,8 @@ fn resolve<S: Ticking>(
             } else {
                 // Checked when the head was added or changed, as its overrides are; charged
                 // for the tick (its layers, the rig's names once, the final weights, joints).
-                let mut bytes = layers_bytes(&h.layers) + 8 * (16 + 4 * rig.targets.len() as u64);
+                let mut bytes =
+                    layers_bytes(rig, &h.layers) + 8 * (16 + 4 * rig.targets.len() as u64);
                 if !names.contains_key(&ri) {
                     bytes += LiveNames::bytes(rig);
                 }
@@ -535,9 +536,13 @@ fn resolve<S: Ticking>(
                 .ok()?;
                 let mut w = pose.weights(rig);
                 layer_weights(rig, &mut w, &layers);
-                finish_weights(rig, &mut w, h.clamp).ok()?;
+                // The clamp was checked when the head was added; a weight the layers carry
+                // past ±64 at some frame is held there (as live weights are), the head kept.
+                if let Some(c) = h.clamp {
+                    clamp_weights(&mut w, c);
+                }
                 // The head's own overrides stay on top of its layers' joints.
-                let joints = layered_joints(rig, &pose, &joints, &layers).overlay(&own);
+                let joints = layered_joints(entry, &pose, &joints, &layers).overlay(&own);
                 (Pose::live(&w), joints)
             };
             Some(HeadAt {

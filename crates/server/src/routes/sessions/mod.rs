@@ -164,7 +164,7 @@ fn check_session_layers(
     }
     let rig = entry.rig();
     let _held = state.queue_memory.reserve(
-        crate::admission::layers::layers_bytes(&h.layers)
+        crate::admission::layers::layers_bytes(rig, &h.layers)
             + crate::admission::names::LiveNames::bytes(rig)
             + 4 * rig.targets.len() as u64,
     )?;
