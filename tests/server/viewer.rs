@@ -124,6 +124,25 @@ fn screenshot_path(suffix: &str) -> PathBuf {
 }
 
 /// A screenshot of the page, written to `path` first (for whoever looks into a failure).
+/// A screenshot of the page (written to `screenshot_path(suffix)`) with the view it shows and
+/// the panel's rectangle, checked not to have moved while it was taken.
+async fn still_screenshot(cdp: &mut Cdp, suffix: &str) -> (Value, PathBuf, Image, Value) {
+    let view = cdp.eval("window.crowdmorphViewer.view").await;
+    let path = screenshot_path(suffix);
+    let image = screenshot(cdp, &path).await;
+    assert_eq!(
+        cdp.eval("window.crowdmorphViewer.view").await,
+        view,
+        "the view changed while the screenshot was taken"
+    );
+    let panel = cdp
+        .eval(
+            "JSON.parse(JSON.stringify(document.getElementById('panel').getBoundingClientRect()))",
+        )
+        .await;
+    (view, path, image, panel)
+}
+
 async fn screenshot(cdp: &mut Cdp, path: &Path) -> Image {
     let shot = cdp
         .call("Page.captureScreenshot", json!({"format": "png"}))
@@ -510,19 +529,7 @@ async fn the_viewer_draws_textures_fetched_once_in_headless_chromium() {
     .await;
 
     // The picture against the CPU's expectation.
-    let view = cdp.eval("window.crowdmorphViewer.view").await;
-    let path = screenshot_path("-textured");
-    let image = screenshot(&mut cdp, &path).await;
-    assert_eq!(
-        cdp.eval("window.crowdmorphViewer.view").await,
-        view,
-        "the view changed while the screenshot was taken"
-    );
-    let panel = cdp
-        .eval(
-            "JSON.parse(JSON.stringify(document.getElementById('panel').getBoundingClientRect()))",
-        )
-        .await;
+    let (view, path, image, panel) = still_screenshot(&mut cdp, "-textured").await;
     let scene = Scene::new(&view, &mesh, &materials, &panel, f64::from(image.width));
     let fit = scene.fit(&image, texture, false);
     println!("textured page: {fit:?}");
@@ -1608,19 +1615,7 @@ async fn the_viewer_draws_expression_layers_as_the_server_does_in_headless_chrom
     let inputs = cdp.eval("window.crowdmorphViewer.layerInputs").await;
     assert_eq!(inputs, json!({"0": [brow]}), "the page's inputs");
 
-    let view = cdp.eval("window.crowdmorphViewer.view").await;
-    let path = screenshot_path("-layers");
-    let image = screenshot(&mut cdp, &path).await;
-    assert_eq!(
-        cdp.eval("window.crowdmorphViewer.view").await,
-        view,
-        "the view changed while the screenshot was taken"
-    );
-    let panel = cdp
-        .eval(
-            "JSON.parse(JSON.stringify(document.getElementById('panel').getBoundingClientRect()))",
-        )
-        .await;
+    let (view, path, image, panel) = still_screenshot(&mut cdp, "-layers").await;
     let frame = PageFrame::new(&view, &panel, f64::from(image.width));
     let with = compare_with_the_servers_render(
         &server,
