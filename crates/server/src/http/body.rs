@@ -246,6 +246,25 @@ impl<K: Unpin> http_body::Body for HoldBody<K> {
     }
 }
 
+/// A 200 JSON answer of `value`, keeping `keep` (the charge of the memory it was built in)
+/// until it has been sent.
+pub fn json_held<K: Send + Unpin + 'static>(
+    value: &serde_json::Value,
+    keep: K,
+) -> axum::response::Response {
+    use axum::response::IntoResponse;
+    let response = (
+        StatusCode::OK,
+        [(
+            header::CONTENT_TYPE,
+            axum::http::HeaderValue::from_static(crowdmorph_proto::CONTENT_TYPE_JSON),
+        )],
+        value.to_string(),
+    )
+        .into_response();
+    hold(response, keep)
+}
+
 /// `response` with `keep` (a memory charge) held until its body has been sent.
 pub fn hold<K: Send + Unpin + 'static>(
     response: axum::response::Response,

@@ -2,6 +2,7 @@
 //! `Cache-Control` a versioned URL earns (`immutable` when its `?v=` is the tag), and the 304
 //! a matching `If-None-Match` gets.
 
+use axum::body::Body;
 use axum::http::{HeaderMap, HeaderName, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 
@@ -49,5 +50,23 @@ impl Validator {
             (header::ETAG, self.etag.clone()),
             (header::CACHE_CONTROL, self.cache.clone()),
         ]
+    }
+
+    /// The 200 with `body` of type `content_type`, this validator's headers, and `keep` (what
+    /// the body's memory is charged to, or what holds it) kept until the body is sent.
+    pub fn respond<K: Send + Unpin + 'static>(
+        &self,
+        content_type: &'static str,
+        body: impl Into<Body>,
+        keep: K,
+    ) -> Response {
+        let response = (
+            StatusCode::OK,
+            [(header::CONTENT_TYPE, HeaderValue::from_static(content_type))],
+            self.headers(),
+            body.into(),
+        )
+            .into_response();
+        super::body::hold(response, keep)
     }
 }

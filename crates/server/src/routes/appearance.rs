@@ -16,7 +16,7 @@
 use axum::body::Body;
 use axum::extract::{Path, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
-use axum::response::{IntoResponse, Response};
+use axum::response::IntoResponse;
 
 use crate::http::cache::Validator;
 use crate::http::{self, ApiError, ApiResult, Query, Ready};
@@ -77,16 +77,7 @@ pub async fn get_materials(
             tables
         }
     };
-    let response = (
-        StatusCode::OK,
-        [(
-            header::CONTENT_TYPE,
-            HeaderValue::from_static(crowdmorph_proto::CONTENT_TYPE_JSON),
-        )],
-        body.to_string(),
-    )
-        .into_response();
-    Ok(http::body::hold(response, held))
+    Ok(http::body::json_held(&body, held))
 }
 
 /// Bytes of one image's entry in `/materials` besides its rig id (twice, in the URI and
@@ -132,17 +123,7 @@ pub async fn get_texture(
     // The body shares the image's bytes (no copy); the response holds the rig's entry, so
     // they stay charged to the rig until sent.
     let bytes = bytes::Bytes::from_owner(ArcBytes(image.bytes.clone()));
-    let response: Response = (
-        StatusCode::OK,
-        [(
-            header::CONTENT_TYPE,
-            HeaderValue::from_static(image.mime.as_str()),
-        )],
-        validator.headers(),
-        Body::from(bytes),
-    )
-        .into_response();
-    Ok(http::body::hold(response, entry))
+    Ok(validator.respond(image.mime.as_str(), bytes, entry))
 }
 
 /// An image's shared bytes as a `Bytes` owner.

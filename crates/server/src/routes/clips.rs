@@ -7,7 +7,7 @@ use std::sync::Arc;
 
 use axum::body::Body;
 use axum::extract::{Path, State};
-use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::http::{HeaderMap, StatusCode};
 use axum::response::IntoResponse;
 use crowdmorph_proto::{CONTENT_TYPE_JSON, ClipInfo, ClipList, ClipUpload, Quantization};
 
@@ -386,23 +386,15 @@ pub async fn delete_clip(
             format!("clip {clip:?} is part of the built-in rig and cannot be deleted"),
         ));
     }
-    let engine = state.engine.clone();
-    let base = entry.clone();
     let name = clip.clone();
-    let (rig, prepared, qbox, had_texture) = blocking(move || {
-        let mut new = base.rig().clone();
-        new.clips.remove(ci);
-        // Its animated texture goes with it: nothing plays it any more, and a later clip of
-        // the same name must not inherit it.
-        let had_texture = without_clip_texture(&mut new, &name);
-        let new = Arc::new(new);
-        let prepared = engine
-            .update_clips(&base.prepared, new.clone())
-            .map_err(|e| prepare_error(e, "clip_too_large"))?;
-        let qbox = quantization_box(&new);
-        Ok((new, prepared, qbox, had_texture))
-    })
-    .await?;
+    let (rig, prepared, qbox, had_texture) =
+        changed_rig(&state, &entry, "clip_too_large", move |new| {
+            new.clips.remove(ci);
+            // Its animated texture goes with it: nothing plays it any more, and a later clip of
+            // the same name must not inherit it.
+            Ok(without_clip_texture(new, &name))
+        })
+        .await?;
     // Only the file that held the clip is rewritten: its clip file, or the rig's record — and
     // the record first when it held the clip's texture (a stop between the two leaves the
     // clip without its texture, never a texture whose clip is gone).
@@ -548,19 +540,7 @@ async fn publish_appearance(
     change: impl FnOnce(&mut Rig) -> Result<(), ApiError> + Send + 'static,
     extra: Option<crowdmorph_core::budget::Charge>,
 ) -> Result<(), ApiError> {
-    let engine = state.engine.clone();
-    let current = entry.clone();
-    let (rig, prepared, qbox) = blocking(move || {
-        let mut new = current.rig().clone();
-        change(&mut new)?;
-        let new = Arc::new(new);
-        let prepared = engine
-            .update_clips(&current.prepared, new.clone())
-            .map_err(|e| prepare_error(e, "texture_too_large"))?;
-        let qbox = quantization_box(&new);
-        Ok((new, prepared, qbox))
-    })
-    .await?;
+    let (rig, prepared, qbox, ()) = changed_rig(state, entry, "texture_too_large", change).await?;
     persist_record(state, &entry.id, rig, entry.builtin, &entry.layout).await?;
     state.registry.insert(Arc::new(entry.successor(
         prepared,
@@ -570,6 +550,30 @@ async fn publish_appearance(
         extra,
     )));
     Ok(())
+}
+
+/// `entry`'s rig with `change` made to a copy, prepared (the engine re-uses what did not
+/// change) on a blocking thread, with its q16 box and what `change` returned. A change the
+/// engine cannot fit is a 413 `too_large`.
+async fn changed_rig<T: Send + 'static>(
+    state: &AppState,
+    entry: &Arc<RigEntry>,
+    too_large: &'static str,
+    change: impl FnOnce(&mut Rig) -> Result<T, ApiError> + Send + 'static,
+) -> Result<(Arc<Rig>, PreparedRig, Quantization, T), ApiError> {
+    let engine = state.engine.clone();
+    let current = entry.clone();
+    blocking(move || {
+        let mut new = current.rig().clone();
+        let out = change(&mut new)?;
+        let new = Arc::new(new);
+        let prepared = engine
+            .update_clips(&current.prepared, new.clone())
+            .map_err(|e| prepare_error(e, too_large))?;
+        let qbox = quantization_box(&new);
+        Ok((new, prepared, qbox, out))
+    })
+    .await
 }
 
 /// Removes clip `clip`'s animated texture from `rig`'s appearance; whether it had one.
@@ -628,17 +632,7 @@ pub async fn get_clip_texture(
     if let Some(not_modified) = validator.not_modified(&headers) {
         return Ok(not_modified);
     }
-    let response = (
-        StatusCode::OK,
-        [(
-            header::CONTENT_TYPE,
-            HeaderValue::from_static("application/octet-stream"),
-        )],
-        validator.headers(),
-        Body::from(bytes),
-    )
-        .into_response();
-    Ok(crate::http::body::hold(response, held))
+    Ok(validator.respond("application/octet-stream", bytes, held))
 }
 
 /// `DELETE /v1/rigs/{id}/clips/{clip}/texture`: the clip plays with its material's own base

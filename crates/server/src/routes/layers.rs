@@ -16,10 +16,8 @@
 //! answered `Cache-Control: immutable` (a viewer fetches them once per rig generation); without
 //! it, `no-cache` with the `ETag` (and a 304 to `If-None-Match`), as `/textures/{i}` does.
 
-use axum::body::Body;
 use axum::extract::{Path, State};
-use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
-use axum::response::{IntoResponse, Response};
+use axum::http::HeaderMap;
 use crowdmorph_core::rig::{MAX_ANIMATED_SIZE, Rig};
 use crowdmorph_engine::render::appearance::{
     LayerPlan, layer_input_indices, layer_plan, layer_texels,
@@ -115,16 +113,7 @@ pub async fn get_layers(
         }));
     }
     let body = serde_json::json!({ "materials": materials, "inputs": indices.len() });
-    let response = (
-        StatusCode::OK,
-        [(
-            header::CONTENT_TYPE,
-            HeaderValue::from_static(crowdmorph_proto::CONTENT_TYPE_JSON),
-        )],
-        body.to_string(),
-    )
-        .into_response();
-    Ok(http::body::hold(response, held))
+    Ok(http::body::json_held(&body, held))
 }
 
 /// `GET /v1/rigs/{id}/layers/{m}`: material `m`'s layer texels (see the module documentation).
@@ -179,15 +168,5 @@ pub async fn get_layer_texels(
     })
     .await?;
     held.keep(bytes);
-    let response: Response = (
-        StatusCode::OK,
-        [(
-            header::CONTENT_TYPE,
-            HeaderValue::from_static("application/octet-stream"),
-        )],
-        validator.headers(),
-        Body::from(body),
-    )
-        .into_response();
-    Ok(http::body::hold(response, held))
+    Ok(validator.respond("application/octet-stream", body, held))
 }
