@@ -399,54 +399,20 @@ impl Fallback {
         queue: &wgpu::Queue,
         layout: &wgpu::BindGroupLayout,
     ) -> Fallback {
-        let texture = device.create_texture(&wgpu::TextureDescriptor {
-            label: Some("render white"),
-            size: wgpu::Extent3d {
-                width: 1,
-                height: 1,
-                depth_or_array_layers: 1,
-            },
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D2,
-            format: wgpu::TextureFormat::Rgba8Unorm,
-            usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
-            view_formats: &[],
-        });
-        write_level(queue, &texture, 0, 1, 1, &[255; 4]);
+        let texture = one_texel(
+            device,
+            queue,
+            "render white",
+            wgpu::TextureFormat::Rgba8Unorm,
+            &[255; 4],
+        );
         let view = texture.create_view(&wgpu::TextureViewDescriptor::default());
-        let zeros = device.create_texture(&wgpu::TextureDescriptor {
-            label: Some("render no layers"),
-            size: wgpu::Extent3d {
-                width: 1,
-                height: 1,
-                depth_or_array_layers: 1,
-            },
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D2,
-            format: LAYER_FORMAT,
-            usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
-            view_formats: &[],
-        });
-        queue.write_texture(
-            wgpu::TexelCopyTextureInfo {
-                texture: &zeros,
-                mip_level: 0,
-                origin: wgpu::Origin3d::ZERO,
-                aspect: wgpu::TextureAspect::All,
-            },
+        let zeros = one_texel(
+            device,
+            queue,
+            "render no layers",
+            LAYER_FORMAT,
             &[0u8; LAYER_TEXEL as usize],
-            wgpu::TexelCopyBufferLayout {
-                offset: 0,
-                bytes_per_row: Some(LAYER_TEXEL as u32),
-                rows_per_image: Some(1),
-            },
-            wgpu::Extent3d {
-                width: 1,
-                height: 1,
-                depth_or_array_layers: 1,
-            },
         );
         let layers = zeros.create_view(&wgpu::TextureViewDescriptor {
             dimension: Some(wgpu::TextureViewDimension::D2Array),
@@ -1057,8 +1023,34 @@ pub(super) fn upload(
     })
 }
 
-/// Queues the upload of one mip level (rows tightly packed: `write_texture` needs no 256-byte
-/// row alignment).
+/// A 1×1 texture of `format` holding `texel` (the fallbacks of slots and layers).
+fn one_texel(
+    device: &wgpu::Device,
+    queue: &wgpu::Queue,
+    label: &str,
+    format: wgpu::TextureFormat,
+    texel: &[u8],
+) -> wgpu::Texture {
+    let texture = device.create_texture(&wgpu::TextureDescriptor {
+        label: Some(label),
+        size: wgpu::Extent3d {
+            width: 1,
+            height: 1,
+            depth_or_array_layers: 1,
+        },
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D2,
+        format,
+        usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+        view_formats: &[],
+    });
+    write_texels(queue, &texture, 0, 1, 1, texel.len() as u32, texel);
+    texture
+}
+
+/// Queues the upload of one mip level of RGBA8 (rows tightly packed: `write_texture` needs no
+/// 256-byte row alignment).
 fn write_level(
     queue: &wgpu::Queue,
     texture: &wgpu::Texture,
@@ -1067,6 +1059,19 @@ fn write_level(
     h: u32,
     rgba: &[u8],
 ) {
+    write_texels(queue, texture, level, w, h, 4, rgba);
+}
+
+/// Writes level `level` (`w × h` texels of `texel_bytes` each) of a 2D texture.
+fn write_texels(
+    queue: &wgpu::Queue,
+    texture: &wgpu::Texture,
+    level: u32,
+    w: u32,
+    h: u32,
+    texel_bytes: u32,
+    data: &[u8],
+) {
     queue.write_texture(
         wgpu::TexelCopyTextureInfo {
             texture,
@@ -1074,10 +1079,10 @@ fn write_level(
             origin: wgpu::Origin3d::ZERO,
             aspect: wgpu::TextureAspect::All,
         },
-        rgba,
+        data,
         wgpu::TexelCopyBufferLayout {
             offset: 0,
-            bytes_per_row: Some(w * 4),
+            bytes_per_row: Some(w * texel_bytes),
             rows_per_image: Some(h),
         },
         wgpu::Extent3d {
