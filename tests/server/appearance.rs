@@ -919,24 +919,12 @@ async fn a_clips_animated_texture_is_kept_across_a_restart() {
     let dir = temp_dir("clip-texture");
     let server = TestServer::start(stored_config(&dir)).await;
     rig_with_clip(&server, "tri").await;
-    let before = server
-        .client
-        .rig("tri")
-        .await
-        .expect("rig")
-        .memory
-        .host_bytes;
+    let before = host_bytes(&server, "tri").await;
     let body = texture_bytes(32, 32, 3, 0);
     let (status, v) = put_texture(&server, "tri", "talk", body.clone()).await;
     assert_eq!(status, 200, "{v}");
     let texture = v["bytes"].as_u64().expect("bytes");
-    let with = server
-        .client
-        .rig("tri")
-        .await
-        .expect("rig")
-        .memory
-        .host_bytes;
+    let with = host_bytes(&server, "tri").await;
     // The texture's arrays are the rig's memory now.
     assert!(with >= before + texture, "{before} + {texture} > {with}");
     server.stop().await;
@@ -944,13 +932,7 @@ async fn a_clips_animated_texture_is_kept_across_a_restart() {
     // The record's section 11 brings it back: the same memory, and a second texture for the
     // clip replaces it rather than adding to it.
     let server = TestServer::start(stored_config(&dir)).await;
-    let after = server
-        .client
-        .rig("tri")
-        .await
-        .expect("rig")
-        .memory
-        .host_bytes;
+    let after = host_bytes(&server, "tri").await;
     assert!(
         after >= before + texture,
         "{before} + {texture} > {after} after a restart"
@@ -963,13 +945,7 @@ async fn a_clips_animated_texture_is_kept_across_a_restart() {
     assert_eq!(again.status, 304);
     let (status, _) = put_texture(&server, "tri", "talk", body.clone()).await;
     assert_eq!(status, 200);
-    let again = server
-        .client
-        .rig("tri")
-        .await
-        .expect("rig")
-        .memory
-        .host_bytes;
+    let again = host_bytes(&server, "tri").await;
     assert!(
         again < after + texture,
         "replaced, not added: {after} → {again}"
@@ -980,13 +956,7 @@ async fn a_clips_animated_texture_is_kept_across_a_restart() {
     let gone = get_texture(&server, "tri", "talk", None).await;
     assert_eq!(gone.status, 404);
     assert!(gone.text.contains("unknown_texture"), "{}", gone.text);
-    let without = server
-        .client
-        .rig("tri")
-        .await
-        .expect("rig")
-        .memory
-        .host_bytes;
+    let without = host_bytes(&server, "tri").await;
     assert!(
         without + texture <= again,
         "the texture's {texture} B were released: {again} → {without}"
@@ -1008,19 +978,18 @@ async fn a_clips_animated_texture_is_kept_across_a_restart() {
     let gone = get_texture(&server, "tri", "talk", None).await;
     assert_eq!(gone.status, 404);
     assert!(gone.text.contains("unknown_texture"), "{}", gone.text);
-    let fresh = server
-        .client
-        .rig("tri")
-        .await
-        .expect("rig")
-        .memory
-        .host_bytes;
+    let fresh = host_bytes(&server, "tri").await;
     assert!(
         fresh < before + texture,
         "no texture came back: {before} + {texture} vs {fresh}"
     );
     server.stop().await;
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Host bytes rig `id` holds, as its info reports them.
+async fn host_bytes(server: &TestServer, id: &str) -> u64 {
+    server.client.rig(id).await.expect("rig").memory.host_bytes
 }
 
 /// A `GET` of a clip's texture: status, body, `ETag` and the body as text.

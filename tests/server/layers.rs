@@ -26,13 +26,10 @@ fn request(heads: Vec<Head>) -> CrowdFrameRequest {
     }
 }
 
+/// Head `head`'s f32 positions in a crowd frame.
 fn positions(resp: &crowdmorph_proto::CrowdFrameResponse, head: usize) -> Vec<f32> {
     let b = &resp.buffers[resp.heads[head].buffer as usize];
-    b.positions
-        .0
-        .chunks_exact(4)
-        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-        .collect()
+    super::positions_f32(resp.format, b)
 }
 
 /// The embedded rig's weights of `clip` at `frame`, per channel, in f64.

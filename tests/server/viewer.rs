@@ -124,6 +124,24 @@ fn screenshot_path(suffix: &str) -> PathBuf {
 }
 
 /// A screenshot of the page, written to `path` first (for whoever looks into a failure).
+/// Waits 30 more ticks of the page's clock (`tick`, an expression) and checks the page made
+/// no HTTP request past the first `before` meanwhile: what it fetches, it fetches once.
+async fn no_requests_for_30_ticks(cdp: &mut Cdp, tick: &str, before: usize) {
+    let now = cdp.eval(tick).await.as_u64().unwrap();
+    cdp.wait_for("30 more ticks", tick, Duration::from_secs(90), |v| {
+        v.as_u64().unwrap_or(0) >= now + 30
+    })
+    .await;
+    let _ = cdp.eval("0").await; // Reads the events that came meanwhile.
+    let later = cdp.requests();
+    assert_eq!(
+        later.len(),
+        before,
+        "HTTP requests while the stream ticked: {:#?}",
+        &later[before..]
+    );
+}
+
 /// A screenshot of the page (written to `screenshot_path(suffix)`) with the view it shows and
 /// the panel's rectangle, checked not to have moved while it was taken.
 async fn still_screenshot(cdp: &mut Cdp, suffix: &str) -> (Value, PathBuf, Image, Value) {
@@ -568,20 +586,7 @@ async fn the_viewer_draws_textures_fetched_once_in_headless_chromium() {
     }
     let uri = materials["images"][0]["uri"].as_str().unwrap();
     assert!(textures[0].url.ends_with(uri), "{textures:?} vs {uri}");
-    let before = requests.len();
-    let now = cdp.eval(tick).await.as_u64().unwrap();
-    cdp.wait_for("30 more ticks", tick, Duration::from_secs(90), |v| {
-        v.as_u64().unwrap_or(0) >= now + 30
-    })
-    .await;
-    let _ = cdp.eval("0").await; // Reads the events that came meanwhile.
-    let later = cdp.requests();
-    assert_eq!(
-        later.len(),
-        before,
-        "HTTP requests while the stream ticked: {:#?}",
-        &later[before..]
-    );
+    no_requests_for_30_ticks(&mut cdp, tick, requests.len()).await;
     let stats = cdp.eval("window.crowdmorphViewer.appearance").await;
     assert_eq!(stats["materialFetches"], json!(1), "{stats}");
     assert_eq!(stats["imageFetches"], json!(images), "{stats}");
@@ -1684,20 +1689,7 @@ async fn the_viewer_draws_expression_layers_as_the_server_does_in_headless_chrom
     let texels = matching("/v1/rigs/wrinkled/layers/0?v=");
     assert_eq!(docs.len(), 1, "{requests:#?}");
     assert_eq!(texels.len(), 1, "{requests:#?}");
-    let before = requests.len();
-    let now = cdp.eval(tick).await.as_u64().unwrap();
-    cdp.wait_for("30 more ticks", tick, Duration::from_secs(90), |v| {
-        v.as_u64().unwrap_or(0) >= now + 30
-    })
-    .await;
-    let _ = cdp.eval("0").await; // Reads the events that came meanwhile.
-    let later = cdp.requests();
-    assert_eq!(
-        later.len(),
-        before,
-        "HTTP requests while the stream ticked: {:#?}",
-        &later[before..]
-    );
+    no_requests_for_30_ticks(&mut cdp, tick, requests.len()).await;
     let stats = cdp.eval(appearance).await;
     assert_eq!(stats["layerFetches"], json!(1), "{stats}");
     assert_eq!(stats["texelFetches"], json!(1), "{stats}");
