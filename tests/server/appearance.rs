@@ -1037,3 +1037,99 @@ async fn delete(server: &TestServer, path: &str) -> u16 {
         .expect("an answer")
         .status
 }
+
+/// Rig `tri` with a 64 × 64 base colour and clip `talk` of three frames.
+async fn rig_with_large_base(server: &TestServer) {
+    server
+        .client
+        .upload_rig("tri", triangle_with_image(&png_of(64, 64), "image/png"))
+        .await
+        .expect("rig");
+    add_talk_clip(server, "tri").await;
+}
+
+/// `GET` of `path`: status, error code (empty for a success) and body.
+async fn get_coded(server: &TestServer, path: &str) -> (u16, String, Bytes) {
+    let r = server
+        .client
+        .send(Method::GET, path, None, None, Bytes::new())
+        .await
+        .expect("reply");
+    let code = r.error().map(|e| e.error.code).unwrap_or_default();
+    (r.status, code, r.body)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn clip_textures_and_layer_texels_are_charged_before_they_are_built() {
+    // A 64 × 64 texture of two components is about 147 KB as its byte form; over a 64 × 64
+    // base colour its layer texels (mean − base and the components, with mips) are about
+    // 130 KB, and building them works through about 290 KB more: both past a 64 KiB queue
+    // memory, a 413 naming the flag before anything is built; the small /layers JSON still
+    // answers.
+    let body = texture_bytes(64, 64, 3, 0);
+    let server = TestServer::start(ServerConfig {
+        queue_memory_bytes: 64 << 10,
+        ..ServerConfig::default()
+    })
+    .await;
+    rig_with_large_base(&server).await;
+    let (status, v) = put_texture(&server, "tri", "talk", body.clone()).await;
+    assert_eq!(status, 200, "{v}");
+    for path in ["/v1/rigs/tri/clips/talk/texture", "/v1/rigs/tri/layers/0"] {
+        let (status, code, body) = get_coded(&server, path).await;
+        assert_eq!(
+            (status, code.as_str()),
+            (413, "queue_memory_exceeded"),
+            "{path}"
+        );
+        let text = String::from_utf8_lossy(&body);
+        assert!(text.contains("--queue-memory-bytes"), "{path}: {text}");
+    }
+    let (status, _, layers) = get_coded(&server, "/v1/rigs/tri/layers").await;
+    assert_eq!(status, 200);
+    let layers: serde_json::Value = serde_json::from_slice(&layers).expect("JSON");
+    assert_eq!(
+        layers["materials"][0]["layers"].as_array().map(Vec::len),
+        Some(3)
+    );
+    assert_eq!(server.state.queue_memory.used(), 0);
+    server.stop().await;
+
+    // Room for a few of each at once, sixteen of each asked for together: each the same 200,
+    // or a 503 `queue_full` to retry; nothing stays charged.
+    let server = TestServer::start(ServerConfig {
+        queue_memory_bytes: 1 << 20,
+        ..ServerConfig::default()
+    })
+    .await;
+    rig_with_large_base(&server).await;
+    let (status, v) = put_texture(&server, "tri", "talk", body.clone()).await;
+    assert_eq!(status, 200, "{v}");
+    for path in ["/v1/rigs/tri/clips/talk/texture", "/v1/rigs/tri/layers/0"] {
+        let (_, _, want) = get_coded(&server, path).await;
+        assert!(!want.is_empty(), "{path}");
+        if path.ends_with("/texture") {
+            assert_eq!(&want[..], &body[..], "the texture as it was put");
+        }
+        let replies =
+            futures_util::future::join_all((0..16).map(|_| get_coded(&server, path))).await;
+        let (mut ok, mut busy) = (0, 0);
+        for (status, code, got) in replies {
+            match status {
+                200 => {
+                    assert_eq!(got, want, "{path}: every answer is the same bytes");
+                    ok += 1;
+                }
+                503 => {
+                    assert_eq!(code, "queue_full", "{path}");
+                    busy += 1;
+                }
+                s => panic!("{path}: status {s} {code}"),
+            }
+        }
+        println!("16 GET {path} at once: {ok} answered, {busy} told to retry");
+        assert!(ok >= 1, "{path}: {ok} answered");
+    }
+    assert_eq!(server.state.queue_memory.used(), 0, "everything given back");
+    server.stop().await;
+}
