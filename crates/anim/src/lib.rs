@@ -3,9 +3,11 @@
 //! | module | what it is |
 //! |---|---|
 //! | [`compress`] | compressed clips within a vertex-space error budget: per-curve quantization or PCA, temporal prediction, zstd segments |
+//! | [`live`] | live input over time: the jitter buffer that plays producer samples by timecode, the One Euro filter, fades in and out |
 //! | [`graph`] | motion graphs checked against a rig, and the player that walks one with bounded cross-fades |
 //! | [`texture`] | animated textures compressed with PCA per region (GPU Gems 3 ch. 15), and their error per region |
 
 pub mod compress;
 pub mod graph;
+pub mod live;
 pub mod texture;
