@@ -210,6 +210,13 @@ function sessionHead(r) {
     joints: jointOverrides(r),
     layers: r.vec(() => layer(r)),
     clamp: r.option(() => [r.f32(), r.f32()]),
+    live: r.option(() => ({
+      hold_ms: r.varint(),
+      fade_ms: r.varint(),
+      delay_ms: r.varint(),
+      smoothing: r.option(() => ({ min_cutoff: r.f32(), beta: r.f32(), d_cutoff: r.f32() })),
+      mapping: r.option(() => r.string()),
+    })),
   };
 }
 

@@ -15,6 +15,7 @@
 #![warn(missing_docs)]
 
 pub mod graph;
+pub mod live;
 pub mod session;
 #[cfg(feature = "unpack")]
 pub mod skim;
@@ -22,6 +23,7 @@ pub mod stream;
 pub mod wire;
 
 pub use graph::{BuiltGraph, GraphEdge, GraphInfo, GraphList, GraphNode, GraphPlay, MotionGraph};
+pub use live::{LiveAck, LiveInput, LiveSample, LiveSpec, OneEuro};
 pub use session::{
     DEFAULT_KEYFRAME_EVERY, DEFAULT_SESSION_FPS, DEFAULT_SESSION_IDLE_TIMEOUT_S, HEAD_MISSING,
     HEAD_UNCHANGED, HeadChange, HeadLayers, LodChoice, MAX_KEYFRAME_EVERY, MessageEncoding,

@@ -76,6 +76,10 @@ pub struct SessionHead {
     /// Every final weight clamped into `[lo, hi]`, as a crowd frame's `Head::clamp`.
     #[serde(default)]
     pub clamp: Option<[f32; 2]>,
+    /// Driven by live input (`POST /v1/sessions/{id}/live`) over its clip or graph pose and
+    /// its layers (or over the neutral, without a clip): see [`crate::LiveSpec`].
+    #[serde(default)]
+    pub live: Option<crate::LiveSpec>,
 }
 
 /// `POST /v1/sessions` request.
@@ -180,6 +184,10 @@ pub struct HeadChange {
     /// New clamp (`[lo, hi]`); absent keeps the head's, and `[-64, 64]` lifts it.
     #[serde(default)]
     pub clamp: Option<[f32; 2]>,
+    /// New live settings (the head becomes live, or its settings change; its input so far
+    /// is kept).
+    #[serde(default)]
+    pub live: Option<crate::LiveSpec>,
 }
 
 /// `PATCH /v1/sessions/{id}` request: applied together, at the next tick, in the order

@@ -188,6 +188,19 @@ pub fn skim(message: &[u8]) -> Result<TickSummary, StreamError> {
                     if s.some("clamp")? {
                         s.skip(8, "clamp")?;
                     }
+                    // Live settings: three durations, a One Euro filter's three floats and a
+                    // mapping's name, both optional.
+                    if s.some("live")? {
+                        s.varint("live hold_ms")?;
+                        s.varint("live fade_ms")?;
+                        s.varint("live delay_ms")?;
+                        if s.some("live smoothing")? {
+                            s.skip(12, "live smoothing")?;
+                        }
+                        if s.some("live mapping")? {
+                            s.skip_bytes("live mapping")?;
+                        }
+                    }
                 }
             }
             if variant == 2 {
@@ -340,6 +353,16 @@ mod tests {
                     Vec::new()
                 },
                 clamp: (h == 3).then_some([0.0, 1.0]),
+                // And one is live, with every setting.
+                live: (h == 0).then(|| crate::LiveSpec {
+                    smoothing: Some(crate::OneEuro {
+                        min_cutoff: 1.5,
+                        beta: 0.25,
+                        d_cutoff: 1.0,
+                    }),
+                    mapping: Some("a2f".into()),
+                    ..crate::LiveSpec::default()
+                }),
             })
             .collect();
         let m = StreamMessage::Vertices(TickVertices {

@@ -655,6 +655,7 @@ fn session_head(head: u64, clip: &str, offset: i64, x: f32) -> SessionHead {
         joints: JointOverrides::default(),
         layers: Vec::new(),
         clamp: None,
+        live: None,
     }
 }
 
@@ -669,6 +670,16 @@ fn session_messages() {
                 ..Layer::over("talk", 2, 0.5)
             }],
             clamp: Some([0.0, 1.0]),
+            live: Some(LiveSpec {
+                hold_ms: 750,
+                smoothing: Some(OneEuro {
+                    min_cutoff: 1.0,
+                    beta: 0.5,
+                    d_cutoff: 1.0,
+                }),
+                mapping: Some("a2f".into()),
+                ..LiveSpec::default()
+            }),
             ..session_head(3, "smile", -4, 1.0)
         },
         SessionHead {
@@ -714,6 +725,7 @@ fn session_messages() {
                     joints: Some(JointOverrides::rotation("Head", [0.0, 0.5, 0.0, 1.0])),
                     layers: Some(Vec::new()),
                     clamp: Some([-1.0, 2.0]),
+                    live: Some(LiveSpec::default()),
                 },
                 HeadChange {
                     head: 4,
@@ -726,6 +738,7 @@ fn session_messages() {
                     joints: None,
                     layers: None,
                     clamp: None,
+                    live: None,
                 },
             ],
             add: vec![session_head(9, "idle", 7, 2.0)],
@@ -818,6 +831,39 @@ fn session_messages() {
         serde_json::from_str::<ViewerHello>("{}").unwrap(),
         ViewerHello::default()
     );
+}
+
+#[test]
+fn live_messages() {
+    let input = LiveInput {
+        heads: vec![
+            LiveSample {
+                head: 3,
+                weights: Some(LiveWeights::Named(vec![
+                    ("jawOpen".into(), 0.5),
+                    ("HeadYaw".into(), -0.25),
+                ])),
+                joints: JointOverrides::rotation("LeftEye", [0.0, 0.1, 0.0, 1.0]),
+                t: Some(12.5),
+            },
+            LiveSample {
+                head: 4,
+                weights: Some(LiveWeights::Dense(vec![0.0, 1.0])),
+                joints: JointOverrides::default(),
+                t: None,
+            },
+        ],
+    };
+    pin("live_input", &input);
+    pin("live_ack", &LiveAck { accepted: 2 });
+    let json: LiveInput = serde_json::from_str(
+        r#"{"heads":[{"head":3,"weights":{"jawOpen":0.5,"HeadYaw":-0.25},"joints":{"LeftEye":{"rotation":[0,0.1,0,1]}},"t":12.5},{"head":4,"weights":[0,1]}]}"#,
+    )
+    .unwrap();
+    assert_eq!(json, input);
+    let spec: LiveSpec = serde_json::from_str("{}").unwrap();
+    assert_eq!(spec, LiveSpec::default());
+    assert!(serde_json::from_str::<LiveSpec>(r#"{"hold":1}"#).is_err());
 }
 
 #[test]
@@ -915,6 +961,7 @@ fn temporal_stream_messages_and_q16r() {
             joints: JointOverrides::default(),
             layers: Vec::new(),
             clamp: None,
+            live: None,
         },
         SessionHead {
             head: 2,
@@ -928,6 +975,7 @@ fn temporal_stream_messages_and_q16r() {
             joints: JointOverrides::default(),
             layers: Vec::new(),
             clamp: None,
+            live: None,
         },
     ];
     let timings = FrameTimings {

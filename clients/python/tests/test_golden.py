@@ -40,6 +40,8 @@ GOLDEN = {
     "session_info": messages.SessionInfo,
     "motion_graph": messages.MotionGraph,
     "graph_list": messages.GraphList,
+    "live_input": messages.LiveInput,
+    "live_ack": messages.LiveAck,
 }
 
 
@@ -213,7 +215,9 @@ def test_joint_overrides_of_session_heads_and_changes_decode_and_encode_like_the
             session_head(3, "smile", -4, 1.0,
                          layers=[{"clip": "talk", "frame": 2, "weight": 0.5,
                                   "mask": "lower_face"}],
-                         clamp=[0.0, 1.0]),
+                         clamp=[0.0, 1.0],
+                         live={"hold_ms": 750, "mapping": "a2f",
+                               "smoothing": {"min_cutoff": 1.0, "beta": 0.5}}),
             session_head(4, "", 0, 1.5, graph=graph,
                          joints=[("LeftEye", {"translation": [0, 0, 0.25],
                                               "rotation": [0, 0.5, 0, 1]})]),
@@ -233,7 +237,7 @@ def test_joint_overrides_of_session_heads_and_changes_decode_and_encode_like_the
         change=[
             messages.HeadChange(3, clip="talk", yaw=-30.0,
                                 joints={"Head": {"rotation": [0, 0.5, 0, 1]}},
-                                layers=[], clamp=[-1.0, 2.0]),
+                                layers=[], clamp=[-1.0, 2.0], live=messages.LiveSpec()),
             messages.HeadChange(4, node="surprise"),
         ],
         add=[session_head(9, "idle", 7, 2.0)],
@@ -243,8 +247,8 @@ def test_joint_overrides_of_session_heads_and_changes_decode_and_encode_like_the
     # None leaves a head's overrides; {} clears them: Some(empty).
     w = wire.Writer()
     wire.Msg(messages.HeadChange).write(w, messages.HeadChange(4, joints={}))
-    # (then layers = None, clamp = None)
-    assert bytes(w.out) == b"\x04" + b"\x00" * 6 + b"\x01\x00" + b"\x00\x00"
+    # (then layers = None, clamp = None, live = None)
+    assert bytes(w.out) == b"\x04" + b"\x00" * 6 + b"\x01\x00" + b"\x00\x00\x00"
     assert messages.as_dict(messages.HeadChange(4, joints={}))["joints"] == {}
     assert messages.as_dict(messages.HeadChange(4))["joints"] is None
 

@@ -967,6 +967,23 @@ class Client:
         )
         return self._decode(SessionInfo, resp)
 
+    def send_live(self, session: str, heads: Iterable[Mapping[str, Any]]) -> int:
+        """``POST /v1/sessions/{id}/live``: one message of live input, a dict per sample
+        (``{"head": 3, "weights": {"jawOpen": 0.4}, "t": 12.5}``; ``joints`` by node name,
+        rotations only). The heads must be live (``SessionHead.live``). Needs the admin token
+        when the server has one. Returns how many samples the server took; a rate past the
+        server's ``--max-live-rate`` raises with code ``live_rate_exceeded``. For a stream of
+        them, a WebSocket at the same path takes the same messages."""
+        body = json.dumps({"heads": [dict(h) for h in heads]}).encode()
+        resp = self.request(
+            "POST",
+            f"/v1/sessions/{_seg(session)}/live",
+            body,
+            "application/json",
+            accept="application/json",
+        )
+        return int(json.loads(resp.body)["accepted"])
+
     def delete_session(self, session: str) -> None:
         """``DELETE /v1/sessions/{id}``: ends it; its viewers are closed with 1001."""
         self.request("DELETE", f"/v1/sessions/{_seg(session)}", ok=(204,))

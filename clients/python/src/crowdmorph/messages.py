@@ -23,6 +23,7 @@ from .wire import (
     BLOB,
     BOOL,
     F32,
+    F64,
     F32X3,
     F32X4,
     I64,
@@ -1152,6 +1153,84 @@ class GraphPlay:
     script: List[str] = field(default_factory=list)
 
 
+@wire(("min_cutoff", F32), ("beta", F32), ("d_cutoff", F32))
+@dataclass
+class OneEuro:
+    """The One Euro filter of a live head without timecodes: cutoff at rest (Hz), how fast
+    the cutoff rises with speed, and the speed's own cutoff (Hz)."""
+
+    min_cutoff: float = 1.0
+    beta: float = 0.0
+    d_cutoff: float = 1.0
+
+
+@wire(
+    ("hold_ms", U32),
+    ("fade_ms", U32),
+    ("delay_ms", U32),
+    ("smoothing", Opt(Msg(OneEuro))),
+    ("mapping", Opt(STR)),
+)
+@dataclass
+class LiveSpec:
+    """How a session head follows live input (``POST /v1/sessions/{id}/live``): it holds the
+    last input ``hold_ms`` once producers go quiet, fades to and from live input over
+    ``fade_ms``, plays timecoded input ``delay_ms`` behind the producer, and smooths input
+    without timecodes with ``smoothing``; ``mapping`` names a rig mapping for the producer's
+    names."""
+
+    hold_ms: int = 500
+    fade_ms: int = 250
+    delay_ms: int = 100
+    smoothing: Optional[OneEuro] = None
+    mapping: Optional[str] = None
+
+    def __post_init__(self) -> None:
+        if isinstance(self.smoothing, Mapping):
+            self.smoothing = OneEuro(**self.smoothing)
+
+
+def _live_spec(v: Any) -> Optional[LiveSpec]:
+    if v is None or isinstance(v, LiveSpec):
+        return v
+    if isinstance(v, Mapping):
+        return LiveSpec(**v)
+    raise TypeError(f"live is a LiveSpec or a dict, not {v!r}")
+
+
+@wire(("head", U64), ("weights", _WEIGHTS), ("joints", JOINTS), ("t", Opt(F64)))
+@dataclass
+class LiveSample:
+    """One producer sample for a live session head: weights by name (through the head's
+    mapping) or dense, node rotations in ``joints``, and the producer's timecode ``t`` (s)."""
+
+    head: int
+    weights: Any = None
+    joints: Dict[str, JointTransform] = field(default_factory=dict)
+    t: Optional[float] = None
+
+    def __post_init__(self) -> None:
+        j = self.joints
+        if type(j) is not dict or j:
+            self.joints = joint_overrides(j)
+
+
+@wire(("heads", Vec(Msg(LiveSample))))
+@dataclass
+class LiveInput:
+    """``POST /v1/sessions/{id}/live`` body, and one message of the live WebSocket."""
+
+    heads: List[LiveSample] = field(default_factory=list)
+
+
+@wire(("accepted", U32))
+@dataclass
+class LiveAck:
+    """The answer to ``POST /v1/sessions/{id}/live``: samples taken."""
+
+    accepted: int
+
+
 @wire(
     ("head", U64),
     ("rig", STR),
@@ -1164,6 +1243,7 @@ class GraphPlay:
     ("joints", JOINTS),
     ("layers", _LAYERS),
     ("clamp", CLAMP),
+    ("live", Opt(Msg(LiveSpec))),
 )
 @dataclass
 class SessionHead:
@@ -1172,7 +1252,9 @@ class SessionHead:
     standing at ``position`` turned ``yaw`` degrees about +Y and scaled by ``scale``; on a rig
     with a skeleton, ``joints`` sets named nodes' local transforms over that pose at every tick
     (as :attr:`Head.joints`). ``layers`` go over that pose as :attr:`Head.layers` do, their
-    frames counted from the session clock as ``offset`` is; ``clamp`` bounds the final weights."""
+    frames counted from the session clock as ``offset`` is; ``clamp`` bounds the final weights.
+    A head with ``live`` (a :class:`LiveSpec` or a dict) shows the input producers send for it
+    over that pose (over the neutral without a clip)."""
 
     head: int
     rig: str
@@ -1185,6 +1267,7 @@ class SessionHead:
     joints: Dict[str, JointTransform] = field(default_factory=dict)
     layers: List[Layer] = field(default_factory=list)
     clamp: Optional[Sequence[float]] = None
+    live: Optional[LiveSpec] = None
 
     def __post_init__(self) -> None:
         j = self.joints
@@ -1192,6 +1275,8 @@ class SessionHead:
             self.joints = joint_overrides(j)
         if self.layers and any(type(x) is not Layer for x in self.layers):
             self.layers = [_of_head_layer(x) for x in self.layers]
+        if self.live is not None and type(self.live) is not LiveSpec:
+            self.live = _live_spec(self.live)
 
 
 @wire(("fps", F32), ("wrap", BOOL), ("idle_timeout_s", U32), ("heads", Vec(Msg(SessionHead))))
@@ -1273,6 +1358,7 @@ class SessionList:
     ("joints", Opt(JOINTS)),
     ("layers", Opt(_LAYERS)),
     ("clamp", CLAMP),
+    ("live", Opt(Msg(LiveSpec))),
 )
 @dataclass
 class HeadChange:
@@ -1289,6 +1375,7 @@ class HeadChange:
     joints: Optional[Dict[str, JointTransform]] = None
     layers: Optional[List[Layer]] = None
     clamp: Optional[Sequence[float]] = None
+    live: Optional[LiveSpec] = None
 
     def __post_init__(self) -> None:
         j = self.joints
@@ -1296,6 +1383,8 @@ class HeadChange:
             self.joints = joint_overrides(j)
         if self.layers and any(type(x) is not Layer for x in self.layers):
             self.layers = [_of_head_layer(x) for x in self.layers]
+        if self.live is not None and type(self.live) is not LiveSpec:
+            self.live = _live_spec(self.live)
 
 
 class _U32Pair:

@@ -29,6 +29,7 @@ __all__ = [
 ]
 
 _F32 = struct.Struct("<f")
+_F64 = struct.Struct("<d")
 _F32X3 = struct.Struct("<3f")
 _F32X4 = struct.Struct("<4f")
 _U16 = struct.Struct("<H")
@@ -120,6 +121,9 @@ class Reader:
     def f32(self) -> float:
         return _F32.unpack(self._take(4))[0]
 
+    def f64(self) -> float:
+        return _F64.unpack(self._take(8))[0]
+
     def f32x3(self) -> List[float]:
         return list(_F32X3.unpack(self._take(12)))
 
@@ -205,6 +209,9 @@ class Writer:
     def f32(self, v: float) -> None:
         self.out += _F32.pack(v)
 
+    def f64(self, v: float) -> None:
+        self.out += _F64.pack(v)
+
     def f32x3(self, v: Sequence[float]) -> None:
         if len(v) != 3:
             raise ValueError(f"expected 3 numbers, got {len(v)}")
@@ -258,6 +265,7 @@ U32 = _Prim("u32")
 U64 = _Prim("u64")
 I64 = _Prim("i64")
 F32 = _Prim("f32")
+F64 = _Prim("f64")
 F32X3 = _Prim("f32x3")
 F32X4 = _Prim("f32x4")
 U8X3 = _Prim("u8x3")

@@ -285,6 +285,7 @@ fn a_session_and_its_patch_are_charged_while_decoded() {
                 joints: Default::default(),
                 layers: Vec::new(),
                 clamp: None,
+                live: None,
             })
             .collect::<Vec<_>>()
     };
@@ -312,6 +313,7 @@ fn a_session_and_its_patch_are_charged_while_decoded() {
                 joints: None,
                 layers: None,
                 clamp: None,
+                live: None,
             })
             .collect(),
         add: session_heads(300),
