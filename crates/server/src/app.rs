@@ -351,6 +351,10 @@ fn resources() -> Router<AppState> {
                 .delete(routes::sessions::delete_session),
         )
         .route("/v1/sessions/{id}/stream", get(routes::sessions::stream))
+        .route(
+            "/v1/sessions/{id}/live",
+            post(routes::sessions::post_live).get(routes::sessions::live_socket),
+        )
         .route("/v1/loadtest", post(routes::loadtest::start_loadtest))
         .route("/v1/loadtest/{id}", get(routes::loadtest::get_loadtest))
 }

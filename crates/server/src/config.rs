@@ -28,7 +28,8 @@ pub struct ServerConfig {
     /// /v1/rigs/{id}/clips, DELETE /v1/rigs/{id}/clips/{clip}, PUT
     /// /v1/rigs/{id}/clips/{clip}/texture, DELETE /v1/rigs/{id}/clips/{clip}/texture, POST
     /// /v1/sessions, PUT
-    /// /v1/sessions/{id}, PATCH /v1/sessions/{id}, DELETE /v1/sessions/{id}, POST /v1/loadtest
+    /// /v1/sessions/{id}, PATCH /v1/sessions/{id}, DELETE /v1/sessions/{id}, POST
+    /// /v1/sessions/{id}/live, GET /v1/sessions/{id}/live (the producers' socket), POST /v1/loadtest
     /// and GET /v1/loadtest/{id}. Open when unset; crowd frames, renders, the other GETs and
     /// session streams never need it.
     #[arg(long, env = "CROWDMORPH_ADMIN_TOKEN", hide_env_values = true, value_parser = non_empty)]
@@ -463,6 +464,28 @@ pub struct SessionLimits {
         value_parser = clap::value_parser!(u64).range(1..)
     )]
     pub max_viewer_pixels: u64,
+    /// Live input messages per second one session takes from its producers (a POST past it
+    /// gets 429 live_rate_exceeded; a socket's extra messages are shed, and a socket that
+    /// keeps flooding is closed with 1008).
+    #[arg(
+        long = "max-live-rate",
+        env = "CROWDMORPH_MAX_LIVE_RATE",
+        default_value_t = 1000,
+        value_parser = clap::value_parser!(u32).range(1..)
+    )]
+    pub max_live_rate: u32,
+    /// Live input sockets one session may have open at once (more are closed with 1013).
+    #[arg(
+        long = "max-live-producers",
+        env = "CROWDMORPH_MAX_LIVE_PRODUCERS",
+        default_value = "16",
+        value_parser = at_least_one
+    )]
+    pub max_live_producers: usize,
+    /// How long a live producer's socket may send nothing before it is closed with 1001 (a
+    /// dead producer does not hold a slot for ever).
+    #[arg(skip = Duration::from_secs(30))]
+    pub live_idle_timeout: Duration,
 }
 
 impl Default for SessionLimits {

@@ -33,6 +33,7 @@
 //! | `shed` | the rate-limited log of shed and timed-out requests |
 //! | `skipped` | what `/readyz` reports as skipped, until superseded |
 //! | [`sessions`] | crowd sessions' state: sessions, viewers, outboxes, limits |
+//! | `live` | live heads' input: producers' samples with their memory, the input rate budget, and what each live head shows (owned by the tick) |
 //! | [`graphs`] | motion graphs by rig: as stored, and resolved and measured per rig generation |
 //! | [`loadtests`] | the load tests running and done |
 //! | `lod_jobs` | LOD jobs by rig |
@@ -47,6 +48,7 @@ mod conn;
 pub mod graphs;
 pub mod http;
 mod json;
+mod live;
 pub mod loadtests;
 mod lod_jobs;
 pub mod metrics;

@@ -119,6 +119,10 @@ pub struct SessionMetrics {
     viewers_closed: Family<ReasonLabel, Counter>,
     pub(crate) viewers_refused: Counter,
     pub(crate) viewers_closed_policy: Counter,
+    live: Family<ResultLabel, Counter>,
+    pub(crate) live_accepted: Counter,
+    pub(crate) live_shed: Counter,
+    pub(crate) live_invalid: Counter,
 }
 
 /// The `result` label of the session tick and message counters.
@@ -132,6 +136,7 @@ impl Default for SessionMetrics {
         let ticks = Family::<ResultLabel, Counter>::default();
         let messages = Family::<ResultLabel, Counter>::default();
         let viewers_closed = Family::<ReasonLabel, Counter>::default();
+        let live = Family::<ResultLabel, Counter>::default();
         let result = |f: &Family<ResultLabel, Counter>, result| {
             f.get_or_create_owned(&ResultLabel { result })
         };
@@ -148,6 +153,10 @@ impl Default for SessionMetrics {
             // A viewer refused because its session is full is closed with reason `full`.
             viewers_refused: viewers_closed.get_or_create_owned(&ReasonLabel::new("full")),
             viewers_closed_policy: viewers_closed.get_or_create_owned(&ReasonLabel::new("policy")),
+            live_accepted: result(&live, "accepted"),
+            live_shed: result(&live, "shed"),
+            live_invalid: result(&live, "invalid"),
+            live,
             ticks,
             messages,
             viewers_closed,
@@ -181,6 +190,12 @@ impl SessionMetrics {
             "crowdmorph_session_bytes_sent",
             "Bytes of stream messages sent",
             self.bytes_sent.clone(),
+        );
+        r.register(
+            "crowdmorph_session_live_messages",
+            "Live input messages by result: accepted, shed over the session's --max-live-rate, \
+             or invalid (refused with a named error)",
+            self.live.clone(),
         );
         r.register(
             "crowdmorph_session_viewers_closed",
@@ -266,6 +281,8 @@ pub struct Session {
     pub(crate) viewers_changed: Notify,
     /// Test hook: the next tick panics (the supervision of the tick task is tested with it).
     pub(crate) panic_next_tick: AtomicBool,
+    /// Its live heads' input from producers.
+    pub(crate) live: crate::live::LiveInputs,
 }
 
 #[derive(Debug)]
@@ -599,7 +616,12 @@ fn extras_json_bytes(h: &SessionHead) -> u64 {
         .sum();
     // `"layers":[],"clamp":null` and a clamp's two numbers when it has one.
     let clamp = 32 + h.clamp.map_or(0, |_| 32);
-    graph + joints + layers + clamp
+    // `"live":null`, or its three durations, its filter's three numbers and its mapping.
+    let live = 16
+        + h.live.as_ref().map_or(0, |l| {
+            8 * FIELD_JSON_BYTES + l.mapping.as_deref().map_or(0, json_str_bytes)
+        });
+    graph + joints + layers + clamp + live
 }
 
 impl Session {

@@ -139,7 +139,7 @@ fn quat(q: [f32; 4]) -> Quat {
 }
 
 /// `from` moved toward `to` by `a`: rotation by slerp, translation and scale by lerp.
-fn blend_trs(from: &Trs, to: &Trs, a: f32) -> Trs {
+pub fn blend_trs(from: &Trs, to: &Trs, a: f32) -> Trs {
     Trs {
         translation: Vec3::from(from.translation)
             .lerp(Vec3::from(to.translation), a)

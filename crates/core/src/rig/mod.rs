@@ -53,8 +53,8 @@ pub use joint_map::{
     JointChannel, JointMap, LIVE_LINK_COLUMNS, MAX_JOINT_CHANNELS, rest_rotations,
 };
 pub use layer::{
-    LayerMode, MAX_POSE_LAYERS, PoseLayer, Selection, builtin_mask, clamp_weights, layer_locals,
-    layer_weights,
+    LayerMode, MAX_POSE_LAYERS, PoseLayer, Selection, blend_trs, builtin_mask, clamp_weights,
+    layer_locals, layer_weights,
 };
 pub use lod::{
     IMPORT_LOD_METHOD, Lod, LodError, LodLevel, MeshLevel, MeshLevelPrimitive, default_lod_levels,

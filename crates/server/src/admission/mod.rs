@@ -5,6 +5,7 @@
 //! decoded value only together with its charge.
 
 pub mod layers;
+pub mod live;
 pub mod memory;
 pub mod names;
 pub mod render;

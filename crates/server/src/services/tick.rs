@@ -19,6 +19,7 @@ use rayon::prelude::*;
 use tokio::time::Instant;
 
 use super::render::Rendering;
+use crate::admission::live::{live_joints, live_joints_bytes};
 use crate::admission::resolve::{
     head_reach, job_output_bytes, job_request, joint_overrides, requested_joints,
 };
@@ -31,6 +32,7 @@ use crate::sessions::{
     ViewerSettings, bump, close,
 };
 use crowdmorph_anim::graph::{Graph, Player};
+use crowdmorph_anim::live::apply_weights;
 use crowdmorph_core::rig::{FrameMode, JointPose, Pose, clamp_weights, layer_weights};
 
 use crate::admission::layers::{
@@ -458,6 +460,13 @@ fn resolve<S: Ticking>(
     let mut rig_at: HashMap<&str, Option<u32>> = HashMap::new();
     let mut names: HashMap<u32, LiveNames> = HashMap::new();
     let mut layered: Option<crate::admission::Charge> = None;
+    // Live heads' input, read once for every head (one lock of the producers' side).
+    let live_now = if players.live_heads || heads.iter().any(|h| h.live.is_some()) {
+        players.live_heads = heads.iter().any(|h| h.live.is_some());
+        players.live.at(&session.live, heads, tick, session.fps)
+    } else {
+        HashMap::new()
+    };
     let at = heads
         .iter()
         .map(|h| {
@@ -486,6 +495,10 @@ fn resolve<S: Ticking>(
                     let jumps = jumps_by_head.remove(&h.head).unwrap_or_default();
                     players.pose(h.head, play, &graph, rig, &jumps, requested, steps)?
                 }
+                // A live head without a clip: its input over the neutral.
+                None if h.clip.is_empty() && h.live.is_some() => {
+                    (Pose::live(&vec![0.0; rig.targets.len()]), requested)
+                }
                 None => {
                     let ci = entry.clip_index(&h.clip)?;
                     let clip = &rig.clips[ci];
@@ -502,7 +515,11 @@ fn resolve<S: Ticking>(
                     )
                 }
             };
-            let (pose, joints) = if h.layers.is_empty() && h.clamp.is_none() {
+            // Input of the rig's generation now (a rig changed since waits for new samples).
+            let live = live_now
+                .get(&h.head)
+                .filter(|l| l.generation == entry.generation);
+            let (pose, joints) = if h.layers.is_empty() && h.clamp.is_none() && live.is_none() {
                 (pose, joints)
             } else {
                 // Checked when the head was added or changed, as its overrides are; charged
@@ -514,6 +531,9 @@ fn resolve<S: Ticking>(
                 }
                 if let Some(sk) = &rig.skeleton {
                     bytes += layered_joints_bytes(sk);
+                    if live.is_some() {
+                        bytes += live_joints_bytes(sk.nodes.len());
+                    }
                 }
                 let more = state.queue_memory().reserve(bytes).ok()?;
                 match &mut layered {
@@ -536,13 +556,22 @@ fn resolve<S: Ticking>(
                 .ok()?;
                 let mut w = pose.weights(rig);
                 layer_weights(rig, &mut w, &layers);
+                // Live input on top of the layers, by its share while it fades in or out.
+                if let Some(l) = live {
+                    apply_weights(&mut w, &l.values, l.alpha);
+                }
                 // The clamp was checked when the head was added; a weight the layers carry
                 // past ±64 at some frame is held there (as live weights are), the head kept.
                 if let Some(c) = h.clamp {
                     clamp_weights(&mut w, c);
                 }
-                // The head's own overrides stay on top of its layers' joints.
+                // The head's own overrides stay on top of its layers' joints, live input on
+                // top of both.
                 let joints = layered_joints(entry, &pose, &joints, &layers).overlay(&own);
+                let joints = match live {
+                    Some(l) => live_joints(entry, &joints, &l.values, l.alpha),
+                    None => joints,
+                };
                 (Pose::live(&w), joints)
             };
             Some(HeadAt {
@@ -562,13 +591,17 @@ fn resolve<S: Ticking>(
     }
 }
 
-/// The graph heads of one session, each with the player that walks its graph, owned by the
-/// session's tick task.
+/// The graph heads of one session, each with the player that walks its graph, and its live
+/// heads' fades and filters, owned by the session's tick task.
 #[derive(Default)]
 pub(super) struct Players {
     by_head: HashMap<u64, PlayerOf>,
     /// The tick the players last advanced to.
     tick: u64,
+    /// What the live heads showed.
+    live: crate::live::LiveShown,
+    /// Whether the last tick had live heads (their state is forgotten once none is left).
+    live_heads: bool,
 }
 
 struct PlayerOf {

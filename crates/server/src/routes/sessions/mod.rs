@@ -50,7 +50,10 @@ use crate::sessions::{
 use crate::state::AppState;
 use crowdmorph_engine::render::scene;
 
+mod live;
 mod viewer;
+
+pub use live::{live_socket, post_live};
 
 /// Answers a GET with session infos, their largest serialized size charged to the queue
 /// memory first (503 `queue_full` when it is full) and held until the body is sent: a listing
@@ -123,7 +126,8 @@ fn check_session_head(state: &AppState, h: &SessionHead) -> Result<(), ApiError>
         graph
             .play(play)
             .map_err(|m| ApiError::not_found("unknown_node", format!("head {}: {m}", h.head)))?;
-    } else if entry.clip_index(&h.clip).is_none() {
+    } else if !(h.clip.is_empty() && h.live.is_some()) && entry.clip_index(&h.clip).is_none() {
+        // A live head without a clip plays its input over the neutral.
         // The same message as a crowd frame's (at most 20 names, whatever the rig holds).
         let e = unknown_clip(&entry, &h.clip);
         return Err(ApiError {
@@ -135,6 +139,12 @@ fn check_session_head(state: &AppState, h: &SessionHead) -> Result<(), ApiError>
         .map_err(|e| invalid(format!("head {}: {e}", h.head)))?;
     requested_joints(&entry, &h.joints)
         .map_err(|(code, m)| ApiError::bad_request(code, format!("head {}: {m}", h.head)))?;
+    if let Some(l) = &h.live {
+        crate::admission::live::check_spec(l).map_err(|e| ApiError {
+            message: format!("head {}: {}", h.head, e.message),
+            ..e
+        })?;
+    }
     check_session_layers(state, &entry, h).map_err(|e| ApiError {
         message: format!("head {}: {}", h.head, e.message),
         ..e
@@ -251,6 +261,7 @@ fn patched(
         joints,
         layers,
         clamp,
+        live,
     } in &patch.change
     {
         let h = at
@@ -281,6 +292,9 @@ fn patched(
         }
         if let Some(c) = clamp {
             h.clamp = Some(*c);
+        }
+        if let Some(l) = live {
+            h.live = Some(l.clone());
         }
         check_session_head(state, h)?;
         if let Some(n) = node {
@@ -491,6 +505,7 @@ fn create(
         stopped: AtomicBool::new(false),
         viewers_changed: Notify::new(),
         panic_next_tick: AtomicBool::new(false),
+        live: crate::live::LiveInputs::default(),
     });
     map.insert(id.clone(), session.clone());
     drop(map);
@@ -616,6 +631,7 @@ mod tests {
             joints: Default::default(),
             layers: Vec::new(),
             clamp: None,
+            live: None,
         }
     }
 
@@ -659,6 +675,17 @@ mod tests {
                     ..crowdmorph_proto::Layer::over("\"\\", i64::MIN, -1.1754942e-38)
                 }],
                 clamp: Some([-1.1754942e-38, -3.4028235e38]),
+                live: Some(crowdmorph_proto::LiveSpec {
+                    hold_ms: u32::MAX,
+                    fade_ms: u32::MAX,
+                    delay_ms: u32::MAX,
+                    smoothing: Some(crowdmorph_proto::OneEuro {
+                        min_cutoff: -1.1754942e-38,
+                        beta: -3.4028235e38,
+                        d_cutoff: -1.4e-45,
+                    }),
+                    mapping: Some("\u{1}\"".repeat(40)),
+                }),
             },
         ];
         let stats = SessionStats {
