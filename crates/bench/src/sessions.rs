@@ -90,6 +90,17 @@ pub struct SessionBenchOptions {
         value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=100_000)
     )]
     pub long_clip: Option<usize>,
+    /// Of the heads, this many (the first) are live: their lips (the rig's jaw and mouth
+    /// targets) follow input over their clip, sent with timecodes by `--producers` producer
+    /// sockets at `--live-hz`, each carrying its share of the live heads in every message.
+    #[arg(long, default_value_t = 0)]
+    pub live: usize,
+    /// Samples per second each live head gets.
+    #[arg(long, default_value_t = 30.0)]
+    pub live_hz: f64,
+    /// Producer sockets feeding the live heads.
+    #[arg(long, default_value_t = 10)]
+    pub producers: usize,
 }
 
 /// Name of the clip `--long-clip` uploads.
@@ -201,6 +212,14 @@ pub struct SessionBenchReport {
     pub messages_per_viewer_per_s: f64,
     /// Messages replaced in outboxes before they were sent.
     pub messages_dropped: u64,
+    /// Live heads, their producers and samples per second each.
+    pub live: usize,
+    /// Producer sockets.
+    pub producers: usize,
+    /// Samples per second per live head.
+    pub live_hz: f64,
+    /// Live messages the producers sent in the window, per second.
+    pub live_messages_per_s: f64,
     /// Cores of this machine.
     pub cores: usize,
 }
@@ -212,6 +231,11 @@ pub fn bench_sessions(
 ) -> Result<SessionBenchReport> {
     if opt.animations == 0 || opt.heads < opt.animations || opt.viewers == 0 || opt.fps <= 0.0 {
         bail!("need heads >= animations >= 1, viewers >= 1 and fps > 0");
+    }
+    if opt.live > opt.heads
+        || (opt.live > 0 && (opt.producers == 0 || !(opt.live_hz > 0.0 && opt.live_hz <= 1000.0)))
+    {
+        bail!("need live <= heads, and with live heads producers >= 1 and live-hz in (0, 1000]");
     }
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
@@ -296,7 +320,7 @@ async fn create_session(
             let per_clip = opt.animations.div_ceil(clips.len());
             let offset = (a / clips.len()) * clip.frames as usize / per_clip;
             let position = [(i % side) as f32 * 0.4, 0.0, -((i / side) as f32) * 0.4];
-            if opt.graph {
+            let mut head = if opt.graph {
                 serde_json::json!({
                     "head": i, "rig": rig_id, "position": position,
                     "graph": {"name": "bench", "start": clip.name, "seed": a},
@@ -306,7 +330,11 @@ async fn create_session(
                     "head": i, "rig": rig_id, "clip": clip.name, "offset": offset,
                     "position": position,
                 })
+            };
+            if i < opt.live {
+                head["live"] = serde_json::json!({"delay_ms": 100});
             }
+            head
         })
         .collect();
     let body = serde_json::json!({"fps": opt.fps, "idle_timeout_s": 600, "heads": heads});
@@ -368,8 +396,11 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &SessionBenchOptions) -> Result<Se
             }
         }));
     }
+    let sent = Arc::new(AtomicU64::new(0));
+    let producers = start_producers(&addr.to_string(), &session.id, &info, opt, &sent).await?;
     // Warm-up, then the window.
     tokio::time::sleep(Duration::from_secs(1)).await;
+    let sent0 = sent.load(Ordering::Relaxed);
     let snapshot = || async {
         let s: SessionInfo = serde_json::from_slice(
             &client
@@ -402,6 +433,7 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &SessionBenchOptions) -> Result<Se
     tokio::time::sleep(Duration::from_secs_f64(opt.seconds)).await;
     let seconds = t0.elapsed().as_secs_f64();
     let cpu = process_cpu().saturating_sub(cpu0);
+    let live_sent = sent.load(Ordering::Relaxed) - sent0;
     let (s1, compute1) = snapshot().await?;
     let bytes: u64 = counts
         .iter()
@@ -414,7 +446,7 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &SessionBenchOptions) -> Result<Se
         .map(|(c, m)| c.messages.load(Ordering::Relaxed) - m)
         .sum();
     let _ = stop_tx.send(());
-    for r in readers {
+    for r in readers.into_iter().chain(producers) {
         r.abort();
     }
     let _ = server.await;
@@ -445,8 +477,91 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &SessionBenchOptions) -> Result<Se
         bytes_per_viewer_per_s: bytes as f64 / n / seconds,
         messages_per_viewer_per_s: msgs as f64 / n / seconds,
         messages_dropped: s1.messages_dropped - s0.messages_dropped,
+        live: opt.live,
+        producers: if opt.live > 0 { opt.producers } else { 0 },
+        live_hz: opt.live_hz,
+        live_messages_per_s: live_sent as f64 / seconds,
         cores: std::thread::available_parallelism().map_or(1, usize::from),
     })
+}
+
+/// The producers of `opt.live` heads: `opt.producers` sockets, producer `p` feeding heads
+/// `p, p + P, ...` below `opt.live` at `opt.live_hz` with timecodes, one message a sample
+/// time; each head's lips (the rig's jaw and mouth targets, else its first 16) a sine of its
+/// own phase, as a talking face tracker's would move.
+async fn start_producers(
+    addr: &str,
+    session: &str,
+    info: &crowdmorph_proto::RigInfo,
+    opt: &SessionBenchOptions,
+    sent: &Arc<AtomicU64>,
+) -> Result<Vec<tokio::task::JoinHandle<()>>> {
+    if opt.live == 0 {
+        return Ok(Vec::new());
+    }
+    let mut names: Vec<String> = info
+        .targets
+        .iter()
+        .filter(|t| {
+            let l = t.to_ascii_lowercase();
+            l.starts_with("jaw") || l.starts_with("mouth")
+        })
+        .cloned()
+        .collect();
+    if names.is_empty() {
+        names = info.targets.iter().take(16).cloned().collect();
+    }
+    let names = Arc::new(names);
+    let url = crowdmorph_load::session::live_url(&format!("http://{addr}"), session)?;
+    let period = Duration::from_secs_f64(1.0 / opt.live_hz);
+    let start = Instant::now();
+    let mut out = Vec::new();
+    for p in 0..opt.producers.min(opt.live) {
+        let mut producer = crowdmorph_load::session::Producer::connect(&url, None)
+            .await
+            .context("connecting a producer")?;
+        let heads: Vec<u64> = (p..opt.live)
+            .step_by(opt.producers)
+            .map(|h| h as u64)
+            .collect();
+        let (names, sent) = (names.clone(), sent.clone());
+        out.push(tokio::spawn(async move {
+            let mut next = tokio::time::Instant::now();
+            loop {
+                let t = start.elapsed().as_secs_f64();
+                let input = crowdmorph_proto::LiveInput {
+                    heads: heads
+                        .iter()
+                        .map(|&h| crowdmorph_proto::LiveSample {
+                            head: h,
+                            weights: Some(crowdmorph_proto::LiveWeights::Named(
+                                names
+                                    .iter()
+                                    .enumerate()
+                                    .map(|(k, n)| {
+                                        let phase = 0.13 * h as f64 + 0.37 * k as f64;
+                                        let w = 0.5
+                                            + 0.5
+                                                * (std::f64::consts::TAU * (1.3 * t + phase)).sin();
+                                        (n.clone(), (0.6 * w) as f32)
+                                    })
+                                    .collect(),
+                            )),
+                            joints: Default::default(),
+                            t: Some(t),
+                        })
+                        .collect(),
+                };
+                if producer.send(&input).await.is_err() {
+                    return;
+                }
+                sent.fetch_add(1, Ordering::Relaxed);
+                next += period;
+                tokio::time::sleep_until(next).await;
+            }
+        }));
+    }
+    Ok(out)
 }
 
 /// The viewer modes `bench sessions --link` measures on every route: format, temporal
@@ -826,7 +941,7 @@ pub fn report_text(r: &SessionBenchReport) -> String {
          unique jobs per tick    {:.1} (shared by all viewers)\n\
          CPU per tick            {:.2} ms (process: server + viewers), engine {:.2} ms\n\
          per viewer              {:.1} messages/s, {:.2} MB/s\n\
-         messages dropped        {} (outbox replaced before sending)\n",
+         messages dropped        {} (outbox replaced before sending)\n{}",
         r.rig,
         r.vertices,
         r.heads,
@@ -852,5 +967,13 @@ pub fn report_text(r: &SessionBenchReport) -> String {
         r.messages_per_viewer_per_s,
         r.bytes_per_viewer_per_s / 1e6,
         r.messages_dropped,
+        if r.live > 0 {
+            format!(
+                "live heads              {} fed by {} producers at {} Hz ({:.0} messages/s sent)\n",
+                r.live, r.producers, r.live_hz, r.live_messages_per_s
+            )
+        } else {
+            String::new()
+        },
     )
 }

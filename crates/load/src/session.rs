@@ -466,3 +466,52 @@ mod tests {
         assert_eq!(s.due(1.0, 3.0), 5);
     }
 }
+
+/// `ws://host:port/v1/sessions/{id}/live` for a server at `url` (`http://host:port`): the
+/// producers' socket of a session's live heads.
+pub fn live_url(url: &str, session: &str) -> Result<String, LoadError> {
+    let authority = super::http::authority_of(url)?;
+    Ok(format!("ws://{authority}/v1/sessions/{session}/live"))
+}
+
+/// One producer of live input (a face tracker, Audio2Face): a WebSocket to a session's
+/// `/live` that sends bincode [`crowdmorph_proto::LiveInput`] messages.
+#[derive(Debug)]
+pub struct Producer {
+    ws: Socket,
+}
+
+impl Producer {
+    /// Connects to `ws_url` (see [`live_url`]), with the admin token when the server has one.
+    pub async fn connect(ws_url: &str, token: Option<&str>) -> Result<Producer, LoadError> {
+        use tokio_tungstenite::tungstenite::client::IntoClientRequest;
+        let mut request = ws_url
+            .into_client_request()
+            .map_err(|e| LoadError::Http(format!("a producer's request to {ws_url}: {e}")))?;
+        if let Some(t) = token {
+            let value = format!("Bearer {t}")
+                .parse()
+                .map_err(|_| LoadError::Http("the admin token is not a header value".into()))?;
+            request.headers_mut().insert("authorization", value);
+        }
+        let (ws, _) = tokio_tungstenite::connect_async_with_config(request, None, true)
+            .await
+            .map_err(|e| LoadError::Http(format!("connecting a producer to {ws_url}: {e}")))?;
+        Ok(Producer { ws })
+    }
+
+    /// Sends one message.
+    pub async fn send(&mut self, input: &crowdmorph_proto::LiveInput) -> Result<(), LoadError> {
+        let bytes = crowdmorph_proto::wire::to_bincode(input)
+            .map_err(|e| LoadError::Encode(e.to_string()))?;
+        self.ws
+            .send(Message::binary(bytes))
+            .await
+            .map_err(|e| LoadError::Http(format!("sending live input: {e}")))
+    }
+
+    /// Closes the socket normally.
+    pub async fn close(mut self) {
+        let _ = tokio::time::timeout(CLOSE_TIMEOUT, self.ws.close(None)).await;
+    }
+}
