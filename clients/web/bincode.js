@@ -210,6 +210,13 @@ function sessionHead(r) {
     joints: jointOverrides(r),
     layers: r.vec(() => layer(r)),
     clamp: r.option(() => [r.f32(), r.f32()]),
+    alive: r.option(() => ({
+      blink: r.bool(),
+      saccades: r.bool(),
+      look_at: r.option(() => r.vec3()),
+      breathing: r.bool(),
+      seed: r.option(() => r.varintLossy()),
+    })),
   };
 }
 

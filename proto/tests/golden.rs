@@ -655,6 +655,7 @@ fn session_head(head: u64, clip: &str, offset: i64, x: f32) -> SessionHead {
         joints: JointOverrides::default(),
         layers: Vec::new(),
         clamp: None,
+        alive: None,
     }
 }
 
@@ -688,6 +689,17 @@ fn session_messages() {
             )]),
             ..session_head(4, "", 0, 1.5)
         },
+        // A clip-less head (the neutral), alive: blinks, saccades, a look-at point, a seed.
+        SessionHead {
+            alive: Some(Alive {
+                blink: true,
+                saccades: true,
+                look_at: Some([0.5, 1.5, 2.0]),
+                breathing: false,
+                seed: Some(42),
+            }),
+            ..session_head(5, "", 0, 2.0)
+        },
     ];
     pin(
         "session_request",
@@ -696,6 +708,11 @@ fn session_messages() {
             wrap: true,
             idle_timeout_s: 60,
             heads: heads.clone(),
+            alive: Some(Alive {
+                blink: true,
+                breathing: true,
+                ..Alive::default()
+            }),
         },
     );
     pin(
@@ -714,6 +731,7 @@ fn session_messages() {
                     joints: Some(JointOverrides::rotation("Head", [0.0, 0.5, 0.0, 1.0])),
                     layers: Some(Vec::new()),
                     clamp: Some([-1.0, 2.0]),
+                    alive: Some(Alive::default()),
                 },
                 HeadChange {
                     head: 4,
@@ -726,9 +744,14 @@ fn session_messages() {
                     joints: None,
                     layers: None,
                     clamp: None,
+                    alive: None,
                 },
             ],
             add: vec![session_head(9, "idle", 7, 2.0)],
+            alive: Some(Alive {
+                look_at: Some([3.0, 1.5, -4.0]),
+                ..Alive::default()
+            }),
         },
     );
     pin(
@@ -750,6 +773,10 @@ fn session_messages() {
                 messages_dropped: 1,
                 bytes_sent: 123_456,
             },
+            alive: Some(Alive {
+                saccades: true,
+                ..Alive::default()
+            }),
         },
     );
     // A viewer's second tick: head 3 changed (one buffer), heads 1 and 2 did not.
@@ -915,6 +942,7 @@ fn temporal_stream_messages_and_q16r() {
             joints: JointOverrides::default(),
             layers: Vec::new(),
             clamp: None,
+            alive: None,
         },
         SessionHead {
             head: 2,
@@ -928,6 +956,7 @@ fn temporal_stream_messages_and_q16r() {
             joints: JointOverrides::default(),
             layers: Vec::new(),
             clamp: None,
+            alive: None,
         },
     ];
     let timings = FrameTimings {

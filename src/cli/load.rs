@@ -389,6 +389,7 @@ fn session_heads(crowd: &CrowdShape, rigs: &[RigClips]) -> Result<Vec<SessionHea
             joints: h.joints,
             layers: h.layers,
             clamp: h.clamp,
+            alive: None,
         })
         .collect())
 }

@@ -471,6 +471,7 @@ mod tests {
             joints: Default::default(),
             layers: Vec::new(),
             clamp: None,
+            alive: None,
         }];
         let mut prefix = Vec::new();
         put_varint(&mut prefix, 0);
