@@ -146,9 +146,8 @@ fn phase(seed: u64, stream: u64, period: f64) -> f64 {
 /// Blink `n`'s start and length, seconds.
 pub fn blink_start(seed: u64, n: i64) -> (f64, f64) {
     let mut r = draws(seed, BLINK, n);
-    let start = phase(seed, BLINK, BLINK_PERIOD_S)
-        + n as f64 * BLINK_PERIOD_S
-        + r.f64() * BLINK_JITTER_S;
+    let start =
+        phase(seed, BLINK, BLINK_PERIOD_S) + n as f64 * BLINK_PERIOD_S + r.f64() * BLINK_JITTER_S;
     (start, BLINK_MIN_S + r.f64() * (BLINK_MAX_S - BLINK_MIN_S))
 }
 
@@ -294,12 +293,9 @@ impl AliveRig {
                 .filter_map(|c| node(c))
                 .collect();
             eyes.dedup();
-            chest = CHEST_NAMES.iter().find_map(|n| {
-                sk.nodes
-                    .iter()
-                    .position(|x| x.name == *n)
-                    .map(|i| i as u32)
-            });
+            chest = CHEST_NAMES
+                .iter()
+                .find_map(|n| sk.nodes.iter().position(|x| x.name == *n).map(|i| i as u32));
             if !eyes.is_empty() {
                 let at = rest_positions(sk);
                 let sum: Vec3 = eyes.iter().map(|&e| at[e as usize]).sum();
@@ -335,6 +331,11 @@ impl AliveRig {
     /// Whether the rig has eye joints, so a look-at turns joints.
     pub fn has_eye_joints(&self) -> bool {
         !self.eyes.is_empty()
+    }
+
+    /// Whether the rig has joints the layers turn (head, eyes or chest).
+    pub fn has_joints(&self) -> bool {
+        !self.eyes.is_empty() || self.head.is_some() || self.chest.is_some()
     }
 
     /// Whether `p` changes anything on this rig's weights or joints.
@@ -391,7 +392,8 @@ impl AliveRig {
         if let Some([_, (yaw, pitch)]) = self.gaze(p, place, t) {
             let full = LOOK_FULL_DEG.to_radians();
             let amount = |x: f32| (x / full).clamp(0.0, 1.0);
-            let [left, right, up, down] = [amount(yaw), amount(-yaw), amount(pitch), amount(-pitch)];
+            let [left, right, up, down] =
+                [amount(yaw), amount(-yaw), amount(pitch), amount(-pitch)];
             set(&self.look[0], &|_| left);
             set(&self.look[1], &|_| right);
             set(&self.look[2], &|_| up);
@@ -573,10 +575,7 @@ mod tests {
         // Bit-equal at every tick, whatever else was asked before.
         for i in 0..300 {
             let t = i as f64 / 30.0;
-            assert_eq!(
-                blink_amount(99, t).to_bits(),
-                blink_amount(99, t).to_bits()
-            );
+            assert_eq!(blink_amount(99, t).to_bits(), blink_amount(99, t).to_bits());
         }
         // At 30 ticks a second over a minute, 1,000 seeds: never all closed at once, and at
         // most a small fraction blinking at any tick (a blink is ~5 % of the time).
@@ -673,7 +672,10 @@ mod tests {
         };
         let mut w = vec![0.0; 9];
         ar.apply_weights(&p, &place, 0.0, &mut w);
-        assert!((w[0] - 0.5).abs() < 1e-4 && (w[1] - 0.5).abs() < 1e-4, "{w:?}");
+        assert!(
+            (w[0] - 0.5).abs() < 1e-4 && (w[1] - 0.5).abs() < 1e-4,
+            "{w:?}"
+        );
         assert!(w[2..8].iter().all(|&v| v.abs() < 1e-4), "{w:?}");
         // Far below: down saturates at 1.
         let p = AliveParams {

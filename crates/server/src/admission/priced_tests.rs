@@ -285,6 +285,7 @@ fn a_session_and_its_patch_are_charged_while_decoded() {
                 joints: Default::default(),
                 layers: Vec::new(),
                 clamp: None,
+                alive: None,
             })
             .collect::<Vec<_>>()
     };
@@ -293,6 +294,7 @@ fn a_session_and_its_patch_are_charged_while_decoded() {
         wrap: true,
         idle_timeout_s: 60,
         heads: session_heads(800),
+        alive: None,
     };
     for (live, price) in check("session", &req) {
         assert_eq!(price, 0);
@@ -312,9 +314,11 @@ fn a_session_and_its_patch_are_charged_while_decoded() {
                 joints: None,
                 layers: None,
                 clamp: None,
+                alive: None,
             })
             .collect(),
         add: session_heads(300),
+        alive: None,
     };
     for (live, price) in check("session patch", &patch) {
         assert_eq!(price, 0);

@@ -33,6 +33,7 @@ use crate::sessions::{
 use crowdmorph_anim::graph::{Graph, Player};
 use crowdmorph_core::rig::{FrameMode, JointPose, Pose, clamp_weights, layer_weights};
 
+use crate::admission::alive::AliveTick;
 use crate::admission::layers::{
     layered_joints, layered_joints_bytes, layers_bytes, resolve_layers,
 };
@@ -458,6 +459,7 @@ fn resolve<S: Ticking>(
     let mut rig_at: HashMap<&str, Option<u32>> = HashMap::new();
     let mut names: HashMap<u32, LiveNames> = HashMap::new();
     let mut layered: Option<crate::admission::Charge> = None;
+    let mut alive = AliveTick::new(session.alive(), tick, session.fps);
     let at = heads
         .iter()
         .map(|h| {
@@ -486,6 +488,9 @@ fn resolve<S: Ticking>(
                     let jumps = jumps_by_head.remove(&h.head).unwrap_or_default();
                     players.pose(h.head, play, &graph, rig, &jumps, requested, steps)?
                 }
+                None if h.clip.is_empty() => {
+                    (alive.neutral(state.queue_memory(), ri, rig)?, requested)
+                }
                 None => {
                     let ci = entry.clip_index(&h.clip)?;
                     let clip = &rig.clips[ci];
@@ -502,7 +507,7 @@ fn resolve<S: Ticking>(
                     )
                 }
             };
-            let (pose, joints) = if h.layers.is_empty() && h.clamp.is_none() {
+            let (pose, joints) = if h.layers.is_empty() && h.clamp.is_none() && !alive.on(h) {
                 (pose, joints)
             } else {
                 // Checked when the head was added or changed, as its overrides are; charged
@@ -536,6 +541,9 @@ fn resolve<S: Ticking>(
                 .ok()?;
                 let mut w = pose.weights(rig);
                 layer_weights(rig, &mut w, &layers);
+                if alive.on(h) {
+                    alive.weights(state.queue_memory(), ri, rig, h, &mut w)?;
+                }
                 // The clamp was checked when the head was added; a weight the layers carry
                 // past ±64 at some frame is held there (as live weights are), the head kept.
                 if let Some(c) = h.clamp {
@@ -543,6 +551,7 @@ fn resolve<S: Ticking>(
                 }
                 // The head's own overrides stay on top of its layers' joints.
                 let joints = layered_joints(entry, &pose, &joints, &layers).overlay(&own);
+                let joints = alive.joints(state.queue_memory(), ri, entry, h, joints)?;
                 (Pose::live(&w), joints)
             };
             Some(HeadAt {
@@ -558,7 +567,7 @@ fn resolve<S: Ticking>(
     Resolved {
         rigs,
         at,
-        _layered: layered,
+        _layered: alive.charge_into(layered),
     }
 }
 

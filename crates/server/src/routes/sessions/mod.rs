@@ -37,6 +37,7 @@ use crowdmorph_proto::{HeadChange, SessionHead, SessionPatch, SessionRequest, Se
 use tokio::sync::Notify;
 use tokio::time::Instant;
 
+use crate::admission::alive::check_alive;
 use crate::admission::resolve::{requested_joints, unknown_clip};
 use crate::admission::{Admission, Charge, Decoded, Priced, decode_held};
 use crate::http::body::hold;
@@ -123,7 +124,9 @@ fn check_session_head(state: &AppState, h: &SessionHead) -> Result<(), ApiError>
         graph
             .play(play)
             .map_err(|m| ApiError::not_found("unknown_node", format!("head {}: {m}", h.head)))?;
-    } else if entry.clip_index(&h.clip).is_none() {
+    } else if !h.clip.is_empty() && entry.clip_index(&h.clip).is_none() {
+        // An empty clip is the neutral (every weight 0, joints at rest): how a rig with no
+        // clips (most avatars as they arrive) is put in a session, alive or not.
         // The same message as a crowd frame's (at most 20 names, whatever the rig holds).
         let e = unknown_clip(&entry, &h.clip);
         return Err(ApiError {
@@ -135,6 +138,12 @@ fn check_session_head(state: &AppState, h: &SessionHead) -> Result<(), ApiError>
         .map_err(|e| invalid(format!("head {}: {e}", h.head)))?;
     requested_joints(&entry, &h.joints)
         .map_err(|(code, m)| ApiError::bad_request(code, format!("head {}: {m}", h.head)))?;
+    if let Some(a) = &h.alive {
+        check_alive(a).map_err(|e| ApiError {
+            message: format!("head {}: {}", h.head, e.message),
+            ..e
+        })?;
+    }
     check_session_layers(state, &entry, h).map_err(|e| ApiError {
         message: format!("head {}: {}", h.head, e.message),
         ..e
@@ -251,6 +260,7 @@ fn patched(
         joints,
         layers,
         clamp,
+        alive,
     } in &patch.change
     {
         let h = at
@@ -281,6 +291,9 @@ fn patched(
         }
         if let Some(c) = clamp {
             h.clamp = Some(*c);
+        }
+        if let Some(a) = alive {
+            h.alive = Some(a.clone());
         }
         check_session_head(state, h)?;
         if let Some(n) = node {
@@ -426,6 +439,9 @@ fn create(
             req.idle_timeout_s
         )));
     }
+    if let Some(a) = &req.alive {
+        check_alive(a)?;
+    }
     check_head_count(state, req.heads.len())?;
     let mut ids = HashSet::new();
     for h in &req.heads {
@@ -486,6 +502,7 @@ fn create(
             stats: SessionStats::default(),
             idle_since: Some(Instant::now()),
             jumps: Vec::new(),
+            alive: req.alive,
         }),
         stopping: Notify::new(),
         stopped: AtomicBool::new(false),
@@ -534,6 +551,9 @@ pub async fn patch_session(
             .await?
             .into_parts();
     let accept = Accept::of(&headers);
+    if let Some(a) = &patch.alive {
+        check_alive(a)?;
+    }
     // Checked against the heads as they will be, then swapped in under the lock (a patch that
     // raced with another is checked again on the newer heads).
     let answer = loop {
@@ -544,6 +564,18 @@ pub async fn patch_session(
                 .map_err(|_| ApiError::internal("session poisoned"))?;
             i.next_heads.clone().unwrap_or_else(|| i.heads.clone())
         };
+        // A patch that only moves the session's liveliness (a look-at point each tick)
+        // keeps the heads as they are: no copy, no check, no new layout for the viewers.
+        let heads_only = patch.remove.is_empty() && patch.change.is_empty() && patch.add.is_empty();
+        if heads_only && patch.alive.is_some() {
+            let answer = state.queue_memory.reserve(info_bytes(&s.id, &base))?;
+            let mut i = s
+                .inner
+                .lock()
+                .map_err(|_| ApiError::internal("session poisoned"))?;
+            i.alive.clone_from(&patch.alive);
+            break answer;
+        }
         let (next, jumps) = patched(&state, &base, &patch)?;
         let next = Arc::new(next);
         // The answer lists the patched heads: charged before the patch is in (see
@@ -557,6 +589,9 @@ pub async fn patch_session(
         if Arc::ptr_eq(&now, &base) {
             i.next_heads = Some(next);
             i.jumps.extend(jumps);
+            if patch.alive.is_some() {
+                i.alive.clone_from(&patch.alive);
+            }
             break answer;
         }
     };
@@ -616,6 +651,7 @@ mod tests {
             joints: Default::default(),
             layers: Vec::new(),
             clamp: None,
+            alive: None,
         }
     }
 
@@ -659,6 +695,13 @@ mod tests {
                     ..crowdmorph_proto::Layer::over("\"\\", i64::MIN, -1.1754942e-38)
                 }],
                 clamp: Some([-1.1754942e-38, -3.4028235e38]),
+                alive: Some(crowdmorph_proto::Alive {
+                    blink: true,
+                    saccades: true,
+                    look_at: Some([-1.1754942e-38, -3.4028235e38, -1.4e-45]),
+                    breathing: true,
+                    seed: Some(u64::MAX),
+                }),
             },
         ];
         let stats = SessionStats {
@@ -679,6 +722,11 @@ mod tests {
             heads: Arc::new(heads.to_vec()),
             viewers: u32::MAX,
             stats,
+            alive: Some(crowdmorph_proto::Alive {
+                look_at: Some([-1.1754942e-38, -3.4028235e38, -1.4e-45]),
+                seed: Some(u64::MAX),
+                ..Default::default()
+            }),
         };
         let before = |heads: &[SessionHead]| SessionInfo {
             id: "s18446744073709551615".into(),
@@ -689,6 +737,11 @@ mod tests {
             heads: heads.to_vec(),
             viewers: u32::MAX,
             stats,
+            alive: Some(crowdmorph_proto::Alive {
+                look_at: Some([-1.1754942e-38, -3.4028235e38, -1.4e-45]),
+                seed: Some(u64::MAX),
+                ..Default::default()
+            }),
         };
         for n in [0, 1, heads.len()] {
             let (a, b) = (now(&heads[..n]), before(&heads[..n]));
