@@ -175,6 +175,7 @@ def test_session_messages_decode_to_the_servers_json(client, sessions):
             "joints": {},
             "layers": [],
             "clamp": None,
+            "alive": None,
         }
     ]
     listed = json.loads(client.request("GET", "/v1/sessions", accept="application/json").body)
