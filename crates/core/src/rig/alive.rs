@@ -306,7 +306,7 @@ impl AliveRig {
             .or_else(|| moved_centroid(rig, &blink))
             .unwrap_or_else(|| {
                 let b = rig.bbox();
-                (Vec3::from(b.min) + Vec3::from(b.max)) * 0.5
+                (b.min + b.max) * 0.5
             });
         AliveRig {
             blink,

@@ -566,8 +566,9 @@ pub async fn patch_session(
         };
         // A patch that only moves the session's liveliness (a look-at point each tick)
         // keeps the heads as they are: no copy, no check, no new layout for the viewers.
-        let heads_only = patch.remove.is_empty() && patch.change.is_empty() && patch.add.is_empty();
-        if heads_only && patch.alive.is_some() {
+        let no_head_change =
+            patch.remove.is_empty() && patch.change.is_empty() && patch.add.is_empty();
+        if no_head_change && patch.alive.is_some() {
             let answer = state.queue_memory.reserve(info_bytes(&s.id, &base))?;
             let mut i = s
                 .inner
