@@ -686,4 +686,88 @@ mod tests {
         assert_eq!((w[6], w[7]), (1.0, 1.0));
         assert!(w[4] == 0.0 && w[5] == 0.0);
     }
+
+    #[test]
+    fn a_look_at_turns_the_head_by_its_share_and_the_eyes_by_the_rest() {
+        use super::super::{NO_PARENT, SkelNode};
+        let node = |name: &str, parent: u32, t: [f32; 3], r: Quat| SkelNode {
+            name: name.into(),
+            parent,
+            rest: Trs {
+                translation: t,
+                rotation: r.to_array(),
+                scale: [1.0; 3],
+            },
+        };
+        // A head whose local axes are turned at rest (its bones need not be rig-aligned).
+        let odd = Quat::from_rotation_y(1.1) * Quat::from_rotation_x(0.3);
+        let sk = Skeleton {
+            nodes: vec![
+                node("Root", NO_PARENT, [0.0; 3], Quat::IDENTITY),
+                node("Head", 0, [0.0, 1.6, 0.0], odd),
+                node("LeftEye", 1, [0.03, 0.05, 0.08], odd.inverse()),
+                node("RightEye", 1, [-0.03, 0.05, 0.08], Quat::IDENTITY),
+            ],
+            bones: Vec::new(),
+            map: None,
+        };
+        let mut rig = crate::embedded::default_rig();
+        rig.skeleton = Some(std::sync::Arc::new(sk.clone()));
+        let ar = AliveRig::new(&rig, |_| Vec::new());
+        assert!(ar.has_eye_joints() && ar.has_joints());
+        let globals = |locals: &[Trs]| -> Vec<Quat> {
+            let mut g: Vec<Quat> = Vec::new();
+            for (n, l) in sk.nodes.iter().zip(locals) {
+                let q = Quat::from_array(l.rotation);
+                let p = g.get(n.parent as usize).copied().unwrap_or(Quat::IDENTITY);
+                g.push(p * q);
+            }
+            g
+        };
+        let rest = sk.rest();
+        let place = Placement {
+            position: [0.0; 3],
+            yaw_deg: 0.0,
+            scale: 1.0,
+        };
+        // 60° to the character's left: the head takes 24°, the eyes the rest, held at 30°.
+        let yaw = 60f32.to_radians();
+        let target = ar.eye_origin() + 10.0 * Vec3::new(yaw.sin(), 0.0, yaw.cos());
+        let p = AliveParams {
+            look_at: Some(target.to_array()),
+            ..AliveParams::default()
+        };
+        let mut locals = rest.clone();
+        ar.apply_locals(&sk, &p, &place, 0.0, &mut locals);
+        let (g0, g1) = (globals(&rest), globals(&locals));
+        let turned = |n: usize| {
+            let d = g1[n] * g0[n].inverse();
+            let (axis, angle) = d.to_axis_angle();
+            // About +Y, by `angle` (a turn toward +X).
+            assert!(angle < 1e-4 || axis.y > 0.999, "node {n}: axis {axis}");
+            angle.to_degrees()
+        };
+        let head = turned(1);
+        assert!((head - 24.0).abs() < 0.05, "head {head}");
+        for eye in [2, 3] {
+            let e = turned(eye);
+            assert!((e - 54.0).abs() < 0.05, "eye {eye}: {e}");
+        }
+        assert_eq!(locals[0], rest[0], "the root stays");
+        // Saccades alone move the eyes only, within their offsets.
+        let p = AliveParams {
+            saccades: true,
+            seed: 5,
+            ..AliveParams::default()
+        };
+        let mut locals = rest.clone();
+        ar.apply_locals(&sk, &p, &place, 3.0, &mut locals);
+        assert_eq!(locals[1], rest[1], "saccades leave the head");
+        let g1 = globals(&locals);
+        let e = (g1[2] * g0[2].inverse())
+            .angle_between(Quat::IDENTITY)
+            .to_degrees();
+        let most = SACCADE_YAW_DEG.hypot(SACCADE_PITCH_DEG);
+        assert!(e > 0.0 && e <= most + 0.01, "{e}");
+    }
 }
