@@ -217,6 +217,13 @@ function sessionHead(r) {
       smoothing: r.option(() => ({ min_cutoff: r.f32(), beta: r.f32(), d_cutoff: r.f32() })),
       mapping: r.option(() => r.string()),
     })),
+    alive: r.option(() => ({
+      blink: r.bool(),
+      saccades: r.bool(),
+      look_at: r.option(() => r.vec3()),
+      breathing: r.bool(),
+      seed: r.option(() => r.varintLossy()),
+    })),
   };
 }
 

@@ -356,10 +356,23 @@ function clipsOf(info) {
   return info.clips.map((c) => c.name);
 }
 
-/** The head a new crowd member `id` of the page's rig gets. */
+/** The head a new crowd member `id` of the page's rig gets: one of `clips`, or, for a rig with
+ * none (an avatar as uploaded), its neutral made alive by the server (blinks, saccades,
+ * breathing; each head's seed is its id, so they do not blink together). */
 function newHead(id, info, clips) {
   const [cx, cz] = spiralCell(id);
   const [sx, sz] = spacing(info);
+  if (!clips.length) {
+    return {
+      head: id,
+      rig: info.id,
+      clip: '',
+      position: [cx * sx, 0, cz * sz],
+      yaw: ((id * 37) % 31) - 15,
+      scale: 1,
+      alive: { blink: true, saccades: true, breathing: true },
+    };
+  }
   const clip = clips[id % clips.length];
   const frames = (info.clips.find((c) => c.name === clip) || { frames: 1 }).frames;
   return {
@@ -716,6 +729,7 @@ function applyClipMix() {
   const info = knownRig(state.rig);
   if (!info) return;
   const clips = selectedClips(info);
+  if (!clips.length) return;
   patch((heads) => {
     const change = heads
       .filter((h) => h.rig === info.id && h.clip !== clips[h.head % clips.length])
@@ -954,8 +968,8 @@ async function start() {
     const rig = await rigInfo(state.rig);
     if (!join) {
       const n = Math.max(1, Math.min(MAX_HEADS, Number(params.get('heads')) || 25));
+      // A rig without clips still gets a session: its neutral, alive (see newHead).
       const clips = clipsOf(rig);
-      if (!clips.length) throw new Error(`rig ${rig.id} has no clips to play`);
       heads = Array.from({ length: n }, (_, id) => newHead(id, rig, clips));
       const fps = Number(params.get('fps')) || 30;
       setStatus('creating a session');

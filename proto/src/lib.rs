@@ -25,11 +25,11 @@ pub mod wire;
 pub use graph::{BuiltGraph, GraphEdge, GraphInfo, GraphList, GraphNode, GraphPlay, MotionGraph};
 pub use live::{LiveAck, LiveInput, LiveSample, LiveSpec, OneEuro};
 pub use session::{
-    DEFAULT_KEYFRAME_EVERY, DEFAULT_SESSION_FPS, DEFAULT_SESSION_IDLE_TIMEOUT_S, HEAD_MISSING,
-    HEAD_UNCHANGED, HeadChange, HeadLayers, LodChoice, MAX_KEYFRAME_EVERY, MessageEncoding,
-    PackedMessage, SessionHead, SessionInfo, SessionList, SessionPatch, SessionRequest,
-    SessionStats, StreamMessage, TickDelta, TickFrame, TickLayers, TickVertices, ViewerHello,
-    ViewerOutput, ViewerUpdate,
+    Alive, DEFAULT_KEYFRAME_EVERY, DEFAULT_SESSION_FPS, DEFAULT_SESSION_IDLE_TIMEOUT_S,
+    HEAD_MISSING, HEAD_UNCHANGED, HeadChange, HeadLayers, LodChoice, MAX_KEYFRAME_EVERY,
+    MessageEncoding, PackedMessage, SessionHead, SessionInfo, SessionList, SessionPatch,
+    SessionRequest, SessionStats, StreamMessage, TickDelta, TickFrame, TickLayers, TickVertices,
+    ViewerHello, ViewerOutput, ViewerUpdate,
 };
 pub use stream::{Applied, Received, StreamError, StreamState};
 

@@ -80,6 +80,34 @@ pub struct SessionHead {
     /// its layers (or over the neutral, without a clip): see [`crate::LiveSpec`].
     #[serde(default)]
     pub live: Option<crate::LiveSpec>,
+    /// Procedural liveliness for this head (blinks, saccades, look-at, breathing), applied
+    /// after its layers; absent, the session's [`SessionRequest::alive`] (if any) applies.
+    #[serde(default)]
+    pub alive: Option<Alive>,
+}
+
+/// Liveliness without authoring (`proto/README.md`, "Liveliness"): procedural layers a
+/// session adds over a head's pose, each a pure function of the head's seed and the session
+/// clock, so heads with equal seeds (and placements, for `look_at`) stay clones.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Alive {
+    /// Blinks: one about every 4 s, each 150-250 ms (`eyeBlinkLeft`/`Right`).
+    #[serde(default)]
+    pub blink: bool,
+    /// Eye saccades: small random gaze offsets held 0.2-2 s (`eyeLook*`, eye joints).
+    #[serde(default)]
+    pub saccades: bool,
+    /// A world point the eyes (and on a skinned rig, partly the head) turn toward.
+    #[serde(default)]
+    pub look_at: Option<[f32; 3]>,
+    /// Slow breathing/idle motion (about 0.25 Hz) on a few targets or a chest joint.
+    #[serde(default)]
+    pub breathing: bool,
+    /// The seed of the head's blinks, saccades and breathing; absent, one derived from the
+    /// head id (so a crowd never blinks in unison).
+    #[serde(default)]
+    pub seed: Option<u64>,
 }
 
 /// `POST /v1/sessions` request.
@@ -97,6 +125,9 @@ pub struct SessionRequest {
     pub idle_timeout_s: u32,
     /// The crowd.
     pub heads: Vec<SessionHead>,
+    /// Liveliness for every head without its own `alive`.
+    #[serde(default)]
+    pub alive: Option<Alive>,
 }
 
 /// Counters of a session since it started.
@@ -141,6 +172,9 @@ pub struct SessionInfo {
     pub viewers: u32,
     /// Counters.
     pub stats: SessionStats,
+    /// The session's liveliness for heads without their own (`SessionRequest::alive`, as the
+    /// last patch left it).
+    pub alive: Option<Alive>,
 }
 
 /// `GET /v1/sessions` response.
@@ -188,6 +222,10 @@ pub struct HeadChange {
     /// is kept).
     #[serde(default)]
     pub live: Option<crate::LiveSpec>,
+    /// New liveliness of the head's own (replacing it; one with everything off stops the
+    /// session's default for this head).
+    #[serde(default)]
+    pub alive: Option<Alive>,
 }
 
 /// `PATCH /v1/sessions/{id}` request: applied together, at the next tick, in the order
@@ -204,6 +242,10 @@ pub struct SessionPatch {
     /// Heads to add (ids not in the session).
     #[serde(default)]
     pub add: Vec<SessionHead>,
+    /// New session-wide liveliness for heads without their own (replacing it; one with
+    /// everything off stops it), e.g. a look-at point moved every tick.
+    #[serde(default)]
+    pub alive: Option<Alive>,
 }
 
 /// What a viewer receives each tick.

@@ -201,6 +201,19 @@ pub fn skim(message: &[u8]) -> Result<TickSummary, StreamError> {
                             s.skip_bytes("live mapping")?;
                         }
                     }
+                    // Liveliness: four flags, an optional point (3 fixed 4-byte floats) and an
+                    // optional seed.
+                    if s.some("alive")? {
+                        s.byte("alive blink")?;
+                        s.byte("alive saccades")?;
+                        if s.some("alive look_at")? {
+                            s.skip(12, "alive look_at")?;
+                        }
+                        s.byte("alive breathing")?;
+                        if s.some("alive seed")? {
+                            s.varint("alive seed")?;
+                        }
+                    }
                 }
             }
             if variant == 2 {
@@ -363,6 +376,21 @@ mod tests {
                     mapping: Some("a2f".into()),
                     ..crate::LiveSpec::default()
                 }),
+                // And two are alive, one with a look-at point and a seed.
+                alive: match h {
+                    2 => Some(crate::Alive {
+                        blink: true,
+                        ..Default::default()
+                    }),
+                    3 => Some(crate::Alive {
+                        saccades: true,
+                        look_at: Some([1.0, 1.5, -2.0]),
+                        breathing: true,
+                        seed: Some(u64::MAX),
+                        ..Default::default()
+                    }),
+                    _ => None,
+                },
             })
             .collect();
         let m = StreamMessage::Vertices(TickVertices {

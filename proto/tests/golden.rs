@@ -656,6 +656,7 @@ fn session_head(head: u64, clip: &str, offset: i64, x: f32) -> SessionHead {
         layers: Vec::new(),
         clamp: None,
         live: None,
+        alive: None,
     }
 }
 
@@ -699,6 +700,17 @@ fn session_messages() {
             )]),
             ..session_head(4, "", 0, 1.5)
         },
+        // A clip-less head (the neutral), alive: blinks, saccades, a look-at point, a seed.
+        SessionHead {
+            alive: Some(Alive {
+                blink: true,
+                saccades: true,
+                look_at: Some([0.5, 1.5, 2.0]),
+                breathing: false,
+                seed: Some(42),
+            }),
+            ..session_head(5, "", 0, 2.0)
+        },
     ];
     pin(
         "session_request",
@@ -707,6 +719,11 @@ fn session_messages() {
             wrap: true,
             idle_timeout_s: 60,
             heads: heads.clone(),
+            alive: Some(Alive {
+                blink: true,
+                breathing: true,
+                ..Alive::default()
+            }),
         },
     );
     pin(
@@ -726,6 +743,7 @@ fn session_messages() {
                     layers: Some(Vec::new()),
                     clamp: Some([-1.0, 2.0]),
                     live: Some(LiveSpec::default()),
+                    alive: Some(Alive::default()),
                 },
                 HeadChange {
                     head: 4,
@@ -739,9 +757,14 @@ fn session_messages() {
                     layers: None,
                     clamp: None,
                     live: None,
+                    alive: None,
                 },
             ],
             add: vec![session_head(9, "idle", 7, 2.0)],
+            alive: Some(Alive {
+                look_at: Some([3.0, 1.5, -4.0]),
+                ..Alive::default()
+            }),
         },
     );
     pin(
@@ -763,6 +786,10 @@ fn session_messages() {
                 messages_dropped: 1,
                 bytes_sent: 123_456,
             },
+            alive: Some(Alive {
+                saccades: true,
+                ..Alive::default()
+            }),
         },
     );
     // A viewer's second tick: head 3 changed (one buffer), heads 1 and 2 did not.
@@ -962,6 +989,7 @@ fn temporal_stream_messages_and_q16r() {
             layers: Vec::new(),
             clamp: None,
             live: None,
+            alive: None,
         },
         SessionHead {
             head: 2,
@@ -976,6 +1004,7 @@ fn temporal_stream_messages_and_q16r() {
             layers: Vec::new(),
             clamp: None,
             live: None,
+            alive: None,
         },
     ];
     let timings = FrameTimings {

@@ -390,6 +390,7 @@ fn session_heads(crowd: &CrowdShape, rigs: &[RigClips]) -> Result<Vec<SessionHea
             layers: h.layers,
             clamp: h.clamp,
             live: None,
+            alive: None,
         })
         .collect())
 }

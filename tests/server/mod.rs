@@ -2,6 +2,7 @@
 //! real), the Rust client from `clients/rust`, and the CPU engine or the f64 oracle as the
 //! reference for every vertex that comes back.
 
+mod alive;
 mod animation;
 mod api;
 mod appearance;

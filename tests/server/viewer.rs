@@ -1721,3 +1721,66 @@ async fn the_viewer_draws_expression_layers_as_the_server_does_in_headless_chrom
     drop(browser);
     server.stop().await;
 }
+
+/// An avatar with no clips at all (VALID's, as uploaded): `/viewer?rig=ID` gets a session of
+/// its neutral, alive (each head blinking, darting its eyes and breathing), instead of an error;
+/// the stream ticks and every head is drawn.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[cfg_attr(
+    not(crowdmorph_chromium),
+    ignore = "no Chromium (apt-get install chromium, or set CROWDMORPH_CHROMIUM and touch build.rs)"
+)]
+async fn the_viewer_shows_a_rig_without_clips_alive_in_headless_chromium() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let glb = std::fs::read(
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("tests/data/avatars/valid-white-f-1/White_F_1_Casual.glb"),
+    )
+    .expect("avatar");
+    let info = server
+        .client
+        .upload_rig("avatar", Bytes::from(glb))
+        .await
+        .expect("upload");
+    assert!(info.clips.is_empty(), "the avatar has no clips");
+    let (browser, mut cdp) = open_page(&[]).await;
+    cdp.call(
+        "Page.navigate",
+        json!({"url": format!("http://{}/viewer?rig=avatar&heads=4", server.addr)}),
+    )
+    .await;
+    let tick = "window.crowdmorphViewer?.tick ?? 0";
+    let first = cdp
+        .wait_for("the first tick", tick, Duration::from_secs(120), |v| {
+            v.as_u64().unwrap_or(0) > 0
+        })
+        .await
+        .as_u64()
+        .unwrap();
+    cdp.wait_for("ten more ticks", tick, Duration::from_secs(90), |v| {
+        v.as_u64().unwrap_or(0) >= first + 10
+    })
+    .await;
+    let drawn = "Number(document.getElementById('view').dataset.drawn || 0)";
+    cdp.wait_for("4 heads drawn", drawn, Duration::from_secs(90), |v| {
+        v.as_u64() == Some(4)
+    })
+    .await;
+    let id = cdp
+        .eval("new URL(location.href).searchParams.get('session')")
+        .await;
+    let id = id.as_str().expect("the page names its session").to_string();
+    let session = session_info(&server, &id).await;
+    assert_eq!(session.heads.len(), 4);
+    for h in &session.heads {
+        assert!(h.clip.is_empty() && h.graph.is_none(), "{h:?}");
+        let alive = h.alive.as_ref().expect("alive");
+        assert!(alive.blink && alive.saccades && alive.breathing, "{h:?}");
+    }
+    let errors = cdp.errors();
+    assert!(errors.is_empty(), "the page logged errors: {errors:#?}");
+    assert_eq!(cdp.eval(ERROR_TEXT).await, json!(""));
+    drop(cdp);
+    drop(browser);
+    server.stop().await;
+}

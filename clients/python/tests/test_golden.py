@@ -221,7 +221,11 @@ def test_joint_overrides_of_session_heads_and_changes_decode_and_encode_like_the
             session_head(4, "", 0, 1.5, graph=graph,
                          joints=[("LeftEye", {"translation": [0, 0, 0.25],
                                               "rotation": [0, 0.5, 0, 1]})]),
-        ]
+            session_head(5, "", 0, 2.0,
+                         alive={"blink": True, "saccades": True, "look_at": [0.5, 1.5, 2.0],
+                                "seed": 42}),
+        ],
+        alive=messages.Alive(blink=True, breathing=True),
     )
     assert mine == req
     assert wire.encode(mine) == raw
@@ -237,18 +241,20 @@ def test_joint_overrides_of_session_heads_and_changes_decode_and_encode_like_the
         change=[
             messages.HeadChange(3, clip="talk", yaw=-30.0,
                                 joints={"Head": {"rotation": [0, 0.5, 0, 1]}},
-                                layers=[], clamp=[-1.0, 2.0], live=messages.LiveSpec()),
+                                layers=[], clamp=[-1.0, 2.0], live=messages.LiveSpec(),
+                                alive={}),
             messages.HeadChange(4, node="surprise"),
         ],
         add=[session_head(9, "idle", 7, 2.0)],
+        alive={"look_at": [3.0, 1.5, -4.0]},
     )
     assert mine == patch
     assert wire.encode(mine) == raw
     # None leaves a head's overrides; {} clears them: Some(empty).
     w = wire.Writer()
     wire.Msg(messages.HeadChange).write(w, messages.HeadChange(4, joints={}))
-    # (then layers = None, clamp = None, live = None)
-    assert bytes(w.out) == b"\x04" + b"\x00" * 6 + b"\x01\x00" + b"\x00\x00\x00"
+    # (then layers = None, clamp = None, live = None, alive = None)
+    assert bytes(w.out) == b"\x04" + b"\x00" * 6 + b"\x01\x00" + b"\x00\x00\x00\x00"
     assert messages.as_dict(messages.HeadChange(4, joints={}))["joints"] == {}
     assert messages.as_dict(messages.HeadChange(4))["joints"] is None
 

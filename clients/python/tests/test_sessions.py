@@ -44,6 +44,31 @@ def _create(client, made: List[str], heads, **kw) -> crowdmorph.SessionInfo:
     return info
 
 
+def test_clip_less_alive_heads_and_the_sessions_liveliness(client, sessions):
+    # An empty clip is the rig's neutral; `alive` rides on heads, the session and patches.
+    info = _create(
+        client,
+        sessions,
+        [
+            {"head": 1, "rig": RIG, "alive": {"blink": True, "seed": 3}},
+            crowdmorph.SessionHead(2, RIG, alive=crowdmorph.Alive(saccades=True)),
+            (3, RIG, ""),
+        ],
+        alive={"breathing": True, "look_at": [0.0, 1.5, 4.0]},
+    )
+    assert [h.clip for h in info.heads] == ["", "", ""]
+    assert info.heads[0].alive == crowdmorph.Alive(blink=True, seed=3)
+    assert info.heads[1].alive == crowdmorph.Alive(saccades=True)
+    assert info.heads[2].alive is None
+    assert info.alive == crowdmorph.Alive(breathing=True, look_at=[0.0, 1.5, 4.0])
+    moved = client.patch_session(info.id, alive={"look_at": [1.0, 1.5, 4.0]})
+    assert moved.alive == crowdmorph.Alive(look_at=[1.0, 1.5, 4.0])
+    assert moved.heads == info.heads
+    with pytest.raises(crowdmorph.BadRequest) as e:
+        client.patch_session(info.id, alive={"look_at": [1e30, 0.0, 0.0]})
+    assert e.value.code == "invalid_alive"
+
+
 def _frame_at(tick: int, offset: int, clip_fps: float, session_fps: float) -> int:
     """proto/README.md: at tick t a head plays offset + floor((t - 1) × clip_fps / fps)."""
     return offset + math.floor((tick - 1) * clip_fps / session_fps)
@@ -175,6 +200,7 @@ def test_session_messages_decode_to_the_servers_json(client, sessions):
             "joints": {},
             "layers": [],
             "clamp": None,
+            "alive": None,
         }
     ]
     listed = json.loads(client.request("GET", "/v1/sessions", accept="application/json").body)

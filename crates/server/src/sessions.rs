@@ -301,6 +301,9 @@ pub(crate) struct SessionInner {
     pub(crate) idle_since: Option<Instant>,
     /// Graph heads sent to a node by patches since the last tick: (head id, node), in order.
     pub(crate) jumps: Vec<(u64, String)>,
+    /// Liveliness of the heads without their own (`SessionRequest::alive`, as the last patch
+    /// left it); read by each tick.
+    pub(crate) alive: Option<crowdmorph_proto::Alive>,
 }
 
 /// What identifies a head's buffer for a viewer: the same key means the same vertices.
@@ -486,14 +489,15 @@ impl Session {
     /// (64 × 10,000) under each session's lock was work and memory a caller could ask for at
     /// will.
     pub(crate) fn info(&self) -> InfoNow {
-        let (heads, viewers, tick, stats) = match self.inner.lock() {
+        let (heads, viewers, tick, stats, alive) = match self.inner.lock() {
             Ok(i) => (
                 i.next_heads.clone().unwrap_or_else(|| i.heads.clone()),
                 i.viewers.len() as u32,
                 i.tick,
                 i.stats,
+                i.alive.clone(),
             ),
-            Err(_) => (Arc::default(), 0, 0, SessionStats::default()),
+            Err(_) => (Arc::default(), 0, 0, SessionStats::default(), None),
         };
         InfoNow {
             id: self.id.clone(),
@@ -504,7 +508,13 @@ impl Session {
             heads,
             viewers,
             stats,
+            alive,
         }
+    }
+
+    /// The session's liveliness for heads without their own.
+    pub(crate) fn alive(&self) -> Option<crowdmorph_proto::Alive> {
+        self.inner.lock().ok().and_then(|i| i.alive.clone())
     }
 
     pub(crate) fn with_stats(&self, f: impl FnOnce(&mut SessionStats)) {
@@ -527,6 +537,7 @@ pub(crate) struct InfoNow {
     pub(crate) heads: Arc<Vec<SessionHead>>,
     pub(crate) viewers: u32,
     pub(crate) stats: SessionStats,
+    pub(crate) alive: Option<crowdmorph_proto::Alive>,
 }
 
 /// [`crowdmorph_proto::SessionList`] of [`InfoNow`]s, the same way.
@@ -577,7 +588,11 @@ pub(crate) fn info_bytes(id: &str, heads: &[SessionHead]) -> u64 {
                 + extras_json_bytes(h)
         })
         .sum();
-    INFO_JSON_BYTES + json_str_bytes(id) + heads
+    // The session's `alive` is charged at its widest: a patch may set it later.
+    INFO_JSON_BYTES
+        + alive_json_bytes(Some(&crowdmorph_proto::Alive::default()))
+        + json_str_bytes(id)
+        + heads
 }
 
 /// Most bytes a field takes in JSON besides its strings: its name, an `f32` triple or
@@ -621,7 +636,13 @@ fn extras_json_bytes(h: &SessionHead) -> u64 {
         + h.live.as_ref().map_or(0, |l| {
             8 * FIELD_JSON_BYTES + l.mapping.as_deref().map_or(0, json_str_bytes)
         });
-    graph + joints + layers + clamp + live
+    graph + joints + layers + clamp + live + alive_json_bytes(h.alive.as_ref())
+}
+
+/// Most bytes an `alive` field takes in JSON: `"alive":null`, or its name, four flags, a
+/// point and a `u64` seed at their widest.
+pub(crate) fn alive_json_bytes(alive: Option<&crowdmorph_proto::Alive>) -> u64 {
+    16 + alive.map_or(0, |_| 200)
 }
 
 impl Session {

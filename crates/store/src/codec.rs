@@ -472,6 +472,7 @@ mod tests {
             layers: Vec::new(),
             clamp: None,
             live: None,
+            alive: None,
         }];
         let mut prefix = Vec::new();
         put_varint(&mut prefix, 0);

@@ -29,6 +29,7 @@ from . import arrays as _arrays
 from . import sessions as _sessions
 from .errors import NotFound, ProtocolError, error_from_response
 from .messages import (
+    Alive,
     CameraSpec,
     ClipInfo,
     ClipList,
@@ -910,6 +911,7 @@ class Client:
         wrap: bool = True,
         idle_timeout_s: int = 60,
         id: Optional[str] = None,
+        alive: Optional[Union[Alive, Mapping[str, Any]]] = None,
     ) -> SessionInfo:
         """``POST /v1/sessions``: a crowd the server advances ``fps`` times a second and
         streams to viewers (:meth:`stream`). Needs the admin token when the server has one.
@@ -923,13 +925,17 @@ class Client:
         or ``(head, rig, clip[, offset[, position[, yaw[, scale]]]])`` tuples. At tick ``t``
         a head plays frame ``offset + floor((t - 1) * clip_fps / fps)``, looping when
         ``wrap`` (else holding the last frame). The session ends ``idle_timeout_s`` seconds
-        after its last viewer leaves.
+        after its last viewer leaves. A head with an empty ``clip`` and no graph shows its
+        rig's neutral (a rig with no clips). ``alive`` (an :class:`~crowdmorph.messages.Alive`
+        or its dict, e.g. ``{"blink": True, "look_at": [0, 1.6, 3]}``) makes every head
+        without its own ``alive`` blink, dart its eyes, look at a point or breathe.
         """
         req = SessionRequest(
             fps=float(fps),
             wrap=bool(wrap),
             idle_timeout_s=int(idle_timeout_s),
             heads=[_session_head(h) for h in heads],
+            alive=alive,
         )
         if id is None:
             resp = self.request("POST", "/v1/sessions", encode(req), BINCODE, ok=(201,))
@@ -951,16 +957,20 @@ class Client:
         add: Iterable[SessionHeadLike] = (),
         remove: Iterable[int] = (),
         change: Iterable[Union[HeadChange, Mapping[str, Any]]] = (),
+        alive: Optional[Union[Alive, Mapping[str, Any]]] = None,
     ) -> SessionInfo:
         """``PATCH /v1/sessions/{id}``: removes, changes and adds heads, together, at the next
         tick (in that order). ``change`` items are :class:`~crowdmorph.messages.HeadChange`
         objects or dicts (``{"head": 2, "clip": "smile", "yaw": 90}``; absent fields stay;
         ``"joints"`` replaces the head's joint overrides, ``{}`` clears them).
+        ``alive`` replaces the session's liveliness (a patch with only ``alive``, e.g. a
+        look-at point moved every tick, copies no head).
         Returns the session with its heads as they will be at the next tick."""
         patch = SessionPatch(
             remove=[int(h) for h in remove],
             change=[_of(HeadChange, c) for c in change],
             add=[_session_head(h) for h in add],
+            alive=alive,
         )
         resp = self.request(
             "PATCH", f"/v1/sessions/{_seg(session)}", encode(patch), BINCODE

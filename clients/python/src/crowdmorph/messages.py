@@ -91,6 +91,7 @@ __all__ = [
     "GraphInfo",
     "GraphList",
     "BuiltGraph",
+    "Alive",
     "SessionHead",
     "SessionRequest",
     "SessionStats",
@@ -1232,6 +1233,36 @@ class LiveAck:
 
 
 @wire(
+    ("blink", BOOL),
+    ("saccades", BOOL),
+    ("look_at", Opt(F32X3)),
+    ("breathing", BOOL),
+    ("seed", Opt(U64)),
+)
+@dataclass
+class Alive:
+    """Liveliness without authoring for a session head (or a session's default): blinks
+    (about every 4 s), eye saccades, a world point to look at, breathing; ``seed`` absent, one
+    derived from the head id, so a crowd never blinks in unison (``proto/README.md``,
+    "Liveliness")."""
+
+    blink: bool = False
+    saccades: bool = False
+    look_at: Optional[List[float]] = None
+    breathing: bool = False
+    seed: Optional[int] = None
+
+
+def _alive(a: Any) -> Optional[Alive]:
+    """An :class:`Alive`, from itself, a dict with its keys, or None."""
+    if a is None or type(a) is Alive:
+        return a
+    if isinstance(a, Mapping):
+        return Alive(**a)
+    raise TypeError(f"alive is an Alive or a dict, not {type(a).__name__}")
+
+
+@wire(
     ("head", U64),
     ("rig", STR),
     ("clip", STR),
@@ -1244,6 +1275,7 @@ class LiveAck:
     ("layers", _LAYERS),
     ("clamp", CLAMP),
     ("live", Opt(Msg(LiveSpec))),
+    ("alive", Opt(Msg(Alive))),
 )
 @dataclass
 class SessionHead:
@@ -1254,7 +1286,9 @@ class SessionHead:
     (as :attr:`Head.joints`). ``layers`` go over that pose as :attr:`Head.layers` do, their
     frames counted from the session clock as ``offset`` is; ``clamp`` bounds the final weights.
     A head with ``live`` (a :class:`LiveSpec` or a dict) shows the input producers send for it
-    over that pose (over the neutral without a clip)."""
+    over that pose (over the neutral without a clip).
+    An empty ``clip`` without a graph plays the rig's neutral (a rig with no clips); ``alive``
+    adds procedural blinks, saccades, look-at and breathing (else the session's ``alive``)."""
 
     head: int
     rig: str
@@ -1268,8 +1302,10 @@ class SessionHead:
     layers: List[Layer] = field(default_factory=list)
     clamp: Optional[Sequence[float]] = None
     live: Optional[LiveSpec] = None
+    alive: Optional[Alive] = None
 
     def __post_init__(self) -> None:
+        self.alive = _alive(self.alive)
         j = self.joints
         if type(j) is not dict or j:
             self.joints = joint_overrides(j)
@@ -1279,16 +1315,27 @@ class SessionHead:
             self.live = _live_spec(self.live)
 
 
-@wire(("fps", F32), ("wrap", BOOL), ("idle_timeout_s", U32), ("heads", Vec(Msg(SessionHead))))
+@wire(
+    ("fps", F32),
+    ("wrap", BOOL),
+    ("idle_timeout_s", U32),
+    ("heads", Vec(Msg(SessionHead))),
+    ("alive", Opt(Msg(Alive))),
+)
 @dataclass
 class SessionRequest:
     """``POST /v1/sessions`` request: ticks per second (0–120], whether clips loop (else they
-    hold their last frame), seconds without viewers before the session ends, and the crowd."""
+    hold their last frame), seconds without viewers before the session ends, the crowd, and
+    the liveliness of heads without their own ``alive``."""
 
     fps: float = 30.0
     wrap: bool = True
     idle_timeout_s: int = 60
     heads: List[SessionHead] = field(default_factory=list)
+    alive: Optional[Alive] = None
+
+    def __post_init__(self) -> None:
+        self.alive = _alive(self.alive)
 
 
 @wire(
@@ -1322,6 +1369,7 @@ class SessionStats:
     ("heads", Vec(Msg(SessionHead))),
     ("viewers", U32),
     ("stats", Msg(SessionStats)),
+    ("alive", Opt(Msg(Alive))),
 )
 @dataclass
 class SessionInfo:
@@ -1337,6 +1385,7 @@ class SessionInfo:
     heads: List[SessionHead]
     viewers: int
     stats: SessionStats
+    alive: Optional[Alive] = None
 
 
 @wire(("sessions", Vec(Msg(SessionInfo))))
@@ -1359,6 +1408,7 @@ class SessionList:
     ("layers", Opt(_LAYERS)),
     ("clamp", CLAMP),
     ("live", Opt(Msg(LiveSpec))),
+    ("alive", Opt(Msg(Alive))),
 )
 @dataclass
 class HeadChange:
@@ -1376,8 +1426,10 @@ class HeadChange:
     layers: Optional[List[Layer]] = None
     clamp: Optional[Sequence[float]] = None
     live: Optional[LiveSpec] = None
+    alive: Optional[Alive] = None
 
     def __post_init__(self) -> None:
+        self.alive = _alive(self.alive)
         j = self.joints
         if j is not None and (type(j) is not dict or j):
             self.joints = joint_overrides(j)
@@ -1471,14 +1523,20 @@ class GraphList:
     ("remove", Vec(U64)),
     ("change", Vec(Msg(HeadChange))),
     ("add", Vec(Msg(SessionHead))),
+    ("alive", Opt(Msg(Alive))),
 )
 @dataclass
 class SessionPatch:
-    """``PATCH /v1/sessions/{id}`` request, applied at the next tick: remove, change, add."""
+    """``PATCH /v1/sessions/{id}`` request, applied at the next tick: remove, change, add;
+    ``alive`` replaces the session's liveliness (e.g. a look-at point moved every tick)."""
 
     remove: List[int] = field(default_factory=list)
     change: List[HeadChange] = field(default_factory=list)
     add: List[SessionHead] = field(default_factory=list)
+    alive: Optional[Alive] = None
+
+    def __post_init__(self) -> None:
+        self.alive = _alive(self.alive)
 
 
 @wire(

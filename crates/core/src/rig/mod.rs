@@ -23,6 +23,7 @@
 //!   transforms beside their weights ([`Clip::joints`]). Rig space holds the rest pose
 //!   (`skin.rs`).
 
+mod alive;
 mod animated_texture;
 mod appearance;
 mod clip;
@@ -38,6 +39,10 @@ mod regions;
 mod sample;
 mod skin;
 
+pub use alive::{
+    AliveParams, AliveRig, BLINK_JITTER_S, BLINK_PERIOD_S, LOOK_FULL_DEG, Placement, blink_amount,
+    blink_start, breath, head_seed, look_angles, saccade_offset,
+};
 pub use animated_texture::{
     AnimatedTexture, AnimatedTextureError, MAX_ANIMATED_SIZE, MAX_LAYERS, TEXTURE_MAGIC,
     TextureRegion, layer_inputs,

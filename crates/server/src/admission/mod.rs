@@ -1,9 +1,10 @@
 //! Admission: what a request costs, charged before any of its work — the queue memory and its
 //! charges ([`memory`]), the render budgets ([`render`]), heads resolved into priced jobs
 //! ([`resolve`]), the names they match ([`names`]) and their layers ([`layers`], shared with
-//! session ticks). [`Decoded`] is the extractor of a request body: it hands a handler the
+//! session ticks), and a session head's liveliness ([`alive`]). [`Decoded`] is the extractor of a request body: it hands a handler the
 //! decoded value only together with its charge.
 
+pub mod alive;
 pub mod layers;
 pub mod live;
 pub mod memory;

@@ -286,6 +286,7 @@ fn a_session_and_its_patch_are_charged_while_decoded() {
                 layers: Vec::new(),
                 clamp: None,
                 live: None,
+                alive: None,
             })
             .collect::<Vec<_>>()
     };
@@ -294,6 +295,7 @@ fn a_session_and_its_patch_are_charged_while_decoded() {
         wrap: true,
         idle_timeout_s: 60,
         heads: session_heads(800),
+        alive: None,
     };
     for (live, price) in check("session", &req) {
         assert_eq!(price, 0);
@@ -314,9 +316,11 @@ fn a_session_and_its_patch_are_charged_while_decoded() {
                 layers: None,
                 clamp: None,
                 live: None,
+                alive: None,
             })
             .collect(),
         add: session_heads(300),
+        alive: None,
     };
     for (live, price) in check("session patch", &patch) {
         assert_eq!(price, 0);

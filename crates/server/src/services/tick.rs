@@ -35,6 +35,7 @@ use crowdmorph_anim::graph::{Graph, Player};
 use crowdmorph_anim::live::apply_weights;
 use crowdmorph_core::rig::{FrameMode, JointPose, Pose, clamp_weights, layer_weights};
 
+use crate::admission::alive::AliveTick;
 use crate::admission::layers::{
     layered_joints, layered_joints_bytes, layers_bytes, resolve_layers,
 };
@@ -467,6 +468,7 @@ fn resolve<S: Ticking>(
     } else {
         HashMap::new()
     };
+    let mut alive = AliveTick::new(session.alive(), tick, session.fps);
     let at = heads
         .iter()
         .map(|h| {
@@ -495,9 +497,8 @@ fn resolve<S: Ticking>(
                     let jumps = jumps_by_head.remove(&h.head).unwrap_or_default();
                     players.pose(h.head, play, &graph, rig, &jumps, requested, steps)?
                 }
-                // A live head without a clip: its input over the neutral.
-                None if h.clip.is_empty() && h.live.is_some() => {
-                    (Pose::live(&vec![0.0; rig.targets.len()]), requested)
+                None if h.clip.is_empty() => {
+                    (alive.neutral(state.queue_memory(), ri, rig)?, requested)
                 }
                 None => {
                     let ci = entry.clip_index(&h.clip)?;
@@ -519,7 +520,9 @@ fn resolve<S: Ticking>(
             let live = live_now
                 .get(&h.head)
                 .filter(|l| l.generation == entry.generation);
-            let (pose, joints) = if h.layers.is_empty() && h.clamp.is_none() && live.is_none() {
+            let (pose, joints) = if h.layers.is_empty() && h.clamp.is_none() && live.is_none()
+                && !alive.on(h)
+            {
                 (pose, joints)
             } else {
                 // Checked when the head was added or changed, as its overrides are; charged
@@ -556,7 +559,11 @@ fn resolve<S: Ticking>(
                 .ok()?;
                 let mut w = pose.weights(rig);
                 layer_weights(rig, &mut w, &layers);
-                // Live input on top of the layers, by its share while it fades in or out.
+                if alive.on(h) {
+                    alive.weights(state.queue_memory(), ri, rig, h, &mut w)?;
+                }
+                // Live input on top of the layers and liveliness (a tracker's eyes over
+                // procedural blinks), by its share while it fades in or out.
                 if let Some(l) = live {
                     apply_weights(&mut w, &l.values, l.alpha);
                 }
@@ -568,6 +575,7 @@ fn resolve<S: Ticking>(
                 // The head's own overrides stay on top of its layers' joints, live input on
                 // top of both.
                 let joints = layered_joints(entry, &pose, &joints, &layers).overlay(&own);
+                let joints = alive.joints(state.queue_memory(), ri, entry, h, joints)?;
                 let joints = match live {
                     Some(l) => live_joints(entry, &joints, &l.values, l.alpha),
                     None => joints,
@@ -587,7 +595,7 @@ fn resolve<S: Ticking>(
     Resolved {
         rigs,
         at,
-        _layered: layered,
+        _layered: alive.charge_into(layered),
     }
 }
 

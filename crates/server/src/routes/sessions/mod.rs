@@ -37,6 +37,7 @@ use crowdmorph_proto::{HeadChange, SessionHead, SessionPatch, SessionRequest, Se
 use tokio::sync::Notify;
 use tokio::time::Instant;
 
+use crate::admission::alive::check_alive;
 use crate::admission::resolve::{requested_joints, unknown_clip};
 use crate::admission::{Admission, Charge, Decoded, Priced, decode_held};
 use crate::http::body::hold;
@@ -126,8 +127,9 @@ fn check_session_head(state: &AppState, h: &SessionHead) -> Result<(), ApiError>
         graph
             .play(play)
             .map_err(|m| ApiError::not_found("unknown_node", format!("head {}: {m}", h.head)))?;
-    } else if !(h.clip.is_empty() && h.live.is_some()) && entry.clip_index(&h.clip).is_none() {
-        // A live head without a clip plays its input over the neutral.
+    } else if !h.clip.is_empty() && entry.clip_index(&h.clip).is_none() {
+        // An empty clip is the neutral (every weight 0, joints at rest): how a rig with no
+        // clips (most avatars as they arrive) is put in a session, alive or not.
         // The same message as a crowd frame's (at most 20 names, whatever the rig holds).
         let e = unknown_clip(&entry, &h.clip);
         return Err(ApiError {
@@ -141,6 +143,12 @@ fn check_session_head(state: &AppState, h: &SessionHead) -> Result<(), ApiError>
         .map_err(|(code, m)| ApiError::bad_request(code, format!("head {}: {m}", h.head)))?;
     if let Some(l) = &h.live {
         crate::admission::live::check_spec(l).map_err(|e| ApiError {
+            message: format!("head {}: {}", h.head, e.message),
+            ..e
+        })?;
+    }
+    if let Some(a) = &h.alive {
+        check_alive(a).map_err(|e| ApiError {
             message: format!("head {}: {}", h.head, e.message),
             ..e
         })?;
@@ -262,6 +270,7 @@ fn patched(
         layers,
         clamp,
         live,
+        alive,
     } in &patch.change
     {
         let h = at
@@ -295,6 +304,9 @@ fn patched(
         }
         if let Some(l) = live {
             h.live = Some(l.clone());
+        }
+        if let Some(a) = alive {
+            h.alive = Some(a.clone());
         }
         check_session_head(state, h)?;
         if let Some(n) = node {
@@ -440,6 +452,9 @@ fn create(
             req.idle_timeout_s
         )));
     }
+    if let Some(a) = &req.alive {
+        check_alive(a)?;
+    }
     check_head_count(state, req.heads.len())?;
     let mut ids = HashSet::new();
     for h in &req.heads {
@@ -500,6 +515,7 @@ fn create(
             stats: SessionStats::default(),
             idle_since: Some(Instant::now()),
             jumps: Vec::new(),
+            alive: req.alive,
         }),
         stopping: Notify::new(),
         stopped: AtomicBool::new(false),
@@ -549,6 +565,9 @@ pub async fn patch_session(
             .await?
             .into_parts();
     let accept = Accept::of(&headers);
+    if let Some(a) = &patch.alive {
+        check_alive(a)?;
+    }
     // Checked against the heads as they will be, then swapped in under the lock (a patch that
     // raced with another is checked again on the newer heads).
     let answer = loop {
@@ -559,6 +578,19 @@ pub async fn patch_session(
                 .map_err(|_| ApiError::internal("session poisoned"))?;
             i.next_heads.clone().unwrap_or_else(|| i.heads.clone())
         };
+        // A patch that only moves the session's liveliness (a look-at point each tick)
+        // keeps the heads as they are: no copy, no check, no new layout for the viewers.
+        let no_head_change =
+            patch.remove.is_empty() && patch.change.is_empty() && patch.add.is_empty();
+        if no_head_change && patch.alive.is_some() {
+            let answer = state.queue_memory.reserve(info_bytes(&s.id, &base))?;
+            let mut i = s
+                .inner
+                .lock()
+                .map_err(|_| ApiError::internal("session poisoned"))?;
+            i.alive.clone_from(&patch.alive);
+            break answer;
+        }
         let (next, jumps) = patched(&state, &base, &patch)?;
         let next = Arc::new(next);
         // The answer lists the patched heads: charged before the patch is in (see
@@ -572,6 +604,9 @@ pub async fn patch_session(
         if Arc::ptr_eq(&now, &base) {
             i.next_heads = Some(next);
             i.jumps.extend(jumps);
+            if patch.alive.is_some() {
+                i.alive.clone_from(&patch.alive);
+            }
             break answer;
         }
     };
@@ -632,6 +667,7 @@ mod tests {
             layers: Vec::new(),
             clamp: None,
             live: None,
+            alive: None,
         }
     }
 
@@ -686,6 +722,13 @@ mod tests {
                     }),
                     mapping: Some("\u{1}\"".repeat(40)),
                 }),
+                alive: Some(crowdmorph_proto::Alive {
+                    blink: true,
+                    saccades: true,
+                    look_at: Some([-1.1754942e-38, -3.4028235e38, -1.4e-45]),
+                    breathing: true,
+                    seed: Some(u64::MAX),
+                }),
             },
         ];
         let stats = SessionStats {
@@ -706,6 +749,11 @@ mod tests {
             heads: Arc::new(heads.to_vec()),
             viewers: u32::MAX,
             stats,
+            alive: Some(crowdmorph_proto::Alive {
+                look_at: Some([-1.1754942e-38, -3.4028235e38, -1.4e-45]),
+                seed: Some(u64::MAX),
+                ..Default::default()
+            }),
         };
         let before = |heads: &[SessionHead]| SessionInfo {
             id: "s18446744073709551615".into(),
@@ -716,6 +764,11 @@ mod tests {
             heads: heads.to_vec(),
             viewers: u32::MAX,
             stats,
+            alive: Some(crowdmorph_proto::Alive {
+                look_at: Some([-1.1754942e-38, -3.4028235e38, -1.4e-45]),
+                seed: Some(u64::MAX),
+                ..Default::default()
+            }),
         };
         for n in [0, 1, heads.len()] {
             let (a, b) = (now(&heads[..n]), before(&heads[..n]));
