@@ -33,7 +33,7 @@ fn positions(resp: &crowdmorph_proto::CrowdFrameResponse, head: usize) -> Vec<f3
 }
 
 /// The embedded rig's weights of `clip` at `frame`, per channel, in f64.
-fn frame_weights(rig: &crowdmorph::rig::Rig, clip: &str, frame: u32) -> Vec<f64> {
+pub(super) fn frame_weights(rig: &crowdmorph::rig::Rig, clip: &str, frame: u32) -> Vec<f64> {
     let c = &rig.clips[rig.clip_index(clip).expect("clip")];
     (0..rig.targets.len())
         .map(|k| f64::from(c.weight(k, frame)))
@@ -58,7 +58,7 @@ fn loose(name: &str) -> String {
 }
 
 /// Channel ids of each target name of `names` present in the rig, matched loosely.
-fn channels(rig: &crowdmorph::rig::Rig, names: &[&str]) -> Vec<usize> {
+pub(super) fn channels(rig: &crowdmorph::rig::Rig, names: &[&str]) -> Vec<usize> {
     let mut out: Vec<usize> = rig
         .targets
         .iter()
@@ -71,7 +71,7 @@ fn channels(rig: &crowdmorph::rig::Rig, names: &[&str]) -> Vec<usize> {
 }
 
 /// The heads of the weight tests and, for each, its final weights written out here.
-fn layered_heads(rig: &crowdmorph::rig::Rig) -> Vec<(Head, Vec<f64>)> {
+pub(super) fn layered_heads(rig: &crowdmorph::rig::Rig) -> Vec<(Head, Vec<f64>)> {
     let smile = frame_weights(rig, "smile", 5);
     let surprise = |f| frame_weights(rig, "surprise", f);
     let talk = |f| frame_weights(rig, "talk", f);
