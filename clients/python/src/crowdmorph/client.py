@@ -36,6 +36,7 @@ from .messages import (
     CrowdFrameRequest,
     BuiltGraph,
     CrowdFrameResponse,
+    CrowdPoseResponse,
     GraphInfo,
     GraphList,
     GraphPlay,
@@ -53,6 +54,7 @@ from .messages import (
     Placement,
     Readiness,
     RenderRequest,
+    RigChannels,
     RigInfo,
     RigList,
     SessionHead,
@@ -743,6 +745,8 @@ class Client:
         :class:`~crowdmorph.messages.CrowdFrameResponse` (payloads as bytes; q16r positions
         still residual planes).
         """
+        if format == "weights":
+            raise ValueError("format 'weights' answers with poses, not buffers: use crowd_poses()")
         if format not in ("f32", "f16", "q16", "q16r"):
             raise ValueError(f"format must be 'f32', 'f16', 'q16' or 'q16r', not {format!r}")
         req = CrowdFrameRequest(
@@ -765,6 +769,27 @@ class Client:
             raise ProtocolError(
                 resp.status, "bad_response", str(e), request_id=resp.request_id
             ) from e
+
+    def crowd_poses(self, heads: Iterable[HeadLike], wrap: bool = True) -> CrowdPoseResponse:
+        """``POST /v1/crowd/frame`` with ``"format": "weights"``, for a client that blends
+        itself: per unique head its final weights (``pose.weights_f32()``, one per channel of
+        :meth:`rig_channels`) and the skeleton nodes its pose moves (``pose.joints``); each
+        request head's pose is ``poses[heads[i].buffer]``. No vertices are computed. A head
+        with a ``lod`` other than 0 raises :class:`~crowdmorph.errors.BadRequest`
+        ``invalid_output``."""
+        req = CrowdFrameRequest(
+            heads=heads if isinstance(heads, (list, tuple)) else list(heads),
+            output=OutputOptions(normals=False, format="weights"),
+            wrap=bool(wrap),
+        )
+        path = "/v1/crowd/frame" + _rig_hint(req.heads)
+        resp = self.request("POST", path, encode(req), BINCODE)
+        return self._decode(CrowdPoseResponse, resp)
+
+    def rig_channels(self, rig: str) -> RigChannels:
+        """``GET /v1/rigs/{id}/channels``: the rig's weight channels and skeleton nodes, in
+        the order a pose (:meth:`crowd_poses`, a ``output="weights"`` viewer) numbers them."""
+        return self._decode(RigChannels, self.request("GET", f"/v1/rigs/{_seg(rig)}/channels"))
 
     def q16_reference(self, buffer: Any) -> bytes:
         """The q16 reference of a ``q16r`` buffer (its rig, LOD and box): the q16 positions of
