@@ -21,6 +21,10 @@ use crate::sessions::{
     Baseline, Encoded, HeadKey, MISSING_KEY, Outgoing, Session, Viewer, ViewerSettings, bump,
 };
 
+/// A poses message's identity within a tick: whether it carries the layout, each head's
+/// entry, and its packing. The same key, the same bytes.
+type MessageKey = (bool, Vec<u32>, Option<MessageEncoding>);
+
 /// What every weights viewer's message of a tick is made of.
 pub(super) struct TickPosesInput<'a> {
     pub(super) tick: u64,
@@ -114,8 +118,7 @@ pub(super) fn fan_out<S: Ticking>(
         head_job,
         keys: Arc::new(keys),
     };
-    let mut messages: HashMap<(bool, Vec<u32>, Option<MessageEncoding>), Arc<Encoded>> =
-        HashMap::new();
+    let mut messages: HashMap<MessageKey, Arc<Encoded>> = HashMap::new();
     let mut locals = Vec::new();
     for (viewer, settings) in viewers {
         deliver(
@@ -139,7 +142,7 @@ fn deliver<'a, S: Ticking>(
     t: &TickPosesInput<'a>,
     poses: &mut Poses<'a>,
     (viewer, settings): (&Arc<Viewer>, &ViewerSettings),
-    messages: &mut HashMap<(bool, Vec<u32>, Option<MessageEncoding>), Arc<Encoded>>,
+    messages: &mut HashMap<MessageKey, Arc<Encoded>>,
     locals: &mut Vec<crowdmorph_core::rig::Trs>,
 ) {
     for _attempt in 0..4 {
