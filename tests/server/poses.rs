@@ -15,6 +15,7 @@ use crowdmorph_proto::{
     BlendLayer, CrowdFrameRequest, CrowdPoseResponse, Format, HEAD_MISSING, HEAD_UNCHANGED, Head,
     HeadPose, OutputOptions, StreamMessage, StreamState,
 };
+use futures_util::SinkExt;
 use glam::DVec3;
 use serde_json::json;
 
@@ -335,14 +336,50 @@ async fn a_session_watched_only_for_weights_submits_no_blend() {
         .collect();
     let info = create(&server, json!({"fps": 30, "heads": heads})).await;
     let mut ws = connect(&server, &info.id, json!({"output": "weights"})).await;
-    let mut state = StreamState::new();
-    for _ in 0..6 {
+    // A second one has its messages packed: the same poses once inflated.
+    let mut packed = connect(
+        &server,
+        &info.id,
+        json!({"output": "weights", "compression": "deflate"}),
+    )
+    .await;
+    let (mut state, mut unpacked) = (StreamState::new(), StreamState::new());
+    let mut seen: HashMap<u64, Vec<HeadPose>> = HashMap::new();
+    let mut seen_packed: HashMap<u64, Vec<HeadPose>> = HashMap::new();
+    let poses_of = |s: &StreamState| -> Vec<HeadPose> {
+        (0..20)
+            .map(|h| s.pose(h).expect("a pose").clone())
+            .collect()
+    };
+    for _ in 0..8 {
         let raw = next_raw(&mut ws).await;
         let m: StreamMessage =
             crowdmorph_proto::wire::response_from_bincode(&raw).expect("StreamMessage");
         state.apply(m).expect("applies");
+        seen.insert(state.tick(), poses_of(&state));
+        let raw = next_raw(&mut packed).await;
+        assert_eq!(raw[0], 3, "packed");
+        unpacked.receive(&raw).expect("inflates and applies");
+        seen_packed.insert(unpacked.tick(), poses_of(&unpacked));
+    }
+    let mut same = 0;
+    for (tick, p) in &seen_packed {
+        if let Some(plain) = seen.get(tick) {
+            assert_eq!(p, plain, "tick {tick}");
+            same += 1;
+        }
     }
     assert!((0..20).all(|h| state.pose(h).is_some()));
+    // An update may not give it a LOD level either.
+    ws.send(tokio_tungstenite::tungstenite::Message::text(
+        r#"{"lod": 1}"#,
+    ))
+    .await
+    .expect("update");
+    let (code, reason) = next_close(&mut ws).await;
+    assert_eq!(code, 1008, "{reason}");
+    assert!(reason.contains("LOD"), "{reason}");
+    assert!(same >= 1, "no tick seen by both viewers");
     let s = super::sessions::info(&server, &info.id).await;
     assert!(s.stats.ticks >= 6, "{:?}", s.stats);
     assert_eq!(s.stats.jobs, 0, "no job went to the batcher: {:?}", s.stats);

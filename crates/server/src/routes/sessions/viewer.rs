@@ -280,6 +280,16 @@ fn apply_update(viewer: &Viewer, text: &str) -> Result<(), (u16, String)> {
     }
     if let Some(l) = &update.lod {
         crate::sessions::check_lod(l)?;
+        if *l != crowdmorph_proto::LodChoice::Fixed(0)
+            && viewer
+                .settings()
+                .is_some_and(|s| s.output == ViewerOutput::Weights)
+        {
+            return Err((
+                close::POLICY,
+                "bad update: output weights is each head's whole pose: no LOD level".into(),
+            ));
+        }
     }
     if let Ok(mut s) = viewer.settings.lock() {
         if let Some(c) = update.camera {
