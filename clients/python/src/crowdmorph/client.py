@@ -1032,6 +1032,10 @@ class Client:
         (``"deflate"`` or ``"zstd"``, the latter needing ``pip install 'crowdmorph[zstd]'``)
         has it compress every message. Both are decoded here: the ticks are bit for bit a
         plain q16 viewer's (plus ``wire_bytes``, ``keyframes`` and ``from_residuals``).
+        ``output="weights"`` (for a client that blends itself) yields
+        :class:`~crowdmorph.sessions.PoseTick` objects instead: per head its final weights
+        and moved joints (:meth:`rig_channels` names them), no vertices; ``format``,
+        ``normals``, ``lod`` and ``temporal`` do not apply to it.
         ``timeout`` (seconds; default: the client's) bounds the opening handshake and each
         wait for a message; ``max_message`` is the largest message taken, in bytes (``None``:
         no limit; a larger one closes the stream with 1009). An unknown session raises
