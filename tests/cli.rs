@@ -1089,6 +1089,39 @@ fn bench_sessions_reports_shared_blends_and_the_bytes_viewers_got() {
 }
 
 #[test]
+fn bench_sessions_weights_viewers_get_poses_and_submit_no_blend() {
+    let r = json(&[
+        "bench",
+        "sessions",
+        "--heads",
+        "40",
+        "--animations",
+        "8",
+        "--viewers",
+        "3",
+        "--fps",
+        "10",
+        "--seconds",
+        "1.5",
+        "--backend",
+        "cpu",
+        "--weights",
+        "--json",
+    ]);
+    assert_eq!(r["format"], "weights", "{r}");
+    assert!(usize_of(&r, "ticks") >= 5, "{r}");
+    assert_eq!(f64_of(&r, "jobs_per_tick"), 0.0, "no engine work: {r}");
+    // 8 distinct poses a tick (51 binary16 weights, about 105 bytes each) and 40 head
+    // entries, far from 8 buffers of 6 bytes a vertex.
+    let per_message =
+        f64_of(&r, "bytes_per_viewer_per_s") / f64_of(&r, "messages_per_viewer_per_s");
+    assert!(
+        per_message > 8.0 * 104.0 && per_message < 3000.0,
+        "{per_message} bytes a message"
+    );
+}
+
+#[test]
 fn bench_sessions_long_clip_offers_more_unique_heads_than_the_rigs_clips() {
     // The embedded head's clips hold 465 frames in all: 480 animations of them could not all
     // be distinct, 480 offsets into one 600-frame clip are.

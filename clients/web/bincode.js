@@ -2,7 +2,8 @@
 // "Crowd sessions"): bincode 2, standard configuration (little-endian, varint integers).
 //
 // Only what the viewer receives is decoded: the stream's StreamMessage (proto/README.md, "The
-// stream": variants 0 TickVertices, 1 TickFrame, 2 TickDelta, 3 PackedMessage, 4 TickLayers). Vertex payloads
+// stream": variants 0 TickVertices, 1 TickFrame, 2 TickDelta, 3 PackedMessage, 4 TickLayers, 5 TickPoses), and
+// a crowd frame's CrowdPoseResponse (decodeCrowdPoses, for "format": "weights"). Vertex payloads
 // are not copied: a Blob is returned as its byte offset and length in the message's ArrayBuffer,
 // and typedView() views it in place (the server pads each payload to a 16-byte offset), copying
 // only when an odd offset makes a view impossible. unpack() inflates a PackedMessage into the
@@ -13,8 +14,8 @@ export const HEAD_UNCHANGED = 0xffffffff;
 /** HeadBuffer.buffer of a head with nothing to draw (its rig or clip was deleted). */
 export const HEAD_MISSING = 0xfffffffe;
 
-/** Scalar formats by their varint variant index. */
-export const FORMATS = ['f32', 'f16', 'q16'];
+/** Formats by their varint variant index (vertex formats, then `weights`: no vertices, poses). */
+export const FORMATS = ['f32', 'f16', 'q16', 'q16r', 'weights'];
 /** Image formats of TickFrame by their variant index. */
 export const IMAGE_FORMATS = ['png', 'jpeg', 'rgba'];
 /** Compressions of PackedMessage by their variant index. */
@@ -300,7 +301,11 @@ function timings(r) {
  *   image: {offset: number, length: number}}
  *   | {kind: 'packed', variant: 3, encoding: string, length: number,
  *   data: {offset: number, length: number}}
- *   | {kind: 'layers', variant: 4, tick: number, heads: {head: number, inputs: Float32Array}[]}}
+ *   | {kind: 'layers', variant: 4, tick: number, heads: {head: number, inputs: Float32Array}[]}
+ *   | {kind: 'poses', variant: 5, tick: number, layout: object[]|null, poses: object[],
+ *   heads: {head: number, buffer: number}[], timings: object}}
+ * A pose is {weights: Float32Array (one per channel of GET /v1/rigs/{id}/channels),
+ * joints: {node: number, rotation: number[4], translation: number[3]|null, scale: number[3]|null}[]}.
  */
 export function decodeStreamMessage(buffer) {
   const r = new Reader(buffer);
@@ -353,9 +358,76 @@ export function decodeStreamMessage(buffer) {
       tick: r.varint(),
       heads: r.vec(() => ({ head: r.varint(), inputs: Float32Array.from(r.vec(() => r.f32())) })),
     };
+  } else if (variant === 5) {
+    // TickPoses: per changed head its binary16 weights and moved nodes (no vertices).
+    msg = {
+      kind: 'poses',
+      variant,
+      tick: r.varint(),
+      layout: r.option(() => r.vec(() => sessionHead(r))),
+      poses: r.vec(() => headPose(r)),
+      heads: r.vec(() => headBuffer(r)),
+      timings: timings(r),
+    };
+    checkPoses(msg);
   } else {
     throw new DecodeError(`StreamMessage variant ${variant}`);
   }
+  r.end();
+  return msg;
+}
+
+/** An IEEE binary16 bit pattern as a Number (exact). */
+export function halfToFloat(h) {
+  const sign = h & 0x8000 ? -1 : 1;
+  const exp = (h >> 10) & 0x1f;
+  const man = h & 0x3ff;
+  if (exp === 0) return sign * man * 2 ** -24;
+  if (exp === 31) return man ? NaN : sign * Infinity;
+  return sign * (1 + man / 1024) * 2 ** (exp - 15);
+}
+
+/** A HeadPose: binary16 weights (a Blob) as a Float32Array, and its moved nodes. */
+function headPose(r) {
+  const blob = r.blob();
+  if (blob.length % 2 !== 0) throw new DecodeError(`${blob.length} bytes of binary16 weights`);
+  const weights = new Float32Array(blob.length / 2);
+  for (let i = 0; i < weights.length; i++) {
+    weights[i] = halfToFloat(r.view.getUint16(blob.offset + 2 * i, true));
+  }
+  const joints = r.vec(() => ({
+    node: r.u32(),
+    rotation: [r.f32(), r.f32(), r.f32(), r.f32()],
+    translation: r.option(() => r.vec3()),
+    scale: r.option(() => r.vec3()),
+  }));
+  return { weights, joints };
+}
+
+function checkPoses(msg) {
+  msg.heads.forEach((h, i) => {
+    if (h.buffer !== HEAD_UNCHANGED && h.buffer !== HEAD_MISSING && h.buffer >= msg.poses.length) {
+      throw new DecodeError(`head ${i} names pose ${h.buffer} of ${msg.poses.length}`);
+    }
+  });
+}
+
+/**
+ * Decodes a `POST /v1/crowd/frame` answer to `"format": "weights"` (bincode CrowdPoseResponse).
+ * @param {ArrayBuffer} buffer
+ * @returns {{format: 'weights', poses: object[], heads: {head: number, buffer: number}[], timings: object}}
+ */
+export function decodeCrowdPoses(buffer) {
+  const r = new Reader(buffer);
+  const format = r.enumIndex(FORMATS, 'Format');
+  if (format !== 'weights') throw new DecodeError(`a ${format} answer, not weights`);
+  const msg = {
+    format,
+    poses: r.vec(() => headPose(r)),
+    heads: r.vec(() => headBuffer(r)),
+    timings: timings(r),
+  };
+  checkPoses(msg);
   r.end();
   return msg;
 }

@@ -16,6 +16,7 @@
 
 pub mod graph;
 pub mod live;
+pub mod pose;
 pub mod session;
 #[cfg(feature = "unpack")]
 pub mod skim;
@@ -24,6 +25,10 @@ pub mod wire;
 
 pub use graph::{BuiltGraph, GraphEdge, GraphInfo, GraphList, GraphNode, GraphPlay, MotionGraph};
 pub use live::{LiveAck, LiveInput, LiveSample, LiveSpec, OneEuro};
+pub use pose::{
+    CrowdPoseResponse, HeadPose, MAX_F16_WEIGHT, NodePose, RigChannels, TickPoses, f16_to_f32,
+    f32_to_f16, weights_f16_le,
+};
 pub use session::{
     Alive, DEFAULT_KEYFRAME_EVERY, DEFAULT_SESSION_FPS, DEFAULT_SESSION_IDLE_TIMEOUT_S,
     HEAD_MISSING, HEAD_UNCHANGED, HeadChange, HeadLayers, LodChoice, MAX_KEYFRAME_EVERY,
@@ -67,6 +72,11 @@ pub enum Format {
     /// 0: the neutral), wrapping, zigzag-coded as u16, sent as two byte planes (all low bytes,
     /// then all high bytes). Decodes bit for bit to q16; small, so it compresses well.
     Q16R,
+    /// No vertex buffer: per head its final weights (binary16) and moved joints, for a client
+    /// that blends itself (variant index 4; a crowd frame answers with a
+    /// [`CrowdPoseResponse`]). Crowd frames only: renders, session viewers (who ask with
+    /// `"output": "weights"`) and load tests refuse it.
+    Weights,
 }
 
 impl Format {
@@ -74,8 +84,13 @@ impl Format {
     pub fn component_bytes(self) -> usize {
         match self {
             Format::F32 => 4,
-            Format::F16 | Format::Q16 | Format::Q16R => 2,
+            Format::F16 | Format::Q16 | Format::Q16R | Format::Weights => 2,
         }
+    }
+
+    /// Whether the format is a vertex buffer's (every format but [`Format::Weights`]).
+    pub fn is_vertices(self) -> bool {
+        self != Format::Weights
     }
 
     /// Whether the payload is int16 in the rig's box (q16, or q16 residuals).
@@ -90,6 +105,7 @@ impl Format {
             Format::F16 => "f16",
             Format::Q16 => "q16",
             Format::Q16R => "q16r",
+            Format::Weights => "weights",
         }
     }
 }
@@ -102,7 +118,10 @@ impl std::str::FromStr for Format {
             "f16" => Ok(Format::F16),
             "q16" => Ok(Format::Q16),
             "q16r" => Ok(Format::Q16R),
-            other => Err(format!("unknown format {other:?} (f32, f16, q16 or q16r)")),
+            "weights" => Ok(Format::Weights),
+            other => Err(format!(
+                "unknown format {other:?} (f32, f16, q16, q16r or weights)"
+            )),
         }
     }
 }

@@ -257,6 +257,9 @@ pub enum ViewerOutput {
     Vertices,
     /// A rendered, encoded image from the viewer's camera ([`TickFrame`]).
     Frames,
+    /// Each head's final weights and moved joints, for a viewer that blends itself
+    /// ([`crate::TickPoses`], variant 5): no engine work for it.
+    Weights,
 }
 
 /// Level of detail of a viewer: one level for every head, or a level by distance from the
@@ -285,7 +288,7 @@ impl Default for LodChoice {
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ViewerHello {
-    /// Vertex buffers or images.
+    /// Vertex buffers, images or poses.
     #[serde(default)]
     pub output: ViewerOutput,
     /// Scalar format of vertex buffers.
@@ -466,4 +469,7 @@ pub enum StreamMessage {
     Packed(PackedMessage),
     /// Variant 4: expression-layer inputs (a viewer that asked for `layers`).
     Layers(TickLayers),
+    /// Variant 5: each changed head's final weights and moved joints (a viewer that asked for
+    /// `"output": "weights"`).
+    Poses(crate::TickPoses),
 }

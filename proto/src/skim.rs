@@ -12,13 +12,14 @@ use crate::{FrameTimings, HEAD_MISSING};
 pub struct TickSummary {
     /// The tick number.
     pub tick: u64,
-    /// Heads the message lists (every session head for vertex buffers; 0 for an image).
+    /// Heads the message lists (every session head for vertex buffers and poses; 0 for an
+    /// image).
     pub heads: u64,
     /// Of those, heads whose new buffer the message carries (neither unchanged nor missing).
     pub changed: u64,
-    /// Buffers the message carries.
+    /// Buffers (or poses) the message carries.
     pub buffers: u64,
-    /// The server's timings of the tick (vertex buffers only).
+    /// The server's timings of the tick (vertex buffers and poses only).
     pub timings: Option<FrameTimings>,
 }
 
@@ -64,6 +65,102 @@ impl Skim<'_> {
             }
         }
         Ok(())
+    }
+
+    /// Passes over an `Option<Vec<SessionHead>>` (a tick's layout).
+    fn skip_layout(&mut self) -> Result<(), StreamError> {
+        if self.some("layout")? {
+            for _ in 0..self.varint("layout")? {
+                self.varint("head id")?;
+                self.skip_bytes("rig")?;
+                self.skip_bytes("clip")?;
+                self.varint("offset")?;
+                // position [f32; 3], yaw and scale: fixed 4-byte floats.
+                self.skip(20, "placement")?;
+                if self.some("graph")? {
+                    self.skip_bytes("graph name")?;
+                    self.skip_bytes("graph start")?;
+                    self.varint("graph seed")?;
+                    for _ in 0..self.varint("graph script")? {
+                        self.skip_bytes("graph script node")?;
+                    }
+                }
+                // Joint overrides: a name, then translation, rotation and scale, each an
+                // `Option` of 3, 4 and 3 fixed 4-byte floats.
+                for _ in 0..self.varint("joints")? {
+                    self.skip_bytes("joint name")?;
+                    for (what, floats) in [("translation", 3), ("rotation", 4), ("scale", 3)] {
+                        if self.some(what)? {
+                            self.skip(4 * floats, what)?;
+                        }
+                    }
+                }
+                for _ in 0..self.varint("layers")? {
+                    self.skip_layer()?;
+                }
+                if self.some("clamp")? {
+                    self.skip(8, "clamp")?;
+                }
+                // Live settings: three durations, a One Euro filter's three floats and a
+                // mapping's name, both optional.
+                if self.some("live")? {
+                    self.varint("live hold_ms")?;
+                    self.varint("live fade_ms")?;
+                    self.varint("live delay_ms")?;
+                    if self.some("live smoothing")? {
+                        self.skip(12, "live smoothing")?;
+                    }
+                    if self.some("live mapping")? {
+                        self.skip_bytes("live mapping")?;
+                    }
+                }
+                // Liveliness: four flags, an optional point (3 fixed 4-byte floats) and an
+                // optional seed.
+                if self.some("alive")? {
+                    self.byte("alive blink")?;
+                    self.byte("alive saccades")?;
+                    if self.some("alive look_at")? {
+                        self.skip(12, "alive look_at")?;
+                    }
+                    self.byte("alive breathing")?;
+                    if self.some("alive seed")? {
+                        self.varint("alive seed")?;
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// A tick's `FrameTimings`.
+    fn timings(&mut self) -> Result<FrameTimings, StreamError> {
+        let queue_us = self.varint("timings")?;
+        let compute_us = self.varint("timings")?;
+        let total_us = self.varint("timings")?;
+        let gpu_us = if self.some("timings")? {
+            Some(self.varint("timings")?)
+        } else {
+            None
+        };
+        Ok(FrameTimings {
+            queue_us,
+            compute_us,
+            total_us,
+            gpu_us,
+        })
+    }
+
+    /// A tick's head entries: (heads, heads whose new buffer or pose it carries).
+    fn head_entries(&mut self) -> Result<(u64, u64), StreamError> {
+        let heads = self.varint("heads")?;
+        let mut changed = 0;
+        for _ in 0..heads {
+            self.varint("head id")?;
+            if self.varint("head buffer")? < u64::from(HEAD_MISSING) {
+                changed += 1;
+            }
+        }
+        Ok((heads, changed))
     }
 
     fn skip(&mut self, n: u64, what: &str) -> Result<(), StreamError> {
@@ -156,66 +253,7 @@ pub fn skim(message: &[u8]) -> Result<TickSummary, StreamError> {
         0 | 2 => {
             s.varint("format")?;
             s.byte("normals")?;
-            if s.some("layout")? {
-                for _ in 0..s.varint("layout")? {
-                    s.varint("head id")?;
-                    s.skip_bytes("rig")?;
-                    s.skip_bytes("clip")?;
-                    s.varint("offset")?;
-                    // position [f32; 3], yaw and scale: fixed 4-byte floats.
-                    s.skip(20, "placement")?;
-                    if s.some("graph")? {
-                        s.skip_bytes("graph name")?;
-                        s.skip_bytes("graph start")?;
-                        s.varint("graph seed")?;
-                        for _ in 0..s.varint("graph script")? {
-                            s.skip_bytes("graph script node")?;
-                        }
-                    }
-                    // Joint overrides: a name, then translation, rotation and scale, each an
-                    // `Option` of 3, 4 and 3 fixed 4-byte floats.
-                    for _ in 0..s.varint("joints")? {
-                        s.skip_bytes("joint name")?;
-                        for (what, floats) in [("translation", 3), ("rotation", 4), ("scale", 3)] {
-                            if s.some(what)? {
-                                s.skip(4 * floats, what)?;
-                            }
-                        }
-                    }
-                    for _ in 0..s.varint("layers")? {
-                        s.skip_layer()?;
-                    }
-                    if s.some("clamp")? {
-                        s.skip(8, "clamp")?;
-                    }
-                    // Live settings: three durations, a One Euro filter's three floats and a
-                    // mapping's name, both optional.
-                    if s.some("live")? {
-                        s.varint("live hold_ms")?;
-                        s.varint("live fade_ms")?;
-                        s.varint("live delay_ms")?;
-                        if s.some("live smoothing")? {
-                            s.skip(12, "live smoothing")?;
-                        }
-                        if s.some("live mapping")? {
-                            s.skip_bytes("live mapping")?;
-                        }
-                    }
-                    // Liveliness: four flags, an optional point (3 fixed 4-byte floats) and an
-                    // optional seed.
-                    if s.some("alive")? {
-                        s.byte("alive blink")?;
-                        s.byte("alive saccades")?;
-                        if s.some("alive look_at")? {
-                            s.skip(12, "alive look_at")?;
-                        }
-                        s.byte("alive breathing")?;
-                        if s.some("alive seed")? {
-                            s.varint("alive seed")?;
-                        }
-                    }
-                }
-            }
+            s.skip_layout()?;
             if variant == 2 {
                 // One residual flag per buffer.
                 let flags = s.varint("residual flags")?;
@@ -237,27 +275,8 @@ pub fn skim(message: &[u8]) -> Result<TickSummary, StreamError> {
                     s.skip_blob("normals")?;
                 }
             }
-            out.heads = s.varint("heads")?;
-            for _ in 0..out.heads {
-                s.varint("head id")?;
-                if s.varint("head buffer")? < u64::from(HEAD_MISSING) {
-                    out.changed += 1;
-                }
-            }
-            let queue_us = s.varint("timings")?;
-            let compute_us = s.varint("timings")?;
-            let total_us = s.varint("timings")?;
-            let gpu_us = if s.some("timings")? {
-                Some(s.varint("timings")?)
-            } else {
-                None
-            };
-            out.timings = Some(FrameTimings {
-                queue_us,
-                compute_us,
-                total_us,
-                gpu_us,
-            });
+            (out.heads, out.changed) = s.head_entries()?;
+            out.timings = Some(s.timings()?);
         }
         1 => {
             s.varint("image format")?;
@@ -272,6 +291,26 @@ pub fn skim(message: &[u8]) -> Result<TickSummary, StreamError> {
                 let n = s.varint("inputs")?;
                 s.skip(n.saturating_mul(4), "inputs")?;
             }
+        }
+        5 => {
+            // Poses: the layout, then per pose its binary16 weights (a blob) and moved nodes
+            // (node, rotation, optional translation and scale), then the heads and timings.
+            s.skip_layout()?;
+            out.buffers = s.varint("poses")?;
+            for _ in 0..out.buffers {
+                s.skip_blob("weights")?;
+                for _ in 0..s.varint("joints")? {
+                    s.varint("node")?;
+                    s.skip(16, "rotation")?;
+                    for what in ["translation", "scale"] {
+                        if s.some(what)? {
+                            s.skip(12, what)?;
+                        }
+                    }
+                }
+            }
+            (out.heads, out.changed) = s.head_entries()?;
+            out.timings = Some(s.timings()?);
         }
         _ => return Err(malformed("unknown variant")),
     }
@@ -423,6 +462,7 @@ mod tests {
         });
         let bytes = crate::wire::to_bincode(&m).unwrap();
         let t = skim(&bytes).unwrap();
+        let t_vertices = t;
         assert_eq!((t.tick, t.heads, t.changed, t.buffers), (1 << 40, 4, 2, 2));
         assert_eq!(
             t.timings,
@@ -490,5 +530,39 @@ mod tests {
         });
         let t = skim(&crate::wire::to_bincode(&frame).unwrap()).unwrap();
         assert_eq!((t.tick, t.heads, t.changed), (9, 0, 0));
+
+        // A weights viewer's tick, with the same layout: poses in place of buffers.
+        let StreamMessage::Delta(d) = delta else {
+            unreachable!()
+        };
+        let pose = crate::HeadPose {
+            weights: Blob(crate::weights_f16_le(&[0.25; 52])),
+            joints: vec![
+                crate::NodePose {
+                    node: 300,
+                    rotation: [0.0, 0.0, 0.0, 1.0],
+                    translation: None,
+                    scale: Some([1.0, 2.0, 1.0]),
+                },
+                crate::NodePose {
+                    node: 7,
+                    rotation: [0.6, 0.0, 0.0, 0.8],
+                    translation: Some([0.0, 1.0, 0.0]),
+                    scale: None,
+                },
+            ],
+        };
+        let poses = StreamMessage::Poses(crate::TickPoses {
+            tick: d.tick,
+            layout: d.layout,
+            poses: vec![pose.clone(), pose],
+            heads: d.heads,
+            timings: d.timings,
+        });
+        let bytes = crate::wire::to_bincode(&poses).unwrap();
+        assert_eq!(skim(&bytes).unwrap(), t_vertices);
+        for n in 0..bytes.len() {
+            assert!(skim(&bytes[..n]).is_err(), "prefix of {n} bytes");
+        }
     }
 }

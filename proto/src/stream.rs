@@ -12,8 +12,8 @@ use std::sync::Arc;
 use crate::session::PackedMessage;
 use crate::session::TickDelta;
 use crate::{
-    Blob, Format, FrameBuffer, HEAD_MISSING, HEAD_UNCHANGED, HeadBuffer, SessionHead,
-    StreamMessage, TickFrame, TickVertices, q16r_decode,
+    Blob, Format, FrameBuffer, HEAD_MISSING, HEAD_UNCHANGED, HeadBuffer, HeadPose, SessionHead,
+    StreamMessage, TickFrame, TickPoses, TickVertices, q16r_decode,
 };
 
 /// Why a message could not be applied.
@@ -55,6 +55,9 @@ pub enum Received {
     /// Expression-layer inputs ([`crate::TickLayers`]), kept per head: this many heads got new
     /// ones ([`StreamState::layer_inputs`]).
     Layers(usize),
+    /// Poses ([`crate::TickPoses`]), applied: `buffers` counts the poses the message carried
+    /// ([`StreamState::pose`]).
+    Poses(Applied),
 }
 
 /// The viewer's picture of the session: the layout and each head's buffer, decoded.
@@ -64,6 +67,7 @@ pub struct StreamState {
     layout: Vec<SessionHead>,
     heads: HashMap<u64, Arc<FrameBuffer>>,
     layers: HashMap<u64, Vec<f32>>,
+    poses: HashMap<u64, Arc<HeadPose>>,
 }
 
 impl StreamState {
@@ -86,6 +90,12 @@ impl StreamState {
     /// residuals already resolved), or `None` when it has nothing to draw.
     pub fn buffer(&self, head: u64) -> Option<&FrameBuffer> {
         self.heads.get(&head).map(|b| &**b)
+    }
+
+    /// The pose a head shows now (variant 5: its weights and moved joints, "unchanged"
+    /// already resolved), or `None` when it has none.
+    pub fn pose(&self, head: u64) -> Option<&HeadPose> {
+        self.poses.get(&head).map(|p| &**p)
     }
 
     /// A head's expression-layer inputs as last sent (variant 4), or `None` when none came.
@@ -147,7 +157,63 @@ impl StreamState {
                 }
                 Ok(Received::Layers(n))
             }
+            StreamMessage::Poses(p) => self.update_poses(p).map(Received::Poses),
         }
+    }
+
+    /// Applies a [`TickPoses`]: each head's pose, "unchanged" resolved to the one it had.
+    fn update_poses(&mut self, p: TickPoses) -> Result<Applied, StreamError> {
+        let TickPoses {
+            tick,
+            layout,
+            poses,
+            heads,
+            ..
+        } = p;
+        let layout = layout.unwrap_or_else(|| self.layout.clone());
+        if heads.len() != layout.len() {
+            return err(format!(
+                "{} head entries for a layout of {}",
+                heads.len(),
+                layout.len()
+            ));
+        }
+        let poses: Vec<Arc<HeadPose>> = poses.into_iter().map(Arc::new).collect();
+        let mut next = HashMap::with_capacity(layout.len());
+        let mut applied = Applied {
+            tick,
+            buffers: poses.len(),
+            ..Applied::default()
+        };
+        for (h, e) in layout.iter().zip(&heads) {
+            if h.head != e.head {
+                return err(format!(
+                    "entry for head {} where the layout has {}",
+                    e.head, h.head
+                ));
+            }
+            let pose = match e.buffer {
+                HEAD_MISSING => continue,
+                HEAD_UNCHANGED => match self.poses.get(&e.head) {
+                    Some(p) => p.clone(),
+                    None => return err(format!("head {} unchanged but never received", e.head)),
+                },
+                i => match poses.get(i as usize) {
+                    Some(p) => {
+                        applied.changed += 1;
+                        p.clone()
+                    }
+                    None => {
+                        return err(format!("head {} names pose {i} of {}", e.head, poses.len()));
+                    }
+                },
+            };
+            next.insert(e.head, pose);
+        }
+        self.tick = tick;
+        self.layout = layout;
+        self.poses = next;
+        Ok(applied)
     }
 
     fn update(

@@ -827,6 +827,9 @@ fn session_messages() {
             }],
         }),
     );
+    // A weights viewer's tick: head 1 unchanged, head 2 a new pose (three weights and one
+    // moved node), head 3's rig gone.
+    pin("stream_poses", &StreamMessage::Poses(poses_tick()));
     pin(
         "stream_frame",
         &StreamMessage::Frame(TickFrame {
@@ -858,6 +861,104 @@ fn session_messages() {
         serde_json::from_str::<ViewerHello>("{}").unwrap(),
         ViewerHello::default()
     );
+}
+
+/// One pose: weights 0.5, 1, −0.25 (binary16 `00 38`, `00 3c`, `00 b4`) and node 2 turned
+/// (rotation 0, 0.6, 0, 0.8) and moved (translation 0, 0.25, 0), at its rest scale.
+fn head_pose() -> HeadPose {
+    HeadPose {
+        weights: Blob(weights_f16_le(&[0.5, 1.0, -0.25])),
+        joints: vec![NodePose {
+            node: 2,
+            rotation: [0.0, 0.6, 0.0, 0.8],
+            translation: Some([0.0, 0.25, 0.0]),
+            scale: None,
+        }],
+    }
+}
+
+fn poses_tick() -> TickPoses {
+    TickPoses {
+        tick: 452,
+        layout: None,
+        poses: vec![head_pose()],
+        heads: vec![
+            HeadBuffer {
+                head: 1,
+                buffer: HEAD_UNCHANGED,
+            },
+            HeadBuffer { head: 2, buffer: 0 },
+            HeadBuffer {
+                head: 3,
+                buffer: HEAD_MISSING,
+            },
+        ],
+        timings: FrameTimings {
+            queue_us: 0,
+            compute_us: 0,
+            total_us: 180,
+            gpu_us: None,
+        },
+    }
+}
+
+/// Poses for clients that blend themselves: a crowd frame's answer to `"format": "weights"`,
+/// the rig's channels, and the viewer hello that asks for them.
+#[test]
+fn pose_messages() {
+    assert_eq!(
+        head_pose().weights.0,
+        [0x00, 0x38, 0x00, 0x3c, 0x00, 0xb4],
+        "binary16, little-endian"
+    );
+    assert_eq!(head_pose().weights_f32(), [0.5, 1.0, -0.25]);
+    pin(
+        "crowd_pose_response",
+        &CrowdPoseResponse {
+            format: Format::Weights,
+            poses: vec![
+                head_pose(),
+                HeadPose {
+                    weights: Blob(weights_f16_le(&[0.0, 0.0, 0.125])),
+                    joints: Vec::new(),
+                },
+            ],
+            heads: vec![
+                HeadBuffer { head: 7, buffer: 0 },
+                HeadBuffer { head: 8, buffer: 1 },
+                HeadBuffer { head: 9, buffer: 0 },
+            ],
+            timings: FrameTimings {
+                queue_us: 0,
+                compute_us: 0,
+                total_us: 95,
+                gpu_us: None,
+            },
+        },
+    );
+    pin(
+        "rig_channels",
+        &RigChannels {
+            rig: "avatar".into(),
+            targets: vec![
+                "jawOpen".into(),
+                "mouthSmile#1".into(),
+                "mouthSmile#2".into(),
+            ],
+            nodes: vec!["Hips".into(), "Neck".into(), "Head".into()],
+        },
+    );
+    // A request for weights is an ordinary crowd frame request whose format is 4.
+    let mut req = request();
+    req.output.format = Format::Weights;
+    let bin = to_bincode(&req).unwrap();
+    assert_eq!(&bin[bin.len() - 3..], [0x00, 0x04, 0x01]);
+    assert_eq!(
+        serde_json::to_value(req.output).unwrap(),
+        serde_json::json!({"normals": false, "format": "weights"})
+    );
+    let hello: ViewerHello = serde_json::from_str(r#"{"output":"weights"}"#).unwrap();
+    assert_eq!(hello.output, ViewerOutput::Weights);
 }
 
 #[test]
@@ -1173,6 +1274,13 @@ fn every_golden_stream_message_skims_as_it_decodes() {
                 tick: l.tick,
                 ..TickSummary::default()
             },
+            StreamMessage::Poses(p) => TickSummary {
+                tick: p.tick,
+                heads: p.heads.len() as u64,
+                changed: count(&p.heads),
+                buffers: p.poses.len() as u64,
+                timings: Some(p.timings),
+            },
             StreamMessage::Packed(p) => {
                 summary(&response_from_bincode::<StreamMessage>(&p.unpack().unwrap()).unwrap())
             }
@@ -1183,6 +1291,7 @@ fn every_golden_stream_message_skims_as_it_decodes() {
         "stream_vertices",
         "stream_frame",
         "stream_layers",
+        "stream_poses",
         "stream_delta_keyframes",
         "stream_delta_residuals",
         "stream_packed_deflate",
@@ -1194,5 +1303,5 @@ fn every_golden_stream_message_skims_as_it_decodes() {
         assert!(skim(&bytes[..bytes.len() - 1]).is_err(), "{name}");
         skimmed += 1;
     }
-    assert_eq!(skimmed, 6);
+    assert_eq!(skimmed, 7);
 }

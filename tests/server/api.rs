@@ -110,6 +110,7 @@ fn check(rig: &Rig, req: &CrowdFrameRequest, resp: &crowdmorph_proto::CrowdFrame
                     Format::F32 => 0.0,
                     Format::F16 => max_coord / 2048.0,
                     Format::Q16 | Format::Q16R => f64::from(b.quantization.unwrap().max_error[a]),
+                    Format::Weights => unreachable!("asked for vertices"),
                 };
             assert!(
                 off <= tol,
@@ -131,6 +132,7 @@ fn check(rig: &Rig, req: &CrowdFrameRequest, resp: &crowdmorph_proto::CrowdFrame
                         Format::Q16 | Format::Q16R => {
                             f64::from(crowdmorph_proto::Q16_NORMAL_MAX_ERROR)
                         }
+                        Format::Weights => unreachable!("asked for vertices"),
                     };
                 let dn = max_diff(&n, &nrm);
                 assert!(

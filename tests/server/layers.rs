@@ -71,7 +71,7 @@ pub(super) fn channels(rig: &crowdmorph::rig::Rig, names: &[&str]) -> Vec<usize>
 }
 
 /// The heads of the weight tests and, for each, its final weights written out here.
-fn layered_heads(rig: &crowdmorph::rig::Rig) -> Vec<(Head, Vec<f64>)> {
+pub(super) fn layered_heads(rig: &crowdmorph::rig::Rig) -> Vec<(Head, Vec<f64>)> {
     let smile = frame_weights(rig, "smile", 5);
     let surprise = |f| frame_weights(rig, "surprise", f);
     let talk = |f| frame_weights(rig, "talk", f);

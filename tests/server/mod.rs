@@ -25,6 +25,7 @@ mod lod;
 mod metrics;
 mod overload;
 mod persistence;
+mod poses;
 mod python_peer;
 mod render;
 mod replicas;
@@ -227,6 +228,7 @@ fn decode(
             .expect("q16 buffers carry their box")
             .dequantize(&blob.to_i16()),
         Format::Q16R => panic!("q16r positions need their reference: decode with q16r_decode"),
+        Format::Weights => panic!("a weights answer has no vertex buffers"),
     }
 }
 

@@ -118,6 +118,7 @@ pub(super) async fn next_tick(ws: &mut Ws) -> TickVertices {
         StreamMessage::Delta(_) | StreamMessage::Packed(_) | StreamMessage::Layers(_) => {
             panic!("asked for plain vertices, got residuals or a packed message")
         }
+        StreamMessage::Poses(_) => panic!("asked for vertices, got poses"),
     }
 }
 

@@ -1134,6 +1134,7 @@ impl PlainViewer {
                         }
                         Ok(Received::Frame(_)) => panic!("the plain viewer got a frame"),
                         Ok(Received::Layers(_)) => panic!("the plain viewer got layers"),
+                        Ok(Received::Poses(_)) => panic!("the plain viewer got poses"),
                         Err(e) => panic!("the plain viewer: {e}"),
                     },
                     Message::Close(c) => panic!("the plain viewer was closed: {c:?}"),
@@ -1538,6 +1539,7 @@ async fn a_layers_viewer_is_sent_each_heads_inputs_when_they_change_before_its_v
                     assert_eq!(state.layer_inputs(9), None, "a rig without layers");
                 }
                 Received::Frame(_) => panic!("a frame"),
+                Received::Poses(_) => panic!("poses for a vertex viewer"),
             }
         }
         logs.push(log);

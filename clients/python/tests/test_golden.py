@@ -27,6 +27,8 @@ GOLDEN = {
     "crowd_frame_request_layered": messages.CrowdFrameRequest,
     "crowd_frame_response": messages.CrowdFrameResponse,
     "crowd_frame_response_q16r": messages.CrowdFrameResponse,
+    "crowd_pose_response": messages.CrowdPoseResponse,
+    "rig_channels": messages.RigChannels,
     "rig_info": messages.RigInfo,
     "rig_list": messages.RigList,
     "lod_info": messages.LodInfo,
@@ -53,6 +55,7 @@ STREAM_GOLDEN = {
     "stream_delta_residuals": "Delta",
     "stream_packed_deflate": "Packed",
     "stream_layers": "Layers",
+    "stream_poses": "Poses",
 }
 
 
@@ -439,8 +442,8 @@ def test_a_huge_declared_length_is_refused_without_allocating():
 
 def test_an_unknown_format_variant_is_a_decode_error():
     raw = bytearray((PROTO_GOLDEN / "crowd_frame_response.bincode").read_bytes())
-    raw[0] = 4  # format: no variant 4 (f32, f16, q16, q16r)
-    with pytest.raises(wire.DecodeError, match="variant 4"):
+    raw[0] = 5  # format: no variant 5 (f32, f16, q16, q16r, weights)
+    with pytest.raises(wire.DecodeError, match="variant 5"):
         wire.decode(messages.CrowdFrameResponse, bytes(raw))
 
 
@@ -463,3 +466,19 @@ def test_error_bodies_become_typed_exceptions():
     e = crowdmorph.errors.error_from_response(502, b"<html>Bad Gateway</html>")
     assert isinstance(e, crowdmorph.ServerError)
     assert e.code == "http_502" and "Bad Gateway" in e.message
+
+
+def test_pose_weights_are_binary16_in_channel_order():
+    raw = (PROTO_GOLDEN / "stream_poses.bincode").read_bytes()
+    msg = wire.decode_as(messages.STREAM_MESSAGE, raw)
+    assert isinstance(msg, messages.TickPoses)
+    (pose,) = msg.poses
+    assert pose.weights_f32() == [0.5, 1.0, -0.25]
+    (node,) = pose.joints
+    assert node.node == 2 and node.translation == [0.0, 0.25, 0.0] and node.scale is None
+    assert list(msg.heads.buffer_indices) == [messages.HEAD_UNCHANGED, 0, messages.HEAD_MISSING]
+    resp = wire.decode(
+        messages.CrowdPoseResponse, (PROTO_GOLDEN / "crowd_pose_response.bincode").read_bytes()
+    )
+    assert resp.format == "weights"
+    assert [p.weights_f32() for p in resp.poses] == [[0.5, 1.0, -0.25], [0.0, 0.0, 0.125]]

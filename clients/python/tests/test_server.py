@@ -168,6 +168,35 @@ def test_blends_and_live_weights(client):
     assert e.value.code == "unknown_targets" and "noSuchShape" in e.value.message
 
 
+def test_poses_are_the_weights_the_server_blends(client):
+    """``crowd_poses``: per head its binary16 weights in the order ``rig_channels`` names;
+    clones share a pose; sent back as live weights they blend to the clip frame's vertices."""
+    info = client.rig(RIG)
+    channels = client.rig_channels(RIG)
+    assert channels.rig == RIG and channels.targets == info.targets and channels.nodes == []
+    poses = client.crowd_poses(
+        [(1, RIG, "talk", 40), (2, RIG, "talk", 40), {"head": 3, "rig": RIG, "weights": {"jawOpen": 0.6}}]
+    )
+    assert poses.format == "weights"
+    assert list(poses.heads.buffer_indices) == [0, 0, 1]
+    live = poses.poses[1].weights_f32()
+    assert len(live) == len(channels.targets)
+    jaw = channels.targets.index("jawOpen")
+    assert abs(live[jaw] - 0.6) <= 0.6 * 2**-11 + 2**-13
+    assert all(w == 0.0 for k, w in enumerate(live) if k != jaw)
+    talk = poses.poses[0].weights_f32()
+    again = client.live_frame(RIG, [talk])
+    frame = client.crowd_frame([(1, RIG, "talk", 40)])
+    diag = diagonal(info.bbox)
+    worst = max(abs(a - b) for a, b in zip(flat(again.positions(0)), flat(frame.positions(0))))
+    assert worst <= 1e-3 * diag, worst
+    with pytest.raises(ValueError):
+        client.crowd_frame([(1, RIG, "talk", 40)], format="weights")
+    with pytest.raises(crowdmorph.BadRequest) as e:
+        client.crowd_poses([crowdmorph.Head(1, RIG, "talk", 40, lod=1)])
+    assert e.value.code == "invalid_output" and "lod" in e.value.message
+
+
 def test_a_large_crowd_round_trips(client):
     talk = client.clip(RIG, "talk")
     heads = [(i * 1000, RIG, "talk", i, 0) for i in range(5000)]

@@ -592,3 +592,32 @@ def test_residuals_and_packed_messages_decode_by_hand():
     )
     with pytest.raises(Exception):
         liar.unpack()
+
+
+@needs_websockets
+def test_a_weights_viewer_gets_each_heads_pose(client, sessions):
+    """``output="weights"``: per head its binary16 weights (one per channel), clones one pose,
+    heads that did not change kept; no vertices travel."""
+    channels = client.rig_channels(RIG)
+    idle = client.clip(RIG, "idle")
+    heads = [(1, RIG, "idle"), (2, RIG, "idle", 0, [1, 0, 0]), (3, RIG, "talk", 5, [2, 0, 0])]
+    info = _create(client, sessions, heads, fps=2 * idle.fps)
+    unchanged = 0
+    with client.stream(info.id, output="weights") as viewer:
+        first = next(viewer)
+        assert isinstance(first, crowdmorph.PoseTick) and first.layout_changed
+        assert sorted(first.poses) == [1, 2, 3]
+        for _ in range(40):
+            t = next(viewer)
+            assert not t.layout_changed
+            assert t.poses[1] is t.poses[2], "clones share a pose"
+            for pose in t.poses.values():
+                assert len(pose.weights_f32()) == len(channels.targets)
+                assert pose.joints == []
+            if not t.changed:
+                unchanged += 1
+            if unchanged >= 2:
+                break
+    assert unchanged >= 2
+    with pytest.raises(ValueError):
+        client.stream(info.id, output="weights", temporal=True)

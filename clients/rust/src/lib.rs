@@ -35,7 +35,8 @@ pub enum Encoding {
 }
 
 impl Encoding {
-    fn content_type(self) -> &'static str {
+    /// The Content-Type of a body in this encoding.
+    pub fn content_type(self) -> &'static str {
         match self {
             Encoding::Json => CONTENT_TYPE_JSON,
             Encoding::Bincode => CONTENT_TYPE_BINCODE,
@@ -580,6 +581,40 @@ impl Client {
             .await?;
         let len = reply.body.len();
         Ok((Self::decode(reply, enc)?, len))
+    }
+
+    /// `POST /v1/crowd/frame` with `"format": "weights"` (whatever `req.output.format` says):
+    /// each head's final weights and moved joints, for a client that blends itself; the
+    /// numbers are named by [`Client::rig_channels`].
+    pub async fn crowd_poses(
+        &self,
+        req: &CrowdFrameRequest,
+        enc: Encoding,
+    ) -> Result<(crowdmorph_proto::CrowdPoseResponse, usize), ClientError> {
+        let mut req = req.clone();
+        req.output.format = crowdmorph_proto::Format::Weights;
+        let path = with_rig_hint("/v1/crowd/frame", req.heads.first().map(|h| h.rig.as_str()));
+        let reply = self
+            .send(
+                Method::POST,
+                &path,
+                Some(enc.content_type()),
+                Some(enc.content_type()),
+                Self::encode(&req, enc)?,
+            )
+            .await?;
+        let len = reply.body.len();
+        Ok((Self::decode(reply, enc)?, len))
+    }
+
+    /// `GET /v1/rigs/{id}/channels`: the rig's weight channels and skeleton nodes, in the
+    /// order a pose ([`Client::crowd_poses`], a weights viewer's ticks) numbers them.
+    pub async fn rig_channels(
+        &self,
+        id: &str,
+    ) -> Result<crowdmorph_proto::RigChannels, ClientError> {
+        self.get(&format!("/v1/rigs/{id}/channels"), Encoding::Json)
+            .await
     }
 
     /// `POST /v1/crowd/frame` for faces driven by live weights (a face tracker's, an

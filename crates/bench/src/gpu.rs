@@ -176,6 +176,9 @@ pub fn bench_gpu(engine: &Engine, rigs: &[Rig], opt: &GpuBenchOptions) -> Result
                 Precision::Q16(crowdmorph_server::registry::quantization_box(&rig))
             }
             crowdmorph_proto::Format::F32 => Precision::F32,
+            crowdmorph_proto::Format::Weights => {
+                anyhow::bail!("bench gpu blends vertices: format weights has none")
+            }
         };
         let prepared = engine
             .prepare(std::sync::Arc::new(rig.clone()))

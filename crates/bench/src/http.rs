@@ -695,6 +695,7 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &HttpBenchOptions) -> Result<HttpB
             Format::Q16 | Format::Q16R => crowdmorph_engine::Precision::Q16(
                 crowdmorph_server::registry::quantization_box(&rig),
             ),
+            Format::Weights => bail!("bench http measures vertex buffers: format weights has none"),
         },
     };
     let inproc = tokio::task::spawn_blocking({

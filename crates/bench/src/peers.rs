@@ -368,6 +368,7 @@ fn positions(format: Format, b: &crowdmorph_proto::FrameBuffer) -> Result<Vec<f3
             .map(|h| half::f16::from_bits(h).to_f32())
             .collect()),
         Format::Q16 | Format::Q16R => bail!("the Python peer does not serve q16"),
+        Format::Weights => bail!("the Python peer does not serve weights"),
     }
 }
 

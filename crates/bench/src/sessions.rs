@@ -51,6 +51,11 @@ pub struct SessionBenchOptions {
     /// Buffer format of every viewer.
     #[arg(long, default_value = "q16", value_parser = super::format_arg())]
     pub format: Format,
+    /// Viewers ask for `"output": "weights"` instead (each changed head's binary16 weights and
+    /// moved joints, no vertices, no engine work; `--format` is then unused; not with
+    /// `--link`).
+    #[arg(long)]
+    pub weights: bool,
     /// Seconds to measure (after one second of warm-up).
     #[arg(long, default_value_t = 10.0)]
     pub seconds: f64,
@@ -378,9 +383,16 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &SessionBenchOptions) -> Result<Se
             })
         })
         .collect();
-    let hello = ViewerHello {
-        format: opt.format,
-        ..ViewerHello::default()
+    let hello = if opt.weights {
+        ViewerHello {
+            output: crowdmorph_proto::ViewerOutput::Weights,
+            ..ViewerHello::default()
+        }
+    } else {
+        ViewerHello {
+            format: opt.format,
+            ..ViewerHello::default()
+        }
     };
     let url = crowdmorph_load::session::stream_url(&format!("http://{addr}"), &session.id)?;
     let mut readers = Vec::new();
@@ -464,7 +476,11 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &SessionBenchOptions) -> Result<Se
         graph: opt.graph,
         viewers: opt.viewers,
         fps: opt.fps,
-        format: opt.format.name().to_string(),
+        format: if opt.weights {
+            "weights".to_string()
+        } else {
+            opt.format.name().to_string()
+        },
         seconds,
         ticks,
         ticks_late: late,

@@ -167,6 +167,13 @@ impl CrowdShape {
         if self.rigs.is_empty() {
             return Err(LoadError::Invalid("name at least one rig".into()));
         }
+        if !self.format.is_vertices() {
+            return Err(LoadError::Invalid(format!(
+                "format {} has no vertex buffers to load the engine with; ask for f32, f16, q16 \
+                 or q16r",
+                self.format.name()
+            )));
+        }
         // Every entry costs a lookup and its rig's clip list while the load is planned, before
         // any body is charged: the lists are capped, not left to the request size.
         for (what, len) in [

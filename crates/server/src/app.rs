@@ -296,6 +296,10 @@ fn resources() -> Router<AppState> {
         )
         .route("/v1/rigs/{id}/layers", get(routes::layers::get_layers))
         .route(
+            "/v1/rigs/{id}/channels",
+            get(routes::channels::get_channels),
+        )
+        .route(
             "/v1/rigs/{id}/layers/{m}",
             get(routes::layers::get_layer_texels),
         )

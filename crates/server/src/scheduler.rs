@@ -301,6 +301,10 @@ impl BatchGroups {
             Format::F16 => Precision::F16,
             // q16 residuals are q16 from the engine, coded against the reference by it.
             Format::Q16 | Format::Q16R => Precision::Q16(slot.entry.qbox),
+            // Never submitted: a weights answer is built from the plan, with no engine work
+            // (`routes::frames`, the session tick's poses). Were one submitted, it would be
+            // blended as f32, not misread.
+            Format::Weights => Precision::F32,
         };
         let gkey = (
             slot.key.generation,

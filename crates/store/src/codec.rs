@@ -257,6 +257,7 @@ impl FrameResponseEncoder {
             Format::F16 => 1,
             Format::Q16 => 2,
             Format::Q16R => 3,
+            Format::Weights => 4,
         });
         self.head.push(u8::from(normals));
     }

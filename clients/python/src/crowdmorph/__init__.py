@@ -46,6 +46,7 @@ from .messages import (
     ClipUpload,
     CrowdFrameRequest,
     CrowdFrameResponse,
+    CrowdPoseResponse,
     FrameBuffer,
     FrameTimings,
     GraphEdge,
@@ -56,6 +57,7 @@ from .messages import (
     Head,
     HeadBuffer,
     HeadBuffers,
+    HeadPose,
     ImageOptions,
     JointChannelSpec,
     JointMapInfo,
@@ -69,6 +71,7 @@ from .messages import (
     MeshPrimitive,
     MeshResponse,
     MotionGraph,
+    NodePose,
     OutputOptions,
     Placement,
     PrimitiveInfo,
@@ -77,6 +80,7 @@ from .messages import (
     Quantization,
     Readiness,
     RenderRequest,
+    RigChannels,
     RigInfo,
     RigList,
     HEAD_MISSING,
@@ -92,6 +96,7 @@ from .messages import (
     PackedMessage,
     TickDelta,
     TickFrame,
+    TickPoses,
     TickVertices,
     as_dict,
     decode_stream_message,
@@ -99,7 +104,7 @@ from .messages import (
 )
 from .obj import write_mtl, write_obj
 from .results import Buffer, CrowdFrame, Image, Mesh
-from .sessions import StreamFrame, Tick, Viewer
+from .sessions import PoseTick, StreamFrame, Tick, Viewer
 from .wire import DecodeError, decode, encode
 
 #: The wire protocol version this client speaks (the ``/v1`` of every path).
@@ -137,6 +142,7 @@ __all__ = [
     "StreamClosed",
     "Viewer",
     "Tick",
+    "PoseTick",
     "StreamFrame",
     "Head",
     "BlendLayer",
@@ -154,6 +160,11 @@ __all__ = [
     "OutputOptions",
     "CrowdFrameRequest",
     "CrowdFrameResponse",
+    "CrowdPoseResponse",
+    "HeadPose",
+    "NodePose",
+    "RigChannels",
+    "TickPoses",
     "FrameBuffer",
     "HeadBuffer",
     "HeadBuffers",

@@ -37,6 +37,7 @@ from .messages import (
     CrowdFrameRequest,
     BuiltGraph,
     CrowdFrameResponse,
+    CrowdPoseResponse,
     GraphInfo,
     GraphList,
     GraphPlay,
@@ -54,6 +55,7 @@ from .messages import (
     Placement,
     Readiness,
     RenderRequest,
+    RigChannels,
     RigInfo,
     RigList,
     SessionHead,
@@ -744,6 +746,8 @@ class Client:
         :class:`~crowdmorph.messages.CrowdFrameResponse` (payloads as bytes; q16r positions
         still residual planes).
         """
+        if format == "weights":
+            raise ValueError("format 'weights' answers with poses, not buffers: use crowd_poses()")
         if format not in ("f32", "f16", "q16", "q16r"):
             raise ValueError(f"format must be 'f32', 'f16', 'q16' or 'q16r', not {format!r}")
         req = CrowdFrameRequest(
@@ -766,6 +770,27 @@ class Client:
             raise ProtocolError(
                 resp.status, "bad_response", str(e), request_id=resp.request_id
             ) from e
+
+    def crowd_poses(self, heads: Iterable[HeadLike], wrap: bool = True) -> CrowdPoseResponse:
+        """``POST /v1/crowd/frame`` with ``"format": "weights"``, for a client that blends
+        itself: per unique head its final weights (``pose.weights_f32()``, one per channel of
+        :meth:`rig_channels`) and the skeleton nodes its pose moves (``pose.joints``); each
+        request head's pose is ``poses[heads[i].buffer]``. No vertices are computed. A head
+        with a ``lod`` other than 0 raises :class:`~crowdmorph.errors.BadRequest`
+        ``invalid_output``."""
+        req = CrowdFrameRequest(
+            heads=heads if isinstance(heads, (list, tuple)) else list(heads),
+            output=OutputOptions(normals=False, format="weights"),
+            wrap=bool(wrap),
+        )
+        path = "/v1/crowd/frame" + _rig_hint(req.heads)
+        resp = self.request("POST", path, encode(req), BINCODE)
+        return self._decode(CrowdPoseResponse, resp)
+
+    def rig_channels(self, rig: str) -> RigChannels:
+        """``GET /v1/rigs/{id}/channels``: the rig's weight channels and skeleton nodes, in
+        the order a pose (:meth:`crowd_poses`, a ``output="weights"`` viewer) numbers them."""
+        return self._decode(RigChannels, self.request("GET", f"/v1/rigs/{_seg(rig)}/channels"))
 
     def q16_reference(self, buffer: Any) -> bytes:
         """The q16 reference of a ``q16r`` buffer (its rig, LOD and box): the q16 positions of
@@ -1034,6 +1059,10 @@ class Client:
         (``"deflate"`` or ``"zstd"``, the latter needing ``pip install 'crowdmorph[zstd]'``)
         has it compress every message. Both are decoded here: the ticks are bit for bit a
         plain q16 viewer's (plus ``wire_bytes``, ``keyframes`` and ``from_residuals``).
+        ``output="weights"`` (for a client that blends itself) yields
+        :class:`~crowdmorph.sessions.PoseTick` objects instead: per head its final weights
+        and moved joints (:meth:`rig_channels` names them), no vertices; ``format``,
+        ``normals``, ``lod`` and ``temporal`` do not apply to it.
         ``timeout`` (seconds; default: the client's) bounds the opening handshake and each
         wait for a message; ``max_message`` is the largest message taken, in bytes (``None``:
         no limit; a larger one closes the stream with 1009). An unknown session raises

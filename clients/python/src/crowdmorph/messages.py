@@ -14,6 +14,7 @@ from __future__ import annotations
 import base64
 import dataclasses
 import operator
+import struct
 from array import array
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -103,6 +104,13 @@ __all__ = [
     "TickFrame",
     "TickDelta",
     "PackedMessage",
+    "TickLayers",
+    "HeadLayers",
+    "NodePose",
+    "HeadPose",
+    "CrowdPoseResponse",
+    "RigChannels",
+    "TickPoses",
     "MESSAGE_ENCODINGS",
     "MAX_UNPACKED_BYTES",
     "STREAM_MESSAGE",
@@ -113,8 +121,9 @@ __all__ = [
     "as_dict",
 ]
 
-#: Vertex formats by bincode variant index.
-FORMATS = ("f32", "f16", "q16", "q16r")
+#: Crowd-frame formats by bincode variant index: the vertex formats, then ``weights`` (no
+#: vertices: each head's pose, answered with a :class:`CrowdPoseResponse`).
+FORMATS = ("f32", "f16", "q16", "q16r", "weights")
 #: Image formats of rendered frames by bincode variant index.
 IMAGE_FORMATS = ("png", "jpeg", "rgba")
 #: Compressions of packed stream messages (``MessageEncoding``) by bincode variant index.
@@ -1710,10 +1719,99 @@ class TickLayers:
     heads: List[HeadLayers]
 
 
-#: ``StreamMessage``: the binary messages of a session stream, by variant index.
-STREAM_MESSAGE = Tagged(TickVertices, TickFrame, TickDelta, PackedMessage, TickLayers)
+# ---------------------------------------------------------------------------------------------
+# Poses for clients that blend themselves (``"format": "weights"``, ``"output": "weights"``).
 
-StreamMessage = Union[TickVertices, TickFrame, TickDelta, PackedMessage, TickLayers]
+
+@wire(
+    ("node", U32),
+    ("rotation", F32X4),
+    ("translation", Opt(F32X3)),
+    ("scale", Opt(F32X3)),
+)
+@dataclass
+class NodePose:
+    """A skeleton node's local transform in a pose, where it differs from rest: ``node``
+    indexes :attr:`RigChannels.nodes`; ``rotation`` (x, y, z, w) is always given,
+    ``translation`` and ``scale`` only where they differ from the node's rest values."""
+
+    node: int
+    rotation: List[float]
+    translation: Optional[List[float]] = None
+    scale: Optional[List[float]] = None
+
+
+@wire(("weights", BLOB), ("joints", Vec(Msg(NodePose))))
+@dataclass
+class HeadPose:
+    """One head's final pose: ``weights``, one IEEE binary16 per weight channel
+    (little-endian, in :attr:`RigChannels.targets` order; :meth:`weights_f32` reads them), and
+    ``joints``, every skeleton node not at rest (nodes not listed are at rest)."""
+
+    weights: Any
+    joints: List[NodePose] = field(default_factory=list)
+
+    def weights_f32(self) -> List[float]:
+        """The weights as Python floats (binary16 values, exactly)."""
+        raw = bytes(self.weights)
+        if len(raw) % 2:
+            raise DecodeError(f"{len(raw)} bytes of binary16 weights")
+        return list(struct.unpack(f"<{len(raw) // 2}e", raw))
+
+
+@wire(
+    ("format", FORMAT),
+    ("poses", Vec(Msg(HeadPose))),
+    ("heads", _HeadBufferVec()),
+    ("timings", Msg(FrameTimings)),
+)
+@dataclass
+class CrowdPoseResponse:
+    """``POST /v1/crowd/frame`` response to ``"format": "weights"``: unique poses (clones share
+    one) and per request head the index of its pose; ``format`` is always ``"weights"``."""
+
+    format: str
+    poses: List[HeadPose]
+    heads: HeadBuffers
+    timings: FrameTimings
+
+
+@wire(("rig", STR), ("targets", Vec(STR)), ("nodes", Vec(STR)))
+@dataclass
+class RigChannels:
+    """``GET /v1/rigs/{id}/channels``: the rig's weight channels (``name``, or ``name#k`` for
+    a name with several) and its skeleton's nodes, in the order poses number them."""
+
+    rig: str
+    targets: List[str]
+    nodes: List[str]
+
+
+@wire(
+    ("tick", U64),
+    ("layout", Opt(Vec(Msg(SessionHead)))),
+    ("poses", Vec(Msg(HeadPose))),
+    ("heads", _HeadBufferVec()),
+    ("timings", Msg(FrameTimings)),
+)
+@dataclass
+class TickPoses:
+    """Stream message variant 5, for a viewer whose hello asked for ``"output": "weights"``:
+    the poses of the heads whose pose changed since the viewer's last message; ``heads`` has
+    one entry per layout head (an index into ``poses``, :data:`HEAD_UNCHANGED` or
+    :data:`HEAD_MISSING`)."""
+
+    tick: int
+    layout: Optional[List[SessionHead]]
+    poses: List[HeadPose]
+    heads: HeadBuffers
+    timings: FrameTimings
+
+
+#: ``StreamMessage``: the binary messages of a session stream, by variant index.
+STREAM_MESSAGE = Tagged(TickVertices, TickFrame, TickDelta, PackedMessage, TickLayers, TickPoses)
+
+StreamMessage = Union[TickVertices, TickFrame, TickDelta, PackedMessage, TickLayers, TickPoses]
 
 
 def decode_stream_message(data: Any) -> StreamMessage:

@@ -43,6 +43,7 @@ from .messages import (
     SessionHead,
     TickDelta,
     TickFrame,
+    TickPoses,
     TickVertices,
     _zstandard,
     as_dict,
@@ -52,7 +53,16 @@ from .messages import (
 from .results import Buffer, Image
 from .wire import DecodeError
 
-__all__ = ["Viewer", "Tick", "StreamFrame", "open_viewer", "hello", "lod_json", "camera_json"]
+__all__ = [
+    "Viewer",
+    "Tick",
+    "PoseTick",
+    "StreamFrame",
+    "open_viewer",
+    "hello",
+    "lod_json",
+    "camera_json",
+]
 
 #: What to install when the WebSocket library is missing (or older than 11).
 INSTALL_HINT = "pip install 'crowdmorph[sessions]' (or pip install 'websockets>=11')"
@@ -121,6 +131,36 @@ class Tick:
         )
 
 
+class PoseTick:
+    """One tick of a viewer that asked for ``output="weights"``, after applying "unchanged":
+    ``tick``, ``layout`` (and ``layout_changed``), ``poses`` (head id →
+    :class:`~crowdmorph.messages.HeadPose`: its binary16 weights, ``weights_f32()``, and moved
+    joints; clones share one), ``changed`` and ``missing`` ids, ``timings``, the raw
+    :class:`~crowdmorph.messages.TickPoses` as ``message`` and ``wire_bytes``."""
+
+    __slots__ = (
+        "tick",
+        "layout",
+        "layout_changed",
+        "poses",
+        "changed",
+        "missing",
+        "timings",
+        "message",
+        "wire_bytes",
+    )
+
+    def __init__(self, **kw: Any):
+        for k, v in kw.items():
+            setattr(self, k, v)
+
+    def __repr__(self) -> str:
+        return (
+            f"PoseTick({self.tick}, heads={len(self.layout)}, changed={len(self.changed)}, "
+            f"missing={len(self.missing)})"
+        )
+
+
 class StreamFrame:
     """One tick drawn by the server from the viewer's camera (``output="frames"``):
     ``tick`` and ``image`` (:class:`~crowdmorph.results.Image` bytes with ``width``,
@@ -184,6 +224,8 @@ class Viewer:
         self.positions: Dict[int, Any] = {}
         self.normals: Dict[int, Any] = {}
         self.buffers: Dict[int, Buffer] = {}
+        #: For an ``output="weights"`` viewer: head id → its pose (``HeadPose``).
+        self.poses: Dict[int, Any] = {}
         self._missing: set = set()
         self._closing = False
         #: How the stream ended (``None`` while open).
@@ -228,7 +270,54 @@ class Viewer:
             if isinstance(msg, TickFrame):
                 self.tick = msg.tick
                 return StreamFrame(msg, len(data))
+            if isinstance(msg, TickPoses):
+                return self._apply_poses(msg, len(data))
             return self._apply(msg, len(data), compression)
+
+    def _apply_poses(self, m: TickPoses, wire_bytes: int) -> "PoseTick":
+        """Applies one poses message: every layout head gets its new pose, keeps its last
+        one (``HEAD_UNCHANGED``) or has none (``HEAD_MISSING``). A message that does not fit
+        what came before raises :class:`ProtocolError` and changes nothing."""
+
+        def bad(why: str) -> ProtocolError:
+            return ProtocolError(101, "bad_stream_message", f"tick {m.tick}: {why}")
+
+        layout = self.layout if m.layout is None else m.layout
+        ids, entries = m.heads.head_ids, m.heads.buffer_indices
+        if len(ids) != len(layout):
+            raise bad(f"{len(ids)} heads for a layout of {len(layout)}")
+        prev = self.poses
+        poses: Dict[int, Any] = {}
+        changed: List[int] = []
+        missing: List[int] = []
+        for i, (hid, b) in enumerate(zip(ids, entries)):
+            if hid != layout[i].head:
+                raise bad(f"head {hid} where the layout has {layout[i].head}")
+            if b == HEAD_MISSING:
+                missing.append(hid)
+            elif b == HEAD_UNCHANGED:
+                if hid not in prev:
+                    raise bad(f"head {hid} is unchanged but had no pose yet")
+                poses[hid] = prev[hid]
+            elif b >= len(m.poses):
+                raise bad(f"head {hid} names pose {b} of {len(m.poses)}")
+            else:
+                poses[hid] = m.poses[b]
+                changed.append(hid)
+        self.layout = layout
+        self.poses = poses
+        self.tick = m.tick
+        return PoseTick(
+            tick=m.tick,
+            layout=layout,
+            layout_changed=m.layout is not None,
+            poses=dict(poses),
+            changed=changed,
+            missing=missing,
+            timings=m.timings,
+            message=m,
+            wire_bytes=wire_bytes,
+        )
 
     def _apply(
         self,
@@ -466,8 +555,25 @@ def hello(
     the server's to say: it refuses the others with close 1008 and the reason.
     ``compression="zstd"`` needs the ``zstandard`` package (:class:`ImportError` saying what
     to install, before any connection)."""
-    if output not in ("vertices", "frames"):
-        raise ValueError(f"output must be 'vertices' or 'frames', not {output!r}")
+    if output not in ("vertices", "frames", "weights"):
+        raise ValueError(f"output must be 'vertices', 'frames' or 'weights', not {output!r}")
+    if output == "weights":
+        # Poses have no vertex format, normals or LOD: only compression goes with them.
+        if temporal or keyframe_every is not None or normals or lod_json(lod) != 0:
+            raise ValueError(
+                "output 'weights' takes no temporal, keyframe_every, normals or lod: a pose "
+                "is each head's whole pose"
+            )
+        weights: Dict[str, Any] = {"output": "weights"}
+        if compression is not None:
+            if compression not in MESSAGE_ENCODINGS:
+                raise ValueError(
+                    f"compression must be 'zstd', 'deflate' or None, not {compression!r}"
+                )
+            if compression == "zstd":
+                _zstandard()
+            weights["compression"] = compression
+        return weights
     if format not in ("f32", "f16", "q16"):
         raise ValueError(f"format must be 'f32', 'f16' or 'q16', not {format!r}")
     msg: Dict[str, Any] = {

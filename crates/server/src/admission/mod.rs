@@ -1,7 +1,8 @@
 //! Admission: what a request costs, charged before any of its work — the queue memory and its
 //! charges ([`memory`]), the render budgets ([`render`]), heads resolved into priced jobs
-//! ([`resolve`]), the names they match ([`names`]) and their layers ([`layers`], shared with
-//! session ticks), and a session head's liveliness ([`alive`]). [`Decoded`] is the extractor of a request body: it hands a handler the
+//! ([`resolve`]), the names they match ([`names`]), their layers ([`layers`], shared with
+//! session ticks), their final poses for clients that blend themselves ([`poses`]), a session
+//! head's liveliness ([`alive`]) and live input ([`live`]). [`Decoded`] is the extractor of a request body: it hands a handler the
 //! decoded value only together with its charge.
 
 pub mod alive;
@@ -9,6 +10,7 @@ pub mod layers;
 pub mod live;
 pub mod memory;
 pub mod names;
+pub mod poses;
 pub mod render;
 pub mod resolve;
 

@@ -3,7 +3,8 @@
 //! against one snapshot of each rig, unique jobs), [`admit`] (the output memory the jobs will
 //! hold), [`compute`] (the batcher, within the deadline) and [`encode`] (bincode or JSON,
 //! sharing the engine's buffers). `POST /v1/loadtest` runs the same pipeline for its synthetic
-//! requests ([`crowd_frame_from`]).
+//! requests ([`crowd_frame_from`]). A request for `"format": "weights"` takes a shorter one
+//! ([`poses`]): planned the same way, answered with each unique job's final pose, no engine.
 
 use std::collections::HashMap;
 use std::time::{Duration, Instant};
@@ -14,9 +15,11 @@ use axum::http::{HeaderMap, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use bytes::Bytes;
 use crowdmorph_proto::{
-    CONTENT_TYPE_BINCODE, CONTENT_TYPE_JSON, CrowdFrameRequest, Format, FrameTimings, HeadBuffer,
+    CONTENT_TYPE_BINCODE, CONTENT_TYPE_JSON, CrowdFrameRequest, CrowdPoseResponse, Format,
+    FrameTimings, HeadBuffer, HeadPose,
 };
 
+use crate::admission::poses::{head_pose, invalid_output, pose_bytes, scratch_bytes};
 use crate::admission::resolve::{heads_held_bytes, job_output_bytes, job_request};
 use crate::admission::{
     Admission, Charge, Held, Priced, ResolvedHeads, decode_held, resolve_heads,
@@ -102,6 +105,9 @@ async fn frame(
     Ready::check(state.is_ready())?;
     let accept = Accept::of(headers);
     let req = decode(state, headers, body).await?;
+    if req.output.format == Format::Weights {
+        return poses(state, arrived, accept, req, source).await;
+    }
     let planned = after_lookups(state, &req.heads, || plan(state, &req)).await?;
     let mut admitted = admit(state, &req, planned, accept)?;
     let outcome = compute(state, arrived, &req, &mut admitted, source).await?;
@@ -410,4 +416,103 @@ async fn json_frame(
         ))
     })
     .await
+}
+
+/// The pipeline of a `"format": "weights"` request: checked (no normals, no LOD level: a pose
+/// is the head's whole pose), planned as any crowd frame (so clones share a pose and every 4xx
+/// is the same), its poses' bytes charged, then each unique job's final pose built and encoded
+/// — no batch, no engine.
+async fn poses(
+    state: &AppState,
+    arrived: Instant,
+    accept: Accept,
+    req: Held<CrowdFrameRequest>,
+    source: Source,
+) -> ApiResult {
+    if req.output.normals {
+        return Err(invalid_output(
+            "output.normals: a weights answer has no vertices to give normals of; ask for \
+             \"normals\": false"
+                .into(),
+        ));
+    }
+    if let Some((h, head)) = req.heads.iter().enumerate().find(|(_, h)| h.lod != 0) {
+        return Err(invalid_output(format!(
+            "head {h} (id {}): lod {} with format weights; a weights answer is the head's whole \
+             pose (LOD levels cut what the server blends): leave lod at 0",
+            head.head, head.lod
+        )));
+    }
+    let ResolvedHeads {
+        rigs,
+        plan,
+        charge: resolved_charge,
+    } = after_lookups(state, &req.heads, || plan(state, &req)).await?;
+    let json = !accept.bincode;
+    // Each unique pose, its encoding and the posing scratch; the heads' entries.
+    let mut bytes = plan.head_job.len() as u64 * 2 * size_of::<HeadBuffer>() as u64 + 256;
+    let mut scratch = 0;
+    for k in &plan.jobs {
+        let rig = rigs[k.rig as usize].rig();
+        bytes = bytes.saturating_add(pose_bytes(rig, json));
+        scratch = scratch_bytes(rig).max(scratch);
+    }
+    let mut charge = state.queue_memory.reserve(bytes.saturating_add(scratch))?;
+    let (req, held) = req.into_parts();
+    charge.merge(held);
+    if let Some(c) = resolved_charge {
+        charge.merge(c);
+    }
+    let mut locals = Vec::new();
+    let poses: Vec<HeadPose> = plan
+        .jobs
+        .iter()
+        .map(|k| head_pose(rigs[k.rig as usize].rig(), &k.pose, &k.joints, &mut locals))
+        .collect();
+    drop(locals);
+    let heads: Vec<HeadBuffer> = req
+        .heads
+        .iter()
+        .zip(&plan.head_job)
+        .map(|(h, &j)| HeadBuffer {
+            head: h.head,
+            buffer: j,
+        })
+        .collect();
+    state.metrics.served_to(source, req.heads.len() as u64);
+    state.metrics.request_heads.observe(req.heads.len() as f64);
+    let answer = CrowdPoseResponse {
+        format: Format::Weights,
+        poses,
+        heads,
+        timings: FrameTimings {
+            queue_us: 0,
+            compute_us: 0,
+            total_us: arrived.elapsed().as_micros() as u64,
+            gpu_us: None,
+        },
+    };
+    let body = if accept.bincode {
+        crowdmorph_store::codec::to_wire(&answer).map_err(ApiError::internal)?
+    } else {
+        serde_json::to_vec(&answer).map_err(ApiError::internal)?
+    };
+    drop(answer);
+    state
+        .metrics
+        .request_seconds
+        .observe(arrived.elapsed().as_secs_f64());
+    let mut resp = (
+        StatusCode::OK,
+        [(header::CONTENT_TYPE, accept.content_type())],
+        chunked_body(vec![Bytes::from(body)], charge),
+    )
+        .into_response();
+    if let Some(v) = ServerTiming::default()
+        .with("total", arrived.elapsed())
+        .header()
+    {
+        resp.headers_mut().insert(SERVER_TIMING, v);
+    }
+    Ok(resp)
 }

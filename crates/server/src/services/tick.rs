@@ -3,6 +3,10 @@
 //! relative to what each viewer last received. The fan-out of tick N runs on a blocking thread
 //! while tick N + 1 is resolved and blended (one in flight, so outboxes get messages in tick
 //! order). The tick task is supervised: a panic, in it or in its fan-out, ends its session.
+//! Viewers that blend themselves get each head's resolved pose instead ([`poses`]), with no
+//! engine work.
+
+mod poses;
 
 use std::collections::HashMap;
 use std::sync::atomic::Ordering;
@@ -290,6 +294,14 @@ async fn tick_once<S: Ticking>(
     for (v, s) in std::mem::take(&mut grouped.frames) {
         start_frame(state, session, &heads, &resolved, tick, v, s);
     }
+    let posed = poses::TickPosesInput {
+        tick,
+        heads: &heads,
+        layout_rev,
+        resolved: &resolved,
+        arrived,
+    };
+    poses::fan_out(state, session, &posed, &std::mem::take(&mut grouped.poses));
     if grouped.groups.iter().all(|g| g.jobs.is_empty()) && grouped.plans.is_empty() {
         return Ticked::Delivered(0);
     }
@@ -700,6 +712,8 @@ struct Grouped {
     /// Per vertex viewer: its group and its job (an index into the group's) per head.
     plans: Vec<(Arc<Viewer>, usize, Vec<Option<u32>>)>,
     frames: Vec<(Arc<Viewer>, ViewerSettings)>,
+    /// The viewers that blend themselves ([`poses`]).
+    poses: Vec<(Arc<Viewer>, ViewerSettings)>,
 }
 
 /// Group: each vertex viewer's job per head (its LOD fixed or by distance from its camera),
@@ -708,10 +722,15 @@ fn group(resolved: &Resolved, heads: &[SessionHead], viewers: &[Arc<Viewer>]) ->
     let mut groups: Vec<Group> = Vec::new();
     let mut plans = Vec::new();
     let mut frames = Vec::new();
+    let mut poses = Vec::new();
     for v in viewers {
         let Some(s) = v.settings() else { continue };
         if s.output == ViewerOutput::Frames {
             frames.push((v.clone(), s));
+            continue;
+        }
+        if s.output == ViewerOutput::Weights {
+            poses.push((v.clone(), s));
             continue;
         }
         let g = match groups
@@ -737,6 +756,7 @@ fn group(resolved: &Resolved, heads: &[SessionHead], viewers: &[Arc<Viewer>]) ->
         groups,
         plans,
         frames,
+        poses,
     }
 }
 

@@ -7,6 +7,8 @@
 //! |---|---|
 //! | [`delta`] | temporal residuals against each viewer's baseline, and packed (zstd, zlib) messages |
 //! | [`encode`] | vertex, delta and layer messages encoded, their bytes charged before they are allocated |
+//! | [`poses`] | a weights viewer's poses message encoded, charged before it is allocated |
 
 pub(crate) mod delta;
 pub(crate) mod encode;
+pub(crate) mod poses;

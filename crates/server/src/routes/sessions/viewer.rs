@@ -102,6 +102,21 @@ fn check_modes(hello: &ViewerHello) -> Result<Option<u32>, (u16, String)> {
              true and format q16",
         );
     }
+    if hello.format == Format::Weights {
+        return refuse(
+            "format weights is for crowd frames; a viewer asks for poses with \"output\": \
+             \"weights\"",
+        );
+    }
+    if hello.output == ViewerOutput::Weights {
+        check_weights(hello).map_err(|why| {
+            (
+                close::POLICY,
+                close::truncate(format!("bad hello: output weights {why}")),
+            )
+        })?;
+        return Ok(None);
+    }
     let frames = hello.output == ViewerOutput::Frames;
     if frames && hello.temporal {
         return refuse("temporal residuals are for vertex buffers, not output frames");
@@ -126,6 +141,28 @@ fn check_modes(hello: &ViewerHello) -> Result<Option<u32>, (u16, String)> {
         (true, n) => Ok(Some(n.unwrap_or(DEFAULT_KEYFRAME_EVERY))),
         (false, None) => Ok(None),
     }
+}
+
+/// What a viewer asking for poses may not ask for besides: they are the heads' whole poses
+/// (no LOD level cuts them), with no vertices to format, give normals of, code as residuals
+/// or draw layers on. `Err` is the end of the reason.
+fn check_weights(hello: &ViewerHello) -> Result<(), &'static str> {
+    if hello.format != Format::F32 {
+        return Err("has no vertex format (leave format out)");
+    }
+    if hello.normals {
+        return Err("has no normals");
+    }
+    if hello.temporal || hello.keyframe_every.is_some() {
+        return Err("has no temporal residuals (an unchanged head is already marked unchanged)");
+    }
+    if hello.layers {
+        return Err("has no layer inputs (a viewer that blends itself has the weights)");
+    }
+    if hello.lod != crowdmorph_proto::LodChoice::Fixed(0) {
+        return Err("is each head's whole pose: no LOD level (leave lod out)");
+    }
+    Ok(())
 }
 
 fn socket_error(e: &axum::Error) -> (u16, String) {
@@ -243,6 +280,16 @@ fn apply_update(viewer: &Viewer, text: &str) -> Result<(), (u16, String)> {
     }
     if let Some(l) = &update.lod {
         crate::sessions::check_lod(l)?;
+        if *l != crowdmorph_proto::LodChoice::Fixed(0)
+            && viewer
+                .settings()
+                .is_some_and(|s| s.output == ViewerOutput::Weights)
+        {
+            return Err((
+                close::POLICY,
+                "bad update: output weights is each head's whole pose: no LOD level".into(),
+            ));
+        }
     }
     if let Ok(mut s) = viewer.settings.lock() {
         if let Some(c) = update.camera {
