@@ -15,6 +15,7 @@
 #![warn(missing_docs)]
 
 pub mod graph;
+pub mod mapping;
 pub mod session;
 #[cfg(feature = "unpack")]
 pub mod skim;
@@ -22,6 +23,7 @@ pub mod stream;
 pub mod wire;
 
 pub use graph::{BuiltGraph, GraphEdge, GraphInfo, GraphList, GraphNode, GraphPlay, MotionGraph};
+pub use mapping::{MapEntry, MapOverride, MapSource, Mapping, MappingInfo, MappingList, MaskInfo, MaskList};
 pub use session::{
     DEFAULT_KEYFRAME_EVERY, DEFAULT_SESSION_FPS, DEFAULT_SESSION_IDLE_TIMEOUT_S, HEAD_MISSING,
     HEAD_UNCHANGED, HeadChange, HeadLayers, LodChoice, MAX_KEYFRAME_EVERY, MessageEncoding,
@@ -279,6 +281,11 @@ pub struct Head {
     /// Every final weight clamped into `[lo, hi]`, after layers and weights.
     #[serde(default)]
     pub clamp: Option<[f32; 2]>,
+    /// A mapping of the rig (`GET /v1/rigs/{id}/mappings`: `arkit`, `a2f`,
+    /// `oculus-visemes`, `vrm` or one of its own) that `weights` by name go through first:
+    /// their names are the mapping's sources. Dense weights with a mapping are a 400.
+    #[serde(default)]
+    pub mapping: Option<String>,
 }
 
 /// Most layers one head may have.
@@ -1156,7 +1163,7 @@ pub struct Placement {
     pub scale: f32,
 }
 
-fn one() -> f32 {
+pub(crate) fn one() -> f32 {
     1.0
 }
 

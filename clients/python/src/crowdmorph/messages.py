@@ -314,6 +314,7 @@ class Layer:
 
 
 _LAYERS = Vec(Msg(Layer))
+_MAPPING = Opt(STR)
 class _Clamp:
     """``Option<[f32; 2]>``: a fixed pair, no length."""
 
@@ -360,6 +361,7 @@ def _of_head_layer(x: Any) -> Layer:
     ("layers", _LAYERS),
     ("weights_mode", LAYER_MODE),
     ("clamp", CLAMP),
+    ("mapping", _MAPPING),
 )
 @dataclass
 class Head:
@@ -372,7 +374,9 @@ class Head:
     dicts with :class:`JointTransform`'s keys work too). Up to eight ``layers``
     (:class:`Layer` or dicts) go over that pose in order; ``weights`` sent with a ``clip``
     replace the targets they name (``weights_mode="additive"``: are added), after the layers;
-    ``clamp`` (``[lo, hi]``) bounds every final weight."""
+    ``clamp`` (``[lo, hi]``) bounds every final weight. ``mapping`` names a mapping of the rig
+    (``"arkit"``, ``"a2f"``, ``"oculus-visemes"``, ``"vrm"`` or one of its own) that named
+    ``weights`` go through first: their names are the mapping's sources."""
 
     head: int
     rig: str
@@ -385,6 +389,7 @@ class Head:
     layers: List[Layer] = field(default_factory=list)
     weights_mode: str = "override"
     clamp: Optional[Sequence[float]] = None
+    mapping: Optional[str] = None
 
     def __post_init__(self) -> None:
         j = self.joints
@@ -428,10 +433,12 @@ class _HeadVec:
             layers: Any = ()
             weights_mode: Any = "override"
             clamp: Any = None
+            mapping: Any = None
             if type(h) is Head:
                 hid, rig, clip, frame, lod = h.head, h.rig, h.clip, h.frame, h.lod
                 blend, weights, joints = h.blend, h.weights, h.joints
                 layers, weights_mode, clamp = h.layers, h.weights_mode, h.clamp
+                mapping = h.mapping
             elif isinstance(h, (tuple, list)):
                 if len(h) == 4:
                     hid, rig, clip, frame = h
@@ -445,10 +452,12 @@ class _HeadVec:
                 joints = h.get("joints")
                 layers, clamp = h.get("layers", ()), h.get("clamp")
                 weights_mode = h.get("weights_mode", "override")
+                mapping = h.get("mapping")
             elif isinstance(h, Head):
                 hid, rig, clip, frame, lod = h.head, h.rig, h.clip, h.frame, h.lod
                 blend, weights, joints = h.blend, h.weights, h.joints
                 layers, weights_mode, clamp = h.layers, h.weights_mode, h.clamp
+                mapping = h.mapping
             else:
                 raise TypeError(
                     "a head is a Head, a dict or a (head, rig, clip, frame[, lod]) tuple, "
@@ -497,6 +506,10 @@ class _HeadVec:
                 _LAYERS.write(w, [_of_head_layer(x) for x in layers])
                 LAYER_MODE.write(w, weights_mode)
                 CLAMP.write(w, clamp)
+            if mapping is None:
+                out.append(0)  # mapping = None
+            else:
+                _MAPPING.write(w, mapping)
 
 
 def _of_layer(b: Any) -> BlendLayer:
