@@ -1,10 +1,11 @@
 //! Admission: what a request costs, charged before any of its work — the queue memory and its
 //! charges ([`memory`]), the render budgets ([`render`]), heads resolved into priced jobs
-//! ([`resolve`]), the names they match ([`names`]) and their layers ([`layers`], shared with
-//! session ticks). [`Decoded`] is the extractor of a request body: it hands a handler the
+//! ([`resolve`]), the names they match ([`names`]), their layers ([`layers`], shared with
+//! session ticks) and mappings ([`mapping`]). [`Decoded`] is the extractor of a request body: it hands a handler the
 //! decoded value only together with its charge.
 
 pub mod layers;
+pub mod mapping;
 pub mod memory;
 pub mod names;
 pub mod render;
