@@ -248,6 +248,13 @@ impl MapTable {
         self.rules.len()
     }
 
+    /// The targets some entry reaches, ascending, each once.
+    pub fn targets(&self) -> Vec<u32> {
+        let mut t: Vec<u32> = self.terms.iter().map(|t| t.target).collect();
+        t.dedup();
+        t
+    }
+
     /// Heap bytes it holds.
     pub fn heap_bytes(&self) -> u64 {
         (self.rules.len() * size_of::<SourceRule>()

@@ -289,6 +289,16 @@ impl ResolvedMapping {
             .or_else(|| self.loose.get(&loose(name)).copied().flatten())
     }
 
+    /// Whether `name` is one of its sources (exactly, else by its one loose spelling).
+    pub(crate) fn is_source(&self, name: &str) -> bool {
+        self.source(name).is_some()
+    }
+
+    /// The channels it can set, ascending, each once.
+    pub(crate) fn channels(&self) -> Vec<u32> {
+        self.table.targets()
+    }
+
     /// Bytes [`ResolvedMapping::map`] holds for `inputs` values: a value per source slot and
     /// a pair per term.
     pub(crate) fn map_bytes(&self) -> u64 {
@@ -372,6 +382,8 @@ pub fn map_named_bytes(entry: &RigEntry, maps: &RigMaps, name: &str, inputs: usi
 /// `invalid_weights` for bad input. The caller charges [`map_named_bytes`] first. It resolves
 /// the mapping on every call; a caller that maps many inputs of one mapping resolves it once
 /// ([`resolve_mapping`]) and calls [`ResolvedMapping::map`].
+// The live input of session heads (`/v1/sessions/{id}/live`, issue 47) calls it.
+#[cfg_attr(not(test), allow(dead_code))]
 pub(crate) fn map_named(
     entry: &RigEntry,
     maps: &RigMaps,
