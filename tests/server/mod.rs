@@ -18,6 +18,7 @@ mod graphs;
 mod hostile;
 mod joints;
 mod layers;
+mod mappings;
 mod loadtest;
 mod lod;
 mod metrics;
