@@ -23,7 +23,9 @@ pub mod stream;
 pub mod wire;
 
 pub use graph::{BuiltGraph, GraphEdge, GraphInfo, GraphList, GraphNode, GraphPlay, MotionGraph};
-pub use mapping::{MapEntry, MapOverride, MapSource, Mapping, MappingInfo, MappingList, MaskInfo, MaskList};
+pub use mapping::{
+    MapEntry, MapOverride, MapSource, Mapping, MappingInfo, MappingList, MaskInfo, MaskList,
+};
 pub use session::{
     DEFAULT_KEYFRAME_EVERY, DEFAULT_SESSION_FPS, DEFAULT_SESSION_IDLE_TIMEOUT_S, HEAD_MISSING,
     HEAD_UNCHANGED, HeadChange, HeadLayers, LodChoice, MAX_KEYFRAME_EVERY, MessageEncoding,

@@ -93,11 +93,16 @@ async fn a2f_and_a_rigs_own_mapping_give_the_weights_they_map_to() {
     ];
     let arkit: Vec<(String, f32)> = a2f
         .iter()
-        .map(|(n, w)| (crowdmorph::rig::ARKIT_NAMES
-            .iter()
-            .find(|a| a.eq_ignore_ascii_case(n))
-            .expect("an ARKit name")
-            .to_string(), *w))
+        .map(|(n, w)| {
+            (
+                crowdmorph::rig::ARKIT_NAMES
+                    .iter()
+                    .find(|a| a.eq_ignore_ascii_case(n))
+                    .expect("an ARKit name")
+                    .to_string(),
+                *w,
+            )
+        })
         .collect();
     let arkit: Vec<(&str, f32)> = arkit.iter().map(|(n, w)| (n.as_str(), *w)).collect();
     // A rig's own: one-to-many (Smile), many-to-one summed then clamped (Open, Open2), gain and
@@ -172,7 +177,11 @@ async fn a2f_and_a_rigs_own_mapping_give_the_weights_they_map_to() {
         &server,
         vec![
             over(7, &[("Smile", 0.6)], Some("mine")),
-            over(8, &[("mouthSmileLeft", 0.3), ("mouthSmileRight", 0.3)], None),
+            over(
+                8,
+                &[("mouthSmileLeft", 0.3), ("mouthSmileRight", 0.3)],
+                None,
+            ),
         ],
     )
     .await;
@@ -218,7 +227,10 @@ async fn every_a2f_and_arkit_source_reaches_a_target_of_the_embedded_head() {
         let entries = v["mapping"]["entries"].as_array().expect("entries");
         assert!(entries.len() >= 46, "{name}: {}", entries.len());
         for e in entries {
-            let (s, t) = (e["source"].as_str().unwrap_or(""), e["target"].as_str().unwrap_or(""));
+            let (s, t) = (
+                e["source"].as_str().unwrap_or(""),
+                e["target"].as_str().unwrap_or(""),
+            );
             assert!(s.starts_with(char::is_uppercase), "{name}: {s}");
             assert!(crowdmorph::rig::ARKIT_NAMES.contains(&t), "{name}: {t}");
             // The embedded head has every ARKit name but tongueOut, which a2f leaves out.
@@ -320,7 +332,13 @@ async fn masks_are_stored_listed_deleted_and_kept_across_a_restart() {
     assert_eq!((status, code(&v)), (404, "unknown_mask"), "{v}");
     let (status, v) = call(&server, Method::POST, "/v1/sessions", session).await;
     assert_eq!((status, code(&v)), (400, "invalid_layer"), "{v}");
-    assert!(v["error"]["message"].as_str().unwrap_or("").contains("lips"), "{v}");
+    assert!(
+        v["error"]["message"]
+            .as_str()
+            .unwrap_or("")
+            .contains("lips"),
+        "{v}"
+    );
     server.stop().await;
     let server = TestServer::start(stored_config(&dir)).await;
     let (status, _) = get(&server, "/v1/rigs/default-head/masks/lips").await;
@@ -383,7 +401,12 @@ async fn malformed_masks_mappings_and_their_uses_are_named_4xx() {
             400,
             "invalid_name",
         ),
-        ("mappings/m", json!({"entries": [], "extra": 1}), 400, "invalid_body"),
+        (
+            "mappings/m",
+            json!({"entries": [], "extra": 1}),
+            400,
+            "invalid_body",
+        ),
     ];
     for (path, body, status, want) in cases {
         let (s, v) = put(&server, &format!("/v1/rigs/default-head/{path}"), body).await;
@@ -417,7 +440,13 @@ async fn malformed_masks_mappings_and_their_uses_are_named_4xx() {
         .expect("answer");
     let v: Value = serde_json::from_slice(&r.body).expect("JSON");
     assert_eq!((r.status, code(&v)), (400, "invalid_mapping"), "{v}");
-    assert!(v["error"]["message"].as_str().unwrap_or("").contains("gain"), "{v}");
+    assert!(
+        v["error"]["message"]
+            .as_str()
+            .unwrap_or("")
+            .contains("gain"),
+        "{v}"
+    );
     // Nothing was stored.
     let (_, v) = get(&server, "/v1/rigs/default-head/masks").await;
     assert_eq!(v["masks"], json!([]));
@@ -520,13 +549,23 @@ async fn a_csv_clip_through_a_mapping_is_the_clip_of_its_targets() {
         "Timecode,JawOpen,EyeBlinkLeft\n00:00,0.5,0.25\n00:01,0.75,\n",
     )
     .await;
-    assert_eq!(mapped.status, 201, "{}", String::from_utf8_lossy(&mapped.body));
+    assert_eq!(
+        mapped.status,
+        201,
+        "{}",
+        String::from_utf8_lossy(&mapped.body)
+    );
     let direct = upload(
         "name=direct",
         "Timecode,jawOpen,eyeBlinkLeft\n00:00,0.5,0.25\n00:01,0.75,0\n",
     )
     .await;
-    assert_eq!(direct.status, 201, "{}", String::from_utf8_lossy(&direct.body));
+    assert_eq!(
+        direct.status,
+        201,
+        "{}",
+        String::from_utf8_lossy(&direct.body)
+    );
     let play = |id, clip: &str, f| Head::playing(id, "default-head", clip, f);
     pairs_agree(
         &server,
@@ -598,10 +637,19 @@ async fn vrm_expressions_become_the_rigs_vrm_mapping() {
     );
     let (status, v) = get(&server, "/v1/rigs/vrm1/mappings/vrm").await;
     assert_eq!(status, 200, "{v}");
-    assert_eq!(v["mapping"]["sources"].as_array().map(Vec::len), Some(4), "{v}");
+    assert_eq!(
+        v["mapping"]["sources"].as_array().map(Vec::len),
+        Some(4),
+        "{v}"
+    );
     let heads = vec![
         // happy 0.7 is binary 1 and blocks blink; aa is no blink: 0.6 · 0.5.
-        live(1, "vrm1", &[("happy", 0.7), ("blink", 1.0), ("aa", 0.6)], Some("vrm")),
+        live(
+            1,
+            "vrm1",
+            &[("happy", 0.7), ("blink", 1.0), ("aa", 0.6)],
+            Some("vrm"),
+        ),
         live(2, "vrm1", &[("Fcl_Joy", 1.0), ("Fcl_A", 0.3)], None),
         // happy 0.4 is binary 0: blink stays.
         live(3, "vrm1", &[("happy", 0.4), ("blink", 1.0)], Some("vrm")),

@@ -24,7 +24,10 @@ pub fn map_csv(
     let names: u64 = targets.iter().map(|t| t.len() as u64 + 1).sum();
     let bound = bytes.len() as u64 + rows * targets.len() as u64 * 16 + names;
     budget.charge(2 * bound, || {
-        format!("a mapped CSV clip of {rows} rows and {} targets", targets.len())
+        format!(
+            "a mapped CSV clip of {rows} rows and {} targets",
+            targets.len()
+        )
     })?;
     let mut reader = csv::ReaderBuilder::new()
         .has_headers(true)
@@ -44,7 +47,11 @@ pub fn map_csv(
         ));
     }
     let mut out = csv::Writer::from_writer(Vec::with_capacity(bound as usize));
-    let kept = header.iter().zip(&source).filter(|(_, s)| !**s).map(|(h, _)| h);
+    let kept = header
+        .iter()
+        .zip(&source)
+        .filter(|(_, s)| !**s)
+        .map(|(h, _)| h);
     let head: Vec<&str> = kept.chain(targets.iter().map(String::as_str)).collect();
     out.write_record(&head)
         .map_err(|e| bad(format!("CSV: {e}")))?;
@@ -63,7 +70,9 @@ pub fn map_csv(
                         continue;
                     }
                     let v: f32 = cell.parse().map_err(|_| {
-                        bad(format!("CSV row {row_no}, column {name:?}: {cell:?} is not a number"))
+                        bad(format!(
+                            "CSV row {row_no}, column {name:?}: {cell:?} is not a number"
+                        ))
                     })?;
                     pairs.push((name.to_string(), v));
                 }
@@ -75,9 +84,7 @@ pub fn map_csv(
         out.write_record(&cells)
             .map_err(|e| bad(format!("CSV: {e}")))?;
     }
-    let written = out
-        .into_inner()
-        .map_err(|e| bad(format!("CSV: {e}")))?;
+    let written = out.into_inner().map_err(|e| bad(format!("CSV: {e}")))?;
     budget.release((2 * bound).saturating_sub(written.len() as u64));
     Ok(written)
 }
@@ -113,7 +120,9 @@ mod tests {
             String::from_utf8(out).expect("utf8"),
             "Timecode,x,y\n00:01,1,0.25\n00:02,2,0\n"
         );
-        let err = map_csv(b"A\nnope\n", &budget, &|_| true, &targets, &mut |_, _| Ok(()));
+        let err = map_csv(b"A\nnope\n", &budget, &|_| true, &targets, &mut |_, _| {
+            Ok(())
+        });
         assert!(matches!(err, Err(ImportError::ClipSource(m)) if m.contains("not a number")));
         let none = map_csv(b"Z\n1\n", &budget, &|_| false, &targets, &mut |_, _| Ok(()));
         assert!(none.is_err());

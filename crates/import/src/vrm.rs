@@ -54,7 +54,10 @@ pub fn gltf_json(bytes: &[u8]) -> Option<&[u8]> {
 /// that bind morph targets.
 pub fn vrm_mapping(root: &Value) -> Result<Option<NamedMapping>, VrmError> {
     let ext = root.get("extensions");
-    let m = if let Some(e) = ext.and_then(|e| e.get("VRMC_vrm")).and_then(|v| v.get("expressions")) {
+    let m = if let Some(e) = ext
+        .and_then(|e| e.get("VRMC_vrm"))
+        .and_then(|v| v.get("expressions"))
+    {
         vrm1(root, e)?
     } else if let Some(groups) = ext
         .and_then(|e| e.get("VRM"))
@@ -86,7 +89,10 @@ fn target_name(root: &Value, mesh: u64, index: u64) -> Result<String, String> {
         .and_then(Value::as_array)
         .map_or(0, Vec::len) as u64;
     if index >= count {
-        return Err(format!("mesh {mesh} has {count} morph targets, not {}", index + 1));
+        return Err(format!(
+            "mesh {mesh} has {count} morph targets, not {}",
+            index + 1
+        ));
     }
     let named = m
         .get("extras")
@@ -193,7 +199,10 @@ fn preset_1_0(preset: &str) -> Option<&'static str> {
 fn vrm0(root: &Value, groups: &[Value]) -> Result<NamedMapping, VrmError> {
     let mut out = NamedMapping::default();
     for (i, g) in groups.iter().enumerate() {
-        let preset = g.get("presetName").and_then(Value::as_str).unwrap_or("unknown");
+        let preset = g
+            .get("presetName")
+            .and_then(Value::as_str)
+            .unwrap_or("unknown");
         let name = match preset_1_0(&preset.to_ascii_lowercase()) {
             Some(n) => n.to_string(),
             None => g
@@ -205,7 +214,12 @@ fn vrm0(root: &Value, groups: &[Value]) -> Result<NamedMapping, VrmError> {
             expression: name.clone(),
             why,
         };
-        for b in g.get("binds").and_then(Value::as_array).into_iter().flatten() {
+        for b in g
+            .get("binds")
+            .and_then(Value::as_array)
+            .into_iter()
+            .flatten()
+        {
             let mesh = number(b, "mesh").ok_or_else(|| bad("a bind without a mesh".into()))?;
             let index = number(b, "index").ok_or_else(|| bad("a bind without an index".into()))?;
             let target = target_name(root, mesh as u64, index as u64).map_err(bad)?;

@@ -321,7 +321,10 @@ fn resources() -> Router<AppState> {
                 .put(routes::masks::put_mask)
                 .delete(routes::masks::delete_mask),
         )
-        .route("/v1/rigs/{id}/mappings", get(routes::mappings::list_mappings))
+        .route(
+            "/v1/rigs/{id}/mappings",
+            get(routes::mappings::list_mappings),
+        )
         .route(
             "/v1/rigs/{id}/mappings/{name}",
             get(routes::mappings::get_mapping)

@@ -558,7 +558,7 @@ impl SharedStore {
         }
         serde_json::to_vec(stored)
             .map(Change::Graphs)
-        .map_err(|e| SharedError::Local(StoreError::Encode(e.to_string())))
+            .map_err(|e| SharedError::Local(StoreError::Encode(e.to_string())))
     }
 
     /// Writes the next generation of rig `id` with `changes` on top of the generation this

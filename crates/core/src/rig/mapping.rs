@@ -140,7 +140,9 @@ pub enum MappingError {
         value: f32,
     },
     /// A clamp with `lo > hi`, or a target whose entries' clamps do not overlap.
-    #[error("entries[{0}].clamp leaves its target no value (lo > hi, or no overlap with another entry's clamp of the same target)")]
+    #[error(
+        "entries[{0}].clamp leaves its target no value (lo > hi, or no overlap with another entry's clamp of the same target)"
+    )]
     EmptyClamp(usize),
 }
 
@@ -430,7 +432,11 @@ pub const OCULUS_VISEMES: [(&str, &[(&str, f32)]); 15] = [
     ),
     (
         "RR",
-        &[("mouthFunnel", 0.3), ("mouthPucker", 0.3), ("jawOpen", 0.15)],
+        &[
+            ("mouthFunnel", 0.3),
+            ("mouthPucker", 0.3),
+            ("jawOpen", 0.15),
+        ],
     ),
     (
         "aa",
@@ -646,7 +652,11 @@ mod tests {
             && e.offset == 0.0
             && e.source.to_lowercase() == e.target.to_lowercase()));
         let a2f = builtin_mapping("a2f").expect("a2f");
-        assert!(a2f.entries.iter().all(|e| ARKIT_NAMES.contains(&e.target.as_str())));
+        assert!(
+            a2f.entries
+                .iter()
+                .all(|e| ARKIT_NAMES.contains(&e.target.as_str()))
+        );
         let visemes = builtin_mapping("oculus-visemes").expect("visemes");
         assert_eq!(visemes.sources.len(), 15);
         assert!(

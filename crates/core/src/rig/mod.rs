@@ -61,9 +61,9 @@ pub use lod::{
     IMPORT_LOD_METHOD, Lod, LodError, LodLevel, MeshLevel, MeshLevelPrimitive, default_lod_levels,
 };
 pub use mapping::{
-    BUILTIN_MAPPINGS, MAX_MAP_ENTRIES, MAX_MAP_VALUE, MapTable, MapTerm, MappingError,
-    NamedEntry, NamedMapping, NamedSource, OCULUS_VISEMES, Override, Procedural, SourceRule,
-    a2f_names, builtin_mapping, capitalised,
+    BUILTIN_MAPPINGS, MAX_MAP_ENTRIES, MAX_MAP_VALUE, MapTable, MapTerm, MappingError, NamedEntry,
+    NamedMapping, NamedSource, OCULUS_VISEMES, Override, Procedural, SourceRule, a2f_names,
+    builtin_mapping, capitalised,
 };
 pub use mesh_level::mesh_level_rigs;
 pub use pca::{DeltaPca, PcaRegion, pca_level_rigs};

@@ -10,8 +10,7 @@ use std::collections::HashMap;
 
 use crowdmorph_core::rig::{
     BUILTIN_MAPPINGS, MAX_LIVE_WEIGHT, MAX_MAP_ENTRIES, MapTable, MapTerm, NamedEntry,
-    NamedMapping, NamedSource, Override, Procedural, Rig, SourceRule, builtin_mapping,
-    quoted_name,
+    NamedMapping, NamedSource, Override, Procedural, Rig, SourceRule, builtin_mapping, quoted_name,
 };
 use crowdmorph_import::clips::{checked_name, is_live_link_angle, loose};
 use crowdmorph_proto::{MapEntry, MapOverride, MapSource, Mapping};
@@ -122,7 +121,12 @@ pub fn unknown_mapping(entry: &RigEntry, maps: &RigMaps, name: &str) -> ApiError
         .copied()
         .filter(|b| *b != "vrm" || own.contains_key("vrm"))
         .collect();
-    have.extend(own.keys().map(String::as_str).filter(|n| *n != "vrm").take(20));
+    have.extend(
+        own.keys()
+            .map(String::as_str)
+            .filter(|n| *n != "vrm")
+            .take(20),
+    );
     ApiError::not_found(
         "unknown_mapping",
         format!(
@@ -136,7 +140,11 @@ pub fn unknown_mapping(entry: &RigEntry, maps: &RigMaps, name: &str) -> ApiError
 
 /// Mapping `name` of `entry`'s rig as specified: a built-in one, else the rig's own (its
 /// `vrm` among them); 404 `unknown_mapping` otherwise.
-pub fn mapping_spec(entry: &RigEntry, maps: &RigMaps, name: &str) -> Result<NamedMapping, ApiError> {
+pub fn mapping_spec(
+    entry: &RigEntry,
+    maps: &RigMaps,
+    name: &str,
+) -> Result<NamedMapping, ApiError> {
     if let Some(m) = builtin_mapping(name) {
         return Ok(m);
     }
@@ -311,7 +319,11 @@ impl ResolvedMapping {
     /// blendshapes); so is a value or a mapped weight that is not finite within
     /// ±[`MAX_LIVE_WEIGHT`], and a source sent twice. The caller charges
     /// [`ResolvedMapping::map_bytes`] first.
-    pub(crate) fn map(&self, input: &[(String, f32)], out: &mut Vec<(u32, f32)>) -> Result<(), ApiError> {
+    pub(crate) fn map(
+        &self,
+        input: &[(String, f32)],
+        out: &mut Vec<(u32, f32)>,
+    ) -> Result<(), ApiError> {
         let bad = |m: String| ApiError::bad_request("invalid_weights", m);
         let mut values = vec![f32::NAN; self.table.sources()];
         for (name, v) in input {
@@ -321,7 +333,8 @@ impl ResolvedMapping {
                     quoted_name(name)
                 )));
             }
-            checked_name(name).map_err(|why| bad(format!("weights[{}]: {why}", quoted_name(name))))?;
+            checked_name(name)
+                .map_err(|why| bad(format!("weights[{}]: {why}", quoted_name(name))))?;
             match self.source(name) {
                 Some(s) => {
                     let slot = &mut values[s as usize];

@@ -10,11 +10,11 @@ use crowdmorph_proto::{
     MAX_HEAD_LAYERS,
 };
 
-use crate::admission::mapping::{ResolvedMapping, mapping_spec, resolve_mapping, resolved_bytes};
 use crate::admission::layers::{
     decoded_layers_bytes, finish_weights, layered_joints, layered_joints_bytes, layers_bytes,
     resolve_layers,
 };
+use crate::admission::mapping::{ResolvedMapping, mapping_spec, resolve_mapping, resolved_bytes};
 use crate::admission::names::{LiveNames, is_arkit_name, live_names};
 pub use crate::admission::names::{unknown_clip, unknown_rig};
 
@@ -581,7 +581,10 @@ impl<'h> Lookups<'h> {
             bytes += LiveNames::bytes(rig);
         }
         self.charge_more(bytes)?;
-        let names = self.live.entry(ri).or_insert_with(|| live_names(self.registry, &entry));
+        let names = self
+            .live
+            .entry(ri)
+            .or_insert_with(|| live_names(self.registry, &entry));
         let rigs = &self.rigs;
         let layers = resolve_layers(&entry, names, &head.layers, |clip, frame, _| {
             rigs[ri as usize].rig().clips[clip as usize]
@@ -635,7 +638,10 @@ impl<'h> Lookups<'h> {
                 self.mapped.iter().map(|p| p.0).collect()
             }
             LiveWeights::Named(pairs) => {
-                let names = self.live.entry(ri).or_insert_with(|| live_names(self.registry, &entry));
+                let names = self
+                    .live
+                    .entry(ri)
+                    .or_insert_with(|| live_names(self.registry, &entry));
                 let mut out: Vec<u32> = pairs
                     .iter()
                     .flat_map(|(n, _)| names.ids(n).iter().copied())
@@ -660,8 +666,8 @@ impl<'h> Lookups<'h> {
         let entry = self.rigs[ri as usize].clone();
         if !self.mappings.contains_key(&(ri, name)) {
             let rig = entry.rig();
-            let spec = mapping_spec(&entry, &self.registry.maps, name)
-                .map_err(|e| at_head(h, head, e))?;
+            let spec =
+                mapping_spec(&entry, &self.registry.maps, name).map_err(|e| at_head(h, head, e))?;
             let mut bytes = 2 * spec.heap_bytes() + resolved_bytes(&spec, rig);
             if !self.live.contains_key(&ri) {
                 bytes += LiveNames::bytes(rig);
@@ -721,7 +727,10 @@ impl<'h> Lookups<'h> {
         }
         // Live Link's head and eye angles among named weights: (channel of the joint map, value).
         let mut angles: Vec<(usize, f32)> = Vec::new();
-        let names = self.live.entry(ri).or_insert_with(|| live_names(self.registry, &entry));
+        let names = self
+            .live
+            .entry(ri)
+            .or_insert_with(|| live_names(self.registry, &entry));
         // Channels not named keep the rig's default weight, as in a CSV clip.
         self.row.clear();
         self.row.extend_from_slice(&rig.default_weights);

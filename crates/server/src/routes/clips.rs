@@ -12,6 +12,8 @@ use axum::response::IntoResponse;
 use crowdmorph_proto::{CONTENT_TYPE_JSON, ClipInfo, ClipList, ClipUpload, Quantization};
 
 use super::rigs::{check_name, clip_import_error, upload_body};
+use crate::admission::mapping::{mapping_spec, resolve_mapping, resolved_bytes};
+use crate::admission::names::LiveNames;
 use crate::admission::resolve::unknown_clip;
 use crate::http::cache::Validator;
 use crate::http::{
@@ -24,11 +26,9 @@ use crate::services::Parts;
 use crate::services::persist::prepare_error;
 use crate::services::persist::{clip_error, persist_clips, persist_record};
 use crate::state::AppState;
+use crowdmorph_core::rig::NamedMapping;
 use crowdmorph_core::rig::{AnimatedTexture, Rig};
 use crowdmorph_engine::{Engine, PreparedRig};
-use crate::admission::mapping::{mapping_spec, resolve_mapping, resolved_bytes};
-use crate::admission::names::LiveNames;
-use crowdmorph_core::rig::NamedMapping;
 use crowdmorph_import::ImportError;
 use crowdmorph_import::clips::{ClipImport, ClipOptions};
 

@@ -13,8 +13,7 @@ use crowdmorph_core::rig::{BUILTIN_MAPPINGS, builtin_mapping, quoted_name};
 use crowdmorph_proto::{Mapping, MappingInfo, MappingList};
 
 use crate::admission::mapping::{
-    mapping_bytes, mapping_spec, resolve_mapping, resolved_bytes, to_core, to_wire,
-    unknown_mapping,
+    mapping_bytes, mapping_spec, resolve_mapping, resolved_bytes, to_core, to_wire, unknown_mapping,
 };
 use crate::admission::names::LiveNames;
 use crate::admission::{Decoded, Priced};
@@ -72,9 +71,9 @@ pub async fn put_mapping(
     check_name(&name)?;
     let spec = to_core(&mapping);
     let rig = entry.rig();
-    let _checking = state.queue_memory.reserve(
-        spec.heap_bytes() + LiveNames::bytes(rig) + resolved_bytes(&spec, rig),
-    )?;
+    let _checking = state
+        .queue_memory
+        .reserve(spec.heap_bytes() + LiveNames::bytes(rig) + resolved_bytes(&spec, rig))?;
     resolve_mapping(&entry, &LiveNames::new(rig), &name, &spec)?;
     // Stored first, then served: a write the store refuses (409, 503) changes nothing here.
     let _admin = state.admin.lock().await;
@@ -174,7 +173,10 @@ pub async fn delete_mapping(
     if builtin_mapping(&name).is_some() {
         return Err(ApiError::bad_request(
             "invalid_name",
-            format!("mapping {} is built in and cannot be deleted", quoted_name(&name)),
+            format!(
+                "mapping {} is built in and cannot be deleted",
+                quoted_name(&name)
+            ),
         ));
     }
     let _admin = state.admin.lock().await;

@@ -109,9 +109,9 @@ pub async fn put_mask(
     check_name(&name)?;
     check_shape(&mask)?;
     let rig = entry.rig();
-    let _checking = state.queue_memory.reserve(
-        LiveNames::bytes(rig) + crate::admission::layers::mask_bytes(rig),
-    )?;
+    let _checking = state
+        .queue_memory
+        .reserve(LiveNames::bytes(rig) + crate::admission::layers::mask_bytes(rig))?;
     check_mask(&LiveNames::new(rig), &mask).map_err(|e| match e.code {
         "invalid_layer" => invalid(e.message),
         _ => e,
@@ -133,7 +133,14 @@ pub async fn put_mask(
     };
     persist_maps(&state, &id, next.clone()).await?;
     state.registry.maps.set(&id, next);
-    accept.reply(StatusCode::OK, &MaskInfo { rig: id, name, mask })
+    accept.reply(
+        StatusCode::OK,
+        &MaskInfo {
+            rig: id,
+            name,
+            mask,
+        },
+    )
 }
 
 /// `GET /v1/rigs/{id}/masks`.
@@ -171,7 +178,14 @@ pub async fn get_mask(
         .get(&name)
         .cloned()
         .ok_or_else(|| unknown_mask(&state, &id, &name))?;
-    accept.reply(StatusCode::OK, &MaskInfo { rig: id, name, mask })
+    accept.reply(
+        StatusCode::OK,
+        &MaskInfo {
+            rig: id,
+            name,
+            mask,
+        },
+    )
 }
 
 /// `DELETE /v1/rigs/{id}/masks/{name}`: layers naming it then get the built-in mask of that

@@ -12,6 +12,7 @@ use axum::response::IntoResponse;
 use bytes::Bytes;
 use crowdmorph_proto::{CONTENT_TYPE_JSON, RigList};
 
+use crate::admission::mapping::to_wire;
 use crate::http::{
     self, Accept, Admin, ApiError, ApiResult, Query, Ready, blocking, checked_content_type,
     read_body,
@@ -19,10 +20,9 @@ use crate::http::{
 use crate::registry::{
     ClipLayout, NewEntry, RigEntry, check_output_range, quantization_box, sanitize_id, valid_id,
 };
+use crate::rig_maps::NamedMaps;
 use crate::services::Parts;
 use crate::services::lod::{rig_info, start_auto_lod};
-use crate::admission::mapping::to_wire;
-use crate::rig_maps::NamedMaps;
 use crate::services::persist::{
     clip_error, persist_delete, persist_maps, persist_record, prepare_charged,
 };

@@ -520,7 +520,9 @@ fn resolve<S: Ticking>(
                     Some(c) => c.merge(more),
                     None => layered = Some(more),
                 }
-                let names = names.entry(ri).or_insert_with(|| live_names(state.registry(), entry));
+                let names = names
+                    .entry(ri)
+                    .or_insert_with(|| live_names(state.registry(), entry));
                 let layers = resolve_layers(entry, names, &h.layers, |clip, frame, reference| {
                     // A layer's frames play from the clock, as the head's offset does; its
                     // additive reference is a fixed frame.
