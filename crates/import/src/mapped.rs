@@ -8,6 +8,9 @@ use crowdmorph_core::budget::Budget;
 
 use super::ImportError;
 
+/// One row's `(source, value)` pairs to one value per target, or why not.
+pub type RowMap<'a> = dyn FnMut(&[(String, f32)], &mut [f32]) -> Result<(), String> + 'a;
+
 /// `bytes` (a CSV clip) with its source columns (those `is_source` accepts) replaced by one
 /// column per name of `targets`, each row's values given by `map` from the row's
 /// `(source, value)` pairs (it fills one value per target). The output is charged to
@@ -17,7 +20,7 @@ pub fn map_csv(
     budget: &Budget,
     is_source: &dyn Fn(&str) -> bool,
     targets: &[String],
-    map: &mut dyn FnMut(&[(String, f32)], &mut [f32]) -> Result<(), String>,
+    map: &mut RowMap<'_>,
 ) -> Result<Vec<u8>, ImportError> {
     let bad = |m: String| ImportError::ClipSource(m);
     let rows = bytes.iter().filter(|&&b| b == b'\n').count() as u64 + 1;
