@@ -1347,6 +1347,58 @@ class GraphEdge:
     window: Optional[List[int]] = None
 
 
+MAP_OVERRIDE = Enum("none", "block", "blend")
+
+
+@wire(
+    ("source", STR),
+    ("target", STR),
+    ("gain", F32),
+    ("offset", F32),
+    ("clamp", CLAMP),
+)
+@dataclass
+class MapEntry:
+    """One entry of a :class:`Mapping`: ``target += gain · source + offset``, the target's
+    sum then clamped into every ``clamp`` its entries give."""
+
+    source: str
+    target: str
+    gain: float = 1.0
+    offset: float = 0.0
+    clamp: Optional[Sequence[float]] = None
+
+
+@wire(
+    ("name", STR),
+    ("binary", BOOL),
+    ("override_blink", MAP_OVERRIDE),
+    ("override_look_at", MAP_OVERRIDE),
+    ("override_mouth", MAP_OVERRIDE),
+)
+@dataclass
+class MapSource:
+    """A source that is binary (VRM's ``isBinary``) or overrides VRM 1.0's blink, look-at or
+    mouth expressions (``"none"``, ``"block"``, ``"blend"``)."""
+
+    name: str
+    binary: bool = False
+    override_blink: str = "none"
+    override_look_at: str = "none"
+    override_mouth: str = "none"
+
+
+@wire(("entries", Vec(Msg(MapEntry))), ("sources", Vec(Msg(MapSource))))
+@dataclass
+class MappingSpec:
+    """A rig's mapping from a producer's names to its targets
+    (``PUT /v1/rigs/{id}/mappings/{name}``; ``proto/README.md``, "Mappings"; the Rust type
+    ``Mapping``, renamed here beside ``typing.Mapping``)."""
+
+    entries: List[MapEntry] = field(default_factory=list)
+    sources: List[MapSource] = field(default_factory=list)
+
+
 @wire(("nodes", Vec(Msg(GraphNode))), ("edges", Vec(Msg(GraphEdge))))
 @dataclass
 class MotionGraph:
