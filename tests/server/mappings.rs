@@ -690,3 +690,57 @@ async fn vrm_expressions_become_the_rigs_vrm_mapping() {
     assert_eq!((status, code(&v)), (400, "invalid_name"), "{v}");
     server.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_session_head_whose_mask_is_deleted_is_missing_from_later_ticks() {
+    use super::sessions::{View, connect, create, next_tick};
+    let server = TestServer::start(ServerConfig::default()).await;
+    let (status, v) = put(
+        &server,
+        "/v1/rigs/default-head/masks/lips",
+        json!(["jawOpen"]),
+    )
+    .await;
+    assert_eq!(status, 200, "{v}");
+    let info = create(
+        &server,
+        json!({"fps": 30, "heads": [
+            {"head": 1, "rig": "default-head", "clip": "talk",
+             "layers": [{"clip": "smile", "weight": 0.8, "mask": "lips"}]},
+            {"head": 2, "rig": "default-head", "clip": "talk", "position": [1, 0, 0]}]}),
+    )
+    .await;
+    let mut ws = connect(&server, &info.id, json!({"format": "f32"})).await;
+    let mut view = View::default();
+    for _ in 0..60 {
+        view.apply(&next_tick(&mut ws).await);
+        if view.heads.len() == 2 {
+            break;
+        }
+    }
+    assert_eq!(
+        view.heads.len(),
+        2,
+        "both heads shown while the mask exists"
+    );
+    let (status, _) = call(
+        &server,
+        Method::DELETE,
+        "/v1/rigs/default-head/masks/lips",
+        Value::Null,
+    )
+    .await;
+    assert_eq!(status, 204);
+    // As a head whose graph or clip is deleted: missing from the next ticks, the other kept.
+    let mut gone = false;
+    for _ in 0..60 {
+        view.apply(&next_tick(&mut ws).await);
+        if !view.heads.contains_key(&1) {
+            gone = true;
+            break;
+        }
+    }
+    assert!(gone, "head 1 still shown after its mask was deleted");
+    assert!(view.heads.contains_key(&2), "head 2 kept");
+    server.stop().await;
+}
