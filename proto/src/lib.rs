@@ -17,6 +17,7 @@
 pub mod graph;
 pub mod live;
 pub mod pose;
+pub mod mapping;
 pub mod session;
 #[cfg(feature = "unpack")]
 pub mod skim;
@@ -28,6 +29,9 @@ pub use live::{LiveAck, LiveInput, LiveSample, LiveSpec, OneEuro};
 pub use pose::{
     CrowdPoseResponse, HeadPose, MAX_F16_WEIGHT, NodePose, RigChannels, TickPoses, f16_to_f32,
     f32_to_f16, weights_f16_le,
+};
+pub use mapping::{
+    MapEntry, MapOverride, MapSource, Mapping, MappingInfo, MappingList, MaskInfo, MaskList,
 };
 pub use session::{
     Alive, DEFAULT_KEYFRAME_EVERY, DEFAULT_SESSION_FPS, DEFAULT_SESSION_IDLE_TIMEOUT_S,
@@ -300,6 +304,11 @@ pub struct Head {
     /// Every final weight clamped into `[lo, hi]`, after layers and weights.
     #[serde(default)]
     pub clamp: Option<[f32; 2]>,
+    /// A mapping of the rig (`GET /v1/rigs/{id}/mappings`: `arkit`, `a2f`,
+    /// `oculus-visemes`, `vrm` or one of its own) that `weights` by name go through first:
+    /// their names are the mapping's sources. Dense weights with a mapping are a 400.
+    #[serde(default)]
+    pub mapping: Option<String>,
 }
 
 /// Most layers one head may have.
@@ -1177,7 +1186,7 @@ pub struct Placement {
     pub scale: f32,
 }
 
-fn one() -> f32 {
+pub(crate) fn one() -> f32 {
     1.0
 }
 

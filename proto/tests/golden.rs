@@ -161,6 +161,7 @@ fn layered_request() -> CrowdFrameRequest {
             weights: Some(Box::new(LiveWeights::Named(vec![("jawOpen".into(), 0.5)]))),
             weights_mode: LayerMode::Additive,
             clamp: Some([0.0, 1.0]),
+            mapping: Some("arkit".into()),
             ..Head::playing(11, "default-head", "talk", 3)
         }],
         output: OutputOptions::default(),
@@ -189,7 +190,8 @@ fn layered_crowd_frame_request() {
                  "mask":{"eyeBlinkLeft":0.75}},
                 {"clip":"talk","frame":-1,"weight":0.25,"mask":["jawOpen"],
                  "joint_mask":["Head"]}],
-            "weights":{"jawOpen":0.5},"weights_mode":"additive","clamp":[0,1]}]}"#,
+            "weights":{"jawOpen":0.5},"weights_mode":"additive","clamp":[0,1],
+            "mapping":"arkit"}]}"#,
     )
     .unwrap();
     assert_eq!(short, r);
@@ -1304,4 +1306,47 @@ fn every_golden_stream_message_skims_as_it_decodes() {
         skimmed += 1;
     }
     assert_eq!(skimmed, 7);
+}
+
+#[test]
+fn mapping_request() {
+    let m = Mapping {
+        entries: vec![
+            MapEntry {
+                source: "JawOpen".into(),
+                target: "jawOpen".into(),
+                gain: 1.0,
+                offset: 0.0,
+                clamp: None,
+            },
+            MapEntry {
+                source: "happy".into(),
+                target: "mouthSmileLeft".into(),
+                gain: 0.8,
+                offset: 0.05,
+                clamp: Some([0.0, 1.0]),
+            },
+        ],
+        sources: vec![MapSource {
+            name: "happy".into(),
+            binary: true,
+            override_blink: MapOverride::Block,
+            override_look_at: MapOverride::None,
+            override_mouth: MapOverride::Blend,
+        }],
+    };
+    let bin = to_bincode(&m).unwrap();
+    check("mapping.bincode", &bin);
+    assert_eq!(request_from_bincode::<Mapping>(&bin).unwrap(), m);
+    let json = serde_json::to_vec(&m).unwrap();
+    check("mapping.json", &json);
+    // Humans leave out gain 1, offset 0, no clamp and "none".
+    let short: Mapping = serde_json::from_str(
+        r#"{"entries":[{"source":"JawOpen","target":"jawOpen"},
+            {"source":"happy","target":"mouthSmileLeft","gain":0.8,"offset":0.05,"clamp":[0,1]}],
+            "sources":[{"name":"happy","binary":true,"override_blink":"block",
+                        "override_mouth":"blend"}]}"#,
+    )
+    .unwrap();
+    assert_eq!(short, m);
 }

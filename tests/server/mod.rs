@@ -22,6 +22,7 @@ mod layers;
 mod live;
 mod loadtest;
 mod lod;
+mod mappings;
 mod metrics;
 mod overload;
 mod persistence;

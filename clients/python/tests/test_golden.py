@@ -44,6 +44,7 @@ GOLDEN = {
     "graph_list": messages.GraphList,
     "live_input": messages.LiveInput,
     "live_ack": messages.LiveAck,
+    "mapping": messages.MappingSpec,
 }
 
 
@@ -124,11 +125,11 @@ def test_the_worked_example_request_is_built_from_python_values():
         wrap=True,
     )
     raw = (PROTO_GOLDEN / "crowd_frame_request.bincode").read_bytes()
-    assert len(raw) == 60
+    assert len(raw) == 62
     assert wire.encode(req) == raw
-    # Each head ends in six zero bytes: blend = [], weights = None, joints = [], layers = [],
-    # weights_mode = override, clamp = None.
-    assert raw[: 1 + 1 + 13 + 5 + 1 + 1 + 6].endswith(b"\x18\x00" + b"\x00" * 6)
+    # Each head ends in seven zero bytes: blend = [], weights = None, joints = [], layers = [],
+    # weights_mode = override, clamp = None, mapping = None.
+    assert raw[: 1 + 1 + 13 + 5 + 1 + 1 + 7].endswith(b"\x18\x00" + b"\x00" * 7)
     # The fast writer takes tuples and dicts to the same bytes.
     tuples = messages.CrowdFrameRequest(
         heads=[(7, "default-head", "talk", 12), {"head": 300, "rig": "default-head",
@@ -147,7 +148,7 @@ def test_layers_of_a_crowd_head_decode_and_encode_like_the_rust_types():
     assert h.layers[1].mask == {"eyeBlinkLeft": 0.75} and h.layers[1].reference == 0
     assert h.layers[1].mode == "additive"
     assert h.layers[2].mask == ["jawOpen"] and h.layers[2].joint_mask == ["Head"]
-    assert (h.weights_mode, h.clamp) == ("additive", [0.0, 1.0])
+    assert (h.weights_mode, h.clamp, h.mapping) == ("additive", [0.0, 1.0], "arkit")
     layers = [
         {"clip": "smile", "frame": 5, "weight": 0.5, "mask": "lower_face"},
         {"clip": "surprise", "frame": 20, "mode": "additive", "reference": 0,
@@ -155,11 +156,12 @@ def test_layers_of_a_crowd_head_decode_and_encode_like_the_rust_types():
         messages.Layer("talk", -1, 0.25, mask=["jawOpen"], joint_mask=["Head"]),
     ]
     head = messages.Head(11, "default-head", "talk", 3, weights={"jawOpen": 0.5},
-                         layers=layers, weights_mode="additive", clamp=[0, 1])
+                         layers=layers, weights_mode="additive", clamp=[0, 1],
+                         mapping="arkit")
     assert wire.encode(messages.CrowdFrameRequest([head])) == raw
     as_dict = {"head": 11, "rig": "default-head", "clip": "talk", "frame": 3,
                "weights": {"jawOpen": 0.5}, "layers": layers, "weights_mode": "additive",
-               "clamp": [0, 1]}
+               "clamp": [0, 1], "mapping": "arkit"}
     assert wire.encode(messages.CrowdFrameRequest([as_dict])) == raw
     want = json.loads((PROTO_GOLDEN / "crowd_frame_request_layered.json").read_bytes())
     assert messages.as_dict(head)["layers"] == want["heads"][0]["layers"]

@@ -153,6 +153,13 @@ fn classify(name: &str, required: bool, uses: Uses) -> ExtensionUse {
             "read",
             "integer and normalized-integer positions, normals, tangents and morph deltas are dequantized".to_string(),
         )
+    } else if matches!(name, "VRMC_vrm" | "VRM") {
+        (
+            "read",
+            "VRM expressions become the rig's `vrm` mapping (GET /v1/rigs/{id}/mappings/vrm); \
+             humanoid, look-at, first-person and meta are not used"
+                .to_string(),
+        )
     } else if meshopt::EXTENSIONS.contains(&name) {
         (
             "read",

@@ -13,6 +13,8 @@
 //! | `material` | materials, textures, samplers and the images they reach ([`crowdmorph_core::rig::Appearance`]) |
 //! | [`clips`] | CSV, JSON and glTF clips mapped onto an existing rig; joint-map columns become joint tables |
 //! | `skin` | skins, meshes under animated nodes, node animation baked into joint tables |
+//! | [`vrm`] | a VRM avatar's expressions (VRM 1.0 `VRMC_vrm`, VRM 0.x `VRM`) as the rig's `vrm` mapping |
+//! | [`mapped`] | a CSV clip whose columns are a mapping's sources, rewritten onto its targets |
 //!
 //! - [`gltf`]: `.gltf` (embedded or external buffers) and `.glb` rigs, with every animation that
 //!   drives morph weights or moves a skin's joints (or a mesh's node) baked into a clip; skins
@@ -30,11 +32,13 @@ pub mod clips;
 pub mod extensions;
 pub mod gltf;
 pub mod image;
+pub mod mapped;
 mod material;
 mod meshopt;
 mod scene;
 mod skin;
 mod uri;
+pub mod vrm;
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;

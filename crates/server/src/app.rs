@@ -318,6 +318,23 @@ fn resources() -> Router<AppState> {
                 .delete(routes::joints::delete_joint_map),
         )
         .route("/v1/rigs/{id}/graphs", get(routes::graphs::list_graphs))
+        .route("/v1/rigs/{id}/masks", get(routes::masks::list_masks))
+        .route(
+            "/v1/rigs/{id}/masks/{name}",
+            get(routes::masks::get_mask)
+                .put(routes::masks::put_mask)
+                .delete(routes::masks::delete_mask),
+        )
+        .route(
+            "/v1/rigs/{id}/mappings",
+            get(routes::mappings::list_mappings),
+        )
+        .route(
+            "/v1/rigs/{id}/mappings/{name}",
+            get(routes::mappings::get_mapping)
+                .put(routes::mappings::put_mapping)
+                .delete(routes::mappings::delete_mapping),
+        )
         .route(
             "/v1/rigs/{id}/graphs/{name}",
             get(routes::graphs::get_graph)

@@ -24,7 +24,9 @@ pub struct ServerConfig {
     /// Bearer token (`Authorization: Bearer T`) required by every change and by load tests:
     /// POST /v1/rigs, DELETE /v1/rigs/{id}, PUT /v1/rigs/{id}/lod, PUT /v1/rigs/{id}/joint-map,
     /// DELETE /v1/rigs/{id}/joint-map, PUT /v1/rigs/{id}/graphs/{name}, POST
-    /// /v1/rigs/{id}/graphs/{name}, DELETE /v1/rigs/{id}/graphs/{name}, POST
+    /// /v1/rigs/{id}/graphs/{name}, DELETE /v1/rigs/{id}/graphs/{name}, PUT
+    /// /v1/rigs/{id}/masks/{name}, DELETE /v1/rigs/{id}/masks/{name}, PUT
+    /// /v1/rigs/{id}/mappings/{name}, DELETE /v1/rigs/{id}/mappings/{name}, POST
     /// /v1/rigs/{id}/clips, DELETE /v1/rigs/{id}/clips/{clip}, PUT
     /// /v1/rigs/{id}/clips/{clip}/texture, DELETE /v1/rigs/{id}/clips/{clip}/texture, POST
     /// /v1/sessions, PUT

@@ -17,7 +17,7 @@
 //! | module | what it is |
 //! |---|---|
 //! | `app` | [`app`]: the router and its layers; [`serve`] and [`run`] |
-//! | `routes` | the handlers: `health`, `rigs`, `clips`, `frames`, `render`, `lod`, `graphs`, `loadtest`, `viewer`, `replicas` (the lookup before a 404, as middleware), and `sessions` (its REST handlers, `sessions::viewer` the viewer socket) |
+//! | `routes` | the handlers: `health`, `rigs`, `clips`, `frames`, `render`, `lod`, `graphs`, `masks`, `mappings`, `loadtest`, `viewer`, `replicas` (the lookup before a 404, as middleware), and `sessions` (its REST handlers, `sessions::viewer` the viewer socket) |
 //! | `services` | the jobs beyond a handler, one per module, each behind its context trait (`services::Parts` and what each adds): `persist` (a change prepared within a budget and persisted), `replicas` (the shared store: commits and repairs, refreshes, LOD claims, lookups), `lod` (LOD builds), `render` (render admission and drawing), `tick` (a session's tick and fan-out) |
 //! | [`state`] | [`AppState`]: engine, batcher, registry, budgets, each resource's state |
 //! | [`config`] | every limit, timeout and default, the session limits included; the `serve` command's flags |
@@ -35,6 +35,7 @@
 //! | [`sessions`] | crowd sessions' state: sessions, viewers, outboxes, limits |
 //! | `live` | live heads' input: producers' samples with their memory, the input rate budget, and what each live head shows (owned by the tick) |
 //! | [`graphs`] | motion graphs by rig: as stored, and resolved and measured per rig generation |
+//! | [`rig_maps`] | a rig's named masks and mappings as stored (persisted with its graphs) |
 //! | [`loadtests`] | the load tests running and done |
 //! | `lod_jobs` | LOD jobs by rig |
 //! | `topologies` | the renderer and the mesh topologies cached on its device |
@@ -54,6 +55,7 @@ mod lod_jobs;
 pub mod metrics;
 mod pool;
 pub mod registry;
+pub mod rig_maps;
 mod routes;
 pub mod scheduler;
 mod services;

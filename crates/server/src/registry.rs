@@ -749,6 +749,9 @@ pub fn quantization_box(rig: &Rig) -> Quantization {
 pub struct Registry {
     rigs: RwLock<BTreeMap<String, Arc<RigEntry>>>,
     next_generation: AtomicU64,
+    /// Each rig's named masks and mappings, beside its generations: a change of them is no
+    /// new generation (the rig's data does not change), and heads resolve them by name.
+    pub maps: crate::rig_maps::RigMaps,
 }
 
 impl Registry {

@@ -1100,13 +1100,28 @@ pub enum Record {
     Builtin(StoredBuiltin),
 }
 
-/// A rig's motion graphs as stored (`data_dir/graphs/<rig>.json`).
+/// A rig's motion graphs, named masks and mappings as stored (`data_dir/graphs/<rig>.json`,
+/// the `graphs.json` object of a shared store): what a rig has by name beside its record.
+/// Masks and mappings came later: a file without them reads as none.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct StoredGraphs {
     /// The rig id.
     pub rig: String,
     /// Its graphs by name.
     pub graphs: std::collections::BTreeMap<String, crowdmorph_proto::MotionGraph>,
+    /// Its masks by name (`PUT /v1/rigs/{id}/masks/{name}`).
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub masks: std::collections::BTreeMap<String, crowdmorph_proto::Mask>,
+    /// Its mappings by name (`PUT /v1/rigs/{id}/mappings/{name}`, and `vrm`).
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub mappings: std::collections::BTreeMap<String, crowdmorph_proto::Mapping>,
+}
+
+impl StoredGraphs {
+    /// Whether there is nothing to store (the file or object is removed).
+    pub fn is_empty(&self) -> bool {
+        self.graphs.is_empty() && self.masks.is_empty() && self.mappings.is_empty()
+    }
 }
 
 /// Why the store failed.
@@ -1273,25 +1288,19 @@ impl Store {
             .map_or_else(|| self.dir.join("graphs"), |d| d.join("graphs"))
     }
 
-    /// Writes rig `id`'s motion graphs (all of them, replacing the file atomically), or
-    /// removes the file when there are none. JSON: a graph is small, and a truncated or
-    /// corrupt file fails to parse, so it is reported at start and skipped, never served.
-    pub fn put_graphs(
-        &self,
-        id: &str,
-        graphs: &std::collections::BTreeMap<String, crowdmorph_proto::MotionGraph>,
-    ) -> Result<(), StoreError> {
+    /// Writes rig `stored.rig`'s motion graphs, masks and mappings (all of them, replacing the
+    /// file atomically), or removes the file when there are none. JSON: a graph is small, and
+    /// a truncated or corrupt file fails to parse, so it is reported at start and skipped,
+    /// never served.
+    pub fn put_graphs(&self, stored: &StoredGraphs) -> Result<(), StoreError> {
+        let id = stored.rig.as_str();
         let dir = self.graphs_dir();
         let path = dir.join(format!("{id}.json"));
-        if graphs.is_empty() {
+        if stored.is_empty() {
             return self.remove_file(&path);
         }
         fs::create_dir_all(&dir).map_err(io("create directory", &dir))?;
-        let bytes = serde_json::to_vec(&StoredGraphs {
-            rig: id.to_string(),
-            graphs: graphs.clone(),
-        })
-        .map_err(|e| StoreError::Encode(e.to_string()))?;
+        let bytes = serde_json::to_vec(stored).map_err(|e| StoreError::Encode(e.to_string()))?;
         let n = self.tmp_counter.fetch_add(1, Ordering::Relaxed);
         let tmp = dir.join(format!("{TMP}{}-{n}-{id}.json", std::process::id()));
         let result = (|| {

@@ -550,20 +550,15 @@ impl SharedStore {
         Change::Remove(format!("{id}@{seq:010}.{}", super::CLIPS_EXT))
     }
 
-    /// The change that stores rig `id`'s motion graphs (or removes them when there are none).
-    pub fn graphs_change(
-        id: &str,
-        graphs: &BTreeMap<String, crowdmorph_proto::MotionGraph>,
-    ) -> Result<Change, SharedError> {
-        if graphs.is_empty() {
+    /// The change that stores rig `stored.rig`'s motion graphs, masks and mappings (or removes
+    /// them when there are none).
+    pub fn graphs_change(stored: &StoredGraphs) -> Result<Change, SharedError> {
+        if stored.is_empty() {
             return Ok(Change::Remove(GRAPHS.to_string()));
         }
-        serde_json::to_vec(&StoredGraphs {
-            rig: id.to_string(),
-            graphs: graphs.clone(),
-        })
-        .map(Change::Graphs)
-        .map_err(|e| SharedError::Local(StoreError::Encode(e.to_string())))
+        serde_json::to_vec(stored)
+            .map(Change::Graphs)
+            .map_err(|e| SharedError::Local(StoreError::Encode(e.to_string())))
     }
 
     /// Writes the next generation of rig `id` with `changes` on top of the generation this

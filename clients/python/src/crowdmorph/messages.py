@@ -325,6 +325,7 @@ class Layer:
 
 
 _LAYERS = Vec(Msg(Layer))
+_MAPPING = Opt(STR)
 class _Clamp:
     """``Option<[f32; 2]>``: a fixed pair, no length."""
 
@@ -371,6 +372,7 @@ def _of_head_layer(x: Any) -> Layer:
     ("layers", _LAYERS),
     ("weights_mode", LAYER_MODE),
     ("clamp", CLAMP),
+    ("mapping", _MAPPING),
 )
 @dataclass
 class Head:
@@ -383,7 +385,9 @@ class Head:
     dicts with :class:`JointTransform`'s keys work too). Up to eight ``layers``
     (:class:`Layer` or dicts) go over that pose in order; ``weights`` sent with a ``clip``
     replace the targets they name (``weights_mode="additive"``: are added), after the layers;
-    ``clamp`` (``[lo, hi]``) bounds every final weight."""
+    ``clamp`` (``[lo, hi]``) bounds every final weight. ``mapping`` names a mapping of the rig
+    (``"arkit"``, ``"a2f"``, ``"oculus-visemes"``, ``"vrm"`` or one of its own) that named
+    ``weights`` go through first: their names are the mapping's sources."""
 
     head: int
     rig: str
@@ -396,6 +400,7 @@ class Head:
     layers: List[Layer] = field(default_factory=list)
     weights_mode: str = "override"
     clamp: Optional[Sequence[float]] = None
+    mapping: Optional[str] = None
 
     def __post_init__(self) -> None:
         j = self.joints
@@ -439,10 +444,12 @@ class _HeadVec:
             layers: Any = ()
             weights_mode: Any = "override"
             clamp: Any = None
+            mapping: Any = None
             if type(h) is Head:
                 hid, rig, clip, frame, lod = h.head, h.rig, h.clip, h.frame, h.lod
                 blend, weights, joints = h.blend, h.weights, h.joints
                 layers, weights_mode, clamp = h.layers, h.weights_mode, h.clamp
+                mapping = h.mapping
             elif isinstance(h, (tuple, list)):
                 if len(h) == 4:
                     hid, rig, clip, frame = h
@@ -456,10 +463,12 @@ class _HeadVec:
                 joints = h.get("joints")
                 layers, clamp = h.get("layers", ()), h.get("clamp")
                 weights_mode = h.get("weights_mode", "override")
+                mapping = h.get("mapping")
             elif isinstance(h, Head):
                 hid, rig, clip, frame, lod = h.head, h.rig, h.clip, h.frame, h.lod
                 blend, weights, joints = h.blend, h.weights, h.joints
                 layers, weights_mode, clamp = h.layers, h.weights_mode, h.clamp
+                mapping = h.mapping
             else:
                 raise TypeError(
                     "a head is a Head, a dict or a (head, rig, clip, frame[, lod]) tuple, "
@@ -508,6 +517,10 @@ class _HeadVec:
                 _LAYERS.write(w, [_of_head_layer(x) for x in layers])
                 LAYER_MODE.write(w, weights_mode)
                 CLAMP.write(w, clamp)
+            if mapping is None:
+                out.append(0)  # mapping = None
+            else:
+                _MAPPING.write(w, mapping)
 
 
 def _of_layer(b: Any) -> BlendLayer:
@@ -1482,6 +1495,58 @@ class GraphEdge:
     to: str
     fade: int
     window: Optional[List[int]] = None
+
+
+MAP_OVERRIDE = Enum("none", "block", "blend")
+
+
+@wire(
+    ("source", STR),
+    ("target", STR),
+    ("gain", F32),
+    ("offset", F32),
+    ("clamp", CLAMP),
+)
+@dataclass
+class MapEntry:
+    """One entry of a :class:`Mapping`: ``target += gain · source + offset``, the target's
+    sum then clamped into every ``clamp`` its entries give."""
+
+    source: str
+    target: str
+    gain: float = 1.0
+    offset: float = 0.0
+    clamp: Optional[Sequence[float]] = None
+
+
+@wire(
+    ("name", STR),
+    ("binary", BOOL),
+    ("override_blink", MAP_OVERRIDE),
+    ("override_look_at", MAP_OVERRIDE),
+    ("override_mouth", MAP_OVERRIDE),
+)
+@dataclass
+class MapSource:
+    """A source that is binary (VRM's ``isBinary``) or overrides VRM 1.0's blink, look-at or
+    mouth expressions (``"none"``, ``"block"``, ``"blend"``)."""
+
+    name: str
+    binary: bool = False
+    override_blink: str = "none"
+    override_look_at: str = "none"
+    override_mouth: str = "none"
+
+
+@wire(("entries", Vec(Msg(MapEntry))), ("sources", Vec(Msg(MapSource))))
+@dataclass
+class MappingSpec:
+    """A rig's mapping from a producer's names to its targets
+    (``PUT /v1/rigs/{id}/mappings/{name}``; ``proto/README.md``, "Mappings"; the Rust type
+    ``Mapping``, renamed here beside ``typing.Mapping``)."""
+
+    entries: List[MapEntry] = field(default_factory=list)
+    sources: List[MapSource] = field(default_factory=list)
 
 
 @wire(("nodes", Vec(Msg(GraphNode))), ("edges", Vec(Msg(GraphEdge))))

@@ -32,6 +32,7 @@ mod joint_lod;
 mod joint_map;
 mod layer;
 mod lod;
+mod mapping;
 mod mesh_level;
 mod pca;
 mod pose;
@@ -63,6 +64,11 @@ pub use layer::{
 };
 pub use lod::{
     IMPORT_LOD_METHOD, Lod, LodError, LodLevel, MeshLevel, MeshLevelPrimitive, default_lod_levels,
+};
+pub use mapping::{
+    BUILTIN_MAPPINGS, MAX_MAP_ENTRIES, MAX_MAP_VALUE, MapTable, MapTerm, MappingError, NamedEntry,
+    NamedMapping, NamedSource, OCULUS_VISEMES, Override, Procedural, SourceRule, a2f_names,
+    builtin_mapping, capitalised,
 };
 pub use mesh_level::mesh_level_rigs;
 pub use pca::{DeltaPca, PcaRegion, pca_level_rigs};

@@ -1,6 +1,7 @@
 //! A head's `layers` resolved against its rig and applied (`crowdmorph_core::rig::layer`),
 //! shared by crowd frames (`resolve`) and session ticks (`services::tick`): clips and frames
-//! checked, masks matched by loose name, joint masks by node name, then the final weights
+//! checked, masks matched by loose name (a rig's named masks first, then the built-in ones),
+//! joint masks by node name, then the final weights
 //! clamped and checked, and on a skinned rig the layered joints as overrides. Errors are the
 //! 4xx a request gets, without the head: callers name it.
 
@@ -136,11 +137,33 @@ pub(crate) fn resolve_layers(
     Ok(out)
 }
 
+/// Bytes [`check_mask`] builds on `rig`, at most: a dense row of its channels and the sparse
+/// list made of it.
+pub fn mask_bytes(rig: &Rig) -> u64 {
+    32 + 4 * rig.targets.len() as u64 + 8 * rig.targets.len() as u64
+}
+
+/// Checks a mask against a rig as a layer's inline mask is checked (400 `invalid_layer`,
+/// `unknown_targets`): what `PUT /v1/rigs/{id}/masks/{name}` stores. The caller charges
+/// [`mask_bytes`] first.
+pub(crate) fn check_mask(names: &LiveNames, m: &Mask) -> Result<(), ApiError> {
+    mask(names, m).map(drop)
+}
+
 /// A layer's mask as channels with their weights, ascending: names matched as live weights
-/// match them (ARKit names the rig lacks are skipped: it cannot show them), a built-in mask by
-/// name; a channel named twice keeps its last weight. A list longer than the rig's names and
-/// ARKit's together names something twice or nothing: a 400.
+/// match them (ARKit names the rig lacks are skipped: it cannot show them), a rig's named mask
+/// by name (`PUT /v1/rigs/{id}/masks/{name}`, checked as an inline one), else a built-in mask
+/// by name; a channel named twice keeps its last weight. A list longer than the rig's names
+/// and ARKit's together names something twice or nothing: a 400.
 fn mask(names: &LiveNames, mask: &Mask) -> Result<Selection, ApiError> {
+    let mask = match mask {
+        Mask::Named(n) => match names.rig_mask(n) {
+            // A stored mask is a list or weights (its PUT refuses a name).
+            Some(stored @ (Mask::Names(_) | Mask::Weights(_))) => stored,
+            _ => mask,
+        },
+        _ => mask,
+    };
     let channels = names.by_position.iter().map(Vec::len).sum::<usize>();
     let most = names.by_position.len() + crowdmorph_core::rig::ARKIT_NAMES.len();
     let listed = match mask {
@@ -185,8 +208,8 @@ fn mask(names: &LiveNames, mask: &Mask) -> Result<Selection, ApiError> {
             Some(list) => list.iter().try_for_each(|n| add(n, 1.0, false))?,
             None => {
                 return Err(invalid(format!(
-                    "no mask named {}; the built-in masks are upper_face, lower_face, eyes, \
-                     brows and mouth",
+                    "no mask named {}: the rig has no such mask (GET /v1/rigs/{{id}}/masks), \
+                     and the built-in masks are upper_face, lower_face, eyes, brows and mouth",
                     quoted_name(name)
                 )));
             }

@@ -1,13 +1,14 @@
 //! Admission: what a request costs, charged before any of its work — the queue memory and its
 //! charges ([`memory`]), the render budgets ([`render`]), heads resolved into priced jobs
 //! ([`resolve`]), the names they match ([`names`]), their layers ([`layers`], shared with
-//! session ticks), their final poses for clients that blend themselves ([`poses`]), a session
-//! head's liveliness ([`alive`]) and live input ([`live`]). [`Decoded`] is the extractor of a request body: it hands a handler the
+//! session ticks), mappings ([`mapping`]), their final poses for clients that blend themselves
+//! ([`poses`]), a session head's liveliness ([`alive`]) and live input ([`live`]). [`Decoded`] is the extractor of a request body: it hands a handler the
 //! decoded value only together with its charge.
 
 pub mod alive;
 pub mod layers;
 pub mod live;
+pub mod mapping;
 pub mod memory;
 pub mod names;
 pub mod poses;

@@ -1,8 +1,11 @@
 //! Names a request matches against a rig: its targets for live weights and masks (exactly,
-//! else by the one loose spelling, as CSV clips' columns are matched), ARKit's names, and the
-//! 404s that list what a rig has.
+//! else by the one loose spelling, as CSV clips' columns are matched), its named masks,
+//! ARKit's names, and the 404s that list what a rig has.
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
+use std::sync::Arc;
+
+use crowdmorph_proto::Mask;
 
 use crowdmorph_core::rig::{ARKIT_NAMES, Rig, TargetId, quoted_name};
 use crowdmorph_import::clips::loose;
@@ -51,6 +54,9 @@ pub(crate) struct LiveNames {
     exact: HashMap<String, u32>,
     /// Loose spelling → the one name with it (`None` when several share it).
     loose: HashMap<String, Option<u32>>,
+    /// The rig's named masks, which a layer's `"mask": "name"` finds before the built-in ones
+    /// (a snapshot shared with the registry, not a copy).
+    masks: Arc<BTreeMap<String, Mask>>,
 }
 
 impl LiveNames {
@@ -79,7 +85,18 @@ impl LiveNames {
             by_position,
             exact,
             loose: loose_names,
+            masks: Arc::default(),
         }
+    }
+
+    /// The same names with the rig's named masks (`RigMaps::masks`).
+    pub(crate) fn with_masks(self, masks: Arc<BTreeMap<String, Mask>>) -> LiveNames {
+        LiveNames { masks, ..self }
+    }
+
+    /// The rig's mask `name`, if it has one.
+    pub(crate) fn rig_mask(&self, name: &str) -> Option<&Mask> {
+        self.masks.get(name)
     }
 
     /// The channels the name refers to (empty: none, or several names loosely).
@@ -90,6 +107,12 @@ impl LiveNames {
         };
         found.map_or(&[], |i| &self.by_position[i as usize])
     }
+}
+
+/// `entry`'s rig's names with its named masks (the registry's current ones): what layers and
+/// live weights are matched against.
+pub(crate) fn live_names(registry: &Registry, entry: &RigEntry) -> LiveNames {
+    LiveNames::new(entry.rig()).with_masks(registry.maps.masks(&entry.id))
 }
 
 /// Whether `name` is one of ARKit's 52 blendshape names, in any loose spelling.

@@ -14,7 +14,8 @@ use crate::admission::layers::{
     decoded_layers_bytes, finish_weights, layered_joints, layered_joints_bytes, layers_bytes,
     resolve_layers,
 };
-use crate::admission::names::{LiveNames, is_arkit_name};
+use crate::admission::mapping::{ResolvedMapping, mapping_spec, resolve_mapping, resolved_bytes};
+use crate::admission::names::{LiveNames, is_arkit_name, live_names};
 pub use crate::admission::names::{unknown_clip, unknown_rig};
 
 use crate::admission::memory::{Charge, QueueMemory};
@@ -299,6 +300,8 @@ pub fn resolve_heads(
         charge: None,
         row: Vec::new(),
         live_joints: JointPose::NONE,
+        mappings: HashMap::new(),
+        mapped: Vec::new(),
     };
     let mut keys = Vec::with_capacity(n_heads);
     for (h, head) in heads.iter().enumerate() {
@@ -366,6 +369,10 @@ struct Lookups<'h> {
     /// The joint transforms the current live head's angle weights (Live Link's `HeadYaw`, ...)
     /// set, taken by [`Lookups::joints`].
     live_joints: JointPose,
+    /// Per rig and mapping name that heads use, the mapping resolved once (charged).
+    mappings: HashMap<(u32, &'h str), ResolvedMapping>,
+    /// The current mapped head's `(channel, weight)` pairs, reused.
+    mapped: Vec<(u32, f32)>,
 }
 
 impl<'h> Lookups<'h> {
@@ -426,6 +433,16 @@ impl<'h> Lookups<'h> {
         ri: u32,
         mode: FrameMode,
     ) -> Result<Pose, ApiError> {
+        if head.mapping.is_some() && !matches!(head.weights.as_deref(), Some(LiveWeights::Named(_)))
+        {
+            return Err(invalid_weights(
+                h,
+                head,
+                "a mapping maps weights by name: send \"weights\" as an object of the mapping's \
+                 source names (dense weights, or none, have nothing to map)"
+                    .into(),
+            ));
+        }
         let over_clip = head.weights.is_some() && !head.clip.is_empty();
         if head.weights.is_some() && head.clip.is_empty() && !head.blend.is_empty() {
             return Err(invalid_weights(
@@ -564,7 +581,10 @@ impl<'h> Lookups<'h> {
             bytes += LiveNames::bytes(rig);
         }
         self.charge_more(bytes)?;
-        let names = self.live.entry(ri).or_insert_with(|| LiveNames::new(rig));
+        let names = self
+            .live
+            .entry(ri)
+            .or_insert_with(|| live_names(self.registry, &entry));
         let rigs = &self.rigs;
         let layers = resolve_layers(&entry, names, &head.layers, |clip, frame, _| {
             rigs[ri as usize].rig().clips[clip as usize]
@@ -604,7 +624,7 @@ impl<'h> Lookups<'h> {
     fn live_values(
         &mut self,
         h: usize,
-        head: &Head,
+        head: &'h Head,
         ri: u32,
         weights: &LiveWeights,
     ) -> Result<Vec<u32>, ApiError> {
@@ -613,8 +633,15 @@ impl<'h> Lookups<'h> {
         let rig = entry.rig();
         Ok(match weights {
             LiveWeights::Dense(_) => (0..rig.targets.len() as u32).collect(),
+            // Mapped: the channels the mapping set (ascending, each once).
+            LiveWeights::Named(_) if head.mapping.is_some() => {
+                self.mapped.iter().map(|p| p.0).collect()
+            }
             LiveWeights::Named(pairs) => {
-                let names = self.live.entry(ri).or_insert_with(|| LiveNames::new(rig));
+                let names = self
+                    .live
+                    .entry(ri)
+                    .or_insert_with(|| live_names(self.registry, &entry));
                 let mut out: Vec<u32> = pairs
                     .iter()
                     .flat_map(|(n, _)| names.ids(n).iter().copied())
@@ -626,11 +653,54 @@ impl<'h> Lookups<'h> {
         })
     }
 
+    /// Head `h`'s named weights through its mapping `name` into `self.row` (the mapping
+    /// resolved once per request and rig, charged), the channels set left in `self.mapped`.
+    fn mapped_row(
+        &mut self,
+        h: usize,
+        head: &Head,
+        ri: u32,
+        name: &'h str,
+        pairs: &[(String, f32)],
+    ) -> Result<(), ApiError> {
+        let entry = self.rigs[ri as usize].clone();
+        if !self.mappings.contains_key(&(ri, name)) {
+            let rig = entry.rig();
+            let spec =
+                mapping_spec(&entry, &self.registry.maps, name).map_err(|e| at_head(h, head, e))?;
+            let mut bytes = 2 * spec.heap_bytes() + resolved_bytes(&spec, rig);
+            if !self.live.contains_key(&ri) {
+                bytes += LiveNames::bytes(rig);
+            }
+            self.charge_more(bytes)?;
+            let registry = self.registry;
+            let names = self
+                .live
+                .entry(ri)
+                .or_insert_with(|| live_names(registry, &entry));
+            let resolved =
+                resolve_mapping(&entry, names, name, &spec).map_err(|e| at_head(h, head, e))?;
+            // Its scratch (a value per source, a pair per term), reused by every head.
+            self.charge_more(resolved.map_bytes())?;
+            self.mappings.insert((ri, name), resolved);
+        }
+        if let Some(m) = self.mappings.get(&(ri, name)) {
+            m.map(pairs, &mut self.mapped)
+                .map_err(|e| at_head(h, head, e))?;
+        }
+        for &(k, w) in &self.mapped {
+            if let Some(slot) = self.row.get_mut(k as usize) {
+                *slot = w;
+            }
+        }
+        Ok(())
+    }
+
     /// Head `h`'s live weights as a pose, its bytes charged before it is built.
     fn live_pose(
         &mut self,
         h: usize,
-        head: &Head,
+        head: &'h Head,
         ri: u32,
         weights: &LiveWeights,
     ) -> Result<Pose, ApiError> {
@@ -648,9 +718,19 @@ impl<'h> Lookups<'h> {
         // The rig's joint map as live weights read it (built once per generation, charged to
         // the rig).
         let live_angles = entry.live_angles();
+        if let (Some(m), LiveWeights::Named(pairs)) = (head.mapping.as_deref(), weights) {
+            // Channels the mapping does not set keep the rig's default weight.
+            self.row.clear();
+            self.row.extend_from_slice(&rig.default_weights);
+            self.mapped_row(h, head, ri, m, pairs)?;
+            return Ok(Pose::live(&self.row));
+        }
         // Live Link's head and eye angles among named weights: (channel of the joint map, value).
         let mut angles: Vec<(usize, f32)> = Vec::new();
-        let names = self.live.entry(ri).or_insert_with(|| LiveNames::new(rig));
+        let names = self
+            .live
+            .entry(ri)
+            .or_insert_with(|| live_names(self.registry, &entry));
         // Channels not named keep the rig's default weight, as in a CSV clip.
         self.row.clear();
         self.row.extend_from_slice(&rig.default_weights);

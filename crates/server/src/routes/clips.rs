@@ -12,6 +12,8 @@ use axum::response::IntoResponse;
 use crowdmorph_proto::{CONTENT_TYPE_JSON, ClipInfo, ClipList, ClipUpload, Quantization};
 
 use super::rigs::{check_name, clip_import_error, upload_body};
+use crate::admission::mapping::{mapping_spec, resolve_mapping, resolved_bytes};
+use crate::admission::names::LiveNames;
 use crate::admission::resolve::unknown_clip;
 use crate::http::cache::Validator;
 use crate::http::{
@@ -24,6 +26,7 @@ use crate::services::Parts;
 use crate::services::persist::prepare_error;
 use crate::services::persist::{clip_error, persist_clips, persist_record};
 use crate::state::AppState;
+use crowdmorph_core::rig::NamedMapping;
 use crowdmorph_core::rig::{AnimatedTexture, Rig};
 use crowdmorph_engine::{Engine, PreparedRig};
 use crowdmorph_import::ImportError;
@@ -36,6 +39,8 @@ pub struct ClipQuery {
     fps: Option<f32>,
     #[serde(default)]
     ignore_unknown: bool,
+    /// A mapping of the rig whose sources a CSV clip's columns are (`?mapping=a2f`).
+    mapping: Option<String>,
 }
 
 enum ClipSource {
@@ -91,6 +96,16 @@ pub async fn upload_clips(
     // Clips are imported against a snapshot, outside the lock that serializes rig changes:
     // they depend only on the rig's target names, which no change of the same rig alters.
     let base = state.rig(&id)?;
+    let mapping = match query.mapping.as_deref() {
+        None => None,
+        Some(_) if !matches!(source, ClipSource::Csv) => {
+            return Err(ApiError::bad_request(
+                "bad_query",
+                "?mapping= applies to CSV clips, whose columns are the mapping's sources",
+            ));
+        }
+        Some(m) => Some((m.to_string(), mapping_spec(&base, &state.registry.maps, m)?)),
+    };
     let options = ClipOptions {
         fps: query.fps.unwrap_or(crowdmorph_core::rig::DEFAULT_FPS),
         ignore_unknown: query.ignore_unknown,
@@ -102,13 +117,25 @@ pub async fn upload_clips(
     let imports = blocking(move || {
         let rig = snapshot.rig();
         let mut imports = match source {
-            ClipSource::Csv => named_clip(
-                crowdmorph_import::clip_from_csv,
-                rig,
-                name,
-                &bytes,
-                &options,
-            ),
+            ClipSource::Csv => match &mapping {
+                None => named_clip(
+                    crowdmorph_import::clip_from_csv,
+                    rig,
+                    name,
+                    &bytes,
+                    &options,
+                ),
+                Some((m, spec)) => {
+                    let mapped = mapped_csv(&snapshot, m, spec, &bytes, &options)?;
+                    named_clip(
+                        crowdmorph_import::clip_from_csv,
+                        rig,
+                        name,
+                        &mapped,
+                        &options,
+                    )
+                }
+            },
             ClipSource::Json => named_clip(
                 crowdmorph_import::clip_from_json,
                 rig,
@@ -206,6 +233,66 @@ fn named_clip(
     let name = name.as_deref().unwrap_or("clip");
     let clip = read(rig, name, bytes, options).map_err(clip_import_error)?;
     Ok(vec![clip])
+}
+
+/// A CSV clip whose columns are mapping `name`'s sources, rewritten onto the rig's targets
+/// (`crowdmorph_import::mapped`): each row through the mapping, a target a row does not set
+/// at the rig's default weight. What it builds is charged to the upload's budget.
+fn mapped_csv(
+    entry: &RigEntry,
+    name: &str,
+    spec: &NamedMapping,
+    bytes: &[u8],
+    options: &ClipOptions,
+) -> Result<Vec<u8>, ApiError> {
+    let rig = entry.rig();
+    let budget = options
+        .budget
+        .as_deref()
+        .ok_or_else(|| ApiError::internal("a clip upload without its budget"))?;
+    let held = LiveNames::bytes(rig) + resolved_bytes(spec, rig) + 64 * rig.targets.len() as u64;
+    budget
+        .charge(held, || format!("mapping {name:?} for a CSV clip"))
+        .map_err(|e| clip_import_error(ImportError::Budget(e)))?;
+    let names = LiveNames::new(rig);
+    let resolved = resolve_mapping(entry, &names, name, spec)?;
+    // One column per target name the mapping reaches (channels sharing a name get one).
+    let mut targets: Vec<String> = Vec::new();
+    let mut column: Vec<(u32, usize)> = Vec::new();
+    for c in resolved.channels() {
+        let t = &rig.targets[c as usize];
+        let at = targets.iter().position(|n| n == t).unwrap_or_else(|| {
+            targets.push(t.clone());
+            targets.len() - 1
+        });
+        column.push((c, at));
+    }
+    let defaults: Vec<f32> = column
+        .iter()
+        .map(|&(c, _)| rig.default_weights[c as usize])
+        .collect();
+    let mut out = Vec::new();
+    let mapped = crowdmorph_import::mapped::map_csv(
+        bytes,
+        budget,
+        &|n| resolved.is_source(n),
+        &targets,
+        &mut |pairs, values| {
+            for (&(_, at), &d) in column.iter().zip(&defaults) {
+                values[at] = d;
+            }
+            resolved.map(pairs, &mut out).map_err(|e| e.message)?;
+            for &(c, w) in &out {
+                if let Ok(k) = column.binary_search_by_key(&c, |p| p.0) {
+                    values[column[k].1] = w;
+                }
+            }
+            Ok(())
+        },
+    )
+    .map_err(clip_import_error);
+    budget.release(held);
+    mapped
 }
 
 /// Every animation of a glTF file: named after the animation, or `?name=` for a file with

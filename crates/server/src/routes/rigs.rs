@@ -12,6 +12,7 @@ use axum::response::IntoResponse;
 use bytes::Bytes;
 use crowdmorph_proto::{CONTENT_TYPE_JSON, RigList};
 
+use crate::admission::mapping::to_wire;
 use crate::http::{
     self, Accept, Admin, ApiError, ApiResult, Query, Ready, blocking, checked_content_type,
     read_body,
@@ -19,13 +20,16 @@ use crate::http::{
 use crate::registry::{
     ClipLayout, NewEntry, RigEntry, check_output_range, quantization_box, sanitize_id, valid_id,
 };
+use crate::rig_maps::NamedMaps;
 use crate::services::Parts;
 use crate::services::lod::{rig_info, start_auto_lod};
-use crate::services::persist::{clip_error, persist_delete, persist_record, prepare_charged};
+use crate::services::persist::{
+    clip_error, persist_delete, persist_maps, persist_record, prepare_charged,
+};
 use crate::services::replicas::forget_rig;
 use crate::state::AppState;
 use crowdmorph_core::budget::Budget;
-use crowdmorph_core::rig::{Rig, quoted_name};
+use crowdmorph_core::rig::{NamedMapping, Rig, quoted_name};
 use crowdmorph_import::gltf::GltfImport;
 use crowdmorph_import::{ImportError, ImportOptions};
 
@@ -136,7 +140,7 @@ pub async fn upload_rig(
     let gpu = state.on_gpu();
     let b = budget.clone();
     let clip_error = clip_error(&state);
-    let (rig, prepared, qbox) =
+    let (rig, prepared, qbox, vrm) =
         blocking(move || import_rig(&engine, &b, bytes, &options, gpu, clip_error)).await?;
     let id = query.name.unwrap_or_else(|| sanitize_id(&rig.name));
     if rig.clips.len() > state.config.max_clips {
@@ -163,6 +167,14 @@ pub async fn upload_rig(
     // On disk before it is visible: a crash after this point loses nothing acknowledged.
     let layout = ClipLayout::in_record(&rig.clips);
     persist_record(&state, &id, rig.clone(), false, &layout).await?;
+    // A VRM avatar's expressions: its `vrm` mapping, stored with the rig before it is served.
+    let maps = vrm.map(|m| NamedMaps {
+        mappings: Arc::new([("vrm".to_string(), to_wire(&m))].into_iter().collect()),
+        ..NamedMaps::default()
+    });
+    if let Some(maps) = &maps {
+        persist_maps(&state, &id, maps.clone()).await?;
+    }
     let charge = budget.keep(prepared.memory().host_bytes as u64);
     let entry = Arc::new(RigEntry::new(NewEntry {
         id: id.clone(),
@@ -173,6 +185,7 @@ pub async fn upload_rig(
         charge,
         qbox,
     }));
+    state.registry.maps.set(&id, maps.unwrap_or_default());
     state.registry.insert(entry.clone());
     drop(budget);
     crowdmorph_core::budget::return_freed_memory();
@@ -240,6 +253,7 @@ fn import_rig(
         Arc<Rig>,
         crowdmorph_engine::PreparedRig,
         crowdmorph_proto::Quantization,
+        Option<NamedMapping>,
     ),
     ApiError,
 > {
@@ -258,6 +272,7 @@ fn import_rig(
         })
         .map_err(|e| ApiError::budget(e, "rig_too_large"))?;
     let mut rig = import.build(options).map_err(import_error)?;
+    let vrm = vrm_expressions(&bytes, budget, &mut rig)?;
     // The body is not needed past the build (which consumed the import that borrowed it):
     // gone before the engine's copies are made.
     drop(bytes);
@@ -267,7 +282,41 @@ fn import_rig(
     check_output_range(&rig).map_err(|m| ApiError::bad_request("invalid_rig", m))?;
     let (rig, prepared) = prepare_charged(engine, budget, Arc::new(rig), gpu)?;
     let qbox = quantization_box(&rig);
-    Ok((rig, prepared, qbox))
+    Ok((rig, prepared, qbox, vrm))
+}
+
+/// A VRM file's expressions as its `vrm` mapping (`crowdmorph_import::vrm`); the document's
+/// JSON parsed once more, its size charged three times first. Expressions that do not fit
+/// the file (a bind to a missing morph target) leave the rig without the mapping and say so
+/// in its import notes: the avatar itself is fine.
+fn vrm_expressions(
+    bytes: &[u8],
+    budget: &Budget,
+    rig: &mut Rig,
+) -> Result<Option<NamedMapping>, ApiError> {
+    let Some(json) = crowdmorph_import::vrm::gltf_json(bytes) else {
+        return Ok(None);
+    };
+    // Only a document that names VRM is parsed again.
+    if !json.windows(3).any(|w| w == b"VRM") {
+        return Ok(None);
+    }
+    let held = 3 * json.len() as u64;
+    budget
+        .charge(held, || "the VRM expressions of the file".to_string())
+        .map_err(|e| ApiError::budget(e, "rig_too_large"))?;
+    let found = serde_json::from_slice::<serde_json::Value>(json)
+        .map_err(|e| e.to_string())
+        .and_then(|doc| crowdmorph_import::vrm::vrm_mapping(&doc).map_err(|e| e.to_string()));
+    budget.release(held);
+    match found {
+        Ok(m) => Ok(m),
+        Err(why) => {
+            rig.import_notes
+                .push(format!("VRM expressions not read: {why}"));
+            Ok(None)
+        }
+    }
 }
 
 pub async fn list_rigs(State(state): State<AppState>, _ready: Ready, accept: Accept) -> ApiResult {

@@ -1,5 +1,6 @@
 //! Changing a rig: preparing it within a budget ([`prepare_charged`]), and persisting the
-//! change. A change of a rig (its record, a clip file, its motion graphs, a delete)
+//! change. A change of a rig (its record, a clip file, its motion graphs with its masks and
+//! mappings, a delete)
 //! written where this server keeps rigs — the data dir ([`crowdmorph_store::Store`]), or the
 //! shared store as the rig's next generation ([`super::replicas::commit_shared`]) — before
 //! the change is served. Without either, nothing is written. At start, the data dir's records
@@ -18,9 +19,11 @@ use crowdmorph_core::budget::{Budget, BudgetError};
 use crowdmorph_core::rig::{Rig, RigShape};
 use crowdmorph_store::objects::{Change, SharedStore};
 use crowdmorph_store::{
-    Record, RecordRef, Store, StoreError, StoredBuiltin, StoredClips, StoredRig,
+    Record, RecordRef, Store, StoreError, StoredBuiltin, StoredClips, StoredGraphs, StoredRig,
     geometry_fingerprint,
 };
+
+use crate::rig_maps::NamedMaps;
 
 /// A rig the engine could not prepare: over the GPU memory budget, answered as the host
 /// budget answers (413 `too_large`, 503 `memory_full`, naming `--max-gpu-memory`); anything
@@ -172,18 +175,59 @@ async fn commit_staged<S: Persisting>(
     }
 }
 
-/// Persists rig `id`'s motion graphs, all of them (none removes them).
+/// Rig `id`'s motion graphs, masks and mappings as they are stored together (one file or
+/// store object per rig).
+pub fn stored_named(
+    id: &str,
+    graphs: std::collections::BTreeMap<String, crowdmorph_proto::MotionGraph>,
+    maps: &NamedMaps,
+) -> StoredGraphs {
+    StoredGraphs {
+        rig: id.to_string(),
+        graphs,
+        masks: (*maps.masks).clone(),
+        mappings: (*maps.mappings).clone(),
+    }
+}
+
+/// Takes what a stored graphs file holds beside the graphs: the rig's masks and mappings.
+pub fn load_named<S: Persisting>(state: &S, stored: &StoredGraphs) {
+    state.registry().maps.set(
+        &stored.rig,
+        NamedMaps {
+            masks: Arc::new(stored.masks.clone()),
+            mappings: Arc::new(stored.mappings.clone()),
+        },
+    );
+}
+
+/// Persists rig `id`'s motion graphs, all of them (none removes them), with its masks and
+/// mappings as they are.
 pub async fn persist_graphs<S: Persisting>(
     state: &S,
     id: &str,
     graphs: std::collections::BTreeMap<String, crowdmorph_proto::MotionGraph>,
 ) -> Result<(), ApiError> {
+    let stored = stored_named(id, graphs, &state.registry().maps.of(id));
+    persist_named(state, stored).await
+}
+
+/// Persists rig `id`'s masks and mappings, all of them, with its motion graphs as they are.
+pub async fn persist_maps<S: Persisting>(
+    state: &S,
+    id: &str,
+    maps: NamedMaps,
+) -> Result<(), ApiError> {
+    let stored = stored_named(id, state.graphs().specs(id), &maps);
+    persist_named(state, stored).await
+}
+
+async fn persist_named<S: Persisting>(state: &S, stored: StoredGraphs) -> Result<(), ApiError> {
     if let Some(shared) = state.shared_store() {
-        let change = SharedStore::graphs_change(id, &graphs).map_err(ApiError::internal)?;
-        return commit_shared(state, shared, id, change).await;
+        let change = SharedStore::graphs_change(&stored).map_err(ApiError::internal)?;
+        return commit_shared(state, shared, &stored.rig, change).await;
     }
-    let id = id.to_string();
-    on_data_dir(state, move |st| st.put_graphs(&id, &graphs)).await
+    on_data_dir(state, move |st| st.put_graphs(&stored)).await
 }
 
 /// Removes rig `id` from the store: its record, clip files and graphs (a tombstone
@@ -318,6 +362,7 @@ pub fn load_blocking<S: Persisting>(state: &S) -> Result<usize, StoreError> {
     }
     for g in graphs {
         if state.registry().get(&g.rig).is_some() {
+            load_named(state, &g);
             state.graphs().load(g.rig, g.graphs);
         }
     }

@@ -41,7 +41,9 @@ use crowdmorph_store::objects::{
     Change, Fetched, GRAPHS, LodClaim, Manifest, Misses, ObjectRef, SharedError, SharedStore,
     Unusable,
 };
-use crowdmorph_store::{Record, RecordRef, geometry_fingerprint};
+use crowdmorph_store::{Record, RecordRef, StoredGraphs, geometry_fingerprint};
+
+use crate::rig_maps::NamedMaps;
 
 /// What a replica of a shared store keeps beside its rigs.
 #[derive(Debug, Default)]
@@ -328,7 +330,14 @@ fn restage<S: Replicating>(state: &S, id: &str, names: &[String]) -> BTreeMap<St
     let rig = entry.rig();
     for name in names {
         let staged = if name == GRAPHS {
-            SharedStore::graphs_change(id, &state.graphs().specs(id)).ok()
+            let maps = state.registry().maps.of(id);
+            SharedStore::graphs_change(&StoredGraphs {
+                rig: id.to_string(),
+                graphs: state.graphs().specs(id),
+                masks: (*maps.masks).clone(),
+                mappings: (*maps.mappings).clone(),
+            })
+            .ok()
         } else if name == &format!("{id}.{}", crowdmorph_store::EXT) {
             let clips = clips_named(rig, &entry.layout.record);
             let record = if entry.builtin {
@@ -733,10 +742,7 @@ fn install<S: Replicating>(state: &S, fetched: Fetched, budget: &Budget) -> Resu
     // The built-in rig with nothing stored but its graphs (no clips or LOD of its own
     // yet): its geometry and clips stay the embedded ones, only the graphs change.
     if records.is_empty() && state.registry().get(&id).is_some_and(|e| e.builtin) {
-        match graphs {
-            Some(g) if g.rig == id => state.graphs().load(id.clone(), g.graphs),
-            _ => state.graphs().drop_rig(&id),
-        }
+        take_named(state, &id, graphs);
         tracing::info!(rig = %id, generation = manifest.generation, "built-in rig's graphs loaded from the store");
         superseded(state, &id, manifest.generation);
         if let Some(s) = state.shared_store() {
@@ -836,10 +842,7 @@ fn install<S: Replicating>(state: &S, fetched: Fetched, budget: &Budget) -> Resu
     };
     let entry = Arc::new(entry);
     state.registry().insert(entry.clone());
-    match graphs {
-        Some(g) if g.rig == id => state.graphs().load(id.clone(), g.graphs),
-        _ => state.graphs().drop_rig(&id),
-    }
+    take_named(state, &id, graphs);
     if let Ok(mut t) = state.topologies().lock() {
         t.purge(&id);
     }
@@ -925,11 +928,32 @@ pub async fn find_missing<S: Replicating>(state: &S, ids: Vec<String>) -> Result
     Ok(())
 }
 
-/// Forgets rig `id` here: its LOD job, entry, graphs and render topologies.
+/// Takes rig `id`'s stored graphs, masks and mappings (none when the generation has none).
+fn take_named<S: Replicating>(state: &S, id: &str, stored: Option<StoredGraphs>) {
+    match stored {
+        Some(g) if g.rig == id => {
+            state.registry().maps.set(
+                id,
+                NamedMaps {
+                    masks: Arc::new(g.masks),
+                    mappings: Arc::new(g.mappings),
+                },
+            );
+            state.graphs().load(id.to_string(), g.graphs);
+        }
+        _ => {
+            state.registry().maps.drop_rig(id);
+            state.graphs().drop_rig(id);
+        }
+    }
+}
+
+/// Forgets rig `id` here: its LOD job, entry, graphs, masks, mappings and render topologies.
 pub(crate) fn forget_rig<S: Replicating>(state: &S, id: &str) {
     state.lod_jobs().cancel(id);
     state.registry().remove(id);
     state.graphs().drop_rig(id);
+    state.registry().maps.drop_rig(id);
     if let Ok(mut t) = state.topologies().lock() {
         t.purge(id);
     }

@@ -43,7 +43,7 @@ use crate::admission::alive::AliveTick;
 use crate::admission::layers::{
     layered_joints, layered_joints_bytes, layers_bytes, resolve_layers,
 };
-use crate::admission::names::LiveNames;
+use crate::admission::names::{LiveNames, live_names};
 use crate::http::ApiError;
 
 use crate::session_stream::delta;
@@ -555,7 +555,9 @@ fn resolve<S: Ticking>(
                     Some(c) => c.merge(more),
                     None => layered = Some(more),
                 }
-                let names = names.entry(ri).or_insert_with(|| LiveNames::new(rig));
+                let names = names
+                    .entry(ri)
+                    .or_insert_with(|| live_names(state.registry(), entry));
                 let layers = resolve_layers(entry, names, &h.layers, |clip, frame, reference| {
                     // A layer's frames play from the clock, as the head's offset does; its
                     // additive reference is a fixed frame.

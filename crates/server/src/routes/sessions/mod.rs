@@ -186,7 +186,7 @@ fn check_session_layers(
             + crate::admission::names::LiveNames::bytes(rig)
             + 4 * rig.targets.len() as u64,
     )?;
-    let names = crate::admission::names::LiveNames::new(rig);
+    let names = crate::admission::names::live_names(&state.registry, entry);
     crate::admission::layers::resolve_layers(entry, &names, &h.layers, |clip, frame, _| {
         rig.clips[clip as usize]
             .resolve_frame(frame, crowdmorph_core::rig::FrameMode::Wrap)
