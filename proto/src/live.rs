@@ -50,8 +50,9 @@ pub struct LiveSpec {
     /// Without timecodes: smooth the newest sample with a One Euro filter.
     #[serde(default)]
     pub smoothing: Option<OneEuro>,
-    /// A rig mapping the producer's names go through first (`arkit`, `a2f`, ... or one of the
-    /// rig's own).
+    /// A rig mapping the producer's named weights go through first (`arkit`, `a2f`,
+    /// `oculus-visemes`, `vrm` or one of the rig's own; 404 `unknown_mapping` when the head is
+    /// added); Live Link's head and eye angles still turn joints.
     #[serde(default)]
     pub mapping: Option<String>,
 }

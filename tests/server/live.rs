@@ -432,3 +432,79 @@ async fn bad_flooding_and_idle_producers_get_named_answers_while_ticks_go_on() {
     assert!(last > after, "ticks still go on: {after} then {last}");
     server.stop().await;
 }
+
+/// A live head whose settings name a mapping shows its producer's names through it: Live
+/// Link's capitalised names through the built-in `a2f` give exactly the vertices of the same
+/// weights sent by the rig's own names to a head without one. An unknown mapping is refused
+/// when the head is added, and dense weights cannot go through one.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_live_heads_mapping_turns_producer_names_into_targets() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let info = create(
+        &server,
+        json!({"fps": 30, "heads": [
+            {"head": 1, "rig": "default-head", "live": {"mapping": "a2f", "fade_ms": 0}},
+            {"head": 2, "rig": "default-head", "live": {"fade_ms": 0}}]}),
+    )
+    .await;
+    let id = info.id.clone();
+    let (s, v) = post_live(
+        &server,
+        &id,
+        json!({"heads": [
+            {"head": 1, "weights": {"JawOpen": 0.7, "MouthSmileLeft": 0.5, "HeadYaw": 0.1}},
+            {"head": 2, "weights": {"jawOpen": 0.7, "mouthSmileLeft": 0.5}}]}),
+    )
+    .await;
+    assert_eq!(s, 200, "{v}");
+    assert_eq!(v["accepted"], 2);
+    let mut ws = connect(&server, &id, json!({"format": "f32"})).await;
+    let rig = crowdmorph::embedded::default_rig();
+    let (neutral, _) = rig_oracle(&rig, &vec![0.0; rig.targets.len()]);
+    let mut view = View::default();
+    let mut seen = false;
+    for _ in 0..60 {
+        let t = next_tick(&mut ws).await;
+        view.apply(&t);
+        let (a, b) = (view.heads.get(&1), view.heads.get(&2));
+        if let (Some(a), Some(b)) = (a, b)
+            && crate::util::max_abs_diff(a, &neutral) > 1e-3
+        {
+            assert_eq!(a, b, "tick {}: the mapped head differs", t.tick);
+            seen = true;
+            break;
+        }
+    }
+    assert!(seen, "the live heads showed their input");
+    let (s, v) = post_live(
+        &server,
+        &id,
+        json!({"heads": [{"head": 1, "weights": vec![0.5; rig.targets.len()]}]}),
+    )
+    .await;
+    assert_eq!(
+        (s, v["error"]["code"].as_str()),
+        (400, Some("invalid_live")),
+        "{v}"
+    );
+    let (s, v) = call(
+        &server,
+        Method::PATCH,
+        &format!("/v1/sessions/{id}"),
+        json!({"add": [{"head": 3, "rig": "default-head", "live": {"mapping": "nope"}}]}),
+    )
+    .await;
+    assert_eq!(
+        (s, v["error"]["code"].as_str()),
+        (404, Some("unknown_mapping")),
+        "{v}"
+    );
+    assert!(
+        v["error"]["message"]
+            .as_str()
+            .unwrap_or("")
+            .contains("head 3"),
+        "{v}"
+    );
+    server.stop().await;
+}

@@ -396,7 +396,6 @@ pub fn map_named_bytes(entry: &RigEntry, maps: &RigMaps, name: &str, inputs: usi
 /// the mapping on every call; a caller that maps many inputs of one mapping resolves it once
 /// ([`resolve_mapping`]) and calls [`ResolvedMapping::map`].
 // The live input of session heads (`/v1/sessions/{id}/live`, issue 47) calls it.
-#[allow(dead_code)]
 pub(crate) fn map_named(
     entry: &RigEntry,
     maps: &RigMaps,

@@ -19,10 +19,12 @@ use axum::extract::ws::{CloseFrame, Message, WebSocket, WebSocketUpgrade};
 use axum::extract::{Path, State};
 use axum::http::{HeaderMap, StatusCode};
 use axum::response::Response;
-use crowdmorph_proto::{LiveAck, LiveInput, SessionHead};
+use crowdmorph_import::clips::is_live_link_angle;
+use crowdmorph_proto::{LiveAck, LiveInput, LiveSample, LiveWeights, SessionHead};
 
 use super::session;
 use crate::admission::live::{resolve_sample, sample_bytes};
+use crate::admission::mapping::{map_named, map_named_bytes};
 use crate::admission::memory::decode_reservation;
 use crate::admission::names::LiveNames;
 use crate::admission::{Admission, Charge, Priced, decode_held};
@@ -147,7 +149,10 @@ fn take(state: &AppState, s: &Session, input: LiveInput) -> Result<u32, ApiError
         let mut charge = state
             .queue_memory
             .reserve(sample_bytes(entry.rig().targets.len(), sample))?;
-        let values = resolve_sample(entry, names, sample)?;
+        let values = match h.live.as_ref().and_then(|l| l.mapping.as_deref()) {
+            Some(mapping) => mapped_sample(state, entry, names, mapping, sample, &mut charge)?,
+            None => resolve_sample(entry, names, sample)?,
+        };
         // What the sample keeps: its values (the check's scratch is given back).
         charge.keep(values.heap_bytes() + size_of::<Sample>() as u64);
         samples.push((
@@ -163,6 +168,55 @@ fn take(state: &AppState, s: &Session, input: LiveInput) -> Result<u32, ApiError
     let n = samples.len() as u32;
     s.live.push(samples);
     Ok(n)
+}
+
+/// A sample of a head whose live settings name a mapping: its named weights through the
+/// mapping (its scratch charged to `charge` first), Live Link's head and eye angles among
+/// them and its joints resolved as without one.
+fn mapped_sample(
+    state: &AppState,
+    entry: &RigEntry,
+    names: &LiveNames,
+    mapping: &str,
+    sample: &LiveSample,
+    charge: &mut Charge,
+) -> Result<crowdmorph_anim::live::LiveValues, ApiError> {
+    let pairs = match &sample.weights {
+        None => &[][..],
+        Some(LiveWeights::Named(p)) => &p[..],
+        Some(LiveWeights::Dense(_)) => {
+            return Err(ApiError::bad_request(
+                "invalid_live",
+                format!(
+                    "head {}: dense weights cannot go through mapping {mapping:?}; send them by name",
+                    sample.head
+                ),
+            ));
+        }
+    };
+    charge.merge(state.queue_memory.reserve(map_named_bytes(
+        entry,
+        &state.registry.maps,
+        mapping,
+        pairs.len(),
+    ))?);
+    let weights = map_named(entry, &state.registry.maps, mapping, pairs)?;
+    // The angles and joints, as a sample without the mapping's names.
+    let rest = LiveSample {
+        weights: Some(LiveWeights::Named(
+            pairs
+                .iter()
+                .filter(|(n, _)| is_live_link_angle(n))
+                .cloned()
+                .collect(),
+        )),
+        head: sample.head,
+        joints: sample.joints.clone(),
+        t: sample.t,
+    };
+    let mut values = resolve_sample(entry, names, &rest)?;
+    values.weights = weights;
+    Ok(values)
 }
 
 /// `GET /v1/sessions/{id}/live`: the WebSocket upgrade of a producer.

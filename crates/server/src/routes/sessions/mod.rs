@@ -142,6 +142,14 @@ fn check_session_head(state: &AppState, h: &SessionHead) -> Result<(), ApiError>
     requested_joints(&entry, &h.joints)
         .map_err(|(code, m)| ApiError::bad_request(code, format!("head {}: {m}", h.head)))?;
     if let Some(l) = &h.live {
+        if let Some(m) = &l.mapping {
+            crate::admission::mapping::mapping_spec(&entry, &state.registry.maps, m).map_err(
+                |e| ApiError {
+                    message: format!("head {}: {}", h.head, e.message),
+                    ..e
+                },
+            )?;
+        }
         crate::admission::live::check_spec(l).map_err(|e| ApiError {
             message: format!("head {}: {}", h.head, e.message),
             ..e
