@@ -16,8 +16,8 @@
 
 pub mod graph;
 pub mod live;
-pub mod pose;
 pub mod mapping;
+pub mod pose;
 pub mod session;
 #[cfg(feature = "unpack")]
 pub mod skim;
@@ -26,12 +26,12 @@ pub mod wire;
 
 pub use graph::{BuiltGraph, GraphEdge, GraphInfo, GraphList, GraphNode, GraphPlay, MotionGraph};
 pub use live::{LiveAck, LiveInput, LiveSample, LiveSpec, OneEuro};
+pub use mapping::{
+    MapEntry, MapOverride, MapSource, Mapping, MappingInfo, MappingList, MaskInfo, MaskList,
+};
 pub use pose::{
     CrowdPoseResponse, HeadPose, MAX_F16_WEIGHT, NodePose, RigChannels, TickPoses, f16_to_f32,
     f32_to_f16, weights_f16_le,
-};
-pub use mapping::{
-    MapEntry, MapOverride, MapSource, Mapping, MappingInfo, MappingList, MaskInfo, MaskList,
 };
 pub use session::{
     Alive, DEFAULT_KEYFRAME_EVERY, DEFAULT_SESSION_FPS, DEFAULT_SESSION_IDLE_TIMEOUT_S,

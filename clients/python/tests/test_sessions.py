@@ -200,6 +200,7 @@ def test_session_messages_decode_to_the_servers_json(client, sessions):
             "joints": {},
             "layers": [],
             "clamp": None,
+            "live": None,
             "alive": None,
         }
     ]

@@ -106,6 +106,13 @@ pub struct SessionBenchOptions {
     /// Producer sockets feeding the live heads.
     #[arg(long, default_value_t = 10)]
     pub producers: usize,
+    /// Every head is alive (the session's default: blinks, saccades, breathing).
+    #[arg(long)]
+    pub alive: bool,
+    /// With `--alive`: every head also looks at a point that circles the crowd once every
+    /// 10 s, moved by a `PATCH` of the session's `alive` ten times a second.
+    #[arg(long)]
+    pub look_at_moving: bool,
 }
 
 /// Name of the clip `--long-clip` uploads.
@@ -217,6 +224,10 @@ pub struct SessionBenchReport {
     pub messages_per_viewer_per_s: f64,
     /// Messages replaced in outboxes before they were sent.
     pub messages_dropped: u64,
+    /// Every head alive (blinks, saccades, breathing), and looking at a moving point.
+    pub alive: bool,
+    /// The look-at point moved ten times a second.
+    pub look_at_moving: bool,
     /// Live heads, their producers and samples per second each.
     pub live: usize,
     /// Producer sockets.
@@ -325,7 +336,8 @@ async fn create_session(
             let per_clip = opt.animations.div_ceil(clips.len());
             let offset = (a / clips.len()) * clip.frames as usize / per_clip;
             let position = [(i % side) as f32 * 0.4, 0.0, -((i / side) as f32) * 0.4];
-            let mut head = if opt.graph {
+            // Live heads play their clip (an emotion, their lips live over it).
+            let mut head = if opt.graph && i >= opt.live {
                 serde_json::json!({
                     "head": i, "rig": rig_id, "position": position,
                     "graph": {"name": "bench", "start": clip.name, "seed": a},
@@ -342,7 +354,10 @@ async fn create_session(
             head
         })
         .collect();
-    let body = serde_json::json!({"fps": opt.fps, "idle_timeout_s": 600, "heads": heads});
+    let mut body = serde_json::json!({"fps": opt.fps, "idle_timeout_s": 600, "heads": heads});
+    if opt.alive {
+        body["alive"] = alive_at(opt, 0.0);
+    }
     let reply = client
         .send(
             hyper::Method::POST,
@@ -409,7 +424,8 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &SessionBenchOptions) -> Result<Se
         }));
     }
     let sent = Arc::new(AtomicU64::new(0));
-    let producers = start_producers(&addr.to_string(), &session.id, &info, opt, &sent).await?;
+    let mut producers = start_producers(&addr.to_string(), &session.id, &info, opt, &sent).await?;
+    producers.extend(start_director(&client, &session.id, opt));
     // Warm-up, then the window.
     tokio::time::sleep(Duration::from_secs(1)).await;
     let sent0 = sent.load(Ordering::Relaxed);
@@ -493,12 +509,66 @@ async fn run(rig_bytes: Option<Vec<u8>>, opt: &SessionBenchOptions) -> Result<Se
         bytes_per_viewer_per_s: bytes as f64 / n / seconds,
         messages_per_viewer_per_s: msgs as f64 / n / seconds,
         messages_dropped: s1.messages_dropped - s0.messages_dropped,
+        alive: opt.alive,
+        look_at_moving: opt.alive && opt.look_at_moving,
         live: opt.live,
         producers: if opt.live > 0 { opt.producers } else { 0 },
         live_hz: opt.live_hz,
         live_messages_per_s: live_sent as f64 / seconds,
         cores: std::thread::available_parallelism().map_or(1, usize::from),
     })
+}
+
+/// The session's `alive` at `t` seconds: blinks, saccades, breathing, and with
+/// `--look-at-moving` a point circling the crowd every 10 s at head height.
+fn alive_at(opt: &SessionBenchOptions, t: f64) -> serde_json::Value {
+    let mut a = serde_json::json!({"blink": true, "saccades": true, "breathing": true});
+    if opt.look_at_moving {
+        let side = (opt.heads as f64).sqrt().ceil() * 0.4;
+        let phase = std::f64::consts::TAU * t / 10.0;
+        a["look_at"] = serde_json::json!([
+            side / 2.0 + side * phase.cos(),
+            1.6,
+            -side / 2.0 + side * phase.sin()
+        ]);
+    }
+    a
+}
+
+/// The director: moves the crowd's look-at point ten times a second (a `PATCH` of the
+/// session's `alive`), when `--look-at-moving` asks for it.
+fn start_director(
+    client: &crowdmorph_client::Client,
+    session: &str,
+    opt: &SessionBenchOptions,
+) -> Option<tokio::task::JoinHandle<()>> {
+    if !(opt.alive && opt.look_at_moving) {
+        return None;
+    }
+    let (client, path, opt) = (
+        client.clone(),
+        format!("/v1/sessions/{session}"),
+        opt.clone(),
+    );
+    Some(tokio::spawn(async move {
+        let start = Instant::now();
+        loop {
+            tokio::time::sleep(Duration::from_millis(100)).await;
+            let body = serde_json::json!({"alive": alive_at(&opt, start.elapsed().as_secs_f64())});
+            let sent = client
+                .send(
+                    hyper::Method::PATCH,
+                    &path,
+                    Some("application/json"),
+                    None,
+                    Bytes::from(body.to_string()),
+                )
+                .await;
+            if sent.is_err() {
+                return;
+            }
+        }
+    }))
 }
 
 /// The producers of `opt.live` heads: `opt.producers` sockets, producer `p` feeding heads
@@ -950,6 +1020,17 @@ impl std::fmt::Display for SessionBenchReport {
 
 /// The report as text (its [`std::fmt::Display`]).
 pub fn report_text(r: &SessionBenchReport) -> String {
+    let graph = if r.graph {
+        " (random walks over a motion graph)"
+    } else {
+        ""
+    };
+    let alive = match (r.alive, r.look_at_moving) {
+        (true, true) => ", alive (blinks, saccades, breathing, a moving look-at point)",
+        (true, false) => ", alive (blinks, saccades, breathing)",
+        _ => "",
+    };
+    let what = format!("{graph}{alive}");
     format!(
         "bench sessions: rig {} ({} vertices), {} heads playing {} animations{}, {} viewers, \
          {} ticks/s, {}, {:.1} s, {} cores\n\
@@ -962,11 +1043,7 @@ pub fn report_text(r: &SessionBenchReport) -> String {
         r.vertices,
         r.heads,
         r.animations,
-        if r.graph {
-            " (random walks over a motion graph)"
-        } else {
-            ""
-        },
+        what,
         r.viewers,
         r.fps,
         r.format,

@@ -532,7 +532,9 @@ fn resolve<S: Ticking>(
             let live = live_now
                 .get(&h.head)
                 .filter(|l| l.generation == entry.generation);
-            let (pose, joints) = if h.layers.is_empty() && h.clamp.is_none() && live.is_none()
+            let (pose, joints) = if h.layers.is_empty()
+                && h.clamp.is_none()
+                && live.is_none()
                 && !alive.on(h)
             {
                 (pose, joints)
