@@ -14,25 +14,9 @@ use glam::{DQuat, DVec3};
 use serde_json::{Value, json};
 
 use super::TestServer;
+use super::layers::loose;
 use super::sessions::{View, call, connect, create, info, next_tick};
 use crate::util::rig_oracle;
-
-/// A name as the protocol matches it loosely (`proto/README.md`): lower case, letters and
-/// digits only, a trailing `left`/`right` as `l`/`r` (`eyeBlinkLeft` is `eyeBlink_L`).
-fn loose(name: &str) -> String {
-    let s: String = name
-        .chars()
-        .filter(char::is_ascii_alphanumeric)
-        .map(|c| c.to_ascii_lowercase())
-        .collect();
-    if let Some(stem) = s.strip_suffix("left") {
-        format!("{stem}l")
-    } else if let Some(stem) = s.strip_suffix("right") {
-        format!("{stem}r")
-    } else {
-        s
-    }
-}
 
 /// The channel of ARKit's `name` in the embedded rig (which spells it `_L`/`_R`).
 fn channel(rig: &crowdmorph::rig::Rig, name: &str) -> usize {

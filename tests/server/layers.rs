@@ -42,7 +42,7 @@ pub(super) fn frame_weights(rig: &crowdmorph::rig::Rig, clip: &str, frame: u32) 
 
 /// A name as the protocol matches it loosely (`proto/README.md`): lower case, letters and
 /// digits only, a trailing `left`/`right` as `l`/`r` (`mouthSmileLeft` is `mouthSmile_L`).
-fn loose(name: &str) -> String {
+pub(super) fn loose(name: &str) -> String {
     let s: String = name
         .chars()
         .filter(char::is_ascii_alphanumeric)

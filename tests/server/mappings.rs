@@ -14,6 +14,7 @@ use crowdmorph_proto::{
 };
 use serde_json::{Value, json};
 
+use super::layers::loose;
 use super::sessions::call;
 use super::{TestServer, stored_config, temp_dir};
 
@@ -198,23 +199,6 @@ async fn a2f_and_a_rigs_own_mapping_give_the_weights_they_map_to() {
     assert_eq!((status, v["builtin"].as_bool()), (200, Some(true)), "{v}");
     assert_eq!(v["mapping"]["sources"].as_array().map(Vec::len), Some(15));
     server.stop().await;
-}
-
-/// A name as the protocol matches it loosely (`proto/README.md`): lower case, letters and
-/// digits only, a trailing `left`/`right` as `l`/`r` (`eyeBlinkLeft` is `eyeBlink_L`).
-fn loose(name: &str) -> String {
-    let s: String = name
-        .chars()
-        .filter(char::is_ascii_alphanumeric)
-        .map(|c| c.to_ascii_lowercase())
-        .collect();
-    if let Some(stem) = s.strip_suffix("left") {
-        format!("{stem}l")
-    } else if let Some(stem) = s.strip_suffix("right") {
-        format!("{stem}r")
-    } else {
-        s
-    }
 }
 
 #[tokio::test]
