@@ -508,3 +508,109 @@ async fn a_live_heads_mapping_turns_producer_names_into_targets() {
     );
     server.stop().await;
 }
+
+/// On a skinned avatar, a live head's joints follow its producer: Live Link Face's `HeadYaw`
+/// through the rig's joint map and an explicit node rotation give, at full share, exactly the
+/// vertices of a crowd frame asking for the same angle and rotation (the path the skinning
+/// oracle checks in `layers.rs` and `joints.rs`), and differ from the neutral.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_skinned_live_heads_joints_follow_angles_and_rotations() {
+    let path = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data/avatars/valid-white-f-1/White_F_1_Casual.glb");
+    let server = TestServer::start(ServerConfig::default()).await;
+    let glb = std::fs::read(&path).expect("avatar");
+    server
+        .client
+        .upload_rig("avatar", bytes::Bytes::from(glb))
+        .await
+        .expect("upload");
+    let nodes = server
+        .client
+        .rig_channels("avatar")
+        .await
+        .expect("channels")
+        .nodes;
+    let eye = nodes
+        .iter()
+        .find(|n| n.to_ascii_lowercase().contains("eye"))
+        .expect("an eye node")
+        .clone();
+    let turn = [0.0, 0.258_819, 0.0, 0.965_926]; // 30° about +Y
+    let info = create(
+        &server,
+        json!({"fps": 30, "heads": [
+            {"head": 1, "rig": "avatar", "live": {"fade_ms": 0}},
+            {"head": 2, "rig": "avatar"}]}),
+    )
+    .await;
+    let (s, v) = post_live(
+        &server,
+        &info.id,
+        json!({"heads": [{"head": 1, "weights": {"HeadYaw": 0.5},
+                          "joints": {eye.clone(): {"rotation": turn}}}]}),
+    )
+    .await;
+    assert_eq!(s, 200, "{v}");
+    let want = server
+        .client
+        .crowd_frame(
+            &crowdmorph_proto::CrowdFrameRequest {
+                heads: vec![crowdmorph_proto::Head {
+                    head: 1,
+                    rig: "avatar".into(),
+                    weights: Some(Box::new(crowdmorph_proto::LiveWeights::Named(vec![(
+                        "HeadYaw".into(),
+                        0.5,
+                    )]))),
+                    joints: crowdmorph_proto::JointOverrides::rotation(&eye, turn),
+                    ..Default::default()
+                }],
+                output: crowdmorph_proto::OutputOptions {
+                    format: crowdmorph_proto::Format::F32,
+                    ..Default::default()
+                },
+                wrap: true,
+            },
+            crowdmorph_client::Encoding::Bincode,
+        )
+        .await
+        .expect("crowd frame")
+        .0;
+    let want = super::positions_f32(want.format, &want.buffers[0]);
+    // Tolerances relative to the avatar's diagonal: the live path slerps to the rotation at
+    // full share and normalises it, which may differ from the override in the last bits.
+    let (mut lo, mut hi) = ([f32::MAX; 3], [f32::MIN; 3]);
+    for p in want.chunks_exact(3) {
+        for k in 0..3 {
+            lo[k] = lo[k].min(p[k]);
+            hi[k] = hi[k].max(p[k]);
+        }
+    }
+    let diag = (0..3).map(|k| (hi[k] - lo[k]).powi(2)).sum::<f32>().sqrt();
+    let off = |a: &[f32], b: &[f32]| {
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0f32, f32::max)
+    };
+    let mut ws = connect(&server, &info.id, json!({"format": "f32"})).await;
+    let mut view = View::default();
+    let mut best = f32::MAX;
+    for _ in 0..60 {
+        let t = next_tick(&mut ws).await;
+        view.apply(&t);
+        let (Some(live), Some(plain)) = (view.heads.get(&1), view.heads.get(&2)) else {
+            continue;
+        };
+        best = best.min(off(live, &want));
+        if best <= 1e-5 * diag {
+            assert!(off(live, plain) > 1e-3 * diag, "the input moved the head");
+            break;
+        }
+    }
+    assert!(
+        best <= 1e-5 * diag,
+        "the live head shows the crowd frame's pose: off by {best:e} of {diag}"
+    );
+    server.stop().await;
+}
