@@ -614,3 +614,41 @@ async fn a_skinned_live_heads_joints_follow_angles_and_rotations() {
     );
     server.stop().await;
 }
+
+/// Live input is a session write: with an admin token, a POST or a producer socket without it
+/// is a 401, and with it the sample is taken.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn live_input_needs_the_admin_token() {
+    let mut server = TestServer::start(ServerConfig {
+        admin_token: Some("s3cret".into()),
+        ..ServerConfig::default()
+    })
+    .await;
+    let open = server.client.clone();
+    server.client = server.client.clone().with_token("s3cret");
+    let info = create(
+        &server,
+        json!({"heads": [{"head": 1, "rig": "default-head", "live": {}}]}),
+    )
+    .await;
+    let body = json!({"heads": [{"head": 1, "weights": {"jawOpen": 0.5}}]});
+    let reply = open
+        .send(
+            Method::POST,
+            &format!("/v1/sessions/{}/live", info.id),
+            Some("application/json"),
+            None,
+            bytes::Bytes::from(body.to_string()),
+        )
+        .await
+        .expect("post");
+    assert_eq!(reply.status, 401);
+    let url = format!("ws://{}/v1/sessions/{}/live", server.addr, info.id);
+    match tokio_tungstenite::connect_async(&url).await {
+        Err(tokio_tungstenite::tungstenite::Error::Http(r)) => assert_eq!(r.status(), 401),
+        other => panic!("a producer without the token: {other:?}"),
+    }
+    let (s, v) = post_live(&server, &info.id, body).await;
+    assert_eq!((s, v["accepted"].as_u64()), (200, Some(1)), "{v}");
+    server.stop().await;
+}
