@@ -131,32 +131,39 @@ pub fn decode<T: DeserializeOwned>(headers: &HeaderMap, body: &[u8]) -> Result<T
     let expected = "application/json (or application/x-bincode)";
     let ct = checked_content_type(headers, expected)?;
     match ct.as_str() {
-        CONTENT_TYPE_BINCODE => codec::request_from_wire(body)
-            .map_err(|e| ApiError::bad_request("malformed_bincode", e.to_string())),
-        CONTENT_TYPE_JSON => {
-            // The path (`heads[3].frame`) tells a human which field is wrong.
-            let mut de = serde_json::Deserializer::from_slice(body);
-            let value = serde_path_to_error::deserialize(&mut de).map_err(|e| {
-                let path = e.path().to_string();
-                let inner = e.into_inner();
-                let at = if path == "." {
-                    String::new()
-                } else {
-                    format!(" at {path}")
-                };
-                ApiError::bad_request("malformed_json", format!("malformed JSON{at}: {inner}"))
-            })?;
-            de.end().map_err(|e| {
-                ApiError::bad_request("malformed_json", format!("malformed JSON: {e}"))
-            })?;
-            Ok(value)
-        }
+        CONTENT_TYPE_BINCODE => decode_as(true, body),
+        CONTENT_TYPE_JSON => decode_as(false, body),
         other => Err(ApiError::new(
             StatusCode::UNSUPPORTED_MEDIA_TYPE,
             "unsupported_media_type",
             format!("content type {other:?} is not {CONTENT_TYPE_JSON} or {CONTENT_TYPE_BINCODE}"),
         )),
     }
+}
+
+/// Decodes `body` as bincode or as JSON (400 `malformed_bincode` or `malformed_json`, the
+/// latter with the path of the field that is wrong): a request body once its type is known,
+/// or a WebSocket message (binary or text).
+pub fn decode_as<T: DeserializeOwned>(bincode: bool, body: &[u8]) -> Result<T, ApiError> {
+    if bincode {
+        return codec::request_from_wire(body)
+            .map_err(|e| ApiError::bad_request("malformed_bincode", e.to_string()));
+    }
+    // The path (`heads[3].frame`) tells a human which field is wrong.
+    let mut de = serde_json::Deserializer::from_slice(body);
+    let value = serde_path_to_error::deserialize(&mut de).map_err(|e| {
+        let path = e.path().to_string();
+        let inner = e.into_inner();
+        let at = if path == "." {
+            String::new()
+        } else {
+            format!(" at {path}")
+        };
+        ApiError::bad_request("malformed_json", format!("malformed JSON{at}: {inner}"))
+    })?;
+    de.end()
+        .map_err(|e| ApiError::bad_request("malformed_json", format!("malformed JSON: {e}")))?;
+    Ok(value)
 }
 
 /// Whether `headers` say the body is bincode.

@@ -342,23 +342,6 @@ fn receive(state: &AppState, s: &Session, bytes: &[u8], bincode: bool) -> Result
     let _decoding = state
         .queue_memory
         .reserve(decode_reservation(bincode, bytes.len() as u64))?;
-    let input: LiveInput = if bincode {
-        crowdmorph_store::codec::request_from_wire(bytes).map_err(|e| {
-            ApiError::bad_request("malformed_bincode", format!("bad live message: {e}"))
-        })?
-    } else {
-        let mut de = serde_json::Deserializer::from_slice(bytes);
-        let v = serde_path_to_error::deserialize(&mut de).map_err(|e| {
-            let path = e.path().to_string();
-            ApiError::bad_request(
-                "malformed_json",
-                format!("bad live message at {path}: {}", e.into_inner()),
-            )
-        })?;
-        de.end().map_err(|e| {
-            ApiError::bad_request("malformed_json", format!("bad live message: {e}"))
-        })?;
-        v
-    };
+    let input: LiveInput = crate::http::negotiate::decode_as(bincode, bytes)?;
     take(state, s, input)
 }
