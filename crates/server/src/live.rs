@@ -16,7 +16,7 @@ use std::sync::{Arc, Mutex};
 use crowdmorph_anim::live::{Fade, JitterBuffer, LiveValues, OneEuroFilter, OneEuroParams};
 use crowdmorph_proto::{LiveSpec, SessionHead};
 
-use crate::admission::memory::Charge;
+use crate::admission::memory::{Charge, QueueMemory};
 
 /// Most samples kept per head with timecodes (at 60 Hz, half a second more than the longest
 /// useful delay needs is far less: producers that send more just push the oldest out).
@@ -185,6 +185,9 @@ fn by_id(heads: &[SessionHead]) -> HashMap<u64, usize> {
 struct Shown {
     fade: Fade,
     filter: OneEuroFilter,
+    /// What `last`, the filter's state and this tick's copy of `last` hold in the queue
+    /// memory (the samples they came from may be gone).
+    _charge: Option<Charge>,
     /// What it showed last (held while it fades out) and its generation.
     last: Option<(u64, LiveValues)>,
     /// The tick it was last resolved at.
@@ -210,7 +213,7 @@ pub struct LiveShown {
 
 impl LiveShown {
     /// Every live head's values and share at `tick` (at `fps`), read from `inputs` under one
-    /// lock; heads without input, or faded out, are absent. Forgets the heads (and their
+    /// lock, what each keeps charged to `memory`; heads without input, or faded out, are absent. Forgets the heads (and their
     /// input) no longer live in `heads`.
     pub fn at(
         &mut self,
@@ -218,6 +221,7 @@ impl LiveShown {
         heads: &[SessionHead],
         tick: u64,
         fps: f32,
+        memory: &QueueMemory,
     ) -> HashMap<u64, LiveNow> {
         let now = inputs.now();
         let mut out = HashMap::new();
@@ -272,8 +276,14 @@ impl LiveShown {
                     (fresh, on)
                 }
             };
+            // Kept only once charged: the last values, the filter's state for values like
+            // them and the copy the tick takes; a full queue keeps what was shown before.
             if let Some(f) = fresh {
-                shown.last = Some(f);
+                let bytes = 2 * (f.1.heap_bytes() + 64) + OneEuroFilter::bytes_for(&f.1);
+                if let Ok(c) = memory.reserve(bytes) {
+                    shown.last = Some(f);
+                    shown._charge = Some(c);
+                }
             }
             let alpha = shown.fade.step(on, dt, f64::from(spec.fade_ms) / 1e3);
             if alpha > 0.0

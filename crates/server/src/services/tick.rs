@@ -476,7 +476,13 @@ fn resolve<S: Ticking>(
     // Live heads' input, read once for every head (one lock of the producers' side).
     let live_now = if players.live_heads || heads.iter().any(|h| h.live.is_some()) {
         players.live_heads = heads.iter().any(|h| h.live.is_some());
-        players.live.at(&session.live, heads, tick, session.fps)
+        players.live.at(
+            &session.live,
+            heads,
+            tick,
+            session.fps,
+            state.queue_memory(),
+        )
     } else {
         HashMap::new()
     };
