@@ -33,6 +33,21 @@ async fn post_live(server: &TestServer, id: &str, body: Value) -> (u16, Value) {
     .await
 }
 
+/// Posts one live message with `client` (a producer task's own handle); the status.
+async fn send_live(client: &crowdmorph_client::Client, id: &str, body: &Value) -> u16 {
+    client
+        .send(
+            Method::POST,
+            &format!("/v1/sessions/{id}/live"),
+            Some("application/json"),
+            None,
+            bytes::Bytes::from(body.to_string()),
+        )
+        .await
+        .expect("post live")
+        .status
+}
+
 /// α and the relative residual of `got` as `base + α·(live − base)`, by least squares.
 fn share(got: &[f32], base: &[DVec3], live: &[DVec3]) -> (f64, f64) {
     let (mut num, mut den) = (0.0, 0.0);
@@ -98,17 +113,8 @@ async fn a_live_head_follows_input_holds_it_and_fades_back_without_a_pop() {
         tokio::spawn(async move {
             let mut sent = 0u32;
             loop {
-                let reply = server_client
-                    .send(
-                        Method::POST,
-                        &format!("/v1/sessions/{id}/live"),
-                        Some("application/json"),
-                        None,
-                        bytes::Bytes::from(body.to_string()),
-                    )
-                    .await
-                    .expect("post live");
-                assert_eq!(reply.status, 200, "{:?}", reply.body);
+                let status = send_live(&server_client, &id, &body).await;
+                assert_eq!(status, 200);
                 sent += 1;
                 tokio::select! {
                     _ = &mut stopped => return sent,
@@ -224,17 +230,7 @@ async fn timecoded_samples_are_reordered_and_interpolated() {
             for k in (0..26).step_by(2) {
                 for j in [k + 1, k] {
                     let body = json!({ "heads": [sample(j)] });
-                    let reply = server_client
-                        .send(
-                            Method::POST,
-                            &format!("/v1/sessions/{id}/live"),
-                            Some("application/json"),
-                            None,
-                            bytes::Bytes::from(body.to_string()),
-                        )
-                        .await
-                        .expect("post live");
-                    assert_eq!(reply.status, 200);
+                    assert_eq!(send_live(&server_client, &id, &body).await, 200);
                 }
                 tokio::time::sleep(Duration::from_millis(100)).await;
             }
@@ -632,17 +628,7 @@ async fn live_input_needs_the_admin_token() {
     )
     .await;
     let body = json!({"heads": [{"head": 1, "weights": {"jawOpen": 0.5}}]});
-    let reply = open
-        .send(
-            Method::POST,
-            &format!("/v1/sessions/{}/live", info.id),
-            Some("application/json"),
-            None,
-            bytes::Bytes::from(body.to_string()),
-        )
-        .await
-        .expect("post");
-    assert_eq!(reply.status, 401);
+    assert_eq!(send_live(&open, &info.id, &body).await, 401);
     let url = format!("ws://{}/v1/sessions/{}/live", server.addr, info.id);
     match tokio_tungstenite::connect_async(&url).await {
         Err(tokio_tungstenite::tungstenite::Error::Http(r)) => assert_eq!(r.status(), 401),
