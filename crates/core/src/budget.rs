@@ -373,12 +373,17 @@ pub const TRIM_AFTER_BYTES: u64 = 64 << 20;
 /// what it hands back is faulted in again when reused).
 const TRIM_INTERVAL: std::time::Duration = std::time::Duration::from_secs(2);
 
+/// How long a trim waits after it is asked for, so that what is being freed as it is asked
+/// is freed before the allocator is walked.
+const TRIM_SETTLE: std::time::Duration = std::time::Duration::from_millis(50);
+
 /// [`return_freed_memory`] on a thread of its own, soon: for the end of a request that held a
 /// lot (at least [`TRIM_AFTER_BYTES`]) and freed it. A trim walks every allocator arena under
 /// its lock and can take milliseconds on a large heap, so it never runs on the caller's (an
 /// async worker's) thread, and asks coalesce: one trim runs at a time, at most one waits, and
 /// trims are at least [`TRIM_INTERVAL`] apart, so a flood of refused requests costs one trim
-/// every two seconds at most. The last ask is always followed by a trim.
+/// every two seconds at most. The last ask is always followed by two trims: one at once, one
+/// [`TRIM_INTERVAL`] later for what is freed after it.
 pub fn return_freed_memory_soon() {
     static ASKS: std::sync::OnceLock<Option<std::sync::mpsc::SyncSender<()>>> =
         std::sync::OnceLock::new();
@@ -388,8 +393,21 @@ pub fn return_freed_memory_soon() {
             .name("crowdmorph-trim".into())
             .spawn(move || {
                 while rx.recv().is_ok() {
+                    // The ask comes as a charge is dropped, often just before the memory it
+                    // paid for is freed (a value drops its fields in order): let that finish.
+                    std::thread::sleep(TRIM_SETTLE);
                     return_freed_memory();
-                    std::thread::sleep(TRIM_INTERVAL);
+                    // What the last requests free after their ask (a response sent after its
+                    // charge went back, connection buffers) is trimmed by one more pass after
+                    // the interval; asks that came meanwhile are served by it too.
+                    loop {
+                        std::thread::sleep(TRIM_INTERVAL);
+                        let asked = rx.try_recv().is_ok();
+                        return_freed_memory();
+                        if !asked {
+                            break;
+                        }
+                    }
                 }
             })
             .ok()
