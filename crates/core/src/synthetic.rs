@@ -422,7 +422,9 @@ pub fn face_capture(frames: usize, seed: u64) -> Vec<f32> {
     let (mut yaw, mut pitch) = (0f64, 0f64);
     let (mut ty, mut tp) = (0f64, 0f64);
     let mut next = 0usize;
-    for t in 0..n {
+    let (mut yaws, mut pitches) = (vec![0f64; n], vec![0f64; n]);
+    let gaze = yaws.iter_mut().zip(pitches.iter_mut()).zip(&lat[4]);
+    for (t, ((y, p), blink)) in gaze.enumerate() {
         if t == next {
             ty = rng.f64() * 1.4 - 0.7;
             tp = rng.f64() * 0.9 - 0.45;
@@ -430,9 +432,11 @@ pub fn face_capture(frames: usize, seed: u64) -> Vec<f32> {
         }
         yaw += (ty - yaw) * 0.35;
         pitch += (tp - pitch) * 0.35;
-        lat[5][t] = yaw;
-        lat[6][t] = pitch - 0.3 * lat[4][t];
+        *y = yaw;
+        *p = pitch - 0.3 * blink;
     }
+    lat[5] = yaws;
+    lat[6] = pitches;
     // Ornstein–Uhlenbeck processes: (latent, time constant s, stationary σ, mean).
     for (l, tau, sigma, mean) in [
         (7usize, 1.5, 0.25, 0.0),
@@ -443,10 +447,10 @@ pub fn face_capture(frames: usize, seed: u64) -> Vec<f32> {
         let a = (-1.0 / (tau * FPS)).exp();
         let s = sigma * (1.0 - a * a).sqrt();
         let mut x = mean;
-        for t in 0..n {
+        for y in lat[l].iter_mut() {
             let g = (rng.f64() + rng.f64() + rng.f64() - 1.5) * 2.0; // ≈ N(0, 1)
             x = mean + a * (x - mean) + s * g;
-            lat[l][t] = x;
+            *y = x;
         }
     }
     let pos = |x: f64| x.max(0.0);
