@@ -465,8 +465,7 @@ pub fn run(which: Command) -> Result<()> {
                 let curves = crowdmorph::compress::compress(&rig, clip, max_error)?;
                 let pca = crowdmorph::compress::compress_pca(&rig, clip, &basis, max_error)?
                     .filter(|p| p.bytes() < curves.bytes());
-                let transform =
-                    crowdmorph::transform::compress(&rig, &metric, clip, max_error)?;
+                let transform = crowdmorph::transform::compress(&rig, &metric, clip, max_error)?;
                 both.push((curves, pca, transform));
             }
             let best_library = |c: &crowdmorph::compress::Compressed,

@@ -32,7 +32,16 @@
 
 use crowdmorph_core::rig::{Clip, MAX_FRAMES, Rig};
 
-use crate::compress::DecodeError;
+/// Why a transform-coded clip does not decode.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum DecodeError {
+    /// A segment is corrupt or truncated.
+    #[error("segment {0}: {1}")]
+    Corrupt(usize, String),
+    /// The header disagrees with itself or with the rig (version, shape, basis, segments).
+    #[error("{0}")]
+    Malformed(String),
+}
 
 /// The version of this codec's stored form (a later layout is a new number, so old records
 /// still read with the code that wrote them).
@@ -372,7 +381,11 @@ fn allocation(metric: &Metric, moving: &[bool]) -> Vec<f64> {
     let mut x: Vec<f64> = (0..k)
         .map(|t| {
             let l = metric.longest[t];
-            if moving[t] && l > 0.0 { 1.0 / (l * l) } else { 0.0 }
+            if moving[t] && l > 0.0 {
+                1.0 / (l * l)
+            } else {
+                0.0
+            }
         })
         .collect();
     let mut peak = vec![0f64; k];

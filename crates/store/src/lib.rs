@@ -698,8 +698,8 @@ fn decode_clips(
 }
 
 /// A decoded compressed clip, or `None` with the reason it does not decode added to `skipped`.
-fn kept(
-    decoded: Result<Clip, crowdmorph_anim::compress::DecodeError>,
+fn kept<E: std::fmt::Display>(
+    decoded: Result<Clip, E>,
     name: &str,
     file: &Path,
     skipped: &mut Vec<String>,
@@ -707,10 +707,7 @@ fn kept(
     match decoded {
         Ok(clip) => Some(clip),
         Err(e) => {
-            let why = format!(
-                "{}: compressed clip {name:?} skipped: {e}",
-                file.display()
-            );
+            let why = format!("{}: compressed clip {name:?} skipped: {e}", file.display());
             tracing::error!(error = %why, "skipping a stored clip that does not decode");
             skipped.push(why);
             None
