@@ -1,31 +1,32 @@
 //! Transform-coded clips (clip codec 2): face captures within a vertex-space error budget.
 //!
 //! A face tracker's 52 channels move together (left and right, jaw and lips) and carry white
-//! noise of 1–2 % that the budget forbids removing where it moves vertices visibly. The per-curve
-//! codec ([`crate::compress`]) spends bits on each channel's noise separately and bounds the
-//! error by the triangle inequality over every channel at the worst vertex; this one:
+//! noise that the budget forbids removing where it moves vertices visibly. The per-curve codec
+//! ([`crate::compress`]) bounds the error by the triangle inequality over every channel at the
+//! worst vertex, which leaves most of the budget unspent; this one:
 //!
-//! - **decorrelates the channels in vertex space.** With `G = Dᵀ D` (the Gram matrix of the
-//!   targets' deltas, `D` the 3V × K delta matrix, a tiny ridge so it is invertible) and
-//!   `z = R w`, `RᵀR = G`, the squared length of `z` is the summed squared vertex displacement.
-//!   The principal directions `u_j` of the clip's `z` (its frames around their mean) are the
-//!   chapter's PCA (GPU Gems 3 ch. 15) measured where the error is measured: a direction that
-//!   moves no vertex costs nothing, and a channel's weight counts by its delta's size (the
-//!   brief's "error spent where vertices move least"). The clip stores the mean and each kept
-//!   direction in weight space (`b_j = R⁻¹ u_j`, 16-bit with a scale per direction), counted
-//!   in its size;
-//! - **quantizes every coefficient with one step `δ`** (in `z`, equal steps spend equal squared
-//!   error per component: the reverse water-filling of a Gaussian source), and keeps only the
+//! - **analyses the clip two ways and keeps the smaller.** (a) Decorrelated in vertex space:
+//!   with `G = Dᵀ D` (the Gram matrix of the targets' deltas, `D` the 3V × K delta matrix, a
+//!   tiny ridge so it is invertible) and `z = R w`, `RᵀR = G`, the squared length of `z` is the
+//!   summed squared vertex displacement; the principal directions `u_j` of the clip's `z` (its
+//!   frames around their mean) are the chapter's PCA (GPU Gems 3 ch. 15) measured where the
+//!   error is measured. The clip stores the mean and each kept direction in weight space
+//!   (`b_j = R⁻¹ u_j`), counted in its size. (b) The channels themselves, each with the step
+//!   `allocation` gives: error spent where vertices are crowded least. Low-rank clean clips
+//!   take (a); captures, whose noise is independent per channel, take (b);
+//! - **quantizes every coefficient with one step `δ`** (equal steps spend equal squared error
+//!   per component: the reverse water-filling of a Gaussian source), and keeps only the
 //!   directions whose coefficients ever exceed `δ/2` (the others decode as 0 within the same
-//!   error a quantizer would make);
+//!   error a quantizer would make); the basis entries get the bits their largest coefficient
+//!   needs;
 //! - **measures instead of bounding.** `δ` is the largest one (a bisection in log scale) whose
 //!   decoded clip keeps every vertex of every frame within `max_error × diagonal` of the
 //!   original — measured on the decoder's own output in f64, as ACL measures its bit rates.
 //!   The bound is therefore a property of the stored bytes, not of an inequality;
 //! - **predicts per segment and stream.** Each [`SEGMENT`] frames decode alone (random access,
-//!   as the curve codec); within one, each coefficient stream chooses the predictor of its
-//!   residuals (none, the previous value, or the line through the two before) that costs
-//!   least: a linear predictor multiplies white noise's variance by 6, a smooth curve wants it.
+//!   as the curve codec); within one, each stream chooses the predictor of its residuals that
+//!   costs least (none, the previous value, the line through two, the mean of two or of four):
+//!   a linear predictor multiplies white noise's variance by 6, a smooth curve wants it.
 //!   Residuals are zigzag varints, a segment is one zstd frame with its checksum.
 //!
 //! Nothing is denoised beyond the budget: the error is measured against the noisy input.
@@ -413,7 +414,7 @@ fn allocation(metric: &Metric, moving: &[bool]) -> Vec<f64> {
     x
 }
 
-/// The clip's channels as they are, each step as [`allocation`] gives, for clips whose
+/// The clip's channels as they are, each step as `allocation` gives, for clips whose
 /// channels do not move together (or carry noise of their own).
 fn analyse_channels(metric: &Metric, clip: &Clip) -> Analysis {
     let (k, n) = (clip.targets as usize, clip.frames as usize);
