@@ -209,25 +209,26 @@ impl Metric {
         let k = rig.targets.len();
         let mut gram = vec![0f64; k * k];
         for p in rig.primitives.iter() {
-            // Dense per target on this primitive: the pairs share vertices in any pattern.
-            let n = p.positions.len();
-            let dense: Vec<(usize, Vec<glam::DVec3>)> = p
-                .targets
-                .iter()
-                .map(|t| {
-                    let mut d = vec![glam::DVec3::ZERO; n];
-                    for (&v, x) in t.vertices.iter().zip(&t.positions) {
-                        d[v as usize] += x.as_dvec3();
+            // Pairs of sparse targets by merging their ascending vertex lists: no dense copy
+            // of a target (K dense arrays of a large rig would be gigabytes), K × nnz work.
+            for (i, ta) in p.targets.iter().enumerate() {
+                for tb in &p.targets[i..] {
+                    let (mut x, mut y, mut sum) = (0usize, 0usize, 0f64);
+                    while x < ta.vertices.len() && y < tb.vertices.len() {
+                        match ta.vertices[x].cmp(&tb.vertices[y]) {
+                            std::cmp::Ordering::Less => x += 1,
+                            std::cmp::Ordering::Greater => y += 1,
+                            std::cmp::Ordering::Equal => {
+                                sum += ta.positions[x].as_dvec3().dot(tb.positions[y].as_dvec3());
+                                x += 1;
+                                y += 1;
+                            }
+                        }
                     }
-                    (t.target as usize, d)
-                })
-                .collect();
-            for (i, (a, da)) in dense.iter().enumerate() {
-                for (b, db) in &dense[i..] {
-                    let s: f64 = da.iter().zip(db).map(|(x, y)| x.dot(*y)).sum();
-                    gram[a * k + b] += s;
+                    let (a, b) = (ta.target as usize, tb.target as usize);
+                    gram[a * k + b] += sum;
                     if a != b {
-                        gram[b * k + a] += s;
+                        gram[b * k + a] += sum;
                     }
                 }
             }
