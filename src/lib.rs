@@ -9,7 +9,7 @@
 //! | module | crate | what it is |
 //! |---|---|---|
 //! | [`rng`], [`linalg`], [`budget`], [`cancel`], [`rig`], [`embedded`], [`synthetic`], [`plan`] | `crowdmorph-core` | the data layer |
-//! | [`compress`], [`graph`], [`texture`] | `crowdmorph-anim` | compressed clips, motion graphs, PCA-animated textures |
+//! | [`compress`], [`transform`], [`graph`], [`texture`] | `crowdmorph-anim` | compressed clips (per curve, and transform-coded captures), motion graphs, PCA-animated textures |
 //! | [`import`] | `crowdmorph-import` | glTF/GLB, CSV and JSON readers that build a validated [`rig::Rig`] |
 //! | [`engine`], [`export`], [`render`], [`lod`] | `crowdmorph-engine` | blend engines (CPU oracle, wgpu), renders, LOD, export |
 //! | [`codec`], [`store`] | `crowdmorph-store` | the record codec; the data dir and the shared store |
@@ -19,7 +19,7 @@
 
 pub use crowdmorph_core::{budget, cancel, embedded, linalg, plan, rig, rng, synthetic};
 
-pub use crowdmorph_anim::{compress, graph, texture};
+pub use crowdmorph_anim::{compress, graph, texture, transform};
 
 pub use crowdmorph_import as import;
 

@@ -1681,6 +1681,69 @@ fn clips_compress_meets_its_budget_checked_from_the_decoded_csv() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// `clips compress --clip`: the real Live Link Face capture kept with the tests, on the embedded
+/// head, reported per clip, and its decoded frames checked by the f64 oracle against the noisy
+/// original (the head and eye angle columns are skipped by the CSV reader).
+#[test]
+fn clips_compress_codes_a_real_capture_within_its_budget() {
+    let dir = temp_dir("compress-capture");
+    let csv = dir.join("decoded.csv");
+    let capture = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data/live-link-face/MySlate_3_Jason_Millers_iPhone.csv");
+    let report = json(&[
+        "clips",
+        "compress",
+        "--clip",
+        path_str(&capture),
+        "--out",
+        path_str(&csv),
+        "--json",
+    ]);
+    let rig = crowdmorph::embedded::default_rig();
+    let rows = report["clips"].as_array().unwrap();
+    assert_eq!(rows.len(), rig.clips.len() + 1);
+    let row = &rows[rig.clips.len()];
+    assert_eq!(row["frames"], 328, "{row}");
+    assert!(f64_of(row, "max") <= 3e-4, "{row}");
+    let options = crowdmorph::import::clips::ClipOptions {
+        fps: 60.0,
+        ignore_unknown: true,
+        budget: None,
+    };
+    let bytes = std::fs::read(&capture).unwrap();
+    let name = row["clip"].as_str().unwrap();
+    let original = crowdmorph::import::clip_from_csv(&rig, name, &bytes, &options)
+        .unwrap()
+        .clip;
+    let diag = f64::from(rig.bbox().diagonal());
+    let mut checked = 0;
+    for line in std::fs::read_to_string(&csv).unwrap().lines().skip(1) {
+        let cells: Vec<&str> = line.split(',').collect();
+        if cells[0] != name {
+            continue;
+        }
+        let frame: u32 = cells[1].parse().unwrap();
+        if !frame.is_multiple_of(7) {
+            continue;
+        }
+        let decoded: Vec<f64> = cells[2..].iter().map(|c| c.parse().unwrap()).collect();
+        let want: Vec<f64> = (0..rig.targets.len())
+            .map(|t| f64::from(original.weight(t, frame)))
+            .collect();
+        let (a, _) = crate::util::rig_oracle(&rig, &decoded);
+        let (b, _) = crate::util::rig_oracle(&rig, &want);
+        let worst = a
+            .iter()
+            .zip(&b)
+            .map(|(x, y)| (*x - *y).length())
+            .fold(0.0, f64::max);
+        assert!(worst <= 3e-4 * diag, "frame {frame}: {worst}");
+        checked += 1;
+    }
+    assert_eq!(checked, 47);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// `clips compress-texture`: a PNG sequence in, the byte form of the animated texture out, and
 /// each region's reported error equal to the error of the file's decode, measured here.
 #[test]

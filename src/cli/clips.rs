@@ -35,13 +35,25 @@ pub enum Command {
         #[arg(long)]
         json: bool,
     },
-    /// Compress the rig's clips within a vertex-space error budget (per-curve quantization or
-    /// the library's PCA, whichever is smaller per clip; temporal prediction, zstd segments)
-    /// and report, as ACL does, the ratio against f32, the
-    /// largest vertex error, its p99 and the share of samples under the budget.
+    /// Compress the rig's clips within a vertex-space error budget (per-curve quantization,
+    /// the library's PCA, or the clip's own transform in vertex space, whichever is smallest per
+    /// clip; temporal prediction, zstd segments) and report, as ACL does, the ratio against
+    /// f32 per clip and over all, the largest vertex error, its p99 and the share of samples
+    /// under the budget.
     Compress {
         /// glTF/GLB rig with clips (default: the embedded head).
         rig: Option<PathBuf>,
+        /// Also a CSV clip by target name (a Live Link Face capture, `clips export`'s files);
+        /// repeat for more. Columns the rig has no target for (head and eye angles) are skipped.
+        #[arg(long = "clip")]
+        clips: Vec<PathBuf>,
+        /// Frame rate of the CSV clips' rows.
+        #[arg(long, default_value_t = 60.0)]
+        fps: f32,
+        /// Also a synthetic tracker capture of this many frames at 60 fps (52 ARKit channels,
+        /// `crowdmorph::synthetic::face_capture`, seed 48), as a clip `synthetic-capture`.
+        #[arg(long)]
+        synthetic_capture: Option<usize>,
         /// Largest vertex error, as a fraction of the rig's bounding-box diagonal.
         #[arg(long, default_value_t = 3e-4)]
         max_error: f32,
@@ -199,9 +211,9 @@ pub struct ClipRow {
     pub clip: String,
     /// Frames.
     pub frames: u32,
-    /// Codec used: `curves` or `pca` (the smaller at the budget).
+    /// Codec used: `curves`, `pca` or `transform` (the smallest at the budget).
     pub codec: &'static str,
-    /// PCA components kept (`pca` only).
+    /// Components kept (`pca`: of the library's basis; `transform`: the clip's own directions).
     pub components: Option<usize>,
     /// Bytes of the f32 table.
     pub f32_bytes: usize,
@@ -375,6 +387,9 @@ pub fn run(which: Command) -> Result<()> {
         }
         Command::Compress {
             rig,
+            clips,
+            fps,
+            synthetic_capture,
             max_error,
             out,
             json,
@@ -383,7 +398,50 @@ pub fn run(which: Command) -> Result<()> {
                 max_error.is_finite() && max_error > 0.0,
                 "--max-error must be a positive fraction of the diagonal"
             );
-            let rig = super::load_rig(rig.as_deref())?;
+            let mut rig = super::load_rig(rig.as_deref())?;
+            let mut sources = Vec::new();
+            for path in &clips {
+                let bytes =
+                    std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+                let name = path
+                    .file_stem()
+                    .map_or("capture".into(), |s| s.to_string_lossy().into_owned());
+                sources.push((name, bytes, path.display().to_string(), fps));
+            }
+            if let Some(frames) = synthetic_capture {
+                anyhow::ensure!(
+                    (1..=crowdmorph::rig::MAX_FRAMES).contains(&frames),
+                    "--synthetic-capture must be 1 to {} frames",
+                    crowdmorph::rig::MAX_FRAMES
+                );
+                // Through the CSV reader, which maps the ARKit names onto the rig's targets.
+                let table = crowdmorph::synthetic::face_capture(frames, 48);
+                let mut csv = crowdmorph::synthetic::ARKIT_NAMES.join(",");
+                csv.push('\n');
+                for f in 0..frames {
+                    let row: Vec<String> = (0..crowdmorph::synthetic::ARKIT_NAMES.len())
+                        .map(|k| table[k * frames + f].to_string())
+                        .collect();
+                    csv.push_str(&row.join(","));
+                    csv.push('\n');
+                }
+                sources.push((
+                    "synthetic-capture".into(),
+                    csv.into_bytes(),
+                    "the synthetic capture".into(),
+                    60.0,
+                ));
+            }
+            for (name, bytes, path, fps) in sources {
+                let options = crowdmorph::import::clips::ClipOptions {
+                    fps,
+                    ignore_unknown: true,
+                    budget: None,
+                };
+                let import = crowdmorph::import::clip_from_csv(&rig, &name, &bytes, &options)
+                    .with_context(|| format!("reading {path}"))?;
+                rig.clips.push(import.clip);
+            }
             let mut rows = Vec::new();
             let mut csv = String::new();
             if out.is_some() {
@@ -397,36 +455,70 @@ pub fn run(which: Command) -> Result<()> {
             // The chapter's PCA basis, shared by the library: its bytes count once, when a
             // clip uses it.
             let basis = crowdmorph::compress::Basis::of(&rig);
-            // Both codecs per clip; PCA is used where it is smaller only if the library's
-            // total, with the shared basis (the mean and as many components as the PCA clips
-            // keep), is smaller than with curves alone.
+            let metric = crowdmorph::transform::Metric::of(&rig);
+            // Both library codecs per clip; PCA is used where it is smaller only if the
+            // library's total, with the shared basis (the mean and as many components as the
+            // PCA clips keep), is smaller than with curves alone. The transform codec carries
+            // its own basis, so it is chosen per clip.
             let mut both = Vec::new();
             for clip in &rig.clips {
                 let curves = crowdmorph::compress::compress(&rig, clip, max_error)?;
                 let pca = crowdmorph::compress::compress_pca(&rig, clip, &basis, max_error)?
                     .filter(|p| p.bytes() < curves.bytes());
-                both.push((curves, pca));
+                let transform = crowdmorph::transform::compress(&rig, &metric, clip, max_error)?;
+                both.push((curves, pca, transform));
             }
-            let curves_only: usize = both.iter().map(|(c, _)| c.bytes()).sum();
+            let best_library = |c: &crowdmorph::compress::Compressed,
+                                p: &Option<crowdmorph::compress::Compressed>,
+                                t: &Option<crowdmorph::transform::TransformCoded>,
+                                pca: bool| {
+                let lib = match p {
+                    Some(p) if pca => p.bytes(),
+                    _ => c.bytes(),
+                };
+                t.as_ref().map_or(lib, |t| t.bytes().min(lib))
+            };
+            let curves_only: usize = both
+                .iter()
+                .map(|(c, p, t)| best_library(c, p, t, false))
+                .sum();
             let used = both
                 .iter()
-                .filter_map(|(_, p)| p.as_ref()?.components)
+                .filter_map(|(_, p, _)| p.as_ref()?.components)
                 .max()
                 .unwrap_or(0);
             let mixed: usize = both
                 .iter()
-                .map(|(c, p)| p.as_ref().map_or(c.bytes(), |p| p.bytes()))
+                .map(|(c, p, t)| best_library(c, p, t, true))
                 .sum::<usize>()
                 + if used > 0 { basis.bytes(used) } else { 0 };
             let use_pca = used > 0 && mixed < curves_only;
             let mut basis_components = 0;
-            for (clip, (curves, pca)) in rig.clips.iter().zip(both) {
-                let (c, codec) = match pca {
+            for (clip, (curves, pca, transform)) in rig.clips.iter().zip(both) {
+                let library = match pca {
                     Some(p) if use_pca => (p, "pca"),
                     _ => (curves, "curves"),
                 };
-                basis_components = basis_components.max(c.components.unwrap_or(0));
-                let table = crowdmorph::compress::decode_with(&c, &basis)?;
+                let (table, codec, components, bytes, f32_bytes) = match transform {
+                    Some(t) if t.bytes() < library.0.bytes() => (
+                        crowdmorph::transform::decode(&t)?,
+                        "transform",
+                        Some(t.components()),
+                        t.bytes(),
+                        t.f32_bytes(),
+                    ),
+                    _ => {
+                        let (c, codec) = library;
+                        basis_components = basis_components.max(c.components.unwrap_or(0));
+                        (
+                            crowdmorph::compress::decode_with(&c, &basis)?,
+                            codec,
+                            c.components,
+                            c.bytes(),
+                            c.f32_bytes(),
+                        )
+                    }
+                };
                 if out.is_some() {
                     let n = clip.frames as usize;
                     for fr in 0..n {
@@ -441,10 +533,10 @@ pub fn run(which: Command) -> Result<()> {
                     clip: clip.name.clone(),
                     frames: clip.frames,
                     codec,
-                    components: c.components,
-                    f32_bytes: c.f32_bytes(),
-                    bytes: c.bytes(),
-                    ratio: c.f32_bytes() as f64 / c.bytes().max(1) as f64,
+                    components,
+                    f32_bytes,
+                    bytes,
+                    ratio: f32_bytes as f64 / bytes.max(1) as f64,
                     error: crowdmorph::compress::measure(&rig, clip, &table, max_error),
                 });
             }

@@ -360,11 +360,57 @@ impl Compressed {
     }
 }
 
-/// `clip` as a store that compresses clips keeps it: curve-coded within the budget, and the
-/// clip that decodes from it (what the server then plays, so that what it serves before and
-/// after a restart is the same). Applying it again changes nothing: decoded weights sit on
-/// their channel's quantization lattice, which quantizes to itself.
-pub fn stored_form(rig: &Rig, clip: &Clip, max_error: f32) -> std::io::Result<(Compressed, Clip)> {
+/// A clip's stored form: curve-coded, or transform-coded ([`crate::transform`]).
+#[derive(Clone, Debug, PartialEq)]
+pub enum Stored {
+    /// The curve codec of this module (a fixed point: its decoded clip codes to itself).
+    Curves(Compressed),
+    /// The transform codec (kept by [`crate::transform::remember`] for the store's writer).
+    Transform(crate::transform::TransformCoded),
+}
+
+impl Stored {
+    /// Bytes of the coded form.
+    pub fn bytes(&self) -> usize {
+        match self {
+            Stored::Curves(c) => c.bytes(),
+            Stored::Transform(t) => t.bytes(),
+        }
+    }
+}
+
+/// `clip` as a store that compresses clips keeps it: the smaller of the curve codec and the
+/// transform codec within the budget, and the clip that decodes from it (what the server then
+/// plays, so that what it serves before and after a restart is the same). Applying it again
+/// changes nothing for a curve-coded clip: decoded weights sit on their channel's quantization
+/// lattice, which quantizes to itself. A transform-coded clip is not its encoder's fixed point,
+/// so its coded form is remembered ([`crate::transform::remember`]) and a store writes that;
+/// applying this again to its decoded clip returns that remembered form.
+pub fn stored_form(rig: &Rig, clip: &Clip, max_error: f32) -> std::io::Result<(Stored, Clip)> {
+    if let Some(t) = crate::transform::recall(clip) {
+        return Ok((Stored::Transform(t), clip.clone()));
+    }
+    let (c, decoded) = curves_stored_form(rig, clip, max_error)?;
+    let metric = crate::transform::Metric::of(rig);
+    if let Some(t) =
+        crate::transform::compress(rig, &metric, clip, max_error)?.filter(|t| t.bytes() < c.bytes())
+    {
+        let decoded = t
+            .to_clip(rig.targets.len())
+            .map_err(|e| std::io::Error::other(e.to_string()))?;
+        crate::transform::remember(&t, &decoded);
+        return Ok((Stored::Transform(t), decoded));
+    }
+    Ok((Stored::Curves(c), decoded))
+}
+
+/// `clip` curve-coded within the budget and the clip that decodes from it (a fixed point:
+/// applying it to that clip gives the same bytes and the same clip).
+pub fn curves_stored_form(
+    rig: &Rig,
+    clip: &Clip,
+    max_error: f32,
+) -> std::io::Result<(Compressed, Clip)> {
     let c = compress(rig, clip, max_error)?;
     let decoded = c
         .to_clip(rig.targets.len())
@@ -697,8 +743,8 @@ mod tests {
     fn the_stored_form_is_a_fixed_point() {
         let rig = crowdmorph_core::embedded::default_rig();
         for clip in &rig.clips {
-            let (c, once) = stored_form(&rig, clip, 3e-4).expect("form");
-            let (c2, twice) = stored_form(&rig, &once, 3e-4).expect("form");
+            let (c, once) = curves_stored_form(&rig, clip, 3e-4).expect("form");
+            let (c2, twice) = curves_stored_form(&rig, &once, 3e-4).expect("form");
             assert_eq!(once.weights, twice.weights, "{}", clip.name);
             assert_eq!(c, c2, "{}: the same bytes again", clip.name);
             assert!(measure(&rig, clip, &once.weights, 3e-4).max <= 3e-4);

@@ -71,7 +71,9 @@
 //! invariants is skipped too.
 //!
 //! **Compressed clips** (`serve --compress-clips E`, [`Store::compress_clips`]). Kinds 6–11
-//! and section 4 hold each clip either as its plain table or curve-coded by [`crowdmorph_anim::compress`] within `E ×` the
+//! and section 4 hold each clip either as its plain table, curve-coded by [`crowdmorph_anim::compress`], or
+//! transform-coded by [`crowdmorph_anim::transform`] (clip record variant 2, versioned inside;
+//! records written before it never hold it and read as before) within `E ×` the
 //! rig's diagonal. The server puts a clip into that form as it arrives
 //! ([`crowdmorph_anim::compress::stored_form`]), so the clip it plays is the one the record decodes to,
 //! before and after a restart; the writer compresses only a clip that is already in that form
@@ -623,6 +625,10 @@ enum ClipRecord {
     Plain(Clip),
     /// Curve-coded within the store's budget.
     Compressed(crowdmorph_anim::compress::Compressed),
+    /// Transform-coded within the store's budget (codec 2, [`crowdmorph_anim::transform`]; a
+    /// variant added last, so records written before it read as they did, and versioned
+    /// inside, so a later layout is refused by name rather than misread).
+    Transformed(crowdmorph_anim::transform::TransformCoded),
 }
 
 /// The written mirror of [`ClipRecord`].
@@ -630,6 +636,7 @@ enum ClipRecord {
 enum ClipRecordRef<'a> {
     Plain(&'a Clip),
     Compressed(crowdmorph_anim::compress::Compressed),
+    Transformed(crowdmorph_anim::transform::TransformCoded),
 }
 
 /// How a store writes clips: `None` plainly, `Some(E)` compressed within `E ×` diagonal where
@@ -645,7 +652,13 @@ fn clip_records<'a>(
             let Some(e) = max_error else {
                 return Ok(ClipRecordRef::Plain(clip));
             };
-            let (c, decoded) = crowdmorph_anim::compress::stored_form(rig, clip, e)
+            // A transform-coded clip is written as the form it decodes from (kept when it
+            // was put into stored form or read); any other as curves when it is that codec's
+            // fixed point, else plainly.
+            if let Some(t) = crowdmorph_anim::transform::recall(clip) {
+                return Ok(ClipRecordRef::Transformed(t));
+            }
+            let (c, decoded) = crowdmorph_anim::compress::curves_stored_form(rig, clip, e)
                 .map_err(|e| StoreError::Encode(e.to_string()))?;
             Ok(if decoded.weights == clip.weights {
                 ClipRecordRef::Compressed(c)
@@ -668,21 +681,38 @@ fn decode_clips(
         .into_iter()
         .filter_map(|r| match r {
             ClipRecord::Plain(c) => Some(c),
-            ClipRecord::Compressed(c) => match c.to_clip(targets.unwrap_or(c.targets as usize)) {
-                Ok(clip) => Some(clip),
-                Err(e) => {
-                    let why = format!(
-                        "{}: compressed clip {:?} skipped: {e}",
-                        file.display(),
-                        c.name
-                    );
-                    tracing::error!(error = %why, "skipping a stored clip that does not decode");
-                    skipped.push(why);
-                    None
+            ClipRecord::Compressed(c) => {
+                let decoded = c.to_clip(targets.unwrap_or(c.targets as usize));
+                kept(decoded, &c.name, file, skipped)
+            }
+            ClipRecord::Transformed(c) => {
+                let decoded = c.to_clip(targets.unwrap_or(c.targets as usize));
+                if let Ok(clip) = &decoded {
+                    // So that writing the record again writes these bytes.
+                    crowdmorph_anim::transform::remember(&c, clip);
                 }
-            },
+                kept(decoded, &c.name, file, skipped)
+            }
         })
         .collect()
+}
+
+/// A decoded compressed clip, or `None` with the reason it does not decode added to `skipped`.
+fn kept<E: std::fmt::Display>(
+    decoded: Result<Clip, E>,
+    name: &str,
+    file: &Path,
+    skipped: &mut Vec<String>,
+) -> Option<Clip> {
+    match decoded {
+        Ok(clip) => Some(clip),
+        Err(e) => {
+            let why = format!("{}: compressed clip {name:?} skipped: {e}", file.display());
+            tracing::error!(error = %why, "skipping a stored clip that does not decode");
+            skipped.push(why);
+            None
+        }
+    }
 }
 
 /// How a rig is stored. bincode is not self-describing, so a serde attribute that skips a
@@ -1698,6 +1728,58 @@ mod tests {
     }
 
     #[test]
+    fn transform_coded_clips_read_back_exactly_and_are_written_again_as_they_were() {
+        let dir = tmpdir("tc");
+        let store = Store::open(&dir).expect("open").compress_clips(Some(3e-4));
+        let mut rig = crowdmorph_core::embedded::default_rig();
+        // Tracker-like noise on every channel, so that the clip is not the curve codec's
+        // fixed point and only its transform-coded form can be written compressed.
+        let mut rng = crowdmorph_core::rng::SplitMix64(48);
+        let clip = &mut rig.clips[0];
+        for w in std::sync::Arc::make_mut(&mut clip.weights).iter_mut() {
+            *w = (*w + 0.02 * (rng.unit() - 0.5)).clamp(0.0, 1.0);
+        }
+        let metric = crowdmorph_anim::transform::Metric::of(&rig);
+        let coded = crowdmorph_anim::transform::compress(&rig, &metric, &rig.clips[0], 3e-4)
+            .expect("compresses")
+            .expect("within budget");
+        let decoded = coded.to_clip(rig.targets.len()).expect("decodes");
+        crowdmorph_anim::transform::remember(&coded, &decoded);
+        rig.clips[0] = decoded;
+        store
+            .put(RecordRef::Rig {
+                id: "t",
+                rig: &rig,
+                clips: &rig.clips,
+            })
+            .expect("put");
+        let first = fs::read(store.path_of("t")).expect("file");
+        let bytes = codec::to_stored(&coded).expect("encodes");
+        assert!(
+            first.windows(bytes.len()).any(|w| w == &bytes[..]),
+            "the record holds the transform-coded clip"
+        );
+        let (record, dropped) = Store::read_reporting(&store.path_of("t")).expect("read");
+        assert!(dropped.is_empty(), "{dropped:?}");
+        let Record::Rig(r) = record else {
+            panic!("not a rig record")
+        };
+        assert_eq!(r.rig, rig, "bit for bit");
+        // Written again from what was read (a restart, then a change to the rig): the same bytes.
+        let again = Store::open(&dir.join("again"))
+            .expect("open")
+            .compress_clips(Some(3e-4));
+        again
+            .put(RecordRef::Rig {
+                id: "t",
+                rig: &r.rig,
+                clips: &r.rig.clips,
+            })
+            .expect("put");
+        assert_eq!(fs::read(again.path_of("t")).expect("file"), first);
+    }
+
+    #[test]
     fn compressed_clips_read_back_exactly_and_a_damaged_one_is_skipped_alone() {
         let dir = tmpdir("cc");
         let plain = Store::open(&dir.join("plain")).expect("open");
@@ -1710,7 +1792,7 @@ mod tests {
         let stored: Vec<Clip> = rig.clips[..n - 1]
             .iter()
             .map(|c| {
-                crowdmorph_anim::compress::stored_form(&rig, c, 3e-4)
+                crowdmorph_anim::compress::curves_stored_form(&rig, c, 3e-4)
                     .expect("form")
                     .1
             })
