@@ -33,9 +33,15 @@ use crowdmorph_core::rig::{NamedMapping, Rig, quoted_name};
 use crowdmorph_import::gltf::GltfImport;
 use crowdmorph_import::{ImportError, ImportOptions};
 
+/// Tables the size of a clip's f32 weights that compressing it holds at once, at most: the
+/// transform codec's coefficients in f64 (2), a candidate's quantized coefficients in i64 (2)
+/// and its decoded table (1), beside the coded bytes (under 1); the curve codec holds less.
+const ENCODER_TABLES: u64 = 6;
+
 /// Puts arriving clips into the form a compressing store keeps (`serve --compress-clips`):
-/// the server then plays the clip its record decodes to, before and after a restart. Each
-/// decoded table is charged to the upload's budget before it is made.
+/// the server then plays the clip its record decodes to, before and after a restart. What
+/// compressing a clip holds at once is charged to the upload's budget before it starts:
+/// [`ENCODER_TABLES`] times the clip's f32 table.
 pub fn stored_form(
     rig: &Rig,
     clips: &mut [crowdmorph_core::rig::Clip],
@@ -46,7 +52,7 @@ pub fn stored_form(
         return Ok(());
     };
     for clip in clips {
-        let bytes = clip.weights.len() as u64 * 4;
+        let bytes = clip.weights.len() as u64 * 4 * ENCODER_TABLES;
         budget
             .charge(bytes, || format!("compressing clip {:?}", clip.name))
             .map_err(|e| ApiError::budget(e, "clip_too_large"))?;
