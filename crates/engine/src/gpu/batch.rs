@@ -445,7 +445,10 @@ mod tests {
                 && let Some(room) = l.room
                 && piece_needs(c, 1, l).0.bytes(l.timestamps) <= room / 2
             {
-                assert!(needs.bytes(l.timestamps) <= room / 2, "two pieces' slots fit");
+                assert!(
+                    needs.bytes(l.timestamps) <= room / 2,
+                    "two pieces' slots fit"
+                );
             }
             // The staging the piece's own plan lays out is what was checked.
             let plan = plan_batch(
@@ -467,7 +470,10 @@ mod tests {
     fn a_batch_that_fits_is_one_piece() {
         let c = counts(1000);
         assert_eq!(check_pieces(&c, &limits(1 << 31, None)), vec![0..1000]);
-        assert_eq!(check_pieces(&c, &limits(1 << 31, Some(1 << 30))), vec![0..1000]);
+        assert_eq!(
+            check_pieces(&c, &limits(1 << 31, Some(1 << 30))),
+            vec![0..1000]
+        );
         assert_eq!(check_pieces(&counts(0), &limits(1 << 31, None)), vec![0..0]);
     }
 

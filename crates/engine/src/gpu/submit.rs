@@ -218,7 +218,13 @@ impl GpuContext {
         let first = range.start;
         let bones = &bones[range.start * per_job_bones..range.end * per_job_bones];
         let jobs = &jobs[range];
-        let counts = self.counts(rig, jobs.len(), live.len(), reference.map(<[i16]>::len), spec);
+        let counts = self.counts(
+            rig,
+            jobs.len(),
+            live.len(),
+            reference.map(<[i16]>::len),
+            spec,
+        );
         let packed16 = counts.packed16;
         let per_job_out = v * 12;
         let plan = plan_batch(
