@@ -235,7 +235,7 @@ pub(super) fn plan_pieces(c: &BatchCounts, l: &PieceLimits) -> Option<Vec<Range<
         fits && slot.is_none_or(|max| needs.bytes(l.timestamps) <= max)
     };
     if n <= 1 || fits(n, l.room) {
-        return fits(n.max(1), None).then(|| vec![0..n]);
+        return fits(n.max(1), None).then(|| std::iter::once(0..n).collect());
     }
     let half = l.room.map(|r| r / 2);
     let slot = if fits(1, half) { half } else { None };
@@ -257,7 +257,7 @@ pub(super) fn plan_pieces(c: &BatchCounts, l: &PieceLimits) -> Option<Vec<Range<
     }
     if lo == n {
         // Only where the room was ignored: the whole batch fits the largest buffer.
-        return Some(vec![0..n]);
+        return Some(std::iter::once(0..n).collect());
     }
     // Whole sub-batches (or groups): the passes of a piece run full dispatches.
     let sub = plan_batch(&BatchCounts { jobs: lo, ..*c }, l.max_binding, l.align).sub;
@@ -468,13 +468,12 @@ mod tests {
 
     #[test]
     fn a_batch_that_fits_is_one_piece() {
+        let whole = |n: usize| std::iter::once(0..n).collect::<Vec<_>>();
         let c = counts(1000);
-        assert_eq!(check_pieces(&c, &limits(1 << 31, None)), vec![0..1000]);
-        assert_eq!(
-            check_pieces(&c, &limits(1 << 31, Some(1 << 30))),
-            vec![0..1000]
-        );
-        assert_eq!(check_pieces(&counts(0), &limits(1 << 31, None)), vec![0..0]);
+        assert_eq!(check_pieces(&c, &limits(1 << 31, None)), whole(1000));
+        let room = limits(1 << 31, Some(1 << 30));
+        assert_eq!(check_pieces(&c, &room), whole(1000));
+        assert_eq!(check_pieces(&counts(0), &limits(1 << 31, None)), whole(0));
     }
 
     #[test]
