@@ -72,6 +72,9 @@ MEM=$((60 << 30))
 } >"$OUT/bench-http.txt" 2>>"$OUT/log.txt"
 
 kill "$DMON" 2>/dev/null
+# bench gpu writes each row to stderr as it is measured: a step stopped by its timeout keeps the
+# rows it finished here (its table on stdout is printed only at the end).
+grep "^bench gpu: " "$OUT/log.txt" >"$OUT/bench-gpu-rows.txt" || true
 # CPU fallbacks are WARN lines: "GPU memory budget full: ... ran on the CPU engine".
 grep -c "ran on the CPU engine" "$OUT/log.txt" >"$OUT/fallbacks.txt" || true
 tail -c 200000 "$OUT/log.txt" >"$OUT/log-tail.txt" && rm -f "$OUT/log.txt"
