@@ -25,10 +25,12 @@ OUT=${OUT:-/tmp/gpu-check}
 mkdir -p "$OUT"
 BIN=${BIN:-.device/crowdmorph}
 ICT=${ICT:-.device/ict_facekit_53.glb}
-# Smaller values make a dry run on lavapipe: UNIQUE=1,8 HEADS=8 SECONDS=0.2 HTTP_SECONDS=1.
+# Smaller values make a dry run on lavapipe: UNIQUE=1,8 HEADS=8 BENCH_SECONDS=0.2 HTTP_SECONDS=1.
+# (Not SECONDS: bash's own SECONDS is the shell's age in whole seconds, always set, so
+# ${SECONDS:-2} gave bench gpu --seconds 0 or 1 instead of 2.)
 UNIQUE=${UNIQUE:-1,100,4096,16384}
 HEADS=${HEADS:-1024}
-SECONDS_EACH=${SECONDS:-2}
+SECONDS_EACH=${BENCH_SECONDS:-2}
 HTTP_SECONDS=${HTTP_SECONDS:-5}
 if ! "$BIN" --version >/dev/null 2>&1; then
   echo "the carried binary does not run here; building" >&2
