@@ -1107,3 +1107,218 @@ gpu_test!(
         assert_eq!(pooled.gpu_memory().expect("gpu").used(), 0);
     }
 );
+
+/// Evaluates `jobs` on `engine` and on the CPU engine, in `spec`, and checks every component
+/// within the parity tolerances, and that the GPU read the batch back in `pieces` pieces or
+/// more; returns the GPU's output.
+fn pieces_match_the_cpu(
+    engine: &Engine,
+    rig: &Arc<Rig>,
+    jobs: &[BlendJob],
+    spec: OutputSpec,
+    pieces: usize,
+) -> crowdmorph::engine::BlendOutput {
+    let prepared = engine.prepare(rig.clone()).expect("upload");
+    let cpu = Engine::cpu();
+    let c = cpu.prepare(rig.clone()).expect("prepare");
+    let got = engine.evaluate(&prepared, jobs, spec).expect("gpu");
+    assert_eq!(got.kind, Some(BackendKind::Gpu), "{spec:?}: on the GPU");
+    assert!(
+        got.timings.pieces.is_some_and(|p| p >= pieces),
+        "{spec:?}: {:?} pieces",
+        got.timings.pieces
+    );
+    let want = cpu.evaluate(&c, jobs, spec).expect("cpu");
+    let diag = rig.bbox().diagonal();
+    let (q16_pos, q16_nrm) = match spec.precision {
+        Precision::Q16(b) => (
+            2.0 * b.max_error.iter().copied().fold(0.0, f32::max),
+            2.0 * crowdmorph_proto::Q16_NORMAL_MAX_ERROR,
+        ),
+        _ => (0.0, 0.0),
+    };
+    assert_eq!(got.output.jobs, jobs.len());
+    for j in 0..jobs.len() {
+        let cp = want.output.job_positions(j);
+        // f16 may round the other way on one side: one binary16 step more.
+        let f16 = if spec.precision == Precision::F16 {
+            cp.iter().map(|x| x.abs()).fold(0.0, f32::max) / 1024.0
+        } else {
+            0.0
+        };
+        let d = max_diff(&got.output.job_positions(j), &cp);
+        assert!(
+            d <= 1e-5 * diag + q16_pos + f16,
+            "{spec:?} job {j}: positions off by {d:e}"
+        );
+        if spec.normals {
+            let (gn, cn) = (
+                got.output.job_normals(j).expect("normals"),
+                want.output.job_normals(j).expect("normals"),
+            );
+            // Recomputed from the skinned positions on both engines (summed in other orders).
+            let d = max_diff(&gn, &cn);
+            assert!(
+                d <= 1e-3 + q16_nrm + if f16 > 0.0 { 1.0 / 1024.0 } else { 0.0 },
+                "{spec:?} job {j}: normals off by {d:e}"
+            );
+        }
+    }
+    got.output
+}
+
+gpu_test!(
+    #[test]
+    fn batches_past_the_largest_buffer_are_read_back_in_pieces_as_one_batch() {
+        // The skinned head (bone matrices per piece, normals recomputed from skinned positions),
+        // 25 jobs, with pieces of at most 600,000 bytes of output: three jobs a piece in f32 with
+        // normals (174 KB a job), six in q16. Every piece's results land at its jobs' place: the
+        // same bytes as one batch on an engine without the limit, and the CPU engine's values.
+        let rig = Arc::new(crowdmorph::synthetic::skinned_head());
+        assert!(rig.is_skinned());
+        let jobs = random_jobs(&rig, 21, 20);
+        let pieced = Engine::with_gpu(
+            open_gpu(GpuOptions {
+                max_piece_bytes: Some(600_000),
+                ..GpuOptions::default()
+            }),
+            BackendChoice::Gpu,
+        );
+        let whole = Engine::with_gpu(open_gpu(GpuOptions::default()), BackendChoice::Gpu);
+        let one = whole.prepare(rig.clone()).expect("upload");
+        let qbox = crowdmorph::server::registry::quantization_box(&rig);
+        for (spec, pieces) in [
+            (
+                OutputSpec {
+                    normals: true,
+                    precision: Precision::F32,
+                },
+                8,
+            ),
+            (
+                OutputSpec {
+                    normals: false,
+                    precision: Precision::F32,
+                },
+                4,
+            ),
+            (
+                OutputSpec {
+                    normals: true,
+                    precision: Precision::Q16(qbox),
+                },
+                4,
+            ),
+            (
+                OutputSpec {
+                    normals: true,
+                    precision: Precision::F16,
+                },
+                4,
+            ),
+        ] {
+            let got = pieces_match_the_cpu(&pieced, &rig, &jobs, spec, pieces);
+            let batch = whole.evaluate(&one, &jobs, spec).expect("one batch");
+            assert_eq!(batch.timings.pieces, Some(1));
+            assert_eq!(got, batch.output, "{spec:?}: the same bytes as one batch");
+        }
+        // q16r: the planes the device codes piece by piece are the host's coding of its q16.
+        device_codes_residuals(&pieced, (*rig).clone(), &jobs, true);
+        device_codes_residuals(&pieced, (*rig).clone(), &jobs, false);
+        assert!(
+            !pieced.info().degraded,
+            "{:?}",
+            pieced.info().degraded_reason
+        );
+    }
+);
+
+gpu_test!(
+    #[test]
+    fn a_batch_over_the_memory_budgets_room_runs_in_pieces_on_the_gpu() {
+        // The embedded head's rig plus 6 MB of budget, and a batch of 200 jobs with normals
+        // (35 MB of staging): before pieces it ran on the CPU; now each piece's slot fits half the
+        // room, so two are alive at once, and it stays on the GPU.
+        let rig = Arc::new(crowdmorph::embedded::default_rig());
+        let probe = Engine::with_gpu(open_gpu(GpuOptions::default()), BackendChoice::Gpu);
+        let memory = probe.gpu_memory().expect("gpu").clone();
+        let before = memory.used();
+        let prepared = probe.prepare(rig.clone()).expect("upload");
+        let bytes = memory.used() - before;
+        drop(prepared);
+        let tight = Engine::with_gpu(
+            open_gpu(GpuOptions {
+                memory: Some(bytes + (6 << 20)),
+                ..GpuOptions::default()
+            }),
+            BackendChoice::Gpu,
+        );
+        let jobs = random_jobs(&rig, 8, 160);
+        assert_eq!(jobs.len(), 200);
+        let spec = OutputSpec {
+            normals: true,
+            precision: Precision::F32,
+        };
+        pieces_match_the_cpu(&tight, &rig, &jobs, spec, 6);
+        assert_eq!(tight.cpu_fallbacks(), 0);
+        assert!(!tight.info().degraded, "{:?}", tight.info().degraded_reason);
+    }
+);
+
+gpu_test!(
+    #[test]
+    fn outputs_kept_on_the_device_are_computed_in_pieces_into_one_buffer() {
+        // Without readback only the bone matrices bound a piece: 2,000 bytes hold four jobs' of
+        // the skinned head's five bones (96 bytes each: 480 a job), so 9 jobs take three pieces,
+        // each copied to its jobs' place in the one resident buffer.
+        let rig = Arc::new(crowdmorph::synthetic::skinned_head());
+        let engine = Engine::with_gpu(
+            open_gpu(GpuOptions {
+                max_piece_bytes: Some(2000),
+                ..GpuOptions::default()
+            }),
+            BackendChoice::Gpu,
+        );
+        let prepared = engine.prepare(rig.clone()).expect("upload");
+        let jobs = random_jobs(&rig, 4, 8);
+        assert!(jobs.len() >= 9);
+        let (buffers, timings) = engine
+            .evaluate_for_render(&prepared, &jobs)
+            .expect("evaluate");
+        assert!(
+            timings.pieces.is_some_and(|p| p >= 3),
+            "{:?} pieces",
+            timings.pieces
+        );
+        let crowdmorph::engine::RenderBuffers::Device(out) = buffers else {
+            panic!("a healthy GPU engine leaves render outputs on the device");
+        };
+        let cpu = Engine::cpu();
+        let c = cpu.prepare(rig.clone()).expect("prepare");
+        let spec = OutputSpec {
+            normals: true,
+            precision: Precision::F32,
+        };
+        let want = cpu.evaluate(&c, &jobs, spec).expect("cpu");
+        let ctx = engine.gpu().expect("gpu");
+        let (diag, v3) = (rig.bbox().diagonal(), rig.vertex_count() * 3);
+        for j in 0..jobs.len() {
+            let p = read_back(ctx, &out.positions, out.offset(j), v3);
+            let d = max_diff(&p, &want.output.job_positions(j));
+            assert!(d <= 1e-5 * diag, "job {j}: positions off by {d:e}");
+            let n = read_back(
+                ctx,
+                out.normals.as_ref().expect("normals"),
+                out.offset(j),
+                v3,
+            );
+            let d = max_diff(&n, &want.output.job_normals(j).expect("normals"));
+            assert!(d <= 1e-3, "job {j}: normals off by {d:e}");
+        }
+        assert!(
+            !engine.info().degraded,
+            "{:?}",
+            engine.info().degraded_reason
+        );
+    }
+);

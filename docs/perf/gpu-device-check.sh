@@ -25,10 +25,12 @@ OUT=${OUT:-/tmp/gpu-check}
 mkdir -p "$OUT"
 BIN=${BIN:-.device/crowdmorph}
 ICT=${ICT:-.device/ict_facekit_53.glb}
-# Smaller values make a dry run on lavapipe: UNIQUE=1,8 HEADS=8 SECONDS=0.2 HTTP_SECONDS=1.
+# Smaller values make a dry run on lavapipe: UNIQUE=1,8 HEADS=8 BENCH_SECONDS=0.2 HTTP_SECONDS=1.
+# (Not SECONDS: bash's own SECONDS is the shell's age in whole seconds, always set, so
+# ${SECONDS:-2} gave bench gpu --seconds 0 or 1 instead of 2.)
 UNIQUE=${UNIQUE:-1,100,4096,16384}
 HEADS=${HEADS:-1024}
-SECONDS_EACH=${SECONDS:-2}
+SECONDS_EACH=${BENCH_SECONDS:-2}
 HTTP_SECONDS=${HTTP_SECONDS:-5}
 if ! "$BIN" --version >/dev/null 2>&1; then
   echo "the carried binary does not run here; building" >&2
@@ -72,6 +74,9 @@ MEM=$((60 << 30))
 } >"$OUT/bench-http.txt" 2>>"$OUT/log.txt"
 
 kill "$DMON" 2>/dev/null
+# bench gpu writes each row to stderr as it is measured: a step stopped by its timeout keeps the
+# rows it finished here (its table on stdout is printed only at the end).
+grep "^bench gpu: " "$OUT/log.txt" >"$OUT/bench-gpu-rows.txt" || true
 # CPU fallbacks are WARN lines: "GPU memory budget full: ... ran on the CPU engine".
 grep -c "ran on the CPU engine" "$OUT/log.txt" >"$OUT/fallbacks.txt" || true
 tail -c 200000 "$OUT/log.txt" >"$OUT/log-tail.txt" && rm -f "$OUT/log.txt"

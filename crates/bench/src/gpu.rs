@@ -8,7 +8,10 @@
 //! size of a busy server's), with the round trip split into the passes, the copy to staging
 //! memory and its mapping, and the host's copy out of it; `--format q16` has the device write
 //! the wire's 16-bit format, `--format q16r` the residual planes too (the row then also times
-//! what coding them on the host would cost, as the CPU engine does).
+//! what coding them on the host would cost, as the CPU engine does). A batch whose output
+//! exceeds the device's largest buffer (4,096 paper-scale heads in f32 on most devices) runs in
+//! pieces, each staged and read back while the next computes: the row gives the pieces and the
+//! GPU and host-copy time per piece (the medians over the batch divided by the pieces).
 
 use std::path::Path;
 use std::time::Instant;
@@ -64,6 +67,10 @@ pub struct SceneResult {
     /// `q16r`: median host time to code the batch's q16 positions as residual planes, on
     /// every core (what the CPU engine spends, and the GPU engine did before `pack_q16r`).
     pub host_coding_ms: Option<f64>,
+    /// Pieces the GPU staged and read the batch back in (1 unless its output exceeds the
+    /// device's largest buffer or the memory budget's room); the per-piece times are the
+    /// medians divided by it.
+    pub pieces: Option<usize>,
 }
 
 /// The device's limits that bound a batch.
@@ -209,7 +216,23 @@ pub fn bench_gpu(engine: &Engine, rigs: &[Rig], opt: &GpuBenchOptions) -> Result
                 precision,
                 reference,
             };
-            scenes.push(measure(engine, &prepared, &scene, opt.seconds)?);
+            let row = measure(engine, &prepared, &scene, opt.seconds)?;
+            // Each row on stderr as it is measured: a run stopped by a timeout (a big crowd on
+            // a slow device) keeps the rows it finished.
+            let ms = |v: Option<f64>| v.map_or("-".into(), |v| format!("{v:.3}"));
+            bar.suspend(|| {
+                eprintln!(
+                    "bench gpu: {} | {} | {}: round trip {:.3} ms, GPU {} ms, host {} ms, {} pieces",
+                    row.rig,
+                    row.scene,
+                    row.format,
+                    row.round_trip_ms,
+                    ms(row.gpu_ms),
+                    ms(row.host_ms),
+                    row.pieces.map_or("-".into(), |p| p.to_string()),
+                );
+            });
+            scenes.push(row);
             bar.inc(1);
         }
     }
@@ -316,11 +339,13 @@ fn measure(
     let mut gpu = Vec::new();
     let mut host = Vec::new();
     let mut between = Vec::new();
+    let mut pieces = None;
     let start = Instant::now();
     while round.len() < 3 || (start.elapsed().as_secs_f64() < seconds && round.len() < 100) {
         let t = Instant::now();
         let (timings, _) = evaluate(&mut out)?;
         let ms = t.elapsed().as_secs_f64() * 1e3;
+        pieces = timings.pieces;
         round.push(ms);
         let g = timings.gpu_ns.map(|ns| ns as f64 / 1e6);
         let h = timings.host_ns.map(|ns| ns as f64 / 1e6);
@@ -362,6 +387,7 @@ fn measure(
         heads_per_s: scene.heads as f64 / (round_trip_ms / 1e3),
         host_bytes_per_s: host_ms.map(|ms| output_bytes as f64 / (ms / 1e3).max(1e-12)),
         host_coding_ms,
+        pieces,
     })
 }
 
@@ -434,7 +460,7 @@ pub fn report_text(r: &GpuBenchReport) -> String {
         .unwrap_or(0)
         .max(16);
     s += &format!(
-        "{:<w$} {:<26} {:>6} {:>6} {:>4} {:>10} {:>10} {:>9} {:>12} {:>16} {:>10}{}\n",
+        "{:<w$} {:<26} {:>6} {:>6} {:>4} {:>10} {:>10} {:>9} {:>12} {:>16} {:>10} {:>6} {:>12} {:>12}{}\n",
         "rig",
         "scene",
         "unique",
@@ -446,6 +472,9 @@ pub fn report_text(r: &GpuBenchReport) -> String {
         "round-trip ms",
         "unique heads/GPU s",
         "host MB/s",
+        "pieces",
+        "GPU ms/piece",
+        "host ms/piece",
         if r.scenes.iter().any(|sc| sc.host_coding_ms.is_some()) {
             "  host coding ms"
         } else {
@@ -453,8 +482,9 @@ pub fn report_text(r: &GpuBenchReport) -> String {
         }
     );
     for sc in &r.scenes {
+        let per_piece = |v: Option<f64>| Some(v? / sc.pieces? as f64);
         s += &format!(
-            "{:<w$} {:<26} {:>6} {:>5.0}% {:>4} {:>10} {:>10} {:>9} {:>12.3} {:>16} {:>10}{}\n",
+            "{:<w$} {:<26} {:>6} {:>5.0}% {:>4} {:>10} {:>10} {:>9} {:>12.3} {:>16} {:>10} {:>6} {:>12} {:>12}{}\n",
             sc.rig,
             sc.scene,
             sc.unique,
@@ -468,6 +498,9 @@ pub fn report_text(r: &GpuBenchReport) -> String {
                 .map_or("-".into(), |v| format!("{v:.0}")),
             sc.host_bytes_per_s
                 .map_or("-".into(), |v| format!("{:.0}", v / 1e6)),
+            sc.pieces.map_or("-".into(), |p| p.to_string()),
+            ms(per_piece(sc.gpu_ms)),
+            ms(per_piece(sc.host_ms)),
             sc.host_coding_ms
                 .map_or(String::new(), |v| format!(" {v:>15.3}")),
         );

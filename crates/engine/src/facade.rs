@@ -249,6 +249,9 @@ pub struct Timings {
     /// Host time after the GPU's results were mapped: copying them into host arrays and
     /// encoding what the device did not (GPU backend only).
     pub host_ns: Option<u64>,
+    /// Pieces the GPU staged and read the batch back in: 1 unless it exceeded the device's
+    /// largest buffer or the memory budget's room (GPU backend only).
+    pub pieces: Option<usize>,
 }
 
 /// A batch result with its timings.
@@ -388,12 +391,18 @@ impl PendingEvaluation<'_> {
                             wall_ns: self.start.elapsed().as_nanos() as u64,
                             gpu_ns: r.gpu_ns,
                             host_ns: Some(r.host_ns + encode.elapsed().as_nanos() as u64),
+                            pieces: Some(r.pieces),
                         },
                         BackendKind::Gpu,
                     ))
                 }
                 Err(e) => {
-                    self.engine.degrade(&e);
+                    // A later piece of a batch cut in pieces may find the memory budget full
+                    // (the device is fine); anything else is a fault.
+                    match &e {
+                        GpuError::Memory(b) => self.engine.fallbacks.record("a batch", b),
+                        _ => self.engine.degrade(&e),
+                    }
                     let e = self
                         .engine
                         .evaluate_cpu(&self.rig, &self.jobs, self.spec, self.start)?;
@@ -708,6 +717,7 @@ impl Engine {
                 wall_ns: start.elapsed().as_nanos() as u64,
                 gpu_ns: None,
                 host_ns: None,
+                pieces: None,
             },
             kind: Some(BackendKind::Cpu),
         })
@@ -850,6 +860,7 @@ impl Engine {
                 wall_ns: begun.start.elapsed().as_nanos() as u64,
                 gpu_ns: None,
                 host_ns: None,
+                pieces: None,
             },
             BackendKind::Cpu,
         ))
@@ -875,13 +886,16 @@ impl Engine {
             let (gpu_jobs, live, bones) = gpu_records(&target.rig, g, jobs)?;
             match ctx
                 .submit(g, &gpu_jobs, &live, &bones, spec, Readout::Device)
-                .and_then(Pending::wait_resident)
-            {
-                Ok((out, gpu_ns)) => {
+                .and_then(|p| {
+                    let pieces = p.pieces();
+                    Pending::wait_resident(p).map(|(out, gpu_ns)| (out, gpu_ns, pieces))
+                }) {
+                Ok((out, gpu_ns, pieces)) => {
                     let timings = Timings {
                         wall_ns: start.elapsed().as_nanos() as u64,
                         gpu_ns,
                         host_ns: None,
+                        pieces: Some(pieces),
                     };
                     return Ok((RenderBuffers::Device(out), timings));
                 }

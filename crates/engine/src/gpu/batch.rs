@@ -1,12 +1,17 @@
-//! A batch cut into sub-batches and laid out on the device: jobs per sub-batch and each one's
-//! [`Region`] ([`plan_batch`]), and what the batch needs of a slot ([`slot_needs`]). Pure
-//! functions of the batch's counts and the device's limits, so that the cut and the sizes are
+//! A batch cut into pieces and sub-batches and laid out on the device: the pieces, each staged
+//! and read back on its own slot ([`plan_pieces`]); a piece's jobs per sub-batch and each
+//! one's [`Region`] ([`plan_batch`]), and what a piece needs of a slot ([`slot_needs`]). Pure
+//! functions of the batch's counts and the device's limits, so that the cuts and the sizes are
 //! tested without a device.
 //!
-//! Invariants: every job is in exactly one sub-batch, in order; each sub-batch's outputs, face
+//! Invariants: every job is in exactly one piece and one sub-batch, in order; each piece's
+//! staging and bone matrices fit the largest buffer and, where a room is given, its slot fits
+//! half of it (two pieces' slots are alive at once); each sub-batch's outputs, face
 //! normals, bone matrices and active lists fit one storage binding; ranges that a binding
 //! starts at (live weights, the reference, each sub-batch's bone matrices) are aligned to the
 //! device's storage offset alignment.
+
+use std::ops::Range;
 
 use super::layout::{GpuJob, JOBS_PER_GROUP};
 use super::slot::SlotNeeds;
@@ -186,6 +191,91 @@ pub(super) fn slot_needs(
     }
 }
 
+/// What bounds a piece of a batch ([`plan_pieces`]).
+#[derive(Clone, Copy, Debug)]
+pub(super) struct PieceLimits {
+    /// The storage binding's bytes (sub-batches) and the storage offset alignment.
+    pub(super) max_binding: u64,
+    pub(super) align: u64,
+    /// Bytes of the largest buffer a piece's staging or bone matrices may take.
+    pub(super) max_buffer: u64,
+    /// Bytes of the memory budget a batch may use now (free plus idle slots), when pieces are
+    /// also cut to fit it: a whole batch whose slot fits is one piece; otherwise each piece's
+    /// slot fits half of it, since a piece's slot is made while the previous one is read back.
+    pub(super) room: Option<u64>,
+    /// Whether the blend writes 16-bit outputs itself, the outputs are read back and the
+    /// device has timestamp queries ([`slot_needs`]).
+    pub(super) fused: bool,
+    pub(super) readback: bool,
+    pub(super) timestamps: bool,
+}
+
+/// The slot a piece of `jobs` jobs of the batch `c` needs, and whether its staging and bone
+/// matrices fit the largest buffer.
+fn piece_needs(c: &BatchCounts, jobs: usize, l: &PieceLimits) -> (SlotNeeds, bool) {
+    let p = BatchCounts { jobs, ..*c };
+    let plan = plan_batch(&p, l.max_binding, l.align);
+    let fits = (!l.readback || plan.staging <= l.max_buffer) && plan.bones_at <= l.max_buffer;
+    let needs = slot_needs(&p, &plan, l.fused, l.readback, l.timestamps);
+    (needs, fits)
+}
+
+/// Cuts a batch into pieces, each run on a slot of its own and read back on its own: the
+/// whole batch when its staging and bone matrices fit the largest buffer and its slot fits
+/// `room`; otherwise the fewest pieces of equal size (the last may be smaller) whose staging
+/// and bone matrices fit and whose slots fit half the room, in whole sub-batches (or groups of
+/// eight jobs) where a piece holds at least one. When no piece of one job fits the room, the
+/// room is ignored (its slot's charge then says the budget is full); `None` when not even one
+/// job's staging or bone matrices fit the largest buffer. Each piece has the batch's live
+/// weights and reference, so it is laid out as a batch of its jobs ([`plan_batch`]).
+pub(super) fn plan_pieces(c: &BatchCounts, l: &PieceLimits) -> Option<Vec<Range<usize>>> {
+    let n = c.jobs;
+    let fits = |jobs: usize, slot: Option<u64>| {
+        let (needs, fits) = piece_needs(c, jobs, l);
+        fits && slot.is_none_or(|max| needs.bytes(l.timestamps) <= max)
+    };
+    if n <= 1 || fits(n, l.room) {
+        return fits(n.max(1), None).then(|| std::iter::once(0..n).collect());
+    }
+    let half = l.room.map(|r| r / 2);
+    let slot = if fits(1, half) { half } else { None };
+    if !fits(1, slot) {
+        return None;
+    }
+    // The largest piece that fits (sizes grow with the jobs), by bisection.
+    let (mut lo, mut hi) = (1, n);
+    while hi - lo > 1 {
+        let mid = lo + (hi - lo) / 2;
+        if fits(mid, slot) {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    if fits(hi, slot) {
+        lo = hi;
+    }
+    if lo == n {
+        // Only where the room was ignored: the whole batch fits the largest buffer.
+        return Some(std::iter::once(0..n).collect());
+    }
+    // Whole sub-batches (or groups): the passes of a piece run full dispatches.
+    let sub = plan_batch(&BatchCounts { jobs: lo, ..*c }, l.max_binding, l.align).sub;
+    let unit = if lo >= sub {
+        sub
+    } else if lo >= JOBS_PER_GROUP {
+        JOBS_PER_GROUP
+    } else {
+        1
+    };
+    let piece = lo / unit * unit;
+    Some(
+        (0..n.div_ceil(piece))
+            .map(|k| k * piece..((k + 1) * piece).min(n))
+            .collect(),
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -327,5 +417,109 @@ mod tests {
         assert_eq!(n.staging, 4);
         // The jobs buffer ends with the reference, after the live weights.
         assert_eq!(n.jobs, p.reference_at + 6000);
+    }
+
+    fn limits(max_buffer: u64, room: Option<u64>) -> PieceLimits {
+        PieceLimits {
+            max_binding: 1 << 20,
+            align: 256,
+            max_buffer,
+            room,
+            fused: false,
+            readback: true,
+            timestamps: true,
+        }
+    }
+
+    /// Every job in exactly one piece, in order, and each piece within the limits.
+    fn check_pieces(c: &BatchCounts, l: &PieceLimits) -> Vec<Range<usize>> {
+        let pieces = plan_pieces(c, l).expect("pieces");
+        let mut next = 0;
+        for p in &pieces {
+            assert_eq!(p.start, next, "{c:?}: pieces in order, none skipped");
+            assert!(p.end > p.start || c.jobs == 0);
+            let (needs, fits) = piece_needs(c, p.len(), l);
+            assert!(fits, "{c:?}: piece {p:?} fits the largest buffer");
+            // Where one job's slot fits half the room, two pieces' slots fit the room.
+            if pieces.len() > 1
+                && let Some(room) = l.room
+                && piece_needs(c, 1, l).0.bytes(l.timestamps) <= room / 2
+            {
+                assert!(
+                    needs.bytes(l.timestamps) <= room / 2,
+                    "two pieces' slots fit"
+                );
+            }
+            // The staging the piece's own plan lays out is what was checked.
+            let plan = plan_batch(
+                &BatchCounts {
+                    jobs: p.len(),
+                    ..*c
+                },
+                l.max_binding,
+                l.align,
+            );
+            assert!(plan.staging <= l.max_buffer && plan.bones_at <= l.max_buffer);
+            next = p.end;
+        }
+        assert_eq!(next, c.jobs);
+        pieces
+    }
+
+    #[test]
+    fn a_batch_that_fits_is_one_piece() {
+        let whole = |n: usize| std::iter::once(0..n).collect::<Vec<_>>();
+        let c = counts(1000);
+        assert_eq!(check_pieces(&c, &limits(1 << 31, None)), whole(1000));
+        let room = limits(1 << 31, Some(1 << 30));
+        assert_eq!(check_pieces(&c, &room), whole(1000));
+        assert_eq!(check_pieces(&counts(0), &limits(1 << 31, None)), whole(0));
+    }
+
+    #[test]
+    fn staging_past_the_largest_buffer_is_cut_in_whole_sub_batches() {
+        // 12,000 bytes a job, 80 jobs a sub-batch (1 MiB bindings): 4 MB of staging holds
+        // 333 jobs, cut to 320 (four sub-batches); 1,000 jobs take four pieces.
+        let c = counts(1000);
+        let p = check_pieces(&c, &limits(4_000_000, None));
+        assert_eq!(p, vec![0..320, 320..640, 640..960, 960..1000]);
+        // q16 with normals: the same bytes, 1000 × 1000 × 3 × 2 × 2.
+        let c = BatchCounts {
+            packed16: true,
+            normals: true,
+            ..counts(1000)
+        };
+        assert_eq!(check_pieces(&c, &limits(4_000_000, None)).len(), 4);
+        // Bone matrices bound a piece too, and without readback only they do.
+        let c = BatchCounts {
+            bone_bytes: 10_000,
+            ..counts(1000)
+        };
+        let l = PieceLimits {
+            readback: false,
+            ..limits(1_000_000, None)
+        };
+        let p = check_pieces(&c, &l);
+        assert!(p.len() >= 10, "{p:?}");
+        // A piece smaller than a sub-batch is cut in groups of eight, or single jobs.
+        let p = check_pieces(&counts(30), &limits(12_000 * 20, None));
+        assert_eq!(p, vec![0..16, 16..30]);
+        let p = check_pieces(&counts(5), &limits(12_000 * 3, None));
+        assert_eq!(p, vec![0..3, 3..5]);
+    }
+
+    #[test]
+    fn a_batch_over_the_room_is_cut_so_two_slots_fit() {
+        let c = counts(1000);
+        let whole = piece_needs(&c, 1000, &limits(1 << 31, None)).0.bytes(true);
+        // Room for the whole batch: one piece; for a third of it: pieces of a sixth or less.
+        assert_eq!(check_pieces(&c, &limits(1 << 31, Some(whole))).len(), 1);
+        let p = check_pieces(&c, &limits(1 << 31, Some(whole / 3)));
+        assert!(p.len() >= 6, "{p:?}");
+        // A room too small for one job's slot is ignored: the charge will refuse it.
+        let p = check_pieces(&c, &limits(4_000_000, Some(1000)));
+        assert_eq!(p.len(), 4);
+        // One job's staging over the largest buffer cannot be cut.
+        assert_eq!(plan_pieces(&c, &limits(11_999, None)), None);
     }
 }

@@ -31,6 +31,9 @@ pub struct GpuContext {
     pub(super) max_binding: u64,
     pub(super) max_chunk: u64,
     pub(super) max_buffer: u64,
+    /// Bytes of a piece's staging and bone matrices: the largest buffer, or less
+    /// ([`GpuOptions::max_piece_bytes`]).
+    pub(super) max_piece: u64,
     pub(super) deltas: DeltaFormat,
     pub(super) health: Arc<Health>,
     /// Idle batch slots, for the next batches.
@@ -176,6 +179,9 @@ impl GpuContext {
                 .max_chunk
                 .map_or(max_binding, |c| c.min(max_binding)),
             max_buffer: limits.max_buffer_size,
+            max_piece: options
+                .max_piece_bytes
+                .map_or(limits.max_buffer_size, |p| p.min(limits.max_buffer_size)),
             deltas: options.deltas,
             health,
             pool: SlotPool::default(),
@@ -193,6 +199,13 @@ impl GpuContext {
     /// [`GpuContext::charge`], which makes room by freeing what is kept only for reuse).
     pub fn memory(&self) -> &Arc<MemoryPool> {
         &self.memory
+    }
+
+    /// Bytes of the memory budget a batch may use now: what is free plus the idle slots (a
+    /// charge that finds the budget full frees them first).
+    pub(super) fn room(&self) -> u64 {
+        let m = &self.memory;
+        m.limit().saturating_sub(m.used()) + self.pool.idle_bytes()
     }
 
     /// Charges `bytes` of device memory about to be allocated for `what`. When the budget is

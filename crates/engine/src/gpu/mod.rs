@@ -41,10 +41,10 @@
 //! | `context` | [`GpuContext`]: adapter choice, the device, its pipelines, memory budget and reclaimers, buffer helpers |
 //! | `slot` | a batch's buffers (`Slot`), what a batch needs of one, and their pool |
 //! | `rig` | the upload: [`GpuRig`] (geometry, topology, influences, LOD order) and [`ClipTables`] |
-//! | `batch` | a batch cut into sub-batches, laid out on the device and sized (`plan_batch`, `slot_needs`: pure functions with unit tests) |
-//! | `submit` | [`GpuContext::submit`]: a batch's slot, uploads and commands |
+//! | `batch` | a batch cut into pieces and sub-batches, laid out on the device and sized (`plan_pieces`, `plan_batch`, `slot_needs`: pure functions with unit tests) |
+//! | `submit` | [`GpuContext::submit`]: a batch cut into pieces, each piece's slot, uploads and commands |
 //! | `passes` | one sub-batch's compute passes, one function per WGSL entry point |
-//! | `readback` | [`Readout`], [`Pending`]: waiting for a batch and reading it back ([`Readback`]), or keeping it on the device ([`DeviceOutput`]) |
+//! | `readback` | [`Readout`], [`Pending`]: waiting for a batch and reading it back piece by piece ([`Readback`]), or keeping it on the device ([`DeviceOutput`]) |
 //! | [`layout`] | host-side layout of the delta blocks and the `#[repr(C)]` structs the shaders read |
 //! | `map` | [`MapResults`]: a batch's buffer mappings, collected whichever thread polls |
 //!
@@ -154,6 +154,10 @@ pub struct GpuOptions {
     /// Cut rigs into chunks of at most this many bytes (tests lower it to force chunking; by
     /// default a chunk is as large as a storage binding).
     pub max_chunk: Option<u64>,
+    /// Stage and read back a batch in pieces of at most this many bytes of output (and of bone
+    /// matrices), as if the device's largest buffer were this small (tests lower it to force
+    /// pieces; by default a piece is as large as the largest buffer).
+    pub max_piece_bytes: Option<u64>,
     /// Bytes of buffers and textures whose size an input decides that the device may hold at
     /// once (`--max-gpu-memory`; default [`default_gpu_memory`]).
     pub memory: Option<u64>,

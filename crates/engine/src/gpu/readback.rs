@@ -1,22 +1,32 @@
 //! A submitted batch's results: where they go ([`Readout`]), the batch until they are read
-//! ([`Pending`]: waiting for it, its GPU time, copying the staging memory into the caller's
-//! arrays on every core, [`Readback`]), or the outputs left on the device for a renderer
-//! ([`DeviceOutput`]).
+//! ([`Pending`]: waiting for it piece by piece, its GPU time, copying each piece's staging
+//! memory into the caller's arrays on every core, [`Readback`]), or the outputs left on the
+//! device for a renderer ([`DeviceOutput`]).
 //!
-//! Invariants: a batch's slot goes back to the pool only after a successful wait, with
+//! A batch too big for one staging buffer (or for the memory budget) is cut into pieces
+//! (`batch::plan_pieces`): the first is submitted with the batch, and each later one is
+//! submitted (`GpuContext::submit_piece`) before the previous one is copied out, so one
+//! piece's readback overlaps the next one's passes, and at most two pieces' slots are alive.
+//!
+//! Invariants: a piece's slot goes back to the pool only after a successful wait, with
 //! everything it mapped unmapped; a batch dropped without a wait is waited for and unmapped,
 //! so no buffer stays mapped and no work is left uncollected; a mapping is read only after
 //! its callback reported (`MapResults::wait`).
 
+use std::collections::VecDeque;
+use std::ops::Range;
 use std::sync::Arc;
 
 use super::GpuError;
 use super::batch::Region;
 use super::context::GpuContext;
+use super::layout::GpuJob;
 use super::map::MapResults;
+use super::rig::GpuRig;
 use super::slot::Slot;
 use crate::{BlendOutput, OutputSpec, Precision, Q16Scale, VertexData};
 use crowdmorph_core::budget::Charge;
+use crowdmorph_core::rig::BoneMatrix;
 
 /// Where a batch's results go ([`GpuContext::submit`]).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -34,20 +44,44 @@ pub enum Readout<'r> {
 /// A submitted batch whose results are not read yet.
 pub struct Pending<'a> {
     pub(super) ctx: &'a GpuContext,
-    pub(super) slot: Option<Slot>,
-    pub(super) submission: wgpu::SubmissionIndex,
-    pub(super) regions: Vec<Region>,
+    /// Pieces submitted and not read yet, in job order (at most two).
+    pub(super) inflight: VecDeque<Piece>,
+    /// What the pieces not submitted yet need, when the batch is cut into pieces.
+    pub(super) rest: Option<Rest>,
+    /// Pieces of the batch.
+    pub(super) pieces: usize,
     pub(super) jobs: usize,
     pub(super) vertices: usize,
     pub(super) spec: OutputSpec,
     pub(super) readback: bool,
-    /// Bytes of the staging buffer this batch mapped.
-    pub(super) staged: u64,
-    pub(super) mapped: MapResults,
-    /// Without readback: the batch's outputs, copied out of the slot so they outlive it.
+    /// Without readback: the batch's outputs, copied out of the slots so they outlive them.
     pub(super) resident: Option<DeviceOutput>,
     /// Host time spent copying the batch out of mapped memory (set by `finish`).
     pub(super) host_ns: u64,
+}
+
+/// One submitted piece of a batch: its slot until it is read.
+pub(super) struct Piece {
+    pub(super) slot: Option<Slot>,
+    pub(super) submission: wgpu::SubmissionIndex,
+    /// Its sub-batches; their `job` counts from the piece's first job.
+    pub(super) regions: Vec<Region>,
+    /// Its first job in the batch.
+    pub(super) first: usize,
+    /// Bytes of the staging buffer it mapped.
+    pub(super) staged: u64,
+    pub(super) mapped: MapResults,
+}
+
+/// The inputs of a batch's pieces not submitted yet (copies: the caller's arrays are only
+/// borrowed by `submit`).
+pub(super) struct Rest {
+    pub(super) rig: Arc<GpuRig>,
+    pub(super) jobs: Vec<GpuJob>,
+    pub(super) live: Vec<f32>,
+    pub(super) bones: Vec<BoneMatrix>,
+    pub(super) reference: Option<Vec<i16>>,
+    pub(super) pieces: VecDeque<Range<usize>>,
 }
 
 /// A batch's outputs left on the device (`submit(.., Readout::Device)`): f32 x, y, z per
@@ -85,23 +119,21 @@ impl Pending<'_> {
 
     /// Waits for the batch and reads its buffers into `out`, reusing `out`'s arrays (a warm
     /// buffer of the same length is overwritten, not zeroed or reallocated), copied from the
-    /// mapped staging memory on every core; returns the GPU time and the host's copy time.
+    /// mapped staging memory on every core, piece by piece; returns the GPU time and the
+    /// host's copy time.
     pub fn wait_into(mut self, out: &mut BlendOutput) -> Result<Readback, GpuError> {
-        let result = self.finish(Some(out));
-        self.release(result.is_ok());
-        let gpu_ns = result?;
+        let gpu_ns = self.finish(Some(out))?;
         Ok(Readback {
             gpu_ns,
             host_ns: self.host_ns,
+            pieces: self.pieces,
         })
     }
 
     /// Waits for a batch submitted without readback and returns its outputs where they are,
     /// on the device, with the GPU time.
     pub fn wait_resident(mut self) -> Result<(DeviceOutput, Option<u64>), GpuError> {
-        let result = self.finish(None);
-        self.release(result.is_ok());
-        let gpu_ns = result?;
+        let gpu_ns = self.finish(None)?;
         let out = self
             .resident
             .take()
@@ -109,42 +141,99 @@ impl Pending<'_> {
         Ok((out, gpu_ns))
     }
 
-    /// Unmaps what this batch mapped and returns its slot to the pool (after a success: a
-    /// failed batch's slot may be in any state).
-    fn release(&mut self, reuse: bool) {
-        if let Some(slot) = self.slot.take() {
-            unmap(&slot, self.readback);
-            if reuse {
-                self.ctx.pool.put(slot);
-            }
-        }
+    /// Pieces the batch is cut into (1 when it fits one staging buffer and the budget).
+    pub fn pieces(&self) -> usize {
+        self.pieces
     }
 
-    /// Waits for the batch; with readback, reads its buffers into `out`. Returns the GPU time.
-    fn finish(&mut self, out: Option<&mut BlendOutput>) -> Result<Option<u64>, GpuError> {
+    /// Submits the next piece not submitted yet, if any.
+    fn submit_next(&mut self) -> Result<(), GpuError> {
+        let Some(rest) = &mut self.rest else {
+            return Ok(());
+        };
+        let Some(range) = rest.pieces.pop_front() else {
+            return Ok(());
+        };
+        let piece = self.ctx.submit_piece(
+            &rest.rig,
+            &rest.jobs,
+            &rest.live,
+            &rest.bones,
+            rest.reference.as_deref(),
+            self.spec,
+            self.readback,
+            range,
+            self.resident.as_ref(),
+        )?;
+        self.inflight.push_back(piece);
+        Ok(())
+    }
+
+    /// Waits for every piece; with readback, reads its buffers into `out`. Each piece's slot
+    /// goes back to the pool after it is read, and the next piece is submitted before a
+    /// piece is waited for. Returns the GPU time, summed over the pieces.
+    fn finish(&mut self, mut out: Option<&mut BlendOutput>) -> Result<Option<u64>, GpuError> {
+        if let Some(out) = out.as_deref_mut() {
+            out.vertices = self.vertices;
+            out.jobs = self.jobs;
+            if !self.readback {
+                out.positions = VertexData::default();
+                out.normals = None;
+            } else if !self.spec.normals {
+                out.normals = None;
+            }
+        }
+        let mut gpu_ns: Option<u64> = None;
+        while let Some(mut piece) = self.inflight.pop_front() {
+            // The next piece computes while this one is waited for and copied out.
+            if let Err(e) = self.submit_next() {
+                self.inflight.push_front(piece);
+                return Err(e);
+            }
+            let result = self.read_piece(&piece, out.as_deref_mut());
+            if let Some(slot) = piece.slot.take() {
+                unmap(&slot, self.readback);
+                // After a success only: a failed batch's slot may be in any state.
+                if result.is_ok() {
+                    self.ctx.pool.put(slot);
+                }
+            }
+            if let Some(ns) = result? {
+                gpu_ns = Some(gpu_ns.unwrap_or(0) + ns);
+            }
+        }
+        Ok(gpu_ns)
+    }
+
+    /// Waits for one piece; with readback, reads its buffers into their jobs' place in `out`.
+    /// Returns its GPU time.
+    fn read_piece(
+        &mut self,
+        piece: &Piece,
+        out: Option<&mut BlendOutput>,
+    ) -> Result<Option<u64>, GpuError> {
         let ctx = self.ctx;
-        let expected = usize::from(self.readback)
-            + usize::from(self.slot.as_ref().is_some_and(|s| s.queries.is_some()));
+        let slot = piece
+            .slot
+            .as_ref()
+            .ok_or_else(|| GpuError::Internal("no slot".into()))?;
+        let expected = usize::from(self.readback) + usize::from(slot.queries.is_some());
         // Waits for the mapping callbacks too, not only the submission: a render or another
         // batch on this device may have collected them on its own thread (see `map`).
-        let mapped = self
+        let mapped = piece
             .mapped
-            .wait(&ctx.device, self.submission.clone(), expected);
+            .wait(&ctx.device, piece.submission.clone(), expected);
         ctx.health()?;
         if let Err(msg) = mapped {
             ctx.health.fail(msg.clone());
             return Err(GpuError::Lost(msg));
         }
-        let slot = self
-            .slot
-            .as_ref()
-            .ok_or_else(|| GpuError::Internal("no slot".into()))?;
         let gpu_ns = match (&slot.queries, ctx.timestamp_period) {
             (Some((_, _, read)), Some(period)) => {
                 let view = read
-                    .get_mapped_range(0..16 * self.regions.len() as u64)
+                    .get_mapped_range(0..16 * piece.regions.len() as u64)
                     .map_err(|e| GpuError::Internal(e.to_string()))?;
-                let mut ticks = vec![0u64; 2 * self.regions.len()];
+                let mut ticks = vec![0u64; 2 * piece.regions.len()];
                 bytemuck::cast_slice_mut::<u64, u8>(&mut ticks).copy_from_slice(&view);
                 let total: u64 = ticks
                     .chunks_exact(2)
@@ -157,18 +246,14 @@ impl Pending<'_> {
         let Some(out) = out else {
             return Ok(gpu_ns);
         };
-        out.vertices = self.vertices;
-        out.jobs = self.jobs;
         if !self.readback {
-            out.positions = VertexData::default();
-            out.normals = None;
             return Ok(gpu_ns);
         }
         let copy_start = std::time::Instant::now();
         let comps = self.jobs * self.vertices * 3;
         let view = slot
             .staging
-            .get_mapped_range(0..self.staged)
+            .get_mapped_range(0..piece.staged)
             .map_err(|e| GpuError::Internal(e.to_string()))?;
         let staged: &[u8] = &view;
         let read = |into: &mut VertexData, region_of: &dyn Fn(&Region) -> u64, normals: bool| {
@@ -181,7 +266,7 @@ impl Pending<'_> {
                         VertexData::F32(v) => v,
                         _ => Vec::new(),
                     };
-                    self.copy_regions(&mut v, comps, staged, region_of);
+                    self.copy_regions(piece, &mut v, comps, staged, region_of);
                     *into = VertexData::F32(v);
                 }
                 (Precision::F16, old) => {
@@ -189,7 +274,7 @@ impl Pending<'_> {
                         VertexData::F16(v) => v,
                         _ => Vec::new(),
                     };
-                    self.copy_regions(&mut v, comps, staged, region_of);
+                    self.copy_regions(piece, &mut v, comps, staged, region_of);
                     *into = VertexData::F16(v);
                 }
                 (Precision::Q16(b), old) => {
@@ -197,7 +282,7 @@ impl Pending<'_> {
                         VertexData::Q16(v, _) => v,
                         _ => Vec::new(),
                     };
-                    self.copy_regions(&mut v, comps, staged, region_of);
+                    self.copy_regions(piece, &mut v, comps, staged, region_of);
                     let scale = if normals {
                         Q16Scale::Unit
                     } else {
@@ -212,18 +297,19 @@ impl Pending<'_> {
             let mut n = out.normals.take().unwrap_or_default();
             read(&mut n, &|r| r.normals, true);
             out.normals = Some(n);
-        } else {
-            out.normals = None;
         }
-        self.host_ns = copy_start.elapsed().as_nanos() as u64;
+        drop(view);
+        self.host_ns += copy_start.elapsed().as_nanos() as u64;
         Ok(gpu_ns)
     }
 
-    /// Copies each region of `staged` into its jobs' place in `v` (resized to `comps`), in
-    /// parts of about a megabyte on every core: at ICT FaceKit's size a batch is hundreds of
-    /// megabytes, which one thread copies at a fraction of the bus's rate.
+    /// Copies each region of `piece`'s `staged` memory into its jobs' place in `v` (resized
+    /// to `comps`, the whole batch's, by the first piece), in parts of about a megabyte on
+    /// every core: at ICT FaceKit's size a batch is hundreds of megabytes, which one thread
+    /// copies at a fraction of the bus's rate.
     fn copy_regions<T: bytemuck::Pod + Default + Send>(
         &self,
+        piece: &Piece,
         v: &mut Vec<T>,
         comps: usize,
         staged: &[u8],
@@ -237,8 +323,9 @@ impl Pending<'_> {
         let per_job = self.vertices * 3;
         let size = size_of::<T>();
         let part = (PART / size).max(1);
-        for r in &self.regions {
-            let dst = &mut v[r.job * per_job..(r.job + r.jobs) * per_job];
+        for r in &piece.regions {
+            let job = piece.first + r.job;
+            let dst = &mut v[job * per_job..(job + r.jobs) * per_job];
             let at = region_of(r) as usize;
             let src = &staged[at..at + size_of_val(dst)];
             dst.par_chunks_mut(part)
@@ -250,14 +337,15 @@ impl Pending<'_> {
 
 impl Drop for Pending<'_> {
     fn drop(&mut self) {
-        // A pending batch dropped without `wait` must not leave its buffers mapped or the
-        // device with work nobody collects; wait for it and discard the result.
-        if self.slot.is_some() {
+        // A pending batch dropped without `wait` (or after a failed one) must not leave its
+        // buffers mapped or the device with work nobody collects; wait for its pieces and
+        // discard the results. Pieces not submitted yet are not.
+        for mut piece in self.inflight.drain(..) {
             let _ = self.ctx.device.poll(wgpu::PollType::Wait {
-                submission_index: Some(self.submission.clone()),
+                submission_index: Some(piece.submission.clone()),
                 timeout: None,
             });
-            if let Some(slot) = self.slot.take() {
+            if let Some(slot) = piece.slot.take() {
                 unmap(&slot, self.readback);
             }
         }
@@ -271,6 +359,9 @@ pub struct Readback {
     pub gpu_ns: Option<u64>,
     /// Host time copying the batch out of mapped staging memory into the caller's arrays.
     pub host_ns: u64,
+    /// Pieces the batch was staged and read back in (1 when it fit one staging buffer and
+    /// the memory budget).
+    pub pieces: usize,
 }
 
 /// Unmaps the buffers a batch mapped: the staging buffer only when it read back (unmapping a

@@ -67,23 +67,18 @@ impl SlotNeeds {
     }
 }
 
-impl Slot {
-    /// A slot serving `n` on `device` (with timestamp queries where it has them), its bytes
-    /// charged through `charge` before any buffer is made.
-    pub(super) fn new(
-        device: &wgpu::Device,
-        timestamps: bool,
-        n: SlotNeeds,
-        charge: impl FnOnce(u64, &dyn Fn() -> String) -> Result<Charge, BudgetError>,
-    ) -> Result<Slot, GpuError> {
-        use wgpu::BufferUsages as U;
-        let storage = U::STORAGE | U::COPY_SRC | U::COPY_DST;
+impl SlotNeeds {
+    /// Bytes a slot serving these needs allocates (and charges), with timestamp queries where
+    /// the device has them: what `Slot::new` charges, so that a batch is cut into pieces whose
+    /// slots fit the memory budget before any is made.
+    pub(super) fn bytes(&self, timestamps: bool) -> u64 {
+        let n = self;
         let query_bytes = if timestamps {
             2 * padded(u64::from(n.queries.max(2)) * 8)
         } else {
             0
         };
-        let bytes = [
+        [
             n.jobs,
             n.active * JOBS_PER_GROUP as u64,
             n.active,
@@ -99,7 +94,22 @@ impl Slot {
         .into_iter()
         .map(padded)
         .sum::<u64>()
-            + query_bytes;
+            + query_bytes
+    }
+}
+
+impl Slot {
+    /// A slot serving `n` on `device` (with timestamp queries where it has them), its bytes
+    /// charged through `charge` before any buffer is made.
+    pub(super) fn new(
+        device: &wgpu::Device,
+        timestamps: bool,
+        n: SlotNeeds,
+        charge: impl FnOnce(u64, &dyn Fn() -> String) -> Result<Charge, BudgetError>,
+    ) -> Result<Slot, GpuError> {
+        use wgpu::BufferUsages as U;
+        let storage = U::STORAGE | U::COPY_SRC | U::COPY_DST;
+        let bytes = n.bytes(timestamps);
         let charge = charge(bytes, &|| {
             format!(
                 "a batch's buffers ({} bytes of output, {} of readback) on the GPU",
@@ -166,6 +176,11 @@ impl Slot {
         }
     }
 
+    /// Bytes it holds in the memory budget.
+    fn bytes(&self) -> u64 {
+        self._charge.bytes()
+    }
+
     fn fits(&self, n: SlotNeeds) -> bool {
         let c = self.capacity();
         c.max(n) == c
@@ -205,6 +220,16 @@ impl SlotPool {
     pub(super) fn put(&self, slot: Slot) {
         if let Ok(mut pool) = self.0.lock() {
             pool.push(slot);
+        }
+    }
+
+    /// Bytes the idle slots hold in the memory budget (0 while another thread holds the pool:
+    /// then they are not idle for long). A batch counts them as room, since a charge that finds
+    /// the budget full frees them first.
+    pub(super) fn idle_bytes(&self) -> u64 {
+        match self.0.try_lock() {
+            Ok(pool) => pool.iter().map(Slot::bytes).sum(),
+            Err(_) => 0,
         }
     }
 

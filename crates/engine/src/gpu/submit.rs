@@ -1,21 +1,28 @@
-//! [`GpuContext::submit`]: a batch of one rig on the device. It checks the batch, cuts it
-//! (`batch`), takes a slot that serves it, uploads its job records, live weights, residual
-//! reference and bone matrices, records every sub-batch's passes (`passes`) and the copies of
-//! its outputs, submits, and asks for the mappings its [`Pending`] will read.
+//! [`GpuContext::submit`]: a batch of one rig on the device. It checks the batch, cuts it into
+//! pieces that each fit one staging buffer and the memory budget (`batch::plan_pieces`), and
+//! submits the first ([`GpuContext::submit_piece`]; [`Pending`] submits the others as it
+//! reads). A piece is cut into sub-batches (`batch::plan_batch`); it takes a slot that serves
+//! it, uploads its job records, the live weights, the residual reference and its bone
+//! matrices, records every sub-batch's passes (`passes`) and the copies of its outputs,
+//! submits, and asks for the mappings its [`Piece`] will read.
 //!
-//! Invariants: nothing is recorded for a batch that does not fit (the largest buffer, one
-//! binding per sub-batch); an out-of-memory error while the slot and outputs are made is
-//! reported as such, and a validation error while recording fails the device (it is a bug).
+//! Invariants: nothing is recorded for a batch that does not fit (one job's output or bone
+//! matrices over the largest buffer, outputs kept on the device over one buffer); an
+//! out-of-memory error while a slot or the outputs are made is reported as such, and a
+//! validation error while recording fails the device (it is a bug). A piece's results are the
+//! bytes the whole batch would have had: each job is computed alone, whatever its piece.
 
+use std::collections::VecDeque;
+use std::ops::Range;
 use std::sync::Arc;
 
 use super::GpuError;
-use super::batch::{BatchCounts, BatchPlan, plan_batch, slot_needs};
+use super::batch::{BatchCounts, BatchPlan, PieceLimits, plan_batch, plan_pieces, slot_needs};
 use super::context::GpuContext;
 use super::device::padded;
 use super::layout::GpuJob;
 use super::map::MapResults;
-use super::readback::{DeviceOutput, Pending, Readout};
+use super::readback::{DeviceOutput, Pending, Piece, Readout, Rest};
 use super::rig::GpuRig;
 use crate::{OutputSpec, Precision};
 use crowdmorph_core::rig::BoneMatrix;
@@ -25,10 +32,11 @@ impl GpuContext {
     /// live weights it gathered and, on a skinned rig, [`GpuRig::bones`] bone matrices per
     /// job). Read back ([`Readout::Host`], [`Readout::Residuals`]), results are copied to
     /// staging memory for [`Pending::wait`]; left on the device ([`Readout::Device`]) they are
-    /// for a renderer and `wait` returns only the timing.
+    /// for a renderer and `wait` returns only the timing. A batch bigger than one staging
+    /// buffer, or than the memory budget has room for, runs in pieces ([`Pending::pieces`]).
     pub fn submit<'a>(
         &'a self,
-        rig: &GpuRig,
+        rig: &Arc<GpuRig>,
         jobs: &[GpuJob],
         live: &[f32],
         bones: &[BoneMatrix],
@@ -61,26 +69,164 @@ impl GpuContext {
                 bones.len()
             )));
         }
-        let bone_bytes = (per_job_bones * size_of::<BoneMatrix>()) as u64;
-        let recompute = spec.normals && rig.topology.is_some();
-        // 16-bit formats are packed on the device: half the bytes are copied and read back.
         let packed16 = matches!(spec.precision, Precision::F16 | Precision::Q16(_));
-        let per_job_out = v * 12;
+        if !readback && packed16 {
+            return Err(GpuError::Internal(
+                "device-resident outputs are f32 (they are drawn as vertex buffers)".into(),
+            ));
+        }
+        let counts = self.counts(rig, n, live.len(), reference.map(<[i16]>::len), spec);
+        let limits = PieceLimits {
+            max_binding: self.max_binding,
+            align: u64::from(self.device.limits().min_storage_buffer_offset_alignment),
+            max_buffer: self.max_piece,
+            room: Some(self.room()),
+            fused: rig.blend_packs(spec),
+            readback,
+            timestamps: self.timestamp_period.is_some(),
+        };
+        let Some(pieces) = plan_pieces(&counts, &limits) else {
+            return Err(GpuError::DoesNotFit(format!(
+                "one job's output ({} bytes) or bone matrices ({} bytes) exceed the device's \
+                 largest buffer ({} bytes)",
+                v * 12 * (1 + u64::from(spec.normals)),
+                counts.bone_bytes,
+                self.max_piece
+            )));
+        };
+        // Without readback the outputs are copied into buffers of their own (f32 only: they
+        // are for drawing), since each sub-batch reuses the slot's output buffers. They are
+        // one buffer each (a renderer binds them whole): more than the largest buffer is
+        // refused, whatever the pieces.
+        let resident = if readback {
+            None
+        } else {
+            let bytes = n as u64 * v * 12;
+            if bytes > self.max_buffer {
+                return Err(GpuError::DoesNotFit(format!(
+                    "batch output of {bytes} bytes kept on the device exceeds the device's \
+                     largest buffer ({} bytes)",
+                    self.max_buffer
+                )));
+            }
+            use wgpu::BufferUsages as U;
+            let usage = U::VERTEX | U::STORAGE | U::COPY_DST | U::COPY_SRC;
+            let charge = self.charge(padded(bytes) * (1 + u64::from(spec.normals)), || {
+                format!("{n} jobs' outputs kept on the GPU for drawing")
+            })?;
+            let oom = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
+            let out = DeviceOutput {
+                _charge: Arc::new(charge),
+                positions: self.buffer("resident positions", bytes, usage),
+                normals: spec
+                    .normals
+                    .then(|| self.buffer("resident normals", bytes, usage)),
+                vertices: v as usize,
+                jobs: n,
+            };
+            if let Some(e) = pollster::block_on(oom.pop()) {
+                return Err(GpuError::OutOfMemory(e.to_string()));
+            }
+            Some(out)
+        };
+        let mut pieces: VecDeque<Range<usize>> = pieces.into();
+        let count = pieces.len();
+        let first = pieces.pop_front().unwrap_or(0..0);
+        let piece = self.submit_piece(
+            rig,
+            jobs,
+            live,
+            bones,
+            reference,
+            spec,
+            readback,
+            first,
+            resident.as_ref(),
+        )?;
+        // The later pieces are submitted as the earlier ones are read: they need copies of
+        // the inputs the caller only lends.
+        let rest = (!pieces.is_empty()).then(|| Rest {
+            rig: rig.clone(),
+            jobs: jobs.to_vec(),
+            live: live.to_vec(),
+            bones: bones.to_vec(),
+            reference: reference.map(<[i16]>::to_vec),
+            pieces,
+        });
+        Ok(Pending {
+            ctx: self,
+            inflight: VecDeque::from([piece]),
+            rest,
+            pieces: count,
+            jobs: n,
+            vertices: v as usize,
+            spec,
+            readback,
+            resident,
+            host_ns: 0,
+        })
+    }
+
+    /// What decides how `jobs` jobs of `rig` are cut ([`BatchCounts`]).
+    fn counts(
+        &self,
+        rig: &GpuRig,
+        jobs: usize,
+        live: usize,
+        reference: Option<usize>,
+        spec: OutputSpec,
+    ) -> BatchCounts {
+        let recompute = spec.normals && rig.topology.is_some();
         let tris = rig
             .topology
             .as_ref()
             .map_or(0, |t| u64::from(t.n_triangles));
-        let counts = BatchCounts {
-            jobs: n,
-            vertices: v,
+        BatchCounts {
+            jobs,
+            vertices: rig.vertices as u64,
             slots: rig.slots,
             triangles: if recompute { tris } else { 0 },
-            bone_bytes,
-            live: live.len(),
-            reference: reference.map(<[i16]>::len),
+            bone_bytes: (rig.bones() * size_of::<BoneMatrix>()) as u64,
+            live,
+            reference,
+            // 16-bit formats are packed on the device: half the bytes are copied and read
+            // back.
             normals: spec.normals,
-            packed16,
-        };
+            packed16: matches!(spec.precision, Precision::F16 | Precision::Q16(_)),
+        }
+    }
+
+    /// Records and submits the piece `range` of a batch ([`GpuContext::submit`]'s inputs,
+    /// checked there): its slot, uploads, passes and copies, to staging memory or into
+    /// `resident` at its jobs' offsets.
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn submit_piece(
+        &self,
+        rig: &GpuRig,
+        jobs: &[GpuJob],
+        live: &[f32],
+        bones: &[BoneMatrix],
+        reference: Option<&[i16]>,
+        spec: OutputSpec,
+        readback: bool,
+        range: Range<usize>,
+        resident: Option<&DeviceOutput>,
+    ) -> Result<Piece, GpuError> {
+        self.health()?;
+        let v = rig.vertices as u64;
+        let per_job_bones = rig.bones();
+        let first = range.start;
+        let bones = &bones[range.start * per_job_bones..range.end * per_job_bones];
+        let jobs = &jobs[range];
+        let counts = self.counts(
+            rig,
+            jobs.len(),
+            live.len(),
+            reference.map(<[i16]>::len),
+            spec,
+        );
+        let packed16 = counts.packed16;
+        let per_job_out = v * 12;
         let plan = plan_batch(
             &counts,
             self.max_binding,
@@ -98,59 +244,18 @@ impl GpuContext {
             live_at,
             reference_at,
             staging,
-            bones_at,
             ..
         } = plan;
         let subs = regions.len();
         let elem = if packed16 { 2 } else { 4 };
-        if bones_at > self.max_buffer {
-            return Err(GpuError::DoesNotFit(format!(
-                "a batch's bone matrices ({bones_at} bytes) exceed the device's largest buffer"
-            )));
-        }
-        if staging > self.max_buffer {
-            return Err(GpuError::DoesNotFit(format!(
-                "batch output of {staging} bytes exceeds the device's largest buffer"
-            )));
-        }
         // Slot buffers are the big allocations of a batch: an out-of-memory error here is
         // reported as such (the engine then falls back to the CPU), not as a bug.
         let oom = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
-        let slot = self.slot(needs)?;
-        // Without readback the outputs are copied into buffers of their own (f32 only: they
-        // are for drawing), since each sub-batch reuses the slot's output buffers.
-        let resident = if readback {
-            None
-        } else {
-            if packed16 {
-                return Err(GpuError::Internal(
-                    "device-resident outputs are f32 (they are drawn as vertex buffers)".into(),
-                ));
-            }
-            let bytes = n as u64 * per_job_out;
-            if bytes > self.max_buffer {
-                return Err(GpuError::DoesNotFit(format!(
-                    "batch output of {bytes} bytes exceeds the device's largest buffer"
-                )));
-            }
-            use wgpu::BufferUsages as U;
-            let usage = U::VERTEX | U::STORAGE | U::COPY_DST | U::COPY_SRC;
-            let charge = self.charge(padded(bytes) * (1 + u64::from(spec.normals)), || {
-                format!("{n} jobs' outputs kept on the GPU for drawing")
-            })?;
-            Some(DeviceOutput {
-                _charge: Arc::new(charge),
-                positions: self.buffer("resident positions", bytes, usage),
-                normals: spec
-                    .normals
-                    .then(|| self.buffer("resident normals", bytes, usage)),
-                vertices: v as usize,
-                jobs: n,
-            })
-        };
+        let slot = self.slot(needs);
         if let Some(e) = pollster::block_on(oom.pop()) {
             return Err(GpuError::OutOfMemory(e.to_string()));
         }
+        let slot = slot?;
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
         self.queue
             .write_buffer(&slot.jobs, 0, bytemuck::cast_slice(jobs));
@@ -197,9 +302,9 @@ impl GpuContext {
                     encoder.copy_buffer_to_buffer(nrm_src, 0, &slot.staging, r.normals, bytes);
                 }
             }
-            if let Some(out) = &resident {
+            if let Some(out) = resident {
                 let bytes = r.jobs as u64 * per_job_out;
-                let at = r.job as u64 * per_job_out;
+                let at = (first + r.job) as u64 * per_job_out;
                 encoder.copy_buffer_to_buffer(&slot.positions, 0, &out.positions, at, bytes);
                 if let Some(n) = &out.normals {
                     encoder.copy_buffer_to_buffer(&slot.normals, 0, n, at, bytes);
@@ -223,19 +328,13 @@ impl GpuContext {
         if let Some((_, _, read)) = &slot.queries {
             mapped.request(read, 0..16 * subs as u64);
         }
-        Ok(Pending {
-            ctx: self,
+        Ok(Piece {
             slot: Some(slot),
             submission,
             regions,
-            jobs: n,
-            vertices: v as usize,
-            spec,
-            readback,
+            first,
             staged: staging.max(4),
             mapped,
-            resident,
-            host_ns: 0,
         })
     }
 }
