@@ -63,6 +63,10 @@ pub struct BenchOptions {
     /// core; see `cpu::Blocking`).
     #[arg(long)]
     pub span_kib: Option<usize>,
+    /// Cut outputs larger than this many MiB into spans (default: the engine's,
+    /// `cpu::BLOCKING_MIN_OUTPUT`).
+    #[arg(long)]
+    pub block_from_mib: Option<usize>,
     /// Unique jobs per engine call of the batch-size table.
     #[arg(long, value_delimiter = ',', default_value = "1,10,100,1000,4096")]
     pub batches: Vec<usize>,
@@ -90,6 +94,7 @@ impl Default for BenchOptions {
             lod: 0,
             normals: false,
             span_kib: None,
+            block_from_mib: None,
             batches: vec![1, 10, 100, 1000, 4096],
             mesh_fractions: vec![0.5, 0.25, 0.1],
             seconds: 1.0,
@@ -764,16 +769,13 @@ pub fn bench_cpu(rig: &Rig, opt: &BenchOptions) -> Result<BenchReport> {
         "batch sizes must be at least 1"
     );
     let cpu = CpuRig::new(rig);
-    let cpu = match opt.span_kib {
-        Some(kib) => {
-            let blocking = cpu.blocking();
-            cpu.with_blocking(Blocking {
-                span_bytes: kib << 10,
-                ..blocking
-            })
-        }
-        None => cpu,
-    };
+    let blocking = cpu.blocking();
+    let cpu = cpu.with_blocking(Blocking {
+        span_bytes: opt.span_kib.map_or(blocking.span_bytes, |kib| kib << 10),
+        min_output_bytes: opt
+            .block_from_mib
+            .map_or(blocking.min_output_bytes, |mib| mib << 20),
+    });
     let v = rig.vertex_count();
     let k = rig.targets.len();
     let n3 = v * 3;

@@ -77,11 +77,12 @@ const MAX_OUTPUT_COMPONENTS: usize = 1 << 31;
 /// the batch: the chunk's delta blocks stay in L2 while the job groups pass over them, but each
 /// job's output is written 3 KB (f32) at a time, one piece per job, so a call of a thousand
 /// jobs writes a thousand short streams at once, which the memory system serves far below its
-/// streaming rate (a 320 MB output: 1.3–1.6× the time of the same bytes written in longer
-/// runs, measured on the 2-core EPYC). With blocking, a unit of work is a *span* of consecutive
+/// streaming rate (a C model of the write alone, 320 MB of streaming stores on the 2-core
+/// EPYC: 15.1 ms in 3 KB pieces, 9.1 ms in 12 KB runs). With blocking, a unit of work is a *span* of consecutive
 /// chunks whose delta blocks together fit `span_bytes` (half the L2 of a core), and each group
 /// of jobs goes over the whole span before the next: the blocks are still read from L2, and
-/// each job's output is written in runs of a span's length.
+/// each job's output is written in runs of a span's length. [`Blocking::detect`] does this
+/// only for outputs over [`BLOCKING_MIN_OUTPUT`] (see there for why).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Blocking {
     /// Passes whose output is larger than this many bytes are cut into spans.
@@ -98,15 +99,22 @@ impl Blocking {
     };
 
     /// Spans of half this machine's per-core L2 (from `/sys` on Linux, else of 512 KiB) for
-    /// outputs that are streamed past the caches.
+    /// outputs over [`BLOCKING_MIN_OUTPUT`].
     pub fn detect() -> Blocking {
         static L2: std::sync::OnceLock<usize> = std::sync::OnceLock::new();
         Blocking {
-            min_output_bytes: STREAM_BYTES,
+            min_output_bytes: BLOCKING_MIN_OUTPUT,
             span_bytes: *L2.get_or_init(|| l2_bytes().unwrap_or(1 << 20)) / 2,
         }
     }
 }
+
+/// Outputs from which [`Blocking::detect`] cuts spans (1 GiB). Measured on the loaded 2-core
+/// EPYC (kernel at opt-level 3, paper-scale rig, alternating calls, load 4–6): spans gained
+/// 0.95–1.40× at 4,096 jobs (2.1 GB of output) but lost in most runs at 1,000 jobs (525 MB:
+/// 0.83–1.06×) and changed nothing at 100; the release bench (`bench cpu`, whose batch rows
+/// time both cuts) has not been run yet to place this bound better.
+pub const BLOCKING_MIN_OUTPUT: usize = 1 << 30;
 
 /// The first CPU's level-2 data or unified cache, in bytes, from Linux's `/sys`.
 fn l2_bytes() -> Option<usize> {
@@ -1631,13 +1639,24 @@ mod tests {
 
     /// Times the blocked and the unblocked kernel in the same process, alternating call by
     /// call, on the paper-scale rig (43,788 vertices, 72 targets); no assertion on time.
-    /// `cargo test -p crowdmorph-engine --lib cpu::tests::blocking_timing -- --ignored
+    /// `[SPAN_KIB=N] cargo test -p crowdmorph-engine --lib cpu::tests::blocking_timing -- --ignored
     /// --nocapture` (the release bench is `crowdmorph bench cpu`).
     #[test]
     #[ignore = "a timing, not a test"]
     fn blocking_timing() {
         let rig = crowdmorph_core::synthetic::paper_scale_rig();
         let blocked = CpuRig::new(&rig);
+        // `SPAN_KIB` tries another span budget.
+        let blocked = match std::env::var("SPAN_KIB")
+            .ok()
+            .and_then(|k| k.parse::<usize>().ok())
+        {
+            Some(kib) => blocked.with_blocking(Blocking {
+                span_bytes: kib << 10,
+                ..Blocking::detect()
+            }),
+            None => blocked,
+        };
         let plain = blocked.clone().with_blocking(Blocking::NONE);
         let spec = OutputSpec::default();
         for n in [100, 1000, 4096] {
