@@ -15,8 +15,10 @@
 //! - a clip's frames against four-layer blends of them (what a blend adds to the gather);
 //! - on a skinned rig, the blend and skin passes against the blend alone (`--skinned-head` for
 //!   the embedded head with five joints);
-//! - batches of 1, 10, 100 and 1,000 unique jobs per engine call, against the dense peer at
-//!   each size, and the per-call overhead of one job;
+//! - batches of 1, 10, 100, 1,000 and 4,096 unique jobs per engine call, against the dense
+//!   peer at each size, the same kernel without its cache blocking ([`Blocking::NONE`]), and
+//!   the roofline at each size (the copy and the kernel's streaming write measured at that
+//!   output's size), and the per-call overhead of one job;
 //! - LOD: the cost of each level against the deltas it keeps (a least-squares line whose
 //!   intercept is the output-write floor), and the simplified meshes' levels, whose outputs
 //!   shrink with their vertices;
@@ -39,7 +41,7 @@ use super::sample::{Samples, sample};
 use crowdmorph_core::plan::{JobKey, Plan};
 use crowdmorph_core::rig::Rig;
 use crowdmorph_core::rng::SplitMix64;
-use crowdmorph_engine::cpu::{CpuRig, fma_probe};
+use crowdmorph_engine::cpu::{Blocking, CpuRig, fma_probe, stream_probe};
 use crowdmorph_engine::{BlendJob, BlendOutput, OutputSpec, Precision, WeightBatch};
 
 /// What to measure (also `crowdmorph bench cpu`'s flags).
@@ -57,8 +59,16 @@ pub struct BenchOptions {
     /// Compute normals too.
     #[arg(long)]
     pub normals: bool,
+    /// Delta-block KiB of one span of the kernel's cache blocking (default: half the L2 of a
+    /// core; see `cpu::Blocking`).
+    #[arg(long)]
+    pub span_kib: Option<usize>,
+    /// Cut outputs larger than this many MiB into spans (default: the engine's,
+    /// `cpu::BLOCKING_MIN_OUTPUT`).
+    #[arg(long)]
+    pub block_from_mib: Option<usize>,
     /// Unique jobs per engine call of the batch-size table.
-    #[arg(long, value_delimiter = ',', default_value = "1,10,100,1000")]
+    #[arg(long, value_delimiter = ',', default_value = "1,10,100,1000,4096")]
     pub batches: Vec<usize>,
     /// Simplified meshes to build and time when the rig has none (fractions of the
     /// triangles; `none` for none).
@@ -83,7 +93,9 @@ impl Default for BenchOptions {
             unique: 100,
             lod: 0,
             normals: false,
-            batches: vec![1, 10, 100, 1000],
+            span_kib: None,
+            block_from_mib: None,
+            batches: vec![1, 10, 100, 1000, 4096],
             mesh_fractions: vec![0.5, 0.25, 0.1],
             seconds: 1.0,
             progress: true,
@@ -175,6 +187,28 @@ pub struct BatchRow {
     pub dense_ms: f64,
     /// `dense_ms / eval_ms`.
     pub speedup_vs_dense: f64,
+    /// Delta-block bytes of one span of the kernel's cache blocking (0 when this call's
+    /// output is small enough to run unblocked).
+    pub span_bytes: usize,
+    /// Median ms of the same kernel without cache blocking ([`Blocking::NONE`]: one chunk
+    /// for every job per unit of work).
+    pub unblocked_ms: f64,
+    /// `unblocked_ms / eval_ms`: what the blocking gains.
+    pub blocking_speedup: f64,
+    /// Multiply-adds the kernel executes (sparse FLOPs) at the FMA peak, ms.
+    pub compute_ms: f64,
+    /// The output's bytes at the copy bandwidth measured at this size (a parallel copy
+    /// between warm buffers of the output's size), ms.
+    pub write_ms: f64,
+    /// The output's bytes written with the kernel's streaming stores and nothing else
+    /// (`stream_probe`), ms: the physical limit of the write.
+    pub stream_write_ms: f64,
+    /// `max(compute_ms, write_ms)`: the overlapped roofline.
+    pub overlapped_ms: f64,
+    /// `overlapped_ms / eval_ms`.
+    pub fraction_of_overlapped: f64,
+    /// `max(compute_ms, stream_write_ms) / eval_ms`: against the physical limits.
+    pub fraction_of_stream_bound: f64,
 }
 
 /// Cost of a LOD level relative to level 0.
@@ -735,6 +769,13 @@ pub fn bench_cpu(rig: &Rig, opt: &BenchOptions) -> Result<BenchReport> {
         "batch sizes must be at least 1"
     );
     let cpu = CpuRig::new(rig);
+    let blocking = cpu.blocking();
+    let cpu = cpu.with_blocking(Blocking {
+        span_bytes: opt.span_kib.map_or(blocking.span_bytes, |kib| kib << 10),
+        min_output_bytes: opt
+            .block_from_mib
+            .map_or(blocking.min_output_bytes, |mib| mib << 20),
+    });
     let v = rig.vertex_count();
     let k = rig.targets.len();
     let n3 = v * 3;
@@ -753,7 +794,7 @@ pub fn bench_cpu(rig: &Rig, opt: &BenchOptions) -> Result<BenchReport> {
     };
     let spec = spec_of(Precision::F32);
     let levels = rig.lod.levels.len() as u32;
-    let steps = 2 * u64::from(levels) + 2 * opt.batches.len() as u64 + 16;
+    let steps = 2 * u64::from(levels) + 5 * opt.batches.len() as u64 + 16;
     let bar = opt.progress.then(|| super::progress_bar(steps, "bench"));
     let bar = bar.as_ref();
 
@@ -797,20 +838,24 @@ pub fn bench_cpu(rig: &Rig, opt: &BenchOptions) -> Result<BenchReport> {
 
     // One engine call of `n` unique jobs at `level` in `precision`, weights gathered as the
     // server gathers them (per call).
+    let call_on =
+        |cpu: &CpuRig, n: usize, level: u32, precision: Precision, label: &str| -> Result<f64> {
+            let spec = spec_of(precision);
+            let w = &weights[..n];
+            let mut out = BlendOutput::default();
+            cpu.evaluate_into(
+                &WeightBatch::from_target_weights(rig, w, level)?,
+                spec,
+                &mut out,
+            )?;
+            Ok(median_ms(opt.seconds, bar, label, || {
+                if let Ok(batch) = WeightBatch::from_target_weights(rig, w, level) {
+                    let _ = cpu.evaluate_into(&batch, spec, &mut out);
+                }
+            }))
+        };
     let call = |n: usize, level: u32, precision: Precision, label: &str| -> Result<f64> {
-        let spec = spec_of(precision);
-        let w = &weights[..n];
-        let mut out = BlendOutput::default();
-        cpu.evaluate_into(
-            &WeightBatch::from_target_weights(rig, w, level)?,
-            spec,
-            &mut out,
-        )?;
-        Ok(median_ms(opt.seconds, bar, label, || {
-            if let Ok(batch) = WeightBatch::from_target_weights(rig, w, level) {
-                let _ = cpu.evaluate_into(&batch, spec, &mut out);
-            }
-        }))
+        call_on(&cpu, n, level, precision, label)
     };
 
     // The wire formats.
@@ -896,12 +941,34 @@ pub fn bench_cpu(rig: &Rig, opt: &BenchOptions) -> Result<BenchReport> {
     let use_gemm = dense_gemm_ms <= dense_matrixmultiply_ms;
     let dense_baseline_ms = dense_gemm_ms.min(dense_matrixmultiply_ms);
     let mut batches = Vec::new();
+    let unblocked = cpu.clone().with_blocking(Blocking::NONE);
+    let full_blocks = cpu.blocks_below(u32::MAX) as f64;
     for &n in &opt.batches {
         let ms = if n == opt.unique && opt.lod == 0 {
             base_ms
         } else {
             call(n, 0, Precision::F32, &format!("{n} per call"))?
         };
+        let unblocked_ms = call_on(&unblocked, n, 0, Precision::F32, &format!("{n} unblocked"))?;
+        // The write's bounds at this output's size: the copy (into the dense peer's buffer,
+        // warm) and the kernel's streaming stores alone.
+        let bytes = n * n3 * 4;
+        let copy_ms = {
+            let src = vec![1u8; bytes];
+            let dst: &mut [u8] = bytemuck::cast_slice_mut(&mut c[..n * n3]);
+            median_ms(opt.seconds, bar, &format!("copy {n}"), || {
+                dst.par_chunks_mut(1 << 18)
+                    .zip(src.par_chunks(1 << 18))
+                    .for_each(|(d, s)| d.copy_from_slice(s));
+            })
+        };
+        let stream_write_ms = {
+            let dst: &mut [u8] = bytemuck::cast_slice_mut(&mut c[..n * n3]);
+            median_ms(opt.seconds, bar, &format!("stream {n}"), || {
+                stream_probe(cpu.isa(), dst)
+            })
+        };
+        let compute_ms = n as f64 * full_blocks * 96.0 / 1e9 / fma_peak_gflops * 1e3;
         let dense_ms = if n == opt.unique {
             dense_baseline_ms
         } else {
@@ -913,12 +980,26 @@ pub fn bench_cpu(rig: &Rig, opt: &BenchOptions) -> Result<BenchReport> {
                 }
             })
         };
+        let overlapped_ms = compute_ms.max(copy_ms);
         batches.push(BatchRow {
             unique: n,
             eval_ms: ms,
             us_per_head: ms * 1e3 / n as f64,
             dense_ms,
             speedup_vs_dense: dense_ms / ms,
+            span_bytes: if bytes > cpu.blocking().min_output_bytes {
+                cpu.blocking().span_bytes
+            } else {
+                0
+            },
+            unblocked_ms,
+            blocking_speedup: unblocked_ms / ms,
+            compute_ms,
+            write_ms: copy_ms,
+            stream_write_ms,
+            overlapped_ms,
+            fraction_of_overlapped: overlapped_ms / ms,
+            fraction_of_stream_bound: compute_ms.max(stream_write_ms) / ms,
         });
     }
     drop(c);
@@ -1192,8 +1273,21 @@ pub fn report_text(r: &BenchReport) -> String {
     }
     for b in &r.batches {
         s += &format!(
-            "  {:>5} per call {:>9.3} ms  {:>8.2} µs/head  dense {:>9.3} ms  → {:.2}×\n",
-            b.unique, b.eval_ms, b.us_per_head, b.dense_ms, b.speedup_vs_dense
+            "  {:>5} per call {:>9.3} ms  {:>8.2} µs/head  dense {:>9.3} ms  → {:.2}×;  unblocked {:>9.3} ms ({:.2}×, spans of {} KiB);  \
+             roofline compute {:.3} ms, copy {:.3} ms, streaming write {:.3} ms → {:.0} % of the overlapped bound, {:.0} % against the streaming write\n",
+            b.unique,
+            b.eval_ms,
+            b.us_per_head,
+            b.dense_ms,
+            b.speedup_vs_dense,
+            b.unblocked_ms,
+            b.blocking_speedup,
+            b.span_bytes >> 10,
+            b.compute_ms,
+            b.write_ms,
+            b.stream_write_ms,
+            b.fraction_of_overlapped * 100.0,
+            b.fraction_of_stream_bound * 100.0
         );
     }
     s += &format!(

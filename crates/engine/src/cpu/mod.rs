@@ -71,6 +71,72 @@ const STREAM_BYTES: usize = 8 << 20;
 /// Largest output of one batch, in f32 components (8 GiB); bigger batches must be split.
 const MAX_OUTPUT_COMPONENTS: usize = 1 << 31;
 
+/// How a blend pass cuts its work when its output does not stay in the caches.
+///
+/// Without blocking, each unit of parallel work is one chunk (256 vertices) for every job of
+/// the batch: the chunk's delta blocks stay in L2 while the job groups pass over them, but each
+/// job's output is written 3 KB (f32) at a time, one piece per job, so a call of a thousand
+/// jobs writes a thousand short streams at once, which the memory system serves far below its
+/// streaming rate (a C model of the write alone, 320 MB of streaming stores on the 2-core
+/// EPYC: 15.1 ms in 3 KB pieces, 9.1 ms in 12 KB runs). With blocking, a unit of work is a *span* of consecutive
+/// chunks whose delta blocks together fit `span_bytes` (half the L2 of a core), and each group
+/// of jobs goes over the whole span before the next: the blocks are still read from L2, and
+/// each job's output is written in runs of a span's length. [`Blocking::detect`] does this
+/// only for outputs over [`BLOCKING_MIN_OUTPUT`] (see there for why).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Blocking {
+    /// Passes whose output is larger than this many bytes are cut into spans.
+    pub min_output_bytes: usize,
+    /// Delta-block bytes of one span's chunks (a span holds at least one chunk).
+    pub span_bytes: usize,
+}
+
+impl Blocking {
+    /// One chunk per unit of work whatever the output's size (the kernel before blocking).
+    pub const NONE: Blocking = Blocking {
+        min_output_bytes: usize::MAX,
+        span_bytes: 0,
+    };
+
+    /// Spans of half this machine's per-core L2 (from `/sys` on Linux, else of 512 KiB) for
+    /// outputs over [`BLOCKING_MIN_OUTPUT`].
+    pub fn detect() -> Blocking {
+        static L2: std::sync::OnceLock<usize> = std::sync::OnceLock::new();
+        Blocking {
+            min_output_bytes: BLOCKING_MIN_OUTPUT,
+            span_bytes: *L2.get_or_init(|| l2_bytes().unwrap_or(1 << 20)) / 2,
+        }
+    }
+}
+
+/// Outputs from which [`Blocking::detect`] cuts spans (1 GiB). Measured on the loaded 2-core
+/// EPYC (kernel at opt-level 3, paper-scale rig, alternating calls, load 4–6): spans gained
+/// 0.95–1.40× at 4,096 jobs (2.1 GB of output) but lost in most runs at 1,000 jobs (525 MB:
+/// 0.83–1.06×) and changed nothing at 100; the release bench (`bench cpu`, whose batch rows
+/// time both cuts) has not been run yet to place this bound better.
+pub const BLOCKING_MIN_OUTPUT: usize = 1 << 30;
+
+/// The first CPU's level-2 data or unified cache, in bytes, from Linux's `/sys`.
+fn l2_bytes() -> Option<usize> {
+    let dir = std::path::Path::new("/sys/devices/system/cpu/cpu0/cache");
+    for index in std::fs::read_dir(dir).ok()?.flatten() {
+        let read = |name: &str| std::fs::read_to_string(index.path().join(name)).ok();
+        if read("level")?.trim() != "2" || read("type")?.trim() == "Instruction" {
+            continue;
+        }
+        let size = read("size")?;
+        let size = size.trim();
+        let (digits, unit) = size.split_at(size.find(|c: char| !c.is_ascii_digit())?);
+        let n: usize = digits.parse().ok()?;
+        return match unit {
+            "K" => Some(n << 10),
+            "M" => Some(n << 20),
+            _ => None,
+        };
+    }
+    None
+}
+
 /// Sixteen vertices' xyz, structure of arrays.
 #[derive(Clone, Copy, Debug, Pod, Zeroable)]
 #[repr(C, align(64))]
@@ -431,6 +497,8 @@ pub struct CpuRig {
     vertex_order_blocks: [usize; 2],
     /// On a skinned rig, each tile's bones with their weights per lane.
     skin: Option<SkinTiles>,
+    /// How large outputs are cut into spans of chunks.
+    blocking: Blocking,
 }
 
 /// A skinned rig's influences as the output stage reads them: per tile of sixteen consecutive
@@ -665,7 +733,49 @@ impl CpuRig {
             permuted: order.permuted,
             vertex_order_blocks: order.natural_blocks,
             skin,
+            blocking: Blocking::detect(),
         }
+    }
+
+    /// The same rig with another [`Blocking`] (tests compare the cuts; `bench cpu` times
+    /// them): every cut computes the same sums in the same order, so the outputs are bitwise
+    /// the same.
+    pub fn with_blocking(mut self, blocking: Blocking) -> CpuRig {
+        self.blocking = blocking;
+        self
+    }
+
+    /// How large outputs are cut into spans of chunks.
+    pub fn blocking(&self) -> Blocking {
+        self.blocking
+    }
+
+    /// The units of parallel work of a pass over `blocks` whose output is `output_bytes`
+    /// long: ranges of chunks, one chunk each unless the output is larger than
+    /// [`Blocking::min_output_bytes`], else consecutive chunks whose delta blocks together
+    /// fit [`Blocking::span_bytes`] (at least one chunk each).
+    fn spans(&self, blocks: &TileBlocks, output_bytes: usize) -> Vec<std::ops::Range<usize>> {
+        let chunks = self.tiles.div_ceil(CHUNK_TILES);
+        if output_bytes <= self.blocking.min_output_bytes {
+            return (0..chunks).map(|c| c..c + 1).collect();
+        }
+        let chunk_bytes = |c: usize| {
+            let first = blocks.tile_start[c * CHUNK_TILES] as usize;
+            let last = blocks.tile_start[((c + 1) * CHUNK_TILES).min(self.tiles)] as usize;
+            (last - first) * size_of::<Block>()
+        };
+        let mut spans = Vec::new();
+        let (mut start, mut bytes) = (0, 0);
+        for c in 0..chunks {
+            let b = chunk_bytes(c);
+            if c > start && bytes + b > self.blocking.span_bytes {
+                spans.push(start..c);
+                (start, bytes) = (c, 0);
+            }
+            bytes += b;
+        }
+        spans.push(start..chunks);
+        spans
     }
 
     /// Vertices per job.
@@ -932,12 +1042,12 @@ impl CpuRig {
         if groups.len() == 0 || self.vertices == 0 {
             return;
         }
-        let tile_chunks = self.tiles.div_ceil(CHUNK_TILES);
+        let bytes = groups.count * self.vertices * 3 * out.elem;
+        let spans = self.spans(pass.blocks, bytes);
         // Split the jobs too when the rig is too small to keep every thread busy.
         let want_items = 4 * rayon::current_num_threads();
-        let group_chunks = want_items.div_ceil(tile_chunks).clamp(1, groups.len());
+        let group_chunks = want_items.div_ceil(spans.len()).clamp(1, groups.len());
         let groups_per_chunk = groups.len().div_ceil(group_chunks);
-        let bytes = groups.count * self.vertices * 3 * out.elem;
         let ctx = Ctx {
             rig: self,
             groups,
@@ -950,21 +1060,21 @@ impl CpuRig {
             skin: pass.skin,
         };
         let run = |item: usize| {
-            let (tc, gc) = (item % tile_chunks, item / tile_chunks);
-            let tiles = tc * CHUNK_TILES..((tc + 1) * CHUNK_TILES).min(self.tiles);
+            let (sc, gc) = (item % spans.len(), item / spans.len());
+            let chunks = spans[sc].clone();
             let gs = gc * groups_per_chunk..((gc + 1) * groups_per_chunk).min(groups.len());
             match self.isa {
                 #[cfg(target_arch = "x86_64")]
                 // SAFETY: `Isa::Avx512` is only chosen when the CPU has AVX-512F.
-                Isa::Avx512 => unsafe { blend_tiles_avx512(&ctx, tiles, gs) },
+                Isa::Avx512 => unsafe { blend_tiles_avx512(&ctx, chunks, gs) },
                 #[cfg(target_arch = "x86_64")]
                 // SAFETY: `Isa::Avx2Fma` is only chosen when the CPU has AVX2, FMA and F16C.
-                Isa::Avx2Fma => unsafe { blend_tiles_avx2(&ctx, tiles, gs) },
+                Isa::Avx2Fma => unsafe { blend_tiles_avx2(&ctx, chunks, gs) },
                 // SAFETY: the portable kernel needs no CPU feature.
-                _ => unsafe { blend_tiles::<Portable, 4>(&ctx, tiles, gs) },
+                _ => unsafe { blend_tiles::<Portable, 4>(&ctx, chunks, gs) },
             }
         };
-        let items = tile_chunks * group_chunks;
+        let items = spans.len() * group_chunks;
         if items == 1 {
             // One unit of work (a small rig, one group): no thread hand-off.
             run(0);
@@ -1041,60 +1151,65 @@ struct Ctx<'a> {
 #[target_feature(enable = "avx512f")]
 unsafe fn blend_tiles_avx512(
     ctx: &Ctx<'_>,
-    tiles: std::ops::Range<usize>,
+    chunks: std::ops::Range<usize>,
     groups: std::ops::Range<usize>,
 ) {
     // SAFETY: this function is only called when AVX-512F is present.
-    unsafe { blend_tiles::<simd::Avx512, 8>(ctx, tiles, groups) }
+    unsafe { blend_tiles::<simd::Avx512, 8>(ctx, chunks, groups) }
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma,f16c")]
 unsafe fn blend_tiles_avx2(
     ctx: &Ctx<'_>,
-    tiles: std::ops::Range<usize>,
+    chunks: std::ops::Range<usize>,
     groups: std::ops::Range<usize>,
 ) {
     // SAFETY: this function is only called when AVX2, FMA and F16C are present.
-    unsafe { blend_tiles::<simd::Avx2, 2>(ctx, tiles, groups) }
+    unsafe { blend_tiles::<simd::Avx2, 2>(ctx, chunks, groups) }
 }
 
-/// The blend kernel over a range of tiles and job groups, at most `QMAX` jobs of a group at a
-/// time (as many as the registers hold; a group's last few jobs go `4`, `2` or `1` at a time,
-/// so that a batch of one job does one job's work).
+/// The blend kernel over a range of chunks (a span, see [`Blocking`]) and job groups, at most
+/// `QMAX` jobs of a group at a time (as many as the registers hold; a group's last few jobs go
+/// `4`, `2` or `1` at a time, so that a batch of one job does one job's work).
 ///
 /// # Safety
 /// `L`'s CPU features must be present and `QMAX` must be 1, 2, 4 or 8. Concurrent calls must
-/// cover disjoint tile ranges or disjoint group ranges, so that no output component is written
-/// twice.
+/// cover disjoint chunk ranges or disjoint group ranges, so that no output component is
+/// written twice.
 #[inline(always)]
 unsafe fn blend_tiles<L: Lanes, const QMAX: usize>(
     ctx: &Ctx<'_>,
-    tiles: std::ops::Range<usize>,
+    chunks: std::ops::Range<usize>,
     groups: std::ops::Range<usize>,
 ) {
-    // Groups outside, tiles inside: only Q output streams are being written at a time, which
-    // the hardware prefetchers follow; the chunk's delta blocks stay in L2 between groups.
-    // Each job's part of the chunk is staged in L1 and then copied out with streaming stores.
+    // Groups outside, chunks inside: only Q output streams are being written at a time, each
+    // for the span's length, which the hardware prefetchers and the memory's pages follow; the
+    // span's delta blocks stay in L2 between groups. Each job's part of a chunk is staged in
+    // L1 and then copied out with streaming stores.
     let mut stage = Stage([0.0; STAGE]);
     let mut park = Park([[0.0; 3 * CHUNK]; GROUP]);
+    let n_tiles = ctx.rig.tiles;
     for g in groups {
         let jobs = &ctx.groups.jobs[g];
         let valid = jobs.iter().take_while(|&&j| j != u32::MAX).count();
-        let mut sub = 0;
-        while sub < valid {
-            let left = valid - sub;
-            // SAFETY: forwarded from the caller; `sub + Q <= valid <= GROUP`.
-            unsafe {
-                sub += if QMAX >= 8 && left >= 8 {
-                    blend_sub::<L, 8>(ctx, tiles.clone(), g, sub, &mut park, &mut stage)
-                } else if QMAX >= 4 && left >= 4 {
-                    blend_sub::<L, 4>(ctx, tiles.clone(), g, sub, &mut park, &mut stage)
-                } else if QMAX >= 2 && left >= 2 {
-                    blend_sub::<L, 2>(ctx, tiles.clone(), g, sub, &mut park, &mut stage)
-                } else {
-                    blend_sub::<L, 1>(ctx, tiles.clone(), g, sub, &mut park, &mut stage)
-                };
+        for c in chunks.clone() {
+            let tiles = c * CHUNK_TILES..((c + 1) * CHUNK_TILES).min(n_tiles);
+            let mut sub = 0;
+            while sub < valid {
+                let left = valid - sub;
+                // SAFETY: forwarded from the caller; `sub + Q <= valid <= GROUP`.
+                unsafe {
+                    sub += if QMAX >= 8 && left >= 8 {
+                        blend_sub::<L, 8>(ctx, tiles.clone(), g, sub, &mut park, &mut stage)
+                    } else if QMAX >= 4 && left >= 4 {
+                        blend_sub::<L, 4>(ctx, tiles.clone(), g, sub, &mut park, &mut stage)
+                    } else if QMAX >= 2 && left >= 2 {
+                        blend_sub::<L, 2>(ctx, tiles.clone(), g, sub, &mut park, &mut stage)
+                    } else {
+                        blend_sub::<L, 1>(ctx, tiles.clone(), g, sub, &mut park, &mut stage)
+                    };
+                }
             }
         }
     }
@@ -1342,6 +1457,54 @@ pub fn fma_probe(isa: Isa, iterations: usize) -> u64 {
     }
 }
 
+/// Writes zeros over all of `dst` on every worker thread, as the output stage writes a large
+/// output: from a chunk-sized buffer in L1, with `isa`'s streaming stores, each thread in long
+/// runs. The output write of a blend pass with nothing else in it: the physical limit beside
+/// the copy bandwidth in the roofline of `bench cpu`.
+pub fn stream_probe(isa: Isa, dst: &mut [u8]) {
+    dst.par_chunks_mut(1 << 20).for_each(|run| match isa {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: `Isa::Avx512` is only offered when the CPU has AVX-512F.
+        Isa::Avx512 => unsafe { stream_zeros_avx512(run) },
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: `Isa::Avx2Fma` is only offered when the CPU has AVX2, FMA and F16C.
+        Isa::Avx2Fma => unsafe { stream_zeros_avx2(run) },
+        // SAFETY: the portable lanes need no CPU feature.
+        _ => unsafe { stream_zeros::<Portable>(run) },
+    });
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn stream_zeros_avx512(dst: &mut [u8]) {
+    // SAFETY: AVX-512F is present (caller).
+    unsafe { stream_zeros::<simd::Avx512>(dst) }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma,f16c")]
+unsafe fn stream_zeros_avx2(dst: &mut [u8]) {
+    // SAFETY: AVX2, FMA and F16C are present (caller).
+    unsafe { stream_zeros::<simd::Avx2>(dst) }
+}
+
+/// `dst` zeroed a stage at a time with `L`'s streaming copy.
+///
+/// # Safety
+/// `L`'s CPU features must be present.
+#[inline(always)]
+unsafe fn stream_zeros<L: Lanes>(dst: &mut [u8]) {
+    let stage = Stage([0.0; STAGE]);
+    let src = stage.0.as_ptr().cast::<u8>();
+    for piece in dst.chunks_mut(STAGE * 4) {
+        // SAFETY: the stage holds `STAGE * 4 >= piece.len()` bytes and is a separate buffer;
+        // `L`'s features are present (caller).
+        unsafe { L::copy_out(piece.as_mut_ptr(), src, piece.len()) };
+    }
+    // SAFETY: as above.
+    unsafe { L::fence() };
+}
+
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 unsafe fn fma_probe_avx512(iterations: usize) -> u64 {
@@ -1404,10 +1567,161 @@ fn take_f32(data: &mut VertexData, len: usize) -> Vec<f32> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::BlendJob;
+    use crowdmorph_core::rng::SplitMix64;
+    use crowdmorph_core::synthetic::{banded_rig, skinned_head};
+
+    /// `n` clip frames at random LOD levels (and, on a skinned rig, the clip's joint poses).
+    fn random_batch(rig: &Rig, n: usize, seed: u64) -> WeightBatch {
+        let mut rng = SplitMix64(seed);
+        let jobs: Vec<BlendJob> = (0..n)
+            .map(|_| {
+                let clip = rng.below(rig.clips.len());
+                BlendJob::frame(
+                    clip as u32,
+                    rng.below(rig.clips[clip].frames as usize) as u32,
+                    rng.below(rig.lod.levels.len()) as u32,
+                )
+            })
+            .collect();
+        WeightBatch::gather(rig, &jobs).expect("gather")
+    }
+
+    #[test]
+    fn every_cut_of_the_work_into_spans_gives_the_same_bits() {
+        // The unblocked kernel is the oracle (itself checked against the f64 oracle in
+        // `tests/engine.rs`): spans of one chunk, of a few, and of the whole rig, for batches
+        // that end on every sub-group path (1, 7, 9) and span several groups and items (300,
+        // 1,100), with LOD levels mixed in each batch, skinning, blended and recomputed normals
+        // and both float formats, on every kernel family this CPU has.
+        let rigs = [
+            (skinned_head(), vec![1, 7, 9, 300]),
+            (banded_rig("banded", 3000, 50, 24), vec![1, 9, 1100]),
+        ];
+        for (rig, sizes) in rigs {
+            assert!(rig.lod.levels.len() > 1, "{}: one LOD level", rig.name);
+            for isa in Isa::available() {
+                let plain = CpuRig::with_isa(&rig, isa).with_blocking(Blocking::NONE);
+                let chunks = plain.tiles.div_ceil(CHUNK_TILES);
+                let cuts = [0, 3 * plain.positions.bytes() / chunks, usize::MAX];
+                for &n in &sizes {
+                    let batch = random_batch(&rig, n, n as u64);
+                    for (normals, precision) in [
+                        (false, Precision::F32),
+                        (true, Precision::F32),
+                        (true, Precision::F16),
+                    ] {
+                        let spec = OutputSpec { normals, precision };
+                        let want = plain.evaluate(&batch, spec).expect("unblocked");
+                        for span_bytes in cuts {
+                            let cut = plain.clone().with_blocking(Blocking {
+                                min_output_bytes: 0,
+                                span_bytes,
+                            });
+                            let spans = cut.spans(&cut.positions, 1);
+                            assert!(spans.len() < chunks || span_bytes == 0);
+                            assert_eq!(spans.first().map(|s| s.start), Some(0));
+                            assert_eq!(spans.last().map(|s| s.end), Some(chunks));
+                            let got = cut.evaluate(&batch, spec).expect("blocked");
+                            let ctx = format!(
+                                "{} {} {n} jobs, spans of {span_bytes} bytes, {spec:?}",
+                                rig.name,
+                                isa.name()
+                            );
+                            assert_eq!(got.positions, want.positions, "{ctx}");
+                            assert_eq!(got.normals, want.normals, "{ctx}");
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// Times the blocked and the unblocked kernel in the same process, alternating call by
+    /// call, on the paper-scale rig (43,788 vertices, 72 targets); no assertion on time.
+    /// `[SPAN_KIB=N] cargo test -p crowdmorph-engine --lib cpu::tests::blocking_timing -- --ignored
+    /// --nocapture` (the release bench is `crowdmorph bench cpu`).
+    #[test]
+    #[ignore = "a timing, not a test"]
+    fn blocking_timing() {
+        let rig = crowdmorph_core::synthetic::paper_scale_rig();
+        let blocked = CpuRig::new(&rig);
+        // `SPAN_KIB` tries another span budget.
+        let blocked = match std::env::var("SPAN_KIB")
+            .ok()
+            .and_then(|k| k.parse::<usize>().ok())
+        {
+            Some(kib) => blocked.with_blocking(Blocking {
+                span_bytes: kib << 10,
+                ..Blocking::detect()
+            }),
+            None => blocked,
+        };
+        let plain = blocked.clone().with_blocking(Blocking::NONE);
+        let spec = OutputSpec::default();
+        for n in [100, 1000, 4096] {
+            let mut rng = SplitMix64(n as u64);
+            let w: Vec<Vec<f32>> = (0..n)
+                .map(|_| {
+                    (0..rig.targets.len())
+                        .map(|_| 0.05 + 0.95 * rng.unit())
+                        .collect()
+                })
+                .collect();
+            let batch = WeightBatch::from_target_weights(&rig, &w, 0).expect("batch");
+            let mut outs = [BlendOutput::default(), BlendOutput::default()];
+            let mut times = [Vec::new(), Vec::new()];
+            for round in 0..9 {
+                for (i, c) in [&blocked, &plain].into_iter().enumerate() {
+                    let t = std::time::Instant::now();
+                    c.evaluate_into(&batch, spec, &mut outs[i]).expect("eval");
+                    if round >= 2 {
+                        times[i].push(t.elapsed().as_secs_f64() * 1e3);
+                    }
+                }
+            }
+            let med = |t: &mut Vec<f64>| {
+                t.sort_by(f64::total_cmp);
+                t[t.len() / 2]
+            };
+            let (b, p) = (med(&mut times[0]), med(&mut times[1]));
+            println!(
+                "{n} jobs: blocked {b:.2} ms, unblocked {p:.2} ms ({:.2}×), spans of {} KiB",
+                p / b,
+                blocked.blocking().span_bytes >> 10
+            );
+        }
+    }
+
+    #[test]
+    fn spans_fit_the_budget_and_small_outputs_keep_one_chunk_each() {
+        let rig = banded_rig("banded", 3000, 50, 24);
+        let cpu = CpuRig::new(&rig).with_blocking(Blocking {
+            min_output_bytes: 1000,
+            span_bytes: 20_000,
+        });
+        let chunks = cpu.tiles.div_ceil(CHUNK_TILES);
+        let one_each: Vec<_> = (0..chunks).map(|c| c..c + 1).collect();
+        assert_eq!(cpu.spans(&cpu.positions, 1000), one_each);
+        let spans = cpu.spans(&cpu.positions, 1001);
+        let block_bytes = |c: std::ops::Range<usize>| {
+            let t = &cpu.positions.tile_start;
+            let end = (c.end * CHUNK_TILES).min(cpu.tiles);
+            (t[end] - t[c.start * CHUNK_TILES]) as usize * size_of::<Block>()
+        };
+        for w in spans.windows(2) {
+            assert_eq!(w[0].end, w[1].start, "spans are consecutive");
+            // A span holds one chunk, or no more than the budget; the next chunk would not
+            // have fitted.
+            assert!(w[0].len() == 1 || block_bytes(w[0].clone()) <= 20_000);
+            assert!(block_bytes(w[0].start..w[1].start + 1) > 20_000);
+        }
+        assert!(spans.len() > 1 && spans.len() < chunks, "{spans:?}");
+    }
 
     #[test]
     fn the_cost_model_counts_the_skin_tiles_the_layout_builds() {
-        let rig = crowdmorph_core::synthetic::skinned_head();
+        let rig = skinned_head();
         assert!(rig.lod.meshes.is_empty() && rig.lod.pca.is_empty());
         let tiles = SkinTiles::build(&rig, rig.vertex_count().div_ceil(LANES));
         assert_eq!(tiles.start.len(), rig.vertex_count().div_ceil(LANES) + 1);
