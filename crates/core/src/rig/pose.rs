@@ -370,7 +370,7 @@ pub fn near_clone_bound(rig: &Rig, targets: &[super::TargetId]) -> f32 {
 /// with `s/2 · bound ≤ error`. `None` when even [`LIVE_STEP`] is too coarse (or `error` is
 /// not a positive finite number): the pose stays exact.
 pub fn near_clone_shift(bound: f32, error: f64) -> Option<u32> {
-    if !(error.is_finite() && error > 0.0) || !bound.is_finite() {
+    if !(error.is_finite() && error > 0.0 && bound.is_finite()) {
         return None;
     }
     let bound = f64::from(bound);
@@ -568,7 +568,8 @@ mod tests {
             Pose::live(&w).near_clone(&rig, &order[..7], 0),
             a.near_clone(&rig, &order[..7], 0)
         );
-        let Pose::Live(q) = Pose::live(&[0.5; 8]).near_clone(&rig, &order, 3).unwrap() else {
+        let near = Pose::live(&[0.5; 8]).near_clone(&rig, &order, 3);
+        let Some(Pose::Live(q)) = near else {
             panic!("a near-clone is a live pose")
         };
         assert!(q.iter().all(|&x| x % 8 == 0));
