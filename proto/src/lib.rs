@@ -36,9 +36,9 @@ pub use pose::{
 pub use session::{
     Alive, DEFAULT_KEYFRAME_EVERY, DEFAULT_SESSION_FPS, DEFAULT_SESSION_IDLE_TIMEOUT_S,
     HEAD_MISSING, HEAD_UNCHANGED, HeadChange, HeadLayers, LodChoice, MAX_KEYFRAME_EVERY,
-    MessageEncoding, PackedMessage, SessionHead, SessionInfo, SessionList, SessionPatch,
-    SessionRequest, SessionStats, StreamMessage, TickDelta, TickFrame, TickLayers, TickVertices,
-    ViewerHello, ViewerOutput, ViewerUpdate,
+    MAX_VIEWER_TOLERANCE, MessageEncoding, PackedMessage, SessionHead, SessionInfo, SessionList,
+    SessionPatch, SessionRequest, SessionStats, StreamMessage, TickDelta, TickFrame, TickLayers,
+    TickVertices, ViewerHello, ViewerOutput, ViewerUpdate,
 };
 pub use stream::{Applied, Received, StreamError, StreamState};
 
@@ -309,6 +309,13 @@ pub struct Head {
     /// their names are the mapping's sources. Dense weights with a mapping are a 400.
     #[serde(default)]
     pub mapping: Option<String>,
+    /// Near-clones: the error this head's vertices may have, in units of the rig's diagonal
+    /// (finite, 0 ..= 0.1). Its final weights are rounded to the coarsest step whose worst
+    /// case (`step/2 ×` the largest per-vertex sum of delta lengths over its level's targets)
+    /// stays within it, so that heads whose poses differ by less are one job. Absent or 0: the
+    /// exact pose.
+    #[serde(default)]
+    pub tolerance: Option<f32>,
 }
 
 /// Most layers one head may have.

@@ -321,7 +321,17 @@ pub struct ViewerHello {
     /// change, for a viewer that sums a rig's layers itself (`GET /v1/rigs/{id}/layers`).
     #[serde(default)]
     pub layers: bool,
+    /// Near-clones for vertex buffers: a head `d` metres from the camera's eye may be off by
+    /// `tolerance × d` times its rig's diagonal (a constant angular error; at most 0.1
+    /// diagonals), its weights rounded as a crowd head's `tolerance` rounds them. Finite,
+    /// 0 ..= [`MAX_VIEWER_TOLERANCE`] per metre; absent or 0 (or without a camera position):
+    /// exact poses.
+    #[serde(default)]
+    pub tolerance: Option<f32>,
 }
+
+/// Largest [`ViewerHello::tolerance`], per metre: at 10 m a tenth of the head.
+pub const MAX_VIEWER_TOLERANCE: f32 = 0.01;
 
 /// Default [`ViewerHello::keyframe_every`]: two seconds at the default 30 ticks/s.
 pub const DEFAULT_KEYFRAME_EVERY: u32 = 60;

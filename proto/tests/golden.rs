@@ -162,6 +162,7 @@ fn layered_request() -> CrowdFrameRequest {
             weights_mode: LayerMode::Additive,
             clamp: Some([0.0, 1.0]),
             mapping: Some("arkit".into()),
+            tolerance: Some(0.002),
             ..Head::playing(11, "default-head", "talk", 3)
         }],
         output: OutputOptions::default(),
@@ -191,7 +192,7 @@ fn layered_crowd_frame_request() {
                 {"clip":"talk","frame":-1,"weight":0.25,"mask":["jawOpen"],
                  "joint_mask":["Head"]}],
             "weights":{"jawOpen":0.5},"weights_mode":"additive","clamp":[0,1],
-            "mapping":"arkit"}]}"#,
+            "mapping":"arkit","tolerance":0.002}]}"#,
     )
     .unwrap();
     assert_eq!(short, r);

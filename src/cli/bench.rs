@@ -167,6 +167,7 @@ impl super::Report for bench::cpu::BenchReport {}
 impl super::Report for bench::http::HttpBenchReport {}
 impl super::Report for bench::sessions::SessionBenchReport {}
 impl super::Report for bench::sessions::SessionLinkReport {}
+impl super::Report for bench::sessions::NearCloneReport {}
 impl super::Report for bench::http::LinkBenchReport {}
 impl super::Report for crowdmorph::render::offline::RenderReport {}
 impl super::Report for bench::render::TextureComparison {}
@@ -292,6 +293,12 @@ pub fn run(which: Command) -> Result<()> {
                 gpu_deltas: gpu.gpu_deltas,
                 ..opt
             };
+            if opt.tolerance.is_some() {
+                let report = with_spinner("bench sessions --tolerance", || {
+                    bench::sessions::bench_near_clones(bytes, &opt)
+                });
+                return super::emit(&report?, json);
+            }
             if !opt.links.is_empty() {
                 let report = with_spinner("bench sessions --link", || {
                     bench::sessions::bench_session_links(bytes, &opt)

@@ -24,6 +24,7 @@ mod loadtest;
 mod lod;
 mod mappings;
 mod metrics;
+mod near_clones;
 mod overload;
 mod persistence;
 mod poses;

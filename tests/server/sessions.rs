@@ -142,7 +142,7 @@ pub(super) async fn next_close(ws: &mut Ws) -> (u16, String) {
 pub(super) struct View {
     layout: Vec<u64>,
     pub(super) heads: HashMap<u64, Vec<f32>>,
-    lods: HashMap<u64, u32>,
+    pub(super) lods: HashMap<u64, u32>,
 }
 
 impl View {
@@ -565,6 +565,19 @@ async fn bad_hellos_and_updates_close_with_1008_and_a_reason() {
             "ascending",
         ),
         (Message::binary(vec![1u8, 2, 3]), "JSON hello"),
+        (
+            Message::text(r#"{"tolerance": -0.001}"#),
+            "tolerance -0.001",
+        ),
+        (Message::text(r#"{"tolerance": 0.5}"#), "tolerance 0.5"),
+        (
+            Message::text(r#"{"output": "frames", "tolerance": 0.001}"#),
+            "images are drawn from exact poses",
+        ),
+        (
+            Message::text(r#"{"output": "weights", "tolerance": 0.001}"#),
+            "no tolerance",
+        ),
     ];
     for (msg, expect) in cases {
         let (mut ws, _) = tokio_tungstenite::connect_async(&url)

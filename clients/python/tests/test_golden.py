@@ -125,11 +125,11 @@ def test_the_worked_example_request_is_built_from_python_values():
         wrap=True,
     )
     raw = (PROTO_GOLDEN / "crowd_frame_request.bincode").read_bytes()
-    assert len(raw) == 62
+    assert len(raw) == 64
     assert wire.encode(req) == raw
-    # Each head ends in seven zero bytes: blend = [], weights = None, joints = [], layers = [],
-    # weights_mode = override, clamp = None, mapping = None.
-    assert raw[: 1 + 1 + 13 + 5 + 1 + 1 + 7].endswith(b"\x18\x00" + b"\x00" * 7)
+    # Each head ends in eight zero bytes: blend = [], weights = None, joints = [], layers = [],
+    # weights_mode = override, clamp = None, mapping = None, tolerance = None.
+    assert raw[: 1 + 1 + 13 + 5 + 1 + 1 + 8].endswith(b"\x18\x00" + b"\x00" * 8)
     # The fast writer takes tuples and dicts to the same bytes.
     tuples = messages.CrowdFrameRequest(
         heads=[(7, "default-head", "talk", 12), {"head": 300, "rig": "default-head",
@@ -149,6 +149,7 @@ def test_layers_of_a_crowd_head_decode_and_encode_like_the_rust_types():
     assert h.layers[1].mode == "additive"
     assert h.layers[2].mask == ["jawOpen"] and h.layers[2].joint_mask == ["Head"]
     assert (h.weights_mode, h.clamp, h.mapping) == ("additive", [0.0, 1.0], "arkit")
+    assert h.tolerance == pytest.approx(0.002)
     layers = [
         {"clip": "smile", "frame": 5, "weight": 0.5, "mask": "lower_face"},
         {"clip": "surprise", "frame": 20, "mode": "additive", "reference": 0,
@@ -157,11 +158,11 @@ def test_layers_of_a_crowd_head_decode_and_encode_like_the_rust_types():
     ]
     head = messages.Head(11, "default-head", "talk", 3, weights={"jawOpen": 0.5},
                          layers=layers, weights_mode="additive", clamp=[0, 1],
-                         mapping="arkit")
+                         mapping="arkit", tolerance=0.002)
     assert wire.encode(messages.CrowdFrameRequest([head])) == raw
     as_dict = {"head": 11, "rig": "default-head", "clip": "talk", "frame": 3,
                "weights": {"jawOpen": 0.5}, "layers": layers, "weights_mode": "additive",
-               "clamp": [0, 1], "mapping": "arkit"}
+               "clamp": [0, 1], "mapping": "arkit", "tolerance": 0.002}
     assert wire.encode(messages.CrowdFrameRequest([as_dict])) == raw
     want = json.loads((PROTO_GOLDEN / "crowd_frame_request_layered.json").read_bytes())
     assert messages.as_dict(head)["layers"] == want["heads"][0]["layers"]

@@ -113,6 +113,16 @@ pub struct SessionBenchOptions {
     /// 10 s, moved by a `PATCH` of the session's `alive` ten times a second.
     #[arg(long)]
     pub look_at_moving: bool,
+    /// Near-clones (issue 48): instead of the usual measurement, an f32 viewer with LOD by
+    /// distance (a camera in front of the crowd, levels 0/1/2/3 from 0/4/8/14 m) and this
+    /// tolerance per metre (`ViewerHello::tolerance`) against one without: unique jobs per
+    /// tick of each alone, then both at once, every head's buffer compared with its exact one
+    /// for `--compare-ticks` ticks.
+    #[arg(long, value_name = "PER_METRE")]
+    pub tolerance: Option<f32>,
+    /// With `--tolerance`: ticks whose every head is compared.
+    #[arg(long, default_value_t = 10)]
+    pub compare_ticks: usize,
 }
 
 /// Name of the clip `--long-clip` uploads.
@@ -1069,4 +1079,340 @@ pub fn report_text(r: &SessionBenchReport) -> String {
             String::new()
         },
     )
+}
+
+/// Spacing of the bench crowd's grid, metres.
+const GRID_STEP: f32 = 0.4;
+
+/// The LOD by distance of the near-clone benchmark.
+const NEAR_LOD: [[f32; 2]; 4] = [[0.0, 0.0], [4.0, 1.0], [8.0, 2.0], [14.0, 3.0]];
+
+/// What `bench sessions --tolerance` measured.
+#[derive(Clone, Debug, Serialize)]
+pub struct NearCloneReport {
+    /// The rig's id, vertices and diagonal.
+    pub rig: String,
+    /// Vertices of one full-level buffer.
+    pub vertices: u32,
+    /// The rig's diagonal.
+    pub diagonal: f64,
+    /// Heads in the session (motion-graph walks when `graph`).
+    pub heads: usize,
+    /// Distinct animations.
+    pub animations: usize,
+    /// Whether the heads walked a motion graph.
+    pub graph: bool,
+    /// Ticks per second.
+    pub fps: f32,
+    /// Nearest and farthest head from the camera, metres.
+    pub depth_m: [f64; 2],
+    /// Heads per LOD level of the table.
+    pub heads_per_level: Vec<usize>,
+    /// Tolerance per metre.
+    pub tolerance_per_m: f32,
+    /// Seconds each job count was measured over.
+    pub seconds: f64,
+    /// Unique jobs per computed tick, the exact viewer alone (NaN, `null` in JSON, when no
+    /// tick was computed in the window).
+    pub jobs_exact: f64,
+    /// Unique jobs per computed tick, the near-clone viewer alone.
+    pub jobs_near: f64,
+    /// Ticks computed in each window.
+    pub ticks: [u64; 2],
+    /// Ticks compared head by head.
+    pub compared_ticks: usize,
+    /// Head buffers compared (heads × ticks).
+    pub compared_heads: u64,
+    /// Of those, heads whose near-clone buffer differs from the exact one.
+    pub rounded_heads: u64,
+    /// Largest vertex distance of a near-clone from its exact pose, as a fraction of the
+    /// diagonal.
+    pub worst_error: f64,
+    /// Largest ratio of a head's vertex error to its own allowance `e(d) × diagonal` (must
+    /// be ≤ 1).
+    pub worst_ratio: f64,
+    /// Heads past their allowance (must be 0).
+    pub over: u64,
+    /// Load average when it finished.
+    pub load: String,
+    /// Cores of this machine.
+    pub cores: usize,
+}
+
+impl std::fmt::Display for NearCloneReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        writeln!(
+            f,
+            "near-clones: {} heads{} on {} ({} vertices, diagonal {:.4}), {} fps, f32, LOD by \
+             distance {:?} (heads per level {:?}, {:.1}–{:.1} m from the camera)",
+            self.heads,
+            if self.graph {
+                " walking a motion graph"
+            } else {
+                ""
+            },
+            self.rig,
+            self.vertices,
+            self.diagonal,
+            self.fps,
+            NEAR_LOD,
+            self.heads_per_level,
+            self.depth_m[0],
+            self.depth_m[1]
+        )?;
+        writeln!(
+            f,
+            "  unique jobs per tick: exact {:.1}, near-clones (tolerance {} per metre) {:.1} \
+             ({:.2}x fewer; {} and {} ticks over {:.0} s each)",
+            self.jobs_exact,
+            self.tolerance_per_m,
+            self.jobs_near,
+            self.jobs_exact / self.jobs_near,
+            self.ticks[0],
+            self.ticks[1],
+            self.seconds
+        )?;
+        writeln!(
+            f,
+            "  compared {} head buffers over {} ticks: {} rounded; worst error {:.3e} \
+             diagonals, worst error / allowance {:.3}, {} over their allowance",
+            self.compared_heads,
+            self.compared_ticks,
+            self.rounded_heads,
+            self.worst_error,
+            self.worst_ratio,
+            self.over
+        )?;
+        write!(f, "  load average {}, {} cores", self.load, self.cores)
+    }
+}
+
+/// Runs `bench sessions --tolerance` on a server started in this process.
+pub fn bench_near_clones(
+    rig_bytes: Option<Vec<u8>>,
+    opt: &SessionBenchOptions,
+) -> Result<NearCloneReport> {
+    let Some(t) = opt.tolerance else {
+        bail!("bench_near_clones needs --tolerance");
+    };
+    if !(t.is_finite() && t > 0.0 && t <= crowdmorph_proto::MAX_VIEWER_TOLERANCE) {
+        bail!(
+            "--tolerance must be in (0, {}]",
+            crowdmorph_proto::MAX_VIEWER_TOLERANCE
+        );
+    }
+    if opt.animations == 0 || opt.heads < opt.animations || opt.fps <= 0.0 {
+        bail!("need heads >= animations >= 1 and fps > 0");
+    }
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("starting the tokio runtime")?;
+    runtime.block_on(run_near_clones(rig_bytes, opt, t))
+}
+
+/// Euclidean distance of two points, in f64.
+fn distance(a: &[f32], b: &[f32]) -> f64 {
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (f64::from(*x) - f64::from(*y)).powi(2))
+        .sum::<f64>()
+        .sqrt()
+}
+
+/// The bench crowd's camera: 3 m in front of the grid's middle column, at head height, looking
+/// down its depth.
+fn near_camera(heads: usize) -> crowdmorph_proto::CameraSpec {
+    let side = (heads as f64).sqrt().ceil() as f32;
+    let x = (side - 1.0) * GRID_STEP / 2.0;
+    let depth = side * GRID_STEP;
+    crowdmorph_proto::CameraSpec::looking([x, 0.3, 3.0], [x, 0.0, -depth / 2.0])
+}
+
+async fn run_near_clones(
+    rig_bytes: Option<Vec<u8>>,
+    opt: &SessionBenchOptions,
+    t: f32,
+) -> Result<NearCloneReport> {
+    let opt = SessionBenchOptions {
+        viewers: 2,
+        ..opt.clone()
+    };
+    let BenchServer {
+        addr,
+        client,
+        rig_id,
+        stop_tx,
+        server,
+        state,
+    } = BenchServer::start(bench_config(&opt), rig_bytes).await?;
+    let (session, info) = create_session(&client, &rig_id, &opt).await?;
+    let diagonal = distance(&info.bbox.max, &info.bbox.min);
+    let camera = near_camera(opt.heads);
+    let eye = camera.position.unwrap_or_default();
+    let hello = |tolerance: Option<f32>| ViewerHello {
+        format: Format::F32,
+        camera: Some(camera),
+        lod: crowdmorph_proto::LodChoice::ByDistance {
+            by_distance: NEAR_LOD.to_vec(),
+        },
+        tolerance,
+        ..ViewerHello::default()
+    };
+    let url = crowdmorph_load::session::stream_url(&format!("http://{addr}"), &session.id)?;
+    let stats = || async {
+        let s: SessionInfo = serde_json::from_slice(
+            &client
+                .send(
+                    hyper::Method::GET,
+                    &format!("/v1/sessions/{}", session.id),
+                    None,
+                    None,
+                    Bytes::new(),
+                )
+                .await?
+                .body,
+        )?;
+        anyhow::Ok(s.stats)
+    };
+    // Unique jobs per tick of one viewer alone: a reader drains its messages meanwhile.
+    let jobs_alone = |tolerance: Option<f32>| {
+        let hello = hello(tolerance);
+        let url = url.clone();
+        let stats = &stats;
+        async move {
+            let mut viewer = crowdmorph_load::session::Viewer::connect(&url, &hello)
+                .await
+                .context("connecting a viewer")?;
+            let reader = tokio::spawn(async move {
+                while let crowdmorph_load::session::ViewerEvent::Tick(..) = viewer.next().await {}
+            });
+            tokio::time::sleep(Duration::from_secs(1)).await;
+            let s0 = stats().await?;
+            tokio::time::sleep(Duration::from_secs_f64(opt.seconds)).await;
+            let s1 = stats().await?;
+            reader.abort();
+            let ticks = s1.ticks - s0.ticks;
+            // No tick computed in the window: no figure (NaN), not a zero.
+            let jobs = if ticks == 0 {
+                f64::NAN
+            } else {
+                (s1.jobs - s0.jobs) as f64 / ticks as f64
+            };
+            // Let the server notice the viewer left before the next one joins.
+            tokio::time::sleep(Duration::from_millis(300)).await;
+            anyhow::Ok((jobs, ticks))
+        }
+    };
+    let (jobs_exact, ticks_exact) = jobs_alone(None).await?;
+    let (jobs_near, ticks_near) = jobs_alone(Some(t)).await?;
+
+    // Both at once: every head's buffer of one tick compared with the exact viewer's.
+    let mut exact = crowdmorph_load::session::Viewer::connect(&url, &hello(None)).await?;
+    let mut near = crowdmorph_load::session::Viewer::connect(&url, &hello(Some(t))).await?;
+    let mut se = crowdmorph_proto::StreamState::new();
+    let mut sn = crowdmorph_proto::StreamState::new();
+    let mut compared = 0usize;
+    let (mut heads_compared, mut rounded, mut over) = (0u64, 0u64, 0u64);
+    let (mut worst, mut worst_ratio) = (0f64, 0f64);
+    let read = |e: crowdmorph_load::session::ViewerEvent| match e {
+        crowdmorph_load::session::ViewerEvent::Tick(b, _) => Ok(b),
+        other => Err(anyhow::anyhow!("the stream ended: {other:?}")),
+    };
+    let deadline = Instant::now() + Duration::from_secs(120);
+    while compared < opt.compare_ticks && Instant::now() < deadline {
+        if se.tick() <= sn.tick() {
+            let b = read(exact.next().await)?;
+            se.receive(&b).map_err(|e| anyhow::anyhow!("{e}"))?;
+        } else {
+            let b = read(near.next().await)?;
+            sn.receive(&b).map_err(|e| anyhow::anyhow!("{e}"))?;
+        }
+        if se.tick() != sn.tick() || se.tick() == 0 {
+            continue;
+        }
+        compared += 1;
+        for h in se.layout() {
+            let (Some(a), Some(b)) = (se.buffer(h.head), sn.buffer(h.head)) else {
+                continue;
+            };
+            heads_compared += 1;
+            let (pa, pb) = (a.positions.to_f32(), b.positions.to_f32());
+            if pa.len() != pb.len() {
+                bail!("head {}: {} and {} floats", h.head, pa.len(), pb.len());
+            }
+            let err = pa
+                .chunks_exact(3)
+                .zip(pb.chunks_exact(3))
+                .map(|(p, q)| distance(p, q))
+                .fold(0.0, f64::max);
+            if err > 0.0 {
+                rounded += 1;
+            }
+            let d = distance(&h.position, &eye);
+            let allowance = (f64::from(t) * d).min(0.1) * diagonal;
+            worst = worst.max(err / diagonal);
+            let ratio = if allowance > 0.0 {
+                err / allowance
+            } else if err > 0.0 {
+                f64::INFINITY
+            } else {
+                0.0
+            };
+            worst_ratio = worst_ratio.max(ratio);
+            // The two engines' runs of one pose are bit for bit the same: any error is the
+            // rounding's.
+            if err > allowance {
+                over += 1;
+            }
+        }
+    }
+    exact.close().await;
+    near.close().await;
+    let _ = stop_tx.send(());
+    let _ = server.await;
+    drop(state);
+
+    let side = (opt.heads as f64).sqrt().ceil() as usize;
+    let mut heads_per_level = vec![0usize; NEAR_LOD.len()];
+    let mut depth = [f64::INFINITY, 0f64];
+    for i in 0..opt.heads {
+        let p = [
+            (i % side) as f32 * GRID_STEP,
+            0.0,
+            -((i / side) as f32) * GRID_STEP,
+        ];
+        let d = distance(&p, &eye);
+        let l = NEAR_LOD
+            .partition_point(|[m, _]| f64::from(*m) <= d)
+            .saturating_sub(1);
+        heads_per_level[l] += 1;
+        depth = [depth[0].min(d), depth[1].max(d)];
+    }
+    Ok(NearCloneReport {
+        rig: rig_id,
+        vertices: info.vertices,
+        diagonal,
+        heads: opt.heads,
+        animations: opt.animations,
+        graph: opt.graph,
+        fps: opt.fps,
+        depth_m: depth,
+        heads_per_level,
+        tolerance_per_m: t,
+        seconds: opt.seconds,
+        jobs_exact,
+        jobs_near,
+        ticks: [ticks_exact, ticks_near],
+        compared_ticks: compared,
+        compared_heads: heads_compared,
+        rounded_heads: rounded,
+        worst_error: worst,
+        worst_ratio,
+        over,
+        load: std::fs::read_to_string("/proc/loadavg")
+            .map(|l| l.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
+            .unwrap_or_default(),
+        cores: std::thread::available_parallelism().map_or(1, usize::from),
+    })
 }

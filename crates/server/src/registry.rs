@@ -53,6 +53,9 @@ pub struct RigEntry {
     /// What each joint moves and which each LOD level holds at rest, measured on first use
     /// (see [`RigEntry::joint_lod`]).
     joint_lod: std::sync::OnceLock<crowdmorph_core::rig::JointLod>,
+    /// Per LOD level its near-clone bound (`rig::near_clone_bound`), and the rig's diagonal,
+    /// measured on first use (see [`RigEntry::near_clone`]).
+    near_bounds: std::sync::OnceLock<NearBounds>,
     /// The joint map as live weights read it, built on first use (see
     /// [`RigEntry::live_angles`]).
     live_angles: std::sync::OnceLock<Option<Arc<LiveAngles>>>,
@@ -61,6 +64,16 @@ pub struct RigEntry {
     /// The q16 references of [`Format::Q16R`](crowdmorph_proto::Format::Q16R) buffers, one
     /// per mesh level asked for, by the level's address (see [`RigEntry::q16_reference`]).
     q16_references: Mutex<Vec<(usize, Arc<[i16]>)>>,
+}
+
+/// A rig's near-clone bounds: per LOD level `M_L` (`rig::near_clone_bound`), and the
+/// diagonal tolerances are stated in.
+#[derive(Debug)]
+pub struct NearBounds {
+    /// Per level, the most a vertex moves per unit of error on every weight it evaluates.
+    pub levels: Arc<[f32]>,
+    /// The rig's bounding-box diagonal at rest.
+    pub diagonal: f64,
 }
 
 /// A skinned rig's joint map, as live weights read it: a live head's weights may carry Live Link
@@ -223,6 +236,7 @@ impl RigEntry {
             clip_names: Default::default(),
             joint_names: Default::default(),
             joint_lod: Default::default(),
+            near_bounds: Default::default(),
             live_angles: Default::default(),
             face_region: Default::default(),
             q16_references: Default::default(),
@@ -264,6 +278,55 @@ impl RigEntry {
             let lod = crowdmorph_core::rig::JointLod::of(self.rig());
             self.grow_charge(lod.bytes());
             lod
+        })
+    }
+
+    /// `pose` as a near-clone at LOD level `lod` when each vertex may move by `tolerance`
+    /// times the rig's diagonal: its weights rounded to the coarsest step whose worst case,
+    /// `step/2 × M_L`, stays within that (`rig::Pose::near_clone`). `None` keeps the exact
+    /// pose: no tolerance, too small a one for even one live step, a PCA level (its deltas
+    /// are not the ones bounded), or a pose that moves joints.
+    pub fn near_clone(
+        &self,
+        pose: &crowdmorph_core::rig::Pose,
+        lod: u32,
+        tolerance: f64,
+    ) -> Option<crowdmorph_core::rig::Pose> {
+        if tolerance.is_nan() || tolerance <= 0.0 {
+            return None;
+        }
+        let b = self.near_bounds();
+        let bound = *b.levels.get(lod as usize)?;
+        let shift = crowdmorph_core::rig::near_clone_shift(bound, tolerance * b.diagonal)?;
+        let rig = self.rig();
+        let shapes = rig.lod.shapes_at(lod).ok()? as usize;
+        pose.near_clone(rig, rig.lod.order.get(..shapes)?, shift)
+    }
+
+    /// Per LOD level its near-clone bound over the vertices the level evaluates (its mesh
+    /// level's) and the shapes it keeps, `f32::INFINITY` for a PCA level; measured once per
+    /// generation (a walk of every delta per level) and charged with it.
+    pub fn near_bounds(&self) -> &NearBounds {
+        self.near_bounds.get_or_init(|| {
+            let rig = self.rig();
+            let levels: Vec<f32> = (0..rig.lod.levels.len() as u32)
+                .map(|l| {
+                    let level = rig.lod.levels[l as usize];
+                    if level.pca.is_some() {
+                        return f32::INFINITY;
+                    }
+                    let shapes = (level.shapes as usize).min(rig.lod.order.len());
+                    crowdmorph_core::rig::near_clone_bound(
+                        self.prepared.at_level(l).rig(),
+                        &rig.lod.order[..shapes],
+                    )
+                })
+                .collect();
+            self.grow_charge(16 + 4 * levels.len() as u64);
+            NearBounds {
+                levels: levels.into(),
+                diagonal: f64::from(rig.bbox().diagonal()),
+            }
         })
     }
 
@@ -326,6 +389,7 @@ impl RigEntry {
             clip_names: Default::default(),
             joint_names: Default::default(),
             joint_lod: Default::default(),
+            near_bounds: Default::default(),
             live_angles: Default::default(),
             face_region: Default::default(),
             q16_references: Default::default(),

@@ -417,6 +417,9 @@ pub(crate) struct ViewerSettings {
     pub(crate) compression: Option<crowdmorph_proto::MessageEncoding>,
     /// Also send each head's expression-layer inputs when they change.
     pub(crate) layers: bool,
+    /// Near-clones: a head `d` metres from the camera's eye may be off by `tolerance × d`
+    /// diagonals (0: exact poses).
+    pub(crate) tolerance: f32,
 }
 
 #[derive(Debug)]

@@ -1036,6 +1036,7 @@ class Client:
         temporal: bool = False,
         keyframe_every: Optional[int] = None,
         compression: Optional[str] = None,
+        tolerance: Optional[float] = None,
         timeout: Optional[float] = None,
         max_message: Optional[int] = 1 << 31,
     ) -> _sessions.Viewer:
@@ -1059,6 +1060,9 @@ class Client:
         (``"deflate"`` or ``"zstd"``, the latter needing ``pip install 'crowdmorph[zstd]'``)
         has it compress every message. Both are decoded here: the ticks are bit for bit a
         plain q16 viewer's (plus ``wire_bytes``, ``keyframes`` and ``from_residuals``).
+        ``tolerance`` (near-clones, with a ``camera``): a head ``d`` metres from the eye may
+        be off by ``tolerance × d`` of its rig's diagonal, so that far heads whose poses
+        differ by less are computed once.
         ``output="weights"`` (for a client that blends itself) yields
         :class:`~crowdmorph.sessions.PoseTick` objects instead: per head its final weights
         and moved joints (:meth:`rig_channels` names them), no vertices; ``format``,
@@ -1079,6 +1083,7 @@ class Client:
             temporal=temporal,
             keyframe_every=keyframe_every,
             compression=compression,
+            tolerance=tolerance,
         )
         host = f"[{self._host}]" if ":" in self._host else self._host
         netloc = host if self._port is None else f"{host}:{self._port}"

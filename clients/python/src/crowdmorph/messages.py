@@ -326,6 +326,7 @@ class Layer:
 
 _LAYERS = Vec(Msg(Layer))
 _MAPPING = Opt(STR)
+_TOLERANCE = Opt(F32)
 class _Clamp:
     """``Option<[f32; 2]>``: a fixed pair, no length."""
 
@@ -373,6 +374,7 @@ def _of_head_layer(x: Any) -> Layer:
     ("weights_mode", LAYER_MODE),
     ("clamp", CLAMP),
     ("mapping", _MAPPING),
+    ("tolerance", _TOLERANCE),
 )
 @dataclass
 class Head:
@@ -387,7 +389,9 @@ class Head:
     replace the targets they name (``weights_mode="additive"``: are added), after the layers;
     ``clamp`` (``[lo, hi]``) bounds every final weight. ``mapping`` names a mapping of the rig
     (``"arkit"``, ``"a2f"``, ``"oculus-visemes"``, ``"vrm"`` or one of its own) that named
-    ``weights`` go through first: their names are the mapping's sources."""
+    ``weights`` go through first: their names are the mapping's sources. ``tolerance`` (a
+    fraction of the rig's diagonal, 0..=0.1) lets the server round the head's final weights
+    so that heads whose poses differ by less share one job (near-clones)."""
 
     head: int
     rig: str
@@ -401,6 +405,7 @@ class Head:
     weights_mode: str = "override"
     clamp: Optional[Sequence[float]] = None
     mapping: Optional[str] = None
+    tolerance: Optional[float] = None
 
     def __post_init__(self) -> None:
         j = self.joints
@@ -445,11 +450,12 @@ class _HeadVec:
             weights_mode: Any = "override"
             clamp: Any = None
             mapping: Any = None
+            tolerance: Any = None
             if type(h) is Head:
                 hid, rig, clip, frame, lod = h.head, h.rig, h.clip, h.frame, h.lod
                 blend, weights, joints = h.blend, h.weights, h.joints
                 layers, weights_mode, clamp = h.layers, h.weights_mode, h.clamp
-                mapping = h.mapping
+                mapping, tolerance = h.mapping, h.tolerance
             elif isinstance(h, (tuple, list)):
                 if len(h) == 4:
                     hid, rig, clip, frame = h
@@ -463,12 +469,12 @@ class _HeadVec:
                 joints = h.get("joints")
                 layers, clamp = h.get("layers", ()), h.get("clamp")
                 weights_mode = h.get("weights_mode", "override")
-                mapping = h.get("mapping")
+                mapping, tolerance = h.get("mapping"), h.get("tolerance")
             elif isinstance(h, Head):
                 hid, rig, clip, frame, lod = h.head, h.rig, h.clip, h.frame, h.lod
                 blend, weights, joints = h.blend, h.weights, h.joints
                 layers, weights_mode, clamp = h.layers, h.weights_mode, h.clamp
-                mapping = h.mapping
+                mapping, tolerance = h.mapping, h.tolerance
             else:
                 raise TypeError(
                     "a head is a Head, a dict or a (head, rig, clip, frame[, lod]) tuple, "
@@ -521,6 +527,10 @@ class _HeadVec:
                 out.append(0)  # mapping = None
             else:
                 _MAPPING.write(w, mapping)
+            if tolerance is None:
+                out.append(0)  # tolerance = None
+            else:
+                _TOLERANCE.write(w, tolerance)
 
 
 def _of_layer(b: Any) -> BlendLayer:

@@ -546,8 +546,13 @@ def hello(
     temporal: bool = False,
     keyframe_every: Optional[int] = None,
     compression: Optional[str] = None,
+    tolerance: Optional[float] = None,
 ) -> Dict[str, Any]:
     """The ``ViewerHello`` JSON object a viewer sends first.
+
+    ``tolerance`` (vertex buffers, with a camera): a head ``d`` metres from the eye may be off
+    by ``tolerance × d`` of its rig's diagonal (near-clones; 0..=0.01 per metre), sent only
+    when set.
 
     ``temporal``, ``keyframe_every`` and ``compression`` are sent only when set (an older
     server then sees the hello it knows). Which combinations a stream can give (``temporal``
@@ -605,6 +610,10 @@ def hello(
         if compression == "zstd":
             _zstandard()
         msg["compression"] = compression
+    if tolerance is not None:
+        if isinstance(tolerance, bool) or not isinstance(tolerance, (int, float)):
+            raise TypeError(f"tolerance is a number, not {type(tolerance).__name__}")
+        msg["tolerance"] = float(tolerance)
     return msg
 
 

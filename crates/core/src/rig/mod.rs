@@ -73,8 +73,8 @@ pub use mapping::{
 pub use mesh_level::mesh_level_rigs;
 pub use pca::{DeltaPca, PcaRegion, pca_level_rigs};
 pub use pose::{
-    ARKIT_NAMES, LIVE_STEP, MAX_BLEND_LAYERS, MAX_LIVE_WEIGHT, MAX_TERMS, Pose, PoseError, T_ONE,
-    Term, quantize_live,
+    ARKIT_NAMES, LIVE_STEP, MAX_BLEND_LAYERS, MAX_LIVE_WEIGHT, MAX_NEAR_SHIFT, MAX_NEAR_TOLERANCE,
+    MAX_TERMS, Pose, PoseError, T_ONE, Term, near_clone_bound, near_clone_shift, quantize_live,
 };
 pub use regions::{HEAD_WEIGHT, MOVED_FRACTION, Region, RegionSource, head_node, is_head_name};
 pub use sample::{Interpolation, KeyTrack, sample_rotation, sample_track};

@@ -312,6 +312,110 @@ impl Pose {
     }
 }
 
+/// Largest near-clone tolerance, in units of the rig's diagonal: past a tenth of the head the
+/// pose is unrecognisable anyway, and steps stay far inside an `i32` of [`LIVE_STEP`]s.
+pub const MAX_NEAR_TOLERANCE: f32 = 0.1;
+
+/// Coarsest near-clone step, as a power of two of [`LIVE_STEP`]s: 2^19 steps is 128, twice
+/// [`MAX_LIVE_WEIGHT`], so every weight rounds to 0 or ±128 and counts stay within ±2^20.
+pub const MAX_NEAR_SHIFT: u32 = 19;
+
+/// The near-clone bound of one LOD level, `M_L = max_v Σ_{t in level} ‖δ_t(v)‖`: the most a
+/// vertex of `rig` (the rig the level is evaluated on: the full rig or its mesh level) moves
+/// per unit of weight error on every one of the level's `targets`.
+///
+/// **The bound proved.** A level evaluates `p(v) = n(v) + Σ_t w_t δ_t(v)` over its targets. If
+/// every weight moves by at most `s/2` (rounding to a multiple of `s`), then
+/// `‖p̂(v) − p(v)‖ = ‖Σ_t (ŵ_t − w_t) δ_t(v)‖ ≤ Σ_t |ŵ_t − w_t| ‖δ_t(v)‖ ≤ s/2 · M_L` by the
+/// triangle inequality — a Euclidean bound on each vertex's displacement (hence on each
+/// coordinate). A target split over several primitives adds each primitive's delta at that
+/// primitive's own vertex; the sums are taken per primitive vertex, in f64, rounded up to f32.
+pub fn near_clone_bound(rig: &Rig, targets: &[super::TargetId]) -> f32 {
+    let mut wanted = vec![false; rig.targets.len()];
+    for &t in targets {
+        if let Some(w) = wanted.get_mut(t as usize) {
+            *w = true;
+        }
+    }
+    let mut worst = 0f64;
+    // One f64 per vertex of the largest primitive, reused: a transient third of what the
+    // rig's own positions hold.
+    let mut sum: Vec<f64> = Vec::new();
+    for p in rig.primitives.iter() {
+        sum.clear();
+        sum.resize(p.positions.len(), 0.0);
+        for st in &p.targets {
+            if !wanted.get(st.target as usize).copied().unwrap_or(false) {
+                continue;
+            }
+            for (&v, d) in st.vertices.iter().zip(&st.positions) {
+                if let Some(s) = sum.get_mut(v as usize) {
+                    *s += f64::from(d.length());
+                }
+            }
+        }
+        worst = sum.iter().copied().fold(worst, f64::max);
+    }
+    let up = worst as f32;
+    if f64::from(up) < worst {
+        up.next_up()
+    } else {
+        up
+    }
+}
+
+/// The coarsest near-clone step for a level whose bound is `bound` (see
+/// [`near_clone_bound`]) when each vertex may move by `error` (absolute, the rig's units):
+/// `k` such that `s = LIVE_STEP · 2^k` is the largest power-of-two multiple of [`LIVE_STEP`]
+/// with `s/2 · bound ≤ error`. `None` when even [`LIVE_STEP`] is too coarse (or `error` is
+/// not a positive finite number): the pose stays exact.
+pub fn near_clone_shift(bound: f32, error: f64) -> Option<u32> {
+    if !(error.is_finite() && error > 0.0 && bound.is_finite()) {
+        return None;
+    }
+    let bound = f64::from(bound);
+    (0..=MAX_NEAR_SHIFT)
+        .rev()
+        .find(|&k| f64::from(LIVE_STEP) * f64::from(1u32 << k) / 2.0 * bound <= error)
+}
+
+impl Pose {
+    /// This pose as a near-clone at a level that evaluates `targets`: its weights rounded to
+    /// the nearest multiple of `LIVE_STEP · 2^shift` (a [`Pose::Live`], so equal rounded
+    /// vectors are one job whatever step produced them), and the channels the level does not
+    /// evaluate set to 0 (exact: the level never reads them). Each weight the level reads
+    /// moves by at most half a step, so a vertex moves by at most `step/2 · M_L`
+    /// ([`near_clone_bound`]).
+    ///
+    /// `None` (keep the exact pose) when a weight is past ±[`MAX_LIVE_WEIGHT`] or not finite,
+    /// or on a rig with a skeleton: its clip poses move joints (a weight vector poses none),
+    /// and skinning can stretch a delta's error by its bones' scales, which the bound does not
+    /// count.
+    pub fn near_clone(&self, rig: &Rig, targets: &[super::TargetId], shift: u32) -> Option<Pose> {
+        let shift = shift.min(MAX_NEAR_SHIFT);
+        if rig.skeleton.is_some() {
+            return None;
+        }
+        let step = f64::from(1u32 << shift);
+        let mut q = vec![0i32; rig.targets.len()];
+        for &t in targets {
+            let t = t as usize;
+            if t >= q.len() {
+                continue;
+            }
+            let w = self.weight(rig, t);
+            if !w.is_finite() || w.abs() > MAX_LIVE_WEIGHT {
+                return None;
+            }
+            // In f64 (exact for an f32 weight over a power of two): the nearest multiple of
+            // the step, as a count of LIVE_STEPs.
+            let steps = (f64::from(w) / f64::from(LIVE_STEP) / step).round();
+            q[t] = (steps * step) as i32;
+        }
+        Some(Pose::Live(q.into()))
+    }
+}
+
 /// `w` rounded to the nearest multiple of [`LIVE_STEP`], as an integer count of steps.
 pub fn quantize_live(w: f32) -> i32 {
     let w = w.clamp(-MAX_LIVE_WEIGHT, MAX_LIVE_WEIGHT);
@@ -360,5 +464,114 @@ mod tests {
         assert_eq!(quantize_live(-1.0), -4096);
         assert_eq!(quantize_live(1e9), (MAX_LIVE_WEIGHT * 4096.0) as i32);
         assert_eq!(Pose::live(&[0.5, 0.500_000_1]), Pose::live(&[0.5, 0.5]));
+    }
+
+    /// Every vertex of `rig` posed by `pose`, in f64 from the sparse deltas (the oracle the
+    /// near-clone tests compare against): only `targets` contribute, as at a LOD level.
+    fn posed_f64(rig: &Rig, pose: &Pose, targets: &[u32]) -> Vec<[f64; 3]> {
+        let mut out = Vec::new();
+        for p in rig.primitives.iter() {
+            let mut v: Vec<[f64; 3]> = p
+                .positions
+                .iter()
+                .map(|x| [x.x, x.y, x.z].map(f64::from))
+                .collect();
+            for st in p.targets.iter().filter(|st| targets.contains(&st.target)) {
+                let w = f64::from(pose.weight(rig, st.target as usize));
+                for (&i, d) in st.vertices.iter().zip(&st.positions) {
+                    let o = &mut v[i as usize];
+                    for (a, c) in o.iter_mut().zip([d.x, d.y, d.z]) {
+                        *a += w * f64::from(c);
+                    }
+                }
+            }
+            out.extend(v);
+        }
+        out
+    }
+
+    #[test]
+    fn near_clones_move_no_vertex_past_half_a_step_times_the_bound() {
+        let rig = crate::synthetic::with_random_clip(
+            crate::synthetic::banded_rig("near", 2000, 40, 24),
+            7,
+        );
+        let all: Vec<u32> = rig.lod.order.clone();
+        let half: Vec<u32> = rig.lod.order[..12].to_vec();
+        for targets in [&all[..], &half[..]] {
+            let bound = near_clone_bound(&rig, targets);
+            // The bound, dense and independently: per vertex, Σ over the level's targets.
+            let mut dense = vec![0f64; rig.vertex_count()];
+            for (t, _) in rig.targets.iter().enumerate() {
+                if !targets.contains(&(t as u32)) {
+                    continue;
+                }
+                let one = Pose::live(&{
+                    let mut w = vec![0.0; rig.targets.len()];
+                    w[t] = 1.0;
+                    w
+                });
+                let rest = posed_f64(&rig, &Pose::live(&vec![0.0; rig.targets.len()]), targets);
+                for (i, (a, b)) in posed_f64(&rig, &one, targets).iter().zip(&rest).enumerate() {
+                    dense[i] += ((0..3).map(|c| (a[c] - b[c]).powi(2)).sum::<f64>()).sqrt();
+                }
+            }
+            let want = dense.iter().copied().fold(0.0, f64::max);
+            assert!(
+                (f64::from(bound) - want).abs() <= 1e-5 * want
+                    && f64::from(bound) >= want * (1.0 - 1e-6),
+                "bound {bound} vs dense {want}"
+            );
+            let diag = f64::from(rig.bbox().diagonal());
+            for (e, frame) in [(1e-4, 3u32), (1e-3, 9), (1e-2, 17)] {
+                let error = e * diag;
+                let k = near_clone_shift(bound, error).expect("a step fits");
+                let step = f64::from(LIVE_STEP) * f64::from(1u32 << k);
+                assert!(step / 2.0 * f64::from(bound) <= error);
+                // The coarsest: twice the step would break the bound (unless capped).
+                assert!(k == MAX_NEAR_SHIFT || step * f64::from(bound) > error);
+                let exact = Pose::Frame { clip: 0, frame };
+                let near = exact.near_clone(&rig, targets, k).expect("no joints");
+                let (a, b) = (
+                    posed_f64(&rig, &exact, targets),
+                    posed_f64(&rig, &near, targets),
+                );
+                let worst = a
+                    .iter()
+                    .zip(&b)
+                    .map(|(p, q)| ((0..3).map(|c| (p[c] - q[c]).powi(2)).sum::<f64>()).sqrt())
+                    .fold(0.0, f64::max);
+                assert!(worst <= error, "e {e}: moved {worst} > {error}");
+                assert!(worst > 0.0, "e {e}: the near-clone is a different pose");
+            }
+        }
+        // Too small an error for even one LIVE_STEP: the pose stays exact.
+        assert_eq!(near_clone_shift(1.0, 1e-9), None);
+        assert_eq!(near_clone_shift(1.0, 0.0), None);
+        assert_eq!(near_clone_shift(0.0, 1e-9), Some(MAX_NEAR_SHIFT));
+    }
+
+    #[test]
+    fn near_clones_of_near_poses_are_one_key() {
+        let rig =
+            crate::synthetic::with_random_clip(crate::synthetic::banded_rig("near", 500, 20, 8), 3);
+        let order = rig.lod.order.clone();
+        let a = Pose::live(&[0.5; 8]);
+        let b = Pose::live(&[0.5 + 3.0 * LIVE_STEP; 8]);
+        assert_ne!(a, b);
+        // Steps of 16 LIVE_STEPs: both round to 0.5.
+        assert_eq!(a.near_clone(&rig, &order, 4), b.near_clone(&rig, &order, 4));
+        // A channel the level does not evaluate is dropped (0), so it cannot split a job.
+        let mut w = [0.5; 8];
+        w[order[7] as usize] = 0.9;
+        assert_eq!(
+            Pose::live(&w).near_clone(&rig, &order[..7], 0),
+            a.near_clone(&rig, &order[..7], 0)
+        );
+        let near = Pose::live(&[0.5; 8]).near_clone(&rig, &order, 3);
+        let Some(Pose::Live(q)) = near else {
+            panic!("a near-clone is a live pose")
+        };
+        assert!(q.iter().all(|&x| x % 8 == 0));
     }
 }

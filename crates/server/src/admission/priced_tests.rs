@@ -133,7 +133,7 @@ fn check<T: Serialize + DeserializeOwned + Priced>(what: &str, value: &T) -> Vec
 }
 
 /// Heads of every kind: plain, blended (every third), live by name (every fifth) and dense
-/// (every seventh).
+/// (every seventh), some with a near-clone tolerance (every eleventh).
 fn heads(n: usize) -> Vec<Head> {
     use crowdmorph_proto::{BlendLayer, LiveWeights};
     (0..n)
@@ -162,6 +162,10 @@ fn heads(n: usize) -> Vec<Head> {
             } else if i % 7 == 3 {
                 h.clip.clear();
                 h.weights = Some(Box::new(LiveWeights::Dense(vec![0.25; 51])));
+            }
+            if i % 11 == 4 {
+                // A near-clone: an inline f32, nothing more to decode.
+                h.tolerance = Some(0.001);
             }
             h
         })

@@ -26,7 +26,8 @@ use crowdmorph_core::plan::{JobKey, Plan};
 use crowdmorph_core::rig::quoted_name;
 use crowdmorph_core::rig::{
     ACTIVE_WEIGHT_EPSILON, ARKIT_NAMES, FrameMode, JointPose, JointSet, MAX_BLEND_LAYERS,
-    MAX_JOINT_OVERRIDES, MAX_JOINT_VALUE, MAX_LIVE_WEIGHT, Pose, Rig, layer_weights,
+    MAX_JOINT_OVERRIDES, MAX_JOINT_VALUE, MAX_LIVE_WEIGHT, MAX_NEAR_TOLERANCE, Pose, Rig,
+    layer_weights,
 };
 use crowdmorph_import::clips::{checked_name, is_live_link_angle, loose};
 
@@ -336,6 +337,7 @@ pub fn resolve_heads(
             ));
         }
         let joints = lookups.joints(h, head, ri)?;
+        let pose = lookups.near_clone(h, head, ri, pose)?;
         keys.push(JobKey {
             rig: ri,
             pose,
@@ -532,6 +534,41 @@ impl<'h> Lookups<'h> {
             .joint_lod()
             .level(head.lod)
             .joints(&from_weights.overlay(&requested)))
+    }
+
+    /// Head `h`'s pose as a near-clone within its `tolerance` (`RigEntry::near_clone`),
+    /// charged as a live pose is; the pose itself without one. A tolerance that is not a
+    /// finite number in `0..=MAX_NEAR_TOLERANCE` is a 400 naming the head.
+    fn near_clone(
+        &mut self,
+        h: usize,
+        head: &'h Head,
+        ri: u32,
+        pose: Pose,
+    ) -> Result<Pose, ApiError> {
+        let Some(t) = head.tolerance else {
+            return Ok(pose);
+        };
+        if !(t.is_finite() && (0.0..=MAX_NEAR_TOLERANCE).contains(&t)) {
+            return Err(ApiError::bad_request(
+                "invalid_tolerance",
+                format!(
+                    "head {h} (id {}): tolerance {t} must be a finite number in \
+                     0..={MAX_NEAR_TOLERANCE} (a fraction of the rig's diagonal)",
+                    head.head
+                ),
+            ));
+        }
+        if t == 0.0 {
+            return Ok(pose);
+        }
+        let entry = self.rigs[ri as usize].clone();
+        // The level was checked by the caller; a pose the near-clone does not apply to
+        // (joints, a PCA level, too small a tolerance) stays exact.
+        self.charge_more(16 + 4 * entry.rig().targets.len() as u64)?;
+        Ok(entry
+            .near_clone(&pose, head.lod, f64::from(t))
+            .unwrap_or(pose))
     }
 
     /// Adds `bytes` to what the request's poses hold.

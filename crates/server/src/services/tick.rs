@@ -283,11 +283,25 @@ async fn tick_once<S: Ticking>(
         return Ticked::NoViewers;
     }
     // What this tick builds per head is charged first, as every request's memory is.
-    let Ok(bookkeeping) = state.queue_memory().reserve(tick_bookkeeping_bytes(
-        heads.len(),
-        viewers.len(),
-        resolved.joint_sets(),
-    )) else {
+    let near_viewers = viewers
+        .iter()
+        .filter(|v| v.settings().is_some_and(|s| s.tolerance > 0.0))
+        .count();
+    let near = if near_viewers == 0 {
+        0
+    } else {
+        let channels = resolved
+            .rigs
+            .iter()
+            .map(|r| r.rig().targets.len())
+            .max()
+            .unwrap_or(0);
+        near_clone_bytes(heads.len(), near_viewers, channels)
+    };
+    let Ok(bookkeeping) = state.queue_memory().reserve(
+        tick_bookkeeping_bytes(heads.len(), viewers.len(), resolved.joint_sets())
+            .saturating_add(near),
+    ) else {
         return Ticked::Skipped;
     };
     let mut grouped = group(&resolved, &heads, &viewers);
@@ -778,6 +792,10 @@ impl Group {
         heads: &[SessionHead],
         s: &ViewerSettings,
     ) -> Vec<Option<u32>> {
+        let eye = s.camera.as_ref().and_then(|c| c.position);
+        if let Some(eye) = eye.filter(|_| s.tolerance > 0.0) {
+            return self.near_jobs_of(resolved, heads, s, Vec3::from(eye));
+        }
         heads
             .iter()
             .zip(&resolved.at)
@@ -801,6 +819,91 @@ impl Group {
             })
             .collect()
     }
+}
+
+impl Group {
+    /// [`Group::jobs_of`] for a viewer with a near-clone `tolerance`: a head `d` metres from
+    /// the eye may be off by `tolerance × d` diagonals (at most `MAX_NEAR_TOLERANCE`). Heads
+    /// with the same exact job (exact clones) take the smallest of their errors, so that they
+    /// stay one job; each exact job is then rounded once (`RigEntry::near_clone`) and keyed
+    /// by its rounded weights, which other heads and other viewers of the group share where
+    /// they agree. The memory is charged by [`near_clone_bytes`].
+    fn near_jobs_of(
+        &mut self,
+        resolved: &Resolved,
+        heads: &[SessionHead],
+        s: &ViewerSettings,
+        eye: Vec3,
+    ) -> Vec<Option<u32>> {
+        let max = f64::from(crowdmorph_core::rig::MAX_NEAR_TOLERANCE);
+        // Pass 1: each head's exact key and error; per exact key the smallest error.
+        let mut exact: Vec<Option<(Key, f64)>> = Vec::with_capacity(heads.len());
+        let mut smallest: HashMap<Key, f64> = HashMap::new();
+        for (h, a) in heads.iter().zip(&resolved.at) {
+            let Some(a) = a.as_ref() else {
+                exact.push(None);
+                continue;
+            };
+            if self.format == Format::F16 && !a.f16_ok {
+                exact.push(None);
+                continue;
+            }
+            let lod = level_for(&s.lod, s.camera.as_ref(), h.position).min(a.levels - 1);
+            let entry = &resolved.rigs[a.rig as usize];
+            let joints = entry.joint_lod().level(lod).joints(&a.joints);
+            let d = f64::from(Vec3::from(h.position).distance(eye));
+            let e = (f64::from(s.tolerance) * d).min(max);
+            let key = (a.rig, a.pose.clone(), lod, joints);
+            smallest
+                .entry(key.clone())
+                .and_modify(|m| *m = m.min(e))
+                .or_insert(e);
+            exact.push(Some((key, e)));
+        }
+        // Pass 2: each exact key rounded once, then keyed by what it rounds to.
+        let mut near: HashMap<Key, u32> = HashMap::with_capacity(smallest.len());
+        exact
+            .into_iter()
+            .map(|k| {
+                let (key, _) = k?;
+                if let Some(&j) = near.get(&key) {
+                    return Some(j);
+                }
+                let e = smallest.get(&key).copied().unwrap_or(0.0);
+                let entry = &resolved.rigs[key.0 as usize];
+                let pose = entry
+                    .near_clone(&key.1, key.2, e)
+                    .unwrap_or_else(|| key.1.clone());
+                let rounded = (key.0, pose, key.2, key.3.clone());
+                let j = match self.index.get(&rounded) {
+                    Some(&j) => j,
+                    None => {
+                        self.jobs
+                            .push(job_request(entry, &rounded.1, rounded.2, &rounded.3));
+                        self.keys.push(rounded.clone());
+                        let j = (self.jobs.len() - 1) as u32;
+                        self.index.insert(rounded, j);
+                        j
+                    }
+                };
+                near.insert(key, j);
+                Some(j)
+            })
+            .collect()
+    }
+}
+
+/// Bytes [`Group::near_jobs_of`] holds for a tick beyond [`tick_bookkeeping_bytes`], for
+/// `viewers` viewers with a tolerance: per head its exact key and error and two map entries,
+/// and per head at most one rounded pose (a weight per channel of its rig), kept by the
+/// group's keys and, until the next tick, the viewer's baseline (so twice).
+fn near_clone_bytes(heads: usize, viewers: usize, channels: usize) -> u64 {
+    let per_head = size_of::<Option<(Key, f64)>>()
+        + 2 * (size_of::<Key>() + size_of::<f64>() + 8)
+        + 2 * (16 + 4 * channels);
+    (heads as u64)
+        .saturating_mul(viewers as u64)
+        .saturating_mul(per_head as u64)
 }
 
 /// What [`submit`] got back: each group's outcome, and the queue memory their outputs hold.

@@ -9,7 +9,7 @@ use std::time::Duration;
 use axum::extract::ws::{CloseFrame, Message, WebSocket};
 use crowdmorph_proto::{
     CameraSpec, DEFAULT_KEYFRAME_EVERY, Format, ImageFormat, ImageOptions, MAX_KEYFRAME_EVERY,
-    ViewerHello, ViewerOutput, ViewerUpdate,
+    MAX_VIEWER_TOLERANCE, ViewerHello, ViewerOutput, ViewerUpdate,
 };
 use tokio::time::Instant;
 
@@ -88,6 +88,7 @@ async fn read_hello(
         temporal,
         compression: hello.compression,
         layers: hello.layers,
+        tolerance: hello.tolerance.unwrap_or(0.0),
     })
 }
 
@@ -133,6 +134,17 @@ fn check_modes(hello: &ViewerHello) -> Result<Option<u32>, (u16, String)> {
             hello.format.name()
         ));
     }
+    if let Some(t) = hello.tolerance {
+        if !(t.is_finite() && (0.0..=MAX_VIEWER_TOLERANCE).contains(&t)) {
+            return refuse(&format!(
+                "tolerance {t} must be a finite number in 0..={MAX_VIEWER_TOLERANCE} (a \
+                 fraction of the rig's diagonal per metre from the camera)"
+            ));
+        }
+        if frames {
+            return refuse("tolerance is for vertex buffers; images are drawn from exact poses");
+        }
+    }
     match (hello.temporal, hello.keyframe_every) {
         (false, Some(_)) => refuse("keyframe_every is for temporal viewers"),
         (true, Some(n)) if !(1..=MAX_KEYFRAME_EVERY).contains(&n) => refuse(&format!(
@@ -158,6 +170,9 @@ fn check_weights(hello: &ViewerHello) -> Result<(), &'static str> {
     }
     if hello.layers {
         return Err("has no layer inputs (a viewer that blends itself has the weights)");
+    }
+    if hello.tolerance.is_some() {
+        return Err("is each head's exact pose: no tolerance (leave tolerance out)");
     }
     if hello.lod != crowdmorph_proto::LodChoice::Fixed(0) {
         return Err("is each head's whole pose: no LOD level (leave lod out)");
