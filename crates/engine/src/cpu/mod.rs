@@ -1637,62 +1637,6 @@ mod tests {
         }
     }
 
-    /// Times the blocked and the unblocked kernel in the same process, alternating call by
-    /// call, on the paper-scale rig (43,788 vertices, 72 targets); no assertion on time.
-    /// `[SPAN_KIB=N] cargo test -p crowdmorph-engine --lib cpu::tests::blocking_timing -- --ignored
-    /// --nocapture` (the release bench is `crowdmorph bench cpu`).
-    #[test]
-    #[ignore = "a timing, not a test"]
-    fn blocking_timing() {
-        let rig = crowdmorph_core::synthetic::paper_scale_rig();
-        let blocked = CpuRig::new(&rig);
-        // `SPAN_KIB` tries another span budget.
-        let blocked = match std::env::var("SPAN_KIB")
-            .ok()
-            .and_then(|k| k.parse::<usize>().ok())
-        {
-            Some(kib) => blocked.with_blocking(Blocking {
-                span_bytes: kib << 10,
-                ..Blocking::detect()
-            }),
-            None => blocked,
-        };
-        let plain = blocked.clone().with_blocking(Blocking::NONE);
-        let spec = OutputSpec::default();
-        for n in [100, 1000, 4096] {
-            let mut rng = SplitMix64(n as u64);
-            let w: Vec<Vec<f32>> = (0..n)
-                .map(|_| {
-                    (0..rig.targets.len())
-                        .map(|_| 0.05 + 0.95 * rng.unit())
-                        .collect()
-                })
-                .collect();
-            let batch = WeightBatch::from_target_weights(&rig, &w, 0).expect("batch");
-            let mut outs = [BlendOutput::default(), BlendOutput::default()];
-            let mut times = [Vec::new(), Vec::new()];
-            for round in 0..9 {
-                for (i, c) in [&blocked, &plain].into_iter().enumerate() {
-                    let t = std::time::Instant::now();
-                    c.evaluate_into(&batch, spec, &mut outs[i]).expect("eval");
-                    if round >= 2 {
-                        times[i].push(t.elapsed().as_secs_f64() * 1e3);
-                    }
-                }
-            }
-            let med = |t: &mut Vec<f64>| {
-                t.sort_by(f64::total_cmp);
-                t[t.len() / 2]
-            };
-            let (b, p) = (med(&mut times[0]), med(&mut times[1]));
-            println!(
-                "{n} jobs: blocked {b:.2} ms, unblocked {p:.2} ms ({:.2}×), spans of {} KiB",
-                p / b,
-                blocked.blocking().span_bytes >> 10
-            );
-        }
-    }
-
     #[test]
     fn spans_fit_the_budget_and_small_outputs_keep_one_chunk_each() {
         let rig = banded_rig("banded", 3000, 50, 24);
