@@ -18,6 +18,7 @@
 //! half the budget, their per-frame coefficients coded as curves are with steps that keep the
 //! other half ([`compress_pca`]). The caller keeps the smaller of the two per clip.
 
+use crate::varint::{get_varint, put_varint, unzigzag, zigzag};
 use crowdmorph_core::rig::{Clip, Rig};
 
 /// Frames per independently decodable segment.
@@ -116,35 +117,6 @@ pub fn steps(rig: &Rig, max_error: f32) -> Vec<f32> {
         .iter()
         .map(|&l| if l > 0.0 { 2.0 * c * budget / l } else { 0.0 })
         .collect()
-}
-
-fn zigzag(x: i64) -> u64 {
-    ((x << 1) ^ (x >> 63)) as u64
-}
-
-fn unzigzag(z: u64) -> i64 {
-    ((z >> 1) as i64) ^ -((z & 1) as i64)
-}
-
-fn put_varint(out: &mut Vec<u8>, mut v: u64) {
-    while v >= 0x80 {
-        out.push((v as u8) | 0x80);
-        v >>= 7;
-    }
-    out.push(v as u8);
-}
-
-fn get_varint(bytes: &[u8], at: &mut usize) -> Option<u64> {
-    let mut v = 0u64;
-    for shift in (0..64).step_by(7) {
-        let b = *bytes.get(*at)?;
-        *at += 1;
-        v |= u64::from(b & 0x7f) << shift;
-        if b & 0x80 == 0 {
-            return Some(v);
-        }
-    }
-    None
 }
 
 /// Compresses `clip` of `rig` within `max_error × diagonal` per vertex (zstd fails only when

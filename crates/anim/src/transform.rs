@@ -31,6 +31,7 @@
 //!
 //! Nothing is denoised beyond the budget: the error is measured against the noisy input.
 
+use crate::varint::{get_varint, put_varint, unzigzag, zigzag};
 use crowdmorph_core::rig::{Clip, MAX_FRAMES, Rig};
 
 /// Why a transform-coded clip does not decode.
@@ -457,35 +458,6 @@ fn analyse_channels(metric: &Metric, clip: &Clip) -> Analysis {
         dirs,
         coeffs,
     }
-}
-
-fn zigzag(x: i64) -> u64 {
-    ((x << 1) ^ (x >> 63)) as u64
-}
-
-fn unzigzag(z: u64) -> i64 {
-    ((z >> 1) as i64) ^ -((z & 1) as i64)
-}
-
-fn put_varint(out: &mut Vec<u8>, mut v: u64) {
-    while v >= 0x80 {
-        out.push((v as u8) | 0x80);
-        v >>= 7;
-    }
-    out.push(v as u8);
-}
-
-fn get_varint(bytes: &[u8], at: &mut usize) -> Option<u64> {
-    let mut v = 0u64;
-    for shift in (0..64).step_by(7) {
-        let b = *bytes.get(*at)?;
-        *at += 1;
-        v |= u64::from(b & 0x7f) << shift;
-        if b & 0x80 == 0 {
-            return Some(v);
-        }
-    }
-    None
 }
 
 /// Predictors a stream may choose per segment.
