@@ -154,19 +154,8 @@ async fn a2f_and_a_rigs_own_mapping_give_the_weights_they_map_to() {
         {"head": 1, "rig": "default-head", "weights": {"JawOpen": 0.6}, "mapping": "a2f"},
         {"head": 2, "rig": "default-head", "weights": {"jawOpen": 0.6}}
     ]});
-    let r = server
-        .client
-        .send(
-            Method::POST,
-            "/v1/crowd/frame",
-            Some("application/json"),
-            Some("application/json"),
-            Bytes::from(body.to_string()),
-        )
-        .await
-        .expect("answer");
-    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
-    let v: Value = serde_json::from_slice(&r.body).expect("JSON");
+    let (status, v) = call(&server, Method::POST, "/v1/crowd/frame", body).await;
+    assert_eq!(status, 200, "{v}");
     assert_eq!(v["heads"][0]["buffer"], v["heads"][1]["buffer"], "one job");
     // Mapped weights over a clip replace the targets they reach, as weights by name do.
     let over = |id, w: &[(&str, f32)], m: Option<&str>| Head {
@@ -491,19 +480,8 @@ async fn malformed_masks_mappings_and_their_uses_are_named_4xx() {
         ),
     ];
     for (body, status, want, names) in uses {
-        let r = server
-            .client
-            .send(
-                Method::POST,
-                "/v1/crowd/frame",
-                Some("application/json"),
-                Some("application/json"),
-                Bytes::from(body.to_string()),
-            )
-            .await
-            .expect("answer");
-        let v: Value = serde_json::from_slice(&r.body).expect("JSON");
-        assert_eq!((r.status, code(&v)), (status, want), "{body}: {v}");
+        let (got, v) = call(&server, Method::POST, "/v1/crowd/frame", body.clone()).await;
+        assert_eq!((got, code(&v)), (status, want), "{body}: {v}");
         let m = v["error"]["message"].as_str().unwrap_or("");
         assert!(m.contains(names) && m.contains("head 0"), "{body}: {v}");
     }
